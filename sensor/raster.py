@@ -1,0 +1,93 @@
+"""GeoTIFF output shared by every stage: atomic writes, no silent overwrite.
+
+A raster is written to a temporary file in the destination folder and moved into place with
+``os.replace`` only when complete, so a crash never leaves a half-written product under the
+final name.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import rasterio
+
+from .errors import OutputExistsError
+
+
+def check_writable(path, overwrite: bool = False) -> Path:
+    """Raise :class:`OutputExistsError` if ``path`` exists and ``overwrite`` is false."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise OutputExistsError(f"{path}: exists; pass overwrite=True (--overwrite) to replace it")
+    return path
+
+
+def write_geotiff(path, data, transform=None, crs=None, nodata=None, *, overwrite=False,
+                  tags=None, band_tags=None, rpcs=None, compress="deflate", dtype=None):
+    """Write ``data`` (2-D, or 3-D band-first) to a GeoTIFF atomically.
+
+    Parameters
+    ----------
+    transform : affine.Affine
+        Pixel-corner georeferencing (GDAL convention).
+    nodata : float, optional
+        Nodata value; NaN for float rasters is allowed and is the default for float data.
+    tags : dict, optional
+        Dataset tags (strings); ``band_tags`` a list of per-band tag dicts.
+    rpcs : rasterio.rpc.RPC or dict, optional
+        RPC metadata to embed (GDAL RFC 22 domain).
+    """
+    path = check_writable(path, overwrite)
+    arr = np.asarray(data)
+    if arr.ndim == 2:
+        arr = arr[None]
+    if dtype is not None:
+        arr = arr.astype(dtype)
+    if nodata is None and np.issubdtype(arr.dtype, np.floating):
+        nodata = np.nan
+    profile = dict(driver="GTiff", width=arr.shape[2], height=arr.shape[1], count=arr.shape[0],
+                   dtype=arr.dtype, crs=crs, transform=transform, nodata=nodata,
+                   compress=compress, tiled=arr.shape[1] >= 256 and arr.shape[2] >= 256)
+    if profile["tiled"]:
+        profile.update(blockxsize=256, blockysize=256)
+    if transform is None:
+        profile.pop("transform")
+    if rpcs is not None:
+        profile["rpcs"] = rpcs
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    os.close(fd)
+    try:
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(tmp, "w", **profile) as dst:
+                dst.write(arr)
+                if tags:
+                    dst.update_tags(**{k: str(v) for k, v in tags.items()})
+                for i, bt in enumerate(band_tags or [], start=1):
+                    dst.update_tags(i, **{k: str(v) for k, v in bt.items()})
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def write_text_atomic(path, text: str, *, overwrite=False) -> Path:
+    """Write a text file atomically (temporary file + rename)."""
+    path = check_writable(path, overwrite)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
