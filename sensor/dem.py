@@ -123,7 +123,7 @@ class DEM:
         t = np.linspace(0, 1, 21)
         xs = np.concatenate([t * cols, np.full_like(t, cols), t[::-1] * cols, np.zeros_like(t)])
         ys = np.concatenate([np.zeros_like(t), t * rows, np.full_like(t, rows), t[::-1] * rows])
-        x, y = self.transform * (xs, ys)
+        x, y = self.transform @ (xs, ys)
         lon, lat = geodesy.crs_to_lonlat(x, y, self.crs)
         return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
 
@@ -134,7 +134,7 @@ class DEM:
             x, y = lon, lat
         else:
             x, y = geodesy.lonlat_to_crs(lon, lat, self.crs)
-        col, row = ~self.transform * (x, y)
+        col, row = ~self.transform @ (x, y)
         return np.asarray(col) - 0.5, np.asarray(row) - 0.5     # pixel-centre convention
 
     # ---------------------------------------------------------------- sampling
@@ -157,6 +157,8 @@ class DEM:
         """
         lon, lat = np.broadcast_arrays(np.asarray(lon, dtype=np.float64),
                                        np.asarray(lat, dtype=np.float64))
+        out_shape = lon.shape
+        lon, lat = lon.ravel(), lat.ravel()
         c, r = self._lonlat_to_pixel(lon, lat)
         rows, cols = self.shape
         finite = np.isfinite(c) & np.isfinite(r)
@@ -181,6 +183,7 @@ class DEM:
                 f"(of {status.size}); DEM extent lon/lat {self.bounds_lonlat()}")
         if reference is not None:
             z = self.convert_heights(lon, lat, z, to=reference)
+        z, status = z.reshape(out_shape), status.reshape(out_shape)
         return (z, status) if return_status else z
 
     def convert_heights(self, lon, lat, z, to: str):
@@ -203,7 +206,7 @@ class DEM:
             return self
         rows, cols = self.shape
         cc, rr = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
-        x, y = self.transform * (cc, rr)
+        x, y = self.transform @ (cc, rr)
         lon, lat = geodesy.crs_to_lonlat(x, y, self.crs)
         z = self.convert_heights(lon, lat, self.heights.astype(np.float64), to)
         return DEM(z.astype(np.float32), self.transform, self.crs, to, self.path)

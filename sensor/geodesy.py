@@ -52,7 +52,11 @@ def geodetic_to_ecef(lon, lat, h):
 
 
 def ecef_to_geodetic(x, y, z):
-    """ECEF (m) to geodetic ``(lon, lat, h)`` in degrees and metres above the ellipsoid."""
+    """ECEF (m) to geodetic ``(lon, lat, h)`` in degrees and metres above the ellipsoid.
+
+    PROJ's closed-form inverse is exact to micrometres for terrain heights (-500 to 9000 m)
+    and to about 5 mm at orbit heights (700-900 km).
+    """
     x, y, z = _as_float_arrays(x, y, z)
     return transformer(4978, 4979).transform(x, y, z)
 
@@ -162,8 +166,8 @@ def geoid_undulation(lon, lat, grid: str | Path | None = None):
     lon, lat = _as_float_arrays(lon, lat)
     path = str(grid or egm96_path())
     t = _geoid_transformer(path)
-    # vgridshift works in radians on geographic input
-    _, _, z = t.transform(np.radians(lon), np.radians(lat), np.zeros_like(lon))
+    # a bare vgridshift pipeline takes degrees (checked: +17.16 m at 0N 0E, -104.7 m at 5N 78E)
+    _, _, z = t.transform(lon, lat, np.zeros_like(lon))
     z = np.asarray(z, dtype=np.float64)
     bad = ~np.isfinite(z) | (np.abs(z) > 1e3)
     if np.any(bad & np.isfinite(lon) & np.isfinite(lat)):
@@ -221,6 +225,7 @@ def intersect_height(origin, direction, h, iterations: int = 6):
     disc = beta**2 - alpha * gamma
     with np.errstate(invalid="ignore"):
         s = (-beta - np.sqrt(disc)) / alpha
+    s = np.where(s > 0, s, np.nan)          # the surface must lie ahead of the origin
     for _ in range(iterations):
         p = o + s[..., None] * d
         lon, lat, hp = ecef_to_geodetic(p[..., 0], p[..., 1], p[..., 2])
