@@ -24,6 +24,17 @@ def check_writable(path, overwrite: bool = False) -> Path:
     return path
 
 
+def prepare_output_dir(path, *, overwrite: bool = False) -> Path:
+    """Create an output folder; refuse an existing non-empty one unless ``overwrite``."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputExistsError(f"{path}: exists and is not a folder")
+    if path.is_dir() and any(path.iterdir()) and not overwrite:
+        raise OutputExistsError(f"{path}: folder exists and is not empty; pass --overwrite to reuse it")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
 def write_geotiff(path, data, transform=None, crs=None, nodata=None, *, overwrite=False,
                   tags=None, band_tags=None, rpcs=None, compress="deflate", dtype=None):
     """Write ``data`` (2-D, or 3-D band-first) to a GeoTIFF atomically.

@@ -1,0 +1,118 @@
+"""Saving and loading sensor models (JSON sidecars) and finding an image's model.
+
+A physical model is stored next to its image as ``<image stem>.model.json``:
+``{"type": "<registered name>", "version": 1, ...}``. Every model class registers a
+``to_dict()`` / ``from_dict()`` pair; :func:`load_image_model` prefers that sidecar (the exact
+model) and falls back to the image's RPC metadata (GeoTIFF tags, ``.RPB``, ``_RPC.TXT``).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .errors import RPCError, SensorModelError
+from .raster import write_text_atomic
+
+_REGISTRY: dict[str, tuple[type, callable, callable]] = {}
+
+
+def register(name: str, cls: type, to_dict, from_dict):
+    """Register a model class under ``name`` with its (de)serialisers."""
+    _REGISTRY[name] = (cls, to_dict, from_dict)
+
+
+def _jsonable(v):
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, dict):
+        return {k: _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    return v
+
+
+def _ensure_registered():
+    from . import frame
+    if "frame" not in _REGISTRY:
+        from dataclasses import fields
+        names = [f.name for f in fields(frame.FrameCamera) if f.init]
+        register("frame", frame.FrameCamera,
+                 lambda m: {n: getattr(m, n) for n in names},
+                 lambda d: frame.FrameCamera(**{n: d[n] for n in names if n in d}))
+    for modname in ("pushbroom", "aster", "rpc"):
+        try:
+            mod = __import__(f"sensor.{modname}", fromlist=["_"])
+        except ImportError:
+            continue
+        for cls in vars(mod).values():
+            if isinstance(cls, type) and hasattr(cls, "to_dict") and hasattr(cls, "from_dict") \
+                    and getattr(cls, "__module__", "") == mod.__name__:
+                key = getattr(cls, "MODEL_TYPE", cls.__name__.lower())
+                if key not in _REGISTRY:
+                    register(key, cls, lambda m: m.to_dict(), cls.from_dict)
+
+
+def model_to_dict(model) -> dict:
+    _ensure_registered()
+    for name, (cls, to_dict, _) in _REGISTRY.items():
+        if type(model) is cls:
+            return {"type": name, "version": 1, **_jsonable(to_dict(model))}
+    raise SensorModelError(f"no serialiser for {type(model).__name__}")
+
+
+def model_from_dict(d: dict, source=None):
+    _ensure_registered()
+    kind = d.get("type")
+    if kind not in _REGISTRY:
+        raise SensorModelError(f"{source or 'model'}: unknown model type {kind!r}")
+    body = {k: v for k, v in d.items() if k not in ("type", "version")}
+    try:
+        return _REGISTRY[kind][2](body)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SensorModelError(f"{source or 'model'}: garbled {kind} model ({exc})") from None
+
+
+def save_model(model, path, *, overwrite=False):
+    """Write a model to a JSON sidecar (atomically)."""
+    return write_text_atomic(path, json.dumps(model_to_dict(model), indent=1), overwrite=overwrite)
+
+
+def load_model(path):
+    """Read a model from a JSON sidecar."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise SensorModelError(f"{path}: model file not found") from None
+    except json.JSONDecodeError as exc:
+        raise SensorModelError(f"{path}: not a JSON model file ({exc})") from None
+    return model_from_dict(d, source=path)
+
+
+def sidecar_path(image) -> Path:
+    image = Path(image)
+    return image.with_name(image.stem + ".model.json")
+
+
+def load_image_model(image, *, prefer: str = "physical"):
+    """The sensor model of an image file.
+
+    ``prefer="physical"`` uses the ``<stem>.model.json`` sidecar when present, else the RPC;
+    ``prefer="rpc"`` uses the RPC only. Raises :class:`SensorModelError` naming the file when
+    the image carries no usable model.
+    """
+    image = Path(image)
+    if not image.exists():
+        raise SensorModelError(f"{image}: image not found")
+    side = sidecar_path(image)
+    if prefer == "physical" and side.exists():
+        return load_model(side)
+    try:
+        from .rpc import RPCModel
+        return RPCModel.from_file(image)
+    except RPCError as exc:
+        raise SensorModelError(f"{image}: no usable sensor model (no {side.name} sidecar; {exc})") from None

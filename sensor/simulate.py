@@ -1,0 +1,356 @@
+"""Scene simulator: a stereo pair rendered from a real DEM and texture through sensor models.
+
+A scene is built on a UTM grid around the DEM's centre:
+
+* ``truth_dem``: the DEM resampled (cubic) to the grid, converted to ellipsoidal heights;
+* a ground radiance field on a grid twice as fine: albedo (the texture stretched over the
+  scene, times seeded multi-octave detail) times Lambertian shading of the DEM
+  (sun azimuth 150 deg, elevation 55 deg), blurred by a Gaussian point-spread function of
+  0.4 GSD;
+* the two images: every pixel is localised on the DEM through its sensor model (DRM relief
+  iteration, :mod:`sensor.render`) and reads the radiance there; then sensor noise
+  (Gaussian, ``noise`` DN) and 8- or 16-bit quantisation;
+* ``truth_ortho``: the radiance field at the ``truth_dem`` cell centres, in the same DN scale
+  without noise (the left image's true orthoimage);
+* check points: random left-image pixels localised exactly on the DEM, with their right-image
+  coordinates, half of them marked as GCPs.
+
+Presets
+-------
+``aster``  705 km orbit, 15 m pixels, band 3N nadir and 3B 27.6 deg backward (B/H ~0.6),
+           2.2 ms line period (pushbroom pair on one orbit).
+``frame``  BILSAT-like frame camera (0.0074 mm pixels, ~27 m GSD), two exposures on one
+           orbit converging on the scene centre (B/H ~0.6).
+``pushbroom``  a pushbroom pair at user-chosen along-track angles (``angles=(fwd, bwd)``).
+
+Everything is reproducible from ``seed``.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rasterio
+from affine import Affine
+from rasterio.warp import Resampling, reproject
+
+from . import geodesy
+from .dem import DEM, ELLIPSOID, as_dem
+from .errors import InputError
+from .model import SensorModel
+from .render import MapRaster, localization_error, render
+
+log = logging.getLogger(__name__)
+
+SUN_AZIMUTH, SUN_ELEVATION = 150.0, 55.0
+PRESETS = ("aster", "frame", "pushbroom")
+
+
+@dataclass
+class Scene:
+    """A simulated stereo scene (all arrays in memory)."""
+
+    left: np.ndarray
+    right: np.ndarray
+    left_model: SensorModel
+    right_model: SensorModel
+    truth_dem: DEM
+    truth_ortho: np.ndarray
+    points: list
+    preset: str
+    settings: dict = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)
+
+
+def texture_path() -> Path:
+    return Path(resources.files("sensor") / "data" / "landsat_texture.tif")
+
+
+# ----------------------------------------------------------------------------- sensor pairs
+
+def _orbit_state(lon0, lat0, altitude, along_km, heading_deg):
+    """ECEF position and velocity of a circular orbit passing over (lon0, lat0).
+
+    The satellite is ``along_km`` along the ground track (heading ``heading_deg`` from north)
+    from the point above the target.
+    """
+    r0 = np.array(geodesy.geodetic_to_ecef(lon0, lat0, altitude))
+    enu = geodesy.enu_basis(lon0, lat0)
+    hd = np.radians(heading_deg)
+    t_dir = np.sin(hd) * enu[0] + np.cos(hd) * enu[1]
+    R = np.linalg.norm(r0)
+    v_circ = np.sqrt(geodesy.GM / R)
+    ang = along_km * 1e3 / R
+    u = r0 / R
+    r = R * (np.cos(ang) * u + np.sin(ang) * t_dir)
+    v_in = v_circ * (-np.sin(ang) * u + np.cos(ang) * t_dir)
+    v_ecef = v_in - np.cross([0.0, 0.0, geodesy.OMEGA_EARTH], r)
+    return r, v_ecef
+
+
+def frame_pair(lon0, lat0, h0, size, gsd=27.6, altitude=686e3, base_to_height=0.6):
+    """Two BILSAT-like frame cameras on one orbit converging on ``(lon0, lat0, h0)``."""
+    from .frame import FrameCamera
+    w, h = size
+    pitch = 0.0074
+    focal = pitch * 1e-3 * altitude / gsd * 1e3
+    along = 0.5 * base_to_height * altitude / 1e3
+    cams = []
+    for sign in (-1.0, 1.0):
+        r, v = _orbit_state(lon0, lat0, altitude, sign * along, heading_deg=-12.0)
+        cams.append(FrameCamera.looking_at(r, v, lon0, lat0, h0, width=w, height=h,
+                                           focal_mm=focal, pitch_mm=pitch))
+    return cams[0], cams[1]
+
+
+def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_period=2.2e-3):
+    """A pushbroom pair on one orbit with along-track tilts ``angles`` (degrees)."""
+    try:
+        from .pushbroom import PushbroomModel
+    except ImportError as exc:  # pragma: no cover - the module is part of the package
+        raise InputError(f"pushbroom presets need sensor.pushbroom ({exc})") from None
+    w, h = size
+    common = dict(width=w, height=h, gsd=gsd, altitude=altitude, line_period=line_period)
+    if angles[0] == 0.0:
+        # one orbit, nadir then backward (ASTER 3N/3B): the backward image is acquired later
+        return PushbroomModel.synthetic_pair(lon0, lat0, backward_tilt_deg=angles[1], **common)
+    return tuple(PushbroomModel.synthetic(lon0, lat0, along_track_tilt_deg=a, **common) for a in angles)
+
+
+# ----------------------------------------------------------------------------- ground fields
+
+def _grid_for_models(models, crs, posting, h_range, margin_px=8):
+    xs, ys = [], []
+    for m in models:
+        for hh in h_range:
+            lon, lat = m.footprint(hh)
+            x, y = geodesy.lonlat_to_crs(lon, lat, crs)
+            xs.append(x)
+            ys.append(y)
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    x0 = np.floor(x.min() / posting - margin_px) * posting
+    y1 = np.ceil(y.max() / posting + margin_px) * posting
+    w = int(np.ceil((x.max() - x0) / posting + margin_px))
+    h = int(np.ceil((y1 - y.min()) / posting + margin_px))
+    return Affine(posting, 0, x0, 0, -posting, y1), (h, w)
+
+
+def _reproject_dem(dem: DEM, transform, shape, crs):
+    out = np.full(shape, np.nan, np.float32)
+    reproject(dem.heights, out, src_transform=dem.transform, src_crs=dem.crs.to_wkt(),
+              dst_transform=transform, dst_crs=crs.to_wkt(), resampling=Resampling.cubic,
+              src_nodata=np.nan, dst_nodata=np.nan)
+    if dem.vertical != ELLIPSOID:
+        cc, rr = np.meshgrid(np.arange(shape[1]) + 0.5, np.arange(shape[0]) + 0.5)
+        x, y = transform @ (cc, rr)
+        lon, lat = geodesy.crs_to_lonlat(x, y, crs)
+        out = dem.convert_heights(lon, lat, out.astype(np.float64), ELLIPSOID).astype(np.float32)
+    return out
+
+
+def _valid_box(valid):
+    """Largest centred-ish axis-aligned box (r0, r1, c0, c1) that is >= 99.9 % valid."""
+    ii = cv2.integral(valid.astype(np.float64))
+    H, W = valid.shape
+    best = (0, 0, H, 0, W)
+    if valid.mean() > 0.999:
+        return best[1:]
+    best = (0,)
+    step = max(4, min(H, W) // 100)
+    for r0 in range(0, H // 2, step):
+        for c0 in range(0, W // 2, step):
+            hh, ww = H - 2 * r0, W - 2 * c0
+            for r1 in range(H - r0, r0 + H // 4, -step):
+                s = ii[r1, W - c0] - ii[r0, W - c0] - ii[r1, c0] + ii[r0, c0]
+                area = (r1 - r0) * (ww)
+                if s >= 0.999 * area:
+                    if area > best[0]:
+                        best = (area, r0, r1, c0, W - c0)
+                    break
+    if best[0] == 0:
+        raise InputError("texture has no usable (non-zero) area")
+    return best[1:]
+
+
+def _albedo(texture, shape, rng, detail=0.35):
+    """Texture stretched to ``shape`` times seeded multi-octave detail, range about 0.05-0.95.
+
+    The texture's nodata border (zeros in every band, as in rotated Landsat scenes) is cut
+    off first.
+    """
+    with rasterio.open(texture) as ds:
+        t = ds.read().astype(np.float32)
+    r0, r1, c0, c1 = _valid_box(t.sum(axis=0) > 0)
+    t = t[:, r0:r1, c0:c1]
+    t = t.mean(axis=0) if t.shape[0] > 1 else t[0]
+    t = cv2.resize(t, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+    lo, hi = np.percentile(t, [1, 99])
+    t = np.clip((t - lo) / max(hi - lo, 1e-6), 0, 1)
+    d = np.zeros(shape, np.float32)
+    for sigma, amp in ((0.8, 1.0), (2.0, 0.8), (5.0, 0.6), (12.0, 0.4)):
+        n = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
+        d += amp * n / max(float(n.std()), 1e-6)
+    d /= float(d.std())
+    a = (0.15 + 0.7 * t) * (1.0 + detail * np.tanh(d / 2))
+    return np.clip(a, 0.02, 1.0).astype(np.float32)
+
+
+def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION):
+    """Lambertian cos(incidence) of the sun on a DEM array with square posting ``res`` (m)."""
+    gy, gx = np.gradient(np.nan_to_num(z, nan=float(np.nanmean(z))), res)
+    # rows go south: north-ward slope is -gy
+    nx, ny, nz = -gx, gy, np.ones_like(gx)
+    n = np.sqrt(nx * nx + ny * ny + 1)
+    az, el = np.radians(azimuth), np.radians(elevation)
+    s = np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
+    return np.clip((nx * s[0] + ny * s[1] + nz * s[2]) / n, 0.0, 1.0).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- simulation
+
+def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=None,
+                   noise: float = 1.0, seed: int = 0, bits: int = 8, angles=(0.0, -27.6),
+                   n_points: int = 60, step: int = 16) -> Scene:
+    """Simulate a stereo scene; see the module docstring.
+
+    Parameters
+    ----------
+    preset : {"aster", "frame", "pushbroom"}
+    size : (width, height) of each image in pixels.
+    dem : DEM or path, optional; default the bundled SRTM (EGM96 heights).
+    texture : path, optional; default the bundled Landsat image.
+    noise : float, standard deviation of the sensor noise in DN.
+    bits : 8 or 16, quantisation.
+    angles : along-track tilts (deg) of the two images for the ``pushbroom`` preset.
+    """
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if bits not in (8, 16):
+        raise InputError(f"bits must be 8 or 16, got {bits}")
+    w, h = int(size[0]), int(size[1])
+    if w < 32 or h < 32:
+        raise InputError(f"image size {w}x{h} is too small (at least 32x32)")
+    rng = np.random.default_rng(seed)
+    dem = DEM.bundled() if dem is None else as_dem(dem)
+    west, south, east, north = dem.bounds_lonlat()
+    lon0, lat0 = (west + east) / 2, (south + north) / 2
+    h_lo, h_hi = dem.height_range(ELLIPSOID)
+    h0 = float(dem.sample(lon0, lat0)) if np.isfinite(dem.sample(lon0, lat0)) else (h_lo + h_hi) / 2
+
+    if preset == "frame":
+        left_model, right_model = frame_pair(lon0, lat0, h0, (w, h))
+    else:
+        ang = (0.0, -27.6) if preset == "aster" else tuple(angles)
+        left_model, right_model = pushbroom_pair(lon0, lat0, h0, (w, h), ang)
+
+    gsd = left_model.gsd(h0)
+    crs = geodesy.utm_crs(lon0, lat0)
+    res_truth = float(np.round(gsd, 1))
+    transform, shape = _grid_for_models([left_model, right_model], crs, res_truth, (h_lo, h_hi))
+    truth = _reproject_dem(dem, transform, shape, crs)
+    if np.isnan(truth).mean() > 0.01:
+        raise InputError(f"{dem.path or 'DEM'}: the DEM does not cover the simulated scene "
+                         f"({100 * np.isnan(truth).mean():.1f}% of the scene outside or void)")
+
+    # fine grid (half the truth posting) for the radiance field and the rendering DEM
+    ft = Affine(res_truth / 2, 0, transform.c, 0, -res_truth / 2, transform.f)
+    fshape = (shape[0] * 2, shape[1] * 2)
+    fine_dem = _reproject_dem(dem, ft, fshape, crs)
+    albedo = _albedo(texture or texture_path(), fshape, rng)
+    shade = hillshade_factor(fine_dem, res_truth / 2)
+    field = albedo * (0.25 + 0.75 * shade)
+    field = cv2.GaussianBlur(field, (0, 0), 0.8)          # PSF sigma 0.4 GSD
+    dn_max = 255.0 if bits == 8 else 4095.0               # 12-bit signal in 16-bit words
+    gain = 0.9 * dn_max / float(np.percentile(field, 99.9))
+    radiance = MapRaster(field * gain, ft, crs)
+    dem_r = MapRaster(fine_dem, ft, crs)
+
+    images, diags, grounds = [], {}, []
+    for name, m in (("left", left_model), ("right", right_model)):
+        img, gx, gy, gh, _ = render(m, dem_r, radiance, step=step)
+        diags[f"{name}_render_error_px"] = localization_error(m, gx, gy, gh, crs, seed=seed)
+        diags[f"{name}_void_pct"] = float(100 * np.isnan(img).mean())
+        noisy = img + rng.normal(0.0, noise, img.shape).astype(np.float32) if noise > 0 else img
+        dtype = np.uint8 if bits == 8 else np.uint16
+        q = np.clip(np.rint(np.nan_to_num(noisy, nan=0.0)), 0, np.iinfo(dtype).max).astype(dtype)
+        images.append(q)
+        grounds.append((gx, gy, gh))
+    truth_ortho = radiance.sample(*(transform @ np.meshgrid(np.arange(shape[1]) + 0.5,
+                                                             np.arange(shape[0]) + 0.5)))
+    truth_dem = DEM(truth, transform, crs, ELLIPSOID, None)
+    points = _check_points(left_model, right_model, truth_dem, n_points, rng)
+    settings = dict(preset=preset, size=[w, h], noise=noise, seed=seed, bits=bits,
+                    gsd=gsd, center_lon=lon0, center_lat=lat0,
+                    angles=list(angles) if preset == "pushbroom" else None,
+                    dem=str(dem.path), texture=str(texture or texture_path()))
+    return Scene(images[0], images[1], left_model, right_model, truth_dem,
+                 truth_ortho.astype(np.float32), points, preset, settings, diags)
+
+
+def _check_points(left, right, dem, n, rng):
+    """Random left pixels localised exactly on the DEM, with right-image coordinates."""
+    m = 4 * n
+    c = rng.uniform(5, left.width - 6, m)
+    r = rng.uniform(5, left.height - 6, m)
+    loc = left.localize_dem(c, r, dem, threshold=0.001)
+    cr, rr = right.project(loc.lon, loc.lat, loc.h)
+    ok = (loc.converged & np.isfinite(cr) & (cr > 5) & (cr < right.width - 6)
+          & (rr > 5) & (rr < right.height - 6))
+    idx = np.flatnonzero(ok)[:n]
+    pts = []
+    for k, i in enumerate(idx):
+        pts.append(dict(id=f"P{k + 1:03d}", lon=loc.lon[i], lat=loc.lat[i], h=loc.h[i],
+                        col=c[i], row=r[i], col_right=cr[i], row_right=rr[i],
+                        role="gcp" if k % 2 == 0 else "check"))
+    return pts
+
+
+def points_csv(points) -> str:
+    """The check points as CSV text: id, lon, lat, h (ellipsoidal), col, row, right, role."""
+    buf = io.StringIO()
+    fields = ["id", "lon", "lat", "h", "col", "row", "col_right", "row_right", "role"]
+    wr = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    wr.writeheader()
+    for p in points:
+        wr.writerow({k: (f"{v:.9f}" if k in ("lon", "lat") else f"{v:.4f}" if isinstance(v, float) else v)
+                     for k, v in p.items()})
+    return buf.getvalue()
+
+
+def write_scene(scene: Scene, out_dir, *, overwrite: bool = False, fit_rpcs: bool = True):
+    """Write a scene under fixed names in ``out_dir``.
+
+    ``left.tif``/``right.tif`` (images with fitted RPC metadata and ``<name>.model.json``
+    sidecars holding the exact physical model), ``truth_dem.tif`` (ellipsoidal heights, UTM),
+    ``truth_ortho.tif`` (the left image's true orthoimage on the same grid), ``points.csv``
+    and ``scene.json`` (settings, diagnostics, RPC fit residuals).
+    """
+    from .raster import prepare_output_dir, write_geotiff, write_text_atomic
+    from .serialize import save_model
+
+    out = prepare_output_dir(out_dir, overwrite=overwrite)
+    meta = dict(settings=scene.settings, diagnostics=dict(scene.diagnostics), rpc_fit={})
+    for name, img, model in (("left", scene.left, scene.left_model), ("right", scene.right, scene.right_model)):
+        rpcs = None
+        if fit_rpcs:
+            from .rpcfit import fit_rpc
+            lo, hi = scene.truth_dem.height_range()
+            rpc, report = fit_rpc(model, height_range=(lo - 500.0, hi + 500.0))
+            rpcs = rpc.to_rasterio()
+            meta["rpc_fit"][name] = report.to_dict()
+        write_geotiff(out / f"{name}.tif", img, None, None, None, overwrite=overwrite, rpcs=rpcs,
+                      tags={"STEREODEM_MODEL": f"{name}.model.json"})
+        save_model(model, out / f"{name}.model.json", overwrite=overwrite)
+    scene.truth_dem.write(out / "truth_dem.tif", overwrite=overwrite)
+    write_geotiff(out / "truth_ortho.tif", scene.truth_ortho, scene.truth_dem.transform,
+                  scene.truth_dem.crs, np.nan, overwrite=overwrite)
+    write_text_atomic(out / "points.csv", points_csv(scene.points), overwrite=overwrite)
+    write_text_atomic(out / "scene.json", json.dumps(meta, indent=2, default=float), overwrite=overwrite)
+    return out

@@ -1,0 +1,106 @@
+import json
+
+import numpy as np
+import pytest
+import rasterio
+
+from sensor import geodesy
+from sensor.errors import InputError, OutputExistsError
+from sensor.simulate import simulate_scene, write_scene
+
+
+@pytest.fixture(scope="module")
+def frame_scene():
+    return simulate_scene("frame", size=(256, 240), seed=3, noise=1.0)
+
+
+def test_reproducible_from_seed(frame_scene):
+    again = simulate_scene("frame", size=(256, 240), seed=3, noise=1.0)
+    assert np.array_equal(again.left, frame_scene.left) and np.array_equal(again.right, frame_scene.right)
+    other = simulate_scene("frame", size=(256, 240), seed=4, noise=1.0)
+    assert not np.array_equal(other.left, frame_scene.left)
+
+
+def test_images_are_textured_and_quantised(frame_scene):
+    for img in (frame_scene.left, frame_scene.right):
+        assert img.dtype == np.uint8 and img.shape == (240, 256)
+        assert img.std() > 10                       # real texture and shading
+        assert (img == 0).mean() < 0.01             # no black (nodata) areas inside the scene
+    sc16 = simulate_scene("frame", size=(64, 64), seed=3, bits=16)
+    assert sc16.left.dtype == np.uint16 and sc16.left.max() > 255
+
+
+def test_rendering_follows_the_exact_models(frame_scene):
+    # the coarse-grid renderer agrees with the exact models (reported, and small)
+    d = frame_scene.diagnostics
+    assert d["left_render_error_px"] < 0.01 and d["right_render_error_px"] < 0.01
+    # check points: exact DEM localisation of the left pixel projects into the right image
+    # where the right image shows the same ground (texture correlation around the point)
+    p = frame_scene.points[0]
+    col, row = frame_scene.right_model.project(p["lon"], p["lat"], p["h"])
+    assert col == pytest.approx(p["col_right"], abs=1e-6) and row == pytest.approx(p["row_right"], abs=1e-6)
+    # truth DEM height at the point matches the point's height (DEM is the surface)
+    assert frame_scene.truth_dem.sample(p["lon"], p["lat"]) == pytest.approx(p["h"], abs=0.05)
+
+
+def test_truth_grid_is_utm_and_ellipsoidal(frame_scene):
+    dem = frame_scene.truth_dem
+    assert dem.vertical == "ellipsoid"
+    assert dem.crs.to_epsg() == geodesy.utm_epsg(40.42, 39.58)
+    assert frame_scene.truth_ortho.shape == dem.shape
+    # ellipsoidal = SRTM (geoid) + ~29.6 m here
+    lo, hi = dem.height_range()
+    assert 1100 < lo < hi < 3400
+
+
+def test_stereo_parallax_is_along_track(frame_scene):
+    """The two views see the same ground point at rows differing with height (B/H ~ 0.6)."""
+    lm, rm = frame_scene.left_model, frame_scene.right_model
+    lon, lat = lm.localize(128.0, 120.0, 1000.0)
+    d = []
+    for m in (lm, rm):
+        c1, r1 = m.project(lon, lat, 1000.0)
+        c2, r2 = m.project(lon, lat, 2000.0)
+        d.append(np.array([c2 - c1, r2 - r1]))
+    parallax = np.hypot(*(d[1] - d[0])) * frame_scene.settings["gsd"]
+    # 1000 m of height gives B/H * 1000 m of parallax, B/H = 0.6 by construction
+    assert parallax == pytest.approx(600.0, rel=0.1)
+    assert abs((d[1] - d[0])[1]) > 5 * abs((d[1] - d[0])[0])     # along the rows (flight)
+
+
+def test_aster_preset_geometry():
+    sc = simulate_scene("aster", size=(200, 180), seed=0, n_points=10)
+    assert sc.settings["gsd"] == pytest.approx(15.0, rel=0.02)
+    lm, rm = sc.left_model, sc.right_model
+    lon, lat = lm.localize(100.0, 90.0, 2000.0)
+    c1, r1 = rm.project(lon, lat, 1000.0)
+    c2, r2 = rm.project(lon, lat, 2000.0)
+    # backward view 27.6 deg: ~0.52-0.6 px of parallax per 15 m of height, along the rows
+    par = np.hypot(c2 - c1, r2 - r1) * 15.0 / 1000.0
+    assert 0.5 < par < 0.65
+    assert abs(r2 - r1) > 5 * abs(c2 - c1)
+    assert sc.diagnostics["right_render_error_px"] < 0.01
+
+
+def test_write_scene_outputs(tmp_path, frame_scene):
+    out = write_scene(frame_scene, tmp_path / "sim")
+    for name in ("left.tif", "right.tif", "left.model.json", "right.model.json", "truth_dem.tif",
+                 "truth_ortho.tif", "points.csv", "scene.json"):
+        assert (out / name).exists(), name
+    with rasterio.open(out / "left.tif") as ds:
+        assert ds.rpcs is not None and ds.width == 256
+    meta = json.loads((out / "scene.json").read_text())
+    assert meta["rpc_fit"]["left"]["check_rms"] < 0.01
+    from sensor.serialize import load_image_model
+    m = load_image_model(out / "left.tif")
+    c, r = m.project(*frame_scene.left_model.localize(10.0, 20.0, 1500.0), 1500.0)
+    assert (float(c), float(r)) == pytest.approx((10.0, 20.0), abs=1e-6)
+    with pytest.raises(OutputExistsError):
+        write_scene(frame_scene, out)
+
+
+def test_bad_input():
+    with pytest.raises(InputError, match="unknown preset"):
+        simulate_scene("spot")
+    with pytest.raises(InputError, match="too small"):
+        simulate_scene("frame", size=(8, 8))
