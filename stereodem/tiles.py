@@ -1,0 +1,225 @@
+"""Running a tile function over a scene: serially, in a process pool, or on Dask.
+
+The tile function is a pure function ``fn(tile, context) -> dict[str, ndarray]`` of one
+:class:`Tile` and a read-only context (images, models, settings). The runner
+
+* sends the context to each worker once (pool initializer / Dask scatter), not per tile;
+* enforces a per-tile timeout inside the worker (``SIGALRM``), so a hung tile is reported and
+  its worker goes on with the next tile;
+* logs failed tiles (exception or timeout) and returns them instead of failing the run;
+* with ``cache_dir``, stores each finished tile as ``tile_<index>.npz`` (atomically) and, on
+  ``resume``, skips tiles already there;
+* returns results keyed by tile index, so merging is independent of completion order and
+  ``workers=N`` gives bit-identical output to ``workers=1``.
+
+Memory: a worker holds the context plus one tile's working arrays; the bound is set by the
+tile size and the disparity range (see the stereo pipeline), not by the scene size.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import tempfile
+import time
+import traceback
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Tile:
+    """A rectangle of the reference image: ``rows`` x ``cols`` from (row0, col0), plus a halo."""
+
+    index: int
+    row0: int
+    col0: int
+    rows: int
+    cols: int
+    halo: int = 0
+
+    @property
+    def core(self):
+        """(row slice, col slice) of the tile without halo, in image coordinates."""
+        return slice(self.row0, self.row0 + self.rows), slice(self.col0, self.col0 + self.cols)
+
+    def with_halo(self, height: int, width: int):
+        """(row slice, col slice) including the halo, clipped to the image."""
+        return (slice(max(0, self.row0 - self.halo), min(height, self.row0 + self.rows + self.halo)),
+                slice(max(0, self.col0 - self.halo), min(width, self.col0 + self.cols + self.halo)))
+
+
+def make_tiles(height: int, width: int, size: int, halo: int = 0) -> list[Tile]:
+    """Tiles of ``size`` x ``size`` pixels covering a ``height`` x ``width`` image, row-major."""
+    if size <= 0:
+        raise ValueError("tile size must be positive")
+    tiles = []
+    for r0 in range(0, height, size):
+        for c0 in range(0, width, size):
+            tiles.append(Tile(len(tiles), r0, c0, min(size, height - r0), min(size, width - c0), halo))
+    return tiles
+
+
+@dataclass
+class TileFailure:
+    tile: Tile
+    reason: str
+
+    def to_dict(self):
+        return {"index": self.tile.index, "row0": self.tile.row0, "col0": self.tile.col0,
+                "rows": self.tile.rows, "cols": self.tile.cols, "reason": self.reason}
+
+
+class TileTimeout(Exception):
+    pass
+
+
+# --------------------------------------------------------------------------- worker side
+_CONTEXT = None
+
+
+def _init_worker(context):
+    global _CONTEXT
+    _CONTEXT = context
+    try:                                   # each worker computes single-threaded: N workers = N cores
+        import cv2
+        cv2.setNumThreads(1)
+    except Exception:  # pragma: no cover
+        pass
+
+
+def _alarm(signum, frame):
+    raise TileTimeout()
+
+
+def _run_one(fn, tile, timeout, context=None):
+    """Run ``fn`` on one tile with a timeout; returns (index, result | None, error | None, seconds)."""
+    ctx = _CONTEXT if context is None else context
+    t0 = time.perf_counter()
+    use_alarm = bool(timeout) and hasattr(signal, "SIGALRM")
+    if use_alarm:
+        old = signal.signal(signal.SIGALRM, _alarm)
+        signal.setitimer(signal.ITIMER_REAL, float(timeout))
+    try:
+        out = fn(tile, ctx)
+        return tile.index, out, None, time.perf_counter() - t0
+    except TileTimeout:
+        return tile.index, None, f"timed out after {timeout:g} s", time.perf_counter() - t0
+    except Exception as exc:  # a failing tile must not fail the run
+        tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
+        return tile.index, None, tb, time.perf_counter() - t0
+    finally:
+        if use_alarm:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, old)
+
+
+# --------------------------------------------------------------------------- cache
+def _cache_file(cache_dir, tile):
+    return Path(cache_dir) / f"tile_{tile.index:05d}.npz"
+
+
+def _save(cache_dir, tile, result):
+    path = _cache_file(cache_dir, tile)
+    fd, tmp = tempfile.mkstemp(dir=cache_dir, suffix=".npz.part")
+    os.close(fd)
+    with open(tmp, "wb") as f:
+        np.savez(f, **result)
+    os.replace(tmp, path)
+
+
+def _load(cache_dir, tile):
+    with np.load(_cache_file(cache_dir, tile)) as z:
+        return {k: z[k] for k in z.files}
+
+
+# --------------------------------------------------------------------------- driver
+def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | None = None,
+              cache_dir=None, resume: bool = False, progress=None, dask_address: str | None = None):
+    """Run ``fn(tile, context)`` over ``tiles``.
+
+    Parameters
+    ----------
+    workers : int or None
+        1 runs in this process; N > 1 a process pool of N; None uses all cores.
+    timeout : float, optional
+        Per-tile limit in seconds; a tile over it is reported as failed.
+    cache_dir : path, optional
+        Folder for finished tiles; with ``resume`` those are loaded instead of recomputed.
+    progress : callable(done, total), optional
+    dask_address : str, optional
+        A ``dask.distributed`` scheduler address (``tcp://host:port``) or a ``Client``; tiles
+        are then submitted there.
+
+    Returns
+    -------
+    results : dict[int, dict[str, ndarray]]
+    failures : list[TileFailure]
+    timings : dict[int, float] seconds per computed tile
+    """
+    tiles = list(tiles)
+    results, failures, timings = {}, [], {}
+    todo = []
+    if cache_dir is not None:
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+    for t in tiles:
+        if resume and cache_dir is not None and _cache_file(cache_dir, t).exists():
+            results[t.index] = _load(cache_dir, t)
+        else:
+            todo.append(t)
+    if resume and results:
+        log.info("resume: %d of %d tile(s) already done", len(results), len(tiles))
+    total, done = len(tiles), len(results)
+    by_index = {t.index: t for t in tiles}
+
+    def collect(index, out, err, secs):
+        nonlocal done
+        done += 1
+        timings[index] = secs
+        if err is not None:
+            log.warning("tile %d (row %d, col %d) failed: %s", index, by_index[index].row0,
+                        by_index[index].col0, err)
+            failures.append(TileFailure(by_index[index], err))
+        else:
+            results[index] = out
+            if cache_dir is not None:
+                _save(cache_dir, by_index[index], out)
+        if progress:
+            progress(done, total)
+
+    if dask_address is not None:
+        _run_dask(fn, todo, context, timeout, dask_address, collect)
+    elif workers == 1 or len(todo) <= 1:
+        for t in todo:
+            collect(*_run_one(fn, t, timeout, context))
+    else:
+        n = workers or os.cpu_count() or 1
+        with ProcessPoolExecutor(max_workers=n, initializer=_init_worker, initargs=(context,)) as ex:
+            futs = [ex.submit(_run_one, fn, t, timeout) for t in todo]
+            for f in as_completed(futs):
+                collect(*f.result())
+    failures.sort(key=lambda f: f.tile.index)
+    return results, failures, timings
+
+
+def _run_dask(fn, todo, context, timeout, address, collect):
+    try:
+        from dask.distributed import Client, as_completed as dask_completed
+    except ImportError:
+        from sensor.errors import InputError
+        raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
+    own = not hasattr(address, "submit")
+    client = Client(address) if own else address
+    try:
+        ctx = client.scatter(context, broadcast=True)
+        futs = [client.submit(_run_one, fn, t, timeout, ctx, pure=False) for t in todo]
+        for f in dask_completed(futs):
+            collect(*f.result())
+    finally:
+        if own:
+            client.close()
