@@ -101,13 +101,14 @@ class SVDSystem:
         coef = np.where(f > 0, f * self.beta / np.where(self.s > 0, self.s, 1.0), 0.0)
         return self.Vt.T @ coef
 
-    def default_grid(self, n: int = 400):
-        """Log-spaced weights spanning the singular values (where the L-curve and GCV act)."""
+    def default_grid(self, n: int = 400, *, widen: float = 10.0):
+        """Log-spaced weights from ``s_min / widen`` to ``s_max * widen`` (``s_min`` floored at
+        ``s_max * 1e-14``); the L-curve uses ``widen = 1`` (Hansen's ``l_corner`` range)."""
         smax = float(self.s[0]) if self.s.size and self.s[0] > 0 else 1.0
         pos = self.s[self.s > smax * 1e-14]
         smin = float(pos[-1]) if pos.size else smax * 1e-14
-        lo = max(smin * 1e-2, smax * 1e-14)
-        return np.logspace(np.log10(lo), np.log10(smax * 10.0), n)
+        lo = max(smin / widen, smax * 1e-14)
+        return np.logspace(np.log10(lo), np.log10(smax * widen), n)
 
 
 def _system(A, b, svd):
@@ -165,7 +166,7 @@ def gcv_weight(A, b, *, lams=None, svd: SVDSystem | None = None) -> float:
         The weight ``lam`` (> 0) to pass to :func:`tikhonov_solve`.
     """
     sv = _system(A, b, svd)
-    grid = sv.default_grid() if lams is None else np.sort(np.asarray(lams, dtype=np.float64))
+    grid = sv.default_grid(500, widen=1e4) if lams is None else np.sort(np.asarray(lams, dtype=np.float64))
     g = gcv_function(None, None, grid, svd=sv)
     if not np.any(np.isfinite(g)):
         raise InputError("regularize: GCV undefined (as many unknowns as observations?)")
@@ -189,14 +190,18 @@ def lcurve(A, b, lams, *, svd: SVDSystem | None = None):
     return rho, eta
 
 
-def lcurve_weight(A, b, *, lams=None, svd: SVDSystem | None = None) -> float:
+def lcurve_weight(A, b, *, lams=None, svd: SVDSystem | None = None,
+                  min_curvature: float = 0.0) -> float:
     """Tikhonov weight at the corner (maximum curvature) of the L-curve (Hansen & O'Leary 1993).
 
     The curve ``(rho, eta) = (log ||A x_lam - b||, log ||x_lam||)`` is sampled on a fine
-    log-spaced grid of ``lam`` spanning the singular values of ``A`` (or on ``lams``); its
-    signed curvature ``(rho'' eta' - rho' eta'') / (rho'^2 + eta'^2)^(3/2)`` (derivatives with
-    respect to ``log lam``, Hansen's sign convention, positive at the corner) is maximised,
-    the grid ends excluded.
+    log-spaced grid of ``lam`` from the smallest to the largest singular value of ``A`` (or on
+    ``lams``); its signed curvature ``(rho' eta'' - rho'' eta') / (rho'^2 + eta'^2)^(3/2)``
+    (derivatives with respect to ``log lam``; positive where the curve turns from its steep
+    branch, small ``lam``, to its flat branch, i.e. at the corner, as in Hansen's ``l_corner``)
+    is maximised, the grid ends and stationary stretches excluded. A well-posed system has no
+    corner (no curvature above ``min_curvature``): ``1e-3`` times the smallest weight of the
+    grid (``s_min``) is then returned, a negligible damping (filter factors >= 1 - 1e-6).
 
     Returns
     -------
@@ -204,20 +209,25 @@ def lcurve_weight(A, b, *, lams=None, svd: SVDSystem | None = None) -> float:
         The weight ``lam`` (> 0).
     """
     sv = _system(A, b, svd)
-    grid = sv.default_grid(600) if lams is None else np.sort(np.asarray(lams, dtype=np.float64))
+    grid = sv.default_grid(600, widen=1.0) if lams is None else np.sort(np.asarray(lams, dtype=np.float64))
     if grid.size < 5:
         raise InputError("regularize: the L-curve needs at least 5 weights")
     t = np.log(grid)
     rho, eta = lcurve(None, None, grid, svd=sv)
     r1, e1 = np.gradient(rho, t), np.gradient(eta, t)
     r2, e2 = np.gradient(r1, t), np.gradient(e1, t)
+    speed = np.hypot(r1, e1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        kappa = (r2 * e1 - r1 * e2) / (r1 ** 2 + e1 ** 2) ** 1.5
+        kappa = (r1 * e2 - r2 * e1) / speed ** 3
+    # plateaus (the curve standing still) give round-off curvature: ignore them
+    kappa[speed < 1e-3 * np.max(speed)] = -np.inf
     kappa[:2] = kappa[-2:] = -np.inf
     kappa[~np.isfinite(kappa)] = -np.inf
-    if not np.any(np.isfinite(kappa)):
-        raise InputError("regularize: the L-curve has no corner (flat curve)")
-    return float(grid[int(np.argmax(kappa))])
+    i = int(np.argmax(kappa))
+    if not np.isfinite(kappa[i]) or kappa[i] < min_curvature:
+        # no corner: the system is well posed over the grid; damp negligibly (f_i >= 1 - 1e-6)
+        return float(grid[0] * 1e-3)
+    return float(grid[i])
 
 
 def condition_number(A, lam: float = 0.0) -> float:
