@@ -1,0 +1,399 @@
+"""Blunder filters for stereo DEMs and a configurable chain that reports what each removed.
+
+Every filter is a plain function of a height grid (float, NaN voids) and, where it needs them,
+the matching layers (correlation score, ray gap, a reference DEM on the same grid, the
+transform and CRS for metric slopes). It returns ``(mask, reason)``: a boolean array of the
+*valid* cells it would remove and a :class:`Reason` code. :class:`FilterChain` applies a list
+of steps in order, sets removed cells to NaN, writes the reason into a uint8 layer and counts
+what each step removed; its ``params`` are plain dicts that go into reports.
+
+Filters (with where they come from):
+
+* :func:`score_filter` — correlation score below a threshold (ASP ``xcorr-threshold``).
+* :func:`ray_gap_filter` — ray gap above an absolute limit and/or above ``factor`` times a
+  robust percentile of the gaps (ASP ``--remove-outliers-params 75 3``,
+  ``--max-valid-triangulation-error``).
+* :func:`local_sigma_filter` — the Ok (2005) thesis's noise test: a cell more than k σ from
+  the mean of its 8 valid neighbours (k = 2 in the thesis).
+* :func:`failed_neighbours_filter` — the thesis's second test: ≥ 5 of the 8 neighbours failed.
+* :func:`spike_filter` — residual to a robust local surface tested against a local NMAD.
+* :func:`slope_filter` — slope above a limit (degrees, metric even on lon/lat grids).
+* :func:`reference_filter` — |DEM − reference − median| above a limit.
+* :func:`small_patch_filter` — connected blobs (neighbours within a height jump) smaller than a
+  size limit, including islands of valid cells inside voids (OpenCV ``filterSpeckles``).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import cv2
+import numpy as np
+from scipy import ndimage as ndi
+
+from sensor.errors import InputError
+
+from . import terrain
+from .stats import NMAD_FACTOR
+
+log = logging.getLogger(__name__)
+
+
+class Reason(IntEnum):
+    """Why a cell was removed (the value written into the ``removed`` layer)."""
+
+    KEPT = 0
+    SCORE = 1
+    RAY_GAP = 2
+    LOCAL_SIGMA = 3
+    FAILED_NEIGHBOURS = 4
+    SPIKE = 5
+    SLOPE = 6
+    REFERENCE = 7
+    SMALL_PATCH = 8
+
+
+_RING8 = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=np.float64)
+
+
+def _heights(heights) -> np.ndarray:
+    z = np.asarray(heights, dtype=np.float64)
+    if z.ndim != 2:
+        raise InputError(f"expected a 2-D height grid, got shape {z.shape}")
+    return z
+
+
+def _layer(layer, shape, name) -> np.ndarray:
+    a = np.asarray(layer, dtype=np.float64)
+    if a.shape != tuple(shape):
+        raise InputError(f"{name} layer has shape {a.shape}, the DEM {tuple(shape)}")
+    return a
+
+
+# ----------------------------------------------------------------------------- filters
+
+def score_filter(heights, score, *, min_score: float = 0.5):
+    """Cells whose correlation score is below ``min_score`` (NaN scores are kept)."""
+    z = _heights(heights)
+    s = _layer(score, z.shape, "score")
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(z) & (s < min_score), Reason.SCORE
+
+
+def ray_gap_filter(heights, ray_gap, *, max_gap: float | None = None,
+                   percentile: float | None = 75.0, factor: float = 3.0):
+    """Cells whose ray gap (m) exceeds ``max_gap`` or ``factor`` × its ``percentile``.
+
+    Either test may be disabled with ``None``; with both, a cell failing either is removed.
+    """
+    z = _heights(heights)
+    g = _layer(ray_gap, z.shape, "ray gap")
+    valid = np.isfinite(z) & np.isfinite(g)
+    mask = np.zeros(z.shape, bool)
+    if max_gap is not None:
+        mask |= valid & (g > max_gap)
+    if percentile is not None and valid.any():
+        lim = factor * float(np.percentile(g[valid], percentile))
+        mask |= valid & (g > lim)
+    return mask, Reason.RAY_GAP
+
+
+def _neighbour_moments(z):
+    """Count, mean and std of the valid 8-neighbours of every cell (outside = missing)."""
+    v = np.isfinite(z)
+    z0 = np.where(v, z, 0.0)
+    n = ndi.convolve(v.astype(np.float64), _RING8, mode="constant")
+    s1 = ndi.convolve(z0, _RING8, mode="constant")
+    s2 = ndi.convolve(z0 * z0, _RING8, mode="constant")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = s1 / n
+        var = np.maximum(s2 / n - mean * mean, 0.0)
+    return n, mean, np.sqrt(var)
+
+
+def local_sigma_filter(heights, *, k: float = 2.0, min_deviation: float = 0.0,
+                       min_neighbours: int = 3):
+    """The Ok (2005) local test: |z − mean₈| > max(k·σ₈, ``min_deviation``).
+
+    ``mean₈`` and ``σ₈`` are the mean and standard deviation of the valid 8-neighbours; cells
+    with fewer than ``min_neighbours`` valid neighbours are not tested. The thesis used
+    k = 2 and no floor; on noisy but sound terrain that removes several per cent of good cells,
+    so the default chain uses a larger k and a floor in metres.
+    """
+    z = _heights(heights)
+    n, mean, sd = _neighbour_moments(z)
+    with np.errstate(invalid="ignore"):
+        mask = np.isfinite(z) & (n >= min_neighbours) & (np.abs(z - mean) > np.maximum(k * sd, min_deviation))
+    return mask, Reason.LOCAL_SIGMA
+
+
+def failed_neighbours_filter(heights, *, min_failed: int = 5):
+    """The Ok (2005) test: valid cells with ≥ ``min_failed`` void 8-neighbours (cells beyond
+    the grid edge do not count as failed)."""
+    z = _heights(heights)
+    void = (~np.isfinite(z)).astype(np.float64)
+    nfail = ndi.convolve(void, _RING8, mode="constant", cval=0.0)
+    return np.isfinite(z) & (nfail >= min_failed), Reason.FAILED_NEIGHBOURS
+
+
+def _fill_nearest(z):
+    v = np.isfinite(z)
+    if v.all():
+        return z
+    idx = ndi.distance_transform_edt(~v, return_distances=False, return_indices=True)
+    return z[tuple(idx)]
+
+
+def _quadratic_kernel(half: int):
+    """Correlation kernel giving the value at the centre of a least-squares quadratic surface
+    fitted to the (2·half+1)² window without its centre cell."""
+    yy, xx = np.mgrid[-half:half + 1, -half:half + 1]
+    x, y = xx.ravel().astype(float), yy.ravel().astype(float)
+    a = np.stack([np.ones_like(x), x, y, x * x, y * y, x * y], 1)
+    w = np.ones(x.size)
+    w[x.size // 2] = 0.0
+    coef = np.linalg.solve(a.T @ (w[:, None] * a), (a * w[:, None]).T)
+    return coef[0].reshape(2 * half + 1, 2 * half + 1)
+
+
+def _block_scale(r, valid, block: int):
+    """Local NMAD of ``r`` in ``block``×``block`` tiles, bilinearly resampled to full size."""
+    rows, cols = r.shape
+    nb_r, nb_c = max(1, -(-rows // block)), max(1, -(-cols // block))
+    pad = np.full((nb_r * block, nb_c * block), np.nan)
+    pad[:rows, :cols] = np.where(valid, r, np.nan)
+    t = pad.reshape(nb_r, block, nb_c, block).transpose(0, 2, 1, 3).reshape(nb_r, nb_c, -1)
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(t, axis=2)
+            scale = NMAD_FACTOR * np.nanmedian(np.abs(t - med[..., None]), axis=2)
+    glob = NMAD_FACTOR * np.median(np.abs(r[valid] - np.median(r[valid])))
+    scale = np.where(np.isfinite(scale), scale, glob).astype(np.float32)
+    if scale.shape == (1, 1):
+        return np.full(r.shape, float(scale[0, 0]))
+    return cv2.resize(scale, (cols, rows), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+
+
+def spike_filter(heights, *, k: float = 5.0, min_deviation: float = 5.0, window: int = 5,
+                 median_size: int = 7, block: int = 32, iterations: int = 4):
+    """Spikes and pits: residual to a local surface fitted around each cell, against a local
+    robust scale.
+
+    1. Every cell is predicted by a least-squares quadratic surface fitted to its
+       ``window``×``window`` neighbourhood without itself (a fixed linear kernel);
+       ``r = z − prediction`` (voids are first filled with the nearest valid height).
+    2. The scale of ``r`` is its NMAD in ``block``-sized tiles, resampled bilinearly (so rough
+       mountains get a looser limit than flat plains); a cell is flagged if
+       |r| > max(k · scale, ``min_deviation``).
+    3. Flagged cells are replaced by a ``median_size`` median in a working copy and the
+       prediction is repeated (``iterations`` times), so that blunders do not spoil the
+       prediction of their neighbours and clumps are peeled from their edges; the cells
+       flagged in the last pass are removed.
+    """
+    z = _heights(heights)
+    valid = np.isfinite(z)
+    if valid.sum() < 9:
+        return np.zeros(z.shape, bool), Reason.SPIKE
+    zf = _fill_nearest(z)
+    kern = _quadratic_kernel(window // 2)
+    r = zf - ndi.correlate(zf, kern, mode="nearest")
+    limit = np.maximum(k * _block_scale(r, valid, block), min_deviation)
+    flag = valid & (np.abs(r) > limit)
+    med = replaced = None
+    for _ in range(max(0, iterations - 1)):
+        if not flag.any():
+            break
+        if med is None:
+            med = ndi.median_filter(zf, size=median_size, mode="nearest")
+        replaced = flag if replaced is None else replaced | flag
+        work = np.where(replaced, med, zf)
+        r = zf - ndi.correlate(work, kern, mode="nearest")
+        new = valid & (np.abs(r) > limit)
+        if np.array_equal(new, flag):
+            break
+        flag = new
+    return flag, Reason.SPIKE
+
+
+def slope_filter(heights, transform, crs, *, max_slope: float = 70.0):
+    """Cells whose slope (degrees, central differences in metres) exceeds ``max_slope``."""
+    z = _heights(heights)
+    s = terrain.slope_deg(z, transform, crs)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(z) & (s > max_slope), Reason.SLOPE
+
+
+def reference_filter(heights, reference, *, max_diff: float = 100.0, centre: bool = True):
+    """Cells with |z − reference − c| > ``max_diff`` (m), c the median difference when
+    ``centre`` (so a datum offset does not remove the whole DEM), else 0. The reference must
+    be on the same grid and vertical reference."""
+    z = _heights(heights)
+    ref = _layer(reference, z.shape, "reference")
+    dh = z - ref
+    ok = np.isfinite(dh)
+    c = float(np.median(dh[ok])) if (centre and ok.any()) else 0.0
+    with np.errstate(invalid="ignore"):
+        return ok & (np.abs(dh - c) > max_diff), Reason.REFERENCE
+
+
+def small_patch_filter(heights, *, max_size: int = 10, max_jump: float | None = None,
+                       jump_percentile: float = 99.0, jump_factor: float = 2.0,
+                       min_jump: float = 10.0):
+    """Blobs of fewer than ``max_size`` cells, where a blob is a 4-connected set of valid
+    cells whose neighbours differ by at most ``max_jump`` metres.
+
+    This removes small valid islands inside voids and small clumps standing off the terrain.
+    ``max_jump`` defaults to ``jump_factor`` × the ``jump_percentile`` of the neighbour height
+    differences (at least ``min_jump``), so it adapts to the relief and the grid spacing.
+    Implemented with OpenCV's ``filterSpeckles`` on heights quantised to int16.
+    """
+    z = _heights(heights)
+    valid = np.isfinite(z)
+    if not valid.any():
+        return np.zeros(z.shape, bool), Reason.SMALL_PATCH
+    if max_jump is None:
+        jx = np.abs(np.diff(z, axis=1))
+        jy = np.abs(np.diff(z, axis=0))
+        j = np.concatenate([jx[np.isfinite(jx)], jy[np.isfinite(jy)]])
+        max_jump = max(min_jump, jump_factor * float(np.percentile(j, jump_percentile))) if j.size else min_jump
+    lo, hi = float(np.min(z[valid])), float(np.max(z[valid]))
+    q = max((hi - lo) / 60000.0, max_jump / 30000.0, 1e-3)     # metres per quantum
+    zq = np.full(z.shape, -32768, dtype=np.int16)
+    zq[valid] = np.round((z[valid] - lo) / q - 30000.0).astype(np.int16)
+    out, _ = cv2.filterSpeckles(zq.copy(), -32768, int(max_size), int(np.floor(max_jump / q)))
+    return valid & (out == -32768), Reason.SMALL_PATCH
+
+
+# ----------------------------------------------------------------------------- chain
+
+@dataclass
+class FilterStep:
+    """One step of a :class:`FilterChain`: a filter name and its keyword options.
+
+    ``name`` is one of :data:`FILTERS`' keys (``"score"``, ``"ray_gap"``, ``"local_sigma"``,
+    ``"failed_neighbours"``, ``"spike"``, ``"slope"``, ``"reference"``, ``"small_patch"``).
+    """
+
+    name: str
+    params: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.name not in FILTERS:
+            raise InputError(f"unknown filter {self.name!r}; choose from {sorted(FILTERS)}")
+
+
+@dataclass
+class FilterResult:
+    """Output of :meth:`FilterChain.apply`.
+
+    Attributes
+    ----------
+    heights : ndarray float32, NaN where voids or removed.
+    removed : ndarray uint8, the :class:`Reason` of each removed cell (0 = kept or void).
+    report : list of dict, one per step: ``step``, ``reason``, ``params``, ``removed`` (count),
+        ``removed_pct`` (of the cells valid at the start), or ``skipped`` with why.
+    """
+
+    heights: np.ndarray
+    removed: np.ndarray
+    report: list
+
+    @property
+    def removed_mask(self):
+        return self.removed > 0
+
+
+def _run_step(step, z, layers):
+    name, p = step.name, step.params
+    if name == "score":
+        if layers.get("score") is None:
+            return None, "no score layer"
+        return score_filter(z, layers["score"], **p)
+    if name == "ray_gap":
+        if layers.get("ray_gap") is None:
+            return None, "no ray-gap layer"
+        return ray_gap_filter(z, layers["ray_gap"], **p)
+    if name == "reference":
+        if layers.get("reference") is None:
+            return None, "no reference DEM"
+        return reference_filter(z, layers["reference"], **p)
+    if name == "slope":
+        if layers.get("transform") is None or layers.get("crs") is None:
+            return None, "no transform/CRS for metric slopes"
+        return slope_filter(z, layers["transform"], layers["crs"], **p)
+    return FILTERS[name](z, **p)
+
+
+FILTERS = {
+    "score": score_filter, "ray_gap": ray_gap_filter, "local_sigma": local_sigma_filter,
+    "failed_neighbours": failed_neighbours_filter, "spike": spike_filter,
+    "slope": slope_filter, "reference": reference_filter, "small_patch": small_patch_filter,
+}
+
+
+class FilterChain:
+    """An ordered list of :class:`FilterStep` applied one after the other.
+
+    Steps that need a layer that is not given (score, ray gap, reference, transform/CRS) are
+    skipped and say so in the report. Each step sees the DEM as left by the previous ones.
+    """
+
+    def __init__(self, steps):
+        self.steps = [s if isinstance(s, FilterStep) else FilterStep(*s) if isinstance(s, tuple)
+                      else FilterStep(**s) for s in steps]
+
+    @property
+    def params(self) -> list:
+        return [{"step": s.name, "params": dict(s.params)} for s in self.steps]
+
+    def apply(self, heights, *, score=None, ray_gap=None, reference=None, transform=None,
+              crs=None) -> FilterResult:
+        """Run the chain on ``heights`` (2-D, NaN voids) or a :class:`sensor.dem.DEM` (whose
+        transform and CRS are then used)."""
+        if hasattr(heights, "heights") and hasattr(heights, "transform"):
+            transform = transform or heights.transform
+            crs = crs or heights.crs
+            heights = heights.heights
+        z = _heights(heights).copy()
+        n0 = int(np.isfinite(z).sum())
+        removed = np.zeros(z.shape, np.uint8)
+        layers = dict(score=score, ray_gap=ray_gap, reference=reference, transform=transform, crs=crs)
+        report = []
+        for step in self.steps:
+            mask, reason = _run_step(step, z, layers)
+            entry = {"step": step.name, "params": dict(step.params)}
+            if mask is None:
+                entry["skipped"] = reason
+                log.info("filter %s skipped: %s", step.name, reason)
+            else:
+                mask &= np.isfinite(z)
+                n = int(mask.sum())
+                z[mask] = np.nan
+                removed[mask] = int(reason)
+                entry.update(reason=int(reason), reason_name=Reason(reason).name.lower(), removed=n,
+                             removed_pct=100.0 * n / n0 if n0 else 0.0)
+                log.info("filter %s removed %d cells (%.3f %%)", step.name, n, entry["removed_pct"])
+            report.append(entry)
+        return FilterResult(z.astype(np.float32), removed, report)
+
+
+def default_chain(*, thesis: bool = False) -> FilterChain:
+    """The default blunder chain for stereo DEMs.
+
+    Score (< 0.5) and ray-gap (> 3 × P75) steps run when those layers are given. Then spikes
+    (k = 5 local NMADs, at least 5 m), small patches (< 10 cells), the Ok local test with k = 3
+    and a 10 m floor, and the ≥ 5-failed-neighbours test. ``thesis=True`` uses the thesis's
+    own k = 2 without a floor.
+    """
+    local = {"k": 2.0} if thesis else {"k": 3.0, "min_deviation": 10.0}
+    return FilterChain([
+        FilterStep("score", {"min_score": 0.5}),
+        FilterStep("ray_gap", {"percentile": 75.0, "factor": 3.0}),
+        FilterStep("spike", {"k": 5.0, "min_deviation": 5.0}),
+        FilterStep("small_patch", {"max_size": 10}),
+        FilterStep("local_sigma", local),
+        FilterStep("failed_neighbours", {"min_failed": 5}),
+    ])

@@ -1,0 +1,127 @@
+"""Terrain attributes on DEM grids: metric pixel size, gradient, slope, aspect, hillshade.
+
+Works on projected grids (metres) and on geographic grids (degrees): for the latter the pixel
+size in metres is computed per row from the WGS84 meridian and prime-vertical radii of
+curvature at the row's latitude, so slopes are right on an SRTM-style lon/lat DEM.
+
+Arrays follow the DEM convention: ``heights[row, col]`` float32 with NaN voids, an affine
+pixel-corner ``transform`` (GDAL) and a CRS. Rows run north to south when the transform's
+``e`` term is negative (the usual case); the east/north gradients account for the signs.
+"""
+from __future__ import annotations
+
+import numpy as np
+from pyproj import CRS
+
+from sensor import geodesy
+from sensor.errors import CRSError
+
+
+def metres_per_degree(lat):
+    """Length in metres of one degree of longitude and of latitude at ``lat`` (degrees, WGS84).
+
+    Returns
+    -------
+    (m_per_deg_lon, m_per_deg_lat) : ndarray float64
+    """
+    phi = np.radians(np.asarray(lat, dtype=np.float64))
+    w = np.sqrt(1.0 - geodesy.E2 * np.sin(phi) ** 2)
+    n = geodesy.A / w                                   # prime vertical radius
+    m = geodesy.A * (1.0 - geodesy.E2) / w ** 3         # meridian radius
+    return n * np.cos(phi) * np.pi / 180.0, m * np.pi / 180.0
+
+
+def _is_geographic(crs) -> bool:
+    try:
+        return bool(CRS.from_user_input(crs).is_geographic)
+    except Exception as exc:
+        raise CRSError(f"unusable CRS {crs!r}: {exc}") from None
+
+
+def _linear_unit_factor(crs) -> float:
+    c = CRS.from_user_input(crs)
+    try:
+        f = c.axis_info[0].unit_conversion_factor
+    except (IndexError, AttributeError):
+        f = 1.0
+    return float(f or 1.0)
+
+
+def pixel_size_m(transform, crs, shape):
+    """Pixel size in metres along columns (east) and rows (north), per row.
+
+    Parameters
+    ----------
+    transform : affine.Affine
+        Pixel-corner transform; rotation terms must be zero (north-up grid).
+    crs : CRS-like
+        Geographic (degrees) or projected CRS.
+    shape : (rows, cols)
+
+    Returns
+    -------
+    dx, dy : ndarray float64 of shape (rows, 1)
+        Signed metres per pixel step: ``dx`` eastwards per column step, ``dy`` northwards per
+        row step (negative for a north-up grid).
+    """
+    if abs(transform.b) > 1e-12 * abs(transform.a) or abs(transform.d) > 1e-12 * abs(transform.e):
+        raise CRSError("rotated DEM grids are not supported; warp the DEM to a north-up grid first")
+    rows = shape[0]
+    if _is_geographic(crs):
+        lat = transform.f + transform.e * (np.arange(rows) + 0.5)
+        mlon, mlat = metres_per_degree(lat)
+        dx, dy = transform.a * mlon, transform.e * mlat
+    else:
+        f = _linear_unit_factor(crs)
+        dx = np.full(rows, transform.a * f)
+        dy = np.full(rows, transform.e * f)
+    return np.asarray(dx, float)[:, None], np.asarray(dy, float)[:, None]
+
+
+def gradient(heights, transform, crs):
+    """East and north height gradients (dimensionless, m/m) by central differences.
+
+    Edge cells use one-sided differences; a cell next to a void gets NaN (as in ``gdaldem``).
+
+    Returns
+    -------
+    dzde, dzdn : ndarray float64
+    """
+    z = np.asarray(heights, dtype=np.float64)
+    dx, dy = pixel_size_m(transform, crs, z.shape)
+    if z.shape[0] < 2 or z.shape[1] < 2:
+        nan = np.full(z.shape, np.nan)
+        return nan, nan.copy()
+    gr, gc = np.gradient(z)                 # per row step, per column step
+    return gc / dx, gr / dy
+
+
+def slope_deg(heights, transform, crs):
+    """Slope in degrees (0 flat, 90 vertical), NaN on and next to voids."""
+    ge, gn = gradient(heights, transform, crs)
+    return np.degrees(np.arctan(np.hypot(ge, gn)))
+
+
+def aspect_deg(heights, transform, crs):
+    """Aspect in degrees clockwise from north, the direction the slope faces (downhill)."""
+    ge, gn = gradient(heights, transform, crs)
+    return np.degrees(np.arctan2(-ge, -gn)) % 360.0
+
+
+def hillshade(heights, transform, crs, *, azimuth=315.0, altitude=45.0, z_factor=1.0):
+    """Hillshade in [0, 1] (NaN on voids) for a light at ``azimuth`` (deg from north) and
+    ``altitude`` (deg above the horizon)."""
+    ge, gn = gradient(heights, transform, crs)
+    ge, gn = ge * z_factor, gn * z_factor
+    az, alt = np.radians(azimuth), np.radians(altitude)
+    # light direction (east, north, up) and the surface normal (-ge, -gn, 1)/|.|
+    le, ln, lu = np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)
+    shade = (-ge * le - gn * ln + lu) / np.sqrt(1.0 + ge ** 2 + gn ** 2)
+    return np.clip(shade, 0.0, 1.0)
+
+
+def grid_centre_lonlat(transform, crs, shape):
+    """Longitude and latitude (deg) of the grid centre."""
+    x, y = transform @ (shape[1] / 2.0, shape[0] / 2.0)
+    lon, lat = geodesy.crs_to_lonlat(x, y, crs)
+    return float(lon), float(lat)

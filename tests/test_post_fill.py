@@ -1,0 +1,54 @@
+import numpy as np
+import pytest
+
+from post import fill
+
+
+def _plane(n=80):
+    r, c = np.mgrid[0:n, 0:n].astype(float)
+    return 100 + 0.5 * c - 0.3 * r + 0.004 * (c - 40) ** 2
+
+
+def test_small_holes_filled_large_left_and_flagged():
+    z = _plane()
+    h = z.copy()
+    h[10:15, 10:15] = np.nan          # 25 cells: small
+    h[40:60, 40:60] = np.nan          # 400 cells: large
+    res = fill.fill_holes(h, max_hole_size=200)
+    small = np.zeros(z.shape, bool)
+    small[10:15, 10:15] = True
+    assert np.all(res.filled[small] == fill.FILLED_IDW)
+    assert np.max(np.abs(res.heights[small] - z[small])) < 0.5
+    assert np.all(np.isnan(res.heights[40:60, 40:60]))
+    assert res.report["left_void"] == 400 and res.report["filled_idw"] == 25
+    assert np.all(res.filled[~small] == 0)
+    assert np.array_equal(res.heights[~np.isnan(h)], h[~np.isnan(h)].astype(np.float32))
+
+
+def test_large_hole_from_fallback_with_blended_seam():
+    z = _plane()
+    h = z.copy()
+    h[30:60, 30:60] = np.nan
+    fallback = z - 12.0                # fallback DEM offset by a datum-like bias
+    res = fill.fill_holes(h, max_hole_size=200, fallback=fallback)
+    hole = np.isnan(h)
+    assert np.all(res.filled[hole] == fill.FILLED_FALLBACK)
+    # the offset is taken from the rim, so no 12 m step at the seam
+    assert np.max(np.abs(res.heights[hole] - z[hole])) < 0.5
+    naive = np.where(hole, fallback, h)
+    assert np.max(np.abs(np.diff(naive, axis=1))) > 10
+    assert np.max(np.abs(np.diff(res.heights.astype(float), axis=1))) < 2
+
+
+def test_grow_and_gaussian_smoothing():
+    z = _plane()
+    h = z.copy()
+    h[20, 20] = np.nan
+    res = fill.fill_holes(h, grow=1)
+    assert res.report["filled_idw"] == 9
+    noisy = z + np.random.default_rng(0).normal(0, 2, z.shape)
+    noisy[5, 5] = np.nan
+    sm = fill.gaussian_smooth(noisy, passes=2)
+    assert np.isnan(sm[5, 5])
+    inner = (slice(5, -5), slice(5, -5))
+    assert np.nanstd((sm - z)[inner]) < 0.6 * np.nanstd((noisy - z)[inner])
