@@ -1,0 +1,683 @@
+"""Dense matching of a rectified (epipolar) stereo pair.
+
+Convention: rows correspond, and the disparity ``d`` at left pixel ``(x, y)`` means that
+``left(x, y)`` matches ``right(x - d, y)`` (OpenCV's and Middlebury's convention); with the
+optional vertical search, ``left(x, y)`` matches ``right(x - d, y - v)``.  Pixel centres are
+at integer coordinates, ``x`` = column, ``y`` = row.
+
+Two matchers share one interface, :func:`match_rectified`:
+
+``"ncc"``
+    Zero-mean normalised cross-correlation (ZNCC) over a square window, computed with
+    OpenCV box filters for all pixels at once, streaming over the disparities and keeping
+    only best-so-far arrays (memory ~ image size x a small constant, independent of the
+    disparity range).  Coarse-to-fine on a Gaussian pyramid by default: the coarsest level
+    searches the whole (scaled) range; each finer level warps the search image by the
+    upsampled coarse disparity and searches only ``+/- margin`` pixels around it.  Sub-pixel
+    refinement by a parabola through the correlation peak and its two neighbours (or the
+    symmetric "V" fit), left-right consistency check, correlation threshold, texture mask.
+``"sgm"``
+    OpenCV's semi-global matcher (``cv2.StereoSGBM``) with its conventions handled
+    (``numDisparities`` multiple of 16, 1/16 fixed-point output, ``minDisparity`` for negative
+    ranges, 8-bit input by percentile stretch, borders padded so that the first
+    ``numDisparities`` columns are not lost); the score layer is the ZNCC at the SGM
+    disparity.
+
+NaN in the inputs marks no-data: a window touching no-data gives no match.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Optional
+
+import cv2
+import numpy as np
+
+from sensor.errors import InputError
+
+from .pyramid import build_pyramid, upsample_field
+
+__all__ = ["MatchResult", "match_rectified", "zncc_at"]
+
+F32 = np.float32
+
+
+class MatchResult(NamedTuple):
+    """Output of :func:`match_rectified`.
+
+    Attributes
+    ----------
+    disparity : ndarray (H, W), float32
+        ``d`` in pixels with ``left(x, y) ~ right(x - d, y - v)``; NaN where no valid match.
+    score : ndarray (H, W), float32
+        ZNCC in [-1, 1] of the retained match (for ``"ncc"``: the correlation peak of the
+        best candidate, kept also where the match was rejected by the threshold or the
+        left-right check; for ``"sgm"``: the ZNCC evaluated at the SGM disparity); NaN where
+        it could not be computed (no-data, no texture, image border).
+    vertical : ndarray (H, W), float32 or None
+        Vertical offset ``v`` in pixels (``left(x, y) ~ right(x - d, y - v)``) when
+        ``vertical_search > 0``, NaN where ``disparity`` is NaN; otherwise None.
+    info : dict
+        Matcher, options and the sub-pixel method, for reports.
+    """
+
+    disparity: np.ndarray
+    score: np.ndarray
+    vertical: Optional[np.ndarray] = None
+    info: dict = {}
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _as_image(a, name):
+    a = np.asarray(a)
+    if a.ndim != 2:
+        raise InputError(f"{name}: expected a 2-D single-band image, got shape {a.shape}")
+    a = a.astype(F32, copy=False)
+    if not np.isfinite(a).any():
+        raise InputError(f"{name}: image has no valid (finite) pixel")
+    return a
+
+
+def _robust_range(a):
+    v = a[np.isfinite(a)]
+    if v.size > 200_000:
+        v = v[:: v.size // 200_000]
+    lo, hi = np.percentile(v, [2.0, 98.0])
+    return float(lo), float(hi)
+
+
+class _Stats(NamedTuple):
+    zero: np.ndarray  # image with NaN -> 0
+    mean: np.ndarray  # window mean
+    inv: np.ndarray   # 1 / window std; NaN where invalid (no-data, no texture)
+
+
+def _window_stats(img, window, min_std):
+    """Window mean and inverse standard deviation of a float32 image with NaN no-data.
+
+    ``inv`` is NaN where the window touches no-data or its standard deviation is below
+    ``min_std``; the image border (windows leaving the image) is NaN as well.
+    """
+    nan = ~np.isfinite(img)
+    zero = np.where(nan, F32(0), img).astype(F32, copy=False)
+    k = (window, window)
+    mean = cv2.boxFilter(zero, cv2.CV_32F, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
+    sq = cv2.boxFilter(zero * zero, cv2.CV_32F, k, normalize=True,
+                       borderType=cv2.BORDER_CONSTANT)
+    var = sq - mean * mean
+    bad = var < F32(min_std) ** 2
+    if nan.any():
+        bad |= cv2.boxFilter(nan.astype(F32), cv2.CV_32F, k, normalize=False,
+                             borderType=cv2.BORDER_CONSTANT) > 0.5
+    h = window // 2
+    bad[:h] = True
+    bad[-h:] = True
+    bad[:, :h] = True
+    bad[:, -h:] = True
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = F32(1) / np.sqrt(np.maximum(var, F32(1e-30)))
+    inv[bad] = np.nan
+    return _Stats(zero, mean, inv.astype(F32, copy=False))
+
+
+def _gather_cols(a, cols, fill=np.nan):
+    """``a[y, cols[y, x]]`` with out-of-range columns set to ``fill``."""
+    h, w = a.shape
+    ok = (cols >= 0) & (cols < w)
+    c = np.clip(cols, 0, w - 1)
+    out = np.take_along_axis(a, c, axis=1)
+    if not ok.all():
+        out = np.where(ok, out, fill).astype(a.dtype, copy=False)
+    return out
+
+
+def _warp_cols(a, seed):
+    """``a(x - seed(x, y), y)`` by bicubic interpolation; NaN outside ``a`` and where the
+    4x4 support touches no-data."""
+    h, w = a.shape
+    map_x = (np.arange(w, dtype=F32)[None, :] - seed).astype(F32)
+    map_y = np.broadcast_to(np.arange(h, dtype=F32)[:, None], (h, w))
+    nan = ~np.isfinite(a)
+    src = np.where(nan, F32(0), a) if nan.any() else a
+    out = cv2.remap(src, map_x, np.ascontiguousarray(map_y), cv2.INTER_CUBIC,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    if nan.any():
+        bad = cv2.remap(nan.astype(F32), map_x, np.ascontiguousarray(map_y),
+                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+        out[cv2.dilate((bad > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0] = np.nan
+    # outside the image
+    out[(map_x < 0) | (map_x > w - 1)] = np.nan
+    return out
+
+
+def _shift_rows(a, dy):
+    """``out[y] = a[y - dy]`` with NaN rows entering."""
+    if dy == 0:
+        return a
+    out = np.full_like(a, np.nan)
+    if dy > 0:
+        out[dy:] = a[:-dy]
+    else:
+        out[:dy] = a[-dy:]
+    return out
+
+
+def _subpixel(c0, cm, cp, method):
+    """Offset of the correlation peak from the integer maximum (in [-0.5, 0.5]).
+
+    ``cm``/``cp`` are the scores at ``k - 1`` / ``k + 1``; NaN where they are missing or
+    where the integer maximum is not a peak (the true maximum lies outside the range).
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if method == "parabola":
+            den = cm - 2 * c0 + cp
+            delta = (cm - cp) / (2 * den)
+            ok = den < 0
+        elif method == "vfit":
+            lo = np.minimum(cm, cp)
+            den = c0 - lo
+            delta = (cp - cm) / (2 * den)
+            ok = den > 0
+        else:  # pragma: no cover - checked in match_rectified
+            raise InputError(f"unknown subpixel method {method!r}")
+    ok &= (c0 >= cm) & (c0 >= cp)
+    delta = np.where(ok, np.clip(delta, -0.5, 0.5), np.nan)
+    # a flat peak (both neighbours equal to the maximum) has no defined optimum
+    return delta.astype(F32, copy=False)
+
+
+class _Scan(NamedTuple):
+    score: np.ndarray   # best ZNCC (-inf where none)
+    k: np.ndarray       # offset of the best (int32)
+    cm: np.ndarray      # ZNCC at k - 1
+    cp: np.ndarray      # ZNCC at k + 1
+    back_score: Optional[np.ndarray]
+    back_k: Optional[np.ndarray]
+
+
+def _scan(ref, tgt, klo, khi, window, min_std, back=False):
+    """Stream ZNCC(ref(x), tgt(x - k)) over integer offsets ``klo..khi``.
+
+    The scores at ``klo - 1`` and ``khi + 1`` are computed too, only as neighbours for the
+    sub-pixel fit.  With ``back``, also tracks for every ``tgt`` pixel the best offset of the
+    ``ref`` pixel matching it (the "right" disparity map, free for a full search).
+    Memory: a dozen image-sized float32 arrays whatever the number of offsets.
+    """
+    h, w = ref.zero.shape
+    pl = max(khi + 1, 0)
+    pr = max(1 - klo, 0)
+    padded = np.full((h, w + pl + pr), np.nan, dtype=F32)
+    padded[:, pl:pl + w] = tgt
+    t = _window_stats(padded, window, min_std)
+    # columns of tgt's border are not windows leaving tgt: re-validate them by the NaN pad
+    r = ref
+    ksize = (window, window)
+
+    best = np.full((h, w), -np.inf, dtype=F32)
+    bk = np.full((h, w), klo - 1, dtype=np.int32)
+    cm = np.full((h, w), np.nan, dtype=F32)
+    cp = np.full((h, w), np.nan, dtype=F32)
+    if back:
+        bbest = np.full((h, w), -np.inf, dtype=F32)
+        bbk = np.full((h, w), klo - 1, dtype=np.int32)
+        bupd = np.empty((h, w), dtype=bool)
+    prod = np.empty((h, w), dtype=F32)
+    boxed = np.empty((h, w), dtype=F32)
+    tmp = np.empty((h, w), dtype=F32)
+    c = np.empty((h, w), dtype=F32)
+    cprev = np.full((h, w), np.nan, dtype=F32)
+    upd = np.empty((h, w), dtype=bool)
+    upd_prev = np.zeros((h, w), dtype=bool)
+    have_prev = False
+    for k in range(klo - 1, khi + 2):
+        sl = slice(pl - k, pl - k + w)
+        cv2.multiply(r.zero, t.zero[:, sl], dst=prod)
+        cv2.boxFilter(prod, cv2.CV_32F, ksize, dst=boxed, normalize=True,
+                      borderType=cv2.BORDER_CONSTANT)
+        np.multiply(r.mean, t.mean[:, sl], out=tmp)
+        np.subtract(boxed, tmp, out=c)
+        np.multiply(c, r.inv, out=c)
+        np.multiply(c, t.inv[:, sl], out=c)
+        if have_prev:
+            np.copyto(cp, c, where=upd_prev)
+        if klo <= k <= khi:
+            np.greater(c, best, out=upd)
+            np.copyto(best, c, where=upd)
+            np.copyto(bk, k, where=upd)
+            np.copyto(cm, cprev, where=upd)
+            upd, upd_prev = upd_prev, upd
+            have_prev = True
+            if back:
+                # tgt pixel xt = x - k is matched by ref pixel x = xt + k
+                if k >= 0:
+                    cs, bs = c[:, k:], np.s_[:, :w - k]
+                else:
+                    cs, bs = c[:, :w + k], np.s_[:, -k:]
+                bb = bbest[bs]
+                m = bupd[bs]
+                np.greater(cs, bb, out=m)
+                np.copyto(bb, cs, where=m)
+                np.copyto(bbk[bs], k, where=m)
+        else:
+            have_prev = False
+        c, cprev = cprev, c
+    # cp of a maximum found at the very last offset was filled at khi + 1
+    return _Scan(best, bk, cm, cp, bbest if back else None, bbk if back else None)
+
+
+def _fill_rows(d):
+    """NaN -> the smaller (background) of the nearest valid values left and right."""
+    valid = np.isfinite(d)
+    h, w = d.shape
+    cols = np.arange(w)[None, :]
+    idx_l = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
+    idx_r = np.minimum.accumulate(np.where(valid, cols, w)[:, ::-1], axis=1)[:, ::-1]
+    left = np.take_along_axis(d, np.clip(idx_l, 0, w - 1), axis=1)
+    left[idx_l < 0] = np.nan
+    right = np.take_along_axis(d, np.clip(idx_r, 0, w - 1), axis=1)
+    right[idx_r >= w] = np.nan
+    with np.errstate(invalid="ignore"):
+        fill = np.fmin(left, right)
+    return np.where(valid, d, fill)
+
+
+def _fill_seed(d, fallback):
+    """Fill NaN in a disparity map for use as a seed, then a 5x5 median.
+
+    Along rows, a hole takes the smaller (background) of its nearest valid neighbours
+    (occlusions belong to the background); rows without any valid value take their nearest
+    valid rows (column-wise), and an all-NaN map takes ``fallback``."""
+    d = np.asarray(d, dtype=F32)
+    if not np.isfinite(d).all():
+        d = _fill_rows(d)
+        if not np.isfinite(d).all():
+            d = np.ascontiguousarray(_fill_rows(np.ascontiguousarray(d.T)).T)
+        d[~np.isfinite(d)] = fallback
+    return cv2.medianBlur(np.ascontiguousarray(d, dtype=F32), 5)
+
+
+def _lr_check(d_left, d_right, tol):
+    """Mask of left pixels whose disparity agrees with the right map within ``tol`` px."""
+    h, w = d_left.shape
+    cols = np.arange(w, dtype=F32)[None, :]
+    with np.errstate(invalid="ignore"):
+        xr = np.rint(cols - d_left)
+        xr = np.where(np.isfinite(xr), xr, -1).astype(np.int64)
+        back = _gather_cols(d_right, xr)
+        return np.abs(d_left - back) <= tol
+
+
+def _match_pass(ref, tgt, seed, klo, khi, window, min_std, subpixel, vertical, back=False):
+    """One ZNCC pass: ``ref(x, y)`` against ``tgt`` warped by a seed and shifted by ``k``.
+
+    ``seed`` is a float seed disparity map ``S`` (None: a plain full search over
+    ``klo..khi``): ``tgt`` is first warped (bicubic) to ``tgt'(x) = tgt(x - S(x), y - dy)``,
+    then ``ref(x)`` is correlated with ``tgt'(x - k)``, so the window follows the seed
+    surface and the disparity is ``k + S(x - k)`` plus the sub-pixel offset.  Returns disparity (float, NaN where no peak), score, vertical offset, and
+    (with ``back``) the integer disparity map of ``tgt`` seen from ``tgt`` (full search only).
+    """
+    h, w = ref.shape
+    rstats = _window_stats(ref, window, min_std)
+    cols = np.arange(w, dtype=np.int64)[None, :]
+    best = None
+    per_dy = []
+    for dy in range(-vertical, vertical + 1):
+        t = _shift_rows(tgt, dy)
+        if seed is not None:
+            t = _warp_cols(t, seed)
+        s = _scan(rstats, t, klo, khi, window, min_std, back=back and dy == 0)
+        per_dy.append(s.score)
+        if best is None:
+            best, best_dy = s, np.full((h, w), dy, dtype=np.int32)
+            back_res = (s.back_score, s.back_k)
+            continue
+        better = s.score > best.score
+        best = _Scan(*(np.where(better, new, old) if new is not None else old
+                       for new, old in zip(s[:4], best[:4])), None, None)
+        best_dy[better] = dy
+    score = best.score
+    found = np.isfinite(score)
+    delta = _subpixel(score, best.cm, best.cp, subpixel)
+    k = best.k
+    if seed is not None:
+        base = _gather_cols(seed, cols - k, fill=np.nan)
+    else:
+        base = 0
+    disp = (k + base + delta).astype(F32)
+    disp[~found] = np.nan
+    score = np.where(found, score, np.nan).astype(F32)
+    vert = None
+    if vertical:
+        stack = np.stack(per_dy)  # (2v+1, H, W)
+        i = best_dy + vertical
+        vm = np.take_along_axis(stack, np.clip(i - 1, 0, 2 * vertical)[None], 0)[0]
+        vp = np.take_along_axis(stack, np.clip(i + 1, 0, 2 * vertical)[None], 0)[0]
+        vm = np.where(i - 1 >= 0, vm, np.nan)
+        vp = np.where(i + 1 <= 2 * vertical, vp, np.nan)
+        dv = _subpixel(best.score, vm, vp, "parabola")
+        # the edge of the vertical range keeps the integer offset
+        vert = (best_dy + np.where(np.isfinite(dv), dv, 0)).astype(F32)
+        vert[np.isnan(disp)] = np.nan
+    back_disp = None
+    if back and back_res[0] is not None:
+        bs, bk = back_res
+        back_disp = np.where(np.isfinite(bs), bk, np.nan).astype(F32)
+    return disp, score, vert, back_disp
+
+
+def _auto_levels(lo, hi, shape):
+    levels = 0
+    span = hi - lo
+    while span / 2 ** levels > 24 and min(shape) / 2 ** (levels + 1) >= 48 and levels < 6:
+        levels += 1
+    return levels
+
+
+def _forward_seed(seed_left, w):
+    """Right-image seed from a left-image seed by forward projection (foreground wins)."""
+    h = seed_left.shape[0]
+    xr = np.rint(np.arange(w)[None, :] - seed_left).astype(np.int64)
+    ok = np.isfinite(seed_left) & (xr >= 0) & (xr < w)
+    out = np.full(h * w, -np.inf, dtype=F32)
+    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
+    np.maximum.at(out, (rows[ok] * w + xr[ok]), seed_left[ok])
+    out = out.reshape(h, w)
+    out[~np.isfinite(out)] = np.nan
+    return out
+
+
+# ----------------------------------------------------------------------------- ncc
+
+def _match_ncc(left, right, lo, hi, range_maps, *, window, min_score, min_std, lr_tolerance,
+               subpixel, levels, margin, vertical_search):
+    h, w = left.shape
+    flip = np.s_[:, ::-1]
+
+    def both_ways(L, R, seedL, seedR, klo, khi, vert):
+        """Left and right disparity maps at one level (right by flipping the pair)."""
+        if seedL is None:
+            dL, sL, vL, dR = _match_pass(L, R, None, klo, khi, window, min_std, subpixel,
+                                         vert, back=vert == 0)
+            if dR is None:  # with vertical search the back map is computed separately
+                dRf, _, _, _ = _match_pass(R[flip], L[flip], None, klo, khi, window,
+                                           min_std, subpixel, vert)
+                dR = dRf[flip]
+            return dL, sL, vL, dR
+        outs = []
+        for ref, tgt, seed in ((L, R, seedL), (R[flip], L[flip], seedR[flip])):
+            outs.append(_match_pass(ref, tgt, np.ascontiguousarray(seed, dtype=F32), klo, khi,
+                                    window, min_std, subpixel, vert))
+        (dL, sL, vL, _), (dRf, _, _, _) = outs
+        return dL, sL, vL, np.ascontiguousarray(dRf[flip])
+
+    if range_maps is not None:
+        dmin_map, dmax_map = range_maps
+        seedL = (0.5 * (dmin_map + dmax_map)).astype(F32)
+        half = 0.5 * (dmax_map - dmin_map)
+        m = int(math.ceil(np.nanmax(half)))
+        mid = float(np.nanmedian(seedL))
+        seedR = _fill_seed(_forward_seed(seedL, w), mid)
+        seedL = _fill_seed(seedL, mid)
+        dL, sL, vL, dR = both_ways(left, right, seedL, seedR, -m, m, vertical_search)
+        levels = 0
+    else:
+        if levels is None:
+            levels = _auto_levels(lo, hi, left.shape)
+        pl = build_pyramid(left, levels)
+        pr = build_pyramid(right, levels)
+        f = 2 ** levels
+        clo, chi = math.floor(lo / f), math.ceil(hi / f)
+        seedL = seedR = None
+        for lev in range(levels, -1, -1):
+            L, R = pl[lev], pr[lev]
+            vert = math.ceil(vertical_search / 2 ** lev)
+            if seedL is None:
+                dL, sL, vL, dR = both_ways(L, R, None, None, clo, chi, vert)
+            else:
+                seedL = upsample_field(seedL, L.shape)
+                seedR = upsample_field(seedR, L.shape)
+                dL, sL, vL, dR = both_ways(L, R, seedL, seedR, -margin, margin, vert)
+            if lev > 0:
+                okL = _lr_check(dL, dR, max(lr_tolerance, 1.0))
+                okR = _lr_check(dR[flip], dL[flip], max(lr_tolerance, 1.0))[flip]
+                fb = 0.5 * (lo + hi) / 2 ** lev
+                seedL = _fill_seed(np.where(okL & (sL >= min(min_score, 0.3)), dL, np.nan),
+                                   fb)
+                seedR = _fill_seed(np.where(okR, dR, np.nan), fb)
+    valid = np.isfinite(dL)
+    if lr_tolerance is not None:
+        valid &= _lr_check(dL, dR, lr_tolerance)
+    if min_score is not None:
+        with np.errstate(invalid="ignore"):
+            valid &= sL >= min_score
+    if range_maps is not None:
+        with np.errstate(invalid="ignore"):
+            valid &= (dL >= range_maps[0] - 0.5) & (dL <= range_maps[1] + 0.5)
+    else:
+        with np.errstate(invalid="ignore"):
+            valid &= (dL >= lo - 0.5) & (dL <= hi + 0.5)
+    disp = np.where(valid, dL, np.nan).astype(F32)
+    vert = None
+    if vertical_search:
+        vert = np.where(valid, vL, np.nan).astype(F32)
+    return disp, sL.astype(F32), vert, {"levels": levels}
+
+
+# ----------------------------------------------------------------------------- sgm
+
+def _to_uint8(left, right):
+    """Joint 1-99 % percentile stretch of both images to uint8 (NaN -> 0)."""
+    v = np.concatenate([left[np.isfinite(left)], right[np.isfinite(right)]])
+    if v.size > 400_000:
+        v = v[:: v.size // 400_000]
+    lo, hi = np.percentile(v, [1.0, 99.0])
+    scale = 255.0 / max(hi - lo, 1e-12)
+
+    def conv(a):
+        b = np.clip((np.nan_to_num(a, nan=lo) - lo) * scale + 0.5, 0, 255)
+        return b.astype(np.uint8)
+
+    return conv(left), conv(right)
+
+
+_SGBM_MODES = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+               "hh": cv2.STEREO_SGBM_MODE_HH, "hh4": cv2.STEREO_SGBM_MODE_HH4}
+
+
+def _sgbm(left8, right8, lo, hi, *, block_size=5, p1=None, p2=None, lr_tolerance=1,
+          uniqueness=10, speckle_window=100, speckle_range=2, pre_filter_cap=63,
+          mode="sgbm"):
+    """Run ``cv2.StereoSGBM`` on uint8 images for ``lo..hi``; float32 disparity, NaN invalid.
+
+    The pair is padded on the left by the largest positive and on the right by the largest
+    negative disparity (edge replication) so that OpenCV does not blank the first
+    ``numDisparities`` columns; the padding is cropped from the result.
+    """
+    nd = int(math.ceil((hi - lo + 1) / 16.0)) * 16
+    max_d = lo + nd - 1
+    padl, padr = max(max_d, 0), max(-lo, 0)
+    if padl or padr:
+        left8 = cv2.copyMakeBorder(left8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)
+        right8 = cv2.copyMakeBorder(right8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)
+    b2 = block_size * block_size
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=int(lo), numDisparities=nd, blockSize=block_size,
+        P1=int(p1 if p1 is not None else 8 * b2), P2=int(p2 if p2 is not None else 32 * b2),
+        disp12MaxDiff=-1 if lr_tolerance is None else int(max(1, round(lr_tolerance))),
+        preFilterCap=pre_filter_cap, uniquenessRatio=uniqueness,
+        speckleWindowSize=speckle_window, speckleRange=speckle_range,
+        mode=_SGBM_MODES[mode])
+    raw = sgbm.compute(left8, right8)
+    raw = raw[:, padl:raw.shape[1] - padr]
+    disp = raw.astype(F32) / F32(16.0)
+    disp[raw < lo * 16] = np.nan
+    return disp
+
+
+def zncc_at(left, right, disparity, *, window=7):
+    """ZNCC of each left window with the right image warped by ``disparity``.
+
+    The right window of pixel ``x`` is made of the right pixels ``x' - round(d(x'))`` for
+    ``x'`` in the left window (the window follows the disparity surface); NaN disparities
+    are filled from their row neighbours for the warp, and their score is NaN.
+
+    Returns
+    -------
+    ndarray (H, W), float32, in [-1, 1]; NaN at no-data, flat windows and image borders.
+    """
+    left = _as_image(left, "left")
+    right = _as_image(right, "right")
+    d = np.asarray(disparity, dtype=F32)
+    ok = np.isfinite(d)
+    if not ok.any():
+        return np.full(left.shape, np.nan, dtype=F32)
+    seed = np.rint(_fill_seed(d, float(np.nanmedian(d)))).astype(np.int64)
+    warped = _gather_cols(right, np.arange(left.shape[1])[None, :] - seed)
+    off = np.nanmean(left)
+    a = _window_stats(left - off, window, 0.0)
+    b = _window_stats(warped - off, window, 0.0)
+    ksize = (window, window)
+    cov = cv2.boxFilter(a.zero * b.zero, cv2.CV_32F, ksize, normalize=True,
+                        borderType=cv2.BORDER_CONSTANT) - a.mean * b.mean
+    score = np.clip(cov * a.inv * b.inv, -1, 1).astype(F32)
+    score[~ok] = np.nan
+    return score
+
+
+# ----------------------------------------------------------------------------- public
+
+def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_score=None,
+                    min_std=None, lr_tolerance=1.0, subpixel="parabola", levels=None,
+                    margin=2, vertical_search=0, sgm_mode="sgbm", sgm_p1=None, sgm_p2=None,
+                    sgm_uniqueness=10, sgm_speckle_window=100, sgm_speckle_range=2):
+    """Dense disparity of a rectified pair (rows correspond).
+
+    Parameters
+    ----------
+    left, right : ndarray (H, W)
+        Epipolar images (any real dtype, converted to float32); NaN marks no-data.
+    disp_range : (dmin, dmax) or (dmin_map, dmax_map)
+        Inclusive disparity search range in pixels (``left(x) ~ right(x - d)``): two numbers,
+        or two (H, W) arrays giving a per-pixel range, e.g. from a seed DEM or a coarse
+        disparity map +/- a margin (``(seed - m, seed + m)``).  With maps, ``"ncc"`` warps
+        the right image by the mid-range map and searches +/- the largest half-width, then
+        rejects peaks outside each pixel's own range; ``"sgm"`` searches the overall min..max
+        and rejects results outside each pixel's range.
+    matcher : {"ncc", "sgm"}
+    window : int, optional
+        Odd window side in pixels: ZNCC window (default 7) or SGBM ``blockSize`` (default 5).
+    min_score : float, optional
+        Minimum ZNCC of a valid match; default 0.5 for ``"ncc"``, none for ``"sgm"``.
+    min_std : float, optional
+        Texture mask: windows whose standard deviation (image units) is below this get no
+        match; default 1 % of the left image's 2-98 % percentile range.
+    lr_tolerance : float or None
+        Left-right consistency tolerance in pixels (default 1); None disables the check.
+        For ``"sgm"`` it is OpenCV's ``disp12MaxDiff`` (rounded, at least 1).
+    subpixel : {"parabola", "vfit"}
+        ``"ncc"`` sub-pixel refinement: parabola through the peak and its neighbours, or the
+        symmetric (equiangular) V fit.  A peak at the edge of the range is rejected.
+    levels : int, optional
+        ``"ncc"`` pyramid levels above full resolution; default: halve until the range is
+        at most 24 px (and the image at least 96 px); 0 = single-scale full search.
+    margin : int
+        ``"ncc"`` search half-width (pixels) around the upsampled coarse disparity at each
+        finer level (default 2).
+    vertical_search : int
+        ``"ncc"`` only: also search row offsets ``-v..v`` (residual vertical parallax, e.g.
+        ASTER jitter) and return the sub-pixel vertical offset in ``.vertical``.
+    sgm_mode : {"sgbm", "3way", "hh", "hh4"}
+        OpenCV SGBM mode (default ``"sgbm"``, 5 paths one pass).
+    sgm_p1, sgm_p2, sgm_uniqueness, sgm_speckle_window, sgm_speckle_range
+        SGBM smoothness penalties (default 8 and 32 x window^2), uniqueness ratio (%),
+        speckle filter size (px) and range (px).
+
+    Returns
+    -------
+    MatchResult
+        ``disparity`` (float32, NaN invalid), ``score`` (float32 ZNCC), ``vertical`` (or
+        None), ``info``.
+
+    Raises
+    ------
+    InputError
+        Shapes differ, images are not 2-D or all no-data, the range is empty, or an option
+        is out of its domain.
+    """
+    left = _as_image(left, "left")
+    right = _as_image(right, "right")
+    if left.shape != right.shape:
+        raise InputError(f"left/right: shapes differ, {left.shape} vs {right.shape}")
+    if matcher not in ("ncc", "sgm"):
+        raise InputError(f"matcher: unknown {matcher!r}, expected 'ncc' or 'sgm'")
+    if subpixel not in ("parabola", "vfit"):
+        raise InputError(f"subpixel: unknown {subpixel!r}, expected 'parabola' or 'vfit'")
+    if window is None:
+        window = 7 if matcher == "ncc" else 5
+    if window < 3 or window % 2 == 0:
+        raise InputError(f"window: must be odd and >= 3, got {window}")
+    vertical_search = int(vertical_search)
+    if vertical_search < 0:
+        raise InputError(f"vertical_search: must be >= 0, got {vertical_search}")
+    if matcher == "sgm" and vertical_search:
+        raise InputError("vertical_search: only available with matcher='ncc'")
+    if len(disp_range) != 2:
+        raise InputError("disp_range: expected (dmin, dmax) or (dmin_map, dmax_map)")
+    range_maps = None
+    a, b = disp_range
+    if np.ndim(a) == 0 and np.ndim(b) == 0:
+        lo, hi = int(math.floor(a)), int(math.ceil(b))
+    else:
+        a = np.broadcast_to(np.asarray(a, dtype=F32), left.shape)
+        b = np.broadcast_to(np.asarray(b, dtype=F32), left.shape)
+        if not np.isfinite(a).any():
+            raise InputError("disp_range: the per-pixel range maps have no finite value")
+        range_maps = (a, b)
+        lo, hi = int(math.floor(np.nanmin(a))), int(math.ceil(np.nanmax(b)))
+    if hi < lo:
+        raise InputError(f"disp_range: empty range ({disp_range[0]}, {disp_range[1]})")
+    if min_std is None:
+        p2, p98 = _robust_range(left)
+        min_std = 0.01 * (p98 - p2)
+    info = {"matcher": matcher, "window": window, "disp_range": (lo, hi),
+            "lr_tolerance": lr_tolerance, "min_std": float(min_std)}
+
+    if matcher == "ncc":
+        if min_score is None:
+            min_score = 0.5
+        # centring by one constant keeps ZNCC exact and float32 sums well conditioned
+        off = F32(np.nanmean(left))
+        disp, score, vert, extra = _match_ncc(
+            left - off, right - off, lo, hi, range_maps, window=window, min_score=min_score,
+            min_std=min_std, lr_tolerance=lr_tolerance, subpixel=subpixel, levels=levels,
+            margin=int(margin), vertical_search=vertical_search)
+        info.update(extra, subpixel=subpixel, min_score=min_score, margin=int(margin),
+                    vertical_search=vertical_search)
+        return MatchResult(disp, score, vert, info)
+
+    l8, r8 = _to_uint8(left, right)
+    disp = _sgbm(l8, r8, lo, hi, block_size=window, p1=sgm_p1, p2=sgm_p2,
+                 lr_tolerance=lr_tolerance, uniqueness=sgm_uniqueness,
+                 speckle_window=sgm_speckle_window, speckle_range=sgm_speckle_range,
+                 mode=sgm_mode)
+    # no-data: the block around the left pixel or around its match touches NaN
+    nan_l = ~np.isfinite(left)
+    nan_r = ~np.isfinite(right)
+    if nan_l.any() or nan_r.any():
+        k = (window, window)
+        bad_l = cv2.boxFilter(nan_l.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5
+        bad_r = cv2.boxFilter(nan_r.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5
+        with np.errstate(invalid="ignore"):
+            xr = np.where(np.isfinite(disp), np.rint(np.arange(left.shape[1]) - disp), -1)
+        bad = bad_l | (_gather_cols(bad_r.astype(F32), xr.astype(np.int64), fill=1) > 0.5)
+        disp[bad] = np.nan
+    score = zncc_at(left, right, disp, window=max(window, 7) if window < 7 else window)
+    if range_maps is not None:
+        with np.errstate(invalid="ignore"):
+            disp[~((disp >= range_maps[0] - 0.5) & (disp <= range_maps[1] + 0.5))] = np.nan
+    if min_score is not None:
+        with np.errstate(invalid="ignore"):
+            disp[~(score >= min_score)] = np.nan
+    info.update(sgm_mode=sgm_mode, min_score=min_score, score_window=max(window, 7))
+    return MatchResult(disp, score, None, info)
