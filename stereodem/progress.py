@@ -8,8 +8,8 @@ import time
 class Progress:
     """A one-line progress bar: ``Progress("matching", total)`` then ``update(n)``.
 
-    Silent when ``enabled`` is false (``-q``) or stderr is not a terminal and ``force`` is
-    false; then only the final line is written.
+    Silent when ``enabled`` is false (``-q``); when stderr is not a terminal only the final
+    summary line is written.
     """
 
     def __init__(self, label: str, total: int, *, enabled: bool = True, stream=None):
@@ -35,11 +35,15 @@ class Progress:
         self.update(done - self.done)
 
     def close(self):
-        if self.enabled:
-            end = "\n" if self._tty else ""
-            self.stream.write(f"{end}{self.label}: done in {time.perf_counter() - self.t0:.1f}s\n"
-                              if not self._tty else f"\n")
-            self.stream.flush()
+        """End the bar (terminal) or write one summary line (logs, pipes)."""
+        if not self.enabled:
+            return
+        if self._tty:
+            self.stream.write("\n")
+        else:
+            self.stream.write(f"{self.label}: {self.done}/{self.total} in "
+                              f"{time.perf_counter() - self.t0:.1f}s\n")
+        self.stream.flush()
 
     def __enter__(self):
         return self
