@@ -1,0 +1,98 @@
+"""Stereo DEM on the real Pleiades pair (s2p test data) against s2p's own DSM.
+
+Runs :func:`stereo.pipeline.make_dem` on ``../shared/data/s2p_pleiades/pair/img_0{1,2}.tif``
+(RPCs from the GeoTIFF metadata) onto s2p's output grid (EPSG:32740, 0.5 m), and compares the
+result with ``expected_dsm.tif`` (ellipsoidal heights): median offset, NMAD of the
+difference, fraction of s2p's valid cells covered, wall time. Writes
+``benchmarks/results/bench_dem.json``. s2p's documented run time on this pair is about 75 s.
+
+Usage: ``python benchmarks/bench_dem.py [--matcher sgm|ncc] [--out DIR]``
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import rasterio
+
+from sensor.rpc import RPCModel
+from stereo.pipeline import DEMSettings, make_dem
+
+HERE = Path(__file__).resolve().parent
+PAIR = HERE.parents[1] / "shared" / "data" / "s2p_pleiades" / "pair"
+S2P_SECONDS = 75.0
+#: a deliberately loose height range for La Reunion's Piton de la Fournaise area (m, ellipsoid);
+#: s2p derives its own from SRTM. The DSM's true span is 2270-2376 m.
+HEIGHT_RANGE = (2100.0, 2600.0)
+
+
+def nmad(d):
+    d = np.asarray(d, float)
+    return float(1.4826 * np.median(np.abs(d - np.median(d))))
+
+
+def run(matcher="sgm", gridding="gaussian", tile_size=512, out=None):
+    with rasterio.open(PAIR / "expected_dsm.tif") as ds:
+        ref = ds.read(1).astype(np.float64)
+        if ds.nodata is not None and np.isfinite(ds.nodata):
+            ref[ref == ds.nodata] = np.nan
+        tr, crs = ds.transform, ds.crs
+        bounds = ds.bounds
+    t0 = time.perf_counter()
+    images, models = [], []
+    for name in ("img_01.tif", "img_02.tif"):
+        with rasterio.open(PAIR / name) as ds:
+            images.append(ds.read(1).astype(np.float32))
+        models.append(RPCModel.from_file(PAIR / name))
+    settings = DEMSettings(tile_size=tile_size, height_range=HEIGHT_RANGE, matcher=matcher,
+                           posting=abs(tr.a), crs=crs.to_wkt(),
+                           bounds=(bounds.left, bounds.bottom, bounds.right, bounds.top),
+                           gridding=gridding)
+    prod = make_dem(images[0], images[1], models[0], models[1], settings)
+    seconds = time.perf_counter() - t0
+    if out:
+        prod.write(out, overwrite=True)
+    dem = prod.grid.height.astype(np.float64)
+    assert dem.shape == ref.shape, (dem.shape, ref.shape)
+    ref_valid = np.isfinite(ref)
+    both = ref_valid & np.isfinite(dem)
+    d = dem[both] - ref[both]
+    res = dict(matcher=matcher, gridding=gridding, tile_size=tile_size, height_range=HEIGHT_RANGE,
+               seconds=round(seconds, 2), s2p_seconds=S2P_SECONDS,
+               median_offset_m=round(float(np.median(d)), 4), nmad_m=round(nmad(d), 4),
+               nmad_after_offset_m=round(nmad(d - np.median(d)), 4),
+               abs_gt_1m_fraction=round(float(np.mean(np.abs(d - np.median(d)) > 1.0)), 4),
+               coverage_of_s2p_valid=round(float(both.sum() / ref_valid.sum()), 4),
+               n_tiles=prod.info["n_tiles"],
+               max_tile_residual_y_parallax_px=round(prod.info["max_residual_rms_px"], 5),
+               n_points=prod.n_points)
+    return res
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--matcher", default="sgm", choices=("sgm", "ncc"))
+    ap.add_argument("--gridding", default="gaussian", choices=("mean", "gaussian"))
+    ap.add_argument("--tile-size", type=int, default=512)
+    ap.add_argument("--out", help="also write the DEM products to this folder")
+    a = ap.parse_args()
+    if not PAIR.is_dir():
+        raise SystemExit(f"{PAIR}: not found (the benchmark needs ../shared/data)")
+    rows = [run(m, a.gridding, a.tile_size, a.out if m == a.matcher else None)
+            for m in dict.fromkeys([a.matcher, "ncc" if a.matcher == "sgm" else "sgm"])]
+    print(f"{'matcher':8} {'time s':>7} {'median m':>9} {'NMAD m':>7} {'cover':>6} {'|dz|>1m':>8}")
+    for r in rows:
+        print(f"{r['matcher']:8} {r['seconds']:7.1f} {r['median_offset_m']:9.3f} {r['nmad_m']:7.3f} "
+              f"{r['coverage_of_s2p_valid']:6.3f} {r['abs_gt_1m_fraction']:8.4f}")
+    out = HERE / "results" / "bench_dem.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(dict(pair=str(PAIR), s2p_reference="expected_dsm.tif", runs=rows),
+                              indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

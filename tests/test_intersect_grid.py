@@ -1,0 +1,125 @@
+"""Space intersection (closed form, exact models) and gridding to a DEM."""
+import numpy as np
+import pytest
+import rasterio
+
+from sensor import geodesy
+from sensor.errors import OutputExistsError
+from sensor.rpc import RPCModel
+from sensor.simulate import frame_pair, pushbroom_pair
+from stereo.epipolar import Tile, apply_map, rectify_tile
+from stereo.grid import grid_points
+from stereo.intersect import intersect_matches, intersect_rays
+
+
+def _ground(n, seed=0, lon0=40.4, lat0=39.6, spread=0.05):
+    rng = np.random.default_rng(seed)
+    return (lon0 + rng.uniform(-spread, spread, n), lat0 + rng.uniform(-spread, spread, n),
+            rng.uniform(1000, 3000, n))
+
+
+@pytest.mark.parametrize("pair", ["frame", "pushbroom"])
+def test_recovers_projected_ground_points_to_mm(pair):
+    if pair == "frame":
+        L, R = frame_pair(40.4, 39.6, 2000.0, (2048, 2048))
+    else:
+        L, R = pushbroom_pair(40.4, 39.6, 2000.0, (1200, 1200), (0.0, -27.6))
+    lon, lat, h = _ground(2000, spread=0.03)
+    c1, r1 = L.project(lon, lat, h)
+    c2, r2 = R.project(lon, lat, h)
+    p = intersect_matches(L, R, c1, r1, c2, r2)
+    truth = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)
+    assert np.linalg.norm(p.ecef - truth, axis=1).max() < 1e-3
+    assert np.abs(p.h - h).max() < 1e-3
+    assert p.ray_gap.max() < 1e-3
+
+
+def test_rpc_pair_generic_rays(data_dir):
+    L = RPCModel.from_file(data_dir / "pleiades" / "img_01_rpc.tif")
+    R = RPCModel.from_file(data_dir / "pleiades" / "img_02_rpc.tif")
+    lon0, lat0 = L.center_lonlat(2300.0)
+    lon, lat, h = _ground(500, lon0=lon0, lat0=lat0, spread=0.002)
+    h = 2200 + (h - 1000) / 10
+    p = intersect_matches(L, R, *L.project(lon, lat, h), *R.project(lon, lat, h))
+    assert np.abs(p.h - h).max() < 1e-3 and p.ray_gap.max() < 1e-3
+
+
+def test_one_pixel_error_matches_the_geometry():
+    """1 px along the epipolar line -> height error 1/(px per m), no gap; across it -> a gap."""
+    L, R = pushbroom_pair(40.4, 39.6, 2000.0, (1200, 1200), (0.0, -27.6))
+    et = rectify_tile(L, R, Tile(400, 400, 400, 400), (1500.0, 2500.0))
+    rng = np.random.default_rng(1)
+    c1, r1 = rng.uniform(450, 750, 200), rng.uniform(450, 750, 200)
+    lon, lat = L.localize(c1, r1, 2000.0)
+    c2, r2 = R.project(lon, lat, 2000.0)
+    Hi = np.linalg.inv(et.H_right)
+    along = Hi[:2, 0] / np.linalg.norm(Hi[:2, 0])   # right-image direction of the rectified rows
+    across = np.array([-along[1], along[0]])
+    u2, v2 = apply_map(et.H_right, c2, r2)
+    p = intersect_matches(L, R, c1, r1, *apply_map(Hi, u2 - 1.0, v2))   # one rectified pixel
+    dh = p.h - 2000.0
+    assert np.abs(np.abs(dh) - 1 / abs(et.px_per_m)).max() < 0.05 / abs(et.px_per_m)
+    assert p.ray_gap.max() < 0.5
+    q = intersect_matches(L, R, c1, r1, c2 + across[0], r2 + across[1])
+    gsd = R.gsd(2000.0)
+    assert np.all(q.ray_gap > 0.5 * gsd) and np.all(q.ray_gap < 2.0 * gsd)
+    assert np.abs(q.h - 2000.0).max() < 0.3 / abs(et.px_per_m)
+
+
+def test_intersect_rays_closed_form():
+    o1, d1 = np.array([[0.0, 0, 0]]), np.array([[1.0, 0, 0]])
+    o2, d2 = np.array([[0.0, 1, 2]]), np.array([[0.0, 0, 1]])
+    p, gap = intersect_rays(o1, d1, o2, d2)
+    assert np.allclose(p, [[0, 0.5, 0]]) and gap[0] == pytest.approx(1.0)
+    p, gap = intersect_rays(o1, d1, o1 + [0, 1, 0], d1)          # parallel lines
+    assert np.isnan(p).all()
+
+
+def test_grid_mean_count_layers_and_utm():
+    crs = geodesy.utm_crs(40.4, 39.6)
+    x0, y0 = geodesy.lonlat_to_crs(40.4, 39.6, crs)
+    x0, y0 = np.floor(x0 / 30) * 30, np.floor(y0 / 30) * 30
+    # 3 points in cell (0, 0), 1 in cell (1, 2), none elsewhere
+    xs = x0 + np.array([5.0, 15.0, 25.0, 75.0])
+    ys = y0 - np.array([5.0, 20.0, 25.0, 45.0])
+    lon, lat = geodesy.crs_to_lonlat(xs, ys, crs)
+    h = np.array([100.0, 110.0, 120.0, 500.0])
+    g = grid_points(lon, lat, h, posting=30.0, bounds=(x0, y0 - 90, x0 + 90, y0),
+                    score=np.array([0.9, 0.8, 0.7, 0.5]), ray_gap=np.array([1.0, 2.0, 3.0, 4.0]))
+    assert g.crs.to_epsg() == 32637 and g.height.shape == (3, 3)
+    assert g.height[0, 0] == pytest.approx(110.0) and g.count[0, 0] == 3
+    assert g.height[1, 2] == pytest.approx(500.0) and g.count[1, 2] == 1
+    assert g.score[0, 0] == pytest.approx(0.8, abs=1e-6) and g.ray_gap[0, 0] == pytest.approx(2.0)
+    assert np.isnan(g.height).sum() == 7 and g.count.sum() == 4
+    gg = grid_points(lon, lat, h, posting=30.0, bounds=(x0, y0 - 90, x0 + 90, y0), geoid=True)
+    n = geodesy.geoid_undulation(lon[3], lat[3])
+    assert gg.height[1, 2] == pytest.approx(500.0 - n, abs=1e-3) and gg.vertical == "geoid"
+
+
+def test_grid_gaussian_reproduces_a_plane_and_fills_cells():
+    crs = geodesy.utm_crs(40.4, 39.6)
+    x0, y0 = geodesy.lonlat_to_crs(40.4, 39.6, crs)
+    xs, ys = np.meshgrid(x0 + np.arange(1.5, 600, 3.0), y0 + np.arange(1.5, 600, 3.0))
+    xs, ys = xs.ravel(), ys.ravel()
+    plane = lambda x, y: 1000 + 0.2 * (x - x0) - 0.1 * (y - y0)  # noqa: E731
+    lon, lat = geodesy.crs_to_lonlat(xs, ys, crs)
+    b = (x0, y0, x0 + 600, y0 + 600)
+    g = grid_points(lon, lat, plane(xs, ys), posting=30.0, bounds=b, method="gaussian", crs=crs)
+    cx, cy = g.cell_centres()
+    inner = np.s_[1:-1, 1:-1]
+    assert np.abs(g.height[inner] - plane(cx, cy)[inner]).max() < 0.01
+    assert np.isfinite(g.height).all()
+
+
+def test_grid_write(tmp_path):
+    lon, lat, h = _ground(1000)
+    g = grid_points(lon, lat, h, posting=500.0)
+    paths = g.write(tmp_path)
+    with rasterio.open(paths["dem"]) as ds:
+        assert ds.dtypes[0] == "float32" and np.isnan(ds.nodata) and ds.crs.to_epsg() == 32637
+        assert ds.transform.a == 500.0
+        assert np.allclose(ds.read(1), g.height, equal_nan=True)
+    for k in ("count", "score", "raygap"):
+        assert paths[k].exists()
+    with pytest.raises(OutputExistsError):
+        g.write(tmp_path)
