@@ -8,7 +8,9 @@ convention. The model (:class:`AsterModel`) is a :class:`sensor.pushbroom.Pushbr
 
 * line times ``t(row) = row * line_period`` with ``line_period`` = 2.1989 ms (notes §4.4);
 * positions interpolated by 8-point Lagrange polynomials over the lattice-row samples; the
-  velocity is their time derivative (Earth-fixed) and the orbital frame adds ``omega_E x r``;
+  Earth-fixed velocity at the lattice rows is the time derivative of the positions (central
+  differences by default, :func:`lattice_velocities`), interpolated likewise, and the orbital
+  frame adds ``omega_E x r``;
 * sight vectors interpolated across columns by a cubic spline (and linearly across lattice
   rows if they vary; they are constant along track in real products), renormalised.
 
@@ -276,6 +278,11 @@ class AsterModel(PushbroomModel):
 
     MODEL_TYPE = "aster"
 
+    def __reduce__(self):
+        # pickle (process pools, Dask) through the exact JSON form: the detector table holds
+        # closures that pickle cannot carry
+        return (_rebuild_astermodel, (self.to_dict(),))
+
     def to_dict(self) -> dict:
         """Plain description: the lattice geometry and the model options."""
         g = self.geometry
@@ -318,3 +325,7 @@ class AsterModel(PushbroomModel):
         cosang = np.clip(np.sum(d * w, axis=-1), -1.0, 1.0)
         sinang = np.linalg.norm(np.cross(d, w), axis=-1)
         return np.arctan2(sinang, cosang)
+
+
+def _rebuild_astermodel(d):
+    return AsterModel.from_dict(d)

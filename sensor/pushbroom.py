@@ -109,7 +109,7 @@ class DetectorArray:
 
         def describe(psi):
             if isinstance(psi, Polynomial):
-                return {"polynomial": np.asarray(psi.coef, float)}
+                return {"polynomial": np.asarray(psi.convert().coef, float)}
             return np.asarray(psi, float)
 
         spec = {"kind": "look_angles", "psi_x": describe(psi_x), "psi_y": describe(psi_y),
@@ -120,8 +120,7 @@ class DetectorArray:
             if width is None or int(width) < 2:
                 raise SensorModelError("detector array: give width= with a polynomial psi_y")
             ry = (0.0, float(int(width) - 1))
-        rng = ry
-        return cls(lambda c, r: tx(c), lambda c, r: ty(c), lambda c, r: dty(c), col_range=rng, spec=spec)
+        return cls(lambda c, r: tx(c), lambda c, r: ty(c), lambda c, r: dty(c), col_range=ry, spec=spec)
 
     @classmethod
     def linear(cls, width: int, ifov: float, *, center: float | None = None, psi_x: float = 0.0):
@@ -334,6 +333,11 @@ class PushbroomModel(SensorModel):
         self.orbit: CircularOrbit | None = None     #: set by the synthetic constructors
 
     MODEL_TYPE = "pushbroom"
+
+    def __reduce__(self):
+        # pickle (process pools, Dask) through the exact JSON form: the detector table holds
+        # closures that pickle cannot carry
+        return (_rebuild_pushbroommodel, (self.to_dict(),))
 
     # ---------------------------------------------------------------- serialisation
     def to_dict(self) -> dict:
@@ -557,31 +561,36 @@ class PushbroomModel(SensorModel):
     @classmethod
     def synthetic_pair(cls, center_lon: float, center_lat: float, *, width: int, height: int,
                        backward_width: int | None = None, backward_height: int | None = None,
-                       backward_tilt_deg: float = -27.6, altitude: float = 705e3,
+                       backward_tilt_deg: float = -27.6, first_tilt_deg: float = 0.0,
+                       altitude: float = 705e3,
                        inclination_deg: float = 98.2, heading_deg: float | None = None,
                        gsd: float = 15.0, line_period: float = 2.2e-3,
                        cross_track_tilt_deg: float = 0.0, ephemeris_step: float = 1.0,
                        inertial_frame: bool = True):
         """Along-track stereo pair on ONE orbit, both images centred on the same ground point.
 
-        Returns ``(nadir_model, backward_model)``: the first is
-        :meth:`synthetic` with no along-track tilt; the second flies on the same orbit with
-        along-track tilt ``backward_tilt_deg`` (ASTER 3B: -27.6 deg) and is acquired later
-        (about 55 s at 705 km). Because the Earth turns meanwhile, the backward camera's
+        Returns ``(nadir_model, backward_model)``: the first is :meth:`synthetic` with
+        along-track tilt ``first_tilt_deg`` (0: nadir, ASTER 3N); the second flies on the same
+        orbit with along-track tilt ``backward_tilt_deg`` (ASTER 3B: -27.6 deg) and is
+        acquired later when it looks further back (about 55 s at 705 km for 0 / -27.6 deg;
+        any pair of tilts works, e.g. +20 / -20 deg). Because the Earth turns meanwhile, the backward camera's
         cross-track tilt is adjusted (by about 1.3 deg at mid-latitudes, as ASTER's wider 3B
         swath absorbs) so that its centre pixel sees the same ground centre; its
         ``cross_track_tilt_deg`` attribute holds the adjusted value. Both cameras have the
         same IFOV.
         """
         orbit = _aimed_orbit(center_lon, center_lat, altitude=altitude, inclination_deg=inclination_deg,
-                             heading_deg=heading_deg, along_deg=0.0, cross_deg=cross_track_tilt_deg)
+                             heading_deg=heading_deg, along_deg=first_tilt_deg,
+                             cross_deg=cross_track_tilt_deg)
         ifov = gsd / _nadir_height(orbit, 0.0)
         nadir = _model_on_orbit(cls, orbit, 0.0, width=width, height=height, line_period=line_period,
-                                ifov=ifov, along_deg=0.0, cross_deg=cross_track_tilt_deg,
-                                step=ephemeris_step, inertial=inertial_frame, name="nadir")
+                                ifov=ifov, along_deg=first_tilt_deg, cross_deg=cross_track_tilt_deg,
+                                step=ephemeris_step, inertial=inertial_frame,
+                                name="nadir" if first_tilt_deg == 0 else "first")
         target = np.array(geodesy.geodetic_to_ecef(center_lon, center_lat, 0.0), float)
         v_ground = orbit.mean_motion * geodesy.A
-        t_guess = -_nadir_height(orbit, 0.0) * np.tan(np.radians(backward_tilt_deg)) / v_ground
+        t_guess = -_nadir_height(orbit, 0.0) * (np.tan(np.radians(backward_tilt_deg))
+                                                - np.tan(np.radians(first_tilt_deg))) / v_ground
 
         def miss(x):
             return _centre_miss(orbit, x[0], backward_tilt_deg, cross_track_tilt_deg + np.degrees(x[1]),
@@ -724,3 +733,7 @@ def _model_on_orbit(cls, orbit, t_centre, *, width, height, line_period, ifov, a
                 inertial_frame=inertial, name=name)
     model.orbit = orbit
     return model
+
+
+def _rebuild_pushbroommodel(d):
+    return PushbroomModel.from_dict(d)

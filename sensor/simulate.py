@@ -117,11 +117,11 @@ def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_
     except ImportError as exc:  # pragma: no cover - the module is part of the package
         raise InputError(f"pushbroom presets need sensor.pushbroom ({exc})") from None
     w, h = size
-    common = dict(width=w, height=h, gsd=gsd, altitude=altitude, line_period=line_period)
-    if angles[0] == 0.0:
-        # one orbit, nadir then backward (ASTER 3N/3B): the backward image is acquired later
-        return PushbroomModel.synthetic_pair(lon0, lat0, backward_tilt_deg=angles[1], **common)
-    return tuple(PushbroomModel.synthetic(lon0, lat0, along_track_tilt_deg=a, **common) for a in angles)
+    # one orbit: the first image, then the second (e.g. ASTER 3N then 3B, ~55 s later), both
+    # centred on the same ground point
+    return PushbroomModel.synthetic_pair(lon0, lat0, width=w, height=h, gsd=gsd, altitude=altitude,
+                                         line_period=line_period, first_tilt_deg=angles[0],
+                                         backward_tilt_deg=angles[1])
 
 
 # ----------------------------------------------------------------------------- ground fields

@@ -38,7 +38,12 @@ def add_parser(subparsers):
         "assess", help="accuracy of a DEM against a reference DEM and check points",
         description="Warp DEM onto the reference grid, difference it (DEM - reference) and "
                     "report statistics overall, per slope class, land cover and elevation band, "
-                    "optionally before and after Nuth & Kaab co-registration.")
+                    "optionally before and after Nuth & Kaab co-registration.",
+        epilog="examples:\n"
+               "  stereodem assess out/dem.tif --ref srtm.tif --ref-vertical geoid -o report\n"
+               "  stereodem assess dem.tif --ref lidar.tif --checkpoints gps.csv --coregister -o report\n"
+               "  stereodem assess dem.tif --ref ref.tif --landcover lc.tif --landcover-names 1=forest,2=urban -o r\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dem", help="DEM GeoTIFF to assess")
     p.add_argument("--ref", required=True, help="reference DEM GeoTIFF (any CRS/resolution)")
     p.add_argument("--checkpoints", help="CSV of check points: lon,lat,height or x,y,z")

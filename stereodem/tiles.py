@@ -18,6 +18,7 @@ tile size and the disparity range (see the stereo pipeline), not by the scene si
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import signal
 import tempfile
@@ -199,7 +200,11 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
             collect(*_run_one(fn, t, timeout, context))
     else:
         n = workers or os.cpu_count() or 1
-        with ProcessPoolExecutor(max_workers=n, initializer=_init_worker, initargs=(context,)) as ex:
+        # "spawn", not fork: a forked child inherits OpenCV's and PROJ's thread state and can
+        # deadlock in its first cv2 call
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(context,)) as ex:
             futs = [ex.submit(_run_one, fn, t, timeout) for t in todo]
             for f in as_completed(futs):
                 collect(*f.result())

@@ -1,0 +1,128 @@
+"""The application: configuration, end-to-end run, workers, failures, CLI behaviour."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import rasterio
+
+from sensor.errors import InputError
+from sensor.simulate import simulate_scene, write_scene
+from stereodem import cli
+from stereodem.config import config_from_dict, load_config
+from stereodem.pipeline import run
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scene")
+    sc = simulate_scene("aster", size=(420, 400), seed=2, n_points=30)
+    write_scene(sc, d, overwrite=True)
+    return d
+
+
+def _cfg(scene_dir, out, **run):
+    raw = {
+        "inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif"),
+                   "reference_dem": str(scene_dir / "truth_dem.tif"), "reference_vertical": "ellipsoid",
+                   "checkpoints": str(scene_dir / "points.csv")},
+        "output": {"dir": str(out)},
+        "stereo": {"tile_size": 200, "height_range": [1000, 3500]},
+        "run": {"workers": 1, **run},
+    }
+    return config_from_dict(raw)
+
+
+def test_run_writes_products_and_run_json(scene_dir, tmp_path):
+    info = run(_cfg(scene_dir, tmp_path / "out"))
+    out = tmp_path / "out"
+    for name in ("dem.tif", "dem_edit_mask.tif", "raw/dem.tif", "raw/score.tif", "raw/count.tif",
+                 "raw/raygap.tif", "ortho_left.tif", "ortho_right.tif", "assess/report.json", "run.json"):
+        assert (out / name).exists(), name
+    rj = json.loads((out / "run.json").read_text())
+    assert set(rj["stages"]) >= {"load", "stereo", "post", "ortho", "assess"}
+    assert all(s["seconds"] >= 0 and s["peak_rss_mb"] > 0 for s in rj["stages"].values())
+    assert rj["config"]["stereo"]["tile_size"] == 200 and rj["versions"]["gdal"]
+    # the headline accuracy is real: the stereo DEM against the simulator's truth
+    h = info["headline"]
+    assert h["nmad"] < 4.0 and abs(h["median"]) < 1.5
+    with rasterio.open(out / "ortho_left.tif") as a, rasterio.open(out / "ortho_right.tif") as b:
+        assert a.transform == b.transform and a.shape == b.shape      # same grid for both
+
+
+def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
+    run(_cfg(scene_dir, tmp_path / "w1", workers=1))
+    run(_cfg(scene_dir, tmp_path / "w2", workers=2))
+    for name in ("raw/dem.tif", "raw/score.tif", "raw/count.tif", "dem.tif", "ortho_left.tif"):
+        with rasterio.open(tmp_path / "w1" / name) as a, rasterio.open(tmp_path / "w2" / name) as b:
+            x, y = a.read(), b.read()
+            assert np.array_equal(x, y, equal_nan=True), name
+
+
+def test_failing_tile_is_reported_and_scene_completes(scene_dir, tmp_path, monkeypatch):
+    import stereo.pipeline as sp
+    real = sp.process_tile
+    calls = {"n": 0}
+
+    def flaky(tile, inputs, settings):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RuntimeError("simulated tile failure")
+        return real(tile, inputs, settings)
+
+    monkeypatch.setattr(sp, "process_tile", flaky)
+    info = run(_cfg(scene_dir, tmp_path / "f"))
+    assert len(info["failed_tiles"]) == 1 and "simulated tile failure" in info["failed_tiles"][0]["reason"]
+    assert info["stages"]["stereo"]["tiles"] >= 3
+    with rasterio.open(tmp_path / "f" / "dem.tif") as ds:
+        assert np.isfinite(ds.read(1)).mean() > 0.2
+
+
+def test_existing_output_needs_overwrite(scene_dir, tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "keep.txt").write_text("user data")
+    from sensor.errors import OutputExistsError
+    with pytest.raises(OutputExistsError):
+        run(_cfg(scene_dir, out))
+    assert (out / "keep.txt").read_text() == "user data"
+
+
+def test_config_errors(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text("[inputs]\nleft = 'a.tif'\n")
+    with pytest.raises(InputError, match="needs 'right'"):
+        load_config(p)
+    p.write_text("[inputs]\nleft='a'\nright='b'\n[output]\ndir='o'\n[stereo]\ntile_sise=3\n")
+    with pytest.raises(InputError, match="unknown key.*tile_sise"):
+        load_config(p)
+    p.write_text("not = [toml")
+    with pytest.raises(InputError, match="not valid TOML"):
+        load_config(p)
+
+
+def test_cli_exit_codes_and_help(tmp_path, capsys):
+    assert cli.main([]) == 2
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0
+    for cmd in ("demo", "run", "simulate", "dem", "ortho", "assess"):
+        with pytest.raises(SystemExit) as e:
+            cli.main([cmd, "--help"])
+        assert e.value.code == 0
+        assert "example" in capsys.readouterr().out.lower()
+    with pytest.raises(SystemExit) as e:
+        cli.main(["run"])                       # missing argument: bad usage
+    assert e.value.code == 2
+    assert cli.main(["run", str(tmp_path / "missing.toml")]) == 1
+    assert "configuration file not found" in capsys.readouterr().err
+
+
+def test_demo_command(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "stereodem.cli", "demo", "-o", str(tmp_path / "d"),
+                        "--size", "400", "400"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "NMAD" in r.stdout and (tmp_path / "d" / "result" / "dem.tif").exists()
+    nmad = float(r.stdout.split("NMAD")[1].split("m")[0])
+    assert nmad < 4.0
