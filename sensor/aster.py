@@ -329,3 +329,14 @@ class AsterModel(PushbroomModel):
 
 def _rebuild_astermodel(d):
     return AsterModel.from_dict(d)
+
+
+def bundled_xml(band: str):
+    """Path of the bundled real ASTER geometry (ASP ``aster2asp`` XML) of band ``3N`` or ``3B``.
+
+    One V003 granule over Mt Rainier, 2017-07-31 (uw-cryo/asp_plot test data, BSD-3-Clause).
+    """
+    from importlib import resources
+    if band not in ("3N", "3B"):
+        raise SensorModelError(f"ASTER band must be '3N' or '3B', got {band!r}")
+    return resources.files("sensor") / "data" / "aster" / f"out-Band{band}.xml"

@@ -17,8 +17,9 @@ A scene is built on a UTM grid around the DEM's centre:
 
 Presets
 -------
-``aster``  705 km orbit, 15 m pixels, band 3N nadir and 3B 27.6 deg backward (B/H ~0.6),
-           2.2 ms line period (pushbroom pair on one orbit).
+``aster``  the real geometry of the bundled ASTER granule (:func:`aster_geometry_parameters`):
+           ~709 km orbit, ~15 m pixels, 2.1989 ms line period, band 3N near nadir and 3B
+           27.7 deg backward (B/H ~0.6), both pointed ~8.6 deg across track, one orbit.
 ``frame``  BILSAT-like frame camera (0.0074 mm pixels, ~27 m GSD), two exposures on one
            orbit converging on the scene centre (B/H ~0.6).
 ``pushbroom``  a pushbroom pair at user-chosen along-track angles (``angles=(fwd, bwd)``).
@@ -110,8 +111,42 @@ def frame_pair(lon0, lat0, h0, size, gsd=27.6, altitude=686e3, base_to_height=0.
     return cams[0], cams[1]
 
 
-def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_period=2.2e-3):
-    """A pushbroom pair on one orbit with along-track tilts ``angles`` (degrees)."""
+def aster_geometry_parameters() -> dict:
+    """Pointing, IFOV, orbit height and line period of the bundled real ASTER 3N/3B granule.
+
+    Read from the real product geometry (:func:`sensor.aster.bundled_xml`): the centre
+    detector's sight vector in the orbital frame gives the along-track angle of each band
+    (3N about +0.03 deg, 3B about -27.7 deg) and their common cross-track pointing (about
+    8.6 deg to the right of the track); the angle between the first and last detectors gives
+    the IFOV; the satellite positions give the orbit height. The line period 2.1989 ms is the
+    one that reproduces the product's own lattice (notes aster-l1a-format §4.4).
+    """
+    from .aster import bundled_xml, read_asp_aster_xml
+    out = {}
+    for band in ("3N", "3B"):
+        g = read_asp_aster_xml(bundled_xml(band))
+        sv = g.sight_vectors[len(g.sight_vectors) // 2]            # (11, 3), orbital frame
+        mid = sv[sv.shape[0] // 2]
+        cols = g.lattice[0, :, 0]
+        first, last = sv[0] / np.linalg.norm(sv[0]), sv[-1] / np.linalg.norm(sv[-1])
+        ifov = float(np.arccos(np.clip(first @ last, -1, 1)) / (cols[-1] - cols[0]))
+        _, _, hsat = geodesy.ecef_to_geodetic(*np.asarray(g.satellite_positions, float).T)
+        out[band] = dict(along_deg=float(np.degrees(np.arctan2(mid[0], mid[2]))),
+                         cross_deg=float(np.degrees(np.arctan2(mid[1], mid[2]))),
+                         ifov_rad=ifov, altitude_m=float(np.mean(hsat)))
+    return dict(bands=out, line_period_s=2.1989e-3,
+                altitude_m=out["3N"]["altitude_m"],
+                gsd_m=out["3N"]["ifov_rad"] * out["3N"]["altitude_m"],
+                cross_track_right_deg=out["3N"]["cross_deg"])
+
+
+def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_period=2.2e-3,
+                   cross_track_tilt_deg=0.0):
+    """A pushbroom pair on one orbit with along-track tilts ``angles`` (degrees).
+
+    ``cross_track_tilt_deg`` follows :class:`sensor.pushbroom.PushbroomModel` (positive looks
+    left of the flight direction).
+    """
     try:
         from .pushbroom import PushbroomModel
     except ImportError as exc:  # pragma: no cover - the module is part of the package
@@ -121,7 +156,8 @@ def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_
     # centred on the same ground point
     return PushbroomModel.synthetic_pair(lon0, lat0, width=w, height=h, gsd=gsd, altitude=altitude,
                                          line_period=line_period, first_tilt_deg=angles[0],
-                                         backward_tilt_deg=angles[1])
+                                         backward_tilt_deg=angles[1],
+                                         cross_track_tilt_deg=cross_track_tilt_deg)
 
 
 # ----------------------------------------------------------------------------- ground fields
@@ -246,9 +282,16 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
 
     if preset == "frame":
         left_model, right_model = frame_pair(lon0, lat0, h0, (w, h))
+    elif preset == "aster":
+        # the real granule's pointing, IFOV, orbit height and line timing, flown over the DEM
+        p = aster_geometry_parameters()
+        b = p["bands"]
+        left_model, right_model = pushbroom_pair(
+            lon0, lat0, h0, (w, h), (b["3N"]["along_deg"], b["3B"]["along_deg"]), gsd=p["gsd_m"],
+            altitude=p["altitude_m"], line_period=p["line_period_s"],
+            cross_track_tilt_deg=-p["cross_track_right_deg"])
     else:
-        ang = (0.0, -27.6) if preset == "aster" else tuple(angles)
-        left_model, right_model = pushbroom_pair(lon0, lat0, h0, (w, h), ang)
+        left_model, right_model = pushbroom_pair(lon0, lat0, h0, (w, h), tuple(angles))
 
     gsd = left_model.gsd(h0)
     crs = geodesy.utm_crs(lon0, lat0)

@@ -10,8 +10,9 @@ BANDS = ("3N", "3B")
 
 
 @pytest.fixture(scope="module")
-def xml_path(data_dir):
-    return lambda band: data_dir / "aster" / f"out-Band{band}.xml"
+def xml_path():
+    from sensor.aster import bundled_xml
+    return lambda band: bundled_xml(band)
 
 
 @pytest.fixture(scope="module")

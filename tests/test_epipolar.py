@@ -2,6 +2,8 @@
 import xml.etree.ElementTree as ET
 
 import numpy as np
+
+from sensor.aster import bundled_xml
 import pytest
 
 from sensor.rpc import RPCModel
@@ -50,8 +52,8 @@ def test_aster_like_pushbroom_pair_full_scene_parallax():
 
 def test_real_aster_geometry_parallax():
     """ASP's RPCs of a real ASTER 3N/3B granule, 0-4400 m: every 512 px tile <= 0.05 px."""
-    left = _aster_rpc("tests/data/aster/out-Band3N.xml")
-    right = _aster_rpc("tests/data/aster/out-Band3B.xml")
+    left = _aster_rpc(bundled_xml("3N"))
+    right = _aster_rpc(bundled_xml("3B"))
     _, worst = _worst_tile(left, right, (left.width, left.height), (0.0, 4400.0))
     assert worst <= 0.05, worst
 

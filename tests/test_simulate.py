@@ -73,12 +73,16 @@ def test_aster_preset_geometry():
     assert sc.settings["gsd"] == pytest.approx(15.0, rel=0.02)
     lm, rm = sc.left_model, sc.right_model
     lon, lat = lm.localize(100.0, 90.0, 2000.0)
-    c1, r1 = rm.project(lon, lat, 1000.0)
-    c2, r2 = rm.project(lon, lat, 2000.0)
-    # backward view 27.6 deg: ~0.52-0.6 px of parallax per 15 m of height, along the rows
-    par = np.hypot(c2 - c1, r2 - r1) * 15.0 / 1000.0
-    assert 0.5 < par < 0.65
-    assert abs(r2 - r1) > 5 * abs(c2 - c1)
+    d = []
+    for m in (lm, rm):
+        c1, r1 = m.project(lon, lat, 1000.0)
+        c2, r2 = m.project(lon, lat, 2000.0)
+        d.append(np.array([c2 - c1, r2 - r1]))
+    par = d[1] - d[0]
+    # 3N near nadir, 3B 27.7 deg backward: B/H ~ 0.53-0.6, i.e. that many metres of parallax
+    # per metre of height, along the rows (both views share the ~8.6 deg cross-track pointing)
+    assert 0.5 < np.hypot(*par) * 15.0 / 1000.0 < 0.65
+    assert abs(par[1]) > 5 * abs(par[0])
     assert sc.diagnostics["right_render_error_px"] < 0.01
 
 
@@ -104,3 +108,27 @@ def test_bad_input():
         simulate_scene("spot")
     with pytest.raises(InputError, match="too small"):
         simulate_scene("frame", size=(8, 8))
+
+
+def test_aster_preset_uses_real_granule_geometry():
+    from sensor.simulate import aster_geometry_parameters
+    p = aster_geometry_parameters()
+    assert p["bands"]["3B"]["along_deg"] == pytest.approx(-27.7, abs=0.2)     # backward band
+    assert abs(p["bands"]["3N"]["along_deg"]) < 0.1                          # nadir band
+    assert 8 < p["cross_track_right_deg"] < 9                                 # real pointing
+    assert 700e3 < p["altitude_m"] < 715e3 and 14.5 < p["gsd_m"] < 15.5
+
+
+@pytest.mark.parametrize("which", ["left", "right"])
+def test_rpc_fitted_to_aster_preset_reproduces_it(which):
+    from sensor.rpcfit import fit_rpc
+    sc = simulate_scene("aster", size=(600, 600), seed=0, n_points=4)
+    model = getattr(sc, f"{which}_model")
+    rpc, rep = fit_rpc(model, height_range=(500.0, 4000.0))
+    assert rep.check_max < 0.01                       # px, on the independent check grid
+    # and independently of the report: random points
+    rng = np.random.default_rng(0)
+    c, r, h = rng.uniform(0, 599, 500), rng.uniform(0, 599, 500), rng.uniform(500, 4000, 500)
+    lon, lat = model.localize(c, r, h)
+    pc, pr = rpc.project(lon, lat, h)
+    assert np.hypot(pc - c, pr - r).max() < 0.01
