@@ -13,6 +13,7 @@ Output folder::
                                  101 = filled from the seed DEM
     ortho_left.tif, ortho_right.tif
     assess/report.json, report.md, *.png                        when a reference DEM is given
+    tiles/tile_<n>.npz           finished stereo tiles (reused by --resume)
     run.json
 """
 from __future__ import annotations
@@ -79,31 +80,47 @@ def load_inputs(cfg: Config):
     return out
 
 
-def _pool_runner(run_settings, progress=None):
-    """A tile runner for :func:`stereo.pipeline.make_dem` backed by :func:`run_tiles`."""
+def _pool_runner(run_settings, progress=None, cache_dir=None):
+    """A tile runner for :func:`stereo.pipeline.make_dem` backed by :func:`run_tiles`.
+
+    Finished tiles are cached in ``cache_dir`` (``tile_<n>.npz``) so ``--resume`` skips them.
+    """
     failures = []
 
     def runner(process_tile, tiles, inputs, settings):
         wrapped = [Tile(i, 0, 0, 0, 0) for i in range(len(tiles))]
         ctx = dict(tiles=tiles, inputs=inputs, settings=settings, fn=process_tile)
         results, fails, _ = run_tiles(_tile_job, wrapped, ctx, workers=run_settings.workers,
-                                      timeout=run_settings.tile_timeout,
-                                      dask_address=run_settings.dask, progress=progress)
+                                      timeout=run_settings.tile_timeout, cache_dir=cache_dir,
+                                      resume=run_settings.resume, dask_address=run_settings.dask,
+                                      progress=progress)
         failures.extend(fails)
-        return [results[i]["result"] for i in sorted(results)]
+        return [_tile_result(results[i]) for i in sorted(results)]
 
     runner.failures = failures
     return runner
 
 
+_TILE_ARRAYS = ("lon", "lat", "h", "score", "ray_gap")
+
+
 def _tile_job(tile, ctx):
-    return {"result": ctx["fn"](ctx["tiles"][tile.index], ctx["inputs"], ctx["settings"])}
+    """One stereo tile as plain arrays (cacheable with ``np.savez``, no pickle)."""
+    res = ctx["fn"](ctx["tiles"][tile.index], ctx["inputs"], ctx["settings"])
+    out = {k: np.asarray(getattr(res, k)) for k in _TILE_ARRAYS}
+    out["summary"] = np.array(json.dumps(res.summary, default=_json_default))
+    return out
 
 
-def stereo_stage(cfg: Config, left, right, *, progress=None):
+def _tile_result(arrays):
+    from stereo.pipeline import TileResult
+    return TileResult(*(arrays[k] for k in _TILE_ARRAYS), json.loads(str(arrays["summary"])))
+
+
+def stereo_stage(cfg: Config, left, right, *, progress=None, cache_dir=None):
     """Stereo DEM (raw): :func:`stereo.pipeline.make_dem` with the configured tile runner."""
     from stereo.pipeline import make_dem
-    runner = _pool_runner(cfg.run, progress)
+    runner = _pool_runner(cfg.run, progress, cache_dir=cache_dir)
     products = make_dem(left[0], right[0], left[1], right[1], cfg.stereo, runner=runner)
     return products, [f.to_dict() for f in runner.failures]
 
@@ -197,7 +214,7 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
 
     t0 = time.perf_counter()
     bar = prog("stereo")
-    products, failed = stereo_stage(cfg, *inputs, progress=bar)
+    products, failed = stereo_stage(cfg, *inputs, progress=bar, cache_dir=out / "tiles")
     _close(bar)
     grid = products.grid
     grid.write(out / "raw", overwrite=True)

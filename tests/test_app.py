@@ -126,3 +126,21 @@ def test_demo_command(tmp_path):
     assert "NMAD" in r.stdout and (tmp_path / "d" / "result" / "dem.tif").exists()
     nmad = float(r.stdout.split("NMAD")[1].split("m")[0])
     assert nmad < 4.0
+
+
+def test_resume_reuses_finished_tiles(scene_dir, tmp_path, monkeypatch):
+    first = run(_cfg(scene_dir, tmp_path / "r"))
+    n_tiles = first["stages"]["stereo"]["tiles"]
+    assert len(list((tmp_path / "r" / "tiles").glob("tile_*.npz"))) == n_tiles
+    import stereo.pipeline as sp
+
+    def must_not_run(*a, **k):
+        raise AssertionError("a finished tile was recomputed")
+
+    monkeypatch.setattr(sp, "process_tile", must_not_run)
+    again = run(_cfg(scene_dir, tmp_path / "r", resume=True))
+    assert not again["failed_tiles"]
+    with rasterio.open(tmp_path / "r" / "raw" / "dem.tif") as ds:
+        z = ds.read(1)
+    assert np.isfinite(z).mean() > 0.2
+    assert again["headline"]["nmad"] == pytest.approx(first["headline"]["nmad"])
