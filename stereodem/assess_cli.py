@@ -63,7 +63,7 @@ def add_parser(subparsers):
                    help="vertical reference of the reference (overrides the file)")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
-    p.set_defaults(func=run)
+    p.set_defaults(run=run)
     return p
 
 

@@ -127,11 +127,14 @@ def _run(args) -> int:
                            gridding=args.gridding, pointing_correction=not args.no_pointing_correction)
     quiet = logging.getLogger().getEffectiveLevel() > logging.WARNING
 
+    tty = sys.stderr.isatty()
+
     def progress(done, total, summary):
+        # a live line on a terminal, one line per tile in logs and pipes
         if not quiet:
-            print(f"\rstereodem dem: tile {done}/{total} ({summary['n_points']} points, "
-                  f"y-parallax {summary['residual_rms_px']:.3f} px)", end="", file=sys.stderr,
-                  flush=True)
+            print(f"{chr(13) if tty else ''}stereodem dem: tile {done}/{total} ({summary['n_points']} points, "
+                  f"y-parallax {summary['residual_rms_px']:.3f} px)", end="" if tty else "\n",
+                  file=sys.stderr, flush=True)
 
     prod = make_dem(left, right, left_model, right_model, settings, progress=progress)
     if not quiet:

@@ -144,3 +144,10 @@ def test_resume_reuses_finished_tiles(scene_dir, tmp_path, monkeypatch):
         z = ds.read(1)
     assert np.isfinite(z).mean() > 0.2
     assert again["headline"]["nmad"] == pytest.approx(first["headline"]["nmad"])
+
+
+def test_every_subcommand_is_wired_to_its_run_function():
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    for name, p in sub.choices.items():
+        assert callable(p.get_default("run")), name
