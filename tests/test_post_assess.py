@@ -127,12 +127,12 @@ def test_cli_writes_report_and_figures(tmp_path, ref):
     out = tmp_path / "out"
     args = _parser().parse_args(["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif"),
                                  "--landcover", str(tmp_path / "lc.tif"), "--coregister", "-o", str(out)])
-    assert args.func(args) == 1                        # geoid vs unknown: a clear error
+    assert args.run(args) == 1                        # geoid vs unknown: a clear error
     assert not (out / "report.json").exists()
     args = _parser().parse_args(["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif"),
                                  "--ref-vertical", "geoid", "--landcover", str(tmp_path / "lc.tif"),
                                  "--slope-bins", "0,10,20,90", "--coregister", "-o", str(out)])
-    assert args.func(args) == 0
+    assert args.run(args) == 0
     rep = json.loads((out / "report.json").read_text())
     for key in ("n", "valid_pct", "mean", "median", "std", "rmse", "nmad", "le90", "le95", "p16", "p84",
                 "min", "max"):
@@ -149,9 +149,9 @@ def test_cli_writes_report_and_figures(tmp_path, ref):
         img = mpimg.imread(out / name)
         assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100 and img.std() > 0.01
     # refuses a non-empty folder without --overwrite
-    assert args.func(args) == 1
+    assert args.run(args) == 1
     args.overwrite = True
-    assert args.func(args) == 0
+    assert args.run(args) == 0
 
 
 def test_write_report_refuses_nonempty_dir(tmp_path, ref, simulated):
