@@ -2,7 +2,6 @@
 histogram of differences, error against slope."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import matplotlib
 

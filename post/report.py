@@ -8,8 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sensor.errors import OutputExistsError
-from sensor.raster import write_text_atomic
+from sensor.raster import prepare_output_dir, write_text_atomic
 
 from . import figures
 
@@ -33,17 +32,6 @@ def _clean(obj):
     if isinstance(obj, np.bool_):
         return bool(obj)
     return obj
-
-
-def prepare_output_dir(out_dir, *, overwrite=False) -> Path:
-    """Create ``out_dir``; refuse an existing non-empty folder unless ``overwrite``."""
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise OutputExistsError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise OutputExistsError(f"{out}: folder exists and is not empty; pass --overwrite")
-    out.mkdir(parents=True, exist_ok=True)
-    return out
 
 
 def _fmt(v, nd=2):

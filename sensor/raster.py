@@ -6,6 +6,7 @@ final name.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from pathlib import Path
@@ -22,6 +23,20 @@ def check_writable(path, overwrite: bool = False) -> Path:
     if path.exists() and not overwrite:
         raise OutputExistsError(f"{path}: exists; pass overwrite=True (--overwrite) to replace it")
     return path
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path):
+    """Yield a temporary path beside ``path``; move it into place only if the block succeeds."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    os.close(fd)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
 
 
 def prepare_output_dir(path, *, overwrite: bool = False) -> Path:
@@ -67,38 +82,21 @@ def write_geotiff(path, data, transform=None, crs=None, nodata=None, *, overwrit
         profile.pop("transform")
     if rpcs is not None:
         profile["rpcs"] = rpcs
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    os.close(fd)
-    try:
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-            with rasterio.open(tmp, "w", **profile) as dst:
-                dst.write(arr)
-                if tags:
-                    dst.update_tags(**{k: str(v) for k, v in tags.items()})
-                for i, bt in enumerate(band_tags or [], start=1):
-                    dst.update_tags(i, **{k: str(v) for k, v in bt.items()})
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    import warnings
+    with atomic_path(path) as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(tmp, "w", **profile) as dst:
+            dst.write(arr)
+            if tags:
+                dst.update_tags(**{k: str(v) for k, v in tags.items()})
+            for i, bt in enumerate(band_tags or [], start=1):
+                dst.update_tags(i, **{k: str(v) for k, v in bt.items()})
     return path
 
 
 def write_text_atomic(path, text: str, *, overwrite=False) -> Path:
     """Write a text file atomically (temporary file + rename)."""
     path = check_writable(path, overwrite)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)
     return path

@@ -202,7 +202,7 @@ def _valid_box(valid):
     step = max(4, min(H, W) // 100)
     for r0 in range(0, H // 2, step):
         for c0 in range(0, W // 2, step):
-            hh, ww = H - 2 * r0, W - 2 * c0
+            ww = W - 2 * c0
             for r1 in range(H - r0, r0 + H // 4, -step):
                 s = ii[r1, W - c0] - ii[r0, W - c0] - ii[r1, c0] + ii[r0, c0]
                 area = (r1 - r0) * (ww)

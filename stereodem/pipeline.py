@@ -24,8 +24,6 @@ import platform
 import resource
 import time
 from dataclasses import dataclass, field
-from functools import partial
-from pathlib import Path
 
 import numpy as np
 import rasterio

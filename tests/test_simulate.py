@@ -9,6 +9,17 @@ from sensor.errors import InputError, OutputExistsError
 from sensor.simulate import simulate_scene, write_scene
 
 
+def _parallax_per_km(left, right, col, row):
+    """Relative image displacement (right minus left, px) of a ground column from 1 to 2 km."""
+    lon, lat = left.localize(col, row, 2000.0)
+    d = []
+    for m in (left, right):
+        c1, r1 = m.project(lon, lat, 1000.0)
+        c2, r2 = m.project(lon, lat, 2000.0)
+        d.append(np.array([c2 - c1, r2 - r1]))
+    return d[1] - d[0]
+
+
 @pytest.fixture(scope="module")
 def frame_scene():
     return simulate_scene("frame", size=(256, 240), seed=3, noise=1.0)
@@ -55,30 +66,16 @@ def test_truth_grid_is_utm_and_ellipsoidal(frame_scene):
 
 def test_stereo_parallax_is_along_track(frame_scene):
     """The two views see the same ground point at rows differing with height (B/H ~ 0.6)."""
-    lm, rm = frame_scene.left_model, frame_scene.right_model
-    lon, lat = lm.localize(128.0, 120.0, 1000.0)
-    d = []
-    for m in (lm, rm):
-        c1, r1 = m.project(lon, lat, 1000.0)
-        c2, r2 = m.project(lon, lat, 2000.0)
-        d.append(np.array([c2 - c1, r2 - r1]))
-    parallax = np.hypot(*(d[1] - d[0])) * frame_scene.settings["gsd"]
+    par = _parallax_per_km(frame_scene.left_model, frame_scene.right_model, 128.0, 120.0)
     # 1000 m of height gives B/H * 1000 m of parallax, B/H = 0.6 by construction
-    assert parallax == pytest.approx(600.0, rel=0.1)
-    assert abs((d[1] - d[0])[1]) > 5 * abs((d[1] - d[0])[0])     # along the rows (flight)
+    assert np.hypot(*par) * frame_scene.settings["gsd"] == pytest.approx(600.0, rel=0.1)
+    assert abs(par[1]) > 5 * abs(par[0])                          # along the rows (flight)
 
 
 def test_aster_preset_geometry():
     sc = simulate_scene("aster", size=(200, 180), seed=0, n_points=10)
     assert sc.settings["gsd"] == pytest.approx(15.0, rel=0.02)
-    lm, rm = sc.left_model, sc.right_model
-    lon, lat = lm.localize(100.0, 90.0, 2000.0)
-    d = []
-    for m in (lm, rm):
-        c1, r1 = m.project(lon, lat, 1000.0)
-        c2, r2 = m.project(lon, lat, 2000.0)
-        d.append(np.array([c2 - c1, r2 - r1]))
-    par = d[1] - d[0]
+    par = _parallax_per_km(sc.left_model, sc.right_model, 100.0, 90.0)
     # 3N near nadir, 3B 27.7 deg backward: B/H ~ 0.53-0.6, i.e. that many metres of parallax
     # per metre of height, along the rows (both views share the ~8.6 deg cross-track pointing)
     assert 0.5 < np.hypot(*par) * 15.0 / 1000.0 < 0.65
