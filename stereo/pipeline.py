@@ -436,22 +436,19 @@ def make_dem(left_image, right_image, left_model, right_model, settings: DEMSett
         dcol, drow, pointing = estimate_pointing(tiles, inputs, settings, n_tiles=settings.pointing_tiles)
         if dcol or drow:
             inputs.right_model = epipolar.ShiftedModel(right_model, dcol, drow)
-    # 3. tiles
-    if runner is not None:
+    # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask)
+    if runner is None:
+        results = []
+        for k, tile in enumerate(tiles, start=1):
+            results.append(process_tile(tile, inputs, settings))
+            if progress is not None:
+                progress(k, len(tiles), results[-1].summary)
+    else:
         results = list(runner(process_tile, tiles, inputs, settings))
-        for res in results:
-            s = res.summary
-            log.info("tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
-                     s["tile"], s["residual_rms_px"], *s["disparity_range"], s["n_points"])
-    results = [] if runner is None else results
-    for k, tile in enumerate(tiles if runner is None else [], start=1):
-        res = process_tile(tile, inputs, settings)
-        results.append(res)
+    for res in results:
         s = res.summary
-        log.info("tile %d/%d %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
-                 k, len(tiles), s["tile"], s["residual_rms_px"], *s["disparity_range"], s["n_points"])
-        if progress is not None:
-            progress(k, len(tiles), s)
+        log.info("tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
+                 s["tile"], s["residual_rms_px"], *s["disparity_range"], s["n_points"])
     # 4. grid
     cat = lambda name: np.concatenate([getattr(r, name) for r in results]) if results else np.zeros(0)  # noqa: E731
     lon, lat, h = cat("lon"), cat("lat"), cat("h")
