@@ -5,13 +5,19 @@ A scene is built on a UTM grid around the DEM's centre:
 * ``truth_dem``: the DEM resampled (cubic) to the grid, converted to ellipsoidal heights;
 * a ground radiance field on a grid twice as fine: albedo (the texture stretched over the
   scene, times seeded multi-octave detail) times Lambertian shading of the DEM
-  (sun azimuth 150 deg, elevation 55 deg), blurred by a Gaussian point-spread function of
-  0.4 GSD;
+  (sun azimuth 150 deg, elevation 55 deg), blurred by the system point-spread function: a
+  Gaussian whose MTF at the image Nyquist frequency is ``mtf_nyquist`` (default 0.3, as ASTER
+  VNIR's 0.25-0.35; 0.49 GSD), standing for optics, detector integration and motion. The
+  image is the point sample of this band-limited field; an unblurred field would hold
+  content above the image Nyquist frequency that no interpolation of the image can recover;
 * the two images: every pixel is localised on the DEM through its sensor model (DRM relief
   iteration, :mod:`sensor.render`) and reads the radiance there; then sensor noise
   (Gaussian, ``noise`` DN) and 8- or 16-bit quantisation;
-* ``truth_ortho``: the radiance field at the ``truth_dem`` cell centres, in the same DN scale
-  without noise (the left image's true orthoimage);
+* ``truth_ortho``: the same band-limited radiance field at the ``truth_dem`` cell centres, in
+  the same DN scale without noise or quantisation (the left image's true orthoimage). An
+  exact orthorectification differs from it by the interpolator's error on the band-limited
+  image (smaller for smaller ``mtf_nyquist`` and better kernels: measured in
+  ``tests/test_ortho.py``) plus the propagated noise;
 * check points: random left-image pixels localised exactly on the DEM, with their right-image
   coordinates, half of them marked as GCPs.
 
@@ -52,6 +58,21 @@ log = logging.getLogger(__name__)
 
 SUN_AZIMUTH, SUN_ELEVATION = 150.0, 55.0
 PRESETS = ("aster", "frame", "pushbroom")
+#: System modulation transfer function (optics x detector integration x motion) at the image's
+#: Nyquist frequency; ASTER VNIR's is about 0.25-0.35.
+MTF_NYQUIST = 0.3
+
+
+def psf_sigma(mtf_nyquist: float = MTF_NYQUIST) -> float:
+    """Standard deviation (in ground sample distances) of the Gaussian system point-spread
+    function whose MTF at the Nyquist frequency (0.5 cycle per pixel) is ``mtf_nyquist``.
+
+    A Gaussian of standard deviation s has MTF(f) = exp(-2 pi^2 s^2 f^2), so
+    s = sqrt(-ln(mtf) / (2 pi^2 * 0.25)); 0.3 gives 0.49 GSD.
+    """
+    if not 0.0 < mtf_nyquist < 1.0:
+        raise InputError(f"mtf_nyquist must be in (0, 1), got {mtf_nyquist}")
+    return float(np.sqrt(-np.log(mtf_nyquist) / (0.5 * np.pi ** 2)))
 
 
 @dataclass
@@ -253,7 +274,7 @@ def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION):
 
 def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=None,
                    noise: float = 1.0, seed: int = 0, bits: int = 8, angles=(0.0, -27.6),
-                   n_points: int = 60, step: int = 16) -> Scene:
+                   n_points: int = 60, step: int = 16, mtf_nyquist: float = MTF_NYQUIST) -> Scene:
     """Simulate a stereo scene; see the module docstring.
 
     Parameters
@@ -265,11 +286,15 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     noise : float, standard deviation of the sensor noise in DN.
     bits : 8 or 16, quantisation.
     angles : along-track tilts (deg) of the two images for the ``pushbroom`` preset.
+    mtf_nyquist : float
+        System MTF at the image Nyquist frequency (sets the Gaussian point-spread function
+        applied to the ground radiance field, :func:`psf_sigma`).
     """
     if preset not in PRESETS:
         raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if bits not in (8, 16):
         raise InputError(f"bits must be 8 or 16, got {bits}")
+    sigma_psf = psf_sigma(mtf_nyquist)                    # GSD; validates mtf_nyquist
     w, h = int(size[0]), int(size[1])
     if w < 32 or h < 32:
         raise InputError(f"image size {w}x{h} is too small (at least 32x32)")
@@ -309,7 +334,9 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     albedo = _albedo(texture or texture_path(), fshape, rng)
     shade = hillshade_factor(fine_dem, res_truth / 2)
     field = albedo * (0.25 + 0.75 * shade)
-    field = cv2.GaussianBlur(field, (0, 0), 0.8)          # PSF sigma 0.4 GSD
+    # the system PSF, in ground units, applied once to the radiance field: both the images
+    # and truth_ortho sample this one band-limited field
+    field = cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2))
     dn_max = 255.0 if bits == 8 else 4095.0               # 12-bit signal in 16-bit words
     gain = 0.9 * dn_max / float(np.percentile(field, 99.9))
     radiance = MapRaster(field * gain, ft, crs)
@@ -330,6 +357,7 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     truth_dem = DEM(truth, transform, crs, ELLIPSOID, None)
     points = _check_points(left_model, right_model, truth_dem, n_points, rng)
     settings = dict(preset=preset, size=[w, h], noise=noise, seed=seed, bits=bits,
+                    mtf_nyquist=mtf_nyquist, psf_sigma_gsd=sigma_psf,
                     gsd=gsd, center_lon=lon0, center_lat=lat0,
                     angles=list(angles) if preset == "pushbroom" else None,
                     dem=str(dem.path), texture=str(texture or texture_path()))

@@ -6,7 +6,12 @@ accumulated into cells of a regular grid with ``np.bincount``:
 * ``"mean"``: the mean height of the points falling in each cell (s2p ``dsm_radius = 0``);
 * ``"gaussian"``: each point spreads into the cells within ``radius`` cells of it, weighted by
   ``exp(-r^2 / 2 sigma^2)`` with ``r`` the distance from the point to the cell centre (s2p
-  ``plyflatten`` with ``dsm_sigma``), which also fills one-cell gaps.
+  ``plyflatten`` with ``dsm_sigma``), which also fills one-cell gaps. The default width
+  follows the point density: ``sigma = max(posting / 2, spacing)`` with ``spacing`` the mean
+  point spacing (``posting / sqrt(points per occupied cell)``), so that every cell averages
+  a similar number of points (about six) whether the posting is twice the image GSD (ASTER:
+  four points per cell, ``sigma = posting / 2``) or equal to it (Pleiades on s2p's 0.5 m grid:
+  about one point per cell, ``sigma ~ posting``).
 
 Heights are ellipsoidal unless EGM96 geoid heights are requested. The grid uses the GDAL
 pixel-corner affine transform; cell ``[i, j]`` has its centre at ``transform * (j + 0.5, i + 0.5)``.
@@ -96,8 +101,19 @@ def grid_bounds(x, y, posting):
             np.ceil(np.nanmax(x) / posting) * posting, np.ceil(np.nanmax(y) / posting) * posting)
 
 
+def _density_sigma(fi, fj, rows, cols, posting):
+    """Default gaussian width: ``max(posting / 2, mean point spacing)`` (CRS units)."""
+    i, j = np.rint(fi).astype(np.int64), np.rint(fj).astype(np.int64)
+    inside = (i >= 0) & (i < rows) & (j >= 0) & (j < cols)
+    if not inside.any():
+        return 0.5 * posting
+    counts = np.bincount((i * cols + j)[inside])
+    per_cell = inside.sum() / max(np.count_nonzero(counts), 1)
+    return max(0.5 * posting, posting / np.sqrt(per_cell))
+
+
 def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=None, ray_gap=None,
-                method: str = "mean", sigma: float | None = None, radius: int = 1,
+                method: str = "mean", sigma: float | None = None, radius: int | None = None,
                 geoid: bool = False) -> DEMGrid:
     """Grid ground points into a DEM.
 
@@ -116,7 +132,11 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
     method : {"mean", "gaussian"}
         Cell estimator (see the module docstring).
     sigma : float, optional
-        Gaussian width in CRS units (default ``posting / 2``); ``radius`` in cells.
+        Gaussian width in CRS units (default ``max(posting / 2, mean point spacing)``, see the
+        module docstring).
+    radius : int, optional
+        Half-width of the gaussian support in cells (default ``ceil(2 sigma / posting)``, at
+        least 1).
     geoid : bool
         Output EGM96 geoid heights instead of ellipsoidal heights.
 
@@ -160,7 +180,9 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
         offsets = [(0, 0)]
         sig = None
     elif method == "gaussian":
-        sig = float(sigma) if sigma else 0.5 * posting
+        sig = float(sigma) if sigma else _density_sigma(fi, fj, rows, cols, posting)
+        if radius is None:
+            radius = max(1, int(np.ceil(2.0 * sig / posting - 1e-9)))
         offsets = [(di, dj) for di in range(-radius, radius + 1) for dj in range(-radius, radius + 1)]
     else:
         raise InputError(f"unknown gridding method {method!r} (mean or gaussian)")

@@ -78,7 +78,8 @@ class DEMSettings:
         Second, local matching pass on the right image warped by the smoothed first-pass
         disparity (:func:`refine_disparity`): removes most of the window-distortion error of
         steep terrain (disparity gradients). ``refine_sigma`` (px) and ``refine_window`` (odd
-        px) are its smoothing width and ZNCC window.
+        px) are its smoothing width and ZNCC window (sigma 3 px: Pleiades vs s2p NMAD 0.402 ->
+        0.387 m, simulated ASTER 2.49 -> 2.52 m; window 9: Pleiades better but ASTER 2.64 m).
     """
 
     tile_size: int = 512
@@ -100,7 +101,7 @@ class DEMSettings:
     refine: bool = True
     pointing_correction: bool = True
     pointing_tiles: int = 4
-    refine_sigma: float = 2.0
+    refine_sigma: float = 3.0
     refine_window: int = 7
 
     def summary(self) -> dict:

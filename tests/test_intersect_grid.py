@@ -123,3 +123,26 @@ def test_grid_write(tmp_path):
         assert paths[k].exists()
     with pytest.raises(OutputExistsError):
         g.write(tmp_path)
+
+
+@pytest.mark.parametrize("spacing, n_per_cell", [(15.0, 4), (30.0, 1)])
+def test_grid_gaussian_default_width_follows_point_density(spacing, n_per_cell):
+    """Default sigma = max(posting / 2, point spacing): averages of white noise shrink alike."""
+    crs = geodesy.utm_crs(40.4, 39.6)
+    x0, y0 = geodesy.lonlat_to_crs(40.4, 39.6, crs)
+    xs, ys = np.meshgrid(x0 + np.arange(spacing / 2, 1200, spacing),
+                         y0 + np.arange(spacing / 2, 1200, spacing))
+    xs, ys = xs.ravel(), ys.ravel()
+    lon, lat = geodesy.crs_to_lonlat(xs, ys, crs)
+    noise = np.random.default_rng(1).normal(0, 1.0, xs.size)
+    b = (x0, y0, x0 + 1200, y0 + 1200)
+    g = grid_points(lon, lat, 1000 + noise, posting=30.0, bounds=b, method="gaussian", crs=crs)
+    sig = max(15.0, spacing)
+    g_explicit = grid_points(lon, lat, 1000 + noise, posting=30.0, bounds=b, method="gaussian",
+                             crs=crs, sigma=sig, radius=max(1, int(np.ceil(2 * sig / 30.0))))
+    assert np.array_equal(g.height, g_explicit.height, equal_nan=True)
+    inner = g.height[2:-2, 2:-2]
+    # about 6 points or more per estimate in both cases: std well below 1 / sqrt(3)
+    assert np.std(inner) < 0.45, np.std(inner)
+    radius = 1 if n_per_cell == 4 else 2                  # ceil(2 sigma / posting)
+    assert (g.count[2:-2, 2:-2] == (2 * radius + 1) ** 2 * n_per_cell).all()

@@ -129,3 +129,30 @@ def test_rpc_fitted_to_aster_preset_reproduces_it(which):
     lon, lat = model.localize(c, r, h)
     pc, pr = rpc.project(lon, lat, h)
     assert np.hypot(pc - c, pr - r).max() < 0.01
+
+
+def test_system_psf_mtf_and_band_limit():
+    """The Gaussian system PSF has the stated MTF at Nyquist, and a lower MTF removes the
+    image's high-frequency content (power near Nyquist falls, the low band stays)."""
+    from sensor.simulate import psf_sigma
+    for mtf in (0.3, 0.1):
+        s = psf_sigma(mtf)
+        assert np.exp(-2 * np.pi ** 2 * s ** 2 * 0.25) == pytest.approx(mtf, rel=1e-9)
+    assert 0.45 < psf_sigma(0.3) < 0.55                        # ~0.5 GSD for ASTER-like 0.3
+    with pytest.raises(InputError):
+        simulate_scene("frame", size=(64, 64), mtf_nyquist=1.5)
+
+    def band_power(img):
+        a = img.astype(np.float64)[16:-16, 16:-16]
+        win = np.outer(np.hanning(a.shape[0]), np.hanning(a.shape[1]))
+        f = np.abs(np.fft.fft2((a - a.mean()) * win)) ** 2
+        fr = np.fft.fftfreq(a.shape[0])[:, None], np.fft.fftfreq(a.shape[1])[None, :]
+        r = np.maximum(np.abs(fr[0]), np.abs(fr[1]))
+        return f[(r > 0.02) & (r < 0.1)].sum(), f[r > 0.35].sum()
+    lo3, hi3 = band_power(simulate_scene("frame", size=(160, 160), seed=3, bits=16, noise=0.0).left)
+    lo1, hi1 = band_power(simulate_scene("frame", size=(160, 160), seed=3, bits=16, noise=0.0,
+                                         mtf_nyquist=0.1).left)
+    # Gaussian MTF ratio squared at 0.35 cycle/px (the weakest attenuation in the band)
+    bound = np.exp(-4 * np.pi ** 2 * 0.35 ** 2 * (psf_sigma(0.1) ** 2 - psf_sigma(0.3) ** 2))
+    print(hi1 / hi3, bound, lo1 / lo3)
+    assert hi1 < bound * hi3 and lo1 > 0.7 * lo3
