@@ -162,20 +162,23 @@ def aster_geometry_parameters() -> dict:
 
 
 def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_period=2.2e-3,
-                   cross_track_tilt_deg=0.0):
+                   cross_track_tilt_deg=0.0, right_size=None):
     """A pushbroom pair on one orbit with along-track tilts ``angles`` (degrees).
 
     ``cross_track_tilt_deg`` follows :class:`sensor.pushbroom.PushbroomModel` (positive looks
-    left of the flight direction).
+    left of the flight direction). ``right_size`` (width, height) gives the second image its
+    own size (ASTER 3B: about 5000 x 4600 against 3N's 4100 x 4200); default ``size``.
     """
     try:
         from .pushbroom import PushbroomModel
     except ImportError as exc:  # pragma: no cover - the module is part of the package
         raise InputError(f"pushbroom presets need sensor.pushbroom ({exc})") from None
     w, h = size
+    rw, rh = right_size if right_size is not None else size
     # one orbit: the first image, then the second (e.g. ASTER 3N then 3B, ~55 s later), both
     # centred on the same ground point
-    return PushbroomModel.synthetic_pair(lon0, lat0, width=w, height=h, gsd=gsd, altitude=altitude,
+    return PushbroomModel.synthetic_pair(lon0, lat0, width=w, height=h, backward_width=int(rw),
+                                         backward_height=int(rh), gsd=gsd, altitude=altitude,
                                          line_period=line_period, first_tilt_deg=angles[0],
                                          backward_tilt_deg=angles[1],
                                          cross_track_tilt_deg=cross_track_tilt_deg)
@@ -274,13 +277,17 @@ def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION):
 
 def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=None,
                    noise: float = 1.0, seed: int = 0, bits: int = 8, angles=(0.0, -27.6),
-                   n_points: int = 60, step: int = 16, mtf_nyquist: float = MTF_NYQUIST) -> Scene:
+                   n_points: int = 60, step: int = 16, mtf_nyquist: float = MTF_NYQUIST,
+                   right_size=None) -> Scene:
     """Simulate a stereo scene; see the module docstring.
 
     Parameters
     ----------
     preset : {"aster", "frame", "pushbroom"}
     size : (width, height) of each image in pixels.
+    right_size : (width, height), optional
+        A different size for the second image (pushbroom presets; ASTER 3B is about
+        5000 x 4600 for 3N's 4100 x 4200).
     dem : DEM or path, optional; default the bundled SRTM (EGM96 heights).
     texture : path, optional; default the bundled Landsat image.
     noise : float, standard deviation of the sensor noise in DN.
@@ -296,8 +303,12 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
         raise InputError(f"bits must be 8 or 16, got {bits}")
     sigma_psf = psf_sigma(mtf_nyquist)                    # GSD; validates mtf_nyquist
     w, h = int(size[0]), int(size[1])
-    if w < 32 or h < 32:
-        raise InputError(f"image size {w}x{h} is too small (at least 32x32)")
+    rsize = (w, h) if right_size is None else (int(right_size[0]), int(right_size[1]))
+    if min(w, h, *rsize) < 32:
+        raise InputError(f"image size {w}x{h} / {rsize[0]}x{rsize[1]} is too small (at least 32x32)")
+    if preset == "frame" and rsize != (w, h):
+        raise InputError("the frame preset takes one size for both images (right_size is for "
+                         "the pushbroom presets)")
     rng = np.random.default_rng(seed)
     dem = DEM.bundled() if dem is None else as_dem(dem)
     west, south, east, north = dem.bounds_lonlat()
@@ -314,9 +325,9 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
         left_model, right_model = pushbroom_pair(
             lon0, lat0, h0, (w, h), (b["3N"]["along_deg"], b["3B"]["along_deg"]), gsd=p["gsd_m"],
             altitude=p["altitude_m"], line_period=p["line_period_s"],
-            cross_track_tilt_deg=-p["cross_track_right_deg"])
+            cross_track_tilt_deg=-p["cross_track_right_deg"], right_size=rsize)
     else:
-        left_model, right_model = pushbroom_pair(lon0, lat0, h0, (w, h), tuple(angles))
+        left_model, right_model = pushbroom_pair(lon0, lat0, h0, (w, h), tuple(angles), right_size=rsize)
 
     gsd = left_model.gsd(h0)
     crs = geodesy.utm_crs(lon0, lat0)
@@ -356,8 +367,8 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
                                                              np.arange(shape[0]) + 0.5)))
     truth_dem = DEM(truth, transform, crs, ELLIPSOID, None)
     points = _check_points(left_model, right_model, truth_dem, n_points, rng)
-    settings = dict(preset=preset, size=[w, h], noise=noise, seed=seed, bits=bits,
-                    mtf_nyquist=mtf_nyquist, psf_sigma_gsd=sigma_psf,
+    settings = dict(preset=preset, size=[w, h], right_size=list(rsize), noise=noise, seed=seed,
+                    bits=bits, mtf_nyquist=mtf_nyquist, psf_sigma_gsd=sigma_psf,
                     gsd=gsd, center_lon=lon0, center_lat=lat0,
                     angles=list(angles) if preset == "pushbroom" else None,
                     dem=str(dem.path), texture=str(texture or texture_path()))

@@ -28,7 +28,8 @@ from sensor import geodesy
 from sensor.errors import CRSError, InputError
 from sensor.raster import write_geotiff
 
-__all__ = ["DEMGrid", "grid_points", "grid_bounds"]
+__all__ = ["DEMGrid", "GridSpec", "CellSums", "SUM_LAYERS", "accumulate", "finish", "grid_points",
+           "grid_bounds"]
 
 _VERTICAL_TAG = "STEREODEM_VERTICAL"
 
@@ -112,6 +113,163 @@ def _density_sigma(fi, fj, rows, cols, posting):
     return max(0.5 * posting, posting / np.sqrt(per_cell))
 
 
+@dataclass(frozen=True)
+class GridSpec:
+    """The output lattice and the cell estimator, fixed before any point is gridded.
+
+    Attributes
+    ----------
+    transform : affine.Affine
+        Pixel-corner transform (north-up, square cells of ``posting`` CRS units).
+    shape : (rows, cols)
+    crs : pyproj.CRS
+    method : {"mean", "gaussian"}
+    sigma : float, optional
+        Gaussian width (CRS units); ``None``: the density rule of the module docstring,
+        applied to each batch of points (each stereo tile).
+    radius : int, optional
+        Gaussian support half-width in cells; ``None``: ``ceil(2 sigma / posting)``, >= 1.
+    geoid : bool
+        Grid EGM96 geoid heights instead of ellipsoidal heights.
+    """
+
+    transform: Affine
+    shape: tuple
+    crs: CRS
+    method: str = "gaussian"
+    sigma: float | None = None
+    radius: int | None = None
+    geoid: bool = False
+
+    @property
+    def posting(self) -> float:
+        return float(self.transform.a)
+
+    @classmethod
+    def from_bounds(cls, bounds, posting, crs, **options):
+        """Lattice covering ``bounds`` (xmin, ymin, xmax, ymax; cell edges) at ``posting``."""
+        if not posting or posting <= 0 or not np.isfinite(posting):
+            raise InputError(f"grid posting must be positive, got {posting!r}")
+        try:
+            crs = CRS.from_user_input(crs)
+        except Exception as exc:
+            raise CRSError(f"unusable output CRS {crs!r}: {exc}") from None
+        method = options.get("method", "gaussian")
+        if method not in ("mean", "gaussian"):
+            raise InputError(f"unknown gridding method {method!r} (mean or gaussian)")
+        xmin, ymin, xmax, ymax = (float(b) for b in bounds)
+        cols = max(1, int(round((xmax - xmin) / posting)))
+        rows = max(1, int(round((ymax - ymin) / posting)))
+        return cls(Affine(posting, 0.0, xmin, 0.0, -posting, ymax), (rows, cols), crs, **options)
+
+
+#: layers of :class:`CellSums` (weighted sums per cell)
+SUM_LAYERS = ("weight", "height", "count", "score_weight", "score", "gap_weight", "gap")
+
+
+@dataclass
+class CellSums:
+    """Weighted sums of a batch of points over a window of a :class:`GridSpec` lattice.
+
+    ``sums[k]`` is layer ``SUM_LAYERS[k]`` on the window whose top-left cell is
+    ``(row0, col0)`` of the lattice. Sums of several batches add (:meth:`add_to`), so a scene
+    is gridded tile by tile with the same result as all points at once (up to the order of
+    floating-point additions, which is fixed: tile order).
+    """
+
+    row0: int
+    col0: int
+    sums: np.ndarray
+    n_points: int = 0
+
+    def add_to(self, total: np.ndarray):
+        """Add these sums into ``total`` (``(len(SUM_LAYERS), rows, cols)``, the whole lattice)."""
+        _, h, w = self.sums.shape
+        if h and w:
+            total[:, self.row0:self.row0 + h, self.col0:self.col0 + w] += self.sums
+
+
+def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None) -> CellSums:
+    """Weighted sums of the points ``(lon, lat, h)`` (degrees, metres above the ellipsoid)
+    on the smallest window of ``spec`` holding their support. Non-finite points are ignored.
+    """
+    lon, lat, h = (np.asarray(a, np.float64).ravel() for a in (lon, lat, h))
+    n = h.size
+    score = np.full(n, np.nan) if score is None else np.asarray(score, np.float64).ravel()
+    ray_gap = np.full(n, np.nan) if ray_gap is None else np.asarray(ray_gap, np.float64).ravel()
+    ok = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h)
+    lon, lat, h, score, ray_gap = lon[ok], lat[ok], h[ok], score[ok], ray_gap[ok]
+    empty = CellSums(0, 0, np.zeros((len(SUM_LAYERS), 0, 0)))
+    if h.size == 0:
+        return empty
+    x, y = geodesy.lonlat_to_crs(lon, lat, spec.crs)
+    if spec.geoid:
+        h = geodesy.ellipsoid_to_geoid(lon, lat, h)
+    rows, cols = spec.shape
+    posting = spec.posting
+    # continuous cell coordinates, cell centres at integers
+    fj = (np.asarray(x, float) - spec.transform.c) / posting - 0.5
+    fi = (spec.transform.f - np.asarray(y, float)) / posting - 0.5
+    if spec.method == "mean":
+        offsets, sig, radius = [(0, 0)], None, 0
+    else:
+        sig = float(spec.sigma) if spec.sigma else _density_sigma(fi, fj, rows, cols, posting)
+        radius = spec.radius if spec.radius is not None else max(1, int(np.ceil(2.0 * sig / posting - 1e-9)))
+        offsets = [(di, dj) for di in range(-radius, radius + 1) for dj in range(-radius, radius + 1)]
+    i0, j0 = np.rint(fi).astype(np.int64), np.rint(fj).astype(np.int64)
+    # the window: the points' cells plus the support, clipped to the lattice
+    r0, r1 = max(int(i0.min()) - radius, 0), min(int(i0.max()) + radius + 1, rows)
+    c0, c1 = max(int(j0.min()) - radius, 0), min(int(j0.max()) + radius + 1, cols)
+    if r1 <= r0 or c1 <= c0:
+        return empty
+    wr, wc = r1 - r0, c1 - c0
+    ncell = wr * wc
+    sums = np.zeros((len(SUM_LAYERS), ncell))
+    sok, gok = np.isfinite(score), np.isfinite(ray_gap)
+    score, ray_gap = np.where(sok, score, 0.0), np.where(gok, ray_gap, 0.0)
+    for di, dj in offsets:                      # a handful of neighbour offsets
+        i, j = i0 + di, j0 + dj
+        inside = (i >= r0) & (i < r1) & (j >= c0) & (j < c1)
+        if sig is None:
+            w = np.ones(int(inside.sum()))
+        else:
+            r2 = ((i - fi) ** 2 + (j - fj) ** 2)[inside] * posting ** 2
+            w = np.exp(-0.5 * r2 / sig ** 2)
+        idx = ((i - r0) * wc + (j - c0))[inside]
+        ws, wg = w * sok[inside], w * gok[inside]
+        sums[0] += np.bincount(idx, w, ncell)
+        sums[1] += np.bincount(idx, w * h[inside], ncell)
+        sums[2] += np.bincount(idx, minlength=ncell)
+        sums[3] += np.bincount(idx, ws, ncell)
+        sums[4] += np.bincount(idx, ws * score[inside], ncell)
+        sums[5] += np.bincount(idx, wg, ncell)
+        sums[6] += np.bincount(idx, wg * ray_gap[inside], ncell)
+    n_points = int(((i0 >= 0) & (i0 < rows) & (j0 >= 0) & (j0 < cols)).sum())
+    return CellSums(r0, c0, sums.reshape(len(SUM_LAYERS), wr, wc), n_points)
+
+
+def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False, info=None) -> DEMGrid:
+    """The DEM and its layers from the summed :class:`CellSums` of a whole lattice.
+
+    ``crop`` trims the grid to the cells that received points (keeping the lattice).
+    """
+    t = total
+    transform = spec.transform
+    if crop:
+        rows_ok = np.flatnonzero(t[0].any(axis=1))
+        cols_ok = np.flatnonzero(t[0].any(axis=0))
+        if rows_ok.size:
+            t = t[:, rows_ok[0]:rows_ok[-1] + 1, cols_ok[0]:cols_ok[-1] + 1]
+            transform = transform @ Affine.translation(int(cols_ok[0]), int(rows_ok[0]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        height = np.where(t[0] > 0, t[1] / t[0], np.nan)
+        sc = np.where(t[3] > 0, t[4] / t[3], np.nan)
+        gp = np.where(t[5] > 0, t[6] / t[5], np.nan)
+    return DEMGrid(height.astype(np.float32), t[2].astype(np.int32), sc.astype(np.float32),
+                   gp.astype(np.float32), transform, spec.crs, "geoid" if spec.geoid else "ellipsoid",
+                   info=dict(method=spec.method, **(info or {})))
+
+
 def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=None, ray_gap=None,
                 method: str = "mean", sigma: float | None = None, radius: int | None = None,
                 geoid: bool = False) -> DEMGrid:
@@ -145,77 +303,25 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
     DEMGrid
     """
     lon, lat, h = (np.asarray(a, np.float64).ravel() for a in (lon, lat, h))
-    n = h.size
-    score = np.full(n, np.nan) if score is None else np.asarray(score, np.float64).ravel()
-    ray_gap = np.full(n, np.nan) if ray_gap is None else np.asarray(ray_gap, np.float64).ravel()
     ok = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h)
-    lon, lat, h, score, ray_gap = lon[ok], lat[ok], h[ok], score[ok], ray_gap[ok]
     if not posting or posting <= 0 or not np.isfinite(posting):
         raise InputError(f"grid posting must be positive, got {posting!r}")
     if crs is None:
-        if lon.size == 0:
+        if not ok.any():
             raise InputError("no valid point to grid (and no CRS given to build an empty grid)")
-        crs = geodesy.utm_crs(lon, lat)
-    try:
-        crs = CRS.from_user_input(crs)
-    except Exception as exc:
-        raise CRSError(f"unusable output CRS {crs!r}: {exc}") from None
-    x, y = geodesy.lonlat_to_crs(lon, lat, crs)
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    if geoid and h.size:
-        h = geodesy.ellipsoid_to_geoid(lon, lat, h)
+        crs = geodesy.utm_crs(lon[ok], lat[ok])
     if bounds is None:
-        if x.size == 0:
+        if not ok.any():
             raise InputError("no valid point to grid and no bounds given")
+        try:
+            crs_obj = CRS.from_user_input(crs)
+        except Exception as exc:
+            raise CRSError(f"unusable output CRS {crs!r}: {exc}") from None
+        x, y = geodesy.lonlat_to_crs(lon[ok], lat[ok], crs_obj)
         bounds = grid_bounds(x, y, posting)
-    xmin, ymin, xmax, ymax = (float(b) for b in bounds)
-    cols = max(1, int(round((xmax - xmin) / posting)))
-    rows = max(1, int(round((ymax - ymin) / posting)))
-    transform = Affine(posting, 0.0, xmin, 0.0, -posting, ymax)
-    # continuous cell coordinates, cell centres at integers
-    fj = (x - xmin) / posting - 0.5
-    fi = (ymax - y) / posting - 0.5
-    ncell = rows * cols
-    if method == "mean":
-        offsets = [(0, 0)]
-        sig = None
-    elif method == "gaussian":
-        sig = float(sigma) if sigma else _density_sigma(fi, fj, rows, cols, posting)
-        if radius is None:
-            radius = max(1, int(np.ceil(2.0 * sig / posting - 1e-9)))
-        offsets = [(di, dj) for di in range(-radius, radius + 1) for dj in range(-radius, radius + 1)]
-    else:
-        raise InputError(f"unknown gridding method {method!r} (mean or gaussian)")
-    wsum = np.zeros(ncell)
-    hsum = np.zeros(ncell)
-    cnt = np.zeros(ncell)
-    ssum, swt = np.zeros(ncell), np.zeros(ncell)
-    gsum, gwt = np.zeros(ncell), np.zeros(ncell)
-    i0, j0 = np.rint(fi).astype(np.int64), np.rint(fj).astype(np.int64)
-    sok, gok = np.isfinite(score), np.isfinite(ray_gap)
-    for di, dj in offsets:                      # a handful of neighbour offsets
-        i, j = i0 + di, j0 + dj
-        inside = (i >= 0) & (i < rows) & (j >= 0) & (j < cols)
-        if sig is None:
-            w = np.ones(inside.sum())
-        else:
-            r2 = ((i - fi) ** 2 + (j - fj) ** 2)[inside] * posting ** 2
-            w = np.exp(-0.5 * r2 / sig ** 2)
-        idx = (i * cols + j)[inside]
-        wsum += np.bincount(idx, w, ncell)
-        hsum += np.bincount(idx, w * h[inside], ncell)
-        cnt += np.bincount(idx, minlength=ncell)
-        s_in, g_in = sok[inside], gok[inside]
-        ssum += np.bincount(idx[s_in], (w * score[inside])[s_in], ncell)
-        swt += np.bincount(idx[s_in], w[s_in], ncell)
-        gsum += np.bincount(idx[g_in], (w * ray_gap[inside])[g_in], ncell)
-        gwt += np.bincount(idx[g_in], w[g_in], ncell)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        height = np.where(wsum > 0, hsum / wsum, np.nan)
-        sc = np.where(swt > 0, ssum / swt, np.nan)
-        gp = np.where(gwt > 0, gsum / gwt, np.nan)
-    shape = (rows, cols)
-    return DEMGrid(height.reshape(shape).astype(np.float32), cnt.reshape(shape).astype(np.int32),
-                   sc.reshape(shape).astype(np.float32), gp.reshape(shape).astype(np.float32),
-                   transform, crs, "geoid" if geoid else "ellipsoid",
-                   info=dict(n_points=int(h.size), method=method))
+    spec = GridSpec.from_bounds(bounds, posting, crs, method=method, sigma=sigma, radius=radius,
+                                geoid=geoid)
+    cells = accumulate(spec, lon, lat, h, score=score, ray_gap=ray_gap)
+    total = np.zeros((len(SUM_LAYERS),) + tuple(spec.shape))
+    cells.add_to(total)
+    return finish(spec, total, info=dict(n_points=int(ok.sum())))

@@ -26,13 +26,14 @@ import numpy as np
 from sensor.dem import DEM, as_dem
 from sensor.errors import InputError, NoOverlapError
 from . import epipolar
-from .grid import DEMGrid, grid_points
+from .grid import SUM_LAYERS, CellSums, DEMGrid, GridSpec, accumulate, finish
 from .intersect import intersect_matches
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DEMSettings", "PairInputs", "TileResult", "DEMProducts", "make_dem", "process_tile",
-           "overlap_window", "pair_height_range", "plan_tiles", "refine_disparity"]
+__all__ = ["DEMSettings", "PairInputs", "TilePoints", "TileResult", "DEMProducts", "make_dem",
+           "process_tile", "tile_points", "overlap_window", "pair_height_range", "plan_tiles",
+           "footprint_bounds", "refine_disparity"]
 
 
 @dataclass
@@ -113,26 +114,38 @@ class DEMSettings:
 
 @dataclass
 class PairInputs:
-    """Everything a tile needs, read-only: images (arrays or memory maps) and models."""
+    """Everything a tile needs, read-only: images (arrays, memory maps or anything sliceable
+    with a ``shape``), models, the height range and the output lattice."""
 
-    left_image: np.ndarray
-    right_image: np.ndarray
+    left_image: Any
+    right_image: Any
     left_model: Any
     right_model: Any
     height_range: tuple
     seed_dem: Optional[DEM] = None
     max_ray_gap: float = np.inf
+    grid: Optional[GridSpec] = None
 
 
 @dataclass
-class TileResult:
-    """Points of one tile and its QA figures (``summary``: rectification, counts, timings)."""
+class TilePoints:
+    """Ground points of one tile (degrees, metres above the ellipsoid) with their score and
+    ray gap (m), and the tile's QA figures (``summary``: rectification, counts, timings)."""
 
     lon: np.ndarray
     lat: np.ndarray
     h: np.ndarray
     score: np.ndarray
     ray_gap: np.ndarray
+    summary: dict
+
+
+@dataclass
+class TileResult:
+    """One tile's contribution to the DEM: its points' weighted sums on a window of the output
+    lattice (:class:`stereo.grid.CellSums`, a few MB whatever the scene size) and its QA."""
+
+    cells: CellSums
     summary: dict
 
 
@@ -220,6 +233,35 @@ def plan_tiles(left, right, settings: DEMSettings, height_range):
     window, inside = overlap_window(left, right, h0, step=max(8, settings.tile_size // 8))
     tiles = epipolar.tile_grid(left.width, left.height, settings.tile_size, window=window)
     return [t for t in tiles if inside(t)]
+
+
+def footprint_bounds(left, tiles, height_range, posting, crs, *, samples: int = 9):
+    """Map extent (xmin, ymin, xmax, ymax; multiples of ``posting``) of the ground the tiles
+    can see: each tile's outline (``samples`` points per edge) localised by the left model at
+    both ends of the height range and projected to ``crs``, plus two cells of margin.
+    """
+    from sensor import geodesy
+    if not tiles:
+        raise NoOverlapError("no tile of the left image overlaps the right image")
+    t = np.linspace(0.0, 1.0, samples)
+    cs, rs = [], []
+    for tile in tiles:
+        c0, r0, c1, r1 = tile.bounds
+        cs.append(np.concatenate([c0 + (c1 - c0) * t, np.full(samples, c1), c1 - (c1 - c0) * t, np.full(samples, c0)]))
+        rs.append(np.concatenate([np.full(samples, r0), r0 + (r1 - r0) * t, np.full(samples, r1), r1 - (r1 - r0) * t]))
+    c, r = np.concatenate(cs), np.concatenate(rs)
+    xs, ys = [], []
+    for hh in height_range:
+        lon, lat = left.localize(c, r, np.full(c.size, float(hh)))
+        x, y = geodesy.lonlat_to_crs(lon, lat, crs)
+        xs.append(np.asarray(x, float))
+        ys.append(np.asarray(y, float))
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    if not (np.isfinite(x).any() and np.isfinite(y).any()):
+        raise NoOverlapError("the left image's footprint does not map into the output CRS")
+    pad = 2 * posting
+    return (np.floor((np.nanmin(x) - pad) / posting) * posting, np.floor((np.nanmin(y) - pad) / posting) * posting,
+            np.ceil((np.nanmax(x) + pad) / posting) * posting, np.ceil((np.nanmax(y) + pad) / posting) * posting)
 
 
 def tile_height_range(tile: epipolar.Tile, inputs: PairInputs, margin: float):
@@ -330,11 +372,22 @@ def estimate_pointing(tiles, inputs: PairInputs, settings: DEMSettings, *, n_til
 # ----------------------------------------------------------------------------- one tile
 
 def process_tile(tile: epipolar.Tile, inputs: PairInputs, settings: DEMSettings) -> TileResult:
-    """Rectify, match and intersect one tile; returns its ground points and QA summary.
+    """Rectify, match, intersect and grid one tile (:func:`tile_points`, then the points'
+    weighted sums on ``inputs.grid``).
 
     Pure function of its arguments (no global state, no I/O), so it can run in a worker
-    process.
+    process; what it returns is small (cell sums, not points).
     """
+    pts = tile_points(tile, inputs, settings)
+    t0 = time.perf_counter()
+    cells = accumulate(inputs.grid, pts.lon, pts.lat, pts.h, score=pts.score, ray_gap=pts.ray_gap)
+    if isinstance(pts.summary.get("seconds"), dict):
+        pts.summary["seconds"]["grid"] = time.perf_counter() - t0
+    return TileResult(cells, pts.summary)
+
+
+def tile_points(tile: epipolar.Tile, inputs: PairInputs, settings: DEMSettings) -> TilePoints:
+    """Rectify, match and intersect one tile; returns its ground points and QA summary."""
     from .match import match_rectified
 
     t0 = time.perf_counter()
@@ -348,7 +401,7 @@ def process_tile(tile: epipolar.Tile, inputs: PairInputs, settings: DEMSettings)
     empty = np.zeros(0)
     if not (np.isfinite(left_r).any() and np.isfinite(right_r).any()):
         summary.update(n_matched=0, n_points=0, seconds=time.perf_counter() - t0)
-        return TileResult(empty, empty, empty, empty, empty, summary)
+        return TilePoints(empty, empty, empty, empty, empty, summary)
     m = match_rectified(left_r, right_r, et.disparity_range, settings.matcher,
                         **settings.matcher_options)
     disparity, score_map, vertical = m.disparity, m.score, m.vertical
@@ -377,7 +430,7 @@ def process_tile(tile: epipolar.Tile, inputs: PairInputs, settings: DEMSettings)
                    valid_fraction=float(ok.sum() / max(tile.width * tile.height, 1)),
                    median_ray_gap_m=float(np.median(pts.ray_gap[ok])) if ok.any() else float("nan"),
                    seconds=dict(rectify=t1 - t0, match=t2 - t1, intersect=t3 - t2))
-    return TileResult(pts.lon[ok], pts.lat[ok], pts.h[ok], score[ok], pts.ray_gap[ok], summary)
+    return TilePoints(pts.lon[ok], pts.lat[ok], pts.h[ok], score[ok], pts.ray_gap[ok], summary)
 
 
 # ----------------------------------------------------------------------------- the workflow
@@ -427,11 +480,22 @@ def make_dem(left_image, right_image, left_model, right_model, settings: DEMSett
     gsd = left_model.gsd(0.5 * sum(height_range))
     posting = settings.posting or float(f"{2.0 * gsd:.2g}")
     max_gap = settings.max_ray_gap if settings.max_ray_gap is not None else 2.0 * gsd
-    # 2. overlap and tiles
+    # 2. overlap, tiles and the output lattice
     tiles = plan_tiles(left_model, right_model, settings, height_range)
     log.info("stereo DEM: %d tile(s) of ~%d px, heights %.0f..%.0f m, matcher %s, posting %.2f",
              len(tiles), settings.tile_size, height_range[0], height_range[1], settings.matcher, posting)
-    inputs = PairInputs(left_image, right_image, left_model, right_model, height_range, seed, max_gap)
+    crs = settings.crs
+    if crs is None:
+        from sensor import geodesy
+        clon, clat = left_model.center_lonlat(0.5 * sum(height_range))
+        crs = geodesy.utm_crs(clon, clat)
+    bounds = settings.bounds
+    if bounds is None:
+        bounds = footprint_bounds(left_model, tiles, height_range, posting, crs)
+    spec = GridSpec.from_bounds(bounds, posting, crs, method=settings.gridding,
+                                sigma=settings.gaussian_sigma, geoid=settings.geoid)
+    inputs = PairInputs(left_image, right_image, left_model, right_model, height_range, seed,
+                        max_gap, spec)
     pointing = dict(dcol_px=0.0, drow_px=0.0)
     if settings.pointing_correction:
         dcol, drow, pointing = estimate_pointing(tiles, inputs, settings, n_tiles=settings.pointing_tiles)
@@ -450,24 +514,20 @@ def make_dem(left_image, right_image, left_model, right_model, settings: DEMSett
         s = res.summary
         log.info("tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
                  s["tile"], s["residual_rms_px"], *s["disparity_range"], s["n_points"])
-    # 4. grid
-    cat = lambda name: np.concatenate([getattr(r, name) for r in results]) if results else np.zeros(0)  # noqa: E731
-    lon, lat, h = cat("lon"), cat("lat"), cat("h")
-    if h.size == 0 and settings.bounds is None:
+    # 4. grid: the tiles' cell sums, added in tile order (independent of the runner)
+    total = np.zeros((len(SUM_LAYERS),) + tuple(spec.shape))
+    for res in results:
+        res.cells.add_to(total)
+    n_points = int(sum(res.cells.n_points for res in results))
+    if n_points == 0 and settings.bounds is None:
         raise InputError("no point was matched in any tile (no texture, or a wrong height range?)")
-    crs = settings.crs
-    if crs is None:
-        from sensor import geodesy
-        clon, clat = left_model.center_lonlat(0.5 * sum(height_range))
-        crs = geodesy.utm_crs(clon, clat)
-    grid = grid_points(lon, lat, h, posting=posting, crs=crs, bounds=settings.bounds,
-                       score=cat("score"), ray_gap=cat("ray_gap"), method=settings.gridding,
-                       sigma=settings.gaussian_sigma, geoid=settings.geoid)
+    grid = finish(spec, total, crop=settings.bounds is None, info=dict(n_points=n_points))
+    del total
     seconds = time.perf_counter() - t_start
     rms = [r.summary["residual_rms_px"] for r in results]
     info = dict(height_range=list(height_range), gsd_m=gsd, posting=posting, max_ray_gap_m=max_gap,
                 n_tiles=len(tiles), max_residual_rms_px=float(max(rms)) if rms else float("nan"),
                 valid_cells=float(np.isfinite(grid.height).mean()), pointing=pointing)
-    log.info("stereo DEM: %d points gridded to %dx%d cells in %.1f s", h.size,
+    log.info("stereo DEM: %d points gridded to %dx%d cells in %.1f s", n_points,
              grid.height.shape[1], grid.height.shape[0], seconds)
-    return DEMProducts(grid, [r.summary for r in results], int(h.size), seconds, settings.summary(), info)
+    return DEMProducts(grid, [r.summary for r in results], n_points, seconds, settings.summary(), info)

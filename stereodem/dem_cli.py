@@ -18,6 +18,7 @@ EXAMPLES = """examples:
   stereodem dem left.tif right.tif -o out --height-range 1400 3300
   stereodem dem img_01.tif img_02.tif -o dsm --res 0.5 --crs EPSG:32740 --height-range 2100 2600
   stereodem dem 3N.tif 3B.tif -o dem --seed-dem srtm.tif --matcher ncc --geoid --overwrite
+  stereodem dem 3N.tif 3B.tif -o dem --height-range 0 2500 --workers 2 --tile-timeout 120
 """
 
 OUTPUTS = ("dem.tif", "score.tif", "count.tif", "raygap.tif", "dem_report.json")
@@ -51,6 +52,10 @@ def add_parser(subparsers):
                    help="do not estimate the relative pointing (right-image translation)")
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
     p.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    p.add_argument("--workers", type=int, help="worker processes for tiles (default: all cores)")
+    p.add_argument("--tile-timeout", type=float, default=600.0,
+                   help="seconds after which a tile is abandoned and reported (default 600)")
+    p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
     p.add_argument("--overwrite", action="store_true", help="write into an existing non-empty folder")
     p.set_defaults(run=run)
     return p
@@ -129,20 +134,29 @@ def _run(args) -> int:
 
     tty = sys.stderr.isatty()
 
-    def progress(done, total, summary):
+    def progress(done, total):
         # a live line on a terminal, one line per tile in logs and pipes
         if not quiet:
-            print(f"{chr(13) if tty else ''}stereodem dem: tile {done}/{total} ({summary['n_points']} points, "
-                  f"y-parallax {summary['residual_rms_px']:.3f} px)", end="" if tty else "\n",
+            print(f"{chr(13) if tty else ''}stereodem dem: tile {done}/{total}", end="" if tty else "\n",
                   file=sys.stderr, flush=True)
 
-    prod = make_dem(left, right, left_model, right_model, settings, progress=progress)
+    from .config import RunSettings
+    from .pipeline import tile_runner
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be at least 1, got {args.workers}")
+    runner = tile_runner(RunSettings(workers=args.workers, tile_timeout=args.tile_timeout,
+                                      dask=args.dask), progress)
+    prod = make_dem(left, right, left_model, right_model, settings, runner=runner)
     if not quiet:
         print(file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     prod.write(out, overwrite=True)
+    failed = [f.to_dict() for f in runner.failures]
+    if failed:
+        log.warning("%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed))
     report = dict(left=str(args.left), right=str(args.right), settings=prod.settings,
-                  info=prod.info, n_points=prod.n_points, seconds=prod.seconds, tiles=prod.tiles)
+                  info=prod.info, n_points=prod.n_points, seconds=prod.seconds, tiles=prod.tiles,
+                  failed_tiles=failed)
     write_text_atomic(out / "dem_report.json", json.dumps(report, indent=2, default=str) + "\n",
                       overwrite=True)
     g = prod.grid

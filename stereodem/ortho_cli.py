@@ -31,7 +31,9 @@ def add_parser(sub):
     p.add_argument("-o", "--out", required=True, help="output orthoimage GeoTIFF")
     p.add_argument("--res", type=float, help="posting in metres (default: the image GSD)")
     p.add_argument("--crs", help="output CRS, e.g. EPSG:32637 (default: the UTM zone of the image)")
-    p.add_argument("--resampling", choices=["bilinear", "cubic", "nearest"], default="bilinear")
+    from ortho.drm import RESAMPLING
+    p.add_argument("--resampling", choices=sorted(RESAMPLING), default="bilinear",
+                   help="interpolation kernel (lanczos: 8x8 Lanczos, closest to the band-limited signal)")
     p.add_argument("--dem-vertical", choices=["geoid", "ellipsoid"],
                    help="vertical reference of the DEM heights when the file does not say")
     p.add_argument("--model", default="auto", choices=["auto", "rpc", "physical"] + GENERIC,

@@ -18,12 +18,16 @@ Output folder::
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import os
 import platform
 import resource
+import tempfile
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import rasterio
@@ -36,7 +40,7 @@ from sensor.serialize import load_image_model
 
 from . import __version__
 from .config import Config
-from .tiles import Tile, run_tiles
+from .tiles import SharedArray, Tile, run_tiles
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +82,7 @@ def load_inputs(cfg: Config):
     return out
 
 
-def _pool_runner(run_settings, progress=None, cache_dir=None):
+def tile_runner(run_settings, progress=None, cache_dir=None):
     """A tile runner for :func:`stereo.pipeline.make_dem` backed by :func:`run_tiles`.
 
     Finished tiles are cached in ``cache_dir`` (``tile_<n>.npz``) so ``--resume`` skips them.
@@ -87,11 +91,20 @@ def _pool_runner(run_settings, progress=None, cache_dir=None):
 
     def runner(process_tile, tiles, inputs, settings):
         wrapped = [Tile(i, 0, 0, 0, 0) for i in range(len(tiles))]
-        ctx = dict(tiles=tiles, inputs=inputs, settings=settings, fn=process_tile)
-        results, fails, _ = run_tiles(_tile_job, wrapped, ctx, workers=run_settings.workers,
-                                      timeout=run_settings.tile_timeout, cache_dir=cache_dir,
-                                      resume=run_settings.resume, dask_address=run_settings.dask,
-                                      progress=progress)
+        workers = run_settings.workers or os.cpu_count() or 1
+        pool = run_settings.dask is None and workers > 1 and len(tiles) > 1
+        if cache_dir is not None:
+            _check_tile_cache(Path(cache_dir), _cache_key(tiles, inputs, settings), run_settings.resume)
+        with tempfile.TemporaryDirectory(prefix="shared-", dir=cache_dir) as tmp:
+            if pool:       # workers map the images from disk instead of each receiving a copy
+                inputs = dataclasses.replace(
+                    inputs, left_image=SharedArray.create(inputs.left_image, tmp, "left"),
+                    right_image=SharedArray.create(inputs.right_image, tmp, "right"))
+            ctx = dict(tiles=tiles, inputs=inputs, settings=settings, fn=process_tile)
+            results, fails, _ = run_tiles(_tile_job, wrapped, ctx, workers=run_settings.workers,
+                                          timeout=run_settings.tile_timeout, cache_dir=cache_dir,
+                                          resume=run_settings.resume, dask_address=run_settings.dask,
+                                          progress=progress)
         failures.extend(fails)
         return [_tile_result(results[i]) for i in sorted(results)]
 
@@ -99,26 +112,70 @@ def _pool_runner(run_settings, progress=None, cache_dir=None):
     return runner
 
 
-_TILE_ARRAYS = ("lon", "lat", "h", "score", "ray_gap")
+def _cache_key(tiles, inputs, settings) -> str:
+    """Fingerprint of everything a stereo tile's result depends on (settings, tiles, lattice,
+    models, the images' bytes), so ``--resume`` never reuses tiles of another job."""
+    import hashlib
+    h = hashlib.sha256()
+    g = inputs.grid
+    h.update(json.dumps([settings.summary(), [t.bounds for t in tiles], list(inputs.height_range),
+                         None if g is None else [tuple(g.transform), list(g.shape), g.crs.to_wkt(),
+                                                 g.method, g.sigma, g.radius, g.geoid]],
+                        default=_json_default, sort_keys=True).encode())
+    for m in (inputs.left_model, inputs.right_model):
+        h.update(_model_fingerprint(m))
+    for img in (inputs.left_image, inputs.right_image):
+        h.update(np.ascontiguousarray(img).data)
+    return h.hexdigest()
+
+
+def _model_fingerprint(model) -> bytes:
+    """Bytes identifying a sensor model's parameters (its ``to_dict``, else its pickle); a
+    wrapper with a ``model`` attribute (a pointing-corrected model) adds its own numbers."""
+    import pickle
+    if hasattr(model, "to_dict"):
+        return json.dumps(model.to_dict(), default=_json_default, sort_keys=True).encode()
+    if hasattr(model, "model"):
+        own = {k: v for k, v in vars(model).items() if k != "model"}
+        return json.dumps(own, default=_json_default, sort_keys=True).encode() + _model_fingerprint(model.model)
+    return pickle.dumps(model, protocol=4)
+
+
+def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
+    """Keep the tile cache consistent with this job: on ``resume`` the cache must hold tiles of
+    the same job (else :class:`InputError`); otherwise old tiles are removed first."""
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    manifest = cache_dir / "job.json"
+    old = json.loads(manifest.read_text()).get("key") if manifest.exists() else None
+    if resume and old is not None and old != key:
+        raise InputError(f"{cache_dir}: the cached tiles belong to a run with other inputs or "
+                         "settings; run again without --resume (and with --overwrite)")
+    if not resume or old is None:
+        for f in cache_dir.glob("tile_*.npz"):
+            f.unlink()
+    write_text_atomic(manifest, json.dumps({"key": key}), overwrite=True)
 
 
 def _tile_job(tile, ctx):
-    """One stereo tile as plain arrays (cacheable with ``np.savez``, no pickle)."""
+    """One stereo tile as plain arrays (cacheable with ``np.savez``, no pickle): its cell
+    sums on the output lattice, their window origin, point count and QA summary."""
     res = ctx["fn"](ctx["tiles"][tile.index], ctx["inputs"], ctx["settings"])
-    out = {k: np.asarray(getattr(res, k)) for k in _TILE_ARRAYS}
-    out["summary"] = np.array(json.dumps(res.summary, default=_json_default))
-    return out
+    c = res.cells
+    return dict(sums=c.sums, origin=np.array([c.row0, c.col0, c.n_points], np.int64),
+                summary=np.array(json.dumps(res.summary, default=_json_default)))
 
 
 def _tile_result(arrays):
+    from stereo.grid import CellSums
     from stereo.pipeline import TileResult
-    return TileResult(*(arrays[k] for k in _TILE_ARRAYS), json.loads(str(arrays["summary"])))
+    r0, c0, n = (int(v) for v in arrays["origin"])
+    return TileResult(CellSums(r0, c0, arrays["sums"], n), json.loads(str(arrays["summary"])))
 
 
 def stereo_stage(cfg: Config, left, right, *, progress=None, cache_dir=None):
     """Stereo DEM (raw): :func:`stereo.pipeline.make_dem` with the configured tile runner."""
     from stereo.pipeline import make_dem
-    runner = _pool_runner(cfg.run, progress, cache_dir=cache_dir)
+    runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
     products = make_dem(left[0], right[0], left[1], right[1], cfg.stereo, runner=runner)
     return products, [f.to_dict() for f in runner.failures]
 

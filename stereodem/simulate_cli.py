@@ -26,6 +26,8 @@ def add_parser(sub):
                    help="vertical reference of --dem when the file does not say")
     p.add_argument("--texture", help="texture image (default: the bundled Landsat image plus detail)")
     p.add_argument("--size", nargs=2, type=int, default=[600, 600], metavar=("W", "H"))
+    p.add_argument("--right-size", nargs=2, type=int, metavar=("W", "H"),
+                   help="size of the second image if different (ASTER 3B: 5000 4600 for 3N's 4100 4200)")
     p.add_argument("--noise", type=float, default=1.0, help="sensor noise sigma in DN (default 1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--bits", type=int, choices=[8, 16], default=8)
@@ -43,8 +45,9 @@ def run(args) -> int:
 
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical) if args.dem else None
     log.info("simulating %s scene %dx%d", args.preset, *args.size)
-    scene = simulate_scene(args.preset, size=tuple(args.size), dem=dem, texture=args.texture,
-                           noise=args.noise, seed=args.seed, bits=args.bits, angles=tuple(args.angles))
+    right_size = tuple(args.right_size) if args.right_size else None
+    scene = simulate_scene(args.preset, size=tuple(args.size), right_size=right_size, dem=dem,
+                           texture=args.texture, noise=args.noise, seed=args.seed, bits=args.bits, angles=tuple(args.angles))
     out = write_scene(scene, args.out, overwrite=args.overwrite)
     meta = json.loads((out / "scene.json").read_text())
     print(f"wrote {out}/left.tif, right.tif (+ .model.json), truth_dem.tif, truth_ortho.tif, points.csv")

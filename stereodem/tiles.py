@@ -12,8 +12,10 @@ The tile function is a pure function ``fn(tile, context) -> dict[str, ndarray]``
 * returns results keyed by tile index, so merging is independent of completion order and
   ``workers=N`` gives bit-identical output to ``workers=1``.
 
-Memory: a worker holds the context plus one tile's working arrays; the bound is set by the
-tile size and the disparity range (see the stereo pipeline), not by the scene size.
+Memory: large read-only arrays of the context (the images) go to workers as
+:class:`SharedArray` memory maps, not copies, so a worker holds one tile's working arrays
+plus the pages of the images that tile reads; the bound is set by the tile size and the
+disparity range (see the stereo pipeline), not by the scene size.
 """
 from __future__ import annotations
 
@@ -64,6 +66,51 @@ def make_tiles(height: int, width: int, size: int, halo: int = 0) -> list[Tile]:
         for c0 in range(0, width, size):
             tiles.append(Tile(len(tiles), r0, c0, min(size, height - r0), min(size, width - c0), halo))
     return tiles
+
+
+class SharedArray:
+    """A read-only array stored as a ``.npy`` file and memory-mapped where it is used.
+
+    It pickles as its path, so a process pool sends a few bytes instead of the array, and
+    every worker maps the same pages (the OS page cache holds them once). Supports what
+    tile functions need: ``shape``, ``dtype``, ``ndim``, slicing and ``np.asarray``.
+    """
+
+    def __init__(self, path):
+        self.path = str(path)
+        self._mm = None
+
+    @classmethod
+    def create(cls, array, directory, name):
+        """Write ``array`` to ``directory/name.npy`` (atomically) and return it shared."""
+        path = Path(directory) / f"{name}.npy"
+        fd, tmp = tempfile.mkstemp(dir=directory, suffix=".npy.part")
+        with os.fdopen(fd, "wb") as f:
+            np.save(f, np.ascontiguousarray(array))
+        os.replace(tmp, path)
+        return cls(path)
+
+    def _map(self):
+        if self._mm is None:
+            self._mm = np.load(self.path, mmap_mode="r")
+        return self._mm
+
+    shape = property(lambda self: self._map().shape)
+    dtype = property(lambda self: self._map().dtype)
+    ndim = property(lambda self: self._map().ndim)
+
+    def __getitem__(self, key):
+        return self._map()[key]
+
+    def __array__(self, dtype=None, copy=None):
+        a = np.asarray(self._map())
+        return a if dtype is None else a.astype(dtype)
+
+    def __getstate__(self):
+        return {"path": self.path}
+
+    def __setstate__(self, state):
+        self.path, self._mm = state["path"], None
 
 
 @dataclass

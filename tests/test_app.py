@@ -1,5 +1,6 @@
 """The application: configuration, end-to-end run, workers, failures, CLI behaviour."""
 import json
+import pickle
 import subprocess
 import sys
 
@@ -144,6 +145,33 @@ def test_resume_reuses_finished_tiles(scene_dir, tmp_path, monkeypatch):
         z = ds.read(1)
     assert np.isfinite(z).mean() > 0.2
     assert again["headline"]["nmad"] == pytest.approx(first["headline"]["nmad"])
+
+
+def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
+    out = tmp_path / "r"
+    run(_cfg(scene_dir, out))
+    cfg = _cfg(scene_dir, out, resume=True)
+    cfg.stereo.matcher = "ncc"                    # other settings: the cache is not this job's
+    with pytest.raises(InputError, match="other inputs or settings"):
+        run(cfg)
+    # a fresh (non-resumed) run replaces the cache, so a later resume is consistent again
+    stale = out / "tiles" / "tile_99999.npz"
+    stale.write_bytes(b"stale")
+    cfg = _cfg(scene_dir, out, overwrite=True)
+    cfg.stereo.matcher = "ncc"
+    run(cfg)
+    assert not stale.exists()
+
+
+def test_pool_workers_get_memory_mapped_images(tmp_path):
+    from stereodem.tiles import SharedArray
+    a = np.arange(12, dtype=np.float32).reshape(3, 4)
+    sa = SharedArray.create(a, tmp_path, "img")
+    clone = pickle.loads(pickle.dumps(sa))
+    assert len(pickle.dumps(sa)) < 200                     # the path, not the pixels
+    assert clone.shape == (3, 4) and clone.dtype == np.float32 and clone.ndim == 2
+    np.testing.assert_array_equal(clone[1:, 2:], a[1:, 2:])
+    np.testing.assert_array_equal(np.asarray(clone, dtype=np.float64), a)
 
 
 def test_every_subcommand_is_wired_to_its_run_function():

@@ -44,6 +44,7 @@ def test_aster_pair_dem_vs_truth(aster_scene):
     valid = np.isfinite(dz)
     d = dz[valid]
     assert valid.mean() >= 0.95, valid.mean()
+    print(f"aster 600x600: NMAD {nmad(d):.3f} m, valid {valid.mean():.4f}")
     assert nmad(d) <= 4.0, nmad(d)
     assert np.mean(np.abs(d) > 50) <= 0.005
     assert abs(np.median(d)) < 1.5
