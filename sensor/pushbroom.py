@@ -566,8 +566,11 @@ class PushbroomModel(SensorModel):
                        inclination_deg: float = 98.2, heading_deg: float | None = None,
                        gsd: float = 15.0, line_period: float = 2.2e-3,
                        cross_track_tilt_deg: float = 0.0, ephemeris_step: float = 1.0,
-                       inertial_frame: bool = True):
-        """Along-track stereo pair on ONE orbit, both images centred on the same ground point.
+                       inertial_frame: bool = True, center_height: float = 0.0):
+        """Along-track stereo pair on ONE orbit, both images centred on the same ground point
+        ``(center_lon, center_lat, center_height)`` (ellipsoidal height, m: give the terrain's,
+        or the tilted views are offset by ``h tan(tilt)`` on the ground; 1 km for ASTER 3B at
+        2 km height).
 
         Returns ``(nadir_model, backward_model)``: the first is :meth:`synthetic` with
         along-track tilt ``first_tilt_deg`` (0: nadir, ASTER 3N); the second flies on the same
@@ -581,20 +584,20 @@ class PushbroomModel(SensorModel):
         """
         orbit = _aimed_orbit(center_lon, center_lat, altitude=altitude, inclination_deg=inclination_deg,
                              heading_deg=heading_deg, along_deg=first_tilt_deg,
-                             cross_deg=cross_track_tilt_deg)
+                             cross_deg=cross_track_tilt_deg, height=center_height)
         ifov = gsd / _nadir_height(orbit, 0.0)
         nadir = _model_on_orbit(cls, orbit, 0.0, width=width, height=height, line_period=line_period,
                                 ifov=ifov, along_deg=first_tilt_deg, cross_deg=cross_track_tilt_deg,
                                 step=ephemeris_step, inertial=inertial_frame,
                                 name="nadir" if first_tilt_deg == 0 else "first")
-        target = np.array(geodesy.geodetic_to_ecef(center_lon, center_lat, 0.0), float)
+        target = np.array(geodesy.geodetic_to_ecef(center_lon, center_lat, float(center_height)), float)
         v_ground = orbit.mean_motion * geodesy.A
         t_guess = -_nadir_height(orbit, 0.0) * (np.tan(np.radians(backward_tilt_deg))
                                                 - np.tan(np.radians(first_tilt_deg))) / v_ground
 
         def miss(x):
             return _centre_miss(orbit, x[0], backward_tilt_deg, cross_track_tilt_deg + np.degrees(x[1]),
-                                target)
+                                target, center_height)
 
         t_c, droll = _newton2(miss, np.array([t_guess, 0.0]), np.array([1e-3, 1e-7]),
                               what="backward view of the synthetic pair")
@@ -660,12 +663,13 @@ def _nadir_height(orbit: CircularOrbit, t: float) -> float:
     return float(geodesy.ecef_to_geodetic(*r)[2])
 
 
-def _centre_miss(orbit, t_c, along_deg, cross_deg, target):
-    """East/north miss (m) of the boresight at time ``t_c`` from ECEF ``target`` on the ellipsoid."""
+def _centre_miss(orbit, t_c, along_deg, cross_deg, target, height=0.0):
+    """East/north miss (m) of the boresight at time ``t_c`` from ECEF ``target``, which lies at
+    ellipsoidal ``height`` (m)."""
     r, v = orbit.state(t_c)
     m = orbital_frame(r, v, inertial=True) @ body_to_orbital(np.radians(cross_deg), np.radians(along_deg), 0.0)
     d = m @ np.array([0.0, 0.0, 1.0])
-    p = geodesy.intersect_height(r, d, 0.0)
+    p = geodesy.intersect_height(r, d, float(height))
     lon, lat, _ = geodesy.ecef_to_geodetic(*target)
     enu = geodesy.enu_basis(lon, lat) @ (p - target)
     return enu[:2]
@@ -689,8 +693,9 @@ def _newton2(fun, x0, steps, *, what, tol=1e-4, max_iterations=30):
     raise ConvergenceError(f"{what}: aiming did not converge (miss {np.max(np.abs(f)):.3g} m)")
 
 
-def _aimed_orbit(lon, lat, *, altitude, inclination_deg, heading_deg, along_deg, cross_deg):
-    """Circular orbit whose boresight (with tilt) sees ``(lon, lat, 0)`` at ``t = 0``."""
+def _aimed_orbit(lon, lat, *, altitude, inclination_deg, heading_deg, along_deg, cross_deg,
+                 height=0.0):
+    """Circular orbit whose boresight (with tilt) sees ``(lon, lat, height)`` at ``t = 0``."""
     if not (np.isfinite(lon) and np.isfinite(lat) and abs(lat) < 90):
         raise SensorModelError(f"synthetic pushbroom: bad scene centre lon={lon}, lat={lat}")
     a = geodesy.A + float(altitude)
@@ -708,12 +713,13 @@ def _aimed_orbit(lon, lat, *, altitude, inclination_deg, heading_deg, along_deg,
                                f"inclined {np.degrees(inc):.2f} deg")
     u0 = np.pi - np.arcsin(s) if descending else np.arcsin(s)
     raan = np.radians(lon) - np.arctan2(np.sin(u0) * np.cos(inc), np.cos(u0))
-    target = np.array(geodesy.geodetic_to_ecef(lon, lat, 0.0), float)
+    target = np.array(geodesy.geodetic_to_ecef(lon, lat, float(height)), float)
     # start the along-track phase where the tilted view lands near the target
     u0 -= np.tan(np.radians(along_deg)) * altitude / geodesy.A
 
     def miss(x):
-        return _centre_miss(CircularOrbit(a, inc, x[1], x[0]), 0.0, along_deg, cross_deg, target)
+        return _centre_miss(CircularOrbit(a, inc, x[1], x[0]), 0.0, along_deg, cross_deg, target,
+                            height)
 
     u0, raan = _newton2(miss, np.array([u0, raan]), np.array([1e-7, 1e-7]), what="synthetic pushbroom")
     return CircularOrbit(a, inc, raan, u0)

@@ -176,12 +176,13 @@ def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_
     w, h = size
     rw, rh = right_size if right_size is not None else size
     # one orbit: the first image, then the second (e.g. ASTER 3N then 3B, ~55 s later), both
-    # centred on the same ground point
+    # centred on the same ground point at the terrain height h0
     return PushbroomModel.synthetic_pair(lon0, lat0, width=w, height=h, backward_width=int(rw),
                                          backward_height=int(rh), gsd=gsd, altitude=altitude,
                                          line_period=line_period, first_tilt_deg=angles[0],
                                          backward_tilt_deg=angles[1],
-                                         cross_track_tilt_deg=cross_track_tilt_deg)
+                                         cross_track_tilt_deg=cross_track_tilt_deg,
+                                         center_height=float(h0))
 
 
 # ----------------------------------------------------------------------------- ground fields

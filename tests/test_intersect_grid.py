@@ -146,3 +146,36 @@ def test_grid_gaussian_default_width_follows_point_density(spacing, n_per_cell):
     assert np.std(inner) < 0.45, np.std(inner)
     radius = 1 if n_per_cell == 4 else 2                  # ceil(2 sigma / posting)
     assert (g.count[2:-2, 2:-2] == (2 * radius + 1) ** 2 * n_per_cell).all()
+
+
+def test_tile_by_tile_gridding_equals_gridding_all_points():
+    """Cell sums of separate batches, added, give the grid of all points at once."""
+    from stereo.grid import SUM_LAYERS, GridSpec, accumulate, finish
+    rng = np.random.default_rng(5)
+    crs = geodesy.utm_crs(40.0, 39.5)
+    x0, y0 = geodesy.lonlat_to_crs(40.0, 39.5, crs)
+    xs, ys = x0 + rng.uniform(0, 3000, 20000), y0 + rng.uniform(0, 2000, 20000)
+    lon, lat = geodesy.crs_to_lonlat(xs, ys, crs)
+    h = 1500 + 0.02 * (xs - x0) + rng.normal(0, 2, xs.size)
+    score, gap = rng.uniform(0.5, 1, xs.size), rng.uniform(0, 3, xs.size)
+    b = (np.floor(x0 / 30) * 30 - 60, np.floor(y0 / 30) * 30 - 60,
+         np.ceil((x0 + 3000) / 30) * 30 + 60, np.ceil((y0 + 2000) / 30) * 30 + 60)
+    spec = GridSpec.from_bounds(b, 30.0, crs, method="gaussian", sigma=15.0)
+    whole = grid_points(lon, lat, h, posting=30.0, crs=crs, bounds=b, score=score, ray_gap=gap,
+                        method="gaussian", sigma=15.0)
+    total = np.zeros((len(SUM_LAYERS),) + spec.shape)
+    parts = np.array_split(np.argsort(xs), 4)             # four vertical strips, like tiles
+    cells = [accumulate(spec, lon[p], lat[p], h[p], score=score[p], ray_gap=gap[p]) for p in parts]
+    for c in cells:
+        assert c.sums.shape[2] < spec.shape[1]           # each batch touches only its window
+        c.add_to(total)
+    tiled = finish(spec, total)
+    np.testing.assert_array_equal(np.isfinite(tiled.height), np.isfinite(whole.height))
+    np.testing.assert_allclose(tiled.height, whole.height, atol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(tiled.score, whole.score, atol=1e-9, equal_nan=True)
+    np.testing.assert_array_equal(tiled.count, whole.count)
+    assert sum(c.n_points for c in cells) == xs.size
+    cropped = finish(spec, total, crop=True)
+    assert cropped.height.shape[0] < spec.shape[0] and np.isfinite(cropped.height[[0, -1], :]).any()
+    x_c, y_c = cropped.transform * (0, 0)
+    assert (x_c - b[0]) % 30 == 0 and (b[3] - y_c) % 30 == 0   # same lattice

@@ -156,3 +156,19 @@ def test_system_psf_mtf_and_band_limit():
     bound = np.exp(-4 * np.pi ** 2 * 0.35 ** 2 * (psf_sigma(0.1) ** 2 - psf_sigma(0.3) ** 2))
     print(hi1 / hi3, bound, lo1 / lo3)
     assert hi1 < bound * hi3 and lo1 > 0.7 * lo3
+
+
+def test_second_image_may_be_larger_like_aster_3b():
+    """ASTER's 3B image is wider and longer than 3N; the preset renders it whole."""
+    sc = simulate_scene("aster", size=(200, 180), right_size=(240, 210), seed=3, n_points=10)
+    assert sc.left.shape == (180, 200) and sc.right.shape == (210, 240)
+    assert (sc.right_model.width, sc.right_model.height) == (240, 210)
+    assert np.isfinite(sc.right).all() and sc.right.std() > 5
+    assert sc.settings["right_size"] == [240, 210]
+    # the larger image sees more ground: its footprint contains the left one's centre area
+    h = float(np.nanmean(sc.truth_dem.heights))
+    lon, lat = sc.left_model.localize(np.array([100.0]), np.array([90.0]), np.array([h]))
+    c, r = sc.right_model.project(lon, lat, np.array([h]))
+    assert 20 < c[0] < 220 and 15 < r[0] < 195
+    with pytest.raises(InputError, match="frame preset"):
+        simulate_scene("frame", size=(64, 64), right_size=(80, 64))
