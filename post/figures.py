@@ -8,6 +8,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from affine import Affine  # noqa: E402
 
 from sensor.raster import check_writable  # noqa: E402
 
@@ -25,8 +26,21 @@ def _save(fig, path, overwrite):
     return path
 
 
+#: longest side (cells) of an array drawn in a figure; the figures are ~700 px wide, so larger
+#: rasters are decimated first (drawing a 5000² raster costs seconds and GBs for nothing)
+DISPLAY_CELLS = 1400
+
+
+def _decimation(shape) -> int:
+    """Stride that brings the longest side of ``shape`` to at most :data:`DISPLAY_CELLS`."""
+    return max(1, int(np.ceil(max(shape) / DISPLAY_CELLS)))
+
+
 def hillshade_png(heights, transform, crs, path, *, title="DEM hillshade", overwrite=False):
-    """Hillshade of a DEM (NW light, 45°) with voids in red."""
+    """Hillshade of a DEM (NW light, 45°) with voids in red (large DEMs decimated for display)."""
+    k = _decimation(np.shape(heights))
+    if k > 1:
+        heights, transform = np.asarray(heights)[::k, ::k], transform @ Affine.scale(k)
     hs = terrain.hillshade(heights, transform, crs)
     fig, ax = plt.subplots(figsize=(6, 6))
     cmap = plt.get_cmap("gray").with_extremes(bad="red")
@@ -38,7 +52,9 @@ def hillshade_png(heights, transform, crs, path, *, title="DEM hillshade", overw
 
 def difference_map_png(dh, path, *, title="DEM − reference (m)", overwrite=False):
     """Map of differences with a diverging colour scale symmetric about 0 (± P98 of |dh|)."""
-    a = np.asarray(dh, dtype=np.float64)
+    a = np.asarray(dh)
+    k = _decimation(a.shape)
+    a = a[::k, ::k].astype(np.float64)
     fin = a[np.isfinite(a)]
     lim = float(np.percentile(np.abs(fin), 98)) if fin.size else 1.0
     lim = lim if lim > 0 else 1.0

@@ -40,15 +40,17 @@ from sensor.serialize import load_image_model
 
 from . import __version__
 from .config import Config
-from .tiles import SharedArray, Tile, run_tiles
+from .tiles import SharedArray, Tile, process_peak_rss_mb, run_tiles
 
 log = logging.getLogger(__name__)
 
 
 def _peak_rss_mb():
-    me = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """Peak resident memory (MB) of this process (:func:`process_peak_rss_mb`) and of its
+    largest finished child (``ru_maxrss``, which for a forked child includes the parent's
+    pages at the fork: tile summaries carry each worker's own figure)."""
     kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
-    return round(me, 1), round(kids, 1)
+    return round(process_peak_rss_mb(), 1), round(kids, 1)
 
 
 @dataclass
@@ -160,6 +162,7 @@ def _tile_job(tile, ctx):
     """One stereo tile as plain arrays (cacheable with ``np.savez``, no pickle): its cell
     sums on the output lattice, their window origin, point count and QA summary."""
     res = ctx["fn"](ctx["tiles"][tile.index], ctx["inputs"], ctx["settings"])
+    res.summary["process_peak_rss_mb"] = round(process_peak_rss_mb(), 1)
     c = res.cells
     return dict(sums=c.sums, origin=np.array([c.row0, c.col0, c.n_points], np.int64),
                 summary=np.array(json.dumps(res.summary, default=_json_default)))
@@ -273,8 +276,9 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
     _close(bar)
     grid = products.grid
     grid.write(out / "raw", overwrite=True)
+    tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
     stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
-                  failed_tiles=len(failed))
+                  failed_tiles=len(failed), tile_process_peak_rss_mb=max(tile_rss, default=0.0))
 
     t0 = time.perf_counter()
     z, mask, post_report = post_stage(cfg, grid)

@@ -68,6 +68,21 @@ def make_tiles(height: int, width: int, size: int, halo: int = 0) -> list[Tile]:
     return tiles
 
 
+def process_peak_rss_mb() -> float:
+    """Peak resident memory (MB) of the calling process's own address space (``VmHWM``).
+
+    ``ru_maxrss`` would also count a parent's peak from before an ``exec`` and, for a pool
+    worker, the parent's pages at the fork; ``VmHWM`` is the process's own high-water mark.
+    Falls back to ``ru_maxrss`` where ``/proc`` is absent.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("VmHWM")) / 1024.0
+    except (OSError, StopIteration, ValueError):
+        import resource
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 class SharedArray:
     """A read-only array stored as a ``.npy`` file and memory-mapped where it is used.
 

@@ -159,3 +159,21 @@ def test_write_report_refuses_nonempty_dir(tmp_path, ref, simulated):
     res = assess.assess_dem(simulated, ref)
     with pytest.raises(OutputExistsError):
         write_report(res, tmp_path)
+
+
+def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
+    """Figures draw at most DISPLAY_CELLS per side: a big raster costs no more than a small one."""
+    import matplotlib.pyplot as plt
+
+    from post import figures
+    from sensor import geodesy
+    monkeypatch.setattr(figures, "DISPLAY_CELLS", 100)
+    drawn = []
+    real = plt.Axes.imshow
+    monkeypatch.setattr(plt.Axes, "imshow", lambda self, a, **k: drawn.append(np.shape(a)) or real(self, a, **k))
+    z = np.add.outer(np.arange(450.0), np.arange(300.0))
+    figures.hillshade_png(z, Affine(30, 0, 500000, 0, -30, 4400000), geodesy.utm_crs(39, 39.7),
+                          tmp_path / "hs.png")
+    figures.difference_map_png(z - z.mean(), tmp_path / "dh.png")
+    assert drawn == [(90, 60), (90, 60)]                  # every 5th cell of 450 x 300
+    assert (tmp_path / "hs.png").stat().st_size > 1000 and (tmp_path / "dh.png").exists()
