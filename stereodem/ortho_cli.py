@@ -42,6 +42,7 @@ def add_parser(sub):
     p.add_argument("--gcps", help="GCP CSV (id,lon,lat,h,col,row[,role]) for the generic models")
     p.add_argument("--layers", default="", help="comma-separated extra layers: incidence,occlusion")
     p.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    p.add_argument("--workers", type=int, help="threads for the row blocks (default: all cores)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.set_defaults(run=run)
     return p
@@ -119,8 +120,11 @@ def run(args) -> int:
         bar = Progress("ortho", 1, enabled=log.getEffectiveLevel() <= logging.WARNING)
     except ImportError:                                   # pragma: no cover
         bar = None
+    import os
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be at least 1, got {args.workers}")
     ortho = orthorectify(image, model, dem, res=args.res, crs=args.crs, resampling=args.resampling,
-                         strict_dem=True, progress=bar)
+                         strict_dem=True, progress=bar, threads=args.workers or os.cpu_count() or 1)
     if bar is not None:
         bar.close()
     ortho.write(out, overwrite=args.overwrite)

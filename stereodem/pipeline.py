@@ -230,14 +230,19 @@ def _fallback_on_grid(seed, grid):
 
 
 def ortho_stage(cfg: Config, inputs, dem: DEM, *, progress=None):
-    """Orthoimages of the left (and right) image on one grid against the clean DEM."""
+    """Orthoimages of the left (and right) image on one grid against the clean DEM.
+
+    Row blocks of the grid run on ``cfg.run.workers`` threads (the image is shared, not
+    copied; numpy and OpenCV release the GIL); the result does not depend on the count.
+    """
     from ortho.drm import orthorectify
     orthos = {}
     grid = None
     names = ("left", "right") if cfg.ortho.both else ("left",)
+    threads = cfg.run.workers or os.cpu_count() or 1
     for name, (img, model) in zip(names, inputs):
         o = orthorectify(img, model, dem, grid=grid, res=cfg.ortho.res,
-                         resampling=cfg.ortho.resampling, progress=progress)
+                         resampling=cfg.ortho.resampling, progress=progress, threads=threads)
         grid = grid or o.grid
         orthos[name] = o
     return orthos

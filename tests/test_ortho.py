@@ -117,6 +117,14 @@ def test_ortho_matches_rendered_truth(rendered):
     assert np.allclose(o.heights[iv[k], iu[k]], dem.sample(lon, lat), atol=0.05)
 
 
+def test_threads_give_the_same_ortho(rendered):
+    cam, dem, grid, img, truth = rendered
+    one = orthorectify(img, cam, dem, grid=grid, resampling="cubic", block_rows=37, threads=1)
+    two = orthorectify(img, cam, dem, grid=grid, resampling="cubic", block_rows=37, threads=2)
+    np.testing.assert_array_equal(one.data, two.data)
+    np.testing.assert_array_equal(one.valid, two.valid)
+
+
 def test_wrong_dem_is_detected(rendered):
     """Negative control: a DEM 150 m too high displaces the oblique ortho measurably."""
     cam, dem, grid, img, truth = rendered
