@@ -285,3 +285,67 @@ def test_input_errors(grid):
         match_rectified(left, right, (0, 8), matcher="sgm", vertical_search=1)
     with pytest.raises(InputError):
         match_rectified(np.full_like(left, np.nan), right, (0, 8))
+
+
+# ----------------------------------------------------------------------------- refinement
+
+def test_smooth_fill_bridges_wide_holes():
+    """A hole much wider than the kernel takes the surrounding ramp, not the map's median."""
+    from stereo.pipeline import _smooth_fill
+    yy, xx = np.mgrid[0:200, 0:200].astype(np.float32)
+    d = 0.05 * xx
+    holed = d.copy()
+    holed[:, 120:170] = np.nan                       # 50 px wide, sigma 3
+    out = _smooth_fill(holed, 3.0)
+    assert np.isfinite(out).all()
+    err = np.abs(out - d)[:, 120:170]
+    assert np.median(err) < 1.0, np.median(err)      # the median fill is 3.5 px off there
+    assert np.abs(out - d)[:, 20:100].max() < 0.05   # away from the hole: the plain smoothing
+
+
+@pytest.fixture(scope="module")
+def wavy_pair():
+    """Rectified pair of an exact band-limited texture over a disparity with sub-window
+    relief (4 cycles per 40 px, 1 px amplitude) on a ramp."""
+    yy, xx = np.mgrid[0:160, 0:240].astype(np.float64)
+
+    def disp(x, y):
+        return 3.0 + 0.01 * x + 1.0 * np.sin(2 * np.pi * x / 40.0)
+
+    left = texture(xx, yy, seed=3)
+    # right(x - d(x)) = left(x): sample the texture at the inverse map (fixed point)
+    xr = xx.copy()
+    for _ in range(30):
+        xr = xx + disp(xr, yy)
+    right = texture(xr, yy, seed=3)
+    return left, right, disp(xx, yy).astype(np.float32)
+
+
+def test_refine_keeps_confirmed_detail_and_drops_noise(wavy_pair):
+    """The detail gain is ~1 when the first pass resolved real sub-window relief, and small
+    when its sub-window structure is noise on a smooth surface (refined error then lower
+    than with the first pass's detail kept)."""
+    from stereo.pipeline import refine_disparity
+    left, right, truth = wavy_pair
+    inner = np.s_[20:-20, 20:-20]
+    # real relief, resolved by the first pass
+    d, s, g = refine_disparity(left, right, truth, sigma=1.0, window=7)
+    assert g > 0.8, g
+    assert np.nanmedian(np.abs(d - truth)[inner]) < 0.1
+
+    # smooth surface (a ramp), first pass = truth + noise correlated at the window scale
+    yy, xx = np.mgrid[0:160, 0:240].astype(np.float64)
+    ramp = (3.0 + 0.01 * xx).astype(np.float32)
+    left2 = texture(xx, yy, seed=4)
+    xr = xx + 3.0 + 0.01 * xx
+    for _ in range(30):
+        xr = xx + 3.0 + 0.01 * xr
+    right2 = texture(xr, yy, seed=4)
+    rng = np.random.default_rng(1)
+    noise = cv2.GaussianBlur(rng.normal(0, 1, ramp.shape).astype(np.float32), (0, 0), 2.0)
+    first = ramp + 0.5 * noise / noise.std()
+    d0, _, g0 = refine_disparity(left2, right2, first, sigma=1.0, window=7)
+    d1, _, g1 = refine_disparity(left2, right2, first, sigma=1.0, window=7, detail_gain=1.0)
+    assert g1 == 1.0 and g0 < 0.5, g0
+    e0, e1 = (np.nanstd((x - ramp)[inner]) for x in (d0, d1))
+    assert e0 < 0.8 * e1, (e0, e1)
