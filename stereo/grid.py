@@ -102,6 +102,13 @@ def grid_bounds(x, y, posting):
             np.ceil(np.nanmax(x) / posting) * posting, np.ceil(np.nanmax(y) / posting) * posting)
 
 
+def _as_crs(crs) -> CRS:
+    try:
+        return CRS.from_user_input(crs)
+    except Exception as exc:
+        raise CRSError(f"unusable output CRS {crs!r}: {exc}") from None
+
+
 def _density_sigma(fi, fj, rows, cols, posting):
     """Default gaussian width: ``max(posting / 2, mean point spacing)`` (CRS units)."""
     i, j = np.rint(fi).astype(np.int64), np.rint(fj).astype(np.int64)
@@ -150,10 +157,7 @@ class GridSpec:
         """Lattice covering ``bounds`` (xmin, ymin, xmax, ymax; cell edges) at ``posting``."""
         if not posting or posting <= 0 or not np.isfinite(posting):
             raise InputError(f"grid posting must be positive, got {posting!r}")
-        try:
-            crs = CRS.from_user_input(crs)
-        except Exception as exc:
-            raise CRSError(f"unusable output CRS {crs!r}: {exc}") from None
+        crs = _as_crs(crs)
         method = options.get("method", "gaussian")
         if method not in ("mean", "gaussian"):
             raise InputError(f"unknown gridding method {method!r} (mean or gaussian)")
@@ -189,9 +193,10 @@ class CellSums:
             total[:, self.row0:self.row0 + h, self.col0:self.col0 + w] += self.sums
 
 
-def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None) -> CellSums:
+def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None) -> CellSums:
     """Weighted sums of the points ``(lon, lat, h)`` (degrees, metres above the ellipsoid)
     on the smallest window of ``spec`` holding their support. Non-finite points are ignored.
+    ``xy``: the points' coordinates in ``spec.crs`` if the caller already has them.
     """
     lon, lat, h = (np.asarray(a, np.float64).ravel() for a in (lon, lat, h))
     n = h.size
@@ -202,7 +207,10 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None) -> Cell
     empty = CellSums(0, 0, np.zeros((len(SUM_LAYERS), 0, 0)))
     if h.size == 0:
         return empty
-    x, y = geodesy.lonlat_to_crs(lon, lat, spec.crs)
+    if xy is None:
+        x, y = geodesy.lonlat_to_crs(lon, lat, spec.crs)
+    else:
+        x, y = (np.asarray(v, np.float64).ravel()[ok] for v in xy)
     if spec.geoid:
         h = geodesy.ellipsoid_to_geoid(lon, lat, h)
     rows, cols = spec.shape
@@ -310,18 +318,17 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
         if not ok.any():
             raise InputError("no valid point to grid (and no CRS given to build an empty grid)")
         crs = geodesy.utm_crs(lon[ok], lat[ok])
+    crs = _as_crs(crs)
+    x, y = np.full(lon.shape, np.nan), np.full(lon.shape, np.nan)
+    if ok.any():
+        x[ok], y[ok] = geodesy.lonlat_to_crs(lon[ok], lat[ok], crs)
     if bounds is None:
         if not ok.any():
             raise InputError("no valid point to grid and no bounds given")
-        try:
-            crs_obj = CRS.from_user_input(crs)
-        except Exception as exc:
-            raise CRSError(f"unusable output CRS {crs!r}: {exc}") from None
-        x, y = geodesy.lonlat_to_crs(lon[ok], lat[ok], crs_obj)
-        bounds = grid_bounds(x, y, posting)
+        bounds = grid_bounds(x[ok], y[ok], posting)
     spec = GridSpec.from_bounds(bounds, posting, crs, method=method, sigma=sigma, radius=radius,
                                 geoid=geoid)
-    cells = accumulate(spec, lon, lat, h, score=score, ray_gap=ray_gap)
+    cells = accumulate(spec, lon, lat, h, score=score, ray_gap=ray_gap, xy=(x, y))
     total = np.zeros((len(SUM_LAYERS),) + tuple(spec.shape))
     cells.add_to(total)
     return finish(spec, total, info=dict(n_points=int(ok.sum())))

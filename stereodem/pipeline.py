@@ -40,7 +40,7 @@ from sensor.serialize import load_image_model
 
 from . import __version__
 from .config import Config
-from .tiles import SharedArray, Tile, process_peak_rss_mb, run_tiles
+from .tiles import SharedArray, Tile, pool_size, process_peak_rss_mb, run_tiles
 
 log = logging.getLogger(__name__)
 
@@ -93,8 +93,7 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
 
     def runner(process_tile, tiles, inputs, settings):
         wrapped = [Tile(i, 0, 0, 0, 0) for i in range(len(tiles))]
-        workers = run_settings.workers or os.cpu_count() or 1
-        pool = run_settings.dask is None and workers > 1 and len(tiles) > 1
+        pool = pool_size(run_settings.workers, len(tiles), run_settings.dask) > 0
         if cache_dir is not None:
             _check_tile_cache(Path(cache_dir), _cache_key(tiles, inputs, settings), run_settings.resume)
         with tempfile.TemporaryDirectory(prefix="shared-", dir=cache_dir) as tmp:

@@ -202,6 +202,14 @@ def _load(cache_dir, tile):
 
 
 # --------------------------------------------------------------------------- driver
+def pool_size(workers: int | None, n_tiles: int, dask_address=None) -> int:
+    """Worker processes :func:`run_tiles` starts for ``n_tiles`` tiles: 0 when it runs them
+    in this process (one worker, at most one tile, or Dask), else ``workers`` (None: all
+    cores)."""
+    n = workers or os.cpu_count() or 1
+    return 0 if dask_address is not None or n == 1 or n_tiles <= 1 else n
+
+
 def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | None = None,
               cache_dir=None, resume: bool = False, progress=None, dask_address: str | None = None):
     """Run ``fn(tile, context)`` over ``tiles``.
@@ -255,13 +263,13 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
         if progress:
             progress(done, total)
 
+    n = pool_size(workers, len(todo), dask_address)
     if dask_address is not None:
         _run_dask(fn, todo, context, timeout, dask_address, collect)
-    elif workers == 1 or len(todo) <= 1:
+    elif n == 0:
         for t in todo:
             collect(*_run_one(fn, t, timeout, context))
     else:
-        n = workers or os.cpu_count() or 1
         # "spawn", not fork: a forked child inherits OpenCV's and PROJ's thread state and can
         # deadlock in its first cv2 call
         ctx = multiprocessing.get_context("spawn")
