@@ -40,7 +40,7 @@ def mirrored_dem(pad=MIRROR_CELLS):
     """The bundled SRTM reflected ``pad`` cells on every side (same posting, EGM96 heights)."""
     from affine import Affine
 
-    from sensor.dem import DEM
+    from stereodem.sensor.geo.dem import DEM
     d = DEM.bundled()
     z = np.pad(d.heights, pad, mode="reflect")
     t = d.transform @ Affine.translation(-pad, -pad)
@@ -48,7 +48,7 @@ def mirrored_dem(pad=MIRROR_CELLS):
 
 
 def simulate(out: Path, size, right_size, force=False):
-    from sensor.simulate import simulate_scene, write_scene
+    from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
     meta = out / "scene.json"
     if meta.exists() and not force:
         s = json.loads(meta.read_text())["settings"]
@@ -136,9 +136,9 @@ def matcher_throughput(scene: Path):
     import cv2
     import rasterio
 
-    from sensor.serialize import load_image_model
-    from stereo import epipolar
-    from stereo.match import match_rectified
+    from stereodem.sensor.io.sidecar import load_image_model
+    from stereodem.stereo import epipolar
+    from stereodem.stereo.match import match_rectified
     imgs, models = [], []
     for n in ("left", "right"):
         with rasterio.open(scene / f"{n}.tif") as ds:

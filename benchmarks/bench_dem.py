@@ -1,6 +1,6 @@
 """Stereo DEM on the real Pleiades pair (s2p test data) against s2p's own DSM.
 
-Runs :func:`stereo.pipeline.make_dem` on ``../shared/data/s2p_pleiades/pair/img_0{1,2}.tif``
+Runs :func:`stereodem.stereo.pipeline.make_dem` on ``../shared/data/s2p_pleiades/pair/img_0{1,2}.tif``
 (RPCs from the GeoTIFF metadata) onto s2p's output grid (EPSG:32740, 0.5 m), and compares the
 result with ``expected_dsm.tif`` (ellipsoidal heights): median offset, NMAD of the
 difference, fraction of s2p's valid cells covered, wall time. Writes
@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import rasterio
 
-from sensor.rpc import RPCModel
-from stereo.pipeline import DEMSettings, make_dem
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.stereo.pipeline import DEMSettings, make_dem
 
 HERE = Path(__file__).resolve().parent
 PAIR = HERE.parents[1] / "shared" / "data" / "s2p_pleiades" / "pair"

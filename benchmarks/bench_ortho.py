@@ -5,7 +5,7 @@ a synthetic texture of ``--size`` pixels inside that RPC's domain, or the real 1
 Pleiades crop with ``--real``) onto the same UTM grid (0.5 m) over the same ellipsoidal DEM
 GeoTIFF, bilinear resampling, in one run:
 
-* stereodem: :func:`ortho.drm.orthorectify` (coarse lattice of exact projections, measured
+* stereodem: :func:`stereodem.ortho.drm.orthorectify` (coarse lattice of exact projections, measured
   interpolation error <= 0.01 px, float32 maps, cv2.remap), with 1 and 2 threads;
 * GDAL: ``rasterio.warp.reproject(..., rpcs=..., RPC_DEM=...)`` with its default approximate
   transformer (error threshold 0.125 px) at one and two threads (``num_threads``, GDAL's
@@ -41,10 +41,10 @@ from rasterio.warp import Resampling, reproject
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ortho.drm import orthorectify          # noqa: E402
-from ortho.grid import grid_for_model       # noqa: E402
-from sensor.dem import DEM                  # noqa: E402
-from sensor.rpc import RPCModel             # noqa: E402
+from stereodem.ortho.drm import orthorectify          # noqa: E402
+from stereodem.ortho.grid import grid_for_model       # noqa: E402
+from stereodem.sensor.geo.dem import DEM                  # noqa: E402
+from stereodem.sensor.models.rpc import RPCModel             # noqa: E402
 
 RPC_FILE = ROOT / "tests" / "data" / "pleiades" / "img_01_rpc.tif"
 REAL_IMAGE = ROOT.parent / "shared" / "data" / "s2p_pleiades" / "pair" / "img_01.tif"

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sensor.generic import MODEL_NAMES, fit_model, minimum_gcps
-from sensor.simulate import simulate_scene
+from stereodem.sensor.models.generic import MODEL_NAMES, fit_model, minimum_gcps
+from stereodem.sensor.simulation.simulate import simulate_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 COUNTS = (10, 20, 40)

@@ -26,7 +26,7 @@ import numpy as np
 import rasterio
 from rasterio.transform import RPCTransformer
 
-from sensor.rpc import RPCModel
+from stereodem.sensor.models.rpc import RPCModel
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "pleiades" / "img_01_rpc.tif"

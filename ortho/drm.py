@@ -3,7 +3,7 @@
 For every cell of a north-up map grid the ground point (map x, y and the DEM's ellipsoidal
 height there) is projected into the image by the exact sensor model, and the image is
 resampled there (Ok 2005 §6: "build the orthoimage by backward projection"; Bettemir 2006
-§4.1 gives the per-pixel forward variant, :mod:`ortho.forward`).
+§4.1 gives the per-pixel forward variant, :mod:`stereodem.ortho.forward`).
 
 Speed comes from evaluating ``model.project`` only on a coarse lattice of ground points
 (every ``step`` cells) at a few heights spanning the DEM range, and interpolating: bilinearly
@@ -29,9 +29,9 @@ import cv2
 import numpy as np
 from affine import Affine
 
-from sensor import geodesy
-from sensor.dem import DEM, ELLIPSOID
-from sensor.errors import DEMCoverageError, InputError, SensorModelError
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.geo.dem import DEM, ELLIPSOID
+from stereodem.sensor.errors import DEMCoverageError, InputError, SensorModelError
 
 from .grid import MapGrid, grid_for_model
 
@@ -515,7 +515,7 @@ class Ortho:
 
     def write(self, path, *, overwrite=False, tags=None):
         """Write as a float32 GeoTIFF (rasterio), nodata set, the report as tags."""
-        from sensor.raster import write_geotiff
+        from stereodem.sensor.io.raster import write_geotiff
         t = {f"STEREODEM_{k.upper()}": v for k, v in self.report().items()}
         t.update(tags or {})
         return write_geotiff(path, self.data, self.grid.transform, self.grid.crs, self.nodata,
@@ -540,12 +540,12 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     ----------
     image : ndarray (rows, cols) or masked array
         The image of ``model`` (``model.height`` x ``model.width``).
-    model : sensor.model.SensorModel
-    dem : sensor.dem.DEM or path
+    model : stereodem.sensor.models.base.SensorModel
+    dem : stereodem.sensor.geo.dem.DEM or path
         Terrain heights (geoid DEMs are converted to ellipsoidal heights).
     grid : MapGrid, optional
         Output grid (for example, shared by both images of a stereo pair). Default:
-        :func:`ortho.grid.grid_for_model` with ``res`` and ``crs``.
+        :func:`stereodem.ortho.grid.grid_for_model` with ``res`` and ``crs``.
     res : float, optional
         Posting, metres (default the image GSD).
     crs : CRS-like, optional
@@ -574,7 +574,7 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     -------
     Ortho
     """
-    from sensor.dem import as_dem
+    from stereodem.sensor.geo.dem import as_dem
     if resampling not in RESAMPLING:
         raise InputError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
     dem = as_dem(dem)

@@ -1,11 +1,11 @@
 """The forward DRM of Bettemir (2006, §4.1 and §6.5): image -> ground, pixel by pixel.
 
 Each image pixel's line of sight is intersected with the ellipsoid and moved along the ray by
-the relief iteration until it meets the DEM (:meth:`sensor.model.SensorModel.localize_dem`);
+the relief iteration until it meets the DEM (:meth:`stereodem.sensor.models.base.SensorModel.localize_dem`);
 the irregular ground points are then put on a map grid by nearest neighbour ("round to the
 nearest", thesis §4.1.9). This is the thesis's method, kept for comparison and validation:
 holes appear where the ground is sampled more finely than the image, and the backward
-projection of :mod:`ortho.drm` is the production path.
+projection of :mod:`stereodem.ortho.drm` is the production path.
 """
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sensor import geodesy
-from sensor.errors import InputError
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import InputError
 
 from .grid import MapGrid
 
@@ -46,8 +46,8 @@ def forward_localize(model, dem, *, cols=None, rows=None, step: int = 1, crs=Non
 
     Parameters
     ----------
-    model : sensor.model.SensorModel
-    dem : sensor.dem.DEM
+    model : stereodem.sensor.models.base.SensorModel
+    dem : stereodem.sensor.geo.dem.DEM
     cols, rows : array_like, optional
         Pixels to localise (default every ``step``-th pixel of the image, both axes).
     crs : CRS-like, optional

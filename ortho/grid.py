@@ -2,7 +2,7 @@
 
 The grid of an orthoimage is chosen from the sensor model and the DEM: the CRS is the UTM zone
 of the image centre unless one is given, the posting is the image's ground sample distance
-(:meth:`sensor.model.SensorModel.gsd`) unless given, and the bounds enclose the image footprint
+(:meth:`stereodem.sensor.models.base.SensorModel.gsd`) unless given, and the bounds enclose the image footprint
 localised at the lowest and highest DEM heights under it, snapped outward to multiples of the
 posting.
 """
@@ -14,8 +14,8 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
-from sensor import geodesy
-from sensor.errors import CRSError, DEMCoverageError, InputError
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import CRSError, DEMCoverageError, InputError
 
 
 @dataclass(frozen=True)
@@ -132,8 +132,8 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
 
     Parameters
     ----------
-    model : sensor.model.SensorModel
-    dem : sensor.dem.DEM
+    model : stereodem.sensor.models.base.SensorModel
+    dem : stereodem.sensor.geo.dem.DEM
         Used for the height range under the footprint (ellipsoidal).
     res : float, optional
         Posting in map units (m); default: the image GSD at the mean terrain height, to three

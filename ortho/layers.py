@@ -1,19 +1,19 @@
 """Optional orthoimage layers: local incidence angle and terrain occlusion.
 
 Both need the line of sight at each grid cell. It is computed exactly on the lattice of the
-orthoimage's :class:`ortho.drm.BackwardMap` (project the node at the mid height, localise the
+orthoimage's :class:`stereodem.ortho.drm.BackwardMap` (project the node at the mid height, localise the
 same pixel 100 m higher) and interpolated bilinearly: lines of sight turn slowly across a
 scene. Directions are expressed in the map frame (x east, y north, z up, metres), ignoring the
 map scale factor (< 0.1 % in UTM) — angles, not lengths, matter here.
 
 The orthoimage of the second image of a stereo pair on the same grid needs no layer code: pass
-``grid=ortho_left.grid`` to :func:`ortho.drm.orthorectify`.
+``grid=ortho_left.grid`` to :func:`stereodem.ortho.drm.orthorectify`.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from sensor import geodesy
+from stereodem.sensor.geo import geodesy
 
 from .drm import Ortho, bilinear_nan
 

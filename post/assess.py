@@ -2,7 +2,7 @@
 
 The DEM is warped onto the **reference grid** (bilinear; this is stated in the report), its
 heights first converted to the reference's vertical datum (EGM96 geoid ↔ WGS84 ellipsoid).
-Differences are ``dh = DEM − reference``. Statistics (:mod:`post.stats`) are given for the
+Differences are ``dh = DEM − reference``. Statistics (:mod:`stereodem.post.stats`) are given for the
 whole overlap, per slope class (slope of the reference DEM, degrees, metric even on lon/lat
 grids), per land-cover class, per elevation band (reference heights), with the linear fit of
 error against slope; optionally before and after Nuth & Kääb co-registration.
@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import rasterio
 
-from sensor import geodesy
-from sensor.dem import DEM, as_dem
-from sensor.errors import (CRSError, DEMError, InputError, NoOverlapError,
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.geo.dem import DEM, as_dem
+from stereodem.sensor.errors import (CRSError, DEMError, InputError, NoOverlapError,
                            VerticalReferenceError)
 
 from . import stats as st
@@ -139,7 +139,7 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
     Parameters
     ----------
     coregister : bool
-        Also co-register with :class:`~post.coregister.NuthKaab` and assess again; the report
+        Also co-register with :class:`~stereodem.post.coregister.NuthKaab` and assess again; the report
         then has ``coregistration`` (``dx``, ``dy``, ``dz`` metres east/north/up) and
         ``after_coregistration``.
     landcover : path or (array, transform, crs)

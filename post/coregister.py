@@ -21,8 +21,8 @@ import logging
 
 import numpy as np
 
-from sensor.dem import DEM
-from sensor.errors import ConvergenceError, DEMError
+from stereodem.sensor.geo.dem import DEM
+from stereodem.sensor.errors import ConvergenceError, DEMError
 
 from . import terrain, warp
 from .stats import nmad

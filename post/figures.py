@@ -10,7 +10,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from affine import Affine  # noqa: E402
 
-from sensor.raster import check_writable  # noqa: E402
+from stereodem.sensor.io.raster import check_writable  # noqa: E402
 
 from . import terrain  # noqa: E402
 from .stats import error_stats  # noqa: E402

@@ -16,7 +16,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from sensor.errors import InputError
+from stereodem.sensor.errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from sensor.errors import InputError
+from stereodem.sensor.errors import InputError
 
 from . import terrain
 from .stats import NMAD_FACTOR
@@ -351,7 +351,7 @@ class FilterChain:
 
     def apply(self, heights, *, score=None, ray_gap=None, reference=None, transform=None,
               crs=None) -> FilterResult:
-        """Run the chain on ``heights`` (2-D, NaN voids) or a :class:`sensor.dem.DEM` (whose
+        """Run the chain on ``heights`` (2-D, NaN voids) or a :class:`stereodem.sensor.geo.dem.DEM` (whose
         transform and CRS are then used)."""
         if hasattr(heights, "heights") and hasattr(heights, "transform"):
             transform = transform or heights.transform

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sensor.raster import prepare_output_dir, write_text_atomic
+from stereodem.sensor.io.raster import prepare_output_dir, write_text_atomic
 
 from . import figures
 
@@ -94,7 +94,7 @@ def markdown(report: dict, figure_files: dict) -> str:
 def write_report(assessment, out_dir, *, dem_heights=None, dem_transform=None, dem_crs=None,
                  overwrite=False) -> dict:
     """Write ``report.json``, ``report.md`` and the PNG figures of an
-    :class:`~post.assess.Assessment` into ``out_dir``; returns the paths written.
+    :class:`~stereodem.post.assess.Assessment` into ``out_dir``; returns the paths written.
 
     The hillshade is of the DEM on the reference grid unless ``dem_heights`` (with its
     transform and CRS) is given.

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sensor.errors import InputError
+from stereodem.sensor.errors import InputError
 
 NMAD_FACTOR = 1.4826
 Z90 = 1.6448536269514722       #: standard normal quantile of 0.95 (two-sided 90 %)

@@ -1,7 +1,14 @@
-"""Sensor geometry: geodesy, DEM access, sensor models (frame, pushbroom, ASTER, RPC, fitted
-generic models), adjustment and scene simulation.
+"""Sensor geometry, in rooms:
 
-Every model follows the contract of :class:`sensor.model.SensorModel`:
+* :mod:`.geo` — WGS84 geodesy, EGM96, rotations, DEM access;
+* :mod:`.models` — the sensor models (frame, pushbroom, ASTER, RPC, fitted generic models,
+  image-space corrections) on one contract;
+* :mod:`.io` — file readers and writers (rasters, RPC formats, ASTER geometry, model sidecars,
+  GCP tables);
+* :mod:`.estimation` — RPC fitting, regularisation and adjustment;
+* :mod:`.simulation` — the scene simulator.
+
+Every model follows the contract of :class:`stereodem.sensor.models.base.SensorModel`:
 ``project(lon, lat, h) -> (col, row)`` and ``localize(col, row, h) -> (lon, lat)``.
 """
 from .errors import StereodemError  # noqa: F401

@@ -20,7 +20,7 @@ Franchis et al., ICIP 2014; s2p ``rectification.py``). Per tile:
 
 The rectified tile frame is chosen so that array index ``[v, u]`` of a rectified image is the
 rectified coordinate ``(u, v)``; a left pixel ``(u, v)`` matches the right pixel
-``(u - d, v)`` for a disparity ``d`` (the convention of :func:`stereo.match.match_rectified`).
+``(u - d, v)`` for a disparity ``d`` (the convention of :func:`stereodem.stereo.match.match_rectified`).
 Triangulation never uses the approximation: :meth:`EpipolarTile.to_image` maps matches back
 to each image's own coordinates, which are intersected with the exact models.
 """
@@ -32,13 +32,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from sensor.errors import InputError, SensorModelError
-from sensor.model import SensorModel
+from stereodem.sensor.errors import InputError, SensorModelError
 
 log = logging.getLogger(__name__)
 
 __all__ = ["Tile", "EpipolarTile", "virtual_matches", "affine_fundamental_matrix",
-           "rectifying_similarities", "rectify_tile", "apply_map", "tile_grid", "ShiftedModel",
+           "rectifying_similarities", "rectify_tile", "apply_map", "tile_grid",
            "vertical_offset_to_image_shift"]
 
 
@@ -88,7 +87,7 @@ def virtual_matches(left, right, bounds, heights, *, n: int = 7, offset: float =
 
     Parameters
     ----------
-    left, right : sensor.model.SensorModel
+    left, right : stereodem.sensor.models.base.SensorModel
     bounds : (col_min, row_min, col_max, row_max)
         Rectangle of the left image (pixels).
     heights : array_like
@@ -318,7 +317,7 @@ def rectify_tile(left, right, tile: Tile, height_range, *, halo=(32, 16), method
 
     Parameters
     ----------
-    left, right : sensor.model.SensorModel
+    left, right : stereodem.sensor.models.base.SensorModel
         Exact models of the two images.
     tile : Tile
         Left-image tile (its points are the ones kept downstream).
@@ -360,7 +359,7 @@ def rectify_tile(left, right, tile: Tile, height_range, *, halo=(32, 16), method
         raise SensorModelError(f"tile {tile.bounds}: too few virtual matches ({len(x1)}); "
                                "is the tile outside the right image's model domain?")
     if method == "auto":
-        from sensor.frame import FrameCamera
+        from stereodem.sensor.models.frame import FrameCamera
         method = "projective" if isinstance(left, FrameCamera) and isinstance(right, FrameCamera) else "affine"
     if method == "affine":
         F = affine_fundamental_matrix(x1, x2)
@@ -424,36 +423,6 @@ def rectify_tile(left, right, tile: Tile, height_range, *, halo=(32, 16), method
 
 
 # ----------------------------------------------------------------------------- relative pointing
-
-class ShiftedModel(SensorModel):
-    """A sensor model whose image coordinates are translated: an image-space bias correction.
-
-    ``project`` returns the wrapped model's ``(col, row)`` plus ``(dcol, drow)`` (pixels);
-    ``localize`` and ``rays`` subtract it first. This is s2p's relative pointing correction (a
-    translation of the second image, Grodecki & Dial's image-space bias), for any
-    :class:`sensor.model.SensorModel`.
-    """
-
-    def __init__(self, model, dcol: float, drow: float):
-        self.model, self.dcol, self.drow = model, float(dcol), float(drow)
-        self.width, self.height = model.width, model.height
-
-    def project(self, lon, lat, h):
-        c, r = self.model.project(lon, lat, h)
-        return c + self.dcol, r + self.drow
-
-    def localize(self, col, row, h):
-        return self.model.localize(np.asarray(col, float) - self.dcol, np.asarray(row, float) - self.drow, h)
-
-    def rays(self, col, row):
-        return self.model.rays(np.asarray(col, float) - self.dcol, np.asarray(row, float) - self.drow)
-
-    def height_bounds(self):
-        return self.model.height_bounds()
-
-    def __repr__(self):
-        return f"ShiftedModel({self.model!r}, dcol={self.dcol:.3f}, drow={self.drow:.3f})"
-
 
 def vertical_offset_to_image_shift(et: EpipolarTile, u, v, disparity, vertical):
     """Right-image shifts implied by measured vertical offsets in a rectified tile.

@@ -24,9 +24,9 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
-from sensor import geodesy
-from sensor.errors import CRSError, InputError
-from sensor.raster import write_geotiff
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import CRSError, InputError
+from stereodem.sensor.io.raster import write_geotiff
 
 __all__ = ["DEMGrid", "GridSpec", "CellSums", "SUM_LAYERS", "accumulate", "finish", "grid_points",
            "grid_bounds"]
@@ -290,7 +290,7 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
     posting : float
         Cell size in CRS units (metres for UTM).
     crs : CRS-like, optional
-        Output CRS; default the UTM zone of the points (:func:`sensor.geodesy.utm_crs`).
+        Output CRS; default the UTM zone of the points (:func:`stereodem.sensor.geo.geodesy.utm_crs`).
     bounds : (xmin, ymin, xmax, ymax), optional
         Grid extent in the CRS (cell edges); default the points' extent snapped to the posting.
     score, ray_gap : array_like (N,), optional

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sensor import geodesy
+from stereodem.sensor.geo import geodesy
 
 __all__ = ["Intersection", "intersect_rays", "intersect_matches"]
 
@@ -80,7 +80,7 @@ def intersect_matches(left, right, col1, row1, col2, row2) -> Intersection:
 
     Parameters
     ----------
-    left, right : sensor.model.SensorModel
+    left, right : stereodem.sensor.models.base.SensorModel
         Exact models of the two images.
     col1, row1, col2, row2 : array_like (N,)
         Matched pixel coordinates in the left and right images (pixel centres at integers).

@@ -33,7 +33,7 @@ from typing import NamedTuple, Optional
 import cv2
 import numpy as np
 
-from sensor.errors import InputError
+from stereodem.sensor.errors import InputError
 
 from .pyramid import build_pyramid, upsample_field
 

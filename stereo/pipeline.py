@@ -6,11 +6,11 @@ function of the tile, the inputs and the settings, so tiles can run in a process
 finally the gridding of all points. Per tile:
 
 1. height range (the settings' range, or the seed DEM under the tile plus a margin);
-2. epipolar rectification (:func:`stereo.epipolar.rectify_tile`) and resampling of both
+2. epipolar rectification (:func:`stereodem.stereo.epipolar.rectify_tile`) and resampling of both
    images; the disparity search range comes from the height range;
-3. dense matching (:func:`stereo.match.match_rectified`);
+3. dense matching (:func:`stereodem.stereo.match.match_rectified`);
 4. matched pixels back to each image's own coordinates, and space intersection with the
-   exact models (:func:`stereo.intersect.intersect_matches`); points whose rays miss each
+   exact models (:func:`stereodem.stereo.intersect.intersect_matches`); points whose rays miss each
    other by more than ``max_ray_gap`` are dropped.
 """
 from __future__ import annotations
@@ -23,8 +23,9 @@ from typing import Any, Callable, Optional
 import cv2
 import numpy as np
 
-from sensor.dem import DEM, as_dem
-from sensor.errors import InputError, NoOverlapError
+from stereodem.sensor.geo.dem import DEM, as_dem
+from stereodem.sensor.errors import InputError, NoOverlapError
+from stereodem.sensor.models.corrected import ImageCorrectedModel
 from . import epipolar
 from .grid import SUM_LAYERS, CellSums, DEMGrid, GridSpec, accumulate, finish
 from .intersect import intersect_matches
@@ -53,7 +54,7 @@ class DEMSettings:
         Metres added below and above the height range.
     matcher : {"ncc", "sgm"}
     matcher_options : dict
-        Keyword options of :func:`stereo.match.match_rectified`.
+        Keyword options of :func:`stereodem.stereo.match.match_rectified`.
     posting : float, optional
         Output cell size in CRS units (default twice the left image's GSD).
     crs : CRS-like, optional
@@ -63,7 +64,7 @@ class DEMSettings:
     geoid : bool
         EGM96 geoid heights instead of ellipsoidal heights.
     gridding : {"mean", "gaussian"}
-        Cell estimator of :func:`stereo.grid.grid_points`; ``gaussian_sigma`` in CRS units.
+        Cell estimator of :func:`stereodem.stereo.grid.grid_points`; ``gaussian_sigma`` in CRS units.
     disparity_margin : float
         Pixels added to both ends of each tile's disparity range.
     halo : (int, int)
@@ -155,7 +156,7 @@ class TilePoints:
 @dataclass
 class TileResult:
     """One tile's contribution to the DEM: its points' weighted sums on a window of the output
-    lattice (:class:`stereo.grid.CellSums`, a few MB whatever the scene size) and its QA."""
+    lattice (:class:`stereodem.stereo.grid.CellSums`, a few MB whatever the scene size) and its QA."""
 
     cells: CellSums
     summary: dict
@@ -252,7 +253,7 @@ def footprint_bounds(left, tiles, height_range, posting, crs, *, samples: int = 
     can see: each tile's outline (``samples`` points per edge) localised by the left model at
     both ends of the height range and projected to ``crs``, plus two cells of margin.
     """
-    from sensor import geodesy
+    from stereodem.sensor.geo import geodesy
     if not tiles:
         raise NoOverlapError("no tile of the left image overlaps the right image")
     t = np.linspace(0.0, 1.0, samples)
@@ -393,11 +394,11 @@ def estimate_pointing(tiles, inputs: PairInputs, settings: DEMSettings, *, n_til
     On up to ``n_tiles`` tiles spread over the list, the rectified pair is matched by ZNCC
     with a vertical search of ``+/- vertical_search`` px; the vertical offsets of confident
     matches (score >= ``min_score``) are turned into right-image displacements
-    (:func:`stereo.epipolar.vertical_offset_to_image_shift`), and their median over all tiles is
+    (:func:`stereodem.stereo.epipolar.vertical_offset_to_image_shift`), and their median over all tiles is
     the correction (s2p: per-tile translations, then a global median). Only the component
     across the epipolar lines is observable; along them a shift is a height change.
 
-    Returns ``(dcol, drow, info)``; apply with ``ShiftedModel(right, dcol, drow)``.
+    Returns ``(dcol, drow, info)``; apply with ``ImageCorrectedModel(right, col_shift=dcol, row_shift=drow)``.
     """
     from .match import match_rectified
 
@@ -521,7 +522,7 @@ def make_dem(left_image, right_image, left_model, right_model, settings: DEMSett
     ----------
     left_image, right_image : ndarray (rows, cols)
         The two images (any real dtype; memory maps are fine: tiles read only what they need).
-    left_model, right_model : sensor.model.SensorModel
+    left_model, right_model : stereodem.sensor.models.base.SensorModel
         Their exact sensor models (image sizes must match the arrays).
     settings : DEMSettings, optional
     progress : callable, optional
@@ -563,7 +564,7 @@ def make_dem(left_image, right_image, left_model, right_model, settings: DEMSett
              len(tiles), settings.tile_size, height_range[0], height_range[1], settings.matcher, posting)
     crs = settings.crs
     if crs is None:
-        from sensor import geodesy
+        from stereodem.sensor.geo import geodesy
         clon, clat = left_model.center_lonlat(0.5 * sum(height_range))
         crs = geodesy.utm_crs(clon, clat)
     bounds = settings.bounds
@@ -577,7 +578,7 @@ def make_dem(left_image, right_image, left_model, right_model, settings: DEMSett
     if settings.pointing_correction:
         dcol, drow, pointing = estimate_pointing(tiles, inputs, settings, n_tiles=settings.pointing_tiles)
         if dcol or drow:
-            inputs.right_model = epipolar.ShiftedModel(right_model, dcol, drow)
+            inputs.right_model = ImageCorrectedModel(right_model, col_shift=dcol, row_shift=drow)
     # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask)
     if runner is None:
         results = []

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from sensor.errors import InputError, StereodemError
+from stereodem.sensor.errors import InputError, StereodemError
 
 log = logging.getLogger(__name__)
 
@@ -69,10 +69,10 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     """Run ``stereodem assess`` from parsed arguments; returns the exit status."""
-    from post.assess import assess_dem
-    from post.report import prepare_output_dir, write_report
-    from post.stats import DEFAULT_SLOPE_BINS
-    from sensor.dem import DEM
+    from stereodem.post.assess import assess_dem
+    from stereodem.post.report import prepare_output_dir, write_report
+    from stereodem.post.stats import DEFAULT_SLOPE_BINS
+    from stereodem.sensor.geo.dem import DEM
 
     try:
         prepare_output_dir(args.output, overwrite=args.overwrite)

@@ -9,7 +9,7 @@ import importlib
 import logging
 import sys
 
-from sensor.errors import StereodemError
+from stereodem.sensor.errors import StereodemError
 
 from . import __version__
 

@@ -54,8 +54,8 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sensor.errors import InputError
-from stereo.pipeline import DEMSettings
+from stereodem.sensor.errors import InputError
+from stereodem.stereo.pipeline import DEMSettings
 
 
 @dataclass
@@ -184,6 +184,6 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
         if v is not None:
             setattr(cfg.run, k, v)
     if cfg.inputs.seed_dem and cfg.stereo.seed_dem is None:
-        from sensor.dem import DEM
+        from stereodem.sensor.geo.dem import DEM
         cfg.stereo.seed_dem = DEM.from_file(cfg.inputs.seed_dem, vertical=cfg.inputs.seed_dem_vertical)
     return cfg

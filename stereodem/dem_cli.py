@@ -62,14 +62,14 @@ def add_parser(subparsers):
 
 
 def _load_model(path):
-    from sensor.errors import RPCError, SensorModelError
+    from stereodem.sensor.errors import RPCError, SensorModelError
     try:
-        from sensor.serialize import load_image_model
+        from stereodem.sensor.io.sidecar import load_image_model
     except ImportError:                                   # pragma: no cover - partial builds
         load_image_model = None
     if load_image_model is not None:
         return load_image_model(path)
-    from sensor.rpc import RPCModel
+    from stereodem.sensor.models.rpc import RPCModel
     try:
         return RPCModel.from_file(path)
     except RPCError as exc:
@@ -80,7 +80,7 @@ def _read_image(path, band):
     import numpy as np
     import rasterio
 
-    from sensor.errors import InputError
+    from stereodem.sensor.errors import InputError
     try:
         with rasterio.open(path) as ds:
             if not 1 <= band <= ds.count:
@@ -95,7 +95,7 @@ def _read_image(path, band):
 
 def run(args) -> int:
     """Run ``stereodem dem``; returns the exit status (0 ok, 1 failure with a one-line message)."""
-    from sensor.errors import StereodemError
+    from stereodem.sensor.errors import StereodemError
     try:
         return _run(args)
     except StereodemError as exc:
@@ -104,10 +104,10 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from sensor.dem import DEM
-    from sensor.errors import InputError, OutputExistsError
-    from sensor.raster import write_text_atomic
-    from stereo.pipeline import DEMSettings, make_dem
+    from stereodem.sensor.geo.dem import DEM
+    from stereodem.sensor.errors import InputError, OutputExistsError
+    from stereodem.sensor.io.raster import write_text_atomic
+    from stereodem.stereo.pipeline import DEMSettings, make_dem
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():

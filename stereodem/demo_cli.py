@@ -10,7 +10,7 @@ import argparse
 import time
 from pathlib import Path
 
-from sensor.raster import prepare_output_dir
+from stereodem.sensor.io.raster import prepare_output_dir
 
 EXAMPLES = """examples:
   stereodem demo -o demo_out
@@ -60,7 +60,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from sensor.simulate import simulate_scene, write_scene
+    from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
     from .config import load_config
     from .pipeline import run as run_pipeline
@@ -72,7 +72,7 @@ def run(args) -> int:
     write_scene(scene, out / "scene", overwrite=True)
     print(f"simulated ASTER-like 3N/3B pair {args.size[0]}x{args.size[1]} in {time.perf_counter() - t0:.1f} s: {out}/scene/")
     cfg_path = Path(out) / "demo.toml"
-    from sensor.dem import DEM
+    from stereodem.sensor.geo.dem import DEM
     seed = DEM.bundled().path          # the same real SRTM the scene was made from, as a seed
     cfg_path.write_text(CONFIG.format(cfg=cfg_path, seed=seed))
     cfg = load_config(cfg_path, workers=args.workers, overwrite=True)

@@ -31,7 +31,7 @@ def add_parser(sub):
     p.add_argument("-o", "--out", required=True, help="output orthoimage GeoTIFF")
     p.add_argument("--res", type=float, help="posting in metres (default: the image GSD)")
     p.add_argument("--crs", help="output CRS, e.g. EPSG:32637 (default: the UTM zone of the image)")
-    from ortho.drm import RESAMPLING
+    from stereodem.ortho.drm import RESAMPLING
     p.add_argument("--resampling", choices=sorted(RESAMPLING), default="bilinear",
                    help="interpolation kernel (lanczos: 8x8 Lanczos, closest to the band-limited signal)")
     p.add_argument("--dem-vertical", choices=["geoid", "ellipsoid"],
@@ -49,11 +49,11 @@ def add_parser(sub):
 
 
 def _load_model(args):
-    from sensor.errors import InputError, SensorModelError
+    from stereodem.sensor.errors import InputError, SensorModelError
     if args.model in GENERIC:
         if not args.gcps:
             raise InputError(f"--model {args.model} needs --gcps CSV")
-        from sensor.generic import fit_model, read_gcps
+        from stereodem.sensor.models.generic import fit_model, read_gcps
         pts = read_gcps(args.gcps)
         gcp = pts.select("gcp") if "gcp" in set(pts.role) else pts
         chk = pts.select("check")
@@ -65,12 +65,12 @@ def _load_model(args):
     if args.gcps:
         raise InputError("--gcps is only used with a generic --model (poly2d-1 ... rational-3)")
     try:
-        from sensor.serialize import load_image_model
+        from stereodem.sensor.io.sidecar import load_image_model
     except ImportError:                                   # pragma: no cover - partial builds
         load_image_model = None
     if args.model == "rpc" or load_image_model is None:
-        from sensor.errors import RPCError
-        from sensor.rpc import RPCModel
+        from stereodem.sensor.errors import RPCError
+        from stereodem.sensor.models.rpc import RPCModel
         try:
             return RPCModel.from_file(args.image)
         except RPCError as exc:
@@ -84,7 +84,7 @@ def _load_model(args):
 def _read_image(path, band):
     import numpy as np
     import rasterio
-    from sensor.errors import InputError
+    from stereodem.sensor.errors import InputError
     try:
         with rasterio.open(path) as ds:
             if band < 1 or band > ds.count:
@@ -98,10 +98,10 @@ def _read_image(path, band):
 def run(args) -> int:
     from pathlib import Path
 
-    from ortho.drm import orthorectify
-    from sensor.dem import DEM
-    from sensor.errors import InputError
-    from sensor.raster import check_writable, write_geotiff
+    from stereodem.ortho.drm import orthorectify
+    from stereodem.sensor.geo.dem import DEM
+    from stereodem.sensor.errors import InputError
+    from stereodem.sensor.io.raster import check_writable, write_geotiff
 
     layers = [s.strip() for s in args.layers.split(",") if s.strip()]
     bad = set(layers) - {"incidence", "occlusion"}
@@ -133,12 +133,12 @@ def run(args) -> int:
           f"{100 * rep['valid_fraction']:.1f}% valid; map interpolation error "
           f"{rep['interpolation_error_px']:.2g} px (measured)")
     if "incidence" in layers:
-        from ortho.layers import incidence_angle
+        from stereodem.ortho.layers import incidence_angle
         write_geotiff(layer_paths["incidence"], incidence_angle(ortho, model), ortho.transform,
                       ortho.crs, float("nan"), overwrite=args.overwrite)
         print(f"wrote {layer_paths['incidence']}: local incidence angle (deg)")
     if "occlusion" in layers:
-        from ortho.layers import occlusion_mask
+        from stereodem.ortho.layers import occlusion_mask
         occ = occlusion_mask(ortho, model)
         write_geotiff(layer_paths["occlusion"], occ.astype("uint8"), ortho.transform, ortho.crs, 255,
                       overwrite=args.overwrite)

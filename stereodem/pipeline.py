@@ -33,10 +33,10 @@ import numpy as np
 import rasterio
 import rasterio.warp
 
-from sensor.dem import DEM
-from sensor.errors import InputError
-from sensor.raster import prepare_output_dir, write_geotiff, write_text_atomic
-from sensor.serialize import load_image_model
+from stereodem.sensor.geo.dem import DEM
+from stereodem.sensor.errors import InputError
+from stereodem.sensor.io.raster import prepare_output_dir, write_geotiff, write_text_atomic
+from stereodem.sensor.io.sidecar import load_image_model
 
 from . import __version__
 from .config import Config
@@ -85,7 +85,7 @@ def load_inputs(cfg: Config):
 
 
 def tile_runner(run_settings, progress=None, cache_dir=None):
-    """A tile runner for :func:`stereo.pipeline.make_dem` backed by :func:`run_tiles`.
+    """A tile runner for :func:`stereodem.stereo.pipeline.make_dem` backed by :func:`run_tiles`.
 
     Finished tiles are cached in ``cache_dir`` (``tile_<n>.npz``) so ``--resume`` skips them.
     """
@@ -131,14 +131,15 @@ def _cache_key(tiles, inputs, settings) -> str:
 
 
 def _model_fingerprint(model) -> bytes:
-    """Bytes identifying a sensor model's parameters (its ``to_dict``, else its pickle); a
-    wrapper with a ``model`` attribute (a pointing-corrected model) adds its own numbers."""
+    """Bytes identifying a sensor model's parameters: a wrapper with a ``model`` attribute (an
+    image-space correction) gives its own parameters plus its model's, other models their
+    ``to_dict``, else their pickle."""
     import pickle
+    if hasattr(model, "model") and hasattr(model, "parameters"):
+        own = json.dumps(model.parameters(), sort_keys=True).encode()
+        return own + _model_fingerprint(model.model)
     if hasattr(model, "to_dict"):
         return json.dumps(model.to_dict(), default=_json_default, sort_keys=True).encode()
-    if hasattr(model, "model"):
-        own = {k: v for k, v in vars(model).items() if k != "model"}
-        return json.dumps(own, default=_json_default, sort_keys=True).encode() + _model_fingerprint(model.model)
     return pickle.dumps(model, protocol=4)
 
 
@@ -168,15 +169,15 @@ def _tile_job(tile, ctx):
 
 
 def _tile_result(arrays):
-    from stereo.grid import CellSums
-    from stereo.pipeline import TileResult
+    from stereodem.stereo.grid import CellSums
+    from stereodem.stereo.pipeline import TileResult
     r0, c0, n = (int(v) for v in arrays["origin"])
     return TileResult(CellSums(r0, c0, arrays["sums"], n), json.loads(str(arrays["summary"])))
 
 
 def stereo_stage(cfg: Config, left, right, *, progress=None, cache_dir=None):
-    """Stereo DEM (raw): :func:`stereo.pipeline.make_dem` with the configured tile runner."""
-    from stereo.pipeline import make_dem
+    """Stereo DEM (raw): :func:`stereodem.stereo.pipeline.make_dem` with the configured tile runner."""
+    from stereodem.stereo.pipeline import make_dem
     runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
     products = make_dem(left[0], right[0], left[1], right[1], cfg.stereo, runner=runner)
     return products, [f.to_dict() for f in runner.failures]
@@ -184,8 +185,8 @@ def stereo_stage(cfg: Config, left, right, *, progress=None, cache_dir=None):
 
 def post_stage(cfg: Config, grid, reference: DEM | None = None):
     """Blunder filters and hole filling on the raw grid; returns (heights, edit mask, report)."""
-    from post.fill import fill_holes, gaussian_smooth
-    from post.filters import default_chain
+    from stereodem.post.fill import fill_holes, gaussian_smooth
+    from stereodem.post.filters import default_chain
     z = grid.height
     mask = np.zeros(z.shape, np.uint8)
     report = {}
@@ -218,7 +219,7 @@ def post_stage(cfg: Config, grid, reference: DEM | None = None):
 
 def _fallback_on_grid(seed, grid):
     """The seed DEM warped onto the stereo grid, in the grid's vertical reference."""
-    from sensor.dem import as_dem
+    from stereodem.sensor.geo.dem import as_dem
     seed = as_dem(seed).to_reference(grid.vertical)
     out = np.full(grid.height.shape, np.nan, np.float32)
     rasterio.warp.reproject(seed.heights, out, src_transform=seed.transform, src_crs=seed.crs.to_wkt(),
@@ -234,7 +235,7 @@ def ortho_stage(cfg: Config, inputs, dem: DEM, *, progress=None):
     Row blocks of the grid run on ``cfg.run.workers`` threads (the image is shared, not
     copied; numpy and OpenCV release the GIL); the result does not depend on the count.
     """
-    from ortho.drm import orthorectify
+    from stereodem.ortho.drm import orthorectify
     orthos = {}
     grid = None
     names = ("left", "right") if cfg.ortho.both else ("left",)
@@ -249,8 +250,8 @@ def ortho_stage(cfg: Config, inputs, dem: DEM, *, progress=None):
 
 def assess_stage(cfg: Config, dem_path, out_dir):
     """Accuracy report of the clean DEM against the reference DEM and check points."""
-    from post.assess import assess_dem
-    from post.report import write_report
+    from stereodem.post.assess import assess_dem
+    from stereodem.post.report import write_report
     a = assess_dem(dem_path, cfg.inputs.reference_dem, coregister=cfg.assess.coregister,
                    checkpoints=cfg.inputs.checkpoints, landcover=cfg.inputs.landcover,
                    ref_vertical=cfg.inputs.reference_vertical)

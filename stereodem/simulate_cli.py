@@ -40,8 +40,8 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from sensor.dem import DEM
-    from sensor.simulate import simulate_scene, write_scene
+    from stereodem.sensor.geo.dem import DEM
+    from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical) if args.dem else None
     log.info("simulating %s scene %dx%d", args.preset, *args.size)

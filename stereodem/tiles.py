@@ -286,7 +286,7 @@ def _run_dask(fn, todo, context, timeout, address, collect):
     try:
         from dask.distributed import Client, as_completed as dask_completed
     except ImportError:
-        from sensor.errors import InputError
+        from stereodem.sensor.errors import InputError
         raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
     own = not hasattr(address, "submit")
     client = Client(address) if own else address

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import rasterio
 
-from sensor.errors import InputError
-from sensor.simulate import simulate_scene, write_scene
+from stereodem.sensor.errors import InputError
+from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 from stereodem import cli
 from stereodem.config import config_from_dict, load_config
 from stereodem.pipeline import run
@@ -62,7 +62,7 @@ def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
 
 
 def test_failing_tile_is_reported_and_scene_completes(scene_dir, tmp_path, monkeypatch):
-    import stereo.pipeline as sp
+    import stereodem.stereo.pipeline as sp
     real = sp.process_tile
     calls = {"n": 0}
 
@@ -84,7 +84,7 @@ def test_existing_output_needs_overwrite(scene_dir, tmp_path):
     out = tmp_path / "o"
     out.mkdir()
     (out / "keep.txt").write_text("user data")
-    from sensor.errors import OutputExistsError
+    from stereodem.sensor.errors import OutputExistsError
     with pytest.raises(OutputExistsError):
         run(_cfg(scene_dir, out))
     assert (out / "keep.txt").read_text() == "user data"
@@ -133,7 +133,7 @@ def test_resume_reuses_finished_tiles(scene_dir, tmp_path, monkeypatch):
     first = run(_cfg(scene_dir, tmp_path / "r"))
     n_tiles = first["stages"]["stereo"]["tiles"]
     assert len(list((tmp_path / "r" / "tiles").glob("tile_*.npz"))) == n_tiles
-    import stereo.pipeline as sp
+    import stereodem.stereo.pipeline as sp
 
     def must_not_run(*a, **k):
         raise AssertionError("a finished tile was recomputed")

@@ -2,16 +2,17 @@
 import numpy as np
 import pytest
 
-from sensor import geodesy
-from sensor.aster import AsterGeometry, AsterModel, lattice_velocities, read_asp_aster_xml
-from sensor.errors import RPCError, SensorModelError
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.io.aster_xml import read_asp_aster_xml
+from stereodem.sensor.models.aster import AsterGeometry, AsterModel, lattice_velocities
+from stereodem.sensor.errors import RPCError, SensorModelError
 
 BANDS = ("3N", "3B")
 
 
 @pytest.fixture(scope="module")
 def xml_path():
-    from sensor.aster import bundled_xml
+    from stereodem.sensor.io.aster_xml import bundled_xml
     return lambda band: bundled_xml(band)
 
 
@@ -23,7 +24,7 @@ def models(xml_path):
 def _rpc00b(rpc, lon, lat, h):
     """Evaluate an RPC00B block (dict of RPB keys) at ground points: (col, row).
 
-    Private helper so that this test does not depend on sensor.rpc. Term order of RPC00B /
+    Private helper so that this test does not depend on stereodem.sensor.models.rpc. Term order of RPC00B /
     NITF: 1 L P H LP LH PH L^2 P^2 H^2 PLH L^3 LP^2 LH^2 L^2P P^3 PH^2 L^2H P^2H H^3.
     """
     L = (lon - rpc["LONGOFFSET"]) / rpc["LONGSCALE"]
@@ -215,7 +216,7 @@ def test_nan_coordinates(models):
 
 def test_serialisation_round_trip(models):
     import json
-    from sensor.serialize import model_from_dict, model_to_dict
+    from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
     m = models["3B"].with_parameters(yaw_bias=1e-5)
     d = json.loads(json.dumps(model_to_dict(m)))
     assert d["type"] == "aster"

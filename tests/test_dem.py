@@ -3,9 +3,9 @@ import pytest
 import rasterio
 from affine import Affine
 
-from sensor import geodesy
-from sensor.dem import DEM, OUTSIDE, VOID
-from sensor.errors import CRSError, DEMCoverageError, DEMError, VerticalReferenceError
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.geo.dem import DEM, OUTSIDE, VOID
+from stereodem.sensor.errors import CRSError, DEMCoverageError, DEMError, VerticalReferenceError
 
 
 def test_bundled_dem_metadata():
@@ -81,6 +81,6 @@ def test_write_round_trip_keeps_vertical_reference(tmp_path):
     back = DEM.from_file(out)
     assert back.vertical == "ellipsoid"
     assert np.nanmax(np.abs(back.heights - dem.to_reference("ellipsoid").heights)) == 0
-    from sensor.errors import OutputExistsError
+    from stereodem.sensor.errors import OutputExistsError
     with pytest.raises(OutputExistsError):
         dem.write(out)

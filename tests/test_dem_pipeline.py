@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import rasterio
 
-from sensor import geodesy
-from sensor.errors import NoOverlapError
-from sensor.simulate import frame_pair, simulate_scene
-from stereo.pipeline import DEMSettings, make_dem
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import NoOverlapError
+from stereodem.sensor.simulation.simulate import frame_pair, simulate_scene
+from stereodem.stereo.pipeline import DEMSettings, make_dem
 
 
 def nmad(d):
@@ -72,7 +72,7 @@ def test_cli_errors(tmp_path, data_dir):
     from stereodem.dem_cli import add_parser
     import argparse
 
-    from sensor.rpc import RPCModel
+    from stereodem.sensor.models.rpc import RPCModel
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
 
@@ -104,7 +104,7 @@ def test_cli_errors(tmp_path, data_dir):
 
 def test_cli_on_simulated_scene(tmp_path, aster_scene, capsys):
     """The CLI on a written scene (physical-model sidecars) writes the four layers."""
-    from sensor.simulate import write_scene
+    from stereodem.sensor.simulation.simulate import write_scene
     from stereodem.dem_cli import add_parser
     import argparse
 
@@ -130,7 +130,7 @@ def test_cli_on_simulated_scene(tmp_path, aster_scene, capsys):
 
 def test_pleiades_pair_vs_s2p(shared_data):
     """Real Pleiades pair on s2p's grid (EPSG:32740, 0.5 m) against s2p's DSM."""
-    from sensor.rpc import RPCModel
+    from stereodem.sensor.models.rpc import RPCModel
     pair = shared_data / "s2p_pleiades" / "pair"
     with rasterio.open(pair / "expected_dsm.tif") as ds:
         ref = ds.read(1).astype(np.float64)

@@ -3,13 +3,14 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from sensor.aster import bundled_xml
+from stereodem.sensor.io.aster_xml import bundled_xml
 import pytest
 
-from sensor.rpc import RPCModel
-from sensor.simulate import frame_pair, pushbroom_pair
-from stereo import epipolar
-from stereo.epipolar import ShiftedModel, Tile, apply_map, rectify_tile, tile_grid, virtual_matches
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation.simulate import frame_pair, pushbroom_pair
+from stereodem.stereo import epipolar
+from stereodem.sensor.models.corrected import ImageCorrectedModel
+from stereodem.stereo.epipolar import Tile, apply_map, rectify_tile, tile_grid, virtual_matches
 
 
 def _aster_rpc(path):
@@ -119,7 +120,7 @@ def test_affine_maps_keep_row_scale_and_resample_content():
 
 def test_shifted_model_translates_image_coordinates():
     left, _ = frame_pair(40.4, 39.6, 2000.0, (512, 512))
-    sm = ShiftedModel(left, 1.25, -0.5)
+    sm = ImageCorrectedModel(left, col_shift=1.25, row_shift=-0.5)
     lon, lat = left.localize(100.0, 200.0, 1500.0)
     c, r = sm.project(lon, lat, 1500.0)
     assert c == pytest.approx(101.25, abs=1e-6) and r == pytest.approx(199.5, abs=1e-6)
@@ -132,9 +133,43 @@ def test_shifted_model_translates_image_coordinates():
 
 
 def test_unusable_height_range_raises():
-    from sensor.errors import InputError
+    from stereodem.sensor.errors import InputError
     left, right = frame_pair(40.4, 39.6, 2000.0, (256, 256))
     with pytest.raises(InputError):
         rectify_tile(left, right, Tile(0, 0, 256, 256), (3000.0, 1000.0))
     with pytest.raises(InputError):
         rectify_tile(left, right, Tile(0, 0, 256, 256), (np.nan, 1000.0))
+
+
+def test_image_correction_affine_inverse_and_partials():
+    from stereodem.sensor.models.parameters import project_jacobian
+    left, _ = frame_pair(40.4, 39.6, 2000.0, (512, 512))
+    cm = ImageCorrectedModel(left, col_shift=2.0, row_shift=-1.0, col_drift_row=1e-3, row_drift_col=-2e-3)
+    c0 = np.array([10.0, 250.0, 500.0])
+    r0 = np.array([20.0, 260.0, 490.0])
+    lon, lat = cm.localize(c0, r0, 1500.0)
+    c, r = cm.project(lon, lat, np.full(3, 1500.0))
+    assert np.allclose(c, c0, atol=1e-6) and np.allclose(r, r0, atol=1e-6)
+    # analytic partials agree with central differences through with_parameters
+    names = list(cm.parameters())
+    _, _, J = project_jacobian(cm, lon, lat, np.full(3, 1500.0), names)
+    for k, n in enumerate(names):
+        p = cm.parameters()[n]
+        step = 1e-3
+        cp, rp = cm.with_parameters(**{n: p + step}).project(lon, lat, 1500.0)
+        cq, rq = cm.with_parameters(**{n: p - step}).project(lon, lat, 1500.0)
+        assert np.allclose(J[:, 0, k], (cp - cq) / (2 * step), atol=1e-6)
+        assert np.allclose(J[:, 1, k], (rp - rq) / (2 * step), atol=1e-6)
+    with pytest.raises(Exception, match="unknown parameter"):
+        cm.with_parameters(focal=1.0)
+
+
+def test_numeric_jacobian_of_pushbroom_parameters():
+    from stereodem.sensor.models.parameters import project_jacobian
+    left, _ = pushbroom_pair(40.4, 39.6, 2000.0, (400, 400), (0.0, -27.6))
+    lon, lat = left.localize(np.array([50.0, 200.0]), np.array([60.0, 300.0]), 2000.0)
+    h = np.full(2, 2000.0)
+    _, _, J = project_jacobian(left, lon, lat, h, ["pitch_bias", "roll_bias"])
+    # a pitch bias moves the image along track (rows), a roll bias across track (columns)
+    assert np.all(np.abs(J[:, 1, 0]) > 10 * np.abs(J[:, 0, 0]))
+    assert np.all(np.abs(J[:, 0, 1]) > 10 * np.abs(J[:, 1, 1]))

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from sensor import geodesy as g
-from sensor.dem import DEM
-from sensor.frame import FrameCamera
-from sensor.rotations import body_to_orbital
+from stereodem.sensor.geo import geodesy as g
+from stereodem.sensor.geo.dem import DEM
+from stereodem.sensor.models.frame import FrameCamera
+from stereodem.sensor.geo.rotations import body_to_orbital
 
 
 def bilsat_like(**kw):
@@ -88,7 +88,7 @@ def test_drm_on_dem_converges_and_reprojects():
 
 def test_parameters_vector_and_copy():
     cam = bilsat_like()
-    p = cam.parameter_vector()
+    p = cam.parameters()
     assert list(p) == list(FrameCamera.PARAMETERS)
     cam2 = cam.with_parameters(roll=cam.roll + 1e-4, z=p["z"] + 10)
     assert cam2.roll == pytest.approx(cam.roll + 1e-4) and cam2.position[2] == pytest.approx(p["z"] + 10)

@@ -2,11 +2,13 @@
 import numpy as np
 import pytest
 
-from sensor import geodesy, regularize
-from sensor.errors import InputError
-from sensor.generic import (MODEL_NAMES, FitReport, GenericModel, fit_model, minimum_gcps,
+from stereodem.sensor.geo import geodesy
+
+from stereodem.sensor.estimation import regularize
+from stereodem.sensor.errors import InputError
+from stereodem.sensor.models.generic import (MODEL_NAMES, FitReport, GenericModel, fit_model, minimum_gcps,
                             n_parameters, read_gcps, write_gcps)
-from sensor.model import SensorModel
+from stereodem.sensor.models.base import SensorModel
 
 LON0, LAT0 = 32.8, 39.9          # Ankara, UTM 36N, as in the Ok thesis
 CRS = geodesy.utm_crs(LON0, LAT0)

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from sensor import geodesy as g
-from sensor.errors import CRSError
+from stereodem.sensor.geo import geodesy as g
+from stereodem.sensor.errors import CRSError
 
 
 def test_ecef_round_trip_and_known_point():

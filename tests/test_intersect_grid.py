@@ -3,13 +3,13 @@ import numpy as np
 import pytest
 import rasterio
 
-from sensor import geodesy
-from sensor.errors import OutputExistsError
-from sensor.rpc import RPCModel
-from sensor.simulate import frame_pair, pushbroom_pair
-from stereo.epipolar import Tile, apply_map, rectify_tile
-from stereo.grid import grid_points
-from stereo.intersect import intersect_matches, intersect_rays
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import OutputExistsError
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation.simulate import frame_pair, pushbroom_pair
+from stereodem.stereo.epipolar import Tile, apply_map, rectify_tile
+from stereodem.stereo.grid import grid_points
+from stereodem.stereo.intersect import intersect_matches, intersect_rays
 
 
 def _ground(n, seed=0, lon0=40.4, lat0=39.6, spread=0.05):
@@ -150,7 +150,7 @@ def test_grid_gaussian_default_width_follows_point_density(spacing, n_per_cell):
 
 def test_tile_by_tile_gridding_equals_gridding_all_points():
     """Cell sums of separate batches, added, give the grid of all points at once."""
-    from stereo.grid import SUM_LAYERS, GridSpec, accumulate, finish
+    from stereodem.stereo.grid import SUM_LAYERS, GridSpec, accumulate, finish
     rng = np.random.default_rng(5)
     crs = geodesy.utm_crs(40.0, 39.5)
     x0, y0 = geodesy.lonlat_to_crs(40.0, 39.5, crs)

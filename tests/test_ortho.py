@@ -7,15 +7,15 @@ import pytest
 import rasterio
 from affine import Affine
 
-from sensor import geodesy as g
-from sensor.dem import DEM
-from sensor.errors import DEMCoverageError
-from sensor.frame import FrameCamera
+from stereodem.sensor.geo import geodesy as g
+from stereodem.sensor.geo.dem import DEM
+from stereodem.sensor.errors import DEMCoverageError
+from stereodem.sensor.models.frame import FrameCamera
 
-from ortho.drm import orthorectify
-from ortho.forward import forward_localize, forward_ortho
-from ortho.grid import MapGrid, grid_for_model, grid_from_bounds
-from ortho.layers import incidence_angle, occlusion_mask
+from stereodem.ortho.drm import orthorectify
+from stereodem.ortho.forward import forward_localize, forward_ortho
+from stereodem.ortho.grid import MapGrid, grid_for_model, grid_from_bounds
+from stereodem.ortho.layers import incidence_angle, occlusion_mask
 
 LON0, LAT0 = 40.4, 39.6
 
@@ -75,7 +75,7 @@ def test_grid_defaults_utm_gsd_and_footprint(rendered):
     cam, dem, grid, *_ = rendered
     assert grid.crs.to_epsg() == g.utm_epsg(LON0, LAT0) == 32637
     assert grid.res[0] == pytest.approx(cam.gsd(2000.0), rel=0.02)
-    from ortho.grid import footprint_height_range
+    from stereodem.ortho.grid import footprint_height_range
     lo, hi = footprint_height_range(cam, dem)
     z = dem.sample(*cam.footprint(2000.0))
     assert lo <= np.nanmin(z) and hi >= np.nanmax(z)
@@ -150,7 +150,7 @@ def test_simulated_scene_true_ortho():
     """Simulator truth: ortho - truth_ortho is the interpolator's error on the band-limited
     image (shrinking as the system MTF at Nyquist falls and the kernel improves) plus the image
     noise propagated through the kernel, sigma^2 * mean(sum of squared weights)."""
-    sim = pytest.importorskip("sensor.simulate")
+    from stereodem.sensor.simulation import simulate as sim
     sigma = 1.0                                   # the presets' noise (simulate_scene default)
     rms, expected_noise_var = {}, {}
     for mtf in (0.3, 0.01):
@@ -224,7 +224,7 @@ def test_dem_coverage_errors(rendered):
 # --------------------------------------------------------------------------- RPC vs GDAL
 
 def _rpc_setup(tmp_path, data_dir):
-    from sensor.rpc import RPCModel
+    from stereodem.sensor.models.rpc import RPCModel
     src = data_dir / "pleiades" / "img_01_rpc.tif"
     model = RPCModel.from_file(src)
     with rasterio.open(src) as ds:
@@ -295,7 +295,7 @@ def test_rpc_ortho_agrees_with_gdal(tmp_path, data_dir):
 def test_real_pleiades_against_gdal(shared_data, tmp_path):
     """Real Pleiades image and RPC over s2p's DSM (ellipsoidal heights), both orthos compared."""
     from rasterio.warp import Resampling, reproject
-    from sensor.rpc import RPCModel
+    from stereodem.sensor.models.rpc import RPCModel
     img_path = shared_data / "s2p_pleiades" / "pair" / "img_01.tif"
     dsm_path = shared_data / "s2p_pleiades" / "pair" / "expected_dsm.tif"
     if not img_path.exists() or not dsm_path.exists():
@@ -322,7 +322,7 @@ def test_real_pleiades_against_gdal(shared_data, tmp_path):
 
 def test_forward_and_backward_mappings_agree(rendered):
     cam, dem, grid, img, _ = rendered
-    from ortho.drm import build_backward_map, crop_dem
+    from stereodem.ortho.drm import build_backward_map, crop_dem
     pts = forward_localize(cam, dem, step=7, crs=grid.crs, threshold=0.01)
     assert pts.converged.mean() > 0.99
     bm = build_backward_map(cam, grid, crop_dem(dem, grid), tolerance=1e-3)
@@ -420,7 +420,7 @@ def test_second_image_on_shared_grid(rendered):
 # --------------------------------------------------------------------------- CLI
 
 def test_cli_rpc_ortho_layers_and_errors(tmp_path, data_dir, capsys):
-    from sensor.raster import write_geotiff
+    from stereodem.sensor.io.raster import write_geotiff
     from stereodem.ortho_cli import add_parser
     import argparse
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
@@ -439,7 +439,7 @@ def test_cli_rpc_ortho_layers_and_errors(tmp_path, data_dir, capsys):
     assert (tmp_path / "ortho_incidence.tif").exists() and (tmp_path / "ortho_occlusion.tif").exists()
     assert "interpolation error" in capsys.readouterr().out
     # existing output without --overwrite
-    from sensor.errors import OutputExistsError, SensorModelError, InputError
+    from stereodem.sensor.errors import OutputExistsError, SensorModelError, InputError
     with pytest.raises(OutputExistsError):
         args.run(args)
     # DEM far from the image
@@ -463,10 +463,9 @@ def test_cli_rpc_ortho_layers_and_errors(tmp_path, data_dir, capsys):
 
 
 def test_cli_gcp_model(tmp_path, data_dir, capsys):
-    pytest.importorskip("sensor.generic")
-    from sensor.raster import write_geotiff, write_text_atomic
+    from stereodem.sensor.io.raster import write_geotiff, write_text_atomic
     from stereodem.ortho_cli import add_parser
-    from sensor.errors import InputError
+    from stereodem.sensor.errors import InputError
     import argparse
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     image = tmp_path / "img.tif"

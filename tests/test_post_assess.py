@@ -6,10 +6,10 @@ import pytest
 from affine import Affine
 from scipy import ndimage as ndi
 
-from post import assess
-from post.report import write_report
-from sensor.dem import DEM
-from sensor.errors import DEMError, NoOverlapError, OutputExistsError, VerticalReferenceError
+from stereodem.post import assess
+from stereodem.post.report import write_report
+from stereodem.sensor.geo.dem import DEM
+from stereodem.sensor.errors import DEMError, NoOverlapError, OutputExistsError, VerticalReferenceError
 from stereodem import assess_cli
 
 
@@ -46,7 +46,7 @@ def test_slope_classes_show_error_growing_with_slope(ref, simulated):
 def test_reference_in_another_crs_is_warped(ref):
     # the reference put on a UTM grid: the DEM (lon/lat) is warped onto it
     from rasterio.warp import calculate_default_transform
-    from post.warp import to_grid
+    from stereodem.post.warp import to_grid
     from pyproj import CRS
     utm = CRS.from_epsg(32637)
     b = ref.bounds_lonlat()
@@ -122,7 +122,7 @@ def test_cli_writes_report_and_figures(tmp_path, ref):
     DEM(sh.astype(np.float32), ref.transform, ref.crs, "geoid").write(tmp_path / "dem.tif")
     DEM(ref.heights, ref.transform, ref.crs, None).write(tmp_path / "ref.tif")   # vertical unknown
     lc = np.where(np.arange(400)[None, :] < 200, 1, 2).repeat(400, 0).astype(np.uint8)
-    from sensor.raster import write_geotiff
+    from stereodem.sensor.io.raster import write_geotiff
     write_geotiff(tmp_path / "lc.tif", lc, ref.transform, ref.crs, 0)
     out = tmp_path / "out"
     args = _parser().parse_args(["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif"),
@@ -165,8 +165,8 @@ def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
     """Figures draw at most DISPLAY_CELLS per side: a big raster costs no more than a small one."""
     import matplotlib.pyplot as plt
 
-    from post import figures
-    from sensor import geodesy
+    from stereodem.post import figures
+    from stereodem.sensor.geo import geodesy
     monkeypatch.setattr(figures, "DISPLAY_CELLS", 100)
     drawn = []
     real = plt.Axes.imshow

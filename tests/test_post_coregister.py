@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from post.coregister import NuthKaab
-from post.terrain import pixel_size_m
-from sensor.dem import DEM
-from sensor.errors import DEMError
+from stereodem.post.coregister import NuthKaab
+from stereodem.post.terrain import pixel_size_m
+from stereodem.sensor.geo.dem import DEM
+from stereodem.sensor.errors import DEMError
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +29,7 @@ def test_nuth_kaab_recovers_known_shift(shifted):
     assert abs(p["dz"] - 7.0) < 0.5
     assert p["converged"] and p["nmad_after"] < 0.1 * p["nmad_before"]
     # apply() removes the shift: the corrected DEM agrees with the reference
-    from post.assess import compare_on_reference_grid
+    from stereodem.post.assess import compare_on_reference_grid
     after = compare_on_reference_grid(nk.apply(dem), ref)
     before = compare_on_reference_grid(dem, ref)
     assert np.nanmedian(np.abs(after.dh)) < 0.05 * np.nanmedian(np.abs(before.dh))

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from post import fill
+from stereodem.post import fill
 
 
 def _plane(n=80):

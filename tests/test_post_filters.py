@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from post import filters as F
-from sensor.dem import DEM
-from sensor.errors import InputError
+from stereodem.post import filters as F
+from stereodem.sensor.geo.dem import DEM
+from stereodem.sensor.errors import InputError
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_slope_reference_and_patch_filters():
     z = d.heights.astype(np.float64)[:200, :200].copy()
     t = d.transform
     m, reason = F.slope_filter(z, t, d.crs, max_slope=30.0)
-    from post.terrain import slope_deg
+    from stereodem.post.terrain import slope_deg
     assert reason == F.Reason.SLOPE and m.sum() == np.sum(slope_deg(z, t, d.crs) > 30.0)
     ref = z + 5.0
     zz = z.copy()

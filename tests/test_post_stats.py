@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from post import stats as st
-from sensor.errors import InputError
+from stereodem.post import stats as st
+from stereodem.sensor.errors import InputError
 
 
 def test_error_stats_match_independent_numpy():

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 from numpy.polynomial import Polynomial
 
-from sensor import geodesy
-from sensor.dem import DEM
-from sensor.ephemeris import Attitude, CircularOrbit, Ephemeris
-from sensor.errors import SensorModelError
-from sensor.pushbroom import PARAMETERS, DetectorArray, PushbroomModel
-from sensor.rotations import body_to_orbital
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.geo.dem import DEM
+from stereodem.sensor.models.ephemeris import Attitude, CircularOrbit, Ephemeris
+from stereodem.sensor.errors import SensorModelError
+from stereodem.sensor.models.pushbroom import PARAMETERS, DetectorArray, PushbroomModel
+from stereodem.sensor.geo.rotations import body_to_orbital
 
 
 # ---------------------------------------------------------------------------- fixtures
@@ -72,7 +72,7 @@ def test_ephemeris_interpolates_circular_orbit():
     # nodes are reproduced exactly
     assert np.max(np.abs(eph.position(eph.times) - eph.positions)) < 1e-6
     # circular speed: |v_inertial| = sqrt(GM / a)
-    from sensor.rotations import inertial_velocity
+    from stereodem.sensor.geo.rotations import inertial_velocity
     speed = np.linalg.norm(inertial_velocity(r, v), axis=-1)
     np.testing.assert_allclose(speed, np.sqrt(geodesy.GM / orbit.radius), rtol=1e-12)
 
@@ -306,7 +306,7 @@ def test_bad_input(nadir):
 
 def test_serialisation_round_trip(nadir):
     import json
-    from sensor.serialize import model_from_dict, model_to_dict
+    from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
     t = nadir.ephemeris.times
     att = Attitude(t, 1e-4 * np.stack([np.sin(t), np.cos(t), 0 * t], -1))
     models = [nadir.with_parameters(roll_bias=1e-5),

@@ -21,11 +21,11 @@ import pytest
 import rasterio
 from rasterio.transform import RPCTransformer
 
-from sensor import geodesy
-from sensor.errors import RPCError
-from sensor.model import SensorModel
-from sensor.rpc import COEFF_KEYS, SCALAR_KEYS, RPCModel
-from sensor.rpcfit import fit_rational, fit_rpc
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import RPCError
+from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.models.rpc import COEFF_KEYS, SCALAR_KEYS, RPCModel
+from stereodem.sensor.estimation.rpcfit import fit_rational, fit_rpc
 
 PLEIADES = ("img_01_rpc.tif", "img_02_rpc.tif")
 M_PER_DEG = 111_320.0

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import rasterio
 
-from sensor import geodesy
-from sensor.errors import InputError, OutputExistsError
-from sensor.simulate import simulate_scene, write_scene
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import InputError, OutputExistsError
+from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
 
 def _parallax_per_km(left, right, col, row):
@@ -92,7 +92,7 @@ def test_write_scene_outputs(tmp_path, frame_scene):
         assert ds.rpcs is not None and ds.width == 256
     meta = json.loads((out / "scene.json").read_text())
     assert meta["rpc_fit"]["left"]["check_rms"] < 0.01
-    from sensor.serialize import load_image_model
+    from stereodem.sensor.io.sidecar import load_image_model
     m = load_image_model(out / "left.tif")
     c, r = m.project(*frame_scene.left_model.localize(10.0, 20.0, 1500.0), 1500.0)
     assert (float(c), float(r)) == pytest.approx((10.0, 20.0), abs=1e-6)
@@ -108,7 +108,7 @@ def test_bad_input():
 
 
 def test_aster_preset_uses_real_granule_geometry():
-    from sensor.simulate import aster_geometry_parameters
+    from stereodem.sensor.simulation.simulate import aster_geometry_parameters
     p = aster_geometry_parameters()
     assert p["bands"]["3B"]["along_deg"] == pytest.approx(-27.7, abs=0.2)     # backward band
     assert abs(p["bands"]["3N"]["along_deg"]) < 0.1                          # nadir band
@@ -118,7 +118,7 @@ def test_aster_preset_uses_real_granule_geometry():
 
 @pytest.mark.parametrize("which", ["left", "right"])
 def test_rpc_fitted_to_aster_preset_reproduces_it(which):
-    from sensor.rpcfit import fit_rpc
+    from stereodem.sensor.estimation.rpcfit import fit_rpc
     sc = simulate_scene("aster", size=(600, 600), seed=0, n_points=4)
     model = getattr(sc, f"{which}_model")
     rpc, rep = fit_rpc(model, height_range=(500.0, 4000.0))
@@ -134,7 +134,7 @@ def test_rpc_fitted_to_aster_preset_reproduces_it(which):
 def test_system_psf_mtf_and_band_limit():
     """The Gaussian system PSF has the stated MTF at Nyquist, and a lower MTF removes the
     image's high-frequency content (power near Nyquist falls, the low band stays)."""
-    from sensor.simulate import psf_sigma
+    from stereodem.sensor.simulation.simulate import psf_sigma
     for mtf in (0.3, 0.1):
         s = psf_sigma(mtf)
         assert np.exp(-2 * np.pi ** 2 * s ** 2 * 0.25) == pytest.approx(mtf, rel=1e-9)

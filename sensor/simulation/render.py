@@ -1,7 +1,7 @@
 """Rendering an image through a sensor model over a DEM (used by the scene simulator).
 
 Every image pixel is localised on the DEM by the DRM relief iteration (as
-:meth:`sensor.model.SensorModel.localize_dem`), and the ground radiance is read there. To keep
+:meth:`stereodem.sensor.models.base.SensorModel.localize_dem`), and the ground radiance is read there. To keep
 ASTER-sized scenes fast, the exact model is evaluated on a coarse grid of pixels at a few
 heights, mapped into the map grid, and interpolated (bilinear in col/row, piecewise linear in
 height); the relief iteration then runs on whole arrays in map coordinates with OpenCV
@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 from affine import Affine
 
-from . import geodesy
-from .model import SensorModel
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.models.base import SensorModel
 
 
 @dataclass

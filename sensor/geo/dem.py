@@ -13,8 +13,8 @@ import rasterio
 from affine import Affine
 from pyproj import CRS
 
-from . import geodesy
-from .errors import CRSError, DEMCoverageError, DEMError, VerticalReferenceError
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import CRSError, DEMCoverageError, DEMError, VerticalReferenceError
 
 #: status codes returned by :meth:`DEM.sample`
 OK, OUTSIDE, VOID = 0, 1, 2
@@ -110,7 +110,7 @@ class DEM:
     def bundled(cls) -> "DEM":
         """The bundled real SRTM 3" DEM (eastern Turkey, EGM96 geoid heights)."""
         from importlib import resources
-        return cls.from_file(resources.files("sensor") / "data" / "srtm_ref.tif", vertical=GEOID)
+        return cls.from_file(resources.files("stereodem.sensor") / "data" / "srtm_ref.tif", vertical=GEOID)
 
     # ---------------------------------------------------------------- geometry
     @property
@@ -218,7 +218,7 @@ class DEM:
 
     def write(self, path, *, overwrite=False):
         """Write as float32 GeoTIFF with NaN nodata and the vertical reference tag."""
-        from .raster import write_geotiff
+        from stereodem.sensor.io.raster import write_geotiff
         tags = {_VERTICAL_TAG: self.vertical} if self.vertical else None
         return write_geotiff(path, self.heights.astype(np.float32), self.transform,
                              self.crs, np.nan, overwrite=overwrite, tags=tags)

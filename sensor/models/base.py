@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import geodesy
-from .errors import SensorModelError
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import SensorModelError
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +102,7 @@ class SensorModel:
 
         Parameters
         ----------
-        dem : sensor.dem.DEM
+        dem : stereodem.sensor.geo.dem.DEM
             DEM giving ellipsoidal heights (geoid DEMs are converted by the DEM).
         threshold : float
             Convergence threshold on the height change, metres (thesis: 0.1 m).

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import RPCError, SensorModelError
-from .raster import write_text_atomic
+from stereodem.sensor.errors import RPCError, SensorModelError
+from stereodem.sensor.io.raster import write_text_atomic
 
 _REGISTRY: dict[str, tuple[type, callable, callable]] = {}
 
@@ -36,16 +36,16 @@ def _jsonable(v):
 
 
 def _ensure_registered():
-    from . import frame
+    from stereodem.sensor.models import frame
     if "frame" not in _REGISTRY:
         from dataclasses import fields
         names = [f.name for f in fields(frame.FrameCamera) if f.init]
         register("frame", frame.FrameCamera,
                  lambda m: {n: getattr(m, n) for n in names},
                  lambda d: frame.FrameCamera(**{n: d[n] for n in names if n in d}))
-    for modname in ("pushbroom", "aster", "rpc"):
+    for modname in ("pushbroom", "aster", "rpc", "corrected"):
         try:
-            mod = __import__(f"sensor.{modname}", fromlist=["_"])
+            mod = __import__(f"stereodem.sensor.models.{modname}", fromlist=["_"])
         except ImportError:
             continue
         for cls in vars(mod).values():
@@ -112,7 +112,7 @@ def load_image_model(image, *, prefer: str = "physical"):
     if prefer == "physical" and side.exists():
         return load_model(side)
     try:
-        from .rpc import RPCModel
+        from stereodem.sensor.models.rpc import RPCModel
         return RPCModel.from_file(image)
     except RPCError as exc:
         raise SensorModelError(f"{image}: no usable sensor model (no {side.name} sidecar; {exc})") from None

@@ -18,8 +18,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .errors import SensorModelError
-from .rpc import RPCModel, monomials
+from stereodem.sensor.errors import SensorModelError
+from stereodem.sensor.models.rpc import RPCModel, monomials
 
 
 @dataclass
@@ -129,7 +129,7 @@ def _residuals(rpc, C, R, Hh, lon, lat):
 
 def fit_rpc(model, *, height_range=None, grid=(15, 15, 7), check_grid=None,
             regularization: float = 1e-12, iterations: int = 8, width=None, height=None):
-    """Fit a terrain-independent RPC00B model to any :class:`~sensor.model.SensorModel`.
+    """Fit a terrain-independent RPC00B model to any :class:`~stereodem.sensor.models.base.SensorModel`.
 
     Parameters
     ----------

@@ -20,7 +20,7 @@ The weight is chosen from the data being fitted only, never from independent che
   Comput.* 14(6)): the point of maximum curvature of ``(log ||A x_lam - b||, log ||x_lam||)``.
 
 Both are reusable by any linear(ised) estimation, e.g. the rational-function fits of
-:mod:`sensor.generic` and, later, bundle adjustment (``sensor.adjust``).
+:mod:`stereodem.sensor.models.generic` and, later, bundle adjustment (``sensor.adjust``).
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .errors import InputError
+from stereodem.sensor.errors import InputError
 
 __all__ = ["SVDSystem", "tikhonov_solve", "gcv_function", "gcv_weight", "lcurve",
            "lcurve_weight", "condition_number"]

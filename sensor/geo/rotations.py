@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geodesy import OMEGA_EARTH
+from stereodem.sensor.geo.geodesy import OMEGA_EARTH
 
 
 def R1(t):

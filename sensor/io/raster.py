@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import rasterio
 
-from .errors import OutputExistsError
+from stereodem.sensor.errors import OutputExistsError
 
 
 def check_writable(path, overwrite: bool = False) -> Path:

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import SensorModelError
-from .rotations import body_to_orbital
+from stereodem.sensor.errors import SensorModelError
+from stereodem.sensor.geo.rotations import body_to_orbital
 
 
 def _as_times(times, what):
@@ -151,7 +151,7 @@ class Attitude:
         Sample times, seconds, strictly increasing.
     angles : array_like (n, 3), optional
         Roll, pitch, yaw in radians (Bettemir Eq. 4.7 convention, see
-        :func:`sensor.rotations.body_to_orbital`). Interpolated by a natural cubic spline per
+        :func:`stereodem.sensor.geo.rotations.body_to_orbital`). Interpolated by a natural cubic spline per
         angle; a single sample is a constant attitude.
     quaternions : array_like (n, 4), optional
         Unit quaternions ``(q1, q2, q3, q4)``, scalar last (scipy convention), of the rotation
@@ -211,7 +211,7 @@ class CircularOrbit:
     """A circular Keplerian orbit, for simulation (no perturbations, no precession).
 
     The inertial frame coincides with ECEF at ``t = 0``; the Earth turns about z at
-    :data:`sensor.geodesy.OMEGA_EARTH`, so ECEF = ``R3(omega_E t)`` ECI (passive rotation).
+    :data:`stereodem.sensor.geo.geodesy.OMEGA_EARTH`, so ECEF = ``R3(omega_E t)`` ECI (passive rotation).
 
     Parameters
     ----------
@@ -227,13 +227,13 @@ class CircularOrbit:
     """
 
     def __init__(self, radius: float, inclination: float, raan: float, u0: float):
-        from .geodesy import GM
+        from stereodem.sensor.geo.geodesy import GM
         self.radius, self.inclination, self.raan, self.u0 = float(radius), float(inclination), float(raan), float(u0)
         self.mean_motion = float(np.sqrt(GM / self.radius**3))     #: rad/s
 
     def state(self, t):
         """ECEF position (m) and Earth-fixed ECEF velocity (m/s) at times ``t`` (s)."""
-        from .geodesy import OMEGA_EARTH
+        from stereodem.sensor.geo.geodesy import OMEGA_EARTH
         t = np.asarray(t, dtype=np.float64)
         a, n, i, om = self.radius, self.mean_motion, self.inclination, self.raan
         u = self.u0 + n * t

@@ -1,10 +1,11 @@
-"""ASTER L1A VNIR (3N / 3B) geometry: ASP ``aster2asp`` XML reader and the rigorous model.
+"""ASTER L1A VNIR (3N / 3B) geometry and its rigorous model (the files are read by
+:mod:`stereodem.sensor.io.aster_xml`).
 
 The product geometry is a lattice of 11 columns x N rows (ASTER notes §2.4): per lattice row
 a satellite position (ECEF, m) and per lattice point a unit sight vector in the orbital frame
 (z = -r/|r|, y = -(r x v)/|r x v|, x = y x z, built with the **inertial** velocity
 ``v + omega_E x r``; notes §4.2-4.3). Lattice integers are pixel centres, the project's
-convention. The model (:class:`AsterModel`) is a :class:`sensor.pushbroom.PushbroomModel`:
+convention. The model (:class:`AsterModel`) is a :class:`stereodem.sensor.models.pushbroom.PushbroomModel`:
 
 * line times ``t(row) = row * line_period`` with ``line_period`` = 2.1989 ms (notes §4.4);
 * positions interpolated by 8-point Lagrange polynomials over the lattice-row samples; the
@@ -20,22 +21,21 @@ product), ``WORLD_SIGHT_VECTOR`` (ECEF, from the product's latitude/longitude),
 """
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .ephemeris import Ephemeris
-from .errors import RPCError, SensorModelError
-from .pushbroom import DetectorArray, PushbroomModel
+from stereodem.sensor.models.ephemeris import Ephemeris
+from stereodem.sensor.errors import SensorModelError
+from stereodem.sensor.models.pushbroom import DetectorArray, PushbroomModel
 
 #: ASTER VNIR line period, seconds (0.87958 s per 400-line lattice step; notes §4.4).
 ASTER_LINE_PERIOD = 2.1989e-3
 
-_RPB_SCALARS = ("LINEOFFSET", "SAMPOFFSET", "LATOFFSET", "LONGOFFSET", "HEIGHTOFFSET",
-                "LINESCALE", "SAMPSCALE", "LATSCALE", "LONGSCALE", "HEIGHTSCALE")
+#: coefficient keys of the product's RPC block (``AsterGeometry.rpc``), 20 values each
 _RPB_COEFS = ("LINENUMCOEF", "LINEDENCOEF", "SAMPNUMCOEF", "SAMPDENCOEF")
+
 
 
 @dataclass
@@ -97,117 +97,6 @@ class AsterGeometry:
             raise SensorModelError(f"{where}lattice rows/columns must increase")
         if self.image_cols < 1 or self.image_rows < 1:
             raise SensorModelError(f"{where}bad image size {self.image_cols} x {self.image_rows}")
-
-
-def _numbers(root, tag, path, *, required=True):
-    el = root.find(tag)
-    if el is None:
-        if required:
-            raise SensorModelError(f"{path}: missing <{tag}> element")
-        return None
-    try:
-        vals = np.array([float(x) for x in (el.text or "").split()], dtype=np.float64)
-    except ValueError:
-        raise SensorModelError(f"{path}: <{tag}> holds non-numeric text") from None
-    if vals.size == 0:
-        raise SensorModelError(f"{path}: <{tag}> is empty")
-    if not np.all(np.isfinite(vals)):
-        raise SensorModelError(f"{path}: <{tag}> holds non-finite values")
-    return vals
-
-
-def _blocks(root, tag, path):
-    """Blank-line separated blocks of numeric rows -> list of (rows, width) arrays."""
-    el = root.find(tag)
-    if el is None:
-        raise SensorModelError(f"{path}: missing <{tag}> element")
-    blocks, cur = [], []
-    for line in (el.text or "").splitlines():
-        s = line.strip()
-        if not s:
-            if cur:
-                blocks.append(cur)
-                cur = []
-            continue
-        try:
-            cur.append([float(x) for x in s.split()])
-        except ValueError:
-            raise SensorModelError(f"{path}: <{tag}> holds non-numeric text") from None
-    if cur:
-        blocks.append(cur)
-    if not blocks:
-        raise SensorModelError(f"{path}: <{tag}> is empty")
-    try:
-        arr = np.array(blocks, dtype=np.float64)
-    except ValueError:
-        raise SensorModelError(f"{path}: <{tag}> blocks have unequal sizes") from None
-    if not np.all(np.isfinite(arr)):
-        raise SensorModelError(f"{path}: <{tag}> holds non-finite values")
-    return arr
-
-
-def _read_rpb(root, path):
-    rpb = root.find("RPB")
-    if rpb is None:
-        return None
-    img = rpb.find("IMAGE")
-    if img is None:
-        raise RPCError(f"{path}: <RPB> has no <IMAGE> block")
-    out = {"SATID": (rpb.findtext("SATID") or "").strip()}
-    for key in _RPB_SCALARS:
-        txt = img.findtext(key)
-        try:
-            out[key] = float(txt)
-        except (TypeError, ValueError):
-            raise RPCError(f"{path}: RPC key {key} missing or not a number") from None
-    for key in _RPB_COEFS:
-        el = img.find(f"{key}List/{key}")
-        if el is None:
-            el = img.find(key)
-        try:
-            c = np.array([float(x) for x in (el.text or "").split()]) if el is not None else None
-        except ValueError:
-            c = None
-        if c is None or c.size != 20 or not np.all(np.isfinite(c)):
-            raise RPCError(f"{path}: RPC key {key} must hold 20 numbers")
-        out[key] = c
-    return out
-
-
-def read_asp_aster_xml(path) -> AsterGeometry:
-    """Read an ASP ``aster2asp`` camera XML (``out-Band3N.xml`` / ``out-Band3B.xml``).
-
-    Raises
-    ------
-    SensorModelError
-        Unreadable XML, a missing element, non-numeric or inconsistent contents.
-    RPCError
-        A garbled ``<RPB>`` block.
-    """
-    path = str(path)
-    try:
-        root = ET.parse(path).getroot()
-    except FileNotFoundError:
-        raise SensorModelError(f"{path}: no such file") from None
-    except ET.ParseError as exc:
-        raise SensorModelError(f"{path}: not valid XML ({exc})") from None
-    lattice = _blocks(root, "LATTICE_POINT", path)
-    sight = _blocks(root, "SIGHT_VECTOR", path)
-    world = _blocks(root, "WORLD_SIGHT_VECTOR", path)
-    pos = _numbers(root, "SAT_POS", path)
-    if pos.size % 3:
-        raise SensorModelError(f"{path}: <SAT_POS> does not hold triplets")
-    cols = _numbers(root, "IMAGE_COLS", path)
-    rows = _numbers(root, "IMAGE_ROWS", path)
-    for name, arr in (("SIGHT_VECTOR", sight), ("WORLD_SIGHT_VECTOR", world)):
-        norm = np.linalg.norm(arr, axis=-1)
-        if np.any(norm < 0.5):
-            raise SensorModelError(f"{path}: <{name}> holds zero-length vectors")
-    sight = sight / np.linalg.norm(sight, axis=-1, keepdims=True)
-    world = world / np.linalg.norm(world, axis=-1, keepdims=True)
-    return AsterGeometry(lattice=lattice, sight_vectors=sight, world_sight_vectors=world,
-                         satellite_positions=pos.reshape(-1, 3), image_cols=int(cols[0]),
-                         image_rows=int(rows[0]), rpc=_read_rpb(root, path), path=path)
 
 
 def lattice_velocities(times, positions, *, method: str = "central"):
@@ -314,6 +203,7 @@ class AsterModel(PushbroomModel):
     @classmethod
     def from_xml(cls, path, **kwargs) -> "AsterModel":
         """Model from an ASP ``aster2asp`` XML file; keyword options as :class:`AsterModel`."""
+        from stereodem.sensor.io.aster_xml import read_asp_aster_xml
         return cls(read_asp_aster_xml(path), **kwargs)
 
     def lattice_sight_errors(self):
@@ -329,14 +219,3 @@ class AsterModel(PushbroomModel):
 
 def _rebuild_astermodel(d):
     return AsterModel.from_dict(d)
-
-
-def bundled_xml(band: str):
-    """Path of the bundled real ASTER geometry (ASP ``aster2asp`` XML) of band ``3N`` or ``3B``.
-
-    One V003 granule over Mt Rainier, 2017-07-31 (uw-cryo/asp_plot test data, BSD-3-Clause).
-    """
-    from importlib import resources
-    if band not in ("3N", "3B"):
-        raise SensorModelError(f"ASTER band must be '3N' or '3B', got {band!r}")
-    return resources.files("sensor") / "data" / "aster" / f"out-Band{band}.xml"

@@ -11,7 +11,7 @@ A scene is built on a UTM grid around the DEM's centre:
   image is the point sample of this band-limited field; an unblurred field would hold
   content above the image Nyquist frequency that no interpolation of the image can recover;
 * the two images: every pixel is localised on the DEM through its sensor model (DRM relief
-  iteration, :mod:`sensor.render`) and reads the radiance there; then sensor noise
+  iteration, :mod:`stereodem.sensor.simulation.render`) and reads the radiance there; then sensor noise
   (Gaussian, ``noise`` DN) and 8- or 16-bit quantisation;
 * ``truth_ortho``: the same band-limited radiance field at the ``truth_dem`` cell centres, in
   the same DN scale without noise or quantisation (the left image's true orthoimage). An
@@ -48,11 +48,11 @@ import rasterio
 from affine import Affine
 from rasterio.warp import Resampling, reproject
 
-from . import geodesy
-from .dem import DEM, ELLIPSOID, as_dem
-from .errors import InputError
-from .model import SensorModel
-from .render import MapRaster, localization_error, render
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.geo.dem import DEM, ELLIPSOID, as_dem
+from stereodem.sensor.errors import InputError
+from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.simulation.render import MapRaster, localization_error, render
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,7 @@ class Scene:
 
 
 def texture_path() -> Path:
-    return Path(resources.files("sensor") / "data" / "landsat_texture.tif")
+    return Path(resources.files("stereodem.sensor") / "data" / "landsat_texture.tif")
 
 
 # ----------------------------------------------------------------------------- sensor pairs
@@ -119,7 +119,7 @@ def _orbit_state(lon0, lat0, altitude, along_km, heading_deg):
 
 def frame_pair(lon0, lat0, h0, size, gsd=27.6, altitude=686e3, base_to_height=0.6):
     """Two BILSAT-like frame cameras on one orbit converging on ``(lon0, lat0, h0)``."""
-    from .frame import FrameCamera
+    from stereodem.sensor.models.frame import FrameCamera
     w, h = size
     pitch = 0.0074
     focal = pitch * 1e-3 * altitude / gsd * 1e3
@@ -135,14 +135,14 @@ def frame_pair(lon0, lat0, h0, size, gsd=27.6, altitude=686e3, base_to_height=0.
 def aster_geometry_parameters() -> dict:
     """Pointing, IFOV, orbit height and line period of the bundled real ASTER 3N/3B granule.
 
-    Read from the real product geometry (:func:`sensor.aster.bundled_xml`): the centre
+    Read from the real product geometry (:func:`stereodem.sensor.io.aster_xml.bundled_xml`): the centre
     detector's sight vector in the orbital frame gives the along-track angle of each band
     (3N about +0.03 deg, 3B about -27.7 deg) and their common cross-track pointing (about
     8.6 deg to the right of the track); the angle between the first and last detectors gives
     the IFOV; the satellite positions give the orbit height. The line period 2.1989 ms is the
     one that reproduces the product's own lattice (notes aster-l1a-format §4.4).
     """
-    from .aster import bundled_xml, read_asp_aster_xml
+    from stereodem.sensor.io.aster_xml import bundled_xml, read_asp_aster_xml
     out = {}
     for band in ("3N", "3B"):
         g = read_asp_aster_xml(bundled_xml(band))
@@ -165,12 +165,12 @@ def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_
                    cross_track_tilt_deg=0.0, right_size=None):
     """A pushbroom pair on one orbit with along-track tilts ``angles`` (degrees).
 
-    ``cross_track_tilt_deg`` follows :class:`sensor.pushbroom.PushbroomModel` (positive looks
+    ``cross_track_tilt_deg`` follows :class:`stereodem.sensor.models.pushbroom.PushbroomModel` (positive looks
     left of the flight direction). ``right_size`` (width, height) gives the second image its
     own size (ASTER 3B: about 5000 x 4600 against 3N's 4100 x 4200); default ``size``.
     """
     try:
-        from .pushbroom import PushbroomModel
+        from stereodem.sensor.models.pushbroom import PushbroomModel
     except ImportError as exc:  # pragma: no cover - the module is part of the package
         raise InputError(f"pushbroom presets need sensor.pushbroom ({exc})") from None
     w, h = size
@@ -415,15 +415,15 @@ def write_scene(scene: Scene, out_dir, *, overwrite: bool = False, fit_rpcs: boo
     ``truth_ortho.tif`` (the left image's true orthoimage on the same grid), ``points.csv``
     and ``scene.json`` (settings, diagnostics, RPC fit residuals).
     """
-    from .raster import prepare_output_dir, write_geotiff, write_text_atomic
-    from .serialize import save_model
+    from stereodem.sensor.io.raster import prepare_output_dir, write_geotiff, write_text_atomic
+    from stereodem.sensor.io.sidecar import save_model
 
     out = prepare_output_dir(out_dir, overwrite=overwrite)
     meta = dict(settings=scene.settings, diagnostics=dict(scene.diagnostics), rpc_fit={})
     for name, img, model in (("left", scene.left, scene.left_model), ("right", scene.right, scene.right_model)):
         rpcs = None
         if fit_rpcs:
-            from .rpcfit import fit_rpc
+            from stereodem.sensor.estimation.rpcfit import fit_rpc
             lo, hi = scene.truth_dem.height_range()
             rpc, report = fit_rpc(model, height_range=(lo - 500.0, hi + 500.0))
             rpcs = rpc.to_rasterio()

@@ -13,7 +13,7 @@ ASTER notes §4.2-4.6):
   turns the view towards -y (left of the flight direction).
 * **orbital frame** — body -> orbital by the interpolated attitude (roll, pitch, yaw,
   Bettemir Eq. 4.7) and the adjustable bias/drift angles.
-* **ECEF** — orbital frame from position and velocity (:func:`sensor.rotations.orbital_frame`),
+* **ECEF** — orbital frame from position and velocity (:func:`stereodem.sensor.geo.rotations.orbital_frame`),
   built by default with the *inertial* velocity ``v + omega_E x r`` (ASTER notes §4.3).
 
 Line ``row`` is acquired at ``t(row) = t0 + row * line_period`` (pixel centres at integers).
@@ -29,11 +29,11 @@ import logging
 
 import numpy as np
 
-from . import geodesy
-from .ephemeris import Attitude, CircularOrbit, Ephemeris
-from .errors import ConvergenceError, SensorModelError
-from .model import SensorModel
-from .rotations import body_to_orbital, orbital_frame
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.models.ephemeris import Attitude, CircularOrbit, Ephemeris
+from stereodem.sensor.errors import ConvergenceError, SensorModelError
+from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.geo.rotations import body_to_orbital, orbital_frame
 
 log = logging.getLogger(__name__)
 
@@ -285,7 +285,7 @@ class PushbroomModel(SensorModel):
     ----------
     width, height : int
         Image size (detectors, lines).
-    ephemeris : sensor.ephemeris.Ephemeris
+    ephemeris : stereodem.sensor.models.ephemeris.Ephemeris
         ECEF positions and Earth-fixed velocities over the acquisition.
     detectors : DetectorArray
         Detector look directions in the instrument frame.
@@ -293,7 +293,7 @@ class PushbroomModel(SensorModel):
         Seconds per line.
     t0 : float
         Time of line 0 (pixel centre), seconds on the ephemeris time base.
-    attitude : sensor.ephemeris.Attitude, optional
+    attitude : stereodem.sensor.models.ephemeris.Attitude, optional
         Body -> orbital attitude; ``None`` means the body frame is the orbital frame.
     along_track_tilt_deg, cross_track_tilt_deg : float
         Fixed instrument tilt (pitch forward, roll towards -y), degrees.
@@ -314,7 +314,7 @@ class PushbroomModel(SensorModel):
         if not (np.isfinite(line_period) and line_period > 0):
             raise SensorModelError(f"pushbroom: line period must be positive, got {line_period}")
         if not isinstance(ephemeris, Ephemeris):
-            raise SensorModelError("pushbroom: ephemeris must be a sensor.ephemeris.Ephemeris")
+            raise SensorModelError("pushbroom: ephemeris must be a stereodem.sensor.models.ephemeris.Ephemeris")
         if not isinstance(detectors, DetectorArray):
             raise SensorModelError("pushbroom: detectors must be a DetectorArray")
         self.width, self.height = int(width), int(height)
@@ -341,7 +341,7 @@ class PushbroomModel(SensorModel):
 
     # ---------------------------------------------------------------- serialisation
     def to_dict(self) -> dict:
-        """Plain description (numpy arrays inside; see :mod:`sensor.serialize`)."""
+        """Plain description (numpy arrays inside; see :mod:`stereodem.sensor.io.sidecar`)."""
         e, a, o = self.ephemeris, self.attitude, self.orbit
         return {
             "width": self.width, "height": self.height, "line_period": self.line_period, "t0": self.t0,

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS, Transformer
 
-from .errors import CRSError, InputError
+from stereodem.sensor.errors import CRSError, InputError
 
 # WGS84 constants
 A = 6378137.0                      #: semi-major axis, m
@@ -147,7 +147,7 @@ def _crs_key(crs):
 
 def egm96_path() -> Path:
     """Path of the bundled EGM96 15' geoid grid (GTX, geoid height above WGS84, metres)."""
-    return Path(resources.files("sensor") / "data" / "egm96_15.gtx")
+    return Path(resources.files("stereodem.sensor") / "data" / "egm96_15.gtx")
 
 
 @functools.lru_cache(maxsize=None)

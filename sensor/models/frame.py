@@ -16,7 +16,7 @@ The chain follows Bettemir (2006) §4.1, with the errata of notes §9.2 fixed:
 * Camera -> body: ``R3(-90 deg) R1(180 deg)`` so ``D_B = (y, x, f)/n`` (Eq. 4.5: image up is the
   flight direction, the ray points down). The thesis's Appendix C drops R3(-90 deg); that is an
   erratum (notes §2.4).
-* Body -> orbital: roll/pitch/yaw by Eq. 4.7 (:func:`sensor.rotations.body_to_orbital`).
+* Body -> orbital: roll/pitch/yaw by Eq. 4.7 (:func:`stereodem.sensor.geo.rotations.body_to_orbital`).
 * Orbital -> ECEF: orbital frame from the position and the inertial velocity; the
   precession/nutation/sidereal chain of Eq. 4.22-4.31 cancels exactly (notes §2.6), so the
   model is independent of the epoch.
@@ -27,10 +27,10 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from . import geodesy
-from .errors import SensorModelError
-from .model import SensorModel, ray_to_lonlat
-from .rotations import body_to_orbital, orbital_frame
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.errors import SensorModelError
+from stereodem.sensor.models.base import SensorModel, ray_to_lonlat
+from stereodem.sensor.geo.rotations import body_to_orbital, orbital_frame
 
 
 @dataclass
@@ -74,7 +74,7 @@ class FrameCamera(SensorModel):
     p2: float = 0.0
     _R: np.ndarray = field(init=False, repr=False)
 
-    #: names of the adjustable parameters, in the order of :meth:`parameter_vector`
+    #: names of the adjustable parameters, in the order of :meth:`parameters`
     PARAMETERS = ("focal_mm", "dx_mm", "dy_mm", "k1", "k2", "p1", "p2", "roll", "pitch", "yaw",
                   "x", "y", "z")
 
@@ -90,7 +90,7 @@ class FrameCamera(SensorModel):
         self._R = orbital_frame(self.position, self.velocity) @ body_to_orbital(self.roll, self.pitch, self.yaw) @ c2b
 
     # ------------------------------------------------------------------ parameters
-    def parameter_vector(self) -> dict:
+    def parameters(self) -> dict:
         """Adjustable parameters as an ordered name -> value dict (units as in the fields)."""
         vals = {n: getattr(self, n) for n in self.PARAMETERS[:10]}
         vals.update(x=self.position[0], y=self.position[1], z=self.position[2])

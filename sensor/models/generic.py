@@ -10,14 +10,14 @@ Frames and normalisation
 ------------------------
 Ok fitted in projected map coordinates (UTM E, N and height H). Here every model maps the
 ground point ``(X, Y, Z) = (E, N, h)`` — easting and northing in a projected CRS (by default the
-UTM zone of the GCPs, :func:`sensor.geodesy.utm_crs`) and the ellipsoidal height — to the
+UTM zone of the GCPs, :func:`stereodem.sensor.geo.geodesy.utm_crs`) and the ellipsoidal height — to the
 image ``(col, row)``, but always through normalised coordinates: each ground axis is centred
 and scaled into [-1, 1] over the GCPs (RPC-style offset/scale), and so is each image axis
 (the extended DLT scales the image coordinates without centring them, see below). Centring and
 scaling removes the ill-conditioning that made Ok drop the ``Y^2`` term of the 3rd-order 2-D
 polynomial (its Table 6.5 correlations are those of raw UTM coordinates); all ten terms are
 kept. The public interface stays ``project(lon, lat, h) -> (col, row)`` and
-``localize(col, row, h) -> (lon, lat)`` (:class:`sensor.model.SensorModel`).
+``localize(col, row, h) -> (lon, lat)`` (:class:`stereodem.sensor.models.base.SensorModel`).
 
 Term sets (``X, Y, Z`` normalised; one equation each for ``x = col`` and ``y = row``)
 ------------------------------------------------------------------------------------
@@ -42,7 +42,7 @@ solution obtained by multiplying through by the denominator, refined by Gauss–
 (the algebraic solution alone shifts error between x and y; Ok's DLT y residuals suggest that
 is what happened there). Rational functions: linearised by the denominator and solved with
 Tikhonov regularisation, the weight chosen from the GCPs alone by generalised cross-validation
-or the L-curve (:mod:`sensor.regularize`) — not by minimising the check-point error as Ok did —
+or the L-curve (:mod:`stereodem.sensor.estimation.regularize`) — not by minimising the check-point error as Ok did —
 and re-solved with rows reweighted by the previous denominator (Tao & Hu 2001) so that the
 minimised quantity approaches the image residual.
 
@@ -64,10 +64,12 @@ import numpy as np
 from pyproj import CRS
 from scipy.optimize import least_squares
 
-from . import geodesy, regularize
-from .errors import CRSError, InputError, where
-from .model import SensorModel
-from .raster import write_text_atomic
+from stereodem.sensor.geo import geodesy
+
+from stereodem.sensor.estimation import regularize
+from stereodem.sensor.errors import CRSError, InputError, where
+from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.io.raster import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -334,7 +336,7 @@ class _Normalization:
 class GenericModel(SensorModel):
     """A generic model fitted to GCPs; see the module docstring for the forms.
 
-    Built by :func:`fit_model`. Implements the :class:`sensor.model.SensorModel` contract:
+    Built by :func:`fit_model`. Implements the :class:`stereodem.sensor.models.base.SensorModel` contract:
     ``project(lon, lat, h) -> (col, row)`` (degrees, ellipsoidal metres -> pixels) and
     ``localize(col, row, h) -> (lon, lat)`` by Newton iteration on ``project`` in the map plane.
 

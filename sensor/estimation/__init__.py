@@ -1,0 +1,1 @@
+"""Estimation: RPC fitting to any model, Tikhonov regularisation (L-curve, GCV)."""
