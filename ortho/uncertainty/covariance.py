@@ -131,6 +131,10 @@ def assemble(model, *, sigmas: dict | None = None, report: AdjustReport | None =
         if not diff <= 1e-3:
             raise InputError(f"{report.path}: covariance file for another model (its geometry differs "
                              f"from the image's by {diff:.3g} px)")
+        # the image defines the image size (an RPC sidecar dict may not carry it)
+        for m in (rmodel, getattr(rmodel, "model", None)):
+            if m is not None:
+                m.width, m.height = model.width, model.height
         model = rmodel
         check_names(model, report.names)
         both = sorted(set(report.names) & set(sigmas))

@@ -257,6 +257,8 @@ def check_psd(D, names=None, *, what: str = "covariance"):
     D = np.asarray(D, float)
     if not np.all(np.isfinite(D)):
         raise InputError(f"{what} has non-finite entries")
+    if D.size == 0:
+        return D
     scale = max(float(np.max(np.abs(D))), 1e-300)
     if np.max(np.abs(D - D.T)) > 1e-9 * scale:
         raise InputError(f"{what} is not symmetric")

@@ -76,7 +76,7 @@ def _local_metric(lon, lat, crs, d: float = 1e-5):
 
 
 def ground_displacements(model, lon, lat, h, names, X, crs, *, dem=None, tol_px: float = 1e-6,
-                         max_iterations: int = 20):
+                         max_iterations: int = 100):
     """Exact ground displacements (E, N metres) of the pixels imaging ``(lon, lat, h)`` for each
     row of input offsets ``X`` (s, u) in the order of ``names``.
 
