@@ -334,3 +334,73 @@ def test_dem_vertical_sigma_pleiades_pair(data_dir):
     assert np.allclose(a.sigma_slope[inner], slope[inner], rtol=1e-3)
     assert np.all(a.sigma_vertical[inner] >= a.sigma_intersection[inner])
     assert a.interpolation_error < 0.01
+
+
+@pytest.mark.parametrize("kind", ["frame", "pushbroom"])
+def test_central_difference_steps_are_stable_for_every_parameter(kind, frame):
+    """For every input of a frame camera and of a pushbroom model, the ground Jacobian with the
+    project's step agrees with the one at a step ten times smaller (truncation and round-off
+    both small), and no input is dead (all partials non-zero somewhere)."""
+    if kind == "frame":
+        model = frame
+        lon, lat = frame.localize(np.array([30.0, 256.0, 480.0]), np.array([20.0, 256.0, 490.0]), np.full(3, 1000.0))
+        lon0, lat0 = 32.8, 39.9
+    else:
+        from stereodem.sensor.simulation.simulate import pushbroom_pair
+        model, _ = pushbroom_pair(32.8, 39.9, 1000.0, (400, 400), (0.0, -27.6))
+        lon, lat = model.localize(np.array([30.0, 200.0, 380.0]), np.array([20.0, 200.0, 390.0]), np.full(3, 1000.0))
+        lon0, lat0 = 32.8, 39.9
+    crs = geodesy.utm_crs(lon0, lat0)
+    names = P.valid_names(model)
+    h = np.full(3, 1000.0)
+    gj = P.ground_jacobian(model, lon, lat, h, names, crs)
+    from stereodem.sensor.models.parameters import default_step
+    vals = model.parameters()
+    chosen = P.propagation_steps(model, list(vals))
+    fine = {n: 0.1 * chosen.get(n, default_step(n, vals[n])) for n in vals}
+    old = (P.DEM_HEIGHT_STEP, P.IMAGING_TIME_STEP)
+    try:
+        P.DEM_HEIGHT_STEP, P.IMAGING_TIME_STEP = 0.1, 1e-4
+        gj2 = P.ground_jacobian(model, lon, lat, h, names, crs, steps=fine)
+    finally:
+        P.DEM_HEIGHT_STEP, P.IMAGING_TIME_STEP = old
+    for k, n in enumerate(names):
+        a, b = gj.J[..., k], gj2.J[..., k]
+        scale = np.abs(a).max()
+        assert scale > 0, n
+        assert np.max(np.abs(a - b)) < 2e-3 * scale, n
+
+
+def test_image_shift_field_matches_exact_relocalisation_without_terrain(frame):
+    """The many-point Monte Carlo path (exact perturbed model at Chebyshev nodes, fitted field,
+    local ground map) gives the same per-sample displacements as per-sample Newton
+    re-localisation when the terrain is the constant height (1e-3 relative), and its measured
+    field error is tiny."""
+    crs = geodesy.utm_crs(32.8, 39.9)
+    cc, rr = np.meshgrid(np.linspace(0, 511, 12), np.linspace(0, 511, 12))
+    lon, lat = frame.localize(cc.ravel(), rr.ravel(), np.full(cc.size, 1000.0))
+    h = np.full(lon.shape, 1000.0)
+    names = ["roll", "pitch", "yaw", "x", "imaging_time", "dem_height", "k1"]
+    D = np.diag([1e-10, 1e-10, 1e-10, 25.0, 1e-6, 100.0, 1e-12])      # displacements of a few pixels
+    X = S.lhs_normal(D, 40, seed=2)
+    e1, n1 = S.ground_displacements(frame, lon, lat, h, names, X, crs)
+    e2, n2, err = S.field_displacements(frame, lon, lat, h, names, X, crs)
+    assert err < 1e-3
+    scale = np.hypot(e1, n1).max()
+    assert scale > 20
+    assert np.max(np.hypot(e1 - e2, n1 - n2)) < 1e-3 * scale
+
+
+def test_sampling_methods_on_the_map(rpc, flat):
+    from stereodem.ortho.grid import grid_for_model
+    from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+    grid = grid_for_model(rpc, flat, res=8.0)
+    names = ["col_shift", "row_shift", "dem_height"]
+    D = np.diag([1.0, 0.25, 16.0])
+    fo = ortho_uncertainty_maps(rpc, flat, grid, D, names)
+    mc = ortho_uncertainty_maps(rpc, flat, grid, D, names, "monte-carlo", samples=300)
+    ok = np.isfinite(fo.sigma_horizontal) & np.isfinite(mc.sigma_horizontal)
+    assert ok.mean() > 0.8
+    assert np.nanmax(np.abs(mc.sigma_horizontal[ok] / fo.sigma_horizontal[ok] - 1)) < 0.02
+    for k in names:
+        assert mc.shares[k] == pytest.approx(fo.shares[k], abs=0.02)

@@ -43,6 +43,16 @@ GROUND_STEP = 1.0              # m
 CE90_CIRCULAR = 2.145966
 
 
+#: central-difference steps by parameter unit: large enough that the image motion (≥ 10⁻³ px
+#: for the sensors of the project) dominates the round-off of iterative projections, small
+#: enough that the truncation error stays below 10⁻³ (tested per parameter)
+UNIT_STEPS = {"rad": 1e-6, "m": 0.5, "s": 1e-3, "rad/s": 1e-7, "1": 1e-5, "px": 1.0, "px/px": 1e-4,
+              "mm": 1e-3}
+#: units of the frame camera's parameters (its ``PARAMETERS`` is a plain tuple)
+FRAME_UNITS = {"focal_mm": "mm", "dx_mm": "mm", "dy_mm": "mm", "roll": "rad", "pitch": "rad", "yaw": "rad",
+               "x": "m", "y": "m", "z": "m"}
+
+
 # ----------------------------------------------------------------------------- models
 
 def adjustable_model(model):
@@ -109,6 +119,39 @@ def perturbed_model(model, values: dict):
     return out
 
 
+def parameter_unit(model, name) -> str | None:
+    """Unit of a model parameter from the model's ``PARAMETERS`` table (None if unknown)."""
+    import sys
+    table = getattr(model, "PARAMETERS", None)
+    if not isinstance(table, dict):          # module-level table (pushbroom, ASTER)
+        for cls in type(model).__mro__:
+            table = getattr(sys.modules.get(cls.__module__), "PARAMETERS", None)
+            if isinstance(table, dict):
+                break
+    if isinstance(table, dict) and name in table:
+        text = str(table[name])
+        return text.rsplit(",", 1)[-1].strip() if "," in text else text.strip()
+    if hasattr(model, "position") and name in FRAME_UNITS:
+        return FRAME_UNITS[name]
+    return None
+
+
+def propagation_steps(model, names, steps: dict | None = None) -> dict:
+    """Central-difference steps for ``names``: ``steps`` first, then the model's own
+    ``PARAMETER_STEPS``, then :data:`UNIT_STEPS` by the parameter's unit (else the default of
+    :func:`stereodem.sensor.models.parameters.default_step`)."""
+    own = dict(getattr(model, "PARAMETER_STEPS", {}) or {})
+    out = {}
+    for n in names:
+        unit = parameter_unit(model, n)
+        if n in own:
+            out[n] = own[n]
+        elif unit in UNIT_STEPS:
+            out[n] = UNIT_STEPS[unit]
+    out.update(steps or {})
+    return out
+
+
 def image_jacobian(model, lon, lat, h, names, *, steps: dict | None = None):
     """Partials of the image position with respect to named inputs.
 
@@ -131,7 +174,7 @@ def image_jacobian(model, lon, lat, h, names, *, steps: dict | None = None):
     col, row = (np.asarray(a, float) for a in model.project(lon, lat, h))
     J = np.zeros(lon.shape + (2, len(names)))
     if own:
-        _, _, Jo = project_jacobian(model, lon, lat, h, own, steps=steps)
+        _, _, Jo = project_jacobian(model, lon, lat, h, own, steps=propagation_steps(model, own, steps))
         for k, n in enumerate(own):
             J[..., names.index(n)] = Jo[..., k]
     if "dem_height" in names:
