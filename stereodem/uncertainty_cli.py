@@ -74,7 +74,7 @@ def run(args) -> int:
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical)
     grid = grid_for_model(model, dem, res=args.res, crs=args.crs)
     maps = ortho_uncertainty_maps(model, dem, grid, D, names, args.method, samples=args.samples,
-                                  seed=args.seed)
+                                  seed=args.seed, source_maps=args.source_maps)
     maps.write(out, overwrite=args.overwrite, source_maps=args.source_maps)
     plot_uncertainty(maps, out / "uncertainty.png", title=Path(args.image).name)
     s = maps.summary()

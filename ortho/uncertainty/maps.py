@@ -199,7 +199,8 @@ def _node_fields(model, dem, grid, U, V, D, names, groups, method, samples, seed
 
 def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "first-order", *,
                            samples: int = 1000, groups: dict | None = None, step: int | None = None,
-                           tolerance: float = 0.005, n_check: int = 400, seed: int = 0) -> UncertaintyMaps:
+                           tolerance: float = 0.005, n_check: int = 400, seed: int = 0,
+                           source_maps: bool = False) -> UncertaintyMaps:
     """Per-cell horizontal uncertainty of the orthoimage of ``model`` over ``dem`` on ``grid``.
 
     Parameters
@@ -224,6 +225,9 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
         Lattice spacing in cells; default chosen by refinement until the measured relative
         interpolation error of σ_horizontal is below ``tolerance`` (first-order). The sampling
         methods use the same lattice, with at most 16 × 16 nodes.
+    source_maps : bool
+        Keep each source's share map (full grid, float32 each); the dominant source is always
+        computed.
 
     Returns
     -------
@@ -286,33 +290,31 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
         details.update(n_lattice_nodes=int(U.size), samples=int(samples))
     Wx, Wy = _weights(grid.width, uu), _weights(grid.height, vv)
     sE, sN = _interp(F[..., 0], Wy, Wx), _interp(F[..., 1], Wy, Wx)
-    cEN = _interp(F[..., 2], Wy, Wx)
     col, row = _interp(F[..., 3], Wy, Wx), _interp(F[..., 4], Wy, Wx)
     outside = ~((col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5))
     sE[outside] = sN[outside] = np.nan
-    C = np.stack([np.stack([sE ** 2, cEN], -1), np.stack([cEN, sN ** 2], -1)], -2)
     c90 = np.full(sE.shape, np.nan, np.float32)
     good = np.isfinite(sE)
     c90_nodes = ce90(np.stack([np.stack([F[..., 0] ** 2, F[..., 2]], -1),
                                np.stack([F[..., 2], F[..., 1] ** 2], -1)], -2))
     c90[good] = _interp(np.where(np.isfinite(F[..., 0]), c90_nodes, np.nan), Wy, Wx)[good]
-    del C
     contrib = F[..., 5:]
     total = np.nansum(contrib, axis=(0, 1))
     shares = {s: float(total[k] / total.sum()) if total.sum() > 0 else float("nan") for k, s in enumerate(srcs)}
     dom = np.full(sE.shape, -1, np.int16)
     best = np.full(sE.shape, -np.inf, np.float32)
-    source_maps = {}
+    kept = {}
     Vsum = np.nansum(contrib, -1)
     for k, s in enumerate(srcs):
         with np.errstate(invalid="ignore", divide="ignore"):
             frac = _interp(contrib[..., k] / np.where(Vsum > 0, Vsum, np.nan), Wy, Wx)
         frac[~good] = np.nan
-        source_maps[s] = frac
+        if source_maps:
+            kept[s] = frac
         better = np.isfinite(frac) & (frac > best)
         dom[better], best[better] = k, frac[better]
     return UncertaintyMaps(grid, method, names, srcs, sE, sN, c90, dom, shares, st, err,
-                           source_maps, details)
+                           kept, details)
 
 
 # ----------------------------------------------------------------------------- DEM vertical σ
