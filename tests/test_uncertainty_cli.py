@@ -138,3 +138,28 @@ def test_api_rejects_non_psd_and_nan_sigma():
         covariance_matrix(["a"], sigmas={"a": float("nan")})
     with pytest.raises(InputError, match="not symmetric"):
         covariance_matrix(["a", "b"], covariance=[[1.0, 0.1], [0.0, 1.0]])
+
+
+def test_bundle_report_uses_the_images_side(data_dir, tmp_path):
+    """A pair (bundle) report: the side whose geometry is the image's is picked, with its block
+    of the joint covariance."""
+    from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
+    from stereodem.sensor.io.sidecar import model_to_dict
+    from stereodem.sensor.models.corrected import ImageCorrectedModel
+    from stereodem.sensor.models.rpc import RPCModel
+    left = RPCModel.from_file(data_dir / IMG)
+    right = RPCModel.from_file(data_dir / "pleiades" / "img_02_rpc.tif")
+    names = ["left.col_shift", "left.row_shift", "right.col_shift", "right.row_shift"]
+    C = np.diag([0.04, 0.09, 0.16, 0.25])
+    C[0, 2] = C[2, 0] = 0.03
+    doc = {"model": {"left": model_to_dict(ImageCorrectedModel(left)), "right": model_to_dict(ImageCorrectedModel(right))},
+           "parameters": [{"name": n, "value": 0.0, "std": float(np.sqrt(C[i, i])), "unit": "px"}
+                          for i, n in enumerate(names)],
+           "covariance": C.tolist()}
+    p = tmp_path / "bundle.json"
+    p.write_text(json.dumps(doc))
+    rep = read_adjust_report(p)
+    _, n_r, D_r = assemble(right, report=rep)
+    assert n_r == ["col_shift", "row_shift"] and np.allclose(D_r, np.diag([0.16, 0.25]))
+    _, n_l, D_l = assemble(left, report=rep)
+    assert np.allclose(D_l, np.diag([0.04, 0.09]))

@@ -7,6 +7,10 @@ An adjustment report (``adjust_report.json``, written by the adjustment command)
      "parameters": [{"name": ..., "value": ..., "std": ..., "unit": ...}, ...],
      "covariance": [[...], ...]}          # in the order of "parameters"
 
+A bundle (pair) report has ``"model": {"left": {...}, "right": {...}}`` and parameter names
+``left.<name>`` / ``right.<name>``; the side whose geometry is the image's is used, with its
+block (the marginal covariance) of the joint covariance.
+
 :func:`read_adjust_report` reads it; :func:`assemble` checks that the report belongs to the
 image's model, and joins it with independent σ pairs (block-diagonal covariance).
 """
@@ -54,6 +58,15 @@ class AdjustReport:
     names: list
     values: np.ndarray
     covariance: np.ndarray
+    sides: dict | None = None          # bundle: side -> AdjustReport of that image
+
+    def side_for(self, model):
+        """The single-image report matching ``model`` (itself unless a bundle report)."""
+        if not self.sides:
+            return self
+        diffs = {k: _same_geometry(adjustable_model(model), adjustable_model(r.model)) for k, r in self.sides.items()}
+        best = min(diffs, key=diffs.get)
+        return self.sides[best] if diffs[best] <= 1e-3 else next(iter(self.sides.values()))
 
 
 def read_adjust_report(path) -> AdjustReport:
@@ -81,11 +94,21 @@ def read_adjust_report(path) -> AdjustReport:
         check_psd(C, what=f"{p}: covariance")
     except InputError as exc:
         raise InputError(str(exc)) from None
-    try:
-        model = model_from_dict(doc["model"], source=p)
-    except Exception as exc:          # any defect of the embedded sidecar
-        raise InputError(f"{p}: cannot read the report's model ({exc})") from None
-    return AdjustReport(p, model, names, values, C)
+    def load(d):
+        try:
+            return model_from_dict(d, source=p)
+        except Exception as exc:          # any defect of the embedded sidecar
+            raise InputError(f"{p}: cannot read the report's model ({exc})") from None
+
+    md = doc["model"]
+    if isinstance(md, dict) and "type" not in md and {"left", "right"} <= set(md):
+        sides = {}
+        for side in ("left", "right"):
+            idx = [k for k, n in enumerate(names) if n.startswith(side + ".")]
+            sides[side] = AdjustReport(p, load(md[side]), [names[k][len(side) + 1:] for k in idx],
+                                       values[idx], C[np.ix_(idx, idx)])
+        return AdjustReport(p, None, names, values, C, sides)
+    return AdjustReport(p, load(md), names, values, C)
 
 
 def _same_geometry(a, b, tol_px: float = 1e-3) -> float:
@@ -123,6 +146,7 @@ def assemble(model, *, sigmas: dict | None = None, report: AdjustReport | None =
     sigmas = dict(sigmas or {})
     names, blocks = [], []
     if report is not None:
+        report = report.side_for(model)
         rmodel = adjustable_model(report.model)
         if type(rmodel) is not type(model):
             raise InputError(f"{report.path}: covariance file for another model "
