@@ -48,13 +48,15 @@ def _weights(n_full: int, nodes: np.ndarray) -> np.ndarray:
 
 
 def _interp(L, Wy, Wx, dtype=np.float32):
-    """Bilinear interpolation of a lattice field (ny, nx) to the full grid, NaN-aware."""
+    """Bilinear interpolation of a lattice field (ny, nx) to the full grid, NaN-aware (a cell
+    is NaN when any of its four nodes is)."""
     ok = np.isfinite(L)
-    num = Wy @ np.where(ok, L, 0.0) @ Wx.T
-    den = Wy @ ok.astype(float) @ Wx.T
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(den > 0.999, num / den, np.nan)
-    return out.astype(dtype)
+    Wy_, Wx_ = Wy.astype(dtype, copy=False), Wx.astype(dtype, copy=False)
+    out = Wy_ @ (np.where(ok, L, 0.0).astype(dtype) @ Wx_.T)
+    if not ok.all():
+        den = Wy_ @ (ok.astype(dtype) @ Wx_.T)
+        out[den < 0.999] = np.nan
+    return out
 
 
 def _bilinear_at(L, nodes_x, nodes_y, u, v):
