@@ -25,9 +25,13 @@ from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import ELLIPSOID
 
 from stereodem.ortho.drm import _lattice
+from stereodem.ortho.drm import bilinear_nan
 from stereodem.ortho.uncertainty.propagation import (adjustable_model, ce90, check_names,
-                                                     check_psd, first_order, ground_jacobian,
-                                                     image_jacobian, propagate)
+                                                     check_psd, dem_gradient_arrays,
+                                                     dem_pixel_jacobian, first_order,
+                                                     ground_covariance, ground_jacobian,
+                                                     image_jacobian, image_side, propagate,
+                                                     slope_from_pixels)
 
 log = logging.getLogger(__name__)
 
@@ -247,6 +251,9 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
         if missing:
             groups = {**groups, **{m: [m] for m in missing}}
     dem = _ellipsoidal(dem)
+    if method == "first-order":
+        return _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_check, seed,
+                                 source_maps)
     rng = np.random.default_rng(seed)
     big = max(grid.width, grid.height)
     st = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
@@ -317,6 +324,157 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
         dom[better], best[better] = k, frac[better]
     return UncertaintyMaps(grid, method, names, srcs, sE, sN, c90, dom, shares, st, err,
                            kept, details)
+
+
+_CE90_RHO = np.linspace(0.0, 1.0, 401)
+_CE90_G = None
+
+
+def ce90_from_cov(a, b, c):
+    """CE90 of 2 × 2 covariances ``[[a, b], [b, c]]`` (arrays): ``√λ₁ · g(√(λ₂/λ₁))`` with ``g``
+    tabulated once from the exact :func:`ce90` (401 ratios; interpolation error < 10⁻⁵)."""
+    global _CE90_G
+    if _CE90_G is None:
+        cov = np.zeros((_CE90_RHO.size, 2, 2))
+        cov[:, 0, 0], cov[:, 1, 1] = 1.0, _CE90_RHO ** 2
+        _CE90_G = ce90(cov)
+    half = 0.5 * (a + c)
+    rad = np.sqrt(np.maximum(0.25 * (a - c) ** 2 + b * b, 0))
+    l1, l2 = half + rad, np.maximum(half - rad, 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.sqrt(np.where(l1 > 0, l2 / l1, 0))
+    return np.sqrt(np.maximum(l1, 0)) * np.interp(rho, _CE90_RHO, _CE90_G)
+
+
+def _node_lattice(grid, st):
+    uu, vv = _lattice(grid, st)
+    uu = np.minimum(uu, grid.width - 1).astype(float)
+    vv = np.minimum(vv, grid.height - 1).astype(float)
+    if uu.size > 1 and uu[-1] == uu[-2]:
+        uu[-1] = uu[-2] + 1
+    if vv.size > 1 and vv[-1] == vv[-2]:
+        vv[-1] = vv[-2] + 1
+    return uu, vv
+
+
+def _smooth_fields(model, dem, grid, u, v, D, names, groups, heights):
+    """Terrain-free fields at map cells (u, v): per height ``[col, row, A(4), ph(2), S(3),
+    C_k(3) ...]`` and the DEM pixel position and Jacobian ``[cd, rd, P(4)]``."""
+    lon, lat = grid.lonlat(u, v)
+    per_h = []
+    for hh in heights:
+        f = image_side(model, lon, lat, np.full(lon.shape, hh), names, D, grid.crs, groups=groups)
+        cols = [f["col"], f["row"], f["A"][:, 0, 0], f["A"][:, 0, 1], f["A"][:, 1, 0], f["A"][:, 1, 1],
+                f["ph"][:, 0], f["ph"][:, 1], f["S"][:, 0, 0], f["S"][:, 0, 1], f["S"][:, 1, 1]]
+        for Ck in f["C"].values():
+            cols += [Ck[:, 0, 0], Ck[:, 0, 1], Ck[:, 1, 1]]
+        per_h.append(np.stack(cols, -1))
+    cd, rd, P = dem_pixel_jacobian(dem, lon, lat, grid.crs)
+    flat = np.stack([cd, rd, P[:, 0, 0], P[:, 0, 1], P[:, 1, 0], P[:, 1, 1]], -1)
+    return np.stack(per_h, 0), flat, list((groups or {n: [n] for n in names}))
+
+
+def _assemble(Fh, Ff, heights, dem, garr, model, n_src):
+    """Per-cell ground covariance from interpolated smooth fields (``Fh`` (2, ..., m), ``Ff``
+    (..., 6)) with the cell's own DEM height and slope. Returns (a, b, c) = Σ_G entries, the
+    per-source horizontal variance (n_src, ...) and the validity mask."""
+    cd, rd = Ff[..., 0], Ff[..., 1]
+    P = np.stack([np.stack([Ff[..., 2], Ff[..., 3]], -1), np.stack([Ff[..., 4], Ff[..., 5]], -1)], -2)
+    h = bilinear_nan(dem.heights, cd, rd)
+    t = (h - heights[0]) / (heights[1] - heights[0])
+    F = Fh[0] + t[..., None] * (Fh[1] - Fh[0])
+    gE, gN = slope_from_pixels(garr[0], garr[1], cd, rd, P)
+    grad = np.stack([gE, gN], -1)
+    A = np.stack([np.stack([F[..., 2], F[..., 3]], -1), np.stack([F[..., 4], F[..., 5]], -1)], -2)
+    ph = F[..., 6:8]
+    sym = lambda a, b, c: np.stack([np.stack([a, b], -1), np.stack([b, c], -1)], -2)
+    g = ground_covariance(A, ph, grad, sym(F[..., 8], F[..., 9], F[..., 10]))
+    contrib = []
+    for k in range(n_src):
+        o = 11 + 3 * k
+        gk = ground_covariance(A, ph, grad, sym(F[..., o], F[..., o + 1], F[..., o + 2]))
+        contrib.append(gk[0] + gk[2])
+    col, row = F[..., 0], F[..., 1]
+    ok = np.isfinite(h) & (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5)
+    return g, np.stack(contrib, 0), ok
+
+
+def _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_check, seed, source_maps,
+                      block_rows: int = 256):
+    """First-order maps: the terrain-free image-side fields (model Jacobians, image-space
+    covariance and contributions) are smooth and interpolated from a lattice evaluated at two
+    heights; each cell then adds its own DEM height and slope (``A_eff = A + ∂p/∂h ∇hᵀ``) and
+    moves the covariance to the ground. The lattice is refined until the relative error of
+    σ_horizontal against the exact per-cell propagation at check cells is below ``tolerance``."""
+    rng = np.random.default_rng(seed)
+    z = dem.heights
+    lo, hi = float(np.nanmin(z)), float(np.nanmax(z))
+    pad = max(1.0, 0.02 * (hi - lo))
+    heights = (lo - pad, hi + pad)
+    garr = dem_gradient_arrays(dem)
+    big = max(grid.width, grid.height)
+    st = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
+    while True:
+        uu, vv = _node_lattice(grid, st)
+        U, V = np.meshgrid(uu, vv)
+        Fh, Ff, srcs = _smooth_fields(model, dem, grid, U.ravel(), V.ravel(), D, names, groups, heights)
+        Fh = Fh.reshape((2,) + U.shape + (-1,))
+        Ff = Ff.reshape(U.shape + (-1,))
+        ny, nx = U.shape
+        m = min(n_check // 2, (ny - 1) * (nx - 1))
+        cell = rng.choice((ny - 1) * (nx - 1), size=m, replace=False)
+        cu = np.concatenate([0.5 * (uu[cell % (nx - 1)] + uu[cell % (nx - 1) + 1]), rng.uniform(0, grid.width - 1, m)])
+        cv = np.concatenate([0.5 * (vv[cell // (nx - 1)] + vv[cell // (nx - 1) + 1]), rng.uniform(0, grid.height - 1, m)])
+        at = lambda L: np.stack([_bilinear_at(L[..., j], uu, vv, cu, cv) for j in range(L.shape[-1])], -1)
+        g, _, ok = _assemble(np.stack([at(Fh[0]), at(Fh[1])]), at(Ff), heights, dem, garr, model, len(srcs))
+        lon, lat = grid.lonlat(cu, cv)
+        h = dem.sample(lon, lat)
+        ok &= np.isfinite(h)
+        pu = first_order(model, lon[ok], lat[ok], h[ok], names, D, grid.crs, dem=dem)
+        inter = np.sqrt(g[0][ok] + g[2][ok])
+        exact = pu.sigma_horizontal
+        good = np.isfinite(exact) & np.isfinite(inter) & (exact > 0)
+        err = float(np.max(np.abs(inter[good] / exact[good] - 1))) if good.any() else 0.0
+        log.debug("uncertainty lattice step %d: relative error %.2e", st, err)
+        if step is not None or err <= tolerance or st <= 4:
+            break
+        st //= 2
+    if err > tolerance:
+        log.warning("uncertainty maps: relative interpolation error %.3g exceeds %.3g", err, tolerance)
+    Wx, Wy = _weights(grid.width, uu), _weights(grid.height, vv)
+    LXh = [np.einsum("yxm,wx->myw", Fh[k], Wx).astype(np.float32) for k in range(2)]   # (m, ny, W)
+    LXf = np.einsum("yxm,wx->myw", Ff, Wx)                                           # float64: positions
+    shape = grid.shape
+    sE = np.full(shape, np.nan, np.float32)
+    sN = np.full(shape, np.nan, np.float32)
+    c90 = np.full(shape, np.nan, np.float32)
+    dom = np.full(shape, -1, np.int16)
+    kept = {s_: np.full(shape, np.nan, np.float32) for s_ in srcs} if source_maps else {}
+    totals = np.zeros(len(srcs))
+    for r0 in range(0, grid.height, block_rows):
+        r1 = min(grid.height, r0 + block_rows)
+        wy = Wy[r0:r1].astype(np.float32)
+        Fh_b = np.stack([np.moveaxis(np.einsum("ry,myw->mrw", wy, LXh[k]), 0, -1) for k in range(2)])
+        Ff_b = np.moveaxis(np.einsum("ry,myw->mrw", Wy[r0:r1], LXf), 0, -1)
+        g, contrib, ok = _assemble(Fh_b, Ff_b, heights, dem, garr, model, len(srcs))
+        with np.errstate(invalid="ignore"):
+            e, n_ = np.sqrt(g[0]), np.sqrt(g[2])
+        ok &= np.isfinite(e) & np.isfinite(n_)
+        sE[r0:r1] = np.where(ok, e, np.nan)
+        sN[r0:r1] = np.where(ok, n_, np.nan)
+        c90[r0:r1] = np.where(ok, ce90_from_cov(g[0], g[1], g[2]), np.nan)
+        V = g[0] + g[2]
+        totals += np.where(ok[None], contrib, 0).sum(axis=(1, 2))
+        best = np.argmax(np.where(ok[None], contrib, -np.inf), axis=0)
+        dom[r0:r1] = np.where(ok, best, -1)
+        for k, s_ in enumerate(kept):
+            with np.errstate(invalid="ignore", divide="ignore"):
+                kept[s_][r0:r1] = np.where(ok, contrib[k] / V, np.nan)
+    tot = totals.sum()
+    shares = {s_: float(totals[k] / tot) if tot > 0 else float("nan") for k, s_ in enumerate(srcs)}
+    details = {"n_lattice_nodes": int(U.size), "lattice_heights_m": list(heights),
+               "terrain": "each cell's own DEM height and slope (central-difference gradient)"}
+    return UncertaintyMaps(grid, "first-order", names, srcs, sE, sN, c90, dom, shares, st, err, kept, details)
 
 
 # ----------------------------------------------------------------------------- DEM vertical σ
@@ -447,7 +605,7 @@ def dem_vertical_sigma(left, right, dem, *, left_covariance=None, left_names=(),
         vv = np.array([0.0, 1.0])
 
     def evaluate(u, v):
-        x, y = dem.transform * (u + 0.5, v + 0.5)
+        x, y = dem.transform @ (u + 0.5, v + 0.5)
         lon, lat = geodesy.crs_to_lonlat(x, y, dem.crs)
         h = dem.sample(lon, lat)
         h = np.where(np.isfinite(h), h, np.nanmedian(z))

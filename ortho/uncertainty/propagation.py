@@ -192,25 +192,97 @@ def image_jacobian(model, lon, lat, h, names, *, steps: dict | None = None):
     return col, row, J
 
 
-def dem_gradient(dem, lon, lat, crs, *, step: float | None = None):
-    """Terrain gradient ``(∂h/∂E, ∂h/∂N)`` (m/m) of a DEM at points, by central differences of
-    its bilinear surface in the map CRS (step: one DEM posting, about)."""
+def dem_pixel_jacobian(dem, lon, lat, crs, *, d: float = 1.0):
+    """DEM pixel coordinates (col, row; centres at integers) of points and their partials
+    ``∂(col, row)/∂(E, N)`` with respect to the map coordinates, (n,), (n,), (n, 2, 2)."""
     E, N = geodesy.lonlat_to_crs(lon, lat, crs)
-    if step is None:
-        step = _dem_posting_m(dem)
-    out = []
-    for dE, dN in ((step, 0.0), (0.0, step)):
-        hp = dem.sample(*geodesy.crs_to_lonlat(E + dE, N + dN, crs))
-        hm = dem.sample(*geodesy.crs_to_lonlat(E - dE, N - dN, crs))
-        out.append(np.nan_to_num((np.asarray(hp) - hm) / (2 * step)))
-    return out[0], out[1]
+    inv = ~dem.transform
+
+    def pix(e, n):
+        x, y = geodesy.lonlat_to_crs(*geodesy.crs_to_lonlat(e, n, crs), dem.crs)
+        c, r = inv @ (np.asarray(x, float), np.asarray(y, float))
+        return np.asarray(c) - 0.5, np.asarray(r) - 0.5
+
+    c0, r0 = pix(E, N)
+    P = np.empty(np.shape(c0) + (2, 2))
+    for k, (dE, dN) in enumerate(((d, 0.0), (0.0, d))):
+        cp, rp = pix(E + dE, N + dN)
+        cm, rm = pix(E - dE, N - dN)
+        P[..., 0, k], P[..., 1, k] = (cp - cm) / (2 * d), (rp - rm) / (2 * d)
+    return c0, r0, P
 
 
-def _dem_posting_m(dem) -> float:
-    res = abs(dem.transform.a)
-    if dem.crs.is_geographic:
-        res *= 111_320.0
-    return float(max(res, 1.0))
+def dem_gradient_arrays(dem):
+    """``(∂h/∂col, ∂h/∂row)`` of the DEM grid (m per DEM pixel), central differences."""
+    z = np.asarray(dem.heights, dtype=np.float64)
+    gr, gc = np.gradient(z)
+    return gc, gr
+
+
+def dem_gradient(dem, lon, lat, crs, *, arrays=None):
+    """Terrain gradient ``(∂h/∂E, ∂h/∂N)`` (m/m) at points: the DEM's central-difference
+    gradient, bilinear between posts, turned into map axes by the DEM-pixel Jacobian."""
+    from stereodem.ortho.drm import bilinear_nan
+    gc, gr = arrays if arrays is not None else dem_gradient_arrays(dem)
+    c, r, P = dem_pixel_jacobian(dem, lon, lat, crs)
+    return slope_from_pixels(gc, gr, c, r, P)
+
+
+def slope_from_pixels(gc, gr, c, r, P):
+    """Map-axis gradient from the DEM-pixel gradient arrays sampled at (c, r) with the pixel
+    Jacobian ``P = ∂(c, r)/∂(E, N)``; 0 where the DEM has no value."""
+    from stereodem.ortho.drm import bilinear_nan
+    a, b = np.nan_to_num(bilinear_nan(gc, c, r)), np.nan_to_num(bilinear_nan(gr, c, r))
+    return a * P[..., 0, 0] + b * P[..., 1, 0], a * P[..., 0, 1] + b * P[..., 1, 1]
+
+
+def ground_covariance(A, ph, grad, M):
+    """``A_eff⁻¹ M A_eff⁻ᵀ`` with ``A_eff = A + ∂p/∂h ∇hᵀ``: an image-space covariance (or
+    contribution) ``M`` (..., 2, 2) in px² moved to the ground (m²) for image Jacobian ``A``
+    (..., 2, 2), height partial ``ph`` (..., 2) and terrain gradient ``grad`` (..., 2)."""
+    a = A[..., 0, 0] + ph[..., 0] * grad[..., 0]
+    b = A[..., 0, 1] + ph[..., 0] * grad[..., 1]
+    c = A[..., 1, 0] + ph[..., 1] * grad[..., 0]
+    d = A[..., 1, 1] + ph[..., 1] * grad[..., 1]
+    det = a * d - b * c
+    with np.errstate(all="ignore"):
+        i00, i01, i10, i11 = d / det, -b / det, -c / det, a / det
+    m00, m01, m11 = M[..., 0, 0], M[..., 0, 1], M[..., 1, 1]
+    # G = inv @ M @ inv.T
+    t00 = i00 * m00 + i01 * m01
+    t01 = i00 * m01 + i01 * m11
+    t10 = i10 * m00 + i11 * m01
+    t11 = i10 * m01 + i11 * m11
+    g00 = t00 * i00 + t01 * i01
+    g01 = t00 * i10 + t01 * i11
+    g11 = t10 * i10 + t11 * i11
+    return g00, g01, g11
+
+
+def image_side(model, lon, lat, h, names, D, crs, *, groups: dict | None = None, steps: dict | None = None):
+    """The smooth, terrain-free part of the propagation at ground points.
+
+    Returns a dict: ``col``, ``row`` (n,), ``A = ∂(col,row)/∂(E,N)`` (n, 2, 2) at fixed height,
+    ``ph = ∂(col,row)/∂h`` (n, 2), ``S = J D Jᵀ`` (n, 2, 2) the image-space covariance of all
+    inputs (px²) and ``C`` {source: (n, 2, 2)} each source's contribution to ``S`` (they sum to
+    ``S``). With the terrain gradient, :func:`ground_covariance` moves them to the ground.
+    """
+    lon, lat, h = np.broadcast_arrays(*(np.atleast_1d(np.asarray(a, float)) for a in (lon, lat, h)))
+    names = list(names)
+    col, row, Ji = image_jacobian(model, lon, lat, h, names, steps=steps)
+    gj = ground_jacobian(model, lon, lat, h, [], crs)
+    cp, rp = model.project(lon, lat, h + DEM_HEIGHT_STEP)
+    cm, rm = model.project(lon, lat, h - DEM_HEIGHT_STEP)
+    ph = np.stack([np.asarray(cp) - cm, np.asarray(rp) - rm], -1) / (2 * DEM_HEIGHT_STEP)
+    DJ = np.einsum("kl,nil->nik", D, Ji)                       # (n, 2, u): Σ_l D_kl J_il
+    groups = groups or {n: [n] for n in names}
+    idx = {n: k for k, n in enumerate(names)}
+    C = {}
+    for g, members in groups.items():
+        ks = [idx[m] for m in members if m in idx]
+        Cg = np.einsum("nik,njk->nij", Ji[..., ks], DJ[..., ks])
+        C[g] = 0.5 * (Cg + np.swapaxes(Cg, -1, -2))
+    return {"col": col, "row": row, "A": gj.A, "ph": ph, "S": propagate(Ji, D), "C": C}
 
 
 @dataclass
@@ -261,7 +333,7 @@ def ground_jacobian(model, lon, lat, h, names, crs, *, dem=None, steps: dict | N
         cm, rm = model.project(lm, am, h)
         A[..., 0, k] = (np.asarray(cp) - cm) / (2 * d)
         A[..., 1, k] = (np.asarray(rp) - rm) / (2 * d)
-    if dem is not None:
+    if dem is not None and len(lon):
         gE, gN = dem_gradient(dem, lon, lat, crs)
         cp, rp = model.project(lon, lat, h + DEM_HEIGHT_STEP)
         cm, rm = model.project(lon, lat, h - DEM_HEIGHT_STEP)
