@@ -361,42 +361,71 @@ def _smooth_fields(model, dem, grid, u, v, D, names, groups, heights):
     """Terrain-free fields at map cells (u, v): per height ``[col, row, A(4), ph(2), S(3),
     C_k(3) ...]`` and the DEM pixel position and Jacobian ``[cd, rd, P(4)]``."""
     lon, lat = grid.lonlat(u, v)
-    per_h = []
+    per_h, contrib = [], []
     for hh in heights:
         f = image_side(model, lon, lat, np.full(lon.shape, hh), names, D, grid.crs, groups=groups)
         cols = [f["col"], f["row"], f["A"][:, 0, 0], f["A"][:, 0, 1], f["A"][:, 1, 0], f["A"][:, 1, 1],
                 f["ph"][:, 0], f["ph"][:, 1], f["S"][:, 0, 0], f["S"][:, 0, 1], f["S"][:, 1, 1]]
-        for Ck in f["C"].values():
-            cols += [Ck[:, 0, 0], Ck[:, 0, 1], Ck[:, 1, 1]]
         per_h.append(np.stack(cols, -1))
+        contrib.append(np.stack([c for Ck in f["C"].values() for c in (Ck[:, 0, 0], Ck[:, 0, 1], Ck[:, 1, 1])], -1))
     cd, rd, P = dem_pixel_jacobian(dem, lon, lat, grid.crs)
-    flat = np.stack([cd, rd, P[:, 0, 0], P[:, 0, 1], P[:, 1, 0], P[:, 1, 1]], -1)
+    # the ground covariance uses both heights; the source contributions (shares, dominant
+    # source) the mean of the two, which changes a share by ~1e-3 of itself at most
+    flat = np.concatenate([np.stack([cd, rd, P[:, 0, 0], P[:, 0, 1], P[:, 1, 0], P[:, 1, 1]], -1),
+                           0.5 * (contrib[0] + contrib[1])], -1)
     return np.stack(per_h, 0), flat, list((groups or {n: [n] for n in names}))
 
 
 def _assemble(Fh, Ff, heights, dem, garr, model, n_src):
-    """Per-cell ground covariance from interpolated smooth fields (``Fh`` (2, ..., m), ``Ff``
-    (..., 6)) with the cell's own DEM height and slope. Returns (a, b, c) = Σ_G entries, the
-    per-source horizontal variance (n_src, ...) and the validity mask."""
-    cd, rd = Ff[..., 0], Ff[..., 1]
-    P = np.stack([np.stack([Ff[..., 2], Ff[..., 3]], -1), np.stack([Ff[..., 4], Ff[..., 5]], -1)], -2)
-    h = bilinear_nan(dem.heights, cd, rd)
+    """Per-cell ground covariance from interpolated smooth fields, field-first: ``Fh``
+    (2 heights, 11, ...), ``Ff`` (6 + 3 n_src, ...), with the cell's own DEM height and slope. Returns
+    (a, b, c) = Σ_G entries, the per-source horizontal variance (n_src, ...) and the validity
+    mask."""
+    cd, rd = Ff[0], Ff[1]
+    P = np.stack([np.stack([Ff[2], Ff[3]], -1), np.stack([Ff[4], Ff[5]], -1)], -2)
+    h = bilinear_nan(dem.heights, cd, rd, dtype=Fh.dtype)
     t = (h - heights[0]) / (heights[1] - heights[0])
-    F = Fh[0] + t[..., None] * (Fh[1] - Fh[0])
+    F0, F1 = Fh[0], Fh[1]
+    f = lambda j: F0[j] + t * (F1[j] - F0[j])
     gE, gN = slope_from_pixels(garr[0], garr[1], cd, rd, P)
-    grad = np.stack([gE, gN], -1)
-    A = np.stack([np.stack([F[..., 2], F[..., 3]], -1), np.stack([F[..., 4], F[..., 5]], -1)], -2)
-    ph = F[..., 6:8]
-    sym = lambda a, b, c: np.stack([np.stack([a, b], -1), np.stack([b, c], -1)], -2)
-    g = ground_covariance(A, ph, grad, sym(F[..., 8], F[..., 9], F[..., 10]))
-    contrib = []
+    # A_eff = A + ∂p/∂h ∇hᵀ and its inverse
+    ph0, ph1 = f(6), f(7)
+    a = f(2) + ph0 * gE
+    b = f(3) + ph0 * gN
+    c = f(4) + ph1 * gE
+    d = f(5) + ph1 * gN
+    with np.errstate(all="ignore"):
+        det = a * d - b * c
+        i00, i01, i10, i11 = d / det, -b / det, -c / det, a / det
+    def to_ground(m00, m01, m11):
+        t00 = i00 * m00 + i01 * m01
+        t01 = i00 * m01 + i01 * m11
+        t10 = i10 * m00 + i11 * m01
+        t11 = i10 * m01 + i11 * m11
+        return t00 * i00 + t01 * i01, t00 * i10 + t01 * i11, t10 * i10 + t11 * i11
+    g = to_ground(f(8), f(9), f(10))
+    # trace(A⁻¹ C A⁻ᵀ) = q00 c00 + 2 q01 c01 + q11 c11 with Q = A⁻ᵀA⁻¹
+    q00 = i00 * i00 + i10 * i10
+    q01 = i00 * i01 + i10 * i11
+    q11 = i01 * i01 + i11 * i11
+    contrib = np.empty((n_src,) + h.shape, dtype=Fh.dtype)
     for k in range(n_src):
-        o = 11 + 3 * k
-        gk = ground_covariance(A, ph, grad, sym(F[..., o], F[..., o + 1], F[..., o + 2]))
-        contrib.append(gk[0] + gk[2])
-    col, row = F[..., 0], F[..., 1]
+        o = 6 + 3 * k
+        contrib[k] = q00 * Ff[o] + 2 * q01 * Ff[o + 1] + q11 * Ff[o + 2]
+    col, row = f(0), f(1)
     ok = np.isfinite(h) & (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5)
-    return g, np.stack(contrib, 0), ok
+    return g, contrib, ok
+
+
+def _rows(LX, vv, r0, r1):
+    """Linear interpolation along the lattice rows ``vv`` of ``LX`` (m, ny, W) for grid rows
+    r0..r1-1 -> (m, r1 - r0, W)."""
+    y = np.arange(r0, r1, dtype=float)
+    j = np.clip(np.searchsorted(vv, y, side="right") - 1, 0, vv.size - 2)
+    t = np.clip((y - vv[j]) / (vv[j + 1] - vv[j]), 0, 1).astype(LX.dtype)[None, :, None]
+    out = LX[:, j] * (1 - t)
+    out += LX[:, j + 1] * t
+    return out
 
 
 def _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_check, seed, source_maps,
@@ -425,7 +454,7 @@ def _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_che
         cell = rng.choice((ny - 1) * (nx - 1), size=m, replace=False)
         cu = np.concatenate([0.5 * (uu[cell % (nx - 1)] + uu[cell % (nx - 1) + 1]), rng.uniform(0, grid.width - 1, m)])
         cv = np.concatenate([0.5 * (vv[cell // (nx - 1)] + vv[cell // (nx - 1) + 1]), rng.uniform(0, grid.height - 1, m)])
-        at = lambda L: np.stack([_bilinear_at(L[..., j], uu, vv, cu, cv) for j in range(L.shape[-1])], -1)
+        at = lambda L: np.stack([_bilinear_at(L[..., j], uu, vv, cu, cv) for j in range(L.shape[-1])], 0)
         g, _, ok = _assemble(np.stack([at(Fh[0]), at(Fh[1])]), at(Ff), heights, dem, garr, model, len(srcs))
         lon, lat = grid.lonlat(cu, cv)
         h = dem.sample(lon, lat)
@@ -441,9 +470,11 @@ def _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_che
         st //= 2
     if err > tolerance:
         log.warning("uncertainty maps: relative interpolation error %.3g exceeds %.3g", err, tolerance)
-    Wx, Wy = _weights(grid.width, uu), _weights(grid.height, vv)
-    LXh = [np.einsum("yxm,wx->myw", Fh[k], Wx).astype(np.float32) for k in range(2)]   # (m, ny, W)
-    LXf = np.einsum("yxm,wx->myw", Ff, Wx)                                           # float64: positions
+    Wx = _weights(grid.width, uu)
+    LXh = [np.einsum("yxm,wx->myw", Fh[k], Wx, optimize=True).astype(np.float32)
+           for k in range(2)]                                                          # (m, ny, W)
+    LXf = np.einsum("yxm,wx->myw", Ff[..., :6], Wx, optimize=True)                   # float64: positions
+    LXc = np.einsum("yxm,wx->myw", Ff[..., 6:], Wx, optimize=True).astype(np.float32)  # contributions
     shape = grid.shape
     sE = np.full(shape, np.nan, np.float32)
     sN = np.full(shape, np.nan, np.float32)
@@ -453,9 +484,8 @@ def _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_che
     totals = np.zeros(len(srcs))
     for r0 in range(0, grid.height, block_rows):
         r1 = min(grid.height, r0 + block_rows)
-        wy = Wy[r0:r1].astype(np.float32)
-        Fh_b = np.stack([np.moveaxis(np.einsum("ry,myw->mrw", wy, LXh[k]), 0, -1) for k in range(2)])
-        Ff_b = np.moveaxis(np.einsum("ry,myw->mrw", Wy[r0:r1], LXf), 0, -1)
+        Fh_b = np.stack([_rows(LXh[k], vv, r0, r1) for k in range(2)])
+        Ff_b = np.concatenate([_rows(LXf, vv, r0, r1), _rows(LXc, vv, r0, r1)], 0)
         g, contrib, ok = _assemble(Fh_b, Ff_b, heights, dem, garr, model, len(srcs))
         with np.errstate(invalid="ignore"):
             e, n_ = np.sqrt(g[0]), np.sqrt(g[2])
