@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -206,7 +207,7 @@ def _node_fields(model, dem, grid, U, V, D, names, groups, method, samples, seed
 def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "first-order", *,
                            samples: int = 1000, groups: dict | None = None, step: int | None = None,
                            tolerance: float = 0.005, n_check: int = 400, seed: int = 0,
-                           source_maps: bool = False) -> UncertaintyMaps:
+                           source_maps: bool = False, threads: int | None = None) -> UncertaintyMaps:
     """Per-cell horizontal uncertainty of the orthoimage of ``model`` over ``dem`` on ``grid``.
 
     Parameters
@@ -234,6 +235,8 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
     source_maps : bool
         Keep each source's share map (full grid, float32 each); the dominant source is always
         computed.
+    threads : int, optional
+        Threads for the first-order row blocks (default: all cores).
 
     Returns
     -------
@@ -253,7 +256,7 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
     dem = _ellipsoidal(dem)
     if method == "first-order":
         return _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_check, seed,
-                                 source_maps)
+                                 source_maps, threads)
     rng = np.random.default_rng(seed)
     big = max(grid.width, grid.height)
     st = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
@@ -429,7 +432,7 @@ def _rows(LX, vv, r0, r1):
 
 
 def _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_check, seed, source_maps,
-                      block_rows: int = 256):
+                      threads=None, block_rows: int = 256):
     """First-order maps: the terrain-free image-side fields (model Jacobians, image-space
     covariance and contributions) are smooth and interpolated from a lattice evaluated at two
     heights; each cell then adds its own DEM height and slope (``A_eff = A + ∂p/∂h ∇hᵀ``) and
@@ -482,7 +485,7 @@ def _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_che
     dom = np.full(shape, -1, np.int16)
     kept = {s_: np.full(shape, np.nan, np.float32) for s_ in srcs} if source_maps else {}
     totals = np.zeros(len(srcs))
-    for r0 in range(0, grid.height, block_rows):
+    def run_block(r0):
         r1 = min(grid.height, r0 + block_rows)
         Fh_b = np.stack([_rows(LXh[k], vv, r0, r1) for k in range(2)])
         Ff_b = np.concatenate([_rows(LXf, vv, r0, r1), _rows(LXc, vv, r0, r1)], 0)
@@ -494,12 +497,24 @@ def _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_che
         sN[r0:r1] = np.where(ok, n_, np.nan)
         c90[r0:r1] = np.where(ok, ce90_from_cov(g[0], g[1], g[2]), np.nan)
         V = g[0] + g[2]
-        totals += np.where(ok[None], contrib, 0).sum(axis=(1, 2))
         best = np.argmax(np.where(ok[None], contrib, -np.inf), axis=0)
         dom[r0:r1] = np.where(ok, best, -1)
         for k, s_ in enumerate(kept):
             with np.errstate(invalid="ignore", divide="ignore"):
                 kept[s_][r0:r1] = np.where(ok, contrib[k] / V, np.nan)
+        return np.where(ok[None], contrib, 0).sum(axis=(1, 2), dtype=np.float64)
+
+    # row blocks on threads (numpy releases the GIL; blocks write disjoint rows)
+    starts = range(0, grid.height, block_rows)
+    n_threads = max(1, int(threads or os.cpu_count() or 1))
+    if n_threads > 1:
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(n_threads) as pool:
+            for part in pool.map(run_block, starts):
+                totals += part
+    else:
+        for r0 in starts:
+            totals += run_block(r0)
     tot = totals.sum()
     shares = {s_: float(totals[k] / tot) if tot > 0 else float("nan") for k, s_ in enumerate(srcs)}
     details = {"n_lattice_nodes": int(U.size), "lattice_heights_m": list(heights),
