@@ -32,8 +32,9 @@ from affine import Affine
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM, ELLIPSOID
 from stereodem.sensor.errors import DEMCoverageError, InputError, SensorModelError
+from stereodem.sensor.geo.grid import MapGrid, OnGrid
 
-from .grid import MapGrid, grid_for_model
+from .grid import grid_for_model
 
 log = logging.getLogger(__name__)
 
@@ -458,7 +459,7 @@ def remap_nan(img, ok, col, row, resampling, nodata=np.nan):
 # --------------------------------------------------------------------------- orthoimage
 
 @dataclass
-class Ortho:
+class Ortho(OnGrid):
     """An orthoimage on a map grid.
 
     Attributes
@@ -493,14 +494,6 @@ class Ortho:
     dem_missing: dict
     col: np.ndarray | None = None
     row: np.ndarray | None = None
-
-    @property
-    def transform(self) -> Affine:
-        return self.grid.transform
-
-    @property
-    def crs(self):
-        return self.grid.crs
 
     def report(self) -> dict:
         """Figures for logs and reports (plain types)."""

@@ -22,11 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from affine import Affine
-from pyproj import CRS
 
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.errors import InputError
-from stereodem.sensor.geo.grid import MapGrid, as_crs
+from stereodem.sensor.geo.grid import MapGrid, OnGrid, as_crs
 from stereodem.sensor.io.raster import write_geotiff
 
 __all__ = ["DEMGrid", "GridSpec", "CellSums", "SUM_LAYERS", "accumulate", "finish", "grid_points",
@@ -36,7 +35,7 @@ _VERTICAL_TAG = "STEREODEM_VERTICAL"
 
 
 @dataclass
-class DEMGrid:
+class DEMGrid(OnGrid):
     """A gridded DEM and its companion layers on one :class:`MapGrid`.
 
     Attributes
@@ -61,18 +60,6 @@ class DEMGrid:
     grid: MapGrid
     vertical: str = "ellipsoid"
     info: dict = field(default_factory=dict)
-
-    @property
-    def transform(self) -> Affine:
-        return self.grid.transform
-
-    @property
-    def crs(self) -> CRS:
-        return self.grid.crs
-
-    @property
-    def posting(self) -> float:
-        return self.grid.posting
 
     def write(self, directory, *, overwrite=False, names=None):
         """Write ``dem.tif``, ``count.tif``, ``score.tif`` and ``raygap.tif`` in ``directory``.
@@ -115,7 +102,7 @@ def _density_sigma(fi, fj, rows, cols, posting):
 
 
 @dataclass(frozen=True)
-class GridSpec:
+class GridSpec(OnGrid):
     """The output lattice and the cell estimator, fixed before any point is gridded.
 
     Attributes
@@ -137,22 +124,6 @@ class GridSpec:
     sigma: float | None = None
     radius: int | None = None
     geoid: bool = False
-
-    @property
-    def transform(self) -> Affine:
-        return self.grid.transform
-
-    @property
-    def shape(self) -> tuple:
-        return self.grid.shape
-
-    @property
-    def crs(self) -> CRS:
-        return self.grid.crs
-
-    @property
-    def posting(self) -> float:
-        return self.grid.posting
 
     @classmethod
     def from_bounds(cls, bounds, posting, crs, **options):

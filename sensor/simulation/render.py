@@ -14,27 +14,18 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from affine import Affine
 
 from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.grid import MapGrid
+from stereodem.sensor.geo.grid import MapGrid, OnGrid
 from stereodem.sensor.models.base import SensorModel
 
 
 @dataclass
-class MapRaster:
+class MapRaster(OnGrid):
     """A float32 raster (``data``, rows x cols) on a :class:`MapGrid`."""
 
     data: np.ndarray
     grid: MapGrid
-
-    @property
-    def transform(self) -> Affine:
-        return self.grid.transform
-
-    @property
-    def crs(self):
-        return self.grid.crs
 
     def sample(self, x, y, border=np.nan):
         """Bilinear values at map coordinates (float64 arrays; converted to float32 pixel maps)."""
