@@ -43,7 +43,7 @@ def _ensure_registered():
         register("frame", frame.FrameCamera,
                  lambda m: {n: getattr(m, n) for n in names},
                  lambda d: frame.FrameCamera(**{n: d[n] for n in names if n in d}))
-    for modname in ("pushbroom", "aster", "rpc", "corrected"):
+    for modname in ("pushbroom", "aster", "rpc", "rpc_direct", "corrected"):
         try:
             mod = __import__(f"stereodem.sensor.models.{modname}", fromlist=["_"])
         except ImportError:

@@ -36,6 +36,7 @@ guess of the exact Newton localisation.
 from __future__ import annotations
 
 import math
+import re
 import warnings
 
 import numpy as np
@@ -115,11 +116,24 @@ def monomials(x, y, z, out=None):
     return m
 
 
+#: units that may follow an RPC value (DigitalGlobe/IKONOS text files, and GDAL passes them
+#: up raw through the RPC metadata domain): "LINE_OFF: 149.5 pixels"
+_UNIT = re.compile(r"^\s*([-+0-9.eEdD]+)\s*(?:pixels?|pix|px|degrees?|deg|meters?|metres?|m)?\s*;?\s*$",
+                   re.IGNORECASE)
+
+
 def _parse_float(value, key, path):
+    text = str(value).strip().rstrip(";").strip()
     try:
-        v = float(str(value).strip().rstrip(";").strip())
+        v = float(text)
     except (TypeError, ValueError):
-        raise RPCError(f"{where(path)}RPC key {key}: not a number ({str(value)[:40]!r})") from None
+        m = _UNIT.match(text)
+        try:
+            v = float(m.group(1).replace("d", "e").replace("D", "E")) if m else None
+        except ValueError:
+            v = None
+        if v is None:
+            raise RPCError(f"{where(path)}RPC key {key}: not a number ({str(value)[:40]!r})") from None
     if not math.isfinite(v):
         raise RPCError(f"{where(path)}RPC key {key}: not finite ({value!r})")
     return v
