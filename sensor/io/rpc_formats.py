@@ -169,10 +169,8 @@ def _read_rpc_txt(path: Path) -> RPCModel:
         fields = value.split()
         if not fields:
             d[key] = ""
-        elif key in COEFF_KEYS:
+        else:       # the whole value: a unit after it is checked by the number parser
             d[key] = value.strip()
-        else:
-            d[key] = fields[0]
     _coefficient_lists(d, path)
     loc = None
     if "LON_NUM_COEFF_1" in d or "LON_NUM_COEFF" in d:
