@@ -217,3 +217,31 @@ def test_real_pleiades_pair():
     assert lo <= np.percentile(dsm, 0.5) and hi >= np.percentile(dsm, 99.5)
     assert hi - lo < 400
     assert not (lo <= np.mean(left.height_bounds()) <= hi)
+
+
+# ----------------------------------------------------------------------------- the stage
+
+def test_sparse_stage_corrects_and_bounds_the_biased_pair(scene):
+    from stereodem.stereo.sparse_stage import run_sparse_stage
+    given = ImageCorrectedModel(scene.right_model, col_shift=6.0, row_shift=3.0)
+    st = run_sparse_stage(scene.left, scene.right, scene.left_model, given,
+                          reference_dem=scene.truth_dem)
+    lon, lat, h = _overlap_truth(scene, step=40)
+    c0, r0 = scene.right_model.project(lon, lat, h)
+    c1, r1 = st.right_model.project(lon, lat, h)
+    assert np.max(np.hypot(c1 - c0, r1 - r0)) <= 0.1
+    lon, lat, h = _overlap_truth(scene)
+    assert st.height_range[0] <= h.min() and st.height_range[1] >= h.max()
+    s = st.summary()
+    assert s["matches"]["n"] == len(st.matches) and s["pointing"]["kind"] == "translation"
+    assert set(s["seconds"]) == {"matching", "pointing", "terrain", "total"}
+
+
+def test_height_pileup():
+    from stereodem.stereo.sparse_stage import height_pileup
+    rng = np.random.default_rng(1)
+    good = rng.normal(500, 50, 10000)                      # terrain well inside 0..1000
+    assert not height_pileup(good, (0, 1000))["suspect"]
+    stuck = np.concatenate([good[:7000], np.full(3000, 1.0)])   # 30 % at the lower bound
+    r = height_pileup(stuck, (0, 1000))
+    assert r["suspect"] and r["low_share"] == pytest.approx(0.3, abs=0.01) and r["high_share"] < 0.01
