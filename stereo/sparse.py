@@ -16,8 +16,11 @@ This is the sparse stage of CARS and s2p (SIFT, ratio test, then a check through
 geometry), used here for the terrain height range (:mod:`stereodem.stereo.terrain`) and the
 relative pointing correction (:mod:`stereodem.stereo.pointing`).
 
-Large images are matched at a reduced scale (``max_size``) and the keypoint positions are
-scaled back; the cost is dominated by SIFT detection (about 0.3 s per megapixel on one core).
+Keypoints are detected and matched on images reduced to at most ``max_size`` pixels a side
+(the cost of SIFT, about 0.5 s of CPU per megapixel, stays bounded for any scene size), then
+each match is refined at full resolution by a vectorised ZNCC of 15 x 15 patches with a
+parabolic sub-pixel peak (:func:`refine_matches`), so the matches keep full-resolution
+precision.
 """
 from __future__ import annotations
 
@@ -33,7 +36,7 @@ from stereodem.sensor.errors import StereodemError
 log = logging.getLogger(__name__)
 
 __all__ = ["SparseMatches", "SparseMatchError", "sparse_matches", "epipolar_curves",
-           "distance_to_curves", "to_uint8"]
+           "distance_to_curves", "refine_matches", "to_uint8"]
 
 
 class SparseMatchError(StereodemError):
@@ -158,6 +161,78 @@ def _ratio_matches(d1, d2, ratio):
     return i[single], j[single], 1.0 - r[keep][single]
 
 
+def refine_matches(left, right, x1, x2, *, half: int = 7, search: int = 2, min_score: float = 0.6):
+    """Refine matches at full resolution by ZNCC of small patches (vectorised over matches).
+
+    The left point moves to its nearest pixel centre; a ``(2 half + 1)`` square patch around
+    it is correlated with the right image at integer shifts of up to ``search`` px around the
+    right point's nearest pixel, and the peak is located to sub-pixel precision by a parabola
+    through its neighbours along each axis.
+
+    Parameters
+    ----------
+    left, right : ndarray (rows, cols) float32
+        Full-resolution images (NaN = void).
+    x1, x2 : ndarray (N, 2)
+        Matched (col, row) positions.
+
+    Returns
+    -------
+    x1, x2 : ndarray (M, 2)
+        Refined positions of the matches kept.
+    score : ndarray (M,)
+        Peak ZNCC.
+    keep : ndarray (N,) bool
+        Which input matches were kept (inside both images, peak not on the search border,
+        score >= ``min_score``).
+    """
+    p1 = np.rint(x1).astype(np.int64)
+    p2 = np.rint(x2).astype(np.int64)
+    r = half + search
+    inside = ((p1[:, 0] >= half) & (p1[:, 1] >= half) & (p1[:, 0] < left.shape[1] - half)
+              & (p1[:, 1] < left.shape[0] - half) & (p2[:, 0] >= r) & (p2[:, 1] >= r)
+              & (p2[:, 0] < right.shape[1] - r) & (p2[:, 1] < right.shape[0] - r))
+    idx = np.nonzero(inside)[0]
+    if idx.size == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), inside
+    oy, ox = np.mgrid[-half:half + 1, -half:half + 1]
+    T = left[p1[idx, 1, None, None] + oy, p1[idx, 0, None, None] + ox].astype(np.float64)
+    sy, sx = np.mgrid[-r:r + 1, -r:r + 1]
+    S = right[p2[idx, 1, None, None] + sy, p2[idx, 0, None, None] + sx].astype(np.float64)
+    T -= T.mean(axis=(1, 2), keepdims=True)
+    tn = np.sqrt(np.sum(T * T, axis=(1, 2)))
+    k = 2 * search + 1
+    w = 2 * half + 1
+    scores = np.full((idx.size, k, k), -np.inf)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for dy in range(k):                      # loop over the (2 search + 1)^2 shifts only
+            for dx in range(k):
+                P = S[:, dy:dy + w, dx:dx + w]
+                P = P - P.mean(axis=(1, 2), keepdims=True)
+                scores[:, dy, dx] = np.sum(T * P, axis=(1, 2)) / (tn * np.sqrt(np.sum(P * P, axis=(1, 2))))
+    scores = np.where(np.isfinite(scores), scores, -np.inf)
+    flat = scores.reshape(idx.size, -1).argmax(1)
+    by, bx = np.divmod(flat, k)
+    best = scores.reshape(idx.size, -1)[np.arange(idx.size), flat]
+    interior = (by > 0) & (by < k - 1) & (bx > 0) & (bx < k - 1) & (best >= min_score)
+    n = np.arange(idx.size)
+    byc, bxc = np.clip(by, 1, k - 2), np.clip(bx, 1, k - 2)
+
+    def vertex(a, b, c):
+        den = a - 2 * b + c
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(den < 0, 0.5 * (a - c) / den, 0.0)
+
+    fx = vertex(scores[n, byc, bxc - 1], scores[n, byc, bxc], scores[n, byc, bxc + 1])
+    fy = vertex(scores[n, byc - 1, bxc], scores[n, byc, bxc], scores[n, byc + 1, bxc])
+    ok = interior & np.isfinite(fx) & np.isfinite(fy)
+    keep = np.zeros(len(x1), bool)
+    keep[idx[ok]] = True
+    y1 = p1[idx[ok]].astype(np.float64)
+    y2 = np.stack([p2[idx[ok], 0] + bx[ok] - search + fx[ok], p2[idx[ok], 1] + by[ok] - search + fy[ok]], -1)
+    return y1, y2, best[ok], keep
+
+
 # ----------------------------------------------------------------------------- geometry
 
 def epipolar_curves(left, right, col1, row1, heights):
@@ -258,8 +333,8 @@ def _consensus(values, tol):
 
 def sparse_matches(left_image, right_image, left_model, right_model, height_range=None, *,
                    ratio: float = 0.75, max_offset: float = 50.0, tolerance: float = 2.0,
-                   max_size: int = 2500, n_features: int = 20000, n_heights: int = 5,
-                   left_window=None) -> SparseMatches:
+                   max_size: int = 640, n_features: int = 8000, n_heights: int = 5,
+                   refine: bool = True, left_window=None) -> SparseMatches:
     """SIFT matches between two images, checked through their sensor models.
 
     Parameters
@@ -278,13 +353,18 @@ def sparse_matches(left_image, right_image, left_model, right_model, height_rang
         and along the epipolar curves.
     tolerance : float
         Largest distance (px, full resolution) of a right point from its epipolar curve once
-        the consensus offset is removed (at least the detection scale's pixel).
+        the consensus offset is removed (at least the detection scale's pixel when the
+        matches are not refined).
     max_size : int
-        Images whose larger side exceeds this are matched at a reduced scale.
+        Keypoints are detected and matched on images reduced so that their larger side is at
+        most this (cost bounded for any scene size), then refined at full resolution.
     n_features : int
         Cap on SIFT keypoints per image.
     n_heights : int
         Vertices of each epipolar polyline.
+    refine : bool
+        Refine the matches at full resolution (:func:`refine_matches`); without it the
+        positions keep the detection scale's precision.
     left_window : (col0, row0, col1, row1), optional
         Keep only left keypoints inside this box.
 
@@ -320,9 +400,18 @@ def sparse_matches(left_image, right_image, left_model, right_model, height_rang
     t2 = time.perf_counter()
     heights = np.linspace(hlo, hhi, max(2, int(n_heights)))
     p1, p2 = x1[i], x2[j]
+    tol = float(tolerance)
+    if refine:
+        t3 = time.perf_counter()
+        Lf = np.asarray(left_image, np.float32)
+        Rf = np.asarray(right_image, np.float32)
+        p1, p2, _, kept = refine_matches(Lf, Rf, p1, p2, search=max(2, int(np.ceil(1.5 / scale))))
+        score = score[kept]
+        times["refine"] = time.perf_counter() - t3
+    else:
+        tol = max(tol, 1.0 / scale)
     curves = epipolar_curves(left_model, right_model, p1[:, 0], p1[:, 1], heights)
     cross, beyond, h, normal, direction = distance_to_curves(p2, curves, heights, extend=max_offset)
-    tol = max(float(tolerance), 1.0 / scale)
     with np.errstate(invalid="ignore"):
         plausible = np.isfinite(cross) & (np.abs(cross) <= max_offset) & (beyond <= 0)
     offset, inl = _consensus(np.where(plausible, cross, np.nan), tol)

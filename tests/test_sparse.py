@@ -162,6 +162,7 @@ def test_pointing_too_few_matches(scene, biased):
 
 # ----------------------------------------------------------------------------- terrain
 
+@pytest.mark.slow
 def test_height_range_contains_the_true_terrain(scene):
     m = sparse_matches(scene.left, scene.right, scene.left_model, scene.right_model)
     th = terrain_heights(m, scene.left_model, scene.right_model)
