@@ -66,3 +66,9 @@ def test_fill_dem_fills_holes_and_missing_coverage(scene):
     assert np.array_equal(o.valid, full.valid)
     d = o.data[full.valid] - full.data[full.valid]
     assert np.max(np.abs(d)) < 1e-3
+
+
+def test_bundled_srtm_declares_its_vertical_reference():
+    from importlib import resources
+    path = resources.files("stereodem.sensor") / "data" / "srtm_ref.tif"
+    assert DEM.from_file(path).vertical == "geoid"      # no --ref-vertical / --dem-vertical needed
