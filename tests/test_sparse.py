@@ -246,3 +246,32 @@ def test_height_pileup():
     stuck = np.concatenate([good[:7000], np.full(3000, 1.0)])   # 30 % at the lower bound
     r = height_pileup(stuck, (0, 1000))
     assert r["suspect"] and r["low_share"] == pytest.approx(0.3, abs=0.01) and r["high_share"] < 0.01
+
+
+def seen_by_both(dem, left, right, step=4):
+    """(lon, lat, h) of the cells of a truth MapRaster that both images see."""
+    from stereodem.sensor.geo import geodesy
+    rows, cols = dem.data.shape
+    cc, rr = np.meshgrid(np.arange(0, cols, step) + 0.5, np.arange(0, rows, step) + 0.5)
+    x, y = dem.transform @ (cc, rr)
+    h = dem.data[(rr - 0.5).astype(int), (cc - 0.5).astype(int)].astype(float)
+    lon, lat = geodesy.crs_to_lonlat(x, y, dem.crs)
+    ok = np.isfinite(h)
+    for m in (left, right):
+        c, r = m.project(lon, lat, h)
+        ok &= (c >= 0) & (r >= 0) & (c <= m.width - 1) & (r <= m.height - 1)
+    return lon[ok], lat[ok], h[ok]
+
+
+@pytest.mark.slow
+def test_real_rpc_geometry_over_steep_terrain_far_from_the_height_offset():
+    from rpc_scene import rpc_steep_pair
+    from stereodem.stereo.sparse_stage import run_sparse_stage
+    L, R, left, right, truth = rpc_steep_pair()
+    st = run_sparse_stage(L, R, left, right)
+    lon, lat, h = seen_by_both(truth, left, right)
+    lo, hi = st.height_range
+    assert lo <= h.min() and hi >= h.max()
+    # the terrain is ~1 100 m above the RPCs' height offset (1 295 m), outside the range found
+    assert h.min() - left.height_off > 900 and lo > left.height_off + 500
+    assert abs(st.pointing.parameters["col_shift"]) < 0.05     # no pointing error simulated
