@@ -258,5 +258,5 @@ def write_text_atomic(path, text: str, *, overwrite=False) -> Path:
     """Write a text file atomically (temporary file + rename)."""
     path = check_writable(path, overwrite)
     with atomic_path(path) as tmp:
-        Path(tmp).write_text(text)
+        Path(tmp).write_text(text, encoding="utf-8")
     return path
