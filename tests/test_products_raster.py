@@ -10,7 +10,7 @@ import pytest
 import rasterio
 from affine import Affine
 from pyproj import CRS
-from rio_cogeo.cogeo import cog_validate
+cog_validate = pytest.importorskip("rio_cogeo.cogeo").cog_validate
 
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.geo.dem import DEM, ELLIPSOID, GEOID
@@ -138,3 +138,46 @@ def test_band_descriptions_units_and_count_check(tmp_path):
         assert ds.descriptions == ("height", "score") and ds.units == ("metre", "1")
     with pytest.raises(InputError, match="3 given for 2"):
         write_geotiff(tmp_path / "bad.tif", a, T, "EPSG:32637", units=["m", "m", "m"])
+
+
+@pytest.fixture(scope="module")
+def small_scene():
+    from stereodem.sensor.simulation.simulate import simulate_scene
+    return simulate_scene("aster", size=(200, 200), seed=0)
+
+
+@pytest.mark.parametrize("resampling", ["bilinear", "cubic"])
+def test_ortho_keeps_the_input_data_type(tmp_path, small_scene, resampling):
+    from stereodem.ortho.drm import orthorectify
+    img = small_scene.left
+    assert img.dtype == np.uint8
+    o = orthorectify(img, small_scene.left_model, small_scene.truth_dem, resampling=resampling)
+    p = o.write(tmp_path / "o.tif", dtype=img.dtype)
+    assert cog_validate(str(p))[0]
+    with rasterio.open(p) as ds:
+        assert ds.dtypes[0] == "uint8"
+        b = ds.read(1, masked=True)
+        assert ds.descriptions[0].startswith("orthoimage")
+    valid = np.asarray(o.valid)
+    assert np.array_equal(~np.ma.getmaskarray(b), valid)           # nodata only off the data
+    want = np.clip(np.rint(o.data[valid]), 0, 255).astype(np.uint8)
+    assert np.array_equal(b.data[valid], want)
+    # float32 when asked (and by default), values unchanged
+    f = o.write(tmp_path / "f.tif")
+    with rasterio.open(f) as ds:
+        assert ds.dtypes[0] == "float32"
+        assert np.array_equal(ds.read(1), o.data, equal_nan=True)
+
+
+def test_ortho_integer_mask_when_no_value_is_free(tmp_path, small_scene):
+    from stereodem.ortho.drm import orthorectify
+    img = small_scene.left.copy()
+    img[:5, :5], img[-5:, -5:] = 0, 255                 # 0 and 255 both taken, uint8 full
+    o = orthorectify(img, small_scene.left_model, small_scene.truth_dem, resampling="nearest")
+    vals = np.rint(o.data[o.valid])
+    if not ((vals == 0).any() and (vals == 255).any()):
+        pytest.skip("the saturated corners fell outside the ortho grid")
+    p = o.write(tmp_path / "m.tif", dtype=np.uint8)
+    with rasterio.open(p) as ds:
+        assert ds.nodata is None
+        assert np.array_equal(ds.read_masks(1) > 0, o.valid)
