@@ -55,7 +55,13 @@ class Progress:
         self._bar.update(n)
 
     def __call__(self, done: int, total: int | None = None):
-        """Callback form ``progress(done, total)``: ``done`` units of ``total`` are finished."""
+        """Callback form ``progress(done, total)``: ``done`` units of ``total`` are finished.
+
+        A ``done`` below the previous one starts the count again (a stage that runs the
+        same loop twice, e.g. the left then the right orthoimage)."""
+        if int(done) < self.done:
+            self.done = 0
+            self._bar.reset(total=self.total)
         if total and int(total) != self.total:
             self.total = max(int(total), 1)
             self._bar.total = self.total

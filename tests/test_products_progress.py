@@ -105,3 +105,16 @@ def test_provenance_fields():
 
 def test_no_commit_outside_a_work_tree(tmp_path):
     assert git_commit(tmp_path) is None
+
+
+def test_a_stage_that_restarts_its_count_restarts_the_bar():
+    s = _Tty()
+    p = Progress("ortho", 1, stream=s)
+    p(600, 675)
+    p(675, 675)
+    p(100, 675)                       # the right image after the left one
+    assert p.done == 100 and p._bar.n == 100
+    p(675, 675)
+    p.close()
+    assert p.done == 675 and p._bar.n == 675
+    assert s.getvalue().count("0/675 [") >= 2          # drawn empty again at the restart
