@@ -150,3 +150,12 @@ def _register_defaults():
 
 
 _register_defaults()
+
+
+def _register_orbital():
+    # orbital models of Topan (2009) / Ok (2005): eop-poly2, eop-<Table 4.2 set>, orun, toutin, kratky
+    from stereodem.sensor.models.orbital import register_sets
+    register_sets(register_model_set)
+
+
+_register_orbital()

@@ -70,3 +70,14 @@ def build(name: str, reference):
         raise InputError(f"unknown orbital model set {name!r}; choose one of {', '.join(table)}")
     cls, names = table[name]
     return cls.from_model(reference, name=name), list(names)
+
+
+def register_sets(register) -> None:
+    """Register the orbital parameter sets with the adjustment engine's registry
+    (:func:`stereodem.sensor.estimation.adjust.register_model_set`): ``eop-poly2`` (Topan's
+    model, set A), ``eop-<set>`` for every set of Table 4.2 and ``L``, ``orun``,
+    ``orun-full``, ``toutin``, ``toutin-full``, ``kratky``, ``kratky-full``. Each builds the
+    orbital model from the image's physical model (or RPC for the ENU models)."""
+    for name, (cls, names) in {**PARAMETER_SETS, **DEFAULT_SETS}.items():
+        register(name, cls.from_model, names, replace=True,
+                 description=f"{cls.__name__}: {len(names)} parameters")
