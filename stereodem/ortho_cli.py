@@ -58,7 +58,8 @@ def _load_model(args):
     if args.model in GENERIC:
         if not args.gcps:
             raise InputError(f"--model {args.model} needs --gcps CSV")
-        from stereodem.sensor.models.generic import fit_model, read_gcps
+        from stereodem.sensor.io.gcps import read_gcps
+        from stereodem.sensor.models.generic import fit_model
         pts = read_gcps(args.gcps)
         gcp = pts.select("gcp") if "gcp" in set(pts.role) else pts
         chk = pts.select("check")
