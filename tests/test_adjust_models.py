@@ -171,21 +171,20 @@ def test_aster_real_geometry_attitude_bias():
 
 @pytest.mark.slow
 def test_pushbroom_spread_matches_reported_sigma(pushbroom):
-    """60 noise draws of the attitude-bias adjustment: the normalised errors (estimate − truth)
-    / reported sigma, pooled over the three parameters, have a standard deviation of 1 within
-    15 % (per parameter within 25 %: 60 draws), and no mean bias."""
+    """100 noise draws of the attitude-bias adjustment (15 GCPs, 0.3 px): per parameter the
+    standard deviation of (estimate − truth) / reported sigma is 1 within 15 % (i.e. the
+    spread matches the reported sigma), and there is no mean bias."""
     truth = pushbroom.with_parameters(**TRUTHS["attitude-bias"])
     rng = np.random.default_rng(21)
     base = _gcps(truth, 15, 0.0, rng, h=(800.0, 2500.0))
     z = []
-    for _ in range(60):
+    for _ in range(100):
         pts = ControlPoints.from_arrays(base.lon, base.lat, base.h, base.col + rng.normal(0, 0.3, 15),
                                         base.row + rng.normal(0, 0.3, 15))
         z.append(_z(adjust_model(pushbroom, pts, "attitude-bias", sigma_px=0.3, snooping=False), truth))
     z = np.array(z)
-    assert abs(z.std(ddof=1) - 1) < 0.15
-    assert np.all(np.abs(z.std(axis=0, ddof=1) - 1) < 0.25)
-    assert np.all(np.abs(z.mean(axis=0)) < 4 / np.sqrt(60))
+    assert np.all(np.abs(z.std(axis=0, ddof=1) - 1) < 0.15), z.std(axis=0, ddof=1)
+    assert np.all(np.abs(z.mean(axis=0)) < 4 / np.sqrt(len(z)))
 
 
 # ------------------------------------------------------------------------- generic models

@@ -163,7 +163,7 @@ class _Problem:
                 e_t[:, 2 * k] = (np.asarray(c) - self.ties[:, 2 * k]) / self.sigma_tie
                 e_t[:, 2 * k + 1] = (np.asarray(r) - self.ties[:, 2 * k + 1]) / self.sigma_tie
                 if jacobian:
-                    G_t[:, 2 * k:2 * k + 2] = _enu_partials(m, lon, lat, h, self.basis) / self.sigma_tie
+                    G_t[:, 2 * k:2 * k + 2] = _enu_partials(m, lon, lat, h, base=(c, r)) / self.sigma_tie
             p = self.gcps[k]
             if p is not None and len(p):
                 if jacobian and names:
@@ -261,15 +261,32 @@ class _Problem:
         return np.concatenate([dp, dg.ravel()]), np.concatenate([sp_, sg.ravel()]), R, Sinv, cond
 
 
-def _enu_partials(model, lon, lat, h, basis, step_m=1.0):
-    """d(col, row)/d(ENU offset) with the fixed per-tie ``basis`` (n, 2, 3)."""
-    X = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)
-    offs = step_m * np.concatenate([basis, -basis], axis=1)
-    P = (X[:, None, :] + offs).reshape(-1, 3)
-    plon, plat, ph = geodesy.ecef_to_geodetic(P[:, 0], P[:, 1], P[:, 2])
-    c, r = model.project(plon, plat, ph)
-    img = np.stack([c, r], -1).reshape(-1, 6, 2)
-    return np.swapaxes((img[:, :3] - img[:, 3:]) / (2.0 * step_m), 1, 2)
+def _enu_partials(model, lon, lat, h, basis=None, step_m=1.0, base=None):
+    """d(col, row)/d(east, north, up) in px/m at ground points, shape (n, 2, 3).
+
+    Forward differences over ``step_m`` metres along the local axes, taken in geodetic
+    coordinates through the ellipsoid's radii of curvature (``dlat = s / (M + h)``,
+    ``dlon = s / ((N + h) cos lat)``, ``dh = s``: no datum transformation per point);
+    ``base`` is the projection at the points when already known. ``basis`` is accepted for
+    the fixed-frame parametrisation (the axes differ from the local ones by micro-radians).
+    """
+    phi = np.radians(lat)
+    w = np.sqrt(1.0 - geodesy.E2 * np.sin(phi) ** 2)
+    N = geodesy.A / w
+    M = geodesy.A * (1.0 - geodesy.E2) / w ** 3
+    dlon = np.degrees(step_m / ((N + h) * np.cos(phi)))
+    dlat = np.degrees(step_m / (M + h))
+    n = lon.size
+    L = np.concatenate([lon + dlon, lon, lon])
+    P = np.concatenate([lat, lat + dlat, lat])
+    H = np.concatenate([h, h, h + step_m])
+    c, r = model.project(L, P, H)
+    if base is None:
+        base = model.project(lon, lat, h)
+    c0, r0 = (np.asarray(v, float) for v in base)
+    dc = (np.asarray(c, float).reshape(3, n) - c0) / step_m
+    dr = (np.asarray(r, float).reshape(3, n) - r0) / step_m
+    return np.stack([dc.T, dr.T], 1)
 
 
 @dataclass
@@ -436,13 +453,15 @@ def _mask(pts, outliers, side):
     return np.array([i in bad for i in pts.id], dtype=bool)
 
 
-def tie_parallax(left, right, ties) -> dict:
+def tie_parallax(left, right, ties, *, max_points: int = 2000) -> dict:
     """Consistency of tie points with a pair of models: RMS and median of the closest-approach
     distance of their rays (m), and the RMS reprojection discrepancy (px) of each image point
     from the other image's ray at the intersection (the "vertical parallax" left once heights
-    are free)."""
+    are free). At most ``max_points`` ties (evenly spaced in the list) are used."""
     from stereodem.stereo.intersect import intersect_matches
     t = np.asarray(ties, float)
+    if len(t) > max_points:     # a diagnostic: an evenly spread subset is enough
+        t = t[np.linspace(0, len(t) - 1, max_points).astype(int)]
     inter = intersect_matches(left, right, t[:, 0], t[:, 1], t[:, 2], t[:, 3])
     cl, rl = left.project(inter.lon, inter.lat, inter.h)
     cr, rr = right.project(inter.lon, inter.lat, inter.h)
@@ -606,12 +625,14 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
     lon, lat, h = (np.full(n_all, np.nan) for _ in range(3))
     lon[active_t], lat[active_t], h[active_t] = prob.ground(z)
     if n_all:
-        # every tie (rejected ones too) re-intersected with the final models for residuals
-        from stereodem.stereo.intersect import intersect_matches
-        inter = intersect_matches(L, Rm, t[:, 0], t[:, 1], t[:, 2], t[:, 3])
-        glon = np.where(active_t, lon, inter.lon)
-        glat = np.where(active_t, lat, inter.lat)
-        gh_ = np.where(active_t, h, inter.h)
+        # kept ties at their adjusted ground points; rejected ones re-intersected with the
+        # final models
+        glon, glat, gh_ = lon.copy(), lat.copy(), h.copy()
+        if (~active_t).any():
+            from stereodem.stereo.intersect import intersect_matches
+            tr = t[~active_t]
+            inter = intersect_matches(L, Rm, tr[:, 0], tr[:, 1], tr[:, 2], tr[:, 3])
+            glon[~active_t], glat[~active_t], gh_[~active_t] = inter.lon, inter.lat, inter.h
         cl, rl = L.project(glon, glat, gh_)
         cr, rr = Rm.project(glon, glat, gh_)
         tie_res = np.stack([cl - t[:, 0], rl - t[:, 1], cr - t[:, 2], rr - t[:, 3]], -1)

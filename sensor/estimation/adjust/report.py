@@ -90,8 +90,8 @@ def residual_figure(report: dict, path, *, width: int, height: int, overwrite=Fa
     nice = min((m * nice for m in (1, 2, 5, 10) if m * nice >= ref), default=ref)
     scale = 0.08 * max(width, height) / nice          # figure px per residual px
     fig, ax = plt.subplots(figsize=(7.5, 7.5 * height / max(width, 1) + 0.6))
-    styles = {"gcp": ("tab:blue", "GCP"), "check": ("tab:orange", "check point"),
-              "outlier": ("tab:red", "rejected (outlier)")}
+    styles = {"tie": ("0.55", "tie point"), "gcp": ("tab:blue", "GCP"),
+              "check": ("tab:orange", "check point"), "outlier": ("tab:red", "rejected (outlier)")}
     for k, (color, label) in styles.items():
         m = kind == k
         if not np.any(m):
