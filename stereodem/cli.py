@@ -24,6 +24,7 @@ _SUBCOMMANDS = {
     "filter": "stereodem.filter_cli",
     "ortho": "stereodem.ortho_cli",
     "assess": "stereodem.assess_cli",
+    "adjust": "stereodem.adjust_cli",
     "compare-models": "stereodem.compare_cli",
 }
 
