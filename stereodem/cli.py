@@ -26,6 +26,7 @@ _SUBCOMMANDS = {
     "assess": "stereodem.assess_cli",
     "adjust": "stereodem.adjust_cli",
     "compare-models": "stereodem.compare_cli",
+    "uncertainty": "stereodem.uncertainty_cli",
 }
 
 
