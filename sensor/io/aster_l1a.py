@@ -51,6 +51,7 @@ LATTICE_TOLERANCE_RAD = 50e-6
 VELOCITY_TOLERANCE = 30.0
 
 _DFTAG_VG, _DFTAG_NDG = 1965, 720
+_HDF4_MAGIC = b"\x0e\x03\x13\x01"
 
 
 def swath_name(band: str) -> str:
@@ -511,11 +512,15 @@ def read_v004(path):
     from pyhdf.SD import SD, SDC
     HDF4Error = _hdf_error()
     path = Path(path)
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic != _HDF4_MAGIC:
+        raise InputError(f"{path}: not an HDF4 file (an ASTER L1A V004 granule is HDF-EOS2/HDF4)")
     try:
         sd = SD(str(path), SDC.READ)
     except HDF4Error as exc:
-        raise InputError(f"{path}: not a readable HDF4 file - truncated, damaged or another "
-                         f"format ({exc})") from None
+        raise InputError(f"{path}: HDF4 file cannot be opened - truncated or damaged "
+                         f"({exc})") from None
     try:
         attrs = sd.attributes()
     except HDF4Error as exc:
