@@ -23,6 +23,7 @@ _SUBCOMMANDS = {
     "dem": "stereodem.dem_cli",
     "ortho": "stereodem.ortho_cli",
     "assess": "stereodem.assess_cli",
+    "info": "stereodem.info_cli",
 }
 
 

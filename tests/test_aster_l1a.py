@@ -236,7 +236,7 @@ def test_non_aster_hdf(tmp_path):
         open_aster_granule(p)
     q = tmp_path / "notes.hdf"
     q.write_text("hello")
-    with pytest.raises(InputError, match=r"notes\.hdf: not an HDF4 file"):
+    with pytest.raises(InputError, match=r"notes\.hdf: not an ASTER L1A granule \(neither an HDF4"):
         open_aster_granule(q)
 
 
@@ -293,3 +293,24 @@ def test_inconsistent_geometry_is_refused(granule, tmp_path):
     with pytest.raises(SensorModelError, match=r"bad_geo\.hdf:VNIR_Band3N: SightVector/"
                                                r"SatellitePosition do not reproduce"):
         open_aster_granule(p)
+
+
+# ------------------------------------------------------------------------------ command line
+
+def test_cli_simulate_granule_and_info(tmp_path, capsys):
+    from stereodem.cli import main
+    out = tmp_path / "sim"
+    assert main(["simulate", "--preset", "aster", "--format", "l1a-v004", "--size", "200", "200",
+                 "-o", str(out)]) == 0
+    hdf = next(out.glob("AST_L1A_004*.hdf"))
+    assert (out / "truth_dem.tif").exists() and not (out / "left.tif").exists()
+    g = open_aster_granule(hdf)
+    assert g["3N"].shape == (200, 200) and g["3B"].shape == (257, 240)   # real 3N:3B ratio
+    capsys.readouterr()
+    assert main(["info", str(hdf)]) == 0
+    text = capsys.readouterr().out
+    assert "band 3N: 200 x 200 px, lattice" in text and "band 3B: 240 x 257 px" in text
+    assert "acquired 2017-07-31T19:07:28Z" in text and "upperleft" in text
+    assert main(["info", str(out / "truth_dem.tif")]) == 1
+    assert "stereodem info: error:" in capsys.readouterr().err
+    assert main(["simulate", "--preset", "frame", "--format", "l1a-v003", "-o", str(tmp_path / "x")]) == 1

@@ -515,7 +515,8 @@ def read_v004(path):
     with open(path, "rb") as fh:
         magic = fh.read(4)
     if magic != _HDF4_MAGIC:
-        raise InputError(f"{path}: not an HDF4 file (an ASTER L1A V004 granule is HDF-EOS2/HDF4)")
+        raise InputError(f"{path}: not an ASTER L1A granule (neither an HDF4 file, as V004 "
+                         f"granules are, nor a V003 zip or folder)")
     try:
         sd = SD(str(path), SDC.READ)
     except HDF4Error as exc:

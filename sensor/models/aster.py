@@ -204,6 +204,10 @@ class AsterModel(PushbroomModel):
             "line_period": self.line_period, "inertial_frame": self.inertial_frame,
             "velocity_method": self.velocity_method, "name": self.name,
             "parameters": self.parameters(),
+            # a time-varying attitude correction (e.g. jitter, stereodem.sensor.estimation.jitter)
+            "attitude": None if self.attitude is None else {
+                "times": self.attitude.times, "angles": self.attitude.angles,
+                "quaternions": self.attitude.quaternions},
         }
 
     @classmethod
@@ -221,6 +225,10 @@ class AsterModel(PushbroomModel):
                     velocity_method=d.get("velocity_method", "central"), name=d.get("name"))
         if d.get("parameters"):
             model._set_parameters(d["parameters"])
+        a = d.get("attitude")
+        if a is not None:
+            from stereodem.sensor.models.ephemeris import Attitude
+            model.attitude = Attitude(a["times"], a.get("angles"), quaternions=a.get("quaternions"))
         return model
 
     @classmethod

@@ -279,7 +279,7 @@ def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION):
 def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=None,
                    noise: float = 1.0, seed: int = 0, bits: int = 8, angles=(0.0, -27.6),
                    n_points: int = 60, step: int = 16, mtf_nyquist: float = MTF_NYQUIST,
-                   right_size=None) -> Scene:
+                   right_size=None, jitter=None) -> Scene:
     """Simulate a stereo scene; see the module docstring.
 
     Parameters
@@ -297,6 +297,11 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     mtf_nyquist : float
         System MTF at the image Nyquist frequency (sets the Gaussian point-spread function
         applied to the ground radiance field, :func:`psf_sigma`).
+    jitter : (amplitude_urad, frequency_hz), optional
+        Along-track attitude oscillation (pitch) of the second (right, ASTER 3B) camera:
+        the right image is rendered through the oscillating camera, while ``right_model``
+        stays the nominal one (as an L1A product describes it) and
+        ``diagnostics["right_jitter"]`` records the oscillation.
     """
     if preset not in PRESETS:
         raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
@@ -355,7 +360,18 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     dem_r = MapRaster(fine_dem, ft, crs)
 
     images, diags, grounds = [], {}, []
-    for name, m in (("left", left_model), ("right", right_model)):
+    right_true = right_model
+    if jitter is not None:
+        from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
+        amp_urad, freq = (float(x) for x in jitter)
+        if not (np.isfinite(amp_urad) and freq > 0):
+            raise InputError(f"jitter needs a finite amplitude and a positive frequency, got {jitter}")
+        phase = float(rng.uniform(0, 2 * np.pi))
+        right_true = with_attitude_sines(right_model, SineSeries(np.array([amp_urad * 1e-6]),
+                                                                 np.array([freq]), np.array([phase])))
+        diags["right_jitter"] = dict(axis="pitch", amplitude_urad=amp_urad, frequency_hz=freq,
+                                     phase_rad=phase)
+    for name, m in (("left", left_model), ("right", right_true)):
         img, gx, gy, gh, _ = render(m, dem_r, radiance, step=step)
         diags[f"{name}_render_error_px"] = localization_error(m, gx, gy, gh, crs, seed=seed)
         diags[f"{name}_void_pct"] = float(100 * np.isnan(img).mean())
@@ -367,11 +383,12 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     truth_ortho = radiance.sample(*(transform @ np.meshgrid(np.arange(shape[1]) + 0.5,
                                                              np.arange(shape[0]) + 0.5)))
     truth_dem = DEM(truth, transform, crs, ELLIPSOID, None)
-    points = _check_points(left_model, right_model, truth_dem, n_points, rng)
+    points = _check_points(left_model, right_true, truth_dem, n_points, rng)
     settings = dict(preset=preset, size=[w, h], right_size=list(rsize), noise=noise, seed=seed,
                     bits=bits, mtf_nyquist=mtf_nyquist, psf_sigma_gsd=sigma_psf,
                     gsd=gsd, center_lon=lon0, center_lat=lat0,
                     angles=list(angles) if preset == "pushbroom" else None,
+                    jitter=None if jitter is None else [float(x) for x in jitter],
                     dem=str(dem.path), texture=str(texture or texture_path()))
     return Scene(images[0], images[1], left_model, right_model, truth_dem,
                  truth_ortho.astype(np.float32), points, preset, settings, diags)
@@ -407,20 +424,23 @@ def points_csv(points) -> str:
     return buf.getvalue()
 
 
-def write_scene(scene: Scene, out_dir, *, overwrite: bool = False, fit_rpcs: bool = True):
+def write_scene(scene: Scene, out_dir, *, overwrite: bool = False, fit_rpcs: bool = True,
+                write_images: bool = True):
     """Write a scene under fixed names in ``out_dir``.
 
     ``left.tif``/``right.tif`` (images with fitted RPC metadata and ``<name>.model.json``
     sidecars holding the exact physical model), ``truth_dem.tif`` (ellipsoidal heights, UTM),
     ``truth_ortho.tif`` (the left image's true orthoimage on the same grid), ``points.csv``
-    and ``scene.json`` (settings, diagnostics, RPC fit residuals).
+    and ``scene.json`` (settings, diagnostics, RPC fit residuals). ``write_images=False``
+    leaves out the images and their models (a granule writer stores them instead).
     """
     from stereodem.sensor.io.raster import prepare_output_dir, write_geotiff, write_text_atomic
     from stereodem.sensor.io.sidecar import save_model
 
     out = prepare_output_dir(out_dir, overwrite=overwrite)
     meta = dict(settings=scene.settings, diagnostics=dict(scene.diagnostics), rpc_fit={})
-    for name, img, model in (("left", scene.left, scene.left_model), ("right", scene.right, scene.right_model)):
+    pairs = (("left", scene.left, scene.left_model), ("right", scene.right, scene.right_model))
+    for name, img, model in pairs if write_images else ():
         rpcs = None
         if fit_rpcs:
             from stereodem.sensor.estimation.rpcfit import fit_rpc
