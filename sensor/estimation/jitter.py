@@ -38,7 +38,8 @@ class SineSeries:
 
     ``amplitudes`` in the signal's unit (radians for attitude), ``frequencies`` in Hz.
     ``trend`` holds polynomial coefficients (ascending, in ``(t - t_ref)``) fitted alongside
-    and not part of the correction.
+    and not part of the correction; ``rms_residual`` is the RMS misfit of the samples within
+    five robust sigmas.
     """
 
     amplitudes: np.ndarray
@@ -126,14 +127,18 @@ def fit_sum_of_sines(t, y, *, n_sines: int = 1, f_range=(0.2, 8.0), trend_degree
         raise InputError(f"jitter fit: only {t.size} valid samples")
     t_ref = float(np.mean(t))
     x = t - t_ref
-    trend = np.polynomial.polynomial.polyfit(x, y, trend_degree)
-    resid = y - np.polynomial.polynomial.polyval(x, trend)
+    # initial search on the samples that are not outliers (median +- 5 robust sigmas)
+    dev = y - np.median(y)
+    inl = np.abs(dev) <= 5.0 * 1.4826 * max(float(np.median(np.abs(dev))), 1e-300)
+    xs = x[inl]
+    trend = np.polynomial.polynomial.polyfit(xs, y[inl], trend_degree)
+    resid = y[inl] - np.polynomial.polynomial.polyval(xs, trend)
     freqs = np.linspace(f_range[0], f_range[1], n_frequencies)
     amps, fs, phs = [], [], []
     for _ in range(n_sines):
-        power = lombscargle(x, resid - resid.mean(), 2 * np.pi * freqs)
+        power = lombscargle(xs, resid - resid.mean(), 2 * np.pi * freqs)
         f = float(freqs[np.argmax(power)])
-        a = np.stack([np.sin(2 * np.pi * f * x), np.cos(2 * np.pi * f * x)], -1)
+        a = np.stack([np.sin(2 * np.pi * f * xs), np.cos(2 * np.pi * f * xs)], -1)
         (sa, ca), *_ = np.linalg.lstsq(a, resid, rcond=None)
         amps.append(np.hypot(sa, ca))
         phs.append(np.arctan2(ca, sa))
@@ -147,14 +152,15 @@ def fit_sum_of_sines(t, y, *, n_sines: int = 1, f_range=(0.2, 8.0), trend_degree
         return (np.sum(a * np.sin(2 * np.pi * f * x[:, None] + ph), -1)
                 + np.polynomial.polynomial.polyval(x, c))
 
-    scale = float(np.median(np.abs(y - model(p0)))) * 1.4826 or 1.0
+    scale = float(np.median(np.abs(y - model(p0)))) * 1.4826 or 1e-12
     sol = least_squares(lambda p: model(p) - y, p0, loss="soft_l1", f_scale=scale)
     p = sol.x
     a, f, ph = p[:k], p[k:2 * k], p[2 * k:3 * k]
     ph = ph - 2 * np.pi * f * t_ref                     # phases on the absolute time base
     sgn = np.sign(a)
     ph = np.where(sgn < 0, ph + np.pi, ph)
-    rms = float(np.sqrt(np.mean((model(p) - y) ** 2)))
+    r = model(p) - y
+    rms = float(np.sqrt(np.mean(r[np.abs(r) <= 5.0 * 1.4826 * np.median(np.abs(r))] ** 2)))
     return SineSeries(np.abs(a), f, np.mod(ph, 2 * np.pi), t_ref, p[3 * k:3 * k + nd], rms)
 
 
@@ -185,10 +191,12 @@ def estimate_pitch_jitter(dem, reference, left, right, *, n_sines: int = 1, f_ra
     """Pitch jitter of ``right`` (rad, on its time base) from ``dem - reference`` residuals.
 
     ``dem`` and ``reference`` are :class:`~stereodem.sensor.geo.dem.DEM` objects with
-    ellipsoidal heights (``reference`` is sampled at ``dem``'s cells). Each residual is divided
-    by the local :func:`height_sensitivity` (m/rad) and binned by the ``right`` acquisition
-    line; bins with fewer than ``min_count`` cells are dropped. Returns
-    ``(SineSeries, diagnostics)`` with the profile used.
+    ellipsoidal heights (``reference`` is sampled at ``dem``'s cells). A camera whose true
+    pitch is ``j(t)`` above its model's gives heights off by ``-j(t) * sensitivity``; so each
+    residual is divided by minus the local :func:`height_sensitivity` (m/rad) and binned by
+    the ``right`` acquisition line; bins with fewer than ``min_count`` cells are dropped. The
+    fitted :class:`SineSeries` is ``j(t)``: ``with_attitude_sines(right, fit)`` is the
+    corrected model. Returns ``(SineSeries, diagnostics)`` with the profile used.
     """
     from stereodem.sensor.geo import geodesy
     from stereodem.sensor.geo.dem import ELLIPSOID
@@ -197,13 +205,13 @@ def estimate_pitch_jitter(dem, reference, left, right, *, n_sines: int = 1, f_ra
     if rows.size > max_cells:
         pick = np.random.default_rng(seed).choice(rows.size, max_cells, replace=False)
         rows, cols = rows[pick], cols[pick]
-    x, y = dem.transform * (cols + 0.5, rows + 0.5)
+    x, y = dem.transform @ (cols + 0.5, rows + 0.5)
     lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), dem.crs)
     h = z[rows, cols]
     ref = reference.sample(lon, lat, reference=ELLIPSOID) if hasattr(reference, "sample") else reference
     dh = h - np.asarray(ref, float)
     sens = height_sensitivity(left, right, lon, lat, h)
-    t, med, counts = along_track_profile(dh / sens, right, lon, lat, h, bin_lines=bin_lines)
+    t, med, counts = along_track_profile(-dh / sens, right, lon, lat, h, bin_lines=bin_lines)
     keep = counts >= min_count
     fit = fit_sum_of_sines(t[keep], med[keep], n_sines=n_sines, f_range=f_range)
     return fit, {"times": t[keep], "pitch_profile_rad": med[keep], "counts": counts[keep],
