@@ -27,6 +27,7 @@ _SUBCOMMANDS = {
     "adjust": "stereodem.adjust_cli",
     "compare-models": "stereodem.compare_cli",
     "uncertainty": "stereodem.uncertainty_cli",
+    "info": "stereodem.info_cli",
 }
 
 
