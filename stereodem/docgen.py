@@ -138,32 +138,22 @@ def section_table(cls) -> str:
     return "\n".join(rows)
 
 
-def configuration_markdown(config_cls=None) -> str:
-    """The whole ``docs/configuration.md`` text for ``config_cls`` (default
-    :class:`stereodem.config.Config`)."""
-    if config_cls is None:
-        from stereodem.config import Config as config_cls
-    docs = _attributes_section(config_cls.__doc__)
+def configuration_markdown(sections=None) -> str:
+    """The whole ``docs/configuration.md`` text: one table per TOML section of
+    ``sections`` (default :data:`stereodem.config.SECTIONS`, section name -> settings class),
+    plus ``[output]``."""
+    if sections is None:
+        from stereodem.config import SECTIONS as sections
     parts = [HEADER]
-    loose = []
-    for f in dataclasses.fields(config_cls):
-        hints = f.type if not isinstance(f.type, str) else None
-        cls = hints if dataclasses.is_dataclass(hints) else _resolve(config_cls, f)
-        if cls is None:
-            loose.append(f)
-            continue
-        intro = docs.get(f.name, ("", ""))[1] or (inspect.cleandoc(cls.__doc__).splitlines()[0]
-                                     if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "(")
-                                     else "")
-        parts += [f"## `[{f.name}]` — `{cls.__module__}.{cls.__name__}`", ""]
+    for name, cls in sections.items():
+        intro = (inspect.cleandoc(cls.__doc__).splitlines()[0]
+                 if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "(") else "")
+        parts += [f"## `[{name}]` — `{cls.__module__}.{cls.__name__}`", ""]
         if intro:
             parts += [_md(intro), ""]
         parts += [section_table(cls), ""]
-    for f in loose:
-        sect, _, key = f.name.partition("_")
-        parts += [f"## `[{sect}]`", "", "| key | type | default | description |", "|---|---|---|---|",
-                  f"| `{key or f.name}` | `{_cell(_type_name(f))}` | `{_cell(_default(f))}` | "
-                  f"{_cell(docs.get(f.name, ('', ''))[1])} |", ""]
+    parts += ["## `[output]`", "", "| key | type | default | description |", "|---|---|---|---|",
+              "| `dir` | str | *required* | Output folder of the run (relative to the configuration file). |", ""]
     return "\n".join(parts).rstrip() + "\n"
 
 
