@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from affine import Affine  # noqa: E402
 from matplotlib.colors import Normalize  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar  # noqa: E402
 from pyproj import CRS  # noqa: E402
@@ -119,6 +120,8 @@ def _map_axes(ax, transform, crs, shape):
         bar.patch.set_alpha(0.8)
         ax.add_artist(bar)
     ax.set_facecolor("white")
+    ax.add_patch(Rectangle((min(x0, x1), min(y0, y1)), abs(x1 - x0), abs(y1 - y0), fill=False,
+                           hatch="////", edgecolor="0.82", linewidth=0, zorder=0))  # no data
     return extent
 
 
@@ -154,7 +157,7 @@ def hillshade_png(heights, transform, crs, path, *, title="DEM shaded relief", o
     sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
     fig.colorbar(sm, ax=ax, shrink=0.8, extend="both", label=height_label)
     void = (~fin).sum()
-    ax.set_title(f"{title}\n(no data left blank: {100 * void / max(z.size, 1):.0f} % of the frame; "
+    ax.set_title(f"{title}\n(hatched: no data, {100 * void / max(z.size, 1):.0f} % of the frame; "
                  "colours span the 1st–99th height percentiles)", fontsize=10)
     return _save(fig, path, overwrite)
 
@@ -163,7 +166,7 @@ def difference_map_png(dh, path, *, title="DEM − reference", overwrite=False, 
                        crs=None):
     """Map of differences (m) with a diverging colour scale symmetric about 0, clipped at
     ± the 98th percentile of |dh| (said on the figure), in map coordinates with a scale bar
-    when ``transform`` and ``crs`` are given."""
+    when ``transform`` and ``crs`` are given; cells without a difference are hatched."""
     a, t = _prepare(dh, transform)
     fin = a[np.isfinite(a)]
     lim = float(np.percentile(np.abs(fin), 98)) if fin.size else 1.0
@@ -180,8 +183,9 @@ def difference_map_png(dh, path, *, title="DEM − reference", overwrite=False, 
     im = ax.imshow(np.ma.masked_invalid(a), cmap=cmap, vmin=-lim, vmax=lim,
                    interpolation="nearest", **kw)
     fig.colorbar(im, ax=ax, shrink=0.8, extend="both", label="DEM − reference (m)")
-    ax.set_title(f"{title} (m)\ncolour scale clipped at ±{lim:.2f} m (98th percentile of |dh|): "
-                 f"{100 * clipped / max(fin.size, 1):.1f} % of cells beyond", fontsize=10)
+    ax.set_title(f"{title} (m); hatched: no data\ncolour scale clipped at ±{lim:.2f} m (98th "
+                 f"percentile of |dh|): {100 * clipped / max(fin.size, 1):.1f} % of cells beyond",
+                 fontsize=10)
     return _save(fig, path, overwrite)
 
 

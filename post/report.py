@@ -106,7 +106,7 @@ VALID_NOTE = ("valid_pct: share of the reference cells inside the DEM's footprin
               "share of the class's cells.")
 
 FIGURE_CAPTIONS = {
-    "hillshade": "Shaded relief of the DEM (colour: height; blank: no data).",
+    "hillshade": "Shaded relief of the DEM (colour: height; hatched: no data).",
     "difference": "DEM − reference; red: DEM above the reference, blue: below.",
     "histogram": "Distribution of DEM − reference with the mean, median and median ± NMAD.",
     "error_vs_slope": "Error statistics per slope class of the reference (n: valid cells).",

@@ -79,3 +79,18 @@ def test_api_example_runs(capsys):
     assert np.isfinite(s["nmad"]) and 0 < s["nmad"] < 10
     printed = capsys.readouterr().out
     assert f"NMAD {s['nmad']:.2f} m" in printed
+
+
+def test_readme_figures_summarises_every_committed_result():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("readme_figures", ROOT / "benchmarks" / "readme_figures.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    text = mod.figures_markdown()
+    results = sorted((ROOT / "benchmarks" / "results").glob("*.json"))
+    bullets = [ln for ln in text.splitlines() if ln.startswith("* ")]
+    assert len(bullets) == len(results)
+    assert "summary unavailable" not in text
+    import json
+    demo = json.loads((ROOT / "benchmarks" / "results" / "bench_demo.json").read_text())
+    assert f"NMAD {demo['default_seed_figures']['nmad_m']:.2f} m" in text
