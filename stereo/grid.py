@@ -61,8 +61,10 @@ class DEMGrid(OnGrid):
     vertical: str = "ellipsoid"
     info: dict = field(default_factory=dict)
 
-    def write(self, directory, *, overwrite=False, names=None):
-        """Write ``dem.tif``, ``count.tif``, ``score.tif`` and ``raygap.tif`` in ``directory``.
+    def write(self, directory, *, overwrite=False, names=None, creation_options=None):
+        """Write ``dem.tif``, ``count.tif``, ``score.tif`` and ``raygap.tif`` in ``directory``
+        (Cloud-Optimised GeoTIFFs with band descriptions and units; ``creation_options`` as
+        GDAL's ``-co``).
 
         Float layers are float32 with NaN nodata; ``count`` is int32 with nodata 0. Each
         file is written atomically. Returns the dict of written paths.
@@ -70,16 +72,19 @@ class DEMGrid(OnGrid):
         from pathlib import Path
         d = Path(directory)
         names = names or dict(dem="dem.tif", count="count.tif", score="score.tif", raygap="raygap.tif")
-        tags = {_VERTICAL_TAG: self.vertical}
+        kw = dict(overwrite=overwrite, creation_options=creation_options)
+        layers = {
+            "dem": (self.heights.astype(np.float32), np.nan,
+                    f"height above the {'EGM96 geoid' if self.vertical == 'geoid' else 'WGS84 ellipsoid'}", "metre"),
+            "count": (self.count.astype(np.int32), 0, "space-intersected points per cell", "1"),
+            "score": (self.score.astype(np.float32), np.nan, "mean correlation score (ZNCC) of the cell's points", "1"),
+            "raygap": (self.ray_gap.astype(np.float32), np.nan, "mean ray gap of the cell's points", "metre"),
+        }
         out = {}
-        out["dem"] = write_geotiff(d / names["dem"], self.heights.astype(np.float32), self.transform,
-                                   self.crs, np.nan, overwrite=overwrite, tags=tags)
-        out["count"] = write_geotiff(d / names["count"], self.count.astype(np.int32), self.transform,
-                                     self.crs, 0, overwrite=overwrite)
-        out["score"] = write_geotiff(d / names["score"], self.score.astype(np.float32), self.transform,
-                                     self.crs, np.nan, overwrite=overwrite)
-        out["raygap"] = write_geotiff(d / names["raygap"], self.ray_gap.astype(np.float32),
-                                      self.transform, self.crs, np.nan, overwrite=overwrite)
+        for key, (data, nodata, description, unit) in layers.items():
+            extra = dict(tags={_VERTICAL_TAG: self.vertical}) if key == "dem" else {}
+            out[key] = write_geotiff(d / names[key], data, self.transform, self.crs, nodata,
+                                     descriptions=[description], units=[unit], **extra, **kw)
         return out
 
 

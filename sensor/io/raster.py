@@ -294,3 +294,13 @@ def read_image(path, band: int = 1) -> np.ndarray:
     img = np.ma.getdata(data).astype(np.float32)
     img[np.ma.getmaskarray(data)] = np.nan
     return img
+
+
+def image_dtype(path, band: int = 1) -> np.dtype:
+    """The stored data type of one band of an image (products keep it, e.g. orthoimages)."""
+    from stereodem.sensor.errors import InputError
+    try:
+        with rasterio.open(path) as ds:
+            return np.dtype(ds.dtypes[int(band) - 1])
+    except (rasterio.errors.RasterioIOError, IndexError) as exc:
+        raise InputError(f"{path}: cannot read band {band} ({exc})") from None
