@@ -46,9 +46,9 @@ def problem(n_ties, n_gcps, seed=0):
     rng = np.random.default_rng(seed)
 
     def sample(n):
-        c = rng.uniform(5, L.width - 6, 4 * n)     # about half the left image overlaps the right
-        r = rng.uniform(5, L.height - 6, 4 * n)
-        h = rng.uniform(100, 1500, 4 * n)
+        c = rng.uniform(5, L.width - 6, 6 * n)     # about half the left image overlaps the right
+        r = rng.uniform(5, L.height - 6, 6 * n)
+        h = rng.uniform(100, 1500, 6 * n)
         lon, lat = L.localize(c, r, h)
         c2, r2 = R.project(lon, lat, h)
         ok = np.flatnonzero((c2 > 5) & (c2 < R.width - 6) & (r2 > 5) & (r2 < R.height - 6))[:n]

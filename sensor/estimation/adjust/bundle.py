@@ -407,7 +407,8 @@ class BundleResult:
             "condition": _num(self.condition),
             "points": self._points(0, "left") + self._points(1, "right"),
             "gcp_rmse_px": _num(self.gcp_rmse_px), "check_rmse_px": _num(self.check_rmse_px),
-            "n_gcp": int(sum(len(g) for g in self.gcps if g is not None) - len(self.outliers)),
+            "n_gcp": int(sum(len(g) for g in self.gcps if g is not None)
+                         - sum(o.get("kind") == "gcp" for o in self.outliers)),
             "n_check": int(sum(len(c) for c in self.checks if c is not None)),
             "ties": {"n": int(len(self.tie_rejected)), "rejected": int(self.tie_rejected.sum()),
                      "rmse_px": _num(self.tie_rmse_px),
@@ -417,7 +418,8 @@ class BundleResult:
                      "ground_std_m_median": [_num(v) for v in np.nanmedian(self.tie_std_m[kept], 0)]
                      if kept.any() else None},
             "parallax_before": self.parallax_before, "parallax_after": self.parallax_after,
-            "outliers": [o["id"] for o in self.outliers], "outlier_details": self.outliers,
+            "outliers": [o["id"] for o in self.outliers if o.get("kind") == "gcp"],
+            "outlier_details": self.outliers,
             "test": self.test, "iterations": int(self.iterations), "converged": bool(self.converged),
             "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
             "regularization": None,
