@@ -725,14 +725,16 @@ def _solve(prob, solver, max_iterations, tolerance, max_condition, x_start=None)
                             max_nfev=4 * max_iterations + 10)
         z, it = sol.x, int(sol.njev or sol.nfev)
     worst = np.inf
-    for _ in range(max_iterations + 1):
+    # after scipy's run, up to five Gauss-Newton steps to meet the stated criterion
+    limit = it + 5 if solver == "least_squares" else max_iterations
+    for _ in range(max_iterations + 6):
         b = prob.blocks(z)
         if solver == "dense":
             dz, sig, R, Sinv, cond = _dense_step(prob, b, max_condition)
         else:
             dz, sig, R, Sinv, cond = prob.step(b, max_condition)
         worst = float(np.max(np.abs(dz) / sig)) if dz.size else 0.0
-        if worst < tolerance or it >= max_iterations + (5 if solver == "least_squares" else 0):
+        if worst < tolerance or it >= limit:
             break
         e = np.concatenate([b["e_t"].ravel(), b["e_g"].ravel(), b["e_p"]])
         cost = float(e @ e)

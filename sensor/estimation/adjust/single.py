@@ -147,6 +147,7 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
                  power: float = 0.80, priors: dict | None = None, regularization=None,
                  max_rejections: int | None = None, chi2_alpha: float = 0.05,
                  max_condition: float = gm.MAX_CONDITION, check_inputs: bool = True,
+                 variance_components: str | None = None,
                  what: str = "adjustment") -> AdjustmentResult:
     """Estimate parameters of a sensor model from GCPs, with statistics and data snooping.
 
@@ -181,6 +182,12 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         Upper bound on rejected points (default: as many as the redundancy allows).
     chi2_alpha : float
         Significance level of the global chi-square test of sigma0.
+    variance_components : None, "estimate" or "iterate"
+        With GCPs whose ground coordinates are observations (``sigma_ground_m``): estimate
+        the variance components of the image and ground groups
+        (:func:`.gauss_helmert.variance_components`, in ``result.variance_components``), or
+        iterate: rescale both groups' sigmas by their estimated factors and re-adjust until the
+        factors are within 2 % of 1 (at most 10 times; the sigmas used are reported).
 
     Returns
     -------
@@ -265,6 +272,35 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         active[idx] = False
         x_start = sol.x
 
+    # ------------------------------------------------------------ variance components
+    vc = None
+    if variance_components not in (None, "estimate", "iterate"):
+        raise InputError(f"{what}: variance_components must be None, 'estimate' or 'iterate'")
+    if variance_components and prob.G is not None:
+        scale_l = scale_g = 1.0
+        for _ in range(10 if variance_components == "iterate" else 1):
+            A_w = sol.A[:2 * n_act].reshape(n_act, 2, u)
+            vc = gh.variance_components(prob.W, A_w, sol.Qxx, prob.misclosure(sol.x), prob.sigma,
+                                        prob.sg, prob.G)
+            f_l, f_g = vc["image"]["sigma0"], vc["ground"]["sigma0"]
+            if variance_components == "estimate" or not (f_l and f_g) or not vc["separable"] or \
+                    (abs(f_l - 1) < 0.02 and abs(f_g - 1) < 0.02):
+                break
+            scale_l, scale_g = scale_l * f_l, scale_g * f_g
+            sub = gcp.subset(active)
+            sub.sigma_ground_m = sub.sigma_ground_m * scale_g
+            prob = _Problem(model, names, sub, sigma[active] * scale_l, priors, x0)
+            sol = gm.solve(prob.evaluate, sol.x, names, residual=prob.residual,
+                           max_iterations=max_iterations, tolerance=tolerance,
+                           regularization=regularization, max_condition=max_condition, what=what)
+            vtpv = float(sol.e @ sol.e)
+            sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
+            r_all = rel.redundancy_numbers(sol.A, sol.Qxx)
+            r = r_all[:2 * n_act].reshape(n_act, 2)
+            e_w = sol.e[:2 * n_act].reshape(n_act, 2)
+            w = rel.standardized_residuals(e_w, r, 1.0 if sigma_known else sigma0)
+        vc["sigma_scale_applied"] = {"image": scale_l, "ground": scale_g}
+
     # ------------------------------------------------------------ result
     adjusted = prob.at(sol.x)
     cov = sol.Qxx * (scale ** 2)
@@ -294,7 +330,7 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         test={"name": "baarda" if sigma_known else "pope", "alpha": alpha, "power": power,
               "threshold": float(thr), "delta0": delta0, "snooping": bool(snooping)},
         model_set=set_name, priors=priors, regularization=sol.regularization,
-        initial_model=model)
+        initial_model=model, variance_components=vc)
 
 
 def _scatter(a, active, n, k):
