@@ -45,7 +45,6 @@ from stereodem.sensor.estimation.adjust.result import rmse
 from stereodem.sensor.estimation.adjust.single import (_check_arrays, _sigmas,
                                                        check_points_against_model)
 from stereodem.sensor.geo import geodesy
-from stereodem.sensor.io.gcps import ControlPoints
 from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 
 __all__ = ["bundle_adjust", "BundleResult", "tie_parallax"]
@@ -604,7 +603,6 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         h_t = np.sum((Bt @ Sinv) * Bt, axis=2) + np.sum((G_t @ R["T"]) * G_t, axis=2)
         Ag = b["A_g"]
         h_g = np.sum((Ag @ Sinv) * Ag, axis=2)
-        h_p = np.einsum("ku,uv,kv->k", b["A_p"], Sinv, b["A_p"])
         r_t, r_g = np.clip(1 - h_t, 0, 1), np.clip(1 - h_g, 0, 1)
         scale = 1.0 if sigma_known else sigma0
         w_t = rel.standardized_residuals(b["e_t"], r_t, scale)

@@ -99,7 +99,6 @@ def variance_components(W, A_w, Qxx, e, sigma_px, sigma_ground_m, G) -> dict:
     ground covariance maps to the image as a multiple of the image covariance (``G G^T``
     isotropic, e.g. a near-nadir view) the two components cannot be told apart.
     """
-    n = e.shape[0]
     H = A_w @ Qxx @ np.swapaxes(A_w, 1, 2)                         # (n, 2, 2)
     C = np.swapaxes(W, 1, 2) @ (np.eye(2) - H) @ W
     s_l = np.asarray(sigma_px, float) ** 2
