@@ -272,6 +272,16 @@ def test_priors_are_fictitious_observations(rpc):
     k = tight.names.index("col_shift")
     assert abs(tight.values[k]) < 1e-3 and tight.std[k] < 1e-4
     assert tight.dof == free.dof + 1
+    about = adjust_model(rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False,
+                         priors={"col_shift": (2.0, 1e-4)})
+    assert abs(about.values[k] - 2.0) < 1e-3
+    # a linear constraint (practically hard: sigma 1e-4 of the parameters' own) between two
+    con = adjust_model(rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False,
+                       constraints=[({"col_shift": 1.0, "row_shift": 1.0}, 1.0, 1e-5)])
+    assert abs(con.values.sum() - 1.0) < 1e-4 and con.dof == free.dof + 1
+    assert abs(free.values.sum() - 1.0) > 0.5           # not what the data alone give
+    with pytest.raises(InputError, match="constraint on 'row_drift_row'"):
+        adjust_model(rpc, pts, "rpc-shift", constraints=[({"row_drift_row": 1.0}, 0.0, 1e-6)])
 
 
 # ------------------------------------------------------------------------- GCP files
