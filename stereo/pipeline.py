@@ -311,6 +311,7 @@ def _sparse_stage(left_image, right_image, left_model, right_model, rect, seed):
     try:
         return run_sparse_stage(left_image, right_image, left_model, right_model, heights=auto,
                                 pointing=rect.pointing_correction, height_range=check_range,
+                                reference_dem=seed if rect.pointing_uses_seed else None,
                                 **rect.sparse_options)
     except SparseMatchError as exc:
         if auto:

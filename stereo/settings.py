@@ -41,6 +41,10 @@ class RectificationSettings:
         or an affine correction when the matches support it) from sparse matches searched
         without an epipolar constraint, before rectification
         (:func:`stereodem.stereo.pointing.relative_pointing`).
+    pointing_uses_seed : bool
+        With a seed DEM, also fix the pointing correction's component along the epipolar
+        curves (unobservable from the two images: it is a height offset) by localising the
+        matches on the seed DEM: the DEM is then co-registered to the seed vertically.
     auto_heights : bool
         Without a height range or seed DEM, derive both from the sparse matches (a robust
         height range and a coarse seed surface, :func:`stereodem.stereo.terrain.terrain_heights`);
@@ -57,6 +61,7 @@ class RectificationSettings:
     halo: tuple = (32, 16)
     disparity_margin: float = 4.0
     pointing_correction: bool = True
+    pointing_uses_seed: bool = False
     auto_heights: bool = True
     sparse_options: dict = field(default_factory=dict)
 

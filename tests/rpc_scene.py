@@ -15,6 +15,7 @@ from affine import Affine
 
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM, ELLIPSOID
+from stereodem.sensor.geo.grid import MapGrid
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation.render import MapRaster, render
 
@@ -59,7 +60,7 @@ def rpc_steep_pair(size=512, seed=0, posting=1.0, texture_res=0.25):
     cc, rr = np.meshgrid(np.arange(shape[1]) + 0.5, np.arange(shape[0]) + 0.5)
     lon, lat = geodesy.crs_to_lonlat(*(tr @ (cc, rr)), crs)
     z = srtm.convert_heights(lon, lat, z.astype(np.float64), ELLIPSOID).astype(np.float32)
-    dem = MapRaster(z, tr, crs)
+    dem = MapRaster(z, MapGrid(tr, shape[1], shape[0], crs))
     # texture: seeded white noise blurred to the image resolution, plus larger patches
     rng = np.random.default_rng(seed)
     ttr = Affine(texture_res, 0, x0, 0, -texture_res, y1)
@@ -67,7 +68,7 @@ def rpc_steep_pair(size=512, seed=0, posting=1.0, texture_res=0.25):
     fine = cv2.GaussianBlur(rng.normal(0, 1, tshape).astype(np.float32), (0, 0), 2.0)
     coarse = cv2.GaussianBlur(rng.normal(0, 1, tshape).astype(np.float32), (0, 0), 24.0)
     tex = 1000 + 300 * fine / fine.std() + 200 * coarse / coarse.std()
-    radiance = MapRaster(tex.astype(np.float32), ttr, crs)
+    radiance = MapRaster(tex.astype(np.float32), MapGrid(ttr, tshape[1], tshape[0], crs))
     images = []
     for m in (left, right):
         img = render(m, dem, radiance, step=16)[0]
