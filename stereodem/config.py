@@ -162,6 +162,9 @@ class OrthoSettings:
         Posting in the output CRS's units (metres for UTM; default the image GSD).
     crs : str, optional
         Output CRS (default: the UTM zone of the image).
+    fill_dem : str, optional
+        A second DEM whose heights are used where the DEM has none (holes, partial coverage);
+        ``fill_dem_vertical`` its vertical reference when the file does not say.
     """
 
     enabled: bool = True
@@ -169,6 +172,8 @@ class OrthoSettings:
     resampling: str = "bilinear"
     res: float | None = None
     crs: str | None = None
+    fill_dem: str | None = None
+    fill_dem_vertical: str | None = None
 
 
 @dataclass
@@ -410,6 +415,8 @@ def validate(cfg: Config, source="configuration"):
         v = getattr(cfg.assess, key)
         if v is not None and (len(v) < 2 or any(b >= c for b, c in zip(v, v[1:]))):
             bad(f"[assess] {key} must be at least two increasing edges, got {list(v)}")
+    if cfg.ortho.fill_dem_vertical not in (None, "geoid", "ellipsoid"):
+        bad(f"[ortho] fill_dem_vertical must be 'geoid' or 'ellipsoid', got {cfg.ortho.fill_dem_vertical!r}")
     if cfg.ortho.res is not None and not cfg.ortho.res > 0:
         bad(f"[ortho] res must be positive, got {cfg.ortho.res}")
     from stereodem.ortho.drm import RESAMPLING

@@ -43,6 +43,10 @@ def add_parser(sub):
     p.add_argument("--gcps", help="GCP CSV (id,lon,lat,h,col,row[,role]) for the generic models")
     p.add_argument("--layers", default="", help="comma-separated extra layers: incidence,occlusion")
     p.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    p.add_argument("--fill-dem", metavar="OTHER.tif",
+                   help="second DEM for the cells the DEM has no height for (holes, partial coverage)")
+    p.add_argument("--fill-dem-vertical", choices=["geoid", "ellipsoid"],
+                   help="vertical reference of --fill-dem when the file does not say")
     options.add_workers(p, "threads for the row blocks")
     options.add_overwrite(p)
     p.set_defaults(run=run)
@@ -87,7 +91,8 @@ def config_from_args(args):
     cfg = Config(inputs=InputSettings(left=args.image, band=args.band, dem=args.dem,
                                       dem_vertical=args.dem_vertical),
                  output_dir=str(args.out),
-                 ortho=OrthoSettings(resampling=args.resampling, res=args.res, crs=args.crs),
+                 ortho=OrthoSettings(resampling=args.resampling, res=args.res, crs=args.crs,
+                                     fill_dem=args.fill_dem, fill_dem_vertical=args.fill_dem_vertical),
                  run=RunSettings(workers=args.workers, overwrite=args.overwrite))
     validate(cfg, "command line")
     return cfg

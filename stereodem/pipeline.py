@@ -302,15 +302,19 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
     """Orthoimages of ``images`` (``[(name, image, model), ...]``) against ``dem``, all on one
     grid (the first image's unless ``grid`` is given); returns ``{name: Ortho}``.
 
-    Cells the DEM does not cover get no data, with a warning giving their share. Row blocks
-    run on ``cfg.run.workers`` threads (the result does not depend on the count).
+    Cells the DEM does not cover get no data, with a warning giving their share, unless
+    ``cfg.ortho.fill_dem`` names a second DEM to take their heights from. Row blocks run on
+    ``cfg.run.workers`` threads (the result does not depend on the count).
     """
     from stereodem.ortho.drm import orthorectify
     orthos = {}
     threads = cfg.run.workers or os.cpu_count() or 1
+    fill = (DEM.from_file(cfg.ortho.fill_dem, vertical=cfg.ortho.fill_dem_vertical)
+            if cfg.ortho.fill_dem else None)
     for name, img, model in images:
         o = orthorectify(img, model, dem, grid=grid, res=cfg.ortho.res, crs=cfg.ortho.crs,
-                         resampling=cfg.ortho.resampling, progress=progress, threads=threads)
+                         resampling=cfg.ortho.resampling, progress=progress, threads=threads,
+                         fill_dem=fill)
         grid = grid or o.grid
         orthos[name] = o
     return orthos
