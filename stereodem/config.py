@@ -66,6 +66,9 @@ class InputSettings:
         The stereo pair (left = reference image).
     model : {"physical", "rpc"}
         Prefer the physical-model sidecar ``<stem>.model.json`` when present, or the RPCs.
+    rpc_direct : bool
+        Localise RPCs with their file's direct (image -> ground) model instead of the exact
+        inverse of the projection (the default; see :mod:`stereodem.sensor.models.rpc_direct`).
     left_model, right_model : str, optional
         Sensor-model files overriding the images' own (e.g. from ``stereodem adjust``).
     band : int
@@ -94,6 +97,7 @@ class InputSettings:
     left: str | None = None
     right: str | None = None
     model: str = "physical"
+    rpc_direct: bool = False
     left_model: str | None = None
     right_model: str | None = None
     band: int = 1

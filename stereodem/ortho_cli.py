@@ -43,6 +43,8 @@ def add_parser(sub):
     p.add_argument("--gcps", help="GCP CSV (id,lon,lat,h,col,row[,role]) for the generic models")
     p.add_argument("--layers", default="", help="comma-separated extra layers: incidence,occlusion")
     p.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    p.add_argument("--rpc-direct", action="store_true",
+                   help="localise RPCs with the file's direct model instead of the exact inverse")
     p.add_argument("--fill-dem", metavar="OTHER.tif",
                    help="second DEM for the cells the DEM has no height for (holes, partial coverage)")
     p.add_argument("--fill-dem-vertical", choices=["geoid", "ellipsoid"],
@@ -74,9 +76,9 @@ def _load_model(args):
     if args.gcps:
         raise InputError("--gcps is only used with a generic --model (poly2d-1 ... rational-3)")
     if args.model == "rpc":
-        return RPCModel.from_file(args.image)
+        return RPCModel.from_file(args.image, direct=args.rpc_direct)
     if args.model in ("auto", "physical"):
-        model = load_image_model(args.image, prefer="physical")
+        model = load_image_model(args.image, prefer="physical", rpc_direct=args.rpc_direct)
         if args.model == "physical" and isinstance(model, RPCModel):
             raise SensorModelError(f"{args.image}: no physical model sidecar (<stem>.model.json)")
         return model

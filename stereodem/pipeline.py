@@ -84,10 +84,12 @@ class Pair:
     seed_dem: DEM | None = None
 
 
-def load_image_and_model(path, *, band: int = 1, prefer: str = "physical", model_file=None):
+def load_image_and_model(path, *, band: int = 1, prefer: str = "physical", model_file=None,
+                         rpc_direct: bool = False):
     """One image (:func:`stereodem.sensor.io.raster.read_image`) and its sensor model (the
     ``model_file`` if given, else the image's sidecar or RPCs), checked against each other."""
-    model = load_model(model_file) if model_file else load_image_model(path, prefer=prefer)
+    model = (load_model(model_file, rpc_direct=rpc_direct) if model_file else
+             load_image_model(path, prefer=prefer, rpc_direct=rpc_direct))
     img = read_image(path, band)
     if img.shape != (model.height, model.width):
         raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
@@ -107,8 +109,10 @@ def load_pair(cfg: Config) -> Pair:
     i = cfg.inputs
     if not (i.left and i.right):
         raise InputError("a stereo DEM needs two images ([inputs] left and right)")
-    left = load_image_and_model(i.left, band=i.band, prefer=i.model, model_file=i.left_model)
-    right = load_image_and_model(i.right, band=i.band, prefer=i.model, model_file=i.right_model)
+    left = load_image_and_model(i.left, band=i.band, prefer=i.model, model_file=i.left_model,
+                                rpc_direct=i.rpc_direct)
+    right = load_image_and_model(i.right, band=i.band, prefer=i.model, model_file=i.right_model,
+                                 rpc_direct=i.rpc_direct)
     return Pair(left[0], right[0], left[1], right[1], load_seed_dem(cfg))
 
 
