@@ -115,3 +115,15 @@ def test_cli_dem_with_holes_and_fill_dem(tmp_path, data_dir, caplog):
     a_fill = ortho("--fill-dem", str(dem_path), out=tmp_path / "filled_ortho.tif")
     assert np.array_equal(np.isfinite(a_fill), np.isfinite(a_ref))
     assert np.nanmax(np.abs(a_fill - a_ref)) < 1e-3
+
+
+def test_rpc_ortho_on_heights_outside_its_validity_range(tmp_path, data_dir):
+    from stereodem.sensor.errors import RPCError
+    from test_ortho import _rpc_setup
+    model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
+    dem = DEM.from_file(dem_path)
+    feet = DEM(dem.heights * 3.28084, dem.transform, dem.crs, "ellipsoid", "dem_in_feet.tif")
+    with pytest.raises(RPCError) as e:
+        orthorectify(img, model, feet)
+    msg = str(e.value)
+    assert "\n" not in msg and "outside the RPC validity range" in msg
