@@ -32,8 +32,9 @@ from affine import Affine
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM, ELLIPSOID
 from stereodem.sensor.errors import DEMCoverageError, InputError, SensorModelError
+from stereodem.sensor.geo.grid import MapGrid, OnGrid
 
-from .grid import MapGrid, grid_for_model
+from .grid import grid_for_model
 
 log = logging.getLogger(__name__)
 
@@ -508,7 +509,7 @@ def remap_nan(img, ok, col, row, resampling, nodata=np.nan):
 # --------------------------------------------------------------------------- orthoimage
 
 @dataclass
-class Ortho:
+class Ortho(OnGrid):
     """An orthoimage on a map grid.
 
     Attributes
@@ -546,14 +547,6 @@ class Ortho:
     col: np.ndarray | None = None
     row: np.ndarray | None = None
 
-    @property
-    def transform(self) -> Affine:
-        return self.grid.transform
-
-    @property
-    def crs(self):
-        return self.grid.crs
-
     def report(self) -> dict:
         """Figures for logs and reports (plain types)."""
         bm = self.backward_map
@@ -566,13 +559,40 @@ class Ortho:
                     dem_missing_cells=self.dem_missing["n_cells"],
                     dem_no_height_share=self.dem_missing.get("footprint_share", 0.0))
 
-    def write(self, path, *, overwrite=False, tags=None):
-        """Write as a float32 GeoTIFF (rasterio), nodata set, the report as tags."""
+    def write(self, path, *, overwrite=False, tags=None, dtype=None, creation_options=None):
+        """Write as a Cloud-Optimised GeoTIFF (rasterio), nodata set, the report as tags.
+
+        Parameters
+        ----------
+        dtype : numpy dtype, optional
+            Data type of the file; pass the input image's (``image.dtype``) to keep it. Integer
+            types get the resampled values rounded and clipped to the type's range, and as
+            nodata the first of 0, the type's maximum, its minimum that no valid cell takes
+            (an internal mask when every one is taken). Default float32 (``nodata`` as is).
+        creation_options : dict or list of "KEY=VALUE", optional
+            GDAL COG creation options (:func:`stereodem.sensor.io.raster.write_geotiff`).
+        """
         from stereodem.sensor.io.raster import write_geotiff
         t = {f"STEREODEM_{k.upper()}": v for k, v in self.report().items()}
         t.update(tags or {})
-        return write_geotiff(path, self.data, self.grid.transform, self.grid.crs, self.nodata,
-                             overwrite=overwrite, tags=t)
+        data, nodata, mask = self.data, self.nodata, None
+        dt = np.dtype(dtype) if dtype is not None else np.dtype(np.float32)
+        if np.issubdtype(dt, np.integer):
+            info = np.iinfo(dt)
+            vals = np.clip(np.rint(np.where(self.valid, self.data, 0)), info.min, info.max).astype(dt)
+            taken = vals[self.valid]
+            nodata = next((v for v in (0, info.max, info.min) if not (taken == v).any()), None)
+            if nodata is None:
+                mask = self.valid
+            else:
+                vals[~self.valid] = nodata
+            data = vals
+        elif dt != self.data.dtype:
+            data = self.data.astype(dt)
+        return write_geotiff(path, data, self.grid.transform, self.grid.crs, nodata,
+                             overwrite=overwrite, tags=t, mask=mask,
+                             descriptions=f"orthoimage ({self.resampling} resampling)",
+                             overview_resampling="average", creation_options=creation_options)
 
 
 def _progressing(results, progress, total):

@@ -97,9 +97,9 @@ class DEMProducts:
     settings: dict
     info: dict = field(default_factory=dict)
 
-    def write(self, directory, *, overwrite=False):
+    def write(self, directory, *, overwrite=False, creation_options=None):
         """Write ``dem.tif``, ``score.tif``, ``count.tif``, ``raygap.tif`` in ``directory``."""
-        return self.dem.write(directory, overwrite=overwrite)
+        return self.dem.write(directory, overwrite=overwrite, creation_options=creation_options)
 
 
 # ----------------------------------------------------------------------------- one tile

@@ -221,6 +221,8 @@ class RunSettings:
         ``dask.distributed`` scheduler address.
     overwrite : bool
         Write into an existing output folder.
+    creation_options : dict, optional
+        GDAL creation options of the GeoTIFF products (as ``-co``), e.g. {COMPRESS = "ZSTD"}.
     """
 
     workers: int | None = None
@@ -228,6 +230,7 @@ class RunSettings:
     resume: bool = False
     dask: str | None = None
     overwrite: bool = False
+    creation_options: dict | None = None
 
 
 @dataclass
@@ -431,3 +434,6 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[run] workers must be at least 1, got {run.workers}")
     if run.tile_timeout is not None and not run.tile_timeout > 0:
         bad(f"[run] tile_timeout must be positive, got {run.tile_timeout}")
+    if run.creation_options:
+        from stereodem.sensor.io.raster import parse_creation_options
+        run.creation_options = parse_creation_options(run.creation_options)

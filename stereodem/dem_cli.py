@@ -59,6 +59,7 @@ def add_parser(subparsers):
     p.add_argument("--tile-timeout", type=float, default=600.0,
                    help="seconds after which a tile is abandoned and reported (default 600)")
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
+    options.add_creation_options(p)
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
@@ -83,7 +84,7 @@ def config_from_args(args):
             gridding=GriddingSettings(res=args.res, crs=args.crs, geoid=args.geoid,
                                       method=args.gridding)),
         run=RunSettings(workers=args.workers, tile_timeout=args.tile_timeout, dask=args.dask,
-                        overwrite=args.overwrite))
+                        overwrite=args.overwrite, creation_options=options.creation_options(args)))
     validate(cfg, "command line")
     return cfg
 
@@ -93,6 +94,8 @@ def run(args) -> int:
     from stereodem.sensor.io.raster import check_output_dir, prepare_output_dir, write_text_atomic
 
     from .pipeline import load_pair, stereo_stage
+    from .provenance import provenance, utc_now
+    started = utc_now()
     options.check_common(args)
     cfg = config_from_args(args)
     out = check_output_dir(cfg.output_dir, overwrite=args.overwrite)
@@ -101,8 +104,8 @@ def run(args) -> int:
     prod, failed = stereo_stage(cfg, pair, progress=bar)
     bar.close()
     prepare_output_dir(out, overwrite=args.overwrite)
-    prod.write(out, overwrite=True)
-    report = dict(left=str(args.left), right=str(args.right), settings=prod.settings,
+    prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
+    report = dict(provenance=provenance(started=started), left=str(args.left), right=str(args.right), settings=prod.settings,
                   info=prod.info, n_points=prod.n_points, seconds=prod.seconds, tiles=prod.tiles,
                   failed_tiles=failed)
     write_text_atomic(out / "dem_report.json", json.dumps(report, indent=2, default=str) + "\n",

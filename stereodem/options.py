@@ -25,6 +25,18 @@ def add_workers(p, what="worker processes for the stereo tiles"):
     p.add_argument("--workers", type=int, help=f"{what} (default: all cores)")
 
 
+def add_creation_options(p):
+    p.add_argument("--co", action="append", metavar="KEY=VALUE", default=[],
+                   help="GDAL creation option of the GeoTIFF products, repeatable (as GDAL's -co), "
+                        "e.g. --co COMPRESS=ZSTD (default: COG, DEFLATE, predictor by data type)")
+
+
+def creation_options(args):
+    """The ``--co`` options as a dict (None when none were given)."""
+    from stereodem.sensor.io.raster import parse_creation_options
+    return parse_creation_options(getattr(args, "co", None)) or None
+
+
 def add_overwrite(p):
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing outputs (default: refuse to touch them)")

@@ -50,6 +50,9 @@ def add_parser(sub):
     p.add_argument("--fill-dem-vertical", choices=["geoid", "ellipsoid"],
                    help="vertical reference of --fill-dem when the file does not say")
     options.add_workers(p, "threads for the row blocks")
+    p.add_argument("--float", action="store_true",
+                   help="write float32 values instead of the image's own data type")
+    options.add_creation_options(p)
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
@@ -64,7 +67,8 @@ def _load_model(args):
     if args.model in GENERIC:
         if not args.gcps:
             raise InputError(f"--model {args.model} needs --gcps CSV")
-        from stereodem.sensor.models.generic import fit_model, read_gcps
+        from stereodem.sensor.io.gcps import read_gcps
+        from stereodem.sensor.models.generic import fit_model
         pts = read_gcps(args.gcps)
         gcp = pts.select("gcp") if "gcp" in set(pts.role) else pts
         chk = pts.select("check")
@@ -105,7 +109,7 @@ def run(args) -> int:
 
     from stereodem.sensor.errors import InputError
     from stereodem.sensor.geo.dem import DEM
-    from stereodem.sensor.io.raster import check_writable, read_image, write_geotiff
+    from stereodem.sensor.io.raster import check_writable, image_dtype, read_image, write_geotiff
 
     from .pipeline import ortho_stage
     options.check_common(args)
@@ -128,7 +132,9 @@ def run(args) -> int:
     bar = options.progress_bar("ortho")
     ortho = ortho_stage(cfg, [("image", image, model)], dem, progress=bar)["image"]
     bar.close()
-    ortho.write(out, overwrite=args.overwrite)
+    co = options.creation_options(args)
+    ortho.write(out, overwrite=args.overwrite, creation_options=co,
+                dtype=None if args.float else image_dtype(args.image, args.band))
     rep = ortho.report()
     options.say(f"wrote {out}: {rep['width']}x{rep['height']} cells of {rep['res_m']:g} in "
                 f"{rep['crs']}, {100 * rep['valid_fraction']:.1f}% valid; map interpolation error "
@@ -136,12 +142,14 @@ def run(args) -> int:
     if "incidence" in layers:
         from stereodem.ortho.layers import incidence_angle
         write_geotiff(layer_paths["incidence"], incidence_angle(ortho, model), ortho.transform,
-                      ortho.crs, float("nan"), overwrite=args.overwrite)
+                      ortho.crs, float("nan"), overwrite=args.overwrite, creation_options=co,
+                      descriptions=["local incidence angle"], units=["degree"])
         options.say(f"wrote {layer_paths['incidence']}: local incidence angle (deg)")
     if "occlusion" in layers:
         from stereodem.ortho.layers import occlusion_mask
         occ = occlusion_mask(ortho, model)
         write_geotiff(layer_paths["occlusion"], occ.astype("uint8"), ortho.transform, ortho.crs, 255,
-                      overwrite=args.overwrite)
+                      overwrite=args.overwrite, creation_options=co,
+                      descriptions=["occlusion: 1 hidden from the sensor, 0 seen"], units=["1"])
         options.say(f"wrote {layer_paths['occlusion']}: occlusion mask (1 = hidden, {100 * occ.mean():.2f}%)")
     return 0

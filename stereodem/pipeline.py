@@ -39,7 +39,8 @@ from stereodem.post.filters import EditCode
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.geo.dem import DEM
 from stereodem.sensor.geo.grid import MapGrid
-from stereodem.sensor.io.raster import prepare_output_dir, read_image, write_geotiff, write_text_atomic
+from stereodem.sensor.io.raster import (image_dtype, prepare_output_dir, read_image, write_geotiff,
+                                        write_text_atomic)
 from stereodem.sensor.io.sidecar import load_image_model, load_model
 from stereodem.stereo.grid import DEMGrid
 
@@ -82,6 +83,8 @@ class Pair:
     left_model: object
     right_model: object
     seed_dem: DEM | None = None
+    left_dtype: np.dtype = np.dtype("float32")
+    right_dtype: np.dtype = np.dtype("float32")
 
 
 def load_image_and_model(path, *, band: int = 1, prefer: str = "physical", model_file=None,
@@ -113,7 +116,8 @@ def load_pair(cfg: Config) -> Pair:
                                 rpc_direct=i.rpc_direct)
     right = load_image_and_model(i.right, band=i.band, prefer=i.model, model_file=i.right_model,
                                  rpc_direct=i.rpc_direct)
-    return Pair(left[0], right[0], left[1], right[1], load_seed_dem(cfg))
+    return Pair(left[0], right[0], left[1], right[1], load_seed_dem(cfg),
+                image_dtype(i.left, i.band), image_dtype(i.right, i.band))
 
 
 # ----------------------------------------------------------------------------- stereo
@@ -274,12 +278,14 @@ def post_stage(cfg: Config, layers: DEMGrid, seed_dem: DEM | None = None):
     return z.astype(np.float32), mask, report
 
 
-def write_clean_dem(path, heights, mask, layers: DEMGrid, *, overwrite=False):
+def write_clean_dem(path, heights, mask, layers: DEMGrid, *, overwrite=False, creation_options=None):
     """Write a clean DEM and its edit mask (``<stem>_edit_mask.tif``, uint8, 255 = nodata)."""
     path = Path(path)
     clean = DEM(heights, layers.transform, layers.crs, layers.vertical, str(path))
-    clean.write(path, overwrite=overwrite)
-    write_geotiff(edit_mask_path(path), mask, layers.transform, layers.crs, 255, overwrite=overwrite)
+    clean.write(path, overwrite=overwrite, creation_options=creation_options)
+    write_geotiff(edit_mask_path(path), mask, layers.transform, layers.crs, 255, overwrite=overwrite,
+                  descriptions=["edit code: 0 kept, 1-8 filter reason, 99 border rim, 100/101 filled"],
+                  units=["1"], creation_options=creation_options)
     return clean
 
 
@@ -326,7 +332,7 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
 
 # ----------------------------------------------------------------------------- assessment
 
-def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True):
+def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True, provenance=None):
     """Accuracy report of ``dem`` (a :class:`DEM` or a path) against the reference DEM and
     check points of the configuration, written into ``out_dir``; returns (assessment, files)."""
     from stereodem.post.assess import assess_dem
@@ -343,7 +349,7 @@ def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True):
                         landcover_names={int(k): v for k, v in (a.landcover_names or {}).items()},
                         elevation_bins=a.elevation_bins, **kw)
     files = write_report(result, out_dir, dem_heights=dem.heights, dem_transform=dem.transform,
-                         dem_crs=dem.crs, overwrite=overwrite)
+                         dem_crs=dem.crs, overwrite=overwrite, provenance=provenance)
     return result, files
 
 
@@ -354,6 +360,9 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
 
     ``progress_factory(label)`` may return a ``progress(done, total)`` callable per stage.
     """
+    from .provenance import provenance, utc_now
+    started = utc_now()
+    co = cfg.run.creation_options
     out = prepare_output_dir(cfg.output_dir, overwrite=cfg.run.overwrite or cfg.run.resume)
     prog = progress_factory or (lambda label: None)
     stages = StageLog()
@@ -367,14 +376,14 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
     bar = prog("stereo")
     products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles")
     _close(bar)
-    products.write(out / "raw", overwrite=True)
+    products.write(out / "raw", overwrite=True, creation_options=co)
     tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
     stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
                   failed_tiles=len(failed), tile_process_peak_rss_mb=max(tile_rss, default=0.0))
 
     t0 = time.perf_counter()
     z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
-    clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True)
+    clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True, creation_options=co)
     stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
 
     if cfg.ortho.enabled:
@@ -385,17 +394,19 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
             images.append(("right", pair.right_image, pair.right_model))
         orthos = ortho_stage(cfg, images, clean, progress=bar)
         _close(bar)
-        for name, o in orthos.items():
-            o.write(out / f"ortho_{name}.tif", overwrite=True)
+        dtypes = {"left": pair.left_dtype, "right": pair.right_dtype}
+        for name, o in orthos.items():           # in the image's own data type
+            o.write(out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name], creation_options=co)
         stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px for k, o in orthos.items()})
 
     report = None
     if cfg.assess.enabled and cfg.inputs.reference_dem:
         t0 = time.perf_counter()
-        report = assess_stage(cfg, clean, out / "assess")[0].report
+        report = assess_stage(cfg, clean, out / "assess", provenance=provenance(started=started))[0].report
         stages.record("assess", t0)
 
-    run_info = dict(config=cfg.to_dict(), versions=versions(), stages=stages.stages,
+    run_info = dict(provenance=provenance(started=started), config=cfg.to_dict(),
+                    versions=versions(), stages=stages.stages,
                     seconds=round(time.perf_counter() - t_all, 3), failed_tiles=failed,
                     stereo=dict(tiles=products.tiles, info=products.info), post=post_report,
                     outputs=sorted(p.name for p in out.iterdir()),

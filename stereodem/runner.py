@@ -157,12 +157,10 @@ def _cache_file(cache_dir, tile):
 
 
 def _save(cache_dir, tile, result):
-    path = _cache_file(cache_dir, tile)
-    fd, tmp = tempfile.mkstemp(dir=cache_dir, suffix=".npz.part")
-    os.close(fd)
-    with open(tmp, "wb") as f:
+    """Store a finished tile atomically, with the permissions of every other output."""
+    from stereodem.sensor.io.raster import atomic_path
+    with atomic_path(_cache_file(cache_dir, tile)) as tmp, open(tmp, "wb") as f:
         np.savez(f, **result)
-    os.replace(tmp, path)
 
 
 def _load(cache_dir, tile):

@@ -43,7 +43,13 @@ def _ensure_registered():
         register("frame", frame.FrameCamera,
                  lambda m: {n: getattr(m, n) for n in names},
                  lambda d: frame.FrameCamera(**{n: d[n] for n in names if n in d}))
-    for modname in ("pushbroom", "aster", "rpc", "rpc_direct", "corrected"):
+    if "rpcmodel" not in _REGISTRY:
+        # the RPC00B metadata domain does not carry the image size: keep it in the sidecar
+        from stereodem.sensor.models.rpc import RPCModel
+        register("rpcmodel", RPCModel,
+                 lambda m: {**m.to_dict(), "width": m.width, "height": m.height},
+                 lambda d: RPCModel.from_dict(d, width=d.get("width"), height=d.get("height")))
+    for modname in ("pushbroom", "aster", "rpc", "rpc_direct", "corrected", "generic"):
         try:
             mod = __import__(f"stereodem.sensor.models.{modname}", fromlist=["_"])
         except ImportError:
