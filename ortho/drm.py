@@ -100,6 +100,27 @@ def _crop_filled(dem: DEM, fill: DEM, c0, r0, c1, r1) -> DEM:
     return out
 
 
+def _check_rpc_heights(model, dem: DEM):
+    """An RPC (possibly image-corrected) evaluated on DEM heights outside its validity range
+    extrapolates its polynomials: raise a one-line :class:`RPCError` instead (a DEM in feet,
+    or the wrong DEM)."""
+    from stereodem.sensor.models.rpc import RPCModel
+    from stereodem.sensor.models.rpc_direct import check_validity
+    inner = model
+    while not isinstance(inner, RPCModel) and hasattr(inner, "model"):
+        inner = inner.model
+    if not isinstance(inner, RPCModel):
+        return
+    # the DEM under the image's footprint (localised at the middle of the validity range)
+    lon, lat = inner.footprint(float(np.mean(inner.height_bounds())))
+    c_lon, c_lat = inner.center_lonlat(float(np.mean(inner.height_bounds())))
+    lon, lat = np.append(np.asarray(lon, float), c_lon), np.append(np.asarray(lat, float), c_lat)
+    h = np.asarray(dem.sample(lon, lat), float)
+    ok = np.isfinite(h)
+    if ok.any():
+        check_validity(inner, lon[ok], lat[ok], h[ok])
+
+
 def bilinear_nan(array, c, r, *, dtype=np.float64):
     """Bilinear interpolation of ``array`` at fractional (col, row), centres at integers.
 
@@ -636,6 +657,7 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     if resampling not in RESAMPLING:
         raise InputError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
     dem = as_dem(dem)
+    _check_rpc_heights(model, dem)
     img, valid = _as_image(image, image_nodata)
     if (img.shape[1], img.shape[0]) != (model.width, model.height):
         log.warning("image size %s differs from the model's %dx%d", img.shape[::-1], model.width, model.height)

@@ -147,6 +147,9 @@ def _ratio_matches(d1, d2, ratio):
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
     # approximate nearest neighbours (randomised k-d trees, as in Lowe 2004): the exact
     # brute-force search costs ~5 s for 20 000 x 20 000 descriptors, FLANN ~10x less
+    # the randomised trees draw from OpenCV's global RNG: seed it so that a run is repeatable
+    # (same matches, same pointing correction, same DEM whatever the worker count or resume)
+    cv2.setRNGSeed(0)
     matcher = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=64))
     knn = matcher.knnMatch(np.ascontiguousarray(d1, np.float32), np.ascontiguousarray(d2, np.float32), k=2)
     pairs = np.array([(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance)

@@ -13,7 +13,7 @@ remaining heights give
   from its sparse matches;
 * a **seed surface**: the mean height of the points in cells of a coarse map grid (UTM of
   the scene centre, posting set so that cells hold a few points each), empty cells filled by
-  linear interpolation inside the points' hull and by the nearest cell outside it, as a
+  normalised Gaussian convolution of the filled ones (widening until all are filled), as a
   :class:`stereodem.sensor.geo.dem.DEM` (ellipsoidal heights). ``tile_margin`` is how far the
   points stray from that surface (99th percentile, plus ``min_margin``): the margin with which
   the surface sets each tile's height range.
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from affine import Affine
-from scipy.interpolate import griddata
+from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
 
 from stereodem.sensor.geo import geodesy
@@ -87,6 +87,23 @@ def _neighbour_deviation(x, y, h, k):
         return np.full(len(h), np.nan)
     _, idx = cKDTree(np.stack([x, y], -1)).query(np.stack([x, y], -1), k=k + 1)
     return h - np.median(h[idx[:, 1:]], axis=1)
+
+
+def _fill_empty(grid):
+    """Empty (NaN) cells filled by normalised Gaussian convolution of the filled ones, the
+    width doubling (1, 2, 4, ... cells) until every cell has a value: a smooth continuation
+    of the surface into the gaps and beyond the points' hull (no triangulation)."""
+    have = np.isfinite(grid)
+    out = grid.copy()
+    values = np.where(have, grid, 0.0)
+    sigma = 1.0
+    while not np.isfinite(out).all():
+        w = gaussian_filter(have.astype(float), sigma, mode="constant")
+        v = gaussian_filter(values, sigma, mode="constant")
+        todo = ~np.isfinite(out) & (w > 1e-6)
+        out[todo] = v[todo] / w[todo]
+        sigma *= 2.0
+    return out
 
 
 def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None = None,
@@ -171,16 +188,7 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
     grid = np.full(rows * cols, np.nan)
     grid[counts > 0] = sums[counts > 0] / counts[counts > 0]
     grid = grid.reshape(rows, cols)
-    have = np.isfinite(grid)
-    gy, gx = np.nonzero(have)
-    qy, qx = np.nonzero(~have)
-    if qy.size:
-        pts = np.stack([gx, gy], -1).astype(float)
-        vals = grid[have]
-        q = np.stack([qx, qy], -1).astype(float)
-        lin = griddata(pts, vals, q, method="linear") if len(vals) >= 3 else np.full(len(q), np.nan)
-        near = griddata(pts, vals, q, method="nearest")
-        grid[qy, qx] = np.where(np.isfinite(lin), lin, near)
+    grid = _fill_empty(grid)
     transform = Affine(posting, 0.0, x0, 0.0, -posting, y1)
     seed = DEM(grid.astype(np.float32), transform, crs, ELLIPSOID, "sparse-match seed surface")
     # how far the terrain strays from the surface between points: the larger of the points'

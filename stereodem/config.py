@@ -66,6 +66,9 @@ class InputSettings:
         The stereo pair (left = reference image).
     model : {"physical", "rpc"}
         Prefer the physical-model sidecar ``<stem>.model.json`` when present, or the RPCs.
+    rpc_direct : bool
+        Localise RPCs with their file's direct (image -> ground) model instead of the exact
+        inverse of the projection (the default; see :mod:`stereodem.sensor.models.rpc_direct`).
     left_model, right_model : str, optional
         Sensor-model files overriding the images' own (e.g. from ``stereodem adjust``).
     band : int
@@ -94,6 +97,7 @@ class InputSettings:
     left: str | None = None
     right: str | None = None
     model: str = "physical"
+    rpc_direct: bool = False
     left_model: str | None = None
     right_model: str | None = None
     band: int = 1
@@ -162,6 +166,9 @@ class OrthoSettings:
         Posting in the output CRS's units (metres for UTM; default the image GSD).
     crs : str, optional
         Output CRS (default: the UTM zone of the image).
+    fill_dem : str, optional
+        A second DEM whose heights are used where the DEM has none (holes, partial coverage);
+        ``fill_dem_vertical`` its vertical reference when the file does not say.
     """
 
     enabled: bool = True
@@ -169,6 +176,8 @@ class OrthoSettings:
     resampling: str = "bilinear"
     res: float | None = None
     crs: str | None = None
+    fill_dem: str | None = None
+    fill_dem_vertical: str | None = None
 
 
 @dataclass
@@ -413,6 +422,8 @@ def validate(cfg: Config, source="configuration"):
         v = getattr(cfg.assess, key)
         if v is not None and (len(v) < 2 or any(b >= c for b, c in zip(v, v[1:]))):
             bad(f"[assess] {key} must be at least two increasing edges, got {list(v)}")
+    if cfg.ortho.fill_dem_vertical not in (None, "geoid", "ellipsoid"):
+        bad(f"[ortho] fill_dem_vertical must be 'geoid' or 'ellipsoid', got {cfg.ortho.fill_dem_vertical!r}")
     if cfg.ortho.res is not None and not cfg.ortho.res > 0:
         bad(f"[ortho] res must be positive, got {cfg.ortho.res}")
     from stereodem.ortho.drm import RESAMPLING

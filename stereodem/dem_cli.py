@@ -52,6 +52,9 @@ def add_parser(subparsers):
                    help="do not estimate the relative pointing (right-image translation)")
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
     p.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    p.add_argument("--rpc-direct", action="store_true",
+                   help="localise RPCs with the file's direct model (DIMAP, rpcm JSON) instead of "
+                        "the exact inverse of the projection (the default)")
     options.add_workers(p)
     p.add_argument("--tile-timeout", type=float, default=600.0,
                    help="seconds after which a tile is abandoned and reported (default 600)")
@@ -72,7 +75,7 @@ def config_from_args(args):
     cfg = Config(
         inputs=InputSettings(left=args.left, right=args.right, band=args.band,
                              left_model=args.left_model, right_model=args.right_model,
-                             seed_dem=args.seed_dem, seed_dem_vertical=args.dem_vertical),
+                             rpc_direct=args.rpc_direct, seed_dem=args.seed_dem, seed_dem_vertical=args.dem_vertical),
         output_dir=args.out,
         stereo=StereoSettings(
             rectification=RectificationSettings(tile_size=args.tile_size, height_range=hr,

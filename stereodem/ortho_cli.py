@@ -43,6 +43,12 @@ def add_parser(sub):
     p.add_argument("--gcps", help="GCP CSV (id,lon,lat,h,col,row[,role]) for the generic models")
     p.add_argument("--layers", default="", help="comma-separated extra layers: incidence,occlusion")
     p.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    p.add_argument("--rpc-direct", action="store_true",
+                   help="localise RPCs with the file's direct model instead of the exact inverse")
+    p.add_argument("--fill-dem", metavar="OTHER.tif",
+                   help="second DEM for the cells the DEM has no height for (holes, partial coverage)")
+    p.add_argument("--fill-dem-vertical", choices=["geoid", "ellipsoid"],
+                   help="vertical reference of --fill-dem when the file does not say")
     options.add_workers(p, "threads for the row blocks")
     p.add_argument("--float", action="store_true",
                    help="write float32 values instead of the image's own data type")
@@ -74,9 +80,9 @@ def _load_model(args):
     if args.gcps:
         raise InputError("--gcps is only used with a generic --model (poly2d-1 ... rational-3)")
     if args.model == "rpc":
-        return RPCModel.from_file(args.image)
+        return RPCModel.from_file(args.image, direct=args.rpc_direct)
     if args.model in ("auto", "physical"):
-        model = load_image_model(args.image, prefer="physical")
+        model = load_image_model(args.image, prefer="physical", rpc_direct=args.rpc_direct)
         if args.model == "physical" and isinstance(model, RPCModel):
             raise SensorModelError(f"{args.image}: no physical model sidecar (<stem>.model.json)")
         return model
@@ -91,7 +97,8 @@ def config_from_args(args):
     cfg = Config(inputs=InputSettings(left=args.image, band=args.band, dem=args.dem,
                                       dem_vertical=args.dem_vertical),
                  output_dir=str(args.out),
-                 ortho=OrthoSettings(resampling=args.resampling, res=args.res, crs=args.crs),
+                 ortho=OrthoSettings(resampling=args.resampling, res=args.res, crs=args.crs,
+                                     fill_dem=args.fill_dem, fill_dem_vertical=args.fill_dem_vertical),
                  run=RunSettings(workers=args.workers, overwrite=args.overwrite))
     validate(cfg, "command line")
     return cfg

@@ -87,10 +87,12 @@ class Pair:
     right_dtype: np.dtype = np.dtype("float32")
 
 
-def load_image_and_model(path, *, band: int = 1, prefer: str = "physical", model_file=None):
+def load_image_and_model(path, *, band: int = 1, prefer: str = "physical", model_file=None,
+                         rpc_direct: bool = False):
     """One image (:func:`stereodem.sensor.io.raster.read_image`) and its sensor model (the
     ``model_file`` if given, else the image's sidecar or RPCs), checked against each other."""
-    model = load_model(model_file) if model_file else load_image_model(path, prefer=prefer)
+    model = (load_model(model_file, rpc_direct=rpc_direct) if model_file else
+             load_image_model(path, prefer=prefer, rpc_direct=rpc_direct))
     img = read_image(path, band)
     if img.shape != (model.height, model.width):
         raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
@@ -110,8 +112,10 @@ def load_pair(cfg: Config) -> Pair:
     i = cfg.inputs
     if not (i.left and i.right):
         raise InputError("a stereo DEM needs two images ([inputs] left and right)")
-    left = load_image_and_model(i.left, band=i.band, prefer=i.model, model_file=i.left_model)
-    right = load_image_and_model(i.right, band=i.band, prefer=i.model, model_file=i.right_model)
+    left = load_image_and_model(i.left, band=i.band, prefer=i.model, model_file=i.left_model,
+                                rpc_direct=i.rpc_direct)
+    right = load_image_and_model(i.right, band=i.band, prefer=i.model, model_file=i.right_model,
+                                 rpc_direct=i.rpc_direct)
     return Pair(left[0], right[0], left[1], right[1], load_seed_dem(cfg),
                 image_dtype(i.left, i.band), image_dtype(i.right, i.band))
 
@@ -308,15 +312,19 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
     """Orthoimages of ``images`` (``[(name, image, model), ...]``) against ``dem``, all on one
     grid (the first image's unless ``grid`` is given); returns ``{name: Ortho}``.
 
-    Cells the DEM does not cover get no data, with a warning giving their share. Row blocks
-    run on ``cfg.run.workers`` threads (the result does not depend on the count).
+    Cells the DEM does not cover get no data, with a warning giving their share, unless
+    ``cfg.ortho.fill_dem`` names a second DEM to take their heights from. Row blocks run on
+    ``cfg.run.workers`` threads (the result does not depend on the count).
     """
     from stereodem.ortho.drm import orthorectify
     orthos = {}
     threads = cfg.run.workers or os.cpu_count() or 1
+    fill = (DEM.from_file(cfg.ortho.fill_dem, vertical=cfg.ortho.fill_dem_vertical)
+            if cfg.ortho.fill_dem else None)
     for name, img, model in images:
         o = orthorectify(img, model, dem, grid=grid, res=cfg.ortho.res, crs=cfg.ortho.crs,
-                         resampling=cfg.ortho.resampling, progress=progress, threads=threads)
+                         resampling=cfg.ortho.resampling, progress=progress, threads=threads,
+                         fill_dem=fill)
         grid = grid or o.grid
         orthos[name] = o
     return orthos

@@ -72,3 +72,58 @@ def test_bundled_srtm_declares_its_vertical_reference():
     from importlib import resources
     path = resources.files("stereodem.sensor") / "data" / "srtm_ref.tif"
     assert DEM.from_file(path).vertical == "geoid"      # no --ref-vertical / --dem-vertical needed
+
+
+def test_cli_dem_with_holes_and_fill_dem(tmp_path, data_dir, caplog):
+    import argparse
+
+    import rasterio
+
+    from stereodem.ortho_cli import add_parser
+    from stereodem.sensor.io.raster import write_geotiff
+    from test_ortho import _rpc_setup
+    model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
+    image = tmp_path / "img.tif"
+    write_geotiff(image, img, rpcs=rpcs)
+    full = DEM.from_file(dem_path)
+    h = full.heights.copy()
+    r0, c0 = h.shape[0] // 2, h.shape[1] // 2
+    h[r0 - 30:r0 + 30, c0 - 30:c0 + 30] = np.nan                 # a hole under the image
+    holed = tmp_path / "holed.tif"
+    DEM(h, full.transform, full.crs, "ellipsoid").write(holed)
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+
+    def ortho(*extra, out):
+        args = parser.parse_args(["ortho", str(image), "--dem", str(holed), "-o", str(out),
+                                  "--res", "1", *extra])
+        assert args.run(args) == 0
+        with rasterio.open(out) as ds:
+            return ds.read(1)
+
+    ref = parser.parse_args(["ortho", str(image), "--dem", str(dem_path), "-o", str(tmp_path / "ref.tif"),
+                             "--res", "1"])
+    assert ref.run(ref) == 0
+    with rasterio.open(tmp_path / "ref.tif") as ds:
+        a_ref = ds.read(1)
+    with caplog.at_level(logging.WARNING):
+        a_holed = ortho(out=tmp_path / "holed_ortho.tif")           # holes: exit 0, nodata there
+    assert any("no DEM height under" in r.getMessage() and "--fill-dem" in r.getMessage()
+               for r in caplog.records)
+    lost = np.isfinite(a_ref) & ~np.isfinite(a_holed)
+    assert lost.sum() > 1000
+    a_fill = ortho("--fill-dem", str(dem_path), out=tmp_path / "filled_ortho.tif")
+    assert np.array_equal(np.isfinite(a_fill), np.isfinite(a_ref))
+    assert np.nanmax(np.abs(a_fill - a_ref)) < 1e-3
+
+
+def test_rpc_ortho_on_heights_outside_its_validity_range(tmp_path, data_dir):
+    from stereodem.sensor.errors import RPCError
+    from test_ortho import _rpc_setup
+    model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
+    dem = DEM.from_file(dem_path)
+    feet = DEM(dem.heights * 3.28084, dem.transform, dem.crs, "ellipsoid", "dem_in_feet.tif")
+    with pytest.raises(RPCError) as e:
+        orthorectify(img, model, feet)
+    msg = str(e.value)
+    assert "\n" not in msg and "outside the RPC validity range" in msg

@@ -241,3 +241,17 @@ def test_outside_the_validity_range(truth):
         check_validity(truth, lon[:5], lat[:5], np.full(5, 9000.0))
     msg = str(e.value)
     assert "\n" not in msg and "img_01_rpc.tif" in msg and "5 of 5 point(s) outside" in msg
+
+
+def test_model_files_of_any_rpc_format(tmp_path):
+    # --left-model / --right-model: a stereodem JSON sidecar, or any RPC file
+    m = load_model(FILES / "PHRDIMAP_pleiades-dimap1.XML")
+    assert type(m) is RPCModel and (m.width, m.height) == (1024, 1024)
+    d = load_model(FILES / "pleiades_rpcm.json", rpc_direct=True)
+    assert isinstance(d, DirectRPCModel)
+    bad = tmp_path / "notes.json"
+    bad.write_text('{"hello": 1}')
+    from stereodem.sensor.errors import SensorModelError
+    with pytest.raises(SensorModelError) as e:
+        load_model(bad)
+    assert "notes.json" in str(e.value) and "\n" not in str(e.value)

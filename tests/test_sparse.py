@@ -275,3 +275,9 @@ def test_real_rpc_geometry_over_steep_terrain_far_from_the_height_offset():
     # the terrain is ~1 100 m above the RPCs' height offset (1 295 m), outside the range found
     assert h.min() - left.height_off > 900 and lo > left.height_off + 500
     assert abs(st.pointing.parameters["col_shift"]) < 0.05     # no pointing error simulated
+
+
+def test_repeatable(scene):
+    a = sparse_matches(scene.left, scene.right, scene.left_model, scene.right_model)
+    b = sparse_matches(scene.left, scene.right, scene.left_model, scene.right_model)
+    assert len(a) == len(b) and np.array_equal(a.col2, b.col2) and a.offset_cross == b.offset_cross

@@ -87,16 +87,28 @@ def save_model(model, path, *, overwrite=False):
     return write_text_atomic(path, json.dumps(model_to_dict(model), indent=1), overwrite=overwrite)
 
 
-def load_model(path):
-    """Read a model from a JSON sidecar."""
+def load_model(path, *, rpc_direct: bool = False):
+    """Read a model from a JSON sidecar, or from an RPC file of any format
+    :func:`stereodem.sensor.io.rpc_formats.read_rpc` reads (DIMAP ``RPC_*.XML``, ``.geom``,
+    ``_RPC.TXT``, rpcm JSON, ...; ``rpc_direct`` as there)."""
     path = Path(path)
     try:
-        d = json.loads(path.read_text())
+        text = path.read_text(errors="replace")
     except FileNotFoundError:
         raise SensorModelError(f"{path}: model file not found") from None
-    except json.JSONDecodeError as exc:
-        raise SensorModelError(f"{path}: not a JSON model file ({exc})") from None
-    return model_from_dict(d, source=path)
+    except (IsADirectoryError, PermissionError) as exc:
+        raise SensorModelError(f"{path}: cannot read the model file ({exc.strerror})") from None
+    try:
+        d = json.loads(text)
+    except json.JSONDecodeError:
+        d = None
+    if isinstance(d, dict) and "type" in d:
+        return model_from_dict(d, source=path)
+    from stereodem.sensor.io.rpc_formats import read_rpc
+    try:
+        return read_rpc(path, direct=rpc_direct)
+    except RPCError as exc:
+        raise SensorModelError(f"not a stereodem model file, and {exc}") from None
 
 
 def sidecar_path(image) -> Path:
