@@ -19,7 +19,9 @@ import numpy as np
 import rasterio
 
 from stereodem.sensor.models.rpc import RPCModel
-from stereodem.stereo.pipeline import DEMSettings, make_dem
+from stereodem.stereo.pipeline import make_dem
+from stereodem.stereo.settings import (GriddingSettings, MatchingSettings, RectificationSettings,
+                                       StereoSettings)
 
 HERE = Path(__file__).resolve().parent
 PAIR = HERE.parents[1] / "shared" / "data" / "s2p_pleiades" / "pair"
@@ -47,15 +49,16 @@ def run(matcher="sgm", gridding="gaussian", tile_size=512, out=None):
         with rasterio.open(PAIR / name) as ds:
             images.append(ds.read(1).astype(np.float32))
         models.append(RPCModel.from_file(PAIR / name))
-    settings = DEMSettings(tile_size=tile_size, height_range=HEIGHT_RANGE, matcher=matcher,
-                           posting=abs(tr.a), crs=crs.to_wkt(),
-                           bounds=(bounds.left, bounds.bottom, bounds.right, bounds.top),
-                           gridding=gridding)
+    settings = StereoSettings(
+        RectificationSettings(tile_size=tile_size, height_range=HEIGHT_RANGE),
+        MatchingSettings(matcher=matcher),
+        gridding=GriddingSettings(res=abs(tr.a), crs=crs.to_wkt(), method=gridding,
+                                  bounds=(bounds.left, bounds.bottom, bounds.right, bounds.top)))
     prod = make_dem(images[0], images[1], models[0], models[1], settings)
     seconds = time.perf_counter() - t0
     if out:
         prod.write(out, overwrite=True)
-    dem = prod.grid.height.astype(np.float64)
+    dem = prod.dem.heights.astype(np.float64)
     assert dem.shape == ref.shape, (dem.shape, ref.shape)
     ref_valid = np.isfinite(ref)
     both = ref_valid & np.isfinite(dem)

@@ -30,8 +30,10 @@ checkpoints = "scene/points.csv"
 [output]
 dir = "result"
 
-[stereo]
+[rectification]
 tile_size = 512
+
+[matching]
 matcher = "ncc"
 
 [ortho]

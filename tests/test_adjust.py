@@ -240,7 +240,7 @@ def test_near_singular_names_the_parameters(rpc):
 
 
 def test_non_convergence_is_an_error(rpc):
-    with pytest.raises(ConvergenceError, match="no convergence in 1 iteration"):
+    with pytest.raises(ConvergenceError, match=r"no convergence in \d+ iteration.*criterion"):
         # the affine correction is linear: one iteration solves it, but a second is needed
         # to verify the criterion
         adjust_model(rpc, _pts(rpc, 12), "rpc-affine", max_iterations=1, tolerance=0.0)

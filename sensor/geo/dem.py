@@ -114,6 +114,12 @@ class DEM:
 
     # ---------------------------------------------------------------- geometry
     @property
+    def grid(self):
+        """The DEM's :class:`~stereodem.sensor.geo.grid.MapGrid`."""
+        from stereodem.sensor.geo.grid import MapGrid
+        return MapGrid(self.transform, self.heights.shape[1], self.heights.shape[0], self.crs)
+
+    @property
     def shape(self):
         return self.heights.shape
 

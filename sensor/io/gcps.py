@@ -68,8 +68,8 @@ class ControlPoints:
         n = self.id.size
         for k in ("lon", "lat", "h", "col", "row"):
             setattr(self, k, np.asarray(getattr(self, k), dtype=np.float64).ravel())
-        self.role = (np.full(n, "gcp") if self.role is None
-                     else np.broadcast_to(np.asarray(self.role).astype(str), (n,)).copy())
+        self.role = (np.full(n, "gcp", dtype="U16") if self.role is None
+                     else np.broadcast_to(np.asarray(self.role).astype("U16"), (n,)).copy())
         for k in ("sigma_px", "sigma_ground_m"):
             v = getattr(self, k)
             v = np.full(n, np.nan) if v is None else np.asarray(v, dtype=np.float64)

@@ -39,14 +39,27 @@ def atomic_path(path: Path):
             os.unlink(tmp)
 
 
-def prepare_output_dir(path, *, overwrite: bool = False) -> Path:
-    """Create an output folder; refuse an existing non-empty one unless ``overwrite``."""
+def check_output_dir(path, *, overwrite: bool = False) -> Path:
+    """Check, without creating anything, that ``path`` can become an output folder: not a file,
+    not a non-empty folder (unless ``overwrite``), under a folder that can be written."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise OutputExistsError(f"{path}: exists and is not a folder")
     if path.is_dir() and any(path.iterdir()) and not overwrite:
         raise OutputExistsError(f"{path}: folder exists and is not empty; pass --overwrite to reuse it")
-    path.mkdir(parents=True, exist_ok=True)
+    parent = path if path.is_dir() else next((p for p in path.absolute().parents if p.exists()), None)
+    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputExistsError(f"{path}: cannot be created ({parent} is not a writable folder)")
+    return path
+
+
+def prepare_output_dir(path, *, overwrite: bool = False) -> Path:
+    """Create an output folder; refuse an existing non-empty one unless ``overwrite``."""
+    path = check_output_dir(path, overwrite=overwrite)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputExistsError(f"{path}: cannot create the folder ({exc.strerror})") from None
     return path
 
 
@@ -100,3 +113,24 @@ def write_text_atomic(path, text: str, *, overwrite=False) -> Path:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)
     return path
+
+
+def read_image(path, band: int = 1) -> np.ndarray:
+    """One band of an image as float32, NaN where the file marks no data.
+
+    The one no-data rule of the project: a pixel is missing where GDAL's mask for the band says
+    so (the band's nodata value, an internal mask or an alpha band) or where the value is not
+    finite. Raises :class:`InputError` naming the file when it cannot be read or has no such
+    band.
+    """
+    from stereodem.sensor.errors import InputError
+    try:
+        with rasterio.open(path) as ds:
+            if not 1 <= int(band) <= ds.count:
+                raise InputError(f"{path}: no band {band} (the image has {ds.count})")
+            data = ds.read(int(band), masked=True)
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(f"{path}: cannot read the image ({str(exc).splitlines()[0][:120]})") from None
+    img = np.ma.getdata(data).astype(np.float32)
+    img[np.ma.getmaskarray(data)] = np.nan
+    return img

@@ -49,7 +49,7 @@ def _ensure_registered():
         register("rpcmodel", RPCModel,
                  lambda m: {**m.to_dict(), "width": m.width, "height": m.height},
                  lambda d: RPCModel.from_dict(d, width=d.get("width"), height=d.get("height")))
-    for modname in ("pushbroom", "aster", "rpc", "corrected"):
+    for modname in ("pushbroom", "aster", "rpc", "rpc_direct", "corrected", "generic"):
         try:
             mod = __import__(f"stereodem.sensor.models.{modname}", fromlist=["_"])
         except ImportError:
@@ -104,12 +104,13 @@ def sidecar_path(image) -> Path:
     return image.with_name(image.stem + ".model.json")
 
 
-def load_image_model(image, *, prefer: str = "physical"):
+def load_image_model(image, *, prefer: str = "physical", rpc_direct: bool = False):
     """The sensor model of an image file.
 
     ``prefer="physical"`` uses the ``<stem>.model.json`` sidecar when present, else the RPC;
-    ``prefer="rpc"`` uses the RPC only. Raises :class:`SensorModelError` naming the file when
-    the image carries no usable model.
+    ``prefer="rpc"`` uses the RPC only; ``rpc_direct`` localises an RPC with its file's
+    direct model. Raises :class:`SensorModelError` naming the file when the image carries no
+    usable model.
     """
     image = Path(image)
     if not image.exists():
@@ -119,6 +120,6 @@ def load_image_model(image, *, prefer: str = "physical"):
         return load_model(side)
     try:
         from stereodem.sensor.models.rpc import RPCModel
-        return RPCModel.from_file(image)
+        return RPCModel.from_file(image, direct=rpc_direct)
     except RPCError as exc:
         raise SensorModelError(f"{image}: no usable sensor model (no {side.name} sidecar; {exc})") from None

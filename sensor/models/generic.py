@@ -459,6 +459,28 @@ class GenericModel(SensorModel):
         pad = 0.5 * (hi - lo) + 100.0
         return (lo - pad, hi + pad)
 
+    MODEL_TYPE = "generic"
+
+    # ------------------------------------------------------------ adjustable parameters
+    def parameters(self) -> dict:
+        """The coefficients as ``{"c00": ..., "c01": ...}`` (normalised coordinates, unit 1),
+        the protocol of :mod:`stereodem.sensor.models.parameters`."""
+        return {f"c{k:02d}": float(v) for k, v in enumerate(self.params)}
+
+    def with_parameters(self, **values) -> "GenericModel":
+        """A copy with some coefficients changed."""
+        p = self.params.copy()
+        for k, v in values.items():
+            try:
+                i = int(k[1:]) if k.startswith("c") else -1
+            except ValueError:
+                i = -1
+            if not 0 <= i < p.size:
+                raise InputError(f"{self.name}: unknown parameter {k!r} (c00..c{p.size - 1:02d})")
+            p[i] = float(v)
+        return GenericModel(self.name, p, crs=self.crs, normalization=self.norm, width=self.width,
+                            height=self.height, h_range=self.h_range, inverse_affine=self._inverse)
+
     def to_dict(self) -> dict:
         """Plain description of the fitted model (for reports and for re-creating it)."""
         return {
@@ -470,7 +492,18 @@ class GenericModel(SensorModel):
             "image_offset": self.norm.image_offset.tolist(),
             "image_scale": self.norm.image_scale.tolist(),
             "width": self.width, "height": self.height,
+            "h_range": list(self.h_range),
+            "inverse_affine": self._inverse.tolist(),
         }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "GenericModel":
+        """Inverse of :meth:`to_dict` (model sidecars)."""
+        a = lambda k: np.asarray(d[k], dtype=np.float64)  # noqa: E731
+        norm = _Normalization(a("ground_offset"), a("ground_scale"), a("image_offset"), a("image_scale"))
+        return cls(d["model"], a("params"), crs=CRS.from_user_input(d["crs"]), normalization=norm,
+                   width=d["width"], height=d["height"], h_range=d["h_range"],
+                   inverse_affine=a("inverse_affine"))
 
 
 # ---------------------------------------------------------------------------- fitting

@@ -17,16 +17,24 @@ import numpy as np
 from affine import Affine
 
 from stereodem.sensor.geo import geodesy
+from stereodem.sensor.geo.grid import MapGrid
 from stereodem.sensor.models.base import SensorModel
 
 
 @dataclass
 class MapRaster:
-    """A float32 raster on a north-up map grid (``transform`` is GDAL pixel-corner)."""
+    """A float32 raster (``data``, rows x cols) on a :class:`MapGrid`."""
 
     data: np.ndarray
-    transform: Affine
-    crs: object
+    grid: MapGrid
+
+    @property
+    def transform(self) -> Affine:
+        return self.grid.transform
+
+    @property
+    def crs(self):
+        return self.grid.crs
 
     def sample(self, x, y, border=np.nan):
         """Bilinear values at map coordinates (float64 arrays; converted to float32 pixel maps)."""

@@ -52,6 +52,7 @@ from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM, ELLIPSOID, as_dem
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.geo.grid import MapGrid
 from stereodem.sensor.simulation.render import MapRaster, localization_error, render
 
 log = logging.getLogger(__name__)
@@ -351,8 +352,9 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     field = cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2))
     dn_max = 255.0 if bits == 8 else 4095.0               # 12-bit signal in 16-bit words
     gain = 0.9 * dn_max / float(np.percentile(field, 99.9))
-    radiance = MapRaster(field * gain, ft, crs)
-    dem_r = MapRaster(fine_dem, ft, crs)
+    fine_grid = MapGrid(ft, fine_dem.shape[1], fine_dem.shape[0], crs)
+    radiance = MapRaster(field * gain, fine_grid)
+    dem_r = MapRaster(fine_dem, fine_grid)
 
     images, diags, grounds = [], {}, []
     for name, m in (("left", left_model), ("right", right_model)):

@@ -122,13 +122,18 @@ def _register_defaults():
     eo = ("roll", "pitch", "yaw", "x", "y", "z")
     register_model_set("frame-eo", _identity, eo, applies_to=(FrameCamera,),
                        description="frame camera space resection: exterior orientation (6)")
+    # a satellite frame camera cannot separate focal length from range (Bettemir 2006 §5.2:
+    # f, c and the altitude are correlated; he fixed the altitude): with interior orientation
+    # free, the telemetry position is a prior (15 m, the GPS sigma of the thesis)
+    gps = dict.fromkeys(("x", "y", "z"), 15.0)
     register_model_set("frame-eo-io", _identity, eo + ("focal_mm", "dx_mm", "dy_mm"),
-                       applies_to=(FrameCamera,),
-                       description="exterior + interior orientation (9)")
+                       applies_to=(FrameCamera,), priors=gps,
+                       description="exterior + interior orientation, position prior 15 m (9)")
     register_model_set("frame-self-calibration", _identity,
                        eo + ("focal_mm", "dx_mm", "dy_mm", "k1", "k2", "p1", "p2"),
-                       applies_to=(FrameCamera,),
-                       description="exterior + interior orientation + Brown distortion (13)")
+                       applies_to=(FrameCamera,), priors=gps,
+                       description="exterior + interior orientation + Brown distortion, "
+                                   "position prior 15 m (13)")
     att = ("roll_bias", "pitch_bias", "yaw_bias")
     drift = ("roll_drift", "pitch_drift", "yaw_drift")
     pos = ("position_offset_x", "position_offset_y", "position_offset_z")

@@ -41,9 +41,15 @@ def redundancy_numbers(A, Qxx) -> np.ndarray:
     return np.clip(1.0 - hat_diagonal(A, Qxx), 0.0, 1.0)
 
 
-def standardized_residuals(e, r, sigma0: float = 1.0, *, r_min: float = 1e-9) -> np.ndarray:
-    """``w_i = e_i / (sigma0 sqrt(r_i))`` for whitened residuals ``e``; NaN where ``r_i ~ 0``
-    (an uncontrolled observation cannot be tested)."""
+#: redundancy number below which an observation counts as uncontrolled and is not tested (its
+#: residual is ~0 whatever its error; dividing by sqrt(r) would only amplify rounding and the
+#: last iteration's remainder), e.g. the along-track coordinates of along-track stereo ties
+R_MIN = 1e-3
+
+
+def standardized_residuals(e, r, sigma0: float = 1.0, *, r_min: float = R_MIN) -> np.ndarray:
+    """``w_i = e_i / (sigma0 sqrt(r_i))`` for whitened residuals ``e``; NaN where
+    ``r_i < r_min`` (an uncontrolled observation cannot be tested)."""
     e, r = np.asarray(e, float), np.asarray(r, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(r > r_min, e / (sigma0 * np.sqrt(r)), np.nan)

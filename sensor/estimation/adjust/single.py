@@ -143,7 +143,7 @@ class _Problem:
 
 
 def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iterations: int = 20,
-                 tolerance: float = 1e-3, snooping: bool = True, alpha: float = 0.001,
+                 tolerance: float = 1e-2, snooping: bool = True, alpha: float = 0.001,
                  power: float = 0.80, priors: dict | None = None, regularization=None,
                  max_rejections: int | None = None, chi2_alpha: float = 0.05,
                  max_condition: float = gm.MAX_CONDITION, check_inputs: bool = True,
