@@ -180,6 +180,8 @@ class PolynomialLineCamera(SensorModel):
         the reference (:func:`._common.fit_to_points`); the refinement's RMS (pixels) is kept
         in :attr:`init_rms_px`.
         """
+        if isinstance(reference, cls):
+            return reference                    # already this model (e.g. from a model set)
         w, hgt = reference.width, reference.height
         lon0, lat0 = reference.center_lonlat(0.0)
         col0 = 0.5 * (w - 1)

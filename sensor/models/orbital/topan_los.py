@@ -44,7 +44,10 @@ chosen EOP set with the look angles held, at most three times (Topan §3.3.3.1).
 type 1 per point (one pair of look angles per GCP, a diagonal system) and then fits a
 quadratic to them to reach the ICPs; here the quadratic is the unknown directly, which is the
 same model for the ICPs and gives the GCPs a real redundancy.
-:func:`preadjust` takes the adjustment engine as an argument.
+:func:`preadjust` takes the adjustment engine as an argument. One image is adjusted with
+:func:`stereodem.sensor.estimation.adjust.adjust_model`, a pair (GCPs, tie points, independent
+check points) with :func:`stereodem.sensor.estimation.adjust.bundle_adjust` (model sets
+``eop-poly2``, ``eop-<set>`` or lists of coefficient names; ``tests/test_orbital_pair.py``).
 
 Models left out of Topan's survey (package docstring, :mod:`stereodem.sensor.models.orbital`).
 """
@@ -326,6 +329,8 @@ class TopanLOSModel(SensorModel):
         centre line, in the SPOT angles of :func:`payload_to_orbital`) from its rays at the
         other lines.
         """
+        if isinstance(reference, cls):
+            return reference                    # already this model (e.g. from a model set)
         if not hasattr(reference, "ephemeris") or not hasattr(reference, "line_time"):
             raise SensorModelError(f"{type(reference).__name__}: the Topan LOS model needs a physical "
                                    "model with an ephemeris (pushbroom, ASTER or DIMAP)")

@@ -130,6 +130,8 @@ class ToutinModel(SensorModel):
         scene geometry gives ``N0, H0, alpha, chi`` and first guesses; all 15 values are then
         fitted to the reference's virtual points (the fit's RMS, pixels, in
         :attr:`init_rms_px`)."""
+        if isinstance(reference, cls):
+            return reference                    # already this model (e.g. from a model set)
         w, hgt = reference.width, reference.height
         lon0, lat0 = reference.center_lonlat(0.0)
         c0, r0 = 0.5 * (w - 1), 0.5 * (hgt - 1)
