@@ -237,6 +237,14 @@ class PolynomialLineCamera(SensorModel):
         return coef
 
     def to_dict(self) -> dict:
-        return {"model_type": self.MODEL_TYPE, "width": self.width, "height": self.height,
-                "lon0": self.lon0, "lat0": self.lat0, "col0": self.col0, "ifov": self.ifov,
-                "coefficients": dict(self._c), "name": self.name}
+        """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
+        return {"width": self.width, "height": self.height, "lon0": self.lon0, "lat0": self.lat0,
+                "col0": self.col0, "ifov": self.ifov, "coefficients": dict(self._c),
+                "name": self.name, "height_range": list(self._hr)}
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        """Inverse of :meth:`to_dict`."""
+        return cls(width=d["width"], height=d["height"], lon0=d["lon0"], lat0=d["lat0"], col0=d["col0"],
+                   ifov=d["ifov"], coefficients=d["coefficients"], name=d.get("name"),
+                   height_range=tuple(d.get("height_range", (-500.0, 9000.0))))
