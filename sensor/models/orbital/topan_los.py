@@ -101,11 +101,6 @@ def eop_set(name) -> list[str]:
     return list(EOP_SETS[key])
 
 
-def minimum_gcps(names) -> int:
-    """GCPs needed to solve for ``names`` in one image: two observations per GCP."""
-    return (len(list(names)) + 1) // 2
-
-
 def payload_to_orbital(roll, pitch, yaw):
     """``R_PO = Rx(-pitch) Ry(-roll) Rz(yaw)`` (active rotations, radians), shape (..., 3, 3)."""
     roll, pitch, yaw = np.broadcast_arrays(*(np.asarray(a, float) for a in (roll, pitch, yaw)))
