@@ -272,16 +272,8 @@ def _albedo(texture, shape, rng, detail=0.35):
     The texture's nodata border (zeros in every band, as in rotated Landsat scenes) is cut
     off first.
     """
-    with rasterio.open(texture) as ds:
-        t = ds.read().astype(np.float32)
-    r0, r1, c0, c1 = _valid_box(t.sum(axis=0) > 0)
-    t = t[:, r0:r1, c0:c1]
-    t = t.mean(axis=0) if t.shape[0] > 1 else t[0]
-    t = cv2.resize(t, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
-    lo, hi = (float(v) for v in np.percentile(t, [1, 99]))
-    t -= lo                                                   # in place: full-size arrays
-    t /= max(hi - lo, 1e-6)
-    np.clip(t, 0, 1, out=t)
+    # the seeded detail first (it alone uses the generator), then the stretched texture: only
+    # three full-size arrays live at a time
     d = np.zeros(shape, np.float32)
     for sigma, amp in ((0.8, 1.0), (2.0, 0.8), (5.0, 0.6), (12.0, 0.4)):
         n = _normal_float32(rng, shape)
@@ -293,9 +285,20 @@ def _albedo(texture, shape, rng, detail=0.35):
     np.tanh(d, out=d)
     d *= detail
     d += 1.0
+    with rasterio.open(texture) as ds:
+        t = ds.read().astype(np.float32)
+    r0, r1, c0, c1 = _valid_box(t.sum(axis=0) > 0)
+    t = t[:, r0:r1, c0:c1]
+    t = t.mean(axis=0) if t.shape[0] > 1 else t[0]
+    t = cv2.resize(t, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+    lo, hi = (float(v) for v in np.percentile(t, [1, 99]))
+    t -= lo                                                   # in place: full-size arrays
+    t /= max(hi - lo, 1e-6)
+    np.clip(t, 0, 1, out=t)
     t *= 0.7
     t += 0.15
     t *= d
+    del d
     return np.clip(t, 0.02, 1.0, out=t)
 
 
@@ -309,17 +312,12 @@ def _normal_float32(rng, shape, chunk_rows: int = 512):
     return out
 
 
-def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION, *, block_rows=1024):
-    """Lambertian cos(incidence) of the sun on a DEM array with square posting ``res`` (m).
-
-    Computed in row blocks with a one-row halo (the same central differences as one
-    ``np.gradient`` over the whole array), so temporaries stay block-sized.
-    """
+def _hillshade_blocks(z, res, azimuth, elevation, block_rows):
+    """``(r0, r1, shade)`` row blocks of :func:`hillshade_factor` (one-row halo)."""
     az, el = np.radians(azimuth), np.radians(elevation)
     s = np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
     fill = float(np.nanmean(z))
     rows = z.shape[0]
-    out = np.empty(z.shape, np.float32)
     for r0 in range(0, rows, block_rows):
         r1 = min(rows, r0 + block_rows)
         a, b = max(r0 - 1, 0), min(r1 + 1, rows)
@@ -328,7 +326,18 @@ def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION, *, bl
         # rows go south: north-ward slope is -gy
         nx, ny = -gx, gy
         n = np.sqrt(nx * nx + ny * ny + 1)
-        out[r0:r1] = np.clip((nx * s[0] + ny * s[1] + s[2]) / n, 0.0, 1.0)
+        yield r0, r1, np.clip((nx * s[0] + ny * s[1] + s[2]) / n, 0.0, 1.0).astype(np.float32)
+
+
+def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION, *, block_rows=256):
+    """Lambertian cos(incidence) of the sun on a DEM array with square posting ``res`` (m).
+
+    Computed in row blocks with a one-row halo (the same central differences as one
+    ``np.gradient`` over the whole array), so temporaries stay block-sized.
+    """
+    out = np.empty(z.shape, np.float32)
+    for r0, r1, shade in _hillshade_blocks(z, res, azimuth, elevation, block_rows):
+        out[r0:r1] = shade
     return out
 
 
@@ -406,10 +415,10 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     ft = Affine(res_truth / 2, 0, transform.c, 0, -res_truth / 2, transform.f)
     fshape = (shape[0] * 2, shape[1] * 2)
     fine_dem = _reproject_dem(dem, ft, fshape, crs)
-    field = hillshade_factor(fine_dem, res_truth / 2)      # in place from here on:
-    field *= 0.75                                         # albedo * (0.25 + 0.75 * shade)
-    field += 0.25
-    field *= _albedo(texture or texture_path(), fshape, rng)
+    # radiance field = albedo * (0.25 + 0.75 * shade), built in place
+    field = _albedo(texture or texture_path(), fshape, rng)
+    for r0, r1, shade in _hillshade_blocks(fine_dem, res_truth / 2, SUN_AZIMUTH, SUN_ELEVATION, 256):
+        field[r0:r1] *= 0.25 + 0.75 * shade
     # the system PSF, in ground units, applied once to the radiance field: both the images
     # and truth_ortho sample this one band-limited field
     cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2), dst=field)
@@ -419,6 +428,7 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     dem_r = MapRaster(fine_dem, ft, crs)
 
     images, diags = [], {}
+    h_mean = float(np.nanmean(fine_dem))
     right_true = right_model
     if jitter is not None:
         from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
@@ -432,7 +442,8 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
                                      phase_rad=phase)
     for name, m in (("left", left_model), ("right", right_true)):
         img, _, _, _, loc = render(m, dem_r, radiance, step=step, keep_ground=False)
-        diags[f"{name}_render_error_px"] = sampled_localization_error(m, loc, dem_r, seed=seed)
+        diags[f"{name}_render_error_px"] = sampled_localization_error(m, loc, dem_r, seed=seed,
+                                                                      h0=h_mean)
         diags[f"{name}_void_pct"] = float(100 * np.isnan(img).mean())
         noisy = img + rng.normal(0.0, noise, img.shape).astype(np.float32) if noise > 0 else img
         dtype = np.uint8 if bits == 8 else np.uint16
