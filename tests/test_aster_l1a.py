@@ -303,6 +303,18 @@ def test_v003_l1b_folder_is_refused(tmp_path):
         open_aster_granule(d)
 
 
+def test_band_names_and_single_band_reader(files):
+    from stereodem.sensor.io.aster_l1a import read_granule_band
+    g = open_aster_granule(files["v004"])
+    assert g.band("3b") is g.band("Band3B") is g.band("VNIR_Band3B") is g["3B"]
+    with pytest.raises(InputError, match=r"no band '2' in this granule \(has 3N, 3B\)"):
+        g.band("2")
+    img, model, tags = read_granule_band(files["v003_zip"], "3B", radiometric=False)
+    assert img.shape == (model.height, model.width) == g["3B"].shape
+    np.testing.assert_array_equal(img, g["3B"].image(radiometric=False))
+    assert tags["ASTER_BAND"] == "3B" and tags["ASTER_GRANULE_ID"] == g.granule_id
+
+
 def test_is_aster_granule(files, tmp_path):
     from stereodem.sensor.io.aster_l1a import is_aster_granule
     assert all(is_aster_granule(files[k]) for k in ("v004", "v003_zip", "v003_dir"))

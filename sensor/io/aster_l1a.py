@@ -155,7 +155,9 @@ class AsterGranule:
         return self.band(band)
 
     def band(self, band: str) -> AsterBand:
-        key = str(band).upper().replace("BAND", "")
+        """The band named ``"3N"`` / ``"3B"`` (also ``"3n"``, ``"Band3B"``, ``"VNIR_Band3B"``)."""
+        m = re.search(r"(?:^|BAND)(3[NB])$", str(band).upper().strip())
+        key = m.group(1) if m else str(band)
         if key not in self.bands:
             raise InputError(f"{self.path}: no band {band!r} in this granule "
                              f"(has {', '.join(self.bands)})")
@@ -225,6 +227,15 @@ def open_aster_granule(path, *, bands=VNIR_BANDS) -> AsterGranule:
     built = {b: build_band(fields[b]) for b in fields if b in VNIR_BANDS}
     return AsterGranule(path=str(p), product=product, granule_id=gid,
                         metadata=granule_metadata(odl, gid), odl=odl, bands=built)
+
+
+def read_granule_band(path, band: str, *, radiometric: bool = True):
+    """``(image float32 with NaN fill, AsterModel, tags)`` of one band of a granule: the one
+    call an image/model input layer needs (``band`` as :meth:`AsterGranule.band`)."""
+    g = open_aster_granule(path, bands=())
+    b = g.band(band)
+    return b.image(radiometric), b.model, {**g.tags(), "ASTER_BAND": b.band,
+                                           "ASTER_RADIOMETRIC": str(bool(radiometric))}
 
 
 def is_aster_granule(path) -> bool:
