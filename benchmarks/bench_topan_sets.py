@@ -163,7 +163,8 @@ def markdown(rows, ranking):
     sets = list(dict.fromkeys(r["set"] for r in rows))
     lines = ["ICP RMSE in pixels (GCP RMSE in brackets) after the type-1 pre-adjustment and the "
              "set's adjustment; `reg` = refused as near-singular, re-run with Tikhonov (GCV); "
-             f"image noise {NOISE_PX} px, 47 points.\n",
+             f"image noise {NOISE_PX} px, {rows[0]['n_gcp'] + rows[0]['n_icp']} points (47 drawn, those "
+             "whose DEM localisation converged).\n",
              "| set | u | " + " | ".join(LAYOUTS) + " |", "|---|---|" + "---|" * len(LAYOUTS)]
     for s in sets:
         cells = []
@@ -202,18 +203,25 @@ def figure(rows, path):
     sets = list(dict.fromkeys(r["set"] for r in rows))
     lay = [l for l in LAYOUTS if l != "H-0"]
     M = np.full((len(sets), len(lay)), np.nan)
+    reg = np.zeros(M.shape, bool)
     for i, s in enumerate(sets):
         for j, l in enumerate(lay):
             r = next(r for r in rows if r["set"] == s and r["layout"] == l)
-            if r.get("icp_rmse_px") is not None:
+            if r.get("icp_rmse_px") is not None and np.isfinite(r["icp_rmse_px"]):
                 M[i, j] = r["icp_rmse_px"]
+                reg[i, j] = r["status"] == "regularised"
     fig, ax = plt.subplots(figsize=(7, 8))
     im = ax.imshow(M, norm=LogNorm(vmin=max(np.nanmin(M), 0.1), vmax=np.nanmax(M)), cmap="viridis",
                    aspect="auto")
     ax.set_xticks(range(len(lay)), lay)
     ax.set_yticks(range(len(sets)), sets, fontsize=7)
     ax.set_xlabel("point layout (Topan Fig. 4.7)")
-    ax.set_title("ICP RMSE (px) per EOP set after type-1 pre-adjustment")
+    for i, j in zip(*np.nonzero(np.isfinite(M))):
+        ax.text(j, i, f"{M[i, j]:.2f}" + (" r" if reg[i, j] else ""), ha="center", va="center",
+                fontsize=6, color="white" if M[i, j] < 3 else "black")
+    ax.set_title("ICP RMSE (px) per EOP set after type-1 pre-adjustment\n"
+                 "white: refused (near-singular / too few GCPs / fails at an ICP); "
+                 "r: only with Tikhonov", fontsize=9)
     fig.colorbar(im, ax=ax, label="ICP RMSE (pixels, log scale)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -170,21 +170,27 @@ def figure(records, path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(9, 6))
+    fig, ax = plt.subplots(figsize=(10, 6.5))
     styles = {"generic": ":", "physical": "--", "orbital": "-"}
-    for name in dict.fromkeys(r["model"] for r in records):
+    colours = plt.get_cmap("tab20").colors
+    markers = "o^sDv<>p*h"
+    for k, name in enumerate(dict.fromkeys(r["model"] for r in records)):
         rs = [r for r in records if r["model"] == name and not r.get("error")
               and np.isfinite(r.get("icp_rmse_px", np.nan))]
         if not rs:
             continue
         ax.plot([r["n_gcp"] for r in rs], [r["icp_rmse_px"] for r in rs], styles[rs[0]["family"]],
-                marker="o", ms=3, label=f"{name} ({rs[0]['n_params']})")
+                color=colours[k % len(colours)], marker=markers[k % len(markers)], ms=4,
+                label=f"{name} ({rs[0]['n_params']})")
+    counts = sorted({r["n_gcp"] for r in records})
     ax.set_xscale("log")
     ax.set_yscale("log")
+    ax.set_xticks(counts, [str(c) for c in counts])
+    ax.minorticks_off()
     ax.set_xlabel("number of GCPs")
     ax.set_ylabel("ICP RMSE (pixels)")
     ax.set_title("Check-point error against GCP count (same ICPs for every model)")
-    ax.grid(True, which="both", alpha=0.3)
+    ax.grid(True, which="major", alpha=0.3)
     ax.legend(fontsize=7, ncol=2, title="model (parameters); dotted generic, dashed physical, "
                                         "solid orbital", title_fontsize=7)
     fig.tight_layout()
