@@ -52,7 +52,8 @@ from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM, ELLIPSOID, as_dem
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.models.base import SensorModel
-from stereodem.sensor.simulation.render import MapRaster, render, sampled_localization_error
+from stereodem.sensor.simulation.render import (MapRaster, nanmean_blocks, render,
+                                                 sampled_localization_error)
 
 log = logging.getLogger(__name__)
 
@@ -316,7 +317,7 @@ def _hillshade_blocks(z, res, azimuth, elevation, block_rows):
     """``(r0, r1, shade)`` row blocks of :func:`hillshade_factor` (one-row halo)."""
     az, el = np.radians(azimuth), np.radians(elevation)
     s = np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
-    fill = float(np.nanmean(z))
+    fill = nanmean_blocks(z)
     rows = z.shape[0]
     for r0 in range(0, rows, block_rows):
         r1 = min(rows, r0 + block_rows)
@@ -414,9 +415,10 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     # fine grid (half the truth posting) for the radiance field and the rendering DEM
     ft = Affine(res_truth / 2, 0, transform.c, 0, -res_truth / 2, transform.f)
     fshape = (shape[0] * 2, shape[1] * 2)
-    fine_dem = _reproject_dem(dem, ft, fshape, crs)
-    # radiance field = albedo * (0.25 + 0.75 * shade), built in place
+    # radiance field = albedo * (0.25 + 0.75 * shade), built in place; the fine DEM is made
+    # after the albedo so that the albedo's temporaries and it never coexist
     field = _albedo(texture or texture_path(), fshape, rng)
+    fine_dem = _reproject_dem(dem, ft, fshape, crs)
     for r0, r1, shade in _hillshade_blocks(fine_dem, res_truth / 2, SUN_AZIMUTH, SUN_ELEVATION, 256):
         field[r0:r1] *= 0.25 + 0.75 * shade
     # the system PSF, in ground units, applied once to the radiance field: both the images
@@ -428,7 +430,7 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     dem_r = MapRaster(fine_dem, ft, crs)
 
     images, diags = [], {}
-    h_mean = float(np.nanmean(fine_dem))
+    h_mean = nanmean_blocks(fine_dem)
     right_true = right_model
     if jitter is not None:
         from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
