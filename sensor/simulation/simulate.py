@@ -451,8 +451,11 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
         dtype = np.uint8 if bits == 8 else np.uint16
         q = np.clip(np.rint(np.nan_to_num(noisy, nan=0.0)), 0, np.iinfo(dtype).max).astype(dtype)
         images.append(q)
-    truth_ortho = radiance.sample(*(transform @ np.meshgrid(np.arange(shape[1]) + 0.5,
-                                                             np.arange(shape[0]) + 0.5)))
+    truth_ortho = np.empty(shape, np.float32)
+    for r0 in range(0, shape[0], 512):                    # row blocks: no full-size float64 grids
+        r1 = min(shape[0], r0 + 512)
+        truth_ortho[r0:r1] = radiance.sample(*(transform @ np.meshgrid(np.arange(shape[1]) + 0.5,
+                                                                        np.arange(r0, r1) + 0.5)))
     truth_dem = DEM(truth, transform, crs, ELLIPSOID, None)
     points = _check_points(left_model, right_true, truth_dem, n_points, rng)
     settings = dict(preset=preset, size=[w, h], right_size=list(rsize), noise=noise, seed=seed,
