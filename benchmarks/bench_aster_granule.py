@@ -92,7 +92,8 @@ def main(argv=None):
         "render_error_px": {k: v for k, v in sc.diagnostics.items() if k.endswith("render_error_px")},
         "baseline_before_block_rendering": {
             "full_granule": "164 s, 16 GB (issue #14, lead's measurement)",
-            "quarter_area_2050x2100_2500x2700_same_machine": {"before": [127.9, 5.07], "after": [47.8, 0.74],
+            "quarter_area_2050x2100_2500x2700_same_machine": {"before": [127.9, 5.07], "after": [47.8, 1.30],
+                                                              "final_version_peak_rss_gb": 0.74,
                                                               "unit": ["s", "GB peak RSS"]},
         "full_granule_intermediate_versions_same_machine": [
             {"step": "coarse geoid, moving-pixel iteration, no ground arrays", "seconds": 289.6, "peak_rss_gb": 4.36},
