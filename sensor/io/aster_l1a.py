@@ -17,6 +17,15 @@ Format (ASTER notes ``aster-l1a-format.md``): every VNIR band is an HDF-EOS swat
 names repeat in every swath, so fields are found through the Vgroups (or, failing that, by the
 ``:<swath>`` suffix HDF-EOS gives dimension names), never by name alone (notes §2.6).
 
+Using a granule::
+
+    from stereodem.sensor.io.aster_l1a import open_aster_granule, is_aster_granule
+    g = open_aster_granule("AST_L1A_00407312017190728_20250822173530.hdf")   # or V003 .zip / folder
+    left, right = g.stereo_pair()                    # bands 3N and 3B
+    image = left.image()                             # float32 radiance, NaN at fill
+    model = left.model                               # AsterModel: project / localize / rays
+    tags = g.tags()                                  # ASTER_ACQUISITION_TIME, ... for outputs
+
 What the reader checks rather than assumes (notes §4.3, §7): the lattice is read from the data
 (any N, any spacing, negative first row); sight vectors are renormalised; the convention of
 ``SatelliteVelocity`` (inertial or Earth-fixed) is decided against the positions; and the model
