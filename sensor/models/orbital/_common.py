@@ -28,6 +28,46 @@ def quadratic(c0, c1, c2, tau):
     return c0 + tau * (c1 + tau * c2)
 
 
+def secant_rows(f, n: int, height: int, *, max_iterations: int = 30):
+    """Image rows where ``f(row)[0] == 0``, by secant steps started at the first and last line.
+
+    Parameters
+    ----------
+    f : callable
+        ``f(rows) -> (residual, *extras)``: the misfit of each of ``n`` ground points at
+        (fractional) ``rows``, shape (n,), and any by-products wanted at the solution.
+    n : int
+        Number of points.
+    height : int
+        Image height (rows); steps are clipped to ten image heights.
+    max_iterations : int
+        At most this many secant steps (stops earlier once every step is below 1e-9 rows).
+
+    Returns
+    -------
+    row : ndarray (n,)
+        The last iterate.
+    out : tuple
+        ``f(row)`` at that iterate.
+    """
+    r0 = np.zeros(n)
+    r1 = np.full(n, height - 1.0)
+    f0 = f(r0)[0]
+    out = f(r1)
+    for _ in range(max_iterations):
+        f1 = out[0]
+        den = f1 - f0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(den != 0, -f1 * (r1 - r0) / den, 0.0)
+        step = np.clip(np.nan_to_num(step), -10.0 * height, 10.0 * height)
+        r0, f0 = r1, f1
+        r1 = r1 + step
+        out = f(r1)
+        if np.all(np.abs(step) < 1e-9):
+            break
+    return r1, out
+
+
 def virtual_points(reference, *, n: int = 9, heights=(-200.0, 1000.0, 3000.0)):
     """Ground points seen by ``reference`` on an ``n x n`` image grid at several heights.
 

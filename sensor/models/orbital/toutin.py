@@ -40,6 +40,7 @@ import numpy as np
 from stereodem.sensor.errors import SensorModelError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.models.parameters import checked_parameters
 from stereodem.sensor.models.orbital._common import fit_to_points, invert_projection, virtual_points
 
 ADJUSTED = ("P", "Q", "tau", "theta", "a", "x0", "y0", "rot")
@@ -82,13 +83,7 @@ class ToutinModel(SensorModel):
         return new
 
     def _set(self, values):
-        for k, v in values.items():
-            if k not in self._v:
-                raise SensorModelError(f"{self.name}: unknown parameter {k!r} (known: {', '.join(self._v)})")
-            v = float(v)
-            if not np.isfinite(v):
-                raise SensorModelError(f"{self.name}: parameter {k} must be finite")
-            self._v[k] = v
+        self._v.update(checked_parameters(self._v, values, self.name))
 
     def height_bounds(self):
         return self._hr
