@@ -10,11 +10,41 @@ in the unit of ``P``.
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from scipy.optimize import least_squares
 
 from stereodem.sensor.errors import ConvergenceError, SensorModelError
 from stereodem.sensor.geo import geodesy
+from stereodem.sensor.models.parameters import checked_parameters
+
+
+class CoefficientModel:
+    """Mixin of the orbital models: coefficients in the dict ``self._c`` (every coefficient the
+    model has, by name), validity heights in ``self._hr``.
+
+    Gives ``with_parameters`` (a copy with some coefficients changed), ``_set`` (checked by
+    :func:`~stereodem.sensor.models.parameters.checked_parameters`; the error lists
+    :meth:`_parameter_listing`) and ``height_bounds``.
+    """
+
+    def with_parameters(self, **values):
+        new = copy.copy(self)
+        new._c = dict(self._c)
+        new._set(values)
+        return new
+
+    def _set(self, values):
+        self._c.update(checked_parameters(self._c, values, self.name,
+                                          listing=self._parameter_listing()))
+
+    def _parameter_listing(self) -> str | None:
+        """How an unknown-parameter error lists the accepted names (None: all of ``_c``)."""
+        return None
+
+    def height_bounds(self):
+        return self._hr
 
 
 def line_variable(row, height: int):

@@ -18,8 +18,6 @@ which it freezes, is what distinguishes Orun & Natarajan from Kratky.
 """
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -27,9 +25,8 @@ from stereodem.sensor.errors import SensorModelError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.rotations import R1, R2, R3
 from stereodem.sensor.models.base import SensorModel, localize_on_rays
-from stereodem.sensor.models.parameters import checked_parameters
-from stereodem.sensor.models.orbital._common import (fit_to_points, line_variable, quadratic,
-                                                     secant_rows, virtual_points)
+from stereodem.sensor.models.orbital._common import (CoefficientModel, fit_to_points, line_variable,
+                                                     quadratic, secant_rows, virtual_points)
 
 #: Every coefficient of the line camera (units: m for X/Y/Z, rad for angles, 1 for the scale).
 COEFFICIENTS = tuple(f"{p}_{k}" for p in ("X", "Y", "Z", "omega", "phi", "kappa") for k in range(3)) \
@@ -40,7 +37,7 @@ def _steps():
     return {n: (1.0 if n[0] in "XYZ" else 1e-6) for n in COEFFICIENTS}
 
 
-class PolynomialLineCamera(SensorModel):
+class PolynomialLineCamera(CoefficientModel, SensorModel):
     """Line camera with quadratic exterior orientation (see the module docstring).
 
     Subclasses set :attr:`ADJUSTABLE` (the exposed parameters), :attr:`ADJUST_SETS` (named
@@ -78,18 +75,8 @@ class PolynomialLineCamera(SensorModel):
         """All coefficients, frozen ones included."""
         return dict(self._c)
 
-    def with_parameters(self, **values):
-        new = copy.copy(self)
-        new._c = dict(self._c)
-        new._set(values)
-        return new
-
-    def _set(self, values):
-        self._c.update(checked_parameters(self._c, values, self.name,
-                                          listing=", ".join(self.ADJUSTABLE)))
-
-    def height_bounds(self):
-        return self._hr
+    def _parameter_listing(self):
+        return ", ".join(self.ADJUSTABLE)
 
     # ------------------------------------------------------------------ geometry
     def _pose(self, row):

@@ -61,8 +61,8 @@ from scipy.spatial.transform import Rotation
 from stereodem.sensor.errors import InputError, SensorModelError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.models.base import SensorModel, localize_on_rays
-from stereodem.sensor.models.parameters import checked_parameters
-from stereodem.sensor.models.orbital._common import line_variable, quadratic, secant_rows
+from stereodem.sensor.models.orbital._common import (CoefficientModel, line_variable, quadratic,
+                                                     secant_rows)
 
 SERIES = ("X", "Y", "Z", "VX", "VY", "VZ", "roll", "pitch", "yaw")
 EOP = tuple(f"{s}_{k}" for s in SERIES for k in range(3))
@@ -118,7 +118,7 @@ def orbital_to_ecef(p, v):
     return np.stack([x, y, z], -1)
 
 
-class TopanLOSModel(SensorModel):
+class TopanLOSModel(CoefficientModel, SensorModel):
     """Line-of-sight model with quadratic EOP polynomials (module docstring).
 
     Parameters
@@ -163,12 +163,6 @@ class TopanLOSModel(SensorModel):
     def parameters(self) -> dict:
         return dict(self._c)
 
-    def with_parameters(self, **values):
-        new = copy.copy(self)
-        new._c = dict(self._c)
-        new._set(values)
-        return new
-
     def with_los_sign(self, sign: int) -> "TopanLOSModel":
         """The same model with the ``z`` of the look vector set to ``sign`` (+1: Topan's print)."""
         new = copy.copy(self)
@@ -177,13 +171,8 @@ class TopanLOSModel(SensorModel):
         new.los_sign = int(sign)
         return new
 
-    def _set(self, values):
-        self._c.update(checked_parameters(
-            self._c, values, self.name,
-            listing=f"EOP coefficients {EOP[0]}..{EOP[-1]}, look-angle corrections {', '.join(LOOK)}"))
-
-    def height_bounds(self):
-        return self._hr
+    def _parameter_listing(self):
+        return f"EOP coefficients {EOP[0]}..{EOP[-1]}, look-angle corrections {', '.join(LOOK)}"
 
     # ------------------------------------------------------------------ geometry
     def _series(self, row):
