@@ -200,11 +200,7 @@ def _read_geom(path: Path) -> RPCModel:
     fmt = kv.get("polynomial_format", "B").strip().upper()
     if fmt != "B":
         raise RPCError(f"{path}: OSSIM polynomial_format {fmt!r} (only B, RPC00B, is supported)")
-    names = {"LINE_OFF": "line_off", "SAMP_OFF": "samp_off", "LAT_OFF": "lat_off",
-             "LONG_OFF": "long_off", "HEIGHT_OFF": "height_off", "LINE_SCALE": "line_scale",
-             "SAMP_SCALE": "samp_scale", "LAT_SCALE": "lat_scale", "LONG_SCALE": "long_scale",
-             "HEIGHT_SCALE": "height_scale"}
-    d = {k: get(v) for k, v in names.items()}
+    d = {k: get(k.lower()) for k in SCALAR_KEYS}       # OSSIM: line_off ... height_scale
     for key in COEFF_KEYS:
         d[key] = [get(f"{key.lower()}_{i:02d}") for i in range(20)]
     for key, okey in (("ERR_BIAS", "bias_error"), ("ERR_RAND", "rand_error")):
