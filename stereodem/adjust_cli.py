@@ -92,11 +92,15 @@ def _auto_ties(args, left, right):
     except ImportError:
         raise InputError("--model bundle needs --ties CSV (automatic tie points need "
                          "stereodem.stereo.sparse)") from None
+    import warnings
+
     import rasterio
     imgs = []
     for path in (args.image, args.image2):
-        with rasterio.open(path) as ds:
-            imgs.append(ds.read(1).astype("float32"))
+        with warnings.catch_warnings():     # raw (sensor-geometry) images have no geotransform
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(path) as ds:
+                imgs.append(ds.read(1).astype("float32"))
     m = sparse_matches(imgs[0], imgs[1], left, right)
     log.info("adjust: %d automatic tie points", len(m))
     return m

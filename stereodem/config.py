@@ -71,8 +71,12 @@ class InputSettings:
         inverse of the projection (the default; see :mod:`stereodem.sensor.models.rpc_direct`).
     left_model, right_model : str, optional
         Sensor-model files overriding the images' own (e.g. from ``stereodem adjust``).
-    band : int
-        Image band used for matching and orthoimages.
+    band : int or str
+        Image band used for matching and orthoimages (``"3N"``/``"3B"`` in an ASTER granule;
+        a granule given alone is the pair 3N/3B).
+    radiometric : bool
+        ASTER granules: radiance by the radiometric correction table (L = A V / G + D), or
+        the raw DNs.
     seed_dem : str, optional
         Coarse DEM setting each tile's height range (and filling large holes on request).
     seed_dem_vertical : {"geoid", "ellipsoid"}, optional
@@ -100,7 +104,8 @@ class InputSettings:
     rpc_direct: bool = False
     left_model: str | None = None
     right_model: str | None = None
-    band: int = 1
+    band: int | str = 1
+    radiometric: bool = True
     seed_dem: str | None = None
     seed_dem_vertical: str | None = None
     reference_dem: str | None = None
@@ -328,6 +333,11 @@ def build_settings(cls, table: dict, section: str, source):
 
 # ----------------------------------------------------------------------------- reading
 
+def _is_granule(path, base) -> bool:
+    from stereodem.sensor.io.aster_l1a import is_aster_granule
+    return isinstance(path, str) and is_aster_granule(Path(base) / path if not os.path.isabs(path) else path)
+
+
 def load_config(path, **overrides) -> Config:
     """Read a TOML configuration; relative input paths are relative to the file."""
     path = Path(path)
@@ -356,9 +366,10 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
     if unknown:
         raise InputError(f"{source}: unknown section(s) {', '.join(sorted(unknown))}")
     inp = dict(raw.get("inputs", {}))
-    for key in ("left", "right"):
-        if key not in inp:
-            raise InputError(f"{source}: [inputs] needs '{key}'")
+    if "left" not in inp:
+        raise InputError(f"{source}: [inputs] needs 'left'")
+    if "right" not in inp and not _is_granule(inp["left"], base):
+        raise InputError(f"{source}: [inputs] needs 'right' (only an ASTER granule is a pair alone)")
     for key in _PATH_KEYS:
         if isinstance(inp.get(key), str) and inp[key]:
             inp[key] = str(Path(base) / inp[key]) if not os.path.isabs(inp[key]) else inp[key]
@@ -392,8 +403,10 @@ def validate(cfg: Config, source="configuration"):
         v = getattr(cfg.inputs, key)
         if v is not None and v not in ("geoid", "ellipsoid"):
             bad(f"[inputs] {key} must be 'geoid' or 'ellipsoid', got {v!r}")
-    if cfg.inputs.band < 1:
-        bad(f"[inputs] band must be at least 1, got {cfg.inputs.band}")
+    band = cfg.inputs.band
+    if isinstance(band, bool) or not (isinstance(band, int) and band >= 1 or
+                                      isinstance(band, str) and band.upper() in ("3N", "3B")):
+        bad(f"[inputs] band must be a band number >= 1 or an ASTER band 3N/3B, got {band!r}")
     if not 64 <= rect.tile_size <= 16384:
         bad(f"[rectification] tile_size must be 64..16384 px, got {rect.tile_size}")
     if rect.height_range is not None:

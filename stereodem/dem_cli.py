@@ -20,6 +20,7 @@ EXAMPLES = """examples:
   stereodem dem 3N.tif 3B.tif -o dem --seed-dem srtm.tif --matcher ncc --geoid --overwrite
   stereodem dem 3N.tif 3B.tif -o dem --height-range 0 2500 --workers 2 --tile-timeout 120
   stereodem dem left.tif right.tif -o out --right-model right.adjusted.model.json
+  stereodem dem AST_L1A_00307312017190728_20250708114426.hdf -o dem      # 3N/3B of a granule
 """
 
 
@@ -32,8 +33,9 @@ def add_parser(subparsers):
                     "LEFT/RIGHT are GeoTIFFs with RPC metadata (tags or .RPB sidecar) or a "
                     "physical-model sidecar <stem>.model.json.",
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("left", help="left (reference) image GeoTIFF")
-    p.add_argument("right", help="right image GeoTIFF")
+    p.add_argument("left", help="left (reference) image GeoTIFF, or an ASTER L1A granule (V004 "
+                                "AST_L1A_*.hdf, V003 zip or folder) whose 3N/3B bands are the pair")
+    p.add_argument("right", nargs="?", help="right image GeoTIFF (omitted for an ASTER granule)")
     p.add_argument("-o", "--out", required=True, help="output folder")
     options.add_res(p, "2 x the left image's GSD")
     rng = p.add_mutually_exclusive_group()
@@ -51,7 +53,7 @@ def add_parser(subparsers):
     p.add_argument("--no-pointing-correction", action="store_true",
                    help="do not estimate the relative pointing (right-image translation)")
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
-    p.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    options.add_band(p)
     p.add_argument("--rpc-direct", action="store_true",
                    help="localise RPCs with the file's direct model (DIMAP, rpcm JSON) instead of "
                         "the exact inverse of the projection (the default)")
@@ -74,6 +76,7 @@ def config_from_args(args):
     hr = tuple(args.height_range) if args.height_range is not None else None
     cfg = Config(
         inputs=InputSettings(left=args.left, right=args.right, band=args.band,
+                             radiometric=not args.no_radiometric,
                              left_model=args.left_model, right_model=args.right_model,
                              rpc_direct=args.rpc_direct, seed_dem=args.seed_dem, seed_dem_vertical=args.dem_vertical),
         output_dir=args.out,
@@ -105,7 +108,7 @@ def run(args) -> int:
     bar.close()
     prepare_output_dir(out, overwrite=args.overwrite)
     prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
-    report = dict(provenance=provenance(started=started), left=str(args.left), right=str(args.right), settings=prod.settings,
+    report = dict(provenance=provenance(started=started), input_metadata=pair.tags, left=str(args.left), right=str(args.right), settings=prod.settings,
                   info=prod.info, n_points=prod.n_points, seconds=prod.seconds, tiles=prod.tiles,
                   failed_tiles=failed)
     write_text_atomic(out / "dem_report.json", json.dumps(report, indent=2, default=str) + "\n",

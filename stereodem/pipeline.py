@@ -85,19 +85,51 @@ class Pair:
     seed_dem: DEM | None = None
     left_dtype: np.dtype = np.dtype("float32")
     right_dtype: np.dtype = np.dtype("float32")
+    tags: dict = field(default_factory=dict)
 
 
-def load_image_and_model(path, *, band: int = 1, prefer: str = "physical", model_file=None,
-                         rpc_direct: bool = False):
-    """One image (:func:`stereodem.sensor.io.raster.read_image`) and its sensor model (the
-    ``model_file`` if given, else the image's sidecar or RPCs), checked against each other."""
-    model = (load_model(model_file, rpc_direct=rpc_direct) if model_file else
-             load_image_model(path, prefer=prefer, rpc_direct=rpc_direct))
-    img = read_image(path, band)
+@dataclass
+class InputImage:
+    """One input image as every stage sees it: float32 values (NaN = no data), its sensor
+    model, the stored data type and metadata tags (an ASTER granule's acquisition time, ...)."""
+
+    image: np.ndarray
+    model: object
+    dtype: np.dtype
+    tags: dict = field(default_factory=dict)
+
+
+ASTER_STEREO_BANDS = ("3N", "3B")
+
+
+def open_image(path, *, band=1, prefer: str = "physical", model_file=None, rpc_direct: bool = False,
+               radiometric: bool = True, granules: dict | None = None) -> InputImage:
+    """The one input layer: a GeoTIFF (with RPCs or a model sidecar) or an ASTER L1A granule
+    (V004 ``.hdf``, V003 ``.zip`` or folder; ``band`` ``"3N"``/``"3B"``, radiance by the
+    granule's radiometric table unless ``radiometric`` is false), with its model (or the
+    ``model_file``), checked against each other. ``granules`` caches opened granules by path."""
+    from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
+    if is_aster_granule(path):
+        key = str(Path(path).resolve())
+        g = (granules or {}).get(key) or open_aster_granule(path)
+        if granules is not None:
+            granules[key] = g
+        name = band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
+        img = g.read_image(name, radiometric=radiometric)
+        model = load_model(model_file) if model_file else g.model(name)
+        dtype = np.dtype("float32") if radiometric else g.band(name).dn.dtype
+        tags = {**g.tags(), "ASTER_BAND": str(name).upper(), "ASTER_RADIOMETRIC": str(bool(radiometric))}
+    else:
+        if isinstance(band, str):
+            raise InputError(f"{path}: band {band!r} names an ASTER band, but this is not an ASTER "
+                             "granule (give a band number)")
+        model = (load_model(model_file, rpc_direct=rpc_direct) if model_file else
+                 load_image_model(path, prefer=prefer, rpc_direct=rpc_direct))
+        img, dtype, tags = read_image(path, band), image_dtype(path, band), {}
     if img.shape != (model.height, model.width):
         raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
                          f"describes {model.width}x{model.height}")
-    return img, model
+    return InputImage(img, model, dtype, tags)
 
 
 def load_seed_dem(cfg: Config) -> DEM | None:
@@ -108,16 +140,24 @@ def load_seed_dem(cfg: Config) -> DEM | None:
 
 
 def load_pair(cfg: Config) -> Pair:
-    """Both images (band ``cfg.inputs.band``) with their models, and the seed DEM."""
+    """Both images with their models, and the seed DEM. An ASTER granule given alone (or as
+    both images) is its own pair: 3N left, 3B right."""
     i = cfg.inputs
-    if not (i.left and i.right):
+    if not i.left:
         raise InputError("a stereo DEM needs two images ([inputs] left and right)")
-    left = load_image_and_model(i.left, band=i.band, prefer=i.model, model_file=i.left_model,
-                                rpc_direct=i.rpc_direct)
-    right = load_image_and_model(i.right, band=i.band, prefer=i.model, model_file=i.right_model,
-                                 rpc_direct=i.rpc_direct)
-    return Pair(left[0], right[0], left[1], right[1], load_seed_dem(cfg),
-                image_dtype(i.left, i.band), image_dtype(i.right, i.band))
+    from stereodem.sensor.io.aster_l1a import is_aster_granule
+    granule = is_aster_granule(i.left)
+    right = i.right or (i.left if granule else None)
+    if not right:
+        raise InputError(f"{i.left}: a stereo DEM needs a second image (or an ASTER granule)")
+    same = granule and Path(right).resolve() == Path(i.left).resolve()
+    bands = ASTER_STEREO_BANDS if same else (i.band, i.band)
+    cache: dict = {}
+    kw = dict(prefer=i.model, rpc_direct=i.rpc_direct, radiometric=i.radiometric, granules=cache)
+    left = open_image(i.left, band=bands[0], model_file=i.left_model, **kw)
+    right = open_image(right, band=bands[1], model_file=i.right_model, **kw)
+    return Pair(left.image, right.image, left.model, right.model, load_seed_dem(cfg),
+                left.dtype, right.dtype, {**left.tags, **{f"RIGHT_{k}": v for k, v in right.tags.items()}})
 
 
 # ----------------------------------------------------------------------------- stereo
@@ -406,6 +446,7 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
         stages.record("assess", t0)
 
     run_info = dict(provenance=provenance(started=started), config=cfg.to_dict(),
+                    input_metadata=pair.tags,
                     versions=versions(), stages=stages.stages,
                     seconds=round(time.perf_counter() - t_all, 3), failed_tiles=failed,
                     stereo=dict(tiles=products.tiles, info=products.info), post=post_report,

@@ -63,6 +63,24 @@ def _granule_right_size(size):
     return [int(round(w * 5000 / 4100 / 10.0)) * 10, int(round(h * 5400 / 4200))]
 
 
+def granule_right_size(size):
+    """3B size in the real 3N:3B ratio (4100 x 4200 : 5000 x 5400), width a multiple of 10."""
+    return tuple(_granule_right_size(size))
+
+
+def write_granule_scene(scene, out, *, version: int = 4, seed: int = 0, velocity: str = "inertial",
+                        overwrite: bool = False):
+    """Write a simulated ASTER scene as an L1A granule (V004 ``.hdf`` or V003 ``.zip``) plus its
+    truth (DEM, orthoimage, check points) in ``out``; returns the granule's path."""
+    from stereodem.sensor.simulation.aster_granule import granule_from_scene, write_v003, write_v004
+    from stereodem.sensor.simulation.simulate import write_scene
+    g = granule_from_scene(scene, seed=seed, velocity=velocity, version=version)
+    out = write_scene(scene, out, overwrite=overwrite, write_images=False)
+    if version == 4:
+        return write_v004(g, out / f"{g.granule_id}.hdf", overwrite=overwrite)
+    return write_v003(g, out / f"{g.granule_id}.zip", overwrite=overwrite)
+
+
 def run(args) -> int:
     from stereodem.sensor.geo.dem import DEM
     from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
@@ -87,14 +105,8 @@ def run(args) -> int:
         for name, rep in meta.get("rpc_fit", {}).items():
             print(f"  {name}: RPC fit check-grid residual rms {rep.get('check_rms', float('nan')):.4f} px")
         return 0
-    from stereodem.sensor.simulation.aster_granule import granule_from_scene, write_v003, write_v004
-    version = 4 if args.format == "l1a-v004" else 3
-    g = granule_from_scene(scene, seed=args.seed, velocity=args.velocity, version=version)
-    out = write_scene(scene, args.out, overwrite=args.overwrite, write_images=False)
-    if version == 4:
-        path = write_v004(g, out / f"{g.granule_id}.hdf", overwrite=args.overwrite)
-    else:
-        path = write_v003(g, out / f"{g.granule_id}.zip", overwrite=args.overwrite)
+    path = write_granule_scene(scene, args.out, version=4 if args.format == "l1a-v004" else 3,
+                               seed=args.seed, velocity=args.velocity, overwrite=args.overwrite)
     print(f"wrote {path} (3N {scene.left.shape[1]}x{scene.left.shape[0]}, "
           f"3B {scene.right.shape[1]}x{scene.right.shape[0]}), truth_dem.tif, truth_ortho.tif, points.csv")
     return 0

@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from stereodem.sensor.models.parameters import project_jacobian
-from stereodem.sensor.simulation.control_points import (TRUTH_ERRORS, aster_nadir_scene,  # noqa: F401
-                                                       points_at_pixels, random_pixels)
+from stereodem.sensor.simulation.control_points import aster_nadir_scene, points_at_pixels, random_pixels
 
 RIGOROUS_SET = ["roll_bias", "pitch_bias", "yaw_bias", "roll_drift", "pitch_drift", "yaw_drift"]
 NOISE_PX = 0.3

@@ -159,6 +159,11 @@ def test_gauss_helmert_ground_observations(rpc):
     assert s0[0] > 1.5                 # ground noise ignored: sigma0 too large
     assert 0.7 < s0[1] < 1.3           # Gauss-Helmert: consistent
     assert np.any(res.ground_residuals_m != 0) and res.ground_residuals_m.shape == (30, 3)
+    # near-nadir, every GCP with a ground sigma: G G^T ~ isotropic, the image and ground
+    # variance components look alike and are reported as not separable (no iteration)
+    vc = adjust_model(rpc, pts, "rpc-shift", snooping=False,
+                      variance_components="iterate").variance_components
+    assert not vc["separable"] and vc["sigma_scale_applied"] == {"image": 1.0, "ground": 1.0}
 
 
 def test_report_content(rpc, tmp_path):
@@ -267,6 +272,16 @@ def test_priors_are_fictitious_observations(rpc):
     k = tight.names.index("col_shift")
     assert abs(tight.values[k]) < 1e-3 and tight.std[k] < 1e-4
     assert tight.dof == free.dof + 1
+    about = adjust_model(rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False,
+                         priors={"col_shift": (2.0, 1e-4)})
+    assert abs(about.values[k] - 2.0) < 1e-3
+    # a linear constraint (practically hard: sigma 1e-4 of the parameters' own) between two
+    con = adjust_model(rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False,
+                       constraints=[({"col_shift": 1.0, "row_shift": 1.0}, 1.0, 1e-5)])
+    assert abs(con.values.sum() - 1.0) < 1e-4 and con.dof == free.dof + 1
+    assert abs(free.values.sum() - 1.0) > 0.5           # not what the data alone give
+    with pytest.raises(InputError, match="constraint on 'row_drift_row'"):
+        adjust_model(rpc, pts, "rpc-shift", constraints=[({"row_drift_row": 1.0}, 0.0, 1e-6)])
 
 
 # ------------------------------------------------------------------------- GCP files
@@ -304,3 +319,34 @@ def test_gcp_csv_errors(tmp_path, text, match):
         read_gcps(path)
     if "100,95" in text:
         assert "swapped" not in str(pytest.raises(InputError, read_gcps, path).value)
+
+
+def test_variance_components_image_and_ground(rpc):
+    """Half the GCPs surveyed (ground fixed), half from a map whose stated 15 m sigma is three
+    times too pessimistic (true 5 m): iterated variance components recover the factor 1/3 for
+    the ground group and 1 for the image group; the group redundancies add up to n - u."""
+    from stereodem.sensor.geo import geodesy
+    from stereodem.sensor.simulation.simulate import pushbroom_pair
+    pb = pushbroom_pair(-121.7, 46.85, 1500.0, (2000, 2000), (0.0, -27.6))[1]
+    rng = np.random.default_rng(2)
+    n = 120
+    c, r = rng.uniform(0, 1999, n), rng.uniform(0, 1999, n)
+    h = rng.uniform(800, 2500, n)
+    lon, lat = pb.localize(c, r, h)
+    X = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)
+    mapped = np.arange(n) >= n // 2
+    X[mapped] += np.einsum("nkj,nk->nj", geodesy.enu_basis(lon, lat)[mapped],
+                           rng.normal(0, 5.0, (mapped.sum(), 3)))
+    nlon, nlat, nh = geodesy.ecef_to_geodetic(X[:, 0], X[:, 1], X[:, 2])
+    pts = ControlPoints.from_arrays(nlon, nlat, nh, c + rng.normal(0, 0.3, n),
+                                    r + rng.normal(0, 0.3, n), sigma_px=0.3,
+                                    sigma_ground_m=np.where(mapped, 15.0, np.nan))
+    est = adjust_model(pb, pts, "attitude-bias", snooping=False, variance_components="estimate")
+    vc = est.variance_components
+    assert vc["separable"]
+    assert vc["image"]["redundancy"] + vc["ground"]["redundancy"] == pytest.approx(est.dof, rel=1e-6)
+    res = adjust_model(pb, pts, "attitude-bias", snooping=False, variance_components="iterate")
+    f = res.variance_components["sigma_scale_applied"]
+    assert abs(f["ground"] - 1 / 3) < 0.06 and abs(f["image"] - 1) < 0.15
+    assert abs(res.sigma0 - 1) < 0.05
+    assert res.to_report()["variance_components"]["separable"]

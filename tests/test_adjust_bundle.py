@@ -68,7 +68,6 @@ def test_bundle_removes_vertical_parallax(pair):
     assert after["ray_gap_rms_m"] < 1.2 * np.sqrt(np.mean(truth.ray_gap ** 2))
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_bundle_with_6_gcps_places_the_pair(pair, seed):
     """Both models biased, 300 ties (0.3 px) and 6 GCPs (0.1 px, surveyed targets) measured in
@@ -97,7 +96,6 @@ def test_bundle_with_6_gcps_places_the_pair(pair, seed):
     assert rep["n_gcp"] == 12 and rep["n_check"] == 2 * len(P1.select("check"))
 
 
-@pytest.mark.slow
 def test_bundle_solvers_agree_and_redundancy(data_dir):
     """On the real Pleiades RPC pair (both biased in image space, rpc-shift-drift each): the
     reduced normal equations, scipy's sparse least_squares and the dense normal equations reach

@@ -295,6 +295,35 @@ def test_inconsistent_geometry_is_refused(granule, tmp_path):
         open_aster_granule(p)
 
 
+def test_v003_l1b_folder_is_refused(tmp_path):
+    d = tmp_path / "l1b"
+    d.mkdir()
+    (d / "AST_L1B_00307312017190728_20160404141337_1.VNIR_Swath.ImageData3N.tif").write_bytes(b"II*\0")
+    with pytest.raises(InputError, match=r"l1b: this is an ASTER L1B product; stereodem needs AST_L1A"):
+        open_aster_granule(d)
+
+
+def test_band_names_and_single_band_reader(files):
+    from stereodem.sensor.io.aster_l1a import read_granule_band
+    g = open_aster_granule(files["v004"])
+    assert g.band("3b") is g.band("Band3B") is g.band("VNIR_Band3B") is g["3B"]
+    with pytest.raises(InputError, match=r"no band '2' in this granule \(has 3N, 3B\)"):
+        g.band("2")
+    img, model, tags = read_granule_band(files["v003_zip"], "3B", radiometric=False)
+    assert img.shape == (model.height, model.width) == g["3B"].shape
+    np.testing.assert_array_equal(img, g["3B"].image(radiometric=False))
+    assert tags["ASTER_BAND"] == "3B" and tags["ASTER_GRANULE_ID"] == g.granule_id
+
+
+def test_is_aster_granule(files, tmp_path):
+    from stereodem.sensor.io.aster_l1a import is_aster_granule
+    assert all(is_aster_granule(files[k]) for k in ("v004", "v003_zip", "v003_dir"))
+    plain = tmp_path / "left.tif"
+    plain.write_bytes(b"II*\0" + bytes(100))
+    assert not is_aster_granule(plain) and not is_aster_granule(tmp_path / "missing.hdf")
+    assert not is_aster_granule(tmp_path)
+
+
 # ------------------------------------------------------------------------------ command line
 
 def test_cli_simulate_granule_and_info(tmp_path, capsys):

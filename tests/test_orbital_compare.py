@@ -44,13 +44,14 @@ def test_compare_models_table_json_figure(image, tmp_path, capsys):
     assert {r["n_icp"] for r in rec} == {20}
     # too few GCPs for Orun & Natarajan's 11 unknowns: refused with the count needed
     assert "at least 6 are needed" in by[("orun", 4)]["error"]
-    # with 30 GCPs Toutin-type and Kratky reach the rigorous model's ICP level (noise 0.3 px);
-    # on this split eop-poly2 (9 unknowns, quadratic attitude terms the truth lacks) and Orun &
-    # Natarajan (11) stay 22-24 % above it, and all improve from 10 to 30 GCPs
+    assert "at least 5 are needed" in by[("toutin", 4)]["error"]
+    # with 30 GCPs every orbital model is within 20 % of the rigorous model's ICP RMSE (noise
+    # 0.3 px); those with more unknowns than the truth's errors need (Orun & Natarajan 11,
+    # Toutin 8) improve from 10 to 30 GCPs
     rig = by[("attitude-bias-drift", 30)]["icp_rmse_px"]
-    for m in ("toutin", "kratky"):
+    for m in ("eop-poly2", "orun", "toutin", "kratky"):
         assert by[(m, 30)]["icp_rmse_px"] < 1.2 * rig, m
-    for m in ("eop-poly2", "orun", "toutin"):
+    for m in ("orun", "toutin"):
         assert by[(m, 30)]["icp_rmse_px"] < by[(m, 10)]["icp_rmse_px"], m
     # and the affine-in-height generic model is worse than all of them
     assert by[("poly3d-1", 30)]["icp_rmse_px"] > rig

@@ -36,6 +36,18 @@ def test_pleiades_dimap_lands_on_its_own_corner_coordinates():
     assert np.max(np.abs(c - col)) < 1e-3 and np.max(np.abs(r - row)) < 1e-3
 
 
+def test_pleiades_physical_model_agrees_with_the_products_rpc():
+    """The vendor's RPC in the same file is a fit to its physical model: ours must agree to a
+    small fraction of a pixel inside the RPC's height range (85 +- 575 m)."""
+    from stereodem.sensor.io.rpc_formats import read_rpc
+    m, rpc = read_dimap_physical(PHR), read_rpc(PHR)
+    c, r = np.meshgrid(np.linspace(0, m.width - 1, 11), np.linspace(0, m.height - 1, 11))
+    for h in (200.0, 400.0, 600.0):
+        lon, lat = m.localize(c, r, h)
+        pc, pr = rpc.project(lon, lat, h)
+        assert np.max(np.hypot(pc - c, pr - r)) < 0.02
+
+
 def test_pleiades_dimap_feeds_the_orbital_models():
     """Topan's quadratic EOPs on an agile satellite: Pleiades' attitude is a cubic in time
     (its DIMAP says so); over the 2.8 s strip the missing cubic term is 1.6 urad, 2.2 px of

@@ -121,3 +121,17 @@ def test_topan_bad_inputs():
         TopanLOSModel(width=10, height=10, coefficients={"Q_0": 1.0}, psi_x=np.zeros(3), psi_y=[0, 0.1, 0.2])
     with pytest.raises(InputError, match="unknown orbital model set"):
         build("orbit-magic", None)
+
+
+@pytest.mark.parametrize("cls", [TopanLOSModel, OrunNatarajanModel, ToutinModel, KratkyModel])
+def test_sidecar_round_trip(scene, cls, tmp_path):
+    from stereodem.sensor.io.sidecar import load_model, save_model
+    meta, _, _ = scene
+    m = cls.from_model(meta)
+    m = m.with_parameters(**{n: v + 1e-6 for n, v in list(m.parameters().items())[:2]})
+    save_model(m, tmp_path / "m.model.json")
+    back = load_model(tmp_path / "m.model.json")
+    assert type(back) is cls and back.parameters() == m.parameters()
+    c, r, z = _grid(meta)
+    lon, lat = meta.localize(c, r, z)
+    assert np.allclose(back.project(lon, lat, z), m.project(lon, lat, z), atol=1e-9, rtol=0)

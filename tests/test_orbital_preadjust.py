@@ -1,5 +1,4 @@
 """Topan's pre-adjustment types 1 and 2 through the adjustment engine."""
-import numpy as np
 import pytest
 
 from orbital_helpers import NOISE_PX, aster_scene, control_points, icp_rmse

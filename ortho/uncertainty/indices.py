@@ -12,6 +12,8 @@ exists.
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from stereodem.sensor.errors import InputError
@@ -56,7 +58,9 @@ def fast_indices(model, lon, lat, h, names, D, crs, *, samples: int = 1000, M: i
     for comp, Y in (("east", dE), ("north", dN)):
         s1, st = [], []
         for j in range(Y.shape[1]):
-            r = fast_analyze.analyze(problem, Y[:, j], M=M, print_to_console=False, seed=seed)
+            with warnings.catch_warnings():      # SALib warns about its bootstrap intervals,
+                warnings.simplefilter("ignore")  # which are not used here
+                r = fast_analyze.analyze(problem, Y[:, j], M=M, print_to_console=False, seed=seed)
             s1.append(np.nan_to_num(r["S1"]))
             st.append(np.nan_to_num(r["ST"]))
         out["S1"][comp], out["ST"][comp] = np.array(s1).T, np.array(st).T

@@ -1,7 +1,11 @@
 """Side-by-side comparison of sensor models fitted to the same GCPs (Ok 2005 Table 6.15,
 Topan 2009 Tables 4.3/A.5): every model gets the same check points (ICPs) and the same GCP
 subsets, from small to large, and is scored by GCP and ICP RMSE (pixels), the a-posteriori
-sigma0, the condition number of its normal equations and its parameter count.
+sigma0 (the a-posteriori standard deviation of unit weight: relative to the a-priori image
+sigma when one is given, else in pixels), the condition number of its normal equations
+(generic models: in their normalised coordinates, as :mod:`~stereodem.sensor.models.generic`
+reports it; the others: column-equilibrated)
+and its parameter count.
 
 Model names: the generic models of :mod:`stereodem.sensor.models.generic` (fitted with
 :func:`~stereodem.sensor.models.generic.fit_model`), and every set registered with the
@@ -84,13 +88,14 @@ def _concat(a, b):
     return ControlPoints(**cat)
 
 
-def _generic_record(name, gcp, icp):
+def _generic_record(name, gcp, icp, sigma_px=None):
     from stereodem.sensor.models.generic import fit_model, n_parameters
     model, rep = fit_model(name, *(getattr(gcp, k) for k in ("lon", "lat", "h", "col", "row")),
                            check=tuple(getattr(icp, k) for k in ("lon", "lat", "h", "col", "row")))
     u, n = n_parameters(name), len(gcp)
     dof = 2 * n - u
-    s0 = float(np.sqrt(n * rep.gcp_rmse ** 2 / dof)) if dof > 0 else float("nan")
+    # sigma0 as the engine reports it: relative to the a-priori sigma when one is given
+    s0 = float(np.sqrt(n * rep.gcp_rmse ** 2 / dof)) / (sigma_px or 1.0) if dof > 0 else float("nan")
     return dict(n_params=u, gcp_rmse_px=float(rep.gcp_rmse), icp_rmse_px=float(rep.check_rmse),
                 sigma0=s0, condition=float(rep.condition_number))
 
@@ -102,7 +107,7 @@ def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, s
     sigma0, condition`` and ``error`` (the one-line reason when the fit was refused)."""
     from stereodem.sensor.estimation.adjust import adjust_model, model_set
     from stereodem.sensor.estimation.adjust.model_sets import MODEL_SETS
-    from stereodem.sensor.models.generic import MODEL_NAMES
+    from stereodem.sensor.models.generic import MODEL_NAMES, n_parameters
     from stereodem.sensor.models.orbital._common import require_gcps, require_inside
 
     pool, icp = split_points(points, n_check, seed)
@@ -120,7 +125,7 @@ def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, s
             rec = dict(model=name, family=family, n_gcp=n, n_icp=len(icp))
             try:
                 if name in MODEL_NAMES:
-                    rec.update(_generic_record(name, gcp, icp))
+                    rec.update(_generic_record(name, gcp, icp, sigma_px))
                 else:
                     if name not in prepared:
                         prepared[name] = model_set(name).prepare(base)
@@ -136,8 +141,9 @@ def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, s
                 rec.update(error=str(exc))
             except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
                 rec.update(error=f"{type(exc).__name__}: {exc}")
-            if name in MODEL_SETS and "n_params" not in rec:
-                rec["n_params"] = len(MODEL_SETS[name].names)
+            if "n_params" not in rec:
+                rec["n_params"] = (n_parameters(name) if name in MODEL_NAMES
+                                   else len(MODEL_SETS[name].names))
             records.append({k: (float(v) if isinstance(v, (np.floating, float)) else v)
                             for k, v in rec.items()})
             log.info("%s %d GCP: %s", name, n, rec.get("error") or f"ICP {rec['icp_rmse_px']:.3f} px")
@@ -164,21 +170,27 @@ def figure(records, path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(9, 6))
+    fig, ax = plt.subplots(figsize=(10, 6.5))
     styles = {"generic": ":", "physical": "--", "orbital": "-"}
-    for name in dict.fromkeys(r["model"] for r in records):
+    colours = plt.get_cmap("tab20").colors
+    markers = "o^sDv<>p*h"
+    for k, name in enumerate(dict.fromkeys(r["model"] for r in records)):
         rs = [r for r in records if r["model"] == name and not r.get("error")
               and np.isfinite(r.get("icp_rmse_px", np.nan))]
         if not rs:
             continue
         ax.plot([r["n_gcp"] for r in rs], [r["icp_rmse_px"] for r in rs], styles[rs[0]["family"]],
-                marker="o", ms=3, label=f"{name} ({rs[0]['n_params']})")
+                color=colours[k % len(colours)], marker=markers[k % len(markers)], ms=4,
+                label=f"{name} ({rs[0]['n_params']})")
+    counts = sorted({r["n_gcp"] for r in records})
     ax.set_xscale("log")
     ax.set_yscale("log")
+    ax.set_xticks(counts, [str(c) for c in counts])
+    ax.minorticks_off()
     ax.set_xlabel("number of GCPs")
     ax.set_ylabel("ICP RMSE (pixels)")
     ax.set_title("Check-point error against GCP count (same ICPs for every model)")
-    ax.grid(True, which="both", alpha=0.3)
+    ax.grid(True, which="major", alpha=0.3)
     ax.legend(fontsize=7, ncol=2, title="model (parameters); dotted generic, dashed physical, "
                                         "solid orbital", title_fontsize=7)
     fig.tight_layout()

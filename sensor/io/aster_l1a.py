@@ -155,7 +155,9 @@ class AsterGranule:
         return self.band(band)
 
     def band(self, band: str) -> AsterBand:
-        key = str(band).upper().replace("BAND", "")
+        """The band named ``"3N"`` / ``"3B"`` (also ``"3n"``, ``"Band3B"``, ``"VNIR_Band3B"``)."""
+        m = re.search(r"(?:^|BAND)(3[NB])$", str(band).upper().strip())
+        key = m.group(1) if m else str(band)
         if key not in self.bands:
             raise InputError(f"{self.path}: no band {band!r} in this granule "
                              f"(has {', '.join(self.bands)})")
@@ -227,13 +229,35 @@ def open_aster_granule(path, *, bands=VNIR_BANDS) -> AsterGranule:
                         metadata=granule_metadata(odl, gid), odl=odl, bands=built)
 
 
+def read_granule_band(path, band: str, *, radiometric: bool = True):
+    """``(image float32 with NaN fill, AsterModel, tags)`` of one band of a granule: the one
+    call an image/model input layer needs (``band`` as :meth:`AsterGranule.band`)."""
+    g = open_aster_granule(path, bands=())
+    b = g.band(band)
+    return b.image(radiometric), b.model, {**g.tags(), "ASTER_BAND": b.band,
+                                           "ASTER_RADIOMETRIC": str(bool(radiometric))}
+
+
 def is_aster_granule(path) -> bool:
-    """Cheap guess whether ``path`` is an ASTER L1A granule (name or folder contents)."""
+    """Whether ``path`` should be opened with :func:`open_aster_granule` rather than as a
+    GeoTIFF: any HDF4 file (the reader then says precisely what it is, e.g. L1B), a zip or
+    folder holding ``*.VNIR_Band3N/3B.ImageData.tif``, or a zip named ``AST_L1*``."""
     p = Path(path)
-    name = p.name.upper()
     if p.is_dir():
-        return any(p.rglob("*.VNIR_Band3N.ImageData.tif"))
-    return name.startswith("AST_L1A") and p.suffix.lower() in (".hdf", ".zip")
+        return any(p.rglob("*.VNIR_Band3?.ImageData.tif"))
+    if not p.is_file():
+        return False
+    if p.suffix.lower() == ".zip":
+        if p.name.upper().startswith("AST_L1"):
+            return True
+        import zipfile
+        try:
+            with zipfile.ZipFile(p) as z:
+                return any(".VNIR_Band3" in n and n.endswith(".ImageData.tif") for n in z.namelist())
+        except (zipfile.BadZipFile, OSError):
+            return False
+    with open(p, "rb") as fh:
+        return fh.read(4) == _HDF4_MAGIC
 
 
 # ============================================================================ geometry

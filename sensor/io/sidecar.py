@@ -49,7 +49,8 @@ def _ensure_registered():
         register("rpcmodel", RPCModel,
                  lambda m: {**m.to_dict(), "width": m.width, "height": m.height},
                  lambda d: RPCModel.from_dict(d, width=d.get("width"), height=d.get("height")))
-    for modname in ("pushbroom", "aster", "rpc", "rpc_direct", "corrected", "generic"):
+    for modname in ("pushbroom", "aster", "rpc", "rpc_direct", "corrected", "generic",
+                    "orbital.topan_los", "orbital.orun_natarajan", "orbital.kratky", "orbital.toutin"):
         try:
             mod = __import__(f"stereodem.sensor.models.{modname}", fromlist=["_"])
         except ImportError:

@@ -20,11 +20,17 @@ TRUTH_ERRORS = dict(roll_bias=3e-5, pitch_bias=-2e-5, yaw_bias=1e-4, roll_drift=
                     position_offset_y=-15.0, position_offset_z=10.0)
 
 
-@functools.lru_cache(maxsize=2)
-def aster_nadir_scene(width: int = 4100, height: int = 4200):
-    """``(metadata, truth, dem)``: the simulator's ASTER 3N geometry (real granule pointing,
-    IFOV, orbit height and line period) over the bundled DEM, and the same camera with
-    :data:`TRUTH_ERRORS`."""
+#: Errors of the backward (3B) truth: other biases and drifts on the same orbit.
+TRUTH_ERRORS_BACKWARD = dict(roll_bias=-2e-5, pitch_bias=3e-5, yaw_bias=-6e-5, roll_drift=-1e-6,
+                             pitch_drift=2e-6, yaw_drift=-3e-6, position_offset_x=20.0,
+                             position_offset_y=-15.0, position_offset_z=10.0)
+
+
+@functools.lru_cache(maxsize=1)
+def aster_pair_scene():
+    """``(metadata_3N, metadata_3B, truth_3N, truth_3B, dem)``: the simulator's full-size ASTER
+    pair geometry (4100 x 4200 and 5000 x 4600) over the bundled DEM, the truths carrying
+    :data:`TRUTH_ERRORS` and :data:`TRUTH_ERRORS_BACKWARD`."""
     from stereodem.sensor.geo.dem import DEM
     from stereodem.sensor.simulation.simulate import aster_geometry_parameters, pushbroom_pair
     p = aster_geometry_parameters()
@@ -33,10 +39,18 @@ def aster_nadir_scene(width: int = 4100, height: int = 4200):
     w, s, e, n = dem.bounds_lonlat()
     lon0, lat0 = (w + e) / 2, (s + n) / 2
     h0 = float(dem.sample(lon0, lat0))
-    nadir, _ = pushbroom_pair(lon0, lat0, h0, (width, height), (b["3N"]["along_deg"], b["3B"]["along_deg"]),
-                              gsd=p["gsd_m"], altitude=p["altitude_m"], line_period=p["line_period_s"],
-                              cross_track_tilt_deg=-p["cross_track_right_deg"])
-    return nadir, nadir.with_parameters(**TRUTH_ERRORS), dem
+    nadir, back = pushbroom_pair(lon0, lat0, h0, (4100, 4200), (b["3N"]["along_deg"], b["3B"]["along_deg"]),
+                                 gsd=p["gsd_m"], altitude=p["altitude_m"], line_period=p["line_period_s"],
+                                 cross_track_tilt_deg=-p["cross_track_right_deg"], right_size=(5000, 4600))
+    return (nadir, back, nadir.with_parameters(**TRUTH_ERRORS),
+            back.with_parameters(**TRUTH_ERRORS_BACKWARD), dem)
+
+
+def aster_nadir_scene():
+    """``(metadata, truth, dem)``: the 3N image of :func:`aster_pair_scene` (real granule
+    pointing, IFOV, orbit height and line period) and its truth with :data:`TRUTH_ERRORS`."""
+    nadir, _, truth, _, dem = aster_pair_scene()
+    return nadir, truth, dem
 
 
 def points_at_pixels(truth, dem, col, row, *, noise_px: float = 0.3, seed: int = 0):

@@ -141,7 +141,7 @@ def localize_on_dem_grid(loc: GridLocalizer, dem: MapRaster, col, row, *, thresh
     return x.reshape(shape), y.reshape(shape), h.reshape(shape), converged.reshape(shape)
 
 
-def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=32, block_rows=512,
+def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=32, block_rows=256,
            heights=None, keep_ground: bool = True):
     """Render the image seen by ``model``: radiance at each pixel's ground point on ``dem``.
 
@@ -174,13 +174,13 @@ def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=32, 
 
 
 def sampled_localization_error(model: SensorModel, loc: GridLocalizer, dem: MapRaster, n=2000,
-                               seed=0):
+                               seed=0, h0=None):
     """:func:`localization_error` on ``n`` random pixels localised again with ``loc`` (for
     renders made with ``keep_ground=False``)."""
     rng = np.random.default_rng(seed)
     r = rng.integers(0, model.height, n).astype(np.float32)
     c = rng.integers(0, model.width, n).astype(np.float32)
-    x, y, h, _ = (a[0] for a in localize_on_dem_grid(loc, dem, c[None], r[None]))
+    x, y, h, _ = (a[0] for a in localize_on_dem_grid(loc, dem, c[None], r[None], h0=h0))
     ok = np.isfinite(h)
     if not ok.any():
         return float("nan")

@@ -273,21 +273,34 @@ def _albedo(texture, shape, rng, detail=0.35):
     The texture's nodata border (zeros in every band, as in rotated Landsat scenes) is cut
     off first.
     """
+    # the seeded detail first (it alone uses the generator), then the stretched texture: only
+    # three full-size arrays live at a time
+    d = np.zeros(shape, np.float32)
+    for sigma, amp in ((0.8, 1.0), (2.0, 0.8), (5.0, 0.6), (12.0, 0.4)):
+        n = _normal_float32(rng, shape)
+        cv2.GaussianBlur(n, (0, 0), sigma, dst=n)
+        n *= amp / max(float(n.std()), 1e-6)
+        d += n
+        del n
+    d *= 0.5 / float(d.std())
+    np.tanh(d, out=d)
+    d *= detail
+    d += 1.0
     with rasterio.open(texture) as ds:
         t = ds.read().astype(np.float32)
     r0, r1, c0, c1 = _valid_box(t.sum(axis=0) > 0)
     t = t[:, r0:r1, c0:c1]
     t = t.mean(axis=0) if t.shape[0] > 1 else t[0]
     t = cv2.resize(t, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
-    lo, hi = np.percentile(t, [1, 99])
-    t = np.clip((t - lo) / max(hi - lo, 1e-6), 0, 1)
-    d = np.zeros(shape, np.float32)
-    for sigma, amp in ((0.8, 1.0), (2.0, 0.8), (5.0, 0.6), (12.0, 0.4)):
-        n = cv2.GaussianBlur(_normal_float32(rng, shape), (0, 0), sigma)
-        d += amp * n / max(float(n.std()), 1e-6)
-    d /= float(d.std())
-    a = (0.15 + 0.7 * t) * (1.0 + detail * np.tanh(d / 2))
-    return np.clip(a, 0.02, 1.0).astype(np.float32)
+    lo, hi = (float(v) for v in np.percentile(t, [1, 99]))
+    t -= lo                                                   # in place: full-size arrays
+    t /= max(hi - lo, 1e-6)
+    np.clip(t, 0, 1, out=t)
+    t *= 0.7
+    t += 0.15
+    t *= d
+    del d
+    return np.clip(t, 0.02, 1.0, out=t)
 
 
 def _normal_float32(rng, shape, chunk_rows: int = 512):
@@ -300,15 +313,33 @@ def _normal_float32(rng, shape, chunk_rows: int = 512):
     return out
 
 
-def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION):
-    """Lambertian cos(incidence) of the sun on a DEM array with square posting ``res`` (m)."""
-    gy, gx = np.gradient(np.nan_to_num(z, nan=float(np.nanmean(z))), res)
-    # rows go south: north-ward slope is -gy
-    nx, ny, nz = -gx, gy, np.ones_like(gx)
-    n = np.sqrt(nx * nx + ny * ny + 1)
+def _hillshade_blocks(z, res, azimuth, elevation, block_rows):
+    """``(r0, r1, shade)`` row blocks of :func:`hillshade_factor` (one-row halo)."""
     az, el = np.radians(azimuth), np.radians(elevation)
     s = np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
-    return np.clip((nx * s[0] + ny * s[1] + nz * s[2]) / n, 0.0, 1.0).astype(np.float32)
+    fill = float(np.nanmean(z))
+    rows = z.shape[0]
+    for r0 in range(0, rows, block_rows):
+        r1 = min(rows, r0 + block_rows)
+        a, b = max(r0 - 1, 0), min(r1 + 1, rows)
+        gy, gx = np.gradient(np.nan_to_num(z[a:b], nan=fill), res)
+        gy, gx = gy[r0 - a:r0 - a + (r1 - r0)], gx[r0 - a:r0 - a + (r1 - r0)]
+        # rows go south: north-ward slope is -gy
+        nx, ny = -gx, gy
+        n = np.sqrt(nx * nx + ny * ny + 1)
+        yield r0, r1, np.clip((nx * s[0] + ny * s[1] + s[2]) / n, 0.0, 1.0).astype(np.float32)
+
+
+def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION, *, block_rows=256):
+    """Lambertian cos(incidence) of the sun on a DEM array with square posting ``res`` (m).
+
+    Computed in row blocks with a one-row halo (the same central differences as one
+    ``np.gradient`` over the whole array), so temporaries stay block-sized.
+    """
+    out = np.empty(z.shape, np.float32)
+    for r0, r1, shade in _hillshade_blocks(z, res, azimuth, elevation, block_rows):
+        out[r0:r1] = shade
+    return out
 
 
 # ----------------------------------------------------------------------------- simulation
@@ -385,19 +416,21 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     ft = Affine(res_truth / 2, 0, transform.c, 0, -res_truth / 2, transform.f)
     fshape = (shape[0] * 2, shape[1] * 2)
     fine_dem = _reproject_dem(dem, ft, fshape, crs)
-    albedo = _albedo(texture or texture_path(), fshape, rng)
-    shade = hillshade_factor(fine_dem, res_truth / 2)
-    field = albedo * (0.25 + 0.75 * shade)
+    # radiance field = albedo * (0.25 + 0.75 * shade), built in place
+    field = _albedo(texture or texture_path(), fshape, rng)
+    for r0, r1, shade in _hillshade_blocks(fine_dem, res_truth / 2, SUN_AZIMUTH, SUN_ELEVATION, 256):
+        field[r0:r1] *= 0.25 + 0.75 * shade
     # the system PSF, in ground units, applied once to the radiance field: both the images
     # and truth_ortho sample this one band-limited field
-    field = cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2))
+    cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2), dst=field)
     dn_max = 255.0 if bits == 8 else 4095.0               # 12-bit signal in 16-bit words
-    gain = 0.9 * dn_max / float(np.percentile(field, 99.9))
+    field *= 0.9 * dn_max / float(np.percentile(field, 99.9))
     fine_grid = MapGrid(ft, fine_dem.shape[1], fine_dem.shape[0], crs)
-    radiance = MapRaster(field * gain, fine_grid)
+    radiance = MapRaster(field, fine_grid)
     dem_r = MapRaster(fine_dem, fine_grid)
 
     images, diags = [], {}
+    h_mean = float(np.nanmean(fine_dem))
     right_true = right_model
     if jitter is not None:
         from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
@@ -411,7 +444,8 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
                                      phase_rad=phase)
     for name, m in (("left", left_model), ("right", right_true)):
         img, _, _, _, loc = render(m, dem_r, radiance, step=step, keep_ground=False)
-        diags[f"{name}_render_error_px"] = sampled_localization_error(m, loc, dem_r, seed=seed)
+        diags[f"{name}_render_error_px"] = sampled_localization_error(m, loc, dem_r, seed=seed,
+                                                                      h0=h_mean)
         diags[f"{name}_void_pct"] = float(100 * np.isnan(img).mean())
         noisy = img + rng.normal(0.0, noise, img.shape).astype(np.float32) if noise > 0 else img
         dtype = np.uint8 if bits == 8 else np.uint16

@@ -45,7 +45,6 @@ from stereodem.sensor.estimation.adjust.result import rmse
 from stereodem.sensor.estimation.adjust.single import (_check_arrays, _sigmas,
                                                        check_points_against_model)
 from stereodem.sensor.geo import geodesy
-from stereodem.sensor.io.gcps import ControlPoints
 from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 
 __all__ = ["bundle_adjust", "BundleResult", "tie_parallax"]
@@ -107,16 +106,32 @@ class _Problem:
 
     # ---------------------------------------------------------------- state
     def _initial_ground(self):
-        from stereodem.stereo.intersect import intersect_matches
+        """Initial tie ground points: along each left ray, the point whose right projection is
+        nearest the right measurement (the ray between two heights projected into the right
+        image and the measurement placed on that segment): one ray per tie (two left
+        localisations) and two right projections, instead of two full ray pairs."""
         t = self.ties
         if self.n == 0:
             return np.zeros((0, 3))
-        inter = intersect_matches(self.models[0], self.models[1], t[:, 0], t[:, 1], t[:, 2], t[:, 3])
-        bad = ~np.all(np.isfinite(inter.ecef), axis=1)
+        L, R = self.models
+        lo, hi = _height_span(L, R)
+        o, d = L.rays(t[:, 0], t[:, 1])
+        P = geodesy.intersect_height(np.concatenate([o, o]), np.concatenate([d, d]),
+                                     np.concatenate([np.full(self.n, lo), np.full(self.n, hi)]))
+        Plo, Phi = P[:self.n], P[self.n:]
+        lon, lat, h = geodesy.ecef_to_geodetic(P[:, 0], P[:, 1], P[:, 2])
+        c, r = R.project(lon, lat, h)
+        q = np.stack([c, r], -1)
+        qlo, qhi = q[:self.n], q[self.n:]
+        seg = qhi - qlo
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s = np.sum((t[:, 2:] - qlo) * seg, axis=1) / np.sum(seg * seg, axis=1)
+        X = Plo + s[:, None] * (Phi - Plo)
+        bad = ~np.all(np.isfinite(X), axis=1)
         if np.any(bad):
             raise InputError(f"bundle: {int(bad.sum())} tie point(s) whose rays do not intersect "
                              f"(first #{int(np.flatnonzero(bad)[0])})")
-        return inter.ecef
+        return X
 
     def z0(self):
         return np.concatenate([self.x0, np.zeros(3 * self.n)])
@@ -220,16 +235,19 @@ class _Problem:
     def reduced(self, b):
         """Reduced normal equations: ``S``, its right-hand side and the per-tie blocks."""
         A_t, G_t, e_t = b["A_t"], b["G_t"], b["e_t"]
-        Ag = b["A_g"].reshape(-1, self.u)
-        N_pp = (np.einsum("nku,nkv->uv", A_t, A_t) + Ag.T @ Ag + b["A_p"].T @ b["A_p"])
-        b_p = -(np.einsum("nku,nk->u", A_t, e_t) + Ag.T @ b["e_g"].ravel() + b["A_p"].T @ b["e_p"])
-        N_pg = np.einsum("nku,nkj->nuj", A_t, G_t)
-        N_gg = np.einsum("nki,nkj->nij", G_t, G_t)
-        b_g = -np.einsum("nkj,nk->nj", G_t, e_t)
+        u = self.u
+        Ag = b["A_g"].reshape(-1, u)
+        At2 = A_t.reshape(-1, u)                       # BLAS products over all tie rows
+        N_pp = At2.T @ At2 + Ag.T @ Ag + b["A_p"].T @ b["A_p"]
+        b_p = -(At2.T @ e_t.ravel() + Ag.T @ b["e_g"].ravel() + b["A_p"].T @ b["e_p"])
+        AtT = np.swapaxes(A_t, 1, 2)                    # (n, u, 4)
+        N_pg = AtT @ G_t                                # (n, u, 3)
+        N_gg = np.swapaxes(G_t, 1, 2) @ G_t             # (n, 3, 3)
+        b_g = -(np.swapaxes(G_t, 1, 2) @ e_t[..., None])[..., 0]
         T = np.linalg.inv(N_gg)
-        M = np.einsum("nuj,nji->nui", N_pg, T)
-        S = N_pp - np.einsum("nuj,nvj->uv", M, N_pg)
-        rhs = b_p - np.einsum("nuj,nj->u", M, b_g)
+        M = N_pg @ T                                    # (n, u, 3)
+        S = N_pp - np.tensordot(M, N_pg, axes=([0, 2], [0, 2]))
+        rhs = b_p - np.tensordot(M, b_g, axes=([0, 2], [0, 1]))
         return dict(S=S, rhs=rhs, T=T, M=M, N_pg=N_pg, b_g=b_g)
 
     def solve_reduced(self, R, max_condition, what="bundle"):
@@ -253,12 +271,23 @@ class _Problem:
     def step(self, b, max_condition):
         R = self.reduced(b)
         dp, Sinv, cond = self.solve_reduced(R, max_condition)
-        dg = np.einsum("nij,nj->ni", R["T"], R["b_g"] - np.einsum("nuj,u->nj", R["N_pg"], dp))
+        rg = R["b_g"] - np.tensordot(R["N_pg"], dp, axes=([1], [0]))
+        dg = (R["T"] @ rg[..., None])[..., 0]
         # standard deviations (cofactors) of parameters and ground corrections
         sp_ = np.sqrt(np.maximum(np.diag(Sinv), 1e-300))
-        qgg = np.einsum("nii->ni", R["T"]) + np.einsum("nuj,uv,nvj->nj", R["M"], Sinv, R["M"])
+        MS = np.tensordot(R["M"], Sinv, axes=([1], [0]))              # (n, 3, u)
+        qgg = np.einsum("nii->ni", R["T"]) + np.sum(MS * np.swapaxes(R["M"], 1, 2), axis=2)
         sg = np.sqrt(np.maximum(qgg, 1e-300))
         return np.concatenate([dp, dg.ravel()]), np.concatenate([sp_, sg.ravel()]), R, Sinv, cond
+
+
+def _height_span(left, right):
+    """Heights (m) spanned by both models' validity ranges (a 1000 m span when they are wide)."""
+    lo = max(left.height_bounds()[0], right.height_bounds()[0])
+    hi = min(left.height_bounds()[1], right.height_bounds()[1])
+    if not hi > lo:
+        lo, hi = 0.0, 1000.0
+    return lo, hi
 
 
 def _enu_partials(model, lon, lat, h, basis=None, step_m=1.0, base=None):
@@ -407,7 +436,8 @@ class BundleResult:
             "condition": _num(self.condition),
             "points": self._points(0, "left") + self._points(1, "right"),
             "gcp_rmse_px": _num(self.gcp_rmse_px), "check_rmse_px": _num(self.check_rmse_px),
-            "n_gcp": int(sum(len(g) for g in self.gcps if g is not None) - len(self.outliers)),
+            "n_gcp": int(sum(len(g) for g in self.gcps if g is not None)
+                         - sum(o.get("kind") == "gcp" for o in self.outliers)),
             "n_check": int(sum(len(c) for c in self.checks if c is not None)),
             "ties": {"n": int(len(self.tie_rejected)), "rejected": int(self.tie_rejected.sum()),
                      "rmse_px": _num(self.tie_rmse_px),
@@ -417,7 +447,8 @@ class BundleResult:
                      "ground_std_m_median": [_num(v) for v in np.nanmedian(self.tie_std_m[kept], 0)]
                      if kept.any() else None},
             "parallax_before": self.parallax_before, "parallax_after": self.parallax_after,
-            "outliers": [o["id"] for o in self.outliers], "outlier_details": self.outliers,
+            "outliers": [o["id"] for o in self.outliers if o.get("kind") == "gcp"],
+            "outlier_details": self.outliers,
             "test": self.test, "iterations": int(self.iterations), "converged": bool(self.converged),
             "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
             "regularization": None,
@@ -558,7 +589,7 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         prob = _Problem((ml, mr), (nl, nr), (pl, pr), t[active_t], sub, sigma_tie_px, subs)
         z, sol = _solve(prob, solver, max_iterations, tolerance, max_condition,
                         x_start=z_prev)
-        b = prob.blocks(z)
+        b = sol["b"]                    # blocks at the solution (from the last check)
         R = sol["R"]
         Sinv = sol["Sinv"]
         e_all = np.concatenate([b["e_t"].ravel(), b["e_g"].ravel(), b["e_p"]])
@@ -568,11 +599,10 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
         # hat diagonal: ties (reduced form), GCPs and priors (parameters only)
         A_t, G_t = b["A_t"], b["G_t"]
-        Bt = A_t - np.einsum("nkj,nuj->nku", G_t, R["M"])
-        h_t = np.einsum("nku,uv,nkv->nk", Bt, Sinv, Bt) + np.einsum("nki,nij,nkj->nk", G_t, R["T"], G_t)
+        Bt = A_t - G_t @ np.swapaxes(R["M"], 1, 2)                    # (n, 4, u)
+        h_t = np.sum((Bt @ Sinv) * Bt, axis=2) + np.sum((G_t @ R["T"]) * G_t, axis=2)
         Ag = b["A_g"]
-        h_g = np.einsum("nku,uv,nkv->nk", Ag, Sinv, Ag)
-        h_p = np.einsum("ku,uv,kv->k", b["A_p"], Sinv, b["A_p"])
+        h_g = np.sum((Ag @ Sinv) * Ag, axis=2)
         r_t, r_g = np.clip(1 - h_t, 0, 1), np.clip(1 - h_g, 0, 1)
         scale = 1.0 if sigma_known else sigma0
         w_t = rel.standardized_residuals(b["e_t"], r_t, scale)
@@ -693,14 +723,16 @@ def _solve(prob, solver, max_iterations, tolerance, max_condition, x_start=None)
                             max_nfev=4 * max_iterations + 10)
         z, it = sol.x, int(sol.njev or sol.nfev)
     worst = np.inf
-    for _ in range(max_iterations + 1):
+    # after scipy's run, up to five Gauss-Newton steps to meet the stated criterion
+    limit = it + 5 if solver == "least_squares" else max_iterations
+    for _ in range(max_iterations + 6):
         b = prob.blocks(z)
         if solver == "dense":
             dz, sig, R, Sinv, cond = _dense_step(prob, b, max_condition)
         else:
             dz, sig, R, Sinv, cond = prob.step(b, max_condition)
         worst = float(np.max(np.abs(dz) / sig)) if dz.size else 0.0
-        if worst < tolerance or it >= max_iterations + (5 if solver == "least_squares" else 0):
+        if worst < tolerance or it >= limit:
             break
         e = np.concatenate([b["e_t"].ravel(), b["e_g"].ravel(), b["e_p"]])
         cost = float(e @ e)
@@ -720,7 +752,7 @@ def _solve(prob, solver, max_iterations, tolerance, max_condition, x_start=None)
     if worst >= tolerance:
         raise ConvergenceError(f"bundle: no convergence in {it} iteration(s) (last correction "
                                f"{worst:.3g} sigma; criterion max |dz|/sigma < {tolerance:g})")
-    return z, {"R": R, "Sinv": Sinv, "cond": cond, "sigma": sig, "iterations": it}
+    return z, {"R": R, "Sinv": Sinv, "cond": cond, "sigma": sig, "iterations": it, "b": b}
 
 
 def _dense_step(prob, b, max_condition):

@@ -87,6 +87,7 @@ class AdjustmentResult:
     priors: dict = field(default_factory=dict)
     regularization: float = 0.0
     initial_model: object = None
+    variance_components: dict | None = None
 
     # ---------------------------------------------------------------- derived
     @property
@@ -177,4 +178,5 @@ class AdjustmentResult:
             "convergence_criterion": f"max |dx_k| / sigma_k < {self.tolerance:g}",
             "regularization": _num(self.regularization),
             "redundancy_sum": _num(np.nansum(self.redundancy)),
+            "variance_components": self.variance_components,
         }

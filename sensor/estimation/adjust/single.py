@@ -103,7 +103,7 @@ def _sigmas(points, sigma_px):
 class _Problem:
     """The whitened least-squares problem of one model and a set of GCPs."""
 
-    def __init__(self, model, names, pts: ControlPoints, sigma, priors, x0):
+    def __init__(self, model, names, pts: ControlPoints, sigma, priors, x0, constraints=()):
         self.model, self.names, self.pts = model, names, pts
         self.x0 = x0
         ground = np.isfinite(pts.sigma_ground_m) & (pts.sigma_ground_m > 0)
@@ -113,17 +113,33 @@ class _Problem:
         self.M = gh.misclosure_covariance(sigma, self.sg, self.G)
         self.W = gh.whitening(self.M)
         self.meas = np.stack([pts.col, pts.row], -1)
-        self.prior_names = [n for n in names if n in priors]
-        self.prior_idx = np.array([names.index(n) for n in self.prior_names], dtype=int)
-        self.prior_sigma = np.array([float(priors[n]) for n in self.prior_names])
+        # fictitious observations C x = w (sigma s): priors and linear constraints
+        rows, w, sd = [], [], []
+        for n in names:
+            if n in priors:
+                p = priors[n]
+                value, sig = (float(x0[names.index(n)]), p) if np.isscalar(p) else p
+                r = np.zeros(len(names))
+                r[names.index(n)] = 1.0
+                rows.append(r), w.append(float(value)), sd.append(float(sig))
+        for coeffs, value, sig in constraints:
+            r = np.zeros(len(names))
+            for n, c in coeffs.items():
+                if n not in names:
+                    raise InputError(f"adjustment: constraint on {n!r}, which is not freed")
+                r[names.index(n)] = float(c)
+            rows.append(r), w.append(float(value)), sd.append(float(sig))
+        self.C = np.array(rows).reshape(-1, len(names))
+        self.w = np.array(w, dtype=float)
+        self.prior_sigma = np.array(sd, dtype=float)
         if np.any(~(self.prior_sigma > 0)):
-            raise InputError("adjustment: prior standard deviations must be positive")
+            raise InputError("adjustment: prior / constraint standard deviations must be positive")
 
     def at(self, x):
         return self.model.with_parameters(**dict(zip(self.names, (float(v) for v in x))))
 
     def _prior_rows(self, x):
-        return (x[self.prior_idx] - self.x0[self.prior_idx]) / self.prior_sigma
+        return (self.C @ x - self.w) / self.prior_sigma
 
     def misclosure(self, x):
         c, r = self.at(x).project(self.pts.lon, self.pts.lat, self.pts.h)
@@ -137,8 +153,7 @@ class _Problem:
         c, r, J = project_jacobian(self.at(x), self.pts.lon, self.pts.lat, self.pts.h, self.names)
         e = np.einsum("nij,nj->ni", self.W, np.stack([c, r], -1) - self.meas).ravel()
         A = np.einsum("nij,nju->niu", self.W, J).reshape(-1, len(self.names))
-        P = np.zeros((len(self.prior_idx), len(self.names)))
-        P[np.arange(len(self.prior_idx)), self.prior_idx] = 1.0 / self.prior_sigma
+        P = self.C / self.prior_sigma[:, None]
         return np.concatenate([e, self._prior_rows(x)]), np.vstack([A, P])
 
 
@@ -147,6 +162,7 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
                  power: float = 0.80, priors: dict | None = None, regularization=None,
                  max_rejections: int | None = None, chi2_alpha: float = 0.05,
                  max_condition: float = gm.MAX_CONDITION, check_inputs: bool = True,
+                 variance_components: str | None = None, constraints=(),
                  what: str = "adjustment") -> AdjustmentResult:
     """Estimate parameters of a sensor model from GCPs, with statistics and data snooping.
 
@@ -173,14 +189,26 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         Significance level of the test per observation and power for the minimal detectable
         bias (``delta_0`` = 4.13 for 0.001 and 0.80).
     priors : dict, optional
-        ``{name: sigma}``: a-priori standard deviation of a parameter about its initial value
-        (fictitious observation).
+        ``{name: sigma}``: a-priori standard deviation of a parameter about its initial value,
+        or ``{name: (value, sigma)}`` about a given value (fictitious observations).
+    constraints : sequence of ``(coefficients, value, sigma)``, optional
+        Linear parameter constraints ``sum_k c_k x_k = value`` entered as fictitious
+        observations with standard deviation ``sigma`` (a sigma 1e-3..1e-5 times the
+        parameters' own makes it practically hard; much smaller ones make the normal matrix
+        near-singular; Bettemir 2006 §6.2 constrained the focal length this way), e.g.
+        ``({"focal_mm": 1.0}, 177.2, 1e-6)`` or ``({"roll_bias": 1, "yaw_bias": -1}, 0, 1e-7)``.
     regularization : None, "lcurve", "gcv" or float
         Tikhonov regularisation for rank-deficient problems (default: refuse them).
     max_rejections : int, optional
         Upper bound on rejected points (default: as many as the redundancy allows).
     chi2_alpha : float
         Significance level of the global chi-square test of sigma0.
+    variance_components : None, "estimate" or "iterate"
+        With GCPs whose ground coordinates are observations (``sigma_ground_m``): estimate
+        the variance components of the image and ground groups
+        (:func:`.gauss_helmert.variance_components`, in ``result.variance_components``), or
+        iterate: rescale both groups' sigmas by their estimated factors and re-adjust until the
+        factors are within 2 % of 1 (at most 10 times; the sigmas used are reported).
 
     Returns
     -------
@@ -219,7 +247,8 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         raise InputError(f"{what}: priors given for parameters not freed: {', '.join(bad_prior)}")
     _check_arrays(points, what)
     gcp, chk = points.select("gcp"), points.select("check")
-    u, n_prior = len(names), len(priors)
+    constraints = [(dict(c), float(v), float(sd)) for c, v, sd in constraints]
+    u, n_prior = len(names), len(priors) + len(constraints)
     need = required_gcps(u, n_prior)
     if len(gcp) < need:
         raise InputError(f"{what}: {u} free parameter(s) ({', '.join(names)}) need at least {need} "
@@ -234,7 +263,7 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
     limit = len(gcp) if max_rejections is None else int(max_rejections)
     x_start = x0
     while True:
-        prob = _Problem(model, names, gcp.subset(active), sigma[active], priors, x0)
+        prob = _Problem(model, names, gcp.subset(active), sigma[active], priors, x0, constraints)
         sol = gm.solve(prob.evaluate, x_start, names, residual=prob.residual,
                        max_iterations=max_iterations, tolerance=tolerance,
                        regularization=regularization, max_condition=max_condition, what=what)
@@ -265,6 +294,35 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         active[idx] = False
         x_start = sol.x
 
+    # ------------------------------------------------------------ variance components
+    vc = None
+    if variance_components not in (None, "estimate", "iterate"):
+        raise InputError(f"{what}: variance_components must be None, 'estimate' or 'iterate'")
+    if variance_components and prob.G is not None:
+        scale_l = scale_g = 1.0
+        for _ in range(10 if variance_components == "iterate" else 1):
+            A_w = sol.A[:2 * n_act].reshape(n_act, 2, u)
+            vc = gh.variance_components(prob.W, A_w, sol.Qxx, prob.misclosure(sol.x), prob.sigma,
+                                        prob.sg, prob.G)
+            f_l, f_g = vc["image"]["sigma0"], vc["ground"]["sigma0"]
+            if variance_components == "estimate" or not (f_l and f_g) or not vc["separable"] or \
+                    (abs(f_l - 1) < 0.02 and abs(f_g - 1) < 0.02):
+                break
+            scale_l, scale_g = scale_l * f_l, scale_g * f_g
+            sub = gcp.subset(active)
+            sub.sigma_ground_m = sub.sigma_ground_m * scale_g
+            prob = _Problem(model, names, sub, sigma[active] * scale_l, priors, x0, constraints)
+            sol = gm.solve(prob.evaluate, sol.x, names, residual=prob.residual,
+                           max_iterations=max_iterations, tolerance=tolerance,
+                           regularization=regularization, max_condition=max_condition, what=what)
+            vtpv = float(sol.e @ sol.e)
+            sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
+            r_all = rel.redundancy_numbers(sol.A, sol.Qxx)
+            r = r_all[:2 * n_act].reshape(n_act, 2)
+            e_w = sol.e[:2 * n_act].reshape(n_act, 2)
+            w = rel.standardized_residuals(e_w, r, 1.0 if sigma_known else sigma0)
+        vc["sigma_scale_applied"] = {"image": scale_l, "ground": scale_g}
+
     # ------------------------------------------------------------ result
     adjusted = prob.at(sol.x)
     cov = sol.Qxx * (scale ** 2)
@@ -294,7 +352,7 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         test={"name": "baarda" if sigma_known else "pope", "alpha": alpha, "power": power,
               "threshold": float(thr), "delta0": delta0, "snooping": bool(snooping)},
         model_set=set_name, priors=priors, regularization=sol.regularization,
-        initial_model=model)
+        initial_model=model, variance_components=vc)
 
 
 def _scatter(a, active, n, k):

@@ -121,9 +121,10 @@ def invert_projection(model, col, row, h, *, lon0: float, lat0: float, iteration
 
 def require_gcps(n_gcp: int, names, what: str) -> None:
     """Raise :class:`~stereodem.sensor.errors.InputError` when ``n_gcp`` GCPs (two
-    observations each) cannot determine the parameters ``names``."""
+    observations each) cannot determine the parameters ``names`` with one redundant
+    observation (so that sigma0 exists; the adjustment engine's rule)."""
     from stereodem.sensor.errors import InputError
-    need = (len(list(names)) + 1) // 2
+    need = len(list(names)) // 2 + 1
     if n_gcp < need:
         raise InputError(f"{what}: {n_gcp} GCP(s) cannot determine its {len(list(names))} "
                          f"parameters; at least {need} are needed")

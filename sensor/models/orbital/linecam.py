@@ -180,6 +180,8 @@ class PolynomialLineCamera(SensorModel):
         the reference (:func:`._common.fit_to_points`); the refinement's RMS (pixels) is kept
         in :attr:`init_rms_px`.
         """
+        if isinstance(reference, cls):
+            return reference                    # already this model (e.g. from a model set)
         w, hgt = reference.width, reference.height
         lon0, lat0 = reference.center_lonlat(0.0)
         col0 = 0.5 * (w - 1)
@@ -235,6 +237,14 @@ class PolynomialLineCamera(SensorModel):
         return coef
 
     def to_dict(self) -> dict:
-        return {"model_type": self.MODEL_TYPE, "width": self.width, "height": self.height,
-                "lon0": self.lon0, "lat0": self.lat0, "col0": self.col0, "ifov": self.ifov,
-                "coefficients": dict(self._c), "name": self.name}
+        """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
+        return {"width": self.width, "height": self.height, "lon0": self.lon0, "lat0": self.lat0,
+                "col0": self.col0, "ifov": self.ifov, "coefficients": dict(self._c),
+                "name": self.name, "height_range": list(self._hr)}
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        """Inverse of :meth:`to_dict`."""
+        return cls(width=d["width"], height=d["height"], lon0=d["lon0"], lat0=d["lat0"], col0=d["col0"],
+                   ifov=d["ifov"], coefficients=d["coefficients"], name=d.get("name"),
+                   height_range=tuple(d.get("height_range", (-500.0, 9000.0))))

@@ -44,7 +44,10 @@ chosen EOP set with the look angles held, at most three times (Topan §3.3.3.1).
 type 1 per point (one pair of look angles per GCP, a diagonal system) and then fits a
 quadratic to them to reach the ICPs; here the quadratic is the unknown directly, which is the
 same model for the ICPs and gives the GCPs a real redundancy.
-:func:`preadjust` takes the adjustment engine as an argument.
+:func:`preadjust` takes the adjustment engine as an argument. One image is adjusted with
+:func:`stereodem.sensor.estimation.adjust.adjust_model`, a pair (GCPs, tie points, independent
+check points) with :func:`stereodem.sensor.estimation.adjust.bundle_adjust` (model sets
+``eop-poly2``, ``eop-<set>`` or lists of coefficient names; ``tests/test_orbital_pair.py``).
 
 Models left out of Topan's survey (package docstring, :mod:`stereodem.sensor.models.orbital`).
 """
@@ -96,11 +99,6 @@ def eop_set(name) -> list[str]:
         raise InputError(f"unknown Topan EOP set {name!r}; choose one of {', '.join(SET_ORDER)}, "
                          "1-19 or L")
     return list(EOP_SETS[key])
-
-
-def minimum_gcps(names) -> int:
-    """GCPs needed to solve for ``names`` in one image: two observations per GCP."""
-    return (len(list(names)) + 1) // 2
 
 
 def payload_to_orbital(roll, pitch, yaw):
@@ -326,6 +324,8 @@ class TopanLOSModel(SensorModel):
         centre line, in the SPOT angles of :func:`payload_to_orbital`) from its rays at the
         other lines.
         """
+        if isinstance(reference, cls):
+            return reference                    # already this model (e.g. from a model set)
         if not hasattr(reference, "ephemeris") or not hasattr(reference, "line_time"):
             raise SensorModelError(f"{type(reference).__name__}: the Topan LOS model needs a physical "
                                    "model with an ephemeris (pushbroom, ASTER or DIMAP)")
@@ -366,9 +366,18 @@ class TopanLOSModel(SensorModel):
                                psi_y=psi_y, samples=samples, name=name, height_range=(lo, hi))
 
     def to_dict(self) -> dict:
-        return {"model_type": self.MODEL_TYPE, "width": self.width, "height": self.height,
-                "coefficients": dict(self._c), "cols": self._cols, "psi_x": self._px,
-                "psi_y": self._py, "los_sign": self.los_sign, "name": self.name}
+        """Plain description (arrays inside), for :mod:`stereodem.sensor.io.sidecar`."""
+        return {"width": self.width, "height": self.height, "coefficients": dict(self._c),
+                "cols": self._cols, "psi_x": self._px, "psi_y": self._py, "los_sign": self.los_sign,
+                "name": self.name, "height_range": list(self._hr)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TopanLOSModel":
+        """Inverse of :meth:`to_dict`."""
+        return cls(width=d["width"], height=d["height"], coefficients=d["coefficients"],
+                   psi_x=d["psi_x"], psi_y=d["psi_y"], cols=d.get("cols"),
+                   los_sign=int(d.get("los_sign", -1)), name=d.get("name"),
+                   height_range=tuple(d.get("height_range", (-500.0, 9000.0))))
 
 
 def _position_offset(reference, t):

@@ -130,6 +130,8 @@ class ToutinModel(SensorModel):
         scene geometry gives ``N0, H0, alpha, chi`` and first guesses; all 15 values are then
         fitted to the reference's virtual points (the fit's RMS, pixels, in
         :attr:`init_rms_px`)."""
+        if isinstance(reference, cls):
+            return reference                    # already this model (e.g. from a model set)
         w, hgt = reference.width, reference.height
         lon0, lat0 = reference.center_lonlat(0.0)
         c0, r0 = 0.5 * (w - 1), 0.5 * (hgt - 1)
@@ -167,6 +169,14 @@ class ToutinModel(SensorModel):
         return model
 
     def to_dict(self) -> dict:
-        return {"model_type": self.MODEL_TYPE, "width": self.width, "height": self.height,
-                "lon0": self.lon0, "lat0": self.lat0, "N0": self.N0, "H0": self.H0,
-                "alpha": self.alpha, "chi": self.chi, "values": dict(self._v), "name": self.name}
+        """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
+        return {"width": self.width, "height": self.height, "lon0": self.lon0, "lat0": self.lat0,
+                "N0": self.N0, "H0": self.H0, "alpha": self.alpha, "chi": self.chi,
+                "values": dict(self._v), "name": self.name, "height_range": list(self._hr)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ToutinModel":
+        """Inverse of :meth:`to_dict`."""
+        return cls(width=d["width"], height=d["height"], lon0=d["lon0"], lat0=d["lat0"], N0=d["N0"],
+                   H0=d["H0"], alpha=d["alpha"], chi=d["chi"], values=d["values"], name=d.get("name"),
+                   height_range=tuple(d.get("height_range", (-500.0, 9000.0))))
