@@ -122,4 +122,25 @@ def run(args) -> int:
     g = prod.dem.grid
     options.say(f"stereodem dem: {out / 'dem.tif'}: {g.width}x{g.height} cells at {g.posting:g}, "
                 f"{100 * prod.info['valid_cells']:.1f} % valid, {prod.seconds:.1f} s")
+    options.say(sparse_line(prod.info))
     return 0
+
+
+def sparse_line(info: dict) -> str:
+    """One line on the heights searched and the relative pointing correction."""
+    lo, hi = info["height_range"]
+    text = f"  heights {lo:.0f}..{hi:.0f} m ({info.get('height_source', '?')}"
+    terrain = (info.get("sparse") or {}).get("terrain")
+    if terrain:
+        text += f", {terrain['n_points']} points"
+    text += ")"
+    p = info.get("pointing") or {}
+    if p.get("parameters"):
+        pp = p["parameters"]
+        text += (f"; pointing {p['kind']} {pp['col_shift']:+.2f}/{pp['row_shift']:+.2f} px (col/row), "
+                 f"residual across the epipolar lines: median {p['residual_before_px']['median']:+.2f} "
+                 f"-> {p['residual_after_px']['median']:+.2f} px, NMAD "
+                 f"{p['residual_after_px']['nmad']:.2f} px")
+    if info.get("suspect"):
+        text += "; SUSPECT: heights pile up at a bound of the search range"
+    return text
