@@ -139,13 +139,14 @@ def matcher_throughput(scene: Path):
     from stereodem.sensor.io.sidecar import load_image_model
     from stereodem.stereo import epipolar
     from stereodem.stereo.match import match_rectified
+    from stereodem.stereo.tiling import Tile
     imgs, models = [], []
     for n in ("left", "right"):
         with rasterio.open(scene / f"{n}.tif") as ds:
             imgs.append(ds.read(1).astype(np.float32))
         models.append(load_image_model(scene / f"{n}.tif"))
     w, h = models[0].width, models[0].height
-    tile = epipolar.Tile(w // 2 - 512, h // 2 - 512, 1024, 1024)
+    tile = Tile(w // 2 - 512, h // 2 - 512, 1024, 1024)
     et = epipolar.rectify_tile(models[0], models[1], tile, (1000.0, 3500.0), halo=(0, 0))
     L, R = et.rectify(imgs[0], imgs[1])
     L, R = np.nan_to_num(L), np.nan_to_num(R)

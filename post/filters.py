@@ -54,6 +54,16 @@ class Reason(IntEnum):
     SMALL_PATCH = 8
 
 
+class EditCode(IntEnum):
+    """What the post stage did to a cell, beside :class:`Reason`: the edit mask written with a
+    clean DEM (``dem_edit_mask.tif``) holds a :class:`Reason` for removed cells or one of these
+    (255 = outside the grid's data)."""
+
+    BORDER_RIM = 99          #: removed: rim of the matched area (partial correlation windows)
+    FILLED_IDW = 100         #: hole filled by inverse-distance weighting
+    FILLED_SEED = 101        #: large hole filled from the seed DEM
+
+
 _RING8 = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=np.float64)
 
 

@@ -33,53 +33,13 @@ import cv2
 import numpy as np
 
 from stereodem.sensor.errors import InputError, SensorModelError
+from stereodem.stereo.tiling import Tile
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Tile", "EpipolarTile", "virtual_matches", "affine_fundamental_matrix",
-           "rectifying_similarities", "rectify_tile", "apply_map", "tile_grid",
+__all__ = ["EpipolarTile", "virtual_matches", "affine_fundamental_matrix",
+           "rectifying_similarities", "rectify_tile", "apply_map",
            "vertical_offset_to_image_shift"]
-
-
-@dataclass(frozen=True)
-class Tile:
-    """A rectangle of the left image: columns ``col0 .. col0 + width - 1``, rows likewise."""
-
-    col0: int
-    row0: int
-    width: int
-    height: int
-
-    @property
-    def bounds(self):
-        """``(col_min, row_min, col_max, row_max)`` of pixel centres, inclusive."""
-        return (self.col0, self.row0, self.col0 + self.width - 1, self.row0 + self.height - 1)
-
-    def contains(self, col, row):
-        """Boolean mask of points whose nearest pixel lies in the tile."""
-        c0, r0, c1, r1 = self.bounds
-        return (col >= c0 - 0.5) & (col < c1 + 0.5) & (row >= r0 - 0.5) & (row < r1 + 0.5)
-
-
-def tile_grid(width: int, height: int, tile_size: int, *, window=None):
-    """Split an image (or the ``window = (col0, row0, col1, row1)`` part of it) into tiles.
-
-    Tiles are about ``tile_size`` pixels square, of nearly equal size, covering the window
-    exactly.
-    """
-    c0, r0, c1, r1 = window if window is not None else (0, 0, width - 1, height - 1)
-    c0, r0 = max(int(np.floor(c0)), 0), max(int(np.floor(r0)), 0)
-    c1, r1 = min(int(np.ceil(c1)), width - 1), min(int(np.ceil(r1)), height - 1)
-    if c1 < c0 or r1 < r0:
-        return []
-
-    def edges(a, b):
-        n = max(1, int(round((b - a + 1) / tile_size)))
-        return np.linspace(a, b + 1, n + 1).round().astype(int)
-
-    ce, re = edges(c0, c1), edges(r0, r1)
-    return [Tile(int(ce[i]), int(re[j]), int(ce[i + 1] - ce[i]), int(re[j + 1] - re[j]))
-            for j in range(len(re) - 1) for i in range(len(ce) - 1)]
 
 
 def virtual_matches(left, right, bounds, heights, *, n: int = 7, offset: float = 0.0):

@@ -22,10 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from affine import Affine
-from pyproj import CRS
 
 from stereodem.sensor.geo import geodesy
-from stereodem.sensor.errors import CRSError, InputError
+from stereodem.sensor.errors import InputError
+from stereodem.sensor.geo.grid import MapGrid, OnGrid, as_crs
 from stereodem.sensor.io.raster import write_geotiff
 
 __all__ = ["DEMGrid", "GridSpec", "CellSums", "SUM_LAYERS", "accumulate", "finish", "grid_points",
@@ -35,12 +35,12 @@ _VERTICAL_TAG = "STEREODEM_VERTICAL"
 
 
 @dataclass
-class DEMGrid:
-    """A gridded DEM and its companion layers.
+class DEMGrid(OnGrid):
+    """A gridded DEM and its companion layers on one :class:`MapGrid`.
 
     Attributes
     ----------
-    height : ndarray (rows, cols) float32
+    heights : ndarray (rows, cols) float32
         Heights, metres (``vertical`` reference), NaN where no point fell.
     count : ndarray int32
         Number of points per cell (with ``"gaussian"``, points within the radius).
@@ -48,33 +48,23 @@ class DEMGrid:
         Mean correlation score of the cell's points (NaN if none).
     ray_gap : ndarray float32
         Mean ray gap of the cell's points, metres.
-    transform : affine.Affine
-        Pixel-corner transform to ``crs``.
-    crs : pyproj.CRS
+    grid : MapGrid
+        The lattice (transform, size, CRS).
     vertical : {"ellipsoid", "geoid"}
     """
 
-    height: np.ndarray
+    heights: np.ndarray
     count: np.ndarray
     score: np.ndarray
     ray_gap: np.ndarray
-    transform: Affine
-    crs: CRS
+    grid: MapGrid
     vertical: str = "ellipsoid"
     info: dict = field(default_factory=dict)
 
-    @property
-    def posting(self) -> float:
-        return float(self.transform.a)
-
-    def cell_centres(self):
-        """Map coordinates ``(x, y)`` of all cell centres, arrays of the grid's shape."""
-        rows, cols = self.height.shape
-        jj, ii = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
-        return self.transform @ (jj, ii)
-
-    def write(self, directory, *, overwrite=False, names=None):
-        """Write ``dem.tif``, ``count.tif``, ``score.tif`` and ``raygap.tif`` in ``directory``.
+    def write(self, directory, *, overwrite=False, names=None, creation_options=None):
+        """Write ``dem.tif``, ``count.tif``, ``score.tif`` and ``raygap.tif`` in ``directory``
+        (Cloud-Optimised GeoTIFFs with band descriptions and units; ``creation_options`` as
+        GDAL's ``-co``).
 
         Float layers are float32 with NaN nodata; ``count`` is int32 with nodata 0. Each
         file is written atomically. Returns the dict of written paths.
@@ -82,16 +72,19 @@ class DEMGrid:
         from pathlib import Path
         d = Path(directory)
         names = names or dict(dem="dem.tif", count="count.tif", score="score.tif", raygap="raygap.tif")
-        tags = {_VERTICAL_TAG: self.vertical}
+        kw = dict(overwrite=overwrite, creation_options=creation_options)
+        layers = {
+            "dem": (self.heights.astype(np.float32), np.nan,
+                    f"height above the {'EGM96 geoid' if self.vertical == 'geoid' else 'WGS84 ellipsoid'}", "metre"),
+            "count": (self.count.astype(np.int32), 0, "space-intersected points per cell", "1"),
+            "score": (self.score.astype(np.float32), np.nan, "mean correlation score (ZNCC) of the cell's points", "1"),
+            "raygap": (self.ray_gap.astype(np.float32), np.nan, "mean ray gap of the cell's points", "metre"),
+        }
         out = {}
-        out["dem"] = write_geotiff(d / names["dem"], self.height.astype(np.float32), self.transform,
-                                   self.crs, np.nan, overwrite=overwrite, tags=tags)
-        out["count"] = write_geotiff(d / names["count"], self.count.astype(np.int32), self.transform,
-                                     self.crs, 0, overwrite=overwrite)
-        out["score"] = write_geotiff(d / names["score"], self.score.astype(np.float32), self.transform,
-                                     self.crs, np.nan, overwrite=overwrite)
-        out["raygap"] = write_geotiff(d / names["raygap"], self.ray_gap.astype(np.float32),
-                                      self.transform, self.crs, np.nan, overwrite=overwrite)
+        for key, (data, nodata, description, unit) in layers.items():
+            extra = dict(tags={_VERTICAL_TAG: self.vertical}) if key == "dem" else {}
+            out[key] = write_geotiff(d / names[key], data, self.transform, self.crs, nodata,
+                                     descriptions=[description], units=[unit], **extra, **kw)
         return out
 
 
@@ -100,13 +93,6 @@ def grid_bounds(x, y, posting):
     x, y = np.asarray(x), np.asarray(y)
     return (np.floor(np.nanmin(x) / posting) * posting, np.floor(np.nanmin(y) / posting) * posting,
             np.ceil(np.nanmax(x) / posting) * posting, np.ceil(np.nanmax(y) / posting) * posting)
-
-
-def _as_crs(crs) -> CRS:
-    try:
-        return CRS.from_user_input(crs)
-    except Exception as exc:
-        raise CRSError(f"unusable output CRS {crs!r}: {exc}") from None
 
 
 def _density_sigma(fi, fj, rows, cols, posting):
@@ -121,15 +107,13 @@ def _density_sigma(fi, fj, rows, cols, posting):
 
 
 @dataclass(frozen=True)
-class GridSpec:
+class GridSpec(OnGrid):
     """The output lattice and the cell estimator, fixed before any point is gridded.
 
     Attributes
     ----------
-    transform : affine.Affine
-        Pixel-corner transform (north-up, square cells of ``posting`` CRS units).
-    shape : (rows, cols)
-    crs : pyproj.CRS
+    grid : MapGrid
+        The lattice (north-up, square cells of ``posting`` CRS units).
     method : {"mean", "gaussian"}
     sigma : float, optional
         Gaussian width (CRS units); ``None``: the density rule of the module docstring,
@@ -140,31 +124,26 @@ class GridSpec:
         Grid EGM96 geoid heights instead of ellipsoidal heights.
     """
 
-    transform: Affine
-    shape: tuple
-    crs: CRS
+    grid: MapGrid
     method: str = "gaussian"
     sigma: float | None = None
     radius: int | None = None
     geoid: bool = False
-
-    @property
-    def posting(self) -> float:
-        return float(self.transform.a)
 
     @classmethod
     def from_bounds(cls, bounds, posting, crs, **options):
         """Lattice covering ``bounds`` (xmin, ymin, xmax, ymax; cell edges) at ``posting``."""
         if not posting or posting <= 0 or not np.isfinite(posting):
             raise InputError(f"grid posting must be positive, got {posting!r}")
-        crs = _as_crs(crs)
+        crs = as_crs(crs)
         method = options.get("method", "gaussian")
         if method not in ("mean", "gaussian"):
             raise InputError(f"unknown gridding method {method!r} (mean or gaussian)")
         xmin, ymin, xmax, ymax = (float(b) for b in bounds)
         cols = max(1, int(round((xmax - xmin) / posting)))
         rows = max(1, int(round((ymax - ymin) / posting)))
-        return cls(Affine(posting, 0.0, xmin, 0.0, -posting, ymax), (rows, cols), crs, **options)
+        grid = MapGrid(Affine(posting, 0.0, xmin, 0.0, -posting, ymax), cols, rows, crs)
+        return cls(grid, **options)
 
 
 #: layers of :class:`CellSums` (weighted sums per cell)
@@ -273,8 +252,9 @@ def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False, info=None) 
         height = np.where(t[0] > 0, t[1] / t[0], np.nan)
         sc = np.where(t[3] > 0, t[4] / t[3], np.nan)
         gp = np.where(t[5] > 0, t[6] / t[5], np.nan)
+    grid = MapGrid(transform, t.shape[2], t.shape[1], spec.crs)
     return DEMGrid(height.astype(np.float32), t[2].astype(np.int32), sc.astype(np.float32),
-                   gp.astype(np.float32), transform, spec.crs, "geoid" if spec.geoid else "ellipsoid",
+                   gp.astype(np.float32), grid, "geoid" if spec.geoid else "ellipsoid",
                    info=dict(method=spec.method, **(info or {})))
 
 
@@ -318,7 +298,7 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
         if not ok.any():
             raise InputError("no valid point to grid (and no CRS given to build an empty grid)")
         crs = geodesy.utm_crs(lon[ok], lat[ok])
-    crs = _as_crs(crs)
+    crs = as_crs(crs)
     x, y = np.full(lon.shape, np.nan), np.full(lon.shape, np.nan)
     if ok.any():
         x[ok], y[ok] = geodesy.lonlat_to_crs(lon[ok], lat[ok], crs)

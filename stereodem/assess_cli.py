@@ -1,14 +1,9 @@
-"""``stereodem assess``: DEM accuracy against a reference DEM and check points.
-
-The lead wires :func:`add_parser` into the ``stereodem`` command; :func:`run` returns the exit
-status (0 ok, 1 on a stereodem error, whose one-line message is logged).
-"""
+"""``stereodem assess``: DEM accuracy against a reference DEM and check points
+(:func:`stereodem.pipeline.assess_stage`, the same stage as ``stereodem run``)."""
 from __future__ import annotations
 
 import argparse
 import logging
-
-from stereodem.sensor.errors import InputError, StereodemError
 
 log = logging.getLogger(__name__)
 
@@ -67,30 +62,30 @@ def add_parser(subparsers):
     return p
 
 
+def config_from_args(args):
+    from .config import AssessSettings, Config, InputSettings, validate
+    cfg = Config(inputs=InputSettings(dem=args.dem, dem_vertical=args.dem_vertical,
+                                      reference_dem=args.ref, reference_vertical=args.ref_vertical,
+                                      checkpoints=args.checkpoints, checkpoints_crs=args.checkpoints_crs,
+                                      checkpoints_vertical=args.checkpoints_vertical,
+                                      landcover=args.landcover),
+                 output_dir=str(args.output),
+                 assess=AssessSettings(coregister=args.coregister,
+                                       slope_bins=tuple(args.slope_bins) if args.slope_bins else None,
+                                       elevation_bins=tuple(args.elevation_bins) if args.elevation_bins else None,
+                                       landcover_names=args.landcover_names))
+    validate(cfg, "command line")
+    return cfg
+
+
 def run(args) -> int:
     """Run ``stereodem assess`` from parsed arguments; returns the exit status."""
-    from stereodem.post.assess import assess_dem
-    from stereodem.post.report import prepare_output_dir, write_report
-    from stereodem.post.stats import DEFAULT_SLOPE_BINS
-    from stereodem.sensor.geo.dem import DEM
+    from stereodem.sensor.io.raster import check_output_dir
 
-    try:
-        prepare_output_dir(args.output, overwrite=args.overwrite)
-        dem = DEM.from_file(args.dem, vertical=args.dem_vertical)
-        ref = DEM.from_file(args.ref, vertical=args.ref_vertical)
-        slope_bins = args.slope_bins or DEFAULT_SLOPE_BINS
-        if len(slope_bins) < 2:
-            raise InputError("--slope-bins needs at least two edges")
-        result = assess_dem(dem, ref, coregister=args.coregister, landcover=args.landcover,
-                            landcover_names=args.landcover_names, slope_bins=slope_bins,
-                            elevation_bins=args.elevation_bins, checkpoints=args.checkpoints,
-                            checkpoint_crs=args.checkpoints_crs,
-                            checkpoint_vertical=args.checkpoints_vertical)
-        files = write_report(result, args.output, dem_heights=dem.heights,
-                             dem_transform=dem.transform, dem_crs=dem.crs, overwrite=True)
-    except StereodemError as exc:
-        log.error("%s", exc)
-        return 1
+    from .pipeline import assess_stage
+    cfg = config_from_args(args)
+    check_output_dir(args.output, overwrite=args.overwrite)
+    result, files = assess_stage(cfg, args.dem, args.output, overwrite=args.overwrite)
     s = result.report["stats"]
     print(f"n={s['n']} mean={s['mean']:.3f} rmse={s['rmse']:.3f} nmad={s['nmad']:.3f} "
           f"le90={s['le90']:.3f} m -> {files['json']}")

@@ -21,9 +21,13 @@ _SUBCOMMANDS = {
     "run": "stereodem.run_cli",
     "simulate": "stereodem.simulate_cli",
     "dem": "stereodem.dem_cli",
+    "filter": "stereodem.filter_cli",
     "ortho": "stereodem.ortho_cli",
     "assess": "stereodem.assess_cli",
+    "adjust": "stereodem.adjust_cli",
+    "compare-models": "stereodem.compare_cli",
     "uncertainty": "stereodem.uncertainty_cli",
+    "info": "stereodem.info_cli",
 }
 
 
@@ -38,21 +42,16 @@ def build_parser() -> argparse.ArgumentParser:
     verb.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
     verb.add_argument("-q", "--quiet", action="store_true", help="only errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, modname in _SUBCOMMANDS.items():
-        try:
-            mod = importlib.import_module(modname)
-        except ModuleNotFoundError as exc:
-            if exc.name == modname:
-                continue            # not part of this build
-            raise
-        mod.add_parser(sub)
+    for modname in _SUBCOMMANDS.values():
+        importlib.import_module(modname).add_parser(sub)
     return parser
 
 
 def _setup_logging(args):
-    level = logging.ERROR if args.quiet else (logging.DEBUG if args.verbose > 1 else
-                                              logging.INFO if args.verbose == 1 else logging.WARNING)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    """Log lines on stderr through the progress bars' writer, UTC timestamps with ``-v``,
+    Python warnings routed to logging (:func:`stereodem.progress.setup_logging`)."""
+    from .progress import setup_logging
+    setup_logging(verbose=args.verbose, quiet=args.quiet)
 
 
 def main(argv=None) -> int:

@@ -1,7 +1,9 @@
-"""Run configuration: a TOML file read with the standard library, mapped onto the settings
-objects of each stage (the same objects the Python API takes).
+"""The job's configuration: paths and per-stage settings, from a TOML file or from the command
+line, as the same objects (every command builds a :class:`Config` and calls the stages of
+:mod:`stereodem.pipeline`).
 
-Example (every key optional except ``inputs.left``/``inputs.right`` and ``output.dir``)::
+Sections (every key optional except ``inputs.left``/``inputs.right`` and ``output.dir``;
+``docs/configuration.md`` lists every key with its default)::
 
     [inputs]
     left = "left.tif"              # GeoTIFF with RPC tags/sidecar or <stem>.model.json
@@ -10,110 +12,262 @@ Example (every key optional except ``inputs.left``/``inputs.right`` and ``output
     seed_dem = "coarse.tif"        # optional: per-tile height ranges, fallback for large holes
     seed_dem_vertical = "geoid"    # when the seed file does not say (SRTM: geoid)
     reference_dem = "ref.tif"      # optional: accuracy assessment
-    reference_vertical = "geoid"   # when the reference file does not say
     checkpoints = "points.csv"     # optional: lon,lat,h check points
-    landcover = "lc.tif"           # optional: integer classes
 
     [output]
     dir = "out"
 
-    [stereo]                       # stereo.pipeline.DEMSettings
+    [rectification]                # stereodem.stereo.settings.RectificationSettings
     tile_size = 512
     height_range = [1000, 3500]
+    [matching]                     # ... MatchingSettings
     matcher = "ncc"
-    posting = 30.0
+    [refinement]                   # ... RefinementSettings
+    enabled = true
+    [gridding]                     # ... GriddingSettings
+    res = 30.0                     # output CRS units (metres for UTM)
     geoid = false
 
     [filters]
-    enabled = true
     thesis = false                 # the Ok thesis chain instead of the default one
-
     [fill]
     max_hole_size = 200
-    fallback = false               # true: large holes from the seed DEM
-    smooth_sigma = 0.0
-
     [ortho]
-    enabled = true
     both = true                    # also the right image, on the same grid
-    resampling = "bilinear"
-    res = 15.0
-
     [assess]
     coregister = true
-
     [run]
     workers = 2                    # default: all cores
-    tile_timeout = 600
 """
 from __future__ import annotations
 
 import dataclasses
 import os
 import tomllib
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from stereodem.sensor.errors import InputError
-from stereodem.stereo.pipeline import DEMSettings
+from stereodem.stereo.settings import (GriddingSettings, MatchingSettings, RectificationSettings,
+                                       RefinementSettings, StereoSettings)
+
+__all__ = ["InputSettings", "JitterSettings", "FilterSettings", "FillSettings", "OrthoSettings", "AssessSettings",
+           "RunSettings", "Config", "load_config", "config_from_dict", "SECTIONS"]
 
 
 @dataclass
 class InputSettings:
-    left: str
-    right: str
+    """Input files.
+
+    Attributes
+    ----------
+    left, right : str
+        The stereo pair (left = reference image).
+    model : {"physical", "rpc"}
+        Prefer the physical-model sidecar ``<stem>.model.json`` when present, or the RPCs.
+    rpc_direct : bool
+        Localise RPCs with their file's direct (image -> ground) model instead of the exact
+        inverse of the projection (the default; see :mod:`stereodem.sensor.models.rpc_direct`).
+    left_model, right_model : str, optional
+        Sensor-model files overriding the images' own (e.g. from ``stereodem adjust``).
+    band : int or str
+        Image band used for matching and orthoimages (``"3N"``/``"3B"`` in an ASTER granule;
+        a granule given alone is the pair 3N/3B).
+    radiometric : bool
+        ASTER granules: radiance by the radiometric correction table (L = A V / G + D), or
+        the raw DNs.
+    seed_dem : str, optional
+        Coarse DEM setting each tile's height range (and filling large holes on request).
+    seed_dem_vertical : {"geoid", "ellipsoid"}, optional
+        Vertical reference of the seed DEM when its file does not say.
+    reference_dem : str, optional
+        Reference DEM of the accuracy assessment.
+    reference_vertical : {"geoid", "ellipsoid"}, optional
+    checkpoints : str, optional
+        CSV of check points (lon,lat,h or x,y,z).
+    checkpoints_crs : str, optional
+        CRS of x,y check points.
+    checkpoints_vertical : {"geoid", "ellipsoid"}, optional
+        Vertical reference of the check-point heights (default: the DEM's).
+    landcover : str, optional
+        Raster of integer land-cover classes for the per-class statistics.
+    dem : str, optional
+        An existing DEM (the hand route: ``filter``, ``ortho`` and ``assess`` read it).
+    dem_vertical : {"geoid", "ellipsoid"}, optional
+        Vertical reference of ``dem`` when its file does not say.
+    """
+
+    left: str | None = None
+    right: str | None = None
     model: str = "physical"
+    rpc_direct: bool = False
+    left_model: str | None = None
+    right_model: str | None = None
+    band: int | str = 1
+    radiometric: bool = True
     seed_dem: str | None = None
     seed_dem_vertical: str | None = None
     reference_dem: str | None = None
     reference_vertical: str | None = None
     checkpoints: str | None = None
+    checkpoints_crs: str | None = None
+    checkpoints_vertical: str | None = None
     landcover: str | None = None
+    dem: str | None = None
+    dem_vertical: str | None = None
+
+
+@dataclass
+class JitterSettings:
+    """Along-track attitude jitter of the right camera (ASTER 3B), MMASTER-style.
+
+    Attributes
+    ----------
+    enabled : bool
+        Estimate the right camera's pitch oscillation from the first DEM's along-track
+        residuals against the seed DEM (a sum of sines), correct the right model with that
+        time-varying attitude and make the DEM again. Needs a seed DEM and a pushbroom/ASTER model.
+    n_sines : int
+        Sines in the fitted oscillation.
+    min_frequency, max_frequency : float
+        Frequency band searched, Hz.
+    """
+
+    enabled: bool = False
+    n_sines: int = 1
+    min_frequency: float = 0.2
+    max_frequency: float = 8.0
 
 
 @dataclass
 class FilterSettings:
+    """Blunder filters (:func:`stereodem.post.filters.default_chain`).
+
+    Attributes
+    ----------
+    enabled : bool
+    thesis : bool
+        The Ok thesis's chain (2-sigma neighbourhood test) instead of the default one.
+    erode : int
+        Cells removed along the border of the matched area (partial correlation windows).
+    """
+
     enabled: bool = True
     thesis: bool = False
-    erode: int = 2                  # cells removed along the border of the matched area
+    erode: int = 2
 
 
 @dataclass
 class FillSettings:
+    """Hole filling (:func:`stereodem.post.fill.fill_holes`).
+
+    Attributes
+    ----------
+    enabled : bool
+    max_hole_size : int
+        Largest hole (cells) filled by inverse-distance weighting.
+    fallback : bool
+        Fill larger holes from the seed DEM (blended seam).
+    smooth_sigma : float
+        Gaussian smoothing of the filled DEM, cells (0: none).
+    """
+
     enabled: bool = True
     max_hole_size: int = 200
-    fallback: bool = False          # fill large holes from the seed DEM (blended seam)
+    fallback: bool = False
     smooth_sigma: float = 0.0
 
 
 @dataclass
 class OrthoSettings:
+    """Orthoimages (:func:`stereodem.ortho.drm.orthorectify`).
+
+    Attributes
+    ----------
+    enabled : bool
+    both : bool
+        Also the right image, on the left image's grid.
+    resampling : {"nearest", "bilinear", "cubic", "lanczos"}
+    res : float, optional
+        Posting in the output CRS's units (metres for UTM; default the image GSD).
+    crs : str, optional
+        Output CRS (default: the UTM zone of the image).
+    fill_dem : str, optional
+        A second DEM whose heights are used where the DEM has none (holes, partial coverage);
+        ``fill_dem_vertical`` its vertical reference when the file does not say.
+    """
+
     enabled: bool = True
     both: bool = True
     resampling: str = "bilinear"
     res: float | None = None
+    crs: str | None = None
+    fill_dem: str | None = None
+    fill_dem_vertical: str | None = None
 
 
 @dataclass
 class AssessSettings:
+    """Accuracy assessment (:func:`stereodem.post.assess.assess_dem`).
+
+    Attributes
+    ----------
+    enabled : bool
+        Assess when a reference DEM is given.
+    coregister : bool
+        Also after Nuth & Kääb co-registration.
+    slope_bins : list of float, optional
+        Slope class edges, degrees (default 0, 5, 10, 20, 30, 45, 90).
+    elevation_bins : list of float, optional
+        Elevation band edges, metres (default: five bands over the DEM's range).
+    landcover_names : dict, optional
+        Names of the land-cover classes, e.g. {"1" = "forest"}.
+    """
+
     enabled: bool = True
     coregister: bool = True
+    slope_bins: tuple | None = None
+    elevation_bins: tuple | None = None
+    landcover_names: dict | None = None
 
 
 @dataclass
 class RunSettings:
+    """Execution.
+
+    Attributes
+    ----------
+    workers : int, optional
+        Worker processes for the stereo tiles (threads for orthoimages); default all cores.
+    tile_timeout : float, optional
+        Seconds after which a tile is abandoned and reported.
+    resume : bool
+        Reuse finished tiles of the same job in ``OUT/tiles``.
+    dask : str, optional
+        ``dask.distributed`` scheduler address.
+    overwrite : bool
+        Write into an existing output folder.
+    creation_options : dict, optional
+        GDAL creation options of the GeoTIFF products (as ``-co``), e.g. {COMPRESS = "ZSTD"}.
+    """
+
     workers: int | None = None
     tile_timeout: float | None = 600.0
     resume: bool = False
     dask: str | None = None
     overwrite: bool = False
+    creation_options: dict | None = None
 
 
 @dataclass
 class Config:
+    """Paths and settings of a job; nothing loaded (the stages load what they read)."""
+
     inputs: InputSettings
     output_dir: str
-    stereo: DEMSettings = field(default_factory=DEMSettings)
+    stereo: StereoSettings = field(default_factory=StereoSettings)
+    jitter: JitterSettings = field(default_factory=JitterSettings)
     filters: FilterSettings = field(default_factory=FilterSettings)
     fill: FillSettings = field(default_factory=FillSettings)
     ortho: OrthoSettings = field(default_factory=OrthoSettings)
@@ -121,69 +275,208 @@ class Config:
     run: RunSettings = field(default_factory=RunSettings)
 
     def to_dict(self) -> dict:
-        d = {"inputs": dataclasses.asdict(self.inputs), "output": {"dir": self.output_dir},
-             "stereo": self.stereo.summary()}
-        for name in ("filters", "fill", "ortho", "assess", "run"):
+        d = {"inputs": dataclasses.asdict(self.inputs), "output": {"dir": self.output_dir}}
+        d.update(self.stereo.summary())
+        for name in ("jitter", "filters", "fill", "ortho", "assess", "run"):
             d[name] = dataclasses.asdict(getattr(self, name))
         return d
 
 
-def _build(cls, table: dict, section: str, path):
-    names = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = set(table) - names
+#: TOML section -> (settings class, where it lives in a Config)
+SECTIONS = {
+    "inputs": InputSettings, "rectification": RectificationSettings, "matching": MatchingSettings,
+    "refinement": RefinementSettings, "gridding": GriddingSettings, "jitter": JitterSettings,
+    "filters": FilterSettings,
+    "fill": FillSettings, "ortho": OrthoSettings, "assess": AssessSettings, "run": RunSettings,
+}
+_STEREO = ("rectification", "matching", "refinement", "gridding")
+_PATH_KEYS = ("left", "right", "left_model", "right_model", "seed_dem", "reference_dem",
+              "checkpoints", "landcover", "dem")
+
+
+# ----------------------------------------------------------------------------- checking
+
+def _check_value(value, annotation: str, where: str):
+    """``value`` converted to the annotated type, or :class:`InputError` naming ``where``."""
+    ann = annotation.replace("typing.", "").replace(" ", "")
+    optional = ann.startswith("Optional[") or ann.endswith("|None")
+    base = ann.removeprefix("Optional[").removesuffix("]") if ann.startswith("Optional[") else ann.removesuffix("|None")
+    if value is None:
+        if optional or base == "Any":
+            return None
+        raise InputError(f"{where}: a value is required")
+    if base == "Any":
+        return value
+    if base == "bool":
+        if not isinstance(value, bool):
+            raise InputError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if base == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{where}: expected a whole number, got {value!r}")
+        return value
+    if base == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"{where}: expected a number, got {value!r}")
+        if value != value or value in (float("inf"), float("-inf")):
+            raise InputError(f"{where}: expected a finite number, got {value!r}")
+        return float(value)
+    if base == "str":
+        if not isinstance(value, str):
+            raise InputError(f"{where}: expected a string, got {value!r}")
+        return value
+    if base == "tuple":
+        if not isinstance(value, (list, tuple)) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            raise InputError(f"{where}: expected a list of numbers, got {value!r}")
+        return tuple(float(v) if isinstance(v, float) else v for v in value)
+    if base == "dict":
+        if not isinstance(value, dict):
+            raise InputError(f"{where}: expected a table, got {value!r}")
+        return value
+    return value                                                # pragma: no cover
+
+
+def build_settings(cls, table: dict, section: str, source):
+    """A settings object of ``cls`` from a TOML table: unknown keys and values of the wrong
+    type are :class:`InputError`\\ s naming the file, section and key."""
+    if not isinstance(table, dict):
+        raise InputError(f"{source}: [{section}] must be a table")
+    hints = {f.name: f.type if isinstance(f.type, str) else typing.get_type_hints(cls)[f.name].__name__
+             for f in dataclasses.fields(cls) if f.init}
+    unknown = set(table) - set(hints)
     if unknown:
-        raise InputError(f"{path}: unknown key(s) in [{section}]: {', '.join(sorted(unknown))}")
+        raise InputError(f"{source}: unknown key(s) in [{section}]: {', '.join(sorted(unknown))} "
+                         f"(known: {', '.join(hints)})")
+    values = {k: _check_value(v, hints[k], f"{source}: [{section}] {k}") for k, v in table.items()}
     try:
-        return cls(**table)
+        return cls(**values)
     except TypeError as exc:
-        raise InputError(f"{path}: [{section}]: {exc}") from None
+        raise InputError(f"{source}: [{section}]: {exc}") from None
+
+
+# ----------------------------------------------------------------------------- reading
+
+def _is_granule(path, base) -> bool:
+    from stereodem.sensor.io.aster_l1a import is_aster_granule
+    return isinstance(path, str) and is_aster_granule(Path(base) / path if not os.path.isabs(path) else path)
 
 
 def load_config(path, **overrides) -> Config:
-    """Read a TOML run configuration; relative input paths are relative to the file."""
+    """Read a TOML configuration; relative input paths are relative to the file."""
     path = Path(path)
     try:
         raw = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise InputError(f"{path}: configuration file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder, not a configuration file") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file (expected a TOML configuration)") from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{path}: not valid TOML ({exc})") from None
     return config_from_dict(raw, base=path.parent, source=path, **overrides)
 
 
 def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides) -> Config:
-    unknown = set(raw) - {"inputs", "output", "stereo", "filters", "fill", "ortho", "assess", "run"}
+    """A :class:`Config` from a parsed TOML mapping (see the module docstring).
+
+    ``overrides`` (``workers``, ``resume``, ...) replace [run] keys when not None.
+    """
+    if "stereo" in raw:
+        raise InputError(f"{source}: the [stereo] section was split into [rectification], "
+                         "[matching], [refinement] and [gridding] (see docs/configuration.md)")
+    unknown = set(raw) - set(SECTIONS) - {"output"}
     if unknown:
         raise InputError(f"{source}: unknown section(s) {', '.join(sorted(unknown))}")
     inp = dict(raw.get("inputs", {}))
-    for key in ("left", "right"):
-        if key not in inp:
-            raise InputError(f"{source}: [inputs] needs '{key}'")
-    for key in ("left", "right", "seed_dem", "reference_dem", "checkpoints", "landcover"):
-        if inp.get(key):
-            inp[key] = str((Path(base) / inp[key]) if not os.path.isabs(inp[key]) else inp[key])
-    out = raw.get("output", {}).get("dir")
-    if not out:
+    if "left" not in inp:
+        raise InputError(f"{source}: [inputs] needs 'left'")
+    if "right" not in inp and not _is_granule(inp["left"], base):
+        raise InputError(f"{source}: [inputs] needs 'right' (only an ASTER granule is a pair alone)")
+    for key in _PATH_KEYS:
+        if isinstance(inp.get(key), str) and inp[key]:
+            inp[key] = str(Path(base) / inp[key]) if not os.path.isabs(inp[key]) else inp[key]
+    out = raw.get("output", {}).get("dir") if isinstance(raw.get("output"), dict) else None
+    if not out or not isinstance(out, str):
         raise InputError(f"{source}: [output] needs 'dir'")
-    stereo = dict(raw.get("stereo", {}))
-    if "height_range" in stereo and stereo["height_range"] is not None:
-        stereo["height_range"] = tuple(float(v) for v in stereo["height_range"])
-    if "halo" in stereo:
-        stereo["halo"] = tuple(stereo["halo"])
-    cfg = Config(
-        inputs=_build(InputSettings, inp, "inputs", source),
-        output_dir=str(Path(base) / out) if not os.path.isabs(out) else out,
-        stereo=_build(DEMSettings, stereo, "stereo", source),
-        filters=_build(FilterSettings, raw.get("filters", {}), "filters", source),
-        fill=_build(FillSettings, raw.get("fill", {}), "fill", source),
-        ortho=_build(OrthoSettings, raw.get("ortho", {}), "ortho", source),
-        assess=_build(AssessSettings, raw.get("assess", {}), "assess", source),
-        run=_build(RunSettings, raw.get("run", {}), "run", source),
-    )
+    parts = {name: build_settings(cls, inp if name == "inputs" else raw.get(name, {}), name, source)
+             for name, cls in SECTIONS.items()}
+    run = parts["run"]
     for k, v in overrides.items():
         if v is not None:
-            setattr(cfg.run, k, v)
-    if cfg.inputs.seed_dem and cfg.stereo.seed_dem is None:
-        from stereodem.sensor.geo.dem import DEM
-        cfg.stereo.seed_dem = DEM.from_file(cfg.inputs.seed_dem, vertical=cfg.inputs.seed_dem_vertical)
+            setattr(run, k, v)
+    cfg = Config(inputs=parts["inputs"],
+                 output_dir=str(Path(base) / out) if not os.path.isabs(out) else out,
+                 stereo=StereoSettings(**{k: parts[k] for k in _STEREO}),
+                 jitter=parts["jitter"], filters=parts["filters"], fill=parts["fill"], ortho=parts["ortho"],
+                 assess=parts["assess"], run=run)
+    validate(cfg, source)
     return cfg
+
+
+def validate(cfg: Config, source="configuration"):
+    """Ranges and choices of the settings, checked before any work starts."""
+    def bad(msg):
+        raise InputError(f"{source}: {msg}")
+    rect, match, ref, gs = (cfg.stereo.rectification, cfg.stereo.matching, cfg.stereo.refinement,
+                            cfg.stereo.gridding)
+    if cfg.inputs.model not in ("physical", "rpc"):
+        bad(f"[inputs] model must be 'physical' or 'rpc', got {cfg.inputs.model!r}")
+    for key in ("seed_dem_vertical", "reference_vertical", "checkpoints_vertical", "dem_vertical"):
+        v = getattr(cfg.inputs, key)
+        if v is not None and v not in ("geoid", "ellipsoid"):
+            bad(f"[inputs] {key} must be 'geoid' or 'ellipsoid', got {v!r}")
+    band = cfg.inputs.band
+    if isinstance(band, bool) or not (isinstance(band, int) and band >= 1 or
+                                      isinstance(band, str) and band.upper() in ("3N", "3B")):
+        bad(f"[inputs] band must be a band number >= 1 or an ASTER band 3N/3B, got {band!r}")
+    if not 64 <= rect.tile_size <= 16384:
+        bad(f"[rectification] tile_size must be 64..16384 px, got {rect.tile_size}")
+    if rect.height_range is not None:
+        hr = rect.height_range
+        if len(hr) != 2 or not hr[0] <= hr[1]:
+            bad(f"[rectification] height_range must be [MIN, MAX] with MIN <= MAX, got {list(hr)}")
+    if rect.height_margin < 0:
+        bad(f"[rectification] height_margin must be >= 0, got {rect.height_margin}")
+    if rect.method not in ("auto", "affine", "projective"):
+        bad(f"[rectification] method must be auto, affine or projective, got {rect.method!r}")
+    if match.matcher not in ("sgm", "ncc"):
+        bad(f"[matching] matcher must be 'sgm' or 'ncc', got {match.matcher!r}")
+    if ref.window < 3 or ref.window % 2 == 0:
+        bad(f"[refinement] window must be an odd number >= 3, got {ref.window}")
+    if gs.res is not None and not gs.res > 0:
+        bad(f"[gridding] res must be positive, got {gs.res}")
+    if gs.method not in ("gaussian", "mean"):
+        bad(f"[gridding] method must be 'gaussian' or 'mean', got {gs.method!r}")
+    j = cfg.jitter
+    if j.enabled and not cfg.inputs.seed_dem:
+        bad("[jitter] enabled needs a seed DEM ([inputs] seed_dem, --seed-dem) as the reference")
+    if j.n_sines < 1 or not 0 < j.min_frequency < j.max_frequency:
+        bad(f"[jitter] needs n_sines >= 1 and 0 < min_frequency < max_frequency, got "
+            f"{j.n_sines}, {j.min_frequency}, {j.max_frequency}")
+    if cfg.filters.erode < 0:
+        bad(f"[filters] erode must be >= 0, got {cfg.filters.erode}")
+    if cfg.fill.max_hole_size < 0:
+        bad(f"[fill] max_hole_size must be >= 0, got {cfg.fill.max_hole_size}")
+    if cfg.fill.smooth_sigma < 0:
+        bad(f"[fill] smooth_sigma must be >= 0, got {cfg.fill.smooth_sigma}")
+    for key in ("slope_bins", "elevation_bins"):
+        v = getattr(cfg.assess, key)
+        if v is not None and (len(v) < 2 or any(b >= c for b, c in zip(v, v[1:]))):
+            bad(f"[assess] {key} must be at least two increasing edges, got {list(v)}")
+    if cfg.ortho.fill_dem_vertical not in (None, "geoid", "ellipsoid"):
+        bad(f"[ortho] fill_dem_vertical must be 'geoid' or 'ellipsoid', got {cfg.ortho.fill_dem_vertical!r}")
+    if cfg.ortho.res is not None and not cfg.ortho.res > 0:
+        bad(f"[ortho] res must be positive, got {cfg.ortho.res}")
+    from stereodem.ortho.drm import RESAMPLING
+    if cfg.ortho.resampling not in RESAMPLING:
+        bad(f"[ortho] resampling must be one of {', '.join(sorted(RESAMPLING))}, got {cfg.ortho.resampling!r}")
+    run = cfg.run
+    if run.workers is not None and run.workers < 1:
+        bad(f"[run] workers must be at least 1, got {run.workers}")
+    if run.tile_timeout is not None and not run.tile_timeout > 0:
+        bad(f"[run] tile_timeout must be positive, got {run.tile_timeout}")
+    if run.creation_options:
+        from stereodem.sensor.io.raster import parse_creation_options
+        run.creation_options = parse_creation_options(run.creation_options)

@@ -1,16 +1,16 @@
-"""``stereodem dem``: a DEM from a stereo pair of GeoTIFFs with sensor models.
+"""``stereodem dem LEFT RIGHT -o OUT``: a stereo DEM (before editing) from a pair.
 
-Writes ``DIR/dem.tif`` (float32, NaN nodata, ellipsoidal heights unless ``--geoid``) and the
-companion layers ``score.tif`` (mean correlation), ``count.tif`` (points per cell) and
-``raygap.tif`` (mean ray gap, m), plus ``dem_report.json`` (settings and per-tile QA).
+Writes ``dem.tif`` (float32, NaN voids, ellipsoidal heights unless ``--geoid``), ``score.tif``
+(mean correlation), ``count.tif`` (points per cell) and ``raygap.tif`` (mean ray gap, m), plus
+``dem_report.json`` (settings and per-tile QA). ``stereodem filter OUT/dem.tif`` edits it.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import logging
-import sys
-from pathlib import Path
+
+from . import options
 
 log = logging.getLogger(__name__)
 
@@ -19,9 +19,9 @@ EXAMPLES = """examples:
   stereodem dem img_01.tif img_02.tif -o dsm --res 0.5 --crs EPSG:32740 --height-range 2100 2600
   stereodem dem 3N.tif 3B.tif -o dem --seed-dem srtm.tif --matcher ncc --geoid --overwrite
   stereodem dem 3N.tif 3B.tif -o dem --height-range 0 2500 --workers 2 --tile-timeout 120
+  stereodem dem left.tif right.tif -o out --right-model right.adjusted.model.json
+  stereodem dem AST_L1A_00307312017190728_20250708114426.hdf -o dem      # 3N/3B of a granule
 """
-
-OUTPUTS = ("dem.tif", "score.tif", "count.tif", "raygap.tif", "dem_report.json")
 
 
 def add_parser(subparsers):
@@ -33,17 +33,19 @@ def add_parser(subparsers):
                     "LEFT/RIGHT are GeoTIFFs with RPC metadata (tags or .RPB sidecar) or a "
                     "physical-model sidecar <stem>.model.json.",
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("left", help="left (reference) image GeoTIFF")
-    p.add_argument("right", help="right image GeoTIFF")
+    p.add_argument("left", help="left (reference) image GeoTIFF, or an ASTER L1A granule (V004 "
+                                "AST_L1A_*.hdf, V003 zip or folder) whose 3N/3B bands are the pair")
+    p.add_argument("right", nargs="?", help="right image GeoTIFF (omitted for an ASTER granule)")
     p.add_argument("-o", "--out", required=True, help="output folder")
-    p.add_argument("--res", type=float, help="posting in CRS units (default: 2 x the left GSD)")
-    p.add_argument("--crs", help="output CRS, e.g. EPSG:32637 (default: the scene's UTM zone)")
+    options.add_res(p, "2 x the left image's GSD")
     rng = p.add_mutually_exclusive_group()
     rng.add_argument("--height-range", nargs=2, type=float, metavar=("MIN", "MAX"),
                      help="ellipsoidal height range of the terrain, metres")
     rng.add_argument("--seed-dem", help="coarse DEM giving each tile's height range")
-    p.add_argument("--dem-vertical", choices=["geoid", "ellipsoid"],
+    p.add_argument("--dem-vertical", choices=options.VERTICALS,
                    help="vertical reference of the seed DEM when the file does not say")
+    p.add_argument("--left-model", help="sensor-model file for LEFT (default: its sidecar or RPCs)")
+    p.add_argument("--right-model", help="sensor-model file for RIGHT (default: its sidecar or RPCs)")
     p.add_argument("--matcher", choices=["ncc", "sgm"], default="sgm", help="dense matcher (default sgm)")
     p.add_argument("--tile-size", type=int, default=512, help="tile side, pixels (default 512)")
     p.add_argument("--gridding", choices=["gaussian", "mean"], default="gaussian",
@@ -51,117 +53,94 @@ def add_parser(subparsers):
     p.add_argument("--no-pointing-correction", action="store_true",
                    help="do not estimate the relative pointing (right-image translation)")
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
-    p.add_argument("--band", type=int, default=1, help="image band (default 1)")
-    p.add_argument("--workers", type=int, help="worker processes for tiles (default: all cores)")
+    p.add_argument("--jitter-correction", action="store_true",
+                   help="estimate the right camera's along-track jitter against --seed-dem (sum of "
+                        "sines), correct its attitude and make the DEM again (ASTER 3B)")
+    options.add_band(p)
+    p.add_argument("--rpc-direct", action="store_true",
+                   help="localise RPCs with the file's direct model (DIMAP, rpcm JSON) instead of "
+                        "the exact inverse of the projection (the default)")
+    options.add_workers(p)
     p.add_argument("--tile-timeout", type=float, default=600.0,
                    help="seconds after which a tile is abandoned and reported (default 600)")
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
-    p.add_argument("--overwrite", action="store_true", help="write into an existing non-empty folder")
+    options.add_creation_options(p)
+    options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
 
 
-def _load_model(path):
-    from stereodem.sensor.errors import RPCError, SensorModelError
-    try:
-        from stereodem.sensor.io.sidecar import load_image_model
-    except ImportError:                                   # pragma: no cover - partial builds
-        load_image_model = None
-    if load_image_model is not None:
-        return load_image_model(path)
-    from stereodem.sensor.models.rpc import RPCModel
-    try:
-        return RPCModel.from_file(path)
-    except RPCError as exc:
-        raise SensorModelError(f"{path}: no usable sensor model ({exc})") from None
+def config_from_args(args):
+    """The :class:`~stereodem.config.Config` of a ``stereodem dem`` command line."""
+    from stereodem.stereo.settings import (GriddingSettings, MatchingSettings,
+                                           RectificationSettings, StereoSettings)
 
-
-def _read_image(path, band):
-    import numpy as np
-    import rasterio
-
-    from stereodem.sensor.errors import InputError
-    try:
-        with rasterio.open(path) as ds:
-            if not 1 <= band <= ds.count:
-                raise InputError(f"{path}: no band {band} (the image has {ds.count})")
-            arr = ds.read(band).astype(np.float32)
-            if ds.nodata is not None and np.isfinite(ds.nodata):
-                arr[arr == ds.nodata] = np.nan
-    except rasterio.errors.RasterioIOError as exc:
-        raise InputError(f"{path}: cannot read the image ({exc})") from None
-    return arr
+    from .config import Config, InputSettings, JitterSettings, RunSettings, validate
+    hr = tuple(args.height_range) if args.height_range is not None else None
+    cfg = Config(
+        inputs=InputSettings(left=args.left, right=args.right, band=args.band,
+                             radiometric=not args.no_radiometric,
+                             left_model=args.left_model, right_model=args.right_model,
+                             rpc_direct=args.rpc_direct, seed_dem=args.seed_dem, seed_dem_vertical=args.dem_vertical),
+        output_dir=args.out,
+        stereo=StereoSettings(
+            rectification=RectificationSettings(tile_size=args.tile_size, height_range=hr,
+                                                pointing_correction=not args.no_pointing_correction),
+            matching=MatchingSettings(matcher=args.matcher),
+            gridding=GriddingSettings(res=args.res, crs=args.crs, geoid=args.geoid,
+                                      method=args.gridding)),
+        jitter=JitterSettings(enabled=args.jitter_correction),
+        run=RunSettings(workers=args.workers, tile_timeout=args.tile_timeout, dask=args.dask,
+                        overwrite=args.overwrite, creation_options=options.creation_options(args)))
+    validate(cfg, "command line")
+    return cfg
 
 
 def run(args) -> int:
-    """Run ``stereodem dem``; returns the exit status (0 ok, 1 failure with a one-line message)."""
-    from stereodem.sensor.errors import StereodemError
-    try:
-        return _run(args)
-    except StereodemError as exc:
-        print(f"stereodem dem: error: {exc}", file=sys.stderr)
-        return 1
+    """Run ``stereodem dem``; returns the exit status (0 ok; errors propagate to the CLI)."""
+    from stereodem.sensor.io.raster import check_output_dir, prepare_output_dir, write_text_atomic
 
-
-def _run(args) -> int:
-    from stereodem.sensor.geo.dem import DEM
-    from stereodem.sensor.errors import InputError, OutputExistsError
-    from stereodem.sensor.io.raster import write_text_atomic
-    from stereodem.stereo.pipeline import DEMSettings, make_dem
-
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise OutputExistsError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not args.overwrite:
-        raise OutputExistsError(f"{out}: folder is not empty; pass --overwrite to write into it")
-    if args.res is not None and not args.res > 0:
-        raise InputError(f"--res must be positive, got {args.res}")
-    if args.height_range is not None:
-        lo, hi = args.height_range
-        if not (lo == lo and hi == hi) or hi < lo:
-            raise InputError(f"--height-range {lo:g} {hi:g} is unusable (need MIN <= MAX)")
-    left_model, right_model = _load_model(args.left), _load_model(args.right)
-    left, right = _read_image(args.left, args.band), _read_image(args.right, args.band)
-    for path, img, mdl in ((args.left, left, left_model), (args.right, right, right_model)):
-        if img.shape != (mdl.height, mdl.width):
-            raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
-                             f"describes {mdl.width}x{mdl.height}")
-    seed = DEM.from_file(args.seed_dem, vertical=args.dem_vertical) if args.seed_dem else None
-    settings = DEMSettings(tile_size=args.tile_size, height_range=args.height_range, seed_dem=seed,
-                           matcher=args.matcher, posting=args.res, crs=args.crs, geoid=args.geoid,
-                           gridding=args.gridding, pointing_correction=not args.no_pointing_correction)
-    quiet = logging.getLogger().getEffectiveLevel() > logging.WARNING
-
-    tty = sys.stderr.isatty()
-
-    def progress(done, total):
-        # a live line on a terminal, one line per tile in logs and pipes
-        if not quiet:
-            print(f"{chr(13) if tty else ''}stereodem dem: tile {done}/{total}", end="" if tty else "\n",
-                  file=sys.stderr, flush=True)
-
-    from .config import RunSettings
-    from .pipeline import tile_runner
-    if args.workers is not None and args.workers < 1:
-        raise InputError(f"--workers must be at least 1, got {args.workers}")
-    runner = tile_runner(RunSettings(workers=args.workers, tile_timeout=args.tile_timeout,
-                                      dask=args.dask), progress)
-    prod = make_dem(left, right, left_model, right_model, settings, runner=runner)
-    if not quiet:
-        print(file=sys.stderr)
-    out.mkdir(parents=True, exist_ok=True)
-    prod.write(out, overwrite=True)
-    failed = [f.to_dict() for f in runner.failures]
-    if failed:
-        log.warning("%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed))
-    report = dict(left=str(args.left), right=str(args.right), settings=prod.settings,
+    from .pipeline import load_pair, stereo_stage
+    from .provenance import provenance, utc_now
+    started = utc_now()
+    options.check_common(args)
+    cfg = config_from_args(args)
+    out = check_output_dir(cfg.output_dir, overwrite=args.overwrite)
+    pair = load_pair(cfg)
+    bar = options.progress_bar("stereo")
+    prod, failed = stereo_stage(cfg, pair, progress=bar)
+    bar.close()
+    prepare_output_dir(out, overwrite=args.overwrite)
+    prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
+    report = dict(provenance=provenance(started=started), input_metadata=pair.tags, left=str(args.left), right=str(args.right), settings=prod.settings,
                   info=prod.info, n_points=prod.n_points, seconds=prod.seconds, tiles=prod.tiles,
                   failed_tiles=failed)
     write_text_atomic(out / "dem_report.json", json.dumps(report, indent=2, default=str) + "\n",
                       overwrite=True)
-    g = prod.grid
-    if not quiet:
-        print(f"stereodem dem: {out / 'dem.tif'}: {g.height.shape[1]}x{g.height.shape[0]} cells at "
-              f"{g.posting:g}, {100 * prod.info['valid_cells']:.1f} % valid, {prod.seconds:.1f} s",
-              file=sys.stderr)
+    if failed:
+        log.warning("%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed))
+    g = prod.dem.grid
+    options.say(f"stereodem dem: {out / 'dem.tif'}: {g.width}x{g.height} cells at {g.posting:g}, "
+                f"{100 * prod.info['valid_cells']:.1f} % valid, {prod.seconds:.1f} s")
+    options.say(sparse_line(prod.info))
     return 0
+
+
+def sparse_line(info: dict) -> str:
+    """One line on the heights searched and the relative pointing correction."""
+    lo, hi = info["height_range"]
+    text = f"  heights {lo:.0f}..{hi:.0f} m ({info.get('height_source', '?')}"
+    terrain = (info.get("sparse") or {}).get("terrain")
+    if terrain:
+        text += f", {terrain['n_points']} points"
+    text += ")"
+    p = info.get("pointing") or {}
+    if p.get("parameters"):
+        pp = p["parameters"]
+        text += (f"; pointing {p['kind']} {pp['col_shift']:+.2f}/{pp['row_shift']:+.2f} px (col/row), "
+                 f"residual across the epipolar lines: median {p['residual_before_px']['median']:+.2f} "
+                 f"-> {p['residual_after_px']['median']:+.2f} px, NMAD "
+                 f"{p['residual_after_px']['nmad']:.2f} px")
+    if info.get("suspect"):
+        text += "; SUSPECT: heights pile up at a bound of the search range"
+    return text

@@ -1,16 +1,18 @@
-"""The end-to-end job, top to bottom: sensor -> stereo -> post -> ortho -> assess.
+"""The job, top to bottom: sensor models -> stereo -> filters -> orthoimages -> assessment.
 
-Each stage is a function of the configuration's settings objects and the previous stage's
-products, and is callable on its own from Python. :func:`run` chains them, writes everything
-into one output folder and records ``run.json`` (configuration used, versions, timings and
-peak memory per stage, failed tiles).
+Every command builds a :class:`stereodem.config.Config` and calls these stage functions:
+``stereodem dem`` runs :func:`load_pair` and :func:`stereo_stage`, ``stereodem filter``
+:func:`post_stage`, ``stereodem ortho`` :func:`ortho_stage`, ``stereodem assess``
+:func:`assess_stage`, and ``stereodem run`` (:func:`run`) all of them into one folder with
+``run.json`` (configuration, versions, timings and peak memory per stage, failed tiles). The
+hand route ``dem -> filter -> ortho -> assess`` and ``run`` therefore give the same rasters.
 
-Output folder::
+Output folder of :func:`run`::
 
     raw/dem.tif, raw/count.tif, raw/score.tif, raw/raygap.tif   stereo DEM before editing
     dem.tif                      filtered and hole-filled DEM
-    dem_edit_mask.tif            uint8: filter reason code, 99 = border rim, 100 = filled by IDW,
-                                 101 = filled from the seed DEM
+    dem_edit_mask.tif            uint8: filter Reason (1-8) or EditCode (99 border rim,
+                                 100 filled by IDW, 101 filled from the seed DEM)
     ortho_left.tif, ortho_right.tif
     assess/report.json, report.md, *.png                        when a reference DEM is given
     tiles/tile_<n>.npz           finished stereo tiles (reused by --resume)
@@ -33,14 +35,18 @@ import numpy as np
 import rasterio
 import rasterio.warp
 
-from stereodem.sensor.geo.dem import DEM
+from stereodem.post.filters import EditCode
 from stereodem.sensor.errors import InputError
-from stereodem.sensor.io.raster import prepare_output_dir, write_geotiff, write_text_atomic
-from stereodem.sensor.io.sidecar import load_image_model
+from stereodem.sensor.geo.dem import DEM
+from stereodem.sensor.geo.grid import MapGrid
+from stereodem.sensor.io.raster import (image_dtype, prepare_output_dir, read_image, write_geotiff,
+                                        write_text_atomic)
+from stereodem.sensor.io.sidecar import load_image_model, load_model
+from stereodem.stereo.grid import DEMGrid
 
 from . import __version__
 from .config import Config
-from .tiles import SharedArray, Tile, pool_size, process_peak_rss_mb, run_tiles
+from .runner import SharedArray, pool_size, process_peak_rss_mb, run_tiles
 
 log = logging.getLogger(__name__)
 
@@ -66,23 +72,104 @@ class StageLog:
         log.info("stage %s: %.1f s", name, self.stages[name]["seconds"])
 
 
-# ----------------------------------------------------------------------------- stages
+# ----------------------------------------------------------------------------- inputs
 
-def load_inputs(cfg: Config):
-    """Read both images (band 1, float32) and their sensor models."""
-    out = []
-    for path in (cfg.inputs.left, cfg.inputs.right):
-        model = load_image_model(path, prefer=cfg.inputs.model)
-        try:
-            with rasterio.open(path) as ds:
-                img = ds.read(1).astype(np.float32)
-                if ds.nodata is not None:
-                    img[img == ds.nodata] = np.nan
-        except rasterio.errors.RasterioIOError as exc:
-            raise InputError(f"{path}: cannot read the image ({exc})") from None
-        out.append((img, model))
-    return out
+@dataclass
+class Pair:
+    """The loaded stereo pair: images (float32, NaN = no data), their models, the seed DEM."""
 
+    left_image: np.ndarray
+    right_image: np.ndarray
+    left_model: object
+    right_model: object
+    seed_dem: DEM | None = None
+    left_dtype: np.dtype = np.dtype("float32")
+    right_dtype: np.dtype = np.dtype("float32")
+    tags: dict = field(default_factory=dict)
+
+
+@dataclass
+class InputImage:
+    """One input image as every stage sees it: float32 values (NaN = no data), its sensor
+    model, the stored data type and metadata tags (an ASTER granule's acquisition time, ...)."""
+
+    image: np.ndarray
+    model: object
+    dtype: np.dtype
+    tags: dict = field(default_factory=dict)
+
+
+ASTER_STEREO_BANDS = ("3N", "3B")
+
+
+def open_image(path, *, band=1, prefer: str = "physical", model_file=None, rpc_direct: bool = False,
+               radiometric: bool = True, granules: dict | None = None) -> InputImage:
+    """The one input layer: a GeoTIFF (with RPCs or a model sidecar) or an ASTER L1A granule
+    (V004 ``.hdf``, V003 ``.zip`` or folder; ``band`` ``"3N"``/``"3B"``, radiance by the
+    granule's radiometric table unless ``radiometric`` is false), with its model (or the
+    ``model_file``), checked against each other. ``granules`` caches opened granules by path."""
+    from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
+    if is_aster_granule(path):
+        key = str(Path(path).resolve())
+        g = (granules or {}).get(key) or open_aster_granule(path)
+        if granules is not None:
+            granules[key] = g
+        name = band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
+        img = g.read_image(name, radiometric=radiometric)
+        model = load_model(model_file) if model_file else g.model(name)
+        dtype = np.dtype("float32") if radiometric else g.band(name).dn.dtype
+        tags = {**g.tags(), "ASTER_BAND": str(name).upper(), "ASTER_RADIOMETRIC": str(bool(radiometric))}
+    else:
+        if isinstance(band, str):
+            raise InputError(f"{path}: band {band!r} names an ASTER band, but this is not an ASTER "
+                             "granule (give a band number)")
+        model = (load_model(model_file, rpc_direct=rpc_direct) if model_file else
+                 load_image_model(path, prefer=prefer, rpc_direct=rpc_direct))
+        img, dtype, tags = read_image(path, band), image_dtype(path, band), {}
+    if img.shape != (model.height, model.width):
+        raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
+                         f"describes {model.width}x{model.height}")
+    return InputImage(img, model, dtype, tags)
+
+
+def image_model(path, *, band=1, prefer: str = "physical"):
+    """The sensor model of an input (the image's sidecar or RPCs, or band ``band`` of an ASTER
+    granule), without reading the pixels."""
+    from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
+    if is_aster_granule(path):
+        return open_aster_granule(path).model(band if isinstance(band, str) else ASTER_STEREO_BANDS[0])
+    return load_image_model(path, prefer=prefer)
+
+
+def load_seed_dem(cfg: Config) -> DEM | None:
+    """The seed DEM of the configuration (loaded once per job), or None."""
+    if not cfg.inputs.seed_dem:
+        return None
+    return DEM.from_file(cfg.inputs.seed_dem, vertical=cfg.inputs.seed_dem_vertical)
+
+
+def load_pair(cfg: Config) -> Pair:
+    """Both images with their models, and the seed DEM. An ASTER granule given alone (or as
+    both images) is its own pair: 3N left, 3B right."""
+    i = cfg.inputs
+    if not i.left:
+        raise InputError("a stereo DEM needs two images ([inputs] left and right)")
+    from stereodem.sensor.io.aster_l1a import is_aster_granule
+    granule = is_aster_granule(i.left)
+    right = i.right or (i.left if granule else None)
+    if not right:
+        raise InputError(f"{i.left}: a stereo DEM needs a second image (or an ASTER granule)")
+    same = granule and Path(right).resolve() == Path(i.left).resolve()
+    bands = ASTER_STEREO_BANDS if same else (i.band, i.band)
+    cache: dict = {}
+    kw = dict(prefer=i.model, rpc_direct=i.rpc_direct, radiometric=i.radiometric, granules=cache)
+    left = open_image(i.left, band=bands[0], model_file=i.left_model, **kw)
+    right = open_image(right, band=bands[1], model_file=i.right_model, **kw)
+    return Pair(left.image, right.image, left.model, right.model, load_seed_dem(cfg),
+                left.dtype, right.dtype, {**left.tags, **{f"RIGHT_{k}": v for k, v in right.tags.items()}})
+
+
+# ----------------------------------------------------------------------------- stereo
 
 def tile_runner(run_settings, progress=None, cache_dir=None):
     """A tile runner for :func:`stereodem.stereo.pipeline.make_dem` backed by :func:`run_tiles`.
@@ -92,7 +179,6 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
     failures = []
 
     def runner(process_tile, tiles, inputs, settings):
-        wrapped = [Tile(i, 0, 0, 0, 0) for i in range(len(tiles))]
         pool = pool_size(run_settings.workers, len(tiles), run_settings.dask) > 0
         if cache_dir is not None:
             _check_tile_cache(Path(cache_dir), _cache_key(tiles, inputs, settings), run_settings.resume)
@@ -101,8 +187,8 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
                 inputs = dataclasses.replace(
                     inputs, left_image=SharedArray.create(inputs.left_image, tmp, "left"),
                     right_image=SharedArray.create(inputs.right_image, tmp, "right"))
-            ctx = dict(tiles=tiles, inputs=inputs, settings=settings, fn=process_tile)
-            results, fails, _ = run_tiles(_tile_job, wrapped, ctx, workers=run_settings.workers,
+            ctx = dict(inputs=inputs, settings=settings, fn=process_tile)
+            results, fails, _ = run_tiles(_tile_job, tiles, ctx, workers=run_settings.workers,
                                           timeout=run_settings.tile_timeout, cache_dir=cache_dir,
                                           resume=run_settings.resume, dask_address=run_settings.dask,
                                           progress=progress)
@@ -118,7 +204,7 @@ def _cache_key(tiles, inputs, settings) -> str:
     models, the images' bytes), so ``--resume`` never reuses tiles of another job."""
     import hashlib
     h = hashlib.sha256()
-    g = inputs.grid
+    g = inputs.lattice
     h.update(json.dumps([settings.summary(), [t.bounds for t in tiles], list(inputs.height_range),
                          None if g is None else [tuple(g.transform), list(g.shape), g.crs.to_wkt(),
                                                  g.method, g.sigma, g.radius, g.geoid]],
@@ -161,7 +247,7 @@ def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
 def _tile_job(tile, ctx):
     """One stereo tile as plain arrays (cacheable with ``np.savez``, no pickle): its cell
     sums on the output lattice, their window origin, point count and QA summary."""
-    res = ctx["fn"](ctx["tiles"][tile.index], ctx["inputs"], ctx["settings"])
+    res = ctx["fn"](tile, ctx["inputs"], ctx["settings"])
     res.summary["process_peak_rss_mb"] = round(process_peak_rss_mb(), 1)
     c = res.cells
     return dict(sums=c.sums, origin=np.array([c.row0, c.col0, c.n_points], np.int64),
@@ -175,24 +261,59 @@ def _tile_result(arrays):
     return TileResult(CellSums(r0, c0, arrays["sums"], n), json.loads(str(arrays["summary"])))
 
 
-def stereo_stage(cfg: Config, left, right, *, progress=None, cache_dir=None):
-    """Stereo DEM (raw): :func:`stereodem.stereo.pipeline.make_dem` with the configured tile runner."""
+def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None):
+    """Stereo DEM (raw): :func:`stereodem.stereo.pipeline.make_dem` with the configured tile
+    runner (and, with ``[jitter] enabled``, the right camera's jitter estimated against the
+    seed DEM, corrected and the DEM made again: :mod:`stereodem.stereo.jitter`); returns
+    ``(products, failed_tiles)``."""
     from stereodem.stereo.pipeline import make_dem
     runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
-    products = make_dem(left[0], right[0], left[1], right[1], cfg.stereo, runner=runner)
+    args = (pair.left_image, pair.right_image, pair.left_model, pair.right_model)
+    if cfg.jitter.enabled:
+        from stereodem.stereo.jitter import dem_with_jitter_correction
+        j = cfg.jitter
+        products, corrected, fit, first = dem_with_jitter_correction(
+            *args, pair.seed_dem, cfg.stereo, seed_dem=pair.seed_dem, n_sines=j.n_sines,
+            f_range=(j.min_frequency, j.max_frequency), runner=runner)
+        pair.right_model = corrected
+        log.info("jitter of the right camera: %s", products.info["jitter"])
+    else:
+        products = make_dem(*args, cfg.stereo, seed_dem=pair.seed_dem, runner=runner)
     return products, [f.to_dict() for f in runner.failures]
 
 
-def post_stage(cfg: Config, grid, reference: DEM | None = None):
-    """Blunder filters and hole filling on the raw grid; returns (heights, edit mask, report)."""
+def read_stereo_layers(dem_path, *, vertical=None) -> DEMGrid:
+    """A stereo DEM written by ``stereodem dem`` with its ``score.tif`` and ``raygap.tif``
+    beside it (missing layers are NaN: the filters that need them then keep every cell)."""
+    dem = DEM.from_file(dem_path, vertical=vertical)
+    folder = Path(dem_path).parent
+    grid = dem.grid
+    layers = {}
+    for name in ("score", "raygap"):
+        path = folder / f"{name}.tif"
+        layers[name] = read_image(path) if path.is_file() else np.full(grid.shape, np.nan, np.float32)
+        if layers[name].shape != grid.shape:
+            raise InputError(f"{path}: {layers[name].shape} cells, but the DEM has {grid.shape}")
+    return DEMGrid(dem.heights.astype(np.float32), np.zeros(grid.shape, np.int32), layers["score"],
+                   layers["raygap"], grid, dem.vertical or "ellipsoid")
+
+
+# ----------------------------------------------------------------------------- post
+
+def post_stage(cfg: Config, layers: DEMGrid, seed_dem: DEM | None = None):
+    """Blunder filters and hole filling of a stereo DEM; returns (heights, edit mask, report).
+
+    The edit mask holds the filter :class:`~stereodem.post.filters.Reason` of removed cells or
+    an :class:`~stereodem.post.filters.EditCode`.
+    """
     from stereodem.post.fill import fill_holes, gaussian_smooth
     from stereodem.post.filters import default_chain
-    z = grid.height
+    z = layers.heights
     mask = np.zeros(z.shape, np.uint8)
     report = {}
     if cfg.filters.enabled:
         res = default_chain(thesis=cfg.filters.thesis).apply(
-            z, score=grid.score, ray_gap=grid.ray_gap, transform=grid.transform, crs=grid.crs)
+            z, score=layers.score, ray_gap=layers.ray_gap, transform=layers.transform, crs=layers.crs)
         z, mask = res.heights, res.removed.copy()
         report["filters"] = res.report
     if cfg.filters.enabled and cfg.filters.erode > 0:
@@ -202,61 +323,94 @@ def post_stage(cfg: Config, grid, reference: DEM | None = None):
         k = 2 * cfg.filters.erode + 1
         rim = (valid == 1) & (cv2.erode(valid, np.ones((k, k), np.uint8), borderValue=0) == 0)
         z = np.where(rim, np.nan, z)
-        mask[rim] = 99
+        mask[rim] = EditCode.BORDER_RIM
         report["erode"] = {"cells": int(cfg.filters.erode), "removed": int(rim.sum())}
     if cfg.fill.enabled:
-        use = cfg.fill.fallback and cfg.stereo.seed_dem is not None
-        fallback = _fallback_on_grid(cfg.stereo.seed_dem, grid) if use else None
+        use = cfg.fill.fallback and seed_dem is not None
+        fallback = _fallback_on_grid(seed_dem, layers) if use else None
         fr = fill_holes(z, max_hole_size=cfg.fill.max_hole_size, fallback=fallback)
         z = fr.heights
-        mask[fr.filled == 1] = 100
-        mask[fr.filled == 2] = 101
+        mask[fr.filled == 1] = EditCode.FILLED_IDW
+        mask[fr.filled == 2] = EditCode.FILLED_SEED
         report["fill"] = fr.report
         if cfg.fill.smooth_sigma > 0:
             z = gaussian_smooth(z, sigma=cfg.fill.smooth_sigma)
     return z.astype(np.float32), mask, report
 
 
-def _fallback_on_grid(seed, grid):
+def write_clean_dem(path, heights, mask, layers: DEMGrid, *, overwrite=False, creation_options=None):
+    """Write a clean DEM and its edit mask (``<stem>_edit_mask.tif``, uint8, 255 = nodata)."""
+    path = Path(path)
+    clean = DEM(heights, layers.transform, layers.crs, layers.vertical, str(path))
+    clean.write(path, overwrite=overwrite, creation_options=creation_options)
+    write_geotiff(edit_mask_path(path), mask, layers.transform, layers.crs, 255, overwrite=overwrite,
+                  descriptions=["edit code: 0 kept, 1-8 filter reason, 99 border rim, 100/101 filled"],
+                  units=["1"], creation_options=creation_options)
+    return clean
+
+
+def edit_mask_path(dem_path) -> Path:
+    """Where the edit mask of a clean DEM is written."""
+    p = Path(dem_path)
+    return p.with_name(f"{p.stem}_edit_mask.tif")
+
+
+def _fallback_on_grid(seed, layers: DEMGrid):
     """The seed DEM warped onto the stereo grid, in the grid's vertical reference."""
-    from stereodem.sensor.geo.dem import as_dem
-    seed = as_dem(seed).to_reference(grid.vertical)
-    out = np.full(grid.height.shape, np.nan, np.float32)
+    seed = seed.to_reference(layers.vertical)
+    out = np.full(layers.heights.shape, np.nan, np.float32)
     rasterio.warp.reproject(seed.heights, out, src_transform=seed.transform, src_crs=seed.crs.to_wkt(),
-                            dst_transform=grid.transform, dst_crs=grid.crs.to_wkt(),
+                            dst_transform=layers.transform, dst_crs=layers.crs.to_wkt(),
                             resampling=rasterio.warp.Resampling.bilinear, src_nodata=np.nan,
                             dst_nodata=np.nan)
     return out
 
 
-def ortho_stage(cfg: Config, inputs, dem: DEM, *, progress=None):
-    """Orthoimages of the left (and right) image on one grid against the clean DEM.
+# ----------------------------------------------------------------------------- ortho
 
-    Row blocks of the grid run on ``cfg.run.workers`` threads (the image is shared, not
-    copied; numpy and OpenCV release the GIL); the result does not depend on the count.
+def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, progress=None):
+    """Orthoimages of ``images`` (``[(name, image, model), ...]``) against ``dem``, all on one
+    grid (the first image's unless ``grid`` is given); returns ``{name: Ortho}``.
+
+    Cells the DEM does not cover get no data, with a warning giving their share, unless
+    ``cfg.ortho.fill_dem`` names a second DEM to take their heights from. Row blocks run on
+    ``cfg.run.workers`` threads (the result does not depend on the count).
     """
     from stereodem.ortho.drm import orthorectify
     orthos = {}
-    grid = None
-    names = ("left", "right") if cfg.ortho.both else ("left",)
     threads = cfg.run.workers or os.cpu_count() or 1
-    for name, (img, model) in zip(names, inputs):
-        o = orthorectify(img, model, dem, grid=grid, res=cfg.ortho.res,
-                         resampling=cfg.ortho.resampling, progress=progress, threads=threads)
+    fill = (DEM.from_file(cfg.ortho.fill_dem, vertical=cfg.ortho.fill_dem_vertical)
+            if cfg.ortho.fill_dem else None)
+    for name, img, model in images:
+        o = orthorectify(img, model, dem, grid=grid, res=cfg.ortho.res, crs=cfg.ortho.crs,
+                         resampling=cfg.ortho.resampling, progress=progress, threads=threads,
+                         fill_dem=fill)
         grid = grid or o.grid
         orthos[name] = o
     return orthos
 
 
-def assess_stage(cfg: Config, dem_path, out_dir):
-    """Accuracy report of the clean DEM against the reference DEM and check points."""
+# ----------------------------------------------------------------------------- assessment
+
+def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True, provenance=None):
+    """Accuracy report of ``dem`` (a :class:`DEM` or a path) against the reference DEM and
+    check points of the configuration, written into ``out_dir``; returns (assessment, files)."""
     from stereodem.post.assess import assess_dem
     from stereodem.post.report import write_report
-    a = assess_dem(dem_path, cfg.inputs.reference_dem, coregister=cfg.assess.coregister,
-                   checkpoints=cfg.inputs.checkpoints, landcover=cfg.inputs.landcover,
-                   ref_vertical=cfg.inputs.reference_vertical)
-    write_report(a, out_dir, overwrite=True)
-    return a.report
+    i, a = cfg.inputs, cfg.assess
+    if not i.reference_dem:
+        raise InputError("the assessment needs a reference DEM ([inputs] reference_dem, --ref)")
+    dem = dem if isinstance(dem, DEM) else DEM.from_file(dem, vertical=i.dem_vertical)
+    ref = DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
+    kw = {} if a.slope_bins is None else dict(slope_bins=a.slope_bins)
+    result = assess_dem(dem, ref, coregister=a.coregister, checkpoints=i.checkpoints,
+                        checkpoint_crs=i.checkpoints_crs, checkpoint_vertical=i.checkpoints_vertical,
+                        landcover=i.landcover,
+                        landcover_names={int(k): v for k, v in (a.landcover_names or {}).items()},
+                        elevation_bins=a.elevation_bins, **kw)
+    files = write_report(result, out_dir, dem_heights=dem.heights, dem_transform=dem.transform,
+                         dem_crs=dem.crs, overwrite=overwrite, provenance=provenance)
+    return result, files
 
 
 # ----------------------------------------------------------------------------- the run
@@ -266,56 +420,54 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
 
     ``progress_factory(label)`` may return a ``progress(done, total)`` callable per stage.
     """
+    from .provenance import provenance, utc_now
+    started = utc_now()
+    co = cfg.run.creation_options
     out = prepare_output_dir(cfg.output_dir, overwrite=cfg.run.overwrite or cfg.run.resume)
     prog = progress_factory or (lambda label: None)
     stages = StageLog()
     t_all = time.perf_counter()
 
     t0 = time.perf_counter()
-    inputs = load_inputs(cfg)
+    pair = load_pair(cfg)
     stages.record("load", t0)
 
     t0 = time.perf_counter()
     bar = prog("stereo")
-    products, failed = stereo_stage(cfg, *inputs, progress=bar, cache_dir=out / "tiles")
+    products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles")
     _close(bar)
-    grid = products.grid
-    grid.write(out / "raw", overwrite=True)
+    products.write(out / "raw", overwrite=True, creation_options=co)
     tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
     stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
                   failed_tiles=len(failed), tile_process_peak_rss_mb=max(tile_rss, default=0.0))
 
     t0 = time.perf_counter()
-    z, mask, post_report = post_stage(cfg, grid)
-    clean = DEM(z, grid.transform, grid.crs, grid.vertical, str(out / "dem.tif"))
-    clean.write(out / "dem.tif", overwrite=True)
-    write_geotiff(out / "dem_edit_mask.tif", mask, grid.transform, grid.crs, 255, overwrite=True)
+    z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
+    clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True, creation_options=co)
     stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
 
-    orthos = {}
     if cfg.ortho.enabled:
         t0 = time.perf_counter()
         bar = prog("ortho")
-        orthos = ortho_stage(cfg, inputs, clean, progress=bar)
+        images = [("left", pair.left_image, pair.left_model)]
+        if cfg.ortho.both:
+            images.append(("right", pair.right_image, pair.right_model))
+        orthos = ortho_stage(cfg, images, clean, progress=bar)
         _close(bar)
-        for name, o in orthos.items():
-            o.write(out / f"ortho_{name}.tif", overwrite=True)
+        dtypes = {"left": pair.left_dtype, "right": pair.right_dtype}
+        for name, o in orthos.items():           # in the image's own data type
+            o.write(out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name], creation_options=co)
         stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px for k, o in orthos.items()})
 
     report = None
     if cfg.assess.enabled and cfg.inputs.reference_dem:
         t0 = time.perf_counter()
-        report = assess_stage(cfg, out / "dem.tif", out / "assess")
+        report = assess_stage(cfg, clean, out / "assess", provenance=provenance(started=started))[0].report
         stages.record("assess", t0)
 
-    import cv2
-    import pyproj
-    import scipy
-    info = dict(
-        stereodem=__version__, python=platform.python_version(), numpy=np.__version__,
-        scipy=scipy.__version__, opencv=cv2.__version__, rasterio=rasterio.__version__,
-        gdal=rasterio.__gdal_version__, pyproj=pyproj.__version__, platform=platform.platform())
-    run_info = dict(config=cfg.to_dict(), versions=info, stages=stages.stages,
+    run_info = dict(provenance=provenance(started=started), config=cfg.to_dict(),
+                    input_metadata=pair.tags,
+                    versions=versions(), stages=stages.stages,
                     seconds=round(time.perf_counter() - t_all, 3), failed_tiles=failed,
                     stereo=dict(tiles=products.tiles, info=products.info), post=post_report,
                     outputs=sorted(p.name for p in out.iterdir()),
@@ -323,6 +475,16 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
     write_text_atomic(out / "run.json", json.dumps(run_info, indent=1, default=_json_default),
                       overwrite=True)
     return run_info
+
+
+def versions() -> dict:
+    """Versions of stereodem and of the libraries that shape its results."""
+    import cv2
+    import pyproj
+    import scipy
+    return dict(stereodem=__version__, python=platform.python_version(), numpy=np.__version__,
+                scipy=scipy.__version__, opencv=cv2.__version__, rasterio=rasterio.__version__,
+                gdal=rasterio.__gdal_version__, pyproj=pyproj.__version__, platform=platform.platform())
 
 
 def _close(bar):

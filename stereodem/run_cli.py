@@ -12,7 +12,7 @@ EXAMPLES = """examples:
   stereodem run job.toml --resume                 # skip what is already done
   stereodem run job.toml --dask tcp://scheduler:8786
 
-The configuration keys are documented in stereodem/config.py; 'stereodem demo' writes one.
+The configuration keys and their defaults are listed in docs/configuration.md; 'stereodem demo' writes one.
 Many scenes: one configuration per scene, one 'stereodem run' per job (e.g. a Slurm job array
 indexing a list of configuration files); each run is independent and writes its own folder.
 """
@@ -35,6 +35,9 @@ def add_run_options(p):
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
     p.add_argument("--resume", action="store_true", help="reuse an existing output folder")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder's files")
+    p.add_argument("--co", action="append", metavar="KEY=VALUE", default=[],
+                   help="GDAL creation option of the GeoTIFF products, repeatable (overrides [run] "
+                        "creation_options)")
 
 
 def progress_factory(args):
@@ -63,8 +66,10 @@ def summarize(info, stream=sys.stdout):
 def run(args) -> int:
     from .config import load_config
     from .pipeline import run as run_pipeline
+    from stereodem.sensor.io.raster import parse_creation_options
     cfg = load_config(args.config, workers=args.workers, tile_timeout=args.tile_timeout,
-                      dask=args.dask, resume=args.resume or None, overwrite=args.overwrite or None)
+                      dask=args.dask, resume=args.resume or None, overwrite=args.overwrite or None,
+                      creation_options=parse_creation_options(args.co) or None)
     info = run_pipeline(cfg, progress_factory=progress_factory(args))
     summarize(info)
     return 0

@@ -29,12 +29,13 @@ def _cfg(scene_dir, out, **run):
                    "reference_dem": str(scene_dir / "truth_dem.tif"), "reference_vertical": "ellipsoid",
                    "checkpoints": str(scene_dir / "points.csv")},
         "output": {"dir": str(out)},
-        "stereo": {"tile_size": 200, "height_range": [1000, 3500]},
+        "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
         "run": {"workers": 1, **run},
     }
     return config_from_dict(raw)
 
 
+@pytest.mark.slow
 def test_run_writes_products_and_run_json(scene_dir, tmp_path):
     info = run(_cfg(scene_dir, tmp_path / "out"))
     out = tmp_path / "out"
@@ -44,7 +45,7 @@ def test_run_writes_products_and_run_json(scene_dir, tmp_path):
     rj = json.loads((out / "run.json").read_text())
     assert set(rj["stages"]) >= {"load", "stereo", "post", "ortho", "assess"}
     assert all(s["seconds"] >= 0 and s["peak_rss_mb"] > 0 for s in rj["stages"].values())
-    assert rj["config"]["stereo"]["tile_size"] == 200 and rj["versions"]["gdal"]
+    assert rj["config"]["rectification"]["tile_size"] == 200 and rj["versions"]["gdal"]
     # the headline accuracy is real: the stereo DEM against the simulator's truth
     h = info["headline"]
     assert h["nmad"] < 4.0 and abs(h["median"]) < 1.5
@@ -52,6 +53,7 @@ def test_run_writes_products_and_run_json(scene_dir, tmp_path):
         assert a.transform == b.transform and a.shape == b.shape      # same grid for both
 
 
+@pytest.mark.slow
 def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
     run(_cfg(scene_dir, tmp_path / "w1", workers=1))
     run(_cfg(scene_dir, tmp_path / "w2", workers=2))
@@ -61,6 +63,7 @@ def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
             assert np.array_equal(x, y, equal_nan=True), name
 
 
+@pytest.mark.slow
 def test_failing_tile_is_reported_and_scene_completes(scene_dir, tmp_path, monkeypatch):
     import stereodem.stereo.pipeline as sp
     real = sp.process_tile
@@ -95,9 +98,24 @@ def test_config_errors(tmp_path):
     p.write_text("[inputs]\nleft = 'a.tif'\n")
     with pytest.raises(InputError, match="needs 'right'"):
         load_config(p)
-    p.write_text("[inputs]\nleft='a'\nright='b'\n[output]\ndir='o'\n[stereo]\ntile_sise=3\n")
+    p.write_text("[inputs]\nleft='a'\nright='b'\n[output]\ndir='o'\n[rectification]\ntile_sise=3\n")
     with pytest.raises(InputError, match="unknown key.*tile_sise"):
         load_config(p)
+    p.write_text("[inputs]\nleft='a'\nright='b'\n[output]\ndir='o'\n[stereo]\ntile_size=300\n")
+    with pytest.raises(InputError, match="split into"):
+        load_config(p)
+    for table, msg in (("[filters]\nenabled='no'", "expected true or false"),
+                       ("[rectification]\ntile_size='big'", "whole number"),
+                       ("[run]\nworkers=-3", "at least 1"),
+                       ("[rectification]\nheight_range='1000-3500'", "list of numbers"),
+                       ("[inputs]\nmodel='lidar'", "physical"),
+                       ("[fill]\nmax_hole_size=-5", ">= 0")):
+        sec, line = table.split("\n")
+        head = "[inputs]\nleft='a'\nright='b'\n" + (line + "\n" if sec == "[inputs]" else "")
+        body = "" if sec == "[inputs]" else f"{sec}\n{line}\n"
+        p.write_text(head + "[output]\ndir='o'\n" + body)
+        with pytest.raises(InputError, match=msg):
+            load_config(p)
     p.write_text("not = [toml")
     with pytest.raises(InputError, match="not valid TOML"):
         load_config(p)
@@ -120,6 +138,7 @@ def test_cli_exit_codes_and_help(tmp_path, capsys):
     assert "configuration file not found" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_demo_command(tmp_path):
     r = subprocess.run([sys.executable, "-m", "stereodem.cli", "demo", "-o", str(tmp_path / "d"),
                         "--size", "400", "400"], capture_output=True, text=True, timeout=300)
@@ -129,6 +148,7 @@ def test_demo_command(tmp_path):
     assert nmad < 4.0
 
 
+@pytest.mark.slow
 def test_resume_reuses_finished_tiles(scene_dir, tmp_path, monkeypatch):
     first = run(_cfg(scene_dir, tmp_path / "r"))
     n_tiles = first["stages"]["stereo"]["tiles"]
@@ -147,24 +167,25 @@ def test_resume_reuses_finished_tiles(scene_dir, tmp_path, monkeypatch):
     assert again["headline"]["nmad"] == pytest.approx(first["headline"]["nmad"])
 
 
+@pytest.mark.slow
 def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
     out = tmp_path / "r"
     run(_cfg(scene_dir, out))
     cfg = _cfg(scene_dir, out, resume=True)
-    cfg.stereo.matcher = "ncc"                    # other settings: the cache is not this job's
+    cfg.stereo.matching.matcher = "ncc"                    # other settings: the cache is not this job's
     with pytest.raises(InputError, match="other inputs or settings"):
         run(cfg)
     # a fresh (non-resumed) run replaces the cache, so a later resume is consistent again
     stale = out / "tiles" / "tile_99999.npz"
     stale.write_bytes(b"stale")
     cfg = _cfg(scene_dir, out, overwrite=True)
-    cfg.stereo.matcher = "ncc"
+    cfg.stereo.matching.matcher = "ncc"
     run(cfg)
     assert not stale.exists()
 
 
 def test_pool_workers_get_memory_mapped_images(tmp_path):
-    from stereodem.tiles import SharedArray
+    from stereodem.runner import SharedArray
     a = np.arange(12, dtype=np.float32).reshape(3, 4)
     sa = SharedArray.create(a, tmp_path, "img")
     clone = pickle.loads(pickle.dumps(sa))
@@ -174,8 +195,69 @@ def test_pool_workers_get_memory_mapped_images(tmp_path):
     np.testing.assert_array_equal(np.asarray(clone, dtype=np.float64), a)
 
 
+EXPECTED_COMMANDS = {"demo", "run", "simulate", "dem", "filter", "ortho", "assess"}
+
+
 def test_every_subcommand_is_wired_to_its_run_function():
     parser = cli.build_parser()
     sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    assert EXPECTED_COMMANDS <= set(sub.choices), EXPECTED_COMMANDS - set(sub.choices)
     for name, p in sub.choices.items():
         assert callable(p.get_default("run")), name
+
+
+@pytest.mark.slow
+def test_hand_route_gives_the_rasters_of_run(scene_dir, tmp_path):
+    """dem -> filter -> ortho -> assess on the command line equals `stereodem run`."""
+    run(_cfg(scene_dir, tmp_path / "run", workers=1))
+    h = tmp_path / "hand"
+    left, right = str(scene_dir / "left.tif"), str(scene_dir / "right.tif")
+    assert cli.main(["dem", left, right, "-o", str(h / "dem"), "--tile-size", "200",
+                     "--height-range", "1000", "3500", "--workers", "1"]) == 0
+    assert cli.main(["filter", str(h / "dem" / "dem.tif"), "-o", str(h / "clean.tif")]) == 0
+    assert cli.main(["ortho", left, "--dem", str(h / "clean.tif"), "-o", str(h / "ortho.tif"),
+                     "--workers", "1"]) == 0
+    assert cli.main(["assess", str(h / "clean.tif"), "--ref", str(scene_dir / "truth_dem.tif"),
+                     "--ref-vertical", "ellipsoid", "--checkpoints", str(scene_dir / "points.csv"),
+                     "--coregister", "-o", str(h / "assess")]) == 0
+    pairs = {"raw/dem.tif": "dem/dem.tif", "raw/score.tif": "dem/score.tif",
+             "raw/raygap.tif": "dem/raygap.tif", "dem.tif": "clean.tif",
+             "dem_edit_mask.tif": "clean_edit_mask.tif", "ortho_left.tif": "ortho.tif"}
+    for a_name, b_name in pairs.items():
+        with rasterio.open(tmp_path / "run" / a_name) as a, rasterio.open(h / b_name) as b:
+            assert a.transform == b.transform and a.crs == b.crs, a_name
+            assert np.array_equal(a.read(), b.read(), equal_nan=True), a_name
+    ra = json.loads((tmp_path / "run" / "assess" / "report.json").read_text())
+    rb = json.loads((h / "assess" / "report.json").read_text())
+    assert ra["stats"] == rb["stats"]
+
+
+@pytest.fixture(scope="module")
+def granule(tmp_path_factory):
+    """A small simulated ASTER L1A V004 granule (3N 300 x 300, 3B in the real size ratio)."""
+    from stereodem.simulate_cli import granule_right_size, write_granule_scene
+    d = tmp_path_factory.mktemp("granule")
+    sc = simulate_scene("aster", size=(300, 300), right_size=granule_right_size((300, 300)),
+                        seed=3, n_points=20)
+    return write_granule_scene(sc, d, version=4, seed=3), sc
+
+
+@pytest.mark.slow
+def test_granule_as_delivered_to_dem_and_ortho(granule, tmp_path):
+    """`dem GRANULE` takes 3N/3B; `ortho GRANULE --band 3B` orthorectifies the backward band."""
+    path, sc = granule
+    lo, hi = sc.truth_dem.height_range()
+    assert cli.main(["dem", str(path), "-o", str(tmp_path / "d"), "--height-range", str(lo - 100),
+                     str(hi + 100), "--workers", "1"]) == 0
+    rep = json.loads((tmp_path / "d" / "dem_report.json").read_text())
+    assert rep["input_metadata"]["ASTER_BAND"] == "3N" and rep["input_metadata"]["RIGHT_ASTER_BAND"] == "3B"
+    with rasterio.open(tmp_path / "d" / "dem.tif") as ds:
+        z = ds.read(1)
+    assert np.isfinite(z).mean() > 0.5 and lo - 100 < np.nanmedian(z) < hi + 100
+    assert cli.main(["ortho", str(path), "--band", "3B", "--dem", str(tmp_path / "d" / "dem.tif"),
+                     "-o", str(tmp_path / "o.tif"), "--workers", "1"]) == 0
+    with rasterio.open(tmp_path / "o.tif") as ds:
+        assert ds.tags()["ASTER_BAND"] == "3B" and ds.dtypes[0] == "float32"   # radiance
+    # a band name on a plain GeoTIFF is a clear error
+    assert cli.main(["ortho", str(tmp_path / "o.tif"), "--band", "3N", "--dem",
+                     str(tmp_path / "d" / "dem.tif"), "-o", str(tmp_path / "x.tif")]) == 1

@@ -8,7 +8,8 @@ import rasterio
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.errors import NoOverlapError
 from stereodem.sensor.simulation.simulate import frame_pair, simulate_scene
-from stereodem.stereo.pipeline import DEMSettings, make_dem
+from stereodem.stereo.pipeline import make_dem
+from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
 
 
 def nmad(d):
@@ -20,19 +21,20 @@ def aster_scene():
     return simulate_scene("aster", size=(600, 600), noise=1.0, seed=0)
 
 
+@pytest.mark.slow
 def test_aster_pair_dem_vs_truth(aster_scene):
     s = aster_scene
     lo, hi = s.truth_dem.height_range()
     calls = []
     prod = make_dem(s.left, s.right, s.left_model, s.right_model,
-                    DEMSettings(height_range=(lo - 100, hi + 100)),
+                    StereoSettings(RectificationSettings(height_range=(lo - 100, hi + 100))),
                     progress=lambda k, n, summ: calls.append((k, n)))
-    g = prod.grid
+    g = prod.dem
     assert calls and calls[-1][0] == calls[-1][1] == prod.info["n_tiles"]
     assert g.posting == 30.0 and g.crs.to_epsg() == 32637 and g.vertical == "ellipsoid"
     assert prod.info["max_residual_rms_px"] <= 0.05
     # truth at the cell centres; cells seen by both images (6 px from their borders)
-    x, y = g.cell_centres()
+    x, y = g.grid.cell_centres()
     lon, lat = geodesy.crs_to_lonlat(x, y, g.crs)
     ht = s.truth_dem.sample(lon, lat)
     seen = np.isfinite(ht)
@@ -40,7 +42,7 @@ def test_aster_pair_dem_vs_truth(aster_scene):
         c, r = m.project(lon, lat, np.where(seen, ht, 0.0))
         seen &= (c >= 6) & (c <= m.width - 7) & (r >= 6) & (r <= m.height - 7)
     assert seen.sum() > 50000 * 0.9 * 15 ** 2 / 30 ** 2 * 0.8
-    dz = (g.height - ht)[seen]
+    dz = (g.heights - ht)[seen]
     valid = np.isfinite(dz)
     d = dz[valid]
     assert valid.mean() >= 0.95, valid.mean()
@@ -50,7 +52,7 @@ def test_aster_pair_dem_vs_truth(aster_scene):
     assert abs(np.median(d)) < 1.5
     # companion layers
     assert np.nanmin(g.score) > -1 and np.nanmax(g.score) <= 1
-    assert np.nanmedian(g.ray_gap) < 0.5 * 15 and (g.count[np.isfinite(g.height)] > 0).all()
+    assert np.nanmedian(g.ray_gap) < 0.5 * 15 and (g.count[np.isfinite(g.heights)] > 0).all()
 
 
 def test_no_overlap_raises():
@@ -58,7 +60,7 @@ def test_no_overlap_raises():
     _, right = frame_pair(40.6, 39.8, 2000.0, (128, 128))
     img = np.zeros((128, 128), np.float32)
     with pytest.raises(NoOverlapError):
-        make_dem(img, img, left, right, DEMSettings(height_range=(1000, 3000)))
+        make_dem(img, img, left, right, StereoSettings(RectificationSettings(height_range=(1000, 3000))))
 
 
 # ----------------------------------------------------------------------------- CLI
@@ -69,16 +71,11 @@ def _write_rpc_image(path, model, data=None):
 
 
 def test_cli_errors(tmp_path, data_dir):
-    from stereodem.dem_cli import add_parser
-    import argparse
-
+    from stereodem.cli import main
     from stereodem.sensor.models.rpc import RPCModel
-    parser = argparse.ArgumentParser()
-    add_parser(parser.add_subparsers())
 
     def run(*argv):
-        args = parser.parse_args(["dem", *map(str, argv)])
-        return args.run(args)
+        return main(["dem", *map(str, argv)])
 
     m1 = RPCModel.from_file(data_dir / "pleiades" / "img_01_rpc.tif")
     d = m1.to_dict()
@@ -102,6 +99,7 @@ def test_cli_errors(tmp_path, data_dir):
     assert not (tmp_path / "o1").exists() and not (tmp_path / "o3").exists()
 
 
+@pytest.mark.slow
 def test_cli_on_simulated_scene(tmp_path, aster_scene, capsys):
     """The CLI on a written scene (physical-model sidecars) writes the four layers."""
     from stereodem.sensor.simulation.simulate import write_scene
@@ -122,12 +120,14 @@ def test_cli_on_simulated_scene(tmp_path, aster_scene, capsys):
     with rasterio.open(tmp_path / "out" / "dem.tif") as ds:
         z = ds.read(1)
         assert ds.dtypes[0] == "float32" and np.isnan(ds.nodata) and ds.transform.a == 45.0
-        assert ds.crs.to_epsg() == 32637
+        from stereodem.sensor.geo.dem import horizontal_crs   # CRS carries the vertical (#19)
+        assert horizontal_crs(ds.crs.to_wkt()).to_epsg() == 32637
         assert np.isfinite(z).mean() > 0.5 and lo - 100 < np.nanmedian(z) < hi + 100
 
 
 # ----------------------------------------------------------------------------- real data
 
+@pytest.mark.slow
 def test_pleiades_pair_vs_s2p(shared_data):
     """Real Pleiades pair on s2p's grid (EPSG:32740, 0.5 m) against s2p's DSM."""
     from stereodem.sensor.models.rpc import RPCModel
@@ -138,10 +138,11 @@ def test_pleiades_pair_vs_s2p(shared_data):
     t0 = time.perf_counter()
     imgs = [rasterio.open(pair / n).read(1).astype(np.float32) for n in ("img_01.tif", "img_02.tif")]
     models = [RPCModel.from_file(pair / n) for n in ("img_01.tif", "img_02.tif")]
-    prod = make_dem(*imgs, *models, DEMSettings(height_range=(2100, 2600), posting=0.5, crs=crs,
-                                                 bounds=(b.left, b.bottom, b.right, b.top)))
+    prod = make_dem(*imgs, *models, StereoSettings(
+        RectificationSettings(height_range=(2100, 2600)),
+        gridding=GriddingSettings(res=0.5, crs=crs, bounds=(b.left, b.bottom, b.right, b.top))))
     seconds = time.perf_counter() - t0
-    dem = prod.grid.height
+    dem = prod.dem.heights
     assert dem.shape == ref.shape
     both = np.isfinite(ref) & np.isfinite(dem)
     d = dem[both] - ref[both]
@@ -149,6 +150,8 @@ def test_pleiades_pair_vs_s2p(shared_data):
     assert abs(np.median(d)) < 0.5
     # measured 0.345 m (target 0.35 m; benchmarks/bench_dem.py), coverage 99.5 %
     assert nmad(d) <= 0.355, nmad(d)
-    assert seconds < 75.0
+    print(f"Pleiades pair: {seconds:.1f} s (timed in benchmarks/bench_dem.py, not asserted)")
     assert prod.info["max_residual_rms_px"] <= 0.1
-    assert abs(prod.info["pointing"]["drow_px"]) + abs(prod.info["pointing"]["dcol_px"]) > 0.2
+    corr = prod.info["pointing"]["parameters"]
+    assert abs(corr["row_shift"]) + abs(corr["col_shift"]) > 0.2     # s2p's pair: ~0.7 px across
+    assert prod.info["pointing"]["residual_after_px"]["nmad"] < 0.5

@@ -10,7 +10,8 @@ from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation.simulate import frame_pair, pushbroom_pair
 from stereodem.stereo import epipolar
 from stereodem.sensor.models.corrected import ImageCorrectedModel
-from stereodem.stereo.epipolar import Tile, apply_map, rectify_tile, tile_grid, virtual_matches
+from stereodem.stereo.epipolar import apply_map, rectify_tile, virtual_matches
+from stereodem.stereo.tiling import Tile, tile_grid
 
 
 def _aster_rpc(path):
@@ -35,12 +36,13 @@ def _worst_tile(left, right, size, hr, tile=512, **kw):
 
 def test_tile_grid_covers_window_exactly():
     tiles = tile_grid(1031, 1102, 512, window=(10, 20, 1000, 1090))
-    area = sum(t.width * t.height for t in tiles)
+    area = sum(t.cols * t.rows for t in tiles)
     assert area == (1000 - 10 + 1) * (1090 - 20 + 1)
-    assert all(400 <= t.width <= 600 and 400 <= t.height <= 600 for t in tiles)
+    assert all(400 <= t.cols <= 600 and 400 <= t.rows <= 600 for t in tiles)
     assert min(t.col0 for t in tiles) == 10 and max(t.bounds[3] for t in tiles) == 1090
 
 
+@pytest.mark.slow
 def test_aster_like_pushbroom_pair_full_scene_parallax():
     """Synthetic ASTER 3N/3B (4100 x 4200 px, 15 m, 27.6 deg backward), 512 px tiles: <= 0.05 px."""
     left, right = pushbroom_pair(40.4, 39.6, 2000.0, (4100, 4200), (0.0, -27.6))

@@ -7,7 +7,8 @@ from stereodem.sensor.geo import geodesy
 from stereodem.sensor.errors import OutputExistsError
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation.simulate import frame_pair, pushbroom_pair
-from stereodem.stereo.epipolar import Tile, apply_map, rectify_tile
+from stereodem.stereo.epipolar import apply_map, rectify_tile
+from stereodem.stereo.tiling import Tile
 from stereodem.stereo.grid import grid_points
 from stereodem.stereo.intersect import intersect_matches, intersect_rays
 
@@ -86,14 +87,14 @@ def test_grid_mean_count_layers_and_utm():
     h = np.array([100.0, 110.0, 120.0, 500.0])
     g = grid_points(lon, lat, h, posting=30.0, bounds=(x0, y0 - 90, x0 + 90, y0),
                     score=np.array([0.9, 0.8, 0.7, 0.5]), ray_gap=np.array([1.0, 2.0, 3.0, 4.0]))
-    assert g.crs.to_epsg() == 32637 and g.height.shape == (3, 3)
-    assert g.height[0, 0] == pytest.approx(110.0) and g.count[0, 0] == 3
-    assert g.height[1, 2] == pytest.approx(500.0) and g.count[1, 2] == 1
+    assert g.crs.to_epsg() == 32637 and g.heights.shape == (3, 3)
+    assert g.heights[0, 0] == pytest.approx(110.0) and g.count[0, 0] == 3
+    assert g.heights[1, 2] == pytest.approx(500.0) and g.count[1, 2] == 1
     assert g.score[0, 0] == pytest.approx(0.8, abs=1e-6) and g.ray_gap[0, 0] == pytest.approx(2.0)
-    assert np.isnan(g.height).sum() == 7 and g.count.sum() == 4
+    assert np.isnan(g.heights).sum() == 7 and g.count.sum() == 4
     gg = grid_points(lon, lat, h, posting=30.0, bounds=(x0, y0 - 90, x0 + 90, y0), geoid=True)
     n = geodesy.geoid_undulation(lon[3], lat[3])
-    assert gg.height[1, 2] == pytest.approx(500.0 - n, abs=1e-3) and gg.vertical == "geoid"
+    assert gg.heights[1, 2] == pytest.approx(500.0 - n, abs=1e-3) and gg.vertical == "geoid"
 
 
 def test_grid_gaussian_reproduces_a_plane_and_fills_cells():
@@ -105,10 +106,10 @@ def test_grid_gaussian_reproduces_a_plane_and_fills_cells():
     lon, lat = geodesy.crs_to_lonlat(xs, ys, crs)
     b = (x0, y0, x0 + 600, y0 + 600)
     g = grid_points(lon, lat, plane(xs, ys), posting=30.0, bounds=b, method="gaussian", crs=crs)
-    cx, cy = g.cell_centres()
+    cx, cy = g.grid.cell_centres()
     inner = np.s_[1:-1, 1:-1]
-    assert np.abs(g.height[inner] - plane(cx, cy)[inner]).max() < 0.01
-    assert np.isfinite(g.height).all()
+    assert np.abs(g.heights[inner] - plane(cx, cy)[inner]).max() < 0.01
+    assert np.isfinite(g.heights).all()
 
 
 def test_grid_write(tmp_path):
@@ -116,9 +117,11 @@ def test_grid_write(tmp_path):
     g = grid_points(lon, lat, h, posting=500.0)
     paths = g.write(tmp_path)
     with rasterio.open(paths["dem"]) as ds:
-        assert ds.dtypes[0] == "float32" and np.isnan(ds.nodata) and ds.crs.to_epsg() == 32637
+        from stereodem.sensor.geo.dem import horizontal_crs   # CRS carries the vertical (#19)
+        assert ds.dtypes[0] == "float32" and np.isnan(ds.nodata)
+        assert horizontal_crs(ds.crs.to_wkt()).to_epsg() == 32637
         assert ds.transform.a == 500.0
-        assert np.allclose(ds.read(1), g.height, equal_nan=True)
+        assert np.allclose(ds.read(1), g.heights, equal_nan=True)
     for k in ("count", "score", "raygap"):
         assert paths[k].exists()
     with pytest.raises(OutputExistsError):
@@ -140,8 +143,8 @@ def test_grid_gaussian_default_width_follows_point_density(spacing, n_per_cell):
     sig = max(15.0, spacing)
     g_explicit = grid_points(lon, lat, 1000 + noise, posting=30.0, bounds=b, method="gaussian",
                              crs=crs, sigma=sig, radius=max(1, int(np.ceil(2 * sig / 30.0))))
-    assert np.array_equal(g.height, g_explicit.height, equal_nan=True)
-    inner = g.height[2:-2, 2:-2]
+    assert np.array_equal(g.heights, g_explicit.heights, equal_nan=True)
+    inner = g.heights[2:-2, 2:-2]
     # about 6 points or more per estimate in both cases: std well below 1 / sqrt(3)
     assert np.std(inner) < 0.45, np.std(inner)
     radius = 1 if n_per_cell == 4 else 2                  # ceil(2 sigma / posting)
@@ -170,12 +173,12 @@ def test_tile_by_tile_gridding_equals_gridding_all_points():
         assert c.sums.shape[2] < spec.shape[1]           # each batch touches only its window
         c.add_to(total)
     tiled = finish(spec, total)
-    np.testing.assert_array_equal(np.isfinite(tiled.height), np.isfinite(whole.height))
-    np.testing.assert_allclose(tiled.height, whole.height, atol=1e-9, equal_nan=True)
+    np.testing.assert_array_equal(np.isfinite(tiled.heights), np.isfinite(whole.heights))
+    np.testing.assert_allclose(tiled.heights, whole.heights, atol=1e-9, equal_nan=True)
     np.testing.assert_allclose(tiled.score, whole.score, atol=1e-9, equal_nan=True)
     np.testing.assert_array_equal(tiled.count, whole.count)
     assert sum(c.n_points for c in cells) == xs.size
     cropped = finish(spec, total, crop=True)
-    assert cropped.height.shape[0] < spec.shape[0] and np.isfinite(cropped.height[[0, -1], :]).any()
+    assert cropped.heights.shape[0] < spec.shape[0] and np.isfinite(cropped.heights[[0, -1], :]).any()
     x_c, y_c = cropped.transform * (0, 0)
     assert (x_c - b[0]) % 30 == 0 and (b[3] - y_c) % 30 == 0   # same lattice

@@ -291,7 +291,7 @@ def test_input_errors(grid):
 
 def test_smooth_fill_bridges_wide_holes():
     """A hole much wider than the kernel takes the surrounding ramp, not the map's median."""
-    from stereodem.stereo.pipeline import _smooth_fill
+    from stereodem.stereo.refine import _smooth_fill
     yy, xx = np.mgrid[0:200, 0:200].astype(np.float32)
     d = 0.05 * xx
     holed = d.copy()
@@ -325,7 +325,7 @@ def test_refine_keeps_confirmed_detail_and_drops_noise(wavy_pair):
     """The detail gain is ~1 when the first pass resolved real sub-window relief, and small
     when its sub-window structure is noise on a smooth surface (refined error then lower
     than with the first pass's detail kept)."""
-    from stereodem.stereo.pipeline import refine_disparity
+    from stereodem.stereo.refine import refine_disparity
     left, right, truth = wavy_pair
     inner = np.s_[20:-20, 20:-20]
     # real relief, resolved by the first pass

@@ -14,7 +14,8 @@ from stereodem.sensor.models.frame import FrameCamera
 
 from stereodem.ortho.drm import orthorectify
 from stereodem.ortho.forward import forward_localize, forward_ortho
-from stereodem.ortho.grid import MapGrid, grid_for_model, grid_from_bounds
+from stereodem.ortho.grid import grid_for_model
+from stereodem.sensor.geo.grid import MapGrid, grid_from_bounds
 from stereodem.ortho.layers import incidence_angle, occlusion_mask
 
 LON0, LAT0 = 40.4, 39.6
@@ -146,6 +147,7 @@ def _sum_w2(frac, resampling):
     return (w ** 2).sum(0)
 
 
+@pytest.mark.slow
 def test_simulated_scene_true_ortho():
     """Simulator truth: ortho - truth_ortho is the interpolator's error on the band-limited
     image (shrinking as the system MTF at Nyquist falls and the kernel improves) plus the image
@@ -333,6 +335,7 @@ def test_forward_and_backward_mappings_agree(rendered):
     assert err.max() <= 1e-3, err.max()
 
 
+@pytest.mark.slow
 def test_forward_nearest_ortho_matches_backward_nearest(rendered):
     """On a grid three times finer than the pixels, each forward-filled cell holds the pixel
     the backward nearest-neighbour ortho picks there (white-noise image: equal value = same
@@ -484,8 +487,8 @@ def test_cli_gcp_model(tmp_path, data_dir, capsys):
     args = parser.parse_args(["ortho", str(image), "--dem", str(dem_path), "-o", str(tmp_path / "o.tif"),
                               "--model", "rational-1", "--gcps", str(csv), "--res", "1"])
     assert args.run(args) == 0
-    err = capsys.readouterr().err
-    assert "rational-1: 30 GCPs, 10 check points" in err
+    out = capsys.readouterr().out
+    assert "rational-1: 30 GCPs, 10 check points" in out
     few = tmp_path / "few.csv"
     write_text_atomic(few, "\n".join(rows[:4]) + "\n")
     args = parser.parse_args(["ortho", str(image), "--dem", str(dem_path), "-o", str(tmp_path / "o5.tif"),

@@ -18,6 +18,7 @@ def shifted():
     return ref, DEM(sh.astype(np.float32), ref.transform, ref.crs, ref.vertical)
 
 
+@pytest.mark.slow
 def test_nuth_kaab_recovers_known_shift(shifted):
     ref, dem = shifted
     nk = NuthKaab().fit(ref, dem)

@@ -98,6 +98,7 @@ def test_localize_matches_gdal(pleiades):
 
 
 # ---------------------------------------------------------------------- (b) exact inverse
+@pytest.mark.slow
 def test_round_trips_over_image_and_heights(pleiades):
     col, row, h = _image_points(pleiades, 200000, -500.0, 9000.0, seed=2)
     # the corners and the extreme heights explicitly
@@ -301,6 +302,7 @@ def test_files_without_rpc(tmp_path):
 
 
 # ---------------------------------------------------------------------- (e) fitting
+@pytest.mark.slow
 def test_fit_rpc_reproduces_an_rpc(pleiades):
     rpc, rep = fit_rpc(pleiades, height_range=(0.0, 2600.0))
     assert rep.check_rms < 1e-5 and rep.check_max < 1e-4  # << 0.01 px
@@ -352,6 +354,7 @@ class _Pushbroom(SensorModel):
         return np.asarray(lon), np.asarray(lat)
 
 
+@pytest.mark.slow
 def test_fit_rpc_to_a_pushbroom_model():
     model = _Pushbroom()
     rpc, rep = fit_rpc(model, height_range=(0.0, 4000.0), grid=(12, 12, 6))

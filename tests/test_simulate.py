@@ -117,6 +117,7 @@ def test_aster_preset_uses_real_granule_geometry():
 
 
 @pytest.mark.parametrize("which", ["left", "right"])
+@pytest.mark.slow
 def test_rpc_fitted_to_aster_preset_reproduces_it(which):
     from stereodem.sensor.estimation.rpcfit import fit_rpc
     sc = simulate_scene("aster", size=(600, 600), seed=0, n_points=4)

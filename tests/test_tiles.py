@@ -4,12 +4,14 @@ import time
 import numpy as np
 import pytest
 
-from stereodem.tiles import make_tiles, run_tiles
+from stereodem.runner import run_tiles
+from stereodem.stereo.tiling import tile_grid
 
 
 def _tile_fn(tile, ctx):
     """A deterministic tile job: a noisy block depending only on the tile and context."""
-    rows, cols = tile.with_halo(*ctx["shape"])
+    c0, r0, c1, r1 = tile.bounds
+    rows, cols = slice(r0, r1 + 1), slice(c0, c1 + 1)
     if tile.index in ctx.get("fail", ()):
         raise RuntimeError("boom")
     if tile.index in ctx.get("hang", ()):
@@ -25,18 +27,18 @@ def _ctx(**kw):
     return dict(image=img, shape=img.shape, seed=1, **kw)
 
 
-def test_make_tiles_cover_image_once():
-    tiles = make_tiles(100, 130, 32, halo=4)
+def test_tile_grid_covers_image_once_in_index_order():
+    tiles = tile_grid(130, 100, 32)
     cover = np.zeros((100, 130), int)
     for t in tiles:
-        cover[t.core] += 1
+        c0, r0, c1, r1 = t.bounds
+        cover[r0:r1 + 1, c0:c1 + 1] += 1
     assert (cover == 1).all()
-    r, c = tiles[0].with_halo(100, 130)
-    assert (r.start, r.stop, c.start, c.stop) == (0, 36, 0, 36)
+    assert [t.index for t in tiles] == list(range(len(tiles)))
 
 
 def test_pool_results_identical_to_serial():
-    tiles = make_tiles(100, 130, 32, halo=3)
+    tiles = tile_grid(130, 100, 32)
     ser, f1, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1)
     par, f2, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=2)
     assert not f1 and not f2 and ser.keys() == par.keys()
@@ -46,8 +48,9 @@ def test_pool_results_identical_to_serial():
     assert {int(v["pid"]) for v in par.values()} != {os.getpid()}
 
 
+@pytest.mark.slow
 def test_failed_and_timed_out_tiles_are_reported_and_the_rest_completes():
-    tiles = make_tiles(100, 130, 32)
+    tiles = tile_grid(130, 100, 32)
     res, failures, _ = run_tiles(_tile_fn, tiles, _ctx(fail=(2,), hang=(5,)), workers=2, timeout=2.0)
     assert [f.tile.index for f in failures] == [2, 5]
     assert "boom" in failures[0].reason and "timed out" in failures[1].reason
@@ -55,7 +58,7 @@ def test_failed_and_timed_out_tiles_are_reported_and_the_rest_completes():
 
 
 def test_resume_skips_done_tiles(tmp_path):
-    tiles = make_tiles(100, 130, 64)
+    tiles = tile_grid(130, 100, 64)
     calls = []
 
     def progress(done, total):
@@ -69,9 +72,10 @@ def test_resume_skips_done_tiles(tmp_path):
     assert calls[-1] == len(tiles)
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_same_results():
     distributed = pytest.importorskip("dask.distributed")
-    tiles = make_tiles(100, 130, 50)
+    tiles = tile_grid(130, 100, 50)
     ser, _, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:

@@ -1,6 +1,7 @@
 """RPC00B rational polynomial camera model: projection and exact localisation.
 
-The file formats (GeoTIFF tags, ``.RPB``, ``_RPC.TXT``, DIMAP) are read and written by
+The file formats (GDAL rasters and VRTs, ``.RPB``, ``_RPC.TXT``/IKONOS, DIMAP v1/v2/v3,
+DigitalGlobe XML, OSSIM ``.geom``, rpcm JSON) are read and written by
 :mod:`stereodem.sensor.io.rpc_formats`.
 
 An RPC00B model (NITF STDI-0002 RPC00B, GDAL RFC 22) maps normalised ground coordinates
@@ -36,6 +37,7 @@ guess of the exact Newton localisation.
 from __future__ import annotations
 
 import math
+import re
 import warnings
 
 import numpy as np
@@ -115,11 +117,24 @@ def monomials(x, y, z, out=None):
     return m
 
 
+#: units that may follow an RPC value (DigitalGlobe/IKONOS text files, and GDAL passes them
+#: up raw through the RPC metadata domain): "LINE_OFF: 149.5 pixels"
+_UNIT = re.compile(r"^\s*([-+0-9.eEdD]+)\s*(?:pixels?|pix|px|degrees?|deg|meters?|metres?|m)?\s*;?\s*$",
+                   re.IGNORECASE)
+
+
 def _parse_float(value, key, path):
+    text = str(value).strip().rstrip(";").strip()
     try:
-        v = float(str(value).strip().rstrip(";").strip())
+        v = float(text)
     except (TypeError, ValueError):
-        raise RPCError(f"{where(path)}RPC key {key}: not a number ({str(value)[:40]!r})") from None
+        m = _UNIT.match(text)
+        try:
+            v = float(m.group(1).replace("d", "e").replace("D", "E")) if m else None
+        except ValueError:
+            v = None
+        if v is None:
+            raise RPCError(f"{where(path)}RPC key {key}: not a number ({str(value)[:40]!r})") from None
     if not math.isfinite(v):
         raise RPCError(f"{where(path)}RPC key {key}: not finite ({value!r})")
     return v
@@ -211,6 +226,31 @@ class RPCModel(SensorModel):
         return self._guess
 
     # ------------------------------------------------------------------ contract
+    def normalised_ground(self, lon, lat, h):
+        """Ground points in the RPC's normalised units.
+
+        Returns ``(shape, L, P, H)``: the broadcast shape of ``lon, lat, h`` (degrees, degrees,
+        metres above the ellipsoid) and the flattened normalised longitude, latitude and height
+        (float64; about [-1, 1] inside the validity range).
+        """
+        lon, lat, h = np.broadcast_arrays(np.asarray(lon, np.float64), np.asarray(lat, np.float64),
+                                          np.asarray(h, np.float64))
+        return (lon.shape, (lon.ravel() - self.lon_off) / self.lon_scale,
+                (lat.ravel() - self.lat_off) / self.lat_scale,
+                (h.ravel() - self.height_off) / self.height_scale)
+
+    def normalised_image(self, col, row, h):
+        """Image points (pixels) at heights ``h`` (m) in the RPC's normalised units.
+
+        Returns ``(shape, c, r, H)``: the broadcast shape and the flattened normalised column
+        (sample), row (line) and height (float64).
+        """
+        col, row, h = np.broadcast_arrays(np.asarray(col, np.float64), np.asarray(row, np.float64),
+                                          np.asarray(h, np.float64))
+        return (col.shape, (col.ravel() - self.samp_off) / self.samp_scale,
+                (row.ravel() - self.line_off) / self.line_scale,
+                (h.ravel() - self.height_off) / self.height_scale)
+
     def project(self, lon, lat, h):
         """Project ground points to the image.
 
@@ -233,12 +273,7 @@ class RPCModel(SensorModel):
         (16 multiplications, :func:`monomials`) and shared by the four polynomials through one
         (4 x 20) @ (20 x n) matrix product, which is faster in numpy than four Horner schemes.
         """
-        lon, lat, h = np.broadcast_arrays(np.asarray(lon, np.float64), np.asarray(lat, np.float64),
-                                          np.asarray(h, np.float64))
-        shape = lon.shape
-        L = ((lon.ravel() - self.lon_off) / self.lon_scale)
-        P = ((lat.ravel() - self.lat_off) / self.lat_scale)
-        H = ((h.ravel() - self.height_off) / self.height_scale)
+        shape, L, P, H = self.normalised_ground(lon, lat, h)
         n = L.size
         col = np.empty(n)
         row = np.empty(n)
@@ -281,12 +316,7 @@ class RPCModel(SensorModel):
             Degrees (WGS84). Points that did not converge within the cap are NaN and a
             ``RuntimeWarning`` gives their number; NaN inputs give NaN silently.
         """
-        col, row, h = np.broadcast_arrays(np.asarray(col, np.float64), np.asarray(row, np.float64),
-                                          np.asarray(h, np.float64))
-        shape = col.shape
-        cn = (col.ravel() - self.samp_off) / self.samp_scale
-        rn = (row.ravel() - self.line_off) / self.line_scale
-        H = (h.ravel() - self.height_off) / self.height_scale
+        shape, cn, rn, H = self.normalised_image(col, row, h)
         n = cn.size
         Lout = np.full(n, np.nan)
         Pout = np.full(n, np.nan)
@@ -393,17 +423,15 @@ class RPCModel(SensorModel):
         return cls.from_dict(rpc.to_gdal(), path=source, width=width, height=height)
 
     @classmethod
-    def from_file(cls, path):
+    def from_file(cls, path, *, direct: bool = False):
         """Read an RPC model, detecting the format.
 
-        Supported: GeoTIFF (or any GDAL raster) with RPC metadata (the TIFF RPC tag, or the
-        ``<image>.RPB`` / ``<image>_RPC.TXT`` sidecars that GDAL picks up); a GDAL/DigitalGlobe
-        ``.RPB`` file; a DigitalGlobe/GeoEye ``_RPC.TXT`` ("LINE_OFF: ..." key-value text); a
-        Pleiades/SPOT 6-7 DIMAP v2 ``RPC_*.XML``. Image size comes from the raster (or its
-        SOURCE_WIDTH/SOURCE_HEIGHT tags) or the DIMAP validity domain when available.
+        Every format of :mod:`stereodem.sensor.io.rpc_formats` (GDAL first, then content
+        sniffing); ``direct=True`` localises with the file's direct model
+        (:class:`stereodem.sensor.models.rpc_direct.DirectRPCModel`).
         """
         from stereodem.sensor.io.rpc_formats import read_rpc
-        return read_rpc(path)
+        return read_rpc(path, direct=direct)
 
     # ------------------------------------------------------------------ writers
     def to_dict(self) -> dict:

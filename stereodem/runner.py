@@ -1,7 +1,7 @@
 """Running a tile function over a scene: serially, in a process pool, or on Dask.
 
 The tile function is a pure function ``fn(tile, context) -> dict[str, ndarray]`` of one
-:class:`Tile` and a read-only context (images, models, settings). The runner
+:class:`stereodem.stereo.tiling.Tile` and a read-only context (images, models, settings). The runner
 
 * sends the context to each worker once (pool initializer / Dask scatter), not per tile;
 * enforces a per-tile timeout inside the worker (``SIGALRM``), so a hung tile is reported and
@@ -28,44 +28,12 @@ import time
 import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 import numpy as np
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Tile:
-    """A rectangle of the reference image: ``rows`` x ``cols`` from (row0, col0), plus a halo."""
-
-    index: int
-    row0: int
-    col0: int
-    rows: int
-    cols: int
-    halo: int = 0
-
-    @property
-    def core(self):
-        """(row slice, col slice) of the tile without halo, in image coordinates."""
-        return slice(self.row0, self.row0 + self.rows), slice(self.col0, self.col0 + self.cols)
-
-    def with_halo(self, height: int, width: int):
-        """(row slice, col slice) including the halo, clipped to the image."""
-        return (slice(max(0, self.row0 - self.halo), min(height, self.row0 + self.rows + self.halo)),
-                slice(max(0, self.col0 - self.halo), min(width, self.col0 + self.cols + self.halo)))
-
-
-def make_tiles(height: int, width: int, size: int, halo: int = 0) -> list[Tile]:
-    """Tiles of ``size`` x ``size`` pixels covering a ``height`` x ``width`` image, row-major."""
-    if size <= 0:
-        raise ValueError("tile size must be positive")
-    tiles = []
-    for r0 in range(0, height, size):
-        for c0 in range(0, width, size):
-            tiles.append(Tile(len(tiles), r0, c0, min(size, height - r0), min(size, width - c0), halo))
-    return tiles
 
 
 def process_peak_rss_mb() -> float:
@@ -130,12 +98,13 @@ class SharedArray:
 
 @dataclass
 class TileFailure:
-    tile: Tile
+    """A tile that raised or timed out, with its place in the image (pixels)."""
+
+    tile: Any
     reason: str
 
     def to_dict(self):
-        return {"index": self.tile.index, "row0": self.tile.row0, "col0": self.tile.col0,
-                "rows": self.tile.rows, "cols": self.tile.cols, "reason": self.reason}
+        return {**self.tile.to_dict(), "reason": self.reason}
 
 
 class TileTimeout(Exception):
@@ -188,12 +157,10 @@ def _cache_file(cache_dir, tile):
 
 
 def _save(cache_dir, tile, result):
-    path = _cache_file(cache_dir, tile)
-    fd, tmp = tempfile.mkstemp(dir=cache_dir, suffix=".npz.part")
-    os.close(fd)
-    with open(tmp, "wb") as f:
+    """Store a finished tile atomically, with the permissions of every other output."""
+    from stereodem.sensor.io.raster import atomic_path
+    with atomic_path(_cache_file(cache_dir, tile)) as tmp, open(tmp, "wb") as f:
         np.savez(f, **result)
-    os.replace(tmp, path)
 
 
 def _load(cache_dir, tile):
