@@ -52,7 +52,7 @@ from stereodem.sensor.errors import InputError
 from stereodem.stereo.settings import (GriddingSettings, MatchingSettings, RectificationSettings,
                                        RefinementSettings, StereoSettings)
 
-__all__ = ["InputSettings", "JitterSettings", "FilterSettings", "FillSettings", "OrthoSettings", "AssessSettings",
+__all__ = ["InputSettings", "JitterSettings", "UncertaintySettings", "FilterSettings", "FillSettings", "OrthoSettings", "AssessSettings",
            "RunSettings", "Config", "load_config", "config_from_dict", "SECTIONS"]
 
 
@@ -233,6 +233,33 @@ class AssessSettings:
 
 
 @dataclass
+class UncertaintySettings:
+    """Per-cell uncertainty of the left orthoimage and of the DEM
+    (:mod:`stereodem.ortho.uncertainty`).
+
+    Attributes
+    ----------
+    enabled : bool
+        Write ``uncertainty/`` (σ east/north/horizontal, CE90, dominant source, shares) for the
+        left orthoimage and ``dem_sigma_vertical.tif`` beside ``dem.tif``.
+    sigma : dict, optional
+        Independent input σ by name, e.g. {col_shift = 0.5, row_shift = 0.5, dem_height = 5}
+        (pixels, metres, or the model parameter's unit).
+    covariance : str, optional
+        An ``adjust_report.json`` whose parameter covariance is propagated.
+    method : {"first-order", "monte-carlo", "fast"}
+    samples : int
+        Monte Carlo samples (or FAST points per curve).
+    """
+
+    enabled: bool = False
+    sigma: dict | None = None
+    covariance: str | None = None
+    method: str = "first-order"
+    samples: int = 1000
+
+
+@dataclass
 class RunSettings:
     """Execution.
 
@@ -272,12 +299,13 @@ class Config:
     fill: FillSettings = field(default_factory=FillSettings)
     ortho: OrthoSettings = field(default_factory=OrthoSettings)
     assess: AssessSettings = field(default_factory=AssessSettings)
+    uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)
     run: RunSettings = field(default_factory=RunSettings)
 
     def to_dict(self) -> dict:
         d = {"inputs": dataclasses.asdict(self.inputs), "output": {"dir": self.output_dir}}
         d.update(self.stereo.summary())
-        for name in ("jitter", "filters", "fill", "ortho", "assess", "run"):
+        for name in ("jitter", "filters", "fill", "ortho", "assess", "uncertainty", "run"):
             d[name] = dataclasses.asdict(getattr(self, name))
         return d
 
@@ -287,9 +315,11 @@ SECTIONS = {
     "inputs": InputSettings, "rectification": RectificationSettings, "matching": MatchingSettings,
     "refinement": RefinementSettings, "gridding": GriddingSettings, "jitter": JitterSettings,
     "filters": FilterSettings,
-    "fill": FillSettings, "ortho": OrthoSettings, "assess": AssessSettings, "run": RunSettings,
+    "fill": FillSettings, "ortho": OrthoSettings, "assess": AssessSettings,
+    "uncertainty": UncertaintySettings, "run": RunSettings,
 }
 _STEREO = ("rectification", "matching", "refinement", "gridding")
+_SECTION_PATHS = {"uncertainty": ("covariance",), "ortho": ("fill_dem",)}
 _PATH_KEYS = ("left", "right", "left_model", "right_model", "seed_dem", "reference_dem",
               "checkpoints", "landcover", "dem")
 
@@ -400,8 +430,13 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
     out = raw.get("output", {}).get("dir") if isinstance(raw.get("output"), dict) else None
     if not out or not isinstance(out, str):
         raise InputError(f"{source}: [output] needs 'dir'")
-    parts = {name: build_settings(cls, inp if name == "inputs" else raw.get(name, {}), name, source)
-             for name, cls in SECTIONS.items()}
+    tables = {name: dict(inp if name == "inputs" else raw.get(name, {})) for name in SECTIONS}
+    for name, keys in _SECTION_PATHS.items():
+        for key in keys:
+            v = tables[name].get(key)
+            if isinstance(v, str) and v and not os.path.isabs(v):
+                tables[name][key] = str(Path(base) / v)
+    parts = {name: build_settings(cls, tables[name], name, source) for name, cls in SECTIONS.items()}
     run = parts["run"]
     for k, v in overrides.items():
         if v is not None:
@@ -410,7 +445,7 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
                  output_dir=str(Path(base) / out) if not os.path.isabs(out) else out,
                  stereo=StereoSettings(**{k: parts[k] for k in _STEREO}),
                  jitter=parts["jitter"], filters=parts["filters"], fill=parts["fill"], ortho=parts["ortho"],
-                 assess=parts["assess"], run=run)
+                 assess=parts["assess"], uncertainty=parts["uncertainty"], run=run)
     validate(cfg, source)
     return cfg
 
@@ -472,6 +507,13 @@ def validate(cfg: Config, source="configuration"):
     from stereodem.ortho.drm import RESAMPLING
     if cfg.ortho.resampling not in RESAMPLING:
         bad(f"[ortho] resampling must be one of {', '.join(sorted(RESAMPLING))}, got {cfg.ortho.resampling!r}")
+    u = cfg.uncertainty
+    if u.method not in ("first-order", "monte-carlo", "fast"):
+        bad(f"[uncertainty] method must be first-order, monte-carlo or fast, got {u.method!r}")
+    if u.enabled and not (u.sigma or u.covariance):
+        bad("[uncertainty] enabled needs sigma = {name = value, ...} or covariance = adjust_report.json")
+    if u.samples < 10:
+        bad(f"[uncertainty] samples must be at least 10, got {u.samples}")
     run = cfg.run
     if run.workers is not None and run.workers < 1:
         bad(f"[run] workers must be at least 1, got {run.workers}")

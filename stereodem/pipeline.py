@@ -390,6 +390,26 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
     return orthos
 
 
+# ----------------------------------------------------------------------------- uncertainty
+
+def uncertainty_stage(cfg: Config, pair: Pair, dem: DEM, ortho_grid: MapGrid, raw: DEMGrid, out_dir):
+    """Per-cell horizontal σ of the left orthoimage (on its grid) into ``out_dir`` and the
+    vertical σ of the DEM; returns (summary dict, the DEM σ object)."""
+    from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
+    from stereodem.ortho.uncertainty.maps import dem_vertical_sigma, ortho_uncertainty_maps
+    u = cfg.uncertainty
+    report = read_adjust_report(u.covariance) if u.covariance else None
+    model, names, D = assemble(pair.left_model, sigmas=u.sigma, report=report, image=cfg.inputs.left)
+    maps = ortho_uncertainty_maps(model, dem, ortho_grid, D, names, u.method, samples=u.samples,
+                                  threads=cfg.run.workers or os.cpu_count() or 1)
+    maps.write(out_dir, overwrite=True)
+    model_names = [n for n in names if n != "dem_height"]
+    keep = [names.index(n) for n in model_names]
+    dsig = dem_vertical_sigma(pair.left_model, pair.right_model, dem, score=raw.score,
+                              left_covariance=np.asarray(D)[np.ix_(keep, keep)], left_names=model_names)
+    return maps.summary(), dsig
+
+
 # ----------------------------------------------------------------------------- assessment
 
 def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True, provenance=None):
@@ -458,6 +478,16 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
         for name, o in orthos.items():           # in the image's own data type
             o.write(out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name], creation_options=co)
         stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px for k, o in orthos.items()})
+
+    if cfg.uncertainty.enabled:
+        t0 = time.perf_counter()
+        if not cfg.ortho.enabled:
+            raise InputError("[uncertainty] maps are on the orthoimage's grid: enable [ortho]")
+        summary, dsig = uncertainty_stage(cfg, pair, clean, orthos["left"].grid, products.dem,
+                                          out / "uncertainty")
+        dsig.write(out / "dem.tif", clean, overwrite=True)
+        stages.record("uncertainty", t0, shares=summary["shares"],
+                      sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"])
 
     report = None
     if cfg.assess.enabled and cfg.inputs.reference_dem:

@@ -261,3 +261,28 @@ def test_granule_as_delivered_to_dem_and_ortho(granule, tmp_path):
     # a band name on a plain GeoTIFF is a clear error
     assert cli.main(["ortho", str(tmp_path / "o.tif"), "--band", "3N", "--dem",
                      str(tmp_path / "d" / "dem.tif"), "-o", str(tmp_path / "x.tif")]) == 1
+
+
+@pytest.mark.slow
+def test_run_writes_uncertainty_maps_when_asked(scene_dir, tmp_path):
+    raw = {"inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif")},
+           "output": {"dir": str(tmp_path / "u")},
+           "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
+           "ortho": {"both": False},
+           "uncertainty": {"enabled": True, "sigma": {"pitch_bias": 1e-5, "dem_height": 5.0}},
+           "run": {"workers": 1}}
+    info = run(config_from_dict(raw))
+    out = tmp_path / "u"
+    for name in ("uncertainty/sigma_horizontal.tif", "uncertainty/sensitivity.json",
+                 "dem_sigma_vertical.tif"):
+        assert (out / name).exists(), name
+    shares = info["stages"]["uncertainty"]["shares"]
+    assert set(shares) == {"pitch_bias", "dem_height"} and sum(shares.values()) == pytest.approx(1.0)
+    with rasterio.open(out / "uncertainty" / "sigma_horizontal.tif") as a, \
+            rasterio.open(out / "ortho_left.tif") as b:
+        assert a.transform == b.transform and a.shape == b.shape
+        s = a.read(1)
+    # 10 urad of pitch at ~700 km is ~7 m on the ground: the map is of that order
+    assert 3.0 < np.nanmedian(s) < 30.0
+    with pytest.raises(InputError, match="needs sigma"):
+        config_from_dict({**raw, "uncertainty": {"enabled": True}})
