@@ -211,7 +211,10 @@ class RunSettings:
     dask : str, optional
         ``dask.distributed`` scheduler address.
     overwrite : bool
-        Write into an existing output folder.
+        Replace the products of a previous job in the output folder.
+    force : bool
+        Keep going with a result the sanity checks call suspect (:mod:`stereodem.sanity`);
+        the findings are still reported.
     """
 
     workers: int | None = None
@@ -219,6 +222,7 @@ class RunSettings:
     resume: bool = False
     dask: str | None = None
     overwrite: bool = False
+    force: bool = False
 
 
 @dataclass

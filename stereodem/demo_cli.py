@@ -10,8 +10,6 @@ import argparse
 import time
 from pathlib import Path
 
-from stereodem.sensor.io.raster import prepare_output_dir
-
 EXAMPLES = """examples:
   stereodem demo -o demo_out
   stereodem demo -o demo_out --size 800 800 --workers 2 --overwrite
@@ -62,13 +60,18 @@ def add_parser(sub):
 
 
 def run(args) -> int:
+    """Run ``stereodem demo`` in its locked output folder."""
+    from .outlock import output_folder
+    with output_folder(args.out, overwrite=args.overwrite) as out:
+        return _demo(args, out)
+
+
+def _demo(args, out) -> int:
     from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
     from .config import load_config
     from .pipeline import run as run_pipeline
     from .run_cli import progress_factory, summarize
-
-    out = prepare_output_dir(args.out, overwrite=args.overwrite)
     t0 = time.perf_counter()
     scene = simulate_scene("aster", size=tuple(args.size), seed=args.seed, noise=args.noise)
     write_scene(scene, out / "scene", overwrite=True)

@@ -43,9 +43,10 @@ from stereodem.sensor.io.raster import prepare_output_dir, read_image, write_geo
 from stereodem.sensor.io.sidecar import load_image_model, load_model
 from stereodem.stereo.grid import DEMGrid
 
-from . import __version__
+from . import __version__, sanity
 from .config import Config
-from .runner import SharedArray, pool_size, process_peak_rss_mb, run_tiles
+from .outlock import output_folder
+from .runner import SharedArray, clean_cache, pool_size, process_peak_rss_mb, run_tiles
 
 log = logging.getLogger(__name__)
 
@@ -82,17 +83,32 @@ class Pair:
     left_model: object
     right_model: object
     seed_dem: DEM | None = None
+    left_dtype: str | None = None          #: the files' pixel types (bit depths)
+    right_dtype: str | None = None
 
 
 def load_image_and_model(path, *, band: int = 1, prefer: str = "physical", model_file=None):
     """One image (:func:`stereodem.sensor.io.raster.read_image`) and its sensor model (the
-    ``model_file`` if given, else the image's sidecar or RPCs), checked against each other."""
+    ``model_file`` if given, else the image's sidecar or RPCs), checked against each other
+    (sizes before the pixels are read) and for texture."""
     model = load_model(model_file) if model_file else load_image_model(path, prefer=prefer)
-    img = read_image(path, band)
-    if img.shape != (model.height, model.width):
-        raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
+    try:
+        with rasterio.open(path) as ds:
+            shape = (ds.height, ds.width)
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(f"{path}: cannot read the image ({str(exc).splitlines()[0][:120]})") from None
+    if shape != (model.height, model.width):
+        raise InputError(f"{path}: image is {shape[1]}x{shape[0]} but its model "
                          f"describes {model.width}x{model.height}")
+    img = read_image(path, band)
+    sanity.check_texture(img, str(path))
     return img, model
+
+
+def image_dtype(path, band: int = 1) -> str:
+    """Pixel type of band ``band`` of an image file (e.g. ``"uint16"``)."""
+    with rasterio.open(path) as ds:
+        return ds.dtypes[band - 1]
 
 
 def load_seed_dem(cfg: Config) -> DEM | None:
@@ -107,9 +123,35 @@ def load_pair(cfg: Config) -> Pair:
     i = cfg.inputs
     if not (i.left and i.right):
         raise InputError("a stereo DEM needs two images ([inputs] left and right)")
+    # the memory check of read_image and the size check come before any pixel is read
+    for path in (i.left, i.right):
+        try:
+            with rasterio.open(path) as ds:
+                from stereodem.sensor.io.memory import check_allocation
+                check_allocation(2 * 9.0 * ds.width * ds.height,
+                                 f"{path}: the stereo pair of {ds.width} x {ds.height} pixels")
+        except rasterio.errors.RasterioIOError as exc:
+            raise InputError(f"{path}: cannot read the image ({str(exc).splitlines()[0][:120]})") from None
     left = load_image_and_model(i.left, band=i.band, prefer=i.model, model_file=i.left_model)
     right = load_image_and_model(i.right, band=i.band, prefer=i.model, model_file=i.right_model)
-    return Pair(left[0], right[0], left[1], right[1], load_seed_dem(cfg))
+    seed = load_seed_dem(cfg)
+    if seed is not None:
+        sanity.check_seed_dem(seed, left[1], right[1], name=f"seed DEM {cfg.inputs.seed_dem}:")
+    return Pair(left[0], right[0], left[1], right[1], seed,
+                image_dtype(i.left, i.band), image_dtype(i.right, i.band))
+
+
+def check_pair(cfg: Config, pair: Pair) -> float:
+    """Geometry of the pair before any stereo work (:func:`stereodem.sanity.check_base`);
+    returns the base-to-height ratio."""
+    hr = cfg.stereo.rectification.height_range
+    if hr is None and pair.seed_dem is not None:
+        hr = pair.seed_dem.height_range()
+    if hr is None:
+        lo = max(pair.left_model.height_bounds()[0], pair.right_model.height_bounds()[0])
+        hi = min(pair.left_model.height_bounds()[1], pair.right_model.height_bounds()[1])
+        hr = (lo, hi)
+    return sanity.check_base(pair.left_model, pair.right_model, hr)
 
 
 # ----------------------------------------------------------------------------- stereo
@@ -123,8 +165,10 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
 
     def runner(process_tile, tiles, inputs, settings):
         pool = pool_size(run_settings.workers, len(tiles), run_settings.dask) > 0
+        key = None
         if cache_dir is not None:
-            _check_tile_cache(Path(cache_dir), _cache_key(tiles, inputs, settings), run_settings.resume)
+            key = _cache_key(tiles, inputs, settings)
+            _check_tile_cache(Path(cache_dir), key, run_settings.resume)
         with tempfile.TemporaryDirectory(prefix="shared-", dir=cache_dir) as tmp:
             if pool:       # workers map the images from disk instead of each receiving a copy
                 inputs = dataclasses.replace(
@@ -134,7 +178,7 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
             results, fails, _ = run_tiles(_tile_job, tiles, ctx, workers=run_settings.workers,
                                           timeout=run_settings.tile_timeout, cache_dir=cache_dir,
                                           resume=run_settings.resume, dask_address=run_settings.dask,
-                                          progress=progress)
+                                          progress=progress, cache_key=key)
         failures.extend(fails)
         return [_tile_result(results[i]) for i in sorted(results)]
 
@@ -176,8 +220,12 @@ def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
     """Keep the tile cache consistent with this job: on ``resume`` the cache must hold tiles of
     the same job (else :class:`InputError`); otherwise old tiles are removed first."""
     cache_dir.mkdir(parents=True, exist_ok=True)
+    clean_cache(cache_dir)
     manifest = cache_dir / "job.json"
-    old = json.loads(manifest.read_text()).get("key") if manifest.exists() else None
+    try:
+        old = json.loads(manifest.read_text()).get("key") if manifest.exists() else None
+    except (ValueError, AttributeError, UnicodeDecodeError):
+        old = "unreadable"
     if resume and old is not None and old != key:
         raise InputError(f"{cache_dir}: the cached tiles belong to a run with other inputs or "
                          "settings; run again without --resume (and with --overwrite)")
@@ -208,10 +256,26 @@ def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None):
     """Stereo DEM (raw): :func:`stereodem.stereo.pipeline.make_dem` with the configured tile
     runner; returns ``(products, failed_tiles)``."""
     from stereodem.stereo.pipeline import make_dem
+    bh = check_pair(cfg, pair)
+    left, right, findings = sanity.comparable_radiometry(pair.left_image, pair.right_image,
+                                                         pair.left_dtype, pair.right_dtype)
     runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
-    products = make_dem(pair.left_image, pair.right_image, pair.left_model, pair.right_model,
+    products = make_dem(left, right, pair.left_model, pair.right_model,
                         cfg.stereo, seed_dem=pair.seed_dem, runner=runner)
+    products.info["base_to_height"] = round(bh, 4)
+    products.info["warnings"] = findings + sanity.check_result(products.tiles)
+    products.info["status"] = sanity.status(products.info["warnings"])
     return products, [f.to_dict() for f in runner.failures]
+
+
+def suspect_error(cfg: Config, products, report_path) -> None:
+    """Raise :class:`stereodem.sanity.SuspectResultError` for a suspect stereo result unless
+    the job is forced (``--force``)."""
+    bad = [w for w in products.info.get("warnings", []) if w["severity"] == "suspect"]
+    if bad and not cfg.run.force:
+        raise sanity.SuspectResultError(
+            f"result suspect: {bad[0]['message']}; products kept for inspection, findings in "
+            f"{report_path} (--force accepts them)")
 
 
 def read_stereo_layers(dem_path, *, vertical=None) -> DEMGrid:
@@ -341,17 +405,48 @@ def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True):
 
 # ----------------------------------------------------------------------------- the run
 
+def check_inputs(cfg: Config):
+    """Cheap checks of the assessment inputs, so that a bad reference DEM or check-point file
+    fails the job before the stereo work rather than after it."""
+    i = cfg.inputs
+    if cfg.assess.enabled and i.reference_dem:
+        DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
+        if i.checkpoints:
+            from stereodem.post.assess import read_checkpoints
+            read_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
+
+
+def input_paths(cfg: Config) -> list:
+    """Every input file of a job (none may be among its outputs)."""
+    i = cfg.inputs
+    return [p for p in (i.left, i.right, i.left_model, i.right_model, i.seed_dem, i.reference_dem,
+                        i.checkpoints, i.landcover, i.dem) if p]
+
+
 def run(cfg: Config, *, progress_factory=None) -> dict:
     """Run the whole job; returns the ``run.json`` content.
 
+    The output folder is locked for the job (:func:`stereodem.outlock.output_folder`); with
+    ``overwrite`` the previous job's products are removed first, with ``resume`` its tile
+    cache is kept. Inputs are checked before any stereo work; a suspect stereo result
+    (:mod:`stereodem.sanity`) stops the job after ``raw/`` and ``run.json`` are written,
+    unless ``cfg.run.force``.
+
     ``progress_factory(label)`` may return a ``progress(done, total)`` callable per stage.
     """
-    out = prepare_output_dir(cfg.output_dir, overwrite=cfg.run.overwrite or cfg.run.resume)
+    with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, resume=cfg.run.resume,
+                       inputs=input_paths(cfg)) as out:
+        return _run_in(cfg, out, progress_factory)
+
+
+def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     prog = progress_factory or (lambda label: None)
     stages = StageLog()
     t_all = time.perf_counter()
+    written = []
 
     t0 = time.perf_counter()
+    check_inputs(cfg)
     pair = load_pair(cfg)
     stages.record("load", t0)
 
@@ -360,40 +455,51 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
     products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles")
     _close(bar)
     products.write(out / "raw", overwrite=True)
+    written.append("raw")
     tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
     stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
                   failed_tiles=len(failed), tile_process_peak_rss_mb=max(tile_rss, default=0.0))
+    warnings = products.info.get("warnings", [])
+    suspect = sanity.status(warnings) == "suspect" and not cfg.run.force
 
-    t0 = time.perf_counter()
-    z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
-    clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True)
-    stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
-
-    if cfg.ortho.enabled:
+    report = post_report = None
+    if not suspect:
         t0 = time.perf_counter()
-        bar = prog("ortho")
-        images = [("left", pair.left_image, pair.left_model)]
-        if cfg.ortho.both:
-            images.append(("right", pair.right_image, pair.right_model))
-        orthos = ortho_stage(cfg, images, clean, progress=bar)
-        _close(bar)
-        for name, o in orthos.items():
-            o.write(out / f"ortho_{name}.tif", overwrite=True)
-        stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px for k, o in orthos.items()})
+        z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
+        clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True)
+        written += ["dem.tif", edit_mask_path(out / "dem.tif").name]
+        stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
 
-    report = None
-    if cfg.assess.enabled and cfg.inputs.reference_dem:
-        t0 = time.perf_counter()
-        report = assess_stage(cfg, clean, out / "assess")[0].report
-        stages.record("assess", t0)
+        if cfg.ortho.enabled:
+            t0 = time.perf_counter()
+            bar = prog("ortho")
+            images = [("left", pair.left_image, pair.left_model)]
+            if cfg.ortho.both:
+                images.append(("right", pair.right_image, pair.right_model))
+            orthos = ortho_stage(cfg, images, clean, progress=bar)
+            _close(bar)
+            for name, o in orthos.items():
+                o.write(out / f"ortho_{name}.tif", overwrite=True)
+                written.append(f"ortho_{name}.tif")
+            stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px
+                                                               for k, o in orthos.items()})
 
-    run_info = dict(config=cfg.to_dict(), versions=versions(), stages=stages.stages,
+        if cfg.assess.enabled and cfg.inputs.reference_dem:
+            t0 = time.perf_counter()
+            report = assess_stage(cfg, clean, out / "assess", overwrite=True)[0].report
+            written.append("assess")
+            stages.record("assess", t0)
+
+    written += ["tiles", "run.json"]
+    run_info = dict(status=sanity.status(warnings), warnings=warnings,
+                    config=cfg.to_dict(), versions=versions(), stages=stages.stages,
                     seconds=round(time.perf_counter() - t_all, 3), failed_tiles=failed,
                     stereo=dict(tiles=products.tiles, info=products.info), post=post_report,
-                    outputs=sorted(p.name for p in out.iterdir()),
-                    headline=_headline(report))
+                    outputs=sorted(written), headline=_headline(report))
     write_text_atomic(out / "run.json", json.dumps(run_info, indent=1, default=_json_default),
                       overwrite=True)
+    if suspect:
+        suspect_error(cfg, products, out / "run.json")
     return run_info
 
 

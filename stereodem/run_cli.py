@@ -34,7 +34,10 @@ def add_run_options(p):
     p.add_argument("--tile-timeout", type=float, help="seconds before a tile is abandoned and logged")
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
     p.add_argument("--resume", action="store_true", help="reuse an existing output folder")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder's files")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the products of a previous job in the output folder")
+    p.add_argument("--force", action="store_true",
+                   help="go on with a result the sanity checks call suspect (still reported)")
 
 
 def progress_factory(args):
@@ -64,7 +67,8 @@ def run(args) -> int:
     from .config import load_config
     from .pipeline import run as run_pipeline
     cfg = load_config(args.config, workers=args.workers, tile_timeout=args.tile_timeout,
-                      dask=args.dask, resume=args.resume or None, overwrite=args.overwrite or None)
+                      dask=args.dask, resume=args.resume or None, overwrite=args.overwrite or None,
+                      force=args.force or None)
     info = run_pipeline(cfg, progress_factory=progress_factory(args))
     summarize(info)
     return 0
