@@ -48,7 +48,8 @@ def progress_factory(args):
     return make
 
 
-def summarize(info, stream=sys.stdout):
+def summarize(info, stream=None):
+    stream = stream or sys.stdout
     out = info["config"]["output"]["dir"]
     print(f"DEM:        {out}/dem.tif  (raw layers in {out}/raw/)", file=stream)
     if "ortho" in info["stages"]:

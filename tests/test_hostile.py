@@ -484,13 +484,16 @@ def _alive(pid):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT],
+                         ids=["SIGKILL", "SIGTERM", "SIGINT"])
 def test_killed_run_leaves_no_process_and_resumes_bit_identical(sig, sim, reference_run, tmp_path):
     out = tmp_path / "out"
     cfg = _run_toml(tmp_path, sim, out, rect="tile_size = 64\nheight_range = [1000, 3500]",
                     extra="[ortho]\nboth = false")
+    # output to files, not pipes: orphaned workers would hold a pipe open
+    log = open(tmp_path / "stderr.txt", "w")
     proc = subprocess.Popen([sys.executable, "-m", "stereodem.cli", "run", str(cfg), "--workers", "2"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=log, text=True)
     workers = []
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:     # until the pool works on tiles
@@ -502,9 +505,13 @@ def test_killed_run_leaves_no_process_and_resumes_bit_identical(sig, sim, refere
     family = set(workers) | {g for k in workers for g in _children(k)}
     proc.send_signal(sig)
     proc.wait(timeout=60)
-    _, err = proc.communicate()
+    log.close()
+    err = (tmp_path / "stderr.txt").read_text()
     time.sleep(2.0)
-    assert [p for p in family if _alive(p)] == []
+    left = [p for p in family if _alive(p)]
+    for p in left:                                        # do not leave them to the next test
+        os.kill(p, signal.SIGKILL)
+    assert left == []
     assert proc.returncode != 0
     if sig != signal.SIGKILL:
         assert "Traceback" not in err
