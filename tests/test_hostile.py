@@ -174,6 +174,10 @@ BEFORE_WORK = {
                                                           "-o", t / "in.tif", "--overwrite"], "ortho", r"input"),
     "ortho_out_is_its_dem_overwrite": (lambda s, h, t: ["ortho", t / "in.tif", "--dem", t / "dem.tif",
                                                         "-o", t / "dem.tif", "--overwrite"], "ortho", r"input"),
+    "filter_out_is_its_input_overwrite": (lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "dem.tif",
+                                                           "--overwrite"], "filter", r"input"),
+    "filter_out_is_its_score_layer": (lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "score.tif",
+                                                       "--overwrite"], "filter", r"input"),
     "ortho_res_0.0001_absurd_grid": (lambda s, h, t: ["ortho", t / "in.tif", "--dem", s / "truth_dem.tif",
                                                       "-o", t / "out" / "o.tif", "--res", "0.0001"],
                                      "ortho", r"cells|grid"),
@@ -188,6 +192,7 @@ def test_clear_error_before_any_work(case, sim, hostile, tmp_path, capsys):
     shutil.copy(sim / "left.tif", tmp_path / "in.tif")
     shutil.copy(sim / "left.model.json", tmp_path / "in.model.json")
     shutil.copy(sim / "truth_dem.tif", tmp_path / "dem.tif")
+    shutil.copy(sim / "truth_dem.tif", tmp_path / "score.tif")
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "notes.txt").write_text("my notes\n")
     before = {p: _sha(p) for p in tmp_path.rglob("*") if p.is_file()}
