@@ -59,6 +59,8 @@ def summarize(info, stream=None):
         print(f"report:     {out}/assess/report.md", file=stream)
         print(f"accuracy vs reference: NMAD {h['nmad']:.2f} m, median {h['median']:+.2f} m, "
               f"RMSE {h['rmse']:.2f} m, LE90 {h['le90']:.2f} m, {h['valid_pct']:.1f} % valid", file=stream)
+    for w in info.get("warnings", []):
+        print(f"warning: {w['message']}", file=stream)
     if info["failed_tiles"]:
         print(f"warning: {len(info['failed_tiles'])} tile(s) failed; see run.json", file=stream)
     print(f"total {info['seconds']:.1f} s; details in {out}/run.json", file=stream)
