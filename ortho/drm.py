@@ -32,8 +32,9 @@ from affine import Affine
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM, ELLIPSOID
 from stereodem.sensor.errors import DEMCoverageError, InputError, SensorModelError
+from stereodem.sensor.geo.grid import MapGrid, OnGrid
 
-from .grid import MapGrid, grid_for_model
+from .grid import grid_for_model
 
 log = logging.getLogger(__name__)
 
@@ -45,10 +46,13 @@ _SUPPORT = {"nearest": (1, 0), "bilinear": (2, 0), "cubic": (4, 1), "lanczos": (
 
 # --------------------------------------------------------------------------- DEM on the grid
 
-def crop_dem(dem: DEM, grid: MapGrid, *, margin: int = 3) -> DEM:
+def crop_dem(dem: DEM, grid: MapGrid, *, margin: int = 3, fill: DEM | None = None) -> DEM:
     """The part of ``dem`` under ``grid`` (plus ``margin`` DEM cells), heights ellipsoidal.
 
-    Raises :class:`DEMCoverageError` naming the DEM and the grid extent when they do not overlap.
+    With ``fill`` (a second DEM), the window covers the whole grid even where ``dem`` does
+    not, and cells without a height in ``dem`` (holes, or outside it) take ``fill``'s
+    ellipsoidal height there (bilinear). Raises :class:`DEMCoverageError` naming the DEM and
+    the grid extent when they do not overlap (and no ``fill`` is given).
     """
     gc = np.linspace(-0.5, grid.width - 0.5, 33)
     gr = np.linspace(-0.5, grid.height - 0.5, 33)
@@ -59,6 +63,8 @@ def crop_dem(dem: DEM, grid: MapGrid, *, margin: int = 3) -> DEM:
     rows, cols = dem.shape
     c0, c1 = int(np.floor(np.nanmin(c))) - margin, int(np.ceil(np.nanmax(c))) + margin
     r0, r1 = int(np.floor(np.nanmin(r))) - margin, int(np.ceil(np.nanmax(r))) + margin
+    if fill is not None:
+        return _crop_filled(dem, fill, c0, r0, c1, r1)
     c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, cols), min(r1, rows)
     if c1 - c0 < 2 or r1 - r0 < 2 or not np.isfinite(dem.heights[r0:r1, c0:c1]).any():
         raise DEMCoverageError(
@@ -68,6 +74,51 @@ def crop_dem(dem: DEM, grid: MapGrid, *, margin: int = 3) -> DEM:
     sub = DEM(dem.heights[r0:r1, c0:c1].copy(), dem.transform @ Affine.translation(c0, r0),
               dem.crs, dem.vertical, dem.path)
     return sub.to_reference(ELLIPSOID)
+
+
+def _crop_filled(dem: DEM, fill: DEM, c0, r0, c1, r1) -> DEM:
+    """Window [r0:r1, c0:c1] of ``dem``'s grid (may exceed it), ellipsoidal heights, its
+    missing cells filled from ``fill``; ``info["filled_cells"]`` counts them."""
+    rows, cols = dem.shape
+    h = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
+    a0, b0, a1, b1 = max(c0, 0), max(r0, 0), min(c1, cols), min(r1, rows)
+    if a1 > a0 and b1 > b0:
+        h[b0 - r0:b1 - r0, a0 - c0:a1 - c0] = dem.heights[b0:b1, a0:a1]
+    transform = dem.transform @ Affine.translation(c0, r0)
+    rr, cc = np.nonzero(~np.isfinite(h))
+    if np.isfinite(h).any():
+        h = DEM(h, transform, dem.crs, dem.vertical, dem.path).to_reference(ELLIPSOID).heights.copy()
+    if rr.size:
+        x, y = transform @ (cc + 0.5, rr + 0.5)
+        lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), dem.crs)
+        h[rr, cc] = fill.sample(lon, lat, reference=ELLIPSOID)
+    if not np.isfinite(h).any():
+        raise DEMCoverageError(f"{dem.path or 'DEM'} and {fill.path or 'fill DEM'}: neither covers "
+                               f"the orthoimage area")
+    out = DEM(h, transform, dem.crs, ELLIPSOID, dem.path)
+    out.filled_cells = int(rr.size - np.count_nonzero(~np.isfinite(h[rr, cc])))
+    return out
+
+
+def _check_rpc_heights(model, dem: DEM):
+    """An RPC (possibly image-corrected) evaluated on DEM heights outside its validity range
+    extrapolates its polynomials: raise a one-line :class:`RPCError` instead (a DEM in feet,
+    or the wrong DEM)."""
+    from stereodem.sensor.models.rpc import RPCModel
+    from stereodem.sensor.models.rpc_direct import check_validity
+    inner = model
+    while not isinstance(inner, RPCModel) and hasattr(inner, "model"):
+        inner = inner.model
+    if not isinstance(inner, RPCModel):
+        return
+    # the DEM under the image's footprint (localised at the middle of the validity range)
+    lon, lat = inner.footprint(float(np.mean(inner.height_bounds())))
+    c_lon, c_lat = inner.center_lonlat(float(np.mean(inner.height_bounds())))
+    lon, lat = np.append(np.asarray(lon, float), c_lon), np.append(np.asarray(lat, float), c_lat)
+    h = np.asarray(dem.sample(lon, lat), float)
+    ok = np.isfinite(h)
+    if ok.any():
+        check_validity(inner, lon[ok], lat[ok], h[ok])
 
 
 def bilinear_nan(array, c, r, *, dtype=np.float64):
@@ -458,7 +509,7 @@ def remap_nan(img, ok, col, row, resampling, nodata=np.nan):
 # --------------------------------------------------------------------------- orthoimage
 
 @dataclass
-class Ortho:
+class Ortho(OnGrid):
     """An orthoimage on a map grid.
 
     Attributes
@@ -477,7 +528,9 @@ class Ortho:
         exact model on the check set (see :func:`build_backward_map`).
     backward_map : BackwardMap
     dem_missing : dict
-        ``n_cells`` inside the image footprint but outside the DEM, and their lon/lat bounds.
+        ``n_cells`` inside the image footprint but outside the DEM, and their lon/lat bounds;
+        ``n_no_height`` footprint cells without a height (holes or outside), their
+        ``footprint_share``, and ``filled_cells`` taken from ``fill_dem``.
     col, row : ndarray float32, optional
         Image coordinates per cell (``keep_maps=True``).
     """
@@ -494,14 +547,6 @@ class Ortho:
     col: np.ndarray | None = None
     row: np.ndarray | None = None
 
-    @property
-    def transform(self) -> Affine:
-        return self.grid.transform
-
-    @property
-    def crs(self):
-        return self.grid.crs
-
     def report(self) -> dict:
         """Figures for logs and reports (plain types)."""
         bm = self.backward_map
@@ -511,15 +556,43 @@ class Ortho:
                     interpolation_error_px=self.interpolation_error_px,
                     dem_interpolation_error_px=bm.error_dem_px, lattice_step=bm.step,
                     n_heights=bm.n_heights, n_model_points=bm.n_model_points,
-                    dem_missing_cells=self.dem_missing["n_cells"])
+                    dem_missing_cells=self.dem_missing["n_cells"],
+                    dem_no_height_share=self.dem_missing.get("footprint_share", 0.0))
 
-    def write(self, path, *, overwrite=False, tags=None):
-        """Write as a float32 GeoTIFF (rasterio), nodata set, the report as tags."""
+    def write(self, path, *, overwrite=False, tags=None, dtype=None, creation_options=None):
+        """Write as a Cloud-Optimised GeoTIFF (rasterio), nodata set, the report as tags.
+
+        Parameters
+        ----------
+        dtype : numpy dtype, optional
+            Data type of the file; pass the input image's (``image.dtype``) to keep it. Integer
+            types get the resampled values rounded and clipped to the type's range, and as
+            nodata the first of 0, the type's maximum, its minimum that no valid cell takes
+            (an internal mask when every one is taken). Default float32 (``nodata`` as is).
+        creation_options : dict or list of "KEY=VALUE", optional
+            GDAL COG creation options (:func:`stereodem.sensor.io.raster.write_geotiff`).
+        """
         from stereodem.sensor.io.raster import write_geotiff
         t = {f"STEREODEM_{k.upper()}": v for k, v in self.report().items()}
         t.update(tags or {})
-        return write_geotiff(path, self.data, self.grid.transform, self.grid.crs, self.nodata,
-                             overwrite=overwrite, tags=t)
+        data, nodata, mask = self.data, self.nodata, None
+        dt = np.dtype(dtype) if dtype is not None else np.dtype(np.float32)
+        if np.issubdtype(dt, np.integer):
+            info = np.iinfo(dt)
+            vals = np.clip(np.rint(np.where(self.valid, self.data, 0)), info.min, info.max).astype(dt)
+            taken = vals[self.valid]
+            nodata = next((v for v in (0, info.max, info.min) if not (taken == v).any()), None)
+            if nodata is None:
+                mask = self.valid
+            else:
+                vals[~self.valid] = nodata
+            data = vals
+        elif dt != self.data.dtype:
+            data = self.data.astype(dt)
+        return write_geotiff(path, data, self.grid.transform, self.grid.crs, nodata,
+                             overwrite=overwrite, tags=t, mask=mask,
+                             descriptions=f"orthoimage ({self.resampling} resampling)",
+                             overview_resampling="average", creation_options=creation_options)
 
 
 def _progressing(results, progress, total):
@@ -533,7 +606,7 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
                  crs=None, resampling: str = "bilinear", nodata: float = np.nan,
                  image_nodata=None, tolerance: float = 0.01, block_rows: int | None = None,
                  keep_maps: bool = False, strict_dem: bool = False, progress=None,
-                 threads: int = 1) -> Ortho:
+                 threads: int = 1, fill_dem=None) -> Ortho:
     """Orthorectify an image by backward DRM projection onto a north-up map grid.
 
     Parameters
@@ -569,6 +642,12 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     threads : int
         Row blocks processed concurrently by this many threads (numpy and OpenCV release the
         GIL); the result does not depend on it.
+    fill_dem : DEM or path, optional
+        Fallback heights where ``dem`` has none (holes, or outside it).
+
+    Cells of the image footprint without a DEM height are nodata; their number and share of
+    the footprint are logged as a warning and returned in ``Ortho.dem_missing``
+    (``n_no_height``, ``footprint_share``).
 
     Returns
     -------
@@ -578,12 +657,14 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     if resampling not in RESAMPLING:
         raise InputError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
     dem = as_dem(dem)
+    _check_rpc_heights(model, dem)
     img, valid = _as_image(image, image_nodata)
     if (img.shape[1], img.shape[0]) != (model.width, model.height):
         log.warning("image size %s differs from the model's %dx%d", img.shape[::-1], model.width, model.height)
     if grid is None:
         grid = grid_for_model(model, dem, res=res, crs=crs)
-    dem_e = crop_dem(dem, grid)
+    fill = as_dem(fill_dem) if fill_dem is not None else None
+    dem_e = crop_dem(dem, grid, fill=fill)
     bm = build_backward_map(model, grid, dem_e, tolerance=tolerance)
     ok = _support_ok(valid, resampling)
     H, W = grid.shape
@@ -602,11 +683,13 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
         col[nohgt] = np.nan
         row[nohgt] = np.nan
         miss = None
+        n_foot = 0
         if nohgt.any():
             # cells in the footprint (at the interpolated position) that have no DEM height
             uu, vv = np.nonzero(nohgt)
             ci, ri = bm.image_coords_grid(vv.astype(float), (uu + r0).astype(float), bm.h_mid)
             infoot = (ci >= -0.5) & (ri >= -0.5) & (ci <= model.width - 0.5) & (ri <= model.height - 0.5)
+            n_foot = int(infoot.sum())
             dcc, drr = bm.dem_coords_grid(vv[infoot].astype(float), (uu[infoot] + r0).astype(float))
             outside = (dcc < 0) | (drr < 0) | (dcc > dr_cols - 1) | (drr > dr_rows - 1)
             if outside.any():
@@ -615,7 +698,7 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
         data[r0:r1] = remap_nan(img, ok, col, row, resampling, nodata)
         if keep_maps:
             cols_map[r0:r1], rows_map[r0:r1] = col, row
-        return r1, miss
+        return r1, (miss, n_foot)
 
     starts = range(0, H, block_rows)
     if int(threads) > 1:
@@ -624,18 +707,25 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
             done = list(_progressing(pool.map(run_block, starts), progress, H))
     else:
         done = list(_progressing(map(run_block, starts), progress, H))
-    misses = [m for _, m in done if m is not None]
+    n_no_height = sum(m[1] for _, m in done)
+    misses = [m[0] for _, m in done if m[0] is not None]
     n_missing = sum(m[0] for m in misses)
     miss_lo = np.min([m[1] for m in misses], axis=0) if misses else None
     miss_hi = np.max([m[2] for m in misses], axis=0) if misses else None
+    valid_out = np.isfinite(data) if np.isnan(nodata) else data != nodata
+    share = n_no_height / max(n_no_height + int(valid_out.sum()), 1)
     missing = dict(n_cells=n_missing,
-                   lonlat_bounds=(tuple(float(v) for v in (*miss_lo, *miss_hi)) if n_missing else None))
+                   lonlat_bounds=(tuple(float(v) for v in (*miss_lo, *miss_hi)) if n_missing else None),
+                   n_no_height=int(n_no_height), footprint_share=float(share),
+                   filled_cells=int(getattr(dem_e, "filled_cells", 0)))
+    if n_no_height and not (strict_dem and n_missing):
+        log.warning("%s: no DEM height under %.1f%% of the image footprint (%d cell(s): holes or "
+                    "outside the DEM): nodata there%s", dem.path or "DEM", 100 * share, n_no_height,
+                    "" if fill is not None else "; a second DEM can fill them (fill_dem / --fill-dem)")
     if n_missing:
         msg = (f"{dem.path or 'DEM'}: the DEM does not cover the image footprint: {n_missing} cell(s) "
                f"missing in lon {miss_lo[0]:.5f}..{miss_hi[0]:.5f}, lat {miss_lo[1]:.5f}..{miss_hi[1]:.5f}")
         if strict_dem:
             raise DEMCoverageError(msg)
-        log.warning(msg)
-    valid_out = np.isfinite(data) if np.isnan(nodata) else data != nodata
     return Ortho(data, grid, valid_out, nodata, heights, bm.error_px, bm, resampling, missing,
                  cols_map, rows_map)

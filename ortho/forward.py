@@ -16,7 +16,7 @@ import numpy as np
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.errors import InputError
 
-from .grid import MapGrid
+from stereodem.sensor.geo.grid import MapGrid
 
 
 @dataclass

@@ -112,11 +112,25 @@ def _read_landcover(landcover, reference: DEM):
                         resampling="nearest", dst_dtype=np.float64)
 
 
+def dem_footprint(z) -> np.ndarray:
+    """Cells inside the footprint of a DEM: the convex hull of its valid cells (bool, the
+    shape of ``z``). A stereo DEM covers the overlap of two image footprints, a convex
+    quadrilateral, so the hull is that area with its interior voids counted in."""
+    import cv2
+    fin = np.isfinite(z)
+    out = np.zeros(fin.shape, dtype=np.uint8)
+    if fin.any():
+        rows, cols = np.nonzero(fin)
+        pts = np.stack([cols, rows], axis=1).astype(np.int32)
+        cv2.fillConvexPoly(out, cv2.convexHull(pts), 1)
+    return out.astype(bool) | fin
+
+
 def comparison_stats(cmp: Comparison, *, slope_bins=st.DEFAULT_SLOPE_BINS, elevation_bins=None,
                      landcover_names: dict | None = None) -> dict:
     """The statistics block of a :class:`Comparison`: ``stats``, ``by_slope``,
     ``by_elevation``, ``by_landcover`` (if any), ``slope_fit`` and ``slope_class_trend``."""
-    footprint = np.isfinite(cmp.ref) | np.isfinite(cmp.dem)
+    footprint = dem_footprint(cmp.dem) & np.isfinite(cmp.ref)
     out = {"stats": st.error_stats(cmp.dh, n_total=int(footprint.sum()))}
     out["by_slope"] = st.binned_stats(cmp.dh, cmp.slope, slope_bins, unit="deg", name="slope")
     ebins = elevation_bins if elevation_bins is not None else st.default_elevation_bins(cmp.ref)

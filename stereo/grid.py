@@ -22,11 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from affine import Affine
-from pyproj import CRS
 
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.errors import InputError
-from stereodem.sensor.geo.grid import MapGrid, as_crs
+from stereodem.sensor.geo.grid import MapGrid, OnGrid, as_crs
 from stereodem.sensor.io.raster import write_geotiff
 
 __all__ = ["DEMGrid", "GridSpec", "CellSums", "SUM_LAYERS", "accumulate", "finish", "grid_points",
@@ -36,7 +35,7 @@ _VERTICAL_TAG = "STEREODEM_VERTICAL"
 
 
 @dataclass
-class DEMGrid:
+class DEMGrid(OnGrid):
     """A gridded DEM and its companion layers on one :class:`MapGrid`.
 
     Attributes
@@ -62,20 +61,10 @@ class DEMGrid:
     vertical: str = "ellipsoid"
     info: dict = field(default_factory=dict)
 
-    @property
-    def transform(self) -> Affine:
-        return self.grid.transform
-
-    @property
-    def crs(self) -> CRS:
-        return self.grid.crs
-
-    @property
-    def posting(self) -> float:
-        return self.grid.posting
-
-    def write(self, directory, *, overwrite=False, names=None):
-        """Write ``dem.tif``, ``count.tif``, ``score.tif`` and ``raygap.tif`` in ``directory``.
+    def write(self, directory, *, overwrite=False, names=None, creation_options=None):
+        """Write ``dem.tif``, ``count.tif``, ``score.tif`` and ``raygap.tif`` in ``directory``
+        (Cloud-Optimised GeoTIFFs with band descriptions and units; ``creation_options`` as
+        GDAL's ``-co``).
 
         Float layers are float32 with NaN nodata; ``count`` is int32 with nodata 0. Each
         file is written atomically. Returns the dict of written paths.
@@ -83,16 +72,19 @@ class DEMGrid:
         from pathlib import Path
         d = Path(directory)
         names = names or dict(dem="dem.tif", count="count.tif", score="score.tif", raygap="raygap.tif")
-        tags = {_VERTICAL_TAG: self.vertical}
+        kw = dict(overwrite=overwrite, creation_options=creation_options)
+        layers = {
+            "dem": (self.heights.astype(np.float32), np.nan,
+                    f"height above the {'EGM96 geoid' if self.vertical == 'geoid' else 'WGS84 ellipsoid'}", "metre"),
+            "count": (self.count.astype(np.int32), 0, "space-intersected points per cell", "1"),
+            "score": (self.score.astype(np.float32), np.nan, "mean correlation score (ZNCC) of the cell's points", "1"),
+            "raygap": (self.ray_gap.astype(np.float32), np.nan, "mean ray gap of the cell's points", "metre"),
+        }
         out = {}
-        out["dem"] = write_geotiff(d / names["dem"], self.heights.astype(np.float32), self.transform,
-                                   self.crs, np.nan, overwrite=overwrite, tags=tags)
-        out["count"] = write_geotiff(d / names["count"], self.count.astype(np.int32), self.transform,
-                                     self.crs, 0, overwrite=overwrite)
-        out["score"] = write_geotiff(d / names["score"], self.score.astype(np.float32), self.transform,
-                                     self.crs, np.nan, overwrite=overwrite)
-        out["raygap"] = write_geotiff(d / names["raygap"], self.ray_gap.astype(np.float32),
-                                      self.transform, self.crs, np.nan, overwrite=overwrite)
+        for key, (data, nodata, description, unit) in layers.items():
+            extra = dict(tags={_VERTICAL_TAG: self.vertical}) if key == "dem" else {}
+            out[key] = write_geotiff(d / names[key], data, self.transform, self.crs, nodata,
+                                     descriptions=[description], units=[unit], **extra, **kw)
         return out
 
 
@@ -115,7 +107,7 @@ def _density_sigma(fi, fj, rows, cols, posting):
 
 
 @dataclass(frozen=True)
-class GridSpec:
+class GridSpec(OnGrid):
     """The output lattice and the cell estimator, fixed before any point is gridded.
 
     Attributes
@@ -137,22 +129,6 @@ class GridSpec:
     sigma: float | None = None
     radius: int | None = None
     geoid: bool = False
-
-    @property
-    def transform(self) -> Affine:
-        return self.grid.transform
-
-    @property
-    def shape(self) -> tuple:
-        return self.grid.shape
-
-    @property
-    def crs(self) -> CRS:
-        return self.grid.crs
-
-    @property
-    def posting(self) -> float:
-        return self.grid.posting
 
     @classmethod
     def from_bounds(cls, bounds, posting, crs, **options):

@@ -1,12 +1,15 @@
 """Per-tile stereo DEM workflow: rectify, match, refine, intersect, grid (s2p style).
 
 :func:`make_dem` reads top to bottom: inputs and height range (:mod:`.plan`), overlap of the
-two images and the tiles over it, the output lattice, the relative pointing correction
-(:mod:`.pointing`), then for every tile :func:`process_tile` (a pure function of the tile, the
+two images, the sparse stage (:mod:`.sparse_stage`: SIFT matches checked through the models,
+the relative pointing correction of the right model, and — without a height range or seed
+DEM — the scene's height range and a coarse seed surface), the tiles over the overlap at every
+height of the range, the output lattice, then for every tile :func:`process_tile` (a pure function of the tile, the
 inputs and the settings, so tiles can run in a process pool), and finally the tiles' cell sums
 added into the DEM. Per tile:
 
-1. height range (the settings' range, or the seed DEM under the tile plus a margin);
+1. height range (the settings' range, or the seed DEM — given, or from the sparse matches —
+   under the tile plus a margin);
 2. epipolar rectification (:func:`stereodem.stereo.epipolar.rectify_tile`) and resampling of
    both images; the disparity search range comes from the height range;
 3. dense matching (:func:`stereodem.stereo.match.match_rectified`) and refinement
@@ -17,6 +20,7 @@ added into the DEM. Per tile:
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -27,22 +31,18 @@ import numpy as np
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM, as_dem
-from stereodem.sensor.models.corrected import ImageCorrectedModel
 
 from . import epipolar
 from .grid import SUM_LAYERS, CellSums, DEMGrid, GridSpec, accumulate, finish
 from .intersect import intersect_matches
-from .plan import footprint_bounds, pair_height_range, plan_tiles, tile_height_range
-from .pointing import estimate_pointing
+from .plan import footprint_bounds, overlap_window, pair_height_range, plan_tiles, tile_height_range
 from .refine import refine_disparity
 from .settings import StereoSettings
+from .sparse import SparseMatchError
+from .sparse_stage import height_pileup, run_sparse_stage
 from .tiling import Tile
 
 log = logging.getLogger(__name__)
-
-#: Share of a tile's height range, at each end, whose points are counted as at the bound
-#: (``n_at_bound`` in the tile summary).
-BOUND_BAND = 0.05
 
 __all__ = ["PairInputs", "TilePoints", "TileResult", "DEMProducts", "make_dem", "process_tile",
            "tile_points"]
@@ -61,6 +61,7 @@ class PairInputs:
     seed_dem: Optional[DEM] = None
     max_ray_gap: float = np.inf
     lattice: Optional[GridSpec] = None
+    seed_margin: Optional[float] = None
 
 
 @dataclass
@@ -96,9 +97,9 @@ class DEMProducts:
     settings: dict
     info: dict = field(default_factory=dict)
 
-    def write(self, directory, *, overwrite=False):
+    def write(self, directory, *, overwrite=False, creation_options=None):
         """Write ``dem.tif``, ``score.tif``, ``count.tif``, ``raygap.tif`` in ``directory``."""
-        return self.dem.write(directory, overwrite=overwrite)
+        return self.dem.write(directory, overwrite=overwrite, creation_options=creation_options)
 
 
 # ----------------------------------------------------------------------------- one tile
@@ -166,11 +167,11 @@ def tile_points(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Til
     pts = intersect_matches(L, R, c1, r1, c2, r2)
     ok = np.isfinite(pts.h) & (pts.ray_gap <= inputs.max_ray_gap)
     ok &= (pts.h >= hr[0] - rect.height_margin) & (pts.h <= hr[1] + rect.height_margin)
-    # points at the ends of the searched range (a pile there: the terrain is outside it)
-    band = BOUND_BAND * (hr[1] - hr[0])
-    at_bound = ok & ((pts.h <= hr[0] + band) | (pts.h >= hr[1] - band))
     t3 = time.perf_counter()
-    summary.update(n_matched=int(keep.sum()), n_points=int(ok.sum()), n_at_bound=int(at_bound.sum()),
+    pile = height_pileup(pts.h[ok], hr)
+    summary.update(n_matched=int(keep.sum()), n_points=int(ok.sum()), height_range=list(hr),
+                   n_at_low_bound=int(round(pile["low_share"] * pile["n"])),
+                   n_at_high_bound=int(round(pile["high_share"] * pile["n"])),
                    valid_fraction=float(ok.sum() / max(tile.size, 1)),
                    median_ray_gap_m=float(np.median(pts.ray_gap[ok])) if ok.any() else float("nan"),
                    seconds=dict(rectify=t1 - t0, match=t2 - t1, intersect=t3 - t2))
@@ -231,9 +232,11 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
     Raises
     ------
     NoOverlapError
-        The two images see no common ground at the mean height.
+        The two images see no common ground at any height of the range.
     InputError
         Unusable height range, or image arrays that do not match the models.
+    SparseMatchError
+        No height range or seed DEM given, and too few sparse matches to find the heights.
     """
     settings = settings or StereoSettings()
     rect, gs = settings.rectification, settings.gridding
@@ -246,6 +249,13 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
             raise InputError(f"{name} image: shape {img.shape} differs from its model's "
                              f"{(mdl.height, mdl.width)} (rows, cols)")
     seed = as_dem(seed_dem) if seed_dem is not None else None
+    sparse = _sparse_stage(left_image, right_image, left_model, right_model, rect, seed)
+    seed_margin = None
+    if sparse is not None:
+        right_model = sparse.right_model
+        if sparse.terrain is not None:
+            seed, seed_margin = sparse.terrain.seed_dem, sparse.terrain.tile_margin
+            rect = dataclasses.replace(rect, height_range=sparse.height_range)
     height_range = pair_height_range(left_model, right_model, rect, seed)
     gsd = left_model.gsd(0.5 * sum(height_range))
     max_gap = gs.max_ray_gap if gs.max_ray_gap is not None else 2.0 * gsd
@@ -265,12 +275,7 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
     spec = GridSpec.from_bounds(bounds, posting, crs, method=gs.method, sigma=gs.gaussian_sigma,
                                 geoid=gs.geoid)
     inputs = PairInputs(left_image, right_image, left_model, right_model, height_range, seed,
-                        max_gap, spec)
-    pointing = dict(dcol_px=0.0, drow_px=0.0)
-    if rect.pointing_correction:
-        dcol, drow, pointing = estimate_pointing(tiles, inputs, rect, n_tiles=rect.pointing_tiles)
-        if dcol or drow:
-            inputs.right_model = ImageCorrectedModel(right_model, col_shift=dcol, row_shift=drow)
+                        max_gap, spec, seed_margin)
     # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask)
     if runner is None:
         results = []
@@ -295,9 +300,60 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
     del total
     seconds = time.perf_counter() - t_start
     rms = [r.summary["residual_rms_px"] for r in results]
+    pileup = _pileup(results, n_points)
     info = dict(height_range=list(height_range), gsd_m=gsd, posting=posting, max_ray_gap_m=max_gap,
                 n_tiles=len(tiles), max_residual_rms_px=float(max(rms)) if rms else float("nan"),
-                valid_cells=float(np.isfinite(dem.heights).mean()), pointing=pointing)
+                valid_cells=float(np.isfinite(dem.heights).mean()),
+                pointing=(sparse.pointing.summary() if sparse is not None and sparse.pointing is not None
+                          else dict(kind="none")),
+                sparse=sparse.summary() if sparse is not None else None,
+                height_source=("sparse matches" if sparse is not None and sparse.terrain is not None
+                               else "seed DEM" if seed is not None else
+                               "height range" if rect.height_range is not None else "model validity range"),
+                height_pileup=pileup, suspect=pileup["suspect"])
     log.info("stereo DEM: %d points gridded to %dx%d cells in %.1f s", n_points,
              dem.grid.width, dem.grid.height, seconds)
     return DEMProducts(dem, [r.summary for r in results], n_points, seconds, settings.summary(), info)
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _sparse_stage(left_image, right_image, left_model, right_model, rect, seed):
+    """Run :func:`run_sparse_stage` when the run needs it (relative pointing, or heights when
+    no height range or seed DEM is given); None when it is not needed or, for the pointing
+    alone, when it finds too few matches (a warning is logged)."""
+    auto = rect.height_range is None and seed is None and rect.auto_heights
+    if not (auto or rect.pointing_correction):
+        return None
+    lo = max(left_model.height_bounds()[0], right_model.height_bounds()[0])
+    hi = min(left_model.height_bounds()[1], right_model.height_bounds()[1])
+    given = rect.height_range is not None or seed is not None
+    check_range = pair_height_range(left_model, right_model, rect, seed) if given else None
+    # overlap at any height of the search range first: a clear NoOverlapError, not "no match"
+    overlap_window(left_model, right_model, np.linspace(*(check_range or (lo, hi)), 5),
+                   step=max(8, min(left_model.width, left_model.height) // 16))
+    try:
+        return run_sparse_stage(left_image, right_image, left_model, right_model, heights=auto,
+                                pointing=rect.pointing_correction, height_range=check_range,
+                                reference_dem=seed if rect.pointing_uses_seed else None,
+                                **rect.sparse_options)
+    except SparseMatchError as exc:
+        if auto:
+            raise SparseMatchError(f"{exc}; give a height range (--height-range) or a seed DEM "
+                                   f"(--seed-dem)") from None
+        log.warning("%s: no relative pointing correction", exc)
+        return None
+
+
+def _pileup(results, n_points, *, max_share: float = 0.05) -> dict:
+    """Share of the points whose height lies at a bound of its tile's search range (the
+    matcher hit the end of the range: wrong heights or an uncorrected pointing error)."""
+    low = sum(r.summary.get("n_at_low_bound", 0) for r in results)
+    high = sum(r.summary.get("n_at_high_bound", 0) for r in results)
+    n = max(n_points, 1)
+    out = dict(low_share=low / n, high_share=high / n, suspect=bool(max(low, high) / n > max_share))
+    if out["suspect"]:
+        log.warning("suspect DEM: %.1f%% of the heights lie at the lower and %.1f%% at the upper "
+                    "bound of their search range (a wrong height range, seed DEM or pointing?)",
+                    100 * out["low_share"], 100 * out["high_share"])
+    return out

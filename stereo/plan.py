@@ -49,26 +49,33 @@ def pair_height_range(left, right, settings: RectificationSettings, seed_dem=Non
     return max(hmin, lo), min(hmax, hi)
 
 
-def overlap_window(left, right, height: float, *, step: int = 64):
+def overlap_window(left, right, heights, *, step: int = 64):
     """Part of the left image that sees ground also seen by the right image.
 
-    Left pixels on a grid (spacing ``step``) are localised at ``height`` and projected into
-    the right image. Returns ``(window, inside)``: the bounding box ``(col0, row0, col1, row1)``
-    of the left pixels that land inside the right image (widened by one grid step), and a
-    function ``inside(tile) -> bool`` telling whether a tile holds any such grid pixel.
-    Raises :class:`NoOverlapError` when no pixel does.
+    Left pixels on a grid (spacing ``step``) are localised at each of ``heights`` (one height
+    or several spanning the search range) and projected into the right image; a pixel counts
+    when it lands inside the right image at any of them. Returns ``(window, inside)``: the
+    bounding box ``(col0, row0, col1, row1)`` of those left pixels (widened by one grid step),
+    and a function ``inside(tile) -> bool`` telling whether a tile holds any of them. Raises
+    :class:`NoOverlapError` when no pixel does.
     """
+    heights = np.atleast_1d(np.asarray(heights, float))
     w, h = left.width, left.height
     cs = np.unique(np.concatenate([np.arange(0, w, step), [w - 1]])).astype(float)
     rs = np.unique(np.concatenate([np.arange(0, h, step), [h - 1]])).astype(float)
     cc, rr = np.meshgrid(cs, rs)
-    lon, lat = left.localize(cc.ravel(), rr.ravel(), np.full(cc.size, float(height)))
-    with np.errstate(invalid="ignore"):
-        c2, r2 = right.project(lon, lat, np.full(cc.size, float(height)))
-        ok = (c2 >= -0.5) & (c2 <= right.width - 0.5) & (r2 >= -0.5) & (r2 <= right.height - 0.5)
+    ok = np.zeros(cc.size, bool)
+    for height in heights:
+        hh = np.full(cc.size, float(height))
+        with np.errstate(invalid="ignore"):
+            lon, lat = left.localize(cc.ravel(), rr.ravel(), hh)
+            c2, r2 = right.project(lon, lat, hh)
+            ok |= (c2 >= -0.5) & (c2 <= right.width - 0.5) & (r2 >= -0.5) & (r2 <= right.height - 0.5)
     if not ok.any():
-        raise NoOverlapError(f"the two images do not overlap (no left pixel, localised at "
-                             f"{height:.0f} m, projects into the right image)")
+        at = (f"at {heights[0]:.0f} m" if heights.size == 1 else
+              f"at any height {heights.min():.0f}..{heights.max():.0f} m")
+        raise NoOverlapError(f"the two images do not overlap (no left pixel, localised {at}, "
+                             f"projects into the right image)")
     pc, pr = cc.ravel()[ok], rr.ravel()[ok]
     window = (max(pc.min() - step, 0), max(pr.min() - step, 0),
               min(pc.max() + step, w - 1), min(pr.max() + step, h - 1))
@@ -80,10 +87,11 @@ def overlap_window(left, right, height: float, *, step: int = 64):
     return tuple(int(v) for v in window), inside
 
 
-def plan_tiles(left, right, settings: RectificationSettings, height_range):
-    """Tiles of the left image that overlap the right image (at the mean height)."""
-    h0 = 0.5 * (height_range[0] + height_range[1])
-    window, inside = overlap_window(left, right, h0, step=max(8, settings.tile_size // 8))
+def plan_tiles(left, right, settings: RectificationSettings, height_range, *, n_heights: int = 5):
+    """Tiles of the left image that overlap the right image at some height of the range
+    (``n_heights`` heights spanning it)."""
+    heights = np.linspace(height_range[0], height_range[1], n_heights)
+    window, inside = overlap_window(left, right, heights, step=max(8, settings.tile_size // 8))
     tiles = tile_grid(left.width, left.height, settings.tile_size, window=window)
     return renumber([t for t in tiles if inside(t)])
 
@@ -117,7 +125,9 @@ def footprint_bounds(left, tiles, height_range, posting, crs, *, samples: int = 
 
 
 def tile_height_range(tile: Tile, inputs, margin: float):
-    """Height range (m) of a tile: the seed DEM under it +/- ``margin``, else the global range."""
+    """Height range (m) of a tile: the seed DEM under it +/- ``margin`` (or the seed's own
+    ``inputs.seed_margin`` when set, e.g. the sparse-match surface's), else the global range."""
+    margin = getattr(inputs, "seed_margin", None) or margin
     if inputs.seed_dem is None:
         return inputs.height_range
     c0, r0, c1, r1 = tile.bounds

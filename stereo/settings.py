@@ -27,7 +27,7 @@ class RectificationSettings:
         Side of the left-image tiles, pixels (each is rectified with its own maps).
     height_range : (float, float), optional
         Ellipsoidal heights (m) of the terrain; widened by ``height_margin``. Without it (and
-        without a seed DEM) the models' common height validity range is searched.
+        without a seed DEM) the heights come from sparse matches (``auto_heights``).
     height_margin : float
         Metres added below and above the height range (and a seed DEM's range under a tile).
     method : {"auto", "affine", "projective"}
@@ -37,10 +37,21 @@ class RectificationSettings:
     disparity_margin : float
         Pixels added to both ends of each tile's disparity range.
     pointing_correction : bool
-        Estimate and remove a relative pointing error (a translation of the right image,
-        s2p's correction) on ``pointing_tiles`` tiles spread over the overlap.
-    pointing_tiles : int
-        Tiles used for the pointing estimate.
+        Estimate and remove the relative pointing error of the right image (a translation,
+        or an affine correction when the matches support it) from sparse matches searched
+        without an epipolar constraint, before rectification
+        (:func:`stereodem.stereo.pointing.relative_pointing`).
+    pointing_uses_seed : bool
+        With a seed DEM, also fix the pointing correction's component along the epipolar
+        curves (unobservable from the two images: it is a height offset) by localising the
+        matches on the seed DEM: the DEM is then co-registered to the seed vertically.
+    auto_heights : bool
+        Without a height range or seed DEM, derive both from the sparse matches (a robust
+        height range and a coarse seed surface, :func:`stereodem.stereo.terrain.terrain_heights`);
+        otherwise the models' whole height validity range is searched.
+    sparse_options : dict
+        Keyword options of :func:`stereodem.stereo.sparse.sparse_matches` (``max_offset``,
+        ``ratio``, ``max_size``, ...).
     """
 
     tile_size: int = 512
@@ -50,7 +61,9 @@ class RectificationSettings:
     halo: tuple = (32, 16)
     disparity_margin: float = 4.0
     pointing_correction: bool = True
-    pointing_tiles: int = 4
+    pointing_uses_seed: bool = False
+    auto_heights: bool = True
+    sparse_options: dict = field(default_factory=dict)
 
 
 @dataclass

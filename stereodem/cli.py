@@ -25,6 +25,10 @@ _SUBCOMMANDS = {
     "filter": "stereodem.filter_cli",
     "ortho": "stereodem.ortho_cli",
     "assess": "stereodem.assess_cli",
+    "adjust": "stereodem.adjust_cli",
+    "compare-models": "stereodem.compare_cli",
+    "uncertainty": "stereodem.uncertainty_cli",
+    "info": "stereodem.info_cli",
 }
 
 
@@ -45,9 +49,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _setup_logging(args):
-    level = logging.ERROR if args.quiet else (logging.DEBUG if args.verbose > 1 else
-                                              logging.INFO if args.verbose == 1 else logging.WARNING)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    """Log lines on stderr through the progress bars' writer, UTC timestamps with ``-v``,
+    Python warnings routed to logging (:func:`stereodem.progress.setup_logging`)."""
+    from .progress import setup_logging
+    setup_logging(verbose=args.verbose, quiet=args.quiet)
 
 
 def main(argv=None) -> int:

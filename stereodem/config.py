@@ -66,10 +66,17 @@ class InputSettings:
         The stereo pair (left = reference image).
     model : {"physical", "rpc"}
         Prefer the physical-model sidecar ``<stem>.model.json`` when present, or the RPCs.
+    rpc_direct : bool
+        Localise RPCs with their file's direct (image -> ground) model instead of the exact
+        inverse of the projection (the default; see :mod:`stereodem.sensor.models.rpc_direct`).
     left_model, right_model : str, optional
         Sensor-model files overriding the images' own (e.g. from ``stereodem adjust``).
-    band : int
-        Image band used for matching and orthoimages.
+    band : int or str
+        Image band used for matching and orthoimages (``"3N"``/``"3B"`` in an ASTER granule;
+        a granule given alone is the pair 3N/3B).
+    radiometric : bool
+        ASTER granules: radiance by the radiometric correction table (L = A V / G + D), or
+        the raw DNs.
     seed_dem : str, optional
         Coarse DEM setting each tile's height range (and filling large holes on request).
     seed_dem_vertical : {"geoid", "ellipsoid"}, optional
@@ -94,9 +101,11 @@ class InputSettings:
     left: str | None = None
     right: str | None = None
     model: str = "physical"
+    rpc_direct: bool = False
     left_model: str | None = None
     right_model: str | None = None
-    band: int = 1
+    band: int | str = 1
+    radiometric: bool = True
     seed_dem: str | None = None
     seed_dem_vertical: str | None = None
     reference_dem: str | None = None
@@ -162,6 +171,9 @@ class OrthoSettings:
         Posting in the output CRS's units (metres for UTM; default the image GSD).
     crs : str, optional
         Output CRS (default: the UTM zone of the image).
+    fill_dem : str, optional
+        A second DEM whose heights are used where the DEM has none (holes, partial coverage);
+        ``fill_dem_vertical`` its vertical reference when the file does not say.
     """
 
     enabled: bool = True
@@ -169,6 +181,8 @@ class OrthoSettings:
     resampling: str = "bilinear"
     res: float | None = None
     crs: str | None = None
+    fill_dem: str | None = None
+    fill_dem_vertical: str | None = None
 
 
 @dataclass
@@ -215,6 +229,8 @@ class RunSettings:
     force : bool
         Keep going with a result the sanity checks call suspect (:mod:`stereodem.sanity`);
         the findings are still reported.
+    creation_options : dict, optional
+        GDAL creation options of the GeoTIFF products (as ``-co``), e.g. {COMPRESS = "ZSTD"}.
     """
 
     workers: int | None = None
@@ -223,6 +239,7 @@ class RunSettings:
     dask: str | None = None
     overwrite: bool = False
     force: bool = False
+    creation_options: dict | None = None
 
 
 @dataclass
@@ -320,6 +337,11 @@ def build_settings(cls, table: dict, section: str, source):
 
 # ----------------------------------------------------------------------------- reading
 
+def _is_granule(path, base) -> bool:
+    from stereodem.sensor.io.aster_l1a import is_aster_granule
+    return isinstance(path, str) and is_aster_granule(Path(base) / path if not os.path.isabs(path) else path)
+
+
 def load_config(path, **overrides) -> Config:
     """Read a TOML configuration; relative input paths are relative to the file."""
     path = Path(path)
@@ -348,9 +370,10 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
     if unknown:
         raise InputError(f"{source}: unknown section(s) {', '.join(sorted(unknown))}")
     inp = dict(raw.get("inputs", {}))
-    for key in ("left", "right"):
-        if key not in inp:
-            raise InputError(f"{source}: [inputs] needs '{key}'")
+    if "left" not in inp:
+        raise InputError(f"{source}: [inputs] needs 'left'")
+    if "right" not in inp and not _is_granule(inp["left"], base):
+        raise InputError(f"{source}: [inputs] needs 'right' (only an ASTER granule is a pair alone)")
     for key in _PATH_KEYS:
         if isinstance(inp.get(key), str) and inp[key]:
             inp[key] = str(Path(base) / inp[key]) if not os.path.isabs(inp[key]) else inp[key]
@@ -384,8 +407,10 @@ def validate(cfg: Config, source="configuration"):
         v = getattr(cfg.inputs, key)
         if v is not None and v not in ("geoid", "ellipsoid"):
             bad(f"[inputs] {key} must be 'geoid' or 'ellipsoid', got {v!r}")
-    if cfg.inputs.band < 1:
-        bad(f"[inputs] band must be at least 1, got {cfg.inputs.band}")
+    band = cfg.inputs.band
+    if isinstance(band, bool) or not (isinstance(band, int) and band >= 1 or
+                                      isinstance(band, str) and band.upper() in ("3N", "3B")):
+        bad(f"[inputs] band must be a band number >= 1 or an ASTER band 3N/3B, got {band!r}")
     if not 64 <= rect.tile_size <= 16384:
         bad(f"[rectification] tile_size must be 64..16384 px, got {rect.tile_size}")
     if rect.height_range is not None:
@@ -414,6 +439,8 @@ def validate(cfg: Config, source="configuration"):
         v = getattr(cfg.assess, key)
         if v is not None and (len(v) < 2 or any(b >= c for b, c in zip(v, v[1:]))):
             bad(f"[assess] {key} must be at least two increasing edges, got {list(v)}")
+    if cfg.ortho.fill_dem_vertical not in (None, "geoid", "ellipsoid"):
+        bad(f"[ortho] fill_dem_vertical must be 'geoid' or 'ellipsoid', got {cfg.ortho.fill_dem_vertical!r}")
     if cfg.ortho.res is not None and not cfg.ortho.res > 0:
         bad(f"[ortho] res must be positive, got {cfg.ortho.res}")
     from stereodem.ortho.drm import RESAMPLING
@@ -424,3 +451,6 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[run] workers must be at least 1, got {run.workers}")
     if run.tile_timeout is not None and not run.tile_timeout > 0:
         bad(f"[run] tile_timeout must be positive, got {run.tile_timeout}")
+    if run.creation_options:
+        from stereodem.sensor.io.raster import parse_creation_options
+        run.creation_options = parse_creation_options(run.creation_options)

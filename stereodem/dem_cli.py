@@ -20,6 +20,7 @@ EXAMPLES = """examples:
   stereodem dem 3N.tif 3B.tif -o dem --seed-dem srtm.tif --matcher ncc --geoid --overwrite
   stereodem dem 3N.tif 3B.tif -o dem --height-range 0 2500 --workers 2 --tile-timeout 120
   stereodem dem left.tif right.tif -o out --right-model right.adjusted.model.json
+  stereodem dem AST_L1A_00307312017190728_20250708114426.hdf -o dem      # 3N/3B of a granule
 """
 
 
@@ -32,8 +33,9 @@ def add_parser(subparsers):
                     "LEFT/RIGHT are GeoTIFFs with RPC metadata (tags or .RPB sidecar) or a "
                     "physical-model sidecar <stem>.model.json.",
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("left", help="left (reference) image GeoTIFF")
-    p.add_argument("right", help="right image GeoTIFF")
+    p.add_argument("left", help="left (reference) image GeoTIFF, or an ASTER L1A granule (V004 "
+                                "AST_L1A_*.hdf, V003 zip or folder) whose 3N/3B bands are the pair")
+    p.add_argument("right", nargs="?", help="right image GeoTIFF (omitted for an ASTER granule)")
     p.add_argument("-o", "--out", required=True, help="output folder")
     options.add_res(p, "2 x the left image's GSD")
     rng = p.add_mutually_exclusive_group()
@@ -51,11 +53,15 @@ def add_parser(subparsers):
     p.add_argument("--no-pointing-correction", action="store_true",
                    help="do not estimate the relative pointing (right-image translation)")
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
-    p.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    options.add_band(p)
+    p.add_argument("--rpc-direct", action="store_true",
+                   help="localise RPCs with the file's direct model (DIMAP, rpcm JSON) instead of "
+                        "the exact inverse of the projection (the default)")
     options.add_workers(p)
     p.add_argument("--tile-timeout", type=float, default=600.0,
                    help="seconds after which a tile is abandoned and reported (default 600)")
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
+    options.add_creation_options(p)
     options.add_overwrite(p)
     p.add_argument("--force", action="store_true",
                    help="exit 0 with a result the sanity checks call suspect (still reported)")
@@ -72,8 +78,9 @@ def config_from_args(args):
     hr = tuple(args.height_range) if args.height_range is not None else None
     cfg = Config(
         inputs=InputSettings(left=args.left, right=args.right, band=args.band,
+                             radiometric=not args.no_radiometric,
                              left_model=args.left_model, right_model=args.right_model,
-                             seed_dem=args.seed_dem, seed_dem_vertical=args.dem_vertical),
+                             rpc_direct=args.rpc_direct, seed_dem=args.seed_dem, seed_dem_vertical=args.dem_vertical),
         output_dir=args.out,
         stereo=StereoSettings(
             rectification=RectificationSettings(tile_size=args.tile_size, height_range=hr,
@@ -82,7 +89,8 @@ def config_from_args(args):
             gridding=GriddingSettings(res=args.res, crs=args.crs, geoid=args.geoid,
                                       method=args.gridding)),
         run=RunSettings(workers=args.workers, tile_timeout=args.tile_timeout, dask=args.dask,
-                        overwrite=args.overwrite, force=args.force))
+                        overwrite=args.overwrite, force=args.force,
+                        creation_options=options.creation_options(args)))
     validate(cfg, "command line")
     return cfg
 
@@ -97,6 +105,8 @@ def run(args) -> int:
 
     from .outlock import output_folder
     from .pipeline import input_paths, load_pair, stereo_stage, suspect_error
+    from .provenance import provenance, utc_now
+    started = utc_now()
     options.check_common(args)
     cfg = config_from_args(args)
     with output_folder(cfg.output_dir, overwrite=args.overwrite, inputs=input_paths(cfg)) as out:
@@ -104,8 +114,9 @@ def run(args) -> int:
         bar = options.progress_bar("stereo")
         prod, failed = stereo_stage(cfg, pair, progress=bar)
         bar.close()
-        prod.write(out, overwrite=True)
+        prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
         report = dict(status=prod.info["status"], warnings=prod.info["warnings"],
+                      provenance=provenance(started=started), input_metadata=pair.tags,
                       left=str(args.left), right=str(args.right), settings=prod.settings,
                       info=prod.info, n_points=prod.n_points, seconds=prod.seconds, tiles=prod.tiles,
                       failed_tiles=failed)

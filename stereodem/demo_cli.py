@@ -1,7 +1,9 @@
-"""``stereodem demo``: the whole job on the built-in example, nothing to download.
+"""stereodem demo: the whole job on the built-in example, nothing to download.
 
-Simulates an ASTER-like 3N/3B pair from the bundled real SRTM DEM and Landsat texture, then
-runs :func:`stereodem.pipeline.run` on it with the true DEM as the reference and the
+Simulates an ASTER-like 3N/3B pair from the bundled real SRTM DEM and Landsat texture,
+writes it as an ASTER L1A V004 granule (HDF-EOS2, the format NASA distributes), then runs the
+whole job on that granule (the real input path: granule reader, radiometric correction,
+sensor models from the granule's lattice) with the true DEM as the reference and the
 simulator's check points, and prints where the products are and the headline accuracy.
 """
 from __future__ import annotations
@@ -10,6 +12,8 @@ import argparse
 import time
 from pathlib import Path
 
+from stereodem.sensor.errors import InputError
+
 EXAMPLES = """examples:
   stereodem demo -o demo_out
   stereodem demo -o demo_out --size 800 800 --workers 2 --overwrite
@@ -17,8 +21,7 @@ EXAMPLES = """examples:
 
 CONFIG = """# written by 'stereodem demo'; run again with: stereodem run {cfg}
 [inputs]
-left = "scene/left.tif"
-right = "scene/right.tif"
+left = "scene/{granule}"           # an ASTER L1A granule: its 3N/3B bands are the pair
 seed_dem = "{seed}"
 seed_dem_vertical = "geoid"
 reference_dem = "scene/truth_dem.tif"
@@ -36,6 +39,8 @@ matcher = "ncc"
 
 [ortho]
 both = true
+fill_dem = "{seed}"                # 3B sees beyond the stereo DEM: the SRTM fills those cells
+fill_dem_vertical = "geoid"
 
 [assess]
 coregister = true
@@ -67,19 +72,25 @@ def run(args) -> int:
 
 
 def _demo(args, out) -> int:
-    from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+    from stereodem.sensor.simulation.simulate import simulate_scene
 
     from .config import load_config
+    from .simulate_cli import granule_right_size, write_granule_scene
     from .pipeline import run as run_pipeline
     from .run_cli import progress_factory, summarize
     t0 = time.perf_counter()
-    scene = simulate_scene("aster", size=tuple(args.size), seed=args.seed, noise=args.noise)
-    write_scene(scene, out / "scene", overwrite=True)
-    print(f"simulated ASTER-like 3N/3B pair {args.size[0]}x{args.size[1]} in {time.perf_counter() - t0:.1f} s: {out}/scene/")
+    if args.size[0] % 10:
+        raise InputError(f"--size width {args.size[0]} must be a multiple of 10 (an ASTER granule "
+                         "has 11 lattice columns)")
+    scene = simulate_scene("aster", size=tuple(args.size), right_size=granule_right_size(args.size),
+                           seed=args.seed, noise=args.noise)
+    granule = write_granule_scene(scene, out / "scene", version=4, seed=args.seed, overwrite=True)
+    print(f"simulated ASTER L1A granule (3N {args.size[0]}x{args.size[1]}, 3B "
+          f"{scene.right.shape[1]}x{scene.right.shape[0]}) in {time.perf_counter() - t0:.1f} s: {granule}")
     cfg_path = Path(out) / "demo.toml"
     from stereodem.sensor.geo.dem import DEM
     seed = DEM.bundled().path          # the same real SRTM the scene was made from, as a seed
-    cfg_path.write_text(CONFIG.format(cfg=cfg_path, seed=seed))
+    cfg_path.write_text(CONFIG.format(cfg=cfg_path, seed=seed, granule=granule.name))
     cfg = load_config(cfg_path, workers=args.workers, overwrite=True)
     info = run_pipeline(cfg, progress_factory=progress_factory(args))
     summarize(info)

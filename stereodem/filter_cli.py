@@ -39,6 +39,7 @@ def add_parser(sub):
                    help="fill holes larger than --max-hole-size from --seed-dem")
     p.add_argument("--dem-vertical", choices=options.VERTICALS,
                    help="vertical reference of DEM when the file does not say")
+    options.add_creation_options(p)
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
@@ -76,7 +77,8 @@ def run(args) -> int:
     check_writable(edit_mask_path(args.out), args.overwrite)
     layers = read_stereo_layers(args.dem, vertical=args.dem_vertical)
     z, mask, report = post_stage(cfg, layers, load_seed_dem(cfg))
-    write_clean_dem(args.out, z, mask, layers, overwrite=args.overwrite)
+    write_clean_dem(args.out, z, mask, layers, overwrite=args.overwrite,
+                    creation_options=options.creation_options(args))
     valid = float((z == z).mean())
     options.say(f"stereodem filter: {args.out}: {100 * valid:.1f} % of cells valid; "
                 f"edits: {json.dumps(_summary(report))}")

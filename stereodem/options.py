@@ -21,8 +21,37 @@ def add_res(p, default_text: str):
     p.add_argument("--crs", help="output CRS, e.g. EPSG:32637 (default: the scene's UTM zone)")
 
 
+def band(text: str):
+    """``--band``: a band number, or an ASTER band name (3N, 3B)."""
+    import argparse
+    t = text.strip()
+    if t.isdigit():
+        return int(t)
+    if t.upper() in ("3N", "3B"):
+        return t.upper()
+    raise argparse.ArgumentTypeError(f"expected a band number or 3N/3B, got {text!r}")
+
+
+def add_band(p, default_text="1; 3N/3B in an ASTER granule"):
+    p.add_argument("--band", type=band, default=1, help=f"image band (default {default_text})")
+    p.add_argument("--no-radiometric", action="store_true",
+                   help="ASTER granules: keep the DNs instead of radiance from the radiometric table")
+
+
 def add_workers(p, what="worker processes for the stereo tiles"):
     p.add_argument("--workers", type=int, help=f"{what} (default: all cores)")
+
+
+def add_creation_options(p):
+    p.add_argument("--co", action="append", metavar="KEY=VALUE", default=[],
+                   help="GDAL creation option of the GeoTIFF products, repeatable (as GDAL's -co), "
+                        "e.g. --co COMPRESS=ZSTD (default: COG, DEFLATE, predictor by data type)")
+
+
+def creation_options(args):
+    """The ``--co`` options as a dict (None when none were given)."""
+    from stereodem.sensor.io.raster import parse_creation_options
+    return parse_creation_options(getattr(args, "co", None)) or None
 
 
 def add_overwrite(p):

@@ -17,6 +17,7 @@ EXAMPLES = """examples:
   stereodem ortho img.tif --dem srtm.tif --dem-vertical geoid --res 0.5 --resampling cubic -o ortho.tif
   stereodem ortho img.tif --dem dem.tif --model rational-2 --gcps points.csv -o ortho.tif
   stereodem ortho img.tif --dem dem.tif --layers incidence,occlusion -o ortho.tif
+  stereodem ortho AST_L1A_00307312017190728_20250708114426.hdf --band 3B --dem dem.tif -o 3B.tif
 """
 
 
@@ -27,7 +28,8 @@ def add_parser(sub):
                                    "default). Optional layers are written beside the output as "
                                    "<output stem>_<layer>.tif.",
                        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("image", help="image GeoTIFF (with RPCs or a <stem>.model.json sidecar)")
+    p.add_argument("image", help="image GeoTIFF (with RPCs or a <stem>.model.json sidecar), or an "
+                                 "ASTER L1A granule (choose the band with --band 3N|3B)")
     p.add_argument("--dem", required=True, help="DEM GeoTIFF")
     p.add_argument("-o", "--out", required=True, help="output orthoimage GeoTIFF")
     options.add_res(p, "the image GSD")
@@ -42,23 +44,37 @@ def add_parser(sub):
                         f"a generic model fitted to --gcps: {', '.join(GENERIC)} (default auto)")
     p.add_argument("--gcps", help="GCP CSV (id,lon,lat,h,col,row[,role]) for the generic models")
     p.add_argument("--layers", default="", help="comma-separated extra layers: incidence,occlusion")
-    p.add_argument("--band", type=int, default=1, help="image band (default 1)")
+    options.add_band(p, "1; 3N in an ASTER granule")
+    p.add_argument("--rpc-direct", action="store_true",
+                   help="localise RPCs with the file's direct model instead of the exact inverse")
+    p.add_argument("--fill-dem", metavar="OTHER.tif",
+                   help="second DEM for the cells the DEM has no height for (holes, partial coverage)")
+    p.add_argument("--fill-dem-vertical", choices=["geoid", "ellipsoid"],
+                   help="vertical reference of --fill-dem when the file does not say")
     options.add_workers(p, "threads for the row blocks")
+    p.add_argument("--float", action="store_true",
+                   help="write float32 values instead of the image's own data type")
+    options.add_creation_options(p)
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
 
 
-def _load_model(args):
+def _open(args):
+    """The image and its model: the image's own (sidecar, RPCs, granule band), a model file, or
+    a generic model fitted to ``--gcps``; returns an :class:`stereodem.pipeline.InputImage`."""
     from pathlib import Path
 
     from stereodem.sensor.errors import InputError, SensorModelError
-    from stereodem.sensor.io.sidecar import load_image_model, load_model
+    from stereodem.sensor.io.raster import image_dtype, read_image
     from stereodem.sensor.models.rpc import RPCModel
+
+    from .pipeline import InputImage, open_image
     if args.model in GENERIC:
         if not args.gcps:
             raise InputError(f"--model {args.model} needs --gcps CSV")
-        from stereodem.sensor.models.generic import fit_model, read_gcps
+        from stereodem.sensor.io.gcps import read_gcps
+        from stereodem.sensor.models.generic import fit_model
         pts = read_gcps(args.gcps)
         gcp = pts.select("gcp") if "gcp" in set(pts.role) else pts
         chk = pts.select("check")
@@ -66,18 +82,17 @@ def _load_model(args):
                                   check=chk.arrays() if len(chk) else None)
         options.say(f"{args.model}: {report.n_gcp} GCPs, {report.n_check} check points; GCP RMSE "
                     f"{report.gcp_rmse:.3f} px, check RMSE {report.check_rmse:.3f} px")
-        return model
+        return InputImage(read_image(args.image, args.band), model, image_dtype(args.image, args.band))
     if args.gcps:
         raise InputError("--gcps is only used with a generic --model (poly2d-1 ... rational-3)")
-    if args.model == "rpc":
-        return RPCModel.from_file(args.image)
-    if args.model in ("auto", "physical"):
-        model = load_image_model(args.image, prefer="physical")
-        if args.model == "physical" and isinstance(model, RPCModel):
+    kw = dict(band=args.band, rpc_direct=args.rpc_direct, radiometric=not args.no_radiometric)
+    if args.model in ("auto", "physical", "rpc"):
+        img = open_image(args.image, prefer="rpc" if args.model == "rpc" else "physical", **kw)
+        if args.model == "physical" and isinstance(img.model, RPCModel):
             raise SensorModelError(f"{args.image}: no physical model sidecar (<stem>.model.json)")
-        return model
+        return img
     if Path(args.model).is_file():
-        return load_model(args.model)
+        return open_image(args.image, model_file=args.model, **kw)
     raise InputError(f"--model {args.model!r}: not auto, rpc, physical, a generic model name or "
                      "an existing model file")
 
@@ -87,7 +102,8 @@ def config_from_args(args):
     cfg = Config(inputs=InputSettings(left=args.image, band=args.band, dem=args.dem,
                                       dem_vertical=args.dem_vertical),
                  output_dir=str(args.out),
-                 ortho=OrthoSettings(resampling=args.resampling, res=args.res, crs=args.crs),
+                 ortho=OrthoSettings(resampling=args.resampling, res=args.res, crs=args.crs,
+                                     fill_dem=args.fill_dem, fill_dem_vertical=args.fill_dem_vertical),
                  run=RunSettings(workers=args.workers, overwrite=args.overwrite))
     validate(cfg, "command line")
     return cfg
@@ -98,7 +114,7 @@ def run(args) -> int:
 
     from stereodem.sensor.errors import InputError
     from stereodem.sensor.geo.dem import DEM
-    from stereodem.sensor.io.raster import check_writable, read_image, write_geotiff
+    from stereodem.sensor.io.raster import check_writable, write_geotiff
 
     from .pipeline import ortho_stage
     options.check_common(args)
@@ -118,16 +134,15 @@ def run(args) -> int:
     check_writable(out, args.overwrite)
     for p in layer_paths.values():
         check_writable(p, args.overwrite)
-    model = _load_model(args)
-    image = read_image(args.image, args.band)
-    if args.model not in GENERIC and image.shape != (model.height, model.width):
-        raise InputError(f"{args.image}: image is {image.shape[1]}x{image.shape[0]} but its model "
-                         f"describes {model.width}x{model.height}")
+    src = _open(args)
+    image, model = src.image, src.model
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical)
     bar = options.progress_bar("ortho")
     ortho = ortho_stage(cfg, [("image", image, model)], dem, progress=bar)["image"]
     bar.close()
-    ortho.write(out, overwrite=args.overwrite)
+    co = options.creation_options(args)
+    ortho.write(out, overwrite=args.overwrite, creation_options=co, tags=src.tags,
+                dtype=None if args.float else src.dtype)
     rep = ortho.report()
     options.say(f"wrote {out}: {rep['width']}x{rep['height']} cells of {rep['res_m']:g} in "
                 f"{rep['crs']}, {100 * rep['valid_fraction']:.1f}% valid; map interpolation error "
@@ -135,12 +150,14 @@ def run(args) -> int:
     if "incidence" in layers:
         from stereodem.ortho.layers import incidence_angle
         write_geotiff(layer_paths["incidence"], incidence_angle(ortho, model), ortho.transform,
-                      ortho.crs, float("nan"), overwrite=args.overwrite)
+                      ortho.crs, float("nan"), overwrite=args.overwrite, creation_options=co,
+                      descriptions=["local incidence angle"], units=["degree"])
         options.say(f"wrote {layer_paths['incidence']}: local incidence angle (deg)")
     if "occlusion" in layers:
         from stereodem.ortho.layers import occlusion_mask
         occ = occlusion_mask(ortho, model)
         write_geotiff(layer_paths["occlusion"], occ.astype("uint8"), ortho.transform, ortho.crs, 255,
-                      overwrite=args.overwrite)
+                      overwrite=args.overwrite, creation_options=co,
+                      descriptions=["occlusion: 1 hidden from the sensor, 0 seen"], units=["1"])
         options.say(f"wrote {layer_paths['occlusion']}: occlusion mask (1 = hidden, {100 * occ.mean():.2f}%)")
     return 0

@@ -39,7 +39,8 @@ from stereodem.post.filters import EditCode
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.geo.dem import DEM
 from stereodem.sensor.geo.grid import MapGrid
-from stereodem.sensor.io.raster import prepare_output_dir, read_image, write_geotiff, write_text_atomic
+from stereodem.sensor.io.raster import (image_dtype, read_image, write_geotiff,
+                                        write_text_atomic)
 from stereodem.sensor.io.sidecar import load_image_model, load_model
 from stereodem.stereo.grid import DEMGrid
 
@@ -83,32 +84,54 @@ class Pair:
     left_model: object
     right_model: object
     seed_dem: DEM | None = None
-    left_dtype: str | None = None          #: the files' pixel types (bit depths)
-    right_dtype: str | None = None
+    left_dtype: np.dtype = np.dtype("float32")
+    right_dtype: np.dtype = np.dtype("float32")
+    tags: dict = field(default_factory=dict)
 
 
-def load_image_and_model(path, *, band: int = 1, prefer: str = "physical", model_file=None):
-    """One image (:func:`stereodem.sensor.io.raster.read_image`) and its sensor model (the
-    ``model_file`` if given, else the image's sidecar or RPCs), checked against each other
-    (sizes before the pixels are read) and for texture."""
-    model = load_model(model_file) if model_file else load_image_model(path, prefer=prefer)
-    try:
-        with rasterio.open(path) as ds:
-            shape = (ds.height, ds.width)
-    except rasterio.errors.RasterioIOError as exc:
-        raise InputError(f"{path}: cannot read the image ({str(exc).splitlines()[0][:120]})") from None
-    if shape != (model.height, model.width):
-        raise InputError(f"{path}: image is {shape[1]}x{shape[0]} but its model "
+@dataclass
+class InputImage:
+    """One input image as every stage sees it: float32 values (NaN = no data), its sensor
+    model, the stored data type and metadata tags (an ASTER granule's acquisition time, ...)."""
+
+    image: np.ndarray
+    model: object
+    dtype: np.dtype
+    tags: dict = field(default_factory=dict)
+
+
+ASTER_STEREO_BANDS = ("3N", "3B")
+
+
+def open_image(path, *, band=1, prefer: str = "physical", model_file=None, rpc_direct: bool = False,
+               radiometric: bool = True, granules: dict | None = None) -> InputImage:
+    """The one input layer: a GeoTIFF (with RPCs or a model sidecar) or an ASTER L1A granule
+    (V004 ``.hdf``, V003 ``.zip`` or folder; ``band`` ``"3N"``/``"3B"``, radiance by the
+    granule's radiometric table unless ``radiometric`` is false), with its model (or the
+    ``model_file``), checked against each other. ``granules`` caches opened granules by path."""
+    from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
+    if is_aster_granule(path):
+        key = str(Path(path).resolve())
+        g = (granules or {}).get(key) or open_aster_granule(path)
+        if granules is not None:
+            granules[key] = g
+        name = band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
+        img = g.read_image(name, radiometric=radiometric)
+        model = load_model(model_file) if model_file else g.model(name)
+        dtype = np.dtype("float32") if radiometric else g.band(name).dn.dtype
+        tags = {**g.tags(), "ASTER_BAND": str(name).upper(), "ASTER_RADIOMETRIC": str(bool(radiometric))}
+    else:
+        if isinstance(band, str):
+            raise InputError(f"{path}: band {band!r} names an ASTER band, but this is not an ASTER "
+                             "granule (give a band number)")
+        model = (load_model(model_file, rpc_direct=rpc_direct) if model_file else
+                 load_image_model(path, prefer=prefer, rpc_direct=rpc_direct))
+        img, dtype, tags = read_image(path, band), image_dtype(path, band), {}
+    if img.shape != (model.height, model.width):
+        raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
                          f"describes {model.width}x{model.height}")
-    img = read_image(path, band)
-    sanity.check_texture(img, str(path))
-    return img, model
-
-
-def image_dtype(path, band: int = 1) -> str:
-    """Pixel type of band ``band`` of an image file (e.g. ``"uint16"``)."""
-    with rasterio.open(path) as ds:
-        return ds.dtypes[band - 1]
+    sanity.check_texture(img, f"{path}" + (f" band {band}" if isinstance(band, str) else ""))
+    return InputImage(img, model, dtype, tags)
 
 
 def load_seed_dem(cfg: Config) -> DEM | None:
@@ -119,26 +142,27 @@ def load_seed_dem(cfg: Config) -> DEM | None:
 
 
 def load_pair(cfg: Config) -> Pair:
-    """Both images (band ``cfg.inputs.band``) with their models, and the seed DEM."""
+    """Both images with their models, and the seed DEM. An ASTER granule given alone (or as
+    both images) is its own pair: 3N left, 3B right."""
     i = cfg.inputs
-    if not (i.left and i.right):
+    if not i.left:
         raise InputError("a stereo DEM needs two images ([inputs] left and right)")
-    # the memory check of read_image and the size check come before any pixel is read
-    for path in (i.left, i.right):
-        try:
-            with rasterio.open(path) as ds:
-                from stereodem.sensor.io.memory import check_allocation
-                check_allocation(2 * 9.0 * ds.width * ds.height,
-                                 f"{path}: the stereo pair of {ds.width} x {ds.height} pixels")
-        except rasterio.errors.RasterioIOError as exc:
-            raise InputError(f"{path}: cannot read the image ({str(exc).splitlines()[0][:120]})") from None
-    left = load_image_and_model(i.left, band=i.band, prefer=i.model, model_file=i.left_model)
-    right = load_image_and_model(i.right, band=i.band, prefer=i.model, model_file=i.right_model)
+    from stereodem.sensor.io.aster_l1a import is_aster_granule
+    granule = is_aster_granule(i.left)
+    right = i.right or (i.left if granule else None)
+    if not right:
+        raise InputError(f"{i.left}: a stereo DEM needs a second image (or an ASTER granule)")
+    same = granule and Path(right).resolve() == Path(i.left).resolve()
+    bands = ASTER_STEREO_BANDS if same else (i.band, i.band)
+    cache: dict = {}
+    kw = dict(prefer=i.model, rpc_direct=i.rpc_direct, radiometric=i.radiometric, granules=cache)
+    left = open_image(i.left, band=bands[0], model_file=i.left_model, **kw)
+    right = open_image(right, band=bands[1], model_file=i.right_model, **kw)
     seed = load_seed_dem(cfg)
     if seed is not None:
-        sanity.check_seed_dem(seed, left[1], right[1], name=f"seed DEM {cfg.inputs.seed_dem}:")
-    return Pair(left[0], right[0], left[1], right[1], seed,
-                image_dtype(i.left, i.band), image_dtype(i.right, i.band))
+        sanity.check_seed_dem(seed, left.model, right.model, name=f"seed DEM {cfg.inputs.seed_dem}:")
+    return Pair(left.image, right.image, left.model, right.model, seed,
+                left.dtype, right.dtype, {**left.tags, **{f"RIGHT_{k}": v for k, v in right.tags.items()}})
 
 
 def check_pair(cfg: Config, pair: Pair) -> float:
@@ -263,7 +287,7 @@ def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None):
     products = make_dem(left, right, pair.left_model, pair.right_model,
                         cfg.stereo, seed_dem=pair.seed_dem, runner=runner)
     products.info["base_to_height"] = round(bh, 4)
-    products.info["warnings"] = findings + sanity.check_result(products.tiles)
+    products.info["warnings"] = findings + sanity.check_result(products.info)
     products.info["status"] = sanity.status(products.info["warnings"])
     return products, [f.to_dict() for f in runner.failures]
 
@@ -334,12 +358,14 @@ def post_stage(cfg: Config, layers: DEMGrid, seed_dem: DEM | None = None):
     return z.astype(np.float32), mask, report
 
 
-def write_clean_dem(path, heights, mask, layers: DEMGrid, *, overwrite=False):
+def write_clean_dem(path, heights, mask, layers: DEMGrid, *, overwrite=False, creation_options=None):
     """Write a clean DEM and its edit mask (``<stem>_edit_mask.tif``, uint8, 255 = nodata)."""
     path = Path(path)
     clean = DEM(heights, layers.transform, layers.crs, layers.vertical, str(path))
-    clean.write(path, overwrite=overwrite)
-    write_geotiff(edit_mask_path(path), mask, layers.transform, layers.crs, 255, overwrite=overwrite)
+    clean.write(path, overwrite=overwrite, creation_options=creation_options)
+    write_geotiff(edit_mask_path(path), mask, layers.transform, layers.crs, 255, overwrite=overwrite,
+                  descriptions=["edit code: 0 kept, 1-8 filter reason, 99 border rim, 100/101 filled"],
+                  units=["1"], creation_options=creation_options)
     return clean
 
 
@@ -366,15 +392,19 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
     """Orthoimages of ``images`` (``[(name, image, model), ...]``) against ``dem``, all on one
     grid (the first image's unless ``grid`` is given); returns ``{name: Ortho}``.
 
-    Cells the DEM does not cover get no data, with a warning giving their share. Row blocks
-    run on ``cfg.run.workers`` threads (the result does not depend on the count).
+    Cells the DEM does not cover get no data, with a warning giving their share, unless
+    ``cfg.ortho.fill_dem`` names a second DEM to take their heights from. Row blocks run on
+    ``cfg.run.workers`` threads (the result does not depend on the count).
     """
     from stereodem.ortho.drm import orthorectify
     orthos = {}
     threads = cfg.run.workers or os.cpu_count() or 1
+    fill = (DEM.from_file(cfg.ortho.fill_dem, vertical=cfg.ortho.fill_dem_vertical)
+            if cfg.ortho.fill_dem else None)
     for name, img, model in images:
         o = orthorectify(img, model, dem, grid=grid, res=cfg.ortho.res, crs=cfg.ortho.crs,
-                         resampling=cfg.ortho.resampling, progress=progress, threads=threads)
+                         resampling=cfg.ortho.resampling, progress=progress, threads=threads,
+                         fill_dem=fill)
         grid = grid or o.grid
         orthos[name] = o
     return orthos
@@ -382,7 +412,7 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
 
 # ----------------------------------------------------------------------------- assessment
 
-def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True):
+def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True, provenance=None):
     """Accuracy report of ``dem`` (a :class:`DEM` or a path) against the reference DEM and
     check points of the configuration, written into ``out_dir``; returns (assessment, files)."""
     from stereodem.post.assess import assess_dem
@@ -399,7 +429,7 @@ def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True):
                         landcover_names={int(k): v for k, v in (a.landcover_names or {}).items()},
                         elevation_bins=a.elevation_bins, **kw)
     files = write_report(result, out_dir, dem_heights=dem.heights, dem_transform=dem.transform,
-                         dem_crs=dem.crs, overwrite=overwrite)
+                         dem_crs=dem.crs, overwrite=overwrite, provenance=provenance)
     return result, files
 
 
@@ -440,6 +470,9 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
 
 
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
+    from .provenance import provenance, utc_now
+    started = utc_now()
+    co = cfg.run.creation_options
     prog = progress_factory or (lambda label: None)
     stages = StageLog()
     t_all = time.perf_counter()
@@ -454,7 +487,7 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     bar = prog("stereo")
     products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles")
     _close(bar)
-    products.write(out / "raw", overwrite=True)
+    products.write(out / "raw", overwrite=True, creation_options=co)
     written.append("raw")
     tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
     stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
@@ -466,7 +499,8 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     if not suspect:
         t0 = time.perf_counter()
         z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
-        clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True)
+        clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True,
+                                creation_options=co)
         written += ["dem.tif", edit_mask_path(out / "dem.tif").name]
         stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
 
@@ -478,21 +512,25 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
                 images.append(("right", pair.right_image, pair.right_model))
             orthos = ortho_stage(cfg, images, clean, progress=bar)
             _close(bar)
-            for name, o in orthos.items():
-                o.write(out / f"ortho_{name}.tif", overwrite=True)
+            dtypes = {"left": pair.left_dtype, "right": pair.right_dtype}
+            for name, o in orthos.items():           # in the image's own data type
+                o.write(out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name], creation_options=co)
                 written.append(f"ortho_{name}.tif")
             stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px
                                                                for k, o in orthos.items()})
 
         if cfg.assess.enabled and cfg.inputs.reference_dem:
             t0 = time.perf_counter()
-            report = assess_stage(cfg, clean, out / "assess", overwrite=True)[0].report
+            report = assess_stage(cfg, clean, out / "assess", overwrite=True,
+                                  provenance=provenance(started=started))[0].report
             written.append("assess")
             stages.record("assess", t0)
 
     written += ["tiles", "run.json"]
     run_info = dict(status=sanity.status(warnings), warnings=warnings,
-                    config=cfg.to_dict(), versions=versions(), stages=stages.stages,
+                    provenance=provenance(started=started), config=cfg.to_dict(),
+                    input_metadata=pair.tags,
+                    versions=versions(), stages=stages.stages,
                     seconds=round(time.perf_counter() - t_all, 3), failed_tiles=failed,
                     stereo=dict(tiles=products.tiles, info=products.info), post=post_report,
                     outputs=sorted(written), headline=_headline(report))

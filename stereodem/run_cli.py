@@ -38,6 +38,9 @@ def add_run_options(p):
                    help="replace the products of a previous job in the output folder")
     p.add_argument("--force", action="store_true",
                    help="go on with a result the sanity checks call suspect (still reported)")
+    p.add_argument("--co", action="append", metavar="KEY=VALUE", default=[],
+                   help="GDAL creation option of the GeoTIFF products, repeatable (overrides [run] "
+                        "creation_options)")
 
 
 def progress_factory(args):
@@ -69,9 +72,11 @@ def summarize(info, stream=None):
 def run(args) -> int:
     from .config import load_config
     from .pipeline import run as run_pipeline
+    from stereodem.sensor.io.raster import parse_creation_options
     cfg = load_config(args.config, workers=args.workers, tile_timeout=args.tile_timeout,
                       dask=args.dask, resume=args.resume or None, overwrite=args.overwrite or None,
-                      force=args.force or None)
+                      force=args.force or None,
+                      creation_options=parse_creation_options(args.co) or None)
     info = run_pipeline(cfg, progress_factory=progress_factory(args))
     summarize(info)
     return 0

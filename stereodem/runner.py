@@ -205,16 +205,13 @@ def _digest(result) -> str:
 
 
 def _save(cache_dir, tile, result, key=None):
-    path = _cache_file(cache_dir, tile)
-    fd, tmp = tempfile.mkstemp(dir=cache_dir, suffix=".npz.part")
-    os.close(fd)
+    """Store a finished tile atomically, with the permissions of every other output, its
+    identity, job key and checksum."""
+    from stereodem.sensor.io.raster import atomic_path
     meta = {"__tile__": _identity(tile), "__job__": np.array(key or ""),
             "__sha256__": np.array(_digest(result))}
-    with open(tmp, "wb") as f:
+    with atomic_path(_cache_file(cache_dir, tile)) as tmp, open(tmp, "wb") as f:
         np.savez(f, **result, **meta)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _load(cache_dir, tile, key=None):

@@ -13,7 +13,8 @@ Adjustments, reported as warnings (:func:`comparable_radiometry`): images of dif
 depth are brought to one radiometric scale before matching.
 
 After the stereo work (:func:`check_result`, findings of severity ``"suspect"``): the
-heights pile against a bound of the height search range, i.e. the terrain is probably
+heights pile against a bound of the height search range
+(:func:`stereodem.stereo.sparse_stage.height_pileup`, counted per tile), i.e. the terrain is probably
 outside the range (a wrong ``--height-range``, a seed DEM in the wrong units). A suspect
 result makes the command exit with status 1 unless ``--force``; the findings are written in
 ``dem_report.json`` / ``run.json`` under ``warnings`` either way.
@@ -40,11 +41,6 @@ MIN_BASE_TO_HEIGHT = 0.02
 MIN_TEXTURED_FRACTION = 0.05
 #: Smallest share of the left image's footprint a seed DEM must cover.
 MIN_SEED_COVERAGE = 0.5
-#: Share of the search range, at each end, counted as "at the bound".
-BOUND_BAND = 0.05
-#: Largest share of the points allowed in those two bands (5 % + 5 % of the range: a
-#: uniform, meaningless spread of heights already puts 10 % there).
-MAX_AT_BOUND = 0.15
 
 
 @dataclass
@@ -172,20 +168,20 @@ def comparable_radiometry(left, right, left_dtype=None, right_dtype=None):
 
 # ----------------------------------------------------------------------------- after
 
-def check_result(tile_summaries) -> list[dict]:
-    """Findings about a stereo result from its tiles' QA summaries (each tile counts its
-    points ``n_points`` and those within :data:`BOUND_BAND` of its height range's ends,
-    ``n_at_bound``)."""
-    n = sum(int(s.get("n_points", 0)) for s in tile_summaries)
-    at = sum(int(s.get("n_at_bound", 0)) for s in tile_summaries)
+def check_result(info: dict) -> list[dict]:
+    """Findings about a stereo result from its run figures (``info`` of
+    :func:`stereodem.stereo.pipeline.make_dem`): a ``height_pileup`` flagged suspect (too many
+    heights at a bound of their tile's search range) is a ``heights_at_search_bound`` finding."""
     out = []
-    if n and at / n > MAX_AT_BOUND:
+    pile = info.get("height_pileup") or {}
+    if pile.get("suspect"):
+        share = max(pile["low_share"], pile["high_share"])
+        side = "lower" if pile["low_share"] >= pile["high_share"] else "upper"
         out.append(Finding(
             "heights_at_search_bound", "suspect",
-            f"{100 * at / n:.0f} % of the heights lie at the ends of the height search range "
-            f"(at most {100 * MAX_AT_BOUND:.0f} % expected): the terrain is probably outside the "
-            "range (check --height-range or the seed DEM's units and vertical reference)",
-            round(at / n, 4), MAX_AT_BOUND).to_dict())
+            f"{100 * share:.0f} % of the heights lie at the {side} end of the height search range: "
+            "the terrain is probably outside the range (check --height-range, or the seed DEM's "
+            "units and vertical reference)", round(share, 4)).to_dict())
     for f in out:
         log.warning("suspect result: %s", f["message"])
     return out

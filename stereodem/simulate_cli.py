@@ -5,10 +5,16 @@ import argparse
 import json
 import logging
 
+from stereodem.sensor.errors import InputError
+
 log = logging.getLogger(__name__)
+
+FORMATS = ("geotiff", "l1a-v004", "l1a-v003")
 
 EXAMPLES = """examples:
   stereodem simulate --preset aster -o sim_aster
+  stereodem simulate --preset aster --format l1a-v004 --size 820 840 -o sim_granule
+  stereodem simulate --preset aster --format l1a-v003 --jitter 3 1.5 -o sim_v003
   stereodem simulate --preset frame --size 800 800 --noise 2 --seed 7 -o sim_frame
   stereodem simulate --preset pushbroom --angles 20 -20 --dem my_dem.tif --dem-vertical geoid -o sim
 """
@@ -18,39 +24,89 @@ def add_parser(sub):
     p = sub.add_parser("simulate", help="simulate a stereo pair from a DEM and a texture",
                        description="Render a stereo pair through exact sensor models from a real DEM "
                                    "and texture; write images with RPCs, physical-model sidecars, "
-                                   "the true DEM and orthoimage, and check points.",
+                                   "the true DEM and orthoimage, and check points. With --format "
+                                   "l1a-v004 / l1a-v003 (preset aster) the pair is written as an "
+                                   "ASTER L1A granule (3N = left, 3B = right) instead of GeoTIFFs.",
                        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", choices=["aster", "frame", "pushbroom"], default="aster")
+    p.add_argument("--format", choices=FORMATS, default="geotiff",
+                   help="geotiff (default): left/right.tif + model sidecars; l1a-v004: an "
+                        "AST_L1A_004 HDF-EOS2 granule; l1a-v003: an AST_L1A_003 zip of GeoTIFFs "
+                        "and text tables (aster preset only)")
     p.add_argument("--dem", help="DEM GeoTIFF (default: the bundled SRTM 3\" DEM, EGM96 heights)")
     p.add_argument("--dem-vertical", choices=["geoid", "ellipsoid"],
                    help="vertical reference of --dem when the file does not say")
     p.add_argument("--texture", help="texture image (default: the bundled Landsat image plus detail)")
     p.add_argument("--size", nargs=2, type=int, default=[600, 600], metavar=("W", "H"))
     p.add_argument("--right-size", nargs=2, type=int, metavar=("W", "H"),
-                   help="size of the second image if different (ASTER 3B: 5000 4600 for 3N's 4100 4200)")
+                   help="size of the second image if different (ASTER 3B: 5000 5400 for 3N's "
+                        "4100 4200; granule formats default to that ratio)")
     p.add_argument("--noise", type=float, default=1.0, help="sensor noise sigma in DN (default 1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--bits", type=int, choices=[8, 16], default=8)
     p.add_argument("--angles", nargs=2, type=float, default=[0.0, -27.6], metavar=("A1", "A2"),
                    help="along-track tilts in degrees for --preset pushbroom")
+    p.add_argument("--jitter", nargs=2, type=float, metavar=("AMPLITUDE_URAD", "FREQUENCY_HZ"),
+                   help="along-track attitude oscillation (pitch) of the second camera (3B); "
+                        "the written model/granule geometry stays nominal, as in L1A products")
+    p.add_argument("--velocity", choices=["inertial", "earth_fixed"], default="inertial",
+                   help="what the granule's SatelliteVelocity holds (default inertial)")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--overwrite", action="store_true", help="reuse a non-empty output folder")
     p.set_defaults(run=run)
     return p
 
 
+def _granule_right_size(size):
+    """3B size in the real 3N:3B ratio (4100 x 4200 : 5000 x 5400), width a multiple of 10."""
+    w, h = size
+    return [int(round(w * 5000 / 4100 / 10.0)) * 10, int(round(h * 5400 / 4200))]
+
+
+def granule_right_size(size):
+    """3B size in the real 3N:3B ratio (4100 x 4200 : 5000 x 5400), width a multiple of 10."""
+    return tuple(_granule_right_size(size))
+
+
+def write_granule_scene(scene, out, *, version: int = 4, seed: int = 0, velocity: str = "inertial",
+                        overwrite: bool = False):
+    """Write a simulated ASTER scene as an L1A granule (V004 ``.hdf`` or V003 ``.zip``) plus its
+    truth (DEM, orthoimage, check points) in ``out``; returns the granule's path."""
+    from stereodem.sensor.simulation.aster_granule import granule_from_scene, write_v003, write_v004
+    from stereodem.sensor.simulation.simulate import write_scene
+    g = granule_from_scene(scene, seed=seed, velocity=velocity, version=version)
+    out = write_scene(scene, out, overwrite=overwrite, write_images=False)
+    if version == 4:
+        return write_v004(g, out / f"{g.granule_id}.hdf", overwrite=overwrite)
+    return write_v003(g, out / f"{g.granule_id}.zip", overwrite=overwrite)
+
+
 def run(args) -> int:
     from stereodem.sensor.geo.dem import DEM
     from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
+    granule = args.format != "geotiff"
+    if granule and args.preset != "aster":
+        raise InputError(f"--format {args.format} needs --preset aster (an ASTER granule)")
+    if granule and args.size[0] % 10:
+        raise InputError(f"--size width {args.size[0]} must be a multiple of 10 for an ASTER "
+                         f"granule (11 lattice columns)")
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical) if args.dem else None
+    right_size = tuple(args.right_size) if args.right_size else (
+        tuple(_granule_right_size(args.size)) if granule else None)
     log.info("simulating %s scene %dx%d", args.preset, *args.size)
-    right_size = tuple(args.right_size) if args.right_size else None
     scene = simulate_scene(args.preset, size=tuple(args.size), right_size=right_size, dem=dem,
-                           texture=args.texture, noise=args.noise, seed=args.seed, bits=args.bits, angles=tuple(args.angles))
-    out = write_scene(scene, args.out, overwrite=args.overwrite)
-    meta = json.loads((out / "scene.json").read_text())
-    print(f"wrote {out}/left.tif, right.tif (+ .model.json), truth_dem.tif, truth_ortho.tif, points.csv")
-    for name, rep in meta.get("rpc_fit", {}).items():
-        print(f"  {name}: RPC fit check-grid residual rms {rep.get('check_rms', float('nan')):.4f} px")
+                           texture=args.texture, noise=args.noise, seed=args.seed, bits=args.bits,
+                           angles=tuple(args.angles), jitter=args.jitter)
+    if not granule:
+        out = write_scene(scene, args.out, overwrite=args.overwrite)
+        meta = json.loads((out / "scene.json").read_text())
+        print(f"wrote {out}/left.tif, right.tif (+ .model.json), truth_dem.tif, truth_ortho.tif, points.csv")
+        for name, rep in meta.get("rpc_fit", {}).items():
+            print(f"  {name}: RPC fit check-grid residual rms {rep.get('check_rms', float('nan')):.4f} px")
+        return 0
+    path = write_granule_scene(scene, args.out, version=4 if args.format == "l1a-v004" else 3,
+                               seed=args.seed, velocity=args.velocity, overwrite=args.overwrite)
+    print(f"wrote {path} (3N {scene.left.shape[1]}x{scene.left.shape[0]}, "
+          f"3B {scene.right.shape[1]}x{scene.right.shape[0]}), truth_dem.tif, truth_ortho.tif, points.csv")
     return 0

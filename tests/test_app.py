@@ -230,3 +230,34 @@ def test_hand_route_gives_the_rasters_of_run(scene_dir, tmp_path):
     ra = json.loads((tmp_path / "run" / "assess" / "report.json").read_text())
     rb = json.loads((h / "assess" / "report.json").read_text())
     assert ra["stats"] == rb["stats"]
+
+
+@pytest.fixture(scope="module")
+def granule(tmp_path_factory):
+    """A small simulated ASTER L1A V004 granule (3N 300 x 300, 3B in the real size ratio)."""
+    from stereodem.simulate_cli import granule_right_size, write_granule_scene
+    d = tmp_path_factory.mktemp("granule")
+    sc = simulate_scene("aster", size=(300, 300), right_size=granule_right_size((300, 300)),
+                        seed=3, n_points=20)
+    return write_granule_scene(sc, d, version=4, seed=3), sc
+
+
+@pytest.mark.slow
+def test_granule_as_delivered_to_dem_and_ortho(granule, tmp_path):
+    """`dem GRANULE` takes 3N/3B; `ortho GRANULE --band 3B` orthorectifies the backward band."""
+    path, sc = granule
+    lo, hi = sc.truth_dem.height_range()
+    assert cli.main(["dem", str(path), "-o", str(tmp_path / "d"), "--height-range", str(lo - 100),
+                     str(hi + 100), "--workers", "1"]) == 0
+    rep = json.loads((tmp_path / "d" / "dem_report.json").read_text())
+    assert rep["input_metadata"]["ASTER_BAND"] == "3N" and rep["input_metadata"]["RIGHT_ASTER_BAND"] == "3B"
+    with rasterio.open(tmp_path / "d" / "dem.tif") as ds:
+        z = ds.read(1)
+    assert np.isfinite(z).mean() > 0.5 and lo - 100 < np.nanmedian(z) < hi + 100
+    assert cli.main(["ortho", str(path), "--band", "3B", "--dem", str(tmp_path / "d" / "dem.tif"),
+                     "-o", str(tmp_path / "o.tif"), "--workers", "1"]) == 0
+    with rasterio.open(tmp_path / "o.tif") as ds:
+        assert ds.tags()["ASTER_BAND"] == "3B" and ds.dtypes[0] == "float32"   # radiance
+    # a band name on a plain GeoTIFF is a clear error
+    assert cli.main(["ortho", str(tmp_path / "o.tif"), "--band", "3N", "--dem",
+                     str(tmp_path / "d" / "dem.tif"), "-o", str(tmp_path / "x.tif")]) == 1

@@ -6,8 +6,9 @@ from stereodem.sensor.geo import geodesy
 
 from stereodem.sensor.estimation import regularize
 from stereodem.sensor.errors import InputError
+from stereodem.sensor.io.gcps import read_gcps, write_gcps
 from stereodem.sensor.models.generic import (MODEL_NAMES, FitReport, GenericModel, fit_model, minimum_gcps,
-                            n_parameters, read_gcps, write_gcps)
+                            n_parameters)
 from stereodem.sensor.models.base import SensorModel
 
 LON0, LAT0 = 32.8, 39.9          # Ankara, UTM 36N, as in the Ok thesis

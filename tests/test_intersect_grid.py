@@ -117,7 +117,9 @@ def test_grid_write(tmp_path):
     g = grid_points(lon, lat, h, posting=500.0)
     paths = g.write(tmp_path)
     with rasterio.open(paths["dem"]) as ds:
-        assert ds.dtypes[0] == "float32" and np.isnan(ds.nodata) and ds.crs.to_epsg() == 32637
+        from stereodem.sensor.geo.dem import horizontal_crs   # CRS carries the vertical (#19)
+        assert ds.dtypes[0] == "float32" and np.isnan(ds.nodata)
+        assert horizontal_crs(ds.crs.to_wkt()).to_epsg() == 32637
         assert ds.transform.a == 500.0
         assert np.allclose(ds.read(1), g.heights, equal_nan=True)
     for k in ("count", "score", "raygap"):

@@ -24,19 +24,38 @@ _VERTICAL_TAG = "STEREODEM_VERTICAL"
 
 
 def _vertical_from_crs(crs: CRS | None) -> str | None:
+    """Vertical reference said by a CRS: a compound CRS whose vertical part is a geoid height
+    (EGM96/EGM2008, any gravity-related height) -> ``"geoid"``; a 3-D CRS with an ellipsoidal
+    height axis (EPSG:4979, a projected CRS promoted to 3-D, or a compound CRS with an
+    ellipsoidal vertical part) -> ``"ellipsoid"``; otherwise ``None``."""
     if crs is None:
         return None
     try:
         pcrs = CRS.from_user_input(crs)
     except Exception:
         return None
+    axes = [a.name.lower() for a in pcrs.axis_info]
+    if any("ellipsoidal height" in a for a in axes):
+        return ELLIPSOID
     if pcrs.is_compound:
         names = " ".join(str(sub.name) for sub in pcrs.sub_crs_list).lower()
-        if "egm96" in names or "egm2008" in names or "geoid" in names:
+        if "ellipsoid" in names:
+            return ELLIPSOID
+        if "egm96" in names or "egm2008" in names or "geoid" in names or \
+                any("gravity-related" in a for a in axes):
             return GEOID
-    if len(pcrs.axis_info) == 3 and pcrs.is_geographic:
-        return ELLIPSOID           # e.g. EPSG:4979, heights on the ellipsoid
     return None
+
+
+def horizontal_crs(crs: CRS) -> CRS:
+    """The horizontal part of ``crs`` (the first member of a compound CRS, a 3-D CRS
+    demoted to 2-D); a 2-D CRS is returned as it is."""
+    crs = CRS.from_user_input(crs)
+    if crs.is_compound:
+        return crs.sub_crs_list[0]
+    if len(crs.axis_info) == 3:
+        return crs.to_2d()
+    return crs
 
 
 @dataclass
@@ -50,7 +69,8 @@ class DEM:
     transform : affine.Affine
         GDAL pixel-corner transform to ``crs``.
     crs : pyproj.CRS
-        Horizontal CRS of the grid.
+        Horizontal CRS of the grid (the vertical part of a file's compound or 3-D CRS goes
+        to ``vertical``).
     vertical : {"geoid", "ellipsoid"} or None
         Vertical reference of ``heights``; ``None`` means unknown, and any operation that
         needs ellipsoidal heights raises :class:`VerticalReferenceError`.
@@ -87,9 +107,11 @@ class DEM:
     def from_file(cls, path, vertical: str | None = None, band: int = 1) -> "DEM":
         """Read a DEM with rasterio.
 
-        ``vertical`` overrides the vertical reference; otherwise it is taken from a compound
-        CRS or stereodem's own ``STEREODEM_VERTICAL`` tag, and is ``None`` (unknown) if
-        neither says.
+        ``vertical`` overrides the vertical reference; otherwise it is taken from the file's
+        CRS (compound *horizontal + EGM96 height*, or 3-D with ellipsoidal heights, as
+        :meth:`write` stores it) or, for files written by older versions, stereodem's own
+        ``STEREODEM_VERTICAL`` tag, and is ``None`` (unknown) if neither says. ``crs`` is the
+        horizontal part.
         """
         path = str(path)
         try:
@@ -103,8 +125,8 @@ class DEM:
             raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
         heights = arr.filled(np.nan)
         heights[~np.isfinite(heights)] = np.nan
-        vert = vertical or (tag.lower() if tag else None) or _vertical_from_crs(crs)
-        return cls(heights, transform, crs, vert, path)
+        vert = vertical or _vertical_from_crs(crs) or (tag.lower() if tag else None)
+        return cls(heights, transform, horizontal_crs(crs), vert, path)
 
     @classmethod
     def bundled(cls) -> "DEM":
@@ -222,12 +244,19 @@ class DEM:
         d = self if reference is None else self.to_reference(reference)
         return float(np.nanmin(d.heights)), float(np.nanmax(d.heights))
 
-    def write(self, path, *, overwrite=False):
-        """Write as float32 GeoTIFF with NaN nodata and the vertical reference tag."""
+    def write(self, path, *, overwrite=False, creation_options=None):
+        """Write as a float32 Cloud-Optimised GeoTIFF with NaN nodata, the vertical reference
+        in the CRS (and the old tag), band description and unit (metre).
+
+        ``creation_options``: GDAL COG creation options (see
+        :func:`stereodem.sensor.io.raster.write_geotiff`).
+        """
         from stereodem.sensor.io.raster import write_geotiff
-        tags = {_VERTICAL_TAG: self.vertical} if self.vertical else None
+        what = {GEOID: "height above the EGM96 geoid", ELLIPSOID: "height above the WGS84 ellipsoid"}
         return write_geotiff(path, self.heights.astype(np.float32), self.transform,
-                             self.crs, np.nan, overwrite=overwrite, tags=tags)
+                             self.crs, np.nan, overwrite=overwrite, vertical=self.vertical,
+                             descriptions=what.get(self.vertical, "height"), units="metre",
+                             creation_options=creation_options)
 
 
 def as_dem(dem, vertical: str | None = None) -> DEM:

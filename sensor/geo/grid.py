@@ -16,7 +16,7 @@ from pyproj import CRS
 from stereodem.sensor.errors import CRSError, InputError
 from stereodem.sensor.geo import geodesy
 
-__all__ = ["MapGrid", "grid_from_bounds", "as_crs"]
+__all__ = ["MapGrid", "OnGrid", "grid_from_bounds", "as_crs"]
 
 
 def as_crs(crs) -> CRS:
@@ -113,3 +113,26 @@ def grid_from_bounds(bounds, res, crs) -> MapGrid:
     x1, y0 = np.ceil(e / res) * res, np.floor(s / res) * res
     width, height = int(round((x1 - x0) / res)), int(round((y1 - y0) / res))
     return MapGrid(Affine(res, 0.0, x0, 0.0, -res, y1), max(width, 1), max(height, 1), crs)
+
+
+class OnGrid:
+    """Mixin for data held on a :class:`MapGrid` (attribute ``grid``): its transform, CRS,
+    shape and posting as shortcuts."""
+
+    grid: MapGrid
+
+    @property
+    def transform(self) -> Affine:
+        return self.grid.transform
+
+    @property
+    def crs(self) -> CRS:
+        return self.grid.crs
+
+    @property
+    def shape(self) -> tuple:
+        return self.grid.shape
+
+    @property
+    def posting(self) -> float:
+        return self.grid.posting

@@ -43,7 +43,14 @@ def _ensure_registered():
         register("frame", frame.FrameCamera,
                  lambda m: {n: getattr(m, n) for n in names},
                  lambda d: frame.FrameCamera(**{n: d[n] for n in names if n in d}))
-    for modname in ("pushbroom", "aster", "rpc", "corrected"):
+    if "rpcmodel" not in _REGISTRY:
+        # the RPC00B metadata domain does not carry the image size: keep it in the sidecar
+        from stereodem.sensor.models.rpc import RPCModel
+        register("rpcmodel", RPCModel,
+                 lambda m: {**m.to_dict(), "width": m.width, "height": m.height},
+                 lambda d: RPCModel.from_dict(d, width=d.get("width"), height=d.get("height")))
+    for modname in ("pushbroom", "aster", "rpc", "rpc_direct", "corrected", "generic",
+                    "orbital.topan_los", "orbital.orun_natarajan", "orbital.kratky", "orbital.toutin"):
         try:
             mod = __import__(f"stereodem.sensor.models.{modname}", fromlist=["_"])
         except ImportError:
@@ -81,16 +88,28 @@ def save_model(model, path, *, overwrite=False):
     return write_text_atomic(path, json.dumps(model_to_dict(model), indent=1), overwrite=overwrite)
 
 
-def load_model(path):
-    """Read a model from a JSON sidecar."""
+def load_model(path, *, rpc_direct: bool = False):
+    """Read a model from a JSON sidecar, or from an RPC file of any format
+    :func:`stereodem.sensor.io.rpc_formats.read_rpc` reads (DIMAP ``RPC_*.XML``, ``.geom``,
+    ``_RPC.TXT``, rpcm JSON, ...; ``rpc_direct`` as there)."""
     path = Path(path)
     try:
-        d = json.loads(path.read_text())
+        text = path.read_text(errors="replace")
     except FileNotFoundError:
         raise SensorModelError(f"{path}: model file not found") from None
-    except json.JSONDecodeError as exc:
-        raise SensorModelError(f"{path}: not a JSON model file ({exc})") from None
-    return model_from_dict(d, source=path)
+    except (IsADirectoryError, PermissionError) as exc:
+        raise SensorModelError(f"{path}: cannot read the model file ({exc.strerror})") from None
+    try:
+        d = json.loads(text)
+    except json.JSONDecodeError:
+        d = None
+    if isinstance(d, dict) and "type" in d:
+        return model_from_dict(d, source=path)
+    from stereodem.sensor.io.rpc_formats import read_rpc
+    try:
+        return read_rpc(path, direct=rpc_direct)
+    except RPCError as exc:
+        raise SensorModelError(f"not a stereodem model file, and {exc}") from None
 
 
 def sidecar_path(image) -> Path:
@@ -98,12 +117,13 @@ def sidecar_path(image) -> Path:
     return image.with_name(image.stem + ".model.json")
 
 
-def load_image_model(image, *, prefer: str = "physical"):
+def load_image_model(image, *, prefer: str = "physical", rpc_direct: bool = False):
     """The sensor model of an image file.
 
     ``prefer="physical"`` uses the ``<stem>.model.json`` sidecar when present, else the RPC;
-    ``prefer="rpc"`` uses the RPC only. Raises :class:`SensorModelError` naming the file when
-    the image carries no usable model.
+    ``prefer="rpc"`` uses the RPC only; ``rpc_direct`` localises an RPC with its file's
+    direct model. Raises :class:`SensorModelError` naming the file when the image carries no
+    usable model.
     """
     image = Path(image)
     if not image.exists():
@@ -113,6 +133,6 @@ def load_image_model(image, *, prefer: str = "physical"):
         return load_model(side)
     try:
         from stereodem.sensor.models.rpc import RPCModel
-        return RPCModel.from_file(image)
+        return RPCModel.from_file(image, direct=rpc_direct)
     except RPCError as exc:
         raise SensorModelError(f"{image}: no usable sensor model (no {side.name} sidecar; {exc})") from None

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.sensor.geo import geodesy
 from stereodem.sensor.models.ephemeris import Ephemeris
 from stereodem.sensor.errors import SensorModelError
 from stereodem.sensor.models.pushbroom import DetectorArray, PushbroomModel
@@ -59,6 +60,14 @@ class AsterGeometry:
         ``*COEF`` keys as arrays of 20, ``SATID`` as a string); ``None`` if absent.
     path : str
         Source file.
+    satellite_velocities : ndarray (N, 3) or None
+        The product's ``SatelliteVelocity`` (m/s, ECEF axes), when read from an L1A granule.
+    velocity_convention : {"inertial", "earth_fixed", "unknown"}
+        What ``satellite_velocities`` holds: the inertial velocity ``v + omega_E x r`` or the
+        Earth-fixed one (decided by the L1A reader against the positions; notes §4.3).
+    observation_times : ndarray (N, k) or None
+        The product's raw ``ObservationTime`` words (encoding unverified, notes §4.5; never
+        used by the geometry).
     """
 
     lattice: np.ndarray
@@ -69,6 +78,9 @@ class AsterGeometry:
     image_rows: int
     rpc: dict | None = None
     path: str = ""
+    satellite_velocities: np.ndarray | None = None
+    velocity_convention: str = "unknown"
+    observation_times: np.ndarray | None = None
     lattice_rows: np.ndarray = field(init=False, repr=False)
     lattice_cols: np.ndarray = field(init=False, repr=False)
 
@@ -95,6 +107,11 @@ class AsterGeometry:
         self.lattice_cols = cols[0].astype(float)
         if not (np.all(np.diff(self.lattice_rows) > 0) and np.all(np.diff(self.lattice_cols) > 0)):
             raise SensorModelError(f"{where}lattice rows/columns must increase")
+        if self.satellite_velocities is not None and np.shape(self.satellite_velocities) != (n, 3):
+            raise SensorModelError(f"{where}satellite velocities have shape "
+                                   f"{np.shape(self.satellite_velocities)}, expected ({n}, 3)")
+        if self.velocity_convention not in ("inertial", "earth_fixed", "unknown"):
+            raise SensorModelError(f"{where}unknown velocity convention {self.velocity_convention!r}")
         if self.image_cols < 1 or self.image_rows < 1:
             raise SensorModelError(f"{where}bad image size {self.image_cols} x {self.image_rows}")
 
@@ -141,10 +158,12 @@ class AsterModel(PushbroomModel):
     inertial_frame : bool
         Build the orbital frame with the inertial velocity (default, correct; ``False``
         reproduces the Earth-fixed-velocity mistake, mrad off; notes §4.3).
-    velocity_method : {"central", "polynomial", "lagrange"}
+    velocity_method : {"central", "polynomial", "lagrange", "file"}
         How the Earth-fixed velocity at the lattice rows is derived from the positions (see
-        :func:`lattice_velocities`); the velocities are then interpolated between lattice
-        rows by 8-point Lagrange polynomials like the positions.
+        :func:`lattice_velocities`), or ``"file"``: the product's own ``SatelliteVelocity``
+        (``geometry.satellite_velocities``, made Earth-fixed according to
+        ``geometry.velocity_convention``, which must then be known); the velocities are then
+        interpolated between lattice rows by 8-point Lagrange polynomials like the positions.
     """
 
     def __init__(self, geometry: AsterGeometry, *, line_period: float = ASTER_LINE_PERIOD,
@@ -152,8 +171,7 @@ class AsterModel(PushbroomModel):
                  name: str | None = None):
         g = geometry
         times = g.lattice_rows * float(line_period)
-        eph = Ephemeris(times, g.satellite_positions,
-                        lattice_velocities(times, g.satellite_positions, method=velocity_method))
+        eph = Ephemeris(times, g.satellite_positions, _band_velocities(g, times, velocity_method))
         self.velocity_method = velocity_method
         sv = g.sight_vectors
         if np.allclose(sv, sv[:1], rtol=0.0, atol=1e-12):
@@ -179,18 +197,27 @@ class AsterModel(PushbroomModel):
             "geometry": {"lattice": g.lattice, "sight_vectors": g.sight_vectors,
                          "world_sight_vectors": g.world_sight_vectors,
                          "satellite_positions": g.satellite_positions, "image_cols": g.image_cols,
-                         "image_rows": g.image_rows, "rpc": g.rpc, "path": g.path},
+                         "image_rows": g.image_rows, "rpc": g.rpc, "path": g.path,
+                         "satellite_velocities": g.satellite_velocities,
+                         "velocity_convention": g.velocity_convention,
+                         "observation_times": g.observation_times},
             "line_period": self.line_period, "inertial_frame": self.inertial_frame,
             "velocity_method": self.velocity_method, "name": self.name,
             "parameters": self.parameters(),
+            # a time-varying attitude correction (e.g. jitter, stereodem.sensor.estimation.jitter)
+            "attitude": None if self.attitude is None else {
+                "times": self.attitude.times, "angles": self.attitude.angles,
+                "quaternions": self.attitude.quaternions},
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> "AsterModel":
         """Inverse of :meth:`to_dict`."""
         g = dict(d["geometry"])
-        for k in ("lattice", "sight_vectors", "world_sight_vectors", "satellite_positions"):
-            g[k] = np.asarray(g[k], dtype=np.float64)
+        for k in ("lattice", "sight_vectors", "world_sight_vectors", "satellite_positions",
+                  "satellite_velocities", "observation_times"):
+            if g.get(k) is not None:
+                g[k] = np.asarray(g[k], dtype=np.float64)
         if g.get("rpc"):
             g["rpc"] = {k: (np.asarray(v, float) if k in _RPB_COEFS else v) for k, v in g["rpc"].items()}
         model = cls(AsterGeometry(**g), line_period=d.get("line_period", ASTER_LINE_PERIOD),
@@ -198,6 +225,10 @@ class AsterModel(PushbroomModel):
                     velocity_method=d.get("velocity_method", "central"), name=d.get("name"))
         if d.get("parameters"):
             model._set_parameters(d["parameters"])
+        a = d.get("attitude")
+        if a is not None:
+            from stereodem.sensor.models.ephemeris import Attitude
+            model.attitude = Attitude(a["times"], a.get("angles"), quaternions=a.get("quaternions"))
         return model
 
     @classmethod
@@ -215,6 +246,19 @@ class AsterModel(PushbroomModel):
         cosang = np.clip(np.sum(d * w, axis=-1), -1.0, 1.0)
         sinang = np.linalg.norm(np.cross(d, w), axis=-1)
         return np.arctan2(sinang, cosang)
+
+
+def _band_velocities(g: AsterGeometry, times, method):
+    """Earth-fixed ECEF velocities at the lattice rows (see :class:`AsterModel`)."""
+    if method != "file":
+        return lattice_velocities(times, g.satellite_positions, method=method)
+    if g.satellite_velocities is None or g.velocity_convention == "unknown":
+        raise SensorModelError(f"{g.path or 'ASTER geometry'}: velocity_method='file' needs the "
+                               "product's SatelliteVelocity with a known convention")
+    v = np.asarray(g.satellite_velocities, dtype=np.float64)
+    if g.velocity_convention == "inertial":
+        v = v - np.cross([0.0, 0.0, geodesy.OMEGA_EARTH], g.satellite_positions)
+    return v
 
 
 def _rebuild_astermodel(d):

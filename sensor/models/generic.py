@@ -48,14 +48,11 @@ minimised quantity approaches the image residual.
 
 GCP files
 ---------
-CSV with a header ``id,lon,lat,h,col,row[,role]`` (``role`` = ``gcp`` or ``check``, default
-``gcp``); lon/lat in degrees WGS84, ``h`` ellipsoidal metres, col/row pixels with the centre of
-the top-left pixel at (0, 0). See :func:`read_gcps` and :func:`write_gcps`.
+Read and written by :mod:`stereodem.sensor.io.gcps` (``ControlPoints``, ``read_gcps``,
+``write_gcps``); ``ControlPoints.arrays()`` gives the arrays :func:`fit_model` takes.
 """
 from __future__ import annotations
 
-import csv
-import io
 import logging
 import math
 from dataclasses import dataclass, field
@@ -67,14 +64,13 @@ from scipy.optimize import least_squares
 from stereodem.sensor.geo import geodesy
 
 from stereodem.sensor.estimation import regularize
-from stereodem.sensor.errors import CRSError, InputError, where
+from stereodem.sensor.errors import CRSError, InputError
 from stereodem.sensor.models.base import SensorModel
-from stereodem.sensor.io.raster import write_text_atomic
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MODEL_NAMES", "GenericModel", "FitReport", "ControlPoints", "fit_model",
-           "minimum_gcps", "n_parameters", "read_gcps", "write_gcps"]
+__all__ = ["MODEL_NAMES", "GenericModel", "FitReport", "fit_model", "minimum_gcps",
+           "n_parameters"]
 
 
 # ---------------------------------------------------------------------------- term sets
@@ -463,6 +459,28 @@ class GenericModel(SensorModel):
         pad = 0.5 * (hi - lo) + 100.0
         return (lo - pad, hi + pad)
 
+    MODEL_TYPE = "generic"
+
+    # ------------------------------------------------------------ adjustable parameters
+    def parameters(self) -> dict:
+        """The coefficients as ``{"c00": ..., "c01": ...}`` (normalised coordinates, unit 1),
+        the protocol of :mod:`stereodem.sensor.models.parameters`."""
+        return {f"c{k:02d}": float(v) for k, v in enumerate(self.params)}
+
+    def with_parameters(self, **values) -> "GenericModel":
+        """A copy with some coefficients changed."""
+        p = self.params.copy()
+        for k, v in values.items():
+            try:
+                i = int(k[1:]) if k.startswith("c") else -1
+            except ValueError:
+                i = -1
+            if not 0 <= i < p.size:
+                raise InputError(f"{self.name}: unknown parameter {k!r} (c00..c{p.size - 1:02d})")
+            p[i] = float(v)
+        return GenericModel(self.name, p, crs=self.crs, normalization=self.norm, width=self.width,
+                            height=self.height, h_range=self.h_range, inverse_affine=self._inverse)
+
     def to_dict(self) -> dict:
         """Plain description of the fitted model (for reports and for re-creating it)."""
         return {
@@ -474,7 +492,18 @@ class GenericModel(SensorModel):
             "image_offset": self.norm.image_offset.tolist(),
             "image_scale": self.norm.image_scale.tolist(),
             "width": self.width, "height": self.height,
+            "h_range": list(self.h_range),
+            "inverse_affine": self._inverse.tolist(),
         }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "GenericModel":
+        """Inverse of :meth:`to_dict` (model sidecars)."""
+        a = lambda k: np.asarray(d[k], dtype=np.float64)  # noqa: E731
+        norm = _Normalization(a("ground_offset"), a("ground_scale"), a("image_offset"), a("image_scale"))
+        return cls(d["model"], a("params"), crs=CRS.from_user_input(d["crs"]), normalization=norm,
+                   width=d["width"], height=d["height"], h_range=d["h_range"],
+                   inverse_affine=a("inverse_affine"))
 
 
 # ---------------------------------------------------------------------------- fitting
@@ -650,104 +679,3 @@ def fit_model(name: str, gcp_lon, gcp_lat, gcp_h, gcp_col, gcp_row, *, check=Non
                        sol.condition_number, sol.condition_number_regularized, sol.method,
                        sol.weight, model.crs.to_string(), gres, cres)
     return model, report
-
-
-# ---------------------------------------------------------------------------- GCP files
-_GCP_COLUMNS = ("id", "lon", "lat", "h", "col", "row")
-
-
-@dataclass
-class ControlPoints:
-    """Ground control / check points read from a CSV file.
-
-    ``id`` and ``role`` are string arrays (role ``gcp`` or ``check``); ``lon``, ``lat`` in
-    degrees, ``h`` ellipsoidal metres, ``col``, ``row`` pixels.
-    """
-
-    id: np.ndarray
-    lon: np.ndarray
-    lat: np.ndarray
-    h: np.ndarray
-    col: np.ndarray
-    row: np.ndarray
-    role: np.ndarray
-
-    def __len__(self):
-        return int(self.lon.size)
-
-    def select(self, role: str) -> "ControlPoints":
-        """The points of one role (``"gcp"`` or ``"check"``)."""
-        m = self.role == role
-        return ControlPoints(*(getattr(self, k)[m] for k in ("id", "lon", "lat", "h", "col", "row", "role")))
-
-    def arrays(self):
-        """``(lon, lat, h, col, row)``, ready for :func:`fit_model` or its ``check`` argument."""
-        return self.lon, self.lat, self.h, self.col, self.row
-
-
-def read_gcps(path) -> ControlPoints:
-    """Read a GCP/check-point CSV (``id,lon,lat,h,col,row[,role]``).
-
-    Raises
-    ------
-    InputError
-        Missing file or column, non-numeric or non-finite values, unknown role.
-    """
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            text = f.read()
-    except OSError as exc:
-        raise InputError(f"{where(path)}cannot read GCP file ({exc.strerror})") from None
-    rows = list(csv.reader(io.StringIO(text)))
-    rows = [r for r in rows if r and any(c.strip() for c in r)]
-    if not rows:
-        raise InputError(f"{where(path)}empty GCP file")
-    header = [c.strip().lower() for c in rows[0]]
-    missing = [c for c in _GCP_COLUMNS if c not in header]
-    if missing:
-        raise InputError(f"{where(path)}missing GCP column(s) {', '.join(missing)} "
-                         f"(expected {','.join(_GCP_COLUMNS)}[,role])")
-    body = rows[1:]
-    if not body:
-        raise InputError(f"{where(path)}no points in GCP file")
-    width = len(header)
-    short = [i + 2 for i, r in enumerate(body) if len(r) < width]
-    if short:
-        raise InputError(f"{where(path)}line {short[0]} has fewer than {width} fields")
-    table = np.array([r[:width] for r in body], dtype=object).T
-    col_of = {k: table[header.index(k)] for k in header}
-    values = {}
-    for k in ("lon", "lat", "h", "col", "row"):
-        try:
-            a = np.array([s.strip() or "nan" for s in col_of[k]], dtype=np.float64)
-        except ValueError:
-            raise InputError(f"{where(path)}non-numeric value in column '{k}'") from None
-        bad = np.flatnonzero(~np.isfinite(a))
-        if bad.size:
-            raise InputError(f"{where(path)}{bad.size} missing/NaN value(s) in column '{k}' "
-                             f"(first at line {bad[0] + 2})")
-        values[k] = a
-    ids = np.array([s.strip() for s in col_of["id"]], dtype=str)
-    if "role" in col_of:
-        role = np.array([s.strip().lower() or "gcp" for s in col_of["role"]], dtype=str)
-        unknown = sorted(set(role) - {"gcp", "check"})
-        if unknown:
-            raise InputError(f"{where(path)}unknown role(s) {', '.join(unknown)} (expected gcp or check)")
-    else:
-        role = np.full(ids.shape, "gcp")
-    return ControlPoints(ids, values["lon"], values["lat"], values["h"], values["col"],
-                         values["row"], role)
-
-
-def write_gcps(path, ids, lon, lat, h, col, row, *, role=None, overwrite=False):
-    """Write points in the GCP CSV format read by :func:`read_gcps` (atomic write)."""
-    lon, lat, h, col, row = (np.asarray(a, dtype=np.float64).ravel() for a in (lon, lat, h, col, row))
-    ids = np.asarray(ids).astype(str).ravel()
-    cols = [ids, np.char.mod("%.10f", lon), np.char.mod("%.10f", lat), np.char.mod("%.4f", h),
-            np.char.mod("%.6f", col), np.char.mod("%.6f", row)]
-    header = list(_GCP_COLUMNS)
-    if role is not None:
-        cols.append(np.broadcast_to(np.asarray(role).astype(str), ids.shape))
-        header.append("role")
-    lines = [",".join(header)] + [",".join(r) for r in zip(*cols)]
-    return write_text_atomic(path, "\n".join(lines) + "\n", overwrite=overwrite)

@@ -1,6 +1,7 @@
 """RPC00B rational polynomial camera model: projection and exact localisation.
 
-The file formats (GeoTIFF tags, ``.RPB``, ``_RPC.TXT``, DIMAP) are read and written by
+The file formats (GDAL rasters and VRTs, ``.RPB``, ``_RPC.TXT``/IKONOS, DIMAP v1/v2/v3,
+DigitalGlobe XML, OSSIM ``.geom``, rpcm JSON) are read and written by
 :mod:`stereodem.sensor.io.rpc_formats`.
 
 An RPC00B model (NITF STDI-0002 RPC00B, GDAL RFC 22) maps normalised ground coordinates
@@ -36,6 +37,7 @@ guess of the exact Newton localisation.
 from __future__ import annotations
 
 import math
+import re
 import warnings
 
 import numpy as np
@@ -115,11 +117,24 @@ def monomials(x, y, z, out=None):
     return m
 
 
+#: units that may follow an RPC value (DigitalGlobe/IKONOS text files, and GDAL passes them
+#: up raw through the RPC metadata domain): "LINE_OFF: 149.5 pixels"
+_UNIT = re.compile(r"^\s*([-+0-9.eEdD]+)\s*(?:pixels?|pix|px|degrees?|deg|meters?|metres?|m)?\s*;?\s*$",
+                   re.IGNORECASE)
+
+
 def _parse_float(value, key, path):
+    text = str(value).strip().rstrip(";").strip()
     try:
-        v = float(str(value).strip().rstrip(";").strip())
+        v = float(text)
     except (TypeError, ValueError):
-        raise RPCError(f"{where(path)}RPC key {key}: not a number ({str(value)[:40]!r})") from None
+        m = _UNIT.match(text)
+        try:
+            v = float(m.group(1).replace("d", "e").replace("D", "E")) if m else None
+        except ValueError:
+            v = None
+        if v is None:
+            raise RPCError(f"{where(path)}RPC key {key}: not a number ({str(value)[:40]!r})") from None
     if not math.isfinite(v):
         raise RPCError(f"{where(path)}RPC key {key}: not finite ({value!r})")
     return v
@@ -393,17 +408,15 @@ class RPCModel(SensorModel):
         return cls.from_dict(rpc.to_gdal(), path=source, width=width, height=height)
 
     @classmethod
-    def from_file(cls, path):
+    def from_file(cls, path, *, direct: bool = False):
         """Read an RPC model, detecting the format.
 
-        Supported: GeoTIFF (or any GDAL raster) with RPC metadata (the TIFF RPC tag, or the
-        ``<image>.RPB`` / ``<image>_RPC.TXT`` sidecars that GDAL picks up); a GDAL/DigitalGlobe
-        ``.RPB`` file; a DigitalGlobe/GeoEye ``_RPC.TXT`` ("LINE_OFF: ..." key-value text); a
-        Pleiades/SPOT 6-7 DIMAP v2 ``RPC_*.XML``. Image size comes from the raster (or its
-        SOURCE_WIDTH/SOURCE_HEIGHT tags) or the DIMAP validity domain when available.
+        Every format of :mod:`stereodem.sensor.io.rpc_formats` (GDAL first, then content
+        sniffing); ``direct=True`` localises with the file's direct model
+        (:class:`stereodem.sensor.models.rpc_direct.DirectRPCModel`).
         """
         from stereodem.sensor.io.rpc_formats import read_rpc
-        return read_rpc(path)
+        return read_rpc(path, direct=direct)
 
     # ------------------------------------------------------------------ writers
     def to_dict(self) -> dict:

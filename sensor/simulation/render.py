@@ -14,27 +14,18 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from affine import Affine
 
 from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.grid import MapGrid
+from stereodem.sensor.geo.grid import MapGrid, OnGrid
 from stereodem.sensor.models.base import SensorModel
 
 
 @dataclass
-class MapRaster:
+class MapRaster(OnGrid):
     """A float32 raster (``data``, rows x cols) on a :class:`MapGrid`."""
 
     data: np.ndarray
     grid: MapGrid
-
-    @property
-    def transform(self) -> Affine:
-        return self.grid.transform
-
-    @property
-    def crs(self):
-        return self.grid.crs
 
     def sample(self, x, y, border=np.nan):
         """Bilinear values at map coordinates (float64 arrays; converted to float32 pixel maps)."""
@@ -42,7 +33,15 @@ class MapRaster:
         mc = ((np.asarray(x) - t.c) / t.a - 0.5).astype(np.float32)
         mr = ((np.asarray(y) - t.f) / t.e - 0.5).astype(np.float32)
         shape = mc.shape
-        mc, mr = mc.reshape(-1, 1) if mc.ndim == 1 else mc, mr.reshape(-1, 1) if mr.ndim == 1 else mr
+        if mc.ndim == 1:
+            # cv2.remap maps must be < 32767 on each side: lay long vectors out in rows
+            n, width = mc.size, 1024 if mc.size > 32000 else 1
+            pad = -n % width
+            mc = np.pad(mc, (0, pad)).reshape(-1, width)
+            mr = np.pad(mr, (0, pad)).reshape(-1, width)
+            out = cv2.remap(self.data.astype(np.float32, copy=False), mc, mr, cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=float(border))
+            return out.ravel()[:n]
         out = cv2.remap(self.data.astype(np.float32, copy=False), mc, mr, cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=float(border))
         return out.reshape(shape)
@@ -105,37 +104,50 @@ class GridLocalizer:
 
 
 def localize_on_dem_grid(loc: GridLocalizer, dem: MapRaster, col, row, *, threshold=0.01,
-                         max_iterations=30):
+                         max_iterations=30, h0=None):
     """DRM relief iteration for pixels using a :class:`GridLocalizer`.
 
-    ``dem`` must be on ``loc.crs`` with ellipsoidal heights. Returns map ``x, y`` (absolute),
-    height ``h`` and a ``converged`` mask; NaN where the ray leaves the DEM.
+    ``dem`` must be on ``loc.crs`` with ellipsoidal heights; ``h0`` is the starting height
+    (default the DEM mean). Each pixel iterates until its height changes by less than
+    ``threshold`` (m); only the pixels still moving are carried into the next iteration.
+    Returns map ``x, y`` (absolute), height ``h`` and a ``converged`` mask; NaN where the ray
+    leaves the DEM.
     """
     xs, ys = loc.layers(col, row)
+    shape = np.shape(col)
+    k = xs.shape[0]
+    xs, ys = xs.reshape(k, -1), ys.reshape(k, -1)
     ox, oy = loc.origin
-    h = np.full(col.shape, float(np.nanmean(dem.data)), np.float32)
-    converged = np.zeros(col.shape, bool)
+    start = float(np.nanmean(dem.data)) if h0 is None else float(h0)
+    h = np.full(xs.shape[1], start, np.float32)
+    converged = np.zeros(xs.shape[1], bool)
+    active = np.arange(xs.shape[1])
+    xa, ya, ha = xs, ys, h
     for _ in range(max_iterations):
-        x, y = loc.at_height(xs, ys, h)
+        x, y = loc.at_height(xa, ya, ha)
         z = dem.sample(x.astype(np.float64) + ox, y.astype(np.float64) + oy)
-        dh = z - h
-        converged = np.abs(dh) < threshold
-        h = np.where(np.isfinite(z), z, np.nan).astype(np.float32)
-        if converged.sum() == np.isfinite(z).sum():
+        ok = np.isfinite(z)
+        conv = ok & (np.abs(z - ha) < threshold)
+        h[active] = np.where(ok, z, np.nan)
+        converged[active[conv]] = True
+        keep = ok & ~conv
+        if not keep.any():
             break
+        active, xa, ya, ha = active[keep], xa[:, keep], ya[:, keep], z[keep].astype(np.float32)
     x, y = loc.at_height(xs, ys, np.nan_to_num(h))
     # back to absolute float64 map coordinates (float32 would round UTM northings to 0.25 m)
     x = np.where(np.isfinite(h), x.astype(np.float64) + ox, np.nan)
     y = np.where(np.isfinite(h), y.astype(np.float64) + oy, np.nan)
-    return x, y, h, converged
+    return x.reshape(shape), y.reshape(shape), h.reshape(shape), converged.reshape(shape)
 
 
-def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=32, block_rows=512,
-           heights=None):
+def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=32, block_rows=256,
+           heights=None, keep_ground: bool = True):
     """Render the image seen by ``model``: radiance at each pixel's ground point on ``dem``.
 
-    Returns ``(image float32, ground_x, ground_y, ground_h)``; pixels whose ray leaves the DEM
-    are NaN.
+    Returns ``(image float32, ground_x, ground_y, ground_h, localizer)``; pixels whose ray
+    leaves the DEM are NaN. With ``keep_ground=False`` the three ground arrays (20 bytes per
+    pixel) are not kept and come back as None: memory is then the image plus one block.
     """
     if heights is None:
         lo, hi = float(np.nanmin(dem.data)), float(np.nanmax(dem.data))
@@ -144,17 +156,37 @@ def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=32, 
     loc = GridLocalizer(model, dem.crs, heights, step=step, origin=(t.c, t.f))
     w, hgt = model.width, model.height
     img = np.empty((hgt, w), np.float32)
-    gx = np.empty((hgt, w), np.float64)
-    gy = np.empty((hgt, w), np.float64)
-    gh = np.empty((hgt, w), np.float32)
+    gx = gy = gh = None
+    if keep_ground:
+        gx = np.empty((hgt, w), np.float64)
+        gy = np.empty((hgt, w), np.float64)
+        gh = np.empty((hgt, w), np.float32)
     cols = np.arange(w, dtype=np.float32)
+    h0 = float(np.nanmean(dem.data))
     for r0 in range(0, hgt, block_rows):
         r1 = min(hgt, r0 + block_rows)
         cc, rr = np.meshgrid(cols, np.arange(r0, r1, dtype=np.float32))
-        x, y, h, _ = localize_on_dem_grid(loc, dem, cc, rr)
+        x, y, h, _ = localize_on_dem_grid(loc, dem, cc, rr, h0=h0)
         img[r0:r1] = radiance.sample(x, y)
-        gx[r0:r1], gy[r0:r1], gh[r0:r1] = x, y, h
+        if keep_ground:
+            gx[r0:r1], gy[r0:r1], gh[r0:r1] = x, y, h
     return img, gx, gy, gh, loc
+
+
+def sampled_localization_error(model: SensorModel, loc: GridLocalizer, dem: MapRaster, n=2000,
+                               seed=0, h0=None):
+    """:func:`localization_error` on ``n`` random pixels localised again with ``loc`` (for
+    renders made with ``keep_ground=False``)."""
+    rng = np.random.default_rng(seed)
+    r = rng.integers(0, model.height, n).astype(np.float32)
+    c = rng.integers(0, model.width, n).astype(np.float32)
+    x, y, h, _ = (a[0] for a in localize_on_dem_grid(loc, dem, c[None], r[None], h0=h0))
+    ok = np.isfinite(h)
+    if not ok.any():
+        return float("nan")
+    lon, lat = geodesy.crs_to_lonlat(x[ok], y[ok], loc.crs)
+    pc, pr = model.project(lon, lat, h[ok].astype(float))
+    return float(np.max(np.hypot(pc - c[ok], pr - r[ok])))
 
 
 def localization_error(model: SensorModel, gx, gy, gh, crs, n=2000, seed=0):

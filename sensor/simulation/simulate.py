@@ -53,7 +53,7 @@ from stereodem.sensor.geo.dem import DEM, ELLIPSOID, as_dem
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.models.base import SensorModel
 from stereodem.sensor.geo.grid import MapGrid
-from stereodem.sensor.simulation.render import MapRaster, localization_error, render
+from stereodem.sensor.simulation.render import MapRaster, render, sampled_localization_error
 
 log = logging.getLogger(__name__)
 
@@ -204,16 +204,42 @@ def _grid_for_models(models, crs, posting, h_range, margin_px=8):
     return Affine(posting, 0, x0, 0, -posting, y1), (h, w)
 
 
-def _reproject_dem(dem: DEM, transform, shape, crs):
+def _reproject_dem(dem: DEM, transform, shape, crs, *, geoid_step: int = 16):
+    """``dem`` resampled (cubic) to the grid, in ellipsoidal heights (float32).
+
+    The geoid undulation is evaluated every ``geoid_step`` cells and interpolated bilinearly
+    (EGM96 varies over tens of km: the interpolation error is at the millimetre level,
+    :func:`geoid_on_grid`), in row blocks, so that no full-size float64 array is made.
+    """
     out = np.full(shape, np.nan, np.float32)
     reproject(dem.heights, out, src_transform=dem.transform, src_crs=dem.crs.to_wkt(),
               dst_transform=transform, dst_crs=crs.to_wkt(), resampling=Resampling.cubic,
               src_nodata=np.nan, dst_nodata=np.nan)
     if dem.vertical != ELLIPSOID:
-        cc, rr = np.meshgrid(np.arange(shape[1]) + 0.5, np.arange(shape[0]) + 0.5)
-        x, y = transform @ (cc, rr)
-        lon, lat = geodesy.crs_to_lonlat(x, y, crs)
-        out = dem.convert_heights(lon, lat, out.astype(np.float64), ELLIPSOID).astype(np.float32)
+        if dem.vertical is None:          # the DEM's own error about the unknown reference
+            dem.convert_heights(np.zeros(1), np.zeros(1), np.zeros(1), ELLIPSOID)
+        geoid_on_grid(transform, shape, crs, step=geoid_step, add_to=out)   # h = H + N
+    return out
+
+
+def geoid_on_grid(transform, shape, crs, *, step: int = 16, add_to=None, block_rows: int = 1024):
+    """EGM96 undulation (m) at the cell centres of a map grid, bilinear from every ``step``-th
+    cell; added in place to ``add_to`` (float32, ``shape``) if given, else returned."""
+    rows, cols = shape
+    rc = np.unique(np.r_[np.arange(0, rows, step), rows - 1]).astype(np.float64)
+    cc = np.unique(np.r_[np.arange(0, cols, step), cols - 1]).astype(np.float64)
+    gc, gr = np.meshgrid(cc + 0.5, rc + 0.5)
+    x, y = transform @ (gc, gr)
+    lon, lat = geodesy.crs_to_lonlat(x, y, crs)
+    coarse = geodesy.geoid_undulation(lon, lat)                       # (len(rc), len(cc))
+    # along the columns once, then along the rows per block
+    across = np.stack([np.interp(np.arange(cols), cc, row) for row in coarse]).astype(np.float32)
+    out = add_to if add_to is not None else np.zeros(shape, np.float32)
+    for r0 in range(0, rows, block_rows):
+        r = np.arange(r0, min(rows, r0 + block_rows), dtype=np.float64)
+        i = np.clip(np.searchsorted(rc, r, side="right") - 1, 0, len(rc) - 2)
+        w = ((r - rc[i]) / (rc[i + 1] - rc[i])).astype(np.float32)[:, None]
+        out[r0:r0 + r.size] += (1.0 - w) * across[i] + w * across[i + 1]
     return out
 
 
@@ -247,32 +273,73 @@ def _albedo(texture, shape, rng, detail=0.35):
     The texture's nodata border (zeros in every band, as in rotated Landsat scenes) is cut
     off first.
     """
+    # the seeded detail first (it alone uses the generator), then the stretched texture: only
+    # three full-size arrays live at a time
+    d = np.zeros(shape, np.float32)
+    for sigma, amp in ((0.8, 1.0), (2.0, 0.8), (5.0, 0.6), (12.0, 0.4)):
+        n = _normal_float32(rng, shape)
+        cv2.GaussianBlur(n, (0, 0), sigma, dst=n)
+        n *= amp / max(float(n.std()), 1e-6)
+        d += n
+        del n
+    d *= 0.5 / float(d.std())
+    np.tanh(d, out=d)
+    d *= detail
+    d += 1.0
     with rasterio.open(texture) as ds:
         t = ds.read().astype(np.float32)
     r0, r1, c0, c1 = _valid_box(t.sum(axis=0) > 0)
     t = t[:, r0:r1, c0:c1]
     t = t.mean(axis=0) if t.shape[0] > 1 else t[0]
     t = cv2.resize(t, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
-    lo, hi = np.percentile(t, [1, 99])
-    t = np.clip((t - lo) / max(hi - lo, 1e-6), 0, 1)
-    d = np.zeros(shape, np.float32)
-    for sigma, amp in ((0.8, 1.0), (2.0, 0.8), (5.0, 0.6), (12.0, 0.4)):
-        n = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
-        d += amp * n / max(float(n.std()), 1e-6)
-    d /= float(d.std())
-    a = (0.15 + 0.7 * t) * (1.0 + detail * np.tanh(d / 2))
-    return np.clip(a, 0.02, 1.0).astype(np.float32)
+    lo, hi = (float(v) for v in np.percentile(t, [1, 99]))
+    t -= lo                                                   # in place: full-size arrays
+    t /= max(hi - lo, 1e-6)
+    np.clip(t, 0, 1, out=t)
+    t *= 0.7
+    t += 0.15
+    t *= d
+    del d
+    return np.clip(t, 0.02, 1.0, out=t)
 
 
-def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION):
-    """Lambertian cos(incidence) of the sun on a DEM array with square posting ``res`` (m)."""
-    gy, gx = np.gradient(np.nan_to_num(z, nan=float(np.nanmean(z))), res)
-    # rows go south: north-ward slope is -gy
-    nx, ny, nz = -gx, gy, np.ones_like(gx)
-    n = np.sqrt(nx * nx + ny * ny + 1)
+def _normal_float32(rng, shape, chunk_rows: int = 512):
+    """``rng.standard_normal(shape).astype(float32)`` drawn in row chunks (the same numbers:
+    the generator's stream does not depend on how it is split) without the float64 array."""
+    out = np.empty(shape, np.float32)
+    for r0 in range(0, shape[0], chunk_rows):
+        r1 = min(shape[0], r0 + chunk_rows)
+        out[r0:r1] = rng.standard_normal((r1 - r0,) + tuple(shape[1:]))
+    return out
+
+
+def _hillshade_blocks(z, res, azimuth, elevation, block_rows):
+    """``(r0, r1, shade)`` row blocks of :func:`hillshade_factor` (one-row halo)."""
     az, el = np.radians(azimuth), np.radians(elevation)
     s = np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
-    return np.clip((nx * s[0] + ny * s[1] + nz * s[2]) / n, 0.0, 1.0).astype(np.float32)
+    fill = float(np.nanmean(z))
+    rows = z.shape[0]
+    for r0 in range(0, rows, block_rows):
+        r1 = min(rows, r0 + block_rows)
+        a, b = max(r0 - 1, 0), min(r1 + 1, rows)
+        gy, gx = np.gradient(np.nan_to_num(z[a:b], nan=fill), res)
+        gy, gx = gy[r0 - a:r0 - a + (r1 - r0)], gx[r0 - a:r0 - a + (r1 - r0)]
+        # rows go south: north-ward slope is -gy
+        nx, ny = -gx, gy
+        n = np.sqrt(nx * nx + ny * ny + 1)
+        yield r0, r1, np.clip((nx * s[0] + ny * s[1] + s[2]) / n, 0.0, 1.0).astype(np.float32)
+
+
+def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION, *, block_rows=256):
+    """Lambertian cos(incidence) of the sun on a DEM array with square posting ``res`` (m).
+
+    Computed in row blocks with a one-row halo (the same central differences as one
+    ``np.gradient`` over the whole array), so temporaries stay block-sized.
+    """
+    out = np.empty(z.shape, np.float32)
+    for r0, r1, shade in _hillshade_blocks(z, res, azimuth, elevation, block_rows):
+        out[r0:r1] = shade
+    return out
 
 
 # ----------------------------------------------------------------------------- simulation
@@ -280,7 +347,7 @@ def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION):
 def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=None,
                    noise: float = 1.0, seed: int = 0, bits: int = 8, angles=(0.0, -27.6),
                    n_points: int = 60, step: int = 16, mtf_nyquist: float = MTF_NYQUIST,
-                   right_size=None) -> Scene:
+                   right_size=None, jitter=None) -> Scene:
     """Simulate a stereo scene; see the module docstring.
 
     Parameters
@@ -298,6 +365,11 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     mtf_nyquist : float
         System MTF at the image Nyquist frequency (sets the Gaussian point-spread function
         applied to the ground radiance field, :func:`psf_sigma`).
+    jitter : (amplitude_urad, frequency_hz), optional
+        Along-track attitude oscillation (pitch) of the second (right, ASTER 3B) camera:
+        the right image is rendered through the oscillating camera, while ``right_model``
+        stays the nominal one (as an L1A product describes it) and
+        ``diagnostics["right_jitter"]`` records the oscillation.
     """
     if preset not in PRESETS:
         raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
@@ -344,36 +416,50 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     ft = Affine(res_truth / 2, 0, transform.c, 0, -res_truth / 2, transform.f)
     fshape = (shape[0] * 2, shape[1] * 2)
     fine_dem = _reproject_dem(dem, ft, fshape, crs)
-    albedo = _albedo(texture or texture_path(), fshape, rng)
-    shade = hillshade_factor(fine_dem, res_truth / 2)
-    field = albedo * (0.25 + 0.75 * shade)
+    # radiance field = albedo * (0.25 + 0.75 * shade), built in place
+    field = _albedo(texture or texture_path(), fshape, rng)
+    for r0, r1, shade in _hillshade_blocks(fine_dem, res_truth / 2, SUN_AZIMUTH, SUN_ELEVATION, 256):
+        field[r0:r1] *= 0.25 + 0.75 * shade
     # the system PSF, in ground units, applied once to the radiance field: both the images
     # and truth_ortho sample this one band-limited field
-    field = cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2))
+    cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2), dst=field)
     dn_max = 255.0 if bits == 8 else 4095.0               # 12-bit signal in 16-bit words
-    gain = 0.9 * dn_max / float(np.percentile(field, 99.9))
+    field *= 0.9 * dn_max / float(np.percentile(field, 99.9))
     fine_grid = MapGrid(ft, fine_dem.shape[1], fine_dem.shape[0], crs)
-    radiance = MapRaster(field * gain, fine_grid)
+    radiance = MapRaster(field, fine_grid)
     dem_r = MapRaster(fine_dem, fine_grid)
 
-    images, diags, grounds = [], {}, []
-    for name, m in (("left", left_model), ("right", right_model)):
-        img, gx, gy, gh, _ = render(m, dem_r, radiance, step=step)
-        diags[f"{name}_render_error_px"] = localization_error(m, gx, gy, gh, crs, seed=seed)
+    images, diags = [], {}
+    h_mean = float(np.nanmean(fine_dem))
+    right_true = right_model
+    if jitter is not None:
+        from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
+        amp_urad, freq = (float(x) for x in jitter)
+        if not (np.isfinite(amp_urad) and freq > 0):
+            raise InputError(f"jitter needs a finite amplitude and a positive frequency, got {jitter}")
+        phase = float(rng.uniform(0, 2 * np.pi))
+        right_true = with_attitude_sines(right_model, SineSeries(np.array([amp_urad * 1e-6]),
+                                                                 np.array([freq]), np.array([phase])))
+        diags["right_jitter"] = dict(axis="pitch", amplitude_urad=amp_urad, frequency_hz=freq,
+                                     phase_rad=phase)
+    for name, m in (("left", left_model), ("right", right_true)):
+        img, _, _, _, loc = render(m, dem_r, radiance, step=step, keep_ground=False)
+        diags[f"{name}_render_error_px"] = sampled_localization_error(m, loc, dem_r, seed=seed,
+                                                                      h0=h_mean)
         diags[f"{name}_void_pct"] = float(100 * np.isnan(img).mean())
         noisy = img + rng.normal(0.0, noise, img.shape).astype(np.float32) if noise > 0 else img
         dtype = np.uint8 if bits == 8 else np.uint16
         q = np.clip(np.rint(np.nan_to_num(noisy, nan=0.0)), 0, np.iinfo(dtype).max).astype(dtype)
         images.append(q)
-        grounds.append((gx, gy, gh))
     truth_ortho = radiance.sample(*(transform @ np.meshgrid(np.arange(shape[1]) + 0.5,
                                                              np.arange(shape[0]) + 0.5)))
     truth_dem = DEM(truth, transform, crs, ELLIPSOID, None)
-    points = _check_points(left_model, right_model, truth_dem, n_points, rng)
+    points = _check_points(left_model, right_true, truth_dem, n_points, rng)
     settings = dict(preset=preset, size=[w, h], right_size=list(rsize), noise=noise, seed=seed,
                     bits=bits, mtf_nyquist=mtf_nyquist, psf_sigma_gsd=sigma_psf,
                     gsd=gsd, center_lon=lon0, center_lat=lat0,
                     angles=list(angles) if preset == "pushbroom" else None,
+                    jitter=None if jitter is None else [float(x) for x in jitter],
                     dem=str(dem.path), texture=str(texture or texture_path()))
     return Scene(images[0], images[1], left_model, right_model, truth_dem,
                  truth_ortho.astype(np.float32), points, preset, settings, diags)
@@ -409,20 +495,23 @@ def points_csv(points) -> str:
     return buf.getvalue()
 
 
-def write_scene(scene: Scene, out_dir, *, overwrite: bool = False, fit_rpcs: bool = True):
+def write_scene(scene: Scene, out_dir, *, overwrite: bool = False, fit_rpcs: bool = True,
+                write_images: bool = True):
     """Write a scene under fixed names in ``out_dir``.
 
     ``left.tif``/``right.tif`` (images with fitted RPC metadata and ``<name>.model.json``
     sidecars holding the exact physical model), ``truth_dem.tif`` (ellipsoidal heights, UTM),
     ``truth_ortho.tif`` (the left image's true orthoimage on the same grid), ``points.csv``
-    and ``scene.json`` (settings, diagnostics, RPC fit residuals).
+    and ``scene.json`` (settings, diagnostics, RPC fit residuals). ``write_images=False``
+    leaves out the images and their models (a granule writer stores them instead).
     """
     from stereodem.sensor.io.raster import prepare_output_dir, write_geotiff, write_text_atomic
     from stereodem.sensor.io.sidecar import save_model
 
     out = prepare_output_dir(out_dir, overwrite=overwrite)
     meta = dict(settings=scene.settings, diagnostics=dict(scene.diagnostics), rpc_fit={})
-    for name, img, model in (("left", scene.left, scene.left_model), ("right", scene.right, scene.right_model)):
+    pairs = (("left", scene.left, scene.left_model), ("right", scene.right, scene.right_model))
+    for name, img, model in pairs if write_images else ():
         rpcs = None
         if fit_rpcs:
             from stereodem.sensor.estimation.rpcfit import fit_rpc

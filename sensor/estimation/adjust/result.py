@@ -1,0 +1,182 @@
+"""The result of an adjustment and its JSON report (``adjust_report.json``)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["AdjustmentResult", "rmse"]
+
+
+def rmse(res) -> float:
+    """Radial RMSE of (n, 2) pixel residuals, ``sqrt(mean(dc^2 + dr^2))``; NaN when empty."""
+    res = np.asarray(res, float).reshape(-1, 2)
+    res = res[np.all(np.isfinite(res), axis=1)]
+    return float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))) if len(res) else float("nan")
+
+
+def _axis_rmse(res):
+    res = np.asarray(res, float).reshape(-1, 2)
+    res = res[np.all(np.isfinite(res), axis=1)]
+    return [float(v) for v in np.sqrt(np.mean(res ** 2, axis=0))] if len(res) else [None, None]
+
+
+def _num(v):
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+@dataclass
+class AdjustmentResult:
+    """Estimated parameters, their precision and the reliability of the observations.
+
+    Arrays over points follow ``gcp_ids`` (every point of role ``gcp``, outliers included:
+    their residuals are those of the final model, their ``w``/``redundancy``/``mdb`` NaN)
+    and ``check_ids``. Residuals are ``model(ground) - measured`` in pixels (col, row).
+
+    Attributes
+    ----------
+    model : the adjusted model (same protocol as the input)
+    names, values, initial_values, std, units : parameters (``std`` a posteriori: scaled by
+        ``sigma0`` when the a-priori sigma is unknown, else the a-priori propagation)
+    covariance, correlation : (u, u)
+    condition : condition number of the equilibrated normal matrix
+    sigma0 : a-posteriori standard deviation of unit weight
+    sigma_known : whether the a-priori observation sigmas were given (Baarda's test and the
+        chi-square test apply) or assumed 1 px (Pope's tau test)
+    chi2_test : dict of :func:`.reliability.variance_test`
+    redundancy, w, mdb : (n_gcp, 2) redundancy numbers, standardised residuals (w, or Pope's
+        tau when sigma is unknown), minimal detectable biases (px)
+    external_reliability : (n_gcp, 2) ``delta_0 sqrt((1 - r) / r)``
+    residuals_px, check_residuals_px : (n, 2)
+    ground_residuals_m : (n_gcp, 3) east/north/up residuals of ground observations (zeros
+        when the ground coordinates were fixed)
+    outliers : list of dict (``id``, ``reason``, ``statistic``) in rejection order
+    """
+
+    model: object
+    names: list
+    values: np.ndarray
+    initial_values: np.ndarray
+    std: np.ndarray
+    units: list
+    covariance: np.ndarray
+    condition: float
+    sigma0: float
+    sigma_known: bool
+    dof: int
+    n_observations: int
+    chi2_test: dict
+    gcp_ids: np.ndarray
+    check_ids: np.ndarray
+    gcp_points: object
+    check_points: object
+    residuals_px: np.ndarray
+    check_residuals_px: np.ndarray
+    ground_residuals_m: np.ndarray
+    redundancy: np.ndarray
+    w: np.ndarray
+    mdb: np.ndarray
+    external_reliability: np.ndarray
+    outliers: list
+    iterations: int
+    converged: bool
+    tolerance: float
+    test: dict
+    model_set: str | None = None
+    priors: dict = field(default_factory=dict)
+    regularization: float = 0.0
+    initial_model: object = None
+    variance_components: dict | None = None
+
+    # ---------------------------------------------------------------- derived
+    @property
+    def correlation(self) -> np.ndarray:
+        s = np.sqrt(np.diag(self.covariance))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.covariance / np.outer(s, s)
+
+    @property
+    def outlier_mask(self) -> np.ndarray:
+        bad = {o["id"] for o in self.outliers}
+        return np.array([i in bad for i in self.gcp_ids], dtype=bool)
+
+    @property
+    def gcp_rmse_px(self) -> float:
+        """Radial RMSE of the GCPs kept in the adjustment (px)."""
+        return rmse(self.residuals_px[~self.outlier_mask])
+
+    @property
+    def check_rmse_px(self) -> float:
+        """Radial RMSE of the independent check points (px); NaN without check points."""
+        return rmse(self.check_residuals_px)
+
+    @property
+    def n_unknowns(self) -> int:
+        return len(self.names)
+
+    @property
+    def parameters(self) -> dict:
+        """``{name: value}`` of the estimated parameters."""
+        return dict(zip(self.names, (float(v) for v in self.values)))
+
+    # ---------------------------------------------------------------- report
+    def to_report(self) -> dict:
+        """The content of ``adjust_report.json`` (JSON-ready; NaN -> null)."""
+        from stereodem.sensor.io.sidecar import model_to_dict
+        out_mask = self.outlier_mask
+        points = []
+        for k, pid in enumerate(self.gcp_ids):
+            points.append({
+                "id": str(pid), "role": "gcp", "col": float(self.gcp_points.col[k]),
+                "row": float(self.gcp_points.row[k]),
+                "residual_px": [_num(v) for v in self.residuals_px[k]],
+                "w": [_num(v) for v in self.w[k]], "r": [_num(v) for v in self.redundancy[k]],
+                "mdb_px": [_num(v) for v in self.mdb[k]],
+                "ground_residual_m": [_num(v) for v in self.ground_residuals_m[k]],
+                "outlier": bool(out_mask[k])})
+        for k, pid in enumerate(self.check_ids):
+            points.append({
+                "id": str(pid), "role": "check", "col": float(self.check_points.col[k]),
+                "row": float(self.check_points.row[k]),
+                "residual_px": [_num(v) for v in self.check_residuals_px[k]],
+                "w": None, "r": None, "mdb_px": None, "ground_residual_m": None, "outlier": False})
+        corr = self.correlation
+        try:
+            model_dict = model_to_dict(self.model)
+        except Exception as exc:   # a model without a serialiser still gets its statistics
+            model_dict = {"type": type(self.model).__name__, "error": str(exc)}
+        return {
+            "model": model_dict,
+            "model_set": self.model_set,
+            "sigma0": _num(self.sigma0),
+            "sigma0_a_priori": 1.0,
+            "sigma_known": self.sigma_known,
+            "chi2_test": self.chi2_test,
+            "dof": int(self.dof),
+            "n_observations": int(self.n_observations),
+            "n_unknowns": self.n_unknowns,
+            "parameters": [{"name": n, "value": float(v), "initial": float(v0), "std": _num(s),
+                            "unit": u, **({"prior_std": self.priors[n]} if n in self.priors else {})}
+                           for n, v, v0, s, u in zip(self.names, self.values, self.initial_values,
+                                                     self.std, self.units)],
+            "covariance": [[_num(v) for v in row] for row in self.covariance],
+            "correlation": [[_num(v) for v in row] for row in corr],
+            "condition": _num(self.condition),
+            "points": points,
+            "gcp_rmse_px": _num(self.gcp_rmse_px),
+            "gcp_rmse_col_row_px": _axis_rmse(self.residuals_px[~out_mask]),
+            "check_rmse_px": _num(self.check_rmse_px),
+            "check_rmse_col_row_px": _axis_rmse(self.check_residuals_px),
+            "n_gcp": int(len(self.gcp_ids) - out_mask.sum()),
+            "n_check": int(len(self.check_ids)),
+            "outliers": [o["id"] for o in self.outliers],
+            "outlier_details": self.outliers,
+            "test": self.test,
+            "iterations": int(self.iterations),
+            "converged": bool(self.converged),
+            "convergence_criterion": f"max |dx_k| / sigma_k < {self.tolerance:g}",
+            "regularization": _num(self.regularization),
+            "redundancy_sum": _num(np.nansum(self.redundancy)),
+            "variance_components": self.variance_components,
+        }

@@ -1,0 +1,198 @@
+"""Side-by-side comparison of sensor models fitted to the same GCPs (Ok 2005 Table 6.15,
+Topan 2009 Tables 4.3/A.5): every model gets the same check points (ICPs) and the same GCP
+subsets, from small to large, and is scored by GCP and ICP RMSE (pixels), the a-posteriori
+sigma0 (the a-posteriori standard deviation of unit weight: relative to the a-priori image
+sigma when one is given, else in pixels), the condition number of its normal equations
+(generic models: in their normalised coordinates, as :mod:`~stereodem.sensor.models.generic`
+reports it; the others: column-equilibrated)
+and its parameter count.
+
+Model names: the generic models of :mod:`stereodem.sensor.models.generic` (fitted with
+:func:`~stereodem.sensor.models.generic.fit_model`), and every set registered with the
+adjustment engine (:mod:`stereodem.sensor.estimation.adjust.model_sets`: the physical model's
+``attitude-*`` sets, ``rpc-*``, and the orbital ``eop-*``, ``orun``, ``toutin``, ``kratky``),
+adjusted with :func:`~stereodem.sensor.estimation.adjust.adjust_model`. ``all`` = every
+generic model, the sets that apply to the image's model and the orbital defaults.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from stereodem.sensor.errors import InputError, StereodemError
+from stereodem.sensor.io.gcps import ControlPoints
+
+log = logging.getLogger(__name__)
+
+
+def expand_models(names, base) -> list[str]:
+    """The model list: ``all`` expanded for the image model ``base``; unknown names refused."""
+    from stereodem.sensor.estimation.adjust import MODEL_SETS
+    from stereodem.sensor.models.generic import MODEL_NAMES
+    from stereodem.sensor.models.orbital import DEFAULT_SETS
+    from stereodem.sensor.models.pushbroom import PushbroomModel
+    out = []
+    for name in names:
+        if name == "all":
+            out += list(MODEL_NAMES)
+            for k, ms in MODEL_SETS.items():
+                if k.startswith(("rpc-shift", "rpc-affine")) or (
+                        ms.applies_to and isinstance(base, ms.applies_to)):
+                    out.append(k)
+            if isinstance(base, PushbroomModel) or hasattr(base, "ephemeris"):
+                out += list(DEFAULT_SETS)
+            else:
+                out += [k for k in DEFAULT_SETS if k != "eop-poly2"]
+        elif name in MODEL_NAMES or name in MODEL_SETS:
+            out.append(name)
+        else:
+            known = sorted(set(MODEL_NAMES) | set(MODEL_SETS))
+            raise InputError(f"unknown model {name!r} (known: all, {', '.join(known)})")
+    return list(dict.fromkeys(out))
+
+
+def split_points(points: ControlPoints, n_check: int, seed: int = 0):
+    """``(gcp pool in a fixed random order, check points)``: the points' own ``check`` roles
+    when there are any, else ``n_check`` random points."""
+    rng = np.random.default_rng(seed)
+    if np.any(points.role == "check"):
+        pool, icp = points.select("gcp"), points.select("check")
+    else:
+        if n_check >= len(points):
+            raise InputError(f"{len(points)} point(s) cannot give {n_check} check points and GCPs")
+        order = rng.permutation(len(points))
+        roles = np.array(["gcp"] * len(points), dtype=object)
+        roles[order[:n_check]] = "check"
+        pts = points.with_roles(roles) if hasattr(points, "with_roles") else _with_roles(points, roles)
+        pool, icp = pts.select("gcp"), pts.select("check")
+    perm = rng.permutation(len(pool))
+    return pool.subset(perm), icp
+
+
+def _with_roles(points, roles):
+    return ControlPoints(points.id, points.lon, points.lat, points.h, points.col, points.row,
+                         role=np.asarray(roles, str), sigma_px=points.sigma_px,
+                         sigma_ground_m=points.sigma_ground_m)
+
+
+def _take(points, idx):
+    return ControlPoints(points.id[idx], points.lon[idx], points.lat[idx], points.h[idx],
+                         points.col[idx], points.row[idx], role=points.role[idx],
+                         sigma_px=points.sigma_px[idx], sigma_ground_m=points.sigma_ground_m[idx])
+
+
+def _concat(a, b):
+    cat = {k: np.concatenate([getattr(a, k), getattr(b, k)])
+           for k in ("id", "lon", "lat", "h", "col", "row", "role", "sigma_px", "sigma_ground_m")}
+    return ControlPoints(**cat)
+
+
+def _generic_record(name, gcp, icp, sigma_px=None):
+    from stereodem.sensor.models.generic import fit_model, n_parameters
+    model, rep = fit_model(name, *(getattr(gcp, k) for k in ("lon", "lat", "h", "col", "row")),
+                           check=tuple(getattr(icp, k) for k in ("lon", "lat", "h", "col", "row")))
+    u, n = n_parameters(name), len(gcp)
+    dof = 2 * n - u
+    # sigma0 as the engine reports it: relative to the a-priori sigma when one is given
+    s0 = float(np.sqrt(n * rep.gcp_rmse ** 2 / dof)) / (sigma_px or 1.0) if dof > 0 else float("nan")
+    return dict(n_params=u, gcp_rmse_px=float(rep.gcp_rmse), icp_rmse_px=float(rep.check_rmse),
+                sigma0=s0, condition=float(rep.condition_number))
+
+
+def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, seed: int = 0,
+            sigma_px=None) -> list[dict]:
+    """Fit every model with every GCP count on the same split; list of records (one per model
+    and count) with ``model, family, n_gcp, n_icp, n_params, gcp_rmse_px, icp_rmse_px,
+    sigma0, condition`` and ``error`` (the one-line reason when the fit was refused)."""
+    from stereodem.sensor.estimation.adjust import adjust_model, model_set
+    from stereodem.sensor.estimation.adjust.model_sets import MODEL_SETS
+    from stereodem.sensor.models.generic import MODEL_NAMES, n_parameters
+    from stereodem.sensor.models.orbital._common import require_gcps, require_inside
+
+    pool, icp = split_points(points, n_check, seed)
+    require_inside(base, icp.col, icp.row)
+    counts = sorted({int(c) for c in counts if 0 < int(c) <= len(pool)})
+    if not counts:
+        raise InputError(f"no GCP count fits the {len(pool)} GCP(s) available")
+    prepared = {}
+    records = []
+    for name in models:
+        family = "generic" if name in MODEL_NAMES else (
+            "orbital" if name.startswith(("eop", "orun", "toutin", "kratky")) else "physical")
+        for n in counts:
+            gcp = pool.subset(np.arange(n))
+            rec = dict(model=name, family=family, n_gcp=n, n_icp=len(icp))
+            try:
+                if name in MODEL_NAMES:
+                    rec.update(_generic_record(name, gcp, icp, sigma_px))
+                else:
+                    if name not in prepared:
+                        prepared[name] = model_set(name).prepare(base)
+                    adjustable, names, priors = prepared[name]
+                    require_gcps(n, names, name)
+                    res = adjust_model(adjustable, _concat(gcp, icp), names, sigma_px=sigma_px,
+                                       priors=priors or None, snooping=False, check_inputs=False,
+                                       what=name)
+                    rec.update(n_params=len(names), gcp_rmse_px=res.gcp_rmse_px,
+                               icp_rmse_px=res.check_rmse_px, sigma0=res.sigma0,
+                               condition=res.condition)
+            except StereodemError as exc:
+                rec.update(error=str(exc))
+            except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+                rec.update(error=f"{type(exc).__name__}: {exc}")
+            if "n_params" not in rec:
+                rec["n_params"] = (n_parameters(name) if name in MODEL_NAMES
+                                   else len(MODEL_SETS[name].names))
+            records.append({k: (float(v) if isinstance(v, (np.floating, float)) else v)
+                            for k, v in rec.items()})
+            log.info("%s %d GCP: %s", name, n, rec.get("error") or f"ICP {rec['icp_rmse_px']:.3f} px")
+    return records
+
+
+def markdown(records) -> str:
+    """Ok's Table 6.15 layout: one block per model, one row per GCP count."""
+    lines = ["| model | u | GCP / ICP | GCP RMSE px | ICP RMSE px | sigma0 | condition |",
+             "|---|---|---|---|---|---|---|"]
+    for r in records:
+        if r.get("error"):
+            lines.append(f"| {r['model']} | {r.get('n_params', '')} | {r['n_gcp']} / {r['n_icp']} | "
+                         f"refused: {r['error'][:60]} | | | |")
+            continue
+        lines.append(f"| {r['model']} | {r['n_params']} | {r['n_gcp']} / {r['n_icp']} | "
+                     f"{r['gcp_rmse_px']:.3f} | {r['icp_rmse_px']:.3f} | {r['sigma0']:.3g} | "
+                     f"{r['condition']:.3g} |")
+    return "\n".join(lines) + "\n"
+
+
+def figure(records, path):
+    """ICP RMSE against GCP count, one line per model (log axes)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(10, 6.5))
+    styles = {"generic": ":", "physical": "--", "orbital": "-"}
+    colours = plt.get_cmap("tab20").colors
+    markers = "o^sDv<>p*h"
+    for k, name in enumerate(dict.fromkeys(r["model"] for r in records)):
+        rs = [r for r in records if r["model"] == name and not r.get("error")
+              and np.isfinite(r.get("icp_rmse_px", np.nan))]
+        if not rs:
+            continue
+        ax.plot([r["n_gcp"] for r in rs], [r["icp_rmse_px"] for r in rs], styles[rs[0]["family"]],
+                color=colours[k % len(colours)], marker=markers[k % len(markers)], ms=4,
+                label=f"{name} ({rs[0]['n_params']})")
+    counts = sorted({r["n_gcp"] for r in records})
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xticks(counts, [str(c) for c in counts])
+    ax.minorticks_off()
+    ax.set_xlabel("number of GCPs")
+    ax.set_ylabel("ICP RMSE (pixels)")
+    ax.set_title("Check-point error against GCP count (same ICPs for every model)")
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2, title="model (parameters); dotted generic, dashed physical, "
+                                        "solid orbital", title_fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

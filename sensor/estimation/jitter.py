@@ -1,0 +1,218 @@
+"""Attitude jitter of a pushbroom band: injection, estimation from along-track DEM
+residuals, and correction as a time-varying attitude of the sensor model.
+
+ASTER's along-track attitude oscillation (about 1.5 Hz, a few urad) is not in the L1A
+geometry (ASTER notes §7 item 12): the backward band 3B then sees the ground a little ahead of
+or behind where its model says, and the stereo heights carry stripes across the track that
+repeat along it (MMASTER fits them with a sum of sines against a reference DEM; ASP's
+``jitter_solve`` adjusts the attitude). Here:
+
+* :func:`with_attitude_sines` gives a copy of a :class:`~stereodem.sensor.models.pushbroom.PushbroomModel`
+  (or :class:`~stereodem.sensor.models.aster.AsterModel`) whose attitude angle ``axis``
+  (``roll``/``pitch``/``yaw``, radians) is ``sum_k a_k sin(2 pi f_k t + phi_k)`` on the model's
+  time base - used by the simulator to inject jitter and by the correction;
+* :func:`height_sensitivity` is the height change (m per rad) of a stereo intersection when
+  the second model's pitch changes, from the two models (numerical, per point);
+* :func:`fit_sum_of_sines` finds the strongest frequencies of a sampled signal by a
+  Lomb-Scargle periodogram and refines amplitudes, phases and frequencies with
+  ``scipy.optimize.least_squares`` (plus a low-order trend);
+* :func:`estimate_pitch_jitter` turns DEM-minus-reference residuals into a per-time pitch error
+  of the second model (residual / sensitivity, binned by its acquisition line) and fits it.
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stereodem.sensor.errors import InputError
+from stereodem.sensor.models.ephemeris import Attitude
+
+_AXES = {"roll": 0, "pitch": 1, "yaw": 2}
+
+
+@dataclass
+class SineSeries:
+    """``y(t) = sum_k amplitude_k sin(2 pi frequency_k t + phase_k)`` (t in seconds).
+
+    ``amplitudes`` in the signal's unit (radians for attitude), ``frequencies`` in Hz.
+    ``trend`` holds polynomial coefficients (ascending, in ``(t - t_ref)``) fitted alongside
+    and not part of the correction; ``rms_residual`` is the RMS misfit of the samples within
+    five robust sigmas.
+    """
+
+    amplitudes: np.ndarray
+    frequencies: np.ndarray
+    phases: np.ndarray
+    t_ref: float = 0.0
+    trend: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    rms_residual: float = float("nan")
+
+    def __call__(self, t):
+        t = np.asarray(t, float)[..., None]
+        return np.sum(self.amplitudes * np.sin(2 * np.pi * self.frequencies * t + self.phases), -1)
+
+    def to_dict(self) -> dict:
+        return {"amplitudes": self.amplitudes.tolist(), "frequencies_hz": self.frequencies.tolist(),
+                "phases_rad": self.phases.tolist(), "t_ref": self.t_ref,
+                "trend": self.trend.tolist(), "rms_residual": self.rms_residual}
+
+
+def with_attitude_sines(model, series: SineSeries, *, axis: str = "pitch", sign: float = 1.0,
+                        samples_per_period: int = 40):
+    """Copy of a pushbroom ``model`` whose attitude angle ``axis`` follows ``sign * series(t)``.
+
+    The oscillation is sampled (``samples_per_period`` per shortest period, natural cubic
+    spline of :class:`~stereodem.sensor.models.ephemeris.Attitude`) over the image's time span
+    plus a margin, and composed with any attitude the model already has.
+    """
+    if axis not in _AXES:
+        raise InputError(f"attitude axis must be one of {', '.join(_AXES)}, got {axis!r}")
+    f_max = float(np.max(series.frequencies)) if len(series.frequencies) else 1.0
+    t0 = float(model.line_time(-0.05 * model.height - 50))
+    t1 = float(model.line_time(1.05 * model.height + 50))
+    n = max(16, int(np.ceil((t1 - t0) * f_max * samples_per_period)) + 1)
+    t = np.linspace(t0, t1, n)
+    angles = np.zeros((n, 3))
+    angles[:, _AXES[axis]] = sign * series(t)
+    if model.attitude is not None:
+        if model.attitude.angles is None:
+            raise InputError(f"{model.name}: cannot add sines to a quaternion attitude")
+        angles += model.attitude.angles_at(t)
+    new = copy.copy(model)
+    new.attitude = Attitude(t, angles)
+    return new
+
+
+def height_sensitivity(left, right, lon, lat, h, *, dpitch: float = 1e-6):
+    """d(height)/d(pitch of ``right``) in m/rad at ground points, by space intersection.
+
+    The point is seen by ``left`` and ``right``; ``right`` is pitched by ``dpitch`` and the two
+    rays are intersected again (closest point of the two lines).
+    """
+    from stereodem.sensor.geo import geodesy
+    cl, rl = left.project(lon, lat, h)
+    cr, rr = right.project(lon, lat, h)
+    tilted = right.with_parameters(pitch_bias=right.parameters()["pitch_bias"] + dpitch)
+    o1, d1 = left.rays(cl, rl)
+    o2, d2 = tilted.rays(cr, rr)
+    w = o1 - o2
+    a, b, c = (d1 * d1).sum(-1), (d1 * d2).sum(-1), (d2 * d2).sum(-1)
+    d, e = (d1 * w).sum(-1), (d2 * w).sum(-1)
+    den = a * c - b * b
+    s = (b * e - c * d) / den
+    u = (a * e - b * d) / den
+    p = 0.5 * ((o1 + s[..., None] * d1) + (o2 + u[..., None] * d2))
+    _, _, hp = geodesy.ecef_to_geodetic(p[..., 0], p[..., 1], p[..., 2])
+    return (np.asarray(hp) - np.asarray(h, float)) / dpitch
+
+
+def fit_sum_of_sines(t, y, *, n_sines: int = 1, f_range=(0.2, 8.0), trend_degree: int = 1,
+                     n_frequencies: int = 2000) -> SineSeries:
+    """Fit ``n_sines`` sines (and a polynomial trend) to samples ``(t, y)``.
+
+    Frequencies are located one after another on the Lomb-Scargle periodogram of the residual
+    (``scipy.signal.lombscargle``) within ``f_range`` (Hz), then all parameters are refined
+    together by ``scipy.optimize.least_squares`` (soft-L1 loss against outliers).
+    """
+    from scipy.optimize import least_squares
+    from scipy.signal import lombscargle
+
+    t = np.asarray(t, float)
+    y = np.asarray(y, float)
+    ok = np.isfinite(t) & np.isfinite(y)
+    t, y = t[ok], y[ok]
+    if t.size < 4 * n_sines + trend_degree + 2:
+        raise InputError(f"jitter fit: only {t.size} valid samples")
+    t_ref = float(np.mean(t))
+    x = t - t_ref
+    # initial search on the samples that are not outliers (median +- 5 robust sigmas)
+    dev = y - np.median(y)
+    inl = np.abs(dev) <= 5.0 * 1.4826 * max(float(np.median(np.abs(dev))), 1e-300)
+    xs = x[inl]
+    trend = np.polynomial.polynomial.polyfit(xs, y[inl], trend_degree)
+    resid = y[inl] - np.polynomial.polynomial.polyval(xs, trend)
+    freqs = np.linspace(f_range[0], f_range[1], n_frequencies)
+    amps, fs, phs = [], [], []
+    for _ in range(n_sines):
+        power = lombscargle(xs, resid - resid.mean(), 2 * np.pi * freqs)
+        f = float(freqs[np.argmax(power)])
+        a = np.stack([np.sin(2 * np.pi * f * xs), np.cos(2 * np.pi * f * xs)], -1)
+        (sa, ca), *_ = np.linalg.lstsq(a, resid, rcond=None)
+        amps.append(np.hypot(sa, ca))
+        phs.append(np.arctan2(ca, sa))
+        fs.append(f)
+        resid = resid - a @ np.array([sa, ca])
+    p0 = np.concatenate([amps, fs, phs, trend])
+    k, nd = n_sines, trend_degree + 1
+
+    def model(p):
+        a, f, ph, c = p[:k], p[k:2 * k], p[2 * k:3 * k], p[3 * k:]
+        return (np.sum(a * np.sin(2 * np.pi * f * x[:, None] + ph), -1)
+                + np.polynomial.polynomial.polyval(x, c))
+
+    scale = float(np.median(np.abs(y - model(p0)))) * 1.4826 or 1e-12
+    sol = least_squares(lambda p: model(p) - y, p0, loss="soft_l1", f_scale=scale)
+    p = sol.x
+    a, f, ph = p[:k], p[k:2 * k], p[2 * k:3 * k]
+    ph = ph - 2 * np.pi * f * t_ref                     # phases on the absolute time base
+    sgn = np.sign(a)
+    ph = np.where(sgn < 0, ph + np.pi, ph)
+    r = model(p) - y
+    rms = float(np.sqrt(np.mean(r[np.abs(r) <= 5.0 * 1.4826 * np.median(np.abs(r))] ** 2)))
+    return SineSeries(np.abs(a), f, np.mod(ph, 2 * np.pi), t_ref, p[3 * k:3 * k + nd], rms)
+
+
+def along_track_profile(values, model, lon, lat, h, *, bin_lines: float = 8.0):
+    """Median of ``values`` per bin of ``model`` acquisition lines: ``(times, medians, counts)``."""
+    ok = np.isfinite(values) & np.isfinite(h)
+    _, row = model.project(lon[ok], lat[ok], h[ok])
+    v = values[ok]
+    good = np.isfinite(row)
+    row, v = row[good], v[good]
+    if row.size == 0:
+        raise InputError("jitter: no DEM cell projects into the image")
+    edges = np.arange(np.floor(row.min()), np.ceil(row.max()) + bin_lines, bin_lines)
+    idx = np.digitize(row, edges) - 1
+    order = np.argsort(idx, kind="stable")
+    idx_s, v_s = idx[order], v[order]
+    starts = np.flatnonzero(np.r_[True, np.diff(idx_s) > 0])
+    groups = np.split(v_s, starts[1:])
+    centres = 0.5 * (edges[idx_s[starts]] + edges[idx_s[starts] + 1])
+    med = np.array([np.median(g) for g in groups])           # one call per bin, not per cell
+    counts = np.array([g.size for g in groups])
+    return model.line_time(centres), med, counts
+
+
+def estimate_pitch_jitter(dem, reference, left, right, *, n_sines: int = 1, f_range=(0.2, 8.0),
+                          bin_lines: float = 8.0, min_count: int = 20, max_cells: int = 200_000,
+                          seed: int = 0):
+    """Pitch jitter of ``right`` (rad, on its time base) from ``dem - reference`` residuals.
+
+    ``dem`` and ``reference`` are :class:`~stereodem.sensor.geo.dem.DEM` objects with
+    ellipsoidal heights (``reference`` is sampled at ``dem``'s cells). A camera whose true
+    pitch is ``j(t)`` above its model's gives heights off by ``-j(t) * sensitivity``; so each
+    residual is divided by minus the local :func:`height_sensitivity` (m/rad) and binned by
+    the ``right`` acquisition line; bins with fewer than ``min_count`` cells are dropped. The
+    fitted :class:`SineSeries` is ``j(t)``: ``with_attitude_sines(right, fit)`` is the
+    corrected model. Returns ``(SineSeries, diagnostics)`` with the profile used.
+    """
+    from stereodem.sensor.geo import geodesy
+    from stereodem.sensor.geo.dem import ELLIPSOID
+    z = np.asarray(dem.heights, float)
+    rows, cols = np.nonzero(np.isfinite(z))
+    if rows.size > max_cells:
+        pick = np.random.default_rng(seed).choice(rows.size, max_cells, replace=False)
+        rows, cols = rows[pick], cols[pick]
+    x, y = dem.transform @ (cols + 0.5, rows + 0.5)
+    lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), dem.crs)
+    h = z[rows, cols]
+    ref = reference.sample(lon, lat, reference=ELLIPSOID) if hasattr(reference, "sample") else reference
+    dh = h - np.asarray(ref, float)
+    sens = height_sensitivity(left, right, lon, lat, h)
+    t, med, counts = along_track_profile(-dh / sens, right, lon, lat, h, bin_lines=bin_lines)
+    keep = counts >= min_count
+    fit = fit_sum_of_sines(t[keep], med[keep], n_sines=n_sines, f_range=f_range)
+    return fit, {"times": t[keep], "pitch_profile_rad": med[keep], "counts": counts[keep],
+                 "sensitivity_m_per_rad": float(np.median(sens))}

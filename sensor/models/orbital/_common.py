@@ -1,0 +1,141 @@
+"""What the orbital models share: the normalised line variable, quadratic polynomials in it,
+virtual control points from a metadata model, the initial fit to them, and the Newton inverse
+of a ground -> image mapping.
+
+Time variable: every polynomial of the package is written in the centred and scaled line
+``tau = (row - r_c) / s`` with ``r_c = s = (height - 1) / 2``, so ``tau`` runs over [-1, 1]
+across the image (Topan 2009 notes §3.4: "centre and scale the polynomial variable"). A
+coefficient ``P_1`` is therefore the change of ``P`` from the centre line to the last line,
+in the unit of ``P``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from stereodem.sensor.errors import ConvergenceError, SensorModelError
+from stereodem.sensor.geo import geodesy
+
+
+def line_variable(row, height: int):
+    """Normalised line ``tau`` in [-1, 1] of (fractional) image rows."""
+    half = 0.5 * (int(height) - 1) or 1.0
+    return (np.asarray(row, float) - half) / half
+
+
+def quadratic(c0, c1, c2, tau):
+    """``c0 + c1 tau + c2 tau^2`` (broadcast)."""
+    return c0 + tau * (c1 + tau * c2)
+
+
+def virtual_points(reference, *, n: int = 9, heights=(-200.0, 1000.0, 3000.0)):
+    """Ground points seen by ``reference`` on an ``n x n`` image grid at several heights.
+
+    Returns ``(lon, lat, h, col, row)`` (degrees, metres above the ellipsoid, pixels): the
+    metadata model's own image -> ground mapping, used to give a parametric model its initial
+    values (the way an RPC is fitted to a physical model).
+    """
+    w, hgt = reference.width, reference.height
+    c, r, z = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, hgt - 1, n),
+                          np.asarray(heights, float), indexing="ij")
+    c, r, z = c.ravel(), r.ravel(), z.ravel()
+    lon, lat = reference.localize(c, r, z)
+    ok = np.isfinite(lon) & np.isfinite(lat)
+    if ok.sum() < 12:
+        raise SensorModelError(f"{type(reference).__name__}: too few pixels see the Earth to "
+                               "initialise an orbital model")
+    return lon[ok], lat[ok], z[ok], c[ok], r[ok]
+
+
+def fit_to_points(model, names, lon, lat, h, col, row, *, what: str):
+    """Initial values: the named parameters of ``model`` fitted (Levenberg-Marquardt, scaled
+    by the model's ``PARAMETER_STEPS``) to image coordinates of virtual points.
+
+    Returns ``(model, rms_px)``; this is model construction from metadata (no weights, no
+    statistics), not the GCP adjustment, which is the adjustment engine's job.
+    """
+    base = model.coefficients() if hasattr(model, "coefficients") else model.parameters()
+    steps = np.array([model.PARAMETER_STEPS.get(n, 1e-6) for n in names], float)
+    x0 = np.array([base[n] for n in names], float)
+
+    def resid(u):
+        m = model.with_parameters(**dict(zip(names, x0 + u * steps)))
+        pc, pr = m.project(lon, lat, h)
+        r = np.concatenate([pc - col, pr - row])
+        return np.where(np.isfinite(r), r, 1e6)
+
+    sol = least_squares(resid, np.zeros(len(names)), method="lm", x_scale=1.0, xtol=1e-12,
+                        ftol=1e-12, max_nfev=200 * (len(names) + 1))
+    fitted = model.with_parameters(**dict(zip(names, x0 + sol.x * steps)))
+    rms = float(np.sqrt(np.mean(sol.fun ** 2)))
+    if not np.isfinite(rms) or rms > 50.0:
+        raise ConvergenceError(f"{what}: the initial fit to the metadata model failed "
+                               f"(rms {rms:.3g} px)")
+    return fitted, rms
+
+
+def invert_projection(model, col, row, h, *, lon0: float, lat0: float, iterations: int = 20,
+                      tolerance_px: float = 1e-7):
+    """``(lon, lat)`` such that ``model.project(lon, lat, h) == (col, row)``, by Newton steps
+    in a local east/north frame (metres) with a finite-difference Jacobian; vectorised.
+
+    NaN where the iteration does not converge.
+    """
+    col, row, h = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float),
+                                      np.asarray(h, float))
+    shape = col.shape
+    c, r, hh = col.ravel(), row.ravel(), h.ravel()
+    e = np.zeros(c.size)
+    n = np.zeros(c.size)
+
+    def proj(e_, n_):
+        x, y, z = geodesy.enu_to_ecef(e_, n_, hh * 0.0, lon0, lat0, 0.0)
+        lo, la, _ = geodesy.ecef_to_geodetic(x, y, z)
+        pc, pr = model.project(np.asarray(lo, float), np.asarray(la, float), hh)
+        return np.asarray(pc, float), np.asarray(pr, float), lo, la
+
+    step = 10.0
+    done = np.zeros(c.size, bool)
+    for _ in range(iterations):
+        pc, pr, lo, la = proj(e, n)
+        fc, fr = pc - c, pr - r
+        done = np.abs(fc) + np.abs(fr) < tolerance_px
+        if done.all():
+            break
+        ce, re_, _, _ = proj(e + step, n)
+        cn, rn, _, _ = proj(e, n + step)
+        a, b = (ce - pc) / step, (cn - pc) / step
+        cc, d = (re_ - pr) / step, (rn - pr) / step
+        det = a * d - b * cc
+        with np.errstate(divide="ignore", invalid="ignore"):
+            de = (d * fc - b * fr) / det
+            dn = (-cc * fc + a * fr) / det
+        e = e - np.nan_to_num(de)
+        n = n - np.nan_to_num(dn)
+    pc, pr, lo, la = proj(e, n)
+    ok = np.isfinite(pc) & (np.abs(pc - c) + np.abs(pr - r) < 1e-3)
+    lo = np.where(ok, lo, np.nan)
+    la = np.where(ok, la, np.nan)
+    return np.asarray(lo, float).reshape(shape), np.asarray(la, float).reshape(shape)
+
+
+def require_gcps(n_gcp: int, names, what: str) -> None:
+    """Raise :class:`~stereodem.sensor.errors.InputError` when ``n_gcp`` GCPs (two
+    observations each) cannot determine the parameters ``names`` with one redundant
+    observation (so that sigma0 exists; the adjustment engine's rule)."""
+    from stereodem.sensor.errors import InputError
+    need = len(list(names)) // 2 + 1
+    if n_gcp < need:
+        raise InputError(f"{what}: {n_gcp} GCP(s) cannot determine its {len(list(names))} "
+                         f"parameters; at least {need} are needed")
+
+
+def require_inside(model, col, row, *, what: str = "check points") -> None:
+    """Raise :class:`~stereodem.sensor.errors.InputError` when image points fall outside the
+    image (pixel centres from -0.5 to width - 0.5)."""
+    from stereodem.sensor.errors import InputError
+    col, row = np.asarray(col, float), np.asarray(row, float)
+    out = ~((col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5))
+    if np.any(out):
+        raise InputError(f"{int(out.sum())} of {col.size} {what} lie outside the "
+                         f"{model.width} x {model.height} image")

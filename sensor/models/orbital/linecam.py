@@ -1,0 +1,250 @@
+"""Collinearity line camera with polynomial exterior orientation in a local east/north/up
+frame: the common body of Orun & Natarajan (1994) and Kratky (1989).
+
+For image line ``row`` (normalised ``tau``, :func:`._common.line_variable`) the projection
+centre is ``C(tau) = (X, Y, Z)`` with ``X = X_0 + X_1 tau + X_2 tau^2`` etc. (metres, local
+ENU frame with its origin on the ellipsoid below the image centre) and the rotation from the
+ground frame to the camera frame is ``R = R3(kappa) R2(phi) R1(omega)`` (passive rotations,
+:mod:`stereodem.sensor.geo.rotations`; with ``phi = 0`` it is Topan Eq. 3.28), each angle a
+quadratic in ``tau`` (radians). The camera frame has ``x`` normal to the scan plane (along the
+flight), ``y`` along the detector line and ``z`` opposite to the boresight, and a ground point
+``G`` is imaged when (Topan Eq. 3.17, x = 0 for a line camera)::
+
+    c = R (G - C(tau)),   c_x = 0,   col = col0 + (-c_y / c_z) / (ifov (1 + scan_scale))
+
+``ifov`` (rad per pixel, signed so that the column grows the way the image does) and ``col0``
+come from the metadata model. Which coefficients a model exposes as adjustable parameters, and
+which it freezes, is what distinguishes Orun & Natarajan from Kratky.
+"""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from stereodem.sensor.errors import SensorModelError
+from stereodem.sensor.geo import geodesy
+from stereodem.sensor.geo.rotations import R1, R2, R3
+from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.models.orbital._common import (fit_to_points, line_variable, quadratic,
+                                                     virtual_points)
+
+#: Every coefficient of the line camera (units: m for X/Y/Z, rad for angles, 1 for the scale).
+COEFFICIENTS = tuple(f"{p}_{k}" for p in ("X", "Y", "Z", "omega", "phi", "kappa") for k in range(3)) \
+    + ("scan_scale",)
+
+
+def _steps():
+    return {n: (1.0 if n[0] in "XYZ" else 1e-6) for n in COEFFICIENTS}
+
+
+class PolynomialLineCamera(SensorModel):
+    """Line camera with quadratic exterior orientation (see the module docstring).
+
+    Subclasses set :attr:`ADJUSTABLE` (the exposed parameters), :attr:`ADJUST_SETS` (named
+    parameter sets; the first is the default) and may freeze coefficients in
+    :meth:`_shape_initial`.
+    """
+
+    ADJUSTABLE: tuple = COEFFICIENTS
+    ADJUST_SETS: dict = {}
+    PARAMETER_STEPS = _steps()
+    MODEL_TYPE = "linecam"
+
+    def __init__(self, *, width: int, height: int, lon0: float, lat0: float, col0: float,
+                 ifov: float, coefficients: dict, name: str | None = None,
+                 height_range=(-500.0, 9000.0)):
+        if int(width) < 2 or int(height) < 2:
+            raise SensorModelError(f"line camera: image must be at least 2 x 2, got {width} x {height}")
+        if not (np.isfinite(ifov) and ifov != 0):
+            raise SensorModelError(f"line camera: IFOV must be finite and non-zero, got {ifov}")
+        self.width, self.height = int(width), int(height)
+        self.lon0, self.lat0 = float(lon0), float(lat0)
+        self.col0, self.ifov = float(col0), float(ifov)
+        self.name = name or type(self).__name__
+        self._c = dict.fromkeys(COEFFICIENTS, 0.0)
+        self._set(coefficients)
+        self._hr = tuple(float(v) for v in height_range)
+        self._enu = geodesy.enu_basis(self.lon0, self.lat0)       # rows: e, n, u in ECEF
+        self._o = np.array(geodesy.geodetic_to_ecef(self.lon0, self.lat0, 0.0), float)
+
+    # ------------------------------------------------------------------ parameters
+    def parameters(self) -> dict:
+        return {n: self._c[n] for n in self.ADJUSTABLE}
+
+    def coefficients(self) -> dict:
+        """All coefficients, frozen ones included."""
+        return dict(self._c)
+
+    def with_parameters(self, **values):
+        new = copy.copy(self)
+        new._c = dict(self._c)
+        new._set(values)
+        return new
+
+    def _set(self, values):
+        for k, v in values.items():
+            if k not in self._c:
+                raise SensorModelError(f"{self.name}: unknown parameter {k!r} "
+                                       f"(known: {', '.join(self.ADJUSTABLE)})")
+            v = float(v)
+            if not np.isfinite(v):
+                raise SensorModelError(f"{self.name}: parameter {k} must be finite")
+            self._c[k] = v
+
+    def height_bounds(self):
+        return self._hr
+
+    # ------------------------------------------------------------------ geometry
+    def _pose(self, row):
+        tau = line_variable(row, self.height)
+        c = self._c
+        centre = np.stack([quadratic(c[f"{a}_0"], c[f"{a}_1"], c[f"{a}_2"], tau) for a in "XYZ"], -1)
+        om, ph, ka = (quadratic(c[f"{a}_0"], c[f"{a}_1"], c[f"{a}_2"], tau) for a in ("omega", "phi", "kappa"))
+        return centre, R3(ka) @ R2(ph) @ R1(om)
+
+    def _to_enu(self, lon, lat, h):
+        p = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)
+        return (p - self._o) @ self._enu.T
+
+    def _camera(self, g, row):
+        centre, rot = self._pose(row)
+        return np.einsum("...ij,...j->...i", rot, g - centre)
+
+    def project(self, lon, lat, h, *, max_iterations: int = 30):
+        """Ground (deg, deg, m above the ellipsoid) -> ``(col, row)``: secant iteration on the
+        line for ``c_x = 0``, then the column from the cross-track ratio."""
+        self.check_inputs(lon, lat, h, what="ground coordinates")
+        lon, lat, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (lon, lat, h)))
+        shape = lon.shape
+        g = self._to_enu(lon.ravel(), lat.ravel(), h.ravel())
+
+        def f(row):
+            cam = self._camera(g, row)
+            return cam[:, 0] / np.linalg.norm(cam, axis=-1)
+
+        r0 = np.zeros(g.shape[0])
+        r1 = np.full(g.shape[0], self.height - 1.0)
+        f0, f1 = f(r0), f(r1)
+        for _ in range(max_iterations):
+            den = f1 - f0
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = np.where(den != 0, -f1 * (r1 - r0) / den, 0.0)
+            step = np.clip(np.nan_to_num(step), -10.0 * self.height, 10.0 * self.height)
+            r0, f0 = r1, f1
+            r1 = r1 + step
+            f1 = f(r1)
+            if np.all(np.abs(step) < 1e-9):
+                break
+        cam = self._camera(g, r1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            y = -cam[:, 1] / cam[:, 2]
+        col = self.col0 + y / (self.ifov * (1.0 + self._c["scan_scale"]))
+        bad = ~(cam[:, 2] < 0) | ~np.isfinite(col)
+        col = np.where(bad, np.nan, col)
+        row = np.where(bad, np.nan, r1)
+        return col.reshape(shape), row.reshape(shape)
+
+    def rays(self, col, row):
+        """ECEF lines of sight ``(origin, unit direction)`` of pixels."""
+        self.check_inputs(col, row, what="image coordinates")
+        col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
+        centre, rot = self._pose(row)
+        y = (col - self.col0) * self.ifov * (1.0 + self._c["scan_scale"])
+        d_cam = np.stack([np.zeros_like(y), y, -np.ones_like(y)], -1)
+        d_enu = np.einsum("...ji,...j->...i", rot, d_cam)
+        o = self._o + centre @ self._enu
+        d = d_enu @ self._enu
+        return o, d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def localize(self, col, row, h):
+        self.check_inputs(col, row, h, what="image coordinates or heights")
+        col, row, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (col, row, h)))
+        o, d = self.rays(col, row)
+        p = geodesy.intersect_height(o, d, h)
+        lon, lat, _ = geodesy.ecef_to_geodetic(p[..., 0], p[..., 1], p[..., 2])
+        return np.asarray(lon, float).reshape(col.shape), np.asarray(lat, float).reshape(col.shape)
+
+    # ------------------------------------------------------------------ initial values
+    @classmethod
+    def from_model(cls, reference, *, name: str | None = None, samples: int = 21,
+                   altitude: float = 705e3):
+        """Initial values from a metadata model (pushbroom, ASTER, RPC...).
+
+        Projection centres: the origins of the reference's exact rays when it has an
+        ephemeris, else the point of the centre detector's ray ``altitude`` metres up; the
+        camera axes from the centre detector's ray, the detector line's direction and the
+        flight direction; quadratics in ``tau`` fitted to both over ``samples`` lines. Then the
+        coefficients the model keeps (:meth:`_shape_initial`) are refined on virtual points of
+        the reference (:func:`._common.fit_to_points`); the refinement's RMS (pixels) is kept
+        in :attr:`init_rms_px`.
+        """
+        if isinstance(reference, cls):
+            return reference                    # already this model (e.g. from a model set)
+        w, hgt = reference.width, reference.height
+        lon0, lat0 = reference.center_lonlat(0.0)
+        col0 = 0.5 * (w - 1)
+        rows = np.linspace(0, hgt - 1, samples)
+        enu = geodesy.enu_basis(lon0, lat0)
+        o0 = np.array(geodesy.geodetic_to_ecef(lon0, lat0, 0.0), float)
+        origin, d0 = reference.rays(np.full(samples, col0), rows)
+        if not hasattr(reference, "ephemeris"):
+            up = origin / np.linalg.norm(origin, axis=-1, keepdims=True)
+            _, _, h_o = geodesy.ecef_to_geodetic(*origin.T)
+            s = (altitude - np.asarray(h_o)) / np.maximum(-np.sum(d0 * up, -1), 0.1)
+            origin = origin - s[:, None] * d0
+        centre = (origin - o0) @ enu.T
+        b = d0 @ enu.T
+        _, dl = reference.rays(np.full(samples, col0 + 1.0), rows)
+        _, dr = reference.rays(np.full(samples, col0 - 1.0), rows)
+        line = (dl - dr) @ enu.T
+        flight = np.gradient(centre, axis=0)
+        x = np.cross(b, line)
+        x /= np.linalg.norm(x, axis=-1, keepdims=True)
+        x *= np.sign(np.sum(x * flight, -1))[:, None]
+        z = -b
+        y = np.cross(z, x)
+        rot = np.stack([x, y, z], -2)                                # ground -> camera rows
+        ang = Rotation.from_matrix(np.swapaxes(rot, -1, -2)).as_euler("XYZ")
+        ang = np.unwrap(ang, axis=0)
+        tau = line_variable(rows, hgt)
+        coef = {}
+        for k, a in enumerate("XYZ"):
+            c2, c1, c0 = np.polyfit(tau, centre[:, k], 2)
+            coef.update({f"{a}_0": c0, f"{a}_1": c1, f"{a}_2": c2})
+        for k, a in enumerate(("omega", "phi", "kappa")):
+            c2, c1, c0 = np.polyfit(tau, ang[:, k], 2)
+            coef.update({f"{a}_0": c0, f"{a}_1": c1, f"{a}_2": c2})
+        # signed IFOV from the neighbouring detector
+        cam = rot[samples // 2] @ (dl[samples // 2] @ enu.T)
+        ifov = float(-cam[1] / cam[2])
+        lo, hi = reference.height_bounds()
+        model = cls(width=w, height=hgt, lon0=lon0, lat0=lat0, col0=col0, ifov=ifov,
+                    coefficients=cls._shape_initial(coef), name=name, height_range=(lo, hi))
+        pts = virtual_points(reference)
+        names = list(model.ADJUSTABLE) + [n for n in cls.REFINE_FROZEN if n not in model.ADJUSTABLE]
+        model, rms = fit_to_points(model, names, *pts, what=model.name)
+        model.init_rms_px = rms
+        return model
+
+    #: Frozen coefficients still refined when the model is initialised from metadata.
+    REFINE_FROZEN: tuple = ()
+
+    @staticmethod
+    def _shape_initial(coef: dict) -> dict:
+        """Hook: set the frozen coefficients of the initial values (default: keep all)."""
+        return coef
+
+    def to_dict(self) -> dict:
+        """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
+        return {"width": self.width, "height": self.height, "lon0": self.lon0, "lat0": self.lat0,
+                "col0": self.col0, "ifov": self.ifov, "coefficients": dict(self._c),
+                "name": self.name, "height_range": list(self._hr)}
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        """Inverse of :meth:`to_dict`."""
+        return cls(width=d["width"], height=d["height"], lon0=d["lon0"], lat0=d["lat0"], col0=d["col0"],
+                   ifov=d["ifov"], coefficients=d["coefficients"], name=d.get("name"),
+                   height_range=tuple(d.get("height_range", (-500.0, 9000.0))))

@@ -1,0 +1,175 @@
+"""``stereodem adjust``: estimate sensor-model corrections from GCPs (one image) or by bundle
+adjustment of a pair, with a statistics report."""
+from __future__ import annotations
+
+import argparse
+import logging
+
+log = logging.getLogger(__name__)
+
+EXAMPLES = """examples:
+  stereodem adjust img.tif --gcps points.csv --model rpc-shift -o img_adj.model.json --report adj/
+  stereodem adjust img.tif --gcps points.csv --model rpc-affine --sigma-px 0.5 -o out.model.json
+  stereodem adjust aster_3n.tif --gcps pts.csv --vertical geoid --model attitude-bias -o 3n.model.json
+  stereodem adjust img.tif --gcps points.csv --model rational-1 -o fitted.model.json --report rep/
+  stereodem adjust left.tif right.tif --model bundle --set rpc-shift --gcps left.csv --gcps2 right.csv \\
+      -o left.model.json --out2 right.model.json --report ba/
+  stereodem adjust left.tif right.tif --model bundle --ties ties.csv -o l.model.json --out2 r.model.json
+
+GCP CSV: id,lon,lat,h,col,row[,sigma_px][,sigma_ground_m][,role]  (role gcp or check; lon/lat
+degrees WGS84, h ellipsoidal metres unless --vertical geoid, col/row pixels with the centre of
+the top-left pixel at 0,0). Tie CSV: col1,row1,col2,row2 (header required).
+"""
+
+
+def _model_choices():
+    from stereodem.sensor.estimation.adjust import MODEL_SETS
+    from stereodem.sensor.models.generic import MODEL_NAMES
+    return sorted(MODEL_SETS) + list(MODEL_NAMES) + ["bundle"]
+
+
+def add_parser(sub):
+    p = sub.add_parser("adjust", help="adjust sensor models to GCPs / bundle-adjust a pair",
+                       description="Estimate the parameters of IMAGE's sensor model from ground "
+                                   "control points (or of a pair's two models from tie points and "
+                                   "GCPs with --model bundle), write the adjusted model as a JSON "
+                                   "sidecar readable by ortho/dem (--model), and a report: "
+                                   "adjust_report.json, adjust_report.md and the residual figure.",
+                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("image", help="image (GeoTIFF with RPCs or a <stem>.model.json sidecar)")
+    p.add_argument("image2", nargs="?", help="second image of a pair (--model bundle)")
+    p.add_argument("--gcps", help="GCP / check-point CSV measured in IMAGE")
+    p.add_argument("--gcps2", help="GCP / check-point CSV measured in IMAGE2 (bundle)")
+    p.add_argument("--ties", help="tie-point CSV col1,row1,col2,row2 (bundle; default: automatic "
+                                  "SIFT matches checked through the models, when available)")
+    p.add_argument("--model", required=True, choices=_model_choices(), metavar="MODEL",
+                   help="parameter set (" + ", ".join(_model_choices()) + ")")
+    p.add_argument("--set", dest="param_set", default="rpc-shift",
+                   help="parameter set of each image in a bundle adjustment (default rpc-shift)")
+    p.add_argument("-o", "--out", required=True, help="adjusted model (JSON sidecar) of IMAGE")
+    p.add_argument("--out2", help="adjusted model of IMAGE2 (bundle)")
+    p.add_argument("--report", help="directory for adjust_report.json/.md and the residual figure")
+    p.add_argument("--vertical", choices=["ellipsoid", "geoid"], default="ellipsoid",
+                   help="reference of the CSV heights (geoid: EGM96)")
+    p.add_argument("--sigma-px", type=float, help="a-priori sigma of GCP image coordinates (px) "
+                   "where the CSV has none; without either sigma is estimated (Pope's tau test)")
+    p.add_argument("--sigma-tie-px", type=float, default=0.5, help="a-priori sigma of tie points (px)")
+    p.add_argument("--alpha", type=float, default=0.001, help="significance level of data snooping")
+    p.add_argument("--no-snooping", action="store_true", help="no outlier rejection")
+    p.add_argument("--max-iterations", type=int, default=20)
+    p.add_argument("--regularization", help="lcurve, gcv or a weight: Tikhonov for rank-deficient sets")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.set_defaults(run=run)
+    return p
+
+
+def _read_ties(path):
+    import numpy as np
+    from stereodem.sensor.errors import InputError
+    try:
+        import csv
+        with open(path, newline="") as f:
+            rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read tie-point file ({exc.strerror})") from None
+    if not rows:
+        raise InputError(f"{path}: empty tie-point file")
+    header = [c.strip().lower() for c in rows[0]]
+    need = ["col1", "row1", "col2", "row2"]
+    if any(c not in header for c in need):
+        raise InputError(f"{path}: tie-point header must contain {','.join(need)}")
+    try:
+        t = np.array([[float(r[header.index(c)]) for c in need] for r in rows[1:]])
+    except (ValueError, IndexError):
+        raise InputError(f"{path}: non-numeric or missing tie-point value") from None
+    return t.reshape(-1, 4)
+
+
+def _auto_ties(args, left, right):
+    from stereodem.sensor.errors import InputError
+    try:
+        from stereodem.stereo.sparse import sparse_matches
+    except ImportError:
+        raise InputError("--model bundle needs --ties CSV (automatic tie points need "
+                         "stereodem.stereo.sparse)") from None
+    import warnings
+
+    import rasterio
+    imgs = []
+    for path in (args.image, args.image2):
+        with warnings.catch_warnings():     # raw (sensor-geometry) images have no geotransform
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(path) as ds:
+                imgs.append(ds.read(1).astype("float32"))
+    m = sparse_matches(imgs[0], imgs[1], left, right)
+    log.info("adjust: %d automatic tie points", len(m))
+    return m
+
+
+def run(args) -> int:
+    from stereodem.sensor.errors import InputError
+    from stereodem.sensor.io.gcps import read_gcps
+    from stereodem.sensor.io.raster import check_writable
+    from stereodem.sensor.io.sidecar import load_image_model, save_model
+    from stereodem.sensor.models.generic import MODEL_NAMES
+    from stereodem.sensor.estimation.adjust import (adjust_generic, adjust_model, bundle_adjust,
+                                                    write_report)
+
+    check_writable(args.out, args.overwrite)
+    if args.report:
+        from pathlib import Path
+        for name in ("adjust_report.json", "adjust_report.md"):
+            check_writable(Path(args.report) / name, args.overwrite)
+    reg = args.regularization
+    if reg is not None and reg not in ("lcurve", "gcv"):
+        try:
+            reg = float(reg)
+        except ValueError:
+            raise InputError(f"--regularization must be lcurve, gcv or a number, got {reg!r}") from None
+    common = dict(sigma_px=args.sigma_px, snooping=not args.no_snooping, alpha=args.alpha,
+                  max_iterations=args.max_iterations)
+    if args.model == "bundle":
+        if not args.image2 or not args.out2:
+            raise InputError("--model bundle needs IMAGE2 and --out2")
+        check_writable(args.out2, args.overwrite)
+        left, right = load_image_model(args.image), load_image_model(args.image2)
+        gcps = tuple(read_gcps(p, vertical=args.vertical) if p else None
+                     for p in (args.gcps, args.gcps2))
+        ties = _read_ties(args.ties) if args.ties else _auto_ties(args, left, right)
+        res = bundle_adjust(left, right, ties, names=(args.param_set, args.param_set), gcps=gcps,
+                            sigma_tie_px=args.sigma_tie_px, **common)
+        save_model(res.left, args.out, overwrite=args.overwrite)
+        save_model(res.right, args.out2, overwrite=args.overwrite)
+        summary = (f"bundle ({args.param_set}): {len(res.tie_rejected)} ties "
+                   f"({int(res.tie_rejected.sum())} rejected), tie RMSE {res.tie_rmse_px:.3f} px, "
+                   f"ray gap {res.parallax_before.get('ray_gap_rms_m', float('nan')):.2f} -> "
+                   f"{res.parallax_after.get('ray_gap_rms_m', float('nan')):.2f} m RMS")
+    else:
+        if not args.gcps:
+            raise InputError(f"--model {args.model} needs --gcps CSV")
+        pts = read_gcps(args.gcps, vertical=args.vertical)
+        if args.model in MODEL_NAMES:
+            model = load_image_model(args.image) if _has_model(args.image) else None
+            size = (model.width, model.height) if model is not None else None
+            res = adjust_generic(args.model, pts, image_size=size, **common)
+        else:
+            res = adjust_model(load_image_model(args.image), pts, args.model, regularization=reg,
+                               **common)
+        save_model(res.model, args.out, overwrite=args.overwrite)
+        summary = (f"{args.model}: sigma0 {res.sigma0:.3f}, GCP RMSE {res.gcp_rmse_px:.3f} px, "
+                   f"check RMSE {res.check_rmse_px:.3f} px, outliers: "
+                   f"{', '.join(o['id'] for o in res.outliers) or 'none'}")
+    if args.report:
+        write_report(res, args.report, overwrite=args.overwrite)
+    print(summary)
+    return 0
+
+
+def _has_model(image) -> bool:
+    from stereodem.sensor.errors import SensorModelError
+    from stereodem.sensor.io.sidecar import load_image_model
+    try:
+        load_image_model(image)
+        return True
+    except SensorModelError:
+        return False

@@ -1,0 +1,120 @@
+"""Progress bars (tqdm, ETA, silent off a terminal or with -q), warnings through logging,
+UTC timestamps with -v, and the provenance record (issue #19)."""
+from __future__ import annotations
+
+import io
+import logging
+import re
+import subprocess
+import sys
+import warnings
+
+import pytest
+
+from stereodem.progress import Progress, TqdmLoggingHandler, UTCFormatter, setup_logging
+from stereodem.provenance import git_commit, provenance, utc_now
+
+
+class _Tty(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_bar_on_a_terminal_shows_eta_and_callback_total():
+    s = _Tty()
+    p = Progress("stereo", 1, stream=s)
+    for k in range(1, 5):
+        p(k, 4)                       # the pipeline's callback form, total learnt late
+    p.close()
+    out = s.getvalue()
+    assert "stereo" in out and "100%" in out and "4/4" in out
+    assert "<" in out                 # tqdm's [elapsed<remaining] field: the ETA
+    assert p.done == 4 and p.total == 4
+
+
+@pytest.mark.parametrize("tty,enabled", [(False, True), (True, False)])
+def test_silent_off_a_terminal_or_quiet(tty, enabled, caplog):
+    s = _Tty() if tty else io.StringIO()
+    with caplog.at_level(logging.INFO, logger="stereodem.progress"):
+        with Progress("ortho", 10, stream=s, enabled=enabled) as p:
+            p(10, 10)
+    assert s.getvalue() == ""
+    summary = [r.getMessage() for r in caplog.records if r.name == "stereodem.progress"]
+    assert summary == (["ortho: 10/10 in " + summary[0].split(" in ")[1]] if enabled else [])
+
+
+def test_log_lines_go_above_the_bar(monkeypatch):
+    s = _Tty()
+    monkeypatch.setattr(sys, "stderr", s)
+    lg = logging.getLogger("stereodem.test_bar")
+    h = TqdmLoggingHandler()
+    h.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
+    lg.addHandler(h)
+    lg.propagate = False
+    try:
+        p = Progress("stereo", 4, stream=s)
+        p(1, 4)
+        lg.warning("tile 2 failed")
+        p(4, 4)
+        p.close()
+    finally:
+        lg.removeHandler(h)
+        lg.propagate = True
+    out = s.getvalue()
+    # the warning is on a line of its own: tqdm cleared the bar before writing it
+    line = [ln for ln in re.split(r"[\r\n]", out) if "tile 2 failed" in ln]
+    assert line and line[0].strip() == "WARNING tile 2 failed"
+
+
+def test_utc_timestamps_and_captured_warnings():
+    rec = logging.LogRecord("stereodem", logging.INFO, __file__, 1, "hello", None, None)
+    rec.created = 0.0
+    rec.msecs = 0.0
+    assert UTCFormatter("%(asctime)s %(message)s").format(rec) == "1970-01-01T00:00:00.000Z hello"
+
+
+def test_cli_verbose_has_timestamps_and_warnings_are_logged(tmp_path):
+    code = ("import warnings, logging; from stereodem.progress import setup_logging;"
+            "setup_logging(verbose=1); logging.getLogger('stereodem').info('info line');"
+            "warnings.warn('careful')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    lines = r.stderr.strip().splitlines()
+    assert re.match(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z INFO stereodem: info line$", lines[0])
+    assert re.match(r".*Z WARNING py\.warnings: .*UserWarning: careful", lines[1])
+    r = subprocess.run([sys.executable, "-c", code.replace("verbose=1", "quiet=True")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.stderr == ""
+
+
+def test_provenance_fields():
+    t0 = utc_now()
+    p = provenance(started=t0, argv=["/usr/bin/stereodem", "run", "job toml"])
+    assert p["started_utc"] == t0 and p["ended_utc"] >= t0
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", p["ended_utc"])
+    assert p["command_line"] == "stereodem run 'job toml'"
+    from stereodem import __version__
+    assert p["stereodem_version"] == __version__
+    git = git_commit()
+    if git is None:
+        assert "git_commit" not in p
+    else:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                              cwd=__file__.rsplit("/", 2)[0]).stdout.strip()
+        assert p["git_commit"] == head and isinstance(p["git_dirty"], bool)
+
+
+def test_no_commit_outside_a_work_tree(tmp_path):
+    assert git_commit(tmp_path) is None
+
+
+def test_a_stage_that_restarts_its_count_restarts_the_bar():
+    s = _Tty()
+    p = Progress("ortho", 1, stream=s)
+    p(600, 675)
+    p(675, 675)
+    p(100, 675)                       # the right image after the left one
+    assert p.done == 100 and p._bar.n == 100
+    p(675, 675)
+    p.close()
+    assert p.done == 675 and p._bar.n == 675
+    assert s.getvalue().count("0/675 [") >= 2          # drawn empty again at the restart
