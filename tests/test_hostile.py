@@ -549,3 +549,29 @@ def test_two_concurrent_runs_into_one_folder_exactly_one_proceeds(sim, tmp_path)
         info = json.loads((tmp_path / "out" / "run.json").read_text())
         assert info["config"]["matching"]["matcher"] == ("sgm" if winner == cfgs[0] else "ncc")
         assert not list((tmp_path / "out").glob(".stereodem*"))      # the lock is released
+
+
+# ----------------------------------------------------------------------------- the sanity measures
+
+def test_base_to_height_of_the_simulated_aster_pair(sim):
+    """ASTER 3N (nadir) / 3B (27.6 deg backward) has B/H ~ 0.6 (tan 27.6 deg = 0.52 plus the
+    Earth's curvature over the ~370 km baseline); the same image twice has none."""
+    from stereodem.sanity import MIN_BASE_TO_HEIGHT, base_to_height
+    from stereodem.sensor.io.sidecar import load_image_model
+    left, right = load_image_model(sim / "left.tif"), load_image_model(sim / "right.tif")
+    bh = base_to_height(left, right, 2300.0)
+    assert 0.5 < bh < 0.7
+    assert base_to_height(left, left, 2300.0) < 1e-6 < MIN_BASE_TO_HEIGHT
+
+
+def test_texture_check_tells_noise_from_a_constant(sim):
+    from stereodem.sanity import check_texture
+    from stereodem.sensor.errors import InputError
+    rng = np.random.default_rng(0)
+    check_texture(rng.normal(100, 5, (64, 64)).astype(np.float32), "noise")
+    img = np.full((64, 64), 7.0, np.float32)
+    img[::16, ::16] = 8.0                                   # a few specks: still no texture
+    with pytest.raises(InputError, match="no texture"):
+        check_texture(img, "specks")
+    with pytest.raises(InputError, match="no valid pixel"):
+        check_texture(np.full((64, 64), np.nan, np.float32), "void")
