@@ -174,8 +174,8 @@ def refine_matches(left, right, x1, x2, *, half: int = 7, search: int = 2, min_s
 
     Parameters
     ----------
-    left, right : ndarray (rows, cols) float32
-        Full-resolution images (NaN = void).
+    left, right : ndarray (rows, cols)
+        Full-resolution images, any numeric dtype (NaN = void).
     x1, x2 : ndarray (N, 2)
         Matched (col, row) positions.
 
@@ -406,13 +406,14 @@ def sparse_matches(left_image, right_image, left_model, right_model, height_rang
     tol = float(tolerance)
     if refine:
         t3 = time.perf_counter()
-        Lf = np.asarray(left_image, np.float32)
-        Rf = np.asarray(right_image, np.float32)
-        p1, p2, _, kept = refine_matches(Lf, Rf, p1, p2, search=max(2, int(np.ceil(1.5 / scale))))
+        # patches are gathered from the images as they are (no full-size float copy)
+        p1, p2, _, kept = refine_matches(np.asarray(left_image), np.asarray(right_image), p1, p2,
+                                         search=max(2, int(np.ceil(1.5 / scale))))
         score = score[kept]
         times["refine"] = time.perf_counter() - t3
     else:
         tol = max(tol, 1.0 / scale)
+    t2 = time.perf_counter()
     curves = epipolar_curves(left_model, right_model, p1[:, 0], p1[:, 1], heights)
     cross, beyond, h, normal, direction = distance_to_curves(p2, curves, heights, extend=max_offset)
     with np.errstate(invalid="ignore"):

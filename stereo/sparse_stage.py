@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .pointing import PointingCorrection, relative_pointing
-from .sparse import SparseMatchError, SparseMatches, sparse_matches
+from .sparse import SparseMatches, sparse_matches
 from .terrain import TerrainHeights, terrain_heights
 
 log = logging.getLogger(__name__)

@@ -8,9 +8,10 @@ much more than the others), and by the height difference to the median of the ne
 neighbouring points (a match on the wrong texture lands above or below its neighbours). The
 remaining heights give
 
-* the **height range** of the scene: their 0.1 and 99.9 percentiles widened by ``margin``
-  (default 10 % of the span, at least ``min_margin``), as CARS derives its disparity range
-  from its sparse matches;
+* the **height range** of the scene: the kept points' lowest and highest heights (blunders
+  are already out; sparse matches under-sample peaks and gorges, so no percentile is cut
+  off) widened by ``margin`` (default 10 % of the span, at least ``min_margin``), as CARS
+  derives its disparity range from its sparse matches;
 * a **seed surface**: the mean height of the points in cells of a coarse map grid (UTM of
   the scene centre, posting set so that cells hold a few points each), empty cells filled by
   normalised Gaussian convolution of the filled ones (widening until all are filled), as a
@@ -166,7 +167,7 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
         raise SparseMatchError(f"terrain heights: only {n} consistent point(s) from the sparse "
                                f"matches (need >= {min_points}); give a height range or a seed DEM")
     hk, xk, yk = h[ok], x[ok], y[ok]
-    p_lo, p_hi = np.percentile(hk, [0.1, 99.9])
+    p_lo, p_hi = float(hk.min()), float(hk.max())
     span = float(p_hi - p_lo)
     m = max(0.1 * span, min_margin) if margin is None else float(margin)
     height_range = (float(p_lo - m), float(p_hi + m))
@@ -197,11 +198,12 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
     on_seed = np.abs(hk - seed.sample(lon[ok], lat[ok], reference=ELLIPSOID))
     strays = [np.nanpercentile(a, 99) for a in (on_seed, dev_kept) if np.isfinite(a).any()]
     tile_margin = float(max(strays, default=m) + min_margin)
-    info = dict(percentiles_m={"p0.1": float(p_lo), "p50": float(np.median(hk)), "p99.9": float(p_hi)},
+    info = dict(heights_m={"min": p_lo, "p1": float(np.percentile(hk, 1)), "p50": float(np.median(hk)),
+                           "p99": float(np.percentile(hk, 99)), "max": p_hi},
                 ray_gap_limit_m=gap_lim, ray_gap_median_m=float(np.median(gap[ok])),
                 seed_posting_m=posting, margin_m=m)
     log.info("terrain heights from %d sparse points (%d rejected): %.0f..%.0f m "
-             "(P0.1..P99.9, median %.0f m), height range with margin %.0f..%.0f m; seed "
+             "(min..max, median %.0f m), height range with margin %.0f..%.0f m; seed "
              "surface %dx%d at %.0f m, tile margin %.0f m", n, n0 - n, p_lo, p_hi,
              np.median(hk), height_range[0], height_range[1], rows, cols, posting, tile_margin)
     return TerrainHeights(height_range, seed, tile_margin, n, n0 - n, lon[ok], lat[ok], hk, info)

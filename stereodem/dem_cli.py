@@ -53,6 +53,9 @@ def add_parser(subparsers):
     p.add_argument("--no-pointing-correction", action="store_true",
                    help="do not estimate the relative pointing (right-image translation)")
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
+    p.add_argument("--jitter-correction", action="store_true",
+                   help="estimate the right camera's along-track jitter against --seed-dem (sum of "
+                        "sines), correct its attitude and make the DEM again (ASTER 3B)")
     options.add_band(p)
     p.add_argument("--rpc-direct", action="store_true",
                    help="localise RPCs with the file's direct model (DIMAP, rpcm JSON) instead of "
@@ -74,7 +77,7 @@ def config_from_args(args):
     from stereodem.stereo.settings import (GriddingSettings, MatchingSettings,
                                            RectificationSettings, StereoSettings)
 
-    from .config import Config, InputSettings, RunSettings, validate
+    from .config import Config, InputSettings, JitterSettings, RunSettings, validate
     hr = tuple(args.height_range) if args.height_range is not None else None
     cfg = Config(
         inputs=InputSettings(left=args.left, right=args.right, band=args.band,
@@ -88,6 +91,7 @@ def config_from_args(args):
             matching=MatchingSettings(matcher=args.matcher),
             gridding=GriddingSettings(res=args.res, crs=args.crs, geoid=args.geoid,
                                       method=args.gridding)),
+        jitter=JitterSettings(enabled=args.jitter_correction),
         run=RunSettings(workers=args.workers, tile_timeout=args.tile_timeout, dask=args.dask,
                         overwrite=args.overwrite, force=args.force,
                         creation_options=options.creation_options(args)))
@@ -128,4 +132,25 @@ def run(args) -> int:
     g = prod.dem.grid
     options.say(f"stereodem dem: {out / 'dem.tif'}: {g.width}x{g.height} cells at {g.posting:g}, "
                 f"{100 * prod.info['valid_cells']:.1f} % valid, {prod.seconds:.1f} s")
+    options.say(sparse_line(prod.info))
     return 0
+
+
+def sparse_line(info: dict) -> str:
+    """One line on the heights searched and the relative pointing correction."""
+    lo, hi = info["height_range"]
+    text = f"  heights {lo:.0f}..{hi:.0f} m ({info.get('height_source', '?')}"
+    terrain = (info.get("sparse") or {}).get("terrain")
+    if terrain:
+        text += f", {terrain['n_points']} points"
+    text += ")"
+    p = info.get("pointing") or {}
+    if p.get("parameters"):
+        pp = p["parameters"]
+        text += (f"; pointing {p['kind']} {pp['col_shift']:+.2f}/{pp['row_shift']:+.2f} px (col/row), "
+                 f"residual across the epipolar lines: median {p['residual_before_px']['median']:+.2f} "
+                 f"-> {p['residual_after_px']['median']:+.2f} px, NMAD "
+                 f"{p['residual_after_px']['nmad']:.2f} px")
+    if info.get("suspect"):
+        text += "; SUSPECT: heights pile up at a bound of the search range"
+    return text

@@ -130,3 +130,26 @@ def test_no_texture_without_heights_is_one_line_error():
         make_dem(img, img, left, right)
     msg = str(e.value)
     assert "\n" not in msg and "--height-range" in msg and "--seed-dem" in msg
+
+
+def test_overlap_over_the_whole_height_range():
+    """The shipped Pleiades crop RPCs over terrain ~1 100 m above their height offset: at the
+    offset the crops do not overlap (the old single-height test's false "no overlap"); over
+    the validity range they do."""
+    from rpc_scene import DATA, TARGET, moved_rpc
+
+    from stereodem.sensor.errors import NoOverlapError
+    from stereodem.sensor.models.rpc import RPCModel
+    from stereodem.stereo.plan import overlap_window
+    l0 = RPCModel.from_file(DATA / "pleiades" / "img_01_rpc.tif")
+    clon, clat = l0.localize(255.5, 255.5, 2400.0)
+    d = TARGET[0] - float(clon), TARGET[1] - float(clat)
+    left = moved_rpc(DATA / "pleiades" / "img_01_rpc.tif", *d, 512)
+    right = moved_rpc(DATA / "pleiades" / "img_02_rpc.tif", *d, 512)
+    with pytest.raises(NoOverlapError, match="1295 m"):
+        overlap_window(left, right, left.height_off)
+    window, inside = overlap_window(left, right, np.linspace(*left.height_bounds(), 5))
+    assert window == (0, 0, 511, 511)
+    far = moved_rpc(DATA / "pleiades" / "img_02_rpc.tif", d[0] + 0.05, d[1], 512)
+    with pytest.raises(NoOverlapError, match="at any height -20..2610 m"):
+        overlap_window(left, far, np.linspace(*left.height_bounds(), 5))
