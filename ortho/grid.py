@@ -80,4 +80,9 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
     x, y = np.concatenate(xs), np.concatenate(ys)
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise CRSError(f"the image footprint cannot be expressed in {crs.to_string()}")
+    from stereodem.sensor.io.memory import check_allocation
+    cells = (x.max() - x.min()) / res * ((y.max() - y.min()) / res)
+    # the orthoimage (float32) and its per-cell image coordinates (2 x float64)
+    check_allocation(20.0 * cells, f"an orthoimage grid of {cells:.3g} cells at posting {res:g} "
+                                   "(choose a coarser --res)", fraction=0.5)
     return grid_from_bounds((x.min(), y.min(), x.max(), y.max()), res, crs)

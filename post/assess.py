@@ -244,6 +244,8 @@ def read_checkpoints(path, *, crs=None):
             rows = list(csv.DictReader(f))
     except OSError as exc:
         raise InputError(f"{path}: cannot read the check points ({exc.strerror})") from None
+    except (UnicodeDecodeError, csv.Error):
+        raise InputError(f"{path}: not a text CSV of check points (binary or garbled)") from None
     if not rows:
         raise InputError(f"{path}: no check point")
     cols = {c.strip().lower(): c for c in rows[0].keys() if c is not None}

@@ -180,6 +180,29 @@ def tile_points(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Til
 
 # ----------------------------------------------------------------------------- the workflow
 
+def default_posting(gsd: float, crs) -> float:
+    """Default DEM posting: twice the GSD (``gsd`` in metres), in the units of ``crs`` (for
+    a geographic CRS, degrees of latitude: metres / 111 320 m)."""
+    from pyproj import CRS
+    posting = float(f"{2.0 * gsd:.2g}")
+    crs = CRS.from_user_input(crs)
+    if crs.is_geographic:
+        return float(f"{posting / (np.pi / 180.0 * geodesy.A):.2g}")
+    unit = crs.axis_info[0].unit_conversion_factor if crs.axis_info else 1.0
+    return posting / unit if unit else posting
+
+
+def check_lattice(bounds, posting: float):
+    """:class:`InputError` when the DEM lattice of ``bounds`` at ``posting`` cannot be held:
+    its cell sums (``len(SUM_LAYERS)`` float64 layers) exceed the available memory."""
+    from stereodem.sensor.io.memory import check_allocation
+    cols = (bounds[2] - bounds[0]) / posting
+    rows = (bounds[3] - bounds[1]) / posting
+    nbytes = 8.0 * len(SUM_LAYERS) * max(cols, 0) * max(rows, 0)
+    check_allocation(nbytes, f"a DEM lattice of {cols:.3g} x {rows:.3g} cells at posting {posting:g} "
+                             "(choose a coarser --res)", fraction=0.5)
+
+
 def make_dem(left_image, right_image, left_model, right_model, settings: StereoSettings | None = None,
              *, seed_dem: DEM | None = None, progress: Callable[[int, int, dict], None] | None = None,
              runner: Callable | None = None) -> DEMProducts:
@@ -235,19 +258,20 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
             rect = dataclasses.replace(rect, height_range=sparse.height_range)
     height_range = pair_height_range(left_model, right_model, rect, seed)
     gsd = left_model.gsd(0.5 * sum(height_range))
-    posting = gs.res or float(f"{2.0 * gsd:.2g}")
     max_gap = gs.max_ray_gap if gs.max_ray_gap is not None else 2.0 * gsd
-    # 2. overlap, tiles and the output lattice
-    tiles = plan_tiles(left_model, right_model, rect, height_range)
-    log.info("stereo DEM: %d tile(s) of ~%d px, heights %.0f..%.0f m, matcher %s, posting %.2f",
-             len(tiles), rect.tile_size, height_range[0], height_range[1], settings.matching.matcher, posting)
     crs = gs.crs
     if crs is None:
         clon, clat = left_model.center_lonlat(0.5 * sum(height_range))
         crs = geodesy.utm_crs(clon, clat)
+    posting = gs.res or default_posting(gsd, crs)
+    # 2. overlap, tiles and the output lattice
+    tiles = plan_tiles(left_model, right_model, rect, height_range)
+    log.info("stereo DEM: %d tile(s) of ~%d px, heights %.0f..%.0f m, matcher %s, posting %.3g",
+             len(tiles), rect.tile_size, height_range[0], height_range[1], settings.matching.matcher, posting)
     bounds = gs.bounds
     if bounds is None:
         bounds = footprint_bounds(left_model, tiles, height_range, posting, crs)
+    check_lattice(bounds, posting)
     spec = GridSpec.from_bounds(bounds, posting, crs, method=gs.method, sigma=gs.gaussian_sigma,
                                 geoid=gs.geoid)
     inputs = PairInputs(left_image, right_image, left_model, right_model, height_range, seed,

@@ -85,6 +85,9 @@ def run(args) -> int:
     from .pipeline import assess_stage
     cfg = config_from_args(args)
     check_output_dir(args.output, overwrite=args.overwrite)
+    if args.checkpoints:                       # a bad file fails before the assessment runs
+        from stereodem.post.assess import read_checkpoints
+        read_checkpoints(args.checkpoints, crs=args.checkpoints_crs)
     result, files = assess_stage(cfg, args.dem, args.output, overwrite=args.overwrite)
     s = result.report["stats"]
     print(f"n={s['n']} mean={s['mean']:.3f} rmse={s['rmse']:.3f} nmad={s['nmad']:.3f} "

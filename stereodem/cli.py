@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
 
 from stereodem.sensor.errors import StereodemError
@@ -61,14 +62,50 @@ def main(argv=None) -> int:
         parser.print_help(sys.stderr)
         return 2
     _setup_logging(args)
+    received = []
+
+    def on_term(signum, frame):       # SIGTERM: stop like Ctrl-C (pool stopped, lock released)
+        received.append(signum)
+        raise KeyboardInterrupt
+    previous = _install(signal.SIGTERM, on_term)
     try:
         return int(args.run(args) or 0)
     except StereodemError as exc:
-        print(f"stereodem {args.command}: error: {exc}", file=sys.stderr)
+        print(f"stereodem {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"stereodem {args.command}: interrupted", file=sys.stderr)
+        name = "SIGTERM" if received else "SIGINT"
+        print(f"stereodem {args.command}: interrupted ({name}); {_resume_hint(args)}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if received else signal.SIGINT)
+    except MemoryError:
+        print(f"stereodem {args.command}: error: out of memory (try fewer --workers or a smaller "
+              "--tile-size)", file=sys.stderr)
         return 1
+    finally:
+        _install(signal.SIGTERM, previous)
+
+
+def _install(signum, handler):
+    """Set a signal handler where that is possible (the main thread); returns the old one."""
+    try:
+        return signal.signal(signum, handler)
+    except (ValueError, TypeError):          # not the main thread, or no previous Python handler
+        return None
+
+
+def _one_line(exc) -> str:
+    """An error message on one line (messages relayed from GDAL may carry newlines)."""
+    return " ".join(str(exc).split())
+
+
+def _resume_hint(args) -> str:
+    """What the user can do after an interruption."""
+    if args.command == "run":
+        return ("finished tiles are kept in the output folder's tiles/; run the same command "
+                "with --resume to continue")
+    if args.command == "demo":
+        return "run it again with --overwrite"
+    return "no product was written; run the command again (--overwrite if the folder is not empty)"
 
 
 if __name__ == "__main__":  # pragma: no cover

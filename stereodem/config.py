@@ -274,7 +274,10 @@ class RunSettings:
     dask : str, optional
         ``dask.distributed`` scheduler address.
     overwrite : bool
-        Write into an existing output folder.
+        Replace the products of a previous job in the output folder.
+    force : bool
+        Keep going with a result the sanity checks call suspect (:mod:`stereodem.sanity`);
+        the findings are still reported.
     creation_options : dict, optional
         GDAL creation options of the GeoTIFF products (as ``-co``), e.g. {COMPRESS = "ZSTD"}.
     """
@@ -284,6 +287,7 @@ class RunSettings:
     resume: bool = False
     dask: str | None = None
     overwrite: bool = False
+    force: bool = False
     creation_options: dict | None = None
 
 

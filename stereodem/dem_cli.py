@@ -66,6 +66,8 @@ def add_parser(subparsers):
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
     options.add_creation_options(p)
     options.add_overwrite(p)
+    p.add_argument("--force", action="store_true",
+                   help="exit 0 with a result the sanity checks call suspect (still reported)")
     p.set_defaults(run=run)
     return p
 
@@ -91,34 +93,42 @@ def config_from_args(args):
                                       method=args.gridding)),
         jitter=JitterSettings(enabled=args.jitter_correction),
         run=RunSettings(workers=args.workers, tile_timeout=args.tile_timeout, dask=args.dask,
-                        overwrite=args.overwrite, creation_options=options.creation_options(args)))
+                        overwrite=args.overwrite, force=args.force,
+                        creation_options=options.creation_options(args)))
     validate(cfg, "command line")
     return cfg
 
 
 def run(args) -> int:
-    """Run ``stereodem dem``; returns the exit status (0 ok; errors propagate to the CLI)."""
-    from stereodem.sensor.io.raster import check_output_dir, prepare_output_dir, write_text_atomic
+    """Run ``stereodem dem``; returns the exit status (0 ok; errors propagate to the CLI).
 
-    from .pipeline import load_pair, stereo_stage
+    The output folder is locked for the job; a suspect result (:mod:`stereodem.sanity`) is
+    written with its findings in ``dem_report.json`` and fails the command unless ``--force``.
+    """
+    from stereodem.sensor.io.raster import write_text_atomic
+
+    from .outlock import output_folder
+    from .pipeline import input_paths, load_pair, stereo_stage, suspect_error
     from .provenance import provenance, utc_now
     started = utc_now()
     options.check_common(args)
     cfg = config_from_args(args)
-    out = check_output_dir(cfg.output_dir, overwrite=args.overwrite)
-    pair = load_pair(cfg)
-    bar = options.progress_bar("stereo")
-    prod, failed = stereo_stage(cfg, pair, progress=bar)
-    bar.close()
-    prepare_output_dir(out, overwrite=args.overwrite)
-    prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
-    report = dict(provenance=provenance(started=started), input_metadata=pair.tags, left=str(args.left), right=str(args.right), settings=prod.settings,
-                  info=prod.info, n_points=prod.n_points, seconds=prod.seconds, tiles=prod.tiles,
-                  failed_tiles=failed)
-    write_text_atomic(out / "dem_report.json", json.dumps(report, indent=2, default=str) + "\n",
-                      overwrite=True)
+    with output_folder(cfg.output_dir, overwrite=args.overwrite, inputs=input_paths(cfg)) as out:
+        pair = load_pair(cfg)
+        bar = options.progress_bar("stereo")
+        prod, failed = stereo_stage(cfg, pair, progress=bar)
+        bar.close()
+        prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
+        report = dict(status=prod.info["status"], warnings=prod.info["warnings"],
+                      provenance=provenance(started=started), input_metadata=pair.tags,
+                      left=str(args.left), right=str(args.right), settings=prod.settings,
+                      info=prod.info, n_points=prod.n_points, seconds=prod.seconds, tiles=prod.tiles,
+                      failed_tiles=failed)
+        write_text_atomic(out / "dem_report.json", json.dumps(report, indent=2, default=str) + "\n",
+                          overwrite=True)
     if failed:
         log.warning("%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed))
+    suspect_error(cfg, prod, out / "dem_report.json")
     g = prod.dem.grid
     options.say(f"stereodem dem: {out / 'dem.tif'}: {g.width}x{g.height} cells at {g.posting:g}, "
                 f"{100 * prod.info['valid_cells']:.1f} % valid, {prod.seconds:.1f} s")

@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 from stereodem.sensor.errors import InputError
-from stereodem.sensor.io.raster import prepare_output_dir
 
 EXAMPLES = """examples:
   stereodem demo -o demo_out
@@ -66,14 +65,19 @@ def add_parser(sub):
 
 
 def run(args) -> int:
+    """Run ``stereodem demo`` in its locked output folder."""
+    from .outlock import output_folder
+    with output_folder(args.out, overwrite=args.overwrite) as out:
+        return _demo(args, out)
+
+
+def _demo(args, out) -> int:
     from stereodem.sensor.simulation.simulate import simulate_scene
 
     from .config import load_config
     from .simulate_cli import granule_right_size, write_granule_scene
     from .pipeline import run as run_pipeline
     from .run_cli import progress_factory, summarize
-
-    out = prepare_output_dir(args.out, overwrite=args.overwrite)
     t0 = time.perf_counter()
     if args.size[0] % 10:
         raise InputError(f"--size width {args.size[0]} must be a multiple of 10 (an ASTER granule "

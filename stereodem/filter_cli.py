@@ -67,6 +67,12 @@ def run(args) -> int:
     if args.fill_from_seed and not args.seed_dem:
         raise InputError("--fill-from-seed needs --seed-dem")
     cfg = config_from_args(args)
+    from pathlib import Path
+
+    from .outlock import check_not_an_input
+    folder = Path(args.dem).parent
+    check_not_an_input([args.out, edit_mask_path(args.out)],
+                       [args.dem, args.seed_dem, folder / "score.tif", folder / "raygap.tif"])
     check_writable(args.out, args.overwrite)
     check_writable(edit_mask_path(args.out), args.overwrite)
     layers = read_stereo_layers(args.dem, vertical=args.dem_vertical)

@@ -124,8 +124,14 @@ def run(args) -> int:
         raise InputError(f"unknown layer(s) {', '.join(sorted(bad))}; choose incidence, occlusion")
     cfg = config_from_args(args)
     out = Path(args.out)
-    check_writable(out, args.overwrite)
     layer_paths = {name: out.with_name(f"{out.stem}_{name}.tif") for name in layers}
+    from stereodem.sensor.io.sidecar import sidecar_path
+
+    from .outlock import check_not_an_input
+    model_file = args.model if args.model not in GENERIC and Path(args.model).is_file() else None
+    check_not_an_input([out, *layer_paths.values()],
+                       [args.image, args.dem, args.gcps, model_file, sidecar_path(args.image)])
+    check_writable(out, args.overwrite)
     for p in layer_paths.values():
         check_writable(p, args.overwrite)
     src = _open(args)

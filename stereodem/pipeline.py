@@ -39,14 +39,15 @@ from stereodem.post.filters import EditCode
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.geo.dem import DEM
 from stereodem.sensor.geo.grid import MapGrid
-from stereodem.sensor.io.raster import (image_dtype, prepare_output_dir, read_image, write_geotiff,
+from stereodem.sensor.io.raster import (image_dtype, read_image, write_geotiff,
                                         write_text_atomic)
 from stereodem.sensor.io.sidecar import load_image_model, load_model
 from stereodem.stereo.grid import DEMGrid
 
-from . import __version__
+from . import __version__, sanity
 from .config import Config
-from .runner import SharedArray, pool_size, process_peak_rss_mb, run_tiles
+from .outlock import output_folder
+from .runner import SharedArray, clean_cache, pool_size, process_peak_rss_mb, run_tiles
 
 log = logging.getLogger(__name__)
 
@@ -129,6 +130,7 @@ def open_image(path, *, band=1, prefer: str = "physical", model_file=None, rpc_d
     if img.shape != (model.height, model.width):
         raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
                          f"describes {model.width}x{model.height}")
+    sanity.check_texture(img, f"{path}" + (f" band {band}" if isinstance(band, str) else ""))
     return InputImage(img, model, dtype, tags)
 
 
@@ -165,8 +167,24 @@ def load_pair(cfg: Config) -> Pair:
     kw = dict(prefer=i.model, rpc_direct=i.rpc_direct, radiometric=i.radiometric, granules=cache)
     left = open_image(i.left, band=bands[0], model_file=i.left_model, **kw)
     right = open_image(right, band=bands[1], model_file=i.right_model, **kw)
-    return Pair(left.image, right.image, left.model, right.model, load_seed_dem(cfg),
+    seed = load_seed_dem(cfg)
+    if seed is not None:
+        sanity.check_seed_dem(seed, left.model, right.model, name=f"seed DEM {cfg.inputs.seed_dem}:")
+    return Pair(left.image, right.image, left.model, right.model, seed,
                 left.dtype, right.dtype, {**left.tags, **{f"RIGHT_{k}": v for k, v in right.tags.items()}})
+
+
+def check_pair(cfg: Config, pair: Pair) -> float:
+    """Geometry of the pair before any stereo work (:func:`stereodem.sanity.check_base`);
+    returns the base-to-height ratio."""
+    hr = cfg.stereo.rectification.height_range
+    if hr is None and pair.seed_dem is not None:
+        hr = pair.seed_dem.height_range()
+    if hr is None:
+        lo = max(pair.left_model.height_bounds()[0], pair.right_model.height_bounds()[0])
+        hi = min(pair.left_model.height_bounds()[1], pair.right_model.height_bounds()[1])
+        hr = (lo, hi)
+    return sanity.check_base(pair.left_model, pair.right_model, hr)
 
 
 # ----------------------------------------------------------------------------- stereo
@@ -180,8 +198,10 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
 
     def runner(process_tile, tiles, inputs, settings):
         pool = pool_size(run_settings.workers, len(tiles), run_settings.dask) > 0
+        key = None
         if cache_dir is not None:
-            _check_tile_cache(Path(cache_dir), _cache_key(tiles, inputs, settings), run_settings.resume)
+            key = _cache_key(tiles, inputs, settings)
+            _check_tile_cache(Path(cache_dir), key, run_settings.resume)
         with tempfile.TemporaryDirectory(prefix="shared-", dir=cache_dir) as tmp:
             if pool:       # workers map the images from disk instead of each receiving a copy
                 inputs = dataclasses.replace(
@@ -191,7 +211,7 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
             results, fails, _ = run_tiles(_tile_job, tiles, ctx, workers=run_settings.workers,
                                           timeout=run_settings.tile_timeout, cache_dir=cache_dir,
                                           resume=run_settings.resume, dask_address=run_settings.dask,
-                                          progress=progress)
+                                          progress=progress, cache_key=key)
         failures.extend(fails)
         return [_tile_result(results[i]) for i in sorted(results)]
 
@@ -233,8 +253,12 @@ def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
     """Keep the tile cache consistent with this job: on ``resume`` the cache must hold tiles of
     the same job (else :class:`InputError`); otherwise old tiles are removed first."""
     cache_dir.mkdir(parents=True, exist_ok=True)
+    clean_cache(cache_dir)
     manifest = cache_dir / "job.json"
-    old = json.loads(manifest.read_text()).get("key") if manifest.exists() else None
+    try:
+        old = json.loads(manifest.read_text()).get("key") if manifest.exists() else None
+    except (ValueError, AttributeError, UnicodeDecodeError):
+        old = "unreadable"
     if resume and old is not None and old != key:
         raise InputError(f"{cache_dir}: the cached tiles belong to a run with other inputs or "
                          "settings; run again without --resume (and with --overwrite)")
@@ -267,8 +291,11 @@ def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None):
     seed DEM, corrected and the DEM made again: :mod:`stereodem.stereo.jitter`); returns
     ``(products, failed_tiles)``."""
     from stereodem.stereo.pipeline import make_dem
+    bh = check_pair(cfg, pair)
+    left, right, findings = sanity.comparable_radiometry(pair.left_image, pair.right_image,
+                                                         pair.left_dtype, pair.right_dtype)
     runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
-    args = (pair.left_image, pair.right_image, pair.left_model, pair.right_model)
+    args = (left, right, pair.left_model, pair.right_model)
     if cfg.jitter.enabled:
         from stereodem.stereo.jitter import dem_with_jitter_correction
         j = cfg.jitter
@@ -279,7 +306,20 @@ def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None):
         log.info("jitter of the right camera: %s", products.info["jitter"])
     else:
         products = make_dem(*args, cfg.stereo, seed_dem=pair.seed_dem, runner=runner)
+    products.info["base_to_height"] = round(bh, 4)
+    products.info["warnings"] = findings + sanity.check_result(products.info)
+    products.info["status"] = sanity.status(products.info["warnings"])
     return products, [f.to_dict() for f in runner.failures]
+
+
+def suspect_error(cfg: Config, products, report_path) -> None:
+    """Raise :class:`stereodem.sanity.SuspectResultError` for a suspect stereo result unless
+    the job is forced (``--force``)."""
+    bad = [w for w in products.info.get("warnings", []) if w["severity"] == "suspect"]
+    if bad and not cfg.run.force:
+        raise sanity.SuspectResultError(
+            f"result suspect: {bad[0]['message']}; products kept for inspection, findings in "
+            f"{report_path} (--force accepts them)")
 
 
 def read_stereo_layers(dem_path, *, vertical=None) -> DEMGrid:
@@ -435,20 +475,51 @@ def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True, provenance=None):
 
 # ----------------------------------------------------------------------------- the run
 
+def check_inputs(cfg: Config):
+    """Cheap checks of the assessment inputs, so that a bad reference DEM or check-point file
+    fails the job before the stereo work rather than after it."""
+    i = cfg.inputs
+    if cfg.assess.enabled and i.reference_dem:
+        DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
+        if i.checkpoints:
+            from stereodem.post.assess import read_checkpoints
+            read_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
+
+
+def input_paths(cfg: Config) -> list:
+    """Every input file of a job (none may be among its outputs)."""
+    i = cfg.inputs
+    return [p for p in (i.left, i.right, i.left_model, i.right_model, i.seed_dem, i.reference_dem,
+                        i.checkpoints, i.landcover, i.dem) if p]
+
+
 def run(cfg: Config, *, progress_factory=None) -> dict:
     """Run the whole job; returns the ``run.json`` content.
 
+    The output folder is locked for the job (:func:`stereodem.outlock.output_folder`); with
+    ``overwrite`` the previous job's products are removed first, with ``resume`` its tile
+    cache is kept. Inputs are checked before any stereo work; a suspect stereo result
+    (:mod:`stereodem.sanity`) stops the job after ``raw/`` and ``run.json`` are written,
+    unless ``cfg.run.force``.
+
     ``progress_factory(label)`` may return a ``progress(done, total)`` callable per stage.
     """
+    with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, resume=cfg.run.resume,
+                       inputs=input_paths(cfg)) as out:
+        return _run_in(cfg, out, progress_factory)
+
+
+def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     from .provenance import provenance, utc_now
     started = utc_now()
     co = cfg.run.creation_options
-    out = prepare_output_dir(cfg.output_dir, overwrite=cfg.run.overwrite or cfg.run.resume)
     prog = progress_factory or (lambda label: None)
     stages = StageLog()
     t_all = time.perf_counter()
+    written = []
 
     t0 = time.perf_counter()
+    check_inputs(cfg)
     pair = load_pair(cfg)
     stages.record("load", t0)
 
@@ -457,53 +528,67 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
     products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles")
     _close(bar)
     products.write(out / "raw", overwrite=True, creation_options=co)
+    written.append("raw")
     tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
     stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
                   failed_tiles=len(failed), tile_process_peak_rss_mb=max(tile_rss, default=0.0))
+    warnings = products.info.get("warnings", [])
+    suspect = sanity.status(warnings) == "suspect" and not cfg.run.force
 
-    t0 = time.perf_counter()
-    z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
-    clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True, creation_options=co)
-    stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
-
-    if cfg.ortho.enabled:
+    report = post_report = None
+    if not suspect:
         t0 = time.perf_counter()
-        bar = prog("ortho")
-        images = [("left", pair.left_image, pair.left_model)]
-        if cfg.ortho.both:
-            images.append(("right", pair.right_image, pair.right_model))
-        orthos = ortho_stage(cfg, images, clean, progress=bar)
-        _close(bar)
-        dtypes = {"left": pair.left_dtype, "right": pair.right_dtype}
-        for name, o in orthos.items():           # in the image's own data type
-            o.write(out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name], creation_options=co)
-        stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px for k, o in orthos.items()})
+        z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
+        clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True,
+                                creation_options=co)
+        written += ["dem.tif", edit_mask_path(out / "dem.tif").name]
+        stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
 
-    if cfg.uncertainty.enabled:
-        t0 = time.perf_counter()
-        if not cfg.ortho.enabled:
-            raise InputError("[uncertainty] maps are on the orthoimage's grid: enable [ortho]")
-        summary, dsig = uncertainty_stage(cfg, pair, clean, orthos["left"].grid, products.dem,
-                                          out / "uncertainty")
-        dsig.write(out / "dem.tif", clean, overwrite=True)
-        stages.record("uncertainty", t0, shares=summary["shares"],
-                      sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"])
+        if cfg.ortho.enabled:
+            t0 = time.perf_counter()
+            bar = prog("ortho")
+            images = [("left", pair.left_image, pair.left_model)]
+            if cfg.ortho.both:
+                images.append(("right", pair.right_image, pair.right_model))
+            orthos = ortho_stage(cfg, images, clean, progress=bar)
+            _close(bar)
+            dtypes = {"left": pair.left_dtype, "right": pair.right_dtype}
+            for name, o in orthos.items():           # in the image's own data type
+                o.write(out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name], creation_options=co)
+                written.append(f"ortho_{name}.tif")
+            stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px
+                                                               for k, o in orthos.items()})
 
-    report = None
-    if cfg.assess.enabled and cfg.inputs.reference_dem:
-        t0 = time.perf_counter()
-        report = assess_stage(cfg, clean, out / "assess", provenance=provenance(started=started))[0].report
-        stages.record("assess", t0)
+        if cfg.uncertainty.enabled:
+            t0 = time.perf_counter()
+            if not cfg.ortho.enabled:
+                raise InputError("[uncertainty] maps are on the orthoimage's grid: enable [ortho]")
+            summary, dsig = uncertainty_stage(cfg, pair, clean, orthos["left"].grid, products.dem,
+                                              out / "uncertainty")
+            dsig.write(out / "dem.tif", clean, overwrite=True)
+            written += ["uncertainty", "dem_sigma_vertical.tif"]
+            stages.record("uncertainty", t0, shares=summary["shares"],
+                          sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"])
 
-    run_info = dict(provenance=provenance(started=started), config=cfg.to_dict(),
+        if cfg.assess.enabled and cfg.inputs.reference_dem:
+            t0 = time.perf_counter()
+            report = assess_stage(cfg, clean, out / "assess", overwrite=True,
+                                  provenance=provenance(started=started))[0].report
+            written.append("assess")
+            stages.record("assess", t0)
+
+    written += ["tiles", "run.json"]
+    run_info = dict(status=sanity.status(warnings), warnings=warnings,
+                    provenance=provenance(started=started), config=cfg.to_dict(),
                     input_metadata=pair.tags,
                     versions=versions(), stages=stages.stages,
                     seconds=round(time.perf_counter() - t_all, 3), failed_tiles=failed,
                     stereo=dict(tiles=products.tiles, info=products.info), post=post_report,
-                    outputs=sorted(p.name for p in out.iterdir()),
-                    headline=_headline(report))
+                    outputs=sorted(written), headline=_headline(report))
     write_text_atomic(out / "run.json", json.dumps(run_info, indent=1, default=_json_default),
                       overwrite=True)
+    if suspect:
+        suspect_error(cfg, products, out / "run.json")
     return run_info
 
 

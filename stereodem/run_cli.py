@@ -34,7 +34,10 @@ def add_run_options(p):
     p.add_argument("--tile-timeout", type=float, help="seconds before a tile is abandoned and logged")
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
     p.add_argument("--resume", action="store_true", help="reuse an existing output folder")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder's files")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the products of a previous job in the output folder")
+    p.add_argument("--force", action="store_true",
+                   help="go on with a result the sanity checks call suspect (still reported)")
     p.add_argument("--co", action="append", metavar="KEY=VALUE", default=[],
                    help="GDAL creation option of the GeoTIFF products, repeatable (overrides [run] "
                         "creation_options)")
@@ -48,7 +51,8 @@ def progress_factory(args):
     return make
 
 
-def summarize(info, stream=sys.stdout):
+def summarize(info, stream=None):
+    stream = stream or sys.stdout
     out = info["config"]["output"]["dir"]
     print(f"DEM:        {out}/dem.tif  (raw layers in {out}/raw/)", file=stream)
     if "ortho" in info["stages"]:
@@ -58,6 +62,8 @@ def summarize(info, stream=sys.stdout):
         print(f"report:     {out}/assess/report.md", file=stream)
         print(f"accuracy vs reference: NMAD {h['nmad']:.2f} m, median {h['median']:+.2f} m, "
               f"RMSE {h['rmse']:.2f} m, LE90 {h['le90']:.2f} m, {h['valid_pct']:.1f} % valid", file=stream)
+    for w in info.get("warnings", []):
+        print(f"warning: {w['message']}", file=stream)
     if info["failed_tiles"]:
         print(f"warning: {len(info['failed_tiles'])} tile(s) failed; see run.json", file=stream)
     print(f"total {info['seconds']:.1f} s; details in {out}/run.json", file=stream)
@@ -69,6 +75,7 @@ def run(args) -> int:
     from stereodem.sensor.io.raster import parse_creation_options
     cfg = load_config(args.config, workers=args.workers, tile_timeout=args.tile_timeout,
                       dask=args.dask, resume=args.resume or None, overwrite=args.overwrite or None,
+                      force=args.force or None,
                       creation_options=parse_creation_options(args.co) or None)
     info = run_pipeline(cfg, progress_factory=progress_factory(args))
     summarize(info)

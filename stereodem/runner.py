@@ -118,11 +118,39 @@ _CONTEXT = None
 def _init_worker(context):
     global _CONTEXT
     _CONTEXT = context
+    _die_with_parent()
+    # Ctrl-C reaches the whole process group: the parent stops the pool, workers just go
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:                                   # each worker computes single-threaded: N workers = N cores
         import cv2
         cv2.setNumThreads(1)
     except Exception:  # pragma: no cover
         pass
+
+
+def _die_with_parent():
+    """End this worker when its parent process ends, however it ends (kill -9 included):
+    ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, else a thread watching the parent PID."""
+    parent = multiprocessing.parent_process()
+    ppid = parent.pid if parent is not None else os.getppid()
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(1, signal.SIGKILL, 0, 0, 0) != 0:        # 1 = PR_SET_PDEATHSIG
+            raise OSError(ctypes.get_errno(), "prctl")
+        armed = True
+    except (OSError, AttributeError):
+        armed = False
+    if os.getppid() != ppid:                                   # the parent died before prctl
+        os._exit(1)
+    if not armed:
+        import threading
+
+        def watch():
+            while os.getppid() == ppid:
+                time.sleep(0.5)
+            os._exit(1)
+        threading.Thread(target=watch, daemon=True, name="parent-watchdog").start()
 
 
 def _alarm(signum, frame):
@@ -152,20 +180,74 @@ def _run_one(fn, tile, timeout, context=None):
 
 
 # --------------------------------------------------------------------------- cache
+# Each cached tile stores, beside its result arrays, the tile's identity (index and bounds),
+# the job key and a SHA-256 of the result arrays; a file that is not a readable archive, was
+# copied from another tile or job, or whose arrays changed is recomputed, never reused.
+_META = ("__tile__", "__job__", "__sha256__")
+
+
 def _cache_file(cache_dir, tile):
     return Path(cache_dir) / f"tile_{tile.index:05d}.npz"
 
 
-def _save(cache_dir, tile, result):
-    """Store a finished tile atomically, with the permissions of every other output."""
+def _identity(tile):
+    return np.array([tile.index, tile.col0, tile.row0, tile.cols, tile.rows], np.int64)
+
+
+def _digest(result) -> str:
+    import hashlib
+    h = hashlib.sha256()
+    for k in sorted(result):
+        a = np.ascontiguousarray(result[k])
+        h.update(f"{k}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _save(cache_dir, tile, result, key=None):
+    """Store a finished tile atomically, with the permissions of every other output, its
+    identity, job key and checksum."""
     from stereodem.sensor.io.raster import atomic_path
+    meta = {"__tile__": _identity(tile), "__job__": np.array(key or ""),
+            "__sha256__": np.array(_digest(result))}
     with atomic_path(_cache_file(cache_dir, tile)) as tmp, open(tmp, "wb") as f:
-        np.savez(f, **result)
+        np.savez(f, **result, **meta)
 
 
-def _load(cache_dir, tile):
-    with np.load(_cache_file(cache_dir, tile)) as z:
-        return {k: z[k] for k in z.files}
+def _load(cache_dir, tile, key=None):
+    """A cached tile's result, or None (with the reason logged) when it is not this tile's
+    intact result of this job."""
+    path = _cache_file(cache_dir, tile)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except Exception as exc:            # BadZipFile, truncated, not an npz, ...
+        log.warning("%s: unreadable cached tile (%s); recomputing it", path, type(exc).__name__)
+        return None
+    if not all(k in arrays for k in _META):
+        reason = "no identity or checksum"
+    elif not np.array_equal(arrays["__tile__"], _identity(tile)):
+        reason = f"it holds tile {arrays['__tile__'].tolist()}, not {_identity(tile).tolist()}"
+    elif key is not None and str(arrays["__job__"]) != key:
+        reason = "it belongs to another job"
+    else:
+        result = {k: v for k, v in arrays.items() if k not in _META}
+        if _digest(result) == str(arrays["__sha256__"]):
+            return result
+        reason = "checksum mismatch"
+    log.warning("%s: cached tile not reused (%s); recomputing it", path, reason)
+    return None
+
+
+def clean_cache(cache_dir):
+    """Remove what an interrupted run may leave in a tile cache: partial tile files and
+    shared image maps (finished tiles stay)."""
+    import shutil
+    d = Path(cache_dir)
+    for p in d.glob("*.part"):
+        p.unlink(missing_ok=True)
+    for p in d.glob("shared-*"):
+        shutil.rmtree(p, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------- driver
@@ -178,7 +260,8 @@ def pool_size(workers: int | None, n_tiles: int, dask_address=None) -> int:
 
 
 def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | None = None,
-              cache_dir=None, resume: bool = False, progress=None, dask_address: str | None = None):
+              cache_dir=None, resume: bool = False, progress=None, dask_address: str | None = None,
+              cache_key: str | None = None):
     """Run ``fn(tile, context)`` over ``tiles``.
 
     Parameters
@@ -188,7 +271,10 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
     timeout : float, optional
         Per-tile limit in seconds; a tile over it is reported as failed.
     cache_dir : path, optional
-        Folder for finished tiles; with ``resume`` those are loaded instead of recomputed.
+        Folder for finished tiles; with ``resume`` those are loaded instead of recomputed
+        (only a tile's own intact result: see :func:`_load`).
+    cache_key : str, optional
+        Identifies the job in each cached tile; tiles of another key are recomputed.
     progress : callable(done, total), optional
     dask_address : str, optional
         A ``dask.distributed`` scheduler address (``tcp://host:port``) or a ``Client``; tiles
@@ -206,8 +292,11 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
     for t in tiles:
+        cached = None
         if resume and cache_dir is not None and _cache_file(cache_dir, t).exists():
-            results[t.index] = _load(cache_dir, t)
+            cached = _load(cache_dir, t, cache_key)
+        if cached is not None:
+            results[t.index] = cached
         else:
             todo.append(t)
     if resume and results:
@@ -226,7 +315,7 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
         else:
             results[index] = out
             if cache_dir is not None:
-                _save(cache_dir, by_index[index], out)
+                _save(cache_dir, by_index[index], out, cache_key)
         if progress:
             progress(done, total)
 
@@ -240,13 +329,34 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
         # "spawn", not fork: a forked child inherits OpenCV's and PROJ's thread state and can
         # deadlock in its first cv2 call
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_init_worker,
-                                 initargs=(context,)) as ex:
+        ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(context,))
+        try:
             futs = [ex.submit(_run_one, fn, t, timeout) for t in todo]
             for f in as_completed(futs):
                 collect(*f.result())
+        except BaseException:            # Ctrl-C, SIGTERM, an error: stop the workers now
+            stop_pool(ex)
+            raise
+        ex.shutdown(wait=True)
     failures.sort(key=lambda f: f.tile.index)
     return results, failures, timings
+
+
+def stop_pool(ex, grace: float = 2.0):
+    """Stop a process pool at once: cancel the queued tiles and end its workers (SIGTERM,
+    then SIGKILL after ``grace`` seconds), so no worker outlives an interrupted run."""
+    procs = list(getattr(ex, "_processes", {}).values())      # the pool's worker processes
+    ex.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + grace
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(1.0)
 
 
 def _run_dask(fn, todo, context, timeout, address, collect):

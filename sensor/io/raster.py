@@ -288,6 +288,9 @@ def read_image(path, band: int = 1) -> np.ndarray:
         with rasterio.open(path) as ds:
             if not 1 <= int(band) <= ds.count:
                 raise InputError(f"{path}: no band {band} (the image has {ds.count})")
+            from .memory import check_allocation      # before reading: the header may lie
+            check_allocation(ds.width * ds.height * (4 + np.dtype(ds.dtypes[band - 1]).itemsize + 1),
+                             f"{path}: reading its {ds.width} x {ds.height} pixels")
             data = ds.read(int(band), masked=True)
     except rasterio.errors.RasterioIOError as exc:
         raise InputError(f"{path}: cannot read the image ({str(exc).splitlines()[0][:120]})") from None
