@@ -514,6 +514,8 @@ def validate(cfg: Config, source="configuration"):
     u = cfg.uncertainty
     if u.method not in ("first-order", "monte-carlo", "fast"):
         bad(f"[uncertainty] method must be first-order, monte-carlo or fast, got {u.method!r}")
+    if u.enabled and not cfg.ortho.enabled:
+        bad("[uncertainty] maps are on the orthoimage's grid: enable [ortho]")
     if u.enabled and not (u.sigma or u.covariance):
         bad("[uncertainty] enabled needs sigma = {name = value, ...} or covariance = adjust_report.json")
     if u.samples < 10:

@@ -561,8 +561,6 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
 
         if cfg.uncertainty.enabled:
             t0 = time.perf_counter()
-            if not cfg.ortho.enabled:
-                raise InputError("[uncertainty] maps are on the orthoimage's grid: enable [ortho]")
             summary, dsig = uncertainty_stage(cfg, pair, clean, orthos["left"].grid, products.dem,
                                               out / "uncertainty")
             dsig.write(out / "dem.tif", clean, overwrite=True)
