@@ -93,8 +93,13 @@ def main(argv=None):
         "baseline_before_block_rendering": {
             "full_granule": "164 s, 16 GB (issue #14, lead's measurement)",
             "quarter_area_2050x2100_2500x2700_same_machine": {"before": [127.9, 5.07], "after": [47.8, 1.30],
+                                                              "final_version_peak_rss_gb": 0.74,
                                                               "unit": ["s", "GB peak RSS"]},
-        "full_granule_first_block_version_same_machine": {"seconds": 289.6, "peak_rss_gb": 4.36},
+        "full_granule_intermediate_versions_same_machine": [
+            {"step": "coarse geoid, moving-pixel iteration, no ground arrays", "seconds": 289.6, "peak_rss_gb": 4.36},
+            {"step": "+ block hillshade, in-place field", "seconds": 183.3, "cpu_seconds": 82.0, "peak_rss_gb": 3.71},
+            {"step": "+ fine DEM after albedo, block NaN means", "seconds": 203.1, "cpu_seconds": 83.2, "peak_rss_gb": 3.58},
+            {"step": "+ true ortho by row blocks (this run)"}],
         "equivalence": "410x400 / 500x520 scene, seed 2, against the code before block rendering: "
                        "images differ by 1 DN in 0.001 % (3N) / 0.03 % (3B) of pixels (rounding), "
                        "truth DEM by <= 0.25 mm, truth ortho by <= 3e-4 DN",

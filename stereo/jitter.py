@@ -8,40 +8,45 @@ and the DEM made again.
 """
 from __future__ import annotations
 
+import dataclasses
+
 from stereodem.sensor.estimation.jitter import estimate_pitch_jitter, with_attitude_sines
 from stereodem.sensor.geo.dem import DEM, ELLIPSOID, as_dem
-from stereodem.stereo.pipeline import DEMSettings, make_dem
+from stereodem.stereo.pipeline import make_dem
+from stereodem.stereo.settings import StereoSettings
 
 
 def products_dem(products) -> DEM:
     """The :class:`~stereodem.sensor.geo.dem.DEM` of :func:`make_dem` products."""
-    g = products.grid
-    return DEM(g.height, g.transform, g.crs, g.vertical, None)
+    g = products.dem
+    return DEM(g.heights, g.transform, g.crs, g.vertical, None)
 
 
 def dem_with_jitter_correction(left_image, right_image, left_model, right_model, reference,
-                               settings: DEMSettings | None = None, *, n_sines: int = 1,
-                               f_range=(0.2, 8.0)):
-    """``(products, corrected_right_model, fit, first_products)``.
+                               settings: StereoSettings | None = None, *, seed_dem=None,
+                               n_sines: int = 1, f_range=(0.2, 8.0), runner=None):
+    """``(products, corrected_right_model, fit, first_products)``; ``runner`` as
+    :func:`~stereodem.stereo.pipeline.make_dem`'s.
 
     ``reference`` is a DEM (or path) covering the scene; ``fit`` is the
     :class:`~stereodem.sensor.estimation.jitter.SineSeries` of the right camera's pitch (rad).
-    The first DEM is made on ellipsoidal heights whatever ``settings.geoid`` says.
+    The first DEM is made on ellipsoidal heights whatever ``settings.gridding.geoid`` says;
+    without a height range or ``seed_dem`` the reference sets the tiles' height ranges.
     """
-    settings = settings or DEMSettings()
+    settings = settings or StereoSettings()
     ref = as_dem(reference)
-    first_settings = DEMSettings(**{**settings.__dict__, "geoid": False})
-    if first_settings.seed_dem is None and first_settings.height_range is None:
-        first_settings.seed_dem = ref
-    first = make_dem(left_image, right_image, left_model, right_model, first_settings)
+    seed = seed_dem if seed_dem is not None or settings.rectification.height_range else ref
+    first_settings = dataclasses.replace(
+        settings, gridding=dataclasses.replace(settings.gridding, geoid=False))
+    first = make_dem(left_image, right_image, left_model, right_model, first_settings, seed_dem=seed,
+                     runner=runner)
     d0 = products_dem(first)
     if d0.vertical != ELLIPSOID:          # pragma: no cover - geoid=False above
         raise AssertionError("first DEM must be ellipsoidal")
     fit, diag = estimate_pitch_jitter(d0, ref, left_model, right_model, n_sines=n_sines,
                                       f_range=f_range)
     corrected = with_attitude_sines(right_model, fit)
-    if settings.seed_dem is None and settings.height_range is None:
-        settings = DEMSettings(**{**settings.__dict__, "seed_dem": ref})
-    final = make_dem(left_image, right_image, left_model, corrected, settings)
+    final = make_dem(left_image, right_image, left_model, corrected, settings, seed_dem=seed,
+                     runner=runner)
     final.info["jitter"] = {**fit.to_dict(), "sensitivity_m_per_rad": diag["sensitivity_m_per_rad"]}
     return final, corrected, fit, first

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import logging
 
+from . import options
+
 log = logging.getLogger(__name__)
 
 EXAMPLES = """examples:
@@ -36,8 +38,12 @@ def add_parser(sub):
                                    "sidecar readable by ortho/dem (--model), and a report: "
                                    "adjust_report.json, adjust_report.md and the residual figure.",
                        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("image", help="image (GeoTIFF with RPCs or a <stem>.model.json sidecar)")
+    p.add_argument("image", help="image (GeoTIFF with RPCs or a <stem>.model.json sidecar), or an "
+                                 "ASTER L1A granule (its --band; with --model bundle and no IMAGE2, "
+                                 "the 3N/3B pair)")
     p.add_argument("image2", nargs="?", help="second image of a pair (--model bundle)")
+    p.add_argument("--band", type=options.band, default=1,
+                   help="band of an ASTER granule (3N or 3B; default 3N)")
     p.add_argument("--gcps", help="GCP / check-point CSV measured in IMAGE")
     p.add_argument("--gcps2", help="GCP / check-point CSV measured in IMAGE2 (bundle)")
     p.add_argument("--ties", help="tie-point CSV col1,row1,col2,row2 (bundle; default: automatic "
@@ -92,15 +98,9 @@ def _auto_ties(args, left, right):
     except ImportError:
         raise InputError("--model bundle needs --ties CSV (automatic tie points need "
                          "stereodem.stereo.sparse)") from None
-    import warnings
 
-    import rasterio
-    imgs = []
-    for path in (args.image, args.image2):
-        with warnings.catch_warnings():     # raw (sensor-geometry) images have no geotransform
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-            with rasterio.open(path) as ds:
-                imgs.append(ds.read(1).astype("float32"))
+    from .pipeline import open_image
+    imgs = [open_image(path, band=b).image for path, b in _pair_inputs(args)]
     m = sparse_matches(imgs[0], imgs[1], left, right)
     log.info("adjust: %d automatic tie points", len(m))
     return m
@@ -110,8 +110,10 @@ def run(args) -> int:
     from stereodem.sensor.errors import InputError
     from stereodem.sensor.io.gcps import read_gcps
     from stereodem.sensor.io.raster import check_writable
-    from stereodem.sensor.io.sidecar import load_image_model, save_model
+    from stereodem.sensor.io.sidecar import save_model
     from stereodem.sensor.models.generic import MODEL_NAMES
+
+    from .pipeline import image_model
     from stereodem.sensor.estimation.adjust import (adjust_generic, adjust_model, bundle_adjust,
                                                     write_report)
 
@@ -129,10 +131,11 @@ def run(args) -> int:
     common = dict(sigma_px=args.sigma_px, snooping=not args.no_snooping, alpha=args.alpha,
                   max_iterations=args.max_iterations)
     if args.model == "bundle":
-        if not args.image2 or not args.out2:
-            raise InputError("--model bundle needs IMAGE2 and --out2")
+        from stereodem.sensor.io.aster_l1a import is_aster_granule
+        if not (args.image2 or is_aster_granule(args.image)) or not args.out2:
+            raise InputError("--model bundle needs IMAGE2 (or an ASTER granule) and --out2")
         check_writable(args.out2, args.overwrite)
-        left, right = load_image_model(args.image), load_image_model(args.image2)
+        left, right = (image_model(path, band=b) for path, b in _pair_inputs(args))
         gcps = tuple(read_gcps(p, vertical=args.vertical) if p else None
                      for p in (args.gcps, args.gcps2))
         ties = _read_ties(args.ties) if args.ties else _auto_ties(args, left, right)
@@ -149,11 +152,11 @@ def run(args) -> int:
             raise InputError(f"--model {args.model} needs --gcps CSV")
         pts = read_gcps(args.gcps, vertical=args.vertical)
         if args.model in MODEL_NAMES:
-            model = load_image_model(args.image) if _has_model(args.image) else None
+            model = image_model(args.image, band=args.band) if _has_model(args.image) else None
             size = (model.width, model.height) if model is not None else None
             res = adjust_generic(args.model, pts, image_size=size, **common)
         else:
-            res = adjust_model(load_image_model(args.image), pts, args.model, regularization=reg,
+            res = adjust_model(image_model(args.image, band=args.band), pts, args.model, regularization=reg,
                                **common)
         save_model(res.model, args.out, overwrite=args.overwrite)
         summary = (f"{args.model}: sigma0 {res.sigma0:.3f}, GCP RMSE {res.gcp_rmse_px:.3f} px, "
@@ -165,11 +168,19 @@ def run(args) -> int:
     return 0
 
 
+def _pair_inputs(args):
+    """(path, band) of the two images of a bundle: IMAGE and IMAGE2, or a granule's 3N and 3B."""
+    if args.image2:
+        return [(args.image, args.band), (args.image2, args.band)]
+    return [(args.image, "3N"), (args.image, "3B")]
+
+
 def _has_model(image) -> bool:
     from stereodem.sensor.errors import SensorModelError
-    from stereodem.sensor.io.sidecar import load_image_model
+
+    from .pipeline import image_model
     try:
-        load_image_model(image)
+        image_model(image)
         return True
     except SensorModelError:
         return False

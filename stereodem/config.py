@@ -52,7 +52,7 @@ from stereodem.sensor.errors import InputError
 from stereodem.stereo.settings import (GriddingSettings, MatchingSettings, RectificationSettings,
                                        RefinementSettings, StereoSettings)
 
-__all__ = ["InputSettings", "FilterSettings", "FillSettings", "OrthoSettings", "AssessSettings",
+__all__ = ["InputSettings", "JitterSettings", "FilterSettings", "FillSettings", "OrthoSettings", "AssessSettings",
            "RunSettings", "Config", "load_config", "config_from_dict", "SECTIONS"]
 
 
@@ -116,6 +116,28 @@ class InputSettings:
     landcover: str | None = None
     dem: str | None = None
     dem_vertical: str | None = None
+
+
+@dataclass
+class JitterSettings:
+    """Along-track attitude jitter of the right camera (ASTER 3B), MMASTER-style.
+
+    Attributes
+    ----------
+    enabled : bool
+        Estimate the right camera's pitch oscillation from the first DEM's along-track
+        residuals against the seed DEM (a sum of sines), correct the right model with that
+        time-varying attitude and make the DEM again. Needs a seed DEM and a pushbroom/ASTER model.
+    n_sines : int
+        Sines in the fitted oscillation.
+    min_frequency, max_frequency : float
+        Frequency band searched, Hz.
+    """
+
+    enabled: bool = False
+    n_sines: int = 1
+    min_frequency: float = 0.2
+    max_frequency: float = 8.0
 
 
 @dataclass
@@ -245,6 +267,7 @@ class Config:
     inputs: InputSettings
     output_dir: str
     stereo: StereoSettings = field(default_factory=StereoSettings)
+    jitter: JitterSettings = field(default_factory=JitterSettings)
     filters: FilterSettings = field(default_factory=FilterSettings)
     fill: FillSettings = field(default_factory=FillSettings)
     ortho: OrthoSettings = field(default_factory=OrthoSettings)
@@ -254,7 +277,7 @@ class Config:
     def to_dict(self) -> dict:
         d = {"inputs": dataclasses.asdict(self.inputs), "output": {"dir": self.output_dir}}
         d.update(self.stereo.summary())
-        for name in ("filters", "fill", "ortho", "assess", "run"):
+        for name in ("jitter", "filters", "fill", "ortho", "assess", "run"):
             d[name] = dataclasses.asdict(getattr(self, name))
         return d
 
@@ -262,7 +285,8 @@ class Config:
 #: TOML section -> (settings class, where it lives in a Config)
 SECTIONS = {
     "inputs": InputSettings, "rectification": RectificationSettings, "matching": MatchingSettings,
-    "refinement": RefinementSettings, "gridding": GriddingSettings, "filters": FilterSettings,
+    "refinement": RefinementSettings, "gridding": GriddingSettings, "jitter": JitterSettings,
+    "filters": FilterSettings,
     "fill": FillSettings, "ortho": OrthoSettings, "assess": AssessSettings, "run": RunSettings,
 }
 _STEREO = ("rectification", "matching", "refinement", "gridding")
@@ -385,7 +409,7 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
     cfg = Config(inputs=parts["inputs"],
                  output_dir=str(Path(base) / out) if not os.path.isabs(out) else out,
                  stereo=StereoSettings(**{k: parts[k] for k in _STEREO}),
-                 filters=parts["filters"], fill=parts["fill"], ortho=parts["ortho"],
+                 jitter=parts["jitter"], filters=parts["filters"], fill=parts["fill"], ortho=parts["ortho"],
                  assess=parts["assess"], run=run)
     validate(cfg, source)
     return cfg
@@ -425,6 +449,12 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[gridding] res must be positive, got {gs.res}")
     if gs.method not in ("gaussian", "mean"):
         bad(f"[gridding] method must be 'gaussian' or 'mean', got {gs.method!r}")
+    j = cfg.jitter
+    if j.enabled and not cfg.inputs.seed_dem:
+        bad("[jitter] enabled needs a seed DEM ([inputs] seed_dem, --seed-dem) as the reference")
+    if j.n_sines < 1 or not 0 < j.min_frequency < j.max_frequency:
+        bad(f"[jitter] needs n_sines >= 1 and 0 < min_frequency < max_frequency, got "
+            f"{j.n_sines}, {j.min_frequency}, {j.max_frequency}")
     if cfg.filters.erode < 0:
         bad(f"[filters] erode must be >= 0, got {cfg.filters.erode}")
     if cfg.fill.max_hole_size < 0:

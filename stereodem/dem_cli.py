@@ -53,6 +53,9 @@ def add_parser(subparsers):
     p.add_argument("--no-pointing-correction", action="store_true",
                    help="do not estimate the relative pointing (right-image translation)")
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
+    p.add_argument("--jitter-correction", action="store_true",
+                   help="estimate the right camera's along-track jitter against --seed-dem (sum of "
+                        "sines), correct its attitude and make the DEM again (ASTER 3B)")
     options.add_band(p)
     p.add_argument("--rpc-direct", action="store_true",
                    help="localise RPCs with the file's direct model (DIMAP, rpcm JSON) instead of "
@@ -72,7 +75,7 @@ def config_from_args(args):
     from stereodem.stereo.settings import (GriddingSettings, MatchingSettings,
                                            RectificationSettings, StereoSettings)
 
-    from .config import Config, InputSettings, RunSettings, validate
+    from .config import Config, InputSettings, JitterSettings, RunSettings, validate
     hr = tuple(args.height_range) if args.height_range is not None else None
     cfg = Config(
         inputs=InputSettings(left=args.left, right=args.right, band=args.band,
@@ -86,6 +89,7 @@ def config_from_args(args):
             matching=MatchingSettings(matcher=args.matcher),
             gridding=GriddingSettings(res=args.res, crs=args.crs, geoid=args.geoid,
                                       method=args.gridding)),
+        jitter=JitterSettings(enabled=args.jitter_correction),
         run=RunSettings(workers=args.workers, tile_timeout=args.tile_timeout, dask=args.dask,
                         overwrite=args.overwrite, creation_options=options.creation_options(args)))
     validate(cfg, "command line")

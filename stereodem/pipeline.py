@@ -132,6 +132,15 @@ def open_image(path, *, band=1, prefer: str = "physical", model_file=None, rpc_d
     return InputImage(img, model, dtype, tags)
 
 
+def image_model(path, *, band=1, prefer: str = "physical"):
+    """The sensor model of an input (the image's sidecar or RPCs, or band ``band`` of an ASTER
+    granule), without reading the pixels."""
+    from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
+    if is_aster_granule(path):
+        return open_aster_granule(path).model(band if isinstance(band, str) else ASTER_STEREO_BANDS[0])
+    return load_image_model(path, prefer=prefer)
+
+
 def load_seed_dem(cfg: Config) -> DEM | None:
     """The seed DEM of the configuration (loaded once per job), or None."""
     if not cfg.inputs.seed_dem:
@@ -254,11 +263,22 @@ def _tile_result(arrays):
 
 def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None):
     """Stereo DEM (raw): :func:`stereodem.stereo.pipeline.make_dem` with the configured tile
-    runner; returns ``(products, failed_tiles)``."""
+    runner (and, with ``[jitter] enabled``, the right camera's jitter estimated against the
+    seed DEM, corrected and the DEM made again: :mod:`stereodem.stereo.jitter`); returns
+    ``(products, failed_tiles)``."""
     from stereodem.stereo.pipeline import make_dem
     runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
-    products = make_dem(pair.left_image, pair.right_image, pair.left_model, pair.right_model,
-                        cfg.stereo, seed_dem=pair.seed_dem, runner=runner)
+    args = (pair.left_image, pair.right_image, pair.left_model, pair.right_model)
+    if cfg.jitter.enabled:
+        from stereodem.stereo.jitter import dem_with_jitter_correction
+        j = cfg.jitter
+        products, corrected, fit, first = dem_with_jitter_correction(
+            *args, pair.seed_dem, cfg.stereo, seed_dem=pair.seed_dem, n_sines=j.n_sines,
+            f_range=(j.min_frequency, j.max_frequency), runner=runner)
+        pair.right_model = corrected
+        log.info("jitter of the right camera: %s", products.info["jitter"])
+    else:
+        products = make_dem(*args, cfg.stereo, seed_dem=pair.seed_dem, runner=runner)
     return products, [f.to_dict() for f in runner.failures]
 
 

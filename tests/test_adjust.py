@@ -244,6 +244,40 @@ def test_near_singular_names_the_parameters(rpc):
     assert res.regularization > 0 and np.all(np.isfinite(res.values))
 
 
+def test_gcv_on_a_rank_deficient_set_has_finite_statistics(rpc):
+    """All GCPs on one image row make row_shift and row_drift_row exactly collinear (rank
+    deficient): GCV-weighted Tikhonov still solves it through SVDs (no LinAlgError from an
+    inverted normal matrix), with finite covariances and the GCPs fitted; a zero weight is no
+    regularisation and is refused like the unregularised problem."""
+    pts = _pts(rpc, 12)
+    rng = np.random.default_rng(1)
+    c = rng.uniform(10, 1000, 12)
+    lon, lat = rpc.localize(c, np.full(12, 500.0), pts.h)
+    truth = ImageCorrectedModel(rpc, col_shift=0.8, row_shift=-0.6)
+    pts = ControlPoints.from_arrays(lon, lat, pts.h, *truth.project(lon, lat, pts.h))
+    res = adjust_model(rpc, pts, "rpc-shift-drift", regularization="gcv", snooping=False)
+    assert res.regularization > 0
+    assert res.condition > 1e12                    # the set really is (near-)rank-deficient
+    assert np.all(np.isfinite(res.covariance)) and np.all(np.isfinite(res.std))
+    assert res.gcp_rmse_px < 0.05
+    with pytest.raises(SensorModelError, match=r"near-singular.*regularisation weight 0\).*row_shift"):
+        adjust_model(rpc, pts, "rpc-shift-drift", regularization=0.0, snooping=False)
+
+
+def test_linear_algebra_failure_is_a_sensor_model_error():
+    """A LinAlgError inside the solve (here the model's own ``np.linalg.solve`` on a matrix that
+    its parameters make singular) comes out as SensorModelError naming the parameters."""
+    from stereodem.sensor.estimation.adjust import gauss_markov as gm
+    b = np.array([1.0, 2.0])
+
+    def evaluate(x):
+        y = np.linalg.solve(np.array([[x[0], x[1]], [x[0], x[1]]]), b)
+        return y - 1.0, np.eye(2)
+
+    with pytest.raises(SensorModelError, match=r"linear algebra failed \(Singular matrix\).*a, b"):
+        gm.solve(evaluate, [1.0, 2.0], ["a", "b"], regularization="gcv")
+
+
 def test_non_convergence_is_an_error(rpc):
     with pytest.raises(ConvergenceError, match=r"no convergence in \d+ iteration.*criterion"):
         # the affine correction is linear: one iteration solves it, but a second is needed

@@ -355,20 +355,19 @@ def test_dem_from_granule_matches_dem_from_geotiff_and_sidecar(tmp_path):
     import rasterio
     from stereodem.sensor.io.sidecar import load_image_model
     from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
-    from stereodem.stereo.pipeline import DEMSettings, make_dem
+    from stereodem.stereo.pipeline import make_dem
 
     sc = simulate_scene("aster", size=(410, 400), right_size=(500, 520), seed=2)
     out = write_scene(sc, tmp_path / "tif")
     gr = open_aster_granule(write_v004(granule_from_scene(sc, seed=2), tmp_path / "g.hdf"))
     with rasterio.open(out / "left.tif") as a, rasterio.open(out / "right.tif") as b:
         left, right = a.read(1), b.read(1)
-    settings = DEMSettings(seed_dem=sc.truth_dem)
     tif = make_dem(left, right, load_image_model(out / "left.tif"),
-                   load_image_model(out / "right.tif"), settings).grid
+                   load_image_model(out / "right.tif"), seed_dem=sc.truth_dem).dem
     gran = make_dem(gr.read_image("3N"), gr.read_image("3B"), gr.model("3N"), gr.model("3B"),
-                    settings).grid
-    assert gran.height.shape == tif.height.shape and gran.transform == tif.transform
-    cc, rr = np.meshgrid(np.arange(tif.height.shape[1]) + 0.5, np.arange(tif.height.shape[0]) + 0.5)
+                    seed_dem=sc.truth_dem).dem
+    assert gran.heights.shape == tif.heights.shape and gran.transform == tif.transform
+    cc, rr = np.meshgrid(np.arange(tif.heights.shape[1]) + 0.5, np.arange(tif.heights.shape[0]) + 0.5)
     x, y = tif.transform @ (cc, rr)
     truth = sc.truth_dem.sample(*geodesy.crs_to_lonlat(x, y, tif.crs))
 
@@ -376,9 +375,9 @@ def test_dem_from_granule_matches_dem_from_geotiff_and_sidecar(tmp_path):
         d = d[np.isfinite(d)]
         return 1.4826 * float(np.median(np.abs(d - np.median(d))))
 
-    diff = gran.height - tif.height
+    diff = gran.heights - tif.heights
     print(f"granule vs GeoTIFF DEM: median {np.nanmedian(diff):.4f} m, NMAD {nmad(diff):.3f} m; "
-          f"vs truth NMAD {nmad(tif.height - truth):.2f} / {nmad(gran.height - truth):.2f} m")
+          f"vs truth NMAD {nmad(tif.heights - truth):.2f} / {nmad(gran.heights - truth):.2f} m")
     assert abs(np.nanmedian(diff)) < 0.05
-    assert nmad(diff) < 0.15 * nmad(tif.height - truth)
-    assert abs(np.isfinite(gran.height).mean() - np.isfinite(tif.height).mean()) < 0.005
+    assert nmad(diff) < 0.15 * nmad(tif.heights - truth)
+    assert abs(np.isfinite(gran.heights).mean() - np.isfinite(tif.heights).mean()) < 0.005

@@ -17,6 +17,15 @@ Format (ASTER notes ``aster-l1a-format.md``): every VNIR band is an HDF-EOS swat
 names repeat in every swath, so fields are found through the Vgroups (or, failing that, by the
 ``:<swath>`` suffix HDF-EOS gives dimension names), never by name alone (notes §2.6).
 
+Using a granule::
+
+    from stereodem.sensor.io.aster_l1a import open_aster_granule, is_aster_granule
+    g = open_aster_granule("AST_L1A_00407312017190728_20250822173530.hdf")   # or V003 .zip / folder
+    left, right = g.stereo_pair()                    # bands 3N and 3B
+    image = left.image()                             # float32 radiance, NaN at fill
+    model = left.model                               # AsterModel: project / localize / rays
+    tags = g.tags()                                  # ASTER_ACQUISITION_TIME, ... for outputs
+
 What the reader checks rather than assumes (notes §4.3, §7): the lattice is read from the data
 (any N, any spacing, negative first row); sight vectors are renormalised; the convention of
 ``SatelliteVelocity`` (inertial or Earth-fixed) is decided against the positions; and the model
@@ -24,7 +33,6 @@ is validated against the product's own ``Latitude``/``Longitude`` when present.
 """
 from __future__ import annotations
 
-import datetime as _dt
 import logging
 import re
 from dataclasses import dataclass, field
@@ -35,6 +43,7 @@ import numpy as np
 
 from stereodem.sensor.errors import InputError, SensorModelError
 from stereodem.sensor.geo import geodesy
+from stereodem.sensor.io.aster_metadata import first_key, granule_metadata, not_l1a_message, product_level
 from stereodem.sensor.io.odl import flatten_odl, parse_odl
 from stereodem.sensor.models.aster import ASTER_LINE_PERIOD, AsterGeometry, AsterModel, lattice_velocities
 
@@ -376,98 +385,6 @@ def build_band(f: L1ABandFields, *, line_period: float = ASTER_LINE_PERIOD) -> A
     return AsterBand(f.band, model, f, conv, (float(err.mean()), float(err.max())))
 
 
-# ============================================================================ metadata
-
-_LEVEL_NAMES = {"1B": "L1B", "1T": "L1T", "L1B": "L1B", "L1T": "L1T"}
-
-
-def product_level(flat: dict, name: str) -> str | None:
-    """``"L1A"``, ``"L1B"``, ``"L1T"`` or None from the short name / processing level / file name."""
-    short = str(flat.get("SHORTNAME", "")).upper().replace("_", "")
-    if short.startswith("ASTL1A"):
-        return "L1A"
-    for key in ("ASTL1B", "ASTL1T"):
-        if short.startswith(key):
-            return "L" + key[-2:]
-    lvl = str(flat.get("PROCESSINGLEVELID", "")).upper().strip()
-    if lvl in ("1A", "L1A"):
-        return "L1A"
-    if lvl in _LEVEL_NAMES:
-        return _LEVEL_NAMES[lvl]
-    m = re.match(r"AST_?(L1[ABT])", name.upper())
-    return m.group(1) if m else None
-
-
-def not_l1a_message(path, level: str) -> str:
-    return (f"{path}: this is an ASTER {level} product; stereodem needs AST_L1A (the raw image "
-            f"lines with their lattice geometry: SightVector, SatellitePosition) to build the "
-            f"3N/3B pushbroom models - {level} images are resampled and carry no sensor geometry")
-
-
-def _first(flat: dict, *keys):
-    up = {k.upper(): v for k, v in flat.items()}
-    for k in keys:
-        if k.upper() in up:
-            return up[k.upper()]
-    return None
-
-
-def _as_float(v):
-    try:
-        return float(v)
-    except (TypeError, ValueError):
-        return None
-
-
-def _time_from_id(gid: str):
-    m = re.match(r"AST_L1A_\d{3}(\d{2})(\d{2})(\d{4})(\d{2})(\d{2})(\d{2})", gid)
-    if not m:
-        return None
-    mo, d, y, hh, mm, ss = (int(x) for x in m.groups())
-    try:
-        return _dt.datetime(y, mo, d, hh, mm, ss).isoformat() + "Z"
-    except ValueError:
-        return None
-
-
-def _acquisition_time(flat: dict, gid: str):
-    date, tod = _first(flat, "CALENDARDATE"), _first(flat, "TIMEOFDAY")
-    if date is not None and tod is not None:
-        ds, ts = re.sub(r"\D", "", str(date)), re.sub(r"\D", "", str(tod)).ljust(6, "0")
-        if len(ds) == 8:
-            return f"{ds[:4]}-{ds[4:6]}-{ds[6:8]}T{ts[:2]}:{ts[2:4]}:{ts[4:6]}Z"
-    date, tod = _first(flat, "RANGEBEGINNINGDATE"), _first(flat, "RANGEBEGINNINGTIME")
-    if date is not None and tod is not None:
-        return f"{date}T{str(tod).rstrip('Z')}Z"
-    first = _first(flat, "FIRSTPACKETTIME", "FIRSTPACKETTIME.1")
-    if first is not None:
-        return str(first)
-    return _time_from_id(gid)
-
-
-def granule_metadata(odl: dict, gid: str) -> dict:
-    """The metadata users look for, from the parsed ODL attributes (None where absent)."""
-    flat: dict = {}
-    for tree in odl.values():
-        flat.update(flatten_odl(tree))
-    sun = _first(flat, "SOLARDIRECTION")
-    sun = tuple(sun) if isinstance(sun, tuple) and len(sun) == 2 else (None, None)
-    corners = {}
-    for c in ("UPPERLEFT", "UPPERRIGHT", "LOWERLEFT", "LOWERRIGHT"):
-        v = _first(flat, c)
-        if isinstance(v, tuple) and len(v) == 2:
-            corners[c] = (float(v[0]), float(v[1]))
-    return {
-        "granule_id": gid,
-        "acquisition_time": _acquisition_time(flat, gid),
-        "sun_azimuth_deg": _as_float(sun[0]),
-        "sun_elevation_deg": _as_float(sun[1]),
-        "cloud_cover_pct": _as_float(_first(flat, "SCENECLOUDCOVERAGE", "SceneCloudCoverage")),
-        "pointing_angle_deg": _as_float(_first(flat, "POINTINGANGLE.1", "POINTINGANGLE")),
-        "corners": corners or None,
-    }
-
-
 # ============================================================================ V004 (HDF-EOS2)
 
 def _hdf_error():
@@ -587,7 +504,7 @@ def read_v004(path):
         raise InputError(f"{path}: cannot walk the HDF-EOS swath structure - file truncated or "
                          f"damaged ({exc})") from None
     vnir = {sw: f for sw, f in located.items() if sw.startswith("VNIR_Band")}
-    instrument = str(_first(flat, "INSTRUMENTSHORTNAME") or "").upper()
+    instrument = str(first_key(flat, "INSTRUMENTSHORTNAME") or "").upper()
     if not vnir:
         sd.end()
         if level is None and instrument != "ASTER":
@@ -595,7 +512,7 @@ def read_v004(path):
                              f"VNIR_Band3N/3B swaths)")
         raise InputError(f"{path}: ASTER granule without VNIR swaths (VNIR_Band3N, VNIR_Band3B): "
                          f"the VNIR telescope was off")
-    gid = str(_first(flat, "LOCALGRANULEID") or path.stem)
+    gid = str(first_key(flat, "LOCALGRANULEID") or path.stem)
     gid = re.sub(r"\.hdf$", "", gid, flags=re.I)
     bands = {}
     for b in VNIR_BANDS:

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.sensor.errors import InputError
-from stereodem.sensor.io.aster_l1a import (VNIR_BANDS, L1ABandFields, not_l1a_message, product_level,
-                                           swath_name)
+from stereodem.sensor.io.aster_l1a import VNIR_BANDS, L1ABandFields, swath_name
+from stereodem.sensor.io.aster_metadata import not_l1a_message, product_level
 from stereodem.sensor.io.odl import parse_odl
 
 #: tables a band needs (besides ``ImageData.tif``); ASP's aster2asp requires the same set

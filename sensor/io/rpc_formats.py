@@ -200,11 +200,7 @@ def _read_geom(path: Path) -> RPCModel:
     fmt = kv.get("polynomial_format", "B").strip().upper()
     if fmt != "B":
         raise RPCError(f"{path}: OSSIM polynomial_format {fmt!r} (only B, RPC00B, is supported)")
-    names = {"LINE_OFF": "line_off", "SAMP_OFF": "samp_off", "LAT_OFF": "lat_off",
-             "LONG_OFF": "long_off", "HEIGHT_OFF": "height_off", "LINE_SCALE": "line_scale",
-             "SAMP_SCALE": "samp_scale", "LAT_SCALE": "lat_scale", "LONG_SCALE": "long_scale",
-             "HEIGHT_SCALE": "height_scale"}
-    d = {k: get(v) for k, v in names.items()}
+    d = {k: get(k.lower()) for k in SCALAR_KEYS}       # OSSIM: line_off ... height_scale
     for key in COEFF_KEYS:
         d[key] = [get(f"{key.lower()}_{i:02d}") for i in range(20)]
     for key, okey in (("ERR_BIAS", "bias_error"), ("ERR_RAND", "rand_error")):
@@ -297,51 +293,49 @@ def _validity_size(path, val):
 
 
 def _read_dimap(path: Path, rfm) -> RPCModel:
-    """Pleiades / SPOT 6-7 DIMAP v2 RPC file (``Global_RFM``)."""
-    inv = rfm.find("Inverse_Model")
-    if inv is None:
-        raise RPCError(f"{path}: RPC key Global_RFM/Inverse_Model missing")
-    val = rfm.find("RFM_Validity")
-    if val is None:
-        raise RPCError(f"{path}: RPC key Global_RFM/RFM_Validity missing")
-    d = {}
-    for key in COEFF_KEYS:
-        d[key] = [_text(inv, f"{key}_{i}", "Inverse_Model", path) for i in range(1, 21)]
-    for key in SCALAR_KEYS:
-        d[key] = _text(val, key, "RFM_Validity", path)
-    # DIMAP counts pixels from 1 (centre of the first pixel at (1, 1)); we count from 0
-    d["LINE_OFF"] = _parse_float(d["LINE_OFF"], "LINE_OFF", path) - 1.0
-    d["SAMP_OFF"] = _parse_float(d["SAMP_OFF"], "SAMP_OFF", path) - 1.0
-    loc = None
-    direct = rfm.find("Direct_Model")
-    if direct is not None:
-        # Direct_Model: SAMP_* give longitude, LINE_* latitude (image -> ground)
-        loc = np.stack([_parse_coeffs([_text(direct, f"{key}_{i}", "Direct_Model", path) for i in range(1, 21)],
-                                      f"Direct_Model/{key}", path)
-                        for key in ("SAMP_NUM_COEFF", "SAMP_DEN_COEFF", "LINE_NUM_COEFF", "LINE_DEN_COEFF")])
-    width, height = _validity_size(path, val)
-    return RPCModel.from_dict(d, path=str(path), width=width, height=height, loc_coeffs=loc)
+    """Pleiades / SPOT 6-7 DIMAP v2 RPC file (``Global_RFM``); DIMAP counts pixels from 1
+    (centre of the first pixel at (1, 1)), we count from 0. ``Direct_Model``: ``SAMP_*`` give
+    longitude, ``LINE_*`` latitude (image -> ground)."""
+    return _dimap_rfm(path, rfm, "Inverse_Model", "Direct_Model",
+                      ("SAMP_NUM_COEFF", "SAMP_DEN_COEFF", "LINE_NUM_COEFF", "LINE_DEN_COEFF"),
+                      first_pixel=1.0)
 
 
 def _read_dimap_v3(path: Path, rfm) -> RPCModel:
     """Pleiades Neo DIMAP v3: ``GroundtoImage_Values`` / ``ImagetoGround_Values``, pixel
     offsets counted from the corner of the first pixel (centre at 0.5)."""
-    inv = rfm.find("GroundtoImage_Values")
+    return _dimap_rfm(path, rfm, "GroundtoImage_Values", "ImagetoGround_Values",
+                      ("LON_NUM_COEFF", "LON_DEN_COEFF", "LAT_NUM_COEFF", "LAT_DEN_COEFF"),
+                      first_pixel=0.5)
+
+
+def _dimap_rfm(path: Path, rfm, inverse_tag: str, direct_tag: str, direct_keys, *,
+               first_pixel: float) -> RPCModel:
+    """An RPC model from a DIMAP v2/v3 ``Global_RFM`` element.
+
+    Ground -> image coefficients ``{key}_1..20`` under ``inverse_tag``, normalisation under
+    ``RFM_Validity``, the optional image -> ground model ``direct_keys`` (lon num/den, lat
+    num/den) under ``direct_tag``; ``first_pixel`` is the file's coordinate of the centre of
+    the first pixel (subtracted from ``LINE_OFF``/``SAMP_OFF``).
+    """
+    inv = rfm.find(inverse_tag)
+    if inv is None:
+        raise RPCError(f"{path}: RPC key Global_RFM/{inverse_tag} missing")
     val = rfm.find("RFM_Validity")
     if val is None:
         raise RPCError(f"{path}: RPC key Global_RFM/RFM_Validity missing")
-    d = {key: [_text(inv, f"{key}_{i}", "GroundtoImage_Values", path) for i in range(1, 21)]
+    d = {key: [_text(inv, f"{key}_{i}", inverse_tag, path) for i in range(1, 21)]
          for key in COEFF_KEYS}
     for key in SCALAR_KEYS:
         d[key] = _text(val, key, "RFM_Validity", path)
-    d["LINE_OFF"] = _parse_float(d["LINE_OFF"], "LINE_OFF", path) - 0.5
-    d["SAMP_OFF"] = _parse_float(d["SAMP_OFF"], "SAMP_OFF", path) - 0.5
+    d["LINE_OFF"] = _parse_float(d["LINE_OFF"], "LINE_OFF", path) - first_pixel
+    d["SAMP_OFF"] = _parse_float(d["SAMP_OFF"], "SAMP_OFF", path) - first_pixel
     loc = None
-    direct = rfm.find("ImagetoGround_Values")
+    direct = rfm.find(direct_tag)
     if direct is not None:
-        loc = np.stack([_parse_coeffs([_text(direct, f"{key}_{i}", "ImagetoGround_Values", path)
-                                       for i in range(1, 21)], key, path)
-                        for key in ("LON_NUM_COEFF", "LON_DEN_COEFF", "LAT_NUM_COEFF", "LAT_DEN_COEFF")])
+        loc = np.stack([_parse_coeffs([_text(direct, f"{key}_{i}", direct_tag, path) for i in range(1, 21)],
+                                      f"{direct_tag}/{key}", path)
+                        for key in direct_keys])
     width, height = _validity_size(path, val)
     return RPCModel.from_dict(d, path=str(path), width=width, height=height, loc_coeffs=loc)
 

@@ -175,6 +175,17 @@ class SensorModel:
                                        f"({int((~np.isfinite(a)).sum())} value(s))")
 
 
+def localize_on_rays(model, col, row, h):
+    """``model.localize`` for a model with exact :meth:`SensorModel.rays`: each pixel's line of
+    sight intersected with ellipsoidal height ``h`` (m); ``(lon, lat)`` in degrees, NaN where
+    the ray misses, in the broadcast shape of the inputs."""
+    model.check_inputs(col, row, h, what="image coordinates or heights")
+    col, row, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (col, row, h)))
+    o, d = model.rays(col, row)
+    lon, lat = ray_to_lonlat(o, d, h)
+    return np.asarray(lon, float).reshape(col.shape), np.asarray(lat, float).reshape(col.shape)
+
+
 def ray_to_lonlat(origin, direction, h):
     """Intersect ECEF rays with ellipsoidal height ``h``; returns ``(lon, lat)`` in degrees."""
     p = geodesy.intersect_height(origin, direction, h)

@@ -16,6 +16,7 @@ import numpy as np
 
 from stereodem.sensor.errors import SensorModelError
 from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.models.parameters import checked_parameters
 
 #: adjustable parameters and their units
 PARAMETERS = {
@@ -49,14 +50,7 @@ class ImageCorrectedModel(SensorModel):
         self._set(coefficients)
 
     def _set(self, values):
-        for k, v in values.items():
-            if k not in PARAMETERS:
-                raise SensorModelError(f"image correction: unknown parameter {k!r} "
-                                       f"(known: {', '.join(PARAMETERS)})")
-            v = float(v)
-            if not np.isfinite(v):
-                raise SensorModelError(f"image correction: {k} must be finite, got {v}")
-            self._p[k] = v
+        self._p.update(checked_parameters(PARAMETERS, values, "image correction"))
         p = self._p
         self._A = np.array([[1.0 + p["col_drift_col"], p["col_drift_row"]],
                             [p["row_drift_col"], 1.0 + p["row_drift_row"]]])

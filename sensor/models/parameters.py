@@ -38,6 +38,42 @@ def default_step(name: str, value: float) -> float:
     return 1e-6 * max(1.0, abs(float(value)))
 
 
+def checked_parameters(known, values, owner: str, *, listing: str | None = None) -> dict:
+    """Parameter values checked against a model's names, as floats.
+
+    Parameters
+    ----------
+    known : Mapping or collection of str
+        The names the model accepts.
+    values : Mapping
+        ``{name: value}`` to check (values in the parameters' own units).
+    owner : str
+        The model's name, for the messages.
+    listing : str, optional
+        How the messages list the accepted names (default: all of ``known``, comma-separated).
+
+    Returns
+    -------
+    dict
+        ``{name: float(value)}`` in the order of ``values``.
+
+    Raises
+    ------
+    SensorModelError
+        For a name not in ``known`` (the message lists the known names) or a non-finite value.
+    """
+    out = {}
+    for k, v in values.items():
+        if k not in known:
+            raise SensorModelError(f"{owner}: unknown parameter {k!r} "
+                                   f"(known: {listing if listing is not None else ', '.join(known)})")
+        v = float(v)
+        if not np.isfinite(v):
+            raise SensorModelError(f"{owner}: parameter {k} must be finite, got {v}")
+        out[k] = v
+    return out
+
+
 def _steps(model, names, steps):
     table = dict(getattr(model, "PARAMETER_STEPS", {}) or {})
     if steps:

@@ -32,7 +32,8 @@ import numpy as np
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.models.ephemeris import Attitude, CircularOrbit, Ephemeris
 from stereodem.sensor.errors import ConvergenceError, SensorModelError
-from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.models.base import SensorModel, localize_on_rays
+from stereodem.sensor.models.parameters import checked_parameters
 from stereodem.sensor.geo.rotations import body_to_orbital, orbital_frame
 
 log = logging.getLogger(__name__)
@@ -391,14 +392,7 @@ class PushbroomModel(SensorModel):
         return new
 
     def _set_parameters(self, values):
-        for k, v in values.items():
-            if k not in PARAMETERS:
-                raise SensorModelError(f"{self.name}: unknown parameter {k!r} "
-                                       f"(known: {', '.join(PARAMETERS)})")
-            v = float(v)
-            if not np.isfinite(v):
-                raise SensorModelError(f"{self.name}: parameter {k} must be finite")
-            self._params[k] = v
+        self._params.update(checked_parameters(PARAMETERS, values, self.name))
 
     # ---------------------------------------------------------------- time and frames
     def line_time(self, row):
@@ -449,13 +443,7 @@ class PushbroomModel(SensorModel):
 
         NaN where the line of sight misses the surface.
         """
-        self.check_inputs(col, row, h, what="image coordinates or heights")
-        col, row, h = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float),
-                                          np.asarray(h, float))
-        o, d = self.rays(col, row)
-        p = geodesy.intersect_height(o, d, h)
-        lon, lat, _ = geodesy.ecef_to_geodetic(p[..., 0], p[..., 1], p[..., 2])
-        return np.asarray(lon, float).reshape(col.shape), np.asarray(lat, float).reshape(col.shape)
+        return localize_on_rays(self, col, row, h)
 
     # ---------------------------------------------------------------- ground -> image
     def _scan_residual(self, p, row):

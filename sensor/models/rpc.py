@@ -226,6 +226,31 @@ class RPCModel(SensorModel):
         return self._guess
 
     # ------------------------------------------------------------------ contract
+    def normalised_ground(self, lon, lat, h):
+        """Ground points in the RPC's normalised units.
+
+        Returns ``(shape, L, P, H)``: the broadcast shape of ``lon, lat, h`` (degrees, degrees,
+        metres above the ellipsoid) and the flattened normalised longitude, latitude and height
+        (float64; about [-1, 1] inside the validity range).
+        """
+        lon, lat, h = np.broadcast_arrays(np.asarray(lon, np.float64), np.asarray(lat, np.float64),
+                                          np.asarray(h, np.float64))
+        return (lon.shape, (lon.ravel() - self.lon_off) / self.lon_scale,
+                (lat.ravel() - self.lat_off) / self.lat_scale,
+                (h.ravel() - self.height_off) / self.height_scale)
+
+    def normalised_image(self, col, row, h):
+        """Image points (pixels) at heights ``h`` (m) in the RPC's normalised units.
+
+        Returns ``(shape, c, r, H)``: the broadcast shape and the flattened normalised column
+        (sample), row (line) and height (float64).
+        """
+        col, row, h = np.broadcast_arrays(np.asarray(col, np.float64), np.asarray(row, np.float64),
+                                          np.asarray(h, np.float64))
+        return (col.shape, (col.ravel() - self.samp_off) / self.samp_scale,
+                (row.ravel() - self.line_off) / self.line_scale,
+                (h.ravel() - self.height_off) / self.height_scale)
+
     def project(self, lon, lat, h):
         """Project ground points to the image.
 
@@ -248,12 +273,7 @@ class RPCModel(SensorModel):
         (16 multiplications, :func:`monomials`) and shared by the four polynomials through one
         (4 x 20) @ (20 x n) matrix product, which is faster in numpy than four Horner schemes.
         """
-        lon, lat, h = np.broadcast_arrays(np.asarray(lon, np.float64), np.asarray(lat, np.float64),
-                                          np.asarray(h, np.float64))
-        shape = lon.shape
-        L = ((lon.ravel() - self.lon_off) / self.lon_scale)
-        P = ((lat.ravel() - self.lat_off) / self.lat_scale)
-        H = ((h.ravel() - self.height_off) / self.height_scale)
+        shape, L, P, H = self.normalised_ground(lon, lat, h)
         n = L.size
         col = np.empty(n)
         row = np.empty(n)
@@ -296,12 +316,7 @@ class RPCModel(SensorModel):
             Degrees (WGS84). Points that did not converge within the cap are NaN and a
             ``RuntimeWarning`` gives their number; NaN inputs give NaN silently.
         """
-        col, row, h = np.broadcast_arrays(np.asarray(col, np.float64), np.asarray(row, np.float64),
-                                          np.asarray(h, np.float64))
-        shape = col.shape
-        cn = (col.ravel() - self.samp_off) / self.samp_scale
-        rn = (row.ravel() - self.line_off) / self.line_scale
-        H = (h.ravel() - self.height_off) / self.height_scale
+        shape, cn, rn, H = self.normalised_image(col, row, h)
         n = cn.size
         Lout = np.full(n, np.nan)
         Pout = np.full(n, np.nan)

@@ -43,12 +43,7 @@ class DirectRPCModel(RPCModel):
 
     def localize(self, col, row, h, **_ignored):
         """Image ``(col, row)`` at height ``h`` to ``(lon, lat)`` by the direct polynomials."""
-        col, row, h = np.broadcast_arrays(np.asarray(col, np.float64), np.asarray(row, np.float64),
-                                          np.asarray(h, np.float64))
-        shape = col.shape
-        cn = (col.ravel() - self.samp_off) / self.samp_scale
-        rn = (row.ravel() - self.line_off) / self.line_scale
-        H = (h.ravel() - self.height_off) / self.height_scale
+        shape, cn, rn, H = self.normalised_image(col, row, h)
         with np.errstate(divide="ignore", invalid="ignore"):
             v = self.loc_coeffs @ monomials(cn, rn, H)
             lon = v[0] / v[1] * self.lon_scale + self.lon_off
@@ -78,12 +73,9 @@ def check_validity(model: RPCModel, lon, lat, h, *, tolerance: float = 0.1):
     in longitude, latitude and height (RPC00B polynomials are fitted inside it and diverge
     outside). Returns the boolean mask of valid points when all are inside.
     """
-    lon, lat, h = (np.asarray(a, float) for a in np.broadcast_arrays(lon, lat, h))
     lim = 1.0 + tolerance
-    nl = np.abs((lon - model.lon_off) / model.lon_scale)
-    np_ = np.abs((lat - model.lat_off) / model.lat_scale)
-    nh = np.abs((h - model.height_off) / model.height_scale)
-    bad = (nl > lim) | (np_ > lim) | (nh > lim)
+    shape, nl, np_, nh = model.normalised_ground(lon, lat, h)
+    bad = ((np.abs(nl) > lim) | (np.abs(np_) > lim) | (np.abs(nh) > lim)).reshape(shape)
     if bad.any():
         s = abs(model.height_scale)
         raise RPCError(f"{where(model.source)}{int(bad.sum())} of {bad.size} point(s) outside the "

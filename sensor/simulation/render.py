@@ -47,6 +47,17 @@ class MapRaster(OnGrid):
         return out.reshape(shape)
 
 
+def nanmean_blocks(a, block_rows: int = 512) -> float:
+    """``np.nanmean(a)`` of a 2-D array by row blocks (``np.nanmean`` copies the whole array)."""
+    total, count = 0.0, 0
+    for r0 in range(0, a.shape[0], block_rows):
+        b = a[r0:r0 + block_rows]
+        ok = np.isfinite(b)
+        total += float(np.sum(b, where=ok, dtype=np.float64))
+        count += int(ok.sum())
+    return total / count if count else float("nan")
+
+
 class GridLocalizer:
     """Approximate ``localize`` of a model on a coarse grid, in map coordinates.
 
@@ -118,7 +129,7 @@ def localize_on_dem_grid(loc: GridLocalizer, dem: MapRaster, col, row, *, thresh
     k = xs.shape[0]
     xs, ys = xs.reshape(k, -1), ys.reshape(k, -1)
     ox, oy = loc.origin
-    start = float(np.nanmean(dem.data)) if h0 is None else float(h0)
+    start = nanmean_blocks(dem.data) if h0 is None else float(h0)
     h = np.full(xs.shape[1], start, np.float32)
     converged = np.zeros(xs.shape[1], bool)
     active = np.arange(xs.shape[1])
@@ -162,7 +173,7 @@ def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=32, 
         gy = np.empty((hgt, w), np.float64)
         gh = np.empty((hgt, w), np.float32)
     cols = np.arange(w, dtype=np.float32)
-    h0 = float(np.nanmean(dem.data))
+    h0 = nanmean_blocks(dem.data)
     for r0 in range(0, hgt, block_rows):
         r1 = min(hgt, r0 + block_rows)
         cc, rr = np.meshgrid(cols, np.arange(r0, r1, dtype=np.float32))

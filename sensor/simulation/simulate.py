@@ -53,7 +53,8 @@ from stereodem.sensor.geo.dem import DEM, ELLIPSOID, as_dem
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.models.base import SensorModel
 from stereodem.sensor.geo.grid import MapGrid
-from stereodem.sensor.simulation.render import MapRaster, render, sampled_localization_error
+from stereodem.sensor.simulation.render import (MapRaster, nanmean_blocks, render,
+                                                 sampled_localization_error)
 
 log = logging.getLogger(__name__)
 
@@ -317,7 +318,7 @@ def _hillshade_blocks(z, res, azimuth, elevation, block_rows):
     """``(r0, r1, shade)`` row blocks of :func:`hillshade_factor` (one-row halo)."""
     az, el = np.radians(azimuth), np.radians(elevation)
     s = np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
-    fill = float(np.nanmean(z))
+    fill = nanmean_blocks(z)
     rows = z.shape[0]
     for r0 in range(0, rows, block_rows):
         r1 = min(rows, r0 + block_rows)
@@ -415,9 +416,10 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     # fine grid (half the truth posting) for the radiance field and the rendering DEM
     ft = Affine(res_truth / 2, 0, transform.c, 0, -res_truth / 2, transform.f)
     fshape = (shape[0] * 2, shape[1] * 2)
-    fine_dem = _reproject_dem(dem, ft, fshape, crs)
-    # radiance field = albedo * (0.25 + 0.75 * shade), built in place
+    # radiance field = albedo * (0.25 + 0.75 * shade), built in place; the fine DEM is made
+    # after the albedo so that the albedo's temporaries and it never coexist
     field = _albedo(texture or texture_path(), fshape, rng)
+    fine_dem = _reproject_dem(dem, ft, fshape, crs)
     for r0, r1, shade in _hillshade_blocks(fine_dem, res_truth / 2, SUN_AZIMUTH, SUN_ELEVATION, 256):
         field[r0:r1] *= 0.25 + 0.75 * shade
     # the system PSF, in ground units, applied once to the radiance field: both the images
@@ -430,7 +432,7 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     dem_r = MapRaster(fine_dem, fine_grid)
 
     images, diags = [], {}
-    h_mean = float(np.nanmean(fine_dem))
+    h_mean = nanmean_blocks(fine_dem)
     right_true = right_model
     if jitter is not None:
         from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
@@ -451,8 +453,11 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
         dtype = np.uint8 if bits == 8 else np.uint16
         q = np.clip(np.rint(np.nan_to_num(noisy, nan=0.0)), 0, np.iinfo(dtype).max).astype(dtype)
         images.append(q)
-    truth_ortho = radiance.sample(*(transform @ np.meshgrid(np.arange(shape[1]) + 0.5,
-                                                             np.arange(shape[0]) + 0.5)))
+    truth_ortho = np.empty(shape, np.float32)
+    for r0 in range(0, shape[0], 512):                    # row blocks: no full-size float64 grids
+        r1 = min(shape[0], r0 + 512)
+        truth_ortho[r0:r1] = radiance.sample(*(transform @ np.meshgrid(np.arange(shape[1]) + 0.5,
+                                                                        np.arange(r0, r1) + 0.5)))
     truth_dem = DEM(truth, transform, crs, ELLIPSOID, None)
     points = _check_points(left_model, right_true, truth_dem, n_points, rng)
     settings = dict(preset=preset, size=[w, h], right_size=list(rsize), noise=noise, seed=seed,

@@ -41,7 +41,7 @@ from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
 from stereodem.sensor.estimation.adjust.model_sets import model_set, parameter_unit
-from stereodem.sensor.estimation.adjust.result import rmse
+from stereodem.sensor.estimation.adjust.result import ParameterEstimate, _num, rmse
 from stereodem.sensor.estimation.adjust.single import (_check_arrays, _sigmas,
                                                        check_points_against_model)
 from stereodem.sensor.geo import geodesy
@@ -319,7 +319,7 @@ def _enu_partials(model, lon, lat, h, basis=None, step_m=1.0, base=None):
 
 
 @dataclass
-class BundleResult:
+class BundleResult(ParameterEstimate):
     """Result of :func:`bundle_adjust` (``to_report()`` is the bundle's ``adjust_report.json``).
 
     ``tie_residuals_px`` is (n_tie, 4): left col, row, right col, row (model − measured) of
@@ -330,18 +330,6 @@ class BundleResult:
 
     left: object
     right: object
-    names: list
-    values: np.ndarray
-    initial_values: np.ndarray
-    std: np.ndarray
-    units: list
-    covariance: np.ndarray
-    condition: float
-    sigma0: float
-    sigma_known: bool
-    dof: int
-    n_observations: int
-    chi2_test: dict
     tie_residuals_px: np.ndarray
     tie_w: np.ndarray
     tie_redundancy: np.ndarray
@@ -371,12 +359,6 @@ class BundleResult:
         return self.left, self.right
 
     @property
-    def correlation(self):
-        s = np.sqrt(np.diag(self.covariance))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return self.covariance / np.outer(s, s)
-
-    @property
     def tie_rmse_px(self) -> float:
         """RMSE of the kept tie observations over both images (px per image point)."""
         r = self.tie_residuals_px[~self.tie_rejected].reshape(-1, 2)
@@ -394,7 +376,6 @@ class BundleResult:
         return rmse(np.concatenate(res)) if res else float("nan")
 
     def _points(self, k, side):
-        from stereodem.sensor.estimation.adjust.result import _num
         out = []
         g = self.gcps[k]
         if g is not None:
@@ -417,7 +398,6 @@ class BundleResult:
         return out
 
     def to_report(self) -> dict:
-        from stereodem.sensor.estimation.adjust.result import _num
         from stereodem.sensor.io.sidecar import model_to_dict
         kept = ~self.tie_rejected
         return {
@@ -425,15 +405,7 @@ class BundleResult:
             "model_set": "bundle",
             "model_sets": {"left": self.model_sets[0], "right": self.model_sets[1]},
             "solver": self.solver,
-            "sigma0": _num(self.sigma0), "sigma0_a_priori": 1.0, "sigma_known": self.sigma_known,
-            "chi2_test": self.chi2_test, "dof": int(self.dof),
-            "n_observations": int(self.n_observations), "n_unknowns": len(self.names) + 3 * int(kept.sum()),
-            "parameters": [{"name": n, "value": float(v), "initial": float(v0), "std": _num(s), "unit": u}
-                           for n, v, v0, s, u in zip(self.names, self.values, self.initial_values,
-                                                     self.std, self.units)],
-            "covariance": [[_num(v) for v in row] for row in self.covariance],
-            "correlation": [[_num(v) for v in row] for row in self.correlation],
-            "condition": _num(self.condition),
+            **self._estimate_report(len(self.names) + 3 * int(kept.sum())),
             "points": self._points(0, "left") + self._points(1, "right"),
             "gcp_rmse_px": _num(self.gcp_rmse_px), "check_rmse_px": _num(self.check_rmse_px),
             "n_gcp": int(sum(len(g) for g in self.gcps if g is not None)

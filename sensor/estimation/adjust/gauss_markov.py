@@ -21,7 +21,12 @@ precision of a finite-difference Jacobian limits how small the predicted correct
 Near-singular normal matrices (condition number of the equilibrated ``A^T A`` above
 ``max_condition``) raise :class:`stereodem.sensor.errors.SensorModelError` naming the condition
 number and the parameters that cannot be separated (the largest components of the right
-singular vector of the smallest singular value), unless regularisation was asked for.
+singular vector of the smallest singular value), unless regularisation with a positive weight
+was asked for (a weight of 0 is no regularisation). Every solve goes through SVDs of the
+(regularised) equilibrated design matrix, never an inverse of the normal matrix, so a
+rank-deficient parameter set with a positive Tikhonov weight has finite statistics; any
+:class:`numpy.linalg.LinAlgError` that still arises (an SVD that does not converge, or the
+model's own linear algebra) is raised as :class:`~stereodem.sensor.errors.SensorModelError`.
 """
 from __future__ import annotations
 
@@ -103,10 +108,23 @@ def solve(evaluate, x0, names, *, residual=None, max_iterations: int = 20,
     Raises
     ------
     SensorModelError
-        Non-finite residuals, a parameter without effect, a near-singular normal matrix.
+        Non-finite residuals, a parameter without effect, a near-singular normal matrix
+        (without a positive regularisation weight), a failed SVD or model linear algebra.
     ConvergenceError
         No convergence within ``max_iterations``.
     """
+    try:
+        return _solve(evaluate, x0, names, residual=residual, max_iterations=max_iterations,
+                      tolerance=tolerance, regularization=regularization,
+                      max_condition=max_condition, what=what)
+    except np.linalg.LinAlgError as exc:
+        raise SensorModelError(
+            f"{what}: linear algebra failed ({exc}) with parameters {', '.join(names)} — the set "
+            "is probably rank-deficient: free fewer parameters, add priors, or regularise") from None
+
+
+def _solve(evaluate, x0, names, *, residual, max_iterations, tolerance, regularization,
+           max_condition, what) -> GaussMarkovSolution:
     x_ref = np.asarray(x0, dtype=np.float64).copy()
     residual = residual or (lambda z: evaluate(z)[0])
     e, A = evaluate(x_ref)
@@ -117,14 +135,17 @@ def solve(evaluate, x0, names, *, residual=None, max_iterations: int = 20,
                                "have no effect on the observations")
     D, U, s, Vt = equilibrated_svd(A)
     cond = _condition(s)
-    if regularization is None and cond > max_condition:
-        raise SensorModelError(
-            f"{what}: near-singular normal matrix (condition number {cond:.3g}); cannot "
-            f"separate {', '.join(inseparable(Vt, s, names)) or 'the parameters'} — free "
-            "fewer parameters, add priors, or regularise")
     lam, D_reg = 0.0, None
     if regularization is not None:
-        lam, D_reg = _weight(regularization, A / D, -e), D.copy()
+        lam = _weight(regularization, A / D, -e)
+        if lam > 0:          # a zero weight is no regularisation: the condition check applies
+            D_reg = D.copy()
+    if D_reg is None and cond > max_condition:
+        raise SensorModelError(
+            f"{what}: near-singular normal matrix (condition number {cond:.3g}"
+            + (f", regularisation weight {lam:g}" if regularization is not None else "")
+            + f"); cannot separate {', '.join(inseparable(Vt, s, names)) or 'the parameters'} — "
+            "free fewer parameters, add priors, or regularise")
 
     # Tikhonov as fictitious observations lam * D (x - x0) = 0 (equilibrated units)
     def fun(z):

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["AdjustmentResult", "rmse"]
+__all__ = ["AdjustmentResult", "ParameterEstimate", "rmse"]
 
 
 def rmse(res) -> float:
@@ -27,7 +27,62 @@ def _num(v):
 
 
 @dataclass
-class AdjustmentResult:
+class ParameterEstimate:
+    """What every adjustment (single image or bundle) estimates and reports.
+
+    Attributes
+    ----------
+    names, values, initial_values, std, units : the parameters (``std`` a posteriori)
+    covariance : (u, u) covariance of the parameters
+    condition : condition number of the equilibrated normal matrix
+    sigma0 : a-posteriori standard deviation of unit weight
+    sigma_known : whether the a-priori observation sigmas were given
+    dof, n_observations : redundancy and number of observations
+    chi2_test : dict of :func:`.reliability.variance_test`
+    """
+
+    names: list
+    values: np.ndarray
+    initial_values: np.ndarray
+    std: np.ndarray
+    units: list
+    covariance: np.ndarray
+    condition: float
+    sigma0: float
+    sigma_known: bool
+    dof: int
+    n_observations: int
+    chi2_test: dict
+
+    @property
+    def correlation(self) -> np.ndarray:
+        s = np.sqrt(np.diag(self.covariance))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.covariance / np.outer(s, s)
+
+    def _estimate_report(self, n_unknowns: int, priors: dict | None = None) -> dict:
+        """The report entries ``sigma0`` ... ``condition`` (JSON-ready; NaN -> null)."""
+        priors = priors or {}
+        return {
+            "sigma0": _num(self.sigma0),
+            "sigma0_a_priori": 1.0,
+            "sigma_known": self.sigma_known,
+            "chi2_test": self.chi2_test,
+            "dof": int(self.dof),
+            "n_observations": int(self.n_observations),
+            "n_unknowns": int(n_unknowns),
+            "parameters": [{"name": n, "value": float(v), "initial": float(v0), "std": _num(s),
+                            "unit": u, **({"prior_std": priors[n]} if n in priors else {})}
+                           for n, v, v0, s, u in zip(self.names, self.values, self.initial_values,
+                                                     self.std, self.units)],
+            "covariance": [[_num(v) for v in row] for row in self.covariance],
+            "correlation": [[_num(v) for v in row] for row in self.correlation],
+            "condition": _num(self.condition),
+        }
+
+
+@dataclass
+class AdjustmentResult(ParameterEstimate):
     """Estimated parameters, their precision and the reliability of the observations.
 
     Arrays over points follow ``gcp_ids`` (every point of role ``gcp``, outliers included:
@@ -55,18 +110,6 @@ class AdjustmentResult:
     """
 
     model: object
-    names: list
-    values: np.ndarray
-    initial_values: np.ndarray
-    std: np.ndarray
-    units: list
-    covariance: np.ndarray
-    condition: float
-    sigma0: float
-    sigma_known: bool
-    dof: int
-    n_observations: int
-    chi2_test: dict
     gcp_ids: np.ndarray
     check_ids: np.ndarray
     gcp_points: object
@@ -90,12 +133,6 @@ class AdjustmentResult:
     variance_components: dict | None = None
 
     # ---------------------------------------------------------------- derived
-    @property
-    def correlation(self) -> np.ndarray:
-        s = np.sqrt(np.diag(self.covariance))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return self.covariance / np.outer(s, s)
-
     @property
     def outlier_mask(self) -> np.ndarray:
         bad = {o["id"] for o in self.outliers}
@@ -141,7 +178,6 @@ class AdjustmentResult:
                 "row": float(self.check_points.row[k]),
                 "residual_px": [_num(v) for v in self.check_residuals_px[k]],
                 "w": None, "r": None, "mdb_px": None, "ground_residual_m": None, "outlier": False})
-        corr = self.correlation
         try:
             model_dict = model_to_dict(self.model)
         except Exception as exc:   # a model without a serialiser still gets its statistics
@@ -149,20 +185,7 @@ class AdjustmentResult:
         return {
             "model": model_dict,
             "model_set": self.model_set,
-            "sigma0": _num(self.sigma0),
-            "sigma0_a_priori": 1.0,
-            "sigma_known": self.sigma_known,
-            "chi2_test": self.chi2_test,
-            "dof": int(self.dof),
-            "n_observations": int(self.n_observations),
-            "n_unknowns": self.n_unknowns,
-            "parameters": [{"name": n, "value": float(v), "initial": float(v0), "std": _num(s),
-                            "unit": u, **({"prior_std": self.priors[n]} if n in self.priors else {})}
-                           for n, v, v0, s, u in zip(self.names, self.values, self.initial_values,
-                                                     self.std, self.units)],
-            "covariance": [[_num(v) for v in row] for row in self.covariance],
-            "correlation": [[_num(v) for v in row] for row in corr],
-            "condition": _num(self.condition),
+            **self._estimate_report(self.n_unknowns, self.priors),
             "points": points,
             "gcp_rmse_px": _num(self.gcp_rmse_px),
             "gcp_rmse_col_row_px": _axis_rmse(self.residuals_px[~out_mask]),

@@ -10,11 +10,41 @@ in the unit of ``P``.
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from scipy.optimize import least_squares
 
 from stereodem.sensor.errors import ConvergenceError, SensorModelError
 from stereodem.sensor.geo import geodesy
+from stereodem.sensor.models.parameters import checked_parameters
+
+
+class CoefficientModel:
+    """Mixin of the orbital models: coefficients in the dict ``self._c`` (every coefficient the
+    model has, by name), validity heights in ``self._hr``.
+
+    Gives ``with_parameters`` (a copy with some coefficients changed), ``_set`` (checked by
+    :func:`~stereodem.sensor.models.parameters.checked_parameters`; the error lists
+    :meth:`_parameter_listing`) and ``height_bounds``.
+    """
+
+    def with_parameters(self, **values):
+        new = copy.copy(self)
+        new._c = dict(self._c)
+        new._set(values)
+        return new
+
+    def _set(self, values):
+        self._c.update(checked_parameters(self._c, values, self.name,
+                                          listing=self._parameter_listing()))
+
+    def _parameter_listing(self) -> str | None:
+        """How an unknown-parameter error lists the accepted names (None: all of ``_c``)."""
+        return None
+
+    def height_bounds(self):
+        return self._hr
 
 
 def line_variable(row, height: int):
@@ -26,6 +56,46 @@ def line_variable(row, height: int):
 def quadratic(c0, c1, c2, tau):
     """``c0 + c1 tau + c2 tau^2`` (broadcast)."""
     return c0 + tau * (c1 + tau * c2)
+
+
+def secant_rows(f, n: int, height: int, *, max_iterations: int = 30):
+    """Image rows where ``f(row)[0] == 0``, by secant steps started at the first and last line.
+
+    Parameters
+    ----------
+    f : callable
+        ``f(rows) -> (residual, *extras)``: the misfit of each of ``n`` ground points at
+        (fractional) ``rows``, shape (n,), and any by-products wanted at the solution.
+    n : int
+        Number of points.
+    height : int
+        Image height (rows); steps are clipped to ten image heights.
+    max_iterations : int
+        At most this many secant steps (stops earlier once every step is below 1e-9 rows).
+
+    Returns
+    -------
+    row : ndarray (n,)
+        The last iterate.
+    out : tuple
+        ``f(row)`` at that iterate.
+    """
+    r0 = np.zeros(n)
+    r1 = np.full(n, height - 1.0)
+    f0 = f(r0)[0]
+    out = f(r1)
+    for _ in range(max_iterations):
+        f1 = out[0]
+        den = f1 - f0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(den != 0, -f1 * (r1 - r0) / den, 0.0)
+        step = np.clip(np.nan_to_num(step), -10.0 * height, 10.0 * height)
+        r0, f0 = r1, f1
+        r1 = r1 + step
+        out = f(r1)
+        if np.all(np.abs(step) < 1e-9):
+            break
+    return r1, out
 
 
 def virtual_points(reference, *, n: int = 9, heights=(-200.0, 1000.0, 3000.0)):

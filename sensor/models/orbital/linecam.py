@@ -18,17 +18,15 @@ which it freezes, is what distinguishes Orun & Natarajan from Kratky.
 """
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from stereodem.sensor.errors import SensorModelError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.rotations import R1, R2, R3
-from stereodem.sensor.models.base import SensorModel
-from stereodem.sensor.models.orbital._common import (fit_to_points, line_variable, quadratic,
-                                                     virtual_points)
+from stereodem.sensor.models.base import SensorModel, localize_on_rays
+from stereodem.sensor.models.orbital._common import (CoefficientModel, fit_to_points, line_variable,
+                                                     quadratic, secant_rows, virtual_points)
 
 #: Every coefficient of the line camera (units: m for X/Y/Z, rad for angles, 1 for the scale).
 COEFFICIENTS = tuple(f"{p}_{k}" for p in ("X", "Y", "Z", "omega", "phi", "kappa") for k in range(3)) \
@@ -39,7 +37,7 @@ def _steps():
     return {n: (1.0 if n[0] in "XYZ" else 1e-6) for n in COEFFICIENTS}
 
 
-class PolynomialLineCamera(SensorModel):
+class PolynomialLineCamera(CoefficientModel, SensorModel):
     """Line camera with quadratic exterior orientation (see the module docstring).
 
     Subclasses set :attr:`ADJUSTABLE` (the exposed parameters), :attr:`ADJUST_SETS` (named
@@ -77,24 +75,8 @@ class PolynomialLineCamera(SensorModel):
         """All coefficients, frozen ones included."""
         return dict(self._c)
 
-    def with_parameters(self, **values):
-        new = copy.copy(self)
-        new._c = dict(self._c)
-        new._set(values)
-        return new
-
-    def _set(self, values):
-        for k, v in values.items():
-            if k not in self._c:
-                raise SensorModelError(f"{self.name}: unknown parameter {k!r} "
-                                       f"(known: {', '.join(self.ADJUSTABLE)})")
-            v = float(v)
-            if not np.isfinite(v):
-                raise SensorModelError(f"{self.name}: parameter {k} must be finite")
-            self._c[k] = v
-
-    def height_bounds(self):
-        return self._hr
+    def _parameter_listing(self):
+        return ", ".join(self.ADJUSTABLE)
 
     # ------------------------------------------------------------------ geometry
     def _pose(self, row):
@@ -122,22 +104,9 @@ class PolynomialLineCamera(SensorModel):
 
         def f(row):
             cam = self._camera(g, row)
-            return cam[:, 0] / np.linalg.norm(cam, axis=-1)
+            return cam[:, 0] / np.linalg.norm(cam, axis=-1), cam
 
-        r0 = np.zeros(g.shape[0])
-        r1 = np.full(g.shape[0], self.height - 1.0)
-        f0, f1 = f(r0), f(r1)
-        for _ in range(max_iterations):
-            den = f1 - f0
-            with np.errstate(divide="ignore", invalid="ignore"):
-                step = np.where(den != 0, -f1 * (r1 - r0) / den, 0.0)
-            step = np.clip(np.nan_to_num(step), -10.0 * self.height, 10.0 * self.height)
-            r0, f0 = r1, f1
-            r1 = r1 + step
-            f1 = f(r1)
-            if np.all(np.abs(step) < 1e-9):
-                break
-        cam = self._camera(g, r1)
+        r1, (_, cam) = secant_rows(f, g.shape[0], self.height, max_iterations=max_iterations)
         with np.errstate(divide="ignore", invalid="ignore"):
             y = -cam[:, 1] / cam[:, 2]
         col = self.col0 + y / (self.ifov * (1.0 + self._c["scan_scale"]))
@@ -159,12 +128,7 @@ class PolynomialLineCamera(SensorModel):
         return o, d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     def localize(self, col, row, h):
-        self.check_inputs(col, row, h, what="image coordinates or heights")
-        col, row, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (col, row, h)))
-        o, d = self.rays(col, row)
-        p = geodesy.intersect_height(o, d, h)
-        lon, lat, _ = geodesy.ecef_to_geodetic(p[..., 0], p[..., 1], p[..., 2])
-        return np.asarray(lon, float).reshape(col.shape), np.asarray(lat, float).reshape(col.shape)
+        return localize_on_rays(self, col, row, h)
 
     # ------------------------------------------------------------------ initial values
     @classmethod

@@ -60,8 +60,9 @@ from scipy.spatial.transform import Rotation
 
 from stereodem.sensor.errors import InputError, SensorModelError
 from stereodem.sensor.geo import geodesy
-from stereodem.sensor.models.base import SensorModel
-from stereodem.sensor.models.orbital._common import line_variable, quadratic
+from stereodem.sensor.models.base import SensorModel, localize_on_rays
+from stereodem.sensor.models.orbital._common import (CoefficientModel, line_variable, quadratic,
+                                                     secant_rows)
 
 SERIES = ("X", "Y", "Z", "VX", "VY", "VZ", "roll", "pitch", "yaw")
 EOP = tuple(f"{s}_{k}" for s in SERIES for k in range(3))
@@ -117,7 +118,7 @@ def orbital_to_ecef(p, v):
     return np.stack([x, y, z], -1)
 
 
-class TopanLOSModel(SensorModel):
+class TopanLOSModel(CoefficientModel, SensorModel):
     """Line-of-sight model with quadratic EOP polynomials (module docstring).
 
     Parameters
@@ -162,12 +163,6 @@ class TopanLOSModel(SensorModel):
     def parameters(self) -> dict:
         return dict(self._c)
 
-    def with_parameters(self, **values):
-        new = copy.copy(self)
-        new._c = dict(self._c)
-        new._set(values)
-        return new
-
     def with_los_sign(self, sign: int) -> "TopanLOSModel":
         """The same model with the ``z`` of the look vector set to ``sign`` (+1: Topan's print)."""
         new = copy.copy(self)
@@ -176,18 +171,8 @@ class TopanLOSModel(SensorModel):
         new.los_sign = int(sign)
         return new
 
-    def _set(self, values):
-        for k, v in values.items():
-            if k not in self._c:
-                raise SensorModelError(f"{self.name}: unknown parameter {k!r} (EOP coefficients "
-                                       f"{EOP[0]}..{EOP[-1]}, look-angle corrections {', '.join(LOOK)})")
-            v = float(v)
-            if not np.isfinite(v):
-                raise SensorModelError(f"{self.name}: parameter {k} must be finite")
-            self._c[k] = v
-
-    def height_bounds(self):
-        return self._hr
+    def _parameter_listing(self):
+        return f"EOP coefficients {EOP[0]}..{EOP[-1]}, look-angle corrections {', '.join(LOOK)}"
 
     # ------------------------------------------------------------------ geometry
     def _series(self, row):
@@ -245,12 +230,7 @@ class TopanLOSModel(SensorModel):
     def localize(self, col, row, h):
         """Image ``(col, row)`` at ellipsoidal height ``h`` -> ``(lon, lat)``; NaN where the ray
         misses (always with ``los_sign=+1``: the rays point away from the Earth)."""
-        self.check_inputs(col, row, h, what="image coordinates or heights")
-        col, row, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (col, row, h)))
-        o, d = self.rays(col, row)
-        q = geodesy.intersect_height(o, d, h)
-        lon, lat, _ = geodesy.ecef_to_geodetic(q[..., 0], q[..., 1], q[..., 2])
-        return np.asarray(lon, float).reshape(col.shape), np.asarray(lat, float).reshape(col.shape)
+        return localize_on_rays(self, col, row, h)
 
     def _payload(self, g, row):
         p, rot = self._pose(row)
@@ -273,20 +253,7 @@ class TopanLOSModel(SensorModel):
             px, _ = self.look_angles(col)
             return np.arctan(tx) - px, col, k
 
-        r0 = np.zeros(g.shape[0])
-        r1 = np.full(g.shape[0], self.height - 1.0)
-        f0, _, _ = f(r0)
-        f1, col, k = f(r1)
-        for _ in range(max_iterations):
-            den = f1 - f0
-            with np.errstate(divide="ignore", invalid="ignore"):
-                step = np.where(den != 0, -f1 * (r1 - r0) / den, 0.0)
-            step = np.clip(np.nan_to_num(step), -10.0 * self.height, 10.0 * self.height)
-            r0, f0 = r1, f1
-            r1 = r1 + step
-            f1, col, k = f(r1)
-            if np.all(np.abs(step) < 1e-9):
-                break
+        r1, (_, col, k) = secant_rows(f, g.shape[0], self.height, max_iterations=max_iterations)
         bad = ~(k > 0) | ~np.isfinite(col)
         return (np.where(bad, np.nan, col).reshape(shape), np.where(bad, np.nan, r1).reshape(shape))
 

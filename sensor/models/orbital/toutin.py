@@ -33,21 +33,20 @@ Set ``toutin-full`` frees them too (15).
 """
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 
 from stereodem.sensor.errors import SensorModelError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.models.base import SensorModel
-from stereodem.sensor.models.orbital._common import fit_to_points, invert_projection, virtual_points
+from stereodem.sensor.models.orbital._common import (CoefficientModel, fit_to_points, invert_projection,
+                                                     virtual_points)
 
 ADJUSTED = ("P", "Q", "tau", "theta", "a", "x0", "y0", "rot")
 SECOND_ORDER = ("b", "c", "dgamma", "dT_1", "dT_2", "dR_1", "dR_2")
 _Y_SCALE = 1e5          # m, the unit of y in the attitude-variation polynomials
 
 
-class ToutinModel(SensorModel):
+class ToutinModel(CoefficientModel, SensorModel):
     """Toutin-type model (module docstring); build it with :meth:`from_model`."""
 
     ADJUST_SETS = {"toutin": list(ADJUSTED), "toutin-full": list(ADJUSTED + SECOND_ORDER)}
@@ -64,39 +63,21 @@ class ToutinModel(SensorModel):
         if not all(np.isfinite(v) for v in (self.N0, self.H0, self.alpha, self.chi)) or self.alpha == 0:
             raise SensorModelError("Toutin model: N0, H0, alpha, chi must be finite (alpha non-zero)")
         self.name = name or "toutin"
-        self._v = dict.fromkeys(ADJUSTED + SECOND_ORDER, 0.0)
+        self._c = dict.fromkeys(ADJUSTED + SECOND_ORDER, 0.0)
         self._set(values)
         self._hr = tuple(float(v) for v in height_range)
         self.r_c, self.c_c = 0.5 * (self.height - 1), 0.5 * (self.width - 1)
 
     # ------------------------------------------------------------------ parameters
     def parameters(self) -> dict:
-        return dict(self._v)
+        return dict(self._c)
 
     coefficients = parameters
-
-    def with_parameters(self, **values):
-        new = copy.copy(self)
-        new._v = dict(self._v)
-        new._set(values)
-        return new
-
-    def _set(self, values):
-        for k, v in values.items():
-            if k not in self._v:
-                raise SensorModelError(f"{self.name}: unknown parameter {k!r} (known: {', '.join(self._v)})")
-            v = float(v)
-            if not np.isfinite(v):
-                raise SensorModelError(f"{self.name}: parameter {k} must be finite")
-            self._v[k] = v
-
-    def height_bounds(self):
-        return self._hr
 
     # ------------------------------------------------------------------ equations
     def _local(self, lon, lat, h):
         e, n, _ = geodesy.ecef_to_enu(*geodesy.geodetic_to_ecef(lon, lat, 0.0 * h), self.lon0, self.lat0, 0.0)
-        v = self._v
+        v = self._c
         cr, sr = np.cos(v["rot"]), np.sin(v["rot"])
         de, dn = np.asarray(e) - v["x0"], np.asarray(n) - v["y0"]
         return cr * de - sr * dn, sr * de + cr * dn
@@ -105,7 +86,7 @@ class ToutinModel(SensorModel):
         """Ground (deg, deg, m above the ellipsoid) -> ``(col, row)`` by Eq. 3.2-3.5."""
         self.check_inputs(lon, lat, h, what="ground coordinates")
         lon, lat, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (lon, lat, h)))
-        v = self._v
+        v = self._c
         x, y = self._local(lon, lat, h)
         X = (x - v["a"] * y) * (1.0 + h / self.N0) + v["b"] * y ** 2 + v["c"] * x * y
         H = h - X ** 2 / (2.0 * self.N0)
@@ -172,7 +153,7 @@ class ToutinModel(SensorModel):
         """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
         return {"width": self.width, "height": self.height, "lon0": self.lon0, "lat0": self.lat0,
                 "N0": self.N0, "H0": self.H0, "alpha": self.alpha, "chi": self.chi,
-                "values": dict(self._v), "name": self.name, "height_range": list(self._hr)}
+                "values": dict(self._c), "name": self.name, "height_range": list(self._hr)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ToutinModel":
