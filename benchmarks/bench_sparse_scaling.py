@@ -1,7 +1,7 @@
 """Cost of the sparse stage (SIFT matches -> relative pointing -> terrain heights) against the
 scene size: simulated ``aster`` pairs of 800², 1600² and 3200² pixels.
 
-Keypoints are detected on images reduced to at most 640 px a side and refined at full
+Keypoints are detected on images reduced to at most 512 px a side and refined at full
 resolution, so the cost should grow far slower than the pixel count. Writes
 ``benchmarks/results/bench_sparse_scaling.json`` (wall and CPU seconds, matches, height range).
 

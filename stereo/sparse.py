@@ -16,7 +16,7 @@ This is the sparse stage of CARS and s2p (SIFT, ratio test, then a check through
 geometry), used here for the terrain height range (:mod:`stereodem.stereo.terrain`) and the
 relative pointing correction (:mod:`stereodem.stereo.pointing`).
 
-Keypoints are detected and matched on images reduced to at most ``max_size`` pixels a side
+Keypoints are detected and matched on images reduced to at most ``max_size`` (512) pixels a side
 (the cost of SIFT, about 0.5 s of CPU per megapixel, stays bounded for any scene size), then
 each match is refined at full resolution by a vectorised ZNCC of 15 x 15 patches with a
 parabolic sub-pixel peak (:func:`refine_matches`), so the matches keep full-resolution
@@ -336,7 +336,7 @@ def _consensus(values, tol):
 
 def sparse_matches(left_image, right_image, left_model, right_model, height_range=None, *,
                    ratio: float = 0.75, max_offset: float = 50.0, tolerance: float = 2.0,
-                   max_size: int = 640, n_features: int = 8000, n_heights: int = 5,
+                   max_size: int = 512, n_features: int = 4000, n_heights: int = 5,
                    refine: bool = True, left_window=None) -> SparseMatches:
     """SIFT matches between two images, checked through their sensor models.
 

@@ -10,8 +10,9 @@ remaining heights give
 
 * the **height range** of the scene: the kept points' lowest and highest heights (blunders
   are already out; sparse matches under-sample peaks and gorges, so no percentile is cut
-  off) widened by ``margin`` (default 10 % of the span, at least ``min_margin``), as CARS
-  derives its disparity range from its sparse matches;
+  off) widened by ``margin`` (default 10 % of the span or ``tile_margin``, whichever is
+  larger, at least ``min_margin``), as CARS derives its disparity range from its sparse
+  matches;
 * a **seed surface**: the mean height of the points in cells of a coarse map grid (UTM of
   the scene centre, posting set so that cells hold a few points each), empty cells filled by
   normalised Gaussian convolution of the filled ones (widening until all are filled), as a
@@ -119,7 +120,7 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
         Models to intersect with (the right one corrected for pointing, preferably).
     margin : float, optional
         Metres added on both sides of the points' range; default max(10 % of the span,
-        ``min_margin``).
+        ``tile_margin``, ``min_margin``).
     min_margin : float
         Smallest margin (m) of the range and of ``tile_margin``.
     min_points : int
@@ -198,6 +199,11 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
     on_seed = np.abs(hk - seed.sample(lon[ok], lat[ok], reference=ELLIPSOID))
     strays = [np.nanpercentile(a, 99) for a in (on_seed, dev_kept) if np.isfinite(a).any()]
     tile_margin = float(max(strays, default=m) + min_margin)
+    if margin is None and tile_margin > m:
+        # peaks and gorges between the points stray from them by up to about tile_margin:
+        # the global range keeps at least that much room
+        m = tile_margin
+        height_range = (float(p_lo - m), float(p_hi + m))
     info = dict(heights_m={"min": p_lo, "p1": float(np.percentile(hk, 1)), "p50": float(np.median(hk)),
                            "p99": float(np.percentile(hk, 99)), "max": p_hi},
                 ray_gap_limit_m=gap_lim, ray_gap_median_m=float(np.median(gap[ok])),
