@@ -355,6 +355,7 @@ def test_gcp_csv_errors(tmp_path, text, match):
         assert "swapped" not in str(pytest.raises(InputError, read_gcps, path).value)
 
 
+@pytest.mark.slow
 def test_variance_components_image_and_ground(rpc):
     """Half the GCPs surveyed (ground fixed), half from a map whose stated 15 m sigma is three
     times too pessimistic (true 5 m): iterated variance components recover the factor 1/3 for

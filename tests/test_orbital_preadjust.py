@@ -45,6 +45,7 @@ def test_type2_needs_a_set_and_types_are_1_or_2(setup):
         preadjust(model, gcp, kind=3)
 
 
+@pytest.mark.slow
 def test_registered_sets_build_from_the_physical_model(setup):
     meta, _, _ = aster_scene()
     for name, n in (("eop-poly2", 9), ("eop-P_S0", 3), ("orun", 11), ("toutin", 8), ("kratky", 7)):

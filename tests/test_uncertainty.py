@@ -175,6 +175,7 @@ def test_strongly_nonlinear_case_gap_is_stated(frame):
     assert np.all(gap > 0.03) and np.all(exact / pu.sigma_horizontal - 1 > 0.03)
 
 
+@pytest.mark.slow
 def test_correlated_inputs_first_order_matches_monte_carlo_and_shares_sum_to_one(frame):
     crs = geodesy.utm_crs(32.8, 39.9)
     lon, lat = frame.localize(np.array([100.0, 400.0]), np.array([50.0, 300.0]), np.full(2, 1000.0))
