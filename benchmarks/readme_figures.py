@@ -184,11 +184,20 @@ def uncertainty(d):
     return out + "."
 
 
+def sparse_scaling(d):
+    runs = d["runs"]
+    parts = ", ".join(f"{r['size']}² px {r['cpu_s']:.1f} s CPU ({r['matches']} matches, heights "
+                      f"{r['height_range_m'][0]:.0f}–{r['height_range_m'][1]:.0f} m for a truth of "
+                      f"{r['truth_dem_range_m'][0]:.0f}–{r['truth_dem_range_m'][1]:.0f} m)" for r in runs)
+    return ("Sparse stage (SIFT matches checked through the models, relative pointing, terrain "
+            f"heights) on simulated ASTER pairs (`benchmarks/bench_sparse_scaling.py`): {parts}.")
+
+
 SUMMARISERS = {"bench_demo": demo, "bench_rpc": rpc, "bench_aster_scene": aster_scene,
                "bench_dem": dem, "bench_match": match, "bench_ortho": ortho,
                "bench_ortho_models": ortho_models, "bench_adjust": adjust,
                "bench_aster_granule": aster_granule, "bench_topan_sets": topan_sets,
-               "bench_uncertainty": uncertainty}
+               "bench_uncertainty": uncertainty, "bench_sparse_scaling": sparse_scaling}
 
 
 def figures_markdown(results: Path = RESULTS) -> str:
