@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.sensor.io.tables import TableError, numeric_blocks
 from stereodem.sensor.errors import InputError
 from stereodem.sensor.io.aster_l1a import VNIR_BANDS, L1ABandFields, swath_name
 from stereodem.sensor.io.aster_metadata import not_l1a_message, product_level
@@ -69,20 +70,10 @@ class _Source:
 
 def _table(text: str, source: str, *, width: int | None = None):
     """Numbers of a text table as blocks: list of (lines, values) float arrays."""
-    blocks, cur = [], []
-    for line in text.replace("\r", "").split("\n"):
-        s = line.strip()
-        if not s:
-            if cur:
-                blocks.append(cur)
-                cur = []
-            continue
-        try:
-            cur.append([float(x) for x in s.split()])
-        except ValueError:
-            raise InputError(f"{source}: non-numeric line {s[:40]!r}") from None
-    if cur:
-        blocks.append(cur)
+    try:
+        blocks = numeric_blocks(text)
+    except TableError as exc:
+        raise InputError(f"{source}: non-numeric line {exc.line[:40]!r}") from None
     if not blocks:
         raise InputError(f"{source}: empty table")
     try:

@@ -12,6 +12,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from stereodem.sensor.errors import RPCError, SensorModelError
+from stereodem.sensor.io.tables import TableError, numeric_blocks
 from stereodem.sensor.models.aster import _RPB_COEFS, AsterGeometry
 
 _RPB_SCALARS = ("LINEOFFSET", "SAMPOFFSET", "LATOFFSET", "LONGOFFSET", "HEIGHTOFFSET",
@@ -40,20 +41,10 @@ def _blocks(root, tag, path):
     el = root.find(tag)
     if el is None:
         raise SensorModelError(f"{path}: missing <{tag}> element")
-    blocks, cur = [], []
-    for line in (el.text or "").splitlines():
-        s = line.strip()
-        if not s:
-            if cur:
-                blocks.append(cur)
-                cur = []
-            continue
-        try:
-            cur.append([float(x) for x in s.split()])
-        except ValueError:
-            raise SensorModelError(f"{path}: <{tag}> holds non-numeric text") from None
-    if cur:
-        blocks.append(cur)
+    try:
+        blocks = numeric_blocks(el.text or "")
+    except TableError:
+        raise SensorModelError(f"{path}: <{tag}> holds non-numeric text") from None
     if not blocks:
         raise SensorModelError(f"{path}: <{tag}> is empty")
     try:
