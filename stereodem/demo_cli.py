@@ -55,11 +55,12 @@ def add_parser(sub):
                        description=__doc__, epilog=EXAMPLES,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-o", "--out", required=True, help="output folder")
-    p.add_argument("--size", nargs=2, type=int, default=[600, 600], metavar=("W", "H"))
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--noise", type=float, default=1.0)
+    p.add_argument("--size", nargs=2, type=int, default=[600, 600], metavar=("W", "H"),
+                   help="3N size in pixels, width a multiple of 10 (default 600 600; 3B in the real ratio)")
+    p.add_argument("--seed", type=int, default=0, help="simulator random seed (default 0)")
+    p.add_argument("--noise", type=float, default=1.0, help="image noise sigma, DN (default 1.0)")
     p.add_argument("--workers", type=int, help="worker processes (default: all cores)")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="write into an existing output folder")
     p.set_defaults(run=run)
     return p
 
