@@ -286,3 +286,22 @@ def test_run_writes_uncertainty_maps_when_asked(scene_dir, tmp_path):
     assert 3.0 < np.nanmedian(s) < 30.0
     with pytest.raises(InputError, match="needs sigma"):
         config_from_dict({**raw, "uncertainty": {"enabled": True}})
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["dem", "a.tif", "b.tif", "-o", "o", "--co", "COMPRESS"], "KEY=VALUE"),
+    (["dem", "a.tif", "b.tif", "-o", "o", "--jitter-correction"], "seed DEM"),
+    (["filter", "d.tif", "-o", "c.tif", "--fill-from-seed"], "--seed-dem"),
+])
+def test_new_options_reject_bad_values_before_any_work(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and "Traceback" not in err[0], err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "c.tif").exists()
+
+
+def test_band_names_are_checked_by_the_parser(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["ortho", "a.tif", "--dem", "d.tif", "-o", "o.tif", "--band", "3X"])
+    assert e.value.code == 2 and "3N/3B" in capsys.readouterr().err
