@@ -27,17 +27,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from stereodem.sensor.models.corrected import ImageCorrectedModel
-from .sparse import SparseMatchError, SparseMatches, distance_to_curves, epipolar_curves
+from .sparse import SparseMatchError, SparseMatches, distance_to_curves, epipolar_curves, nmad as _nmad
 
 log = logging.getLogger(__name__)
 
 __all__ = ["PointingCorrection", "relative_pointing", "cross_residuals"]
-
-
-def _nmad(x):
-    x = np.asarray(x, float)
-    x = x[np.isfinite(x)]
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
 
 
 @dataclass

@@ -43,6 +43,13 @@ class SparseMatchError(StereodemError):
     """Too few sparse matches for what was asked (height range, pointing correction)."""
 
 
+
+def nmad(x) -> float:
+    """Normalised median absolute deviation of the finite values of ``x`` (NaN if none)."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
+
 @dataclass
 class SparseMatches:
     """Sparse matches of a pair (pixel centres at integers, top-left pixel at (0, 0)).

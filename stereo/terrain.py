@@ -33,16 +33,11 @@ from scipy.spatial import cKDTree
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM, ELLIPSOID
 from .intersect import intersect_matches
-from .sparse import SparseMatchError, SparseMatches
+from .sparse import SparseMatchError, SparseMatches, nmad as _nmad
 
 log = logging.getLogger(__name__)
 
 __all__ = ["TerrainHeights", "terrain_heights", "tile_height_range"]
-
-
-def _nmad(x):
-    x = np.asarray(x, float)
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
 
 
 @dataclass

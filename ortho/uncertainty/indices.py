@@ -51,19 +51,14 @@ def fast_indices(model, lon, lat, h, names, D, crs, *, samples: int = 1000, M: i
     if samples <= 4 * M * M:
         raise InputError(f"FAST needs more than {4 * M * M} samples per curve (M={M}), got {samples}")
     Xl = fast_sampler.sample(problem, samples, M=M, seed=seed)
-    X = np.zeros((Xl.shape[0], len(names)))
-    X[:, live] = Xl
-    dE, dN = ground_displacements(model, lon, lat, h, names, X, crs, dem=dem)
-    out = {"names": [names[k] for k in live], "S1": {}, "ST": {}}
-    for comp, Y in (("east", dE), ("north", dN)):
-        s1, st = [], []
-        for j in range(Y.shape[1]):
-            with warnings.catch_warnings():      # SALib warns about its bootstrap intervals,
-                warnings.simplefilter("ignore")  # which are not used here
-                r = fast_analyze.analyze(problem, Y[:, j], M=M, print_to_console=False, seed=seed)
-            s1.append(np.nan_to_num(r["S1"]))
-            st.append(np.nan_to_num(r["ST"]))
-        out["S1"][comp], out["ST"][comp] = np.array(s1).T, np.array(st).T
+
+    def analyze(Y):
+        with warnings.catch_warnings():      # SALib warns about its bootstrap intervals,
+            warnings.simplefilter("ignore")  # which are not used here
+            r = fast_analyze.analyze(problem, Y, M=M, print_to_console=False, seed=seed)
+        return np.nan_to_num(r["S1"]), np.nan_to_num(r["ST"])
+
+    out, dE, dN = _indices_per_point(model, lon, lat, h, names, live, Xl, crs, dem, analyze)
     VE, VN = dE.var(0), dN.var(0)
     for key in ("S1", "ST"):
         out[key]["horizontal"] = _combine(out[key]["east"], out[key]["north"], VE, VN)
@@ -80,19 +75,26 @@ def sobol_indices(model, lon, lat, h, names, D, crs, *, samples: int = 1024, dem
     from SALib.sample import sobol as sobol_sample
     problem, live = _problem(list(names), D)
     Xl = sobol_sample.sample(problem, samples, calc_second_order=False, seed=seed)
+
+    def analyze(Y):
+        r = sobol_analyze.analyze(problem, Y, calc_second_order=False, print_to_console=False, seed=seed)
+        return r["S1"], r["ST"]
+
+    return _indices_per_point(model, lon, lat, h, names, live, Xl, crs, dem, analyze)[0]
+
+
+def _indices_per_point(model, lon, lat, h, names, live, Xl, crs, dem, analyze):
+    """Run the model on SALib's samples ``Xl`` (columns of the ``live`` inputs) and apply
+    ``analyze(Y) -> (S1, ST)`` to the E and N displacement of each point; returns
+    ``(indices dict, dE, dN)``."""
     X = np.zeros((Xl.shape[0], len(names)))
     X[:, live] = Xl
     dE, dN = ground_displacements(model, lon, lat, h, names, X, crs, dem=dem)
     out = {"names": [names[k] for k in live], "S1": {}, "ST": {}}
     for comp, Y in (("east", dE), ("north", dN)):
-        s1, st = [], []
-        for j in range(Y.shape[1]):
-            r = sobol_analyze.analyze(problem, Y[:, j], calc_second_order=False,
-                                      print_to_console=False, seed=seed)
-            s1.append(r["S1"])
-            st.append(r["ST"])
+        s1, st = zip(*(analyze(Y[:, j]) for j in range(Y.shape[1])))
         out["S1"][comp], out["ST"][comp] = np.array(s1).T, np.array(st).T
-    return out
+    return out, dE, dN
 
 
 # ----------------------------------------------------------------------------- frequency checks

@@ -30,7 +30,7 @@ from stereodem.ortho.drm import bilinear_nan
 from stereodem.ortho.uncertainty.propagation import (adjustable_model, ce90, check_names,
                                                      check_psd, dem_gradient_arrays,
                                                      dem_pixel_jacobian, first_order,
-                                                     ground_covariance, ground_jacobian,
+                                                     ground_jacobian,
                                                      image_jacobian, image_side, propagate,
                                                      slope_from_pixels)
 
@@ -262,13 +262,7 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
     st = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
     fixed = step is not None
     while True:
-        uu, vv = _lattice(grid, st)
-        uu = np.minimum(uu, grid.width - 1).astype(float)
-        vv = np.minimum(vv, grid.height - 1).astype(float)
-        if uu.size > 1 and uu[-1] == uu[-2]:
-            uu[-1] = uu[-2] + 1
-        if vv.size > 1 and vv[-1] == vv[-2]:
-            vv[-1] = vv[-2] + 1
+        uu, vv = _node_lattice(grid, st)
         U, V = np.meshgrid(uu, vv)
         F, srcs = _node_fields(model, dem, grid, U, V, D, names, groups, "first-order", samples, seed)
         # measured interpolation error: exact first-order σ_h at mid-cells and random cells
