@@ -488,6 +488,9 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[gridding] res must be positive, got {gs.res}")
     if gs.method not in ("gaussian", "mean"):
         bad(f"[gridding] method must be 'gaussian' or 'mean', got {gs.method!r}")
+    if rect.pointing_uses_seed and not cfg.inputs.seed_dem:
+        bad("[rectification] pointing_uses_seed needs a seed DEM ([inputs] seed_dem, --seed-dem) "
+            "to fix the pointing along the epipolar lines")
     j = cfg.jitter
     if j.enabled and not cfg.inputs.seed_dem:
         bad("[jitter] enabled needs a seed DEM ([inputs] seed_dem, --seed-dem) as the reference")

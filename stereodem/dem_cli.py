@@ -52,6 +52,9 @@ def add_parser(subparsers):
                    help="cell estimator (default gaussian)")
     p.add_argument("--no-pointing-correction", action="store_true",
                    help="do not estimate the relative pointing (right-image translation)")
+    p.add_argument("--pointing-from-seed", action="store_true",
+                   help="also fix the pointing's component along the epipolar lines (a height "
+                        "offset, unobservable from two images) against --seed-dem")
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
     p.add_argument("--jitter-correction", action="store_true",
                    help="estimate the right camera's along-track jitter against --seed-dem (sum of "
@@ -87,7 +90,8 @@ def config_from_args(args):
         output_dir=args.out,
         stereo=StereoSettings(
             rectification=RectificationSettings(tile_size=args.tile_size, height_range=hr,
-                                                pointing_correction=not args.no_pointing_correction),
+                                                pointing_correction=not args.no_pointing_correction,
+                                                pointing_uses_seed=args.pointing_from_seed),
             matching=MatchingSettings(matcher=args.matcher),
             gridding=GriddingSettings(res=args.res, crs=args.crs, geoid=args.geoid,
                                       method=args.gridding)),

@@ -291,6 +291,7 @@ def test_run_writes_uncertainty_maps_when_asked(scene_dir, tmp_path):
 @pytest.mark.parametrize("argv, message", [
     (["dem", "a.tif", "b.tif", "-o", "o", "--co", "COMPRESS"], "KEY=VALUE"),
     (["dem", "a.tif", "b.tif", "-o", "o", "--jitter-correction"], "seed DEM"),
+    (["dem", "a.tif", "b.tif", "-o", "o", "--pointing-from-seed"], "seed DEM"),
     (["filter", "d.tif", "-o", "c.tif", "--fill-from-seed"], "--seed-dem"),
 ])
 def test_new_options_reject_bad_values_before_any_work(tmp_path, capsys, monkeypatch, argv, message):
