@@ -191,6 +191,8 @@ def test_bundle_hostile_inputs(pair):
     with pytest.raises(SensorModelError, match=r"condition number [0-9.e+]+\); cannot separate "
                                                r"right.(roll|yaw)_bias, right.(roll|yaw)_bias"):
         bundle_adjust(L, R, spot, names=(None, ["roll_bias", "yaw_bias"]))
+    with pytest.raises(SensorModelError, match="cannot separate"):         # not a LinAlgError
+        bundle_adjust(L, R, spot, names=(None, ["roll_bias", "yaw_bias"]), solver="dense")
     with pytest.raises(InputError, match="unknown right parameter"):
         bundle_adjust(L, R, t, names=(None, ["pitch_bais"]))
     with pytest.raises(InputError, match="no tie points and no GCPs"):

@@ -731,9 +731,11 @@ def _dense_step(prob, b, max_condition):
     """The same Gauss-Newton step from the dense normal equations (comparison only)."""
     J = prob.sparse_jacobian(b).toarray()
     e = np.concatenate([b["e_t"].ravel(), b["e_g"].ravel(), b["e_p"]])
-    N = J.T @ J
-    dz = np.linalg.solve(N, -J.T @ e)
+    # the reduced system first: a rank-deficient bundle gets the condition-number error that
+    # names the inseparable parameters, not a LinAlgError from the dense solve
     R = prob.reduced(b)
     _, Sinv, cond = prob.solve_reduced(R, max_condition)
+    N = J.T @ J
+    dz = np.linalg.solve(N, -J.T @ e)
     Q = np.linalg.inv(N)
     return dz, np.sqrt(np.maximum(np.diag(Q), 1e-300)), R, Sinv, cond
