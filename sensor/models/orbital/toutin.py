@@ -2,15 +2,15 @@
 model; Toutin 1995, 2003b; as transcribed in Topan 2009 Eq. 3.2-3.5), not from PCI's code.
 
 Ground coordinates: ``(x, y)`` in a local frame on the ellipsoid tangent plane at the image
-centre, ``y`` along the ground track and ``x`` along the scan (the map "rotation-translation"
-of Toutin's last step: ``x0, y0, rot``, three of the eight unknowns), ``h`` the ellipsoidal
-height (m). Then::
+centre, ``x`` along the scan and ``y`` across it (the map "rotation-translation" of Toutin's
+last step: ``x0, y0, rot``, three of the eight unknowns), ``h`` the ellipsoidal height (m).
+With ``L = 100 km`` the unit of the second-order terms::
 
-    X = (x - a y)(1 + h / N0) + b y^2 + c x y                               (3.4)
+    X = (x - a (y - tau h))(1 + h / N0) + L (b (y/L)^2 + c (x/L)(y/L))       (3.4*)
     H = h - X^2 / (2 N0)                                                    (3.5)
-    P p + y (1 + dgamma X) - tau H - H0 dT* = 0          -> line   p = row - r_c     (3.2)
+    P p + y (1 + dgamma X / L) - tau H - H0 dT* = 0       -> line   p = row - r_c     (3.2)
     X + theta H / cos(chi) + alpha q (Q + theta X - H / cos(chi)) - Q dR = 0
-                                                         -> column q = col - c_c     (3.3)
+                                                          -> column q = col - c_c     (3.3)
 
 ``x, y`` are map coordinates: those of the point's foot on the ellipsoid (``h = 0``), as in
 Toutin's cartographic frame; taking them at the point's own height instead puts a
@@ -18,18 +18,35 @@ Toutin's cartographic frame; taking them at the point's own height instead puts 
 the ends of an ASTER image).
 
 Symbols: ``N0`` the ellipsoid normal at the image centre, ``H0`` the satellite height there,
-``alpha`` the IFOV (signed with the column direction), ``chi`` the off-nadir angle of the
-centre detector (Topan leaves it undefined; it is the view angle that scales the relief term),
-``P, Q`` scale factors in ``y`` and ``x`` (m per line; m, about the slant range), ``tau,
-theta`` the levelling angles in ``y`` and ``x``, ``a`` the Earth-rotation skew, ``b, c,
-dgamma`` second-order terms, ``dT*`` (pitch + yaw) and ``dR`` (roll) the non-linear attitude
-variations, here quadratic in ``y / 100 km`` (``dT_1, dT_2, dR_1, dR_2``).
+``alpha`` the IFOV (signed with the column direction), ``P, Q`` scale factors in ``y`` and
+``x`` (m per line; m, about the slant range), ``tau, theta`` the levelling angles in ``y`` and
+``x``, ``a`` the Earth-rotation skew, ``b, c, dgamma`` second-order terms, ``dT*`` (pitch +
+yaw) and ``dR`` (roll) the non-linear attitude variations, here quadratic in ``y / L``
+(``dT_1, dT_2, dR_1, dR_2``).
+
+The oblique (along-track tilted) view
+-------------------------------------
+Topan leaves ``chi`` undefined. In the scan plane — the plane of the satellite and the detector
+line, tilted by ``chi`` from the vertical about the scan direction — a point of height ``H``
+lies ``H / cos(chi)`` closer to the satellite than its foot, and the in-plane geometry is
+exactly Eq. 3.3 with ``Q = S (1 + theta^2)``, ``theta = tan(across-track tilt)``, ``S`` the
+in-plane distance. So ``chi`` is the *along-track tilt of the scan plane at the image centre*
+(:func:`scan_plane_tilt`: 0.2 degrees for ASTER 3N, 31.1 for 3B — its 27.6 at the satellite
+plus the Earth's curvature over the 370 km to the image centre), not the total off-nadir angle
+of the centre detector (9.6 and 32.3 degrees), which puts the across-track tilt into the relief
+term a second time. The same plane makes a point of height ``h`` seen ``tau h`` metres of
+ground track (``tau = tan chi`` after the fit) earlier or later than its foot; the Earth has
+turned meanwhile, so the skew acts on the acquisition line ``y - tau h``, not on ``y`` (Eq.
+3.4 as printed has ``x - a y``: right for a nadir view; on the 3B view the difference is
+``a tau h`` ≈ 0.05 x 0.6 x 3000 m ≈ 90 m across the track at 3 km of relief, and the equations
+as printed miss the metadata geometry by 0.43 px RMS; with both corrections 0.02 px).
 
 Unknowns adjusted with GCPs (set ``toutin``, 8 = Toutin's 5 + 3, Zoej 1997): ``P, Q, tau,
 theta, a, x0, y0, rot``. ``b, c, dgamma`` and the attitude variations are computed from the
 orbit in Toutin's model; here they are taken from the metadata model of the image by fitting
 the equations to its virtual points (:meth:`ToutinModel.from_model`) and then held fixed.
-Set ``toutin-full`` frees them too (15).
+Set ``toutin-full`` frees them too (15), as weighted observations about those values
+(:data:`SECOND_ORDER_SIGMA`: each about 2 m at the ends of the scene).
 """
 from __future__ import annotations
 
@@ -43,15 +60,33 @@ from stereodem.sensor.models.orbital._common import (CoefficientModel, fit_to_po
 
 ADJUSTED = ("P", "Q", "tau", "theta", "a", "x0", "y0", "rot")
 SECOND_ORDER = ("b", "c", "dgamma", "dT_1", "dT_2", "dR_1", "dR_2")
-_Y_SCALE = 1e5          # m, the unit of y in the attitude-variation polynomials
+_Y_SCALE = 1e5          # m, the unit L of x and y in the second-order terms
+#: A-priori sigmas of the second-order terms about their metadata values (``toutin-full``):
+#: each moves the image by about 2 m at the ends of the scene (|y| ~ 35 km, H0 ~ 7e5 m).
+SECOND_ORDER_SIGMA = {"b": 2e-4, "c": 2e-4, "dgamma": 2e-4, "dT_1": 1e-5, "dT_2": 2e-5,
+                      "dR_1": 1e-5, "dR_2": 2e-5}
+
+
+def scan_plane_tilt(boresight, line_direction, up) -> float:
+    """Along-track tilt ``chi`` (rad, >= 0) of the scan plane: the angle between the plane
+    spanned by the centre detector's ray ``boresight`` and the detector line's direction
+    ``line_direction`` (ECEF vectors) and the vertical ``up`` (unit ECEF vector) at the image
+    centre. Zero for a nadir or a purely across-track pointed view, about 31 degrees for the
+    ASTER 3B view (its 27.6 degrees at the satellite plus the Earth's curvature over the
+    ~370 km between the satellite's nadir and the image centre)."""
+    n = np.cross(np.asarray(boresight, float), np.asarray(line_direction, float))
+    n /= np.linalg.norm(n)
+    return float(np.arcsin(min(1.0, abs(float(n @ np.asarray(up, float))))))
 
 
 class ToutinModel(CoefficientModel, SensorModel):
     """Toutin-type model (module docstring); build it with :meth:`from_model`."""
 
     ADJUST_SETS = {"toutin": list(ADJUSTED), "toutin-full": list(ADJUSTED + SECOND_ORDER)}
+    #: Weighted parameters of each set: name -> a-priori sigma about the initial value.
+    PRIORS = {"toutin": {}, "toutin-full": dict(SECOND_ORDER_SIGMA)}
     PARAMETER_STEPS = {"P": 1e-6, "Q": 1.0, "tau": 1e-7, "theta": 1e-7, "a": 1e-7, "x0": 0.1,
-                       "y0": 0.1, "rot": 1e-7, "b": 1e-13, "c": 1e-13, "dgamma": 1e-11,
+                       "y0": 0.1, "rot": 1e-7, "b": 1e-6, "c": 1e-6, "dgamma": 1e-6,
                        "dT_1": 1e-8, "dT_2": 1e-8, "dR_1": 1e-8, "dR_2": 1e-8}
     MODEL_TYPE = "toutin"
 
@@ -88,13 +123,16 @@ class ToutinModel(CoefficientModel, SensorModel):
         lon, lat, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (lon, lat, h)))
         v = self._c
         x, y = self._local(lon, lat, h)
-        X = (x - v["a"] * y) * (1.0 + h / self.N0) + v["b"] * y ** 2 + v["c"] * x * y
+        xs, ys = x / _Y_SCALE, y / _Y_SCALE
+        # Earth-rotation skew at the acquisition time of the point: the line that sees it is
+        # ``y - tau h`` (ground metres) from the centre line, not ``y`` (oblique views)
+        X = (x - v["a"] * (y - v["tau"] * h)) * (1.0 + h / self.N0) \
+            + _Y_SCALE * (v["b"] * ys ** 2 + v["c"] * xs * ys)
         H = h - X ** 2 / (2.0 * self.N0)
-        ys = y / _Y_SCALE
         dT = v["dT_1"] * ys + v["dT_2"] * ys ** 2
         dR = v["dR_1"] * ys + v["dR_2"] * ys ** 2
         with np.errstate(divide="ignore", invalid="ignore"):
-            p = (v["tau"] * H + self.H0 * dT - y * (1.0 + v["dgamma"] * X)) / v["P"]
+            p = (v["tau"] * H + self.H0 * dT - y * (1.0 + v["dgamma"] * X / _Y_SCALE)) / v["P"]
             k = 1.0 / np.cos(self.chi)
             q = (v["Q"] * dR - X - v["theta"] * H * k) / (self.alpha * (v["Q"] + v["theta"] * X - H * k))
         return self.c_c + q, self.r_c + p
@@ -116,10 +154,11 @@ class ToutinModel(CoefficientModel, SensorModel):
         w, hgt = reference.width, reference.height
         lon0, lat0 = reference.center_lonlat(0.0)
         c0, r0 = 0.5 * (w - 1), 0.5 * (hgt - 1)
-        o, d = reference.rays(np.array([c0]), np.array([r0]))
-        o, d = o[0], d[0]
+        o, d = reference.rays(np.array([c0, c0 + 100.0, c0 - 100.0]), np.full(3, r0))
         up = np.array(geodesy.enu_basis(lon0, lat0))[2]
-        chi = float(np.arccos(np.clip(-d @ up, -1, 1)))
+        chi = scan_plane_tilt(d[0], d[1] - d[2], up)
+        off_nadir = float(np.arccos(np.clip(-d[0] @ up, -1.0, 1.0)))
+        o = o[0]
         if hasattr(reference, "ephemeris"):
             H0 = float(geodesy.ecef_to_geodetic(*o)[2])
         else:
@@ -137,7 +176,7 @@ class ToutinModel(CoefficientModel, SensorModel):
         g_col = (enu(c0 + 100, r0) - enu(c0 - 100, r0)) / 200.0
         rot = float(np.arctan2(g_row[0], g_row[1]))
         xdir = np.array([np.cos(rot), -np.sin(rot)])
-        Q = H0 / np.cos(chi)
+        Q = H0 / np.cos(off_nadir)          # about the slant range of the centre detector
         alpha = -float(g_col @ xdir) / Q
         values = dict(P=-float(np.linalg.norm(g_row)), Q=Q, x0=float(g0[0]), y0=float(g0[1]), rot=rot)
         lo, hi = reference.height_bounds()
