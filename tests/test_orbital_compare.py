@@ -47,13 +47,14 @@ def test_compare_models_table_json_figure(image, tmp_path, capsys):
     assert "at least 4 are needed" in by[("orun", 3)]["error"]
     assert "at least 5 are needed" in by[("toutin", 3)]["error"]
     # with 30 GCPs every orbital model is within 20 % of the rigorous model's ICP RMSE (noise
-    # 0.3 px); those with more unknowns than the truth's errors need (Orun & Natarajan 10,
-    # Toutin 8) improve from 10 to 30 GCPs
+    # 0.3 px)
     rig = by[("attitude-bias-drift", 30)]["icp_rmse_px"]
     for m in ("eop-poly2", "orun", "toutin", "kratky"):
         assert by[(m, 30)]["icp_rmse_px"] < 1.2 * rig, m
-    for m in ("orun", "toutin"):
-        assert by[(m, 30)]["icp_rmse_px"] < by[(m, 10)]["icp_rmse_px"], m
+    # Toutin's 8 unweighted unknowns still gain from 10 to 30 GCPs; Orun & Natarajan, whose
+    # second-order terms are weighted, is within 20 % of the rigorous model from 10 GCPs on
+    assert by[("toutin", 30)]["icp_rmse_px"] < by[("toutin", 10)]["icp_rmse_px"]
+    assert by[("orun", 10)]["icp_rmse_px"] < 1.2 * by[("attitude-bias-drift", 10)]["icp_rmse_px"]
     # and the affine-in-height generic model is worse than all of them
     assert by[("poly3d-1", 30)]["icp_rmse_px"] > rig
 

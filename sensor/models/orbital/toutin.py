@@ -21,8 +21,11 @@ Symbols: ``N0`` the ellipsoid normal at the image centre, ``H0`` the satellite h
 ``alpha`` the IFOV (signed with the column direction), ``P, Q`` scale factors in ``y`` and
 ``x`` (m per line; m, about the slant range), ``tau, theta`` the levelling angles in ``y`` and
 ``x``, ``a`` the Earth-rotation skew, ``b, c, dgamma`` second-order terms, ``dT*`` (pitch +
-yaw) and ``dR`` (roll) the non-linear attitude variations, here quadratic in ``y / L``
-(``dT_1, dT_2, dR_1, dR_2``).
+yaw) and ``dR`` (roll) the non-linear attitude variations, here the quadratic and cubic terms
+of a polynomial in ``y / L`` (``dT_2, dT_3, dR_2, dR_3``). Their constant and linear parts are
+not "non-linear variations" and are the same unknowns as ``y0, P`` (``dT*``) and ``x0, a``
+(``dR``): with them free the normal matrix is singular, which is why an earlier version with
+``dT_1, dR_1`` refused ``toutin-full``.
 
 The oblique (along-track tilted) view
 -------------------------------------
@@ -40,13 +43,16 @@ turned meanwhile, so the skew acts on the acquisition line ``y - tau h``, not on
 3.4 as printed has ``x - a y``: right for a nadir view; on the 3B view the difference is
 ``a tau h`` ≈ 0.05 x 0.6 x 3000 m ≈ 90 m across the track at 3 km of relief, and the equations
 as printed miss the metadata geometry by 0.43 px RMS; with both corrections 0.02 px).
+:meth:`ToutinModel.from_model` starts ``chi`` at the scan plane's tilt and refines it with the
+metadata fit (3B: 31.1 -> 31.1 degrees; 3N, pointed 9.6 degrees across the track: 0.2 -> 6.8,
+taking up a small across-track relief term, 0.05 -> 0.04 px); it is then held.
 
 Unknowns adjusted with GCPs (set ``toutin``, 8 = Toutin's 5 + 3, Zoej 1997): ``P, Q, tau,
 theta, a, x0, y0, rot``. ``b, c, dgamma`` and the attitude variations are computed from the
 orbit in Toutin's model; here they are taken from the metadata model of the image by fitting
 the equations to its virtual points (:meth:`ToutinModel.from_model`) and then held fixed.
 Set ``toutin-full`` frees them too (15), as weighted observations about those values
-(:data:`SECOND_ORDER_SIGMA`: each about 2 m at the ends of the scene).
+(:data:`SECOND_ORDER_SIGMA`: each about 1-2 m at the ends of the scene).
 """
 from __future__ import annotations
 
@@ -59,12 +65,12 @@ from stereodem.sensor.models.orbital._common import (CoefficientModel, fit_to_po
                                                      virtual_points)
 
 ADJUSTED = ("P", "Q", "tau", "theta", "a", "x0", "y0", "rot")
-SECOND_ORDER = ("b", "c", "dgamma", "dT_1", "dT_2", "dR_1", "dR_2")
+SECOND_ORDER = ("b", "c", "dgamma", "dT_2", "dT_3", "dR_2", "dR_3")
 _Y_SCALE = 1e5          # m, the unit L of x and y in the second-order terms
 #: A-priori sigmas of the second-order terms about their metadata values (``toutin-full``):
 #: each moves the image by about 2 m at the ends of the scene (|y| ~ 35 km, H0 ~ 7e5 m).
-SECOND_ORDER_SIGMA = {"b": 2e-4, "c": 2e-4, "dgamma": 2e-4, "dT_1": 1e-5, "dT_2": 2e-5,
-                      "dR_1": 1e-5, "dR_2": 2e-5}
+SECOND_ORDER_SIGMA = {"b": 2e-4, "c": 2e-4, "dgamma": 2e-4, "dT_2": 2e-5, "dT_3": 5e-5,
+                      "dR_2": 2e-5, "dR_3": 5e-5}
 
 
 def scan_plane_tilt(boresight, line_direction, up) -> float:
@@ -87,27 +93,38 @@ class ToutinModel(CoefficientModel, SensorModel):
     PRIORS = {"toutin": {}, "toutin-full": dict(SECOND_ORDER_SIGMA)}
     PARAMETER_STEPS = {"P": 1e-6, "Q": 1.0, "tau": 1e-7, "theta": 1e-7, "a": 1e-7, "x0": 0.1,
                        "y0": 0.1, "rot": 1e-7, "b": 1e-6, "c": 1e-6, "dgamma": 1e-6,
-                       "dT_1": 1e-8, "dT_2": 1e-8, "dR_1": 1e-8, "dR_2": 1e-8}
+                       "dT_2": 1e-8, "dT_3": 1e-8, "dR_2": 1e-8, "dR_3": 1e-8,
+                       "chi": 1e-4}
     MODEL_TYPE = "toutin"
 
     def __init__(self, *, width, height, lon0, lat0, N0, H0, alpha, chi, values: dict,
                  name=None, height_range=(-500.0, 9000.0)):
         self.width, self.height = int(width), int(height)
         self.lon0, self.lat0 = float(lon0), float(lat0)
-        self.N0, self.H0, self.alpha, self.chi = float(N0), float(H0), float(alpha), float(chi)
-        if not all(np.isfinite(v) for v in (self.N0, self.H0, self.alpha, self.chi)) or self.alpha == 0:
+        self.N0, self.H0, self.alpha = float(N0), float(H0), float(alpha)
+        if not all(np.isfinite(v) for v in (self.N0, self.H0, self.alpha, chi)) or self.alpha == 0:
             raise SensorModelError("Toutin model: N0, H0, alpha, chi must be finite (alpha non-zero)")
         self.name = name or "toutin"
         self._c = dict.fromkeys(ADJUSTED + SECOND_ORDER, 0.0)
-        self._set(values)
+        self._c["chi"] = float(chi)
+        self._set({k: v for k, v in values.items() if k != "chi"})
         self._hr = tuple(float(v) for v in height_range)
         self.r_c, self.c_c = 0.5 * (self.height - 1), 0.5 * (self.width - 1)
 
     # ------------------------------------------------------------------ parameters
     def parameters(self) -> dict:
+        """The adjustable parameters (``chi`` is a constant of the geometry, see
+        :meth:`from_model`)."""
+        return {k: v for k, v in self._c.items() if k != "chi"}
+
+    def coefficients(self) -> dict:
+        """Every value of the equations, ``chi`` included."""
         return dict(self._c)
 
-    coefficients = parameters
+    @property
+    def chi(self) -> float:
+        """Along-track tilt of the scan plane (rad) in the relief terms of Eq. 3.3."""
+        return self._c["chi"]
 
     # ------------------------------------------------------------------ equations
     def _local(self, lon, lat, h):
@@ -129,11 +146,11 @@ class ToutinModel(CoefficientModel, SensorModel):
         X = (x - v["a"] * (y - v["tau"] * h)) * (1.0 + h / self.N0) \
             + _Y_SCALE * (v["b"] * ys ** 2 + v["c"] * xs * ys)
         H = h - X ** 2 / (2.0 * self.N0)
-        dT = v["dT_1"] * ys + v["dT_2"] * ys ** 2
-        dR = v["dR_1"] * ys + v["dR_2"] * ys ** 2
+        dT = ys ** 2 * (v["dT_2"] + v["dT_3"] * ys)
+        dR = ys ** 2 * (v["dR_2"] + v["dR_3"] * ys)
         with np.errstate(divide="ignore", invalid="ignore"):
             p = (v["tau"] * H + self.H0 * dT - y * (1.0 + v["dgamma"] * X / _Y_SCALE)) / v["P"]
-            k = 1.0 / np.cos(self.chi)
+            k = 1.0 / np.cos(v["chi"])
             q = (v["Q"] * dR - X - v["theta"] * H * k) / (self.alpha * (v["Q"] + v["theta"] * X - H * k))
         return self.c_c + q, self.r_c + p
 
@@ -146,9 +163,10 @@ class ToutinModel(CoefficientModel, SensorModel):
     @classmethod
     def from_model(cls, reference, *, name=None):
         """Initial values from a metadata model of the image (pushbroom, ASTER, RPC): the
-        scene geometry gives ``N0, H0, alpha, chi`` and first guesses; all 15 values are then
-        fitted to the reference's virtual points (the fit's RMS, pixels, in
-        :attr:`init_rms_px`)."""
+        scene geometry gives ``N0, H0, alpha``, ``chi`` (:func:`scan_plane_tilt`) and first
+        guesses; the 15 values and ``chi`` are then fitted to the reference's virtual points
+        at several heights (the fit's RMS, pixels, in :attr:`init_rms_px`). ``chi`` stays a
+        constant of the geometry afterwards (not a GCP unknown)."""
         if isinstance(reference, cls):
             return reference                    # already this model (e.g. from a model set)
         w, hgt = reference.width, reference.height
@@ -184,7 +202,8 @@ class ToutinModel(CoefficientModel, SensorModel):
                     values=values, name=name, height_range=(lo, hi))
         pts = virtual_points(reference)
         model, _ = fit_to_points(model, list(ADJUSTED), *pts, what=model.name)
-        model, rms = fit_to_points(model, list(ADJUSTED + SECOND_ORDER), *pts, what=model.name)
+        model, rms = fit_to_points(model, list(ADJUSTED + SECOND_ORDER) + ["chi"], *pts,
+                                   what=model.name)
         model.init_rms_px = rms
         return model
 
@@ -192,7 +211,7 @@ class ToutinModel(CoefficientModel, SensorModel):
         """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
         return {"width": self.width, "height": self.height, "lon0": self.lon0, "lat0": self.lat0,
                 "N0": self.N0, "H0": self.H0, "alpha": self.alpha, "chi": self.chi,
-                "values": dict(self._c), "name": self.name, "height_range": list(self._hr)}
+                "values": self.parameters(), "name": self.name, "height_range": list(self._hr)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ToutinModel":
