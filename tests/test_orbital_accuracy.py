@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from stereodem.sensor.estimation.compare import compare_splits, split_summary
-from stereodem.sensor.geo import geodesy
 from stereodem.sensor.models.orbital import OrunNatarajanModel, ToutinModel
 from stereodem.sensor.models.orbital.toutin import scan_plane_tilt
 from stereodem.sensor.models.orbital._common import virtual_points

@@ -75,3 +75,32 @@ def test_compare_models_refuses_icps_outside_image(image, tmp_path, capsys):
                "-o", str(tmp_path / "o")])
     assert rc == 1
     assert "1 of 20 check points lie outside the 4100 x 4200 image" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_compare_models_over_random_splits(image, tmp_path):
+    out = tmp_path / "spl"
+    rc = main(["compare-models", str(image / "left.tif"), "--gcps", str(image / "points.csv"),
+               "--models", "orun,toutin", "--counts", "3,10", "--n-check", "20", "--splits", "3",
+               "--sigma-px", "0.3", "-o", str(out)])
+    assert rc == 0
+    res = json.loads((out / "splits.json").read_text())
+    assert res["reference"] == "attitude-bias-drift" and res["splits"] == 3
+    by = {(s["model"], s["n_gcp"]): s for s in res["summary"]}
+    assert by[("attitude-bias-drift", 10)]["median_ratio"] == 1.0
+    assert {r["split"] for r in res["records"]} == {0, 1, 2}
+    # each split has its own check points: the reference's ICP RMSE differs between splits
+    ref = [r["icp_rmse_px"] for r in res["records"] if r["model"] == "attitude-bias-drift"
+           and r["n_gcp"] == 10]
+    assert len(set(np.round(ref, 9))) == 3
+    assert by[("toutin", 3)]["refused"] == 3 and "at least 5" in by[("toutin", 3)]["error"]
+    for m in ("orun", "toutin"):
+        assert np.isfinite(by[(m, 10)]["median_ratio"]) and by[(m, 10)]["median_condition"] < 1e6
+    assert "median ICP / attitude-bias-drift ICP" in (out / "splits.md").read_text()
+
+
+def test_compare_models_refuses_negative_splits(image, tmp_path, capsys):
+    rc = main(["compare-models", str(image / "left.tif"), "--gcps", str(image / "points.csv"),
+               "--models", "orun", "--splits", "-1", "-o", str(tmp_path / "x")])
+    assert rc == 1
+    assert "--splits: expected a count >= 0, got -1" in capsys.readouterr().err

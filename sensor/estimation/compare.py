@@ -199,6 +199,22 @@ def split_summary(records) -> list[dict]:
     return out
 
 
+def split_markdown(summary, reference: str) -> str:
+    """Table of :func:`split_summary`: per model and GCP count the median and largest ICP
+    RMSE ratio to ``reference``, the median ICP RMSE (px) and condition number."""
+    lines = [f"| model | u | GCPs | median ICP / {reference} ICP | max | median ICP px | "
+             "median condition | refused splits |", "|---|---|---|---|---|---|---|---|"]
+    for s in summary:
+        if s["refused"] == s["splits"]:
+            lines.append(f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | refused: "
+                         f"{(s['error'] or '')[:60]} | | | | {s['refused']} |")
+            continue
+        lines.append(f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | {s['median_ratio']:.2f} | "
+                     f"{s['max_ratio']:.2f} | {s['median_icp_px']:.3f} | "
+                     f"{s['median_condition']:.3g} | {s['refused']} |")
+    return "\n".join(lines) + "\n"
+
+
 def markdown(records) -> str:
     """Ok's Table 6.15 layout: one block per model, one row per GCP count."""
     lines = ["| model | u | GCP / ICP | GCP RMSE px | ICP RMSE px | sigma0 | condition |",
