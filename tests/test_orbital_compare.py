@@ -42,19 +42,19 @@ def test_compare_models_table_json_figure(image, tmp_path, capsys):
     assert any("orun" in r["model"] for r in rec) and any("toutin" in r["model"] for r in rec)
     # same ICPs everywhere
     assert {r["n_icp"] for r in rec} == {20}
-    # too few GCPs for Orun & Natarajan's 10 unknowns (3 of them weighted) or Toutin's 8:
-    # refused with the count needed
+    # too few GCPs for Orun & Natarajan's 10 unknowns (3 of them weighted) or Toutin's 8 (2
+    # weighted): refused with the count needed
     assert "at least 4 are needed" in by[("orun", 3)]["error"]
-    assert "at least 5 are needed" in by[("toutin", 3)]["error"]
+    assert "at least 4 are needed" in by[("toutin", 3)]["error"]
     # with 30 GCPs every orbital model is within 20 % of the rigorous model's ICP RMSE (noise
     # 0.3 px)
     rig = by[("attitude-bias-drift", 30)]["icp_rmse_px"]
     for m in ("eop-poly2", "orun", "toutin", "kratky"):
         assert by[(m, 30)]["icp_rmse_px"] < 1.2 * rig, m
-    # Toutin's 8 unweighted unknowns still gain from 10 to 30 GCPs; Orun & Natarajan, whose
-    # second-order terms are weighted, is within 20 % of the rigorous model from 10 GCPs on
-    assert by[("toutin", 30)]["icp_rmse_px"] < by[("toutin", 10)]["icp_rmse_px"]
-    assert by[("orun", 10)]["icp_rmse_px"] < 1.2 * by[("attitude-bias-drift", 10)]["icp_rmse_px"]
+    # with their weakly determined parameters weighted, Orun & Natarajan and Toutin are within
+    # 20 % of the rigorous model from 10 GCPs on
+    for m in ("orun", "toutin"):
+        assert by[(m, 10)]["icp_rmse_px"] < 1.2 * by[("attitude-bias-drift", 10)]["icp_rmse_px"], m
     # and the affine-in-height generic model is worse than all of them
     assert by[("poly3d-1", 30)]["icp_rmse_px"] > rig
 
@@ -93,7 +93,7 @@ def test_compare_models_over_random_splits(image, tmp_path):
     ref = [r["icp_rmse_px"] for r in res["records"] if r["model"] == "attitude-bias-drift"
            and r["n_gcp"] == 10]
     assert len(set(np.round(ref, 9))) == 3
-    assert by[("toutin", 3)]["refused"] == 3 and "at least 5" in by[("toutin", 3)]["error"]
+    assert by[("toutin", 3)]["refused"] == 3 and "at least 4" in by[("toutin", 3)]["error"]
     for m in ("orun", "toutin"):
         assert np.isfinite(by[(m, 10)]["median_ratio"]) and by[(m, 10)]["median_condition"] < 1e6
     assert "median ICP / attitude-bias-drift ICP" in (out / "splits.md").read_text()
