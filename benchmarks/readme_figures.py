@@ -107,6 +107,24 @@ def ortho_models(d):
             + " (other GCP counts and all models: `benchmarks/results/bench_ortho_models.md`).")
 
 
+def orbital_splits(d):
+    parts = []
+    for view, rows in d["views"].items():
+        at = {(r["model"], r["n_gcp"]): r for r in rows}
+        ten = ", ".join(f"{m} {at[(m, 10)]['median_ratio']:.2f}" for m in ("orun", "toutin")
+                        if (m, 10) in at)
+        five = ", ".join(f"{m} {at[(m, 5)]['median_icp_px']:.2f} px (condition "
+                         f"{at[(m, 5)]['median_condition']:.2g})"
+                         for m in (d["reference"], "orun", "toutin") if (m, 5) in at)
+        parts.append(f"{view}: {ten} with 10 GCPs; with 5 GCPs median ICP RMSE {five}")
+    return (f"Orun & Natarajan and Toutin-type models against the rigorous pushbroom model "
+            f"(`benchmarks/bench_orbital_splits.py`, simulated ASTER 3N and 3B with ephemeris and "
+            f"attitude biases and drifts, {d['n_splits']} random GCP/ICP splits, {d['n_check']} "
+            f"check points, {d['noise_px']} px noise), median ICP RMSE ratio to "
+            f"{d['reference']}: " + "; ".join(parts)
+            + " (`benchmarks/results/bench_orbital_splits.md`).")
+
+
 def adjust(d):
     full = {r["solver"]: r for r in d["full_size"]}
     s = full["schur"]
@@ -197,7 +215,8 @@ SUMMARISERS = {"bench_demo": demo, "bench_rpc": rpc, "bench_aster_scene": aster_
                "bench_dem": dem, "bench_match": match, "bench_ortho": ortho,
                "bench_ortho_models": ortho_models, "bench_adjust": adjust,
                "bench_aster_granule": aster_granule, "bench_topan_sets": topan_sets,
-               "bench_uncertainty": uncertainty, "bench_sparse_scaling": sparse_scaling}
+               "bench_uncertainty": uncertainty, "bench_sparse_scaling": sparse_scaling,
+               "bench_orbital_splits": orbital_splits}
 
 
 def figures_markdown(results: Path = RESULTS) -> str:

@@ -48,7 +48,7 @@ def test_type2_needs_a_set_and_types_are_1_or_2(setup):
 @pytest.mark.slow
 def test_registered_sets_build_from_the_physical_model(setup):
     meta, _, _ = aster_scene()
-    for name, n in (("eop-poly2", 9), ("eop-P_S0", 3), ("orun", 11), ("toutin", 8), ("kratky", 7)):
+    for name, n in (("eop-poly2", 9), ("eop-P_S0", 3), ("orun", 10), ("toutin", 8), ("kratky", 7)):
         adjustable, names, _ = model_set(name).prepare(meta)
         assert len(names) == n and set(names) <= set(adjustable.parameters())
 

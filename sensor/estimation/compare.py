@@ -101,10 +101,12 @@ def _generic_record(name, gcp, icp, sigma_px=None):
 
 
 def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, seed: int = 0,
-            sigma_px=None) -> list[dict]:
+            sigma_px=None, prepared: dict | None = None) -> list[dict]:
     """Fit every model with every GCP count on the same split; list of records (one per model
     and count) with ``model, family, n_gcp, n_icp, n_params, gcp_rmse_px, icp_rmse_px,
-    sigma0, condition`` and ``error`` (the one-line reason when the fit was refused)."""
+    sigma0, condition`` and ``error`` (the one-line reason when the fit was refused).
+    ``prepared`` (a dict, filled here) keeps the models built from ``base`` for another call
+    with the same ``base``."""
     from stereodem.sensor.estimation.adjust import adjust_model, model_set
     from stereodem.sensor.estimation.adjust.model_sets import MODEL_SETS
     from stereodem.sensor.models.generic import MODEL_NAMES, n_parameters
@@ -115,7 +117,7 @@ def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, s
     counts = sorted({int(c) for c in counts if 0 < int(c) <= len(pool)})
     if not counts:
         raise InputError(f"no GCP count fits the {len(pool)} GCP(s) available")
-    prepared = {}
+    prepared = {} if prepared is None else prepared
     records = []
     for name in models:
         family = "generic" if name in MODEL_NAMES else (
@@ -130,7 +132,7 @@ def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, s
                     if name not in prepared:
                         prepared[name] = model_set(name).prepare(base)
                     adjustable, names, priors = prepared[name]
-                    require_gcps(n, names, name)
+                    require_gcps(n, names, name, n_prior=len(priors or {}))
                     res = adjust_model(adjustable, _concat(gcp, icp), names, sigma_px=sigma_px,
                                        priors=priors or None, snooping=False, check_inputs=False,
                                        what=name)
@@ -148,6 +150,69 @@ def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, s
                             for k, v in rec.items()})
             log.info("%s %d GCP: %s", name, n, rec.get("error") or f"ICP {rec['icp_rmse_px']:.3f} px")
     return records
+
+
+def compare_splits(base, points: ControlPoints, models, counts, *, reference: str,
+                   n_check: int = 60, n_splits: int = 9, seed: int = 0, sigma_px=None) -> list[dict]:
+    """:func:`compare` repeated over ``n_splits`` random GCP/ICP splits of ``points`` (their
+    roles are ignored), each model scored against ``reference`` (a model name, e.g. the
+    rigorous ``attitude-bias-drift``) on the same split.
+
+    Returns the records of :func:`compare` with ``split`` (0 ...) and ``ratio`` (the model's
+    ICP RMSE over the reference's at the same split and GCP count; NaN when either was
+    refused); the reference's own records are included (ratio 1).
+    """
+    names = list(dict.fromkeys([reference, *models]))
+    out, prepared = [], {}
+    for split in range(int(n_splits)):
+        rng = np.random.default_rng([seed, split])
+        roles = np.array(["gcp"] * len(points), dtype=object)
+        roles[rng.permutation(len(points))[:n_check]] = "check"
+        recs = compare(base, _with_roles(points, roles), names, counts, n_check=n_check,
+                       seed=split, sigma_px=sigma_px, prepared=prepared)
+        ref = {r["n_gcp"]: r.get("icp_rmse_px", np.nan) for r in recs
+               if r["model"] == reference and not r.get("error")}
+        for r in recs:
+            r["split"] = split
+            r["ratio"] = float(r.get("icp_rmse_px", np.nan) / ref.get(r["n_gcp"], np.nan)) \
+                if not r.get("error") else float("nan")
+        out += recs
+    return out
+
+
+def split_summary(records) -> list[dict]:
+    """Per model and GCP count over the splits of :func:`compare_splits`: ``median_ratio``,
+    ``max_ratio``, ``median_icp_px``, ``median_condition``, ``refused`` (splits refused)."""
+    out = []
+    for name in dict.fromkeys(r["model"] for r in records):
+        for n in sorted({r["n_gcp"] for r in records if r["model"] == name}):
+            rs = [r for r in records if r["model"] == name and r["n_gcp"] == n]
+            ok = [r for r in rs if not r.get("error")]
+            ratio = np.array([r["ratio"] for r in ok], float)
+            med = lambda k: float(np.median([r[k] for r in ok])) if ok else float("nan")  # noqa: E731
+            out.append(dict(model=name, n_gcp=n, n_params=rs[0].get("n_params"), splits=len(rs),
+                            refused=len(rs) - len(ok),
+                            median_ratio=float(np.median(ratio)) if ok else float("nan"),
+                            max_ratio=float(np.max(ratio)) if ok else float("nan"),
+                            median_icp_px=med("icp_rmse_px"), median_condition=med("condition"),
+                            error=None if ok else rs[0].get("error")))
+    return out
+
+
+def split_markdown(summary, reference: str) -> str:
+    """Table of :func:`split_summary`: per model and GCP count the median and largest ICP
+    RMSE ratio to ``reference``, the median ICP RMSE (px) and condition number."""
+    lines = [f"| model | u | GCPs | median ICP / {reference} ICP | max | median ICP px | "
+             "median condition | refused splits |", "|---|---|---|---|---|---|---|---|"]
+    for s in summary:
+        if s["refused"] == s["splits"]:
+            lines.append(f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | refused: "
+                         f"{(s['error'] or '')[:60]} | | | | {s['refused']} |")
+            continue
+        lines.append(f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | {s['median_ratio']:.2f} | "
+                     f"{s['max_ratio']:.2f} | {s['median_icp_px']:.3f} | "
+                     f"{s['median_condition']:.3g} | {s['refused']} |")
+    return "\n".join(lines) + "\n"
 
 
 def markdown(records) -> str:

@@ -77,7 +77,10 @@ def register_sets(register) -> None:
     (:func:`stereodem.sensor.estimation.adjust.register_model_set`): ``eop-poly2`` (Topan's
     model, set A), ``eop-<set>`` for every set of Table 4.2 and ``L``, ``orun``,
     ``orun-full``, ``toutin``, ``toutin-full``, ``kratky``, ``kratky-full``. Each builds the
-    orbital model from the image's physical model (or RPC for the ENU models)."""
+    orbital model from the image's physical model (or RPC for the ENU models); a class's
+    ``PRIORS[set]`` (a-priori sigmas of weakly determined parameters) become the set's priors."""
     for name, (cls, names) in {**PARAMETER_SETS, **DEFAULT_SETS}.items():
-        register(name, cls.from_model, names, replace=True,
-                 description=f"{cls.__name__}: {len(names)} parameters")
+        priors = getattr(cls, "PRIORS", {}).get(name, {})
+        weighted = f", {len(priors)} weighted" if priors else ""
+        register(name, cls.from_model, names, replace=True, priors=priors,
+                 description=f"{cls.__name__}: {len(names)} parameters{weighted}")

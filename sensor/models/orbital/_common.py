@@ -189,15 +189,19 @@ def invert_projection(model, col, row, h, *, lon0: float, lat0: float, iteration
     return np.asarray(lo, float).reshape(shape), np.asarray(la, float).reshape(shape)
 
 
-def require_gcps(n_gcp: int, names, what: str) -> None:
+def require_gcps(n_gcp: int, names, what: str, *, n_prior: int = 0) -> None:
     """Raise :class:`~stereodem.sensor.errors.InputError` when ``n_gcp`` GCPs (two
     observations each) cannot determine the parameters ``names`` with one redundant
-    observation (so that sigma0 exists; the adjustment engine's rule)."""
+    observation (so that sigma0 exists; the adjustment engine's rule, in which each of
+    ``n_prior`` weighted parameters counts as one observation)."""
     from stereodem.sensor.errors import InputError
-    need = len(list(names)) // 2 + 1
+    from stereodem.sensor.estimation.adjust.single import required_gcps
+    u = len(list(names))
+    need = required_gcps(u, n_prior)
     if n_gcp < need:
-        raise InputError(f"{what}: {n_gcp} GCP(s) cannot determine its {len(list(names))} "
-                         f"parameters; at least {need} are needed")
+        weighted = f" ({n_prior} of them weighted)" if n_prior else ""
+        raise InputError(f"{what}: {n_gcp} GCP(s) cannot determine its {u} "
+                         f"parameters{weighted}; at least {need} are needed")
 
 
 def require_inside(model, col, row, *, what: str = "check points") -> None:
