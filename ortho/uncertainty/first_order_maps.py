@@ -21,7 +21,7 @@ per grid row (``numpy.matmul``); the DEM height and gradient are sampled with
 :func:`cv2.remap`. Blocks run on threads (numpy and OpenCV release the GIL).
 
 The interpolation error is measured, never assumed: the lattice is refined until the relative
-error of σ_horizontal at check cells (lattice mid-cells and random cells) against the exact
+error of σ_E, σ_N and σ_horizontal at check cells (lattice mid-cells and random cells) against the exact
 per-cell propagation (:func:`stereodem.ortho.uncertainty.propagation.first_order`) is below the
 tolerance, and the finished float32 maps are compared with the same exact values
 (``UncertaintyMaps.interpolation_error``).
@@ -170,6 +170,17 @@ def _terrain_sigma_points(lat_, dem_e, garr, u, v):
     return g, hf[:, 0], hf[:, 1], h
 
 
+def relative_error(got, exact):
+    """Largest relative error of (σ_E, σ_N) pairs (n, 2) and of their σ_horizontal, a
+    component counted relative to ``max(σ_component, 0.01 σ_horizontal)`` (so that a vanishing
+    component does not blow the measure up); 0 for no points."""
+    if not len(exact):
+        return 0.0
+    sh, gh = np.hypot(*exact.T), np.hypot(*got.T)
+    den = np.maximum(exact, 0.01 * sh[:, None])
+    return float(max(np.max(np.abs(got - exact) / den), np.max(np.abs(gh / sh - 1))))
+
+
 # ----------------------------------------------------------------------------- per-cell blocks
 
 class _Blocks:
@@ -309,7 +320,7 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
     Parameters as :func:`stereodem.ortho.uncertainty.maps.ortho_uncertainty_maps` (``model``
     adjustable, ``dem`` ellipsoidal, ``D`` checked). ``step`` fixes the lattice spacing (cells);
     by default it starts at 256 cells and is halved until the measured relative error of
-    σ_horizontal at the check cells is below ``tolerance``.
+    σ_E, σ_N and σ_horizontal at the check cells is below ``tolerance``.
 
     Returns
     -------
@@ -325,6 +336,10 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
     pad = max(1.0, 0.02 * (hi - lo))
     heights = (lo - pad, hi + pad)
     garr = dem_gradient_arrays(dem_e)
+    near_void = None
+    if np.isnan(z).any():
+        from scipy import ndimage
+        near_void = ndimage.binary_dilation(np.isnan(z), iterations=3)
     big = max(grid.width, grid.height)
     st = int(step or min(256, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
     # check cells: integer cells nearest to lattice mid-cells and random cells; exact values once
@@ -335,20 +350,34 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
         m = min(n_check // 2, (ny - 1) * (nx - 1))
         cell = rng.choice((ny - 1) * (nx - 1), size=m, replace=False)
         cu = np.concatenate([np.floor(0.5 * (uu[cell % (nx - 1)] + uu[cell % (nx - 1) + 1])),
-                             rng.integers(0, grid.width, m)]).astype(float)
+                             rng.integers(0, grid.width, n_check - m)]).astype(float)
         cv = np.concatenate([np.floor(0.5 * (vv[cell // (nx - 1)] + vv[cell // (nx - 1) + 1])),
-                             rng.integers(0, grid.height, m)]).astype(float)
+                             rng.integers(0, grid.height, n_check - m)]).astype(float)
         cu, cv = np.minimum(cu, grid.width - 1), np.minimum(cv, grid.height - 1)
         g, col, row, h = _terrain_sigma_points(lat_, dem_e, garr, cu, cv)
         ok = np.isfinite(h) & (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & \
             (row <= model.height - 0.5)
+        # check cells off void edges: there the exact slope rule (none next to a void) is
+        # discontinuous in position, and a cell may fall on either side of it
+        lon_a, lat_a = grid.lonlat(cu, cv)
+        dc, dr, _ = dem_pixel_jacobian(dem_e, lon_a, lat_a, grid.crs)
+        if near_void is not None:
+            ok &= ~near_void[np.clip(np.floor(np.nan_to_num(dr)).astype(int), 0, z.shape[0] - 1),
+                             np.clip(np.floor(np.nan_to_num(dc)).astype(int), 0, z.shape[1] - 1)]
         lon, lat = grid.lonlat(cu[ok], cv[ok])
         exact = first_order(model, lon, lat, dem_e.sample(lon, lat), names, D, grid.crs,
-                            dem=dem_e).sigma_horizontal
-        inter = np.sqrt(g[0][ok] + g[2][ok])
-        good = np.isfinite(exact) & np.isfinite(inter) & (exact > 0)
-        err = float(np.max(np.abs(inter[good] / exact[good] - 1))) if good.any() else 0.0
-        log.debug("uncertainty lattice step %d: relative error %.2e", st, err)
+                            dem=dem_e)
+        exact = np.stack([exact.sigma_east, exact.sigma_north], -1)
+        with np.errstate(invalid="ignore"):
+            inter = np.sqrt(np.stack([g[0][ok], g[2][ok]], -1))
+        good = np.all(np.isfinite(exact) & np.isfinite(inter), -1) & (np.hypot(*exact.T) > 0)
+        err = relative_error(inter[good], exact[good])
+        # the DEM position (reported: the σ errors above already carry its effect through the
+        # height and slope; at a void edge, where the exact slope rule is discontinuous, a
+        # cell can change side; cv2.remap itself rounds positions to 1/32 post)
+        xy = lat_.at(cu, cv, np.full(cu.shape, lat_.h_mid))[1]
+        err_dem = float(np.max(np.hypot(xy[:, 0] - dc, xy[:, 1] - dr)))
+        log.debug("uncertainty lattice step %d: relative error %.2e, DEM position %.2e px", st, err, err_dem)
         if step is not None or err <= tolerance or st <= 4:
             break
         st //= 2
@@ -376,14 +405,15 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
     shares = {s_: float(totals[k] / tot) if tot > 0 else float("nan") for k, s_ in enumerate(srcs)}
     # end-to-end error of the finished float32 maps at the check cells
     iu, iv = cu[ok][good].astype(int), cv[ok][good].astype(int)
-    got = np.hypot(out["sE"][iv, iu].astype(float), out["sN"][iv, iu].astype(float))
-    fin = np.isfinite(got)
-    map_err = float(np.max(np.abs(got[fin] / exact[good][fin] - 1))) if fin.any() else 0.0
+    got = np.stack([out["sE"][iv, iu], out["sN"][iv, iu]], -1).astype(float)
+    fin = np.all(np.isfinite(got), -1)
+    map_err = relative_error(got[fin], exact[good][fin])
     err = max(lattice_err, map_err)
     if err > tolerance:
         log.warning("uncertainty maps: relative interpolation error %.3g exceeds %.3g", err, tolerance)
     details = {"n_lattice_nodes": int(lat_.n_nodes), "lattice_heights_m": list(heights),
                "interpolation_error_lattice": lattice_err, "interpolation_error_maps": map_err,
+               "dem_position_error_px": err_dem,
                "n_check_cells": int(good.sum()),
                "terrain": "each cell's own DEM height and slope (central-difference gradient)"}
     kept = {s_: out["share_" + s_] for s_ in srcs} if source_maps else {}
