@@ -64,20 +64,21 @@ def lattice_fields(model, dem, grid, u, v, D, names, groups, heights):
     """
     lon, lat = grid.lonlat(np.asarray(u, float), np.asarray(v, float))
     srcs = list(groups or {n: [n] for n in names})
-    per_h = []
-    zero = np.zeros(lon.shape + (2,))
-    for hh in heights:
-        f = image_side(model, lon, lat, np.full(lon.shape, float(hh)), names, D, grid.crs, groups=groups)
-        s0 = ground_covariance(f["A"], f["ph"], zero, f["S"])
-        with np.errstate(all="ignore"):
-            w = np.linalg.solve(f["A"], f["ph"][..., None])[..., 0]
-        cols = [f["col"], f["row"], *s0, w[:, 0], w[:, 1]]
-        for s in srcs:
-            cols.extend(ground_covariance(f["A"], f["ph"], zero, f["C"][s]))
-        per_h.append(np.stack(cols, -1))
+    n = lon.size
+    # both heights in one evaluation (the model calls, not the points, cost here)
+    hh = np.repeat(np.asarray(heights, float), n)
+    f = image_side(model, np.tile(lon, 2), np.tile(lat, 2), hh, names, D, grid.crs, groups=groups)
+    zero = np.zeros((2 * n, 2))
+    s0 = ground_covariance(f["A"], f["ph"], zero, f["S"])
+    with np.errstate(all="ignore"):
+        w = np.linalg.solve(f["A"], f["ph"][..., None])[..., 0]
+    cols = [f["col"], f["row"], *s0, w[:, 0], w[:, 1]]
+    for s in srcs:
+        cols.extend(ground_covariance(f["A"], f["ph"], zero, f["C"][s]))
+    per_h = np.stack(cols, -1).reshape(2, n, -1)
     cd, rd, P = dem_pixel_jacobian(dem, lon, lat, grid.crs)
     xy = np.stack([cd, rd, P[:, 0, 0], P[:, 0, 1], P[:, 1, 0], P[:, 1, 1]], -1)
-    return np.stack(per_h, 0), xy, srcs
+    return per_h, xy, srcs
 
 
 def terrain_factor(w0, w1, gE, gN):
@@ -139,6 +140,7 @@ class Lattice:
         hf, xy, self.sources = lattice_fields(model, dem, grid, U.ravel(), V.ravel(), D, names, groups, heights)
         ny, nx = U.shape
         self.h_mid = 0.5 * (heights[0] + heights[1])
+        self.h_lo, self.h_hi = float(heights[0]), float(heights[1])
         dh = float(heights[1] - heights[0])
         self.a = (0.5 * (hf[0] + hf[1])).reshape(ny, nx, -1)          # value at h_mid
         self.b = ((hf[1] - hf[0]) / dh).reshape(ny, nx, -1)            # per metre
@@ -193,9 +195,10 @@ class _Blocks:
         Wy = _weights(H, lat_.vv)                                       # (H, ny)
         nh = len(H_FIELDS) + 3 * self.k
         # lattice columns interpolated along y to every grid row, float32: (nx, H, fields)
-        self.ya = np.stack([(Wy @ lat_.a[:, i, :]) for i in range(lat_.uu.size)]).astype(np.float32)
-        self.yb = np.stack([(Wy @ lat_.b[:, i, :]) for i in range(lat_.uu.size)]).astype(np.float32)
-        self.yxy = np.stack([(Wy @ lat_.xy[:, i, :]) for i in range(lat_.uu.size)]).astype(np.float32)
+        along_y = lambda F: np.ascontiguousarray(
+            np.einsum("yj,jif->iyf", Wy, F, optimize=True), dtype=np.float32)
+        self.ya, self.yb, self.yxy = along_y(lat_.a), along_y(lat_.b), along_y(lat_.xy)
+        self.dh_range = (lat_.h_lo - lat_.h_mid, lat_.h_hi - lat_.h_mid)
         assert self.ya.shape[2] == nh
         z = np.asarray(dem_e.heights, np.float32)
         gc, gr = garr
@@ -220,6 +223,20 @@ class _Blocks:
                 out.append((i, c0, c1, r0, min(H, r0 + rows_per_block)))
         return out
 
+    def _outside(self, ya0, ya1, yb0, yb1):
+        """Whether the block's image positions all fall on one side outside the image: the
+        interpolated position is bilinear in (x, y) between these lattice columns and rows and
+        linear in h, so its extremes are on the block's lattice rows/columns and heights."""
+        lo, hi = self.dh_range
+        m = self.model
+        for j, size in ((0, m.width), (1, m.height)):
+            a = np.concatenate([ya0[:, j], ya1[:, j]])
+            b = np.concatenate([yb0[:, j], yb1[:, j]])
+            ext = np.concatenate([a + b * lo, a + b * hi])
+            if ext.max() < -0.5 or ext.min() > size - 0.5:
+                return True
+        return False
+
     def run(self, i, c0, c1, r0, r1):
         """One block: rows r0:r1, columns c0:c1 (inside lattice column band i). Writes the
         outputs and returns the per-source variance totals over its valid cells."""
@@ -232,6 +249,8 @@ class _Blocks:
         nb, nw = r1 - r0, c1 - c0
         ya0, ya1 = self.ya[i, r0:r1], self.ya[i + 1, r0:r1]
         yb0, yb1 = self.yb[i, r0:r1], self.yb[i + 1, r0:r1]
+        if self._outside(ya0, ya1, yb0, yb1):
+            return np.zeros(k)
         x0, x1 = self.yxy[i, r0:r1], self.yxy[i + 1, r0:r1]
         # DEM position, then the DEM height and gradient at it
         cd = x0[:, 0:1] * tx0 + x1[:, 0:1] * tx1

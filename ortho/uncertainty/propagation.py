@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.special import erf as _erf
 
 from stereodem.sensor.errors import InputError, SensorModelError
 from stereodem.sensor.geo import geodesy
@@ -438,7 +439,7 @@ def ce90(cov, *, p: float = 0.9, nodes: int = 48, iterations: int = 48):
     ``P(r) = ∫ φ(z) erf(√((r² − λ₁z²)/(2λ₂))) dz`` over ``|z| ≤ r/√λ₁`` (Gauss–Legendre on the
     substitution ``z = (r/√λ₁) sin t``), solved for r by bisection. cov (..., 2, 2) -> (...).
     """
-    from scipy.special import erf
+    erf = _erf
     cov = np.asarray(cov, float)
     lam = np.linalg.eigvalsh(cov)                      # ascending
     l1 = np.clip(lam[..., 1], 0, None)
