@@ -135,3 +135,21 @@ def test_fast_maps_source_maps_sum_to_one(rpc_case):
     assert np.max(np.abs(total[ok] - 1)) < TOL
     dom_dem = maps.dominant[ok] == 1
     assert np.array_equal(dom_dem, maps.source_maps["dem"][ok] > 0.5)
+
+
+def test_numpy_dem_sampling_fallback_matches_cv2_remap(rpc_case, monkeypatch):
+    """DEMs larger than OpenCV's remap limit are sampled with numpy (exact bilinear); both
+    samplings give the same maps (cv2.remap rounds positions to 1/32 post: 1e-4 relative)."""
+    from stereodem.ortho.grid import grid_for_model
+    from stereodem.ortho.uncertainty import first_order_maps as F
+    from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+    model, dem, names, D, _ = rpc_case
+    grid = grid_for_model(model, dem, res=6.0)
+    a = ortho_uncertainty_maps(model, dem, grid, D, names)
+    monkeypatch.setattr(F, "_REMAP_MAX", 0)
+    b = ortho_uncertainty_maps(model, dem, grid, D, names)
+    ok = np.isfinite(a.sigma_horizontal) & np.isfinite(b.sigma_horizontal)
+    assert ok.mean() > 0.5
+    assert (np.isfinite(a.sigma_horizontal) != np.isfinite(b.sigma_horizontal)).mean() < 0.002
+    assert np.max(np.abs(a.sigma_horizontal[ok] / b.sigma_horizontal[ok] - 1)) < 1e-4
+    assert b.interpolation_error < TOL

@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from stereodem.ortho.drm import bilinear_nan, crop_dem
-from stereodem.ortho.uncertainty.propagation import (ce90_from_cov, dem_gradient_arrays, dem_pixel_jacobian,
+from stereodem.ortho.uncertainty.propagation import (_ce90_table, ce90_from_cov, dem_gradient_arrays, dem_pixel_jacobian,
                                                      first_order, ground_covariance, image_side)
 
 log = logging.getLogger(__name__)
@@ -414,6 +414,7 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
     blk = _Blocks(lat_, dem_e, garr, grid, model, out, source_maps)
     bw = int(np.max(np.diff(uu)))
     jobs = blk.bands(max(8, cells_per_block // max(bw, 1)))
+    _ce90_table()                               # tabulated once, before the threads
     n_threads = max(1, int(threads or os.cpu_count() or 1))
     totals = np.zeros(len(lat_.sources))
     if n_threads > 1:

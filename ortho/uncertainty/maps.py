@@ -1,10 +1,12 @@
 """Uncertainty maps: orthoimage σ_E, σ_N, σ_horizontal, CE90 and dominant source on the ortho
 grid, and the vertical σ of a stereo DEM.
 
-Both are evaluated on a coarse lattice of the output grid and interpolated bilinearly, as the
-ortho map (:func:`stereodem.ortho.drm.build_backward_map`) does: the interpolation error is
-measured against exact evaluations at lattice mid-cells and random cells, and the lattice is
-refined until it is below the tolerance.
+Both are evaluated on a coarse lattice of the output grid and interpolated, as the ortho map
+(:func:`stereodem.ortho.drm.build_backward_map`) does: the interpolation error is measured
+against exact evaluations at lattice mid-cells and random cells, and the lattice is refined
+until it is below the tolerance. The first-order orthoimage maps interpolate the terrain-free
+fields in (x, y, h) and apply each cell's own DEM height and slope
+(:mod:`stereodem.ortho.uncertainty.first_order_maps`).
 
 The DEM vertical σ follows Bettemir (2010, eqs 9–13): the space-intersection σ of the height
 (matching precision and both models' covariances through the intersection Jacobian) and the
@@ -219,13 +221,17 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
         Source groups ``{group: [names]}`` for shares and the dominant source.
     step : int, optional
         Lattice spacing in cells; default chosen by refinement until the measured relative
-        interpolation error of σ_horizontal is below ``tolerance`` (first-order). The sampling
-        methods use the same lattice, with at most 16 × 16 nodes.
+        interpolation error (first-order: of σ_E, σ_N and σ_horizontal, against exact per-cell
+        propagation) is below ``tolerance``. The sampling methods use the same lattice, with at
+        most 16 × 16 nodes.
+    tolerance : float
+        Bound on that relative error (default 10⁻³); the measured value is
+        ``UncertaintyMaps.interpolation_error``.
     source_maps : bool
         Keep each source's share map (full grid, float32 each); the dominant source is always
         computed.
     threads : int, optional
-        Threads for the first-order row blocks (default: all cores).
+        Threads for the first-order blocks (default: all cores).
 
     Returns
     -------
