@@ -36,8 +36,9 @@ import cv2
 import numpy as np
 
 from stereodem.ortho.drm import bilinear_nan, crop_dem
-from stereodem.ortho.uncertainty.propagation import (_ce90_table, ce90_from_cov, dem_gradient_arrays, dem_pixel_jacobian,
-                                                     first_order, ground_covariance, image_side)
+from stereodem.ortho.uncertainty.propagation import (_ce90_table, ce90_from_cov, dem_gradient_arrays,
+                                                     dem_pixel_jacobian, first_order, ground_covariance,
+                                                     image_side)
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +139,8 @@ class Lattice:
         self.uu, self.vv = _node_lattice(grid, st)
         self.step = st
         U, V = np.meshgrid(self.uu, self.vv)
-        hf, xy, self.sources = lattice_fields(model, dem, grid, U.ravel(), V.ravel(), D, names, groups, heights)
+        hf, xy, self.sources = lattice_fields(model, dem, grid, U.ravel(), V.ravel(), D, names, groups,
+                                              heights)
         ny, nx = U.shape
         self.h_mid = 0.5 * (heights[0] + heights[1])
         self.h_lo, self.h_hi = float(heights[0]), float(heights[1])
@@ -284,8 +286,8 @@ class _Blocks:
         B[:, :nf, 0], B[:, :nf, 1] = ya0[:, :nf], ya1[:, :nf]
         B[:, :nf, 2], B[:, :nf, 3] = yb0[:, :nf], yb1[:, :nf]
         # gE = gc p00 + gr p10, gN = gc p01 + gr p11
-        B[:, nf, 4], B[:, nf, 5], B[:, nf, 6], B[:, nf, 7] = x0[:, 2], x1[:, 2], x0[:, 4], x1[:, 4]
-        B[:, nf + 1, 4], B[:, nf + 1, 5], B[:, nf + 1, 6], B[:, nf + 1, 7] = x0[:, 3], x1[:, 3], x0[:, 5], x1[:, 5]
+        for o, (pc, pr) in ((nf, (2, 4)), (nf + 1, (3, 5))):
+            B[:, o, 4], B[:, o, 5], B[:, o, 6], B[:, o, 7] = x0[:, pc], x1[:, pc], x0[:, pr], x1[:, pr]
         O = np.matmul(B, R)
         col, row, s00, s01, s11, w0, w1, gE, gN = (O[:, j] for j in range(nf + 2))
         m = self.model
