@@ -153,3 +153,17 @@ def test_numpy_dem_sampling_fallback_matches_cv2_remap(rpc_case, monkeypatch):
     assert (np.isfinite(a.sigma_horizontal) != np.isfinite(b.sigma_horizontal)).mean() < 0.002
     assert np.max(np.abs(a.sigma_horizontal[ok] / b.sigma_horizontal[ok] - 1)) < 1e-4
     assert b.interpolation_error < TOL
+
+
+def test_fast_maps_do_not_depend_on_the_thread_count(rpc_case):
+    from stereodem.ortho.grid import grid_for_model
+    from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+    model, dem, names, D, _ = rpc_case
+    grid = grid_for_model(model, dem, res=4.0)
+    a = ortho_uncertainty_maps(model, dem, grid, D, names, threads=1)
+    b = ortho_uncertainty_maps(model, dem, grid, D, names, threads=3)
+    assert np.isfinite(a.sigma_horizontal).mean() > 0.5
+    for x, y in ((a.sigma_east, b.sigma_east), (a.sigma_north, b.sigma_north), (a.ce90, b.ce90),
+                 (a.dominant, b.dominant)):
+        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f")
+    assert a.shares == pytest.approx(b.shares, rel=1e-12)
