@@ -1,10 +1,12 @@
 """Uncertainty maps: orthoimage σ_E, σ_N, σ_horizontal, CE90 and dominant source on the ortho
 grid, and the vertical σ of a stereo DEM.
 
-Both are evaluated on a coarse lattice of the output grid and interpolated bilinearly, as the
-ortho map (:func:`stereodem.ortho.drm.build_backward_map`) does: the interpolation error is
-measured against exact evaluations at lattice mid-cells and random cells, and the lattice is
-refined until it is below the tolerance.
+Both are evaluated on a coarse lattice of the output grid and interpolated, as the ortho map
+(:func:`stereodem.ortho.drm.build_backward_map`) does: the interpolation error is measured
+against exact evaluations at lattice mid-cells and random cells, and the lattice is refined
+until it is below the tolerance. The first-order orthoimage maps interpolate the terrain-free
+fields in (x, y, h) and apply each cell's own DEM height and slope
+(:mod:`stereodem.ortho.uncertainty.first_order_maps`).
 
 The DEM vertical σ follows Bettemir (2010, eqs 9–13): the space-intersection σ of the height
 (matching precision and both models' covariances through the intersection Jacobian) and the
@@ -25,9 +27,9 @@ from stereodem.sensor.errors import InputError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import ELLIPSOID
 
-from stereodem.ortho.drm import _lattice
 from stereodem.ortho.drm import bilinear_nan
-from stereodem.ortho.uncertainty.propagation import (adjustable_model, ce90, check_names,
+from stereodem.ortho.uncertainty.first_order_maps import _node_lattice, _weights
+from stereodem.ortho.uncertainty.propagation import (adjustable_model, ce90, ce90_from_cov, check_names,
                                                      check_psd, dem_gradient_arrays,
                                                      dem_pixel_jacobian, first_order,
                                                      ground_jacobian,
@@ -40,17 +42,6 @@ METHODS = ("first-order", "monte-carlo", "fast")
 
 
 # ----------------------------------------------------------------------------- lattice interpolation
-
-def _weights(n_full: int, nodes: np.ndarray) -> np.ndarray:
-    """Dense linear-interpolation matrix from lattice nodes (cell indices) to all cells."""
-    x = np.arange(n_full, dtype=float)
-    W = np.zeros((n_full, nodes.size))
-    j = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, nodes.size - 2)
-    t = np.clip((x - nodes[j]) / (nodes[j + 1] - nodes[j]), 0.0, 1.0)
-    W[np.arange(n_full), j] = 1 - t
-    W[np.arange(n_full), j + 1] = t
-    return W
-
 
 def _interp(L, Wy, Wx, dtype=np.float32):
     """Bilinear interpolation of a lattice field (ny, nx) to the full grid, NaN-aware (a cell
@@ -206,7 +197,7 @@ def _node_fields(model, dem, grid, U, V, D, names, groups, method, samples, seed
 
 def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "first-order", *,
                            samples: int = 1000, groups: dict | None = None, step: int | None = None,
-                           tolerance: float = 0.005, n_check: int = 400, seed: int = 0,
+                           tolerance: float = 1e-3, n_check: int = 400, seed: int = 0,
                            source_maps: bool = False, threads: int | None = None) -> UncertaintyMaps:
     """Per-cell horizontal uncertainty of the orthoimage of ``model`` over ``dem`` on ``grid``.
 
@@ -230,13 +221,17 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
         Source groups ``{group: [names]}`` for shares and the dominant source.
     step : int, optional
         Lattice spacing in cells; default chosen by refinement until the measured relative
-        interpolation error of σ_horizontal is below ``tolerance`` (first-order). The sampling
-        methods use the same lattice, with at most 16 × 16 nodes.
+        interpolation error (first-order: of σ_E, σ_N and σ_horizontal, against exact per-cell
+        propagation) is below ``tolerance``. The sampling methods use the same lattice, with at
+        most 16 × 16 nodes.
+    tolerance : float
+        Bound on that relative error (default 10⁻³); the measured value is
+        ``UncertaintyMaps.interpolation_error``.
     source_maps : bool
         Keep each source's share map (full grid, float32 each); the dominant source is always
         computed.
     threads : int, optional
-        Threads for the first-order row blocks (default: all cores).
+        Threads for the first-order blocks (default: all cores).
 
     Returns
     -------
@@ -255,8 +250,9 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
             groups = {**groups, **{m: [m] for m in missing}}
     dem = _ellipsoidal(dem)
     if method == "first-order":
-        return _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_check, seed,
-                                 source_maps, threads)
+        from stereodem.ortho.uncertainty.first_order_maps import first_order_maps
+        return first_order_maps(model, dem, grid, D, names, groups, step=step, tolerance=tolerance,
+                                n_check=n_check, seed=seed, source_maps=source_maps, threads=threads)
     rng = np.random.default_rng(seed)
     big = max(grid.width, grid.height)
     st = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
@@ -321,199 +317,6 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
         dom[better], best[better] = k, frac[better]
     return UncertaintyMaps(grid, method, names, srcs, sE, sN, c90, dom, shares, st, err,
                            kept, details)
-
-
-_CE90_RHO = np.linspace(0.0, 1.0, 401)
-_CE90_G = None
-
-
-def ce90_from_cov(a, b, c):
-    """CE90 of 2 × 2 covariances ``[[a, b], [b, c]]`` (arrays): ``√λ₁ · g(√(λ₂/λ₁))`` with ``g``
-    tabulated once from the exact :func:`ce90` (401 ratios; interpolation error < 10⁻⁵)."""
-    global _CE90_G
-    if _CE90_G is None:
-        cov = np.zeros((_CE90_RHO.size, 2, 2))
-        cov[:, 0, 0], cov[:, 1, 1] = 1.0, _CE90_RHO ** 2
-        _CE90_G = ce90(cov)
-    half = 0.5 * (a + c)
-    rad = np.sqrt(np.maximum(0.25 * (a - c) ** 2 + b * b, 0))
-    l1, l2 = half + rad, np.maximum(half - rad, 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rho = np.sqrt(np.where(l1 > 0, l2 / l1, 0))
-    return np.sqrt(np.maximum(l1, 0)) * np.interp(rho, _CE90_RHO, _CE90_G)
-
-
-def _node_lattice(grid, st):
-    uu, vv = _lattice(grid, st)
-    uu = np.minimum(uu, grid.width - 1).astype(float)
-    vv = np.minimum(vv, grid.height - 1).astype(float)
-    if uu.size > 1 and uu[-1] == uu[-2]:
-        uu[-1] = uu[-2] + 1
-    if vv.size > 1 and vv[-1] == vv[-2]:
-        vv[-1] = vv[-2] + 1
-    return uu, vv
-
-
-def _smooth_fields(model, dem, grid, u, v, D, names, groups, heights):
-    """Terrain-free fields at map cells (u, v): per height ``[col, row, A(4), ph(2), S(3),
-    C_k(3) ...]`` and the DEM pixel position and Jacobian ``[cd, rd, P(4)]``."""
-    lon, lat = grid.lonlat(u, v)
-    per_h, contrib = [], []
-    for hh in heights:
-        f = image_side(model, lon, lat, np.full(lon.shape, hh), names, D, grid.crs, groups=groups)
-        cols = [f["col"], f["row"], f["A"][:, 0, 0], f["A"][:, 0, 1], f["A"][:, 1, 0], f["A"][:, 1, 1],
-                f["ph"][:, 0], f["ph"][:, 1], f["S"][:, 0, 0], f["S"][:, 0, 1], f["S"][:, 1, 1]]
-        per_h.append(np.stack(cols, -1))
-        contrib.append(np.stack([c for Ck in f["C"].values() for c in (Ck[:, 0, 0], Ck[:, 0, 1], Ck[:, 1, 1])], -1))
-    cd, rd, P = dem_pixel_jacobian(dem, lon, lat, grid.crs)
-    # the ground covariance uses both heights; the source contributions (shares, dominant
-    # source) the mean of the two, which changes a share by ~1e-3 of itself at most
-    flat = np.concatenate([np.stack([cd, rd, P[:, 0, 0], P[:, 0, 1], P[:, 1, 0], P[:, 1, 1]], -1),
-                           0.5 * (contrib[0] + contrib[1])], -1)
-    return np.stack(per_h, 0), flat, list((groups or {n: [n] for n in names}))
-
-
-def _assemble(Fh, Ff, heights, dem, garr, model, n_src):
-    """Per-cell ground covariance from interpolated smooth fields, field-first: ``Fh``
-    (2 heights, 11, ...), ``Ff`` (6 + 3 n_src, ...), with the cell's own DEM height and slope. Returns
-    (a, b, c) = Σ_G entries, the per-source horizontal variance (n_src, ...) and the validity
-    mask."""
-    cd, rd = Ff[0], Ff[1]
-    P = np.stack([np.stack([Ff[2], Ff[3]], -1), np.stack([Ff[4], Ff[5]], -1)], -2)
-    h = bilinear_nan(dem.heights, cd, rd, dtype=Fh.dtype)
-    t = (h - heights[0]) / (heights[1] - heights[0])
-    F0, F1 = Fh[0], Fh[1]
-    f = lambda j: F0[j] + t * (F1[j] - F0[j])
-    gE, gN = slope_from_pixels(garr[0], garr[1], cd, rd, P)
-    # A_eff = A + ∂p/∂h ∇hᵀ and its inverse
-    ph0, ph1 = f(6), f(7)
-    a = f(2) + ph0 * gE
-    b = f(3) + ph0 * gN
-    c = f(4) + ph1 * gE
-    d = f(5) + ph1 * gN
-    with np.errstate(all="ignore"):
-        det = a * d - b * c
-        i00, i01, i10, i11 = d / det, -b / det, -c / det, a / det
-    def to_ground(m00, m01, m11):
-        t00 = i00 * m00 + i01 * m01
-        t01 = i00 * m01 + i01 * m11
-        t10 = i10 * m00 + i11 * m01
-        t11 = i10 * m01 + i11 * m11
-        return t00 * i00 + t01 * i01, t00 * i10 + t01 * i11, t10 * i10 + t11 * i11
-    g = to_ground(f(8), f(9), f(10))
-    # trace(A⁻¹ C A⁻ᵀ) = q00 c00 + 2 q01 c01 + q11 c11 with Q = A⁻ᵀA⁻¹
-    q00 = i00 * i00 + i10 * i10
-    q01 = i00 * i01 + i10 * i11
-    q11 = i01 * i01 + i11 * i11
-    contrib = np.empty((n_src,) + h.shape, dtype=Fh.dtype)
-    for k in range(n_src):
-        o = 6 + 3 * k
-        contrib[k] = q00 * Ff[o] + 2 * q01 * Ff[o + 1] + q11 * Ff[o + 2]
-    col, row = f(0), f(1)
-    ok = np.isfinite(h) & (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5)
-    return g, contrib, ok
-
-
-def _rows(LX, vv, r0, r1):
-    """Linear interpolation along the lattice rows ``vv`` of ``LX`` (m, ny, W) for grid rows
-    r0..r1-1 -> (m, r1 - r0, W)."""
-    y = np.arange(r0, r1, dtype=float)
-    j = np.clip(np.searchsorted(vv, y, side="right") - 1, 0, vv.size - 2)
-    t = np.clip((y - vv[j]) / (vv[j + 1] - vv[j]), 0, 1).astype(LX.dtype)[None, :, None]
-    out = LX[:, j] * (1 - t)
-    out += LX[:, j + 1] * t
-    return out
-
-
-def _first_order_maps(model, dem, grid, D, names, groups, step, tolerance, n_check, seed, source_maps,
-                      threads=None, block_rows: int = 256):
-    """First-order maps: the terrain-free image-side fields (model Jacobians, image-space
-    covariance and contributions) are smooth and interpolated from a lattice evaluated at two
-    heights; each cell then adds its own DEM height and slope (``A_eff = A + ∂p/∂h ∇hᵀ``) and
-    moves the covariance to the ground. The lattice is refined until the relative error of
-    σ_horizontal against the exact per-cell propagation at check cells is below ``tolerance``."""
-    rng = np.random.default_rng(seed)
-    z = dem.heights
-    lo, hi = float(np.nanmin(z)), float(np.nanmax(z))
-    pad = max(1.0, 0.02 * (hi - lo))
-    heights = (lo - pad, hi + pad)
-    garr = dem_gradient_arrays(dem)
-    big = max(grid.width, grid.height)
-    st = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
-    while True:
-        uu, vv = _node_lattice(grid, st)
-        U, V = np.meshgrid(uu, vv)
-        Fh, Ff, srcs = _smooth_fields(model, dem, grid, U.ravel(), V.ravel(), D, names, groups, heights)
-        Fh = Fh.reshape((2,) + U.shape + (-1,))
-        Ff = Ff.reshape(U.shape + (-1,))
-        ny, nx = U.shape
-        m = min(n_check // 2, (ny - 1) * (nx - 1))
-        cell = rng.choice((ny - 1) * (nx - 1), size=m, replace=False)
-        cu = np.concatenate([0.5 * (uu[cell % (nx - 1)] + uu[cell % (nx - 1) + 1]), rng.uniform(0, grid.width - 1, m)])
-        cv = np.concatenate([0.5 * (vv[cell // (nx - 1)] + vv[cell // (nx - 1) + 1]), rng.uniform(0, grid.height - 1, m)])
-        at = lambda L: np.stack([_bilinear_at(L[..., j], uu, vv, cu, cv) for j in range(L.shape[-1])], 0)
-        g, _, ok = _assemble(np.stack([at(Fh[0]), at(Fh[1])]), at(Ff), heights, dem, garr, model, len(srcs))
-        lon, lat = grid.lonlat(cu, cv)
-        h = dem.sample(lon, lat)
-        ok &= np.isfinite(h)
-        pu = first_order(model, lon[ok], lat[ok], h[ok], names, D, grid.crs, dem=dem)
-        inter = np.sqrt(g[0][ok] + g[2][ok])
-        exact = pu.sigma_horizontal
-        good = np.isfinite(exact) & np.isfinite(inter) & (exact > 0)
-        err = float(np.max(np.abs(inter[good] / exact[good] - 1))) if good.any() else 0.0
-        log.debug("uncertainty lattice step %d: relative error %.2e", st, err)
-        if step is not None or err <= tolerance or st <= 4:
-            break
-        st //= 2
-    if err > tolerance:
-        log.warning("uncertainty maps: relative interpolation error %.3g exceeds %.3g", err, tolerance)
-    Wx = _weights(grid.width, uu)
-    LXh = [np.einsum("yxm,wx->myw", Fh[k], Wx, optimize=True).astype(np.float32)
-           for k in range(2)]                                                          # (m, ny, W)
-    LXf = np.einsum("yxm,wx->myw", Ff[..., :6], Wx, optimize=True)                   # float64: positions
-    LXc = np.einsum("yxm,wx->myw", Ff[..., 6:], Wx, optimize=True).astype(np.float32)  # contributions
-    shape = grid.shape
-    sE = np.full(shape, np.nan, np.float32)
-    sN = np.full(shape, np.nan, np.float32)
-    c90 = np.full(shape, np.nan, np.float32)
-    dom = np.full(shape, -1, np.int16)
-    kept = {s_: np.full(shape, np.nan, np.float32) for s_ in srcs} if source_maps else {}
-    totals = np.zeros(len(srcs))
-    def run_block(r0):
-        r1 = min(grid.height, r0 + block_rows)
-        Fh_b = np.stack([_rows(LXh[k], vv, r0, r1) for k in range(2)])
-        Ff_b = np.concatenate([_rows(LXf, vv, r0, r1), _rows(LXc, vv, r0, r1)], 0)
-        g, contrib, ok = _assemble(Fh_b, Ff_b, heights, dem, garr, model, len(srcs))
-        with np.errstate(invalid="ignore"):
-            e, n_ = np.sqrt(g[0]), np.sqrt(g[2])
-        ok &= np.isfinite(e) & np.isfinite(n_)
-        sE[r0:r1] = np.where(ok, e, np.nan)
-        sN[r0:r1] = np.where(ok, n_, np.nan)
-        c90[r0:r1] = np.where(ok, ce90_from_cov(g[0], g[1], g[2]), np.nan)
-        V = g[0] + g[2]
-        best = np.argmax(np.where(ok[None], contrib, -np.inf), axis=0)
-        dom[r0:r1] = np.where(ok, best, -1)
-        for k, s_ in enumerate(kept):
-            with np.errstate(invalid="ignore", divide="ignore"):
-                kept[s_][r0:r1] = np.where(ok, contrib[k] / V, np.nan)
-        return np.where(ok[None], contrib, 0).sum(axis=(1, 2), dtype=np.float64)
-
-    # row blocks on threads (numpy releases the GIL; blocks write disjoint rows)
-    starts = range(0, grid.height, block_rows)
-    n_threads = max(1, int(threads or os.cpu_count() or 1))
-    if n_threads > 1:
-        from concurrent.futures import ThreadPoolExecutor
-        with ThreadPoolExecutor(n_threads) as pool:
-            for part in pool.map(run_block, starts):
-                totals += part
-    else:
-        for r0 in starts:
-            totals += run_block(r0)
-    tot = totals.sum()
-    shares = {s_: float(totals[k] / tot) if tot > 0 else float("nan") for k, s_ in enumerate(srcs)}
-    details = {"n_lattice_nodes": int(U.size), "lattice_heights_m": list(heights),
-               "terrain": "each cell's own DEM height and slope (central-difference gradient)"}
-    return UncertaintyMaps(grid, "first-order", names, srcs, sE, sN, c90, dom, shares, st, err, kept, details)
 
 
 # ----------------------------------------------------------------------------- DEM vertical σ
