@@ -51,6 +51,18 @@ def process_peak_rss_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def reset_peak_rss() -> bool:
+    """Reset this process's resident-memory high-water mark (``VmHWM``: Linux
+    ``/proc/self/clear_refs`` 5), so :func:`process_peak_rss_mb` then gives the peak since
+    this call; False where that is not possible (the figure then runs from process start)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
 class SharedArray:
     """A read-only array stored as a ``.npy`` file and memory-mapped where it is used.
 

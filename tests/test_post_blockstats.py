@@ -172,3 +172,37 @@ def test_blockwise_landcover_classes(dem_pair):
     for g, w in zip(got["by_landcover"], want):
         assert (g["n"], g["n_total"]) == (w["n"], w["n_total"])
         _check_against_numpy(g, w)
+
+
+# ----------------------------------------------------------------------------- filter helpers
+# (the spike filter's block NMAD and its median at replaced cells, vectorised for speed:
+# they must give numpy's / scipy's values exactly)
+
+def test_vectorised_block_nanmedian_equals_numpy():
+    import warnings
+
+    from stereodem.post.filters import _nanmedian_last
+    rng = np.random.default_rng(5)
+    t = rng.normal(0, 3, (40, 30, 64))
+    t[rng.random(t.shape) < 0.4] = np.nan
+    t[3, 4] = np.nan                                   # a block without any value
+    t[5, 6, 1:] = np.nan                               # one value
+    t[7, 8, 2:] = np.nan                               # two values: mean of both
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        want = np.nanmedian(t, axis=2)
+    np.testing.assert_array_equal(_nanmedian_last(t), want)
+
+
+def test_median_at_cells_equals_scipy_median_filter():
+    from scipy import ndimage as ndi
+
+    from stereodem.post.filters import _median_at
+    rng = np.random.default_rng(6)
+    z = rng.normal(1000, 20, (150, 170))
+    cells = rng.random(z.shape) < 0.05
+    cells[0, :] = cells[:, -1] = True                  # edges use the nearest-value padding
+    got = _median_at(z, cells, 7)
+    want = ndi.median_filter(z, size=7, mode="nearest")
+    np.testing.assert_array_equal(got[cells], want[cells])
+    assert np.isnan(got[~cells]).all()
