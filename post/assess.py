@@ -190,25 +190,41 @@ class _ClassAccumulator:
         return self.stats[key]
 
     def add(self, dh, variable, fin_dh):
+        """Add a block: differences ``dh``, the class variable (same shape), ``isfinite(dh)``.
+        The cells are grouped by class with one stable sort of their class indices."""
         v = variable
         fin = np.isfinite(v)
         if self.edges is not None:
             e = self.edges
             idx = np.searchsorted(e, v, side="right") - 1           # [e_i, e_i+1)
             idx[fin & (v == e[-1])] = e.size - 2                      # the last bin is closed
-            idx[~fin | (idx < 0) | (idx > e.size - 2)] = -1
-            keys = range(e.size - 1)
+            inside = fin & (idx >= 0) & (idx <= e.size - 2)
+            keys = np.arange(e.size - 1)
         else:
-            idx = np.where(fin, v, np.nan)
-            keys = np.unique(idx[fin])
-        for key in keys:
-            sel = idx == key
-            acc = self._entry(float(key) if self.edges is None else int(key))
-            k = float(key) if self.edges is None else int(key)
-            self.n_total[k] += int(sel.sum())
-            both = sel & fin_dh
-            acc.add(dh[both])
-            self.var_sum[k] += float(v[both].sum(dtype=np.float64))
+            inside = fin
+            keys, idx_in = np.unique(v[fin], return_inverse=True)
+            idx = np.full(v.shape, -1, np.int64)
+            idx[fin] = idx_in.ravel()
+        n_cls = np.bincount(idx[inside], minlength=keys.size)
+        m = inside & fin_dh
+        ci = idx[m]
+        order = np.argsort(ci.astype(np.int16) if keys.size < 2 ** 15 else ci, kind="stable")
+        ci, d, vv = ci[order], dh[m][order], v[m][order]
+        bounds = np.searchsorted(ci, np.arange(keys.size + 1))
+        for i, key in enumerate(keys):
+            k = int(key) if self.edges is not None else float(key)
+            acc = self._entry(k)
+            self.n_total[k] += int(n_cls[i])
+            acc.add(d[bounds[i]:bounds[i + 1]])
+            self.var_sum[k] += float(vv[bounds[i]:bounds[i + 1]].sum(dtype=np.float64))
+
+    def merge(self, other: "_ClassAccumulator") -> "_ClassAccumulator":
+        """Add another block's class statistics (same classes) into these; returns self."""
+        for key, acc in other.stats.items():
+            self._entry(key).merge(acc)
+            self.n_total[key] += other.n_total[key]
+            self.var_sum[key] += other.var_sum[key]
+        return self
 
     def binned(self) -> list[dict]:
         e, out = self.edges, []
@@ -238,10 +254,68 @@ def _row_blocks(n_rows: int, block_rows: int):
         yield r0, min(r0 + block_rows, n_rows)
 
 
+@dataclass
+class _Block:
+    """One block's share of :func:`blockwise_comparison`: accumulators and what the footprint
+    and the figures need."""
+
+    overall: StreamingStats
+    fit: StreamingStats
+    by_slope: _ClassAccumulator
+    by_elev: _ClassAccumulator
+    by_lc: _ClassAccumulator | None
+    ends: np.ndarray
+    fin_bits: np.ndarray
+    display: dict
+
+    def merge(self, other: "_Block"):
+        self.overall.merge(other.overall)
+        self.fit.merge(other.fit)
+        self.by_slope.merge(other.by_slope)
+        self.by_elev.merge(other.by_elev)
+        if self.by_lc is not None:
+            self.by_lc.merge(other.by_lc)
+
+
+def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, elev_edges, lc, k):
+    """Warp, difference, slope and class statistics of reference rows ``r0:r1``."""
+    ref = reference.heights
+    rows, cols = ref.shape
+    T = reference.transform
+    tb = T @ Affine.translation(0, r0)
+    z = warp.to_grid(dem.heights, dem.transform, dem.crs, tb, reference.crs, (r1 - r0, cols),
+                     resampling=resampling)
+    h0, h1 = max(r0 - 1, 0), min(r1 + 1, rows)
+    slope = terrain.slope_deg(ref[h0:h1], T @ Affine.translation(0, h0), reference.crs)
+    slope = slope[r0 - h0:r0 - h0 + (r1 - r0)]
+    rb = ref[r0:r1]
+    dh = z.astype(np.float64)
+    dh -= rb
+    fin_dh = np.isfinite(dh)
+    fin_z = np.isfinite(z)
+    b = _Block(StreamingStats(), StreamingStats(covariate=True),
+               _ClassAccumulator(slope_edges, unit="deg", name="slope"),
+               _ClassAccumulator(elev_edges, unit="m", name="elevation"),
+               _ClassAccumulator() if lc is not None else None,
+               _row_ends(fin_z, r0), np.packbits(fin_z, axis=1), {})
+    b.overall.add(dh[fin_dh])
+    b.fit.add(dh, slope)
+    b.by_slope.add(dh, slope, fin_dh)
+    b.by_elev.add(dh, rb, fin_dh)
+    if lc is not None:
+        cls = warp.to_grid(lc[0], lc[1], lc[2], tb, reference.crs, (r1 - r0, cols),
+                           resampling="nearest", dst_dtype=np.float64)
+        b.by_lc.add(dh, cls, fin_dh)
+    s0 = (-r0) % k
+    for name, a in (("dem", z), ("ref", rb), ("dh", dh), ("slope", slope)):
+        b.display[name] = np.array(a[s0::k, ::k])
+    return b
+
+
 def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinear",
                          slope_bins=st.DEFAULT_SLOPE_BINS, elevation_bins=None, landcover=None,
                          landcover_names: dict | None = None, block_rows: int = BLOCK_ROWS,
-                         display_cells: int | None = None):
+                         display_cells: int | None = None, threads: int = 1):
     """Compare ``dem`` with ``reference`` on the reference grid block by block (same vertical
     reference assumed); returns ``(statistics, display, histogram)``.
 
@@ -252,8 +326,9 @@ def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinea
     :data:`stereodem.post.figures.DISPLAY_CELLS`: what the figures draw); ``histogram`` the
     :class:`~stereodem.post.blockstats.StreamingStats` of all differences. Each block of
     ``block_rows`` reference rows is warped, differenced and its slope taken (with one halo
-    row each side, so slopes equal those of the whole grid); memory is one block's arrays
-    plus the accumulators.
+    row each side, so slopes equal those of the whole grid); memory is ``threads`` blocks'
+    arrays plus the accumulators. Blocks run on ``threads`` threads and their accumulators
+    are merged in block order, so the result does not depend on ``threads``.
 
     Raises :class:`NoOverlapError` if the footprints or the valid cells do not overlap.
     """
@@ -272,39 +347,38 @@ def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinea
     lc = _landcover_source(landcover) if landcover is not None else None
     k = figures._decimation((rows, cols)) if display_cells is None else \
         max(1, int(np.ceil(max(rows, cols) / display_cells)))
+    blocks = list(_row_blocks(rows, block_rows))
+    args = (dem, reference, resampling, slope_edges, elev_edges, lc, k)
+    ends, fin_bits, disp = [], [], {"dem": [], "ref": [], "dh": [], "slope": []}
+    total = None
 
-    overall, fit = StreamingStats(), StreamingStats(covariate=True)
-    by_slope = _ClassAccumulator(slope_edges, unit="deg", name="slope")
-    by_elev = _ClassAccumulator(elev_edges, unit="m", name="elevation")
-    by_lc = _ClassAccumulator() if lc is not None else None
-    ends, fin_bits = [], []
-    disp = {"dem": [], "ref": [], "dh": [], "slope": []}
-    for r0, r1 in _row_blocks(rows, block_rows):
-        tb = T @ Affine.translation(0, r0)
-        z = warp.to_grid(dem.heights, dem.transform, dem.crs, tb, reference.crs, (r1 - r0, cols),
-                         resampling=resampling)
-        h0, h1 = max(r0 - 1, 0), min(r1 + 1, rows)
-        slope = terrain.slope_deg(ref[h0:h1], T @ Affine.translation(0, h0), reference.crs)
-        slope = slope[r0 - h0:r0 - h0 + (r1 - r0)]
-        rb = ref[r0:r1]
-        dh = z.astype(np.float64)
-        dh -= rb
-        fin_dh = np.isfinite(dh)
-        fin_z = np.isfinite(z)
-        ends.append(_row_ends(fin_z, r0))
-        fin_bits.append(np.packbits(fin_z, axis=1))
-        overall.add(dh[fin_dh])
-        fit.add(dh, slope)
-        by_slope.add(dh, slope, fin_dh)
-        by_elev.add(dh, rb, fin_dh)
-        if by_lc is not None:
-            cls = warp.to_grid(lc[0], lc[1], lc[2], tb, reference.crs, (r1 - r0, cols),
-                               resampling="nearest", dst_dtype=np.float64)
-            by_lc.add(dh, cls, fin_dh)
-        s0 = (-r0) % k
-        for name, a in (("dem", z), ("ref", rb), ("dh", dh), ("slope", slope)):
-            disp[name].append(np.array(a[s0::k, ::k]))
-        del z, slope, dh, fin_dh, fin_z
+    def take(b: _Block):
+        nonlocal total
+        ends.append(b.ends)
+        fin_bits.append(b.fin_bits)
+        for name, a in b.display.items():
+            disp[name].append(a)
+        b.ends = b.fin_bits = b.display = None
+        if total is None:
+            total = b
+        else:
+            total.merge(b)
+
+    if threads > 1 and len(blocks) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(max_workers=threads) as ex:
+            # at most 2 blocks per thread in flight (memory), merged in block order
+            pending = []
+            for r0, r1 in blocks:
+                pending.append(ex.submit(_compare_block, r0, r1, *args))
+                if len(pending) >= 2 * threads:
+                    take(pending.pop(0).result())
+            for f in pending:
+                take(f.result())
+    else:
+        for r0, r1 in blocks:
+            take(_compare_block(r0, r1, *args))
+    overall = total.overall
     if overall.n == 0:
         raise NoOverlapError(f"{dem.path or 'DEM'}: no valid cell overlaps a valid cell of "
                              f"{reference.path or 'the reference'}")
@@ -316,14 +390,15 @@ def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinea
     if hull is not None:
         cv2.fillConvexPoly(mask, hull, 1)
     n_total = 0
-    for (r0, r1), bits in zip(_row_blocks(rows, block_rows), fin_bits):
+    for (r0, r1), bits in zip(blocks, fin_bits):
         inside = mask[r0:r1].astype(bool) | np.unpackbits(bits, axis=1, count=cols).astype(bool)
         n_total += int(np.count_nonzero(inside & np.isfinite(ref[r0:r1])))
     del mask
     out = {"stats": overall.result(n_total=n_total)}
-    out["by_slope"] = by_slope.binned()
-    out["by_elevation"] = by_elev.binned()
-    out["by_landcover"] = by_lc.classes(landcover_names) if by_lc is not None else None
+    out["by_slope"] = total.by_slope.binned()
+    out["by_elevation"] = total.by_elev.binned()
+    out["by_landcover"] = total.by_lc.classes(landcover_names) if total.by_lc is not None else None
+    fit = total.fit
     f = fit.abs_deviation_fit(float(fit.quantile(0.5))) if fit.n else {"n": 0}
     out["slope_fit"] = {"slope_m_per_deg": f.get("slope", float("nan")),
                         "intercept_m": f.get("intercept", float("nan")), "r": f.get("r", float("nan")),
@@ -342,7 +417,7 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
                elevation_bins=None, checkpoints=None, checkpoint_crs=None,
                checkpoint_vertical: str | None = None, dem_vertical: str | None = None,
                ref_vertical: str | None = None, resampling: str = "bilinear",
-               coregistration: NuthKaab | None = None) -> Assessment:
+               coregistration: NuthKaab | None = None, threads: int = 1) -> Assessment:
     """Assess ``dem`` against ``reference`` (DEM objects or paths).
 
     Parameters
@@ -359,6 +434,9 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
         See :func:`assess_checkpoints`.
     dem_vertical, ref_vertical : {"geoid", "ellipsoid"}, optional
         Override the vertical references read from the files.
+    threads : int
+        Threads for the blocks of :func:`blockwise_comparison` (the result does not depend
+        on it).
     """
     if dem_vertical is not None or isinstance(dem, (str, Path)):
         dem = as_dem(dem, vertical=dem_vertical) if isinstance(dem, (str, Path)) else \
@@ -368,7 +446,7 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
             else DEM(reference.heights, reference.transform, reference.crs, ref_vertical, reference.path)
     dem_v, vnote = reconcile_vertical(dem, reference)
     kw = dict(resampling=resampling, slope_bins=slope_bins, elevation_bins=elevation_bins,
-              landcover=landcover, landcover_names=landcover_names)
+              landcover=landcover, landcover_names=landcover_names, threads=threads)
     block, cmp, hist = blockwise_comparison(dem_v, reference, **kw)
     report = {
         "dem": str(dem.path) if dem.path else None,

@@ -92,18 +92,9 @@ class StreamingStats:
         x = x[ok]
         if x.size == 0:
             return
-        n = x.size
         mean = float(x.mean())
-        m2 = float(np.sum((x - mean) ** 2))
-        delta = mean - self._mean
-        tot = self.n + n
-        self._m2 += m2 + delta * delta * self.n * n / tot
-        self._mean += delta * n / tot
-        self.n = tot
-        self._sumsq += float(np.dot(x, x))
-        self._sumabs += float(np.abs(x).sum())
-        self.min = min(self.min, float(x.min()))
-        self.max = max(self.max, float(x.max()))
+        self._merge_moments(x.size, mean, float(np.sum((x - mean) ** 2)), float(np.dot(x, x)),
+                            float(np.abs(x).sum()), float(x.min()), float(x.max()))
         far = np.abs(x) > self.limit
         if far.any():
             self._tail.append(x[far])
@@ -124,6 +115,48 @@ class StreamingStats:
             self._bx += np.bincount(rel, weights=x, minlength=sz)
             self._bw += np.bincount(rel, weights=w, minlength=sz)
             self._bwx += np.bincount(rel, weights=w * x, minlength=sz)
+
+    def _merge_moments(self, n, mean, m2, sumsq, sumabs, lo, hi):
+        """Chan et al.'s pairwise update of count, mean and squared deviations (the first
+        set is taken as it is, so one block added equals that block's own figures)."""
+        if self.n == 0:
+            self.n, self._mean, self._m2 = n, mean, m2
+        else:
+            delta = mean - self._mean
+            tot = self.n + n
+            self._m2 += m2 + delta * delta * self.n * n / tot
+            self._mean += delta * n / tot
+            self.n = tot
+        self._sumsq += sumsq
+        self._sumabs += sumabs
+        self.min = min(self.min, lo)
+        self.max = max(self.max, hi)
+
+    def merge(self, other: "StreamingStats") -> "StreamingStats":
+        """Add the values of ``other`` (same resolution, limit and covariate setting) into
+        this accumulator; merging block accumulators in a fixed order gives the same result
+        whichever thread computed which block. Returns self."""
+        if (other.resolution, other.limit, other.covariate) != (self.resolution, self.limit, self.covariate):
+            raise ValueError("accumulators with different resolution, limit or covariate")
+        if other.n == 0:
+            return self
+        self._merge_moments(other.n, other._mean, other._m2, other._sumsq, other._sumabs,
+                            other.min, other.max)
+        self._tail += other._tail
+        self._tail_w += other._tail_w
+        if self.covariate:
+            self._sw += other._sw
+            self._sww += other._sww
+        if other.counts.size:
+            self._grow(other._lo, other._lo + other.counts.size - 1)
+            a = other._lo - self._lo
+            sl = slice(a, a + other.counts.size)
+            self.counts[sl] += other.counts
+            if self.covariate:
+                self._bx[sl] += other._bx
+                self._bw[sl] += other._bw
+                self._bwx[sl] += other._bwx
+        return self
 
     def _grow(self, lo, hi):
         if self.counts.size == 0:

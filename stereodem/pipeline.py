@@ -490,7 +490,8 @@ def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True, provenance=None):
                         checkpoint_crs=i.checkpoints_crs, checkpoint_vertical=i.checkpoints_vertical,
                         landcover=i.landcover,
                         landcover_names={int(k): v for k, v in (a.landcover_names or {}).items()},
-                        elevation_bins=a.elevation_bins, **kw)
+                        elevation_bins=a.elevation_bins, threads=cfg.run.workers or os.cpu_count() or 1,
+                        **kw)
     files = write_report(result, out_dir, dem_heights=dem.heights, dem_transform=dem.transform,
                          dem_crs=dem.crs, overwrite=overwrite, provenance=provenance)
     return result, files
@@ -532,10 +533,21 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
         return _run_in(cfg, out, progress_factory)
 
 
+def writer_options(cfg: Config) -> dict:
+    """GeoTIFF creation options of a job's rasters: the configured ones, plus GDAL's
+    multi-threaded compression on the job's workers (``NUM_THREADS``; the pixels written do
+    not depend on it) unless the configuration sets it."""
+    co = dict(cfg.run.creation_options or {})
+    threads = cfg.run.workers or os.cpu_count() or 1
+    if threads > 1 and not any(k.upper() == "NUM_THREADS" for k in co):
+        co["NUM_THREADS"] = str(threads)
+    return co
+
+
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     from .provenance import provenance, utc_now
     started = utc_now()
-    co = cfg.run.creation_options
+    co = writer_options(cfg)
     prog = progress_factory or (lambda label: None)
     stages = StageLog()
     t_all = time.perf_counter()
@@ -581,16 +593,21 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
                 written.append(f"ortho_{name}.tif")
             stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px
                                                                for k, o in orthos.items()})
+            ortho_grid = orthos["left"].grid
+            del orthos, images, o                     # written: their memory goes back
 
         if cfg.uncertainty.enabled:
             t0 = stages.start()
-            summary, dsig = uncertainty_stage(cfg, pair, clean, orthos["left"].grid, products.dem,
+            summary, dsig = uncertainty_stage(cfg, pair, clean, ortho_grid, products.dem,
                                               out / "uncertainty")
             dsig.write(out / "dem.tif", clean, overwrite=True)
             written += ["uncertainty", "dem_sigma_vertical.tif"]
             stages.record("uncertainty", t0, shares=summary["shares"],
                           sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"])
 
+        # the images and the raw layers are not needed any more (the assessment's memory)
+        pair.left_image = pair.right_image = None
+        products.dem = None
         if cfg.assess.enabled and cfg.inputs.reference_dem:
             t0 = stages.start()
             report = assess_stage(cfg, clean, out / "assess", overwrite=True,

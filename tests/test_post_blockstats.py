@@ -206,3 +206,41 @@ def test_median_at_cells_equals_scipy_median_filter():
     want = ndi.median_filter(z, size=7, mode="nearest")
     np.testing.assert_array_equal(got[cells], want[cells])
     assert np.isnan(got[~cells]).all()
+
+
+def test_blockwise_assessment_does_not_depend_on_threads(dem_pair):
+    dem, ref = dem_pair
+    one, d1, h1 = assess.blockwise_comparison(dem, ref, block_rows=16, threads=1)
+    two, d2, h2 = assess.blockwise_comparison(dem, ref, block_rows=16, threads=3)
+    assert one == two or _same(one, two)
+    np.testing.assert_array_equal(d1.dh, d2.dh)
+    np.testing.assert_array_equal(h1.counts, h2.counts)
+
+
+def _same(a, b):
+    """Equal nested report dicts (NaN equal to NaN)."""
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) and np.isnan(a):
+        return isinstance(b, float) and np.isnan(b)
+    return a == b
+
+
+def test_merged_accumulators_equal_one_accumulator():
+    x = _data(100_000, seed=9)
+    one = StreamingStats()
+    for part in np.array_split(x, 4):
+        one.add(part)
+    parts = []
+    for part in np.array_split(x, 4):
+        p = StreamingStats()
+        p.add(part)
+        parts.append(p)
+    merged = parts[0]
+    for p in parts[1:]:
+        merged.merge(p)
+    assert _same(one.result(), merged.result())
+    with pytest.raises(ValueError):
+        merged.merge(StreamingStats(resolution=0.5))
