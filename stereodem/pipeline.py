@@ -47,8 +47,8 @@ from stereodem.stereo.grid import DEMGrid
 from . import __version__, sanity
 from .config import Config
 from .outlock import output_folder
-from .runner import (SharedArray, clean_cache, pool_size, process_peak_rss_mb, reset_peak_rss,
-                     run_tiles)
+from .runner import (SharedArray, clean_cache, load_cached, pool_size, process_peak_rss_mb,
+                     reset_peak_rss, run_tiles)
 
 log = logging.getLogger(__name__)
 
@@ -234,9 +234,13 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
             results, fails, _ = run_tiles(_tile_job, tiles, ctx, workers=run_settings.workers,
                                           timeout=run_settings.tile_timeout, cache_dir=cache_dir,
                                           resume=run_settings.resume, dask_address=run_settings.dask,
-                                          progress=progress, cache_key=key)
+                                          progress=progress, cache_key=key,
+                                          hold_results=cache_dir is None)
         failures.extend(fails)
-        return [_tile_result(results[i]) for i in sorted(results)]
+        by_index = {t.index: t for t in tiles}
+        # in tile order, one at a time: a cached run holds one tile's cell sums, not all
+        return (_tile_result(results[i] if results[i] is not None else load_cached(cache_dir, by_index[i]))
+                for i in sorted(results))
 
     runner.failures = failures
     return runner

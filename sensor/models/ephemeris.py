@@ -73,6 +73,10 @@ class _LagrangeTable:
         shape = t.shape
         t = t.ravel()
         w = self._window(t)
+        lo, hi = (int(w.min()), int(w.max())) if w.size else (0, -1)
+        windows = np.arange(lo, hi + 1)
+        if 0 < windows.size <= 16 and t.size > 64 * windows.size:
+            return self._evaluate_by_window(t, w, windows, shape, derivative)
         x = (t - self.centre[w]) / self.half[w]
         c = self.coef[w]                                       # (M, k, d)
         val = c[:, -1, :].copy()
@@ -86,6 +90,33 @@ class _LagrangeTable:
         for j in range(self.k - 1, 0, -1):
             der = der * x[:, None] + j * c[:, j, :]
         der = der / self.half[w][:, None]
+        return val.reshape(shape + (d,)), der.reshape(shape + (d,))
+
+
+    def _evaluate_by_window(self, t, w, windows, shape, derivative):
+        """:meth:`evaluate` for many times in few windows (the lines of an image tile): the
+        same arithmetic per time with each window's coefficients as scalars, instead of
+        gathering a (times, order, 3) coefficient array."""
+        d = self.coef.shape[-1]
+        val = np.empty((t.size, d))
+        der = np.empty((t.size, d)) if derivative else None
+        for wi in windows:
+            sel = np.flatnonzero(w == wi)
+            if sel.size == 0:
+                continue
+            x = ((t[sel] - self.centre[wi]) / self.half[wi])[:, None]
+            c = self.coef[wi]                                   # (k, d)
+            v = np.repeat(c[-1][None, :], sel.size, axis=0)
+            for j in range(self.k - 2, -1, -1):
+                v = v * x + c[j]
+            val[sel] = v + self.mean[wi]
+            if derivative:
+                g = np.zeros((sel.size, d))
+                for j in range(self.k - 1, 0, -1):
+                    g = g * x + j * c[j]
+                der[sel] = g / self.half[wi]
+        if not derivative:
+            return val.reshape(shape + (d,))
         return val.reshape(shape + (d,)), der.reshape(shape + (d,))
 
 
