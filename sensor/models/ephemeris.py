@@ -95,29 +95,35 @@ class _LagrangeTable:
 
     def _evaluate_by_window(self, t, w, windows, shape, derivative):
         """:meth:`evaluate` for many times in few windows (the lines of an image tile): the
-        same arithmetic per time with each window's coefficients as scalars, instead of
-        gathering a (times, order, 3) coefficient array."""
+        same arithmetic per time with each window's coefficients as scalars, on (d, n)
+        arrays, instead of gathering a (times, order, d) coefficient array."""
         d = self.coef.shape[-1]
-        val = np.empty((t.size, d))
-        der = np.empty((t.size, d)) if derivative else None
+        val = np.empty((d, t.size))
+        der = np.empty((d, t.size)) if derivative else None
         for wi in windows:
-            sel = np.flatnonzero(w == wi)
-            if sel.size == 0:
+            sel = slice(None) if windows.size == 1 else np.flatnonzero(w == wi)
+            tw = t[sel]
+            if tw.size == 0:
                 continue
-            x = ((t[sel] - self.centre[wi]) / self.half[wi])[:, None]
-            c = self.coef[wi]                                   # (k, d)
-            v = np.repeat(c[-1][None, :], sel.size, axis=0)
+            x = (tw - self.centre[wi]) / self.half[wi]
+            c = self.coef[wi][:, :, None]                        # (k, d, 1)
+            v = np.repeat(c[-1], tw.size, axis=1)
             for j in range(self.k - 2, -1, -1):
-                v = v * x + c[j]
-            val[sel] = v + self.mean[wi]
+                v *= x
+                v += c[j]
+            v += self.mean[wi][:, None]
+            val[:, sel] = v
             if derivative:
-                g = np.zeros((sel.size, d))
+                g = np.zeros((d, tw.size))
                 for j in range(self.k - 1, 0, -1):
-                    g = g * x + j * c[j]
-                der[sel] = g / self.half[wi]
+                    g *= x
+                    g += j * c[j]
+                g /= self.half[wi]
+                der[:, sel] = g
+        val = val.T.reshape(shape + (d,))
         if not derivative:
-            return val.reshape(shape + (d,))
-        return val.reshape(shape + (d,)), der.reshape(shape + (d,))
+            return val
+        return val, der.T.reshape(shape + (d,))
 
 
 class Ephemeris:
