@@ -9,8 +9,12 @@ granule, then
 * runs ``stereodem dem GRANULE`` and ``stereodem run`` on the granule (stereo, post, both
   orthoimages, assessment against the simulator's truth; issue #14's target: <= 45 s,
   <= 2.5 GB) with ``--workers 1`` and ``--workers 2``;
-* records wall time and peak memory, summed over the process and its workers (sampled every
-  0.2 s with psutil), per run, and the per-stage figures of ``run.json``;
+* records wall time, CPU seconds (user + system of the job and all its worker processes) and
+  peak memory, summed over the process and its workers (sampled every 0.2 s with psutil), per
+  run, and the per-stage figures of ``run.json``: wall seconds, CPU seconds of the main
+  process (``cpu_s``, all its threads) and of the tile workers (``worker_cpu_s``), the main
+  process's peak resident memory during the stage and the tile processes' peak; the
+  machine's load average is stored with each run (it is shared: compare CPU seconds);
 * checks that the rasters of the two worker counts are bit-identical;
 * measures the matcher's throughput against ``cv2.StereoSGBM`` on the same epipolar tile, in
   the same run.
@@ -25,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -75,8 +80,12 @@ def granule(scene: Path) -> Path:
 
 
 def measured(cmd):
-    """Run ``cmd``; returns (wall s, peak RSS MB summed over the process tree, stderr)."""
+    """Run ``cmd``; returns (wall s, peak RSS MB summed over the process tree, stderr, CPU s
+    of the process and every descendant it waited for)."""
+    import resource
+
     import psutil
+    cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     proc, peak = psutil.Process(p.pid), 0
@@ -89,9 +98,11 @@ def measured(cmd):
         time.sleep(0.2)
     out, err = p.communicate()
     wall = time.perf_counter() - t0
+    cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     if p.returncode != 0:
         raise SystemExit(f"{' '.join(map(str, cmd))} failed:\n{err[-3000:]}")
-    return wall, peak / 2 ** 20, err
+    return wall, peak / 2 ** 20, err, cpu
 
 
 CONFIG = """[inputs]
@@ -116,9 +127,11 @@ def dem_once(scene: Path, out: Path, workers: int):
     cmd = [sys.executable, "-m", "stereodem.cli", "-q", "dem", str(granule(scene)),
            "-o", str(out), "--height-range", "1000", "3500",
            "--workers", str(workers), "--overwrite"]
-    wall, peak, _ = measured(cmd)
+    load = os.getloadavg()[0]
+    wall, peak, _, cpu = measured(cmd)
     rep = json.loads((out / "dem_report.json").read_text())
-    return dict(workers=workers, wall_s=round(wall, 1), peak_rss_mb_all_processes=round(peak),
+    return dict(workers=workers, wall_s=round(wall, 1), cpu_s=round(cpu, 1),
+                load_average_at_start=round(load, 2), peak_rss_mb_all_processes=round(peak),
                 stereo_s=round(rep["seconds"], 1), n_points=rep["n_points"],
                 valid_cells=rep["info"]["valid_cells"], failed_tiles=len(rep["failed_tiles"]))
 
@@ -126,10 +139,33 @@ def dem_once(scene: Path, out: Path, workers: int):
 def run_once(scene: Path, out: Path, workers: int):
     cfg = out.with_suffix(".toml")
     cfg.write_text(CONFIG.format(scene=scene, granule=granule(scene), out=out, workers=workers))
-    wall, peak, _ = measured([sys.executable, "-m", "stereodem.cli", "-q", "run", str(cfg), "--overwrite"])
+    load = os.getloadavg()[0]
+    wall, peak, _, cpu = measured([sys.executable, "-m", "stereodem.cli", "-q", "run", str(cfg),
+                                   "--overwrite"])
     info = json.loads((out / "run.json").read_text())
-    return dict(workers=workers, wall_s=round(wall, 1), peak_rss_mb_all_processes=round(peak),
-                stages=info["stages"], headline=info["headline"])
+    return dict(workers=workers, wall_s=round(wall, 1), cpu_s=round(cpu, 1),
+                load_average_at_start=round(load, 2), load_average_at_end=round(os.getloadavg()[0], 2),
+                peak_rss_mb_all_processes=round(peak), stages=info["stages"],
+                stage_table=stage_table(info["stages"]), headline=info["headline"])
+
+
+def stage_table(stages) -> list:
+    """One row per stage: wall s, CPU s (main process, tile workers), peak MB (main process
+    during the stage, largest tile process)."""
+    rows = []
+    for name, st in stages.items():
+        rows.append(dict(stage=name, wall_s=st["seconds"], cpu_s=st.get("cpu_s"),
+                         worker_cpu_s=st.get("worker_cpu_s"), main_peak_rss_mb=st["peak_rss_mb"],
+                         peak_scope=st.get("peak_rss_scope", "process"),
+                         tile_process_peak_rss_mb=st.get("tile_process_peak_rss_mb")))
+    return rows
+
+
+def print_stage_table(run):
+    print(f"  {'stage':8s} {'wall s':>7s} {'CPU s':>7s} {'workers CPU s':>14s} {'main peak MB':>13s}")
+    for r in run["stage_table"]:
+        print(f"  {r['stage']:8s} {r['wall_s']:7.1f} {r['cpu_s'] or 0:7.1f} {r['worker_cpu_s'] or 0:14.1f} "
+              f"{r['main_peak_rss_mb']:13.0f}")
 
 
 def identical(a: Path, b: Path, names):
@@ -216,14 +252,18 @@ def main(argv=None):
             shutil.rmtree(out / f"w{w}", ignore_errors=True)
             runs.append(run_once(out / "scene", out / f"w{w}", w))
             r = runs[-1]
-            print(f"stereodem run workers {w}: {r['wall_s']} s, peak {r['peak_rss_mb_all_processes']} MB, "
-                  f"stereo {r['stages']['stereo']['seconds']} s, NMAD {r['headline']['nmad']:.2f} m")
+            print(f"stereodem run workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s, peak "
+                  f"{r['peak_rss_mb_all_processes']} MB, NMAD {r['headline']['nmad']:.2f} m, "
+                  f"{r['headline']['valid_pct']:.2f} % valid (load average {r['load_average_at_start']})")
+            print_stage_table(r)
         same["run"] = identical(out / "w1", out / "w2", ["raw/dem.tif", "raw/score.tif", "dem.tif",
                                                          "ortho_left.tif", "ortho_right.tif"])
         result.update(runs=runs, speedup_stereo=round(runs[0]["stages"]["stereo"]["seconds"]
                                                       / runs[1]["stages"]["stereo"]["seconds"], 2),
                       speedup_total=round(runs[0]["wall_s"] / runs[1]["wall_s"], 2))
     result["bit_identical"] = same
+    result["note"] = ("wall seconds depend on the machine's load (load_average_*: 2 cores shared "
+                      "with other jobs); CPU seconds per stage are the figures to compare")
     result["matcher"] = matcher_throughput(out / "scene")
     print(json.dumps({k: result[k] for k in ("bit_identical", "speedup_dem", "matcher")}, indent=1))
     dest = ROOT / "benchmarks" / "results" / "bench_aster_scene.json"

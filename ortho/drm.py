@@ -295,10 +295,11 @@ class BackwardMap:
         U, V = np.meshgrid(uu.astype(float), vv.astype(float))
         return self.grid.lonlat(U, V)
 
-    def block(self, row0: int, row1: int):
+    def block(self, row0: int, row1: int, *, dem_coords: bool = False):
         """``(col, row, h)`` float32 arrays (rows ``row0:row1`` x all grid columns) of the grid
         block: DEM height by bilinear interpolation (NaN off the DEM), image position by the
-        interpolated map at that height.
+        interpolated map at that height (at ``h_mid`` where there is no height). With
+        ``dem_coords`` also the fractional DEM pixel ``(dem_col, dem_row)`` of every cell.
 
         Float32 throughout (values rounded to ~2e-4 px for images up to 4096 px; the test
         suite measures the stored maps against the exact model).
@@ -319,7 +320,8 @@ class BackwardMap:
                 out[b0:b1] += A[p, j[b0]]
             return out
 
-        h = bilinear_nan(self.dem.heights, plane(0), plane(1), dtype=np.float32)
+        dc, dr = plane(0), plane(1)
+        h = bilinear_nan(self.dem.heights, dc, dr, dtype=np.float32)
         tn = np.where(np.isfinite(h), h, np.float32(self.h_mid))
         tn -= np.float32(self.h_mid)
         tn *= np.float32(1.0 / self.h_half)
@@ -330,6 +332,8 @@ class BackwardMap:
                 out *= tn
                 out += plane(first + m)
             return out
+        if dem_coords:
+            return horner(2), horner(2 + k), h, dc, dr
         return horner(2), horner(2 + k), h
 
 
@@ -677,24 +681,27 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
 
     def run_block(r0):
         r1 = min(H, r0 + block_rows)
-        col, row, h = bm.block(r0, r1)
+        col, row, h, dcol, drow = bm.block(r0, r1, dem_coords=True)
         heights[r0:r1] = h
         nohgt = ~np.isfinite(h)
-        col[nohgt] = np.nan
-        row[nohgt] = np.nan
         miss = None
         n_foot = 0
         if nohgt.any():
-            # cells in the footprint (at the interpolated position) that have no DEM height
-            uu, vv = np.nonzero(nohgt)
-            ci, ri = bm.image_coords_grid(vv.astype(float), (uu + r0).astype(float), bm.h_mid)
+            # cells in the footprint (their image position at the middle height, which the
+            # block map gives where there is no height) that have no DEM height
+            ci, ri = col[nohgt], row[nohgt]
             infoot = (ci >= -0.5) & (ri >= -0.5) & (ci <= model.width - 0.5) & (ri <= model.height - 0.5)
             n_foot = int(infoot.sum())
-            dcc, drr = bm.dem_coords_grid(vv[infoot].astype(float), (uu[infoot] + r0).astype(float))
+            dcc, drr = dcol[nohgt][infoot], drow[nohgt][infoot]
             outside = (dcc < 0) | (drr < 0) | (dcc > dr_cols - 1) | (drr > dr_rows - 1)
             if outside.any():
-                lon, lat = grid.lonlat(vv[infoot][outside], uu[infoot][outside] + r0)
+                uu, vv = np.nonzero(nohgt)
+                uu, vv = uu[infoot][outside], vv[infoot][outside]
+                lon, lat = grid.lonlat(vv, uu + r0)
                 miss = (int(outside.sum()), [np.min(lon), np.min(lat)], [np.max(lon), np.max(lat)])
+            col[nohgt] = np.nan
+            row[nohgt] = np.nan
+        del dcol, drow
         data[r0:r1] = remap_nan(img, ok, col, row, resampling, nodata)
         if keep_maps:
             cols_map[r0:r1], rows_map[r0:r1] = col, row

@@ -6,6 +6,12 @@ Differences are ``dh = DEM − reference``. Statistics (:mod:`stereodem.post.sta
 whole overlap, per slope class (slope of the reference DEM, degrees, metric even on lon/lat
 grids), per land-cover class, per elevation band (reference heights), with the linear fit of
 error against slope; optionally before and after Nuth & Kääb co-registration.
+
+:func:`assess_dem` works through the reference grid in blocks of :data:`BLOCK_ROWS` rows
+(warp, difference, slope, class statistics per block: :class:`~stereodem.post.blockstats.StreamingStats`),
+so its memory does not grow with the reference's size; the quantile statistics are then within
+:data:`~stereodem.post.blockstats.QUANTILE_ERROR` of the exact ones (stated in the report) and
+the figures are drawn from the decimated arrays they display anyway.
 """
 from __future__ import annotations
 
@@ -17,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import rasterio
 
+from affine import Affine
+
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM, as_dem
 from stereodem.sensor.errors import (CRSError, DEMError, InputError, NoOverlapError,
@@ -24,9 +32,14 @@ from stereodem.sensor.errors import (CRSError, DEMError, InputError, NoOverlapEr
 
 from . import stats as st
 from . import terrain, warp
+from .blockstats import QUANTILE_ERROR, RESOLUTION, StreamingStats
 from .coregister import NuthKaab
 
 log = logging.getLogger(__name__)
+
+#: rows of the reference grid per block of the assessment (a block's working arrays take
+#: about 60 bytes per cell: 512 rows of a 7000-column reference ~ 0.2 GB)
+BLOCK_ROWS = 512
 
 
 # ----------------------------------------------------------------------------- vertical
@@ -65,12 +78,16 @@ class Comparison:
 
 @dataclass
 class Assessment:
-    """Result of :func:`assess_dem`: ``report`` (a JSON-ready dict) and the arrays behind it."""
+    """Result of :func:`assess_dem`: ``report`` (a JSON-ready dict) and what the figures draw:
+    ``before``/``after`` hold the comparison decimated to figure size (every ``k``-th row and
+    column of the reference grid, ``transform`` scaled by ``k``), ``histogram`` the
+    accumulated differences of every cell (:class:`~stereodem.post.blockstats.StreamingStats`)."""
 
     report: dict
     before: Comparison
     after: Comparison | None = None
     extra: dict = field(default_factory=dict)
+    histogram: StreamingStats | None = None
 
 
 def compare_on_reference_grid(dem: DEM, reference: DEM, *, resampling: str = "bilinear") -> Comparison:
@@ -91,9 +108,9 @@ def compare_on_reference_grid(dem: DEM, reference: DEM, *, resampling: str = "bi
     return Comparison(z, ref, dh, slope, reference.transform, reference.crs)
 
 
-def _read_landcover(landcover, reference: DEM):
-    """Land-cover raster (path or (array, transform, crs[, nodata])) on the reference grid
-    (nearest neighbour). Returns (classes float64 with NaN for nodata)."""
+def _landcover_source(landcover):
+    """Land-cover raster (path or (array, transform, crs)) as (classes float64 with NaN for
+    nodata, transform, crs) on its own grid."""
     if isinstance(landcover, (str, Path)):
         try:
             with rasterio.open(landcover) as ds:
@@ -108,22 +125,38 @@ def _read_landcover(landcover, reference: DEM):
             raise InputError(f"{landcover}: cannot read the land-cover raster ({exc})") from None
     else:
         arr, t, crs = np.asarray(landcover[0], dtype=np.float64), landcover[1], landcover[2]
-    return warp.to_grid(arr, t, crs, reference.transform, reference.crs, reference.shape,
-                        resampling="nearest", dst_dtype=np.float64)
+    return arr, t, crs
 
 
 def dem_footprint(z) -> np.ndarray:
     """Cells inside the footprint of a DEM: the convex hull of its valid cells (bool, the
     shape of ``z``). A stereo DEM covers the overlap of two image footprints, a convex
     quadrilateral, so the hull is that area with its interior voids counted in."""
-    import cv2
     fin = np.isfinite(z)
+    hull = _hull(_row_ends(fin, 0))
     out = np.zeros(fin.shape, dtype=np.uint8)
-    if fin.any():
-        rows, cols = np.nonzero(fin)
-        pts = np.stack([cols, rows], axis=1).astype(np.int32)
-        cv2.fillConvexPoly(out, cv2.convexHull(pts), 1)
+    if hull is not None:
+        import cv2
+        cv2.fillConvexPoly(out, hull, 1)
     return out.astype(bool) | fin
+
+
+def _row_ends(fin, row0):
+    """(col, row) of the first and last True cell of each row of ``fin`` (rows offset by
+    ``row0``): the convex hull of these is that of every True cell."""
+    has = fin.any(axis=1)
+    rows = np.flatnonzero(has)
+    first = np.argmax(fin[rows], axis=1)
+    last = fin.shape[1] - 1 - np.argmax(fin[rows, ::-1], axis=1)
+    r = rows + row0
+    return np.concatenate([np.stack([first, r], 1), np.stack([last, r], 1)]).astype(np.int32)
+
+
+def _hull(points):
+    """Convex hull (OpenCV int32 vertices) of (col, row) points, or None without points."""
+    import cv2
+    pts = np.concatenate(points) if isinstance(points, list) else points
+    return cv2.convexHull(pts) if len(pts) else None
 
 
 def comparison_stats(cmp: Comparison, *, slope_bins=st.DEFAULT_SLOPE_BINS, elevation_bins=None,
@@ -142,12 +175,249 @@ def comparison_stats(cmp: Comparison, *, slope_bins=st.DEFAULT_SLOPE_BINS, eleva
     return out
 
 
+class _ClassAccumulator:
+    """Per-class statistics of ``dh`` in classes of a variable (bins of edges, or the integer
+    values of a land-cover raster), accumulated block by block; gives the entries of
+    :func:`~stereodem.post.stats.binned_stats` / :func:`~stereodem.post.stats.class_stats`."""
+
+    def __init__(self, edges=None, *, unit="", name="bin"):
+        self.edges, self.unit, self.name = edges, unit, name
+        self.stats, self.n_total, self.var_sum = {}, {}, {}
+
+    def _entry(self, key):
+        if key not in self.stats:
+            self.stats[key], self.n_total[key], self.var_sum[key] = StreamingStats(), 0, 0.0
+        return self.stats[key]
+
+    def add(self, dh, variable, fin_dh):
+        """Add a block: differences ``dh``, the class variable (same shape), ``isfinite(dh)``.
+        The cells are grouped by class with one stable sort of their class indices."""
+        v = variable
+        fin = np.isfinite(v)
+        if self.edges is not None:
+            e = self.edges
+            idx = np.searchsorted(e, v, side="right") - 1           # [e_i, e_i+1)
+            idx[fin & (v == e[-1])] = e.size - 2                      # the last bin is closed
+            inside = fin & (idx >= 0) & (idx <= e.size - 2)
+            keys = np.arange(e.size - 1)
+        else:
+            inside = fin
+            keys, idx_in = np.unique(v[fin], return_inverse=True)
+            idx = np.full(v.shape, -1, np.int64)
+            idx[fin] = idx_in.ravel()
+        n_cls = np.bincount(idx[inside], minlength=keys.size)
+        m = inside & fin_dh
+        ci = idx[m]
+        order = np.argsort(ci.astype(np.int16) if keys.size < 2 ** 15 else ci, kind="stable")
+        ci, d, vv = ci[order], dh[m][order], v[m][order]
+        bounds = np.searchsorted(ci, np.arange(keys.size + 1))
+        for i, key in enumerate(keys):
+            k = int(key) if self.edges is not None else float(key)
+            acc = self._entry(k)
+            self.n_total[k] += int(n_cls[i])
+            acc.add(d[bounds[i]:bounds[i + 1]])
+            self.var_sum[k] += float(vv[bounds[i]:bounds[i + 1]].sum(dtype=np.float64))
+
+    def merge(self, other: "_ClassAccumulator") -> "_ClassAccumulator":
+        """Add another block's class statistics (same classes) into these; returns self."""
+        for key, acc in other.stats.items():
+            self._entry(key).merge(acc)
+            self.n_total[key] += other.n_total[key]
+            self.var_sum[key] += other.var_sum[key]
+        return self
+
+    def binned(self) -> list[dict]:
+        e, out = self.edges, []
+        for i in range(e.size - 1):
+            acc = self._entry(i)
+            lo, hi, last = e[i], e[i + 1], i == e.size - 2
+            r = acc.result(n_total=self.n_total[i])
+            entry = {"class": st._bin_label(lo, hi, self.unit, last), "lower": float(lo),
+                     "upper": float(hi) if np.isfinite(hi) else None,
+                     f"{self.name}_mean": self.var_sum[i] / r["n"] if r["n"] else float("nan")}
+            entry.update(r)
+            out.append(entry)
+        return out
+
+    def classes(self, names=None) -> list[dict]:
+        out = []
+        for value in sorted(self.stats):
+            key = int(value) if float(value).is_integer() else float(value)
+            entry = {"class": (names or {}).get(key, str(key)), "value": key}
+            entry.update(self.stats[value].result(n_total=self.n_total[value]))
+            out.append(entry)
+        return out
+
+
+def _row_blocks(n_rows: int, block_rows: int):
+    for r0 in range(0, n_rows, block_rows):
+        yield r0, min(r0 + block_rows, n_rows)
+
+
+@dataclass
+class _Block:
+    """One block's share of :func:`blockwise_comparison`: accumulators and what the footprint
+    and the figures need."""
+
+    overall: StreamingStats
+    fit: StreamingStats
+    by_slope: _ClassAccumulator
+    by_elev: _ClassAccumulator
+    by_lc: _ClassAccumulator | None
+    ends: np.ndarray
+    fin_bits: np.ndarray
+    display: dict
+
+    def merge(self, other: "_Block"):
+        self.overall.merge(other.overall)
+        self.fit.merge(other.fit)
+        self.by_slope.merge(other.by_slope)
+        self.by_elev.merge(other.by_elev)
+        if self.by_lc is not None:
+            self.by_lc.merge(other.by_lc)
+
+
+def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, elev_edges, lc, k):
+    """Warp, difference, slope and class statistics of reference rows ``r0:r1``."""
+    ref = reference.heights
+    rows, cols = ref.shape
+    T = reference.transform
+    tb = T @ Affine.translation(0, r0)
+    z = warp.to_grid(dem.heights, dem.transform, dem.crs, tb, reference.crs, (r1 - r0, cols),
+                     resampling=resampling)
+    h0, h1 = max(r0 - 1, 0), min(r1 + 1, rows)
+    slope = terrain.slope_deg(ref[h0:h1], T @ Affine.translation(0, h0), reference.crs)
+    slope = slope[r0 - h0:r0 - h0 + (r1 - r0)]
+    rb = ref[r0:r1]
+    dh = z.astype(np.float64)
+    dh -= rb
+    fin_dh = np.isfinite(dh)
+    fin_z = np.isfinite(z)
+    b = _Block(StreamingStats(), StreamingStats(covariate=True),
+               _ClassAccumulator(slope_edges, unit="deg", name="slope"),
+               _ClassAccumulator(elev_edges, unit="m", name="elevation"),
+               _ClassAccumulator() if lc is not None else None,
+               _row_ends(fin_z, r0), np.packbits(fin_z, axis=1), {})
+    b.overall.add(dh[fin_dh])
+    b.fit.add(dh, slope)
+    b.by_slope.add(dh, slope, fin_dh)
+    b.by_elev.add(dh, rb, fin_dh)
+    if lc is not None:
+        cls = warp.to_grid(lc[0], lc[1], lc[2], tb, reference.crs, (r1 - r0, cols),
+                           resampling="nearest", dst_dtype=np.float64)
+        b.by_lc.add(dh, cls, fin_dh)
+    s0 = (-r0) % k
+    for name, a in (("dem", z), ("ref", rb), ("dh", dh), ("slope", slope)):
+        b.display[name] = np.array(a[s0::k, ::k])
+    return b
+
+
+def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinear",
+                         slope_bins=st.DEFAULT_SLOPE_BINS, elevation_bins=None, landcover=None,
+                         landcover_names: dict | None = None, block_rows: int = BLOCK_ROWS,
+                         display_cells: int | None = None, threads: int = 1):
+    """Compare ``dem`` with ``reference`` on the reference grid block by block (same vertical
+    reference assumed); returns ``(statistics, display, histogram)``.
+
+    ``statistics`` is the block of :func:`comparison_stats` (``stats``, ``by_slope``,
+    ``by_elevation``, ``by_landcover``, ``slope_fit``, ``slope_class_trend``) with the
+    quantiles within :data:`~stereodem.post.blockstats.QUANTILE_ERROR`; ``display`` the
+    :class:`Comparison` decimated to at most ``display_cells`` per side (default
+    :data:`stereodem.post.figures.DISPLAY_CELLS`: what the figures draw); ``histogram`` the
+    :class:`~stereodem.post.blockstats.StreamingStats` of all differences. Each block of
+    ``block_rows`` reference rows is warped, differenced and its slope taken (with one halo
+    row each side, so slopes equal those of the whole grid); memory is ``threads`` blocks'
+    arrays plus the accumulators. Blocks run on ``threads`` threads and their accumulators
+    are merged in block order, so the result does not depend on ``threads``.
+
+    Raises :class:`NoOverlapError` if the footprints or the valid cells do not overlap.
+    """
+    import cv2
+
+    from . import figures
+    warp.check_overlap(dem.bounds_lonlat(), reference.bounds_lonlat(),
+                       dem.path or "DEM", reference.path or "reference")
+    ref = reference.heights
+    rows, cols = ref.shape
+    T = reference.transform
+    slope_edges = st.bin_edges(slope_bins, "slope")
+    if elevation_bins is None:
+        elevation_bins = st.default_elevation_bins(np.array([np.nanmin(ref), np.nanmax(ref)]))
+    elev_edges = st.bin_edges(elevation_bins, "elevation")
+    lc = _landcover_source(landcover) if landcover is not None else None
+    k = figures._decimation((rows, cols)) if display_cells is None else \
+        max(1, int(np.ceil(max(rows, cols) / display_cells)))
+    blocks = list(_row_blocks(rows, block_rows))
+    args = (dem, reference, resampling, slope_edges, elev_edges, lc, k)
+    ends, fin_bits, disp = [], [], {"dem": [], "ref": [], "dh": [], "slope": []}
+    total = None
+
+    def take(b: _Block):
+        nonlocal total
+        ends.append(b.ends)
+        fin_bits.append(b.fin_bits)
+        for name, a in b.display.items():
+            disp[name].append(a)
+        b.ends = b.fin_bits = b.display = None
+        if total is None:
+            total = b
+        else:
+            total.merge(b)
+
+    if threads > 1 and len(blocks) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(max_workers=threads) as ex:
+            # at most 2 blocks per thread in flight (memory), merged in block order
+            pending = []
+            for r0, r1 in blocks:
+                pending.append(ex.submit(_compare_block, r0, r1, *args))
+                if len(pending) >= 2 * threads:
+                    take(pending.pop(0).result())
+            for f in pending:
+                take(f.result())
+    else:
+        for r0, r1 in blocks:
+            take(_compare_block(r0, r1, *args))
+    overall = total.overall
+    if overall.n == 0:
+        raise NoOverlapError(f"{dem.path or 'DEM'}: no valid cell overlaps a valid cell of "
+                             f"{reference.path or 'the reference'}")
+    # footprint: the convex hull of the warped DEM's cells, with the reference valid
+    # (one uint8 mask of the grid: OpenCV's fill of a polygon shifted per block differs from
+    # the whole fill along the clipped edges)
+    hull = _hull(ends)
+    mask = np.zeros((rows, cols), np.uint8)
+    if hull is not None:
+        cv2.fillConvexPoly(mask, hull, 1)
+    n_total = 0
+    for (r0, r1), bits in zip(blocks, fin_bits):
+        inside = mask[r0:r1].astype(bool) | np.unpackbits(bits, axis=1, count=cols).astype(bool)
+        n_total += int(np.count_nonzero(inside & np.isfinite(ref[r0:r1])))
+    del mask
+    out = {"stats": overall.result(n_total=n_total)}
+    out["by_slope"] = total.by_slope.binned()
+    out["by_elevation"] = total.by_elev.binned()
+    out["by_landcover"] = total.by_lc.classes(landcover_names) if total.by_lc is not None else None
+    fit = total.fit
+    f = fit.abs_deviation_fit(float(fit.quantile(0.5))) if fit.n else {"n": 0}
+    out["slope_fit"] = {"slope_m_per_deg": f.get("slope", float("nan")),
+                        "intercept_m": f.get("intercept", float("nan")), "r": f.get("r", float("nan")),
+                        "n": int(f["n"]), "error": "abs(dh - median(dh))"}
+    out["slope_class_trend"] = st.class_trend(out["by_slope"], x_key="slope_mean", y_key="nmad")
+    out["statistics"] = {"method": f"blocks of {block_rows} reference rows; quantiles from a "
+                                   f"histogram of {RESOLUTION:g} m bins",
+                         "max_quantile_error_m": dict(QUANTILE_ERROR)}
+    display = Comparison(*(np.concatenate(disp[n]) for n in ("dem", "ref", "dh", "slope")),
+                         T @ Affine.scale(k), reference.crs)
+    return out, display, overall
+
+
 def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
                landcover_names: dict | None = None, slope_bins=st.DEFAULT_SLOPE_BINS,
                elevation_bins=None, checkpoints=None, checkpoint_crs=None,
                checkpoint_vertical: str | None = None, dem_vertical: str | None = None,
                ref_vertical: str | None = None, resampling: str = "bilinear",
-               coregistration: NuthKaab | None = None) -> Assessment:
+               coregistration: NuthKaab | None = None, threads: int = 1) -> Assessment:
     """Assess ``dem`` against ``reference`` (DEM objects or paths).
 
     Parameters
@@ -164,6 +434,9 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
         See :func:`assess_checkpoints`.
     dem_vertical, ref_vertical : {"geoid", "ellipsoid"}, optional
         Override the vertical references read from the files.
+    threads : int
+        Threads for the blocks of :func:`blockwise_comparison` (the result does not depend
+        on it).
     """
     if dem_vertical is not None or isinstance(dem, (str, Path)):
         dem = as_dem(dem, vertical=dem_vertical) if isinstance(dem, (str, Path)) else \
@@ -172,9 +445,9 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
         reference = as_dem(reference, vertical=ref_vertical) if isinstance(reference, (str, Path)) \
             else DEM(reference.heights, reference.transform, reference.crs, ref_vertical, reference.path)
     dem_v, vnote = reconcile_vertical(dem, reference)
-    cmp = compare_on_reference_grid(dem_v, reference, resampling=resampling)
-    if landcover is not None:
-        cmp.landcover = _read_landcover(landcover, reference)
+    kw = dict(resampling=resampling, slope_bins=slope_bins, elevation_bins=elevation_bins,
+              landcover=landcover, landcover_names=landcover_names, threads=threads)
+    block, cmp, hist = blockwise_comparison(dem_v, reference, **kw)
     report = {
         "dem": str(dem.path) if dem.path else None,
         "reference": str(reference.path) if reference.path else None,
@@ -185,9 +458,8 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
         "difference": "dem - reference (m)",
         "slope_bins_deg": [float(b) for b in slope_bins],
     }
-    report.update(comparison_stats(cmp, slope_bins=slope_bins, elevation_bins=elevation_bins,
-                                   landcover_names=landcover_names))
-    result = Assessment(report, cmp)
+    report.update(block)
+    result = Assessment(report, cmp, histogram=hist)
     if checkpoints is not None:
         report["checkpoints"] = assess_checkpoints(dem, checkpoints, crs=checkpoint_crs,
                                                    vertical=checkpoint_vertical)
@@ -199,10 +471,7 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
         nk.fit(reference, dem_v)
         report["coregistration"] = dict(nk.params)
         shifted = nk.apply(dem_v)
-        cmp2 = compare_on_reference_grid(shifted, reference, resampling=resampling)
-        cmp2.landcover = cmp.landcover
-        report["after_coregistration"] = comparison_stats(
-            cmp2, slope_bins=slope_bins, elevation_bins=elevation_bins, landcover_names=landcover_names)
+        report["after_coregistration"], cmp2, _ = blockwise_comparison(shifted, reference, **kw)
         if checkpoints is not None:
             sh = nk.apply(dem)          # shift in the DEM's own vertical reference
             report["after_coregistration"]["checkpoints"] = assess_checkpoints(

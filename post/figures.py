@@ -191,15 +191,33 @@ def difference_map_png(dh, path, *, title="DEM − reference", overwrite=False, 
 
 def histogram_png(dh, path, *, title="Histogram of DEM − reference", overwrite=False):
     """Histogram of differences with the mean, median and median ± NMAD marked; the x axis
-    spans the 0.5–99.5 percentiles and the cells beyond are counted on the figure."""
-    a = np.asarray(dh, dtype=np.float64)
-    a = a[np.isfinite(a)]
-    s = error_stats(a)
-    lo, hi = (np.percentile(a, [0.5, 99.5]) if a.size else (-1.0, 1.0))
+    spans the 0.5–99.5 percentiles and the cells beyond are counted on the figure.
+
+    ``dh`` is an array of differences (NaN ignored) or a
+    :class:`~stereodem.post.blockstats.StreamingStats` of them (counts by its ~1 mm bins)."""
+    from .blockstats import StreamingStats
+    if isinstance(dh, StreamingStats):
+        s = dh.result()
+        lo, hi = (dh.quantile([0.005, 0.995]) if dh.n else (-1.0, 1.0))
+        below, above = dh.count_outside(lo, hi) if dh.n else (0, 0)
+        n_all = dh.n
+        n_in = n_all - below - above
+    else:
+        a = np.asarray(dh, dtype=np.float64)
+        a = a[np.isfinite(a)]
+        s = error_stats(a)
+        lo, hi = (np.percentile(a, [0.5, 99.5]) if a.size else (-1.0, 1.0))
+        inside = (a >= lo) & (a <= hi)
+        n_all, n_in = a.size, int(inside.sum())
+        below, above = int((a < lo).sum()), int((a > hi).sum())
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    inside = (a >= lo) & (a <= hi)
-    ax.hist(a[inside], bins=100, range=(lo, hi) if hi > lo else None, color="steelblue",
-            label=f"cells ({inside.sum():,} of {a.size:,})")
+    label = f"cells ({n_in:,} of {n_all:,})"
+    if isinstance(dh, StreamingStats):
+        edges = np.linspace(lo, hi, 101) if hi > lo else np.array([lo - 0.5, lo + 0.5])
+        ax.stairs(dh.histogram(edges), edges, fill=True, color="steelblue", label=label)
+    else:
+        ax.hist(a[inside], bins=100, range=(lo, hi) if hi > lo else None, color="steelblue",
+                label=label)
     for x, lab, c, ls in ((s["mean"], "mean", "k", "-"), (s["median"], "median", "darkorange", "-")):
         if np.isfinite(x):
             ax.axvline(x, color=c, ls=ls, label=f"{lab} {x:+.2f} m")
@@ -207,7 +225,6 @@ def histogram_png(dh, path, *, title="Histogram of DEM − reference", overwrite
         for k, sign in enumerate((-1, 1)):
             ax.axvline(s["median"] + sign * s["nmad"], color="darkorange", ls="--",
                        label=f"median ± NMAD ({s['nmad']:.2f} m)" if k == 0 else None)
-    below, above = int((a < lo).sum()), int((a > hi).sum())
     ax.set_ylim(0, ax.get_ylim()[1] * 1.45)            # room for the legend and the note
     ax.set_xlabel("DEM − reference (m)")
     ax.set_ylabel("cells per bin")
@@ -222,10 +239,13 @@ def histogram_png(dh, path, *, title="Histogram of DEM − reference", overwrite
 
 
 def error_vs_slope_png(dh, slope, by_slope, path, *, overwrite=False,
-                       min_cells=MIN_CLASS_CELLS):
+                       min_cells=MIN_CLASS_CELLS, centre=None):
     """Per-slope-class NMAD, std and LE90 against the class mean slope, over a scatter of
     cells; each class's cell count is printed, classes with fewer than ``min_cells`` valid
-    cells are grey and left out of the curves; the y axis holds every curve point."""
+    cells are grey and left out of the curves; the y axis holds every curve point.
+
+    ``dh``/``slope`` may be decimated (the scatter draws 20 000 random cells of them);
+    ``centre`` is the median the deviations are taken from (default: that of ``dh``)."""
     a = np.asarray(dh, dtype=np.float64).ravel()
     s = np.asarray(slope, dtype=np.float64).ravel()
     ok = np.isfinite(a) & np.isfinite(s)
@@ -234,7 +254,7 @@ def error_vs_slope_png(dh, slope, by_slope, path, *, overwrite=False,
     if ok.any():
         idx = np.flatnonzero(ok)
         idx = idx[np.random.default_rng(0).choice(idx.size, min(idx.size, 20000), replace=False)]
-        e_cells = np.abs(a[idx] - np.median(a[ok]))
+        e_cells = np.abs(a[idx] - (np.median(a[ok]) if centre is None else centre))
         ax.scatter(s[idx], e_cells, s=1, alpha=0.15, color="0.5", rasterized=True,
                    label=f"|dh − median| of {idx.size:,} random cells")
         ymax = max(ymax, float(np.percentile(e_cells, 99)))

@@ -167,6 +167,18 @@ def _quadratic_kernel(half: int):
     return coef[0].reshape(2 * half + 1, 2 * half + 1)
 
 
+def _nanmedian_last(t):
+    """``np.nanmedian(t, axis=-1)`` (same values; NaN where a row has no finite value),
+    vectorised: one sort along the last axis instead of numpy's per-row loop."""
+    s = np.sort(t, axis=-1)                                    # NaNs sort last
+    n = np.count_nonzero(np.isfinite(t), axis=-1)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(s, np.maximum(n // 2, 0)[..., None], -1)[..., 0]
+    with np.errstate(invalid="ignore"):
+        med = np.where(n % 2 == 1, lo, (lo + hi) / 2.0)
+    return np.where(n > 0, med, np.nan)
+
+
 def _block_scale(r, valid, block: int):
     """Local NMAD of ``r`` in ``block``×``block`` tiles, bilinearly resampled to full size."""
     rows, cols = r.shape
@@ -174,17 +186,29 @@ def _block_scale(r, valid, block: int):
     pad = np.full((nb_r * block, nb_c * block), np.nan)
     pad[:rows, :cols] = np.where(valid, r, np.nan)
     t = pad.reshape(nb_r, block, nb_c, block).transpose(0, 2, 1, 3).reshape(nb_r, nb_c, -1)
-    with np.errstate(all="ignore"):
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(t, axis=2)
-            scale = NMAD_FACTOR * np.nanmedian(np.abs(t - med[..., None]), axis=2)
+    med = _nanmedian_last(t)
+    with np.errstate(invalid="ignore"):
+        scale = NMAD_FACTOR * _nanmedian_last(np.abs(t - med[..., None]))
     glob = NMAD_FACTOR * np.median(np.abs(r[valid] - np.median(r[valid])))
     scale = np.where(np.isfinite(scale), scale, glob).astype(np.float32)
     if scale.shape == (1, 1):
         return np.full(r.shape, float(scale[0, 0]))
     return cv2.resize(scale, (cols, rows), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+
+
+def _median_at(z, cells, size: int):
+    """``ndi.median_filter(z, size, mode="nearest")`` evaluated only at the True cells of
+    ``cells`` (same values): the windows of those cells gathered from the edge-padded grid."""
+    from numpy.lib.stride_tricks import sliding_window_view
+    half = size // 2
+    rr, cc = np.nonzero(cells)
+    pad = np.pad(z, half, mode="edge")
+    win = sliding_window_view(pad, (size, size))
+    out = np.full(z.shape, np.nan)
+    for a in range(0, rr.size, 65536):                      # bounded working memory
+        w = win[rr[a:a + 65536], cc[a:a + 65536]].reshape(-1, size * size)
+        out[rr[a:a + 65536], cc[a:a + 65536]] = np.median(w, axis=1)
+    return out
 
 
 def spike_filter(heights, *, k: float = 5.0, min_deviation: float = 5.0, window: int = 5,
@@ -216,8 +240,10 @@ def spike_filter(heights, *, k: float = 5.0, min_deviation: float = 5.0, window:
     for _ in range(max(0, iterations - 1)):
         if not flag.any():
             break
-        if med is None:
-            med = ndi.median_filter(zf, size=median_size, mode="nearest")
+        # the median is only used at replaced cells: computed there, as they are added
+        todo = flag if replaced is None else flag & ~replaced
+        m = _median_at(zf, todo, median_size)
+        med = m if med is None else np.where(todo, m, med)
         replaced = flag if replaced is None else replaced | flag
         work = np.where(replaced, med, zf)
         r = zf - ndi.correlate(work, kern, mode="nearest")

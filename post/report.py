@@ -218,10 +218,13 @@ def write_report(assessment, out_dir, *, dem_heights=None, dem_transform=None, d
     files["difference"] = figures.difference_map_png(cmp.dh, out / FIGURES["difference"],
                                                      overwrite=overwrite, transform=cmp.transform,
                                                      crs=cmp.crs)
-    files["histogram"] = figures.histogram_png(cmp.dh, out / FIGURES["histogram"], overwrite=overwrite)
+    hist = getattr(assessment, "histogram", None)
+    files["histogram"] = figures.histogram_png(cmp.dh if hist is None else hist,
+                                               out / FIGURES["histogram"], overwrite=overwrite)
     files["error_vs_slope"] = figures.error_vs_slope_png(cmp.dh, cmp.slope, rep["by_slope"],
                                                          out / FIGURES["error_vs_slope"],
-                                                         overwrite=overwrite)
+                                                         overwrite=overwrite,
+                                                         centre=rep["stats"]["median"])
     figure_paths = dict(files)
     rel = {k: Path(v).name for k, v in files.items()}
     rep = dict(rep, figures=rel)

@@ -72,6 +72,14 @@ def _bin_label(lo, hi, unit, last):
     return f"{lo:g}-{hi:g}{unit}"
 
 
+def bin_edges(bins, name: str = "bin") -> np.ndarray:
+    """Class edges as a float64 array; :class:`InputError` unless at least two increasing."""
+    edges = np.asarray(bins, dtype=np.float64)
+    if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
+        raise InputError(f"{name} bins must be at least two increasing edges, got {list(bins)}")
+    return edges
+
+
 def binned_stats(dh, variable, bins, *, unit: str = "", name: str = "bin") -> list[dict]:
     """Statistics of ``dh`` in bins of ``variable`` (same shape).
 
@@ -84,9 +92,7 @@ def binned_stats(dh, variable, bins, *, unit: str = "", name: str = "bin") -> li
     v = np.asarray(variable, dtype=np.float64)
     if dh.shape != v.shape:
         raise InputError(f"differences {dh.shape} and {name} {v.shape} differ in shape")
-    edges = np.asarray(bins, dtype=np.float64)
-    if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
-        raise InputError(f"{name} bins must be at least two increasing edges, got {list(bins)}")
+    edges = bin_edges(bins, name)
     out = []
     fin = np.isfinite(v)
     for i in range(edges.size - 1):

@@ -213,24 +213,36 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
     ncell = wr * wc
     sums = np.zeros((len(SUM_LAYERS), ncell))
     sok, gok = np.isfinite(score), np.isfinite(ray_gap)
+    all_sok, all_gok = bool(sok.all()), bool(gok.all())
     score, ray_gap = np.where(sok, score, 0.0), np.where(gok, ray_gap, 0.0)
+    base = (i0 - r0) * wc + (j0 - c0)            # cell index of each point in the window
+    lo_i, hi_i, lo_j, hi_j = int(i0.min()), int(i0.max()), int(j0.min()), int(j0.max())
+    if sig is not None:                          # squared offsets along each axis, shared
+        dsq_i = {di: ((i0 + di) - fi) ** 2 for di in range(-radius, radius + 1)}
+        dsq_j = {dj: ((j0 + dj) - fj) ** 2 for dj in range(-radius, radius + 1)}
     for di, dj in offsets:                      # a handful of neighbour offsets
-        i, j = i0 + di, j0 + dj
-        inside = (i >= r0) & (i < r1) & (j >= c0) & (j < c1)
-        if sig is None:
-            w = np.ones(int(inside.sum()))
+        if r0 <= lo_i + di and hi_i + di < r1 and c0 <= lo_j + dj and hi_j + dj < c1:
+            sel = slice(None)                    # every point's cell is in the window
         else:
-            r2 = ((i - fi) ** 2 + (j - fj) ** 2)[inside] * posting ** 2
+            i, j = i0 + di, j0 + dj
+            sel = (i >= r0) & (i < r1) & (j >= c0) & (j < c1)
+        if sig is None:
+            w = np.ones(h.size if isinstance(sel, slice) else int(sel.sum()))
+        else:
+            r2 = (dsq_i[di] + dsq_j[dj])[sel] * posting ** 2
             w = np.exp(-0.5 * r2 / sig ** 2)
-        idx = ((i - r0) * wc + (j - c0))[inside]
-        ws, wg = w * sok[inside], w * gok[inside]
-        sums[0] += np.bincount(idx, w, ncell)
-        sums[1] += np.bincount(idx, w * h[inside], ncell)
+        idx = (base + (di * wc + dj))[sel]
+        bw = np.bincount(idx, w, ncell)
+        sums[0] += bw
+        sums[1] += np.bincount(idx, w * h[sel], ncell)
         sums[2] += np.bincount(idx, minlength=ncell)
-        sums[3] += np.bincount(idx, ws, ncell)
-        sums[4] += np.bincount(idx, ws * score[inside], ncell)
-        sums[5] += np.bincount(idx, wg, ncell)
-        sums[6] += np.bincount(idx, wg * ray_gap[inside], ncell)
+        # a layer whose values are all finite has the weights of the height layer (w · 1)
+        ws = w if all_sok else w * sok[sel]
+        wg = w if all_gok else w * gok[sel]
+        sums[3] += bw if all_sok else np.bincount(idx, ws, ncell)
+        sums[4] += np.bincount(idx, ws * score[sel], ncell)
+        sums[5] += bw if all_gok else np.bincount(idx, wg, ncell)
+        sums[6] += np.bincount(idx, wg * ray_gap[sel], ncell)
     n_points = int(((i0 >= 0) & (i0 < rows) & (j0 >= 0) & (j0 < cols)).sum())
     return CellSums(r0, c0, sums.reshape(len(SUM_LAYERS), wr, wc), n_points)
 

@@ -220,10 +220,10 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
     progress : callable, optional
         Called as ``progress(done, total, tile_summary)`` after each tile (serial run).
     runner : callable, optional
-        ``runner(process_tile, tiles, inputs, settings) -> list[TileResult]`` runs the tiles
-        elsewhere (process pool, Dask: :func:`stereodem.tiles.run_tiles`); it may drop failed
-        tiles. Results must come back in tile order so the output is independent of the
-        runner.
+        ``runner(process_tile, tiles, inputs, settings) -> iterable of TileResult`` runs the
+        tiles elsewhere (process pool, Dask: :func:`stereodem.runner.run_tiles`); it may drop
+        failed tiles. Results must come back in tile order so the output is independent of
+        the runner; they are taken one at a time (a generator need hold only one).
 
     Returns
     -------
@@ -278,29 +278,34 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
                         max_gap, spec, seed_margin)
     # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask)
     if runner is None:
-        results = []
-        for k, tile in enumerate(tiles, start=1):
-            results.append(process_tile(tile, inputs, settings))
-            if progress is not None:
-                progress(k, len(tiles), results[-1].summary)
+        def serial():
+            for k, tile in enumerate(tiles, start=1):
+                res = process_tile(tile, inputs, settings)
+                if progress is not None:
+                    progress(k, len(tiles), res.summary)
+                yield res
+        results = serial()
     else:
-        results = list(runner(process_tile, tiles, inputs, settings))
+        results = runner(process_tile, tiles, inputs, settings)
+    # 4. grid: the tiles' cell sums, added in tile order (independent of the runner) as they
+    # come, keeping only each tile's QA summary
+    total = np.zeros((len(SUM_LAYERS),) + tuple(spec.shape))
+    summaries, n_points = [], 0
     for res in results:
         s = res.summary
         log.info("tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
                  s["tile"], s["residual_rms_px"], *s["disparity_range"], s["n_points"])
-    # 4. grid: the tiles' cell sums, added in tile order (independent of the runner)
-    total = np.zeros((len(SUM_LAYERS),) + tuple(spec.shape))
-    for res in results:
         res.cells.add_to(total)
-    n_points = int(sum(res.cells.n_points for res in results))
+        n_points += int(res.cells.n_points)
+        summaries.append(s)
+    del res
     if n_points == 0 and gs.bounds is None:
         raise InputError("no point was matched in any tile (no texture, or a wrong height range?)")
     dem = finish(spec, total, crop=gs.bounds is None, info=dict(n_points=n_points))
     del total
     seconds = time.perf_counter() - t_start
-    rms = [r.summary["residual_rms_px"] for r in results]
-    pileup = _pileup(results, n_points)
+    rms = [s["residual_rms_px"] for s in summaries]
+    pileup = _pileup(summaries, n_points)
     info = dict(height_range=list(height_range), gsd_m=gsd, posting=posting, max_ray_gap_m=max_gap,
                 n_tiles=len(tiles), max_residual_rms_px=float(max(rms)) if rms else float("nan"),
                 valid_cells=float(np.isfinite(dem.heights).mean()),
@@ -313,7 +318,7 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
                 height_pileup=pileup, suspect=pileup["suspect"])
     log.info("stereo DEM: %d points gridded to %dx%d cells in %.1f s", n_points,
              dem.grid.width, dem.grid.height, seconds)
-    return DEMProducts(dem, [r.summary for r in results], n_points, seconds, settings.summary(), info)
+    return DEMProducts(dem, summaries, n_points, seconds, settings.summary(), info)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -345,11 +350,12 @@ def _sparse_stage(left_image, right_image, left_model, right_model, rect, seed):
         return None
 
 
-def _pileup(results, n_points, *, max_share: float = 0.05) -> dict:
+def _pileup(summaries, n_points, *, max_share: float = 0.05) -> dict:
     """Share of the points whose height lies at a bound of its tile's search range (the
-    matcher hit the end of the range: wrong heights or an uncorrected pointing error)."""
-    low = sum(r.summary.get("n_at_low_bound", 0) for r in results)
-    high = sum(r.summary.get("n_at_high_bound", 0) for r in results)
+    matcher hit the end of the range: wrong heights or an uncorrected pointing error);
+    ``summaries`` are the tiles' QA summaries."""
+    low = sum(s.get("n_at_low_bound", 0) for s in summaries)
+    high = sum(s.get("n_at_high_bound", 0) for s in summaries)
     n = max(n_points, 1)
     out = dict(low_share=low / n, high_share=high / n, suspect=bool(max(low, high) / n > max_share))
     if out["suspect"]:

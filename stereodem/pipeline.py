@@ -47,7 +47,8 @@ from stereodem.stereo.grid import DEMGrid
 from . import __version__, sanity
 from .config import Config
 from .outlock import output_folder
-from .runner import SharedArray, clean_cache, pool_size, process_peak_rss_mb, run_tiles
+from .runner import (SharedArray, clean_cache, load_cached, pool_size, process_peak_rss_mb,
+                     reset_peak_rss, run_tiles)
 
 log = logging.getLogger(__name__)
 
@@ -60,15 +61,37 @@ def _peak_rss_mb():
     return round(process_peak_rss_mb(), 1), round(kids, 1)
 
 
+def _cpu_seconds():
+    """CPU seconds (user + system) of this process (all its threads) and of its finished,
+    waited-for child processes (the tile pool's workers once the pool is shut down)."""
+    t = os.times()
+    return t.user + t.system, t.children_user + t.children_system
+
+
 @dataclass
 class StageLog:
-    """Timings (s) and peak resident memory (MB, this process / largest worker) per stage."""
+    """Per stage: wall seconds, CPU seconds (this process's threads: ``cpu_s``; worker
+    processes: ``worker_cpu_s``) and peak resident memory (MB) of this process during the
+    stage (``peak_rss_mb``; since the process started where the high-water mark cannot be
+    reset, ``peak_rss_scope`` says which) and of its largest finished worker."""
 
     stages: dict = field(default_factory=dict)
+    _cpu0: tuple = (0.0, 0.0)
+    _scope: str = "process"
+
+    def start(self) -> float:
+        """Mark the start of a stage; returns its ``time.perf_counter()``."""
+        self._scope = "stage" if reset_peak_rss() else "process"
+        self._cpu0 = _cpu_seconds()
+        return time.perf_counter()
 
     def record(self, name, t0, **extra):
         own, kids = _peak_rss_mb()
-        self.stages[name] = dict(seconds=round(time.perf_counter() - t0, 3), peak_rss_mb=own,
+        cpu, workers = _cpu_seconds()
+        self.stages[name] = dict(seconds=round(time.perf_counter() - t0, 3),
+                                 cpu_s=round(cpu - self._cpu0[0], 2),
+                                 worker_cpu_s=round(workers - self._cpu0[1], 2),
+                                 peak_rss_mb=own, peak_rss_scope=self._scope,
                                  peak_worker_rss_mb=kids, **extra)
         log.info("stage %s: %.1f s", name, self.stages[name]["seconds"])
 
@@ -211,9 +234,13 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
             results, fails, _ = run_tiles(_tile_job, tiles, ctx, workers=run_settings.workers,
                                           timeout=run_settings.tile_timeout, cache_dir=cache_dir,
                                           resume=run_settings.resume, dask_address=run_settings.dask,
-                                          progress=progress, cache_key=key)
+                                          progress=progress, cache_key=key,
+                                          hold_results=cache_dir is None)
         failures.extend(fails)
-        return [_tile_result(results[i]) for i in sorted(results)]
+        by_index = {t.index: t for t in tiles}
+        # in tile order, one at a time: a cached run holds one tile's cell sums, not all
+        return (_tile_result(results[i] if results[i] is not None else load_cached(cache_dir, by_index[i]))
+                for i in sorted(results))
 
     runner.failures = failures
     return runner
@@ -467,7 +494,8 @@ def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True, provenance=None):
                         checkpoint_crs=i.checkpoints_crs, checkpoint_vertical=i.checkpoints_vertical,
                         landcover=i.landcover,
                         landcover_names={int(k): v for k, v in (a.landcover_names or {}).items()},
-                        elevation_bins=a.elevation_bins, **kw)
+                        elevation_bins=a.elevation_bins, threads=cfg.run.workers or os.cpu_count() or 1,
+                        **kw)
     files = write_report(result, out_dir, dem_heights=dem.heights, dem_transform=dem.transform,
                          dem_crs=dem.crs, overwrite=overwrite, provenance=provenance)
     return result, files
@@ -509,21 +537,32 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
         return _run_in(cfg, out, progress_factory)
 
 
+def writer_options(cfg: Config) -> dict:
+    """GeoTIFF creation options of a job's rasters: the configured ones, plus GDAL's
+    multi-threaded compression on the job's workers (``NUM_THREADS``; the pixels written do
+    not depend on it) unless the configuration sets it."""
+    co = dict(cfg.run.creation_options or {})
+    threads = cfg.run.workers or os.cpu_count() or 1
+    if threads > 1 and not any(k.upper() == "NUM_THREADS" for k in co):
+        co["NUM_THREADS"] = str(threads)
+    return co
+
+
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     from .provenance import provenance, utc_now
     started = utc_now()
-    co = cfg.run.creation_options
+    co = writer_options(cfg)
     prog = progress_factory or (lambda label: None)
     stages = StageLog()
     t_all = time.perf_counter()
     written = []
 
-    t0 = time.perf_counter()
+    t0 = stages.start()
     check_inputs(cfg)
     pair = load_pair(cfg)
     stages.record("load", t0)
 
-    t0 = time.perf_counter()
+    t0 = stages.start()
     bar = prog("stereo")
     products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles")
     _close(bar)
@@ -537,7 +576,7 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
 
     report = post_report = None
     if not suspect:
-        t0 = time.perf_counter()
+        t0 = stages.start()
         z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
         clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True,
                                 creation_options=co)
@@ -545,7 +584,7 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
         stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
 
         if cfg.ortho.enabled:
-            t0 = time.perf_counter()
+            t0 = stages.start()
             bar = prog("ortho")
             images = [("left", pair.left_image, pair.left_model)]
             if cfg.ortho.both:
@@ -558,18 +597,23 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
                 written.append(f"ortho_{name}.tif")
             stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px
                                                                for k, o in orthos.items()})
+            ortho_grid = orthos["left"].grid
+            del orthos, images, o                     # written: their memory goes back
 
         if cfg.uncertainty.enabled:
-            t0 = time.perf_counter()
-            summary, dsig = uncertainty_stage(cfg, pair, clean, orthos["left"].grid, products.dem,
+            t0 = stages.start()
+            summary, dsig = uncertainty_stage(cfg, pair, clean, ortho_grid, products.dem,
                                               out / "uncertainty")
             dsig.write(out / "dem.tif", clean, overwrite=True)
             written += ["uncertainty", "dem_sigma_vertical.tif"]
             stages.record("uncertainty", t0, shares=summary["shares"],
                           sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"])
 
+        # the images and the raw layers are not needed any more (the assessment's memory)
+        pair.left_image = pair.right_image = None
+        products.dem = None
         if cfg.assess.enabled and cfg.inputs.reference_dem:
-            t0 = time.perf_counter()
+            t0 = stages.start()
             report = assess_stage(cfg, clean, out / "assess", overwrite=True,
                                   provenance=provenance(started=started))[0].report
             written.append("assess")

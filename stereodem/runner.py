@@ -51,6 +51,18 @@ def process_peak_rss_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def reset_peak_rss() -> bool:
+    """Reset this process's resident-memory high-water mark (``VmHWM``: Linux
+    ``/proc/self/clear_refs`` 5), so :func:`process_peak_rss_mb` then gives the peak since
+    this call; False where that is not possible (the figure then runs from process start)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
 class SharedArray:
     """A read-only array stored as a ``.npy`` file and memory-mapped where it is used.
 
@@ -239,6 +251,13 @@ def _load(cache_dir, tile, key=None):
     return None
 
 
+def load_cached(cache_dir, tile) -> dict:
+    """The result arrays of a tile this run has just stored in ``cache_dir`` (no identity or
+    checksum test: see :func:`_load` for files of earlier runs)."""
+    with np.load(_cache_file(cache_dir, tile), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files if k not in _META}
+
+
 def clean_cache(cache_dir):
     """Remove what an interrupted run may leave in a tile cache: partial tile files and
     shared image maps (finished tiles stay)."""
@@ -261,7 +280,7 @@ def pool_size(workers: int | None, n_tiles: int, dask_address=None) -> int:
 
 def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | None = None,
               cache_dir=None, resume: bool = False, progress=None, dask_address: str | None = None,
-              cache_key: str | None = None):
+              cache_key: str | None = None, hold_results: bool = True):
     """Run ``fn(tile, context)`` over ``tiles``.
 
     Parameters
@@ -275,6 +294,10 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
         (only a tile's own intact result: see :func:`_load`).
     cache_key : str, optional
         Identifies the job in each cached tile; tiles of another key are recomputed.
+    hold_results : bool
+        With ``cache_dir``, False keeps no result in memory: ``results`` then maps each
+        finished tile to None and its arrays are read back from its cache file
+        (:func:`load_cached`), so the caller can take them one at a time.
     progress : callable(done, total), optional
     dask_address : str, optional
         A ``dask.distributed`` scheduler address (``tcp://host:port``) or a ``Client``; tiles
@@ -296,7 +319,7 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
         if resume and cache_dir is not None and _cache_file(cache_dir, t).exists():
             cached = _load(cache_dir, t, cache_key)
         if cached is not None:
-            results[t.index] = cached
+            results[t.index] = cached if hold_results or cache_dir is None else None
         else:
             todo.append(t)
     if resume and results:
@@ -313,9 +336,9 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
                         by_index[index].col0, err)
             failures.append(TileFailure(by_index[index], err))
         else:
-            results[index] = out
             if cache_dir is not None:
                 _save(cache_dir, by_index[index], out, cache_key)
+            results[index] = out if hold_results or cache_dir is None else None
         if progress:
             progress(done, total)
 

@@ -45,6 +45,11 @@ def test_run_writes_products_and_run_json(scene_dir, tmp_path):
     rj = json.loads((out / "run.json").read_text())
     assert set(rj["stages"]) >= {"load", "stereo", "post", "ortho", "assess"}
     assert all(s["seconds"] >= 0 and s["peak_rss_mb"] > 0 for s in rj["stages"].values())
+    # CPU seconds per stage: the stereo stage's matching is work of this process or its workers
+    st = rj["stages"]
+    assert all(s["cpu_s"] >= 0 and s["worker_cpu_s"] >= 0 for s in st.values())
+    assert st["stereo"]["cpu_s"] + st["stereo"]["worker_cpu_s"] > 0
+    assert {s["peak_rss_scope"] for s in st.values()} <= {"stage", "process"}
     assert rj["config"]["rectification"]["tile_size"] == 200 and rj["versions"]["gdal"]
     # the headline accuracy is real: the stereo DEM against the simulator's truth
     h = info["headline"]

@@ -182,3 +182,52 @@ def test_tile_by_tile_gridding_equals_gridding_all_points():
     assert cropped.heights.shape[0] < spec.shape[0] and np.isfinite(cropped.heights[[0, -1], :]).any()
     x_c, y_c = cropped.transform * (0, 0)
     assert (x_c - b[0]) % 30 == 0 and (b[3] - y_c) % 30 == 0   # same lattice
+
+
+def _reference_sums(spec, x, y, h, score, gap, sigma, radius):
+    """Gaussian cell sums the plain way (every offset masked, every layer weighted)."""
+    rows, cols = spec.shape
+    p = spec.posting
+    fj = (x - spec.transform.c) / p - 0.5
+    fi = (spec.transform.f - y) / p - 0.5
+    i0, j0 = np.rint(fi).astype(np.int64), np.rint(fj).astype(np.int64)
+    r0, r1 = max(int(i0.min()) - radius, 0), min(int(i0.max()) + radius + 1, rows)
+    c0, c1 = max(int(j0.min()) - radius, 0), min(int(j0.max()) + radius + 1, cols)
+    wc, ncell = c1 - c0, (r1 - r0) * (c1 - c0)
+    out = np.zeros((7, ncell))
+    sok, gok = np.isfinite(score), np.isfinite(gap)
+    score, gap = np.where(sok, score, 0.0), np.where(gok, gap, 0.0)
+    for di in range(-radius, radius + 1):
+        for dj in range(-radius, radius + 1):
+            i, j = i0 + di, j0 + dj
+            m = (i >= r0) & (i < r1) & (j >= c0) & (j < c1)
+            w = np.exp(-0.5 * (((i - fi) ** 2 + (j - fj) ** 2)[m] * p ** 2) / sigma ** 2)
+            idx = ((i - r0) * wc + (j - c0))[m]
+            ws, wg = w * sok[m], w * gok[m]
+            for k, v in enumerate((w, w * h[m], None, ws, ws * score[m], wg, wg * gap[m])):
+                out[k] += np.bincount(idx, v, ncell) if v is not None else np.bincount(idx, minlength=ncell)
+    return r0, c0, out.reshape(7, r1 - r0, c1 - c0)
+
+
+@pytest.mark.parametrize("where", ["interior", "border"])
+def test_gaussian_cell_sums_equal_the_plain_computation_bit_for_bit(where):
+    """The gridding's shortcuts (no masks for offsets inside the lattice, shared weights of
+    all-finite layers, per-axis squared offsets) change no bit of the sums."""
+    from stereodem.stereo.grid import GridSpec, accumulate
+    spec = GridSpec.from_bounds((500000.0, 4000000.0, 503000.0, 4003000.0), 30.0, "EPSG:32637",
+                                sigma=21.0)
+    rng = np.random.default_rng(3)
+    n = 20000
+    lo, hi = (500600.0, 502400.0) if where == "interior" else (499990.0, 500700.0)
+    x = rng.uniform(lo, hi, n)
+    y = rng.uniform(4000600.0, 4002400.0, n)
+    h = rng.normal(2000, 50, n)
+    score = rng.uniform(0.5, 1, n)
+    gap = rng.uniform(0, 3, n)
+    if where == "border":
+        score[::7] = np.nan                      # the weighted score layer differs from w
+    lon, lat = geodesy.crs_to_lonlat(x, y, spec.crs)
+    got = accumulate(spec, lon, lat, h, score=score, ray_gap=gap, xy=(x, y))
+    r0, c0, want = _reference_sums(spec, x, y, h, score, gap, 21.0, 2)
+    assert (got.row0, got.col0) == (r0, c0)
+    np.testing.assert_array_equal(got.sums, want)

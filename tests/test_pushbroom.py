@@ -334,3 +334,29 @@ def test_pair_with_two_tilts():
     o1, d1 = fwd.rays(399.5, 449.5)
     o2, d2 = bwd.rays(399.5, 449.5)
     assert 40.0 < np.degrees(np.arccos(d1 @ d2)) < 48.0
+
+
+def test_lagrange_by_window_equals_gathered_evaluation():
+    """Many times in few windows (a tile's lines) take the per-window path: the values and
+    derivatives are those of the gathered-coefficient evaluation, bit for bit."""
+    from stereodem.sensor.models.ephemeris import _LagrangeTable
+    rng = np.random.default_rng(0)
+    ts = np.cumsum(rng.uniform(0.9, 1.1, 40))
+    tab = _LagrangeTable(ts, rng.normal(0, 7e6, (40, 3)), 8)
+    t = rng.uniform(5.0, 9.0, 5000)                      # 4-5 windows: the per-window path
+    w = tab._window(t)
+    assert np.unique(w).size <= 16
+    x = (t - tab.centre[w]) / tab.half[w]
+    c = tab.coef[w]
+    val = c[:, -1, :].copy()
+    for j in range(tab.k - 2, -1, -1):
+        val = val * x[:, None] + c[:, j, :]
+    val = val + tab.mean[w]
+    der = np.zeros_like(val)
+    for j in range(tab.k - 1, 0, -1):
+        der = der * x[:, None] + j * c[:, j, :]
+    der = der / tab.half[w][:, None]
+    got_val, got_der = tab.evaluate(t.reshape(50, 100), derivative=True)
+    np.testing.assert_array_equal(got_val.reshape(-1, 3), val)
+    np.testing.assert_array_equal(got_der.reshape(-1, 3), der)
+    np.testing.assert_array_equal(tab.evaluate(t), val)

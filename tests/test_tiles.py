@@ -83,3 +83,19 @@ def test_dask_local_cluster_same_results():
     assert not failures
     for k in ser:
         assert np.array_equal(ser[k]["value"], res[k]["value"])
+
+
+def test_results_can_stay_in_the_cache_only(tmp_path):
+    """hold_results=False keeps no tile in memory: each is read back from its cache file,
+    identical to the held result (what lets a scene's stereo hold one tile at a time)."""
+    from stereodem.runner import load_cached
+    tiles = tile_grid(130, 100, 32)
+    held, _, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1, cache_dir=tmp_path / "a")
+    lean, fails, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=2, cache_dir=tmp_path / "b",
+                               hold_results=False)
+    assert not fails and sorted(lean) == sorted(held) == [t.index for t in tiles]
+    assert all(v is None for v in lean.values())
+    for t in tiles:
+        got = load_cached(tmp_path / "b", t)
+        assert got.keys() == held[t.index].keys()
+        np.testing.assert_array_equal(got["value"], held[t.index]["value"])

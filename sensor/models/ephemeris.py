@@ -73,6 +73,10 @@ class _LagrangeTable:
         shape = t.shape
         t = t.ravel()
         w = self._window(t)
+        lo, hi = (int(w.min()), int(w.max())) if w.size else (0, -1)
+        windows = np.arange(lo, hi + 1)
+        if 0 < windows.size <= 16 and t.size > 64 * windows.size:
+            return self._evaluate_by_window(t, w, windows, shape, derivative)
         x = (t - self.centre[w]) / self.half[w]
         c = self.coef[w]                                       # (M, k, d)
         val = c[:, -1, :].copy()
@@ -87,6 +91,39 @@ class _LagrangeTable:
             der = der * x[:, None] + j * c[:, j, :]
         der = der / self.half[w][:, None]
         return val.reshape(shape + (d,)), der.reshape(shape + (d,))
+
+
+    def _evaluate_by_window(self, t, w, windows, shape, derivative):
+        """:meth:`evaluate` for many times in few windows (the lines of an image tile): the
+        same arithmetic per time with each window's coefficients as scalars, on (d, n)
+        arrays, instead of gathering a (times, order, d) coefficient array."""
+        d = self.coef.shape[-1]
+        val = np.empty((d, t.size))
+        der = np.empty((d, t.size)) if derivative else None
+        for wi in windows:
+            sel = slice(None) if windows.size == 1 else np.flatnonzero(w == wi)
+            tw = t[sel]
+            if tw.size == 0:
+                continue
+            x = (tw - self.centre[wi]) / self.half[wi]
+            c = self.coef[wi][:, :, None]                        # (k, d, 1)
+            v = np.repeat(c[-1], tw.size, axis=1)
+            for j in range(self.k - 2, -1, -1):
+                v *= x
+                v += c[j]
+            v += self.mean[wi][:, None]
+            val[:, sel] = v
+            if derivative:
+                g = np.zeros((d, tw.size))
+                for j in range(self.k - 1, 0, -1):
+                    g *= x
+                    g += j * c[j]
+                g /= self.half[wi]
+                der[:, sel] = g
+        val = val.T.reshape(shape + (d,))
+        if not derivative:
+            return val
+        return val, der.T.reshape(shape + (d,))
 
 
 class Ephemeris:
