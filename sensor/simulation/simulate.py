@@ -439,7 +439,7 @@ def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION, *, bl
 def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=None,
                    noise: float = 1.0, seed: int = 0, bits: int = 8, angles=(0.0, -27.6),
                    n_points: int = 60, step: int = 16, mtf_nyquist: float = MTF_NYQUIST,
-                   right_size=None, jitter=None) -> Scene:
+                   right_size=None, jitter=None, roll_jitter=None) -> Scene:
     """Simulate a stereo scene; see the module docstring.
 
     Parameters
@@ -462,6 +462,10 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
         the right image is rendered through the oscillating camera, while ``right_model``
         stays the nominal one (as an L1A product describes it) and
         ``diagnostics["right_jitter"]`` records the oscillation.
+    roll_jitter : (amplitude_urad, frequency_hz), optional
+        The same for the cross-track attitude (roll) of the second camera, recorded in
+        ``diagnostics["right_roll_jitter"]``; it moves the right image across the epipolar
+        direction (residual vertical parallax). Both may be given (pitch is drawn first).
     """
     if preset not in PRESETS:
         raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
@@ -527,18 +531,24 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     h_mean = nanmean_blocks(fine_dem)
     fine_lo, fine_hi = float(np.nanmin(fine_dem)), float(np.nanmax(fine_dem))
     right_true = right_model
-    if jitter is not None:
+    for axis, spec in (("pitch", jitter), ("roll", roll_jitter)):
+        if spec is None:
+            continue
         from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
-        amp_urad, freq = (float(x) for x in jitter)
+        amp_urad, freq = (float(x) for x in spec)
         if not (np.isfinite(amp_urad) and freq > 0):
-            raise InputError(f"jitter needs a finite amplitude and a positive frequency, got {jitter}")
+            raise InputError(f"{axis} jitter needs a finite amplitude and a positive frequency, "
+                             f"got {spec}")
         phase = float(rng.uniform(0, 2 * np.pi))
-        right_true = with_attitude_sines(right_model, SineSeries(np.array([amp_urad * 1e-6]),
-                                                                 np.array([freq]), np.array([phase])))
-        diags["right_jitter"] = dict(axis="pitch", amplitude_urad=amp_urad, frequency_hz=freq,
-                                     phase_rad=phase)
+        right_true = with_attitude_sines(right_true, SineSeries(np.array([amp_urad * 1e-6]),
+                                                                np.array([freq]), np.array([phase])),
+                                         axis=axis)
+        key = "right_jitter" if axis == "pitch" else "right_roll_jitter"
+        diags[key] = dict(axis=axis, amplitude_urad=amp_urad, frequency_hz=freq, phase_rad=phase)
     for name, m in (("left", left_model), ("right", right_true)):
-        img, _, _, _, loc = render(m, dem_r, radiance, step=step, keep_ground=False, h0=h_mean,
+        # an oscillating attitude bends the rays between coarse-grid rows: a finer grid there
+        m_step = min(step, 8) if m is not right_model and m is not left_model else step
+        img, _, _, _, loc = render(m, dem_r, radiance, step=m_step, keep_ground=False, h0=h_mean,
                                    heights=(fine_lo - 50.0, fine_hi + 50.0))
         diags[f"{name}_render_error_px"] = sampled_localization_error(m, loc, dem_r, seed=seed,
                                                                       h0=h_mean)
@@ -561,6 +571,7 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
                     gsd=gsd, center_lon=lon0, center_lat=lat0,
                     angles=list(angles) if preset == "pushbroom" else None,
                     jitter=None if jitter is None else [float(x) for x in jitter],
+                    roll_jitter=None if roll_jitter is None else [float(x) for x in roll_jitter],
                     dem=str(dem.path), texture=str(texture or texture_path()))
     return Scene(images[0], images[1], left_model, right_model, truth_dem,
                  truth_ortho.astype(np.float32), points, preset, settings, diags)
