@@ -147,7 +147,7 @@ class GridLocalizer:
 
 
 def _iterate_heights(loc: GridLocalizer, dem: MapRaster, coef, h_start, threshold, max_iterations):
-    """Relief iteration on flat arrays: ``coef`` (6, n), ``h_start`` (n,) float32.
+    """Relief iteration: ``coef`` (6, ...) and ``h_start`` (...) float32; the results are flat.
 
     Solves ``DEM(ray(h)) = h`` per pixel. The first step is the DRM step ``h <- DEM(ray(h))``;
     after that a secant step on ``f(h) = DEM(ray(h)) - h`` (one step is exact inside a DEM cell,
@@ -157,37 +157,42 @@ def _iterate_heights(loc: GridLocalizer, dem: MapRaster, coef, h_start, threshol
     iteration. Returns ``(h, converged)``: ``h`` is the DEM height at the last ray point
     (within ``threshold`` of the ray's height), NaN where the ray leaves the DEM.
     """
-    n = coef.shape[1]
     data = dem.data.astype(np.float32, copy=False)
     same_grid = dem.grid == loc.grid
-    h = np.asarray(h_start, np.float32).copy()
-    converged = np.zeros(n, bool)
-    active = np.arange(n)
-    ca, ha = coef, h
-    hp = fp = None
-    for it in range(max_iterations):
-        pc, pr = loc.pixels_at(ca, ha)
+
+    def dem_at(c, h_now):
+        pc, pr = loc.pixels_at(c, h_now)
         if not same_grid:
             pc, pr = (a.astype(np.float32) for a in dem.grid.colrow(*loc.grid.xy(pc, pr)))
-        z = _remap_flat(data, pc, pr)                       # NaN off the DEM or in its voids
-        f = z - ha
-        conv = np.abs(f) < threshold
-        if it == 0:
-            h[:] = z
-            converged[conv] = True
-        else:
-            h[active] = z
-            converged[active[conv]] = True
-        keep = np.isfinite(z) & ~conv
-        if not keep.any():
+        if pc.ndim == 2 and max(pc.shape) < 32767:
+            return cv2.remap(data, pc, pr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=np.nan)
+        return _remap_flat(data, pc, pr)                    # NaN off the DEM or in its voids
+
+    # first step on the arrays as given (2-D blocks need no re-layout), then flat
+    h0 = np.asarray(h_start, np.float32)
+    z = dem_at(coef, h0).ravel()
+    coef = coef.reshape(6, -1)
+    h = z.copy()
+    f = z - h0.ravel()
+    converged = np.abs(f) < threshold
+    active = np.flatnonzero(np.abs(f) >= threshold)          # finite and still moving
+    ca, hp, fp, ha = coef[:, active], h0.ravel()[active], f[active], z[active]
+    for _ in range(max_iterations - 1):
+        if active.size == 0:
             break
-        nxt = z
-        if fp is not None:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                slope = (f - fp) / (ha - hp)
-                secant = ha - f / slope
-            nxt = np.where((slope < -0.1) & (slope > -10.0), secant, z)
-        active, ca, hp, fp, ha = active[keep], ca[:, keep], ha[keep], f[keep], nxt[keep]
+        z = dem_at(ca, ha)
+        f = z - ha
+        h[active] = z
+        af = np.abs(f)
+        converged[active[af < threshold]] = True
+        keep = np.flatnonzero(af >= threshold)
+        active, ca, z, f, hk = active[keep], ca[:, keep], z[keep], f[keep], ha[keep]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slope = (f - fp[keep]) / (hk - hp[keep])
+            secant = hk - f / slope
+        ha = np.where((slope < -0.1) & (slope > -10.0), secant, z)
+        hp, fp = hk, f
     return h, converged
 
 
@@ -217,8 +222,7 @@ def _coarse_start_heights(loc: GridLocalizer, dem: MapRaster, h0: float):
     """Heights of the coarse-grid nodes on the DEM (exact iteration), NaN filled with ``h0``:
     bilinearly interpolated, they start each pixel's iteration near its answer."""
     cc, rr = np.meshgrid(loc.gc.astype(np.float32), loc.gr.astype(np.float32))
-    h, _ = _iterate_heights(loc, dem, loc.coef.reshape(6, -1), np.full(cc.size, h0, np.float32),
-                            0.01, 30)
+    h, _ = _iterate_heights(loc, dem, loc.coef, np.full(cc.shape, h0, np.float32), 0.01, 30)
     return np.nan_to_num(h.reshape(cc.shape), nan=h0).astype(np.float32)
 
 
@@ -258,7 +262,7 @@ def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=16, 
         coef = loc.coefficients(cc, rr)
         start = cv2.remap(coarse_h, cc / np.float32(step), rr / np.float32(step), cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_REPLICATE)
-        h, _ = _iterate_heights(loc, dem, coef.reshape(6, -1), start.ravel(), 0.01, 30)
+        h, _ = _iterate_heights(loc, dem, coef, start, 0.01, 30)
         h = h.reshape(cc.shape)
         pc, pr = loc.pixels_at(coef, np.nan_to_num(h))
         if not same_grid:
