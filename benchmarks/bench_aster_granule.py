@@ -124,10 +124,10 @@ def main(argv=None):
         return gr, imgs
 
     gr4, _ = stage("open_v004_and_read_images", lambda: read(hdf))
-    gr3, _ = stage("open_v003_and_read_images", lambda: read(zp))
+    stage("open_v003_and_read_images", lambda: read(zp))
     lattice = {b: list(gr4[b].fields.lattice.shape) for b in ("3N", "3B")}
     render_error = {k: v for k, v in sc.diagnostics.items() if k.endswith("_error_px")}
-    sc = g = gr4 = gr3 = None           # free the in-process scene before the CLI run
+    sc = g = gr4 = None           # free the in-process scene before the CLI run
     dem_path = out / "mirrored_srtm.tif"
     dem.write(dem_path)
     cli = cli_simulate(dem_path, out / "cli", args.size, args.right_size)
