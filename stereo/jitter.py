@@ -196,9 +196,12 @@ def resample_to_model(image, model, actual, height: float, *, row_step: int = 4,
 
     The shift ``actual.project(model.localize(c, r, h)) - (c, r)`` is computed exactly every
     ``row_step`` rows at ``n_cols`` columns (an attitude oscillation is a function of the
-    line time: 4 rows of 2.2 ms resolve a few Hz), interpolated bilinearly, and the image is
-    sampled bicubically (``cv2.remap``; NaN outside). A roll shifts the ground by an angle, so
-    the shift hardly depends on ``height``.
+    line time: 4 rows of 2.2 ms resolve a few Hz) and interpolated bilinearly; the image is
+    sampled by cubic B-spline interpolation (``scipy.ndimage``, which reproduces linear
+    intensity ramps exactly: OpenCV's bicubic kernel, Keys a = -0.75, displaces them by up to
+    0.05 px depending on the sub-pixel position). NaN outside the image and next to its
+    NaN cells. A roll shifts the ground by an angle, so the shift hardly depends on
+    ``height``.
     """
     import cv2
     h_img, w_img = image.shape
@@ -210,16 +213,30 @@ def resample_to_model(image, model, actual, height: float, *, row_step: int = 4,
     grid = np.stack([np.asarray(ca) - cc, np.asarray(ra) - rr]).astype(np.float32)
     mc = np.interp(np.arange(w_img), cols, np.arange(n_cols)).astype(np.float32)
     mr = np.interp(np.arange(h_img), rows, np.arange(rows.size)).astype(np.float32)
-    out = np.empty((h_img, w_img), np.float32)
+    from scipy import ndimage
     src = np.asarray(image, np.float32)
+    void = ~np.isfinite(src)
+    fill = float(np.mean(src, where=~void)) if (~void).any() else 0.0
+    coef = ndimage.spline_filter(np.where(void, np.float32(fill), src), order=3,
+                                 output=np.float32)
+    void_f = void.astype(np.float32)
+    out = np.empty((h_img, w_img), np.float32)
     for r0 in range(0, h_img, 512):
         r1 = min(h_img, r0 + 512)
         gc, gr = np.meshgrid(mc, mr[r0:r1])
         dc = cv2.remap(grid[0], gc, gr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         dr = cv2.remap(grid[1], gc, gr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         pc, pr = np.meshgrid(np.arange(w_img, dtype=np.float32), np.arange(r0, r1, dtype=np.float32))
-        out[r0:r1] = cv2.remap(src, pc + dc, pr + dr, cv2.INTER_CUBIC,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+        pc += dc
+        pr += dr
+        blk = ndimage.map_coordinates(coef, [pr, pc], order=3, prefilter=False,
+                                      output=np.float32, mode="nearest")
+        outside = (pc < -0.5) | (pc > w_img - 0.5) | (pr < -0.5) | (pr > h_img - 0.5)
+        if void.any():
+            outside |= cv2.remap(void_f, pc, pr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                 borderValue=1.0) > 0
+        blk[outside] = np.nan
+        out[r0:r1] = blk
     return out
 
 

@@ -215,7 +215,12 @@ def _reproject_dem(dem: DEM, transform, shape, crs, *, geoid_step: int = 16, map
 
     Each grid cell centre's position in the source DEM (fractional pixel) is computed exactly
     (pyproj) every ``map_step`` cells and interpolated bilinearly in between; the DEM is then
-    sampled there with OpenCV's bicubic kernel (Keys, a = -0.75), row block by row block. The
+    sampled there with OpenCV's bicubic kernel (Keys, a = -0.75), row block by row block. (GDAL's
+    cubic is Keys a = -0.5, which reproduces linear ramps; a = -0.75 displaces them by up to 0.05
+    source pixel, so the terrain differs from a GDAL-resampled one by ripples at the source
+    posting: on the bundled 3" SRTM at 7.5 m, NMAD 1.0 m, 99th percentile 4.2 m. The truth and
+    the rendering DEM are the same surface, so the simulation stays self-consistent; an exact
+    B-spline evaluation with four bilinear fetches was measured 4-5 times slower.) The
     interpolation error of the source positions is measured at the centres of the coarse
     cells and recorded in ``diagnostics["dem_map_error_px"]`` (source pixels; ~1e-6 for a
     3" DEM at 16 cells of 7.5 m). GDAL's own warper approximates the same transformation to
