@@ -115,7 +115,7 @@ def refine_offsets(left, right, disparity, vertical, *, window: int = 9, iterati
 
 def measure_vertical_parallax(left_image, right_image, left_model, right_model, settings,
                               height_range, *, seed_dem=None, vertical_search: int = 2,
-                              tiles_across: int = 2, stride: int = 2, n_heights: int = 5,
+                              tiles_across: int = 2, stride: int = 4, n_heights: int = 5,
                               sensitivity_points: int = 200, seed: int = 0):
     """Residual vertical parallax of dense matches along the track.
 
@@ -255,36 +255,34 @@ def correct_roll_jitter(left_image, right_image, left_model, right_model, settin
     Each round measures the vertical parallax through the current right model
     (:func:`measure_vertical_parallax`), fits a sum of sines to the roll profile
     (:func:`~stereodem.sensor.estimation.jitter.estimate_roll_jitter`) and adds it to the
-    model's attitude; the second round picks up what the first missed (the matcher's
-    sub-pixel vertical estimate is biased towards whole pixels, which shrinks a first
-    estimate of a sub-pixel oscillation by about a tenth). Returns ``(corrected model,
+    model's attitude; later rounds re-measure through the corrected model and fit what is
+    left at the first round's frequencies (linear least squares), added as phasors (a few
+    per cent of the amplitude escape the first round). Returns ``(corrected model,
     SineSeries of the total correction, info)``; ``info`` holds the fit, the number of
     matches and the vertical-parallax NMAD (px) before and after each round.
     """
-    from stereodem.sensor.estimation.jitter import SineSeries
     lo, hi = (float(np.nanpercentile(dem.heights, p)) for p in (0.5, 99.5))
-    model, parts, rounds_info = right_model, [], []
+    from stereodem.sensor.estimation.jitter import add_series, fit_at_frequencies, roll_profile
+    model, total, rounds_info = right_model, None, []
     period = 8 * abs(float(right_model.line_period))
-    band = tuple(f_range)
     for _ in range(max(1, int(rounds))):
         vp = measure_vertical_parallax(left_image, right_image, left_model, model, settings,
                                        (lo, hi), seed_dem=dem, vertical_search=vertical_search)
-        fit, _ = estimate_roll_jitter(vp["time"], vp["cross_px"], vp["sensitivity_px_per_rad"],
-                                      n_sines=n_sines, f_range=band, bin_seconds=period)
-        if not parts:             # later rounds refine the tones found by the first
-            band = (max(f_range[0], 0.9 * float(np.min(fit.frequencies))),
-                    min(f_range[1], 1.1 * float(np.max(fit.frequencies))))
-        model = with_attitude_sines(model, fit, axis="roll")
-        parts.append(fit)
+        if total is None:                 # periodogram + non-linear fit of the tones
+            fit, _ = estimate_roll_jitter(vp["time"], vp["cross_px"], vp["sensitivity_px_per_rad"],
+                                          n_sines=n_sines, f_range=f_range, bin_seconds=period)
+            total = fit
+        else:                             # later rounds: what is left, at the same frequencies
+            t, roll, _ = roll_profile(vp["time"], vp["cross_px"], vp["sensitivity_px_per_rad"],
+                                      bin_seconds=period)
+            fit = fit_at_frequencies(t, roll, total.frequencies, t_ref=total.t_ref)
+            total = add_series(total, fit)
+        model = with_attitude_sines(right_model, total, axis="roll")
         rounds_info.append(dict(n_matches=int(vp["cross_px"].size),
                                 cross_px_nmad=_nmad(vp["cross_px"]),
                                 amplitudes_rad=fit.amplitudes.tolist(),
                                 frequencies_hz=fit.frequencies.tolist()))
-    total = SineSeries(np.concatenate([f.amplitudes for f in parts]),
-                       np.concatenate([f.frequencies for f in parts]),
-                       np.concatenate([f.phases for f in parts]), parts[0].t_ref)
-    # one attitude table for the sum (the rounds' tables are nested otherwise)
-    corrected = with_attitude_sines(right_model, total, axis="roll")
+    corrected = model
     info = {**total.to_dict(), "rounds": rounds_info,
             "sensitivity_px_per_rad": float(np.median(vp["sensitivity_px_per_rad"]))}
     return corrected, total, info

@@ -382,3 +382,19 @@ def test_resample_to_model_follows_the_attitude_oscillation():
     assert np.max(np.abs(col_ramp[ri, ci] - ce)) < 0.005
     assert np.max(np.abs(row_ramp[ri, ci] - re)) < 0.005
     assert np.max(np.abs(ce - c)) > 0.5                    # the oscillation is there
+
+
+def test_fit_at_fixed_frequencies_and_phasor_sum():
+    from stereodem.sensor.estimation.jitter import add_series, fit_at_frequencies
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.uniform(56.0, 58.0, 300))
+    y = 2e-6 * np.sin(2 * np.pi * 1.3 * t + 0.4) + 3e-8 * (t - 57) + 5e-8 * rng.standard_normal(t.size)
+    y[::29] += 4e-5                                                   # outliers
+    fit = fit_at_frequencies(t, y, [1.3])
+    assert fit.amplitudes[0] == pytest.approx(2e-6, rel=0.03)
+    assert fit.phases[0] == pytest.approx(0.4, abs=0.03)
+    a = SineSeries(np.array([1.0, 0.3]), np.array([1.3, 2.0]), np.array([0.2, 5.0]))
+    b = SineSeries(np.array([0.5, 0.1]), np.array([1.3, 2.0]), np.array([1.0, 1.0]))
+    np.testing.assert_allclose(add_series(a, b)(t), a(t) + b(t), atol=1e-12)
+    with pytest.raises(Exception, match="same frequencies"):
+        add_series(a, SineSeries(np.array([1.0]), np.array([1.0]), np.array([0.0])))

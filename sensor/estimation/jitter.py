@@ -281,3 +281,38 @@ def estimate_roll_jitter(times, cross_px, sensitivity, *, n_sines: int = 1, f_ra
                                    min_count=min_count)
     fit = fit_sum_of_sines(t, roll, n_sines=n_sines, f_range=f_range)
     return fit, {"times": t, "roll_profile_rad": roll, "counts": counts}
+
+
+def fit_at_frequencies(t, y, frequencies, *, trend_degree: int = 1, t_ref: float = 0.0):
+    """Amplitudes and phases of sines at fixed ``frequencies`` (Hz) in samples ``(t, y)``:
+    linear least squares with a polynomial trend, refitted once without the samples beyond
+    five robust sigmas. Returns a :class:`SineSeries` on the absolute time base."""
+    t = np.asarray(t, float)
+    y = np.asarray(y, float)
+    ok = np.isfinite(t) & np.isfinite(y)
+    t, y = t[ok], y[ok]
+    f = np.asarray(frequencies, float)
+    if t.size < 2 * f.size + trend_degree + 2:
+        raise InputError(f"jitter fit: only {t.size} valid samples")
+    x = t - float(np.mean(t))
+    w = 2 * np.pi * f
+    a = np.concatenate([np.sin(np.outer(t, w)), np.cos(np.outer(t, w)),
+                        np.vander(x, trend_degree + 1, increasing=True)], 1)
+    keep = np.ones(t.size, bool)
+    for _ in range(2):
+        c, *_ = np.linalg.lstsq(a[keep], y[keep], rcond=None)
+        r = y - a @ c
+        keep = np.abs(r) <= 5.0 * 1.4826 * max(float(np.median(np.abs(r[keep]))), 1e-300)
+    s, co = c[:f.size], c[f.size:2 * f.size]             # a sin(wt + p) = a cos p sin wt + a sin p cos wt
+    return SineSeries(np.hypot(s, co), f, np.mod(np.arctan2(co, s), 2 * np.pi), t_ref,
+                      c[2 * f.size:], float(np.sqrt(np.mean(r[keep] ** 2))))
+
+
+def add_series(a: SineSeries, b: SineSeries) -> SineSeries:
+    """The sum of two sine series at the same frequencies, as one (phasors added)."""
+    if a.frequencies.shape != b.frequencies.shape or not np.allclose(a.frequencies, b.frequencies):
+        raise InputError("add_series: the two series must have the same frequencies")
+    s = a.amplitudes * np.cos(a.phases) + b.amplitudes * np.cos(b.phases)
+    c = a.amplitudes * np.sin(a.phases) + b.amplitudes * np.sin(b.phases)
+    return SineSeries(np.hypot(s, c), a.frequencies.copy(), np.mod(np.arctan2(c, s), 2 * np.pi),
+                      a.t_ref, a.trend, b.rms_residual)
