@@ -565,7 +565,8 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
         diags[key] = dict(axis=axis, amplitude_urad=amp_urad, frequency_hz=freq, phase_rad=phase)
     for name, m in (("left", left_model), ("right", right_true)):
         # an oscillating attitude bends the rays between coarse-grid rows: a finer grid there
-        m_step = min(step, 8) if m is not right_model and m is not left_model else step
+        jittered = name == "right" and right_true is not right_model
+        m_step = min(step, 8) if jittered else step
         img, _, _, _, loc = render(m, dem_r, radiance, step=m_step, keep_ground=False, h0=h_mean,
                                    heights=(fine_lo - 50.0, fine_hi + 50.0))
         diags[f"{name}_render_error_px"] = sampled_localization_error(m, loc, dem_r, seed=seed,
