@@ -158,6 +158,12 @@ def aster_granule(d):
            f"(models + images) in {st['open_v004_and_read_images']['seconds']:.2f} / "
            f"{st['open_v003_and_read_images']['seconds']:.2f} s; {d['total_seconds']:.0f} s in all, "
            f"peak {d['peak_rss_gb']:.1f} GB")
+    c = d.get("cli_simulate_l1a_v004")
+    if c:
+        out += (f"; `stereodem simulate --preset aster --format l1a-v004` end to end "
+                f"{c['wall_s']:g} s wall / {c['cpu_s']:g} s CPU, peak {c['peak_rss_gb']:.2f} GB "
+                f"(load average {c['load_average_before_after'][0]:g}-{c['load_average_before_after'][1]:g}; "
+                f"targets <= 40 s, <= 3 GB)")
     if q:
         out += (f" (quarter-area simulation before/after block rendering: {q['before'][0]:g} → "
                 f"{q['after'][0]:g} {q['unit'][0]}, {q['before'][1]:g} → {q['after'][1]:g} {q['unit'][1]})")

@@ -120,14 +120,18 @@ class InputSettings:
 
 @dataclass
 class JitterSettings:
-    """Along-track attitude jitter of the right camera (ASTER 3B), MMASTER-style.
+    """Attitude jitter of the right camera (ASTER 3B), MMASTER-style.
 
     Attributes
     ----------
     enabled : bool
-        Estimate the right camera's pitch oscillation from the first DEM's along-track
-        residuals against the seed DEM (a sum of sines), correct the right model with that
-        time-varying attitude and make the DEM again. Needs a seed DEM and a pushbroom/ASTER model.
+        Estimate the right camera's attitude oscillation (a sum of sines in time) after a
+        first DEM, correct the right model with that time-varying attitude and make the DEM
+        again (:mod:`stereodem.stereo.jitter`). Needs a pushbroom/ASTER model.
+    axes : {"pitch", "roll", "both"}
+        ``pitch`` (along track): from the first DEM's residuals against the seed DEM, which
+        is then required; ``roll`` (across track): from the matcher's residual vertical
+        parallax, no reference DEM needed; ``both``.
     n_sines : int
         Sines in the fitted oscillation.
     min_frequency, max_frequency : float
@@ -135,9 +139,15 @@ class JitterSettings:
     """
 
     enabled: bool = False
+    axes: str = "pitch"
     n_sines: int = 1
     min_frequency: float = 0.2
     max_frequency: float = 8.0
+
+    @property
+    def axis_names(self) -> tuple:
+        """The estimated axes as a tuple (``("pitch", "roll")`` for ``both``)."""
+        return ("pitch", "roll") if self.axes == "both" else (self.axes,)
 
 
 @dataclass
@@ -492,8 +502,11 @@ def validate(cfg: Config, source="configuration"):
         bad("[rectification] pointing_uses_seed needs a seed DEM ([inputs] seed_dem, --seed-dem) "
             "to fix the pointing along the epipolar lines")
     j = cfg.jitter
-    if j.enabled and not cfg.inputs.seed_dem:
-        bad("[jitter] enabled needs a seed DEM ([inputs] seed_dem, --seed-dem) as the reference")
+    if j.axes not in ("pitch", "roll", "both"):
+        bad(f"[jitter] axes must be 'pitch', 'roll' or 'both', got {j.axes!r}")
+    if j.enabled and "pitch" in j.axis_names and not cfg.inputs.seed_dem:
+        bad("[jitter] enabled needs a seed DEM ([inputs] seed_dem, --seed-dem) as the reference "
+            "for the pitch jitter (axes = 'roll' needs none)")
     if j.n_sines < 1 or not 0 < j.min_frequency < j.max_frequency:
         bad(f"[jitter] needs n_sines >= 1 and 0 < min_frequency < max_frequency, got "
             f"{j.n_sines}, {j.min_frequency}, {j.max_frequency}")

@@ -56,9 +56,11 @@ def add_parser(subparsers):
                    help="also fix the pointing's component along the epipolar lines (a height "
                         "offset, unobservable from two images) against --seed-dem")
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
-    p.add_argument("--jitter-correction", action="store_true",
-                   help="estimate the right camera's along-track jitter against --seed-dem (sum of "
-                        "sines), correct its attitude and make the DEM again (ASTER 3B)")
+    p.add_argument("--jitter-correction", nargs="?", const="pitch", choices=["pitch", "roll", "both"],
+                   help="estimate the right camera's attitude jitter (sum of sines), correct its "
+                        "attitude and make the DEM again (ASTER 3B): pitch (the default) against "
+                        "--seed-dem, roll from the matcher's residual vertical parallax (no "
+                        "reference DEM), or both")
     options.add_band(p)
     p.add_argument("--rpc-direct", action="store_true",
                    help="localise RPCs with the file's direct model (DIMAP, rpcm JSON) instead of "
@@ -95,7 +97,8 @@ def config_from_args(args):
             matching=MatchingSettings(matcher=args.matcher),
             gridding=GriddingSettings(res=args.res, crs=args.crs, geoid=args.geoid,
                                       method=args.gridding)),
-        jitter=JitterSettings(enabled=args.jitter_correction),
+        jitter=JitterSettings(enabled=bool(args.jitter_correction),
+                              axes=args.jitter_correction or "pitch"),
         run=RunSettings(workers=args.workers, tile_timeout=args.tile_timeout, dask=args.dask,
                         overwrite=args.overwrite, force=args.force,
                         creation_options=options.creation_options(args)))

@@ -328,7 +328,7 @@ def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None):
         j = cfg.jitter
         products, corrected, fit, first = dem_with_jitter_correction(
             *args, pair.seed_dem, cfg.stereo, seed_dem=pair.seed_dem, n_sines=j.n_sines,
-            f_range=(j.min_frequency, j.max_frequency), runner=runner)
+            f_range=(j.min_frequency, j.max_frequency), runner=runner, axes=j.axis_names)
         pair.right_model = corrected
         log.info("jitter of the right camera: %s", products.info["jitter"])
     else:

@@ -15,6 +15,7 @@ EXAMPLES = """examples:
   stereodem simulate --preset aster -o sim_aster
   stereodem simulate --preset aster --format l1a-v004 --size 820 840 -o sim_granule
   stereodem simulate --preset aster --format l1a-v003 --jitter 3 1.5 -o sim_v003
+  stereodem simulate --preset aster --roll-jitter 10 1.2 -o sim_roll
   stereodem simulate --preset frame --size 800 800 --noise 2 --seed 7 -o sim_frame
   stereodem simulate --preset pushbroom --angles 20 -20 --dem my_dem.tif --dem-vertical geoid -o sim
 """
@@ -49,6 +50,9 @@ def add_parser(sub):
     p.add_argument("--jitter", nargs=2, type=float, metavar=("AMPLITUDE_URAD", "FREQUENCY_HZ"),
                    help="along-track attitude oscillation (pitch) of the second camera (3B); "
                         "the written model/granule geometry stays nominal, as in L1A products")
+    p.add_argument("--roll-jitter", nargs=2, type=float, metavar=("AMPLITUDE_URAD", "FREQUENCY_HZ"),
+                   help="cross-track attitude oscillation (roll) of the second camera (3B), seen as "
+                        "residual vertical parallax; may be combined with --jitter")
     p.add_argument("--velocity", choices=["inertial", "earth_fixed"], default="inertial",
                    help="what the granule's SatelliteVelocity holds (default inertial)")
     p.add_argument("-o", "--out", required=True, help="output folder")
@@ -97,7 +101,8 @@ def run(args) -> int:
     log.info("simulating %s scene %dx%d", args.preset, *args.size)
     scene = simulate_scene(args.preset, size=tuple(args.size), right_size=right_size, dem=dem,
                            texture=args.texture, noise=args.noise, seed=args.seed, bits=args.bits,
-                           angles=tuple(args.angles), jitter=args.jitter)
+                           angles=tuple(args.angles), jitter=args.jitter,
+                           roll_jitter=args.roll_jitter)
     if not granule:
         out = write_scene(scene, args.out, overwrite=args.overwrite)
         meta = json.loads((out / "scene.json").read_text())

@@ -17,7 +17,16 @@ repeat along it (MMASTER fits them with a sum of sines against a reference DEM; 
   Lomb-Scargle periodogram and refines amplitudes, phases and frequencies with
   ``scipy.optimize.least_squares`` (plus a low-order trend);
 * :func:`estimate_pitch_jitter` turns DEM-minus-reference residuals into a per-time pitch error
-  of the second model (residual / sensitivity, binned by its acquisition line) and fits it.
+  of the second model (residual / sensitivity, binned by its acquisition line) and fits it;
+* :func:`cross_track_sensitivity` and :func:`estimate_roll_jitter` do the same for the roll
+  (cross-track) oscillation from the residual vertical parallax of the matches, the offset of
+  each right-image match across its epipolar curve (no reference DEM: a roll of the second
+  camera moves its image across the epipolar direction, which two images observe, while a
+  pitch moves it along, where it reads as height).
+
+3N and 3B see the same ground about 55 s apart, so one platform oscillation reaches the two
+bands with unrelated phases; only the difference is observable from the pair, and it is
+attributed to the second (3B) model, as MMASTER does.
 """
 from __future__ import annotations
 
@@ -216,3 +225,94 @@ def estimate_pitch_jitter(dem, reference, left, right, *, n_sines: int = 1, f_ra
     fit = fit_sum_of_sines(t[keep], med[keep], n_sines=n_sines, f_range=f_range)
     return fit, {"times": t[keep], "pitch_profile_rad": med[keep], "counts": counts[keep],
                  "sensitivity_m_per_rad": float(np.median(sens))}
+
+
+def cross_track_sensitivity(right, lon, lat, h, normal, *, droll: float = 1e-6):
+    """Displacement (px per rad) of ``right``'s projection of ground points across the
+    epipolar curves (unit ``normal`` vectors (N, 2) in right-image (col, row)) when the
+    camera rolls by ``droll``: the factor turning a vertical-parallax residual into a roll."""
+    c0, r0 = right.project(lon, lat, h)
+    rolled = right.with_parameters(roll_bias=right.parameters()["roll_bias"] + droll)
+    c1, r1 = rolled.project(lon, lat, h)
+    n = np.asarray(normal, float)
+    return ((np.asarray(c1) - c0) * n[..., 0] + (np.asarray(r1) - r0) * n[..., 1]) / droll
+
+
+def roll_profile(times, cross_px, sensitivity, *, bin_seconds: float, min_count: int = 20):
+    """Per-time roll (rad) of the second camera from vertical-parallax residuals.
+
+    ``cross_px`` are the signed residuals across the epipolar curves (px) of matches whose
+    right-image acquisition times are ``times`` (s); ``sensitivity`` (px/rad, per match or
+    scalar) from :func:`cross_track_sensitivity`. Each residual divided by its sensitivity is
+    a roll sample; samples are binned by time (``bin_seconds``) and the median of each bin
+    with at least ``min_count`` samples kept. Returns ``(bin_times, roll_rad, counts)``.
+    """
+    t = np.asarray(times, float)
+    roll = np.asarray(cross_px, float) / np.asarray(sensitivity, float)
+    ok = np.isfinite(t) & np.isfinite(roll)
+    t, roll = t[ok], roll[ok]
+    if t.size == 0:
+        raise InputError("roll jitter: no valid vertical-parallax sample")
+    edges = np.arange(t.min(), t.max() + bin_seconds, bin_seconds)
+    idx = np.clip(np.digitize(t, edges) - 1, 0, max(len(edges) - 2, 0))
+    order = np.argsort(idx, kind="stable")
+    idx_s, v_s, t_s = idx[order], roll[order], t[order]
+    starts = np.flatnonzero(np.r_[True, np.diff(idx_s) > 0])
+    groups = np.split(v_s, starts[1:])
+    tgroups = np.split(t_s, starts[1:])
+    med = np.array([np.median(g) for g in groups])           # one call per bin, not per sample
+    tm = np.array([np.mean(g) for g in tgroups])
+    counts = np.array([g.size for g in groups])
+    keep = counts >= min_count
+    return tm[keep], med[keep], counts[keep]
+
+
+def estimate_roll_jitter(times, cross_px, sensitivity, *, n_sines: int = 1, f_range=(0.2, 8.0),
+                         bin_seconds: float = 8 * 2.1989e-3, min_count: int = 20):
+    """Roll jitter of the second camera (rad, on its time base) from the matcher's residual
+    vertical parallax (see :func:`roll_profile`): a :class:`SineSeries` fitted by
+    :func:`fit_sum_of_sines` (periodogram, then least squares), and the profile used.
+
+    A camera whose true roll is ``j(t)`` above its model's shows its matches ``j(t) *
+    sensitivity`` px across the model's epipolar curves, so the fitted series is ``j(t)``:
+    ``with_attitude_sines(right, fit, axis="roll")`` is the corrected model.
+    """
+    t, roll, counts = roll_profile(times, cross_px, sensitivity, bin_seconds=bin_seconds,
+                                   min_count=min_count)
+    fit = fit_sum_of_sines(t, roll, n_sines=n_sines, f_range=f_range)
+    return fit, {"times": t, "roll_profile_rad": roll, "counts": counts}
+
+
+def fit_at_frequencies(t, y, frequencies, *, trend_degree: int = 1, t_ref: float = 0.0):
+    """Amplitudes and phases of sines at fixed ``frequencies`` (Hz) in samples ``(t, y)``:
+    linear least squares with a polynomial trend, refitted once without the samples beyond
+    five robust sigmas. Returns a :class:`SineSeries` on the absolute time base."""
+    t = np.asarray(t, float)
+    y = np.asarray(y, float)
+    ok = np.isfinite(t) & np.isfinite(y)
+    t, y = t[ok], y[ok]
+    f = np.asarray(frequencies, float)
+    if t.size < 2 * f.size + trend_degree + 2:
+        raise InputError(f"jitter fit: only {t.size} valid samples")
+    x = t - float(np.mean(t))
+    w = 2 * np.pi * f
+    a = np.concatenate([np.sin(np.outer(t, w)), np.cos(np.outer(t, w)),
+                        np.vander(x, trend_degree + 1, increasing=True)], 1)
+    keep = np.ones(t.size, bool)
+    for _ in range(2):
+        c, *_ = np.linalg.lstsq(a[keep], y[keep], rcond=None)
+        r = y - a @ c
+        keep = np.abs(r) <= 5.0 * 1.4826 * max(float(np.median(np.abs(r[keep]))), 1e-300)
+    s, co = c[:f.size], c[f.size:2 * f.size]             # a sin(wt + p) = a cos p sin wt + a sin p cos wt
+    return SineSeries(np.hypot(s, co), f, np.mod(np.arctan2(co, s), 2 * np.pi), t_ref,
+                      c[2 * f.size:], float(np.sqrt(np.mean(r[keep] ** 2))))
+
+
+def add_series(a: SineSeries, b: SineSeries) -> SineSeries:
+    """The sum of two sine series at the same frequencies, as one (phasors added)."""
+    if a.frequencies.shape != b.frequencies.shape or not np.allclose(a.frequencies, b.frequencies):
+        raise InputError("add_series: the two series must have the same frequencies")
+    s = a.amplitudes * np.cos(a.phases) + b.amplitudes * np.cos(b.phases)
+    c = a.amplitudes * np.sin(a.phases) + b.amplitudes * np.sin(b.phases)
+    return SineSeries(np.hypot(s, c), a.frequencies.copy(), np.mod(np.arctan2(c, s), 2 * np.pi),
+                      a.t_ref, a.trend, b.rms_residual)
