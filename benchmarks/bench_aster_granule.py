@@ -48,36 +48,21 @@ def cli_simulate(dem_path: Path, out: Path, size, right_size) -> dict:
     """``stereodem simulate --preset aster --format l1a-v004`` at ``size`` in a child process:
     wall s, CPU s (children's user + system), peak RSS (child's ru_maxrss; sampled tree sum)."""
     import os
-    import subprocess
 
-    import psutil
+    from bench_aster_scene import measured
     cmd = [sys.executable, "-m", "stereodem.cli", "-q", "simulate", "--preset", "aster", "--format",
            "l1a-v004", "--size", *map(str, size), "--right-size", *map(str, right_size),
            "--dem", str(dem_path), "--dem-vertical", "geoid", "-o", str(out), "--overwrite"]
     load0 = os.getloadavg()
-    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    proc, sampled = psutil.Process(p.pid), 0
-    while p.poll() is None:
-        try:
-            tree = [proc] + proc.children(recursive=True)
-            sampled = max(sampled, sum(q.memory_info().rss for q in tree if q.is_running()))
-        except psutil.Error:
-            pass
-        time.sleep(0.2)
-    _, err = p.communicate()
-    wall = time.perf_counter() - t0
-    if p.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed:\n{err[-3000:]}")
+    wall, sampled_mb, _, cpu = measured(cmd)
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     return {"command": "stereodem simulate --preset aster --format l1a-v004 --size "
                        f"{size[0]} {size[1]} --right-size {right_size[0]} {right_size[1]} "
                        f"--dem {dem_path.name} --dem-vertical geoid",
             "wall_s": round(wall, 1),
-            "cpu_s": round((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), 1),
+            "cpu_s": round(cpu, 1),
             "peak_rss_gb": round(r1.ru_maxrss / 1024 ** 2, 3),
-            "peak_rss_gb_sampled_tree": round(sampled / 1024 ** 3, 3),
+            "peak_rss_gb_sampled_tree": round(sampled_mb / 1024, 3),
             "load_average_before_after": [round(load0[0], 2), round(os.getloadavg()[0], 2)],
             "targets": {"wall_s": 40, "peak_rss_gb": 3}}
 

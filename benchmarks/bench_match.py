@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import rasterio
 
-from stereodem.stereo.match import _sgbm, _to_uint8, match_rectified
+from stereodem.stereo.match import _to_uint8, match_rectified
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "bench_match.json"

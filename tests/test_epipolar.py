@@ -8,7 +8,6 @@ import pytest
 
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation.simulate import frame_pair, pushbroom_pair
-from stereodem.stereo import epipolar
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.stereo.epipolar import apply_map, rectify_tile, virtual_matches
 from stereodem.stereo.tiling import Tile, tile_grid

@@ -202,6 +202,19 @@ def test_cli_simulate_roll_jitter(tmp_path):
     assert meta["diagnostics"]["right_roll_jitter"]["frequency_hz"] == 1.5
 
 
+def _dem_nmad(products, truth_dem):
+    """NMAD (m) of a stereo product's DEM against the truth, over its valid cells."""
+    from stereodem.stereo.jitter import products_dem
+    g = products_dem(products)
+    z = g.heights.astype(float)
+    rr, cc = np.nonzero(np.isfinite(z))
+    x, y = g.transform @ (cc + 0.5, rr + 0.5)
+    lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), g.crs)
+    dh = z[rr, cc] - truth_dem.sample(lon, lat)
+    dh = dh[np.isfinite(dh)]
+    return float(1.4826 * np.median(np.abs(dh - np.median(dh))))
+
+
 def _amplitude_at(f, t, y):
     a = np.stack([np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t), np.ones_like(t),
                   t - t.mean()], -1)
@@ -245,14 +258,7 @@ def test_roll_jitter_from_vertical_parallax_without_reference_dem():
         measured[name] = _amplitude_at(f, tb, roll)
 
     def errors(products):
-        g = products_dem(products)
-        z = g.heights.astype(float)
-        rr, cc = np.nonzero(np.isfinite(z))
-        x, y = g.transform @ (cc + 0.5, rr + 0.5)
-        lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), g.crs)
-        dh = z[rr, cc] - sc.truth_dem.sample(lon, lat)
-        dh = dh[np.isfinite(dh)]
-        return float(1.4826 * np.median(np.abs(dh - np.median(dh)))), float(np.nanmedian(products.dem.score))
+        return _dem_nmad(products, sc.truth_dem), float(np.nanmedian(products.dem.score))
 
     (nmad0, score0), (nmad1, score1) = errors(first), errors(final)
     print(f"roll jitter: injected {1e6 * a_true:.1f} urad at {f} Hz, fitted "
@@ -333,7 +339,7 @@ def test_pitch_and_roll_jitter_together():
     1.1 Hz from the vertical parallax): each fit finds its own oscillation and the DEM
     improves."""
     from stereodem.sensor.simulation.simulate import simulate_scene
-    from stereodem.stereo.jitter import dem_with_jitter_correction, products_dem
+    from stereodem.stereo.jitter import dem_with_jitter_correction
 
     sc = simulate_scene("aster", size=(500, 700), right_size=(610, 900), seed=5,
                         jitter=(3.5, 1.5), roll_jitter=(10.0, 1.1))
@@ -344,17 +350,7 @@ def test_pitch_and_roll_jitter_together():
     assert fits["roll"].amplitudes[0] == pytest.approx(10e-6, rel=0.2)
     assert fits["pitch"].amplitudes[0] == pytest.approx(3.5e-6, rel=0.2)
 
-    def nmad(products):
-        g = products_dem(products)
-        z = g.heights.astype(float)
-        rr, cc = np.nonzero(np.isfinite(z))
-        x, y = g.transform @ (cc + 0.5, rr + 0.5)
-        lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), g.crs)
-        dh = z[rr, cc] - sc.truth_dem.sample(lon, lat)
-        dh = dh[np.isfinite(dh)]
-        return float(1.4826 * np.median(np.abs(dh - np.median(dh))))
-
-    before, after = nmad(first), nmad(final)
+    before, after = _dem_nmad(first, sc.truth_dem), _dem_nmad(final, sc.truth_dem)
     print(f"pitch + roll jitter: fits {fits['pitch'].to_dict()['amplitudes']} / "
           f"{fits['roll'].to_dict()['amplitudes']}; DEM NMAD {before:.2f} -> {after:.2f} m")
     assert after < before

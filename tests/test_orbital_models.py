@@ -3,7 +3,7 @@ scene whose ephemeris and attitude carry biases and drifts."""
 import numpy as np
 import pytest
 
-from orbital_helpers import (RIGOROUS_SET, NOISE_PX, aster_scene, control_points, gauss_newton,
+from orbital_helpers import (NOISE_PX, aster_scene, control_points, gauss_newton,
                              icp_rmse)
 from stereodem.sensor.errors import InputError, SensorModelError
 from stereodem.sensor.models.orbital import (KratkyModel, OrunNatarajanModel, ToutinModel,

@@ -1,6 +1,5 @@
 """DRM orthorectification: accuracy against known truth, GDAL's RPC ortho, the forward DRM,
 layers and the command line."""
-import os
 
 import numpy as np
 import pytest

@@ -7,11 +7,10 @@ import logging
 import re
 import subprocess
 import sys
-import warnings
 
 import pytest
 
-from stereodem.progress import Progress, TqdmLoggingHandler, UTCFormatter, setup_logging
+from stereodem.progress import Progress, TqdmLoggingHandler, UTCFormatter
 from stereodem.provenance import git_commit, provenance, utc_now
 
 

@@ -1,13 +1,10 @@
 """Uncertainty and sensitivity (issue #17): propagation, sampling, indices, maps, command."""
-import json
-
 import numpy as np
 import pytest
 from affine import Affine
 
 from stereodem.ortho.uncertainty import propagation as P
 from stereodem.ortho.uncertainty import sampling as S
-from stereodem.sensor.errors import InputError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import DEM
 

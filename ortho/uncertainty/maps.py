@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,14 +26,10 @@ from stereodem.sensor.errors import InputError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.geo.dem import ELLIPSOID
 
-from stereodem.ortho.drm import bilinear_nan
 from stereodem.ortho.uncertainty.first_order_maps import _node_lattice, _weights
-from stereodem.ortho.uncertainty.propagation import (adjustable_model, ce90, ce90_from_cov, check_names,
-                                                     check_psd, dem_gradient_arrays,
-                                                     dem_pixel_jacobian, first_order,
-                                                     ground_jacobian,
-                                                     image_jacobian, image_side, propagate,
-                                                     slope_from_pixels)
+from stereodem.ortho.uncertainty.propagation import (adjustable_model, ce90, check_names, check_psd,
+                                                     first_order, ground_jacobian, image_jacobian,
+                                                     propagate)
 
 log = logging.getLogger(__name__)
 
@@ -56,18 +51,9 @@ def _interp(L, Wy, Wx, dtype=np.float32):
 
 
 def _bilinear_at(L, nodes_x, nodes_y, u, v):
-    Wx = _weights_at(u, nodes_x)
-    Wy = _weights_at(v, nodes_y)
+    Wx = _weights(0, nodes_x, u)
+    Wy = _weights(0, nodes_y, v)
     return np.einsum("ni,ij,nj->n", Wy, L, Wx)
-
-
-def _weights_at(x, nodes):
-    W = np.zeros((x.size, nodes.size))
-    j = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, nodes.size - 2)
-    t = np.clip((x - nodes[j]) / (nodes[j + 1] - nodes[j]), 0.0, 1.0)
-    W[np.arange(x.size), j] = 1 - t
-    W[np.arange(x.size), j + 1] = t
-    return W
 
 
 # ----------------------------------------------------------------------------- ortho maps

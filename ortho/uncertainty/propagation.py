@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import erf as _erf
 
-from stereodem.sensor.errors import InputError, SensorModelError
+from stereodem.sensor.errors import InputError
 from stereodem.sensor.geo import geodesy
 from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 
@@ -223,7 +223,6 @@ def dem_gradient_arrays(dem):
 def dem_gradient(dem, lon, lat, crs, *, arrays=None):
     """Terrain gradient ``(∂h/∂E, ∂h/∂N)`` (m/m) at points: the DEM's central-difference
     gradient, bilinear between posts, turned into map axes by the DEM-pixel Jacobian."""
-    from stereodem.ortho.drm import bilinear_nan
     gc, gr = arrays if arrays is not None else dem_gradient_arrays(dem)
     c, r, P = dem_pixel_jacobian(dem, lon, lat, crs)
     return slope_from_pixels(gc, gr, c, r, P)
