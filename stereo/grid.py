@@ -235,7 +235,6 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
         bw = np.bincount(idx, w, ncell)
         sums[0] += bw
         sums[1] += np.bincount(idx, w * h[sel], ncell)
-        sums[2] += np.bincount(idx, minlength=ncell)
         # a layer whose values are all finite has the weights of the height layer (w · 1)
         ws = w if all_sok else w * sok[sel]
         wg = w if all_gok else w * gok[sel]
@@ -243,8 +242,24 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
         sums[4] += np.bincount(idx, ws * score[sel], ncell)
         sums[5] += bw if all_gok else np.bincount(idx, wg, ncell)
         sums[6] += np.bincount(idx, wg * ray_gap[sel], ncell)
+    sums[2] = _support_counts(i0 - r0, j0 - c0, wr, wc, radius).ravel()
     n_points = int(((i0 >= 0) & (i0 < rows) & (j0 >= 0) & (j0 < cols)).sum())
     return CellSums(r0, c0, sums.reshape(len(SUM_LAYERS), wr, wc), n_points)
+
+
+def _support_counts(i, j, rows, cols, radius):
+    """Number of points whose ``(2 radius + 1)^2`` support covers each cell of a
+    ``rows x cols`` window, from the points' cells ``(i, j)`` in the window (they may lie up
+    to ``radius`` outside it): one count of the points per cell, then a box sum (cumulative
+    sums; exact, the counts are integers)."""
+    pad = radius
+    keep = (i >= -pad) & (i < rows + pad) & (j >= -pad) & (j < cols + pad)
+    hp, wp = rows + 2 * pad, cols + 2 * pad
+    n = np.bincount((i[keep] + pad) * wp + (j[keep] + pad), minlength=hp * wp).reshape(hp, wp)
+    c = np.zeros((hp + 1, wp + 1))
+    c[1:, 1:] = n.cumsum(0).cumsum(1)
+    k = 2 * radius + 1
+    return c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
 
 
 def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False, info=None) -> DEMGrid:

@@ -118,15 +118,23 @@ def to_uint8(image, *, percentiles=(1.0, 99.0)):
         raise StereodemError(f"sparse matching: expected a 2-D image, got shape {a.shape}")
     a = a.astype(np.float32, copy=False)
     valid = np.isfinite(a)
-    v = a[valid]
+    all_valid = bool(valid.all())
+    v = a.ravel() if all_valid else a[valid]
     if v.size == 0:
         return np.zeros(a.shape, np.uint8), valid
     if v.size > 400_000:
         v = v[:: v.size // 400_000]
     lo, hi = np.percentile(v, percentiles)
     scale = 255.0 / max(float(hi - lo), 1e-12)
-    out = np.clip((np.where(valid, a, lo) - lo) * scale + 0.5, 0, 255).astype(np.uint8)
-    return out, valid
+    # (a - lo) * scale + 0.5 clipped to 0..255, in float64, in place; voids -> 0
+    t = np.asarray(a, np.float64).copy() if a.dtype == np.float64 else a.astype(np.float64)
+    t -= lo
+    t *= scale
+    t += 0.5
+    np.clip(t, 0.0, 255.0, out=t)
+    if not all_valid:
+        t[~valid] = 0.0
+    return t.astype(np.uint8), valid
 
 
 def _sift(image8, mask, n_features, scale):
