@@ -294,12 +294,15 @@ def _line_table_pose(centre, rot, k, w, shape):
     whole lines, ``k``/``w`` from :func:`_line_table`; returns arrays of ``shape + (3,)`` and
     ``shape + (3, 3)``. Interpolated rotation matrices are orthonormal to ~ (angle per
     line)^2 / 8 (the rays are renormalised)."""
-    k, w = k.ravel(), w.ravel()
-    dc = np.diff(centre, axis=0)
-    c = centre[k] + w[:, None] * dc[k]
-    dr = np.diff(rot.reshape(-1, 9), axis=0)
-    m = rot.reshape(-1, 9)[k] + w[:, None] * dr[k]
-    return c.reshape(shape + (3,)), m.reshape(shape + (3, 3))
+    k, w = k.ravel(), w.ravel()[:, None]
+    out = []
+    for table in (centre.reshape(len(centre), -1), rot.reshape(len(rot), -1)):
+        v = np.take(table, k, axis=0)
+        step = np.take(np.diff(table, axis=0), k, axis=0)
+        step *= w
+        v += step
+        out.append(v)
+    return out[0].reshape(shape + (3,)), out[1].reshape(shape + (3, 3))
 
 
 # ======================================================================= the model
@@ -494,10 +497,20 @@ class PushbroomModel(SensorModel):
         """
         self.check_inputs(col, row, what="image coordinates")
         col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
-        c, rot = self._pose(row)
-        u = self.detectors.directions(col, row, cross_scale=1.0 + self._params["look_scale"])
-        d = (rot @ u[..., None])[..., 0]
-        return c, d / np.linalg.norm(d, axis=-1, keepdims=True)
+        scale = 1.0 + self._params["look_scale"]
+        if type(self)._pose is not PushbroomModel._pose:
+            c, rot = self._pose(row)
+            u = self.detectors.directions(col, row, cross_scale=scale)
+            d = (rot @ u[..., None])[..., 0]
+        else:
+            # rot @ [tan_x, s tan_y, 1] column by column (the look vector's length cancels in
+            # the normalisation below), without stacking per-point look vectors
+            c, rot = self._pose(row)
+            tx, ty = self.detectors.tangents(col, row)
+            d = rot[..., 2].copy()
+            d += rot[..., 0] * tx[..., None]
+            d += rot[..., 1] * (scale * ty)[..., None]
+        return c, d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
 
     def localize(self, col, row, h):
         """Image ``(col, row)`` at ellipsoidal height ``h`` (m) -> ``(lon, lat)`` degrees.
