@@ -69,6 +69,13 @@ class DEMGrid(OnGrid):
         Float layers are float32 with NaN nodata; ``count`` is int32 with nodata 0. Each
         file is written atomically. Returns the dict of written paths.
         """
+        return self.prepare_write(directory, overwrite=overwrite, names=names,
+                                  creation_options=creation_options)()
+
+    def prepare_write(self, directory, *, overwrite=False, names=None, creation_options=None):
+        """:meth:`write` in two steps: the layers are converted to their stored types now
+        (copies), and the returned callable writes them; it can run in another thread while
+        this grid changes or goes away."""
         from pathlib import Path
         d = Path(directory)
         names = names or dict(dem="dem.tif", count="count.tif", score="score.tif", raygap="raygap.tif")
@@ -80,12 +87,16 @@ class DEMGrid(OnGrid):
             "score": (self.score.astype(np.float32), np.nan, "mean correlation score (ZNCC) of the cell's points", "1"),
             "raygap": (self.ray_gap.astype(np.float32), np.nan, "mean ray gap of the cell's points", "metre"),
         }
-        out = {}
-        for key, (data, nodata, description, unit) in layers.items():
-            extra = dict(tags={_VERTICAL_TAG: self.vertical}) if key == "dem" else {}
-            out[key] = write_geotiff(d / names[key], data, self.transform, self.crs, nodata,
-                                     descriptions=[description], units=[unit], **extra, **kw)
-        return out
+        transform, crs, vertical = self.transform, self.crs, self.vertical
+
+        def write_layers():
+            out = {}
+            for key, (data, nodata, description, unit) in layers.items():
+                extra = dict(tags={_VERTICAL_TAG: vertical}) if key == "dem" else {}
+                out[key] = write_geotiff(d / names[key], data, transform, crs, nodata,
+                                         descriptions=[description], units=[unit], **extra, **kw)
+            return out
+        return write_layers
 
 
 def grid_bounds(x, y, posting):

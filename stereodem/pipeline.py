@@ -548,8 +548,52 @@ def writer_options(cfg: Config) -> dict:
     return co
 
 
+class BackgroundWriter:
+    """One thread that writes output files while the run goes on (GDAL compresses with the
+    GIL released, so a write overlaps the next stage's numpy work on the other core).
+
+    ``submit(fn, *args)`` queues a write; ``wait_for(i)`` waits for the ``i``-th one,
+    ``wait()`` for all, re-raising the first error. Used as a context manager it waits for
+    every queued write on exit (also when the run fails), so no file is left half-written.
+    """
+
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereodem-writer")
+        self._futures = []
+        self.seconds = 0.0
+
+    @property
+    def count(self) -> int:
+        return len(self._futures)
+
+    def submit(self, fn, *args, **kwargs):
+        def timed():
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds += time.perf_counter() - t0
+        self._futures.append(self._pool.submit(timed))
+
+    def wait_for(self, index: int):
+        if index < len(self._futures):
+            self._futures[index].result()
+
+    def wait(self):
+        for f in self._futures:
+            f.result()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._pool.shutdown(wait=True)
+        return False
+
+
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
-    from .provenance import provenance, utc_now
+    from .provenance import utc_now
     started = utc_now()
     co = writer_options(cfg)
     prog = progress_factory or (lambda label: None)
@@ -557,6 +601,14 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     t_all = time.perf_counter()
     written = []
 
+    with BackgroundWriter() as writer:
+        return _run_stages(cfg, out, prog, stages, t_all, started, co, written, writer)
+
+
+def _run_stages(cfg, out, prog, stages, t_all, started, co, written, writer) -> dict:
+    """The stages of :func:`_run_in` after loading; GeoTIFF writes go to ``writer`` (a
+    :class:`BackgroundWriter`) and overlap the next stage."""
+    from .provenance import provenance
     t0 = stages.start()
     check_inputs(cfg)
     pair = load_pair(cfg)
@@ -566,7 +618,7 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     bar = prog("stereo")
     products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles")
     _close(bar)
-    products.write(out / "raw", overwrite=True, creation_options=co)
+    writer.submit(products.dem.prepare_write(out / "raw", overwrite=True, creation_options=co))
     written.append("raw")
     tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
     stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
@@ -593,7 +645,8 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
             _close(bar)
             dtypes = {"left": pair.left_dtype, "right": pair.right_dtype}
             for name, o in orthos.items():           # in the image's own data type
-                o.write(out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name], creation_options=co)
+                writer.submit(o.write, out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name],
+                              creation_options=co)
                 written.append(f"ortho_{name}.tif")
             stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px
                                                                for k, o in orthos.items()})
@@ -610,6 +663,7 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
                           sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"])
 
         # the images and the raw layers are not needed any more (the assessment's memory)
+        writer.wait_for(0)        # the raw layers are on disk (the orthoimages may still go)
         pair.left_image = pair.right_image = None
         products.dem = None
         if cfg.assess.enabled and cfg.inputs.reference_dem:
@@ -619,6 +673,12 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
             written.append("assess")
             stages.record("assess", t0)
 
+    t0 = stages.start()
+    writer.wait()
+    stages.record("writes", t0, background_s=round(writer.seconds, 3), files=writer.count,
+                  note="GeoTIFF writes in a background thread, overlapping the following "
+                       "stages (their CPU counts in those stages); seconds: the wait for the "
+                       "last ones")
     written += ["tiles", "run.json"]
     run_info = dict(status=sanity.status(warnings), warnings=warnings,
                     provenance=provenance(started=started), config=cfg.to_dict(),
