@@ -240,8 +240,13 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
         if sig is None:
             w = np.ones(h.size if isinstance(sel, slice) else int(sel.sum()))
         else:
-            r2 = (dsq_i[di] + dsq_j[dj])[sel] * posting ** 2
-            w = np.exp(-0.5 * r2 / sig ** 2)
+            # exp(-0.5 r2 / sig^2), r2 = (dsq_i + dsq_j) posting^2: the same operations in
+            # the same order, in place
+            w = dsq_i[di] + dsq_j[dj] if isinstance(sel, slice) else (dsq_i[di] + dsq_j[dj])[sel]
+            w *= posting ** 2
+            w *= -0.5
+            w /= sig ** 2
+            np.exp(w, out=w)
         idx = (base + (di * wc + dj))[sel]
         bw = np.bincount(idx, w, ncell)
         sums[0] += bw
