@@ -405,15 +405,26 @@ def post_stage(cfg: Config, layers: DEMGrid, seed_dem: DEM | None = None):
     return z.astype(np.float32), mask, report
 
 
-def write_clean_dem(path, heights, mask, layers: DEMGrid, *, overwrite=False, creation_options=None):
-    """Write a clean DEM and its edit mask (``<stem>_edit_mask.tif``, uint8, 255 = nodata)."""
+def write_clean_dem(path, heights, mask, layers: DEMGrid, *, overwrite=False, creation_options=None,
+                    writer=None):
+    """Write a clean DEM and its edit mask (``<stem>_edit_mask.tif``, uint8, 255 = nodata);
+    returns the clean :class:`DEM`. With a ``writer`` (:class:`BackgroundWriter`) the files
+    are written there, from copies of ``heights`` and ``mask``."""
     path = Path(path)
     clean = DEM(heights, layers.transform, layers.crs, layers.vertical, str(path))
-    clean.write(path, overwrite=overwrite, creation_options=creation_options)
-    write_geotiff(edit_mask_path(path), mask, layers.transform, layers.crs, 255, overwrite=overwrite,
+    if writer is not None:
+        stored = DEM(np.array(heights), layers.transform, layers.crs, layers.vertical, str(path))
+        writer.submit(_write_dem_and_mask, path, stored, np.array(mask), overwrite, creation_options)
+    else:
+        _write_dem_and_mask(path, clean, mask, overwrite, creation_options)
+    return clean
+
+
+def _write_dem_and_mask(path, dem: DEM, mask, overwrite, creation_options):
+    dem.write(path, overwrite=overwrite, creation_options=creation_options)
+    write_geotiff(edit_mask_path(path), mask, dem.transform, dem.crs, 255, overwrite=overwrite,
                   descriptions=["edit code: 0 kept, 1-8 filter reason, 99 border rim, 100/101 filled"],
                   units=["1"], creation_options=creation_options)
-    return clean
 
 
 def edit_mask_path(dem_path) -> Path:
@@ -631,7 +642,7 @@ def _run_stages(cfg, out, prog, stages, t_all, started, co, written, writer) -> 
         t0 = stages.start()
         z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
         clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True,
-                                creation_options=co)
+                                creation_options=co, writer=writer)
         written += ["dem.tif", edit_mask_path(out / "dem.tif").name]
         stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
 
@@ -654,6 +665,7 @@ def _run_stages(cfg, out, prog, stages, t_all, started, co, written, writer) -> 
             del orthos, images, o                     # written: their memory goes back
 
         if cfg.uncertainty.enabled:
+            writer.wait()                              # its layers go beside dem.tif
             t0 = stages.start()
             summary, dsig = uncertainty_stage(cfg, pair, clean, ortho_grid, products.dem,
                                               out / "uncertainty")
