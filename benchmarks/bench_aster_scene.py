@@ -247,6 +247,8 @@ def rerun(out: Path, workers):
               f"{r['headline']['valid_pct']:.2f} % valid (load average {r['load_average_at_start']})")
         print_stage_table(r)
     result["runs"] = [runs[w] for w in sorted(runs)]
+    result["runs_note"] = ("runs re-measured with --run-workers (see each run's 'measured'); "
+                           "dem_runs and matcher are from the last full bench run")
     if set(workers) >= {1, 2} or all((out / f"w{w}" / "dem.tif").exists() for w in (1, 2)):
         same = identical(out / "w1", out / "w2", RUN_LAYERS)
         result.setdefault("bit_identical", {})["run"] = same
