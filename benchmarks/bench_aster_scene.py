@@ -21,6 +21,12 @@ granule, then
 
     python benchmarks/bench_aster_scene.py [--size 4100 4200] [--right-size 5000 5400]
                                            [--out /tmp/bench_aster] [--resimulate]
+                                           [--run-workers N [N ...]]
+
+``--run-workers`` re-measures only the ``stereodem run`` jobs of those worker counts (no
+``stereodem dem`` runs, no matcher comparison) and updates their entries in the existing
+results file (the rasters are compared with the other worker count's output folder when it is
+there).
 
 The simulated scene is kept in ``OUT/scene`` and reused when its sizes match. Writes
 benchmarks/results/bench_aster_scene.json.
@@ -222,6 +228,39 @@ def matcher_throughput(scene: Path):
                 mpx_disparities_per_s=res)
 
 
+RUN_LAYERS = ["raw/dem.tif", "raw/score.tif", "dem.tif", "ortho_left.tif", "ortho_right.tif"]
+
+
+def rerun(out: Path, workers):
+    """Re-measure the ``stereodem run`` jobs of ``workers`` and update their entries (and the
+    bit-identity check) in the results file."""
+    dest = ROOT / "benchmarks" / "results" / "bench_aster_scene.json"
+    result = json.loads(dest.read_text())
+    runs = {r["workers"]: r for r in result.get("runs", [])}
+    for w in workers:
+        shutil.rmtree(out / f"w{w}", ignore_errors=True)
+        r = run_once(out / "scene", out / f"w{w}", w)
+        r["measured"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        runs[w] = r
+        print(f"stereodem run workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s, peak "
+              f"{r['peak_rss_mb_all_processes']} MB, NMAD {r['headline']['nmad']:.2f} m, "
+              f"{r['headline']['valid_pct']:.2f} % valid (load average {r['load_average_at_start']})")
+        print_stage_table(r)
+    result["runs"] = [runs[w] for w in sorted(runs)]
+    result["runs_note"] = ("runs re-measured with --run-workers (see each run's 'measured'); "
+                           "dem_runs and matcher are from the last full bench run")
+    if set(workers) >= {1, 2} or all((out / f"w{w}" / "dem.tif").exists() for w in (1, 2)):
+        same = identical(out / "w1", out / "w2", RUN_LAYERS)
+        result.setdefault("bit_identical", {})["run"] = same
+        print("bit-identical rasters, workers 1 vs 2:", same)
+    if 1 in runs and 2 in runs:
+        result.update(speedup_stereo=round(runs[1]["stages"]["stereo"]["seconds"]
+                                           / runs[2]["stages"]["stereo"]["seconds"], 2),
+                      speedup_total=round(runs[1]["wall_s"] / runs[2]["wall_s"], 2))
+    dest.write_text(json.dumps(result, indent=1, default=float))
+    print(f"updated {dest}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", nargs=2, type=int, default=[4100, 4200])
@@ -229,10 +268,14 @@ def main(argv=None):
     ap.add_argument("--out", default="/tmp/bench_aster")
     ap.add_argument("--resimulate", action="store_true")
     ap.add_argument("--skip-run", action="store_true", help="only the stereodem dem runs")
+    ap.add_argument("--run-workers", nargs="+", type=int, default=None,
+                    help="re-measure only these `stereodem run` worker counts; update the results file")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_sim, t_granule = simulate(out / "scene", args.size, args.right_size, args.resimulate)
+    if args.run_workers:
+        return rerun(out, args.run_workers)
     if t_sim is not None:
         print(f"simulated {args.size} + {args.right_size} in {t_sim:.1f} s, granule written in {t_granule:.1f} s")
     dem_runs = []
@@ -256,8 +299,7 @@ def main(argv=None):
                   f"{r['peak_rss_mb_all_processes']} MB, NMAD {r['headline']['nmad']:.2f} m, "
                   f"{r['headline']['valid_pct']:.2f} % valid (load average {r['load_average_at_start']})")
             print_stage_table(r)
-        same["run"] = identical(out / "w1", out / "w2", ["raw/dem.tif", "raw/score.tif", "dem.tif",
-                                                         "ortho_left.tif", "ortho_right.tif"])
+        same["run"] = identical(out / "w1", out / "w2", RUN_LAYERS)
         result.update(runs=runs, speedup_stereo=round(runs[0]["stages"]["stereo"]["seconds"]
                                                       / runs[1]["stages"]["stereo"]["seconds"], 2),
                       speedup_total=round(runs[0]["wall_s"] / runs[1]["wall_s"], 2))

@@ -69,6 +69,13 @@ class DEMGrid(OnGrid):
         Float layers are float32 with NaN nodata; ``count`` is int32 with nodata 0. Each
         file is written atomically. Returns the dict of written paths.
         """
+        return self.prepare_write(directory, overwrite=overwrite, names=names,
+                                  creation_options=creation_options)()
+
+    def prepare_write(self, directory, *, overwrite=False, names=None, creation_options=None):
+        """:meth:`write` in two steps: the layers are converted to their stored types now
+        (copies), and the returned callable writes them; it can run in another thread while
+        this grid changes or goes away."""
         from pathlib import Path
         d = Path(directory)
         names = names or dict(dem="dem.tif", count="count.tif", score="score.tif", raygap="raygap.tif")
@@ -80,12 +87,16 @@ class DEMGrid(OnGrid):
             "score": (self.score.astype(np.float32), np.nan, "mean correlation score (ZNCC) of the cell's points", "1"),
             "raygap": (self.ray_gap.astype(np.float32), np.nan, "mean ray gap of the cell's points", "metre"),
         }
-        out = {}
-        for key, (data, nodata, description, unit) in layers.items():
-            extra = dict(tags={_VERTICAL_TAG: self.vertical}) if key == "dem" else {}
-            out[key] = write_geotiff(d / names[key], data, self.transform, self.crs, nodata,
-                                     descriptions=[description], units=[unit], **extra, **kw)
-        return out
+        transform, crs, vertical = self.transform, self.crs, self.vertical
+
+        def write_layers():
+            out = {}
+            for key, (data, nodata, description, unit) in layers.items():
+                extra = dict(tags={_VERTICAL_TAG: vertical}) if key == "dem" else {}
+                out[key] = write_geotiff(d / names[key], data, transform, crs, nodata,
+                                         descriptions=[description], units=[unit], **extra, **kw)
+            return out
+        return write_layers
 
 
 def grid_bounds(x, y, posting):
@@ -229,13 +240,17 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
         if sig is None:
             w = np.ones(h.size if isinstance(sel, slice) else int(sel.sum()))
         else:
-            r2 = (dsq_i[di] + dsq_j[dj])[sel] * posting ** 2
-            w = np.exp(-0.5 * r2 / sig ** 2)
+            # exp(-0.5 r2 / sig^2), r2 = (dsq_i + dsq_j) posting^2: the same operations in
+            # the same order, in place
+            w = dsq_i[di] + dsq_j[dj] if isinstance(sel, slice) else (dsq_i[di] + dsq_j[dj])[sel]
+            w *= posting ** 2
+            w *= -0.5
+            w /= sig ** 2
+            np.exp(w, out=w)
         idx = (base + (di * wc + dj))[sel]
         bw = np.bincount(idx, w, ncell)
         sums[0] += bw
         sums[1] += np.bincount(idx, w * h[sel], ncell)
-        sums[2] += np.bincount(idx, minlength=ncell)
         # a layer whose values are all finite has the weights of the height layer (w · 1)
         ws = w if all_sok else w * sok[sel]
         wg = w if all_gok else w * gok[sel]
@@ -243,8 +258,24 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
         sums[4] += np.bincount(idx, ws * score[sel], ncell)
         sums[5] += bw if all_gok else np.bincount(idx, wg, ncell)
         sums[6] += np.bincount(idx, wg * ray_gap[sel], ncell)
+    sums[2] = _support_counts(i0 - r0, j0 - c0, wr, wc, radius).ravel()
     n_points = int(((i0 >= 0) & (i0 < rows) & (j0 >= 0) & (j0 < cols)).sum())
     return CellSums(r0, c0, sums.reshape(len(SUM_LAYERS), wr, wc), n_points)
+
+
+def _support_counts(i, j, rows, cols, radius):
+    """Number of points whose ``(2 radius + 1)^2`` support covers each cell of a
+    ``rows x cols`` window, from the points' cells ``(i, j)`` in the window (they may lie up
+    to ``radius`` outside it): one count of the points per cell, then a box sum (cumulative
+    sums; exact, the counts are integers)."""
+    pad = radius
+    keep = (i >= -pad) & (i < rows + pad) & (j >= -pad) & (j < cols + pad)
+    hp, wp = rows + 2 * pad, cols + 2 * pad
+    n = np.bincount((i[keep] + pad) * wp + (j[keep] + pad), minlength=hp * wp).reshape(hp, wp)
+    c = np.zeros((hp + 1, wp + 1))
+    c[1:, 1:] = n.cumsum(0).cumsum(1)
+    k = 2 * radius + 1
+    return c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
 
 
 def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False, info=None) -> DEMGrid:

@@ -60,11 +60,11 @@ def intersect_rays(o1, d1, o2, d2):
     """
     o1, d1, o2, d2 = (np.asarray(a, np.float64) for a in (o1, d1, o2, d2))
     w = o1 - o2
-    a = np.sum(d1 * d1, -1)
-    b = np.sum(d1 * d2, -1)
-    c = np.sum(d2 * d2, -1)
-    d = np.sum(d1 * w, -1)
-    e = np.sum(d2 * w, -1)
+
+    def dot(x, y):
+        return np.einsum("...i,...i->...", x, y)
+
+    a, b, c, d, e = dot(d1, d1), dot(d1, d2), dot(d2, d2), dot(d1, w), dot(d2, w)
     den = a * c - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
         den = np.where(den > 1e-15 * a * c, den, np.nan)
@@ -72,7 +72,8 @@ def intersect_rays(o1, d1, o2, d2):
         t = (a * e - b * d) / den
     p1 = o1 + s[..., None] * d1
     p2 = o2 + t[..., None] * d2
-    return 0.5 * (p1 + p2), np.linalg.norm(p1 - p2, axis=-1)
+    gap = p1 - p2
+    return 0.5 * (p1 + p2), np.sqrt(dot(gap, gap))
 
 
 def intersect_matches(left, right, col1, row1, col2, row2) -> Intersection:

@@ -36,7 +36,7 @@ from stereodem.sensor.errors import StereodemError
 log = logging.getLogger(__name__)
 
 __all__ = ["SparseMatches", "SparseMatchError", "sparse_matches", "epipolar_curves",
-           "distance_to_curves", "refine_matches", "to_uint8"]
+           "distance_to_curves", "refine_matches", "to_uint8", "zncc_scores"]
 
 
 class SparseMatchError(StereodemError):
@@ -118,15 +118,23 @@ def to_uint8(image, *, percentiles=(1.0, 99.0)):
         raise StereodemError(f"sparse matching: expected a 2-D image, got shape {a.shape}")
     a = a.astype(np.float32, copy=False)
     valid = np.isfinite(a)
-    v = a[valid]
+    all_valid = bool(valid.all())
+    v = a.ravel() if all_valid else a[valid]
     if v.size == 0:
         return np.zeros(a.shape, np.uint8), valid
     if v.size > 400_000:
         v = v[:: v.size // 400_000]
     lo, hi = np.percentile(v, percentiles)
     scale = 255.0 / max(float(hi - lo), 1e-12)
-    out = np.clip((np.where(valid, a, lo) - lo) * scale + 0.5, 0, 255).astype(np.uint8)
-    return out, valid
+    # (a - lo) * scale + 0.5 clipped to 0..255, in float64, in place; voids -> 0
+    t = np.asarray(a, np.float64).copy() if a.dtype == np.float64 else a.astype(np.float64)
+    t -= lo
+    t *= scale
+    t += 0.5
+    np.clip(t, 0.0, 255.0, out=t)
+    if not all_valid:
+        t[~valid] = 0.0
+    return t.astype(np.uint8), valid
 
 
 def _sift(image8, mask, n_features, scale):
@@ -209,17 +217,8 @@ def refine_matches(left, right, x1, x2, *, half: int = 7, search: int = 2, min_s
     T = left[p1[idx, 1, None, None] + oy, p1[idx, 0, None, None] + ox].astype(np.float64)
     sy, sx = np.mgrid[-r:r + 1, -r:r + 1]
     S = right[p2[idx, 1, None, None] + sy, p2[idx, 0, None, None] + sx].astype(np.float64)
-    T -= T.mean(axis=(1, 2), keepdims=True)
-    tn = np.sqrt(np.sum(T * T, axis=(1, 2)))
+    scores = zncc_scores(T, S)
     k = 2 * search + 1
-    w = 2 * half + 1
-    scores = np.full((idx.size, k, k), -np.inf)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for dy in range(k):                      # loop over the (2 search + 1)^2 shifts only
-            for dx in range(k):
-                P = S[:, dy:dy + w, dx:dx + w]
-                P = P - P.mean(axis=(1, 2), keepdims=True)
-                scores[:, dy, dx] = np.sum(T * P, axis=(1, 2)) / (tn * np.sqrt(np.sum(P * P, axis=(1, 2))))
     scores = np.where(np.isfinite(scores), scores, -np.inf)
     flat = scores.reshape(idx.size, -1).argmax(1)
     by, bx = np.divmod(flat, k)
@@ -241,6 +240,43 @@ def refine_matches(left, right, x1, x2, *, half: int = 7, search: int = 2, min_s
     y1 = p1[idx[ok]].astype(np.float64)
     y2 = np.stack([p2[idx[ok], 0] + bx[ok] - search + fx[ok], p2[idx[ok], 1] + by[ok] - search + fy[ok]], -1)
     return y1, y2, best[ok], keep
+
+
+def zncc_scores(T, S):
+    """ZNCC of templates ``T`` (N, w, w) at every integer shift inside search windows ``S``
+    (N, w + 2 s, w + 2 s): shape (N, 2 s + 1, 2 s + 1), NaN where a window or the template
+    holds NaN (void) or is flat.
+
+    Vectorised over the matches: the cross terms are one batched FFT correlation
+    (``numpy.fft.rfft2`` over the patch axes; the circular correlation equals the linear one
+    at the shifts kept), the windows' means and energies box sums of cumulative sums, so the
+    cost does not grow with the number of shifts.
+    """
+    n, w = T.shape[0], T.shape[1]
+    k = S.shape[1] - w + 1
+    t_void = ~np.isfinite(T).all(axis=(1, 2))
+    T = np.where(np.isfinite(T), T, 0.0)
+    T = T - T.mean(axis=(1, 2), keepdims=True)
+    tn = np.sqrt(np.einsum("nij,nij->n", T, T))
+    void = ~np.isfinite(S)
+    S = np.where(void, 0.0, S)
+    S = S - S.mean(axis=(1, 2), keepdims=True)       # better conditioned energies
+
+    def box(a):                                       # sums over every w x w window
+        c = np.zeros((a.shape[0], a.shape[1] + 1, a.shape[2] + 1))
+        c[:, 1:, 1:] = a.cumsum(1).cumsum(2)
+        return c[:, w:, w:] - c[:, :-w, w:] - c[:, w:, :-w] + c[:, :-w, :-w]
+
+    # T has zero mean, so sum(T * (P - mean P)) = sum(T * P): a plain correlation
+    shape = S.shape[1:]
+    cross = np.fft.irfft2(np.fft.rfft2(S) * np.conj(np.fft.rfft2(T, s=shape)), s=shape)[:, :k, :k]
+    total, energy = box(S), box(S * S)
+    var = np.maximum(energy - total * total / (w * w), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scores = cross / (tn[:, None, None] * np.sqrt(var))
+    bad = (box(void.astype(np.float64)) > 0.5) | t_void[:, None, None]
+    scores[bad] = np.nan
+    return scores.reshape(n, k, k)
 
 
 # ----------------------------------------------------------------------------- geometry

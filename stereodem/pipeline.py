@@ -405,15 +405,26 @@ def post_stage(cfg: Config, layers: DEMGrid, seed_dem: DEM | None = None):
     return z.astype(np.float32), mask, report
 
 
-def write_clean_dem(path, heights, mask, layers: DEMGrid, *, overwrite=False, creation_options=None):
-    """Write a clean DEM and its edit mask (``<stem>_edit_mask.tif``, uint8, 255 = nodata)."""
+def write_clean_dem(path, heights, mask, layers: DEMGrid, *, overwrite=False, creation_options=None,
+                    writer=None):
+    """Write a clean DEM and its edit mask (``<stem>_edit_mask.tif``, uint8, 255 = nodata);
+    returns the clean :class:`DEM`. With a ``writer`` (:class:`BackgroundWriter`) the files
+    are written there, from copies of ``heights`` and ``mask``."""
     path = Path(path)
     clean = DEM(heights, layers.transform, layers.crs, layers.vertical, str(path))
-    clean.write(path, overwrite=overwrite, creation_options=creation_options)
-    write_geotiff(edit_mask_path(path), mask, layers.transform, layers.crs, 255, overwrite=overwrite,
+    if writer is not None:
+        stored = DEM(np.array(heights), layers.transform, layers.crs, layers.vertical, str(path))
+        writer.submit(_write_dem_and_mask, path, stored, np.array(mask), overwrite, creation_options)
+    else:
+        _write_dem_and_mask(path, clean, mask, overwrite, creation_options)
+    return clean
+
+
+def _write_dem_and_mask(path, dem: DEM, mask, overwrite, creation_options):
+    dem.write(path, overwrite=overwrite, creation_options=creation_options)
+    write_geotiff(edit_mask_path(path), mask, dem.transform, dem.crs, 255, overwrite=overwrite,
                   descriptions=["edit code: 0 kept, 1-8 filter reason, 99 border rim, 100/101 filled"],
                   units=["1"], creation_options=creation_options)
-    return clean
 
 
 def edit_mask_path(dem_path) -> Path:
@@ -548,8 +559,52 @@ def writer_options(cfg: Config) -> dict:
     return co
 
 
+class BackgroundWriter:
+    """One thread that writes output files while the run goes on (GDAL compresses with the
+    GIL released, so a write overlaps the next stage's numpy work on the other core).
+
+    ``submit(fn, *args)`` queues a write; ``wait_for(i)`` waits for the ``i``-th one,
+    ``wait()`` for all, re-raising the first error. Used as a context manager it waits for
+    every queued write on exit (also when the run fails), so no file is left half-written.
+    """
+
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereodem-writer")
+        self._futures = []
+        self.seconds = 0.0
+
+    @property
+    def count(self) -> int:
+        return len(self._futures)
+
+    def submit(self, fn, *args, **kwargs):
+        def timed():
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds += time.perf_counter() - t0
+        self._futures.append(self._pool.submit(timed))
+
+    def wait_for(self, index: int):
+        if index < len(self._futures):
+            self._futures[index].result()
+
+    def wait(self):
+        for f in self._futures:
+            f.result()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._pool.shutdown(wait=True)
+        return False
+
+
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
-    from .provenance import provenance, utc_now
+    from .provenance import utc_now
     started = utc_now()
     co = writer_options(cfg)
     prog = progress_factory or (lambda label: None)
@@ -557,6 +612,14 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     t_all = time.perf_counter()
     written = []
 
+    with BackgroundWriter() as writer:
+        return _run_stages(cfg, out, prog, stages, t_all, started, co, written, writer)
+
+
+def _run_stages(cfg, out, prog, stages, t_all, started, co, written, writer) -> dict:
+    """The stages of :func:`_run_in` after loading; GeoTIFF writes go to ``writer`` (a
+    :class:`BackgroundWriter`) and overlap the next stage."""
+    from .provenance import provenance
     t0 = stages.start()
     check_inputs(cfg)
     pair = load_pair(cfg)
@@ -566,7 +629,7 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     bar = prog("stereo")
     products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles")
     _close(bar)
-    products.write(out / "raw", overwrite=True, creation_options=co)
+    writer.submit(products.dem.prepare_write(out / "raw", overwrite=True, creation_options=co))
     written.append("raw")
     tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
     stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
@@ -579,7 +642,7 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
         t0 = stages.start()
         z, mask, post_report = post_stage(cfg, products.dem, pair.seed_dem)
         clean = write_clean_dem(out / "dem.tif", z, mask, products.dem, overwrite=True,
-                                creation_options=co)
+                                creation_options=co, writer=writer)
         written += ["dem.tif", edit_mask_path(out / "dem.tif").name]
         stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(z).mean()), 3))
 
@@ -593,7 +656,8 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
             _close(bar)
             dtypes = {"left": pair.left_dtype, "right": pair.right_dtype}
             for name, o in orthos.items():           # in the image's own data type
-                o.write(out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name], creation_options=co)
+                writer.submit(o.write, out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name],
+                              creation_options=co)
                 written.append(f"ortho_{name}.tif")
             stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px
                                                                for k, o in orthos.items()})
@@ -601,6 +665,7 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
             del orthos, images, o                     # written: their memory goes back
 
         if cfg.uncertainty.enabled:
+            writer.wait()                              # its layers go beside dem.tif
             t0 = stages.start()
             summary, dsig = uncertainty_stage(cfg, pair, clean, ortho_grid, products.dem,
                                               out / "uncertainty")
@@ -610,6 +675,7 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
                           sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"])
 
         # the images and the raw layers are not needed any more (the assessment's memory)
+        writer.wait_for(0)        # the raw layers are on disk (the orthoimages may still go)
         pair.left_image = pair.right_image = None
         products.dem = None
         if cfg.assess.enabled and cfg.inputs.reference_dem:
@@ -619,6 +685,12 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
             written.append("assess")
             stages.record("assess", t0)
 
+    t0 = stages.start()
+    writer.wait()
+    stages.record("writes", t0, background_s=round(writer.seconds, 3), files=writer.count,
+                  note="GeoTIFF writes in a background thread, overlapping the following "
+                       "stages (their CPU counts in those stages); seconds: the wait for the "
+                       "last ones")
     written += ["tiles", "run.json"]
     run_info = dict(status=sanity.status(warnings), warnings=warnings,
                     provenance=provenance(started=started), config=cfg.to_dict(),
