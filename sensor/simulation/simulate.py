@@ -210,22 +210,26 @@ def _grid_for_models(models, crs, posting, h_range, margin_px=8):
 
 
 def _reproject_dem(dem: DEM, transform, shape, crs, *, geoid_step: int = 16, map_step: int = 16,
-                   block_rows: int = 512, diagnostics: dict | None = None):
-    """``dem`` resampled (bicubic) to the grid, in ellipsoidal heights (float32).
+                   block_rows: int = 512, upsample: int = 8, diagnostics: dict | None = None):
+    """``dem`` resampled (bicubic, GDAL's kernel) to the grid, in ellipsoidal heights (float32).
 
     Each grid cell centre's position in the source DEM (fractional pixel) is computed exactly
-    (pyproj) every ``map_step`` cells and interpolated bilinearly in between; the DEM is then
-    sampled there with OpenCV's bicubic kernel (Keys, a = -0.75), row block by row block. (GDAL's
-    cubic is Keys a = -0.5, which reproduces linear ramps; a = -0.75 displaces them by up to 0.05
-    source pixel, so the terrain differs from a GDAL-resampled one by ripples at the source
-    posting: on the bundled 3" SRTM at 7.5 m, NMAD 1.0 m, 99th percentile 4.2 m. The truth and
-    the rendering DEM are the same surface, so the simulation stays self-consistent; an exact
-    B-spline evaluation with four bilinear fetches was measured 4-5 times slower.) The
-    interpolation error of the source positions is measured at the centres of the coarse
-    cells and recorded in ``diagnostics["dem_map_error_px"]`` (source pixels; ~1e-6 for a
-    3" DEM at 16 cells of 7.5 m). GDAL's own warper approximates the same transformation to
-    0.125 pixel by default. Grids or DEMs too large for OpenCV's remap (32767 pixels a side)
-    go through ``rasterio.warp.reproject`` (cubic) instead.
+    (pyproj) every ``map_step`` cells and interpolated bilinearly in between. The DEM is then
+    evaluated there with the cubic convolution kernel of GDAL's ``cubic`` resampling (Keys,
+    a = -0.5, which reproduces linear ramps), row block by row block, in two exact steps and one
+    approximate one: the block's source window is upsampled ``upsample`` times by the separable
+    Keys kernel (a polyphase filter: exact values at every 1/``upsample`` source pixel), then
+    sampled bilinearly (OpenCV ``remap``). The bilinear step departs from the exact Keys
+    surface by at most ``|h''| d^2 / 8`` with ``d`` = the source posting / ``upsample`` (on a 3"
+    DEM of alpine relief, centimetres), plus ``remap``'s 1/32-pixel position rounding (1/256
+    source pixel). OpenCV's own bicubic (Keys a = -0.75) was not used: it displaces ramps by up
+    to 0.05 source pixel, which puts ripples at the source posting into the terrain (NMAD 1.0 m
+    against GDAL's on the bundled SRTM at 7.5 m) and made the full-granule DEM's error 7 %
+    larger (``benchmarks/bench_aster_scene.py``). The interpolation error of the source
+    positions is measured at the centres of the coarse cells and recorded in
+    ``diagnostics["dem_map_error_px"]`` (source pixels; ~1e-6 for a 3" DEM at 16 cells of
+    7.5 m). Grids or DEMs too large for OpenCV's remap (32767 pixels a side) go through
+    ``rasterio.warp.reproject`` (cubic) instead.
 
     The geoid undulation is evaluated every ``geoid_step`` cells and interpolated bilinearly
     (EGM96 varies over tens of km: the interpolation error is at the millimetre level,
@@ -233,7 +237,7 @@ def _reproject_dem(dem: DEM, transform, shape, crs, *, geoid_step: int = 16, map
     """
     out = np.full(shape, np.nan, np.float32)
     src = np.asarray(dem.heights, np.float32)
-    if max(shape) >= 32767 or max(src.shape) >= 32767:
+    if max(shape) >= 32767 or max(src.shape) * upsample >= 32767:
         reproject(dem.heights, out, src_transform=dem.transform, src_crs=dem.crs.to_wkt(),
                   dst_transform=transform, dst_crs=crs.to_wkt(), resampling=Resampling.cubic,
                   src_nodata=np.nan, dst_nodata=np.nan)
@@ -252,14 +256,60 @@ def _reproject_dem(dem: DEM, transform, shape, crs, *, geoid_step: int = 16, map
             mc, mr = np.ascontiguousarray(mc), np.ascontiguousarray(mr)
             px = cv2.remap(coarse[0], mc, mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             py = cv2.remap(coarse[1], mc, mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            block = cv2.remap(src, px, py, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-            block[(px < -0.5) | (px > sc - 0.5) | (py < -0.5) | (py > sr - 0.5)] = np.nan
+            outside = (px < -0.5) | (px > sc - 0.5) | (py < -0.5) | (py > sr - 0.5)
+            # the source window the block needs (whole pixels, clipped to the DEM)
+            wc0 = int(np.clip(np.floor(np.nanmin(px)), 0, sc - 1))
+            wc1 = int(np.clip(np.ceil(np.nanmax(px)) + 1, wc0 + 1, sc))
+            wr0 = int(np.clip(np.floor(np.nanmin(py)), 0, sr - 1))
+            wr1 = int(np.clip(np.ceil(np.nanmax(py)) + 1, wr0 + 1, sr))
+            fine = keys_upsample(src, upsample, window=(wr0, wr1, wc0, wc1))
+            px -= np.float32(wc0)
+            px *= np.float32(upsample)
+            py -= np.float32(wr0)
+            py *= np.float32(upsample)
+            block = cv2.remap(fine, px, py, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            block[outside] = np.nan
             out[r0:r1] = block
     if dem.vertical != ELLIPSOID:
         if dem.vertical is None:          # the DEM's own error about the unknown reference
             dem.convert_heights(np.zeros(1), np.zeros(1), np.zeros(1), ELLIPSOID)
         geoid_on_grid(transform, shape, crs, step=geoid_step, add_to=out)   # h = H + N
     return out
+
+
+def _keys_weights(t, a: float = -0.5):
+    """The four cubic-convolution weights (Keys 1981) of the samples at offsets -1, 0, 1, 2
+    for a position ``t`` in [0, 1) after sample 0."""
+    def k(x):
+        x = abs(x)
+        return ((a + 2) * x ** 3 - (a + 3) * x ** 2 + 1) if x <= 1 else \
+            (a * x ** 3 - 5 * a * x ** 2 + 8 * a * x - 4 * a) if x < 2 else 0.0
+    return np.array([k(t + 1), k(t), k(1 - t), k(2 - t)], np.float32)
+
+
+def keys_upsample(src, factor: int, *, window=None, a: float = -0.5):
+    """``src`` (2-D float32) upsampled ``factor`` times by separable cubic convolution.
+
+    Returns ``U`` with ``U[factor i + p, factor j + q]`` = the Keys (a = -0.5: GDAL's ``cubic``)
+    interpolant at source pixel ``(i + p / factor, j + q / factor)`` (row, col; pixel centres at
+    integers), edges replicated. ``window = (r0, r1, c0, c1)`` restricts the output to source
+    rows ``r0..r1-1`` and columns ``c0..c1-1`` (the neighbours outside it are still used), so
+    ``U[0, 0]`` is source pixel ``(r0, c0)``. A polyphase filter: ``factor`` vectorised 4-tap
+    sums per axis, no per-pixel loop.
+    """
+    r0, r1, c0, c1 = window if window is not None else (0, src.shape[0], 0, src.shape[1])
+    P = np.pad(np.asarray(src, np.float32), ((1, 2), (1, 2)), mode="edge")
+    W = [_keys_weights(p / factor, a) for p in range(factor)]
+
+    def along0(A, n):                   # rows: A[1 + i] is sample i; n output samples
+        out = np.empty((n * factor,) + A.shape[1:], np.float32)
+        for p, w in enumerate(W):
+            out[p::factor] = (w[0] * A[0:n] + w[1] * A[1:n + 1] + w[2] * A[2:n + 2]
+                              + w[3] * A[3:n + 3])
+        return out
+
+    rowsup = along0(P[r0:r1 + 3, c0:c1 + 3], r1 - r0)              # (rows * f, cols + 3)
+    return np.ascontiguousarray(along0(rowsup.T, c1 - c0).T)
 
 
 def _source_pixel_grid(dem: DEM, transform, shape, crs, step: int):
