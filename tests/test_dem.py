@@ -84,3 +84,33 @@ def test_write_round_trip_keeps_vertical_reference(tmp_path):
     from stereodem.sensor.errors import OutputExistsError
     with pytest.raises(OutputExistsError):
         dem.write(out)
+
+
+@pytest.mark.parametrize("how", ["int16_nodata", "mask_band", "nan"])
+def test_dem_voids_from_nodata_mask_band_or_nan(tmp_path, how):
+    """Every way a GeoTIFF says 'no height' reads as NaN (float32), and nothing else does."""
+    h = np.arange(48 * 40, dtype=np.float32).reshape(48, 40) % 900 + 100
+    void = np.zeros(h.shape, bool)
+    void[5:9, 11:20] = True
+    path = tmp_path / "dem.tif"
+    kw = dict(driver="GTiff", width=40, height=48, count=1, crs="EPSG:32637",
+              transform=Affine(30, 0, 500000, 0, -30, 4400000))
+    data = h.copy()
+    if how == "int16_nodata":
+        data[void] = -32768
+        with rasterio.open(path, "w", dtype="int16", nodata=-32768, **kw) as d:
+            d.write(data.astype(np.int16), 1)
+    elif how == "mask_band":
+        data[void] = -1.0                              # a plausible-looking value, masked out
+        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), \
+                rasterio.open(path, "w", dtype="float32", **kw) as d:
+            d.write(data, 1)
+            d.write_mask(np.where(void, 0, 255).astype(np.uint8))
+    else:
+        data[void] = np.nan
+        with rasterio.open(path, "w", dtype="float32", **kw) as d:
+            d.write(data, 1)
+    dem = DEM.from_file(path, vertical="ellipsoid")
+    assert dem.heights.dtype == np.float32
+    np.testing.assert_array_equal(np.isnan(dem.heights), void)
+    np.testing.assert_array_equal(dem.heights[~void], h[~void])

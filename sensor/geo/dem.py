@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import rasterio
 from affine import Affine
+from rasterio.enums import MaskFlags
 from pyproj import CRS
 
 from stereodem.sensor.geo import geodesy
@@ -113,18 +114,25 @@ class DEM:
         ``STEREODEM_VERTICAL`` tag, and is ``None`` (unknown) if neither says. ``crs`` is the
         horizontal part.
         """
+        from stereodem.sensor.io.raster import reading_env
         path = str(path)
         try:
-            with rasterio.open(path) as ds:
+            with reading_env(), rasterio.open(path) as ds:
                 if ds.crs is None:
                     raise CRSError(f"{path}: the DEM has no CRS")
-                arr = ds.read(band, masked=True).astype(np.float32)
+                flags = ds.mask_flag_enums[band - 1]
+                if all(f in (MaskFlags.nodata, MaskFlags.all_valid) for f in flags):
+                    # nodata value or none: read straight into float32 (no mask array, no copy)
+                    heights = ds.read(band, out_dtype=np.float32)
+                    if ds.nodata is not None and np.isfinite(ds.nodata):
+                        heights[heights == np.float32(ds.nodata)] = np.nan
+                else:                                   # a mask band or alpha: GDAL's mask
+                    heights = ds.read(band, masked=True).astype(np.float32).filled(np.nan)
                 transform, crs = ds.transform, CRS.from_user_input(ds.crs.to_wkt())
                 tag = ds.tags().get(_VERTICAL_TAG)
         except rasterio.errors.RasterioIOError as exc:
             raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
-        heights = arr.filled(np.nan)
-        heights[~np.isfinite(heights)] = np.nan
+        np.copyto(heights, np.float32(np.nan), where=~np.isfinite(heights))
         vert = vertical or _vertical_from_crs(crs) or (tag.lower() if tag else None)
         return cls(heights, transform, horizontal_crs(crs), vert, path)
 

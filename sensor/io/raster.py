@@ -275,6 +275,13 @@ def write_text_atomic(path, text: str, *, overwrite=False) -> Path:
     return path
 
 
+def reading_env():
+    """A rasterio environment that decodes compressed blocks on all CPUs (``GDAL_NUM_THREADS``):
+    reading a DEFLATE-compressed scene-sized GeoTIFF takes about half the time on two cores.
+    The values read are the same."""
+    return rasterio.Env(GDAL_NUM_THREADS="ALL_CPUS")
+
+
 def read_image(path, band: int = 1) -> np.ndarray:
     """One band of an image as float32, NaN where the file marks no data.
 
@@ -285,7 +292,7 @@ def read_image(path, band: int = 1) -> np.ndarray:
     """
     from stereodem.sensor.errors import InputError
     try:
-        with rasterio.open(path) as ds:
+        with reading_env(), rasterio.open(path) as ds:
             if not 1 <= int(band) <= ds.count:
                 raise InputError(f"{path}: no band {band} (the image has {ds.count})")
             from .memory import check_allocation      # before reading: the header may lie
