@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import shutil
 import subprocess
@@ -35,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_demo(out: Path, seed: int, workers: int) -> dict:
-    cmd = ["stereodem", "demo", "-o", str(out), "--seed", str(seed), "--workers", str(workers),
+    cmd = [sys.executable, "-m", "stereodem.cli", "demo", "-o", str(out), "--seed", str(seed), "--workers", str(workers),
            "--overwrite"]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, capture_output=True, text=True)
@@ -116,8 +117,8 @@ def main(argv=None):
     fastest = min(r["wall_seconds"] for r in runs)     # the least disturbed run (shared cores)
     res = {
         "what": "stereodem demo (600x600, seed 0): figures, run-to-run spread, COG writing cost",
-        "machine": f"{platform.node()} ({platform.processor() or platform.machine()}), shared "
-                   "2 cores: timings taken under contention",
+        "machine": f"{platform.node()} ({platform.processor() or platform.machine()}), "
+                   f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at the end",
         "python": sys.version.split()[0],
         "default_seed_figures": {k: base[k] for k in ("nmad_m", "median_m", "le90_m", "rmse_m",
                                                        "valid_pct", "wall_seconds",

@@ -315,8 +315,8 @@ def speed():
                             "contention": {"load_average_1_5_15_before": [round(v, 2) for v in load_before],
                                            "load_average_1_5_15_after": [round(v, 2) for v in load_after],
                                            "cores": os.cpu_count(),
-                                           "note": "2 cores shared by 5 agents; wall times vary with the "
-                                                   "load, the ratio of each alternating pair less so"},
+                                           "note": "wall times vary with the load (other jobs on "
+                                                   "the cores), the ratio of each alternating pair less so"},
                             "lattice_step_cells": um.step, "interpolation_error_relative": um.interpolation_error,
                             "interpolation_error_measure": "max over check cells (lattice mid-cells and random "
                             "cells) of the relative error of sigma_E, sigma_N, sigma_horizontal of the finished "
@@ -350,7 +350,8 @@ def main(argv=None):
     if args.speed_only:
         res = json.loads(out.read_text()) if out.exists() else {}
         res["speed"] = speed()
-        res.setdefault("machine", {})["note"] = "2 cores shared with other agents: timings under contention"
+        res.setdefault("machine", {})["note"] = (f"{os.cpu_count()} cores, load average "
+                                                 f"{os.getloadavg()[0]:.2f} when the speed part ended")
         print("speed:", json.dumps(res["speed"]))
         out.write_text(dump(res))
         print(f"wrote {out}")
