@@ -1,6 +1,7 @@
 """Attitude jitter: sum-of-sines fit, attitude injection, and the DEM correction loop."""
 import numpy as np
 import pytest
+import rasterio
 
 from stereodem.sensor.estimation.jitter import (SineSeries, along_track_profile, fit_sum_of_sines,
                                                 with_attitude_sines)
@@ -82,7 +83,6 @@ def test_dem_command_corrects_jitter_against_the_seed_dem(tmp_path):
     reports the fitted oscillation and gives a DEM closer to the truth than without it."""
     import json
 
-    import rasterio
 
     from stereodem import cli
     from stereodem.simulate_cli import write_granule_scene
@@ -97,14 +97,7 @@ def test_dem_command_corrects_jitter_against_the_seed_dem(tmp_path):
         argv = ["dem", str(g), "-o", str(out), "--seed-dem", str(ref), "--dem-vertical", "ellipsoid",
                 "--workers", "1"] + ([flag] if flag else [])
         assert cli.main(argv) == 0
-        with rasterio.open(out / "dem.tif") as ds:
-            z = ds.read(1).astype(float)
-            rr, cc = np.nonzero(np.isfinite(z))
-            x, y = ds.transform @ (cc + 0.5, rr + 0.5)
-            lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), ds.crs)
-        dh = z[rr, cc] - sc.truth_dem.sample(lon, lat)
-        dh = dh[np.isfinite(dh)]
-        errors[flag] = float(1.4826 * np.median(np.abs(dh - np.median(dh))))   # NMAD (raw DEM: blunders)
+        errors[flag] = _file_dem_nmad(out / "dem.tif", sc.truth_dem)   # NMAD (raw DEM: blunders)
         rep = json.loads((out / "dem_report.json").read_text())
     jit = rep["info"]["jitter"]["pitch"]
     assert jit["frequencies_hz"][0] == pytest.approx(sc.diagnostics["right_jitter"]["frequency_hz"], abs=0.1)
@@ -202,17 +195,28 @@ def test_cli_simulate_roll_jitter(tmp_path):
     assert meta["diagnostics"]["right_roll_jitter"]["frequency_hz"] == 1.5
 
 
-def _dem_nmad(products, truth_dem):
-    """NMAD (m) of a stereo product's DEM against the truth, over its valid cells."""
-    from stereodem.stereo.jitter import products_dem
-    g = products_dem(products)
-    z = g.heights.astype(float)
+def _nmad_vs_truth(heights, transform, crs, truth_dem):
+    """NMAD (m) of DEM ``heights`` (on ``transform``/``crs``) against the truth, over valid cells."""
+    z = np.asarray(heights, float)
     rr, cc = np.nonzero(np.isfinite(z))
-    x, y = g.transform @ (cc + 0.5, rr + 0.5)
-    lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), g.crs)
+    x, y = transform @ (cc + 0.5, rr + 0.5)
+    lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), crs)
     dh = z[rr, cc] - truth_dem.sample(lon, lat)
     dh = dh[np.isfinite(dh)]
     return float(1.4826 * np.median(np.abs(dh - np.median(dh))))
+
+
+def _dem_nmad(products, truth_dem):
+    """NMAD (m) of a stereo product's DEM against the truth."""
+    from stereodem.stereo.jitter import products_dem
+    g = products_dem(products)
+    return _nmad_vs_truth(g.heights, g.transform, g.crs, truth_dem)
+
+
+def _file_dem_nmad(path, truth_dem):
+    """NMAD (m) of a DEM GeoTIFF against the truth."""
+    with rasterio.open(path) as ds:
+        return _nmad_vs_truth(ds.read(1), ds.transform, ds.crs, truth_dem)
 
 
 def _amplitude_at(f, t, y):
@@ -303,7 +307,6 @@ def test_dem_command_corrects_roll_jitter_without_reference(tmp_path):
     3B roll jitter reports the fitted oscillation and gives a DEM closer to the truth."""
     import json
 
-    import rasterio
 
     from stereodem import cli
     from stereodem.simulate_cli import write_granule_scene
@@ -317,14 +320,7 @@ def test_dem_command_corrects_roll_jitter_without_reference(tmp_path):
         out = tmp_path / ("roll" if flag else "plain")
         argv = ["dem", str(g), "-o", str(out), "--workers", "1", "--force"] + flag
         assert cli.main(argv) == 0
-        with rasterio.open(out / "dem.tif") as ds:
-            z = ds.read(1).astype(float)
-            rr, cc = np.nonzero(np.isfinite(z))
-            x, y = ds.transform @ (cc + 0.5, rr + 0.5)
-            lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), ds.crs)
-        dh = z[rr, cc] - sc.truth_dem.sample(lon, lat)
-        dh = dh[np.isfinite(dh)]
-        errors[out.name] = float(1.4826 * np.median(np.abs(dh - np.median(dh))))
+        errors[out.name] = _file_dem_nmad(out / "dem.tif", sc.truth_dem)
         reports[out.name] = json.loads((out / "dem_report.json").read_text())
     roll = reports["roll"]["info"]["jitter"]["roll"]
     assert roll["frequencies_hz"][0] == pytest.approx(1.5, abs=0.05)
