@@ -390,3 +390,14 @@ def test_fit_at_fixed_frequencies_and_phasor_sum():
     np.testing.assert_allclose(add_series(a, b)(t), a(t) + b(t), atol=1e-12)
     with pytest.raises(Exception, match="same frequencies"):
         add_series(a, SineSeries(np.array([1.0]), np.array([1.0]), np.array([0.0])))
+
+
+@pytest.mark.parametrize("values", [["5", "0"], ["nan", "1"]])
+def test_cli_simulate_bad_roll_jitter_is_one_line_error(tmp_path, capsys, values):
+    from stereodem import cli
+    out = tmp_path / "sim"
+    assert cli.main(["simulate", "--preset", "aster", "--size", "64", "64", "--roll-jitter",
+                     *values, "-o", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "roll jitter" in err[0] and "Traceback" not in err[0]
+    assert not out.exists() or not any(out.iterdir())
