@@ -52,7 +52,7 @@ def mirrored_dem(pad=MIRROR_CELLS):
     """The bundled SRTM reflected ``pad`` cells on every side (same posting, EGM96 heights)."""
     from affine import Affine
 
-    from stereodem.sensor.geo.dem import DEM
+    from stereodem.core.dem import DEM
     d = DEM.bundled()
     z = np.pad(d.heights, pad, mode="reflect")
     t = d.transform @ Affine.translation(-pad, -pad)
@@ -62,7 +62,7 @@ def mirrored_dem(pad=MIRROR_CELLS):
 def simulate(out: Path, size, right_size, force=False):
     """Simulate the scene and write it twice: GeoTIFFs + model sidecars (for the matcher
     benchmark) and an ASTER L1A V004 granule, the input the jobs below read."""
-    from stereodem.simulate_cli import write_granule_scene
+    from stereodem.sensor.simulation.aster_granule import write_granule_scene
     from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
     meta = out / "scene.json"
     if meta.exists() and not force and list(out.glob("AST_L1A_*.hdf")):

@@ -4,11 +4,11 @@ rasters as Cloud-Optimised GeoTIFFs.
 1. Runs ``stereodem demo`` (600 x 600, the default seed 0) with ``--workers 1`` and
    ``--workers 2``, then with seeds 1..N: the default-seed figures are the ones the README
    quotes; the spread over seeds (the simulator's noise realisation) is the tolerance of
-   ``tests/test_products_demo.py::test_readme_demo_figures`` (``nmad_tolerance_m``: the
+   ``tests/app/test_products_demo.py::test_readme_demo_figures`` (``nmad_tolerance_m``: the
    largest |NMAD(seed k) - NMAD(seed 0)|).
 2. Rewrites every raster the demo wrote (``result/**/*.tif``) both ways, ``--repeat`` times:
    the previous layout (GTiff, 256² tiles, DEFLATE, no predictor, no overviews) and the
-   current one (:func:`stereodem.sensor.io.raster.write_geotiff`: COG, predictor, overviews),
+   current one (:func:`stereodem.core.raster.write_geotiff`: COG, predictor, overviews),
    and reports the extra seconds against the demo's own run time (the fastest of the runs
    above, the least disturbed on shared cores; target <= 10 %) and the file sizes.
 
@@ -66,7 +66,7 @@ def old_layout_write(path, arr, profile):
 def writing_cost(result_dir: Path, repeat: int) -> dict:
     import rasterio
 
-    from stereodem.sensor.io.raster import write_geotiff
+    from stereodem.core.raster import write_geotiff
     rasters = sorted(result_dir.rglob("*.tif"))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -8,9 +8,10 @@ same 64 disparities 0..63.  Throughput is megapixels x disparities per second
 pixels and the share of valid pixels (and of pixels with error > 1 px, counting invalid as
 errors).
 
-    python benchmarks/bench_match.py
+    python benchmarks/bench_match.py [--before REV]
 
-writes ``benchmarks/results/bench_match.json`` and prints a table.
+``--before REV`` also times the SGM wrapper as it was at git revision REV (before/after, same
+run, bit-identity checked). Writes ``benchmarks/results/bench_match.json`` and prints a table.
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ OUT = ROOT / "benchmarks" / "results" / "bench_match.json"
 SIZE = 1024
 DMIN, DMAX = 0, 63
 ND = DMAX - DMIN + 1
+REPEATS = 9
 
 
 def make_pair(size=SIZE, seed=0):
@@ -76,7 +78,12 @@ def timed(fn, repeat=3):
     return best, out
 
 
-def main():
+def main(argv=None):
+    import argparse
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--before", metavar="REV",
+                    help="also time the SGM wrapper of this git revision (before/after)")
+    args = ap.parse_args(argv)
     left, right, truth = make_pair()
     mpd = SIZE * SIZE * ND / 1e6
     rows = []
@@ -109,6 +116,10 @@ def main():
         run(label, lambda mode=mode: _raw_sgbm(l8, r8, mode),
             "blockSize 5, P1 8*25, P2 32*25, uniqueness 10, speckle 100/2, disp12MaxDiff 1, "
             "no padding (first 64 columns invalid)", nthr)
+    overhead = sgm_overhead(left, right, l8, r8)
+    if args.before:
+        overhead["before_after"] = sgm_before_after(left, right, l8, r8, args.before)
+        print("sgm before/after:", json.dumps(overhead["before_after"]))
     result = {
         "pair": f"{SIZE}x{SIZE} Landsat texture x3.2 + smooth disparity ~8..56 px, noise 1 DN",
         "disparities": ND,
@@ -117,6 +128,8 @@ def main():
         "reference_2core": {"sgbm_1thread_mpx_d_s": 448, "sgbm_3way_mpx_d_s": 1156,
                             "numpy_opencv_zncc7_mpx_d_s": "100-170"},
         "results": rows,
+        "sgm_overhead": overhead,
+        "load_average": [round(x, 2) for x in __import__("os").getloadavg()],
     }
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(result, indent=2) + "\n")
@@ -125,7 +138,90 @@ def main():
         print(f"{r['matcher']:58s} {r['seconds']:7.3f} {r['mpx_disp_per_s']:8.1f} "
               f"{r['valid_percent']:7.2f} {r['rms_error_px']:7.4f} "
               f"{r['bad1_percent_invalid_counted']:6.2f}")
+    for o in overhead["by_threads"]:
+        print(f"sgm overhead, {o['threads']} thread(s): stereodem {o['stereodem_cpu_s']:.3f} s CPU "
+              f"/ {o['stereodem_wall_s']:.3f} s wall, bare SGBM {o['bare_cpu_s']:.3f} / "
+              f"{o['bare_wall_s']:.3f} s: ratio {o['ratio_cpu']:.3f} CPU, {o['ratio_wall']:.3f} wall")
     print(f"wrote {OUT}")
+
+
+def sgm_overhead(left, right, l8, r8, repeats=REPEATS, threads=(1, 2)):
+    """``match_rectified(matcher="sgm")`` against the bare ``cv2.StereoSGBM`` call it wraps,
+    on the same tile at the same ``cv2.setNumThreads``, the two alternating ``repeats`` times;
+    medians of wall and CPU seconds (this process, all threads) and their ratios.
+
+    The bare call gets the wrapper's uint8 images and the same SGBM parameters (64
+    disparities), and converts its result to float disparities with NaN where invalid (what
+    any caller does); the wrapper adds the 8-bit stretch, the border padding (so the first 64
+    columns get disparities: 6 % more columns at 1024 px), the no-data handling and the ZNCC
+    score layer."""
+    saved = cv2.getNumThreads()
+    out = []
+    try:
+        for n in threads:
+            cv2.setNumThreads(n)
+            t = {"stereodem": [], "bare": []}
+            for _ in range(repeats):
+                for name, fn in (("stereodem", lambda: match_rectified(
+                                     left, right, (DMIN, DMAX), matcher="sgm")),
+                                 ("bare", lambda: _raw_sgbm(l8, r8, "sgbm"))):
+                    w0, c0 = time.perf_counter(), time.process_time()
+                    fn()
+                    t[name].append((time.perf_counter() - w0, time.process_time() - c0))
+            med = {k: np.median(np.array(v), axis=0) for k, v in t.items()}
+            out.append({"threads": n, "repeats": repeats,
+                        "stereodem_wall_s": round(float(med["stereodem"][0]), 4),
+                        "stereodem_cpu_s": round(float(med["stereodem"][1]), 4),
+                        "bare_wall_s": round(float(med["bare"][0]), 4),
+                        "bare_cpu_s": round(float(med["bare"][1]), 4),
+                        "ratio_wall": round(float(med["stereodem"][0] / med["bare"][0]), 3),
+                        "ratio_cpu": round(float(med["stereodem"][1] / med["bare"][1]), 3)})
+    finally:
+        cv2.setNumThreads(saved)
+    return {"what": "match_rectified(matcher='sgm') / bare cv2.StereoSGBM.compute (+ float "
+                    "conversion), same 1024x1024 tile, same cv2.setNumThreads, alternating "
+                    "repeats, medians; target <= 1.15 (issue 28)",
+            "by_threads": out}
+
+
+def sgm_before_after(left, right, l8, r8, rev, repeats=11):
+    """The SGM wrapper of git revision ``rev`` (its ``stereo/match.py``, loaded as a module)
+    against today's and the bare call, alternating, 1 thread, CPU seconds (medians); also
+    whether the two wrappers' disparities and scores are bit-identical."""
+    import importlib.util
+    import subprocess
+    import tempfile
+    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:stereo/match.py"],
+                         capture_output=True, text=True, check=True).stdout
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "match_before.py"
+        path.write_text(src)
+        spec = importlib.util.spec_from_file_location("stereodem.stereo.match_before", path)
+        before = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(before)
+    saved = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    fns = {"before": lambda: before.match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
+           "now": lambda: match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
+           "bare": lambda: _raw_sgbm(l8, r8, "sgbm")}
+    try:
+        ts = {k: [] for k in fns}
+        for _ in range(repeats):
+            for k, fn in fns.items():
+                c0 = time.process_time()
+                fn()
+                ts[k].append(time.process_time() - c0)
+        a, b = fns["before"](), fns["now"]()                   # MatchResult: disparity, score
+    finally:
+        cv2.setNumThreads(saved)
+    med = {k: float(np.median(v)) for k, v in ts.items()}
+    same = all(np.array_equal(x, y, equal_nan=True)
+               for x, y in ((a.disparity, b.disparity), (a.score, b.score)))
+    return {"revision": rev, "threads": 1, "repeats": repeats,
+            "cpu_s": {k: round(v, 4) for k, v in med.items()},
+            "ratio_before": round(med["before"] / med["bare"], 3),
+            "ratio_now": round(med["now"] / med["bare"], 3),
+            "bit_identical": bool(same)}
 
 
 def _raw_sgbm(l8, r8, mode):

@@ -23,8 +23,12 @@ import time
 from pathlib import Path
 
 from stereodem.sensor.estimation.compare import compare_splits, split_summary
-from stereodem.sensor.simulation.control_points import (aster_pair_scene, points_at_pixels,
-                                                        random_pixels, to_control_points)
+from stereodem.sensor.simulation.control_points import (
+    aster_pair_scene,
+    points_at_pixels,
+    random_pixels,
+    to_control_points,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 COUNTS = (4, 5, 6, 8, 10, 15, 20)

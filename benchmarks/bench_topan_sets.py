@@ -27,12 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.sensor.errors import StereodemError
+from stereodem.core.errors import StereodemError
 from stereodem.sensor.estimation.adjust import adjust_model
 from stereodem.sensor.models.orbital import TopanLOSModel
 from stereodem.sensor.models.orbital.topan_los import LOOK, SET_ORDER, eop_set
-from stereodem.sensor.simulation.control_points import (aster_nadir_scene, points_at_pixels,
-                                                       to_control_points)
+from stereodem.sensor.simulation.control_points import (
+    aster_nadir_scene,
+    points_at_pixels,
+    to_control_points,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 NOISE_PX = 0.3

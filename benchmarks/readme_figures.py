@@ -2,11 +2,14 @@
 
     python benchmarks/readme_figures.py            # Markdown block on stdout
     python benchmarks/readme_figures.py --results DIR
+    python benchmarks/readme_figures.py --write    # README.md's list and benchmarks/README.md's table
 
 Each result file has its own summariser (the figures a reader needs, with the command that
 measured them); a file without one is listed by name, and a summariser that no longer finds
 its keys (the benchmark's output changed) says so on stderr and in the block, instead of
-printing stale numbers. Paste the block into the README's "Measured" list.
+printing stale numbers. ``--write`` puts the list into README.md and the same summaries into
+the table of benchmarks/README.md (between their markers); tests/app/test_products_docs.py checks
+that both are what the result files give.
 """
 from __future__ import annotations
 
@@ -65,18 +68,78 @@ def dem(d):
     out = (f"Real Pleiades pair vs s2p's DSM (`benchmarks/bench_dem.py`): **NMAD "
            f"{s['nmad_m']:.3f} m**, median {s['median_offset_m']:+.2f} m, "
            f"**{100 * s['coverage_of_s2p_valid']:.1f} %** of s2p's valid cells covered, in "
-           f"{s['seconds']:.1f} s (s2p: {s['s2p_seconds']:.0f} s).")
+           f"{s['seconds']:.1f} s (s2p's time {d['s2p_time']})"
+           + (f"; OpenCV {d['opencv']}, load average {d['load_average_at_end'][0]:.1f} at the end "
+              "(times are upper bounds)." if "load_average_at_end" in d else "."))
     if "ncc" in r:
         n = r["ncc"]
         out += (f" With `--matcher ncc`: {n['nmad_m']:.3f} m, {100 * n['coverage_of_s2p_valid']:.1f} %, "
                 f"{n['seconds']:.1f} s.")
+    un = d.get("untuned_pairs") or []
+    if un:
+        out += (" The defaults were tuned on that pair; on the pairs of the Pleiades triplet over "
+                "Marseille (automatic heights, against s2p's DSM of the triplet): "
+                + "; ".join(f"{r['pair'].split('/')[-1]} " + (f"failed ({r['error'][:80]})" if "error" in r else
+                            f"NMAD {r['nmad_m']:.2f} m, median {r['median_offset_m']:+.2f} m, "
+                            f"{100 * r['coverage_of_s2p_valid']:.1f} % covered, {r['seconds']:.1f} s")
+                            for r in un) + ".")
     return out
 
 
 def match(d):
     parts = ", ".join(f"{r['matcher'].split(' (')[0]} {r['mpx_disp_per_s']:.0f}" for r in d["results"])
-    return (f"Dense matching, {d['pair'].split(' ')[0]}, {d['disparities']} disparities "
-            f"(`benchmarks/bench_match.py`), Mpx·disparities/s: {parts}.")
+    out = (f"Dense matching, {d['pair'].split(' ')[0]}, {d['disparities']} disparities "
+           f"(`benchmarks/bench_match.py`), Mpx·disparities/s: {parts}.")
+    o = d.get("sgm_overhead")
+    if o:
+        parts = "; ".join(f"{r['threads']} thread(s): {r['ratio_cpu']:.2f}× CPU, {r['ratio_wall']:.2f}× "
+                          f"wall ({r['stereodem_cpu_s']:.3f} vs {r['bare_cpu_s']:.3f} CPU s)"
+                          for r in o["by_threads"])
+        out += (f" The SGM wrapper (8-bit stretch, padding, no-data, ZNCC score layer) against the "
+                f"bare `cv2.StereoSGBM` call, same tile and threads, medians of "
+                f"{o['by_threads'][0]['repeats']}: {parts} (target ≤ 1.15×; load "
+                f"{d.get('load_average', ['?'])[0]}).")
+        ba = o.get("before_after")
+        if ba:
+            out += (f" Before/after in the same run (revision {ba['revision']}, 1 thread, CPU s): "
+                    f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call, outputs "
+                    f"{'bit-identical' if ba['bit_identical'] else 'NOT identical'}.")
+    return out
+
+
+def scaling(d):
+    g, r = d["granule"], d["ratios"]
+    rows = "; ".join(f"{x['workers']} w: {x['wall_s']:.1f} s wall / {x['cpu_s']:.1f} CPU s, peak "
+                     f"{x['peak_rss_mb_all_processes']} MB (load {x['load_average_before'][0]:.1f})"
+                     for x in d["runs"])
+    same = all(all(v.values()) for x in d["runs"] for k, v in x.items() if k.startswith("bit_identical"))
+    return (f"Scaling with `--workers` (`benchmarks/bench_scaling.py`, `stereodem run` on a simulated "
+            f"V004 granule, 3N {g['left'][0]} × {g['left'][1]}, {d['machine']['cpus']} cores): {rows}; "
+            + ", ".join(f"{k} {v}" for k, v in r.items())
+            + f"; rasters {'bit-identical' if same else 'NOT identical'} across worker counts.")
+
+
+def ortho_pair(d):
+    m = d["median"]
+    same = all(r["identical_to_first"] for r in d["runs"])
+    loads = [r["load_before"] for r in d["runs"]]
+    return (f"Both orthoimages of a pair at once vs one after the other (`benchmarks/bench_ortho_pair.py`, "
+            f"{d['grid'][0]} × {d['grid'][1]} cells each, {d['threads']} threads, medians of "
+            f"{len(d['runs']) // 2} alternating runs): serial {m['serial']['wall_s']:.2f} s wall / "
+            f"{m['serial']['cpu_s']:.2f} s CPU, concurrent {m['concurrent']['wall_s']:.2f} s / "
+            f"{m['concurrent']['cpu_s']:.2f} s; outputs {'bit-identical' if same else 'NOT identical'} "
+            f"(load {min(loads):.1f}–{max(loads):.1f} on 2 shared cores: no wall gain measurable here).")
+
+
+def batch(d):
+    b = d["batch"]
+    parts = "; ".join(f"{k}: {v['wall_s']:.1f} s ({d['speedup_vs_single_runs'][k]:.2f}× the single runs), "
+                      f"{v['summary']['done']} done, {v['summary']['failed']} failed"
+                      for k, v in b.items())
+    reason = next((v["failed"][0]["reason"] for v in b.values() if v["failed"]), "")
+    return (f"`stereodem batch` (`benchmarks/bench_batch.py`, {d['scenes']}, {d['workers']} workers): "
+            f"sum of single `stereodem run` jobs {d['sum_of_single_runs_wall_s']:.1f} s; {parts}; "
+            f"the corrupt scene's reason: \"{reason[:120]}\" (load {d['load_average_before'][0]:.1f}).")
 
 
 def ortho(d):
@@ -128,27 +191,36 @@ def orbital_splits(d):
 def adjust(d):
     full = {r["solver"]: r for r in d["full_size"]}
     s = full["schur"]
+    load = d["machine"]
     out = (f"Bundle adjustment of the real Pleiades RPC pair (`benchmarks/bench_adjust.py`), "
            f"{s['ties']:,} ties + {s['gcps']} GCPs ({s['unknowns']:,} unknowns, "
-           f"{s['observations']:,} observations): Schur-reduced normal equations **{s['seconds']:.2f} s** "
-           f"({s['cpu_seconds']:.2f} s CPU, {s['iterations']} iterations, σ0 {s['sigma0']:.3f}, tie "
-           f"RMSE {s['tie_rmse_px']:.3f} px), target {d['target']}")
+           f"{s['observations']:,} observations), every solver on 1 BLAS thread and stopped at the "
+           f"same criterion (max |dz|/σ < 0.01): Schur-reduced normal equations **{s['seconds']:.2f} s** "
+           f"wall, {s['cpu_seconds']:.2f} s CPU ({s['iterations']} iterations, σ0 {s['sigma0']:.3f}, tie "
+           f"RMSE {s['tie_rmse_px']:.3f} px; target {d['target']})")
     if "least_squares" in full:
         q = full["least_squares"]
-        out += (f"; scipy `least_squares` on the same sparse problem {q['seconds']:.1f} s "
-                f"({q['seconds'] / s['seconds']:.0f}× slower)")
-    out += (f"; dense normal equations grow as n^{d['dense_scaling_exponent']:.2f}, extrapolated "
-            f"{d['dense_extrapolated_seconds_at_full_size']:.0f} s and "
-            f"{d['dense_memory_at_full_size_gb']:.1f} GB at full size "
-            f"({d['speedup_schur_vs_dense_extrapolated']:.0f}× the Schur solver's time).")
-    return out
+        out += (f"; scipy `least_squares` (default tolerances, then Gauss–Newton to the criterion) "
+                f"{q['seconds']:.1f} s wall, {q['cpu_seconds']:.2f} s CPU "
+                f"({d['least_squares_over_schur_cpu']:.1f}× the CPU time, {q['iterations']} iterations)")
+    steps = d.get("per_iteration_dense_vs_schur", [])
+    if steps:
+        out += ("; one dense normal-equations iteration "
+                + " / ".join(f"{r['dense_cpu_seconds_per_iteration']:.2f}" for r in steps)
+                + " s CPU at " + " / ".join(f"{r['ties']}" for r in steps) + " ties vs "
+                + " / ".join(f"{1e3 * r['schur_cpu_seconds_per_iteration']:.1f}" for r in steps)
+                + f" ms for the Schur step (full size would need a {d['dense_memory_at_full_size_gb']:.0f} GB "
+                  "normal matrix: not run, not extrapolated)")
+    return out + (f"; load average {load['load_average_at_start'][0]:.1f} → "
+                  f"{load['load_average_at_end'][0]:.1f} on 2 cores (wall times are upper bounds).")
 
 
 def aster_granule(d):
     st = d["stages"]
     sz = d["sizes"]
     e = d["render_error_px"]
-    q = d.get("baseline_before_block_rendering", {}).get("quarter_area_2050x2100_2500x2700_same_machine")
+    q = d.get("historical", {}).get("baseline_before_block_rendering", {}).get(
+        "quarter_area_2050x2100_2500x2700_same_machine")
     out = (f"Full-size ASTER granule, 3N {sz['3N'][0]} × {sz['3N'][1]} and 3B {sz['3B'][0]} × "
            f"{sz['3B'][1]} pixels (`benchmarks/bench_aster_granule.py`): simulated in "
            f"{st['simulate_scene']['seconds']:.0f} s (render error {e['left_render_error_px']:.4f} / "
@@ -165,7 +237,8 @@ def aster_granule(d):
                 f"(load average {c['load_average_before_after'][0]:g}-{c['load_average_before_after'][1]:g}; "
                 f"targets <= 40 s, <= 3 GB)")
     if q:
-        out += (f" (quarter-area simulation before/after block rendering: {q['before'][0]:g} → "
+        out += (f" (an earlier session's measurement, not re-run by this script: quarter-area "
+                f"simulation before/after block rendering: {q['before'][0]:g} → "
                 f"{q['after'][0]:g} {q['unit'][0]}, {q['before'][1]:g} → {q['after'][1]:g} {q['unit'][1]})")
     return out + "."
 
@@ -188,11 +261,23 @@ def topan_sets(d):
 def uncertainty(d):
     b = d["bettemir"]
     w = b["largest"][0]
-    out = (f"Bettemir (2010) Tables 3–11 reproduced with the uncertainty propagation "
-           f"(`benchmarks/bench_uncertainty.py`, {len(b['cells'])} table cells, some inputs inferred): "
-           f"horizontal σ (N, E) within {b['median_abs_HU_diff_pct']:.2f} % of the paper (median), "
+    lv = b["independent_levers"]
+    out = (f"Bettemir (2010) Tables 3–11 with the uncertainty propagation "
+           f"(`benchmarks/bench_uncertainty.py`, {len(b['cells'])} table cells): with "
+           f"{len(b['calibrated_inputs'])} inputs calibrated on the same tables (pitch/yaw σ as a "
+           f"fraction of the roll σ, GPS σ per axis, the interior group's σ) the horizontal σ "
+           f"(N, E) agree within {b['median_abs_HU_diff_pct']:.2f} % (median), "
            f"{b['max_abs_HU_diff_pct']:.2f} % at worst (analysis {w['analysis']}, "
-           f"{w['HU']:.2f} vs {w['HU_paper']:.2f} m)")
+           f"{w['HU']:.2f} vs {w['HU_paper']:.2f} m) — a calibration, not a prediction; predicted "
+           f"from the orbit and camera geometry alone, the levers the tables imply: imaging time "
+           f"{abs(lv['dN_dt_m_per_s']['model']):.0f} N / {abs(lv['dE_dt_m_per_s']['model']):.0f} E m/s vs "
+           f"{lv['dN_dt_m_per_s']['paper_implied']:.0f} / {lv['dE_dt_m_per_s']['paper_implied']:.0f} "
+           f"({lv['dN_dt_m_per_s']['abs_rel_diff_pct']:.1f} % / {lv['dE_dt_m_per_s']['abs_rel_diff_pct']:.1f} %), "
+           f"roll {abs(lv['dE_droll_m_per_arcsec']['model']):.3f} vs "
+           f"{lv['dE_droll_m_per_arcsec']['paper_implied']:.3f} m/″ "
+           f"({lv['dE_droll_m_per_arcsec']['abs_rel_diff_pct']:.1f} %), while the DEM lever's direction "
+           f"does not reproduce (∂E/∂h {abs(lv['dE_dh']['model']):.3f}, ∂N/∂h {abs(lv['dN_dh']['model']):.3f} "
+           f"vs {lv['dE_dh']['paper_implied']:.3f}, {lv['dN_dh']['paper_implied']:.3f})")
     t = d.get("thesis_footprints")
     if t:
         out += (f"; the thesis's footprint points (Tables 8.6/8.7) to {t['rms_misfit_m']:.0f} m RMS "
@@ -217,12 +302,230 @@ def sparse_scaling(d):
             f"heights) on simulated ASTER pairs (`benchmarks/bench_sparse_scaling.py`): {parts}.")
 
 
+def aster_strip(d):
+    steps = ", ".join(f"{s['step_m']:+.2f} m ({s['half_width_lines']:g} lines)" for s in d["seam_steps"])
+    one = "; ".join(f"granule {k + 1}: {g['strip_nmad_same_cells_m']:.2f} vs {g['nmad_same_cells_m']:.2f} m"
+                    for k, g in enumerate(d["single_granules"]))
+    n, m = d["size"]
+    return (f"ASTER strip of {d['granules']} simulated granules of {n} × {m} 3N pixels, "
+            f"{d['cut']['overlap_3N_lines']} lines of overlap (`benchmarks/bench_aster_strip.py`): "
+            f"one DEM from the joined models, error step across the seam {steps} (target ≤ 0.5 m); "
+            f"NMAD against the truth on each granule's cells, strip vs the granule alone: {one} "
+            f"(target within 10 %); strip DEM {d['strip_dem_s']:.1f} s against "
+            f"{sum(g['seconds'] for g in d['single_granules']):.1f} s for the granules one by one "
+            f"(load {d['load_before'][0]:.1f}).")
+
+
+def multiview(d):
+    runs = {r["adjust"]: r for r in d["runs"]}
+    parts = []
+    for key, label in (("never", "without the adjustment (`[fusion] adjust = \"never\"`)"),
+                       ("auto", "with it (`\"auto\"`, the default)")):
+        r = runs.get(key)
+        if r is None:
+            continue
+        pairs = " / ".join(f"{p['nmad_m']:.3f}" for p in r["pairs"])
+        meds = " / ".join(f"{p['median_offset_m']:+.2f}" for p in r["pairs"])
+        f = r["fused"][r["default_fusion"]]
+        text = (f"{label}: pairs ({', '.join(p['pair'] for p in r['pairs'])}) NMAD {pairs} m, medians "
+                f"{meds} m; fused ({r['default_fusion']}) **NMAD {f['nmad_m']:.3f} m**, coverage "
+                f"**{100 * f['coverage_of_s2p_valid']:.1f} %** of s2p's valid cells (best pair "
+                f"{r['best_pair']}: {min(p['nmad_m'] for p in r['pairs']):.3f} m, "
+                f"{100 * max(p['coverage_of_s2p_valid'] for p in r['pairs']):.1f} %)")
+        adj = r.get("adjustment")
+        if adj:
+            text += (f"; reprojection RMS {adj['reprojection_rms_px_before']:.3f} → "
+                     f"{adj['reprojection_rms_px_after']:.3f} px over {adj['tie_points']} tie points")
+        text += (f"; N-view job {r['seconds_nview_job']:.1f} s against {r['seconds_pairs_sum']:.1f} s "
+                 f"for the three pair runs (load {r['load_average'][0]:.1f})")
+        parts.append(text)
+    return ("N-view DEM of the real Pleiades triplet against s2p's fused DSM (its 0.5 m UTM grid; "
+            "`benchmarks/bench_multiview.py`): " + "; ".join(parts) + ".")
+
+
+def adjust_multi(d):
+    r = d["run"]
+    gaps = " / ".join(f"{v['ray_gap_rms_m']:.2f}" for v in r["ray_gaps_before"].values())
+    after = max(v["ray_gap_rms_m"] for v in r["ray_gaps_after"].values())
+    return (f"N-image bundle adjustment of the real Pleiades triplet RPCs with known image-space "
+            f"shifts (`benchmarks/bench_adjust_multi.py`): {r['ties']} ties seen in all three images "
+            f"({r['observations']} observations) + {r['gcps_per_image']} GCPs per image, "
+            f"{r['unknowns']} unknowns: **{r['seconds']:.1f} s wall / {r['cpu_seconds']:.1f} s CPU** "
+            f"({d['target']}), σ0 {r['sigma0']:.3f}, biases recovered within "
+            f"**{r['max_abs_error_px']:.3f} px**; per-pair ray gaps {gaps} → ≤ {after:.2f} m RMS "
+            f"(load {d['machine']['load_average_at_start'][0]:.1f} on {d['machine']['cpus']} cores).")
+
+
+def mosaic(d):
+    r, m, s = d["runs"], d["memory"], d["seams"]
+    b, rm, nb = r["blend"], r["rasterio_merge"], r["naive_blend"]
+    load = d["machine"]["load_before"][0]
+    return (f"Mosaic of {d['inputs']['n_dems']} simulated overlapping DEMs cut from the bundled "
+            f"SRTM tile ({d['inputs']['res_m']:g} m, {b['cells'] / 1e6:.1f} M cells, biases, tilts, "
+            f"noise, voids; `benchmarks/bench_mosaic.py`): `stereodem mosaic` (blend) peaks at "
+            f"**+{m['peak_above_baseline_mb']:.0f} MB** above the interpreter, under its stated bound of "
+            f"{m['bound_mb']:.0f} MB (half the area: +{m['half_area_peak_above_baseline_mb']:.0f} MB); "
+            f"`rasterio.merge` +{m['rasterio_merge_peak_above_baseline_mb']:.0f} MB and a naive "
+            f"full-array blend +{m['naive_blend_peak_above_baseline_mb']:.0f} MB (both hold whole-mosaic "
+            f"arrays). Seams: median |error step| across footprint edges / elsewhere "
+            f"**{s['blend']['ratio']:.2f}** (blend) vs {s['first']['ratio']:.2f} (first) and "
+            f"{s['rasterio_merge']['ratio']:.2f} (`rasterio.merge`). {b['cpu_s'] / b['n_dems']:.2f} s CPU "
+            f"({b['seconds_per_dem']:.2f} s wall, of which the COG finish {b['seconds_cog_finish']:.0f} s in all) "
+            f"per DEM; `rasterio.merge` {rm['cpu_s'] / rm['n_dems']:.2f} s "
+            f"CPU, naive blend {nb['cpu_s'] / nb['n_dems']:.2f} s CPU per DEM, both writing plain GeoTIFFs (load average {load:.1f} on "
+            f"{d['machine']['cpus']} cores).")
+
+
+def stack(d):
+    out = "DEM stacks (`benchmarks/bench_stack.py`)"
+    r = d.get("real")
+    if r:
+        c = r["runs"]["chain"]
+        out += (f": five DEMs of the real SRTM tile over {r['dates'][0][:4]}–{r['dates'][-1][:4]} "
+                "with shift, ramp, along-track oscillation, correlated noise, a cloud and a thinning "
+                f"inside an outline: rate inside off by {c['inside_mean_rate_error_m_per_yr']:+.3f} "
+                f"m/yr (target 0.1), stable-terrain rate NMAD {c['stable_rate_nmad_m_per_yr']:.3f} "
+                f"m/yr = {c['stable_nmad_over_empirical_limit']:.2f} × the noise-only "
+                f"{r['noise_limit_empirical_nmad_m_per_yr']:.3f} (target ≤ 1.3), cloud date masked on "
+                f"{c['cloud_cells'] - c['cloud_cells_with_cloud_date_kept']}/{c['cloud_cells']} "
+                f"cells, volume rate within {abs(c['volume_error_in_sigma']):.1f}σ of the truth "
+                f"(target 2σ), {c['filled_pct']:.1f} % filled hypsometrically")
+    g = d.get("granules")
+    if g:
+        out += (f"; granules → DEMs → stack ({len(g['dates'])} dates): rate inside off by "
+                f"{g['inside_mean_rate_error_m_per_yr']:+.3f} m/yr")
+    h = d.get("heavy")
+    if h:
+        out += (f"; `stack` of {h['dems']} DEMs of {h['cells']} cells on {h['workers']} workers: "
+                f"{h['wall_s'] / 60:.1f} min, peak {h['peak_rss_mib'] / 1024:.2f} GiB "
+                f"(load average {h['load_before'][0]:.0f}–{h['load_after'][0]:.0f})")
+    return out + "."
+
+
+def coreg(d):
+    c = d["cases"]["integer_shift"]
+    sub = d["cases"]["subpixel_shift"]
+    sd, xd = c["stereodem"], c["xdem"]
+    v, a = d["variogram_vs_skgstat"], d["area_sigma_vs_monte_carlo"]
+    return (f"Co-registration of the bundled SRTM tile (UTM, {d['truth']['shape'][0]} × "
+            f"{d['truth']['shape'][1]} at 90 m) with an injected 1 px shift, 3 m offset, ramp, 3 m / "
+            f"5.5 km along-track sine, correlated noise (NMAD {c['noise_nmad']:.2f} m) and a −30 m change "
+            f"in an excluded outline (`benchmarks/bench_coreg.py`): stereodem "
+            f"`{d['chains']['stereodem']}` leaves a stable NMAD of **{sd['nmad_after']:.2f} m** "
+            f"(xdem {d.get('xdem_version', '')} NuthKaab + Deramp + DirectionalBias: "
+            f"{xd['nmad_after']:.2f} m), shift error {sd['shift']['dx_error']:+.2f} / "
+            f"{sd['shift']['dy_error']:+.2f} m, change {sd['change_recovered']:+.2f} m, in "
+            f"{sd['seconds']:.1f} s (xdem {xd['seconds']:.1f} s, 1 thread, load "
+            f"{d['load_avg_start'][0]:.1f}); with a sub-pixel shift {sub['stereodem']['nmad_after']:.2f} m "
+            f"vs {sub['xdem']['nmad_after']:.2f} m (resampling error included). Variogram range/sill vs "
+            f"scikit-gstat on the same dh: {100 * v['range_rel_diff']:.3f} % / "
+            f"{100 * v['sill_rel_diff']:.4f} %; σ of a {a['radius_m'] / 1e3:.0f} km-radius area mean "
+            f"{a['sigma_from_variogram']:.3f} m vs Monte Carlo {a['sigma_monte_carlo']:.3f} m "
+            f"({100 * a['rel_diff']:.1f} %; σ/√N would say {a['sigma_naive']:.3f} m).")
+
+
 SUMMARISERS = {"bench_demo": demo, "bench_rpc": rpc, "bench_aster_scene": aster_scene,
                "bench_dem": dem, "bench_match": match, "bench_ortho": ortho,
                "bench_ortho_models": ortho_models, "bench_adjust": adjust,
                "bench_aster_granule": aster_granule, "bench_topan_sets": topan_sets,
                "bench_uncertainty": uncertainty, "bench_sparse_scaling": sparse_scaling,
-               "bench_orbital_splits": orbital_splits}
+               "bench_orbital_splits": orbital_splits, "bench_mosaic": mosaic,
+               "bench_scaling": scaling, "bench_scaling_full": scaling, "bench_batch": batch,
+               "bench_coreg": coreg, "bench_multiview": multiview, "bench_adjust_multi": adjust_multi,
+               "bench_aster_strip": aster_strip, "bench_stack": stack,
+               "bench_ortho_pair": ortho_pair}
+
+
+#: the table of benchmarks/README.md: result name -> (benchmark, command, peer); its last
+#: column is the summariser's text, so the table can never disagree with the result files
+BENCHMARKS = {
+    "bench_rpc": ("RPC model", "python benchmarks/bench_rpc.py",
+                  "GDAL's RPC transformer (rasterio `RPCTransformer`)"),
+    "bench_match": ("dense matching", "python benchmarks/bench_match.py [--before REV]",
+                    ("`cv2.StereoSGBM` (1 thread, 3-way); the bare SGBM call at the same "
+                     "`cv2.setNumThreads` (the SGM wrapper's overhead)")),
+    "bench_dem": ("stereo DSM, real Pleiades pair", "python benchmarks/bench_dem.py",
+                  "s2p's DSM of the same pair"),
+    "bench_ortho": ("orthorectification", "python benchmarks/bench_ortho.py --repeat 5",
+                    "GDAL RPC warp (`rasterio.warp.reproject` with `rpcs=`, `RPC_DEM=`, 1 and 2 threads)"),
+    "bench_ortho_models": ("orthorectification models", "python benchmarks/bench_ortho_models.py",
+                           ("the structure of Ok (2005) Table 6.15 plus the orbital models and the "
+                            "rigorous pushbroom adjustment")),
+    "bench_orbital_splits": ("orbital models over random splits", "python benchmarks/bench_orbital_splits.py",
+                             "the rigorous pushbroom model (`attitude-bias-drift`) on the same splits"),
+    "bench_topan_sets": ("Topan's EOP sets", "python benchmarks/bench_topan_sets.py",
+                         "Topan (2009) Appendix A.5.1 and his reading of it"),
+    "bench_aster_scene": ("ASTER-sized scene", "python benchmarks/bench_aster_scene.py",
+                          "`--workers 1` vs `--workers 2`"),
+    "bench_demo": ("`stereodem demo`", "python benchmarks/bench_demo.py",
+                   "plain tiled GeoTIFFs for the same rasters; seeds 1–4 for the spread"),
+    "bench_adjust": ("bundle adjustment", "python benchmarks/bench_adjust.py",
+                     "scipy `least_squares` (sparse Jacobian, LSMR) and the dense normal equations"),
+    "bench_aster_granule": ("ASTER L1A granule", "python benchmarks/bench_aster_granule.py",
+                            "the simulator before this version's speed work (historical literals)"),
+    "bench_uncertainty": ("uncertainty", "python benchmarks/bench_uncertainty.py",
+                          "Bettemir (2010) Tables 3–11, thesis Tables 8.6/8.7; the orthorectification"),
+    "bench_sparse_scaling": ("sparse stage", "python benchmarks/bench_sparse_scaling.py",
+                             "the simulated truth's height range"),
+    "bench_mosaic": ("DEM mosaic", "python benchmarks/bench_mosaic.py --res 20 --n 50",
+                     "`rasterio.merge` and a naive whole-array blend"),
+    "bench_coreg": ("co-registration and error analysis",
+                    "python benchmarks/bench_coreg.py (with xdem installed: a peer only)",
+                    "xdem's NuthKaab + Deramp + DirectionalBias; scikit-gstat; Monte Carlo"),
+    "bench_scaling": ("scaling with `--workers`, half-size granule",
+                      "python benchmarks/bench_scaling.py --half",
+                      "itself at 1 worker (1, 2, 4, … up to the cores)"),
+    "bench_scaling_full": ("scaling with `--workers`, full granule",
+                           "python benchmarks/bench_scaling.py --results benchmarks/results/bench_scaling_full.json",
+                           "itself at 1 worker (1, 2, 4, … up to the cores)"),
+    "bench_batch": ("many scenes (`stereodem batch`)", "python benchmarks/bench_batch.py",
+                    "single `stereodem run` jobs one after the other"),
+    "bench_multiview": ("N-view DEM, real Pleiades triplet (issue 26)", "python benchmarks/bench_multiview.py",
+                        "s2p's fused DSM of the same triplet; the three pair DEMs of the same run"),
+    "bench_adjust_multi": ("N-image bundle adjustment (issue 26)", "python benchmarks/bench_adjust_multi.py",
+                           "the known biases it must recover"),
+    "bench_aster_strip": ("ASTER strip (issue 26)", "python benchmarks/bench_aster_strip.py",
+                          "each granule processed alone (same height range, posting); the truth DEM"),
+    "bench_ortho_pair": ("orthoimage pair on threads", "python benchmarks/bench_ortho_pair.py",
+                         "the same two orthoimages one after the other at the same thread budget"),
+    "bench_stack": ("DEM stacks and rates (issue 27)", "python benchmarks/bench_stack.py",
+                    "the injected truth and the noise-only limit of the rate"),
+}
+TABLE_START = "<!-- table generated by benchmarks/readme_figures.py --write: do not edit -->"
+TABLE_END = "<!-- end of generated table -->"
+LIST_END = "<!-- end of generated figures -->"
+
+
+def benchmarks_table(results: Path = RESULTS) -> str:
+    """The Markdown table of benchmarks/README.md (one row per result file)."""
+    files = {p.stem: p for p in sorted(Path(results).glob("*.json"))}
+    rows = ["| benchmark | command | peer | latest figures |", "|---|---|---|---|"]
+    for name in [k for k in BENCHMARKS if k in files] + [k for k in files if k not in BENCHMARKS]:
+        title, command, peer = BENCHMARKS.get(name, (name, f"python benchmarks/{name}.py", "—"))
+        fn = SUMMARISERS.get(name)
+        text = fn(json.loads(files[name].read_text())) if fn else f"see `results/{name}.json`"
+        rows.append(f"| {title} | `{command}` | {peer} | {text.replace('|', '/')} |")
+    return "\n".join(rows) + "\n"
+
+
+def _replace_block(text: str, start: str, end: str, block: str, where: str) -> str:
+    i = text.find(start)
+    j = text.find(end, i)
+    if i < 0 or j < 0:
+        raise SystemExit(f"readme_figures: {where}: markers {start!r} / {end!r} not found")
+    return text[:i] + block + text[j:]
+
+
+def write_readmes(root: Path = RESULTS.parents[1], results: Path = RESULTS):
+    """Regenerate the figures list of README.md and the table of benchmarks/README.md in place."""
+    readme = root / "README.md"
+    text = readme.read_text()
+    figures = figures_markdown(results)
+    readme.write_text(_replace_block(text, "<!-- generated by benchmarks/readme_figures.py", LIST_END,
+                                     figures, str(readme)))
+    bench = root / "benchmarks" / "README.md"
+    bench.write_text(_replace_block(bench.read_text(), TABLE_START, TABLE_END,
+                                    TABLE_START + "\n" + benchmarks_table(results), str(bench)))
 
 
 def figures_markdown(results: Path = RESULTS) -> str:
@@ -249,8 +552,13 @@ def figures_markdown(results: Path = RESULTS) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--results", default=str(RESULTS), help="folder of result JSON files")
+    ap.add_argument("--write", action="store_true",
+                    help="rewrite the generated blocks of README.md and benchmarks/README.md in place")
     a = ap.parse_args(argv)
-    sys.stdout.write(figures_markdown(Path(a.results)))
+    if a.write:
+        write_readmes(results=Path(a.results))
+    else:
+        sys.stdout.write(figures_markdown(Path(a.results)))
 
 
 if __name__ == "__main__":

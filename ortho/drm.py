@@ -29,10 +29,10 @@ import cv2
 import numpy as np
 from affine import Affine
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.dem import DEM, ELLIPSOID
-from stereodem.sensor.errors import DEMCoverageError, InputError, SensorModelError
-from stereodem.sensor.geo.grid import MapGrid, OnGrid
+from stereodem.core import geodesy
+from stereodem.core.dem import DEM, ELLIPSOID
+from stereodem.core.errors import DEMCoverageError, InputError, SensorModelError
+from stereodem.core.grid import MapGrid, OnGrid
 
 from .grid import grid_for_model
 
@@ -574,9 +574,9 @@ class Ortho(OnGrid):
             nodata the first of 0, the type's maximum, its minimum that no valid cell takes
             (an internal mask when every one is taken). Default float32 (``nodata`` as is).
         creation_options : dict or list of "KEY=VALUE", optional
-            GDAL COG creation options (:func:`stereodem.sensor.io.raster.write_geotiff`).
+            GDAL COG creation options (:func:`stereodem.core.raster.write_geotiff`).
         """
-        from stereodem.sensor.io.raster import write_geotiff
+        from stereodem.core.raster import write_geotiff
         t = {f"STEREODEM_{k.upper()}": v for k, v in self.report().items()}
         t.update(tags or {})
         data, nodata, mask = self.data, self.nodata, None
@@ -618,7 +618,7 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     image : ndarray (rows, cols) or masked array
         The image of ``model`` (``model.height`` x ``model.width``).
     model : stereodem.sensor.models.base.SensorModel
-    dem : stereodem.sensor.geo.dem.DEM or path
+    dem : stereodem.core.dem.DEM or path
         Terrain heights (geoid DEMs are converted to ellipsoidal heights).
     grid : MapGrid, optional
         Output grid (for example, shared by both images of a stereo pair). Default:
@@ -657,7 +657,7 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     -------
     Ortho
     """
-    from stereodem.sensor.geo.dem import as_dem
+    from stereodem.core.dem import as_dem
     if resampling not in RESAMPLING:
         raise InputError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
     dem = as_dem(dem)

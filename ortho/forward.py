@@ -13,10 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.errors import InputError
-
-from stereodem.sensor.geo.grid import MapGrid
+from stereodem.core import geodesy
+from stereodem.core.errors import InputError
+from stereodem.core.grid import MapGrid
 
 
 @dataclass
@@ -47,7 +46,7 @@ def forward_localize(model, dem, *, cols=None, rows=None, step: int = 1, crs=Non
     Parameters
     ----------
     model : stereodem.sensor.models.base.SensorModel
-    dem : stereodem.sensor.geo.dem.DEM
+    dem : stereodem.core.dem.DEM
     cols, rows : array_like, optional
         Pixels to localise (default every ``step``-th pixel of the image, both axes).
     crs : CRS-like, optional

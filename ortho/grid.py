@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 from pyproj import CRS
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.errors import CRSError, DEMCoverageError
-from stereodem.sensor.geo.grid import MapGrid, grid_from_bounds
+from stereodem.core import geodesy
+from stereodem.core.errors import CRSError, DEMCoverageError
+from stereodem.core.grid import MapGrid, grid_from_bounds
 
 
 def _nice_posting(gsd: float) -> float:
@@ -53,7 +53,7 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
     Parameters
     ----------
     model : stereodem.sensor.models.base.SensorModel
-    dem : stereodem.sensor.geo.dem.DEM
+    dem : stereodem.core.dem.DEM
         Used for the height range under the footprint (ellipsoidal).
     res : float, optional
         Posting in map units (m); default: the image GSD at the mean terrain height, to three
@@ -80,7 +80,7 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
     x, y = np.concatenate(xs), np.concatenate(ys)
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise CRSError(f"the image footprint cannot be expressed in {crs.to_string()}")
-    from stereodem.sensor.io.memory import check_allocation
+    from stereodem.core.memory import check_allocation
     cells = (x.max() - x.min()) / res * ((y.max() - y.min()) / res)
     # the orthoimage (float32) and its per-cell image coordinates (2 x float64)
     check_allocation(20.0 * cells, f"an orthoimage grid of {cells:.3g} cells at posting {res:g} "

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereodem.sensor.geo import geodesy
+from stereodem.core import geodesy
 
 from .drm import Ortho, bilinear_nan
 

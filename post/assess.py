@@ -5,7 +5,8 @@ heights first converted to the reference's vertical datum (EGM96 geoid ↔ WGS84
 Differences are ``dh = DEM − reference``. Statistics (:mod:`stereodem.post.stats`) are given for the
 whole overlap, per slope class (slope of the reference DEM, degrees, metric even on lon/lat
 grids), per land-cover class, per elevation band (reference heights), with the linear fit of
-error against slope; optionally before and after Nuth & Kääb co-registration.
+error against slope; optionally before and after co-registration with a chain of
+:mod:`stereodem.post.coreg` (default the chain's :class:`~stereodem.post.biascorr.NuthKaab`).
 
 :func:`assess_dem` works through the reference grid in blocks of :data:`BLOCK_ROWS` rows
 (warp, difference, slope, class statistics per block: :class:`~stereodem.post.blockstats.StreamingStats`),
@@ -22,18 +23,21 @@ from pathlib import Path
 
 import numpy as np
 import rasterio
-
 from affine import Affine
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.dem import DEM, as_dem
-from stereodem.sensor.errors import (CRSError, DEMError, InputError, NoOverlapError,
-                           VerticalReferenceError)
+from stereodem.core import geodesy
+from stereodem.core.dem import DEM, as_dem
+from stereodem.core.errors import (
+    CRSError,
+    DEMError,
+    InputError,
+    NoOverlapError,
+    VerticalReferenceError,
+)
 
 from . import stats as st
 from . import terrain, warp
 from .blockstats import QUANTILE_ERROR, RESOLUTION, StreamingStats
-from .coregister import NuthKaab
 
 log = logging.getLogger(__name__)
 
@@ -218,7 +222,7 @@ class _ClassAccumulator:
             acc.add(d[bounds[i]:bounds[i + 1]])
             self.var_sum[k] += float(vv[bounds[i]:bounds[i + 1]].sum(dtype=np.float64))
 
-    def merge(self, other: "_ClassAccumulator") -> "_ClassAccumulator":
+    def merge(self, other: _ClassAccumulator) -> _ClassAccumulator:
         """Add another block's class statistics (same classes) into these; returns self."""
         for key, acc in other.stats.items():
             self._entry(key).merge(acc)
@@ -268,7 +272,7 @@ class _Block:
     fin_bits: np.ndarray
     display: dict
 
-    def merge(self, other: "_Block"):
+    def merge(self, other: _Block):
         self.overall.merge(other.overall)
         self.fit.merge(other.fit)
         self.by_slope.merge(other.by_slope)
@@ -417,15 +421,17 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
                elevation_bins=None, checkpoints=None, checkpoint_crs=None,
                checkpoint_vertical: str | None = None, dem_vertical: str | None = None,
                ref_vertical: str | None = None, resampling: str = "bilinear",
-               coregistration: NuthKaab | None = None, threads: int = 1) -> Assessment:
+               coregistration=None, threads: int = 1) -> Assessment:
     """Assess ``dem`` against ``reference`` (DEM objects or paths).
 
     Parameters
     ----------
     coregister : bool
-        Also co-register with :class:`~stereodem.post.coregister.NuthKaab` and assess again; the report
-        then has ``coregistration`` (``dx``, ``dy``, ``dz`` metres east/north/up) and
-        ``after_coregistration``.
+        Also co-register (``coregistration``: a :class:`~stereodem.post.coreg.CoregChain`, a
+        step or a chain string; default ``"nuth_kaab"``) and assess again; the report then has
+        ``coregistration`` (:func:`coregistration_summary`: ``dx``, ``dy``, ``dz`` metres
+        east/north/up, the DEM's displacement relative to the reference, with σ, and every
+        step) and ``after_coregistration``.
     landcover : path or (array, transform, crs)
         Integer classes; warped onto the reference grid by nearest neighbour.
     slope_bins, elevation_bins : sequence of edges
@@ -467,19 +473,51 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
         report["checkpoints"] = None
     report["coregistration"] = None
     if coregister:
-        nk = coregistration or NuthKaab()
-        nk.fit(reference, dem_v)
-        report["coregistration"] = dict(nk.params)
-        shifted = nk.apply(dem_v)
+        from .coreg import CoregChain, parse_chain
+        chain = coregistration if coregistration is not None else "nuth_kaab"
+        chain = parse_chain(chain) if isinstance(chain, str) else \
+            chain if isinstance(chain, CoregChain) else CoregChain([chain])
+        chain.fit(reference, dem_v)                  # on the DEM's grid (reference warped to it)
+        report["coregistration"] = coregistration_summary(chain, reference)
+        shifted = chain.apply(dem_v)
         report["after_coregistration"], cmp2, _ = blockwise_comparison(shifted, reference, **kw)
         if checkpoints is not None:
-            sh = nk.apply(dem)          # shift in the DEM's own vertical reference
+            sh = chain.apply(dem)       # corrected in the DEM's own vertical reference
             report["after_coregistration"]["checkpoints"] = assess_checkpoints(
                 sh, checkpoints, crs=checkpoint_crs, vertical=checkpoint_vertical)
         result.after = cmp2
     log.info("assessment: n=%d rmse=%.3f nmad=%.3f", report["stats"]["n"], report["stats"]["rmse"],
              report["stats"]["nmad"])
     return result
+
+
+def coregistration_summary(chain, reference: DEM) -> dict:
+    """The assessment's ``coregistration`` entry from a fitted chain: the total shift ``dx``,
+    ``dy`` (m east/north, summed over the ``nuth_kaab`` steps; ``dx_px``/``dy_px`` in reference
+    pixels) and ``dz`` (m up, summed over ``nuth_kaab``/``vshift``) with their σ (root sum of
+    squares), ``iterations``/``converged`` of the shift steps, the stable-terrain NMAD before
+    the first and after the last step, and every step's record (:meth:`CoregChain.report`)."""
+    dx = dy = dz = 0.0
+    vx = vy = vz = 0.0
+    iterations, converged = 0, True
+    for step in chain.steps:
+        p = step.parameters()
+        if step.name == "nuth_kaab":
+            dx, dy = dx + p["dx"]["value"], dy + p["dy"]["value"]
+            vx, vy = vx + p["dx"]["sigma"] ** 2, vy + p["dy"]["sigma"] ** 2
+            iterations += int(p["iterations"])
+            converged &= bool(p["converged"])
+        if step.name in ("nuth_kaab", "vshift"):
+            dz, vz = dz + p["dz"]["value"], vz + p["dz"]["sigma"] ** 2
+    pe, pn = _pixel_size_report(reference)
+    rec = chain.report()
+    return {"method": " + ".join(s.name for s in chain.steps), "dx": dx, "dy": dy, "dz": dz,
+            "dx_sigma": float(np.sqrt(vx)), "dy_sigma": float(np.sqrt(vy)),
+            "dz_sigma": float(np.sqrt(vz)), "dx_px": dx / pe, "dy_px": dy / pn,
+            "pixel_size_m": [pe, pn], "iterations": iterations, "converged": converged,
+            "nmad_before": rec[0]["before"]["nmad"], "nmad_after": rec[-1]["after"]["nmad"],
+            "frame": "metres east/north/up; displacement of the DEM relative to the reference",
+            "steps": rec}
 
 
 def _pixel_size_report(d: DEM):

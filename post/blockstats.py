@@ -25,7 +25,9 @@ import math
 
 import numpy as np
 
-from .stats import NMAD_FACTOR, STAT_KEYS, Z90, Z95
+from stereodem.core.stats import NMAD_FACTOR
+
+from .stats import STAT_KEYS, Z90, Z95
 
 #: default histogram bin width (m): 2^-10 m, about 1 mm
 RESOLUTION = 2.0 ** -10
@@ -39,6 +41,13 @@ def quantile_error(resolution: float = RESOLUTION) -> dict:
 
 
 QUANTILE_ERROR = quantile_error()
+
+
+def _dot(a, b) -> float:
+    """Σ a·b by numpy's pairwise summation: the same bits whatever the BLAS thread count
+    (``np.dot`` of vectors is BLAS's ``ddot``, which OpenBLAS splits over its threads, so the
+    rounding followed ``--workers``)."""
+    return float(np.sum(np.multiply(a, b)))
 
 
 class StreamingStats:
@@ -88,12 +97,12 @@ class StreamingStats:
             ok &= np.isfinite(w)
             w = w[ok]
             self._sw += float(w.sum())
-            self._sww += float(np.dot(w, w))
+            self._sww += _dot(w, w)
         x = x[ok]
         if x.size == 0:
             return
         mean = float(x.mean())
-        self._merge_moments(x.size, mean, float(np.sum((x - mean) ** 2)), float(np.dot(x, x)),
+        self._merge_moments(x.size, mean, float(np.sum((x - mean) ** 2)), _dot(x, x),
                             float(np.abs(x).sum()), float(x.min()), float(x.max()))
         far = np.abs(x) > self.limit
         if far.any():
@@ -132,7 +141,7 @@ class StreamingStats:
         self.min = min(self.min, lo)
         self.max = max(self.max, hi)
 
-    def merge(self, other: "StreamingStats") -> "StreamingStats":
+    def merge(self, other: StreamingStats) -> StreamingStats:
         """Add the values of ``other`` (same resolution, limit and covariate setting) into
         this accumulator; merging block accumulators in a fixed order gives the same result
         whichever thread computed which block. Returns self."""
@@ -259,14 +268,14 @@ class StreamingStats:
         cnt = self.counts.astype(np.float64)
         with np.errstate(invalid="ignore", divide="ignore"):
             sign = np.sign(np.where(cnt > 0, self._bx / np.maximum(cnt, 1.0), centre) - centre)
-        sum_e = float(np.dot(sign, self._bx - centre * cnt))
-        sum_we = float(np.dot(sign, self._bwx - centre * self._bw))
+        sum_e = _dot(sign, self._bx - centre * cnt)
+        sum_we = _dot(sign, self._bwx - centre * self._bw)
         sum_w, sum_ww = float(self._sw), float(self._sww)
         if self._tail:
             t, tw = np.concatenate(self._tail), np.concatenate(self._tail_w)
             e = np.abs(t - centre)
             sum_e += float(e.sum())
-            sum_we += float(np.dot(tw, e))
+            sum_we += _dot(tw, e)
         n = float(self.n)
         sum_x = self._mean * n
         sum_ee = self._sumsq - 2.0 * centre * sum_x + n * centre * centre      # Σ(x − c)²

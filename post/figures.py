@@ -20,7 +20,7 @@ from matplotlib.ticker import FuncFormatter  # noqa: E402
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar  # noqa: E402
 from pyproj import CRS  # noqa: E402
 
-from stereodem.sensor.io.raster import atomic_path, check_writable  # noqa: E402
+from stereodem.core.raster import atomic_path, check_writable  # noqa: E402
 
 from . import terrain  # noqa: E402
 from .stats import error_stats  # noqa: E402

@@ -16,7 +16,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +43,8 @@ class FillResult:
 def _idw(points_rc, values, query_rc, *, k: int, power: float):
     tree = cKDTree(points_rc)
     k = int(min(k, len(points_rc)))
-    d, i = tree.query(query_rc, k=k)
+    from .blocks import default_threads
+    d, i = tree.query(query_rc, k=k, workers=default_threads())     # per query: same values
     if k == 1:
         d, i = d[:, None], i[:, None]
     w = 1.0 / np.maximum(d, 1e-9) ** power
@@ -143,9 +144,15 @@ def gaussian_smooth(heights, *, sigma: float = 0.85, passes: int = 1, truncate: 
     z = np.asarray(heights, dtype=np.float64)
     valid = np.isfinite(z)
     out = z.copy()
+    from .blocks import by_rows
+    halo = int(truncate * float(sigma) + 0.5)                 # scipy's kernel radius
+
+    def gauss(a):                                             # in row bands on threads
+        return by_rows(lambda b: ndi.gaussian_filter(b, sigma, mode="nearest", truncate=truncate),
+                       a, halo=halo)
     for _ in range(int(passes)):
-        w = ndi.gaussian_filter(valid.astype(np.float64), sigma, mode="nearest", truncate=truncate)
-        s = ndi.gaussian_filter(np.where(valid, out, 0.0), sigma, mode="nearest", truncate=truncate)
+        w = gauss(valid.astype(np.float64))
+        s = gauss(np.where(valid, out, 0.0))
         with np.errstate(invalid="ignore", divide="ignore"):
             out = np.where(valid, s / w, np.nan)
     return out.astype(np.float32)

@@ -32,10 +32,11 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
+from stereodem.core.stats import NMAD_FACTOR
 
 from . import terrain
-from .stats import NMAD_FACTOR
+from .blocks import by_rows
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,7 @@ class Reason(IntEnum):
     SLOPE = 6
     REFERENCE = 7
     SMALL_PATCH = 8
+    CLOUD = 9                #: cloud mask (:mod:`stereodem.post.clouds`, ``filter --cloud-*``)
 
 
 class EditCode(IntEnum):
@@ -109,13 +111,18 @@ def ray_gap_filter(heights, ray_gap, *, max_gap: float | None = None,
     return mask, Reason.RAY_GAP
 
 
+def _ring8(a):
+    """Sum of the 8 neighbours (outside = 0), in row bands on threads (same values)."""
+    return by_rows(lambda b: ndi.convolve(b, _RING8, mode="constant"), a, halo=1)
+
+
 def _neighbour_moments(z):
     """Count, mean and std of the valid 8-neighbours of every cell (outside = missing)."""
     v = np.isfinite(z)
     z0 = np.where(v, z, 0.0)
-    n = ndi.convolve(v.astype(np.float64), _RING8, mode="constant")
-    s1 = ndi.convolve(z0, _RING8, mode="constant")
-    s2 = ndi.convolve(z0 * z0, _RING8, mode="constant")
+    n = _ring8(v.astype(np.float64))
+    s1 = _ring8(z0)
+    s2 = _ring8(z0 * z0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = s1 / n
         var = np.maximum(s2 / n - mean * mean, 0.0)
@@ -143,7 +150,7 @@ def failed_neighbours_filter(heights, *, min_failed: int = 5):
     the grid edge do not count as failed)."""
     z = _heights(heights)
     void = (~np.isfinite(z)).astype(np.float64)
-    nfail = ndi.convolve(void, _RING8, mode="constant", cval=0.0)
+    nfail = _ring8(void)
     return np.isfinite(z) & (nfail >= min_failed), Reason.FAILED_NEIGHBOURS
 
 
@@ -233,7 +240,10 @@ def spike_filter(heights, *, k: float = 5.0, min_deviation: float = 5.0, window:
         return np.zeros(z.shape, bool), Reason.SPIKE
     zf = _fill_nearest(z)
     kern = _quadratic_kernel(window // 2)
-    r = zf - ndi.correlate(zf, kern, mode="nearest")
+
+    def predict(a):                       # the quadratic-surface prediction, in row bands
+        return by_rows(lambda b: ndi.correlate(b, kern, mode="nearest"), a, halo=window // 2)
+    r = zf - predict(zf)
     limit = np.maximum(k * _block_scale(r, valid, block), min_deviation)
     flag = valid & (np.abs(r) > limit)
     med = replaced = None
@@ -246,7 +256,7 @@ def spike_filter(heights, *, k: float = 5.0, min_deviation: float = 5.0, window:
         med = m if med is None else np.where(todo, m, med)
         replaced = flag if replaced is None else replaced | flag
         work = np.where(replaced, med, zf)
-        r = zf - ndi.correlate(work, kern, mode="nearest")
+        r = zf - predict(work)
         new = valid & (np.abs(r) > limit)
         if np.array_equal(new, flag):
             break
@@ -387,7 +397,7 @@ class FilterChain:
 
     def apply(self, heights, *, score=None, ray_gap=None, reference=None, transform=None,
               crs=None) -> FilterResult:
-        """Run the chain on ``heights`` (2-D, NaN voids) or a :class:`stereodem.sensor.geo.dem.DEM` (whose
+        """Run the chain on ``heights`` (2-D, NaN voids) or a :class:`stereodem.core.dem.DEM` (whose
         transform and CRS are then used)."""
         if hasattr(heights, "heights") and hasattr(heights, "transform"):
             transform = transform or heights.transform
@@ -433,3 +443,12 @@ def default_chain(*, thesis: bool = False) -> FilterChain:
         FilterStep("local_sigma", local),
         FilterStep("failed_neighbours", {"min_failed": 5}),
     ])
+
+
+def border_rim(heights, cells: int) -> np.ndarray:
+    """Valid cells within ``cells`` cells (a square neighbourhood) of a void or of the grid's
+    edge: the rim along the border of the overlap, where matches used partial windows
+    (removed as :attr:`EditCode.BORDER_RIM`)."""
+    valid = np.isfinite(heights).astype(np.uint8)
+    k = 2 * int(cells) + 1
+    return (valid == 1) & (cv2.erode(valid, np.ones((k, k), np.uint8), borderValue=0) == 0)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.sensor.io.raster import prepare_output_dir, write_text_atomic
+from stereodem.core.raster import prepare_output_dir, write_text_atomic
 
 from . import figures
 
@@ -94,6 +94,9 @@ def markdown(report: dict, figure_files: dict) -> str:
                   f"({co['dx_px']:.2f}, {co['dy_px']:.2f} px; {co['iterations']} iterations, "
                   f"{'converged' if co['converged'] else 'NOT converged'}).", "",
                   _table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"), ""]
+    if report.get("error_analysis"):
+        from .error_analysis import markdown_lines
+        lines += markdown_lines(report["error_analysis"]) + [""]
     lines += ["## Figures", ""] + [f"![{k}]({v})" for k, v in figure_files.items()] + [""]
     prov = report.get("provenance")
     if prov:
@@ -110,6 +113,8 @@ FIGURE_CAPTIONS = {
     "difference": "DEM − reference; red: DEM above the reference, blue: below.",
     "histogram": "Distribution of DEM − reference with the mean, median and median ± NMAD.",
     "error_vs_slope": "Error statistics per slope class of the reference (n: valid cells).",
+    "error_vs_terrain": "NMAD of dh on stable terrain against slope and maximum curvature, fitted.",
+    "variogram": "Variogram of the standardised dh on stable terrain and its fit (two spherical models).",
 }
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:980px;margin:1.5em auto;padding:0 1em;
@@ -183,6 +188,11 @@ def html_report(report: dict, figure_paths: dict) -> str:
                   f"dy = {co['dy']:.2f} m north, dz = {co['dz']:.2f} m up ({co['iterations']} "
                   f"iterations, {'converged' if co['converged'] else 'NOT converged'}).</p>",
                   _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage")]
+    if report.get("error_analysis"):
+        from .error_analysis import markdown_lines
+        ea = markdown_lines(report["error_analysis"])
+        parts += ["<h2>Error analysis (stable terrain)</h2>", "<ul>"] + \
+            [f"<li>{esc(x[2:])}</li>" for x in ea if x.startswith("* ")] + ["</ul>"]
     prov = report.get("provenance")
     if prov:
         parts += ["<h2>Provenance</h2>", "<dl>"] + [
@@ -192,13 +202,15 @@ def html_report(report: dict, figure_paths: dict) -> str:
 
 
 def write_report(assessment, out_dir, *, dem_heights=None, dem_transform=None, dem_crs=None,
-                 overwrite=False, provenance: dict | None = None) -> dict:
+                 overwrite=False, provenance: dict | None = None, extra=None) -> dict:
     """Write ``report.json``, ``report.md``, ``report.html`` and the PNG figures of an
     :class:`~stereodem.post.assess.Assessment` into ``out_dir``; returns the paths written.
 
     The hillshade is of the DEM on the reference grid unless ``dem_heights`` (with its
     transform and CRS) is given. ``provenance`` (:func:`stereodem.provenance.provenance`) is
-    stored in ``report.json`` and shown in both reports.
+    stored in ``report.json`` and shown in both reports. ``extra(out, overwrite)`` returns
+    ``(key, section, figure_files)``: one more section (e.g. the error analysis of
+    :mod:`stereodem.post.error_analysis`) and its figures, written into the same folder.
     """
     out = prepare_output_dir(out_dir, overwrite=overwrite)
     rep = assessment.report
@@ -225,6 +237,10 @@ def write_report(assessment, out_dir, *, dem_heights=None, dem_transform=None, d
                                                          out / FIGURES["error_vs_slope"],
                                                          overwrite=overwrite,
                                                          centre=rep["stats"]["median"])
+    if extra is not None:
+        key, section, figs = extra(out, overwrite)
+        rep = dict(rep, **{key: section})
+        files.update(figs)
     figure_paths = dict(files)
     rel = {k: Path(v).name for k, v in files.items()}
     rep = dict(rep, figures=rel)

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
+from stereodem.core.stats import NMAD_FACTOR
 
-NMAD_FACTOR = 1.4826
 Z90 = 1.6448536269514722       #: standard normal quantile of 0.95 (two-sided 90 %)
 Z95 = 1.959963984540054        #: standard normal quantile of 0.975 (two-sided 95 %)
 
@@ -19,15 +19,6 @@ DEFAULT_SLOPE_BINS = (0.0, 5.0, 10.0, 20.0, 30.0, 45.0, 90.0)
 
 STAT_KEYS = ("n", "n_total", "valid_pct", "mean", "median", "std", "rmse", "mae", "nmad",
              "p16", "p84", "le90", "le95", "le90_gauss", "le95_gauss", "min", "max")
-
-
-def nmad(x) -> float:
-    """Normalised median absolute deviation 1.4826 · median(|x − median(x)|), NaN ignored."""
-    x = np.asarray(x, dtype=np.float64)
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return float("nan")
-    return float(NMAD_FACTOR * np.median(np.abs(x - np.median(x))))
 
 
 def error_stats(dh, *, n_total: int | None = None) -> dict:

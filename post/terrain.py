@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 from pyproj import CRS
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.errors import CRSError
+from stereodem.core import geodesy
+from stereodem.core.errors import CRSError
 
 
 def metres_per_degree(lat):

@@ -5,8 +5,8 @@ import numpy as np
 from affine import Affine
 from rasterio.warp import Resampling, reproject
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.errors import NoOverlapError
+from stereodem.core import geodesy
+from stereodem.core.errors import NoOverlapError
 
 from . import terrain
 

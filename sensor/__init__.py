@@ -1,6 +1,6 @@
 """Sensor geometry, in rooms:
 
-* :mod:`.geo` — WGS84 geodesy, EGM96, rotations, DEM access;
+* :mod:`.geo` — rotations, space intersection (geodesy, grids, DEMs: :mod:`stereodem.core`);
 * :mod:`.models` — the sensor models (frame, pushbroom, ASTER, RPC, fitted generic models,
   image-space corrections) on one contract;
 * :mod:`.io` — file readers and writers (rasters, RPC formats, ASTER geometry, model sidecars,
@@ -11,4 +11,3 @@
 Every model follows the contract of :class:`stereodem.sensor.models.base.SensorModel`:
 ``project(lon, lat, h) -> (col, row)`` and ``localize(col, row, h) -> (lon, lat)``.
 """
-from .errors import StereodemError  # noqa: F401

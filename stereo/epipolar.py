@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from stereodem.sensor.errors import InputError, SensorModelError
+from stereodem.core.errors import InputError, SensorModelError
 from stereodem.stereo.tiling import Tile
 
 log = logging.getLogger(__name__)

@@ -18,86 +18,19 @@ pixel-corner affine transform; cell ``[i, j]`` has its centre at ``transform * (
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from affine import Affine
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.errors import InputError
-from stereodem.sensor.geo.grid import MapGrid, OnGrid, as_crs
-from stereodem.sensor.io.raster import write_geotiff
+from stereodem.core import geodesy
+from stereodem.core.dem import DEM, ELLIPSOID, GEOID
+from stereodem.core.errors import InputError
+from stereodem.core.grid import MapGrid, OnGrid, as_crs
+from stereodem.stereo.settings import GRIDDING_METHODS
 
-__all__ = ["DEMGrid", "GridSpec", "CellSums", "SUM_LAYERS", "accumulate", "finish", "grid_points",
+__all__ = ["GridSpec", "CellSums", "SUM_LAYERS", "accumulate", "finish", "grid_points",
            "grid_bounds"]
-
-_VERTICAL_TAG = "STEREODEM_VERTICAL"
-
-
-@dataclass
-class DEMGrid(OnGrid):
-    """A gridded DEM and its companion layers on one :class:`MapGrid`.
-
-    Attributes
-    ----------
-    heights : ndarray (rows, cols) float32
-        Heights, metres (``vertical`` reference), NaN where no point fell.
-    count : ndarray int32
-        Number of points per cell (with ``"gaussian"``, points within the radius).
-    score : ndarray float32
-        Mean correlation score of the cell's points (NaN if none).
-    ray_gap : ndarray float32
-        Mean ray gap of the cell's points, metres.
-    grid : MapGrid
-        The lattice (transform, size, CRS).
-    vertical : {"ellipsoid", "geoid"}
-    """
-
-    heights: np.ndarray
-    count: np.ndarray
-    score: np.ndarray
-    ray_gap: np.ndarray
-    grid: MapGrid
-    vertical: str = "ellipsoid"
-    info: dict = field(default_factory=dict)
-
-    def write(self, directory, *, overwrite=False, names=None, creation_options=None):
-        """Write ``dem.tif``, ``count.tif``, ``score.tif`` and ``raygap.tif`` in ``directory``
-        (Cloud-Optimised GeoTIFFs with band descriptions and units; ``creation_options`` as
-        GDAL's ``-co``).
-
-        Float layers are float32 with NaN nodata; ``count`` is int32 with nodata 0. Each
-        file is written atomically. Returns the dict of written paths.
-        """
-        return self.prepare_write(directory, overwrite=overwrite, names=names,
-                                  creation_options=creation_options)()
-
-    def prepare_write(self, directory, *, overwrite=False, names=None, creation_options=None):
-        """:meth:`write` in two steps: the layers are converted to their stored types now
-        (copies), and the returned callable writes them; it can run in another thread while
-        this grid changes or goes away."""
-        from pathlib import Path
-        d = Path(directory)
-        names = names or dict(dem="dem.tif", count="count.tif", score="score.tif", raygap="raygap.tif")
-        kw = dict(overwrite=overwrite, creation_options=creation_options)
-        layers = {
-            "dem": (self.heights.astype(np.float32), np.nan,
-                    f"height above the {'EGM96 geoid' if self.vertical == 'geoid' else 'WGS84 ellipsoid'}", "metre"),
-            "count": (self.count.astype(np.int32), 0, "space-intersected points per cell", "1"),
-            "score": (self.score.astype(np.float32), np.nan, "mean correlation score (ZNCC) of the cell's points", "1"),
-            "raygap": (self.ray_gap.astype(np.float32), np.nan, "mean ray gap of the cell's points", "metre"),
-        }
-        transform, crs, vertical = self.transform, self.crs, self.vertical
-
-        def write_layers():
-            out = {}
-            for key, (data, nodata, description, unit) in layers.items():
-                extra = dict(tags={_VERTICAL_TAG: vertical}) if key == "dem" else {}
-                out[key] = write_geotiff(d / names[key], data, transform, crs, nodata,
-                                         descriptions=[description], units=[unit], **extra, **kw)
-            return out
-        return write_layers
-
 
 def grid_bounds(x, y, posting):
     """Bounds ``(xmin, ymin, xmax, ymax)`` of the points snapped outward to multiples of ``posting``."""
@@ -148,8 +81,8 @@ class GridSpec(OnGrid):
             raise InputError(f"grid posting must be positive, got {posting!r}")
         crs = as_crs(crs)
         method = options.get("method", "gaussian")
-        if method not in ("mean", "gaussian"):
-            raise InputError(f"unknown gridding method {method!r} (mean or gaussian)")
+        if method not in GRIDDING_METHODS:
+            raise InputError(f"unknown gridding method {method!r} ({' or '.join(GRIDDING_METHODS)})")
         xmin, ymin, xmax, ymax = (float(b) for b in bounds)
         cols = max(1, int(round((xmax - xmin) / posting)))
         rows = max(1, int(round((ymax - ymin) / posting)))
@@ -278,8 +211,9 @@ def _support_counts(i, j, rows, cols, radius):
     return c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
 
 
-def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False, info=None) -> DEMGrid:
-    """The DEM and its layers from the summed :class:`CellSums` of a whole lattice.
+def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False) -> DEM:
+    """The DEM and its ``count``, ``score`` and ``ray_gap`` layers from the summed
+    :class:`CellSums` of a whole lattice.
 
     ``crop`` trims the grid to the cells that received points (keeping the lattice).
     """
@@ -295,15 +229,13 @@ def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False, info=None) 
         height = np.where(t[0] > 0, t[1] / t[0], np.nan)
         sc = np.where(t[3] > 0, t[4] / t[3], np.nan)
         gp = np.where(t[5] > 0, t[6] / t[5], np.nan)
-    grid = MapGrid(transform, t.shape[2], t.shape[1], spec.crs)
-    return DEMGrid(height.astype(np.float32), t[2].astype(np.int32), sc.astype(np.float32),
-                   gp.astype(np.float32), grid, "geoid" if spec.geoid else "ellipsoid",
-                   info=dict(method=spec.method, **(info or {})))
+    return DEM(height.astype(np.float32), transform, spec.crs, GEOID if spec.geoid else ELLIPSOID,
+               count=t[2].astype(np.int32), score=sc.astype(np.float32), ray_gap=gp.astype(np.float32))
 
 
 def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=None, ray_gap=None,
                 method: str = "mean", sigma: float | None = None, radius: int | None = None,
-                geoid: bool = False) -> DEMGrid:
+                geoid: bool = False) -> DEM:
     """Grid ground points into a DEM.
 
     Parameters
@@ -313,7 +245,7 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
     posting : float
         Cell size in CRS units (metres for UTM).
     crs : CRS-like, optional
-        Output CRS; default the UTM zone of the points (:func:`stereodem.sensor.geo.geodesy.utm_crs`).
+        Output CRS; default the UTM zone of the points (:func:`stereodem.core.geodesy.utm_crs`).
     bounds : (xmin, ymin, xmax, ymax), optional
         Grid extent in the CRS (cell edges); default the points' extent snapped to the posting.
     score, ray_gap : array_like (N,), optional
@@ -331,7 +263,8 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
 
     Returns
     -------
-    DEMGrid
+    DEM
+        with ``count``, ``score`` and ``ray_gap`` layers.
     """
     lon, lat, h = (np.asarray(a, np.float64).ravel() for a in (lon, lat, h))
     ok = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h)
@@ -354,4 +287,4 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
     cells = accumulate(spec, lon, lat, h, score=score, ray_gap=ray_gap, xy=(x, y))
     total = np.zeros((len(SUM_LAYERS),) + tuple(spec.shape))
     cells.add_to(total)
-    return finish(spec, total, info=dict(n_points=int(ok.sum())))
+    return finish(spec, total)

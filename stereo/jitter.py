@@ -26,25 +26,25 @@ import logging
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError
-from stereodem.sensor.estimation.jitter import (cross_track_sensitivity, estimate_pitch_jitter,
-                                                estimate_roll_jitter, with_attitude_sines)
-from stereodem.sensor.geo.dem import DEM, ELLIPSOID, as_dem
+from stereodem.core.dem import ELLIPSOID, as_dem
+from stereodem.core.errors import InputError
+from stereodem.core.stats import nmad
+from stereodem.sensor.estimation.jitter import (
+    cross_track_sensitivity,
+    estimate_pitch_jitter,
+    estimate_roll_jitter,
+    with_attitude_sines,
+)
 from stereodem.stereo import epipolar
-from stereodem.stereo.pipeline import PairInputs, make_dem
+from stereodem.stereo.pipeline import PairInputs, dem_of_checked_pair
 from stereodem.stereo.plan import plan_tiles, tile_height_range
+from stereodem.stereo.sanity import check_pair
 from stereodem.stereo.settings import StereoSettings
 from stereodem.stereo.sparse import distance_to_curves, epipolar_curves
 
 log = logging.getLogger(__name__)
 
 AXES = ("pitch", "roll")
-
-
-def products_dem(products) -> DEM:
-    """The :class:`~stereodem.sensor.geo.dem.DEM` of :func:`make_dem` products."""
-    g = products.dem
-    return DEM(g.heights, g.transform, g.crs, g.vertical, None)
 
 
 def probe_tiles(left_model, right_model, settings: StereoSettings, height_range, *,
@@ -240,11 +240,6 @@ def resample_to_model(image, model, actual, height: float, *, row_step: int = 4,
     return out
 
 
-def _nmad(x) -> float:
-    x = np.asarray(x, float)
-    x = x[np.isfinite(x)]
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
-
 
 def correct_roll_jitter(left_image, right_image, left_model, right_model, settings, dem, *,
                         n_sines: int = 1, f_range=(0.2, 8.0), vertical_search: int = 2,
@@ -279,7 +274,7 @@ def correct_roll_jitter(left_image, right_image, left_model, right_model, settin
             total = add_series(total, fit)
         model = with_attitude_sines(right_model, total, axis="roll")
         rounds_info.append(dict(n_matches=int(vp["cross_px"].size),
-                                cross_px_nmad=_nmad(vp["cross_px"]),
+                                cross_px_nmad=nmad(vp["cross_px"]),
                                 amplitudes_rad=fit.amplitudes.tolist(),
                                 frequencies_hz=fit.frequencies.tolist()))
     corrected = model
@@ -291,7 +286,8 @@ def correct_roll_jitter(left_image, right_image, left_model, right_model, settin
 def dem_with_jitter_correction(left_image, right_image, left_model, right_model, reference=None,
                                settings: StereoSettings | None = None, *, seed_dem=None,
                                n_sines: int = 1, f_range=(0.2, 8.0), runner=None,
-                               axes=("pitch",), vertical_search: int = 2, roll_rounds: int = 2):
+                               axes=("pitch",), vertical_search: int = 2, roll_rounds: int = 2,
+                               left_dtype=None, right_dtype=None):
     """``(products, corrected_right_model, fits, first_products)``; ``runner`` as
     :func:`~stereodem.stereo.pipeline.make_dem`'s. ``corrected_right_model`` describes the
     given right image (nominal model plus the fitted attitude oscillations).
@@ -299,10 +295,12 @@ def dem_with_jitter_correction(left_image, right_image, left_model, right_model,
     ``axes`` names the oscillations estimated: ``"roll"`` from the residual vertical parallax
     of the matches (no reference needed), ``"pitch"`` from the first DEM's residuals against
     ``reference`` (a DEM or path covering the scene). ``fits`` maps each axis to its
-    :class:`~stereodem.sensor.estimation.jitter.SineSeries` (rad) and ``products.info["jitter"]``
+    :class:`~stereodem.sensor.estimation.jitter.SineSeries` (rad) and ``products.info.jitter``
     holds them per axis. The first DEM is made on ellipsoidal heights whatever
     ``settings.gridding.geoid`` says; without a height range or ``seed_dem`` the reference
     (if any) sets the tiles' height ranges. ``roll_rounds``: see :func:`correct_roll_jitter`.
+    The pair is checked once, as by :func:`~stereodem.stereo.pipeline.make_dem` (``left_dtype``,
+    ``right_dtype`` as there), and the checks are reported in the final products' ``info``.
     """
     axes = tuple(axes)
     if not axes or any(a not in AXES for a in axes):
@@ -314,9 +312,13 @@ def dem_with_jitter_correction(left_image, right_image, left_model, right_model,
     seed = seed_dem if seed_dem is not None or settings.rectification.height_range else ref
     first_settings = dataclasses.replace(
         settings, gridding=dataclasses.replace(settings.gridding, geoid=False))
-    first = make_dem(left_image, right_image, left_model, right_model, first_settings, seed_dem=seed,
-                     runner=runner)
-    d0 = products_dem(first)
+    checked = check_pair(left_image, right_image, left_model, right_model,
+                         settings.rectification.height_range,
+                         as_dem(seed) if seed is not None else None, left_dtype, right_dtype)
+    left_image, right_image = checked.left, checked.right
+    first = dem_of_checked_pair(left_image, right_image, left_model, right_model, first_settings,
+                                seed_dem=seed, runner=runner)
+    d0 = first.dem
     if d0.vertical != ELLIPSOID:          # pragma: no cover - geoid=False above
         raise AssertionError("first DEM must be ellipsoidal")
     corrected, fits, info = right_model, {}, {}
@@ -339,7 +341,8 @@ def dem_with_jitter_correction(left_image, right_image, left_model, right_model,
         model_for_dem = with_attitude_sines(right_model, fit, axis="pitch")
         fits["pitch"] = fit
         info["pitch"] = {**fit.to_dict(), "sensitivity_m_per_rad": diag["sensitivity_m_per_rad"]}
-    final = make_dem(left_image, right_for_dem, left_model, model_for_dem, settings, seed_dem=seed,
-                     runner=runner)
-    final.info["jitter"] = info
+    final = dem_of_checked_pair(left_image, right_for_dem, left_model, model_for_dem, settings,
+                                seed_dem=seed, runner=runner)
+    final.info.jitter = info
+    checked.report(final)
     return final, corrected, fits, first

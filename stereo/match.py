@@ -27,13 +27,15 @@ NaN in the inputs marks no-data: a window touching no-data gives no match.
 """
 from __future__ import annotations
 
+import functools
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
+from stereodem.stereo.settings import MATCHERS
 
 from .pyramid import build_pyramid, upsample_field
 
@@ -63,7 +65,7 @@ class MatchResult(NamedTuple):
 
     disparity: np.ndarray
     score: np.ndarray
-    vertical: Optional[np.ndarray] = None
+    vertical: np.ndarray | None = None
     info: dict = {}
 
 
@@ -79,10 +81,25 @@ def _as_image(a, name):
     return a
 
 
+def _finite_sample(arrays, n):
+    """The finite values of ``arrays`` (concatenated, flattened) taken every ``size // n``-th
+    when there are more than ``n``; without NaN the stride is taken without the copy."""
+    flats = [np.ravel(a) for a in arrays]
+    fin = [np.isfinite(f) for f in flats]
+    if all(m.all() for m in fin):
+        size = sum(f.size for f in flats)
+        step = size // n if size > n else 1
+        parts, start = [], 0
+        for f in flats:                 # v[::step] of the concatenation, piece by piece
+            parts.append(f[start::step])
+            start = (start - f.size) % step
+        return np.concatenate(parts) if len(parts) > 1 else parts[0]
+    v = np.concatenate([f[m] for f, m in zip(flats, fin)])
+    return v[:: v.size // n] if v.size > n else v
+
+
 def _robust_range(a):
-    v = a[np.isfinite(a)]
-    if v.size > 200_000:
-        v = v[:: v.size // 200_000]
+    v = _finite_sample([a], 200_000)
     lo, hi = np.percentile(v, [2.0, 98.0])
     return float(lo), float(hi)
 
@@ -97,28 +114,39 @@ def _window_stats(img, window, min_std):
     """Window mean and inverse standard deviation of a float32 image with NaN no-data.
 
     ``inv`` is NaN where the window touches no-data or its standard deviation is below
-    ``min_std``; the image border (windows leaving the image) is NaN as well.
+    ``min_std``; the image border (windows leaving the image) is NaN as well. ``zero`` is
+    ``img`` itself when it has no NaN (read-only use). The arithmetic is done in place
+    (same operations, same float32 results as the textbook form ``1 / sqrt(E[x^2] - E[x]^2)``).
     """
+    img = np.asarray(img, dtype=F32)
     nan = ~np.isfinite(img)
-    zero = np.where(nan, F32(0), img).astype(F32, copy=False)
+    has_nan = bool(nan.any())
+    if has_nan:                 # NaN -> 0 (a copy and a masked fill: a third of np.where)
+        zero = img.copy()
+        np.copyto(zero, F32(0), where=nan)
+    else:
+        zero = img
     k = (window, window)
     mean = cv2.boxFilter(zero, cv2.CV_32F, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
-    sq = cv2.boxFilter(zero * zero, cv2.CV_32F, k, normalize=True,
-                       borderType=cv2.BORDER_CONSTANT)
-    var = sq - mean * mean
+    tmp = np.multiply(zero, zero)
+    var = cv2.boxFilter(tmp, cv2.CV_32F, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
+    np.multiply(mean, mean, out=tmp)
+    np.subtract(var, tmp, out=var)                            # E[x^2] - E[x]^2
     bad = var < F32(min_std) ** 2
-    if nan.any():
-        bad |= cv2.boxFilter(nan.astype(F32), cv2.CV_32F, k, normalize=False,
-                             borderType=cv2.BORDER_CONSTANT) > 0.5
+    if has_nan:                 # a NaN in the window: a dilation of the NaN mask (outside = 0)
+        bad |= cv2.dilate(nan.view(np.uint8), np.ones(k, np.uint8),
+                          borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
     h = window // 2
     bad[:h] = True
     bad[-h:] = True
     bad[:, :h] = True
     bad[:, -h:] = True
+    inv = np.maximum(var, F32(1e-30), out=var)
+    np.sqrt(inv, out=inv)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = F32(1) / np.sqrt(np.maximum(var, F32(1e-30)))
-    inv[bad] = np.nan
-    return _Stats(zero, mean, inv.astype(F32, copy=False))
+        np.divide(F32(1), inv, out=inv)
+    np.copyto(inv, F32(np.nan), where=bad)
+    return _Stats(zero, mean, inv)
 
 
 def _gather_cols(a, cols, fill=np.nan):
@@ -192,8 +220,8 @@ class _Scan(NamedTuple):
     k: np.ndarray       # offset of the best (int32)
     cm: np.ndarray      # ZNCC at k - 1
     cp: np.ndarray      # ZNCC at k + 1
-    back_score: Optional[np.ndarray]
-    back_k: Optional[np.ndarray]
+    back_score: np.ndarray | None
+    back_k: np.ndarray | None
 
 
 def _scan(ref, tgt, klo, khi, window, min_std, back=False):
@@ -267,19 +295,29 @@ def _scan(ref, tgt, klo, khi, window, min_std, back=False):
 
 
 def _fill_rows(d):
-    """NaN -> the smaller (background) of the nearest valid values left and right."""
-    valid = np.isfinite(d)
+    """NaN -> the smaller (background) of the nearest valid values left and right.
+
+    Only the NaN cells are visited: each run of consecutive NaN cells (in row-major order)
+    takes the cells just before and after the run, when they lie in the same row."""
     h, w = d.shape
-    cols = np.arange(w)[None, :]
-    idx_l = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
-    idx_r = np.minimum.accumulate(np.where(valid, cols, w)[:, ::-1], axis=1)[:, ::-1]
-    left = np.take_along_axis(d, np.clip(idx_l, 0, w - 1), axis=1)
-    left[idx_l < 0] = np.nan
-    right = np.take_along_axis(d, np.clip(idx_r, 0, w - 1), axis=1)
-    right[idx_r >= w] = np.nan
+    flat = np.ascontiguousarray(d).ravel()
+    out = flat.copy()
+    holes = np.flatnonzero(~np.isfinite(flat))
+    if holes.size == 0 or holes.size == flat.size:
+        return out.reshape(h, w)
+    brk = np.flatnonzero(np.diff(holes) != 1)
+    starts = np.concatenate([[0], brk + 1])                  # first hole of each run
+    ends = np.concatenate([brk, [holes.size - 1]])           # last hole of each run
+    run = np.repeat(np.arange(starts.size), ends - starts + 1)
+    li = holes[starts][run] - 1                              # the valid cell before the run
+    ri = holes[ends][run] + 1                                # ... and after it
+    row = holes // w
+    left = np.where((li >= 0) & (li // w == row), flat[np.maximum(li, 0)], np.nan)
+    right = np.where((ri < flat.size) & (ri // w == row), flat[np.minimum(ri, flat.size - 1)],
+                     np.nan)
     with np.errstate(invalid="ignore"):
-        fill = np.fmin(left, right)
-    return np.where(valid, d, fill)
+        out[holes] = np.fmin(left, right)
+    return out.reshape(h, w)
 
 
 def _fill_seed(d, fallback):
@@ -290,11 +328,42 @@ def _fill_seed(d, fallback):
     valid rows (column-wise), and an all-NaN map takes ``fallback``."""
     d = np.asarray(d, dtype=F32)
     if not np.isfinite(d).all():
-        d = _fill_rows(d)
-        if not np.isfinite(d).all():
-            d = np.ascontiguousarray(_fill_rows(np.ascontiguousarray(d.T)).T)
-        d[~np.isfinite(d)] = fallback
+        d = _fill_seed_holes(d, fallback)
     return cv2.medianBlur(np.ascontiguousarray(d, dtype=F32), 5)
+
+
+def _fill_seed_holes(d, fallback):
+    """The hole filling of :func:`_fill_seed` (a new array)."""
+    d = _fill_rows(d)
+    if not np.isfinite(d).all():
+        d = np.ascontiguousarray(_fill_rows(np.ascontiguousarray(d.T)).T)
+    d[~np.isfinite(d)] = fallback
+    return d
+
+
+def _seed_columns(d, w):
+    """``x - np.rint(_fill_seed(d, 0.0))`` as float32 (the remap's column map), in one pass
+    from the uint8 median when the seed's span allows (integers: exact either way)."""
+    lo, med = _rounded_seed(d, offset=True)
+    return np.subtract(np.subtract(_col_index(w), F32(lo)), med, dtype=F32)
+
+
+def _rounded_seed(d, offset=False):
+    """``np.rint(_fill_seed(d, 0.0))``, the 5x5 median taken on the rounded values: rounding
+    is monotone, so it commutes with the median; on small integers (a span of at most 255)
+    OpenCV's uint8 median is twice as fast as the float32 one.  With ``offset``:
+    ``(lo, median - lo)``, the second uint8 where the span allowed it."""
+    d = np.asarray(d, dtype=F32)
+    if not np.isfinite(d).all():
+        d = _fill_seed_holes(d, 0.0)
+    r = np.rint(d)
+    lo, hi = cv2.minMaxLoc(r)[:2]
+    if hi - lo > 255:
+        med = cv2.medianBlur(r, 5)
+        return (0.0, med) if offset else med
+    small = np.subtract(r, F32(lo), out=r).astype(np.uint8)
+    med = cv2.medianBlur(small, 5)            # the median minus ``lo``
+    return (lo, med) if offset else np.add(med, F32(lo), dtype=F32)
 
 
 def _lr_check(d_left, d_right, tol):
@@ -466,18 +535,36 @@ def _match_ncc(left, right, lo, hi, range_maps, *, window, min_score, min_std, l
 
 # ----------------------------------------------------------------------------- sgm
 
-def _to_uint8(left, right):
-    """Joint 1-99 % percentile stretch of both images to uint8 (NaN -> 0)."""
-    v = np.concatenate([left[np.isfinite(left)], right[np.isfinite(right)]])
-    if v.size > 400_000:
-        v = v[:: v.size // 400_000]
+def _to_uint8(left, right, executor=None):
+    """Joint 1-99 % percentile stretch of both images to uint8 (NaN -> 0).
+
+    ``round-half-up((a - lo) * 255 / (hi - lo))`` clipped to 0..255, in float64, in place;
+    with ``executor`` (a thread pool) the right image is converted there meanwhile."""
+    v = _finite_sample([left, right], 400_000)
     lo, hi = np.percentile(v, [1.0, 99.0])
     scale = 255.0 / max(hi - lo, 1e-12)
 
     def conv(a):
-        b = np.clip((np.nan_to_num(a, nan=lo) - lo) * scale + 0.5, 0, 255)
-        return b.astype(np.uint8)
+        b = np.empty(a.shape, np.uint8)
+        # by blocks of rows through one small float64 buffer that stays in cache
+        step = max(1, 32768 // max(a.shape[1], 1))
+        buf = np.empty((step, a.shape[1]), np.float64)
+        with np.errstate(invalid="ignore"):           # NaN (no-data): set just below
+            for r in range(0, a.shape[0], step):
+                blk = buf[:min(step, a.shape[0] - r)]
+                np.subtract(a[r:r + step], lo, out=blk)
+                np.multiply(blk, scale, out=blk)
+                np.add(blk, 0.5, out=blk)
+                np.clip(blk, 0, 255, out=blk)
+                np.copyto(b[r:r + step], blk, casting="unsafe")
+        nan = np.isnan(a)
+        if nan.any():          # no-data takes the value of ``lo`` (as float32, like the image)
+            b[nan] = np.uint8(np.clip((a.dtype.type(lo) - lo) * scale + 0.5, 0, 255))
+        return b
 
+    if executor is not None:
+        r = executor.submit(conv, right)
+        return conv(left), r.result()
     return conv(left), conv(right)
 
 
@@ -528,20 +615,66 @@ def zncc_at(left, right, disparity, *, window=7):
     """
     left = _as_image(left, "left")
     right = _as_image(right, "right")
+    return _zncc_warped(_zncc_left(left, window), right, disparity)
+
+
+@functools.lru_cache(maxsize=8)
+def _col_index(w):
+    """Column coordinates ``0..w-1`` as a (1, w) float32 row (read-only, cached)."""
+    a = np.arange(w, dtype=F32)[None, :]
+    a.flags.writeable = False
+    return a
+
+
+@functools.lru_cache(maxsize=4)
+def _row_map(h, w):
+    """Row coordinates as an (h, w) float32 ``cv2.remap`` map (read-only, cached per shape:
+    rebuilding it costs as much as the remap itself)."""
+    a = np.repeat(np.arange(h, dtype=F32)[:, None], w, axis=1)
+    a.flags.writeable = False
+    return a
+
+
+class _LeftWindows(NamedTuple):
+    """What the score layer needs of the left image alone (computable before the disparity)."""
+
+    off: np.float32      # the image's mean (centring constant)
+    stats: _Stats        # window statistics of ``left - off``
+    window: int
+
+
+def _zncc_left(left, window):
+    # without no-data, np.mean of a C-contiguous image sums in the same (pairwise) order as
+    # np.nanmean, so it gives the same float32, in one pass instead of three
+    plain = left.flags.c_contiguous and np.isfinite(left).all()
+    off = np.mean(left) if plain else np.nanmean(left)
+    return _LeftWindows(off, _window_stats(np.subtract(left, off, dtype=F32), window, 0.0), window)
+
+
+def _zncc_warped(a: _LeftWindows, right, disparity):
+    """:func:`zncc_at` given the left image's part (:func:`_zncc_left`)."""
     d = np.asarray(disparity, dtype=F32)
     ok = np.isfinite(d)
     if not ok.any():
-        return np.full(left.shape, np.nan, dtype=F32)
-    seed = np.rint(_fill_seed(d, float(np.nanmedian(d)))).astype(np.int64)
-    warped = _gather_cols(right, np.arange(left.shape[1])[None, :] - seed)
-    off = np.nanmean(left)
-    a = _window_stats(left - off, window, 0.0)
-    b = _window_stats(warped - off, window, 0.0)
-    ksize = (window, window)
-    cov = cv2.boxFilter(a.zero * b.zero, cv2.CV_32F, ksize, normalize=True,
-                        borderType=cv2.BORDER_CONSTANT) - a.mean * b.mean
-    score = np.clip(cov * a.inv * b.inv, -1, 1).astype(F32)
-    score[~ok] = np.nan
+        return np.full(right.shape, np.nan, dtype=F32)
+    h, w = right.shape
+    # the seed's fallback is only used when no disparity is valid (handled above).
+    # right(x - seed(x), y): an exact gather (integer coordinates, nearest neighbour), NaN
+    # outside the image; the map is built in the seed's own buffer
+    map_x = _seed_columns(d, w)
+    warped = cv2.remap(right, map_x, _row_map(h, w), cv2.INTER_NEAREST,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    np.subtract(warped, a.off, out=warped, dtype=F32)
+    b = _window_stats(warped, a.window, 0.0)
+    ksize = (a.window, a.window)
+    prod = np.multiply(a.stats.zero, b.zero, out=map_x)
+    cov = cv2.boxFilter(prod, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_CONSTANT)
+    np.multiply(a.stats.mean, b.mean, out=prod)
+    np.subtract(cov, prod, out=cov)
+    np.multiply(cov, a.stats.inv, out=cov)
+    np.multiply(cov, b.inv, out=cov)
+    score = np.clip(cov, -1, 1, out=cov)
+    np.copyto(score, F32(np.nan), where=~ok)
     return score
 
 
@@ -571,7 +704,8 @@ def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_
         Minimum ZNCC of a valid match; default 0.5 for ``"ncc"``, none for ``"sgm"``.
     min_std : float, optional
         Texture mask: windows whose standard deviation (image units) is below this get no
-        match; default 1 % of the left image's 2-98 % percentile range.
+        match; default 1 % of the left image's 2-98 % percentile range.  ``"ncc"`` only
+        (``"sgm"`` has OpenCV's uniqueness and speckle filters instead).
     lr_tolerance : float or None
         Left-right consistency tolerance in pixels (default 1); None disables the check.
         For ``"sgm"`` it is OpenCV's ``disp12MaxDiff`` (rounded, at least 1).
@@ -609,8 +743,8 @@ def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_
     right = _as_image(right, "right")
     if left.shape != right.shape:
         raise InputError(f"left/right: shapes differ, {left.shape} vs {right.shape}")
-    if matcher not in ("ncc", "sgm"):
-        raise InputError(f"matcher: unknown {matcher!r}, expected 'ncc' or 'sgm'")
+    if matcher not in MATCHERS:
+        raise InputError(f"matcher: unknown {matcher!r}, expected {' or '.join(map(repr, MATCHERS))}")
     if subpixel not in ("parabola", "vfit"):
         raise InputError(f"subpixel: unknown {subpixel!r}, expected 'parabola' or 'vfit'")
     if window is None:
@@ -637,11 +771,12 @@ def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_
         lo, hi = int(math.floor(np.nanmin(a))), int(math.ceil(np.nanmax(b)))
     if hi < lo:
         raise InputError(f"disp_range: empty range ({disp_range[0]}, {disp_range[1]})")
-    if min_std is None:
+    if min_std is None and matcher == "ncc":       # the texture mask is "ncc"'s only
         p2, p98 = _robust_range(left)
         min_std = 0.01 * (p98 - p2)
     info = {"matcher": matcher, "window": window, "disp_range": (lo, hi),
-            "lr_tolerance": lr_tolerance, "min_std": float(min_std)}
+            "lr_tolerance": lr_tolerance,
+            "min_std": None if min_std is None else float(min_std)}
 
     if matcher == "ncc":
         if min_score is None:
@@ -656,23 +791,45 @@ def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_
                     vertical_search=vertical_search)
         return MatchResult(disp, score, vert, info)
 
-    l8, r8 = _to_uint8(left, right)
-    disp = _sgbm(l8, r8, lo, hi, block_size=window, p1=sgm_p1, p2=sgm_p2,
-                 lr_tolerance=lr_tolerance, uniqueness=sgm_uniqueness,
-                 speckle_window=sgm_speckle_window, speckle_range=sgm_speckle_range,
-                 mode=sgm_mode)
+    score_window = max(window, 7)
+
+    def before_disparity():
+        """The parts that do not need the disparity: they overlap OpenCV's single-threaded
+        SGBM on a second thread when this process has more than one (cv2.getNumThreads)."""
+        nan_l, nan_r = ~np.isfinite(left), ~np.isfinite(right)
+        masks = None
+        if nan_l.any() or nan_r.any():
+            k = (window, window)
+            masks = (cv2.boxFilter(nan_l.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5,
+                     cv2.boxFilter(nan_r.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5)
+        return masks, _zncc_left(left, score_window)
+
+    overlap = cv2.getNumThreads() > 1 and sgm_mode == "sgbm"
+    if overlap:
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(1, thread_name_prefix="stereodem-sgm") as ex:
+            l8, r8 = _to_uint8(left, right, ex)
+            pending = ex.submit(before_disparity)
+            disp = _sgbm(l8, r8, lo, hi, block_size=window, p1=sgm_p1, p2=sgm_p2,
+                         lr_tolerance=lr_tolerance, uniqueness=sgm_uniqueness,
+                         speckle_window=sgm_speckle_window, speckle_range=sgm_speckle_range,
+                         mode=sgm_mode)
+            masks, left_windows = pending.result()
+    else:
+        l8, r8 = _to_uint8(left, right)
+        disp = _sgbm(l8, r8, lo, hi, block_size=window, p1=sgm_p1, p2=sgm_p2,
+                     lr_tolerance=lr_tolerance, uniqueness=sgm_uniqueness,
+                     speckle_window=sgm_speckle_window, speckle_range=sgm_speckle_range,
+                     mode=sgm_mode)
+        masks, left_windows = before_disparity()
     # no-data: the block around the left pixel or around its match touches NaN
-    nan_l = ~np.isfinite(left)
-    nan_r = ~np.isfinite(right)
-    if nan_l.any() or nan_r.any():
-        k = (window, window)
-        bad_l = cv2.boxFilter(nan_l.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5
-        bad_r = cv2.boxFilter(nan_r.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5
+    if masks is not None:
+        bad_l, bad_r = masks
         with np.errstate(invalid="ignore"):
             xr = np.where(np.isfinite(disp), np.rint(np.arange(left.shape[1]) - disp), -1)
         bad = bad_l | (_gather_cols(bad_r.astype(F32), xr.astype(np.int64), fill=1) > 0.5)
         disp[bad] = np.nan
-    score = zncc_at(left, right, disp, window=max(window, 7) if window < 7 else window)
+    score = _zncc_warped(left_windows, right, disp)
     if range_maps is not None:
         with np.errstate(invalid="ignore"):
             disp[~((disp >= range_maps[0] - 0.5) & (disp <= range_maps[1] + 0.5))] = np.nan

@@ -15,28 +15,34 @@ added into the DEM. Per tile:
 3. dense matching (:func:`stereodem.stereo.match.match_rectified`) and refinement
    (:func:`stereodem.stereo.refine.refine_disparity`);
 4. matched pixels back to each image's own coordinates, and space intersection with the
-   exact models (:func:`stereodem.stereo.intersect.intersect_matches`); points whose rays miss
+   exact models (:func:`stereodem.sensor.geo.intersect.intersect_matches`); points whose rays miss
    each other by more than the maximum ray gap are dropped.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.dem import DEM, as_dem
+from stereodem.core import geodesy
+from stereodem.core.dem import DEM, as_dem
+from stereodem.core.errors import InputError
+from stereodem.core.jsonutil import json_default
+from stereodem.sensor.geo.intersect import intersect_matches
+from stereodem.sensor.models.base import pair_height_bounds
 
 from . import epipolar
-from .grid import SUM_LAYERS, CellSums, DEMGrid, GridSpec, accumulate, finish
-from .intersect import intersect_matches
+from .grid import SUM_LAYERS, CellSums, GridSpec, accumulate, finish
 from .plan import footprint_bounds, overlap_window, pair_height_range, plan_tiles, tile_height_range
 from .refine import refine_disparity
+from .sanity import check_pair
 from .settings import StereoSettings
 from .sparse import SparseMatchError
 from .sparse_stage import height_pileup, run_sparse_stage
@@ -58,10 +64,12 @@ class PairInputs:
     left_model: Any
     right_model: Any
     height_range: tuple
-    seed_dem: Optional[DEM] = None
+    seed_dem: DEM | None = None
     max_ray_gap: float = np.inf
-    lattice: Optional[GridSpec] = None
-    seed_margin: Optional[float] = None
+    lattice: GridSpec | None = None
+    seed_margin: float | None = None
+    points_dir: str | None = None      # tiles also write their points here (point clouds)
+    pair_id: int = 0                   # the pair's index in the points (source_pair)
 
 
 @dataclass
@@ -85,21 +93,92 @@ class TileResult:
     cells: CellSums
     summary: dict
 
+    def to_arrays(self) -> dict:
+        """Plain arrays (cacheable with ``np.savez``, no pickle): the cell sums, their window
+        origin and point count, the QA summary as JSON."""
+        c = self.cells
+        return dict(sums=c.sums, origin=np.array([c.row0, c.col0, c.n_points], np.int64),
+                    summary=np.array(json.dumps(self.summary, default=json_default)))
+
+    @classmethod
+    def from_arrays(cls, arrays) -> TileResult:
+        """The :class:`TileResult` of :meth:`to_arrays`' output (or a loaded ``.npz``)."""
+        r0, c0, n = (int(v) for v in arrays["origin"])
+        return cls(CellSums(r0, c0, arrays["sums"], n), json.loads(str(arrays["summary"])))
+
+
+@dataclass
+class StereoInfo:
+    """Run figures of :func:`make_dem` (typed; :meth:`to_dict` is what the reports store).
+
+    Attributes
+    ----------
+    height_range : list of float
+        Heights searched, metres (ellipsoidal): ``[min, max]``.
+    gsd_m, posting, max_ray_gap_m : float
+        Ground sample distance of the left image (m), output posting (CRS units), ray-gap
+        limit (m).
+    n_tiles : int
+    max_residual_rms_px : float
+        Largest per-tile RMS y-parallax after rectification, pixels.
+    valid_cells : float
+        Share (0..1) of the lattice's cells with a height.
+    pointing, sparse : dict
+        Relative pointing correction and sparse stage summaries (``sparse`` None when skipped).
+    height_source : str
+        ``"sparse matches"``, ``"seed DEM"``, ``"height range"`` or ``"model validity range"``.
+    height_pileup : dict
+        :func:`stereodem.stereo.sparse_stage.height_pileup`; ``suspect`` its verdict.
+    jitter : dict, optional
+        Per axis, the fitted attitude oscillation (jitter correction only).
+    base_to_height : float, optional
+        From :func:`stereodem.stereo.sanity.check_pair`.
+    warnings : list of dict
+        Sanity findings (:class:`stereodem.stereo.sanity.Finding`); ``status`` ``"ok"`` or
+        ``"suspect"``.
+    """
+
+    height_range: list
+    gsd_m: float
+    posting: float
+    max_ray_gap_m: float
+    n_tiles: int
+    max_residual_rms_px: float
+    valid_cells: float
+    pointing: dict
+    sparse: dict | None
+    height_source: str
+    height_pileup: dict
+    suspect: bool
+    jitter: dict | None = None
+    base_to_height: float | None = None
+    warnings: list = field(default_factory=list)
+    status: str = "ok"
+
+    def to_dict(self) -> dict:
+        """The figures as a JSON-ready dict (``jitter`` only when estimated)."""
+        d = dataclasses.asdict(self)
+        if d["jitter"] is None:
+            del d["jitter"]
+        return d
+
 
 @dataclass
 class DEMProducts:
     """Output of :func:`make_dem`: the DEM and its layers, the per-tile QA and run figures."""
 
-    dem: DEMGrid
+    dem: DEM
     tiles: list
     n_points: int
     seconds: float
     settings: dict
-    info: dict = field(default_factory=dict)
+    info: StereoInfo
 
-    def write(self, directory, *, overwrite=False, creation_options=None):
-        """Write ``dem.tif``, ``score.tif``, ``count.tif``, ``raygap.tif`` in ``directory``."""
-        return self.dem.write(directory, overwrite=overwrite, creation_options=creation_options)
+    def write(self, directory, *, overwrite=False, creation_options=None, tags=None):
+        """Write ``dem.tif``, ``score.tif``, ``count.tif``, ``raygap.tif`` in ``directory``
+        (``tags``: dataset tags of ``dem.tif``); returns ``{"dem": path, "count": path, ...}``."""
+        return self.dem.prepare_write(Path(directory) / "dem.tif", overwrite=overwrite,
+                                      creation_options=creation_options, tags=tags)()
 
 
 # ----------------------------------------------------------------------------- one tile
@@ -108,10 +187,15 @@ def process_tile(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Ti
     """Rectify, match, intersect and grid one tile (:func:`tile_points`, then the points'
     weighted sums on ``inputs.lattice``).
 
-    Pure function of its arguments (no global state, no I/O), so it can run in a worker
+    Pure function of its arguments (no global state; no I/O unless ``inputs.points_dir``
+    asks for the tile's points in a file: :mod:`.pointcloud`), so it can run in a worker
     process; what it returns is small (cell sums, not points).
     """
     pts = tile_points(tile, inputs, settings)
+    if inputs.points_dir is not None:
+        from .pointcloud import save_tile_points
+        save_tile_points(inputs.points_dir, tile.index, pts.lon, pts.lat, pts.h, pts.score, pts.ray_gap,
+                         crs=inputs.lattice.grid.crs, geoid=inputs.lattice.geoid, pair=inputs.pair_id)
     t0 = time.perf_counter()
     cells = accumulate(inputs.lattice, pts.lon, pts.lat, pts.h, score=pts.score, ray_gap=pts.ray_gap)
     if isinstance(pts.summary.get("seconds"), dict):
@@ -195,7 +279,7 @@ def default_posting(gsd: float, crs) -> float:
 def check_lattice(bounds, posting: float):
     """:class:`InputError` when the DEM lattice of ``bounds`` at ``posting`` cannot be held:
     its cell sums (``len(SUM_LAYERS)`` float64 layers) exceed the available memory."""
-    from stereodem.sensor.io.memory import check_allocation
+    from stereodem.core.memory import check_allocation
     cols = (bounds[2] - bounds[0]) / posting
     rows = (bounds[3] - bounds[1]) / posting
     nbytes = 8.0 * len(SUM_LAYERS) * max(cols, 0) * max(rows, 0)
@@ -205,8 +289,15 @@ def check_lattice(bounds, posting: float):
 
 def make_dem(left_image, right_image, left_model, right_model, settings: StereoSettings | None = None,
              *, seed_dem: DEM | None = None, progress: Callable[[int, int, dict], None] | None = None,
-             runner: Callable | None = None) -> DEMProducts:
+             runner: Callable | None = None, left_dtype=None, right_dtype=None,
+             points_dir=None) -> DEMProducts:
     """Stereo DEM from two images and their sensor models.
+
+    The inputs are checked first as ``stereodem dem`` checks them
+    (:func:`stereodem.stereo.sanity.check_pair`: arrays vs models, seed DEM coverage and
+    heights, stereo base, one radiometric scale), with the same one-line refusals; the
+    findings and the base-to-height ratio go into ``info`` (``warnings``, ``status``,
+    ``base_to_height``).
 
     Parameters
     ----------
@@ -217,13 +308,19 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
     settings : StereoSettings, optional
     seed_dem : DEM, optional
         Coarse DEM giving each tile's height range (its heights under the tile +/- the margin).
+    left_dtype, right_dtype : dtype, optional
+        Bit depth of the images' files when the arrays were converted (default: the arrays'
+        dtypes); different ones put the right image on the left's radiometric scale.
     progress : callable, optional
         Called as ``progress(done, total, tile_summary)`` after each tile (serial run).
     runner : callable, optional
         ``runner(process_tile, tiles, inputs, settings) -> iterable of TileResult`` runs the
-        tiles elsewhere (process pool, Dask: :func:`stereodem.runner.run_tiles`); it may drop
+        tiles elsewhere (process pool, Dask: :func:`stereodem.stereo.runner.run_tiles`); it may drop
         failed tiles. Results must come back in tile order so the output is independent of
         the runner; they are taken one at a time (a generator need hold only one).
+    points_dir : path, optional
+        Each tile also writes its points to ``points_<index>.npz`` there
+        (:func:`stereodem.stereo.pointcloud.write_las` merges them).
 
     Returns
     -------
@@ -239,15 +336,23 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
         No height range or seed DEM given, and too few sparse matches to find the heights.
     """
     settings = settings or StereoSettings()
+    seed = as_dem(seed_dem) if seed_dem is not None else None
+    checked = check_pair(left_image, right_image, left_model, right_model,
+                         settings.rectification.height_range, seed, left_dtype, right_dtype)
+    products = dem_of_checked_pair(checked.left, checked.right, left_model, right_model, settings,
+                                   seed_dem=seed, progress=progress, runner=runner,
+                                   points_dir=points_dir)
+    return checked.report(products)
+
+
+def dem_of_checked_pair(left_image, right_image, left_model, right_model, settings: StereoSettings,
+                        *, seed_dem: DEM | None = None, progress=None, runner=None,
+                        points_dir=None) -> DEMProducts:
+    """:func:`make_dem` after :func:`~stereodem.stereo.sanity.check_pair` (for callers that
+    make several DEMs of one checked pair, as the jitter correction does)."""
     rect, gs = settings.rectification, settings.gridding
     t_start = time.perf_counter()
-    # 1. inputs and height range
-    for name, img, mdl in (("left", left_image, left_model), ("right", right_image, right_model)):
-        if np.ndim(img) != 2:
-            raise InputError(f"{name} image: expected a 2-D array, got shape {np.shape(img)}")
-        if img.shape != (mdl.height, mdl.width):
-            raise InputError(f"{name} image: shape {img.shape} differs from its model's "
-                             f"{(mdl.height, mdl.width)} (rows, cols)")
+    # 1. height range
     seed = as_dem(seed_dem) if seed_dem is not None else None
     sparse = _sparse_stage(left_image, right_image, left_model, right_model, rect, seed)
     seed_margin = None
@@ -275,7 +380,8 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
     spec = GridSpec.from_bounds(bounds, posting, crs, method=gs.method, sigma=gs.gaussian_sigma,
                                 geoid=gs.geoid)
     inputs = PairInputs(left_image, right_image, left_model, right_model, height_range, seed,
-                        max_gap, spec, seed_margin)
+                        max_gap, spec, seed_margin,
+                        points_dir=str(points_dir) if points_dir is not None else None)
     # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask)
     if runner is None:
         def serial():
@@ -301,12 +407,12 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
     del res
     if n_points == 0 and gs.bounds is None:
         raise InputError("no point was matched in any tile (no texture, or a wrong height range?)")
-    dem = finish(spec, total, crop=gs.bounds is None, info=dict(n_points=n_points))
+    dem = finish(spec, total, crop=gs.bounds is None)
     del total
     seconds = time.perf_counter() - t_start
     rms = [s["residual_rms_px"] for s in summaries]
     pileup = _pileup(summaries, n_points)
-    info = dict(height_range=list(height_range), gsd_m=gsd, posting=posting, max_ray_gap_m=max_gap,
+    info = StereoInfo(height_range=list(height_range), gsd_m=gsd, posting=posting, max_ray_gap_m=max_gap,
                 n_tiles=len(tiles), max_residual_rms_px=float(max(rms)) if rms else float("nan"),
                 valid_cells=float(np.isfinite(dem.heights).mean()),
                 pointing=(sparse.pointing.summary() if sparse is not None and sparse.pointing is not None
@@ -315,7 +421,7 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
                 height_source=("sparse matches" if sparse is not None and sparse.terrain is not None
                                else "seed DEM" if seed is not None else
                                "height range" if rect.height_range is not None else "model validity range"),
-                height_pileup=pileup, suspect=pileup["suspect"])
+                      height_pileup=pileup, suspect=pileup["suspect"])
     log.info("stereo DEM: %d points gridded to %dx%d cells in %.1f s", n_points,
              dem.grid.width, dem.grid.height, seconds)
     return DEMProducts(dem, summaries, n_points, seconds, settings.summary(), info)
@@ -330,8 +436,7 @@ def _sparse_stage(left_image, right_image, left_model, right_model, rect, seed):
     auto = rect.height_range is None and seed is None and rect.auto_heights
     if not (auto or rect.pointing_correction):
         return None
-    lo = max(left_model.height_bounds()[0], right_model.height_bounds()[0])
-    hi = min(left_model.height_bounds()[1], right_model.height_bounds()[1])
+    lo, hi = pair_height_bounds(left_model, right_model)
     given = rect.height_range is not None or seed is not None
     check_range = pair_height_range(left_model, right_model, rect, seed) if given else None
     # overlap at any height of the search range first: a clear NoOverlapError, not "no match"

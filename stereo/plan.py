@@ -7,9 +7,10 @@ import logging
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError, NoOverlapError
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.dem import as_dem
+from stereodem.core import geodesy
+from stereodem.core.dem import as_dem
+from stereodem.core.errors import InputError, NoOverlapError
+from stereodem.sensor.models.base import pair_height_bounds
 
 from .settings import RectificationSettings
 from .tiling import Tile, renumber, tile_grid
@@ -17,7 +18,7 @@ from .tiling import Tile, renumber, tile_grid
 log = logging.getLogger(__name__)
 
 __all__ = ["pair_height_range", "overlap_window", "plan_tiles", "footprint_bounds",
-           "tile_height_range"]
+           "tile_height_range", "base_to_height"]
 
 
 def pair_height_range(left, right, settings: RectificationSettings, seed_dem=None):
@@ -26,8 +27,7 @@ def pair_height_range(left, right, settings: RectificationSettings, seed_dem=Non
     Raises :class:`InputError` when the range is unusable (non-finite, inverted, or outside
     the models' validity ranges).
     """
-    lo = max(left.height_bounds()[0], right.height_bounds()[0])
-    hi = min(left.height_bounds()[1], right.height_bounds()[1])
+    lo, hi = pair_height_bounds(left, right)
     if settings.height_range is not None:
         try:
             hmin, hmax = (float(v) for v in settings.height_range)
@@ -139,3 +139,29 @@ def tile_height_range(tile: Tile, inputs, margin: float):
         return inputs.height_range
     lo, hi = inputs.height_range
     return (max(lo, float(hs.min()) - margin), min(hi, float(hs.max()) + margin))
+
+
+def base_to_height(left, right, h0: float, *, dh: float = 100.0, n: int = 5) -> float:
+    """Base-to-height ratio of a pair, from the models: the median over an ``n`` x ``n`` grid
+    of left pixels of the ground separation of the two rays ``dh`` metres above their
+    intersection at height ``h0``, divided by ``dh``.
+
+    A ground point at ``h0`` seen by a left pixel is projected into the right image; both
+    pixels are localised at ``h0 + dh``: the two ground points are B/H x dh apart.
+    """
+    cs = np.linspace(0, left.width - 1, n)
+    rs = np.linspace(0, left.height - 1, n)
+    c, r = (a.ravel() for a in np.meshgrid(cs, rs))
+    h = np.full(c.size, float(h0))
+    lon, lat = left.localize(c, r, h)
+    c2, r2 = right.project(lon, lat, h)
+    up = h + dh
+    lon_l, lat_l = left.localize(c, r, up)
+    lon_r, lat_r = right.localize(np.asarray(c2, float), np.asarray(r2, float), up)
+    pl = np.stack(geodesy.geodetic_to_ecef(lon_l, lat_l, up))
+    pr = np.stack(geodesy.geodetic_to_ecef(lon_r, lat_r, up))
+    sep = np.linalg.norm(pl - pr, axis=0)
+    sep = sep[np.isfinite(sep)]
+    if not sep.size:
+        raise InputError("cannot measure the base of the pair: the models do not localise the left image")
+    return float(np.median(sep) / dh)

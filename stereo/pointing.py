@@ -26,8 +26,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from stereodem.core.stats import nmad as _nmad
 from stereodem.sensor.models.corrected import ImageCorrectedModel
-from .sparse import SparseMatchError, SparseMatches, distance_to_curves, epipolar_curves, nmad as _nmad
+
+from .sparse import SparseMatchError, SparseMatches, distance_to_curves, epipolar_curves
 
 log = logging.getLogger(__name__)
 

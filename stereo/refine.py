@@ -3,8 +3,6 @@ smoothed first-pass disparity (removes most of the window-distortion error of st
 """
 from __future__ import annotations
 
-from typing import Optional
-
 import cv2
 import numpy as np
 
@@ -66,7 +64,7 @@ def _detail_gain(dp, Dw, detail, xq, ys, window, *, min_pixels: int = 1000):
 
 
 def refine_disparity(left_r, right_r, disparity, *, sigma: float = 2.0, window: int = 7,
-                     search: int = 3, detail_gain: Optional[float] = None):
+                     search: int = 3, detail_gain: float | None = None):
     """Refine a disparity map by matching against the right image warped by its smooth version.
 
     The right rectified image is resampled (bicubic) as ``R'(x, y) = R(x - D(x, y), y)`` with

@@ -11,7 +11,24 @@ and the command line fill in).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any, Optional
+from typing import Any, Literal, get_args
+
+#: option choices: the command line, the configuration checks and the docs derive from these
+RectificationMethod = Literal["auto", "affine", "projective"]
+RECTIFICATION_METHODS: tuple[str, ...] = get_args(RectificationMethod)
+Matcher = Literal["sgm", "ncc"]
+MATCHERS: tuple[str, ...] = get_args(Matcher)
+GriddingMethod = Literal["gaussian", "mean"]
+GRIDDING_METHODS: tuple[str, ...] = get_args(GriddingMethod)
+#: attitude axes of the jitter correction
+JitterAxes = Literal["pitch", "roll", "both"]
+JITTER_AXES: tuple[str, ...] = get_args(JitterAxes)
+#: N-view DEMs (stereo.fusion): how the pair heights of a cell are fused, and whether the
+#: images' models are brought into agreement first
+FusionMethod = Literal["weighted", "median"]
+FUSION_METHODS: tuple[str, ...] = get_args(FusionMethod)
+FusionAdjust = Literal["auto", "always", "never"]
+FUSION_ADJUST: tuple[str, ...] = get_args(FusionAdjust)
 
 __all__ = ["RectificationSettings", "MatchingSettings", "RefinementSettings", "GriddingSettings",
            "StereoSettings"]
@@ -55,9 +72,9 @@ class RectificationSettings:
     """
 
     tile_size: int = 512
-    height_range: Optional[tuple] = None
+    height_range: tuple | None = None
     height_margin: float = 50.0
-    method: str = "auto"
+    method: RectificationMethod = "auto"
     halo: tuple = (32, 16)
     disparity_margin: float = 4.0
     pointing_correction: bool = True
@@ -78,7 +95,7 @@ class MatchingSettings:
         Keyword options of :func:`stereodem.stereo.match.match_rectified` (window, min_score, ...).
     """
 
-    matcher: str = "sgm"
+    matcher: Matcher = "sgm"
     options: dict = field(default_factory=dict)
 
 
@@ -107,8 +124,8 @@ class RefinementSettings:
     enabled: bool = True
     sigma: float = 3.0
     window: int = 7
-    min_score: Optional[float] = None
-    detail_gain: Optional[float] = None
+    min_score: float | None = None
+    detail_gain: float | None = None
     keep_unrefined: bool = True
 
 
@@ -134,13 +151,13 @@ class GriddingSettings:
         Drop points whose rays miss by more than this (m); default 2 x the left GSD.
     """
 
-    res: Optional[float] = None
+    res: float | None = None
     crs: Any = None
-    bounds: Optional[tuple] = None
+    bounds: tuple | None = None
     geoid: bool = False
-    method: str = "gaussian"
-    gaussian_sigma: Optional[float] = None
-    max_ray_gap: Optional[float] = None
+    method: GriddingMethod = "gaussian"
+    gaussian_sigma: float | None = None
+    max_ray_gap: float | None = None
 
 
 @dataclass

@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from stereodem.sensor.errors import StereodemError
+from stereodem.core.errors import StereodemError
+from stereodem.sensor.models.base import pair_height_bounds
 
 log = logging.getLogger(__name__)
 
@@ -43,12 +44,6 @@ class SparseMatchError(StereodemError):
     """Too few sparse matches for what was asked (height range, pointing correction)."""
 
 
-
-def nmad(x) -> float:
-    """Normalised median absolute deviation of the finite values of ``x`` (NaN if none)."""
-    x = np.asarray(x, float)
-    x = x[np.isfinite(x)]
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
 
 @dataclass
 class SparseMatches:
@@ -97,7 +92,7 @@ class SparseMatches:
     def __len__(self):
         return len(self.col1)
 
-    def subset(self, keep) -> "SparseMatches":
+    def subset(self, keep) -> SparseMatches:
         """The matches selected by a boolean mask or index array."""
         keep = np.asarray(keep)
         arrays = {k: getattr(self, k)[keep] for k in ("col1", "row1", "col2", "row2", "score",
@@ -154,6 +149,27 @@ def _sift(image8, mask, n_features, scale):
     # OpenCV keypoints: pixel centres at integers, same as ours; rescale about the corner
     xy = (xy + 0.5) / scale - 0.5
     return xy, desc
+
+
+def _keypoints_both(left_image, right_image, n_features, max_size, threads=None):
+    """``((x1, d1), (x2, d2), scale)``: :func:`_sift` keypoints of both images at the common
+    detection scale (larger side of the larger image reduced to ``max_size`` px).
+
+    With a thread budget of 2 or more (``threads``, default ``cv2.getNumThreads()``) the two
+    images are stretched and detected on two threads (numpy and OpenCV release the GIL);
+    SIFT draws no random numbers, so the keypoints are those of the serial calls.
+    """
+    threads = int(cv2.getNumThreads()) if threads is None else int(threads)
+    if threads < 2:
+        (L8, Lv), (R8, Rv) = to_uint8(left_image), to_uint8(right_image)
+        scale = min(1.0, max_size / max(L8.shape + R8.shape))
+        return _sift(L8, Lv, n_features, scale), _sift(R8, Rv, n_features, scale), scale
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(2, thread_name_prefix="stereodem-sift") as ex:
+        stretched = list(ex.map(to_uint8, (left_image, right_image)))     # 2-D uint8 + mask
+        scale = min(1.0, max_size / max(stretched[0][0].shape + stretched[1][0].shape))
+        fl, fr = ex.map(lambda av: _sift(av[0], av[1], n_features, scale), stretched)
+    return fl, fr, scale
 
 
 def _ratio_matches(d1, d2, ratio):
@@ -228,8 +244,8 @@ def refine_matches(left, right, x1, x2, *, half: int = 7, search: int = 2, min_s
     byc, bxc = np.clip(by, 1, k - 2), np.clip(bx, 1, k - 2)
 
     def vertex(a, b, c):
-        den = a - 2 * b + c
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with np.errstate(invalid="ignore", divide="ignore"):    # -inf scores next to void pixels
+            den = a - 2 * b + c
             return np.where(den < 0, 0.5 * (a - c) / den, 0.0)
 
     fx = vertex(scores[n, byc, bxc - 1], scores[n, byc, bxc], scores[n, byc, bxc + 1])
@@ -380,7 +396,7 @@ def _consensus(values, tol):
 def sparse_matches(left_image, right_image, left_model, right_model, height_range=None, *,
                    ratio: float = 0.75, max_offset: float = 50.0, tolerance: float = 2.0,
                    max_size: int = 512, n_features: int = 4000, n_heights: int = 5,
-                   refine: bool = True, left_window=None) -> SparseMatches:
+                   refine: bool = True, left_window=None, threads: int | None = None) -> SparseMatches:
     """SIFT matches between two images, checked through their sensor models.
 
     Parameters
@@ -413,6 +429,10 @@ def sparse_matches(left_image, right_image, left_model, right_model, height_rang
         positions keep the detection scale's precision.
     left_window : (col0, row0, col1, row1), optional
         Keep only left keypoints inside this box.
+    threads : int, optional
+        The two images are stretched and their keypoints detected concurrently when this is
+        2 or more (default: the process's thread budget, ``cv2.getNumThreads()``); the
+        matches do not depend on it.
 
     Returns
     -------
@@ -422,17 +442,12 @@ def sparse_matches(left_image, right_image, left_model, right_model, height_rang
     t0 = time.perf_counter()
     times = {}
     if height_range is None:
-        lo = max(left_model.height_bounds()[0], right_model.height_bounds()[0])
-        hi = min(left_model.height_bounds()[1], right_model.height_bounds()[1])
-        height_range = (lo, hi)
+        height_range = pair_height_bounds(left_model, right_model)
     hlo, hhi = (float(v) for v in height_range)
     if not (np.isfinite(hlo) and np.isfinite(hhi) and hhi > hlo):
         raise SparseMatchError(f"sparse matching: unusable height range {hlo:g}..{hhi:g} m")
-    L8, Lv = to_uint8(left_image)
-    R8, Rv = to_uint8(right_image)
-    scale = min(1.0, max_size / max(L8.shape + R8.shape))
-    x1, d1 = _sift(L8, Lv, n_features, scale)
-    x2, d2 = _sift(R8, Rv, n_features, scale)
+    (x1, d1), (x2, d2), scale = _keypoints_both(left_image, right_image, n_features, max_size,
+                                                threads)
     times["sift"] = time.perf_counter() - t0
     if left_window is not None:
         c0, r0, c1, r1 = left_window

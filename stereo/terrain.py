@@ -1,7 +1,7 @@
 """Terrain heights from sparse matches: a robust height range and a coarse seed surface.
 
 The sparse matches of :func:`stereodem.stereo.sparse.sparse_matches` are intersected through
-the two models (:func:`stereodem.stereo.intersect.intersect_matches`; give the right model
+the two models (:func:`stereodem.sensor.geo.intersect.intersect_matches`; give the right model
 corrected by :func:`stereodem.stereo.pointing.relative_pointing` when the pair has a pointing
 error). Blunders are rejected twice: by the ray gap (lines of sight that miss each other by
 much more than the others), and by the height difference to the median of the nearest
@@ -16,7 +16,7 @@ remaining heights give
 * a **seed surface**: the mean height of the points in cells of a coarse map grid (UTM of
   the scene centre, posting set so that cells hold a few points each), empty cells filled by
   normalised Gaussian convolution of the filled ones (widening until all are filled), as a
-  :class:`stereodem.sensor.geo.dem.DEM` (ellipsoidal heights). ``tile_margin`` is how far the
+  :class:`stereodem.core.dem.DEM` (ellipsoidal heights). ``tile_margin`` is how far the
   points stray from that surface (99th percentile, plus ``min_margin``): the margin with which
   the surface sets each tile's height range.
 """
@@ -30,10 +30,13 @@ from affine import Affine
 from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.dem import DEM, ELLIPSOID
-from .intersect import intersect_matches
-from .sparse import SparseMatchError, SparseMatches, nmad as _nmad
+from stereodem.core import geodesy
+from stereodem.core.dem import DEM, ELLIPSOID
+from stereodem.core.stats import nmad as _nmad
+from stereodem.sensor.geo.intersect import intersect_matches
+from stereodem.sensor.models.base import pair_height_bounds
+
+from .sparse import SparseMatchError, SparseMatches
 
 log = logging.getLogger(__name__)
 
@@ -137,8 +140,7 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
                                f"models (need >= {min_points}); give a height range or a seed DEM")
     inter = intersect_matches(left, right, matches.col1, matches.row1, matches.col2, matches.row2)
     h, gap = inter.h, inter.ray_gap
-    lo_b = max(left.height_bounds()[0], right.height_bounds()[0])
-    hi_b = min(left.height_bounds()[1], right.height_bounds()[1])
+    lo_b, hi_b = pair_height_bounds(left, right)
     ok = np.isfinite(h) & np.isfinite(gap)
     span_b = hi_b - lo_b
     ok &= (h >= lo_b - 0.5 * span_b) & (h <= hi_b + 0.5 * span_b)

@@ -23,8 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError
-
+from stereodem.core.errors import InputError
 from stereodem.ortho.uncertainty.propagation import adjustable_model, check_names, check_psd
 
 

@@ -10,7 +10,8 @@ def plot_uncertainty(maps, path, *, title: str | None = None):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from stereodem.sensor.io.raster import atomic_path
+
+    from stereodem.core.raster import atomic_path
 
     sh = maps.sigma_horizontal
     w, s, e, n = maps.grid.bounds

@@ -36,9 +36,15 @@ import cv2
 import numpy as np
 
 from stereodem.ortho.drm import bilinear_nan, crop_dem
-from stereodem.ortho.uncertainty.propagation import (_ce90_table, ce90_from_cov, dem_gradient_arrays,
-                                                     dem_pixel_jacobian, first_order, ground_covariance,
-                                                     image_side)
+from stereodem.ortho.uncertainty.propagation import (
+    _ce90_table,
+    ce90_from_cov,
+    dem_gradient_arrays,
+    dem_pixel_jacobian,
+    first_order,
+    ground_covariance,
+    image_side,
+)
 
 log = logging.getLogger(__name__)
 

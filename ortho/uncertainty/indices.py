@@ -16,8 +16,7 @@ import warnings
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError
-
+from stereodem.core.errors import InputError
 from stereodem.ortho.uncertainty.sampling import ground_displacements
 
 
@@ -112,7 +111,7 @@ def interference_order(freqs, max_order: int = 8) -> int | None:
     nonzero: dict[int, int] = {}
     for w in freqs:
         new_nz = dict(nonzero)
-        for src_map, was_nz in ((zero_only, False), (nonzero, True)):
+        for src_map in (zero_only, nonzero):
             for s, cost in src_map.items():
                 for a in range(-max_order, max_order + 1):
                     if a == 0:

@@ -22,18 +22,25 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.dem import ELLIPSOID
-
+from stereodem.core import geodesy
+from stereodem.core.dem import ELLIPSOID
+from stereodem.core.errors import InputError
+from stereodem.ortho.choices import UNCERTAINTY_METHODS
 from stereodem.ortho.uncertainty.first_order_maps import _node_lattice, _weights
-from stereodem.ortho.uncertainty.propagation import (adjustable_model, ce90, check_names, check_psd,
-                                                     first_order, ground_jacobian, image_jacobian,
-                                                     propagate)
+from stereodem.ortho.uncertainty.propagation import (
+    adjustable_model,
+    ce90,
+    check_names,
+    check_psd,
+    first_order,
+    ground_jacobian,
+    image_jacobian,
+    propagate,
+)
 
 log = logging.getLogger(__name__)
 
-METHODS = ("first-order", "monte-carlo", "fast")
+METHODS = UNCERTAINTY_METHODS
 
 
 # ----------------------------------------------------------------------------- lattice interpolation
@@ -103,7 +110,7 @@ class UncertaintyMaps:
         """Write ``sigma_{horizontal,east,north}.tif``, ``ce90.tif``, ``dominant_source.tif``,
         ``sensitivity.json`` (and ``share_<source>.tif`` with ``source_maps``) into
         ``out_dir``; returns the paths."""
-        from stereodem.sensor.io.raster import write_geotiff, write_text_atomic
+        from stereodem.core.raster import write_geotiff, write_text_atomic
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         t, crs = self.grid.transform, self.grid.crs
@@ -388,11 +395,11 @@ class DEMUncertainty:
     interpolation_error: float
 
     def write(self, dem_path, dem, *, overwrite=False):
-        """Write ``<dem stem>_sigma_vertical.tif`` beside the DEM; returns the path."""
-        from stereodem.sensor.io.raster import write_geotiff
-        p = Path(dem_path)
-        return write_geotiff(p.with_name(f"{p.stem}_sigma_vertical.tif"), self.sigma_vertical.astype(np.float32),
-                             dem.transform, dem.crs, float("nan"), overwrite=overwrite)
+        """Write ``<dem stem>_sigma_vertical.tif`` beside the DEM (its ``sigma`` layer,
+        :data:`stereodem.core.dem.LAYERS`); returns the path."""
+        from stereodem.core.dem import write_layer
+        return write_layer(dem_path, "sigma", self.sigma_vertical, dem.transform, dem.crs,
+                           overwrite=overwrite)
 
 
 def dem_vertical_sigma(left, right, dem, *, left_covariance=None, left_names=(), right_covariance=None,

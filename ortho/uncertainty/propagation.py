@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import erf as _erf
 
-from stereodem.sensor.errors import InputError
-from stereodem.sensor.geo import geodesy
+from stereodem.core import geodesy
+from stereodem.core.errors import InputError
 from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 
 #: pseudo-parameters understood on top of a model's own parameters (name -> unit)

@@ -14,9 +14,8 @@ import numpy as np
 from scipy import stats
 from scipy.stats import qmc
 
-from stereodem.sensor.errors import ConvergenceError, InputError
-from stereodem.sensor.geo import geodesy
-
+from stereodem.core import geodesy
+from stereodem.core.errors import ConvergenceError, InputError
 from stereodem.ortho.uncertainty.propagation import check_names, perturbed_model
 
 

@@ -20,7 +20,7 @@ import logging
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError, StereodemError
+from stereodem.core.errors import InputError, StereodemError
 from stereodem.sensor.io.gcps import ControlPoints
 
 log = logging.getLogger(__name__)
@@ -189,7 +189,7 @@ def split_summary(records) -> list[dict]:
             rs = [r for r in records if r["model"] == name and r["n_gcp"] == n]
             ok = [r for r in rs if not r.get("error")]
             ratio = np.array([r["ratio"] for r in ok], float)
-            med = lambda k: float(np.median([r[k] for r in ok])) if ok else float("nan")  # noqa: E731
+            med = lambda k: float(np.median([r[k] for r in ok])) if ok else float("nan")  # noqa: E731, B023
             out.append(dict(model=name, n_gcp=n, n_params=rs[0].get("n_params"), splits=len(rs),
                             refused=len(rs) - len(ok),
                             median_ratio=float(np.median(ratio)) if ok else float("nan"),

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
 from stereodem.sensor.models.ephemeris import Attitude
 
 _AXES = {"roll": 0, "pitch": 1, "yaw": 2}
@@ -100,7 +100,7 @@ def height_sensitivity(left, right, lon, lat, h, *, dpitch: float = 1e-6):
     The point is seen by ``left`` and ``right``; ``right`` is pitched by ``dpitch`` and the two
     rays are intersected again (closest point of the two lines).
     """
-    from stereodem.sensor.geo import geodesy
+    from stereodem.core import geodesy
     cl, rl = left.project(lon, lat, h)
     cr, rr = right.project(lon, lat, h)
     tilted = right.with_parameters(pitch_bias=right.parameters()["pitch_bias"] + dpitch)
@@ -199,7 +199,7 @@ def estimate_pitch_jitter(dem, reference, left, right, *, n_sines: int = 1, f_ra
                           seed: int = 0):
     """Pitch jitter of ``right`` (rad, on its time base) from ``dem - reference`` residuals.
 
-    ``dem`` and ``reference`` are :class:`~stereodem.sensor.geo.dem.DEM` objects with
+    ``dem`` and ``reference`` are :class:`~stereodem.core.dem.DEM` objects with
     ellipsoidal heights (``reference`` is sampled at ``dem``'s cells). A camera whose true
     pitch is ``j(t)`` above its model's gives heights off by ``-j(t) * sensitivity``; so each
     residual is divided by minus the local :func:`height_sensitivity` (m/rad) and binned by
@@ -207,8 +207,8 @@ def estimate_pitch_jitter(dem, reference, left, right, *, n_sines: int = 1, f_ra
     fitted :class:`SineSeries` is ``j(t)``: ``with_attitude_sines(right, fit)`` is the
     corrected model. Returns ``(SineSeries, diagnostics)`` with the profile used.
     """
-    from stereodem.sensor.geo import geodesy
-    from stereodem.sensor.geo.dem import ELLIPSOID
+    from stereodem.core import geodesy
+    from stereodem.core.dem import ELLIPSOID
     z = np.asarray(dem.heights, float)
     rows, cols = np.nonzero(np.isfinite(z))
     if rows.size > max_cells:

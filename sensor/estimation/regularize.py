@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
 
 __all__ = ["SVDSystem", "tikhonov_solve", "gcv_function", "gcv_weight", "lcurve",
            "lcurve_weight", "condition_number"]
@@ -61,7 +61,7 @@ class SVDSystem:
     m: int
 
     @classmethod
-    def of(cls, A, b) -> "SVDSystem":
+    def of(cls, A, b) -> SVDSystem:
         A = np.asarray(A, dtype=np.float64)
         b = np.asarray(b, dtype=np.float64)
         if A.ndim != 2 or b.shape != (A.shape[0],):

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from stereodem.sensor.errors import SensorModelError
+from stereodem.core.errors import SensorModelError
 from stereodem.sensor.models.rpc import RPCModel, monomials
 
 
@@ -84,7 +84,7 @@ def fit_rational(x, y, z, t, *, regularization: float = 1e-12, iterations: int =
     w = np.ones(t.size)
     coef = None
     it = 0
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 (the count is reported)
         Aw = A * w[:, None]
         bw = t * w
         lam = regularization * np.einsum("ij,ij->", Aw, Aw) / A.shape[1]

@@ -1,2 +1,2 @@
-"""The Earth side of the geometry: WGS84 geodesy and EGM96 (pyproj), attitude rotations, and
-DEM access with its vertical reference."""
+"""The Earth side of the sensor geometry: attitude rotations and space intersection (two rays
+to a ground point). Geodesy, map grids and DEMs are in :mod:`stereodem.core`."""

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereodem.sensor.geo.geodesy import OMEGA_EARTH
+from stereodem.core.geodesy import OMEGA_EARTH
 
 
 def R1(t):

@@ -35,17 +35,27 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError, SensorModelError
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.io.aster_metadata import first_key, granule_metadata, not_l1a_message, product_level
+from stereodem.core import geodesy
+from stereodem.core.errors import InputError, SensorModelError
+from stereodem.sensor.io.aster_metadata import (
+    first_key,
+    granule_metadata,
+    not_l1a_message,
+    product_level,
+)
 from stereodem.sensor.io.odl import flatten_odl, parse_odl
-from stereodem.sensor.models.aster import ASTER_LINE_PERIOD, AsterGeometry, AsterModel, lattice_velocities
+from stereodem.sensor.models.aster import (
+    ASTER_LINE_PERIOD,
+    AsterGeometry,
+    AsterModel,
+    lattice_velocities,
+)
 
 log = logging.getLogger(__name__)
 

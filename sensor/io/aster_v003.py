@@ -21,11 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.sensor.io.tables import TableError, numeric_blocks
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
 from stereodem.sensor.io.aster_l1a import VNIR_BANDS, L1ABandFields, swath_name
 from stereodem.sensor.io.aster_metadata import not_l1a_message, product_level
 from stereodem.sensor.io.odl import parse_odl
+from stereodem.sensor.io.tables import TableError, numeric_blocks
 
 #: tables a band needs (besides ``ImageData.tif``); ASP's aster2asp requires the same set
 REQUIRED_TABLES = ("LatticePoint", "SightVector", "SatellitePosition", "RadiometricCorrTable",

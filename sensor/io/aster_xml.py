@@ -11,7 +11,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from stereodem.sensor.errors import RPCError, SensorModelError
+from stereodem.core.errors import RPCError, SensorModelError
 from stereodem.sensor.io.tables import TableError, numeric_blocks
 from stereodem.sensor.models.aster import _RPB_COEFS, AsterGeometry
 

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stereodem.sensor.errors import SensorModelError
+from stereodem.core.errors import SensorModelError
 
 __all__ = ["read_dimap_physical", "write_spot5_dimap"]
 
@@ -146,8 +146,8 @@ def _pleiades(root, smc, path, step):
 
 
 def _spot5(root, path):
-    from stereodem.sensor.models.orbital.topan_los import orbital_to_ecef, payload_to_orbital
     from stereodem.sensor.models.ephemeris import Ephemeris
+    from stereodem.sensor.models.orbital.topan_los import orbital_to_ecef, payload_to_orbital
     width, height = _size(root, path)
     ds = root.find(".//Data_Strip")
     points = ds.findall("Ephemeris/Points/Point")
@@ -218,7 +218,8 @@ def write_spot5_dimap(path, *, width, height, epoch, ephemeris_times, positions,
     :class:`datetime.datetime`); ``line_period`` in seconds; ``center_line`` 0-based;
     angles in radians (roll, pitch, yaw per row; SPOT frames, see the module docstring)."""
     from datetime import timedelta
-    from stereodem.sensor.io.raster import write_text_atomic
+
+    from stereodem.core.raster import write_text_atomic
 
     def ts(t):
         return (epoch + timedelta(seconds=float(t))).strftime("%Y-%m-%dT%H:%M:%S.%f")

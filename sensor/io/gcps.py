@@ -22,8 +22,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError, where
-from stereodem.sensor.io.raster import write_text_atomic
+from stereodem.core.errors import InputError, where
+from stereodem.core.raster import write_text_atomic
 
 __all__ = ["ControlPoints", "read_gcps", "write_gcps", "GCP_COLUMNS", "OPTIONAL_COLUMNS"]
 
@@ -82,11 +82,11 @@ class ControlPoints:
     def __len__(self):
         return int(self.lon.size)
 
-    def subset(self, mask) -> "ControlPoints":
+    def subset(self, mask) -> ControlPoints:
         """The points where ``mask`` (boolean or index array) selects."""
         return ControlPoints(**{f.name: getattr(self, f.name)[mask] for f in fields(self)})
 
-    def select(self, role: str) -> "ControlPoints":
+    def select(self, role: str) -> ControlPoints:
         """The points of one role (``"gcp"`` or ``"check"``)."""
         return self.subset(self.role == role)
 
@@ -96,7 +96,7 @@ class ControlPoints:
 
     @classmethod
     def from_arrays(cls, lon, lat, h, col, row, *, ids=None, role=None, sigma_px=None,
-                    sigma_ground_m=None) -> "ControlPoints":
+                    sigma_ground_m=None) -> ControlPoints:
         """Build from arrays; ids default to ``P001, P002, ...``."""
         n = np.asarray(lon).size
         ids = [f"P{i + 1:03d}" for i in range(n)] if ids is None else ids
@@ -126,7 +126,7 @@ def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
     path : str or Path
     vertical : {"ellipsoid", "geoid"}
         Reference of the ``h`` column; ``"geoid"`` converts EGM96 heights to ellipsoidal ones
-        (:func:`stereodem.sensor.geo.geodesy.geoid_to_ellipsoid`).
+        (:func:`stereodem.core.geodesy.geoid_to_ellipsoid`).
 
     Raises
     ------
@@ -187,7 +187,7 @@ def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
         role = np.full(ids.shape, "gcp")
     h = values["h"]
     if vertical == "geoid":
-        from stereodem.sensor.geo import geodesy
+        from stereodem.core import geodesy
         h = geodesy.geoid_to_ellipsoid(lon, lat, h)
     return ControlPoints(ids, lon, lat, h, values["col"], values["row"], role,
                          opt["sigma_px"], opt["sigma_ground_m"])

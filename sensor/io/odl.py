@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import re
 
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
 
 _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eEdD][+-]?\d+)?$")
 

@@ -41,9 +41,15 @@ from xml.etree import ElementTree
 
 import numpy as np
 
-from stereodem.sensor.errors import RPCError
-from stereodem.sensor.models.rpc import (COEFF_KEYS, SCALAR_KEYS, RPCModel, _parse_coeffs,
-                                         _parse_float, _RPB_KEYS)
+from stereodem.core.errors import RPCError
+from stereodem.sensor.models.rpc import (
+    _RPB_KEYS,
+    COEFF_KEYS,
+    SCALAR_KEYS,
+    RPCModel,
+    _parse_coeffs,
+    _parse_float,
+)
 
 #: formats named in the error when no reader accepts a file
 FORMATS_TRIED = ("GDAL raster/VRT/NITF RPC metadata (with .RPB/_RPC.TXT sidecars)",
@@ -420,7 +426,7 @@ def _read_dg_xml(path: Path, root) -> RPCModel:
 # ---------------------------------------------------------------------- writers
 def write_rpb(model, path, *, overwrite=False):
     """Write a GDAL/DigitalGlobe ``.RPB`` file (readable by GDAL as an image sidecar)."""
-    from .raster import write_text_atomic
+    from stereodem.core.raster import write_text_atomic
     f = lambda v: format(float(v), "+.17g")  # noqa: E731
     lines = ['satId = "UNKNOWN";', 'bandId = "P";', 'SpecId = "RPC00B";', "BEGIN_GROUP = IMAGE",
              f"\terrBias = {f(model.err_bias)};", f"\terrRand = {f(model.err_rand)};"]
@@ -447,7 +453,7 @@ def write_geotiff_rpc(model, path, *, data=None, overwrite=False):
     import rasterio
     path = Path(path)
     if data is not None:
-        from .raster import write_geotiff
+        from stereodem.core.raster import write_geotiff
         return write_geotiff(path, data, rpcs=model.to_rasterio(), overwrite=overwrite)
     if not path.is_file():
         raise RPCError(f"{path}: no such GeoTIFF to add RPC metadata to (pass data= to create one)")

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.sensor.errors import RPCError, SensorModelError
-from stereodem.sensor.io.raster import write_text_atomic
+from stereodem.core.errors import RPCError, SensorModelError
+from stereodem.core.raster import write_text_atomic
 
 _REGISTRY: dict[str, tuple[type, callable, callable]] = {}
 

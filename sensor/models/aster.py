@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.sensor.geo import geodesy
+from stereodem.core import geodesy
+from stereodem.core.errors import SensorModelError
 from stereodem.sensor.models.ephemeris import Ephemeris
-from stereodem.sensor.errors import SensorModelError
 from stereodem.sensor.models.pushbroom import DetectorArray, PushbroomModel
 
 #: ASTER VNIR line period, seconds (0.87958 s per 400-line lattice step; notes §4.4).
@@ -211,7 +211,7 @@ class AsterModel(PushbroomModel):
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "AsterModel":
+    def from_dict(cls, d: dict) -> AsterModel:
         """Inverse of :meth:`to_dict`."""
         g = dict(d["geometry"])
         for k in ("lattice", "sight_vectors", "world_sight_vectors", "satellite_positions",
@@ -232,7 +232,7 @@ class AsterModel(PushbroomModel):
         return model
 
     @classmethod
-    def from_xml(cls, path, **kwargs) -> "AsterModel":
+    def from_xml(cls, path, **kwargs) -> AsterModel:
         """Model from an ASP ``aster2asp`` XML file; keyword options as :class:`AsterModel`."""
         from stereodem.sensor.io.aster_xml import read_asp_aster_xml
         return cls(read_asp_aster_xml(path), **kwargs)

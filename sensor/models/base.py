@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.errors import SensorModelError
+from stereodem.core import geodesy
+from stereodem.core.errors import SensorModelError
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,13 @@ class DEMLocalization:
     def mean_iterations(self) -> float:
         return float(np.mean(self.iterations)) if self.iterations.size else 0.0
 
+
+
+def pair_height_bounds(left, right) -> tuple[float, float]:
+    """Heights (m, ellipsoidal) within both models' validity ranges (:meth:`SensorModel.
+    height_bounds`): the pair's common range, ``lo > hi`` when the ranges do not overlap."""
+    (llo, lhi), (rlo, rhi) = left.height_bounds(), right.height_bounds()
+    return max(llo, rlo), min(lhi, rhi)
 
 class SensorModel:
     """Base class of all sensor models; subclasses implement ``project`` and ``localize``.
@@ -102,7 +109,7 @@ class SensorModel:
 
         Parameters
         ----------
-        dem : stereodem.sensor.geo.dem.DEM
+        dem : stereodem.core.dem.DEM
             DEM giving ellipsoidal heights (geoid DEMs are converted by the DEM).
         threshold : float
             Convergence threshold on the height change, metres (thesis: 0.1 m).

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereodem.sensor.errors import SensorModelError
+from stereodem.core.errors import SensorModelError
 from stereodem.sensor.models.base import SensorModel
 from stereodem.sensor.models.parameters import checked_parameters
 
@@ -65,14 +65,17 @@ class ImageCorrectedModel(SensorModel):
         """The six correction coefficients, ``{name: value}`` (units in :data:`PARAMETERS`)."""
         return dict(self._p)
 
-    def with_parameters(self, **values) -> "ImageCorrectedModel":
+    def with_parameters(self, **values) -> ImageCorrectedModel:
         """A copy with some coefficients changed."""
         return ImageCorrectedModel(self.model, **{**self._p, **values})
 
     def project_partials(self, lon, lat, h, names):
         """Analytic partials of ``(col, row)`` with respect to ``names``, shape (n, 2, u)."""
-        c, r = self.model.project(lon, lat, h)
-        c, r = np.asarray(c, float), np.asarray(r, float)
+        if any(n not in ("col_shift", "row_shift") for n in names):   # drifts need (col, row)
+            c, r = self.model.project(lon, lat, h)
+            c, r = np.asarray(c, float), np.asarray(r, float)
+        else:                                                        # shifts: no projection
+            c = r = np.zeros(np.broadcast(np.asarray(lon), np.asarray(lat), np.asarray(h)).shape)
         one, zero = np.ones_like(c), np.zeros_like(c)
         table = {"col_shift": (one, zero), "row_shift": (zero, one),
                  "col_drift_col": (c, zero), "col_drift_row": (r, zero),
@@ -106,7 +109,7 @@ class ImageCorrectedModel(SensorModel):
         return {"model": model_to_dict(self.model), "parameters": self.parameters()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ImageCorrectedModel":
+    def from_dict(cls, d: dict) -> ImageCorrectedModel:
         from stereodem.sensor.io.sidecar import model_from_dict
         return cls(model_from_dict(d["model"]), **d.get("parameters", {}))
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereodem.sensor.errors import SensorModelError
+from stereodem.core.errors import SensorModelError
 from stereodem.sensor.geo.rotations import body_to_orbital
 
 
@@ -219,7 +219,7 @@ class Attitude:
             self._rspline = RotationSpline(self.times, rot) if n > 1 else None
 
     @classmethod
-    def fixed(cls, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> "Attitude":
+    def fixed(cls, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> Attitude:
         """A constant attitude (radians)."""
         return cls([0.0], [[roll, pitch, yaw]])
 
@@ -248,7 +248,7 @@ class CircularOrbit:
     """A circular Keplerian orbit, for simulation (no perturbations, no precession).
 
     The inertial frame coincides with ECEF at ``t = 0``; the Earth turns about z at
-    :data:`stereodem.sensor.geo.geodesy.OMEGA_EARTH`, so ECEF = ``R3(omega_E t)`` ECI (passive rotation).
+    :data:`stereodem.core.geodesy.OMEGA_EARTH`, so ECEF = ``R3(omega_E t)`` ECI (passive rotation).
 
     Parameters
     ----------
@@ -264,13 +264,13 @@ class CircularOrbit:
     """
 
     def __init__(self, radius: float, inclination: float, raan: float, u0: float):
-        from stereodem.sensor.geo.geodesy import GM
+        from stereodem.core.geodesy import GM
         self.radius, self.inclination, self.raan, self.u0 = float(radius), float(inclination), float(raan), float(u0)
         self.mean_motion = float(np.sqrt(GM / self.radius**3))     #: rad/s
 
     def state(self, t):
         """ECEF position (m) and Earth-fixed ECEF velocity (m/s) at times ``t`` (s)."""
-        from stereodem.sensor.geo.geodesy import OMEGA_EARTH
+        from stereodem.core.geodesy import OMEGA_EARTH
         t = np.asarray(t, dtype=np.float64)
         a, n, i, om = self.radius, self.mean_motion, self.inclination, self.raan
         u = self.u0 + n * t

@@ -27,10 +27,10 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.errors import SensorModelError
-from stereodem.sensor.models.base import SensorModel, ray_to_lonlat
+from stereodem.core import geodesy
+from stereodem.core.errors import SensorModelError
 from stereodem.sensor.geo.rotations import body_to_orbital, orbital_frame
+from stereodem.sensor.models.base import SensorModel, ray_to_lonlat
 
 
 @dataclass
@@ -96,7 +96,7 @@ class FrameCamera(SensorModel):
         vals.update(x=self.position[0], y=self.position[1], z=self.position[2])
         return {k: float(v) for k, v in vals.items()}
 
-    def with_parameters(self, **changes) -> "FrameCamera":
+    def with_parameters(self, **changes) -> FrameCamera:
         """A copy with some parameters changed (names of :attr:`PARAMETERS`)."""
         pos = self.position.copy()
         for i, k in enumerate("xyz"):
@@ -185,7 +185,7 @@ class FrameCamera(SensorModel):
     # ------------------------------------------------------------------ construction
     @classmethod
     def looking_at(cls, position, velocity, target_lon, target_lat, target_h=0.0, *, yaw=0.0,
-                   **interior) -> "FrameCamera":
+                   **interior) -> FrameCamera:
         """A camera at ``position`` whose boresight passes through the ground target.
 
         Roll and pitch are solved so that the principal ray (no principal-point offset) hits

@@ -10,7 +10,7 @@ Frames and normalisation
 ------------------------
 Ok fitted in projected map coordinates (UTM E, N and height H). Here every model maps the
 ground point ``(X, Y, Z) = (E, N, h)`` — easting and northing in a projected CRS (by default the
-UTM zone of the GCPs, :func:`stereodem.sensor.geo.geodesy.utm_crs`) and the ellipsoidal height — to the
+UTM zone of the GCPs, :func:`stereodem.core.geodesy.utm_crs`) and the ellipsoidal height — to the
 image ``(col, row)``, but always through normalised coordinates: each ground axis is centred
 and scaled into [-1, 1] over the GCPs (RPC-style offset/scale), and so is each image axis
 (the extended DLT scales the image coordinates without centring them, see below). Centring and
@@ -61,10 +61,9 @@ import numpy as np
 from pyproj import CRS
 from scipy.optimize import least_squares
 
-from stereodem.sensor.geo import geodesy
-
+from stereodem.core import geodesy
+from stereodem.core.errors import CRSError, InputError
 from stereodem.sensor.estimation import regularize
-from stereodem.sensor.errors import CRSError, InputError
 from stereodem.sensor.models.base import SensorModel
 
 log = logging.getLogger(__name__)
@@ -165,7 +164,7 @@ class _RationalForm:
 
     # parameter layout: [ax, (cx), ay, (cy)] or, shared, [ax, ay, c, (a12, a13)]
     def _split(self, p):
-        kx, ky, jx, jy = len(self.nx), len(self.ny), len(self.dx), len(self.dy)
+        kx, ky, jx = len(self.nx), len(self.ny), len(self.dx)
         if self.shared:
             ax, ay, c = p[:kx], p[kx:kx + ky], p[kx + ky:kx + ky + jx]
             ext = p[kx + ky + jx:]
@@ -467,7 +466,7 @@ class GenericModel(SensorModel):
         the protocol of :mod:`stereodem.sensor.models.parameters`."""
         return {f"c{k:02d}": float(v) for k, v in enumerate(self.params)}
 
-    def with_parameters(self, **values) -> "GenericModel":
+    def with_parameters(self, **values) -> GenericModel:
         """A copy with some coefficients changed."""
         p = self.params.copy()
         for k, v in values.items():
@@ -497,7 +496,7 @@ class GenericModel(SensorModel):
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "GenericModel":
+    def from_dict(cls, d: dict) -> GenericModel:
         """Inverse of :meth:`to_dict` (model sidecars)."""
         a = lambda k: np.asarray(d[k], dtype=np.float64)  # noqa: E731
         norm = _Normalization(a("ground_offset"), a("ground_scale"), a("image_offset"), a("image_scale"))

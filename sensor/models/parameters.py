@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereodem.sensor.errors import SensorModelError
+from stereodem.core.errors import SensorModelError
 
 
 def is_adjustable(model) -> bool:

@@ -29,12 +29,12 @@ import logging
 
 import numpy as np
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.models.ephemeris import Attitude, CircularOrbit, Ephemeris
-from stereodem.sensor.errors import ConvergenceError, SensorModelError
-from stereodem.sensor.models.base import SensorModel, localize_on_rays
-from stereodem.sensor.models.parameters import checked_parameters
+from stereodem.core import geodesy
+from stereodem.core.errors import ConvergenceError, SensorModelError
 from stereodem.sensor.geo.rotations import body_to_orbital, orbital_frame
+from stereodem.sensor.models.base import SensorModel, localize_on_rays
+from stereodem.sensor.models.ephemeris import Attitude, CircularOrbit, Ephemeris
+from stereodem.sensor.models.parameters import checked_parameters
 
 log = logging.getLogger(__name__)
 
@@ -215,7 +215,7 @@ class DetectorArray:
         return cls(blend(tx), blend(ty), blend(dty), rows=r, col_range=(x[0], x[-1]), spec=spec)
 
     @classmethod
-    def from_spec(cls, spec: dict) -> "DetectorArray":
+    def from_spec(cls, spec: dict) -> DetectorArray:
         """Rebuild a detector array from its :attr:`spec` (e.g. read back from JSON)."""
         from numpy.polynomial import Polynomial
         try:
@@ -403,7 +403,7 @@ class PushbroomModel(SensorModel):
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "PushbroomModel":
+    def from_dict(cls, d: dict) -> PushbroomModel:
         """Inverse of :meth:`to_dict`."""
         e = d["ephemeris"]
         eph = Ephemeris(e["times"], e["positions"], e.get("velocities"), order=e.get("order", 8))
@@ -428,7 +428,7 @@ class PushbroomModel(SensorModel):
         """Adjustable parameters as an ordered ``{name: value}`` dict (units in :data:`PARAMETERS`)."""
         return dict(self._params)
 
-    def with_parameters(self, **values) -> "PushbroomModel":
+    def with_parameters(self, **values) -> PushbroomModel:
         """A copy of the model with some adjustable parameters changed."""
         new = copy.copy(self)
         new._params = dict(self._params)
@@ -589,7 +589,7 @@ class PushbroomModel(SensorModel):
                   heading_deg: float | None = None, gsd: float = 15.0, line_period: float = 2.2e-3,
                   along_track_tilt_deg: float = 0.0, cross_track_tilt_deg: float = 0.0,
                   ephemeris_step: float = 1.0, inertial_frame: bool = True,
-                  name: str | None = None) -> "PushbroomModel":
+                  name: str | None = None) -> PushbroomModel:
         """A pushbroom camera on a circular Keplerian orbit, aimed at a ground centre.
 
         The orbit is circular with radius ``a + altitude`` (``a`` = WGS84 semi-major axis),

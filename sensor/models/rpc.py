@@ -42,7 +42,7 @@ import warnings
 
 import numpy as np
 
-from stereodem.sensor.errors import RPCError, where
+from stereodem.core.errors import RPCError, where
 from stereodem.sensor.models.base import SensorModel
 
 #: RPC00B term order (L = normalised longitude, P = latitude, H = height).
@@ -150,6 +150,24 @@ def _parse_coeffs(value, key, path):
     return np.array([_parse_float(v, f"{key}[{i + 1}]", path) for i, v in enumerate(items)])
 
 
+#: plausible ranges of |offset| and |scale| of an RPC00B normalisation (a scale is a half-width
+#: of the validity domain): images up to 10 million pixels a side, any place on the Earth,
+#: heights within 100 km of the ellipsoid; smaller scales than the lower bounds describe a
+#: domain less than a pixel / a centimetre / a millimetre wide
+NORMALISATION_BOUNDS = {
+    "line_off": (0.0, 1e7), "samp_off": (0.0, 1e7), "line_scale": (0.5, 1e7), "samp_scale": (0.5, 1e7),
+    "lat_off": (0.0, 90.0), "lon_off": (0.0, 360.0), "lat_scale": (1e-7, 90.0), "lon_scale": (1e-7, 180.0),
+    "height_off": (0.0, 1e5), "height_scale": (1e-3, 1e5),
+}
+_NORMALISATION_UNITS = {"line_off": "px", "samp_off": "px", "line_scale": "px", "samp_scale": "px",
+                        "lat_off": "deg", "lon_off": "deg", "lat_scale": "deg", "lon_scale": "deg",
+                        "height_off": "m", "height_scale": "m"}
+_RPC_KEY_NAMES = {"line_off": "LINE_OFF", "samp_off": "SAMP_OFF", "line_scale": "LINE_SCALE",
+                  "samp_scale": "SAMP_SCALE", "lat_off": "LAT_OFF", "lon_off": "LONG_OFF",
+                  "lat_scale": "LAT_SCALE", "lon_scale": "LONG_SCALE", "height_off": "HEIGHT_OFF",
+                  "height_scale": "HEIGHT_SCALE"}
+
+
 class RPCModel(SensorModel):
     """RPC00B sensor model (ground -> image rational polynomials) with exact localisation.
 
@@ -198,12 +216,25 @@ class RPCModel(SensorModel):
             v = getattr(self, name)
             if not math.isfinite(v) or v == 0.0:
                 raise RPCError(f"{where(self.source)}RPC {name.upper()}: must be finite and non-zero ({v})")
+        self._check_normalisation()
         self.width = int(width) if width else max(1, int(math.floor(self.samp_off + abs(self.samp_scale))) + 1)
         self.height = int(height) if height else max(1, int(math.floor(self.line_off + abs(self.line_scale))) + 1)
         self.loc_coeffs = None if loc_coeffs is None else np.asarray(loc_coeffs, np.float64).reshape(4, 20).copy()
         self._prepare()
 
     # ------------------------------------------------------------------ internals
+    def _check_normalisation(self):
+        """:class:`RPCError` naming the key when an offset or scale is physically absurd (a
+        corrupt or hand-edited file: e.g. a scale of 1e30 makes every normalised coordinate 0
+        and every image size astronomic). Bounds in :data:`NORMALISATION_BOUNDS`."""
+        for name, (lo_abs, hi_abs) in NORMALISATION_BOUNDS.items():
+            v = abs(getattr(self, name))
+            if not lo_abs <= v <= hi_abs:
+                unit = _NORMALISATION_UNITS[name]
+                raise RPCError(f"{where(self.source)}RPC {_RPC_KEY_NAMES[name]} = {getattr(self, name):g} "
+                               f"{unit} is not plausible (|value| must be {lo_abs:g}..{hi_abs:g} {unit}); "
+                               "the RPC file is corrupt")
+
     def _prepare(self):
         # rows: samp_num, samp_den, line_num, line_den
         self._C = np.ascontiguousarray(np.stack([self.samp_num, self.samp_den, self.line_num, self.line_den]))

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereodem.sensor.errors import RPCError, where
+from stereodem.core.errors import RPCError, where
 from stereodem.sensor.models.rpc import RPCModel, monomials
 
 __all__ = ["DirectRPCModel", "check_validity"]
@@ -34,7 +34,7 @@ class DirectRPCModel(RPCModel):
     MODEL_TYPE = "rpc_direct"
 
     @classmethod
-    def from_rpc(cls, model: RPCModel) -> "DirectRPCModel":
+    def from_rpc(cls, model: RPCModel) -> DirectRPCModel:
         if model.loc_coeffs is None:
             raise RPCError(f"{where(model.source)}the RPC file has no direct (image -> ground) model")
         d = model.to_dict()

@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError
-from stereodem.sensor.geo import geodesy
+from stereodem.core import geodesy
+from stereodem.core.errors import InputError
 from stereodem.sensor.geo.rotations import inertial_velocity, orbital_frame
 from stereodem.sensor.io.aster_l1a import swath_name
 from stereodem.sensor.io.odl import format_odl
@@ -151,8 +151,13 @@ def radiance_to_dn(radiance, table):
 
 def granule_from_scene(scene, *, seed: int = 0, velocity: str = "inertial", row_step=None,
                        start: _dt.datetime = DEFAULT_START, version: int = 4,
-                       radiance_scale: float = 0.9 * UCC_NORMAL) -> SimulatedGranule:
+                       radiance_scale: float = 0.9 * UCC_NORMAL,
+                       scene_index: int = 0) -> SimulatedGranule:
     """Turn an ``aster`` scene (3N = left, 3B = right) into a granule in memory.
+
+    ``scene_index`` numbers the granules of one simulated pass
+    (:mod:`stereodem.sensor.simulation.aster_strip`): it is added to the row of
+    ``ASTERSCENEID`` and, in seconds, to the production time of the granule id.
 
     The scene image (DN-like, 0 = void) times ``radiance_scale`` is the true radiance.
     ``row_step`` defaults to 400 lines for full-size images, else about a tenth of the 3N height.
@@ -176,10 +181,11 @@ def granule_from_scene(scene, *, seed: int = 0, velocity: str = "inertial", row_
                         for ti in t], np.int32)
         bands[band] = BandProduct(band, radiance_to_dn(radiance, table), radiance, table, lattice,
                                   sight, pos, vel, obs, lat, lon, t)
-    now = _dt.datetime(2026, 11, 21, 12, 0, 0)
+    now = _dt.datetime(2026, 11, 21, 12, 0, 0) + _dt.timedelta(seconds=int(scene_index))
     gid = f"AST_L1A_00{version}{start:%m%d%Y%H%M%S}_{now:%Y%m%d%H%M%S}"
     g = SimulatedGranule(gid, start, bands, settings=dict(velocity=velocity, row_step=row_step,
-                                                          seed=seed, radiance_scale=radiance_scale))
+                                                          seed=seed, radiance_scale=radiance_scale,
+                                                          scene_index=int(scene_index)))
     g.attributes = _odl_attributes(g, scene)
     return g
 
@@ -216,9 +222,9 @@ def _odl_attributes(g: SimulatedGranule, scene) -> dict:
                            "PRODUCTIONDATETIME": _obj("2026-11-21T12:00:00.000Z")},
         "COLLECTIONDESCRIPTIONCLASS": {"SHORTNAME": _obj("ASTL1A"), "VERSIONID": _obj(4)},
         "RANGEDATETIME": {"RANGEBEGINNINGDATE": _obj(f"{g.start:%Y-%m-%d}"),
-                          "RANGEBEGINNINGTIME": _obj(f"{g.start:%H:%M:%S}.000000"),
+                          "RANGEBEGINNINGTIME": _obj(f"{g.start:%H:%M:%S.%f}"),
                           "RANGEENDINGDATE": _obj(f"{stop:%Y-%m-%d}"),
-                          "RANGEENDINGTIME": _obj(f"{stop:%H:%M:%S}.000000")},
+                          "RANGEENDINGTIME": _obj(f"{stop:%H:%M:%S.%f}")},
         "SPATIALDOMAINCONTAINER": {"HORIZONTALSPATIALDOMAINCONTAINER": {"BOUNDINGRECTANGLE": {
             "WESTBOUNDINGCOORDINATE": _obj(min(lons)), "NORTHBOUNDINGCOORDINATE": _obj(max(lats)),
             "EASTBOUNDINGCOORDINATE": _obj(max(lons)), "SOUTHBOUNDINGCOORDINATE": _obj(min(lats))}}},
@@ -229,7 +235,7 @@ def _odl_attributes(g: SimulatedGranule, scene) -> dict:
     }}
     product = {"ASTERGENERICMETADATA": {
         "SCENEINFORMATION": {
-            "ASTERSCENEID": _obj((46, 27, 0)),
+            "ASTERSCENEID": _obj((46, 27 + int(g.settings.get("scene_index", 0)), 0)),
             "CALENDARDATE": _obj(f"{g.start:%Y%m%d}"),
             "TIMEOFDAY": _obj(f"{g.start:%H%M%S}"),
             "SCENECLOUDCOVERAGE": _obj(0),
@@ -320,7 +326,7 @@ def struct_metadata(g: SimulatedGranule) -> str:
 
 
 def _check_target(path: Path, overwrite: bool):
-    from stereodem.sensor.errors import OutputExistsError
+    from stereodem.core.errors import OutputExistsError
     if path.exists() and not overwrite:
         raise OutputExistsError(f"{path}: exists; pass --overwrite to replace it")
 
@@ -328,7 +334,7 @@ def _check_target(path: Path, overwrite: bool):
 def write_v004(g: SimulatedGranule, path, *, overwrite: bool = False) -> Path:
     """Write ``g`` as a V004 HDF-EOS2 file (atomically: temporary file, then rename)."""
     import pyhdf.V  # noqa: F401  (HDF.vgstart needs the module)
-    from pyhdf.HDF import HDF, HC
+    from pyhdf.HDF import HC, HDF
     from pyhdf.SD import SD, SDC
 
     path = Path(path)
@@ -417,7 +423,7 @@ def write_v003(g: SimulatedGranule, path, *, overwrite: bool = False,
     """Write ``g`` as a V003 granule: a folder, or a zip if ``path`` ends in ``.zip``
     (then the ODL metadata goes to ``<zip>.met`` beside it). ``decimals`` as
     :func:`v003_tables`."""
-    from stereodem.sensor.io.raster import write_geotiff
+    from stereodem.core.raster import write_geotiff
 
     path = Path(path)
     _check_target(path, overwrite)
@@ -448,3 +454,22 @@ def write_v003(g: SimulatedGranule, path, *, overwrite: bool = False,
         if work.exists():
             shutil.rmtree(work)
     return path
+
+
+def granule_right_size(size) -> tuple[int, int]:
+    """3B size (width, height) in the real 3N:3B ratio (4100 x 4200 : 5000 x 5400) for a 3N of
+    ``size`` (width, height) pixels; the width a multiple of 10 (11 lattice columns)."""
+    w, h = size
+    return int(round(w * 5000 / 4100 / 10.0)) * 10, int(round(h * 5400 / 4200))
+
+
+def write_granule_scene(scene, out, *, version: int = 4, seed: int = 0, velocity: str = "inertial",
+                        overwrite: bool = False) -> Path:
+    """Write a simulated ASTER scene as an L1A granule (V004 ``.hdf`` or V003 ``.zip``) plus its
+    truth (DEM, orthoimage, check points) in ``out``; returns the granule's path."""
+    from stereodem.sensor.simulation.simulate import write_scene
+    g = granule_from_scene(scene, seed=seed, velocity=velocity, version=version)
+    out = write_scene(scene, out, overwrite=overwrite, write_images=False)
+    if version == 4:
+        return write_v004(g, out / f"{g.granule_id}.hdf", overwrite=overwrite)
+    return write_v003(g, out / f"{g.granule_id}.zip", overwrite=overwrite)

@@ -11,7 +11,7 @@ import functools
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
 
 #: Pointing and position errors of the truth against the metadata (PushbroomModel parameters):
 #: about 1.5 px of attitude bias, 0.5 px of attitude drift over the scene, 20 m of position.
@@ -31,7 +31,7 @@ def aster_pair_scene():
     """``(metadata_3N, metadata_3B, truth_3N, truth_3B, dem)``: the simulator's full-size ASTER
     pair geometry (4100 x 4200 and 5000 x 4600) over the bundled DEM, the truths carrying
     :data:`TRUTH_ERRORS` and :data:`TRUTH_ERRORS_BACKWARD`."""
-    from stereodem.sensor.geo.dem import DEM
+    from stereodem.core.dem import DEM
     from stereodem.sensor.simulation.simulate import aster_geometry_parameters, pushbroom_pair
     p = aster_geometry_parameters()
     b = p["bands"]

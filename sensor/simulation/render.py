@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.grid import MapGrid, OnGrid
+from stereodem.core import geodesy
+from stereodem.core.grid import MapGrid, OnGrid
 from stereodem.sensor.models.base import SensorModel
 
 

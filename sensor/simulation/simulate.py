@@ -17,7 +17,7 @@ A scene is built on a UTM grid around the DEM's centre:
   the same DN scale without noise or quantisation (the left image's true orthoimage). An
   exact orthorectification differs from it by the interpolator's error on the band-limited
   image (smaller for smaller ``mtf_nyquist`` and better kernels: measured in
-  ``tests/test_ortho.py``) plus the propagated noise;
+  ``tests/ortho/test_ortho.py``) plus the propagated noise;
 * check points: random left-image pixels localised exactly on the DEM, with their right-image
   coordinates, half of them marked as GCPs.
 
@@ -48,13 +48,18 @@ import rasterio
 from affine import Affine
 from rasterio.warp import Resampling, reproject
 
-from stereodem.sensor.geo import geodesy
-from stereodem.sensor.geo.dem import DEM, ELLIPSOID, as_dem
-from stereodem.sensor.errors import InputError
+from stereodem.core import geodesy
+from stereodem.core.dem import DEM, ELLIPSOID, as_dem
+from stereodem.core.errors import InputError
+from stereodem.core.grid import MapGrid
+from stereodem.core.memory import check_allocation
 from stereodem.sensor.models.base import SensorModel
-from stereodem.sensor.geo.grid import MapGrid
-from stereodem.sensor.simulation.render import (MapRaster, nanmean_blocks, render,
-                                                 sampled_localization_error)
+from stereodem.sensor.simulation.render import (
+    MapRaster,
+    nanmean_blocks,
+    render,
+    sampled_localization_error,
+)
 
 log = logging.getLogger(__name__)
 
@@ -192,6 +197,32 @@ def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_
 
 
 # ----------------------------------------------------------------------------- ground fields
+
+def _check_footprints_on_dem(models, dem: DEM, h_range, size, right_size):
+    """:class:`InputError`, before anything is allocated, when the images of the requested
+    sizes do not lie on the Earth (the view passes the horizon: localisation gives NaN) or
+    lie mostly outside the DEM (the later coverage check allows 1 % of voids)."""
+    lons, lats = [], []
+    for m in models:
+        for hh in h_range:
+            lon, lat = m.footprint(hh)
+            lons.append(lon)
+            lats.append(lat)
+    lon, lat = np.concatenate(lons), np.concatenate(lats)
+    sizes = f"{size[0]}x{size[1]} / {right_size[0]}x{right_size[1]} px"
+    if not (np.all(np.isfinite(lon)) and np.all(np.isfinite(lat))):
+        raise InputError(f"image size {sizes}: the images would reach past the Earth's horizon "
+                         "from the simulated orbit; choose a smaller --size")
+    west, south, east, north = dem.bounds_lonlat()
+    ow = max(0.0, min(east, lon.max()) - max(west, lon.min()))
+    oh = max(0.0, min(north, lat.max()) - max(south, lat.min()))
+    span = max(lon.max() - lon.min(), 1e-12) * max(lat.max() - lat.min(), 1e-12)
+    if ow * oh < 0.5 * span:
+        raise InputError(f"{dem.path or 'DEM'}: the DEM does not cover the simulated scene of "
+                         f"{sizes} (footprint lon {lon.min():.4f}..{lon.max():.4f}, lat "
+                         f"{lat.min():.4f}..{lat.max():.4f}; DEM lon {west:.4f}..{east:.4f}, lat "
+                         f"{south:.4f}..{north:.4f}); choose a smaller --size or a larger --dem")
+
 
 def _grid_for_models(models, crs, posting, h_range, margin_px=8):
     xs, ys = [], []
@@ -504,6 +535,85 @@ def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION, *, bl
 
 # ----------------------------------------------------------------------------- simulation
 
+@dataclass
+class _GroundFields:
+    """The ground of a simulated scene: truth DEM grid, band-limited radiance field (on a grid
+    twice as fine) and the fine rendering DEM with its height span."""
+
+    truth: np.ndarray
+    transform: Affine
+    shape: tuple
+    crs: object
+    field: np.ndarray
+    radiance: MapRaster
+    dem_r: MapRaster
+    h_mean: float
+    fine_range: tuple
+
+
+def _ground_fields(models, dem, lon0, lat0, h_range, gsd, texture, rng, sigma_psf, bits,
+                   diags) -> _GroundFields:
+    """Truth DEM and radiance field covering every model's footprint (see the module docstring)."""
+    crs = geodesy.utm_crs(lon0, lat0)
+    res_truth = float(np.round(gsd, 1))
+    transform, shape = _grid_for_models(models, crs, res_truth, h_range)
+    # the fine radiance field and DEM (4 x the truth cells, float32) and their temporaries,
+    # plus the images (float64 while rendered)
+    w, h = int(models[0].width), int(models[0].height)
+    check_allocation(4 * shape[0] * shape[1] * 4 * 3 + 8 * 2 * sum(int(m.width) * int(m.height) for m in models),
+                     f"a simulated scene of {w}x{h} px ({shape[1]}x{shape[0]} truth cells)")
+    truth = _reproject_dem(dem, transform, shape, crs, diagnostics=diags)
+    if np.isnan(truth).mean() > 0.01:
+        raise InputError(f"{dem.path or 'DEM'}: the DEM does not cover the simulated scene "
+                         f"({100 * np.isnan(truth).mean():.1f}% of the scene outside or void)")
+
+    # fine grid (half the truth posting) for the radiance field and the rendering DEM
+    ft = Affine(res_truth / 2, 0, transform.c, 0, -res_truth / 2, transform.f)
+    fshape = (shape[0] * 2, shape[1] * 2)
+    # radiance field = albedo * (0.25 + 0.75 * shade), built in place; the fine DEM is made
+    # after the albedo so that the albedo's temporaries and it never coexist
+    field = _albedo(texture or texture_path(), fshape, rng)
+    fine_dem = _reproject_dem(dem, ft, fshape, crs, diagnostics=diags)
+    for r0, r1, shade in _hillshade_blocks(fine_dem, res_truth / 2, SUN_AZIMUTH, SUN_ELEVATION, 256):
+        field[r0:r1] *= 0.25 + 0.75 * shade
+    # the system PSF, in ground units, applied once to the radiance field: both the images
+    # and truth_ortho sample this one band-limited field
+    cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2), dst=field)
+    dn_max = 255.0 if bits == 8 else 4095.0               # 12-bit signal in 16-bit words
+    field *= 0.9 * dn_max / float(np.percentile(field[::4, ::4], 99.9))   # 1/16 of the cells
+    fine_grid = MapGrid(ft, fine_dem.shape[1], fine_dem.shape[0], crs)
+    return _GroundFields(truth, transform, shape, crs, field, MapRaster(field, fine_grid),
+                         MapRaster(fine_dem, fine_grid), nanmean_blocks(fine_dem),
+                         (float(np.nanmin(fine_dem)), float(np.nanmax(fine_dem))))
+
+
+def _render_view(model, name, g: _GroundFields, step, noise, bits, rng, seed, diags) -> np.ndarray:
+    """One image of the scene through ``model``: rendered, noisy (``noise`` DN), quantised."""
+    fine_lo, fine_hi = g.fine_range
+    img, _, _, _, loc = render(model, g.dem_r, g.radiance, step=step, keep_ground=False, h0=g.h_mean,
+                               heights=(fine_lo - 50.0, fine_hi + 50.0))
+    diags[f"{name}_render_error_px"] = sampled_localization_error(model, loc, g.dem_r, seed=seed,
+                                                                  h0=g.h_mean)
+    diags[f"{name}_void_pct"] = float(100 * np.isnan(img).mean())
+    if noise > 0:                                     # float32 noise, added in place
+        img += np.float32(noise) * _normal_float32(rng, img.shape)
+    dtype = np.uint8 if bits == 8 else np.uint16
+    np.nan_to_num(img, copy=False, nan=0.0)
+    return np.clip(np.rint(img, out=img), 0, np.iinfo(dtype).max, out=img).astype(dtype)
+
+
+def _scene_centre(dem):
+    """The scene DEM (the bundled one when ``dem`` is None), its centre (lon, lat in degrees,
+    ellipsoidal height h0 in metres: the DEM there, else mid-range) and its ellipsoidal
+    height range (m)."""
+    dem = DEM.bundled() if dem is None else as_dem(dem)
+    west, south, east, north = dem.bounds_lonlat()
+    lon0, lat0 = (west + east) / 2, (south + north) / 2
+    h_lo, h_hi = dem.height_range(ELLIPSOID)
+    h0 = float(dem.sample(lon0, lat0)) if np.isfinite(dem.sample(lon0, lat0)) else (h_lo + h_hi) / 2
+    return dem, (lon0, lat0, h0), (h_lo, h_hi)
+
+
 def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=None,
                    noise: float = 1.0, seed: int = 0, bits: int = 8, angles=(0.0, -27.6),
                    n_points: int = 60, step: int = 16, mtf_nyquist: float = MTF_NYQUIST,
@@ -548,11 +658,7 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
         raise InputError("the frame preset takes one size for both images (right_size is for "
                          "the pushbroom presets)")
     rng = np.random.default_rng(seed)
-    dem = DEM.bundled() if dem is None else as_dem(dem)
-    west, south, east, north = dem.bounds_lonlat()
-    lon0, lat0 = (west + east) / 2, (south + north) / 2
-    h_lo, h_hi = dem.height_range(ELLIPSOID)
-    h0 = float(dem.sample(lon0, lat0)) if np.isfinite(dem.sample(lon0, lat0)) else (h_lo + h_hi) / 2
+    dem, (lon0, lat0, h0), (h_lo, h_hi) = _scene_centre(dem)
 
     if preset == "frame":
         left_model, right_model = frame_pair(lon0, lat0, h0, (w, h))
@@ -567,37 +673,12 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     else:
         left_model, right_model = pushbroom_pair(lon0, lat0, h0, (w, h), tuple(angles), right_size=rsize)
 
+    _check_footprints_on_dem([left_model, right_model], dem, (h_lo, h_hi), (w, h), rsize)
     gsd = left_model.gsd(h0)
-    crs = geodesy.utm_crs(lon0, lat0)
-    res_truth = float(np.round(gsd, 1))
-    transform, shape = _grid_for_models([left_model, right_model], crs, res_truth, (h_lo, h_hi))
     diags = {}
-    truth = _reproject_dem(dem, transform, shape, crs, diagnostics=diags)
-    if np.isnan(truth).mean() > 0.01:
-        raise InputError(f"{dem.path or 'DEM'}: the DEM does not cover the simulated scene "
-                         f"({100 * np.isnan(truth).mean():.1f}% of the scene outside or void)")
-
-    # fine grid (half the truth posting) for the radiance field and the rendering DEM
-    ft = Affine(res_truth / 2, 0, transform.c, 0, -res_truth / 2, transform.f)
-    fshape = (shape[0] * 2, shape[1] * 2)
-    # radiance field = albedo * (0.25 + 0.75 * shade), built in place; the fine DEM is made
-    # after the albedo so that the albedo's temporaries and it never coexist
-    field = _albedo(texture or texture_path(), fshape, rng)
-    fine_dem = _reproject_dem(dem, ft, fshape, crs, diagnostics=diags)
-    for r0, r1, shade in _hillshade_blocks(fine_dem, res_truth / 2, SUN_AZIMUTH, SUN_ELEVATION, 256):
-        field[r0:r1] *= 0.25 + 0.75 * shade
-    # the system PSF, in ground units, applied once to the radiance field: both the images
-    # and truth_ortho sample this one band-limited field
-    cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2), dst=field)
-    dn_max = 255.0 if bits == 8 else 4095.0               # 12-bit signal in 16-bit words
-    field *= 0.9 * dn_max / float(np.percentile(field[::4, ::4], 99.9))   # 1/16 of the cells
-    fine_grid = MapGrid(ft, fine_dem.shape[1], fine_dem.shape[0], crs)
-    radiance = MapRaster(field, fine_grid)
-    dem_r = MapRaster(fine_dem, fine_grid)
-
+    g = _ground_fields([left_model, right_model], dem, lon0, lat0, (h_lo, h_hi), gsd, texture,
+                       rng, sigma_psf, bits, diags)
     images = []
-    h_mean = nanmean_blocks(fine_dem)
-    fine_lo, fine_hi = float(np.nanmin(fine_dem)), float(np.nanmax(fine_dem))
     right_true = right_model
     for axis, spec in (("pitch", jitter), ("roll", roll_jitter)):
         if spec is None:
@@ -616,18 +697,9 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
     for name, m in (("left", left_model), ("right", right_true)):
         # an oscillating attitude bends the rays between coarse-grid rows: a finer grid there
         jittered = name == "right" and right_true is not right_model
-        m_step = min(step, 8) if jittered else step
-        img, _, _, _, loc = render(m, dem_r, radiance, step=m_step, keep_ground=False, h0=h_mean,
-                                   heights=(fine_lo - 50.0, fine_hi + 50.0))
-        diags[f"{name}_render_error_px"] = sampled_localization_error(m, loc, dem_r, seed=seed,
-                                                                      h0=h_mean)
-        diags[f"{name}_void_pct"] = float(100 * np.isnan(img).mean())
-        if noise > 0:                                     # float32 noise, added in place
-            img += np.float32(noise) * _normal_float32(rng, img.shape)
-        dtype = np.uint8 if bits == 8 else np.uint16
-        np.nan_to_num(img, copy=False, nan=0.0)
-        q = np.clip(np.rint(img, out=img), 0, np.iinfo(dtype).max, out=img).astype(dtype)
-        images.append(q)
+        images.append(_render_view(m, name, g, min(step, 8) if jittered else step, noise, bits,
+                                   rng, seed, diags))
+    field, truth, transform, shape, crs = g.field, g.truth, g.transform, g.shape, g.crs
     # the field bilinear at the truth cell centres: each is the centre of 2 x 2 fine cells,
     # where bilinear interpolation is their mean, i.e. an exact 2:1 area reduction
     truth_ortho = cv2.resize(field, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
@@ -642,6 +714,71 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
                     dem=str(dem.path), texture=str(texture or texture_path()))
     return Scene(images[0], images[1], left_model, right_model, truth_dem,
                  truth_ortho.astype(np.float32), points, preset, settings, diags)
+
+
+@dataclass
+class ViewsScene:
+    """A simulated scene seen by N images (:func:`simulate_views`): images, their exact
+    models, the truth DEM (ellipsoidal heights, UTM) and the true orthoimage."""
+
+    images: list
+    models: list
+    truth_dem: DEM
+    truth_ortho: np.ndarray
+    preset: str
+    settings: dict = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)
+
+
+def simulate_views(preset: str = "pushbroom", *, angles=(15.0, 0.0, -15.0), size=(300, 300),
+                   dem=None, texture=None, noise: float = 1.0, seed: int = 0, bits: int = 8,
+                   step: int = 16, mtf_nyquist: float = MTF_NYQUIST, gsd: float = 15.0) -> ViewsScene:
+    """N images of one scene (a triplet by default), all on one orbit, one per along-track
+    viewing angle in ``angles`` (degrees, positive forward), every image centred on the scene
+    centre; ground, radiance and rendering as :func:`simulate_scene`.
+
+    ``preset``: ``"pushbroom"`` (:meth:`PushbroomModel.synthetic_pair` from the first view to
+    each other one: one orbit, later acquisitions for views looking further back) or
+    ``"frame"`` (frame cameras along one orbit at ``altitude x tan(angle)`` from the point
+    above the centre, aimed at it). ``gsd`` in metres.
+    """
+    if preset not in ("pushbroom", "frame"):
+        raise InputError(f"simulate_views: unknown preset {preset!r} (pushbroom or frame)")
+    angles = [float(a) for a in angles]
+    if len(angles) < 2:
+        raise InputError(f"simulate_views needs at least two view angles, got {angles}")
+    sigma_psf = psf_sigma(mtf_nyquist)
+    w, h = int(size[0]), int(size[1])
+    if min(w, h) < 32:
+        raise InputError(f"image size {w}x{h} is too small (at least 32x32)")
+    rng = np.random.default_rng(seed)
+    dem, (lon0, lat0, h0), (h_lo, h_hi) = _scene_centre(dem)
+    altitude = 705e3
+    if preset == "pushbroom":
+        # the first view's orbit depends on its angle only: one orbit for every pair
+        pairs = [pushbroom_pair(lon0, lat0, h0, (w, h), (angles[0], a), gsd=gsd, altitude=altitude)
+                 for a in angles[1:]]
+        models = [pairs[0][0]] + [p[1] for p in pairs]
+    else:
+        from stereodem.sensor.models.frame import FrameCamera
+        pitch = 0.0074
+        focal = pitch * altitude / gsd
+        models = []
+        for a in angles:
+            r, v = _orbit_state(lon0, lat0, altitude, altitude * np.tan(np.radians(a)) / 1e3, -12.0)
+            models.append(FrameCamera.looking_at(r, v, lon0, lat0, h0, width=w, height=h,
+                                                 focal_mm=focal, pitch_mm=pitch))
+    diags = {}
+    g = _ground_fields(models, dem, lon0, lat0, (h_lo, h_hi), models[0].gsd(h0), texture, rng,
+                       sigma_psf, bits, diags)
+    images = [_render_view(m, f"view{k}", g, step, noise, bits, rng, seed, diags)
+              for k, m in enumerate(models)]
+    truth_ortho = cv2.resize(g.field, (g.shape[1], g.shape[0]), interpolation=cv2.INTER_AREA)
+    settings = dict(preset=preset, angles=angles, size=[w, h], noise=noise, seed=seed, bits=bits,
+                    mtf_nyquist=mtf_nyquist, gsd=gsd, center_lon=lon0, center_lat=lat0,
+                    dem=str(dem.path), texture=str(texture or texture_path()))
+    return ViewsScene(images, models, DEM(g.truth, g.transform, g.crs, ELLIPSOID, None),
+                      truth_ortho.astype(np.float32), preset, settings, diags)
 
 
 def _check_points(left, right, dem, n, rng):
@@ -684,7 +821,7 @@ def write_scene(scene: Scene, out_dir, *, overwrite: bool = False, fit_rpcs: boo
     and ``scene.json`` (settings, diagnostics, RPC fit residuals). ``write_images=False``
     leaves out the images and their models (a granule writer stores them instead).
     """
-    from stereodem.sensor.io.raster import prepare_output_dir, write_geotiff, write_text_atomic
+    from stereodem.core.raster import prepare_output_dir, write_geotiff, write_text_atomic
     from stereodem.sensor.io.sidecar import save_model
 
     out = prepare_output_dir(out_dir, overwrite=overwrite)

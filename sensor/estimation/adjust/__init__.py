@@ -16,8 +16,12 @@ Sources: Bettemir (2006) §5–7 and Tables B.32/B.33 (mixed model, constraints,
 Topan (2009) §3.3, §3.6 (Gauss–Helmert adjustment of orbital models), Baarda (1968), Pope
 (1976), Förstner (1987), Grodecki & Dial (2003), Fraser & Hanley (2005).
 """
-from stereodem.sensor.estimation.adjust.model_sets import (MODEL_SETS, ModelSet, model_set,
-                                                           register_model_set)
+from stereodem.sensor.estimation.adjust.model_sets import (
+    MODEL_SETS,
+    ModelSet,
+    model_set,
+    register_model_set,
+)
 from stereodem.sensor.estimation.adjust.result import AdjustmentResult
 from stereodem.sensor.estimation.adjust.single import adjust_model, required_gcps
 

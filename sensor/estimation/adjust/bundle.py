@@ -36,15 +36,20 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
-from stereodem.sensor.errors import ConvergenceError, InputError, SensorModelError
+from stereodem.core import geodesy
+from stereodem.core.errors import ConvergenceError, InputError, SensorModelError
 from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
+from stereodem.sensor.estimation.adjust import schur
 from stereodem.sensor.estimation.adjust.model_sets import model_set, parameter_unit
 from stereodem.sensor.estimation.adjust.result import ParameterEstimate, _num, rmse
-from stereodem.sensor.estimation.adjust.single import (_check_arrays, _sigmas,
-                                                       check_points_against_model)
-from stereodem.sensor.geo import geodesy
+from stereodem.sensor.estimation.adjust.single import (
+    _check_arrays,
+    _sigmas,
+    check_points_against_model,
+)
+from stereodem.sensor.models.base import pair_height_bounds
 from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 
 __all__ = ["bundle_adjust", "BundleResult", "tie_parallax"]
@@ -70,7 +75,7 @@ def _resolve(model, names, priors, side):
     return model, list(names), dict(priors or {}), None
 
 
-class _Problem:
+class _Problem(schur.SchurProblem):
     """The whitened bundle problem; state ``z = [x (u), d (3 n_tie, ENU m)]``."""
 
     def __init__(self, models, names, priors, ties, gcps, sigma_tie, gcp_sigma):
@@ -106,35 +111,10 @@ class _Problem:
 
     # ---------------------------------------------------------------- state
     def _initial_ground(self):
-        """Initial tie ground points: along each left ray, the point whose right projection is
-        nearest the right measurement (the ray between two heights projected into the right
-        image and the measurement placed on that segment): one ray per tie (two left
-        localisations) and two right projections, instead of two full ray pairs."""
-        t = self.ties
+        """Initial tie ground points (:func:`initial_ground`)."""
         if self.n == 0:
             return np.zeros((0, 3))
-        L, R = self.models
-        lo, hi = _height_span(L, R)
-        o, d = L.rays(t[:, 0], t[:, 1])
-        P = geodesy.intersect_height(np.concatenate([o, o]), np.concatenate([d, d]),
-                                     np.concatenate([np.full(self.n, lo), np.full(self.n, hi)]))
-        Plo, Phi = P[:self.n], P[self.n:]
-        lon, lat, h = geodesy.ecef_to_geodetic(P[:, 0], P[:, 1], P[:, 2])
-        c, r = R.project(lon, lat, h)
-        q = np.stack([c, r], -1)
-        qlo, qhi = q[:self.n], q[self.n:]
-        seg = qhi - qlo
-        with np.errstate(invalid="ignore", divide="ignore"):
-            s = np.sum((t[:, 2:] - qlo) * seg, axis=1) / np.sum(seg * seg, axis=1)
-        X = Plo + s[:, None] * (Phi - Plo)
-        bad = ~np.all(np.isfinite(X), axis=1)
-        if np.any(bad):
-            raise InputError(f"bundle: {int(bad.sum())} tie point(s) whose rays do not intersect "
-                             f"(first #{int(np.flatnonzero(bad)[0])})")
-        return X
-
-    def z0(self):
-        return np.concatenate([self.x0, np.zeros(3 * self.n)])
+        return initial_ground(*self.models, self.ties)
 
     def split(self, z):
         return z[:self.u], z[self.u:].reshape(self.n, 3)
@@ -145,12 +125,6 @@ class _Problem:
         if not self.names[k]:
             return self.models[k]
         return self.models[k].with_parameters(**dict(zip(self.names[k], (float(v) for v in vals))))
-
-    def ground(self, z):
-        d = z[self.u:].reshape(self.n, 3)
-        X = self.X0 + np.einsum("nij,ni->nj", self.basis, d)
-        lon, lat, h = geodesy.ecef_to_geodetic(X[:, 0], X[:, 1], X[:, 2])
-        return np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float)
 
     # ---------------------------------------------------------------- blocks
     def blocks(self, z, *, jacobian=True):
@@ -169,36 +143,23 @@ class _Problem:
             m = self.model_at(z, k)
             names = self.names[k]
             off = 0 if k == 0 else self.u_l
+            cols = slice(2 * k, 2 * k + 2)
             if n:
-                if jacobian and names:
-                    c, r, J = project_jacobian(m, lon, lat, h, names)
-                    A_t[:, 2 * k:2 * k + 2, off:off + len(names)] = J / self.sigma_tie
-                else:
-                    c, r = m.project(lon, lat, h)
-                e_t[:, 2 * k] = (np.asarray(c) - self.ties[:, 2 * k]) / self.sigma_tie
-                e_t[:, 2 * k + 1] = (np.asarray(r) - self.ties[:, 2 * k + 1]) / self.sigma_tie
+                e_t[:, cols], A, G = tie_block(m, names, (lon, lat, h), self.ties[:, cols],
+                                               self.sigma_tie, jacobian)
+                if A is not None:
+                    A_t[:, cols, off:off + len(names)] = A
                 if jacobian:
-                    G_t[:, 2 * k:2 * k + 2] = _enu_partials(m, lon, lat, h, base=(c, r)) / self.sigma_tie
+                    G_t[:, cols] = G
             p = self.gcps[k]
             if p is not None and len(p):
-                if jacobian and names:
-                    c, r, J = project_jacobian(m, p.lon, p.lat, p.h, names)
-                else:
-                    c, r = m.project(p.lon, p.lat, p.h)
-                    J = np.zeros((len(p), 2, len(names)))
                 W = self.gcp_W[k]
-                mis = np.stack([np.asarray(c) - p.col, np.asarray(r) - p.row], -1)
-                e_g.append(np.einsum("nij,nj->ni", W, mis))
-                if jacobian:
-                    Ak = np.zeros((len(p), 2, u))
-                    Ak[:, :, off:off + len(names)] = np.einsum("nij,nju->niu", W, J)
-                    A_g.append(Ak)
+                gcp_block(m, names, p, (off, u), jacobian, e_g, A_g,
+                          lambda mis, W=W: np.einsum("nij,nj->ni", W, mis),
+                          lambda J, W=W: np.einsum("nij,nju->niu", W, J))
         e_g = np.concatenate(e_g) if e_g else np.zeros((0, 2))
         A_g = np.concatenate(A_g) if A_g else np.zeros((0, 2, u))
-        x = z[:u]
-        e_p = (x[self.prior_idx] - self.x0[self.prior_idx]) / self.prior_sigma
-        A_p = np.zeros((len(self.prior_idx), u))
-        A_p[np.arange(len(self.prior_idx)), self.prior_idx] = 1.0 / self.prior_sigma
+        e_p, A_p = schur.prior_blocks(z[:u], self.x0, self.prior_idx, self.prior_sigma, u)
         return dict(e_t=e_t, A_t=A_t, G_t=G_t, e_g=e_g, A_g=A_g, e_p=e_p, A_p=A_p)
 
     def residual(self, z):
@@ -232,59 +193,75 @@ class _Problem:
         return J
 
     # ---------------------------------------------------------------- normal equations
-    def reduced(self, b):
-        """Reduced normal equations: ``S``, its right-hand side and the per-tie blocks."""
-        A_t, G_t, e_t = b["A_t"], b["G_t"], b["e_t"]
-        u = self.u
-        Ag = b["A_g"].reshape(-1, u)
-        At2 = A_t.reshape(-1, u)                       # BLAS products over all tie rows
-        N_pp = At2.T @ At2 + Ag.T @ Ag + b["A_p"].T @ b["A_p"]
-        b_p = -(At2.T @ e_t.ravel() + Ag.T @ b["e_g"].ravel() + b["A_p"].T @ b["e_p"])
-        AtT = np.swapaxes(A_t, 1, 2)                    # (n, u, 4)
-        N_pg = AtT @ G_t                                # (n, u, 3)
-        N_gg = np.swapaxes(G_t, 1, 2) @ G_t             # (n, 3, 3)
-        b_g = -(np.swapaxes(G_t, 1, 2) @ e_t[..., None])[..., 0]
-        T = np.linalg.inv(N_gg)
-        M = N_pg @ T                                    # (n, u, 3)
-        S = N_pp - np.tensordot(M, N_pg, axes=([0, 2], [0, 2]))
-        rhs = b_p - np.tensordot(M, b_g, axes=([0, 2], [0, 1]))
-        return dict(S=S, rhs=rhs, T=T, M=M, N_pg=N_pg, b_g=b_g)
+def initial_ground(left, right, ties) -> np.ndarray:
+    """First ground points (ECEF, m) of tie points ``ties`` (n, 4: col1, row1, col2, row2):
+    along each left ray, the point whose right projection is nearest the right measurement
+    (the ray between two heights projected into the right image and the measurement placed on
+    that segment): one ray per tie (two left localisations) and two right projections,
+    instead of two full ray pairs. :class:`InputError` for rays that do not intersect."""
+    t = np.asarray(ties, float)
+    n = len(t)
+    lo, hi = _height_span(left, right)
+    o, d = left.rays(t[:, 0], t[:, 1])
+    P = geodesy.intersect_height(np.concatenate([o, o]), np.concatenate([d, d]),
+                                 np.concatenate([np.full(n, lo), np.full(n, hi)]))
+    Plo, Phi = P[:n], P[n:]
+    lon, lat, h = geodesy.ecef_to_geodetic(P[:, 0], P[:, 1], P[:, 2])
+    c, r = right.project(lon, lat, h)
+    q = np.stack([c, r], -1)
+    qlo, qhi = q[:n], q[n:]
+    seg = qhi - qlo
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = np.sum((t[:, 2:] - qlo) * seg, axis=1) / np.sum(seg * seg, axis=1)
+    X = Plo + s[:, None] * (Phi - Plo)
+    bad = ~np.all(np.isfinite(X), axis=1)
+    if np.any(bad):
+        raise InputError(f"bundle: {int(bad.sum())} tie point(s) whose rays do not intersect "
+                         f"(first #{int(np.flatnonzero(bad)[0])})")
+    return X
 
-    def solve_reduced(self, R, max_condition, what="bundle"):
-        S = R["S"]
-        if self.u == 0:
-            return np.zeros(0), np.zeros((0, 0)), 1.0
-        d = np.sqrt(np.diag(S))
-        d = np.where(d > 0, d, 1.0)
-        Ss = S / np.outer(d, d)
-        w, V = np.linalg.eigh(Ss)
-        cond = float(w[-1] / w[0]) if w[0] > 0 else float("inf")
-        if cond > max_condition:
-            v = V[:, 0] ** 2
-            names = [self.full_names[k] for k in np.argsort(v)[::-1] if v[k] >= 0.1]
-            raise SensorModelError(
-                f"{what}: near-singular normal matrix (condition number {cond:.3g}); cannot "
-                f"separate {', '.join(names)} — add GCPs, fix one model or add priors")
-        Sinv = (V / w) @ V.T / np.outer(d, d)
-        return Sinv @ R["rhs"], Sinv, cond
 
-    def step(self, b, max_condition):
-        R = self.reduced(b)
-        dp, Sinv, cond = self.solve_reduced(R, max_condition)
-        rg = R["b_g"] - np.tensordot(R["N_pg"], dp, axes=([1], [0]))
-        dg = (R["T"] @ rg[..., None])[..., 0]
-        # standard deviations (cofactors) of parameters and ground corrections
-        sp_ = np.sqrt(np.maximum(np.diag(Sinv), 1e-300))
-        MS = np.tensordot(R["M"], Sinv, axes=([1], [0]))              # (n, 3, u)
-        qgg = np.einsum("nii->ni", R["T"]) + np.sum(MS * np.swapaxes(R["M"], 1, 2), axis=2)
-        sg = np.sqrt(np.maximum(qgg, 1e-300))
-        return np.concatenate([dp, dg.ravel()]), np.concatenate([sp_, sg.ravel()]), R, Sinv, cond
+def tie_block(model, names, ground, observed, sigma, jacobian):
+    """One image's whitened tie rows: residuals (m, 2) of ``model`` projecting the ``ground``
+    points (lon, lat in degrees, h in metres) against the ``observed`` (m, 2) (col, row) px,
+    over ``sigma`` px; with ``jacobian``, the partials by the parameters ``names`` (m, 2,
+    len(names); None without names) and by the points' east/north/up (m, 2, 3)."""
+    lon, lat, h = ground
+    A = G = None
+    if jacobian and names:
+        c, r, J = project_jacobian(model, lon, lat, h, names)
+        A = J / sigma
+    else:
+        c, r = model.project(lon, lat, h)
+    e = np.empty((len(observed), 2))
+    e[:, 0] = (np.asarray(c) - observed[:, 0]) / sigma
+    e[:, 1] = (np.asarray(r) - observed[:, 1]) / sigma
+    if jacobian:
+        G = _enu_partials(model, lon, lat, h, base=(c, r)) / sigma
+    return e, A, G
+
+
+def gcp_block(model, names, gcps, cols, jacobian, e_g, A_g, whiten_e, whiten_A):
+    """One image's whitened GCP rows appended to ``e_g`` (residuals, (k, 2)) and, with
+    ``jacobian``, ``A_g`` ((k, 2, u); ``cols = (off, u)``: the image's parameters start at
+    column ``off`` of ``u``): misclosures (col, row) px of ``model`` at the ``gcps``' fixed
+    ground coordinates, whitened by ``whiten_e`` / ``whiten_A``."""
+    off, u = cols
+    if jacobian and names:
+        c, r, J = project_jacobian(model, gcps.lon, gcps.lat, gcps.h, names)
+    else:
+        c, r = model.project(gcps.lon, gcps.lat, gcps.h)
+        J = np.zeros((len(gcps), 2, len(names)))
+    e_g.append(whiten_e(np.stack([np.asarray(c) - gcps.col, np.asarray(r) - gcps.row], -1)))
+    if jacobian:
+        Ak = np.zeros((len(gcps), 2, u))
+        Ak[:, :, off:off + len(names)] = whiten_A(J)
+        A_g.append(Ak)
 
 
 def _height_span(left, right):
     """Heights (m) spanned by both models' validity ranges (a 1000 m span when they are wide)."""
-    lo = max(left.height_bounds()[0], right.height_bounds()[0])
-    hi = min(left.height_bounds()[1], right.height_bounds()[1])
+    lo, hi = pair_height_bounds(left, right)
     if not hi > lo:
         lo, hi = 0.0, 1000.0
     return lo, hi
@@ -353,6 +330,9 @@ class BundleResult(ParameterEstimate):
     model_sets: tuple = (None, None)
     parallax_before: dict = field(default_factory=dict)
     parallax_after: dict = field(default_factory=dict)
+    #: "converged" (criterion met) or "stalled" (line search stopped below STATIONARY_SIGMA)
+    status: str = "converged"
+    max_correction: float = float("nan")    #: last max |dz_k| / sigma_k
 
     @property
     def models(self):
@@ -422,6 +402,7 @@ class BundleResult(ParameterEstimate):
             "outliers": [o["id"] for o in self.outliers if o.get("kind") == "gcp"],
             "outlier_details": self.outliers,
             "test": self.test, "iterations": int(self.iterations), "converged": bool(self.converged),
+            "status": self.status, "max_correction": _num(self.max_correction),
             "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
             "regularization": None,
             "redundancy_sum": _num(np.nansum(self.tie_redundancy) + sum(
@@ -461,7 +442,7 @@ def tie_parallax(left, right, ties, *, max_points: int = 2000) -> dict:
     distance of their rays (m), and the RMS reprojection discrepancy (px) of each image point
     from the other image's ray at the intersection (the "vertical parallax" left once heights
     are free). At most ``max_points`` ties (evenly spaced in the list) are used."""
-    from stereodem.stereo.intersect import intersect_matches
+    from stereodem.sensor.geo.intersect import intersect_matches
     t = np.asarray(ties, float)
     if len(t) > max_points:     # a diagnostic: an evenly spread subset is enough
         t = t[np.linspace(0, len(t) - 1, max_points).astype(int)]
@@ -631,7 +612,7 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         # final models
         glon, glat, gh_ = lon.copy(), lat.copy(), h.copy()
         if (~active_t).any():
-            from stereodem.stereo.intersect import intersect_matches
+            from stereodem.sensor.geo.intersect import intersect_matches
             tr = t[~active_t]
             inter = intersect_matches(L, Rm, tr[:, 0], tr[:, 1], tr[:, 2], tr[:, 3])
             glon[~active_t], glat[~active_t], gh_[~active_t] = inter.lon, inter.lat, inter.h
@@ -672,7 +653,8 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         tie_h=h, tie_std_m=std_g, tie_rejected=~active_t, gcps=tuple(gcp_sets),
         gcp_residuals_px=tuple(gres), gcp_w=tuple(gw), gcp_redundancy=tuple(gr_),
         checks=tuple(chk_sets), check_residuals_px=tuple(cres), outliers=outliers,
-        iterations=sol["iterations"], converged=True, tolerance=tolerance,
+        iterations=sol["iterations"], converged=sol["converged"], tolerance=tolerance,
+        status=sol["status"], max_correction=float(sol["max_correction"]),
         test={"name": "baarda" if sigma_known else "pope", "alpha": alpha, "power": power,
               "threshold": float(thr), "delta0": delta0, "snooping": bool(snooping)},
         solver=solver, model_sets=(setl, setr), parallax_before=before,
@@ -690,11 +672,12 @@ def _solve(prob, solver, max_iterations, tolerance, max_condition, x_start=None)
     if solver == "least_squares" and max_iterations > 0:
         def jac(zz):
             return prob.sparse_jacobian(prob.blocks(zz))
+        # scipy's default tolerances (1e-8); the Gauss-Newton steps below then bring it to the
+        # stated criterion, so every solver stops at the same max |dz|/sigma < tolerance
         sol = least_squares(prob.residual, z, jac=jac, method="trf", tr_solver="lsmr",
-                            x_scale="jac", xtol=1e-10, ftol=1e-12, gtol=1e-10,
-                            max_nfev=4 * max_iterations + 10)
+                            x_scale="jac", max_nfev=4 * max_iterations + 10)
         z, it = sol.x, int(sol.njev or sol.nfev)
-    worst = np.inf
+    worst, stalled = np.inf, False
     # after scipy's run, up to five Gauss-Newton steps to meet the stated criterion
     limit = it + 5 if solver == "least_squares" else max_iterations
     for _ in range(max_iterations + 6):
@@ -716,15 +699,19 @@ def _solve(prob, solver, max_iterations, tolerance, max_condition, x_start=None)
                 break
             step *= 0.5
         else:
-            if worst < gm.STATIONARY_SIGMA:
-                worst = 0.0
+            # the line search cannot lower the sum of squares any more: accepted when the
+            # correction is below STATIONARY_SIGMA, but reported as stalled, not converged
+            stalled = worst < gm.STATIONARY_SIGMA
             break
         z = zn
         it += 1
-    if worst >= tolerance:
+    if worst >= tolerance and not stalled:
         raise ConvergenceError(f"bundle: no convergence in {it} iteration(s) (last correction "
                                f"{worst:.3g} sigma; criterion max |dz|/sigma < {tolerance:g})")
-    return z, {"R": R, "Sinv": Sinv, "cond": cond, "sigma": sig, "iterations": it, "b": b}
+    converged = worst < tolerance
+    return z, {"R": R, "Sinv": Sinv, "cond": cond, "sigma": sig, "iterations": it, "b": b,
+               "converged": converged, "status": "converged" if converged else "stalled",
+               "max_correction": worst}
 
 
 def _dense_step(prob, b, max_condition):

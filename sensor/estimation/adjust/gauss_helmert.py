@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereodem.sensor.geo import geodesy
+from stereodem.core import geodesy
 
 __all__ = ["ground_partials", "misclosure_covariance", "whitening", "observation_residuals",
            "variance_components", "SEPARABLE_CONDITION"]

@@ -3,8 +3,9 @@
 The caller supplies ``evaluate(x) -> (e, A)``: the whitened residuals ``e = W (f(x) - l)``
 (every row of unit a-priori variance; parameter priors/constraints appended as fictitious
 observations ``(x_k - x_k0) / sigma_k``) and their Jacobian ``A = de/dx``. The minimisation is
-:func:`scipy.optimize.least_squares` (trust-region reflective, parameters scaled by the
-Jacobian's column norms, so that radians, metres and 1/mm^4 are comparable); Tikhonov
+:func:`scipy.optimize.least_squares` with ``method="lm"`` (Levenberg–Marquardt, MINPACK's
+``lmder``; parameters scaled by the Jacobian's column norms, so that radians, metres and
+1/mm^4 are comparable); Tikhonov
 regularisation, with its weight from the L-curve or GCV
 (:mod:`stereodem.sensor.estimation.regularize`), enters as fictitious observations
 ``lam D (x - x0) = 0`` on the equilibrated parameters. Statistics come from the SVD of the
@@ -17,26 +18,28 @@ correction still to be applied, in units of each parameter's own standard deviat
 are taken to meet it. A correction below ``STATIONARY_SIGMA`` (0.1 sigma) that no longer
 lowers the weighted sum of squares also counts as converged: in ill-conditioned problems the
 precision of a finite-difference Jacobian limits how small the predicted correction can get.
+Such a solution is accepted but reported as ``status="stalled"`` (``converged`` false, the last
+correction in ``max_correction``), not as converged.
 
 Near-singular normal matrices (condition number of the equilibrated ``A^T A`` above
-``max_condition``) raise :class:`stereodem.sensor.errors.SensorModelError` naming the condition
+``max_condition``) raise :class:`stereodem.core.errors.SensorModelError` naming the condition
 number and the parameters that cannot be separated (the largest components of the right
 singular vector of the smallest singular value), unless regularisation with a positive weight
 was asked for (a weight of 0 is no regularisation). Every solve goes through SVDs of the
 (regularised) equilibrated design matrix, never an inverse of the normal matrix, so a
 rank-deficient parameter set with a positive Tikhonov weight has finite statistics; any
 :class:`numpy.linalg.LinAlgError` that still arises (an SVD that does not converge, or the
-model's own linear algebra) is raised as :class:`~stereodem.sensor.errors.SensorModelError`.
+model's own linear algebra) is raised as :class:`~stereodem.core.errors.SensorModelError`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-
-from stereodem.sensor.errors import ConvergenceError, SensorModelError
-from stereodem.sensor.estimation import regularize
 from scipy.optimize import least_squares
+
+from stereodem.core.errors import ConvergenceError, SensorModelError
+from stereodem.sensor.estimation import regularize
 
 __all__ = ["GaussMarkovSolution", "solve", "inseparable", "equilibrated_svd", "MAX_CONDITION"]
 
@@ -57,9 +60,12 @@ class GaussMarkovSolution:
     Qxx: np.ndarray          #: cofactor matrix of the parameters (u, u), (A^T A + R)^-1
     condition: float         #: condition number of the equilibrated A^T A
     iterations: int
-    converged: bool
+    converged: bool          #: the stated criterion max |dx_k| / sigma_k < tolerance was met
     max_correction: float    #: last max |dx_k| / sigma_k
     regularization: float    #: Tikhonov weight used (0: none)
+    #: "converged", or "stalled": the line search could no longer lower the sum of squares
+    #: with a correction below STATIONARY_SIGMA (accepted, but the criterion was not met)
+    status: str = "converged"
 
 
 def equilibrated_svd(A):
@@ -169,7 +175,7 @@ def _solve(evaluate, x0, names, *, residual, max_iterations, tolerance, regulari
 
     # the stated criterion, checked at the solution with Gauss-Newton steps
     worst, dx, stationary = np.inf, np.zeros_like(x), False
-    for extra in range(6 if max_iterations > 0 else 1):
+    for _ in range(6 if max_iterations > 0 else 1):
         e, A = evaluate(x)
         _check_finite(e, A, what)
         Ab = A if D_reg is None else np.vstack([A, lam * np.diag(D_reg)])
@@ -190,15 +196,16 @@ def _solve(evaluate, x0, names, *, residual, max_iterations, tolerance, regulari
             stationary = worst < STATIONARY_SIGMA
             break
         x, iterations = xn, iterations + 1
-    converged = max_iterations == 0 or worst < tolerance or stationary
-    if not converged:
+    converged = max_iterations == 0 or worst < tolerance
+    if not (converged or stationary):
         raise ConvergenceError(
             f"{what}: no convergence in {iterations} iteration(s) (last correction {worst:.3g} "
             f"sigma of {names[int(np.argmax(np.abs(dx) / sigma))]}; criterion "
             f"max |dx|/sigma < {tolerance:g}; condition number {cond:.3g}"
             + (f", weakly separable: {', '.join(inseparable(Vt, s, names))}" if cond > 1e8 else "")
             + ") — check the initial model and the points, or free fewer parameters")
-    return GaussMarkovSolution(x, e, A, Q, cond, iterations, True, worst, lam)
+    return GaussMarkovSolution(x, e, A, Q, cond, iterations, converged, worst, lam,
+                               "converged" if converged else "stalled")
 
 
 def _weight(method, A, b):

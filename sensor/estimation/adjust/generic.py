@@ -15,7 +15,7 @@ or snooping.
 """
 from __future__ import annotations
 
-from stereodem.sensor.errors import InputError
+from stereodem.core.errors import InputError
 from stereodem.sensor.estimation.adjust.single import adjust_model
 from stereodem.sensor.io.gcps import ControlPoints
 from stereodem.sensor.models.generic import MODEL_NAMES, fit_model
@@ -36,7 +36,9 @@ def adjust_generic(name: str, points: ControlPoints, *, image_size=None, crs=Non
     image_size : (width, height), optional
         Image size (default: the extent of the points).
     regularization : "auto", None, "lcurve", "gcv" or float
-        ``"auto"``: the L-curve for the rational functions, none for the others.
+        ``"auto"``: the L-curve for the rational functions, none for the others; otherwise
+        the Tikhonov weight (or its rule) of both the initial fit and the adjustment, refused
+        (:class:`InputError`) for the models that are linear in their coefficients.
     **kwargs
         Passed to :func:`adjust_model` (``sigma_px``, ``snooping``, ``alpha`` ...).
 
@@ -50,9 +52,20 @@ def adjust_generic(name: str, points: ControlPoints, *, image_size=None, crs=Non
     gcp = points.select("gcp")
     if image_size is None:
         image_size = (int(max(points.col.max(), 0)) + 1, int(max(points.row.max(), 0)) + 1)
-    model, _ = fit_model(name, *gcp.arrays(), crs=crs, image_size=image_size)
     if regularization == "auto":
+        model, _ = fit_model(name, *gcp.arrays(), crs=crs, image_size=image_size)
         regularization = "lcurve" if name.startswith("rational") else None
+    else:                  # the caller's choice, for the initial fit and the adjustment alike
+        from stereodem.sensor.models.generic import _form
+        if regularization is not None and not _form(name).regularizable:
+            # Tikhonov about the initial fit cannot move a least-squares fit of a model linear
+            # in its coefficients: accepting the weight would change nothing but the report
+            regularizable = ", ".join(n for n in MODEL_NAMES if _form(n).regularizable)
+            raise InputError(f"generic model '{name}' is fitted exactly by linear least squares; "
+                             f"regularisation applies to {regularizable} (and to parameter sets "
+                             "of physical/RPC models)")
+        model, _ = fit_model(name, *gcp.arrays(), crs=crs, image_size=image_size,
+                             regularization=regularization)
     if name in ("rational-2", "rational-3"):
         # 38/78 coefficients, condition numbers 1e11-1e14: statistics of the regularised fit
         # itself (no re-estimation, hence no snooping, which would need a re-fit)

@@ -12,10 +12,10 @@ Units of the parameters are those of the model's ``PARAMETERS`` table (:func:`pa
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
-from stereodem.sensor.errors import InputError, SensorModelError
+from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 
 __all__ = ["ModelSet", "MODEL_SETS", "register_model_set", "model_set", "parameter_unit",

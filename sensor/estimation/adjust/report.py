@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.sensor.io.raster import atomic_path, check_writable, write_text_atomic
+from stereodem.core.raster import atomic_path, check_writable, write_text_atomic
 
 __all__ = ["write_report", "markdown", "residual_figure", "REPORT_NAME"]
 
@@ -26,7 +26,9 @@ def markdown(report: dict, figure: str | None = None) -> str:
     lines += [
         f"* observations {report['n_observations']}, unknowns {report['n_unknowns']}, "
         f"redundancy {report['dof']}; {report['iterations']} iteration(s), "
-        f"converged: {report['converged']} ({report['convergence_criterion']})",
+        f"converged: {report['converged']} ({report['convergence_criterion']})"
+        + (f"; STALLED: the line search could not lower the sum of squares, last correction "
+           f"{_f(report.get('max_correction'), '.3g')} sigma" if report.get("status") == "stalled" else ""),
         f"* sigma0 = {_f(report['sigma0'])} (a priori 1; sigma "
         f"{'known' if report['sigma_known'] else 'unknown: covariance scaled by sigma0²'})"
         + (f"; chi² test ({chi['dof']} dof, alpha {chi['alpha']}): statistic {_f(chi['statistic'])} "

@@ -131,6 +131,9 @@ class AdjustmentResult(ParameterEstimate):
     regularization: float = 0.0
     initial_model: object = None
     variance_components: dict | None = None
+    #: "converged" (criterion met) or "stalled" (line search stopped below STATIONARY_SIGMA)
+    status: str = "converged"
+    max_correction: float = float("nan")    #: last max |dx_k| / sigma_k
 
     # ---------------------------------------------------------------- derived
     @property
@@ -198,6 +201,7 @@ class AdjustmentResult(ParameterEstimate):
             "test": self.test,
             "iterations": int(self.iterations),
             "converged": bool(self.converged),
+            "status": self.status, "max_correction": _num(self.max_correction),
             "convergence_criterion": f"max |dx_k| / sigma_k < {self.tolerance:g}",
             "regularization": _num(self.regularization),
             "redundancy_sum": _num(np.nansum(self.redundancy)),

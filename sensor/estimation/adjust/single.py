@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from stereodem.sensor.errors import InputError, SensorModelError
+from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
@@ -348,7 +348,7 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         residuals_px=mis_all, check_residuals_px=chk_res, ground_residuals_m=ground,
         redundancy=full(r, 2), w=full(w, 2), mdb=full(mdb, 2), external_reliability=full(ext, 2),
         outliers=outliers, iterations=sol.iterations, converged=sol.converged,
-        tolerance=tolerance,
+        status=sol.status, max_correction=float(sol.max_correction), tolerance=tolerance,
         test={"name": "baarda" if sigma_known else "pope", "alpha": alpha, "power": power,
               "threshold": float(thr), "delta0": delta0, "snooping": bool(snooping)},
         model_set=set_name, priors=priors, regularization=sol.regularization,

@@ -64,7 +64,7 @@ __all__ = ["TopanLOSModel", "OrunNatarajanModel", "ToutinModel", "KratkyModel", 
 def build(name: str, reference):
     """The orbital model of parameter set ``name`` built from the image's model ``reference``;
     returns ``(model, parameter names)``."""
-    from stereodem.sensor.errors import InputError
+    from stereodem.core.errors import InputError
     table = {**PARAMETER_SETS, **DEFAULT_SETS}
     if name not in table:
         raise InputError(f"unknown orbital model set {name!r}; choose one of {', '.join(table)}")

@@ -15,8 +15,8 @@ import copy
 import numpy as np
 from scipy.optimize import least_squares
 
-from stereodem.sensor.errors import ConvergenceError, SensorModelError
-from stereodem.sensor.geo import geodesy
+from stereodem.core import geodesy
+from stereodem.core.errors import ConvergenceError, SensorModelError
 from stereodem.sensor.models.parameters import checked_parameters
 
 
@@ -190,11 +190,11 @@ def invert_projection(model, col, row, h, *, lon0: float, lat0: float, iteration
 
 
 def require_gcps(n_gcp: int, names, what: str, *, n_prior: int = 0) -> None:
-    """Raise :class:`~stereodem.sensor.errors.InputError` when ``n_gcp`` GCPs (two
+    """Raise :class:`~stereodem.core.errors.InputError` when ``n_gcp`` GCPs (two
     observations each) cannot determine the parameters ``names`` with one redundant
     observation (so that sigma0 exists; the adjustment engine's rule, in which each of
     ``n_prior`` weighted parameters counts as one observation)."""
-    from stereodem.sensor.errors import InputError
+    from stereodem.core.errors import InputError
     from stereodem.sensor.estimation.adjust.single import required_gcps
     u = len(list(names))
     need = required_gcps(u, n_prior)
@@ -205,9 +205,9 @@ def require_gcps(n_gcp: int, names, what: str, *, n_prior: int = 0) -> None:
 
 
 def require_inside(model, col, row, *, what: str = "check points") -> None:
-    """Raise :class:`~stereodem.sensor.errors.InputError` when image points fall outside the
+    """Raise :class:`~stereodem.core.errors.InputError` when image points fall outside the
     image (pixel centres from -0.5 to width - 0.5)."""
-    from stereodem.sensor.errors import InputError
+    from stereodem.core.errors import InputError
     col, row = np.asarray(col, float), np.asarray(row, float)
     out = ~((col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5))
     if np.any(out):

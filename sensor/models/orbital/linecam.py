@@ -21,12 +21,18 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stereodem.sensor.errors import SensorModelError
-from stereodem.sensor.geo import geodesy
+from stereodem.core import geodesy
+from stereodem.core.errors import SensorModelError
 from stereodem.sensor.geo.rotations import R1, R2, R3
 from stereodem.sensor.models.base import SensorModel, localize_on_rays
-from stereodem.sensor.models.orbital._common import (CoefficientModel, fit_to_points, line_variable,
-                                                     quadratic, secant_rows, virtual_points)
+from stereodem.sensor.models.orbital._common import (
+    CoefficientModel,
+    fit_to_points,
+    line_variable,
+    quadratic,
+    secant_rows,
+    virtual_points,
+)
 
 #: Every coefficient of the line camera (units: m for X/Y/Z, rad for angles, 1 for the scale).
 COEFFICIENTS = tuple(f"{p}_{k}" for p in ("X", "Y", "Z", "omega", "phi", "kappa") for k in range(3)) \

@@ -47,7 +47,7 @@ same model for the ICPs and gives the GCPs a real redundancy.
 :func:`preadjust` takes the adjustment engine as an argument. One image is adjusted with
 :func:`stereodem.sensor.estimation.adjust.adjust_model`, a pair (GCPs, tie points, independent
 check points) with :func:`stereodem.sensor.estimation.adjust.bundle_adjust` (model sets
-``eop-poly2``, ``eop-<set>`` or lists of coefficient names; ``tests/test_orbital_pair.py``).
+``eop-poly2``, ``eop-<set>`` or lists of coefficient names; ``tests/sensor/test_orbital_pair.py``).
 
 Models left out of Topan's survey (package docstring, :mod:`stereodem.sensor.models.orbital`).
 """
@@ -58,11 +58,15 @@ import copy
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stereodem.sensor.errors import InputError, SensorModelError
-from stereodem.sensor.geo import geodesy
+from stereodem.core import geodesy
+from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.models.base import SensorModel, localize_on_rays
-from stereodem.sensor.models.orbital._common import (CoefficientModel, line_variable, quadratic,
-                                                     secant_rows)
+from stereodem.sensor.models.orbital._common import (
+    CoefficientModel,
+    line_variable,
+    quadratic,
+    secant_rows,
+)
 
 SERIES = ("X", "Y", "Z", "VX", "VY", "VZ", "roll", "pitch", "yaw")
 EOP = tuple(f"{s}_{k}" for s in SERIES for k in range(3))
@@ -163,7 +167,7 @@ class TopanLOSModel(CoefficientModel, SensorModel):
     def parameters(self) -> dict:
         return dict(self._c)
 
-    def with_los_sign(self, sign: int) -> "TopanLOSModel":
+    def with_los_sign(self, sign: int) -> TopanLOSModel:
         """The same model with the ``z`` of the look vector set to ``sign`` (+1: Topan's print)."""
         new = copy.copy(self)
         if sign not in (-1, 1):
@@ -339,7 +343,7 @@ class TopanLOSModel(CoefficientModel, SensorModel):
                 "name": self.name, "height_range": list(self._hr)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TopanLOSModel":
+    def from_dict(cls, d: dict) -> TopanLOSModel:
         """Inverse of :meth:`to_dict`."""
         return cls(width=d["width"], height=d["height"], coefficients=d["coefficients"],
                    psi_x=d["psi_x"], psi_y=d["psi_y"], cols=d.get("cols"),

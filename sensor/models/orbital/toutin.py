@@ -64,11 +64,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from stereodem.sensor.errors import SensorModelError
-from stereodem.sensor.geo import geodesy
+from stereodem.core import geodesy
+from stereodem.core.errors import SensorModelError
 from stereodem.sensor.models.base import SensorModel
-from stereodem.sensor.models.orbital._common import (CoefficientModel, fit_to_points, invert_projection,
-                                                     virtual_points)
+from stereodem.sensor.models.orbital._common import (
+    CoefficientModel,
+    fit_to_points,
+    invert_projection,
+    virtual_points,
+)
 
 ADJUSTED = ("P", "Q", "tau", "theta", "a", "x0", "y0", "rot")
 SECOND_ORDER = ("b", "c", "dgamma", "dT_2", "dT_3", "dR_2", "dR_3")
@@ -226,7 +230,7 @@ class ToutinModel(CoefficientModel, SensorModel):
                 "values": self.parameters(), "name": self.name, "height_range": list(self._hr)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ToutinModel":
+    def from_dict(cls, d: dict) -> ToutinModel:
         """Inverse of :meth:`to_dict`."""
         return cls(width=d["width"], height=d["height"], lon0=d["lon0"], lat0=d["lat0"], N0=d["N0"],
                    H0=d["H0"], alpha=d["alpha"], chi=d["chi"], values=d["values"], name=d.get("name"),

@@ -99,7 +99,7 @@ def digitalglobe_xml(m):
 
 def ossim_geom(m):
     c = coeffs(m)
-    lines = [f"bias_error:  0", f"height_off:  {f17(m.height_off)}", f"height_scale:  {f17(m.height_scale)}",
+    lines = ["bias_error:  0", f"height_off:  {f17(m.height_off)}", f"height_scale:  {f17(m.height_scale)}",
              f"lat_off:  {f17(m.lat_off)}", f"lat_scale:  {f17(m.lat_scale)}"]
     for key in ("LINE_DEN_COEFF", "LINE_NUM_COEFF"):
         lines += [f"{key.lower()}_{i:02d}:  {f17(v)}" for i, v in enumerate(c[key])]
@@ -166,9 +166,10 @@ def main():
     (HERE / "pleiades_rpcm.json").write_text(rpcm_json(m, loc))
     (HERE / "pleiades_rpc.vrt").write_text(vrt(m))
     # an image whose RPCs come only from a DigitalGlobe _RPC.TXT sidecar (values with units)
+    import warnings
+
     import rasterio
     from rasterio.errors import NotGeoreferencedWarning
-    import warnings
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with rasterio.open(HERE / "dg_scene.tif", "w", driver="GTiff", width=8, height=8, count=1,

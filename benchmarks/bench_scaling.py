@@ -1,0 +1,169 @@
+"""Scaling with the number of workers: ``stereodem run`` on one simulated ASTER granule with
+``--workers`` 1, 2, 4, ... up to the machine's cores, in one run.
+
+For each worker count: wall seconds, CPU seconds of the job and every process it waited for
+(``RUSAGE_CHILDREN``; psutil's sum over the process tree, sampled every 0.2 s, beside it as a
+check), peak memory summed over the process tree (psutil), the load average before and after,
+and per stage (``run.json``'s stage records) wall seconds, CPU seconds of the main process and
+of the tile workers and peak memory; the rasters of every count are compared with those of 1
+worker (bit-identical or not). Ratios: speed-up and CPU-seconds against 2 workers and 1.
+
+The scene is simulated as in ``bench_aster_scene.py`` (the ``aster`` preset over the mirrored
+bundled SRTM, an L1A V004 granule); full size by default (3N 4100 x 4200, 3B 5000 x 5400),
+``--half`` for 3N 2050 x 2100, 3B 2500 x 2700. Runs unchanged on a 16-core machine::
+
+    python benchmarks/bench_scaling.py [--half] [--workers 1 2 4 8 16] [--out /tmp/bench_scaling]
+
+writes ``benchmarks/results/bench_scaling.json`` and prints a Markdown table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_aster_scene import CONFIG, RUN_LAYERS, granule, identical, simulate
+
+DEST = ROOT / "benchmarks" / "results" / "bench_scaling.json"
+
+
+def worker_counts(cores: int) -> list[int]:
+    """1, 2, 4, ... below ``cores``, then ``cores``."""
+    out, n = [], 1
+    while n < cores:
+        out.append(n)
+        n *= 2
+    return out + [cores]
+
+
+def measured(cmd):
+    """Run ``cmd``: wall s, CPU s (rusage of waited-for descendants), CPU s by psutil over the
+    process tree (last sample of each process), peak RSS MB summed over the tree."""
+    import psutil
+    cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc, peak, cpu_seen = psutil.Process(p.pid), 0, {}
+    while p.poll() is None:
+        try:
+            tree = [proc] + proc.children(recursive=True)
+            rss = 0
+            for q in tree:
+                try:
+                    with q.oneshot():
+                        rss += q.memory_info().rss
+                        c = q.cpu_times()
+                        cpu_seen[q.pid] = c.user + c.system
+                except psutil.Error:
+                    pass
+            peak = max(peak, rss)
+        except psutil.Error:
+            pass
+        time.sleep(0.2)
+    _, err = p.communicate()
+    wall = time.perf_counter() - t0
+    cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if p.returncode != 0:
+        raise SystemExit(f"{' '.join(map(str, cmd))} failed:\n{err[-3000:]}")
+    cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+    return wall, cpu, sum(cpu_seen.values()), peak / 2 ** 20
+
+
+def run_once(scene: Path, out: Path, workers: int) -> dict:
+    cfg = out.with_suffix(".toml")
+    cfg.write_text(CONFIG.format(scene=scene, granule=granule(scene), out=out, workers=workers))
+    load0 = os.getloadavg()
+    wall, cpu, cpu_ps, peak = measured([sys.executable, "-m", "stereodem.cli", "-q", "run",
+                                        str(cfg), "--overwrite"])
+    info = json.loads((out / "run.json").read_text())
+    stages = {k: dict(wall_s=v["seconds"], cpu_s=v.get("cpu_s"), worker_cpu_s=v.get("worker_cpu_s"),
+                      main_peak_rss_mb=v.get("peak_rss_mb"),
+                      tile_process_peak_rss_mb=v.get("tile_process_peak_rss_mb"))
+              for k, v in info["stages"].items()}
+    return dict(workers=workers, wall_s=round(wall, 2), cpu_s=round(cpu, 2),
+                cpu_s_psutil=round(cpu_ps, 2), peak_rss_mb_all_processes=round(peak),
+                load_average_before=[round(x, 2) for x in load0],
+                load_average_after=[round(x, 2) for x in os.getloadavg()],
+                stages=stages, nmad_m=info["headline"]["nmad"],
+                valid_pct=info["headline"]["valid_pct"])
+
+
+def table(runs) -> str:
+    base = {r["workers"]: r for r in runs}
+    ref2 = base.get(2) or runs[0]
+    lines = ["| workers | `run` wall s | `run` CPU s | CPU / CPU(2 w) | stereo s | post / ortho / assess s "
+             "| peak MB | load before |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in runs:
+        def g(k, st=r["stages"]):
+            return st.get(k, {}).get("wall_s", 0.0)
+        lines.append(f"| {r['workers']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+                     f"{r['cpu_s'] / ref2['cpu_s']:.2f} | {g('stereo'):.1f} | "
+                     f"{g('post'):.1f} / {g('ortho'):.1f} / {g('assess'):.1f} | "
+                     f"{r['peak_rss_mb_all_processes']} | {r['load_average_before'][0]:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--half", action="store_true", help="half-size granule (3N 2050 x 2100)")
+    ap.add_argument("--size", nargs=4, type=int, metavar=("W3N", "H3N", "W3B", "H3B"),
+                    help="other granule sizes (3N then 3B)")
+    ap.add_argument("--workers", nargs="+", type=int, help="default: 1, 2, 4, ... up to the cores")
+    ap.add_argument("--out", default="/tmp/bench_scaling")
+    ap.add_argument("--results", default=str(DEST), help=f"results file (default {DEST.name})")
+    args = ap.parse_args(argv)
+    size, right = ((2050, 2100), (2500, 2700)) if args.half else ((4100, 4200), (5000, 5400))
+    if args.size:
+        size, right = tuple(args.size[:2]), tuple(args.size[2:])
+    cores = os.cpu_count() or 1
+    counts = args.workers or worker_counts(cores)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    simulate(out / "scene", size, right)
+    runs = []
+    for w in counts:
+        shutil.rmtree(out / f"w{w}", ignore_errors=True)
+        r = run_once(out / "scene", out / f"w{w}", w)
+        if w != counts[0]:
+            r[f"bit_identical_to_workers_{counts[0]}"] = identical(out / f"w{counts[0]}",
+                                                                     out / f"w{w}", RUN_LAYERS)
+        runs.append(r)
+        print(f"workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s ({r['cpu_s_psutil']} by psutil), "
+              f"peak {r['peak_rss_mb_all_processes']} MB, load {r['load_average_before'][0]}", flush=True)
+    by = {r["workers"]: r for r in runs}
+    ratios = {}
+    if 1 in by and 2 in by:
+        ratios.update(speedup_2_vs_1=round(by[1]["wall_s"] / by[2]["wall_s"], 2),
+                      cpu_2_over_1=round(by[2]["cpu_s"] / by[1]["cpu_s"], 3))
+    if 2 in by and counts[-1] > 2:
+        ratios.update({f"speedup_{counts[-1]}_vs_2": round(by[2]["wall_s"] / by[counts[-1]]["wall_s"], 2),
+                       f"cpu_{counts[-1]}_over_2": round(by[counts[-1]]["cpu_s"] / by[2]["cpu_s"], 3)})
+    result = dict(granule=dict(left=list(size), right=list(right), input="ASTER L1A V004, simulated"),
+                  machine=dict(cpus=cores, python=platform.python_version(), node=platform.node()),
+                  measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                  runs=runs, ratios=ratios, table_markdown=table(runs),
+                  note=("wall seconds depend on the machine's load (load_average_*: a shared "
+                        "machine); CPU seconds are the robust figure"))
+    dest = Path(args.results)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    dest.write_text(json.dumps(result, indent=1, default=float) + "\n")
+    print(result["table_markdown"])
+    print(json.dumps(ratios))
+    print(f"wrote {dest}")
+
+
+if __name__ == "__main__":
+    np.seterr(all="ignore")
+    main()

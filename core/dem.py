@@ -1,0 +1,406 @@
+"""The one DEM type: a raster of heights with its CRS, nodata, vertical reference and optional
+companion layers (issue #23: stereo output, filters, orthoimages and assessment share it).
+
+Heights are sampled bilinearly at longitude/latitude (degrees). Points outside the raster or
+touching a void are reported (NaN plus a status code) and never filled with an invented value.
+
+Companion layers live beside the heights file (:data:`LAYERS`): a stereo DEM's ``count.tif``,
+``score.tif`` and ``raygap.tif`` in its folder, a clean DEM's ``<stem>_edit_mask.tif`` and
+``<stem>_sigma_vertical.tif``. :meth:`DEM.write` writes the heights and every layer present,
+:meth:`DEM.from_file` reads them back (``layers=True``).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from affine import Affine
+from pyproj import CRS
+from rasterio.enums import MaskFlags
+
+from stereodem.core import geodesy
+from stereodem.core.errors import (
+    CRSError,
+    DEMCoverageError,
+    DEMError,
+    InputError,
+    VerticalReferenceError,
+)
+from stereodem.core.grid import MapGrid
+from stereodem.core.raster import VERTICAL_TAG, read_image, reading_env, write_geotiff
+from stereodem.core.vertical import ELLIPSOID, GEOID, VERTICALS
+
+#: status codes returned by :meth:`DEM.sample`
+OK, OUTSIDE, VOID = 0, 1, 2
+
+
+
+@dataclass(frozen=True)
+class Layer:
+    """How a companion layer is stored: ``name`` in the folder of the heights file, or
+    ``suffix`` after the heights file's stem; stored dtype, nodata, band description, unit."""
+
+    name: str | None
+    suffix: str | None
+    dtype: type
+    nodata: float
+    description: str | None
+    unit: str | None
+
+    def path(self, dem_path) -> Path:
+        p = Path(dem_path)
+        return p.with_name(self.name) if self.name else p.with_name(f"{p.stem}{self.suffix}")
+
+
+#: companion layers of a DEM, by attribute, in writing order
+LAYERS = {
+    "count": Layer("count.tif", None, np.int32, 0, "space-intersected points per cell", "1"),
+    "score": Layer("score.tif", None, np.float32, np.nan,
+                   "mean correlation score (ZNCC) of the cell's points", "1"),
+    "ray_gap": Layer("raygap.tif", None, np.float32, np.nan, "mean ray gap of the cell's points",
+                     "metre"),
+    "sigma": Layer(None, "_sigma_vertical.tif", np.float32, np.nan, None, None),
+    "edit_mask": Layer(None, "_edit_mask.tif", np.uint8, 255,
+                       "edit code: 0 kept, 1-8 filter reason, 99 border rim, 100/101 filled", "1"),
+}
+
+#: band description of the heights by vertical reference
+_HEIGHT_DESCRIPTION = {GEOID: "height above the EGM96 geoid",
+                       ELLIPSOID: "height above the WGS84 ellipsoid"}
+
+
+def layer_path(dem_path, layer: str) -> Path:
+    """Where companion ``layer`` (a key of :data:`LAYERS`) of the DEM at ``dem_path`` lives."""
+    return LAYERS[layer].path(dem_path)
+
+
+def edit_mask_path(dem_path) -> Path:
+    """Where the edit mask of a clean DEM is written (``<stem>_edit_mask.tif``)."""
+    return layer_path(dem_path, "edit_mask")
+
+
+def write_layer(dem_path, layer: str, data, transform, crs, *, overwrite=False,
+                creation_options=None) -> Path:
+    """Write companion ``layer`` of the DEM at ``dem_path`` (stored type, nodata, description
+    and unit of :data:`LAYERS`); the one place a layer file is written."""
+    spec = LAYERS[layer]
+    kw = {}
+    if spec.description:
+        kw = dict(descriptions=[spec.description], units=[spec.unit])
+    return write_geotiff(spec.path(dem_path), np.asarray(data).astype(spec.dtype, copy=False), transform, crs,
+                         spec.nodata, overwrite=overwrite, creation_options=creation_options, **kw)
+
+
+def _vertical_from_crs(crs: CRS | None) -> str | None:
+    """Vertical reference said by a CRS: a compound CRS whose vertical part is a geoid height
+    (EGM96/EGM2008, any gravity-related height) -> ``"geoid"``; a 3-D CRS with an ellipsoidal
+    height axis (EPSG:4979, a projected CRS promoted to 3-D, or a compound CRS with an
+    ellipsoidal vertical part) -> ``"ellipsoid"``; otherwise ``None``."""
+    if crs is None:
+        return None
+    try:
+        pcrs = CRS.from_user_input(crs)
+    except Exception:
+        return None
+    axes = [a.name.lower() for a in pcrs.axis_info]
+    if any("ellipsoidal height" in a for a in axes):
+        return ELLIPSOID
+    if pcrs.is_compound:
+        names = " ".join(str(sub.name) for sub in pcrs.sub_crs_list).lower()
+        if "ellipsoid" in names:
+            return ELLIPSOID
+        if "egm96" in names or "egm2008" in names or "geoid" in names or \
+                any("gravity-related" in a for a in axes):
+            return GEOID
+    return None
+
+
+def horizontal_crs(crs: CRS) -> CRS:
+    """The horizontal part of ``crs`` (the first member of a compound CRS, a 3-D CRS
+    demoted to 2-D); a 2-D CRS is returned as it is."""
+    crs = CRS.from_user_input(crs)
+    if crs.is_compound:
+        return crs.sub_crs_list[0]
+    if len(crs.axis_info) == 3:
+        return crs.to_2d()
+    return crs
+
+
+@dataclass
+class DEM:
+    """A DEM raster in memory.
+
+    Attributes
+    ----------
+    heights : ndarray (rows, cols) float32
+        Heights in metres, NaN on voids.
+    transform : affine.Affine
+        GDAL pixel-corner transform to ``crs``.
+    crs : pyproj.CRS
+        Horizontal CRS of the grid (the vertical part of a file's compound or 3-D CRS goes
+        to ``vertical``).
+    vertical : {"geoid", "ellipsoid"} or None
+        Vertical reference of ``heights``; ``None`` means unknown, and any operation that
+        needs ellipsoidal heights raises :class:`VerticalReferenceError`.
+    path : str, optional
+        Source file, used in error messages.
+    count, score, ray_gap, sigma, edit_mask : ndarray (rows, cols), optional
+        Companion layers on the same grid (:data:`LAYERS`): points per cell (int), mean
+        correlation score, mean ray gap (m), vertical σ (m), edit code (uint8).
+
+    A DEM read or built as an input must hold a valid height; a stereo product (one with a
+    ``count`` layer) may be all void (nothing matched: reported, not refused).
+    """
+
+    heights: np.ndarray
+    transform: Affine
+    crs: CRS
+    vertical: str | None = None
+    path: str | None = None
+    count: np.ndarray | None = None
+    score: np.ndarray | None = None
+    ray_gap: np.ndarray | None = None
+    sigma: np.ndarray | None = None
+    edit_mask: np.ndarray | None = None
+    _lonlat_is_native: bool = field(init=False, repr=False, default=False)
+
+    def __post_init__(self):
+        if self.crs is None:
+            raise CRSError(f"{self.path or 'DEM'}: the DEM has no CRS")
+        self.crs = CRS.from_user_input(self.crs)
+        h = np.asarray(self.heights, dtype=np.float32)
+        if h.ndim != 2:
+            raise DEMError(f"{self.path or 'DEM'}: expected a 2-D height array, got shape {h.shape}")
+        self.heights = h
+        if self.vertical is not None and self.vertical not in VERTICALS:
+            raise DEMError(f"vertical reference must be 'geoid' or 'ellipsoid', got {self.vertical!r}")
+        for name in LAYERS:
+            layer = getattr(self, name)
+            if layer is not None and np.shape(layer) != h.shape:
+                raise DEMError(f"{self.path or 'DEM'}: layer {name} has shape {np.shape(layer)}, "
+                               f"the heights {h.shape}")
+        if self.count is None and not np.isfinite(h).any():
+            raise DEMError(f"{self.path or 'DEM'}: the DEM has no valid height (all nodata)")
+        geo = self.crs.is_geographic
+        self._lonlat_is_native = bool(geo and self.crs.ellipsoid is not None
+                                      and abs(self.crs.ellipsoid.semi_major_metre - geodesy.A) < 1e-3
+                                      and abs(self.crs.ellipsoid.inverse_flattening - 1 / geodesy.F) < 1e-6)
+
+    # ---------------------------------------------------------------- construction
+    @classmethod
+    def from_file(cls, path, vertical: str | None = None, band: int = 1, *,
+                  layers=()) -> DEM:
+        """Read a DEM with rasterio.
+
+        ``layers``: companion layers to read from beside the file (names of :data:`LAYERS`,
+        or ``True`` for all); absent files leave them ``None``, a layer on another grid is an
+        :class:`InputError`. Float layers read as float32 with NaN at nodata, integer layers
+        in their stored type.
+
+        ``vertical`` overrides the vertical reference; otherwise it is taken from the file's
+        CRS (compound *horizontal + EGM96 height*, or 3-D with ellipsoidal heights, as
+        :meth:`write` stores it) or, for files written by older versions, stereodem's own
+        ``STEREODEM_VERTICAL`` tag, and is ``None`` (unknown) if neither says. ``crs`` is the
+        horizontal part.
+        """
+        path = str(path)
+        try:
+            with reading_env(), rasterio.open(path) as ds:
+                if ds.crs is None:
+                    raise CRSError(f"{path}: the DEM has no CRS")
+                flags = ds.mask_flag_enums[band - 1]
+                if all(f in (MaskFlags.nodata, MaskFlags.all_valid) for f in flags):
+                    # nodata value or none: read straight into float32 (no mask array, no copy)
+                    heights = ds.read(band, out_dtype=np.float32)
+                    if ds.nodata is not None and np.isfinite(ds.nodata):
+                        heights[heights == np.float32(ds.nodata)] = np.nan
+                else:                                   # a mask band or alpha: GDAL's mask
+                    heights = ds.read(band, masked=True).astype(np.float32).filled(np.nan)
+                transform, crs = ds.transform, CRS.from_user_input(ds.crs.to_wkt())
+                tag = ds.tags().get(VERTICAL_TAG)
+        except rasterio.errors.RasterioIOError as exc:
+            raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
+        np.copyto(heights, np.float32(np.nan), where=~np.isfinite(heights))
+        vert = vertical or _vertical_from_crs(crs) or (tag.lower() if tag else None)
+        found = {}
+        for name in (tuple(LAYERS) if layers is True else layers or ()):
+            lp = LAYERS[name].path(path)
+            if lp.is_file():
+                found[name] = _read_layer(lp, LAYERS[name])
+                if found[name].shape != heights.shape:
+                    raise InputError(f"{lp}: {found[name].shape} cells, but the DEM has "
+                                     f"{heights.shape}")
+        return cls(heights, transform, horizontal_crs(crs), vert, path, **found)
+
+    @classmethod
+    def bundled(cls) -> DEM:
+        """The bundled real SRTM 3" DEM (eastern Turkey, EGM96 geoid heights)."""
+        from importlib import resources
+        return cls.from_file(resources.files("stereodem.core") / "data" / "srtm_ref.tif", vertical=GEOID)
+
+    # ---------------------------------------------------------------- geometry
+    @property
+    def grid(self) -> MapGrid:
+        """The DEM's :class:`~stereodem.core.grid.MapGrid`."""
+        return MapGrid(self.transform, self.heights.shape[1], self.heights.shape[0], self.crs)
+
+    @property
+    def shape(self):
+        return self.heights.shape
+
+    @property
+    def posting(self) -> float:
+        """Cell size in CRS units."""
+        return self.grid.posting
+
+    def bounds_lonlat(self):
+        """(west, south, east, north) in degrees of the DEM's valid extent (corners densified)."""
+        rows, cols = self.shape
+        t = np.linspace(0, 1, 21)
+        xs = np.concatenate([t * cols, np.full_like(t, cols), t[::-1] * cols, np.zeros_like(t)])
+        ys = np.concatenate([np.zeros_like(t), t * rows, np.full_like(t, rows), t[::-1] * rows])
+        x, y = self.transform @ (xs, ys)
+        lon, lat = geodesy.crs_to_lonlat(x, y, self.crs)
+        return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
+
+    def _lonlat_to_pixel(self, lon, lat):
+        lon = np.asarray(lon, dtype=np.float64)
+        lat = np.asarray(lat, dtype=np.float64)
+        if self._lonlat_is_native:
+            x, y = lon, lat
+        else:
+            x, y = geodesy.lonlat_to_crs(lon, lat, self.crs)
+        col, row = ~self.transform @ (x, y)
+        return np.asarray(col) - 0.5, np.asarray(row) - 0.5     # pixel-centre convention
+
+    # ---------------------------------------------------------------- sampling
+    def sample(self, lon, lat, *, reference: str | None = ELLIPSOID, return_status=False,
+               strict=False):
+        """Bilinear heights at ``lon, lat`` (degrees).
+
+        Parameters
+        ----------
+        reference : {"ellipsoid", "geoid", None}
+            Vertical reference of the returned heights; ``None`` returns the raster's own values.
+        return_status : bool
+            Also return an int8 array: 0 ok, 1 outside the DEM, 2 on or next to a void.
+        strict : bool
+            Raise :class:`DEMCoverageError` if any point is outside or on a void.
+
+        Returns
+        -------
+        heights : ndarray float64, metres, NaN where unavailable.
+        """
+        lon, lat = np.broadcast_arrays(np.asarray(lon, dtype=np.float64),
+                                       np.asarray(lat, dtype=np.float64))
+        out_shape = lon.shape
+        lon, lat = lon.ravel(), lat.ravel()
+        c, r = self._lonlat_to_pixel(lon, lat)
+        rows, cols = self.shape
+        finite = np.isfinite(c) & np.isfinite(r)
+        inside = finite & (c >= -1e-9) & (r >= -1e-9) & (c <= cols - 1 + 1e-9) & (r <= rows - 1 + 1e-9)
+        c0 = np.clip(np.floor(np.where(inside, c, 0)), 0, max(cols - 2, 0)).astype(np.intp)
+        r0 = np.clip(np.floor(np.where(inside, r, 0)), 0, max(rows - 2, 0)).astype(np.intp)
+        fc = np.where(inside, c, 0) - c0
+        fr = np.where(inside, r, 0) - r0
+        c1 = np.minimum(c0 + 1, cols - 1)
+        r1 = np.minimum(r0 + 1, rows - 1)
+        H = self.heights
+        z = ((1 - fr) * ((1 - fc) * H[r0, c0] + fc * H[r0, c1])
+             + fr * ((1 - fc) * H[r1, c0] + fc * H[r1, c1])).astype(np.float64)
+        z[~inside] = np.nan
+        status = np.zeros(lon.shape, dtype=np.int8)
+        status[~inside] = OUTSIDE
+        status[inside & ~np.isfinite(z)] = VOID
+        if strict and status.any():
+            n_out, n_void = int((status == OUTSIDE).sum()), int((status == VOID).sum())
+            raise DEMCoverageError(
+                f"{self.path or 'DEM'}: {n_out} point(s) outside the DEM and {n_void} on voids "
+                f"(of {status.size}); DEM extent lon/lat {self.bounds_lonlat()}")
+        if reference is not None:
+            z = self.convert_heights(lon, lat, z, to=reference)
+        z, status = z.reshape(out_shape), status.reshape(out_shape)
+        return (z, status) if return_status else z
+
+    def convert_heights(self, lon, lat, z, to: str):
+        """Convert heights ``z`` of this DEM's vertical reference to ``to``."""
+        if to not in (GEOID, ELLIPSOID):
+            raise DEMError(f"unknown vertical reference {to!r}")
+        if self.vertical == to:
+            return z
+        if self.vertical is None:
+            raise VerticalReferenceError(
+                f"{self.path or 'DEM'}: vertical reference unknown (geoid or ellipsoid?); "
+                "say which (vertical='geoid' / --dem-vertical geoid)")
+        if to == ELLIPSOID:
+            return geodesy.geoid_to_ellipsoid(lon, lat, z)
+        return geodesy.ellipsoid_to_geoid(lon, lat, z)
+
+    def to_reference(self, to: str) -> DEM:
+        """A copy of this DEM with heights converted to ``to`` (``geoid`` or ``ellipsoid``)."""
+        if self.vertical == to:
+            return self
+        rows, cols = self.shape
+        cc, rr = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+        x, y = self.transform @ (cc, rr)
+        lon, lat = geodesy.crs_to_lonlat(x, y, self.crs)
+        z = self.convert_heights(lon, lat, self.heights.astype(np.float64), to)
+        return dataclasses.replace(self, heights=z.astype(np.float32), vertical=to)
+
+    def height_range(self, reference: str | None = ELLIPSOID):
+        """(min, max) of the valid heights, in the requested reference (metres)."""
+        d = self if reference is None else self.to_reference(reference)
+        return float(np.nanmin(d.heights)), float(np.nanmax(d.heights))
+
+    def write(self, path, *, overwrite=False, creation_options=None, layers=True,
+              tags=None) -> Path:
+        """Write the heights as a float32 Cloud-Optimised GeoTIFF with NaN nodata, the vertical
+        reference in the CRS (and the ``STEREODEM_VERTICAL`` tag), band description and unit
+        (metre), and every companion layer present beside it (:data:`LAYERS`; none with
+        ``layers=False``); returns the heights file's path.
+
+        ``creation_options``: GDAL COG creation options (see
+        :func:`stereodem.core.raster.write_geotiff`); ``tags``: dataset tags of the heights file
+        (e.g. the ground-track heading ``STEREODEM_TRACK_HEADING`` that ``coregister`` reads).
+        """
+        return self.prepare_write(path, overwrite=overwrite, creation_options=creation_options,
+                                  layers=layers, tags=tags)()["dem"]
+
+    def prepare_write(self, path, *, overwrite=False, creation_options=None, layers=True,
+                      tags=None):
+        """:meth:`write` in two steps: the heights and layers are copied to their stored types
+        now, and the returned callable writes them (returning ``{"dem": path, layer: path}``);
+        it can run in another thread while this DEM changes or goes away."""
+        heights = self.heights.astype(np.float32)
+        layers = {name: np.asarray(getattr(self, name)).astype(spec.dtype)
+                  for name, spec in LAYERS.items() if layers and getattr(self, name) is not None}
+        transform, crs, vertical = self.transform, self.crs, self.vertical
+        kw = dict(overwrite=overwrite, creation_options=creation_options)
+
+        def write_files():
+            out = {"dem": write_geotiff(path, heights, transform, crs, np.nan, vertical=vertical,
+                                        descriptions=_HEIGHT_DESCRIPTION.get(vertical, "height"),
+                                        units="metre", tags=tags, **kw)}
+            for name, data in layers.items():
+                out[name] = write_layer(path, name, data, transform, crs, **kw)
+            return out
+        return write_files
+
+
+def _read_layer(path: Path, spec: Layer) -> np.ndarray:
+    if np.issubdtype(spec.dtype, np.floating):
+        return read_image(path)
+    with reading_env(), rasterio.open(path) as ds:
+        return ds.read(1, out_dtype=spec.dtype)
+
+
+def as_dem(dem, vertical: str | None = None) -> DEM:
+    """Accept a :class:`DEM` or a path and return a :class:`DEM`."""
+    if isinstance(dem, DEM):
+        return dem
+    if isinstance(dem, (str, Path)):
+        return DEM.from_file(dem, vertical=vertical)
+    raise DEMError(f"expected a DEM or a path, got {type(dem).__name__}")

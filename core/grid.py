@@ -1,0 +1,153 @@
+"""Map grids: a north-up raster lattice (transform, size, CRS), the one grid type of the
+project (DEMs, orthoimages, the stereo output lattice, simulated rasters, uncertainty maps).
+
+The transform is GDAL's pixel-corner affine (rasterio convention): cell ``[i, j]`` has its
+centre at ``transform * (j + 0.5, i + 0.5)``. ``width``/``height`` count columns and rows, as
+in rasterio's datasets.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from affine import Affine
+from pyproj import CRS
+
+from stereodem.core import geodesy
+from stereodem.core.errors import CRSError, InputError
+
+__all__ = ["MapGrid", "OnGrid", "grid_from_bounds", "as_crs", "map_crs"]
+
+
+def as_crs(crs) -> CRS:
+    """A :class:`pyproj.CRS` from anything pyproj accepts; :class:`CRSError` otherwise."""
+    try:
+        return CRS.from_user_input(crs)
+    except Exception as exc:
+        raise CRSError(f"unusable CRS {crs!r}: {exc}") from None
+
+
+def map_crs(crs, what: str = "CRS") -> CRS:
+    """``crs`` as a :class:`pyproj.CRS` that can carry a map grid (projected or geographic,
+    optionally with a vertical part); :class:`CRSError` naming ``what`` for an unknown code
+    (``EPSG:999999``), garbage, or a geocentric/engineering CRS."""
+    try:
+        c = CRS.from_user_input(crs)
+    except Exception as exc:
+        raise CRSError(f"{what}: unknown or unusable CRS {crs!r} ({' '.join(str(exc).split())})") from None
+    horizontal = c.sub_crs_list[0] if c.is_compound and c.sub_crs_list else c
+    if not (horizontal.is_projected or horizontal.is_geographic) or horizontal.is_geocentric:
+        raise CRSError(f"{what}: CRS {crs!r} ({c.name}) is not a map CRS (projected or "
+                       "geographic)")
+    return c
+
+
+@dataclass(frozen=True)
+class MapGrid:
+    """A north-up raster grid.
+
+    Attributes
+    ----------
+    transform : affine.Affine
+        GDAL pixel-corner transform (map x = east, y = north, metres for projected CRSs).
+    width, height : int
+        Number of columns and rows.
+    crs : pyproj.CRS
+        Map CRS.
+    """
+
+    transform: Affine
+    width: int
+    height: int
+    crs: CRS
+
+    def __post_init__(self):
+        object.__setattr__(self, "crs", as_crs(self.crs))
+        t = self.transform
+        if abs(t.b) > 0 or abs(t.d) > 0 or t.a <= 0 or t.e >= 0:
+            raise InputError(f"MapGrid: the transform must be north-up (got {tuple(t)[:6]})")
+        if self.width < 1 or self.height < 1:
+            raise InputError(f"MapGrid: empty grid {self.width} x {self.height}")
+
+    @property
+    def shape(self):
+        """(rows, cols)."""
+        return (self.height, self.width)
+
+    @property
+    def res(self):
+        """(x posting, y posting), map units (positive)."""
+        return (self.transform.a, -self.transform.e)
+
+    @property
+    def bounds(self):
+        """(west, south, east, north) of the cell edges, map units."""
+        t = self.transform
+        return (t.c, t.f + t.e * self.height, t.c + t.a * self.width, t.f)
+
+    def xy(self, cols, rows):
+        """Map coordinates of cell centres at (fractional) grid ``cols, rows`` (0 = first centre)."""
+        t = self.transform
+        return (t.c + t.a * (np.asarray(cols, float) + 0.5),
+                t.f + t.e * (np.asarray(rows, float) + 0.5))
+
+    def colrow(self, x, y):
+        """Fractional grid (col, row) of map points, cell centres at integers."""
+        t = self.transform
+        return ((np.asarray(x, float) - t.c) / t.a - 0.5, (np.asarray(y, float) - t.f) / t.e - 0.5)
+
+    def lonlat(self, cols, rows):
+        """Longitude/latitude (deg) of cell centres."""
+        return geodesy.crs_to_lonlat(*self.xy(cols, rows), self.crs)
+
+    def window(self, row0: int, row1: int) -> MapGrid:
+        """The sub-grid of rows ``row0:row1``."""
+        return MapGrid(self.transform @ Affine.translation(0, row0), self.width, row1 - row0, self.crs)
+
+    @property
+    def posting(self) -> float:
+        """Cell size along x, map units (square cells)."""
+        return float(self.transform.a)
+
+    def cell_centres(self):
+        """Map coordinates ``(x, y)`` of all cell centres, arrays of :attr:`shape`."""
+        jj, ii = np.meshgrid(np.arange(self.width), np.arange(self.height))
+        return self.xy(jj, ii)
+
+
+def grid_from_bounds(bounds, res, crs) -> MapGrid:
+    """A grid covering ``bounds`` (west, south, east, north) with posting ``res``, snapped outward
+    to multiples of ``res`` (so that grids of the same posting align)."""
+    res = float(res)
+    if not np.isfinite(res) or res <= 0:
+        raise InputError(f"grid posting must be positive, got {res}")
+    w, s, e, n = (float(v) for v in bounds)
+    if not all(np.isfinite([w, s, e, n])) or e <= w or n <= s:
+        raise InputError(f"empty or invalid grid bounds {bounds}")
+    x0, y1 = np.floor(w / res) * res, np.ceil(n / res) * res
+    x1, y0 = np.ceil(e / res) * res, np.floor(s / res) * res
+    width, height = int(round((x1 - x0) / res)), int(round((y1 - y0) / res))
+    return MapGrid(Affine(res, 0.0, x0, 0.0, -res, y1), max(width, 1), max(height, 1), crs)
+
+
+class OnGrid:
+    """Mixin for data held on a :class:`MapGrid` (attribute ``grid``): its transform, CRS,
+    shape and posting as shortcuts."""
+
+    grid: MapGrid
+
+    @property
+    def transform(self) -> Affine:
+        return self.grid.transform
+
+    @property
+    def crs(self) -> CRS:
+        return self.grid.crs
+
+    @property
+    def shape(self) -> tuple:
+        return self.grid.shape
+
+    @property
+    def posting(self) -> float:
+        return self.grid.posting

@@ -1,0 +1,150 @@
+"""One thread budget per process: BLAS/OpenMP, OpenCV and GDAL pinned together.
+
+A job has one setting, ``--workers`` / ``[run] workers`` (N, default all cores). It governs
+
+* the **pool**: N worker processes (stereo tiles, scenes of ``stereodem batch``), each pinned
+  to ``worker_threads(N)`` = ``cores // N`` threads (1 when N = cores), so N workers keep N
+  cores busy and no more: no BLAS / OpenCV / GDAL threads stacked on top of the processes;
+* the **main process**: pinned to N threads for its own stages (post, ortho, assessment, GDAL
+  compression); it computes while the pool idles, and idles (waits) while the pool computes.
+
+:func:`pin_threads` sets, in the calling process,
+
+* BLAS and OpenMP thread pools of every loaded library (``threadpoolctl.threadpool_limits``,
+  kept for the life of the process), and ``OMP_NUM_THREADS`` / ``OPENBLAS_NUM_THREADS`` /
+  ``MKL_NUM_THREADS`` for libraries loaded later and for child processes;
+* OpenCV's ``cv2.setNumThreads``;
+* GDAL's ``GDAL_NUM_THREADS`` (environment and rasterio's GDAL configuration), which
+  :func:`stereodem.core.raster.reading_env` and GDAL's multi-threaded codecs read.
+
+:func:`current_limits` reads all of them back (what a test or ``run.json`` reports).
+:func:`pool_initializer` is the process-pool ``initializer`` and :func:`register_dask_plugin`
+installs the Dask worker plugin that do the same in every worker.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+
+_ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+             "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
+_LIMITS = None          # the threadpoolctl limiter of this process (kept alive: the pin holds)
+_PINNED: int | None = None
+
+
+def cores() -> int:
+    """CPU cores this process may use (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def job_threads(workers: int | None) -> int:
+    """Threads of a job's main process for ``--workers`` (None: all cores)."""
+    return max(1, int(workers)) if workers else cores()
+
+
+def worker_threads(workers: int | None, n_cores: int | None = None) -> int:
+    """Threads of each of ``workers`` pool processes on ``n_cores`` cores: the cores shared
+    out (``n_cores // workers``, at least 1). ``workers`` = cores gives 1 thread each."""
+    n_cores = n_cores or cores()
+    return max(1, n_cores // job_threads(workers))
+
+
+def pin_threads(n: int) -> dict:
+    """Pin this process's BLAS/OpenMP, OpenCV and GDAL threads to ``n`` (>= 1); returns
+    :func:`current_limits`. Calling it again re-pins (the last call wins)."""
+    global _LIMITS, _PINNED
+    n = max(1, int(n))
+    for var in _ENV_VARS:
+        os.environ[var] = str(n)
+    os.environ["GDAL_NUM_THREADS"] = str(n)
+    from rasterio.env import set_gdal_config
+    set_gdal_config("GDAL_NUM_THREADS", str(n))
+    from threadpoolctl import threadpool_limits
+    _LIMITS = threadpool_limits(limits=n)            # every loaded BLAS and OpenMP runtime
+    import cv2
+    cv2.setNumThreads(n)
+    _PINNED = n
+    return current_limits()
+
+
+@contextlib.contextmanager
+def thread_budget(n: int | None):
+    """``with thread_budget(workers):`` pin this process to :func:`job_threads` (``workers``)
+    threads for the block, then restore the previous BLAS/OpenMP, OpenCV and GDAL limits."""
+    global _LIMITS, _PINNED
+    import cv2
+    from threadpoolctl import threadpool_limits
+    saved_env = {v: os.environ.get(v) for v in (*_ENV_VARS, "GDAL_NUM_THREADS")}
+    saved = (_LIMITS, _PINNED, cv2.getNumThreads())
+    from rasterio.env import get_gdal_config, set_gdal_config
+    saved_gdal = get_gdal_config("GDAL_NUM_THREADS")
+    outer = threadpool_limits(limits=None)        # a record of the limits before the block
+    try:
+        pin_threads(job_threads(n))
+        yield current_limits()
+    finally:
+        outer.restore_original_limits()
+        cv2.setNumThreads(saved[2])
+        for var, value in saved_env.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
+        if saved_gdal is None:               # unset it (set_gdal_config(k, None) sets "None")
+            from rasterio._env import del_gdal_config
+            del_gdal_config("GDAL_NUM_THREADS")
+        else:
+            set_gdal_config("GDAL_NUM_THREADS", saved_gdal)
+        _LIMITS, _PINNED = saved[0], saved[1]
+
+
+def pinned() -> int | None:
+    """The budget this process was pinned to by :func:`pin_threads` (None if never)."""
+    return _PINNED
+
+
+def current_limits() -> dict:
+    """The thread limits in force in this process: ``opencv`` (``cv2.getNumThreads``),
+    ``blas`` and ``openmp`` (largest pool per API, threadpoolctl; None when none is loaded),
+    ``gdal`` (``GDAL_NUM_THREADS`` as GDAL sees it) and the ``pinned`` budget."""
+    import cv2
+    from threadpoolctl import threadpool_info
+    out = {"opencv": cv2.getNumThreads(), "blas": None, "openmp": None}
+    for pool in threadpool_info():
+        api = pool.get("user_api")
+        if api in ("blas", "openmp"):
+            out[api] = max(out[api] or 0, int(pool["num_threads"]))
+    from rasterio.env import get_gdal_config
+    gdal = get_gdal_config("GDAL_NUM_THREADS")
+    out["gdal"] = str(gdal if gdal is not None else os.environ.get("GDAL_NUM_THREADS"))
+    out["pinned"] = _PINNED
+    return out
+
+
+def pool_initializer(n: int, then=None, *args):
+    """``ProcessPoolExecutor(initializer=pool_initializer, initargs=(n, then, *args))``: pin
+    the worker to ``n`` threads, then run ``then(*args)`` (the pool's own initializer)."""
+    pin_threads(n)
+    if then is not None:
+        then(*args)
+
+
+def register_dask_plugin(client, threads: int | None = None):
+    """Pin every present and future worker of ``client``'s cluster to ``threads`` per task
+    slot (default: the node's cores shared out over the worker's task slots):
+    :class:`stereodem.core.dask_threads.ThreadsPlugin`."""
+    from .dask_threads import ThreadsPlugin
+    plugin = ThreadsPlugin(threads)
+    if hasattr(client, "register_plugin"):
+        client.register_plugin(plugin, name=ThreadsPlugin.name)
+    else:  # pragma: no cover - dask < 2023.9
+        client.register_worker_plugin(plugin, name=ThreadsPlugin.name)
+    return plugin
+
+
+def worker_limits() -> dict:
+    """:func:`current_limits` of the calling worker (a picklable task for pools and Dask)."""
+    return current_limits()

@@ -1,0 +1,61 @@
+"""Local raster operations in row bands on threads (numpy, scipy.ndimage and OpenCV release
+the GIL), with the same values as one call on the whole grid.
+
+A *local* operation is one whose output at a cell depends only on the inputs within ``halo``
+rows of it (a correlation with a (2·halo+1)-row kernel, a Gaussian of radius ``halo``...).
+:func:`by_rows` cuts the grid into one band per thread, runs the operation on each band plus
+``halo`` rows of its neighbours, and keeps the band's own rows: every kept cell sees exactly
+the inputs it sees in the whole grid (the grid's real edges stay edges), so the result is
+bit-identical to the single call, whatever the number of threads.
+
+The thread count defaults to the process's budget, read from OpenCV's thread setting
+(``cv2.getNumThreads()``), which the application pins to ``--workers``
+(:mod:`stereodem.core.threads`).
+"""
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+#: bands smaller than this many rows are not worth a thread
+MIN_ROWS = 128
+
+
+def default_threads() -> int:
+    """The process's thread budget (OpenCV's setting, pinned by the application)."""
+    import cv2
+    return max(1, int(cv2.getNumThreads()))
+
+
+def row_bands(n_rows: int, threads: int, min_rows: int = MIN_ROWS) -> list[tuple[int, int]]:
+    """``[(r0, r1), ...]`` covering ``0..n_rows`` in at most ``threads`` near-equal bands of at
+    least ``min_rows`` rows (one band when the grid is small)."""
+    n = max(1, min(int(threads), n_rows // max(1, min_rows)))
+    edges = np.linspace(0, n_rows, n + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def by_rows(fn, *arrays, halo: int, threads: int | None = None, out=None):
+    """``fn(*arrays)`` computed in row bands on threads (see the module docstring); ``fn`` must
+    be local within ``halo`` rows and return an array of the inputs' 2-D shape."""
+    threads = default_threads() if threads is None else int(threads)
+    rows = arrays[0].shape[0]
+    bands = row_bands(rows, threads)
+    if len(bands) == 1:
+        return fn(*arrays)
+    results = [None] * len(bands)
+
+    def one(i):
+        r0, r1 = bands[i]
+        a0, a1 = max(0, r0 - halo), min(rows, r1 + halo)
+        res = fn(*(a[a0:a1] for a in arrays))
+        results[i] = res[r0 - a0:r0 - a0 + (r1 - r0)]
+
+    with ThreadPoolExecutor(len(bands), thread_name_prefix="stereodem-rows") as ex:
+        list(ex.map(one, range(len(bands))))
+    if out is None:
+        out = np.empty((rows,) + results[0].shape[1:], results[0].dtype)
+    for (r0, r1), res in zip(bands, results):
+        out[r0:r1] = res
+    return out

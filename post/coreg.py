@@ -1,0 +1,401 @@
+"""Co-registration and bias-correction chains of a DEM against a reference (xdem's pattern).
+
+Each step is a :class:`Coreg` with ``fit(ref, dem, stable=...)`` and ``apply(dem)``; steps
+compose with ``+`` into a :class:`CoregChain` (or from text with :func:`parse_chain`), which
+fits each step on the DEM corrected by the steps before it and records, for every step, its
+parameters with standard deviations and the stable-terrain statistics of ``dh = DEM − reference``
+before and after it (:meth:`CoregChain.report`).
+
+The reference is either a DEM (any grid/CRS: warped once onto the DEM's grid) or altimetry
+points (:class:`~stereodem.post.altimetry.AltimetryPoints`, lon/lat/h[/time]); both are seen by
+the steps through a :class:`Sampler`: the stable sample positions on the DEM grid, their local
+metric coordinates (east/north metres from the grid centre) and the reference heights there.
+Both must share the DEM's vertical reference (see :func:`stereodem.post.assess.reconcile_vertical`).
+
+Frames and units: heights and ``dh`` in metres; ``east``/``north`` in metres of a local
+tangent frame at the DEM grid's centre (scale from :func:`stereodem.post.warp.metres_per_unit`);
+the track heading in degrees clockwise from north; along-track coordinate
+``a = east·sin θ + north·cos θ``, cross-track ``c = east·cos θ − north·sin θ`` (to the right of
+the track), or, for a DEM made by stereodem, the curved track of its left sensor model
+(:mod:`stereodem.post.track`).
+
+The standard deviations reported are the formal ones of each least-squares fit (the residuals'
+NMAD² times the inverse normal matrix) and treat the samples as independent; with spatially
+correlated errors they are lower bounds (see :mod:`stereodem.post.spatialstats`).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from stereodem.core import geodesy
+from stereodem.core.dem import DEM
+from stereodem.core.errors import DEMError, InputError, NoOverlapError
+from stereodem.core.stats import nmad
+
+from . import warp
+
+log = logging.getLogger(__name__)
+
+#: default largest number of stable samples a step fits on (random, reproducible subset)
+MAX_SAMPLES = 200_000
+#: least share of the DEM's valid cells that must remain stable terrain
+MIN_STABLE_FRACTION = 0.05
+
+
+# ----------------------------------------------------------------------------- geometry
+
+def local_metric_coords(transform, crs, shape, x=None, y=None):
+    """East/north metres from the grid centre of CRS coordinates ``x, y`` (default: every
+    cell centre of the grid, arrays of ``shape``)."""
+    fx, fy = warp.metres_per_unit(transform, crs, shape)
+    x0, y0 = transform @ (shape[1] / 2.0, shape[0] / 2.0)
+    if x is None:
+        cols = np.arange(shape[1]) + 0.5
+        rows = np.arange(shape[0]) + 0.5
+        xc = transform.c + transform.a * cols
+        yc = transform.f + transform.e * rows
+        east = np.broadcast_to(((xc - x0) * fx)[None, :], shape)
+        north = np.broadcast_to(((yc - y0) * fy)[:, None], shape)
+        return east, north
+    return (np.asarray(x, float) - x0) * fx, (np.asarray(y, float) - y0) * fy
+
+
+def track_coords(east, north, heading_deg: float):
+    """Along-track and cross-track metres for a ground track of heading ``heading_deg``
+    (degrees clockwise from north)."""
+    t = np.radians(heading_deg)
+    return east * np.sin(t) + north * np.cos(t), east * np.cos(t) - north * np.sin(t)
+
+
+def bilinear(grid, rows, cols):
+    """Bilinear values of ``grid`` at fractional (row, col) cell-centre indices; NaN outside
+    or next to a void."""
+    return ndimage.map_coordinates(np.asarray(grid, np.float64), [rows, cols], order=1,
+                                   mode="constant", cval=np.nan, prefilter=False)
+
+
+# ----------------------------------------------------------------------------- samples
+
+@dataclass
+class Sampler:
+    """Stable sample positions on a DEM grid and the reference heights there.
+
+    ``rows, cols`` are cell-centre indices (integers for a DEM reference, fractional for
+    points), ``east, north`` metres from the grid centre, ``ref`` the reference heights (m).
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    east: np.ndarray
+    north: np.ndarray
+    ref: np.ndarray
+    shape: tuple
+    kind: str = "dem"              #: "dem" or "points"
+    n_stable: int = 0              #: stable reference cells/points before subsampling
+
+    def values(self, grid) -> np.ndarray:
+        """``grid`` (on the DEM grid) at the sample positions."""
+        if self.kind == "dem":
+            return np.asarray(grid, np.float64)[self.rows, self.cols]
+        return bilinear(grid, self.rows, self.cols)
+
+    def dh(self, heights) -> np.ndarray:
+        """DEM − reference at the samples (NaN where the DEM is void)."""
+        return self.values(heights) - self.ref
+
+    def stats(self, heights) -> dict:
+        """NMAD, median, mean, std and count of ``dh`` at the samples."""
+        d = self.dh(heights)
+        d = d[np.isfinite(d)]
+        if d.size == 0:
+            return {"n": 0, "nmad": float("nan"), "median": float("nan"), "mean": float("nan"),
+                    "std": float("nan")}
+        return {"n": int(d.size), "nmad": nmad(d), "median": float(np.median(d)),
+                "mean": float(np.mean(d)), "std": float(np.std(d))}
+
+
+def reference_on_grid(ref: DEM, dem: DEM, *, resampling: str = "bilinear") -> np.ndarray:
+    """The reference heights on ``dem``'s grid (metres, NaN outside); :class:`NoOverlapError`
+    when the footprints or their valid cells do not overlap."""
+    warp.check_overlap(dem.bounds_lonlat(), ref.bounds_lonlat(), dem.path or "DEM",
+                       ref.path or "reference")
+    same = (ref.shape == dem.shape and ref.transform.almost_equals(dem.transform)
+            and ref.crs == dem.crs)
+    if same:
+        z = ref.heights.astype(np.float64)
+    else:
+        z = warp.to_grid(ref.heights, ref.transform, ref.crs, dem.transform, dem.crs, dem.shape,
+                         resampling=resampling).astype(np.float64)
+    if not (np.isfinite(z) & np.isfinite(dem.heights)).any():
+        raise NoOverlapError(f"{ref.path or 'reference'}: no valid cell overlaps a valid cell of "
+                             f"{dem.path or 'the DEM'}")
+    return z
+
+
+def make_sampler(ref, dem: DEM, stable=None, *, max_samples: int = MAX_SAMPLES,
+                 seed: int = 0, min_stable_fraction: float = MIN_STABLE_FRACTION) -> Sampler:
+    """The :class:`Sampler` of a reference (DEM or altimetry points) on ``dem``'s grid.
+
+    ``stable``: bool array on the DEM grid (True = stable terrain), or ``None`` (all).
+    Raises :class:`InputError` when under ``min_stable_fraction`` of the DEM's valid cells
+    (or of the points on the DEM) remain stable, saying how much was left.
+    """
+    from .altimetry import AltimetryPoints
+    if stable is not None:
+        stable = np.asarray(stable, bool)
+        if stable.shape != dem.shape:
+            raise InputError(f"stable mask shape {stable.shape} differs from the DEM's {dem.shape}")
+    rng = np.random.default_rng(seed)
+    east_g, north_g = None, None
+    if isinstance(ref, AltimetryPoints):
+        x, y = geodesy.lonlat_to_crs(ref.lon, ref.lat, dem.crs)
+        c, r = ~dem.transform @ (np.asarray(x), np.asarray(y))
+        cols, rows = np.asarray(c) - 0.5, np.asarray(r) - 0.5
+        inside = (rows >= 0) & (cols >= 0) & (rows <= dem.shape[0] - 1) & (cols <= dem.shape[1] - 1)
+        if not inside.any():
+            raise NoOverlapError(f"{ref.path or 'points'}: no point falls on the DEM "
+                                 f"{dem.path or ''} (lon/lat {tuple(round(v, 4) for v in dem.bounds_lonlat())})")
+        on_dem = inside & np.isfinite(bilinear(dem.heights, rows, cols))
+        if not on_dem.any():
+            raise NoOverlapError(f"{ref.path or 'points'}: every point on the DEM falls on a void")
+        keep = on_dem.copy()
+        if stable is not None:
+            keep &= ndimage.map_coordinates(stable.astype(np.uint8), [rows, cols], order=0,
+                                            mode="constant", cval=0).astype(bool)
+        _check_fraction(int(keep.sum()), int(on_dem.sum()), "points", ref.path, min_stable_fraction)
+        idx = np.flatnonzero(keep)
+        if idx.size > max_samples:
+            idx = np.sort(rng.choice(idx, max_samples, replace=False))
+        e, n = local_metric_coords(dem.transform, dem.crs, dem.shape, x[idx], y[idx])
+        return Sampler(rows[idx], cols[idx], e, n, ref.h[idx].astype(np.float64), dem.shape,
+                       "points", int(keep.sum()))
+    if not isinstance(ref, DEM):
+        raise InputError(f"reference must be a DEM or AltimetryPoints, got {type(ref).__name__}")
+    z = reference_on_grid(ref, dem)
+    valid = np.isfinite(z) & np.isfinite(dem.heights)
+    keep = valid if stable is None else valid & stable
+    _check_fraction(int(keep.sum()), int(valid.sum()), "cells", ref.path, min_stable_fraction)
+    idx = np.flatnonzero(keep)
+    if idx.size > max_samples:
+        idx = np.sort(rng.choice(idx, max_samples, replace=False))
+    rows, cols = np.unravel_index(idx, dem.shape)
+    east_g, north_g = local_metric_coords(dem.transform, dem.crs, dem.shape)
+    return Sampler(rows, cols, east_g[rows, cols], north_g[rows, cols], z[rows, cols], dem.shape,
+                   "dem", int(keep.sum()))
+
+
+def _check_fraction(n_keep, n_valid, what, path, min_fraction):
+    share = n_keep / n_valid if n_valid else 0.0
+    if share < min_fraction or n_keep < 20:
+        raise InputError(
+            f"{path or 'stable mask'}: only {100 * share:.1f} % of the overlapping {what} "
+            f"({n_keep} of {n_valid}) are stable terrain; at least {100 * min_fraction:.0f} % needed")
+
+
+# ----------------------------------------------------------------------------- robust fitting
+
+def robust_lstsq(a, y, *, n_sigma: float = 3.0, iterations: int = 4):
+    """Least squares ``a @ p ≈ y`` with outliers (|r − median| > ``n_sigma`` NMAD) rejected,
+    iterated. Returns ``(p, cov, inliers)``; ``cov`` is NMAD² (AᵀA)⁻¹ of the inliers."""
+    a = np.asarray(a, np.float64)
+    y = np.asarray(y, np.float64)
+    ok = np.isfinite(y) & np.all(np.isfinite(a), axis=1)
+    if ok.sum() <= a.shape[1]:
+        raise InputError(f"only {int(ok.sum())} usable samples for {a.shape[1]} parameters")
+    p = np.zeros(a.shape[1])
+    for _ in range(iterations):
+        p, *_ = np.linalg.lstsq(a[ok], y[ok], rcond=None)
+        r = y - a @ p
+        s = nmad(r[ok])
+        new = np.isfinite(r) & (np.abs(r - np.median(r[ok])) <= max(n_sigma * s, 1e-9))
+        new &= np.all(np.isfinite(a), axis=1)
+        if new.sum() <= a.shape[1] or np.array_equal(new, ok):
+            break
+        ok = new
+    r = y[ok] - a[ok] @ p
+    s = nmad(r)
+    cov = s * s * np.linalg.pinv(a[ok].T @ a[ok])
+    return p, cov, ok
+
+
+def param(value, sigma, unit: str = "") -> dict:
+    """A reported parameter: value, standard deviation and unit."""
+    return {"value": float(value), "sigma": float(sigma), "unit": unit}
+
+
+# ----------------------------------------------------------------------------- base classes
+
+class Coreg:
+    """One correction step: :meth:`fit` estimates, :meth:`apply` removes (same grid).
+
+    Subclasses implement ``_fit(sampler, dem, context)`` (set ``self.params``: name ->
+    :func:`param` dict, and ``self.curves`` for figures) and ``_apply(dem)`` (heights on the
+    DEM's grid).
+    """
+
+    name = "coreg"
+
+    def __init__(self):
+        self.params: dict = {}
+        self.curves: dict = {}
+        self.fitted = False
+
+    def __add__(self, other) -> CoregChain:
+        return CoregChain([self]) + other
+
+    def __repr__(self):
+        return f"{type(self).__name__}()"
+
+    def fit(self, ref, dem: DEM, stable=None, *, track_angle_deg: float | None = None,
+            track_frame=None, max_samples: int = MAX_SAMPLES, seed: int = 0):
+        """Fit this step alone (a chain of one); returns ``self``."""
+        CoregChain([self]).fit(ref, dem, stable=stable, track_angle_deg=track_angle_deg,
+                               track_frame=track_frame, max_samples=max_samples, seed=seed)
+        return self
+
+    def fit_samples(self, sampler: Sampler, dem: DEM, context: dict):
+        self._fit(sampler, dem, context)
+        self.fitted = True
+        return self
+
+    def apply(self, dem: DEM) -> DEM:
+        """``dem`` with this step's fitted error removed, on the same grid."""
+        if not self.fitted:
+            raise DEMError(f"{type(self).__name__}.apply called before fit")
+        return DEM(np.asarray(self._apply(dem), np.float32), dem.transform, dem.crs,
+                   dem.vertical, dem.path)
+
+    def _fit(self, sampler, dem, context):          # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _apply(self, dem):                           # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def parameters(self) -> dict:
+        return self.params
+
+
+class CoregChain(Coreg):
+    """Steps applied in order; each is fitted on the DEM corrected by the ones before it."""
+
+    name = "chain"
+
+    def __init__(self, steps=()):
+        super().__init__()
+        self.steps = list(steps)
+        self.records: list[dict] = []
+        self.sampler: Sampler | None = None
+
+    def __add__(self, other) -> CoregChain:
+        more = other.steps if isinstance(other, CoregChain) else [other]
+        return CoregChain(self.steps + list(more))
+
+    def __repr__(self):
+        return " + ".join(repr(s) for s in self.steps)
+
+    def fit(self, ref, dem: DEM, stable=None, *, track_angle_deg: float | None = None,
+            track_frame=None, max_samples: int = MAX_SAMPLES, seed: int = 0) -> CoregChain:
+        """Fit every step in turn on ``dem`` against ``ref`` (a :class:`DEM` on any grid, or
+        :class:`~stereodem.post.altimetry.AltimetryPoints`), on the ``stable`` cells (bool
+        array on the DEM grid). ``track_angle_deg``: ground-track heading (degrees clockwise
+        from north) for ``along_track``/``cross_track``; ``track_frame``
+        (:class:`~stereodem.post.track.TrackFrame`, in the DEM's CRS): the sensor model's
+        along/cross-track coordinates, used by those steps instead of the heading's straight
+        track. Returns ``self``."""
+        if not self.steps:
+            raise InputError("empty co-registration chain")
+        sampler = make_sampler(ref, dem, stable, max_samples=max_samples, seed=seed)
+        self.sampler = sampler
+        context = {"track_angle_deg": track_angle_deg, "track_frame": track_frame,
+                   "reference": ref, "stable": stable}
+        self.records = []
+        current = dem
+        for step in self.steps:
+            before = sampler.stats(current.heights)
+            t0 = time.perf_counter()
+            step.fit_samples(sampler, current, context)
+            current = step.apply(current)
+            after = sampler.stats(current.heights)
+            self.records.append({"step": step.name, "parameters": step.parameters(),
+                                 "before": before, "after": after,
+                                 "seconds": time.perf_counter() - t0})
+            log.info("%s: NMAD %.3f -> %.3f m (n=%d)", step.name, before["nmad"], after["nmad"],
+                     after["n"])
+        self.fitted = True
+        self.corrected = current
+        return self
+
+    def apply(self, dem: DEM) -> DEM:
+        if not self.fitted:
+            raise DEMError("CoregChain.apply called before fit")
+        for step in self.steps:
+            dem = step.apply(dem)
+        return dem
+
+    def parameters(self) -> dict:
+        return {f"{i}:{s.name}": s.parameters() for i, s in enumerate(self.steps)}
+
+    def report(self) -> list[dict]:
+        """One dict per step: ``step``, ``parameters`` (name -> value, sigma, unit), stable
+        ``before``/``after`` statistics (nmad, median, mean, std, n) and ``seconds``."""
+        return list(self.records)
+
+
+# ----------------------------------------------------------------------------- parsing
+
+def _registry():
+    from . import biascorr
+    return {"nuth_kaab": biascorr.NuthKaab, "vshift": biascorr.VerticalShift,
+            "deramp": biascorr.Deramp, "along_track": biascorr.AlongTrack,
+            "cross_track": biascorr.CrossTrack, "curvature": biascorr.Curvature,
+            "icp": biascorr.ICP}
+
+
+STEP_NAMES = ("nuth_kaab", "vshift", "deramp", "along_track", "cross_track", "curvature", "icp")
+
+
+def parse_chain(text: str) -> CoregChain:
+    """A chain from ``"nuth_kaab,deramp:2,along_track"``: step names separated by commas, an
+    optional ``:N`` giving the polynomial order (``deramp``, ``cross_track``, ``curvature``) or
+    the number of sines (``along_track``)."""
+    reg = _registry()
+    steps = []
+    for item in str(text).split(","):
+        item = item.strip()
+        if not item:
+            continue
+        name, _, arg = item.partition(":")
+        name = name.strip().lower()
+        if name not in reg:
+            raise InputError(f"unknown co-registration step {name!r} in {text!r}; "
+                             f"choose from {', '.join(STEP_NAMES)}")
+        if arg:
+            try:
+                n = int(arg)
+            except ValueError:
+                raise InputError(f"step {item!r}: expected an integer after ':'") from None
+            steps.append(reg[name].from_arg(n))
+        else:
+            steps.append(reg[name]())
+    if not steps:
+        raise InputError(f"empty co-registration chain {text!r}")
+    return CoregChain(steps)
+
+
+def __getattr__(name):                     # the steps live in biascorr (one job per module)
+    if name in ("NuthKaab", "VerticalShift", "Deramp", "AlongTrack", "CrossTrack",
+                "Curvature", "ICP"):
+        from . import biascorr
+        return getattr(biascorr, name)
+    if name == "StableMask":
+        from .masks import StableMask
+        return StableMask
+    if name == "AltimetryPoints":
+        from .altimetry import AltimetryPoints
+        return AltimetryPoints
+    raise AttributeError(name)

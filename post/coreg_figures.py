@@ -1,0 +1,68 @@
+"""Figures of a co-registration chain: dh before/after on the DEM grid, and each bias step's
+binned dh against its variable with the fitted curve (PNG, written atomically)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from stereodem.core.stats import nmad
+
+from .figures import _save
+
+
+def _dh_on_grid(ref, dem):
+    from .altimetry import AltimetryPoints
+    if isinstance(ref, AltimetryPoints):
+        return None
+    from .coreg import reference_on_grid
+    return reference_on_grid(ref, dem)
+
+
+def dh_before_after_png(z_ref, dem, out, mask, path, *, overwrite=False):
+    """Two maps of DEM − reference (before, after), stable NMAD in the titles; ±3 NMAD
+    before as the colour range."""
+    b = dem.heights - z_ref
+    a = out.heights - z_ref
+    k = max(1, int(np.ceil(max(b.shape) / 900)))
+    lim = float(np.nanpercentile(np.abs(a[mask]), 98)) * 2 if np.isfinite(a[mask]).any() else 5.0
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.6))
+    for axis, d, title in zip(ax, (b, a), ("before", "after")):
+        im = axis.imshow(d[::k, ::k], cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
+        axis.set_title(f"DEM − reference, {title} (stable NMAD {nmad(d[mask]):.2f} m)", fontsize=9)
+        axis.set_xticks([])
+        axis.set_yticks([])
+    fig.colorbar(im, ax=ax, shrink=0.8, label="dh (m)")
+    return _save(fig, path, overwrite)
+
+
+def curve_png(step, path, *, overwrite=False):
+    """Binned median dh against the step's variable and the fitted curve."""
+    c = step.curves
+    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    ax.plot(c["bin_centre"], c["bin_median"], ".", ms=4, label="binned median dh (stable)")
+    ax.plot(c["model_x"], c["model_y"], "-", lw=1.5, label="fit")
+    ax.set_xlabel(c["x_label"])
+    ax.set_ylabel(c.get("y_label", "dh (m)"))
+    ax.set_title(f"{step.name}: bias and fit", fontsize=9)
+    ax.legend(fontsize=7)
+    return _save(fig, path, overwrite)
+
+
+def chain_figures(chain, ref, dem, out, mask, out_dir, *, overwrite=False) -> dict:
+    """Write the chain's figures into ``out_dir``; returns name -> path."""
+    out_dir = Path(out_dir)
+    files = {}
+    z = _dh_on_grid(ref, dem)
+    if z is not None:
+        files["dh_png"] = str(dh_before_after_png(z, dem, out, mask & np.isfinite(z),
+                                                  out_dir / "coreg_dh.png", overwrite=overwrite))
+    for i, step in enumerate(chain.steps):
+        if step.curves and "bin_centre" in step.curves:
+            name = f"coreg_{i}_{step.name.replace(':', '')}.png"
+            files[f"{step.name}_png"] = str(curve_png(step, out_dir / name, overwrite=overwrite))
+    return files

@@ -1,0 +1,254 @@
+"""One co-registration job: read the DEM and the reference (DEM or altimetry points), reconcile
+their vertical references, build the stable mask, fit the chain, write the products.
+
+Products in the output folder (every write atomic, nothing written before the inputs are
+checked):
+
+* ``dem_coregistered.tif`` — the corrected DEM on the DEM's own grid (COG, vertical reference
+  in the CRS);
+* ``coregistration.json`` — the chain, each step's parameters with σ, the stable-terrain
+  statistics before/after each step, the mask's share, per-point residuals for points;
+* ``coreg_dh.png`` (dh before/after) and ``coreg_<step>.png`` (each bias curve with its fit).
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import rasterio
+
+from stereodem.core.dem import DEM
+from stereodem.core.errors import InputError, StereodemError, VerticalReferenceError
+
+from . import terrain
+from .altimetry import AltimetryPoints, is_points_file, read_points
+from .coreg import CoregChain, bilinear, parse_chain
+from .masks import StableMask
+
+log = logging.getLogger(__name__)
+
+#: DEM tag holding the ground-track heading (degrees clockwise from north) of a stereodem DEM
+TRACK_HEADING_TAG = "STEREODEM_TRACK_HEADING"
+
+
+@dataclass
+class CoregJob:
+    """Inputs and options of a co-registration (paths, as on the command line)."""
+
+    dem: str
+    ref: str
+    chain: str = "nuth_kaab"
+    dem_vertical: str | None = None
+    ref_vertical: str | None = None
+    track_angle: float | None = None
+    exclude: list = field(default_factory=list)
+    include: list = field(default_factory=list)
+    stable_mask: str | None = None
+    min_slope: float | None = None
+    max_slope: float | None = None
+    outlier_nmad: float | None = 5.0
+    max_samples: int = 200_000
+
+
+def track_heading(model, shape, h: float = 0.0) -> float:
+    """Ground-track heading (degrees clockwise from north, 0–360) of a pushbroom-like image:
+    the azimuth on the WGS84 ellipsoid from the image centre to the point 100 rows further
+    (rows follow the satellite's motion), both localised at height ``h``."""
+    from pyproj import Geod
+    rows, cols = shape[:2]
+    c, r = (cols - 1) / 2.0, (rows - 1) / 2.0
+    lon, lat = model.localize(np.array([c, c]), np.array([r, r + 100.0]), np.array([h, h]))
+    az, _, _ = Geod(ellps="WGS84").inv(lon[0], lat[0], lon[1], lat[1])
+    return float(az % 360.0)
+
+
+def track_tags(model, shape, crs=None, heights=None) -> dict:
+    """The DEM tags of the track of an image of ``shape`` seen by ``model``:
+    ``STEREODEM_TRACK_HEADING`` (degrees clockwise from north) and, given the DEM's ``crs``,
+    ``STEREODEM_TRACK_FRAME`` (:class:`~stereodem.post.track.TrackFrame`, fitted at the
+    median of ``heights``, m). What the model cannot give is left out (a localisation failure
+    never fails the DEM)."""
+    from .track import TRACK_FRAME_TAG, TrackFrame
+    tags = {}
+    try:
+        tags[TRACK_HEADING_TAG] = f"{track_heading(model, shape):.4f}"
+    except (ValueError, ArithmeticError, NotImplementedError, StereodemError) as exc:
+        log.info("no track heading for the DEM tags: %s", exc)
+    if crs is not None:
+        h = np.asarray(heights, np.float64) if heights is not None else np.zeros(1)
+        h0 = float(np.nanmedian(h)) if np.isfinite(h).any() else 0.0
+        from pyproj.exceptions import ProjError
+        try:
+            tags[TRACK_FRAME_TAG] = TrackFrame.from_model(model, shape, crs, height=h0).to_tag()
+        except (ValueError, ArithmeticError, NotImplementedError, StereodemError, ProjError) as exc:
+            log.info("no track frame for the DEM tags: %s", exc)
+    return tags
+
+
+def track_heading_of(path) -> float | None:
+    """The ground-track heading a stereodem DEM carries in its tags, if any."""
+    try:
+        with rasterio.open(path) as ds:
+            v = ds.tags().get(TRACK_HEADING_TAG)
+    except rasterio.errors.RasterioIOError:
+        return None
+    try:
+        return float(v) if v is not None else None
+    except ValueError:
+        return None
+
+
+def reconcile(dem: DEM, ref):
+    """Bring ``ref`` (DEM or points) to ``dem``'s vertical reference; a note says what was
+    done. One-line :class:`VerticalReferenceError` when one side is unknown."""
+    a, b = dem.vertical, ref.vertical
+    if a == b:
+        if a is None:
+            if isinstance(ref, AltimetryPoints):
+                raise VerticalReferenceError(f"{ref.path or 'points'}: vertical reference unknown")
+            return ref, "both unknown; assumed identical"
+        return ref, f"both {a}"
+    if a is None or b is None:
+        who = dem.path if a is None else ref.path
+        raise VerticalReferenceError(
+            f"{who or 'input'}: vertical reference unknown while the other is {a or b}; say which "
+            "with --dem-vertical/--ref-vertical {geoid,ellipsoid}")
+    return ref.to_reference(a), f"reference converted from {b} to {a} (EGM96)"
+
+
+def load_inputs(job: CoregJob):
+    """The DEM, the reference (in the DEM's vertical reference), a note, and the track: the
+    heading (``--track-angle`` or the DEM's tag) and the DEM's sensor-model track frame
+    (:class:`~stereodem.post.track.TrackFrame`, None without ``--track-angle`` only)."""
+    dem = DEM.from_file(job.dem, vertical=job.dem_vertical)
+    if is_points_file(job.ref):
+        ref = read_points(job.ref, vertical=job.ref_vertical)
+    else:
+        ref = DEM.from_file(job.ref, vertical=job.ref_vertical)
+    ref, note = reconcile(dem, ref)
+    return dem, ref, note, track_of(job.dem, dem.crs, job.track_angle)
+
+
+def track_of(path, crs, track_angle: float | None = None):
+    """``(heading, frame)`` of the DEM file ``path`` (in ``crs``): ``track_angle`` and no frame
+    when given (an explicit heading wins), else the tags' heading and
+    :class:`~stereodem.post.track.TrackFrame` (dropped, with a warning, when fitted in
+    another CRS); ``(None, None)`` when the file says nothing."""
+    if track_angle is not None:
+        return float(track_angle), None
+    if path is None:
+        return None, None
+    from .track import track_frame_of
+    frame = track_frame_of(path)
+    if frame is not None and not frame.matches(crs):
+        log.warning("%s: its track frame is for another CRS (%s); the heading is used",
+                    path, frame.crs)
+        frame = None
+    return track_heading_of(path), frame
+
+
+def stable_mask(job: CoregJob, dem: DEM, ref) -> np.ndarray:
+    """The stable mask of the job on the DEM grid (vectors, raster, slope, outliers)."""
+    sm = StableMask(exclude=list(job.exclude or []), include=list(job.include or []),
+                    raster=job.stable_mask, min_slope=job.min_slope, max_slope=job.max_slope,
+                    outlier_nmad=None)
+    slope = None
+    if job.min_slope is not None or job.max_slope is not None:
+        slope = terrain.slope_deg(dem.heights, dem.transform, dem.crs)
+    return sm.array(dem, slope=slope)
+
+
+def run(job: CoregJob, out_dir, *, overwrite: bool = False, figures: bool = True,
+        creation_options=None) -> dict:
+    """Fit and apply the chain; write the products into ``out_dir`` (checked by the caller with
+    :func:`stereodem.core.raster.check_output_dir`, created here once the fit succeeded).
+    Returns the JSON report (a dict)."""
+    from stereodem.core.raster import write_text_atomic
+    needs_heading = any(s.strip().split(":")[0] in ("along_track", "cross_track")
+                        for s in job.chain.split(","))
+    chain = parse_chain(job.chain)            # bad text fails before any reading
+    dem, ref, note, (heading, frame) = load_inputs(job)
+    if needs_heading and heading is None and frame is None:
+        raise InputError(f"{job.dem}: along_track/cross_track need the ground-track heading; the DEM "
+                         "carries none: give --track-angle DEG (clockwise from north)")
+    mask = stable_mask(job, dem, ref)
+    chain = _fit(chain, ref, dem, mask, (heading, frame), job)
+    out = chain.apply(dem)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)      # only now: bad inputs leave nothing behind
+    out.write(out_dir / "dem_coregistered.tif", overwrite=overwrite, creation_options=creation_options)
+    report = {"dem": job.dem, "reference": job.ref,
+              "reference_kind": "points" if isinstance(ref, AltimetryPoints) else "dem",
+              "chain": job.chain, "vertical": note, "vertical_reference": dem.vertical,
+              "track_heading_deg": heading,
+              "track_frame": frame.describe() if frame is not None else None, "stable": _mask_summary(chain, mask, dem),
+              "steps": chain.report(),
+              "sigma_note": "formal least-squares standard deviations (samples taken as independent)"}
+    if isinstance(ref, AltimetryPoints):
+        report["points"] = _point_residuals(ref, dem, out, mask)
+    files = {"dem": str(out_dir / "dem_coregistered.tif")}
+    if figures:
+        from .coreg_figures import chain_figures
+        files.update(chain_figures(chain, ref, dem, out, mask, out_dir, overwrite=overwrite))
+    report["files"] = files
+    write_text_atomic(out_dir / "coregistration.json", json.dumps(_clean(report), indent=1),
+                      overwrite=overwrite)
+    return report
+
+
+def _fit(chain: CoregChain, ref, dem, mask, track, job):
+    """Fit ``chain``; with ``outlier_nmad``, cells whose first ``dh`` is beyond that many NMADs
+    of the median (clouds, blunders) leave the stable terrain first (DEM references)."""
+    if job.outlier_nmad and not isinstance(ref, AltimetryPoints):
+        from .coreg import reference_on_grid
+        dh = dem.heights.astype(np.float64) - reference_on_grid(ref, dem)
+        mask = mask & StableMask(outlier_nmad=job.outlier_nmad).array(
+            dem, dh=np.where(mask, dh, np.nan))
+    heading, frame = track
+    return chain.fit(ref, dem, stable=mask, track_angle_deg=heading, track_frame=frame,
+                     max_samples=job.max_samples)
+
+
+def _mask_summary(chain, mask, dem):
+    valid = np.isfinite(dem.heights)
+    return {"stable_cells": int((mask & valid).sum()), "valid_cells": int(valid.sum()),
+            "stable_fraction": float((mask & valid).sum() / max(valid.sum(), 1)),
+            "samples_used": int(chain.sampler.rows.size) if chain.sampler is not None else 0}
+
+
+def _point_residuals(points: AltimetryPoints, dem: DEM, out: DEM, mask) -> dict:
+    from stereodem.core import geodesy
+    x, y = geodesy.lonlat_to_crs(points.lon, points.lat, dem.crs)
+    c, r = ~dem.transform @ (np.asarray(x), np.asarray(y))
+    rows, cols = np.asarray(r) - 0.5, np.asarray(c) - 0.5
+    before = bilinear(dem.heights, rows, cols) - points.h
+    after = bilinear(out.heights, rows, cols) - points.h
+    from scipy import ndimage
+    used = ndimage.map_coordinates(mask.astype(np.uint8), [rows, cols], order=0, cval=0).astype(bool)
+    return {"n": int(points.h.size), "n_on_dem": int(np.isfinite(before).sum()),
+            "columns": ["lon", "lat", "h", "dh_before", "dh_after", "stable"],
+            "rows": [[float(a), float(b), float(h), _f(u), _f(v), bool(w)] for a, b, h, u, v, w in
+                     zip(points.lon, points.lat, points.h, before, after, used)]}
+
+
+def _f(v):
+    return float(v) if np.isfinite(v) else None
+
+
+def _clean(obj):
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj

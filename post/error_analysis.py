@@ -1,0 +1,159 @@
+"""Error analysis of a DEM against a reference on stable terrain, for ``stereodem assess``
+(Hugonnet et al. 2022): heteroscedasticity against slope and maximum curvature, the variogram
+of the standardised ``dh`` fitted with two spherical models, the σ of the mean ``dh`` over each
+polygon of ``outlines`` from that variogram, and — given the per-cell σ map the sensor models
+propagate (``stereodem uncertainty``/the DEM's σ layer) — the share of the observed dispersion
+it explains. Optionally a co-registration chain is applied first.
+
+Everything on the DEM's grid (the reference warped onto it, :mod:`stereodem.post.coreg`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from stereodem.core.dem import DEM
+from stereodem.core.errors import InputError
+from stereodem.core.stats import nmad
+
+from . import spatialstats as ss
+from .biascorr import maximum_curvature
+from .coreg import reference_on_grid
+from .masks import StableMask, rasterize, read_polygons
+from .terrain import slope_deg
+
+
+@dataclass
+class ErrorAnalysisJob:
+    """Options of the error analysis (paths as on the command line)."""
+
+    chain: str | None = None               #: co-registration chain applied first
+    track_angle: float | None = None
+    exclude: list = field(default_factory=list)
+    outlines: list = field(default_factory=list)
+    sigma_map: str | None = None           #: per-cell σ (m) from the sensor models
+    n_pairs: int = 1_000_000
+
+
+def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
+    """Run the analysis; returns ``(section, plots)``: a JSON-ready dict and what
+    :func:`write_figures` draws. ``dem`` and ``ref`` in the same vertical reference."""
+    stable = StableMask(exclude=list(job.exclude)).array(dem)
+    chain_rep = None
+    if job.chain:
+        from .coreg import parse_chain
+        from .coreg_run import track_of  # --track-angle, else the DEM's own track
+        heading, frame = track_of(dem.path, dem.crs, job.track_angle)
+        ch = parse_chain(job.chain).fit(ref, dem, stable=stable, track_angle_deg=heading,
+                                        track_frame=frame)
+        dem = ch.apply(dem)
+        chain_rep = ch.report()
+    z = reference_on_grid(ref, dem)
+    dh = dem.heights.astype(np.float64) - z
+    slope = slope_deg(z, dem.transform, dem.crs)
+    curv = maximum_curvature(z, dem.transform, dem.crs)
+    d_st = np.where(stable, dh, np.nan)
+    sig_model = _sigma_map(job.sigma_map, dem) if job.sigma_map else None
+    hs = ss.heteroscedasticity(d_st, slope, curv, sigma_model=sig_model)
+    per_cell = hs["sigma_sensor"] if sig_model is not None else hs["sigma"]
+    zstd = ss.standardise(d_st, per_cell)
+    emp = ss.variogram(zstd, transform=dem.transform, crs=dem.crs, n_pairs=job.n_pairs)
+    model = ss.fit_variogram(emp, n_models=2)
+    section = {"stable_cells": int(np.isfinite(d_st).sum()), "nmad_stable": nmad(d_st),
+               "heteroscedasticity": {k: v for k, v in hs.items() if not k.startswith("sigma")},
+               "variogram": {"empirical": emp.to_dict(), "model": model.to_dict(),
+                             "of": "dh standardised by the per-cell sigma: " +
+                                   ("sensor-model sigma + unexplained binned dispersion"
+                                    if sig_model is not None else "binned NMAD (slope, curvature)")}}
+    if chain_rep is not None:
+        section["coregistration"] = {"chain": job.chain, "steps": chain_rep}
+    areas = []
+    for path in job.outlines:
+        geoms = read_polygons(path, dem.crs)
+        for k, g in enumerate(geoms):
+            m = rasterize([g], dem, path=str(path)) & np.isfinite(dh)
+            if not m.any():
+                continue
+            a = ss.area_mean_sigma(model, m, dem.transform, dem.crs, sigma=np.where(m, per_cell, np.nan))
+            areas.append({"file": str(path), "polygon": k, "mean_dh": float(np.nanmean(dh[m])),
+                          **a})
+    if job.outlines and not areas:
+        raise InputError(f"{job.outlines[0]}: no polygon covers a valid cell of the DEM")
+    section["area_means"] = areas
+    plots = {"hs": hs, "emp": emp, "model": model}
+    return section, plots
+
+
+def _sigma_map(path, dem: DEM):
+    import rasterio
+
+    from stereodem.core.raster import read_image
+
+    from . import warp
+    a = read_image(path)
+    with rasterio.open(path) as ds:
+        if ds.crs is None:
+            raise InputError(f"{path}: the σ map has no CRS")
+        t, crs = ds.transform, ds.crs.to_wkt()
+    z = warp.to_grid(a, t, crs, dem.transform, dem.crs, dem.shape).astype(float)
+    if not np.isfinite(z).any():
+        raise InputError(f"{path}: the σ map does not overlap the DEM")
+    return z
+
+
+def write_figures(plots, out_dir, *, overwrite=False) -> dict:
+    """``error_vs_terrain.png`` (NMAD of dh against slope and curvature) and ``variogram.png``."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .figures import _save
+    out_dir = Path(out_dir)
+    hs, emp, model = plots["hs"], plots["emp"], plots["model"]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    for axis, key, label in ((ax[0], "slope", "slope (deg)"),
+                             (ax[1], "curvature", "|maximum curvature| (1/100 m)")):
+        e = hs[key]
+        axis.plot(e["centre"], e["nmad"], "o", label="NMAD of dh per bin")
+        if e["quadratic_fit"]:
+            x = np.linspace(np.nanmin(e["centre"]), np.nanmax(e["centre"]), 100)
+            axis.plot(x, np.polyval(e["quadratic_fit"], x), "-", label="quadratic fit")
+        if key == "slope" and "sensor_model" in hs:
+            axis.plot(e["centre"], hs["sensor_model"]["rms_sigma_by_slope"], "s--",
+                      label="sensor-model σ (RMS)")
+        axis.set_xlabel(label)
+        axis.set_ylabel("m")
+        axis.legend(fontsize=7)
+    fig.suptitle("Dispersion of dh on stable terrain", fontsize=10)
+    files = {"error_vs_terrain": _save(fig, out_dir / "error_vs_terrain.png", overwrite)}
+    fig, axis = plt.subplots(figsize=(6, 3.6))
+    ok = emp.count > 0
+    axis.semilogx(emp.lag[ok], emp.gamma[ok], ".", label="empirical")
+    x = np.geomspace(emp.lag[ok].min(), emp.lag[ok].max(), 200)
+    axis.semilogx(x, model.gamma(x), "-", label="sum of 2 spherical: ranges " +
+                  ", ".join(f"{r:.0f} m" for r in model.ranges))
+    axis.set_xlabel("lag (m)")
+    axis.set_ylabel("semivariance (standardised dh)")
+    axis.legend(fontsize=7)
+    files["variogram"] = _save(fig, out_dir / "variogram.png", overwrite)
+    return files
+
+
+def markdown_lines(section: dict) -> list[str]:
+    """The report's Markdown lines of this section."""
+    m = section["variogram"]["model"]
+    lines = ["", "## Error analysis (stable terrain)", "",
+             f"* stable cells {section['stable_cells']}, NMAD {section['nmad_stable']:.2f} m",
+             "* variogram of standardised dh: " + ", ".join(
+                 f"range {r:.0f} m sill {s:.2f}" for r, s in zip(m["ranges_m"], m["sills"]))]
+    sm = section["heteroscedasticity"].get("sensor_model")
+    if sm:
+        lines.append(f"* sensor-model σ explains {100 * sm['explained_variance_share']:.0f} % of the "
+                     f"variance of dh (binned r {sm['binned_r']:.2f})")
+    for a in section.get("area_means", []):
+        lines.append(f"* {Path(a['file']).name} #{a['polygon']}: mean dh {a['mean_dh']:+.2f} ± "
+                     f"{a['sigma_mean']:.2f} m (1σ, {a['n_cells']} cells, "
+                     f"{a['n_effective']:.0f} effective samples; σ/√N would say {a['sigma_naive']:.3f} m)")
+    return lines

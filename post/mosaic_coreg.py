@@ -1,0 +1,133 @@
+"""Co-registration of every DEM of a mosaic to one reference, before mosaicking (the hook).
+
+A *chain* string names how a DEM is fitted to the reference; it resolves, through
+:data:`CHAINS`, to a function ``fit(reference: DEM, dem: DEM) -> DEMCorrection``. The mosaic
+applies a :class:`DEMCorrection` block by block: the DEM's grid moved by ``dx, dy`` metres and
+``dz`` metres subtracted from its heights. The chains are those of :func:`stereodem.post.coreg.
+parse_chain` (registered with :func:`register_chain` by :func:`chain_fitter`) made of the steps
+the mosaic can apply as a shift and an offset: ``nuth_kaab`` and ``vshift`` (e.g.
+``nuth_kaab,vshift``); a chain with a surface step (``deramp``, ``along_track``, ...) is refused
+with a one-line error (correct such DEMs with ``stereodem coregister`` first).
+
+Memory: a fit holds one DEM and the reference cropped to that DEM's footprint (plus a
+margin), never the mosaic.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import rasterio
+from pyproj import CRS
+from rasterio.windows import from_bounds
+
+from stereodem.core.dem import DEM, _vertical_from_crs, horizontal_crs
+from stereodem.core.errors import ConvergenceError, DEMError, InputError, NoOverlapError
+from stereodem.core.raster import reading_env
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CHAINS", "DEMCorrection", "chain_fitter", "crop_reference", "fitter", "register_chain"]
+
+
+@dataclass(frozen=True)
+class DEMCorrection:
+    """What co-registration found for one DEM: ``dx, dy`` (m east/north, the DEM's
+    displacement relative to the reference, removed by moving its grid by −dx, −dy) and ``dz``
+    (m, subtracted from its heights); ``report`` is the fit's own record (JSON-able)."""
+
+    dx: float
+    dy: float
+    dz: float
+    report: dict = field(default_factory=dict)
+
+
+#: the steps whose correction is a shift of the grid plus a height offset
+SHIFT_STEPS = ("nuth_kaab", "vshift")
+
+
+def chain_fitter(text: str) -> Callable | None:
+    """The fit function of a :func:`~stereodem.post.coreg.parse_chain` string made of
+    :data:`SHIFT_STEPS`: the chain fitted on the DEM's grid, its ``nuth_kaab`` shifts and
+    ``nuth_kaab``/``vshift`` offsets summed into one :class:`DEMCorrection`. None for a
+    string that is not a chain; :class:`InputError` for a chain with another step."""
+    from .coreg import parse_chain
+    try:
+        chain = parse_chain(text)
+    except InputError:
+        return None
+    other = [s.name for s in chain.steps if s.name not in SHIFT_STEPS]
+    if other:
+        raise InputError(f"--coreg-chain {text!r}: the mosaic applies shifts and offsets only "
+                         f"({', '.join(SHIFT_STEPS)}); {', '.join(other)} changes the surface: "
+                         "correct such DEMs with 'stereodem coregister' first")
+
+    def fit(reference: DEM, dem: DEM) -> DEMCorrection:
+        from .assess import coregistration_summary
+        try:
+            ch = parse_chain(text).fit(reference, dem)
+        except (InputError, ConvergenceError) as exc:   # too little stable terrain: skipped
+            raise DEMError(f"{dem.path or 'DEM'}: {exc}") from None
+        rep = coregistration_summary(ch, reference)
+        return DEMCorrection(rep["dx"], rep["dy"], rep["dz"], rep)
+    return fit
+
+
+def register_chain(parser: Callable[[str], Callable | None]):
+    """Register a parser of chain strings: ``parser(text)`` returns a fit function
+    ``fit(reference, dem) -> DEMCorrection`` for a string it understands, None otherwise
+    (the issue-25 correction chain connects here)."""
+    _PARSERS.append(parser)
+    return parser
+
+
+#: chain name -> fit function (checked before the parsers); resolved by :func:`fitter`
+CHAINS: dict[str, Callable] = {}
+_PARSERS: list[Callable] = []
+register_chain(chain_fitter)
+
+
+def fitter(chain: str = "nuth_kaab") -> Callable:
+    """The fit function of a chain string; :class:`InputError` naming the known ones."""
+    text = (chain or "nuth_kaab").strip()
+    if text.lower() in CHAINS:
+        return CHAINS[text.lower()]
+    for parse in _PARSERS:
+        fit = parse(text)
+        if fit is not None:
+            return fit
+    raise InputError(f"--coreg-chain {chain!r}: unknown chain (steps, comma separated: "
+                     f"{', '.join(SHIFT_STEPS)})")
+
+
+def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -> DEM:
+    """The reference DEM over ``bounds`` (west, south, east, north in ``crs``) plus a margin,
+    read through a window (the whole reference is never read); :class:`NoOverlapError` when it
+    misses them."""
+    from rasterio.warp import transform_bounds
+    path = str(path)
+    try:
+        with reading_env(), rasterio.open(path) as ds:
+            if ds.crs is None:
+                raise DEMError(f"{path}: the reference DEM has no CRS")
+            b = transform_bounds(horizontal_crs(crs).to_wkt(), ds.crs, *bounds, densify_pts=21)
+            win = from_bounds(*b, transform=ds.transform)
+            c0 = max(int(np.floor(win.col_off)) - margin_cells, 0)
+            r0 = max(int(np.floor(win.row_off)) - margin_cells, 0)
+            c1 = min(int(np.ceil(win.col_off + win.width)) + margin_cells, ds.width)
+            r1 = min(int(np.ceil(win.row_off + win.height)) + margin_cells, ds.height)
+            if c1 <= c0 or r1 <= r0:
+                raise NoOverlapError(f"{path}: the reference DEM does not overlap {bounds}")
+            w = rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0)
+            z = ds.read(1, window=w, masked=True).astype(np.float32).filled(np.nan)
+            t = ds.window_transform(w)
+            pcrs = CRS.from_wkt(ds.crs.to_wkt())
+            tag = ds.tags().get("STEREODEM_VERTICAL")
+            vert = _vertical_from_crs(pcrs) or (tag.lower() if tag else None) or vertical
+    except rasterio.errors.RasterioIOError as exc:
+        raise DEMError(f"{path}: cannot read the reference DEM ({str(exc).splitlines()[0][:120]})") from None
+    if not np.isfinite(z).any():
+        raise NoOverlapError(f"{path}: the reference DEM has no valid height over {bounds}")
+    return DEM(z, t, horizontal_crs(pcrs), vert, path)

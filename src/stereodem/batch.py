@@ -1,0 +1,327 @@
+"""Many scenes, one job each, on a process pool or a ``dask.distributed`` cluster.
+
+A *scene* is a TOML configuration (``stereodem run``'s) or an ASTER L1A granule (V004 ``.hdf``,
+V003 ``.zip``/folder), the latter run with a template configuration (``--template``: every key
+but ``[inputs] left/right`` and ``[output] dir``) or the defaults. Each scene writes into
+``OUTDIR/<scene name>/`` exactly what ``stereodem run`` writes there.
+
+* **Scheduling**: one task per scene, largest input first (a big scene started last would
+  keep one core busy after the others are idle). Process pool: ``workers`` processes, each
+  pinned to ``cores // workers`` threads (:mod:`stereodem.core.threads`), which it gives to its
+  scene (its tiles then run in that many processes: ``[run] workers``). Dask: one task per
+  scene on any worker (``--dask tcp://host:port`` or ``--dask local`` for a ``LocalCluster``),
+  each worker pinned to its share of its node's cores; the scene's tiles run inside the task.
+* **Resumable**: a scene whose folder holds a ``run.json`` with status ``ok`` is *skipped*;
+  one that failed or was interrupted runs again with its finished tiles reused (``--resume``
+  semantics); ``overwrite`` recomputes every scene.
+* **Status table**: ``OUTDIR/batch.json`` (rewritten atomically as scenes finish), one row per
+  scene: ``done`` / ``failed`` with its one-line reason / ``skipped``, seconds, CPU seconds,
+  output folder; and a summary. A failing scene never stops the others.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from stereodem.core.errors import InputError, StereodemError
+
+log = logging.getLogger(__name__)
+
+LIST_SUFFIXES = (".txt", ".lst", ".list")
+STATUS_FILE = "batch.json"
+
+
+@dataclass
+class Scene:
+    """One scene of a batch: its input (configuration or granule), its name (the output
+    sub-folder) and, for granules, the template configuration."""
+
+    name: str
+    path: str
+    kind: str                     # "config" | "granule" | "missing"
+    template: str | None = None
+    size: int = 0                 # bytes of its main input: the scheduling order
+
+
+@dataclass
+class SceneStatus:
+    """A scene's row of the status table."""
+
+    name: str
+    input: str
+    status: str                   # "done" | "failed" | "skipped"
+    reason: str = ""
+    output: str = ""
+    seconds: float = 0.0
+    cpu_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- scenes
+
+def expand_inputs(paths, template=None) -> list[Scene]:
+    """The scenes named by ``paths``: configurations (``*.toml``), granules, and list files
+    (``*.txt``/``*.lst``: one path per line, ``#`` comments, relative to the list). Names are
+    the file stems, made unique with ``_2``, ``_3``, ...; a path that does not exist becomes a
+    scene that fails with "not found" (the others still run). A list file that cannot be read
+    is an :class:`InputError`."""
+    scenes, seen = [], {}
+    for p in _flatten(paths):
+        path = Path(p)
+        kind = ("missing" if not path.exists() else
+                "config" if path.suffix.lower() == ".toml" else "granule")
+        stem = path.name if path.is_dir() else path.stem
+        n = seen[stem] = seen.get(stem, 0) + 1
+        name = stem if n == 1 else f"{stem}_{n}"
+        size = _size(path) if kind == "granule" else _config_size(path) if kind == "config" else 0
+        scenes.append(Scene(name, str(path), kind, template if kind == "granule" else None, size))
+    if not scenes:
+        raise InputError("batch: no scene given")
+    return scenes
+
+
+def _flatten(paths):
+    for p in paths:
+        path = Path(p)
+        if path.suffix.lower() in LIST_SUFFIXES:
+            try:
+                lines = path.read_text().splitlines()
+            except (OSError, UnicodeDecodeError) as exc:
+                raise InputError(f"{path}: cannot read the scene list ({exc})") from None
+            for line in lines:
+                line = line.split("#", 1)[0].strip()
+                if line:
+                    q = Path(line)
+                    yield str(q if q.is_absolute() else path.parent / q)
+        else:
+            yield str(path)
+
+
+def _size(path: Path) -> int:
+    try:
+        return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() \
+            else path.stat().st_size
+    except OSError:
+        return 0
+
+
+def _config_size(path: Path) -> int:
+    """Bytes of a configuration's images (0 when it cannot be read: it will fail later)."""
+    try:
+        from .config import load_config
+        cfg = load_config(path)
+    except Exception:  # noqa: BLE001 - a bad configuration fails in its own task, with its reason
+        return 0
+    return sum(_size(Path(p)) for p in (cfg.inputs.left, cfg.inputs.right) if p)
+
+
+def scene_config(scene: Scene, out_dir, *, workers: int = 1, overwrite: bool = False):
+    """The :class:`stereodem.config.Config` of one scene, writing into ``out_dir``."""
+    import tomllib
+
+    from .config import config_from_dict, load_config
+    if scene.kind == "missing":
+        raise InputError(f"{scene.path}: not found")
+    resume = not overwrite
+    if scene.kind == "config":
+        cfg = load_config(scene.path, workers=workers, overwrite=overwrite, resume=resume)
+    else:
+        raw, base = {}, "."
+        if scene.template:
+            t = Path(scene.template)
+            try:
+                raw = tomllib.loads(t.read_text())
+            except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+                raise InputError(f"{t}: cannot read the template configuration ({exc})") from None
+            base = t.parent
+        raw.setdefault("inputs", {})
+        raw["inputs"] = {k: v for k, v in raw["inputs"].items() if k not in ("left", "right")}
+        raw["inputs"]["left"] = str(Path(scene.path).resolve())
+        raw["output"] = {"dir": "."}
+        cfg = config_from_dict(raw, base=base, source=scene.template or "batch defaults",
+                               workers=workers, overwrite=overwrite, resume=resume)
+    cfg.output_dir = str(out_dir)
+    return cfg
+
+
+def is_done(out_dir) -> bool:
+    """Whether a scene's folder holds a finished job (``run.json`` with status ``ok``)."""
+    try:
+        return json.loads((Path(out_dir) / "run.json").read_text()).get("status") == "ok"
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+# ----------------------------------------------------------------------------- one scene
+
+def run_scene(scene: Scene, out_root, workers: int = 1, overwrite: bool = False) -> SceneStatus:
+    """Run one scene into ``out_root/<name>``; never raises: a failure is a ``failed`` row
+    with a one-line reason. Runs in a pool worker or a Dask task (picklable arguments)."""
+    out = Path(out_root) / scene.name
+    row = SceneStatus(scene.name, scene.path, "done", output=str(out))
+    if not overwrite and is_done(out):
+        row.status = "skipped"
+        row.reason = "already done (run.json status ok)"
+        return row
+    t0, c0 = time.perf_counter(), _cpu()
+    try:
+        from .pipeline.job import run
+        info = run(scene_config(scene, out, workers=workers, overwrite=overwrite))
+        row.extra = {"stages": {k: v.get("seconds") for k, v in info.get("stages", {}).items()},
+                     "headline": info.get("headline")}
+    except StereodemError as exc:
+        row.status, row.reason = "failed", _one_line(exc)
+    except MemoryError:
+        row.status, row.reason = "failed", "out of memory"
+    except Exception as exc:  # noqa: BLE001 - one scene's bug must not stop the batch
+        row.status, row.reason = "failed", f"{type(exc).__name__}: {_one_line(exc)}"
+    row.seconds = round(time.perf_counter() - t0, 3)
+    row.cpu_s = round(_cpu() - c0, 2)
+    return row
+
+
+def _cpu() -> float:
+    """CPU seconds of this process and its finished children."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def _one_line(exc) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+# ----------------------------------------------------------------------------- the batch
+
+def run_batch(scenes, out_root, *, workers: int | None = None, dask: str | None = None,
+              overwrite: bool = False, progress=None) -> dict:
+    """Run ``scenes`` (:func:`expand_inputs`) into ``out_root``; returns the status table
+    (also written to ``out_root/batch.json``).
+
+    ``workers``: scenes at once on the process pool (default: all cores), or the
+    ``LocalCluster``'s worker processes with ``dask="local"``; ``dask``: a scheduler address
+    (``tcp://...``), ``"local"``, or a ``Client``. ``progress(row)`` is called per finished scene.
+    """
+    from stereodem.core.threads import cores, job_threads, worker_threads
+    out_root = Path(out_root)
+    if out_root.exists() and not out_root.is_dir():
+        raise InputError(f"{out_root}: not a folder")
+    out_root.mkdir(parents=True, exist_ok=True)
+    order = sorted(scenes, key=lambda s: -s.size)               # largest first
+    n = min(job_threads(workers), len(order))
+    rows: dict[str, SceneStatus] = {}
+    t0 = time.perf_counter()
+    backend = "dask" if dask is not None else "pool" if n > 1 else "serial"
+    table = {"backend": backend, "workers": n, "cores": cores()}
+
+    def collect(row: SceneStatus):
+        rows[row.name] = row
+        _write_table(out_root, scenes, rows, table, time.perf_counter() - t0)
+        if progress:
+            progress(row)
+
+    if dask is not None:
+        _run_dask(order, out_root, dask, n, overwrite, collect)
+    elif n <= 1:
+        from stereodem.core.threads import thread_budget
+        with thread_budget(1):
+            for s in order:
+                collect(run_scene(s, out_root, 1, overwrite))
+    else:
+        _run_pool(order, out_root, n, worker_threads(n), overwrite, collect)
+    return _write_table(out_root, scenes, rows, table, time.perf_counter() - t0)
+
+
+def _run_pool(order, out_root, n, threads, overwrite, collect):
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from stereodem.core.threads import pool_initializer
+    from stereodem.stereo.runner import stop_pool
+    ex = ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=pool_initializer, initargs=(threads,))
+    try:
+        futs = {ex.submit(run_scene, s, out_root, threads, overwrite): s for s in order}
+        for f in as_completed(futs):
+            s = futs[f]
+            try:
+                collect(f.result())
+            except Exception as exc:  # noqa: BLE001 - a worker died (killed, out of memory)
+                collect(SceneStatus(s.name, s.path, "failed",
+                                    reason=f"worker died: {type(exc).__name__}: {_one_line(exc)}",
+                                    output=str(Path(out_root) / s.name)))
+    except BaseException:
+        stop_pool(ex)
+        raise
+    ex.shutdown(wait=True)
+
+
+def _run_dask(order, out_root, address, n, overwrite, collect):
+    try:
+        from dask.distributed import Client, LocalCluster
+        from dask.distributed import as_completed as dask_completed
+    except ImportError:
+        raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
+    from stereodem.core.threads import register_dask_plugin
+    cluster = None
+    if address == "local":
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        client = Client(cluster)
+    elif hasattr(address, "submit"):
+        client = address
+    else:
+        try:
+            client = Client(address, timeout="20s")
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"--dask {address}: cannot connect to the scheduler "
+                             f"({type(exc).__name__}: {_one_line(exc)})") from None
+    try:
+        register_dask_plugin(client)
+        # scenes run their tiles inside the task (Dask workers are daemon processes: no pool)
+        futs = {client.submit(run_scene, s, str(out_root), 1, overwrite, pure=False,
+                              key=f"stereodem-scene-{s.name}-{time.monotonic_ns()}"): s for s in order}
+        for f in dask_completed(futs):
+            s = futs[f]
+            try:
+                collect(f.result())
+            except Exception as exc:  # noqa: BLE001 - a worker lost, a task cancelled
+                collect(SceneStatus(s.name, s.path, "failed",
+                                    reason=f"task lost: {type(exc).__name__}: {_one_line(exc)}",
+                                    output=str(Path(out_root) / s.name)))
+    finally:
+        if client is not address:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _write_table(out_root, scenes, rows, table, seconds) -> dict:
+    from stereodem.core.raster import write_text_atomic
+    listed = [asdict(rows[s.name]) if s.name in rows else
+              asdict(SceneStatus(s.name, s.path, "pending", output=str(Path(out_root) / s.name)))
+              for s in scenes]
+    counts = {k: sum(r["status"] == k for r in listed) for k in ("done", "failed", "skipped", "pending")}
+    result = {**table, "seconds": round(seconds, 3),
+              "sum_scene_seconds": round(sum(r["seconds"] for r in listed), 3),
+              "cpu_s": round(sum(r["cpu_s"] for r in listed), 2),
+              "summary": counts, "scenes": listed}
+    write_text_atomic(Path(out_root) / STATUS_FILE, json.dumps(result, indent=1) + "\n", overwrite=True)
+    return result
+
+
+def summary_lines(result: dict) -> list[str]:
+    """The status table for people: one line per scene, then the totals."""
+    lines = []
+    for r in result["scenes"]:
+        what = {"done": f"done in {r['seconds']:.1f} s", "skipped": "skipped (already done)",
+                "failed": f"FAILED: {r['reason']}", "pending": "not run"}[r["status"]]
+        lines.append(f"  {r['name']:24s} {what}")
+    c = result["summary"]
+    lines.append(f"{len(result['scenes'])} scene(s): {c['done']} done, {c['failed']} failed, "
+                 f"{c['skipped']} skipped, in {result['seconds']:.1f} s on {result['backend']} "
+                 f"({result['workers']} worker(s)); status table in {STATUS_FILE}")
+    return lines

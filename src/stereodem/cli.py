@@ -1,0 +1,133 @@
+"""The ``stereodem`` command line: one sub-command per job.
+
+Exit codes: 0 success, 1 the job failed (a one-line message says why), 2 bad usage.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import signal
+import sys
+
+from stereodem.core.errors import StereodemError
+
+from . import __version__
+
+log = logging.getLogger("stereodem")
+
+#: sub-commands implemented in their own modules: name -> module with add_parser/run
+_SUBCOMMANDS = {
+    "demo": "stereodem.demo_cli",
+    "run": "stereodem.run_cli",
+    "batch": "stereodem.batch_cli",
+    "simulate": "stereodem.simulate_cli",
+    "dem": "stereodem.dem_cli",
+    "filter": "stereodem.filter_cli",
+    "ortho": "stereodem.ortho_cli",
+    "assess": "stereodem.assess_cli",
+    "coregister": "stereodem.coregister_cli",
+    "adjust": "stereodem.adjust_cli",
+    "compare-models": "stereodem.compare_cli",
+    "uncertainty": "stereodem.uncertainty_cli",
+    "info": "stereodem.info_cli",
+    "mosaic": "stereodem.mosaic_cli",
+    "stack": "stereodem.stack_cli",
+    "change": "stereodem.change_cli",
+}
+
+
+def _named_command(argv) -> str | None:
+    """The sub-command ``argv`` names (its first word that is not an option), if known."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in _SUBCOMMANDS else None
+    return None
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The command-line parser; with ``only``, just that sub-command's (the others' modules,
+    some of them slow to import, are then not loaded: a job starts about a second sooner)."""
+    parser = argparse.ArgumentParser(
+        prog="stereodem",
+        description="Satellite stereo photogrammetry: stereo pairs in, DEMs and orthoimages out.",
+        epilog="Run 'stereodem COMMAND --help' for the options and examples of each command.",
+    )
+    parser.add_argument("--version", action="version", version=f"stereodem {__version__}")
+    verb = parser.add_mutually_exclusive_group()
+    verb.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    verb.add_argument("-q", "--quiet", action="store_true", help="only errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, modname in _SUBCOMMANDS.items():
+        if only is None or name == only:
+            importlib.import_module(modname).add_parser(sub)
+    return parser
+
+
+def _setup_logging(args):
+    """Log lines on stderr through the progress bars' writer, UTC timestamps with ``-v``,
+    Python warnings routed to logging (:func:`stereodem.progress.setup_logging`)."""
+    from .progress import setup_logging
+    setup_logging(verbose=args.verbose, quiet=args.quiet)
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_named_command(argv))
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help(sys.stderr)
+        return 2
+    _setup_logging(args)
+    received = []
+
+    def on_term(signum, frame):       # SIGTERM: stop like Ctrl-C (pool stopped, lock released)
+        received.append(signum)
+        raise KeyboardInterrupt
+    previous = _install(signal.SIGTERM, on_term)
+    try:
+        if hasattr(args, "workers"):      # one thread budget for the command (stereodem.core.threads)
+            from stereodem.core.threads import thread_budget
+            with thread_budget(args.workers if args.workers and args.workers > 0 else None):
+                return int(args.run(args) or 0)
+        return int(args.run(args) or 0)
+    except StereodemError as exc:
+        print(f"stereodem {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        name = "SIGTERM" if received else "SIGINT"
+        print(f"stereodem {args.command}: interrupted ({name}); {_resume_hint(args)}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if received else signal.SIGINT)
+    except MemoryError:
+        print(f"stereodem {args.command}: error: out of memory (try fewer --workers or a smaller "
+              "--tile-size)", file=sys.stderr)
+        return 1
+    finally:
+        _install(signal.SIGTERM, previous)
+
+
+def _install(signum, handler):
+    """Set a signal handler where that is possible (the main thread); returns the old one."""
+    try:
+        return signal.signal(signum, handler)
+    except (ValueError, TypeError):          # not the main thread, or no previous Python handler
+        return None
+
+
+def _one_line(exc) -> str:
+    """An error message on one line (messages relayed from GDAL may carry newlines)."""
+    return " ".join(str(exc).split())
+
+
+def _resume_hint(args) -> str:
+    """What the user can do after an interruption."""
+    if args.command == "run":
+        return ("finished tiles are kept in the output folder's tiles/; run the same command "
+                "with --resume to continue")
+    if args.command == "demo":
+        return "run it again with --overwrite"
+    return "no product was written; run the command again (--overwrite if the folder is not empty)"
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,607 @@
+"""The job's configuration: paths and per-stage settings, from a TOML file or from the command
+line, as the same objects (every command builds a :class:`Config` and calls the stages of
+:mod:`stereodem.pipeline`).
+
+Sections (every key optional except ``inputs.left``/``inputs.right`` and ``output.dir``;
+``docs/configuration.md`` lists every key with its default)::
+
+    [inputs]
+    left = "left.tif"              # GeoTIFF with RPC tags/sidecar or <stem>.model.json
+    right = "right.tif"
+    model = "physical"             # "physical" (sidecar if present) or "rpc"
+    seed_dem = "coarse.tif"        # optional: per-tile height ranges, fallback for large holes
+    seed_dem_vertical = "geoid"    # when the seed file does not say (SRTM: geoid)
+    reference_dem = "ref.tif"      # optional: accuracy assessment
+    checkpoints = "points.csv"     # optional: lon,lat,h check points
+
+    [output]
+    dir = "out"
+
+    [rectification]                # stereodem.stereo.settings.RectificationSettings
+    tile_size = 512
+    height_range = [1000, 3500]
+    [matching]                     # ... MatchingSettings
+    matcher = "ncc"
+    [refinement]                   # ... RefinementSettings
+    enabled = true
+    [gridding]                     # ... GriddingSettings
+    res = 30.0                     # output CRS units (metres for UTM)
+    geoid = false
+
+    [filters]
+    thesis = false                 # the Ok thesis chain instead of the default one
+    [fill]
+    max_hole_size = 200
+    [ortho]
+    both = true                    # also the right image, on the same grid
+    [assess]
+    coregister = true
+    [run]
+    workers = 2                    # default: all cores
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tomllib
+
+from stereodem.core.errors import InputError
+from stereodem.core.vertical import VERTICALS, Vertical
+from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS, Resampling, UncertaintyMethod
+from stereodem.stereo import settings as stereo_settings
+from stereodem.stereo.fusion import FusionSettings
+from stereodem.stereo.settings import (
+    GRIDDING_METHODS,
+    JITTER_AXES,
+    MATCHERS,
+    RECTIFICATION_METHODS,
+    GriddingSettings,
+    JitterAxes,
+    MatchingSettings,
+    RectificationSettings,
+    RefinementSettings,
+    StereoSettings,
+)
+
+__all__ = ["InputSettings", "JitterSettings", "UncertaintySettings", "FilterSettings", "FillSettings", "OrthoSettings", "AssessSettings",
+           "RunSettings", "DemSettings", "Config", "load_config", "config_from_dict", "SECTIONS"]
+
+
+@dataclass
+class InputSettings:
+    """Input files.
+
+    Attributes
+    ----------
+    left, right : str
+        The stereo pair (left = reference image).
+    images : list of str, optional
+        Two or more images of one scene instead of ``left``/``right``: an N-view DEM, the
+        pairs chosen by overlap and base, their DEMs fused ([fusion], :mod:`stereodem.multiview`).
+    model : {"physical", "rpc"}
+        Prefer the physical-model sidecar ``<stem>.model.json`` when present, or the RPCs.
+    rpc_direct : bool
+        Localise RPCs with their file's direct (image -> ground) model instead of the exact
+        inverse of the projection (the default; see :mod:`stereodem.sensor.models.rpc_direct`).
+    left_model, right_model : str, optional
+        Sensor-model files overriding the images' own (e.g. from ``stereodem adjust``).
+    band : int or str
+        Image band used for matching and orthoimages (``"3N"``/``"3B"`` in an ASTER granule;
+        a granule given alone is the pair 3N/3B).
+    radiometric : bool
+        ASTER granules: radiance by the radiometric correction table (L = A V / G + D), or
+        the raw DNs.
+    seed_dem : str, optional
+        Coarse DEM setting each tile's height range (and filling large holes on request).
+    seed_dem_vertical : {"geoid", "ellipsoid"}, optional
+        Vertical reference of the seed DEM when its file does not say.
+    reference_dem : str, optional
+        Reference DEM of the accuracy assessment.
+    reference_vertical : {"geoid", "ellipsoid"}, optional
+    checkpoints : str, optional
+        CSV of check points (lon,lat,h or x,y,z).
+    checkpoints_crs : str, optional
+        CRS of x,y check points.
+    checkpoints_vertical : {"geoid", "ellipsoid"}, optional
+        Vertical reference of the check-point heights (default: the DEM's).
+    landcover : str, optional
+        Raster of integer land-cover classes for the per-class statistics.
+    dem : str, optional
+        An existing DEM (the hand route: ``filter``, ``ortho`` and ``assess`` read it).
+    dem_vertical : {"geoid", "ellipsoid"}, optional
+        Vertical reference of ``dem`` when its file does not say.
+    """
+
+    left: str | None = None
+    right: str | None = None
+    images: list | None = None
+    model: str = "physical"
+    rpc_direct: bool = False
+    left_model: str | None = None
+    right_model: str | None = None
+    band: int | str = 1
+    radiometric: bool = True
+    seed_dem: str | None = None
+    seed_dem_vertical: Vertical | None = None
+    reference_dem: str | None = None
+    reference_vertical: Vertical | None = None
+    checkpoints: str | None = None
+    checkpoints_crs: str | None = None
+    checkpoints_vertical: Vertical | None = None
+    landcover: str | None = None
+    dem: str | None = None
+    dem_vertical: Vertical | None = None
+
+
+@dataclass
+class JitterSettings:
+    """Attitude jitter of the right camera (ASTER 3B), MMASTER-style.
+
+    Attributes
+    ----------
+    enabled : bool
+        Estimate the right camera's attitude oscillation (a sum of sines in time) after a
+        first DEM, correct the right model with that time-varying attitude and make the DEM
+        again (:mod:`stereodem.stereo.jitter`). Needs a pushbroom/ASTER model.
+    axes : {"pitch", "roll", "both"}
+        ``pitch`` (along track): from the first DEM's residuals against the seed DEM, which
+        is then required; ``roll`` (across track): from the matcher's residual vertical
+        parallax, no reference DEM needed; ``both``.
+    n_sines : int
+        Sines in the fitted oscillation.
+    min_frequency, max_frequency : float
+        Frequency band searched, Hz.
+    """
+
+    enabled: bool = False
+    axes: JitterAxes = "pitch"
+    n_sines: int = 1
+    min_frequency: float = 0.2
+    max_frequency: float = 8.0
+
+    @property
+    def axis_names(self) -> tuple:
+        """The estimated axes as a tuple (``("pitch", "roll")`` for ``both``)."""
+        return ("pitch", "roll") if self.axes == "both" else (self.axes,)
+
+
+@dataclass
+class FilterSettings:
+    """Blunder filters (:func:`stereodem.post.filters.default_chain`).
+
+    Attributes
+    ----------
+    enabled : bool
+    thesis : bool
+        The Ok thesis's chain (2-sigma neighbourhood test) instead of the default one.
+    erode : int
+        Cells removed along the border of the matched area (partial correlation windows).
+    """
+
+    enabled: bool = True
+    thesis: bool = False
+    erode: int = 2
+
+
+@dataclass
+class FillSettings:
+    """Hole filling (:func:`stereodem.post.fill.fill_holes`).
+
+    Attributes
+    ----------
+    enabled : bool
+    max_hole_size : int
+        Largest hole (cells) filled by inverse-distance weighting.
+    fallback : bool
+        Fill larger holes from the seed DEM (blended seam).
+    smooth_sigma : float
+        Gaussian smoothing of the filled DEM, cells (0: none).
+    """
+
+    enabled: bool = True
+    max_hole_size: int = 200
+    fallback: bool = False
+    smooth_sigma: float = 0.0
+
+
+@dataclass
+class OrthoSettings:
+    """Orthoimages (:func:`stereodem.ortho.drm.orthorectify`).
+
+    Attributes
+    ----------
+    enabled : bool
+    both : bool
+        Also the right image, on the left image's grid.
+    resampling : {"nearest", "bilinear", "cubic", "lanczos"}
+    res : float, optional
+        Posting in the output CRS's units (metres for UTM; default the image GSD).
+    crs : str, optional
+        Output CRS (default: the UTM zone of the image).
+    fill_dem : str, optional
+        A second DEM whose heights are used where the DEM has none (holes, partial coverage);
+        ``fill_dem_vertical`` its vertical reference when the file does not say.
+    """
+
+    enabled: bool = True
+    both: bool = True
+    resampling: Resampling = "bilinear"
+    res: float | None = None
+    crs: str | None = None
+    fill_dem: str | None = None
+    fill_dem_vertical: Vertical | None = None
+
+
+@dataclass
+class AssessSettings:
+    """Accuracy assessment (:func:`stereodem.post.assess.assess_dem`).
+
+    Attributes
+    ----------
+    enabled : bool
+        Assess when a reference DEM is given.
+    coregister : bool
+        Also after Nuth & Kääb co-registration.
+    slope_bins : list of float, optional
+        Slope class edges, degrees (default 0, 5, 10, 20, 30, 45, 90).
+    elevation_bins : list of float, optional
+        Elevation band edges, metres (default: five bands over the DEM's range).
+    landcover_names : dict, optional
+        Names of the land-cover classes, e.g. {"1" = "forest"}.
+    """
+
+    enabled: bool = True
+    coregister: bool = True
+    slope_bins: tuple | None = None
+    elevation_bins: tuple | None = None
+    landcover_names: dict | None = None
+
+
+@dataclass
+class UncertaintySettings:
+    """Per-cell uncertainty of the left orthoimage and of the DEM
+    (:mod:`stereodem.ortho.uncertainty`).
+
+    Attributes
+    ----------
+    enabled : bool
+        Write ``uncertainty/`` (σ east/north/horizontal, CE90, dominant source, shares) for the
+        left orthoimage and ``dem_sigma_vertical.tif`` beside ``dem.tif``.
+    sigma : dict, optional
+        Independent input σ by name, e.g. {col_shift = 0.5, row_shift = 0.5, dem_height = 5}
+        (pixels, metres, or the model parameter's unit).
+    covariance : str, optional
+        An ``adjust_report.json`` whose parameter covariance is propagated.
+    method : {"first-order", "monte-carlo", "fast"}
+    samples : int
+        Monte Carlo samples (or FAST points per curve).
+    """
+
+    enabled: bool = False
+    sigma: dict | None = None
+    covariance: str | None = None
+    method: UncertaintyMethod = "first-order"
+    samples: int = 1000
+
+
+@dataclass
+class RunSettings:
+    """Execution.
+
+    Attributes
+    ----------
+    workers : int, optional
+        Worker processes for the stereo tiles (threads for orthoimages); default all cores.
+    tile_timeout : float, optional
+        Seconds after which a tile is abandoned and reported.
+    resume : bool
+        Reuse finished tiles of the same job in ``OUT/tiles``.
+    dask : str, optional
+        ``dask.distributed`` scheduler address.
+    overwrite : bool
+        Replace the products of a previous job in the output folder.
+    force : bool
+        Keep going with a result the sanity checks call suspect (:mod:`stereodem.stereo.sanity`);
+        the findings are still reported.
+    creation_options : dict, optional
+        GDAL creation options of the GeoTIFF products (as ``-co``), e.g. {COMPRESS = "ZSTD"}.
+    """
+
+    workers: int | None = None
+    tile_timeout: float | None = 600.0
+    resume: bool = False
+    dask: str | None = None
+    overwrite: bool = False
+    force: bool = False
+    creation_options: dict | None = None
+
+
+@dataclass
+class DemSettings:
+    """Products of the stereo DEM beside its rasters.
+
+    Attributes
+    ----------
+    point_cloud : {"las", "laz"}, optional
+        Also write the intersected points as ``dem.las`` / ``dem.laz`` (laspy; LAZ through
+        lazrs): x, y, z in the DEM's CRS and vertical reference, with ray gap, score, source
+        pair and the filters' classification as extra dimensions.
+    """
+
+    point_cloud: str | None = None
+
+
+@dataclass
+class Config:
+    """Paths and settings of a job; nothing loaded (the stages load what they read)."""
+
+    inputs: InputSettings
+    output_dir: str
+    stereo: StereoSettings = field(default_factory=StereoSettings)
+    jitter: JitterSettings = field(default_factory=JitterSettings)
+    filters: FilterSettings = field(default_factory=FilterSettings)
+    fill: FillSettings = field(default_factory=FillSettings)
+    ortho: OrthoSettings = field(default_factory=OrthoSettings)
+    assess: AssessSettings = field(default_factory=AssessSettings)
+    uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)
+    run: RunSettings = field(default_factory=RunSettings)
+    dem: DemSettings = field(default_factory=DemSettings)
+    fusion: FusionSettings = field(default_factory=FusionSettings)
+
+    def to_dict(self) -> dict:
+        d = {"inputs": dataclasses.asdict(self.inputs), "output": {"dir": self.output_dir}}
+        d.update(self.stereo.summary())
+        for name in ("jitter", "filters", "fill", "ortho", "assess", "uncertainty", "run", "dem", "fusion"):
+            d[name] = dataclasses.asdict(getattr(self, name))
+        return d
+
+
+#: TOML section -> (settings class, where it lives in a Config)
+SECTIONS = {
+    "inputs": InputSettings, "rectification": RectificationSettings, "matching": MatchingSettings,
+    "refinement": RefinementSettings, "gridding": GriddingSettings, "jitter": JitterSettings,
+    "filters": FilterSettings,
+    "fill": FillSettings, "ortho": OrthoSettings, "assess": AssessSettings,
+    "uncertainty": UncertaintySettings, "run": RunSettings, "dem": DemSettings,
+    "fusion": FusionSettings,
+}
+_STEREO = ("rectification", "matching", "refinement", "gridding")
+_SECTION_PATHS = {"uncertainty": ("covariance",), "ortho": ("fill_dem",)}
+_PATH_KEYS = ("left", "right", "left_model", "right_model", "seed_dem", "reference_dem",
+              "checkpoints", "landcover", "dem")
+
+
+# ----------------------------------------------------------------------------- checking
+
+#: string-valued option choices (Literal aliases) annotating the settings classes
+_CHOICE_TYPES = tuple(name for namespace in (dict(globals()), vars(stereo_settings))
+                      for name, value in namespace.items() if typing.get_origin(value) is typing.Literal)
+
+
+def _check_value(value, annotation: str, where: str):
+    """``value`` converted to the annotated type, or :class:`InputError` naming ``where``."""
+    ann = annotation.replace("typing.", "").replace(" ", "")
+    optional = ann.startswith("Optional[") or ann.endswith("|None")
+    base = ann.removeprefix("Optional[").removesuffix("]") if ann.startswith("Optional[") else ann.removesuffix("|None")
+    if value is None:
+        if optional or base == "Any":
+            return None
+        raise InputError(f"{where}: a value is required")
+    if base == "Any":
+        return value
+    if base == "bool":
+        if not isinstance(value, bool):
+            raise InputError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if base == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{where}: expected a whole number, got {value!r}")
+        return value
+    if base == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"{where}: expected a number, got {value!r}")
+        if value != value or value in (float("inf"), float("-inf")):
+            raise InputError(f"{where}: expected a finite number, got {value!r}")
+        return float(value)
+    if base == "str" or base in _CHOICE_TYPES:          # choices: checked by validate()
+        if not isinstance(value, str):
+            raise InputError(f"{where}: expected a string, got {value!r}")
+        return value
+    if base == "tuple":
+        if not isinstance(value, (list, tuple)) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            raise InputError(f"{where}: expected a list of numbers, got {value!r}")
+        return tuple(float(v) if isinstance(v, float) else v for v in value)
+    if base == "dict":
+        if not isinstance(value, dict):
+            raise InputError(f"{where}: expected a table, got {value!r}")
+        return value
+    return value                                                # pragma: no cover
+
+
+def build_settings(cls, table: dict, section: str, source):
+    """A settings object of ``cls`` from a TOML table: unknown keys and values of the wrong
+    type are :class:`InputError`\\ s naming the file, section and key."""
+    if not isinstance(table, dict):
+        raise InputError(f"{source}: [{section}] must be a table")
+    hints = {f.name: f.type if isinstance(f.type, str) else typing.get_type_hints(cls)[f.name].__name__
+             for f in dataclasses.fields(cls) if f.init}
+    unknown = set(table) - set(hints)
+    if unknown:
+        raise InputError(f"{source}: unknown key(s) in [{section}]: {', '.join(sorted(unknown))} "
+                         f"(known: {', '.join(hints)})")
+    values = {k: _check_value(v, hints[k], f"{source}: [{section}] {k}") for k, v in table.items()}
+    try:
+        return cls(**values)
+    except TypeError as exc:
+        raise InputError(f"{source}: [{section}]: {exc}") from None
+
+
+# ----------------------------------------------------------------------------- reading
+
+def _is_granule(path, base) -> bool:
+    from stereodem.sensor.io.aster_l1a import is_aster_granule
+    return isinstance(path, str) and is_aster_granule(Path(base) / path if not os.path.isabs(path) else path)
+
+
+def load_config(path, **overrides) -> Config:
+    """Read a TOML configuration; relative input paths are relative to the file."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: configuration file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder, not a configuration file") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file (expected a TOML configuration)") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{path}: not valid TOML ({exc})") from None
+    return config_from_dict(raw, base=path.parent, source=path, **overrides)
+
+
+def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides) -> Config:
+    """A :class:`Config` from a parsed TOML mapping (see the module docstring).
+
+    ``overrides`` (``workers``, ``resume``, ...) replace [run] keys when not None.
+    """
+    if "stereo" in raw:
+        raise InputError(f"{source}: the [stereo] section was split into [rectification], "
+                         "[matching], [refinement] and [gridding] (see docs/configuration.md)")
+    unknown = set(raw) - set(SECTIONS) - {"output"}
+    if unknown:
+        raise InputError(f"{source}: unknown section(s) {', '.join(sorted(unknown))}")
+    inp = dict(raw.get("inputs", {}))
+    if "images" in inp:
+        imgs = inp["images"]
+        if not (isinstance(imgs, list) and len(imgs) >= 2 and all(isinstance(v, str) and v for v in imgs)):
+            raise InputError(f"{source}: [inputs] images must be a list of two or more paths, got {imgs!r}")
+        if "left" in inp or "right" in inp:
+            raise InputError(f"{source}: [inputs] takes either images or left/right, not both")
+        inp["images"] = [v if os.path.isabs(v) else str(Path(base) / v) for v in imgs]
+    elif "left" not in inp:
+        raise InputError(f"{source}: [inputs] needs 'left' (or 'images')")
+    elif "right" not in inp and not _is_granule(inp["left"], base):
+        raise InputError(f"{source}: [inputs] needs 'right' (only an ASTER granule is a pair alone)")
+    for key in _PATH_KEYS:
+        if isinstance(inp.get(key), str) and inp[key]:
+            inp[key] = str(Path(base) / inp[key]) if not os.path.isabs(inp[key]) else inp[key]
+    out = raw.get("output", {}).get("dir") if isinstance(raw.get("output"), dict) else None
+    if not out or not isinstance(out, str):
+        raise InputError(f"{source}: [output] needs 'dir'")
+    tables = {name: dict(inp if name == "inputs" else raw.get(name, {})) for name in SECTIONS}
+    for name, keys in _SECTION_PATHS.items():
+        for key in keys:
+            v = tables[name].get(key)
+            if isinstance(v, str) and v and not os.path.isabs(v):
+                tables[name][key] = str(Path(base) / v)
+    parts = {name: build_settings(cls, tables[name], name, source) for name, cls in SECTIONS.items()}
+    run = parts["run"]
+    for k, v in overrides.items():
+        if v is not None:
+            setattr(run, k, v)
+    cfg = Config(inputs=parts["inputs"],
+                 output_dir=str(Path(base) / out) if not os.path.isabs(out) else out,
+                 stereo=StereoSettings(**{k: parts[k] for k in _STEREO}),
+                 jitter=parts["jitter"], filters=parts["filters"], fill=parts["fill"], ortho=parts["ortho"],
+                 assess=parts["assess"], uncertainty=parts["uncertainty"], run=run, dem=parts["dem"],
+                 fusion=parts["fusion"])
+    validate(cfg, source)
+    return cfg
+
+
+def validate(cfg: Config, source="configuration"):
+    """Ranges and choices of the settings, checked before any work starts."""
+    def bad(msg):
+        raise InputError(f"{source}: {msg}")
+
+    def choice(section, key, value, choices):
+        if value not in choices:
+            said = " or ".join([", ".join(repr(c) for c in choices[:-1]), repr(choices[-1])])
+            bad(f"[{section}] {key} must be {said}, got {value!r}")
+    rect, match, ref, gs = (cfg.stereo.rectification, cfg.stereo.matching, cfg.stereo.refinement,
+                            cfg.stereo.gridding)
+    if cfg.inputs.model not in ("physical", "rpc"):
+        bad(f"[inputs] model must be 'physical' or 'rpc', got {cfg.inputs.model!r}")
+    for key in ("seed_dem_vertical", "reference_vertical", "checkpoints_vertical", "dem_vertical"):
+        v = getattr(cfg.inputs, key)
+        if v is not None:
+            choice("inputs", key, v, VERTICALS)
+    band = cfg.inputs.band
+    if isinstance(band, bool) or not (isinstance(band, int) and band >= 1 or
+                                      isinstance(band, str) and band.upper() in ("3N", "3B")):
+        bad(f"[inputs] band must be a band number >= 1 or an ASTER band 3N/3B, got {band!r}")
+    if not 64 <= rect.tile_size <= 16384:
+        bad(f"[rectification] tile_size must be 64..16384 px, got {rect.tile_size}")
+    if rect.height_range is not None:
+        hr = rect.height_range
+        if len(hr) != 2 or not hr[0] <= hr[1]:
+            bad(f"[rectification] height_range must be [MIN, MAX] with MIN <= MAX, got {list(hr)}")
+    if rect.height_margin < 0:
+        bad(f"[rectification] height_margin must be >= 0, got {rect.height_margin}")
+    choice("rectification", "method", rect.method, RECTIFICATION_METHODS)
+    choice("matching", "matcher", match.matcher, MATCHERS)
+    if ref.window < 3 or ref.window % 2 == 0:
+        bad(f"[refinement] window must be an odd number >= 3, got {ref.window}")
+    if gs.res is not None and not gs.res > 0:
+        bad(f"[gridding] res must be positive, got {gs.res}")
+    from stereodem.core.grid import map_crs
+    for key, value in (("[gridding] crs", gs.crs), ("[ortho] crs", cfg.ortho.crs),
+                       ("[inputs] checkpoints_crs", cfg.inputs.checkpoints_crs)):
+        if value is not None:
+            map_crs(value, f"{source}: {key}")
+    choice("gridding", "method", gs.method, GRIDDING_METHODS)
+    if rect.pointing_uses_seed and not cfg.inputs.seed_dem:
+        bad("[rectification] pointing_uses_seed needs a seed DEM ([inputs] seed_dem, --seed-dem) "
+            "to fix the pointing along the epipolar lines")
+    j = cfg.jitter
+    choice("jitter", "axes", j.axes, JITTER_AXES)
+    if j.enabled and "pitch" in j.axis_names and not cfg.inputs.seed_dem:
+        bad("[jitter] enabled needs a seed DEM ([inputs] seed_dem, --seed-dem) as the reference "
+            "for the pitch jitter (axes = 'roll' needs none)")
+    if j.n_sines < 1 or not 0 < j.min_frequency < j.max_frequency:
+        bad(f"[jitter] needs n_sines >= 1 and 0 < min_frequency < max_frequency, got "
+            f"{j.n_sines}, {j.min_frequency}, {j.max_frequency}")
+    if cfg.filters.erode < 0:
+        bad(f"[filters] erode must be >= 0, got {cfg.filters.erode}")
+    if cfg.fill.max_hole_size < 0:
+        bad(f"[fill] max_hole_size must be >= 0, got {cfg.fill.max_hole_size}")
+    if cfg.fill.smooth_sigma < 0:
+        bad(f"[fill] smooth_sigma must be >= 0, got {cfg.fill.smooth_sigma}")
+    for key in ("slope_bins", "elevation_bins"):
+        v = getattr(cfg.assess, key)
+        if v is not None and (len(v) < 2 or any(b >= c for b, c in zip(v, v[1:]))):
+            bad(f"[assess] {key} must be at least two increasing edges, got {list(v)}")
+    if cfg.ortho.fill_dem_vertical is not None:
+        choice("ortho", "fill_dem_vertical", cfg.ortho.fill_dem_vertical, VERTICALS)
+    if cfg.ortho.res is not None and not cfg.ortho.res > 0:
+        bad(f"[ortho] res must be positive, got {cfg.ortho.res}")
+    choice("ortho", "resampling", cfg.ortho.resampling, RESAMPLINGS)
+    u = cfg.uncertainty
+    choice("uncertainty", "method", u.method, UNCERTAINTY_METHODS)
+    if u.enabled and not cfg.ortho.enabled:
+        bad("[uncertainty] maps are on the orthoimage's grid: enable [ortho]")
+    if u.enabled and not (u.sigma or u.covariance):
+        bad("[uncertainty] enabled needs sigma = {name = value, ...} or covariance = adjust_report.json")
+    if u.samples < 10:
+        bad(f"[uncertainty] samples must be at least 10, got {u.samples}")
+    if cfg.dem.point_cloud not in (None, "las", "laz"):
+        bad(f"[dem] point_cloud must be 'las' or 'laz', got {cfg.dem.point_cloud!r}")
+    if cfg.dem.point_cloud and cfg.jitter.enabled:
+        bad("[dem] point_cloud is not written with [jitter] enabled (not supported yet)")
+    if cfg.dem.point_cloud and cfg.inputs.images:
+        bad("[dem] point_cloud is not written for an N-view DEM ([inputs] images; not supported yet)")
+    for msg in cfg.fusion.problems():
+        bad(f"[fusion] {msg}")
+    run = cfg.run
+    if run.workers is not None and run.workers < 1:
+        bad(f"[run] workers must be at least 1, got {run.workers}")
+    if run.tile_timeout is not None and not run.tile_timeout > 0:
+        bad(f"[run] tile_timeout must be positive, got {run.tile_timeout}")
+    if run.creation_options:
+        from stereodem.core.raster import parse_creation_options
+        run.creation_options = parse_creation_options(run.creation_options)

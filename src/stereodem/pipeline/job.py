@@ -1,0 +1,260 @@
+"""``stereodem run``: every stage into one folder, with ``run.json``.
+
+Every command builds a :class:`stereodem.config.Config` and calls these stage functions:
+``stereodem dem`` runs :func:`load_pair` and :func:`stereo_stage`, ``stereodem filter``
+:func:`post_stage`, ``stereodem ortho`` :func:`ortho_stage`, ``stereodem assess``
+:func:`assess_stage`, and ``stereodem run`` (:func:`run`) all of them into one folder with
+``run.json`` (configuration, versions, timings and peak memory per stage, failed tiles). The
+hand route ``dem -> filter -> ortho -> assess`` and ``run`` therefore give the same rasters.
+
+Output folder of :func:`run`::
+
+    raw/dem.tif, raw/count.tif, raw/score.tif, raw/raygap.tif   stereo DEM before editing
+    dem.tif                      filtered and hole-filled DEM
+    dem_edit_mask.tif            uint8: filter Reason (1-8) or EditCode (99 border rim,
+                                 100 filled by IDW, 101 filled from the seed DEM)
+    ortho_left.tif, ortho_right.tif
+    assess/report.json, report.md, *.png                        when a reference DEM is given
+    tiles/tile_<n>.npz           finished stereo tiles (reused by --resume)
+    run.json
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from stereodem.core.dem import edit_mask_path
+from stereodem.core.jsonutil import json_default
+from stereodem.core.raster import write_text_atomic
+from stereodem.core.threads import thread_budget
+from stereodem.stereo import sanity
+
+from .. import point_cloud
+from ..config import Config
+from ..outlock import output_folder
+from .inputs import check_inputs, input_paths, load_pair
+from .record import StageLog, headline, versions
+from .stages import (
+    assess_stage,
+    ortho_stage,
+    post_stage,
+    stereo_stage,
+    suspect_error,
+    uncertainty_stage,
+)
+
+log = logging.getLogger(__name__)
+
+
+def run(cfg: Config, *, progress_factory=None) -> dict:
+    """Run the whole job; returns the ``run.json`` content.
+
+    The output folder is locked for the job (:func:`stereodem.outlock.output_folder`); with
+    ``overwrite`` the previous job's products are removed first, with ``resume`` its tile
+    cache is kept. Inputs are checked before any stereo work; a suspect stereo result
+    (:mod:`stereodem.stereo.sanity`) stops the job after ``raw/`` and ``run.json`` are written,
+    unless ``cfg.run.force``.
+
+    ``progress_factory(label)`` may return a ``progress(done, total)`` callable per stage.
+    """
+    with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, resume=cfg.run.resume,
+                       inputs=input_paths(cfg)) as out, thread_budget(cfg.run.workers):
+        return _run_in(cfg, out, progress_factory)
+
+
+def writer_options(cfg: Config) -> dict:
+    """GeoTIFF creation options of a job's rasters: the configured ones, plus GDAL's
+    multi-threaded compression on the job's workers (``NUM_THREADS``; the pixels written do
+    not depend on it) unless the configuration sets it."""
+    co = dict(cfg.run.creation_options or {})
+    threads = cfg.run.workers or os.cpu_count() or 1
+    if threads > 1 and not any(k.upper() == "NUM_THREADS" for k in co):
+        co["NUM_THREADS"] = str(threads)
+    return co
+
+
+class BackgroundWriter:
+    """One thread that writes output files while the run goes on (GDAL compresses with the
+    GIL released, so a write overlaps the next stage's numpy work on the other core).
+
+    ``submit(fn, *args)`` queues a write; ``wait_for(i)`` waits for the ``i``-th one,
+    ``wait()`` for all, re-raising the first error. Used as a context manager it waits for
+    every queued write on exit (also when the run fails), so no file is left half-written.
+    """
+
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereodem-writer")
+        self._futures = []
+        self.seconds = 0.0
+
+    @property
+    def count(self) -> int:
+        return len(self._futures)
+
+    def submit(self, fn, *args, **kwargs):
+        def timed():
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds += time.perf_counter() - t0
+        self._futures.append(self._pool.submit(timed))
+
+    def wait_for(self, index: int):
+        if index < len(self._futures):
+            self._futures[index].result()
+
+    def wait(self):
+        for f in self._futures:
+            f.result()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._pool.shutdown(wait=True)
+        return False
+
+
+@dataclass
+class Job:
+    """One run in progress: its configuration and output folder, the per-stage progress
+    factory, the background writer with the creation options of its rasters, the start
+    (UTC text and ``perf_counter``), the stage log and the outputs written so far."""
+
+    cfg: Config
+    out: Path
+    progress: Callable
+    writer: BackgroundWriter
+    creation_options: dict
+    started: str
+    t_start: float = field(default_factory=time.perf_counter)
+    stages: StageLog = field(default_factory=StageLog)
+    written: list = field(default_factory=list)
+
+
+def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
+    from ..provenance import utc_now
+    started = utc_now()
+    with BackgroundWriter() as writer:
+        return _run_stages(Job(cfg, out, progress_factory or (lambda label: None), writer,
+                               writer_options(cfg), started))
+
+
+def _run_stages(job: Job) -> dict:
+    """The stages of :func:`_run_in` after loading; GeoTIFF writes go to ``job.writer`` (a
+    :class:`BackgroundWriter`) and overlap the next stage."""
+    from ..provenance import provenance
+    cfg, out, prog, stages, writer = job.cfg, job.out, job.progress, job.stages, job.writer
+    t_all, started, co, written = job.t_start, job.started, job.creation_options, job.written
+    t0 = stages.start()
+    check_inputs(cfg)
+    pair = None if cfg.inputs.images else load_pair(cfg)
+    stages.record("load", t0)
+
+    t0 = stages.start()
+    bar = prog("stereo")
+    pts = point_cloud.prepare(out, resume=cfg.run.resume) if cfg.dem.point_cloud else None
+    if cfg.inputs.images:                 # N-view DEM: pairs fused per cell (stereodem.multiview)
+        from ..multiview import run_stage
+        pair, products, failed, raw = run_stage(cfg, progress=bar, cache_dir=out / "tiles")
+    else:
+        products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles", points_dir=pts)
+        raw = products.dem
+    _close(bar)
+    writer.submit(raw.prepare_write(out / "raw" / "dem.tif", overwrite=True, creation_options=co))
+    raw = None
+    written.append("raw")
+    tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
+    stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
+                  failed_tiles=len(failed), tile_process_peak_rss_mb=max(tile_rss, default=0.0))
+    warnings = products.info.warnings
+    suspect = sanity.status(warnings) == "suspect" and not cfg.run.force
+
+    report = post_report = None
+    if not suspect:
+        t0 = stages.start()
+        clean, post_report = post_stage(cfg, products.dem, pair.seed_dem, path=out / "dem.tif")
+        from stereodem.post.coreg_run import track_tags  # the track for coregister's along_track
+        tags = track_tags(pair.left_model, pair.left_image.shape, clean.crs, clean.heights)
+        writer.submit(clean.prepare_write(out / "dem.tif", overwrite=True, creation_options=co,
+                                          tags=tags))
+        written += ["dem.tif", edit_mask_path(out / "dem.tif").name]
+        stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(clean.heights).mean()), 3))
+        if pts is not None:                 # the points, classified by the edit mask
+            t0 = stages.start()
+            pc = point_cloud.point_cloud_stage(cfg, out, products, clean.edit_mask, grid=clean.grid)
+            written.append(Path(pc["path"]).name)
+            stages.record("point_cloud", t0, **pc)
+
+        if cfg.ortho.enabled:
+            t0 = stages.start()
+            bar = prog("ortho")
+            images = [("left", pair.left_image, pair.left_model)]
+            if cfg.ortho.both:
+                images.append(("right", pair.right_image, pair.right_model))
+            orthos = ortho_stage(cfg, images, clean, progress=bar)
+            _close(bar)
+            dtypes = {"left": pair.left_dtype, "right": pair.right_dtype}
+            for name, o in orthos.items():           # in the image's own data type
+                writer.submit(o.write, out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name],
+                              creation_options=co)
+                written.append(f"ortho_{name}.tif")
+            stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px
+                                                               for k, o in orthos.items()})
+            ortho_grid = orthos["left"].grid
+            del orthos, images, o                     # written: their memory goes back
+
+        if cfg.uncertainty.enabled:
+            writer.wait()                              # its layers go beside dem.tif
+            t0 = stages.start()
+            summary, dsig = uncertainty_stage(cfg, pair, clean, ortho_grid, products.dem,
+                                              out / "uncertainty")
+            dsig.write(out / "dem.tif", clean, overwrite=True)
+            written += ["uncertainty", "dem_sigma_vertical.tif"]
+            stages.record("uncertainty", t0, shares=summary["shares"],
+                          sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"])
+
+        # the images and the raw layers are not needed any more (the assessment's memory)
+        writer.wait_for(0)        # the raw layers are on disk (the orthoimages may still go)
+        pair.left_image = pair.right_image = None
+        products.dem = None
+        if cfg.assess.enabled and cfg.inputs.reference_dem:
+            t0 = stages.start()
+            report = assess_stage(cfg, clean, out / "assess", overwrite=True,
+                                  provenance=provenance(started=started))[0].report
+            written.append("assess")
+            stages.record("assess", t0)
+
+    t0 = stages.start()
+    writer.wait()
+    stages.record("writes", t0, background_s=round(writer.seconds, 3), files=writer.count,
+                  note="GeoTIFF writes in a background thread, overlapping the following "
+                       "stages (their CPU counts in those stages); seconds: the wait for the "
+                       "last ones")
+    written += ["tiles", "run.json"]
+    run_info = dict(status=sanity.status(warnings), warnings=warnings,
+                    provenance=provenance(started=started), config=cfg.to_dict(),
+                    input_metadata=pair.tags,
+                    versions=versions(), stages=stages.stages,
+                    seconds=round(time.perf_counter() - t_all, 3), failed_tiles=failed,
+                    stereo=dict(tiles=products.tiles, info=products.info.to_dict()), post=post_report,
+                    outputs=sorted(written), headline=headline(report))
+    write_text_atomic(out / "run.json", json.dumps(run_info, indent=1, default=json_default),
+                      overwrite=True)
+    if suspect:
+        suspect_error(cfg, products, out / "run.json")
+    return run_info
+
+
+def _close(bar):
+    if hasattr(bar, "close"):
+        bar.close()

@@ -1,0 +1,83 @@
+"""``stereodem run CONFIG.toml``: the whole job from a configuration file."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .progress import Progress
+
+EXAMPLES = """examples:
+  stereodem run job.toml
+  stereodem run job.toml --workers 2 --overwrite
+  stereodem run job.toml --resume                 # skip what is already done
+  stereodem run job.toml --dask tcp://scheduler:8786
+
+The configuration keys and their defaults are listed in docs/configuration.md; 'stereodem demo' writes one.
+Many scenes: one configuration per scene, one 'stereodem run' per job (e.g. a Slurm job array
+indexing a list of configuration files); each run is independent and writes its own folder.
+"""
+
+
+def add_parser(sub):
+    p = sub.add_parser("run", help="run the whole job (stereo, filters, ortho, assessment) from a TOML file",
+                       description="Sensor models -> stereo DEM -> blunder filters and hole filling -> "
+                                   "orthoimages -> accuracy report, into one output folder with run.json.",
+                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("config", help="TOML configuration")
+    add_run_options(p)
+    p.set_defaults(run=run)
+    return p
+
+
+def add_run_options(p):
+    p.add_argument("--workers", type=int, help="worker processes for tiles (default: all cores)")
+    p.add_argument("--tile-timeout", type=float, help="seconds before a tile is abandoned and logged")
+    p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
+    p.add_argument("--resume", action="store_true", help="reuse an existing output folder")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the products of a previous job in the output folder")
+    p.add_argument("--force", action="store_true",
+                   help="go on with a result the sanity checks call suspect (still reported)")
+    p.add_argument("--co", action="append", metavar="KEY=VALUE", default=[],
+                   help="GDAL creation option of the GeoTIFF products, repeatable (overrides [run] "
+                        "creation_options)")
+
+
+def progress_factory(args):
+    quiet = getattr(args, "quiet", False)
+
+    def make(label):
+        return Progress(label, 1, enabled=not quiet)
+    return make
+
+
+def summarize(info, stream=None):
+    stream = stream or sys.stdout
+    out = info["config"]["output"]["dir"]
+    print(f"DEM:        {out}/dem.tif  (raw layers in {out}/raw/)", file=stream)
+    if "ortho" in info["stages"]:
+        print(f"orthoimage: {out}/ortho_left.tif", file=stream)
+    if info.get("headline"):
+        h = info["headline"]
+        print(f"report:     {out}/assess/report.md", file=stream)
+        print(f"accuracy vs reference: NMAD {h['nmad']:.2f} m, median {h['median']:+.2f} m, "
+              f"RMSE {h['rmse']:.2f} m, LE90 {h['le90']:.2f} m, {h['valid_pct']:.1f} % valid", file=stream)
+    for w in info.get("warnings", []):
+        print(f"warning: {w['message']}", file=stream)
+    if info["failed_tiles"]:
+        print(f"warning: {len(info['failed_tiles'])} tile(s) failed; see run.json", file=stream)
+    print(f"total {info['seconds']:.1f} s; details in {out}/run.json", file=stream)
+
+
+def run(args) -> int:
+    from stereodem.core.raster import parse_creation_options
+
+    from .config import load_config
+    from .pipeline.job import run as run_pipeline
+    cfg = load_config(args.config, workers=args.workers, tile_timeout=args.tile_timeout,
+                      dask=args.dask, resume=args.resume or None, overwrite=args.overwrite or None,
+                      force=args.force or None,
+                      creation_options=parse_creation_options(args.co) or None)
+    info = run_pipeline(cfg, progress_factory=progress_factory(args))
+    summarize(info)
+    return 0

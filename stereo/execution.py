@@ -1,0 +1,121 @@
+"""Tile execution for :func:`stereodem.stereo.pipeline.make_dem`: the process pool or Dask
+(:func:`stereodem.stereo.runner.run_tiles`), images shared through memory maps, and the tile cache
+(``tiles/tile_<n>.npz``, keyed by a fingerprint of settings, models and images) that
+``--resume`` reuses."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from stereodem.core.errors import InputError
+from stereodem.core.jsonutil import json_default
+from stereodem.core.raster import write_text_atomic
+from stereodem.stereo.pipeline import TileResult
+from stereodem.stereo.runner import (
+    SharedArray,
+    clean_cache,
+    load_cached,
+    pool_size,
+    process_peak_rss_mb,
+    run_tiles,
+)
+
+log = logging.getLogger(__name__)
+
+
+def tile_runner(run_settings, progress=None, cache_dir=None):
+    """A tile runner for :func:`stereodem.stereo.pipeline.make_dem` backed by :func:`run_tiles`.
+
+    ``run_settings`` has ``workers``, ``tile_timeout``, ``resume`` and ``dask`` (the address of
+    a Dask scheduler or None): :class:`stereodem.config.RunSettings`. Finished tiles are cached in ``cache_dir`` (``tile_<n>.npz``) so ``--resume`` skips them.
+    """
+    failures = []
+
+    def runner(process_tile, tiles, inputs, settings):
+        pool = pool_size(run_settings.workers, len(tiles), run_settings.dask) > 0
+        key = None
+        if cache_dir is not None:
+            key = _cache_key(tiles, inputs, settings)
+            _check_tile_cache(Path(cache_dir), key, run_settings.resume)
+        with tempfile.TemporaryDirectory(prefix="shared-", dir=cache_dir) as tmp:
+            if pool:       # workers map the images from disk instead of each receiving a copy
+                inputs = dataclasses.replace(
+                    inputs, left_image=SharedArray.create(inputs.left_image, tmp, "left"),
+                    right_image=SharedArray.create(inputs.right_image, tmp, "right"))
+            ctx = dict(inputs=inputs, settings=settings, fn=process_tile)
+            results, fails, _ = run_tiles(_tile_job, tiles, ctx, workers=run_settings.workers,
+                                          timeout=run_settings.tile_timeout, cache_dir=cache_dir,
+                                          resume=run_settings.resume, dask_address=run_settings.dask,
+                                          progress=progress, cache_key=key,
+                                          hold_results=cache_dir is None)
+        failures.extend(fails)
+        by_index = {t.index: t for t in tiles}
+        # in tile order, one at a time: a cached run holds one tile's cell sums, not all
+        return (TileResult.from_arrays(results[i] if results[i] is not None
+                                       else load_cached(cache_dir, by_index[i]))
+                for i in sorted(results))
+
+    runner.failures = failures
+    return runner
+
+
+def _cache_key(tiles, inputs, settings) -> str:
+    """Fingerprint of everything a stereo tile's result depends on (settings, tiles, lattice,
+    models, the images' bytes), so ``--resume`` never reuses tiles of another job."""
+    import hashlib
+    h = hashlib.sha256()
+    g = inputs.lattice
+    h.update(json.dumps([settings.summary(), [t.bounds for t in tiles], list(inputs.height_range),
+                         None if g is None else [tuple(g.transform), list(g.shape), g.crs.to_wkt(),
+                                                 g.method, g.sigma, g.radius, g.geoid]],
+                        default=json_default, sort_keys=True).encode())
+    for m in (inputs.left_model, inputs.right_model):
+        h.update(_model_fingerprint(m))
+    for img in (inputs.left_image, inputs.right_image):
+        h.update(np.ascontiguousarray(img).data)
+    return h.hexdigest()
+
+
+def _model_fingerprint(model) -> bytes:
+    """Bytes identifying a sensor model's parameters: a wrapper with a ``model`` attribute (an
+    image-space correction) gives its own parameters plus its model's, other models their
+    ``to_dict``, else their pickle."""
+    import pickle
+    if hasattr(model, "model") and hasattr(model, "parameters"):
+        own = json.dumps(model.parameters(), sort_keys=True).encode()
+        return own + _model_fingerprint(model.model)
+    if hasattr(model, "to_dict"):
+        return json.dumps(model.to_dict(), default=json_default, sort_keys=True).encode()
+    return pickle.dumps(model, protocol=4)
+
+
+def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
+    """Keep the tile cache consistent with this job: on ``resume`` the cache must hold tiles of
+    the same job (else :class:`InputError`); otherwise old tiles are removed first."""
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    clean_cache(cache_dir)
+    manifest = cache_dir / "job.json"
+    try:
+        old = json.loads(manifest.read_text()).get("key") if manifest.exists() else None
+    except (ValueError, AttributeError, UnicodeDecodeError):
+        old = "unreadable"
+    if resume and old is not None and old != key:
+        raise InputError(f"{cache_dir}: the cached tiles belong to a run with other inputs or "
+                         "settings; run again without --resume (and with --overwrite)")
+    if not resume or old is None:
+        for f in cache_dir.glob("tile_*.npz"):
+            f.unlink()
+    write_text_atomic(manifest, json.dumps({"key": key}), overwrite=True)
+
+
+def _tile_job(tile, ctx):
+    """One stereo tile as plain arrays (:meth:`~stereodem.stereo.pipeline.TileResult.to_arrays`,
+    cacheable), its summary with the worker's peak memory."""
+    res = ctx["fn"](tile, ctx["inputs"], ctx["settings"])
+    res.summary["process_peak_rss_mb"] = round(process_peak_rss_mb(), 1)
+    return res.to_arrays()

@@ -1,0 +1,413 @@
+"""Running a tile function over a scene: serially, in a process pool, or on Dask.
+
+The tile function is a pure function ``fn(tile, context) -> dict[str, ndarray]`` of one
+:class:`stereodem.stereo.tiling.Tile` and a read-only context (images, models, settings). The runner
+
+* sends the context to each worker once (pool initializer / Dask scatter), not per tile;
+* enforces a per-tile timeout inside the worker (``SIGALRM``), so a hung tile is reported and
+  its worker goes on with the next tile;
+* logs failed tiles (exception or timeout) and returns them instead of failing the run;
+* with ``cache_dir``, stores each finished tile as ``tile_<index>.npz`` (atomically) and, on
+  ``resume``, skips tiles already there;
+* submits the largest tiles first (scene-edge tiles are smaller);
+* pins each worker's BLAS/OpenMP, OpenCV and GDAL threads to its share of the cores
+  (:mod:`stereodem.core.threads`);
+* returns results keyed by tile index, so merging is independent of completion order and
+  ``workers=N`` gives bit-identical output to ``workers=1``.
+
+Memory: large read-only arrays of the context (the images) go to workers as
+:class:`SharedArray` memory maps, not copies, so a worker holds one tile's working arrays
+plus the pages of the images that tile reads; the bound is set by the tile size and the
+disparity range (see the stereo pipeline), not by the scene size.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import signal
+import tempfile
+import threading
+import time
+import traceback
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def process_peak_rss_mb() -> float:
+    """Peak resident memory (MB) of the calling process's own address space (``VmHWM``).
+
+    ``ru_maxrss`` would also count a parent's peak from before an ``exec`` and, for a pool
+    worker, the parent's pages at the fork; ``VmHWM`` is the process's own high-water mark.
+    Falls back to ``ru_maxrss`` where ``/proc`` is absent.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("VmHWM")) / 1024.0
+    except (OSError, StopIteration, ValueError):
+        import resource
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def reset_peak_rss() -> bool:
+    """Reset this process's resident-memory high-water mark (``VmHWM``: Linux
+    ``/proc/self/clear_refs`` 5), so :func:`process_peak_rss_mb` then gives the peak since
+    this call; False where that is not possible (the figure then runs from process start)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+class SharedArray:
+    """A read-only array stored as a ``.npy`` file and memory-mapped where it is used.
+
+    It pickles as its path, so a process pool sends a few bytes instead of the array, and
+    every worker maps the same pages (the OS page cache holds them once). Supports what
+    tile functions need: ``shape``, ``dtype``, ``ndim``, slicing and ``np.asarray``.
+    """
+
+    def __init__(self, path):
+        self.path = str(path)
+        self._mm = None
+
+    @classmethod
+    def create(cls, array, directory, name):
+        """Write ``array`` to ``directory/name.npy`` (atomically) and return it shared."""
+        path = Path(directory) / f"{name}.npy"
+        fd, tmp = tempfile.mkstemp(dir=directory, suffix=".npy.part")
+        with os.fdopen(fd, "wb") as f:
+            np.save(f, np.ascontiguousarray(array))
+        os.replace(tmp, path)
+        return cls(path)
+
+    def _map(self):
+        if self._mm is None:
+            self._mm = np.load(self.path, mmap_mode="r")
+        return self._mm
+
+    shape = property(lambda self: self._map().shape)
+    dtype = property(lambda self: self._map().dtype)
+    ndim = property(lambda self: self._map().ndim)
+
+    def __getitem__(self, key):
+        return self._map()[key]
+
+    def __array__(self, dtype=None, copy=None):
+        a = np.asarray(self._map())
+        return a if dtype is None else a.astype(dtype)
+
+    def __getstate__(self):
+        return {"path": self.path}
+
+    def __setstate__(self, state):
+        self.path, self._mm = state["path"], None
+
+
+@dataclass
+class TileFailure:
+    """A tile that raised or timed out, with its place in the image (pixels)."""
+
+    tile: Any
+    reason: str
+
+    def to_dict(self):
+        return {**self.tile.to_dict(), "reason": self.reason}
+
+
+class TileTimeout(Exception):
+    pass
+
+
+# --------------------------------------------------------------------------- worker side
+_CONTEXT = None
+
+
+def _init_worker(context, threads=1):
+    """Pool initializer: the shared context, the parent watch, and the worker's thread budget
+    (BLAS/OpenMP, OpenCV, GDAL pinned to ``threads``: :func:`stereodem.core.threads.pin_threads`;
+    N workers x ``cores // N`` threads = the cores, none stacked on top)."""
+    global _CONTEXT
+    _CONTEXT = context
+    _die_with_parent()
+    # Ctrl-C reaches the whole process group: the parent stops the pool, workers just go
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from stereodem.core.threads import pin_threads
+    pin_threads(threads)
+
+
+def _die_with_parent():
+    """End this worker when its parent process ends, however it ends (kill -9 included):
+    ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, else a thread watching the parent PID."""
+    parent = multiprocessing.parent_process()
+    ppid = parent.pid if parent is not None else os.getppid()
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(1, signal.SIGKILL, 0, 0, 0) != 0:        # 1 = PR_SET_PDEATHSIG
+            raise OSError(ctypes.get_errno(), "prctl")
+        armed = True
+    except (OSError, AttributeError):
+        armed = False
+    if os.getppid() != ppid:                                   # the parent died before prctl
+        os._exit(1)
+    if not armed:
+        import threading
+
+        def watch():
+            while os.getppid() == ppid:
+                time.sleep(0.5)
+            os._exit(1)
+        threading.Thread(target=watch, daemon=True, name="parent-watchdog").start()
+
+
+def _alarm(signum, frame):
+    raise TileTimeout()
+
+
+def _run_one(fn, tile, timeout, context=None):
+    """Run ``fn`` on one tile with a timeout; returns (index, result | None, error | None, seconds)."""
+    ctx = _CONTEXT if context is None else context
+    t0 = time.perf_counter()
+    # SIGALRM only in a main thread (a Dask task runs in a worker thread: no per-tile timeout)
+    use_alarm = (bool(timeout) and hasattr(signal, "SIGALRM")
+                 and threading.current_thread() is threading.main_thread())
+    if use_alarm:
+        old = signal.signal(signal.SIGALRM, _alarm)
+        signal.setitimer(signal.ITIMER_REAL, float(timeout))
+    try:
+        out = fn(tile, ctx)
+        return tile.index, out, None, time.perf_counter() - t0
+    except TileTimeout:
+        return tile.index, None, f"timed out after {timeout:g} s", time.perf_counter() - t0
+    except Exception as exc:  # a failing tile must not fail the run
+        tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
+        return tile.index, None, tb, time.perf_counter() - t0
+    finally:
+        if use_alarm:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, old)
+
+
+# --------------------------------------------------------------------------- cache
+# Each cached tile stores, beside its result arrays, the tile's identity (index and bounds),
+# the job key and a SHA-256 of the result arrays; a file that is not a readable archive, was
+# copied from another tile or job, or whose arrays changed is recomputed, never reused.
+_META = ("__tile__", "__job__", "__sha256__")
+
+
+def _cache_file(cache_dir, tile):
+    return Path(cache_dir) / f"tile_{tile.index:05d}.npz"
+
+
+def _identity(tile):
+    return np.array([tile.index, tile.col0, tile.row0, tile.cols, tile.rows], np.int64)
+
+
+def _digest(result) -> str:
+    import hashlib
+    h = hashlib.sha256()
+    for k in sorted(result):
+        a = np.ascontiguousarray(result[k])
+        h.update(f"{k}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _save(cache_dir, tile, result, key=None):
+    """Store a finished tile atomically, with the permissions of every other output, its
+    identity, job key and checksum."""
+    from stereodem.core.raster import atomic_path
+    meta = {"__tile__": _identity(tile), "__job__": np.array(key or ""),
+            "__sha256__": np.array(_digest(result))}
+    with atomic_path(_cache_file(cache_dir, tile)) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **result, **meta)
+
+
+def _load(cache_dir, tile, key=None):
+    """A cached tile's result, or None (with the reason logged) when it is not this tile's
+    intact result of this job."""
+    path = _cache_file(cache_dir, tile)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except Exception as exc:            # BadZipFile, truncated, not an npz, ...
+        log.warning("%s: unreadable cached tile (%s); recomputing it", path, type(exc).__name__)
+        return None
+    if not all(k in arrays for k in _META):
+        reason = "no identity or checksum"
+    elif not np.array_equal(arrays["__tile__"], _identity(tile)):
+        reason = f"it holds tile {arrays['__tile__'].tolist()}, not {_identity(tile).tolist()}"
+    elif key is not None and str(arrays["__job__"]) != key:
+        reason = "it belongs to another job"
+    else:
+        result = {k: v for k, v in arrays.items() if k not in _META}
+        if _digest(result) == str(arrays["__sha256__"]):
+            return result
+        reason = "checksum mismatch"
+    log.warning("%s: cached tile not reused (%s); recomputing it", path, reason)
+    return None
+
+
+def load_cached(cache_dir, tile) -> dict:
+    """The result arrays of a tile this run has just stored in ``cache_dir`` (no identity or
+    checksum test: see :func:`_load` for files of earlier runs)."""
+    with np.load(_cache_file(cache_dir, tile), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files if k not in _META}
+
+
+def clean_cache(cache_dir):
+    """Remove what an interrupted run may leave in a tile cache: partial tile files and
+    shared image maps (finished tiles stay)."""
+    import shutil
+    d = Path(cache_dir)
+    for p in d.glob("*.part"):
+        p.unlink(missing_ok=True)
+    for p in d.glob("shared-*"):
+        shutil.rmtree(p, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------- driver
+def pool_size(workers: int | None, n_tiles: int, dask_address=None) -> int:
+    """Worker processes :func:`run_tiles` starts for ``n_tiles`` tiles: 0 when it runs them
+    in this process (one worker, at most one tile, or Dask), else ``workers`` (None: all
+    cores)."""
+    n = workers or os.cpu_count() or 1
+    return 0 if dask_address is not None or n == 1 or n_tiles <= 1 else n
+
+
+def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | None = None,
+              cache_dir=None, resume: bool = False, progress=None, dask_address: str | None = None,
+              cache_key: str | None = None, hold_results: bool = True):
+    """Run ``fn(tile, context)`` over ``tiles``.
+
+    Parameters
+    ----------
+    workers : int or None
+        1 runs in this process; N > 1 a process pool of N; None uses all cores.
+    timeout : float, optional
+        Per-tile limit in seconds; a tile over it is reported as failed.
+    cache_dir : path, optional
+        Folder for finished tiles; with ``resume`` those are loaded instead of recomputed
+        (only a tile's own intact result: see :func:`_load`).
+    cache_key : str, optional
+        Identifies the job in each cached tile; tiles of another key are recomputed.
+    hold_results : bool
+        With ``cache_dir``, False keeps no result in memory: ``results`` then maps each
+        finished tile to None and its arrays are read back from its cache file
+        (:func:`load_cached`), so the caller can take them one at a time.
+    progress : callable(done, total), optional
+    dask_address : str, optional
+        A ``dask.distributed`` scheduler address (``tcp://host:port``) or a ``Client``; tiles
+        are then submitted there.
+
+    Returns
+    -------
+    results : dict[int, dict[str, ndarray]]
+    failures : list[TileFailure]
+    timings : dict[int, float] seconds per computed tile
+    """
+    tiles = list(tiles)
+    results, failures, timings = {}, [], {}
+    todo = []
+    if cache_dir is not None:
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+    for t in tiles:
+        cached = None
+        if resume and cache_dir is not None and _cache_file(cache_dir, t).exists():
+            cached = _load(cache_dir, t, cache_key)
+        if cached is not None:
+            results[t.index] = cached if hold_results or cache_dir is None else None
+        else:
+            todo.append(t)
+    if resume and results:
+        log.info("resume: %d of %d tile(s) already done", len(results), len(tiles))
+    total, done = len(tiles), len(results)
+    by_index = {t.index: t for t in tiles}
+
+    def collect(index, out, err, secs):
+        nonlocal done
+        done += 1
+        timings[index] = secs
+        if err is not None:
+            log.warning("tile %d (row %d, col %d) failed: %s", index, by_index[index].row0,
+                        by_index[index].col0, err)
+            failures.append(TileFailure(by_index[index], err))
+        else:
+            if cache_dir is not None:
+                _save(cache_dir, by_index[index], out, cache_key)
+            results[index] = out if hold_results or cache_dir is None else None
+        if progress:
+            progress(done, total)
+
+    # largest tiles first: the pool's last tiles are small ones, so no core idles behind a big
+    # tile at the end (results are keyed by index: the order does not change them)
+    todo.sort(key=lambda t: -int(t.cols) * int(t.rows))
+    n = pool_size(workers, len(todo), dask_address)
+    if dask_address is not None:
+        _run_dask(fn, todo, context, timeout, dask_address, collect)
+    elif n == 0:
+        for t in todo:
+            collect(*_run_one(fn, t, timeout, context))
+    else:
+        # "spawn", not fork: a forked child inherits OpenCV's and PROJ's thread state and can
+        # deadlock in its first cv2 call
+        ctx = multiprocessing.get_context("spawn")
+        from stereodem.core.threads import worker_threads
+        ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(context, worker_threads(n)))
+        try:
+            futs = [ex.submit(_run_one, fn, t, timeout) for t in todo]
+            for f in as_completed(futs):
+                collect(*f.result())
+        except BaseException:            # Ctrl-C, SIGTERM, an error: stop the workers now
+            stop_pool(ex)
+            raise
+        ex.shutdown(wait=True)
+    failures.sort(key=lambda f: f.tile.index)
+    return results, failures, timings
+
+
+def stop_pool(ex, grace: float = 2.0):
+    """Stop a process pool at once: cancel the queued tiles and end its workers (SIGTERM,
+    then SIGKILL after ``grace`` seconds), so no worker outlives an interrupted run."""
+    procs = list(getattr(ex, "_processes", {}).values())      # the pool's worker processes
+    ex.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + grace
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(1.0)
+
+
+def _run_dask(fn, todo, context, timeout, address, collect):
+    try:
+        from dask.distributed import Client
+        from dask.distributed import as_completed as dask_completed
+    except ImportError:
+        from stereodem.core.errors import InputError
+        raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
+    own = not hasattr(address, "submit")
+    client = Client(address) if own else address
+    try:
+        from stereodem.core.threads import register_dask_plugin
+        register_dask_plugin(client)              # each worker's BLAS/OpenCV/GDAL threads pinned
+        ctx = client.scatter(context, broadcast=True)
+        futs = [client.submit(_run_one, fn, t, timeout, ctx, pure=False) for t in todo]
+        for f in dask_completed(futs):
+            collect(*f.result())
+    finally:
+        if own:
+            client.close()

@@ -1,0 +1,320 @@
+"""The application: configuration, end-to-end run, workers, failures, CLI behaviour."""
+import json
+import pickle
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import rasterio
+
+from stereodem import cli
+from stereodem.config import config_from_dict, load_config
+from stereodem.core.errors import InputError
+from stereodem.pipeline.job import run
+from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scene")
+    sc = simulate_scene("aster", size=(420, 400), seed=2, n_points=30)
+    write_scene(sc, d, overwrite=True)
+    return d
+
+
+def _cfg(scene_dir, out, **run):
+    raw = {
+        "inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif"),
+                   "reference_dem": str(scene_dir / "truth_dem.tif"), "reference_vertical": "ellipsoid",
+                   "checkpoints": str(scene_dir / "points.csv")},
+        "output": {"dir": str(out)},
+        "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
+        "run": {"workers": 1, **run},
+    }
+    return config_from_dict(raw)
+
+
+@pytest.mark.slow
+def test_run_writes_products_and_run_json(scene_dir, tmp_path):
+    info = run(_cfg(scene_dir, tmp_path / "out"))
+    out = tmp_path / "out"
+    for name in ("dem.tif", "dem_edit_mask.tif", "raw/dem.tif", "raw/score.tif", "raw/count.tif",
+                 "raw/raygap.tif", "ortho_left.tif", "ortho_right.tif", "assess/report.json", "run.json"):
+        assert (out / name).exists(), name
+    rj = json.loads((out / "run.json").read_text())
+    assert set(rj["stages"]) >= {"load", "stereo", "post", "ortho", "assess"}
+    assert all(s["seconds"] >= 0 and s["peak_rss_mb"] > 0 for s in rj["stages"].values())
+    # CPU seconds per stage: the stereo stage's matching is work of this process or its workers
+    st = rj["stages"]
+    assert all(s["cpu_s"] >= 0 and s["worker_cpu_s"] >= 0 for s in st.values())
+    assert st["stereo"]["cpu_s"] + st["stereo"]["worker_cpu_s"] > 0
+    assert {s["peak_rss_scope"] for s in st.values()} <= {"stage", "process"}
+    assert rj["config"]["rectification"]["tile_size"] == 200 and rj["versions"]["gdal"]
+    # the headline accuracy is real: the stereo DEM against the simulator's truth
+    h = info["headline"]
+    assert h["nmad"] < 4.0 and abs(h["median"]) < 1.5
+    with rasterio.open(out / "ortho_left.tif") as a, rasterio.open(out / "ortho_right.tif") as b:
+        assert a.transform == b.transform and a.shape == b.shape      # same grid for both
+
+
+@pytest.mark.slow
+def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
+    # 3 workers on any machine: 3 tile processes, 3 threads for the main process's stages
+    for w in (1, 2, 3):
+        run(_cfg(scene_dir, tmp_path / f"w{w}", workers=w))
+    for w in (2, 3):
+        for name in ("raw/dem.tif", "raw/score.tif", "raw/count.tif", "dem.tif", "dem_edit_mask.tif",
+                     "ortho_left.tif", "ortho_right.tif"):
+            with rasterio.open(tmp_path / "w1" / name) as a, rasterio.open(tmp_path / f"w{w}" / name) as b:
+                x, y = a.read(), b.read()
+                assert np.array_equal(x, y, equal_nan=True), (w, name)
+        # the assessment's statistics too (blocks on threads, sums merged in block order)
+        reports = [json.loads((tmp_path / d / "assess" / "report.json").read_text()) for d in ("w1", f"w{w}")]
+        for key in ("stats", "by_slope", "by_elevation", "slope_fit", "checkpoints"):
+            assert json.dumps(reports[0][key]) == json.dumps(reports[1][key]), (w, key)
+
+
+@pytest.mark.slow
+def test_failing_tile_is_reported_and_scene_completes(scene_dir, tmp_path, monkeypatch):
+    import stereodem.stereo.pipeline as sp
+    real = sp.process_tile
+    calls = {"n": 0}
+
+    def flaky(tile, inputs, settings):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RuntimeError("simulated tile failure")
+        return real(tile, inputs, settings)
+
+    monkeypatch.setattr(sp, "process_tile", flaky)
+    info = run(_cfg(scene_dir, tmp_path / "f"))
+    assert len(info["failed_tiles"]) == 1 and "simulated tile failure" in info["failed_tiles"][0]["reason"]
+    assert info["stages"]["stereo"]["tiles"] >= 3
+    with rasterio.open(tmp_path / "f" / "dem.tif") as ds:
+        assert np.isfinite(ds.read(1)).mean() > 0.2
+
+
+def test_existing_output_needs_overwrite(scene_dir, tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "keep.txt").write_text("user data")
+    from stereodem.core.errors import OutputExistsError
+    with pytest.raises(OutputExistsError):
+        run(_cfg(scene_dir, out))
+    assert (out / "keep.txt").read_text() == "user data"
+
+
+def test_config_errors(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text("[inputs]\nleft = 'a.tif'\n")
+    with pytest.raises(InputError, match="needs 'right'"):
+        load_config(p)
+    p.write_text("[inputs]\nleft='a'\nright='b'\n[output]\ndir='o'\n[rectification]\ntile_sise=3\n")
+    with pytest.raises(InputError, match="unknown key.*tile_sise"):
+        load_config(p)
+    p.write_text("[inputs]\nleft='a'\nright='b'\n[output]\ndir='o'\n[stereo]\ntile_size=300\n")
+    with pytest.raises(InputError, match="split into"):
+        load_config(p)
+    for table, msg in (("[filters]\nenabled='no'", "expected true or false"),
+                       ("[rectification]\ntile_size='big'", "whole number"),
+                       ("[run]\nworkers=-3", "at least 1"),
+                       ("[rectification]\nheight_range='1000-3500'", "list of numbers"),
+                       ("[inputs]\nmodel='lidar'", "physical"),
+                       ("[fill]\nmax_hole_size=-5", ">= 0")):
+        sec, line = table.split("\n")
+        head = "[inputs]\nleft='a'\nright='b'\n" + (line + "\n" if sec == "[inputs]" else "")
+        body = "" if sec == "[inputs]" else f"{sec}\n{line}\n"
+        p.write_text(head + "[output]\ndir='o'\n" + body)
+        with pytest.raises(InputError, match=msg):
+            load_config(p)
+    p.write_text("not = [toml")
+    with pytest.raises(InputError, match="not valid TOML"):
+        load_config(p)
+
+
+def test_cli_exit_codes_and_help(tmp_path, capsys):
+    assert cli.main([]) == 2
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0
+    for cmd in ("demo", "run", "simulate", "dem", "ortho", "assess"):
+        with pytest.raises(SystemExit) as e:
+            cli.main([cmd, "--help"])
+        assert e.value.code == 0
+        assert "example" in capsys.readouterr().out.lower()
+    with pytest.raises(SystemExit) as e:
+        cli.main(["run"])                       # missing argument: bad usage
+    assert e.value.code == 2
+    assert cli.main(["run", str(tmp_path / "missing.toml")]) == 1
+    assert "configuration file not found" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_demo_command(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "stereodem.cli", "demo", "-o", str(tmp_path / "d"),
+                        "--size", "400", "400"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "NMAD" in r.stdout and (tmp_path / "d" / "result" / "dem.tif").exists()
+    nmad = float(r.stdout.split("NMAD")[1].split("m")[0])
+    assert nmad < 4.0
+
+
+@pytest.mark.slow
+def test_resume_reuses_finished_tiles(scene_dir, tmp_path, monkeypatch):
+    first = run(_cfg(scene_dir, tmp_path / "r"))
+    n_tiles = first["stages"]["stereo"]["tiles"]
+    assert len(list((tmp_path / "r" / "tiles").glob("tile_*.npz"))) == n_tiles
+    import stereodem.stereo.pipeline as sp
+
+    def must_not_run(*a, **k):
+        raise AssertionError("a finished tile was recomputed")
+
+    monkeypatch.setattr(sp, "process_tile", must_not_run)
+    again = run(_cfg(scene_dir, tmp_path / "r", resume=True))
+    assert not again["failed_tiles"]
+    with rasterio.open(tmp_path / "r" / "raw" / "dem.tif") as ds:
+        z = ds.read(1)
+    assert np.isfinite(z).mean() > 0.2
+    assert again["headline"]["nmad"] == pytest.approx(first["headline"]["nmad"])
+
+
+@pytest.mark.slow
+def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
+    out = tmp_path / "r"
+    run(_cfg(scene_dir, out))
+    cfg = _cfg(scene_dir, out, resume=True)
+    cfg.stereo.matching.matcher = "ncc"                    # other settings: the cache is not this job's
+    with pytest.raises(InputError, match="other inputs or settings"):
+        run(cfg)
+    # a fresh (non-resumed) run replaces the cache, so a later resume is consistent again
+    stale = out / "tiles" / "tile_99999.npz"
+    stale.write_bytes(b"stale")
+    cfg = _cfg(scene_dir, out, overwrite=True)
+    cfg.stereo.matching.matcher = "ncc"
+    run(cfg)
+    assert not stale.exists()
+
+
+def test_pool_workers_get_memory_mapped_images(tmp_path):
+    from stereodem.stereo.runner import SharedArray
+    a = np.arange(12, dtype=np.float32).reshape(3, 4)
+    sa = SharedArray.create(a, tmp_path, "img")
+    clone = pickle.loads(pickle.dumps(sa))
+    assert len(pickle.dumps(sa)) < 200                     # the path, not the pixels
+    assert clone.shape == (3, 4) and clone.dtype == np.float32 and clone.ndim == 2
+    np.testing.assert_array_equal(clone[1:, 2:], a[1:, 2:])
+    np.testing.assert_array_equal(np.asarray(clone, dtype=np.float64), a)
+
+
+EXPECTED_COMMANDS = {"demo", "run", "simulate", "dem", "filter", "ortho", "assess"}
+
+
+def test_every_subcommand_is_wired_to_its_run_function():
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    assert EXPECTED_COMMANDS <= set(sub.choices), EXPECTED_COMMANDS - set(sub.choices)
+    for name, p in sub.choices.items():
+        assert callable(p.get_default("run")), name
+
+
+@pytest.mark.slow
+def test_hand_route_gives_the_rasters_of_run(scene_dir, tmp_path):
+    """dem -> filter -> ortho -> assess on the command line equals `stereodem run`."""
+    run(_cfg(scene_dir, tmp_path / "run", workers=1))
+    h = tmp_path / "hand"
+    left, right = str(scene_dir / "left.tif"), str(scene_dir / "right.tif")
+    assert cli.main(["dem", left, right, "-o", str(h / "dem"), "--tile-size", "200",
+                     "--height-range", "1000", "3500", "--workers", "1"]) == 0
+    assert cli.main(["filter", str(h / "dem" / "dem.tif"), "-o", str(h / "clean.tif")]) == 0
+    assert cli.main(["ortho", left, "--dem", str(h / "clean.tif"), "-o", str(h / "ortho.tif"),
+                     "--workers", "1"]) == 0
+    assert cli.main(["assess", str(h / "clean.tif"), "--ref", str(scene_dir / "truth_dem.tif"),
+                     "--ref-vertical", "ellipsoid", "--checkpoints", str(scene_dir / "points.csv"),
+                     "--coregister", "-o", str(h / "assess")]) == 0
+    pairs = {"raw/dem.tif": "dem/dem.tif", "raw/score.tif": "dem/score.tif",
+             "raw/raygap.tif": "dem/raygap.tif", "dem.tif": "clean.tif",
+             "dem_edit_mask.tif": "clean_edit_mask.tif", "ortho_left.tif": "ortho.tif"}
+    for a_name, b_name in pairs.items():
+        with rasterio.open(tmp_path / "run" / a_name) as a, rasterio.open(h / b_name) as b:
+            assert a.transform == b.transform and a.crs == b.crs, a_name
+            assert np.array_equal(a.read(), b.read(), equal_nan=True), a_name
+    ra = json.loads((tmp_path / "run" / "assess" / "report.json").read_text())
+    rb = json.loads((h / "assess" / "report.json").read_text())
+    assert ra["stats"] == rb["stats"]
+
+
+@pytest.fixture(scope="module")
+def granule(tmp_path_factory):
+    """A small simulated ASTER L1A V004 granule (3N 300 x 300, 3B in the real size ratio)."""
+    from stereodem.sensor.simulation.aster_granule import granule_right_size, write_granule_scene
+    d = tmp_path_factory.mktemp("granule")
+    sc = simulate_scene("aster", size=(300, 300), right_size=granule_right_size((300, 300)),
+                        seed=3, n_points=20)
+    return write_granule_scene(sc, d, version=4, seed=3), sc
+
+
+@pytest.mark.slow
+def test_granule_as_delivered_to_dem_and_ortho(granule, tmp_path):
+    """`dem GRANULE` takes 3N/3B; `ortho GRANULE --band 3B` orthorectifies the backward band."""
+    path, sc = granule
+    lo, hi = sc.truth_dem.height_range()
+    assert cli.main(["dem", str(path), "-o", str(tmp_path / "d"), "--height-range", str(lo - 100),
+                     str(hi + 100), "--workers", "1"]) == 0
+    rep = json.loads((tmp_path / "d" / "dem_report.json").read_text())
+    assert rep["input_metadata"]["ASTER_BAND"] == "3N" and rep["input_metadata"]["RIGHT_ASTER_BAND"] == "3B"
+    with rasterio.open(tmp_path / "d" / "dem.tif") as ds:
+        z = ds.read(1)
+    assert np.isfinite(z).mean() > 0.5 and lo - 100 < np.nanmedian(z) < hi + 100
+    assert cli.main(["ortho", str(path), "--band", "3B", "--dem", str(tmp_path / "d" / "dem.tif"),
+                     "-o", str(tmp_path / "o.tif"), "--workers", "1"]) == 0
+    with rasterio.open(tmp_path / "o.tif") as ds:
+        assert ds.tags()["ASTER_BAND"] == "3B" and ds.dtypes[0] == "float32"   # radiance
+    # a band name on a plain GeoTIFF is a clear error
+    assert cli.main(["ortho", str(tmp_path / "o.tif"), "--band", "3N", "--dem",
+                     str(tmp_path / "d" / "dem.tif"), "-o", str(tmp_path / "x.tif")]) == 1
+
+
+@pytest.mark.slow
+def test_run_writes_uncertainty_maps_when_asked(scene_dir, tmp_path):
+    raw = {"inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif")},
+           "output": {"dir": str(tmp_path / "u")},
+           "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
+           "ortho": {"both": False},
+           "uncertainty": {"enabled": True, "sigma": {"pitch_bias": 1e-5, "dem_height": 5.0}},
+           "run": {"workers": 1}}
+    info = run(config_from_dict(raw))
+    out = tmp_path / "u"
+    for name in ("uncertainty/sigma_horizontal.tif", "uncertainty/sensitivity.json",
+                 "dem_sigma_vertical.tif"):
+        assert (out / name).exists(), name
+    shares = info["stages"]["uncertainty"]["shares"]
+    assert set(shares) == {"pitch_bias", "dem_height"} and sum(shares.values()) == pytest.approx(1.0)
+    with rasterio.open(out / "uncertainty" / "sigma_horizontal.tif") as a, \
+            rasterio.open(out / "ortho_left.tif") as b:
+        assert a.transform == b.transform and a.shape == b.shape
+        s = a.read(1)
+    # 10 urad of pitch at ~700 km is ~7 m on the ground: the map is of that order
+    assert 3.0 < np.nanmedian(s) < 30.0
+    with pytest.raises(InputError, match="needs sigma"):
+        config_from_dict({**raw, "uncertainty": {"enabled": True}})
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["dem", "a.tif", "b.tif", "-o", "o", "--co", "COMPRESS"], "KEY=VALUE"),
+    (["dem", "a.tif", "b.tif", "-o", "o", "--jitter-correction"], "seed DEM"),
+    (["dem", "a.tif", "b.tif", "-o", "o", "--pointing-from-seed"], "seed DEM"),
+    (["filter", "d.tif", "-o", "c.tif", "--fill-from-seed"], "--seed-dem"),
+])
+def test_new_options_reject_bad_values_before_any_work(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and "Traceback" not in err[0], err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "c.tif").exists()
+
+
+def test_band_names_are_checked_by_the_parser(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["ortho", "a.tif", "--dem", "d.tif", "-o", "o.tif", "--band", "3X"])
+    assert e.value.code == 2 and "3N/3B" in capsys.readouterr().err

@@ -1,0 +1,60 @@
+"""The run's background writer: writes overlap the next stage, errors reach the caller, and
+no write is left running when the run ends or fails."""
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from stereodem.pipeline.job import BackgroundWriter
+
+
+def test_writes_run_in_order_off_the_calling_thread_and_finish_on_exit(tmp_path):
+    done, threads = [], []
+
+    def write(name, delay):
+        time.sleep(delay)
+        threads.append(threading.current_thread().name)
+        (tmp_path / name).write_text(name)
+        done.append(name)
+
+    with BackgroundWriter() as w:
+        w.submit(write, "a", 0.2)
+        w.submit(write, "b", 0.0)
+        assert done == []                        # the caller goes on while "a" is written
+        w.wait_for(0)
+        assert done[0] == "a"
+    assert done == ["a", "b"] and w.count == 2 and w.seconds >= 0.2
+    assert all(t != threading.current_thread().name for t in threads)
+
+
+def test_write_error_reaches_the_caller():
+    def fail():
+        raise OSError("disk full")
+
+    with BackgroundWriter() as w:
+        w.submit(fail)
+        with pytest.raises(OSError, match="disk full"):
+            w.wait()
+
+
+def test_dem_prepared_write_is_independent_of_later_changes(tmp_path):
+    """The heights and layers are converted when the write is prepared: changing the DEM
+    afterwards (the post stage works on it) does not change what is written."""
+    import rasterio
+    from affine import Affine
+    from pyproj import CRS
+
+    from stereodem.core.dem import DEM
+    z = np.arange(12.0).reshape(3, 4)
+    g = DEM(z.copy(), Affine(30, 0, 500000, 0, -30, 4000000), CRS.from_epsg(32637), "ellipsoid",
+            count=np.ones((3, 4)), score=np.full((3, 4), 0.9), ray_gap=np.full((3, 4), 0.5))
+    write = g.prepare_write(tmp_path / "dem.tif")
+    g.heights[:] = -1.0
+    g.score[:] = 0.0
+    paths = write()
+    assert sorted(paths) == ["count", "dem", "ray_gap", "score"]
+    with rasterio.open(tmp_path / "dem.tif") as ds:
+        np.testing.assert_array_equal(ds.read(1), z.astype(np.float32))
+    with rasterio.open(tmp_path / "score.tif") as ds:
+        np.testing.assert_array_equal(ds.read(1), np.float32(0.9))

@@ -1,0 +1,105 @@
+"""stereodem batch: one job per scene on the process pool and on a dask LocalCluster; a
+corrupt scene fails with its reason and the others are done; a second run skips done scenes."""
+import json
+
+import numpy as np
+import pytest
+import rasterio
+
+from stereodem import cli
+from stereodem.batch import expand_inputs, run_batch
+from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+
+CONFIG = """
+[inputs]
+left = "{d}/left.tif"
+right = "{d}/right.tif"
+reference_dem = "{d}/truth_dem.tif"
+reference_vertical = "ellipsoid"
+
+[output]
+dir = "ignored"
+
+[rectification]
+tile_size = 160
+height_range = [1000, 3500]
+
+[ortho]
+both = false
+"""
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    """Two tiny simulated pairs (240 x 240, as configurations) and a corrupt granule."""
+    root = tmp_path_factory.mktemp("batch")
+    paths = []
+    for seed in (4, 5):
+        d = root / f"scene{seed}"
+        write_scene(simulate_scene("aster", size=(240, 240), seed=seed, n_points=10), d, overwrite=True)
+        cfg = root / f"scene{seed}.toml"
+        cfg.write_text(CONFIG.format(d=d))
+        paths.append(cfg)
+    bad = root / "AST_L1A_corrupt.hdf"
+    bad.write_bytes(b"\x0e\x03\x13\x01" + bytes(range(256)) * 8)      # HDF4 magic, then junk
+    paths.append(bad)
+    listing = root / "scenes.txt"
+    listing.write_text("# three scenes\n" + "\n".join(p.name for p in paths) + "\n")
+    return root, paths, listing
+
+
+def _check(result, out):
+    rows = {r["name"]: r for r in result["scenes"]}
+    assert [rows[n]["status"] for n in ("scene4", "scene5", "AST_L1A_corrupt")] == \
+        ["done", "done", "failed"]
+    reason = rows["AST_L1A_corrupt"]["reason"]
+    assert "AST_L1A_corrupt.hdf" in reason and "\n" not in reason and "Traceback" not in reason
+    assert result["summary"] == {"done": 2, "failed": 1, "skipped": 0, "pending": 0}
+    assert json.loads((out / "batch.json").read_text())["summary"] == result["summary"]
+    for n in ("scene4", "scene5"):
+        assert json.loads((out / n / "run.json").read_text())["status"] == "ok"
+        with rasterio.open(out / n / "dem.tif") as ds:
+            assert np.isfinite(ds.read(1)).mean() > 0.3
+    assert not (out / "AST_L1A_corrupt" / "dem.tif").exists()
+
+
+@pytest.mark.slow
+def test_batch_on_the_pool_and_resume(scenes, tmp_path, capsys):
+    _, _, listing = scenes
+    out = tmp_path / "out"
+    assert cli.main(["batch", str(listing), "-o", str(out), "--workers", "2"]) == 1   # one failed
+    result = json.loads((out / "batch.json").read_text())
+    assert result["backend"] == "pool" and result["workers"] == 2
+    _check(result, out)
+    printed = capsys.readouterr().out
+    assert "FAILED" in printed and "2 done, 1 failed" in printed
+    # again: the done scenes are skipped, the corrupt one fails again, nothing recomputed
+    mtime = (out / "scene4" / "dem.tif").stat().st_mtime_ns
+    again = run_batch(expand_inputs([listing]), out, workers=2)
+    st = {r["name"]: r["status"] for r in again["scenes"]}
+    assert st == {"scene4": "skipped", "scene5": "skipped", "AST_L1A_corrupt": "failed"}
+    assert (out / "scene4" / "dem.tif").stat().st_mtime_ns == mtime
+
+
+@pytest.mark.slow
+def test_batch_on_a_dask_local_cluster(scenes, tmp_path):
+    pytest.importorskip("dask.distributed")
+    _, paths, _ = scenes
+    out = tmp_path / "out"
+    result = run_batch(expand_inputs(paths), out, workers=2, dask="local")
+    assert result["backend"] == "dask"
+    _check(result, out)
+
+
+def test_list_files_names_and_missing_scenes(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "x.toml").write_text("")
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "x.toml").write_text("")
+    lst = tmp_path / "l.txt"
+    lst.write_text("a/x.toml\nb/x.toml  # the same stem\n\nnone.hdf\n")
+    sc = expand_inputs([lst])
+    assert [(s.name, s.kind) for s in sc] == [("x", "config"), ("x_2", "config"), ("none", "missing")]
+    result = run_batch([sc[2]], tmp_path / "out", workers=1)
+    row = result["scenes"][0]
+    assert row["status"] == "failed" and row["reason"].endswith("none.hdf: not found")

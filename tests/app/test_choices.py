@@ -1,0 +1,57 @@
+"""Each option's choices live once (issue #23): the library's Literal aliases give the CLI's
+``choices``, the configuration checks and the generated docs."""
+import argparse
+
+import pytest
+
+from stereodem.cli import build_parser
+from stereodem.config import Config, InputSettings, validate
+from stereodem.core.errors import InputError
+from stereodem.core.vertical import VERTICALS
+from stereodem.docgen import configuration_markdown
+from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS
+from stereodem.stereo.settings import GRIDDING_METHODS, JITTER_AXES, MATCHERS
+
+
+def _choices(command: str, option: str):
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    action = next(a for a in sub.choices[command]._actions if option in a.option_strings)
+    return tuple(action.choices)
+
+
+@pytest.mark.parametrize("command, option, choices", [
+    ("dem", "--matcher", MATCHERS), ("dem", "--gridding", GRIDDING_METHODS),
+    ("dem", "--jitter-correction", JITTER_AXES), ("dem", "--dem-vertical", VERTICALS),
+    ("filter", "--dem-vertical", VERTICALS), ("ortho", "--resampling", RESAMPLINGS),
+    ("ortho", "--dem-vertical", VERTICALS), ("assess", "--ref-vertical", VERTICALS),
+    ("uncertainty", "--method", UNCERTAINTY_METHODS),
+])
+def test_cli_choices_are_the_librarys(command, option, choices):
+    assert _choices(command, option) == choices
+
+
+def test_ortho_kernels_cover_the_resampling_choices():
+    from stereodem.ortho.drm import RESAMPLING
+    assert set(RESAMPLING) == set(RESAMPLINGS)
+
+
+@pytest.mark.parametrize("section, key, value", [
+    ("stereo.matching", "matcher", "bm"), ("stereo.gridding", "method", "median"),
+    ("jitter", "axes", "yaw"), ("ortho", "resampling", "area"),
+    ("uncertainty", "method", "exact"), ("ortho", "fill_dem_vertical", "navd88"),
+])
+def test_configuration_refuses_other_values_naming_the_choices(section, key, value):
+    cfg = Config(InputSettings(left="l.tif", right="r.tif"), "out")
+    owner = cfg
+    for part in section.split("."):
+        owner = getattr(owner, part)
+    setattr(owner, key, value)
+    with pytest.raises(InputError, match=rf"{key} must be .*got '{value}'"):
+        validate(cfg)
+
+
+def test_docs_list_the_literal_choices():
+    text = configuration_markdown()
+    assert "| `fill_dem_vertical` | {\"geoid\", \"ellipsoid\"}, optional |" in text
+    assert "{" + ", ".join(f'"{m}"' for m in MATCHERS) + "}" in text

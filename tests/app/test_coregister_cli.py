@@ -1,0 +1,160 @@
+"""``stereodem coregister`` end to end on a small real-DEM crop; bad inputs: one line, exit 1,
+nothing written."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from affine import Affine
+
+from stereodem.cli import main
+from stereodem.core.dem import DEM
+from stereodem.post.spatialstats import VariogramModel
+from stereodem.post.synthetic import InjectedErrors, inject_errors
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("coreg")
+    full = DEM.bundled()
+    ref = DEM(full.heights[:150, :150].copy(), full.transform, full.crs, "geoid")
+    dem, _ = inject_errors(ref, InjectedErrors(dz=2.0, heading_deg=190.0,
+                                               along_sines=[(1.5, 3000.0, 0.0)],
+                                               noise=VariogramModel(np.array([150.0]), np.array([0.25])),
+                                               seed=1))
+    ref.write(d / "ref.tif")
+    dem.write(d / "dem.tif")
+    far = DEM(ref.heights, ref.transform @ Affine.translation(3000, 0), ref.crs, "geoid")
+    far.write(d / "far.tif")
+    DEM(ref.heights, ref.transform, ref.crs, None).write(d / "unknown.tif")
+    return d
+
+
+def test_coregister_writes_dem_json_and_figures(files, capsys):
+    out = files / "out"
+    rc = main(["coregister", str(files / "dem.tif"), "--ref", str(files / "ref.tif"),
+               "--chain", "vshift,along_track", "--track-angle", "190", "-o", str(out)])
+    assert rc == 0
+    rep = json.loads((out / "coregistration.json").read_text())
+    assert [s["step"] for s in rep["steps"]] == ["vshift", "along_track"]
+    assert rep["steps"][0]["parameters"]["dz"]["value"] == pytest.approx(2.0, abs=0.2)
+    assert rep["steps"][1]["after"]["nmad"] < 0.7 * rep["steps"][0]["after"]["nmad"]
+    assert (out / "coreg_dh.png").is_file() and (out / "coreg_1_along_track.png").is_file()
+    d = DEM.from_file(out / "dem_coregistered.tif")
+    assert d.vertical == "geoid" and d.shape == (150, 150)
+    # a second run into the same folder is refused without --overwrite
+    rc = main(["coregister", str(files / "dem.tif"), "--ref", str(files / "ref.tif"), "-o", str(out)])
+    assert rc == 1
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--ref", "far.tif"], "does not overlap"),
+    (["--ref", "unknown.tif"], "vertical reference unknown"),
+    (["--ref", "ref.tif", "--chain", "along_track"], "heading"),
+    (["--ref", "ref.tif", "--chain", "nuth_kaab,bogus"], "unknown co-registration step"),
+])
+def test_bad_input_is_one_line_and_writes_nothing(files, capsys, extra, message):
+    out = files / f"bad_{abs(hash(tuple(extra)))}"
+    args = ["coregister", str(files / "dem.tif")] + \
+        [str(files / a) if a.endswith(".tif") else a for a in extra] + ["-o", str(out)]
+    rc = main(args)
+    err = capsys.readouterr().err.strip()
+    assert rc == 1
+    assert message in err and "Traceback" not in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_assess_error_analysis_adds_section_and_figures(files):
+    import json as _json
+    out = files / "assess"
+    rc = main(["assess", str(files / "dem.tif"), "--ref", str(files / "ref.tif"), "--error-analysis",
+               "--chain", "vshift", "-o", str(out)])
+    assert rc == 0
+    rep = _json.loads((out / "report.json").read_text())
+    ea = rep["error_analysis"]
+    assert len(ea["variogram"]["model"]["ranges_m"]) == 2
+    assert ea["coregistration"]["steps"][0]["step"] == "vshift"
+    assert (out / "variogram.png").is_file() and (out / "error_vs_terrain.png").is_file()
+    assert "Error analysis" in (out / "report.md").read_text()
+
+
+def test_track_heading_of_a_pushbroom_model_and_tag_round_trip(tmp_path):
+    from stereodem.post.coreg_run import (
+        TRACK_HEADING_TAG,
+        track_heading,
+        track_heading_of,
+    )
+    from stereodem.sensor.models.pushbroom import PushbroomModel
+    left, _ = PushbroomModel.synthetic_pair(40.0, 39.0, width=400, height=400, gsd=15.0,
+                                            heading_deg=195.0, first_tilt_deg=0.0,
+                                            backward_tilt_deg=-27.6)
+    hdg = track_heading(left, (400, 400))
+    # the ground track turns from the orbit's 195° by the Earth's rotation under it:
+    # ω_E·R·cos(39°)/v_ground ≈ 7.29e-5 · 6.371e6 · 0.777 / 6.8e3 rad ≈ 3.0° (descending: to the west)
+    assert hdg == pytest.approx(198.0, abs=1.0)
+    full = DEM.bundled()
+    d = DEM(full.heights[:50, :50].copy(), full.transform, full.crs, "geoid")
+    d.write(tmp_path / "d.tif", tags={TRACK_HEADING_TAG: f"{hdg:.4f}"})
+    assert track_heading_of(tmp_path / "d.tif") == pytest.approx(hdg, abs=1e-3)
+
+
+@pytest.mark.slow
+def test_assess_with_a_sensor_sigma_map_reports_the_explained_share(files):
+    import json as _json
+
+    from stereodem.core.raster import write_geotiff
+    ref = DEM.from_file(files / "ref.tif")
+    write_geotiff(files / "sigma.tif", np.full(ref.shape, 0.3, np.float32), ref.transform, ref.crs,
+                  np.nan)
+    out = files / "assess_sigma"
+    rc = main(["assess", str(files / "dem.tif"), "--ref", str(files / "ref.tif"), "--chain",
+               "vshift", "--sigma-map", str(files / "sigma.tif"), "-o", str(out)])
+    assert rc == 0
+    sm = _json.loads((out / "report.json").read_text())["error_analysis"]["heteroscedasticity"]["sensor_model"]
+    # injected noise σ 0.5 m plus a 1.5 m along-track sine left in: 0.3 m explains a small share
+    assert 0.0 < sm["explained_variance_share"] < 0.3
+    assert sm["rms_sigma"] == pytest.approx(0.3, rel=1e-3)
+
+
+def test_reference_on_another_grid_crs_and_vertical_is_warped_and_converted(files, tmp_path):
+    """An ellipsoidal UTM reference for a geoid lon/lat DEM: warped onto the DEM's grid and
+    converted through EGM96 (the offset left is the warp's, not the ~-20 m geoid height)."""
+    from affine import Affine as A
+
+    from stereodem.post import warp
+    ref = DEM.from_file(files / "ref.tif")
+    t = A(90.0, 0, 0, 0, -90.0, 0)
+    from stereodem.core import geodesy
+    w, s, e, n = ref.bounds_lonlat()
+    x, y = geodesy.lonlat_to_crs(np.array([w, e]), np.array([s, n]), "EPSG:32637")
+    t = A(90.0, 0, float(x.min()), 0, -90.0, float(y.max()))
+    shape = (int((y.max() - y.min()) / 90), int((x.max() - x.min()) / 90))
+    z = warp.to_grid(ref.heights, ref.transform, ref.crs, t, "EPSG:32637", shape, resampling="cubic")
+    utm = DEM(z, t, "EPSG:32637", "geoid").to_reference("ellipsoid")
+    utm.write(tmp_path / "ref_utm_ell.tif")
+    out = tmp_path / "o"
+    rc = main(["coregister", str(files / "ref.tif"), "--ref", str(tmp_path / "ref_utm_ell.tif"),
+               "--chain", "vshift", "-o", str(out), "--no-figures"])
+    assert rc == 0
+    rep = json.loads((out / "coregistration.json").read_text())
+    assert "converted from ellipsoid to geoid" in rep["vertical"]
+    assert abs(rep["steps"][0]["parameters"]["dz"]["value"]) < 0.5
+
+
+def test_stable_mask_raster_and_include(files, tmp_path):
+    from stereodem.core.raster import write_geotiff
+    from stereodem.post.coreg import StableMask
+    ref = DEM.from_file(files / "ref.tif")
+    m = np.zeros(ref.shape, np.uint8)
+    m[:, :75] = 1
+    write_geotiff(tmp_path / "m.tif", m, ref.transform, ref.crs, None)
+    got = StableMask(raster=str(tmp_path / "m.tif")).array(ref)
+    assert got[:, :75].all() and not got[:, 76:].any()
+    t = ref.transform
+    ring = [[t.c, t.f], [t.c + 30 * t.a, t.f], [t.c + 30 * t.a, t.f + 30 * t.e], [t.c, t.f + 30 * t.e], [t.c, t.f]]
+    (tmp_path / "inc.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+    inc = StableMask(include=[str(tmp_path / "inc.geojson")]).array(ref)
+    assert inc.sum() == 900 and inc[:30, :30].all()

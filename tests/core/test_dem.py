@@ -1,0 +1,116 @@
+import numpy as np
+import pytest
+import rasterio
+from affine import Affine
+
+from stereodem.core import geodesy
+from stereodem.core.dem import DEM, OUTSIDE, VOID
+from stereodem.core.errors import CRSError, DEMCoverageError, DEMError, VerticalReferenceError
+
+
+def test_bundled_dem_metadata():
+    dem = DEM.bundled()
+    assert dem.vertical == "geoid"
+    assert dem.shape == (1000, 1000)
+    w, s, e, n = dem.bounds_lonlat()
+    assert (w, s, e, n) == pytest.approx((40.0, 39.1667, 40.8333, 40.0), abs=1e-3)
+
+
+def test_bilinear_sampling_matches_pixel_centres_and_interpolates():
+    dem = DEM.bundled()
+    H = dem.heights
+    # pixel centre (r, c) is at lon = 40 + (c + 0.5) dx, lat = 40 - (r + 0.5) dx
+    dx = 1 / 1200
+    r, c = 500, 321
+    lon, lat = 40 + (c + 0.5) * dx, 40 - (r + 0.5) * dx
+    assert dem.sample(lon, lat, reference=None) == pytest.approx(H[r, c], abs=1e-3)
+    # midway between four centres: the mean of the four
+    z = dem.sample(lon + dx / 2, lat - dx / 2, reference=None)
+    assert z == pytest.approx(H[r:r + 2, c:c + 2].mean(), abs=1e-3)
+    # ellipsoidal heights add the EGM96 undulation
+    ze = dem.sample(lon, lat)
+    assert ze - H[r, c] == pytest.approx(float(geodesy.geoid_undulation(lon, lat)), abs=1e-3)
+
+
+def test_outside_and_void_are_reported_not_invented(tmp_path):
+    h = np.full((50, 60), 1000.0, np.float32)
+    h[20:23, 30:33] = -9999
+    path = tmp_path / "dem.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=60, height=50, count=1, dtype="float32",
+                       crs="EPSG:32637", transform=Affine(30, 0, 500000, 0, -30, 4400000), nodata=-9999) as d:
+        d.write(h, 1)
+    dem = DEM.from_file(path, vertical="ellipsoid")
+    x = np.array([500000 + 31.5 * 30, 500000 + 10 * 30, 400000.0])
+    y = np.array([4400000 - 21.5 * 30, 4400000 - 10 * 30, 4400000.0])
+    lon, lat = geodesy.crs_to_lonlat(x, y, "EPSG:32637")
+    z, st = dem.sample(lon, lat, return_status=True)
+    assert np.isnan(z[0]) and st[0] == VOID
+    assert z[1] == pytest.approx(1000.0) and st[1] == 0
+    assert np.isnan(z[2]) and st[2] == OUTSIDE
+    with pytest.raises(DEMCoverageError, match="outside the DEM"):
+        dem.sample(lon, lat, strict=True)
+
+
+def test_unknown_vertical_reference_is_an_error(tmp_path):
+    path = tmp_path / "dem.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32",
+                       crs="EPSG:4326", transform=Affine(0.01, 0, 40, 0, -0.01, 40)) as d:
+        d.write(np.ones((4, 4), np.float32), 1)
+    dem = DEM.from_file(path)
+    assert dem.vertical is None
+    assert dem.sample(40.015, 39.985, reference=None) == pytest.approx(1.0)
+    with pytest.raises(VerticalReferenceError, match="vertical reference unknown"):
+        dem.sample(40.015, 39.985)
+
+
+def test_bad_dems(tmp_path):
+    path = tmp_path / "nocrs.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32") as d:
+        d.write(np.ones((4, 4), np.float32), 1)
+    with pytest.raises(CRSError, match="nocrs.tif: the DEM has no CRS"):
+        DEM.from_file(path)
+    with pytest.raises(DEMError, match="all nodata"):
+        DEM(np.full((3, 3), np.nan), Affine.identity(), "EPSG:4326")
+    with pytest.raises(DEMError, match="cannot read"):
+        DEM.from_file(tmp_path / "missing.tif")
+
+
+def test_write_round_trip_keeps_vertical_reference(tmp_path):
+    dem = DEM.bundled()
+    out = dem.to_reference("ellipsoid").write(tmp_path / "e.tif")
+    back = DEM.from_file(out)
+    assert back.vertical == "ellipsoid"
+    assert np.nanmax(np.abs(back.heights - dem.to_reference("ellipsoid").heights)) == 0
+    from stereodem.core.errors import OutputExistsError
+    with pytest.raises(OutputExistsError):
+        dem.write(out)
+
+
+@pytest.mark.parametrize("how", ["int16_nodata", "mask_band", "nan"])
+def test_dem_voids_from_nodata_mask_band_or_nan(tmp_path, how):
+    """Every way a GeoTIFF says 'no height' reads as NaN (float32), and nothing else does."""
+    h = np.arange(48 * 40, dtype=np.float32).reshape(48, 40) % 900 + 100
+    void = np.zeros(h.shape, bool)
+    void[5:9, 11:20] = True
+    path = tmp_path / "dem.tif"
+    kw = dict(driver="GTiff", width=40, height=48, count=1, crs="EPSG:32637",
+              transform=Affine(30, 0, 500000, 0, -30, 4400000))
+    data = h.copy()
+    if how == "int16_nodata":
+        data[void] = -32768
+        with rasterio.open(path, "w", dtype="int16", nodata=-32768, **kw) as d:
+            d.write(data.astype(np.int16), 1)
+    elif how == "mask_band":
+        data[void] = -1.0                              # a plausible-looking value, masked out
+        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), \
+                rasterio.open(path, "w", dtype="float32", **kw) as d:
+            d.write(data, 1)
+            d.write_mask(np.where(void, 0, 255).astype(np.uint8))
+    else:
+        data[void] = np.nan
+        with rasterio.open(path, "w", dtype="float32", **kw) as d:
+            d.write(data, 1)
+    dem = DEM.from_file(path, vertical="ellipsoid")
+    assert dem.heights.dtype == np.float32
+    np.testing.assert_array_equal(np.isnan(dem.heights), void)
+    np.testing.assert_array_equal(dem.heights[~void], h[~void])

@@ -1,0 +1,390 @@
+"""``stereodem mosaic`` / :mod:`stereodem.post.mosaic`: blending, statistics, CRSs and vertical
+references, co-registration, block independence, bounded memory, bad input (issue 26 item 4).
+
+Small synthetic DEMs (a smooth terrain on a UTM 37N lattice, 30 m) cut into overlapping
+windows with known biases; every expectation is computed independently with numpy.
+"""
+from __future__ import annotations
+
+import json
+import tracemalloc
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+import rasterio
+from affine import Affine
+
+from stereodem.cli import main
+from stereodem.core import geodesy
+from stereodem.core.errors import VerticalReferenceError
+from stereodem.core.raster import write_geotiff
+from stereodem.post.mosaic import memory_bound, plan_mosaic, read_on_grid, run_mosaic
+
+CRS = "EPSG:32637"
+RES = 30.0
+X0, Y0 = 400_020.0, 4_400_010.0          # top-left corner of the truth lattice
+
+
+def terrain(rows, cols, r0=0, c0=0):
+    """Smooth terrain (m) on the truth lattice's cells [r0:r0+rows, c0:c0+cols]."""
+    y = Y0 - (np.arange(r0, r0 + rows) + 0.5) * RES
+    x = X0 + (np.arange(c0, c0 + cols) + 0.5) * RES
+    xx, yy = np.meshgrid(x, y)
+    return (1500 + 300 * np.sin(xx / 2500.0) * np.cos(yy / 1900.0) + 0.01 * (xx - X0)).astype(np.float32)
+
+
+def write_dem(path, r0, c0, rows, cols, *, bias=0.0, noise=0.0, vertical="geoid", seed=0, sigma=None,
+              heights=None):
+    z = terrain(rows, cols, r0, c0) + np.float32(bias) if heights is None else heights
+    if noise:
+        z = z + np.random.default_rng(seed).normal(0, noise, z.shape).astype(np.float32)
+    t = Affine(RES, 0, X0 + c0 * RES, 0, -RES, Y0 - r0 * RES)
+    if sigma is None:
+        write_geotiff(path, z, t, CRS, np.nan, vertical=vertical, descriptions="height")
+    else:
+        write_geotiff(path, np.stack([z, np.full_like(z, sigma)]), t, CRS, np.nan, vertical=vertical,
+                      descriptions=["height", "sigma (1-sigma)"])
+    return path
+
+
+def read(path, band=1):
+    with rasterio.open(path) as ds:
+        return ds.read(band), ds.transform, ds
+
+
+def on_truth(path):
+    """The mosaic's band 1 and the truth under it (same lattice)."""
+    with rasterio.open(path) as ds:
+        z = ds.read(1)
+        t = ds.transform
+    c0 = int(round((t.c - X0) / RES))
+    r0 = int(round((Y0 - t.f) / RES))
+    return z, terrain(z.shape[0], z.shape[1], r0, c0)
+
+
+def test_blend_turns_the_seam_step_into_a_ramp(tmp_path):
+    a = write_dem(tmp_path / "a.tif", 0, 0, 120, 200, bias=+1.0)
+    b = write_dem(tmp_path / "b.tif", 0, 100, 120, 200, bias=-1.0)
+    for method in ("first", "blend"):
+        assert main(["-q", "mosaic", str(a), str(b), "-o", str(tmp_path / f"{method}.tif"),
+                     "--method", method, "--blend-length", "40", "--block", "64"]) == 0
+    zf, truth = on_truth(tmp_path / "first.tif")
+    zb, _ = on_truth(tmp_path / "blend.tif")
+    ef, eb = zf - truth, zb - truth
+    assert zb.shape == (120, 300) and np.isfinite(zb).all()
+    # first: a 2 m step where DEM a ends (column 200); blend: a ramp, no step above 0.2 m
+    step_first = np.nanmax(np.abs(np.diff(ef, axis=1)))
+    step_blend = np.nanmax(np.abs(np.diff(eb, axis=1)))
+    assert step_first > 1.9
+    assert step_blend < 0.2, step_blend
+    # far from the overlap each DEM alone: its own bias
+    assert np.allclose(eb[:, :90], 1.0, atol=1e-3) and np.allclose(eb[:, 210:], -1.0, atol=1e-3)
+    with rasterio.open(tmp_path / "blend.tif") as ds:
+        assert ds.count == 3 and ds.descriptions[1].startswith("count")
+        count = ds.read(2)
+        assert ds.crs.to_epsg() in (None, 32637) or "EGM96" in ds.crs.to_wkt()
+    assert count[:, 150].min() == 2 and count[:, 50].max() == 1
+    rep = json.loads((tmp_path / "blend.json").read_text())
+    assert rep["n_used"] == 2 and rep["vertical"] == "geoid" and rep["memory_bound_mb"] > 0
+
+
+@pytest.mark.slow
+def test_blend_does_not_depend_on_the_block_size(tmp_path):
+    paths = []
+    for i in range(4):
+        z = terrain(90, 110, 13 * i, 37 * i) + np.float32(0.5 * i)
+        if i == 1:
+            z[30:50, 40:70] = np.nan          # a void inside one DEM: weights fall towards it too
+        paths.append(write_dem(tmp_path / f"d{i}.tif", 13 * i, 37 * i, 90, 110, heights=z,
+                               noise=0.2, seed=i))
+    outs = []
+    for block in (16, 40, 512):
+        plan = plan_mosaic(paths, block=block, blend_length=12)
+        run_mosaic(plan, tmp_path / f"m{block}.tif")
+        outs.append(read(tmp_path / f"m{block}.tif")[0])
+    np.testing.assert_allclose(outs[0], outs[2], atol=2e-5, equal_nan=True)
+    np.testing.assert_allclose(outs[1], outs[2], atol=2e-5, equal_nan=True)
+    # and equals the blend computed on whole arrays: each DEM on the full grid, its distance to
+    # its nearest void or edge inside the mosaic, weights min(d, 12)^2
+    g = plan.grid
+    num = np.zeros(g.shape)
+    den = np.zeros(g.shape)
+    for src in plan.sources:
+        z = read_on_grid(src, g, 0, 0, g.height, g.width).astype(np.float64)
+        v = np.isfinite(z)
+        d = cv2.distanceTransform(v.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        w = np.minimum(d, 12.0) ** 2
+        num += np.where(v, w * np.nan_to_num(z), 0.0)
+        den += w
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_allclose(outs[2], num / den, atol=1e-4, equal_nan=True)
+
+
+def _stack(tmp_path, k=5):
+    """k DEMs on the same 40 x 50 cells (noise, biases, a void each) and their stack."""
+    paths, layers = [], []
+    for i in range(k):
+        z = terrain(40, 50, 5, 5) + np.float32(0.3 * i) + \
+            np.random.default_rng(i).normal(0, 1.0, (40, 50)).astype(np.float32)
+        z[i * 6:i * 6 + 5, 10:20] = np.nan
+        paths.append(write_dem(tmp_path / f"s{i}.tif", 5, 5, 40, 50, heights=z))
+        layers.append(z)
+    return paths, np.stack(layers)
+
+
+@pytest.mark.parametrize("method", ["first", "last", "min", "max", "mean", "median", "count",
+                                    "stddev", "nmad"])
+@pytest.mark.slow
+def test_statistics_of_the_stack_match_numpy(tmp_path, method):
+    paths, st = _stack(tmp_path)
+    plan = plan_mosaic(paths, method=method, block=16)
+    run_mosaic(plan, tmp_path / "m.tif")
+    z = read(tmp_path / "m.tif")[0]
+    n = np.isfinite(st).sum(axis=0)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        first_idx = np.argmax(np.isfinite(st), axis=0)
+        last_idx = st.shape[0] - 1 - np.argmax(np.isfinite(st[::-1]), axis=0)
+        med = np.nanmedian(st, axis=0)
+        expect = {"first": np.take_along_axis(st, first_idx[None], 0)[0],
+                  "last": np.take_along_axis(st, last_idx[None], 0)[0],
+                  "min": np.nanmin(st, axis=0), "max": np.nanmax(st, axis=0),
+                  "mean": np.nanmean(st, axis=0), "median": med, "count": n.astype(np.float32),
+                  "stddev": np.where(n >= 2, np.nanstd(st, axis=0), np.nan),
+                  "nmad": np.where(n >= 2, 1.4826 * np.nanmedian(np.abs(st - med), axis=0), np.nan)}[method]
+    np.testing.assert_allclose(z, expect, atol=2e-3, equal_nan=True)
+    with rasterio.open(tmp_path / "m.tif") as ds:
+        assert ds.count == (1 if method in ("count", "stddev", "nmad") else 3)
+
+
+def test_sigma_layers_weight_the_blend_and_propagate(tmp_path):
+    a = write_dem(tmp_path / "a.tif", 0, 0, 200, 200, bias=+1.0, sigma=1.0)
+    b = write_dem(tmp_path / "b.tif", 0, 0, 200, 200, bias=-1.5, sigma=2.0)
+    plan = plan_mosaic([a, b], blend_length=10)
+    assert plan.use_sigma
+    rep = run_mosaic(plan, tmp_path / "m.tif")
+    assert rep["sigma_weighting"]
+    z, truth = on_truth(tmp_path / "m.tif")
+    sig = read(tmp_path / "m.tif", 3)[0]
+    inner = (slice(20, 180), slice(20, 180))       # both edge weights at their cap: 1/σ² alone
+    expect = (1.0 / 1 * 1.0 + 1.0 / 4 * -1.5) / (1.0 + 0.25)
+    np.testing.assert_allclose((z - truth)[inner], expect, atol=1e-3)
+    np.testing.assert_allclose(sig[inner], np.sqrt(1.0 / (1.0 + 0.25)), atol=1e-4)
+    # without σ: the plain blend (equal weights inside)
+    run_mosaic(plan_mosaic([a, b], blend_length=10, use_sigma=False), tmp_path / "n.tif")
+    z2, _ = on_truth(tmp_path / "n.tif")
+    np.testing.assert_allclose((z2 - truth)[inner], -0.25, atol=1e-3)
+
+
+def test_dems_in_another_crs_are_reprojected(tmp_path):
+    a = write_dem(tmp_path / "a.tif", 0, 0, 100, 100)
+    # the same terrain as a geographic DEM (EPSG:4326, ~20 m), overlapping a on its east side
+    from rasterio.warp import Resampling, calculate_default_transform, reproject
+    src_t = Affine(RES, 0, X0 + 60 * RES, 0, -RES, Y0)
+    src = terrain(100, 100, 0, 60)
+    t, w, h = calculate_default_transform(CRS, "EPSG:4326", 100, 100,
+                                          *rasterio.transform.array_bounds(100, 100, src_t),
+                                          resolution=0.0002)
+    dst = np.full((h, w), np.nan, np.float32)
+    reproject(src, dst, src_transform=src_t, src_crs=CRS, dst_transform=t, dst_crs="EPSG:4326",
+              resampling=Resampling.cubic, dst_nodata=np.nan)
+    b = tmp_path / "b_geographic.tif"
+    write_geotiff(b, dst, t, "EPSG:4326", np.nan, vertical="geoid")
+    assert main(["-q", "mosaic", str(a), str(b), "-o", str(tmp_path / "m.tif"), "--method", "mean"]) == 0
+    rep = json.loads((tmp_path / "m.json").read_text())
+    assert rep["reprojected"] == [str(b)] and rep["grid"]["posting"] == RES
+    z, truth = on_truth(tmp_path / "m.tif")
+    assert z.shape[1] >= 155                   # reaches b's eastern part
+    err = (z - truth)[5:-5, 5:150]
+    assert np.nanmedian(np.abs(err)) < 0.5, np.nanmedian(np.abs(err))   # resampling, not CRS errors
+    assert np.isfinite(z[5:-5, 120:150]).mean() > 0.95
+
+
+def test_vertical_references_reconciled_or_refused(tmp_path, capsys):
+    a = write_dem(tmp_path / "geoid.tif", 0, 0, 60, 80, vertical="geoid")
+    # the same heights above the ellipsoid: H + N
+    t = Affine(RES, 0, X0 + 40 * RES, 0, -RES, Y0)
+    H = terrain(60, 80, 0, 40)
+    cc, rr = np.meshgrid(np.arange(80) + 0.5, np.arange(60) + 0.5)
+    lon, lat = geodesy.crs_to_lonlat(*(t @ (cc, rr)), CRS)
+    N = geodesy.geoid_undulation(lon, lat)
+    assert np.abs(N).min() > 5                           # the conversion matters here
+    write_geotiff(tmp_path / "ell.tif", (H + N).astype(np.float32), t, CRS, np.nan, vertical="ellipsoid")
+    assert main(["-q", "mosaic", str(a), str(tmp_path / "ell.tif"), "-o", str(tmp_path / "m.tif")]) == 0
+    z, truth = on_truth(tmp_path / "m.tif")
+    assert np.nanmax(np.abs(z - truth)) < 0.02
+    rep = json.loads((tmp_path / "m.json").read_text())
+    assert rep["vertical_conversions"] == [dict(path=str(tmp_path / "ell.tif"), vertical="ellipsoid", to="geoid")]
+    # an ellipsoidal mosaic on request
+    assert main(["-q", "mosaic", str(a), str(tmp_path / "ell.tif"), "-o", str(tmp_path / "e.tif"),
+                 "--vertical", "ellipsoid"]) == 0
+    with rasterio.open(tmp_path / "e.tif") as ds:
+        ze = ds.read(1)
+    assert np.nanmax(np.abs(ze[:, 40:] - (H + N))) < 0.02
+    # a DEM that does not say, among DEMs that do: refused in one line, nothing written
+    write_geotiff(tmp_path / "unknown.tif", terrain(60, 80), Affine(RES, 0, X0, 0, -RES, Y0), CRS, np.nan)
+    capsys.readouterr()
+    rc = main(["mosaic", str(a), str(tmp_path / "unknown.tif"), "-o", str(tmp_path / "u.tif")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1 and "unknown.tif" in err and "vertical" in err
+    assert not (tmp_path / "u.tif").exists() and not (tmp_path / "u.json").exists()
+    assert main(["-q", "mosaic", str(a), str(tmp_path / "unknown.tif"), "-o", str(tmp_path / "u.tif"),
+                 "--dem-vertical", "geoid"]) == 0
+    with pytest.raises(VerticalReferenceError):
+        plan_mosaic([tmp_path / "unknown.tif"], vertical="ellipsoid")
+
+
+def test_dems_outside_the_extent_are_named_and_skipped(tmp_path, capsys):
+    a = write_dem(tmp_path / "a.tif", 0, 0, 50, 50)
+    b = write_dem(tmp_path / "b.tif", 0, 40, 50, 50)
+    far = write_dem(tmp_path / "far.tif", 400, 400, 30, 30)
+    bounds = [X0, Y0 - 50 * RES, X0 + 90 * RES, Y0]
+    rc = main(["mosaic", str(a), str(b), str(far), "-o", str(tmp_path / "m.tif"),
+               "--bounds", *map(str, bounds)])
+    out = capsys.readouterr().out
+    assert rc == 0 and "skipped" in out and "far.tif" in out
+    rep = json.loads((tmp_path / "m.json").read_text())
+    assert rep["n_used"] == 2 and [s["path"] for s in rep["skipped"]] == [str(far)]
+    # without bounds it is kept, and named as overlapping no other DEM
+    plan = plan_mosaic([a, b, far])
+    assert plan.report["islands"] == [str(far)] and plan.report["n_used"] == 3
+
+
+def test_bad_inputs_are_one_line_errors_and_write_nothing(tmp_path, capsys):
+    a = write_dem(tmp_path / "a.tif", 0, 0, 50, 50)
+    garbage = tmp_path / "garbage.tif"
+    garbage.write_bytes(b"not a tiff at all")
+    nocrs = tmp_path / "nocrs.tif"
+    with rasterio.open(nocrs, "w", driver="GTiff", width=10, height=10, count=1, dtype="float32") as ds:
+        ds.write(np.ones((1, 10, 10), np.float32))
+    cases = [([str(a), str(garbage)], "garbage.tif"), ([str(a), str(nocrs)], "no CRS"),
+             ([str(a), str(tmp_path / "missing.tif")], "missing.tif"),
+             ([str(a), str(a)], "given twice"),
+             ([str(a), "--coregister"], "--ref"), ([str(a), "--method", "blend", "--block", "4"], "--block")]
+    for args, words in cases:
+        capsys.readouterr()
+        rc = main(["mosaic", *args, "-o", str(tmp_path / "m.tif")])
+        err = capsys.readouterr().err.strip()
+        assert rc == 1, args
+        assert len(err.splitlines()) == 1 and words in err and "Traceback" not in err, err
+        assert not (tmp_path / "m.tif").exists() and not (tmp_path / "m.json").exists()
+    # the output is an input, or exists
+    assert main(["mosaic", str(a), "-o", str(a)]) == 1
+    assert main(["-q", "mosaic", str(a), "-o", str(tmp_path / "m.tif")]) == 0
+    capsys.readouterr()
+    assert main(["mosaic", str(a), "-o", str(tmp_path / "m.tif")]) == 1
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["-q", "mosaic", str(a), "-o", str(tmp_path / "m.tif"), "--overwrite"]) == 0
+    assert not list(tmp_path.glob(".*part")) and not list(tmp_path.glob(".*blocks.tif"))
+
+
+def test_coregistration_to_a_reference_first(tmp_path):
+    ref = write_dem(tmp_path / "ref.tif", 0, 0, 160, 160)
+    # a DEM displaced 45 m east and 30 m north, 4 m high: its features sit east/north of the truth's
+    t = Affine(RES, 0, X0 + 20 * RES + 45.0, 0, -RES, Y0 - 20 * RES + 30.0)
+    z = terrain(120, 120, 20, 20) + np.float32(4.0)
+    write_geotiff(tmp_path / "shifted.tif", z, t, CRS, np.nan, vertical="geoid")
+    far = write_dem(tmp_path / "far.tif", 600, 600, 40, 40)
+    args = ["-q", "mosaic", str(tmp_path / "shifted.tif"), str(far), "-o", str(tmp_path / "m.tif"),
+            "--ref", str(ref), "--coregister"]
+    assert main(args) == 0
+    rep = json.loads((tmp_path / "m.json").read_text())
+    c = rep["coregistration"][str(tmp_path / "shifted.tif")]
+    assert abs(c["dx"] - 45.0) < 3 and abs(c["dy"] - 30.0) < 3 and abs(c["dz"] - 4.0) < 0.5, c
+    assert [s["path"] for s in rep["skipped"]] == [str(far)]
+    zm, truth = on_truth(tmp_path / "m.tif")
+    err = (zm - truth)[5:-5, 5:-5]
+    assert np.nanmedian(np.abs(err)) < 0.5
+    # an unknown chain is a one-line error
+    assert main(args[1:] + ["--coreg-chain", "bias+tilt", "--overwrite"]) == 1
+
+
+def test_coregistration_chain_of_the_coreg_module(tmp_path, capsys):
+    """--coreg-chain goes through stereodem.post.coreg.parse_chain: shift + offset steps are
+    applied (nuth_kaab then vshift, summed), a surface step is refused in one line."""
+    from stereodem.post.mosaic_coreg import DEMCorrection, fitter
+    ref = write_dem(tmp_path / "ref.tif", 0, 0, 160, 160)
+    t = Affine(RES, 0, X0 + 20 * RES - 35.0, 0, -RES, Y0 - 20 * RES + 25.0)
+    z = terrain(120, 120, 20, 20) - np.float32(6.0)
+    write_geotiff(tmp_path / "shifted.tif", z, t, CRS, np.nan, vertical="geoid")
+    args = ["-q", "mosaic", str(tmp_path / "shifted.tif"), "-o", str(tmp_path / "m.tif"),
+            "--ref", str(ref), "--coregister", "--coreg-chain", "nuth_kaab, vshift"]
+    assert main(args) == 0
+    c = json.loads((tmp_path / "m.json").read_text())["coregistration"][str(tmp_path / "shifted.tif")]
+    assert abs(c["dx"] + 35.0) < 3 and abs(c["dy"] - 25.0) < 3 and abs(c["dz"] + 6.0) < 0.5, c
+    assert c["method"] == "nuth_kaab + vshift" and [s["step"] for s in c["steps"]] == ["nuth_kaab", "vshift"]
+    # the vshift step found what nuth_kaab left: their sum is the offset applied
+    nk, vs = (s["parameters"]["dz"]["value"] for s in c["steps"])
+    assert c["dz"] == pytest.approx(nk + vs) and abs(vs) < 0.5
+    zm, truth = on_truth(tmp_path / "m.tif")
+    assert np.nanmedian(np.abs((zm - truth)[5:-5, 5:-5])) < 0.5
+    # the Python hook gives the same kind of correction
+    from stereodem.core.dem import DEM as _DEM
+    corr = fitter("nuth_kaab,vshift")(_DEM.from_file(ref), _DEM.from_file(tmp_path / "shifted.tif"))
+    assert isinstance(corr, DEMCorrection) and abs(corr.dx + 35.0) < 3
+    # a step that changes the surface cannot be applied by the mosaic: one line, nothing written
+    capsys.readouterr()
+    out = tmp_path / "m2.tif"
+    assert main(args[1:4] + [str(out)] + args[5:-1] + ["nuth_kaab,deramp:1"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "deramp" in err and "stereodem coregister" in err, err
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_dask_gives_the_serial_mosaic(tmp_path):
+    pytest.importorskip("dask.distributed")
+    paths = [write_dem(tmp_path / f"d{i}.tif", 20 * i, 30 * i, 70, 90, bias=0.4 * i) for i in range(3)]
+    plan = plan_mosaic(paths, block=32, blend_length=8)
+    run_mosaic(plan, tmp_path / "serial.tif")
+    rep = run_mosaic(plan, tmp_path / "dask.tif", dask="threads", workers=2)
+    assert rep["dask"] == "threads"
+    serial, parallel = read(tmp_path / "serial.tif")[0], read(tmp_path / "dask.tif")[0]
+    if np.lib.NumpyVersion(np.__version__) >= "2.0.0" and int(cv2.__version__.split(".")[0]) >= 5:
+        np.testing.assert_array_equal(serial, parallel)
+    else:   # measured on the declared minimum versions (numpy 1.24, OpenCV 4.8): 2 of 16,500
+        np.testing.assert_array_equal(np.isnan(serial), np.isnan(parallel))   # cells 1 ulp apart
+        np.testing.assert_array_max_ulp(serial[~np.isnan(serial)], parallel[~np.isnan(parallel)], maxulp=1)
+
+
+def _traced_peak(tmp_path, n_side, method):
+    """Python-heap peak (numpy arrays included) of a mosaic of n_side x n_side DEMs of 120² cells."""
+    paths = [write_dem(tmp_path / f"{method}{n_side}_{i}_{j}.tif", 100 * i, 100 * j, 120, 120, bias=0.1 * (i + j))
+             for i in range(n_side) for j in range(n_side)]
+    plan = plan_mosaic(paths, method=method, block=64, blend_length=16)
+    tracemalloc.start()
+    run_mosaic(plan, tmp_path / f"{method}{n_side}.tif")
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return peak, plan
+
+
+@pytest.mark.parametrize("method", ["blend", "median"])
+@pytest.mark.slow
+def test_memory_depends_on_the_block_not_on_the_mosaic(tmp_path, method):
+    small, _ = _traced_peak(tmp_path, 2, method)       # 220² cells
+    large, plan_l = _traced_peak(tmp_path, 4, method)       # 420² cells: 3.6x the area
+    gdal = (32 + 32 + 8) * 2**20                             # GDAL caches are not traced
+    assert large < memory_bound(plan_l) - gdal, (large, memory_bound(plan_l) - gdal)
+    assert large < 1.3 * small, (small, large)
+    # a full-array mosaic would hold the grid: 420² float64 sums alone are 1.4 MB per layer
+    assert large < 8 * 420 * 420 * 3
+
+
+def test_a_failure_half_way_leaves_nothing(tmp_path, monkeypatch):
+    import stereodem.post.mosaic as pm
+    paths = [write_dem(tmp_path / f"d{i}.tif", 0, 60 * i, 80, 100) for i in range(3)]
+    plan = plan_mosaic(paths, block=32)
+    real, calls = pm.read_on_grid, []
+
+    def flaky(*a, **k):
+        calls.append(1)
+        if len(calls) > 5:
+            raise pm.DEMError("d1.tif: cannot read the DEM (simulated I/O error)")
+        return real(*a, **k)
+    monkeypatch.setattr(pm, "read_on_grid", flaky)
+    with pytest.raises(pm.DEMError):
+        run_mosaic(plan, tmp_path / "m.tif")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d0.tif", "d1.tif", "d2.tif"]

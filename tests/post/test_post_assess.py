@@ -1,0 +1,187 @@
+import argparse
+import json
+
+import numpy as np
+import pytest
+from affine import Affine
+from scipy import ndimage as ndi
+
+from stereodem import assess_cli
+from stereodem.core.dem import DEM
+from stereodem.core.errors import (
+    DEMError,
+    NoOverlapError,
+    OutputExistsError,
+    VerticalReferenceError,
+)
+from stereodem.post import assess
+from stereodem.post.report import write_report
+
+
+@pytest.fixture(scope="module")
+def ref():
+    d = DEM.bundled()
+    return DEM(d.heights[:400, :400].copy(), d.transform, d.crs, "geoid", "srtm_crop")
+
+
+@pytest.fixture(scope="module")
+def simulated(ref):
+    """A DEM with a 0.4-px geolocation error (errors grow with slope) and 2 m noise."""
+    z = ref.heights.astype(np.float64)
+    sim = ndi.shift(z, (0.3, 0.4), order=3, mode="nearest")
+    sim += np.random.default_rng(5).normal(0, 2.0, z.shape)
+    return DEM(sim.astype(np.float32), ref.transform, ref.crs, "geoid", "sim")
+
+
+def test_slope_classes_show_error_growing_with_slope(ref, simulated):
+    res = assess.assess_dem(simulated, ref)
+    rows = [r for r in res.report["by_slope"] if r["n"] > 200]
+    assert len(rows) >= 4
+    nm = [r["nmad"] for r in rows]
+    assert all(b > a for a, b in zip(nm, nm[1:]))
+    assert res.report["slope_fit"]["slope_m_per_deg"] > 0
+    assert res.report["slope_class_trend"]["r"] > 0.9
+    # whole-DEM statistics are those of the difference array
+    dh = simulated.heights.astype(float) - ref.heights.astype(float)
+    s = res.report["stats"]
+    assert s["rmse"] == pytest.approx(np.sqrt(np.mean(dh[np.isfinite(dh)] ** 2)), rel=1e-4)
+    assert sum(r["n"] for r in res.report["by_elevation"]) == s["n"]
+
+
+def test_reference_in_another_crs_is_warped(ref):
+    # the reference put on a UTM grid: the DEM (lon/lat) is warped onto it
+    from pyproj import CRS
+    from rasterio.warp import calculate_default_transform
+
+    from stereodem.post.warp import to_grid
+    utm = CRS.from_epsg(32637)
+    b = ref.bounds_lonlat()
+    t, w, h = calculate_default_transform("EPSG:4326", "EPSG:32637", ref.shape[1], ref.shape[0],
+                                          *b, resolution=100.0)
+    zu = to_grid(ref.heights, ref.transform, ref.crs, t, utm, (h, w), resampling="cubic")
+    ref_utm = DEM(zu, t, utm, "geoid", "ref_utm")
+    res = assess.assess_dem(ref, ref_utm)
+    assert res.report["grid"]["crs"] == "EPSG:32637"
+    assert res.report["grid"]["pixel_size_m"] == pytest.approx([100.0, 100.0])
+    assert abs(res.report["stats"]["median"]) < 0.5 and res.report["stats"]["nmad"] < 5.0
+
+
+def test_vertical_references_reconciled(ref):
+    ell = ref.to_reference("ellipsoid")
+    res = assess.assess_dem(ell, ref)
+    assert abs(res.report["stats"]["mean"]) < 0.01
+    assert "converted" in res.report["vertical"]["note"]
+    unknown = DEM(ell.heights, ell.transform, ell.crs, None, "unknown.tif")
+    with pytest.raises(VerticalReferenceError, match="unknown.tif"):
+        assess.assess_dem(unknown, ref)
+    ok = assess.assess_dem(unknown, ref, dem_vertical="ellipsoid")
+    assert abs(ok.report["stats"]["mean"]) < 0.01
+
+
+def test_bad_inputs_are_clear_errors(ref):
+    far = DEM(ref.heights, Affine.translation(20, 0) @ ref.transform, ref.crs, "geoid", "far.tif")
+    with pytest.raises(NoOverlapError, match="far.tif"):
+        assess.assess_dem(far, ref)
+    with pytest.raises(DEMError, match="no valid height"):
+        DEM(np.full((10, 10), np.nan, np.float32), ref.transform, ref.crs, "geoid")
+    # footprints overlap but every overlapping DEM cell is void
+    h = ref.heights.copy()
+    h[:, :] = np.nan
+    h[0, 0] = 1000.0
+    half = DEM(h, ref.transform, ref.crs, "geoid", "void.tif")
+    sub = DEM(ref.heights[200:, 200:].copy(), Affine.translation(200 * ref.transform.a, 200 * ref.transform.e)
+              @ ref.transform, ref.crs, "geoid", "sub")
+    with pytest.raises(NoOverlapError):
+        assess.assess_dem(half, sub)
+
+
+def test_checkpoints_and_landcover(ref, simulated, tmp_path):
+    rng = np.random.default_rng(2)
+    w, s, e, n = ref.bounds_lonlat()
+    lon, lat = rng.uniform(w + 0.01, e - 0.01, 30), rng.uniform(s + 0.01, n - 0.01, 30)
+    hz = ref.sample(lon, lat, reference="ellipsoid")
+    csv = tmp_path / "cp.csv"
+    csv.write_text("id,lon,lat,height\n" + "".join(f"p{i},{a},{b},{c}\n" for i, (a, b, c) in
+                                                  enumerate(zip(lon, lat, hz))))
+    cp = assess.assess_checkpoints(ref, csv, vertical="ellipsoid")
+    assert cp["stats"]["n"] == 30 and abs(cp["stats"]["max"]) < 1e-6 and cp["points"][0]["id"] == "p0"
+    cp2 = assess.assess_checkpoints(simulated, (lon, lat, hz), vertical="ellipsoid")
+    dh = simulated.sample(lon, lat, reference="ellipsoid") - hz
+    assert cp2["stats"]["rmse"] == pytest.approx(np.sqrt(np.mean(dh ** 2)))
+    lc = (ref.heights > np.nanmedian(ref.heights)).astype(np.int16) + 1
+    res = assess.assess_dem(simulated, ref, landcover=(lc, ref.transform, ref.crs),
+                            landcover_names={1: "low", 2: "high"})
+    names = [c["class"] for c in res.report["by_landcover"]]
+    assert names == ["low", "high"]
+    assert sum(c["n"] for c in res.report["by_landcover"]) == res.report["stats"]["n"]
+
+
+def _parser():
+    p = argparse.ArgumentParser(prog="stereodem")
+    assess_cli.add_parser(p.add_subparsers(dest="command"))
+    return p
+
+
+@pytest.mark.slow
+def test_cli_writes_report_and_figures(tmp_path, ref):
+    z = ref.heights.astype(np.float64)
+    sh = ndi.shift(z, (-1.5, 1.0), order=3, mode="nearest") + 4.0
+    DEM(sh.astype(np.float32), ref.transform, ref.crs, "geoid").write(tmp_path / "dem.tif")
+    DEM(ref.heights, ref.transform, ref.crs, None).write(tmp_path / "ref.tif")   # vertical unknown
+    lc = np.where(np.arange(400)[None, :] < 200, 1, 2).repeat(400, 0).astype(np.uint8)
+    from stereodem.core.raster import write_geotiff
+    write_geotiff(tmp_path / "lc.tif", lc, ref.transform, ref.crs, 0)
+    out = tmp_path / "out"
+    from stereodem.cli import main
+    assert main(["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif"),
+                 "--landcover", str(tmp_path / "lc.tif"), "--coregister", "-o", str(out)]) == 1
+    assert not out.exists()                           # geoid vs unknown: a clear error, no output
+    args = _parser().parse_args(["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif"),
+                                 "--ref-vertical", "geoid", "--landcover", str(tmp_path / "lc.tif"),
+                                 "--slope-bins", "0,10,20,90", "--coregister", "-o", str(out)])
+    assert args.run(args) == 0
+    rep = json.loads((out / "report.json").read_text())
+    for key in ("n", "valid_pct", "mean", "median", "std", "rmse", "nmad", "le90", "le95", "p16", "p84",
+                "min", "max"):
+        assert key in rep["stats"]
+    assert len(rep["by_slope"]) == 3 and len(rep["by_landcover"]) == 2
+    co = rep["coregistration"]
+    px = abs(ref.transform.a) * 111320 * np.cos(np.radians(39.9))
+    assert abs(co["dx_px"] - 1.0) < 0.1 and abs(co["dy_px"] - 1.5) < 0.1 and abs(co["dz"] - 4) < 0.5
+    assert co["dx"] == pytest.approx(co["dx_px"] * px, rel=0.02)
+    assert rep["after_coregistration"]["stats"]["nmad"] < 0.2 * rep["stats"]["nmad"]
+    assert "Nuth" in (out / "report.md").read_text()
+    import matplotlib.image as mpimg
+    for name in ("hillshade.png", "difference_map.png", "histogram.png", "error_vs_slope.png"):
+        img = mpimg.imread(out / name)
+        assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100 and img.std() > 0.01
+    # refuses a non-empty folder without --overwrite
+    with pytest.raises(OutputExistsError):
+        args.run(args)
+    args.overwrite = True
+    assert args.run(args) == 0
+
+
+def test_write_report_refuses_nonempty_dir(tmp_path, ref, simulated):
+    (tmp_path / "x.txt").write_text("x")
+    res = assess.assess_dem(simulated, ref)
+    with pytest.raises(OutputExistsError):
+        write_report(res, tmp_path)
+
+
+def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
+    """Figures draw at most DISPLAY_CELLS per side: a big raster costs no more than a small one."""
+    import matplotlib.pyplot as plt
+
+    from stereodem.core import geodesy
+    from stereodem.post import figures
+    monkeypatch.setattr(figures, "DISPLAY_CELLS", 100)
+    drawn = []
+    real = plt.Axes.imshow
+    monkeypatch.setattr(plt.Axes, "imshow", lambda self, a, **k: drawn.append(np.shape(a)) or real(self, a, **k))
+    z = np.add.outer(np.arange(450.0), np.arange(300.0))
+    figures.hillshade_png(z, Affine(30, 0, 500000, 0, -30, 4400000), geodesy.utm_crs(39, 39.7),
+                          tmp_path / "hs.png")
+    figures.difference_map_png(z - z.mean(), tmp_path / "dh.png")
+    assert [s[:2] for s in drawn] == [(90, 60), (90, 60)]  # every 5th cell of 450 x 300 (RGBA or values)
+    assert (tmp_path / "hs.png").stat().st_size > 1000 and (tmp_path / "dh.png").exists()

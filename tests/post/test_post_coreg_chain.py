@@ -1,0 +1,231 @@
+"""Co-registration chains (issue 25): each step recovers what was injected into a real DEM
+crop, chains compose, altimetry points work as reference, and bad inputs get one line."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from affine import Affine
+
+from stereodem.core.dem import DEM
+from stereodem.core.errors import InputError, NoOverlapError, VerticalReferenceError
+from stereodem.core.stats import nmad
+from stereodem.post.altimetry import AltimetryPoints, read_points
+from stereodem.post.coreg import (
+    ICP,
+    AlongTrack,
+    CoregChain,
+    CrossTrack,
+    Curvature,
+    Deramp,
+    NuthKaab,
+    StableMask,
+    VerticalShift,
+    bilinear,
+    parse_chain,
+)
+from stereodem.post.spatialstats import VariogramModel
+from stereodem.post.synthetic import InjectedErrors, inject_errors
+
+N = 200       # crop of the bundled SRTM tile (~14 x 18 km)
+
+
+@pytest.fixture(scope="module")
+def truth():
+    full = DEM.bundled()
+    return DEM(full.heights[100:100 + N, 300:300 + N].copy(),
+               full.transform @ Affine.translation(300, 100), full.crs, "geoid")
+
+
+def _noise(s=0.5):
+    return VariogramModel(np.array([150.0]), np.array([s * s]))
+
+
+def test_nuth_kaab_recovers_an_integer_pixel_shift_and_offset(truth):
+    px = abs(truth.transform.a) * 111320 * math.cos(math.radians(truth.transform.f))
+    dem, _ = inject_errors(truth, InjectedErrors(dx=px, dz=4.0, seed=1))
+    nk = NuthKaab().fit(truth, dem)
+    assert nk.dx == pytest.approx(px, abs=0.5)
+    assert nk.dy == pytest.approx(0.0, abs=0.5)
+    assert nk.dz == pytest.approx(4.0, abs=0.05)
+    assert nk.params["dx"]["sigma"] > 0
+
+
+def test_vshift_and_deramp_recover_offset_and_ramp(truth):
+    dem, _ = inject_errors(truth, InjectedErrors(dz=-2.5, ramp_e=1.5, ramp_n=-0.8, noise=_noise(), seed=2))
+    v = VerticalShift().fit(truth, dem)
+    assert v.dz == pytest.approx(-2.5, abs=0.3)
+    d = Deramp(1).fit(truth, dem)
+    assert d.coef[1] == pytest.approx(1.5, abs=0.1)       # m per 10 km east
+    assert d.coef[2] == pytest.approx(-0.8, abs=0.1)
+    assert d.coef[0] == pytest.approx(-2.5, abs=0.15)
+    out = d.apply(dem)
+    assert nmad(out.heights - truth.heights) < 0.6
+
+
+def test_along_track_recovers_a_sine(truth):
+    dem, _ = inject_errors(truth, InjectedErrors(heading_deg=200.0, along_sines=[(2.0, 4000.0, 0.7)],
+                                                 noise=_noise(), seed=3))
+    at = AlongTrack(2).fit(truth, dem, track_angle_deg=200.0)
+    assert at.params["sine1_wavelength"]["value"] == pytest.approx(4000.0, rel=0.02)
+    assert at.params["sine1_amplitude"]["value"] == pytest.approx(2.0, abs=0.15)
+    assert nmad(at.apply(dem).heights - truth.heights) < 1.15 * 0.5 * 1.0 + 0.1
+
+
+def test_along_track_needs_a_heading(truth):
+    with pytest.raises(InputError, match="heading"):
+        AlongTrack().fit(truth, truth)
+
+
+def test_cross_track_recovers_a_quadratic(truth):
+    from stereodem.post.coreg import local_metric_coords, track_coords
+    e, n = local_metric_coords(truth.transform, truth.crs, truth.shape)
+    _, c = track_coords(e, n, 10.0)
+    bias = 0.5 + 1.0 * (c / 1e4) - 2.0 * (c / 1e4) ** 2
+    dem = DEM(truth.heights + bias.astype(np.float32), truth.transform, truth.crs, "geoid")
+    ct = CrossTrack(2).fit(truth, dem, track_angle_deg=10.0)
+    np.testing.assert_allclose(ct.coef, [0.5, 1.0, -2.0], atol=0.02)
+
+
+def test_curvature_bias_is_recovered(truth):
+    from stereodem.post.biascorr import maximum_curvature
+    curv = maximum_curvature(truth.heights, truth.transform, truth.crs)
+    dem = DEM(truth.heights - np.nan_to_num(0.8 * curv).astype(np.float32), truth.transform,
+              truth.crs, "geoid")
+    cv = Curvature(1).fit(truth, dem)
+    # the DEM's own curvature differs slightly from the truth's: slope within 10 %
+    assert cv.coef[1] == pytest.approx(-0.8, rel=0.1)
+
+
+def test_icp_recovers_a_translation(truth):
+    px = abs(truth.transform.a) * 111320 * math.cos(math.radians(truth.transform.f))
+    dem, _ = inject_errors(truth, InjectedErrors(dx=px, dz=2.0, seed=4))
+    icp = ICP().fit(truth, dem)
+    assert icp.t[0] == pytest.approx(-px, abs=1.0)      # ICP moves the DEM onto the reference
+    assert icp.t[2] == pytest.approx(-2.0, abs=0.3)
+    assert nmad(icp.apply(dem).heights - truth.heights) < 1.0
+
+
+def test_chain_composition_text_and_plus_agree(truth):
+    dem, _ = inject_errors(truth, InjectedErrors(dz=2.0, ramp_e=1.0, noise=_noise(), seed=5))
+    a = parse_chain("vshift,deramp:1")
+    b = VerticalShift() + Deramp(1)
+    assert isinstance(b, CoregChain) and len(b.steps) == 2
+    a.fit(truth, dem)
+    b.fit(truth, dem)
+    np.testing.assert_allclose(a.apply(dem).heights, b.apply(dem).heights, atol=1e-5)
+    rep = a.report()
+    assert [r["step"] for r in rep] == ["vshift", "deramp:1"]
+    assert rep[0]["before"]["nmad"] > rep[1]["after"]["nmad"]
+    assert rep[1]["parameters"]["c_e1n0"]["sigma"] > 0
+    # applying the chain equals applying its steps in turn
+    one = a.steps[1].apply(a.steps[0].apply(dem))
+    np.testing.assert_allclose(a.apply(dem).heights, one.heights)
+
+
+def test_chain_fits_on_altimetry_points(truth):
+    px = abs(truth.transform.a) * 111320 * math.cos(math.radians(truth.transform.f))
+    dem, _ = inject_errors(truth, InjectedErrors(dx=px, dz=3.0, seed=6))
+    rng = np.random.default_rng(0)
+    r, c = rng.uniform(2, N - 3, 1500), rng.uniform(2, N - 3, 1500)
+    x, y = truth.transform @ (c + 0.5, r + 0.5)
+    pts = AltimetryPoints(x, y, bilinear(truth.heights, r, c), vertical="geoid")
+    ch = (NuthKaab() + VerticalShift()).fit(pts, dem)
+    assert ch.steps[0].dx == pytest.approx(px, abs=1.5)
+    assert ch.report()[-1]["after"]["median"] == pytest.approx(0.0, abs=0.1)
+
+
+def test_parse_chain_rejects_unknown_steps_and_orders():
+    with pytest.raises(InputError, match="unknown co-registration step 'warp'"):
+        parse_chain("nuth_kaab,warp")
+    with pytest.raises(InputError, match="order"):
+        parse_chain("deramp:5")
+    with pytest.raises(InputError, match="integer"):
+        parse_chain("deramp:x")
+
+
+# ----------------------------------------------------------------------------- bad input
+
+def _geojson(path, ring, crs=None):
+    d = {"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {},
+         "geometry": {"type": "Polygon", "coordinates": [ring]}}]}
+    if crs:
+        d["crs"] = {"type": "name", "properties": {"name": crs}}
+    path.write_text(json.dumps(d))
+
+
+def test_outline_outside_the_dem_is_one_line(truth, tmp_path):
+    p = tmp_path / "far.geojson"
+    _geojson(p, [[10, 10], [10.1, 10], [10.1, 10.1], [10, 10]])
+    with pytest.raises(NoOverlapError, match="far.geojson: no outline overlaps the DEM"):
+        StableMask(exclude=[str(p)]).array(truth)
+
+
+def test_outline_in_another_crs_is_reprojected(truth, tmp_path):
+    from stereodem.core import geodesy
+    w, s, e, n = truth.bounds_lonlat()
+    x, y = geodesy.lonlat_to_crs(np.array([w, e]), np.array([s, n]), "EPSG:32637")
+    xm, ym = (x[0] + x[1]) / 2, (y[0] + y[1]) / 2
+    ring = [[xm - 2000, ym - 2000], [xm + 2000, ym - 2000], [xm + 2000, ym + 2000],
+            [xm - 2000, ym + 2000], [xm - 2000, ym - 2000]]
+    p = tmp_path / "utm.geojson"
+    _geojson(p, ring, "urn:ogc:def:crs:EPSG::32637")
+    m = StableMask(exclude=[str(p)]).array(truth)
+    assert not m[N // 2, N // 2] and m[0, 0]
+    cells = (~m).sum() * (truth.transform.a * 111320 * math.cos(math.radians(truth.transform.f))) \
+        * (abs(truth.transform.e) * 110950)
+    assert cells == pytest.approx(16e6, rel=0.1)         # 4 km x 4 km
+
+
+def test_mask_leaving_under_5_percent_says_how_much(truth):
+    mask = np.zeros(truth.shape, bool)
+    mask[:5, :] = True
+    with pytest.raises(InputError, match=r"only 2\.5 % of the overlapping cells"):
+        VerticalShift().fit(truth, truth, stable=mask)
+
+
+def test_points_with_nan_or_unsaid_datum(tmp_path):
+    p = tmp_path / "pts.csv"
+    p.write_text("lon,lat,h\n40.1,39.9,1000\n40.2,39.8,nan\n")
+    with pytest.raises(InputError, match="pts.csv: 1 of 2 points have NaN"):
+        read_points(p, vertical="ellipsoid")
+    p.write_text("lon,lat,h\n40.1,39.9,1000\n40.2,39.8,1001\n")
+    with pytest.raises(VerticalReferenceError, match="pts.csv: vertical reference of the point heights not said"):
+        read_points(p)
+    assert read_points(p, vertical="ellipsoid").vertical == "ellipsoid"
+
+
+def test_reference_that_does_not_overlap(truth):
+    far = DEM(truth.heights, truth.transform @ Affine.translation(5000, 0),
+              truth.crs, "geoid", "far.tif")
+    with pytest.raises(NoOverlapError, match="does not overlap"):
+        VerticalShift().fit(far, truth)
+    pts = AltimetryPoints([10.0, 10.1], [10.0, 10.1], [1.0, 2.0], vertical="geoid", path="far.csv")
+    with pytest.raises(NoOverlapError, match="far.csv: no point falls on the DEM"):
+        VerticalShift().fit(pts, truth)
+
+
+def test_points_from_csv_and_geoparquet_agree(tmp_path):
+    p = tmp_path / "pts.csv"
+    p.write_text("# ATL06-like\nlongitude,latitude,h_ellipsoid,time\n40.1,39.9,1000.5,2020-01-01\n"
+                 "40.2,39.8,1001.25,2020-01-02\n")
+    a = read_points(p)
+    assert a.vertical == "ellipsoid" and a.h.tolist() == [1000.5, 1001.25] and len(a.time) == 2
+    pq = pytest.importorskip("pyarrow.parquet")
+    import pyarrow as pa
+    import shapely
+    geom = shapely.to_wkb(shapely.points([40.1, 40.2], [39.9, 39.8]))
+    pq.write_table(pa.table({"geometry": geom, "h": [1000.5, 1001.25]}), tmp_path / "pts.parquet")
+    b = read_points(tmp_path / "pts.parquet", vertical="ellipsoid")
+    np.testing.assert_allclose(b.lon, a.lon)
+    np.testing.assert_allclose(b.lat, a.lat)
+    np.testing.assert_allclose(b.h, a.h)
+
+
+def test_points_file_with_a_bad_value_names_the_row(tmp_path):
+    p = tmp_path / "bad.csv"
+    p.write_text("lon,lat,h\n40.1,39.9,1000\n40.2,39.8,abc\n")
+    with pytest.raises(InputError, match=r"bad.csv: column 'h', row 3: 'abc' is not a number"):
+        read_points(p, vertical="geoid")

@@ -1,0 +1,114 @@
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from stereodem.core.dem import DEM
+from stereodem.core.errors import InputError
+from stereodem.post import filters as F
+
+
+@pytest.fixture(scope="module")
+def clean_dem():
+    """A 30 m-like stereo DEM: a 200 x 200 crop of the bundled SRTM upsampled x3 (cubic)
+    with 2 m of white noise (600 x 600 cells)."""
+    z90 = DEM.bundled().heights.astype(np.float64)[300:500, 300:500]
+    return ndi.zoom(z90, 3, order=3) + np.random.default_rng(0).normal(0, 2, (600, 600))
+
+
+def _inject(z0, frac=0.01, seed=1):
+    """1 % of cells replaced by outliers: 60 % isolated spikes/pits of 30-300 m, the rest in
+    2x2 to 4x4 clumps of 30-300 m."""
+    rng = np.random.default_rng(seed)
+    z = z0.copy()
+    bad = np.zeros(z.shape, bool)
+    n = int(frac * z.size)
+    nsp = int(0.6 * n)
+    idx = rng.choice(z.size, nsp, replace=False)
+    r, c = np.unravel_index(idx, z.shape)
+    z[r, c] += rng.uniform(30, 300, nsp) * rng.choice([-1, 1], nsp)
+    bad[r, c] = True
+    while bad.sum() < n:
+        s = rng.integers(2, 5)
+        r, c = rng.integers(0, z.shape[0] - s), rng.integers(0, z.shape[1] - s)
+        z[r:r + s, c:c + s] = z0[r:r + s, c:c + s] + rng.uniform(30, 300) * rng.choice([-1, 1])
+        bad[r:r + s, c:c + s] = True
+    return z, bad
+
+
+def test_default_chain_removes_injected_blunders(clean_dem):
+    z, bad = _inject(clean_dem)
+    res = F.default_chain().apply(z)
+    m = res.removed_mask
+    assert m[bad].mean() >= 0.99
+    assert m[~bad].mean() <= 0.01
+    assert np.all(np.isnan(res.heights[m]))
+    counted = sum(e.get("removed", 0) for e in res.report)
+    assert counted == m.sum()
+    skipped = {e["step"] for e in res.report if "skipped" in e}
+    assert skipped == {"score", "ray_gap"}
+    for e in res.report:
+        if "removed" in e:
+            assert np.sum(res.removed == e["reason"]) == e["removed"]
+    # on the clean DEM the chain hardly touches anything
+    assert F.default_chain().apply(clean_dem).removed_mask.mean() < 0.002
+
+
+def test_score_and_ray_gap_filters():
+    z = np.zeros((10, 10))
+    score = np.full(z.shape, 0.9)
+    score[2, 3] = 0.2
+    m, reason = F.score_filter(z, score, min_score=0.5)
+    assert reason == F.Reason.SCORE and m.sum() == 1 and m[2, 3]
+    gap = np.random.default_rng(0).uniform(1, 2, z.shape)
+    gap[5, 5] = 50.0
+    m, reason = F.ray_gap_filter(z, gap)          # 3 x P75
+    assert reason == F.Reason.RAY_GAP and m.sum() == 1 and m[5, 5]
+    m, _ = F.ray_gap_filter(z, gap, max_gap=1.5, percentile=None)
+    assert m.sum() == np.sum(gap > 1.5)
+    with pytest.raises(InputError):
+        F.score_filter(z, score[:5])
+
+
+def test_ok_thesis_local_tests():
+    r, c = np.mgrid[0:20, 0:20].astype(float)
+    z = 500 + 2 * c + np.random.default_rng(0).normal(0, 0.5, (20, 20))
+    z[10, 10] += 40
+    m, reason = F.local_sigma_filter(z, k=2.0)
+    assert reason == F.Reason.LOCAL_SIGMA and m[10, 10]
+    z2 = np.full((9, 9), 100.0)
+    z2[3:6, 3:6] = np.nan
+    z2[4, 4] = 100.0                  # surrounded by 8 voids
+    z2[2, 2] = np.nan
+    m, reason = F.failed_neighbours_filter(z2, min_failed=5)
+    assert reason == F.Reason.FAILED_NEIGHBOURS
+    assert m[4, 4] and m.sum() == 1
+
+
+def test_slope_reference_and_patch_filters():
+    d = DEM.bundled()
+    z = d.heights.astype(np.float64)[:200, :200].copy()
+    t = d.transform
+    m, reason = F.slope_filter(z, t, d.crs, max_slope=30.0)
+    from stereodem.post.terrain import slope_deg
+    assert reason == F.Reason.SLOPE and m.sum() == np.sum(slope_deg(z, t, d.crs) > 30.0)
+    ref = z + 5.0
+    zz = z.copy()
+    zz[50, 60] += 150
+    m, reason = F.reference_filter(zz, ref, max_diff=50.0)
+    assert reason == F.Reason.REFERENCE and m.sum() == 1 and m[50, 60]
+    # a 3 x 3 island in a void, and a 2 x 2 clump 500 m above the terrain
+    zz = z.copy()
+    zz[100:130, 100:130] = np.nan
+    zz[110:113, 110:113] = z[110:113, 110:113]
+    zz[20:22, 20:22] += 500
+    m, reason = F.small_patch_filter(zz, max_size=10)
+    assert reason == F.Reason.SMALL_PATCH
+    assert m[110:113, 110:113].all() and m[20:22, 20:22].all() and m.sum() == 13
+
+
+def test_chain_config_and_unknown_step():
+    chain = F.FilterChain([("spike", {"k": 4.0}), {"name": "small_patch", "params": {"max_size": 5}}])
+    assert chain.params == [{"step": "spike", "params": {"k": 4.0}},
+                            {"step": "small_patch", "params": {"max_size": 5}}]
+    with pytest.raises(InputError):
+        F.FilterStep("magic")

@@ -1,0 +1,402 @@
+"""Dense matching (stereo.match): Middlebury cones, synthetic sub-pixel shifts, vertical
+search, no-data, per-pixel ranges, OpenCV SGBM conventions."""
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+import rasterio
+
+from stereodem.core.errors import InputError
+from stereodem.stereo.match import MatchResult, match_rectified, zncc_at
+
+# ----------------------------------------------------------------------------- data
+
+@pytest.fixture(scope="module")
+def cones(data_dir):
+    d = data_dir / "cones"
+    left = cv2.imread(str(d / "cones_left.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(d / "cones_right.png"), cv2.IMREAD_GRAYSCALE)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(d / "cones_disp_left.tif") as f:
+            truth = f.read(1)
+    occ = cv2.imread(str(d / "cones_occlusion.png"), cv2.IMREAD_GRAYSCALE)
+    return left, right, truth, occ
+
+
+def texture(x, y, seed=0, n=60):
+    """Band-limited random texture evaluated at any (x, y): a sum of plane waves with
+    frequencies 0.02-0.3 cycles/px, so that shifted images are exact (no resampling)."""
+    rng = np.random.default_rng(seed)
+    f = rng.uniform(0.02, 0.3, n)
+    th = rng.uniform(0, 2 * np.pi, n)
+    ph = rng.uniform(0, 2 * np.pi, n)
+    out = np.zeros(np.broadcast(x, y).shape)
+    for i in range(n):
+        out += np.cos(2 * np.pi * f[i] * (np.cos(th[i]) * x + np.sin(th[i]) * y) + ph[i]) \
+            / np.sqrt(f[i])
+    return (100 + 10 * out).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def grid():
+    y, x = np.mgrid[0:200, 0:200].astype(float)
+    return x, y
+
+
+def shifted_pair(grid, a, b=0.0, v=0.0):
+    """left = T(x, y); right such that left(x, y) ~ right(x - d, y - v), d = a + b x."""
+    x, y = grid
+    left = texture(x, y)
+    right = texture((x + a) / (1 - b), y + v)
+    return left, right, (a + b * x).astype(np.float32)
+
+
+def rms(e):
+    return float(np.sqrt(np.nanmean(e ** 2)))
+
+
+# ----------------------------------------------------------------------------- cones
+
+def cones_figures(result, truth, occ):
+    nonocc = occ == 255  # Middlebury: white = non-occluded (GT is 0 only where occluded)
+    d = result.disparity
+    valid = np.isfinite(d)
+    err = np.abs(np.where(valid, d, np.inf) - truth)
+    bad_all = float(np.mean((err > 2)[nonocc]))  # invalid counted as errors
+    density = float(np.mean(valid[nonocc]))
+    bad_valid = float(np.mean((err > 2)[nonocc & valid]))
+    return bad_all, density, bad_valid
+
+
+def test_cones_occlusion_encoding(cones):
+    _, _, truth, occ = cones
+    assert set(np.unique(occ)) == {0, 255}
+    assert np.all(occ[truth == 0] == 0)            # unknown truth is marked occluded
+    assert 0.1 < np.mean(occ == 0) < 0.2           # occlusions are the minority
+    assert truth.max() <= 60
+
+
+@pytest.mark.parametrize("kwargs, max_bad, min_density, max_bad_valid", [
+    # measured: bad 13.4 %, density 89.9 %, bad among valid 3.7 %
+    (dict(matcher="ncc", levels=0), 0.145, 0.88, 0.045),
+    # measured (2 levels, margin 2): bad 23.1 %, density 79.8 %, bad among valid 3.5 %
+    (dict(matcher="ncc"), 0.245, 0.78, 0.045),
+    # measured: bad 5.2 %, density 97.4 %, bad among valid 2.7 %
+    (dict(matcher="sgm"), 0.06, 0.96, 0.035),
+])
+def test_cones_error_rate(cones, kwargs, max_bad, min_density, max_bad_valid):
+    left, right, truth, occ = cones
+    result = match_rectified(left, right, (0, 60), **kwargs)
+    assert isinstance(result, MatchResult)
+    assert result.disparity.dtype == np.float32 and result.score.dtype == np.float32
+    bad, density, bad_valid = cones_figures(result, truth, occ)
+    assert bad <= max_bad
+    assert density >= min_density
+    assert bad_valid <= max_bad_valid
+
+
+def test_cones_score_layer(cones):
+    left, right, _, _ = cones
+    for matcher in ("ncc", "sgm"):
+        r = match_rectified(left, right, (0, 60), matcher=matcher, levels=0)
+        s = r.score[np.isfinite(r.score)]
+        assert s.size > 0.8 * r.score.size
+        assert s.min() >= -1.0001 and s.max() <= 1.0001
+        # valid matches correlate well
+        assert np.nanmedian(r.score[np.isfinite(r.disparity)]) > 0.8
+
+
+# ----------------------------------------------------------------------------- sub-pixel
+
+@pytest.mark.parametrize("levels", [0, None])
+@pytest.mark.parametrize("a, b", [(3.3, 0.0), (2.0, 0.03)])
+def test_synthetic_subpixel(grid, a, b, levels):
+    left, right, truth = shifted_pair(grid, a, b)
+    r = match_rectified(left, right, (0, 12), levels=levels)
+    err = r.disparity - truth
+    assert np.isfinite(err).mean() > 0.9         # measured 0.92 (border = window + shift)
+    assert rms(err) < 0.08                        # measured 0.060 (const), 0.065 (ramp)
+    assert np.nanmax(np.abs(err)) < 0.5
+
+
+def test_pixel_locking_of_parabola(grid):
+    """Parabola fit biases towards integers: measured -0.028 px at fraction 0.3 and +0.028
+    at 0.7 (texture above); the V fit overshoots (+0.049 / -0.049)."""
+    biases = {}
+    for frac in (0.3, 0.7):
+        left, right, truth = shifted_pair(grid, 3 + frac)
+        for method in ("parabola", "vfit"):
+            r = match_rectified(left, right, (0, 8), levels=0, subpixel=method)
+            biases[method, frac] = float(np.nanmean(r.disparity - truth))
+    assert -0.04 < biases["parabola", 0.3] < -0.01
+    assert 0.01 < biases["parabola", 0.7] < 0.04
+    assert biases["vfit", 0.3] > 0.02 and biases["vfit", 0.7] < -0.02
+    assert abs(biases["parabola", 0.3]) < abs(biases["vfit", 0.3])
+
+
+# ----------------------------------------------------------------------------- vertical
+
+@pytest.mark.parametrize("v", [1.0, -1.0])
+def test_vertical_search(grid, v):
+    left, right, truth = shifted_pair(grid, 3.3, v=v)
+    plain = match_rectified(left, right, (0, 8), levels=0)
+    r = match_rectified(left, right, (0, 8), levels=0, vertical_search=1)
+    assert plain.vertical is None
+    assert r.vertical.dtype == np.float32
+    ok = np.isfinite(r.disparity)
+    assert ok.mean() > 0.9
+    assert np.array_equal(ok, np.isfinite(r.vertical))
+    assert abs(np.median(r.vertical[ok]) - v) < 0.02
+    assert np.mean(np.abs(r.vertical[ok] - v) < 0.25) > 0.95
+    assert rms(r.disparity - truth) < 0.08
+    # the score improves over the search without vertical offsets
+    assert np.nanmedian(r.score) > np.nanmedian(plain.score) + 0.05
+
+
+def test_vertical_search_coarse_to_fine(grid):
+    left, right, truth = shifted_pair(grid, 3.3, v=1.0)
+    r = match_rectified(left, right, (0, 12), vertical_search=1)
+    ok = np.isfinite(r.disparity)
+    assert ok.mean() > 0.9
+    assert abs(np.median(r.vertical[ok]) - 1.0) < 0.02
+
+
+# ----------------------------------------------------------------------------- no-data
+
+def test_nodata_is_invalid_and_does_not_contaminate(grid):
+    left, right, truth = shifted_pair(grid, 3.3)
+    ref = match_rectified(left, right, (0, 8), levels=0)
+    left_nd = left.copy()
+    right_nd = right.copy()
+    left_nd[80:100, 80:100] = np.nan
+    right_nd[140:160, 40:60] = np.nan
+    r = match_rectified(left_nd, right_nd, (0, 8), levels=0)
+    h = 3  # half window (7x7)
+    assert np.all(np.isnan(r.disparity[80 - h:100 + h, 80 - h:100 + h]))
+    assert np.all(np.isnan(r.score[80:100, 80:100]))
+    # left pixels whose right window (x - d) touches the right no-data
+    assert np.all(np.isnan(r.disparity[140 - h:160 + h, 44 - h:63 + h]))
+    # away from the no-data (window + disparity + sub-pixel neighbour), results are unchanged
+    far = np.ones(left.shape, bool)
+    far[80 - 2 * h - 10:100 + 2 * h + 10, 80 - 2 * h - 10:100 + 2 * h + 10] = False
+    far[140 - 2 * h - 10:160 + 2 * h + 10, 40 - 2 * h - 10:60 + 2 * h + 20] = False
+    a, b = ref.disparity[far], r.disparity[far]
+    assert np.array_equal(np.isnan(a), np.isnan(b))
+    assert np.nanmax(np.abs(a - b)) < 1e-3
+
+
+@pytest.mark.parametrize("matcher", ["ncc", "sgm"])
+def test_nodata_pyramid_and_sgm(grid, matcher):
+    left, right, truth = shifted_pair(grid, 3.3)
+    left[:, :30] = np.nan  # a no-data margin, as outside a resampled footprint
+    r = match_rectified(left, right, (0, 12), matcher=matcher)
+    assert np.all(np.isnan(r.disparity[:, :30]))
+    ok = np.isfinite(r.disparity[:, 40:])
+    assert ok.mean() > 0.85
+    tol = 0.08 if matcher == "ncc" else 0.25  # SGBM: 1/16 px output, no sub-pixel fit
+    assert rms(r.disparity[:, 40:] - truth[:, 40:]) < tol
+
+
+# ----------------------------------------------------------------------------- ranges
+
+@pytest.mark.parametrize("matcher", ["ncc", "sgm"])
+def test_negative_disparity_range(grid, matcher):
+    left, right, truth = shifted_pair(grid, -6.3)
+    r = match_rectified(left, right, (-12, 3), matcher=matcher)
+    ok = np.isfinite(r.disparity)
+    assert ok.mean() > 0.85
+    # SGBM: 1/16 px output and its own interpolation, measured median -6.125
+    assert abs(np.median(r.disparity[ok]) + 6.3) < (0.05 if matcher == "ncc" else 0.25)
+    assert np.nanmedian(r.score[ok]) > 0.95
+    # truth outside the requested range: far fewer and poorly correlated matches
+    # (measured ncc: 24 % valid, median score 0.61; sgm: 64 % valid, median score 0.41)
+    r2 = match_rectified(left, right, (0, 12), matcher=matcher)
+    ok2 = np.isfinite(r2.disparity)
+    assert ok2.mean() < (0.3 if matcher == "ncc" else 0.7)
+    assert np.nanmedian(r2.score[ok2]) < (0.7 if matcher == "ncc" else 0.5)
+
+
+def test_coarse_to_fine_on_ramp(grid):
+    left, right, truth = shifted_pair(grid, 2.0, 0.03)
+    for levels in (1, 2):
+        r = match_rectified(left, right, (0, 40), levels=levels)
+        assert r.info["levels"] == levels
+        assert np.isfinite(r.disparity).mean() > 0.8  # measured 0.85 / 0.83
+        assert rms(r.disparity - truth) < 0.09        # measured 0.079 / 0.081
+
+
+def test_sgm_recovers_ramp_with_opencv_conventions(grid):
+    left, right, truth = shifted_pair(grid, 2.0, 0.03)
+    r = match_rectified(left, right, (0, 40), matcher="sgm")  # 41 -> numDisparities 48
+    ok = np.isfinite(r.disparity)
+    assert ok.mean() > 0.9            # left border kept thanks to the padding
+    assert ok[:, :20].mean() > 0.8
+    assert rms(r.disparity - truth) < 0.25
+    # fractional output (1/16 px), not integers only
+    assert np.mean(r.disparity[ok] != np.round(r.disparity[ok])) > 0.5
+
+
+def test_per_pixel_range_maps(grid):
+    left, right, truth = shifted_pair(grid, 2.0, 0.03)
+    seed = truth + 1.0                     # a seed disparity map 1 px off, +/- 3 px
+    r = match_rectified(left, right, (seed - 3, seed + 3))
+    assert np.isfinite(r.disparity).mean() > 0.8
+    assert rms(r.disparity - truth) < 0.08  # measured 0.066
+    # a range that excludes the truth: results stay inside each pixel's own range, and only
+    # secondary correlation peaks of the texture remain (measured 10.8 % of pixels)
+    r2 = match_rectified(left, right, (seed + 2, seed + 5))
+    ok2 = np.isfinite(r2.disparity)
+    assert ok2.mean() < 0.15
+    d2 = r2.disparity[ok2]
+    assert np.all((d2 >= seed[ok2] + 1.5) & (d2 <= seed[ok2] + 5.5))
+
+
+def test_zncc_at_truth_is_high(grid):
+    left, right, truth = shifted_pair(grid, 3.0)
+    s = zncc_at(left, right, truth)
+    assert np.nanmedian(s) > 0.99
+    s_wrong = zncc_at(left, right, truth + 2)
+    assert np.nanmedian(s_wrong) < 0.8
+
+
+def test_texture_mask(grid):
+    left, right, _ = shifted_pair(grid, 3.0)
+    left[50:120, 50:120] = 100.0            # flat patch
+    right[50:120, 47:117] = 100.0
+    r = match_rectified(left, right, (0, 8), levels=0)
+    assert np.all(np.isnan(r.disparity[60:110, 60:110]))
+    assert np.all(np.isnan(r.score[60:110, 60:110]))
+
+
+def test_input_errors(grid):
+    left, right, _ = shifted_pair(grid, 3.0)
+    with pytest.raises(InputError):
+        match_rectified(left, right[:, :-1], (0, 8))
+    with pytest.raises(InputError):
+        match_rectified(left, right, (0, 8), matcher="census")
+    with pytest.raises(InputError):
+        match_rectified(left, right, (8, 0))
+    with pytest.raises(InputError):
+        match_rectified(left, right, (0, 8), window=6)
+    with pytest.raises(InputError):
+        match_rectified(left, right, (0, 8), matcher="sgm", vertical_search=1)
+    with pytest.raises(InputError):
+        match_rectified(np.full_like(left, np.nan), right, (0, 8))
+
+
+# ----------------------------------------------------------------------------- refinement
+
+def test_smooth_fill_bridges_wide_holes():
+    """A hole much wider than the kernel takes the surrounding ramp, not the map's median."""
+    from stereodem.stereo.refine import _smooth_fill
+    yy, xx = np.mgrid[0:200, 0:200].astype(np.float32)
+    d = 0.05 * xx
+    holed = d.copy()
+    holed[:, 120:170] = np.nan                       # 50 px wide, sigma 3
+    out = _smooth_fill(holed, 3.0)
+    assert np.isfinite(out).all()
+    err = np.abs(out - d)[:, 120:170]
+    assert np.median(err) < 1.0, np.median(err)      # the median fill is 3.5 px off there
+    assert np.abs(out - d)[:, 20:100].max() < 0.05   # away from the hole: the plain smoothing
+
+
+@pytest.fixture(scope="module")
+def wavy_pair():
+    """Rectified pair of an exact band-limited texture over a disparity with sub-window
+    relief (4 cycles per 40 px, 1 px amplitude) on a ramp."""
+    yy, xx = np.mgrid[0:160, 0:240].astype(np.float64)
+
+    def disp(x, y):
+        return 3.0 + 0.01 * x + 1.0 * np.sin(2 * np.pi * x / 40.0)
+
+    left = texture(xx, yy, seed=3)
+    # right(x - d(x)) = left(x): sample the texture at the inverse map (fixed point)
+    xr = xx.copy()
+    for _ in range(30):
+        xr = xx + disp(xr, yy)
+    right = texture(xr, yy, seed=3)
+    return left, right, disp(xx, yy).astype(np.float32)
+
+
+def test_refine_keeps_confirmed_detail_and_drops_noise(wavy_pair):
+    """The detail gain is ~1 when the first pass resolved real sub-window relief, and small
+    when its sub-window structure is noise on a smooth surface (refined error then lower
+    than with the first pass's detail kept)."""
+    from stereodem.stereo.refine import refine_disparity
+    left, right, truth = wavy_pair
+    inner = np.s_[20:-20, 20:-20]
+    # real relief, resolved by the first pass
+    d, s, g = refine_disparity(left, right, truth, sigma=1.0, window=7)
+    assert g > 0.8, g
+    assert np.nanmedian(np.abs(d - truth)[inner]) < 0.1
+
+    # smooth surface (a ramp), first pass = truth + noise correlated at the window scale
+    yy, xx = np.mgrid[0:160, 0:240].astype(np.float64)
+    ramp = (3.0 + 0.01 * xx).astype(np.float32)
+    left2 = texture(xx, yy, seed=4)
+    xr = xx + 3.0 + 0.01 * xx
+    for _ in range(30):
+        xr = xx + 3.0 + 0.01 * xr
+    right2 = texture(xr, yy, seed=4)
+    rng = np.random.default_rng(1)
+    noise = cv2.GaussianBlur(rng.normal(0, 1, ramp.shape).astype(np.float32), (0, 0), 2.0)
+    first = ramp + 0.5 * noise / noise.std()
+    d0, _, g0 = refine_disparity(left2, right2, first, sigma=1.0, window=7)
+    d1, _, g1 = refine_disparity(left2, right2, first, sigma=1.0, window=7, detail_gain=1.0)
+    assert g1 == 1.0 and g0 < 0.5, g0
+    e0, e1 = (np.nanstd((x - ramp)[inner]) for x in (d0, d1))
+    assert e0 < 0.8 * e1, (e0, e1)
+
+
+def test_rounded_seed_is_the_rounded_float_median():
+    """The score layer's warp seed (uint8 median on rounded values when the span allows)
+    equals rint of the float32 5x5 median of the hole-filled map, both branches."""
+    from stereodem.stereo.match import _fill_seed, _rounded_seed
+    rng = np.random.default_rng(3)
+    for span in (60.0, 900.0):                      # uint8 branch, float32 branch
+        d = (np.round(rng.uniform(-span / 3, span, (70, 90)) * 16) / 16).astype(np.float32)
+        d[rng.random(d.shape) < 0.05] = np.nan
+        d[10, :] = np.nan                           # a whole row of holes
+        ref = np.rint(_fill_seed(d, 0.0))
+        assert np.array_equal(_rounded_seed(d), ref)
+
+
+def test_sgm_stretch_and_score_match_textbook_forms():
+    """The 8-bit stretch (by row blocks) and the score layer equal their textbook forms:
+    round-half-up of the 1-99 % stretch in float64, and the windowed ZNCC of the left image
+    with the right one gathered at the rounded median-filtered disparity."""
+    from numpy.lib.stride_tricks import sliding_window_view as windows
+
+    from stereodem.stereo.match import _fill_seed, _to_uint8
+    rng = np.random.default_rng(4)
+    left = rng.normal(100, 20, (40, 1500)).astype(np.float32)   # several row blocks
+    right = rng.normal(100, 20, (40, 1500)).astype(np.float32)
+    left[5, 7] = np.nan
+    l8, r8 = _to_uint8(left, right)
+    v = np.concatenate([left.ravel(), right.ravel()])
+    lo, hi = np.percentile(v[np.isfinite(v)][:: max(1, v.size // 400_000)], [1.0, 99.0])
+    ref = np.clip((right.astype(np.float64) - lo) * (255.0 / (hi - lo)) + 0.5, 0, 255)
+    assert np.array_equal(r8, ref.astype(np.uint8))
+    assert l8[5, 7] == 0 and np.array_equal(np.delete(l8.ravel(), 5 * 1500 + 7),
+        np.delete(np.clip((left.astype(np.float64) - lo) * (255.0 / (hi - lo)) + 0.5, 0,
+                          255).ravel(), 5 * 1500 + 7).astype(np.uint8))
+    left, right = left[:, :60].copy(), right[:, :60].copy()
+    left[5, 7] = 1.0
+    d = rng.uniform(0, 4, left.shape).astype(np.float32)
+    s = zncc_at(left, right, d)
+    seed = np.rint(_fill_seed(d, 0.0)).astype(int)
+    cols = np.arange(60)[None, :] - seed
+    warped = np.where((cols >= 0) & (cols < 60),
+                      np.take_along_axis(right, np.clip(cols, 0, 59), axis=1), np.nan)
+    a = windows(left.astype(np.float64), (7, 7))
+    b = windows(warped.astype(np.float64), (7, 7))
+    a = a - a.mean(axis=(-2, -1), keepdims=True)
+    b = b - b.mean(axis=(-2, -1), keepdims=True)
+    ref = (a * b).sum(axis=(-2, -1)) / np.sqrt((a * a).sum(axis=(-2, -1)) * (b * b).sum(axis=(-2, -1)))
+    inner = s[3:-3, 3:-3]
+    assert np.isnan(s[:3]).all() and np.isnan(s[:, -3:]).all()
+    both = np.isfinite(ref)
+    assert np.array_equal(np.isfinite(inner), both)
+    assert np.max(np.abs(inner[both] - ref[both])) < 1e-4

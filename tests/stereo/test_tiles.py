@@ -1,0 +1,102 @@
+import os
+import time
+
+import numpy as np
+import pytest
+
+from stereodem.stereo.runner import run_tiles
+from stereodem.stereo.tiling import tile_grid
+
+
+def _tile_fn(tile, ctx):
+    """A deterministic tile job: a noisy block depending only on the tile and context."""
+    c0, r0, c1, r1 = tile.bounds
+    rows, cols = slice(r0, r1 + 1), slice(c0, c1 + 1)
+    if tile.index in ctx.get("fail", ()):
+        raise RuntimeError("boom")
+    if tile.index in ctx.get("hang", ()):
+        time.sleep(30)
+    rng = np.random.default_rng(tile.index + ctx["seed"])
+    block = ctx["image"][rows, cols].astype(np.float64)
+    return {"value": (block * rng.random(block.shape)).astype(np.float32),
+            "pid": np.array(os.getpid())}
+
+
+def _ctx(**kw):
+    img = np.arange(100 * 130, dtype=np.float32).reshape(100, 130)
+    return dict(image=img, shape=img.shape, seed=1, **kw)
+
+
+def test_tile_grid_covers_image_once_in_index_order():
+    tiles = tile_grid(130, 100, 32)
+    cover = np.zeros((100, 130), int)
+    for t in tiles:
+        c0, r0, c1, r1 = t.bounds
+        cover[r0:r1 + 1, c0:c1 + 1] += 1
+    assert (cover == 1).all()
+    assert [t.index for t in tiles] == list(range(len(tiles)))
+
+
+def test_pool_results_identical_to_serial():
+    tiles = tile_grid(130, 100, 32)
+    ser, f1, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1)
+    par, f2, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=2)
+    assert not f1 and not f2 and ser.keys() == par.keys()
+    for k in ser:
+        assert np.array_equal(ser[k]["value"], par[k]["value"])
+    # really ran in other processes
+    assert {int(v["pid"]) for v in par.values()} != {os.getpid()}
+
+
+@pytest.mark.slow
+def test_failed_and_timed_out_tiles_are_reported_and_the_rest_completes():
+    tiles = tile_grid(130, 100, 32)
+    res, failures, _ = run_tiles(_tile_fn, tiles, _ctx(fail=(2,), hang=(5,)), workers=2, timeout=2.0)
+    assert [f.tile.index for f in failures] == [2, 5]
+    assert "boom" in failures[0].reason and "timed out" in failures[1].reason
+    assert set(res) == {t.index for t in tiles} - {2, 5}
+
+
+def test_resume_skips_done_tiles(tmp_path):
+    tiles = tile_grid(130, 100, 64)
+    calls = []
+
+    def progress(done, total):
+        calls.append(done)
+
+    res1, _, t1 = run_tiles(_tile_fn, tiles, _ctx(fail=(1,)), cache_dir=tmp_path)
+    assert 1 not in res1 and len(t1) == len(tiles)
+    res2, fail2, t2 = run_tiles(_tile_fn, tiles, _ctx(), cache_dir=tmp_path, resume=True, progress=progress)
+    assert not fail2 and list(t2) == [1]                # only the failed tile is recomputed
+    assert np.array_equal(res2[0]["value"], res1[0]["value"])
+    assert calls[-1] == len(tiles)
+
+
+@pytest.mark.slow
+def test_dask_local_cluster_same_results():
+    distributed = pytest.importorskip("dask.distributed")
+    tiles = tile_grid(130, 100, 50)
+    ser, _, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        res, failures, _ = run_tiles(_tile_fn, tiles, _ctx(), dask_address=client)
+    assert not failures
+    for k in ser:
+        assert np.array_equal(ser[k]["value"], res[k]["value"])
+
+
+@pytest.mark.slow
+def test_results_can_stay_in_the_cache_only(tmp_path):
+    """hold_results=False keeps no tile in memory: each is read back from its cache file,
+    identical to the held result (what lets a scene's stereo hold one tile at a time)."""
+    from stereodem.stereo.runner import load_cached
+    tiles = tile_grid(130, 100, 32)
+    held, _, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1, cache_dir=tmp_path / "a")
+    lean, fails, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=2, cache_dir=tmp_path / "b",
+                               hold_results=False)
+    assert not fails and sorted(lean) == sorted(held) == [t.index for t in tiles]
+    assert all(v is None for v in lean.values())
+    for t in tiles:
+        got = load_cached(tmp_path / "b", t)
+        assert got.keys() == held[t.index].keys()
+        np.testing.assert_array_equal(got["value"], held[t.index]["value"])
