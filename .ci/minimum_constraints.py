@@ -5,6 +5,7 @@ second environment and runs the fast subset there, so that the ``>=`` bounds sta
 
 Usage: ``python .ci/minimum_constraints.py > constraints.txt`` (Python >= 3.11: tomllib).
 """
+
 import re
 import sys
 from pathlib import Path
@@ -23,7 +24,7 @@ def constraints(pyproject: Path) -> list[str]:
         pin = f"=={version}" if version.count(".") >= 2 else f"=={version}.*"
         out.append(f"{name}{pin}")
         if name == "dask" and "distributed" in (m.group(2) or ""):
-            out.append(f"distributed{pin}")          # the extra pins the same release
+            out.append(f"distributed{pin}")  # the extra pins the same release
     return out
 
 

@@ -28,6 +28,7 @@ process's.
 
 Writes benchmarks/results/bench_adjust.json.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -46,12 +47,13 @@ def problem(n_ties, n_gcps, seed=0):
     from stereodem.sensor.io.gcps import ControlPoints
     from stereodem.sensor.models.corrected import ImageCorrectedModel
     from stereodem.sensor.models.rpc import RPCModel
+
     L = RPCModel.from_file(ROOT / "tests" / "data" / "pleiades" / "img_01_rpc.tif")
     R = RPCModel.from_file(ROOT / "tests" / "data" / "pleiades" / "img_02_rpc.tif")
     rng = np.random.default_rng(seed)
 
     def sample(n):
-        c = rng.uniform(5, L.width - 6, 6 * n)     # about half the left image overlaps the right
+        c = rng.uniform(5, L.width - 6, 6 * n)  # about half the left image overlaps the right
         r = rng.uniform(5, L.height - 6, 6 * n)
         h = rng.uniform(100, 1500, 6 * n)
         lon, lat = L.localize(c, r, h)
@@ -62,10 +64,12 @@ def problem(n_ties, n_gcps, seed=0):
     _, _, _, t = sample(n_ties)
     ties = t + rng.normal(0, 0.3, t.shape)
     lon, lat, h, g = sample(n_gcps)
-    gl = ControlPoints.from_arrays(lon, lat, h, g[:, 0] + rng.normal(0, 0.1, len(lon)),
-                                   g[:, 1] + rng.normal(0, 0.1, len(lon)))
-    gr = ControlPoints.from_arrays(lon, lat, h, g[:, 2] + rng.normal(0, 0.1, len(lon)),
-                                   g[:, 3] + rng.normal(0, 0.1, len(lon)))
+    gl = ControlPoints.from_arrays(
+        lon, lat, h, g[:, 0] + rng.normal(0, 0.1, len(lon)), g[:, 1] + rng.normal(0, 0.1, len(lon))
+    )
+    gr = ControlPoints.from_arrays(
+        lon, lat, h, g[:, 2] + rng.normal(0, 0.1, len(lon)), g[:, 3] + rng.normal(0, 0.1, len(lon))
+    )
     Lb = ImageCorrectedModel(L, col_shift=1.2, row_shift=-0.8)
     Rb = ImageCorrectedModel(R, col_shift=-2.5, row_shift=1.7, row_drift_row=3e-4)
     return Lb, Rb, ties, (gl, gr)
@@ -73,24 +77,41 @@ def problem(n_ties, n_gcps, seed=0):
 
 def run(n_ties, n_gcps, solver):
     from stereodem.sensor.estimation.adjust import bundle_adjust
+
     Lb, Rb, ties, gcps = problem(n_ties, n_gcps)
     t0, c0 = time.perf_counter(), time.process_time()
-    res = bundle_adjust(Lb, Rb, ties, names=("rpc-shift-drift", "rpc-shift-drift"), gcps=gcps,
-                        sigma_tie_px=0.3, sigma_px=0.1, solver=solver, snooping=False)
+    res = bundle_adjust(
+        Lb,
+        Rb,
+        ties,
+        names=("rpc-shift-drift", "rpc-shift-drift"),
+        gcps=gcps,
+        sigma_tie_px=0.3,
+        sigma_px=0.1,
+        solver=solver,
+        snooping=False,
+    )
     dt, dc = time.perf_counter() - t0, time.process_time() - c0
-    return {"solver": solver, "ties": int(len(ties)), "gcps": n_gcps, "seconds": round(dt, 3),
-            "cpu_seconds": round(dc, 3),
-            "iterations": res.iterations, "sigma0": round(res.sigma0, 4),
-            "unknowns": len(res.names) + 3 * len(ties),
-            "observations": int(res.n_observations),
-            "tie_rmse_px": round(res.tie_rmse_px, 4),
-            "values": [round(float(v), 6) for v in res.values]}
+    return {
+        "solver": solver,
+        "ties": int(len(ties)),
+        "gcps": n_gcps,
+        "seconds": round(dt, 3),
+        "cpu_seconds": round(dc, 3),
+        "iterations": res.iterations,
+        "sigma0": round(res.sigma0, 4),
+        "unknowns": len(res.names) + 3 * len(ties),
+        "observations": int(res.n_observations),
+        "tie_rmse_px": round(res.tie_rmse_px, 4),
+        "values": [round(float(v), 6) for v in res.values],
+    }
 
 
 def per_iteration(n_ties, n_gcps):
     """Seconds of one Gauss-Newton step (median over the steps of a full run) of the dense and
     of the Schur solver on the same problem: the step functions are wrapped with timers."""
     from stereodem.sensor.estimation.adjust import bundle as bu
+
     times = {"dense": [], "schur": []}
     dense_step, schur_step = bu._dense_step, bu._Problem.step
 
@@ -100,7 +121,9 @@ def per_iteration(n_ties, n_gcps):
             out = fn(*args, **kw)
             times[key].append((time.perf_counter() - t0, time.process_time() - c0))
             return out
+
         return wrapper
+
     bu._dense_step, bu._Problem.step = timed(dense_step, "dense"), timed(schur_step, "schur")
     try:
         for solver in ("dense", "schur"):
@@ -112,13 +135,16 @@ def per_iteration(n_ties, n_gcps):
         out[f"{key}_steps"] = len(t)
         out[f"{key}_seconds_per_iteration"] = round(float(np.median([w for w, _ in t])), 4)
         out[f"{key}_cpu_seconds_per_iteration"] = round(float(np.median([c for _, c in t])), 4)
-    out["dense_over_schur_cpu"] = round(out["dense_cpu_seconds_per_iteration"]
-                                        / max(out["schur_cpu_seconds_per_iteration"], 1e-4), 0)
+    out["dense_over_schur_cpu"] = round(
+        out["dense_cpu_seconds_per_iteration"] / max(out["schur_cpu_seconds_per_iteration"], 1e-4),
+        0,
+    )
     return out
 
 
 def main():
     from threadpoolctl import threadpool_limits
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ties", type=int, default=20000)
     ap.add_argument("--gcps", type=int, default=10)
@@ -141,18 +167,22 @@ def main():
     agree = float(np.max(np.abs(np.array(schur["values"]) - np.array(lsq["values"]))))
     out = {
         "benchmark": "bundle adjustment of a pair (rpc-shift-drift on both real Pleiades RPCs)",
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                    "load_average_at_start": load_start,
-                    "load_average_at_end": [round(v, 2) for v in os.getloadavg()],
-                    "threads": "BLAS/OpenMP limited to 1 thread (threadpoolctl) for every solver",
-                    "note": "shared 2-core machine (other agents running): wall times are upper "
-                            "bounds; cpu_seconds is this process's CPU time"},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "load_average_at_start": load_start,
+            "load_average_at_end": [round(v, 2) for v in os.getloadavg()],
+            "threads": "BLAS/OpenMP limited to 1 thread (threadpoolctl) for every solver",
+            "note": "shared 2-core machine (other agents running): wall times are upper "
+            "bounds; cpu_seconds is this process's CPU time",
+        },
         "convergence_criterion": "max |dz_k| / sigma_k < 0.01 for every solver (least_squares: "
-                                 "scipy's default ftol/xtol/gtol 1e-8, then Gauss-Newton steps "
-                                 "to the criterion)",
+        "scipy's default ftol/xtol/gtol 1e-8, then Gauss-Newton steps "
+        "to the criterion)",
         "full_size": runs,
         "least_squares_over_schur_wall": round(lsq["seconds"] / schur["seconds"], 1),
-        "least_squares_iterations": lsq["iterations"], "schur_iterations": schur["iterations"],
+        "least_squares_iterations": lsq["iterations"],
+        "schur_iterations": schur["iterations"],
         "least_squares_over_schur_cpu": round(lsq["cpu_seconds"] / schur["cpu_seconds"], 1),
         "parameters_max_abs_difference": agree,
         "per_iteration_dense_vs_schur": steps,
@@ -161,8 +191,18 @@ def main():
     }
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(out, indent=1))
-    print(json.dumps({k: out[k] for k in ("least_squares_over_schur_wall", "least_squares_over_schur_cpu",
-                                          "per_iteration_dense_vs_schur")}))
+    print(
+        json.dumps(
+            {
+                k: out[k]
+                for k in (
+                    "least_squares_over_schur_wall",
+                    "least_squares_over_schur_cpu",
+                    "per_iteration_dense_vs_schur",
+                )
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

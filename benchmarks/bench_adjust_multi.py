@@ -16,6 +16,7 @@ biases against the true ones (px), sigma0, and the ray gaps per image pair befor
 
 Writes benchmarks/results/bench_adjust_multi.json (with the machine's load average).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,9 +28,14 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-TRIPLET = next((p / "shared" / "data" / "s2p_pleiades" / "triplet" for p in HERE.parents
-                if (p / "shared" / "data" / "s2p_pleiades" / "triplet").is_dir()),
-               HERE.parents[1] / "shared" / "data" / "s2p_pleiades" / "triplet")
+TRIPLET = next(
+    (
+        p / "shared" / "data" / "s2p_pleiades" / "triplet"
+        for p in HERE.parents
+        if (p / "shared" / "data" / "s2p_pleiades" / "triplet").is_dir()
+    ),
+    HERE.parents[1] / "shared" / "data" / "s2p_pleiades" / "triplet",
+)
 #: image-space shifts (col_shift, row_shift; px) of the true models from the delivered ones:
 #: what the adjustment must recover
 BIASES = [(1.2, -0.8), (-2.5, 1.7), (0.9, 2.6)]
@@ -40,11 +46,14 @@ def problem(n_ties, n_gcps, seed=0):
     from stereodem.sensor.io.gcps import ControlPoints
     from stereodem.sensor.models.corrected import ImageCorrectedModel
     from stereodem.sensor.models.rpc import RPCModel
+
     truth = [RPCModel.from_file(TRIPLET / f"img_0{k}.tif") for k in (1, 2, 3)]
     delivered = [ImageCorrectedModel(m) for m in truth]
-    true_models = [ImageCorrectedModel(m, col_shift=c, row_shift=r) for m, (c, r) in zip(truth, BIASES)]
+    true_models = [
+        ImageCorrectedModel(m, col_shift=c, row_shift=r) for m, (c, r) in zip(truth, BIASES)
+    ]
     rng = np.random.default_rng(seed)
-    lo, hi = 50.0, 350.0        # Marseille's heights (m, ellipsoid) in the triplet's crops
+    lo, hi = 50.0, 350.0  # Marseille's heights (m, ellipsoid) in the triplet's crops
 
     def sample(n):
         L = true_models[0]
@@ -67,8 +76,13 @@ def problem(n_ties, n_gcps, seed=0):
     lon, lat, h, gobs = sample(n_gcps)
     gcps = []
     for o in gobs:
-        g = ControlPoints.from_arrays(lon, lat, h, o[:, 0] + rng.normal(0, 0.1, len(lon)),
-                                      o[:, 1] + rng.normal(0, 0.1, len(lon)))
+        g = ControlPoints.from_arrays(
+            lon,
+            lat,
+            h,
+            o[:, 0] + rng.normal(0, 0.1, len(lon)),
+            o[:, 1] + rng.normal(0, 0.1, len(lon)),
+        )
         g.sigma_px[:] = 0.1
         gcps.append(g)
     return delivered, tracks, gcps
@@ -78,27 +92,37 @@ def run(n_ties, n_gcps):
     from threadpoolctl import threadpool_limits
 
     from stereodem.sensor.estimation.adjust.bundle_multi import _ray_gaps, bundle_adjust_images
+
     delivered, tracks, gcps = problem(n_ties, n_gcps)
     with threadpool_limits(2):
         t0, c0 = time.perf_counter(), time.process_time()
-        res = bundle_adjust_images(delivered, tracks, names="rpc-shift", gcps=gcps, sigma_tie_px=0.3,
-                                   ray_gaps=False)
+        res = bundle_adjust_images(
+            delivered, tracks, names="rpc-shift", gcps=gcps, sigma_tie_px=0.3, ray_gaps=False
+        )
         dt, dc = time.perf_counter() - t0, time.process_time() - c0
         t1 = time.perf_counter()
         before, after = _ray_gaps(delivered, tracks), _ray_gaps(res.models, tracks)
         dg = time.perf_counter() - t1
     est = np.asarray(res.values).reshape(3, 2)
     err = est - np.asarray(BIASES)
-    return {"ties": int(tracks.n_points), "observations": int(len(tracks)), "gcps_per_image": n_gcps,
-            "seconds": round(dt, 3), "cpu_seconds": round(dc, 3), "ray_gap_seconds": round(dg, 3),
-            "iterations": res.iterations, "sigma0": round(res.sigma0, 4),
-            "unknowns": len(res.names) + 3 * tracks.n_points,
-            "true_biases_px": BIASES, "estimated_px": np.round(est, 4).tolist(),
-            "max_abs_error_px": round(float(np.abs(err).max()), 4),
-            "std_px": np.round(res.std, 4).tolist(),
-            "tie_rmse_px": round(res.tie_rmse_px, 4),
-            "ray_gaps_before": {f"{i}-{j}": v for (i, j), v in before.items()},
-            "ray_gaps_after": {f"{i}-{j}": v for (i, j), v in after.items()}}
+    return {
+        "ties": int(tracks.n_points),
+        "observations": int(len(tracks)),
+        "gcps_per_image": n_gcps,
+        "seconds": round(dt, 3),
+        "cpu_seconds": round(dc, 3),
+        "ray_gap_seconds": round(dg, 3),
+        "iterations": res.iterations,
+        "sigma0": round(res.sigma0, 4),
+        "unknowns": len(res.names) + 3 * tracks.n_points,
+        "true_biases_px": BIASES,
+        "estimated_px": np.round(est, 4).tolist(),
+        "max_abs_error_px": round(float(np.abs(err).max()), 4),
+        "std_px": np.round(res.std, 4).tolist(),
+        "tie_rmse_px": round(res.tie_rmse_px, 4),
+        "ray_gaps_before": {f"{i}-{j}": v for (i, j), v in before.items()},
+        "ray_gaps_after": {f"{i}-{j}": v for (i, j), v in after.items()},
+    }
 
 
 def main():
@@ -110,19 +134,34 @@ def main():
         raise SystemExit(f"{TRIPLET}: not found (the benchmark needs ../shared/data)")
     load = [round(v, 2) for v in os.getloadavg()]
     r = run(a.ties, a.gcps)
-    print(f"{r['ties']} ties ({r['observations']} observations), {a.gcps} GCPs/image: {r['seconds']:.2f} s "
-          f"wall, {r['cpu_seconds']:.2f} s CPU, {r['iterations']} iteration(s); max bias error "
-          f"{r['max_abs_error_px']:.3f} px; load {load}")
+    print(
+        f"{r['ties']} ties ({r['observations']} observations), {a.gcps} GCPs/image: {r['seconds']:.2f} s "
+        f"wall, {r['cpu_seconds']:.2f} s CPU, {r['iterations']} iteration(s); max bias error "
+        f"{r['max_abs_error_px']:.3f} px; load {load}"
+    )
     for k in r["ray_gaps_before"]:
-        print(f"  pair {k}: ray gap RMS {r['ray_gaps_before'][k]['ray_gap_rms_m']:.2f} -> "
-              f"{r['ray_gaps_after'][k]['ray_gap_rms_m']:.2f} m")
+        print(
+            f"  pair {k}: ray gap RMS {r['ray_gaps_before'][k]['ray_gap_rms_m']:.2f} -> "
+            f"{r['ray_gaps_after'][k]['ray_gap_rms_m']:.2f} m"
+        )
     out = HERE / "results" / "bench_adjust_multi.json"
-    out.write_text(json.dumps({"benchmark": "N-image bundle adjustment (rpc-shift, real Pleiades triplet RPCs)",
-                               "target": "<= 3 s on 2 cores for 20 000 ties (issue 26)",
-                               "machine": {"cpus": os.cpu_count(), "load_average_at_start": load,
-                                           "note": "shared 2-core machine, other agents running: "
-                                                   "wall times are upper bounds"},
-                               "run": r}, indent=1) + "\n")
+    out.write_text(
+        json.dumps(
+            {
+                "benchmark": "N-image bundle adjustment (rpc-shift, real Pleiades triplet RPCs)",
+                "target": "<= 3 s on 2 cores for 20 000 ties (issue 26)",
+                "machine": {
+                    "cpus": os.cpu_count(),
+                    "load_average_at_start": load,
+                    "note": "shared 2-core machine, other agents running: "
+                    "wall times are upper bounds",
+                },
+                "run": r,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
     print(f"wrote {out}")
 
 

@@ -19,6 +19,7 @@ seconds are the comparable figure.
 Writes benchmarks/results/bench_aster_granule.json. The machine is shared (2 cores, other
 jobs running): timings are upper bounds.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,7 +36,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def peak_gb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
 
 
 def cpu_seconds() -> float:
@@ -51,21 +52,43 @@ def cli_simulate(dem_path: Path, out: Path, size, right_size) -> dict:
     import os
 
     from bench_aster_scene import measured
-    cmd = [sys.executable, "-m", "stereodem.cli", "-q", "simulate", "--preset", "aster", "--format",
-           "l1a-v004", "--size", *map(str, size), "--right-size", *map(str, right_size),
-           "--dem", str(dem_path), "--dem-vertical", "geoid", "-o", str(out), "--overwrite"]
+
+    cmd = [
+        sys.executable,
+        "-m",
+        "stereodem.cli",
+        "-q",
+        "simulate",
+        "--preset",
+        "aster",
+        "--format",
+        "l1a-v004",
+        "--size",
+        *map(str, size),
+        "--right-size",
+        *map(str, right_size),
+        "--dem",
+        str(dem_path),
+        "--dem-vertical",
+        "geoid",
+        "-o",
+        str(out),
+        "--overwrite",
+    ]
     load0 = os.getloadavg()
     wall, sampled_mb, _, cpu = measured(cmd)
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return {"command": "stereodem simulate --preset aster --format l1a-v004 --size "
-                       f"{size[0]} {size[1]} --right-size {right_size[0]} {right_size[1]} "
-                       f"--dem {dem_path.name} --dem-vertical geoid",
-            "wall_s": round(wall, 1),
-            "cpu_s": round(cpu, 1),
-            "peak_rss_gb": round(r1.ru_maxrss / 1024 ** 2, 3),
-            "peak_rss_gb_sampled_tree": round(sampled_mb / 1024, 3),
-            "load_average_before_after": [round(load0[0], 2), round(os.getloadavg()[0], 2)],
-            "targets": {"wall_s": 40, "peak_rss_gb": 3}}
+    return {
+        "command": "stereodem simulate --preset aster --format l1a-v004 --size "
+        f"{size[0]} {size[1]} --right-size {right_size[0]} {right_size[1]} "
+        f"--dem {dem_path.name} --dem-vertical geoid",
+        "wall_s": round(wall, 1),
+        "cpu_s": round(cpu, 1),
+        "peak_rss_gb": round(r1.ru_maxrss / 1024**2, 3),
+        "peak_rss_gb_sampled_tree": round(sampled_mb / 1024, 3),
+        "load_average_before_after": [round(load0[0], 2), round(os.getloadavg()[0], 2)],
+        "targets": {"wall_s": 40, "peak_rss_gb": 3},
+    }
 
 
 def main(argv=None):
@@ -89,20 +112,37 @@ def main(argv=None):
     def stage(name, fn):
         t0, c0 = time.perf_counter(), cpu_seconds()
         res = fn()
-        stages[name] = {"seconds": round(time.perf_counter() - t0, 2),
-                        "cpu_seconds": round(cpu_seconds() - c0, 2), "peak_rss_gb": round(peak_gb(), 3)}
-        print(f"{name:28s} {stages[name]['seconds']:8.2f} s wall {stages[name]['cpu_seconds']:8.2f} s CPU"
-              f"   peak RSS {stages[name]['peak_rss_gb']:.2f} GB", flush=True)
+        stages[name] = {
+            "seconds": round(time.perf_counter() - t0, 2),
+            "cpu_seconds": round(cpu_seconds() - c0, 2),
+            "peak_rss_gb": round(peak_gb(), 3),
+        }
+        print(
+            f"{name:28s} {stages[name]['seconds']:8.2f} s wall {stages[name]['cpu_seconds']:8.2f} s CPU"
+            f"   peak RSS {stages[name]['peak_rss_gb']:.2f} GB",
+            flush=True,
+        )
         return res
 
     dem = mirrored_dem()
-    sc = stage("simulate_scene", lambda: simulate_scene(
-        "aster", size=tuple(args.size), right_size=tuple(args.right_size), dem=dem, seed=0,
-        n_points=100))
+    sc = stage(
+        "simulate_scene",
+        lambda: simulate_scene(
+            "aster",
+            size=tuple(args.size),
+            right_size=tuple(args.right_size),
+            dem=dem,
+            seed=0,
+            n_points=100,
+        ),
+    )
     g = stage("granule_from_scene", lambda: granule_from_scene(sc, seed=0))
     stage("write_truth_rasters", lambda: write_scene(sc, out / "truth", write_images=False))
     hdf = stage("write_v004", lambda: write_v004(g, out / f"{g.granule_id}.hdf"))
-    zp = stage("write_v003_zip", lambda: write_v003(g, out / f"{g.granule_id.replace('_004', '_003', 1)}.zip"))
+    zp = stage(
+        "write_v003_zip",
+        lambda: write_v003(g, out / f"{g.granule_id.replace('_004', '_003', 1)}.zip"),
+    )
 
     def read(path):
         gr = open_aster_granule(path)
@@ -113,7 +153,7 @@ def main(argv=None):
     stage("open_v003_and_read_images", lambda: read(zp))
     lattice = {b: list(gr4[b].fields.lattice.shape) for b in ("3N", "3B")}
     render_error = {k: v for k, v in sc.diagnostics.items() if k.endswith("_error_px")}
-    sc = g = gr4 = None           # free the in-process scene before the CLI run
+    sc = g = gr4 = None  # free the in-process scene before the CLI run
     dem_path = out / "mirrored_srtm.tif"
     dem.write(dem_path)
     cli = cli_simulate(dem_path, out / "cli", args.size, args.right_size)
@@ -127,7 +167,10 @@ def main(argv=None):
         "simulate_cpu_seconds": stages["simulate_scene"]["cpu_seconds"],
         "peak_rss_gb": round(peak_gb(), 3),
         "cli_simulate_l1a_v004": cli,
-        "file_mb": {"v004": round(hdf.stat().st_size / 1e6, 1), "v003_zip": round(zp.stat().st_size / 1e6, 1)},
+        "file_mb": {
+            "v004": round(hdf.stat().st_size / 1e6, 1),
+            "v003_zip": round(zp.stat().st_size / 1e6, 1),
+        },
         "lattice": lattice,
         "render_error_px": render_error,
         # literals: earlier sessions' measurements, written into every result file for
@@ -137,32 +180,57 @@ def main(argv=None):
             "note": "not measured by this run: figures of earlier sessions, carried as literals",
             "before_this_version": {
                 "what": "the same full-size simulation with the code before the speed work of this "
-                        "version (commit a6e4845), in process",
-                "quiet_machine_same_session": {"simulate_scene_s": 95.9, "simulate_scene_cpu_s": 83.5,
-                                               "truth_and_v004_write_s": 9.7, "peak_rss_gb": 2.47,
-                                               "note": "cProfile on, load average 0.9"},
-                "previous_result_of_this_benchmark": {"simulate_scene_s": 200.5,
-                                                      "simulate_scene_cpu_s": 82.78, "peak_rss_gb": 2.414,
-                                                      "note": "load average 5-10"},
+                "version (commit a6e4845), in process",
+                "quiet_machine_same_session": {
+                    "simulate_scene_s": 95.9,
+                    "simulate_scene_cpu_s": 83.5,
+                    "truth_and_v004_write_s": 9.7,
+                    "peak_rss_gb": 2.47,
+                    "note": "cProfile on, load average 0.9",
+                },
+                "previous_result_of_this_benchmark": {
+                    "simulate_scene_s": 200.5,
+                    "simulate_scene_cpu_s": 82.78,
+                    "peak_rss_gb": 2.414,
+                    "note": "load average 5-10",
+                },
                 "bench_aster_scene_json": {"simulate_s": 74.1, "granule_write_s": 9.5},
             },
             "baseline_before_block_rendering": {
                 "full_granule": "164 s, 16 GB (issue #14, lead's measurement)",
-                "quarter_area_2050x2100_2500x2700_same_machine": {"before": [127.9, 5.07], "after": [47.8, 1.30],
-                                                                  "final_version_peak_rss_gb": 0.74,
-                                                                  "unit": ["s", "GB peak RSS"]},
-            "full_granule_intermediate_versions_same_machine": [
-                {"step": "coarse geoid, moving-pixel iteration, no ground arrays", "seconds": 289.6, "peak_rss_gb": 4.36},
-                {"step": "+ block hillshade, in-place field", "seconds": 183.3, "cpu_seconds": 82.0, "peak_rss_gb": 3.71},
-                {"step": "+ fine DEM after albedo, block NaN means", "seconds": 203.1, "cpu_seconds": 83.2, "peak_rss_gb": 3.58},
-                {"step": "+ true ortho by row blocks (this run)"}],
-            "equivalence": "410x400 / 500x520 scene, seed 2, against the code before block rendering: "
-                           "images differ by 1 DN in 0.001 % (3N) / 0.03 % (3B) of pixels (rounding), "
-                           "truth DEM by <= 0.25 mm, truth ortho by <= 3e-4 DN",
+                "quarter_area_2050x2100_2500x2700_same_machine": {
+                    "before": [127.9, 5.07],
+                    "after": [47.8, 1.30],
+                    "final_version_peak_rss_gb": 0.74,
+                    "unit": ["s", "GB peak RSS"],
+                },
+                "full_granule_intermediate_versions_same_machine": [
+                    {
+                        "step": "coarse geoid, moving-pixel iteration, no ground arrays",
+                        "seconds": 289.6,
+                        "peak_rss_gb": 4.36,
+                    },
+                    {
+                        "step": "+ block hillshade, in-place field",
+                        "seconds": 183.3,
+                        "cpu_seconds": 82.0,
+                        "peak_rss_gb": 3.71,
+                    },
+                    {
+                        "step": "+ fine DEM after albedo, block NaN means",
+                        "seconds": 203.1,
+                        "cpu_seconds": 83.2,
+                        "peak_rss_gb": 3.58,
+                    },
+                    {"step": "+ true ortho by row blocks (this run)"},
+                ],
+                "equivalence": "410x400 / 500x520 scene, seed 2, against the code before block rendering: "
+                "images differ by 1 DN in 0.001 % (3N) / 0.03 % (3B) of pixels (rounding), "
+                "truth DEM by <= 0.25 mm, truth ortho by <= 3e-4 DN",
             },
         },
         "note": f"2 cores, load average {os.getloadavg()[0]:.2f} at the end (other jobs raise wall "
-                "times, see the load averages); cpu_seconds counts all threads of the process",
+        "times, see the load averages); cpu_seconds counts all threads of the process",
     }
     res_path = ROOT / "benchmarks" / "results" / "bench_aster_granule.json"
     res_path.write_text(json.dumps(result, indent=2) + "\n")

@@ -31,6 +31,7 @@ there).
 The simulated scene is kept in ``OUT/scene`` and reused when its sizes match. Writes
 benchmarks/results/bench_aster_scene.json.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,6 +54,7 @@ def mirrored_dem(pad=MIRROR_CELLS):
     from affine import Affine
 
     from stereodem.core.dem import DEM
+
     d = DEM.bundled()
     z = np.pad(d.heights, pad, mode="reflect")
     t = d.transform @ Affine.translation(-pad, -pad)
@@ -64,6 +66,7 @@ def simulate(out: Path, size, right_size, force=False):
     benchmark) and an ASTER L1A V004 granule, the input the jobs below read."""
     from stereodem.sensor.simulation.aster_granule import write_granule_scene
     from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+
     meta = out / "scene.json"
     if meta.exists() and not force and list(out.glob("AST_L1A_*.hdf")):
         s = json.loads(meta.read_text())["settings"]
@@ -71,8 +74,14 @@ def simulate(out: Path, size, right_size, force=False):
             print(f"reusing the simulated scene in {out}")
             return None, None
     t0 = time.perf_counter()
-    sc = simulate_scene("aster", size=tuple(size), right_size=tuple(right_size), dem=mirrored_dem(),
-                        seed=0, n_points=100)
+    sc = simulate_scene(
+        "aster",
+        size=tuple(size),
+        right_size=tuple(right_size),
+        dem=mirrored_dem(),
+        seed=0,
+        n_points=100,
+    )
     t_sim = time.perf_counter() - t0
     t0 = time.perf_counter()
     write_granule_scene(sc, out, version=4, seed=0, overwrite=True)
@@ -91,6 +100,7 @@ def measured(cmd):
     import resource
 
     import psutil
+
     cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -108,7 +118,7 @@ def measured(cmd):
     cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     if p.returncode != 0:
         raise SystemExit(f"{' '.join(map(str, cmd))} failed:\n{err[-3000:]}")
-    return wall, peak / 2 ** 20, err, cpu
+    return wall, peak / 2**20, err, cpu
 
 
 CONFIG = """[inputs]
@@ -130,29 +140,57 @@ workers = {workers}
 
 
 def dem_once(scene: Path, out: Path, workers: int):
-    cmd = [sys.executable, "-m", "stereodem.cli", "-q", "dem", str(granule(scene)),
-           "-o", str(out), "--height-range", "1000", "3500",
-           "--workers", str(workers), "--overwrite"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "stereodem.cli",
+        "-q",
+        "dem",
+        str(granule(scene)),
+        "-o",
+        str(out),
+        "--height-range",
+        "1000",
+        "3500",
+        "--workers",
+        str(workers),
+        "--overwrite",
+    ]
     load = os.getloadavg()[0]
     wall, peak, _, cpu = measured(cmd)
     rep = json.loads((out / "dem_report.json").read_text())
-    return dict(workers=workers, wall_s=round(wall, 1), cpu_s=round(cpu, 1),
-                load_average_at_start=round(load, 2), peak_rss_mb_all_processes=round(peak),
-                stereo_s=round(rep["seconds"], 1), n_points=rep["n_points"],
-                valid_cells=rep["info"]["valid_cells"], failed_tiles=len(rep["failed_tiles"]))
+    return dict(
+        workers=workers,
+        wall_s=round(wall, 1),
+        cpu_s=round(cpu, 1),
+        load_average_at_start=round(load, 2),
+        peak_rss_mb_all_processes=round(peak),
+        stereo_s=round(rep["seconds"], 1),
+        n_points=rep["n_points"],
+        valid_cells=rep["info"]["valid_cells"],
+        failed_tiles=len(rep["failed_tiles"]),
+    )
 
 
 def run_once(scene: Path, out: Path, workers: int):
     cfg = out.with_suffix(".toml")
     cfg.write_text(CONFIG.format(scene=scene, granule=granule(scene), out=out, workers=workers))
     load = os.getloadavg()[0]
-    wall, peak, _, cpu = measured([sys.executable, "-m", "stereodem.cli", "-q", "run", str(cfg),
-                                   "--overwrite"])
+    wall, peak, _, cpu = measured(
+        [sys.executable, "-m", "stereodem.cli", "-q", "run", str(cfg), "--overwrite"]
+    )
     info = json.loads((out / "run.json").read_text())
-    return dict(workers=workers, wall_s=round(wall, 1), cpu_s=round(cpu, 1),
-                load_average_at_start=round(load, 2), load_average_at_end=round(os.getloadavg()[0], 2),
-                peak_rss_mb_all_processes=round(peak), stages=info["stages"],
-                stage_table=stage_table(info["stages"]), headline=info["headline"])
+    return dict(
+        workers=workers,
+        wall_s=round(wall, 1),
+        cpu_s=round(cpu, 1),
+        load_average_at_start=round(load, 2),
+        load_average_at_end=round(os.getloadavg()[0], 2),
+        peak_rss_mb_all_processes=round(peak),
+        stages=info["stages"],
+        stage_table=stage_table(info["stages"]),
+        headline=info["headline"],
+    )
 
 
 def stage_table(stages) -> list:
@@ -160,22 +198,34 @@ def stage_table(stages) -> list:
     during the stage, largest tile process)."""
     rows = []
     for name, st in stages.items():
-        rows.append(dict(stage=name, wall_s=st["seconds"], cpu_s=st.get("cpu_s"),
-                         worker_cpu_s=st.get("worker_cpu_s"), main_peak_rss_mb=st["peak_rss_mb"],
-                         peak_scope=st.get("peak_rss_scope", "process"),
-                         tile_process_peak_rss_mb=st.get("tile_process_peak_rss_mb")))
+        rows.append(
+            dict(
+                stage=name,
+                wall_s=st["seconds"],
+                cpu_s=st.get("cpu_s"),
+                worker_cpu_s=st.get("worker_cpu_s"),
+                main_peak_rss_mb=st["peak_rss_mb"],
+                peak_scope=st.get("peak_rss_scope", "process"),
+                tile_process_peak_rss_mb=st.get("tile_process_peak_rss_mb"),
+            )
+        )
     return rows
 
 
 def print_stage_table(run):
-    print(f"  {'stage':8s} {'wall s':>7s} {'CPU s':>7s} {'workers CPU s':>14s} {'main peak MB':>13s}")
+    print(
+        f"  {'stage':8s} {'wall s':>7s} {'CPU s':>7s} {'workers CPU s':>14s} {'main peak MB':>13s}"
+    )
     for r in run["stage_table"]:
-        print(f"  {r['stage']:8s} {r['wall_s']:7.1f} {r['cpu_s'] or 0:7.1f} {r['worker_cpu_s'] or 0:14.1f} "
-              f"{r['main_peak_rss_mb']:13.0f}")
+        print(
+            f"  {r['stage']:8s} {r['wall_s']:7.1f} {r['cpu_s'] or 0:7.1f} {r['worker_cpu_s'] or 0:14.1f} "
+            f"{r['main_peak_rss_mb']:13.0f}"
+        )
 
 
 def identical(a: Path, b: Path, names):
     import rasterio
+
     out = {}
     for n in names:
         with rasterio.open(a / n) as x, rasterio.open(b / n) as y:
@@ -192,6 +242,7 @@ def matcher_throughput(scene: Path):
     from stereodem.stereo import epipolar
     from stereodem.stereo.match import match_rectified
     from stereodem.stereo.tiling import Tile
+
     imgs, models = [], []
     for n in ("left", "right"):
         with rasterio.open(scene / f"{n}.tif") as ds:
@@ -205,27 +256,35 @@ def matcher_throughput(scene: Path):
     d0 = int(np.floor(et.disparity_range[0]))
     nd = 64
     res = {}
-    for name, kw in (("stereodem ncc coarse-to-fine", dict(matcher="ncc")),
-                     ("stereodem ncc full search", dict(matcher="ncc", levels=0)),
-                     ("stereodem sgm", dict(matcher="sgm"))):
+    for name, kw in (
+        ("stereodem ncc coarse-to-fine", dict(matcher="ncc")),
+        ("stereodem ncc full search", dict(matcher="ncc", levels=0)),
+        ("stereodem sgm", dict(matcher="sgm")),
+    ):
         t0 = time.perf_counter()
         match_rectified(L, R, (d0, d0 + nd - 1), **kw)
         dt = time.perf_counter() - t0
         res[name] = round(L.size * nd / dt / 1e6, 1)
     l8 = cv2.normalize(L, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
     r8 = cv2.normalize(R, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-    for name, mode, threads in (("cv2.StereoSGBM 1 thread", cv2.STEREO_SGBM_MODE_SGBM, 1),
-                                ("cv2.StereoSGBM 3-way", cv2.STEREO_SGBM_MODE_SGBM_3WAY, 0)):
+    for name, mode, threads in (
+        ("cv2.StereoSGBM 1 thread", cv2.STEREO_SGBM_MODE_SGBM, 1),
+        ("cv2.StereoSGBM 3-way", cv2.STEREO_SGBM_MODE_SGBM_3WAY, 0),
+    ):
         cv2.setNumThreads(threads if threads else -1)
-        sg = cv2.StereoSGBM_create(minDisparity=d0, numDisparities=nd, blockSize=5, P1=200, P2=800,
-                                   mode=mode)
+        sg = cv2.StereoSGBM_create(
+            minDisparity=d0, numDisparities=nd, blockSize=5, P1=200, P2=800, mode=mode
+        )
         t0 = time.perf_counter()
         sg.compute(l8, r8)
         dt = time.perf_counter() - t0
         res[name] = round(L.size * nd / dt / 1e6, 1)
     cv2.setNumThreads(-1)
-    return dict(tile="1024x1024 epipolar tile at the scene centre", disparities=nd,
-                mpx_disparities_per_s=res)
+    return dict(
+        tile="1024x1024 epipolar tile at the scene centre",
+        disparities=nd,
+        mpx_disparities_per_s=res,
+    )
 
 
 RUN_LAYERS = ["raw/dem.tif", "raw/score.tif", "dem.tif", "ortho_left.tif", "ortho_right.tif"]
@@ -242,34 +301,48 @@ def rerun(out: Path, workers):
         r = run_once(out / "scene", out / f"w{w}", w)
         r["measured"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         runs[w] = r
-        print(f"stereodem run workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s, peak "
-              f"{r['peak_rss_mb_all_processes']} MB, NMAD {r['headline']['nmad']:.2f} m, "
-              f"{r['headline']['valid_pct']:.2f} % valid (load average {r['load_average_at_start']})")
+        print(
+            f"stereodem run workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s, peak "
+            f"{r['peak_rss_mb_all_processes']} MB, NMAD {r['headline']['nmad']:.2f} m, "
+            f"{r['headline']['valid_pct']:.2f} % valid (load average {r['load_average_at_start']})"
+        )
         print_stage_table(r)
     result["runs"] = [runs[w] for w in sorted(runs)]
-    result["runs_note"] = ("runs re-measured with --run-workers (see each run's 'measured'); "
-                           "dem_runs and matcher are from the last full bench run")
+    result["runs_note"] = (
+        "runs re-measured with --run-workers (see each run's 'measured'); "
+        "dem_runs and matcher are from the last full bench run"
+    )
     if set(workers) >= {1, 2} or all((out / f"w{w}" / "dem.tif").exists() for w in (1, 2)):
         same = identical(out / "w1", out / "w2", RUN_LAYERS)
         result.setdefault("bit_identical", {})["run"] = same
         print("bit-identical rasters, workers 1 vs 2:", same)
     if 1 in runs and 2 in runs:
-        result.update(speedup_stereo=round(runs[1]["stages"]["stereo"]["seconds"]
-                                           / runs[2]["stages"]["stereo"]["seconds"], 2),
-                      speedup_total=round(runs[1]["wall_s"] / runs[2]["wall_s"], 2))
+        result.update(
+            speedup_stereo=round(
+                runs[1]["stages"]["stereo"]["seconds"] / runs[2]["stages"]["stereo"]["seconds"], 2
+            ),
+            speedup_total=round(runs[1]["wall_s"] / runs[2]["wall_s"], 2),
+        )
     dest.write_text(json.dumps(result, indent=1, default=float))
     print(f"updated {dest}")
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--size", nargs=2, type=int, default=[4100, 4200])
     ap.add_argument("--right-size", nargs=2, type=int, default=[5000, 5400])
     ap.add_argument("--out", default="/tmp/bench_aster")
     ap.add_argument("--resimulate", action="store_true")
     ap.add_argument("--skip-run", action="store_true", help="only the stereodem dem runs")
-    ap.add_argument("--run-workers", nargs="+", type=int, default=None,
-                    help="re-measure only these `stereodem run` worker counts; update the results file")
+    ap.add_argument(
+        "--run-workers",
+        nargs="+",
+        type=int,
+        default=None,
+        help="re-measure only these `stereodem run` worker counts; update the results file",
+    )
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -277,35 +350,54 @@ def main(argv=None):
     if args.run_workers:
         return rerun(out, args.run_workers)
     if t_sim is not None:
-        print(f"simulated {args.size} + {args.right_size} in {t_sim:.1f} s, granule written in {t_granule:.1f} s")
+        print(
+            f"simulated {args.size} + {args.right_size} in {t_sim:.1f} s, granule written in {t_granule:.1f} s"
+        )
     dem_runs = []
     for w in (1, 2):
         shutil.rmtree(out / f"dem_w{w}", ignore_errors=True)
         dem_runs.append(dem_once(out / "scene", out / f"dem_w{w}", w))
         print("stereodem dem", dem_runs[-1])
-    same = {"dem": identical(out / "dem_w1", out / "dem_w2", ["dem.tif", "score.tif", "count.tif", "raygap.tif"])}
-    result = dict(input="ASTER L1A V004 granule", size=args.size, right_size=args.right_size,
-                  simulate_s=None if t_sim is None else round(t_sim, 1),
-                  granule_write_s=None if t_granule is None else round(t_granule, 1),
-                  dem_mirrored_cells=MIRROR_CELLS, dem_runs=dem_runs,
-                  speedup_dem=round(dem_runs[0]["wall_s"] / dem_runs[1]["wall_s"], 2))
+    same = {
+        "dem": identical(
+            out / "dem_w1", out / "dem_w2", ["dem.tif", "score.tif", "count.tif", "raygap.tif"]
+        )
+    }
+    result = dict(
+        input="ASTER L1A V004 granule",
+        size=args.size,
+        right_size=args.right_size,
+        simulate_s=None if t_sim is None else round(t_sim, 1),
+        granule_write_s=None if t_granule is None else round(t_granule, 1),
+        dem_mirrored_cells=MIRROR_CELLS,
+        dem_runs=dem_runs,
+        speedup_dem=round(dem_runs[0]["wall_s"] / dem_runs[1]["wall_s"], 2),
+    )
     if not args.skip_run:
         runs = []
         for w in (1, 2):
             shutil.rmtree(out / f"w{w}", ignore_errors=True)
             runs.append(run_once(out / "scene", out / f"w{w}", w))
             r = runs[-1]
-            print(f"stereodem run workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s, peak "
-                  f"{r['peak_rss_mb_all_processes']} MB, NMAD {r['headline']['nmad']:.2f} m, "
-                  f"{r['headline']['valid_pct']:.2f} % valid (load average {r['load_average_at_start']})")
+            print(
+                f"stereodem run workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s, peak "
+                f"{r['peak_rss_mb_all_processes']} MB, NMAD {r['headline']['nmad']:.2f} m, "
+                f"{r['headline']['valid_pct']:.2f} % valid (load average {r['load_average_at_start']})"
+            )
             print_stage_table(r)
         same["run"] = identical(out / "w1", out / "w2", RUN_LAYERS)
-        result.update(runs=runs, speedup_stereo=round(runs[0]["stages"]["stereo"]["seconds"]
-                                                      / runs[1]["stages"]["stereo"]["seconds"], 2),
-                      speedup_total=round(runs[0]["wall_s"] / runs[1]["wall_s"], 2))
+        result.update(
+            runs=runs,
+            speedup_stereo=round(
+                runs[0]["stages"]["stereo"]["seconds"] / runs[1]["stages"]["stereo"]["seconds"], 2
+            ),
+            speedup_total=round(runs[0]["wall_s"] / runs[1]["wall_s"], 2),
+        )
     result["bit_identical"] = same
-    result["note"] = ("wall seconds depend on the machine's load (load_average_*: 2 cores shared "
-                      "with other jobs); CPU seconds per stage are the figures to compare")
+    result["note"] = (
+        "wall seconds depend on the machine's load (load_average_*: 2 cores shared "
+        "with other jobs); CPU seconds per stage are the figures to compare"
+    )
     result["matcher"] = matcher_throughput(out / "scene")
     print(json.dumps({k: result[k] for k in ("bit_identical", "speedup_dem", "matcher")}, indent=1))
     dest = ROOT / "benchmarks" / "results" / "bench_aster_scene.json"

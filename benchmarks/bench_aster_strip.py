@@ -20,6 +20,7 @@ they overlap (median and NMAD of the difference of the two granule DEMs); times 
 Writes benchmarks/results/bench_aster_strip.json. The machine is shared (2 cores, other jobs):
 timings are upper bounds; the load average is recorded.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,7 +50,9 @@ def main(argv=None):
     ap.add_argument("--size", nargs=2, type=int, default=[820, 840], help="one granule's 3N size")
     ap.add_argument("--granules", type=int, default=2)
     ap.add_argument("--seed", type=int, default=5)
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_aster_strip.json"))
+    ap.add_argument(
+        "--out", default=str(ROOT / "benchmarks" / "results" / "bench_aster_strip.json")
+    )
     a = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="bench_aster_strip_"))
     res = dict(size=a.size, granules=a.granules, seed=a.seed, load_before=os.getloadavg())
@@ -58,11 +61,23 @@ def main(argv=None):
         strip = simulate_strip(a.granules, size=tuple(a.size), seed=a.seed)
         paths = [str(p) for p in write_strip(strip, work / "sim")]
         res["simulate_s"] = round(time.perf_counter() - t, 2)
-        res["cut"] = dict(advance_lines=strip.advance, overlap_3N_lines=strip.heights[0] - strip.advance,
-                          row_step=strip.row_step, lines=list(strip.heights))
+        res["cut"] = dict(
+            advance_lines=strip.advance,
+            overlap_3N_lines=strip.heights[0] - strip.advance,
+            row_step=strip.row_step,
+            lines=list(strip.heights),
+        )
         truth = DEM.from_file(work / "sim" / "truth_dem.tif")
         lo, hi = truth.height_range()
-        common = ["-q", "dem", "--res", "30", "--height-range", f"{lo - 100:.0f}", f"{hi + 100:.0f}"]
+        common = [
+            "-q",
+            "dem",
+            "--res",
+            "30",
+            "--height-range",
+            f"{lo - 100:.0f}",
+            f"{hi + 100:.0f}",
+        ]
 
         t = time.perf_counter()
         assert cli([*common, *paths, "-o", str(work / "strip")]) == 0
@@ -70,13 +85,19 @@ def main(argv=None):
         report = json.loads((work / "strip" / "dem_report.json").read_text())
         dem = DEM.from_file(work / "strip" / "dem.tif")
         d_strip = compare_on_reference_grid(dem, truth).dh
-        res["strip"] = dict(nmad_m=round(nmad(d_strip), 4), median_m=round(float(np.nanmedian(d_strip)), 4),
-                            valid_cells=report["info"]["valid_cells"],
-                            seams_3N=report["strip"]["seams"]["3N"], seams_3B=report["strip"]["seams"]["3B"])
+        res["strip"] = dict(
+            nmad_m=round(nmad(d_strip), 4),
+            median_m=round(float(np.nanmedian(d_strip)), 4),
+            valid_cells=report["info"]["valid_cells"],
+            seams_3N=report["strip"]["seams"]["3N"],
+            seams_3B=report["strip"]["seams"]["3B"],
+        )
         model = open_aster_strip(paths).band("3N").model
-        res["seam_steps"] = [seam_step(dem, truth, model, s["seam_line"], half_width=w)
-                             for s in report["strip"]["seams"]["3N"]
-                             for w in (strip.row_step, 2 * strip.row_step)]
+        res["seam_steps"] = [
+            seam_step(dem, truth, model, s["seam_line"], half_width=w)
+            for s in report["strip"]["seams"]["3N"]
+            for w in (strip.row_step, 2 * strip.row_step)
+        ]
 
         singles, dems = [], []
         for k, p in enumerate(paths):
@@ -87,35 +108,68 @@ def main(argv=None):
             dems.append(one)
             d_one = compare_on_reference_grid(one, truth).dh
             same = np.isfinite(d_one) & np.isfinite(d_strip)
-            singles.append(dict(granule=Path(p).name, seconds=round(secs, 2),
-                                nmad_m=round(nmad(d_one), 4),
-                                nmad_same_cells_m=round(nmad(d_one[same]), 4),
-                                strip_nmad_same_cells_m=round(nmad(d_strip[same]), 4),
-                                ratio=round(nmad(d_strip[same]) / nmad(d_one[same]), 4),
-                                cells_compared=int(same.sum()),
-                                strip_covers_pct=round(100 * same.sum() / np.isfinite(d_one).sum(), 2)))
+            singles.append(
+                dict(
+                    granule=Path(p).name,
+                    seconds=round(secs, 2),
+                    nmad_m=round(nmad(d_one), 4),
+                    nmad_same_cells_m=round(nmad(d_one[same]), 4),
+                    strip_nmad_same_cells_m=round(nmad(d_strip[same]), 4),
+                    ratio=round(nmad(d_strip[same]) / nmad(d_one[same]), 4),
+                    cells_compared=int(same.sum()),
+                    strip_covers_pct=round(100 * same.sum() / np.isfinite(d_one).sum(), 2),
+                )
+            )
         res["single_granules"] = singles
         # separate processing: where consecutive granule DEMs overlap, how they differ
         sep = []
         for k in range(len(dems) - 1):
-            b = to_grid(dems[k + 1].heights, dems[k + 1].transform, dems[k + 1].crs,
-                        dems[k].transform, dems[k].crs, dems[k].shape)
+            b = to_grid(
+                dems[k + 1].heights,
+                dems[k + 1].transform,
+                dems[k + 1].crs,
+                dems[k].transform,
+                dems[k].crs,
+                dems[k].shape,
+            )
             diff = b.astype(np.float64) - dems[k].heights
-            sep.append(dict(cells=int(np.isfinite(diff).sum()),
-                            median_m=round(float(np.nanmedian(diff)), 4), nmad_m=round(nmad(diff), 4)))
+            sep.append(
+                dict(
+                    cells=int(np.isfinite(diff).sum()),
+                    median_m=round(float(np.nanmedian(diff)), 4),
+                    nmad_m=round(nmad(diff), 4),
+                )
+            )
         res["separate_granules_overlap_difference"] = sep
         worst_step = max(abs(s["step_m"]) for s in res["seam_steps"])
         worst_ratio = max(abs(s["ratio"] - 1) for s in singles)
-        res["targets"] = dict(seam_step_le_0_5_m=bool(worst_step <= 0.5), worst_step_m=worst_step,
-                              nmad_within_10_pct=bool(worst_ratio <= 0.10), worst_nmad_ratio_dev=round(worst_ratio, 4))
+        res["targets"] = dict(
+            seam_step_le_0_5_m=bool(worst_step <= 0.5),
+            worst_step_m=worst_step,
+            nmad_within_10_pct=bool(worst_ratio <= 0.10),
+            worst_nmad_ratio_dev=round(worst_ratio, 4),
+        )
         res["load_after"] = os.getloadavg()
         res["cpu_count"] = os.cpu_count()
     finally:
         shutil.rmtree(work, ignore_errors=True)
     Path(a.out).write_text(json.dumps(res, indent=2, default=float) + "\n")
-    print(json.dumps({k: res[k] for k in ("targets", "seam_steps", "single_granules", "strip",
-                                          "separate_granules_overlap_difference")},
-                     indent=1, default=float)[:4000])
+    print(
+        json.dumps(
+            {
+                k: res[k]
+                for k in (
+                    "targets",
+                    "seam_steps",
+                    "single_granules",
+                    "strip",
+                    "separate_granules_overlap_difference",
+                )
+            },
+            indent=1,
+            default=float,
+        )[:4000]
+    )
 
 
 if __name__ == "__main__":

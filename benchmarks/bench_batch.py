@@ -16,6 +16,7 @@ signature then junk). Measured in one run, on the same machine:
 
 writes ``benchmarks/results/bench_batch.json``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,13 +54,15 @@ coregister = false
 def make_scenes(root: Path) -> list[Path]:
     from stereodem.sensor.simulation.aster_granule import granule_right_size, write_granule_scene
     from stereodem.sensor.simulation.simulate import simulate_scene
+
     paths = []
     for seed in range(1, N_GOOD + 1):
         d = root / f"scene{seed}"
         cfg = d / f"scene{seed}.toml"
         if not cfg.exists():
-            sc = simulate_scene("aster", size=SIZE, right_size=granule_right_size(SIZE), seed=seed,
-                                n_points=30)
+            sc = simulate_scene(
+                "aster", size=SIZE, right_size=granule_right_size(SIZE), seed=seed, n_points=30
+            )
             g = write_granule_scene(sc, d, version=4, seed=seed, overwrite=True)
             cfg.write_text(CONFIG.format(granule=g.name))
         paths.append(cfg)
@@ -79,7 +82,9 @@ def timed(cmd):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--out", default="/tmp/bench_batch")
     ap.add_argument("--workers", type=int, default=2)
     a = ap.parse_args(argv)
@@ -96,37 +101,62 @@ def main(argv=None):
             p, wall, cpu = timed(cli + ["run", str(cfg), "--workers", "1", "--overwrite"])
         else:
             shutil.rmtree(root / "single_corrupt", ignore_errors=True)
-            p, wall, cpu = timed(cli + ["dem", str(cfg), "-o", str(root / "single_corrupt"),
-                                        "--workers", "1"])
-        singles.append(dict(scene=cfg.stem, exit=p.returncode, wall_s=round(wall, 2),
-                            cpu_s=round(cpu, 2), error=p.stderr.strip().splitlines()[-1:] if p.returncode else []))
+            p, wall, cpu = timed(
+                cli + ["dem", str(cfg), "-o", str(root / "single_corrupt"), "--workers", "1"]
+            )
+        singles.append(
+            dict(
+                scene=cfg.stem,
+                exit=p.returncode,
+                wall_s=round(wall, 2),
+                cpu_s=round(cpu, 2),
+                error=p.stderr.strip().splitlines()[-1:] if p.returncode else [],
+            )
+        )
         print(singles[-1], flush=True)
     runs = {}
     for name, extra in (("pool", []), ("dask_local", ["--dask", "local"])):
         out = root / f"batch_{name}"
         shutil.rmtree(out, ignore_errors=True)
-        p, wall, cpu = timed(cli[:-1] + ["batch", *map(str, scenes), "-o", str(out),
-                                         "--workers", str(a.workers), *extra])
+        p, wall, cpu = timed(
+            cli[:-1]
+            + ["batch", *map(str, scenes), "-o", str(out), "--workers", str(a.workers), *extra]
+        )
         table = json.loads((out / "batch.json").read_text())
-        failed = [dict(name=r["name"], reason=r["reason"]) for r in table["scenes"]
-                  if r["status"] == "failed"]
-        runs[name] = dict(exit=p.returncode, wall_s=round(wall, 2), cpu_s=round(cpu, 2),
-                          batch_seconds=table["seconds"], summary=table["summary"], failed=failed,
-                          sum_scene_seconds_inside=table["sum_scene_seconds"],
-                          load_average_after=[round(x, 2) for x in os.getloadavg()])
+        failed = [
+            dict(name=r["name"], reason=r["reason"])
+            for r in table["scenes"]
+            if r["status"] == "failed"
+        ]
+        runs[name] = dict(
+            exit=p.returncode,
+            wall_s=round(wall, 2),
+            cpu_s=round(cpu, 2),
+            batch_seconds=table["seconds"],
+            summary=table["summary"],
+            failed=failed,
+            sum_scene_seconds_inside=table["sum_scene_seconds"],
+            load_average_after=[round(x, 2) for x in os.getloadavg()],
+        )
         print(name, runs[name], flush=True)
     sum_single = sum(s["wall_s"] for s in singles)
     result = dict(
         scenes=f"{N_GOOD} simulated ASTER L1A V004 granules, 3N {SIZE[0]} x {SIZE[1]} (3B in the real "
-               "ratio), run with both orthoimages and the assessment; 1 corrupt granule",
-        workers=a.workers, cpus=os.cpu_count(), load_average_before=[round(x, 2) for x in load0],
-        single_runs=singles, sum_of_single_runs_wall_s=round(sum_single, 2),
+        "ratio), run with both orthoimages and the assessment; 1 corrupt granule",
+        workers=a.workers,
+        cpus=os.cpu_count(),
+        load_average_before=[round(x, 2) for x in load0],
+        single_runs=singles,
+        sum_of_single_runs_wall_s=round(sum_single, 2),
         sum_of_single_runs_cpu_s=round(sum(s["cpu_s"] for s in singles), 2),
         batch=runs,
         speedup_vs_single_runs={k: round(sum_single / v["wall_s"], 2) for k, v in runs.items()},
-        note="wall seconds under the shared machine's load (load averages); every figure from this run")
+        note="wall seconds under the shared machine's load (load averages); every figure from this run",
+    )
     DEST.write_text(json.dumps(result, indent=1) + "\n")
-    print(json.dumps({k: result[k] for k in ("sum_of_single_runs_wall_s", "speedup_vs_single_runs")}))
+    print(
+        json.dumps({k: result[k] for k in ("sum_of_single_runs_wall_s", "speedup_vs_single_runs")})
+    )
     print(f"wrote {DEST}")
 
 

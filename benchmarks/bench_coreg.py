@@ -27,6 +27,7 @@ installing there: the script puts ``src/`` first on ``sys.path`` (this repositor
 ``stereodem``, never an installed copy) and adds the repository root to ``stereodem.__path__``
 for the sub-packages (the mapping of pyproject's ``package-dir``).
 """
+
 from __future__ import annotations
 
 import json
@@ -76,10 +77,12 @@ NOISE = VariogramModel(np.array([200.0, 2000.0]), np.array([1.6, 1.0]))
 
 def utm_truth() -> DEM:
     from affine import Affine
+
     src = DEM.bundled()
     w, s, e, n = src.bounds_lonlat()
     crs = "EPSG:32637"
     from stereodem.core import geodesy
+
     xs, ys = geodesy.lonlat_to_crs(np.array([w, e, w, e]), np.array([s, s, n, n]), crs)
     x0, x1 = np.ceil(max(xs[0], xs[2]) / 90) * 90, np.floor(min(xs[1], xs[3]) / 90) * 90
     y0, y1 = np.ceil(max(ys[0], ys[1]) / 90) * 90, np.floor(min(ys[2], ys[3]) / 90) * 90
@@ -93,35 +96,62 @@ def outline_geojson(dem: DEM, centre_px, radius_m, path: Path):
     """The change disc as a GeoJSON polygon in EPSG:4326."""
     from stereodem.core import geodesy
     from stereodem.post.coreg import local_metric_coords
+
     e, n = local_metric_coords(dem.transform, dem.crs, dem.shape)
     ec = e[0, int(centre_px[1] * (dem.shape[1] - 1))]
     nc = n[int(centre_px[0] * (dem.shape[0] - 1)), 0]
     x0, y0 = dem.transform @ (dem.shape[1] / 2.0, dem.shape[0] / 2.0)
     a = np.linspace(0, 2 * np.pi, 181)
-    x = x0 + ec + (radius_m + 150) * np.cos(a)     # outline drawn 150 m outside the change
+    x = x0 + ec + (radius_m + 150) * np.cos(a)  # outline drawn 150 m outside the change
     y = y0 + nc + (radius_m + 150) * np.sin(a)
     lon, lat = geodesy.crs_to_lonlat(x, y, dem.crs)
-    geo = {"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {"name": "change"},
-           "geometry": {"type": "Polygon", "coordinates": [np.column_stack([lon, lat]).tolist()]}}]}
+    geo = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {"name": "change"},
+                "geometry": {
+                    "type": "Polygon",
+                    "coordinates": [np.column_stack([lon, lat]).tolist()],
+                },
+            }
+        ],
+    }
     path.write_text(json.dumps(geo))
 
 
 def run_xdem(truth: DEM, dem: DEM, stable):
     import geoutils as gu
     import xdem
+
     ref_r = gu.Raster.from_array(truth.heights, truth.transform, truth.crs.to_wkt(), nodata=-9999)
-    dem_r = gu.Raster.from_array(np.where(np.isfinite(dem.heights), dem.heights, np.nan),
-                                 dem.transform, dem.crs.to_wkt(), nodata=-9999)
-    chain = xdem.coreg.NuthKaab() + xdem.coreg.Deramp(poly_order=1) + \
-        xdem.coreg.DirectionalBias(angle=HEADING - 90.0)
+    dem_r = gu.Raster.from_array(
+        np.where(np.isfinite(dem.heights), dem.heights, np.nan),
+        dem.transform,
+        dem.crs.to_wkt(),
+        nodata=-9999,
+    )
+    chain = (
+        xdem.coreg.NuthKaab()
+        + xdem.coreg.Deramp(poly_order=1)
+        + xdem.coreg.DirectionalBias(angle=HEADING - 90.0)
+    )
     t0 = time.perf_counter()
     chain.fit(ref_r, dem_r, inlier_mask=stable, random_state=0)
     out = chain.apply(dem_r)
     sec = time.perf_counter() - t0
     z = np.asarray(out.data.filled(np.nan) if np.ma.isMaskedArray(out.data) else out.data, float)
     if z.shape != truth.shape or not out.transform.almost_equals(truth.transform):
-        z = warp.to_grid(z, out.transform, truth.crs, truth.transform, truth.crs, truth.shape,
-                         resampling="bilinear").astype(float)
+        z = warp.to_grid(
+            z,
+            out.transform,
+            truth.crs,
+            truth.transform,
+            truth.crs,
+            truth.shape,
+            resampling="bilinear",
+        ).astype(float)
     nk = chain.pipeline[0].meta.get("outputs", {}).get("affine", {})
     shift = {k: float(nk[k]) for k in ("shift_x", "shift_y", "shift_z") if k in nk}
     return z, sec, shift
@@ -141,39 +171,77 @@ def run_case(truth: DEM, spec: InjectedErrors, outline: Path, tmp: Path):
     rep = chain.report()
     nk = chain.steps[0]
     at = chain.steps[2]
-    sd = {"seconds": sec, "nmad_after": nmad(dh[stable]),
-          "change_recovered": float(np.nanmedian(dh[tr["change"]])),
-          "shift": {"dx": nk.dx, "dy": nk.dy, "dz": nk.dz,
-                    "dx_error": nk.dx - spec.dx, "dy_error": nk.dy - spec.dy},
-          "along_track": {k: v for k, v in at.params.items() if k.startswith("sine")},
-          "steps": [{"step": r["step"], "nmad_before": r["before"]["nmad"],
-                     "nmad_after": r["after"]["nmad"], "parameters": r["parameters"]} for r in rep]}
+    sd = {
+        "seconds": sec,
+        "nmad_after": nmad(dh[stable]),
+        "change_recovered": float(np.nanmedian(dh[tr["change"]])),
+        "shift": {
+            "dx": nk.dx,
+            "dy": nk.dy,
+            "dz": nk.dz,
+            "dx_error": nk.dx - spec.dx,
+            "dy_error": nk.dy - spec.dy,
+        },
+        "along_track": {k: v for k, v in at.params.items() if k.startswith("sine")},
+        "steps": [
+            {
+                "step": r["step"],
+                "nmad_before": r["before"]["nmad"],
+                "nmad_after": r["after"]["nmad"],
+                "parameters": r["parameters"],
+            }
+            for r in rep
+        ],
+    }
     xz, xsec, xshift = run_xdem(truth, dem, stable)
     xdh = xz - truth.heights
-    xd = {"seconds": xsec, "nmad_after": nmad(xdh[stable]),
-          "change_recovered": float(np.nanmedian(xdh[tr["change"]])), "shift": xshift}
+    xd = {
+        "seconds": xsec,
+        "nmad_after": nmad(xdh[stable]),
+        "change_recovered": float(np.nanmedian(xdh[tr["change"]])),
+        "shift": xshift,
+    }
     before = dem.heights.astype(float) - truth.heights
-    res = {"injected": {"dx": spec.dx, "dy": spec.dy, "dz": spec.dz, "ramp_e_m_per_10km": spec.ramp_e,
-                        "ramp_n_m_per_10km": spec.ramp_n, "heading_deg": spec.heading_deg,
-                        "along_sines": spec.along_sines, "noise": spec.noise.to_dict(),
-                        "change_m": spec.change_m, "change_radius_m": spec.change_radius_m},
-           "noise_nmad": noise_nmad, "nmad_before": nmad(before[stable]),
-           "stable_fraction": float(stable.sum() / np.isfinite(dem.heights).sum()),
-           "stereodem": sd, "xdem": xd,
-           "checks": {"shift_within_0.5m": bool(abs(sd["shift"]["dx_error"]) < 0.5 and abs(sd["shift"]["dy_error"]) < 0.5),
-                      "nmad_within_15pct_of_noise": bool(sd["nmad_after"] <= 1.15 * noise_nmad),
-                      "nmad_no_worse_than_xdem": bool(sd["nmad_after"] <= xd["nmad_after"]),
-                      "change_within_1.5m": bool(abs(sd["change_recovered"] - spec.change_m) < 1.5)}}
+    res = {
+        "injected": {
+            "dx": spec.dx,
+            "dy": spec.dy,
+            "dz": spec.dz,
+            "ramp_e_m_per_10km": spec.ramp_e,
+            "ramp_n_m_per_10km": spec.ramp_n,
+            "heading_deg": spec.heading_deg,
+            "along_sines": spec.along_sines,
+            "noise": spec.noise.to_dict(),
+            "change_m": spec.change_m,
+            "change_radius_m": spec.change_radius_m,
+        },
+        "noise_nmad": noise_nmad,
+        "nmad_before": nmad(before[stable]),
+        "stable_fraction": float(stable.sum() / np.isfinite(dem.heights).sum()),
+        "stereodem": sd,
+        "xdem": xd,
+        "checks": {
+            "shift_within_0.5m": bool(
+                abs(sd["shift"]["dx_error"]) < 0.5 and abs(sd["shift"]["dy_error"]) < 0.5
+            ),
+            "nmad_within_15pct_of_noise": bool(sd["nmad_after"] <= 1.15 * noise_nmad),
+            "nmad_no_worse_than_xdem": bool(sd["nmad_after"] <= xd["nmad_after"]),
+            "change_within_1.5m": bool(abs(sd["change_recovered"] - spec.change_m) < 1.5),
+        },
+    }
     return res, dh, xdh, stable, tr, chain, before
 
 
 def figures(truth, case, dh, xdh, before, stable, chain, hs, emp, fit, path_prefix):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(1, 3, figsize=(13, 4.2))
-    for a, d, title in zip(ax, (before, xdh, dh), ("injected errors", "after xdem chain",
-                                                   "after stereodem chain")):
+    for a, d, title in zip(
+        ax, (before, xdh, dh), ("injected errors", "after xdem chain", "after stereodem chain")
+    ):
         im = a.imshow(d, cmap="RdBu_r", vmin=-8, vmax=8)
         a.set_title(f"{title}\nstable NMAD {nmad(d[stable]):.2f} m")
         a.set_xticks([])
@@ -184,7 +252,13 @@ def figures(truth, case, dh, xdh, before, stable, chain, hs, emp, fit, path_pref
     cur = chain.steps[2].curves
     fig, ax = plt.subplots(1, 3, figsize=(14, 3.8))
     if cur:
-        ax[0].plot(np.asarray(cur["bin_centre"]) / 1e3, cur["bin_median"], ".", ms=3, label="binned median dh")
+        ax[0].plot(
+            np.asarray(cur["bin_centre"]) / 1e3,
+            cur["bin_median"],
+            ".",
+            ms=3,
+            label="binned median dh",
+        )
         ax[0].plot(np.asarray(cur["model_x"]) / 1e3, cur["model_y"], "-", label="sum of sines")
         ax[0].set_xlabel("along-track distance (km)")
         ax[0].set_ylabel("dh (m)")
@@ -212,6 +286,7 @@ def variogram_vs_skgstat(dh, stable, truth, rng):
 
     from stereodem.post.coreg import local_metric_coords
     from stereodem.post.spatialstats import EmpiricalVariogram
+
     e, n = local_metric_coords(truth.transform, truth.crs, truth.shape)
     idx = np.flatnonzero(stable & np.isfinite(dh))
     pick = rng.choice(idx, 3000, replace=False)
@@ -219,36 +294,52 @@ def variogram_vs_skgstat(dh, stable, truth, rng):
     v = dh.ravel()[pick]
     maxlag, n_lags = 8000.0, 25
     t0 = time.perf_counter()
-    V = skgstat.Variogram(xy, v, model="spherical", n_lags=n_lags, maxlag=maxlag, bin_func="even",
-                          fit_method="trf")
+    V = skgstat.Variogram(
+        xy, v, model="spherical", n_lags=n_lags, maxlag=maxlag, bin_func="even", fit_method="trf"
+    )
     sk_sec = time.perf_counter() - t0
     sk_r, sk_s = float(V.parameters[0]), float(V.parameters[1])
     edges = np.concatenate([[0.0], np.asarray(V.bins, float)])
     t0 = time.perf_counter()
     emp = variogram(v, xy, edges=edges)
     own_sec = time.perf_counter() - t0
-    gamma_rel = np.nanmax(np.abs(emp.gamma - np.asarray(V.experimental)) / np.asarray(V.experimental))
+    gamma_rel = np.nanmax(
+        np.abs(emp.gamma - np.asarray(V.experimental)) / np.asarray(V.experimental)
+    )
     # same least-squares problem as skgstat's (x = bin upper edges, unweighted)
-    same = EmpiricalVariogram(edges, np.asarray(V.bins, float), emp.gamma, np.full(emp.gamma.size, 1e6))
+    same = EmpiricalVariogram(
+        edges, np.asarray(V.bins, float), emp.gamma, np.full(emp.gamma.size, 1e6)
+    )
     m_same = fit_variogram(same, n_models=1)
-    m_own = fit_variogram(emp, n_models=1)                   # mean pair distances, √count weights
-    return {"n_points": 3000, "bins": n_lags, "maxlag_m": maxlag,
-            "empirical_gamma_max_rel_diff": float(gamma_rel),
-            "skgstat": {"range_m": sk_r, "sill": sk_s, "seconds": sk_sec},
-            "stereodem_same_convention": {"range_m": float(m_same.ranges[0]), "sill": float(m_same.sills[0])},
-            "stereodem_default": {"range_m": float(m_own.ranges[0]), "sill": float(m_own.sills[0]),
-                                  "seconds_empirical": own_sec},
-            "range_rel_diff": float(abs(m_same.ranges[0] - sk_r) / sk_r),
-            "sill_rel_diff": float(abs(m_same.sills[0] - sk_s) / sk_s)}
+    m_own = fit_variogram(emp, n_models=1)  # mean pair distances, √count weights
+    return {
+        "n_points": 3000,
+        "bins": n_lags,
+        "maxlag_m": maxlag,
+        "empirical_gamma_max_rel_diff": float(gamma_rel),
+        "skgstat": {"range_m": sk_r, "sill": sk_s, "seconds": sk_sec},
+        "stereodem_same_convention": {
+            "range_m": float(m_same.ranges[0]),
+            "sill": float(m_same.sills[0]),
+        },
+        "stereodem_default": {
+            "range_m": float(m_own.ranges[0]),
+            "sill": float(m_own.sills[0]),
+            "seconds_empirical": own_sec,
+        },
+        "range_rel_diff": float(abs(m_same.ranges[0] - sk_r) / sk_r),
+        "sill_rel_diff": float(abs(m_same.sills[0] - sk_s) / sk_s),
+    }
 
 
 def area_sigma_vs_mc(truth, n_fields=300, seed=5):
     """σ of the mean over a 3 km-radius disc of the injected noise: from the variogram model
     vs the standard deviation of the disc means of ``n_fields`` simulated noise fields."""
     shape = (90, 90)
-    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
     disc = np.hypot(yy - 44.5, xx - 44.5) * 90.0 <= 3000.0
     from affine import Affine
+
     t = Affine(90.0, 0, 500000, 0, -90.0, 4500000)
     t0 = time.perf_counter()
     pred = area_mean_sigma(NOISE, disc, t, "EPSG:32637", n_samples=3000)
@@ -256,11 +347,18 @@ def area_sigma_vs_mc(truth, n_fields=300, seed=5):
     f = simulate_field(NOISE, shape, 90.0, rng=seed, n_fields=n_fields)
     means = f[:, disc].mean(axis=1)
     mc = float(np.std(means, ddof=1))
-    return {"area_cells": int(disc.sum()), "radius_m": 3000.0, "sigma_from_variogram": pred["sigma_mean"],
-            "n_effective": pred["n_effective"], "sigma_naive": pred["sigma_naive"],
-            "sigma_monte_carlo": mc, "n_fields": n_fields,
-            "mc_standard_error": mc / np.sqrt(2 * (n_fields - 1)),
-            "rel_diff": float(abs(pred["sigma_mean"] - mc) / mc), "seconds": sec}
+    return {
+        "area_cells": int(disc.sum()),
+        "radius_m": 3000.0,
+        "sigma_from_variogram": pred["sigma_mean"],
+        "n_effective": pred["n_effective"],
+        "sigma_naive": pred["sigma_naive"],
+        "sigma_monte_carlo": mc,
+        "n_fields": n_fields,
+        "mc_standard_error": mc / np.sqrt(2 * (n_fields - 1)),
+        "rel_diff": float(abs(pred["sigma_mean"] - mc) / mc),
+        "seconds": sec,
+    }
 
 
 def main():
@@ -268,30 +366,57 @@ def main():
     threads = 1
     load = os.getloadavg()
     truth = utm_truth()
-    results = {"benchmark": "bench_coreg", "issue": 25, "machine": platform.platform(),
-               "python": sys.version.split()[0], "threads": threads, "load_avg_start": load,
-               "truth": {"file": "core/data/srtm_ref.tif reprojected to EPSG:32637 at 90 m (cubic)",
-                         "shape": list(truth.shape)},
-               "chains": {"stereodem": "nuth_kaab,deramp:1,along_track",
-                          "xdem": "NuthKaab() + Deramp(poly_order=1) + DirectionalBias(angle=heading-90)"}}
+    results = {
+        "benchmark": "bench_coreg",
+        "issue": 25,
+        "machine": platform.platform(),
+        "python": sys.version.split()[0],
+        "threads": threads,
+        "load_avg_start": load,
+        "truth": {
+            "file": "core/data/srtm_ref.tif reprojected to EPSG:32637 at 90 m (cubic)",
+            "shape": list(truth.shape),
+        },
+        "chains": {
+            "stereodem": "nuth_kaab,deramp:1,along_track",
+            "xdem": "NuthKaab() + Deramp(poly_order=1) + DirectionalBias(angle=heading-90)",
+        },
+    }
     import xdem
+
     results["xdem_version"] = xdem.__version__
     rng = np.random.default_rng(0)
     with threadpool_limits(threads), tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         outline = tmp / "change.geojson"
-        base = dict(dz=3.0, ramp_e=1.0, ramp_n=-0.5, heading_deg=HEADING,
-                    along_sines=[(3.0, 5500.0, 0.4)], noise=NOISE, change_m=-30.0,
-                    change_centre_px=(0.35, 0.6), change_radius_m=6000.0, seed=1)
+        base = dict(
+            dz=3.0,
+            ramp_e=1.0,
+            ramp_n=-0.5,
+            heading_deg=HEADING,
+            along_sines=[(3.0, 5500.0, 0.4)],
+            noise=NOISE,
+            change_m=-30.0,
+            change_centre_px=(0.35, 0.6),
+            change_radius_m=6000.0,
+            seed=1,
+        )
         outline_geojson(truth, base["change_centre_px"], base["change_radius_m"], outline)
-        cases = {"integer_shift": InjectedErrors(dx=90.0, dy=-90.0, **base),
-                 "subpixel_shift": InjectedErrors(dx=45.0, dy=-30.0, **base)}
+        cases = {
+            "integer_shift": InjectedErrors(dx=90.0, dy=-90.0, **base),
+            "subpixel_shift": InjectedErrors(dx=45.0, dy=-30.0, **base),
+        }
         results["cases"] = {}
         for name, spec in cases.items():
             res, dh, xdh, stable, tr, chain, before = run_case(truth, spec, outline, tmp)
             results["cases"][name] = res
-            print(name, json.dumps(res["checks"]), f"stereodem NMAD {res['stereodem']['nmad_after']:.3f} "
-                  f"xdem {res['xdem']['nmad_after']:.3f} noise {res['noise_nmad']:.3f}", flush=True)
+            print(
+                name,
+                json.dumps(res["checks"]),
+                f"stereodem NMAD {res['stereodem']['nmad_after']:.3f} "
+                f"xdem {res['xdem']['nmad_after']:.3f} noise {res['noise_nmad']:.3f}",
+                flush=True,
+            )
             if name == "integer_shift":
                 keep = (dh, xdh, before, stable, chain, tr["noise"])
         dh, xdh, before, stable, chain, tr_noise = keep
@@ -302,33 +427,68 @@ def main():
         t0 = time.perf_counter()
         hs = heteroscedasticity(d_st, slope, curv)
         z = standardise(d_st, hs["sigma"])
-        emp = variogram(z, transform=truth.transform, crs=truth.crs, n_pairs=2_000_000, max_lag=30000)
+        emp = variogram(
+            z, transform=truth.transform, crs=truth.crs, n_pairs=2_000_000, max_lag=30000
+        )
         fit = fit_variogram(emp, n_models=2)
         # the same on the injected noise alone (no correction residual): does the fit find
         # the injected ranges and sill?
-        emp_n = variogram(np.where(stable, tr_noise, np.nan), transform=truth.transform, crs=truth.crs,
-                          n_pairs=2_000_000, max_lag=30000)
+        emp_n = variogram(
+            np.where(stable, tr_noise, np.nan),
+            transform=truth.transform,
+            crs=truth.crs,
+            n_pairs=2_000_000,
+            max_lag=30000,
+        )
         fit_n = fit_variogram(emp_n, n_models=2)
         results["variogram_of_injected_noise"] = {
-            "fitted": fit_n.to_dict(), "injected": NOISE.to_dict(),
+            "fitted": fit_n.to_dict(),
+            "injected": NOISE.to_dict(),
             "range_rel_diff": [float(abs(a - b) / b) for a, b in zip(fit_n.ranges, NOISE.ranges)],
-            "sill_rel_diff": float(abs(fit_n.sill - NOISE.sill) / NOISE.sill)}
+            "sill_rel_diff": float(abs(fit_n.sill - NOISE.sill) / NOISE.sill),
+        }
         results["error_analysis"] = {
             "seconds": time.perf_counter() - t0,
-            "heteroscedasticity_slope": {"centre": hs["slope"]["centre"], "nmad": hs["slope"]["nmad"]},
+            "heteroscedasticity_slope": {
+                "centre": hs["slope"]["centre"],
+                "nmad": hs["slope"]["nmad"],
+            },
             "variogram_standardised": fit.to_dict(),
             "injected_noise_model": NOISE.to_dict(),
             "note": "the standardised dh holds the injected noise plus the resampling error of the "
-                    "correction; its fitted ranges are set against the injected 200 m / 2 km"}
+            "correction; its fitted ranges are set against the injected 200 m / 2 km",
+        }
         results["variogram_vs_skgstat"] = variogram_vs_skgstat(dh, stable, truth, rng)
         results["area_sigma_vs_monte_carlo"] = area_sigma_vs_mc(truth)
-        figures(truth, results["cases"]["integer_shift"], dh, xdh, before, stable, chain, hs, emp, fit,
-                str(OUT / "bench_coreg"))
+        figures(
+            truth,
+            results["cases"]["integer_shift"],
+            dh,
+            xdh,
+            before,
+            stable,
+            chain,
+            hs,
+            emp,
+            fit,
+            str(OUT / "bench_coreg"),
+        )
     results["load_avg_end"] = os.getloadavg()
     (OUT / "bench_coreg.json").write_text(json.dumps(results, indent=1, default=float))
-    print(json.dumps({k: results[k] for k in ("variogram_vs_skgstat", "area_sigma_vs_monte_carlo",
-                                              "variogram_of_injected_noise")},
-                     indent=1, default=float))
+    print(
+        json.dumps(
+            {
+                k: results[k]
+                for k in (
+                    "variogram_vs_skgstat",
+                    "area_sigma_vs_monte_carlo",
+                    "variogram_of_injected_noise",
+                )
+            },
+            indent=1,
+            default=float,
+        )
+    )
 
 
 if __name__ == "__main__":

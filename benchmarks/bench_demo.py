@@ -17,6 +17,7 @@ rasters as Cloud-Optimised GeoTIFFs.
 Needs the ``bench`` extra (``pip install -e .[bench]``). Writes
 benchmarks/results/bench_demo.json.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,27 +37,55 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_demo(out: Path, seed: int, workers: int) -> dict:
-    cmd = [sys.executable, "-m", "stereodem.cli", "demo", "-o", str(out), "--seed", str(seed), "--workers", str(workers),
-           "--overwrite"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "stereodem.cli",
+        "demo",
+        "-o",
+        str(out),
+        "--seed",
+        str(seed),
+        "--workers",
+        str(workers),
+        "--overwrite",
+    ]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     info = json.loads((out / "result" / "run.json").read_text())
     h = info["headline"]
-    return {"seed": seed, "workers": workers, "wall_seconds": round(wall, 2),
-            "pipeline_seconds": info["seconds"], "nmad_m": h["nmad"], "median_m": h["median"],
-            "rmse_m": h["rmse"], "le90_m": h["le90"], "valid_pct": h["valid_pct"],
-            "stages_seconds": {k: v["seconds"] for k, v in info["stages"].items()}}
+    return {
+        "seed": seed,
+        "workers": workers,
+        "wall_seconds": round(wall, 2),
+        "pipeline_seconds": info["seconds"],
+        "nmad_m": h["nmad"],
+        "median_m": h["median"],
+        "rmse_m": h["rmse"],
+        "le90_m": h["le90"],
+        "valid_pct": h["valid_pct"],
+        "stages_seconds": {k: v["seconds"] for k, v in info["stages"].items()},
+    }
 
 
 def old_layout_write(path, arr, profile):
     """The layout before issue #19: GTiff, 256² tiles when large enough, DEFLATE, no predictor,
     no overviews."""
     import rasterio
-    p = dict(driver="GTiff", width=arr.shape[2], height=arr.shape[1], count=arr.shape[0],
-             dtype=arr.dtype, crs=profile["crs"], transform=profile["transform"],
-             nodata=profile["nodata"], compress="deflate",
-             tiled=arr.shape[1] >= 256 and arr.shape[2] >= 256)
+
+    p = dict(
+        driver="GTiff",
+        width=arr.shape[2],
+        height=arr.shape[1],
+        count=arr.shape[0],
+        dtype=arr.dtype,
+        crs=profile["crs"],
+        transform=profile["transform"],
+        nodata=profile["nodata"],
+        compress="deflate",
+        tiled=arr.shape[1] >= 256 and arr.shape[2] >= 256,
+    )
     if p["tiled"]:
         p.update(blockxsize=256, blockysize=256)
     with rasterio.open(path, "w", **p) as dst:
@@ -67,6 +96,7 @@ def writing_cost(result_dir: Path, repeat: int) -> dict:
     import rasterio
 
     from stereodem.core.raster import write_geotiff
+
     rasters = sorted(result_dir.rglob("*.tif"))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -82,19 +112,34 @@ def writing_cost(result_dir: Path, repeat: int) -> dict:
                 old_layout_write(a, arr, prof)
                 t_old.append(time.perf_counter() - t0)
                 t0 = time.perf_counter()
-                write_geotiff(b, arr, prof["transform"], prof["crs"], prof["nodata"],
-                              vertical=vertical, overwrite=True)
+                write_geotiff(
+                    b,
+                    arr,
+                    prof["transform"],
+                    prof["crs"],
+                    prof["nodata"],
+                    vertical=vertical,
+                    overwrite=True,
+                )
                 t_new.append(time.perf_counter() - t0)
-            rows.append({"raster": str(r.relative_to(result_dir)), "dtype": str(arr.dtype),
-                         "shape": list(arr.shape[1:]),
-                         "old_seconds": round(float(np.median(t_old)), 4),
-                         "cog_seconds": round(float(np.median(t_new)), 4),
-                         "old_bytes": a.stat().st_size, "cog_bytes": b.stat().st_size})
-    return {"rasters": rows,
-            "old_seconds": round(sum(r["old_seconds"] for r in rows), 4),
-            "cog_seconds": round(sum(r["cog_seconds"] for r in rows), 4),
-            "old_bytes": sum(r["old_bytes"] for r in rows),
-            "cog_bytes": sum(r["cog_bytes"] for r in rows)}
+            rows.append(
+                {
+                    "raster": str(r.relative_to(result_dir)),
+                    "dtype": str(arr.dtype),
+                    "shape": list(arr.shape[1:]),
+                    "old_seconds": round(float(np.median(t_old)), 4),
+                    "cog_seconds": round(float(np.median(t_new)), 4),
+                    "old_bytes": a.stat().st_size,
+                    "cog_bytes": b.stat().st_size,
+                }
+            )
+    return {
+        "rasters": rows,
+        "old_seconds": round(sum(r["old_seconds"] for r in rows), 4),
+        "cog_seconds": round(sum(r["cog_seconds"] for r in rows), 4),
+        "old_bytes": sum(r["old_bytes"] for r in rows),
+        "cog_bytes": sum(r["cog_bytes"] for r in rows),
+    }
 
 
 def main(argv=None):
@@ -110,36 +155,52 @@ def main(argv=None):
         shutil.rmtree(out / f"s{s}", ignore_errors=True)
     base = runs[0]
     others = [r for r in runs if r["seed"] != 0]
-    spread = {k: round(max(abs(r[k] - base[k]) for r in others), 3) if others else 0.0
-              for k in ("nmad_m", "le90_m", "median_m")}
+    spread = {
+        k: round(max(abs(r[k] - base[k]) for r in others), 3) if others else 0.0
+        for k in ("nmad_m", "le90_m", "median_m")
+    }
     cost = writing_cost(out / "w1" / "result", a.repeat)
     extra = cost["cog_seconds"] - cost["old_seconds"]
-    fastest = min(r["wall_seconds"] for r in runs)     # the least disturbed run (shared cores)
+    fastest = min(r["wall_seconds"] for r in runs)  # the least disturbed run (shared cores)
     res = {
         "what": "stereodem demo (600x600, seed 0): figures, run-to-run spread, COG writing cost",
         "machine": f"{platform.node()} ({platform.processor() or platform.machine()}), "
-                   f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at the end",
+        f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at the end",
         "python": sys.version.split()[0],
-        "default_seed_figures": {k: base[k] for k in ("nmad_m", "median_m", "le90_m", "rmse_m",
-                                                       "valid_pct", "wall_seconds",
-                                                       "pipeline_seconds")},
+        "default_seed_figures": {
+            k: base[k]
+            for k in (
+                "nmad_m",
+                "median_m",
+                "le90_m",
+                "rmse_m",
+                "valid_pct",
+                "wall_seconds",
+                "pipeline_seconds",
+            )
+        },
         "workers_1_vs_2_identical_nmad": runs[0]["nmad_m"] == runs[1]["nmad_m"],
         "spread_over_seeds": spread,
         "nmad_tolerance_m": spread["nmad_m"],
         "runs": runs,
-        "cog_writing": dict(cost, extra_seconds=round(extra, 4),
-                            fastest_demo_wall_seconds=fastest,
-                            extra_fraction_of_demo_wall=round(extra / fastest, 4),
-                            cog_fraction_of_demo_wall=round(cost["cog_seconds"] / fastest, 4),
-                            target="extra <= 10 % of the demo's run time"),
+        "cog_writing": dict(
+            cost,
+            extra_seconds=round(extra, 4),
+            fastest_demo_wall_seconds=fastest,
+            extra_fraction_of_demo_wall=round(extra / fastest, 4),
+            cog_fraction_of_demo_wall=round(cost["cog_seconds"] / fastest, 4),
+            target="extra <= 10 % of the demo's run time",
+        ),
     }
     dst = ROOT / "benchmarks" / "results" / "bench_demo.json"
     dst.write_text(json.dumps(res, indent=1) + "\n")
     print(json.dumps({k: res[k] for k in ("default_seed_figures", "spread_over_seeds")}, indent=1))
     c = res["cog_writing"]
-    print(f"COG writing: {c['cog_seconds']:.3f} s vs old {c['old_seconds']:.3f} s: "
-          f"+{c['extra_seconds']:.3f} s = {100 * c['extra_fraction_of_demo_wall']:.1f} % of the "
-          f"fastest demo run's {fastest:.1f} s; bytes {c['old_bytes']} -> {c['cog_bytes']}")
+    print(
+        f"COG writing: {c['cog_seconds']:.3f} s vs old {c['old_seconds']:.3f} s: "
+        f"+{c['extra_seconds']:.3f} s = {100 * c['extra_fraction_of_demo_wall']:.1f} % of the "
+        f"fastest demo run's {fastest:.1f} s; bytes {c['old_bytes']} -> {c['cog_bytes']}"
+    )
     print(f"wrote {dst}")
 
 

@@ -13,6 +13,7 @@ errors).
 ``--before REV`` also times the SGM wrapper as it was at git revision REV (before/after, same
 run, bit-identity checked). Writes ``benchmarks/results/bench_match.json`` and prints a table.
 """
+
 from __future__ import annotations
 
 import json
@@ -42,8 +43,11 @@ def make_pair(size=SIZE, seed=0):
     tex = cv2.resize(base, (size, size), interpolation=cv2.INTER_CUBIC)
     y, x = np.mgrid[0:size, 0:size].astype(np.float32)
     # smooth disparity field, defined on right-image coordinates: right(xr) = left(xr + D(xr))
-    D = (32 + 20 * np.sin(2 * np.pi * x / 2000) * np.cos(2 * np.pi * y / 1500)
-         + 4 * np.sin(2 * np.pi * (x + y) / 600)).astype(np.float32)
+    D = (
+        32
+        + 20 * np.sin(2 * np.pi * x / 2000) * np.cos(2 * np.pi * y / 1500)
+        + 4 * np.sin(2 * np.pi * (x + y) / 600)
+    ).astype(np.float32)
     rng = np.random.default_rng(seed)
     left = tex + rng.normal(0, 1, tex.shape).astype(np.float32)
     right = cv2.remap(tex, x + D, y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
@@ -65,7 +69,8 @@ def accuracy(disp, truth):
         "valid_percent": round(100 * float(valid.mean()), 2),
         "rms_error_px": round(float(np.sqrt(np.mean(err[valid] ** 2))), 4),
         "bad1_percent_invalid_counted": round(
-            100 * float(np.mean(~valid | (np.abs(np.nan_to_num(err, nan=99)) > 1))), 2),
+            100 * float(np.mean(~valid | (np.abs(np.nan_to_num(err, nan=99)) > 1))), 2
+        ),
     }
 
 
@@ -80,9 +85,13 @@ def timed(fn, repeat=3):
 
 def main(argv=None):
     import argparse
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--before", metavar="REV",
-                    help="also time the SGM wrapper of this git revision (before/after)")
+    ap.add_argument(
+        "--before",
+        metavar="REV",
+        help="also time the SGM wrapper of this git revision (before/after)",
+    )
     args = ap.parse_args(argv)
     left, right, truth = make_pair()
     mpd = SIZE * SIZE * ND / 1e6
@@ -96,26 +105,42 @@ def main(argv=None):
             sec, disp = timed(fn)
         finally:
             cv2.setNumThreads(threads)
-        row = {"matcher": name, "seconds": round(sec, 3),
-               "mpx_disp_per_s": round(mpd / sec, 1), "note": note}
+        row = {
+            "matcher": name,
+            "seconds": round(sec, 3),
+            "mpx_disp_per_s": round(mpd / sec, 1),
+            "note": note,
+        }
         row.update(accuracy(disp, truth))
         rows.append(row)
 
     l8, r8 = _to_uint8(left, right)
-    run("stereodem ncc, single-scale full search (7x7)",
+    run(
+        "stereodem ncc, single-scale full search (7x7)",
         lambda: match_rectified(left, right, (DMIN, DMAX), levels=0).disparity,
-        "ZNCC 7x7, parabola sub-pixel, L-R check 1 px, score >= 0.5, both views")
-    run("stereodem ncc, coarse-to-fine (7x7)",
+        "ZNCC 7x7, parabola sub-pixel, L-R check 1 px, score >= 0.5, both views",
+    )
+    run(
+        "stereodem ncc, coarse-to-fine (7x7)",
         lambda: match_rectified(left, right, (DMIN, DMAX)).disparity,
-        "auto levels (2), margin 2 px, both views at each level")
-    run("stereodem sgm (OpenCV SGBM via match_rectified)",
+        "auto levels (2), margin 2 px, both views at each level",
+    )
+    run(
+        "stereodem sgm (OpenCV SGBM via match_rectified)",
         lambda: match_rectified(left, right, (DMIN, DMAX), matcher="sgm").disparity,
-        "includes 8-bit stretch, border padding, ZNCC score layer")
-    for mode, label, nthr in (("sgbm", "cv2.StereoSGBM MODE_SGBM, 1 thread", 1),
-                              ("3way", "cv2.StereoSGBM MODE_SGBM_3WAY, default threads", None)):
-        run(label, lambda mode=mode: _raw_sgbm(l8, r8, mode),
+        "includes 8-bit stretch, border padding, ZNCC score layer",
+    )
+    for mode, label, nthr in (
+        ("sgbm", "cv2.StereoSGBM MODE_SGBM, 1 thread", 1),
+        ("3way", "cv2.StereoSGBM MODE_SGBM_3WAY, default threads", None),
+    ):
+        run(
+            label,
+            lambda mode=mode: _raw_sgbm(l8, r8, mode),
             "blockSize 5, P1 8*25, P2 32*25, uniqueness 10, speckle 100/2, disp12MaxDiff 1, "
-            "no padding (first 64 columns invalid)", nthr)
+            "no padding (first 64 columns invalid)",
+            nthr,
+        )
     overhead = sgm_overhead(left, right, l8, r8)
     if args.before:
         overhead["before_after"] = sgm_before_after(left, right, l8, r8, args.before)
@@ -123,10 +148,17 @@ def main(argv=None):
     result = {
         "pair": f"{SIZE}x{SIZE} Landsat texture x3.2 + smooth disparity ~8..56 px, noise 1 DN",
         "disparities": ND,
-        "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version(),
-                    "opencv": cv2.__version__, "opencv_threads": threads},
-        "reference_2core": {"sgbm_1thread_mpx_d_s": 448, "sgbm_3way_mpx_d_s": 1156,
-                            "numpy_opencv_zncc7_mpx_d_s": "100-170"},
+        "machine": {
+            "cpus": __import__("os").cpu_count(),
+            "python": platform.python_version(),
+            "opencv": cv2.__version__,
+            "opencv_threads": threads,
+        },
+        "reference_2core": {
+            "sgbm_1thread_mpx_d_s": 448,
+            "sgbm_3way_mpx_d_s": 1156,
+            "numpy_opencv_zncc7_mpx_d_s": "100-170",
+        },
         "results": rows,
         "sgm_overhead": overhead,
         "load_average": [round(x, 2) for x in __import__("os").getloadavg()],
@@ -135,13 +167,17 @@ def main(argv=None):
     OUT.write_text(json.dumps(result, indent=2) + "\n")
     print(f"{'matcher':58s} {'s':>7s} {'Mpx.d/s':>8s} {'valid%':>7s} {'RMS px':>7s} {'bad1%':>6s}")
     for r in rows:
-        print(f"{r['matcher']:58s} {r['seconds']:7.3f} {r['mpx_disp_per_s']:8.1f} "
-              f"{r['valid_percent']:7.2f} {r['rms_error_px']:7.4f} "
-              f"{r['bad1_percent_invalid_counted']:6.2f}")
+        print(
+            f"{r['matcher']:58s} {r['seconds']:7.3f} {r['mpx_disp_per_s']:8.1f} "
+            f"{r['valid_percent']:7.2f} {r['rms_error_px']:7.4f} "
+            f"{r['bad1_percent_invalid_counted']:6.2f}"
+        )
     for o in overhead["by_threads"]:
-        print(f"sgm overhead, {o['threads']} thread(s): stereodem {o['stereodem_cpu_s']:.3f} s CPU "
-              f"/ {o['stereodem_wall_s']:.3f} s wall, bare SGBM {o['bare_cpu_s']:.3f} / "
-              f"{o['bare_wall_s']:.3f} s: ratio {o['ratio_cpu']:.3f} CPU, {o['ratio_wall']:.3f} wall")
+        print(
+            f"sgm overhead, {o['threads']} thread(s): stereodem {o['stereodem_cpu_s']:.3f} s CPU "
+            f"/ {o['stereodem_wall_s']:.3f} s wall, bare SGBM {o['bare_cpu_s']:.3f} / "
+            f"{o['bare_wall_s']:.3f} s: ratio {o['ratio_cpu']:.3f} CPU, {o['ratio_wall']:.3f} wall"
+        )
     print(f"wrote {OUT}")
 
 
@@ -162,26 +198,37 @@ def sgm_overhead(left, right, l8, r8, repeats=REPEATS, threads=(1, 2)):
             cv2.setNumThreads(n)
             t = {"stereodem": [], "bare": []}
             for _ in range(repeats):
-                for name, fn in (("stereodem", lambda: match_rectified(
-                                     left, right, (DMIN, DMAX), matcher="sgm")),
-                                 ("bare", lambda: _raw_sgbm(l8, r8, "sgbm"))):
+                for name, fn in (
+                    (
+                        "stereodem",
+                        lambda: match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
+                    ),
+                    ("bare", lambda: _raw_sgbm(l8, r8, "sgbm")),
+                ):
                     w0, c0 = time.perf_counter(), time.process_time()
                     fn()
                     t[name].append((time.perf_counter() - w0, time.process_time() - c0))
             med = {k: np.median(np.array(v), axis=0) for k, v in t.items()}
-            out.append({"threads": n, "repeats": repeats,
-                        "stereodem_wall_s": round(float(med["stereodem"][0]), 4),
-                        "stereodem_cpu_s": round(float(med["stereodem"][1]), 4),
-                        "bare_wall_s": round(float(med["bare"][0]), 4),
-                        "bare_cpu_s": round(float(med["bare"][1]), 4),
-                        "ratio_wall": round(float(med["stereodem"][0] / med["bare"][0]), 3),
-                        "ratio_cpu": round(float(med["stereodem"][1] / med["bare"][1]), 3)})
+            out.append(
+                {
+                    "threads": n,
+                    "repeats": repeats,
+                    "stereodem_wall_s": round(float(med["stereodem"][0]), 4),
+                    "stereodem_cpu_s": round(float(med["stereodem"][1]), 4),
+                    "bare_wall_s": round(float(med["bare"][0]), 4),
+                    "bare_cpu_s": round(float(med["bare"][1]), 4),
+                    "ratio_wall": round(float(med["stereodem"][0] / med["bare"][0]), 3),
+                    "ratio_cpu": round(float(med["stereodem"][1] / med["bare"][1]), 3),
+                }
+            )
     finally:
         cv2.setNumThreads(saved)
-    return {"what": "match_rectified(matcher='sgm') / bare cv2.StereoSGBM.compute (+ float "
-                    "conversion), same 1024x1024 tile, same cv2.setNumThreads, alternating "
-                    "repeats, medians; target <= 1.15 (issue 28)",
-            "by_threads": out}
+    return {
+        "what": "match_rectified(matcher='sgm') / bare cv2.StereoSGBM.compute (+ float "
+        "conversion), same 1024x1024 tile, same cv2.setNumThreads, alternating "
+        "repeats, medians; target <= 1.15 (issue 28)",
+        "by_threads": out,
+    }
 
 
 def sgm_before_after(left, right, l8, r8, rev, repeats=11):
@@ -191,8 +238,13 @@ def sgm_before_after(left, right, l8, r8, rev, repeats=11):
     import importlib.util
     import subprocess
     import tempfile
-    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:stereo/match.py"],
-                         capture_output=True, text=True, check=True).stdout
+
+    src = subprocess.run(
+        ["git", "-C", str(ROOT), "show", f"{rev}:stereo/match.py"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "match_before.py"
         path.write_text(src)
@@ -201,9 +253,11 @@ def sgm_before_after(left, right, l8, r8, rev, repeats=11):
         spec.loader.exec_module(before)
     saved = cv2.getNumThreads()
     cv2.setNumThreads(1)
-    fns = {"before": lambda: before.match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
-           "now": lambda: match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
-           "bare": lambda: _raw_sgbm(l8, r8, "sgbm")}
+    fns = {
+        "before": lambda: before.match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
+        "now": lambda: match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
+        "bare": lambda: _raw_sgbm(l8, r8, "sgbm"),
+    }
     try:
         ts = {k: [] for k in fns}
         for _ in range(repeats):
@@ -211,27 +265,41 @@ def sgm_before_after(left, right, l8, r8, rev, repeats=11):
                 c0 = time.process_time()
                 fn()
                 ts[k].append(time.process_time() - c0)
-        a, b = fns["before"](), fns["now"]()                   # MatchResult: disparity, score
+        a, b = fns["before"](), fns["now"]()  # MatchResult: disparity, score
     finally:
         cv2.setNumThreads(saved)
     med = {k: float(np.median(v)) for k, v in ts.items()}
-    same = all(np.array_equal(x, y, equal_nan=True)
-               for x, y in ((a.disparity, b.disparity), (a.score, b.score)))
-    return {"revision": rev, "threads": 1, "repeats": repeats,
-            "cpu_s": {k: round(v, 4) for k, v in med.items()},
-            "ratio_before": round(med["before"] / med["bare"], 3),
-            "ratio_now": round(med["now"] / med["bare"], 3),
-            "bit_identical": bool(same)}
+    same = all(
+        np.array_equal(x, y, equal_nan=True)
+        for x, y in ((a.disparity, b.disparity), (a.score, b.score))
+    )
+    return {
+        "revision": rev,
+        "threads": 1,
+        "repeats": repeats,
+        "cpu_s": {k: round(v, 4) for k, v in med.items()},
+        "ratio_before": round(med["before"] / med["bare"], 3),
+        "ratio_now": round(med["now"] / med["bare"], 3),
+        "bit_identical": bool(same),
+    }
 
 
 def _raw_sgbm(l8, r8, mode):
     """Plain OpenCV call (no padding, no score layer) for the peer rows."""
     b2 = 25
-    sgbm = cv2.StereoSGBM_create(minDisparity=DMIN, numDisparities=ND, blockSize=5, P1=8 * b2,
-                                 P2=32 * b2, disp12MaxDiff=1, preFilterCap=63,
-                                 uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
-                                 mode={"sgbm": cv2.STEREO_SGBM_MODE_SGBM,
-                                       "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY}[mode])
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=DMIN,
+        numDisparities=ND,
+        blockSize=5,
+        P1=8 * b2,
+        P2=32 * b2,
+        disp12MaxDiff=1,
+        preFilterCap=63,
+        uniquenessRatio=10,
+        speckleWindowSize=100,
+        speckleRange=2,
+        mode={"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY}[mode],
+    )
     raw = sgbm.compute(l8, r8)
     disp = raw.astype(np.float32) / 16
     disp[raw < DMIN * 16] = np.nan

@@ -13,6 +13,7 @@ Runs the job twice: without the bundle adjustment of the three models (``[fusion
 
 Usage: ``python benchmarks/bench_multiview.py [--workers N]``
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,9 +32,14 @@ from stereodem.stereo.fusion import FusionSettings, fuse_dems
 from stereodem.stereo.settings import GriddingSettings, StereoSettings
 
 HERE = Path(__file__).resolve().parent
-TRIPLET = next((p / "shared" / "data" / "s2p_pleiades" / "triplet" for p in HERE.parents
-                if (p / "shared" / "data" / "s2p_pleiades" / "triplet").is_dir()),
-               HERE.parents[1] / "shared" / "data" / "s2p_pleiades" / "triplet")
+TRIPLET = next(
+    (
+        p / "shared" / "data" / "s2p_pleiades" / "triplet"
+        for p in HERE.parents
+        if (p / "shared" / "data" / "s2p_pleiades" / "triplet").is_dir()
+    ),
+    HERE.parents[1] / "shared" / "data" / "s2p_pleiades" / "triplet",
+)
 
 
 def compare(heights, ref):
@@ -41,8 +47,11 @@ def compare(heights, ref):
     ref_valid = np.isfinite(ref)
     both = ref_valid & np.isfinite(heights)
     d = heights[both].astype(np.float64) - ref[both]
-    return dict(median_offset_m=round(float(np.median(d)), 4), nmad_m=round(nmad(d), 4),
-                coverage_of_s2p_valid=round(float(both.sum() / ref_valid.sum()), 4))
+    return dict(
+        median_offset_m=round(float(np.median(d)), 4),
+        nmad_m=round(nmad(d), 4),
+        coverage_of_s2p_valid=round(float(both.sum() / ref_valid.sum()), 4),
+    )
 
 
 def run(workers=1, method="weighted", adjust="auto"):
@@ -52,10 +61,17 @@ def run(workers=1, method="weighted", adjust="auto"):
             ref[ref == ds.nodata] = np.nan
         tr, crs, b = ds.transform, ds.crs, ds.bounds
     paths = [str(TRIPLET / f"img_0{k}.tif") for k in (1, 2, 3)]
-    cfg = Config(inputs=InputSettings(images=paths, model="rpc"), output_dir="unused",
-                 stereo=StereoSettings(gridding=GriddingSettings(
-                     res=abs(tr.a), crs=crs.to_wkt(), bounds=(b.left, b.bottom, b.right, b.top))),
-                 run=RunSettings(workers=workers), fusion=FusionSettings(method=method, adjust=adjust))
+    cfg = Config(
+        inputs=InputSettings(images=paths, model="rpc"),
+        output_dir="unused",
+        stereo=StereoSettings(
+            gridding=GriddingSettings(
+                res=abs(tr.a), crs=crs.to_wkt(), bounds=(b.left, b.bottom, b.right, b.top)
+            )
+        ),
+        run=RunSettings(workers=workers),
+        fusion=FusionSettings(method=method, adjust=adjust),
+    )
     t0 = time.perf_counter()
     prod = multiview_stage(cfg, paths)
     seconds = time.perf_counter() - t0
@@ -63,34 +79,58 @@ def run(workers=1, method="weighted", adjust="auto"):
     pairs = []
     for r, dem in zip(mv["pair_runs"], prod.pair_dems):
         assert dem.heights.shape == ref.shape
-        pairs.append(dict(pair=f"img_0{r['left'] + 1} + img_0{r['right'] + 1}",
-                          base_to_height=r["base_to_height"], seconds=r["seconds"],
-                          height_range=[round(v, 1) for v in r["height_range"]],
-                          **compare(dem.heights, ref)))
+        pairs.append(
+            dict(
+                pair=f"img_0{r['left'] + 1} + img_0{r['right'] + 1}",
+                base_to_height=r["base_to_height"],
+                seconds=r["seconds"],
+                height_range=[round(v, 1) for v in r["height_range"]],
+                **compare(dem.heights, ref),
+            )
+        )
     fusions = {}
     for m in ("weighted", "median"):
         t = time.perf_counter()
-        f = prod.fused if m == method else fuse_dems(
-            prod.pair_dems, [p["sigma_m"] for p in prod.fused.pairs], method=m, k=cfg.fusion.reject_k,
-            grid=prod.fused.grid)
-        fusions[m] = dict(**compare(f.heights, ref),
-                          fusion_seconds=round(time.perf_counter() - t, 3) if m != method else None,
-                          cells_by_count={int(k): int(v) for k, v in enumerate(np.bincount(f.count.ravel()))},
-                          median_sigma_m=round(float(np.nanmedian(f.sigma)), 4),
-                          median_nmad_layer_m=round(float(np.nanmedian(f.nmad)), 4))
+        f = (
+            prod.fused
+            if m == method
+            else fuse_dems(
+                prod.pair_dems,
+                [p["sigma_m"] for p in prod.fused.pairs],
+                method=m,
+                k=cfg.fusion.reject_k,
+                grid=prod.fused.grid,
+            )
+        )
+        fusions[m] = dict(
+            **compare(f.heights, ref),
+            fusion_seconds=round(time.perf_counter() - t, 3) if m != method else None,
+            cells_by_count={int(k): int(v) for k, v in enumerate(np.bincount(f.count.ravel()))},
+            median_sigma_m=round(float(np.nanmedian(f.sigma)), 4),
+            median_nmad_layer_m=round(float(np.nanmedian(f.nmad)), 4),
+        )
     best = min(pairs, key=lambda p: p["nmad_m"])
-    return dict(triplet=str(TRIPLET), s2p_reference="expected_dsm.tif", workers=workers, adjust=adjust,
-                adjustment=mv["adjustment"],
-                load_average=[round(v, 2) for v in os.getloadavg()],
-                pairs_considered=mv["pairs"], skipped_images=mv["skipped_images"],
-                pairs=pairs, fused=fusions, default_fusion=method,
-                seconds_nview_job=round(seconds, 2),
-                seconds_pairs_sum=round(sum(p["seconds"] for p in pairs), 2),
-                best_pair=best["pair"],
-                fused_nmad_le_best_pair=bool(fusions[method]["nmad_m"] <= best["nmad_m"]),
-                fused_coverage_ge_best_pair=bool(fusions[method]["coverage_of_s2p_valid"]
-                                                 >= best["coverage_of_s2p_valid"]),
-                pair_agreement_with_fused=[r["fusion"] for r in mv["pair_runs"]])
+    return dict(
+        triplet=str(TRIPLET),
+        s2p_reference="expected_dsm.tif",
+        workers=workers,
+        adjust=adjust,
+        adjustment=mv["adjustment"],
+        load_average=[round(v, 2) for v in os.getloadavg()],
+        pairs_considered=mv["pairs"],
+        skipped_images=mv["skipped_images"],
+        pairs=pairs,
+        fused=fusions,
+        default_fusion=method,
+        seconds_nview_job=round(seconds, 2),
+        seconds_pairs_sum=round(sum(p["seconds"] for p in pairs), 2),
+        best_pair=best["pair"],
+        fused_nmad_le_best_pair=bool(fusions[method]["nmad_m"] <= best["nmad_m"]),
+        fused_coverage_ge_best_pair=bool(
+            fusions[method]["coverage_of_s2p_valid"] >= best["coverage_of_s2p_valid"]
+        ),
+        pair_agreement_with_fused=[r["fusion"] for r in mv["pair_runs"]],
+    )
 
 
 def main():
@@ -102,17 +142,30 @@ def main():
     runs = [run(a.workers, adjust=adj) for adj in ("never", "auto")]
     for res in runs:
         adj = res["adjustment"]
-        print(f"[fusion] adjust = {res['adjust']}" + (f": {adj['reason']}, reprojection RMS "
-              f"{adj['reprojection_rms_px_before']} -> {adj['reprojection_rms_px_after']} px" if adj else ""))
+        print(
+            f"[fusion] adjust = {res['adjust']}"
+            + (
+                f": {adj['reason']}, reprojection RMS "
+                f"{adj['reprojection_rms_px_before']} -> {adj['reprojection_rms_px_after']} px"
+                if adj
+                else ""
+            )
+        )
         print(f"{'DEM':22} {'B/H':>6} {'time s':>7} {'median m':>9} {'NMAD m':>7} {'cover':>6}")
         for p in res["pairs"]:
-            print(f"{p['pair']:22} {p['base_to_height']:6.3f} {p['seconds']:7.1f} {p['median_offset_m']:9.3f} "
-                  f"{p['nmad_m']:7.3f} {p['coverage_of_s2p_valid']:6.4f}")
+            print(
+                f"{p['pair']:22} {p['base_to_height']:6.3f} {p['seconds']:7.1f} {p['median_offset_m']:9.3f} "
+                f"{p['nmad_m']:7.3f} {p['coverage_of_s2p_valid']:6.4f}"
+            )
         for m, f in res["fused"].items():
-            print(f"{'fused (' + m + ')':22} {'':6} {'':7} {f['median_offset_m']:9.3f} {f['nmad_m']:7.3f} "
-                  f"{f['coverage_of_s2p_valid']:6.4f}")
-        print(f"N-view job {res['seconds_nview_job']:.1f} s (pairs {res['seconds_pairs_sum']:.1f} s), "
-              f"load {res['load_average']}")
+            print(
+                f"{'fused (' + m + ')':22} {'':6} {'':7} {f['median_offset_m']:9.3f} {f['nmad_m']:7.3f} "
+                f"{f['coverage_of_s2p_valid']:6.4f}"
+            )
+        print(
+            f"N-view job {res['seconds_nview_job']:.1f} s (pairs {res['seconds_pairs_sum']:.1f} s), "
+            f"load {res['load_average']}"
+        )
     res = dict(runs=runs)
     out = HERE / "results" / "bench_multiview.json"
     out.parent.mkdir(parents=True, exist_ok=True)

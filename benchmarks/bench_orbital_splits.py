@@ -16,6 +16,7 @@ RMSE and the median condition number (column-equilibrated normal matrix).
 
 Writes benchmarks/results/bench_orbital_splits.json and .md.
 """
+
 from __future__ import annotations
 
 import json
@@ -44,43 +45,64 @@ def main():
     nadir, back, truth_n, truth_b, dem = aster_pair_scene()
     out = {}
     for label, meta, truth in (("3N", nadir, truth_n), ("3B", back, truth_b)):
-        pts = points_at_pixels(truth, dem, *random_pixels(truth, 200, seed=1), noise_px=NOISE_PX,
-                               seed=1)
-        recs = compare_splits(meta, to_control_points(pts, "gcp"), MODELS, COUNTS,
-                              reference=REFERENCE, n_check=N_CHECK, n_splits=N_SPLITS,
-                              sigma_px=NOISE_PX)
+        pts = points_at_pixels(
+            truth, dem, *random_pixels(truth, 200, seed=1), noise_px=NOISE_PX, seed=1
+        )
+        recs = compare_splits(
+            meta,
+            to_control_points(pts, "gcp"),
+            MODELS,
+            COUNTS,
+            reference=REFERENCE,
+            n_check=N_CHECK,
+            n_splits=N_SPLITS,
+            sigma_px=NOISE_PX,
+        )
         out[label] = dict(records=recs, summary=split_summary(recs))
     seconds = round(time.perf_counter() - t0, 1)
     md = markdown(out)
     print(md)
-    res = dict(scene="aster_pair_scene (3N 4100x4200, 3B 5000x4600), truth = metadata with "
-                     "TRUTH_ERRORS / TRUTH_ERRORS_BACKWARD", noise_px=NOISE_PX, n_check=N_CHECK,
-               n_splits=N_SPLITS, counts=COUNTS, reference=REFERENCE,
-               views={k: v["summary"] for k, v in out.items()},
-               records={k: v["records"] for k, v in out.items()}, seconds=seconds,
-               note="timings under contention (2 cores shared by several jobs)")
+    res = dict(
+        scene="aster_pair_scene (3N 4100x4200, 3B 5000x4600), truth = metadata with "
+        "TRUTH_ERRORS / TRUTH_ERRORS_BACKWARD",
+        noise_px=NOISE_PX,
+        n_check=N_CHECK,
+        n_splits=N_SPLITS,
+        counts=COUNTS,
+        reference=REFERENCE,
+        views={k: v["summary"] for k, v in out.items()},
+        records={k: v["records"] for k, v in out.items()},
+        seconds=seconds,
+        note="timings under contention (2 cores shared by several jobs)",
+    )
     dest = ROOT / "benchmarks/results"
     (dest / "bench_orbital_splits.json").write_text(json.dumps(res, indent=1, default=float))
     (dest / "bench_orbital_splits.md").write_text(
         f"ICP RMSE of each model over the rigorous model's ({REFERENCE}, 6 parameters) on the "
         f"same split: median and largest over {N_SPLITS} random splits ({N_CHECK} check points, "
         f"{NOISE_PX} px image noise); median ICP RMSE (px) and median condition number; "
-        "'refused' = too few GCPs for the set (the count needed is in the JSON).\n\n" + md)
+        "'refused' = too few GCPs for the set (the count needed is in the JSON).\n\n" + md
+    )
 
 
 def markdown(out) -> str:
     lines = []
     for label, v in out.items():
-        lines += [f"### ASTER {label}", "",
-                  "| model | u | GCPs | median ratio | max ratio | median ICP px | median condition |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            f"### ASTER {label}",
+            "",
+            "| model | u | GCPs | median ratio | max ratio | median ICP px | median condition |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for s in v["summary"]:
             if s["refused"] == s["splits"]:
                 lines.append(f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | refused | | | |")
                 continue
-            lines.append(f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | {s['median_ratio']:.2f} | "
-                         f"{s['max_ratio']:.2f} | {s['median_icp_px']:.2f} | "
-                         f"{s['median_condition']:.3g} |")
+            lines.append(
+                f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | {s['median_ratio']:.2f} | "
+                f"{s['max_ratio']:.2f} | {s['median_icp_px']:.2f} | "
+                f"{s['median_condition']:.3g} |"
+            )
         lines.append("")
     return "\n".join(lines)
 

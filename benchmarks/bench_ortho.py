@@ -21,6 +21,7 @@ difference of projected positions at sampled cells. Figures go to
 
 Run: ``python benchmarks/bench_ortho.py [--size 4096] [--repeat 3] [--real]``
 """
+
 from __future__ import annotations
 
 import argparse
@@ -90,7 +91,9 @@ def main(argv=None):
         img = np.zeros((n, n), np.float32)
         for _ in range(8):
             lam, th = rng.uniform(8, 30), rng.uniform(0, 2 * np.pi)
-            img += np.cos(2 * np.pi * (cc * np.cos(th) + rr * np.sin(th)) / lam + rng.uniform(0, 6.3)).astype(np.float32)
+            img += np.cos(
+                2 * np.pi * (cc * np.cos(th) + rr * np.sin(th)) / lam + rng.uniform(0, 6.3)
+            ).astype(np.float32)
         img = 1000 + 100 * img
         del cc, rr
         source = f"synthetic {n}x{n} texture"
@@ -108,26 +111,53 @@ def main(argv=None):
     dem = DEM.from_file(dem_path)
     grid = grid_for_model(model, dem, res=0.5)
     cells = grid.width * grid.height
-    print(f"{source}; grid {grid.width} x {grid.height} = {cells / 1e6:.1f} M cells at 0.5 m "
-          f"({grid.crs.to_string()}); DEM {nx} x {ny} at {st} deg")
+    print(
+        f"{source}; grid {grid.width} x {grid.height} = {cells / 1e6:.1f} M cells at 0.5 m "
+        f"({grid.crs.to_string()}); DEM {nx} x {ny} at {st} deg"
+    )
 
     results = {}
     o = None
     for threads in (1, 2):
-        t_me, o = best_time(lambda: orthorectify(img, model, dem, grid=grid, resampling="bilinear",
-                                                 threads=threads), args.repeat)  # noqa: B023 (called at once)
+        t_me, o = best_time(
+            lambda: orthorectify(
+                img,
+                model,
+                dem,
+                grid=grid,
+                resampling="bilinear",
+                threads=threads,  # noqa: B023
+            ),
+            args.repeat,
+        )
         results[f"stereodem_{threads}thread{'s' if threads > 1 else ''}"] = dict(
-            seconds=t_me, mcells_per_s=cells / t_me / 1e6, threads=threads, **{
-                k: v for k, v in o.report().items() if k in ("interpolation_error_px", "lattice_step",
-                                                             "n_heights", "n_model_points")})
+            seconds=t_me,
+            mcells_per_s=cells / t_me / 1e6,
+            threads=threads,
+            **{
+                k: v
+                for k, v in o.report().items()
+                if k in ("interpolation_error_px", "lattice_step", "n_heights", "n_model_points")
+            },
+        )
     o = orthorectify(img, model, dem, grid=grid, resampling="bilinear", keep_maps=True)
 
     def gdal(tol, threads):
         dst = np.full(grid.shape, np.nan, np.float32)
-        reproject(img, dst, rpcs=rpcs, src_crs="EPSG:4326", dst_crs=grid.crs,
-                  dst_transform=grid.transform, resampling=Resampling.bilinear, dst_nodata=np.nan,
-                  RPC_DEM=str(dem_path), tolerance=tol, num_threads=threads,
-                  warp_mem_limit=512)
+        reproject(
+            img,
+            dst,
+            rpcs=rpcs,
+            src_crs="EPSG:4326",
+            dst_crs=grid.crs,
+            dst_transform=grid.transform,
+            resampling=Resampling.bilinear,
+            dst_nodata=np.nan,
+            RPC_DEM=str(dem_path),
+            tolerance=tol,
+            num_threads=threads,
+            warp_mem_limit=512,
+        )
         return dst
 
     # GDAL's best options for this job: the approximate transformer (its default, error
@@ -135,21 +165,27 @@ def main(argv=None):
     # multithreaded warper at 1 and 2 threads; plus the exact transformer for reference
     refs = {}
     mine = {1: results["stereodem_1thread"]["seconds"], 2: results["stereodem_2threads"]["seconds"]}
-    for name, tol, threads in (("gdal_approx_0.125px_1thread", 0.125, 1),
-                               ("gdal_approx_0.125px_2threads", 0.125, 2),
-                               ("gdal_exact_1thread", 0.0, 1)):
+    for name, tol, threads in (
+        ("gdal_approx_0.125px_1thread", 0.125, 1),
+        ("gdal_approx_0.125px_2threads", 0.125, 2),
+        ("gdal_exact_1thread", 0.0, 1),
+    ):
         t, ref = best_time(lambda: gdal(tol, threads), args.repeat)  # noqa: B023 (called at once)
         both = o.valid & np.isfinite(ref)
         d = ls_shift(np.where(both, o.data, np.nan), np.where(both, ref, np.nan))
-        results[name] = dict(seconds=t, mcells_per_s=cells / t / 1e6, threads=threads,
-                             speedup_of_stereodem_same_threads=t / mine[threads],
-                             speedup_of_stereodem_1thread=t / mine[1],
-                             speedup_of_stereodem_2threads=t / mine[2],
-                             ortho_shift_px=[float(d[0]), float(d[1])],
-                             common_valid_fraction=float(both.mean()))
+        results[name] = dict(
+            seconds=t,
+            mcells_per_s=cells / t / 1e6,
+            threads=threads,
+            speedup_of_stereodem_same_threads=t / mine[threads],
+            speedup_of_stereodem_1thread=t / mine[1],
+            speedup_of_stereodem_2threads=t / mine[2],
+            ortho_shift_px=[float(d[0]), float(d[1])],
+            common_valid_fraction=float(both.mean()),
+        )
         refs[name] = ref
 
-    vv, uu = np.mgrid[0:grid.height:53, 0:grid.width:59]
+    vv, uu = np.mgrid[0 : grid.height : 53, 0 : grid.width : 59]
     glon, glat = grid.lonlat(uu, vv)
     with RPCTransformer(rpcs, RPC_DEM=str(dem_path)) as t:
         r, c = t.rowcol(glon.ravel(), glat.ravel(), op=lambda v: v)
@@ -160,27 +196,51 @@ def main(argv=None):
 
     g1 = results["gdal_approx_0.125px_1thread"]["seconds"]
     g2 = results["gdal_approx_0.125px_2threads"]["seconds"]
-    ratios = {"stereodem_1thread_vs_gdal_1thread": g1 / mine[1],
-              "stereodem_2threads_vs_gdal_2threads": g2 / mine[2],
-              "stereodem_best_vs_gdal_best": min(g1, g2) / min(mine.values())}
-    summary = dict(source=source, grid=[grid.width, grid.height], cells=cells, res_m=0.5,
-                   crs=grid.crs.to_string(), dem=[nx, ny], repeat=args.repeat,
-                   gdal_options=dict(resampling="bilinear", RPC_DEM=True, approximate_transformer_error_px=0.125,
-                                     warp_mem_limit_mb=512, num_threads=[1, 2], dst_nodata="nan"),
-                   max_position_difference_vs_gdal_rpc_transformer_px=pos, speed_ratios=ratios,
-                   machine=dict(python=platform.python_version(), cpus=os.cpu_count(),
-                                gdal=rasterio.__gdal_version__, rasterio=rasterio.__version__,
-                                loadavg_at_end=list(os.getloadavg())),
-                   results=results)
+    ratios = {
+        "stereodem_1thread_vs_gdal_1thread": g1 / mine[1],
+        "stereodem_2threads_vs_gdal_2threads": g2 / mine[2],
+        "stereodem_best_vs_gdal_best": min(g1, g2) / min(mine.values()),
+    }
+    summary = dict(
+        source=source,
+        grid=[grid.width, grid.height],
+        cells=cells,
+        res_m=0.5,
+        crs=grid.crs.to_string(),
+        dem=[nx, ny],
+        repeat=args.repeat,
+        gdal_options=dict(
+            resampling="bilinear",
+            RPC_DEM=True,
+            approximate_transformer_error_px=0.125,
+            warp_mem_limit_mb=512,
+            num_threads=[1, 2],
+            dst_nodata="nan",
+        ),
+        max_position_difference_vs_gdal_rpc_transformer_px=pos,
+        speed_ratios=ratios,
+        machine=dict(
+            python=platform.python_version(),
+            cpus=os.cpu_count(),
+            gdal=rasterio.__gdal_version__,
+            rasterio=rasterio.__version__,
+            loadavg_at_end=list(os.getloadavg()),
+        ),
+        results=results,
+    )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(summary, indent=2) + "\n")
     print(f"{'method':<32}{'seconds':>9}{'Mcells/s':>10}{'stereodem x (same threads)':>28}")
     for k, v in results.items():
-        print(f"{k:<32}{v['seconds']:9.3f}{v['mcells_per_s']:10.2f}{v.get('speedup_of_stereodem_same_threads', 1.0):28.2f}")
+        print(
+            f"{k:<32}{v['seconds']:9.3f}{v['mcells_per_s']:10.2f}{v.get('speedup_of_stereodem_same_threads', 1.0):28.2f}"
+        )
     print("ratios: " + ", ".join(f"{k} {v:.2f}x" for k, v in ratios.items()))
-    print(f"stereodem map interpolation error (measured): {results['stereodem_1thread']['interpolation_error_px']:.2e} px; "
-          f"max position difference vs GDAL RPC transformer: {pos:.2e} px; "
-          f"ortho shift vs exact GDAL: {results['gdal_exact_1thread']['ortho_shift_px']}")
+    print(
+        f"stereodem map interpolation error (measured): {results['stereodem_1thread']['interpolation_error_px']:.2e} px; "
+        f"max position difference vs GDAL RPC transformer: {pos:.2e} px; "
+        f"ortho shift vs exact GDAL: {results['gdal_exact_1thread']['ortho_shift_px']}"
+    )
     print(f"wrote {args.out}")
 
 

@@ -9,6 +9,7 @@ and its ``dem.tif``)::
 
 writes ``benchmarks/results/bench_ortho_pair.json`` (with the load average: a shared machine).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,7 +38,9 @@ def serial(images, dem, threads):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("config")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=3)
@@ -46,28 +49,50 @@ def main():
     cfg = load_config(a.config)
     pair = load_pair(cfg)
     dem = read_stereo_dem(Path(cfg.output_dir) / "dem.tif")
-    images = [("left", pair.left_image, pair.left_model), ("right", pair.right_image, pair.right_model)]
+    images = [
+        ("left", pair.left_image, pair.left_model),
+        ("right", pair.right_image, pair.right_model),
+    ]
     runs = []
     with thread_budget(a.threads):
         ref = None
         for _ in range(a.repeat):
-            for how, fn in (("serial", lambda: serial(images, dem, a.threads)),
-                            ("concurrent", lambda: orthorectify_all(images, dem, threads=a.threads))):
+            for how, fn in (
+                ("serial", lambda: serial(images, dem, a.threads)),
+                ("concurrent", lambda: orthorectify_all(images, dem, threads=a.threads)),
+            ):
                 load = os.getloadavg()[0]
                 t, c = time.perf_counter(), time.process_time()
                 res = fn()
-                runs.append(dict(how=how, wall_s=round(time.perf_counter() - t, 3),
-                                 cpu_s=round(time.process_time() - c, 3), load_before=round(load, 2)))
+                runs.append(
+                    dict(
+                        how=how,
+                        wall_s=round(time.perf_counter() - t, 3),
+                        cpu_s=round(time.process_time() - c, 3),
+                        load_before=round(load, 2),
+                    )
+                )
                 data = {k: o.data for k, o in res.items()}
                 ref = ref or data
-                runs[-1]["identical_to_first"] = all(np.array_equal(ref[k], data[k], equal_nan=True)
-                                                     for k in data)
+                runs[-1]["identical_to_first"] = all(
+                    np.array_equal(ref[k], data[k], equal_nan=True) for k in data
+                )
                 print(runs[-1], flush=True)
-    summary = {how: {k: float(np.median([r[k] for r in runs if r["how"] == how]))
-                     for k in ("wall_s", "cpu_s")} for how in ("serial", "concurrent")}
-    out = dict(threads=a.threads, grid=list(res["left"].grid.shape), runs=runs, median=summary,
-               note="wall seconds depend on the machine's load (2 shared cores); CPU seconds of "
-                    "this process are the robust figure")
+    summary = {
+        how: {
+            k: float(np.median([r[k] for r in runs if r["how"] == how]))
+            for k in ("wall_s", "cpu_s")
+        }
+        for how in ("serial", "concurrent")
+    }
+    out = dict(
+        threads=a.threads,
+        grid=list(res["left"].grid.shape),
+        runs=runs,
+        median=summary,
+        note="wall seconds depend on the machine's load (2 shared cores); CPU seconds of "
+        "this process are the robust figure",
+    )
     Path(a.results).write_text(json.dumps(out, indent=1))
     print(json.dumps(summary))
 

@@ -16,6 +16,7 @@ bundled SRTM, an L1A V004 granule); full size by default (3N 4100 x 4200, 3B 500
 
 writes ``benchmarks/results/bench_scaling.json`` and prints a Markdown table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -51,6 +52,7 @@ def measured(cmd):
     """Run ``cmd``: wall s, CPU s (rusage of waited-for descendants), CPU s by psutil over the
     process tree (last sample of each process), peak RSS MB summed over the tree."""
     import psutil
+
     cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -77,49 +79,75 @@ def measured(cmd):
     if p.returncode != 0:
         raise SystemExit(f"{' '.join(map(str, cmd))} failed:\n{err[-3000:]}")
     cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
-    return wall, cpu, sum(cpu_seen.values()), peak / 2 ** 20
+    return wall, cpu, sum(cpu_seen.values()), peak / 2**20
 
 
 def run_once(scene: Path, out: Path, workers: int) -> dict:
     cfg = out.with_suffix(".toml")
     cfg.write_text(CONFIG.format(scene=scene, granule=granule(scene), out=out, workers=workers))
     load0 = os.getloadavg()
-    wall, cpu, cpu_ps, peak = measured([sys.executable, "-m", "stereodem.cli", "-q", "run",
-                                        str(cfg), "--overwrite"])
+    wall, cpu, cpu_ps, peak = measured(
+        [sys.executable, "-m", "stereodem.cli", "-q", "run", str(cfg), "--overwrite"]
+    )
     info = json.loads((out / "run.json").read_text())
-    stages = {k: dict(wall_s=v["seconds"], cpu_s=v.get("cpu_s"), worker_cpu_s=v.get("worker_cpu_s"),
-                      main_peak_rss_mb=v.get("peak_rss_mb"),
-                      tile_process_peak_rss_mb=v.get("tile_process_peak_rss_mb"))
-              for k, v in info["stages"].items()}
-    return dict(workers=workers, wall_s=round(wall, 2), cpu_s=round(cpu, 2),
-                cpu_s_psutil=round(cpu_ps, 2), peak_rss_mb_all_processes=round(peak),
-                load_average_before=[round(x, 2) for x in load0],
-                load_average_after=[round(x, 2) for x in os.getloadavg()],
-                stages=stages, nmad_m=info["headline"]["nmad"],
-                valid_pct=info["headline"]["valid_pct"])
+    stages = {
+        k: dict(
+            wall_s=v["seconds"],
+            cpu_s=v.get("cpu_s"),
+            worker_cpu_s=v.get("worker_cpu_s"),
+            main_peak_rss_mb=v.get("peak_rss_mb"),
+            tile_process_peak_rss_mb=v.get("tile_process_peak_rss_mb"),
+        )
+        for k, v in info["stages"].items()
+    }
+    return dict(
+        workers=workers,
+        wall_s=round(wall, 2),
+        cpu_s=round(cpu, 2),
+        cpu_s_psutil=round(cpu_ps, 2),
+        peak_rss_mb_all_processes=round(peak),
+        load_average_before=[round(x, 2) for x in load0],
+        load_average_after=[round(x, 2) for x in os.getloadavg()],
+        stages=stages,
+        nmad_m=info["headline"]["nmad"],
+        valid_pct=info["headline"]["valid_pct"],
+    )
 
 
 def table(runs) -> str:
     base = {r["workers"]: r for r in runs}
     ref2 = base.get(2) or runs[0]
-    lines = ["| workers | `run` wall s | `run` CPU s | CPU / CPU(2 w) | stereo s | post / ortho / assess s "
-             "| peak MB | load before |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| workers | `run` wall s | `run` CPU s | CPU / CPU(2 w) | stereo s | post / ortho / assess s "
+        "| peak MB | load before |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in runs:
+
         def g(k, st=r["stages"]):
             return st.get(k, {}).get("wall_s", 0.0)
-        lines.append(f"| {r['workers']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
-                     f"{r['cpu_s'] / ref2['cpu_s']:.2f} | {g('stereo'):.1f} | "
-                     f"{g('post'):.1f} / {g('ortho'):.1f} / {g('assess'):.1f} | "
-                     f"{r['peak_rss_mb_all_processes']} | {r['load_average_before'][0]:.2f} |")
+
+        lines.append(
+            f"| {r['workers']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+            f"{r['cpu_s'] / ref2['cpu_s']:.2f} | {g('stereo'):.1f} | "
+            f"{g('post'):.1f} / {g('ortho'):.1f} / {g('assess'):.1f} | "
+            f"{r['peak_rss_mb_all_processes']} | {r['load_average_before'][0]:.2f} |"
+        )
     return "\n".join(lines)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--half", action="store_true", help="half-size granule (3N 2050 x 2100)")
-    ap.add_argument("--size", nargs=4, type=int, metavar=("W3N", "H3N", "W3B", "H3B"),
-                    help="other granule sizes (3N then 3B)")
+    ap.add_argument(
+        "--size",
+        nargs=4,
+        type=int,
+        metavar=("W3N", "H3N", "W3B", "H3B"),
+        help="other granule sizes (3N then 3B)",
+    )
     ap.add_argument("--workers", nargs="+", type=int, help="default: 1, 2, 4, ... up to the cores")
     ap.add_argument("--out", default="/tmp/bench_scaling")
     ap.add_argument("--results", default=str(DEST), help=f"results file (default {DEST.name})")
@@ -137,25 +165,41 @@ def main(argv=None):
         shutil.rmtree(out / f"w{w}", ignore_errors=True)
         r = run_once(out / "scene", out / f"w{w}", w)
         if w != counts[0]:
-            r[f"bit_identical_to_workers_{counts[0]}"] = identical(out / f"w{counts[0]}",
-                                                                     out / f"w{w}", RUN_LAYERS)
+            r[f"bit_identical_to_workers_{counts[0]}"] = identical(
+                out / f"w{counts[0]}", out / f"w{w}", RUN_LAYERS
+            )
         runs.append(r)
-        print(f"workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s ({r['cpu_s_psutil']} by psutil), "
-              f"peak {r['peak_rss_mb_all_processes']} MB, load {r['load_average_before'][0]}", flush=True)
+        print(
+            f"workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s ({r['cpu_s_psutil']} by psutil), "
+            f"peak {r['peak_rss_mb_all_processes']} MB, load {r['load_average_before'][0]}",
+            flush=True,
+        )
     by = {r["workers"]: r for r in runs}
     ratios = {}
     if 1 in by and 2 in by:
-        ratios.update(speedup_2_vs_1=round(by[1]["wall_s"] / by[2]["wall_s"], 2),
-                      cpu_2_over_1=round(by[2]["cpu_s"] / by[1]["cpu_s"], 3))
+        ratios.update(
+            speedup_2_vs_1=round(by[1]["wall_s"] / by[2]["wall_s"], 2),
+            cpu_2_over_1=round(by[2]["cpu_s"] / by[1]["cpu_s"], 3),
+        )
     if 2 in by and counts[-1] > 2:
-        ratios.update({f"speedup_{counts[-1]}_vs_2": round(by[2]["wall_s"] / by[counts[-1]]["wall_s"], 2),
-                       f"cpu_{counts[-1]}_over_2": round(by[counts[-1]]["cpu_s"] / by[2]["cpu_s"], 3)})
-    result = dict(granule=dict(left=list(size), right=list(right), input="ASTER L1A V004, simulated"),
-                  machine=dict(cpus=cores, python=platform.python_version(), node=platform.node()),
-                  measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                  runs=runs, ratios=ratios, table_markdown=table(runs),
-                  note=("wall seconds depend on the machine's load (load_average_*: a shared "
-                        "machine); CPU seconds are the robust figure"))
+        ratios.update(
+            {
+                f"speedup_{counts[-1]}_vs_2": round(by[2]["wall_s"] / by[counts[-1]]["wall_s"], 2),
+                f"cpu_{counts[-1]}_over_2": round(by[counts[-1]]["cpu_s"] / by[2]["cpu_s"], 3),
+            }
+        )
+    result = dict(
+        granule=dict(left=list(size), right=list(right), input="ASTER L1A V004, simulated"),
+        machine=dict(cpus=cores, python=platform.python_version(), node=platform.node()),
+        measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        runs=runs,
+        ratios=ratios,
+        table_markdown=table(runs),
+        note=(
+            "wall seconds depend on the machine's load (load_average_*: a shared "
+            "machine); CPU seconds are the robust figure"
+        ),
+    )
     dest = Path(args.results)
     dest.parent.mkdir(parents=True, exist_ok=True)
     dest.write_text(json.dumps(result, indent=1, default=float) + "\n")

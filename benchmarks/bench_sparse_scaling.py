@@ -7,6 +7,7 @@ resolution, so the cost should grow far slower than the pixel count. Writes
 
 Usage: ``python benchmarks/bench_sparse_scaling.py``
 """
+
 from __future__ import annotations
 
 import json
@@ -26,16 +27,30 @@ def main(sizes=(800, 1600, 3200)):
         lo, hi = s.truth_dem.height_range()
         c, w = time.process_time(), time.perf_counter()
         st = run_sparse_stage(s.left, s.right, s.left_model, s.right_model)
-        rows.append(dict(size=n, wall_s=round(time.perf_counter() - w, 2),
-                         cpu_s=round(time.process_time() - c, 2),
-                         stages_s={k: round(v, 3) for k, v in st.seconds.items()},
-                         matches=len(st.matches), height_range_m=[round(v) for v in st.height_range],
-                         truth_dem_range_m=[round(float(lo)), round(float(hi))]))
+        rows.append(
+            dict(
+                size=n,
+                wall_s=round(time.perf_counter() - w, 2),
+                cpu_s=round(time.process_time() - c, 2),
+                stages_s={k: round(v, 3) for k, v in st.seconds.items()},
+                matches=len(st.matches),
+                height_range_m=[round(v) for v in st.height_range],
+                truth_dem_range_m=[round(float(lo)), round(float(hi))],
+            )
+        )
         print(rows[-1], flush=True)
     out = HERE / "results" / "bench_sparse_scaling.json"
-    out.write_text(json.dumps(dict(runs=rows, note="2-core machine shared with other jobs: wall "
-                                   "times under contention; CPU seconds are the steadier figure"),
-                              indent=2) + "\n")
+    out.write_text(
+        json.dumps(
+            dict(
+                runs=rows,
+                note="2-core machine shared with other jobs: wall "
+                "times under contention; CPU seconds are the steadier figure",
+            ),
+            indent=2,
+        )
+        + "\n"
+    )
     print(f"wrote {out}")
 
 

@@ -19,6 +19,7 @@ re-run with Tikhonov regularisation (weight by GCV) and marked ``regularised``.
 
 (``--rerender`` rebuilds the tables from the stored JSON.) Writes benchmarks/results/bench_topan_sets.json, .md and .png.
 """
+
 from __future__ import annotations
 
 import json
@@ -43,8 +44,16 @@ LAYOUTS = ("H-0", "H-10", "H-20", "H-30", "H-40", "G-A", "G-B", "G-C")
 #: Topan's reading of A.5.1 (notes §6.2): sets 1-12 except 5 (and 6 for grouped sets) about
 #: equal; 5 and 13-19 unstable (GCPs up to 1e6 m).
 TOPAN_GOOD = ("P_S", "P_S0", "P_S1", "P_S2", "V_S1", "V_S2", "A", "A_0", "A_1", "A_2")
-TOPAN_UNSTABLE = ("V_S", "P_S V_S", "(P_S V_S)_0", "P_S A", "(P_S A)_0", "V_S A", "(V_S A)_0",
-                  "(P_S V_S A)_0")
+TOPAN_UNSTABLE = (
+    "V_S",
+    "P_S V_S",
+    "(P_S V_S)_0",
+    "P_S A",
+    "(P_S A)_0",
+    "V_S A",
+    "(V_S A)_0",
+    "(P_S V_S A)_0",
+)
 
 
 def layout_roles(col, row, width, height, name):
@@ -79,8 +88,9 @@ def fit(model, gcp, names):
         if "near-singular" not in str(exc):
             return str(exc), "refused"
     try:
-        return adjust_model(model, gcp, names, sigma_px=NOISE_PX, snooping=False,
-                            regularization="gcv"), "regularised"
+        return adjust_model(
+            model, gcp, names, sigma_px=NOISE_PX, snooping=False, regularization="gcv"
+        ), "regularised"
     except StereodemError as exc:
         return str(exc), "refused"
 
@@ -93,8 +103,14 @@ def main():
     cc = cc.ravel() + rng.uniform(-150, 150, 49)
     rr = rr.ravel() + rng.uniform(-150, 150, 49)
     keep = np.sort(rng.choice(49, 47, replace=False))
-    pts = points_at_pixels(truth, dem, np.clip(cc[keep], 20, meta.width - 21),
-                           np.clip(rr[keep], 20, meta.height - 21), noise_px=NOISE_PX, seed=2009)
+    pts = points_at_pixels(
+        truth,
+        dem,
+        np.clip(cc[keep], 20, meta.width - 21),
+        np.clip(rr[keep], 20, meta.height - 21),
+        noise_px=NOISE_PX,
+        seed=2009,
+    )
     n = pts["lon"].size
     start = TopanLOSModel.from_model(meta)
     rows = []
@@ -104,10 +120,19 @@ def main():
         gcp = to_control_points({k: v[gcp_idx] for k, v in pts.items()}, "gcp")
         pre, _ = fit(start, gcp, list(LOOK))
         base = dict(layout=lay, n_gcp=int(gcp_idx.sum()), n_icp=int(icp.sum()))
-        rows.append({**base, "set": "L (type 1 only)", "n_params": 6, "status": "ok",
-                     "gcp_rmse_px": rmse(pre.model, pts, gcp_idx), "icp_rmse_px": rmse(pre.model, pts, icp),
-                     "icp_true_px": rmse(pre.model, pts, icp, true=True), "sigma0": pre.sigma0,
-                     "condition": pre.condition})
+        rows.append(
+            {
+                **base,
+                "set": "L (type 1 only)",
+                "n_params": 6,
+                "status": "ok",
+                "gcp_rmse_px": rmse(pre.model, pts, gcp_idx),
+                "icp_rmse_px": rmse(pre.model, pts, icp),
+                "icp_true_px": rmse(pre.model, pts, icp, true=True),
+                "sigma0": pre.sigma0,
+                "condition": pre.condition,
+            }
+        )
         for k, name in enumerate(SET_ORDER, start=1):
             names = eop_set(name)
             res, status = fit(pre.model, gcp, names)
@@ -115,19 +140,33 @@ def main():
             if status == "refused":
                 rec["error"] = res
             else:
-                rec.update(gcp_rmse_px=rmse(res.model, pts, gcp_idx), icp_rmse_px=rmse(res.model, pts, icp),
-                           icp_true_px=rmse(res.model, pts, icp, true=True), sigma0=res.sigma0,
-                           condition=res.condition)
+                rec.update(
+                    gcp_rmse_px=rmse(res.model, pts, gcp_idx),
+                    icp_rmse_px=rmse(res.model, pts, icp),
+                    icp_true_px=rmse(res.model, pts, icp, true=True),
+                    sigma0=res.sigma0,
+                    condition=res.condition,
+                )
             rows.append(rec)
         print(lay, "done", round(time.perf_counter() - t0, 1), "s", flush=True)
     ranking = rank(rows)
     md = markdown(rows, ranking)
     out = ROOT / "benchmarks/results"
-    (out / "bench_topan_sets.json").write_text(json.dumps(
-        dict(scene="ASTER 3N geometry 4100x4200 with attitude/ephemeris biases and drifts "
-                   "(stereodem.sensor.simulation.control_points.TRUTH_ERRORS)",
-             noise_px=NOISE_PX, n_points=n, rows=rows, ranking=ranking,
-             seconds=round(time.perf_counter() - t0, 1)), indent=1, default=float))
+    (out / "bench_topan_sets.json").write_text(
+        json.dumps(
+            dict(
+                scene="ASTER 3N geometry 4100x4200 with attitude/ephemeris biases and drifts "
+                "(stereodem.sensor.simulation.control_points.TRUTH_ERRORS)",
+                noise_px=NOISE_PX,
+                n_points=n,
+                rows=rows,
+                ranking=ranking,
+                seconds=round(time.perf_counter() - t0, 1),
+            ),
+            indent=1,
+            default=float,
+        )
+    )
     (out / "bench_topan_sets.md").write_text(md)
     figure(rows, out / "bench_topan_sets.png")
     print(md)
@@ -151,22 +190,33 @@ def rank(rows):
         h = [_value(r) for r in rs if r["layout"] in LAYOUTS[1:5]]
         gr = [_value(r) for r in rs if r["layout"].startswith("G-")]
         hs, gs = [v for v in h if v is not None], [v for v in gr if v is not None]
-        out.append(dict(set=s, solved_H=len(hs), solved_G=len(gs),
-                        median_icp_H=float(np.median(hs)) if hs else None,
-                        median_icp_G=float(np.median(gs)) if gs else None,
-                        condition_H20=next((r.get("condition") for r in rs if r["layout"] == "H-20"), None),
-                        status="/".join(sorted({r["status"] for r in rs}))))
-    out.sort(key=lambda d: (-d["solved_H"], d["median_icp_H"] if d["median_icp_H"] is not None else 1e9))
+        out.append(
+            dict(
+                set=s,
+                solved_H=len(hs),
+                solved_G=len(gs),
+                median_icp_H=float(np.median(hs)) if hs else None,
+                median_icp_G=float(np.median(gs)) if gs else None,
+                condition_H20=next((r.get("condition") for r in rs if r["layout"] == "H-20"), None),
+                status="/".join(sorted({r["status"] for r in rs})),
+            )
+        )
+    out.sort(
+        key=lambda d: (-d["solved_H"], d["median_icp_H"] if d["median_icp_H"] is not None else 1e9)
+    )
     return out
 
 
 def markdown(rows, ranking):
     sets = list(dict.fromkeys(r["set"] for r in rows))
-    lines = ["ICP RMSE in pixels (GCP RMSE in brackets) after the type-1 pre-adjustment and the "
-             "set's adjustment; `reg` = refused as near-singular, re-run with Tikhonov (GCV); "
-             f"image noise {NOISE_PX} px, {rows[0]['n_gcp'] + rows[0]['n_icp']} points (47 drawn, those "
-             "whose DEM localisation converged).\n",
-             "| set | u | " + " | ".join(LAYOUTS) + " |", "|---|---|" + "---|" * len(LAYOUTS)]
+    lines = [
+        "ICP RMSE in pixels (GCP RMSE in brackets) after the type-1 pre-adjustment and the "
+        "set's adjustment; `reg` = refused as near-singular, re-run with Tikhonov (GCV); "
+        f"image noise {NOISE_PX} px, {rows[0]['n_gcp'] + rows[0]['n_icp']} points (47 drawn, those "
+        "whose DEM localisation converged).\n",
+        "| set | u | " + " | ".join(LAYOUTS) + " |",
+        "|---|---|" + "---|" * len(LAYOUTS),
+    ]
     for s in sets:
         cells = []
         u = ""
@@ -176,31 +226,54 @@ def markdown(rows, ranking):
             if r["status"] == "refused":
                 cells.append("refused")
                 continue
-            icp = "-" if r["icp_rmse_px"] is None else f"{r['icp_rmse_px']:.2f}" \
-                if np.isfinite(r["icp_rmse_px"]) else "fails"
-            cells.append(f"{icp} ({r['gcp_rmse_px']:.2f}){' reg' if r['status'] == 'regularised' else ''}")
+            icp = (
+                "-"
+                if r["icp_rmse_px"] is None
+                else f"{r['icp_rmse_px']:.2f}"
+                if np.isfinite(r["icp_rmse_px"])
+                else "fails"
+            )
+            cells.append(
+                f"{icp} ({r['gcp_rmse_px']:.2f}){' reg' if r['status'] == 'regularised' else ''}"
+            )
         lines.append(f"| {s} | {u} | " + " | ".join(cells) + " |")
-    lines += ["", "Ranking: layouts solved among H-10..H-40 without regularisation (refused, near-"
-              "singular or failing at an ICP = not solved), then the median ICP RMSE over them "
-              "(px); grouped layouts alongside.", "",
-              "| rank | set | H solved | median ICP H | G solved | median ICP G | condition H-20 | status "
-              "| Topan 2009 |", "|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "Ranking: layouts solved among H-10..H-40 without regularisation (refused, near-"
+        "singular or failing at an ICP = not solved), then the median ICP RMSE over them "
+        "(px); grouped layouts alongside.",
+        "",
+        "| rank | set | H solved | median ICP H | G solved | median ICP G | condition H-20 | status "
+        "| Topan 2009 |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for k, d in enumerate(ranking, start=1):
         name = d["set"].split(". ", 1)[-1]
-        topan = "good" if name in TOPAN_GOOD else "unstable" if name in TOPAN_UNSTABLE else \
-            "degrades grouped sets" if name == "V_S0" else "(pre-adjustment)"
-        fmt = (lambda v: "-" if v is None else f"{v:.3f}")  # noqa: E731
+        topan = (
+            "good"
+            if name in TOPAN_GOOD
+            else "unstable"
+            if name in TOPAN_UNSTABLE
+            else "degrades grouped sets"
+            if name == "V_S0"
+            else "(pre-adjustment)"
+        )
+        fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
         cond = "-" if d["condition_H20"] is None else f"{d['condition_H20']:.3g}"
-        lines.append(f"| {k} | {d['set']} | {d['solved_H']}/4 | {fmt(d['median_icp_H'])} | "
-                     f"{d['solved_G']}/3 | {fmt(d['median_icp_G'])} | {cond} | {d['status']} | {topan} |")
+        lines.append(
+            f"| {k} | {d['set']} | {d['solved_H']}/4 | {fmt(d['median_icp_H'])} | "
+            f"{d['solved_G']}/3 | {fmt(d['median_icp_G'])} | {cond} | {d['status']} | {topan} |"
+        )
     return "\n".join(lines) + "\n"
 
 
 def figure(rows, path):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
+
     sets = list(dict.fromkeys(r["set"] for r in rows))
     lay = [l for l in LAYOUTS if l != "H-0"]
     M = np.full((len(sets), len(lay)), np.nan)
@@ -212,17 +285,31 @@ def figure(rows, path):
                 M[i, j] = r["icp_rmse_px"]
                 reg[i, j] = r["status"] == "regularised"
     fig, ax = plt.subplots(figsize=(7, 8))
-    im = ax.imshow(M, norm=LogNorm(vmin=max(np.nanmin(M), 0.1), vmax=np.nanmax(M)), cmap="viridis",
-                   aspect="auto")
+    im = ax.imshow(
+        M,
+        norm=LogNorm(vmin=max(np.nanmin(M), 0.1), vmax=np.nanmax(M)),
+        cmap="viridis",
+        aspect="auto",
+    )
     ax.set_xticks(range(len(lay)), lay)
     ax.set_yticks(range(len(sets)), sets, fontsize=7)
     ax.set_xlabel("point layout (Topan Fig. 4.7)")
     for i, j in zip(*np.nonzero(np.isfinite(M))):
-        ax.text(j, i, f"{M[i, j]:.2f}" + (" r" if reg[i, j] else ""), ha="center", va="center",
-                fontsize=6, color="white" if M[i, j] < 3 else "black")
-    ax.set_title("ICP RMSE (px) per EOP set after type-1 pre-adjustment\n"
-                 "white: refused (near-singular / too few GCPs / fails at an ICP); "
-                 "r: only with Tikhonov", fontsize=9)
+        ax.text(
+            j,
+            i,
+            f"{M[i, j]:.2f}" + (" r" if reg[i, j] else ""),
+            ha="center",
+            va="center",
+            fontsize=6,
+            color="white" if M[i, j] < 3 else "black",
+        )
+    ax.set_title(
+        "ICP RMSE (px) per EOP set after type-1 pre-adjustment\n"
+        "white: refused (near-singular / too few GCPs / fails at an ICP); "
+        "r: only with Tikhonov",
+        fontsize=9,
+    )
     fig.colorbar(im, ax=ax, label="ICP RMSE (pixels, log scale)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -243,4 +330,5 @@ def rerender():
 
 if __name__ == "__main__":
     import sys
+
     rerender() if "--rerender" in sys.argv[1:] else main()

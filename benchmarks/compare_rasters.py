@@ -4,6 +4,7 @@ Usage: python benchmarks/compare_rasters.py BEFORE_DIR AFTER_DIR
 Prints one line per raster and exits 1 when any differs (issue #23: renovation without changes
 to the products).
 """
+
 from __future__ import annotations
 
 import sys
@@ -15,7 +16,14 @@ import rasterio
 def describe(path: Path):
     with rasterio.open(path) as src:
         data = src.read()
-        meta = (src.transform, src.crs, repr(src.nodata), src.dtypes, src.tags(), src.profile.get("blockxsize"))
+        meta = (
+            src.transform,
+            src.crs,
+            repr(src.nodata),
+            src.dtypes,
+            src.tags(),
+            src.profile.get("blockxsize"),
+        )
     return data, meta
 
 

@@ -11,6 +11,7 @@ printing stale numbers. ``--write`` puts the list into README.md and the same su
 the table of benchmarks/README.md (between their markers); tests/app/test_products_docs.py checks
 that both are what the result files give.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,127 +29,174 @@ def _x(v, nd=1):
 def demo(d):
     f = d["default_seed_figures"]
     c = d["cog_writing"]
-    return (f"`stereodem demo` (600 × 600 simulated ASTER-like pair, `benchmarks/bench_demo.py`): "
-            f"DEM − truth NMAD {f['nmad_m']:.2f} m, median {f['median_m']:+.2f} m, LE90 "
-            f"{f['le90_m']:.2f} m, {f['valid_pct']:.1f} % of the DEM's footprint valid, "
-            f"{c.get('fastest_demo_wall_seconds', f['wall_seconds']):.1f} s end to end; over seeds 1–{len(d['runs']) - 2} the NMAD "
-            f"moves by up to {d['spread_over_seeds']['nmad_m']:.2f} m (LE90 "
-            f"{d['spread_over_seeds']['le90_m']:.2f} m). Writing its rasters as Cloud-Optimised "
-            f"GeoTIFFs (predictor, overviews) costs {c['extra_seconds']:+.2f} s "
-            f"({100 * c['extra_fraction_of_demo_wall']:.1f} % of the run) against plain tiled "
-            f"GeoTIFFs; files {c['old_bytes'] / 1e6:.2f} → {c['cog_bytes'] / 1e6:.2f} MB.")
+    return (
+        f"`stereodem demo` (600 × 600 simulated ASTER-like pair, `benchmarks/bench_demo.py`): "
+        f"DEM − truth NMAD {f['nmad_m']:.2f} m, median {f['median_m']:+.2f} m, LE90 "
+        f"{f['le90_m']:.2f} m, {f['valid_pct']:.1f} % of the DEM's footprint valid, "
+        f"{c.get('fastest_demo_wall_seconds', f['wall_seconds']):.1f} s end to end; over seeds 1–{len(d['runs']) - 2} the NMAD "
+        f"moves by up to {d['spread_over_seeds']['nmad_m']:.2f} m (LE90 "
+        f"{d['spread_over_seeds']['le90_m']:.2f} m). Writing its rasters as Cloud-Optimised "
+        f"GeoTIFFs (predictor, overviews) costs {c['extra_seconds']:+.2f} s "
+        f"({100 * c['extra_fraction_of_demo_wall']:.1f} % of the run) against plain tiled "
+        f"GeoTIFFs; files {c['old_bytes'] / 1e6:.2f} → {c['cog_bytes'] / 1e6:.2f} MB."
+    )
 
 
 def rpc(d):
     p, loc = d["project"], d["localize"]
     g6 = loc["gdal_1e-6px"]
-    return (f"RPC model vs GDAL's RPC transformer, {d['n_points'] / 1e6:g} M points "
-            f"(`benchmarks/bench_rpc.py`): `project` {_x(p['speedup'])} faster (agreement "
-            f"{p['max_abs_diff_px']:.0e} px), exact `localize` {_x(g6['speedup'])} faster than "
-            f"GDAL at 1e-6 px.")
+    return (
+        f"RPC model vs GDAL's RPC transformer, {d['n_points'] / 1e6:g} M points "
+        f"(`benchmarks/bench_rpc.py`): `project` {_x(p['speedup'])} faster (agreement "
+        f"{p['max_abs_diff_px']:.0e} px), exact `localize` {_x(g6['speedup'])} faster than "
+        f"GDAL at 1e-6 px."
+    )
 
 
 def aster_scene(d):
     dr = {r["workers"]: r for r in d["dem_runs"]}
     rr = {r["workers"]: r for r in d["runs"]}
     same = all(all(v.values()) for v in d.get("bit_identical", {}).values())
-    return (f"Full ASTER-sized simulated pair, 3N {d['size'][0]} × {d['size'][1]} and 3B "
-            f"{d['right_size'][0]} × {d['right_size'][1]} pixels (`benchmarks/bench_aster_scene.py`): "
-            f"`stereodem dem` in **{dr[1]['wall_s']:.1f} s with 1 worker, {dr[2]['wall_s']:.1f} s "
-            f"with 2 ({d['speedup_dem']:.2f}×)**, peak {dr[1]['peak_rss_mb_all_processes'] / 1e3:.1f}–"
-            f"{dr[2]['peak_rss_mb_all_processes'] / 1e3:.1f} GB over all processes; `stereodem run` "
-            f"{rr[1]['wall_s']:.1f} s → {rr[2]['wall_s']:.1f} s (stereo stage "
-            f"{d['speedup_stereo']:.2f}×), DEM NMAD {rr[1]['headline']['nmad']:.2f} m against the "
-            f"truth." + (" Rasters are bit-identical between 1 and 2 workers." if same else ""))
+    return (
+        f"Full ASTER-sized simulated pair, 3N {d['size'][0]} × {d['size'][1]} and 3B "
+        f"{d['right_size'][0]} × {d['right_size'][1]} pixels (`benchmarks/bench_aster_scene.py`): "
+        f"`stereodem dem` in **{dr[1]['wall_s']:.1f} s with 1 worker, {dr[2]['wall_s']:.1f} s "
+        f"with 2 ({d['speedup_dem']:.2f}×)**, peak {dr[1]['peak_rss_mb_all_processes'] / 1e3:.1f}–"
+        f"{dr[2]['peak_rss_mb_all_processes'] / 1e3:.1f} GB over all processes; `stereodem run` "
+        f"{rr[1]['wall_s']:.1f} s → {rr[2]['wall_s']:.1f} s (stereo stage "
+        f"{d['speedup_stereo']:.2f}×), DEM NMAD {rr[1]['headline']['nmad']:.2f} m against the "
+        f"truth." + (" Rasters are bit-identical between 1 and 2 workers." if same else "")
+    )
 
 
 def dem(d):
     r = {x["matcher"]: x for x in d["runs"]}
     s = r["sgm"]
-    out = (f"Real Pleiades pair vs s2p's DSM (`benchmarks/bench_dem.py`): **NMAD "
-           f"{s['nmad_m']:.3f} m**, median {s['median_offset_m']:+.2f} m, "
-           f"**{100 * s['coverage_of_s2p_valid']:.1f} %** of s2p's valid cells covered, in "
-           f"{s['seconds']:.1f} s (s2p's time {d['s2p_time']})"
-           + (f"; OpenCV {d['opencv']}, load average {d['load_average_at_end'][0]:.1f} at the end "
-              "(times are upper bounds)." if "load_average_at_end" in d else "."))
+    out = (
+        f"Real Pleiades pair vs s2p's DSM (`benchmarks/bench_dem.py`): **NMAD "
+        f"{s['nmad_m']:.3f} m**, median {s['median_offset_m']:+.2f} m, "
+        f"**{100 * s['coverage_of_s2p_valid']:.1f} %** of s2p's valid cells covered, in "
+        f"{s['seconds']:.1f} s (s2p's time {d['s2p_time']})"
+        + (
+            f"; OpenCV {d['opencv']}, load average {d['load_average_at_end'][0]:.1f} at the end "
+            "(times are upper bounds)."
+            if "load_average_at_end" in d
+            else "."
+        )
+    )
     if "ncc" in r:
         n = r["ncc"]
-        out += (f" With `--matcher ncc`: {n['nmad_m']:.3f} m, {100 * n['coverage_of_s2p_valid']:.1f} %, "
-                f"{n['seconds']:.1f} s.")
+        out += (
+            f" With `--matcher ncc`: {n['nmad_m']:.3f} m, {100 * n['coverage_of_s2p_valid']:.1f} %, "
+            f"{n['seconds']:.1f} s."
+        )
     un = d.get("untuned_pairs") or []
     if un:
-        out += (" The defaults were tuned on that pair; on the pairs of the Pleiades triplet over "
-                "Marseille (automatic heights, against s2p's DSM of the triplet): "
-                + "; ".join(f"{r['pair'].split('/')[-1]} " + (f"failed ({r['error'][:80]})" if "error" in r else
-                            f"NMAD {r['nmad_m']:.2f} m, median {r['median_offset_m']:+.2f} m, "
-                            f"{100 * r['coverage_of_s2p_valid']:.1f} % covered, {r['seconds']:.1f} s")
-                            for r in un) + ".")
+        out += (
+            " The defaults were tuned on that pair; on the pairs of the Pleiades triplet over "
+            "Marseille (automatic heights, against s2p's DSM of the triplet): "
+            + "; ".join(
+                f"{r['pair'].split('/')[-1]} "
+                + (
+                    f"failed ({r['error'][:80]})"
+                    if "error" in r
+                    else f"NMAD {r['nmad_m']:.2f} m, median {r['median_offset_m']:+.2f} m, "
+                    f"{100 * r['coverage_of_s2p_valid']:.1f} % covered, {r['seconds']:.1f} s"
+                )
+                for r in un
+            )
+            + "."
+        )
     return out
 
 
 def match(d):
-    parts = ", ".join(f"{r['matcher'].split(' (')[0]} {r['mpx_disp_per_s']:.0f}" for r in d["results"])
-    out = (f"Dense matching, {d['pair'].split(' ')[0]}, {d['disparities']} disparities "
-           f"(`benchmarks/bench_match.py`), Mpx·disparities/s: {parts}.")
+    parts = ", ".join(
+        f"{r['matcher'].split(' (')[0]} {r['mpx_disp_per_s']:.0f}" for r in d["results"]
+    )
+    out = (
+        f"Dense matching, {d['pair'].split(' ')[0]}, {d['disparities']} disparities "
+        f"(`benchmarks/bench_match.py`), Mpx·disparities/s: {parts}."
+    )
     o = d.get("sgm_overhead")
     if o:
-        parts = "; ".join(f"{r['threads']} thread(s): {r['ratio_cpu']:.2f}× CPU, {r['ratio_wall']:.2f}× "
-                          f"wall ({r['stereodem_cpu_s']:.3f} vs {r['bare_cpu_s']:.3f} CPU s)"
-                          for r in o["by_threads"])
-        out += (f" The SGM wrapper (8-bit stretch, padding, no-data, ZNCC score layer) against the "
-                f"bare `cv2.StereoSGBM` call, same tile and threads, medians of "
-                f"{o['by_threads'][0]['repeats']}: {parts} (target ≤ 1.15×; load "
-                f"{d.get('load_average', ['?'])[0]}).")
+        parts = "; ".join(
+            f"{r['threads']} thread(s): {r['ratio_cpu']:.2f}× CPU, {r['ratio_wall']:.2f}× "
+            f"wall ({r['stereodem_cpu_s']:.3f} vs {r['bare_cpu_s']:.3f} CPU s)"
+            for r in o["by_threads"]
+        )
+        out += (
+            f" The SGM wrapper (8-bit stretch, padding, no-data, ZNCC score layer) against the "
+            f"bare `cv2.StereoSGBM` call, same tile and threads, medians of "
+            f"{o['by_threads'][0]['repeats']}: {parts} (target ≤ 1.15×; load "
+            f"{d.get('load_average', ['?'])[0]})."
+        )
         ba = o.get("before_after")
         if ba:
-            out += (f" Before/after in the same run (revision {ba['revision']}, 1 thread, CPU s): "
-                    f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call, outputs "
-                    f"{'bit-identical' if ba['bit_identical'] else 'NOT identical'}.")
+            out += (
+                f" Before/after in the same run (revision {ba['revision']}, 1 thread, CPU s): "
+                f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call, outputs "
+                f"{'bit-identical' if ba['bit_identical'] else 'NOT identical'}."
+            )
     return out
 
 
 def scaling(d):
     g, r = d["granule"], d["ratios"]
-    rows = "; ".join(f"{x['workers']} w: {x['wall_s']:.1f} s wall / {x['cpu_s']:.1f} CPU s, peak "
-                     f"{x['peak_rss_mb_all_processes']} MB (load {x['load_average_before'][0]:.1f})"
-                     for x in d["runs"])
-    same = all(all(v.values()) for x in d["runs"] for k, v in x.items() if k.startswith("bit_identical"))
-    return (f"Scaling with `--workers` (`benchmarks/bench_scaling.py`, `stereodem run` on a simulated "
-            f"V004 granule, 3N {g['left'][0]} × {g['left'][1]}, {d['machine']['cpus']} cores): {rows}; "
-            + ", ".join(f"{k} {v}" for k, v in r.items())
-            + f"; rasters {'bit-identical' if same else 'NOT identical'} across worker counts.")
+    rows = "; ".join(
+        f"{x['workers']} w: {x['wall_s']:.1f} s wall / {x['cpu_s']:.1f} CPU s, peak "
+        f"{x['peak_rss_mb_all_processes']} MB (load {x['load_average_before'][0]:.1f})"
+        for x in d["runs"]
+    )
+    same = all(
+        all(v.values()) for x in d["runs"] for k, v in x.items() if k.startswith("bit_identical")
+    )
+    return (
+        f"Scaling with `--workers` (`benchmarks/bench_scaling.py`, `stereodem run` on a simulated "
+        f"V004 granule, 3N {g['left'][0]} × {g['left'][1]}, {d['machine']['cpus']} cores): {rows}; "
+        + ", ".join(f"{k} {v}" for k, v in r.items())
+        + f"; rasters {'bit-identical' if same else 'NOT identical'} across worker counts."
+    )
 
 
 def ortho_pair(d):
     m = d["median"]
     same = all(r["identical_to_first"] for r in d["runs"])
     loads = [r["load_before"] for r in d["runs"]]
-    return (f"Both orthoimages of a pair at once vs one after the other (`benchmarks/bench_ortho_pair.py`, "
-            f"{d['grid'][0]} × {d['grid'][1]} cells each, {d['threads']} threads, medians of "
-            f"{len(d['runs']) // 2} alternating runs): serial {m['serial']['wall_s']:.2f} s wall / "
-            f"{m['serial']['cpu_s']:.2f} s CPU, concurrent {m['concurrent']['wall_s']:.2f} s / "
-            f"{m['concurrent']['cpu_s']:.2f} s; outputs {'bit-identical' if same else 'NOT identical'} "
-            f"(load {min(loads):.1f}–{max(loads):.1f} on 2 shared cores: no wall gain measurable here).")
+    return (
+        f"Both orthoimages of a pair at once vs one after the other (`benchmarks/bench_ortho_pair.py`, "
+        f"{d['grid'][0]} × {d['grid'][1]} cells each, {d['threads']} threads, medians of "
+        f"{len(d['runs']) // 2} alternating runs): serial {m['serial']['wall_s']:.2f} s wall / "
+        f"{m['serial']['cpu_s']:.2f} s CPU, concurrent {m['concurrent']['wall_s']:.2f} s / "
+        f"{m['concurrent']['cpu_s']:.2f} s; outputs {'bit-identical' if same else 'NOT identical'} "
+        f"(load {min(loads):.1f}–{max(loads):.1f} on 2 shared cores: no wall gain measurable here)."
+    )
 
 
 def batch(d):
     b = d["batch"]
-    parts = "; ".join(f"{k}: {v['wall_s']:.1f} s ({d['speedup_vs_single_runs'][k]:.2f}× the single runs), "
-                      f"{v['summary']['done']} done, {v['summary']['failed']} failed"
-                      for k, v in b.items())
+    parts = "; ".join(
+        f"{k}: {v['wall_s']:.1f} s ({d['speedup_vs_single_runs'][k]:.2f}× the single runs), "
+        f"{v['summary']['done']} done, {v['summary']['failed']} failed"
+        for k, v in b.items()
+    )
     reason = next((v["failed"][0]["reason"] for v in b.values() if v["failed"]), "")
-    return (f"`stereodem batch` (`benchmarks/bench_batch.py`, {d['scenes']}, {d['workers']} workers): "
-            f"sum of single `stereodem run` jobs {d['sum_of_single_runs_wall_s']:.1f} s; {parts}; "
-            f"the corrupt scene's reason: \"{reason[:120]}\" (load {d['load_average_before'][0]:.1f}).")
+    return (
+        f"`stereodem batch` (`benchmarks/bench_batch.py`, {d['scenes']}, {d['workers']} workers): "
+        f"sum of single `stereodem run` jobs {d['sum_of_single_runs_wall_s']:.1f} s; {parts}; "
+        f'the corrupt scene\'s reason: "{reason[:120]}" (load {d["load_average_before"][0]:.1f}).'
+    )
 
 
 def ortho(d):
     s = d["speed_ratios"]
-    return (f"Orthorectification vs GDAL (`benchmarks/bench_ortho.py`, {d['cells'] / 1e6:.1f} M "
-            f"cells, same grid, DEM and kernel): "
-            f"{d['max_position_difference_vs_gdal_rpc_transformer_px']:.4f} px apart; "
-            f"**{_x(s['stereodem_1thread_vs_gdal_1thread'])} faster than GDAL on 1 thread, "
-            f"{_x(s['stereodem_2threads_vs_gdal_2threads'])} on 2 threads**.")
+    return (
+        f"Orthorectification vs GDAL (`benchmarks/bench_ortho.py`, {d['cells'] / 1e6:.1f} M "
+        f"cells, same grid, DEM and kernel): "
+        f"{d['max_position_difference_vs_gdal_rpc_transformer_px']:.4f} px apart; "
+        f"**{_x(s['stereodem_1thread_vs_gdal_1thread'])} faster than GDAL on 1 thread, "
+        f"{_x(s['stereodem_2threads_vs_gdal_2threads'])} on 2 threads**."
+    )
 
 
 def ortho_models(d):
@@ -162,84 +210,115 @@ def ortho_models(d):
     ok = [m for m in d["ok_twelve"] if m in at_n]
     orbital = [m for m, r in at_n.items() if r.get("family") == "orbital" and m not in ok]
     physical = [m for m, r in at_n.items() if r.get("family") == "physical"]
-    return (f"Orthorectification models on a simulated ASTER scene "
-            f"(`benchmarks/bench_ortho_models.py`): RMSE at {d['n_check']} check points with {n} "
-            f"GCPs and {d['noise_px']} px image noise, in px: Ok's twelve: "
-            + ", ".join(fig(m) for m in ok) + "; orbital: " + ", ".join(fig(m) for m in orbital)
-            + "; rigorous: " + ", ".join(fig(m) for m in physical)
-            + " (other GCP counts and all models: `benchmarks/results/bench_ortho_models.md`).")
+    return (
+        f"Orthorectification models on a simulated ASTER scene "
+        f"(`benchmarks/bench_ortho_models.py`): RMSE at {d['n_check']} check points with {n} "
+        f"GCPs and {d['noise_px']} px image noise, in px: Ok's twelve: "
+        + ", ".join(fig(m) for m in ok)
+        + "; orbital: "
+        + ", ".join(fig(m) for m in orbital)
+        + "; rigorous: "
+        + ", ".join(fig(m) for m in physical)
+        + " (other GCP counts and all models: `benchmarks/results/bench_ortho_models.md`)."
+    )
 
 
 def orbital_splits(d):
     parts = []
     for view, rows in d["views"].items():
         at = {(r["model"], r["n_gcp"]): r for r in rows}
-        ten = ", ".join(f"{m} {at[(m, 10)]['median_ratio']:.2f}" for m in ("orun", "toutin")
-                        if (m, 10) in at)
-        five = ", ".join(f"{m} {at[(m, 5)]['median_icp_px']:.2f} px (condition "
-                         f"{at[(m, 5)]['median_condition']:.2g})"
-                         for m in (d["reference"], "orun", "toutin") if (m, 5) in at)
+        ten = ", ".join(
+            f"{m} {at[(m, 10)]['median_ratio']:.2f}" for m in ("orun", "toutin") if (m, 10) in at
+        )
+        five = ", ".join(
+            f"{m} {at[(m, 5)]['median_icp_px']:.2f} px (condition "
+            f"{at[(m, 5)]['median_condition']:.2g})"
+            for m in (d["reference"], "orun", "toutin")
+            if (m, 5) in at
+        )
         parts.append(f"{view}: {ten} with 10 GCPs; with 5 GCPs median ICP RMSE {five}")
-    return (f"Orun & Natarajan and Toutin-type models against the rigorous pushbroom model "
-            f"(`benchmarks/bench_orbital_splits.py`, simulated ASTER 3N and 3B with ephemeris and "
-            f"attitude biases and drifts, {d['n_splits']} random GCP/ICP splits, {d['n_check']} "
-            f"check points, {d['noise_px']} px noise), median ICP RMSE ratio to "
-            f"{d['reference']}: " + "; ".join(parts)
-            + " (`benchmarks/results/bench_orbital_splits.md`).")
+    return (
+        f"Orun & Natarajan and Toutin-type models against the rigorous pushbroom model "
+        f"(`benchmarks/bench_orbital_splits.py`, simulated ASTER 3N and 3B with ephemeris and "
+        f"attitude biases and drifts, {d['n_splits']} random GCP/ICP splits, {d['n_check']} "
+        f"check points, {d['noise_px']} px noise), median ICP RMSE ratio to "
+        f"{d['reference']}: "
+        + "; ".join(parts)
+        + " (`benchmarks/results/bench_orbital_splits.md`)."
+    )
 
 
 def adjust(d):
     full = {r["solver"]: r for r in d["full_size"]}
     s = full["schur"]
     load = d["machine"]
-    out = (f"Bundle adjustment of the real Pleiades RPC pair (`benchmarks/bench_adjust.py`), "
-           f"{s['ties']:,} ties + {s['gcps']} GCPs ({s['unknowns']:,} unknowns, "
-           f"{s['observations']:,} observations), every solver on 1 BLAS thread and stopped at the "
-           f"same criterion (max |dz|/σ < 0.01): Schur-reduced normal equations **{s['seconds']:.2f} s** "
-           f"wall, {s['cpu_seconds']:.2f} s CPU ({s['iterations']} iterations, σ0 {s['sigma0']:.3f}, tie "
-           f"RMSE {s['tie_rmse_px']:.3f} px; target {d['target']})")
+    out = (
+        f"Bundle adjustment of the real Pleiades RPC pair (`benchmarks/bench_adjust.py`), "
+        f"{s['ties']:,} ties + {s['gcps']} GCPs ({s['unknowns']:,} unknowns, "
+        f"{s['observations']:,} observations), every solver on 1 BLAS thread and stopped at the "
+        f"same criterion (max |dz|/σ < 0.01): Schur-reduced normal equations **{s['seconds']:.2f} s** "
+        f"wall, {s['cpu_seconds']:.2f} s CPU ({s['iterations']} iterations, σ0 {s['sigma0']:.3f}, tie "
+        f"RMSE {s['tie_rmse_px']:.3f} px; target {d['target']})"
+    )
     if "least_squares" in full:
         q = full["least_squares"]
-        out += (f"; scipy `least_squares` (default tolerances, then Gauss–Newton to the criterion) "
-                f"{q['seconds']:.1f} s wall, {q['cpu_seconds']:.2f} s CPU "
-                f"({d['least_squares_over_schur_cpu']:.1f}× the CPU time, {q['iterations']} iterations)")
+        out += (
+            f"; scipy `least_squares` (default tolerances, then Gauss–Newton to the criterion) "
+            f"{q['seconds']:.1f} s wall, {q['cpu_seconds']:.2f} s CPU "
+            f"({d['least_squares_over_schur_cpu']:.1f}× the CPU time, {q['iterations']} iterations)"
+        )
     steps = d.get("per_iteration_dense_vs_schur", [])
     if steps:
-        out += ("; one dense normal-equations iteration "
-                + " / ".join(f"{r['dense_cpu_seconds_per_iteration']:.2f}" for r in steps)
-                + " s CPU at " + " / ".join(f"{r['ties']}" for r in steps) + " ties vs "
-                + " / ".join(f"{1e3 * r['schur_cpu_seconds_per_iteration']:.1f}" for r in steps)
-                + f" ms for the Schur step (full size would need a {d['dense_memory_at_full_size_gb']:.0f} GB "
-                  "normal matrix: not run, not extrapolated)")
-    return out + (f"; load average {load['load_average_at_start'][0]:.1f} → "
-                  f"{load['load_average_at_end'][0]:.1f} on 2 cores (wall times are upper bounds).")
+        out += (
+            "; one dense normal-equations iteration "
+            + " / ".join(f"{r['dense_cpu_seconds_per_iteration']:.2f}" for r in steps)
+            + " s CPU at "
+            + " / ".join(f"{r['ties']}" for r in steps)
+            + " ties vs "
+            + " / ".join(f"{1e3 * r['schur_cpu_seconds_per_iteration']:.1f}" for r in steps)
+            + f" ms for the Schur step (full size would need a {d['dense_memory_at_full_size_gb']:.0f} GB "
+            "normal matrix: not run, not extrapolated)"
+        )
+    return out + (
+        f"; load average {load['load_average_at_start'][0]:.1f} → "
+        f"{load['load_average_at_end'][0]:.1f} on 2 cores (wall times are upper bounds)."
+    )
 
 
 def aster_granule(d):
     st = d["stages"]
     sz = d["sizes"]
     e = d["render_error_px"]
-    q = d.get("historical", {}).get("baseline_before_block_rendering", {}).get(
-        "quarter_area_2050x2100_2500x2700_same_machine")
-    out = (f"Full-size ASTER granule, 3N {sz['3N'][0]} × {sz['3N'][1]} and 3B {sz['3B'][0]} × "
-           f"{sz['3B'][1]} pixels (`benchmarks/bench_aster_granule.py`): simulated in "
-           f"{st['simulate_scene']['seconds']:.0f} s (render error {e['left_render_error_px']:.4f} / "
-           f"{e['right_render_error_px']:.4f} px left / right), written as V004 HDF-EOS2 "
-           f"({d['file_mb']['v004']:.1f} MB) in {st['write_v004']['seconds']:.2f} s and as a V003 zip "
-           f"({d['file_mb']['v003_zip']:.1f} MB) in {st['write_v003_zip']['seconds']:.2f} s, read back "
-           f"(models + images) in {st['open_v004_and_read_images']['seconds']:.2f} / "
-           f"{st['open_v003_and_read_images']['seconds']:.2f} s; {d['total_seconds']:.0f} s in all, "
-           f"peak {d['peak_rss_gb']:.1f} GB")
+    q = (
+        d.get("historical", {})
+        .get("baseline_before_block_rendering", {})
+        .get("quarter_area_2050x2100_2500x2700_same_machine")
+    )
+    out = (
+        f"Full-size ASTER granule, 3N {sz['3N'][0]} × {sz['3N'][1]} and 3B {sz['3B'][0]} × "
+        f"{sz['3B'][1]} pixels (`benchmarks/bench_aster_granule.py`): simulated in "
+        f"{st['simulate_scene']['seconds']:.0f} s (render error {e['left_render_error_px']:.4f} / "
+        f"{e['right_render_error_px']:.4f} px left / right), written as V004 HDF-EOS2 "
+        f"({d['file_mb']['v004']:.1f} MB) in {st['write_v004']['seconds']:.2f} s and as a V003 zip "
+        f"({d['file_mb']['v003_zip']:.1f} MB) in {st['write_v003_zip']['seconds']:.2f} s, read back "
+        f"(models + images) in {st['open_v004_and_read_images']['seconds']:.2f} / "
+        f"{st['open_v003_and_read_images']['seconds']:.2f} s; {d['total_seconds']:.0f} s in all, "
+        f"peak {d['peak_rss_gb']:.1f} GB"
+    )
     c = d.get("cli_simulate_l1a_v004")
     if c:
-        out += (f"; `stereodem simulate --preset aster --format l1a-v004` end to end "
-                f"{c['wall_s']:g} s wall / {c['cpu_s']:g} s CPU, peak {c['peak_rss_gb']:.2f} GB "
-                f"(load average {c['load_average_before_after'][0]:g}-{c['load_average_before_after'][1]:g}; "
-                f"targets <= 40 s, <= 3 GB)")
+        out += (
+            f"; `stereodem simulate --preset aster --format l1a-v004` end to end "
+            f"{c['wall_s']:g} s wall / {c['cpu_s']:g} s CPU, peak {c['peak_rss_gb']:.2f} GB "
+            f"(load average {c['load_average_before_after'][0]:g}-{c['load_average_before_after'][1]:g}; "
+            f"targets <= 40 s, <= 3 GB)"
+        )
     if q:
-        out += (f" (an earlier session's measurement, not re-run by this script: quarter-area "
-                f"simulation before/after block rendering: {q['before'][0]:g} → "
-                f"{q['after'][0]:g} {q['unit'][0]}, {q['before'][1]:g} → {q['after'][1]:g} {q['unit'][1]})")
+        out += (
+            f" (an earlier session's measurement, not re-run by this script: quarter-area "
+            f"simulation before/after block rendering: {q['before'][0]:g} → "
+            f"{q['after'][0]:g} {q['unit'][0]}, {q['before'][1]:g} → {q['after'][1]:g} {q['unit'][1]})"
+        )
     return out + "."
 
 
@@ -248,132 +327,166 @@ def topan_sets(d):
     layouts = list(dict.fromkeys(r["layout"] for r in d["rows"]))
     solid = [r for r in rk if r["status"] == "ok"]
     never = [r["set"] for r in rk if r["solved_H"] == 0 and r["solved_G"] == 0]
-    return (f"Topan's 19 EOP parameter sets on a simulated ASTER 3N scene "
-            f"(`benchmarks/bench_topan_sets.py`, {d['n_points']} points, {d['noise_px']} px noise, "
-            f"layouts {', '.join(layouts)}), best sets solved on every layout, by median ICP RMSE over "
-            "the H layouts (over the grouped G layouts): "
-            + ", ".join(f"{r['set']} {r['median_icp_H']:.2f} px ({r['median_icp_G']:.2f} px)"
-                        for r in solid[:4])
-            + f"; {len(never)} sets ({', '.join(never)}) are refused as near-singular on every "
-            "layout unless regularised (Tikhonov, GCV) (`benchmarks/results/bench_topan_sets.md`).")
+    return (
+        f"Topan's 19 EOP parameter sets on a simulated ASTER 3N scene "
+        f"(`benchmarks/bench_topan_sets.py`, {d['n_points']} points, {d['noise_px']} px noise, "
+        f"layouts {', '.join(layouts)}), best sets solved on every layout, by median ICP RMSE over "
+        "the H layouts (over the grouped G layouts): "
+        + ", ".join(
+            f"{r['set']} {r['median_icp_H']:.2f} px ({r['median_icp_G']:.2f} px)" for r in solid[:4]
+        )
+        + f"; {len(never)} sets ({', '.join(never)}) are refused as near-singular on every "
+        "layout unless regularised (Tikhonov, GCV) (`benchmarks/results/bench_topan_sets.md`)."
+    )
 
 
 def uncertainty(d):
     b = d["bettemir"]
     w = b["largest"][0]
     lv = b["independent_levers"]
-    out = (f"Bettemir (2010) Tables 3–11 with the uncertainty propagation "
-           f"(`benchmarks/bench_uncertainty.py`, {len(b['cells'])} table cells): with "
-           f"{len(b['calibrated_inputs'])} inputs calibrated on the same tables (pitch/yaw σ as a "
-           f"fraction of the roll σ, GPS σ per axis, the interior group's σ) the horizontal σ "
-           f"(N, E) agree within {b['median_abs_HU_diff_pct']:.2f} % (median), "
-           f"{b['max_abs_HU_diff_pct']:.2f} % at worst (analysis {w['analysis']}, "
-           f"{w['HU']:.2f} vs {w['HU_paper']:.2f} m) — a calibration, not a prediction; predicted "
-           f"from the orbit and camera geometry alone, the levers the tables imply: imaging time "
-           f"{abs(lv['dN_dt_m_per_s']['model']):.0f} N / {abs(lv['dE_dt_m_per_s']['model']):.0f} E m/s vs "
-           f"{lv['dN_dt_m_per_s']['paper_implied']:.0f} / {lv['dE_dt_m_per_s']['paper_implied']:.0f} "
-           f"({lv['dN_dt_m_per_s']['abs_rel_diff_pct']:.1f} % / {lv['dE_dt_m_per_s']['abs_rel_diff_pct']:.1f} %), "
-           f"roll {abs(lv['dE_droll_m_per_arcsec']['model']):.3f} vs "
-           f"{lv['dE_droll_m_per_arcsec']['paper_implied']:.3f} m/″ "
-           f"({lv['dE_droll_m_per_arcsec']['abs_rel_diff_pct']:.1f} %), while the DEM lever's direction "
-           f"does not reproduce (∂E/∂h {abs(lv['dE_dh']['model']):.3f}, ∂N/∂h {abs(lv['dN_dh']['model']):.3f} "
-           f"vs {lv['dE_dh']['paper_implied']:.3f}, {lv['dN_dh']['paper_implied']:.3f})")
+    out = (
+        f"Bettemir (2010) Tables 3–11 with the uncertainty propagation "
+        f"(`benchmarks/bench_uncertainty.py`, {len(b['cells'])} table cells): with "
+        f"{len(b['calibrated_inputs'])} inputs calibrated on the same tables (pitch/yaw σ as a "
+        f"fraction of the roll σ, GPS σ per axis, the interior group's σ) the horizontal σ "
+        f"(N, E) agree within {b['median_abs_HU_diff_pct']:.2f} % (median), "
+        f"{b['max_abs_HU_diff_pct']:.2f} % at worst (analysis {w['analysis']}, "
+        f"{w['HU']:.2f} vs {w['HU_paper']:.2f} m) — a calibration, not a prediction; predicted "
+        f"from the orbit and camera geometry alone, the levers the tables imply: imaging time "
+        f"{abs(lv['dN_dt_m_per_s']['model']):.0f} N / {abs(lv['dE_dt_m_per_s']['model']):.0f} E m/s vs "
+        f"{lv['dN_dt_m_per_s']['paper_implied']:.0f} / {lv['dE_dt_m_per_s']['paper_implied']:.0f} "
+        f"({lv['dN_dt_m_per_s']['abs_rel_diff_pct']:.1f} % / {lv['dE_dt_m_per_s']['abs_rel_diff_pct']:.1f} %), "
+        f"roll {abs(lv['dE_droll_m_per_arcsec']['model']):.3f} vs "
+        f"{lv['dE_droll_m_per_arcsec']['paper_implied']:.3f} m/″ "
+        f"({lv['dE_droll_m_per_arcsec']['abs_rel_diff_pct']:.1f} %), while the DEM lever's direction "
+        f"does not reproduce (∂E/∂h {abs(lv['dE_dh']['model']):.3f}, ∂N/∂h {abs(lv['dN_dh']['model']):.3f} "
+        f"vs {lv['dE_dh']['paper_implied']:.3f}, {lv['dN_dh']['paper_implied']:.3f})"
+    )
     t = d.get("thesis_footprints")
     if t:
-        out += (f"; the thesis's footprint points (Tables 8.6/8.7) to {t['rms_misfit_m']:.0f} m RMS "
-                f"with heading and terrain height fitted, {t['rms_misfit_m_h0']:.0f} m at h = 0 "
-                f"(notes: {t['notes_expectation']})")
+        out += (
+            f"; the thesis's footprint points (Tables 8.6/8.7) to {t['rms_misfit_m']:.0f} m RMS "
+            f"with heading and terrain height fitted, {t['rms_misfit_m_h0']:.0f} m at h = 0 "
+            f"(notes: {t['notes_expectation']})"
+        )
     sp = d.get("speed")
     if sp:
         a, mc = sp["aster_scene"], sp["monte_carlo_64x64_1000"]
-        out += (f"; first-order maps of a full ASTER orthoimage in {a['first_order_maps_s']:.1f} s, "
-                f"{a['ratio_maps_over_ortho']:.2f}× the orthorectification (target ≤ "
-                f"{a['target_ratio']:g}×), {mc['samples']}-sample Monte Carlo on {mc['points']} points "
-                f"in {mc['seconds']:.1f} s (target ≤ {mc['target_s']:g} s)")
+        out += (
+            f"; first-order maps of a full ASTER orthoimage in {a['first_order_maps_s']:.1f} s, "
+            f"{a['ratio_maps_over_ortho']:.2f}× the orthorectification (target ≤ "
+            f"{a['target_ratio']:g}×), {mc['samples']}-sample Monte Carlo on {mc['points']} points "
+            f"in {mc['seconds']:.1f} s (target ≤ {mc['target_s']:g} s)"
+        )
     return out + "."
 
 
 def sparse_scaling(d):
     runs = d["runs"]
-    parts = ", ".join(f"{r['size']}² px {r['cpu_s']:.1f} s CPU ({r['matches']} matches, heights "
-                      f"{r['height_range_m'][0]:.0f}–{r['height_range_m'][1]:.0f} m for a truth of "
-                      f"{r['truth_dem_range_m'][0]:.0f}–{r['truth_dem_range_m'][1]:.0f} m)" for r in runs)
-    return ("Sparse stage (SIFT matches checked through the models, relative pointing, terrain "
-            f"heights) on simulated ASTER pairs (`benchmarks/bench_sparse_scaling.py`): {parts}.")
+    parts = ", ".join(
+        f"{r['size']}² px {r['cpu_s']:.1f} s CPU ({r['matches']} matches, heights "
+        f"{r['height_range_m'][0]:.0f}–{r['height_range_m'][1]:.0f} m for a truth of "
+        f"{r['truth_dem_range_m'][0]:.0f}–{r['truth_dem_range_m'][1]:.0f} m)"
+        for r in runs
+    )
+    return (
+        "Sparse stage (SIFT matches checked through the models, relative pointing, terrain "
+        f"heights) on simulated ASTER pairs (`benchmarks/bench_sparse_scaling.py`): {parts}."
+    )
 
 
 def aster_strip(d):
-    steps = ", ".join(f"{s['step_m']:+.2f} m ({s['half_width_lines']:g} lines)" for s in d["seam_steps"])
-    one = "; ".join(f"granule {k + 1}: {g['strip_nmad_same_cells_m']:.2f} vs {g['nmad_same_cells_m']:.2f} m"
-                    for k, g in enumerate(d["single_granules"]))
+    steps = ", ".join(
+        f"{s['step_m']:+.2f} m ({s['half_width_lines']:g} lines)" for s in d["seam_steps"]
+    )
+    one = "; ".join(
+        f"granule {k + 1}: {g['strip_nmad_same_cells_m']:.2f} vs {g['nmad_same_cells_m']:.2f} m"
+        for k, g in enumerate(d["single_granules"])
+    )
     n, m = d["size"]
-    return (f"ASTER strip of {d['granules']} simulated granules of {n} × {m} 3N pixels, "
-            f"{d['cut']['overlap_3N_lines']} lines of overlap (`benchmarks/bench_aster_strip.py`): "
-            f"one DEM from the joined models, error step across the seam {steps} (target ≤ 0.5 m); "
-            f"NMAD against the truth on each granule's cells, strip vs the granule alone: {one} "
-            f"(target within 10 %); strip DEM {d['strip_dem_s']:.1f} s against "
-            f"{sum(g['seconds'] for g in d['single_granules']):.1f} s for the granules one by one "
-            f"(load {d['load_before'][0]:.1f}).")
+    return (
+        f"ASTER strip of {d['granules']} simulated granules of {n} × {m} 3N pixels, "
+        f"{d['cut']['overlap_3N_lines']} lines of overlap (`benchmarks/bench_aster_strip.py`): "
+        f"one DEM from the joined models, error step across the seam {steps} (target ≤ 0.5 m); "
+        f"NMAD against the truth on each granule's cells, strip vs the granule alone: {one} "
+        f"(target within 10 %); strip DEM {d['strip_dem_s']:.1f} s against "
+        f"{sum(g['seconds'] for g in d['single_granules']):.1f} s for the granules one by one "
+        f"(load {d['load_before'][0]:.1f})."
+    )
 
 
 def multiview(d):
     runs = {r["adjust"]: r for r in d["runs"]}
     parts = []
-    for key, label in (("never", "without the adjustment (`[fusion] adjust = \"never\"`)"),
-                       ("auto", "with it (`\"auto\"`, the default)")):
+    for key, label in (
+        ("never", 'without the adjustment (`[fusion] adjust = "never"`)'),
+        ("auto", 'with it (`"auto"`, the default)'),
+    ):
         r = runs.get(key)
         if r is None:
             continue
         pairs = " / ".join(f"{p['nmad_m']:.3f}" for p in r["pairs"])
         meds = " / ".join(f"{p['median_offset_m']:+.2f}" for p in r["pairs"])
         f = r["fused"][r["default_fusion"]]
-        text = (f"{label}: pairs ({', '.join(p['pair'] for p in r['pairs'])}) NMAD {pairs} m, medians "
-                f"{meds} m; fused ({r['default_fusion']}) **NMAD {f['nmad_m']:.3f} m**, coverage "
-                f"**{100 * f['coverage_of_s2p_valid']:.1f} %** of s2p's valid cells (best pair "
-                f"{r['best_pair']}: {min(p['nmad_m'] for p in r['pairs']):.3f} m, "
-                f"{100 * max(p['coverage_of_s2p_valid'] for p in r['pairs']):.1f} %)")
+        text = (
+            f"{label}: pairs ({', '.join(p['pair'] for p in r['pairs'])}) NMAD {pairs} m, medians "
+            f"{meds} m; fused ({r['default_fusion']}) **NMAD {f['nmad_m']:.3f} m**, coverage "
+            f"**{100 * f['coverage_of_s2p_valid']:.1f} %** of s2p's valid cells (best pair "
+            f"{r['best_pair']}: {min(p['nmad_m'] for p in r['pairs']):.3f} m, "
+            f"{100 * max(p['coverage_of_s2p_valid'] for p in r['pairs']):.1f} %)"
+        )
         adj = r.get("adjustment")
         if adj:
-            text += (f"; reprojection RMS {adj['reprojection_rms_px_before']:.3f} → "
-                     f"{adj['reprojection_rms_px_after']:.3f} px over {adj['tie_points']} tie points")
-        text += (f"; N-view job {r['seconds_nview_job']:.1f} s against {r['seconds_pairs_sum']:.1f} s "
-                 f"for the three pair runs (load {r['load_average'][0]:.1f})")
+            text += (
+                f"; reprojection RMS {adj['reprojection_rms_px_before']:.3f} → "
+                f"{adj['reprojection_rms_px_after']:.3f} px over {adj['tie_points']} tie points"
+            )
+        text += (
+            f"; N-view job {r['seconds_nview_job']:.1f} s against {r['seconds_pairs_sum']:.1f} s "
+            f"for the three pair runs (load {r['load_average'][0]:.1f})"
+        )
         parts.append(text)
-    return ("N-view DEM of the real Pleiades triplet against s2p's fused DSM (its 0.5 m UTM grid; "
-            "`benchmarks/bench_multiview.py`): " + "; ".join(parts) + ".")
+    return (
+        "N-view DEM of the real Pleiades triplet against s2p's fused DSM (its 0.5 m UTM grid; "
+        "`benchmarks/bench_multiview.py`): " + "; ".join(parts) + "."
+    )
 
 
 def adjust_multi(d):
     r = d["run"]
     gaps = " / ".join(f"{v['ray_gap_rms_m']:.2f}" for v in r["ray_gaps_before"].values())
     after = max(v["ray_gap_rms_m"] for v in r["ray_gaps_after"].values())
-    return (f"N-image bundle adjustment of the real Pleiades triplet RPCs with known image-space "
-            f"shifts (`benchmarks/bench_adjust_multi.py`): {r['ties']} ties seen in all three images "
-            f"({r['observations']} observations) + {r['gcps_per_image']} GCPs per image, "
-            f"{r['unknowns']} unknowns: **{r['seconds']:.1f} s wall / {r['cpu_seconds']:.1f} s CPU** "
-            f"({d['target']}), σ0 {r['sigma0']:.3f}, biases recovered within "
-            f"**{r['max_abs_error_px']:.3f} px**; per-pair ray gaps {gaps} → ≤ {after:.2f} m RMS "
-            f"(load {d['machine']['load_average_at_start'][0]:.1f} on {d['machine']['cpus']} cores).")
+    return (
+        f"N-image bundle adjustment of the real Pleiades triplet RPCs with known image-space "
+        f"shifts (`benchmarks/bench_adjust_multi.py`): {r['ties']} ties seen in all three images "
+        f"({r['observations']} observations) + {r['gcps_per_image']} GCPs per image, "
+        f"{r['unknowns']} unknowns: **{r['seconds']:.1f} s wall / {r['cpu_seconds']:.1f} s CPU** "
+        f"({d['target']}), σ0 {r['sigma0']:.3f}, biases recovered within "
+        f"**{r['max_abs_error_px']:.3f} px**; per-pair ray gaps {gaps} → ≤ {after:.2f} m RMS "
+        f"(load {d['machine']['load_average_at_start'][0]:.1f} on {d['machine']['cpus']} cores)."
+    )
 
 
 def mosaic(d):
     r, m, s = d["runs"], d["memory"], d["seams"]
     b, rm, nb = r["blend"], r["rasterio_merge"], r["naive_blend"]
     load = d["machine"]["load_before"][0]
-    return (f"Mosaic of {d['inputs']['n_dems']} simulated overlapping DEMs cut from the bundled "
-            f"SRTM tile ({d['inputs']['res_m']:g} m, {b['cells'] / 1e6:.1f} M cells, biases, tilts, "
-            f"noise, voids; `benchmarks/bench_mosaic.py`): `stereodem mosaic` (blend) peaks at "
-            f"**+{m['peak_above_baseline_mb']:.0f} MB** above the interpreter, under its stated bound of "
-            f"{m['bound_mb']:.0f} MB (half the area: +{m['half_area_peak_above_baseline_mb']:.0f} MB); "
-            f"`rasterio.merge` +{m['rasterio_merge_peak_above_baseline_mb']:.0f} MB and a naive "
-            f"full-array blend +{m['naive_blend_peak_above_baseline_mb']:.0f} MB (both hold whole-mosaic "
-            f"arrays). Seams: median |error step| across footprint edges / elsewhere "
-            f"**{s['blend']['ratio']:.2f}** (blend) vs {s['first']['ratio']:.2f} (first) and "
-            f"{s['rasterio_merge']['ratio']:.2f} (`rasterio.merge`). {b['cpu_s'] / b['n_dems']:.2f} s CPU "
-            f"({b['seconds_per_dem']:.2f} s wall, of which the COG finish {b['seconds_cog_finish']:.0f} s in all) "
-            f"per DEM; `rasterio.merge` {rm['cpu_s'] / rm['n_dems']:.2f} s "
-            f"CPU, naive blend {nb['cpu_s'] / nb['n_dems']:.2f} s CPU per DEM, both writing plain GeoTIFFs (load average {load:.1f} on "
-            f"{d['machine']['cpus']} cores).")
+    return (
+        f"Mosaic of {d['inputs']['n_dems']} simulated overlapping DEMs cut from the bundled "
+        f"SRTM tile ({d['inputs']['res_m']:g} m, {b['cells'] / 1e6:.1f} M cells, biases, tilts, "
+        f"noise, voids; `benchmarks/bench_mosaic.py`): `stereodem mosaic` (blend) peaks at "
+        f"**+{m['peak_above_baseline_mb']:.0f} MB** above the interpreter, under its stated bound of "
+        f"{m['bound_mb']:.0f} MB (half the area: +{m['half_area_peak_above_baseline_mb']:.0f} MB); "
+        f"`rasterio.merge` +{m['rasterio_merge_peak_above_baseline_mb']:.0f} MB and a naive "
+        f"full-array blend +{m['naive_blend_peak_above_baseline_mb']:.0f} MB (both hold whole-mosaic "
+        f"arrays). Seams: median |error step| across footprint edges / elsewhere "
+        f"**{s['blend']['ratio']:.2f}** (blend) vs {s['first']['ratio']:.2f} (first) and "
+        f"{s['rasterio_merge']['ratio']:.2f} (`rasterio.merge`). {b['cpu_s'] / b['n_dems']:.2f} s CPU "
+        f"({b['seconds_per_dem']:.2f} s wall, of which the COG finish {b['seconds_cog_finish']:.0f} s in all) "
+        f"per DEM; `rasterio.merge` {rm['cpu_s'] / rm['n_dems']:.2f} s "
+        f"CPU, naive blend {nb['cpu_s'] / nb['n_dems']:.2f} s CPU per DEM, both writing plain GeoTIFFs (load average {load:.1f} on "
+        f"{d['machine']['cpus']} cores)."
+    )
 
 
 def stack(d):
@@ -381,24 +494,30 @@ def stack(d):
     r = d.get("real")
     if r:
         c = r["runs"]["chain"]
-        out += (f": five DEMs of the real SRTM tile over {r['dates'][0][:4]}–{r['dates'][-1][:4]} "
-                "with shift, ramp, along-track oscillation, correlated noise, a cloud and a thinning "
-                f"inside an outline: rate inside off by {c['inside_mean_rate_error_m_per_yr']:+.3f} "
-                f"m/yr (target 0.1), stable-terrain rate NMAD {c['stable_rate_nmad_m_per_yr']:.3f} "
-                f"m/yr = {c['stable_nmad_over_empirical_limit']:.2f} × the noise-only "
-                f"{r['noise_limit_empirical_nmad_m_per_yr']:.3f} (target ≤ 1.3), cloud date masked on "
-                f"{c['cloud_cells'] - c['cloud_cells_with_cloud_date_kept']}/{c['cloud_cells']} "
-                f"cells, volume rate within {abs(c['volume_error_in_sigma']):.1f}σ of the truth "
-                f"(target 2σ), {c['filled_pct']:.1f} % filled hypsometrically")
+        out += (
+            f": five DEMs of the real SRTM tile over {r['dates'][0][:4]}–{r['dates'][-1][:4]} "
+            "with shift, ramp, along-track oscillation, correlated noise, a cloud and a thinning "
+            f"inside an outline: rate inside off by {c['inside_mean_rate_error_m_per_yr']:+.3f} "
+            f"m/yr (target 0.1), stable-terrain rate NMAD {c['stable_rate_nmad_m_per_yr']:.3f} "
+            f"m/yr = {c['stable_nmad_over_empirical_limit']:.2f} × the noise-only "
+            f"{r['noise_limit_empirical_nmad_m_per_yr']:.3f} (target ≤ 1.3), cloud date masked on "
+            f"{c['cloud_cells'] - c['cloud_cells_with_cloud_date_kept']}/{c['cloud_cells']} "
+            f"cells, volume rate within {abs(c['volume_error_in_sigma']):.1f}σ of the truth "
+            f"(target 2σ), {c['filled_pct']:.1f} % filled hypsometrically"
+        )
     g = d.get("granules")
     if g:
-        out += (f"; granules → DEMs → stack ({len(g['dates'])} dates): rate inside off by "
-                f"{g['inside_mean_rate_error_m_per_yr']:+.3f} m/yr")
+        out += (
+            f"; granules → DEMs → stack ({len(g['dates'])} dates): rate inside off by "
+            f"{g['inside_mean_rate_error_m_per_yr']:+.3f} m/yr"
+        )
     h = d.get("heavy")
     if h:
-        out += (f"; `stack` of {h['dems']} DEMs of {h['cells']} cells on {h['workers']} workers: "
-                f"{h['wall_s'] / 60:.1f} min, peak {h['peak_rss_mib'] / 1024:.2f} GiB "
-                f"(load average {h['load_before'][0]:.0f}–{h['load_after'][0]:.0f})")
+        out += (
+            f"; `stack` of {h['dems']} DEMs of {h['cells']} cells on {h['workers']} workers: "
+            f"{h['wall_s'] / 60:.1f} min, peak {h['peak_rss_mib'] / 1024:.2f} GiB "
+            f"(load average {h['load_before'][0]:.0f}–{h['load_after'][0]:.0f})"
+        )
     return out + "."
 
 
@@ -407,89 +526,176 @@ def coreg(d):
     sub = d["cases"]["subpixel_shift"]
     sd, xd = c["stereodem"], c["xdem"]
     v, a = d["variogram_vs_skgstat"], d["area_sigma_vs_monte_carlo"]
-    return (f"Co-registration of the bundled SRTM tile (UTM, {d['truth']['shape'][0]} × "
-            f"{d['truth']['shape'][1]} at 90 m) with an injected 1 px shift, 3 m offset, ramp, 3 m / "
-            f"5.5 km along-track sine, correlated noise (NMAD {c['noise_nmad']:.2f} m) and a −30 m change "
-            f"in an excluded outline (`benchmarks/bench_coreg.py`): stereodem "
-            f"`{d['chains']['stereodem']}` leaves a stable NMAD of **{sd['nmad_after']:.2f} m** "
-            f"(xdem {d.get('xdem_version', '')} NuthKaab + Deramp + DirectionalBias: "
-            f"{xd['nmad_after']:.2f} m), shift error {sd['shift']['dx_error']:+.2f} / "
-            f"{sd['shift']['dy_error']:+.2f} m, change {sd['change_recovered']:+.2f} m, in "
-            f"{sd['seconds']:.1f} s (xdem {xd['seconds']:.1f} s, 1 thread, load "
-            f"{d['load_avg_start'][0]:.1f}); with a sub-pixel shift {sub['stereodem']['nmad_after']:.2f} m "
-            f"vs {sub['xdem']['nmad_after']:.2f} m (resampling error included). Variogram range/sill vs "
-            f"scikit-gstat on the same dh: {100 * v['range_rel_diff']:.3f} % / "
-            f"{100 * v['sill_rel_diff']:.4f} %; σ of a {a['radius_m'] / 1e3:.0f} km-radius area mean "
-            f"{a['sigma_from_variogram']:.3f} m vs Monte Carlo {a['sigma_monte_carlo']:.3f} m "
-            f"({100 * a['rel_diff']:.1f} %; σ/√N would say {a['sigma_naive']:.3f} m).")
+    return (
+        f"Co-registration of the bundled SRTM tile (UTM, {d['truth']['shape'][0]} × "
+        f"{d['truth']['shape'][1]} at 90 m) with an injected 1 px shift, 3 m offset, ramp, 3 m / "
+        f"5.5 km along-track sine, correlated noise (NMAD {c['noise_nmad']:.2f} m) and a −30 m change "
+        f"in an excluded outline (`benchmarks/bench_coreg.py`): stereodem "
+        f"`{d['chains']['stereodem']}` leaves a stable NMAD of **{sd['nmad_after']:.2f} m** "
+        f"(xdem {d.get('xdem_version', '')} NuthKaab + Deramp + DirectionalBias: "
+        f"{xd['nmad_after']:.2f} m), shift error {sd['shift']['dx_error']:+.2f} / "
+        f"{sd['shift']['dy_error']:+.2f} m, change {sd['change_recovered']:+.2f} m, in "
+        f"{sd['seconds']:.1f} s (xdem {xd['seconds']:.1f} s, 1 thread, load "
+        f"{d['load_avg_start'][0]:.1f}); with a sub-pixel shift {sub['stereodem']['nmad_after']:.2f} m "
+        f"vs {sub['xdem']['nmad_after']:.2f} m (resampling error included). Variogram range/sill vs "
+        f"scikit-gstat on the same dh: {100 * v['range_rel_diff']:.3f} % / "
+        f"{100 * v['sill_rel_diff']:.4f} %; σ of a {a['radius_m'] / 1e3:.0f} km-radius area mean "
+        f"{a['sigma_from_variogram']:.3f} m vs Monte Carlo {a['sigma_monte_carlo']:.3f} m "
+        f"({100 * a['rel_diff']:.1f} %; σ/√N would say {a['sigma_naive']:.3f} m)."
+    )
 
 
-SUMMARISERS = {"bench_demo": demo, "bench_rpc": rpc, "bench_aster_scene": aster_scene,
-               "bench_dem": dem, "bench_match": match, "bench_ortho": ortho,
-               "bench_ortho_models": ortho_models, "bench_adjust": adjust,
-               "bench_aster_granule": aster_granule, "bench_topan_sets": topan_sets,
-               "bench_uncertainty": uncertainty, "bench_sparse_scaling": sparse_scaling,
-               "bench_orbital_splits": orbital_splits, "bench_mosaic": mosaic,
-               "bench_scaling": scaling, "bench_scaling_full": scaling, "bench_batch": batch,
-               "bench_coreg": coreg, "bench_multiview": multiview, "bench_adjust_multi": adjust_multi,
-               "bench_aster_strip": aster_strip, "bench_stack": stack,
-               "bench_ortho_pair": ortho_pair}
+SUMMARISERS = {
+    "bench_demo": demo,
+    "bench_rpc": rpc,
+    "bench_aster_scene": aster_scene,
+    "bench_dem": dem,
+    "bench_match": match,
+    "bench_ortho": ortho,
+    "bench_ortho_models": ortho_models,
+    "bench_adjust": adjust,
+    "bench_aster_granule": aster_granule,
+    "bench_topan_sets": topan_sets,
+    "bench_uncertainty": uncertainty,
+    "bench_sparse_scaling": sparse_scaling,
+    "bench_orbital_splits": orbital_splits,
+    "bench_mosaic": mosaic,
+    "bench_scaling": scaling,
+    "bench_scaling_full": scaling,
+    "bench_batch": batch,
+    "bench_coreg": coreg,
+    "bench_multiview": multiview,
+    "bench_adjust_multi": adjust_multi,
+    "bench_aster_strip": aster_strip,
+    "bench_stack": stack,
+    "bench_ortho_pair": ortho_pair,
+}
 
 
 #: the table of benchmarks/README.md: result name -> (benchmark, command, peer); its last
 #: column is the summariser's text, so the table can never disagree with the result files
 BENCHMARKS = {
-    "bench_rpc": ("RPC model", "python benchmarks/bench_rpc.py",
-                  "GDAL's RPC transformer (rasterio `RPCTransformer`)"),
-    "bench_match": ("dense matching", "python benchmarks/bench_match.py [--before REV]",
-                    ("`cv2.StereoSGBM` (1 thread, 3-way); the bare SGBM call at the same "
-                     "`cv2.setNumThreads` (the SGM wrapper's overhead)")),
-    "bench_dem": ("stereo DSM, real Pleiades pair", "python benchmarks/bench_dem.py",
-                  "s2p's DSM of the same pair"),
-    "bench_ortho": ("orthorectification", "python benchmarks/bench_ortho.py --repeat 5",
-                    "GDAL RPC warp (`rasterio.warp.reproject` with `rpcs=`, `RPC_DEM=`, 1 and 2 threads)"),
-    "bench_ortho_models": ("orthorectification models", "python benchmarks/bench_ortho_models.py",
-                           ("the structure of Ok (2005) Table 6.15 plus the orbital models and the "
-                            "rigorous pushbroom adjustment")),
-    "bench_orbital_splits": ("orbital models over random splits", "python benchmarks/bench_orbital_splits.py",
-                             "the rigorous pushbroom model (`attitude-bias-drift`) on the same splits"),
-    "bench_topan_sets": ("Topan's EOP sets", "python benchmarks/bench_topan_sets.py",
-                         "Topan (2009) Appendix A.5.1 and his reading of it"),
-    "bench_aster_scene": ("ASTER-sized scene", "python benchmarks/bench_aster_scene.py",
-                          "`--workers 1` vs `--workers 2`"),
-    "bench_demo": ("`stereodem demo`", "python benchmarks/bench_demo.py",
-                   "plain tiled GeoTIFFs for the same rasters; seeds 1–4 for the spread"),
-    "bench_adjust": ("bundle adjustment", "python benchmarks/bench_adjust.py",
-                     "scipy `least_squares` (sparse Jacobian, LSMR) and the dense normal equations"),
-    "bench_aster_granule": ("ASTER L1A granule", "python benchmarks/bench_aster_granule.py",
-                            "the simulator before this version's speed work (historical literals)"),
-    "bench_uncertainty": ("uncertainty", "python benchmarks/bench_uncertainty.py",
-                          "Bettemir (2010) Tables 3–11, thesis Tables 8.6/8.7; the orthorectification"),
-    "bench_sparse_scaling": ("sparse stage", "python benchmarks/bench_sparse_scaling.py",
-                             "the simulated truth's height range"),
-    "bench_mosaic": ("DEM mosaic", "python benchmarks/bench_mosaic.py --res 20 --n 50",
-                     "`rasterio.merge` and a naive whole-array blend"),
-    "bench_coreg": ("co-registration and error analysis",
-                    "python benchmarks/bench_coreg.py (with xdem installed: a peer only)",
-                    "xdem's NuthKaab + Deramp + DirectionalBias; scikit-gstat; Monte Carlo"),
-    "bench_scaling": ("scaling with `--workers`, half-size granule",
-                      "python benchmarks/bench_scaling.py --half",
-                      "itself at 1 worker (1, 2, 4, … up to the cores)"),
-    "bench_scaling_full": ("scaling with `--workers`, full granule",
-                           "python benchmarks/bench_scaling.py --results benchmarks/results/bench_scaling_full.json",
-                           "itself at 1 worker (1, 2, 4, … up to the cores)"),
-    "bench_batch": ("many scenes (`stereodem batch`)", "python benchmarks/bench_batch.py",
-                    "single `stereodem run` jobs one after the other"),
-    "bench_multiview": ("N-view DEM, real Pleiades triplet (issue 26)", "python benchmarks/bench_multiview.py",
-                        "s2p's fused DSM of the same triplet; the three pair DEMs of the same run"),
-    "bench_adjust_multi": ("N-image bundle adjustment (issue 26)", "python benchmarks/bench_adjust_multi.py",
-                           "the known biases it must recover"),
-    "bench_aster_strip": ("ASTER strip (issue 26)", "python benchmarks/bench_aster_strip.py",
-                          "each granule processed alone (same height range, posting); the truth DEM"),
-    "bench_ortho_pair": ("orthoimage pair on threads", "python benchmarks/bench_ortho_pair.py",
-                         "the same two orthoimages one after the other at the same thread budget"),
-    "bench_stack": ("DEM stacks and rates (issue 27)", "python benchmarks/bench_stack.py",
-                    "the injected truth and the noise-only limit of the rate"),
+    "bench_rpc": (
+        "RPC model",
+        "python benchmarks/bench_rpc.py",
+        "GDAL's RPC transformer (rasterio `RPCTransformer`)",
+    ),
+    "bench_match": (
+        "dense matching",
+        "python benchmarks/bench_match.py [--before REV]",
+        (
+            "`cv2.StereoSGBM` (1 thread, 3-way); the bare SGBM call at the same "
+            "`cv2.setNumThreads` (the SGM wrapper's overhead)"
+        ),
+    ),
+    "bench_dem": (
+        "stereo DSM, real Pleiades pair",
+        "python benchmarks/bench_dem.py",
+        "s2p's DSM of the same pair",
+    ),
+    "bench_ortho": (
+        "orthorectification",
+        "python benchmarks/bench_ortho.py --repeat 5",
+        "GDAL RPC warp (`rasterio.warp.reproject` with `rpcs=`, `RPC_DEM=`, 1 and 2 threads)",
+    ),
+    "bench_ortho_models": (
+        "orthorectification models",
+        "python benchmarks/bench_ortho_models.py",
+        (
+            "the structure of Ok (2005) Table 6.15 plus the orbital models and the "
+            "rigorous pushbroom adjustment"
+        ),
+    ),
+    "bench_orbital_splits": (
+        "orbital models over random splits",
+        "python benchmarks/bench_orbital_splits.py",
+        "the rigorous pushbroom model (`attitude-bias-drift`) on the same splits",
+    ),
+    "bench_topan_sets": (
+        "Topan's EOP sets",
+        "python benchmarks/bench_topan_sets.py",
+        "Topan (2009) Appendix A.5.1 and his reading of it",
+    ),
+    "bench_aster_scene": (
+        "ASTER-sized scene",
+        "python benchmarks/bench_aster_scene.py",
+        "`--workers 1` vs `--workers 2`",
+    ),
+    "bench_demo": (
+        "`stereodem demo`",
+        "python benchmarks/bench_demo.py",
+        "plain tiled GeoTIFFs for the same rasters; seeds 1–4 for the spread",
+    ),
+    "bench_adjust": (
+        "bundle adjustment",
+        "python benchmarks/bench_adjust.py",
+        "scipy `least_squares` (sparse Jacobian, LSMR) and the dense normal equations",
+    ),
+    "bench_aster_granule": (
+        "ASTER L1A granule",
+        "python benchmarks/bench_aster_granule.py",
+        "the simulator before this version's speed work (historical literals)",
+    ),
+    "bench_uncertainty": (
+        "uncertainty",
+        "python benchmarks/bench_uncertainty.py",
+        "Bettemir (2010) Tables 3–11, thesis Tables 8.6/8.7; the orthorectification",
+    ),
+    "bench_sparse_scaling": (
+        "sparse stage",
+        "python benchmarks/bench_sparse_scaling.py",
+        "the simulated truth's height range",
+    ),
+    "bench_mosaic": (
+        "DEM mosaic",
+        "python benchmarks/bench_mosaic.py --res 20 --n 50",
+        "`rasterio.merge` and a naive whole-array blend",
+    ),
+    "bench_coreg": (
+        "co-registration and error analysis",
+        "python benchmarks/bench_coreg.py (with xdem installed: a peer only)",
+        "xdem's NuthKaab + Deramp + DirectionalBias; scikit-gstat; Monte Carlo",
+    ),
+    "bench_scaling": (
+        "scaling with `--workers`, half-size granule",
+        "python benchmarks/bench_scaling.py --half",
+        "itself at 1 worker (1, 2, 4, … up to the cores)",
+    ),
+    "bench_scaling_full": (
+        "scaling with `--workers`, full granule",
+        "python benchmarks/bench_scaling.py --results benchmarks/results/bench_scaling_full.json",
+        "itself at 1 worker (1, 2, 4, … up to the cores)",
+    ),
+    "bench_batch": (
+        "many scenes (`stereodem batch`)",
+        "python benchmarks/bench_batch.py",
+        "single `stereodem run` jobs one after the other",
+    ),
+    "bench_multiview": (
+        "N-view DEM, real Pleiades triplet (issue 26)",
+        "python benchmarks/bench_multiview.py",
+        "s2p's fused DSM of the same triplet; the three pair DEMs of the same run",
+    ),
+    "bench_adjust_multi": (
+        "N-image bundle adjustment (issue 26)",
+        "python benchmarks/bench_adjust_multi.py",
+        "the known biases it must recover",
+    ),
+    "bench_aster_strip": (
+        "ASTER strip (issue 26)",
+        "python benchmarks/bench_aster_strip.py",
+        "each granule processed alone (same height range, posting); the truth DEM",
+    ),
+    "bench_ortho_pair": (
+        "orthoimage pair on threads",
+        "python benchmarks/bench_ortho_pair.py",
+        "the same two orthoimages one after the other at the same thread budget",
+    ),
+    "bench_stack": (
+        "DEM stacks and rates (issue 27)",
+        "python benchmarks/bench_stack.py",
+        "the injected truth and the noise-only limit of the rate",
+    ),
 }
 TABLE_START = "<!-- table generated by benchmarks/readme_figures.py --write: do not edit -->"
 TABLE_END = "<!-- end of generated table -->"
@@ -521,19 +727,31 @@ def write_readmes(root: Path = RESULTS.parents[1], results: Path = RESULTS):
     readme = root / "README.md"
     text = readme.read_text()
     figures = figures_markdown(results)
-    readme.write_text(_replace_block(text, "<!-- generated by benchmarks/readme_figures.py", LIST_END,
-                                     figures, str(readme)))
+    readme.write_text(
+        _replace_block(
+            text, "<!-- generated by benchmarks/readme_figures.py", LIST_END, figures, str(readme)
+        )
+    )
     bench = root / "benchmarks" / "README.md"
-    bench.write_text(_replace_block(bench.read_text(), TABLE_START, TABLE_END,
-                                    TABLE_START + "\n" + benchmarks_table(results), str(bench)))
+    bench.write_text(
+        _replace_block(
+            bench.read_text(),
+            TABLE_START,
+            TABLE_END,
+            TABLE_START + "\n" + benchmarks_table(results),
+            str(bench),
+        )
+    )
 
 
 def figures_markdown(results: Path = RESULTS) -> str:
     """The Markdown list, one bullet per result file (known summarisers first, in order)."""
     files = {p.stem: p for p in sorted(Path(results).glob("*.json"))}
     order = [k for k in SUMMARISERS if k in files] + [k for k in files if k not in SUMMARISERS]
-    lines = [f"<!-- generated by benchmarks/readme_figures.py from {len(files)} file(s) in "
-             "benchmarks/results/ -->"]
+    lines = [
+        f"<!-- generated by benchmarks/readme_figures.py from {len(files)} file(s) in "
+        "benchmarks/results/ -->"
+    ]
     for name in order:
         fn = SUMMARISERS.get(name)
         if fn is None:
@@ -542,8 +760,11 @@ def figures_markdown(results: Path = RESULTS) -> str:
         try:
             text = fn(json.loads(files[name].read_text()))
         except (KeyError, TypeError, ValueError, IndexError) as exc:
-            print(f"readme_figures: {files[name]}: cannot summarise ({type(exc).__name__}: {exc}); "
-                  "update its summariser", file=sys.stderr)
+            print(
+                f"readme_figures: {files[name]}: cannot summarise ({type(exc).__name__}: {exc}); "
+                "update its summariser",
+                file=sys.stderr,
+            )
             text = f"`{name}`: (summary unavailable: the result file changed shape; see the JSON)"
         lines.append(f"* {text}")
     return "\n".join(lines) + "\n"
@@ -552,8 +773,11 @@ def figures_markdown(results: Path = RESULTS) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--results", default=str(RESULTS), help="folder of result JSON files")
-    ap.add_argument("--write", action="store_true",
-                    help="rewrite the generated blocks of README.md and benchmarks/README.md in place")
+    ap.add_argument(
+        "--write",
+        action="store_true",
+        help="rewrite the generated blocks of README.md and benchmarks/README.md in place",
+    )
     a = ap.parse_args(argv)
     if a.write:
         write_readmes(results=Path(a.results))

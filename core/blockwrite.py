@@ -10,6 +10,7 @@ Memory: the caller's blocks plus GDAL's block cache (``GDAL_CACHEMAX``, set here
 :data:`CACHE_MB`) and, while the COG is finished, the overview builder's chunk
 (``GDAL_OVR_CHUNK_MAX_SIZE``, :data:`OVERVIEW_CHUNK_MB`), whatever the raster's size.
 """
+
 from __future__ import annotations
 
 import os
@@ -65,39 +66,66 @@ class BlockWriter:
         Dataset tags.
     """
 
-    def __init__(self, path, grid, descriptions, *, units="metre", vertical=None, overwrite=False,
-                 creation_options=None, tags=None):
+    def __init__(
+        self,
+        path,
+        grid,
+        descriptions,
+        *,
+        units="metre",
+        vertical=None,
+        overwrite=False,
+        creation_options=None,
+        tags=None,
+    ):
         self.path = check_writable(path, overwrite)
         self.grid = grid
         self.descriptions = list(descriptions)
-        self.units = [units] * len(self.descriptions) if isinstance(units, str) or units is None \
+        self.units = (
+            [units] * len(self.descriptions)
+            if isinstance(units, str) or units is None
             else list(units)
+        )
         self.vertical = vertical
         self.co = cog_creation_options(np.float32, creation_options)
         self.tags = {k: str(v) for k, v in (tags or {}).items()}
         if vertical:
             self.tags[VERTICAL_TAG] = vertical
         self._atomic = None
-        self.cog_seconds = 0.0      # the final copy to a COG (compression, overviews)
+        self.cog_seconds = 0.0  # the final copy to a COG (compression, overviews)
         self._ds = None
         self._tmp = None
 
     def __enter__(self):
-        self._env = rasterio.Env(GDAL_CACHEMAX=CACHE_MB,
-                                 GDAL_OVR_CHUNK_MAX_SIZE=str(OVERVIEW_CHUNK_MB * 2**20))
+        self._env = rasterio.Env(
+            GDAL_CACHEMAX=CACHE_MB, GDAL_OVR_CHUNK_MAX_SIZE=str(OVERVIEW_CHUNK_MB * 2**20)
+        )
         self._env.__enter__()
         self._atomic = atomic_path(self.path)
         self._final_tmp = self._atomic.__enter__()
-        fd, self._tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".blocks.tif",
-                                         dir=self.path.parent)
+        fd, self._tmp = tempfile.mkstemp(
+            prefix=f".{self.path.name}.", suffix=".blocks.tif", dir=self.path.parent
+        )
         os.close(fd)
         g = self.grid
         crs = crs_with_vertical(g.crs, self.vertical)
-        profile = dict(driver="GTiff", width=g.width, height=g.height, count=len(self.descriptions),
-                       dtype="float32", nodata=np.nan, tiled=True, blockxsize=256, blockysize=256,
-                       compress="ZSTD", zstd_level=1, predictor=3,
-                       bigtiff="IF_SAFER", transform=g.transform,
-                       crs=rasterio.crs.CRS.from_wkt(PCRS.from_user_input(crs).to_wkt()))
+        profile = dict(
+            driver="GTiff",
+            width=g.width,
+            height=g.height,
+            count=len(self.descriptions),
+            dtype="float32",
+            nodata=np.nan,
+            tiled=True,
+            blockxsize=256,
+            blockysize=256,
+            compress="ZSTD",
+            zstd_level=1,
+            predictor=3,
+            bigtiff="IF_SAFER",
+            transform=g.transform,
+            crs=rasterio.crs.CRS.from_wkt(PCRS.from_user_input(crs).to_wkt()),
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
             self._ds = rasterio.open(self._tmp, "w", **profile)
@@ -113,7 +141,9 @@ class BlockWriter:
     def __exit__(self, exc_type, exc, tb):
         try:
             if self._ds is not None and exc_type is None:
-                for i, (desc, unit) in enumerate(zip(self.descriptions, self.units, strict=True), start=1):
+                for i, (desc, unit) in enumerate(
+                    zip(self.descriptions, self.units, strict=True), start=1
+                ):
                     self._ds.set_band_description(i, desc)
                     if unit:
                         self._ds.set_band_unit(i, unit)
@@ -124,8 +154,12 @@ class BlockWriter:
             if exc_type is None:
                 t0 = time.perf_counter()
                 # one thread: GDAL's overview chunks (GDAL_OVR_CHUNK_MAX_SIZE) are per thread
-                rasterio.shutil.copy(self._tmp, self._final_tmp, driver="COG",
-                                     **{k.lower(): v for k, v in self.co.items()})
+                rasterio.shutil.copy(
+                    self._tmp,
+                    self._final_tmp,
+                    driver="COG",
+                    **{k.lower(): v for k, v in self.co.items()},
+                )
                 self.cog_seconds = time.perf_counter() - t0
         except BaseException as err:
             self._atomic.__exit__(type(err), err, err.__traceback__)

@@ -1,4 +1,5 @@
 """The Dask worker plugin of :mod:`stereodem.core.threads` (imported only when Dask is used)."""
+
 from __future__ import annotations
 
 from distributed.diagnostics.plugin import WorkerPlugin

@@ -9,6 +9,7 @@ Companion layers live beside the heights file (:data:`LAYERS`): a stereo DEM's `
 ``<stem>_sigma_vertical.tif``. :meth:`DEM.write` writes the heights and every layer present,
 :meth:`DEM.from_file` reads them back (``layers=True``).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -37,7 +38,6 @@ from stereodem.core.vertical import ELLIPSOID, GEOID, VERTICALS
 OK, OUTSIDE, VOID = 0, 1, 2
 
 
-
 @dataclass(frozen=True)
 class Layer:
     """How a companion layer is stored: ``name`` in the folder of the heights file, or
@@ -58,18 +58,33 @@ class Layer:
 #: companion layers of a DEM, by attribute, in writing order
 LAYERS = {
     "count": Layer("count.tif", None, np.int32, 0, "space-intersected points per cell", "1"),
-    "score": Layer("score.tif", None, np.float32, np.nan,
-                   "mean correlation score (ZNCC) of the cell's points", "1"),
-    "ray_gap": Layer("raygap.tif", None, np.float32, np.nan, "mean ray gap of the cell's points",
-                     "metre"),
+    "score": Layer(
+        "score.tif",
+        None,
+        np.float32,
+        np.nan,
+        "mean correlation score (ZNCC) of the cell's points",
+        "1",
+    ),
+    "ray_gap": Layer(
+        "raygap.tif", None, np.float32, np.nan, "mean ray gap of the cell's points", "metre"
+    ),
     "sigma": Layer(None, "_sigma_vertical.tif", np.float32, np.nan, None, None),
-    "edit_mask": Layer(None, "_edit_mask.tif", np.uint8, 255,
-                       "edit code: 0 kept, 1-8 filter reason, 99 border rim, 100/101 filled", "1"),
+    "edit_mask": Layer(
+        None,
+        "_edit_mask.tif",
+        np.uint8,
+        255,
+        "edit code: 0 kept, 1-8 filter reason, 99 border rim, 100/101 filled",
+        "1",
+    ),
 }
 
 #: band description of the heights by vertical reference
-_HEIGHT_DESCRIPTION = {GEOID: "height above the EGM96 geoid",
-                       ELLIPSOID: "height above the WGS84 ellipsoid"}
+_HEIGHT_DESCRIPTION = {
+    GEOID: "height above the EGM96 geoid",
+    ELLIPSOID: "height above the WGS84 ellipsoid",
+}
 
 
 def layer_path(dem_path, layer: str) -> Path:
@@ -82,16 +97,25 @@ def edit_mask_path(dem_path) -> Path:
     return layer_path(dem_path, "edit_mask")
 
 
-def write_layer(dem_path, layer: str, data, transform, crs, *, overwrite=False,
-                creation_options=None) -> Path:
+def write_layer(
+    dem_path, layer: str, data, transform, crs, *, overwrite=False, creation_options=None
+) -> Path:
     """Write companion ``layer`` of the DEM at ``dem_path`` (stored type, nodata, description
     and unit of :data:`LAYERS`); the one place a layer file is written."""
     spec = LAYERS[layer]
     kw = {}
     if spec.description:
         kw = dict(descriptions=[spec.description], units=[spec.unit])
-    return write_geotiff(spec.path(dem_path), np.asarray(data).astype(spec.dtype, copy=False), transform, crs,
-                         spec.nodata, overwrite=overwrite, creation_options=creation_options, **kw)
+    return write_geotiff(
+        spec.path(dem_path),
+        np.asarray(data).astype(spec.dtype, copy=False),
+        transform,
+        crs,
+        spec.nodata,
+        overwrite=overwrite,
+        creation_options=creation_options,
+        **kw,
+    )
 
 
 def _vertical_from_crs(crs: CRS | None) -> str | None:
@@ -112,8 +136,12 @@ def _vertical_from_crs(crs: CRS | None) -> str | None:
         names = " ".join(str(sub.name) for sub in pcrs.sub_crs_list).lower()
         if "ellipsoid" in names:
             return ELLIPSOID
-        if "egm96" in names or "egm2008" in names or "geoid" in names or \
-                any("gravity-related" in a for a in axes):
+        if (
+            "egm96" in names
+            or "egm2008" in names
+            or "geoid" in names
+            or any("gravity-related" in a for a in axes)
+        ):
             return GEOID
     return None
 
@@ -173,26 +201,34 @@ class DEM:
         self.crs = CRS.from_user_input(self.crs)
         h = np.asarray(self.heights, dtype=np.float32)
         if h.ndim != 2:
-            raise DEMError(f"{self.path or 'DEM'}: expected a 2-D height array, got shape {h.shape}")
+            raise DEMError(
+                f"{self.path or 'DEM'}: expected a 2-D height array, got shape {h.shape}"
+            )
         self.heights = h
         if self.vertical is not None and self.vertical not in VERTICALS:
-            raise DEMError(f"vertical reference must be 'geoid' or 'ellipsoid', got {self.vertical!r}")
+            raise DEMError(
+                f"vertical reference must be 'geoid' or 'ellipsoid', got {self.vertical!r}"
+            )
         for name in LAYERS:
             layer = getattr(self, name)
             if layer is not None and np.shape(layer) != h.shape:
-                raise DEMError(f"{self.path or 'DEM'}: layer {name} has shape {np.shape(layer)}, "
-                               f"the heights {h.shape}")
+                raise DEMError(
+                    f"{self.path or 'DEM'}: layer {name} has shape {np.shape(layer)}, "
+                    f"the heights {h.shape}"
+                )
         if self.count is None and not np.isfinite(h).any():
             raise DEMError(f"{self.path or 'DEM'}: the DEM has no valid height (all nodata)")
         geo = self.crs.is_geographic
-        self._lonlat_is_native = bool(geo and self.crs.ellipsoid is not None
-                                      and abs(self.crs.ellipsoid.semi_major_metre - geodesy.A) < 1e-3
-                                      and abs(self.crs.ellipsoid.inverse_flattening - 1 / geodesy.F) < 1e-6)
+        self._lonlat_is_native = bool(
+            geo
+            and self.crs.ellipsoid is not None
+            and abs(self.crs.ellipsoid.semi_major_metre - geodesy.A) < 1e-3
+            and abs(self.crs.ellipsoid.inverse_flattening - 1 / geodesy.F) < 1e-6
+        )
 
     # ---------------------------------------------------------------- construction
     @classmethod
-    def from_file(cls, path, vertical: str | None = None, band: int = 1, *,
-                  layers=()) -> DEM:
+    def from_file(cls, path, vertical: str | None = None, band: int = 1, *, layers=()) -> DEM:
         """Read a DEM with rasterio.
 
         ``layers``: companion layers to read from beside the file (names of :data:`LAYERS`,
@@ -217,7 +253,7 @@ class DEM:
                     heights = ds.read(band, out_dtype=np.float32)
                     if ds.nodata is not None and np.isfinite(ds.nodata):
                         heights[heights == np.float32(ds.nodata)] = np.nan
-                else:                                   # a mask band or alpha: GDAL's mask
+                else:  # a mask band or alpha: GDAL's mask
                     heights = ds.read(band, masked=True).astype(np.float32).filled(np.nan)
                 transform, crs = ds.transform, CRS.from_user_input(ds.crs.to_wkt())
                 tag = ds.tags().get(VERTICAL_TAG)
@@ -226,20 +262,24 @@ class DEM:
         np.copyto(heights, np.float32(np.nan), where=~np.isfinite(heights))
         vert = vertical or _vertical_from_crs(crs) or (tag.lower() if tag else None)
         found = {}
-        for name in (tuple(LAYERS) if layers is True else layers or ()):
+        for name in tuple(LAYERS) if layers is True else layers or ():
             lp = LAYERS[name].path(path)
             if lp.is_file():
                 found[name] = _read_layer(lp, LAYERS[name])
                 if found[name].shape != heights.shape:
-                    raise InputError(f"{lp}: {found[name].shape} cells, but the DEM has "
-                                     f"{heights.shape}")
+                    raise InputError(
+                        f"{lp}: {found[name].shape} cells, but the DEM has {heights.shape}"
+                    )
         return cls(heights, transform, horizontal_crs(crs), vert, path, **found)
 
     @classmethod
     def bundled(cls) -> DEM:
         """The bundled real SRTM 3" DEM (eastern Turkey, EGM96 geoid heights)."""
         from importlib import resources
-        return cls.from_file(resources.files("stereodem.core") / "data" / "srtm_ref.tif", vertical=GEOID)
+
+        return cls.from_file(
+            resources.files("stereodem.core") / "data" / "srtm_ref.tif", vertical=GEOID
+        )
 
     # ---------------------------------------------------------------- geometry
     @property
@@ -274,11 +314,12 @@ class DEM:
         else:
             x, y = geodesy.lonlat_to_crs(lon, lat, self.crs)
         col, row = ~self.transform @ (x, y)
-        return np.asarray(col) - 0.5, np.asarray(row) - 0.5     # pixel-centre convention
+        return np.asarray(col) - 0.5, np.asarray(row) - 0.5  # pixel-centre convention
 
     # ---------------------------------------------------------------- sampling
-    def sample(self, lon, lat, *, reference: str | None = ELLIPSOID, return_status=False,
-               strict=False):
+    def sample(
+        self, lon, lat, *, reference: str | None = ELLIPSOID, return_status=False, strict=False
+    ):
         """Bilinear heights at ``lon, lat`` (degrees).
 
         Parameters
@@ -294,14 +335,17 @@ class DEM:
         -------
         heights : ndarray float64, metres, NaN where unavailable.
         """
-        lon, lat = np.broadcast_arrays(np.asarray(lon, dtype=np.float64),
-                                       np.asarray(lat, dtype=np.float64))
+        lon, lat = np.broadcast_arrays(
+            np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64)
+        )
         out_shape = lon.shape
         lon, lat = lon.ravel(), lat.ravel()
         c, r = self._lonlat_to_pixel(lon, lat)
         rows, cols = self.shape
         finite = np.isfinite(c) & np.isfinite(r)
-        inside = finite & (c >= -1e-9) & (r >= -1e-9) & (c <= cols - 1 + 1e-9) & (r <= rows - 1 + 1e-9)
+        inside = (
+            finite & (c >= -1e-9) & (r >= -1e-9) & (c <= cols - 1 + 1e-9) & (r <= rows - 1 + 1e-9)
+        )
         c0 = np.clip(np.floor(np.where(inside, c, 0)), 0, max(cols - 2, 0)).astype(np.intp)
         r0 = np.clip(np.floor(np.where(inside, r, 0)), 0, max(rows - 2, 0)).astype(np.intp)
         fc = np.where(inside, c, 0) - c0
@@ -309,8 +353,10 @@ class DEM:
         c1 = np.minimum(c0 + 1, cols - 1)
         r1 = np.minimum(r0 + 1, rows - 1)
         H = self.heights
-        z = ((1 - fr) * ((1 - fc) * H[r0, c0] + fc * H[r0, c1])
-             + fr * ((1 - fc) * H[r1, c0] + fc * H[r1, c1])).astype(np.float64)
+        z = (
+            (1 - fr) * ((1 - fc) * H[r0, c0] + fc * H[r0, c1])
+            + fr * ((1 - fc) * H[r1, c0] + fc * H[r1, c1])
+        ).astype(np.float64)
         z[~inside] = np.nan
         status = np.zeros(lon.shape, dtype=np.int8)
         status[~inside] = OUTSIDE
@@ -319,7 +365,8 @@ class DEM:
             n_out, n_void = int((status == OUTSIDE).sum()), int((status == VOID).sum())
             raise DEMCoverageError(
                 f"{self.path or 'DEM'}: {n_out} point(s) outside the DEM and {n_void} on voids "
-                f"(of {status.size}); DEM extent lon/lat {self.bounds_lonlat()}")
+                f"(of {status.size}); DEM extent lon/lat {self.bounds_lonlat()}"
+            )
         if reference is not None:
             z = self.convert_heights(lon, lat, z, to=reference)
         z, status = z.reshape(out_shape), status.reshape(out_shape)
@@ -334,7 +381,8 @@ class DEM:
         if self.vertical is None:
             raise VerticalReferenceError(
                 f"{self.path or 'DEM'}: vertical reference unknown (geoid or ellipsoid?); "
-                "say which (vertical='geoid' / --dem-vertical geoid)")
+                "say which (vertical='geoid' / --dem-vertical geoid)"
+            )
         if to == ELLIPSOID:
             return geodesy.geoid_to_ellipsoid(lon, lat, z)
         return geodesy.ellipsoid_to_geoid(lon, lat, z)
@@ -355,8 +403,9 @@ class DEM:
         d = self if reference is None else self.to_reference(reference)
         return float(np.nanmin(d.heights)), float(np.nanmax(d.heights))
 
-    def write(self, path, *, overwrite=False, creation_options=None, layers=True,
-              tags=None) -> Path:
+    def write(
+        self, path, *, overwrite=False, creation_options=None, layers=True, tags=None
+    ) -> Path:
         """Write the heights as a float32 Cloud-Optimised GeoTIFF with NaN nodata, the vertical
         reference in the CRS (and the ``STEREODEM_VERTICAL`` tag), band description and unit
         (metre), and every companion layer present beside it (:data:`LAYERS`; none with
@@ -366,27 +415,44 @@ class DEM:
         :func:`stereodem.core.raster.write_geotiff`); ``tags``: dataset tags of the heights file
         (e.g. the ground-track heading ``STEREODEM_TRACK_HEADING`` that ``coregister`` reads).
         """
-        return self.prepare_write(path, overwrite=overwrite, creation_options=creation_options,
-                                  layers=layers, tags=tags)()["dem"]
+        return self.prepare_write(
+            path, overwrite=overwrite, creation_options=creation_options, layers=layers, tags=tags
+        )()["dem"]
 
-    def prepare_write(self, path, *, overwrite=False, creation_options=None, layers=True,
-                      tags=None):
+    def prepare_write(
+        self, path, *, overwrite=False, creation_options=None, layers=True, tags=None
+    ):
         """:meth:`write` in two steps: the heights and layers are copied to their stored types
         now, and the returned callable writes them (returning ``{"dem": path, layer: path}``);
         it can run in another thread while this DEM changes or goes away."""
         heights = self.heights.astype(np.float32)
-        layers = {name: np.asarray(getattr(self, name)).astype(spec.dtype)
-                  for name, spec in LAYERS.items() if layers and getattr(self, name) is not None}
+        layers = {
+            name: np.asarray(getattr(self, name)).astype(spec.dtype)
+            for name, spec in LAYERS.items()
+            if layers and getattr(self, name) is not None
+        }
         transform, crs, vertical = self.transform, self.crs, self.vertical
         kw = dict(overwrite=overwrite, creation_options=creation_options)
 
         def write_files():
-            out = {"dem": write_geotiff(path, heights, transform, crs, np.nan, vertical=vertical,
-                                        descriptions=_HEIGHT_DESCRIPTION.get(vertical, "height"),
-                                        units="metre", tags=tags, **kw)}
+            out = {
+                "dem": write_geotiff(
+                    path,
+                    heights,
+                    transform,
+                    crs,
+                    np.nan,
+                    vertical=vertical,
+                    descriptions=_HEIGHT_DESCRIPTION.get(vertical, "height"),
+                    units="metre",
+                    tags=tags,
+                    **kw,
+                )
+            }
             for name, data in layers.items():
                 out[name] = write_layer(path, name, data, transform, crs, **kw)
             return out
+
         return write_files
 
 

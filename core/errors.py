@@ -3,6 +3,7 @@
 Each error names the file (when there is one) and the problem in one line, so that the
 command-line front end can print ``str(error)`` and exit with status 1 without a traceback.
 """
+
 from __future__ import annotations
 
 

@@ -10,6 +10,7 @@ Conventions
 Coordinate conversions go through pyproj; the ray/height intersection used by every physical
 sensor model lives here as well, because it is pure ellipsoid geometry.
 """
+
 from __future__ import annotations
 
 import functools
@@ -22,13 +23,13 @@ from pyproj import CRS, Transformer
 from stereodem.core.errors import CRSError, InputError
 
 # WGS84 constants
-A = 6378137.0                      #: semi-major axis, m
-F = 1.0 / 298.257223563            #: flattening
-B = A * (1.0 - F)                  #: semi-minor axis, m
-E2 = F * (2.0 - F)                 #: first eccentricity squared
-EP2 = E2 / (1.0 - E2)              #: second eccentricity squared
-OMEGA_EARTH = 7.2921150e-5         #: Earth rotation rate, rad/s
-GM = 3.986004418e14                #: geocentric gravitational constant, m^3/s^2
+A = 6378137.0  #: semi-major axis, m
+F = 1.0 / 298.257223563  #: flattening
+B = A * (1.0 - F)  #: semi-minor axis, m
+E2 = F * (2.0 - F)  #: first eccentricity squared
+EP2 = E2 / (1.0 - E2)  #: second eccentricity squared
+OMEGA_EARTH = 7.2921150e-5  #: Earth rotation rate, rad/s
+GM = 3.986004418e14  #: geocentric gravitational constant, m^3/s^2
 
 WGS84_3D = CRS.from_epsg(4979)
 ECEF = CRS.from_epsg(4978)
@@ -145,6 +146,7 @@ def _crs_key(crs):
 
 # --------------------------------------------------------------------------- geoid (EGM96)
 
+
 def egm96_path() -> Path:
     """Path of the bundled EGM96 15' geoid grid (GTX, geoid height above WGS84, metres)."""
     return Path(resources.files("stereodem.core") / "data" / "egm96_15.gtx")
@@ -188,6 +190,7 @@ def ellipsoid_to_geoid(lon, lat, h):
 
 # --------------------------------------------------------------------------- rays
 
+
 def intersect_height(origin, direction, h, iterations: int = 6):
     """Intersect rays with the surface of constant ellipsoidal height ``h``.
 
@@ -225,7 +228,7 @@ def intersect_height(origin, direction, h, iterations: int = 6):
     disc = beta**2 - alpha * gamma
     with np.errstate(invalid="ignore"):
         s = (-beta - np.sqrt(disc)) / alpha
-    s = np.where(s > 0, s, np.nan)          # the surface must lie ahead of the origin
+    s = np.where(s > 0, s, np.nan)  # the surface must lie ahead of the origin
     for _ in range(iterations):
         p = o + s[..., None] * d
         lon, lat, hp = ecef_to_geodetic(p[..., 0], p[..., 1], p[..., 2])

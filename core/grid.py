@@ -5,6 +5,7 @@ The transform is GDAL's pixel-corner affine (rasterio convention): cell ``[i, j]
 centre at ``transform * (j + 0.5, i + 0.5)``. ``width``/``height`` count columns and rows, as
 in rasterio's datasets.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -34,11 +35,12 @@ def map_crs(crs, what: str = "CRS") -> CRS:
     try:
         c = CRS.from_user_input(crs)
     except Exception as exc:
-        raise CRSError(f"{what}: unknown or unusable CRS {crs!r} ({' '.join(str(exc).split())})") from None
+        raise CRSError(
+            f"{what}: unknown or unusable CRS {crs!r} ({' '.join(str(exc).split())})"
+        ) from None
     horizontal = c.sub_crs_list[0] if c.is_compound and c.sub_crs_list else c
     if not (horizontal.is_projected or horizontal.is_geographic) or horizontal.is_geocentric:
-        raise CRSError(f"{what}: CRS {crs!r} ({c.name}) is not a map CRS (projected or "
-                       "geographic)")
+        raise CRSError(f"{what}: CRS {crs!r} ({c.name}) is not a map CRS (projected or geographic)")
     return c
 
 
@@ -88,8 +90,10 @@ class MapGrid:
     def xy(self, cols, rows):
         """Map coordinates of cell centres at (fractional) grid ``cols, rows`` (0 = first centre)."""
         t = self.transform
-        return (t.c + t.a * (np.asarray(cols, float) + 0.5),
-                t.f + t.e * (np.asarray(rows, float) + 0.5))
+        return (
+            t.c + t.a * (np.asarray(cols, float) + 0.5),
+            t.f + t.e * (np.asarray(rows, float) + 0.5),
+        )
 
     def colrow(self, x, y):
         """Fractional grid (col, row) of map points, cell centres at integers."""
@@ -102,7 +106,9 @@ class MapGrid:
 
     def window(self, row0: int, row1: int) -> MapGrid:
         """The sub-grid of rows ``row0:row1``."""
-        return MapGrid(self.transform @ Affine.translation(0, row0), self.width, row1 - row0, self.crs)
+        return MapGrid(
+            self.transform @ Affine.translation(0, row0), self.width, row1 - row0, self.crs
+        )
 
     @property
     def posting(self) -> float:

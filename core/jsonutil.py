@@ -1,4 +1,5 @@
 """JSON of numpy values: the ``default=`` hook every JSON writer of the project uses."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -5,6 +5,7 @@ The limit is the memory the system can give now (``MemAvailable`` of ``/proc/mem
 the physical memory), so a request that cannot succeed fails at once with a message naming
 what was asked for, instead of a ``MemoryError`` or the OOM killer after minutes of work.
 """
+
 from __future__ import annotations
 
 import os
@@ -27,7 +28,7 @@ def available_bytes() -> int:
     try:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):  # pragma: no cover
-        return 2 ** 63
+        return 2**63
 
 
 def human_bytes(n: float) -> str:
@@ -39,10 +40,14 @@ def human_bytes(n: float) -> str:
     return f"{n:.3g} PB"  # pragma: no cover
 
 
-def check_allocation(nbytes: float, what: str, *, fraction: float = 0.8, limit: float | None = None):
+def check_allocation(
+    nbytes: float, what: str, *, fraction: float = 0.8, limit: float | None = None
+):
     """Raise :class:`InputError` if ``nbytes`` exceed ``fraction`` of the available memory
     (or ``limit`` bytes when given); ``what`` names the request in the message."""
     cap = limit if limit is not None else fraction * available_bytes()
     if nbytes > cap:
-        raise InputError(f"{what} needs {human_bytes(nbytes)} of memory, more than the "
-                         f"{human_bytes(cap)} available")
+        raise InputError(
+            f"{what} needs {human_bytes(nbytes)} of memory, more than the "
+            f"{human_bytes(cap)} available"
+        )

@@ -5,6 +5,7 @@ A raster is written to a temporary file in the destination folder and moved into
 final name. Rasters are Cloud-Optimised GeoTIFFs (GDAL's COG driver) with the vertical
 reference of heights in the CRS; every file gets the permissions of the umask.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -46,8 +47,9 @@ def check_creatable(path) -> Path:
     try:
         fd, probe = tempfile.mkstemp(prefix=".stereodem-probe-", dir=anc)
     except OSError as exc:
-        raise OutputExistsError(f"{path}: cannot be created ({anc} is not a writable folder: "
-                                f"{exc.strerror})") from None
+        raise OutputExistsError(
+            f"{path}: cannot be created ({anc} is not a writable folder: {exc.strerror})"
+        ) from None
     os.close(fd)
     os.unlink(probe)
     return path
@@ -99,7 +101,7 @@ def atomic_path(path: Path):
                 os.chmod(side_tmp, mode)
                 os.replace(side_tmp, side)
             elif os.path.exists(side):
-                os.unlink(side)            # belonged to the file being replaced
+                os.unlink(side)  # belonged to the file being replaced
         os.replace(tmp, path)
     finally:
         for f in (tmp, *_sidecars(tmp)):
@@ -114,7 +116,9 @@ def check_output_dir(path, *, overwrite: bool = False) -> Path:
     if path.exists() and not path.is_dir():
         raise OutputExistsError(f"{path}: exists and is not a folder")
     if path.is_dir() and any(path.iterdir()) and not overwrite:
-        raise OutputExistsError(f"{path}: folder exists and is not empty; pass --overwrite to reuse it")
+        raise OutputExistsError(
+            f"{path}: folder exists and is not empty; pass --overwrite to reuse it"
+        )
     check_creatable(path / "x" if path.is_dir() else path)
     return path
 
@@ -130,8 +134,12 @@ def prepare_output_dir(path, *, overwrite: bool = False) -> Path:
 
 
 #: default GDAL creation options of every GeoTIFF written (Cloud-Optimised GeoTIFF driver)
-COG_DEFAULTS = {"COMPRESS": "DEFLATE", "BLOCKSIZE": "256", "OVERVIEWS": "AUTO",
-                "BIGTIFF": "IF_SAFER"}
+COG_DEFAULTS = {
+    "COMPRESS": "DEFLATE",
+    "BLOCKSIZE": "256",
+    "OVERVIEWS": "AUTO",
+    "BIGTIFF": "IF_SAFER",
+}
 
 #: the private tag stereodem wrote before the vertical reference went into the CRS (still
 #: written, and read by :meth:`stereodem.core.dem.DEM.from_file`, for old readers)
@@ -175,27 +183,40 @@ def crs_with_vertical(crs, vertical: str | None):
         return crs
     h = PCRS.from_user_input(crs)
     if h.is_compound or len(h.axis_info) == 3:
-        return h                                   # already carries a vertical axis
+        return h  # already carries a vertical axis
     if vertical == "geoid":
         return PCRS.from_user_input(CompoundCRS(f"{h.name} + EGM96 height", [h, PCRS("EPSG:5773")]))
     if vertical == "ellipsoid":
-        return PCRS("EPSG:4979") if h.equals(PCRS("EPSG:4326"), ignore_axis_order=True) else h.to_3d()
+        return (
+            PCRS("EPSG:4979") if h.equals(PCRS("EPSG:4326"), ignore_axis_order=True) else h.to_3d()
+        )
     raise InputError(f"vertical reference must be 'geoid' or 'ellipsoid', got {vertical!r}")
 
 
-def cog_creation_options(dtype, creation_options=None, *, overview_resampling=None,
-                         compress=None) -> dict:
+def cog_creation_options(
+    dtype, creation_options=None, *, overview_resampling=None, compress=None
+) -> dict:
     """GDAL COG creation options of a product of ``dtype``: :data:`COG_DEFAULTS`, the predictor
     of the data type, overview resampling (``average`` for floats, ``nearest`` for integers),
     then ``compress`` and the user's ``creation_options`` on top."""
     is_float = np.issubdtype(np.dtype(dtype), np.floating)
-    co = dict(COG_DEFAULTS, PREDICTOR=predictor_for(dtype),
-              OVERVIEW_RESAMPLING=(overview_resampling or ("average" if is_float else "nearest")).upper())
+    co = dict(
+        COG_DEFAULTS,
+        PREDICTOR=predictor_for(dtype),
+        OVERVIEW_RESAMPLING=(overview_resampling or ("average" if is_float else "nearest")).upper(),
+    )
     if compress:
         co["COMPRESS"] = str(compress).upper()
     co.update(parse_creation_options(creation_options))
-    if co.get("COMPRESS", "").upper() in ("NONE", "JPEG", "WEBP", "LERC", "LERC_DEFLATE", "LERC_ZSTD"):
-        co.pop("PREDICTOR", None)               # predictor applies to LZW/DEFLATE/ZSTD only
+    if co.get("COMPRESS", "").upper() in (
+        "NONE",
+        "JPEG",
+        "WEBP",
+        "LERC",
+        "LERC_DEFLATE",
+        "LERC_ZSTD",
+    ):
+        co.pop("PREDICTOR", None)  # predictor applies to LZW/DEFLATE/ZSTD only
     return co
 
 
@@ -210,10 +231,26 @@ def _as_list(value, count, what):
     return value
 
 
-def write_geotiff(path, data, transform=None, crs=None, nodata=None, *, overwrite=False,
-                  tags=None, band_tags=None, rpcs=None, compress=None, dtype=None,
-                  vertical=None, descriptions=None, units=None, creation_options=None,
-                  overview_resampling=None, mask=None):
+def write_geotiff(
+    path,
+    data,
+    transform=None,
+    crs=None,
+    nodata=None,
+    *,
+    overwrite=False,
+    tags=None,
+    band_tags=None,
+    rpcs=None,
+    compress=None,
+    dtype=None,
+    vertical=None,
+    descriptions=None,
+    units=None,
+    creation_options=None,
+    overview_resampling=None,
+    mask=None,
+):
     """Write ``data`` (2-D, or 3-D band-first) atomically as a Cloud-Optimised GeoTIFF.
 
     GDAL's COG driver (through rasterio) lays the file out for range reads: 256² tiles,
@@ -270,13 +307,21 @@ def write_geotiff(path, data, transform=None, crs=None, nodata=None, *, overwrit
     if vertical:
         tags[VERTICAL_TAG] = vertical
     crs = crs_with_vertical(crs, vertical)
-    co = cog_creation_options(arr.dtype, creation_options, overview_resampling=overview_resampling,
-                              compress=compress)
+    co = cog_creation_options(
+        arr.dtype, creation_options, overview_resampling=overview_resampling, compress=compress
+    )
     count = arr.shape[0]
     descriptions = _as_list(descriptions, count, "descriptions")
     units = _as_list(units, count, "units")
-    profile = dict(driver="COG", width=arr.shape[2], height=arr.shape[1], count=count,
-                   dtype=arr.dtype, nodata=nodata, **{k.lower(): v for k, v in co.items()})
+    profile = dict(
+        driver="COG",
+        width=arr.shape[2],
+        height=arr.shape[1],
+        count=count,
+        dtype=arr.dtype,
+        nodata=nodata,
+        **{k.lower(): v for k, v in co.items()},
+    )
     if crs is not None:
         profile["crs"] = rasterio.crs.CRS.from_wkt(PCRS.from_user_input(crs).to_wkt())
     if transform is not None:
@@ -326,24 +371,31 @@ def read_image(path, band: int = 1) -> np.ndarray:
     band.
     """
     from stereodem.core.errors import InputError
+
     try:
         with reading_env(), rasterio.open(path) as ds:
             if not 1 <= int(band) <= ds.count:
                 raise InputError(f"{path}: no band {band} (the image has {ds.count})")
             from .memory import check_allocation  # before reading: the header may lie
-            check_allocation(ds.width * ds.height * (4 + np.dtype(ds.dtypes[band - 1]).itemsize + 1),
-                             f"{path}: reading its {ds.width} x {ds.height} pixels")
+
+            check_allocation(
+                ds.width * ds.height * (4 + np.dtype(ds.dtypes[band - 1]).itemsize + 1),
+                f"{path}: reading its {ds.width} x {ds.height} pixels",
+            )
             data = ds.read(int(band), masked=True)
     except rasterio.errors.RasterioIOError as exc:
-        raise InputError(f"{path}: cannot read the image ({str(exc).splitlines()[0][:120]})") from None
+        raise InputError(
+            f"{path}: cannot read the image ({str(exc).splitlines()[0][:120]})"
+        ) from None
     img = np.ma.getdata(data).astype(np.float32)
-    img[np.ma.getmaskarray(data) | ~np.isfinite(img)] = np.nan     # +-inf too (defective L1 columns)
+    img[np.ma.getmaskarray(data) | ~np.isfinite(img)] = np.nan  # +-inf too (defective L1 columns)
     return img
 
 
 def image_dtype(path, band: int = 1) -> np.dtype:
     """The stored data type of one band of an image (products keep it, e.g. orthoimages)."""
     from stereodem.core.errors import InputError
+
     try:
         with rasterio.open(path) as ds:
             return np.dtype(ds.dtypes[int(band) - 1])

@@ -1,4 +1,5 @@
 """Robust statistics shared by every package (issue #23: one NMAD)."""
+
 from __future__ import annotations
 
 import warnings
@@ -18,7 +19,7 @@ def nmad(x, axis=None):
     if axis is not None:
         a = np.asarray(x, dtype=np.float64)
         with np.errstate(invalid="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)      # all-NaN columns -> NaN
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns -> NaN
             med = np.nanmedian(a, axis=axis, keepdims=True)
             return NMAD_FACTOR * np.nanmedian(np.abs(a - med), axis=axis)
     x = np.asarray(x, dtype=np.float64)

@@ -21,14 +21,20 @@ A job has one setting, ``--workers`` / ``[run] workers`` (N, default all cores).
 :func:`pool_initializer` is the process-pool ``initializer`` and :func:`register_dask_plugin`
 installs the Dask worker plugin that do the same in every worker.
 """
+
 from __future__ import annotations
 
 import contextlib
 import os
 
-_ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
-             "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
-_LIMITS = None          # the threadpoolctl limiter of this process (kept alive: the pin holds)
+_ENV_VARS = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+)
+_LIMITS = None  # the threadpoolctl limiter of this process (kept alive: the pin holds)
 _PINNED: int | None = None
 
 
@@ -61,10 +67,13 @@ def pin_threads(n: int) -> dict:
         os.environ[var] = str(n)
     os.environ["GDAL_NUM_THREADS"] = str(n)
     from rasterio.env import set_gdal_config
+
     set_gdal_config("GDAL_NUM_THREADS", str(n))
     from threadpoolctl import threadpool_limits
-    _LIMITS = threadpool_limits(limits=n)            # every loaded BLAS and OpenMP runtime
+
+    _LIMITS = threadpool_limits(limits=n)  # every loaded BLAS and OpenMP runtime
     import cv2
+
     cv2.setNumThreads(n)
     _PINNED = n
     return current_limits()
@@ -77,11 +86,13 @@ def thread_budget(n: int | None):
     global _LIMITS, _PINNED
     import cv2
     from threadpoolctl import threadpool_limits
+
     saved_env = {v: os.environ.get(v) for v in (*_ENV_VARS, "GDAL_NUM_THREADS")}
     saved = (_LIMITS, _PINNED, cv2.getNumThreads())
     from rasterio.env import get_gdal_config, set_gdal_config
+
     saved_gdal = get_gdal_config("GDAL_NUM_THREADS")
-    outer = threadpool_limits(limits=None)        # a record of the limits before the block
+    outer = threadpool_limits(limits=None)  # a record of the limits before the block
     try:
         pin_threads(job_threads(n))
         yield current_limits()
@@ -93,8 +104,9 @@ def thread_budget(n: int | None):
                 os.environ.pop(var, None)
             else:
                 os.environ[var] = value
-        if saved_gdal is None:               # unset it (set_gdal_config(k, None) sets "None")
+        if saved_gdal is None:  # unset it (set_gdal_config(k, None) sets "None")
             from rasterio._env import del_gdal_config
+
             del_gdal_config("GDAL_NUM_THREADS")
         else:
             set_gdal_config("GDAL_NUM_THREADS", saved_gdal)
@@ -112,12 +124,14 @@ def current_limits() -> dict:
     ``gdal`` (``GDAL_NUM_THREADS`` as GDAL sees it) and the ``pinned`` budget."""
     import cv2
     from threadpoolctl import threadpool_info
+
     out = {"opencv": cv2.getNumThreads(), "blas": None, "openmp": None}
     for pool in threadpool_info():
         api = pool.get("user_api")
         if api in ("blas", "openmp"):
             out[api] = max(out[api] or 0, int(pool["num_threads"]))
     from rasterio.env import get_gdal_config
+
     gdal = get_gdal_config("GDAL_NUM_THREADS")
     out["gdal"] = str(gdal if gdal is not None else os.environ.get("GDAL_NUM_THREADS"))
     out["pinned"] = _PINNED
@@ -137,6 +151,7 @@ def register_dask_plugin(client, threads: int | None = None):
     slot (default: the node's cores shared out over the worker's task slots):
     :class:`stereodem.core.dask_threads.ThreadsPlugin`."""
     from .dask_threads import ThreadsPlugin
+
     plugin = ThreadsPlugin(threads)
     if hasattr(client, "register_plugin"):
         client.register_plugin(plugin, name=ThreadsPlugin.name)

@@ -1,6 +1,7 @@
 """Vertical references of heights: the names every package, the command line, the
 configuration checks and the docs take their choices from (a light module: the CLI's
 parsers import it)."""
+
 from typing import Literal, get_args
 
 GEOID, ELLIPSOID = "geoid", "ellipsoid"

@@ -11,6 +11,7 @@ the node). Run it again after an interruption: finished scenes are skipped, fail
 The same as ``stereodem batch scenes.txt -o OUT --dask tcp://scheduler:8786`` against a
 scheduler started by hand.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,7 +27,9 @@ def main(argv=None):
     p.add_argument("--template", help="configuration for granules")
     p.add_argument("--jobs", type=int, default=4, help="node allocations (Slurm/PBS jobs)")
     p.add_argument("--cores", type=int, default=16, help="cores per job = scenes at once per job")
-    p.add_argument("--memory", default="64GB", help="memory per job (a full granule: ~1.5 GB/scene)")
+    p.add_argument(
+        "--memory", default="64GB", help="memory per job (a full granule: ~1.5 GB/scene)"
+    )
     p.add_argument("--walltime", default="04:00:00")
     p.add_argument("--queue", help="partition / queue")
     p.add_argument("--pbs", action="store_true", help="PBS instead of Slurm")
@@ -34,9 +37,16 @@ def main(argv=None):
 
     from dask.distributed import Client
     from dask_jobqueue import PBSCluster, SLURMCluster
+
     Cluster = PBSCluster if a.pbs else SLURMCluster
-    cluster = Cluster(cores=a.cores, processes=a.cores, memory=a.memory, walltime=a.walltime,
-                      queue=a.queue, job_name="stereodem")
+    cluster = Cluster(
+        cores=a.cores,
+        processes=a.cores,
+        memory=a.memory,
+        walltime=a.walltime,
+        queue=a.queue,
+        job_name="stereodem",
+    )
     cluster.scale(jobs=a.jobs)
     print(cluster.job_script())
     with Client(cluster) as client:

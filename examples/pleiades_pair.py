@@ -12,6 +12,7 @@ Equivalent command line:
         --height-range 2100 2600
     stereodem assess pleiades_out/dem.tif --ref expected_dsm.tif --ref-vertical ellipsoid -o pleiades_out/assess
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,7 +23,9 @@ from stereodem import cli
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("pair_dir", type=Path)
     ap.add_argument("-o", "--out", type=Path, default=Path("pleiades_out"))
     args = ap.parse_args(argv)
@@ -30,13 +33,40 @@ def main(argv=None):
     for name in ("img_01.tif", "img_02.tif", "expected_dsm.tif"):
         if not (d / name).exists():
             sys.exit(f"{d / name}: not found (see the docstring for where the pair lives)")
-    rc = cli.main(["dem", str(d / "img_01.tif"), str(d / "img_02.tif"), "-o", str(args.out), "--res", "0.5",
-                   "--crs", "EPSG:32740", "--height-range", "2100", "2600", "--overwrite"])
+    rc = cli.main(
+        [
+            "dem",
+            str(d / "img_01.tif"),
+            str(d / "img_02.tif"),
+            "-o",
+            str(args.out),
+            "--res",
+            "0.5",
+            "--crs",
+            "EPSG:32740",
+            "--height-range",
+            "2100",
+            "2600",
+            "--overwrite",
+        ]
+    )
     if rc:
         return rc
-    return cli.main(["assess", str(args.out / "dem.tif"), "--ref", str(d / "expected_dsm.tif"),
-                     "--dem-vertical", "ellipsoid", "--ref-vertical", "ellipsoid",
-                     "-o", str(args.out / "assess"), "--overwrite"])
+    return cli.main(
+        [
+            "assess",
+            str(args.out / "dem.tif"),
+            "--ref",
+            str(d / "expected_dsm.tif"),
+            "--dem-vertical",
+            "ellipsoid",
+            "--ref-vertical",
+            "ellipsoid",
+            "-o",
+            str(args.out / "assess"),
+            "--overwrite",
+        ]
+    )
 
 
 if __name__ == "__main__":

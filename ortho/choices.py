@@ -1,5 +1,6 @@
 """Option choices of the orthoimage and uncertainty steps, as the command line, the
 configuration checks and the docs take them (a light module: no OpenCV)."""
+
 from typing import Literal, get_args
 
 #: image resampling of the orthoimage (OpenCV kernels, :data:`stereodem.ortho.drm.RESAMPLING`)

@@ -8,6 +8,7 @@ map, validity erosion) overlap the other's, and shares the budget out: ``threads
 ``threads // concurrent`` row-block threads for each. :func:`stereodem.ortho.drm.orthorectify`
 does not depend on its thread count, so the orthoimages are those of the serial calls.
 """
+
 from __future__ import annotations
 
 import threading
@@ -20,8 +21,17 @@ from .drm import Ortho, orthorectify
 from .grid import grid_for_model
 
 
-def orthorectify_all(images, dem, *, grid: MapGrid | None = None, res: float | None = None,
-                     crs=None, threads: int = 1, progress=None, **options) -> dict[str, Ortho]:
+def orthorectify_all(
+    images,
+    dem,
+    *,
+    grid: MapGrid | None = None,
+    res: float | None = None,
+    crs=None,
+    threads: int = 1,
+    progress=None,
+    **options,
+) -> dict[str, Ortho]:
     """``{name: Ortho}`` of ``images`` (``[(name, image, model), ...]``) against ``dem``, all
     on ``grid`` (default :func:`~stereodem.ortho.grid.grid_for_model` of the first image with
     ``res`` metres and ``crs``, as :func:`~stereodem.ortho.drm.orthorectify` lays it).
@@ -51,8 +61,9 @@ def orthorectify_all(images, dem, *, grid: MapGrid | None = None, res: float | N
                     done[name] = rows
                     progress(sum(done.values()), total)
 
-        return name, orthorectify(image, model, dem, grid=grid, threads=each, progress=step,
-                                  **options)
+        return name, orthorectify(
+            image, model, dem, grid=grid, threads=each, progress=step, **options
+        )
 
     if running == 1:
         return dict(map(one, images))

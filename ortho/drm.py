@@ -20,6 +20,7 @@ Resampling is :func:`cv2.remap` (bilinear, bicubic, Lanczos-4 or nearest) on row
 nodata when the kernel touches an image nodata pixel or leaves the image, when the DEM has no
 height there, or when it falls outside the image footprint.
 """
+
 from __future__ import annotations
 
 import logging
@@ -38,13 +39,18 @@ from .grid import grid_for_model
 
 log = logging.getLogger(__name__)
 
-RESAMPLING = {"nearest": cv2.INTER_NEAREST, "bilinear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC,
-              "lanczos": cv2.INTER_LANCZOS4}
+RESAMPLING = {
+    "nearest": cv2.INTER_NEAREST,
+    "bilinear": cv2.INTER_LINEAR,
+    "cubic": cv2.INTER_CUBIC,
+    "lanczos": cv2.INTER_LANCZOS4,
+}
 # kernel support (size, anchor) of each interpolation, for the nodata test
 _SUPPORT = {"nearest": (1, 0), "bilinear": (2, 0), "cubic": (4, 1), "lanczos": (8, 3)}
 
 
 # --------------------------------------------------------------------------- DEM on the grid
+
 
 def crop_dem(dem: DEM, grid: MapGrid, *, margin: int = 3, fill: DEM | None = None) -> DEM:
     """The part of ``dem`` under ``grid`` (plus ``margin`` DEM cells), heights ellipsoidal.
@@ -70,9 +76,15 @@ def crop_dem(dem: DEM, grid: MapGrid, *, margin: int = 3, fill: DEM | None = Non
         raise DEMCoverageError(
             f"{dem.path or 'DEM'}: the DEM does not cover the orthoimage area lon "
             f"{np.nanmin(lon):.5f}..{np.nanmax(lon):.5f}, lat {np.nanmin(lat):.5f}..{np.nanmax(lat):.5f} "
-            f"(DEM extent lon/lat {tuple(round(v, 5) for v in dem.bounds_lonlat())})")
-    sub = DEM(dem.heights[r0:r1, c0:c1].copy(), dem.transform @ Affine.translation(c0, r0),
-              dem.crs, dem.vertical, dem.path)
+            f"(DEM extent lon/lat {tuple(round(v, 5) for v in dem.bounds_lonlat())})"
+        )
+    sub = DEM(
+        dem.heights[r0:r1, c0:c1].copy(),
+        dem.transform @ Affine.translation(c0, r0),
+        dem.crs,
+        dem.vertical,
+        dem.path,
+    )
     return sub.to_reference(ELLIPSOID)
 
 
@@ -83,18 +95,23 @@ def _crop_filled(dem: DEM, fill: DEM, c0, r0, c1, r1) -> DEM:
     h = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
     a0, b0, a1, b1 = max(c0, 0), max(r0, 0), min(c1, cols), min(r1, rows)
     if a1 > a0 and b1 > b0:
-        h[b0 - r0:b1 - r0, a0 - c0:a1 - c0] = dem.heights[b0:b1, a0:a1]
+        h[b0 - r0 : b1 - r0, a0 - c0 : a1 - c0] = dem.heights[b0:b1, a0:a1]
     transform = dem.transform @ Affine.translation(c0, r0)
     rr, cc = np.nonzero(~np.isfinite(h))
     if np.isfinite(h).any():
-        h = DEM(h, transform, dem.crs, dem.vertical, dem.path).to_reference(ELLIPSOID).heights.copy()
+        h = (
+            DEM(h, transform, dem.crs, dem.vertical, dem.path)
+            .to_reference(ELLIPSOID)
+            .heights.copy()
+        )
     if rr.size:
         x, y = transform @ (cc + 0.5, rr + 0.5)
         lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), dem.crs)
         h[rr, cc] = fill.sample(lon, lat, reference=ELLIPSOID)
     if not np.isfinite(h).any():
-        raise DEMCoverageError(f"{dem.path or 'DEM'} and {fill.path or 'fill DEM'}: neither covers "
-                               f"the orthoimage area")
+        raise DEMCoverageError(
+            f"{dem.path or 'DEM'} and {fill.path or 'fill DEM'}: neither covers the orthoimage area"
+        )
     out = DEM(h, transform, dem.crs, ELLIPSOID, dem.path)
     out.filled_cells = int(rr.size - np.count_nonzero(~np.isfinite(h[rr, cc])))
     return out
@@ -106,6 +123,7 @@ def _check_rpc_heights(model, dem: DEM):
     or the wrong DEM)."""
     from stereodem.sensor.models.rpc import RPCModel
     from stereodem.sensor.models.rpc_direct import check_validity
+
     inner = model
     while not isinstance(inner, RPCModel) and hasattr(inner, "model"):
         inner = inner.model
@@ -130,21 +148,23 @@ def bilinear_nan(array, c, r, *, dtype=np.float64):
     rows, cols = array.shape
     c, r = np.asarray(c), np.asarray(r)
     inside = (c >= 0) & (r >= 0) & (c <= cols - 1) & (r <= rows - 1)
-    itype = np.int32 if rows * cols < 2 ** 31 - cols - 2 else np.intp    # int32: faster gathers
+    itype = np.int32 if rows * cols < 2**31 - cols - 2 else np.intp  # int32: faster gathers
     c0 = np.minimum(np.where(inside, c, 0).astype(itype), max(cols - 2, 0))
     r0 = np.minimum(np.where(inside, r, 0).astype(itype), max(rows - 2, 0))
     fc = np.subtract(c, c0, dtype=dtype)
     fr = np.subtract(r, r0, dtype=dtype)
     idx = r0 * itype(cols) + c0
     flat = np.asarray(array).ravel()
-    z00, z01, z10, z11 = (flat.take(i, mode="clip").astype(dtype, copy=False)
-                          for i in (idx, idx + 1, idx + cols, idx + cols + 1))
+    z00, z01, z10, z11 = (
+        flat.take(i, mode="clip").astype(dtype, copy=False)
+        for i in (idx, idx + 1, idx + cols, idx + cols + 1)
+    )
     z01 -= z00
     z01 *= fc
-    z01 += z00                                   # top edge
+    z01 += z00  # top edge
     z11 -= z10
     z11 *= fc
-    z11 += z10                                   # bottom edge
+    z11 += z10  # bottom edge
     z11 -= z01
     z11 *= fr
     z11 += z01
@@ -153,6 +173,7 @@ def bilinear_nan(array, c, r, *, dtype=np.float64):
 
 
 # --------------------------------------------------------------------------- backward map
+
 
 def _cheb_nodes(lo, hi, k):
     j = np.arange(k)
@@ -216,8 +237,9 @@ class BackwardMap:
 
     @staticmethod
     def _lerp2(a, i, j, t, s):
-        return ((1 - s) * ((1 - t) * a[..., j, i] + t * a[..., j, i + 1])
-                + s * ((1 - t) * a[..., j + 1, i] + t * a[..., j + 1, i + 1]))
+        return (1 - s) * ((1 - t) * a[..., j, i] + t * a[..., j, i + 1]) + s * (
+            (1 - t) * a[..., j + 1, i] + t * a[..., j + 1, i + 1]
+        )
 
     def _horner(self, coefs, h):
         tn = (np.asarray(h, float) - self.h_mid) / self.h_half
@@ -229,7 +251,9 @@ class BackwardMap:
     def image_coords_grid(self, u, v, h):
         """Image ``(col, row)`` of ground points at fractional grid coordinates ``u, v``
         (cell centres at integers) and ellipsoidal heights ``h`` (m)."""
-        u, v, h = np.broadcast_arrays(np.asarray(u, float), np.asarray(v, float), np.asarray(h, float))
+        u, v, h = np.broadcast_arrays(
+            np.asarray(u, float), np.asarray(v, float), np.asarray(h, float)
+        )
         i, j, t, s = self._weights(u, v)
         cc = self._lerp2(self.coef_col, i, j, t, s)
         rc = self._lerp2(self.coef_row, i, j, t, s)
@@ -271,7 +295,7 @@ class BackwardMap:
         lo, hi = int(j.min()), int(j.max()) + 2
         i, t = self._x_weights(nx)
         sub = planes[:, lo:hi]
-        ax = sub[:, :, i] * (1 - t) + sub[:, :, i + 1] * t              # (P, nsub, W)
+        ax = sub[:, :, i] * (1 - t) + sub[:, :, i + 1] * t  # (P, nsub, W)
         a0 = ax[:, j - lo]
         return a0 + s[None, :, None] * (ax[:, j + 1 - lo] - a0)
 
@@ -280,11 +304,12 @@ class BackwardMap:
         ``(A, D)`` with ``A[:, j]`` the values on lattice row ``j`` and ``D[:, j]`` the
         difference to row ``j + 1``; planes are DEM col, DEM row, col and row coefficients."""
         if self._planes is None:
-            planes = np.concatenate([self.dem_col[None], self.dem_row[None],
-                                     self.coef_col, self.coef_row])
+            planes = np.concatenate(
+                [self.dem_col[None], self.dem_row[None], self.coef_col, self.coef_row]
+            )
             nx = planes.shape[2]
             i, t = self._x_weights(nx)
-            ax = planes[:, :, i] * (1 - t) + planes[:, :, i + 1] * t      # float64 (P, ny, W)
+            ax = planes[:, :, i] * (1 - t) + planes[:, :, i + 1] * t  # float64 (P, ny, W)
             d = np.diff(ax, axis=1)
             self._planes = (ax[:, :-1].astype(np.float32), d.astype(np.float32))
         return self._planes
@@ -332,6 +357,7 @@ class BackwardMap:
                 out *= tn
                 out += plane(first + m)
             return out
+
         if dem_coords:
             return horner(2), horner(2 + k), h, dc, dr
         return horner(2), horner(2 + k), h
@@ -350,12 +376,26 @@ def _project_lattice(model, grid, step, h_nodes, dem):
     cols, rows = model.project(lon[None], lat[None], np.asarray(h_nodes, float)[:, None, None])
     dx, dy = geodesy.lonlat_to_crs(lon, lat, dem.crs)
     dc, dr = ~dem.transform @ (np.asarray(dx), np.asarray(dy))
-    return np.asarray(cols, float), np.asarray(rows, float), np.asarray(dc) - 0.5, np.asarray(dr) - 0.5
+    return (
+        np.asarray(cols, float),
+        np.asarray(rows, float),
+        np.asarray(dc) - 0.5,
+        np.asarray(dr) - 0.5,
+    )
 
 
-def build_backward_map(model, grid: MapGrid, dem: DEM, *, tolerance: float = 0.01,
-                       h_range=None, step: int | None = None, n_heights: int = 2,
-                       n_check: int = 4000, seed: int = 0) -> BackwardMap:
+def build_backward_map(
+    model,
+    grid: MapGrid,
+    dem: DEM,
+    *,
+    tolerance: float = 0.01,
+    h_range=None,
+    step: int | None = None,
+    n_heights: int = 2,
+    n_check: int = 4000,
+    seed: int = 0,
+) -> BackwardMap:
     """Build the interpolated ground -> image map of ``grid`` for ``model`` over ``dem``.
 
     Parameters
@@ -384,7 +424,9 @@ def build_backward_map(model, grid: MapGrid, dem: DEM, *, tolerance: float = 0.0
     lo, hi = lo - pad, hi + pad
     h_mid, h_half = 0.5 * (lo + hi), 0.5 * (hi - lo)
     rng = np.random.default_rng(seed)
-    step = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(grid.width, grid.height) / 2))))))
+    step = int(
+        step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(grid.width, grid.height) / 2)))))
+    )
     k = int(n_heights)
     n_eval = 0
     history = []
@@ -393,7 +435,7 @@ def build_backward_map(model, grid: MapGrid, dem: DEM, *, tolerance: float = 0.0
         C, R, DC, DR = _project_lattice(model, grid, step, h_nodes, dem)
         n_eval += C.size
         tn = (h_nodes - h_mid) / h_half
-        vinv = np.linalg.inv(np.vander(tn, k, increasing=True))       # node values -> monomials
+        vinv = np.linalg.inv(np.vander(tn, k, increasing=True))  # node values -> monomials
         coef_c = np.einsum("mk,kyx->myx", vinv, C)
         coef_r = np.einsum("mk,kyx->myx", vinv, R)
         bm = BackwardMap(grid, step, h_nodes, h_mid, h_half, coef_c, coef_r, dem, DC, DR)
@@ -414,7 +456,9 @@ def build_backward_map(model, grid: MapGrid, dem: DEM, *, tolerance: float = 0.0
         err = np.hypot(ci - ce, ri - re)
         ok = np.isfinite(ce) & np.isfinite(re)
         if not ok.any():
-            raise SensorModelError(f"{type(model).__name__}: the model gives no image position on the grid")
+            raise SensorModelError(
+                f"{type(model).__name__}: the model gives no image position on the grid"
+            )
         e_tot = float(np.nanmax(err[ok])) if np.isfinite(err[ok]).all() else float("inf")
         # split the error: at node heights only the x,y interpolation acts
         kk = rng.integers(0, k, u.size)
@@ -426,8 +470,12 @@ def build_backward_map(model, grid: MapGrid, dem: DEM, *, tolerance: float = 0.0
         dce, dre = ~dem.transform @ (np.asarray(dx), np.asarray(dy))
         dci, dri = bm.dem_coords_grid(u, v)
         e_dem = float(np.max(np.hypot(dci - (dce - 0.5), dri - (dre - 0.5))))
-        history.append(dict(step=step, n_heights=k, error_px=e_tot, error_xy_px=e_xy, error_dem_px=e_dem))
-        log.debug("backward map: step %d, %d heights: error %.2e px (xy %.2e)", step, k, e_tot, e_xy)
+        history.append(
+            dict(step=step, n_heights=k, error_px=e_tot, error_xy_px=e_xy, error_dem_px=e_dem)
+        )
+        log.debug(
+            "backward map: step %d, %d heights: error %.2e px (xy %.2e)", step, k, e_tot, e_xy
+        )
         if e_tot <= tolerance and e_dem <= 1e-3:
             break
         refined = False
@@ -443,12 +491,17 @@ def build_backward_map(model, grid: MapGrid, dem: DEM, *, tolerance: float = 0.0
             else:
                 break
     if e_tot > tolerance:
-        log.warning("backward map: interpolation error %.3g px exceeds the %.3g px tolerance", e_tot, tolerance)
+        log.warning(
+            "backward map: interpolation error %.3g px exceeds the %.3g px tolerance",
+            e_tot,
+            tolerance,
+        )
     bm.error_px, bm.error_dem_px, bm.n_model_points, bm.history = e_tot, e_dem, n_eval, history
     return bm
 
 
 # --------------------------------------------------------------------------- resampling
+
 
 def _as_image(image, image_nodata):
     a = np.asarray(image)
@@ -459,7 +512,9 @@ def _as_image(image, image_nodata):
         valid &= ~np.ma.getmaskarray(image)
         a = image.filled(0)
     img = a.astype(np.float32)
-    if image_nodata is not None and not (isinstance(image_nodata, float) and np.isnan(image_nodata)):
+    if image_nodata is not None and not (
+        isinstance(image_nodata, float) and np.isnan(image_nodata)
+    ):
         valid &= a != image_nodata
     valid &= np.isfinite(img)
     img[~valid] = 0.0
@@ -472,8 +527,13 @@ def _support_ok(valid, resampling):
     v = valid.astype(np.uint8)
     if size == 1:
         return v
-    return cv2.erode(v, np.ones((size, size), np.uint8), anchor=(anchor, anchor),
-                     borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return cv2.erode(
+        v,
+        np.ones((size, size), np.uint8),
+        anchor=(anchor, anchor),
+        borderType=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
 
 
 def remap_nan(img, ok, col, row, resampling, nodata=np.nan):
@@ -484,7 +544,7 @@ def remap_nan(img, ok, col, row, resampling, nodata=np.nan):
     than OpenCV's 32767 px limit are cropped to the block's window.
     """
     H, W = img.shape
-    inside = (col >= 0) & (row >= 0) & (col <= W - 1) & (row <= H - 1)     # False on NaN
+    inside = (col >= 0) & (row >= 0) & (col <= W - 1) & (row <= H - 1)  # False on NaN
     shift = 0.5 if resampling == "nearest" else 0.0
     ic = np.where(inside, col + shift, 0).astype(np.intp)
     ir = np.where(inside, row + shift, 0).astype(np.intp)
@@ -501,16 +561,21 @@ def remap_nan(img, ok, col, row, resampling, nodata=np.nan):
         c0, c1 = max(int(ic[good].min()) - m, 0), min(int(ic[good].max()) + m + 1, W)
         r0, r1 = max(int(ir[good].min()) - m, 0), min(int(ir[good].max()) + m + 1, H)
         if c1 - c0 > 32000 or r1 - r0 > 32000:
-            raise InputError("orthorectify: a block spans more than 32000 image pixels; use smaller blocks")
+            raise InputError(
+                "orthorectify: a block spans more than 32000 image pixels; use smaller blocks"
+            )
         src = np.ascontiguousarray(img[r0:r1, c0:c1])
     mx = (col - c0).astype(np.float32)
     my = (row - r0).astype(np.float32)
-    res = cv2.remap(src, mx, my, RESAMPLING[resampling], borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    res = cv2.remap(
+        src, mx, my, RESAMPLING[resampling], borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
     np.copyto(out, res, where=good)
     return out
 
 
 # --------------------------------------------------------------------------- orthoimage
+
 
 @dataclass
 class Ortho(OnGrid):
@@ -554,14 +619,21 @@ class Ortho(OnGrid):
     def report(self) -> dict:
         """Figures for logs and reports (plain types)."""
         bm = self.backward_map
-        return dict(width=self.grid.width, height=self.grid.height, res_m=self.grid.res[0],
-                    crs=self.grid.crs.to_string(), resampling=self.resampling,
-                    valid_fraction=float(self.valid.mean()),
-                    interpolation_error_px=self.interpolation_error_px,
-                    dem_interpolation_error_px=bm.error_dem_px, lattice_step=bm.step,
-                    n_heights=bm.n_heights, n_model_points=bm.n_model_points,
-                    dem_missing_cells=self.dem_missing["n_cells"],
-                    dem_no_height_share=self.dem_missing.get("footprint_share", 0.0))
+        return dict(
+            width=self.grid.width,
+            height=self.grid.height,
+            res_m=self.grid.res[0],
+            crs=self.grid.crs.to_string(),
+            resampling=self.resampling,
+            valid_fraction=float(self.valid.mean()),
+            interpolation_error_px=self.interpolation_error_px,
+            dem_interpolation_error_px=bm.error_dem_px,
+            lattice_step=bm.step,
+            n_heights=bm.n_heights,
+            n_model_points=bm.n_model_points,
+            dem_missing_cells=self.dem_missing["n_cells"],
+            dem_no_height_share=self.dem_missing.get("footprint_share", 0.0),
+        )
 
     def write(self, path, *, overwrite=False, tags=None, dtype=None, creation_options=None):
         """Write as a Cloud-Optimised GeoTIFF (rasterio), nodata set, the report as tags.
@@ -577,13 +649,16 @@ class Ortho(OnGrid):
             GDAL COG creation options (:func:`stereodem.core.raster.write_geotiff`).
         """
         from stereodem.core.raster import write_geotiff
+
         t = {f"STEREODEM_{k.upper()}": v for k, v in self.report().items()}
         t.update(tags or {})
         data, nodata, mask = self.data, self.nodata, None
         dt = np.dtype(dtype) if dtype is not None else np.dtype(np.float32)
         if np.issubdtype(dt, np.integer):
             info = np.iinfo(dt)
-            vals = np.clip(np.rint(np.where(self.valid, self.data, 0)), info.min, info.max).astype(dt)
+            vals = np.clip(np.rint(np.where(self.valid, self.data, 0)), info.min, info.max).astype(
+                dt
+            )
             taken = vals[self.valid]
             nodata = next((v for v in (0, info.max, info.min) if not (taken == v).any()), None)
             if nodata is None:
@@ -593,10 +668,19 @@ class Ortho(OnGrid):
             data = vals
         elif dt != self.data.dtype:
             data = self.data.astype(dt)
-        return write_geotiff(path, data, self.grid.transform, self.grid.crs, nodata,
-                             overwrite=overwrite, tags=t, mask=mask,
-                             descriptions=f"orthoimage ({self.resampling} resampling)",
-                             overview_resampling="average", creation_options=creation_options)
+        return write_geotiff(
+            path,
+            data,
+            self.grid.transform,
+            self.grid.crs,
+            nodata,
+            overwrite=overwrite,
+            tags=t,
+            mask=mask,
+            descriptions=f"orthoimage ({self.resampling} resampling)",
+            overview_resampling="average",
+            creation_options=creation_options,
+        )
 
 
 def _progressing(results, progress, total):
@@ -606,11 +690,25 @@ def _progressing(results, progress, total):
         yield r1, miss
 
 
-def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float | None = None,
-                 crs=None, resampling: str = "bilinear", nodata: float = np.nan,
-                 image_nodata=None, tolerance: float = 0.01, block_rows: int | None = None,
-                 keep_maps: bool = False, strict_dem: bool = False, progress=None,
-                 threads: int = 1, fill_dem=None) -> Ortho:
+def orthorectify(
+    image,
+    model,
+    dem,
+    *,
+    grid: MapGrid | None = None,
+    res: float | None = None,
+    crs=None,
+    resampling: str = "bilinear",
+    nodata: float = np.nan,
+    image_nodata=None,
+    tolerance: float = 0.01,
+    block_rows: int | None = None,
+    keep_maps: bool = False,
+    strict_dem: bool = False,
+    progress=None,
+    threads: int = 1,
+    fill_dem=None,
+) -> Ortho:
     """Orthorectify an image by backward DRM projection onto a north-up map grid.
 
     Parameters
@@ -658,13 +756,19 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     Ortho
     """
     from stereodem.core.dem import as_dem
+
     if resampling not in RESAMPLING:
         raise InputError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
     dem = as_dem(dem)
     _check_rpc_heights(model, dem)
     img, valid = _as_image(image, image_nodata)
     if (img.shape[1], img.shape[0]) != (model.width, model.height):
-        log.warning("image size %s differs from the model's %dx%d", img.shape[::-1], model.width, model.height)
+        log.warning(
+            "image size %s differs from the model's %dx%d",
+            img.shape[::-1],
+            model.width,
+            model.height,
+        )
     if grid is None:
         grid = grid_for_model(model, dem, res=res, crs=crs)
     fill = as_dem(fill_dem) if fill_dem is not None else None
@@ -690,7 +794,9 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
             # cells in the footprint (their image position at the middle height, which the
             # block map gives where there is no height) that have no DEM height
             ci, ri = col[nohgt], row[nohgt]
-            infoot = (ci >= -0.5) & (ri >= -0.5) & (ci <= model.width - 0.5) & (ri <= model.height - 0.5)
+            infoot = (
+                (ci >= -0.5) & (ri >= -0.5) & (ci <= model.width - 0.5) & (ri <= model.height - 0.5)
+            )
             n_foot = int(infoot.sum())
             dcc, drr = dcol[nohgt][infoot], drow[nohgt][infoot]
             outside = (dcc < 0) | (drr < 0) | (dcc > dr_cols - 1) | (drr > dr_rows - 1)
@@ -710,6 +816,7 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     starts = range(0, H, block_rows)
     if int(threads) > 1:
         from concurrent.futures import ThreadPoolExecutor
+
         with ThreadPoolExecutor(max_workers=int(threads)) as pool:
             done = list(_progressing(pool.map(run_block, starts), progress, H))
     else:
@@ -721,18 +828,39 @@ def orthorectify(image, model, dem, *, grid: MapGrid | None = None, res: float |
     miss_hi = np.max([m[2] for m in misses], axis=0) if misses else None
     valid_out = np.isfinite(data) if np.isnan(nodata) else data != nodata
     share = n_no_height / max(n_no_height + int(valid_out.sum()), 1)
-    missing = dict(n_cells=n_missing,
-                   lonlat_bounds=(tuple(float(v) for v in (*miss_lo, *miss_hi)) if n_missing else None),
-                   n_no_height=int(n_no_height), footprint_share=float(share),
-                   filled_cells=int(getattr(dem_e, "filled_cells", 0)))
+    missing = dict(
+        n_cells=n_missing,
+        lonlat_bounds=(tuple(float(v) for v in (*miss_lo, *miss_hi)) if n_missing else None),
+        n_no_height=int(n_no_height),
+        footprint_share=float(share),
+        filled_cells=int(getattr(dem_e, "filled_cells", 0)),
+    )
     if n_no_height and not (strict_dem and n_missing):
-        log.warning("%s: no DEM height under %.1f%% of the image footprint (%d cell(s): holes or "
-                    "outside the DEM): nodata there%s", dem.path or "DEM", 100 * share, n_no_height,
-                    "" if fill is not None else "; a second DEM can fill them (fill_dem / --fill-dem)")
+        log.warning(
+            "%s: no DEM height under %.1f%% of the image footprint (%d cell(s): holes or "
+            "outside the DEM): nodata there%s",
+            dem.path or "DEM",
+            100 * share,
+            n_no_height,
+            "" if fill is not None else "; a second DEM can fill them (fill_dem / --fill-dem)",
+        )
     if n_missing:
-        msg = (f"{dem.path or 'DEM'}: the DEM does not cover the image footprint: {n_missing} cell(s) "
-               f"missing in lon {miss_lo[0]:.5f}..{miss_hi[0]:.5f}, lat {miss_lo[1]:.5f}..{miss_hi[1]:.5f}")
+        msg = (
+            f"{dem.path or 'DEM'}: the DEM does not cover the image footprint: {n_missing} cell(s) "
+            f"missing in lon {miss_lo[0]:.5f}..{miss_hi[0]:.5f}, lat {miss_lo[1]:.5f}..{miss_hi[1]:.5f}"
+        )
         if strict_dem:
             raise DEMCoverageError(msg)
-    return Ortho(data, grid, valid_out, nodata, heights, bm.error_px, bm, resampling, missing,
-                 cols_map, rows_map)
+    return Ortho(
+        data,
+        grid,
+        valid_out,
+        nodata,
+        heights,
+        bm.error_px,
+        bm,
+        resampling,
+        missing,
+        cols_map,
+        rows_map,
+    )

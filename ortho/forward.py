@@ -7,6 +7,7 @@ nearest", thesis §4.1.9). This is the thesis's method, kept for comparison and 
 holes appear where the ground is sampled more finely than the image, and the backward
 projection of :mod:`stereodem.ortho.drm` is the production path.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -39,8 +40,17 @@ class ForwardPoints:
     iterations: np.ndarray
 
 
-def forward_localize(model, dem, *, cols=None, rows=None, step: int = 1, crs=None,
-                     threshold: float = 0.1, max_iterations: int = 30) -> ForwardPoints:
+def forward_localize(
+    model,
+    dem,
+    *,
+    cols=None,
+    rows=None,
+    step: int = 1,
+    crs=None,
+    threshold: float = 0.1,
+    max_iterations: int = 30,
+) -> ForwardPoints:
     """Localise image pixels on the DEM by the DRM relief iteration.
 
     Parameters
@@ -55,18 +65,24 @@ def forward_localize(model, dem, *, cols=None, rows=None, step: int = 1, crs=Non
         Relief-iteration stop (m) and cap (thesis: 0.1 m, 30).
     """
     if cols is None or rows is None:
-        cols, rows = np.meshgrid(np.arange(0, model.width, step, dtype=float),
-                                 np.arange(0, model.height, step, dtype=float))
+        cols, rows = np.meshgrid(
+            np.arange(0, model.width, step, dtype=float),
+            np.arange(0, model.height, step, dtype=float),
+        )
     cols, rows = np.broadcast_arrays(np.asarray(cols, float), np.asarray(rows, float))
     loc = model.localize_dem(cols, rows, dem, threshold=threshold, max_iterations=max_iterations)
     if crs is None:
-        crs = geodesy.utm_crs(*model.center_lonlat(float(np.nanmedian(loc.h)) if np.isfinite(loc.h).any() else 0.0))
+        crs = geodesy.utm_crs(
+            *model.center_lonlat(float(np.nanmedian(loc.h)) if np.isfinite(loc.h).any() else 0.0)
+        )
     ok = np.isfinite(loc.lon) & np.isfinite(loc.lat)
     x = np.full(cols.shape, np.nan)
     y = np.full(cols.shape, np.nan)
     if ok.any():
         x[ok], y[ok] = geodesy.lonlat_to_crs(loc.lon[ok], loc.lat[ok], crs)
-    return ForwardPoints(cols, rows, loc.lon, loc.lat, loc.h, x, y, crs, loc.converged, loc.iterations)
+    return ForwardPoints(
+        cols, rows, loc.lon, loc.lat, loc.h, x, y, crs, loc.converged, loc.iterations
+    )
 
 
 def forward_ortho(image, points: ForwardPoints, grid: MapGrid, *, nodata: float = np.nan):
@@ -88,6 +104,7 @@ def forward_ortho(image, points: ForwardPoints, grid: MapGrid, *, nodata: float 
         Flat index (into ``points``) of the pixel that filled each cell, -1 where empty.
     """
     from pyproj import CRS
+
     if CRS.from_user_input(points.crs) != grid.crs:
         raise InputError("forward_ortho: the ground points and the grid use different CRSs")
     img = np.asarray(image)
@@ -98,7 +115,7 @@ def forward_ortho(image, points: ForwardPoints, grid: MapGrid, *, nodata: float 
     idx = np.nonzero(ok)[0]
     cell = (iv[idx] * grid.width + iu[idx]).astype(np.int64)
     dist = np.hypot(u[idx] - iu[idx], v[idx] - iv[idx])
-    order = np.lexsort((dist, cell))               # by cell, nearest first
+    order = np.lexsort((dist, cell))  # by cell, nearest first
     first = np.unique(cell[order], return_index=True)[1]
     win = order[first]
     src = np.full(grid.width * grid.height, -1, dtype=np.int64)

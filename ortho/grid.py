@@ -6,6 +6,7 @@ of the image centre unless one is given, the posting is the image's ground sampl
 localised at the lowest and highest DEM heights under it, snapped outward to multiples of the
 posting.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -29,17 +30,20 @@ def footprint_height_range(model, dem, *, samples: int = 41):
     height there.
     """
     step = max(1, int(np.sqrt(dem.heights.size / 1e5)))
-    h0 = float(np.nanmedian(dem.heights[::step, ::step]))     # first guess, any vertical datum
+    h0 = float(np.nanmedian(dem.heights[::step, ::step]))  # first guess, any vertical datum
     lon, lat = model.footprint(h0)
     for _ in range(2):
-        lo_, la_ = np.meshgrid(np.linspace(np.nanmin(lon), np.nanmax(lon), samples),
-                               np.linspace(np.nanmin(lat), np.nanmax(lat), samples))
+        lo_, la_ = np.meshgrid(
+            np.linspace(np.nanmin(lon), np.nanmax(lon), samples),
+            np.linspace(np.nanmin(lat), np.nanmax(lat), samples),
+        )
         z = dem.sample(lo_, la_)
         if not np.isfinite(z).any():
             raise DEMCoverageError(
                 f"{dem.path or 'DEM'}: no valid height under the image footprint lon "
                 f"{np.nanmin(lon):.5f}..{np.nanmax(lon):.5f}, lat {np.nanmin(lat):.5f}..{np.nanmax(lat):.5f} "
-                f"(DEM extent lon/lat {tuple(round(v, 5) for v in dem.bounds_lonlat())})")
+                f"(DEM extent lon/lat {tuple(round(v, 5) for v in dem.bounds_lonlat())})"
+            )
         h_lo, h_hi = float(np.nanmin(z)), float(np.nanmax(z))
         lon1, lat1 = model.footprint(h_lo)
         lon2, lat2 = model.footprint(h_hi)
@@ -81,8 +85,12 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise CRSError(f"the image footprint cannot be expressed in {crs.to_string()}")
     from stereodem.core.memory import check_allocation
+
     cells = (x.max() - x.min()) / res * ((y.max() - y.min()) / res)
     # the orthoimage (float32) and its per-cell image coordinates (2 x float64)
-    check_allocation(20.0 * cells, f"an orthoimage grid of {cells:.3g} cells at posting {res:g} "
-                                   "(choose a coarser --res)", fraction=0.5)
+    check_allocation(
+        20.0 * cells,
+        f"an orthoimage grid of {cells:.3g} cells at posting {res:g} (choose a coarser --res)",
+        fraction=0.5,
+    )
     return grid_from_bounds((x.min(), y.min(), x.max(), y.max()), res, crs)

@@ -9,6 +9,7 @@ map scale factor (< 0.1 % in UTM) — angles, not lengths, matter here.
 The orthoimage of the second image of a stereo pair on the same grid needs no layer code: pass
 ``grid=ortho_left.grid`` to :func:`stereodem.ortho.drm.orthorectify`.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -18,7 +19,9 @@ from stereodem.core import geodesy
 from .drm import Ortho, bilinear_nan
 
 
-def line_of_sight(ortho: Ortho, model, *, dh: float = 100.0, row0: int = 0, row1: int | None = None):
+def line_of_sight(
+    ortho: Ortho, model, *, dh: float = 100.0, row0: int = 0, row1: int | None = None
+):
     """Unit vectors from the ground toward the sensor, map frame (east, north, up).
 
     Returns an array (3, rows, cols) for grid rows ``row0:row1``.
@@ -41,7 +44,7 @@ def surface_normals(heights, res):
     """Unit upward normals (3, rows, cols) of a north-up height grid (map frame, metres)."""
     rx, ry = res if np.ndim(res) else (res, res)
     dz_drow, dz_dcol = np.gradient(np.asarray(heights, np.float64))
-    gx, gy = dz_dcol / rx, -dz_drow / ry              # rows run south
+    gx, gy = dz_dcol / rx, -dz_drow / ry  # rows run south
     n = np.stack([-gx, -gy, np.ones_like(gx)])
     return n / np.linalg.norm(n, axis=0, keepdims=True)
 
@@ -58,8 +61,14 @@ def incidence_angle(ortho: Ortho, model) -> np.ndarray:
     return np.degrees(np.arccos(cosi)).astype(np.float32)
 
 
-def occlusion_mask(ortho: Ortho, model, *, tolerance: float | None = None,
-                   max_steps: int = 1024, block_rows: int = 256) -> np.ndarray:
+def occlusion_mask(
+    ortho: Ortho,
+    model,
+    *,
+    tolerance: float | None = None,
+    max_steps: int = 1024,
+    block_rows: int = 256,
+) -> np.ndarray:
     """Cells hidden from the sensor by terrain (True = occluded), by ray marching.
 
     From each cell the line of sight toward the sensor is followed across the height grid
@@ -85,8 +94,11 @@ def occlusion_mask(ortho: Ortho, model, *, tolerance: float | None = None,
         idx = np.nonzero(ok.ravel())[0]
         if idx.size == 0:
             continue
-        ex, ny_, slope = (los[0] / np.maximum(horiz, 1e-12)).ravel()[idx], \
-            (los[1] / np.maximum(horiz, 1e-12)).ravel()[idx], (los[2] / np.maximum(horiz, 1e-12)).ravel()[idx]
+        ex, ny_, slope = (
+            (los[0] / np.maximum(horiz, 1e-12)).ravel()[idx],
+            (los[1] / np.maximum(horiz, 1e-12)).ravel()[idx],
+            (los[2] / np.maximum(horiz, 1e-12)).ravel()[idx],
+        )
         u0, v0, z0 = uu.ravel()[idx].astype(float), vv.ravel()[idx].astype(float), hb.ravel()[idx]
         n_need = int(np.ceil(np.max((hmax - z0) / slope) / ds)) if idx.size else 0
         step = ds * max(1.0, n_need / max_steps)
@@ -96,7 +108,9 @@ def occlusion_mask(ortho: Ortho, model, *, tolerance: float | None = None,
         while active.size:
             d = k * step
             zr = z0[active] + d * slope[active]
-            zt = bilinear_nan(h, u0[active] + d * ex[active] / rx, v0[active] - d * ny_[active] / ry)
+            zt = bilinear_nan(
+                h, u0[active] + d * ex[active] / rx, v0[active] - d * ny_[active] / ry
+            )
             hit = zt > zr + tol
             hidden[active[hit]] = True
             keep = ~hit & (zr <= hmax) & ~np.isnan(zt)

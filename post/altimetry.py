@@ -6,6 +6,7 @@ lon/lat; needs ``pyarrow``). Heights are metres above the ``vertical`` reference
 be said (``ellipsoid`` for ICESat-2) unless the file's column is named ``h_ellipsoid`` or
 ``h_geoid``: points in an unsaid datum are refused rather than guessed.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -45,13 +46,16 @@ class AltimetryPoints:
             raise InputError(f"{where}no point")
         bad = ~(np.isfinite(self.lon) & np.isfinite(self.lat) & np.isfinite(self.h))
         if bad.any():
-            raise InputError(f"{where}{int(bad.sum())} of {bad.size} points have NaN/inf lon, "
-                             f"lat or h (first at row {int(np.flatnonzero(bad)[0])}); drop them first")
+            raise InputError(
+                f"{where}{int(bad.sum())} of {bad.size} points have NaN/inf lon, "
+                f"lat or h (first at row {int(np.flatnonzero(bad)[0])}); drop them first"
+            )
         if np.any(np.abs(self.lat) > 90) or np.any(np.abs(self.lon) > 360):
             raise InputError(f"{where}lon/lat out of range: are the coordinates projected?")
         if self.vertical not in (None, GEOID, ELLIPSOID):
-            raise InputError(f"{where}vertical reference must be 'geoid' or 'ellipsoid', "
-                             f"got {self.vertical!r}")
+            raise InputError(
+                f"{where}vertical reference must be 'geoid' or 'ellipsoid', got {self.vertical!r}"
+            )
 
     def __len__(self):
         return self.h.size
@@ -59,19 +63,30 @@ class AltimetryPoints:
     def to_reference(self, to: str) -> AltimetryPoints:
         """Heights converted to ``to`` (EGM96 geoid or WGS84 ellipsoid)."""
         from stereodem.core import geodesy
+
         if self.vertical == to:
             return self
         if self.vertical is None:
-            raise VerticalReferenceError(f"{self.path or 'points'}: vertical reference unknown; "
-                                         "say which (--ref-vertical geoid|ellipsoid)")
-        h = (geodesy.geoid_to_ellipsoid(self.lon, self.lat, self.h) if to == ELLIPSOID
-             else geodesy.ellipsoid_to_geoid(self.lon, self.lat, self.h))
+            raise VerticalReferenceError(
+                f"{self.path or 'points'}: vertical reference unknown; "
+                "say which (--ref-vertical geoid|ellipsoid)"
+            )
+        h = (
+            geodesy.geoid_to_ellipsoid(self.lon, self.lat, self.h)
+            if to == ELLIPSOID
+            else geodesy.ellipsoid_to_geoid(self.lon, self.lat, self.h)
+        )
         return AltimetryPoints(self.lon, self.lat, h, self.time, to, self.path)
 
     def subset(self, keep) -> AltimetryPoints:
-        return AltimetryPoints(self.lon[keep], self.lat[keep], self.h[keep],
-                               None if self.time is None else np.asarray(self.time)[keep],
-                               self.vertical, self.path)
+        return AltimetryPoints(
+            self.lon[keep],
+            self.lat[keep],
+            self.h[keep],
+            None if self.time is None else np.asarray(self.time)[keep],
+            self.vertical,
+            self.path,
+        )
 
 
 def is_points_file(path) -> bool:
@@ -85,8 +100,10 @@ def _pick(columns, names, path, what, required=True):
         if n in low:
             return low[n]
     if required:
-        raise InputError(f"{path}: no {what} column (expected one of {', '.join(names)}); "
-                         f"columns are {', '.join(map(str, columns))}")
+        raise InputError(
+            f"{path}: no {what} column (expected one of {', '.join(names)}); "
+            f"columns are {', '.join(map(str, columns))}"
+        )
     return None
 
 
@@ -94,16 +111,22 @@ def _read_csv(path):
     """Columns of a CSV file with a header line (``#`` comment lines skipped): name -> array of
     strings."""
     import csv
+
     with open(path, newline="", encoding="utf-8") as f:
-        rows = [r for r in csv.reader(line for line in f if not line.lstrip().startswith("#"))
-                if any(c.strip() for c in r)]
+        rows = [
+            r
+            for r in csv.reader(line for line in f if not line.lstrip().startswith("#"))
+            if any(c.strip() for c in r)
+        ]
     if len(rows) < 2:
         raise InputError(f"{path}: no header and data rows in the CSV file")
     head = [h.strip() for h in rows[0]]
     body = rows[1:]
     bad = next((i for i, r in enumerate(body) if len(r) != len(head)), None)
     if bad is not None:
-        raise InputError(f"{path}: row {bad + 2} has {len(body[bad])} fields, the header {len(head)}")
+        raise InputError(
+            f"{path}: row {bad + 2} has {len(body[bad])} fields, the header {len(head)}"
+        )
     cols = list(zip(*body))
     return {h: np.asarray(c, dtype=object) for h, c in zip(head, cols)}
 
@@ -114,8 +137,9 @@ def _read_parquet(path):
     try:
         import pyarrow.parquet as pq
     except ImportError:
-        raise InputError(f"{path}: reading GeoParquet needs pyarrow "
-                         "(pip install 'stereodem[altimetry]')") from None
+        raise InputError(
+            f"{path}: reading GeoParquet needs pyarrow (pip install 'stereodem[altimetry]')"
+        ) from None
     table = pq.read_table(path)
     return {name: table.column(name).to_numpy(zero_copy_only=False) for name in table.column_names}
 
@@ -125,11 +149,13 @@ def _numbers(col, path, name):
         return np.asarray(col, dtype=np.float64)
     except (TypeError, ValueError):
         out = np.full(len(col), np.nan)
-        for i, v in enumerate(col):                  # per value only to name the bad one
+        for i, v in enumerate(col):  # per value only to name the bad one
             try:
                 out[i] = float(v)
             except (TypeError, ValueError):
-                raise InputError(f"{path}: column {name!r}, row {i + 2}: {v!r} is not a number") from None
+                raise InputError(
+                    f"{path}: column {name!r}, row {i + 2}: {v!r} is not a number"
+                ) from None
         return out
 
 
@@ -140,7 +166,9 @@ def read_points(path, *, vertical: str | None = None) -> AltimetryPoints:
     if not Path(path).is_file():
         raise InputError(f"{path}: no such file")
     try:
-        cols = _read_parquet(path) if suffix in (".parquet", ".geoparquet", ".pq") else _read_csv(path)
+        cols = (
+            _read_parquet(path) if suffix in (".parquet", ".geoparquet", ".pq") else _read_csv(path)
+        )
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - any garbled file: one line
@@ -149,6 +177,7 @@ def read_points(path, *, vertical: str | None = None) -> AltimetryPoints:
     lon_c = _pick(names, _LON, path, "longitude", required=False)
     if lon_c is None and "geometry" in names:
         import shapely
+
         geom = shapely.from_wkb(cols["geometry"])
         lon, lat = shapely.get_x(geom), shapely.get_y(geom)
     else:
@@ -162,14 +191,20 @@ def read_points(path, *, vertical: str | None = None) -> AltimetryPoints:
     if vertical and said and vertical != said:
         raise VerticalReferenceError(f"{path}: column {hc!r} says {said} but {vertical} was given")
     if vert is None:
-        raise VerticalReferenceError(f"{path}: vertical reference of the point heights not said; "
-                                     "give --ref-vertical geoid|ellipsoid (ICESat-2: ellipsoid)")
+        raise VerticalReferenceError(
+            f"{path}: vertical reference of the point heights not said; "
+            "give --ref-vertical geoid|ellipsoid (ICESat-2: ellipsoid)"
+        )
     return AltimetryPoints(lon, lat, h, None if tc is None else cols[tc], vert, path)
 
 
 def residuals_table(points: AltimetryPoints, dem_heights_at_points, used) -> dict:
     """Per-point residuals (DEM − point, metres) as JSON-ready columns."""
     r = np.asarray(dem_heights_at_points, float) - points.h
-    return {"lon": points.lon.tolist(), "lat": points.lat.tolist(), "h": points.h.tolist(),
-            "dh": [None if not np.isfinite(v) else float(v) for v in r],
-            "used": np.asarray(used, bool).tolist()}
+    return {
+        "lon": points.lon.tolist(),
+        "lat": points.lat.tolist(),
+        "h": points.h.tolist(),
+        "dh": [None if not np.isfinite(v) else float(v) for v in r],
+        "used": np.asarray(used, bool).tolist(),
+    }

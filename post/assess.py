@@ -14,6 +14,7 @@ so its memory does not grow with the reference's size; the quantile statistics a
 :data:`~stereodem.post.blockstats.QUANTILE_ERROR` of the exact ones (stated in the report) and
 the figures are drawn from the decimated arrays they display anyway.
 """
+
 from __future__ import annotations
 
 import csv
@@ -48,6 +49,7 @@ BLOCK_ROWS = 512
 
 # ----------------------------------------------------------------------------- vertical
 
+
 def reconcile_vertical(dem: DEM, reference: DEM) -> tuple[DEM, str]:
     """Return ``dem`` in the vertical reference of ``reference`` and a note saying what was done.
 
@@ -61,20 +63,22 @@ def reconcile_vertical(dem: DEM, reference: DEM) -> tuple[DEM, str]:
         unknown = dem if a is None else reference
         raise VerticalReferenceError(
             f"{unknown.path or 'DEM'}: vertical reference unknown while the other is {a or b}; "
-            "say which with --dem-vertical/--ref-vertical {geoid,ellipsoid}")
+            "say which with --dem-vertical/--ref-vertical {geoid,ellipsoid}"
+        )
     return dem.to_reference(b), f"DEM converted from {a} to {b} (EGM96)"
 
 
 # ----------------------------------------------------------------------------- results
 
+
 @dataclass
 class Comparison:
     """DEM and reference on the reference grid, and their difference."""
 
-    dem: np.ndarray            #: DEM heights warped onto the reference grid (m)
-    ref: np.ndarray            #: reference heights (m)
-    dh: np.ndarray             #: DEM − reference (m), NaN where either is void
-    slope: np.ndarray          #: slope of the reference (degrees)
+    dem: np.ndarray  #: DEM heights warped onto the reference grid (m)
+    ref: np.ndarray  #: reference heights (m)
+    dh: np.ndarray  #: DEM − reference (m), NaN where either is void
+    slope: np.ndarray  #: slope of the reference (degrees)
     transform: object
     crs: object
     landcover: np.ndarray | None = None
@@ -94,20 +98,35 @@ class Assessment:
     histogram: StreamingStats | None = None
 
 
-def compare_on_reference_grid(dem: DEM, reference: DEM, *, resampling: str = "bilinear") -> Comparison:
+def compare_on_reference_grid(
+    dem: DEM, reference: DEM, *, resampling: str = "bilinear"
+) -> Comparison:
     """Warp ``dem`` onto ``reference``'s grid (same vertical reference assumed) and difference.
 
     Raises :class:`NoOverlapError` if the footprints or the valid cells do not overlap.
     """
-    warp.check_overlap(dem.bounds_lonlat(), reference.bounds_lonlat(),
-                       dem.path or "DEM", reference.path or "reference")
-    z = warp.to_grid(dem.heights, dem.transform, dem.crs, reference.transform, reference.crs,
-                     reference.shape, resampling=resampling)
+    warp.check_overlap(
+        dem.bounds_lonlat(),
+        reference.bounds_lonlat(),
+        dem.path or "DEM",
+        reference.path or "reference",
+    )
+    z = warp.to_grid(
+        dem.heights,
+        dem.transform,
+        dem.crs,
+        reference.transform,
+        reference.crs,
+        reference.shape,
+        resampling=resampling,
+    )
     ref = reference.heights
     dh = z.astype(np.float64) - ref.astype(np.float64)
     if not np.isfinite(dh).any():
-        raise NoOverlapError(f"{dem.path or 'DEM'}: no valid cell overlaps a valid cell of "
-                             f"{reference.path or 'the reference'}")
+        raise NoOverlapError(
+            f"{dem.path or 'DEM'}: no valid cell overlaps a valid cell of "
+            f"{reference.path or 'the reference'}"
+        )
     slope = terrain.slope_deg(ref, reference.transform, reference.crs)
     return Comparison(z, ref, dh, slope, reference.transform, reference.crs)
 
@@ -141,6 +160,7 @@ def dem_footprint(z) -> np.ndarray:
     out = np.zeros(fin.shape, dtype=np.uint8)
     if hull is not None:
         import cv2
+
         cv2.fillConvexPoly(out, hull, 1)
     return out.astype(bool) | fin
 
@@ -159,12 +179,18 @@ def _row_ends(fin, row0):
 def _hull(points):
     """Convex hull (OpenCV int32 vertices) of (col, row) points, or None without points."""
     import cv2
+
     pts = np.concatenate(points) if isinstance(points, list) else points
     return cv2.convexHull(pts) if len(pts) else None
 
 
-def comparison_stats(cmp: Comparison, *, slope_bins=st.DEFAULT_SLOPE_BINS, elevation_bins=None,
-                     landcover_names: dict | None = None) -> dict:
+def comparison_stats(
+    cmp: Comparison,
+    *,
+    slope_bins=st.DEFAULT_SLOPE_BINS,
+    elevation_bins=None,
+    landcover_names: dict | None = None,
+) -> dict:
     """The statistics block of a :class:`Comparison`: ``stats``, ``by_slope``,
     ``by_elevation``, ``by_landcover`` (if any), ``slope_fit`` and ``slope_class_trend``."""
     footprint = dem_footprint(cmp.dem) & np.isfinite(cmp.ref)
@@ -172,8 +198,11 @@ def comparison_stats(cmp: Comparison, *, slope_bins=st.DEFAULT_SLOPE_BINS, eleva
     out["by_slope"] = st.binned_stats(cmp.dh, cmp.slope, slope_bins, unit="deg", name="slope")
     ebins = elevation_bins if elevation_bins is not None else st.default_elevation_bins(cmp.ref)
     out["by_elevation"] = st.binned_stats(cmp.dh, cmp.ref, ebins, unit="m", name="elevation")
-    out["by_landcover"] = (st.class_stats(cmp.dh, cmp.landcover, names=landcover_names)
-                           if cmp.landcover is not None else None)
+    out["by_landcover"] = (
+        st.class_stats(cmp.dh, cmp.landcover, names=landcover_names)
+        if cmp.landcover is not None
+        else None
+    )
     out["slope_fit"] = st.error_vs_slope(cmp.dh, cmp.slope)
     out["slope_class_trend"] = st.class_trend(out["by_slope"], x_key="slope_mean", y_key="nmad")
     return out
@@ -200,8 +229,8 @@ class _ClassAccumulator:
         fin = np.isfinite(v)
         if self.edges is not None:
             e = self.edges
-            idx = np.searchsorted(e, v, side="right") - 1           # [e_i, e_i+1)
-            idx[fin & (v == e[-1])] = e.size - 2                      # the last bin is closed
+            idx = np.searchsorted(e, v, side="right") - 1  # [e_i, e_i+1)
+            idx[fin & (v == e[-1])] = e.size - 2  # the last bin is closed
             inside = fin & (idx >= 0) & (idx <= e.size - 2)
             keys = np.arange(e.size - 1)
         else:
@@ -212,15 +241,15 @@ class _ClassAccumulator:
         n_cls = np.bincount(idx[inside], minlength=keys.size)
         m = inside & fin_dh
         ci = idx[m]
-        order = np.argsort(ci.astype(np.int16) if keys.size < 2 ** 15 else ci, kind="stable")
+        order = np.argsort(ci.astype(np.int16) if keys.size < 2**15 else ci, kind="stable")
         ci, d, vv = ci[order], dh[m][order], v[m][order]
         bounds = np.searchsorted(ci, np.arange(keys.size + 1))
         for i, key in enumerate(keys):
             k = int(key) if self.edges is not None else float(key)
             acc = self._entry(k)
             self.n_total[k] += int(n_cls[i])
-            acc.add(d[bounds[i]:bounds[i + 1]])
-            self.var_sum[k] += float(vv[bounds[i]:bounds[i + 1]].sum(dtype=np.float64))
+            acc.add(d[bounds[i] : bounds[i + 1]])
+            self.var_sum[k] += float(vv[bounds[i] : bounds[i + 1]].sum(dtype=np.float64))
 
     def merge(self, other: _ClassAccumulator) -> _ClassAccumulator:
         """Add another block's class statistics (same classes) into these; returns self."""
@@ -236,9 +265,12 @@ class _ClassAccumulator:
             acc = self._entry(i)
             lo, hi, last = e[i], e[i + 1], i == e.size - 2
             r = acc.result(n_total=self.n_total[i])
-            entry = {"class": st._bin_label(lo, hi, self.unit, last), "lower": float(lo),
-                     "upper": float(hi) if np.isfinite(hi) else None,
-                     f"{self.name}_mean": self.var_sum[i] / r["n"] if r["n"] else float("nan")}
+            entry = {
+                "class": st._bin_label(lo, hi, self.unit, last),
+                "lower": float(lo),
+                "upper": float(hi) if np.isfinite(hi) else None,
+                f"{self.name}_mean": self.var_sum[i] / r["n"] if r["n"] else float("nan"),
+            }
             entry.update(r)
             out.append(entry)
         return out
@@ -287,28 +319,48 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
     rows, cols = ref.shape
     T = reference.transform
     tb = T @ Affine.translation(0, r0)
-    z = warp.to_grid(dem.heights, dem.transform, dem.crs, tb, reference.crs, (r1 - r0, cols),
-                     resampling=resampling)
+    z = warp.to_grid(
+        dem.heights,
+        dem.transform,
+        dem.crs,
+        tb,
+        reference.crs,
+        (r1 - r0, cols),
+        resampling=resampling,
+    )
     h0, h1 = max(r0 - 1, 0), min(r1 + 1, rows)
     slope = terrain.slope_deg(ref[h0:h1], T @ Affine.translation(0, h0), reference.crs)
-    slope = slope[r0 - h0:r0 - h0 + (r1 - r0)]
+    slope = slope[r0 - h0 : r0 - h0 + (r1 - r0)]
     rb = ref[r0:r1]
     dh = z.astype(np.float64)
     dh -= rb
     fin_dh = np.isfinite(dh)
     fin_z = np.isfinite(z)
-    b = _Block(StreamingStats(), StreamingStats(covariate=True),
-               _ClassAccumulator(slope_edges, unit="deg", name="slope"),
-               _ClassAccumulator(elev_edges, unit="m", name="elevation"),
-               _ClassAccumulator() if lc is not None else None,
-               _row_ends(fin_z, r0), np.packbits(fin_z, axis=1), {})
+    b = _Block(
+        StreamingStats(),
+        StreamingStats(covariate=True),
+        _ClassAccumulator(slope_edges, unit="deg", name="slope"),
+        _ClassAccumulator(elev_edges, unit="m", name="elevation"),
+        _ClassAccumulator() if lc is not None else None,
+        _row_ends(fin_z, r0),
+        np.packbits(fin_z, axis=1),
+        {},
+    )
     b.overall.add(dh[fin_dh])
     b.fit.add(dh, slope)
     b.by_slope.add(dh, slope, fin_dh)
     b.by_elev.add(dh, rb, fin_dh)
     if lc is not None:
-        cls = warp.to_grid(lc[0], lc[1], lc[2], tb, reference.crs, (r1 - r0, cols),
-                           resampling="nearest", dst_dtype=np.float64)
+        cls = warp.to_grid(
+            lc[0],
+            lc[1],
+            lc[2],
+            tb,
+            reference.crs,
+            (r1 - r0, cols),
+            resampling="nearest",
+            dst_dtype=np.float64,
+        )
         b.by_lc.add(dh, cls, fin_dh)
     s0 = (-r0) % k
     for name, a in (("dem", z), ("ref", rb), ("dh", dh), ("slope", slope)):
@@ -316,10 +368,19 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
     return b
 
 
-def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinear",
-                         slope_bins=st.DEFAULT_SLOPE_BINS, elevation_bins=None, landcover=None,
-                         landcover_names: dict | None = None, block_rows: int = BLOCK_ROWS,
-                         display_cells: int | None = None, threads: int = 1):
+def blockwise_comparison(
+    dem: DEM,
+    reference: DEM,
+    *,
+    resampling: str = "bilinear",
+    slope_bins=st.DEFAULT_SLOPE_BINS,
+    elevation_bins=None,
+    landcover=None,
+    landcover_names: dict | None = None,
+    block_rows: int = BLOCK_ROWS,
+    display_cells: int | None = None,
+    threads: int = 1,
+):
     """Compare ``dem`` with ``reference`` on the reference grid block by block (same vertical
     reference assumed); returns ``(statistics, display, histogram)``.
 
@@ -339,8 +400,13 @@ def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinea
     import cv2
 
     from . import figures
-    warp.check_overlap(dem.bounds_lonlat(), reference.bounds_lonlat(),
-                       dem.path or "DEM", reference.path or "reference")
+
+    warp.check_overlap(
+        dem.bounds_lonlat(),
+        reference.bounds_lonlat(),
+        dem.path or "DEM",
+        reference.path or "reference",
+    )
     ref = reference.heights
     rows, cols = ref.shape
     T = reference.transform
@@ -349,8 +415,11 @@ def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinea
         elevation_bins = st.default_elevation_bins(np.array([np.nanmin(ref), np.nanmax(ref)]))
     elev_edges = st.bin_edges(elevation_bins, "elevation")
     lc = _landcover_source(landcover) if landcover is not None else None
-    k = figures._decimation((rows, cols)) if display_cells is None else \
-        max(1, int(np.ceil(max(rows, cols) / display_cells)))
+    k = (
+        figures._decimation((rows, cols))
+        if display_cells is None
+        else max(1, int(np.ceil(max(rows, cols) / display_cells)))
+    )
     blocks = list(_row_blocks(rows, block_rows))
     args = (dem, reference, resampling, slope_edges, elev_edges, lc, k)
     ends, fin_bits, disp = [], [], {"dem": [], "ref": [], "dh": [], "slope": []}
@@ -370,6 +439,7 @@ def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinea
 
     if threads > 1 and len(blocks) > 1:
         from concurrent.futures import ThreadPoolExecutor
+
         with ThreadPoolExecutor(max_workers=threads) as ex:
             # at most 2 blocks per thread in flight (memory), merged in block order
             pending = []
@@ -384,8 +454,10 @@ def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinea
             take(_compare_block(r0, r1, *args))
     overall = total.overall
     if overall.n == 0:
-        raise NoOverlapError(f"{dem.path or 'DEM'}: no valid cell overlaps a valid cell of "
-                             f"{reference.path or 'the reference'}")
+        raise NoOverlapError(
+            f"{dem.path or 'DEM'}: no valid cell overlaps a valid cell of "
+            f"{reference.path or 'the reference'}"
+        )
     # footprint: the convex hull of the warped DEM's cells, with the reference valid
     # (one uint8 mask of the grid: OpenCV's fill of a polygon shifted per block differs from
     # the whole fill along the clipped edges)
@@ -404,24 +476,45 @@ def blockwise_comparison(dem: DEM, reference: DEM, *, resampling: str = "bilinea
     out["by_landcover"] = total.by_lc.classes(landcover_names) if total.by_lc is not None else None
     fit = total.fit
     f = fit.abs_deviation_fit(float(fit.quantile(0.5))) if fit.n else {"n": 0}
-    out["slope_fit"] = {"slope_m_per_deg": f.get("slope", float("nan")),
-                        "intercept_m": f.get("intercept", float("nan")), "r": f.get("r", float("nan")),
-                        "n": int(f["n"]), "error": "abs(dh - median(dh))"}
+    out["slope_fit"] = {
+        "slope_m_per_deg": f.get("slope", float("nan")),
+        "intercept_m": f.get("intercept", float("nan")),
+        "r": f.get("r", float("nan")),
+        "n": int(f["n"]),
+        "error": "abs(dh - median(dh))",
+    }
     out["slope_class_trend"] = st.class_trend(out["by_slope"], x_key="slope_mean", y_key="nmad")
-    out["statistics"] = {"method": f"blocks of {block_rows} reference rows; quantiles from a "
-                                   f"histogram of {RESOLUTION:g} m bins",
-                         "max_quantile_error_m": dict(QUANTILE_ERROR)}
-    display = Comparison(*(np.concatenate(disp[n]) for n in ("dem", "ref", "dh", "slope")),
-                         T @ Affine.scale(k), reference.crs)
+    out["statistics"] = {
+        "method": f"blocks of {block_rows} reference rows; quantiles from a "
+        f"histogram of {RESOLUTION:g} m bins",
+        "max_quantile_error_m": dict(QUANTILE_ERROR),
+    }
+    display = Comparison(
+        *(np.concatenate(disp[n]) for n in ("dem", "ref", "dh", "slope")),
+        T @ Affine.scale(k),
+        reference.crs,
+    )
     return out, display, overall
 
 
-def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
-               landcover_names: dict | None = None, slope_bins=st.DEFAULT_SLOPE_BINS,
-               elevation_bins=None, checkpoints=None, checkpoint_crs=None,
-               checkpoint_vertical: str | None = None, dem_vertical: str | None = None,
-               ref_vertical: str | None = None, resampling: str = "bilinear",
-               coregistration=None, threads: int = 1) -> Assessment:
+def assess_dem(
+    dem,
+    reference,
+    *,
+    coregister: bool = False,
+    landcover=None,
+    landcover_names: dict | None = None,
+    slope_bins=st.DEFAULT_SLOPE_BINS,
+    elevation_bins=None,
+    checkpoints=None,
+    checkpoint_crs=None,
+    checkpoint_vertical: str | None = None,
+    dem_vertical: str | None = None,
+    ref_vertical: str | None = None,
+    resampling: str = "bilinear",
+    coregistration=None,
+    threads: int = 1,
+) -> Assessment:
     """Assess ``dem`` against ``reference`` (DEM objects or paths).
 
     Parameters
@@ -445,21 +538,40 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
         on it).
     """
     if dem_vertical is not None or isinstance(dem, (str, Path)):
-        dem = as_dem(dem, vertical=dem_vertical) if isinstance(dem, (str, Path)) else \
-            DEM(dem.heights, dem.transform, dem.crs, dem_vertical, dem.path)
+        dem = (
+            as_dem(dem, vertical=dem_vertical)
+            if isinstance(dem, (str, Path))
+            else DEM(dem.heights, dem.transform, dem.crs, dem_vertical, dem.path)
+        )
     if ref_vertical is not None or isinstance(reference, (str, Path)):
-        reference = as_dem(reference, vertical=ref_vertical) if isinstance(reference, (str, Path)) \
-            else DEM(reference.heights, reference.transform, reference.crs, ref_vertical, reference.path)
+        reference = (
+            as_dem(reference, vertical=ref_vertical)
+            if isinstance(reference, (str, Path))
+            else DEM(
+                reference.heights, reference.transform, reference.crs, ref_vertical, reference.path
+            )
+        )
     dem_v, vnote = reconcile_vertical(dem, reference)
-    kw = dict(resampling=resampling, slope_bins=slope_bins, elevation_bins=elevation_bins,
-              landcover=landcover, landcover_names=landcover_names, threads=threads)
+    kw = dict(
+        resampling=resampling,
+        slope_bins=slope_bins,
+        elevation_bins=elevation_bins,
+        landcover=landcover,
+        landcover_names=landcover_names,
+        threads=threads,
+    )
     block, cmp, hist = blockwise_comparison(dem_v, reference, **kw)
     report = {
         "dem": str(dem.path) if dem.path else None,
         "reference": str(reference.path) if reference.path else None,
-        "grid": {"on": "reference", "resampling": resampling, "crs": reference.crs.to_string(),
-                 "shape": list(reference.shape), "transform": list(reference.transform)[:6],
-                 "pixel_size_m": _pixel_size_report(reference)},
+        "grid": {
+            "on": "reference",
+            "resampling": resampling,
+            "crs": reference.crs.to_string(),
+            "shape": list(reference.shape),
+            "transform": list(reference.transform)[:6],
+            "pixel_size_m": _pixel_size_report(reference),
+        },
         "vertical": {"dem": dem.vertical, "reference": reference.vertical, "note": vnote},
         "difference": "dem - reference (m)",
         "slope_bins_deg": [float(b) for b in slope_bins],
@@ -467,27 +579,39 @@ def assess_dem(dem, reference, *, coregister: bool = False, landcover=None,
     report.update(block)
     result = Assessment(report, cmp, histogram=hist)
     if checkpoints is not None:
-        report["checkpoints"] = assess_checkpoints(dem, checkpoints, crs=checkpoint_crs,
-                                                   vertical=checkpoint_vertical)
+        report["checkpoints"] = assess_checkpoints(
+            dem, checkpoints, crs=checkpoint_crs, vertical=checkpoint_vertical
+        )
     else:
         report["checkpoints"] = None
     report["coregistration"] = None
     if coregister:
         from .coreg import CoregChain, parse_chain
+
         chain = coregistration if coregistration is not None else "nuth_kaab"
-        chain = parse_chain(chain) if isinstance(chain, str) else \
-            chain if isinstance(chain, CoregChain) else CoregChain([chain])
-        chain.fit(reference, dem_v)                  # on the DEM's grid (reference warped to it)
+        chain = (
+            parse_chain(chain)
+            if isinstance(chain, str)
+            else chain
+            if isinstance(chain, CoregChain)
+            else CoregChain([chain])
+        )
+        chain.fit(reference, dem_v)  # on the DEM's grid (reference warped to it)
         report["coregistration"] = coregistration_summary(chain, reference)
         shifted = chain.apply(dem_v)
         report["after_coregistration"], cmp2, _ = blockwise_comparison(shifted, reference, **kw)
         if checkpoints is not None:
-            sh = chain.apply(dem)       # corrected in the DEM's own vertical reference
+            sh = chain.apply(dem)  # corrected in the DEM's own vertical reference
             report["after_coregistration"]["checkpoints"] = assess_checkpoints(
-                sh, checkpoints, crs=checkpoint_crs, vertical=checkpoint_vertical)
+                sh, checkpoints, crs=checkpoint_crs, vertical=checkpoint_vertical
+            )
         result.after = cmp2
-    log.info("assessment: n=%d rmse=%.3f nmad=%.3f", report["stats"]["n"], report["stats"]["rmse"],
-             report["stats"]["nmad"])
+    log.info(
+        "assessment: n=%d rmse=%.3f nmad=%.3f",
+        report["stats"]["n"],
+        report["stats"]["rmse"],
+        report["stats"]["nmad"],
+    )
     return result
 
 
@@ -511,13 +635,24 @@ def coregistration_summary(chain, reference: DEM) -> dict:
             dz, vz = dz + p["dz"]["value"], vz + p["dz"]["sigma"] ** 2
     pe, pn = _pixel_size_report(reference)
     rec = chain.report()
-    return {"method": " + ".join(s.name for s in chain.steps), "dx": dx, "dy": dy, "dz": dz,
-            "dx_sigma": float(np.sqrt(vx)), "dy_sigma": float(np.sqrt(vy)),
-            "dz_sigma": float(np.sqrt(vz)), "dx_px": dx / pe, "dy_px": dy / pn,
-            "pixel_size_m": [pe, pn], "iterations": iterations, "converged": converged,
-            "nmad_before": rec[0]["before"]["nmad"], "nmad_after": rec[-1]["after"]["nmad"],
-            "frame": "metres east/north/up; displacement of the DEM relative to the reference",
-            "steps": rec}
+    return {
+        "method": " + ".join(s.name for s in chain.steps),
+        "dx": dx,
+        "dy": dy,
+        "dz": dz,
+        "dx_sigma": float(np.sqrt(vx)),
+        "dy_sigma": float(np.sqrt(vy)),
+        "dz_sigma": float(np.sqrt(vz)),
+        "dx_px": dx / pe,
+        "dy_px": dy / pn,
+        "pixel_size_m": [pe, pn],
+        "iterations": iterations,
+        "converged": converged,
+        "nmad_before": rec[0]["before"]["nmad"],
+        "nmad_after": rec[-1]["after"]["nmad"],
+        "frame": "metres east/north/up; displacement of the DEM relative to the reference",
+        "steps": rec,
+    }
 
 
 def _pixel_size_report(d: DEM):
@@ -606,18 +741,37 @@ def assess_checkpoints(dem, checkpoints, *, crs=None, vertical: str | None = Non
             lon, lat = geodesy.crs_to_lonlat(lon, lat, crs)
         ids = [str(i) for i in range(lon.size)]
     if vertical is not None and dem.vertical is None:
-        raise VerticalReferenceError(f"{dem.path or 'DEM'}: vertical reference unknown; check "
-                                     f"points are {vertical} (give --dem-vertical)")
+        raise VerticalReferenceError(
+            f"{dem.path or 'DEM'}: vertical reference unknown; check "
+            f"points are {vertical} (give --dem-vertical)"
+        )
     hz, status = dem.sample(lon, lat, reference=vertical, return_status=True)
     dh = hz - z
     res = st.error_stats(dh)
     if res["n"] == 0:
-        raise DEMError(f"{dem.path or 'DEM'}: none of the {lon.size} check points falls on a "
-                       "valid DEM cell")
-    note = f"check points {vertical}" if vertical else f"check points assumed {dem.vertical or 'same as DEM'}"
-    return {"stats": res, "vertical": note, "sampling": "bilinear",
-            "outside": int((status == 1).sum()), "on_void": int((status == 2).sum()),
-            "points": [{"id": i, "lon": float(a), "lat": float(b), "z": float(c),
-                        "dem": float(d) if np.isfinite(d) else None,
-                        "dh": float(e) if np.isfinite(e) else None}
-                       for i, a, b, c, d, e in zip(ids, lon, lat, z, hz, dh)]}
+        raise DEMError(
+            f"{dem.path or 'DEM'}: none of the {lon.size} check points falls on a valid DEM cell"
+        )
+    note = (
+        f"check points {vertical}"
+        if vertical
+        else f"check points assumed {dem.vertical or 'same as DEM'}"
+    )
+    return {
+        "stats": res,
+        "vertical": note,
+        "sampling": "bilinear",
+        "outside": int((status == 1).sum()),
+        "on_void": int((status == 2).sum()),
+        "points": [
+            {
+                "id": i,
+                "lon": float(a),
+                "lat": float(b),
+                "z": float(c),
+                "dem": float(d) if np.isfinite(d) else None,
+                "dh": float(e) if np.isfinite(e) else None,
+            }
+            for i, a, b, c, d, e in zip(ids, lon, lat, z, hz, dh)
+        ],
+    }

@@ -12,6 +12,7 @@
 All heights/dh in metres, east/north/along/cross in metres of the local frame of
 :func:`stereodem.post.coreg.local_metric_coords`.
 """
+
 from __future__ import annotations
 
 import logging
@@ -39,11 +40,13 @@ def _warp_shift(dem, east_m, north_m, resampling="bilinear"):
     """Heights of ``dem`` moved by ``east_m, north_m`` metres, on its own grid (NaN where
     moved off the grid)."""
     t = warp.translated(dem.transform, dem.crs, dem.shape, east_m, north_m)
-    return warp.to_grid(dem.heights, t, dem.crs, dem.transform, dem.crs, dem.shape,
-                        resampling=resampling).astype(np.float64)
+    return warp.to_grid(
+        dem.heights, t, dem.crs, dem.transform, dem.crs, dem.shape, resampling=resampling
+    ).astype(np.float64)
 
 
 # ----------------------------------------------------------------------------- shifts
+
 
 class VerticalShift(Coreg):
     """Remove the median of stable ``dh`` (σ: 1.2533·NMAD/√n, the median's formal σ)."""
@@ -82,9 +85,17 @@ class NuthKaab(Coreg):
 
     name = "nuth_kaab"
 
-    def __init__(self, *, max_iterations: int = 15, tolerance_px: float = 0.005,
-                 min_slope: float = 1.0, max_slope: float = 70.0, outlier_nmad: float = 3.0,
-                 resampling: str = "cubic", tilt: bool = True):
+    def __init__(
+        self,
+        *,
+        max_iterations: int = 15,
+        tolerance_px: float = 0.005,
+        min_slope: float = 1.0,
+        max_slope: float = 70.0,
+        outlier_nmad: float = 3.0,
+        resampling: str = "cubic",
+        tilt: bool = True,
+    ):
         super().__init__()
         self.tilt = bool(tilt)
         self.max_iterations = int(max_iterations)
@@ -105,24 +116,32 @@ class NuthKaab(Coreg):
         history, converged = [], False
         cov = np.full((3, 3), np.nan)
         for it in range(1, self.max_iterations + 1):
-            z = dem.heights.astype(np.float64) if it == 1 else \
-                _warp_shift(dem, -east, -north, self.resampling)
+            z = (
+                dem.heights.astype(np.float64)
+                if it == 1
+                else _warp_shift(dem, -east, -north, self.resampling)
+            )
             ge, gn = terrain.gradient(z, dem.transform, dem.crs)
             slope = np.degrees(np.arctan(np.hypot(ge, gn)))
             d = sampler.dh(z)
             s = sampler.values(slope)
             ok = np.isfinite(d) & (s >= self.min_slope) & (s <= self.max_slope)
             if ok.sum() < 50:
-                raise InputError(f"{dem.path or 'DEM'}: only {int(ok.sum())} stable samples with "
-                                 "usable slope; cannot co-register")
+                raise InputError(
+                    f"{dem.path or 'DEM'}: only {int(ok.sum())} stable samples with "
+                    "usable slope; cannot co-register"
+                )
             cols = [-sampler.values(ge), -sampler.values(gn), np.ones(d.size)]
             if self.tilt:
                 cols += [sampler.east / 1e4, sampler.north / 1e4]
             a = np.column_stack(cols)
             p, cov, _ = robust_lstsq(a[ok], d[ok], n_sigma=self.outlier_nmad)
-            if it == 1:                  # the figure's data: dh / tan(slope) against aspect
-                first = (d[ok] - p[2] - (a[ok, 3:] @ p[3:] if self.tilt else 0.0),
-                         -a[ok, 0], -a[ok, 1])
+            if it == 1:  # the figure's data: dh / tan(slope) against aspect
+                first = (
+                    d[ok] - p[2] - (a[ok, 3:] @ p[3:] if self.tilt else 0.0),
+                    -a[ok, 0],
+                    -a[ok, 1],
+                )
             east, north = east + p[0], north + p[1]
             step_px = float(np.hypot(p[0] / pe, p[1] / pn))
             history.append({"iteration": it, "dx": east, "dy": north, "step_px": step_px})
@@ -130,25 +149,38 @@ class NuthKaab(Coreg):
                 converged = True
                 break
         if not converged:
-            log.warning("Nuth-Kaab did not converge in %d iterations (last step %.4f px)",
-                        self.max_iterations, history[-1]["step_px"])
+            log.warning(
+                "Nuth-Kaab did not converge in %d iterations (last step %.4f px)",
+                self.max_iterations,
+                history[-1]["step_px"],
+            )
         z = _warp_shift(dem, -east, -north, self.resampling)
         d = sampler.dh(z)
         d = d[np.isfinite(d)]
         if d.size == 0:
-            raise ConvergenceError(f"{dem.path or 'DEM'}: the shift moved the DEM off the reference")
+            raise ConvergenceError(
+                f"{dem.path or 'DEM'}: the shift moved the DEM off the reference"
+            )
         self.dx, self.dy, self.dz = float(east), float(north), float(np.median(d))
         sd = np.sqrt(np.diag(cov))[:3]
-        self.params = {"dx": param(self.dx, sd[0], "m"), "dy": param(self.dy, sd[1], "m"),
-                       "dz": param(self.dz, 1.2533 * nmad(d) / np.sqrt(d.size), "m"),
-                       "iterations": len(history), "converged": converged}
+        self.params = {
+            "dx": param(self.dx, sd[0], "m"),
+            "dy": param(self.dy, sd[1], "m"),
+            "dz": param(self.dz, 1.2533 * nmad(d) / np.sqrt(d.size), "m"),
+            "iterations": len(history),
+            "converged": converged,
+        }
         d0, ge0, gn0 = first
         tan = np.hypot(ge0, gn0)
         aspect = np.degrees(np.arctan2(-ge0, -gn0)) % 360.0
         dx, dy = self.dx, self.dy
-        self.curves = _binned_curve(aspect, d0 / np.maximum(tan, 1e-3),
-                                    lambda x: dx * np.sin(np.radians(x)) + dy * np.cos(np.radians(x)),
-                                    "aspect (deg, downhill, clockwise from north)", bins=36)
+        self.curves = _binned_curve(
+            aspect,
+            d0 / np.maximum(tan, 1e-3),
+            lambda x: dx * np.sin(np.radians(x)) + dy * np.cos(np.radians(x)),
+            "aspect (deg, downhill, clockwise from north)",
+            bins=36,
+        )
         if self.curves:
             self.curves["y_label"] = "dh / tan(slope) (m)"
         self.curves["log"] = history
@@ -159,9 +191,10 @@ class NuthKaab(Coreg):
 
 # ----------------------------------------------------------------------------- polynomials
 
+
 def _poly_terms(u, v, order):
     """Columns u^i v^j for i + j <= order (constant first)."""
-    return np.column_stack([u ** (k - j) * v ** j for k in range(order + 1) for j in range(k + 1)])
+    return np.column_stack([u ** (k - j) * v**j for k in range(order + 1) for j in range(k + 1)])
 
 
 def _poly_names(order, a="e", b="n"):
@@ -194,25 +227,28 @@ class Deramp(Coreg):
         a = _poly_terms(sampler.east / self.SCALE, sampler.north / self.SCALE, self.order)
         self.coef, cov, _ = robust_lstsq(a, d)
         sd = np.sqrt(np.diag(cov))
-        self.params = {k: param(v, s, "m") for k, v, s in
-                       zip(_poly_names(self.order), self.coef, sd)}
+        self.params = {
+            k: param(v, s, "m") for k, v, s in zip(_poly_names(self.order), self.coef, sd)
+        }
         self.params["coordinate_unit_m"] = self.SCALE
 
     def _apply(self, dem):
         e, n = local_metric_coords(dem.transform, dem.crs, dem.shape)
         out = np.empty(dem.shape, np.float64)
-        for r0 in range(0, dem.shape[0], 256):          # row blocks: bounded memory
-            eb, nb = e[r0:r0 + 256], n[r0:r0 + 256]
+        for r0 in range(0, dem.shape[0], 256):  # row blocks: bounded memory
+            eb, nb = e[r0 : r0 + 256], n[r0 : r0 + 256]
             a = _poly_terms(eb.ravel() / self.SCALE, nb.ravel() / self.SCALE, self.order)
-            out[r0:r0 + 256] = (a @ self.coef).reshape(eb.shape)
+            out[r0 : r0 + 256] = (a @ self.coef).reshape(eb.shape)
         return dem.heights - out
 
 
 def _heading(step, context):
     h = step.heading if step.heading is not None else context.get("track_angle_deg")
     if h is None:
-        raise InputError(f"{step.name}: the ground-track heading is unknown; give it "
-                         "(--track-angle DEG, track_angle_deg=...) or use a DEM made by stereodem")
+        raise InputError(
+            f"{step.name}: the ground-track heading is unknown; give it "
+            "(--track-angle DEG, track_angle_deg=...) or use a DEM made by stereodem"
+        )
     return float(h)
 
 
@@ -236,8 +272,12 @@ def _track_report(step) -> dict:
 def _sample_track(step, sampler, dem):
     """Along/cross-track metres at the samples."""
     if step.frame is not None:
-        return step.frame.grid_coords(dem.transform, sampler.rows, sampler.cols,
-                                      _ellipsoidal(dem, sampler.values(dem.heights)))
+        return step.frame.grid_coords(
+            dem.transform,
+            sampler.rows,
+            sampler.cols,
+            _ellipsoidal(dem, sampler.values(dem.heights)),
+        )
     return track_coords(sampler.east, sampler.north, step.heading)
 
 
@@ -249,8 +289,10 @@ def _ellipsoidal(dem, z):
     if dem.vertical != "geoid":
         return z
     from stereodem.core import geodesy
-    lon, lat = geodesy.crs_to_lonlat(*(dem.transform @ (dem.shape[1] / 2.0, dem.shape[0] / 2.0)),
-                                     dem.crs)
+
+    lon, lat = geodesy.crs_to_lonlat(
+        *(dem.transform @ (dem.shape[1] / 2.0, dem.shape[0] / 2.0)), dem.crs
+    )
     return z + float(np.ravel(geodesy.geoid_undulation(lon, lat))[0])
 
 
@@ -258,8 +300,10 @@ def _grid_track(step, dem, rows: slice):
     """Along/cross-track metres of the cells of ``rows`` of the DEM grid."""
     if step.frame is not None:
         if not step.frame.matches(dem.crs):
-            raise InputError(f"{step.name}: the DEM {dem.path or ''} is not in the CRS of the "
-                             f"track frame the step was fitted with ({step.frame.crs})")
+            raise InputError(
+                f"{step.name}: the DEM {dem.path or ''} is not in the CRS of the "
+                f"track frame the step was fitted with ({step.frame.crs})"
+            )
         r = np.arange(dem.shape[0])[rows]
         rr, cc = np.meshgrid(r, np.arange(dem.shape[1]), indexing="ij")
         return step.frame.grid_coords(dem.transform, rr, cc, _ellipsoidal(dem, dem.heights[rows]))
@@ -294,15 +338,18 @@ class CrossTrack(Coreg):
         self.params = {f"c{k}": param(v, s, "m") for k, (v, s) in enumerate(zip(self.coef, sd))}
         self.params.update(_track_report(self))
         self.params["coordinate_unit_m"] = self.SCALE
-        self.curves = _binned_curve(c, d, lambda x: np.vander(x / self.SCALE, self.order + 1,
-                                                              increasing=True) @ self.coef,
-                                    "cross-track distance (m)")
+        self.curves = _binned_curve(
+            c,
+            d,
+            lambda x: np.vander(x / self.SCALE, self.order + 1, increasing=True) @ self.coef,
+            "cross-track distance (m)",
+        )
 
     def _apply(self, dem):
         out = np.empty(dem.shape, np.float64)
-        for r0 in range(0, dem.shape[0], 256):          # row blocks: bounded memory
+        for r0 in range(0, dem.shape[0], 256):  # row blocks: bounded memory
             _, c = _grid_track(self, dem, slice(r0, r0 + 256))
-            out[r0:r0 + 256] = np.polynomial.polynomial.polyval(c / self.SCALE, self.coef)
+            out[r0 : r0 + 256] = np.polynomial.polynomial.polyval(c / self.SCALE, self.coef)
         return dem.heights - out
 
 
@@ -314,15 +361,22 @@ def _binned_curve(x, d, model, label, bins: int = 60):
     edges = np.quantile(x[ok], np.linspace(0, 1, bins + 1))
     edges = np.unique(edges)
     k = np.clip(np.searchsorted(edges, x[ok], side="right") - 1, 0, edges.size - 2)
-    med = np.array([np.median(d[ok][k == i]) if np.any(k == i) else np.nan
-                    for i in range(edges.size - 1)])
+    med = np.array(
+        [np.median(d[ok][k == i]) if np.any(k == i) else np.nan for i in range(edges.size - 1)]
+    )
     cen = 0.5 * (edges[:-1] + edges[1:])
     xs = np.linspace(edges[0], edges[-1], 400)
-    return {"x_label": label, "bin_centre": cen.tolist(), "bin_median": med.tolist(),
-            "model_x": xs.tolist(), "model_y": np.asarray(model(xs), float).tolist()}
+    return {
+        "x_label": label,
+        "bin_centre": cen.tolist(),
+        "bin_median": med.tolist(),
+        "model_x": xs.tolist(),
+        "model_y": np.asarray(model(xs), float).tolist(),
+    }
 
 
 # ----------------------------------------------------------------------------- along track
+
 
 def _sines(t, f, a, b):
     """Σ a_k sin(2π f_k t) + b_k cos(2π f_k t) (t in m, f in cycles/m)."""
@@ -354,9 +408,16 @@ class AlongTrack(Coreg):
 
     name = "along_track"
 
-    def __init__(self, n_sines: int = 3, *, heading: float | None = None,
-                 min_wavelength: float = 1000.0, max_wavelength: float | None = None,
-                 min_amplitude: float = 0.2, bin_m: float | None = None):
+    def __init__(
+        self,
+        n_sines: int = 3,
+        *,
+        heading: float | None = None,
+        min_wavelength: float = 1000.0,
+        max_wavelength: float | None = None,
+        min_amplitude: float = 0.2,
+        bin_m: float | None = None,
+    ):
         super().__init__()
         self.n_sines = int(n_sines)
         if not 1 <= self.n_sines <= 10:
@@ -403,9 +464,16 @@ class AlongTrack(Coreg):
         px = abs(dem.transform.a) * warp.metres_per_unit(dem.transform, dem.crs, dem.shape)[0]
         span = float(np.nanmax(t[ok]) - np.nanmin(t[ok]))
         # profile bins: a pixel, but at most 4000 bins along the track (bounded periodogram)
-        bin_m = float(self.bin_m or max(px, 0.5 * abs(dem.transform.e)
-                                        * warp.metres_per_unit(dem.transform, dem.crs, dem.shape)[1],
-                                        span / 4000.0))
+        bin_m = float(
+            self.bin_m
+            or max(
+                px,
+                0.5
+                * abs(dem.transform.e)
+                * warp.metres_per_unit(dem.transform, dem.crs, dem.shape)[1],
+                span / 4000.0,
+            )
+        )
         centres, prof, cnt = self._profile(t, d - np.median(d[ok]), bin_m)
         length = centres[-1] - centres[0] + bin_m
         max_wl = float(self.max_wavelength or length / 2.0)
@@ -423,8 +491,9 @@ class AlongTrack(Coreg):
             ph = 2 * np.pi * np.outer(x, freqs)
             s, c = np.sin(ph), np.cos(ph)
             ww = w / w.sum()
-            power = ((ww * resid) @ s) ** 2 / (ww @ (s * s)) + \
-                    ((ww * resid) @ c) ** 2 / (ww @ (c * c))
+            power = ((ww * resid) @ s) ** 2 / (ww @ (s * s)) + ((ww * resid) @ c) ** 2 / (
+                ww @ (c * c)
+            )
             f = float(freqs[int(np.argmax(power))])
             fs = np.array(found + [f])
             p = self._refine_profile(x, y, w, fs)
@@ -435,7 +504,7 @@ class AlongTrack(Coreg):
                 break
             new = y - off - _sines(x, fs, a, b)
             amp = float(np.hypot(a[-1], b[-1]))
-            var_drop = 1.0 - np.average(new ** 2, weights=w ** 2) / np.average(resid ** 2, weights=w ** 2)
+            var_drop = 1.0 - np.average(new**2, weights=w**2) / np.average(resid**2, weights=w**2)
             if amp < self.min_amplitude or var_drop < 0.05:
                 break
             found = list(fs)
@@ -444,30 +513,39 @@ class AlongTrack(Coreg):
             self.freq = self.amp_sin = self.amp_cos = np.zeros(0)
             self.offset = 0.0
             self.params = {"n_sines": 0, **_track_report(self)}
-            self.curves = _binned_curve(t, d, lambda z: np.zeros_like(z), "along-track distance (m)")
+            self.curves = _binned_curve(
+                t, d, lambda z: np.zeros_like(z), "along-track distance (m)"
+            )
             return
         self._refine_samples(t, d, np.array(found))
-        self.curves = _binned_curve(t, d, self._model, "along-track distance (m)",
-                                    bins=min(400, max(60, int(length / bin_m / 2))))
+        self.curves = _binned_curve(
+            t,
+            d,
+            self._model,
+            "along-track distance (m)",
+            bins=min(400, max(60, int(length / bin_m / 2))),
+        )
 
     @staticmethod
     def _refine_profile(x, y, w, fs):
         k = fs.size
 
         def resid(p):
-            return w * (y - p[0] - _sines(x, p[1:k + 1], p[k + 1:2 * k + 1], p[2 * k + 1:]))
+            return w * (y - p[0] - _sines(x, p[1 : k + 1], p[k + 1 : 2 * k + 1], p[2 * k + 1 :]))
+
         # linear start for the amplitudes at fixed frequencies
         ph = 2 * np.pi * np.outer(x, fs)
         a = np.column_stack([np.ones_like(x), np.sin(ph), np.cos(ph)]) * w[:, None]
         lin, *_ = np.linalg.lstsq(a, w * y, rcond=None)
-        p0 = np.concatenate([[lin[0]], fs, lin[1:k + 1], lin[k + 1:]])
+        p0 = np.concatenate([[lin[0]], fs, lin[1 : k + 1], lin[k + 1 :]])
         try:
-            sol = optimize.least_squares(resid, p0, loss="soft_l1", f_scale=max(nmad(y), 1e-3),
-                                         x_scale="jac")
+            sol = optimize.least_squares(
+                resid, p0, loss="soft_l1", f_scale=max(nmad(y), 1e-3), x_scale="jac"
+            )
         except (ValueError, np.linalg.LinAlgError):
             return None
         p = sol.x
-        return p[1:k + 1], p[k + 1:2 * k + 1], p[2 * k + 1:], p[0]
+        return p[1 : k + 1], p[k + 1 : 2 * k + 1], p[2 * k + 1 :], p[0]
 
     def _refine_samples(self, t, d, fs):
         ok = np.isfinite(d)
@@ -476,11 +554,12 @@ class AlongTrack(Coreg):
         ph = 2 * np.pi * np.outer(tt, fs)
         a = np.column_stack([np.ones_like(tt), np.sin(ph), np.cos(ph)])
         lin, *_ = np.linalg.lstsq(a, dd, rcond=None)
-        p0 = np.concatenate([[lin[0]], fs, lin[1:k + 1], lin[k + 1:]])
+        p0 = np.concatenate([[lin[0]], fs, lin[1 : k + 1], lin[k + 1 :]])
         scale = max(nmad(dd - a @ lin), 1e-3)
 
         def resid(p):
-            return dd - p[0] - _sines(tt, p[1:k + 1], p[k + 1:2 * k + 1], p[2 * k + 1:])
+            return dd - p[0] - _sines(tt, p[1 : k + 1], p[k + 1 : 2 * k + 1], p[2 * k + 1 :])
+
         sol = optimize.least_squares(resid, p0, loss="soft_l1", f_scale=scale, x_scale="jac")
         p = sol.x
         r = resid(p)
@@ -488,26 +567,33 @@ class AlongTrack(Coreg):
         inl = np.abs(r - np.median(r)) <= 3 * s
         jac = sol.jac[inl]
         cov = s * s * np.linalg.pinv(jac.T @ jac)
-        self.offset, self.freq = float(p[0]), p[1:k + 1]
-        self.amp_sin, self.amp_cos = p[k + 1:2 * k + 1], p[2 * k + 1:]
+        self.offset, self.freq = float(p[0]), p[1 : k + 1]
+        self.amp_sin, self.amp_cos = p[k + 1 : 2 * k + 1], p[2 * k + 1 :]
         sd = np.sqrt(np.diag(cov))
-        self.params = {"offset": param(self.offset, sd[0], "m"), "n_sines": k,
-                       **_track_report(self)}
+        self.params = {
+            "offset": param(self.offset, sd[0], "m"),
+            "n_sines": k,
+            **_track_report(self),
+        }
         for i in range(k):
             f, a_, b_ = self.freq[i], self.amp_sin[i], self.amp_cos[i]
             sf, sa, sb = sd[1 + i], sd[1 + k + i], sd[1 + 2 * k + i]
             amp = float(np.hypot(a_, b_))
             # propagated σ of amplitude (from sine/cosine parts) and wavelength (from frequency)
             s_amp = float(np.hypot(a_ * sa, b_ * sb) / amp) if amp > 0 else float("nan")
-            self.params[f"sine{i + 1}_wavelength"] = param(1.0 / f, sf / f ** 2, "m")
+            self.params[f"sine{i + 1}_wavelength"] = param(1.0 / f, sf / f**2, "m")
             self.params[f"sine{i + 1}_amplitude"] = param(amp, s_amp, "m")
-            self.params[f"sine{i + 1}_phase"] = param(float(np.arctan2(b_, a_)), float("nan"), "rad")
+            self.params[f"sine{i + 1}_phase"] = param(
+                float(np.arctan2(b_, a_)), float("nan"), "rad"
+            )
 
     def _model(self, t):
         if self.freq.size == 0:
             return np.zeros_like(np.asarray(t, float))
         shp = np.shape(t)
-        return (self.offset + _sines(np.ravel(t), self.freq, self.amp_sin, self.amp_cos)).reshape(shp)
+        return (self.offset + _sines(np.ravel(t), self.freq, self.amp_sin, self.amp_cos)).reshape(
+            shp
+        )
 
     def _apply(self, dem):
         if self.freq.size == 0:
@@ -516,11 +602,12 @@ class AlongTrack(Coreg):
         out = np.empty(dem.shape, np.float64)
         for r0 in range(0, dem.shape[0], 256):
             t, _ = _grid_track(self, dem, slice(r0, r0 + 256))
-            out[r0:r0 + 256] = self._model(t)
+            out[r0 : r0 + 256] = self._model(t)
         return dem.heights - out
 
 
 # ----------------------------------------------------------------------------- curvature
+
 
 def maximum_curvature(heights, transform, crs):
     """Signed principal curvature of largest magnitude of the height field, in 1/(100 m)
@@ -535,7 +622,7 @@ def maximum_curvature(heights, transform, crs):
     gne, gnn = terrain.gradient(gn, transform, crs)
     gx = 0.5 * (gen + gne)
     m = 0.5 * (gee + gnn)
-    r = np.sqrt(0.25 * (gee - gnn) ** 2 + gx ** 2)
+    r = np.sqrt(0.25 * (gee - gnn) ** 2 + gx**2)
     l1, l2 = m + r, m - r
     return 100.0 * np.where(np.abs(l1) >= np.abs(l2), l1, l2)
 
@@ -570,8 +657,12 @@ class Curvature(Coreg):
         self.params = {f"c{k}": param(v, s, "m") for k, (v, s) in enumerate(zip(self.coef, sd))}
         self.params["curvature_unit"] = "1/(100 m)"
         self.params["curvature_range"] = list(self.range)
-        self.curves = _binned_curve(cc, d, lambda x: np.polynomial.polynomial.polyval(x, self.coef),
-                                    "maximum curvature (1/100 m)")
+        self.curves = _binned_curve(
+            cc,
+            d,
+            lambda x: np.polynomial.polynomial.polyval(x, self.coef),
+            "maximum curvature (1/100 m)",
+        )
 
     def _apply(self, dem):
         curv = maximum_curvature(dem.heights, dem.transform, dem.crs)
@@ -581,6 +672,7 @@ class Curvature(Coreg):
 
 
 # ----------------------------------------------------------------------------- ICP
+
 
 class ICP(Coreg):
     """Rigid point-to-plane ICP of the DEM surface onto the reference: a translation
@@ -612,12 +704,13 @@ class ICP(Coreg):
             gi, ni = sampler.values(ge), sampler.values(gn)
             zi = sampler.values(z)
             d = zi - sampler.ref
-            norm = np.sqrt(1 + gi ** 2 + ni ** 2)
+            norm = np.sqrt(1 + gi**2 + ni**2)
             nx, ny, nz = -gi / norm, -ni / norm, 1 / norm
             px, py, pz = sampler.east, sampler.north, zi - self.z0
             # n·(ω × p + t) = −n·(p − q) ; q − p = (0, 0, −d)
-            a = np.column_stack([nx, ny, nz,
-                                 nz * py - ny * pz, nx * pz - nz * px, ny * px - nx * py])
+            a = np.column_stack(
+                [nx, ny, nz, nz * py - ny * pz, nx * pz - nz * px, ny * px - nx * py]
+            )
             y = -nz * d
             p, cov, _ = robust_lstsq(a, y)
             self.t = self.t + p[:3]

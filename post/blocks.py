@@ -12,6 +12,7 @@ The thread count defaults to the process's budget, read from OpenCV's thread set
 (``cv2.getNumThreads()``), which the application pins to ``--workers``
 (:mod:`stereodem.core.threads`).
 """
+
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
@@ -25,6 +26,7 @@ MIN_ROWS = 128
 def default_threads() -> int:
     """The process's thread budget (OpenCV's setting, pinned by the application)."""
     import cv2
+
     return max(1, int(cv2.getNumThreads()))
 
 
@@ -50,7 +52,7 @@ def by_rows(fn, *arrays, halo: int, threads: int | None = None, out=None):
         r0, r1 = bands[i]
         a0, a1 = max(0, r0 - halo), min(rows, r1 + halo)
         res = fn(*(a[a0:a1] for a in arrays))
-        results[i] = res[r0 - a0:r0 - a0 + (r1 - r0)]
+        results[i] = res[r0 - a0 : r0 - a0 + (r1 - r0)]
 
     with ThreadPoolExecutor(len(bands), thread_name_prefix="stereodem-rows") as ex:
         list(ex.map(one, range(len(bands))))

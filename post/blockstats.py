@@ -19,6 +19,7 @@ needed for the least-squares line of ``|dh − median|`` against it
 numbers): the sums are exact except over the one bin holding the median (its cells'
 deviations are within ``resolution`` of the truth).
 """
+
 from __future__ import annotations
 
 import math
@@ -30,7 +31,7 @@ from stereodem.core.stats import NMAD_FACTOR
 from .stats import STAT_KEYS, Z90, Z95
 
 #: default histogram bin width (m): 2^-10 m, about 1 mm
-RESOLUTION = 2.0 ** -10
+RESOLUTION = 2.0**-10
 #: values beyond ± this (m) are kept exactly instead of binned (blunders: few, far apart)
 LIMIT = 1000.0
 
@@ -65,26 +66,28 @@ class StreamingStats:
         and takes only the values where both ``x`` and ``w`` are finite.
     """
 
-    def __init__(self, resolution: float = RESOLUTION, limit: float = LIMIT, covariate: bool = False):
+    def __init__(
+        self, resolution: float = RESOLUTION, limit: float = LIMIT, covariate: bool = False
+    ):
         self.resolution = float(resolution)
         self.limit = float(limit)
         self.covariate = covariate
         self.n = 0
         self._mean = 0.0
-        self._m2 = 0.0                      # sum of squared deviations from the mean
+        self._m2 = 0.0  # sum of squared deviations from the mean
         self._sumsq = 0.0
         self._sumabs = 0.0
         self.min = math.inf
         self.max = -math.inf
-        self._lo = 0                        # bin index of counts[0]
+        self._lo = 0  # bin index of counts[0]
         self.counts = np.zeros(0, np.int64)
-        self._tail = []                     # exact values beyond ± limit
+        self._tail = []  # exact values beyond ± limit
         self._tail_w = []
         if covariate:
-            self._bx = np.zeros(0)          # per bin: sum of x, of w, of w·x
+            self._bx = np.zeros(0)  # per bin: sum of x, of w, of w·x
             self._bw = np.zeros(0)
             self._bwx = np.zeros(0)
-            self._sw = self._sww = 0.0      # Σw, Σw²
+            self._sw = self._sww = 0.0  # Σw, Σw²
 
     # ------------------------------------------------------------------ adding
     def add(self, x, w=None):
@@ -102,8 +105,15 @@ class StreamingStats:
         if x.size == 0:
             return
         mean = float(x.mean())
-        self._merge_moments(x.size, mean, float(np.sum((x - mean) ** 2)), _dot(x, x),
-                            float(np.abs(x).sum()), float(x.min()), float(x.max()))
+        self._merge_moments(
+            x.size,
+            mean,
+            float(np.sum((x - mean) ** 2)),
+            _dot(x, x),
+            float(np.abs(x).sum()),
+            float(x.min()),
+            float(x.max()),
+        )
         far = np.abs(x) > self.limit
         if far.any():
             self._tail.append(x[far])
@@ -145,12 +155,17 @@ class StreamingStats:
         """Add the values of ``other`` (same resolution, limit and covariate setting) into
         this accumulator; merging block accumulators in a fixed order gives the same result
         whichever thread computed which block. Returns self."""
-        if (other.resolution, other.limit, other.covariate) != (self.resolution, self.limit, self.covariate):
+        if (other.resolution, other.limit, other.covariate) != (
+            self.resolution,
+            self.limit,
+            self.covariate,
+        ):
             raise ValueError("accumulators with different resolution, limit or covariate")
         if other.n == 0:
             return self
-        self._merge_moments(other.n, other._mean, other._m2, other._sumsq, other._sumabs,
-                            other.min, other.max)
+        self._merge_moments(
+            other.n, other._mean, other._m2, other._sumsq, other._sumabs, other.min, other.max
+        )
         self._tail += other._tail
         self._tail_w += other._tail_w
         if self.covariate:
@@ -240,18 +255,32 @@ class StreamingStats:
         """The :func:`~stereodem.post.stats.error_stats` dict of the values added."""
         total = int(self.n if n_total is None else n_total)
         out = dict.fromkeys(STAT_KEYS, float("nan"))
-        out.update(n=int(self.n), n_total=total,
-                   valid_pct=(100.0 * self.n / total) if total else float("nan"))
+        out.update(
+            n=int(self.n),
+            n_total=total,
+            valid_pct=(100.0 * self.n / total) if total else float("nan"),
+        )
         if self.n == 0:
             return out
         med, p16, p84 = (float(v) for v in self.quantile([0.5, 0.16, 0.84]))
         le90, le95 = (float(v) for v in self.abs_quantile([0.90, 0.95]))
         std = math.sqrt(max(self._m2, 0.0) / self.n)
-        out.update(mean=self._mean, median=med, std=std, rmse=math.sqrt(self._sumsq / self.n),
-                   mae=self._sumabs / self.n,
-                   nmad=NMAD_FACTOR * float(self.abs_quantile(0.5, med)),
-                   p16=p16, p84=p84, le90=le90, le95=le95, le90_gauss=Z90 * std,
-                   le95_gauss=Z95 * std, min=self.min, max=self.max)
+        out.update(
+            mean=self._mean,
+            median=med,
+            std=std,
+            rmse=math.sqrt(self._sumsq / self.n),
+            mae=self._sumabs / self.n,
+            nmad=NMAD_FACTOR * float(self.abs_quantile(0.5, med)),
+            p16=p16,
+            p84=p84,
+            le90=le90,
+            le95=le95,
+            le90_gauss=Z90 * std,
+            le95_gauss=Z95 * std,
+            min=self.min,
+            max=self.max,
+        )
         return out
 
     def abs_deviation_fit(self, centre: float) -> dict:
@@ -262,7 +291,12 @@ class StreamingStats:
         bin mean (each of their ``e`` is then within ``resolution`` of the truth)."""
         if not self.covariate:
             raise ValueError("this accumulator keeps no covariate")
-        out = {"slope": float("nan"), "intercept": float("nan"), "r": float("nan"), "n": int(self.n)}
+        out = {
+            "slope": float("nan"),
+            "intercept": float("nan"),
+            "r": float("nan"),
+            "n": int(self.n),
+        }
         if self.n < 3:
             return out
         cnt = self.counts.astype(np.float64)
@@ -278,7 +312,7 @@ class StreamingStats:
             sum_we += _dot(tw, e)
         n = float(self.n)
         sum_x = self._mean * n
-        sum_ee = self._sumsq - 2.0 * centre * sum_x + n * centre * centre      # Σ(x − c)²
+        sum_ee = self._sumsq - 2.0 * centre * sum_x + n * centre * centre  # Σ(x − c)²
         mw, me = sum_w / n, sum_e / n
         var_w = sum_ww / n - mw * mw
         var_e = sum_ee / n - me * me
@@ -286,6 +320,9 @@ class StreamingStats:
         if not var_w > 1e-12 * max(sum_ww / n, 1e-300):
             return out
         b = cov / var_w
-        out.update(slope=b, intercept=me - b * mw,
-                   r=cov / math.sqrt(var_w * var_e) if var_e > 0 else float("nan"))
+        out.update(
+            slope=b,
+            intercept=me - b * mw,
+            r=cov / math.sqrt(var_w * var_e) if var_e > 0 else float("nan"),
+        )
         return out

@@ -7,6 +7,7 @@ the NMAD of the stable ``dh`` in the cell's slope × curvature bin, interpolated
 the difference of the two DEMs, so it holds both DEMs' errors; a real change in unstable terrain
 is not in it. With the two dates the rate ``dh / Δt`` and its σ follow.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -18,8 +19,14 @@ from . import terrain, warp
 from .stats import error_stats
 
 
-def dem_change(dem_a: DEM, dem_b: DEM, *, chain: str = "nuth_kaab,deramp:1", exclude=(),
-               track_angle_deg: float | None = None) -> dict:
+def dem_change(
+    dem_a: DEM,
+    dem_b: DEM,
+    *,
+    chain: str = "nuth_kaab,deramp:1",
+    exclude=(),
+    track_angle_deg: float | None = None,
+) -> dict:
     """``dh = B − A`` on A's grid and its σ map; returns a dict with ``dh``, ``sigma`` (arrays,
     m), ``stable`` (bool), ``coregistration`` (the chain's report), ``stats_stable`` (after) and
     ``heteroscedasticity`` (the binned table, without the per-cell array)."""
@@ -27,15 +34,21 @@ def dem_change(dem_a: DEM, dem_b: DEM, *, chain: str = "nuth_kaab,deramp:1", exc
     from .biascorr import maximum_curvature
     from .spatialstats import heteroscedasticity
     from .stack_build import BuildSettings, exclude_mask, fit_chain
+
     dem_b, vnote = reconcile_vertical(dem_b, dem_a)
-    warp.check_overlap(dem_b.bounds_lonlat(), dem_a.bounds_lonlat(), f"{dem_b.path or 'DEM B'}",
-                       f"{dem_a.path or 'DEM A'}")
+    warp.check_overlap(
+        dem_b.bounds_lonlat(),
+        dem_a.bounds_lonlat(),
+        f"{dem_b.path or 'DEM B'}",
+        f"{dem_a.path or 'DEM A'}",
+    )
     stable_b = exclude_mask(list(exclude), dem_b)
     settings = BuildSettings(chain=chain, exclude=list(exclude), track_angle_deg=track_angle_deg)
     corrected, report, _ = fit_chain(dem_a, dem_b, stable_b, settings, track_angle_deg)
     g = dem_a.grid
-    hb = warp.to_grid(corrected.heights, corrected.transform, corrected.crs, g.transform, g.crs,
-                      g.shape)
+    hb = warp.to_grid(
+        corrected.heights, corrected.transform, corrected.crs, g.transform, g.crs, g.shape
+    )
     dh = (hb - dem_a.heights).astype(np.float32)
     if not np.isfinite(dh).any():
         raise InputError(f"{dem_b.path}: no overlap with {dem_a.path} after co-registration")
@@ -44,5 +57,12 @@ def dem_change(dem_a: DEM, dem_b: DEM, *, chain: str = "nuth_kaab,deramp:1", exc
     curv = maximum_curvature(dem_a.heights, g.transform, g.crs)
     het = heteroscedasticity(np.where(stable, dh, np.nan), slope, curv)
     sigma = np.where(np.isfinite(dh), het.pop("sigma"), np.nan).astype(np.float32)
-    return dict(dh=dh, sigma=sigma, stable=stable, coregistration=report, vertical=vnote,
-                stats_stable=error_stats(dh[stable]), heteroscedasticity=het)
+    return dict(
+        dh=dh,
+        sigma=sigma,
+        stable=stable,
+        coregistration=report,
+        vertical=vnote,
+        stats_stable=error_stats(dh[stable]),
+        heteroscedasticity=het,
+    )

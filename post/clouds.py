@@ -15,6 +15,7 @@ cells (the matcher's window smears a cloud's edge into the terrain around it):
 :class:`CloudSettings` holds the thresholds; :func:`cloud_mask` returns the combined mask and
 the fraction each sign flagged.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -85,6 +86,7 @@ def temporal_deviation(stack, max_deviation: float) -> np.ndarray:
     cell's temporal median (the stack's own blunder test; :mod:`stereodem.post.rates` applies
     it per cell before fitting)."""
     import warnings
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         med = np.nanmedian(stack, axis=0)
@@ -92,8 +94,15 @@ def temporal_deviation(stack, max_deviation: float) -> np.ndarray:
         return np.abs(np.asarray(stack) - med) > max_deviation
 
 
-def cloud_mask(heights, *, settings: CloudSettings = CloudSettings(), reference=None, score=None,
-               radiance=None, stable=None):
+def cloud_mask(
+    heights,
+    *,
+    settings: CloudSettings = CloudSettings(),
+    reference=None,
+    score=None,
+    radiance=None,
+    stable=None,
+):
     """The combined cloud mask of one DEM and what flagged it.
 
     Returns
@@ -109,14 +118,22 @@ def cloud_mask(heights, *, settings: CloudSettings = CloudSettings(), reference=
     valid = np.isfinite(h)
     n = max(int(valid.sum()), 1)
     parts, info = [], {}
-    for name, layer, thr, fn in (("deviation", reference, settings.max_deviation,
-                                  lambda a, t: deviation_mask(h, a, t, stable=stable)),
-                                 ("score", score, settings.min_score, score_mask),
-                                 ("radiance", radiance, settings.max_radiance, radiance_mask)):
+    for name, layer, thr, fn in (
+        (
+            "deviation",
+            reference,
+            settings.max_deviation,
+            lambda a, t: deviation_mask(h, a, t, stable=stable),
+        ),
+        ("score", score, settings.min_score, score_mask),
+        ("radiance", radiance, settings.max_radiance, radiance_mask),
+    ):
         if layer is None or thr is None:
             continue
         if np.shape(layer) != h.shape:
-            raise InputError(f"cloud mask: the {name} layer is {np.shape(layer)}, the DEM {h.shape}")
+            raise InputError(
+                f"cloud mask: the {name} layer is {np.shape(layer)}, the DEM {h.shape}"
+            )
         m = fn(layer, thr) & valid
         info[f"{name}_pct"] = round(100.0 * m.sum() / n, 4)
         parts.append(m)

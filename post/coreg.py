@@ -23,6 +23,7 @@ The standard deviations reported are the formal ones of each least-squares fit (
 NMAD² times the inverse normal matrix) and treat the samples as independent; with spatially
 correlated errors they are lower bounds (see :mod:`stereodem.post.spatialstats`).
 """
+
 from __future__ import annotations
 
 import logging
@@ -48,6 +49,7 @@ MIN_STABLE_FRACTION = 0.05
 
 
 # ----------------------------------------------------------------------------- geometry
+
 
 def local_metric_coords(transform, crs, shape, x=None, y=None):
     """East/north metres from the grid centre of CRS coordinates ``x, y`` (default: every
@@ -75,11 +77,18 @@ def track_coords(east, north, heading_deg: float):
 def bilinear(grid, rows, cols):
     """Bilinear values of ``grid`` at fractional (row, col) cell-centre indices; NaN outside
     or next to a void."""
-    return ndimage.map_coordinates(np.asarray(grid, np.float64), [rows, cols], order=1,
-                                   mode="constant", cval=np.nan, prefilter=False)
+    return ndimage.map_coordinates(
+        np.asarray(grid, np.float64),
+        [rows, cols],
+        order=1,
+        mode="constant",
+        cval=np.nan,
+        prefilter=False,
+    )
 
 
 # ----------------------------------------------------------------------------- samples
+
 
 @dataclass
 class Sampler:
@@ -95,8 +104,8 @@ class Sampler:
     north: np.ndarray
     ref: np.ndarray
     shape: tuple
-    kind: str = "dem"              #: "dem" or "points"
-    n_stable: int = 0              #: stable reference cells/points before subsampling
+    kind: str = "dem"  #: "dem" or "points"
+    n_stable: int = 0  #: stable reference cells/points before subsampling
 
     def values(self, grid) -> np.ndarray:
         """``grid`` (on the DEM grid) at the sample positions."""
@@ -113,32 +122,60 @@ class Sampler:
         d = self.dh(heights)
         d = d[np.isfinite(d)]
         if d.size == 0:
-            return {"n": 0, "nmad": float("nan"), "median": float("nan"), "mean": float("nan"),
-                    "std": float("nan")}
-        return {"n": int(d.size), "nmad": nmad(d), "median": float(np.median(d)),
-                "mean": float(np.mean(d)), "std": float(np.std(d))}
+            return {
+                "n": 0,
+                "nmad": float("nan"),
+                "median": float("nan"),
+                "mean": float("nan"),
+                "std": float("nan"),
+            }
+        return {
+            "n": int(d.size),
+            "nmad": nmad(d),
+            "median": float(np.median(d)),
+            "mean": float(np.mean(d)),
+            "std": float(np.std(d)),
+        }
 
 
 def reference_on_grid(ref: DEM, dem: DEM, *, resampling: str = "bilinear") -> np.ndarray:
     """The reference heights on ``dem``'s grid (metres, NaN outside); :class:`NoOverlapError`
     when the footprints or their valid cells do not overlap."""
-    warp.check_overlap(dem.bounds_lonlat(), ref.bounds_lonlat(), dem.path or "DEM",
-                       ref.path or "reference")
-    same = (ref.shape == dem.shape and ref.transform.almost_equals(dem.transform)
-            and ref.crs == dem.crs)
+    warp.check_overlap(
+        dem.bounds_lonlat(), ref.bounds_lonlat(), dem.path or "DEM", ref.path or "reference"
+    )
+    same = (
+        ref.shape == dem.shape and ref.transform.almost_equals(dem.transform) and ref.crs == dem.crs
+    )
     if same:
         z = ref.heights.astype(np.float64)
     else:
-        z = warp.to_grid(ref.heights, ref.transform, ref.crs, dem.transform, dem.crs, dem.shape,
-                         resampling=resampling).astype(np.float64)
+        z = warp.to_grid(
+            ref.heights,
+            ref.transform,
+            ref.crs,
+            dem.transform,
+            dem.crs,
+            dem.shape,
+            resampling=resampling,
+        ).astype(np.float64)
     if not (np.isfinite(z) & np.isfinite(dem.heights)).any():
-        raise NoOverlapError(f"{ref.path or 'reference'}: no valid cell overlaps a valid cell of "
-                             f"{dem.path or 'the DEM'}")
+        raise NoOverlapError(
+            f"{ref.path or 'reference'}: no valid cell overlaps a valid cell of "
+            f"{dem.path or 'the DEM'}"
+        )
     return z
 
 
-def make_sampler(ref, dem: DEM, stable=None, *, max_samples: int = MAX_SAMPLES,
-                 seed: int = 0, min_stable_fraction: float = MIN_STABLE_FRACTION) -> Sampler:
+def make_sampler(
+    ref,
+    dem: DEM,
+    stable=None,
+    *,
+    max_samples: int = MAX_SAMPLES,
+    seed: int = 0,
+    min_stable_fraction: float = MIN_STABLE_FRACTION,
+) -> Sampler:
     """The :class:`Sampler` of a reference (DEM or altimetry points) on ``dem``'s grid.
 
     ``stable``: bool array on the DEM grid (True = stable terrain), or ``None`` (all).
@@ -146,6 +183,7 @@ def make_sampler(ref, dem: DEM, stable=None, *, max_samples: int = MAX_SAMPLES,
     (or of the points on the DEM) remain stable, saying how much was left.
     """
     from .altimetry import AltimetryPoints
+
     if stable is not None:
         stable = np.asarray(stable, bool)
         if stable.shape != dem.shape:
@@ -158,22 +196,33 @@ def make_sampler(ref, dem: DEM, stable=None, *, max_samples: int = MAX_SAMPLES,
         cols, rows = np.asarray(c) - 0.5, np.asarray(r) - 0.5
         inside = (rows >= 0) & (cols >= 0) & (rows <= dem.shape[0] - 1) & (cols <= dem.shape[1] - 1)
         if not inside.any():
-            raise NoOverlapError(f"{ref.path or 'points'}: no point falls on the DEM "
-                                 f"{dem.path or ''} (lon/lat {tuple(round(v, 4) for v in dem.bounds_lonlat())})")
+            raise NoOverlapError(
+                f"{ref.path or 'points'}: no point falls on the DEM "
+                f"{dem.path or ''} (lon/lat {tuple(round(v, 4) for v in dem.bounds_lonlat())})"
+            )
         on_dem = inside & np.isfinite(bilinear(dem.heights, rows, cols))
         if not on_dem.any():
             raise NoOverlapError(f"{ref.path or 'points'}: every point on the DEM falls on a void")
         keep = on_dem.copy()
         if stable is not None:
-            keep &= ndimage.map_coordinates(stable.astype(np.uint8), [rows, cols], order=0,
-                                            mode="constant", cval=0).astype(bool)
+            keep &= ndimage.map_coordinates(
+                stable.astype(np.uint8), [rows, cols], order=0, mode="constant", cval=0
+            ).astype(bool)
         _check_fraction(int(keep.sum()), int(on_dem.sum()), "points", ref.path, min_stable_fraction)
         idx = np.flatnonzero(keep)
         if idx.size > max_samples:
             idx = np.sort(rng.choice(idx, max_samples, replace=False))
         e, n = local_metric_coords(dem.transform, dem.crs, dem.shape, x[idx], y[idx])
-        return Sampler(rows[idx], cols[idx], e, n, ref.h[idx].astype(np.float64), dem.shape,
-                       "points", int(keep.sum()))
+        return Sampler(
+            rows[idx],
+            cols[idx],
+            e,
+            n,
+            ref.h[idx].astype(np.float64),
+            dem.shape,
+            "points",
+            int(keep.sum()),
+        )
     if not isinstance(ref, DEM):
         raise InputError(f"reference must be a DEM or AltimetryPoints, got {type(ref).__name__}")
     z = reference_on_grid(ref, dem)
@@ -185,8 +234,16 @@ def make_sampler(ref, dem: DEM, stable=None, *, max_samples: int = MAX_SAMPLES,
         idx = np.sort(rng.choice(idx, max_samples, replace=False))
     rows, cols = np.unravel_index(idx, dem.shape)
     east_g, north_g = local_metric_coords(dem.transform, dem.crs, dem.shape)
-    return Sampler(rows, cols, east_g[rows, cols], north_g[rows, cols], z[rows, cols], dem.shape,
-                   "dem", int(keep.sum()))
+    return Sampler(
+        rows,
+        cols,
+        east_g[rows, cols],
+        north_g[rows, cols],
+        z[rows, cols],
+        dem.shape,
+        "dem",
+        int(keep.sum()),
+    )
 
 
 def _check_fraction(n_keep, n_valid, what, path, min_fraction):
@@ -194,10 +251,12 @@ def _check_fraction(n_keep, n_valid, what, path, min_fraction):
     if share < min_fraction or n_keep < 20:
         raise InputError(
             f"{path or 'stable mask'}: only {100 * share:.1f} % of the overlapping {what} "
-            f"({n_keep} of {n_valid}) are stable terrain; at least {100 * min_fraction:.0f} % needed")
+            f"({n_keep} of {n_valid}) are stable terrain; at least {100 * min_fraction:.0f} % needed"
+        )
 
 
 # ----------------------------------------------------------------------------- robust fitting
+
 
 def robust_lstsq(a, y, *, n_sigma: float = 3.0, iterations: int = 4):
     """Least squares ``a @ p ≈ y`` with outliers (|r − median| > ``n_sigma`` NMAD) rejected,
@@ -230,6 +289,7 @@ def param(value, sigma, unit: str = "") -> dict:
 
 # ----------------------------------------------------------------------------- base classes
 
+
 class Coreg:
     """One correction step: :meth:`fit` estimates, :meth:`apply` removes (same grid).
 
@@ -251,11 +311,27 @@ class Coreg:
     def __repr__(self):
         return f"{type(self).__name__}()"
 
-    def fit(self, ref, dem: DEM, stable=None, *, track_angle_deg: float | None = None,
-            track_frame=None, max_samples: int = MAX_SAMPLES, seed: int = 0):
+    def fit(
+        self,
+        ref,
+        dem: DEM,
+        stable=None,
+        *,
+        track_angle_deg: float | None = None,
+        track_frame=None,
+        max_samples: int = MAX_SAMPLES,
+        seed: int = 0,
+    ):
         """Fit this step alone (a chain of one); returns ``self``."""
-        CoregChain([self]).fit(ref, dem, stable=stable, track_angle_deg=track_angle_deg,
-                               track_frame=track_frame, max_samples=max_samples, seed=seed)
+        CoregChain([self]).fit(
+            ref,
+            dem,
+            stable=stable,
+            track_angle_deg=track_angle_deg,
+            track_frame=track_frame,
+            max_samples=max_samples,
+            seed=seed,
+        )
         return self
 
     def fit_samples(self, sampler: Sampler, dem: DEM, context: dict):
@@ -267,13 +343,14 @@ class Coreg:
         """``dem`` with this step's fitted error removed, on the same grid."""
         if not self.fitted:
             raise DEMError(f"{type(self).__name__}.apply called before fit")
-        return DEM(np.asarray(self._apply(dem), np.float32), dem.transform, dem.crs,
-                   dem.vertical, dem.path)
+        return DEM(
+            np.asarray(self._apply(dem), np.float32), dem.transform, dem.crs, dem.vertical, dem.path
+        )
 
-    def _fit(self, sampler, dem, context):          # pragma: no cover - abstract
+    def _fit(self, sampler, dem, context):  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _apply(self, dem):                           # pragma: no cover - abstract
+    def _apply(self, dem):  # pragma: no cover - abstract
         raise NotImplementedError
 
     def parameters(self) -> dict:
@@ -298,8 +375,17 @@ class CoregChain(Coreg):
     def __repr__(self):
         return " + ".join(repr(s) for s in self.steps)
 
-    def fit(self, ref, dem: DEM, stable=None, *, track_angle_deg: float | None = None,
-            track_frame=None, max_samples: int = MAX_SAMPLES, seed: int = 0) -> CoregChain:
+    def fit(
+        self,
+        ref,
+        dem: DEM,
+        stable=None,
+        *,
+        track_angle_deg: float | None = None,
+        track_frame=None,
+        max_samples: int = MAX_SAMPLES,
+        seed: int = 0,
+    ) -> CoregChain:
         """Fit every step in turn on ``dem`` against ``ref`` (a :class:`DEM` on any grid, or
         :class:`~stereodem.post.altimetry.AltimetryPoints`), on the ``stable`` cells (bool
         array on the DEM grid). ``track_angle_deg``: ground-track heading (degrees clockwise
@@ -311,8 +397,12 @@ class CoregChain(Coreg):
             raise InputError("empty co-registration chain")
         sampler = make_sampler(ref, dem, stable, max_samples=max_samples, seed=seed)
         self.sampler = sampler
-        context = {"track_angle_deg": track_angle_deg, "track_frame": track_frame,
-                   "reference": ref, "stable": stable}
+        context = {
+            "track_angle_deg": track_angle_deg,
+            "track_frame": track_frame,
+            "reference": ref,
+            "stable": stable,
+        }
         self.records = []
         current = dem
         for step in self.steps:
@@ -321,11 +411,22 @@ class CoregChain(Coreg):
             step.fit_samples(sampler, current, context)
             current = step.apply(current)
             after = sampler.stats(current.heights)
-            self.records.append({"step": step.name, "parameters": step.parameters(),
-                                 "before": before, "after": after,
-                                 "seconds": time.perf_counter() - t0})
-            log.info("%s: NMAD %.3f -> %.3f m (n=%d)", step.name, before["nmad"], after["nmad"],
-                     after["n"])
+            self.records.append(
+                {
+                    "step": step.name,
+                    "parameters": step.parameters(),
+                    "before": before,
+                    "after": after,
+                    "seconds": time.perf_counter() - t0,
+                }
+            )
+            log.info(
+                "%s: NMAD %.3f -> %.3f m (n=%d)",
+                step.name,
+                before["nmad"],
+                after["nmad"],
+                after["n"],
+            )
         self.fitted = True
         self.corrected = current
         return self
@@ -348,12 +449,19 @@ class CoregChain(Coreg):
 
 # ----------------------------------------------------------------------------- parsing
 
+
 def _registry():
     from . import biascorr
-    return {"nuth_kaab": biascorr.NuthKaab, "vshift": biascorr.VerticalShift,
-            "deramp": biascorr.Deramp, "along_track": biascorr.AlongTrack,
-            "cross_track": biascorr.CrossTrack, "curvature": biascorr.Curvature,
-            "icp": biascorr.ICP}
+
+    return {
+        "nuth_kaab": biascorr.NuthKaab,
+        "vshift": biascorr.VerticalShift,
+        "deramp": biascorr.Deramp,
+        "along_track": biascorr.AlongTrack,
+        "cross_track": biascorr.CrossTrack,
+        "curvature": biascorr.Curvature,
+        "icp": biascorr.ICP,
+    }
 
 
 STEP_NAMES = ("nuth_kaab", "vshift", "deramp", "along_track", "cross_track", "curvature", "icp")
@@ -372,8 +480,10 @@ def parse_chain(text: str) -> CoregChain:
         name, _, arg = item.partition(":")
         name = name.strip().lower()
         if name not in reg:
-            raise InputError(f"unknown co-registration step {name!r} in {text!r}; "
-                             f"choose from {', '.join(STEP_NAMES)}")
+            raise InputError(
+                f"unknown co-registration step {name!r} in {text!r}; "
+                f"choose from {', '.join(STEP_NAMES)}"
+            )
         if arg:
             try:
                 n = int(arg)
@@ -387,15 +497,25 @@ def parse_chain(text: str) -> CoregChain:
     return CoregChain(steps)
 
 
-def __getattr__(name):                     # the steps live in biascorr (one job per module)
-    if name in ("NuthKaab", "VerticalShift", "Deramp", "AlongTrack", "CrossTrack",
-                "Curvature", "ICP"):
+def __getattr__(name):  # the steps live in biascorr (one job per module)
+    if name in (
+        "NuthKaab",
+        "VerticalShift",
+        "Deramp",
+        "AlongTrack",
+        "CrossTrack",
+        "Curvature",
+        "ICP",
+    ):
         from . import biascorr
+
         return getattr(biascorr, name)
     if name == "StableMask":
         from .masks import StableMask
+
         return StableMask
     if name == "AltimetryPoints":
         from .altimetry import AltimetryPoints
+
         return AltimetryPoints
     raise AttributeError(name)

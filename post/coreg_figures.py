@@ -1,5 +1,6 @@
 """Figures of a co-registration chain: dh before/after on the DEM grid, and each bias step's
 binned dh against its variable with the fitted curve (PNG, written atomically)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -17,9 +18,11 @@ from .figures import _save
 
 def _dh_on_grid(ref, dem):
     from .altimetry import AltimetryPoints
+
     if isinstance(ref, AltimetryPoints):
         return None
     from .coreg import reference_on_grid
+
     return reference_on_grid(ref, dem)
 
 
@@ -59,8 +62,11 @@ def chain_figures(chain, ref, dem, out, mask, out_dir, *, overwrite=False) -> di
     files = {}
     z = _dh_on_grid(ref, dem)
     if z is not None:
-        files["dh_png"] = str(dh_before_after_png(z, dem, out, mask & np.isfinite(z),
-                                                  out_dir / "coreg_dh.png", overwrite=overwrite))
+        files["dh_png"] = str(
+            dh_before_after_png(
+                z, dem, out, mask & np.isfinite(z), out_dir / "coreg_dh.png", overwrite=overwrite
+            )
+        )
     for i, step in enumerate(chain.steps):
         if step.curves and "bin_centre" in step.curves:
             name = f"coreg_{i}_{step.name.replace(':', '')}.png"

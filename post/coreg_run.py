@@ -10,6 +10,7 @@ checked):
   statistics before/after each step, the mask's share, per-point residuals for points;
 * ``coreg_dh.png`` (dh before/after) and ``coreg_<step>.png`` (each bias curve with its fit).
 """
+
 from __future__ import annotations
 
 import json
@@ -58,6 +59,7 @@ def track_heading(model, shape, h: float = 0.0) -> float:
     the azimuth on the WGS84 ellipsoid from the image centre to the point 100 rows further
     (rows follow the satellite's motion), both localised at height ``h``."""
     from pyproj import Geod
+
     rows, cols = shape[:2]
     c, r = (cols - 1) / 2.0, (rows - 1) / 2.0
     lon, lat = model.localize(np.array([c, c]), np.array([r, r + 100.0]), np.array([h, h]))
@@ -72,6 +74,7 @@ def track_tags(model, shape, crs=None, heights=None) -> dict:
     median of ``heights``, m). What the model cannot give is left out (a localisation failure
     never fails the DEM)."""
     from .track import TRACK_FRAME_TAG, TrackFrame
+
     tags = {}
     try:
         tags[TRACK_HEADING_TAG] = f"{track_heading(model, shape):.4f}"
@@ -81,6 +84,7 @@ def track_tags(model, shape, crs=None, heights=None) -> dict:
         h = np.asarray(heights, np.float64) if heights is not None else np.zeros(1)
         h0 = float(np.nanmedian(h)) if np.isfinite(h).any() else 0.0
         from pyproj.exceptions import ProjError
+
         try:
             tags[TRACK_FRAME_TAG] = TrackFrame.from_model(model, shape, crs, height=h0).to_tag()
         except (ValueError, ArithmeticError, NotImplementedError, StereodemError, ProjError) as exc:
@@ -115,7 +119,8 @@ def reconcile(dem: DEM, ref):
         who = dem.path if a is None else ref.path
         raise VerticalReferenceError(
             f"{who or 'input'}: vertical reference unknown while the other is {a or b}; say which "
-            "with --dem-vertical/--ref-vertical {geoid,ellipsoid}")
+            "with --dem-vertical/--ref-vertical {geoid,ellipsoid}"
+        )
     return ref.to_reference(a), f"reference converted from {b} to {a} (EGM96)"
 
 
@@ -142,60 +147,82 @@ def track_of(path, crs, track_angle: float | None = None):
     if path is None:
         return None, None
     from .track import track_frame_of
+
     frame = track_frame_of(path)
     if frame is not None and not frame.matches(crs):
-        log.warning("%s: its track frame is for another CRS (%s); the heading is used",
-                    path, frame.crs)
+        log.warning(
+            "%s: its track frame is for another CRS (%s); the heading is used", path, frame.crs
+        )
         frame = None
     return track_heading_of(path), frame
 
 
 def stable_mask(job: CoregJob, dem: DEM, ref) -> np.ndarray:
     """The stable mask of the job on the DEM grid (vectors, raster, slope, outliers)."""
-    sm = StableMask(exclude=list(job.exclude or []), include=list(job.include or []),
-                    raster=job.stable_mask, min_slope=job.min_slope, max_slope=job.max_slope,
-                    outlier_nmad=None)
+    sm = StableMask(
+        exclude=list(job.exclude or []),
+        include=list(job.include or []),
+        raster=job.stable_mask,
+        min_slope=job.min_slope,
+        max_slope=job.max_slope,
+        outlier_nmad=None,
+    )
     slope = None
     if job.min_slope is not None or job.max_slope is not None:
         slope = terrain.slope_deg(dem.heights, dem.transform, dem.crs)
     return sm.array(dem, slope=slope)
 
 
-def run(job: CoregJob, out_dir, *, overwrite: bool = False, figures: bool = True,
-        creation_options=None) -> dict:
+def run(
+    job: CoregJob, out_dir, *, overwrite: bool = False, figures: bool = True, creation_options=None
+) -> dict:
     """Fit and apply the chain; write the products into ``out_dir`` (checked by the caller with
     :func:`stereodem.core.raster.check_output_dir`, created here once the fit succeeded).
     Returns the JSON report (a dict)."""
     from stereodem.core.raster import write_text_atomic
-    needs_heading = any(s.strip().split(":")[0] in ("along_track", "cross_track")
-                        for s in job.chain.split(","))
-    chain = parse_chain(job.chain)            # bad text fails before any reading
+
+    needs_heading = any(
+        s.strip().split(":")[0] in ("along_track", "cross_track") for s in job.chain.split(",")
+    )
+    chain = parse_chain(job.chain)  # bad text fails before any reading
     dem, ref, note, (heading, frame) = load_inputs(job)
     if needs_heading and heading is None and frame is None:
-        raise InputError(f"{job.dem}: along_track/cross_track need the ground-track heading; the DEM "
-                         "carries none: give --track-angle DEG (clockwise from north)")
+        raise InputError(
+            f"{job.dem}: along_track/cross_track need the ground-track heading; the DEM "
+            "carries none: give --track-angle DEG (clockwise from north)"
+        )
     mask = stable_mask(job, dem, ref)
     chain = _fit(chain, ref, dem, mask, (heading, frame), job)
     out = chain.apply(dem)
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)      # only now: bad inputs leave nothing behind
-    out.write(out_dir / "dem_coregistered.tif", overwrite=overwrite, creation_options=creation_options)
-    report = {"dem": job.dem, "reference": job.ref,
-              "reference_kind": "points" if isinstance(ref, AltimetryPoints) else "dem",
-              "chain": job.chain, "vertical": note, "vertical_reference": dem.vertical,
-              "track_heading_deg": heading,
-              "track_frame": frame.describe() if frame is not None else None, "stable": _mask_summary(chain, mask, dem),
-              "steps": chain.report(),
-              "sigma_note": "formal least-squares standard deviations (samples taken as independent)"}
+    out_dir.mkdir(parents=True, exist_ok=True)  # only now: bad inputs leave nothing behind
+    out.write(
+        out_dir / "dem_coregistered.tif", overwrite=overwrite, creation_options=creation_options
+    )
+    report = {
+        "dem": job.dem,
+        "reference": job.ref,
+        "reference_kind": "points" if isinstance(ref, AltimetryPoints) else "dem",
+        "chain": job.chain,
+        "vertical": note,
+        "vertical_reference": dem.vertical,
+        "track_heading_deg": heading,
+        "track_frame": frame.describe() if frame is not None else None,
+        "stable": _mask_summary(chain, mask, dem),
+        "steps": chain.report(),
+        "sigma_note": "formal least-squares standard deviations (samples taken as independent)",
+    }
     if isinstance(ref, AltimetryPoints):
         report["points"] = _point_residuals(ref, dem, out, mask)
     files = {"dem": str(out_dir / "dem_coregistered.tif")}
     if figures:
         from .coreg_figures import chain_figures
+
         files.update(chain_figures(chain, ref, dem, out, mask, out_dir, overwrite=overwrite))
     report["files"] = files
-    write_text_atomic(out_dir / "coregistration.json", json.dumps(_clean(report), indent=1),
-                      overwrite=overwrite)
+    write_text_atomic(
+        out_dir / "coregistration.json", json.dumps(_clean(report), indent=1), overwrite=overwrite
+    )
     return report
 
 
@@ -204,34 +231,54 @@ def _fit(chain: CoregChain, ref, dem, mask, track, job):
     of the median (clouds, blunders) leave the stable terrain first (DEM references)."""
     if job.outlier_nmad and not isinstance(ref, AltimetryPoints):
         from .coreg import reference_on_grid
+
         dh = dem.heights.astype(np.float64) - reference_on_grid(ref, dem)
         mask = mask & StableMask(outlier_nmad=job.outlier_nmad).array(
-            dem, dh=np.where(mask, dh, np.nan))
+            dem, dh=np.where(mask, dh, np.nan)
+        )
     heading, frame = track
-    return chain.fit(ref, dem, stable=mask, track_angle_deg=heading, track_frame=frame,
-                     max_samples=job.max_samples)
+    return chain.fit(
+        ref,
+        dem,
+        stable=mask,
+        track_angle_deg=heading,
+        track_frame=frame,
+        max_samples=job.max_samples,
+    )
 
 
 def _mask_summary(chain, mask, dem):
     valid = np.isfinite(dem.heights)
-    return {"stable_cells": int((mask & valid).sum()), "valid_cells": int(valid.sum()),
-            "stable_fraction": float((mask & valid).sum() / max(valid.sum(), 1)),
-            "samples_used": int(chain.sampler.rows.size) if chain.sampler is not None else 0}
+    return {
+        "stable_cells": int((mask & valid).sum()),
+        "valid_cells": int(valid.sum()),
+        "stable_fraction": float((mask & valid).sum() / max(valid.sum(), 1)),
+        "samples_used": int(chain.sampler.rows.size) if chain.sampler is not None else 0,
+    }
 
 
 def _point_residuals(points: AltimetryPoints, dem: DEM, out: DEM, mask) -> dict:
     from stereodem.core import geodesy
+
     x, y = geodesy.lonlat_to_crs(points.lon, points.lat, dem.crs)
     c, r = ~dem.transform @ (np.asarray(x), np.asarray(y))
     rows, cols = np.asarray(r) - 0.5, np.asarray(c) - 0.5
     before = bilinear(dem.heights, rows, cols) - points.h
     after = bilinear(out.heights, rows, cols) - points.h
     from scipy import ndimage
-    used = ndimage.map_coordinates(mask.astype(np.uint8), [rows, cols], order=0, cval=0).astype(bool)
-    return {"n": int(points.h.size), "n_on_dem": int(np.isfinite(before).sum()),
-            "columns": ["lon", "lat", "h", "dh_before", "dh_after", "stable"],
-            "rows": [[float(a), float(b), float(h), _f(u), _f(v), bool(w)] for a, b, h, u, v, w in
-                     zip(points.lon, points.lat, points.h, before, after, used)]}
+
+    used = ndimage.map_coordinates(mask.astype(np.uint8), [rows, cols], order=0, cval=0).astype(
+        bool
+    )
+    return {
+        "n": int(points.h.size),
+        "n_on_dem": int(np.isfinite(before).sum()),
+        "columns": ["lon", "lat", "h", "dh_before", "dh_after", "stable"],
+        "rows": [
+            [float(a), float(b), float(h), _f(u), _f(v), bool(w)]
+            for a, b, h, u, v, w in zip(points.lon, points.lat, points.h, before, after, used)
+        ],
+    }
 
 
 def _f(v):

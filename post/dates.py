@@ -11,6 +11,7 @@ Where a DEM's date is found, in order:
 Dates are ``numpy.datetime64[s]`` (UTC); rates use decimal years
 (:func:`stereodem.sensor.simulation.multidate.decimal_year`).
 """
+
 from __future__ import annotations
 
 import csv
@@ -28,13 +29,14 @@ SIDECARS = ("run.json", "dem_report.json")
 def parse_date(text, where: str = "") -> np.datetime64:
     """A date or date-time string -> ``datetime64[s]``; :class:`InputError` naming ``where``."""
     s = str(text).strip().rstrip("Z")
-    if len(s) >= 19 and s[4] == ":" and s[7] == ":":            # TIFF "YYYY:MM:DD HH:MM:SS"
+    if len(s) >= 19 and s[4] == ":" and s[7] == ":":  # TIFF "YYYY:MM:DD HH:MM:SS"
         s = s[:10].replace(":", "-") + "T" + s[11:]
     try:
         d = np.datetime64(s.replace(" ", "T"), "s")
     except ValueError:
-        raise InputError(f"{where}: cannot read the date {text!r} (expected YYYY-MM-DD or "
-                         "ISO 8601)") from None
+        raise InputError(
+            f"{where}: cannot read the date {text!r} (expected YYYY-MM-DD or ISO 8601)"
+        ) from None
     if np.isnat(d):
         raise InputError(f"{where}: no date in {text!r}")
     return d
@@ -43,6 +45,7 @@ def parse_date(text, where: str = "") -> np.datetime64:
 def date_from_metadata(path) -> np.datetime64 | None:
     """The date stereodem stored with DEM ``path`` (module docstring), or None."""
     import rasterio
+
     path = Path(path)
     try:
         with rasterio.open(path) as ds:
@@ -93,7 +96,10 @@ def dem_dates(dems, dates=None, *, now=None) -> list:
     repeats another DEM's.
     """
     dems = [str(p) for p in dems]
-    if isinstance(dates, (str, Path)) and Path(str(dates).strip()).suffix.lower() in (".csv", ".txt"):
+    if isinstance(dates, (str, Path)) and Path(str(dates).strip()).suffix.lower() in (
+        ".csv",
+        ".txt",
+    ):
         table = read_dates_csv(dates)
         found = []
         for p in dems:
@@ -102,7 +108,9 @@ def dem_dates(dems, dates=None, *, now=None) -> list:
                 raise InputError(f"{p}: no date for this DEM in {dates}")
             found.append(d)
     elif dates is not None:
-        items = [s for s in (dates.split(",") if isinstance(dates, str) else dates) if str(s).strip()]
+        items = [
+            s for s in (dates.split(",") if isinstance(dates, str) else dates) if str(s).strip()
+        ]
         if len(items) != len(dems):
             raise InputError(f"--dates: {len(items)} date(s) for {len(dems)} DEM(s)")
         found = [parse_date(s, f"--dates for {p}") for s, p in zip(items, dems)]
@@ -111,8 +119,10 @@ def dem_dates(dems, dates=None, *, now=None) -> list:
         for p in dems:
             d = date_from_metadata(p)
             if d is None:
-                raise InputError(f"{p}: no acquisition date (no ACQUISITION_DATE tag, no run.json "
-                                 "beside it); give --dates D1,D2,... or a CSV path,date")
+                raise InputError(
+                    f"{p}: no acquisition date (no ACQUISITION_DATE tag, no run.json "
+                    "beside it); give --dates D1,D2,... or a CSV path,date"
+                )
             found.append(d)
     now = np.datetime64(now, "s") if now is not None else np.datetime64("now", "s")
     seen = {}
@@ -121,7 +131,9 @@ def dem_dates(dems, dates=None, *, now=None) -> list:
             raise InputError(f"{p}: date {d} is in the future")
         day = np.datetime64(d, "D")
         if day in seen:
-            raise InputError(f"{p}: date {day} repeats that of {seen[day]} (one DEM per date; "
-                             "mosaic same-day DEMs first)")
+            raise InputError(
+                f"{p}: date {day} repeats that of {seen[day]} (one DEM per date; "
+                "mosaic same-day DEMs first)"
+            )
         seen[day] = p
     return found

@@ -7,6 +7,7 @@ it explains. Optionally a co-registration chain is applied first.
 
 Everything on the DEM's grid (the reference warped onto it, :mod:`stereodem.post.coreg`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -29,11 +30,11 @@ from .terrain import slope_deg
 class ErrorAnalysisJob:
     """Options of the error analysis (paths as on the command line)."""
 
-    chain: str | None = None               #: co-registration chain applied first
+    chain: str | None = None  #: co-registration chain applied first
     track_angle: float | None = None
     exclude: list = field(default_factory=list)
     outlines: list = field(default_factory=list)
-    sigma_map: str | None = None           #: per-cell σ (m) from the sensor models
+    sigma_map: str | None = None  #: per-cell σ (m) from the sensor models
     n_pairs: int = 1_000_000
 
 
@@ -45,9 +46,11 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     if job.chain:
         from .coreg import parse_chain
         from .coreg_run import track_of  # --track-angle, else the DEM's own track
+
         heading, frame = track_of(dem.path, dem.crs, job.track_angle)
-        ch = parse_chain(job.chain).fit(ref, dem, stable=stable, track_angle_deg=heading,
-                                        track_frame=frame)
+        ch = parse_chain(job.chain).fit(
+            ref, dem, stable=stable, track_angle_deg=heading, track_frame=frame
+        )
         dem = ch.apply(dem)
         chain_rep = ch.report()
     z = reference_on_grid(ref, dem)
@@ -61,12 +64,21 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     zstd = ss.standardise(d_st, per_cell)
     emp = ss.variogram(zstd, transform=dem.transform, crs=dem.crs, n_pairs=job.n_pairs)
     model = ss.fit_variogram(emp, n_models=2)
-    section = {"stable_cells": int(np.isfinite(d_st).sum()), "nmad_stable": nmad(d_st),
-               "heteroscedasticity": {k: v for k, v in hs.items() if not k.startswith("sigma")},
-               "variogram": {"empirical": emp.to_dict(), "model": model.to_dict(),
-                             "of": "dh standardised by the per-cell sigma: " +
-                                   ("sensor-model sigma + unexplained binned dispersion"
-                                    if sig_model is not None else "binned NMAD (slope, curvature)")}}
+    section = {
+        "stable_cells": int(np.isfinite(d_st).sum()),
+        "nmad_stable": nmad(d_st),
+        "heteroscedasticity": {k: v for k, v in hs.items() if not k.startswith("sigma")},
+        "variogram": {
+            "empirical": emp.to_dict(),
+            "model": model.to_dict(),
+            "of": "dh standardised by the per-cell sigma: "
+            + (
+                "sensor-model sigma + unexplained binned dispersion"
+                if sig_model is not None
+                else "binned NMAD (slope, curvature)"
+            ),
+        },
+    }
     if chain_rep is not None:
         section["coregistration"] = {"chain": job.chain, "steps": chain_rep}
     areas = []
@@ -76,9 +88,12 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
             m = rasterize([g], dem, path=str(path)) & np.isfinite(dh)
             if not m.any():
                 continue
-            a = ss.area_mean_sigma(model, m, dem.transform, dem.crs, sigma=np.where(m, per_cell, np.nan))
-            areas.append({"file": str(path), "polygon": k, "mean_dh": float(np.nanmean(dh[m])),
-                          **a})
+            a = ss.area_mean_sigma(
+                model, m, dem.transform, dem.crs, sigma=np.where(m, per_cell, np.nan)
+            )
+            areas.append(
+                {"file": str(path), "polygon": k, "mean_dh": float(np.nanmean(dh[m])), **a}
+            )
     if job.outlines and not areas:
         raise InputError(f"{job.outlines[0]}: no polygon covers a valid cell of the DEM")
     section["area_means"] = areas
@@ -92,6 +107,7 @@ def _sigma_map(path, dem: DEM):
     from stereodem.core.raster import read_image
 
     from . import warp
+
     a = read_image(path)
     with rasterio.open(path) as ds:
         if ds.crs is None:
@@ -106,23 +122,31 @@ def _sigma_map(path, dem: DEM):
 def write_figures(plots, out_dir, *, overwrite=False) -> dict:
     """``error_vs_terrain.png`` (NMAD of dh against slope and curvature) and ``variogram.png``."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from .figures import _save
+
     out_dir = Path(out_dir)
     hs, emp, model = plots["hs"], plots["emp"], plots["model"]
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
-    for axis, key, label in ((ax[0], "slope", "slope (deg)"),
-                             (ax[1], "curvature", "|maximum curvature| (1/100 m)")):
+    for axis, key, label in (
+        (ax[0], "slope", "slope (deg)"),
+        (ax[1], "curvature", "|maximum curvature| (1/100 m)"),
+    ):
         e = hs[key]
         axis.plot(e["centre"], e["nmad"], "o", label="NMAD of dh per bin")
         if e["quadratic_fit"]:
             x = np.linspace(np.nanmin(e["centre"]), np.nanmax(e["centre"]), 100)
             axis.plot(x, np.polyval(e["quadratic_fit"], x), "-", label="quadratic fit")
         if key == "slope" and "sensor_model" in hs:
-            axis.plot(e["centre"], hs["sensor_model"]["rms_sigma_by_slope"], "s--",
-                      label="sensor-model σ (RMS)")
+            axis.plot(
+                e["centre"],
+                hs["sensor_model"]["rms_sigma_by_slope"],
+                "s--",
+                label="sensor-model σ (RMS)",
+            )
         axis.set_xlabel(label)
         axis.set_ylabel("m")
         axis.legend(fontsize=7)
@@ -132,8 +156,12 @@ def write_figures(plots, out_dir, *, overwrite=False) -> dict:
     ok = emp.count > 0
     axis.semilogx(emp.lag[ok], emp.gamma[ok], ".", label="empirical")
     x = np.geomspace(emp.lag[ok].min(), emp.lag[ok].max(), 200)
-    axis.semilogx(x, model.gamma(x), "-", label="sum of 2 spherical: ranges " +
-                  ", ".join(f"{r:.0f} m" for r in model.ranges))
+    axis.semilogx(
+        x,
+        model.gamma(x),
+        "-",
+        label="sum of 2 spherical: ranges " + ", ".join(f"{r:.0f} m" for r in model.ranges),
+    )
     axis.set_xlabel("lag (m)")
     axis.set_ylabel("semivariance (standardised dh)")
     axis.legend(fontsize=7)
@@ -144,16 +172,24 @@ def write_figures(plots, out_dir, *, overwrite=False) -> dict:
 def markdown_lines(section: dict) -> list[str]:
     """The report's Markdown lines of this section."""
     m = section["variogram"]["model"]
-    lines = ["", "## Error analysis (stable terrain)", "",
-             f"* stable cells {section['stable_cells']}, NMAD {section['nmad_stable']:.2f} m",
-             "* variogram of standardised dh: " + ", ".join(
-                 f"range {r:.0f} m sill {s:.2f}" for r, s in zip(m["ranges_m"], m["sills"]))]
+    lines = [
+        "",
+        "## Error analysis (stable terrain)",
+        "",
+        f"* stable cells {section['stable_cells']}, NMAD {section['nmad_stable']:.2f} m",
+        "* variogram of standardised dh: "
+        + ", ".join(f"range {r:.0f} m sill {s:.2f}" for r, s in zip(m["ranges_m"], m["sills"])),
+    ]
     sm = section["heteroscedasticity"].get("sensor_model")
     if sm:
-        lines.append(f"* sensor-model σ explains {100 * sm['explained_variance_share']:.0f} % of the "
-                     f"variance of dh (binned r {sm['binned_r']:.2f})")
+        lines.append(
+            f"* sensor-model σ explains {100 * sm['explained_variance_share']:.0f} % of the "
+            f"variance of dh (binned r {sm['binned_r']:.2f})"
+        )
     for a in section.get("area_means", []):
-        lines.append(f"* {Path(a['file']).name} #{a['polygon']}: mean dh {a['mean_dh']:+.2f} ± "
-                     f"{a['sigma_mean']:.2f} m (1σ, {a['n_cells']} cells, "
-                     f"{a['n_effective']:.0f} effective samples; σ/√N would say {a['sigma_naive']:.3f} m)")
+        lines.append(
+            f"* {Path(a['file']).name} #{a['polygon']}: mean dh {a['mean_dh']:+.2f} ± "
+            f"{a['sigma_mean']:.2f} m (1σ, {a['n_cells']} cells, "
+            f"{a['n_effective']:.0f} effective samples; σ/√N would say {a['sigma_naive']:.3f} m)"
+        )
     return lines

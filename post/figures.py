@@ -6,6 +6,7 @@ geographic ones) with a scale bar and a colour bar in metres; cells without data
 transparent and the view is cropped to the data. Every line has a legend entry; what a
 figure leaves out (clipped colour scales, histogram tails, sparse classes) is written on it.
 """
+
 from __future__ import annotations
 
 import matplotlib
@@ -49,6 +50,7 @@ def _decimation(shape) -> int:
 
 
 # ----------------------------------------------------------------------------- map helpers
+
 
 def _crop_to_data(a, transform, margin=0.03):
     """Rows/cols window of the finite cells of ``a`` (plus a margin) and its transform."""
@@ -98,7 +100,7 @@ def _map_axes(ax, transform, crs, shape):
         ax.set_xlabel("longitude (°E)")
         ax.set_ylabel("latitude (°N)")
         lat = 0.5 * (y0 + y1)
-        m_per_unit = float(terrain.metres_per_degree(lat)[0])   # along the parallel
+        m_per_unit = float(terrain.metres_per_degree(lat)[0])  # along the parallel
         ax.set_aspect(1.0 / np.cos(np.radians(lat)))
     else:
         ax.set_xlabel("easting (km)")
@@ -114,21 +116,49 @@ def _map_axes(ax, transform, crs, shape):
     length_m = _nice_length(width_m / 4)
     if length_m > 0:
         label = f"{length_m / 1000:g} km" if length_m >= 1000 else f"{length_m:g} m"
-        bar = AnchoredSizeBar(ax.transData, length_m / m_per_unit, label, "lower left",
-                              pad=0.4, sep=3, borderpad=0.6, frameon=True, size_vertical=0,
-                              fontproperties={"size": 8})
+        bar = AnchoredSizeBar(
+            ax.transData,
+            length_m / m_per_unit,
+            label,
+            "lower left",
+            pad=0.4,
+            sep=3,
+            borderpad=0.6,
+            frameon=True,
+            size_vertical=0,
+            fontproperties={"size": 8},
+        )
         bar.patch.set_alpha(0.8)
         ax.add_artist(bar)
     ax.set_facecolor("white")
-    ax.add_patch(Rectangle((min(x0, x1), min(y0, y1)), abs(x1 - x0), abs(y1 - y0), fill=False,
-                           hatch="////", edgecolor="0.82", linewidth=0, zorder=0))  # no data
+    ax.add_patch(
+        Rectangle(
+            (min(x0, x1), min(y0, y1)),
+            abs(x1 - x0),
+            abs(y1 - y0),
+            fill=False,
+            hatch="////",
+            edgecolor="0.82",
+            linewidth=0,
+            zorder=0,
+        )
+    )  # no data
     return extent
 
 
 # ----------------------------------------------------------------------------- figures
 
-def hillshade_png(heights, transform, crs, path, *, title="DEM shaded relief", overwrite=False,
-                  height_label="height (m)"):
+
+def hillshade_png(
+    heights,
+    transform,
+    crs,
+    path,
+    *,
+    title="DEM shaded relief",
+    overwrite=False,
+    height_label="height (m)",
+):
     """Shaded relief of a DEM: heights in colour (colour bar in metres) shaded by a hillshade
     (NW light, 45°), in map coordinates with a scale bar; cells without data transparent.
 
@@ -144,26 +174,30 @@ def hillshade_png(heights, transform, crs, path, *, title="DEM shaded relief", o
     z, transform = _prepare(heights, transform)
     hs = terrain.hillshade(z, transform, crs)
     fin = np.isfinite(z) & np.isfinite(hs)
-    lo, hi = (np.percentile(z[fin], [1, 99]) if fin.any() else (0.0, 1.0))
+    lo, hi = np.percentile(z[fin], [1, 99]) if fin.any() else (0.0, 1.0)
     hi = hi if hi > lo else lo + 1.0
     cmap = plt.get_cmap("gist_earth")
     norm = Normalize(lo, hi)
     rgba = cmap(norm(np.where(fin, z, lo)))
     rgba[..., :3] *= (0.25 + 0.75 * np.where(fin, hs, 1.0))[..., None]
-    rgba[..., 3] = fin                                          # no data: transparent
+    rgba[..., 3] = fin  # no data: transparent
     fig, ax = plt.subplots(figsize=(6.5, 6))
     extent = _map_axes(ax, transform, crs, z.shape)
     ax.imshow(rgba, extent=extent, interpolation="nearest")
     sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
     fig.colorbar(sm, ax=ax, shrink=0.8, extend="both", label=height_label)
     void = (~fin).sum()
-    ax.set_title(f"{title}\n(hatched: no data, {100 * void / max(z.size, 1):.0f} % of the frame; "
-                 "colours span the 1st–99th height percentiles)", fontsize=10)
+    ax.set_title(
+        f"{title}\n(hatched: no data, {100 * void / max(z.size, 1):.0f} % of the frame; "
+        "colours span the 1st–99th height percentiles)",
+        fontsize=10,
+    )
     return _save(fig, path, overwrite)
 
 
-def difference_map_png(dh, path, *, title="DEM − reference", overwrite=False, transform=None,
-                       crs=None):
+def difference_map_png(
+    dh, path, *, title="DEM − reference", overwrite=False, transform=None, crs=None
+):
     """Map of differences (m) with a diverging colour scale symmetric about 0, clipped at
     ± the 98th percentile of |dh| (said on the figure), in map coordinates with a scale bar
     when ``transform`` and ``crs`` are given; cells without a difference are hatched."""
@@ -180,12 +214,15 @@ def difference_map_png(dh, path, *, title="DEM − reference", overwrite=False, 
     else:
         ax.set_xlabel("column")
         ax.set_ylabel("row")
-    im = ax.imshow(np.ma.masked_invalid(a), cmap=cmap, vmin=-lim, vmax=lim,
-                   interpolation="nearest", **kw)
+    im = ax.imshow(
+        np.ma.masked_invalid(a), cmap=cmap, vmin=-lim, vmax=lim, interpolation="nearest", **kw
+    )
     fig.colorbar(im, ax=ax, shrink=0.8, extend="both", label="DEM − reference (m)")
-    ax.set_title(f"{title} (m); hatched: no data\ncolour scale clipped at ±{lim:.2f} m (98th "
-                 f"percentile of |dh|): {100 * clipped / max(fin.size, 1):.1f} % of cells beyond",
-                 fontsize=10)
+    ax.set_title(
+        f"{title} (m); hatched: no data\ncolour scale clipped at ±{lim:.2f} m (98th "
+        f"percentile of |dh|): {100 * clipped / max(fin.size, 1):.1f} % of cells beyond",
+        fontsize=10,
+    )
     return _save(fig, path, overwrite)
 
 
@@ -196,9 +233,10 @@ def histogram_png(dh, path, *, title="Histogram of DEM − reference", overwrite
     ``dh`` is an array of differences (NaN ignored) or a
     :class:`~stereodem.post.blockstats.StreamingStats` of them (counts by its ~1 mm bins)."""
     from .blockstats import StreamingStats
+
     if isinstance(dh, StreamingStats):
         s = dh.result()
-        lo, hi = (dh.quantile([0.005, 0.995]) if dh.n else (-1.0, 1.0))
+        lo, hi = dh.quantile([0.005, 0.995]) if dh.n else (-1.0, 1.0)
         below, above = dh.count_outside(lo, hi) if dh.n else (0, 0)
         n_all = dh.n
         n_in = n_all - below - above
@@ -206,7 +244,7 @@ def histogram_png(dh, path, *, title="Histogram of DEM − reference", overwrite
         a = np.asarray(dh, dtype=np.float64)
         a = a[np.isfinite(a)]
         s = error_stats(a)
-        lo, hi = (np.percentile(a, [0.5, 99.5]) if a.size else (-1.0, 1.0))
+        lo, hi = np.percentile(a, [0.5, 99.5]) if a.size else (-1.0, 1.0)
         inside = (a >= lo) & (a <= hi)
         n_all, n_in = a.size, int(inside.sum())
         below, above = int((a < lo).sum()), int((a > hi).sum())
@@ -216,30 +254,49 @@ def histogram_png(dh, path, *, title="Histogram of DEM − reference", overwrite
         edges = np.linspace(lo, hi, 101) if hi > lo else np.array([lo - 0.5, lo + 0.5])
         ax.stairs(dh.histogram(edges), edges, fill=True, color="steelblue", label=label)
     else:
-        ax.hist(a[inside], bins=100, range=(lo, hi) if hi > lo else None, color="steelblue",
-                label=label)
-    for x, lab, c, ls in ((s["mean"], "mean", "k", "-"), (s["median"], "median", "darkorange", "-")):
+        ax.hist(
+            a[inside], bins=100, range=(lo, hi) if hi > lo else None, color="steelblue", label=label
+        )
+    for x, lab, c, ls in (
+        (s["mean"], "mean", "k", "-"),
+        (s["median"], "median", "darkorange", "-"),
+    ):
         if np.isfinite(x):
             ax.axvline(x, color=c, ls=ls, label=f"{lab} {x:+.2f} m")
     if np.isfinite(s["nmad"]):
         for k, sign in enumerate((-1, 1)):
-            ax.axvline(s["median"] + sign * s["nmad"], color="darkorange", ls="--",
-                       label=f"median ± NMAD ({s['nmad']:.2f} m)" if k == 0 else None)
-    ax.set_ylim(0, ax.get_ylim()[1] * 1.45)            # room for the legend and the note
+            ax.axvline(
+                s["median"] + sign * s["nmad"],
+                color="darkorange",
+                ls="--",
+                label=f"median ± NMAD ({s['nmad']:.2f} m)" if k == 0 else None,
+            )
+    ax.set_ylim(0, ax.get_ylim()[1] * 1.45)  # room for the legend and the note
     ax.set_xlabel("DEM − reference (m)")
     ax.set_ylabel("cells per bin")
-    ax.set_title(f"{title}\nN={s['n']:,}  RMSE={s['rmse']:.2f}  NMAD={s['nmad']:.2f}  "
-                 f"LE90={s['le90']:.2f} m", fontsize=10)
-    ax.text(0.01, 0.98, f"x axis: 0.5–99.5 percentiles [{lo:.1f}, {hi:.1f}] m\nnot shown: "
-            f"{below:,} cells below (min {s['min']:.1f} m),\n{above:,} above (max {s['max']:.1f} m)",
-            transform=ax.transAxes, va="top", ha="left", fontsize=8,
-            bbox=dict(boxstyle="round", fc="white", ec="0.7", alpha=0.9))
+    ax.set_title(
+        f"{title}\nN={s['n']:,}  RMSE={s['rmse']:.2f}  NMAD={s['nmad']:.2f}  "
+        f"LE90={s['le90']:.2f} m",
+        fontsize=10,
+    )
+    ax.text(
+        0.01,
+        0.98,
+        f"x axis: 0.5–99.5 percentiles [{lo:.1f}, {hi:.1f}] m\nnot shown: "
+        f"{below:,} cells below (min {s['min']:.1f} m),\n{above:,} above (max {s['max']:.1f} m)",
+        transform=ax.transAxes,
+        va="top",
+        ha="left",
+        fontsize=8,
+        bbox=dict(boxstyle="round", fc="white", ec="0.7", alpha=0.9),
+    )
     ax.legend(fontsize=8, loc="upper right")
     return _save(fig, path, overwrite)
 
 
-def error_vs_slope_png(dh, slope, by_slope, path, *, overwrite=False,
-                       min_cells=MIN_CLASS_CELLS, centre=None):
+def error_vs_slope_png(
+    dh, slope, by_slope, path, *, overwrite=False, min_cells=MIN_CLASS_CELLS, centre=None
+):
     """Per-slope-class NMAD, std and LE90 against the class mean slope, over a scatter of
     cells; each class's cell count is printed, classes with fewer than ``min_cells`` valid
     cells are grey and left out of the curves; the y axis holds every curve point.
@@ -255,8 +312,15 @@ def error_vs_slope_png(dh, slope, by_slope, path, *, overwrite=False,
         idx = np.flatnonzero(ok)
         idx = idx[np.random.default_rng(0).choice(idx.size, min(idx.size, 20000), replace=False)]
         e_cells = np.abs(a[idx] - (np.median(a[ok]) if centre is None else centre))
-        ax.scatter(s[idx], e_cells, s=1, alpha=0.15, color="0.5", rasterized=True,
-                   label=f"|dh − median| of {idx.size:,} random cells")
+        ax.scatter(
+            s[idx],
+            e_cells,
+            s=1,
+            alpha=0.15,
+            color="0.5",
+            rasterized=True,
+            label=f"|dh − median| of {idx.size:,} random cells",
+        )
         ymax = max(ymax, float(np.percentile(e_cells, 99)))
     entries = [e for e in by_slope if e.get("n")]
     x = np.array([e["slope_mean"] for e in entries], dtype=float)
@@ -269,11 +333,17 @@ def error_vs_slope_png(dh, slope, by_slope, path, *, overwrite=False,
             ax.plot(x[~good], y[~good], "o", color="0.6", mfc="none")
         ymax = max(ymax, float(np.nanmax(y[good], initial=0.0)))
     if (~good).any():
-        ax.plot([], [], "o", color="0.6", mfc="none",
-                label=f"class with < {min_cells} cells (not joined)")
+        ax.plot(
+            [],
+            [],
+            "o",
+            color="0.6",
+            mfc="none",
+            label=f"class with < {min_cells} cells (not joined)",
+        )
     top = ymax * 1.15
     ax.set_ylim(0, top)
-    counts = ax.secondary_xaxis("top")            # cell count of each class, on top
+    counts = ax.secondary_xaxis("top")  # cell count of each class, on top
     counts.set_xticks(x, [f"n={k:,}" for k in n], rotation=90, fontsize=7)
     counts.tick_params(length=3)
     for lab, g in zip(counts.get_xticklabels(), good):
@@ -281,18 +351,34 @@ def error_vs_slope_png(dh, slope, by_slope, path, *, overwrite=False,
     counts.set_xlabel("valid cells per slope class", fontsize=8)
     for xi, e in zip(x, entries):
         for j, key in enumerate(("nmad", "std", "le90")):
-            if e[key] > top:                    # a sparse class off the scale: say so at the top
-                ax.annotate(f"{key} {e[key]:.1f} m ↑", (xi, top), textcoords="offset points",
-                            xytext=(0, -10 - 9 * j), ha="center", fontsize=7, color="0.4")
+            if e[key] > top:  # a sparse class off the scale: say so at the top
+                ax.annotate(
+                    f"{key} {e[key]:.1f} m ↑",
+                    (xi, top),
+                    textcoords="offset points",
+                    xytext=(0, -10 - 9 * j),
+                    ha="center",
+                    fontsize=7,
+                    color="0.4",
+                )
     above_pct = 100 * float(np.mean(e_cells > top)) if ok.any() else 0.0
-    ax.set_xlim(0, max(float(np.nanmax(s[ok], initial=1.0)) if ok.any() else 1.0,
-                       float(np.nanmax(x, initial=0.0)) + 2) * 1.02)
+    ax.set_xlim(
+        0,
+        max(
+            float(np.nanmax(s[ok], initial=1.0)) if ok.any() else 1.0,
+            float(np.nanmax(x, initial=0.0)) + 2,
+        )
+        * 1.02,
+    )
     ax.set_xlabel("slope of the reference (degrees)")
     ax.set_ylabel("error (m)")
-    ax.set_title(f"Error against slope (y axis holds every class statistic; "
-                 f"{above_pct:.1f} % of the scattered cells above it)", fontsize=10)
+    ax.set_title(
+        f"Error against slope (y axis holds every class statistic; "
+        f"{above_pct:.1f} % of the scattered cells above it)",
+        fontsize=10,
+    )
     leg = ax.legend(fontsize=8, loc="upper left", framealpha=0.9)
-    if ok.any():                                 # the scatter's legend marker, visible
+    if ok.any():  # the scatter's legend marker, visible
         h = leg.legend_handles[0]
         h.set_alpha(1.0)
         h.set_sizes([12])

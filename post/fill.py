@@ -7,6 +7,7 @@ plus the DEM − fallback offset interpolated (inverse distance) from the hole's
 is continuous. Optional Gaussian smoothing ignores voids (normalised convolution). Each filled
 cell is flagged in a uint8 layer: :data:`FILLED_IDW` or :data:`FILLED_FALLBACK`.
 """
+
 from __future__ import annotations
 
 import logging
@@ -44,7 +45,8 @@ def _idw(points_rc, values, query_rc, *, k: int, power: float):
     tree = cKDTree(points_rc)
     k = int(min(k, len(points_rc)))
     from .blocks import default_threads
-    d, i = tree.query(query_rc, k=k, workers=default_threads())     # per query: same values
+
+    d, i = tree.query(query_rc, k=k, workers=default_threads())  # per query: same values
     if k == 1:
         d, i = d[:, None], i[:, None]
     w = 1.0 / np.maximum(d, 1e-9) ** power
@@ -71,8 +73,15 @@ def idw_fill(heights, holes, *, k: int = 12, power: float = 2.0):
     return z
 
 
-def fill_holes(heights, *, max_hole_size: int = 200, grow: int = 0, fallback=None,
-               k: int = 12, power: float = 2.0) -> FillResult:
+def fill_holes(
+    heights,
+    *,
+    max_hole_size: int = 200,
+    grow: int = 0,
+    fallback=None,
+    k: int = 12,
+    power: float = 2.0,
+) -> FillResult:
     """Fill voids of a DEM grid.
 
     Parameters
@@ -96,8 +105,17 @@ def fill_holes(heights, *, max_hole_size: int = 200, grow: int = 0, fallback=Non
         z[ndi.binary_dilation(void, structure=_EIGHT, iterations=int(grow))] = np.nan
     void = ~np.isfinite(z)
     filled = np.zeros(z.shape, np.uint8)
-    report = {"max_hole_size": int(max_hole_size), "grow": int(grow), "k": int(k), "power": power,
-              "holes": 0, "small_holes": 0, "filled_idw": 0, "filled_fallback": 0, "left_void": 0}
+    report = {
+        "max_hole_size": int(max_hole_size),
+        "grow": int(grow),
+        "k": int(k),
+        "power": power,
+        "holes": 0,
+        "small_holes": 0,
+        "filled_idw": 0,
+        "filled_fallback": 0,
+        "left_void": 0,
+    }
     if not void.any():
         return FillResult(z.astype(np.float32), filled, report)
     if not np.isfinite(z).any():
@@ -116,7 +134,7 @@ def fill_holes(heights, *, max_hole_size: int = 200, grow: int = 0, fallback=Non
         fb = np.asarray(fallback, dtype=np.float64)
         if fb.shape != z.shape:
             raise InputError(f"fallback DEM has shape {fb.shape}, the DEM {z.shape}")
-        offset = z - fb                                    # defined where both are valid
+        offset = z - fb  # defined where both are valid
         cover = large & np.isfinite(fb)
         rim = ndi.binary_dilation(large, structure=_EIGHT) & np.isfinite(offset)
         if cover.any() and rim.any():
@@ -127,11 +145,16 @@ def fill_holes(heights, *, max_hole_size: int = 200, grow: int = 0, fallback=Non
         elif cover.any():
             z[cover] = fb[cover]
             filled[cover] = FILLED_FALLBACK
-    report.update(filled_idw=int((filled == FILLED_IDW).sum()),
-                  filled_fallback=int((filled == FILLED_FALLBACK).sum()),
-                  left_void=int((~np.isfinite(z)).sum()))
-    log.info("hole filling: %(filled_idw)d cells by IDW, %(filled_fallback)d from the fallback, "
-             "%(left_void)d left void", report)
+    report.update(
+        filled_idw=int((filled == FILLED_IDW).sum()),
+        filled_fallback=int((filled == FILLED_FALLBACK).sum()),
+        left_void=int((~np.isfinite(z)).sum()),
+    )
+    log.info(
+        "hole filling: %(filled_idw)d cells by IDW, %(filled_fallback)d from the fallback, "
+        "%(left_void)d left void",
+        report,
+    )
     return FillResult(z.astype(np.float32), filled, report)
 
 
@@ -145,11 +168,14 @@ def gaussian_smooth(heights, *, sigma: float = 0.85, passes: int = 1, truncate: 
     valid = np.isfinite(z)
     out = z.copy()
     from .blocks import by_rows
-    halo = int(truncate * float(sigma) + 0.5)                 # scipy's kernel radius
 
-    def gauss(a):                                             # in row bands on threads
-        return by_rows(lambda b: ndi.gaussian_filter(b, sigma, mode="nearest", truncate=truncate),
-                       a, halo=halo)
+    halo = int(truncate * float(sigma) + 0.5)  # scipy's kernel radius
+
+    def gauss(a):  # in row bands on threads
+        return by_rows(
+            lambda b: ndi.gaussian_filter(b, sigma, mode="nearest", truncate=truncate), a, halo=halo
+        )
+
     for _ in range(int(passes)):
         w = gauss(valid.astype(np.float64))
         s = gauss(np.where(valid, out, 0.0))

@@ -22,6 +22,7 @@ Filters (with where they come from):
 * :func:`small_patch_filter` — connected blobs (neighbours within a height jump) smaller than a
   size limit, including islands of valid cells inside voids (OpenCV ``filterSpeckles``).
 """
+
 from __future__ import annotations
 
 import logging
@@ -53,7 +54,7 @@ class Reason(IntEnum):
     SLOPE = 6
     REFERENCE = 7
     SMALL_PATCH = 8
-    CLOUD = 9                #: cloud mask (:mod:`stereodem.post.clouds`, ``filter --cloud-*``)
+    CLOUD = 9  #: cloud mask (:mod:`stereodem.post.clouds`, ``filter --cloud-*``)
 
 
 class EditCode(IntEnum):
@@ -61,9 +62,9 @@ class EditCode(IntEnum):
     clean DEM (``dem_edit_mask.tif``) holds a :class:`Reason` for removed cells or one of these
     (255 = outside the grid's data)."""
 
-    BORDER_RIM = 99          #: removed: rim of the matched area (partial correlation windows)
-    FILLED_IDW = 100         #: hole filled by inverse-distance weighting
-    FILLED_SEED = 101        #: large hole filled from the seed DEM
+    BORDER_RIM = 99  #: removed: rim of the matched area (partial correlation windows)
+    FILLED_IDW = 100  #: hole filled by inverse-distance weighting
+    FILLED_SEED = 101  #: large hole filled from the seed DEM
 
 
 _RING8 = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=np.float64)
@@ -85,6 +86,7 @@ def _layer(layer, shape, name) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- filters
 
+
 def score_filter(heights, score, *, min_score: float = 0.5):
     """Cells whose correlation score is below ``min_score`` (NaN scores are kept)."""
     z = _heights(heights)
@@ -93,8 +95,14 @@ def score_filter(heights, score, *, min_score: float = 0.5):
         return np.isfinite(z) & (s < min_score), Reason.SCORE
 
 
-def ray_gap_filter(heights, ray_gap, *, max_gap: float | None = None,
-                   percentile: float | None = 75.0, factor: float = 3.0):
+def ray_gap_filter(
+    heights,
+    ray_gap,
+    *,
+    max_gap: float | None = None,
+    percentile: float | None = 75.0,
+    factor: float = 3.0,
+):
     """Cells whose ray gap (m) exceeds ``max_gap`` or ``factor`` × its ``percentile``.
 
     Either test may be disabled with ``None``; with both, a cell failing either is removed.
@@ -129,8 +137,9 @@ def _neighbour_moments(z):
     return n, mean, np.sqrt(var)
 
 
-def local_sigma_filter(heights, *, k: float = 2.0, min_deviation: float = 0.0,
-                       min_neighbours: int = 3):
+def local_sigma_filter(
+    heights, *, k: float = 2.0, min_deviation: float = 0.0, min_neighbours: int = 3
+):
     """The Ok (2005) local test: |z − mean₈| > max(k·σ₈, ``min_deviation``).
 
     ``mean₈`` and ``σ₈`` are the mean and standard deviation of the valid 8-neighbours; cells
@@ -141,7 +150,11 @@ def local_sigma_filter(heights, *, k: float = 2.0, min_deviation: float = 0.0,
     z = _heights(heights)
     n, mean, sd = _neighbour_moments(z)
     with np.errstate(invalid="ignore"):
-        mask = np.isfinite(z) & (n >= min_neighbours) & (np.abs(z - mean) > np.maximum(k * sd, min_deviation))
+        mask = (
+            np.isfinite(z)
+            & (n >= min_neighbours)
+            & (np.abs(z - mean) > np.maximum(k * sd, min_deviation))
+        )
     return mask, Reason.LOCAL_SIGMA
 
 
@@ -165,7 +178,7 @@ def _fill_nearest(z):
 def _quadratic_kernel(half: int):
     """Correlation kernel giving the value at the centre of a least-squares quadratic surface
     fitted to the (2·half+1)² window without its centre cell."""
-    yy, xx = np.mgrid[-half:half + 1, -half:half + 1]
+    yy, xx = np.mgrid[-half : half + 1, -half : half + 1]
     x, y = xx.ravel().astype(float), yy.ravel().astype(float)
     a = np.stack([np.ones_like(x), x, y, x * x, y * y, x * y], 1)
     w = np.ones(x.size)
@@ -177,7 +190,7 @@ def _quadratic_kernel(half: int):
 def _nanmedian_last(t):
     """``np.nanmedian(t, axis=-1)`` (same values; NaN where a row has no finite value),
     vectorised: one sort along the last axis instead of numpy's per-row loop."""
-    s = np.sort(t, axis=-1)                                    # NaNs sort last
+    s = np.sort(t, axis=-1)  # NaNs sort last
     n = np.count_nonzero(np.isfinite(t), axis=-1)
     lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
     hi = np.take_along_axis(s, np.maximum(n // 2, 0)[..., None], -1)[..., 0]
@@ -207,19 +220,28 @@ def _median_at(z, cells, size: int):
     """``ndi.median_filter(z, size, mode="nearest")`` evaluated only at the True cells of
     ``cells`` (same values): the windows of those cells gathered from the edge-padded grid."""
     from numpy.lib.stride_tricks import sliding_window_view
+
     half = size // 2
     rr, cc = np.nonzero(cells)
     pad = np.pad(z, half, mode="edge")
     win = sliding_window_view(pad, (size, size))
     out = np.full(z.shape, np.nan)
-    for a in range(0, rr.size, 65536):                      # bounded working memory
-        w = win[rr[a:a + 65536], cc[a:a + 65536]].reshape(-1, size * size)
-        out[rr[a:a + 65536], cc[a:a + 65536]] = np.median(w, axis=1)
+    for a in range(0, rr.size, 65536):  # bounded working memory
+        w = win[rr[a : a + 65536], cc[a : a + 65536]].reshape(-1, size * size)
+        out[rr[a : a + 65536], cc[a : a + 65536]] = np.median(w, axis=1)
     return out
 
 
-def spike_filter(heights, *, k: float = 5.0, min_deviation: float = 5.0, window: int = 5,
-                 median_size: int = 7, block: int = 32, iterations: int = 4):
+def spike_filter(
+    heights,
+    *,
+    k: float = 5.0,
+    min_deviation: float = 5.0,
+    window: int = 5,
+    median_size: int = 7,
+    block: int = 32,
+    iterations: int = 4,
+):
     """Spikes and pits: residual to a local surface fitted around each cell, against a local
     robust scale.
 
@@ -241,8 +263,9 @@ def spike_filter(heights, *, k: float = 5.0, min_deviation: float = 5.0, window:
     zf = _fill_nearest(z)
     kern = _quadratic_kernel(window // 2)
 
-    def predict(a):                       # the quadratic-surface prediction, in row bands
+    def predict(a):  # the quadratic-surface prediction, in row bands
         return by_rows(lambda b: ndi.correlate(b, kern, mode="nearest"), a, halo=window // 2)
+
     r = zf - predict(zf)
     limit = np.maximum(k * _block_scale(r, valid, block), min_deviation)
     flag = valid & (np.abs(r) > limit)
@@ -285,9 +308,15 @@ def reference_filter(heights, reference, *, max_diff: float = 100.0, centre: boo
         return ok & (np.abs(dh - c) > max_diff), Reason.REFERENCE
 
 
-def small_patch_filter(heights, *, max_size: int = 10, max_jump: float | None = None,
-                       jump_percentile: float = 99.0, jump_factor: float = 2.0,
-                       min_jump: float = 10.0):
+def small_patch_filter(
+    heights,
+    *,
+    max_size: int = 10,
+    max_jump: float | None = None,
+    jump_percentile: float = 99.0,
+    jump_factor: float = 2.0,
+    min_jump: float = 10.0,
+):
     """Blobs of fewer than ``max_size`` cells, where a blob is a 4-connected set of valid
     cells whose neighbours differ by at most ``max_jump`` metres.
 
@@ -304,9 +333,13 @@ def small_patch_filter(heights, *, max_size: int = 10, max_jump: float | None = 
         jx = np.abs(np.diff(z, axis=1))
         jy = np.abs(np.diff(z, axis=0))
         j = np.concatenate([jx[np.isfinite(jx)], jy[np.isfinite(jy)]])
-        max_jump = max(min_jump, jump_factor * float(np.percentile(j, jump_percentile))) if j.size else min_jump
+        max_jump = (
+            max(min_jump, jump_factor * float(np.percentile(j, jump_percentile)))
+            if j.size
+            else min_jump
+        )
     lo, hi = float(np.min(z[valid])), float(np.max(z[valid]))
-    q = max((hi - lo) / 60000.0, max_jump / 30000.0, 1e-3)     # metres per quantum
+    q = max((hi - lo) / 60000.0, max_jump / 30000.0, 1e-3)  # metres per quantum
     zq = np.full(z.shape, -32768, dtype=np.int16)
     zq[valid] = np.round((z[valid] - lo) / q - 30000.0).astype(np.int16)
     out, _ = cv2.filterSpeckles(zq.copy(), -32768, int(max_size), int(np.floor(max_jump / q)))
@@ -314,6 +347,7 @@ def small_patch_filter(heights, *, max_size: int = 10, max_jump: float | None = 
 
 
 # ----------------------------------------------------------------------------- chain
+
 
 @dataclass
 class FilterStep:
@@ -374,9 +408,14 @@ def _run_step(step, z, layers):
 
 
 FILTERS = {
-    "score": score_filter, "ray_gap": ray_gap_filter, "local_sigma": local_sigma_filter,
-    "failed_neighbours": failed_neighbours_filter, "spike": spike_filter,
-    "slope": slope_filter, "reference": reference_filter, "small_patch": small_patch_filter,
+    "score": score_filter,
+    "ray_gap": ray_gap_filter,
+    "local_sigma": local_sigma_filter,
+    "failed_neighbours": failed_neighbours_filter,
+    "spike": spike_filter,
+    "slope": slope_filter,
+    "reference": reference_filter,
+    "small_patch": small_patch_filter,
 }
 
 
@@ -388,15 +427,22 @@ class FilterChain:
     """
 
     def __init__(self, steps):
-        self.steps = [s if isinstance(s, FilterStep) else FilterStep(*s) if isinstance(s, tuple)
-                      else FilterStep(**s) for s in steps]
+        self.steps = [
+            s
+            if isinstance(s, FilterStep)
+            else FilterStep(*s)
+            if isinstance(s, tuple)
+            else FilterStep(**s)
+            for s in steps
+        ]
 
     @property
     def params(self) -> list:
         return [{"step": s.name, "params": dict(s.params)} for s in self.steps]
 
-    def apply(self, heights, *, score=None, ray_gap=None, reference=None, transform=None,
-              crs=None) -> FilterResult:
+    def apply(
+        self, heights, *, score=None, ray_gap=None, reference=None, transform=None, crs=None
+    ) -> FilterResult:
         """Run the chain on ``heights`` (2-D, NaN voids) or a :class:`stereodem.core.dem.DEM` (whose
         transform and CRS are then used)."""
         if hasattr(heights, "heights") and hasattr(heights, "transform"):
@@ -406,7 +452,9 @@ class FilterChain:
         z = _heights(heights).copy()
         n0 = int(np.isfinite(z).sum())
         removed = np.zeros(z.shape, np.uint8)
-        layers = dict(score=score, ray_gap=ray_gap, reference=reference, transform=transform, crs=crs)
+        layers = dict(
+            score=score, ray_gap=ray_gap, reference=reference, transform=transform, crs=crs
+        )
         report = []
         for step in self.steps:
             mask, reason = _run_step(step, z, layers)
@@ -419,8 +467,12 @@ class FilterChain:
                 n = int(mask.sum())
                 z[mask] = np.nan
                 removed[mask] = int(reason)
-                entry.update(reason=int(reason), reason_name=Reason(reason).name.lower(), removed=n,
-                             removed_pct=100.0 * n / n0 if n0 else 0.0)
+                entry.update(
+                    reason=int(reason),
+                    reason_name=Reason(reason).name.lower(),
+                    removed=n,
+                    removed_pct=100.0 * n / n0 if n0 else 0.0,
+                )
                 log.info("filter %s removed %d cells (%.3f %%)", step.name, n, entry["removed_pct"])
             report.append(entry)
         return FilterResult(z.astype(np.float32), removed, report)
@@ -435,14 +487,16 @@ def default_chain(*, thesis: bool = False) -> FilterChain:
     own k = 2 without a floor.
     """
     local = {"k": 2.0} if thesis else {"k": 3.0, "min_deviation": 10.0}
-    return FilterChain([
-        FilterStep("score", {"min_score": 0.5}),
-        FilterStep("ray_gap", {"percentile": 75.0, "factor": 3.0}),
-        FilterStep("spike", {"k": 5.0, "min_deviation": 5.0}),
-        FilterStep("small_patch", {"max_size": 10}),
-        FilterStep("local_sigma", local),
-        FilterStep("failed_neighbours", {"min_failed": 5}),
-    ])
+    return FilterChain(
+        [
+            FilterStep("score", {"min_score": 0.5}),
+            FilterStep("ray_gap", {"percentile": 75.0, "factor": 3.0}),
+            FilterStep("spike", {"k": 5.0, "min_deviation": 5.0}),
+            FilterStep("small_patch", {"max_size": 10}),
+            FilterStep("local_sigma", local),
+            FilterStep("failed_neighbours", {"min_failed": 5}),
+        ]
+    )
 
 
 def border_rim(heights, cells: int) -> np.ndarray:

@@ -14,6 +14,7 @@ Cells observed at the same dates share one weight vector, so the fit is one smal
 observation pattern and a matrix product over the cells (vectorised). Outliers should be
 removed first (pass the ``kept`` mask of :func:`~stereodem.post.rates.fit_rates`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -59,7 +60,7 @@ def gp_rates(heights, times, sigma, *, valid=None, settings: GPSettings = GPSett
         ok &= np.asarray(valid, bool).reshape(T, -1)
     sig = np.broadcast_to(np.asarray(sigma, np.float64), (T,))
     tc = t - t.mean()
-    kf = settings.sigma_f ** 2 * np.exp(-0.5 * (tc[:, None] - tc[None, :]) ** 2 / settings.length ** 2)
+    kf = settings.sigma_f**2 * np.exp(-0.5 * (tc[:, None] - tc[None, :]) ** 2 / settings.length**2)
     rate = np.full(h.shape[1], np.nan, np.float32)
     rsig = np.full(h.shape[1], np.nan, np.float32)
     n_obs = ok.sum(0).astype(np.int16)
@@ -73,9 +74,12 @@ def gp_rates(heights, times, sigma, *, valid=None, settings: GPSettings = GPSett
         X = np.column_stack([np.ones(idx.size), tc[idx]])
         Ki_X = np.linalg.solve(K, X)
         cov = np.linalg.inv(X.T @ Ki_X)
-        w = (cov @ Ki_X.T)[1]                           # rate = w · h
+        w = (cov @ Ki_X.T)[1]  # rate = w · h
         cells = np.flatnonzero(inverse == p)
         rate[cells] = w @ h[np.ix_(idx, cells)]
         rsig[cells] = np.sqrt(cov[1, 1])
-    return dict(rate=rate.reshape(cell_shape), rate_sigma=rsig.reshape(cell_shape),
-                n_obs=n_obs.reshape(cell_shape))
+    return dict(
+        rate=rate.reshape(cell_shape),
+        rate_sigma=rsig.reshape(cell_shape),
+        n_obs=n_obs.reshape(cell_shape),
+    )

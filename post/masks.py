@@ -6,6 +6,7 @@ CRS with pyproj through shapely, and burnt with ``rasterio.features.rasterize`` 
 polygon when its centre is). ``exclude`` outlines (glaciers, water, changed areas) are removed
 from the stable terrain; ``include`` outlines, when given, are the only stable terrain.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -24,24 +25,32 @@ def read_polygons(path, crs):
     import pyogrio
     import shapely
     from pyproj import CRS, Transformer
+
     path = str(path)
     try:
         meta, _, geom_wkb, _ = pyogrio.raw.read(path, columns=[])
         geoms = shapely.from_wkb(geom_wkb)
     except Exception as exc:  # noqa: BLE001 - pyogrio/GDAL errors of many types: one line
-        raise InputError(f"{path}: cannot read the vector file ({str(exc).splitlines()[0][:120]})") from None
+        raise InputError(
+            f"{path}: cannot read the vector file ({str(exc).splitlines()[0][:120]})"
+        ) from None
     src = meta.get("crs")
     if src is None:
         raise CRSError(f"{path}: the vector file has no CRS")
-    geoms = [g for g in geoms if g is not None and not g.is_empty
-             and g.geom_type in ("Polygon", "MultiPolygon")]
+    geoms = [
+        g
+        for g in geoms
+        if g is not None and not g.is_empty and g.geom_type in ("Polygon", "MultiPolygon")
+    ]
     if not geoms:
         raise InputError(f"{path}: no polygon in the vector file")
     src, dst = CRS.from_user_input(src), CRS.from_user_input(crs)
     if src != dst:
         tr = Transformer.from_crs(src, dst, always_xy=True)
-        geoms = [shapely.transform(g, lambda xy: np.column_stack(tr.transform(xy[:, 0], xy[:, 1])))
-                 for g in geoms]
+        geoms = [
+            shapely.transform(g, lambda xy: np.column_stack(tr.transform(xy[:, 0], xy[:, 1])))
+            for g in geoms
+        ]
     return geoms
 
 
@@ -50,18 +59,22 @@ def rasterize(geoms, dem: DEM, *, path: str = "outlines") -> np.ndarray:
     polygon touches the DEM."""
     import shapely
     from rasterio.features import rasterize as rio_rasterize
+
     rows, cols = dem.shape
     t = dem.transform
     xs, ys = sorted([t.c, t.c + t.a * cols]), sorted([t.f, t.f + t.e * rows])
     box = shapely.box(xs[0], ys[0], xs[1], ys[1])
     if not any(g.intersects(box) for g in geoms):
         x0, y0, x1, y1 = shapely.total_bounds(np.asarray(geoms, dtype=object))
-        raise NoOverlapError(f"{path}: no outline overlaps the DEM {dem.path or ''} "
-                             f"(outlines {x0:.4f},{y0:.4f},{x1:.4f},{y1:.4f}; DEM "
-                             f"{box.bounds[0]:.4f},{box.bounds[1]:.4f},{box.bounds[2]:.4f},"
-                             f"{box.bounds[3]:.4f} in its CRS)")
-    burnt = rio_rasterize([(g, 1) for g in geoms], out_shape=dem.shape, transform=t, fill=0,
-                          dtype="uint8")
+        raise NoOverlapError(
+            f"{path}: no outline overlaps the DEM {dem.path or ''} "
+            f"(outlines {x0:.4f},{y0:.4f},{x1:.4f},{y1:.4f}; DEM "
+            f"{box.bounds[0]:.4f},{box.bounds[1]:.4f},{box.bounds[2]:.4f},"
+            f"{box.bounds[3]:.4f} in its CRS)"
+        )
+    burnt = rio_rasterize(
+        [(g, 1) for g in geoms], out_shape=dem.shape, transform=t, fill=0, dtype="uint8"
+    )
     return burnt.astype(bool)
 
 
@@ -87,6 +100,7 @@ class StableMask:
         from stereodem.core.stats import nmad
 
         from . import warp
+
         m = np.ones(dem.shape, bool)
         if self.include:
             m = np.zeros(dem.shape, bool)
@@ -98,18 +112,29 @@ class StableMask:
             import rasterio
 
             from stereodem.core.raster import reading_env
+
             try:
                 with reading_env(), rasterio.open(self.raster) as ds:
                     a = ds.read(1, masked=True).filled(0).astype(np.uint8)
                     if ds.crs is None:
                         raise CRSError(f"{self.raster}: the stable-mask raster has no CRS")
-                    z = warp.to_grid(a, ds.transform, ds.crs.to_wkt(), dem.transform, dem.crs,
-                                     dem.shape, resampling="nearest", src_nodata=None,
-                                     dst_dtype=np.uint8)
+                    z = warp.to_grid(
+                        a,
+                        ds.transform,
+                        ds.crs.to_wkt(),
+                        dem.transform,
+                        dem.crs,
+                        dem.shape,
+                        resampling="nearest",
+                        src_nodata=None,
+                        dst_dtype=np.uint8,
+                    )
             except rasterio.errors.RasterioIOError as exc:
                 raise InputError(f"{self.raster}: cannot read the mask ({exc})") from None
             if not z.any():
-                raise NoOverlapError(f"{self.raster}: the stable mask has no stable cell on the DEM")
+                raise NoOverlapError(
+                    f"{self.raster}: the stable mask has no stable cell on the DEM"
+                )
             m &= z > 0
         if slope is not None and (self.min_slope is not None or self.max_slope is not None):
             s = np.asarray(slope, float)
@@ -136,6 +161,8 @@ def check_stable(mask, valid, *, min_fraction: float = 0.05, what: str = "stable
     """:class:`InputError` when under ``min_fraction`` of the valid cells are stable."""
     f = stable_fraction(mask, valid)
     if f < min_fraction:
-        raise InputError(f"{what}: only {100 * f:.1f} % of the DEM's valid cells are left as "
-                         f"stable terrain (need at least {100 * min_fraction:.0f} %)")
+        raise InputError(
+            f"{what}: only {100 * f:.1f} % of the DEM's valid cells are left as "
+            f"stable terrain (need at least {100 * min_fraction:.0f} %)"
+        )
     return f

@@ -35,6 +35,7 @@ plus for ``median``/``nmad`` the stack of the block's DEMs (K × block² values)
 block cache. It depends on the block size and the number of DEMs overlapping one block, not on
 the mosaic's size or the number of DEMs.
 """
+
 from __future__ import annotations
 
 import logging
@@ -83,7 +84,7 @@ STACK_METHODS = ("median", "nmad")
 SINGLE_BAND = ("count", "stddev", "nmad")
 #: GDAL block cache while reading (MB): part of the memory bound
 READ_CACHE_MB = 32
-_SIGMA_FLOOR = 0.01        # m: σ below this is taken as this (a zero σ would take all weight)
+_SIGMA_FLOOR = 0.01  # m: σ below this is taken as this (a zero σ would take all weight)
 
 
 @dataclass(frozen=True)
@@ -126,12 +127,23 @@ class MosaicPlan:
 
     def bands(self) -> list[str]:
         """Band descriptions of the output."""
-        what = {GEOID: "height above the EGM96 geoid", ELLIPSOID: "height above the WGS84 ellipsoid"}
+        what = {
+            GEOID: "height above the EGM96 geoid",
+            ELLIPSOID: "height above the WGS84 ellipsoid",
+        }
         if self.method in SINGLE_BAND:
-            return [{"count": "count (DEMs with a height)", "stddev": "stddev (of the DEMs' heights)",
-                     "nmad": "nmad (of the DEMs' heights)"}[self.method]]
-        spread = "sigma (1-sigma, propagated)" if (self.method == "blend" and self.use_sigma) \
+            return [
+                {
+                    "count": "count (DEMs with a height)",
+                    "stddev": "stddev (of the DEMs' heights)",
+                    "nmad": "nmad (of the DEMs' heights)",
+                }[self.method]
+            ]
+        spread = (
+            "sigma (1-sigma, propagated)"
+            if (self.method == "blend" and self.use_sigma)
             else "stddev (of the DEMs' heights)"
+        )
         return [what.get(self.vertical, "height"), "count (DEMs with a height)", spread]
 
     def units(self) -> list[str]:
@@ -143,10 +155,23 @@ class MosaicPlan:
 
 # --------------------------------------------------------------------------- planning
 
-def plan_mosaic(paths, *, method: str = "blend", crs=None, res=None, bounds=None,
-                vertical: str | None = None, dem_vertical: str | None = None, block: int = 512,
-                blend_length: int = 50, weights_exponent: float = 2.0, use_sigma: bool = True,
-                reference=None, coreg_chain: str | None = None) -> MosaicPlan:
+
+def plan_mosaic(
+    paths,
+    *,
+    method: str = "blend",
+    crs=None,
+    res=None,
+    bounds=None,
+    vertical: str | None = None,
+    dem_vertical: str | None = None,
+    block: int = 512,
+    blend_length: int = 50,
+    weights_exponent: float = 2.0,
+    use_sigma: bool = True,
+    reference=None,
+    coreg_chain: str | None = None,
+) -> MosaicPlan:
     """Open, check and lay out a mosaic of the DEM files ``paths``.
 
     Parameters
@@ -186,29 +211,62 @@ def plan_mosaic(paths, *, method: str = "blend", crs=None, res=None, bounds=None
     skipped = []
     coreg = {}
     if reference is not None:
-        sources, skipped, coreg = coregister_sources(sources, reference, chain=coreg_chain,
-                                                     dem_vertical=dem_vertical)
+        sources, skipped, coreg = coregister_sources(
+            sources, reference, chain=coreg_chain, dem_vertical=dem_vertical
+        )
     grid, placed = output_grid(sources, crs=crs, res=res, bounds=bounds)
     used, outside, islands = select_sources(placed, grid)
     skipped += outside
     sigma = bool(use_sigma) and all(s.sigma is not None for s in used)
     if use_sigma and not sigma and any(s.sigma is not None for s in used):
-        log.warning("only %d of %d DEMs carry a σ layer: blending by distance only",
-                    sum(s.sigma is not None for s in used), len(used))
-    conversions = [dict(path=s.path, vertical=s.vertical, to=target) for s in used
-                   if s.vertical is not None and target is not None and s.vertical != target]
-    report = dict(method=method, n_inputs=len(paths), n_used=len(used), skipped=skipped,
-                  islands=islands, vertical=target, vertical_conversions=conversions,
-                  sigma_weighting=sigma, coregistration=coreg,
-                  reprojected=[s.path for s in used if not _on_lattice(s, grid)],
-                  grid=dict(crs=grid.crs.to_string(), transform=list(grid.transform)[:6],
-                            width=grid.width, height=grid.height, posting=grid.posting))
-    plan = MosaicPlan(grid, tuple(used), method, target, int(block), int(blend_length),
-                      float(weights_exponent), sigma, report)
+        log.warning(
+            "only %d of %d DEMs carry a σ layer: blending by distance only",
+            sum(s.sigma is not None for s in used),
+            len(used),
+        )
+    conversions = [
+        dict(path=s.path, vertical=s.vertical, to=target)
+        for s in used
+        if s.vertical is not None and target is not None and s.vertical != target
+    ]
+    report = dict(
+        method=method,
+        n_inputs=len(paths),
+        n_used=len(used),
+        skipped=skipped,
+        islands=islands,
+        vertical=target,
+        vertical_conversions=conversions,
+        sigma_weighting=sigma,
+        coregistration=coreg,
+        reprojected=[s.path for s in used if not _on_lattice(s, grid)],
+        grid=dict(
+            crs=grid.crs.to_string(),
+            transform=list(grid.transform)[:6],
+            width=grid.width,
+            height=grid.height,
+            posting=grid.posting,
+        ),
+    )
+    plan = MosaicPlan(
+        grid,
+        tuple(used),
+        method,
+        target,
+        int(block),
+        int(blend_length),
+        float(weights_exponent),
+        sigma,
+        report,
+    )
     k = max_overlap(plan)
-    report.update(max_dems_per_block=k, memory_bound_mb=memory_bound(plan, k) / 2**20,
-                  block=int(block), blend_length=int(blend_length),
-                  weights_exponent=float(weights_exponent))
+    report.update(
+        max_dems_per_block=k,
+        memory_bound_mb=memory_bound(plan, k) / 2**20,
+        block=int(block),
+        blend_length=int(blend_length),
+        weights_exponent=float(weights_exponent),
+    )
     return plan
 
 
@@ -218,6 +276,7 @@ def coregister_sources(sources, reference, *, chain: str | None = None, dem_vert
     skipped ``[{path, reason}]``, ``{path: correction report}``). A DEM that misses the
     reference or cannot be fitted is named and skipped."""
     from .mosaic_coreg import crop_reference, fitter
+
     fit = fitter(chain or "nuth_kaab")
     out, skipped, reports = [], [], {}
     for s in sources:
@@ -225,8 +284,10 @@ def coregister_sources(sources, reference, *, chain: str | None = None, dem_vert
             ref = crop_reference(reference, s.native_bounds, s.crs, vertical=dem_vertical)
             if ref.vertical != s.vertical:
                 if ref.vertical is None or s.vertical is None:
-                    raise InputError(f"{reference}: vertical reference of the reference or of "
-                                     f"{s.path} unknown (say it with --dem-vertical)")
+                    raise InputError(
+                        f"{reference}: vertical reference of the reference or of "
+                        f"{s.path} unknown (say it with --dem-vertical)"
+                    )
                 ref = ref.to_reference(s.vertical)
             dem = DEM.from_file(s.path, vertical=s.vertical)
             corr = fit(ref, dem)
@@ -236,10 +297,13 @@ def coregister_sources(sources, reference, *, chain: str | None = None, dem_vert
             skipped.append(dict(path=s.path, reason=f"co-registration: {reason}"))
             continue
         from .warp import translated
+
         t = translated(s.transform, s.crs, (s.height, s.width), -corr.dx, -corr.dy)
         out.append(replace(s, transform=t, shift_m=(-corr.dx, -corr.dy), dz=float(corr.dz)))
         reports[s.path] = dict(corr.report, dx=corr.dx, dy=corr.dy, dz=corr.dz)
-        log.info("%s: co-registered dx %+.2f m dy %+.2f m dz %+.2f m", s.path, corr.dx, corr.dy, corr.dz)
+        log.info(
+            "%s: co-registered dx %+.2f m dy %+.2f m dz %+.2f m", s.path, corr.dx, corr.dy, corr.dz
+        )
     if not out:
         raise NoOverlapError(f"{reference}: no DEM could be co-registered to the reference")
     return out, skipped, reports
@@ -248,8 +312,11 @@ def coregister_sources(sources, reference, *, chain: str | None = None, dem_vert
 def blocks(plan: MosaicPlan):
     """Output blocks ``(row0, col0, rows, cols)`` in row-major order."""
     g, b = plan.grid, plan.block
-    return [(r, c, min(b, g.height - r), min(b, g.width - c))
-            for r in range(0, g.height, b) for c in range(0, g.width, b)]
+    return [
+        (r, c, min(b, g.height - r), min(b, g.width - c))
+        for r in range(0, g.height, b)
+        for c in range(0, g.width, b)
+    ]
 
 
 def _block_bounds(plan, r0, c0, rows, cols):
@@ -280,6 +347,7 @@ def memory_bound(plan: MosaicPlan, k: int | None = None) -> int:
     ``K`` DEMs meeting one block (:func:`max_overlap`).
     """
     from stereodem.core.blockwrite import CACHE_MB, OVERVIEW_CHUNK_MB
+
     k = max_overlap(plan) if k is None else int(k)
     b, h = plan.block, plan.halo
     n = 48 * (b + 2 * h) ** 2 + 64 * b * b + len(plan.bands()) * 4 * b * b
@@ -290,6 +358,7 @@ def memory_bound(plan: MosaicPlan, k: int | None = None) -> int:
 
 # --------------------------------------------------------------------------- reading
 
+
 def _on_lattice(s: Source, grid: MapGrid) -> bool:
     """The DEM's cells are output cells (same CRS and posting, whole-cell offset)."""
     t, g = s.transform, grid.transform
@@ -299,8 +368,9 @@ def _on_lattice(s: Source, grid: MapGrid) -> bool:
     return abs(dc - round(dc)) < 1e-6 and abs(dr - round(dr)) < 1e-6 and s.crs.equals(grid.crs)
 
 
-def read_on_grid(s: Source, grid: MapGrid, r0: int, c0: int, rows: int, cols: int,
-                 layer=None) -> np.ndarray:
+def read_on_grid(
+    s: Source, grid: MapGrid, r0: int, c0: int, rows: int, cols: int, layer=None
+) -> np.ndarray:
     """The DEM's values (or its σ layer: ``layer=(path, band)``) on the output cells
     ``[r0:r0+rows, c0:c0+cols]``: float32, NaN where it has none. Cells on the output lattice
     are copied; otherwise GDAL's warper resamples (bilinear) through a window."""
@@ -316,17 +386,26 @@ def read_on_grid(s: Source, grid: MapGrid, r0: int, c0: int, rows: int, cols: in
                 if sc1 <= sc0 or sr1 <= sr0:
                     return out
                 a = ds.read(band, window=Window(sc0, sr0, sc1 - sc0, sr1 - sr0), masked=True)
-                out[sr0 - dr - r0:sr1 - dr - r0, sc0 - dc - c0:sc1 - dc - c0] = \
-                    a.astype(np.float32).filled(np.nan)
+                out[sr0 - dr - r0 : sr1 - dr - r0, sc0 - dc - c0 : sc1 - dc - c0] = a.astype(
+                    np.float32
+                ).filled(np.nan)
             else:
                 src_nodata = ds.nodata
                 if src_nodata is None and np.issubdtype(np.dtype(ds.dtypes[band - 1]), np.floating):
                     src_nodata = np.nan
-                with WarpedVRT(ds, src_crs=s.crs_wkt, src_transform=s.transform,
-                               src_nodata=src_nodata, crs=grid.crs.to_wkt(),
-                               transform=grid.transform, width=grid.width, height=grid.height,
-                               nodata=np.nan, dtype="float32",
-                               resampling=Resampling.bilinear) as vrt:
+                with WarpedVRT(
+                    ds,
+                    src_crs=s.crs_wkt,
+                    src_transform=s.transform,
+                    src_nodata=src_nodata,
+                    crs=grid.crs.to_wkt(),
+                    transform=grid.transform,
+                    width=grid.width,
+                    height=grid.height,
+                    nodata=np.nan,
+                    dtype="float32",
+                    resampling=Resampling.bilinear,
+                ) as vrt:
                     a = vrt.read(band, window=Window(c0, r0, cols, rows), masked=True)
                     out[:] = a.filled(np.nan)
     except rasterio.errors.RasterioIOError as exc:
@@ -335,8 +414,9 @@ def read_on_grid(s: Source, grid: MapGrid, r0: int, c0: int, rows: int, cols: in
     return out
 
 
-def edge_weight(valid: np.ndarray, length: int, exponent: float,
-                border=(False, False, False, False)) -> np.ndarray:
+def edge_weight(
+    valid: np.ndarray, length: int, exponent: float, border=(False, False, False, False)
+) -> np.ndarray:
     """Blending weight ``min(d, L)^p`` (float32), ``d`` the Euclidean distance in cells from
     each valid cell to the nearest invalid one, 0 on invalid cells.
 
@@ -348,11 +428,12 @@ def edge_weight(valid: np.ndarray, length: int, exponent: float,
     top, bottom, left, right = (int(bool(b)) for b in border)
     padded = np.pad(valid.astype(np.uint8), ((top, bottom), (left, right)))
     d = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    d = d[top:d.shape[0] - bottom, left:d.shape[1] - right]
+    d = d[top : d.shape[0] - bottom, left : d.shape[1] - right]
     return np.power(np.minimum(d, np.float32(length)), np.float32(exponent)).astype(np.float32)
 
 
 # --------------------------------------------------------------------------- one block
+
 
 def _read_env():
     """GDAL settings of the block reads (here and in Dask workers): the bounded block cache,
@@ -407,14 +488,16 @@ def _mosaic_block(plan, r0, c0, rows, cols):
         s1 += zz
         s2 += zz * zz
         if m == "blend":
-            w = edge_weight(valid_w, plan.blend_length, plan.weights_exponent)[core].astype(np.float64)
+            w = edge_weight(valid_w, plan.blend_length, plan.weights_exponent)[core].astype(
+                np.float64
+            )
             if plan.use_sigma:
                 sig = read_on_grid(s, g, r0, c0, rows, cols, layer=s.sigma).astype(np.float64)
                 bad = ~(sig > 0)
                 if bad.all():
                     sig[:] = 1.0
                 elif bad.any():
-                    sig[bad] = np.nanmax(sig[~bad])      # no σ at a cell: the DEM's worst here
+                    sig[bad] = np.nanmax(sig[~bad])  # no σ at a cell: the DEM's worst here
                 sig = np.maximum(sig, _SIGMA_FLOOR)
                 w = w / (sig * sig)
                 sw2s2 += np.where(valid, w * w * sig * sig, 0.0)
@@ -450,7 +533,7 @@ def _mosaic_block(plan, r0, c0, rows, cols):
             st = np.stack(stack)
             del stack
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)        # all-NaN cells
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN cells
                 value = np.nanmedian(st, axis=0) if m == "median" else nmad(st, axis=0)
             del st
     if m == "count":
@@ -466,22 +549,31 @@ def _mosaic_block(plan, r0, c0, rows, cols):
 
 # --------------------------------------------------------------------------- the job
 
+
 def _dask_blocks(plan, todo, address, workers):
     """Blocks computed on a ``dask.distributed`` cluster (``address``, or a local cluster of
     ``workers`` processes for ``"local"``), yielded as they finish, with at most two per
     worker in flight (so finished blocks never pile up in the client)."""
     try:
         from dask.distributed import Client, LocalCluster, as_completed
-    except ImportError:        # pragma: no cover - optional extra
+    except ImportError:  # pragma: no cover - optional extra
         raise InputError("--dask needs dask.distributed (pip install 'stereodem[dask]')") from None
     cluster = None
     if address in (None, "local"):
-        cluster = LocalCluster(n_workers=max(int(workers or 1), 1), threads_per_worker=1,
-                               processes=True, dashboard_address=None)
+        cluster = LocalCluster(
+            n_workers=max(int(workers or 1), 1),
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+        )
         client = Client(cluster)
-    elif address == "threads":          # in-process cluster (tests)
-        cluster = LocalCluster(n_workers=1, threads_per_worker=max(int(workers or 1), 1),
-                               processes=False, dashboard_address=None)
+    elif address == "threads":  # in-process cluster (tests)
+        cluster = LocalCluster(
+            n_workers=1,
+            threads_per_worker=max(int(workers or 1), 1),
+            processes=False,
+            dashboard_address=None,
+        )
         client = Client(cluster)
     else:
         client = Client(address)
@@ -503,29 +595,56 @@ def _dask_blocks(plan, todo, address, workers):
             cluster.close()
 
 
-def run_mosaic(plan: MosaicPlan, out, *, overwrite: bool = False, creation_options=None,
-               dask: str | None = None, workers: int | None = None, progress=None) -> dict:
+def run_mosaic(
+    plan: MosaicPlan,
+    out,
+    *,
+    overwrite: bool = False,
+    creation_options=None,
+    dask: str | None = None,
+    workers: int | None = None,
+    progress=None,
+) -> dict:
     """Compute every block and write the mosaic ``out`` (a COG, atomically). Returns the
     report (plan, bands, seconds, valid share). ``dask``: scheduler address, ``"local"`` for
     a local cluster of ``workers`` processes; None computes here, block after block.
     ``progress(done, total)`` after each block."""
     from stereodem.core.blockwrite import BlockWriter
+
     t0 = time.perf_counter()
     todo = blocks(plan)
     tags = dict(STEREODEM_MOSAIC_METHOD=plan.method, STEREODEM_MOSAIC_DEMS=len(plan.sources))
     n_valid = 0
-    with BlockWriter(out, plan.grid, plan.bands(), units=plan.units(), vertical=plan.vertical,
-                     overwrite=overwrite, creation_options=creation_options, tags=tags) as w:
-        results = (mosaic_block(plan, *b) for b in todo) if dask is None else \
-            _dask_blocks(plan, todo, dask, workers)
+    with BlockWriter(
+        out,
+        plan.grid,
+        plan.bands(),
+        units=plan.units(),
+        vertical=plan.vertical,
+        overwrite=overwrite,
+        creation_options=creation_options,
+        tags=tags,
+    ) as w:
+        results = (
+            (mosaic_block(plan, *b) for b in todo)
+            if dask is None
+            else _dask_blocks(plan, todo, dask, workers)
+        )
         for k, (r0, c0, arrays) in enumerate(results, start=1):
             w.write(r0, c0, arrays)
             n_valid += int(np.isfinite(arrays[0]).sum())
             if progress is not None:
                 progress(k, len(todo))
-    report = dict(plan.report, output=str(out), bands=plan.bands(), n_blocks=len(todo),
-                  valid_share=n_valid / float(plan.grid.width * plan.grid.height),
-                  seconds=time.perf_counter() - t0, seconds_cog=w.cog_seconds, dask=dask)
+    report = dict(
+        plan.report,
+        output=str(out),
+        bands=plan.bands(),
+        n_blocks=len(todo),
+        valid_share=n_valid / float(plan.grid.width * plan.grid.height),
+        seconds=time.perf_counter() - t0,
+        seconds_cog=w.cog_seconds,
+        dask=dask,
+    )
     return report
 
 

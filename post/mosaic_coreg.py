@@ -12,6 +12,7 @@ with a one-line error (correct such DEMs with ``stereodem coregister`` first).
 Memory: a fit holds one DEM and the reference cropped to that DEM's footprint (plus a
 margin), never the mosaic.
 """
+
 from __future__ import annotations
 
 import logging
@@ -54,24 +55,29 @@ def chain_fitter(text: str) -> Callable | None:
     ``nuth_kaab``/``vshift`` offsets summed into one :class:`DEMCorrection`. None for a
     string that is not a chain; :class:`InputError` for a chain with another step."""
     from .coreg import parse_chain
+
     try:
         chain = parse_chain(text)
     except InputError:
         return None
     other = [s.name for s in chain.steps if s.name not in SHIFT_STEPS]
     if other:
-        raise InputError(f"--coreg-chain {text!r}: the mosaic applies shifts and offsets only "
-                         f"({', '.join(SHIFT_STEPS)}); {', '.join(other)} changes the surface: "
-                         "correct such DEMs with 'stereodem coregister' first")
+        raise InputError(
+            f"--coreg-chain {text!r}: the mosaic applies shifts and offsets only "
+            f"({', '.join(SHIFT_STEPS)}); {', '.join(other)} changes the surface: "
+            "correct such DEMs with 'stereodem coregister' first"
+        )
 
     def fit(reference: DEM, dem: DEM) -> DEMCorrection:
         from .assess import coregistration_summary
+
         try:
             ch = parse_chain(text).fit(reference, dem)
-        except (InputError, ConvergenceError) as exc:   # too little stable terrain: skipped
+        except (InputError, ConvergenceError) as exc:  # too little stable terrain: skipped
             raise DEMError(f"{dem.path or 'DEM'}: {exc}") from None
         rep = coregistration_summary(ch, reference)
         return DEMCorrection(rep["dx"], rep["dy"], rep["dz"], rep)
+
     return fit
 
 
@@ -98,8 +104,9 @@ def fitter(chain: str = "nuth_kaab") -> Callable:
         fit = parse(text)
         if fit is not None:
             return fit
-    raise InputError(f"--coreg-chain {chain!r}: unknown chain (steps, comma separated: "
-                     f"{', '.join(SHIFT_STEPS)})")
+    raise InputError(
+        f"--coreg-chain {chain!r}: unknown chain (steps, comma separated: {', '.join(SHIFT_STEPS)})"
+    )
 
 
 def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -> DEM:
@@ -107,6 +114,7 @@ def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -
     read through a window (the whole reference is never read); :class:`NoOverlapError` when it
     misses them."""
     from rasterio.warp import transform_bounds
+
     path = str(path)
     try:
         with reading_env(), rasterio.open(path) as ds:
@@ -127,7 +135,9 @@ def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -
             tag = ds.tags().get("STEREODEM_VERTICAL")
             vert = _vertical_from_crs(pcrs) or (tag.lower() if tag else None) or vertical
     except rasterio.errors.RasterioIOError as exc:
-        raise DEMError(f"{path}: cannot read the reference DEM ({str(exc).splitlines()[0][:120]})") from None
+        raise DEMError(
+            f"{path}: cannot read the reference DEM ({str(exc).splitlines()[0][:120]})"
+        ) from None
     if not np.isfinite(z).any():
         raise NoOverlapError(f"{path}: the reference DEM has no valid height over {bounds}")
     return DEM(z, t, horizontal_crs(pcrs), vert, path)

@@ -10,6 +10,7 @@ block by :mod:`stereodem.post.mosaic`.
 ``sigma`` (as :mod:`stereodem.post.mosaic` writes), or the ``<stem>_sigma_vertical.tif``
 beside it on the same grid (as ``stereodem uncertainty`` writes).
 """
+
 from __future__ import annotations
 
 import logging
@@ -107,7 +108,9 @@ def _sigma_layer(path: Path, ds) -> tuple | None:
     if side.exists():
         try:
             with rasterio.open(side) as s:
-                if (s.width, s.height) == (ds.width, ds.height) and s.transform.almost_equals(ds.transform):
+                if (s.width, s.height) == (ds.width, ds.height) and s.transform.almost_equals(
+                    ds.transform
+                ):
                     return (str(side), 1)
         except rasterio.errors.RasterioIOError:
             pass
@@ -128,13 +131,24 @@ def open_source(path, order: int = 0, *, vertical: str | None = None) -> Source:
                 raise CRSError(f"{path}: the DEM has no CRS")
             t = ds.transform
             if abs(t.b) > 0 or abs(t.d) > 0 or t.a <= 0 or t.e >= 0:
-                raise DEMError(f"{path}: the DEM's grid is not north-up (transform {tuple(t)[:6]}); "
-                               "warp it first (gdalwarp)")
+                raise DEMError(
+                    f"{path}: the DEM's grid is not north-up (transform {tuple(t)[:6]}); "
+                    "warp it first (gdalwarp)"
+                )
             crs = CRS.from_wkt(ds.crs.to_wkt())
             tag = ds.tags().get(VERTICAL_TAG)
             vert = _vertical_from_crs(crs) or (tag.lower() if tag else None) or vertical
-            return Source(str(path), order, horizontal_crs(crs).to_wkt(), t, ds.width, ds.height,
-                          vert, _sigma_layer(path, ds), bounds=tuple(ds.bounds))
+            return Source(
+                str(path),
+                order,
+                horizontal_crs(crs).to_wkt(),
+                t,
+                ds.width,
+                ds.height,
+                vert,
+                _sigma_layer(path, ds),
+                bounds=tuple(ds.bounds),
+            )
     except rasterio.errors.RasterioIOError as exc:
         raise DEMError(f"{path}: cannot read the DEM ({str(exc).splitlines()[0][:120]})") from None
 
@@ -169,13 +183,15 @@ def reconcile_vertical(sources, target: str | None = None) -> str | None:
         if target is not None:
             raise VerticalReferenceError(
                 f"{sources[0].path}: vertical reference unknown; cannot convert to {target} "
-                "(say it with --dem-vertical)")
+                "(say it with --dem-vertical)"
+            )
         return None
     if unknown:
         names = ", ".join(s.path for s in unknown[:3]) + (" ..." if len(unknown) > 3 else "")
         raise VerticalReferenceError(
             f"{names}: vertical reference unknown while {known[0].path} says {known[0].vertical}; "
-            "say it with --dem-vertical geoid|ellipsoid")
+            "say it with --dem-vertical geoid|ellipsoid"
+        )
     return target or sources[0].vertical
 
 
@@ -183,7 +199,11 @@ def _anchor(first: Source, crs: CRS, res: float):
     """Origin of the output lattice: the first DEM's when it is in the output CRS at ``res``
     (so its cells are copied, not resampled), else multiples of ``res``."""
     t = first.transform
-    if first.crs.equals(crs) and np.isclose(t.a, res, rtol=1e-9) and np.isclose(-t.e, res, rtol=1e-9):
+    if (
+        first.crs.equals(crs)
+        and np.isclose(t.a, res, rtol=1e-9)
+        and np.isclose(-t.e, res, rtol=1e-9)
+    ):
         return t.c % res, t.f % res
     return 0.0, 0.0
 
@@ -204,7 +224,9 @@ def output_grid(sources, *, crs=None, res: float | None = None, bounds=None):
         try:
             b = transform_bounds(s.crs_wkt, crs.to_wkt(), *s.native_bounds, densify_pts=21)
         except Exception as exc:
-            raise CRSError(f"{s.path}: cannot transform its footprint to {crs.name} ({exc})") from None
+            raise CRSError(
+                f"{s.path}: cannot transform its footprint to {crs.name} ({exc})"
+            ) from None
         if not np.all(np.isfinite(b)):
             raise CRSError(f"{s.path}: its footprint has no place in {crs.name}")
         placed.append(replace(s, bounds=tuple(float(v) for v in b)))
@@ -212,8 +234,9 @@ def output_grid(sources, *, crs=None, res: float | None = None, bounds=None):
         if first.crs.equals(crs):
             res = float(first.transform.a)
         else:
-            t, _, _ = calculate_default_transform(first.crs_wkt, crs.to_wkt(), first.width,
-                                                  first.height, *first.native_bounds)
+            t, _, _ = calculate_default_transform(
+                first.crs_wkt, crs.to_wkt(), first.width, first.height, *first.native_bounds
+            )
             res = float(f"{t.a:.3g}")
     res = float(res)
     if not np.isfinite(res) or res <= 0:
@@ -252,8 +275,12 @@ def select_sources(sources, grid: MapGrid):
     islands = []
     if len(used) > 1:
         b = np.array([s.bounds for s in used])
-        ov = ((b[:, None, 0] < b[None, :, 2]) & (b[None, :, 0] < b[:, None, 2])
-              & (b[:, None, 1] < b[None, :, 3]) & (b[None, :, 1] < b[:, None, 3]))
+        ov = (
+            (b[:, None, 0] < b[None, :, 2])
+            & (b[None, :, 0] < b[:, None, 2])
+            & (b[:, None, 1] < b[None, :, 3])
+            & (b[None, :, 1] < b[:, None, 3])
+        )
         np.fill_diagonal(ov, False)
         islands = [used[i].path for i in np.flatnonzero(~ov.any(axis=1))]
         for p in islands:

@@ -19,6 +19,7 @@ blunders, e.g. cloud tops, that would otherwise bend every fit).
 Everything works on arrays ``(T, ...)`` (time first), so a dask/xarray block of cells is one
 call (:func:`fit_block`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -105,9 +106,12 @@ def fit_rates(heights, times, sigma, *, settings: RateSettings = RateSettings(),
     cell_shape = h.shape[1:]
     T = t.size
     h = h.reshape(T, -1)
-    sig = np.broadcast_to(np.asarray(sigma, np.float64).reshape((T,) + (1,) * (h.ndim - 1))
-                          if np.ndim(sigma) == 1 else np.asarray(sigma, np.float64).reshape(T, -1),
-                          h.shape)
+    sig = np.broadcast_to(
+        np.asarray(sigma, np.float64).reshape((T,) + (1,) * (h.ndim - 1))
+        if np.ndim(sigma) == 1
+        else np.asarray(sigma, np.float64).reshape(T, -1),
+        h.shape,
+    )
     if not np.all(np.isfinite(sig) & (sig > 0) | ~np.isfinite(h)):
         raise InputError("observation standard deviations must be finite and positive")
     ok = np.isfinite(h)
@@ -115,7 +119,7 @@ def fit_rates(heights, times, sigma, *, settings: RateSettings = RateSettings(),
         ok &= np.asarray(valid, bool).reshape(T, -1)
     n_in = ok.sum(0)
     if np.isfinite(settings.max_deviation):
-        have = ok.any(0)                          # cells with no observation: no median
+        have = ok.any(0)  # cells with no observation: no median
         if have.all():
             med = np.nanmedian(np.where(ok, h, np.nan), axis=0)
         else:
@@ -153,12 +157,14 @@ def fit_rates(heights, times, sigma, *, settings: RateSettings = RateSettings(),
     with np.errstate(invalid="ignore", divide="ignore"):
         rate_sigma = 1.0 / np.sqrt(sxx)
     nan = np.float32(np.nan)
-    out = dict(rate=np.where(good, b, nan).astype(np.float32),
-               rate_sigma=np.where(good, rate_sigma, nan).astype(np.float32),
-               intercept=np.where(good, a, nan).astype(np.float32),
-               t_mean=np.where(good, tbar, nan).astype(np.float32),
-               n_obs=n.astype(np.int16),
-               n_rejected=(n_in - n).astype(np.int16))
+    out = dict(
+        rate=np.where(good, b, nan).astype(np.float32),
+        rate_sigma=np.where(good, rate_sigma, nan).astype(np.float32),
+        intercept=np.where(good, a, nan).astype(np.float32),
+        t_mean=np.where(good, tbar, nan).astype(np.float32),
+        n_obs=n.astype(np.int16),
+        n_rejected=(n_in - n).astype(np.int16),
+    )
     out = {k: v.reshape(cell_shape) for k, v in out.items()}
     out["kept"] = ok.reshape((T,) + cell_shape)
     return out

@@ -3,6 +3,7 @@
 ``report.html`` is one self-contained page (figures inline as base64 PNG, the tables of
 ``report.md``, the run's provenance) that opens in any browser without the folder.
 """
+
 from __future__ import annotations
 
 import base64
@@ -20,8 +21,12 @@ from . import figures
 
 log = logging.getLogger(__name__)
 
-FIGURES = {"hillshade": "hillshade.png", "difference": "difference_map.png",
-           "histogram": "histogram.png", "error_vs_slope": "error_vs_slope.png"}
+FIGURES = {
+    "hillshade": "hillshade.png",
+    "difference": "difference_map.png",
+    "histogram": "histogram.png",
+    "error_vs_slope": "error_vs_slope.png",
+}
 
 
 def _clean(obj):
@@ -54,59 +59,96 @@ _COLS = ("n", "valid_pct", "mean", "median", "std", "rmse", "nmad", "le90", "le9
 def _table(entries, label="class"):
     head = f"| {label} | " + " | ".join(_COLS) + " |"
     sep = "|" + "---|" * (len(_COLS) + 1)
-    rows = [f"| {e.get('class', '')} | " + " | ".join(_fmt(e.get(c)) for c in _COLS) + " |"
-            for e in entries]
+    rows = [
+        f"| {e.get('class', '')} | " + " | ".join(_fmt(e.get(c)) for c in _COLS) + " |"
+        for e in entries
+    ]
     return "\n".join([head, sep, *rows])
 
 
 def markdown(report: dict, figure_files: dict) -> str:
     """A short Markdown summary of a report dict."""
     s = report["stats"]
-    lines = ["# DEM accuracy assessment", "",
-             f"* DEM: `{report.get('dem')}`", f"* Reference: `{report.get('reference')}`",
-             f"* Grid: DEM warped onto the reference grid ({report['grid']['resampling']}), "
-             f"CRS {report['grid']['crs']}, pixel {report['grid']['pixel_size_m'][0]:.1f} × "
-             f"{report['grid']['pixel_size_m'][1]:.1f} m",
-             f"* Vertical: {report['vertical']['note']}",
-             f"* Differences: {report['difference']}", "", "## Whole DEM", "",
-             _table([dict(s, **{"class": "all"})]), "",
-             VALID_NOTE, "",
-             f"P16/P84: {_fmt(s['p16'])} / {_fmt(s['p84'])} m; Gaussian LE90/LE95 (from σ): "
-             f"{_fmt(s['le90_gauss'])} / {_fmt(s['le95_gauss'])} m.", ""]
+    lines = [
+        "# DEM accuracy assessment",
+        "",
+        f"* DEM: `{report.get('dem')}`",
+        f"* Reference: `{report.get('reference')}`",
+        f"* Grid: DEM warped onto the reference grid ({report['grid']['resampling']}), "
+        f"CRS {report['grid']['crs']}, pixel {report['grid']['pixel_size_m'][0]:.1f} × "
+        f"{report['grid']['pixel_size_m'][1]:.1f} m",
+        f"* Vertical: {report['vertical']['note']}",
+        f"* Differences: {report['difference']}",
+        "",
+        "## Whole DEM",
+        "",
+        _table([dict(s, **{"class": "all"})]),
+        "",
+        VALID_NOTE,
+        "",
+        f"P16/P84: {_fmt(s['p16'])} / {_fmt(s['p84'])} m; Gaussian LE90/LE95 (from σ): "
+        f"{_fmt(s['le90_gauss'])} / {_fmt(s['le95_gauss'])} m.",
+        "",
+    ]
     fit = report.get("slope_fit") or {}
-    lines += ["## By slope (reference slope, degrees)", "", _table(report["by_slope"], "slope"), "",
-              f"Linear fit of |dh − median| on slope: {_fmt(fit.get('slope_m_per_deg'), 3)} m/deg, "
-              f"intercept {_fmt(fit.get('intercept_m'))} m, r = {_fmt(fit.get('r'), 3)}.", "",
-              "## By elevation band (reference heights)", "", _table(report["by_elevation"], "band"), ""]
+    lines += [
+        "## By slope (reference slope, degrees)",
+        "",
+        _table(report["by_slope"], "slope"),
+        "",
+        f"Linear fit of |dh − median| on slope: {_fmt(fit.get('slope_m_per_deg'), 3)} m/deg, "
+        f"intercept {_fmt(fit.get('intercept_m'))} m, r = {_fmt(fit.get('r'), 3)}.",
+        "",
+        "## By elevation band (reference heights)",
+        "",
+        _table(report["by_elevation"], "band"),
+        "",
+    ]
     if report.get("by_landcover"):
         lines += ["## By land cover", "", _table(report["by_landcover"]), ""]
     cp = report.get("checkpoints")
     if cp:
-        lines += ["## Check points", "", f"{cp['vertical']}; sampled {cp['sampling']}; "
-                  f"{cp['outside']} outside, {cp['on_void']} on voids.", "",
-                  _table([dict(cp["stats"], **{"class": "check points"})]), ""]
+        lines += [
+            "## Check points",
+            "",
+            f"{cp['vertical']}; sampled {cp['sampling']}; "
+            f"{cp['outside']} outside, {cp['on_void']} on voids.",
+            "",
+            _table([dict(cp["stats"], **{"class": "check points"})]),
+            "",
+        ]
     co = report.get("coregistration")
     if co:
         a = report["after_coregistration"]["stats"]
-        lines += ["## Co-registration (Nuth & Kääb)", "",
-                  f"Shift of the DEM relative to the reference: dx = {co['dx']:.2f} m east, "
-                  f"dy = {co['dy']:.2f} m north, dz = {co['dz']:.2f} m up "
-                  f"({co['dx_px']:.2f}, {co['dy_px']:.2f} px; {co['iterations']} iterations, "
-                  f"{'converged' if co['converged'] else 'NOT converged'}).", "",
-                  _table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"), ""]
+        lines += [
+            "## Co-registration (Nuth & Kääb)",
+            "",
+            f"Shift of the DEM relative to the reference: dx = {co['dx']:.2f} m east, "
+            f"dy = {co['dy']:.2f} m north, dz = {co['dz']:.2f} m up "
+            f"({co['dx_px']:.2f}, {co['dy_px']:.2f} px; {co['iterations']} iterations, "
+            f"{'converged' if co['converged'] else 'NOT converged'}).",
+            "",
+            _table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
+            "",
+        ]
     if report.get("error_analysis"):
         from .error_analysis import markdown_lines
+
         lines += markdown_lines(report["error_analysis"]) + [""]
     lines += ["## Figures", ""] + [f"![{k}]({v})" for k, v in figure_files.items()] + [""]
     prov = report.get("provenance")
     if prov:
-        lines += ["## Provenance", ""] + [f"* {k}: `{v}`" for k, v in prov.items() if k != "argv"] + [""]
+        lines += (
+            ["## Provenance", ""] + [f"* {k}: `{v}`" for k, v in prov.items() if k != "argv"] + [""]
+        )
     return "\n".join(lines)
 
 
-VALID_NOTE = ("valid_pct: share of the reference cells inside the DEM's footprint (the convex "
-              "hull of its data on the reference grid) where the DEM has a height; per class, "
-              "share of the class's cells.")
+VALID_NOTE = (
+    "valid_pct: share of the reference cells inside the DEM's footprint (the convex "
+    "hull of its data on the reference grid) where the DEM has a height; per class, "
+    "share of the class's cells."
+)
 
 FIGURE_CAPTIONS = {
     "hillshade": "Shaded relief of the DEM (colour: height; hatched: no data).",
@@ -131,9 +173,13 @@ dt{font-weight:600}dd{margin:0;font-family:monospace;word-break:break-all}"""
 def _html_table(entries, label="class"):
     esc = _html.escape
     head = "".join(f"<th>{esc(c)}</th>" for c in (label, *_COLS))
-    rows = "".join("<tr>" + f"<td>{esc(str(e.get('class', '')))}</td>" +
-                   "".join(f"<td>{esc(_fmt(e.get(c)))}</td>" for c in _COLS) + "</tr>"
-                   for e in entries)
+    rows = "".join(
+        "<tr>"
+        + f"<td>{esc(str(e.get('class', '')))}</td>"
+        + "".join(f"<td>{esc(_fmt(e.get(c)))}</td>" for c in _COLS)
+        + "</tr>"
+        for e in entries
+    )
     return f"<table><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>"
 
 
@@ -143,66 +189,97 @@ def html_report(report: dict, figure_paths: dict) -> str:
     esc = _html.escape
     s = report["stats"]
     g = report["grid"]
-    parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
-             "<title>DEM accuracy assessment</title>", f"<style>{_CSS}</style></head><body>",
-             "<h1>DEM accuracy assessment</h1>",
-             f"<p><b>NMAD {esc(_fmt(s['nmad']))} m</b> · median {esc(_fmt(s['median']))} m · "
-             f"RMSE {esc(_fmt(s['rmse']))} m · LE90 {esc(_fmt(s['le90']))} m · "
-             f"{esc(_fmt(s['valid_pct'], 1))} % valid · {s['n']:,} cells</p>",
-             "<ul>",
-             f"<li>DEM: <code>{esc(str(report.get('dem')))}</code></li>",
-             f"<li>Reference: <code>{esc(str(report.get('reference')))}</code></li>",
-             f"<li>Grid: DEM warped onto the reference grid ({esc(g['resampling'])}), CRS "
-             f"{esc(g['crs'])}, pixel {g['pixel_size_m'][0]:.1f} × {g['pixel_size_m'][1]:.1f} m</li>",
-             f"<li>Vertical: {esc(report['vertical']['note'])}</li>",
-             f"<li>Differences: {esc(report['difference'])}</li></ul>",
-             "<h2>Whole DEM</h2>", _html_table([dict(s, **{"class": "all"})]),
-             f'<p class="note">{esc(VALID_NOTE)} P16/P84: {esc(_fmt(s["p16"]))} / '
-             f'{esc(_fmt(s["p84"]))} m; Gaussian LE90/LE95 (from σ): {esc(_fmt(s["le90_gauss"]))} / '
-             f'{esc(_fmt(s["le95_gauss"]))} m.</p>', "<h2>Figures</h2>"]
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        "<title>DEM accuracy assessment</title>",
+        f"<style>{_CSS}</style></head><body>",
+        "<h1>DEM accuracy assessment</h1>",
+        f"<p><b>NMAD {esc(_fmt(s['nmad']))} m</b> · median {esc(_fmt(s['median']))} m · "
+        f"RMSE {esc(_fmt(s['rmse']))} m · LE90 {esc(_fmt(s['le90']))} m · "
+        f"{esc(_fmt(s['valid_pct'], 1))} % valid · {s['n']:,} cells</p>",
+        "<ul>",
+        f"<li>DEM: <code>{esc(str(report.get('dem')))}</code></li>",
+        f"<li>Reference: <code>{esc(str(report.get('reference')))}</code></li>",
+        f"<li>Grid: DEM warped onto the reference grid ({esc(g['resampling'])}), CRS "
+        f"{esc(g['crs'])}, pixel {g['pixel_size_m'][0]:.1f} × {g['pixel_size_m'][1]:.1f} m</li>",
+        f"<li>Vertical: {esc(report['vertical']['note'])}</li>",
+        f"<li>Differences: {esc(report['difference'])}</li></ul>",
+        "<h2>Whole DEM</h2>",
+        _html_table([dict(s, **{"class": "all"})]),
+        f'<p class="note">{esc(VALID_NOTE)} P16/P84: {esc(_fmt(s["p16"]))} / '
+        f"{esc(_fmt(s['p84']))} m; Gaussian LE90/LE95 (from σ): {esc(_fmt(s['le90_gauss']))} / "
+        f"{esc(_fmt(s['le95_gauss']))} m.</p>",
+        "<h2>Figures</h2>",
+    ]
     for name, fp in figure_paths.items():
         data = base64.b64encode(Path(fp).read_bytes()).decode("ascii")
         cap = FIGURE_CAPTIONS.get(name, name)
-        parts.append(f'<figure><img alt="{esc(name)}" src="data:image/png;base64,{data}">'
-                     f"<figcaption>{esc(cap)}</figcaption></figure>")
+        parts.append(
+            f'<figure><img alt="{esc(name)}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{esc(cap)}</figcaption></figure>"
+        )
     fit = report.get("slope_fit") or {}
-    parts += ["<h2>By slope (reference slope, degrees)</h2>", _html_table(report["by_slope"], "slope"),
-              f'<p class="note">Linear fit of |dh − median| on slope: '
-              f'{esc(_fmt(fit.get("slope_m_per_deg"), 3))} m/deg, intercept '
-              f'{esc(_fmt(fit.get("intercept_m")))} m, r = {esc(_fmt(fit.get("r"), 3))}.</p>',
-              "<h2>By elevation band (reference heights)</h2>",
-              _html_table(report["by_elevation"], "band")]
+    parts += [
+        "<h2>By slope (reference slope, degrees)</h2>",
+        _html_table(report["by_slope"], "slope"),
+        f'<p class="note">Linear fit of |dh − median| on slope: '
+        f"{esc(_fmt(fit.get('slope_m_per_deg'), 3))} m/deg, intercept "
+        f"{esc(_fmt(fit.get('intercept_m')))} m, r = {esc(_fmt(fit.get('r'), 3))}.</p>",
+        "<h2>By elevation band (reference heights)</h2>",
+        _html_table(report["by_elevation"], "band"),
+    ]
     if report.get("by_landcover"):
         parts += ["<h2>By land cover</h2>", _html_table(report["by_landcover"])]
     cp = report.get("checkpoints")
     if cp:
-        parts += ["<h2>Check points</h2>",
-                  f"<p>{esc(cp['vertical'])}; sampled {esc(cp['sampling'])}; {cp['outside']} outside, "
-                  f"{cp['on_void']} on voids.</p>",
-                  _html_table([dict(cp["stats"], **{"class": "check points"})])]
+        parts += [
+            "<h2>Check points</h2>",
+            f"<p>{esc(cp['vertical'])}; sampled {esc(cp['sampling'])}; {cp['outside']} outside, "
+            f"{cp['on_void']} on voids.</p>",
+            _html_table([dict(cp["stats"], **{"class": "check points"})]),
+        ]
     co = report.get("coregistration")
     if co:
         a = report["after_coregistration"]["stats"]
-        parts += ["<h2>Co-registration (Nuth &amp; Kääb)</h2>",
-                  f"<p>Shift of the DEM relative to the reference: dx = {co['dx']:.2f} m east, "
-                  f"dy = {co['dy']:.2f} m north, dz = {co['dz']:.2f} m up ({co['iterations']} "
-                  f"iterations, {'converged' if co['converged'] else 'NOT converged'}).</p>",
-                  _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage")]
+        parts += [
+            "<h2>Co-registration (Nuth &amp; Kääb)</h2>",
+            f"<p>Shift of the DEM relative to the reference: dx = {co['dx']:.2f} m east, "
+            f"dy = {co['dy']:.2f} m north, dz = {co['dz']:.2f} m up ({co['iterations']} "
+            f"iterations, {'converged' if co['converged'] else 'NOT converged'}).</p>",
+            _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
+        ]
     if report.get("error_analysis"):
         from .error_analysis import markdown_lines
+
         ea = markdown_lines(report["error_analysis"])
-        parts += ["<h2>Error analysis (stable terrain)</h2>", "<ul>"] + \
-            [f"<li>{esc(x[2:])}</li>" for x in ea if x.startswith("* ")] + ["</ul>"]
+        parts += (
+            ["<h2>Error analysis (stable terrain)</h2>", "<ul>"]
+            + [f"<li>{esc(x[2:])}</li>" for x in ea if x.startswith("* ")]
+            + ["</ul>"]
+        )
     prov = report.get("provenance")
     if prov:
-        parts += ["<h2>Provenance</h2>", "<dl>"] + [
-            f"<dt>{esc(k)}</dt><dd>{esc(str(v))}</dd>" for k, v in prov.items() if k != "argv"] + ["</dl>"]
+        parts += (
+            ["<h2>Provenance</h2>", "<dl>"]
+            + [f"<dt>{esc(k)}</dt><dd>{esc(str(v))}</dd>" for k, v in prov.items() if k != "argv"]
+            + ["</dl>"]
+        )
     parts.append("</body></html>")
     return "\n".join(parts)
 
 
-def write_report(assessment, out_dir, *, dem_heights=None, dem_transform=None, dem_crs=None,
-                 overwrite=False, provenance: dict | None = None, extra=None) -> dict:
+def write_report(
+    assessment,
+    out_dir,
+    *,
+    dem_heights=None,
+    dem_transform=None,
+    dem_crs=None,
+    overwrite=False,
+    provenance: dict | None = None,
+    extra=None,
+) -> dict:
     """Write ``report.json``, ``report.md``, ``report.html`` and the PNG figures of an
     :class:`~stereodem.post.assess.Assessment` into ``out_dir``; returns the paths written.
 
@@ -222,21 +299,37 @@ def write_report(assessment, out_dir, *, dem_heights=None, dem_transform=None, d
         vref = vertical.get("reference")
     else:
         vref = vertical.get("dem")
-    label = {"geoid": "height above the EGM96 geoid (m)",
-             "ellipsoid": "height above the WGS84 ellipsoid (m)"}.get(vref, "height (m)")
-    files["hillshade"] = figures.hillshade_png(dem_heights, dem_transform, dem_crs,
-                                               out / FIGURES["hillshade"], overwrite=overwrite,
-                                               height_label=label)
-    files["difference"] = figures.difference_map_png(cmp.dh, out / FIGURES["difference"],
-                                                     overwrite=overwrite, transform=cmp.transform,
-                                                     crs=cmp.crs)
+    label = {
+        "geoid": "height above the EGM96 geoid (m)",
+        "ellipsoid": "height above the WGS84 ellipsoid (m)",
+    }.get(vref, "height (m)")
+    files["hillshade"] = figures.hillshade_png(
+        dem_heights,
+        dem_transform,
+        dem_crs,
+        out / FIGURES["hillshade"],
+        overwrite=overwrite,
+        height_label=label,
+    )
+    files["difference"] = figures.difference_map_png(
+        cmp.dh,
+        out / FIGURES["difference"],
+        overwrite=overwrite,
+        transform=cmp.transform,
+        crs=cmp.crs,
+    )
     hist = getattr(assessment, "histogram", None)
-    files["histogram"] = figures.histogram_png(cmp.dh if hist is None else hist,
-                                               out / FIGURES["histogram"], overwrite=overwrite)
-    files["error_vs_slope"] = figures.error_vs_slope_png(cmp.dh, cmp.slope, rep["by_slope"],
-                                                         out / FIGURES["error_vs_slope"],
-                                                         overwrite=overwrite,
-                                                         centre=rep["stats"]["median"])
+    files["histogram"] = figures.histogram_png(
+        cmp.dh if hist is None else hist, out / FIGURES["histogram"], overwrite=overwrite
+    )
+    files["error_vs_slope"] = figures.error_vs_slope_png(
+        cmp.dh,
+        cmp.slope,
+        rep["by_slope"],
+        out / FIGURES["error_vs_slope"],
+        overwrite=overwrite,
+        centre=rep["stats"]["median"],
+    )
     if extra is not None:
         key, section, figs = extra(out, overwrite)
         rep = dict(rep, **{key: section})
@@ -246,11 +339,14 @@ def write_report(assessment, out_dir, *, dem_heights=None, dem_transform=None, d
     rep = dict(rep, figures=rel)
     if provenance:
         rep["provenance"] = provenance
-    files["json"] = write_text_atomic(out / "report.json", json.dumps(_clean(rep), indent=2),
-                                      overwrite=overwrite)
-    files["markdown"] = write_text_atomic(out / "report.md", markdown(_clean(rep), rel),
-                                          overwrite=overwrite)
-    files["html"] = write_text_atomic(out / "report.html", html_report(_clean(rep), figure_paths),
-                                      overwrite=overwrite)
+    files["json"] = write_text_atomic(
+        out / "report.json", json.dumps(_clean(rep), indent=2), overwrite=overwrite
+    )
+    files["markdown"] = write_text_atomic(
+        out / "report.md", markdown(_clean(rep), rel), overwrite=overwrite
+    )
+    files["html"] = write_text_atomic(
+        out / "report.html", html_report(_clean(rep), figure_paths), overwrite=overwrite
+    )
     log.info("report written to %s", out)
     return files

@@ -8,6 +8,7 @@ placed on an image line of the model (its centre, at the reference height, proje
 through the model) and the median of the height error is taken in a band of lines on each
 side.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -26,8 +27,9 @@ def seam_step(dem, reference, model, seam_line: float, *, half_width: float) -> 
     ``{"seam_line", "half_width_lines", "n_before", "n_after", "median_before_m",
     "median_after_m", "step_m" (after - before), "nmad_before_m", "nmad_after_m"}`` (metres).
     """
-    ref = warp.to_grid(reference.heights, reference.transform, reference.crs, dem.transform,
-                       dem.crs, dem.shape)
+    ref = warp.to_grid(
+        reference.heights, reference.transform, reference.crs, dem.transform, dem.crs, dem.shape
+    )
     dh = dem.heights.astype(np.float64) - ref
     rows, cols = np.nonzero(np.isfinite(dh))
     x, y = dem.transform @ (cols + 0.5, rows + 0.5)
@@ -37,10 +39,17 @@ def seam_step(dem, reference, model, seam_line: float, *, half_width: float) -> 
     before = (line >= seam_line - half_width) & (line < seam_line)
     after = (line >= seam_line) & (line < seam_line + half_width)
     mb, ma = (float(np.median(e[s])) if s.any() else float("nan") for s in (before, after))
-    return dict(seam_line=float(seam_line), half_width_lines=float(half_width),
-                n_before=int(before.sum()), n_after=int(after.sum()),
-                median_before_m=round(mb, 4), median_after_m=round(ma, 4), step_m=round(ma - mb, 4),
-                nmad_before_m=round(nmad(e[before]), 4), nmad_after_m=round(nmad(e[after]), 4))
+    return dict(
+        seam_line=float(seam_line),
+        half_width_lines=float(half_width),
+        n_before=int(before.sum()),
+        n_after=int(after.sum()),
+        median_before_m=round(mb, 4),
+        median_after_m=round(ma, 4),
+        step_m=round(ma - mb, 4),
+        nmad_before_m=round(nmad(e[before]), 4),
+        nmad_after_m=round(nmad(e[after]), 4),
+    )
 
 
 __all__ = ["seam_step"]

@@ -15,6 +15,7 @@
 
 Distances are metres (east/north of :func:`stereodem.post.coreg.local_metric_coords`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -33,10 +34,11 @@ ALL_PAIRS_MAX = 6000
 
 # ----------------------------------------------------------------------------- models
 
+
 def spherical(d, r):
     """Spherical correlation-free shape: 1.5 d/r − 0.5 (d/r)³ below ``r``, 1 beyond."""
     x = np.minimum(np.asarray(d, float) / r, 1.0)
-    return 1.5 * x - 0.5 * x ** 3
+    return 1.5 * x - 0.5 * x**3
 
 
 def exponential(d, r):
@@ -77,9 +79,13 @@ class VariogramModel:
         return self.covariance(d) / self.sill
 
     def to_dict(self) -> dict:
-        return {"model": self.model, "nugget": float(self.nugget),
-                "ranges_m": [float(r) for r in self.ranges],
-                "sills": [float(s) for s in self.sills], "sill": self.sill}
+        return {
+            "model": self.model,
+            "nugget": float(self.nugget),
+            "ranges_m": [float(r) for r in self.ranges],
+            "sills": [float(s) for s in self.sills],
+            "sill": self.sill,
+        }
 
 
 @dataclass
@@ -94,11 +100,16 @@ class EmpiricalVariogram:
 
     def to_dict(self) -> dict:
         ok = self.count > 0
-        return {"edges_m": self.edges.tolist(), "lag_m": self.lag[ok].tolist(),
-                "gamma": self.gamma[ok].tolist(), "count": self.count[ok].astype(int).tolist()}
+        return {
+            "edges_m": self.edges.tolist(),
+            "lag_m": self.lag[ok].tolist(),
+            "gamma": self.gamma[ok].tolist(),
+            "count": self.count[ok].astype(int).tolist(),
+        }
 
 
 # ----------------------------------------------------------------------------- empirical
+
 
 def _bin(d, sq, edges):
     k = np.searchsorted(edges, d, side="right") - 1
@@ -118,9 +129,18 @@ def default_edges(min_lag, max_lag, n_bins=30):
     return np.concatenate([[0.0], np.geomspace(min_lag, max_lag, n_bins)])
 
 
-def variogram(values, coords=None, *, transform=None, crs=None, edges=None,
-              n_pairs: int = 2_000_000, max_lag: float | None = None, seed: int = 0,
-              max_points: int = ALL_PAIRS_MAX) -> EmpiricalVariogram:
+def variogram(
+    values,
+    coords=None,
+    *,
+    transform=None,
+    crs=None,
+    edges=None,
+    n_pairs: int = 2_000_000,
+    max_lag: float | None = None,
+    seed: int = 0,
+    max_points: int = ALL_PAIRS_MAX,
+) -> EmpiricalVariogram:
     """Empirical (Matheron) variogram of ``values``.
 
     Either scattered: ``values`` 1-D and ``coords`` (n, 2) metres — every pair when n ≤
@@ -146,8 +166,11 @@ def variogram(values, coords=None, *, transform=None, crs=None, edges=None,
         lag, gamma, cnt = _bin(d, sq, np.asarray(edges, float))
         return EmpiricalVariogram(np.asarray(edges, float), lag, gamma, cnt)
     from . import warp
+
     if v.ndim != 2 or transform is None:
-        raise InputError("variogram: give coords for scattered values or a 2-D grid with its transform")
+        raise InputError(
+            "variogram: give coords for scattered values or a 2-D grid with its transform"
+        )
     fx, fy = warp.metres_per_unit(transform, crs, v.shape)
     px, py = abs(transform.a) * fx, abs(transform.e) * fy
     rows, cols = v.shape
@@ -176,9 +199,16 @@ def variogram(values, coords=None, *, transform=None, crs=None, edges=None,
 
 # ----------------------------------------------------------------------------- fit
 
-def fit_variogram(emp: EmpiricalVariogram, *, n_models: int = 2, model: str = "spherical",
-                  nugget: bool = False, min_count: int = 30, max_range: float | None = None
-                  ) -> VariogramModel:
+
+def fit_variogram(
+    emp: EmpiricalVariogram,
+    *,
+    n_models: int = 2,
+    model: str = "spherical",
+    nugget: bool = False,
+    min_count: int = 30,
+    max_range: float | None = None,
+) -> VariogramModel:
     """Fit a sum of ``n_models`` spherical (or exponential) models (+ a nugget) to the binned
     variogram by weighted least squares (weights √count), ranges ordered short to long,
     several starts; bins with fewer than ``min_count`` pairs are ignored."""
@@ -196,7 +226,7 @@ def fit_variogram(emp: EmpiricalVariogram, *, n_models: int = 2, model: str = "s
     def unpack(p):
         # ranges as cumulative log increments: r_1 < r_2 < ...
         lr = np.cumsum(p[:n_models])
-        return np.exp(lr), p[n_models:2 * n_models], (p[-1] if nugget else 0.0)
+        return np.exp(lr), p[n_models : 2 * n_models], (p[-1] if nugget else 0.0)
 
     def resid(p):
         r, s, c0 = unpack(p)
@@ -205,15 +235,25 @@ def fit_variogram(emp: EmpiricalVariogram, *, n_models: int = 2, model: str = "s
 
     best = None
     lo = [np.log(rmin)] + [0.0] * (n_models - 1) + [0.0] * n_models + ([0.0] if nugget else [])
-    hi = [np.log(rmax)] + [np.log(rmax / rmin)] * (n_models - 1) + [10 * gmax] * n_models + \
-        ([gmax] if nugget else [])
+    hi = (
+        [np.log(rmax)]
+        + [np.log(rmax / rmin)] * (n_models - 1)
+        + [10 * gmax] * n_models
+        + ([gmax] if nugget else [])
+    )
     # starts: ranges spread over the lags (each model's range from the shortest lag to the
     # longest), equal partial sills
     grid = np.geomspace(max(rmin * 2, d.min()), max(d.max(), rmin * 4), 5)
     starts = [np.array(c) for c in _increasing_combinations(grid, n_models)]
     for r0 in starts:
-        p0 = np.concatenate([[np.log(r0[0])], np.diff(np.log(r0)) + 1e-3,
-                             np.full(n_models, gmax / n_models), [0.05 * gmax] if nugget else []])
+        p0 = np.concatenate(
+            [
+                [np.log(r0[0])],
+                np.diff(np.log(r0)) + 1e-3,
+                np.full(n_models, gmax / n_models),
+                [0.05 * gmax] if nugget else [],
+            ]
+        )
         p0 = np.clip(p0, np.array(lo) + 1e-9, np.array(hi) - 1e-9)
         try:
             sol = optimize.least_squares(resid, p0, bounds=(lo, hi), x_scale="jac")
@@ -230,13 +270,23 @@ def fit_variogram(emp: EmpiricalVariogram, *, n_models: int = 2, model: str = "s
 def _increasing_combinations(values, k):
     """Strictly increasing k-tuples of ``values`` (few: 5 values, k ≤ 3)."""
     from itertools import combinations
+
     return list(combinations(sorted(values), k))
 
 
 # ----------------------------------------------------------------------------- area mean
 
-def area_mean_sigma(model: VariogramModel, area, transform=None, crs=None, *, sigma=1.0,
-                    n_samples: int = 3000, seed: int = 0) -> dict:
+
+def area_mean_sigma(
+    model: VariogramModel,
+    area,
+    transform=None,
+    crs=None,
+    *,
+    sigma=1.0,
+    n_samples: int = 3000,
+    seed: int = 0,
+) -> dict:
     """σ of the mean over an area of a field with correlation ``model`` and per-cell σ.
 
     ``area``: bool array on the grid of ``transform``/``crs`` (the cells of the polygon) or
@@ -253,6 +303,7 @@ def area_mean_sigma(model: VariogramModel, area, transform=None, crs=None, *, si
     if transform is not None:
         a = np.asarray(area, bool)
         from .coreg import local_metric_coords
+
         e, n = local_metric_coords(transform, crs, a.shape)
         sig = np.broadcast_to(np.asarray(sigma, float), a.shape)
         keep = a & np.isfinite(sig)
@@ -265,7 +316,7 @@ def area_mean_sigma(model: VariogramModel, area, transform=None, crs=None, *, si
     if n_cells == 0:
         raise InputError("area mean: the area holds no cell")
     c0 = model.sill
-    diag = np.sum(s ** 2) * c0 / n_cells ** 2
+    diag = np.sum(s**2) * c0 / n_cells**2
     if n_cells == 1:
         var = diag
     else:
@@ -278,11 +329,14 @@ def area_mean_sigma(model: VariogramModel, area, transform=None, crs=None, *, si
         prod = _pair_products(ss)
         off_mean = float(np.mean(prod * model.covariance(d)))
         var = diag + off_mean * (n_cells - 1) / n_cells
-    mean_var = float(np.mean(s ** 2)) * c0
+    mean_var = float(np.mean(s**2)) * c0
     sigma_mean = float(np.sqrt(max(var, 0.0)))
-    return {"sigma_mean": sigma_mean, "n_cells": int(n_cells),
-            "n_effective": float(mean_var / var) if var > 0 else float("inf"),
-            "sigma_naive": float(np.sqrt(mean_var / n_cells))}
+    return {
+        "sigma_mean": sigma_mean,
+        "n_cells": int(n_cells),
+        "n_effective": float(mean_var / var) if var > 0 else float("inf"),
+        "sigma_naive": float(np.sqrt(mean_var / n_cells)),
+    }
 
 
 def _pair_products(s):
@@ -293,6 +347,7 @@ def _pair_products(s):
 
 # ----------------------------------------------------------------------------- heteroscedasticity
 
+
 def _quantile_edges(x, n_bins):
     e = np.unique(np.nanquantile(x, np.linspace(0, 1, n_bins + 1)))
     return e if e.size >= 2 else np.array([np.nanmin(x), np.nanmax(x) + 1e-9])
@@ -301,7 +356,7 @@ def _quantile_edges(x, n_bins):
 def _binned_nmad(d, k, n):
     out = np.full(n, np.nan)
     cnt = np.bincount(k, minlength=n)
-    for i in np.flatnonzero(cnt >= 20):         # loop over bins (tens), not cells
+    for i in np.flatnonzero(cnt >= 20):  # loop over bins (tens), not cells
         out[i] = nmad(d[k == i])
     return out, cnt
 
@@ -336,8 +391,14 @@ def heteroscedasticity(dh, slope, curvature, *, n_bins: int = 8, sigma_model=Non
         cen = np.array([np.median(x[k == i]) if cnt[i] else np.nan for i in range(edges.size - 1)])
         good = np.isfinite(nm) & np.isfinite(cen)
         coef = np.polyfit(cen[good], nm[good], 2).tolist() if good.sum() >= 3 else []
-        out[name] = {"unit": unit, "edges": edges.tolist(), "centre": cen.tolist(),
-                     "nmad": nm.tolist(), "count": cnt.tolist(), "quadratic_fit": coef}
+        out[name] = {
+            "unit": unit,
+            "edges": edges.tolist(),
+            "centre": cen.tolist(),
+            "nmad": nm.tolist(),
+            "count": cnt.tolist(),
+            "quadratic_fit": coef,
+        }
     es, ec = np.asarray(out["slope"]["edges"]), np.asarray(out["curvature"]["edges"])
     ks = np.clip(np.searchsorted(es, s[ok], side="right") - 1, 0, es.size - 2)
     kc = np.clip(np.searchsorted(ec, c[ok], side="right") - 1, 0, ec.size - 2)
@@ -350,14 +411,19 @@ def heteroscedasticity(dh, slope, curvature, *, n_bins: int = 8, sigma_model=Non
     table_f = np.where(np.isfinite(table_f), table_f, nmad(d))
     cs = np.asarray(out["slope"]["centre"], float)
     cc = np.asarray(out["curvature"]["centre"], float)
-    interp = RegularGridInterpolator((_strict(cs), _strict(cc)), table_f, bounds_error=False,
-                                     fill_value=None, method="linear")
+    interp = RegularGridInterpolator(
+        (_strict(cs), _strict(cc)), table_f, bounds_error=False, fill_value=None, method="linear"
+    )
     sig = np.full(dh.shape, np.nan)
     fin = np.isfinite(s) & np.isfinite(c)
-    pts = np.column_stack([np.clip(s[fin], cs.min(), cs.max()), np.clip(c[fin], cc.min(), cc.max())])
+    pts = np.column_stack(
+        [np.clip(s[fin], cs.min(), cs.max()), np.clip(c[fin], cc.min(), cc.max())]
+    )
     sig[fin] = interp(pts)
-    out["table"] = {"nmad": np.where(np.isfinite(table), table, np.nan).tolist(),
-                    "count": cnt2.reshape(table.shape).tolist()}
+    out["table"] = {
+        "nmad": np.where(np.isfinite(table), table, np.nan).tolist(),
+        "count": cnt2.reshape(table.shape).tolist(),
+    }
     out["nmad_all"] = nmad(d)
     out["sigma"] = sig
     if sigma_model is not None:
@@ -374,25 +440,32 @@ def heteroscedasticity(dh, slope, curvature, *, n_bins: int = 8, sigma_model=Non
         f2 = ks2 * (ec.size - 1) + kc2
         nb = (es.size - 1) * (ec.size - 1)
         cnt = np.bincount(f2, minlength=nb)
-        rms = np.sqrt(np.bincount(f2, weights=smv ** 2, minlength=nb) / np.maximum(cnt, 1))
+        rms = np.sqrt(np.bincount(f2, weights=smv**2, minlength=nb) / np.maximum(cnt, 1))
         obs, _ = _binned_nmad(dd, f2, nb)
         g = np.isfinite(obs) & (cnt >= 20)
         r = float(np.corrcoef(obs[g], rms[g])[0, 1]) if g.sum() >= 3 else float("nan")
-        rms_slope = np.sqrt(np.bincount(ks2, weights=smv ** 2, minlength=es.size - 1)
-                            / np.maximum(np.bincount(ks2, minlength=es.size - 1), 1))
+        rms_slope = np.sqrt(
+            np.bincount(ks2, weights=smv**2, minlength=es.size - 1)
+            / np.maximum(np.bincount(ks2, minlength=es.size - 1), 1)
+        )
         out["sensor_model"] = {
-            "rms_sigma_by_slope": rms_slope.tolist(), "rms_sigma": float(np.sqrt(np.mean(smv ** 2))),
-            "explained_variance_share": float(np.mean(smv ** 2) / np.nanmean(sig[ok2] ** 2)),
-            "binned_r": r, "nmad_standardised": nmad(dd / smv), "n": int(ok2.sum())}
+            "rms_sigma_by_slope": rms_slope.tolist(),
+            "rms_sigma": float(np.sqrt(np.mean(smv**2))),
+            "explained_variance_share": float(np.mean(smv**2) / np.nanmean(sig[ok2] ** 2)),
+            "binned_r": r,
+            "nmad_standardised": nmad(dd / smv),
+            "n": int(ok2.sum()),
+        }
         # the sensor-model σ as the per-cell σ of the heteroscedastic model: σ² = σ_model² +
         # the dispersion it leaves unexplained in the cell's (slope, curvature) bin
-        extra2 = np.where(np.isfinite(obs) & (cnt >= 20), np.maximum(obs ** 2 - rms ** 2, 0.0), np.nan)
-        extra2 = np.where(np.isfinite(extra2), extra2,
-                          max(nmad(dd) ** 2 - float(np.mean(smv ** 2)), 0.0))
+        extra2 = np.where(np.isfinite(obs) & (cnt >= 20), np.maximum(obs**2 - rms**2, 0.0), np.nan)
+        extra2 = np.where(
+            np.isfinite(extra2), extra2, max(nmad(dd) ** 2 - float(np.mean(smv**2)), 0.0)
+        )
         ksa = np.clip(np.searchsorted(es, s, side="right") - 1, 0, es.size - 2)
         kca = np.clip(np.searchsorted(ec, c, side="right") - 1, 0, ec.size - 2)
         with np.errstate(invalid="ignore"):
-            sig_sm = np.sqrt(sm ** 2 + extra2[ksa * (ec.size - 1) + kca])
+            sig_sm = np.sqrt(sm**2 + extra2[ksa * (ec.size - 1) + kca])
         sig_sm[~(fin & np.isfinite(sm))] = np.nan
         out["sensor_model"]["unexplained_rms"] = float(np.sqrt(np.mean(extra2)))
         out["sigma_sensor"] = sig_sm
@@ -418,6 +491,7 @@ def standardise(dh, sigma):
 
 
 # ----------------------------------------------------------------------------- simulation
+
 
 def simulate_field(model: VariogramModel, shape, pixel_m, *, rng=None, n_fields: int = 1):
     """Gaussian random fields of covariance ``model`` on a grid of ``shape`` cells of

@@ -25,6 +25,7 @@ variable           dims                 dtype    meaning
 :func:`open_stack` rechunks to all dates per block for the per-cell fits. Dataset attributes
 hold the per-DEM co-registration reports (JSON text, ``dem_reports``).
 """
+
 from __future__ import annotations
 
 import json
@@ -60,8 +61,11 @@ def grid_mapping_attrs(grid: MapGrid) -> dict:
     """Attributes of the ``spatial_ref`` coordinate (CF grid mapping as GDAL/rioxarray write)."""
     wkt = grid.crs.to_wkt()
     t = grid.transform
-    return {"crs_wkt": wkt, "spatial_ref": wkt,
-            "GeoTransform": " ".join(repr(float(v)) for v in (t.c, t.a, t.b, t.f, t.d, t.e))}
+    return {
+        "crs_wkt": wkt,
+        "spatial_ref": wkt,
+        "GeoTransform": " ".join(repr(float(v)) for v in (t.c, t.a, t.b, t.f, t.d, t.e)),
+    }
 
 
 def _dataset(grid: MapGrid, dates, *, chunk: int, reference, stable):
@@ -69,41 +73,72 @@ def _dataset(grid: MapGrid, dates, *, chunk: int, reference, stable):
     import xarray as xr
 
     from stereodem.sensor.simulation.multidate import decimal_year
+
     x, y = grid_coords(grid)
     T, (ny, nx) = len(dates), grid.shape
     ch = (1, min(chunk, ny), min(chunk, nx))
     gm = {"grid_mapping": "spatial_ref"}
     geographic = grid.crs.is_geographic
-    xattrs = ({"standard_name": "longitude", "units": "degrees_east"} if geographic else
-              {"standard_name": "projection_x_coordinate", "units": "metre"})
-    yattrs = ({"standard_name": "latitude", "units": "degrees_north"} if geographic else
-              {"standard_name": "projection_y_coordinate", "units": "metre"})
+    xattrs = (
+        {"standard_name": "longitude", "units": "degrees_east"}
+        if geographic
+        else {"standard_name": "projection_x_coordinate", "units": "metre"}
+    )
+    yattrs = (
+        {"standard_name": "latitude", "units": "degrees_north"}
+        if geographic
+        else {"standard_name": "projection_y_coordinate", "units": "metre"}
+    )
     times = np.array([np.datetime64(d, "ns") for d in dates])
     ds = xr.Dataset(
-        {"height": (("time", "y", "x"), da.full((T, ny, nx), np.nan, dtype=np.float32, chunks=ch),
-                    {**gm, "units": "metre", "long_name": "co-registered height"}),
-         "mask": (("time", "y", "x"), da.zeros((T, ny, nx), dtype=np.uint8, chunks=ch),
-                  {**gm, "flag_masks": [MASK_VOID, MASK_CLOUD],
-                   "flag_meanings": "void cloud"}),
-         "sigma": (("time",), np.full(T, np.nan, np.float32),
-                   {"units": "metre", "long_name": "per-DEM sigma: stable-terrain NMAD after "
-                                                   "co-registration"}),
-         "reference": (("y", "x"), np.asarray(reference, np.float32),
-                       {**gm, "units": "metre", "long_name": "reference height"}),
-         "stable": (("y", "x"), np.asarray(stable, np.uint8),
-                    {**gm, "long_name": "stable terrain (1)"})},
-        coords={"time": ("time", times), "x": ("x", x, xattrs), "y": ("y", y, yattrs),
-                "decimal_year": ("time", np.array([decimal_year(d) for d in dates])),
-                "spatial_ref": ((), 0, grid_mapping_attrs(grid))},
-        attrs={"title": "stereodem DEM stack", "Conventions": "CF-1.8"})
+        {
+            "height": (
+                ("time", "y", "x"),
+                da.full((T, ny, nx), np.nan, dtype=np.float32, chunks=ch),
+                {**gm, "units": "metre", "long_name": "co-registered height"},
+            ),
+            "mask": (
+                ("time", "y", "x"),
+                da.zeros((T, ny, nx), dtype=np.uint8, chunks=ch),
+                {**gm, "flag_masks": [MASK_VOID, MASK_CLOUD], "flag_meanings": "void cloud"},
+            ),
+            "sigma": (
+                ("time",),
+                np.full(T, np.nan, np.float32),
+                {
+                    "units": "metre",
+                    "long_name": "per-DEM sigma: stable-terrain NMAD after co-registration",
+                },
+            ),
+            "reference": (
+                ("y", "x"),
+                np.asarray(reference, np.float32),
+                {**gm, "units": "metre", "long_name": "reference height"},
+            ),
+            "stable": (
+                ("y", "x"),
+                np.asarray(stable, np.uint8),
+                {**gm, "long_name": "stable terrain (1)"},
+            ),
+        },
+        coords={
+            "time": ("time", times),
+            "x": ("x", x, xattrs),
+            "y": ("y", y, yattrs),
+            "decimal_year": ("time", np.array([decimal_year(d) for d in dates])),
+            "spatial_ref": ((), 0, grid_mapping_attrs(grid)),
+        },
+        attrs={"title": "stereodem DEM stack", "Conventions": "CF-1.8"},
+    )
     for name in ("reference", "stable"):
         ds[name].encoding["chunks"] = ch[1:]
     ds["sigma"].encoding["chunks"] = (T,)
     return ds
 
 
-def create_stack(path, grid: MapGrid, dates, *, reference, stable, chunk: int = CHUNK,
-                 attrs: dict | None = None):
+def create_stack(
+    path, grid: MapGrid, dates, *, reference, stable, chunk: int = CHUNK, attrs: dict | None = None
+):
     """Create ``path`` (a Zarr store) for ``dates`` on ``grid``: metadata, coordinates, the
     reference and stable layers; heights and masks are filled by :func:`write_date`."""
     ds = _dataset(grid, dates, chunk=chunk, reference=reference, stable=stable)
@@ -114,20 +149,32 @@ def create_stack(path, grid: MapGrid, dates, *, reference, stable, chunk: int = 
 def write_date(path, index: int, heights, mask, sigma: float):
     """Write date ``index`` of the stack at ``path``: heights (m), mask flags, per-DEM σ."""
     import xarray as xr
+
     h = np.asarray(heights, np.float32)[None]
     m = np.asarray(mask, np.uint8)[None]
-    part = xr.Dataset({"height": (("time", "y", "x"), h), "mask": (("time", "y", "x"), m),
-                       "sigma": (("time",), np.array([sigma], np.float32))})
-    part.to_zarr(str(path), region={"time": slice(index, index + 1), "y": slice(None),
-                                    "x": slice(None)})
+    part = xr.Dataset(
+        {
+            "height": (("time", "y", "x"), h),
+            "mask": (("time", "y", "x"), m),
+            "sigma": (("time",), np.array([sigma], np.float32)),
+        }
+    )
+    part.to_zarr(
+        str(path), region={"time": slice(index, index + 1), "y": slice(None), "x": slice(None)}
+    )
 
 
 def set_attrs(path, **attrs):
     """Add dataset attributes to the store (values JSON-encoded when not plain strings)."""
     import zarr
+
     g = zarr.open_group(str(path), mode="r+")
-    g.attrs.update({k: v if isinstance(v, (str, int, float)) else json.dumps(v, default=float)
-                    for k, v in attrs.items()})
+    g.attrs.update(
+        {
+            k: v if isinstance(v, (str, int, float)) else json.dumps(v, default=float)
+            for k, v in attrs.items()
+        }
+    )
     zarr.consolidate_metadata(str(path))
 
 
@@ -135,11 +182,15 @@ def open_stack(path, *, chunk: int | None = CHUNK):
     """The stack at ``path`` as an :class:`xarray.Dataset` (dask-backed, all dates per block of
     ``chunk × chunk`` cells). :class:`InputError` when it is not a stack."""
     import xarray as xr
+
     try:
-        ds = xr.open_zarr(str(path), chunks=None if chunk is None else
-                          {"time": -1, "y": chunk, "x": chunk})
+        ds = xr.open_zarr(
+            str(path), chunks=None if chunk is None else {"time": -1, "y": chunk, "x": chunk}
+        )
     except (OSError, ValueError, KeyError) as exc:
-        raise InputError(f"{path}: not a readable stack ({str(exc).splitlines()[0][:100]})") from None
+        raise InputError(
+            f"{path}: not a readable stack ({str(exc).splitlines()[0][:100]})"
+        ) from None
     missing = {"height", "mask", "sigma"} - set(ds.data_vars)
     if missing:
         raise InputError(f"{path}: not a stereodem stack (no {', '.join(sorted(missing))})")
@@ -150,10 +201,12 @@ def stack_grid(ds) -> MapGrid:
     """The :class:`MapGrid` of a stack dataset (from ``spatial_ref``)."""
     from affine import Affine
     from pyproj import CRS
+
     sr = ds["spatial_ref"].attrs
     c, a, b, f, d, e = (float(v) for v in sr["GeoTransform"].split())
-    return MapGrid(Affine(a, b, c, d, e, f), ds.sizes["x"], ds.sizes["y"],
-                   CRS.from_wkt(sr["crs_wkt"]))
+    return MapGrid(
+        Affine(a, b, c, d, e, f), ds.sizes["x"], ds.sizes["y"], CRS.from_wkt(sr["crs_wkt"])
+    )
 
 
 def stack_rates(ds, *, settings: RateSettings | None = None, workers: int = 1) -> dict:
@@ -165,6 +218,7 @@ def stack_rates(ds, *, settings: RateSettings | None = None, workers: int = 1) -
     """
     import dask
     import xarray as xr
+
     settings = settings or RateSettings()
     if ds.sizes["time"] < 2:
         raise InputError("a rate needs at least 2 dates in the stack")
@@ -173,11 +227,17 @@ def stack_rates(ds, *, settings: RateSettings | None = None, workers: int = 1) -
     if not np.all(np.isfinite(sigma) & (sigma > 0)):
         raise InputError(f"stack: per-DEM sigma must be finite and positive, got {sigma.tolist()}")
     valid = ds["mask"] == 0
-    out = xr.apply_ufunc(fit_block, ds["height"], valid, input_core_dims=[["time"], ["time"]],
-                         output_core_dims=[["layer"]], dask="parallelized",
-                         output_dtypes=[np.float32],
-                         dask_gufunc_kwargs={"output_sizes": {"layer": len(RATE_LAYERS)}},
-                         kwargs=dict(times=times, sigma=sigma, settings=settings))
+    out = xr.apply_ufunc(
+        fit_block,
+        ds["height"],
+        valid,
+        input_core_dims=[["time"], ["time"]],
+        output_core_dims=[["layer"]],
+        dask="parallelized",
+        output_dtypes=[np.float32],
+        dask_gufunc_kwargs={"output_sizes": {"layer": len(RATE_LAYERS)}},
+        kwargs=dict(times=times, sigma=sigma, settings=settings),
+    )
     with dask.config.set(scheduler="threads", num_workers=max(int(workers), 1)):
         arr = out.transpose("layer", "y", "x").values
     res = {k: arr[i] for i, k in enumerate(RATE_LAYERS)}

@@ -17,6 +17,7 @@ Per DEM, in date order:
 6. σ of the DEM: NMAD of DEM − reference over stable, cloud-free cells;
 7. written as date ``k`` of the store (:func:`stereodem.post.stack.write_date`).
 """
+
 from __future__ import annotations
 
 import logging
@@ -73,6 +74,7 @@ def header_bounds_lonlat(path):
     """(west, south, east, north) of a raster from its header only (no pixels read)."""
     import rasterio
     from rasterio.warp import transform_bounds
+
     try:
         with rasterio.open(path) as ds:
             if ds.crs is None:
@@ -86,8 +88,9 @@ def check_inputs(dems, reference: DEM):
     """Refuse, before anything is written: fewer than 2 DEMs, the same file twice, a DEM that
     does not overlap the reference."""
     if len(dems) < 2:
-        raise InputError(f"a stack needs at least 2 DEMs, got {len(dems)}"
-                         + (f" ({dems[0]})" if dems else ""))
+        raise InputError(
+            f"a stack needs at least 2 DEMs, got {len(dems)}" + (f" ({dems[0]})" if dems else "")
+        )
     seen = set()
     for p in dems:
         key = str(Path(p).resolve())
@@ -96,8 +99,12 @@ def check_inputs(dems, reference: DEM):
         seen.add(key)
     rb = reference.bounds_lonlat()
     for p in dems:
-        warp.check_overlap(header_bounds_lonlat(p), rb, a_name=f"{p}",
-                           b_name=f"the reference {reference.path or ''}".strip())
+        warp.check_overlap(
+            header_bounds_lonlat(p),
+            rb,
+            a_name=f"{p}",
+            b_name=f"the reference {reference.path or ''}".strip(),
+        )
 
 
 def exclude_mask(paths, dem: DEM) -> np.ndarray:
@@ -105,6 +112,7 @@ def exclude_mask(paths, dem: DEM) -> np.ndarray:
     m = np.ones(dem.shape, bool)
     if paths:
         from .masks import StableMask
+
         m &= StableMask(exclude=list(paths)).array(dem)
     return m
 
@@ -120,6 +128,7 @@ def fit_chain(reference: DEM, dem: DEM, stable, settings: BuildSettings, heading
     """Fit the chain of ``settings`` on ``stable`` cells of ``dem`` (``heading``: its ground-track
     heading, degrees, or None); returns (corrected DEM, report list, chain text)."""
     from .coreg import parse_chain
+
     text = chain_for(settings, heading)
     chain = parse_chain(text).fit(reference, dem, stable=stable, track_angle_deg=heading)
     return chain.apply(dem), chain.report(), text
@@ -128,17 +137,20 @@ def fit_chain(reference: DEM, dem: DEM, stable, settings: BuildSettings, heading
 def _layer_beside(dem_path, names, grid):
     """A layer stereodem wrote beside the DEM (score, radiance orthoimage) on ``grid``, or None."""
     from stereodem.core.raster import read_image
+
     folder = Path(dem_path).parent
     for name in names:
         p = folder / name
         if p.is_file():
             import rasterio
+
             with rasterio.open(p) as ds:
                 t, crs = ds.transform, ds.crs.to_wkt() if ds.crs else None
             if crs is None:
                 continue
-            return warp.to_grid(read_image(p), t, crs, grid.transform, grid.crs, grid.shape,
-                                resampling="nearest")
+            return warp.to_grid(
+                read_image(p), t, crs, grid.transform, grid.crs, grid.shape, resampling="nearest"
+            )
     return None
 
 
@@ -146,40 +158,64 @@ def add_dem(reference: DEM, path, settings: BuildSettings, stable_grid):
     """One DEM co-registered and masked on the reference grid: (heights, mask flags, σ, report)."""
     from .assess import reconcile_vertical
     from .coreg_run import track_heading_of
+
     dem = DEM.from_file(path)
-    heading = (settings.track_angle_deg if settings.track_angle_deg is not None
-               else track_heading_of(path))
+    heading = (
+        settings.track_angle_deg if settings.track_angle_deg is not None else track_heading_of(path)
+    )
     dem, vnote = reconcile_vertical(dem, reference)
-    ref_on_dem = warp.to_grid(reference.heights, reference.transform, reference.crs,
-                              dem.transform, dem.crs, dem.shape)
+    ref_on_dem = warp.to_grid(
+        reference.heights, reference.transform, reference.crs, dem.transform, dem.crs, dem.shape
+    )
     stable = exclude_mask(settings.exclude, dem)
     if settings.cloud.max_deviation is not None:
         from scipy import ndimage
+
         gross = deviation_mask(dem.heights, ref_on_dem, settings.cloud.max_deviation, stable=stable)
         stable &= ~ndimage.binary_dilation(gross, iterations=max(settings.cloud.grow, 1))
     corrected, report, chain = fit_chain(reference, dem, stable, settings, heading)
     g = reference.grid
-    h = warp.to_grid(corrected.heights, corrected.transform, corrected.crs, g.transform, g.crs,
-                     g.shape)
+    h = warp.to_grid(
+        corrected.heights, corrected.transform, corrected.crs, g.transform, g.crs, g.shape
+    )
     score = _layer_beside(path, SCORE_NAMES, g) if settings.cloud.min_score is not None else None
-    radiance = (_layer_beside(path, RADIANCE_NAMES, g)
-                if settings.cloud.max_radiance is not None else None)
-    cloud, cinfo = cloud_mask(h, settings=settings.cloud, reference=reference.heights,
-                              score=score, radiance=radiance, stable=stable_grid)
+    radiance = (
+        _layer_beside(path, RADIANCE_NAMES, g) if settings.cloud.max_radiance is not None else None
+    )
+    cloud, cinfo = cloud_mask(
+        h,
+        settings=settings.cloud,
+        reference=reference.heights,
+        score=score,
+        radiance=radiance,
+        stable=stable_grid,
+    )
     void = ~np.isfinite(h)
     if void.all():
-        raise NoOverlapError(f"{path}: no cell of the co-registered DEM falls on the reference grid")
+        raise NoOverlapError(
+            f"{path}: no cell of the co-registered DEM falls on the reference grid"
+        )
     flags = np.where(void, MASK_VOID, 0).astype(np.uint8)
     flags[cloud] |= MASK_CLOUD
     sel = stable_grid & ~void & ~cloud & np.isfinite(reference.heights)
     if sel.sum() < 50:
-        raise InputError(f"{path}: only {int(sel.sum())} stable cloud-free cells overlap the "
-                         "reference; cannot estimate its sigma")
+        raise InputError(
+            f"{path}: only {int(sel.sum())} stable cloud-free cells overlap the "
+            "reference; cannot estimate its sigma"
+        )
     sigma = nmad(h[sel] - reference.heights[sel])
-    rec = dict(path=str(path), vertical=vnote, chain=chain, track_heading_deg=heading,
-               coregistration=report, clouds=cinfo,
-               sigma=sigma, valid_pct=round(100.0 * (~void).mean(), 3),
-               score_layer=score is not None, radiance_layer=radiance is not None)
+    rec = dict(
+        path=str(path),
+        vertical=vnote,
+        chain=chain,
+        track_heading_deg=heading,
+        coregistration=report,
+        clouds=cinfo,
+        sigma=sigma,
+        valid_pct=round(100.0 * (~void).mean(), 3),
+        score_layer=score is not None,
+        radiance_layer=radiance is not None,
+    )
     return h, flags, sigma, rec
 
 
@@ -200,8 +236,15 @@ def _add_and_write(k: int, path: str):
     return rec
 
 
-def build_stack(dems, dates, reference: DEM, store, settings: BuildSettings | None = None,
-                progress=None, workers: int = 1) -> list[dict]:
+def build_stack(
+    dems,
+    dates,
+    reference: DEM,
+    store,
+    settings: BuildSettings | None = None,
+    progress=None,
+    workers: int = 1,
+) -> list[dict]:
     """Build the stack at ``store`` (a Zarr path) from ``dems`` (paths) with ``dates``
     (datetime64) on ``reference``'s grid; returns one report per DEM (date order).
 
@@ -214,19 +257,32 @@ def build_stack(dems, dates, reference: DEM, store, settings: BuildSettings | No
     dates = [dates[i] for i in order]
     g = reference.grid
     stable_grid = exclude_mask(settings.exclude, reference)
-    create_stack(store, g, dates, reference=reference.heights, stable=stable_grid,
-                 chunk=settings.chunk,
-                 attrs={"reference_path": str(reference.path),
-                        "chain": settings.chain or f"default: {DEFAULT_CHAIN} ({NO_TRACK_CHAIN} "
-                                                   "without a track heading)",
-                        "vertical_reference": str(reference.vertical)})
+    create_stack(
+        store,
+        g,
+        dates,
+        reference=reference.heights,
+        stable=stable_grid,
+        chunk=settings.chunk,
+        attrs={
+            "reference_path": str(reference.path),
+            "chain": settings.chain
+            or f"default: {DEFAULT_CHAIN} ({NO_TRACK_CHAIN} without a track heading)",
+            "vertical_reference": str(reference.vertical),
+        },
+    )
     records = [None] * len(dems)
 
     def done(k, rec):
         rec["date"] = str(np.datetime64(dates[k], "s"))
         records[k] = rec
-        log.info("%s (%s): sigma %.2f m, clouds %.2f %%", rec["path"], rec["date"], rec["sigma"],
-                 rec["clouds"]["cloud_pct"])
+        log.info(
+            "%s (%s): sigma %.2f m, clouds %.2f %%",
+            rec["path"],
+            rec["date"],
+            rec["sigma"],
+            rec["clouds"]["cloud_pct"],
+        )
         if progress:
             progress(sum(r is not None for r in records), len(dems))
 
@@ -238,9 +294,13 @@ def build_stack(dems, dates, reference: DEM, store, settings: BuildSettings | No
     else:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor, as_completed
-        with ProcessPoolExecutor(max_workers=min(workers, len(dems)),
-                                 mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                                 initargs=(reference, settings, stable_grid, str(store))) as pool:
+
+        with ProcessPoolExecutor(
+            max_workers=min(workers, len(dems)),
+            mp_context=mp.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(reference, settings, stable_grid, str(store)),
+        ) as pool:
             futures = {pool.submit(_add_and_write, k, str(p)): k for k, p in enumerate(dems)}
             try:
                 for f in as_completed(futures):

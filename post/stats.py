@@ -4,6 +4,7 @@ The metric set follows the usual DEM-accuracy block (xdem, demcompare, ASP ``geo
 ``anchors-ecosystem.md`` §B): N, % valid, mean, median, std, RMSE, MAE, NMAD, P16/P84,
 LE90/LE95 empirical (P90/P95 of |dh|) and Gaussian (1.6449 σ, 1.9600 σ), min and max.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -11,14 +12,31 @@ import numpy as np
 from stereodem.core.errors import InputError
 from stereodem.core.stats import NMAD_FACTOR
 
-Z90 = 1.6448536269514722       #: standard normal quantile of 0.95 (two-sided 90 %)
-Z95 = 1.959963984540054        #: standard normal quantile of 0.975 (two-sided 95 %)
+Z90 = 1.6448536269514722  #: standard normal quantile of 0.95 (two-sided 90 %)
+Z95 = 1.959963984540054  #: standard normal quantile of 0.975 (two-sided 95 %)
 
 #: default slope class edges, degrees (last class open-ended)
 DEFAULT_SLOPE_BINS = (0.0, 5.0, 10.0, 20.0, 30.0, 45.0, 90.0)
 
-STAT_KEYS = ("n", "n_total", "valid_pct", "mean", "median", "std", "rmse", "mae", "nmad",
-             "p16", "p84", "le90", "le95", "le90_gauss", "le95_gauss", "min", "max")
+STAT_KEYS = (
+    "n",
+    "n_total",
+    "valid_pct",
+    "mean",
+    "median",
+    "std",
+    "rmse",
+    "mae",
+    "nmad",
+    "p16",
+    "p84",
+    "le90",
+    "le95",
+    "le90_gauss",
+    "le95_gauss",
+    "min",
+    "max",
+)
 
 
 def error_stats(dh, *, n_total: int | None = None) -> dict:
@@ -50,10 +68,22 @@ def error_stats(dh, *, n_total: int | None = None) -> dict:
     std = float(np.std(x))
     p16, p84 = np.percentile(x, [16.0, 84.0])
     le90, le95 = np.percentile(absx, [90.0, 95.0])
-    out.update(mean=float(np.mean(x)), median=med, std=std, rmse=float(np.sqrt(np.mean(x * x))),
-               mae=float(np.mean(absx)), nmad=float(NMAD_FACTOR * np.median(np.abs(x - med))),
-               p16=float(p16), p84=float(p84), le90=float(le90), le95=float(le95),
-               le90_gauss=Z90 * std, le95_gauss=Z95 * std, min=float(x.min()), max=float(x.max()))
+    out.update(
+        mean=float(np.mean(x)),
+        median=med,
+        std=std,
+        rmse=float(np.sqrt(np.mean(x * x))),
+        mae=float(np.mean(absx)),
+        nmad=float(NMAD_FACTOR * np.median(np.abs(x - med))),
+        p16=float(p16),
+        p84=float(p84),
+        le90=float(le90),
+        le95=float(le95),
+        le90_gauss=Z90 * std,
+        le95_gauss=Z95 * std,
+        min=float(x.min()),
+        max=float(x.max()),
+    )
     return out
 
 
@@ -91,9 +121,12 @@ def binned_stats(dh, variable, bins, *, unit: str = "", name: str = "bin") -> li
         last = i == edges.size - 2
         sel = fin & (v >= lo) & ((v <= hi) if last else (v < hi))
         st = error_stats(dh[sel], n_total=int(sel.sum()))
-        entry = {"class": _bin_label(lo, hi, unit, last), "lower": float(lo),
-                 "upper": float(hi) if np.isfinite(hi) else None,
-                 f"{name}_mean": float(np.mean(v[sel & np.isfinite(dh)])) if st["n"] else float("nan")}
+        entry = {
+            "class": _bin_label(lo, hi, unit, last),
+            "lower": float(lo),
+            "upper": float(hi) if np.isfinite(hi) else None,
+            f"{name}_mean": float(np.mean(v[sel & np.isfinite(dh)])) if st["n"] else float("nan"),
+        }
         entry.update(st)
         out.append(entry)
     return out
@@ -142,14 +175,18 @@ def error_vs_slope(dh, slope) -> dict:
     dh = np.asarray(dh, dtype=np.float64).ravel()
     s = np.asarray(slope, dtype=np.float64).ravel()
     ok = np.isfinite(dh) & np.isfinite(s)
-    out = {"slope_m_per_deg": float("nan"), "intercept_m": float("nan"), "r": float("nan"),
-           "n": int(ok.sum()), "error": "abs(dh - median(dh))"}
+    out = {
+        "slope_m_per_deg": float("nan"),
+        "intercept_m": float("nan"),
+        "r": float("nan"),
+        "n": int(ok.sum()),
+        "error": "abs(dh - median(dh))",
+    }
     if ok.sum() < 3 or np.ptp(s[ok]) == 0:
         return out
     e = np.abs(dh[ok] - np.median(dh[ok]))
     b, a = np.polyfit(s[ok], e, 1)
-    out.update(slope_m_per_deg=float(b), intercept_m=float(a),
-               r=float(np.corrcoef(s[ok], e)[0, 1]))
+    out.update(slope_m_per_deg=float(b), intercept_m=float(a), r=float(np.corrcoef(s[ok], e)[0, 1]))
     return out
 
 
@@ -160,8 +197,14 @@ def class_trend(entries, *, x_key: str = "slope_mean", y_key: str = "nmad") -> d
     x = np.array([e.get(x_key, np.nan) for e in entries], dtype=float)
     y = np.array([e.get(y_key, np.nan) for e in entries], dtype=float)
     ok = np.isfinite(x) & np.isfinite(y)
-    out = {"x": x_key, "y": y_key, "r": float("nan"), "slope": float("nan"),
-           "intercept": float("nan"), "n_classes": int(ok.sum())}
+    out = {
+        "x": x_key,
+        "y": y_key,
+        "r": float("nan"),
+        "slope": float("nan"),
+        "intercept": float("nan"),
+        "n_classes": int(ok.sum()),
+    }
     if ok.sum() >= 3 and np.ptp(x[ok]) > 0 and np.ptp(y[ok]) > 0:
         b, a = np.polyfit(x[ok], y[ok], 1)
         out.update(r=float(np.corrcoef(x[ok], y[ok])[0, 1]), slope=float(b), intercept=float(a))

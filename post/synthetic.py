@@ -6,6 +6,7 @@ change inside a polygon, plus the truth: every injected parameter, the noise fie
 the change mask. Frames as in :mod:`stereodem.post.coreg` (metres east/north from the grid
 centre; heading in degrees clockwise from north).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -23,16 +24,16 @@ from .spatialstats import VariogramModel, simulate_field
 class InjectedErrors:
     """What :func:`inject_errors` put in (metres unless said)."""
 
-    dx: float = 0.0                   #: displacement east of the DEM relative to the truth
-    dy: float = 0.0                   #: displacement north
-    dz: float = 0.0                   #: vertical offset
-    ramp_e: float = 0.0               #: m per 10 km east
-    ramp_n: float = 0.0               #: m per 10 km north
-    heading_deg: float = 0.0          #: ground-track heading
-    along_sines: list = field(default_factory=list)   #: [(amplitude m, wavelength m, phase rad)]
+    dx: float = 0.0  #: displacement east of the DEM relative to the truth
+    dy: float = 0.0  #: displacement north
+    dz: float = 0.0  #: vertical offset
+    ramp_e: float = 0.0  #: m per 10 km east
+    ramp_n: float = 0.0  #: m per 10 km north
+    heading_deg: float = 0.0  #: ground-track heading
+    along_sines: list = field(default_factory=list)  #: [(amplitude m, wavelength m, phase rad)]
     noise: VariogramModel | None = None
-    change_m: float = 0.0             #: height change inside the change polygon
-    change_centre_px: tuple = (0.5, 0.5)   #: (row, col) fractions of the grid
+    change_m: float = 0.0  #: height change inside the change polygon
+    change_centre_px: tuple = (0.5, 0.5)  #: (row, col) fractions of the grid
     change_radius_m: float = 0.0
     seed: int = 0
 
@@ -52,8 +53,9 @@ def inject_errors(truth: DEM, spec: InjectedErrors):
     z = truth.heights.astype(np.float64)
     if spec.dx or spec.dy:
         t = warp.translated(truth.transform, truth.crs, truth.shape, spec.dx, spec.dy)
-        z = warp.to_grid(z, t, truth.crs, truth.transform, truth.crs, truth.shape,
-                         resampling="cubic").astype(np.float64)
+        z = warp.to_grid(
+            z, t, truth.crs, truth.transform, truth.crs, truth.shape, resampling="cubic"
+        ).astype(np.float64)
     e, n = local_metric_coords(truth.transform, truth.crs, truth.shape)
     z = z + spec.dz + spec.ramp_e * e / 1e4 + spec.ramp_n * n / 1e4
     a, _ = track_coords(e, n, spec.heading_deg)
@@ -69,8 +71,9 @@ def inject_errors(truth: DEM, spec: InjectedErrors):
         z = z + noise
     chg = np.zeros(truth.shape, bool)
     if spec.change_radius_m > 0:
-        chg = change_mask(truth.shape, truth.transform, truth.crs, spec.change_centre_px,
-                          spec.change_radius_m)
+        chg = change_mask(
+            truth.shape, truth.transform, truth.crs, spec.change_centre_px, spec.change_radius_m
+        )
         z = z + np.where(chg, spec.change_m, 0.0)
     out = DEM(z.astype(np.float32), truth.transform, truth.crs, truth.vertical, None)
     return out, {"noise": noise, "change": chg, "along": along, "spec": spec}

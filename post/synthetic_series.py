@@ -3,6 +3,7 @@ truth of :class:`stereodem.sensor.simulation.multidate.ChangeTruth` at each date
 date's errors injected by :func:`stereodem.post.synthetic.inject_errors` (shift, offset, ramp,
 along-track sines, correlated noise) and optionally a cloud
 (:func:`stereodem.sensor.simulation.multidate.cloud_blunder`)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -45,8 +46,15 @@ def dem_series(truth: ChangeTruth, dates, specs, *, clouds=None, vertical=None) 
             rng = np.random.default_rng(spec.seed + 7)
             added, footprint = cloud_blunder(h, cloud["centre"], cloud["radius"], cloud["top"], rng)
             h = (h + added).astype(np.float32)
-        out.append(SeriesDEM(DEM(h, dem.transform, dem.crs, vertical, None), np.datetime64(d, "D"),
-                             spec, (z + info["noise"]).astype(np.float32), footprint))
+        out.append(
+            SeriesDEM(
+                DEM(h, dem.transform, dem.crs, vertical, None),
+                np.datetime64(d, "D"),
+                spec,
+                (z + info["noise"]).astype(np.float32),
+                footprint,
+            )
+        )
     return out
 
 
@@ -56,10 +64,18 @@ def write_polygons(path, geoms, crs, *, driver: str | None = None):
     import pyogrio
     import shapely
     from pyproj import CRS
+
     geoms = list(geoms)
     wkb = np.array([shapely.to_wkb(g) for g in geoms], dtype=object)
-    pyogrio.raw.write(str(path), wkb, [np.arange(1, len(geoms) + 1, dtype=np.int32)], ["id"],
-                      driver=driver, geometry_type="Polygon", crs=CRS.from_user_input(crs).to_wkt())
+    pyogrio.raw.write(
+        str(path),
+        wkb,
+        [np.arange(1, len(geoms) + 1, dtype=np.int32)],
+        ["id"],
+        driver=driver,
+        geometry_type="Polygon",
+        crs=CRS.from_user_input(crs).to_wkt(),
+    )
     return path
 
 
@@ -71,6 +87,7 @@ def utm_reference(dem: DEM, size: int, res: float, *, centre_lonlat=None) -> DEM
     from stereodem.core import geodesy
 
     from . import warp
+
     if centre_lonlat is None:
         w, s, e, n = dem.bounds_lonlat()
         centre_lonlat = ((w + e) / 2, (s + n) / 2)
@@ -89,6 +106,7 @@ def glacier_outline(grid, *, centre=(0.6, 0.45), radius=0.15):
     """A disc-like outline at ``centre`` (col, row fractions) of ``radius`` × the grid width,
     in the grid's CRS (a shapely polygon), slightly irregular."""
     import shapely
+
     cx, cy = grid.transform @ (grid.width * centre[0], grid.height * centre[1])
     r = grid.width * abs(grid.transform.a) * radius
     ang = np.linspace(0, 2 * np.pi, 73)[:-1]

@@ -8,6 +8,7 @@ Arrays follow the DEM convention: ``heights[row, col]`` float32 with NaN voids, 
 pixel-corner ``transform`` (GDAL) and a CRS. Rows run north to south when the transform's
 ``e`` term is negative (the usual case); the east/north gradients account for the signs.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -26,8 +27,8 @@ def metres_per_degree(lat):
     """
     phi = np.radians(np.asarray(lat, dtype=np.float64))
     w = np.sqrt(1.0 - geodesy.E2 * np.sin(phi) ** 2)
-    n = geodesy.A / w                                   # prime vertical radius
-    m = geodesy.A * (1.0 - geodesy.E2) / w ** 3         # meridian radius
+    n = geodesy.A / w  # prime vertical radius
+    m = geodesy.A * (1.0 - geodesy.E2) / w**3  # meridian radius
     return n * np.cos(phi) * np.pi / 180.0, m * np.pi / 180.0
 
 
@@ -92,7 +93,7 @@ def gradient(heights, transform, crs):
     if z.shape[0] < 2 or z.shape[1] < 2:
         nan = np.full(z.shape, np.nan)
         return nan, nan.copy()
-    gr, gc = np.gradient(z)                 # per row step, per column step
+    gr, gc = np.gradient(z)  # per row step, per column step
     return gc / dx, gr / dy
 
 
@@ -116,7 +117,7 @@ def hillshade(heights, transform, crs, *, azimuth=315.0, altitude=45.0, z_factor
     az, alt = np.radians(azimuth), np.radians(altitude)
     # light direction (east, north, up) and the surface normal (-ge, -gn, 1)/|.|
     le, ln, lu = np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)
-    shade = (-ge * le - gn * ln + lu) / np.sqrt(1.0 + ge ** 2 + gn ** 2)
+    shade = (-ge * le - gn * ln + lu) / np.sqrt(1.0 + ge**2 + gn**2)
     return np.clip(shade, 0.0, 1.0)
 
 

@@ -20,6 +20,7 @@ The frame travels in the DEM's GeoTIFF tags (:data:`TRACK_FRAME_TAG`, JSON) besi
 (``STEREODEM_TRACK_HEADING``); :mod:`stereodem.post.biascorr`'s ``along_track`` and
 ``cross_track`` use it when present, the straight track of the heading otherwise.
 """
+
 from __future__ import annotations
 
 import json
@@ -48,7 +49,7 @@ H_SCALE = 1000.0
 def _terms(u, v, w, order):
     """Columns u^i v^j (i + j <= order, constant first), then w, w·u, w·v."""
     u, v, w = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (u, v, w)))
-    cols = [u ** (k - j) * v ** j for k in range(order + 1) for j in range(k + 1)]
+    cols = [u ** (k - j) * v**j for k in range(order + 1) for j in range(k + 1)]
     return np.stack(cols + [w, w * u, w * v], -1)
 
 
@@ -98,8 +99,12 @@ class TrackFrame:
         if h is not None:
             w = (np.asarray(h, np.float64) - self.height_m) / H_SCALE
             w = np.where(np.isfinite(w), w, 0.0)
-        a = _terms((np.asarray(x, np.float64) - self.x0) / self.scale,
-                   (np.asarray(y, np.float64) - self.y0) / self.scale, w, self.order)
+        a = _terms(
+            (np.asarray(x, np.float64) - self.x0) / self.scale,
+            (np.asarray(y, np.float64) - self.y0) / self.scale,
+            w,
+            self.order,
+        )
         return a @ np.asarray(self.along), a @ np.asarray(self.cross)
 
     def grid_coords(self, transform, rows, cols, h=None):
@@ -111,15 +116,21 @@ class TrackFrame:
     def matches(self, crs) -> bool:
         """Whether ``crs`` is the CRS the frame was fitted in."""
         try:
-            return CRS.from_user_input(self.crs).equals(CRS.from_user_input(crs), ignore_axis_order=True)
-        except Exception:                               # noqa: BLE001 - unreadable: no match
+            return CRS.from_user_input(self.crs).equals(
+                CRS.from_user_input(crs), ignore_axis_order=True
+            )
+        except Exception:  # noqa: BLE001 - unreadable: no match
             return False
 
     def describe(self) -> dict:
         """What a report says about the frame."""
-        return {"source": "left sensor model (image row/column as polynomials of map x, y, h)",
-                "order": self.order, "fit_rms_m": self.fit_rms_m,
-                "m_per_row": self.m_per_row, "m_per_col": self.m_per_col}
+        return {
+            "source": "left sensor model (image row/column as polynomials of map x, y, h)",
+            "order": self.order,
+            "fit_rms_m": self.fit_rms_m,
+            "m_per_row": self.m_per_row,
+            "m_per_col": self.m_per_col,
+        }
 
     # ------------------------------------------------------------------ tags
     def to_tag(self) -> str:
@@ -142,22 +153,33 @@ class TrackFrame:
 
     # ------------------------------------------------------------------ fitting
     @classmethod
-    def from_model(cls, model, shape, crs, *, height: float = 0.0, order: int = ORDER,
-                   points: int = GRID_POINTS) -> TrackFrame:
+    def from_model(
+        cls,
+        model,
+        shape,
+        crs,
+        *,
+        height: float = 0.0,
+        order: int = ORDER,
+        points: int = GRID_POINTS,
+    ) -> TrackFrame:
         """Fit the frame of an image of ``shape`` (rows, cols) seen by ``model`` in map CRS
         ``crs``, its points localised at ellipsoidal ``height`` and ``height ± 500`` m."""
         rows, cols = shape[:2]
-        r, c = np.meshgrid(np.linspace(0, rows - 1, points), np.linspace(0, cols - 1, points),
-                           indexing="ij")
+        r, c = np.meshgrid(
+            np.linspace(0, rows - 1, points), np.linspace(0, cols - 1, points), indexing="ij"
+        )
         r, c = np.tile(r.ravel(), 3), np.tile(c.ravel(), 3)
         hh = float(height) + np.repeat([0.0, -500.0, 500.0], points * points)
         lon, lat = model.localize(c, r, hh)
         x, y = (np.asarray(v, np.float64) for v in geodesy.lonlat_to_crs(lon, lat, crs))
         # ground metres per row / column at the image centre
         rc, cc = (rows - 1) / 2.0, (cols - 1) / 2.0
-        lo, la = model.localize(np.array([cc, cc, cc + 1.0]), np.array([rc, rc + 1.0, rc]),
-                                np.full(3, float(height)))
+        lo, la = model.localize(
+            np.array([cc, cc, cc + 1.0]), np.array([rc, rc + 1.0, rc]), np.full(3, float(height))
+        )
         from pyproj import Geod
+
         g = Geod(ellps="WGS84")
         m_row = float(g.inv(lo[0], la[0], lo[1], la[1])[2])
         m_col = float(g.inv(lo[0], la[0], lo[2], la[2])[2])
@@ -171,13 +193,25 @@ class TrackFrame:
         cross, *_ = np.linalg.lstsq(a, m_col * c[ok], rcond=None)
         res = np.concatenate([a @ along - m_row * r[ok], a @ cross - m_col * c[ok]])
         crs_text = CRS.from_user_input(crs).to_string()
-        return cls(crs_text, x0, y0, scale, int(order), along.tolist(), cross.tolist(), m_row,
-                   m_col, float(np.sqrt(np.mean(res ** 2))), float(height))
+        return cls(
+            crs_text,
+            x0,
+            y0,
+            scale,
+            int(order),
+            along.tolist(),
+            cross.tolist(),
+            m_row,
+            m_col,
+            float(np.sqrt(np.mean(res**2))),
+            float(height),
+        )
 
 
 def track_frame_of(path) -> TrackFrame | None:
     """The track frame a stereodem DEM carries in its tags, if any."""
     import rasterio
+
     try:
         with rasterio.open(path) as ds:
             return TrackFrame.from_tag(ds.tags().get(TRACK_FRAME_TAG))

@@ -19,6 +19,7 @@ Per polygon (glacier, landslide, ...):
    the spread the fill leaves unexplained, at least the polygon's largest observed σ_i).
    ``σ_V = σ_ḃ · A`` (the area's own uncertainty is not included).
 """
+
 from __future__ import annotations
 
 import logging
@@ -35,6 +36,7 @@ log = logging.getLogger(__name__)
 def cell_areas(grid: MapGrid) -> np.ndarray:
     """Area of each cell in m² (per row on lon/lat grids), broadcastable to ``grid.shape``."""
     from . import terrain
+
     pe, pn = terrain.pixel_size_m(grid.transform, grid.crs, grid.shape)
     return np.abs(pe * pn)
 
@@ -78,9 +80,17 @@ def hypsometric_fill(values, heights, inside, *, band_width: float = 50.0, min_c
     nfill = np.bincount(k[holes], minlength=nb)
     for b in np.flatnonzero(cnt > 1):
         spread[b] = nmad(v[obs & (k == b)])
-    bands = [dict(lo=float(lo + b * band_width), hi=float(lo + (b + 1) * band_width),
-                  n_observed=int(cnt[b]), n_filled=int(nfill[b]), mean=float(band_value[b]),
-                  nmad=float(spread[b])) for b in range(nb)]
+    bands = [
+        dict(
+            lo=float(lo + b * band_width),
+            hi=float(lo + (b + 1) * band_width),
+            n_observed=int(cnt[b]),
+            n_filled=int(nfill[b]),
+            mean=float(band_value[b]),
+            nmad=float(spread[b]),
+        )
+        for b in range(nb)
+    ]
     return out, holes, bands
 
 
@@ -89,13 +99,24 @@ def _band_spread(bands, heights, holes, band_width):
     if not bands:
         return np.zeros(0)
     lo = bands[0]["lo"]
-    k = np.clip(np.floor((np.asarray(heights, float)[holes] - lo) / band_width).astype(int), 0,
-                len(bands) - 1)
+    k = np.clip(
+        np.floor((np.asarray(heights, float)[holes] - lo) / band_width).astype(int),
+        0,
+        len(bands) - 1,
+    )
     return np.array([b["nmad"] for b in bands])[k]
 
 
-def rate_error_model(rate, rate_sigma, stable, grid: MapGrid, *, n_pairs: int = 400_000,
-                     n_models: int = 2, seed: int = 0):
+def rate_error_model(
+    rate,
+    rate_sigma,
+    stable,
+    grid: MapGrid,
+    *,
+    n_pairs: int = 400_000,
+    n_models: int = 2,
+    seed: int = 0,
+):
     """The variogram of the standardised rate ``rate / rate_sigma`` on ``stable`` cells, fitted
     with ``n_models`` spherical models (default 2: the short range of the DEMs' noise and the
     kilometre range of their noise and residual biases; on the benchmark the fit recovers the
@@ -103,36 +124,52 @@ def rate_error_model(rate, rate_sigma, stable, grid: MapGrid, *, n_pairs: int = 
     and inflates the σ of an area mean); returns (model, empirical variogram, NMAD of the
     standardised rate)."""
     from .spatialstats import fit_variogram, variogram
+
     z = np.where(stable & np.isfinite(rate) & (rate_sigma > 0), rate / rate_sigma, np.nan)
     if np.isfinite(z).sum() < 100:
-        raise InputError(f"rate error model: only {int(np.isfinite(z).sum())} stable cells with "
-                         "a rate (need 100)")
+        raise InputError(
+            f"rate error model: only {int(np.isfinite(z).sum())} stable cells with "
+            "a rate (need 100)"
+        )
     z = z - np.nanmedian(z)
     emp = variogram(z, transform=grid.transform, crs=grid.crs, n_pairs=n_pairs, seed=seed)
     model = fit_variogram(emp, n_models=n_models)
     return model, emp, nmad(z)
 
 
-def outline_changes(rate, rate_sigma, reference, outlines, grid: MapGrid, model, *,
-                    band_width: float = 50.0, min_cells: int = 5, seed: int = 0) -> list[dict]:
+def outline_changes(
+    rate,
+    rate_sigma,
+    reference,
+    outlines,
+    grid: MapGrid,
+    model,
+    *,
+    band_width: float = 50.0,
+    min_cells: int = 5,
+    seed: int = 0,
+) -> list[dict]:
     """Elevation and volume change rates of each polygon of ``outlines`` (shapely geometries in
     the grid's CRS), with σ from ``model`` (:func:`rate_error_model`); see the module docstring.
     """
     from rasterio.features import rasterize
 
     from .spatialstats import area_mean_sigma
+
     areas = np.broadcast_to(cell_areas(grid), grid.shape)
     rate = np.asarray(rate, np.float32)
     rs = np.asarray(rate_sigma, np.float32)
     out = []
     for i, geom in enumerate(outlines, start=1):
-        inside = rasterize([(geom, 1)], out_shape=grid.shape, transform=grid.transform, fill=0,
-                           dtype="uint8").astype(bool) & np.isfinite(reference)
+        inside = rasterize(
+            [(geom, 1)], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8"
+        ).astype(bool) & np.isfinite(reference)
         if not inside.any():
             out.append(dict(id=i, n_cells=0, error="the outline covers no cell of the stack grid"))
             continue
-        filled, holes, bands = hypsometric_fill(rate, reference, inside, band_width=band_width,
-                                                min_cells=min_cells)
+        filled, holes, bands = hypsometric_fill(
+            rate, reference, inside, band_width=band_width, min_cells=min_cells
+        )
         sig = np.where(inside & ~holes, rs, np.nan).astype(np.float64)
         if holes.any():
             spread = _band_spread(bands, reference, holes, band_width)
@@ -141,15 +178,27 @@ def outline_changes(rate, rate_sigma, reference, outlines, grid: MapGrid, model,
         a = areas[inside]
         area = float(a.sum())
         mean_rate = float(np.sum(filled[inside] * a) / area)
-        s = area_mean_sigma(model, inside, grid.transform, grid.crs,
-                            sigma=np.where(inside, sig, np.nan), seed=seed + i)
-        rec = dict(id=i, n_cells=int(inside.sum()), area_m2=area,
-                   filled_cells=int(holes.sum()),
-                   filled_pct=round(100.0 * holes.sum() / inside.sum(), 3),
-                   mean_rate_m_per_yr=mean_rate, mean_rate_sigma=s["sigma_mean"],
-                   volume_rate_m3_per_yr=mean_rate * area,
-                   volume_rate_sigma=s["sigma_mean"] * area,
-                   n_effective=s["n_effective"], sigma_naive=s["sigma_naive"],
-                   hypsometric_bands=bands)
+        s = area_mean_sigma(
+            model,
+            inside,
+            grid.transform,
+            grid.crs,
+            sigma=np.where(inside, sig, np.nan),
+            seed=seed + i,
+        )
+        rec = dict(
+            id=i,
+            n_cells=int(inside.sum()),
+            area_m2=area,
+            filled_cells=int(holes.sum()),
+            filled_pct=round(100.0 * holes.sum() / inside.sum(), 3),
+            mean_rate_m_per_yr=mean_rate,
+            mean_rate_sigma=s["sigma_mean"],
+            volume_rate_m3_per_yr=mean_rate * area,
+            volume_rate_sigma=s["sigma_mean"] * area,
+            n_effective=s["n_effective"],
+            sigma_naive=s["sigma_naive"],
+            hypsometric_bands=bands,
+        )
         out.append(rec)
     return out

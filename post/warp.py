@@ -1,4 +1,5 @@
 """Putting one raster on another's grid (rasterio.warp.reproject), with shifts in metres."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -10,12 +11,26 @@ from stereodem.core.errors import NoOverlapError
 
 from . import terrain
 
-_RESAMPLING = {"nearest": Resampling.nearest, "bilinear": Resampling.bilinear,
-               "cubic": Resampling.cubic, "cubic_spline": Resampling.cubic_spline}
+_RESAMPLING = {
+    "nearest": Resampling.nearest,
+    "bilinear": Resampling.bilinear,
+    "cubic": Resampling.cubic,
+    "cubic_spline": Resampling.cubic_spline,
+}
 
 
-def to_grid(data, src_transform, src_crs, dst_transform, dst_crs, dst_shape, *,
-            resampling: str = "bilinear", src_nodata=np.nan, dst_dtype=np.float32):
+def to_grid(
+    data,
+    src_transform,
+    src_crs,
+    dst_transform,
+    dst_crs,
+    dst_shape,
+    *,
+    resampling: str = "bilinear",
+    src_nodata=np.nan,
+    dst_dtype=np.float32,
+):
     """Warp a 2-D array onto a destination grid; cells without data are NaN (or ``src_nodata``
     for integer rasters)."""
     src = np.asarray(data)
@@ -25,14 +40,23 @@ def to_grid(data, src_transform, src_crs, dst_transform, dst_crs, dst_shape, *,
     else:
         fill = src_nodata if src_nodata is not None else 0
     dst = np.full(dst_shape, fill, dtype=dst_dtype)
-    reproject(src, dst, src_transform=src_transform, src_crs=_rio_crs(src_crs), src_nodata=src_nodata,
-              dst_transform=dst_transform, dst_crs=_rio_crs(dst_crs), dst_nodata=fill,
-              resampling=_RESAMPLING[resampling])
+    reproject(
+        src,
+        dst,
+        src_transform=src_transform,
+        src_crs=_rio_crs(src_crs),
+        src_nodata=src_nodata,
+        dst_transform=dst_transform,
+        dst_crs=_rio_crs(dst_crs),
+        dst_nodata=fill,
+        resampling=_RESAMPLING[resampling],
+    )
     return dst
 
 
 def _rio_crs(crs):
     from rasterio.crs import CRS as RioCRS
+
     return RioCRS.from_wkt(geodesy._crs_key(crs))
 
 
@@ -59,5 +83,7 @@ def check_overlap(a_bounds, b_bounds, a_name="DEM", b_name="reference"):
     s = max(a_bounds[1], b_bounds[1])
     n = min(a_bounds[3], b_bounds[3])
     if w >= e or s >= n:
-        raise NoOverlapError(f"{a_name} (lon/lat {tuple(round(v, 4) for v in a_bounds)}) does not "
-                             f"overlap {b_name} (lon/lat {tuple(round(v, 4) for v in b_bounds)})")
+        raise NoOverlapError(
+            f"{a_name} (lon/lat {tuple(round(v, 4) for v in a_bounds)}) does not "
+            f"overlap {b_name} (lon/lat {tuple(round(v, 4) for v in b_bounds)})"
+        )

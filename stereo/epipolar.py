@@ -24,6 +24,7 @@ rectified coordinate ``(u, v)``; a left pixel ``(u, v)`` matches the right pixel
 Triangulation never uses the approximation: :meth:`EpipolarTile.to_image` maps matches back
 to each image's own coordinates, which are intersected with the exact models.
 """
+
 from __future__ import annotations
 
 import logging
@@ -37,9 +38,15 @@ from stereodem.stereo.tiling import Tile
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EpipolarTile", "virtual_matches", "affine_fundamental_matrix",
-           "rectifying_similarities", "rectify_tile", "apply_map",
-           "vertical_offset_to_image_shift"]
+__all__ = [
+    "EpipolarTile",
+    "virtual_matches",
+    "affine_fundamental_matrix",
+    "rectifying_similarities",
+    "rectify_tile",
+    "apply_map",
+    "vertical_offset_to_image_shift",
+]
 
 
 def virtual_matches(left, right, bounds, heights, *, n: int = 7, offset: float = 0.0):
@@ -67,8 +74,9 @@ def virtual_matches(left, right, bounds, heights, *, n: int = 7, offset: float =
     """
     c0, r0, c1, r1 = bounds
     t = (np.arange(n) + offset) / max(n - 1 + (offset > 0), 1)
-    cols, rows, hs = np.meshgrid(c0 + t * (c1 - c0), r0 + t * (r1 - r0),
-                                 np.asarray(heights, float), indexing="ij")
+    cols, rows, hs = np.meshgrid(
+        c0 + t * (c1 - c0), r0 + t * (r1 - r0), np.asarray(heights, float), indexing="ij"
+    )
     cols, rows, hs = cols.ravel(), rows.ravel(), hs.ravel()
     lon, lat = left.localize(cols, rows, hs)
     c2, r2 = right.project(lon, lat, hs)
@@ -100,7 +108,9 @@ def rectifying_similarities(F):
     a, b, c, d, e = F[0, 2], F[1, 2], F[2, 0], F[2, 1], F[2, 2]
     r, s = np.hypot(c, d), np.hypot(a, b)
     if r == 0 or s == 0:
-        raise SensorModelError("degenerate affine fundamental matrix (no stereo baseline in the tile)")
+        raise SensorModelError(
+            "degenerate affine fundamental matrix (no stereo baseline in the tile)"
+        )
     R1 = np.array([[d, -c], [c, d]]) / r
     R2 = np.array([[-b, a], [-a, -b]]) / s
     z = np.sqrt(r / s)
@@ -116,8 +126,9 @@ def _projective_rectification(x1, x2, size):
     F, _ = cv2.findFundamentalMat(x1.astype(np.float64), x2.astype(np.float64), cv2.FM_8POINT)
     if F is None or F.shape != (3, 3):
         raise SensorModelError("fundamental matrix estimation failed on the virtual matches")
-    ok, H1, H2 = cv2.stereoRectifyUncalibrated(x1.astype(np.float64), x2.astype(np.float64), F,
-                                               (int(size[0]), int(size[1])))
+    ok, H1, H2 = cv2.stereoRectifyUncalibrated(
+        x1.astype(np.float64), x2.astype(np.float64), F, (int(size[0]), int(size[1]))
+    )
     if not ok:
         raise SensorModelError("projective rectification failed on the virtual matches")
     return np.asarray(H1, float), np.asarray(H2, float)
@@ -176,7 +187,9 @@ class EpipolarTile:
 
     @property
     def is_affine(self):
-        return bool(np.allclose(self.H_left[2], [0, 0, 1]) and np.allclose(self.H_right[2], [0, 0, 1]))
+        return bool(
+            np.allclose(self.H_left[2], [0, 0, 1]) and np.allclose(self.H_right[2], [0, 0, 1])
+        )
 
     def rectify(self, left_image, right_image, *, interpolation: int = 3):
         """Resample both images into the tile's epipolar frame.
@@ -185,8 +198,10 @@ class EpipolarTile:
         maps) can be passed. ``interpolation`` is the spline order (3: cubic B-spline, 1:
         bilinear). Returns two float32 arrays of :attr:`shape`, NaN outside the images.
         """
-        return (_warp(left_image, self.H_left, self.shape, interpolation),
-                _warp(right_image, self.H_right, self.shape, interpolation))
+        return (
+            _warp(left_image, self.H_left, self.shape, interpolation),
+            _warp(right_image, self.H_right, self.shape, interpolation),
+        )
 
     def to_image(self, u, v, disparity):
         """Map rectified matches back to image coordinates.
@@ -203,19 +218,25 @@ class EpipolarTile:
         (col1, row1), (col2, row2) : tuples of ndarrays
             Left and right image coordinates.
         """
-        u, v, disparity = np.broadcast_arrays(np.asarray(u, float), np.asarray(v, float),
-                                              np.asarray(disparity, float))
+        u, v, disparity = np.broadcast_arrays(
+            np.asarray(u, float), np.asarray(v, float), np.asarray(disparity, float)
+        )
         c1, r1 = apply_map(np.linalg.inv(self.H_left), u, v)
         c2, r2 = apply_map(np.linalg.inv(self.H_right), u - disparity, v)
         return (c1, r1), (c2, r2)
 
     def summary(self) -> dict:
         """Plain-dict QA figures of the tile (for logs and reports)."""
-        return dict(tile=list(self.tile.bounds), method=self.method, shape=list(self.shape),
-                    disparity_range=[float(x) for x in self.disparity_range],
-                    height_range=[float(x) for x in self.height_range],
-                    residual_rms_px=float(self.residual_rms), residual_max_px=float(self.residual_max),
-                    px_per_m=float(self.px_per_m))
+        return dict(
+            tile=list(self.tile.bounds),
+            method=self.method,
+            shape=list(self.shape),
+            disparity_range=[float(x) for x in self.disparity_range],
+            height_range=[float(x) for x in self.height_range],
+            residual_rms_px=float(self.residual_rms),
+            residual_max_px=float(self.residual_max),
+            px_per_m=float(self.px_per_m),
+        )
 
 
 def _warp(image, H, shape, interpolation):
@@ -256,7 +277,7 @@ def _warp(image, H, shape, interpolation):
     h, w = src.shape
     ok = (c >= -0.5) & (c <= w - 0.5) & (r >= -0.5) & (r <= h - 0.5)
     if r0 > 0:
-        ok &= r >= 1.0                     # inside the crop's margin, not at a cropped edge
+        ok &= r >= 1.0  # inside the crop's margin, not at a cropped edge
     if c0 > 0:
         ok &= c >= 1.0
     if r1 < ih:
@@ -270,9 +291,20 @@ def _warp(image, H, shape, interpolation):
     return out
 
 
-def rectify_tile(left, right, tile: Tile, height_range, *, halo=(32, 16), method="auto",
-                 disparity_margin: float = 4.0, n_fit: int = 9, n_check: int = 8,
-                 n_heights: int = 5, mean_height=None) -> EpipolarTile:
+def rectify_tile(
+    left,
+    right,
+    tile: Tile,
+    height_range,
+    *,
+    halo=(32, 16),
+    method="auto",
+    disparity_margin: float = 4.0,
+    n_fit: int = 9,
+    n_check: int = 8,
+    n_heights: int = 5,
+    mean_height=None,
+) -> EpipolarTile:
     """Compute the epipolar rectification of one left-image tile.
 
     Parameters
@@ -303,7 +335,7 @@ def rectify_tile(left, right, tile: Tile, height_range, *, halo=(32, 16), method
     hmin, hmax = float(height_range[0]), float(height_range[1])
     if not (np.isfinite(hmin) and np.isfinite(hmax)) or hmax < hmin:
         raise InputError(f"unusable height range {height_range!r}")
-    if hmax - hmin < 1.0:                      # need some depth for the fundamental matrix
+    if hmax - hmin < 1.0:  # need some depth for the fundamental matrix
         mid = 0.5 * (hmin + hmax)
         hmin, hmax = mid - 0.5, mid + 0.5
     h0 = 0.5 * (hmin + hmax) if mean_height is None else float(mean_height)
@@ -316,11 +348,18 @@ def rectify_tile(left, right, tile: Tile, height_range, *, halo=(32, 16), method
     fit_h = np.unique(np.concatenate([fit_h, np.linspace(hmin, hmax, n_heights)]))
     x1, x2, _ = virtual_matches(left, right, outer, fit_h, n=n_fit)
     if len(x1) < 8:
-        raise SensorModelError(f"tile {tile.bounds}: too few virtual matches ({len(x1)}); "
-                               "is the tile outside the right image's model domain?")
+        raise SensorModelError(
+            f"tile {tile.bounds}: too few virtual matches ({len(x1)}); "
+            "is the tile outside the right image's model domain?"
+        )
     if method == "auto":
         from stereodem.sensor.models.frame import FrameCamera
-        method = "projective" if isinstance(left, FrameCamera) and isinstance(right, FrameCamera) else "affine"
+
+        method = (
+            "projective"
+            if isinstance(left, FrameCamera) and isinstance(right, FrameCamera)
+            else "affine"
+        )
     if method == "affine":
         F = affine_fundamental_matrix(x1, x2)
         H1, H2 = rectifying_similarities(F)
@@ -335,7 +374,9 @@ def rectify_tile(left, right, tile: Tile, height_range, *, halo=(32, 16), method
     A = np.column_stack([u2, v2, np.ones_like(u2)])
     abc, *_ = np.linalg.lstsq(A, u1, rcond=None)
     if abs(abc[0]) < 1e-3:
-        raise SensorModelError(f"tile {tile.bounds}: degenerate horizontal registration of the right image")
+        raise SensorModelError(
+            f"tile {tile.bounds}: degenerate horizontal registration of the right image"
+        )
     shear = np.eye(3)
     shear[0] = abc
     H2 = shear @ H2
@@ -357,12 +398,13 @@ def rectify_tile(left, right, tile: Tile, height_range, *, halo=(32, 16), method
     T = _translation(-u0, -v0)
     H1, H2 = T @ H1, T @ H2
     # residual vertical parallax on a staggered check grid at n_heights + 1 heights
-    k1, k2, _ = virtual_matches(left, right, outer, np.linspace(hmin, hmax, n_heights + 1),
-                                n=n_check, offset=0.5)
+    k1, k2, _ = virtual_matches(
+        left, right, outer, np.linspace(hmin, hmax, n_heights + 1), n=n_check, offset=0.5
+    )
     _, kv1 = apply_map(H1, k1[:, 0], k1[:, 1])
     _, kv2 = apply_map(H2, k2[:, 0], k2[:, 1])
     res = kv1 - kv2
-    rms = float(np.sqrt(np.mean(res ** 2))) if res.size else float("nan")
+    rms = float(np.sqrt(np.mean(res**2))) if res.size else float("nan")
     rmax = float(np.max(np.abs(res))) if res.size else float("nan")
     # disparity per metre at the centre of the tile
     cc, rc = 0.5 * (c0 + c1), 0.5 * (r0 + r1)
@@ -373,16 +415,34 @@ def rectify_tile(left, right, tile: Tile, height_range, *, halo=(32, 16), method
         px_per_m = float(((pu1[1] - pu2[1]) - (pu1[0] - pu2[0])) / 100.0)
     else:
         px_per_m = float("nan")
-    et = EpipolarTile(tile=tile, H_left=H1, H_right=H2, shape=(height, width),
-                      disparity_range=(dmin, dmax), height_range=(hmin, hmax), residual_rms=rms,
-                      residual_max=rmax, method=method, px_per_m=px_per_m,
-                      info=dict(n_fit=int(len(x1)), n_check=int(res.size)))
-    log.debug("tile %s: %s rectification, residual y-parallax RMS %.4f px (max %.4f), "
-              "disparity %.1f..%.1f px", tile.bounds, method, rms, rmax, dmin, dmax)
+    et = EpipolarTile(
+        tile=tile,
+        H_left=H1,
+        H_right=H2,
+        shape=(height, width),
+        disparity_range=(dmin, dmax),
+        height_range=(hmin, hmax),
+        residual_rms=rms,
+        residual_max=rmax,
+        method=method,
+        px_per_m=px_per_m,
+        info=dict(n_fit=int(len(x1)), n_check=int(res.size)),
+    )
+    log.debug(
+        "tile %s: %s rectification, residual y-parallax RMS %.4f px (max %.4f), "
+        "disparity %.1f..%.1f px",
+        tile.bounds,
+        method,
+        rms,
+        rmax,
+        dmin,
+        dmax,
+    )
     return et
 
 
 # ----------------------------------------------------------------------------- relative pointing
+
 
 def vertical_offset_to_image_shift(et: EpipolarTile, u, v, disparity, vertical):
     """Right-image shifts implied by measured vertical offsets in a rectified tile.

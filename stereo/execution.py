@@ -2,6 +2,7 @@
 (:func:`stereodem.stereo.runner.run_tiles`), images shared through memory maps, and the tile cache
 (``tiles/tile_<n>.npz``, keyed by a fingerprint of settings, models and images) that
 ``--resume`` reuses."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -43,22 +44,35 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
             key = _cache_key(tiles, inputs, settings)
             _check_tile_cache(Path(cache_dir), key, run_settings.resume)
         with tempfile.TemporaryDirectory(prefix="shared-", dir=cache_dir) as tmp:
-            if pool:       # workers map the images from disk instead of each receiving a copy
+            if pool:  # workers map the images from disk instead of each receiving a copy
                 inputs = dataclasses.replace(
-                    inputs, left_image=SharedArray.create(inputs.left_image, tmp, "left"),
-                    right_image=SharedArray.create(inputs.right_image, tmp, "right"))
+                    inputs,
+                    left_image=SharedArray.create(inputs.left_image, tmp, "left"),
+                    right_image=SharedArray.create(inputs.right_image, tmp, "right"),
+                )
             ctx = dict(inputs=inputs, settings=settings, fn=process_tile)
-            results, fails, _ = run_tiles(_tile_job, tiles, ctx, workers=run_settings.workers,
-                                          timeout=run_settings.tile_timeout, cache_dir=cache_dir,
-                                          resume=run_settings.resume, dask_address=run_settings.dask,
-                                          progress=progress, cache_key=key,
-                                          hold_results=cache_dir is None)
+            results, fails, _ = run_tiles(
+                _tile_job,
+                tiles,
+                ctx,
+                workers=run_settings.workers,
+                timeout=run_settings.tile_timeout,
+                cache_dir=cache_dir,
+                resume=run_settings.resume,
+                dask_address=run_settings.dask,
+                progress=progress,
+                cache_key=key,
+                hold_results=cache_dir is None,
+            )
         failures.extend(fails)
         by_index = {t.index: t for t in tiles}
         # in tile order, one at a time: a cached run holds one tile's cell sums, not all
-        return (TileResult.from_arrays(results[i] if results[i] is not None
-                                       else load_cached(cache_dir, by_index[i]))
-                for i in sorted(results))
+        return (
+            TileResult.from_arrays(
+                results[i] if results[i] is not None else load_cached(cache_dir, by_index[i])
+            )
+            for i in sorted(results)
+        )
 
     runner.failures = failures
     return runner
@@ -68,12 +82,31 @@ def _cache_key(tiles, inputs, settings) -> str:
     """Fingerprint of everything a stereo tile's result depends on (settings, tiles, lattice,
     models, the images' bytes), so ``--resume`` never reuses tiles of another job."""
     import hashlib
+
     h = hashlib.sha256()
     g = inputs.lattice
-    h.update(json.dumps([settings.summary(), [t.bounds for t in tiles], list(inputs.height_range),
-                         None if g is None else [tuple(g.transform), list(g.shape), g.crs.to_wkt(),
-                                                 g.method, g.sigma, g.radius, g.geoid]],
-                        default=json_default, sort_keys=True).encode())
+    h.update(
+        json.dumps(
+            [
+                settings.summary(),
+                [t.bounds for t in tiles],
+                list(inputs.height_range),
+                None
+                if g is None
+                else [
+                    tuple(g.transform),
+                    list(g.shape),
+                    g.crs.to_wkt(),
+                    g.method,
+                    g.sigma,
+                    g.radius,
+                    g.geoid,
+                ],
+            ],
+            default=json_default,
+            sort_keys=True,
+        ).encode()
+    )
     for m in (inputs.left_model, inputs.right_model):
         h.update(_model_fingerprint(m))
     for img in (inputs.left_image, inputs.right_image):
@@ -86,6 +119,7 @@ def _model_fingerprint(model) -> bytes:
     image-space correction) gives its own parameters plus its model's, other models their
     ``to_dict``, else their pickle."""
     import pickle
+
     if hasattr(model, "model") and hasattr(model, "parameters"):
         own = json.dumps(model.parameters(), sort_keys=True).encode()
         return own + _model_fingerprint(model.model)
@@ -105,8 +139,10 @@ def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
     except (ValueError, AttributeError, UnicodeDecodeError):
         old = "unreadable"
     if resume and old is not None and old != key:
-        raise InputError(f"{cache_dir}: the cached tiles belong to a run with other inputs or "
-                         "settings; run again without --resume (and with --overwrite)")
+        raise InputError(
+            f"{cache_dir}: the cached tiles belong to a run with other inputs or "
+            "settings; run again without --resume (and with --overwrite)"
+        )
     if not resume or old is None:
         for f in cache_dir.glob("tile_*.npz"):
             f.unlink()

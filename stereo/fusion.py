@@ -33,6 +33,7 @@ float32 temporaries plus the float64 temporaries of the per-cell NMAD (16 bytes 
 cells): about 40 bytes x pairs x cells (e.g. 3 pairs on a 10 000² lattice: 12 GB; a coarser
 ``--res`` or fewer pairs for larger scenes).
 """
+
 from __future__ import annotations
 
 import logging
@@ -56,8 +57,17 @@ from .settings import FUSION_ADJUST, FUSION_METHODS, FusionAdjust, FusionMethod
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FusionSettings", "PairCandidate", "PairPlan", "choose_pairs", "union_grid", "on_grid", "FusedDEM",
-           "fuse_dems", "pair_sigma"]
+__all__ = [
+    "FusionSettings",
+    "PairCandidate",
+    "PairPlan",
+    "choose_pairs",
+    "union_grid",
+    "on_grid",
+    "FusedDEM",
+    "fuse_dems",
+    "pair_sigma",
+]
 
 #: default rejection factor: a pair height further than K x max(σ, NMAD) from the cell's median
 REJECT_K = 3.0
@@ -107,7 +117,9 @@ class FusionSettings:
         """What is out of range (messages naming the key); empty when the settings are usable."""
         out = []
         if self.method not in FUSION_METHODS:
-            out.append(f"method must be {' or '.join(map(repr, FUSION_METHODS))}, got {self.method!r}")
+            out.append(
+                f"method must be {' or '.join(map(repr, FUSION_METHODS))}, got {self.method!r}"
+            )
         if not self.reject_k > 0:
             out.append(f"reject_k must be positive, got {self.reject_k}")
         if not self.sigma_px > 0:
@@ -115,8 +127,10 @@ class FusionSettings:
         if not 0.0 < self.min_overlap <= 1.0:
             out.append(f"min_overlap must be in (0, 1], got {self.min_overlap}")
         if not 0.0 < self.min_base_to_height < self.max_base_to_height:
-            out.append("min_base_to_height must be positive and below max_base_to_height, got "
-                       f"{self.min_base_to_height} / {self.max_base_to_height}")
+            out.append(
+                "min_base_to_height must be positive and below max_base_to_height, got "
+                f"{self.min_base_to_height} / {self.max_base_to_height}"
+            )
         if self.adjust not in FUSION_ADJUST:
             out.append(f"adjust must be {', '.join(map(repr, FUSION_ADJUST))}, got {self.adjust!r}")
         if not 0.0 <= self.adjust_min_gain < 1.0:
@@ -140,9 +154,14 @@ class PairCandidate:
     reason: str = ""
 
     def to_dict(self, names=None) -> dict:
-        d = dict(left=self.i, right=self.j, overlap=round(self.overlap, 4),
-                 base_to_height=round(self.base_to_height, 4), selected=self.selected,
-                 reason=self.reason)
+        d = dict(
+            left=self.i,
+            right=self.j,
+            overlap=round(self.overlap, 4),
+            base_to_height=round(self.base_to_height, 4),
+            selected=self.selected,
+            reason=self.reason,
+        )
         if names is not None:
             d.update(left_name=str(names[self.i]), right_name=str(names[self.j]))
         return d
@@ -166,13 +185,18 @@ class PairPlan:
         return sorted(self.pairs, key=pair_rank)
 
     def to_dict(self, names=None) -> dict:
-        return dict(pairs=[c.to_dict(names) for c in self.candidates],
-                    skipped_images=[dict(index=k, name=str(names[k]) if names is not None else None,
-                                         reason=v) for k, v in sorted(self.skipped.items())])
+        return dict(
+            pairs=[c.to_dict(names) for c in self.candidates],
+            skipped_images=[
+                dict(index=k, name=str(names[k]) if names is not None else None, reason=v)
+                for k, v in sorted(self.skipped.items())
+            ],
+        )
 
 
 def _footprints(models, height, crs):
     from shapely.geometry import Polygon
+
     out = []
     for m in models:
         lon, lat = m.footprint(height)
@@ -188,8 +212,16 @@ def pair_rank(c: PairCandidate) -> float:
     return -c.overlap * min(c.base_to_height, 0.6)
 
 
-def choose_pairs(models, height: float, *, min_overlap: float = 0.2, min_base_to_height: float = 0.05,
-                 max_base_to_height: float = 1.5, max_pairs: int | None = None, names=None) -> PairPlan:
+def choose_pairs(
+    models,
+    height: float,
+    *,
+    min_overlap: float = 0.2,
+    min_base_to_height: float = 0.05,
+    max_base_to_height: float = 1.5,
+    max_pairs: int | None = None,
+    names=None,
+) -> PairPlan:
     """The pairs of ``models`` to match for an N-view DEM.
 
     Parameters
@@ -258,8 +290,10 @@ def choose_pairs(models, height: float, *, min_overlap: float = 0.2, min_base_to
         log.warning("%s: %s; skipped", names[k], skipped[k])
     plan = PairPlan(cands, skipped)
     if not plan.pairs:
-        raise InputError("no usable pair among the images: " + "; ".join(
-            f"{names[k]}: {why}" for k, why in sorted(skipped.items())))
+        raise InputError(
+            "no usable pair among the images: "
+            + "; ".join(f"{names[k]}: {why}" for k, why in sorted(skipped.items()))
+        )
     return plan
 
 
@@ -293,11 +327,16 @@ def on_grid(array, grid: MapGrid, target: MapGrid, fill=np.nan) -> np.ndarray:
     dr = (target.transform.f - grid.transform.f) / p
     c0, r0 = int(round(dc)), int(round(dr))
     if abs(dc - c0) > 1e-6 or abs(dr - r0) > 1e-6:
-        raise InputError(f"grid offset ({dc:.4f}, {dr:.4f}) cells is not whole: the pair DEMs "
-                         "are not on one lattice")
+        raise InputError(
+            f"grid offset ({dc:.4f}, {dr:.4f}) cells is not whole: the pair DEMs "
+            "are not on one lattice"
+        )
     out = np.full(target.shape, fill, dtype=np.asarray(array).dtype)
-    rs, cs = slice(max(r0, 0), min(r0 + grid.height, target.height)), slice(max(c0, 0), min(c0 + grid.width, target.width))
-    out[rs, cs] = array[rs.start - r0:rs.stop - r0, cs.start - c0:cs.stop - c0]
+    rs, cs = (
+        slice(max(r0, 0), min(r0 + grid.height, target.height)),
+        slice(max(c0, 0), min(c0 + grid.width, target.width)),
+    )
+    out[rs, cs] = array[rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0]
     return out
 
 
@@ -328,17 +367,27 @@ class FusedDEM:
     def prepare_write(self, path, *, overwrite=False, creation_options=None):
         """The writes of :meth:`write`, prepared now (layers copied), run by the returned
         callable (e.g. on a :class:`stereodem.pipeline.job.BackgroundWriter`)."""
-        write_dem = self.dem.prepare_write(path, overwrite=overwrite, creation_options=creation_options)
+        write_dem = self.dem.prepare_write(
+            path, overwrite=overwrite, creation_options=creation_options
+        )
         spread, transform, crs = self.nmad.astype(np.float32), self.dem.transform, self.dem.crs
         nmad_path = Path(path).with_name("nmad.tif")
 
         def write_files():
             out = write_dem()
-            out["nmad"] = write_geotiff(nmad_path, spread, transform, crs, np.nan,
-                                        descriptions=["NMAD of the pair heights about their median"],
-                                        units=["metre"], overwrite=overwrite,
-                                        creation_options=creation_options)
+            out["nmad"] = write_geotiff(
+                nmad_path,
+                spread,
+                transform,
+                crs,
+                np.nan,
+                descriptions=["NMAD of the pair heights about their median"],
+                units=["metre"],
+                overwrite=overwrite,
+                creation_options=creation_options,
+            )
             return out
+
         return write_files
 
     def write(self, path, *, overwrite=False, creation_options=None) -> dict:
@@ -349,7 +398,9 @@ class FusedDEM:
         return self.prepare_write(path, overwrite=overwrite, creation_options=creation_options)()
 
 
-def fuse_dems(dems, sigmas, *, method: str = "weighted", k: float = REJECT_K, grid: MapGrid | None = None) -> FusedDEM:
+def fuse_dems(
+    dems, sigmas, *, method: str = "weighted", k: float = REJECT_K, grid: MapGrid | None = None
+) -> FusedDEM:
     """Fuse pair DEMs cell by cell (see the module docstring).
 
     Parameters
@@ -382,13 +433,13 @@ def fuse_dems(dems, sigmas, *, method: str = "weighted", k: float = REJECT_K, gr
     valid = np.isfinite(H)
     n_valid = valid.sum(axis=0)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)             # all-NaN cells
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN cells
         med = np.nanmedian(H, axis=0)
     dev = np.abs(H - med)
     nmad = np.where(n_valid >= 2, nmad_of(H, axis=0), np.nan).astype(np.float32)
     tol = k * np.maximum(sig, np.nan_to_num(nmad, nan=0.0)[None])
     keep = valid & (dev <= tol)
-    w = np.where(keep, 1.0 / sig ** 2, 0.0).astype(np.float32)
+    w = np.where(keep, 1.0 / sig**2, 0.0).astype(np.float32)
     sw = w.sum(axis=0)
     count = keep.sum(axis=0).astype(np.int32)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -410,10 +461,24 @@ def fuse_dems(dems, sigmas, *, method: str = "weighted", k: float = REJECT_K, gr
     for p in range(len(dems)):
         both = valid[p] & np.isfinite(fused)
         d = (H[p] - fused)[both]
-        stats.append(dict(sigma_m=round(float(sigmas[p]), 4), cells=int(valid[p].sum()),
-                          kept=int(keep[p].sum()), rejected=int((valid[p] & ~keep[p]).sum()),
-                          median_vs_fused_m=round(float(np.median(d)), 4) if d.size else None,
-                          nmad_vs_fused_m=round(nmad_of(d), 4) if d.size else None))
-    dem = DEM(fused, grid.transform, grid.crs, dems[0].vertical, count=count,
-              score=score.astype(np.float32), ray_gap=gap.astype(np.float32), sigma=sigma.astype(np.float32))
+        stats.append(
+            dict(
+                sigma_m=round(float(sigmas[p]), 4),
+                cells=int(valid[p].sum()),
+                kept=int(keep[p].sum()),
+                rejected=int((valid[p] & ~keep[p]).sum()),
+                median_vs_fused_m=round(float(np.median(d)), 4) if d.size else None,
+                nmad_vs_fused_m=round(nmad_of(d), 4) if d.size else None,
+            )
+        )
+    dem = DEM(
+        fused,
+        grid.transform,
+        grid.crs,
+        dems[0].vertical,
+        count=count,
+        score=score.astype(np.float32),
+        ray_gap=gap.astype(np.float32),
+        sigma=sigma.astype(np.float32),
+    )
     return FusedDEM(dem, nmad, method, stats)

@@ -16,6 +16,7 @@ accumulated into cells of a regular grid with ``np.bincount``:
 Heights are ellipsoidal unless EGM96 geoid heights are requested. The grid uses the GDAL
 pixel-corner affine transform; cell ``[i, j]`` has its centre at ``transform * (j + 0.5, i + 0.5)``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -29,14 +30,26 @@ from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid, OnGrid, as_crs
 from stereodem.stereo.settings import GRIDDING_METHODS
 
-__all__ = ["GridSpec", "CellSums", "SUM_LAYERS", "accumulate", "finish", "grid_points",
-           "grid_bounds"]
+__all__ = [
+    "GridSpec",
+    "CellSums",
+    "SUM_LAYERS",
+    "accumulate",
+    "finish",
+    "grid_points",
+    "grid_bounds",
+]
+
 
 def grid_bounds(x, y, posting):
     """Bounds ``(xmin, ymin, xmax, ymax)`` of the points snapped outward to multiples of ``posting``."""
     x, y = np.asarray(x), np.asarray(y)
-    return (np.floor(np.nanmin(x) / posting) * posting, np.floor(np.nanmin(y) / posting) * posting,
-            np.ceil(np.nanmax(x) / posting) * posting, np.ceil(np.nanmax(y) / posting) * posting)
+    return (
+        np.floor(np.nanmin(x) / posting) * posting,
+        np.floor(np.nanmin(y) / posting) * posting,
+        np.ceil(np.nanmax(x) / posting) * posting,
+        np.ceil(np.nanmax(y) / posting) * posting,
+    )
 
 
 def _density_sigma(fi, fj, rows, cols, posting):
@@ -82,7 +95,9 @@ class GridSpec(OnGrid):
         crs = as_crs(crs)
         method = options.get("method", "gaussian")
         if method not in GRIDDING_METHODS:
-            raise InputError(f"unknown gridding method {method!r} ({' or '.join(GRIDDING_METHODS)})")
+            raise InputError(
+                f"unknown gridding method {method!r} ({' or '.join(GRIDDING_METHODS)})"
+            )
         xmin, ymin, xmax, ymax = (float(b) for b in bounds)
         cols = max(1, int(round((xmax - xmin) / posting)))
         rows = max(1, int(round((ymax - ymin) / posting)))
@@ -113,7 +128,7 @@ class CellSums:
         """Add these sums into ``total`` (``(len(SUM_LAYERS), rows, cols)``, the whole lattice)."""
         _, h, w = self.sums.shape
         if h and w:
-            total[:, self.row0:self.row0 + h, self.col0:self.col0 + w] += self.sums
+            total[:, self.row0 : self.row0 + h, self.col0 : self.col0 + w] += self.sums
 
 
 def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None) -> CellSums:
@@ -145,8 +160,14 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
         offsets, sig, radius = [(0, 0)], None, 0
     else:
         sig = float(spec.sigma) if spec.sigma else _density_sigma(fi, fj, rows, cols, posting)
-        radius = spec.radius if spec.radius is not None else max(1, int(np.ceil(2.0 * sig / posting - 1e-9)))
-        offsets = [(di, dj) for di in range(-radius, radius + 1) for dj in range(-radius, radius + 1)]
+        radius = (
+            spec.radius
+            if spec.radius is not None
+            else max(1, int(np.ceil(2.0 * sig / posting - 1e-9)))
+        )
+        offsets = [
+            (di, dj) for di in range(-radius, radius + 1) for dj in range(-radius, radius + 1)
+        ]
     i0, j0 = np.rint(fi).astype(np.int64), np.rint(fj).astype(np.int64)
     # the window: the points' cells plus the support, clipped to the lattice
     r0, r1 = max(int(i0.min()) - radius, 0), min(int(i0.max()) + radius + 1, rows)
@@ -159,14 +180,14 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
     sok, gok = np.isfinite(score), np.isfinite(ray_gap)
     all_sok, all_gok = bool(sok.all()), bool(gok.all())
     score, ray_gap = np.where(sok, score, 0.0), np.where(gok, ray_gap, 0.0)
-    base = (i0 - r0) * wc + (j0 - c0)            # cell index of each point in the window
+    base = (i0 - r0) * wc + (j0 - c0)  # cell index of each point in the window
     lo_i, hi_i, lo_j, hi_j = int(i0.min()), int(i0.max()), int(j0.min()), int(j0.max())
-    if sig is not None:                          # squared offsets along each axis, shared
+    if sig is not None:  # squared offsets along each axis, shared
         dsq_i = {di: ((i0 + di) - fi) ** 2 for di in range(-radius, radius + 1)}
         dsq_j = {dj: ((j0 + dj) - fj) ** 2 for dj in range(-radius, radius + 1)}
-    for di, dj in offsets:                      # a handful of neighbour offsets
+    for di, dj in offsets:  # a handful of neighbour offsets
         if r0 <= lo_i + di and hi_i + di < r1 and c0 <= lo_j + dj and hi_j + dj < c1:
-            sel = slice(None)                    # every point's cell is in the window
+            sel = slice(None)  # every point's cell is in the window
         else:
             i, j = i0 + di, j0 + dj
             sel = (i >= r0) & (i < r1) & (j >= c0) & (j < c1)
@@ -176,9 +197,9 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
             # exp(-0.5 r2 / sig^2), r2 = (dsq_i + dsq_j) posting^2: the same operations in
             # the same order, in place
             w = dsq_i[di] + dsq_j[dj] if isinstance(sel, slice) else (dsq_i[di] + dsq_j[dj])[sel]
-            w *= posting ** 2
+            w *= posting**2
             w *= -0.5
-            w /= sig ** 2
+            w /= sig**2
             np.exp(w, out=w)
         idx = (base + (di * wc + dj))[sel]
         bw = np.bincount(idx, w, ncell)
@@ -223,19 +244,38 @@ def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False) -> DEM:
         rows_ok = np.flatnonzero(t[0].any(axis=1))
         cols_ok = np.flatnonzero(t[0].any(axis=0))
         if rows_ok.size:
-            t = t[:, rows_ok[0]:rows_ok[-1] + 1, cols_ok[0]:cols_ok[-1] + 1]
+            t = t[:, rows_ok[0] : rows_ok[-1] + 1, cols_ok[0] : cols_ok[-1] + 1]
             transform = transform @ Affine.translation(int(cols_ok[0]), int(rows_ok[0]))
     with np.errstate(invalid="ignore", divide="ignore"):
         height = np.where(t[0] > 0, t[1] / t[0], np.nan)
         sc = np.where(t[3] > 0, t[4] / t[3], np.nan)
         gp = np.where(t[5] > 0, t[6] / t[5], np.nan)
-    return DEM(height.astype(np.float32), transform, spec.crs, GEOID if spec.geoid else ELLIPSOID,
-               count=t[2].astype(np.int32), score=sc.astype(np.float32), ray_gap=gp.astype(np.float32))
+    return DEM(
+        height.astype(np.float32),
+        transform,
+        spec.crs,
+        GEOID if spec.geoid else ELLIPSOID,
+        count=t[2].astype(np.int32),
+        score=sc.astype(np.float32),
+        ray_gap=gp.astype(np.float32),
+    )
 
 
-def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=None, ray_gap=None,
-                method: str = "mean", sigma: float | None = None, radius: int | None = None,
-                geoid: bool = False) -> DEM:
+def grid_points(
+    lon,
+    lat,
+    h,
+    *,
+    posting: float,
+    crs=None,
+    bounds=None,
+    score=None,
+    ray_gap=None,
+    method: str = "mean",
+    sigma: float | None = None,
+    radius: int | None = None,
+    geoid: bool = False,
+) -> DEM:
     """Grid ground points into a DEM.
 
     Parameters
@@ -282,8 +322,9 @@ def grid_points(lon, lat, h, *, posting: float, crs=None, bounds=None, score=Non
         if not ok.any():
             raise InputError("no valid point to grid and no bounds given")
         bounds = grid_bounds(x[ok], y[ok], posting)
-    spec = GridSpec.from_bounds(bounds, posting, crs, method=method, sigma=sigma, radius=radius,
-                                geoid=geoid)
+    spec = GridSpec.from_bounds(
+        bounds, posting, crs, method=method, sigma=sigma, radius=radius, geoid=geoid
+    )
     cells = accumulate(spec, lon, lat, h, score=score, ray_gap=ray_gap, xy=(x, y))
     total = np.zeros((len(SUM_LAYERS),) + tuple(spec.shape))
     cells.add_to(total)

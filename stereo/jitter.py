@@ -19,6 +19,7 @@ resampled to the nominal geometry through the roll-corrected model
 (:func:`resample_to_model`, the same correction in image space) with the nominal model (plus
 any pitch correction), while the returned corrected model describes the original right image.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -47,8 +48,9 @@ log = logging.getLogger(__name__)
 AXES = ("pitch", "roll")
 
 
-def probe_tiles(left_model, right_model, settings: StereoSettings, height_range, *,
-                tiles_across: int = 2):
+def probe_tiles(
+    left_model, right_model, settings: StereoSettings, height_range, *, tiles_across: int = 2
+):
     """The tiles of the pair's tile plan in the ``tiles_across`` tile columns nearest the
     middle of the overlap: they cover the whole track (jitter is a function of time, i.e.
     of the image row) at a fraction of the cost of all tiles."""
@@ -58,7 +60,7 @@ def probe_tiles(left_model, right_model, settings: StereoSettings, height_range,
     cols = np.array(sorted({t.bounds[0] for t in tiles}), float)
     mid = 0.5 * (min(t.bounds[0] for t in tiles) + max(t.bounds[2] for t in tiles))
     centres = {c: c + 0.5 * settings.rectification.tile_size for c in cols}
-    keep = sorted(cols, key=lambda c: abs(centres[c] - mid))[:max(1, int(tiles_across))]
+    keep = sorted(cols, key=lambda c: abs(centres[c] - mid))[: max(1, int(tiles_across))]
     return [t for t in tiles if t.bounds[0] in keep]
 
 
@@ -75,6 +77,7 @@ def refine_offsets(left, right, disparity, vertical, *, window: int = 9, iterati
     no data or the system is singular).
     """
     import cv2
+
     f32 = np.float32
     h, w = left.shape
     k = (int(window), int(window))
@@ -113,10 +116,22 @@ def refine_offsets(left, right, disparity, vertical, *, window: int = 9, iterati
     return dd, dv
 
 
-def measure_vertical_parallax(left_image, right_image, left_model, right_model, settings,
-                              height_range, *, seed_dem=None, vertical_search: int = 2,
-                              tiles_across: int = 2, stride: int = 4, n_heights: int = 5,
-                              sensitivity_points: int = 200, seed: int = 0):
+def measure_vertical_parallax(
+    left_image,
+    right_image,
+    left_model,
+    right_model,
+    settings,
+    height_range,
+    *,
+    seed_dem=None,
+    vertical_search: int = 2,
+    tiles_across: int = 2,
+    stride: int = 4,
+    n_heights: int = 5,
+    sensitivity_points: int = 200,
+    seed: int = 0,
+):
     """Residual vertical parallax of dense matches along the track.
 
     Each probe tile (:func:`probe_tiles`) is rectified (height range from ``seed_dem`` under
@@ -133,16 +148,27 @@ def measure_vertical_parallax(left_image, right_image, left_model, right_model, 
     (per-tile summaries).
     """
     from stereodem.stereo.match import match_rectified
+
     rect = settings.rectification
-    inputs = PairInputs(left_image, right_image, left_model, right_model, tuple(height_range),
-                        seed_dem=seed_dem)
+    inputs = PairInputs(
+        left_image, right_image, left_model, right_model, tuple(height_range), seed_dem=seed_dem
+    )
     rng = np.random.default_rng(seed)
     out = {k: [] for k in ("time", "cross_px", "sensitivity_px_per_rad", "col_right", "row_right")}
     summaries = []
-    for tile in probe_tiles(left_model, right_model, settings, height_range, tiles_across=tiles_across):
+    for tile in probe_tiles(
+        left_model, right_model, settings, height_range, tiles_across=tiles_across
+    ):
         hr = tile_height_range(tile, inputs, rect.height_margin)
-        et = epipolar.rectify_tile(left_model, right_model, tile, hr, halo=rect.halo,
-                                   method=rect.method, disparity_margin=rect.disparity_margin)
+        et = epipolar.rectify_tile(
+            left_model,
+            right_model,
+            tile,
+            hr,
+            halo=rect.halo,
+            method=rect.method,
+            disparity_margin=rect.disparity_margin,
+        )
         lr, rr = et.rectify(left_image, right_image)
         if not (np.isfinite(lr).any() and np.isfinite(rr).any()):
             continue
@@ -167,20 +193,27 @@ def measure_vertical_parallax(left_image, right_image, left_model, right_model, 
             continue
         heights = np.linspace(hr[0], hr[1], n_heights)
         curves = epipolar_curves(left_model, right_model, c1, r1, heights)
-        cross, _, h, normal, _ = distance_to_curves(np.stack([c2, r2], -1), curves, heights,
-                                                    extend=1e6)
+        cross, _, h, normal, _ = distance_to_curves(
+            np.stack([c2, r2], -1), curves, heights, extend=1e6
+        )
         pick = rng.choice(c1.size, min(sensitivity_points, c1.size), replace=False)
         lon, lat = left_model.localize(c1[pick], r1[pick], h[pick])
-        sens = float(np.nanmedian(cross_track_sensitivity(right_model, lon, lat, h[pick],
-                                                          normal[pick])))
+        sens = float(
+            np.nanmedian(cross_track_sensitivity(right_model, lon, lat, h[pick], normal[pick]))
+        )
         out["time"].append(np.asarray(right_model.line_time(r2), float))
         out["cross_px"].append(cross)
         out["sensitivity_px_per_rad"].append(np.full(cross.size, sens))
         out["col_right"].append(c2)
         out["row_right"].append(r2)
-        summaries.append(dict(tile=list(tile.bounds), n=int(cross.size),
-                              median_cross_px=float(np.nanmedian(cross)),
-                              sensitivity_px_per_rad=sens))
+        summaries.append(
+            dict(
+                tile=list(tile.bounds),
+                n=int(cross.size),
+                median_cross_px=float(np.nanmedian(cross)),
+                sensitivity_px_per_rad=sens,
+            )
+        )
     if not summaries:
         raise InputError("jitter: no probe tile gave vertical-parallax matches")
     res = {k: np.concatenate(v) for k, v in out.items()}
@@ -188,8 +221,7 @@ def measure_vertical_parallax(left_image, right_image, left_model, right_model, 
     return res
 
 
-def resample_to_model(image, model, actual, height: float, *, row_step: int = 4,
-                      n_cols: int = 11):
+def resample_to_model(image, model, actual, height: float, *, row_step: int = 4, n_cols: int = 11):
     """``image`` (taken by the camera ``actual``, e.g. a jitter-corrected model) resampled to
     the geometry of ``model`` (the nominal one): output pixel ``(c, r)`` is the ground point
     ``model`` sees there (at ``height``) as ``actual`` sees it.
@@ -204,6 +236,7 @@ def resample_to_model(image, model, actual, height: float, *, row_step: int = 4,
     ``height``.
     """
     import cv2
+
     h_img, w_img = image.shape
     rows = np.r_[np.arange(0, h_img - 1, row_step), h_img - 1].astype(float)
     cols = np.linspace(0, w_img - 1, n_cols)
@@ -214,11 +247,11 @@ def resample_to_model(image, model, actual, height: float, *, row_step: int = 4,
     mc = np.interp(np.arange(w_img), cols, np.arange(n_cols)).astype(np.float32)
     mr = np.interp(np.arange(h_img), rows, np.arange(rows.size)).astype(np.float32)
     from scipy import ndimage
+
     src = np.asarray(image, np.float32)
     void = ~np.isfinite(src)
     fill = float(np.mean(src, where=~void)) if (~void).any() else 0.0
-    coef = ndimage.spline_filter(np.where(void, np.float32(fill), src), order=3,
-                                 output=np.float32)
+    coef = ndimage.spline_filter(np.where(void, np.float32(fill), src), order=3, output=np.float32)
     void_f = void.astype(np.float32)
     out = np.empty((h_img, w_img), np.float32)
     for r0 in range(0, h_img, 512):
@@ -226,24 +259,45 @@ def resample_to_model(image, model, actual, height: float, *, row_step: int = 4,
         gc, gr = np.meshgrid(mc, mr[r0:r1])
         dc = cv2.remap(grid[0], gc, gr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         dr = cv2.remap(grid[1], gc, gr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        pc, pr = np.meshgrid(np.arange(w_img, dtype=np.float32), np.arange(r0, r1, dtype=np.float32))
+        pc, pr = np.meshgrid(
+            np.arange(w_img, dtype=np.float32), np.arange(r0, r1, dtype=np.float32)
+        )
         pc += dc
         pr += dr
-        blk = ndimage.map_coordinates(coef, [pr, pc], order=3, prefilter=False,
-                                      output=np.float32, mode="nearest")
+        blk = ndimage.map_coordinates(
+            coef, [pr, pc], order=3, prefilter=False, output=np.float32, mode="nearest"
+        )
         outside = (pc < -0.5) | (pc > w_img - 0.5) | (pr < -0.5) | (pr > h_img - 0.5)
         if void.any():
-            outside |= cv2.remap(void_f, pc, pr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                 borderValue=1.0) > 0
+            outside |= (
+                cv2.remap(
+                    void_f,
+                    pc,
+                    pr,
+                    cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=1.0,
+                )
+                > 0
+            )
         blk[outside] = np.nan
         out[r0:r1] = blk
     return out
 
 
-
-def correct_roll_jitter(left_image, right_image, left_model, right_model, settings, dem, *,
-                        n_sines: int = 1, f_range=(0.2, 8.0), vertical_search: int = 2,
-                        rounds: int = 2):
+def correct_roll_jitter(
+    left_image,
+    right_image,
+    left_model,
+    right_model,
+    settings,
+    dem,
+    *,
+    n_sines: int = 1,
+    f_range=(0.2, 8.0),
+    vertical_search: int = 2,
+    rounds: int = 2,
+):
     """Roll jitter of ``right_model`` from the residual vertical parallax, corrected.
 
     ``dem`` (a first stereo DEM, ellipsoidal) guides the rectification of the probe tiles.
@@ -258,36 +312,72 @@ def correct_roll_jitter(left_image, right_image, left_model, right_model, settin
     """
     lo, hi = (float(np.nanpercentile(dem.heights, p)) for p in (0.5, 99.5))
     from stereodem.sensor.estimation.jitter import add_series, fit_at_frequencies, roll_profile
+
     model, total, rounds_info = right_model, None, []
     period = 8 * abs(float(right_model.line_period))
     for _ in range(max(1, int(rounds))):
-        vp = measure_vertical_parallax(left_image, right_image, left_model, model, settings,
-                                       (lo, hi), seed_dem=dem, vertical_search=vertical_search)
-        if total is None:                 # periodogram + non-linear fit of the tones
-            fit, _ = estimate_roll_jitter(vp["time"], vp["cross_px"], vp["sensitivity_px_per_rad"],
-                                          n_sines=n_sines, f_range=f_range, bin_seconds=period)
+        vp = measure_vertical_parallax(
+            left_image,
+            right_image,
+            left_model,
+            model,
+            settings,
+            (lo, hi),
+            seed_dem=dem,
+            vertical_search=vertical_search,
+        )
+        if total is None:  # periodogram + non-linear fit of the tones
+            fit, _ = estimate_roll_jitter(
+                vp["time"],
+                vp["cross_px"],
+                vp["sensitivity_px_per_rad"],
+                n_sines=n_sines,
+                f_range=f_range,
+                bin_seconds=period,
+            )
             total = fit
-        else:                             # later rounds: what is left, at the same frequencies
-            t, roll, _ = roll_profile(vp["time"], vp["cross_px"], vp["sensitivity_px_per_rad"],
-                                      bin_seconds=period)
+        else:  # later rounds: what is left, at the same frequencies
+            t, roll, _ = roll_profile(
+                vp["time"], vp["cross_px"], vp["sensitivity_px_per_rad"], bin_seconds=period
+            )
             fit = fit_at_frequencies(t, roll, total.frequencies, t_ref=total.t_ref)
             total = add_series(total, fit)
         model = with_attitude_sines(right_model, total, axis="roll")
-        rounds_info.append(dict(n_matches=int(vp["cross_px"].size),
-                                cross_px_nmad=nmad(vp["cross_px"]),
-                                amplitudes_rad=fit.amplitudes.tolist(),
-                                frequencies_hz=fit.frequencies.tolist()))
+        rounds_info.append(
+            dict(
+                n_matches=int(vp["cross_px"].size),
+                cross_px_nmad=nmad(vp["cross_px"]),
+                amplitudes_rad=fit.amplitudes.tolist(),
+                frequencies_hz=fit.frequencies.tolist(),
+            )
+        )
     corrected = model
-    info = {**total.to_dict(), "rounds": rounds_info,
-            "sensitivity_px_per_rad": float(np.median(vp["sensitivity_px_per_rad"]))}
+    info = {
+        **total.to_dict(),
+        "rounds": rounds_info,
+        "sensitivity_px_per_rad": float(np.median(vp["sensitivity_px_per_rad"])),
+    }
     return corrected, total, info
 
 
-def dem_with_jitter_correction(left_image, right_image, left_model, right_model, reference=None,
-                               settings: StereoSettings | None = None, *, seed_dem=None,
-                               n_sines: int = 1, f_range=(0.2, 8.0), runner=None,
-                               axes=("pitch",), vertical_search: int = 2, roll_rounds: int = 2,
-                               left_dtype=None, right_dtype=None):
+def dem_with_jitter_correction(
+    left_image,
+    right_image,
+    left_model,
+    right_model,
+    reference=None,
+    settings: StereoSettings | None = None,
+    *,
+    seed_dem=None,
+    n_sines: int = 1,
+    f_range=(0.2, 8.0),
+    runner=None,
+    axes=("pitch",),
+    vertical_search: int = 2,
+    roll_rounds: int = 2,
+    left_dtype=None,
+    right_dtype=None,
+):
     """``(products, corrected_right_model, fits, first_products)``; ``runner`` as
     :func:`~stereodem.stereo.pipeline.make_dem`'s. ``corrected_right_model`` describes the
     given right image (nominal model plus the fitted attitude oscillations).
@@ -311,38 +401,65 @@ def dem_with_jitter_correction(left_image, right_image, left_model, right_model,
     ref = as_dem(reference) if reference is not None else None
     seed = seed_dem if seed_dem is not None or settings.rectification.height_range else ref
     first_settings = dataclasses.replace(
-        settings, gridding=dataclasses.replace(settings.gridding, geoid=False))
-    checked = check_pair(left_image, right_image, left_model, right_model,
-                         settings.rectification.height_range,
-                         as_dem(seed) if seed is not None else None, left_dtype, right_dtype)
+        settings, gridding=dataclasses.replace(settings.gridding, geoid=False)
+    )
+    checked = check_pair(
+        left_image,
+        right_image,
+        left_model,
+        right_model,
+        settings.rectification.height_range,
+        as_dem(seed) if seed is not None else None,
+        left_dtype,
+        right_dtype,
+    )
     left_image, right_image = checked.left, checked.right
-    first = dem_of_checked_pair(left_image, right_image, left_model, right_model, first_settings,
-                                seed_dem=seed, runner=runner)
+    first = dem_of_checked_pair(
+        left_image,
+        right_image,
+        left_model,
+        right_model,
+        first_settings,
+        seed_dem=seed,
+        runner=runner,
+    )
     d0 = first.dem
-    if d0.vertical != ELLIPSOID:          # pragma: no cover - geoid=False above
+    if d0.vertical != ELLIPSOID:  # pragma: no cover - geoid=False above
         raise AssertionError("first DEM must be ellipsoidal")
     corrected, fits, info = right_model, {}, {}
     right_for_dem, model_for_dem = right_image, right_model
     if "roll" in axes:
         corrected, fit, info["roll"] = correct_roll_jitter(
-            left_image, right_image, left_model, right_model, settings, d0, n_sines=n_sines,
-            f_range=f_range, vertical_search=vertical_search, rounds=roll_rounds)
+            left_image,
+            right_image,
+            left_model,
+            right_model,
+            settings,
+            d0,
+            n_sines=n_sines,
+            f_range=f_range,
+            vertical_search=vertical_search,
+            rounds=roll_rounds,
+        )
         fits["roll"] = fit
         # the rerun's tiles are rectified by one homography each, which cannot follow an
         # oscillation of the epipolar geometry within a tile: the right image is resampled to
         # the nominal geometry through the corrected model instead (the same correction, in
         # image space), so that the rectified tiles carry no vertical parallax
-        right_for_dem = resample_to_model(right_image, right_model, corrected,
-                                          float(np.nanmedian(d0.heights)))
+        right_for_dem = resample_to_model(
+            right_image, right_model, corrected, float(np.nanmedian(d0.heights))
+        )
     if "pitch" in axes:
-        fit, diag = estimate_pitch_jitter(d0, ref, left_model, right_model, n_sines=n_sines,
-                                          f_range=f_range)
+        fit, diag = estimate_pitch_jitter(
+            d0, ref, left_model, right_model, n_sines=n_sines, f_range=f_range
+        )
         corrected = with_attitude_sines(corrected, fit, axis="pitch")
         model_for_dem = with_attitude_sines(right_model, fit, axis="pitch")
         fits["pitch"] = fit
         info["pitch"] = {**fit.to_dict(), "sensitivity_m_per_rad": diag["sensitivity_m_per_rad"]}
-    final = dem_of_checked_pair(left_image, right_for_dem, left_model, model_for_dem, settings,
-                                seed_dem=seed, runner=runner)
+    final = dem_of_checked_pair(
+        left_image, right_for_dem, left_model, model_for_dem, settings, seed_dem=seed, runner=runner
+    )
     final.info.jitter = info
     checked.report(final)
     return final, corrected, fits, first

@@ -25,6 +25,7 @@ Two matchers share one interface, :func:`match_rectified`:
 
 NaN in the inputs marks no-data: a window touching no-data gives no match.
 """
+
 from __future__ import annotations
 
 import functools
@@ -71,6 +72,7 @@ class MatchResult(NamedTuple):
 
 # ----------------------------------------------------------------------------- helpers
 
+
 def _as_image(a, name):
     a = np.asarray(a)
     if a.ndim != 2:
@@ -90,7 +92,7 @@ def _finite_sample(arrays, n):
         size = sum(f.size for f in flats)
         step = size // n if size > n else 1
         parts, start = [], 0
-        for f in flats:                 # v[::step] of the concatenation, piece by piece
+        for f in flats:  # v[::step] of the concatenation, piece by piece
             parts.append(f[start::step])
             start = (start - f.size) % step
         return np.concatenate(parts) if len(parts) > 1 else parts[0]
@@ -107,7 +109,7 @@ def _robust_range(a):
 class _Stats(NamedTuple):
     zero: np.ndarray  # image with NaN -> 0
     mean: np.ndarray  # window mean
-    inv: np.ndarray   # 1 / window std; NaN where invalid (no-data, no texture)
+    inv: np.ndarray  # 1 / window std; NaN where invalid (no-data, no texture)
 
 
 def _window_stats(img, window, min_std):
@@ -121,7 +123,7 @@ def _window_stats(img, window, min_std):
     img = np.asarray(img, dtype=F32)
     nan = ~np.isfinite(img)
     has_nan = bool(nan.any())
-    if has_nan:                 # NaN -> 0 (a copy and a masked fill: a third of np.where)
+    if has_nan:  # NaN -> 0 (a copy and a masked fill: a third of np.where)
         zero = img.copy()
         np.copyto(zero, F32(0), where=nan)
     else:
@@ -131,11 +133,12 @@ def _window_stats(img, window, min_std):
     tmp = np.multiply(zero, zero)
     var = cv2.boxFilter(tmp, cv2.CV_32F, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
     np.multiply(mean, mean, out=tmp)
-    np.subtract(var, tmp, out=var)                            # E[x^2] - E[x]^2
+    np.subtract(var, tmp, out=var)  # E[x^2] - E[x]^2
     bad = var < F32(min_std) ** 2
-    if has_nan:                 # a NaN in the window: a dilation of the NaN mask (outside = 0)
-        bad |= cv2.dilate(nan.view(np.uint8), np.ones(k, np.uint8),
-                          borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
+    if has_nan:  # a NaN in the window: a dilation of the NaN mask (outside = 0)
+        bad |= cv2.dilate(
+            nan.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0
+        ).view(bool)
     h = window // 2
     bad[:h] = True
     bad[-h:] = True
@@ -168,11 +171,23 @@ def _warp_cols(a, seed):
     map_y = np.broadcast_to(np.arange(h, dtype=F32)[:, None], (h, w))
     nan = ~np.isfinite(a)
     src = np.where(nan, F32(0), a) if nan.any() else a
-    out = cv2.remap(src, map_x, np.ascontiguousarray(map_y), cv2.INTER_CUBIC,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    out = cv2.remap(
+        src,
+        map_x,
+        np.ascontiguousarray(map_y),
+        cv2.INTER_CUBIC,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=np.nan,
+    )
     if nan.any():
-        bad = cv2.remap(nan.astype(F32), map_x, np.ascontiguousarray(map_y),
-                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+        bad = cv2.remap(
+            nan.astype(F32),
+            map_x,
+            np.ascontiguousarray(map_y),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=1.0,
+        )
         out[cv2.dilate((bad > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0] = np.nan
     # outside the image
     out[(map_x < 0) | (map_x > w - 1)] = np.nan
@@ -216,10 +231,10 @@ def _subpixel(c0, cm, cp, method):
 
 
 class _Scan(NamedTuple):
-    score: np.ndarray   # best ZNCC (-inf where none)
-    k: np.ndarray       # offset of the best (int32)
-    cm: np.ndarray      # ZNCC at k - 1
-    cp: np.ndarray      # ZNCC at k + 1
+    score: np.ndarray  # best ZNCC (-inf where none)
+    k: np.ndarray  # offset of the best (int32)
+    cm: np.ndarray  # ZNCC at k - 1
+    cp: np.ndarray  # ZNCC at k + 1
     back_score: np.ndarray | None
     back_k: np.ndarray | None
 
@@ -236,7 +251,7 @@ def _scan(ref, tgt, klo, khi, window, min_std, back=False):
     pl = max(khi + 1, 0)
     pr = max(1 - klo, 0)
     padded = np.full((h, w + pl + pr), np.nan, dtype=F32)
-    padded[:, pl:pl + w] = tgt
+    padded[:, pl : pl + w] = tgt
     t = _window_stats(padded, window, min_std)
     # columns of tgt's border are not windows leaving tgt: re-validate them by the NaN pad
     r = ref
@@ -261,8 +276,9 @@ def _scan(ref, tgt, klo, khi, window, min_std, back=False):
     for k in range(klo - 1, khi + 2):
         sl = slice(pl - k, pl - k + w)
         cv2.multiply(r.zero, t.zero[:, sl], dst=prod)
-        cv2.boxFilter(prod, cv2.CV_32F, ksize, dst=boxed, normalize=True,
-                      borderType=cv2.BORDER_CONSTANT)
+        cv2.boxFilter(
+            prod, cv2.CV_32F, ksize, dst=boxed, normalize=True, borderType=cv2.BORDER_CONSTANT
+        )
         np.multiply(r.mean, t.mean[:, sl], out=tmp)
         np.subtract(boxed, tmp, out=c)
         np.multiply(c, r.inv, out=c)
@@ -279,9 +295,9 @@ def _scan(ref, tgt, klo, khi, window, min_std, back=False):
             if back:
                 # tgt pixel xt = x - k is matched by ref pixel x = xt + k
                 if k >= 0:
-                    cs, bs = c[:, k:], np.s_[:, :w - k]
+                    cs, bs = c[:, k:], np.s_[:, : w - k]
                 else:
-                    cs, bs = c[:, :w + k], np.s_[:, -k:]
+                    cs, bs = c[:, : w + k], np.s_[:, -k:]
                 bb = bbest[bs]
                 m = bupd[bs]
                 np.greater(cs, bb, out=m)
@@ -306,15 +322,16 @@ def _fill_rows(d):
     if holes.size == 0 or holes.size == flat.size:
         return out.reshape(h, w)
     brk = np.flatnonzero(np.diff(holes) != 1)
-    starts = np.concatenate([[0], brk + 1])                  # first hole of each run
-    ends = np.concatenate([brk, [holes.size - 1]])           # last hole of each run
+    starts = np.concatenate([[0], brk + 1])  # first hole of each run
+    ends = np.concatenate([brk, [holes.size - 1]])  # last hole of each run
     run = np.repeat(np.arange(starts.size), ends - starts + 1)
-    li = holes[starts][run] - 1                              # the valid cell before the run
-    ri = holes[ends][run] + 1                                # ... and after it
+    li = holes[starts][run] - 1  # the valid cell before the run
+    ri = holes[ends][run] + 1  # ... and after it
     row = holes // w
     left = np.where((li >= 0) & (li // w == row), flat[np.maximum(li, 0)], np.nan)
-    right = np.where((ri < flat.size) & (ri // w == row), flat[np.minimum(ri, flat.size - 1)],
-                     np.nan)
+    right = np.where(
+        (ri < flat.size) & (ri // w == row), flat[np.minimum(ri, flat.size - 1)], np.nan
+    )
     with np.errstate(invalid="ignore"):
         out[holes] = np.fmin(left, right)
     return out.reshape(h, w)
@@ -362,7 +379,7 @@ def _rounded_seed(d, offset=False):
         med = cv2.medianBlur(r, 5)
         return (0.0, med) if offset else med
     small = np.subtract(r, F32(lo), out=r).astype(np.uint8)
-    med = cv2.medianBlur(small, 5)            # the median minus ``lo``
+    med = cv2.medianBlur(small, 5)  # the median minus ``lo``
     return (lo, med) if offset else np.add(med, F32(lo), dtype=F32)
 
 
@@ -402,8 +419,14 @@ def _match_pass(ref, tgt, seed, klo, khi, window, min_std, subpixel, vertical, b
             back_res = (s.back_score, s.back_k)
             continue
         better = s.score > best.score
-        best = _Scan(*(np.where(better, new, old) if new is not None else old
-                       for new, old in zip(s[:4], best[:4])), None, None)
+        best = _Scan(
+            *(
+                np.where(better, new, old) if new is not None else old
+                for new, old in zip(s[:4], best[:4])
+            ),
+            None,
+            None,
+        )
         best_dy[better] = dy
     score = best.score
     found = np.isfinite(score)
@@ -438,7 +461,7 @@ def _match_pass(ref, tgt, seed, klo, khi, window, min_std, subpixel, vertical, b
 def _auto_levels(lo, hi, shape):
     levels = 0
     span = hi - lo
-    while span / 2 ** levels > 24 and min(shape) / 2 ** (levels + 1) >= 48 and levels < 6:
+    while span / 2**levels > 24 and min(shape) / 2 ** (levels + 1) >= 48 and levels < 6:
         levels += 1
     return levels
 
@@ -458,25 +481,53 @@ def _forward_seed(seed_left, w):
 
 # ----------------------------------------------------------------------------- ncc
 
-def _match_ncc(left, right, lo, hi, range_maps, *, window, min_score, min_std, lr_tolerance,
-               subpixel, levels, margin, vertical_search):
+
+def _match_ncc(
+    left,
+    right,
+    lo,
+    hi,
+    range_maps,
+    *,
+    window,
+    min_score,
+    min_std,
+    lr_tolerance,
+    subpixel,
+    levels,
+    margin,
+    vertical_search,
+):
     h, w = left.shape
     flip = np.s_[:, ::-1]
 
     def both_ways(L, R, seedL, seedR, klo, khi, vert):
         """Left and right disparity maps at one level (right by flipping the pair)."""
         if seedL is None:
-            dL, sL, vL, dR = _match_pass(L, R, None, klo, khi, window, min_std, subpixel,
-                                         vert, back=vert == 0)
+            dL, sL, vL, dR = _match_pass(
+                L, R, None, klo, khi, window, min_std, subpixel, vert, back=vert == 0
+            )
             if dR is None:  # with vertical search the back map is computed separately
-                dRf, _, _, _ = _match_pass(R[flip], L[flip], None, klo, khi, window,
-                                           min_std, subpixel, vert)
+                dRf, _, _, _ = _match_pass(
+                    R[flip], L[flip], None, klo, khi, window, min_std, subpixel, vert
+                )
                 dR = dRf[flip]
             return dL, sL, vL, dR
         outs = []
         for ref, tgt, seed in ((L, R, seedL), (R[flip], L[flip], seedR[flip])):
-            outs.append(_match_pass(ref, tgt, np.ascontiguousarray(seed, dtype=F32), klo, khi,
-                                    window, min_std, subpixel, vert))
+            outs.append(
+                _match_pass(
+                    ref,
+                    tgt,
+                    np.ascontiguousarray(seed, dtype=F32),
+                    klo,
+                    khi,
+                    window,
+                    min_std,
+                    subpixel,
+                    vert,
+                )
+            )
         (dL, sL, vL, _), (dRf, _, _, _) = outs
         return dL, sL, vL, np.ascontiguousarray(dRf[flip])
 
@@ -495,12 +546,12 @@ def _match_ncc(left, right, lo, hi, range_maps, *, window, min_score, min_std, l
             levels = _auto_levels(lo, hi, left.shape)
         pl = build_pyramid(left, levels)
         pr = build_pyramid(right, levels)
-        f = 2 ** levels
+        f = 2**levels
         clo, chi = math.floor(lo / f), math.ceil(hi / f)
         seedL = seedR = None
         for lev in range(levels, -1, -1):
             L, R = pl[lev], pr[lev]
-            vert = math.ceil(vertical_search / 2 ** lev)
+            vert = math.ceil(vertical_search / 2**lev)
             if seedL is None:
                 dL, sL, vL, dR = both_ways(L, R, None, None, clo, chi, vert)
             else:
@@ -510,9 +561,8 @@ def _match_ncc(left, right, lo, hi, range_maps, *, window, min_score, min_std, l
             if lev > 0:
                 okL = _lr_check(dL, dR, max(lr_tolerance, 1.0))
                 okR = _lr_check(dR[flip], dL[flip], max(lr_tolerance, 1.0))[flip]
-                fb = 0.5 * (lo + hi) / 2 ** lev
-                seedL = _fill_seed(np.where(okL & (sL >= min(min_score, 0.3)), dL, np.nan),
-                                   fb)
+                fb = 0.5 * (lo + hi) / 2**lev
+                seedL = _fill_seed(np.where(okL & (sL >= min(min_score, 0.3)), dL, np.nan), fb)
                 seedR = _fill_seed(np.where(okR, dR, np.nan), fb)
     valid = np.isfinite(dL)
     if lr_tolerance is not None:
@@ -535,6 +585,7 @@ def _match_ncc(left, right, lo, hi, range_maps, *, window, min_score, min_std, l
 
 # ----------------------------------------------------------------------------- sgm
 
+
 def _to_uint8(left, right, executor=None):
     """Joint 1-99 % percentile stretch of both images to uint8 (NaN -> 0).
 
@@ -549,16 +600,16 @@ def _to_uint8(left, right, executor=None):
         # by blocks of rows through one small float64 buffer that stays in cache
         step = max(1, 32768 // max(a.shape[1], 1))
         buf = np.empty((step, a.shape[1]), np.float64)
-        with np.errstate(invalid="ignore"):           # NaN (no-data): set just below
+        with np.errstate(invalid="ignore"):  # NaN (no-data): set just below
             for r in range(0, a.shape[0], step):
-                blk = buf[:min(step, a.shape[0] - r)]
-                np.subtract(a[r:r + step], lo, out=blk)
+                blk = buf[: min(step, a.shape[0] - r)]
+                np.subtract(a[r : r + step], lo, out=blk)
                 np.multiply(blk, scale, out=blk)
                 np.add(blk, 0.5, out=blk)
                 np.clip(blk, 0, 255, out=blk)
-                np.copyto(b[r:r + step], blk, casting="unsafe")
+                np.copyto(b[r : r + step], blk, casting="unsafe")
         nan = np.isnan(a)
-        if nan.any():          # no-data takes the value of ``lo`` (as float32, like the image)
+        if nan.any():  # no-data takes the value of ``lo`` (as float32, like the image)
             b[nan] = np.uint8(np.clip((a.dtype.type(lo) - lo) * scale + 0.5, 0, 255))
         return b
 
@@ -568,13 +619,30 @@ def _to_uint8(left, right, executor=None):
     return conv(left), conv(right)
 
 
-_SGBM_MODES = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-               "hh": cv2.STEREO_SGBM_MODE_HH, "hh4": cv2.STEREO_SGBM_MODE_HH4}
+_SGBM_MODES = {
+    "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
+    "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    "hh": cv2.STEREO_SGBM_MODE_HH,
+    "hh4": cv2.STEREO_SGBM_MODE_HH4,
+}
 
 
-def _sgbm(left8, right8, lo, hi, *, block_size=5, p1=None, p2=None, lr_tolerance=1,
-          uniqueness=10, speckle_window=100, speckle_range=2, pre_filter_cap=63,
-          mode="sgbm"):
+def _sgbm(
+    left8,
+    right8,
+    lo,
+    hi,
+    *,
+    block_size=5,
+    p1=None,
+    p2=None,
+    lr_tolerance=1,
+    uniqueness=10,
+    speckle_window=100,
+    speckle_range=2,
+    pre_filter_cap=63,
+    mode="sgbm",
+):
     """Run ``cv2.StereoSGBM`` on uint8 images for ``lo..hi``; float32 disparity, NaN invalid.
 
     The pair is padded on the left by the largest positive and on the right by the largest
@@ -589,14 +657,20 @@ def _sgbm(left8, right8, lo, hi, *, block_size=5, p1=None, p2=None, lr_tolerance
         right8 = cv2.copyMakeBorder(right8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)
     b2 = block_size * block_size
     sgbm = cv2.StereoSGBM_create(
-        minDisparity=int(lo), numDisparities=nd, blockSize=block_size,
-        P1=int(p1 if p1 is not None else 8 * b2), P2=int(p2 if p2 is not None else 32 * b2),
+        minDisparity=int(lo),
+        numDisparities=nd,
+        blockSize=block_size,
+        P1=int(p1 if p1 is not None else 8 * b2),
+        P2=int(p2 if p2 is not None else 32 * b2),
         disp12MaxDiff=-1 if lr_tolerance is None else int(max(1, round(lr_tolerance))),
-        preFilterCap=pre_filter_cap, uniquenessRatio=uniqueness,
-        speckleWindowSize=speckle_window, speckleRange=speckle_range,
-        mode=_SGBM_MODES[mode])
+        preFilterCap=pre_filter_cap,
+        uniquenessRatio=uniqueness,
+        speckleWindowSize=speckle_window,
+        speckleRange=speckle_range,
+        mode=_SGBM_MODES[mode],
+    )
     raw = sgbm.compute(left8, right8)
-    raw = raw[:, padl:raw.shape[1] - padr]
+    raw = raw[:, padl : raw.shape[1] - padr]
     disp = raw.astype(F32) / F32(16.0)
     disp[raw < lo * 16] = np.nan
     return disp
@@ -638,8 +712,8 @@ def _row_map(h, w):
 class _LeftWindows(NamedTuple):
     """What the score layer needs of the left image alone (computable before the disparity)."""
 
-    off: np.float32      # the image's mean (centring constant)
-    stats: _Stats        # window statistics of ``left - off``
+    off: np.float32  # the image's mean (centring constant)
+    stats: _Stats  # window statistics of ``left - off``
     window: int
 
 
@@ -662,8 +736,14 @@ def _zncc_warped(a: _LeftWindows, right, disparity):
     # right(x - seed(x), y): an exact gather (integer coordinates, nearest neighbour), NaN
     # outside the image; the map is built in the seed's own buffer
     map_x = _seed_columns(d, w)
-    warped = cv2.remap(right, map_x, _row_map(h, w), cv2.INTER_NEAREST,
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    warped = cv2.remap(
+        right,
+        map_x,
+        _row_map(h, w),
+        cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=np.nan,
+    )
     np.subtract(warped, a.off, out=warped, dtype=F32)
     b = _window_stats(warped, a.window, 0.0)
     ksize = (a.window, a.window)
@@ -680,10 +760,28 @@ def _zncc_warped(a: _LeftWindows, right, disparity):
 
 # ----------------------------------------------------------------------------- public
 
-def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_score=None,
-                    min_std=None, lr_tolerance=1.0, subpixel="parabola", levels=None,
-                    margin=2, vertical_search=0, sgm_mode="sgbm", sgm_p1=None, sgm_p2=None,
-                    sgm_uniqueness=10, sgm_speckle_window=100, sgm_speckle_range=2):
+
+def match_rectified(
+    left,
+    right,
+    disp_range,
+    matcher="ncc",
+    *,
+    window=None,
+    min_score=None,
+    min_std=None,
+    lr_tolerance=1.0,
+    subpixel="parabola",
+    levels=None,
+    margin=2,
+    vertical_search=0,
+    sgm_mode="sgbm",
+    sgm_p1=None,
+    sgm_p2=None,
+    sgm_uniqueness=10,
+    sgm_speckle_window=100,
+    sgm_speckle_range=2,
+):
     """Dense disparity of a rectified pair (rows correspond).
 
     Parameters
@@ -744,7 +842,9 @@ def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_
     if left.shape != right.shape:
         raise InputError(f"left/right: shapes differ, {left.shape} vs {right.shape}")
     if matcher not in MATCHERS:
-        raise InputError(f"matcher: unknown {matcher!r}, expected {' or '.join(map(repr, MATCHERS))}")
+        raise InputError(
+            f"matcher: unknown {matcher!r}, expected {' or '.join(map(repr, MATCHERS))}"
+        )
     if subpixel not in ("parabola", "vfit"):
         raise InputError(f"subpixel: unknown {subpixel!r}, expected 'parabola' or 'vfit'")
     if window is None:
@@ -771,12 +871,16 @@ def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_
         lo, hi = int(math.floor(np.nanmin(a))), int(math.ceil(np.nanmax(b)))
     if hi < lo:
         raise InputError(f"disp_range: empty range ({disp_range[0]}, {disp_range[1]})")
-    if min_std is None and matcher == "ncc":       # the texture mask is "ncc"'s only
+    if min_std is None and matcher == "ncc":  # the texture mask is "ncc"'s only
         p2, p98 = _robust_range(left)
         min_std = 0.01 * (p98 - p2)
-    info = {"matcher": matcher, "window": window, "disp_range": (lo, hi),
-            "lr_tolerance": lr_tolerance,
-            "min_std": None if min_std is None else float(min_std)}
+    info = {
+        "matcher": matcher,
+        "window": window,
+        "disp_range": (lo, hi),
+        "lr_tolerance": lr_tolerance,
+        "min_std": None if min_std is None else float(min_std),
+    }
 
     if matcher == "ncc":
         if min_score is None:
@@ -784,11 +888,27 @@ def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_
         # centring by one constant keeps ZNCC exact and float32 sums well conditioned
         off = F32(np.nanmean(left))
         disp, score, vert, extra = _match_ncc(
-            left - off, right - off, lo, hi, range_maps, window=window, min_score=min_score,
-            min_std=min_std, lr_tolerance=lr_tolerance, subpixel=subpixel, levels=levels,
-            margin=int(margin), vertical_search=vertical_search)
-        info.update(extra, subpixel=subpixel, min_score=min_score, margin=int(margin),
-                    vertical_search=vertical_search)
+            left - off,
+            right - off,
+            lo,
+            hi,
+            range_maps,
+            window=window,
+            min_score=min_score,
+            min_std=min_std,
+            lr_tolerance=lr_tolerance,
+            subpixel=subpixel,
+            levels=levels,
+            margin=int(margin),
+            vertical_search=vertical_search,
+        )
+        info.update(
+            extra,
+            subpixel=subpixel,
+            min_score=min_score,
+            margin=int(margin),
+            vertical_search=vertical_search,
+        )
         return MatchResult(disp, score, vert, info)
 
     score_window = max(window, 7)
@@ -800,27 +920,50 @@ def match_rectified(left, right, disp_range, matcher="ncc", *, window=None, min_
         masks = None
         if nan_l.any() or nan_r.any():
             k = (window, window)
-            masks = (cv2.boxFilter(nan_l.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5,
-                     cv2.boxFilter(nan_r.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5)
+            masks = (
+                cv2.boxFilter(nan_l.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5,
+                cv2.boxFilter(nan_r.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5,
+            )
         return masks, _zncc_left(left, score_window)
 
     overlap = cv2.getNumThreads() > 1 and sgm_mode == "sgbm"
     if overlap:
         from concurrent.futures import ThreadPoolExecutor
+
         with ThreadPoolExecutor(1, thread_name_prefix="stereodem-sgm") as ex:
             l8, r8 = _to_uint8(left, right, ex)
             pending = ex.submit(before_disparity)
-            disp = _sgbm(l8, r8, lo, hi, block_size=window, p1=sgm_p1, p2=sgm_p2,
-                         lr_tolerance=lr_tolerance, uniqueness=sgm_uniqueness,
-                         speckle_window=sgm_speckle_window, speckle_range=sgm_speckle_range,
-                         mode=sgm_mode)
+            disp = _sgbm(
+                l8,
+                r8,
+                lo,
+                hi,
+                block_size=window,
+                p1=sgm_p1,
+                p2=sgm_p2,
+                lr_tolerance=lr_tolerance,
+                uniqueness=sgm_uniqueness,
+                speckle_window=sgm_speckle_window,
+                speckle_range=sgm_speckle_range,
+                mode=sgm_mode,
+            )
             masks, left_windows = pending.result()
     else:
         l8, r8 = _to_uint8(left, right)
-        disp = _sgbm(l8, r8, lo, hi, block_size=window, p1=sgm_p1, p2=sgm_p2,
-                     lr_tolerance=lr_tolerance, uniqueness=sgm_uniqueness,
-                     speckle_window=sgm_speckle_window, speckle_range=sgm_speckle_range,
-                     mode=sgm_mode)
+        disp = _sgbm(
+            l8,
+            r8,
+            lo,
+            hi,
+            block_size=window,
+            p1=sgm_p1,
+            p2=sgm_p2,
+            lr_tolerance=lr_tolerance,
+            uniqueness=sgm_uniqueness,
+            speckle_window=sgm_speckle_window,
+            speckle_range=sgm_speckle_range,
+            mode=sgm_mode,
+        )
         masks, left_windows = before_disparity()
     # no-data: the block around the left pixel or around its match touches NaN
     if masks is not None:

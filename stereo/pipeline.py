@@ -18,6 +18,7 @@ added into the DEM. Per tile:
    exact models (:func:`stereodem.sensor.geo.intersect.intersect_matches`); points whose rays miss
    each other by more than the maximum ray gap are dropped.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -50,8 +51,15 @@ from .tiling import Tile
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PairInputs", "TilePoints", "TileResult", "DEMProducts", "make_dem", "process_tile",
-           "tile_points"]
+__all__ = [
+    "PairInputs",
+    "TilePoints",
+    "TileResult",
+    "DEMProducts",
+    "make_dem",
+    "process_tile",
+    "tile_points",
+]
 
 
 @dataclass
@@ -68,8 +76,8 @@ class PairInputs:
     max_ray_gap: float = np.inf
     lattice: GridSpec | None = None
     seed_margin: float | None = None
-    points_dir: str | None = None      # tiles also write their points here (point clouds)
-    pair_id: int = 0                   # the pair's index in the points (source_pair)
+    points_dir: str | None = None  # tiles also write their points here (point clouds)
+    pair_id: int = 0  # the pair's index in the points (source_pair)
 
 
 @dataclass
@@ -97,8 +105,11 @@ class TileResult:
         """Plain arrays (cacheable with ``np.savez``, no pickle): the cell sums, their window
         origin and point count, the QA summary as JSON."""
         c = self.cells
-        return dict(sums=c.sums, origin=np.array([c.row0, c.col0, c.n_points], np.int64),
-                    summary=np.array(json.dumps(self.summary, default=json_default)))
+        return dict(
+            sums=c.sums,
+            origin=np.array([c.row0, c.col0, c.n_points], np.int64),
+            summary=np.array(json.dumps(self.summary, default=json_default)),
+        )
 
     @classmethod
     def from_arrays(cls, arrays) -> TileResult:
@@ -177,11 +188,16 @@ class DEMProducts:
     def write(self, directory, *, overwrite=False, creation_options=None, tags=None):
         """Write ``dem.tif``, ``score.tif``, ``count.tif``, ``raygap.tif`` in ``directory``
         (``tags``: dataset tags of ``dem.tif``); returns ``{"dem": path, "count": path, ...}``."""
-        return self.dem.prepare_write(Path(directory) / "dem.tif", overwrite=overwrite,
-                                      creation_options=creation_options, tags=tags)()
+        return self.dem.prepare_write(
+            Path(directory) / "dem.tif",
+            overwrite=overwrite,
+            creation_options=creation_options,
+            tags=tags,
+        )()
 
 
 # ----------------------------------------------------------------------------- one tile
+
 
 def process_tile(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> TileResult:
     """Rectify, match, intersect and grid one tile (:func:`tile_points`, then the points'
@@ -194,10 +210,23 @@ def process_tile(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Ti
     pts = tile_points(tile, inputs, settings)
     if inputs.points_dir is not None:
         from .pointcloud import save_tile_points
-        save_tile_points(inputs.points_dir, tile.index, pts.lon, pts.lat, pts.h, pts.score, pts.ray_gap,
-                         crs=inputs.lattice.grid.crs, geoid=inputs.lattice.geoid, pair=inputs.pair_id)
+
+        save_tile_points(
+            inputs.points_dir,
+            tile.index,
+            pts.lon,
+            pts.lat,
+            pts.h,
+            pts.score,
+            pts.ray_gap,
+            crs=inputs.lattice.grid.crs,
+            geoid=inputs.lattice.geoid,
+            pair=inputs.pair_id,
+        )
     t0 = time.perf_counter()
-    cells = accumulate(inputs.lattice, pts.lon, pts.lat, pts.h, score=pts.score, ray_gap=pts.ray_gap)
+    cells = accumulate(
+        inputs.lattice, pts.lon, pts.lat, pts.h, score=pts.score, ray_gap=pts.ray_gap
+    )
     if isinstance(pts.summary.get("seconds"), dict):
         pts.summary["seconds"]["grid"] = time.perf_counter() - t0
     return TileResult(cells, pts.summary)
@@ -211,8 +240,9 @@ def tile_points(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Til
     rect, ref = settings.rectification, settings.refinement
     L, R = inputs.left_model, inputs.right_model
     hr = tile_height_range(tile, inputs, rect.height_margin)
-    et = epipolar.rectify_tile(L, R, tile, hr, halo=rect.halo, method=rect.method,
-                               disparity_margin=rect.disparity_margin)
+    et = epipolar.rectify_tile(
+        L, R, tile, hr, halo=rect.halo, method=rect.method, disparity_margin=rect.disparity_margin
+    )
     left_r, right_r = et.rectify(inputs.left_image, inputs.right_image)
     t1 = time.perf_counter()
     summary = et.summary()
@@ -220,12 +250,19 @@ def tile_points(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Til
     if not (np.isfinite(left_r).any() and np.isfinite(right_r).any()):
         summary.update(n_matched=0, n_points=0, seconds=time.perf_counter() - t0)
         return TilePoints(empty, empty, empty, empty, empty, summary)
-    m = match_rectified(left_r, right_r, et.disparity_range, settings.matching.matcher,
-                        **settings.matching.options)
+    m = match_rectified(
+        left_r, right_r, et.disparity_range, settings.matching.matcher, **settings.matching.options
+    )
     disparity, score_map, vertical = m.disparity, m.score, m.vertical
     if ref.enabled and vertical is None:
-        d_ref, s_ref, gain = refine_disparity(left_r, right_r, disparity, sigma=ref.sigma,
-                                              window=ref.window, detail_gain=ref.detail_gain)
+        d_ref, s_ref, gain = refine_disparity(
+            left_r,
+            right_r,
+            disparity,
+            sigma=ref.sigma,
+            window=ref.window,
+            detail_gain=ref.detail_gain,
+        )
         summary["refine_detail_gain"] = gain
         good = np.isfinite(d_ref)
         if ref.min_score is not None:
@@ -253,21 +290,27 @@ def tile_points(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Til
     ok &= (pts.h >= hr[0] - rect.height_margin) & (pts.h <= hr[1] + rect.height_margin)
     t3 = time.perf_counter()
     pile = height_pileup(pts.h[ok], hr)
-    summary.update(n_matched=int(keep.sum()), n_points=int(ok.sum()), height_range=list(hr),
-                   n_at_low_bound=int(round(pile["low_share"] * pile["n"])),
-                   n_at_high_bound=int(round(pile["high_share"] * pile["n"])),
-                   valid_fraction=float(ok.sum() / max(tile.size, 1)),
-                   median_ray_gap_m=float(np.median(pts.ray_gap[ok])) if ok.any() else float("nan"),
-                   seconds=dict(rectify=t1 - t0, match=t2 - t1, intersect=t3 - t2))
+    summary.update(
+        n_matched=int(keep.sum()),
+        n_points=int(ok.sum()),
+        height_range=list(hr),
+        n_at_low_bound=int(round(pile["low_share"] * pile["n"])),
+        n_at_high_bound=int(round(pile["high_share"] * pile["n"])),
+        valid_fraction=float(ok.sum() / max(tile.size, 1)),
+        median_ray_gap_m=float(np.median(pts.ray_gap[ok])) if ok.any() else float("nan"),
+        seconds=dict(rectify=t1 - t0, match=t2 - t1, intersect=t3 - t2),
+    )
     return TilePoints(pts.lon[ok], pts.lat[ok], pts.h[ok], score[ok], pts.ray_gap[ok], summary)
 
 
 # ----------------------------------------------------------------------------- the workflow
 
+
 def default_posting(gsd: float, crs) -> float:
     """Default DEM posting: twice the GSD (``gsd`` in metres), in the units of ``crs`` (for
     a geographic CRS, degrees of latitude: metres / 111 320 m)."""
     from pyproj import CRS
+
     posting = float(f"{2.0 * gsd:.2g}")
     crs = CRS.from_user_input(crs)
     if crs.is_geographic:
@@ -280,17 +323,32 @@ def check_lattice(bounds, posting: float):
     """:class:`InputError` when the DEM lattice of ``bounds`` at ``posting`` cannot be held:
     its cell sums (``len(SUM_LAYERS)`` float64 layers) exceed the available memory."""
     from stereodem.core.memory import check_allocation
+
     cols = (bounds[2] - bounds[0]) / posting
     rows = (bounds[3] - bounds[1]) / posting
     nbytes = 8.0 * len(SUM_LAYERS) * max(cols, 0) * max(rows, 0)
-    check_allocation(nbytes, f"a DEM lattice of {cols:.3g} x {rows:.3g} cells at posting {posting:g} "
-                             "(choose a coarser --res)", fraction=0.5)
+    check_allocation(
+        nbytes,
+        f"a DEM lattice of {cols:.3g} x {rows:.3g} cells at posting {posting:g} "
+        "(choose a coarser --res)",
+        fraction=0.5,
+    )
 
 
-def make_dem(left_image, right_image, left_model, right_model, settings: StereoSettings | None = None,
-             *, seed_dem: DEM | None = None, progress: Callable[[int, int, dict], None] | None = None,
-             runner: Callable | None = None, left_dtype=None, right_dtype=None,
-             points_dir=None) -> DEMProducts:
+def make_dem(
+    left_image,
+    right_image,
+    left_model,
+    right_model,
+    settings: StereoSettings | None = None,
+    *,
+    seed_dem: DEM | None = None,
+    progress: Callable[[int, int, dict], None] | None = None,
+    runner: Callable | None = None,
+    left_dtype=None,
+    right_dtype=None,
+    points_dir=None,
+) -> DEMProducts:
     """Stereo DEM from two images and their sensor models.
 
     The inputs are checked first as ``stereodem dem`` checks them
@@ -337,17 +395,42 @@ def make_dem(left_image, right_image, left_model, right_model, settings: StereoS
     """
     settings = settings or StereoSettings()
     seed = as_dem(seed_dem) if seed_dem is not None else None
-    checked = check_pair(left_image, right_image, left_model, right_model,
-                         settings.rectification.height_range, seed, left_dtype, right_dtype)
-    products = dem_of_checked_pair(checked.left, checked.right, left_model, right_model, settings,
-                                   seed_dem=seed, progress=progress, runner=runner,
-                                   points_dir=points_dir)
+    checked = check_pair(
+        left_image,
+        right_image,
+        left_model,
+        right_model,
+        settings.rectification.height_range,
+        seed,
+        left_dtype,
+        right_dtype,
+    )
+    products = dem_of_checked_pair(
+        checked.left,
+        checked.right,
+        left_model,
+        right_model,
+        settings,
+        seed_dem=seed,
+        progress=progress,
+        runner=runner,
+        points_dir=points_dir,
+    )
     return checked.report(products)
 
 
-def dem_of_checked_pair(left_image, right_image, left_model, right_model, settings: StereoSettings,
-                        *, seed_dem: DEM | None = None, progress=None, runner=None,
-                        points_dir=None) -> DEMProducts:
+def dem_of_checked_pair(
+    left_image,
+    right_image,
+    left_model,
+    right_model,
+    settings: StereoSettings,
+    *,
+    seed_dem: DEM | None = None,
+    progress=None,
+    runner=None,
+    points_dir=None,
+) -> DEMProducts:
     """:func:`make_dem` after :func:`~stereodem.stereo.sanity.check_pair` (for callers that
     make several DEMs of one checked pair, as the jitter correction does)."""
     rect, gs = settings.rectification, settings.gridding
@@ -371,25 +454,44 @@ def dem_of_checked_pair(left_image, right_image, left_model, right_model, settin
     posting = gs.res or default_posting(gsd, crs)
     # 2. overlap, tiles and the output lattice
     tiles = plan_tiles(left_model, right_model, rect, height_range)
-    log.info("stereo DEM: %d tile(s) of ~%d px, heights %.0f..%.0f m, matcher %s, posting %.3g",
-             len(tiles), rect.tile_size, height_range[0], height_range[1], settings.matching.matcher, posting)
+    log.info(
+        "stereo DEM: %d tile(s) of ~%d px, heights %.0f..%.0f m, matcher %s, posting %.3g",
+        len(tiles),
+        rect.tile_size,
+        height_range[0],
+        height_range[1],
+        settings.matching.matcher,
+        posting,
+    )
     bounds = gs.bounds
     if bounds is None:
         bounds = footprint_bounds(left_model, tiles, height_range, posting, crs)
     check_lattice(bounds, posting)
-    spec = GridSpec.from_bounds(bounds, posting, crs, method=gs.method, sigma=gs.gaussian_sigma,
-                                geoid=gs.geoid)
-    inputs = PairInputs(left_image, right_image, left_model, right_model, height_range, seed,
-                        max_gap, spec, seed_margin,
-                        points_dir=str(points_dir) if points_dir is not None else None)
+    spec = GridSpec.from_bounds(
+        bounds, posting, crs, method=gs.method, sigma=gs.gaussian_sigma, geoid=gs.geoid
+    )
+    inputs = PairInputs(
+        left_image,
+        right_image,
+        left_model,
+        right_model,
+        height_range,
+        seed,
+        max_gap,
+        spec,
+        seed_margin,
+        points_dir=str(points_dir) if points_dir is not None else None,
+    )
     # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask)
     if runner is None:
+
         def serial():
             for k, tile in enumerate(tiles, start=1):
                 res = process_tile(tile, inputs, settings)
                 if progress is not None:
                     progress(k, len(tiles), res.summary)
                 yield res
+
         results = serial()
     else:
         results = runner(process_tile, tiles, inputs, settings)
@@ -399,8 +501,13 @@ def dem_of_checked_pair(left_image, right_image, left_model, right_model, settin
     summaries, n_points = [], 0
     for res in results:
         s = res.summary
-        log.info("tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
-                 s["tile"], s["residual_rms_px"], *s["disparity_range"], s["n_points"])
+        log.info(
+            "tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
+            s["tile"],
+            s["residual_rms_px"],
+            *s["disparity_range"],
+            s["n_points"],
+        )
         res.cells.add_to(total)
         n_points += int(res.cells.n_points)
         summaries.append(s)
@@ -412,22 +519,44 @@ def dem_of_checked_pair(left_image, right_image, left_model, right_model, settin
     seconds = time.perf_counter() - t_start
     rms = [s["residual_rms_px"] for s in summaries]
     pileup = _pileup(summaries, n_points)
-    info = StereoInfo(height_range=list(height_range), gsd_m=gsd, posting=posting, max_ray_gap_m=max_gap,
-                n_tiles=len(tiles), max_residual_rms_px=float(max(rms)) if rms else float("nan"),
-                valid_cells=float(np.isfinite(dem.heights).mean()),
-                pointing=(sparse.pointing.summary() if sparse is not None and sparse.pointing is not None
-                          else dict(kind="none")),
-                sparse=sparse.summary() if sparse is not None else None,
-                height_source=("sparse matches" if sparse is not None and sparse.terrain is not None
-                               else "seed DEM" if seed is not None else
-                               "height range" if rect.height_range is not None else "model validity range"),
-                      height_pileup=pileup, suspect=pileup["suspect"])
-    log.info("stereo DEM: %d points gridded to %dx%d cells in %.1f s", n_points,
-             dem.grid.width, dem.grid.height, seconds)
+    info = StereoInfo(
+        height_range=list(height_range),
+        gsd_m=gsd,
+        posting=posting,
+        max_ray_gap_m=max_gap,
+        n_tiles=len(tiles),
+        max_residual_rms_px=float(max(rms)) if rms else float("nan"),
+        valid_cells=float(np.isfinite(dem.heights).mean()),
+        pointing=(
+            sparse.pointing.summary()
+            if sparse is not None and sparse.pointing is not None
+            else dict(kind="none")
+        ),
+        sparse=sparse.summary() if sparse is not None else None,
+        height_source=(
+            "sparse matches"
+            if sparse is not None and sparse.terrain is not None
+            else "seed DEM"
+            if seed is not None
+            else "height range"
+            if rect.height_range is not None
+            else "model validity range"
+        ),
+        height_pileup=pileup,
+        suspect=pileup["suspect"],
+    )
+    log.info(
+        "stereo DEM: %d points gridded to %dx%d cells in %.1f s",
+        n_points,
+        dem.grid.width,
+        dem.grid.height,
+        seconds,
+    )
     return DEMProducts(dem, summaries, n_points, seconds, settings.summary(), info)
 
 
 # ----------------------------------------------------------------------------- helpers
+
 
 def _sparse_stage(left_image, right_image, left_model, right_model, rect, seed):
     """Run :func:`run_sparse_stage` when the run needs it (relative pointing, or heights when
@@ -440,17 +569,29 @@ def _sparse_stage(left_image, right_image, left_model, right_model, rect, seed):
     given = rect.height_range is not None or seed is not None
     check_range = pair_height_range(left_model, right_model, rect, seed) if given else None
     # overlap at any height of the search range first: a clear NoOverlapError, not "no match"
-    overlap_window(left_model, right_model, np.linspace(*(check_range or (lo, hi)), 5),
-                   step=max(8, min(left_model.width, left_model.height) // 16))
+    overlap_window(
+        left_model,
+        right_model,
+        np.linspace(*(check_range or (lo, hi)), 5),
+        step=max(8, min(left_model.width, left_model.height) // 16),
+    )
     try:
-        return run_sparse_stage(left_image, right_image, left_model, right_model, heights=auto,
-                                pointing=rect.pointing_correction, height_range=check_range,
-                                reference_dem=seed if rect.pointing_uses_seed else None,
-                                **rect.sparse_options)
+        return run_sparse_stage(
+            left_image,
+            right_image,
+            left_model,
+            right_model,
+            heights=auto,
+            pointing=rect.pointing_correction,
+            height_range=check_range,
+            reference_dem=seed if rect.pointing_uses_seed else None,
+            **rect.sparse_options,
+        )
     except SparseMatchError as exc:
         if auto:
-            raise SparseMatchError(f"{exc}; give a height range (--height-range) or a seed DEM "
-                                   f"(--seed-dem)") from None
+            raise SparseMatchError(
+                f"{exc}; give a height range (--height-range) or a seed DEM (--seed-dem)"
+            ) from None
         log.warning("%s: no relative pointing correction", exc)
         return None
 
@@ -464,7 +605,10 @@ def _pileup(summaries, n_points, *, max_share: float = 0.05) -> dict:
     n = max(n_points, 1)
     out = dict(low_share=low / n, high_share=high / n, suspect=bool(max(low, high) / n > max_share))
     if out["suspect"]:
-        log.warning("suspect DEM: %.1f%% of the heights lie at the lower and %.1f%% at the upper "
-                    "bound of their search range (a wrong height range, seed DEM or pointing?)",
-                    100 * out["low_share"], 100 * out["high_share"])
+        log.warning(
+            "suspect DEM: %.1f%% of the heights lie at the lower and %.1f%% at the upper "
+            "bound of their search range (a wrong height range, seed DEM or pointing?)",
+            100 * out["low_share"],
+            100 * out["high_share"],
+        )
     return out

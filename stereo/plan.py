@@ -1,6 +1,7 @@
 """Planning a stereo run: the height range, the overlap of the two images, the tiles of the
 left image and the ground extent they can see.
 """
+
 from __future__ import annotations
 
 import logging
@@ -17,8 +18,14 @@ from .tiling import Tile, renumber, tile_grid
 
 log = logging.getLogger(__name__)
 
-__all__ = ["pair_height_range", "overlap_window", "plan_tiles", "footprint_bounds",
-           "tile_height_range", "base_to_height"]
+__all__ = [
+    "pair_height_range",
+    "overlap_window",
+    "plan_tiles",
+    "footprint_bounds",
+    "tile_height_range",
+    "base_to_height",
+]
 
 
 def pair_height_range(left, right, settings: RectificationSettings, seed_dem=None):
@@ -32,20 +39,30 @@ def pair_height_range(left, right, settings: RectificationSettings, seed_dem=Non
         try:
             hmin, hmax = (float(v) for v in settings.height_range)
         except (TypeError, ValueError):
-            raise InputError(f"height range {settings.height_range!r}: expected two numbers") from None
+            raise InputError(
+                f"height range {settings.height_range!r}: expected two numbers"
+            ) from None
         if not (np.isfinite(hmin) and np.isfinite(hmax)) or hmax < hmin:
-            raise InputError(f"height range {hmin:g}..{hmax:g} m is unusable (need finite MIN <= MAX)")
+            raise InputError(
+                f"height range {hmin:g}..{hmax:g} m is unusable (need finite MIN <= MAX)"
+            )
         hmin, hmax = hmin - settings.height_margin, hmax + settings.height_margin
     elif seed_dem is not None:
         hmin, hmax = as_dem(seed_dem).height_range()
         hmin, hmax = hmin - settings.height_margin, hmax + settings.height_margin
     else:
         hmin, hmax = lo, hi
-        log.warning("no height range or seed DEM given: searching the models' whole height "
-                    "range %.0f..%.0f m (slow, more blunders)", hmin, hmax)
+        log.warning(
+            "no height range or seed DEM given: searching the models' whole height "
+            "range %.0f..%.0f m (slow, more blunders)",
+            hmin,
+            hmax,
+        )
     if hmax < lo or hmin > hi:
-        raise InputError(f"height range {hmin:g}..{hmax:g} m lies outside the sensor models' "
-                         f"validity range {lo:g}..{hi:g} m")
+        raise InputError(
+            f"height range {hmin:g}..{hmax:g} m lies outside the sensor models' "
+            f"validity range {lo:g}..{hi:g} m"
+        )
     return max(hmin, lo), min(hmax, hi)
 
 
@@ -70,19 +87,32 @@ def overlap_window(left, right, heights, *, step: int = 64):
         with np.errstate(invalid="ignore"):
             lon, lat = left.localize(cc.ravel(), rr.ravel(), hh)
             c2, r2 = right.project(lon, lat, hh)
-            ok |= (c2 >= -0.5) & (c2 <= right.width - 0.5) & (r2 >= -0.5) & (r2 <= right.height - 0.5)
+            ok |= (
+                (c2 >= -0.5) & (c2 <= right.width - 0.5) & (r2 >= -0.5) & (r2 <= right.height - 0.5)
+            )
     if not ok.any():
-        at = (f"at {heights[0]:.0f} m" if heights.size == 1 else
-              f"at any height {heights.min():.0f}..{heights.max():.0f} m")
-        raise NoOverlapError(f"the two images do not overlap (no left pixel, localised {at}, "
-                             f"projects into the right image)")
+        at = (
+            f"at {heights[0]:.0f} m"
+            if heights.size == 1
+            else f"at any height {heights.min():.0f}..{heights.max():.0f} m"
+        )
+        raise NoOverlapError(
+            f"the two images do not overlap (no left pixel, localised {at}, "
+            f"projects into the right image)"
+        )
     pc, pr = cc.ravel()[ok], rr.ravel()[ok]
-    window = (max(pc.min() - step, 0), max(pr.min() - step, 0),
-              min(pc.max() + step, w - 1), min(pr.max() + step, h - 1))
+    window = (
+        max(pc.min() - step, 0),
+        max(pr.min() - step, 0),
+        min(pc.max() + step, w - 1),
+        min(pr.max() + step, h - 1),
+    )
 
     def inside(tile: Tile) -> bool:
         c0, r0, c1, r1 = tile.bounds
-        return bool(np.any((pc >= c0 - step) & (pc <= c1 + step) & (pr >= r0 - step) & (pr <= r1 + step)))
+        return bool(
+            np.any((pc >= c0 - step) & (pc <= c1 + step) & (pr >= r0 - step) & (pr <= r1 + step))
+        )
 
     return tuple(int(v) for v in window), inside
 
@@ -107,8 +137,16 @@ def footprint_bounds(left, tiles, height_range, posting, crs, *, samples: int = 
     cs, rs = [], []
     for tile in tiles:
         c0, r0, c1, r1 = tile.bounds
-        cs.append(np.concatenate([c0 + (c1 - c0) * t, np.full(samples, c1), c1 - (c1 - c0) * t, np.full(samples, c0)]))
-        rs.append(np.concatenate([np.full(samples, r0), r0 + (r1 - r0) * t, np.full(samples, r1), r1 - (r1 - r0) * t]))
+        cs.append(
+            np.concatenate(
+                [c0 + (c1 - c0) * t, np.full(samples, c1), c1 - (c1 - c0) * t, np.full(samples, c0)]
+            )
+        )
+        rs.append(
+            np.concatenate(
+                [np.full(samples, r0), r0 + (r1 - r0) * t, np.full(samples, r1), r1 - (r1 - r0) * t]
+            )
+        )
     c, r = np.concatenate(cs), np.concatenate(rs)
     xs, ys = [], []
     for hh in height_range:
@@ -120,8 +158,12 @@ def footprint_bounds(left, tiles, height_range, posting, crs, *, samples: int = 
     if not (np.isfinite(x).any() and np.isfinite(y).any()):
         raise NoOverlapError("the left image's footprint does not map into the output CRS")
     pad = 2 * posting
-    return (np.floor((np.nanmin(x) - pad) / posting) * posting, np.floor((np.nanmin(y) - pad) / posting) * posting,
-            np.ceil((np.nanmax(x) + pad) / posting) * posting, np.ceil((np.nanmax(y) + pad) / posting) * posting)
+    return (
+        np.floor((np.nanmin(x) - pad) / posting) * posting,
+        np.floor((np.nanmin(y) - pad) / posting) * posting,
+        np.ceil((np.nanmax(x) + pad) / posting) * posting,
+        np.ceil((np.nanmax(y) + pad) / posting) * posting,
+    )
 
 
 def tile_height_range(tile: Tile, inputs, margin: float):
@@ -132,8 +174,9 @@ def tile_height_range(tile: Tile, inputs, margin: float):
         return inputs.height_range
     c0, r0, c1, r1 = tile.bounds
     cc, rr = np.meshgrid(np.linspace(c0, c1, 9), np.linspace(r0, r1, 9))
-    loc = inputs.left_model.localize_dem(cc.ravel(), rr.ravel(), inputs.seed_dem,
-                                         h0=0.5 * sum(inputs.height_range))
+    loc = inputs.left_model.localize_dem(
+        cc.ravel(), rr.ravel(), inputs.seed_dem, h0=0.5 * sum(inputs.height_range)
+    )
     hs = loc.h[np.isfinite(loc.h)]
     if hs.size < 0.5 * cc.size:
         return inputs.height_range
@@ -163,5 +206,7 @@ def base_to_height(left, right, h0: float, *, dh: float = 100.0, n: int = 5) -> 
     sep = np.linalg.norm(pl - pr, axis=0)
     sep = sep[np.isfinite(sep)]
     if not sep.size:
-        raise InputError("cannot measure the base of the pair: the models do not localise the left image")
+        raise InputError(
+            "cannot measure the base of the pair: the models do not localise the left image"
+        )
     return float(np.median(sep) / dh)

@@ -16,6 +16,7 @@ blunder filter or the border rim), and extra dimensions ``ray_gap`` (m), ``score
 (correlation), ``source_pair`` and ``edit_code`` (the ``post.filters`` edit-mask code of the
 point's DEM cell: 0 kept, 1–8 filter reason, 99 border rim).
 """
+
 from __future__ import annotations
 
 import logging
@@ -34,8 +35,12 @@ __all__ = ["FORMATS", "points_file", "save_tile_points", "write_las"]
 FORMATS = ("las", "laz")
 #: LAS classes (ASPRS): kept points, and points in cells a filter removed
 UNCLASSIFIED, NOISE = 1, 7
-_EXTRA = (("ray_gap", np.float32, "ray gap (m)"), ("score", np.float32, "matching score"),
-          ("source_pair", np.uint16, "stereo pair index"), ("edit_code", np.uint8, "DEM edit code"))
+_EXTRA = (
+    ("ray_gap", np.float32, "ray gap (m)"),
+    ("score", np.float32, "matching score"),
+    ("source_pair", np.uint16, "stereo pair index"),
+    ("edit_code", np.uint8, "DEM edit code"),
+)
 
 
 def points_file(folder, index: int) -> Path:
@@ -43,8 +48,9 @@ def points_file(folder, index: int) -> Path:
     return Path(folder) / f"points_{int(index):05d}.npz"
 
 
-def save_tile_points(folder, index: int, lon, lat, h, score, ray_gap, *, crs, geoid: bool = False,
-                     pair: int = 0) -> Path:
+def save_tile_points(
+    folder, index: int, lon, lat, h, score, ray_gap, *, crs, geoid: bool = False, pair: int = 0
+) -> Path:
     """Write one tile's points (lon/lat degrees, h metres above the ellipsoid) as x, y in
     ``crs`` and z in the DEM's vertical reference (``geoid``: EGM96), atomically."""
     lon, lat, h = (np.asarray(v, dtype=np.float64) for v in (lon, lat, h))
@@ -53,24 +59,34 @@ def save_tile_points(folder, index: int, lon, lat, h, score, ray_gap, *, crs, ge
     path = points_file(folder, index)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez(f, x=np.asarray(x, np.float64), y=np.asarray(y, np.float64), z=np.asarray(z, np.float64),
-                 score=np.asarray(score, np.float32), ray_gap=np.asarray(ray_gap, np.float32),
-                 pair=np.full(lon.shape, int(pair), np.uint16))
+        np.savez(
+            f,
+            x=np.asarray(x, np.float64),
+            y=np.asarray(y, np.float64),
+            z=np.asarray(z, np.float64),
+            score=np.asarray(score, np.float32),
+            ray_gap=np.asarray(ray_gap, np.float32),
+            pair=np.full(lon.shape, int(pair), np.uint16),
+        )
     return path
 
 
 def _laspy():
     try:
         import laspy
-    except ImportError:        # pragma: no cover - optional extra
-        raise InputError("point clouds need laspy and lazrs (pip install 'stereodem[pointcloud]')") from None
+    except ImportError:  # pragma: no cover - optional extra
+        raise InputError(
+            "point clouds need laspy and lazrs (pip install 'stereodem[pointcloud]')"
+        ) from None
     return laspy
 
 
 def _header(grid, vertical):
     laspy = _laspy()
     header = laspy.LasHeader(point_format=6, version="1.4")
-    header.add_extra_dims([laspy.ExtraBytesParams(name=n, type=t, description=d) for n, t, d in _EXTRA])
+    header.add_extra_dims(
+        [laspy.ExtraBytesParams(name=n, type=t, description=d) for n, t, d in _EXTRA]
+    )
     w, s, _, _ = grid.bounds
     xy_scale = 1e-8 if grid.crs.is_geographic else 1e-3
     header.scales = np.array([xy_scale, xy_scale, 1e-3])
@@ -80,8 +96,17 @@ def _header(grid, vertical):
     return header
 
 
-def write_las(path, folder, tile_indices, grid, *, vertical=None, edit_codes=None,
-              fmt: str | None = None, overwrite: bool = False) -> dict:
+def write_las(
+    path,
+    folder,
+    tile_indices,
+    grid,
+    *,
+    vertical=None,
+    edit_codes=None,
+    fmt: str | None = None,
+    overwrite: bool = False,
+) -> dict:
     """Merge the tiles' point files into one LAS/LAZ, one tile at a time.
 
     Parameters
@@ -143,8 +168,18 @@ def write_las(path, folder, tile_indices, grid, *, vertical=None, edit_codes=Non
                 writer.write_points(rec)
                 n_total += n
     if missing:
-        log.warning("%d tile(s) have no point file (cached by a run without a point cloud?): "
-                    "their points are missing from %s", len(missing), path)
-    return dict(path=str(path), format=fmt, n_points=n_total, missing_tiles=missing,
-                classes={"unclassified (kept)": classes[UNCLASSIFIED], "noise (filtered)": classes[NOISE]},
-                crs=grid.crs.to_string(), vertical=vertical)
+        log.warning(
+            "%d tile(s) have no point file (cached by a run without a point cloud?): "
+            "their points are missing from %s",
+            len(missing),
+            path,
+        )
+    return dict(
+        path=str(path),
+        format=fmt,
+        n_points=n_total,
+        missing_tiles=missing,
+        classes={"unclassified (kept)": classes[UNCLASSIFIED], "noise (filtered)": classes[NOISE]},
+        crs=grid.crs.to_string(),
+        vertical=vertical,
+    )

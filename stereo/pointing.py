@@ -19,6 +19,7 @@ Bayesian information criterion (BIC); the residual across the epipolar curves is
 through the models before and after the correction, and a warning is logged when its robust
 spread (NMAD) stays above ``warn_px`` (0.5 px).
 """
+
 from __future__ import annotations
 
 import logging
@@ -71,10 +72,16 @@ class PointingCorrection:
 
     def summary(self) -> dict:
         """Plain-dict record for reports (JSON-serialisable)."""
-        return dict(kind=self.kind, along_observed=self.along_observed, n_matches=self.n_matches,
-                    parameters={k: float(v) for k, v in self.parameters.items()},
-                    residual_before_px=self.before, residual_after_px=self.after,
-                    warning=self.warning, **self.info)
+        return dict(
+            kind=self.kind,
+            along_observed=self.along_observed,
+            n_matches=self.n_matches,
+            parameters={k: float(v) for k, v in self.parameters.items()},
+            residual_before_px=self.before,
+            residual_after_px=self.after,
+            warning=self.warning,
+            **self.info,
+        )
 
 
 def _stats(r):
@@ -82,8 +89,12 @@ def _stats(r):
     r = r[np.isfinite(r)]
     if r.size == 0:
         return dict(median=float("nan"), nmad=float("nan"), rms=float("nan"), p90_abs=float("nan"))
-    return dict(median=float(np.median(r)), nmad=_nmad(r), rms=float(np.sqrt(np.mean(r * r))),
-                p90_abs=float(np.percentile(np.abs(r), 90)))
+    return dict(
+        median=float(np.median(r)),
+        nmad=_nmad(r),
+        rms=float(np.sqrt(np.mean(r * r))),
+        p90_abs=float(np.percentile(np.abs(r), 90)),
+    )
 
 
 def cross_residuals(left, right, col1, row1, col2, row2, height_range, *, n_heights: int = 9):
@@ -118,15 +129,23 @@ def _robust_lstsq(A, y, tol_floor, iterations=5):
 def _bic_prefers_affine(res_t, res_a, n_extra):
     """BIC comparison of two nested least-squares fits on the same n points."""
     n = res_t.size
-    rss_t, rss_a = float(np.sum(res_t ** 2)), float(np.sum(res_a ** 2))
+    rss_t, rss_a = float(np.sum(res_t**2)), float(np.sum(res_a**2))
     if rss_a <= 0 or rss_t <= 0:
         return False
     return n * np.log(rss_t / rss_a) > n_extra * np.log(n)
 
 
-def relative_pointing(matches: SparseMatches, left, right, *, affine: str | bool = "auto",
-                      reference_dem=None, min_matches: int = 10, warn_px: float = 0.5,
-                      min_extent: float = 0.25) -> PointingCorrection:
+def relative_pointing(
+    matches: SparseMatches,
+    left,
+    right,
+    *,
+    affine: str | bool = "auto",
+    reference_dem=None,
+    min_matches: int = 10,
+    warn_px: float = 0.5,
+    min_extent: float = 0.25,
+) -> PointingCorrection:
     """Relative pointing correction of the right model from sparse matches.
 
     Parameters
@@ -152,11 +171,13 @@ def relative_pointing(matches: SparseMatches, left, right, *, affine: str | bool
     """
     n = len(matches)
     if n < min_matches:
-        raise SparseMatchError(f"relative pointing: only {n} sparse match(es) agree with the "
-                               f"models (need >= {min_matches})")
+        raise SparseMatchError(
+            f"relative pointing: only {n} sparse match(es) agree with the "
+            f"models (need >= {min_matches})"
+        )
     c2, r2 = matches.col2, matches.row2
     cm, rm = float(np.mean(c2)), float(np.mean(r2))
-    sc = max(right.width, right.height) / 2.0            # conditioning of the affine terms
+    sc = max(right.width, right.height) / 2.0  # conditioning of the affine terms
     u, v = (c2 - cm) / sc, (r2 - rm) / sc
     span_ok = (np.ptp(c2) >= min_extent * right.width) and (np.ptp(r2) >= min_extent * right.height)
     tol_floor = 0.3
@@ -164,27 +185,36 @@ def relative_pointing(matches: SparseMatches, left, right, *, affine: str | bool
     if reference_dem is None:
         nbar = np.mean(matches.normal, 0)
         nbar /= np.linalg.norm(nbar)
-        y = matches.cross                              # = n . (x2 - p), offset across the curves
+        y = matches.cross  # = n . (x2 - p), offset across the curves
         At = np.ones((n, 1))
         xt, keep_t = _robust_lstsq(At, y, tol_floor)
         Aa = np.stack([np.ones(n), u, v], -1)
         xa, keep_a = _robust_lstsq(Aa, y, tol_floor)
         both = keep_t & keep_a
-        use_affine = (affine is True) or (affine == "auto" and span_ok and n >= 30 and
-                                          _bic_prefers_affine(y[both] - At[both] @ xt,
-                                                              y[both] - Aa[both] @ xa, 2))
-        t, a_u, a_v = (xa if use_affine else np.array([xt[0], 0.0, 0.0]))
+        use_affine = (affine is True) or (
+            affine == "auto"
+            and span_ok
+            and n >= 30
+            and _bic_prefers_affine(y[both] - At[both] @ xt, y[both] - Aa[both] @ xa, 2)
+        )
+        t, a_u, a_v = xa if use_affine else np.array([xt[0], 0.0, 0.0])
         keep = keep_a if use_affine else keep_t
         # field across the curves: nbar * (t + a_u u + a_v v), back in pixel coordinates
         a_c, a_r = a_u / sc, a_v / sc
         s0 = t - a_c * cm - a_r * rm
-        params = dict(col_shift=nbar[0] * s0, row_shift=nbar[1] * s0,
-                      col_drift_col=nbar[0] * a_c, col_drift_row=nbar[0] * a_r,
-                      row_drift_col=nbar[1] * a_c, row_drift_row=nbar[1] * a_r)
+        params = dict(
+            col_shift=nbar[0] * s0,
+            row_shift=nbar[1] * s0,
+            col_drift_col=nbar[0] * a_c,
+            col_drift_row=nbar[0] * a_r,
+            row_drift_col=nbar[1] * a_c,
+            row_drift_row=nbar[1] * a_r,
+        )
         along = False
     else:
-        loc = left.localize_dem(matches.col1, matches.row1, reference_dem,
-                                h0=float(np.median(matches.height)))
+        loc = left.localize_dem(
+            matches.col1, matches.row1, reference_dem, h0=float(np.median(matches.height))
+        )
         with np.errstate(invalid="ignore"):
             pc, pr = right.project(loc.lon, loc.lat, loc.h)
         dc, dr = c2 - np.asarray(pc, float), r2 - np.asarray(pr, float)
@@ -196,39 +226,79 @@ def relative_pointing(matches: SparseMatches, left, right, *, affine: str | bool
             xr, kr = _robust_lstsq(A, dr, tol_floor)
             fits[name] = (xc, xr, kc & kr)
         both = fits["translation"][2] & fits["affine"][2]
-        res = {k: np.concatenate([dc[both] - (At if k == "translation" else Aa)[both] @ f[0],
-                                  dr[both] - (At if k == "translation" else Aa)[both] @ f[1]])
-               for k, f in fits.items()}
-        use_affine = (affine is True) or (affine == "auto" and span_ok and n >= 30 and
-                                          _bic_prefers_affine(res["translation"], res["affine"], 4))
+        res = {
+            k: np.concatenate(
+                [
+                    dc[both] - (At if k == "translation" else Aa)[both] @ f[0],
+                    dr[both] - (At if k == "translation" else Aa)[both] @ f[1],
+                ]
+            )
+            for k, f in fits.items()
+        }
+        use_affine = (affine is True) or (
+            affine == "auto"
+            and span_ok
+            and n >= 30
+            and _bic_prefers_affine(res["translation"], res["affine"], 4)
+        )
         xc, xr, keep = fits["affine" if use_affine else "translation"]
         xc = np.resize(np.append(xc, [0.0, 0.0]), 3) if not use_affine else xc
         xr = np.resize(np.append(xr, [0.0, 0.0]), 3) if not use_affine else xr
-        params = dict(col_shift=xc[0] - xc[1] * cm / sc - xc[2] * rm / sc,
-                      row_shift=xr[0] - xr[1] * cm / sc - xr[2] * rm / sc,
-                      col_drift_col=xc[1] / sc, col_drift_row=xc[2] / sc,
-                      row_drift_col=xr[1] / sc, row_drift_row=xr[2] / sc)
+        params = dict(
+            col_shift=xc[0] - xc[1] * cm / sc - xc[2] * rm / sc,
+            row_shift=xr[0] - xr[1] * cm / sc - xr[2] * rm / sc,
+            col_drift_col=xc[1] / sc,
+            col_drift_row=xc[2] / sc,
+            row_drift_col=xr[1] / sc,
+            row_drift_row=xr[2] / sc,
+        )
         along = True
     if keep.sum() < min_matches:
-        raise SparseMatchError(f"relative pointing: only {int(keep.sum())} match(es) agree on one "
-                               f"correction (need >= {min_matches})")
+        raise SparseMatchError(
+            f"relative pointing: only {int(keep.sum())} match(es) agree on one "
+            f"correction (need >= {min_matches})"
+        )
     params = {k: float(v) for k, v in params.items()}
     corrected = ImageCorrectedModel(right, **params)
     sub = matches.subset(keep)
-    before = cross_residuals(left, right, sub.col1, sub.row1, sub.col2, sub.row2, matches.height_range)
-    after = cross_residuals(left, corrected, sub.col1, sub.row1, sub.col2, sub.row2, matches.height_range)
+    before = cross_residuals(
+        left, right, sub.col1, sub.row1, sub.col2, sub.row2, matches.height_range
+    )
+    after = cross_residuals(
+        left, corrected, sub.col1, sub.row1, sub.col2, sub.row2, matches.height_range
+    )
     sb, sa = _stats(before), _stats(after)
     kind = "affine" if use_affine else "translation"
     warning = None
     if not np.isfinite(sa["nmad"]) or sa["nmad"] > warn_px:
-        warning = (f"relative pointing: the residual across the epipolar direction stays at "
-                   f"{sa['nmad']:.2f} px (NMAD) after the {kind} correction (> {warn_px:g} px); "
-                   f"the models may need a bundle adjustment")
+        warning = (
+            f"relative pointing: the residual across the epipolar direction stays at "
+            f"{sa['nmad']:.2f} px (NMAD) after the {kind} correction (> {warn_px:g} px); "
+            f"the models may need a bundle adjustment"
+        )
         log.warning(warning)
-    log.info("relative pointing (%s%s) of the right image: shift %.3f / %.3f px (col/row), "
-             "%d matches; residual across the epipolar direction median %.3f -> %.3f px, "
-             "NMAD %.3f -> %.3f px", kind, ", along fixed by the reference DEM" if along else "",
-             params["col_shift"], params["row_shift"], int(keep.sum()), sb["median"],
-             sa["median"], sb["nmad"], sa["nmad"])
-    return PointingCorrection(corrected, params, kind, along, int(keep.sum()), sb, sa, warning,
-                              dict(matches_span_ok=bool(span_ok)))
+    log.info(
+        "relative pointing (%s%s) of the right image: shift %.3f / %.3f px (col/row), "
+        "%d matches; residual across the epipolar direction median %.3f -> %.3f px, "
+        "NMAD %.3f -> %.3f px",
+        kind,
+        ", along fixed by the reference DEM" if along else "",
+        params["col_shift"],
+        params["row_shift"],
+        int(keep.sum()),
+        sb["median"],
+        sa["median"],
+        sb["nmad"],
+        sa["nmad"],
+    )
+    return PointingCorrection(
+        corrected,
+        params,
+        kind,
+        along,
+        int(keep.sum()),
+        sb,
+        sa,
+        warning,
+        dict(matches_span_ok=bool(span_ok)),
+    )

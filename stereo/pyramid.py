@@ -5,6 +5,7 @@ pixel): coarse pixel ``(i, j)`` sits on fine pixel ``(2i, 2j)``, pixel centres a
 coordinates as everywhere in stereodem.  NaN marks no-data; a coarse pixel whose Gaussian
 support touches no-data is NaN too, so no-data never leaks into valid values.
 """
+
 from __future__ import annotations
 
 import cv2
@@ -65,9 +66,13 @@ def upsample_field(field, shape, *, scale=2.0):
     ys = np.arange(h, dtype=np.float32) * np.float32(0.5)
     map_x = np.broadcast_to(xs[None, :], (h, w))
     map_y = np.broadcast_to(ys[:, None], (h, w))
-    fine = cv2.remap(np.asarray(field, dtype=np.float32), np.ascontiguousarray(map_x),
-                     np.ascontiguousarray(map_y), cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE)
+    fine = cv2.remap(
+        np.asarray(field, dtype=np.float32),
+        np.ascontiguousarray(map_x),
+        np.ascontiguousarray(map_y),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
     if scale != 1.0:
         fine *= np.float32(scale)
     return fine

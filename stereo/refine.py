@@ -1,6 +1,7 @@
 """Disparity refinement: a second, local matching pass against the right image warped by the
 smoothed first-pass disparity (removes most of the window-distortion error of steep terrain).
 """
+
 from __future__ import annotations
 
 import cv2
@@ -52,8 +53,9 @@ def _detail_gain(dp, Dw, detail, xq, ys, window, *, min_pixels: int = 1000):
     ok = np.isfinite(r0)
     k = (window, window)
     cnt = cv2.boxFilter(ok.astype(np.float32), cv2.CV_32F, k, borderType=cv2.BORDER_CONSTANT)
-    num = cv2.boxFilter(np.where(ok, r0, 0).astype(np.float32), cv2.CV_32F, k,
-                        borderType=cv2.BORDER_CONSTANT)
+    num = cv2.boxFilter(
+        np.where(ok, r0, 0).astype(np.float32), cv2.CV_32F, k, borderType=cv2.BORDER_CONSTANT
+    )
     with np.errstate(invalid="ignore", divide="ignore"):
         dr = r0 - num / cnt
     use = ok & (cnt > 0.5)
@@ -63,8 +65,16 @@ def _detail_gain(dp, Dw, detail, xq, ys, window, *, min_pixels: int = 1000):
     return float(np.clip(np.dot(a, b) / np.dot(a, a), 0.0, 1.0))
 
 
-def refine_disparity(left_r, right_r, disparity, *, sigma: float = 2.0, window: int = 7,
-                     search: int = 3, detail_gain: float | None = None):
+def refine_disparity(
+    left_r,
+    right_r,
+    disparity,
+    *,
+    sigma: float = 2.0,
+    window: int = 7,
+    search: int = 3,
+    detail_gain: float | None = None,
+):
     """Refine a disparity map by matching against the right image warped by its smooth version.
 
     The right rectified image is resampled (bicubic) as ``R'(x, y) = R(x - D(x, y), y)`` with
@@ -90,8 +100,9 @@ def refine_disparity(left_r, right_r, disparity, *, sigma: float = 2.0, window: 
     h, w = left_r.shape
     xs = (np.arange(w, dtype=np.float32)[None, :] - D).astype(np.float32)
     ys = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w)).astype(np.float32)
-    warped = cv2.remap(right_r, xs, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT,
-                       borderValue=np.nan)
+    warped = cv2.remap(
+        right_r, xs, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan
+    )
     m = match_rectified(left_r, warped, (-search, search), "ncc", levels=0, window=window)
     dp = m.disparity
     xq = (np.arange(w, dtype=np.float32)[None, :] - np.nan_to_num(dp)).astype(np.float32)

@@ -20,6 +20,7 @@ Memory: large read-only arrays of the context (the images) go to workers as
 plus the pages of the images that tile reads; the bound is set by the tile size and the
 disparity range (see the stereo pipeline), not by the scene size.
 """
+
 from __future__ import annotations
 
 import logging
@@ -52,6 +53,7 @@ def process_peak_rss_mb() -> float:
             return next(int(line.split()[1]) for line in f if line.startswith("VmHWM")) / 1024.0
     except (OSError, StopIteration, ValueError):
         import resource
+
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
@@ -141,6 +143,7 @@ def _init_worker(context, threads=1):
     # Ctrl-C reaches the whole process group: the parent stops the pool, workers just go
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from stereodem.core.threads import pin_threads
+
     pin_threads(threads)
 
 
@@ -151,13 +154,14 @@ def _die_with_parent():
     ppid = parent.pid if parent is not None else os.getppid()
     try:
         import ctypes
+
         libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(1, signal.SIGKILL, 0, 0, 0) != 0:        # 1 = PR_SET_PDEATHSIG
+        if libc.prctl(1, signal.SIGKILL, 0, 0, 0) != 0:  # 1 = PR_SET_PDEATHSIG
             raise OSError(ctypes.get_errno(), "prctl")
         armed = True
     except (OSError, AttributeError):
         armed = False
-    if os.getppid() != ppid:                                   # the parent died before prctl
+    if os.getppid() != ppid:  # the parent died before prctl
         os._exit(1)
     if not armed:
         import threading
@@ -166,6 +170,7 @@ def _die_with_parent():
             while os.getppid() == ppid:
                 time.sleep(0.5)
             os._exit(1)
+
         threading.Thread(target=watch, daemon=True, name="parent-watchdog").start()
 
 
@@ -178,8 +183,11 @@ def _run_one(fn, tile, timeout, context=None):
     ctx = _CONTEXT if context is None else context
     t0 = time.perf_counter()
     # SIGALRM only in a main thread (a Dask task runs in a worker thread: no per-tile timeout)
-    use_alarm = (bool(timeout) and hasattr(signal, "SIGALRM")
-                 and threading.current_thread() is threading.main_thread())
+    use_alarm = (
+        bool(timeout)
+        and hasattr(signal, "SIGALRM")
+        and threading.current_thread() is threading.main_thread()
+    )
     if use_alarm:
         old = signal.signal(signal.SIGALRM, _alarm)
         signal.setitimer(signal.ITIMER_REAL, float(timeout))
@@ -214,6 +222,7 @@ def _identity(tile):
 
 def _digest(result) -> str:
     import hashlib
+
     h = hashlib.sha256()
     for k in sorted(result):
         a = np.ascontiguousarray(result[k])
@@ -226,8 +235,12 @@ def _save(cache_dir, tile, result, key=None):
     """Store a finished tile atomically, with the permissions of every other output, its
     identity, job key and checksum."""
     from stereodem.core.raster import atomic_path
-    meta = {"__tile__": _identity(tile), "__job__": np.array(key or ""),
-            "__sha256__": np.array(_digest(result))}
+
+    meta = {
+        "__tile__": _identity(tile),
+        "__job__": np.array(key or ""),
+        "__sha256__": np.array(_digest(result)),
+    }
     with atomic_path(_cache_file(cache_dir, tile)) as tmp, open(tmp, "wb") as f:
         np.savez(f, **result, **meta)
 
@@ -239,7 +252,7 @@ def _load(cache_dir, tile, key=None):
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except Exception as exc:            # BadZipFile, truncated, not an npz, ...
+    except Exception as exc:  # BadZipFile, truncated, not an npz, ...
         log.warning("%s: unreadable cached tile (%s); recomputing it", path, type(exc).__name__)
         return None
     if not all(k in arrays for k in _META):
@@ -268,6 +281,7 @@ def clean_cache(cache_dir):
     """Remove what an interrupted run may leave in a tile cache: partial tile files and
     shared image maps (finished tiles stay)."""
     import shutil
+
     d = Path(cache_dir)
     for p in d.glob("*.part"):
         p.unlink(missing_ok=True)
@@ -284,9 +298,20 @@ def pool_size(workers: int | None, n_tiles: int, dask_address=None) -> int:
     return 0 if dask_address is not None or n == 1 or n_tiles <= 1 else n
 
 
-def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | None = None,
-              cache_dir=None, resume: bool = False, progress=None, dask_address: str | None = None,
-              cache_key: str | None = None, hold_results: bool = True):
+def run_tiles(
+    fn,
+    tiles,
+    context,
+    *,
+    workers: int | None = 1,
+    timeout: float | None = None,
+    cache_dir=None,
+    resume: bool = False,
+    progress=None,
+    dask_address: str | None = None,
+    cache_key: str | None = None,
+    hold_results: bool = True,
+):
     """Run ``fn(tile, context)`` over ``tiles``.
 
     Parameters
@@ -338,8 +363,13 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
         done += 1
         timings[index] = secs
         if err is not None:
-            log.warning("tile %d (row %d, col %d) failed: %s", index, by_index[index].row0,
-                        by_index[index].col0, err)
+            log.warning(
+                "tile %d (row %d, col %d) failed: %s",
+                index,
+                by_index[index].row0,
+                by_index[index].col0,
+                err,
+            )
             failures.append(TileFailure(by_index[index], err))
         else:
             if cache_dir is not None:
@@ -362,13 +392,18 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
         # deadlock in its first cv2 call
         ctx = multiprocessing.get_context("spawn")
         from stereodem.core.threads import worker_threads
-        ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_init_worker,
-                                 initargs=(context, worker_threads(n)))
+
+        ex = ProcessPoolExecutor(
+            max_workers=n,
+            mp_context=ctx,
+            initializer=_init_worker,
+            initargs=(context, worker_threads(n)),
+        )
         try:
             futs = [ex.submit(_run_one, fn, t, timeout) for t in todo]
             for f in as_completed(futs):
                 collect(*f.result())
-        except BaseException:            # Ctrl-C, SIGTERM, an error: stop the workers now
+        except BaseException:  # Ctrl-C, SIGTERM, an error: stop the workers now
             stop_pool(ex)
             raise
         ex.shutdown(wait=True)
@@ -379,7 +414,7 @@ def run_tiles(fn, tiles, context, *, workers: int | None = 1, timeout: float | N
 def stop_pool(ex, grace: float = 2.0):
     """Stop a process pool at once: cancel the queued tiles and end its workers (SIGTERM,
     then SIGKILL after ``grace`` seconds), so no worker outlives an interrupted run."""
-    procs = list(getattr(ex, "_processes", {}).values())      # the pool's worker processes
+    procs = list(getattr(ex, "_processes", {}).values())  # the pool's worker processes
     ex.shutdown(wait=False, cancel_futures=True)
     for p in procs:
         if p.is_alive():
@@ -398,12 +433,14 @@ def _run_dask(fn, todo, context, timeout, address, collect):
         from dask.distributed import as_completed as dask_completed
     except ImportError:
         from stereodem.core.errors import InputError
+
         raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
     own = not hasattr(address, "submit")
     client = Client(address) if own else address
     try:
         from stereodem.core.threads import register_dask_plugin
-        register_dask_plugin(client)              # each worker's BLAS/OpenCV/GDAL threads pinned
+
+        register_dask_plugin(client)  # each worker's BLAS/OpenCV/GDAL threads pinned
         ctx = client.scatter(context, broadcast=True)
         futs = [client.submit(_run_one, fn, t, timeout, ctx, pure=False) for t in todo]
         for f in dask_completed(futs):

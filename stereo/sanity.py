@@ -21,6 +21,7 @@ outside the range (a wrong ``--height-range``, a seed DEM in the wrong units). A
 result makes the command exit with status 1 unless ``--force``; the findings are written in
 ``dem_report.json`` / ``run.json`` under ``warnings`` either way.
 """
+
 from __future__ import annotations
 
 import logging
@@ -35,9 +36,19 @@ from .plan import base_to_height
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Finding", "SuspectResultError", "MIN_BASE_TO_HEIGHT", "check_base",
-           "check_texture", "check_seed_dem", "comparable_radiometry", "check_result", "status",
-           "CheckedPair", "check_pair"]
+__all__ = [
+    "Finding",
+    "SuspectResultError",
+    "MIN_BASE_TO_HEIGHT",
+    "check_base",
+    "check_texture",
+    "check_seed_dem",
+    "comparable_radiometry",
+    "check_result",
+    "status",
+    "CheckedPair",
+    "check_pair",
+]
 
 #: Smallest usable base-to-height ratio. The height error of a match error of s pixels is
 #: s x GSD / (B/H): at 0.02 and 0.2 px that is already 10 GSD (ASTER 3N/3B: B/H 0.6).
@@ -74,19 +85,24 @@ def status(findings) -> str:
 
 # ----------------------------------------------------------------------------- before
 
+
 def check_texture(image, name: str):
     """:class:`InputError` if ``image`` has (almost) no valid pixel or no texture: fewer than
     :data:`MIN_TEXTURED_FRACTION` of horizontally neighbouring valid pixels differ."""
     rows = np.asarray(image[::4], dtype=np.float32)
     finite = np.isfinite(rows)
     if finite.mean() < 0.01:
-        raise InputError(f"{name}: (almost) no valid pixel ({100 * finite.mean():.2f} % of the image)")
+        raise InputError(
+            f"{name}: (almost) no valid pixel ({100 * finite.mean():.2f} % of the image)"
+        )
     d = np.abs(np.diff(rows, axis=1))
     d = d[np.isfinite(d)]
     frac = float((d > 0).mean()) if d.size else 0.0
     if frac < MIN_TEXTURED_FRACTION:
-        raise InputError(f"{name}: no texture to match ({100 * frac:.2f} % of neighbouring pixels "
-                         "differ; a constant or empty image?)")
+        raise InputError(
+            f"{name}: no texture to match ({100 * frac:.2f} % of neighbouring pixels "
+            "differ; a constant or empty image?)"
+        )
 
 
 def check_base(left, right, height_range) -> float:
@@ -95,9 +111,11 @@ def check_base(left, right, height_range) -> float:
     h0 = 0.5 * (float(height_range[0]) + float(height_range[1]))
     bh = base_to_height(left, right, h0)
     if not bh >= MIN_BASE_TO_HEIGHT:
-        raise InputError(f"the pair has no usable stereo base: base-to-height ratio {bh:.3g} "
-                         f"(floor {MIN_BASE_TO_HEIGHT}); the two images see the ground from the "
-                         "same direction (the same image twice?)")
+        raise InputError(
+            f"the pair has no usable stereo base: base-to-height ratio {bh:.3g} "
+            f"(floor {MIN_BASE_TO_HEIGHT}); the two images see the ground from the "
+            "same direction (the same image twice?)"
+        )
     return bh
 
 
@@ -108,18 +126,26 @@ def check_seed_dem(seed, left, right, *, name: str = "seed DEM", samples: int = 
     lo, hi = pair_height_bounds(left, right)
     hmin, hmax = seed.height_range()
     if hmin < lo or hmax > hi:
-        raise DEMError(f"{name} {seed.path or ''}: heights {hmin:.0f}..{hmax:.0f} m (ellipsoidal) "
-                       f"are implausible for the sensor models (valid {lo:.0f}..{hi:.0f} m): wrong "
-                       "units (feet?) or vertical reference?")
-    c, r = (a.ravel() for a in np.meshgrid(np.linspace(0, left.width - 1, samples),
-                                           np.linspace(0, left.height - 1, samples)))
+        raise DEMError(
+            f"{name} {seed.path or ''}: heights {hmin:.0f}..{hmax:.0f} m (ellipsoidal) "
+            f"are implausible for the sensor models (valid {lo:.0f}..{hi:.0f} m): wrong "
+            "units (feet?) or vertical reference?"
+        )
+    c, r = (
+        a.ravel()
+        for a in np.meshgrid(
+            np.linspace(0, left.width - 1, samples), np.linspace(0, left.height - 1, samples)
+        )
+    )
     with np.errstate(invalid="ignore"):
         loc = left.localize_dem(c, r, seed, h0=0.5 * (hmin + hmax))
     cover = float(np.isfinite(np.asarray(loc.h, float)).mean())
     if cover < MIN_SEED_COVERAGE:
-        raise DEMCoverageError(f"{name} {seed.path or ''}: covers {100 * cover:.0f} % of the left "
-                               f"image's footprint (at least {100 * MIN_SEED_COVERAGE:.0f} % needed); "
-                               "is it the DEM of this scene?")
+        raise DEMCoverageError(
+            f"{name} {seed.path or ''}: covers {100 * cover:.0f} % of the left "
+            f"image's footprint (at least {100 * MIN_SEED_COVERAGE:.0f} % needed); "
+            "is it the DEM of this scene?"
+        )
     return cover
 
 
@@ -137,14 +163,19 @@ def comparable_radiometry(left, right, left_dtype=None, right_dtype=None):
     if not (np.all(np.isfinite(pl)) and np.all(np.isfinite(pr))) or pr[1] <= pr[0]:
         return left, right, []
     gain = (pl[1] - pl[0]) / (pr[1] - pr[0])
-    right = ((np.asarray(right, np.float32) - pr[0]) * np.float32(gain) + np.float32(pl[0])).astype(np.float32)
-    msg = (f"the images differ in bit depth ({np.dtype(left_dtype).name} / {np.dtype(right_dtype).name}): "
-           f"the right image was rescaled by {gain:.4g} for matching")
+    right = ((np.asarray(right, np.float32) - pr[0]) * np.float32(gain) + np.float32(pl[0])).astype(
+        np.float32
+    )
+    msg = (
+        f"the images differ in bit depth ({np.dtype(left_dtype).name} / {np.dtype(right_dtype).name}): "
+        f"the right image was rescaled by {gain:.4g} for matching"
+    )
     log.warning(msg)
     return left, right, [Finding("radiometry_rescaled", "warning", msg, float(gain)).to_dict()]
 
 
 # ----------------------------------------------------------------------------- after
+
 
 def check_result(info) -> list[dict]:
     """Findings about a stereo result from its run figures (``info`` of
@@ -155,17 +186,23 @@ def check_result(info) -> list[dict]:
     if pile.get("suspect"):
         share = max(pile["low_share"], pile["high_share"])
         side = "lower" if pile["low_share"] >= pile["high_share"] else "upper"
-        out.append(Finding(
-            "heights_at_search_bound", "suspect",
-            f"{100 * share:.0f} % of the heights lie at the {side} end of the height search range: "
-            "the terrain is probably outside the range (check --height-range, or the seed DEM's "
-            "units and vertical reference)", round(share, 4)).to_dict())
+        out.append(
+            Finding(
+                "heights_at_search_bound",
+                "suspect",
+                f"{100 * share:.0f} % of the heights lie at the {side} end of the height search range: "
+                "the terrain is probably outside the range (check --height-range, or the seed DEM's "
+                "units and vertical reference)",
+                round(share, 4),
+            ).to_dict()
+        )
     for f in out:
         log.warning("suspect result: %s", f["message"])
     return out
 
 
 # ----------------------------------------------------------------------------- both
+
 
 @dataclass
 class CheckedPair:
@@ -188,8 +225,16 @@ class CheckedPair:
         return products
 
 
-def check_pair(left_image, right_image, left_model, right_model, height_range=None, seed_dem=None,
-               left_dtype=None, right_dtype=None) -> CheckedPair:
+def check_pair(
+    left_image,
+    right_image,
+    left_model,
+    right_model,
+    height_range=None,
+    seed_dem=None,
+    left_dtype=None,
+    right_dtype=None,
+) -> CheckedPair:
     """The checks of a pair before any stereo work, in order: image arrays that match their
     models, the seed DEM (:func:`check_seed_dem`), the stereo base at the middle of the
     height range (given, else the seed DEM's, else the models' common range:
@@ -200,8 +245,10 @@ def check_pair(left_image, right_image, left_model, right_model, height_range=No
         if np.ndim(img) != 2:
             raise InputError(f"{name} image: expected a 2-D array, got shape {np.shape(img)}")
         if img.shape != (mdl.height, mdl.width):
-            raise InputError(f"{name} image: shape {img.shape} differs from its model's "
-                             f"{(mdl.height, mdl.width)} (rows, cols)")
+            raise InputError(
+                f"{name} image: shape {img.shape} differs from its model's "
+                f"{(mdl.height, mdl.width)} (rows, cols)"
+            )
     if seed_dem is not None:
         check_seed_dem(seed_dem, left_model, right_model)
     hr = height_range
@@ -211,6 +258,9 @@ def check_pair(left_image, right_image, left_model, right_model, height_range=No
         hr = pair_height_bounds(left_model, right_model)
     bh = check_base(left_model, right_model, hr)
     left, right, findings = comparable_radiometry(
-        left_image, right_image, left_dtype or getattr(left_image, "dtype", None),
-        right_dtype or getattr(right_image, "dtype", None))
+        left_image,
+        right_image,
+        left_dtype or getattr(left_image, "dtype", None),
+        right_dtype or getattr(right_image, "dtype", None),
+    )
     return CheckedPair(left, right, bh, findings)

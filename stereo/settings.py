@@ -8,6 +8,7 @@ and the command line fill in).
 
 :class:`StereoSettings` holds the four.
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
@@ -30,8 +31,13 @@ FUSION_METHODS: tuple[str, ...] = get_args(FusionMethod)
 FusionAdjust = Literal["auto", "always", "never"]
 FUSION_ADJUST: tuple[str, ...] = get_args(FusionAdjust)
 
-__all__ = ["RectificationSettings", "MatchingSettings", "RefinementSettings", "GriddingSettings",
-           "StereoSettings"]
+__all__ = [
+    "RectificationSettings",
+    "MatchingSettings",
+    "RefinementSettings",
+    "GriddingSettings",
+    "StereoSettings",
+]
 
 
 @dataclass

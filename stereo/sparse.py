@@ -22,6 +22,7 @@ each match is refined at full resolution by a vectorised ZNCC of 15 x 15 patches
 parabolic sub-pixel peak (:func:`refine_matches`), so the matches keep full-resolution
 precision.
 """
+
 from __future__ import annotations
 
 import logging
@@ -36,13 +37,20 @@ from stereodem.sensor.models.base import pair_height_bounds
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SparseMatches", "SparseMatchError", "sparse_matches", "epipolar_curves",
-           "distance_to_curves", "refine_matches", "to_uint8", "zncc_scores"]
+__all__ = [
+    "SparseMatches",
+    "SparseMatchError",
+    "sparse_matches",
+    "epipolar_curves",
+    "distance_to_curves",
+    "refine_matches",
+    "to_uint8",
+    "zncc_scores",
+]
 
 
 class SparseMatchError(StereodemError):
     """Too few sparse matches for what was asked (height range, pointing correction)."""
-
 
 
 @dataclass
@@ -95,19 +103,36 @@ class SparseMatches:
     def subset(self, keep) -> SparseMatches:
         """The matches selected by a boolean mask or index array."""
         keep = np.asarray(keep)
-        arrays = {k: getattr(self, k)[keep] for k in ("col1", "row1", "col2", "row2", "score",
-                                                      "cross", "height", "normal", "direction")}
-        return SparseMatches(**arrays, height_range=self.height_range,
-                             offset_cross=self.offset_cross, info=dict(self.info))
+        arrays = {
+            k: getattr(self, k)[keep]
+            for k in (
+                "col1",
+                "row1",
+                "col2",
+                "row2",
+                "score",
+                "cross",
+                "height",
+                "normal",
+                "direction",
+            )
+        }
+        return SparseMatches(
+            **arrays,
+            height_range=self.height_range,
+            offset_cross=self.offset_cross,
+            info=dict(self.info),
+        )
 
 
 # ----------------------------------------------------------------------------- images
+
 
 def to_uint8(image, *, percentiles=(1.0, 99.0)):
     """8-bit version of an image of any dtype (percentile stretch; NaN/inf -> 0) and its mask
     of valid pixels."""
     a = np.asarray(image)
-    if a.ndim == 3:                        # band-last or band-first colour: mean of the bands
+    if a.ndim == 3:  # band-last or band-first colour: mean of the bands
         a = a.mean(axis=-1 if a.shape[-1] <= 4 else 0)
     if a.ndim != 2:
         raise StereodemError(f"sparse matching: expected a 2-D image, got shape {a.shape}")
@@ -140,7 +165,7 @@ def _sift(image8, mask, n_features, scale):
         mask = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
     else:
         mask = mask.astype(np.uint8)
-    mask = cv2.erode(mask, np.ones((5, 5), np.uint8))          # no keypoints on void edges
+    mask = cv2.erode(mask, np.ones((5, 5), np.uint8))  # no keypoints on void edges
     sift = cv2.SIFT_create(nfeatures=int(n_features))
     kp, desc = sift.detectAndCompute(image8, mask * 255)
     if desc is None or not kp:
@@ -165,8 +190,9 @@ def _keypoints_both(left_image, right_image, n_features, max_size, threads=None)
         scale = min(1.0, max_size / max(L8.shape + R8.shape))
         return _sift(L8, Lv, n_features, scale), _sift(R8, Rv, n_features, scale), scale
     from concurrent.futures import ThreadPoolExecutor
+
     with ThreadPoolExecutor(2, thread_name_prefix="stereodem-sift") as ex:
-        stretched = list(ex.map(to_uint8, (left_image, right_image)))     # 2-D uint8 + mask
+        stretched = list(ex.map(to_uint8, (left_image, right_image)))  # 2-D uint8 + mask
         scale = min(1.0, max_size / max(stretched[0][0].shape + stretched[1][0].shape))
         fl, fr = ex.map(lambda av: _sift(av[0], av[1], n_features, scale), stretched)
     return fl, fr, scale
@@ -182,9 +208,13 @@ def _ratio_matches(d1, d2, ratio):
     # (same matches, same pointing correction, same DEM whatever the worker count or resume)
     cv2.setRNGSeed(0)
     matcher = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=64))
-    knn = matcher.knnMatch(np.ascontiguousarray(d1, np.float32), np.ascontiguousarray(d2, np.float32), k=2)
-    pairs = np.array([(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance)
-                      for m in knn if len(m) == 2], dtype=np.float64).reshape(-1, 4)
+    knn = matcher.knnMatch(
+        np.ascontiguousarray(d1, np.float32), np.ascontiguousarray(d2, np.float32), k=2
+    )
+    pairs = np.array(
+        [(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) == 2],
+        dtype=np.float64,
+    ).reshape(-1, 4)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.where(pairs[:, 3] > 0, pairs[:, 2] / pairs[:, 3], 1.0)
     keep = r < ratio
@@ -223,15 +253,22 @@ def refine_matches(left, right, x1, x2, *, half: int = 7, search: int = 2, min_s
     p1 = np.rint(x1).astype(np.int64)
     p2 = np.rint(x2).astype(np.int64)
     r = half + search
-    inside = ((p1[:, 0] >= half) & (p1[:, 1] >= half) & (p1[:, 0] < left.shape[1] - half)
-              & (p1[:, 1] < left.shape[0] - half) & (p2[:, 0] >= r) & (p2[:, 1] >= r)
-              & (p2[:, 0] < right.shape[1] - r) & (p2[:, 1] < right.shape[0] - r))
+    inside = (
+        (p1[:, 0] >= half)
+        & (p1[:, 1] >= half)
+        & (p1[:, 0] < left.shape[1] - half)
+        & (p1[:, 1] < left.shape[0] - half)
+        & (p2[:, 0] >= r)
+        & (p2[:, 1] >= r)
+        & (p2[:, 0] < right.shape[1] - r)
+        & (p2[:, 1] < right.shape[0] - r)
+    )
     idx = np.nonzero(inside)[0]
     if idx.size == 0:
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), inside
-    oy, ox = np.mgrid[-half:half + 1, -half:half + 1]
+    oy, ox = np.mgrid[-half : half + 1, -half : half + 1]
     T = left[p1[idx, 1, None, None] + oy, p1[idx, 0, None, None] + ox].astype(np.float64)
-    sy, sx = np.mgrid[-r:r + 1, -r:r + 1]
+    sy, sx = np.mgrid[-r : r + 1, -r : r + 1]
     S = right[p2[idx, 1, None, None] + sy, p2[idx, 0, None, None] + sx].astype(np.float64)
     scores = zncc_scores(T, S)
     k = 2 * search + 1
@@ -244,7 +281,7 @@ def refine_matches(left, right, x1, x2, *, half: int = 7, search: int = 2, min_s
     byc, bxc = np.clip(by, 1, k - 2), np.clip(bx, 1, k - 2)
 
     def vertex(a, b, c):
-        with np.errstate(invalid="ignore", divide="ignore"):    # -inf scores next to void pixels
+        with np.errstate(invalid="ignore", divide="ignore"):  # -inf scores next to void pixels
             den = a - 2 * b + c
             return np.where(den < 0, 0.5 * (a - c) / den, 0.0)
 
@@ -254,7 +291,9 @@ def refine_matches(left, right, x1, x2, *, half: int = 7, search: int = 2, min_s
     keep = np.zeros(len(x1), bool)
     keep[idx[ok]] = True
     y1 = p1[idx[ok]].astype(np.float64)
-    y2 = np.stack([p2[idx[ok], 0] + bx[ok] - search + fx[ok], p2[idx[ok], 1] + by[ok] - search + fy[ok]], -1)
+    y2 = np.stack(
+        [p2[idx[ok], 0] + bx[ok] - search + fx[ok], p2[idx[ok], 1] + by[ok] - search + fy[ok]], -1
+    )
     return y1, y2, best[ok], keep
 
 
@@ -276,9 +315,9 @@ def zncc_scores(T, S):
     tn = np.sqrt(np.einsum("nij,nij->n", T, T))
     void = ~np.isfinite(S)
     S = np.where(void, 0.0, S)
-    S = S - S.mean(axis=(1, 2), keepdims=True)       # better conditioned energies
+    S = S - S.mean(axis=(1, 2), keepdims=True)  # better conditioned energies
 
-    def box(a):                                       # sums over every w x w window
+    def box(a):  # sums over every w x w window
         c = np.zeros((a.shape[0], a.shape[1] + 1, a.shape[2] + 1))
         c[:, 1:, 1:] = a.cumsum(1).cumsum(2)
         return c[:, w:, w:] - c[:, :-w, w:] - c[:, w:, :-w] + c[:, :-w, :-w]
@@ -297,6 +336,7 @@ def zncc_scores(T, S):
 
 # ----------------------------------------------------------------------------- geometry
 
+
 def epipolar_curves(left, right, col1, row1, heights):
     """Right-image epipolar curves of left pixels: shape (N, K, 2) for K heights (col, row).
 
@@ -312,7 +352,9 @@ def epipolar_curves(left, right, col1, row1, heights):
     with np.errstate(all="ignore"):
         lon, lat = left.localize(cc, rr, hh)
         c2, r2 = right.project(lon, lat, hh)
-    return np.stack([np.asarray(c2, float), np.asarray(r2, float)], -1).reshape(col1.size, heights.size, 2)
+    return np.stack([np.asarray(c2, float), np.asarray(r2, float)], -1).reshape(
+        col1.size, heights.size, 2
+    )
 
 
 def distance_to_curves(points, curves, heights, *, extend: float = 0.0):
@@ -359,7 +401,7 @@ def distance_to_curves(points, curves, heights, *, extend: float = 0.0):
     best = np.argmin(dist, axis=1)
     n = np.arange(len(best))
     ub = u[n, best]
-    normal = np.stack([ub[:, 1], -ub[:, 0]], -1)          # direction rotated by -90 degrees
+    normal = np.stack([ub[:, 1], -ub[:, 0]], -1)  # direction rotated by -90 degrees
     d = p[:, 0, :] - a[n, best]
     cross = np.sum(d * normal, -1)
     tb = t[n, best]
@@ -393,10 +435,24 @@ def _consensus(values, tol):
 
 # ----------------------------------------------------------------------------- matching
 
-def sparse_matches(left_image, right_image, left_model, right_model, height_range=None, *,
-                   ratio: float = 0.75, max_offset: float = 50.0, tolerance: float = 2.0,
-                   max_size: int = 512, n_features: int = 4000, n_heights: int = 5,
-                   refine: bool = True, left_window=None, threads: int | None = None) -> SparseMatches:
+
+def sparse_matches(
+    left_image,
+    right_image,
+    left_model,
+    right_model,
+    height_range=None,
+    *,
+    ratio: float = 0.75,
+    max_offset: float = 50.0,
+    tolerance: float = 2.0,
+    max_size: int = 512,
+    n_features: int = 4000,
+    n_heights: int = 5,
+    refine: bool = True,
+    left_window=None,
+    threads: int | None = None,
+) -> SparseMatches:
     """SIFT matches between two images, checked through their sensor models.
 
     Parameters
@@ -446,8 +502,9 @@ def sparse_matches(left_image, right_image, left_model, right_model, height_rang
     hlo, hhi = (float(v) for v in height_range)
     if not (np.isfinite(hlo) and np.isfinite(hhi) and hhi > hlo):
         raise SparseMatchError(f"sparse matching: unusable height range {hlo:g}..{hhi:g} m")
-    (x1, d1), (x2, d2), scale = _keypoints_both(left_image, right_image, n_features, max_size,
-                                                threads)
+    (x1, d1), (x2, d2), scale = _keypoints_both(
+        left_image, right_image, n_features, max_size, threads
+    )
     times["sift"] = time.perf_counter() - t0
     if left_window is not None:
         c0, r0, c1, r1 = left_window
@@ -456,8 +513,13 @@ def sparse_matches(left_image, right_image, left_model, right_model, height_rang
     t1 = time.perf_counter()
     i, j, score = _ratio_matches(d1, d2, ratio)
     times["match"] = time.perf_counter() - t1
-    info = dict(keypoints=[int(len(x1)), int(len(x2))], candidates=int(len(i)), scale=scale,
-                ratio=ratio, max_offset_px=max_offset)
+    info = dict(
+        keypoints=[int(len(x1)), int(len(x2))],
+        candidates=int(len(i)),
+        scale=scale,
+        ratio=ratio,
+        max_offset_px=max_offset,
+    )
     t2 = time.perf_counter()
     heights = np.linspace(hlo, hhi, max(2, int(n_heights)))
     p1, p2 = x1[i], x2[j]
@@ -465,8 +527,13 @@ def sparse_matches(left_image, right_image, left_model, right_model, height_rang
     if refine:
         t3 = time.perf_counter()
         # patches are gathered from the images as they are (no full-size float copy)
-        p1, p2, _, kept = refine_matches(np.asarray(left_image), np.asarray(right_image), p1, p2,
-                                         search=max(2, int(np.ceil(1.5 / scale))))
+        p1, p2, _, kept = refine_matches(
+            np.asarray(left_image),
+            np.asarray(right_image),
+            p1,
+            p2,
+            search=max(2, int(np.ceil(1.5 / scale))),
+        )
         score = score[kept]
         times["refine"] = time.perf_counter() - t3
     else:
@@ -481,12 +548,34 @@ def sparse_matches(left_image, right_image, left_model, right_model, height_rang
     times["total"] = time.perf_counter() - t0
     info.update(inliers=int(inl.sum()), seconds=times)
     if not inl.any():
-        raise SparseMatchError(f"sparse matching: no match agrees with the sensor models "
-                               f"({len(x1)}/{len(x2)} keypoints, {len(i)} after the ratio test, "
-                               f"heights {hlo:.0f}..{hhi:.0f} m, offsets up to {max_offset:g} px)")
-    log.info("sparse matches: %d/%d keypoints, %d after the ratio test, %d agree with the "
-             "models (offset across the epipolar curves %.2f px, scale %.2f, %.1f s)",
-             len(x1), len(x2), len(i), inl.sum(), offset, scale, times["total"])
+        raise SparseMatchError(
+            f"sparse matching: no match agrees with the sensor models "
+            f"({len(x1)}/{len(x2)} keypoints, {len(i)} after the ratio test, "
+            f"heights {hlo:.0f}..{hhi:.0f} m, offsets up to {max_offset:g} px)"
+        )
+    log.info(
+        "sparse matches: %d/%d keypoints, %d after the ratio test, %d agree with the "
+        "models (offset across the epipolar curves %.2f px, scale %.2f, %.1f s)",
+        len(x1),
+        len(x2),
+        len(i),
+        inl.sum(),
+        offset,
+        scale,
+        times["total"],
+    )
     k = np.nonzero(inl)[0]
-    return SparseMatches(p1[k, 0], p1[k, 1], p2[k, 0], p2[k, 1], score[k], cross[k], h[k],
-                         normal[k], direction[k], (hlo, hhi), float(offset), info)
+    return SparseMatches(
+        p1[k, 0],
+        p1[k, 1],
+        p2[k, 0],
+        p2[k, 1],
+        score[k],
+        cross[k],
+        h[k],
+        normal[k],
+        direction[k],
+        (hlo, hhi),
+        float(offset),
+        info,
+    )

@@ -6,6 +6,7 @@ Runs before rectification (CARS and s2p do the same): SIFT matches checked throu
 scene's height range and a coarse seed surface (:mod:`stereodem.stereo.terrain`) from the same
 matches intersected with the corrected models.
 """
+
 from __future__ import annotations
 
 import logging
@@ -50,8 +51,10 @@ class SparseStage:
         """Plain-dict record for the run report."""
         out = dict(seconds={k: round(v, 3) for k, v in self.seconds.items()})
         if self.matches is not None:
-            out["matches"] = dict(n=len(self.matches), **{k: v for k, v in self.matches.info.items()
-                                                         if k != "seconds"})
+            out["matches"] = dict(
+                n=len(self.matches),
+                **{k: v for k, v in self.matches.info.items() if k != "seconds"},
+            )
         if self.pointing is not None:
             out["pointing"] = self.pointing.summary()
         if self.terrain is not None:
@@ -59,9 +62,19 @@ class SparseStage:
         return out
 
 
-def run_sparse_stage(left_image, right_image, left_model, right_model, *, heights: bool = True,
-                     pointing: bool = True, height_range=None, reference_dem=None,
-                     max_offset: float = 50.0, **match_options) -> SparseStage:
+def run_sparse_stage(
+    left_image,
+    right_image,
+    left_model,
+    right_model,
+    *,
+    heights: bool = True,
+    pointing: bool = True,
+    height_range=None,
+    reference_dem=None,
+    max_offset: float = 50.0,
+    **match_options,
+) -> SparseStage:
     """Sparse matches, then the pointing correction and/or the terrain heights.
 
     Parameters
@@ -83,8 +96,15 @@ def run_sparse_stage(left_image, right_image, left_model, right_model, *, height
     """
     seconds = {}
     t0 = time.perf_counter()
-    m = sparse_matches(left_image, right_image, left_model, right_model, height_range,
-                       max_offset=max_offset, **match_options)
+    m = sparse_matches(
+        left_image,
+        right_image,
+        left_model,
+        right_model,
+        height_range,
+        max_offset=max_offset,
+        **match_options,
+    )
     seconds["matching"] = time.perf_counter() - t0
     right = right_model
     pc = None
@@ -125,4 +145,6 @@ def height_pileup(h, height_range, *, band: float = 0.02, max_share: float = 0.0
     width = band * (hi - lo)
     low = float(np.mean(h <= lo + width))
     high = float(np.mean(h >= hi - width))
-    return dict(low_share=low, high_share=high, suspect=bool(max(low, high) > max_share), n=int(h.size))
+    return dict(
+        low_share=low, high_share=high, suspect=bool(max(low, high) > max_share), n=int(h.size)
+    )

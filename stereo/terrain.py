@@ -20,6 +20,7 @@ remaining heights give
   points stray from that surface (99th percentile, plus ``min_margin``): the margin with which
   the surface sets each tile's height range.
 """
+
 from __future__ import annotations
 
 import logging
@@ -75,9 +76,14 @@ class TerrainHeights:
 
     def summary(self) -> dict:
         """Plain-dict record for reports (JSON-serialisable)."""
-        return dict(height_range_m=[float(v) for v in self.height_range],
-                    tile_margin_m=float(self.tile_margin), n_points=self.n_points,
-                    n_rejected=self.n_rejected, seed_shape=list(self.seed_dem.shape), **self.info)
+        return dict(
+            height_range_m=[float(v) for v in self.height_range],
+            tile_margin_m=float(self.tile_margin),
+            n_points=self.n_points,
+            n_rejected=self.n_rejected,
+            seed_shape=list(self.seed_dem.shape),
+            **self.info,
+        )
 
 
 def _neighbour_deviation(x, y, h, k):
@@ -106,9 +112,18 @@ def _fill_empty(grid):
     return out
 
 
-def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None = None,
-                    min_margin: float = 30.0, min_points: int = 20, points_per_cell: int = 4,
-                    posting: float | None = None, crs=None) -> TerrainHeights:
+def terrain_heights(
+    matches: SparseMatches,
+    left,
+    right,
+    *,
+    margin: float | None = None,
+    min_margin: float = 30.0,
+    min_points: int = 20,
+    points_per_cell: int = 4,
+    posting: float | None = None,
+    crs=None,
+) -> TerrainHeights:
     """Robust height range and coarse seed surface from sparse matches.
 
     Parameters
@@ -136,8 +151,10 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
     """
     n0 = len(matches)
     if n0 < min_points:
-        raise SparseMatchError(f"terrain heights: only {n0} sparse match(es) agree with the "
-                               f"models (need >= {min_points}); give a height range or a seed DEM")
+        raise SparseMatchError(
+            f"terrain heights: only {n0} sparse match(es) agree with the "
+            f"models (need >= {min_points}); give a height range or a seed DEM"
+        )
     inter = intersect_matches(left, right, matches.col1, matches.row1, matches.col2, matches.row2)
     h, gap = inter.h, inter.ray_gap
     lo_b, hi_b = pair_height_bounds(left, right)
@@ -145,8 +162,10 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
     span_b = hi_b - lo_b
     ok &= (h >= lo_b - 0.5 * span_b) & (h <= hi_b + 0.5 * span_b)
     if ok.sum() < min_points:
-        raise SparseMatchError(f"terrain heights: only {int(ok.sum())} sparse match(es) intersect "
-                               f"(need >= {min_points}); give a height range or a seed DEM")
+        raise SparseMatchError(
+            f"terrain heights: only {int(ok.sum())} sparse match(es) intersect "
+            f"(need >= {min_points}); give a height range or a seed DEM"
+        )
     gap_lim = float(np.median(gap[ok]) + 5.0 * _nmad(gap[ok]) + 1e-3)
     ok &= gap <= gap_lim
     lon, lat = inter.lon, inter.lat
@@ -162,8 +181,10 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
     dev_kept = np.abs(dev[~bad])
     n = int(ok.sum())
     if n < min_points:
-        raise SparseMatchError(f"terrain heights: only {n} consistent point(s) from the sparse "
-                               f"matches (need >= {min_points}); give a height range or a seed DEM")
+        raise SparseMatchError(
+            f"terrain heights: only {n} consistent point(s) from the sparse "
+            f"matches (need >= {min_points}); give a height range or a seed DEM"
+        )
     hk, xk, yk = h[ok], x[ok], y[ok]
     p_lo, p_hi = float(hk.min()), float(hk.max())
     span = float(p_hi - p_lo)
@@ -201,14 +222,35 @@ def terrain_heights(matches: SparseMatches, left, right, *, margin: float | None
         # the global range keeps at least that much room
         m = tile_margin
         height_range = (float(p_lo - m), float(p_hi + m))
-    info = dict(heights_m={"min": p_lo, "p1": float(np.percentile(hk, 1)), "p50": float(np.median(hk)),
-                           "p99": float(np.percentile(hk, 99)), "max": p_hi},
-                ray_gap_limit_m=gap_lim, ray_gap_median_m=float(np.median(gap[ok])),
-                seed_posting_m=posting, margin_m=m)
-    log.info("terrain heights from %d sparse points (%d rejected): %.0f..%.0f m "
-             "(min..max, median %.0f m), height range with margin %.0f..%.0f m; seed "
-             "surface %dx%d at %.0f m, tile margin %.0f m", n, n0 - n, p_lo, p_hi,
-             np.median(hk), height_range[0], height_range[1], rows, cols, posting, tile_margin)
+    info = dict(
+        heights_m={
+            "min": p_lo,
+            "p1": float(np.percentile(hk, 1)),
+            "p50": float(np.median(hk)),
+            "p99": float(np.percentile(hk, 99)),
+            "max": p_hi,
+        },
+        ray_gap_limit_m=gap_lim,
+        ray_gap_median_m=float(np.median(gap[ok])),
+        seed_posting_m=posting,
+        margin_m=m,
+    )
+    log.info(
+        "terrain heights from %d sparse points (%d rejected): %.0f..%.0f m "
+        "(min..max, median %.0f m), height range with margin %.0f..%.0f m; seed "
+        "surface %dx%d at %.0f m, tile margin %.0f m",
+        n,
+        n0 - n,
+        p_lo,
+        p_hi,
+        np.median(hk),
+        height_range[0],
+        height_range[1],
+        rows,
+        cols,
+        posting,
+        tile_margin,
+    )
     return TerrainHeights(height_range, seed, tile_margin, n, n0 - n, lon[ok], lat[ok], hk, info)
 
 
@@ -228,4 +270,7 @@ def tile_height_range(model, bounds, terrain: TerrainHeights, *, samples: int = 
     hs = loc.h[np.isfinite(loc.h)]
     if hs.size < 0.5 * cc.size:
         return terrain.height_range
-    return (max(lo, float(hs.min()) - terrain.tile_margin), min(hi, float(hs.max()) + terrain.tile_margin))
+    return (
+        max(lo, float(hs.min()) - terrain.tile_margin),
+        min(hi, float(hs.max()) + terrain.tile_margin),
+    )

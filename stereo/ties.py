@@ -10,6 +10,7 @@ first image (:func:`stereodem.stereo.sparse.refine_matches`, within ``search`` p
 prediction), giving tracks of up to N observations
 (:class:`stereodem.sensor.estimation.adjust.bundle_multi.TieTracks`).
 """
+
 from __future__ import annotations
 
 import logging
@@ -27,8 +28,9 @@ log = logging.getLogger(__name__)
 __all__ = ["multiview_ties", "agree_models", "check_match_geometry"]
 
 
-def multiview_ties(images, models, pairs, *, search: int = 4, min_score: float = 0.7,
-                   height_range=None) -> TieTracks:
+def multiview_ties(
+    images, models, pairs, *, search: int = 4, min_score: float = 0.7, height_range=None
+) -> TieTracks:
     """Tie tracks over ``images`` from the sparse matches of each pair ``(i, j)`` of ``pairs``
     transferred into every other image (see the module docstring). A pair without sparse
     matches is skipped (logged). ``search`` (px) bounds the models' disagreement the transfer
@@ -54,8 +56,9 @@ def multiview_ties(images, models, pairs, *, search: int = 4, min_score: float =
             ok = np.all(np.isfinite(pred), axis=1)
             got = np.full((n, 2), np.nan)
             if ok.any():
-                _, y2, _, keep = refine_matches(images[i], images[k], x1[ok], pred[ok], search=search,
-                                                min_score=min_score)
+                _, y2, _, keep = refine_matches(
+                    images[i], images[k], x1[ok], pred[ok], search=search, min_score=min_score
+                )
                 got[np.flatnonzero(ok)[keep]] = y2
             obs[k] = got
         for k, xy in obs.items():
@@ -65,8 +68,13 @@ def multiview_ties(images, models, pairs, *, search: int = 4, min_score: float =
             col.append(xy[found, 0])
             row.append(xy[found, 1])
         base += n
-        log.info("tie points of images %d/%d: %d matches, %s transferred", i, j, n,
-                 {k: int(np.isfinite(v[:, 0]).sum()) for k, v in obs.items() if k not in (i, j)})
+        log.info(
+            "tie points of images %d/%d: %d matches, %s transferred",
+            i,
+            j,
+            n,
+            {k: int(np.isfinite(v[:, 0]).sum()) for k, v in obs.items() if k not in (i, j)},
+        )
     if not point:
         return TieTracks(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
     p = np.concatenate(point)
@@ -78,14 +86,23 @@ def _across_epipolar_parameter(left, right, height_range) -> str:
     """The shift of ``right`` across its epipolar lines with ``left`` (``col_shift`` when the
     lines run along the rows, as for along-track stereo, else ``row_shift``)."""
     from .sparse import epipolar_curves
+
     c, r = (left.width - 1) / 2, (left.height - 1) / 2
     curve = epipolar_curves(left, right, [c], [r], list(height_range))[0]
     d = curve[1] - curve[0]
     return "col_shift" if abs(d[1]) >= abs(d[0]) else "row_shift"
 
 
-def agree_models(images, models, pairs, *, height_range=None, min_gain: float = 0.1,
-                 sigma_tie_px: float = 0.3, force: bool = False) -> tuple:
+def agree_models(
+    images,
+    models,
+    pairs,
+    *,
+    height_range=None,
+    min_gain: float = 0.1,
+    sigma_tie_px: float = 0.3,
+    force: bool = False,
+) -> tuple:
     """Bring the models of N images into agreement before their pair DEMs are fused.
 
     Tie tracks (:func:`multiview_ties`, from the first pair of ``pairs``, the best) are
@@ -103,12 +120,16 @@ def agree_models(images, models, pairs, *, height_range=None, min_gain: float = 
     from stereodem.core.errors import StereodemError
     from stereodem.sensor.estimation.adjust.bundle_multi import bundle_adjust_images
     from stereodem.sensor.estimation.adjust.model_sets import image_corrected
+
     i, j = pairs[0]
     report = dict(datum=f"image {i} fixed, image {j} free across its epipolar lines only")
     tracks = multiview_ties(images, models, pairs[:1], height_range=height_range)
     counts = np.bincount(tracks.point) if len(tracks) else np.zeros(0, int)
-    report.update(tie_points=int(tracks.n_points), observations=int(len(tracks)),
-                  points_by_images_seen={int(k): int(v) for k, v in enumerate(np.bincount(counts)) if v})
+    report.update(
+        tie_points=int(tracks.n_points),
+        observations=int(len(tracks)),
+        points_by_images_seen={int(k): int(v) for k, v in enumerate(np.bincount(counts)) if v},
+    )
     if not (counts >= 3).any():
         report.update(applied=False, reason="no tie point seen in three images")
         return models, report
@@ -118,33 +139,51 @@ def agree_models(images, models, pairs, *, height_range=None, min_gain: float = 
     span = height_range or pair_height_bounds(models[i], models[j])
     names[j] = [_across_epipolar_parameter(models[i], models[j], span)]
     try:
-        before = bundle_adjust_images(wrapped, tracks, names=None, fixed=list(range(len(models))),
-                                      sigma_tie_px=sigma_tie_px)
-        res = bundle_adjust_images(wrapped, tracks, names=names, fixed=[i], sigma_tie_px=sigma_tie_px)
+        before = bundle_adjust_images(
+            wrapped, tracks, names=None, fixed=list(range(len(models))), sigma_tie_px=sigma_tie_px
+        )
+        res = bundle_adjust_images(
+            wrapped, tracks, names=names, fixed=[i], sigma_tie_px=sigma_tie_px
+        )
     except StereodemError as exc:
         report.update(applied=False, reason=f"adjustment failed: {exc}")
         return models, report
     gain = 1.0 - res.tie_rmse_px / before.tie_rmse_px
     applied = bool(force or gain >= min_gain)
     report.update(
-        applied=applied, reason=(("forced" if force else f"reprojection RMS down {100 * gain:.0f} %")
-                                 if applied else f"reprojection RMS down only {100 * gain:.0f} % "
-                                                 f"(< {100 * min_gain:.0f} %): the models agree"),
+        applied=applied,
+        reason=(
+            ("forced" if force else f"reprojection RMS down {100 * gain:.0f} %")
+            if applied
+            else f"reprojection RMS down only {100 * gain:.0f} % "
+            f"(< {100 * min_gain:.0f} %): the models agree"
+        ),
         reprojection_rms_px_before=round(before.tie_rmse_px, 4),
         reprojection_rms_px_after=round(res.tie_rmse_px, 4),
         reprojection_rms_px_per_image_before=[round(v, 4) for v in before.image_rmse_px()],
         reprojection_rms_px_per_image_after=[round(v, 4) for v in res.image_rmse_px()],
-        parameters={n: [round(float(v), 4), round(float(s), 4)]
-                    for n, v, s in zip(res.names, res.values, res.std)},
+        parameters={
+            n: [round(float(v), 4), round(float(s), 4)]
+            for n, v, s in zip(res.names, res.values, res.std)
+        },
         rejected_points=int(res.tie_rejected.sum()),
-        point_ray_gaps_before=before.point_ray_gaps(), point_ray_gaps_after=res.point_ray_gaps(),
+        point_ray_gaps_before=before.point_ray_gaps(),
+        point_ray_gaps_after=res.point_ray_gaps(),
         ray_gaps_before={f"{a}-{b}": v for (a, b), v in res.ray_gaps_before.items()},
-        ray_gaps_after={f"{a}-{b}": v for (a, b), v in res.ray_gaps_after.items()})
+        ray_gaps_after={f"{a}-{b}": v for (a, b), v in res.ray_gaps_after.items()},
+    )
     return (res.models if applied else models), report
 
 
-def check_match_geometry(match, left_model, right_model, height_range, *, names=("left", "right"),
-                         max_cross_px: float = 50.0) -> float:
+def check_match_geometry(
+    match,
+    left_model,
+    right_model,
+    height_range,
+    *,
+    names=("left", "right"),
+    max_cross_px: float = 50.0,
+) -> float:
     """Refuse (:class:`~stereodem.core.errors.InputError`, one line) matches of an ASP match
     file (:class:`stereodem.sensor.io.asp_match.MatchFile`) that do not belong to the two
     models' images: the median distance (px) of the right points across the epipolar curves
@@ -153,13 +192,17 @@ def check_match_geometry(match, left_model, right_model, height_range, *, names=
     from stereodem.core.errors import InputError
 
     from .sparse import distance_to_curves, epipolar_curves
+
     path = match.path or "match file"
     heights = np.linspace(float(height_range[0]), float(height_range[1]), 5)
     curves = epipolar_curves(left_model, right_model, match.left.x, match.left.y, heights)
-    cross, _, _, _, _ = distance_to_curves(np.column_stack([match.right.x, match.right.y]),
-                                           curves, heights, extend=1e6)
+    cross, _, _, _, _ = distance_to_curves(
+        np.column_stack([match.right.x, match.right.y]), curves, heights, extend=1e6
+    )
     med = float(np.nanmedian(np.abs(cross))) if np.isfinite(cross).any() else float("inf")
     if not med <= max_cross_px:
-        raise InputError(f"{path}: its points lie {med:.0f} px (median) across the epipolar "
-                         f"curves of {names[0]} / {names[1]}: the match file of other images")
+        raise InputError(
+            f"{path}: its points lie {med:.0f} px (median) across the epipolar "
+            f"curves of {names[0]} / {names[1]}: the match file of other images"
+        )
     return med

@@ -5,6 +5,7 @@ with its position ``index`` in the plan (tile order fixes the order in which the
 sums are added, so the DEM does not depend on how tiles are scheduled). Rectification adds
 its own halo around a tile; only the tile's own points are kept.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -40,8 +41,13 @@ class Tile:
         return (col >= c0 - 0.5) & (col < c1 + 0.5) & (row >= r0 - 0.5) & (row < r1 + 0.5)
 
     def to_dict(self) -> dict:
-        return {"index": self.index, "col0": self.col0, "row0": self.row0, "cols": self.cols,
-                "rows": self.rows}
+        return {
+            "index": self.index,
+            "col0": self.col0,
+            "row0": self.row0,
+            "cols": self.cols,
+            "rows": self.rows,
+        }
 
 
 def tile_grid(width: int, height: int, tile_size: int, *, window=None) -> list[Tile]:
@@ -60,8 +66,11 @@ def tile_grid(width: int, height: int, tile_size: int, *, window=None) -> list[T
         return np.linspace(a, b + 1, n + 1).round().astype(int)
 
     ce, re = edges(c0, c1), edges(r0, r1)
-    tiles = [Tile(int(ce[i]), int(re[j]), int(ce[i + 1] - ce[i]), int(re[j + 1] - re[j]))
-             for j in range(len(re) - 1) for i in range(len(ce) - 1)]
+    tiles = [
+        Tile(int(ce[i]), int(re[j]), int(ce[i + 1] - ce[i]), int(re[j + 1] - re[j]))
+        for j in range(len(re) - 1)
+        for i in range(len(ce) - 1)
+    ]
     return renumber(tiles)
 
 

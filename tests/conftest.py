@@ -24,4 +24,5 @@ def aster600():
     """The 600 x 600 simulated ASTER-like pair (noise 1 DN, seed 0) shared by the stereo tests;
     read-only (tests that change a scene simulate their own)."""
     from stereodem.sensor.simulation.simulate import simulate_scene
+
     return simulate_scene("aster", size=(600, 600), noise=1.0, seed=0)

@@ -14,6 +14,7 @@ block (the marginal covariance) of the joint covariance.
 :func:`read_adjust_report` reads it; :func:`assemble` checks that the report belongs to the
 image's model, and joins it with independent σ pairs (block-diagonal covariance).
 """
+
 from __future__ import annotations
 
 import json
@@ -41,7 +42,9 @@ def parse_sigma_pairs(pairs) -> dict:
         except ValueError:
             raise InputError(f"--sigma {name}: {val!r} is not a number") from None
         if not math.isfinite(v) or v < 0:
-            raise InputError(f"--sigma {name}: sigma must be finite and non-negative, got {val.strip()}")
+            raise InputError(
+                f"--sigma {name}: sigma must be finite and non-negative, got {val.strip()}"
+            )
         if name in out:
             raise InputError(f"--sigma {name} given twice")
         out[name] = v
@@ -57,13 +60,16 @@ class AdjustReport:
     names: list
     values: np.ndarray
     covariance: np.ndarray
-    sides: dict | None = None          # bundle: side -> AdjustReport of that image
+    sides: dict | None = None  # bundle: side -> AdjustReport of that image
 
     def side_for(self, model):
         """The single-image report matching ``model`` (itself unless a bundle report)."""
         if not self.sides:
             return self
-        diffs = {k: _same_geometry(adjustable_model(model), adjustable_model(r.model)) for k, r in self.sides.items()}
+        diffs = {
+            k: _same_geometry(adjustable_model(model), adjustable_model(r.model))
+            for k, r in self.sides.items()
+        }
         best = min(diffs, key=diffs.get)
         return self.sides[best] if diffs[best] <= 1e-3 else next(iter(self.sides.values()))
 
@@ -71,6 +77,7 @@ class AdjustReport:
 def read_adjust_report(path) -> AdjustReport:
     """Read and check an ``adjust_report.json`` (one-line :class:`InputError` on any defect)."""
     from stereodem.sensor.io.sidecar import model_from_dict
+
     p = Path(path)
     try:
         doc = json.loads(p.read_text())
@@ -87,16 +94,19 @@ def read_adjust_report(path) -> AdjustReport:
     except (TypeError, KeyError, ValueError) as exc:
         raise InputError(f"{p}: malformed parameters or covariance ({exc})") from None
     if C.shape != (len(names), len(names)):
-        raise InputError(f"{p}: covariance is {C.shape}, expected {len(names)} x {len(names)} "
-                         f"(one row per parameter)")
+        raise InputError(
+            f"{p}: covariance is {C.shape}, expected {len(names)} x {len(names)} "
+            f"(one row per parameter)"
+        )
     try:
         check_psd(C, what=f"{p}: covariance")
     except InputError as exc:
         raise InputError(str(exc)) from None
+
     def load(d):
         try:
             return model_from_dict(d, source=p)
-        except Exception as exc:          # any defect of the embedded sidecar
+        except Exception as exc:  # any defect of the embedded sidecar
             raise InputError(f"{p}: cannot read the report's model ({exc})") from None
 
     md = doc["model"]
@@ -104,8 +114,13 @@ def read_adjust_report(path) -> AdjustReport:
         sides = {}
         for side in ("left", "right"):
             idx = [k for k, n in enumerate(names) if n.startswith(side + ".")]
-            sides[side] = AdjustReport(p, load(md[side]), [names[k][len(side) + 1:] for k in idx],
-                                       values[idx], C[np.ix_(idx, idx)])
+            sides[side] = AdjustReport(
+                p,
+                load(md[side]),
+                [names[k][len(side) + 1 :] for k in idx],
+                values[idx],
+                C[np.ix_(idx, idx)],
+            )
         return AdjustReport(p, None, names, values, C, sides)
     return AdjustReport(p, load(md), names, values, C)
 
@@ -127,14 +142,20 @@ def _same_geometry(a, b, tol_px: float = 1e-3) -> float:
 
 def _has_footprint_n(model) -> bool:
     import inspect
+
     try:
         return "n" in inspect.signature(model.footprint).parameters
     except (TypeError, ValueError):
         return False
 
 
-def assemble(model, *, sigmas: dict | None = None, report: AdjustReport | None = None,
-             image: str | None = None):
+def assemble(
+    model,
+    *,
+    sigmas: dict | None = None,
+    report: AdjustReport | None = None,
+    image: str | None = None,
+):
     """The model to propagate through, the input names and their covariance.
 
     With a report, the report's (adjusted) model is used after checking that it is the image's
@@ -148,12 +169,16 @@ def assemble(model, *, sigmas: dict | None = None, report: AdjustReport | None =
         report = report.side_for(model)
         rmodel = adjustable_model(report.model)
         if type(rmodel) is not type(model):
-            raise InputError(f"{report.path}: covariance file for another model "
-                             f"({type(rmodel).__name__}, the image {image or ''} has {type(model).__name__})")
+            raise InputError(
+                f"{report.path}: covariance file for another model "
+                f"({type(rmodel).__name__}, the image {image or ''} has {type(model).__name__})"
+            )
         diff = _same_geometry(model, rmodel)
         if not diff <= 1e-3:
-            raise InputError(f"{report.path}: covariance file for another model (its geometry differs "
-                             f"from the image's by {diff:.3g} px)")
+            raise InputError(
+                f"{report.path}: covariance file for another model (its geometry differs "
+                f"from the image's by {diff:.3g} px)"
+            )
         # the image defines the image size (an RPC sidecar dict may not carry it)
         for m in (rmodel, getattr(rmodel, "model", None)):
             if m is not None:
@@ -162,7 +187,9 @@ def assemble(model, *, sigmas: dict | None = None, report: AdjustReport | None =
         check_names(model, report.names)
         both = sorted(set(report.names) & set(sigmas))
         if both:
-            raise InputError(f"--sigma {', '.join(both)} also in {report.path}; give each input once")
+            raise InputError(
+                f"--sigma {', '.join(both)} also in {report.path}; give each input once"
+            )
         names += report.names
         blocks.append(report.covariance)
     if sigmas:
@@ -171,13 +198,15 @@ def assemble(model, *, sigmas: dict | None = None, report: AdjustReport | None =
         names += extra
         blocks.append(np.diag([sigmas[n] ** 2 for n in extra]))
     if not names:
-        raise InputError("no input uncertainty: give --sigma NAME=VALUE pairs or --covariance REPORT")
+        raise InputError(
+            "no input uncertainty: give --sigma NAME=VALUE pairs or --covariance REPORT"
+        )
     check_names(model, names)
     u = len(names)
     D = np.zeros((u, u))
     k = 0
     for B in blocks:
         m = B.shape[0]
-        D[k:k + m, k:k + m] = B
+        D[k : k + m, k : k + m] = B
         k += m
     return model, names, check_psd(D)

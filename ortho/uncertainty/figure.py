@@ -1,5 +1,6 @@
 """Figure of an uncertainty run: the σ_horizontal map (metres, colour bar, scale) beside the bar
 chart of the sources' shares of the horizontal variance."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -8,6 +9,7 @@ import numpy as np
 def plot_uncertainty(maps, path, *, title: str | None = None):
     """Write a PNG of ``maps`` (:class:`stereodem.ortho.uncertainty.maps.UncertaintyMaps`)."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -17,8 +19,12 @@ def plot_uncertainty(maps, path, *, title: str | None = None):
     w, s, e, n = maps.grid.bounds
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.8), gridspec_kw={"width_ratios": [1.3, 1]})
     x0, y0 = w, s
-    im = ax.imshow(sh, extent=((w - x0) / 1e3, (e - x0) / 1e3, (s - y0) / 1e3, (n - y0) / 1e3),
-                   cmap="viridis", interpolation="nearest")
+    im = ax.imshow(
+        sh,
+        extent=((w - x0) / 1e3, (e - x0) / 1e3, (s - y0) / 1e3, (n - y0) / 1e3),
+        cmap="viridis",
+        interpolation="nearest",
+    )
     cb = fig.colorbar(im, ax=ax, shrink=0.85)
     cb.set_label("σ horizontal (m)")
     ax.set_xlabel(f"easting − {x0:.0f} (km)")
@@ -38,6 +44,7 @@ def plot_uncertainty(maps, path, *, title: str | None = None):
         fig.suptitle(title)
     fig.tight_layout()
     from pathlib import Path
+
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")

@@ -26,6 +26,7 @@ per-cell propagation (:func:`stereodem.ortho.uncertainty.propagation.first_order
 tolerance, and the finished float32 maps are compared with the same exact values
 (``UncertaintyMaps.interpolation_error``).
 """
+
 from __future__ import annotations
 
 import logging
@@ -57,6 +58,7 @@ _REMAP_MAX = 32767
 
 
 # ----------------------------------------------------------------------------- lattice
+
 
 def lattice_fields(model, dem, grid, u, v, D, names, groups, heights):
     """Exact terrain-free fields at map cells ``(u, v)`` for the two ``heights``.
@@ -115,6 +117,7 @@ def metric(m00, m01, m10, m11):
 
 def _node_lattice(grid, st):
     from stereodem.ortho.drm import _lattice
+
     uu, vv = _lattice(grid, st)
     uu = np.minimum(uu, grid.width - 1).astype(float)
     vv = np.minimum(vv, grid.height - 1).astype(float)
@@ -145,14 +148,15 @@ class Lattice:
         self.uu, self.vv = _node_lattice(grid, st)
         self.step = st
         U, V = np.meshgrid(self.uu, self.vv)
-        hf, xy, self.sources = lattice_fields(model, dem, grid, U.ravel(), V.ravel(), D, names, groups,
-                                              heights)
+        hf, xy, self.sources = lattice_fields(
+            model, dem, grid, U.ravel(), V.ravel(), D, names, groups, heights
+        )
         ny, nx = U.shape
         self.h_mid = 0.5 * (heights[0] + heights[1])
         self.h_lo, self.h_hi = float(heights[0]), float(heights[1])
         dh = float(heights[1] - heights[0])
-        self.a = (0.5 * (hf[0] + hf[1])).reshape(ny, nx, -1)          # value at h_mid
-        self.b = ((hf[1] - hf[0]) / dh).reshape(ny, nx, -1)            # per metre
+        self.a = (0.5 * (hf[0] + hf[1])).reshape(ny, nx, -1)  # value at h_mid
+        self.b = ((hf[1] - hf[0]) / dh).reshape(ny, nx, -1)  # per metre
         self.xy = xy.reshape(ny, nx, -1)
         self.n_nodes = U.size
 
@@ -194,6 +198,7 @@ def relative_error(got, exact):
 
 # ----------------------------------------------------------------------------- per-cell blocks
 
+
 class _Blocks:
     """Per-block evaluation of the maps (float32)."""
 
@@ -210,8 +215,11 @@ class _Blocks:
         gc, gr = garr
         self.voids = bool(np.isnan(gc).any() or np.isnan(gr).any())
         self.use_remap = max(z.shape) <= _REMAP_MAX
-        self.dem3 = np.ascontiguousarray(np.stack([z, gc.astype(np.float32), gr.astype(np.float32)], -1)) \
-            if self.use_remap else None
+        self.dem3 = (
+            np.ascontiguousarray(np.stack([z, gc.astype(np.float32), gr.astype(np.float32)], -1))
+            if self.use_remap
+            else None
+        )
         self.dem_e, self.garr = dem_e, garr
         self.out = outputs
         self.source_maps = source_maps
@@ -267,8 +275,14 @@ class _Blocks:
         cd = x0[:, 0:1] * tx0 + x1[:, 0:1] * tx1
         rd = x0[:, 1:2] * tx0 + x1[:, 1:2] * tx1
         if self.use_remap:
-            s = cv2.remap(self.dem3, cd, rd, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                          borderValue=(np.nan, np.nan, np.nan))
+            s = cv2.remap(
+                self.dem3,
+                cd,
+                rd,
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=(np.nan, np.nan, np.nan),
+            )
             h, gc, gr = s[..., 0], s[..., 1], s[..., 2]
         else:
             h = bilinear_nan(self.dem_e.heights, cd, rd, dtype=f32)
@@ -293,7 +307,12 @@ class _Blocks:
         B[:, :nf, 2], B[:, :nf, 3] = yb0[:, :nf], yb1[:, :nf]
         # gE = gc p00 + gr p10, gN = gc p01 + gr p11
         for o, (pc, pr) in ((nf, (2, 4)), (nf + 1, (3, 5))):
-            B[:, o, 4], B[:, o, 5], B[:, o, 6], B[:, o, 7] = x0[:, pc], x1[:, pc], x0[:, pr], x1[:, pr]
+            B[:, o, 4], B[:, o, 5], B[:, o, 6], B[:, o, 7] = (
+                x0[:, pc],
+                x1[:, pc],
+                x0[:, pr],
+                x1[:, pr],
+            )
         O = np.matmul(B, R)
         col, row, s00, s01, s11, w0, w1, gE, gN = (O[:, j] for j in range(nf + 2))
         m = self.model
@@ -324,7 +343,7 @@ class _Blocks:
             sl = slice(nf + j, nf + 3 * k, 3)
             B2[:, :, j], B2[:, :, 3 + j] = ya0[:, sl], ya1[:, sl]
             B2[:, :, 6 + j], B2[:, :, 9 + j] = yb0[:, sl], yb1[:, sl]
-        C = np.matmul(B2, R2)                                            # (nb, k, nw)
+        C = np.matmul(B2, R2)  # (nb, k, nw)
         best = C[:, 0].copy()
         dom = np.zeros((nb, nw), np.int16)
         for s_ in range(1, k):
@@ -339,12 +358,26 @@ class _Blocks:
                 for s_, name in enumerate(L.sources):
                     self.out["share_" + name][r0:r1, c0:c1] = C[:, s_] / V
         # totals over valid cells: Σ_y Σ_m (Σ_x R2) B2
-        rsum = np.matmul(R2, np.ones(nw, f32)).astype(np.float64)           # (nb, 12)
+        rsum = np.matmul(R2, np.ones(nw, f32)).astype(np.float64)  # (nb, 12)
         return np.einsum("ym,ykm->k", rsum, B2.astype(np.float64))
 
 
-def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tolerance=1e-3, n_check=400,
-                     seed=0, source_maps=False, threads=None, cells_per_block: int = 32768):
+def first_order_maps(
+    model,
+    dem,
+    grid,
+    D,
+    names,
+    groups=None,
+    *,
+    step=None,
+    tolerance=1e-3,
+    n_check=400,
+    seed=0,
+    source_maps=False,
+    threads=None,
+    cells_per_block: int = 32768,
+):
     """First-order σ_E, σ_N, CE90, dominant source and variance shares on ``grid``.
 
     Parameters as :func:`stereodem.ortho.uncertainty.maps.ortho_uncertainty_maps` (``model``
@@ -359,6 +392,7 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
     and details.
     """
     from stereodem.ortho.uncertainty.maps import UncertaintyMaps
+
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     dem_e = crop_dem(dem, grid)
@@ -370,6 +404,7 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
     near_void = None
     if np.isnan(z).any():
         from scipy import ndimage
+
         near_void = ndimage.binary_dilation(np.isnan(z), iterations=3)
     big = max(grid.width, grid.height)
     st = int(step or min(256, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
@@ -380,24 +415,38 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
         ny, nx = vv.size, uu.size
         m = min(n_check // 2, (ny - 1) * (nx - 1))
         cell = rng.choice((ny - 1) * (nx - 1), size=m, replace=False)
-        cu = np.concatenate([np.floor(0.5 * (uu[cell % (nx - 1)] + uu[cell % (nx - 1) + 1])),
-                             rng.integers(0, grid.width, n_check - m)]).astype(float)
-        cv = np.concatenate([np.floor(0.5 * (vv[cell // (nx - 1)] + vv[cell // (nx - 1) + 1])),
-                             rng.integers(0, grid.height, n_check - m)]).astype(float)
+        cu = np.concatenate(
+            [
+                np.floor(0.5 * (uu[cell % (nx - 1)] + uu[cell % (nx - 1) + 1])),
+                rng.integers(0, grid.width, n_check - m),
+            ]
+        ).astype(float)
+        cv = np.concatenate(
+            [
+                np.floor(0.5 * (vv[cell // (nx - 1)] + vv[cell // (nx - 1) + 1])),
+                rng.integers(0, grid.height, n_check - m),
+            ]
+        ).astype(float)
         cu, cv = np.minimum(cu, grid.width - 1), np.minimum(cv, grid.height - 1)
         g, col, row, h = _terrain_sigma_points(lat_, dem_e, garr, cu, cv)
-        ok = np.isfinite(h) & (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & \
-            (row <= model.height - 0.5)
+        ok = (
+            np.isfinite(h)
+            & (col >= -0.5)
+            & (col <= model.width - 0.5)
+            & (row >= -0.5)
+            & (row <= model.height - 0.5)
+        )
         # check cells off void edges: there the exact slope rule (none next to a void) is
         # discontinuous in position, and a cell may fall on either side of it
         lon_a, lat_a = grid.lonlat(cu, cv)
         dc, dr, _ = dem_pixel_jacobian(dem_e, lon_a, lat_a, grid.crs)
         if near_void is not None:
-            ok &= ~near_void[np.clip(np.floor(np.nan_to_num(dr)).astype(int), 0, z.shape[0] - 1),
-                             np.clip(np.floor(np.nan_to_num(dc)).astype(int), 0, z.shape[1] - 1)]
+            ok &= ~near_void[
+                np.clip(np.floor(np.nan_to_num(dr)).astype(int), 0, z.shape[0] - 1),
+                np.clip(np.floor(np.nan_to_num(dc)).astype(int), 0, z.shape[1] - 1),
+            ]
         lon, lat = grid.lonlat(cu[ok], cv[ok])
-        exact = first_order(model, lon, lat, dem_e.sample(lon, lat), names, D, grid.crs,
-                            dem=dem_e)
+        exact = first_order(model, lon, lat, dem_e.sample(lon, lat), names, D, grid.crs, dem=dem_e)
         exact = np.stack([exact.sigma_east, exact.sigma_north], -1)
         with np.errstate(invalid="ignore"):
             inter = np.sqrt(np.stack([g[0][ok], g[2][ok]], -1))
@@ -408,25 +457,35 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
         # cell can change side; cv2.remap itself rounds positions to 1/32 post)
         xy = lat_.at(cu, cv, np.full(cu.shape, lat_.h_mid))[1]
         err_dem = float(np.max(np.hypot(xy[:, 0] - dc, xy[:, 1] - dr)))
-        log.debug("uncertainty lattice step %d: relative error %.2e, DEM position %.2e px", st, err, err_dem)
+        log.debug(
+            "uncertainty lattice step %d: relative error %.2e, DEM position %.2e px",
+            st,
+            err,
+            err_dem,
+        )
         if step is not None or err <= tolerance or st <= 4:
             break
         st //= 2
     lattice_err = err
     shape = grid.shape
-    out = {"sE": np.full(shape, np.nan, np.float32), "sN": np.full(shape, np.nan, np.float32),
-           "c90": np.full(shape, np.nan, np.float32), "dom": np.full(shape, -1, np.int16)}
+    out = {
+        "sE": np.full(shape, np.nan, np.float32),
+        "sN": np.full(shape, np.nan, np.float32),
+        "c90": np.full(shape, np.nan, np.float32),
+        "dom": np.full(shape, -1, np.int16),
+    }
     if source_maps:
         out.update({"share_" + s: np.full(shape, np.nan, np.float32) for s in lat_.sources})
     t1 = time.perf_counter()
     blk = _Blocks(lat_, dem_e, garr, grid, model, out, source_maps)
     bw = int(np.max(np.diff(uu)))
     jobs = blk.bands(max(8, cells_per_block // max(bw, 1)))
-    _ce90_table()                               # tabulated once, before the threads
+    _ce90_table()  # tabulated once, before the threads
     n_threads = max(1, int(threads or os.cpu_count() or 1))
     totals = np.zeros(len(lat_.sources))
     if n_threads > 1:
         from concurrent.futures import ThreadPoolExecutor
+
         with ThreadPoolExecutor(n_threads) as pool:
             for part in pool.map(lambda a: blk.run(*a), jobs):
                 totals += part
@@ -444,15 +503,37 @@ def first_order_maps(model, dem, grid, D, names, groups=None, *, step=None, tole
     map_err = relative_error(got[fin], exact[good][fin])
     err = max(lattice_err, map_err)
     if err > tolerance:
-        log.warning("uncertainty maps: relative interpolation error %.3g exceeds %.3g", err, tolerance)
-    details = {"n_lattice_nodes": int(lat_.n_nodes), "lattice_heights_m": list(heights),
-               "seconds": {"lattice_and_check": round(t1 - t0, 3), "cells": round(t2 - t1, 3),
-                           "n_blocks": len(jobs), "n_blocks_outside": int(sum(blk.skipped))},
-               "interpolation_error_lattice": lattice_err, "interpolation_error_maps": map_err,
-               "dem_position_error_px": err_dem,
-               "n_check_cells": int(good.sum()),
-               "terrain": "each cell's own DEM height and slope (central-difference gradient)"}
+        log.warning(
+            "uncertainty maps: relative interpolation error %.3g exceeds %.3g", err, tolerance
+        )
+    details = {
+        "n_lattice_nodes": int(lat_.n_nodes),
+        "lattice_heights_m": list(heights),
+        "seconds": {
+            "lattice_and_check": round(t1 - t0, 3),
+            "cells": round(t2 - t1, 3),
+            "n_blocks": len(jobs),
+            "n_blocks_outside": int(sum(blk.skipped)),
+        },
+        "interpolation_error_lattice": lattice_err,
+        "interpolation_error_maps": map_err,
+        "dem_position_error_px": err_dem,
+        "n_check_cells": int(good.sum()),
+        "terrain": "each cell's own DEM height and slope (central-difference gradient)",
+    }
     kept = {s_: out["share_" + s_] for s_ in srcs} if source_maps else {}
-    return UncertaintyMaps(grid, "first-order", list(names), srcs, out["sE"], out["sN"], out["c90"], out["dom"],
-                           shares, st, err, kept, details)
-
+    return UncertaintyMaps(
+        grid,
+        "first-order",
+        list(names),
+        srcs,
+        out["sE"],
+        out["sN"],
+        out["c90"],
+        out["dom"],
+        shares,
+        st,
+        err,
+        kept,
+        details,
+    )

@@ -10,6 +10,7 @@ The frequency checks (:func:`interference_order`, :func:`efast_interference_free
 free of interferences to order M when no combination ``Σ aᵢωᵢ = 0`` with ``Σ|aᵢ| ≤ M+1``
 exists.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -25,8 +26,15 @@ def _problem(names, D):
     live = np.flatnonzero(sd > 0)
     if live.size == 0:
         raise InputError("all input sigmas are zero: nothing to analyse")
-    return ({"num_vars": int(live.size), "names": [names[k] for k in live],
-             "bounds": [[0.0, float(sd[k])] for k in live], "dists": ["norm"] * int(live.size)}, live)
+    return (
+        {
+            "num_vars": int(live.size),
+            "names": [names[k] for k in live],
+            "bounds": [[0.0, float(sd[k])] for k in live],
+            "dists": ["norm"] * int(live.size),
+        },
+        live,
+    )
 
 
 def _combine(S_E, S_N, VE, VN):
@@ -35,8 +43,9 @@ def _combine(S_E, S_N, VE, VN):
     return np.where(V > 0, (S_E * VE + S_N * VN) / np.where(V > 0, V, 1), np.nan)
 
 
-def fast_indices(model, lon, lat, h, names, D, crs, *, samples: int = 1000, M: int = 4, dem=None,
-                 seed=0):
+def fast_indices(
+    model, lon, lat, h, names, D, crs, *, samples: int = 1000, M: int = 4, dem=None, seed=0
+):
     """First-order (main-effect) and total extended-FAST indices of the E, N and horizontal
     ground displacement at each point.
 
@@ -46,13 +55,16 @@ def fast_indices(model, lon, lat, h, names, D, crs, *, samples: int = 1000, M: i
     """
     from SALib.analyze import fast as fast_analyze
     from SALib.sample import fast_sampler
+
     problem, live = _problem(list(names), D)
     if samples <= 4 * M * M:
-        raise InputError(f"FAST needs more than {4 * M * M} samples per curve (M={M}), got {samples}")
+        raise InputError(
+            f"FAST needs more than {4 * M * M} samples per curve (M={M}), got {samples}"
+        )
     Xl = fast_sampler.sample(problem, samples, M=M, seed=seed)
 
     def analyze(Y):
-        with warnings.catch_warnings():      # SALib warns about its bootstrap intervals,
+        with warnings.catch_warnings():  # SALib warns about its bootstrap intervals,
             warnings.simplefilter("ignore")  # which are not used here
             r = fast_analyze.analyze(problem, Y, M=M, print_to_console=False, seed=seed)
         return np.nan_to_num(r["S1"]), np.nan_to_num(r["ST"])
@@ -72,11 +84,14 @@ def sobol_indices(model, lon, lat, h, names, D, crs, *, samples: int = 1024, dem
     each point; ``samples`` is SALib's base N (a power of 2; the model runs N·(u+2) times)."""
     from SALib.analyze import sobol as sobol_analyze
     from SALib.sample import sobol as sobol_sample
+
     problem, live = _problem(list(names), D)
     Xl = sobol_sample.sample(problem, samples, calc_second_order=False, seed=seed)
 
     def analyze(Y):
-        r = sobol_analyze.analyze(problem, Y, calc_second_order=False, print_to_console=False, seed=seed)
+        r = sobol_analyze.analyze(
+            problem, Y, calc_second_order=False, print_to_console=False, seed=seed
+        )
         return r["S1"], r["ST"]
 
     return _indices_per_point(model, lon, lat, h, names, live, Xl, crs, dem, analyze)[0]
@@ -98,6 +113,7 @@ def _indices_per_point(model, lon, lat, h, names, live, Xl, crs, dem, analyze):
 
 # ----------------------------------------------------------------------------- frequency checks
 
+
 def interference_order(freqs, max_order: int = 8) -> int | None:
     """Smallest ``Σ|aᵢ|`` of a non-trivial integer combination ``Σ aᵢωᵢ = 0`` (None if none up
     to ``max_order``). A set is interference-free to order M when this is > M + 1.
@@ -106,7 +122,7 @@ def interference_order(freqs, max_order: int = 8) -> int | None:
     separately for "all coefficients zero so far" and "some non-zero".
     """
     freqs = [int(f) for f in freqs]
-    INF = 10 ** 9
+    INF = 10**9
     zero_only = {0: 0}
     nonzero: dict[int, int] = {}
     for w in freqs:

@@ -13,6 +13,7 @@ The DEM vertical σ follows Bettemir (2010, eqs 9–13): the space-intersection 
 horizontal error turned into height by the local slope of a Hirvonen-weighted quadratic
 surface, ``σ_v² = σ_h,int² + (∂h/∂E σ_E)² + (∂h/∂N σ_N)²``.
 """
+
 from __future__ import annotations
 
 import json
@@ -45,6 +46,7 @@ METHODS = UNCERTAINTY_METHODS
 
 # ----------------------------------------------------------------------------- lattice interpolation
 
+
 def _interp(L, Wy, Wx, dtype=np.float32):
     """Bilinear interpolation of a lattice field (ny, nx) to the full grid, NaN-aware (a cell
     is NaN when any of its four nodes is)."""
@@ -64,6 +66,7 @@ def _bilinear_at(L, nodes_x, nodes_y, u, v):
 
 
 # ----------------------------------------------------------------------------- ortho maps
+
 
 @dataclass
 class UncertaintyMaps:
@@ -96,39 +99,79 @@ class UncertaintyMaps:
         sh = self.sigma_horizontal
         ok = np.isfinite(sh)
         pct = (lambda q: float(np.nanpercentile(sh, q))) if ok.any() else (lambda q: float("nan"))
-        return {"method": self.method, "parameters": self.names, "sources": self.sources,
-                "shares": {k: float(v) for k, v in self.shares.items()},
-                "sigma_horizontal_m": {"min": pct(0), "median": pct(50), "max": pct(100)},
-                "ce90_m_median": float(np.nanmedian(self.ce90)) if ok.any() else float("nan"),
-                "lattice_step_cells": self.step,
-                "interpolation_error_relative": self.interpolation_error,
-                "grid": {"width": self.grid.width, "height": self.grid.height,
-                         "res_m": self.grid.res[0], "crs": self.grid.crs.to_string()},
-                **self.details}
+        return {
+            "method": self.method,
+            "parameters": self.names,
+            "sources": self.sources,
+            "shares": {k: float(v) for k, v in self.shares.items()},
+            "sigma_horizontal_m": {"min": pct(0), "median": pct(50), "max": pct(100)},
+            "ce90_m_median": float(np.nanmedian(self.ce90)) if ok.any() else float("nan"),
+            "lattice_step_cells": self.step,
+            "interpolation_error_relative": self.interpolation_error,
+            "grid": {
+                "width": self.grid.width,
+                "height": self.grid.height,
+                "res_m": self.grid.res[0],
+                "crs": self.grid.crs.to_string(),
+            },
+            **self.details,
+        }
 
     def write(self, out_dir, *, overwrite: bool = False, source_maps: bool = False) -> list:
         """Write ``sigma_{horizontal,east,north}.tif``, ``ce90.tif``, ``dominant_source.tif``,
         ``sensitivity.json`` (and ``share_<source>.tif`` with ``source_maps``) into
         ``out_dir``; returns the paths."""
         from stereodem.core.raster import write_geotiff, write_text_atomic
+
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         t, crs = self.grid.transform, self.grid.crs
         paths = []
-        for name, arr in (("sigma_horizontal", self.sigma_horizontal), ("sigma_east", self.sigma_east),
-                          ("sigma_north", self.sigma_north), ("ce90", self.ce90)):
-            paths.append(write_geotiff(out / f"{name}.tif", arr.astype(np.float32), t, crs, float("nan"),
-                                       overwrite=overwrite))
-        paths.append(write_geotiff(out / "dominant_source.tif", self.dominant.astype(np.int16), t, crs, -1,
-                                   overwrite=overwrite))
+        for name, arr in (
+            ("sigma_horizontal", self.sigma_horizontal),
+            ("sigma_east", self.sigma_east),
+            ("sigma_north", self.sigma_north),
+            ("ce90", self.ce90),
+        ):
+            paths.append(
+                write_geotiff(
+                    out / f"{name}.tif",
+                    arr.astype(np.float32),
+                    t,
+                    crs,
+                    float("nan"),
+                    overwrite=overwrite,
+                )
+            )
+        paths.append(
+            write_geotiff(
+                out / "dominant_source.tif",
+                self.dominant.astype(np.int16),
+                t,
+                crs,
+                -1,
+                overwrite=overwrite,
+            )
+        )
         if source_maps:
             for k, arr in self.source_maps.items():
-                paths.append(write_geotiff(out / f"share_{k}.tif", arr.astype(np.float32), t, crs,
-                                           float("nan"), overwrite=overwrite))
+                paths.append(
+                    write_geotiff(
+                        out / f"share_{k}.tif",
+                        arr.astype(np.float32),
+                        t,
+                        crs,
+                        float("nan"),
+                        overwrite=overwrite,
+                    )
+                )
         doc = self.summary()
         doc["dominant_source_codes"] = {i: s for i, s in enumerate(self.sources)}
-        paths.append(write_text_atomic(out / "sensitivity.json", json.dumps(doc, indent=2) + "\n",
-                                       overwrite=overwrite))
+        paths.append(
+            write_text_atomic(
+                out / "sensitivity.json", json.dumps(doc, indent=2) + "\n", overwrite=overwrite
+            )
+        )
         return paths
 
 
@@ -154,9 +197,12 @@ def _node_fields(model, dem, grid, U, V, D, names, groups, method, samples, seed
         col, row = gj.col, gj.row
     else:
         from stereodem.ortho.uncertainty.sampling import monte_carlo, src
+
         col, row = (np.asarray(a, float) for a in model.project(lo, la, hh))
         if method == "monte-carlo":
-            X, dE, dN = monte_carlo(model, lo, la, hh, names, D, grid.crs, samples=samples, dem=dem, seed=seed)
+            X, dE, dN = monte_carlo(
+                model, lo, la, hh, names, D, grid.crs, samples=samples, dem=dem, seed=seed
+            )
             bE, _ = src(X, dE)
             bN, _ = src(X, dN)
             idx = {n: k for k, n in enumerate(names)}
@@ -166,7 +212,10 @@ def _node_fields(model, dem, grid, U, V, D, names, groups, method, samples, seed
             sh_N = np.stack([(bN[[idx[m] for m in members[s]]] ** 2).sum(0) for s in srcs], -1)
         else:
             from stereodem.ortho.uncertainty.indices import fast_indices
-            r = fast_indices(model, lo, la, hh, names, D, grid.crs, samples=samples, dem=dem, seed=seed)
+
+            r = fast_indices(
+                model, lo, la, hh, names, D, grid.crs, samples=samples, dem=dem, seed=seed
+            )
             idx = {n: k for k, n in enumerate(r["names"])}
             members = groups or {n: [n] for n in names}
             VE, VN = r["variance"]
@@ -182,16 +231,30 @@ def _node_fields(model, dem, grid, U, V, D, names, groups, method, samples, seed
         if dE is not None:
             C[:, 0, 1] = C[:, 1, 0] = ((dE - dE.mean(0)) * (dN - dN.mean(0))).sum(0) / (len(dE) - 1)
         Vtot = VE + VN
-    vals = np.column_stack([np.sqrt(C[:, 0, 0]), np.sqrt(C[:, 1, 1]), C[:, 0, 1], col, row,
-                            share * Vtot[:, None]])
+    vals = np.column_stack(
+        [np.sqrt(C[:, 0, 0]), np.sqrt(C[:, 1, 1]), C[:, 0, 1], col, row, share * Vtot[:, None]]
+    )
     out[ok] = vals
     return out.reshape(U.shape + (-1,)), srcs
 
 
-def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "first-order", *,
-                           samples: int = 1000, groups: dict | None = None, step: int | None = None,
-                           tolerance: float = 1e-3, n_check: int = 400, seed: int = 0,
-                           source_maps: bool = False, threads: int | None = None) -> UncertaintyMaps:
+def ortho_uncertainty_maps(
+    model,
+    dem,
+    grid,
+    covariance,
+    names,
+    method: str = "first-order",
+    *,
+    samples: int = 1000,
+    groups: dict | None = None,
+    step: int | None = None,
+    tolerance: float = 1e-3,
+    n_check: int = 400,
+    seed: int = 0,
+    source_maps: bool = False,
+    threads: int | None = None,
+) -> UncertaintyMaps:
     """Per-cell horizontal uncertainty of the orthoimage of ``model`` over ``dem`` on ``grid``.
 
     Parameters
@@ -244,8 +307,21 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
     dem = _ellipsoidal(dem)
     if method == "first-order":
         from stereodem.ortho.uncertainty.first_order_maps import first_order_maps
-        return first_order_maps(model, dem, grid, D, names, groups, step=step, tolerance=tolerance,
-                                n_check=n_check, seed=seed, source_maps=source_maps, threads=threads)
+
+        return first_order_maps(
+            model,
+            dem,
+            grid,
+            D,
+            names,
+            groups,
+            step=step,
+            tolerance=tolerance,
+            n_check=n_check,
+            seed=seed,
+            source_maps=source_maps,
+            threads=threads,
+        )
     rng = np.random.default_rng(seed)
     big = max(grid.width, grid.height)
     st = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
@@ -253,7 +329,9 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
     while True:
         uu, vv = _node_lattice(grid, st)
         U, V = np.meshgrid(uu, vv)
-        F, srcs = _node_fields(model, dem, grid, U, V, D, names, groups, "first-order", samples, seed)
+        F, srcs = _node_fields(
+            model, dem, grid, U, V, D, names, groups, "first-order", samples, seed
+        )
         # measured interpolation error: exact first-order σ_h at mid-cells and random cells
         ny, nx = U.shape
         m = min(n_check // 2, (ny - 1) * (nx - 1))
@@ -262,10 +340,23 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
         cv = 0.5 * (vv[cell // (nx - 1)] + vv[cell // (nx - 1) + 1])
         cu = np.concatenate([cu, rng.uniform(0, grid.width - 1, m)])
         cv = np.concatenate([cv, rng.uniform(0, grid.height - 1, m)])
-        Fc, _ = _node_fields(model, dem, grid, cu[:, None], cv[:, None], D, names, groups,
-                             "first-order", samples, seed)
+        Fc, _ = _node_fields(
+            model,
+            dem,
+            grid,
+            cu[:, None],
+            cv[:, None],
+            D,
+            names,
+            groups,
+            "first-order",
+            samples,
+            seed,
+        )
         exact = np.hypot(Fc[:, 0, 0], Fc[:, 0, 1])
-        inter = np.hypot(_bilinear_at(F[..., 0], uu, vv, cu, cv), _bilinear_at(F[..., 1], uu, vv, cu, cv))
+        inter = np.hypot(
+            _bilinear_at(F[..., 0], uu, vv, cu, cv), _bilinear_at(F[..., 1], uu, vv, cu, cv)
+        )
         ok = np.isfinite(exact) & np.isfinite(inter) & (exact > 0)
         err = float(np.max(np.abs(inter[ok] - exact[ok]) / exact[ok])) if ok.any() else 0.0
         log.debug("uncertainty lattice step %d: relative interpolation error %.2e", st, err)
@@ -286,16 +377,25 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
     Wx, Wy = _weights(grid.width, uu), _weights(grid.height, vv)
     sE, sN = _interp(F[..., 0], Wy, Wx), _interp(F[..., 1], Wy, Wx)
     col, row = _interp(F[..., 3], Wy, Wx), _interp(F[..., 4], Wy, Wx)
-    outside = ~((col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5))
+    outside = ~(
+        (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5)
+    )
     sE[outside] = sN[outside] = np.nan
     c90 = np.full(sE.shape, np.nan, np.float32)
     good = np.isfinite(sE)
-    c90_nodes = ce90(np.stack([np.stack([F[..., 0] ** 2, F[..., 2]], -1),
-                               np.stack([F[..., 2], F[..., 1] ** 2], -1)], -2))
+    c90_nodes = ce90(
+        np.stack(
+            [np.stack([F[..., 0] ** 2, F[..., 2]], -1), np.stack([F[..., 2], F[..., 1] ** 2], -1)],
+            -2,
+        )
+    )
     c90[good] = _interp(np.where(np.isfinite(F[..., 0]), c90_nodes, np.nan), Wy, Wx)[good]
     contrib = F[..., 5:]
     total = np.nansum(contrib, axis=(0, 1))
-    shares = {s: float(total[k] / total.sum()) if total.sum() > 0 else float("nan") for k, s in enumerate(srcs)}
+    shares = {
+        s: float(total[k] / total.sum()) if total.sum() > 0 else float("nan")
+        for k, s in enumerate(srcs)
+    }
     dom = np.full(sE.shape, -1, np.int16)
     best = np.full(sE.shape, -np.inf, np.float32)
     kept = {}
@@ -308,11 +408,13 @@ def ortho_uncertainty_maps(model, dem, grid, covariance, names, method: str = "f
             kept[s] = frac
         better = np.isfinite(frac) & (frac > best)
         dom[better], best[better] = k, frac[better]
-    return UncertaintyMaps(grid, method, names, srcs, sE, sN, c90, dom, shares, st, err,
-                           kept, details)
+    return UncertaintyMaps(
+        grid, method, names, srcs, sE, sN, c90, dom, shares, st, err, kept, details
+    )
 
 
 # ----------------------------------------------------------------------------- DEM vertical σ
+
 
 def hirvonen_weights(size: int, res, c: float = 12.2) -> np.ndarray:
     """Hirvonen covariance ``1/(1 + (l/c)²)`` of the ``size × size`` window posts at distance
@@ -329,7 +431,7 @@ def hirvonen_slope_kernels(size: int, res, c: float = 12.2):
     rows of ``(XᵀWX)⁻¹XᵀW``, the same for every cell of a regular grid."""
     rx, ry = (res, res) if np.isscalar(res) else res
     k = np.arange(size) - (size - 1) / 2
-    E, N = np.meshgrid(k * rx, -k * ry)                    # row 0 is north
+    E, N = np.meshgrid(k * rx, -k * ry)  # row 0 is north
     E, N = E.ravel(), N.ravel()
     X = np.column_stack([np.ones_like(E), N, E, N * N, E * E, N * E])
     W = hirvonen_weights(size, res, c).ravel()
@@ -341,6 +443,7 @@ def hirvonen_slopes(heights, res, *, c: float = 12.2, size: int = 11):
     """Slopes ``(∂h/∂E, ∂h/∂N)`` (m/m) of every DEM cell from the Hirvonen-weighted quadratic
     surface over its ``size × size`` neighbourhood (NaN where the window has a void)."""
     from scipy import ndimage
+
     z = np.asarray(heights, float)
     bad = ~np.isfinite(z)
     zf = np.where(bad, 0.0, z)
@@ -373,11 +476,19 @@ def intersection_gains(left, right, lon, lat, h, crs, *, left_names=(), right_na
     B = np.empty(lon.shape + (4, 3))
     for m_i, m in enumerate((left, right)):
         gj = ground_jacobian(m, lon, lat, h, ["dem_height"], crs)
-        B[..., 2 * m_i:2 * m_i + 2, :2] = gj.A
-        B[..., 2 * m_i:2 * m_i + 2, 2] = -np.einsum("...ij,...j->...i", gj.A, gj.J[..., 0])
+        B[..., 2 * m_i : 2 * m_i + 2, :2] = gj.A
+        B[..., 2 * m_i : 2 * m_i + 2, 2] = -np.einsum("...ij,...j->...i", gj.A, gj.J[..., 0])
     G = np.linalg.solve(np.einsum("...ki,...kj->...ij", B, B), np.swapaxes(B, -1, -2))
-    J1 = image_jacobian(left, lon, lat, h, list(left_names))[2] if left_names else np.zeros(lon.shape + (2, 0))
-    J2 = image_jacobian(right, lon, lat, h, list(right_names))[2] if right_names else np.zeros(lon.shape + (2, 0))
+    J1 = (
+        image_jacobian(left, lon, lat, h, list(left_names))[2]
+        if left_names
+        else np.zeros(lon.shape + (2, 0))
+    )
+    J2 = (
+        image_jacobian(right, lon, lat, h, list(right_names))[2]
+        if right_names
+        else np.zeros(lon.shape + (2, 0))
+    )
     e = B[..., 2:, 2] / np.linalg.norm(B[..., 2:, 2], axis=-1, keepdims=True)
     return G, J1, J2, e
 
@@ -398,13 +509,28 @@ class DEMUncertainty:
         """Write ``<dem stem>_sigma_vertical.tif`` beside the DEM (its ``sigma`` layer,
         :data:`stereodem.core.dem.LAYERS`); returns the path."""
         from stereodem.core.dem import write_layer
-        return write_layer(dem_path, "sigma", self.sigma_vertical, dem.transform, dem.crs,
-                           overwrite=overwrite)
+
+        return write_layer(
+            dem_path, "sigma", self.sigma_vertical, dem.transform, dem.crs, overwrite=overwrite
+        )
 
 
-def dem_vertical_sigma(left, right, dem, *, left_covariance=None, left_names=(), right_covariance=None,
-                       right_names=(), score=None, sigma_disparity: float = 0.2, score_ref: float = 0.9,
-                       hirvonen_c: float = 12.2, window: int = 11, step: int = 16) -> DEMUncertainty:
+def dem_vertical_sigma(
+    left,
+    right,
+    dem,
+    *,
+    left_covariance=None,
+    left_names=(),
+    right_covariance=None,
+    right_names=(),
+    score=None,
+    sigma_disparity: float = 0.2,
+    score_ref: float = 0.9,
+    hirvonen_c: float = 12.2,
+    window: int = 11,
+    step: int = 16,
+) -> DEMUncertainty:
     """Per-cell vertical σ of a stereo DEM (projected CRS, metres).
 
     Parameters
@@ -427,8 +553,16 @@ def dem_vertical_sigma(left, right, dem, *, left_covariance=None, left_names=(),
         check_names(m, nm)
         if "dem_height" in nm:
             raise InputError("dem_height is not an input of a stereo DEM")
-    D1 = check_psd(np.asarray(left_covariance if left_covariance is not None else np.zeros((0, 0)), float).reshape(len(left_names), len(left_names)))
-    D2 = check_psd(np.asarray(right_covariance if right_covariance is not None else np.zeros((0, 0)), float).reshape(len(right_names), len(right_names)))
+    D1 = check_psd(
+        np.asarray(
+            left_covariance if left_covariance is not None else np.zeros((0, 0)), float
+        ).reshape(len(left_names), len(left_names))
+    )
+    D2 = check_psd(
+        np.asarray(
+            right_covariance if right_covariance is not None else np.zeros((0, 0)), float
+        ).reshape(len(right_names), len(right_names))
+    )
     z = np.asarray(dem.heights, float)
     H, W = z.shape
     res = (abs(dem.transform.a), abs(dem.transform.e))
@@ -444,14 +578,17 @@ def dem_vertical_sigma(left, right, dem, *, left_covariance=None, left_names=(),
         lon, lat = geodesy.crs_to_lonlat(x, y, dem.crs)
         h = dem.sample(lon, lat)
         h = np.where(np.isfinite(h), h, np.nanmedian(z))
-        G, J1, J2, e = intersection_gains(left, right, lon, lat, h, dem.crs,
-                                          left_names=left_names, right_names=right_names)
+        G, J1, J2, e = intersection_gains(
+            left, right, lon, lat, h, dem.crs, left_names=left_names, right_names=right_names
+        )
         Cobs = np.zeros(lon.shape + (4, 4))
         Cobs[..., :2, :2] = propagate(J1, D1) if left_names else 0.0
         Cobs[..., 2:, 2:] = propagate(J2, D2) if right_names else 0.0
         Sx = np.einsum("...ik,...kl,...jl->...ij", G, Cobs, G)
-        gd = np.einsum("...ik,...k->...i", G[..., :, 2:], e)          # per px of disparity
-        return np.stack([Sx[..., 0, 0], Sx[..., 1, 1], Sx[..., 2, 2], gd[..., 0], gd[..., 1], gd[..., 2]], -1)
+        gd = np.einsum("...ik,...k->...i", G[..., :, 2:], e)  # per px of disparity
+        return np.stack(
+            [Sx[..., 0, 0], Sx[..., 1, 1], Sx[..., 2, 2], gd[..., 0], gd[..., 1], gd[..., 2]], -1
+        )
 
     U, V = np.meshgrid(uu, vv)
     F = evaluate(U.ravel(), V.ravel()).reshape(U.shape + (6,))
@@ -463,16 +600,21 @@ def dem_vertical_sigma(left, right, dem, *, left_covariance=None, left_names=(),
     err = float(np.max(np.abs(Fi - Fc) / scale))
     Wx, Wy = _weights(W, uu), _weights(H, vv)
     full = [_interp(F[..., k], Wy, Wx, np.float64) for k in range(6)]
-    sd = disparity_sigma(score, sigma_ref=sigma_disparity, score_ref=score_ref) if score is not None \
+    sd = (
+        disparity_sigma(score, sigma_ref=sigma_disparity, score_ref=score_ref)
+        if score is not None
         else np.full(z.shape, float(sigma_disparity))
+    )
     vE = full[0] + (sd * full[3]) ** 2
     vN = full[1] + (sd * full[4]) ** 2
     vH = full[2] + (sd * full[5]) ** 2
     gE, gN = hirvonen_slopes(z, res, c=hirvonen_c, size=window)
-    slope = np.sqrt(gE ** 2 * vE + gN ** 2 * vN)
-    total = np.sqrt(vH + slope ** 2)
+    slope = np.sqrt(gE**2 * vE + gN**2 * vN)
+    total = np.sqrt(vH + slope**2)
     void = ~np.isfinite(z)
     for a in (total, slope):
         a[void] = np.nan
     f32 = lambda a: np.where(void, np.nan, a).astype(np.float32)
-    return DEMUncertainty(f32(total), f32(np.sqrt(vH)), f32(slope), f32(np.sqrt(vE)), f32(np.sqrt(vN)), err)
+    return DEMUncertainty(
+        f32(total), f32(np.sqrt(vH)), f32(slope), f32(np.sqrt(vE)), f32(np.sqrt(vN)), err
+    )

@@ -21,6 +21,7 @@ Propagation with a full covariance ``D`` gives ``Σ = J D Jᵀ`` per point; the 
 input ``k`` is its covariance contribution ``J_k (D Jᵀ)_k / V``, which is Helton's
 ``(∂f/∂x_k)² V(x_k)/V(y)`` for a diagonal ``D`` and sums to 1 over the inputs in all cases.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -36,9 +37,9 @@ from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 EXTRA_PARAMETERS = {"dem_height": "m", "imaging_time": "s"}
 
 #: central-difference steps of the pseudo-parameters and of the ground coordinates
-DEM_HEIGHT_STEP = 1.0          # m
-IMAGING_TIME_STEP = 1e-3       # s
-GROUND_STEP = 1.0              # m
+DEM_HEIGHT_STEP = 1.0  # m
+IMAGING_TIME_STEP = 1e-3  # s
+GROUND_STEP = 1.0  # m
 
 #: chi-distribution quantile of a circular normal at 90 % (CE90 = 2.1460 σ per axis)
 CE90_CIRCULAR = 2.145966
@@ -47,14 +48,32 @@ CE90_CIRCULAR = 2.145966
 #: central-difference steps by parameter unit: large enough that the image motion (≥ 10⁻³ px
 #: for the sensors of the project) dominates the round-off of iterative projections, small
 #: enough that the truncation error stays below 10⁻³ (tested per parameter)
-UNIT_STEPS = {"rad": 1e-6, "m": 0.5, "s": 1e-3, "rad/s": 1e-7, "1": 1e-5, "px": 1.0, "px/px": 1e-4,
-              "mm": 1e-3}
+UNIT_STEPS = {
+    "rad": 1e-6,
+    "m": 0.5,
+    "s": 1e-3,
+    "rad/s": 1e-7,
+    "1": 1e-5,
+    "px": 1.0,
+    "px/px": 1e-4,
+    "mm": 1e-3,
+}
 #: units of the frame camera's parameters (its ``PARAMETERS`` is a plain tuple)
-FRAME_UNITS = {"focal_mm": "mm", "dx_mm": "mm", "dy_mm": "mm", "roll": "rad", "pitch": "rad", "yaw": "rad",
-               "x": "m", "y": "m", "z": "m"}
+FRAME_UNITS = {
+    "focal_mm": "mm",
+    "dx_mm": "mm",
+    "dy_mm": "mm",
+    "roll": "rad",
+    "pitch": "rad",
+    "yaw": "rad",
+    "x": "m",
+    "y": "m",
+    "z": "m",
+}
 
 
 # ----------------------------------------------------------------------------- models
+
 
 def adjustable_model(model):
     """``model`` itself if it has adjustable parameters, else wrapped in an image-space
@@ -62,6 +81,7 @@ def adjustable_model(model):
     if is_adjustable(model):
         return model
     from stereodem.sensor.models.corrected import ImageCorrectedModel
+
     return ImageCorrectedModel(model)
 
 
@@ -86,8 +106,10 @@ def check_names(model, names) -> list[str]:
     valid = valid_names(model)
     bad = [n for n in names if n not in valid]
     if bad:
-        raise InputError(f"unknown parameter(s) {', '.join(bad)} for {type(model).__name__}; "
-                         f"valid: {', '.join(valid)}")
+        raise InputError(
+            f"unknown parameter(s) {', '.join(bad)} for {type(model).__name__}; "
+            f"valid: {', '.join(valid)}"
+        )
     if len(set(names)) != len(names):
         raise InputError(f"parameter names repeated: {', '.join(names)}")
     return names
@@ -99,6 +121,7 @@ def advance_frame_camera(model, dt: float):
     centrifugal terms of the rotating frame; second order in ``dt``). Attitude relative to the
     orbital frame is kept, so the look direction turns with the orbit."""
     from dataclasses import replace
+
     r, v = np.asarray(model.position, float), np.asarray(model.velocity, float)
     w = np.array([0.0, 0.0, geodesy.OMEGA_EARTH])
     a = -geodesy.GM * r / np.linalg.norm(r) ** 3 - 2 * np.cross(w, v) - np.cross(w, np.cross(w, r))
@@ -123,8 +146,9 @@ def perturbed_model(model, values: dict):
 def parameter_unit(model, name) -> str | None:
     """Unit of a model parameter from the model's ``PARAMETERS`` table (None if unknown)."""
     import sys
+
     table = getattr(model, "PARAMETERS", None)
-    if not isinstance(table, dict):          # module-level table (pushbroom, ASTER)
+    if not isinstance(table, dict):  # module-level table (pushbroom, ASTER)
         for cls in type(model).__mro__:
             table = getattr(sys.modules.get(cls.__module__), "PARAMETERS", None)
             if isinstance(table, dict):
@@ -175,7 +199,9 @@ def image_jacobian(model, lon, lat, h, names, *, steps: dict | None = None):
     col, row = (np.asarray(a, float) for a in model.project(lon, lat, h))
     J = np.zeros(lon.shape + (2, len(names)))
     if own:
-        _, _, Jo = project_jacobian(model, lon, lat, h, own, steps=propagation_steps(model, own, steps))
+        _, _, Jo = project_jacobian(
+            model, lon, lat, h, own, steps=propagation_steps(model, own, steps)
+        )
         for k, n in enumerate(own):
             J[..., names.index(n)] = Jo[..., k]
     if "dem_height" in names:
@@ -232,6 +258,7 @@ def slope_from_pixels(gc, gr, c, r, P):
     """Map-axis gradient from the DEM-pixel gradient arrays sampled at (c, r) with the pixel
     Jacobian ``P = ∂(c, r)/∂(E, N)``; 0 where the DEM has no value."""
     from stereodem.ortho.drm import bilinear_nan
+
     a, b = np.nan_to_num(bilinear_nan(gc, c, r)), np.nan_to_num(bilinear_nan(gr, c, r))
     return a * P[..., 0, 0] + b * P[..., 1, 0], a * P[..., 0, 1] + b * P[..., 1, 1]
 
@@ -259,7 +286,9 @@ def ground_covariance(A, ph, grad, M):
     return g00, g01, g11
 
 
-def image_side(model, lon, lat, h, names, D, crs, *, groups: dict | None = None, steps: dict | None = None):
+def image_side(
+    model, lon, lat, h, names, D, crs, *, groups: dict | None = None, steps: dict | None = None
+):
     """The smooth, terrain-free part of the propagation at ground points.
 
     Returns a dict: ``col``, ``row`` (n,), ``A = ∂(col,row)/∂(E,N)`` (n, 2, 2) at fixed height,
@@ -274,7 +303,7 @@ def image_side(model, lon, lat, h, names, D, crs, *, groups: dict | None = None,
     cp, rp = model.project(lon, lat, h + DEM_HEIGHT_STEP)
     cm, rm = model.project(lon, lat, h - DEM_HEIGHT_STEP)
     ph = np.stack([np.asarray(cp) - cm, np.asarray(rp) - rm], -1) / (2 * DEM_HEIGHT_STEP)
-    DJ = np.einsum("kl,nil->nik", D, Ji)                       # (n, 2, u): Σ_l D_kl J_il
+    DJ = np.einsum("kl,nil->nik", D, Ji)  # (n, 2, u): Σ_l D_kl J_il
     groups = groups or {n: [n] for n in names}
     idx = {n: k for k, n in enumerate(names)}
     C = {}
@@ -306,7 +335,9 @@ class GroundJacobian:
     crs: object = None
 
 
-def ground_jacobian(model, lon, lat, h, names, crs, *, dem=None, steps: dict | None = None) -> GroundJacobian:
+def ground_jacobian(
+    model, lon, lat, h, names, crs, *, dem=None, steps: dict | None = None
+) -> GroundJacobian:
     """Jacobian of the ground position of the pixels imaging ``(lon, lat, h)``.
 
     Parameters
@@ -346,6 +377,7 @@ def ground_jacobian(model, lon, lat, h, names, crs, *, dem=None, steps: dict | N
 
 # ----------------------------------------------------------------------------- covariance algebra
 
+
 def covariance_matrix(names, sigmas: dict | None = None, covariance=None) -> np.ndarray:
     """The input covariance in the order of ``names``: a full matrix, or diagonal from σ's.
 
@@ -361,8 +393,10 @@ def covariance_matrix(names, sigmas: dict | None = None, covariance=None) -> np.
         s = np.array([float(sigmas.get(n, 0.0)) for n in names])
         bad = [n for n, v in zip(names, s) if not np.isfinite(v) or v < 0]
         if bad:
-            raise InputError(f"sigma must be finite and non-negative: {', '.join(f'{n}={sigmas[n]}' for n in bad)}")
-        D = np.diag(s ** 2)
+            raise InputError(
+                f"sigma must be finite and non-negative: {', '.join(f'{n}={sigmas[n]}' for n in bad)}"
+            )
+        D = np.diag(s**2)
     check_psd(D, names)
     return D
 
@@ -379,11 +413,13 @@ def check_psd(D, names=None, *, what: str = "covariance"):
         raise InputError(f"{what} is not symmetric")
     d = np.sqrt(np.clip(np.diag(D), 0, None))
     dd = np.where(d > 0, d, 1.0)
-    ev = np.linalg.eigvalsh(D / np.outer(dd, dd))            # scale-free test on the correlations
+    ev = np.linalg.eigvalsh(D / np.outer(dd, dd))  # scale-free test on the correlations
     if np.any(np.diag(D) < 0) or ev.min() < -1e-9:
         k = int(np.argmin(ev))
-        raise InputError(f"{what} is not positive semi-definite (smallest eigenvalue of the "
-                         f"correlation matrix {ev[k]:.3g})")
+        raise InputError(
+            f"{what} is not positive semi-definite (smallest eigenvalue of the "
+            f"correlation matrix {ev[k]:.3g})"
+        )
     return D
 
 
@@ -407,7 +443,7 @@ def variance_shares(J, D, groups: dict | None = None, names=None):
     shares : dict group -> ndarray (..., m): ``J_k (D Jᵀ)_k / V`` summed over the group; the
         shares of all groups sum to 1 where V > 0 (NaN where V = 0).
     """
-    contrib = J * np.einsum("kl,...jl->...jk", D, J)            # (..., m, u)
+    contrib = J * np.einsum("kl,...jl->...jk", D, J)  # (..., m, u)
     V = contrib.sum(-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         frac = contrib / np.where(V > 0, V, np.nan)[..., None]
@@ -415,12 +451,14 @@ def variance_shares(J, D, groups: dict | None = None, names=None):
         names = names or [f"p{k}" for k in range(J.shape[-1])]
         return {n: frac[..., k] for k, n in enumerate(names)}
     idx = {n: k for k, n in enumerate(names)}
-    return {g: frac[..., [idx[m] for m in members if m in idx]].sum(-1) for g, members in groups.items()}
+    return {
+        g: frac[..., [idx[m] for m in members if m in idx]].sum(-1) for g, members in groups.items()
+    }
 
 
 def horizontal_shares(J, D, names, groups: dict | None = None):
     """Shares of the horizontal variance ``σ_E² + σ_N²`` per input (or group), (...,) arrays."""
-    contrib = (J * np.einsum("kl,...jl->...jk", D, J)).sum(-2)   # (..., u)
+    contrib = (J * np.einsum("kl,...jl->...jk", D, J)).sum(-2)  # (..., u)
     V = contrib.sum(-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         frac = contrib / np.where(V > 0, V, np.nan)[..., None]
@@ -431,6 +469,7 @@ def horizontal_shares(J, D, names, groups: dict | None = None):
 
 # ----------------------------------------------------------------------------- circular error
 
+
 def ce90(cov, *, p: float = 0.9, nodes: int = 48, iterations: int = 48):
     """Circular error: radius holding probability ``p`` of a zero-mean bivariate normal.
 
@@ -440,12 +479,12 @@ def ce90(cov, *, p: float = 0.9, nodes: int = 48, iterations: int = 48):
     """
     erf = _erf
     cov = np.asarray(cov, float)
-    lam = np.linalg.eigvalsh(cov)                      # ascending
+    lam = np.linalg.eigvalsh(cov)  # ascending
     l1 = np.clip(lam[..., 1], 0, None)
     l2 = np.clip(lam[..., 0], 1e-30 + 1e-14 * l1, None)
     s1 = np.sqrt(l1)
     t, w = np.polynomial.legendre.leggauss(nodes)
-    t, w = 0.5 * np.pi * t, 0.5 * np.pi * w            # t in (-π/2, π/2)
+    t, w = 0.5 * np.pi * t, 0.5 * np.pi * w  # t in (-π/2, π/2)
 
     def prob(r):
         zmax = r / np.where(s1 > 0, s1, 1.0)
@@ -475,7 +514,7 @@ def _ce90_table():
     if _CE90_TABLE is None:
         rho = np.linspace(0.0, 1.0, _CE90_N + 1)
         cov = np.zeros((rho.size, 2, 2))
-        cov[:, 0, 0], cov[:, 1, 1] = 1.0, rho ** 2
+        cov[:, 0, 0], cov[:, 1, 1] = 1.0, rho**2
         g = ce90(cov)
         _CE90_TABLE = (g, np.append(np.diff(g), 0.0))
     return _CE90_TABLE
@@ -495,12 +534,12 @@ def ce90_from_cov(a, b, c):
     np.sqrt(rad, out=rad)
     l1 = half + rad
     half -= rad
-    np.maximum(half, 0, out=half)                       # λ₂
+    np.maximum(half, 0, out=half)  # λ₂
     x = half / np.maximum(l1, np.finfo(dt).tiny)
     np.sqrt(x, out=x)
-    x *= _CE90_N                                        # ρ in table steps
+    x *= _CE90_N  # ρ in table steps
     with np.errstate(invalid="ignore"):
-        i = x.astype(np.int32)                          # NaN input -> any index, NaN result
+        i = x.astype(np.int32)  # NaN input -> any index, NaN result
     x -= i
     out = dg.take(i, mode="clip")
     out *= x
@@ -512,6 +551,7 @@ def ce90_from_cov(a, b, c):
 
 
 # ----------------------------------------------------------------------------- results
+
 
 @dataclass
 class PointUncertainty:
@@ -536,12 +576,29 @@ class PointUncertainty:
         return ce90(self.cov)
 
 
-def first_order(model, lon, lat, h, names, D, crs, *, dem=None, groups: dict | None = None,
-                steps: dict | None = None) -> PointUncertainty:
+def first_order(
+    model,
+    lon,
+    lat,
+    h,
+    names,
+    D,
+    crs,
+    *,
+    dem=None,
+    groups: dict | None = None,
+    steps: dict | None = None,
+) -> PointUncertainty:
     """First-order σ of the ground positions at ``(lon, lat, h)`` for input covariance ``D``
     (order of ``names``); see the module docstring."""
     gj = ground_jacobian(model, lon, lat, h, names, crs, dem=dem, steps=steps)
     C = propagate(gj.J, D)
     shares = horizontal_shares(gj.J, D, list(names), groups)
-    return PointUncertainty(list(names), np.sqrt(np.clip(C[..., 0, 0], 0, None)),
-                            np.sqrt(np.clip(C[..., 1, 1], 0, None)), C, shares, gj)
+    return PointUncertainty(
+        list(names),
+        np.sqrt(np.clip(C[..., 0, 0], 0, None)),
+        np.sqrt(np.clip(C[..., 1, 1], 0, None)),
+        C,
+        shares,
+        gj,
+    )

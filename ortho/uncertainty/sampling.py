@@ -8,6 +8,7 @@ has none). Every sample is propagated through the full model: the pixel that ima
 point under the true model is re-localised on the DEM with the perturbed model by Newton
 iterations, so the result keeps the model's non-linearity.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -74,8 +75,9 @@ def _local_metric(lon, lat, crs, d: float = 1e-5):
     return M
 
 
-def ground_displacements(model, lon, lat, h, names, X, crs, *, dem=None, tol_px: float = 1e-6,
-                         max_iterations: int = 100):
+def ground_displacements(
+    model, lon, lat, h, names, X, crs, *, dem=None, tol_px: float = 1e-6, max_iterations: int = 100
+):
     """Exact ground displacements (E, N metres) of the pixels imaging ``(lon, lat, h)`` for each
     row of input offsets ``X`` (s, u) in the order of ``names``.
 
@@ -119,7 +121,9 @@ def ground_displacements(model, lon, lat, h, names, X, crs, *, dem=None, tol_px:
         dl = np.stack([lo - lon, la - lat], -1)
         out[s] = np.moveaxis(np.einsum("...ij,...j->...i", M, dl), -1, 0)
     if worst > 1e-3:
-        raise ConvergenceError(f"Monte Carlo re-localisation did not converge ({worst:.3g} px left)")
+        raise ConvergenceError(
+            f"Monte Carlo re-localisation did not converge ({worst:.3g} px left)"
+        )
     return out[:, 0], out[:, 1]
 
 
@@ -128,7 +132,9 @@ def _cheb_design(x, lo, hi, deg):
     return np.polynomial.chebyshev.chebvander(t, deg)
 
 
-def image_shift_field(model, lon, lat, h, names, X, *, nodes: int = 9, h_nodes: int = 3, n_check: int = 4):
+def image_shift_field(
+    model, lon, lat, h, names, X, *, nodes: int = 9, h_nodes: int = 3, n_check: int = 4
+):
     """Exact image shifts ``δp = project_perturbed(lon, lat, h + δh) − project(lon, lat, h)`` of
     many points for many samples, through a smooth field: δp is computed exactly at
     ``nodes × nodes × h_nodes`` Chebyshev nodes over the points' extent and fitted there by a
@@ -143,7 +149,9 @@ def image_shift_field(model, lon, lat, h, names, X, *, nodes: int = 9, h_nodes: 
     la_b = (lat.min(), lat.max())
     h_b = (float(np.min(h) + min(dh.min(), 0)), float(np.max(h) + max(dh.max(), 0)) + 1e-3)
     cheb = lambda a, b, k: 0.5 * (a + b) + 0.5 * (b - a) * np.cos(np.pi * (np.arange(k) + 0.5) / k)
-    NL, NA, NH = np.meshgrid(cheb(*lo_b, nodes), cheb(*la_b, nodes), cheb(*h_b, h_nodes), indexing="ij")
+    NL, NA, NH = np.meshgrid(
+        cheb(*lo_b, nodes), cheb(*la_b, nodes), cheb(*h_b, h_nodes), indexing="ij"
+    )
     NL, NA, NH = NL.ravel(), NA.ravel(), NH.ravel()
 
     def design(lo_, la_, hh):
@@ -194,9 +202,10 @@ def field_displacements(model, lon, lat, h, names, X, crs, *, dem=None, nodes: i
     For displacements of a few pixels the neglected term is second order (≈ δp²/footprint).
     Returns ``dE, dN`` (s, n) and the measured field error (px)."""
     from stereodem.ortho.uncertainty.propagation import ground_jacobian
+
     dc, dr, err = image_shift_field(model, lon, lat, h, names, X, nodes=nodes)
     gj = ground_jacobian(model, lon, lat, h, [], crs, dem=dem)
-    Ainv = np.linalg.inv(gj.A)                                  # (n, 2, 2) metres per pixel
+    Ainv = np.linalg.inv(gj.A)  # (n, 2, 2) metres per pixel
     dE = -(Ainv[:, 0, 0] * dc + Ainv[:, 0, 1] * dr)
     dN = -(Ainv[:, 1, 0] * dc + Ainv[:, 1, 1] * dr)
     return dE, dN, err
@@ -213,6 +222,7 @@ def monte_carlo(model, lon, lat, h, names, D, crs, *, samples: int = 1000, dem=N
 
 # ----------------------------------------------------------------------------- regression measures
 
+
 def _standardise(a):
     a = np.asarray(a, float)
     sd = a.std(0, ddof=1)
@@ -228,7 +238,7 @@ def src(X, y):
     b = np.zeros((X.shape[1], y2.shape[1]))
     b[live] = np.linalg.lstsq(Xs[:, live], ys, rcond=None)[0]
     fit = Xs @ b
-    r2 = 1 - ((ys - fit) ** 2).sum(0) / np.maximum((ys ** 2).sum(0), 1e-300)
+    r2 = 1 - ((ys - fit) ** 2).sum(0) / np.maximum((ys**2).sum(0), 1e-300)
     return b.reshape((X.shape[1],) + np.shape(y)[1:]), r2.reshape(np.shape(y)[1:])
 
 
@@ -255,7 +265,10 @@ def regression_summary(X, dE, dN, names):
     out = {}
     for comp, y in (("east", dE), ("north", dN)):
         b, r2 = src(X, y)
-        out[comp] = {"r2": float(r2), "src": dict(zip(names, map(float, b))),
-                     "pcc": dict(zip(names, map(float, pcc(X, y)))),
-                     "prcc": dict(zip(names, map(float, prcc(X, y))))}
+        out[comp] = {
+            "r2": float(r2),
+            "src": dict(zip(names, map(float, b))),
+            "pcc": dict(zip(names, map(float, pcc(X, y)))),
+            "prcc": dict(zip(names, map(float, prcc(X, y)))),
+        }
     return out

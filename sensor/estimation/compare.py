@@ -14,6 +14,7 @@ adjustment engine (:mod:`stereodem.sensor.estimation.adjust.model_sets`: the phy
 adjusted with :func:`~stereodem.sensor.estimation.adjust.adjust_model`. ``all`` = every
 generic model, the sets that apply to the image's model and the orbital defaults.
 """
+
 from __future__ import annotations
 
 import logging
@@ -32,13 +33,15 @@ def expand_models(names, base) -> list[str]:
     from stereodem.sensor.models.generic import MODEL_NAMES
     from stereodem.sensor.models.orbital import DEFAULT_SETS
     from stereodem.sensor.models.pushbroom import PushbroomModel
+
     out = []
     for name in names:
         if name == "all":
             out += list(MODEL_NAMES)
             for k, ms in MODEL_SETS.items():
                 if k.startswith(("rpc-shift", "rpc-affine")) or (
-                        ms.applies_to and isinstance(base, ms.applies_to)):
+                    ms.applies_to and isinstance(base, ms.applies_to)
+                ):
                     out.append(k)
             if isinstance(base, PushbroomModel) or hasattr(base, "ephemeris"):
                 out += list(DEFAULT_SETS)
@@ -64,44 +67,84 @@ def split_points(points: ControlPoints, n_check: int, seed: int = 0):
         order = rng.permutation(len(points))
         roles = np.array(["gcp"] * len(points), dtype=object)
         roles[order[:n_check]] = "check"
-        pts = points.with_roles(roles) if hasattr(points, "with_roles") else _with_roles(points, roles)
+        pts = (
+            points.with_roles(roles)
+            if hasattr(points, "with_roles")
+            else _with_roles(points, roles)
+        )
         pool, icp = pts.select("gcp"), pts.select("check")
     perm = rng.permutation(len(pool))
     return pool.subset(perm), icp
 
 
 def _with_roles(points, roles):
-    return ControlPoints(points.id, points.lon, points.lat, points.h, points.col, points.row,
-                         role=np.asarray(roles, str), sigma_px=points.sigma_px,
-                         sigma_ground_m=points.sigma_ground_m)
+    return ControlPoints(
+        points.id,
+        points.lon,
+        points.lat,
+        points.h,
+        points.col,
+        points.row,
+        role=np.asarray(roles, str),
+        sigma_px=points.sigma_px,
+        sigma_ground_m=points.sigma_ground_m,
+    )
 
 
 def _take(points, idx):
-    return ControlPoints(points.id[idx], points.lon[idx], points.lat[idx], points.h[idx],
-                         points.col[idx], points.row[idx], role=points.role[idx],
-                         sigma_px=points.sigma_px[idx], sigma_ground_m=points.sigma_ground_m[idx])
+    return ControlPoints(
+        points.id[idx],
+        points.lon[idx],
+        points.lat[idx],
+        points.h[idx],
+        points.col[idx],
+        points.row[idx],
+        role=points.role[idx],
+        sigma_px=points.sigma_px[idx],
+        sigma_ground_m=points.sigma_ground_m[idx],
+    )
 
 
 def _concat(a, b):
-    cat = {k: np.concatenate([getattr(a, k), getattr(b, k)])
-           for k in ("id", "lon", "lat", "h", "col", "row", "role", "sigma_px", "sigma_ground_m")}
+    cat = {
+        k: np.concatenate([getattr(a, k), getattr(b, k)])
+        for k in ("id", "lon", "lat", "h", "col", "row", "role", "sigma_px", "sigma_ground_m")
+    }
     return ControlPoints(**cat)
 
 
 def _generic_record(name, gcp, icp, sigma_px=None):
     from stereodem.sensor.models.generic import fit_model, n_parameters
-    model, rep = fit_model(name, *(getattr(gcp, k) for k in ("lon", "lat", "h", "col", "row")),
-                           check=tuple(getattr(icp, k) for k in ("lon", "lat", "h", "col", "row")))
+
+    model, rep = fit_model(
+        name,
+        *(getattr(gcp, k) for k in ("lon", "lat", "h", "col", "row")),
+        check=tuple(getattr(icp, k) for k in ("lon", "lat", "h", "col", "row")),
+    )
     u, n = n_parameters(name), len(gcp)
     dof = 2 * n - u
     # sigma0 as the engine reports it: relative to the a-priori sigma when one is given
-    s0 = float(np.sqrt(n * rep.gcp_rmse ** 2 / dof)) / (sigma_px or 1.0) if dof > 0 else float("nan")
-    return dict(n_params=u, gcp_rmse_px=float(rep.gcp_rmse), icp_rmse_px=float(rep.check_rmse),
-                sigma0=s0, condition=float(rep.condition_number))
+    s0 = float(np.sqrt(n * rep.gcp_rmse**2 / dof)) / (sigma_px or 1.0) if dof > 0 else float("nan")
+    return dict(
+        n_params=u,
+        gcp_rmse_px=float(rep.gcp_rmse),
+        icp_rmse_px=float(rep.check_rmse),
+        sigma0=s0,
+        condition=float(rep.condition_number),
+    )
 
 
-def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, seed: int = 0,
-            sigma_px=None, prepared: dict | None = None) -> list[dict]:
+def compare(
+    base,
+    points: ControlPoints,
+    models,
+    counts,
+    *,
+    n_check: int = 20,
+    seed: int = 0,
+    sigma_px=None,
+    prepared: dict | None = None,
+) -> list[dict]:
     """Fit every model with every GCP count on the same split; list of records (one per model
     and count) with ``model, family, n_gcp, n_icp, n_params, gcp_rmse_px, icp_rmse_px,
     sigma0, condition`` and ``error`` (the one-line reason when the fit was refused).
@@ -120,8 +163,11 @@ def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, s
     prepared = {} if prepared is None else prepared
     records = []
     for name in models:
-        family = "generic" if name in MODEL_NAMES else (
-            "orbital" if name.startswith(("eop", "orun", "toutin", "kratky")) else "physical")
+        family = (
+            "generic"
+            if name in MODEL_NAMES
+            else ("orbital" if name.startswith(("eop", "orun", "toutin", "kratky")) else "physical")
+        )
         for n in counts:
             gcp = pool.subset(np.arange(n))
             rec = dict(model=name, family=family, n_gcp=n, n_icp=len(icp))
@@ -133,27 +179,55 @@ def compare(base, points: ControlPoints, models, counts, *, n_check: int = 20, s
                         prepared[name] = model_set(name).prepare(base)
                     adjustable, names, priors = prepared[name]
                     require_gcps(n, names, name, n_prior=len(priors or {}))
-                    res = adjust_model(adjustable, _concat(gcp, icp), names, sigma_px=sigma_px,
-                                       priors=priors or None, snooping=False, check_inputs=False,
-                                       what=name)
-                    rec.update(n_params=len(names), gcp_rmse_px=res.gcp_rmse_px,
-                               icp_rmse_px=res.check_rmse_px, sigma0=res.sigma0,
-                               condition=res.condition)
+                    res = adjust_model(
+                        adjustable,
+                        _concat(gcp, icp),
+                        names,
+                        sigma_px=sigma_px,
+                        priors=priors or None,
+                        snooping=False,
+                        check_inputs=False,
+                        what=name,
+                    )
+                    rec.update(
+                        n_params=len(names),
+                        gcp_rmse_px=res.gcp_rmse_px,
+                        icp_rmse_px=res.check_rmse_px,
+                        sigma0=res.sigma0,
+                        condition=res.condition,
+                    )
             except StereodemError as exc:
                 rec.update(error=str(exc))
             except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
                 rec.update(error=f"{type(exc).__name__}: {exc}")
             if "n_params" not in rec:
-                rec["n_params"] = (n_parameters(name) if name in MODEL_NAMES
-                                   else len(MODEL_SETS[name].names))
-            records.append({k: (float(v) if isinstance(v, (np.floating, float)) else v)
-                            for k, v in rec.items()})
-            log.info("%s %d GCP: %s", name, n, rec.get("error") or f"ICP {rec['icp_rmse_px']:.3f} px")
+                rec["n_params"] = (
+                    n_parameters(name) if name in MODEL_NAMES else len(MODEL_SETS[name].names)
+                )
+            records.append(
+                {
+                    k: (float(v) if isinstance(v, (np.floating, float)) else v)
+                    for k, v in rec.items()
+                }
+            )
+            log.info(
+                "%s %d GCP: %s", name, n, rec.get("error") or f"ICP {rec['icp_rmse_px']:.3f} px"
+            )
     return records
 
 
-def compare_splits(base, points: ControlPoints, models, counts, *, reference: str,
-                   n_check: int = 60, n_splits: int = 9, seed: int = 0, sigma_px=None) -> list[dict]:
+def compare_splits(
+    base,
+    points: ControlPoints,
+    models,
+    counts,
+    *,
+    reference: str,
+    n_check: int = 60,
+    n_splits: int = 9,
+    seed: int = 0,
+    sigma_px=None,
+) -> list[dict]:
     """:func:`compare` repeated over ``n_splits`` random GCP/ICP splits of ``points`` (their
     roles are ignored), each model scored against ``reference`` (a model name, e.g. the
     rigorous ``attitude-bias-drift``) on the same split.
@@ -168,14 +242,28 @@ def compare_splits(base, points: ControlPoints, models, counts, *, reference: st
         rng = np.random.default_rng([seed, split])
         roles = np.array(["gcp"] * len(points), dtype=object)
         roles[rng.permutation(len(points))[:n_check]] = "check"
-        recs = compare(base, _with_roles(points, roles), names, counts, n_check=n_check,
-                       seed=split, sigma_px=sigma_px, prepared=prepared)
-        ref = {r["n_gcp"]: r.get("icp_rmse_px", np.nan) for r in recs
-               if r["model"] == reference and not r.get("error")}
+        recs = compare(
+            base,
+            _with_roles(points, roles),
+            names,
+            counts,
+            n_check=n_check,
+            seed=split,
+            sigma_px=sigma_px,
+            prepared=prepared,
+        )
+        ref = {
+            r["n_gcp"]: r.get("icp_rmse_px", np.nan)
+            for r in recs
+            if r["model"] == reference and not r.get("error")
+        }
         for r in recs:
             r["split"] = split
-            r["ratio"] = float(r.get("icp_rmse_px", np.nan) / ref.get(r["n_gcp"], np.nan)) \
-                if not r.get("error") else float("nan")
+            r["ratio"] = (
+                float(r.get("icp_rmse_px", np.nan) / ref.get(r["n_gcp"], np.nan))
+                if not r.get("error")
+                else float("nan")
+            )
         out += recs
     return out
 
@@ -190,63 +278,97 @@ def split_summary(records) -> list[dict]:
             ok = [r for r in rs if not r.get("error")]
             ratio = np.array([r["ratio"] for r in ok], float)
             med = lambda k: float(np.median([r[k] for r in ok])) if ok else float("nan")  # noqa: E731, B023
-            out.append(dict(model=name, n_gcp=n, n_params=rs[0].get("n_params"), splits=len(rs),
-                            refused=len(rs) - len(ok),
-                            median_ratio=float(np.median(ratio)) if ok else float("nan"),
-                            max_ratio=float(np.max(ratio)) if ok else float("nan"),
-                            median_icp_px=med("icp_rmse_px"), median_condition=med("condition"),
-                            error=None if ok else rs[0].get("error")))
+            out.append(
+                dict(
+                    model=name,
+                    n_gcp=n,
+                    n_params=rs[0].get("n_params"),
+                    splits=len(rs),
+                    refused=len(rs) - len(ok),
+                    median_ratio=float(np.median(ratio)) if ok else float("nan"),
+                    max_ratio=float(np.max(ratio)) if ok else float("nan"),
+                    median_icp_px=med("icp_rmse_px"),
+                    median_condition=med("condition"),
+                    error=None if ok else rs[0].get("error"),
+                )
+            )
     return out
 
 
 def split_markdown(summary, reference: str) -> str:
     """Table of :func:`split_summary`: per model and GCP count the median and largest ICP
     RMSE ratio to ``reference``, the median ICP RMSE (px) and condition number."""
-    lines = [f"| model | u | GCPs | median ICP / {reference} ICP | max | median ICP px | "
-             "median condition | refused splits |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"| model | u | GCPs | median ICP / {reference} ICP | max | median ICP px | "
+        "median condition | refused splits |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for s in summary:
         if s["refused"] == s["splits"]:
-            lines.append(f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | refused: "
-                         f"{(s['error'] or '')[:60]} | | | | {s['refused']} |")
+            lines.append(
+                f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | refused: "
+                f"{(s['error'] or '')[:60]} | | | | {s['refused']} |"
+            )
             continue
-        lines.append(f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | {s['median_ratio']:.2f} | "
-                     f"{s['max_ratio']:.2f} | {s['median_icp_px']:.3f} | "
-                     f"{s['median_condition']:.3g} | {s['refused']} |")
+        lines.append(
+            f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | {s['median_ratio']:.2f} | "
+            f"{s['max_ratio']:.2f} | {s['median_icp_px']:.3f} | "
+            f"{s['median_condition']:.3g} | {s['refused']} |"
+        )
     return "\n".join(lines) + "\n"
 
 
 def markdown(records) -> str:
     """Ok's Table 6.15 layout: one block per model, one row per GCP count."""
-    lines = ["| model | u | GCP / ICP | GCP RMSE px | ICP RMSE px | sigma0 | condition |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| model | u | GCP / ICP | GCP RMSE px | ICP RMSE px | sigma0 | condition |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in records:
         if r.get("error"):
-            lines.append(f"| {r['model']} | {r.get('n_params', '')} | {r['n_gcp']} / {r['n_icp']} | "
-                         f"refused: {r['error'][:60]} | | | |")
+            lines.append(
+                f"| {r['model']} | {r.get('n_params', '')} | {r['n_gcp']} / {r['n_icp']} | "
+                f"refused: {r['error'][:60]} | | | |"
+            )
             continue
-        lines.append(f"| {r['model']} | {r['n_params']} | {r['n_gcp']} / {r['n_icp']} | "
-                     f"{r['gcp_rmse_px']:.3f} | {r['icp_rmse_px']:.3f} | {r['sigma0']:.3g} | "
-                     f"{r['condition']:.3g} |")
+        lines.append(
+            f"| {r['model']} | {r['n_params']} | {r['n_gcp']} / {r['n_icp']} | "
+            f"{r['gcp_rmse_px']:.3f} | {r['icp_rmse_px']:.3f} | {r['sigma0']:.3g} | "
+            f"{r['condition']:.3g} |"
+        )
     return "\n".join(lines) + "\n"
 
 
 def figure(records, path):
     """ICP RMSE against GCP count, one line per model (log axes)."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(10, 6.5))
     styles = {"generic": ":", "physical": "--", "orbital": "-"}
     colours = plt.get_cmap("tab20").colors
     markers = "o^sDv<>p*h"
     for k, name in enumerate(dict.fromkeys(r["model"] for r in records)):
-        rs = [r for r in records if r["model"] == name and not r.get("error")
-              and np.isfinite(r.get("icp_rmse_px", np.nan))]
+        rs = [
+            r
+            for r in records
+            if r["model"] == name
+            and not r.get("error")
+            and np.isfinite(r.get("icp_rmse_px", np.nan))
+        ]
         if not rs:
             continue
-        ax.plot([r["n_gcp"] for r in rs], [r["icp_rmse_px"] for r in rs], styles[rs[0]["family"]],
-                color=colours[k % len(colours)], marker=markers[k % len(markers)], ms=4,
-                label=f"{name} ({rs[0]['n_params']})")
+        ax.plot(
+            [r["n_gcp"] for r in rs],
+            [r["icp_rmse_px"] for r in rs],
+            styles[rs[0]["family"]],
+            color=colours[k % len(colours)],
+            marker=markers[k % len(markers)],
+            ms=4,
+            label=f"{name} ({rs[0]['n_params']})",
+        )
     counts = sorted({r["n_gcp"] for r in records})
     ax.set_xscale("log")
     ax.set_yscale("log")
@@ -256,8 +378,12 @@ def figure(records, path):
     ax.set_ylabel("ICP RMSE (pixels)")
     ax.set_title("Check-point error against GCP count (same ICPs for every model)")
     ax.grid(True, which="major", alpha=0.3)
-    ax.legend(fontsize=7, ncol=2, title="model (parameters); dotted generic, dashed physical, "
-                                        "solid orbital", title_fontsize=7)
+    ax.legend(
+        fontsize=7,
+        ncol=2,
+        title="model (parameters); dotted generic, dashed physical, solid orbital",
+        title_fontsize=7,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -28,6 +28,7 @@ repeat along it (MMASTER fits them with a sum of sines against a reference DEM; 
 bands with unrelated phases; only the difference is observable from the pair, and it is
 attributed to the second (3B) model, as MMASTER does.
 """
+
 from __future__ import annotations
 
 import copy
@@ -63,13 +64,24 @@ class SineSeries:
         return np.sum(self.amplitudes * np.sin(2 * np.pi * self.frequencies * t + self.phases), -1)
 
     def to_dict(self) -> dict:
-        return {"amplitudes": self.amplitudes.tolist(), "frequencies_hz": self.frequencies.tolist(),
-                "phases_rad": self.phases.tolist(), "t_ref": self.t_ref,
-                "trend": self.trend.tolist(), "rms_residual": self.rms_residual}
+        return {
+            "amplitudes": self.amplitudes.tolist(),
+            "frequencies_hz": self.frequencies.tolist(),
+            "phases_rad": self.phases.tolist(),
+            "t_ref": self.t_ref,
+            "trend": self.trend.tolist(),
+            "rms_residual": self.rms_residual,
+        }
 
 
-def with_attitude_sines(model, series: SineSeries, *, axis: str = "pitch", sign: float = 1.0,
-                        samples_per_period: int = 40):
+def with_attitude_sines(
+    model,
+    series: SineSeries,
+    *,
+    axis: str = "pitch",
+    sign: float = 1.0,
+    samples_per_period: int = 40,
+):
     """Copy of a pushbroom ``model`` whose attitude angle ``axis`` follows ``sign * series(t)``.
 
     The oscillation is sampled (``samples_per_period`` per shortest period, natural cubic
@@ -101,6 +113,7 @@ def height_sensitivity(left, right, lon, lat, h, *, dpitch: float = 1e-6):
     rays are intersected again (closest point of the two lines).
     """
     from stereodem.core import geodesy
+
     cl, rl = left.project(lon, lat, h)
     cr, rr = right.project(lon, lat, h)
     tilted = right.with_parameters(pitch_bias=right.parameters()["pitch_bias"] + dpitch)
@@ -117,8 +130,9 @@ def height_sensitivity(left, right, lon, lat, h, *, dpitch: float = 1e-6):
     return (np.asarray(hp) - np.asarray(h, float)) / dpitch
 
 
-def fit_sum_of_sines(t, y, *, n_sines: int = 1, f_range=(0.2, 8.0), trend_degree: int = 1,
-                     n_frequencies: int = 2000) -> SineSeries:
+def fit_sum_of_sines(
+    t, y, *, n_sines: int = 1, f_range=(0.2, 8.0), trend_degree: int = 1, n_frequencies: int = 2000
+) -> SineSeries:
     """Fit ``n_sines`` sines (and a polynomial trend) to samples ``(t, y)``.
 
     Frequencies are located one after another on the Lomb-Scargle periodogram of the residual
@@ -157,20 +171,21 @@ def fit_sum_of_sines(t, y, *, n_sines: int = 1, f_range=(0.2, 8.0), trend_degree
     k, nd = n_sines, trend_degree + 1
 
     def model(p):
-        a, f, ph, c = p[:k], p[k:2 * k], p[2 * k:3 * k], p[3 * k:]
-        return (np.sum(a * np.sin(2 * np.pi * f * x[:, None] + ph), -1)
-                + np.polynomial.polynomial.polyval(x, c))
+        a, f, ph, c = p[:k], p[k : 2 * k], p[2 * k : 3 * k], p[3 * k :]
+        return np.sum(
+            a * np.sin(2 * np.pi * f * x[:, None] + ph), -1
+        ) + np.polynomial.polynomial.polyval(x, c)
 
     scale = float(np.median(np.abs(y - model(p0)))) * 1.4826 or 1e-12
     sol = least_squares(lambda p: model(p) - y, p0, loss="soft_l1", f_scale=scale)
     p = sol.x
-    a, f, ph = p[:k], p[k:2 * k], p[2 * k:3 * k]
-    ph = ph - 2 * np.pi * f * t_ref                     # phases on the absolute time base
+    a, f, ph = p[:k], p[k : 2 * k], p[2 * k : 3 * k]
+    ph = ph - 2 * np.pi * f * t_ref  # phases on the absolute time base
     sgn = np.sign(a)
     ph = np.where(sgn < 0, ph + np.pi, ph)
     r = model(p) - y
     rms = float(np.sqrt(np.mean(r[np.abs(r) <= 5.0 * 1.4826 * np.median(np.abs(r))] ** 2)))
-    return SineSeries(np.abs(a), f, np.mod(ph, 2 * np.pi), t_ref, p[3 * k:3 * k + nd], rms)
+    return SineSeries(np.abs(a), f, np.mod(ph, 2 * np.pi), t_ref, p[3 * k : 3 * k + nd], rms)
 
 
 def along_track_profile(values, model, lon, lat, h, *, bin_lines: float = 8.0):
@@ -189,14 +204,24 @@ def along_track_profile(values, model, lon, lat, h, *, bin_lines: float = 8.0):
     starts = np.flatnonzero(np.r_[True, np.diff(idx_s) > 0])
     groups = np.split(v_s, starts[1:])
     centres = 0.5 * (edges[idx_s[starts]] + edges[idx_s[starts] + 1])
-    med = np.array([np.median(g) for g in groups])           # one call per bin, not per cell
+    med = np.array([np.median(g) for g in groups])  # one call per bin, not per cell
     counts = np.array([g.size for g in groups])
     return model.line_time(centres), med, counts
 
 
-def estimate_pitch_jitter(dem, reference, left, right, *, n_sines: int = 1, f_range=(0.2, 8.0),
-                          bin_lines: float = 8.0, min_count: int = 20, max_cells: int = 200_000,
-                          seed: int = 0):
+def estimate_pitch_jitter(
+    dem,
+    reference,
+    left,
+    right,
+    *,
+    n_sines: int = 1,
+    f_range=(0.2, 8.0),
+    bin_lines: float = 8.0,
+    min_count: int = 20,
+    max_cells: int = 200_000,
+    seed: int = 0,
+):
     """Pitch jitter of ``right`` (rad, on its time base) from ``dem - reference`` residuals.
 
     ``dem`` and ``reference`` are :class:`~stereodem.core.dem.DEM` objects with
@@ -209,6 +234,7 @@ def estimate_pitch_jitter(dem, reference, left, right, *, n_sines: int = 1, f_ra
     """
     from stereodem.core import geodesy
     from stereodem.core.dem import ELLIPSOID
+
     z = np.asarray(dem.heights, float)
     rows, cols = np.nonzero(np.isfinite(z))
     if rows.size > max_cells:
@@ -217,14 +243,22 @@ def estimate_pitch_jitter(dem, reference, left, right, *, n_sines: int = 1, f_ra
     x, y = dem.transform @ (cols + 0.5, rows + 0.5)
     lon, lat = geodesy.crs_to_lonlat(np.asarray(x), np.asarray(y), dem.crs)
     h = z[rows, cols]
-    ref = reference.sample(lon, lat, reference=ELLIPSOID) if hasattr(reference, "sample") else reference
+    ref = (
+        reference.sample(lon, lat, reference=ELLIPSOID)
+        if hasattr(reference, "sample")
+        else reference
+    )
     dh = h - np.asarray(ref, float)
     sens = height_sensitivity(left, right, lon, lat, h)
     t, med, counts = along_track_profile(-dh / sens, right, lon, lat, h, bin_lines=bin_lines)
     keep = counts >= min_count
     fit = fit_sum_of_sines(t[keep], med[keep], n_sines=n_sines, f_range=f_range)
-    return fit, {"times": t[keep], "pitch_profile_rad": med[keep], "counts": counts[keep],
-                 "sensitivity_m_per_rad": float(np.median(sens))}
+    return fit, {
+        "times": t[keep],
+        "pitch_profile_rad": med[keep],
+        "counts": counts[keep],
+        "sensitivity_m_per_rad": float(np.median(sens)),
+    }
 
 
 def cross_track_sensitivity(right, lon, lat, h, normal, *, droll: float = 1e-6):
@@ -260,15 +294,23 @@ def roll_profile(times, cross_px, sensitivity, *, bin_seconds: float, min_count:
     starts = np.flatnonzero(np.r_[True, np.diff(idx_s) > 0])
     groups = np.split(v_s, starts[1:])
     tgroups = np.split(t_s, starts[1:])
-    med = np.array([np.median(g) for g in groups])           # one call per bin, not per sample
+    med = np.array([np.median(g) for g in groups])  # one call per bin, not per sample
     tm = np.array([np.mean(g) for g in tgroups])
     counts = np.array([g.size for g in groups])
     keep = counts >= min_count
     return tm[keep], med[keep], counts[keep]
 
 
-def estimate_roll_jitter(times, cross_px, sensitivity, *, n_sines: int = 1, f_range=(0.2, 8.0),
-                         bin_seconds: float = 8 * 2.1989e-3, min_count: int = 20):
+def estimate_roll_jitter(
+    times,
+    cross_px,
+    sensitivity,
+    *,
+    n_sines: int = 1,
+    f_range=(0.2, 8.0),
+    bin_seconds: float = 8 * 2.1989e-3,
+    min_count: int = 20,
+):
     """Roll jitter of the second camera (rad, on its time base) from the matcher's residual
     vertical parallax (see :func:`roll_profile`): a :class:`SineSeries` fitted by
     :func:`fit_sum_of_sines` (periodogram, then least squares), and the profile used.
@@ -277,8 +319,9 @@ def estimate_roll_jitter(times, cross_px, sensitivity, *, n_sines: int = 1, f_ra
     sensitivity`` px across the model's epipolar curves, so the fitted series is ``j(t)``:
     ``with_attitude_sines(right, fit, axis="roll")`` is the corrected model.
     """
-    t, roll, counts = roll_profile(times, cross_px, sensitivity, bin_seconds=bin_seconds,
-                                   min_count=min_count)
+    t, roll, counts = roll_profile(
+        times, cross_px, sensitivity, bin_seconds=bin_seconds, min_count=min_count
+    )
     fit = fit_sum_of_sines(t, roll, n_sines=n_sines, f_range=f_range)
     return fit, {"times": t, "roll_profile_rad": roll, "counts": counts}
 
@@ -296,16 +339,28 @@ def fit_at_frequencies(t, y, frequencies, *, trend_degree: int = 1, t_ref: float
         raise InputError(f"jitter fit: only {t.size} valid samples")
     x = t - float(np.mean(t))
     w = 2 * np.pi * f
-    a = np.concatenate([np.sin(np.outer(t, w)), np.cos(np.outer(t, w)),
-                        np.vander(x, trend_degree + 1, increasing=True)], 1)
+    a = np.concatenate(
+        [
+            np.sin(np.outer(t, w)),
+            np.cos(np.outer(t, w)),
+            np.vander(x, trend_degree + 1, increasing=True),
+        ],
+        1,
+    )
     keep = np.ones(t.size, bool)
     for _ in range(2):
         c, *_ = np.linalg.lstsq(a[keep], y[keep], rcond=None)
         r = y - a @ c
         keep = np.abs(r) <= 5.0 * 1.4826 * max(float(np.median(np.abs(r[keep]))), 1e-300)
-    s, co = c[:f.size], c[f.size:2 * f.size]             # a sin(wt + p) = a cos p sin wt + a sin p cos wt
-    return SineSeries(np.hypot(s, co), f, np.mod(np.arctan2(co, s), 2 * np.pi), t_ref,
-                      c[2 * f.size:], float(np.sqrt(np.mean(r[keep] ** 2))))
+    s, co = c[: f.size], c[f.size : 2 * f.size]  # a sin(wt + p) = a cos p sin wt + a sin p cos wt
+    return SineSeries(
+        np.hypot(s, co),
+        f,
+        np.mod(np.arctan2(co, s), 2 * np.pi),
+        t_ref,
+        c[2 * f.size :],
+        float(np.sqrt(np.mean(r[keep] ** 2))),
+    )
 
 
 def add_series(a: SineSeries, b: SineSeries) -> SineSeries:
@@ -314,5 +369,11 @@ def add_series(a: SineSeries, b: SineSeries) -> SineSeries:
         raise InputError("add_series: the two series must have the same frequencies")
     s = a.amplitudes * np.cos(a.phases) + b.amplitudes * np.cos(b.phases)
     c = a.amplitudes * np.sin(a.phases) + b.amplitudes * np.sin(b.phases)
-    return SineSeries(np.hypot(s, c), a.frequencies.copy(), np.mod(np.arctan2(c, s), 2 * np.pi),
-                      a.t_ref, a.trend, b.rms_residual)
+    return SineSeries(
+        np.hypot(s, c),
+        a.frequencies.copy(),
+        np.mod(np.arctan2(c, s), 2 * np.pi),
+        a.t_ref,
+        a.trend,
+        b.rms_residual,
+    )

@@ -22,6 +22,7 @@ The weight is chosen from the data being fitted only, never from independent che
 Both are reusable by any linear(ised) estimation, e.g. the rational-function fits of
 :mod:`stereodem.sensor.models.generic` and, later, bundle adjustment (``sensor.adjust``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -31,8 +32,15 @@ from scipy.optimize import minimize_scalar
 
 from stereodem.core.errors import InputError
 
-__all__ = ["SVDSystem", "tikhonov_solve", "gcv_function", "gcv_weight", "lcurve",
-           "lcurve_weight", "condition_number"]
+__all__ = [
+    "SVDSystem",
+    "tikhonov_solve",
+    "gcv_function",
+    "gcv_weight",
+    "lcurve",
+    "lcurve_weight",
+    "condition_number",
+]
 
 
 @dataclass(frozen=True)
@@ -65,10 +73,13 @@ class SVDSystem:
         A = np.asarray(A, dtype=np.float64)
         b = np.asarray(b, dtype=np.float64)
         if A.ndim != 2 or b.shape != (A.shape[0],):
-            raise InputError(f"regularize: design matrix {A.shape} and right-hand side {b.shape} "
-                             "do not match")
+            raise InputError(
+                f"regularize: design matrix {A.shape} and right-hand side {b.shape} do not match"
+            )
         if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
-            raise InputError("regularize: non-finite values in the design matrix or right-hand side")
+            raise InputError(
+                "regularize: non-finite values in the design matrix or right-hand side"
+            )
         U, s, Vt = np.linalg.svd(A, full_matrices=False)
         beta = U.T @ b
         resid0 = max(float(b @ b - beta @ beta), 0.0)
@@ -77,9 +88,9 @@ class SVDSystem:
     def filters(self, lam):
         """Tikhonov filter factors ``f_i`` for each weight in ``lam`` (shape (..., k))."""
         lam = np.asarray(lam, dtype=np.float64)[..., None]
-        s2 = self.s ** 2
+        s2 = self.s**2
         with np.errstate(invalid="ignore", divide="ignore"):
-            f = s2 / (s2 + lam ** 2)
+            f = s2 / (s2 + lam**2)
         # lam == 0: plain (minimum-norm) least squares with numerically zero values dropped
         tiny = self.s <= self.s[0] * max(self.m, self.Vt.shape[1]) * np.finfo(float).eps
         return np.where(tiny & (lam == 0), 0.0, np.nan_to_num(f, nan=0.0))
@@ -94,7 +105,7 @@ class SVDSystem:
         f = self.filters(lam)
         with np.errstate(invalid="ignore", divide="ignore"):
             xi = np.where(f > 0, f * self.beta / np.where(self.s > 0, self.s, 1.0), 0.0)
-        return np.sum(xi ** 2, axis=-1)
+        return np.sum(xi**2, axis=-1)
 
     def solve(self, lam):
         f = self.filters(float(lam))
@@ -150,7 +161,7 @@ def gcv_function(A, b, lams, *, svd: SVDSystem | None = None) -> np.ndarray:
     rn = sv.residual_norm2(lams)
     dof = sv.m - np.sum(sv.filters(lams), axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        g = rn / dof ** 2
+        g = rn / dof**2
     return np.where(dof > 1e-9 * sv.m, g, np.inf)
 
 
@@ -166,7 +177,11 @@ def gcv_weight(A, b, *, lams=None, svd: SVDSystem | None = None) -> float:
         The weight ``lam`` (> 0) to pass to :func:`tikhonov_solve`.
     """
     sv = _system(A, b, svd)
-    grid = sv.default_grid(500, widen=1e4) if lams is None else np.sort(np.asarray(lams, dtype=np.float64))
+    grid = (
+        sv.default_grid(500, widen=1e4)
+        if lams is None
+        else np.sort(np.asarray(lams, dtype=np.float64))
+    )
     g = gcv_function(None, None, grid, svd=sv)
     if not np.any(np.isfinite(g)):
         raise InputError("regularize: GCV undefined (as many unknowns as observations?)")
@@ -174,9 +189,12 @@ def gcv_weight(A, b, *, lams=None, svd: SVDSystem | None = None) -> float:
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
     if hi <= lo:
         return float(grid[i])
-    res = minimize_scalar(lambda t: float(gcv_function(None, None, np.exp(t), svd=sv)),
-                          bounds=(np.log(lo), np.log(hi)), method="bounded",
-                          options={"xatol": 1e-6})
+    res = minimize_scalar(
+        lambda t: float(gcv_function(None, None, np.exp(t), svd=sv)),
+        bounds=(np.log(lo), np.log(hi)),
+        method="bounded",
+        options={"xatol": 1e-6},
+    )
     best = float(np.exp(res.x))
     return best if float(gcv_function(None, None, best, svd=sv)) <= g[i] else float(grid[i])
 
@@ -190,8 +208,9 @@ def lcurve(A, b, lams, *, svd: SVDSystem | None = None):
     return rho, eta
 
 
-def lcurve_weight(A, b, *, lams=None, svd: SVDSystem | None = None,
-                  min_curvature: float = 0.0) -> float:
+def lcurve_weight(
+    A, b, *, lams=None, svd: SVDSystem | None = None, min_curvature: float = 0.0
+) -> float:
     """Tikhonov weight at the corner (maximum curvature) of the L-curve (Hansen & O'Leary 1993).
 
     The curve ``(rho, eta) = (log ||A x_lam - b||, log ||x_lam||)`` is sampled on a fine
@@ -209,7 +228,11 @@ def lcurve_weight(A, b, *, lams=None, svd: SVDSystem | None = None,
         The weight ``lam`` (> 0).
     """
     sv = _system(A, b, svd)
-    grid = sv.default_grid(600, widen=1.0) if lams is None else np.sort(np.asarray(lams, dtype=np.float64))
+    grid = (
+        sv.default_grid(600, widen=1.0)
+        if lams is None
+        else np.sort(np.asarray(lams, dtype=np.float64))
+    )
     if grid.size < 5:
         raise InputError("regularize: the L-curve needs at least 5 weights")
     t = np.log(grid)
@@ -218,7 +241,7 @@ def lcurve_weight(A, b, *, lams=None, svd: SVDSystem | None = None,
     r2, e2 = np.gradient(r1, t), np.gradient(e1, t)
     speed = np.hypot(r1, e1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        kappa = (r1 * e2 - r2 * e1) / speed ** 3
+        kappa = (r1 * e2 - r2 * e1) / speed**3
     # plateaus (the curve standing still) give round-off curvature: ignore them
     kappa[speed < 1e-3 * np.max(speed)] = -np.inf
     kappa[:2] = kappa[-2:] = -np.inf
@@ -240,5 +263,5 @@ def condition_number(A, lam: float = 0.0) -> float:
     s = np.linalg.svd(A, compute_uv=False)
     n = A.shape[1]
     smin = s[-1] if s.size == n else 0.0
-    den = smin ** 2 + lam ** 2
-    return float((s[0] ** 2 + lam ** 2) / den) if den > 0 else float("inf")
+    den = smin**2 + lam**2
+    return float((s[0] ** 2 + lam**2) / den) if den > 0 else float("inf")

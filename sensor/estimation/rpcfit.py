@@ -12,6 +12,7 @@ minimised residual is the image residual, not ``DEN`` times it) for a few iterat
 fit is then checked on an independent grid (half a step off the training grid, at heights
 between the training levels).
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -91,14 +92,17 @@ def fit_rational(x, y, z, t, *, regularization: float = 1e-12, iterations: int =
         # Tikhonov as the stacked least-squares system [Aw; sqrt(lam) I] x = [bw; 0]
         # (SVD-based, avoids squaring the condition number in the normal equations)
         k = A.shape[1]
-        new, *_ = np.linalg.lstsq(np.vstack([Aw, np.sqrt(lam) * np.eye(k)]),
-                                  np.concatenate([bw, np.zeros(k)]), rcond=None)
+        new, *_ = np.linalg.lstsq(
+            np.vstack([Aw, np.sqrt(lam) * np.eye(k)]), np.concatenate([bw, np.zeros(k)]), rcond=None
+        )
         den = np.concatenate([[1.0], new[20:]])
         dv = M @ den
         if np.any(dv == 0) or not np.all(np.isfinite(dv)):
             raise SensorModelError("RPC fit: the fitted denominator vanishes on the grid")
         w = 1.0 / np.abs(dv)
-        settled = coef is not None and np.max(np.abs(new - coef)) <= 1e-13 * max(1.0, np.max(np.abs(new)))
+        settled = coef is not None and np.max(np.abs(new - coef)) <= 1e-13 * max(
+            1.0, np.max(np.abs(new))
+        )
         coef = new
         if settled:
             break
@@ -123,12 +127,25 @@ def _residuals(rpc, C, R, Hh, lon, lat):
     c, r = rpc.project(lon, lat, Hh)
     dc, dr = c - C, r - R
     d = np.hypot(dc, dr)
-    return (float(np.sqrt(np.mean(d**2))), float(np.max(d)),
-            float(np.sqrt(np.mean(dc**2))), float(np.sqrt(np.mean(dr**2))))
+    return (
+        float(np.sqrt(np.mean(d**2))),
+        float(np.max(d)),
+        float(np.sqrt(np.mean(dc**2))),
+        float(np.sqrt(np.mean(dr**2))),
+    )
 
 
-def fit_rpc(model, *, height_range=None, grid=(15, 15, 7), check_grid=None,
-            regularization: float = 1e-12, iterations: int = 8, width=None, height=None):
+def fit_rpc(
+    model,
+    *,
+    height_range=None,
+    grid=(15, 15, 7),
+    check_grid=None,
+    regularization: float = 1e-12,
+    iterations: int = 8,
+    width=None,
+    height=None,
+):
     """Fit a terrain-independent RPC00B model to any :class:`~stereodem.sensor.models.base.SensorModel`.
 
     Parameters
@@ -163,7 +180,9 @@ def fit_rpc(model, *, height_range=None, grid=(15, 15, 7), check_grid=None,
     """
     w = int(width or model.width)
     h = int(height or model.height)
-    hlo, hhi = (float(v) for v in (height_range if height_range is not None else model.height_bounds()))
+    hlo, hhi = (
+        float(v) for v in (height_range if height_range is not None else model.height_bounds())
+    )
     if not (hhi > hlo):
         raise SensorModelError(f"fit_rpc: empty height range ({hlo}, {hhi})")
     grid = tuple(int(v) for v in grid)
@@ -171,9 +190,12 @@ def fit_rpc(model, *, height_range=None, grid=(15, 15, 7), check_grid=None,
         raise SensorModelError(f"fit_rpc: grid {grid} too small (need >= 4 nodes per axis)")
     check_grid = tuple(int(v) for v in (check_grid or (grid[0] - 1, grid[1] - 1, grid[2] - 1)))
 
-    C, R, Hh, lon, lat = _samples(model, _grid_axis(grid[0], 0, w - 1, midpoints=False),
-                                  _grid_axis(grid[1], 0, h - 1, midpoints=False),
-                                  _grid_axis(grid[2], hlo, hhi, midpoints=False))
+    C, R, Hh, lon, lat = _samples(
+        model,
+        _grid_axis(grid[0], 0, w - 1, midpoints=False),
+        _grid_axis(grid[1], 0, h - 1, midpoints=False),
+        _grid_axis(grid[2], hlo, hhi, midpoints=False),
+    )
     if C.size < 2 * 39:
         raise SensorModelError(f"fit_rpc: only {C.size} grid point(s) could be localised")
 
@@ -187,24 +209,54 @@ def fit_rpc(model, *, height_range=None, grid=(15, 15, 7), check_grid=None,
     L = (lon - lon_off) / lon_scale
     P = (lat - lat_off) / lat_scale
     Hn = (Hh - h_off) / h_scale
-    s_num, s_den, it_s = fit_rational(L, P, Hn, (C - samp_off) / samp_scale,
-                                      regularization=regularization, iterations=iterations)
-    l_num, l_den, it_l = fit_rational(L, P, Hn, (R - line_off) / line_scale,
-                                      regularization=regularization, iterations=iterations)
-    rpc = RPCModel(line_num=l_num, line_den=l_den, samp_num=s_num, samp_den=s_den,
-                   line_off=line_off, samp_off=samp_off, line_scale=line_scale, samp_scale=samp_scale,
-                   lon_off=lon_off, lat_off=lat_off, lon_scale=lon_scale, lat_scale=lat_scale,
-                   height_off=h_off, height_scale=h_scale, width=w, height=h)
+    s_num, s_den, it_s = fit_rational(
+        L, P, Hn, (C - samp_off) / samp_scale, regularization=regularization, iterations=iterations
+    )
+    l_num, l_den, it_l = fit_rational(
+        L, P, Hn, (R - line_off) / line_scale, regularization=regularization, iterations=iterations
+    )
+    rpc = RPCModel(
+        line_num=l_num,
+        line_den=l_den,
+        samp_num=s_num,
+        samp_den=s_den,
+        line_off=line_off,
+        samp_off=samp_off,
+        line_scale=line_scale,
+        samp_scale=samp_scale,
+        lon_off=lon_off,
+        lat_off=lat_off,
+        lon_scale=lon_scale,
+        lat_scale=lat_scale,
+        height_off=h_off,
+        height_scale=h_scale,
+        width=w,
+        height=h,
+    )
 
     train = _residuals(rpc, C, R, Hh, lon, lat)
-    chk = _samples(model, _grid_axis(check_grid[0], 0, w - 1, midpoints=True),
-                   _grid_axis(check_grid[1], 0, h - 1, midpoints=True),
-                   _grid_axis(check_grid[2], hlo, hhi, midpoints=True))
+    chk = _samples(
+        model,
+        _grid_axis(check_grid[0], 0, w - 1, midpoints=True),
+        _grid_axis(check_grid[1], 0, h - 1, midpoints=True),
+        _grid_axis(check_grid[2], hlo, hhi, midpoints=True),
+    )
     check = _residuals(rpc, *chk)
-    report = FitReport(train_rms=train[0], train_max=train[1], train_rms_col=train[2],
-                       train_rms_row=train[3], check_rms=check[0], check_max=check[1],
-                       check_rms_col=check[2], check_rms_row=check[3], n_train=int(C.size),
-                       n_check=int(chk[0].size), height_range=(hlo, hhi), grid=grid,
-                       check_grid=check_grid, regularization=float(regularization),
-                       iterations=max(it_s, it_l))
+    report = FitReport(
+        train_rms=train[0],
+        train_max=train[1],
+        train_rms_col=train[2],
+        train_rms_row=train[3],
+        check_rms=check[0],
+        check_max=check[1],
+        check_rms_col=check[2],
+        check_rms_row=check[3],
+        n_train=int(C.size),
+        n_check=int(chk[0].size),
+        height_range=(hlo, hhi),
+        grid=grid,
+        check_grid=check_grid,
+        regularization=float(regularization),
+        iterations=max(it_s, it_l),
+    )
     return rpc, report

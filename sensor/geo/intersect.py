@@ -7,6 +7,7 @@ here in closed form for all matches at once; the length of that perpendicular is
 gap*, the distance (m) by which the two lines of sight miss each other. A ray gap much larger
 than the matching precision times the GSD flags a blunder or a pointing error.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -12,6 +12,7 @@ Conventions (Bettemir 2006, Ch. 2; ASTER L1A, notes §4.2)
   **inertial** velocity expressed in ECEF axes, ``v_in = v_ecef + omega_E x r`` (notes
   aster-l1a-format §4.3; Bettemir Eq. 4.24 has the sign of this correction wrong).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,21 +24,27 @@ def R1(t):
     """Passive rotation about x by angle ``t`` (rad); broadcasts to (..., 3, 3)."""
     t = np.asarray(t, float)
     c, s, o, z = np.cos(t), np.sin(t), np.ones_like(t), np.zeros_like(t)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, s], -1), np.stack([z, -s, c], -1)], -2)
+    return np.stack(
+        [np.stack([o, z, z], -1), np.stack([z, c, s], -1), np.stack([z, -s, c], -1)], -2
+    )
 
 
 def R2(t):
     """Passive rotation about y by angle ``t`` (rad)."""
     t = np.asarray(t, float)
     c, s, o, z = np.cos(t), np.sin(t), np.ones_like(t), np.zeros_like(t)
-    return np.stack([np.stack([c, z, -s], -1), np.stack([z, o, z], -1), np.stack([s, z, c], -1)], -2)
+    return np.stack(
+        [np.stack([c, z, -s], -1), np.stack([z, o, z], -1), np.stack([s, z, c], -1)], -2
+    )
 
 
 def R3(t):
     """Passive rotation about z by angle ``t`` (rad)."""
     t = np.asarray(t, float)
     c, s, o, z = np.cos(t), np.sin(t), np.ones_like(t), np.zeros_like(t)
-    return np.stack([np.stack([c, s, z], -1), np.stack([-s, c, z], -1), np.stack([z, z, o], -1)], -2)
+    return np.stack(
+        [np.stack([c, s, z], -1), np.stack([-s, c, z], -1), np.stack([z, z, o], -1)], -2
+    )
 
 
 def body_to_orbital(roll, pitch, yaw):
@@ -88,5 +95,6 @@ def quaternion_to_matrix(q):
     Uses scipy's convention (active rotation, scalar last): ``M @ v`` rotates ``v``.
     """
     from scipy.spatial.transform import Rotation
+
     q = np.asarray(q, float)
     return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))

@@ -20,6 +20,7 @@ refuses matches whose points fall outside the images, and
 :func:`stereodem.stereo.ties.check_match_geometry`, given the sensor models, those that lie far
 across their epipolar curves (read ``../shared/notes/dem-correction-and-stacks.md``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -29,12 +30,30 @@ import numpy as np
 
 from stereodem.core.errors import InputError
 
-__all__ = ["InterestPoints", "MatchFile", "read_match", "write_match", "check_match_images",
-           "match_stems"]
+__all__ = [
+    "InterestPoints",
+    "MatchFile",
+    "read_match",
+    "write_match",
+    "check_match_images",
+    "match_stems",
+]
 
-_HEAD = np.dtype([("x", "<f4"), ("y", "<f4"), ("ix", "<i4"), ("iy", "<i4"),
-                  ("orientation", "<f4"), ("scale", "<f4"), ("interest", "<f4"), ("polarity", "u1"),
-                  ("octave", "<u4"), ("scale_lvl", "<u4"), ("n_desc", "<u8")])
+_HEAD = np.dtype(
+    [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("ix", "<i4"),
+        ("iy", "<i4"),
+        ("orientation", "<f4"),
+        ("scale", "<f4"),
+        ("interest", "<f4"),
+        ("polarity", "u1"),
+        ("octave", "<u4"),
+        ("scale_lvl", "<u4"),
+        ("n_desc", "<u8"),
+    ]
+)
 
 
 @dataclass
@@ -56,13 +75,32 @@ class InterestPoints:
 
     def __post_init__(self):
         n = len(self.x)
-        defaults = dict(ix=np.rint(self.x), iy=np.rint(self.y), orientation=0.0, scale=1.0,
-                        interest=0.0, polarity=0, octave=0, scale_lvl=0)
-        for name, dtype in (("ix", np.int32), ("iy", np.int32), ("orientation", np.float32),
-                            ("scale", np.float32), ("interest", np.float32), ("polarity", np.uint8),
-                            ("octave", np.uint32), ("scale_lvl", np.uint32)):
+        defaults = dict(
+            ix=np.rint(self.x),
+            iy=np.rint(self.y),
+            orientation=0.0,
+            scale=1.0,
+            interest=0.0,
+            polarity=0,
+            octave=0,
+            scale_lvl=0,
+        )
+        for name, dtype in (
+            ("ix", np.int32),
+            ("iy", np.int32),
+            ("orientation", np.float32),
+            ("scale", np.float32),
+            ("interest", np.float32),
+            ("polarity", np.uint8),
+            ("octave", np.uint32),
+            ("scale_lvl", np.uint32),
+        ):
             v = getattr(self, name)
-            setattr(self, name, np.broadcast_to(np.asarray(defaults[name] if v is None else v), (n,)).astype(dtype))
+            setattr(
+                self,
+                name,
+                np.broadcast_to(np.asarray(defaults[name] if v is None else v), (n,)).astype(dtype),
+            )
         self.x, self.y = np.asarray(self.x, np.float32), np.asarray(self.y, np.float32)
         if not self.descriptors:
             self.descriptors = [np.zeros(0, np.float32)] * n
@@ -85,7 +123,9 @@ class MatchFile:
     def ties(self) -> np.ndarray:
         """``(n, 4)`` float64 array ``col1, row1, col2, row2`` (the tie-point layout of
         :func:`stereodem.sensor.estimation.adjust.bundle.bundle_adjust`)."""
-        return np.column_stack([self.left.x, self.left.y, self.right.x, self.right.y]).astype(np.float64)
+        return np.column_stack([self.left.x, self.left.y, self.right.x, self.right.y]).astype(
+            np.float64
+        )
 
 
 def _read_points(buf: bytes, pos: int, n: int, path) -> tuple:
@@ -93,20 +133,32 @@ def _read_points(buf: bytes, pos: int, n: int, path) -> tuple:
     heads = np.zeros(n, _HEAD)
     descs = []
     size = _HEAD.itemsize
-    for k in range(n):       # records have their own descriptor length: walk them (n is small)
+    for k in range(n):  # records have their own descriptor length: walk them (n is small)
         if pos + size > len(buf):
             raise InputError(f"{path}: truncated ASP match file (point {k + 1} of {n})")
         h = np.frombuffer(buf, _HEAD, 1, pos)[0]
         pos += size
         m = int(h["n_desc"])
         if m > 4096 or pos + 4 * m > len(buf):
-            raise InputError(f"{path}: not an ASP match file (descriptor length {m} at point {k + 1})")
+            raise InputError(
+                f"{path}: not an ASP match file (descriptor length {m} at point {k + 1})"
+            )
         heads[k] = h
         descs.append(np.frombuffer(buf, "<f4", m, pos).copy())
         pos += 4 * m
-    pts = InterestPoints(heads["x"], heads["y"], heads["ix"], heads["iy"], heads["orientation"],
-                         heads["scale"], heads["interest"], heads["polarity"], heads["octave"],
-                         heads["scale_lvl"], descs)
+    pts = InterestPoints(
+        heads["x"],
+        heads["y"],
+        heads["ix"],
+        heads["iy"],
+        heads["orientation"],
+        heads["scale"],
+        heads["interest"],
+        heads["polarity"],
+        heads["octave"],
+        heads["scale_lvl"],
+        descs,
+    )
     return pts, pos
 
 
@@ -124,7 +176,9 @@ def read_match(path) -> MatchFile:
         raise InputError(f"{path}: not an ASP match file ({len(buf)} bytes)")
     n1, n2 = (int(v) for v in np.frombuffer(buf, "<u8", 2, 0))
     if n1 != n2 or n1 * _HEAD.itemsize * 2 > len(buf):
-        raise InputError(f"{path}: not an ASP match file (counts {n1} and {n2} for {len(buf)} bytes)")
+        raise InputError(
+            f"{path}: not an ASP match file (counts {n1} and {n2} for {len(buf)} bytes)"
+        )
     left, pos = _read_points(buf, 16, n1, path)
     right, pos = _read_points(buf, pos, n2, path)
     if pos != len(buf):
@@ -139,7 +193,7 @@ def _points_bytes(p: InterestPoints) -> bytes:
     heads["n_desc"] = [len(d) for d in p.descriptors]
     parts = []
     for k in range(len(p)):
-        parts.append(heads[k:k + 1].tobytes())
+        parts.append(heads[k : k + 1].tobytes())
         parts.append(np.asarray(p.descriptors[k], "<f4").tobytes())
     return b"".join(parts)
 
@@ -148,10 +202,14 @@ def write_match(path, match: MatchFile, *, overwrite: bool = False) -> Path:
     """Write ``match`` as an ASP binary ``.match`` file (atomically; ASP reads it back, e.g.
     ``bundle_adjust --match-files-prefix``). Points without descriptors get empty ones."""
     from stereodem.core.raster import atomic_path, check_writable
+
     if len(match.left) != len(match.right):
         raise InputError(f"{path}: {len(match.left)} left and {len(match.right)} right points")
-    data = (np.array([len(match.left), len(match.right)], "<u8").tobytes()
-            + _points_bytes(match.left) + _points_bytes(match.right))
+    data = (
+        np.array([len(match.left), len(match.right)], "<u8").tobytes()
+        + _points_bytes(match.left)
+        + _points_bytes(match.right)
+    )
     path = check_writable(path, overwrite)
     with atomic_path(path) as tmp:
         Path(tmp).write_bytes(data)
@@ -164,12 +222,13 @@ def match_stems(path) -> tuple | None:
     name = Path(path).name
     if not name.endswith(".match") or "__" not in name:
         return None
-    a, b = name[:-len(".match")].rsplit("__", 1)
+    a, b = name[: -len(".match")].rsplit("__", 1)
     return a, b
 
 
-def check_match_images(match: MatchFile, left_name, right_name, *, left_size=None,
-                       right_size=None) -> dict:
+def check_match_images(
+    match: MatchFile, left_name, right_name, *, left_size=None, right_size=None
+) -> dict:
     """Refuse (:class:`InputError`, one line) a match file that belongs to other images.
 
     Two checks, each when its inputs are given: the file name (ASP's
@@ -188,16 +247,24 @@ def check_match_images(match: MatchFile, left_name, right_name, *, left_size=Non
         a, b = stems
         if not ((a == ls or a.endswith("-" + ls)) and b == rs):
             swapped = (a == rs or a.endswith("-" + rs)) and b == ls
-            raise InputError(f"{path}: " + ("names the images in the other order" if swapped else
-                                            "is named for other images")
-                             + f" (for {ls} then {rs}, ASP writes <prefix>-{ls}__{rs}.match)")
+            raise InputError(
+                f"{path}: "
+                + (
+                    "names the images in the other order"
+                    if swapped
+                    else "is named for other images"
+                )
+                + f" (for {ls} then {rs}, ASP writes <prefix>-{ls}__{rs}.match)"
+            )
     for side, pts, size in (("left", match.left, left_size), ("right", match.right, right_size)):
         if size is None:
             continue
         w, h = size
         outside = (pts.x < -0.5) | (pts.x > w - 0.5) | (pts.y < -0.5) | (pts.y > h - 0.5)
         if outside.mean() > 0.01:
-            raise InputError(f"{path}: {100 * outside.mean():.0f} % of its {side} points lie outside "
-                             f"{left_name if side == 'left' else right_name} ({w}x{h}): the match file "
-                             "of other images")
+            raise InputError(
+                f"{path}: {100 * outside.mean():.0f} % of its {side} points lie outside "
+                f"{left_name if side == 'left' else right_name} ({w}x{h}): the match file "
+                "of other images"
+            )
     return out

@@ -31,6 +31,7 @@ What the reader checks rather than assumes (notes §4.3, §7): the lattice is re
 ``SatelliteVelocity`` (inertial or Earth-fixed) is decided against the positions; and the model
 is validated against the product's own ``Latitude``/``Longitude`` when present.
 """
+
 from __future__ import annotations
 
 import logging
@@ -62,7 +63,13 @@ log = logging.getLogger(__name__)
 #: the along-track stereo bands
 VNIR_BANDS = ("3N", "3B")
 #: data fields a band swath must have to build its model and image
-REQUIRED_FIELDS = ("ImageData", "RadiometricCorrTable", "LatticePoint", "SightVector", "SatellitePosition")
+REQUIRED_FIELDS = (
+    "ImageData",
+    "RadiometricCorrTable",
+    "LatticePoint",
+    "SightVector",
+    "SatellitePosition",
+)
 #: mean lattice ray error (rad) above which the product's sight vectors and its own
 #: Latitude/Longitude disagree (about 2 VNIR pixels at 700 km)
 LATTICE_TOLERANCE_RAD = 50e-6
@@ -80,6 +87,7 @@ def swath_name(band: str) -> str:
 
 # ============================================================================ data classes
 
+
 @dataclass
 class L1ABandFields:
     """The fields of one VNIR band swath as stored in the product (format-independent).
@@ -89,16 +97,16 @@ class L1ABandFields:
     """
 
     band: str
-    source: str                                 #: "<file>:<swath>" for messages
+    source: str  #: "<file>:<swath>" for messages
     image_shape: tuple
     read_dn: Callable[[], np.ndarray]
-    rc_table: np.ndarray                        #: (cols, 3) = (D, A, G)
-    lattice: np.ndarray                         #: (N, K, 2) = (col, row)
-    sight_vectors: np.ndarray                   #: (N, K, 3) orbital frame
-    satellite_positions: np.ndarray             #: (N, 3) ECEF m
+    rc_table: np.ndarray  #: (cols, 3) = (D, A, G)
+    lattice: np.ndarray  #: (N, K, 2) = (col, row)
+    sight_vectors: np.ndarray  #: (N, K, 3) orbital frame
+    satellite_positions: np.ndarray  #: (N, 3) ECEF m
     satellite_velocities: np.ndarray | None = None
     observation_times: np.ndarray | None = None
-    latitude: np.ndarray | None = None          #: (N, K) geocentric deg
+    latitude: np.ndarray | None = None  #: (N, K) geocentric deg
     longitude: np.ndarray | None = None
 
 
@@ -110,7 +118,7 @@ class AsterBand:
     model: AsterModel
     fields: L1ABandFields
     velocity_convention: str
-    lattice_error_rad: tuple | None = None      #: (mean, max) model vs product lat/lon; None if absent
+    lattice_error_rad: tuple | None = None  #: (mean, max) model vs product lat/lon; None if absent
     _dn: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -178,8 +186,9 @@ class AsterGranule:
         m = re.search(r"(?:^|BAND)(3[NB])$", str(band).upper().strip())
         key = m.group(1) if m else str(band)
         if key not in self.bands:
-            raise InputError(f"{self.path}: no band {band!r} in this granule "
-                             f"(has {', '.join(self.bands)})")
+            raise InputError(
+                f"{self.path}: no band {band!r} in this granule (has {', '.join(self.bands)})"
+            )
         return self.bands[key]
 
     def model(self, band: str) -> AsterModel:
@@ -211,6 +220,7 @@ class AsterGranule:
 
 # ============================================================================ entry point
 
+
 def open_aster_granule(path, *, bands=VNIR_BANDS) -> AsterGranule:
     """Open an ASTER L1A granule: a V004 ``.hdf`` (HDF-EOS2), or a V003 ``.zip`` or folder.
 
@@ -234,18 +244,28 @@ def open_aster_granule(path, *, bands=VNIR_BANDS) -> AsterGranule:
         raise InputError(f"{p}: no such file or folder")
     if p.is_dir() or p.suffix.lower() == ".zip":
         from stereodem.sensor.io.aster_v003 import read_v003
+
         product, gid, odl, fields = "AST_L1A V003", *read_v003(p)
     else:
         product, (gid, odl, fields) = "AST_L1A V004", read_v004(p)
     for b in bands:
         if b not in fields:
             what = swath_name(b)
-            why = (" (a night-time or VNIR-off scene has no along-track stereo)" if b == "3B"
-                   and "3N" in fields else "")
+            why = (
+                " (a night-time or VNIR-off scene has no along-track stereo)"
+                if b == "3B" and "3N" in fields
+                else ""
+            )
             raise InputError(f"{p}: no band {b} ({what} swath){why}")
     built = {b: build_band(fields[b]) for b in fields if b in VNIR_BANDS}
-    return AsterGranule(path=str(p), product=product, granule_id=gid,
-                        metadata=granule_metadata(odl, gid), odl=odl, bands=built)
+    return AsterGranule(
+        path=str(p),
+        product=product,
+        granule_id=gid,
+        metadata=granule_metadata(odl, gid),
+        odl=odl,
+        bands=built,
+    )
 
 
 def read_granule_band(path, band: str, *, radiometric: bool = True):
@@ -253,8 +273,11 @@ def read_granule_band(path, band: str, *, radiometric: bool = True):
     call an image/model input layer needs (``band`` as :meth:`AsterGranule.band`)."""
     g = open_aster_granule(path, bands=())
     b = g.band(band)
-    return b.image(radiometric), b.model, {**g.tags(), "ASTER_BAND": b.band,
-                                           "ASTER_RADIOMETRIC": str(bool(radiometric))}
+    return (
+        b.image(radiometric),
+        b.model,
+        {**g.tags(), "ASTER_BAND": b.band, "ASTER_RADIOMETRIC": str(bool(radiometric))},
+    )
 
 
 def is_aster_granule(path) -> bool:
@@ -270,9 +293,12 @@ def is_aster_granule(path) -> bool:
         if p.name.upper().startswith("AST_L1"):
             return True
         import zipfile
+
         try:
             with zipfile.ZipFile(p) as z:
-                return any(".VNIR_Band3" in n and n.endswith(".ImageData.tif") for n in z.namelist())
+                return any(
+                    ".VNIR_Band3" in n and n.endswith(".ImageData.tif") for n in z.namelist()
+                )
         except (zipfile.BadZipFile, OSError):
             return False
     with open(p, "rb") as fh:
@@ -281,13 +307,15 @@ def is_aster_granule(path) -> bool:
 
 # ============================================================================ geometry
 
+
 def _geocentric_to_ecef(lat_gc_deg, lon_deg):
     """Point on the WGS84 ellipsoid at geocentric latitude / longitude (notes §4.1)."""
     psi, lam = np.radians(lat_gc_deg), np.radians(lon_deg)
     a, b = geodesy.A, geodesy.B
     rho = a * b / np.sqrt((a * np.sin(psi)) ** 2 + (b * np.cos(psi)) ** 2)
-    return np.stack([rho * np.cos(psi) * np.cos(lam), rho * np.cos(psi) * np.sin(lam),
-                     rho * np.sin(psi)], -1)
+    return np.stack(
+        [rho * np.cos(psi) * np.cos(lam), rho * np.cos(psi) * np.sin(lam), rho * np.sin(psi)], -1
+    )
 
 
 def velocity_convention(times, positions, velocities) -> str:
@@ -314,11 +342,14 @@ def _check_shapes(f: L1ABandFields):
         raise SensorModelError(f"{src}: LatticePoint has shape {lat.shape}, expected (N>=2, 11, 2)")
     n, k = lat.shape[:2]
     if np.shape(f.sight_vectors) != (n, k, 3):
-        raise SensorModelError(f"{src}: SightVector has shape {np.shape(f.sight_vectors)}, "
-                               f"expected ({n}, {k}, 3)")
+        raise SensorModelError(
+            f"{src}: SightVector has shape {np.shape(f.sight_vectors)}, expected ({n}, {k}, 3)"
+        )
     if np.shape(f.satellite_positions) != (n, 3):
-        raise SensorModelError(f"{src}: SatellitePosition has shape "
-                               f"{np.shape(f.satellite_positions)}, expected ({n}, 3)")
+        raise SensorModelError(
+            f"{src}: SatellitePosition has shape "
+            f"{np.shape(f.satellite_positions)}, expected ({n}, 3)"
+        )
     for name, arr in (("SatelliteVelocity", f.satellite_velocities),):
         if arr is not None and np.shape(arr) != (n, 3):
             raise SensorModelError(f"{src}: {name} has shape {np.shape(arr)}, expected ({n}, 3)")
@@ -327,8 +358,10 @@ def _check_shapes(f: L1ABandFields):
             raise SensorModelError(f"{src}: {name} has shape {np.shape(arr)}, expected ({n}, {k})")
     rows, cols = f.image_shape
     if np.shape(f.rc_table) != (cols, 3):
-        raise SensorModelError(f"{src}: RadiometricCorrTable has shape {np.shape(f.rc_table)}, "
-                               f"expected one (D, A, G) row per detector: ({cols}, 3)")
+        raise SensorModelError(
+            f"{src}: RadiometricCorrTable has shape {np.shape(f.rc_table)}, "
+            f"expected one (D, A, G) row per detector: ({cols}, 3)"
+        )
     if np.any(f.rc_table[:, 2] == 0) or not np.all(np.isfinite(f.rc_table)):
         raise SensorModelError(f"{src}: RadiometricCorrTable holds zero gains or non-finite values")
     norm = np.linalg.norm(f.sight_vectors, axis=-1)
@@ -357,16 +390,25 @@ def build_band(f: L1ABandFields, *, line_period: float = ASTER_LINE_PERIOD) -> A
         world = ground - pos[:, None, :]
         world /= np.linalg.norm(world, axis=-1, keepdims=True)
     else:
-        world = sight.copy()                          # replaced below by the model's own rays
+        world = sight.copy()  # replaced below by the model's own rays
     rows, cols = f.image_shape
     name = f"{Path(f.source.rsplit(':', 1)[0]).stem}_{f.band}"
 
     def make(inertial):
-        g = AsterGeometry(lattice=lattice, sight_vectors=sight, world_sight_vectors=world,
-                          satellite_positions=pos, image_cols=int(cols), image_rows=int(rows),
-                          path=f.source, satellite_velocities=vel, velocity_convention=conv,
-                          observation_times=None if f.observation_times is None
-                          else np.asarray(f.observation_times, np.float64))
+        g = AsterGeometry(
+            lattice=lattice,
+            sight_vectors=sight,
+            world_sight_vectors=world,
+            satellite_positions=pos,
+            image_cols=int(cols),
+            image_rows=int(rows),
+            path=f.source,
+            satellite_velocities=vel,
+            velocity_convention=conv,
+            observation_times=None
+            if f.observation_times is None
+            else np.asarray(f.observation_times, np.float64),
+        )
         return AsterModel(g, line_period=line_period, inertial_frame=inertial, name=name)
 
     try:
@@ -383,22 +425,28 @@ def build_band(f: L1ABandFields, *, line_period: float = ASTER_LINE_PERIOD) -> A
         alt = make(False)
         err_alt = alt.lattice_sight_errors()
         if err_alt.mean() < LATTICE_TOLERANCE_RAD:
-            log.warning("%s: orbital frame built with the Earth-fixed velocity reproduces the "
-                        "product latitude/longitude (mean %.1f urad); using it", f.source,
-                        1e6 * err_alt.mean())
+            log.warning(
+                "%s: orbital frame built with the Earth-fixed velocity reproduces the "
+                "product latitude/longitude (mean %.1f urad); using it",
+                f.source,
+                1e6 * err_alt.mean(),
+            )
             model, err = alt, err_alt
         else:
             raise SensorModelError(
                 f"{f.source}: SightVector/SatellitePosition do not reproduce the product's "
                 f"Latitude/Longitude (mean ray error {1e6 * err.mean():.0f} urad inertial frame, "
-                f"{1e6 * err_alt.mean():.0f} urad Earth-fixed frame)")
+                f"{1e6 * err_alt.mean():.0f} urad Earth-fixed frame)"
+            )
     return AsterBand(f.band, model, f, conv, (float(err.mean()), float(err.max())))
 
 
 # ============================================================================ V004 (HDF-EOS2)
 
+
 def _hdf_error():
     from pyhdf.error import HDF4Error
+
     return HDF4Error
 
 
@@ -406,6 +454,7 @@ def _vgroup_swaths(path):
     """``{swath name: {"Data Fields": {field: ref}, "Geolocation Fields": {...}}}`` via Vgroups."""
     import pyhdf.V  # noqa: F401  (HDF.vgstart needs the V module imported; notes §2.6)
     from pyhdf.HDF import HDF
+
     HDF4Error = _hdf_error()
     h = HDF(str(path))
     v = h.vgstart()
@@ -461,29 +510,35 @@ def read_v004(path):
     See :func:`open_aster_granule` for the errors.
     """
     from pyhdf.SD import SD, SDC
+
     HDF4Error = _hdf_error()
     path = Path(path)
     with open(path, "rb") as fh:
         magic = fh.read(4)
     if magic != _HDF4_MAGIC:
-        raise InputError(f"{path}: not an ASTER L1A granule (neither an HDF4 file, as V004 "
-                         f"granules are, nor a V003 zip or folder)")
+        raise InputError(
+            f"{path}: not an ASTER L1A granule (neither an HDF4 file, as V004 "
+            f"granules are, nor a V003 zip or folder)"
+        )
     try:
         sd = SD(str(path), SDC.READ)
     except HDF4Error as exc:
-        raise InputError(f"{path}: HDF4 file cannot be opened - truncated or damaged "
-                         f"({exc})") from None
+        raise InputError(
+            f"{path}: HDF4 file cannot be opened - truncated or damaged ({exc})"
+        ) from None
     try:
         attrs = sd.attributes()
     except HDF4Error as exc:
         sd.end()
-        raise InputError(f"{path}: cannot read the global attributes - file truncated or "
-                         f"damaged ({exc})") from None
+        raise InputError(
+            f"{path}: cannot read the global attributes - file truncated or damaged ({exc})"
+        ) from None
     odl = {}
     for name, text in attrs.items():
         low = name.lower()
-        if isinstance(text, str) and (low.startswith(("coremetadata", "productmetadata",
-                                                       "archivemetadata", "structmetadata"))):
+        if isinstance(text, str) and (
+            low.startswith(("coremetadata", "productmetadata", "archivemetadata", "structmetadata"))
+        ):
             try:
                 odl[name] = parse_odl(text, source=f"{path}:{name}")
             except InputError:
@@ -511,17 +566,21 @@ def read_v004(path):
             located = _sds_by_suffix(sd)
     except HDF4Error as exc:
         sd.end()
-        raise InputError(f"{path}: cannot walk the HDF-EOS swath structure - file truncated or "
-                         f"damaged ({exc})") from None
+        raise InputError(
+            f"{path}: cannot walk the HDF-EOS swath structure - file truncated or damaged ({exc})"
+        ) from None
     vnir = {sw: f for sw, f in located.items() if sw.startswith("VNIR_Band")}
     instrument = str(first_key(flat, "INSTRUMENTSHORTNAME") or "").upper()
     if not vnir:
         sd.end()
         if level is None and instrument != "ASTER":
-            raise InputError(f"{path}: not an ASTER L1A granule (no ASTER metadata and no "
-                             f"VNIR_Band3N/3B swaths)")
-        raise InputError(f"{path}: ASTER granule without VNIR swaths (VNIR_Band3N, VNIR_Band3B): "
-                         f"the VNIR telescope was off")
+            raise InputError(
+                f"{path}: not an ASTER L1A granule (no ASTER metadata and no VNIR_Band3N/3B swaths)"
+            )
+        raise InputError(
+            f"{path}: ASTER granule without VNIR swaths (VNIR_Band3N, VNIR_Band3B): "
+            f"the VNIR telescope was off"
+        )
     gid = str(first_key(flat, "LOCALGRANULEID") or path.stem)
     gid = re.sub(r"\.hdf$", "", gid, flags=re.I)
     bands = {}
@@ -538,8 +597,9 @@ def _v004_band(sd, path, sw, band, idx):
     src = f"{path}:{sw}"
     missing = [f for f in REQUIRED_FIELDS if f not in idx]
     if missing:
-        raise InputError(f"{src}: swath has no {', '.join(missing)} field"
-                         f"{'s' if len(missing) > 1 else ''}")
+        raise InputError(
+            f"{src}: swath has no {', '.join(missing)} field{'s' if len(missing) > 1 else ''}"
+        )
 
     def get(name, dtype=np.float64):
         if name not in idx:
@@ -551,16 +611,20 @@ def _v004_band(sd, path, sw, band, idx):
             finally:
                 s.endaccess()
         except HDF4Error as exc:
-            raise InputError(f"{src}: cannot read {name} - file truncated or damaged ({exc})") from None
+            raise InputError(
+                f"{src}: cannot read {name} - file truncated or damaged ({exc})"
+            ) from None
 
     s = sd.select(idx["ImageData"])
     shape = tuple(s.info()[2])
     try:
         if len(shape) != 2:
             raise SensorModelError(f"{src}: ImageData has shape {shape}, expected (rows, cols)")
-        s[shape[0] - 1:shape[0], :]                       # a truncated file fails here
+        s[shape[0] - 1 : shape[0], :]  # a truncated file fails here
     except HDF4Error as exc:
-        raise InputError(f"{src}: cannot read ImageData - file truncated or damaged ({exc})") from None
+        raise InputError(
+            f"{src}: cannot read ImageData - file truncated or damaged ({exc})"
+        ) from None
     finally:
         s.endaccess()
 
@@ -569,8 +633,16 @@ def _v004_band(sd, path, sw, band, idx):
         return img
 
     return L1ABandFields(
-        band=band, source=src, image_shape=shape, read_dn=read_dn,
-        rc_table=get("RadiometricCorrTable"), lattice=get("LatticePoint"),
-        sight_vectors=get("SightVector"), satellite_positions=get("SatellitePosition"),
-        satellite_velocities=get("SatelliteVelocity"), observation_times=get("ObservationTime"),
-        latitude=get("Latitude"), longitude=get("Longitude"))
+        band=band,
+        source=src,
+        image_shape=shape,
+        read_dn=read_dn,
+        rc_table=get("RadiometricCorrTable"),
+        lattice=get("LatticePoint"),
+        sight_vectors=get("SightVector"),
+        satellite_positions=get("SatellitePosition"),
+        satellite_velocities=get("SatelliteVelocity"),
+        observation_times=get("ObservationTime"),
+        latitude=get("Latitude"),
+        longitude=get("Longitude"),
+    )

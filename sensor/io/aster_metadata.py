@@ -8,6 +8,7 @@ elevation from ``SOLARDIRECTION``; cloud cover from ``SCENECLOUDCOVERAGE``; VNIR
 comes from ``SHORTNAME`` (``ASTL1A``/``AST_L1A``, ``ASTL1B``, ``AST_L1T``), else
 ``PROCESSINGLEVELID``, else the file name. Every key is optional.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -36,9 +37,11 @@ def product_level(flat: dict, name: str) -> str | None:
 
 
 def not_l1a_message(path, level: str) -> str:
-    return (f"{path}: this is an ASTER {level} product; stereodem needs AST_L1A (the raw image "
-            f"lines with their lattice geometry: SightVector, SatellitePosition) to build the "
-            f"3N/3B pushbroom models - {level} images are resampled and carry no sensor geometry")
+    return (
+        f"{path}: this is an ASTER {level} product; stereodem needs AST_L1A (the raw image "
+        f"lines with their lattice geometry: SightVector, SatellitePosition) to build the "
+        f"3N/3B pushbroom models - {level} images are resampled and carry no sensor geometry"
+    )
 
 
 def first_key(flat: dict, *keys):

@@ -27,6 +27,7 @@ the rest. The report (:attr:`AsterStrip.report`) gives per seam and band the off
 overlap, the orbit miss, the overlap correlation and how far the joined model departs from
 the granule's own model over the granule (pixels).
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -53,6 +54,7 @@ STRIP_BANDS = ("3N", "3B")
 
 
 # ============================================================================ metadata
+
 
 def _odl_time(flat: dict, date_key: str, time_key: str):
     date, tod = first_key(flat, date_key), first_key(flat, time_key)
@@ -82,8 +84,14 @@ def pass_info(granule) -> dict:
     stop = _odl_time(flat, "RANGEENDINGDATE", "RANGEENDINGTIME")
     if start is None and granule.metadata.get("acquisition_time"):
         start = _dt.datetime.fromisoformat(granule.metadata["acquisition_time"].rstrip("Z"))
-    return dict(path=str(granule.path), granule_id=granule.granule_id, wrs_path=wrs,
-                scene_row=row, start=start, stop=stop)
+    return dict(
+        path=str(granule.path),
+        granule_id=granule.granule_id,
+        wrs_path=wrs,
+        scene_row=row,
+        start=start,
+        stop=stop,
+    )
 
 
 def order_granules(granules) -> list:
@@ -93,28 +101,37 @@ def order_granules(granules) -> list:
     names = [Path(i["path"]).name for i in infos]
     paths = {i["wrs_path"] for i in infos if i["wrs_path"] is not None}
     if len(paths) > 1:
-        raise InputError(f"{', '.join(names)}: granules of different passes (WRS paths "
-                         f"{', '.join(str(i['wrs_path']) for i in infos)}); a strip joins "
-                         f"consecutive granules of one pass")
+        raise InputError(
+            f"{', '.join(names)}: granules of different passes (WRS paths "
+            f"{', '.join(str(i['wrs_path']) for i in infos)}); a strip joins "
+            f"consecutive granules of one pass"
+        )
     if any(i["start"] is None for i in infos):
         bad = [n for n, i in zip(names, infos) if i["start"] is None]
-        raise InputError(f"{', '.join(bad)}: no acquisition time in the metadata; cannot order "
-                         f"the granules of a strip")
+        raise InputError(
+            f"{', '.join(bad)}: no acquisition time in the metadata; cannot order "
+            f"the granules of a strip"
+        )
     order = sorted(range(len(infos)), key=lambda k: infos[k]["start"])
     for a, b in zip(order[:-1], order[1:]):
         ia, ib = infos[a], infos[b]
         if ib["start"] <= ia["start"]:
-            raise InputError(f"{names[a]}, {names[b]}: the same acquisition start "
-                             f"({ia['start'].isoformat()}): the same granule twice?")
+            raise InputError(
+                f"{names[a]}, {names[b]}: the same acquisition start "
+                f"({ia['start'].isoformat()}): the same granule twice?"
+            )
         end = ia["stop"] or ia["start"]
         gap = (ib["start"] - end).total_seconds()
         if gap > MAX_GAP_S:
-            raise InputError(f"{names[a]}, {names[b]}: not consecutive granules of one pass "
-                             f"({names[b]} starts {gap:.0f} s after {names[a]} ends)")
+            raise InputError(
+                f"{names[a]}, {names[b]}: not consecutive granules of one pass "
+                f"({names[b]} starts {gap:.0f} s after {names[a]} ends)"
+            )
     return [granules[k] for k in order]
 
 
 # ============================================================================ geometry
+
 
 def line_offset(prev, nxt, names) -> dict:
     """Line of ``prev``'s numbering where ``nxt``'s line 0 lies (one band's models,
@@ -137,20 +154,30 @@ def line_offset(prev, nxt, names) -> dict:
     a, b = names
     if not inside.any():
         after = (tau[0] - t_prev[-1]) / lp
-        raise InputError(f"{a}, {b}: not consecutive granules ({b} starts about "
-                         f"{after:.0f} lines after the end of {a}'s lattice: no shared lines)")
+        raise InputError(
+            f"{a}, {b}: not consecutive granules ({b} starts about "
+            f"{after:.0f} lines after the end of {a}'s lattice: no shared lines)"
+        )
     miss = float(np.max(np.linalg.norm(eph.position(tau[inside]) - p_next[inside], axis=-1)))
     if miss > ORBIT_TOLERANCE_M:
-        raise InputError(f"{a}, {b}: not one pass (the satellite positions of {b} are "
-                         f"{miss:.0f} m off {a}'s orbit)")
+        raise InputError(
+            f"{a}, {b}: not one pass (the satellite positions of {b} are "
+            f"{miss:.0f} m off {a}'s orbit)"
+        )
     delta = tau[inside] / lp - rows_next[inside]
     off = float(np.median(delta))
     k = int(round(off))
     if abs(off - k) > LINE_TOLERANCE or np.ptp(delta) > 2 * LINE_TOLERANCE:
-        raise InputError(f"{a}, {b}: the granules' lines are not on one line clock (offset "
-                         f"{off:.2f} lines, spread {np.ptp(delta):.2f})")
-    return dict(offset_lines=k, fraction=round(off - k, 4), orbit_miss_m=round(miss, 4),
-                shared_lattice_rows=int(inside.sum()))
+        raise InputError(
+            f"{a}, {b}: the granules' lines are not on one line clock (offset "
+            f"{off:.2f} lines, spread {np.ptp(delta):.2f})"
+        )
+    return dict(
+        offset_lines=k,
+        fraction=round(off - k, 4),
+        orbit_miss_m=round(miss, 4),
+        shared_lattice_rows=int(inside.sum()),
+    )
 
 
 def _overlap_correlation(a, b) -> float:
@@ -182,20 +209,25 @@ class StripBand:
     image: np.ndarray
     model: object
     first_lines: list
-    seams: list = field(default_factory=list)      #: per seam: offset, overlap, checks
+    seams: list = field(default_factory=list)  #: per seam: offset, overlap, checks
 
 
 def join_band(granules, band: str, *, radiometric: bool = True) -> StripBand:
     """Join band ``band`` of ordered consecutive granules (see the module docstring)."""
     from stereodem.sensor.models.aster import AsterGeometry, AsterModel
+
     bands = [g.band(band) for g in granules]
     models = [b.model for b in bands]
     names = [Path(g.path).name for g in granules]
     m0 = models[0]
     for m, name in zip(models[1:], names[1:]):
-        if m.width != m0.width or not np.array_equal(m.geometry.lattice_cols, m0.geometry.lattice_cols):
-            raise InputError(f"{names[0]}, {name}: band {band} has {m0.width} and {m.width} "
-                             f"detectors / different lattice columns: not one instrument's pass")
+        if m.width != m0.width or not np.array_equal(
+            m.geometry.lattice_cols, m0.geometry.lattice_cols
+        ):
+            raise InputError(
+                f"{names[0]}, {name}: band {band} has {m0.width} and {m.width} "
+                f"detectors / different lattice columns: not one instrument's pass"
+            )
     firsts, seams = [0], []
     for k in range(1, len(models)):
         s = line_offset(models[k - 1], models[k], (names[k - 1], names[k]))
@@ -203,8 +235,10 @@ def join_band(granules, band: str, *, radiometric: bool = True) -> StripBand:
         end_prev = firsts[k - 1] + models[k - 1].height
         s["overlap_lines"] = int(end_prev - firsts[k])
         if s["overlap_lines"] < 0:
-            raise InputError(f"{names[k - 1]}, {names[k]}: band {band} lines "
-                             f"{end_prev}..{firsts[k] - 1} of the strip are missing")
+            raise InputError(
+                f"{names[k - 1]}, {names[k]}: band {band} lines "
+                f"{end_prev}..{firsts[k] - 1} of the strip are missing"
+            )
         s["seam_line"] = int((firsts[k] + end_prev) // 2)
         s["granules"] = [names[k - 1], names[k]]
         seams.append(s)
@@ -226,33 +260,48 @@ def join_band(granules, band: str, *, radiometric: bool = True) -> StripBand:
     lattice = np.concatenate([g.lattice[sel] + np.array([0.0, f0]) for g, sel, f0 in pieces])
     conv = {g.velocity_convention for g, _, _ in pieces}
     rows_total = firsts[-1] + models[-1].height
-    geom = AsterGeometry(lattice=lattice, sight_vectors=stack("sight_vectors"),
-                         world_sight_vectors=stack("world_sight_vectors"),
-                         satellite_positions=stack("satellite_positions"),
-                         image_cols=int(m0.width), image_rows=int(rows_total),
-                         path=f"{granules[0].path} +{len(granules) - 1}",
-                         satellite_velocities=stack("satellite_velocities"),
-                         velocity_convention=conv.pop() if len(conv) == 1 else "unknown",
-                         observation_times=stack("observation_times"))
-    model = AsterModel(geom, line_period=m0.line_period, inertial_frame=m0.inertial_frame,
-                       velocity_method=m0.velocity_method, name=f"strip_{band}")
+    geom = AsterGeometry(
+        lattice=lattice,
+        sight_vectors=stack("sight_vectors"),
+        world_sight_vectors=stack("world_sight_vectors"),
+        satellite_positions=stack("satellite_positions"),
+        image_cols=int(m0.width),
+        image_rows=int(rows_total),
+        path=f"{granules[0].path} +{len(granules) - 1}",
+        satellite_velocities=stack("satellite_velocities"),
+        velocity_convention=conv.pop() if len(conv) == 1 else "unknown",
+        observation_times=stack("observation_times"),
+    )
+    model = AsterModel(
+        geom,
+        line_period=m0.line_period,
+        inertial_frame=m0.inertial_frame,
+        velocity_method=m0.velocity_method,
+        name=f"strip_{band}",
+    )
     # the image: each granule's lines, the overlap split at its middle
     image = np.full((rows_total, m0.width), np.nan, np.float32)
     for k, (b, f0) in enumerate(zip(bands, firsts)):
         img = b.image(radiometric)
         lo = seams[k - 1]["seam_line"] if k else f0
         hi = seams[k]["seam_line"] if k < len(seams) else f0 + img.shape[0]
-        image[lo:hi] = img[lo - f0:hi - f0]
+        image[lo:hi] = img[lo - f0 : hi - f0]
         if k:
             s = seams[k - 1]
             prev, pf = bands[k - 1].image(radiometric), firsts[k - 1]
             ov = slice(f0, pf + prev.shape[0])
-            s["overlap_correlation"] = round(_overlap_correlation(
-                prev[ov.start - pf:ov.stop - pf], img[ov.start - f0:ov.stop - f0]), 4)
+            s["overlap_correlation"] = round(
+                _overlap_correlation(
+                    prev[ov.start - pf : ov.stop - pf], img[ov.start - f0 : ov.stop - f0]
+                ),
+                4,
+            )
             if s["overlap_lines"] > 0 and not s["overlap_correlation"] >= MIN_OVERLAP_CORRELATION:
-                raise InputError(f"{names[k - 1]}, {names[k]}: the overlapping band {band} lines "
-                                 f"differ (correlation {s['overlap_correlation']:.2f}): not the "
-                                 f"same lines of one pass")
+                raise InputError(
+                    f"{names[k - 1]}, {names[k]}: the overlapping band {band} lines "
+                    f"differ (correlation {s['overlap_correlation']:.2f}): not the "
+                    f"same lines of one pass"
+                )
     for k, s in enumerate(seams, 1):
         s["model_departure_px"] = round(_model_departure(model, models[k], firsts[k]), 6)
     return StripBand(band, image, model, firsts, seams)
@@ -262,8 +311,8 @@ def join_band(granules, band: str, *, radiometric: bool = True) -> StripBand:
 class AsterStrip:
     """Consecutive granules of one pass joined (:func:`open_aster_strip`)."""
 
-    granules: list                 #: AsterGranule, in time order
-    bands: dict                    #: "3N" / "3B" -> StripBand
+    granules: list  #: AsterGranule, in time order
+    bands: dict  #: "3N" / "3B" -> StripBand
     report: dict
 
     def band(self, name: str) -> StripBand:
@@ -274,6 +323,7 @@ def open_aster_strip(paths, *, radiometric: bool = True) -> AsterStrip:
     """Open the granules ``paths`` (any order), check that they are consecutive granules of
     one pass and join their 3N and 3B bands (see the module docstring)."""
     from stereodem.sensor.io.aster_l1a import open_aster_granule
+
     if len(paths) < 2:
         raise InputError("a strip needs at least two granules")
     granules = order_granules([open_aster_granule(p) for p in paths])
@@ -281,22 +331,36 @@ def open_aster_strip(paths, *, radiometric: bool = True) -> AsterStrip:
     infos = [pass_info(g) for g in granules]
     report = dict(
         method="joined models: each band's lattices and image lines put end to end on the first "
-               "granule's line numbering (one orbit, attitude and line clock for the pass), one "
-               "AsterModel per band spanning the strip, one stereo pair, one DEM",
+        "granule's line numbering (one orbit, attitude and line clock for the pass), one "
+        "AsterModel per band spanning the strip, one stereo pair, one DEM",
         why="the granules of a pass are cut from one acquisition (one orbit, attitude and line "
-            "clock), so the joined model is the pass's own and the DEM has no seam to blend; "
-            "per-granule DEMs would repeat the sparse stage and the relative pointing per "
-            "granule and need an adjustment on the overlap to remove the steps these make",
-        granules=[dict(path=i["path"], granule_id=i["granule_id"], wrs_path=i["wrs_path"],
-                       scene_row=i["scene_row"],
-                       start=i["start"].isoformat() if i["start"] else None,
-                       **{f"first_line_{b}": bands[b].first_lines[k] for b in STRIP_BANDS},
-                       **{f"lines_{b}": g.band(b).model.height for b in STRIP_BANDS})
-                  for k, (i, g) in enumerate(zip(infos, granules))],
+        "clock), so the joined model is the pass's own and the DEM has no seam to blend; "
+        "per-granule DEMs would repeat the sparse stage and the relative pointing per "
+        "granule and need an adjustment on the overlap to remove the steps these make",
+        granules=[
+            dict(
+                path=i["path"],
+                granule_id=i["granule_id"],
+                wrs_path=i["wrs_path"],
+                scene_row=i["scene_row"],
+                start=i["start"].isoformat() if i["start"] else None,
+                **{f"first_line_{b}": bands[b].first_lines[k] for b in STRIP_BANDS},
+                **{f"lines_{b}": g.band(b).model.height for b in STRIP_BANDS},
+            )
+            for k, (i, g) in enumerate(zip(infos, granules))
+        ],
         seams={b: bands[b].seams for b in STRIP_BANDS},
-        size={b: [int(bands[b].model.width), int(bands[b].model.height)] for b in STRIP_BANDS})
+        size={b: [int(bands[b].model.width), int(bands[b].model.height)] for b in STRIP_BANDS},
+    )
     return AsterStrip(granules, bands, report)
 
 
-__all__ = ["AsterStrip", "StripBand", "join_band", "line_offset", "open_aster_strip",
-           "order_granules", "pass_info"]
+__all__ = [
+    "AsterStrip",
+    "StripBand",
+    "join_band",
+    "line_offset",
+    "open_aster_strip",
+    "order_granules",
+    "pass_info",
+]

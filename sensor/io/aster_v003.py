@@ -12,6 +12,7 @@ metadata sidecar (``<zip>.met`` or a ``.met`` in the folder) supplies the ODL me
 :func:`read_v003` returns the same :class:`stereodem.sensor.io.aster_l1a.L1ABandFields` as the
 V004 reader; open granules with :func:`stereodem.sensor.io.aster_l1a.open_aster_granule`.
 """
+
 from __future__ import annotations
 
 import re
@@ -28,8 +29,14 @@ from stereodem.sensor.io.odl import parse_odl
 from stereodem.sensor.io.tables import TableError, numeric_blocks
 
 #: tables a band needs (besides ``ImageData.tif``); ASP's aster2asp requires the same set
-REQUIRED_TABLES = ("LatticePoint", "SightVector", "SatellitePosition", "RadiometricCorrTable",
-                   "Latitude", "Longitude")
+REQUIRED_TABLES = (
+    "LatticePoint",
+    "SightVector",
+    "SatellitePosition",
+    "RadiometricCorrTable",
+    "Latitude",
+    "Longitude",
+)
 OPTIONAL_TABLES = ("SatelliteVelocity", "ObservationTime")
 
 
@@ -40,18 +47,26 @@ class _Source:
         self.path = path
         if path.is_dir():
             self.zip = None
-            self.members = {str(p.relative_to(path)).replace("\\", "/"): p
-                            for p in path.rglob("*") if p.is_file()}
+            self.members = {
+                str(p.relative_to(path)).replace("\\", "/"): p
+                for p in path.rglob("*")
+                if p.is_file()
+            }
         else:
             try:
                 self.zip = zipfile.ZipFile(path)
                 self.members = {n: n for n in self.zip.namelist() if not n.endswith("/")}
             except (zipfile.BadZipFile, OSError) as exc:
-                raise InputError(f"{path}: not a readable zip file - truncated or damaged ({exc})") from None
+                raise InputError(
+                    f"{path}: not a readable zip file - truncated or damaged ({exc})"
+                ) from None
 
     def find(self, suffix: str):
-        hits = sorted(m for m in self.members if Path(m).name.endswith(suffix)
-                      and "L1A" in Path(m).name.upper())
+        hits = sorted(
+            m
+            for m in self.members
+            if Path(m).name.endswith(suffix) and "L1A" in Path(m).name.upper()
+        )
         return hits[0] if hits else None
 
     def text(self, member: str) -> str:
@@ -60,7 +75,9 @@ class _Source:
                 return self.zip.read(member).decode("ascii", errors="replace")
             return self.members[member].read_text(encoding="ascii", errors="replace")
         except (zipfile.BadZipFile, OSError, EOFError) as exc:
-            raise InputError(f"{self.path}: cannot read {member} - truncated or damaged ({exc})") from None
+            raise InputError(
+                f"{self.path}: cannot read {member} - truncated or damaged ({exc})"
+            ) from None
 
     def raster_path(self, member: str) -> str:
         if self.zip is not None:
@@ -91,11 +108,11 @@ def _blocks3d(text, source, width):
     arrs = _table(text, source, width=width)
     if len({a.shape[0] for a in arrs}) != 1:
         raise InputError(f"{source}: blocks of unequal length")
-    return np.stack(arrs)                                   # (N, K, width)
+    return np.stack(arrs)  # (N, K, width)
 
 
 def _rows(text, source, width=None):
-    return np.concatenate(_table(text, source, width=width))   # blank lines ignored
+    return np.concatenate(_table(text, source, width=width))  # blank lines ignored
 
 
 def read_v003(path):
@@ -115,8 +132,10 @@ def read_v003(path):
         if any_l1:
             level = "L1T" if any("L1T" in m.upper() for m in any_l1) else "L1B"
             raise InputError(not_l1a_message(path, level))
-        raise InputError(f"{path}: not an ASTER L1A V003 granule (no "
-                         f"AST_L1A_*.VNIR_Band3N.ImageData.tif / VNIR_Band3B images)")
+        raise InputError(
+            f"{path}: not an ASTER L1A V003 granule (no "
+            f"AST_L1A_*.VNIR_Band3N.ImageData.tif / VNIR_Band3B images)"
+        )
     first = next(m for m in images.values() if m)
     gid = Path(first).name.split(".VNIR_Band")[0]
     odl = {}
@@ -128,6 +147,7 @@ def read_v003(path):
         odl["met"] = parse_odl(src.text(met[0]), source=f"{path}:{met[0]}")
     if odl:
         from stereodem.sensor.io.odl import flatten_odl
+
         level = product_level(flatten_odl(odl["met"]), gid)
         if level in ("L1B", "L1T"):
             raise InputError(not_l1a_message(path, level))
@@ -142,8 +162,10 @@ def read_v003(path):
             member = prefix + name + ".txt"
             if member not in src.members:
                 if name in REQUIRED_TABLES:
-                    raise InputError(f"{path}: V003 granule has no {Path(member).name} "
-                                     f"(the {name} table of {sw})")
+                    raise InputError(
+                        f"{path}: V003 granule has no {Path(member).name} "
+                        f"(the {name} table of {sw})"
+                    )
                 continue
             tables[name] = src.text(member)
         bands[b] = _band(src, b, sw, img, tables)
@@ -152,6 +174,7 @@ def read_v003(path):
 
 def _band(src: _Source, band, sw, img_member, t):
     import rasterio
+
     where = f"{src.path}:{sw}"
     rpath = src.raster_path(img_member)
     try:
@@ -160,8 +183,10 @@ def _band(src: _Source, band, sw, img_member, t):
             with rasterio.open(rpath) as ds:
                 shape = (ds.height, ds.width)
                 if ds.count != 1 or ds.dtypes[0] != "uint8":
-                    raise InputError(f"{where}: ImageData.tif must be one uint8 band, got "
-                                     f"{ds.count} band(s) of {ds.dtypes[0]}")
+                    raise InputError(
+                        f"{where}: ImageData.tif must be one uint8 band, got "
+                        f"{ds.count} band(s) of {ds.dtypes[0]}"
+                    )
     except rasterio.errors.RasterioIOError as exc:
         raise InputError(f"{where}: cannot open {Path(img_member).name} ({exc})") from None
 
@@ -172,8 +197,9 @@ def _band(src: _Source, band, sw, img_member, t):
                 with rasterio.open(rpath) as ds:
                     return ds.read(1)
         except rasterio.errors.RasterioError as exc:
-            raise InputError(f"{where}: cannot read {Path(img_member).name} - truncated or "
-                             f"damaged ({exc})") from None
+            raise InputError(
+                f"{where}: cannot read {Path(img_member).name} - truncated or damaged ({exc})"
+            ) from None
 
     name = lambda f: f"{src.path}:{Path(img_member[: -len('ImageData.tif')] + f + '.txt').name}"  # noqa: E731
     lattice = _blocks3d(t["LatticePoint"], name("LatticePoint"), 2)
@@ -183,12 +209,23 @@ def _band(src: _Source, band, sw, img_member, t):
     for nm, arr in (("Latitude", latitude), ("Longitude", longitude)):
         if arr.size != n * k:
             raise InputError(f"{name(nm)}: {arr.size} values for a {n} x {k} lattice")
-    vel = _rows(t["SatelliteVelocity"], name("SatelliteVelocity"), 3) if "SatelliteVelocity" in t else None
+    vel = (
+        _rows(t["SatelliteVelocity"], name("SatelliteVelocity"), 3)
+        if "SatelliteVelocity" in t
+        else None
+    )
     obs = _rows(t["ObservationTime"], name("ObservationTime")) if "ObservationTime" in t else None
     return L1ABandFields(
-        band=band, source=where, image_shape=shape, read_dn=read_dn,
+        band=band,
+        source=where,
+        image_shape=shape,
+        read_dn=read_dn,
         rc_table=_rows(t["RadiometricCorrTable"], name("RadiometricCorrTable"), 3),
-        lattice=lattice, sight_vectors=_blocks3d(t["SightVector"], name("SightVector"), 3),
+        lattice=lattice,
+        sight_vectors=_blocks3d(t["SightVector"], name("SightVector"), 3),
         satellite_positions=_rows(t["SatellitePosition"], name("SatellitePosition"), 3),
-        satellite_velocities=vel, observation_times=obs,
-        latitude=latitude.reshape(n, k), longitude=longitude.reshape(n, k))
+        satellite_velocities=vel,
+        observation_times=obs,
+        latitude=latitude.reshape(n, k),
+        longitude=longitude.reshape(n, k),
+    )

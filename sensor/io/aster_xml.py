@@ -5,6 +5,7 @@ ASP's XML (``<isd>``) holds ``LATTICE_POINT``, ``SIGHT_VECTOR`` (orbital frame, 
 product), ``WORLD_SIGHT_VECTOR`` (ECEF, from the product's latitude/longitude),
 ``SAT_POS``, ``IMAGE_COLS``/``IMAGE_ROWS`` and ASP's fitted RPC in ``<RPB>``.
 """
+
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
@@ -15,8 +16,18 @@ from stereodem.core.errors import RPCError, SensorModelError
 from stereodem.sensor.io.tables import TableError, numeric_blocks
 from stereodem.sensor.models.aster import _RPB_COEFS, AsterGeometry
 
-_RPB_SCALARS = ("LINEOFFSET", "SAMPOFFSET", "LATOFFSET", "LONGOFFSET", "HEIGHTOFFSET",
-                "LINESCALE", "SAMPSCALE", "LATSCALE", "LONGSCALE", "HEIGHTSCALE")
+_RPB_SCALARS = (
+    "LINEOFFSET",
+    "SAMPOFFSET",
+    "LATOFFSET",
+    "LONGOFFSET",
+    "HEIGHTOFFSET",
+    "LINESCALE",
+    "SAMPSCALE",
+    "LATSCALE",
+    "LONGSCALE",
+    "HEIGHTSCALE",
+)
 
 
 def _numbers(root, tag, path, *, required=True):
@@ -115,9 +126,16 @@ def read_asp_aster_xml(path) -> AsterGeometry:
             raise SensorModelError(f"{path}: <{name}> holds zero-length vectors")
     sight = sight / np.linalg.norm(sight, axis=-1, keepdims=True)
     world = world / np.linalg.norm(world, axis=-1, keepdims=True)
-    return AsterGeometry(lattice=lattice, sight_vectors=sight, world_sight_vectors=world,
-                         satellite_positions=pos.reshape(-1, 3), image_cols=int(cols[0]),
-                         image_rows=int(rows[0]), rpc=_read_rpb(root, path), path=path)
+    return AsterGeometry(
+        lattice=lattice,
+        sight_vectors=sight,
+        world_sight_vectors=world,
+        satellite_positions=pos.reshape(-1, 3),
+        image_cols=int(cols[0]),
+        image_rows=int(rows[0]),
+        rpc=_read_rpb(root, path),
+        path=path,
+    )
 
 
 def bundled_xml(band: str):
@@ -126,6 +144,7 @@ def bundled_xml(band: str):
     One V003 granule over Mt Rainier, 2017-07-31 (uw-cryo/asp_plot test data, BSD-3-Clause).
     """
     from importlib import resources
+
     if band not in ("3N", "3B"):
         raise SensorModelError(f"ASTER band must be '3N' or '3B', got {band!r}")
     return resources.files("stereodem.sensor") / "data" / "aster" / f"out-Band{band}.xml"

@@ -34,6 +34,7 @@ quaternions sampled along the image time.
 
 DIMAP counts pixels from 1; stereodem from 0 (centre of the first pixel).
 """
+
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
@@ -96,13 +97,17 @@ def read_dimap_physical(path, *, attitude_step: float = 0.05):
         return _pleiades(root, smc, path, attitude_step)
     if root.find(".//Data_Strip/Ephemeris") is not None:
         return _spot5(root, path)
-    raise SensorModelError(f"{path}: no physical sensor model in this DIMAP (no "
-                           "Sensor_Model_Characteristics or Data_Strip/Ephemeris; an RPC-only file?)")
+    raise SensorModelError(
+        f"{path}: no physical sensor model in this DIMAP (no "
+        "Sensor_Model_Characteristics or Data_Strip/Ephemeris; an RPC-only file?)"
+    )
 
 
 def _size(root, path):
     try:
-        return int(root.find(".//Raster_Dimensions/NCOLS").text), int(root.find(".//Raster_Dimensions/NROWS").text)
+        return int(root.find(".//Raster_Dimensions/NCOLS").text), int(
+            root.find(".//Raster_Dimensions/NROWS").text
+        )
     except (AttributeError, ValueError):
         raise SensorModelError(f"{path}: DIMAP Raster_Dimensions/NCOLS, NROWS missing") from None
 
@@ -123,13 +128,16 @@ def _pleiades(root, smc, path, step):
     start = _time(smc.find("UTC_Sensor_Model_Range/START").text, path)
     line_period = float(_floats(smc, "SENSOR_LINE_PERIOD", path, 1)[0]) * 1e-3
     t0 = sec(start)
-    coef = [_floats(smc, f"Sensor_Attitudes/Polynomial_Models/Q{k}/COEFFICIENTS", path) for k in range(4)]
+    coef = [
+        _floats(smc, f"Sensor_Attitudes/Polynomial_Models/Q{k}/COEFFICIENTS", path)
+        for k in range(4)
+    ]
     offset = float(_floats(smc, "Sensor_Attitudes/OFFSET", path, 1)[0])
     scale = float(_floats(smc, "Sensor_Attitudes/SCALE", path, 1)[0])
     day = epoch.hour * 3600 + epoch.minute * 60 + epoch.second + epoch.microsecond * 1e-6
     t_att = np.arange(t0 - 0.5, t0 + height * line_period + 0.5, step)
     x = (t_att + day - offset) / scale
-    q = np.stack([np.polynomial.polynomial.polyval(x, c) for c in coef], -1)   # Q0 scalar
+    q = np.stack([np.polynomial.polynomial.polyval(x, c) for c in coef], -1)  # Q0 scalar
     sat_to_ecef = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
     cx = _floats(smc, "Sensor_Viewing_Model/Viewing_Directions/PsiX_Model/COEFFICIENTS", path)
     cy = _floats(smc, "Sensor_Viewing_Model/Viewing_Directions/PsiY_Model/COEFFICIENTS", path)
@@ -140,14 +148,27 @@ def _pleiades(root, smc, path, step):
     psi_y = np.polynomial.polynomial.polyval(cols, cy) * np.ones_like(cols)
     # the polynomials are the direction's tangents (checked against the product's RPC: taking
     # tan() of them leaves a psi^3/3 error, 1.35 px at the swath edges)
-    sight = np.stack([psi_y, -psi_x, np.ones_like(cols)], -1)                     # satellite frame
-    return _pushbroom(width, height, t0, line_period, t_eph, pos, vel, t_att, sat_to_ecef, sight, cols,
-                      name=path.stem)
+    sight = np.stack([psi_y, -psi_x, np.ones_like(cols)], -1)  # satellite frame
+    return _pushbroom(
+        width,
+        height,
+        t0,
+        line_period,
+        t_eph,
+        pos,
+        vel,
+        t_att,
+        sat_to_ecef,
+        sight,
+        cols,
+        name=path.stem,
+    )
 
 
 def _spot5(root, path):
     from stereodem.sensor.models.ephemeris import Ephemeris
     from stereodem.sensor.models.orbital.topan_los import orbital_to_ecef, payload_to_orbital
+
     width, height = _size(root, path)
     ds = root.find(".//Data_Strip")
     points = ds.findall("Ephemeris/Points/Point")
@@ -165,8 +186,12 @@ def _spot5(root, path):
     if len(att) < 2:
         raise SensorModelError(f"{path}: fewer than 2 attitude samples in Corrected_Attitudes")
     t_att = np.array([sec(a.find("TIME").text) for a in att])
-    ang = np.array([[float(a.find(f"Angles/{k}").text) for k in ("ROLL", "PITCH", "YAW")] for a in att])
-    looks = ds.findall(".//Instrument_Look_Angles_List/Instrument_Look_Angles/Look_Angles_List/Look_Angles")
+    ang = np.array(
+        [[float(a.find(f"Angles/{k}").text) for k in ("ROLL", "PITCH", "YAW")] for a in att]
+    )
+    looks = ds.findall(
+        ".//Instrument_Look_Angles_List/Instrument_Look_Angles/Look_Angles_List/Look_Angles"
+    )
     if len(looks) < 2:
         raise SensorModelError(f"{path}: no per-detector Look_Angles in Sensor_Configuration")
     det = np.array([float(a.find("DETECTOR_ID").text) for a in looks]) - 1.0
@@ -182,37 +207,73 @@ def _spot5(root, path):
     eph = Ephemeris(t_eph, pos, vel)
     p, v = eph.state(t_att)
     sat_to_ecef = orbital_to_ecef(p, v) @ payload_to_orbital(ang[:, 0], ang[:, 1], ang[:, 2])
-    sight = np.stack([-np.tan(psi_y), np.tan(psi_x), -np.ones_like(psi_x)], -1)   # payload frame
-    return _pushbroom(width, height, t0, line_period, t_eph, pos, vel, t_att, sat_to_ecef, sight, det,
-                      name=path.stem)
+    sight = np.stack([-np.tan(psi_y), np.tan(psi_x), -np.ones_like(psi_x)], -1)  # payload frame
+    return _pushbroom(
+        width,
+        height,
+        t0,
+        line_period,
+        t_eph,
+        pos,
+        vel,
+        t_att,
+        sat_to_ecef,
+        sight,
+        det,
+        name=path.stem,
+    )
 
 
 #: Payload/satellite frame -> pushbroom instrument frame (x along track, y across, z down).
 _TO_INSTRUMENT = {True: np.eye(3), False: np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])}
 
 
-def _pushbroom(width, height, t0, line_period, t_eph, pos, vel, t_att, sat_to_ecef, sight, cols, *, name):
+def _pushbroom(
+    width, height, t0, line_period, t_eph, pos, vel, t_att, sat_to_ecef, sight, cols, *, name
+):
     """PushbroomModel from ECEF ephemeris, satellite -> ECEF rotations and sight vectors."""
     from stereodem.sensor.geo.rotations import orbital_frame
     from stereodem.sensor.models.ephemeris import Attitude, Ephemeris
     from stereodem.sensor.models.pushbroom import DetectorArray, PushbroomModel
+
     z_down = bool(np.all(sight[:, 2] > 0))
-    D = _TO_INSTRUMENT[z_down]                       # instrument = D @ satellite
+    D = _TO_INSTRUMENT[z_down]  # instrument = D @ satellite
     inst = sight @ D.T
     eph = Ephemeris(t_eph, pos, vel)
     p, v = eph.state(t_att)
     body_to_orb = np.swapaxes(orbital_frame(p, v), -1, -2) @ sat_to_ecef @ D.T
     quat = Rotation.from_matrix(body_to_orb).as_quat()
     order = np.argsort(cols)
-    return PushbroomModel(width=width, height=height, ephemeris=eph,
-                          detectors=DetectorArray.from_sight_vectors(inst[order], np.asarray(cols)[order]),
-                          line_period=line_period, t0=t0, attitude=Attitude(t_att, quaternions=quat),
-                          name=name)
+    return PushbroomModel(
+        width=width,
+        height=height,
+        ephemeris=eph,
+        detectors=DetectorArray.from_sight_vectors(inst[order], np.asarray(cols)[order]),
+        line_period=line_period,
+        t0=t0,
+        attitude=Attitude(t_att, quaternions=quat),
+        name=name,
+    )
 
 
-def write_spot5_dimap(path, *, width, height, epoch, ephemeris_times, positions, velocities,
-                      attitude_times, angles, psi_x, psi_y, line_period, center_line, center_time,
-                      overwrite=False):
+def write_spot5_dimap(
+    path,
+    *,
+    width,
+    height,
+    epoch,
+    ephemeris_times,
+    positions,
+    velocities,
+    attitude_times,
+    angles,
+    psi_x,
+    psi_y,
+    line_period,
+    center_line,
+    center_time,
+    overwrite=False,
+):
     """Write a SPOT-5 DIMAP v1 physical-model file (the subset :func:`read_dimap_physical`
     reads), e.g. from a simulated scene. Times are seconds after ``epoch`` (a
     :class:`datetime.datetime`); ``line_period`` in seconds; ``center_line`` 0-based;
@@ -224,25 +285,40 @@ def write_spot5_dimap(path, *, width, height, epoch, ephemeris_times, positions,
     def ts(t):
         return (epoch + timedelta(seconds=float(t))).strftime("%Y-%m-%dT%H:%M:%S.%f")
 
-    out = ["<?xml version=\"1.0\" encoding=\"UTF-8\"?>", "<Dimap_Document>",
-           f"<Raster_Dimensions><NCOLS>{int(width)}</NCOLS><NROWS>{int(height)}</NROWS><NBANDS>1</NBANDS>"
-           "</Raster_Dimensions>", "<Data_Strip>", "<Ephemeris><Points>"]
+    out = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        "<Dimap_Document>",
+        f"<Raster_Dimensions><NCOLS>{int(width)}</NCOLS><NROWS>{int(height)}</NROWS><NBANDS>1</NBANDS>"
+        "</Raster_Dimensions>",
+        "<Data_Strip>",
+        "<Ephemeris><Points>",
+    ]
     for t, p, v in zip(ephemeris_times, positions, velocities):
-        out.append(f"<Point><Location><X>{p[0]:.4f}</X><Y>{p[1]:.4f}</Y><Z>{p[2]:.4f}</Z></Location>"
-                   f"<Velocity><X>{v[0]:.7f}</X><Y>{v[1]:.7f}</Y><Z>{v[2]:.7f}</Z></Velocity>"
-                   f"<TIME>{ts(t)}</TIME></Point>")
+        out.append(
+            f"<Point><Location><X>{p[0]:.4f}</X><Y>{p[1]:.4f}</Y><Z>{p[2]:.4f}</Z></Location>"
+            f"<Velocity><X>{v[0]:.7f}</X><Y>{v[1]:.7f}</Y><Z>{v[2]:.7f}</Z></Velocity>"
+            f"<TIME>{ts(t)}</TIME></Point>"
+        )
     out.append("</Points></Ephemeris><Attitudes><Corrected_Attitudes>")
     for t, a in zip(attitude_times, angles):
-        out.append(f"<Corrected_Attitude><TIME>{ts(t)}</TIME><Angles><ROLL>{a[0]:.12e}</ROLL>"
-                   f"<PITCH>{a[1]:.12e}</PITCH><YAW>{a[2]:.12e}</YAW></Angles></Corrected_Attitude>")
-    out.append("</Corrected_Attitudes></Attitudes><Sensor_Configuration><Time_Stamp>"
-               f"<LINE_PERIOD>{line_period * 1e3:.12f}</LINE_PERIOD>"
-               f"<SCENE_CENTER_TIME>{ts(center_time)}</SCENE_CENTER_TIME>"
-               f"<SCENE_CENTER_LINE>{center_line + 1:.3f}</SCENE_CENTER_LINE></Time_Stamp>"
-               "<Instrument_Look_Angles_List><Instrument_Look_Angles><Look_Angles_List>")
+        out.append(
+            f"<Corrected_Attitude><TIME>{ts(t)}</TIME><Angles><ROLL>{a[0]:.12e}</ROLL>"
+            f"<PITCH>{a[1]:.12e}</PITCH><YAW>{a[2]:.12e}</YAW></Angles></Corrected_Attitude>"
+        )
+    out.append(
+        "</Corrected_Attitudes></Attitudes><Sensor_Configuration><Time_Stamp>"
+        f"<LINE_PERIOD>{line_period * 1e3:.12f}</LINE_PERIOD>"
+        f"<SCENE_CENTER_TIME>{ts(center_time)}</SCENE_CENTER_TIME>"
+        f"<SCENE_CENTER_LINE>{center_line + 1:.3f}</SCENE_CENTER_LINE></Time_Stamp>"
+        "<Instrument_Look_Angles_List><Instrument_Look_Angles><Look_Angles_List>"
+    )
     for k, (px, py) in enumerate(zip(psi_x, psi_y)):
-        out.append(f"<Look_Angles><DETECTOR_ID>{k + 1}</DETECTOR_ID><PSI_X>{px:.15e}</PSI_X>"
-                   f"<PSI_Y>{py:.15e}</PSI_Y></Look_Angles>")
-    out.append("</Look_Angles_List></Instrument_Look_Angles></Instrument_Look_Angles_List>"
-               "</Sensor_Configuration></Data_Strip></Dimap_Document>")
+        out.append(
+            f"<Look_Angles><DETECTOR_ID>{k + 1}</DETECTOR_ID><PSI_X>{px:.15e}</PSI_X>"
+            f"<PSI_Y>{py:.15e}</PSI_Y></Look_Angles>"
+        )
+    out.append(
+        "</Look_Angles_List></Instrument_Look_Angles></Instrument_Look_Angles_List>"
+        "</Sensor_Configuration></Data_Strip></Dimap_Document>"
+    )
     return write_text_atomic(path, "\n".join(out) + "\n", overwrite=overwrite)

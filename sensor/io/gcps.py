@@ -14,6 +14,7 @@ Format: a header ``id,lon,lat,h,col,row`` plus the optional columns
 ``vertical="geoid"``), ``col``/``row`` pixels with the centre of the top-left pixel at (0, 0),
 as everywhere in the project. Empty optional cells mean "not given" (NaN).
 """
+
 from __future__ import annotations
 
 import csv
@@ -68,16 +69,22 @@ class ControlPoints:
         n = self.id.size
         for k in ("lon", "lat", "h", "col", "row"):
             setattr(self, k, np.asarray(getattr(self, k), dtype=np.float64).ravel())
-        self.role = (np.full(n, "gcp", dtype="U16") if self.role is None
-                     else np.broadcast_to(np.asarray(self.role).astype("U16"), (n,)).copy())
+        self.role = (
+            np.full(n, "gcp", dtype="U16")
+            if self.role is None
+            else np.broadcast_to(np.asarray(self.role).astype("U16"), (n,)).copy()
+        )
         for k in ("sigma_px", "sigma_ground_m"):
             v = getattr(self, k)
             v = np.full(n, np.nan) if v is None else np.asarray(v, dtype=np.float64)
             setattr(self, k, np.broadcast_to(v, (n,)).astype(np.float64).copy())
         sizes = {k: getattr(self, k).size for k in ("lon", "lat", "h", "col", "row")}
         if any(s != n for s in sizes.values()):
-            raise InputError(f"control points: arrays of different lengths (id {n}, "
-                             + ", ".join(f"{k} {s}" for k, s in sizes.items()) + ")")
+            raise InputError(
+                f"control points: arrays of different lengths (id {n}, "
+                + ", ".join(f"{k} {s}" for k, s in sizes.items())
+                + ")"
+            )
 
     def __len__(self):
         return int(self.lon.size)
@@ -95,8 +102,9 @@ class ControlPoints:
         return self.lon, self.lat, self.h, self.col, self.row
 
     @classmethod
-    def from_arrays(cls, lon, lat, h, col, row, *, ids=None, role=None, sigma_px=None,
-                    sigma_ground_m=None) -> ControlPoints:
+    def from_arrays(
+        cls, lon, lat, h, col, row, *, ids=None, role=None, sigma_px=None, sigma_ground_m=None
+    ) -> ControlPoints:
         """Build from arrays; ids default to ``P001, P002, ...``."""
         n = np.asarray(lon).size
         ids = [f"P{i + 1:03d}" for i in range(n)] if ids is None else ids
@@ -111,8 +119,10 @@ def _numbers(path, col_of, k, *, required):
     if required:
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:
-            raise InputError(f"{where(path)}{bad.size} missing/NaN value(s) in column '{k}' "
-                             f"(first at line {bad[0] + 2})")
+            raise InputError(
+                f"{where(path)}{bad.size} missing/NaN value(s) in column '{k}' "
+                f"(first at line {bad[0] + 2})"
+            )
     elif np.any(np.isinf(a)) or np.any(a[np.isfinite(a)] <= 0):
         raise InputError(f"{where(path)}column '{k}' must hold positive standard deviations")
     return a
@@ -148,8 +158,10 @@ def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
     header = [c.strip().lower() for c in rows[0]]
     missing = [c for c in GCP_COLUMNS if c not in header]
     if missing:
-        raise InputError(f"{where(path)}missing GCP column(s) {', '.join(missing)} (expected "
-                         f"{','.join(GCP_COLUMNS)}[,{','.join(OPTIONAL_COLUMNS)}])")
+        raise InputError(
+            f"{where(path)}missing GCP column(s) {', '.join(missing)} (expected "
+            f"{','.join(GCP_COLUMNS)}[,{','.join(OPTIONAL_COLUMNS)}])"
+        )
     body = rows[1:]
     if not body:
         raise InputError(f"{where(path)}no points in GCP file")
@@ -159,16 +171,22 @@ def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
         raise InputError(f"{where(path)}line {short[0]} has fewer than {width} fields")
     table = np.array([r[:width] for r in body], dtype=object).T
     col_of = {k: table[header.index(k)] for k in header}
-    values = {k: _numbers(path, col_of, k, required=True) for k in ("lon", "lat", "h", "col", "row")}
-    opt = {k: (_numbers(path, col_of, k, required=False) if k in col_of else None)
-           for k in ("sigma_px", "sigma_ground_m")}
+    values = {
+        k: _numbers(path, col_of, k, required=True) for k in ("lon", "lat", "h", "col", "row")
+    }
+    opt = {
+        k: (_numbers(path, col_of, k, required=False) if k in col_of else None)
+        for k in ("sigma_px", "sigma_ground_m")
+    }
     lon, lat = values["lon"], values["lat"]
     bad_lat = np.flatnonzero(np.abs(lat) > 90)
     if bad_lat.size or np.any(np.abs(lon) > 360):
         swapped = np.all(np.abs(lon) <= 90) and np.all(np.abs(lat) <= 360)
         i = int(bad_lat[0]) if bad_lat.size else int(np.flatnonzero(np.abs(lon) > 360)[0])
-        raise InputError(f"{where(path)}line {i + 2}: lat {lat[i]:g} / lon {lon[i]:g} out of range"
-                         + (" (likely swapped lon/lat columns)" if swapped else ""))
+        raise InputError(
+            f"{where(path)}line {i + 2}: lat {lat[i]:g} / lon {lon[i]:g} out of range"
+            + (" (likely swapped lon/lat columns)" if swapped else "")
+        )
     ids = np.array([s.strip() for s in col_of["id"]], dtype=str)
     empty = np.flatnonzero(ids == "")
     if empty.size:
@@ -176,25 +194,43 @@ def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
     uniq, counts = np.unique(ids, return_counts=True)
     if np.any(counts > 1):
         dup = uniq[counts > 1]
-        raise InputError(f"{where(path)}duplicate point id(s) {', '.join(dup[:5])}"
-                         + (" ..." if dup.size > 5 else ""))
+        raise InputError(
+            f"{where(path)}duplicate point id(s) {', '.join(dup[:5])}"
+            + (" ..." if dup.size > 5 else "")
+        )
     if "role" in col_of:
         role = np.array([s.strip().lower() or "gcp" for s in col_of["role"]], dtype=str)
         unknown = sorted(set(role) - set(ROLES))
         if unknown:
-            raise InputError(f"{where(path)}unknown role(s) {', '.join(unknown)} (expected gcp or check)")
+            raise InputError(
+                f"{where(path)}unknown role(s) {', '.join(unknown)} (expected gcp or check)"
+            )
     else:
         role = np.full(ids.shape, "gcp")
     h = values["h"]
     if vertical == "geoid":
         from stereodem.core import geodesy
+
         h = geodesy.geoid_to_ellipsoid(lon, lat, h)
-    return ControlPoints(ids, lon, lat, h, values["col"], values["row"], role,
-                         opt["sigma_px"], opt["sigma_ground_m"])
+    return ControlPoints(
+        ids, lon, lat, h, values["col"], values["row"], role, opt["sigma_px"], opt["sigma_ground_m"]
+    )
 
 
-def write_gcps(path, ids, lon=None, lat=None, h=None, col=None, row=None, *, role=None,
-               sigma_px=None, sigma_ground_m=None, overwrite=False):
+def write_gcps(
+    path,
+    ids,
+    lon=None,
+    lat=None,
+    h=None,
+    col=None,
+    row=None,
+    *,
+    role=None,
+    sigma_px=None,
+    sigma_ground_m=None,
+    overwrite=False,
+):
     """Write points in the CSV format read by :func:`read_gcps` (atomic write).
 
     ``ids`` may also be a :class:`ControlPoints` (then the other arrays are taken from it).
@@ -206,10 +242,18 @@ def write_gcps(path, ids, lon=None, lat=None, h=None, col=None, row=None, *, rol
         ids, lon, lat, h, col, row, role = p.id, p.lon, p.lat, p.h, p.col, p.row, p.role
         sigma_px = p.sigma_px if np.any(np.isfinite(p.sigma_px)) else None
         sigma_ground_m = p.sigma_ground_m if np.any(np.isfinite(p.sigma_ground_m)) else None
-    lon, lat, h, col, row = (np.asarray(a, dtype=np.float64).ravel() for a in (lon, lat, h, col, row))
+    lon, lat, h, col, row = (
+        np.asarray(a, dtype=np.float64).ravel() for a in (lon, lat, h, col, row)
+    )
     ids = np.asarray(ids).astype(str).ravel()
-    cols = [ids, np.char.mod("%.10f", lon), np.char.mod("%.10f", lat), np.char.mod("%.4f", h),
-            np.char.mod("%.6f", col), np.char.mod("%.6f", row)]
+    cols = [
+        ids,
+        np.char.mod("%.10f", lon),
+        np.char.mod("%.10f", lat),
+        np.char.mod("%.4f", h),
+        np.char.mod("%.6f", col),
+        np.char.mod("%.6f", row),
+    ]
     header = list(GCP_COLUMNS)
     for name, s in (("sigma_px", sigma_px), ("sigma_ground_m", sigma_ground_m)):
         if s is not None:

@@ -16,6 +16,7 @@ entries; repeated names get ``.2``, ``.3`` suffixes), :func:`flatten_odl` gives 
 ``NAME[.CLASS] = VALUE`` view GDAL shows (and ``ADDITIONALATTRIBUTENAME`` /
 ``PARAMETERVALUE`` pairs as ``name = value``), :func:`format_odl` writes nested dicts back.
 """
+
 from __future__ import annotations
 
 import re
@@ -120,8 +121,11 @@ def flatten_odl(tree: dict) -> dict:
         for name, sub in node.items():
             if not isinstance(sub, dict):
                 continue
-            base = name.split(".")[0] if re.search(r"\.\d+$", name) and name.rsplit(".", 1)[0] in node \
+            base = (
+                name.split(".")[0]
+                if re.search(r"\.\d+$", name) and name.rsplit(".", 1)[0] in node
                 else name
+            )
             if "VALUE" in sub:
                 key = base + (f".{sub['CLASS']}" if "CLASS" in sub else "")
                 if base.upper() == "ADDITIONALATTRIBUTENAME":

@@ -31,6 +31,7 @@ kept as ``loc_coeffs``; by default they only seed the exact localisation,
 :class:`stereodem.sensor.models.rpc_direct.DirectRPCModel` that localises with them (see that
 module for why the exact inverse is the default).
 """
+
 from __future__ import annotations
 
 import json
@@ -52,9 +53,15 @@ from stereodem.sensor.models.rpc import (
 )
 
 #: formats named in the error when no reader accepts a file
-FORMATS_TRIED = ("GDAL raster/VRT/NITF RPC metadata (with .RPB/_RPC.TXT sidecars)",
-                 "DIMAP v1/v2/v3 XML", "DigitalGlobe/Maxar XML", "OSSIM .geom keyword list",
-                 ".RPB", "_RPC.TXT/IKONOS text", "rpcm JSON")
+FORMATS_TRIED = (
+    "GDAL raster/VRT/NITF RPC metadata (with .RPB/_RPC.TXT sidecars)",
+    "DIMAP v1/v2/v3 XML",
+    "DigitalGlobe/Maxar XML",
+    "OSSIM .geom keyword list",
+    ".RPB",
+    "_RPC.TXT/IKONOS text",
+    "rpcm JSON",
+)
 
 
 def read_rpc(path, *, direct: bool = False) -> RPCModel:
@@ -86,6 +93,7 @@ def read_rpc(path, *, direct: bool = False) -> RPCModel:
         raise RPCError(f"{path}: no RPC model found (tried: {', '.join(FORMATS_TRIED)}){why}")
     if direct:
         from stereodem.sensor.models.rpc_direct import DirectRPCModel
+
         return DirectRPCModel.from_rpc(model)
     return model
 
@@ -95,6 +103,7 @@ def _read_gdal(path: Path):
     """``(model, None)`` when GDAL opens the file and finds RPCs (tags or sidecars), else
     ``(None, note)``."""
     import rasterio
+
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -102,11 +111,15 @@ def _read_gdal(path: Path):
                 tags = ds.tags(ns="RPC")
                 info = ds.tags()
                 w, h = ds.width, ds.height
-    except Exception:          # rasterio raises several types for files GDAL cannot open
+    except Exception:  # rasterio raises several types for files GDAL cannot open
         return None, None
     if not tags:
-        for side in (path.with_suffix(".RPB"), path.with_suffix(".rpb"),
-                     path.with_name(path.stem + "_RPC.TXT"), path.with_name(path.stem + "_rpc.txt")):
+        for side in (
+            path.with_suffix(".RPB"),
+            path.with_suffix(".rpb"),
+            path.with_name(path.stem + "_RPC.TXT"),
+            path.with_name(path.stem + "_rpc.txt"),
+        ):
             if side.is_file() and side != path:
                 m = read_rpc(side)
                 m.width, m.height, m.source = w, h, str(side)
@@ -175,7 +188,7 @@ def _read_rpc_txt(path: Path) -> RPCModel:
         fields = value.split()
         if not fields:
             d[key] = ""
-        else:       # the whole value: a unit after it is checked by the number parser
+        else:  # the whole value: a unit after it is checked by the number parser
             d[key] = value.strip()
     _coefficient_lists(d, path)
     loc = None
@@ -206,7 +219,7 @@ def _read_geom(path: Path) -> RPCModel:
     fmt = kv.get("polynomial_format", "B").strip().upper()
     if fmt != "B":
         raise RPCError(f"{path}: OSSIM polynomial_format {fmt!r} (only B, RPC00B, is supported)")
-    d = {k: get(k.lower()) for k in SCALAR_KEYS}       # OSSIM: line_off ... height_scale
+    d = {k: get(k.lower()) for k in SCALAR_KEYS}  # OSSIM: line_off ... height_scale
     for key in COEFF_KEYS:
         d[key] = [get(f"{key.lower()}_{i:02d}") for i in range(20)]
     for key, okey in (("ERR_BIAS", "bias_error"), ("ERR_RAND", "rand_error")):
@@ -217,19 +230,34 @@ def _read_geom(path: Path) -> RPCModel:
         if "number_samples" in kv and "number_lines" in kv:
             width, height = int(float(kv["number_samples"])), int(float(kv["number_lines"]))
         elif "image_size" in kv or "support_data.image_size" in kv:
-            width, height = (int(float(v)) for v in (kv.get("image_size") or kv["support_data.image_size"]).split()[:2])
+            width, height = (
+                int(float(v))
+                for v in (kv.get("image_size") or kv["support_data.image_size"]).split()[:2]
+            )
     except ValueError:
         raise RPCError(f"{path}: garbled OSSIM image size") from None
     return RPCModel.from_dict(d, path=str(path), width=width, height=height)
 
 
 # ---------------------------------------------------------------------- JSON
-_RPCM_SCALARS = {"LINE_OFF": "row_offset", "SAMP_OFF": "col_offset", "LAT_OFF": "lat_offset",
-                 "LONG_OFF": "lon_offset", "HEIGHT_OFF": "alt_offset", "LINE_SCALE": "row_scale",
-                 "SAMP_SCALE": "col_scale", "LAT_SCALE": "lat_scale", "LONG_SCALE": "lon_scale",
-                 "HEIGHT_SCALE": "alt_scale"}
-_RPCM_COEFFS = {"LINE_NUM_COEFF": "row_num", "LINE_DEN_COEFF": "row_den",
-                "SAMP_NUM_COEFF": "col_num", "SAMP_DEN_COEFF": "col_den"}
+_RPCM_SCALARS = {
+    "LINE_OFF": "row_offset",
+    "SAMP_OFF": "col_offset",
+    "LAT_OFF": "lat_offset",
+    "LONG_OFF": "lon_offset",
+    "HEIGHT_OFF": "alt_offset",
+    "LINE_SCALE": "row_scale",
+    "SAMP_SCALE": "col_scale",
+    "LAT_SCALE": "lat_scale",
+    "LONG_SCALE": "lon_scale",
+    "HEIGHT_SCALE": "alt_scale",
+}
+_RPCM_COEFFS = {
+    "LINE_NUM_COEFF": "row_num",
+    "LINE_DEN_COEFF": "row_den",
+    "SAMP_NUM_COEFF": "col_num",
+    "SAMP_DEN_COEFF": "col_den",
+}
 
 
 def _read_json(path: Path):
@@ -251,8 +279,12 @@ def _read_json(path: Path):
             d[key] = body[jkey]
         loc = None
         if "lon_num" in body:
-            loc = np.stack([_parse_coeffs(body[k], k, path)
-                            for k in ("lon_num", "lon_den", "lat_num", "lat_den")])
+            loc = np.stack(
+                [
+                    _parse_coeffs(body[k], k, path)
+                    for k in ("lon_num", "lon_den", "lat_num", "lat_den")
+                ]
+            )
         return RPCModel.from_dict(d, path=str(path), width=width, height=height, loc_coeffs=loc)
     if "LINE_OFF" in body:
         return RPCModel.from_dict(body, path=str(path), width=width, height=height)
@@ -293,7 +325,10 @@ def _validity_size(path, val):
         return None, None
     try:
         t = lambda k: float(_text(dom, k, "Direct_Model_Validity_Domain", path))  # noqa: E731
-        return (int(round(t("LAST_COL") - t("FIRST_COL"))) + 1, int(round(t("LAST_ROW") - t("FIRST_ROW"))) + 1)
+        return (
+            int(round(t("LAST_COL") - t("FIRST_COL"))) + 1,
+            int(round(t("LAST_ROW") - t("FIRST_ROW"))) + 1,
+        )
     except (RPCError, ValueError):
         return None, None
 
@@ -302,21 +337,32 @@ def _read_dimap(path: Path, rfm) -> RPCModel:
     """Pleiades / SPOT 6-7 DIMAP v2 RPC file (``Global_RFM``); DIMAP counts pixels from 1
     (centre of the first pixel at (1, 1)), we count from 0. ``Direct_Model``: ``SAMP_*`` give
     longitude, ``LINE_*`` latitude (image -> ground)."""
-    return _dimap_rfm(path, rfm, "Inverse_Model", "Direct_Model",
-                      ("SAMP_NUM_COEFF", "SAMP_DEN_COEFF", "LINE_NUM_COEFF", "LINE_DEN_COEFF"),
-                      first_pixel=1.0)
+    return _dimap_rfm(
+        path,
+        rfm,
+        "Inverse_Model",
+        "Direct_Model",
+        ("SAMP_NUM_COEFF", "SAMP_DEN_COEFF", "LINE_NUM_COEFF", "LINE_DEN_COEFF"),
+        first_pixel=1.0,
+    )
 
 
 def _read_dimap_v3(path: Path, rfm) -> RPCModel:
     """Pleiades Neo DIMAP v3: ``GroundtoImage_Values`` / ``ImagetoGround_Values``, pixel
     offsets counted from the corner of the first pixel (centre at 0.5)."""
-    return _dimap_rfm(path, rfm, "GroundtoImage_Values", "ImagetoGround_Values",
-                      ("LON_NUM_COEFF", "LON_DEN_COEFF", "LAT_NUM_COEFF", "LAT_DEN_COEFF"),
-                      first_pixel=0.5)
+    return _dimap_rfm(
+        path,
+        rfm,
+        "GroundtoImage_Values",
+        "ImagetoGround_Values",
+        ("LON_NUM_COEFF", "LON_DEN_COEFF", "LAT_NUM_COEFF", "LAT_DEN_COEFF"),
+        first_pixel=0.5,
+    )
 
 
-def _dimap_rfm(path: Path, rfm, inverse_tag: str, direct_tag: str, direct_keys, *,
-               first_pixel: float) -> RPCModel:
+def _dimap_rfm(
+    path: Path, rfm, inverse_tag: str, direct_tag: str, direct_keys, *, first_pixel: float
+) -> RPCModel:
     """An RPC model from a DIMAP v2/v3 ``Global_RFM`` element.
 
     Ground -> image coefficients ``{key}_1..20`` under ``inverse_tag``, normalisation under
@@ -330,8 +376,10 @@ def _dimap_rfm(path: Path, rfm, inverse_tag: str, direct_tag: str, direct_keys, 
     val = rfm.find("RFM_Validity")
     if val is None:
         raise RPCError(f"{path}: RPC key Global_RFM/RFM_Validity missing")
-    d = {key: [_text(inv, f"{key}_{i}", inverse_tag, path) for i in range(1, 21)]
-         for key in COEFF_KEYS}
+    d = {
+        key: [_text(inv, f"{key}_{i}", inverse_tag, path) for i in range(1, 21)]
+        for key in COEFF_KEYS
+    }
     for key in SCALAR_KEYS:
         d[key] = _text(val, key, "RFM_Validity", path)
     d["LINE_OFF"] = _parse_float(d["LINE_OFF"], "LINE_OFF", path) - first_pixel
@@ -339,9 +387,16 @@ def _dimap_rfm(path: Path, rfm, inverse_tag: str, direct_tag: str, direct_keys, 
     loc = None
     direct = rfm.find(direct_tag)
     if direct is not None:
-        loc = np.stack([_parse_coeffs([_text(direct, f"{key}_{i}", direct_tag, path) for i in range(1, 21)],
-                                      f"{direct_tag}/{key}", path)
-                        for key in direct_keys])
+        loc = np.stack(
+            [
+                _parse_coeffs(
+                    [_text(direct, f"{key}_{i}", direct_tag, path) for i in range(1, 21)],
+                    f"{direct_tag}/{key}",
+                    path,
+                )
+                for key in direct_keys
+            ]
+        )
     width, height = _validity_size(path, val)
     return RPCModel.from_dict(d, path=str(path), width=width, height=height, loc_coeffs=loc)
 
@@ -359,13 +414,21 @@ def _read_dimap_v1(path: Path, root, rfm) -> RPCModel:
     def forty(node, tag, where_):
         items = _text(node, tag, where_, path).split()
         if len(items) != 40:
-            raise RPCError(f"{path}: RPC key {where_}/{tag}: {len(items)} coefficient(s), expected 40")
+            raise RPCError(
+                f"{path}: RPC key {where_}/{tag}: {len(items)} coefficient(s), expected 40"
+            )
         return items[:20], items[20:]
 
     d = {}
     d["SAMP_NUM_COEFF"], d["SAMP_DEN_COEFF"] = forty(inv, "F_COL", "Inverse_Model")
     d["LINE_NUM_COEFF"], d["LINE_DEN_COEFF"] = forty(inv, "F_ROW", "Inverse_Model")
-    for key, tag in (("LONG", "Lon"), ("LAT", "Lat"), ("HEIGHT", "Alt"), ("SAMP", "Col"), ("LINE", "Row")):
+    for key, tag in (
+        ("LONG", "Lon"),
+        ("LAT", "Lat"),
+        ("HEIGHT", "Alt"),
+        ("SAMP", "Col"),
+        ("LINE", "Row"),
+    ):
         node = val.find(tag)
         if node is None:
             raise RPCError(f"{path}: RPC key RFM_Validity/{tag} missing")
@@ -378,8 +441,17 @@ def _read_dimap_v1(path: Path, root, rfm) -> RPCModel:
     if direct is not None and direct.find("F_LON") is not None:
         ln, ld = forty(direct, "F_LON", "Direct_Model")
         an, ad = forty(direct, "F_LAT", "Direct_Model")
-        loc = np.stack([_parse_coeffs(c, f"Direct_Model/{k}", path)
-                        for k, c in (("F_LON[num]", ln), ("F_LON[den]", ld), ("F_LAT[num]", an), ("F_LAT[den]", ad))])
+        loc = np.stack(
+            [
+                _parse_coeffs(c, f"Direct_Model/{k}", path)
+                for k, c in (
+                    ("F_LON[num]", ln),
+                    ("F_LON[den]", ld),
+                    ("F_LAT[num]", an),
+                    ("F_LAT[den]", ad),
+                )
+            ]
+        )
     width, height = _validity_size(path, val)
     if width is None:
         dims = root.find(".//Raster_Dimensions")
@@ -398,10 +470,18 @@ def _read_dg_xml(path: Path, root) -> RPCModel:
     im = root.find("RPB/IMAGE")
     if im is None:
         im = root.find(".//RPB/IMAGE")
-    tags = {"LINE_OFF": "LINEOFFSET", "SAMP_OFF": "SAMPOFFSET", "LAT_OFF": "LATOFFSET",
-            "LONG_OFF": "LONGOFFSET", "HEIGHT_OFF": "HEIGHTOFFSET", "LINE_SCALE": "LINESCALE",
-            "SAMP_SCALE": "SAMPSCALE", "LAT_SCALE": "LATSCALE", "LONG_SCALE": "LONGSCALE",
-            "HEIGHT_SCALE": "HEIGHTSCALE"}
+    tags = {
+        "LINE_OFF": "LINEOFFSET",
+        "SAMP_OFF": "SAMPOFFSET",
+        "LAT_OFF": "LATOFFSET",
+        "LONG_OFF": "LONGOFFSET",
+        "HEIGHT_OFF": "HEIGHTOFFSET",
+        "LINE_SCALE": "LINESCALE",
+        "SAMP_SCALE": "SAMPSCALE",
+        "LAT_SCALE": "LATSCALE",
+        "LONG_SCALE": "LONGSCALE",
+        "HEIGHT_SCALE": "HEIGHTSCALE",
+    }
     d = {k: _text(im, t, "RPB/IMAGE", path) for k, t in tags.items()}
     for key in COEFF_KEYS:
         tag = key.replace("_COEFF", "COEF").replace("_", "")
@@ -427,21 +507,40 @@ def _read_dg_xml(path: Path, root) -> RPCModel:
 def write_rpb(model, path, *, overwrite=False):
     """Write a GDAL/DigitalGlobe ``.RPB`` file (readable by GDAL as an image sidecar)."""
     from stereodem.core.raster import write_text_atomic
+
     f = lambda v: format(float(v), "+.17g")  # noqa: E731
-    lines = ['satId = "UNKNOWN";', 'bandId = "P";', 'SpecId = "RPC00B";', "BEGIN_GROUP = IMAGE",
-             f"\terrBias = {f(model.err_bias)};", f"\terrRand = {f(model.err_rand)};"]
-    for key, attr in (("lineOffset", "line_off"), ("sampOffset", "samp_off"),
-                      ("latOffset", "lat_off"), ("longOffset", "lon_off"),
-                      ("heightOffset", "height_off"), ("lineScale", "line_scale"),
-                      ("sampScale", "samp_scale"), ("latScale", "lat_scale"),
-                      ("longScale", "lon_scale"), ("heightScale", "height_scale")):
+    lines = [
+        'satId = "UNKNOWN";',
+        'bandId = "P";',
+        'SpecId = "RPC00B";',
+        "BEGIN_GROUP = IMAGE",
+        f"\terrBias = {f(model.err_bias)};",
+        f"\terrRand = {f(model.err_rand)};",
+    ]
+    for key, attr in (
+        ("lineOffset", "line_off"),
+        ("sampOffset", "samp_off"),
+        ("latOffset", "lat_off"),
+        ("longOffset", "lon_off"),
+        ("heightOffset", "height_off"),
+        ("lineScale", "line_scale"),
+        ("sampScale", "samp_scale"),
+        ("latScale", "lat_scale"),
+        ("longScale", "lon_scale"),
+        ("heightScale", "height_scale"),
+    ):
         lines.append(f"\t{key} = {f(getattr(model, attr))};")
-    for key, arr in (("lineNumCoef", model.line_num), ("lineDenCoef", model.line_den),
-                     ("sampNumCoef", model.samp_num), ("sampDenCoef", model.samp_den)):
+    for key, arr in (
+        ("lineNumCoef", model.line_num),
+        ("lineDenCoef", model.line_den),
+        ("sampNumCoef", model.samp_num),
+        ("sampDenCoef", model.samp_den),
+    ):
         body = ",\n".join(f"\t\t\t{f(v)}" for v in arr)
         lines.append(f"\t{key} = (\n{body});")
     lines += ["END_GROUP = IMAGE", "END;", ""]
     return write_text_atomic(path, "\n".join(lines), overwrite=overwrite)
+
 
 def write_geotiff_rpc(model, path, *, data=None, overwrite=False):
     """Store the RPCs in a GeoTIFF's RPC metadata (TIFF RPC tag, GDAL RFC 22).
@@ -451,9 +550,11 @@ def write_geotiff_rpc(model, path, *, data=None, overwrite=False):
     are replaced in place.
     """
     import rasterio
+
     path = Path(path)
     if data is not None:
         from stereodem.core.raster import write_geotiff
+
         return write_geotiff(path, data, rpcs=model.to_rasterio(), overwrite=overwrite)
     if not path.is_file():
         raise RPCError(f"{path}: no such GeoTIFF to add RPC metadata to (pass data= to create one)")

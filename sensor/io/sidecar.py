@@ -5,6 +5,7 @@ A physical model is stored next to its image as ``<image stem>.model.json``:
 ``to_dict()`` / ``from_dict()`` pair; :func:`load_image_model` prefers that sidecar (the exact
 model) and falls back to the image's RPC metadata (GeoTIFF tags, ``.RPB``, ``_RPC.TXT``).
 """
+
 from __future__ import annotations
 
 import json
@@ -37,27 +38,50 @@ def _jsonable(v):
 
 def _ensure_registered():
     from stereodem.sensor.models import frame
+
     if "frame" not in _REGISTRY:
         from dataclasses import fields
+
         names = [f.name for f in fields(frame.FrameCamera) if f.init]
-        register("frame", frame.FrameCamera,
-                 lambda m: {n: getattr(m, n) for n in names},
-                 lambda d: frame.FrameCamera(**{n: d[n] for n in names if n in d}))
+        register(
+            "frame",
+            frame.FrameCamera,
+            lambda m: {n: getattr(m, n) for n in names},
+            lambda d: frame.FrameCamera(**{n: d[n] for n in names if n in d}),
+        )
     if "rpcmodel" not in _REGISTRY:
         # the RPC00B metadata domain does not carry the image size: keep it in the sidecar
         from stereodem.sensor.models.rpc import RPCModel
-        register("rpcmodel", RPCModel,
-                 lambda m: {**m.to_dict(), "width": m.width, "height": m.height},
-                 lambda d: RPCModel.from_dict(d, width=d.get("width"), height=d.get("height")))
-    for modname in ("pushbroom", "aster", "rpc", "rpc_direct", "corrected", "generic",
-                    "orbital.topan_los", "orbital.orun_natarajan", "orbital.kratky", "orbital.toutin"):
+
+        register(
+            "rpcmodel",
+            RPCModel,
+            lambda m: {**m.to_dict(), "width": m.width, "height": m.height},
+            lambda d: RPCModel.from_dict(d, width=d.get("width"), height=d.get("height")),
+        )
+    for modname in (
+        "pushbroom",
+        "aster",
+        "rpc",
+        "rpc_direct",
+        "corrected",
+        "generic",
+        "orbital.topan_los",
+        "orbital.orun_natarajan",
+        "orbital.kratky",
+        "orbital.toutin",
+    ):
         try:
             mod = __import__(f"stereodem.sensor.models.{modname}", fromlist=["_"])
         except ImportError:
             continue
         for cls in vars(mod).values():
-            if isinstance(cls, type) and hasattr(cls, "to_dict") and hasattr(cls, "from_dict") \
-                    and getattr(cls, "__module__", "") == mod.__name__:
+            if (
+                isinstance(cls, type)
+                and hasattr(cls, "to_dict")
+                and hasattr(cls, "from_dict")
+                and getattr(cls, "__module__", "") == mod.__name__
+            ):
                 key = getattr(cls, "MODEL_TYPE", cls.__name__.lower())
                 if key not in _REGISTRY:
                     register(key, cls, lambda m: m.to_dict(), cls.from_dict)
@@ -106,6 +130,7 @@ def load_model(path, *, rpc_direct: bool = False):
     if isinstance(d, dict) and "type" in d:
         return model_from_dict(d, source=path)
     from stereodem.sensor.io.rpc_formats import read_rpc
+
     try:
         return read_rpc(path, direct=rpc_direct)
     except RPCError as exc:
@@ -133,6 +158,9 @@ def load_image_model(image, *, prefer: str = "physical", rpc_direct: bool = Fals
         return load_model(side)
     try:
         from stereodem.sensor.models.rpc import RPCModel
+
         return RPCModel.from_file(image, direct=rpc_direct)
     except RPCError as exc:
-        raise SensorModelError(f"{image}: no usable sensor model (no {side.name} sidecar; {exc})") from None
+        raise SensorModelError(
+            f"{image}: no usable sensor model (no {side.name} sidecar; {exc})"
+        ) from None

@@ -1,5 +1,6 @@
 """Whitespace-separated numeric tables in blank-line separated blocks (ASTER V003 text
 tables, ASP camera XML elements)."""
+
 from __future__ import annotations
 
 

@@ -19,6 +19,7 @@ ASP's XML (``<isd>``) holds ``LATTICE_POINT``, ``SIGHT_VECTOR`` (orbital frame, 
 product), ``WORLD_SIGHT_VECTOR`` (ECEF, from the product's latitude/longitude),
 ``SAT_POS``, ``IMAGE_COLS``/``IMAGE_ROWS`` and ASP's fitted RPC in ``<RPB>``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -36,7 +37,6 @@ ASTER_LINE_PERIOD = 2.1989e-3
 
 #: coefficient keys of the product's RPC block (``AsterGeometry.rpc``), 20 values each
 _RPB_COEFS = ("LINENUMCOEF", "LINEDENCOEF", "SAMPNUMCOEF", "SAMPDENCOEF")
-
 
 
 @dataclass
@@ -91,12 +91,18 @@ class AsterGeometry:
         if lat.ndim != 3 or lat.shape[2] != 2 or n < 2:
             raise SensorModelError(f"{where}lattice must have shape (N>=2, K, 2), got {lat.shape}")
         k = lat.shape[1]
-        for name, arr in (("SIGHT_VECTOR", self.sight_vectors), ("WORLD_SIGHT_VECTOR", self.world_sight_vectors)):
+        for name, arr in (
+            ("SIGHT_VECTOR", self.sight_vectors),
+            ("WORLD_SIGHT_VECTOR", self.world_sight_vectors),
+        ):
             if arr.shape != (n, k, 3):
-                raise SensorModelError(f"{where}{name} has shape {arr.shape}, expected ({n}, {k}, 3)")
+                raise SensorModelError(
+                    f"{where}{name} has shape {arr.shape}, expected ({n}, {k}, 3)"
+                )
         if self.satellite_positions.shape != (n, 3):
-            raise SensorModelError(f"{where}SAT_POS has shape {self.satellite_positions.shape}, "
-                                   f"expected ({n}, 3)")
+            raise SensorModelError(
+                f"{where}SAT_POS has shape {self.satellite_positions.shape}, expected ({n}, 3)"
+            )
         rows = lat[:, :, 1]
         if not np.all(rows == rows[:, :1]):
             raise SensorModelError(f"{where}lattice rows are not constant along each lattice row")
@@ -108,10 +114,14 @@ class AsterGeometry:
         if not (np.all(np.diff(self.lattice_rows) > 0) and np.all(np.diff(self.lattice_cols) > 0)):
             raise SensorModelError(f"{where}lattice rows/columns must increase")
         if self.satellite_velocities is not None and np.shape(self.satellite_velocities) != (n, 3):
-            raise SensorModelError(f"{where}satellite velocities have shape "
-                                   f"{np.shape(self.satellite_velocities)}, expected ({n}, 3)")
+            raise SensorModelError(
+                f"{where}satellite velocities have shape "
+                f"{np.shape(self.satellite_velocities)}, expected ({n}, 3)"
+            )
         if self.velocity_convention not in ("inertial", "earth_fixed", "unknown"):
-            raise SensorModelError(f"{where}unknown velocity convention {self.velocity_convention!r}")
+            raise SensorModelError(
+                f"{where}unknown velocity convention {self.velocity_convention!r}"
+            )
         if self.image_cols < 1 or self.image_rows < 1:
             raise SensorModelError(f"{where}bad image size {self.image_cols} x {self.image_rows}")
 
@@ -166,9 +176,15 @@ class AsterModel(PushbroomModel):
         interpolated between lattice rows by 8-point Lagrange polynomials like the positions.
     """
 
-    def __init__(self, geometry: AsterGeometry, *, line_period: float = ASTER_LINE_PERIOD,
-                 inertial_frame: bool = True, velocity_method: str = "central",
-                 name: str | None = None):
+    def __init__(
+        self,
+        geometry: AsterGeometry,
+        *,
+        line_period: float = ASTER_LINE_PERIOD,
+        inertial_frame: bool = True,
+        velocity_method: str = "central",
+        name: str | None = None,
+    ):
         g = geometry
         times = g.lattice_rows * float(line_period)
         eph = Ephemeris(times, g.satellite_positions, _band_velocities(g, times, velocity_method))
@@ -178,9 +194,16 @@ class AsterModel(PushbroomModel):
             det = DetectorArray.from_sight_vectors(sv[0], g.lattice_cols)
         else:
             det = DetectorArray.from_sight_vectors(sv, g.lattice_cols, rows=g.lattice_rows)
-        super().__init__(width=g.image_cols, height=g.image_rows, ephemeris=eph, detectors=det,
-                         line_period=line_period, t0=0.0, inertial_frame=inertial_frame,
-                         name=name or (Path(g.path).stem if g.path else "AsterModel"))
+        super().__init__(
+            width=g.image_cols,
+            height=g.image_rows,
+            ephemeris=eph,
+            detectors=det,
+            line_period=line_period,
+            t0=0.0,
+            inertial_frame=inertial_frame,
+            name=name or (Path(g.path).stem if g.path else "AsterModel"),
+        )
         self.geometry = g
 
     MODEL_TYPE = "aster"
@@ -194,40 +217,65 @@ class AsterModel(PushbroomModel):
         """Plain description: the lattice geometry and the model options."""
         g = self.geometry
         return {
-            "geometry": {"lattice": g.lattice, "sight_vectors": g.sight_vectors,
-                         "world_sight_vectors": g.world_sight_vectors,
-                         "satellite_positions": g.satellite_positions, "image_cols": g.image_cols,
-                         "image_rows": g.image_rows, "rpc": g.rpc, "path": g.path,
-                         "satellite_velocities": g.satellite_velocities,
-                         "velocity_convention": g.velocity_convention,
-                         "observation_times": g.observation_times},
-            "line_period": self.line_period, "inertial_frame": self.inertial_frame,
-            "velocity_method": self.velocity_method, "name": self.name,
+            "geometry": {
+                "lattice": g.lattice,
+                "sight_vectors": g.sight_vectors,
+                "world_sight_vectors": g.world_sight_vectors,
+                "satellite_positions": g.satellite_positions,
+                "image_cols": g.image_cols,
+                "image_rows": g.image_rows,
+                "rpc": g.rpc,
+                "path": g.path,
+                "satellite_velocities": g.satellite_velocities,
+                "velocity_convention": g.velocity_convention,
+                "observation_times": g.observation_times,
+            },
+            "line_period": self.line_period,
+            "inertial_frame": self.inertial_frame,
+            "velocity_method": self.velocity_method,
+            "name": self.name,
             "parameters": self.parameters(),
             # a time-varying attitude correction (e.g. jitter, stereodem.sensor.estimation.jitter)
-            "attitude": None if self.attitude is None else {
-                "times": self.attitude.times, "angles": self.attitude.angles,
-                "quaternions": self.attitude.quaternions},
+            "attitude": None
+            if self.attitude is None
+            else {
+                "times": self.attitude.times,
+                "angles": self.attitude.angles,
+                "quaternions": self.attitude.quaternions,
+            },
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> AsterModel:
         """Inverse of :meth:`to_dict`."""
         g = dict(d["geometry"])
-        for k in ("lattice", "sight_vectors", "world_sight_vectors", "satellite_positions",
-                  "satellite_velocities", "observation_times"):
+        for k in (
+            "lattice",
+            "sight_vectors",
+            "world_sight_vectors",
+            "satellite_positions",
+            "satellite_velocities",
+            "observation_times",
+        ):
             if g.get(k) is not None:
                 g[k] = np.asarray(g[k], dtype=np.float64)
         if g.get("rpc"):
-            g["rpc"] = {k: (np.asarray(v, float) if k in _RPB_COEFS else v) for k, v in g["rpc"].items()}
-        model = cls(AsterGeometry(**g), line_period=d.get("line_period", ASTER_LINE_PERIOD),
-                    inertial_frame=d.get("inertial_frame", True),
-                    velocity_method=d.get("velocity_method", "central"), name=d.get("name"))
+            g["rpc"] = {
+                k: (np.asarray(v, float) if k in _RPB_COEFS else v) for k, v in g["rpc"].items()
+            }
+        model = cls(
+            AsterGeometry(**g),
+            line_period=d.get("line_period", ASTER_LINE_PERIOD),
+            inertial_frame=d.get("inertial_frame", True),
+            velocity_method=d.get("velocity_method", "central"),
+            name=d.get("name"),
+        )
         if d.get("parameters"):
             model._set_parameters(d["parameters"])
         a = d.get("attitude")
         if a is not None:
             from stereodem.sensor.models.ephemeris import Attitude
+
             model.attitude = Attitude(a["times"], a.get("angles"), quaternions=a.get("quaternions"))
         return model
 
@@ -235,6 +283,7 @@ class AsterModel(PushbroomModel):
     def from_xml(cls, path, **kwargs) -> AsterModel:
         """Model from an ASP ``aster2asp`` XML file; keyword options as :class:`AsterModel`."""
         from stereodem.sensor.io.aster_xml import read_asp_aster_xml
+
         return cls(read_asp_aster_xml(path), **kwargs)
 
     def lattice_sight_errors(self):
@@ -253,8 +302,10 @@ def _band_velocities(g: AsterGeometry, times, method):
     if method != "file":
         return lattice_velocities(times, g.satellite_positions, method=method)
     if g.satellite_velocities is None or g.velocity_convention == "unknown":
-        raise SensorModelError(f"{g.path or 'ASTER geometry'}: velocity_method='file' needs the "
-                               "product's SatelliteVelocity with a known convention")
+        raise SensorModelError(
+            f"{g.path or 'ASTER geometry'}: velocity_method='file' needs the "
+            "product's SatelliteVelocity with a known convention"
+        )
     v = np.asarray(g.satellite_velocities, dtype=np.float64)
     if g.velocity_convention == "inertial":
         v = v - np.cross([0.0, 0.0, geodesy.OMEGA_EARTH], g.satellite_positions)

@@ -14,6 +14,7 @@ differential rectification method's relief iteration (Bettemir 2006, §4.1.8), f
 ground sampling distance. Physical models may override :meth:`SensorModel.rays` with their
 exact ECEF rays; the generic version builds rays from two localisations.
 """
+
 from __future__ import annotations
 
 import logging
@@ -47,12 +48,12 @@ class DEMLocalization:
         return float(np.mean(self.iterations)) if self.iterations.size else 0.0
 
 
-
 def pair_height_bounds(left, right) -> tuple[float, float]:
     """Heights (m, ellipsoidal) within both models' validity ranges (:meth:`SensorModel.
     height_bounds`): the pair's common range, ``lo > hi`` when the ranges do not overlap."""
     (llo, lhi), (rlo, rhi) = left.height_bounds(), right.height_bounds()
     return max(llo, rlo), min(lhi, rhi)
+
 
 class SensorModel:
     """Base class of all sensor models; subclasses implement ``project`` and ``localize``.
@@ -89,13 +90,18 @@ class SensorModel:
         """
         col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
         hlo, hhi = self.height_bounds()
-        lo = np.stack(geodesy.geodetic_to_ecef(*self.localize(col, row, hlo), np.full(col.shape, hlo)), -1)
-        hi = np.stack(geodesy.geodetic_to_ecef(*self.localize(col, row, hhi), np.full(col.shape, hhi)), -1)
+        lo = np.stack(
+            geodesy.geodetic_to_ecef(*self.localize(col, row, hlo), np.full(col.shape, hlo)), -1
+        )
+        hi = np.stack(
+            geodesy.geodetic_to_ecef(*self.localize(col, row, hhi), np.full(col.shape, hhi)), -1
+        )
         d = lo - hi
         return hi, d / np.linalg.norm(d, axis=-1, keepdims=True)
 
-    def localize_dem(self, col, row, dem, *, threshold: float = 0.1, max_iterations: int = 30,
-                     h0: float = 0.0) -> DEMLocalization:
+    def localize_dem(
+        self, col, row, dem, *, threshold: float = 0.1, max_iterations: int = 30, h0: float = 0.0
+    ) -> DEMLocalization:
         """Localise pixels on a DEM by the DRM relief iteration.
 
         The ray is first intersected with the ellipsoid at height ``h0`` (the thesis uses the
@@ -148,19 +154,28 @@ class SensorModel:
         n_bad = int((~done).sum())
         if n_bad:
             log.info("DRM relief iteration: %d of %d point(s) did not converge", n_bad, c.size)
-        return DEMLocalization(lon.reshape(shape), lat.reshape(shape), h.reshape(shape),
-                               iters.reshape(shape), done.reshape(shape))
+        return DEMLocalization(
+            lon.reshape(shape),
+            lat.reshape(shape),
+            h.reshape(shape),
+            iters.reshape(shape),
+            done.reshape(shape),
+        )
 
     def footprint(self, h: float = 0.0, n: int = 11):
         """Image border localised at height ``h``: ``(lon, lat)`` arrays of the closed outline."""
         w, hgt = self.width, self.height
         t = np.linspace(0.0, 1.0, n)
         cols = np.concatenate([t * (w - 1), np.full(n, w - 1.0), (1 - t) * (w - 1), np.zeros(n)])
-        rows = np.concatenate([np.zeros(n), t * (hgt - 1), np.full(n, hgt - 1.0), (1 - t) * (hgt - 1)])
+        rows = np.concatenate(
+            [np.zeros(n), t * (hgt - 1), np.full(n, hgt - 1.0), (1 - t) * (hgt - 1)]
+        )
         return self.localize(cols, rows, np.full(cols.shape, float(h)))
 
     def center_lonlat(self, h: float = 0.0):
-        lon, lat = self.localize(np.array([(self.width - 1) / 2]), np.array([(self.height - 1) / 2]), h)
+        lon, lat = self.localize(
+            np.array([(self.width - 1) / 2]), np.array([(self.height - 1) / 2]), h
+        )
         return float(lon[0]), float(lat[0])
 
     def gsd(self, h: float = 0.0):
@@ -178,8 +193,10 @@ class SensorModel:
         for a in arrays:
             a = np.asarray(a, dtype=float)
             if not np.all(np.isfinite(a)):
-                raise SensorModelError(f"{type(self).__name__}: non-finite {what} given "
-                                       f"({int((~np.isfinite(a)).sum())} value(s))")
+                raise SensorModelError(
+                    f"{type(self).__name__}: non-finite {what} given "
+                    f"({int((~np.isfinite(a)).sum())} value(s))"
+                )
 
 
 def localize_on_rays(model, col, row, h):

@@ -10,6 +10,7 @@ adds an affine correction, in pixels::
 ``localize`` and ``rays`` invert the correction exactly (it is affine) before calling the
 wrapped model. The six coefficients are the model's adjustable parameters.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,9 +21,12 @@ from stereodem.sensor.models.parameters import checked_parameters
 
 #: adjustable parameters and their units
 PARAMETERS = {
-    "col_shift": "px", "row_shift": "px",
-    "col_drift_col": "px/px", "col_drift_row": "px/px",
-    "row_drift_col": "px/px", "row_drift_row": "px/px",
+    "col_shift": "px",
+    "row_shift": "px",
+    "col_drift_col": "px/px",
+    "col_drift_row": "px/px",
+    "row_drift_col": "px/px",
+    "row_drift_row": "px/px",
 }
 
 
@@ -40,8 +44,14 @@ class ImageCorrectedModel(SensorModel):
     MODEL_TYPE = "image_corrected"
     PARAMETERS = PARAMETERS
     #: central-difference steps (the model is linear in its parameters: any step is exact)
-    PARAMETER_STEPS = {"col_shift": 1.0, "row_shift": 1.0, "col_drift_col": 1e-4,
-                       "col_drift_row": 1e-4, "row_drift_col": 1e-4, "row_drift_row": 1e-4}
+    PARAMETER_STEPS = {
+        "col_shift": 1.0,
+        "row_shift": 1.0,
+        "col_drift_col": 1e-4,
+        "col_drift_row": 1e-4,
+        "row_drift_col": 1e-4,
+        "row_drift_row": 1e-4,
+    }
 
     def __init__(self, model: SensorModel, **coefficients):
         self.model = model
@@ -52,8 +62,12 @@ class ImageCorrectedModel(SensorModel):
     def _set(self, values):
         self._p.update(checked_parameters(PARAMETERS, values, "image correction"))
         p = self._p
-        self._A = np.array([[1.0 + p["col_drift_col"], p["col_drift_row"]],
-                            [p["row_drift_col"], 1.0 + p["row_drift_row"]]])
+        self._A = np.array(
+            [
+                [1.0 + p["col_drift_col"], p["col_drift_row"]],
+                [p["row_drift_col"], 1.0 + p["row_drift_row"]],
+            ]
+        )
         self._b = np.array([p["col_shift"], p["row_shift"]])
         det = np.linalg.det(self._A)
         if abs(det) < 1e-6:
@@ -71,15 +85,20 @@ class ImageCorrectedModel(SensorModel):
 
     def project_partials(self, lon, lat, h, names):
         """Analytic partials of ``(col, row)`` with respect to ``names``, shape (n, 2, u)."""
-        if any(n not in ("col_shift", "row_shift") for n in names):   # drifts need (col, row)
+        if any(n not in ("col_shift", "row_shift") for n in names):  # drifts need (col, row)
             c, r = self.model.project(lon, lat, h)
             c, r = np.asarray(c, float), np.asarray(r, float)
-        else:                                                        # shifts: no projection
+        else:  # shifts: no projection
             c = r = np.zeros(np.broadcast(np.asarray(lon), np.asarray(lat), np.asarray(h)).shape)
         one, zero = np.ones_like(c), np.zeros_like(c)
-        table = {"col_shift": (one, zero), "row_shift": (zero, one),
-                 "col_drift_col": (c, zero), "col_drift_row": (r, zero),
-                 "row_drift_col": (zero, c), "row_drift_row": (zero, r)}
+        table = {
+            "col_shift": (one, zero),
+            "row_shift": (zero, one),
+            "col_drift_col": (c, zero),
+            "col_drift_row": (r, zero),
+            "row_drift_col": (zero, c),
+            "row_drift_row": (zero, r),
+        }
         return np.stack([np.stack(table[n], -1) for n in names], -1)
 
     # ------------------------------------------------------------------ contract
@@ -106,11 +125,13 @@ class ImageCorrectedModel(SensorModel):
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict:
         from stereodem.sensor.io.sidecar import model_to_dict
+
         return {"model": model_to_dict(self.model), "parameters": self.parameters()}
 
     @classmethod
     def from_dict(cls, d: dict) -> ImageCorrectedModel:
         from stereodem.sensor.io.sidecar import model_from_dict
+
         return cls(model_from_dict(d["model"]), **d.get("parameters", {}))
 
     def __repr__(self):

@@ -9,6 +9,7 @@
 
 Times are seconds on any one time base shared with the sensor model's line times.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -53,13 +54,13 @@ class _LagrangeTable:
         k = int(min(order, n))
         self.times, self.k = times, k
         starts = np.arange(n - k + 1)
-        idx = starts[:, None] + np.arange(k)[None, :]           # (W, k)
+        idx = starts[:, None] + np.arange(k)[None, :]  # (W, k)
         tw = times[idx]
         self.centre = 0.5 * (tw[:, 0] + tw[:, -1])
         self.half = np.where(k > 1, 0.5 * (tw[:, -1] - tw[:, 0]), 1.0)
-        x = (tw - self.centre[:, None]) / self.half[:, None]   # (W, k) in [-1, 1]
-        y = values[idx]                                        # (W, k, d)
-        self.mean = y.mean(axis=1)                             # (W, d)
+        x = (tw - self.centre[:, None]) / self.half[:, None]  # (W, k) in [-1, 1]
+        y = values[idx]  # (W, k, d)
+        self.mean = y.mean(axis=1)  # (W, d)
         vander = x[:, :, None] ** np.arange(k)[None, None, :]  # (W, k, k)
         self.coef = np.linalg.solve(vander, y - self.mean[:, None, :])  # (W, k, d)
 
@@ -78,7 +79,7 @@ class _LagrangeTable:
         if 0 < windows.size <= 16 and t.size > 64 * windows.size:
             return self._evaluate_by_window(t, w, windows, shape, derivative)
         x = (t - self.centre[w]) / self.half[w]
-        c = self.coef[w]                                       # (M, k, d)
+        c = self.coef[w]  # (M, k, d)
         val = c[:, -1, :].copy()
         for j in range(self.k - 2, -1, -1):
             val = val * x[:, None] + c[:, j, :]
@@ -91,7 +92,6 @@ class _LagrangeTable:
             der = der * x[:, None] + j * c[:, j, :]
         der = der / self.half[w][:, None]
         return val.reshape(shape + (d,)), der.reshape(shape + (d,))
-
 
     def _evaluate_by_window(self, t, w, windows, shape, derivative):
         """:meth:`evaluate` for many times in few windows (the lines of an image tile): the
@@ -106,7 +106,7 @@ class _LagrangeTable:
             if tw.size == 0:
                 continue
             x = (tw - self.centre[wi]) / self.half[wi]
-            c = self.coef[wi][:, :, None]                        # (k, d, 1)
+            c = self.coef[wi][:, :, None]  # (k, d, 1)
             v = np.repeat(c[-1], tw.size, axis=1)
             for j in range(self.k - 2, -1, -1):
                 v *= x
@@ -150,10 +150,16 @@ class Ephemeris:
         if order < 2:
             raise SensorModelError(f"ephemeris: interpolation order must be >= 2, got {order}")
         self.positions = _as_samples(positions, n, "ephemeris positions")
-        self.velocities = None if velocities is None else _as_samples(velocities, n, "ephemeris velocities")
+        self.velocities = (
+            None if velocities is None else _as_samples(velocities, n, "ephemeris velocities")
+        )
         self.order = int(min(order, n))
         self._pos = _LagrangeTable(self.times, self.positions, self.order)
-        self._vel = None if self.velocities is None else _LagrangeTable(self.times, self.velocities, self.order)
+        self._vel = (
+            None
+            if self.velocities is None
+            else _LagrangeTable(self.times, self.velocities, self.order)
+        )
 
     @property
     def time_range(self):
@@ -207,7 +213,9 @@ class Attitude:
         self.angles = self.quaternions = None
         if angles is not None:
             self.angles = _as_samples(angles, n, "attitude angles")
-            self._spline = CubicSpline(self.times, self.angles, axis=0, bc_type="natural") if n > 1 else None
+            self._spline = (
+                CubicSpline(self.times, self.angles, axis=0, bc_type="natural") if n > 1 else None
+            )
         else:
             q = _as_samples(quaternions, n, "attitude quaternions", width=4)
             norm = np.linalg.norm(q, axis=1)
@@ -265,12 +273,19 @@ class CircularOrbit:
 
     def __init__(self, radius: float, inclination: float, raan: float, u0: float):
         from stereodem.core.geodesy import GM
-        self.radius, self.inclination, self.raan, self.u0 = float(radius), float(inclination), float(raan), float(u0)
-        self.mean_motion = float(np.sqrt(GM / self.radius**3))     #: rad/s
+
+        self.radius, self.inclination, self.raan, self.u0 = (
+            float(radius),
+            float(inclination),
+            float(raan),
+            float(u0),
+        )
+        self.mean_motion = float(np.sqrt(GM / self.radius**3))  #: rad/s
 
     def state(self, t):
         """ECEF position (m) and Earth-fixed ECEF velocity (m/s) at times ``t`` (s)."""
         from stereodem.core.geodesy import OMEGA_EARTH
+
         t = np.asarray(t, dtype=np.float64)
         a, n, i, om = self.radius, self.mean_motion, self.inclination, self.raan
         u = self.u0 + n * t
@@ -279,12 +294,18 @@ class CircularOrbit:
         v = a * n * np.stack([-co * su - so * cu * ci, -so * su + co * cu * ci, cu * si], -1)
         th = OMEGA_EARTH * t
         c, s = np.cos(th), np.sin(th)
-        re = np.stack([c * r[..., 0] + s * r[..., 1], -s * r[..., 0] + c * r[..., 1], r[..., 2]], -1)
-        vi = np.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1], v[..., 2]], -1)
+        re = np.stack(
+            [c * r[..., 0] + s * r[..., 1], -s * r[..., 0] + c * r[..., 1], r[..., 2]], -1
+        )
+        vi = np.stack(
+            [c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1], v[..., 2]], -1
+        )
         ve = vi - np.cross(np.array([0.0, 0.0, OMEGA_EARTH]), re)
         return re, ve
 
-    def ephemeris(self, t_start: float, t_end: float, step: float = 1.0, *, order: int = 8) -> Ephemeris:
+    def ephemeris(
+        self, t_start: float, t_end: float, step: float = 1.0, *, order: int = 8
+    ) -> Ephemeris:
         """Sample the orbit every ``step`` seconds on a grid of multiples of ``step`` covering
         ``[t_start, t_end]`` (positions and Earth-fixed velocities)."""
         k0, k1 = int(np.floor(t_start / step)), int(np.ceil(t_end / step))

@@ -21,6 +21,7 @@ The chain follows Bettemir (2006) §4.1, with the errata of notes §9.2 fixed:
   precession/nutation/sidereal chain of Eq. 4.22-4.31 cancels exactly (notes §2.6), so the
   model is independent of the epoch.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
@@ -75,8 +76,21 @@ class FrameCamera(SensorModel):
     _R: np.ndarray = field(init=False, repr=False)
 
     #: names of the adjustable parameters, in the order of :meth:`parameters`
-    PARAMETERS = ("focal_mm", "dx_mm", "dy_mm", "k1", "k2", "p1", "p2", "roll", "pitch", "yaw",
-                  "x", "y", "z")
+    PARAMETERS = (
+        "focal_mm",
+        "dx_mm",
+        "dy_mm",
+        "k1",
+        "k2",
+        "p1",
+        "p2",
+        "roll",
+        "pitch",
+        "yaw",
+        "x",
+        "y",
+        "z",
+    )
 
     def __post_init__(self):
         self.position = np.asarray(self.position, dtype=np.float64).reshape(3)
@@ -86,8 +100,14 @@ class FrameCamera(SensorModel):
         if self.focal_mm <= 0 or self.pitch_mm <= 0:
             raise SensorModelError("FrameCamera: focal length and pixel pitch must be positive")
         # camera -> ECEF rotation: ECEF <- orbital <- body <- camera
-        c2b = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([1.0, -1.0, -1.0])
-        self._R = orbital_frame(self.position, self.velocity) @ body_to_orbital(self.roll, self.pitch, self.yaw) @ c2b
+        c2b = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ np.diag(
+            [1.0, -1.0, -1.0]
+        )
+        self._R = (
+            orbital_frame(self.position, self.velocity)
+            @ body_to_orbital(self.roll, self.pitch, self.yaw)
+            @ c2b
+        )
 
     # ------------------------------------------------------------------ parameters
     def parameters(self) -> dict:
@@ -110,13 +130,17 @@ class FrameCamera(SensorModel):
     # ------------------------------------------------------------------ interior orientation
     def _pixel_to_photo(self, col, row):
         c = self.pitch_mm
-        return ((np.asarray(col, float) + 0.5 - self.width / 2) * c - self.dx_mm,
-                (self.height / 2 - np.asarray(row, float) - 0.5) * c - self.dy_mm)
+        return (
+            (np.asarray(col, float) + 0.5 - self.width / 2) * c - self.dx_mm,
+            (self.height / 2 - np.asarray(row, float) - 0.5) * c - self.dy_mm,
+        )
 
     def _photo_to_pixel(self, xp, yp):
         c = self.pitch_mm
-        return ((xp + self.dx_mm) / c + self.width / 2 - 0.5,
-                self.height / 2 - (yp + self.dy_mm) / c - 0.5)
+        return (
+            (xp + self.dx_mm) / c + self.width / 2 - 0.5,
+            self.height / 2 - (yp + self.dy_mm) / c - 0.5,
+        )
 
     def _distort(self, xp, yp):
         """Measured photo coordinates (x', y') -> corrected (x, y), Eq. 4.3 (mm)."""
@@ -135,7 +159,7 @@ class FrameCamera(SensorModel):
             ex, ey = fx - x, fy - y
             r2 = xp * xp + yp * yp
             radial = 1.0 - k1 * r2 - k2 * r2 * r2
-            drad = -2 * k1 - 4 * k2 * r2           # d(radial)/d(r2) * 2 -> times x or y
+            drad = -2 * k1 - 4 * k2 * r2  # d(radial)/d(r2) * 2 -> times x or y
             j11 = radial + xp * drad * xp - p1 * 6 * xp - 2 * p2 * yp
             j12 = xp * drad * yp - p1 * 2 * yp - 2 * p2 * xp
             j21 = yp * drad * xp - p2 * 2 * xp - 2 * p1 * yp
@@ -168,8 +192,8 @@ class FrameCamera(SensorModel):
         """Ground (deg, deg, m) to image ``(col, row)``; NaN for points behind the camera."""
         x, y, z = geodesy.geodetic_to_ecef(lon, lat, h)
         d = np.stack([x, y, z], -1) - self.position
-        d_c = d @ self._R            # = R^T d, camera frame
-        behind = d_c[..., 2] >= 0    # camera looks along -z
+        d_c = d @ self._R  # = R^T d, camera frame
+        behind = d_c[..., 2] >= 0  # camera looks along -z
         with np.errstate(divide="ignore", invalid="ignore"):
             xc = -self.focal_mm * d_c[..., 0] / d_c[..., 2]
             yc = -self.focal_mm * d_c[..., 1] / d_c[..., 2]
@@ -184,15 +208,19 @@ class FrameCamera(SensorModel):
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def looking_at(cls, position, velocity, target_lon, target_lat, target_h=0.0, *, yaw=0.0,
-                   **interior) -> FrameCamera:
+    def looking_at(
+        cls, position, velocity, target_lon, target_lat, target_h=0.0, *, yaw=0.0, **interior
+    ) -> FrameCamera:
         """A camera at ``position`` whose boresight passes through the ground target.
 
         Roll and pitch are solved so that the principal ray (no principal-point offset) hits
         ``(target_lon, target_lat, target_h)``; ``yaw`` is kept (radians).
         """
         cam = cls(position=position, velocity=velocity, **interior)
-        t = np.array(geodesy.geodetic_to_ecef(target_lon, target_lat, target_h), float) - cam.position
+        t = (
+            np.array(geodesy.geodetic_to_ecef(target_lon, target_lat, target_h), float)
+            - cam.position
+        )
         t_o = orbital_frame(cam.position, cam.velocity).T @ (t / np.linalg.norm(t))
         # boresight in body is +z; D_O = Rz(yaw) Rx(roll) Ry(pitch) e_z -> undo yaw first
         cy, sy = np.cos(yaw), np.sin(yaw)

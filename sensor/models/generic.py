@@ -51,6 +51,7 @@ GCP files
 Read and written by :mod:`stereodem.sensor.io.gcps` (``ControlPoints``, ``read_gcps``,
 ``write_gcps``); ``ControlPoints.arrays()`` gives the arrays :func:`fit_model` takes.
 """
+
 from __future__ import annotations
 
 import logging
@@ -68,8 +69,7 @@ from stereodem.sensor.models.base import SensorModel
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MODEL_NAMES", "GenericModel", "FitReport", "fit_model", "minimum_gcps",
-           "n_parameters"]
+__all__ = ["MODEL_NAMES", "GenericModel", "FitReport", "fit_model", "minimum_gcps", "n_parameters"]
 
 
 # ---------------------------------------------------------------------------- term sets
@@ -80,17 +80,48 @@ def _poly_exponents(order: int, dims: int):
     YZ, X^3, Y^3, Z^3, X^2Y, X^2Z, Y^2X, Y^2Z, Z^2X, Z^2Y, XYZ; lower orders and 2-D sets are
     prefixes / subsets of it.
     """
-    full = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (2, 0, 0), (0, 2, 0), (0, 0, 2),
-            (1, 1, 0), (1, 0, 1), (0, 1, 1), (3, 0, 0), (0, 3, 0), (0, 0, 3), (2, 1, 0),
-            (2, 0, 1), (1, 2, 0), (0, 2, 1), (1, 0, 2), (0, 1, 2), (1, 1, 1)]
+    full = [
+        (0, 0, 0),
+        (1, 0, 0),
+        (0, 1, 0),
+        (0, 0, 1),
+        (2, 0, 0),
+        (0, 2, 0),
+        (0, 0, 2),
+        (1, 1, 0),
+        (1, 0, 1),
+        (0, 1, 1),
+        (3, 0, 0),
+        (0, 3, 0),
+        (0, 0, 3),
+        (2, 1, 0),
+        (2, 0, 1),
+        (1, 2, 0),
+        (0, 2, 1),
+        (1, 0, 2),
+        (0, 1, 2),
+        (1, 1, 1),
+    ]
     out = [e for e in full if sum(e) <= order and (dims == 3 or e[2] == 0)]
     return np.array(out, dtype=np.int64).reshape(-1, 3)
 
 
 _RELIEF = {
     1: [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1)],
-    2: [(0, 0, 0), (1, 0, 0), (0, 1, 0), (2, 0, 0), (0, 2, 0), (1, 1, 0),
-        (0, 0, 1), (1, 0, 1), (0, 1, 1), (2, 0, 1), (0, 2, 1), (1, 1, 1)],
+    2: [
+        (0, 0, 0),
+        (1, 0, 0),
+        (0, 1, 0),
+        (2, 0, 0),
+        (0, 2, 0),
+        (1, 1, 0),
+        (0, 0, 1),
+        (1, 0, 1),
+        (0, 1, 1),
+        (2, 0, 1),
+        (0, 2, 1),
+        (1, 1, 1),
+    ],
 }
 
 
@@ -102,7 +133,7 @@ def _terms(exps: np.ndarray, G: np.ndarray) -> np.ndarray:
     for axis in range(3):
         p = exps[:, axis]
         if np.any(p):
-            out = out * G[..., axis:axis + 1] ** p
+            out = out * G[..., axis : axis + 1] ** p
     return out
 
 
@@ -148,8 +179,14 @@ class _RationalForm:
     """
 
     def __init__(self, nx, dx, ny, dy, *, shared=False, extended=False, regularizable=False):
-        self.nx, self.dx = np.asarray(nx, np.int64).reshape(-1, 3), np.asarray(dx, np.int64).reshape(-1, 3)
-        self.ny, self.dy = np.asarray(ny, np.int64).reshape(-1, 3), np.asarray(dy, np.int64).reshape(-1, 3)
+        self.nx, self.dx = (
+            np.asarray(nx, np.int64).reshape(-1, 3),
+            np.asarray(dx, np.int64).reshape(-1, 3),
+        )
+        self.ny, self.dy = (
+            np.asarray(ny, np.int64).reshape(-1, 3),
+            np.asarray(dy, np.int64).reshape(-1, 3),
+        )
         self.shared = shared
         self.extended = extended
         self.regularizable = regularizable
@@ -166,10 +203,10 @@ class _RationalForm:
     def _split(self, p):
         kx, ky, jx = len(self.nx), len(self.ny), len(self.dx)
         if self.shared:
-            ax, ay, c = p[:kx], p[kx:kx + ky], p[kx + ky:kx + ky + jx]
-            ext = p[kx + ky + jx:]
+            ax, ay, c = p[:kx], p[kx : kx + ky], p[kx + ky : kx + ky + jx]
+            ext = p[kx + ky + jx :]
             return ax, c, ay, c, ext
-        return p[:kx], p[kx:kx + jx], p[kx + jx:kx + jx + ky], p[kx + jx + ky:], p[:0]
+        return p[:kx], p[kx : kx + jx], p[kx + jx : kx + jx + ky], p[kx + jx + ky :], p[:0]
 
     def evaluate(self, p, G):
         ax, cx, ay, cy, ext = self._split(p)
@@ -203,8 +240,12 @@ class _RationalForm:
             return self._fit_regularized(G, x, y, regularization, reweight_iterations)
         A, b, _ = self._linear_system(G, x, y)
         if isinstance(A, tuple):
-            A = np.block([[A[0], np.zeros((A[0].shape[0], A[1].shape[1]))],
-                          [np.zeros((A[1].shape[0], A[0].shape[1])), A[1]]])
+            A = np.block(
+                [
+                    [A[0], np.zeros((A[0].shape[0], A[1].shape[1]))],
+                    [np.zeros((A[1].shape[0], A[0].shape[1])), A[1]],
+                ]
+            )
             b = np.concatenate(b)
         p0, *_ = np.linalg.lstsq(A, b, rcond=None)
         if self.extended:  # start from the refined DLT with a12 = a13 = 0
@@ -216,8 +257,15 @@ class _RationalForm:
             r = np.concatenate([u, v]) - obs
             return np.where(np.isfinite(r), r, 1e6)
 
-        res = least_squares(resid, p0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                            max_nfev=200 * (self.n_params + 1))
+        res = least_squares(
+            resid,
+            p0,
+            method="lm",
+            xtol=1e-15,
+            ftol=1e-15,
+            gtol=1e-15,
+            max_nfev=200 * (self.n_params + 1),
+        )
         p = res.x if res.cost <= 0.5 * float(np.sum(resid(p0) ** 2)) else p0
         J = res.jac if p is res.x else _numeric_jacobian(resid, p)
         c = regularize.condition_number(J)
@@ -228,19 +276,30 @@ class _RationalForm:
         wx = np.ones_like(bx)
         wy = np.ones_like(by)
         for it in range(reweight_iterations + 1):
-            A = np.block([[wx[:, None] * Ax, np.zeros((Ax.shape[0], Ay.shape[1]))],
-                          [np.zeros((Ay.shape[0], Ax.shape[1])), wy[:, None] * Ay]])
+            A = np.block(
+                [
+                    [wx[:, None] * Ax, np.zeros((Ax.shape[0], Ay.shape[1]))],
+                    [np.zeros((Ay.shape[0], Ax.shape[1])), wy[:, None] * Ay],
+                ]
+            )
             b = np.concatenate([wx * bx, wy * by])
             sv = regularize.SVDSystem.of(A, b)
             method, lam = _choose_weight(regularization, A, b, sv)
             p = sv.solve(lam)
             _, cx, _, cy, _ = self._split(p)
             Dx, Dy = 1.0 + Tdx @ cx, 1.0 + Tdy @ cy
-            if it == reweight_iterations or not (np.all(np.abs(Dx) > 1e-3) and np.all(np.abs(Dy) > 1e-3)):
+            if it == reweight_iterations or not (
+                np.all(np.abs(Dx) > 1e-3) and np.all(np.abs(Dy) > 1e-3)
+            ):
                 break
             wx, wy = 1.0 / np.abs(Dx), 1.0 / np.abs(Dy)
-        return _Solution(p, regularize.condition_number(A), regularize.condition_number(A, lam),
-                         method, lam if method is not None else None)
+        return _Solution(
+            p,
+            regularize.condition_number(A),
+            regularize.condition_number(A, lam),
+            method,
+            lam if method is not None else None,
+        )
 
 
 def _numeric_jacobian(fun, p, step=1e-7):
@@ -262,8 +321,10 @@ def _choose_weight(regularization, A, b, sv):
             return "gcv", regularize.gcv_weight(A, b, svd=sv)
         if key in ("lcurve", "l-curve"):
             return "lcurve", regularize.lcurve_weight(A, b, svd=sv)
-        raise InputError(f"unknown regularization {regularization!r} "
-                         "(expected 'gcv', 'lcurve', None or a weight)")
+        raise InputError(
+            f"unknown regularization {regularization!r} "
+            "(expected 'gcv', 'lcurve', None or a weight)"
+        )
     lam = float(regularization)
     if not np.isfinite(lam) or lam < 0:
         raise InputError(f"regularization weight must be finite and >= 0, got {regularization!r}")
@@ -301,7 +362,9 @@ def _form(name):
     try:
         return _FORMS[name]
     except KeyError:
-        raise InputError(f"unknown generic model {name!r}; choose one of {', '.join(MODEL_NAMES)}") from None
+        raise InputError(
+            f"unknown generic model {name!r}; choose one of {', '.join(MODEL_NAMES)}"
+        ) from None
 
 
 def minimum_gcps(name: str) -> int:
@@ -322,10 +385,10 @@ def n_parameters(name: str) -> int:
 # ---------------------------------------------------------------------------- the model
 @dataclass(frozen=True)
 class _Normalization:
-    ground_offset: np.ndarray   # (3,) E, N (m), h (m)
-    ground_scale: np.ndarray    # (3,)
-    image_offset: np.ndarray    # (2,) col, row (px)
-    image_scale: np.ndarray     # (2,)
+    ground_offset: np.ndarray  # (3,) E, N (m), h (m)
+    ground_scale: np.ndarray  # (3,)
+    image_offset: np.ndarray  # (2,) col, row (px)
+    image_scale: np.ndarray  # (2,)
 
 
 class GenericModel(SensorModel):
@@ -347,8 +410,18 @@ class GenericModel(SensorModel):
         Image size in pixels.
     """
 
-    def __init__(self, name, params, *, crs, normalization: _Normalization, width, height,
-                 h_range, inverse_affine):
+    def __init__(
+        self,
+        name,
+        params,
+        *,
+        crs,
+        normalization: _Normalization,
+        width,
+        height,
+        h_range,
+        inverse_affine,
+    ):
         self.name = name
         self._form = _form(name)
         self.params = np.asarray(params, dtype=np.float64)
@@ -368,8 +441,10 @@ class GenericModel(SensorModel):
         return self._form.evaluate(self.params, G)
 
     def _to_pixels(self, xn, yn):
-        return (xn * self.norm.image_scale[0] + self.norm.image_offset[0],
-                yn * self.norm.image_scale[1] + self.norm.image_offset[1])
+        return (
+            xn * self.norm.image_scale[0] + self.norm.image_offset[0],
+            yn * self.norm.image_scale[1] + self.norm.image_offset[1],
+        )
 
     # ------------------------------------------------------------ contract
     def project(self, lon, lat, h):
@@ -377,8 +452,9 @@ class GenericModel(SensorModel):
 
         Non-finite inputs give NaN.
         """
-        lon, lat, h = np.broadcast_arrays(np.asarray(lon, float), np.asarray(lat, float),
-                                          np.asarray(h, float))
+        lon, lat, h = np.broadcast_arrays(
+            np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float)
+        )
         ok = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h)
         col = np.full(lon.shape, np.nan)
         row = np.full(lon.shape, np.nan)
@@ -396,8 +472,9 @@ class GenericModel(SensorModel):
         Jacobian, until the image residual is below ``tolerance`` pixels. Points that do not
         converge (outside the model's domain) are NaN.
         """
-        col, row, h = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float),
-                                          np.asarray(h, float))
+        col, row, h = np.broadcast_arrays(
+            np.asarray(col, float), np.asarray(row, float), np.asarray(h, float)
+        )
         shape = col.shape
         c, r, hh = col.ravel(), row.ravel(), h.ravel()
         xn = (c - self.norm.image_offset[0]) / self.norm.image_scale[0]
@@ -439,8 +516,12 @@ class GenericModel(SensorModel):
         err = np.hypot((fx - xn) * isx, (fy - yn) * isy)
         good = ok & np.isfinite(err) & (err < tolerance)
         if not np.all(good):
-            log.info("%s: localize did not converge for %d of %d point(s)", self.name,
-                     int((~good).sum()), good.size)
+            log.info(
+                "%s: localize did not converge for %d of %d point(s)",
+                self.name,
+                int((~good).sum()),
+                good.size,
+            )
         E = XY[:, 0] * self.norm.ground_scale[0] + self.norm.ground_offset[0]
         N = XY[:, 1] * self.norm.ground_scale[1] + self.norm.ground_offset[1]
         E[~good] = np.nan
@@ -477,8 +558,16 @@ class GenericModel(SensorModel):
             if not 0 <= i < p.size:
                 raise InputError(f"{self.name}: unknown parameter {k!r} (c00..c{p.size - 1:02d})")
             p[i] = float(v)
-        return GenericModel(self.name, p, crs=self.crs, normalization=self.norm, width=self.width,
-                            height=self.height, h_range=self.h_range, inverse_affine=self._inverse)
+        return GenericModel(
+            self.name,
+            p,
+            crs=self.crs,
+            normalization=self.norm,
+            width=self.width,
+            height=self.height,
+            h_range=self.h_range,
+            inverse_affine=self._inverse,
+        )
 
     def to_dict(self) -> dict:
         """Plain description of the fitted model (for reports and for re-creating it)."""
@@ -490,7 +579,8 @@ class GenericModel(SensorModel):
             "ground_scale": self.norm.ground_scale.tolist(),
             "image_offset": self.norm.image_offset.tolist(),
             "image_scale": self.norm.image_scale.tolist(),
-            "width": self.width, "height": self.height,
+            "width": self.width,
+            "height": self.height,
             "h_range": list(self.h_range),
             "inverse_affine": self._inverse.tolist(),
         }
@@ -499,10 +589,19 @@ class GenericModel(SensorModel):
     def from_dict(cls, d: dict) -> GenericModel:
         """Inverse of :meth:`to_dict` (model sidecars)."""
         a = lambda k: np.asarray(d[k], dtype=np.float64)  # noqa: E731
-        norm = _Normalization(a("ground_offset"), a("ground_scale"), a("image_offset"), a("image_scale"))
-        return cls(d["model"], a("params"), crs=CRS.from_user_input(d["crs"]), normalization=norm,
-                   width=d["width"], height=d["height"], h_range=d["h_range"],
-                   inverse_affine=a("inverse_affine"))
+        norm = _Normalization(
+            a("ground_offset"), a("ground_scale"), a("image_offset"), a("image_scale")
+        )
+        return cls(
+            d["model"],
+            a("params"),
+            crs=CRS.from_user_input(d["crs"]),
+            normalization=norm,
+            width=d["width"],
+            height=d["height"],
+            h_range=d["h_range"],
+            inverse_affine=a("inverse_affine"),
+        )
 
 
 # ---------------------------------------------------------------------------- fitting
@@ -531,8 +630,8 @@ class FitReport:
     regularization: str | None
     regularization_weight: float | None
     crs: str
-    gcp_residuals: np.ndarray = field(repr=False, default=None)     # (n_gcp, 2) col, row px
-    check_residuals: np.ndarray = field(repr=False, default=None)   # (n_check, 2)
+    gcp_residuals: np.ndarray = field(repr=False, default=None)  # (n_gcp, 2) col, row px
+    check_residuals: np.ndarray = field(repr=False, default=None)  # (n_check, 2)
 
     def to_dict(self) -> dict:
         """Scalars of the report (no residual arrays), JSON-ready (NaN -> None)."""
@@ -551,8 +650,10 @@ def _as_points(name, arrays, what):
     try:
         arrs = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64).ravel() for a in arrays))
     except ValueError:
-        raise InputError(f"{name}: {what} arrays have different lengths "
-                         f"({', '.join(str(np.size(a)) for a in arrays)})") from None
+        raise InputError(
+            f"{name}: {what} arrays have different lengths "
+            f"({', '.join(str(np.size(a)) for a in arrays)})"
+        ) from None
     for lab, a in zip(labels, arrs):
         bad = ~np.isfinite(a)
         if np.any(bad):
@@ -574,9 +675,21 @@ def _scale(lo, hi):
     return np.where(s > 0, s, 1.0)
 
 
-def fit_model(name: str, gcp_lon, gcp_lat, gcp_h, gcp_col, gcp_row, *, check=None,
-              regularization="lcurve", reweight_iterations: int = 0, crs=None, image_size=None,
-              rmse_ddof: int = 0):
+def fit_model(
+    name: str,
+    gcp_lon,
+    gcp_lat,
+    gcp_h,
+    gcp_col,
+    gcp_row,
+    *,
+    check=None,
+    regularization="lcurve",
+    reweight_iterations: int = 0,
+    crs=None,
+    image_size=None,
+    rmse_ddof: int = 0,
+):
     """Fit generic model ``name`` to GCPs and assess it at check points.
 
     Parameters
@@ -626,8 +739,10 @@ def fit_model(name: str, gcp_lon, gcp_lat, gcp_h, gcp_col, gcp_row, *, check=Non
     lon, lat, h, col, row = _as_points(name, (gcp_lon, gcp_lat, gcp_h, gcp_col, gcp_row), "GCP")
     n = lon.size
     if n < form.min_gcps:
-        raise InputError(f"model '{name}' needs at least {form.min_gcps} GCPs "
-                         f"({form.n_params} unknowns), got {n}")
+        raise InputError(
+            f"model '{name}' needs at least {form.min_gcps} GCPs "
+            f"({form.n_params} unknowns), got {n}"
+        )
     if crs is None:
         crs = geodesy.utm_crs(lon, lat)
     else:
@@ -651,7 +766,9 @@ def fit_model(name: str, gcp_lon, gcp_lat, gcp_h, gcp_col, gcp_row, *, check=Non
 
     if int(reweight_iterations) < 0:
         raise InputError(f"{name}: reweight_iterations must be >= 0")
-    sol = form.fit(G, xn, yn, regularization if form.regularizable else None, int(reweight_iterations))
+    sol = form.fit(
+        G, xn, yn, regularization if form.regularizable else None, int(reweight_iterations)
+    )
 
     # affine inverse (normalised image, Z) -> (X, Y) to start localize()
     B = np.stack([np.ones(n), xn, yn, G[:, 2]], -1)
@@ -659,8 +776,16 @@ def fit_model(name: str, gcp_lon, gcp_lat, gcp_h, gcp_col, gcp_row, *, check=Non
 
     if image_size is None:
         image_size = (int(np.ceil(col.max())) + 1, int(np.ceil(row.max())) + 1)
-    model = GenericModel(name, sol.params, crs=crs, normalization=norm, width=image_size[0],
-                         height=image_size[1], h_range=(h.min(), h.max()), inverse_affine=inv)
+    model = GenericModel(
+        name,
+        sol.params,
+        crs=crs,
+        normalization=norm,
+        width=image_size[0],
+        height=image_size[1],
+        h_range=(h.min(), h.max()),
+        inverse_affine=inv,
+    )
 
     pc, pr = model.project(lon, lat, h)
     gres = np.stack([pc - col, pr - row], -1)
@@ -674,7 +799,23 @@ def fit_model(name: str, gcp_lon, gcp_lat, gcp_h, gcp_col, gcp_row, *, check=Non
     else:
         cres = np.zeros((0, 2))
     cx, cy, ct = _rmse(cres, rmse_ddof)
-    report = FitReport(name, n, cres.shape[0], form.n_params, gx, gy, gt, cx, cy, ct,
-                       sol.condition_number, sol.condition_number_regularized, sol.method,
-                       sol.weight, model.crs.to_string(), gres, cres)
+    report = FitReport(
+        name,
+        n,
+        cres.shape[0],
+        form.n_params,
+        gx,
+        gy,
+        gt,
+        cx,
+        cy,
+        ct,
+        sol.condition_number,
+        sol.condition_number_regularized,
+        sol.method,
+        sol.weight,
+        model.crs.to_string(),
+        gres,
+        cres,
+    )
     return model, report

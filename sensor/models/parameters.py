@@ -13,6 +13,7 @@ model's own analytic partials when it has a ``project_partials(lon, lat, h, name
 otherwise central differences with a per-parameter step (the model's ``PARAMETER_STEPS``, else
 :func:`default_step`).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,7 +23,9 @@ from stereodem.core.errors import SensorModelError
 
 def is_adjustable(model) -> bool:
     """Whether ``model`` exposes named adjustable parameters."""
-    return callable(getattr(model, "parameters", None)) and callable(getattr(model, "with_parameters", None))
+    return callable(getattr(model, "parameters", None)) and callable(
+        getattr(model, "with_parameters", None)
+    )
 
 
 def parameter_names(model) -> list[str]:
@@ -65,8 +68,10 @@ def checked_parameters(known, values, owner: str, *, listing: str | None = None)
     out = {}
     for k, v in values.items():
         if k not in known:
-            raise SensorModelError(f"{owner}: unknown parameter {k!r} "
-                                   f"(known: {listing if listing is not None else ', '.join(known)})")
+            raise SensorModelError(
+                f"{owner}: unknown parameter {k!r} "
+                f"(known: {listing if listing is not None else ', '.join(known)})"
+            )
         v = float(v)
         if not np.isfinite(v):
             raise SensorModelError(f"{owner}: parameter {k} must be finite, got {v}")
@@ -109,8 +114,10 @@ def project_jacobian(model, lon, lat, h, names=None, *, steps: dict | None = Non
     known = model.parameters()
     unknown = [n for n in names if n not in known]
     if unknown:
-        raise SensorModelError(f"{type(model).__name__}: unknown parameter(s) {', '.join(unknown)} "
-                               f"(known: {', '.join(known)})")
+        raise SensorModelError(
+            f"{type(model).__name__}: unknown parameter(s) {', '.join(unknown)} "
+            f"(known: {', '.join(known)})"
+        )
     col, row = model.project(lon, lat, h)
     if hasattr(model, "project_partials"):
         return col, row, np.asarray(model.project_partials(lon, lat, h, names), dtype=np.float64)

@@ -22,6 +22,7 @@ notes): here a vectorised secant iteration on the line finds the instant at whic
 point lies on the detector array's scan surface, then the column is found by inverting the
 monotonic cross-track look angle.
 """
+
 from __future__ import annotations
 
 import copy
@@ -44,6 +45,7 @@ ROW_TOLERANCE = 1e-9
 
 # ======================================================================= detector array
 
+
 class DetectorArray:
     """Look directions of the detectors of a linear array in the instrument frame.
 
@@ -60,15 +62,17 @@ class DetectorArray:
         # tan_x, tan_y, dtan_y: callables (col, row) -> array, already vectorised
         self._tx, self._ty, self._dty = tan_x, tan_y, dtan_y
         self.rows = rows
-        self.spec = spec or {}      #: constructor and arguments, for serialisation
+        self.spec = spec or {}  #: constructor and arguments, for serialisation
         lo, hi = col_range if col_range is not None else (0.0, 1.0)
         c = np.linspace(lo, hi, 33)
         r = np.zeros_like(c)
         ty = np.asarray(self._ty(c, r), float)
         d = np.diff(ty)
         if not (np.all(d > 0) or np.all(d < 0)):
-            raise SensorModelError("detector array: the cross-track look angle must be strictly "
-                                   "monotonic in the column")
+            raise SensorModelError(
+                "detector array: the cross-track look angle must be strictly "
+                "monotonic in the column"
+            )
         # first guess of the inverse: a straight line through the table
         self._inv = np.polyfit(ty, c, 1)
 
@@ -97,13 +101,26 @@ class DetectorArray:
             if a.ndim == 0:
                 if name == "psi_y":
                     raise SensorModelError("detector array: psi_y must vary with the column")
-                return (lambda c: np.full(np.shape(c), np.tan(float(a)))), (lambda c: np.zeros(np.shape(c))), None
+                return (
+                    (lambda c: np.full(np.shape(c), np.tan(float(a)))),
+                    (lambda c: np.zeros(np.shape(c))),
+                    None,
+                )
             if a.ndim != 1 or a.size < 2 or not np.all(np.isfinite(a)):
-                raise SensorModelError(f"detector array: {name} must be a finite 1-D array of >= 2 values")
-            x = np.arange(a.size, dtype=np.float64) if cols is None else np.asarray(cols, dtype=np.float64)
+                raise SensorModelError(
+                    f"detector array: {name} must be a finite 1-D array of >= 2 values"
+                )
+            x = (
+                np.arange(a.size, dtype=np.float64)
+                if cols is None
+                else np.asarray(cols, dtype=np.float64)
+            )
             if x.shape != a.shape:
-                raise SensorModelError(f"detector array: {name} has {a.size} values for {x.size} columns")
+                raise SensorModelError(
+                    f"detector array: {name} has {a.size} values for {x.size} columns"
+                )
             from scipy.interpolate import CubicSpline
+
             s = CubicSpline(x, np.tan(a))
             ds = s.derivative()
             return s, ds, (float(x[0]), float(x[-1]))
@@ -113,15 +130,22 @@ class DetectorArray:
                 return {"polynomial": np.asarray(psi.convert().coef, float)}
             return np.asarray(psi, float)
 
-        spec = {"kind": "look_angles", "psi_x": describe(psi_x), "psi_y": describe(psi_y),
-                "cols": None if cols is None else np.asarray(cols, float), "width": width}
+        spec = {
+            "kind": "look_angles",
+            "psi_x": describe(psi_x),
+            "psi_y": describe(psi_y),
+            "cols": None if cols is None else np.asarray(cols, float),
+            "width": width,
+        }
         tx, _, rx = curve(psi_x, "psi_x")
         ty, dty, ry = curve(psi_y, "psi_y")
         if ry is None:
             if width is None or int(width) < 2:
                 raise SensorModelError("detector array: give width= with a polynomial psi_y")
             ry = (0.0, float(int(width) - 1))
-        return cls(lambda c, r: tx(c), lambda c, r: ty(c), lambda c, r: dty(c), col_range=ry, spec=spec)
+        return cls(
+            lambda c, r: tx(c), lambda c, r: ty(c), lambda c, r: dty(c), col_range=ry, spec=spec
+        )
 
     @classmethod
     def linear(cls, width: int, ifov: float, *, center: float | None = None, psi_x: float = 0.0):
@@ -143,11 +167,19 @@ class DetectorArray:
         tx, k = float(np.tan(psi_x)), float(ifov)
         if not (np.isfinite(k) and k > 0):
             raise SensorModelError(f"detector array: IFOV must be positive, got {ifov}")
-        return cls(lambda c, r: np.full(np.shape(c), tx),
-                   lambda c, r: -(np.asarray(c, float) - cx) * k,
-                   lambda c, r: np.full(np.shape(c), -k),
-                   col_range=(0.0, float(max(width - 1, 1))),
-                   spec={"kind": "linear", "width": int(width), "ifov": k, "center": cx, "psi_x": float(psi_x)})
+        return cls(
+            lambda c, r: np.full(np.shape(c), tx),
+            lambda c, r: -(np.asarray(c, float) - cx) * k,
+            lambda c, r: np.full(np.shape(c), -k),
+            col_range=(0.0, float(max(width - 1, 1))),
+            spec={
+                "kind": "linear",
+                "width": int(width),
+                "ifov": k,
+                "center": cx,
+                "psi_x": float(psi_x),
+            },
+        )
 
     @classmethod
     def from_sight_vectors(cls, vectors, cols, *, rows=None):
@@ -170,13 +202,16 @@ class DetectorArray:
         which reproduces the table exactly at its columns; directions are renormalised.
         """
         from scipy.interpolate import CubicSpline
+
         v = np.asarray(vectors, dtype=np.float64)
         x = np.asarray(cols, dtype=np.float64)
         if v.ndim == 2:
             v = v[None]
         if v.ndim != 3 or v.shape[-1] != 3 or v.shape[1] != x.size or x.size < 2:
-            raise SensorModelError(f"detector array: sight vectors of shape {np.shape(vectors)} do not "
-                                   f"match {x.size} columns")
+            raise SensorModelError(
+                f"detector array: sight vectors of shape {np.shape(vectors)} do not "
+                f"match {x.size} columns"
+            )
         if not np.all(np.isfinite(v)) or not np.all(np.isfinite(x)):
             raise SensorModelError("detector array: non-finite sight vectors or columns")
         if np.any(v[..., 2] <= 0):
@@ -184,51 +219,72 @@ class DetectorArray:
         if not np.all(np.diff(x) > 0):
             raise SensorModelError("detector array: sight-vector columns must increase")
         R = v.shape[0]
-        spec = {"kind": "sight_vectors", "vectors": v.copy(), "cols": x.copy(),
-                "rows": None if rows is None else np.asarray(rows, float)}
+        spec = {
+            "kind": "sight_vectors",
+            "vectors": v.copy(),
+            "cols": x.copy(),
+            "rows": None if rows is None else np.asarray(rows, float),
+        }
         if R > 1:
             r = np.asarray(rows, dtype=np.float64) if rows is not None else None
             if r is None or r.shape != (R,) or not np.all(np.diff(r) > 0):
-                raise SensorModelError("detector array: row-dependent sight vectors need increasing rows")
+                raise SensorModelError(
+                    "detector array: row-dependent sight vectors need increasing rows"
+                )
         else:
             r = None
-        tx = CubicSpline(x, (v[..., 0] / v[..., 2]).T, axis=0)       # values (K, R)
+        tx = CubicSpline(x, (v[..., 0] / v[..., 2]).T, axis=0)  # values (K, R)
         ty = CubicSpline(x, (v[..., 1] / v[..., 2]).T, axis=0)
         dty = ty.derivative()
 
         if R == 1:
+
             def ev(s):
                 return lambda c, rr: s(c)[..., 0]
+
             return cls(ev(tx), ev(ty), ev(dty), col_range=(x[0], x[-1]), spec=spec)
 
         def blend(s):
             def f(c, rr):
                 c = np.asarray(c, float)
-                vals = s(c)                                           # c.shape + (R,)
+                vals = s(c)  # c.shape + (R,)
                 rr = np.broadcast_to(np.asarray(rr, float), c.shape)
                 j = np.clip(np.searchsorted(r, rr, side="right") - 1, 0, R - 2)
                 w = np.clip((rr - r[j]) / (r[j + 1] - r[j]), 0.0, 1.0)
                 a = np.take_along_axis(vals, j[..., None], -1)[..., 0]
                 b = np.take_along_axis(vals, (j + 1)[..., None], -1)[..., 0]
                 return a + w * (b - a)
+
             return f
+
         return cls(blend(tx), blend(ty), blend(dty), rows=r, col_range=(x[0], x[-1]), spec=spec)
 
     @classmethod
     def from_spec(cls, spec: dict) -> DetectorArray:
         """Rebuild a detector array from its :attr:`spec` (e.g. read back from JSON)."""
         from numpy.polynomial import Polynomial
+
         try:
             kind = spec["kind"]
             if kind == "linear":
-                return cls.linear(spec["width"], spec["ifov"], center=spec["center"], psi_x=spec["psi_x"])
+                return cls.linear(
+                    spec["width"], spec["ifov"], center=spec["center"], psi_x=spec["psi_x"]
+                )
             if kind == "sight_vectors":
                 return cls.from_sight_vectors(spec["vectors"], spec["cols"], rows=spec.get("rows"))
             if kind == "look_angles":
+
                 def undescribe(p):
-                    return Polynomial(p["polynomial"]) if isinstance(p, dict) else np.asarray(p, float)
-                return cls.from_look_angles(undescribe(spec["psi_x"]), undescribe(spec["psi_y"]),
-                                            cols=spec.get("cols"), width=spec.get("width"))
+                    return (
+                        Polynomial(p["polynomial"]) if isinstance(p, dict) else np.asarray(p, float)
+                    )
+
+                return cls.from_look_angles(
+                    undescribe(spec["psi_x"]),
+                    undescribe(spec["psi_y"]),
+                    cols=spec.get("cols"),
+                    width=spec.get("width"),
+                )
         except (KeyError, TypeError, ValueError) as exc:
             raise SensorModelError(f"detector array: garbled description ({exc})") from None
         raise SensorModelError(f"detector array: unknown kind {spec.get('kind')!r}")
@@ -284,7 +340,7 @@ def _line_table(row):
     if n * POSE_TABLE_ROWS_PER_LINE > row.size:
         return None
     lines = first + np.arange(n, dtype=np.float64)
-    k = np.minimum((row - first).astype(np.int64), n - 2)      # row >= first: floor
+    k = np.minimum((row - first).astype(np.int64), n - 2)  # row >= first: floor
     w = row - lines[k]
     return lines, k, w
 
@@ -350,16 +406,32 @@ class PushbroomModel(SensorModel):
         Values of adjustable parameters (see :data:`PARAMETERS`), default all zero.
     """
 
-    def __init__(self, *, width: int, height: int, ephemeris: Ephemeris, detectors: DetectorArray,
-                 line_period: float, t0: float = 0.0, attitude: Attitude | None = None,
-                 along_track_tilt_deg: float = 0.0, cross_track_tilt_deg: float = 0.0,
-                 inertial_frame: bool = True, parameters: dict | None = None, name: str | None = None):
+    def __init__(
+        self,
+        *,
+        width: int,
+        height: int,
+        ephemeris: Ephemeris,
+        detectors: DetectorArray,
+        line_period: float,
+        t0: float = 0.0,
+        attitude: Attitude | None = None,
+        along_track_tilt_deg: float = 0.0,
+        cross_track_tilt_deg: float = 0.0,
+        inertial_frame: bool = True,
+        parameters: dict | None = None,
+        name: str | None = None,
+    ):
         if int(width) < 1 or int(height) < 1:
-            raise SensorModelError(f"pushbroom: image size must be positive, got {width} x {height}")
+            raise SensorModelError(
+                f"pushbroom: image size must be positive, got {width} x {height}"
+            )
         if not (np.isfinite(line_period) and line_period > 0):
             raise SensorModelError(f"pushbroom: line period must be positive, got {line_period}")
         if not isinstance(ephemeris, Ephemeris):
-            raise SensorModelError("pushbroom: ephemeris must be a stereodem.sensor.models.ephemeris.Ephemeris")
+            raise SensorModelError(
+                "pushbroom: ephemeris must be a stereodem.sensor.models.ephemeris.Ephemeris"
+            )
         if not isinstance(detectors, DetectorArray):
             raise SensorModelError("pushbroom: detectors must be a DetectorArray")
         self.width, self.height = int(width), int(height)
@@ -369,13 +441,14 @@ class PushbroomModel(SensorModel):
         self.cross_track_tilt_deg = float(cross_track_tilt_deg)
         self.inertial_frame = bool(inertial_frame)
         self.name = name or type(self).__name__
-        self._tilt = body_to_orbital(np.radians(self.cross_track_tilt_deg),
-                                     np.radians(self.along_track_tilt_deg), 0.0)
+        self._tilt = body_to_orbital(
+            np.radians(self.cross_track_tilt_deg), np.radians(self.along_track_tilt_deg), 0.0
+        )
         self._params = dict.fromkeys(PARAMETERS, 0.0)
         if parameters:
             self._set_parameters(parameters)
         self._guess = None
-        self.orbit: CircularOrbit | None = None     #: set by the synthetic constructors
+        self.orbit: CircularOrbit | None = None  #: set by the synthetic constructors
 
     MODEL_TYPE = "pushbroom"
 
@@ -389,17 +462,28 @@ class PushbroomModel(SensorModel):
         """Plain description (numpy arrays inside; see :mod:`stereodem.sensor.io.sidecar`)."""
         e, a, o = self.ephemeris, self.attitude, self.orbit
         return {
-            "width": self.width, "height": self.height, "line_period": self.line_period, "t0": self.t0,
+            "width": self.width,
+            "height": self.height,
+            "line_period": self.line_period,
+            "t0": self.t0,
             "along_track_tilt_deg": self.along_track_tilt_deg,
             "cross_track_tilt_deg": self.cross_track_tilt_deg,
-            "inertial_frame": self.inertial_frame, "name": self.name, "parameters": dict(self._params),
-            "ephemeris": {"times": e.times, "positions": e.positions, "velocities": e.velocities,
-                          "order": e.order},
-            "attitude": None if a is None else {"times": a.times, "angles": a.angles,
-                                                "quaternions": a.quaternions},
+            "inertial_frame": self.inertial_frame,
+            "name": self.name,
+            "parameters": dict(self._params),
+            "ephemeris": {
+                "times": e.times,
+                "positions": e.positions,
+                "velocities": e.velocities,
+                "order": e.order,
+            },
+            "attitude": None
+            if a is None
+            else {"times": a.times, "angles": a.angles, "quaternions": a.quaternions},
             "detectors": self.detectors.spec,
-            "orbit": None if o is None else {"radius": o.radius, "inclination": o.inclination,
-                                             "raan": o.raan, "u0": o.u0},
+            "orbit": None
+            if o is None
+            else {"radius": o.radius, "inclination": o.inclination, "raan": o.raan, "u0": o.u0},
         }
 
     @classmethod
@@ -411,13 +495,20 @@ class PushbroomModel(SensorModel):
         att = None
         if a is not None:
             att = Attitude(a["times"], a.get("angles"), quaternions=a.get("quaternions"))
-        model = cls(width=d["width"], height=d["height"], ephemeris=eph,
-                    detectors=DetectorArray.from_spec(d["detectors"]), line_period=d["line_period"],
-                    t0=d.get("t0", 0.0), attitude=att,
-                    along_track_tilt_deg=d.get("along_track_tilt_deg", 0.0),
-                    cross_track_tilt_deg=d.get("cross_track_tilt_deg", 0.0),
-                    inertial_frame=d.get("inertial_frame", True), parameters=d.get("parameters"),
-                    name=d.get("name"))
+        model = cls(
+            width=d["width"],
+            height=d["height"],
+            ephemeris=eph,
+            detectors=DetectorArray.from_spec(d["detectors"]),
+            line_period=d["line_period"],
+            t0=d.get("t0", 0.0),
+            attitude=att,
+            along_track_tilt_deg=d.get("along_track_tilt_deg", 0.0),
+            cross_track_tilt_deg=d.get("cross_track_tilt_deg", 0.0),
+            inertial_frame=d.get("inertial_frame", True),
+            parameters=d.get("parameters"),
+            name=d.get("name"),
+        )
         o = d.get("orbit")
         if o is not None:
             model.orbit = CircularOrbit(o["radius"], o["inclination"], o["raan"], o["u0"])
@@ -472,7 +563,7 @@ class PushbroomModel(SensorModel):
         """:meth:`_pose` evaluated at every row (ephemeris, orbital frame and attitude)."""
         t = self.line_time(row)
         r, v = self.ephemeris.state(t)
-        m = orbital_frame(r, v, inertial=self.inertial_frame)         # orbital -> ECEF
+        m = orbital_frame(r, v, inertial=self.inertial_frame)  # orbital -> ECEF
         p = self._params
         off = np.array([p["position_offset_x"], p["position_offset_y"], p["position_offset_z"]])
         if np.any(off):
@@ -523,7 +614,7 @@ class PushbroomModel(SensorModel):
     def _scan_residual(self, p, row):
         """Along-track misfit (tangent units) of ground points ``p`` at ``row``, and the column."""
         c, rot = self._pose(row)
-        d = np.einsum("...ji,...j->...i", rot, p - c)                  # instrument frame
+        d = np.einsum("...ji,...j->...i", rot, p - c)  # instrument frame
         with np.errstate(divide="ignore", invalid="ignore"):
             a, b = d[..., 0] / d[..., 2], d[..., 1] / d[..., 2]
         col = self.detectors.column(b / (1.0 + self._params["look_scale"]), row)
@@ -547,8 +638,9 @@ class PushbroomModel(SensorModel):
         lie behind the sensor, get NaN (logged).
         """
         self.check_inputs(lon, lat, h, what="ground coordinates")
-        lon, lat, h = np.broadcast_arrays(np.asarray(lon, float), np.asarray(lat, float),
-                                          np.asarray(h, float))
+        lon, lat, h = np.broadcast_arrays(
+            np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float)
+        )
         shape = lon.shape
         lon, lat, h = lon.ravel(), lat.ravel(), h.ravel()
         p = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)
@@ -577,19 +669,35 @@ class PushbroomModel(SensorModel):
             active, r0, f0, r1, f1 = active[keep], r0[keep], f0[keep], r1[keep], f1[keep]
         bad = ~done | ~front | ~np.isfinite(cols)
         if np.any(bad):
-            log.warning("%s.project: %d of %d point(s) did not converge or lie behind the sensor",
-                        self.name, int(bad.sum()), lon.size)
+            log.warning(
+                "%s.project: %d of %d point(s) did not converge or lie behind the sensor",
+                self.name,
+                int(bad.sum()),
+                lon.size,
+            )
             rows[bad] = cols[bad] = np.nan
         return cols.reshape(shape), rows.reshape(shape)
 
     # ---------------------------------------------------------------- synthetic orbits
     @classmethod
-    def synthetic(cls, center_lon: float, center_lat: float, *, width: int, height: int,
-                  altitude: float = 705e3, inclination_deg: float = 98.2,
-                  heading_deg: float | None = None, gsd: float = 15.0, line_period: float = 2.2e-3,
-                  along_track_tilt_deg: float = 0.0, cross_track_tilt_deg: float = 0.0,
-                  ephemeris_step: float = 1.0, inertial_frame: bool = True,
-                  name: str | None = None) -> PushbroomModel:
+    def synthetic(
+        cls,
+        center_lon: float,
+        center_lat: float,
+        *,
+        width: int,
+        height: int,
+        altitude: float = 705e3,
+        inclination_deg: float = 98.2,
+        heading_deg: float | None = None,
+        gsd: float = 15.0,
+        line_period: float = 2.2e-3,
+        along_track_tilt_deg: float = 0.0,
+        cross_track_tilt_deg: float = 0.0,
+        ephemeris_step: float = 1.0,
+        inertial_frame: bool = True,
+        name: str | None = None,
+    ) -> PushbroomModel:
         """A pushbroom camera on a circular Keplerian orbit, aimed at a ground centre.
 
         The orbit is circular with radius ``a + altitude`` (``a`` = WGS84 semi-major axis),
@@ -612,23 +720,53 @@ class PushbroomModel(SensorModel):
         along_track_tilt_deg, cross_track_tilt_deg : float
             Instrument tilt, degrees (-27.6 for an ASTER-3B-like backward view).
         """
-        orbit = _aimed_orbit(center_lon, center_lat, altitude=altitude, inclination_deg=inclination_deg,
-                             heading_deg=heading_deg, along_deg=along_track_tilt_deg,
-                             cross_deg=cross_track_tilt_deg)
+        orbit = _aimed_orbit(
+            center_lon,
+            center_lat,
+            altitude=altitude,
+            inclination_deg=inclination_deg,
+            heading_deg=heading_deg,
+            along_deg=along_track_tilt_deg,
+            cross_deg=cross_track_tilt_deg,
+        )
         ifov = gsd / _nadir_height(orbit, 0.0)
-        return _model_on_orbit(cls, orbit, 0.0, width=width, height=height, line_period=line_period,
-                               ifov=ifov, along_deg=along_track_tilt_deg, cross_deg=cross_track_tilt_deg,
-                               step=ephemeris_step, inertial=inertial_frame, name=name)
+        return _model_on_orbit(
+            cls,
+            orbit,
+            0.0,
+            width=width,
+            height=height,
+            line_period=line_period,
+            ifov=ifov,
+            along_deg=along_track_tilt_deg,
+            cross_deg=cross_track_tilt_deg,
+            step=ephemeris_step,
+            inertial=inertial_frame,
+            name=name,
+        )
 
     @classmethod
-    def synthetic_pair(cls, center_lon: float, center_lat: float, *, width: int, height: int,
-                       backward_width: int | None = None, backward_height: int | None = None,
-                       backward_tilt_deg: float = -27.6, first_tilt_deg: float = 0.0,
-                       altitude: float = 705e3,
-                       inclination_deg: float = 98.2, heading_deg: float | None = None,
-                       gsd: float = 15.0, line_period: float = 2.2e-3,
-                       cross_track_tilt_deg: float = 0.0, ephemeris_step: float = 1.0,
-                       inertial_frame: bool = True, center_height: float = 0.0):
+    def synthetic_pair(
+        cls,
+        center_lon: float,
+        center_lat: float,
+        *,
+        width: int,
+        height: int,
+        backward_width: int | None = None,
+        backward_height: int | None = None,
+        backward_tilt_deg: float = -27.6,
+        first_tilt_deg: float = 0.0,
+        altitude: float = 705e3,
+        inclination_deg: float = 98.2,
+        heading_deg: float | None = None,
+        gsd: float = 15.0,
+        line_period: float = 2.2e-3,
+        cross_track_tilt_deg: float = 0.0,
+        ephemeris_step: float = 1.0,
+        inertial_frame: bool = True,
+        center_height: float = 0.0,
+    ):
         """Along-track stereo pair on ONE orbit, both images centred on the same ground point
         ``(center_lon, center_lat, center_height)`` (ellipsoidal height, m: give the terrain's,
         or the tilted views are offset by ``h tan(tilt)`` on the ground; 1 km for ASTER 3B at
@@ -644,34 +782,76 @@ class PushbroomModel(SensorModel):
         ``cross_track_tilt_deg`` attribute holds the adjusted value. Both cameras have the
         same IFOV.
         """
-        orbit = _aimed_orbit(center_lon, center_lat, altitude=altitude, inclination_deg=inclination_deg,
-                             heading_deg=heading_deg, along_deg=first_tilt_deg,
-                             cross_deg=cross_track_tilt_deg, height=center_height)
+        orbit = _aimed_orbit(
+            center_lon,
+            center_lat,
+            altitude=altitude,
+            inclination_deg=inclination_deg,
+            heading_deg=heading_deg,
+            along_deg=first_tilt_deg,
+            cross_deg=cross_track_tilt_deg,
+            height=center_height,
+        )
         ifov = gsd / _nadir_height(orbit, 0.0)
-        nadir = _model_on_orbit(cls, orbit, 0.0, width=width, height=height, line_period=line_period,
-                                ifov=ifov, along_deg=first_tilt_deg, cross_deg=cross_track_tilt_deg,
-                                step=ephemeris_step, inertial=inertial_frame,
-                                name="nadir" if first_tilt_deg == 0 else "first")
-        target = np.array(geodesy.geodetic_to_ecef(center_lon, center_lat, float(center_height)), float)
+        nadir = _model_on_orbit(
+            cls,
+            orbit,
+            0.0,
+            width=width,
+            height=height,
+            line_period=line_period,
+            ifov=ifov,
+            along_deg=first_tilt_deg,
+            cross_deg=cross_track_tilt_deg,
+            step=ephemeris_step,
+            inertial=inertial_frame,
+            name="nadir" if first_tilt_deg == 0 else "first",
+        )
+        target = np.array(
+            geodesy.geodetic_to_ecef(center_lon, center_lat, float(center_height)), float
+        )
         v_ground = orbit.mean_motion * geodesy.A
-        t_guess = -_nadir_height(orbit, 0.0) * (np.tan(np.radians(backward_tilt_deg))
-                                                - np.tan(np.radians(first_tilt_deg))) / v_ground
+        t_guess = (
+            -_nadir_height(orbit, 0.0)
+            * (np.tan(np.radians(backward_tilt_deg)) - np.tan(np.radians(first_tilt_deg)))
+            / v_ground
+        )
 
         def miss(x):
-            return _centre_miss(orbit, x[0], backward_tilt_deg, cross_track_tilt_deg + np.degrees(x[1]),
-                                target, center_height)
+            return _centre_miss(
+                orbit,
+                x[0],
+                backward_tilt_deg,
+                cross_track_tilt_deg + np.degrees(x[1]),
+                target,
+                center_height,
+            )
 
-        t_c, droll = _newton2(miss, np.array([t_guess, 0.0]), np.array([1e-3, 1e-7]),
-                              what="backward view of the synthetic pair")
-        back = _model_on_orbit(cls, orbit, t_c, width=backward_width or width,
-                               height=backward_height or height, line_period=line_period, ifov=ifov,
-                               along_deg=backward_tilt_deg,
-                               cross_deg=cross_track_tilt_deg + float(np.degrees(droll)),
-                               step=ephemeris_step, inertial=inertial_frame, name="backward")
+        t_c, droll = _newton2(
+            miss,
+            np.array([t_guess, 0.0]),
+            np.array([1e-3, 1e-7]),
+            what="backward view of the synthetic pair",
+        )
+        back = _model_on_orbit(
+            cls,
+            orbit,
+            t_c,
+            width=backward_width or width,
+            height=backward_height or height,
+            line_period=line_period,
+            ifov=ifov,
+            along_deg=backward_tilt_deg,
+            cross_deg=cross_track_tilt_deg + float(np.degrees(droll)),
+            step=ephemeris_step,
+            inertial=inertial_frame,
+            name="backward",
+        )
         return nadir, back
 
 
 # ======================================================================= helpers
+
 
 class _GroundToImageFit:
     """Quadratic-in-(lon, lat), linear-in-h least-squares map ground -> (col, row).
@@ -686,8 +866,12 @@ class _GroundToImageFit:
     @classmethod
     def build(cls, model: PushbroomModel, n: int = 9):
         w, hgt = model.width, model.height
-        c, r, z = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, hgt - 1, n),
-                              np.array([-500.0, 4000.0, 9000.0]), indexing="ij")
+        c, r, z = np.meshgrid(
+            np.linspace(0, w - 1, n),
+            np.linspace(0, hgt - 1, n),
+            np.array([-500.0, 4000.0, 9000.0]),
+            indexing="ij",
+        )
         c, r, z = c.ravel(), r.ravel(), z.ravel()
         lon, lat = model.localize(c, r, z)
         ok = np.isfinite(lon) & np.isfinite(lat)
@@ -729,7 +913,9 @@ def _centre_miss(orbit, t_c, along_deg, cross_deg, target, height=0.0):
     """East/north miss (m) of the boresight at time ``t_c`` from ECEF ``target``, which lies at
     ellipsoidal ``height`` (m)."""
     r, v = orbit.state(t_c)
-    m = orbital_frame(r, v, inertial=True) @ body_to_orbital(np.radians(cross_deg), np.radians(along_deg), 0.0)
+    m = orbital_frame(r, v, inertial=True) @ body_to_orbital(
+        np.radians(cross_deg), np.radians(along_deg), 0.0
+    )
     d = m @ np.array([0.0, 0.0, 1.0])
     p = geodesy.intersect_height(r, d, float(height))
     lon, lat, _ = geodesy.ecef_to_geodetic(*target)
@@ -755,8 +941,9 @@ def _newton2(fun, x0, steps, *, what, tol=1e-4, max_iterations=30):
     raise ConvergenceError(f"{what}: aiming did not converge (miss {np.max(np.abs(f)):.3g} m)")
 
 
-def _aimed_orbit(lon, lat, *, altitude, inclination_deg, heading_deg, along_deg, cross_deg,
-                 height=0.0):
+def _aimed_orbit(
+    lon, lat, *, altitude, inclination_deg, heading_deg, along_deg, cross_deg, height=0.0
+):
     """Circular orbit whose boresight (with tilt) sees ``(lon, lat, height)`` at ``t = 0``."""
     if not (np.isfinite(lon) and np.isfinite(lat) and abs(lat) < 90):
         raise SensorModelError(f"synthetic pushbroom: bad scene centre lon={lon}, lat={lat}")
@@ -771,8 +958,10 @@ def _aimed_orbit(lon, lat, *, altitude, inclination_deg, heading_deg, along_deg,
         descending = True
     s = np.sin(psi) / np.sin(inc)
     if abs(s) >= 1:
-        raise SensorModelError(f"synthetic pushbroom: latitude {lat} is not reached by an orbit "
-                               f"inclined {np.degrees(inc):.2f} deg")
+        raise SensorModelError(
+            f"synthetic pushbroom: latitude {lat} is not reached by an orbit "
+            f"inclined {np.degrees(inc):.2f} deg"
+        )
     u0 = np.pi - np.arcsin(s) if descending else np.arcsin(s)
     raan = np.radians(lon) - np.arctan2(np.sin(u0) * np.cos(inc), np.cos(u0))
     target = np.array(geodesy.geodetic_to_ecef(lon, lat, float(height)), float)
@@ -780,25 +969,52 @@ def _aimed_orbit(lon, lat, *, altitude, inclination_deg, heading_deg, along_deg,
     u0 -= np.tan(np.radians(along_deg)) * altitude / geodesy.A
 
     def miss(x):
-        return _centre_miss(CircularOrbit(a, inc, x[1], x[0]), 0.0, along_deg, cross_deg, target,
-                            height)
+        return _centre_miss(
+            CircularOrbit(a, inc, x[1], x[0]), 0.0, along_deg, cross_deg, target, height
+        )
 
-    u0, raan = _newton2(miss, np.array([u0, raan]), np.array([1e-7, 1e-7]), what="synthetic pushbroom")
+    u0, raan = _newton2(
+        miss, np.array([u0, raan]), np.array([1e-7, 1e-7]), what="synthetic pushbroom"
+    )
     return CircularOrbit(a, inc, raan, u0)
 
 
-def _model_on_orbit(cls, orbit, t_centre, *, width, height, line_period, ifov, along_deg, cross_deg,
-                    step, inertial, name):
+def _model_on_orbit(
+    cls,
+    orbit,
+    t_centre,
+    *,
+    width,
+    height,
+    line_period,
+    ifov,
+    along_deg,
+    cross_deg,
+    step,
+    inertial,
+    name,
+):
     if int(width) < 2 or int(height) < 2:
-        raise SensorModelError(f"synthetic pushbroom: image must be at least 2 x 2, got {width} x {height}")
+        raise SensorModelError(
+            f"synthetic pushbroom: image must be at least 2 x 2, got {width} x {height}"
+        )
     t0 = t_centre - 0.5 * (int(height) - 1) * line_period
     t_end = t0 + (int(height) - 1) * line_period
     pad = 30.0 + 8 * step
     eph = orbit.ephemeris(t0 - pad, t_end + pad, step)
     det = DetectorArray.linear(int(width), ifov)
-    model = cls(width=width, height=height, ephemeris=eph, detectors=det, line_period=line_period,
-                t0=t0, along_track_tilt_deg=along_deg, cross_track_tilt_deg=cross_deg,
-                inertial_frame=inertial, name=name)
+    model = cls(
+        width=width,
+        height=height,
+        ephemeris=eph,
+        detectors=det,
+        line_period=line_period,
+        t0=t0,
+        along_track_tilt_deg=along_deg,
+        cross_track_tilt_deg=cross_deg,
+        inertial_frame=inertial,
+        name=name,
+    )
     model.orbit = orbit
     return model
 

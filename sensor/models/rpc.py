@@ -34,6 +34,7 @@ its LINE_* polynomials latitude, as functions of normalised (col, row, H) in the
 slots). The direct model is kept as :attr:`RPCModel.loc_coeffs` and used only as the initial
 guess of the exact Newton localisation.
 """
+
 from __future__ import annotations
 
 import math
@@ -46,27 +47,91 @@ from stereodem.core.errors import RPCError, where
 from stereodem.sensor.models.base import SensorModel
 
 #: RPC00B term order (L = normalised longitude, P = latitude, H = height).
-RPC00B_TERMS = ("1", "L", "P", "H", "LP", "LH", "PH", "L2", "P2", "H2",
-                "PLH", "L3", "LP2", "LH2", "L2P", "P3", "PH2", "L2H", "P2H", "H3")
+RPC00B_TERMS = (
+    "1",
+    "L",
+    "P",
+    "H",
+    "LP",
+    "LH",
+    "PH",
+    "L2",
+    "P2",
+    "H2",
+    "PLH",
+    "L3",
+    "LP2",
+    "LH2",
+    "L2P",
+    "P3",
+    "PH2",
+    "L2H",
+    "P2H",
+    "H3",
+)
 
 #: Exponents (of L, P, H) of the 20 RPC00B terms.
-EXPONENTS = np.array([(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1),
-                      (2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 1), (3, 0, 0), (1, 2, 0), (1, 0, 2),
-                      (2, 1, 0), (0, 3, 0), (0, 1, 2), (2, 0, 1), (0, 2, 1), (0, 0, 3)], dtype=int)
+EXPONENTS = np.array(
+    [
+        (0, 0, 0),
+        (1, 0, 0),
+        (0, 1, 0),
+        (0, 0, 1),
+        (1, 1, 0),
+        (1, 0, 1),
+        (0, 1, 1),
+        (2, 0, 0),
+        (0, 2, 0),
+        (0, 0, 2),
+        (1, 1, 1),
+        (3, 0, 0),
+        (1, 2, 0),
+        (1, 0, 2),
+        (2, 1, 0),
+        (0, 3, 0),
+        (0, 1, 2),
+        (2, 0, 1),
+        (0, 2, 1),
+        (0, 0, 3),
+    ],
+    dtype=int,
+)
 
 #: Scalar RPC keys (GDAL RPC metadata domain names).
-SCALAR_KEYS = ("LINE_OFF", "SAMP_OFF", "LAT_OFF", "LONG_OFF", "HEIGHT_OFF",
-               "LINE_SCALE", "SAMP_SCALE", "LAT_SCALE", "LONG_SCALE", "HEIGHT_SCALE")
+SCALAR_KEYS = (
+    "LINE_OFF",
+    "SAMP_OFF",
+    "LAT_OFF",
+    "LONG_OFF",
+    "HEIGHT_OFF",
+    "LINE_SCALE",
+    "SAMP_SCALE",
+    "LAT_SCALE",
+    "LONG_SCALE",
+    "HEIGHT_SCALE",
+)
 #: Coefficient keys, 20 values each.
 COEFF_KEYS = ("LINE_NUM_COEFF", "LINE_DEN_COEFF", "SAMP_NUM_COEFF", "SAMP_DEN_COEFF")
 
 # .RPB (GDAL/DigitalGlobe "IMAGE" group) key names
-_RPB_KEYS = {"lineOffset": "LINE_OFF", "sampOffset": "SAMP_OFF", "latOffset": "LAT_OFF",
-             "longOffset": "LONG_OFF", "heightOffset": "HEIGHT_OFF", "lineScale": "LINE_SCALE",
-             "sampScale": "SAMP_SCALE", "latScale": "LAT_SCALE", "longScale": "LONG_SCALE",
-             "heightScale": "HEIGHT_SCALE", "lineNumCoef": "LINE_NUM_COEFF",
-             "lineDenCoef": "LINE_DEN_COEFF", "sampNumCoef": "SAMP_NUM_COEFF",
-             "sampDenCoef": "SAMP_DEN_COEFF", "errBias": "ERR_BIAS", "errRand": "ERR_RAND"}
+_RPB_KEYS = {
+    "lineOffset": "LINE_OFF",
+    "sampOffset": "SAMP_OFF",
+    "latOffset": "LAT_OFF",
+    "longOffset": "LONG_OFF",
+    "heightOffset": "HEIGHT_OFF",
+    "lineScale": "LINE_SCALE",
+    "sampScale": "SAMP_SCALE",
+    "latScale": "LAT_SCALE",
+    "longScale": "LONG_SCALE",
+    "heightScale": "HEIGHT_SCALE",
+    "lineNumCoef": "LINE_NUM_COEFF",
+    "lineDenCoef": "LINE_DEN_COEFF",
+    "sampNumCoef": "SAMP_NUM_COEFF",
+    "sampDenCoef": "SAMP_DEN_COEFF",
+    "errBias": "ERR_BIAS",
+    "errRand": "ERR_RAND",
+}
 
 _BLOCK = 16384  # points per evaluation block (cache-sized monomial matrix: 20 x 16384 doubles)
 
@@ -119,8 +184,10 @@ def monomials(x, y, z, out=None):
 
 #: units that may follow an RPC value (DigitalGlobe/IKONOS text files, and GDAL passes them
 #: up raw through the RPC metadata domain): "LINE_OFF: 149.5 pixels"
-_UNIT = re.compile(r"^\s*([-+0-9.eEdD]+)\s*(?:pixels?|pix|px|degrees?|deg|meters?|metres?|m)?\s*;?\s*$",
-                   re.IGNORECASE)
+_UNIT = re.compile(
+    r"^\s*([-+0-9.eEdD]+)\s*(?:pixels?|pix|px|degrees?|deg|meters?|metres?|m)?\s*;?\s*$",
+    re.IGNORECASE,
+)
 
 
 def _parse_float(value, key, path):
@@ -134,7 +201,9 @@ def _parse_float(value, key, path):
         except ValueError:
             v = None
         if v is None:
-            raise RPCError(f"{where(path)}RPC key {key}: not a number ({str(value)[:40]!r})") from None
+            raise RPCError(
+                f"{where(path)}RPC key {key}: not a number ({str(value)[:40]!r})"
+            ) from None
     if not math.isfinite(v):
         raise RPCError(f"{where(path)}RPC key {key}: not finite ({value!r})")
     return v
@@ -155,17 +224,41 @@ def _parse_coeffs(value, key, path):
 #: heights within 100 km of the ellipsoid; smaller scales than the lower bounds describe a
 #: domain less than a pixel / a centimetre / a millimetre wide
 NORMALISATION_BOUNDS = {
-    "line_off": (0.0, 1e7), "samp_off": (0.0, 1e7), "line_scale": (0.5, 1e7), "samp_scale": (0.5, 1e7),
-    "lat_off": (0.0, 90.0), "lon_off": (0.0, 360.0), "lat_scale": (1e-7, 90.0), "lon_scale": (1e-7, 180.0),
-    "height_off": (0.0, 1e5), "height_scale": (1e-3, 1e5),
+    "line_off": (0.0, 1e7),
+    "samp_off": (0.0, 1e7),
+    "line_scale": (0.5, 1e7),
+    "samp_scale": (0.5, 1e7),
+    "lat_off": (0.0, 90.0),
+    "lon_off": (0.0, 360.0),
+    "lat_scale": (1e-7, 90.0),
+    "lon_scale": (1e-7, 180.0),
+    "height_off": (0.0, 1e5),
+    "height_scale": (1e-3, 1e5),
 }
-_NORMALISATION_UNITS = {"line_off": "px", "samp_off": "px", "line_scale": "px", "samp_scale": "px",
-                        "lat_off": "deg", "lon_off": "deg", "lat_scale": "deg", "lon_scale": "deg",
-                        "height_off": "m", "height_scale": "m"}
-_RPC_KEY_NAMES = {"line_off": "LINE_OFF", "samp_off": "SAMP_OFF", "line_scale": "LINE_SCALE",
-                  "samp_scale": "SAMP_SCALE", "lat_off": "LAT_OFF", "lon_off": "LONG_OFF",
-                  "lat_scale": "LAT_SCALE", "lon_scale": "LONG_SCALE", "height_off": "HEIGHT_OFF",
-                  "height_scale": "HEIGHT_SCALE"}
+_NORMALISATION_UNITS = {
+    "line_off": "px",
+    "samp_off": "px",
+    "line_scale": "px",
+    "samp_scale": "px",
+    "lat_off": "deg",
+    "lon_off": "deg",
+    "lat_scale": "deg",
+    "lon_scale": "deg",
+    "height_off": "m",
+    "height_scale": "m",
+}
+_RPC_KEY_NAMES = {
+    "line_off": "LINE_OFF",
+    "samp_off": "SAMP_OFF",
+    "line_scale": "LINE_SCALE",
+    "samp_scale": "SAMP_SCALE",
+    "lat_off": "LAT_OFF",
+    "lon_off": "LONG_OFF",
+    "lat_scale": "LAT_SCALE",
+    "lon_scale": "LONG_SCALE",
+    "height_off": "HEIGHT_OFF",
+    "height_scale": "HEIGHT_SCALE",
+}
 
 
 class RPCModel(SensorModel):
@@ -193,10 +286,30 @@ class RPCModel(SensorModel):
         File the model was read from (for messages).
     """
 
-    def __init__(self, *, line_num, line_den, samp_num, samp_den, line_off, samp_off,
-                 line_scale, samp_scale, lon_off, lat_off, lon_scale, lat_scale, height_off,
-                 height_scale, err_bias=-1.0, err_rand=-1.0, width=None, height=None,
-                 loc_coeffs=None, source=None):
+    def __init__(
+        self,
+        *,
+        line_num,
+        line_den,
+        samp_num,
+        samp_den,
+        line_off,
+        samp_off,
+        line_scale,
+        samp_scale,
+        lon_off,
+        lat_off,
+        lon_scale,
+        lat_scale,
+        height_off,
+        height_scale,
+        err_bias=-1.0,
+        err_rand=-1.0,
+        width=None,
+        height=None,
+        loc_coeffs=None,
+        source=None,
+    ):
         self.source = str(source) if source else None
         self.line_num = np.asarray(line_num, dtype=np.float64).copy()
         self.line_den = np.asarray(line_den, dtype=np.float64).copy()
@@ -215,11 +328,23 @@ class RPCModel(SensorModel):
         for name in ("line_scale", "samp_scale", "lon_scale", "lat_scale", "height_scale"):
             v = getattr(self, name)
             if not math.isfinite(v) or v == 0.0:
-                raise RPCError(f"{where(self.source)}RPC {name.upper()}: must be finite and non-zero ({v})")
+                raise RPCError(
+                    f"{where(self.source)}RPC {name.upper()}: must be finite and non-zero ({v})"
+                )
         self._check_normalisation()
-        self.width = int(width) if width else max(1, int(math.floor(self.samp_off + abs(self.samp_scale))) + 1)
-        self.height = int(height) if height else max(1, int(math.floor(self.line_off + abs(self.line_scale))) + 1)
-        self.loc_coeffs = None if loc_coeffs is None else np.asarray(loc_coeffs, np.float64).reshape(4, 20).copy()
+        self.width = (
+            int(width)
+            if width
+            else max(1, int(math.floor(self.samp_off + abs(self.samp_scale))) + 1)
+        )
+        self.height = (
+            int(height)
+            if height
+            else max(1, int(math.floor(self.line_off + abs(self.line_scale))) + 1)
+        )
+        self.loc_coeffs = (
+            None if loc_coeffs is None else np.asarray(loc_coeffs, np.float64).reshape(4, 20).copy()
+        )
         self._prepare()
 
     # ------------------------------------------------------------------ internals
@@ -231,13 +356,17 @@ class RPCModel(SensorModel):
             v = abs(getattr(self, name))
             if not lo_abs <= v <= hi_abs:
                 unit = _NORMALISATION_UNITS[name]
-                raise RPCError(f"{where(self.source)}RPC {_RPC_KEY_NAMES[name]} = {getattr(self, name):g} "
-                               f"{unit} is not plausible (|value| must be {lo_abs:g}..{hi_abs:g} {unit}); "
-                               "the RPC file is corrupt")
+                raise RPCError(
+                    f"{where(self.source)}RPC {_RPC_KEY_NAMES[name]} = {getattr(self, name):g} "
+                    f"{unit} is not plausible (|value| must be {lo_abs:g}..{hi_abs:g} {unit}); "
+                    "the RPC file is corrupt"
+                )
 
     def _prepare(self):
         # rows: samp_num, samp_den, line_num, line_den
-        self._C = np.ascontiguousarray(np.stack([self.samp_num, self.samp_den, self.line_num, self.line_den]))
+        self._C = np.ascontiguousarray(
+            np.stack([self.samp_num, self.samp_den, self.line_num, self.line_den])
+        )
         self._CL = np.ascontiguousarray(self._C @ _D_L)  # (4, 10) d/dL in the degree-<=2 terms
         self._CP = np.ascontiguousarray(self._C @ _D_P)
         self._guess = None
@@ -264,11 +393,15 @@ class RPCModel(SensorModel):
         metres above the ellipsoid) and the flattened normalised longitude, latitude and height
         (float64; about [-1, 1] inside the validity range).
         """
-        lon, lat, h = np.broadcast_arrays(np.asarray(lon, np.float64), np.asarray(lat, np.float64),
-                                          np.asarray(h, np.float64))
-        return (lon.shape, (lon.ravel() - self.lon_off) / self.lon_scale,
-                (lat.ravel() - self.lat_off) / self.lat_scale,
-                (h.ravel() - self.height_off) / self.height_scale)
+        lon, lat, h = np.broadcast_arrays(
+            np.asarray(lon, np.float64), np.asarray(lat, np.float64), np.asarray(h, np.float64)
+        )
+        return (
+            lon.shape,
+            (lon.ravel() - self.lon_off) / self.lon_scale,
+            (lat.ravel() - self.lat_off) / self.lat_scale,
+            (h.ravel() - self.height_off) / self.height_scale,
+        )
 
     def normalised_image(self, col, row, h):
         """Image points (pixels) at heights ``h`` (m) in the RPC's normalised units.
@@ -276,11 +409,15 @@ class RPCModel(SensorModel):
         Returns ``(shape, c, r, H)``: the broadcast shape and the flattened normalised column
         (sample), row (line) and height (float64).
         """
-        col, row, h = np.broadcast_arrays(np.asarray(col, np.float64), np.asarray(row, np.float64),
-                                          np.asarray(h, np.float64))
-        return (col.shape, (col.ravel() - self.samp_off) / self.samp_scale,
-                (row.ravel() - self.line_off) / self.line_scale,
-                (h.ravel() - self.height_off) / self.height_scale)
+        col, row, h = np.broadcast_arrays(
+            np.asarray(col, np.float64), np.asarray(row, np.float64), np.asarray(h, np.float64)
+        )
+        return (
+            col.shape,
+            (col.ravel() - self.samp_off) / self.samp_scale,
+            (row.ravel() - self.line_off) / self.line_scale,
+            (h.ravel() - self.height_off) / self.height_scale,
+        )
 
     def project(self, lon, lat, h):
         """Project ground points to the image.
@@ -312,7 +449,7 @@ class RPCModel(SensorModel):
         C = self._C
         for a in range(0, n, _BLOCK):
             b = min(n, a + _BLOCK)
-            m = monomials(L[a:b], P[a:b], H[a:b], out=buf[:, :b - a])
+            m = monomials(L[a:b], P[a:b], H[a:b], out=buf[:, : b - a])
             v = C @ m
             np.divide(v[0], v[1], out=col[a:b])
             np.divide(v[2], v[3], out=row[a:b])
@@ -358,23 +495,30 @@ class RPCModel(SensorModel):
         buf = np.empty((20, min(n, _BLOCK)))
         for a in range(0, n, _BLOCK):
             b = min(n, a + _BLOCK)
-            n_bad += self._newton_block(cn[a:b], rn[a:b], H[a:b], Lout[a:b], Pout[a:b],
-                                        tol_s, tol_l, max_iterations, buf)
+            n_bad += self._newton_block(
+                cn[a:b], rn[a:b], H[a:b], Lout[a:b], Pout[a:b], tol_s, tol_l, max_iterations, buf
+            )
         if n_bad:
-            warnings.warn(f"{where(self.source)}RPC localisation did not converge to {tol:g} px "
-                          f"for {n_bad} of {n} point(s); returned NaN", RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"{where(self.source)}RPC localisation did not converge to {tol:g} px "
+                f"for {n_bad} of {n} point(s); returned NaN",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         lon = Lout * self.lon_scale + self.lon_off
         lat = Pout * self.lat_scale + self.lat_off
         return lon.reshape(shape), lat.reshape(shape)
 
     def _initial_guess(self, cn, rn, H, buf):
         if self.loc_coeffs is not None:
-            m = monomials(cn, rn, H, out=buf[:, :cn.size])
+            m = monomials(cn, rn, H, out=buf[:, : cn.size])
             v = self.loc_coeffs @ m
             return v[0] / v[1], v[2] / v[3]
         g = self._affine_guess()
-        return (cn * g[0, 0] + rn * g[1, 0] + H * g[2, 0] + g[3, 0],
-                cn * g[0, 1] + rn * g[1, 1] + H * g[2, 1] + g[3, 1])
+        return (
+            cn * g[0, 0] + rn * g[1, 0] + H * g[2, 0] + g[3, 0],
+            cn * g[0, 1] + rn * g[1, 1] + H * g[2, 1] + g[3, 1],
+        )
 
     def _newton_block(self, cn, rn, H, Lout, Pout, tol_s, tol_l, max_iterations, buf):
         """Newton iterations on one block; writes converged (L, P) into Lout/Pout, returns #failed."""
@@ -389,7 +533,7 @@ class RPCModel(SensorModel):
             L, P = self._initial_guess(c, r, z, buf)
             pos = np.arange(c.size)  # positions (in the block's finite subset) still iterating
             for it in range(max_iterations + 1):
-                m = monomials(L, P, z, out=buf[:, :L.size])
+                m = monomials(L, P, z, out=buf[:, : L.size])
                 v = self._C @ m
                 s = v[0] / v[1]
                 ln = v[2] / v[3]
@@ -438,15 +582,32 @@ class RPCModel(SensorModel):
                 raise RPCError(f"{where(path)}RPC key {k} missing")
         s = {k: _parse_float(d[k], k, path) for k in SCALAR_KEYS}
         c = {k: _parse_coeffs(d[k], k, path) for k in COEFF_KEYS}
-        err = {k: _parse_float(d[k], k, path) if k in d and str(d[k]).strip() else -1.0
-               for k in ("ERR_BIAS", "ERR_RAND")}
-        return cls(line_num=c["LINE_NUM_COEFF"], line_den=c["LINE_DEN_COEFF"],
-                   samp_num=c["SAMP_NUM_COEFF"], samp_den=c["SAMP_DEN_COEFF"],
-                   line_off=s["LINE_OFF"], samp_off=s["SAMP_OFF"], line_scale=s["LINE_SCALE"],
-                   samp_scale=s["SAMP_SCALE"], lon_off=s["LONG_OFF"], lat_off=s["LAT_OFF"],
-                   lon_scale=s["LONG_SCALE"], lat_scale=s["LAT_SCALE"], height_off=s["HEIGHT_OFF"],
-                   height_scale=s["HEIGHT_SCALE"], err_bias=err["ERR_BIAS"], err_rand=err["ERR_RAND"],
-                   width=width, height=height, loc_coeffs=loc_coeffs, source=path)
+        err = {
+            k: _parse_float(d[k], k, path) if k in d and str(d[k]).strip() else -1.0
+            for k in ("ERR_BIAS", "ERR_RAND")
+        }
+        return cls(
+            line_num=c["LINE_NUM_COEFF"],
+            line_den=c["LINE_DEN_COEFF"],
+            samp_num=c["SAMP_NUM_COEFF"],
+            samp_den=c["SAMP_DEN_COEFF"],
+            line_off=s["LINE_OFF"],
+            samp_off=s["SAMP_OFF"],
+            line_scale=s["LINE_SCALE"],
+            samp_scale=s["SAMP_SCALE"],
+            lon_off=s["LONG_OFF"],
+            lat_off=s["LAT_OFF"],
+            lon_scale=s["LONG_SCALE"],
+            lat_scale=s["LAT_SCALE"],
+            height_off=s["HEIGHT_OFF"],
+            height_scale=s["HEIGHT_SCALE"],
+            err_bias=err["ERR_BIAS"],
+            err_rand=err["ERR_RAND"],
+            width=width,
+            height=height,
+            loc_coeffs=loc_coeffs,
+            source=path,
+        )
 
     @classmethod
     def from_rasterio(cls, rpc, *, width=None, height=None, source=None):
@@ -462,42 +623,70 @@ class RPCModel(SensorModel):
         (:class:`stereodem.sensor.models.rpc_direct.DirectRPCModel`).
         """
         from stereodem.sensor.io.rpc_formats import read_rpc
+
         return read_rpc(path, direct=direct)
 
     # ------------------------------------------------------------------ writers
     def to_dict(self) -> dict:
         """GDAL RPC metadata domain (RFC 22) as a dict of strings, exact (17 significant digits)."""
         f = lambda v: format(float(v), ".17g")  # noqa: E731
-        d = {"LINE_OFF": f(self.line_off), "SAMP_OFF": f(self.samp_off), "LAT_OFF": f(self.lat_off),
-             "LONG_OFF": f(self.lon_off), "HEIGHT_OFF": f(self.height_off),
-             "LINE_SCALE": f(self.line_scale), "SAMP_SCALE": f(self.samp_scale),
-             "LAT_SCALE": f(self.lat_scale), "LONG_SCALE": f(self.lon_scale),
-             "HEIGHT_SCALE": f(self.height_scale), "ERR_BIAS": f(self.err_bias), "ERR_RAND": f(self.err_rand)}
-        for key, arr in zip(COEFF_KEYS, (self.line_num, self.line_den, self.samp_num, self.samp_den)):
+        d = {
+            "LINE_OFF": f(self.line_off),
+            "SAMP_OFF": f(self.samp_off),
+            "LAT_OFF": f(self.lat_off),
+            "LONG_OFF": f(self.lon_off),
+            "HEIGHT_OFF": f(self.height_off),
+            "LINE_SCALE": f(self.line_scale),
+            "SAMP_SCALE": f(self.samp_scale),
+            "LAT_SCALE": f(self.lat_scale),
+            "LONG_SCALE": f(self.lon_scale),
+            "HEIGHT_SCALE": f(self.height_scale),
+            "ERR_BIAS": f(self.err_bias),
+            "ERR_RAND": f(self.err_rand),
+        }
+        for key, arr in zip(
+            COEFF_KEYS, (self.line_num, self.line_den, self.samp_num, self.samp_den)
+        ):
             d[key] = " ".join(f(v) for v in arr)
         return d
 
     def to_rasterio(self):
         """The model as a :class:`rasterio.rpc.RPC` (for ``RPCTransformer`` or ``rpcs=``)."""
         from rasterio.rpc import RPC
-        return RPC(height_off=self.height_off, height_scale=self.height_scale, lat_off=self.lat_off,
-                   lat_scale=self.lat_scale, line_den_coeff=self.line_den.tolist(),
-                   line_num_coeff=self.line_num.tolist(), line_off=self.line_off,
-                   line_scale=self.line_scale, long_off=self.lon_off, long_scale=self.lon_scale,
-                   samp_den_coeff=self.samp_den.tolist(), samp_num_coeff=self.samp_num.tolist(),
-                   samp_off=self.samp_off, samp_scale=self.samp_scale, err_bias=self.err_bias,
-                   err_rand=self.err_rand)
+
+        return RPC(
+            height_off=self.height_off,
+            height_scale=self.height_scale,
+            lat_off=self.lat_off,
+            lat_scale=self.lat_scale,
+            line_den_coeff=self.line_den.tolist(),
+            line_num_coeff=self.line_num.tolist(),
+            line_off=self.line_off,
+            line_scale=self.line_scale,
+            long_off=self.lon_off,
+            long_scale=self.lon_scale,
+            samp_den_coeff=self.samp_den.tolist(),
+            samp_num_coeff=self.samp_num.tolist(),
+            samp_off=self.samp_off,
+            samp_scale=self.samp_scale,
+            err_bias=self.err_bias,
+            err_rand=self.err_rand,
+        )
 
     def write_rpb(self, path, *, overwrite=False):
         """Write a GDAL/DigitalGlobe ``.RPB`` file (:func:`stereodem.sensor.io.rpc_formats.write_rpb`)."""
         from stereodem.sensor.io.rpc_formats import write_rpb
+
         return write_rpb(self, path, overwrite=overwrite)
 
     def write_geotiff_tags(self, path, *, data=None, overwrite=False):
         """Store the RPCs in a GeoTIFF (:func:`stereodem.sensor.io.rpc_formats.write_geotiff_rpc`)."""
         from stereodem.sensor.io.rpc_formats import write_geotiff_rpc
+
         return write_geotiff_rpc(self, path, data=data, overwrite=overwrite)
 
     def __repr__(self):
-        return (f"RPCModel({self.width}x{self.height}, lon {self.lon_off:.6f}±{self.lon_scale:.6f}, "
-                f"lat {self.lat_off:.6f}±{self.lat_scale:.6f}, h {self.height_off:g}±{self.height_scale:g})")
+        return (
+            f"RPCModel({self.width}x{self.height}, lon {self.lon_off:.6f}±{self.lon_scale:.6f}, "
+            f"lat {self.lat_off:.6f}±{self.lat_scale:.6f}, h {self.height_off:g}±{self.height_scale:g})"
+        )

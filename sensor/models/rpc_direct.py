@@ -14,6 +14,7 @@ to 1e-2 px). :class:`DirectRPCModel` uses the direct model as the vendor intende
 compatibility with software that does, e.g. OTB/OSSIM and shareloc; and about 5x faster);
 ``read_rpc(path, direct=True)`` and the CLI's ``--rpc-direct`` select it.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -36,10 +37,17 @@ class DirectRPCModel(RPCModel):
     @classmethod
     def from_rpc(cls, model: RPCModel) -> DirectRPCModel:
         if model.loc_coeffs is None:
-            raise RPCError(f"{where(model.source)}the RPC file has no direct (image -> ground) model")
+            raise RPCError(
+                f"{where(model.source)}the RPC file has no direct (image -> ground) model"
+            )
         d = model.to_dict()
-        return cls.from_dict(d, path=model.source, width=model.width, height=model.height,
-                             loc_coeffs=model.loc_coeffs)
+        return cls.from_dict(
+            d,
+            path=model.source,
+            width=model.width,
+            height=model.height,
+            loc_coeffs=model.loc_coeffs,
+        )
 
     def localize(self, col, row, h, **_ignored):
         """Image ``(col, row)`` at height ``h`` to ``(lon, lat)`` by the direct polynomials."""
@@ -78,9 +86,11 @@ def check_validity(model: RPCModel, lon, lat, h, *, tolerance: float = 0.1):
     bad = ((np.abs(nl) > lim) | (np.abs(np_) > lim) | (np.abs(nh) > lim)).reshape(shape)
     if bad.any():
         s = abs(model.height_scale)
-        raise RPCError(f"{where(model.source)}{int(bad.sum())} of {bad.size} point(s) outside the "
-                       f"RPC validity range (lon {model.lon_off - abs(model.lon_scale):.4f}.."
-                       f"{model.lon_off + abs(model.lon_scale):.4f}, lat "
-                       f"{model.lat_off - abs(model.lat_scale):.4f}..{model.lat_off + abs(model.lat_scale):.4f}, "
-                       f"h {model.height_off - s:.0f}..{model.height_off + s:.0f} m)")
+        raise RPCError(
+            f"{where(model.source)}{int(bad.sum())} of {bad.size} point(s) outside the "
+            f"RPC validity range (lon {model.lon_off - abs(model.lon_scale):.4f}.."
+            f"{model.lon_off + abs(model.lon_scale):.4f}, lat "
+            f"{model.lat_off - abs(model.lat_scale):.4f}..{model.lat_off + abs(model.lat_scale):.4f}, "
+            f"h {model.height_off - s:.0f}..{model.height_off + s:.0f} m)"
+        )
     return ~bad

@@ -25,6 +25,7 @@ Only choices marked [UNVERIFIED] in the notes are ours (dimension names, dtypes 
 fields, ``ObservationTime`` words, attitude fields written as zeros); the reader depends on none
 of them.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -57,17 +58,17 @@ class BandProduct:
     """The fields of one simulated band swath (product layout, see the module docstring)."""
 
     band: str
-    dn: np.ndarray                      #: uint8 (rows, cols)
-    radiance: np.ndarray                #: float32 true radiance (NaN at fill)
-    rc_table: np.ndarray                #: float32 (cols, 3) = (D, A, G)
-    lattice: np.ndarray                 #: int32 (N, 11, 2) = (col, row)
-    sight_vectors: np.ndarray           #: (N, 11, 3)
-    positions: np.ndarray               #: (N, 3)
-    velocities: np.ndarray              #: (N, 3)
-    observation_time: np.ndarray        #: int32 (N, 4)
-    latitude: np.ndarray                #: geocentric (N, 11)
-    longitude: np.ndarray               #: (N, 11)
-    times: np.ndarray                   #: model line time of every lattice row, s
+    dn: np.ndarray  #: uint8 (rows, cols)
+    radiance: np.ndarray  #: float32 true radiance (NaN at fill)
+    rc_table: np.ndarray  #: float32 (cols, 3) = (D, A, G)
+    lattice: np.ndarray  #: int32 (N, 11, 2) = (col, row)
+    sight_vectors: np.ndarray  #: (N, 11, 3)
+    positions: np.ndarray  #: (N, 3)
+    velocities: np.ndarray  #: (N, 3)
+    observation_time: np.ndarray  #: int32 (N, 4)
+    latitude: np.ndarray  #: geocentric (N, 11)
+    longitude: np.ndarray  #: (N, 11)
+    times: np.ndarray  #: model line time of every lattice row, s
 
 
 @dataclass
@@ -77,11 +78,12 @@ class SimulatedGranule:
     granule_id: str
     start: _dt.datetime
     bands: dict
-    attributes: dict = field(default_factory=dict)      #: ODL global attributes (V004 names)
+    attributes: dict = field(default_factory=dict)  #: ODL global attributes (V004 names)
     settings: dict = field(default_factory=dict)
 
 
 # ============================================================================ geometry
+
 
 def lattice_product(model, band: str, *, row_step: int, velocity: str = "inertial"):
     """Lattice geometry of ``model`` as the product stores it.
@@ -91,8 +93,10 @@ def lattice_product(model, band: str, *, row_step: int, velocity: str = "inertia
     """
     w, h = int(model.width), int(model.height)
     if w % 10:
-        raise InputError(f"ASTER granule simulation: image width {w} must be a multiple of 10 "
-                         f"(11 lattice columns; real 3N 4100, 3B 5000)")
+        raise InputError(
+            f"ASTER granule simulation: image width {w} must be a multiple of 10 "
+            f"(11 lattice columns; real 3N 4100, 3B 5000)"
+        )
     r0 = int(round(_FIRST_ROW_FRACTION.get(band, -0.5) * row_step))
     n = int(np.ceil((h - 1 - r0) / row_step)) + 1
     rows = r0 + row_step * np.arange(n)
@@ -101,7 +105,7 @@ def lattice_product(model, band: str, *, row_step: int, velocity: str = "inertia
     origin, d = model.rays(cc, rr)
     t = model.line_time(rows.astype(float))
     pos, v_ef = model.ephemeris.state(t)
-    frame = orbital_frame(pos, v_ef, inertial=True)                 # (N, 3, 3)
+    frame = orbital_frame(pos, v_ef, inertial=True)  # (N, 3, 3)
     sight = np.einsum("nji,nkj->nki", frame, d)
     ground = geodesy.intersect_height(origin, d, np.zeros(cc.shape))
     lon = np.degrees(np.arctan2(ground[..., 1], ground[..., 0]))
@@ -114,15 +118,23 @@ def lattice_product(model, band: str, *, row_step: int, velocity: str = "inertia
 def observation_time_words(when: _dt.datetime):
     """``(days since 1958-01-01, ms_of_day // 100000, ms_of_day % 100000, us)`` (notes §4.5)."""
     delta = when - _EPOCH_1958
-    us_total = (delta.seconds * 1_000_000 + delta.microseconds)
+    us_total = delta.seconds * 1_000_000 + delta.microseconds
     ms, us = divmod(us_total, 1000)
     return [delta.days, ms // 100000, ms % 100000, us]
 
 
 # ============================================================================ radiometry
 
-def radiometric_table(width: int, rng, *, ucc: float = UCC_NORMAL, trend: float = 0.04,
-                      stripes: float = 0.03, stripe_fraction: float = 0.05):
+
+def radiometric_table(
+    width: int,
+    rng,
+    *,
+    ucc: float = UCC_NORMAL,
+    trend: float = 0.04,
+    stripes: float = 0.03,
+    stripe_fraction: float = 0.05,
+):
     """A per-detector (D, A, G) table: float32 (width, 3).
 
     ``A = ucc * s``, ``G = 1``, ``D`` in [-1, 0]; ``s`` has a smooth across-track trend of
@@ -149,10 +161,18 @@ def radiance_to_dn(radiance, table):
 
 # ============================================================================ from a scene
 
-def granule_from_scene(scene, *, seed: int = 0, velocity: str = "inertial", row_step=None,
-                       start: _dt.datetime = DEFAULT_START, version: int = 4,
-                       radiance_scale: float = 0.9 * UCC_NORMAL,
-                       scene_index: int = 0) -> SimulatedGranule:
+
+def granule_from_scene(
+    scene,
+    *,
+    seed: int = 0,
+    velocity: str = "inertial",
+    row_step=None,
+    start: _dt.datetime = DEFAULT_START,
+    version: int = 4,
+    radiance_scale: float = 0.9 * UCC_NORMAL,
+    scene_index: int = 0,
+) -> SimulatedGranule:
     """Turn an ``aster`` scene (3N = left, 3B = right) into a granule in memory.
 
     ``scene_index`` numbers the granules of one simulated pass
@@ -171,21 +191,48 @@ def granule_from_scene(scene, *, seed: int = 0, velocity: str = "inertial", row_
         row_step = 400 if h3n >= 4000 else max(8, int(round(h3n / 10.5)))
     t_ref = float(scene.left_model.line_time(0.0))
     bands = {}
-    for band, img, model in (("3N", scene.left, scene.left_model), ("3B", scene.right, scene.right_model)):
-        lattice, sight, pos, vel, lat, lon, t = lattice_product(model, band, row_step=row_step,
-                                                                velocity=velocity)
+    for band, img, model in (
+        ("3N", scene.left, scene.left_model),
+        ("3B", scene.right, scene.right_model),
+    ):
+        lattice, sight, pos, vel, lat, lon, t = lattice_product(
+            model, band, row_step=row_step, velocity=velocity
+        )
         radiance = img.astype(np.float32) * np.float32(radiance_scale)
         radiance[img == 0] = np.nan
         table = radiometric_table(img.shape[1], rng)
-        obs = np.array([observation_time_words(start + _dt.timedelta(seconds=float(ti - t_ref)))
-                        for ti in t], np.int32)
-        bands[band] = BandProduct(band, radiance_to_dn(radiance, table), radiance, table, lattice,
-                                  sight, pos, vel, obs, lat, lon, t)
+        obs = np.array(
+            [observation_time_words(start + _dt.timedelta(seconds=float(ti - t_ref))) for ti in t],
+            np.int32,
+        )
+        bands[band] = BandProduct(
+            band,
+            radiance_to_dn(radiance, table),
+            radiance,
+            table,
+            lattice,
+            sight,
+            pos,
+            vel,
+            obs,
+            lat,
+            lon,
+            t,
+        )
     now = _dt.datetime(2026, 11, 21, 12, 0, 0) + _dt.timedelta(seconds=int(scene_index))
     gid = f"AST_L1A_00{version}{start:%m%d%Y%H%M%S}_{now:%Y%m%d%H%M%S}"
-    g = SimulatedGranule(gid, start, bands, settings=dict(velocity=velocity, row_step=row_step,
-                                                          seed=seed, radiance_scale=radiance_scale,
-                                                          scene_index=int(scene_index)))
+    g = SimulatedGranule(
+        gid,
+        start,
+        bands,
+        settings=dict(
+            velocity=velocity,
+            row_step=row_step,
+            seed=seed,
+            radiance_scale=radiance_scale,
+            scene_index=int(scene_index),
+        ),
+    )
     g.attributes = _odl_attributes(g, scene)
     return g
 
@@ -194,8 +241,10 @@ def _corners(model):
     """Geodetic (lat, lon) of the image corners on the ellipsoid."""
     w, h = model.width - 1, model.height - 1
     lon, lat = model.localize(np.array([0.0, w, 0.0, w]), np.array([0.0, 0.0, h, h]), np.zeros(4))
-    return {k: (round(float(la), 6), round(float(lo), 6))
-            for k, la, lo in zip(("UPPERLEFT", "UPPERRIGHT", "LOWERLEFT", "LOWERRIGHT"), lat, lon)}
+    return {
+        k: (round(float(la), 6), round(float(lo), 6))
+        for k, la, lo in zip(("UPPERLEFT", "UPPERRIGHT", "LOWERLEFT", "LOWERRIGHT"), lat, lon)
+    }
 
 
 def _obj(value, cls=None):
@@ -208,6 +257,7 @@ def _obj(value, cls=None):
 
 def _odl_attributes(g: SimulatedGranule, scene) -> dict:
     from stereodem.sensor.simulation.simulate import SUN_AZIMUTH, SUN_ELEVATION
+
     m3n = scene.left_model
     corners = _corners(m3n)
     lats = [c[0] for c in corners.values()]
@@ -216,45 +266,71 @@ def _odl_attributes(g: SimulatedGranule, scene) -> dict:
     mid = b3n.sight_vectors[0, 5]
     pointing = float(np.degrees(np.arctan2(mid[1], mid[2])))
     stop = g.start + _dt.timedelta(seconds=float(g.bands["3B"].times[-1] - b3n.times[0]))
-    core = {"INVENTORYMETADATA": {
-        "GROUPTYPE": "MASTERGROUP",
-        "ECSDATAGRANULE": {"LOCALGRANULEID": _obj(g.granule_id + ".hdf"),
-                           "PRODUCTIONDATETIME": _obj("2026-11-21T12:00:00.000Z")},
-        "COLLECTIONDESCRIPTIONCLASS": {"SHORTNAME": _obj("ASTL1A"), "VERSIONID": _obj(4)},
-        "RANGEDATETIME": {"RANGEBEGINNINGDATE": _obj(f"{g.start:%Y-%m-%d}"),
-                          "RANGEBEGINNINGTIME": _obj(f"{g.start:%H:%M:%S.%f}"),
-                          "RANGEENDINGDATE": _obj(f"{stop:%Y-%m-%d}"),
-                          "RANGEENDINGTIME": _obj(f"{stop:%H:%M:%S.%f}")},
-        "SPATIALDOMAINCONTAINER": {"HORIZONTALSPATIALDOMAINCONTAINER": {"BOUNDINGRECTANGLE": {
-            "WESTBOUNDINGCOORDINATE": _obj(min(lons)), "NORTHBOUNDINGCOORDINATE": _obj(max(lats)),
-            "EASTBOUNDINGCOORDINATE": _obj(max(lons)), "SOUTHBOUNDINGCOORDINATE": _obj(min(lats))}}},
-        "ASSOCIATEDPLATFORMINSTRUMENTSENSOR": {"ASSOCIATEDPLATFORMINSTRUMENTSENSORCONTAINER": {
-            "ASSOCIATEDPLATFORMSHORTNAME": _obj("Terra"),
-            "ASSOCIATEDINSTRUMENTSHORTNAME": _obj("ASTER")}},
-        "QASTATS": {"PROCESSINGLEVELID": _obj("1A")},
-    }}
-    product = {"ASTERGENERICMETADATA": {
-        "SCENEINFORMATION": {
-            "ASTERSCENEID": _obj((46, 27 + int(g.settings.get("scene_index", 0)), 0)),
-            "CALENDARDATE": _obj(f"{g.start:%Y%m%d}"),
-            "TIMEOFDAY": _obj(f"{g.start:%H%M%S}"),
-            "SCENECLOUDCOVERAGE": _obj(0),
-            "SOLARDIRECTION": _obj((float(SUN_AZIMUTH), float(SUN_ELEVATION))),
-            "FIRSTPACKETTIME": _obj(f"{g.start:%Y-%m-%dT%H:%M:%S}Z"),
-            "LASTPACKETTIME": _obj(f"{stop:%Y-%m-%dT%H:%M:%S}Z"),
-            "INSTRUMENTSHORTNAME": _obj("ASTER"),
-        },
-        "POINTINGANGLES": {"POINTINGANGLE": _obj(round(pointing, 3), 1),
-                           "SENSORNAME": _obj("VNIR", 1)},
-        "SCENEFOURCORNERS": {k: _obj(v) for k, v in corners.items()},
-    }}
-    vnir = {"PRODUCTSPECIFICMETADATAVNIR": {
-        **{f"UNITCONVERSIONCOEFF{b}": {f"INCL{b}": _obj(UCC_NORMAL)} for b in ("3N", "3B")},
-        "GAININFORMATION": {"GAIN": _obj(("03N", "NOR"), 1), "GAIN.2": _obj(("03B", "NOR"), 2)},
-    }}
-    return {"HDFEOSVersion": "HDFEOS_V2.19", "StructMetadata.0": struct_metadata(g),
-            "coremetadata.0": format_odl(core), "productmetadata.0": format_odl(product),
-            "productmetadata.v": format_odl(vnir)}
+    core = {
+        "INVENTORYMETADATA": {
+            "GROUPTYPE": "MASTERGROUP",
+            "ECSDATAGRANULE": {
+                "LOCALGRANULEID": _obj(g.granule_id + ".hdf"),
+                "PRODUCTIONDATETIME": _obj("2026-11-21T12:00:00.000Z"),
+            },
+            "COLLECTIONDESCRIPTIONCLASS": {"SHORTNAME": _obj("ASTL1A"), "VERSIONID": _obj(4)},
+            "RANGEDATETIME": {
+                "RANGEBEGINNINGDATE": _obj(f"{g.start:%Y-%m-%d}"),
+                "RANGEBEGINNINGTIME": _obj(f"{g.start:%H:%M:%S.%f}"),
+                "RANGEENDINGDATE": _obj(f"{stop:%Y-%m-%d}"),
+                "RANGEENDINGTIME": _obj(f"{stop:%H:%M:%S.%f}"),
+            },
+            "SPATIALDOMAINCONTAINER": {
+                "HORIZONTALSPATIALDOMAINCONTAINER": {
+                    "BOUNDINGRECTANGLE": {
+                        "WESTBOUNDINGCOORDINATE": _obj(min(lons)),
+                        "NORTHBOUNDINGCOORDINATE": _obj(max(lats)),
+                        "EASTBOUNDINGCOORDINATE": _obj(max(lons)),
+                        "SOUTHBOUNDINGCOORDINATE": _obj(min(lats)),
+                    }
+                }
+            },
+            "ASSOCIATEDPLATFORMINSTRUMENTSENSOR": {
+                "ASSOCIATEDPLATFORMINSTRUMENTSENSORCONTAINER": {
+                    "ASSOCIATEDPLATFORMSHORTNAME": _obj("Terra"),
+                    "ASSOCIATEDINSTRUMENTSHORTNAME": _obj("ASTER"),
+                }
+            },
+            "QASTATS": {"PROCESSINGLEVELID": _obj("1A")},
+        }
+    }
+    product = {
+        "ASTERGENERICMETADATA": {
+            "SCENEINFORMATION": {
+                "ASTERSCENEID": _obj((46, 27 + int(g.settings.get("scene_index", 0)), 0)),
+                "CALENDARDATE": _obj(f"{g.start:%Y%m%d}"),
+                "TIMEOFDAY": _obj(f"{g.start:%H%M%S}"),
+                "SCENECLOUDCOVERAGE": _obj(0),
+                "SOLARDIRECTION": _obj((float(SUN_AZIMUTH), float(SUN_ELEVATION))),
+                "FIRSTPACKETTIME": _obj(f"{g.start:%Y-%m-%dT%H:%M:%S}Z"),
+                "LASTPACKETTIME": _obj(f"{stop:%Y-%m-%dT%H:%M:%S}Z"),
+                "INSTRUMENTSHORTNAME": _obj("ASTER"),
+            },
+            "POINTINGANGLES": {
+                "POINTINGANGLE": _obj(round(pointing, 3), 1),
+                "SENSORNAME": _obj("VNIR", 1),
+            },
+            "SCENEFOURCORNERS": {k: _obj(v) for k, v in corners.items()},
+        }
+    }
+    vnir = {
+        "PRODUCTSPECIFICMETADATAVNIR": {
+            **{f"UNITCONVERSIONCOEFF{b}": {f"INCL{b}": _obj(UCC_NORMAL)} for b in ("3N", "3B")},
+            "GAININFORMATION": {"GAIN": _obj(("03N", "NOR"), 1), "GAIN.2": _obj(("03B", "NOR"), 2)},
+        }
+    }
+    return {
+        "HDFEOSVersion": "HDFEOS_V2.19",
+        "StructMetadata.0": struct_metadata(g),
+        "coremetadata.0": format_odl(core),
+        "productmetadata.0": format_odl(product),
+        "productmetadata.v": format_odl(vnir),
+    }
 
 
 # ============================================================================ V004 writer
@@ -278,12 +354,20 @@ _FIELDS = {
 
 def _field_arrays(b: BandProduct) -> dict:
     n = b.lattice.shape[0]
-    return {"ImageData": b.dn, "RadiometricCorrTable": b.rc_table, "LatticePoint": b.lattice,
-            "SightVector": b.sight_vectors, "SatellitePosition": b.positions,
-            "SatelliteVelocity": b.velocities, "ObservationTime": b.observation_time,
-            "AttitudeAngle": np.zeros((n, 3)), "AttitudeRate": np.zeros((n, 3)),
-            "Latitude": b.latitude, "Longitude": b.longitude,
-            "SceneLineNumber": b.lattice[:, 0, 1].astype(np.int32)}
+    return {
+        "ImageData": b.dn,
+        "RadiometricCorrTable": b.rc_table,
+        "LatticePoint": b.lattice,
+        "SightVector": b.sight_vectors,
+        "SatellitePosition": b.positions,
+        "SatelliteVelocity": b.velocities,
+        "ObservationTime": b.observation_time,
+        "AttitudeAngle": np.zeros((n, 3)),
+        "AttitudeRate": np.zeros((n, 3)),
+        "Latitude": b.latitude,
+        "Longitude": b.longitude,
+        "SceneLineNumber": b.lattice[:, 0, 1].astype(np.int32),
+    }
 
 
 def struct_metadata(g: SimulatedGranule) -> str:
@@ -297,36 +381,61 @@ def struct_metadata(g: SimulatedGranule) -> str:
                 sizes[d] = s
         out += [f"\tGROUP=SWATH_{k}", f'\t\tSwathName="{swath_name(band)}"', "\t\tGROUP=Dimension"]
         for i, (d, s) in enumerate(sizes.items(), 1):
-            out += [f"\t\t\tOBJECT=Dimension_{i}", f'\t\t\t\tDimensionName="{d}"', f"\t\t\t\tSize={s}",
-                    f"\t\t\tEND_OBJECT=Dimension_{i}"]
+            out += [
+                f"\t\t\tOBJECT=Dimension_{i}",
+                f'\t\t\t\tDimensionName="{d}"',
+                f"\t\t\t\tSize={s}",
+                f"\t\t\tEND_OBJECT=Dimension_{i}",
+            ]
         out += ["\t\tEND_GROUP=Dimension", "\t\tGROUP=DimensionMap"]
         r0, dr = int(b.lattice[0, 0, 1]), int(b.lattice[1, 0, 1] - b.lattice[0, 0, 1])
         dc = int(b.lattice[0, 1, 0])
-        for i, (geo, data, off, inc) in enumerate((("GeoTrack", "ImageLine", r0, dr),
-                                                   ("GeoXTrack", "ImagePixel", 0, dc)), 1):
-            out += [f"\t\t\tOBJECT=DimensionMap_{i}", f'\t\t\t\tGeoDimension="{geo}"',
-                    f'\t\t\t\tDataDimension="{data}"', f"\t\t\t\tOffset={off}",
-                    f"\t\t\t\tIncrement={inc}", f"\t\t\tEND_OBJECT=DimensionMap_{i}"]
-        out += ["\t\tEND_GROUP=DimensionMap", "\t\tGROUP=IndexDimensionMap",
-                "\t\tEND_GROUP=IndexDimensionMap"]
+        for i, (geo, data, off, inc) in enumerate(
+            (("GeoTrack", "ImageLine", r0, dr), ("GeoXTrack", "ImagePixel", 0, dc)), 1
+        ):
+            out += [
+                f"\t\t\tOBJECT=DimensionMap_{i}",
+                f'\t\t\t\tGeoDimension="{geo}"',
+                f'\t\t\t\tDataDimension="{data}"',
+                f"\t\t\t\tOffset={off}",
+                f"\t\t\t\tIncrement={inc}",
+                f"\t\t\tEND_OBJECT=DimensionMap_{i}",
+            ]
+        out += [
+            "\t\tEND_GROUP=DimensionMap",
+            "\t\tGROUP=IndexDimensionMap",
+            "\t\tEND_GROUP=IndexDimensionMap",
+        ]
         for group, kind in (("Geolocation Fields", "GeoField"), ("Data Fields", "DataField")):
             out.append(f"\t\tGROUP={kind}")
             names = [n for n, (grp, _, _) in _FIELDS.items() if grp == group]
             for i, name in enumerate(names, 1):
                 _, dims, typ = _FIELDS[name]
                 dl = ",".join(f'"{d}"' for d in dims)
-                out += [f"\t\t\tOBJECT={kind}_{i}", f'\t\t\t\t{kind}Name="{name}"',
-                        f"\t\t\t\tDataType=DFNT_{typ}", f"\t\t\t\tDimList=({dl})",
-                        f"\t\t\tEND_OBJECT={kind}_{i}"]
+                out += [
+                    f"\t\t\tOBJECT={kind}_{i}",
+                    f'\t\t\t\t{kind}Name="{name}"',
+                    f"\t\t\t\tDataType=DFNT_{typ}",
+                    f"\t\t\t\tDimList=({dl})",
+                    f"\t\t\tEND_OBJECT={kind}_{i}",
+                ]
             out.append(f"\t\tEND_GROUP={kind}")
         out += ["\t\tGROUP=MergedFields", "\t\tEND_GROUP=MergedFields", f"\tEND_GROUP=SWATH_{k}"]
-    out += ["END_GROUP=SwathStructure", "GROUP=GridStructure", "END_GROUP=GridStructure",
-            "GROUP=PointStructure", "END_GROUP=PointStructure", "END", ""]
+    out += [
+        "END_GROUP=SwathStructure",
+        "GROUP=GridStructure",
+        "END_GROUP=GridStructure",
+        "GROUP=PointStructure",
+        "END_GROUP=PointStructure",
+        "END",
+        "",
+    ]
     return "\n".join(out)
 
 
 def _check_target(path: Path, overwrite: bool):
     from stereodem.core.errors import OutputExistsError
+
     if path.exists() and not overwrite:
         raise OutputExistsError(f"{path}: exists; pass --overwrite to replace it")
 
@@ -363,7 +472,7 @@ def write_v004(g: SimulatedGranule, path, *, overwrite: bool = False) -> Path:
         h = HDF(tmp, HC.WRITE)
         v = h.vgstart()
         top = v.create("VNIR")
-        top._class = "VNIR"                         # [UNVERIFIED] class of the lone Vgroup
+        top._class = "VNIR"  # [UNVERIFIED] class of the lone Vgroup
         for band in g.bands:
             sw = v.create(swath_name(band))
             sw._class = "SWATH"
@@ -387,6 +496,7 @@ def write_v004(g: SimulatedGranule, path, *, overwrite: bool = False) -> Path:
 
 
 # ============================================================================ V003 writer
+
 
 def _fmt_rows(a, fmt):
     return "\n".join(" ".join(fmt % x for x in row) for row in np.atleast_2d(a)) + "\n"
@@ -418,8 +528,9 @@ def v003_tables(b: BandProduct, decimals: int | None = 6) -> dict:
     }
 
 
-def write_v003(g: SimulatedGranule, path, *, overwrite: bool = False,
-               decimals: int | None = 6) -> Path:
+def write_v003(
+    g: SimulatedGranule, path, *, overwrite: bool = False, decimals: int | None = 6
+) -> Path:
     """Write ``g`` as a V003 granule: a folder, or a zip if ``path`` ends in ``.zip``
     (then the ODL metadata goes to ``<zip>.met`` beside it). ``decimals`` as
     :func:`v003_tables`."""
@@ -428,15 +539,16 @@ def write_v003(g: SimulatedGranule, path, *, overwrite: bool = False,
     path = Path(path)
     _check_target(path, overwrite)
     as_zip = path.suffix.lower() == ".zip"
-    work = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent if path.parent.exists() else None))
+    work = Path(
+        tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent if path.parent.exists() else None)
+    )
     try:
         for band, b in g.bands.items():
             stem = f"{g.granule_id}.{swath_name(band)}"
             write_geotiff(work / f"{stem}.ImageData.tif", b.dn, None, None, None)
             for name, text in v003_tables(b, decimals).items():
                 (work / f"{stem}.{name}.txt").write_text(text)
-        met = g.attributes["coremetadata.0"].rsplit("END", 1)[0] + \
-            g.attributes["productmetadata.0"]
+        met = g.attributes["coremetadata.0"].rsplit("END", 1)[0] + g.attributes["productmetadata.0"]
         if as_zip:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(f".{path.name}.part")
@@ -463,11 +575,19 @@ def granule_right_size(size) -> tuple[int, int]:
     return int(round(w * 5000 / 4100 / 10.0)) * 10, int(round(h * 5400 / 4200))
 
 
-def write_granule_scene(scene, out, *, version: int = 4, seed: int = 0, velocity: str = "inertial",
-                        overwrite: bool = False) -> Path:
+def write_granule_scene(
+    scene,
+    out,
+    *,
+    version: int = 4,
+    seed: int = 0,
+    velocity: str = "inertial",
+    overwrite: bool = False,
+) -> Path:
     """Write a simulated ASTER scene as an L1A granule (V004 ``.hdf`` or V003 ``.zip``) plus its
     truth (DEM, orthoimage, check points) in ``out``; returns the granule's path."""
     from stereodem.sensor.simulation.simulate import write_scene
+
     g = granule_from_scene(scene, seed=seed, velocity=velocity, version=version)
     out = write_scene(scene, out, overwrite=overwrite, write_images=False)
     if version == 4:

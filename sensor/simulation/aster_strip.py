@@ -20,6 +20,7 @@ granules the way the ground segment cuts a pass (ASTER notes ``aster-l1a-format.
   ``ASTERSCENEID`` ``(path, row + k, 0)`` and its production time ``k`` seconds after the
   first (distinct granule ids; [our choice]).
 """
+
 from __future__ import annotations
 
 import copy
@@ -46,8 +47,18 @@ def crop_lines(model, first: int, height: int):
     return m
 
 
-def cut_granule(scene, first: int, heights, *, row_step: int, start: _dt.datetime = DEFAULT_START,
-                index: int = 0, seed: int = 0, velocity: str = "inertial", version: int = 4):
+def cut_granule(
+    scene,
+    first: int,
+    heights,
+    *,
+    row_step: int,
+    start: _dt.datetime = DEFAULT_START,
+    index: int = 0,
+    seed: int = 0,
+    velocity: str = "inertial",
+    version: int = 4,
+):
     """The granule (in memory) of 3N lines ``first .. first + heights[0]`` and 3B lines
     ``first .. first + heights[1]`` of a long ``aster`` scene; ``start`` is the time of the
     long scene's 3N line 0 (the granule's own start follows from ``first``)."""
@@ -56,28 +67,48 @@ def cut_granule(scene, first: int, heights, *, row_step: int, start: _dt.datetim
         raise InputError(f"granule lines {first}..{first + max(h, hb) - 1} are outside the scene")
     lp = float(scene.left_model.line_period)
     part = dataclasses.replace(
-        scene, left=scene.left[first:first + h], right=scene.right[first:first + hb],
+        scene,
+        left=scene.left[first : first + h],
+        right=scene.right[first : first + hb],
         left_model=crop_lines(scene.left_model, first, h),
-        right_model=crop_lines(scene.right_model, first, hb))
-    return granule_from_scene(part, seed=seed, velocity=velocity, row_step=row_step, version=version,
-                              start=start + _dt.timedelta(seconds=first * lp), scene_index=index)
+        right_model=crop_lines(scene.right_model, first, hb),
+    )
+    return granule_from_scene(
+        part,
+        seed=seed,
+        velocity=velocity,
+        row_step=row_step,
+        version=version,
+        start=start + _dt.timedelta(seconds=first * lp),
+        scene_index=index,
+    )
 
 
 @dataclasses.dataclass
 class SimulatedStrip:
     """A simulated pass: the long scene, its granules (in memory) and where each was cut."""
 
-    scene: object                   #: the long Scene (truth DEM and orthoimage of the strip)
-    granules: list                  #: SimulatedGranule per granule, in time order
-    first_lines: list               #: 3N (and 3B) line of the long images where granule k starts
-    heights: tuple                  #: (3N lines, 3B lines) of every granule
-    advance: int                    #: lines between consecutive granule starts
-    row_step: int                   #: lattice row step, lines
+    scene: object  #: the long Scene (truth DEM and orthoimage of the strip)
+    granules: list  #: SimulatedGranule per granule, in time order
+    first_lines: list  #: 3N (and 3B) line of the long images where granule k starts
+    heights: tuple  #: (3N lines, 3B lines) of every granule
+    advance: int  #: lines between consecutive granule starts
+    row_step: int  #: lattice row step, lines
 
 
-def simulate_strip(n_granules: int = 2, *, size=(200, 160), right_size=None, seed: int = 0,
-                   noise: float = 1.0, dem=None, texture=None, velocity: str = "inertial",
-                   start: _dt.datetime = DEFAULT_START, version: int = 4) -> SimulatedStrip:
+def simulate_strip(
+    n_granules: int = 2,
+    *,
+    size=(200, 160),
+    right_size=None,
+    seed: int = 0,
+    noise: float = 1.0,
+    dem=None,
+    texture=None,
+    velocity: str = "inertial",
+    start: _dt.datetime = DEFAULT_START,
+    version: int = 4,
+) -> SimulatedStrip:
     """``n_granules`` consecutive granules of one simulated ASTER pass (see the module docstring).
 
     ``size`` is one granule's 3N (width, lines); ``right_size`` its 3B size (default the real
@@ -85,6 +116,7 @@ def simulate_strip(n_granules: int = 2, *, size=(200, 160), right_size=None, see
     """
     from stereodem.sensor.simulation.aster_granule import granule_right_size
     from stereodem.sensor.simulation.simulate import simulate_scene
+
     n = int(n_granules)
     if n < 1:
         raise InputError(f"a strip needs at least one granule, got {n_granules}")
@@ -97,12 +129,30 @@ def simulate_strip(n_granules: int = 2, *, size=(200, 160), right_size=None, see
     if advance >= h:
         raise InputError(f"granules of {h} lines are too short to overlap (lattice step {step})")
     total = advance * (n - 1) + h
-    scene = simulate_scene("aster", size=(w, total), right_size=(wb, total + hb - h), dem=dem,
-                           texture=texture, noise=noise, seed=seed)
+    scene = simulate_scene(
+        "aster",
+        size=(w, total),
+        right_size=(wb, total + hb - h),
+        dem=dem,
+        texture=texture,
+        noise=noise,
+        seed=seed,
+    )
     granules, firsts = [], []
     for k in range(n):
-        granules.append(cut_granule(scene, k * advance, (h, hb), row_step=step, start=start,
-                                    index=k, seed=seed, velocity=velocity, version=version))
+        granules.append(
+            cut_granule(
+                scene,
+                k * advance,
+                (h, hb),
+                row_step=step,
+                start=start,
+                index=k,
+                seed=seed,
+                velocity=velocity,
+                version=version,
+            )
+        )
         firsts.append(k * advance)
     return SimulatedStrip(scene, granules, firsts, (h, hb), advance, step)
 
@@ -117,6 +167,7 @@ def write_strip(strip: SimulatedStrip, out, *, overwrite: bool = False, version:
     from stereodem.core.raster import write_text_atomic
     from stereodem.sensor.simulation.aster_granule import write_v003, write_v004
     from stereodem.sensor.simulation.simulate import write_scene
+
     folder = write_scene(strip.scene, out, overwrite=overwrite, write_images=False)
     paths = []
     for g in strip.granules:
@@ -124,11 +175,24 @@ def write_strip(strip: SimulatedStrip, out, *, overwrite: bool = False, version:
             paths.append(write_v004(g, folder / f"{g.granule_id}.hdf", overwrite=overwrite))
         else:
             paths.append(write_v003(g, folder / f"{g.granule_id}.zip", overwrite=overwrite))
-    cut = dict(granules=[p.name for p in paths], first_lines=strip.first_lines,
-               lines_3N=strip.heights[0], lines_3B=strip.heights[1], advance=strip.advance,
-               overlap_3N=strip.heights[0] - strip.advance, row_step=strip.row_step)
+    cut = dict(
+        granules=[p.name for p in paths],
+        first_lines=strip.first_lines,
+        lines_3N=strip.heights[0],
+        lines_3B=strip.heights[1],
+        advance=strip.advance,
+        overlap_3N=strip.heights[0] - strip.advance,
+        row_step=strip.row_step,
+    )
     write_text_atomic(folder / "strip.json", json.dumps(cut, indent=2) + "\n", overwrite=overwrite)
     return paths
 
 
-__all__ = ["SimulatedStrip", "crop_lines", "cut_granule", "granule_row_step", "simulate_strip", "write_strip"]
+__all__ = [
+    "SimulatedStrip",
+    "crop_lines",
+    "cut_granule",
+    "granule_row_step",
+    "simulate_strip",
+    "write_strip",
+]

@@ -5,6 +5,7 @@ ephemeris and attitude biases and drifts) of the simulator's ASTER 3N geometry; 
 on the bundled DEM seen by the truth at chosen pixels, with Gaussian measurement noise on the
 image coordinates. Used by the orbital-model tests and ``benchmarks/bench_topan_sets.py``.
 """
+
 from __future__ import annotations
 
 import functools
@@ -15,15 +16,31 @@ from stereodem.core.errors import InputError
 
 #: Pointing and position errors of the truth against the metadata (PushbroomModel parameters):
 #: about 1.5 px of attitude bias, 0.5 px of attitude drift over the scene, 20 m of position.
-TRUTH_ERRORS = dict(roll_bias=3e-5, pitch_bias=-2e-5, yaw_bias=1e-4, roll_drift=2e-6,
-                    pitch_drift=-1.5e-6, yaw_drift=5e-6, position_offset_x=20.0,
-                    position_offset_y=-15.0, position_offset_z=10.0)
+TRUTH_ERRORS = dict(
+    roll_bias=3e-5,
+    pitch_bias=-2e-5,
+    yaw_bias=1e-4,
+    roll_drift=2e-6,
+    pitch_drift=-1.5e-6,
+    yaw_drift=5e-6,
+    position_offset_x=20.0,
+    position_offset_y=-15.0,
+    position_offset_z=10.0,
+)
 
 
 #: Errors of the backward (3B) truth: other biases and drifts on the same orbit.
-TRUTH_ERRORS_BACKWARD = dict(roll_bias=-2e-5, pitch_bias=3e-5, yaw_bias=-6e-5, roll_drift=-1e-6,
-                             pitch_drift=2e-6, yaw_drift=-3e-6, position_offset_x=20.0,
-                             position_offset_y=-15.0, position_offset_z=10.0)
+TRUTH_ERRORS_BACKWARD = dict(
+    roll_bias=-2e-5,
+    pitch_bias=3e-5,
+    yaw_bias=-6e-5,
+    roll_drift=-1e-6,
+    pitch_drift=2e-6,
+    yaw_drift=-3e-6,
+    position_offset_x=20.0,
+    position_offset_y=-15.0,
+    position_offset_z=10.0,
+)
 
 
 @functools.lru_cache(maxsize=1)
@@ -33,17 +50,32 @@ def aster_pair_scene():
     :data:`TRUTH_ERRORS` and :data:`TRUTH_ERRORS_BACKWARD`."""
     from stereodem.core.dem import DEM
     from stereodem.sensor.simulation.simulate import aster_geometry_parameters, pushbroom_pair
+
     p = aster_geometry_parameters()
     b = p["bands"]
     dem = DEM.bundled()
     w, s, e, n = dem.bounds_lonlat()
     lon0, lat0 = (w + e) / 2, (s + n) / 2
     h0 = float(dem.sample(lon0, lat0))
-    nadir, back = pushbroom_pair(lon0, lat0, h0, (4100, 4200), (b["3N"]["along_deg"], b["3B"]["along_deg"]),
-                                 gsd=p["gsd_m"], altitude=p["altitude_m"], line_period=p["line_period_s"],
-                                 cross_track_tilt_deg=-p["cross_track_right_deg"], right_size=(5000, 4600))
-    return (nadir, back, nadir.with_parameters(**TRUTH_ERRORS),
-            back.with_parameters(**TRUTH_ERRORS_BACKWARD), dem)
+    nadir, back = pushbroom_pair(
+        lon0,
+        lat0,
+        h0,
+        (4100, 4200),
+        (b["3N"]["along_deg"], b["3B"]["along_deg"]),
+        gsd=p["gsd_m"],
+        altitude=p["altitude_m"],
+        line_period=p["line_period_s"],
+        cross_track_tilt_deg=-p["cross_track_right_deg"],
+        right_size=(5000, 4600),
+    )
+    return (
+        nadir,
+        back,
+        nadir.with_parameters(**TRUTH_ERRORS),
+        back.with_parameters(**TRUTH_ERRORS_BACKWARD),
+        dem,
+    )
 
 
 def aster_nadir_scene():
@@ -64,20 +96,36 @@ def points_at_pixels(truth, dem, col, row, *, noise_px: float = 0.3, seed: int =
     if not ok.any():
         raise InputError("no simulated point falls on the DEM")
     n = int(ok.sum())
-    return dict(lon=loc.lon[ok], lat=loc.lat[ok], h=loc.h[ok], col_true=col[ok], row_true=row[ok],
-                col=col[ok] + rng.normal(0, noise_px, n), row=row[ok] + rng.normal(0, noise_px, n))
+    return dict(
+        lon=loc.lon[ok],
+        lat=loc.lat[ok],
+        h=loc.h[ok],
+        col_true=col[ok],
+        row_true=row[ok],
+        col=col[ok] + rng.normal(0, noise_px, n),
+        row=row[ok] + rng.normal(0, noise_px, n),
+    )
 
 
 def random_pixels(model, n: int, *, seed: int = 0, margin: float = 20.0):
     """``n`` uniform random pixels at least ``margin`` pixels inside the image."""
     rng = np.random.default_rng(seed)
-    return (rng.uniform(margin, model.width - 1 - margin, n),
-            rng.uniform(margin, model.height - 1 - margin, n))
+    return (
+        rng.uniform(margin, model.width - 1 - margin, n),
+        rng.uniform(margin, model.height - 1 - margin, n),
+    )
 
 
 def to_control_points(pts: dict, role):
     """A :class:`~stereodem.sensor.io.gcps.ControlPoints` of a :func:`points_at_pixels` dict."""
     from stereodem.sensor.io.gcps import ControlPoints
+
     n = pts["lon"].size
-    return ControlPoints.from_arrays(pts["lon"], pts["lat"], pts["h"], pts["col"], pts["row"],
-                                     role=np.broadcast_to(np.asarray(role), (n,)).astype(str))
+    return ControlPoints.from_arrays(
+        pts["lon"],
+        pts["lat"],
+        pts["h"],
+        pts["col"],
+        pts["row"],
+        role=np.broadcast_to(np.asarray(role), (n,)).astype(str),
+    )

@@ -13,6 +13,7 @@ metres above the terrain, sharp edges).
 (through :func:`~stereodem.sensor.simulation.simulate.simulate_scene` and the granule writer),
 so that granules -> DEMs -> stack -> rates can be checked end to end.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -45,10 +46,14 @@ def cloud_blunder(terrain, centre, radius: float, top: float, rng) -> tuple[np.n
     rows, cols = terrain.shape
     rr, cc = np.mgrid[0:rows, 0:cols].astype(np.float32)
     d = np.hypot(cc - centre[0], rr - centre[1]) / max(radius, 1.0)
-    wobble = ndimage.gaussian_filter(rng.standard_normal(terrain.shape).astype(np.float32), radius / 3)
+    wobble = ndimage.gaussian_filter(
+        rng.standard_normal(terrain.shape).astype(np.float32), radius / 3
+    )
     wobble *= np.float32(0.25 / max(float(wobble.std()), 1e-9))
     inside = (d + wobble) < 1.0
-    surface = np.maximum(terrain, np.float32(top)) + rng.normal(0, 3.0, terrain.shape).astype(np.float32)
+    surface = np.maximum(terrain, np.float32(top)) + rng.normal(0, 3.0, terrain.shape).astype(
+        np.float32
+    )
     added = np.where(inside, surface - terrain, 0).astype(np.float32)
     added = ndimage.gaussian_filter(added, 1.0)
     return added, inside
@@ -70,14 +75,17 @@ class ChangeTruth:
         return (self.h0 + self.rate * np.float32(t - self.t_ref)).astype(np.float32)
 
 
-def thinning_truth(grid: MapGrid, h0, outline, *, t_ref: float, rate_low: float = -2.0,
-                   rate_high: float = -0.5) -> ChangeTruth:
+def thinning_truth(
+    grid: MapGrid, h0, outline, *, t_ref: float, rate_low: float = -2.0, rate_high: float = -0.5
+) -> ChangeTruth:
     """A glacier-like change: inside ``outline`` (shapely polygon, grid CRS) the rate varies
     linearly with elevation from ``rate_low`` (m/yr) at the outline's lowest cell to
     ``rate_high`` at its highest (thinning strongest at the tongue); 0 outside."""
     from rasterio.features import rasterize
-    inside = rasterize([(outline, 1)], out_shape=grid.shape, transform=grid.transform,
-                       fill=0, dtype="uint8").astype(bool)
+
+    inside = rasterize(
+        [(outline, 1)], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8"
+    ).astype(bool)
     if not inside.any():
         raise InputError("the outline covers no cell of the grid")
     h0 = np.asarray(h0, np.float32)
@@ -93,25 +101,46 @@ def write_dem_series(dems, dates, out_dir, *, overwrite: bool = False, stem: str
     from pathlib import Path
 
     from stereodem.core.raster import write_geotiff
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for dem, date in zip(dems, dates):
         day = str(np.datetime64(date, "D"))
         p = out / f"{stem}_{day}.tif"
-        write_geotiff(p, dem.heights, dem.transform, dem.crs, np.nan, overwrite=overwrite,
-                      vertical=dem.vertical, tags={"ACQUISITION_DATE": day},
-                      descriptions="height", units="metre")
+        write_geotiff(
+            p,
+            dem.heights,
+            dem.transform,
+            dem.crs,
+            np.nan,
+            overwrite=overwrite,
+            vertical=dem.vertical,
+            tags={"ACQUISITION_DATE": day},
+            descriptions="height",
+            units="metre",
+        )
         paths.append(p)
     return paths
 
 
 # ----------------------------------------------------------------------------- granules
 
-def simulate_granule_series(dem: DEM, dates, *, outline_lonlat, t_ref: float,
-                            rate_low: float = -2.0, rate_high: float = -0.5, out_dir,
-                            size=(300, 300), seed: int = 0, cloud: dict | None = None,
-                            overwrite: bool = False) -> list:
+
+def simulate_granule_series(
+    dem: DEM,
+    dates,
+    *,
+    outline_lonlat,
+    t_ref: float,
+    rate_low: float = -2.0,
+    rate_high: float = -0.5,
+    out_dir,
+    size=(300, 300),
+    seed: int = 0,
+    cloud: dict | None = None,
+    overwrite: bool = False,
+) -> list:
     """ASTER L1A V004 granules of ``dem``'s terrain, one per date, with the terrain changed by
     a thinning field inside ``outline_lonlat`` (shapely polygon, lon/lat degrees): each date's
     DEM is ``dem + rate · (t − t_ref)`` on ``dem``'s own grid, rendered through the ASTER preset
@@ -125,9 +154,11 @@ def simulate_granule_series(dem: DEM, dates, *, outline_lonlat, t_ref: float,
 
     from stereodem.sensor.simulation.aster_granule import granule_from_scene, write_v004
     from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+
     g = dem.grid
-    truth = thinning_truth(g, dem.heights, outline_lonlat, t_ref=t_ref, rate_low=rate_low,
-                           rate_high=rate_high)
+    truth = thinning_truth(
+        g, dem.heights, outline_lonlat, t_ref=t_ref, rate_low=rate_low, rate_high=rate_high
+    )
     out = Path(out_dir)
     records = []
     for k, d in enumerate(dates):
@@ -138,10 +169,13 @@ def simulate_granule_series(dem: DEM, dates, *, outline_lonlat, t_ref: float,
             r = np.hypot(lon - cloud["centre_lonlat"][0], lat - cloud["centre_lonlat"][1])
             z = np.where(r < cloud["radius_deg"], np.maximum(z, np.float32(cloud["top"])), z)
         dated = DEM(z.astype(np.float32), dem.transform, dem.crs, dem.vertical, dem.path)
-        scene = simulate_scene("aster", size=size,
-                               right_size=(round(size[0] * 5000 / 4100 / 10.0) * 10,
-                                           round(size[1] * 5400 / 4200)),
-                               dem=dated, seed=seed + k)
+        scene = simulate_scene(
+            "aster",
+            size=size,
+            right_size=(round(size[0] * 5000 / 4100 / 10.0) * 10, round(size[1] * 5400 / 4200)),
+            dem=dated,
+            seed=seed + k,
+        )
         start = _dt.datetime.fromisoformat(str(day)).replace(hour=8, minute=30)
         gr = granule_from_scene(scene, seed=seed + k, start=start)
         folder = write_scene(scene, out / str(day), overwrite=overwrite, write_images=False)

@@ -9,6 +9,7 @@ coordinates with OpenCV bilinear sampling, block by block, each pixel starting f
 of its coarse-grid neighbours. :func:`sampled_localization_error` measures the error of that
 approximation against the exact model; it is reported by the simulator, not assumed.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -40,11 +41,23 @@ class MapRaster(OnGrid):
             pad = -n % width
             mc = np.pad(mc, (0, pad)).reshape(-1, width)
             mr = np.pad(mr, (0, pad)).reshape(-1, width)
-            out = cv2.remap(self.data.astype(np.float32, copy=False), mc, mr, cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=float(border))
+            out = cv2.remap(
+                self.data.astype(np.float32, copy=False),
+                mc,
+                mr,
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=float(border),
+            )
             return out.ravel()[:n]
-        out = cv2.remap(self.data.astype(np.float32, copy=False), mc, mr, cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_CONSTANT, borderValue=float(border))
+        out = cv2.remap(
+            self.data.astype(np.float32, copy=False),
+            mc,
+            mr,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=float(border),
+        )
         return out.reshape(shape)
 
 
@@ -52,7 +65,7 @@ def nanmean_blocks(a, block_rows: int = 512) -> float:
     """``np.nanmean(a)`` of a 2-D array by row blocks (``np.nanmean`` copies the whole array)."""
     total, count = 0.0, 0
     for r0 in range(0, a.shape[0], block_rows):
-        b = a[r0:r0 + block_rows]
+        b = a[r0 : r0 + block_rows]
         ok = np.isfinite(b)
         total += float(np.sum(b, where=ok, dtype=np.float64))
         count += int(ok.sum())
@@ -67,8 +80,9 @@ def _remap_flat(image, mc, mr, interpolation=cv2.INTER_LINEAR, border=np.nan):
     pad = -n % width
     mc = np.pad(mc.ravel(), (0, pad)).reshape(-1, width)
     mr = np.pad(mr.ravel(), (0, pad)).reshape(-1, width)
-    out = cv2.remap(image, mc, mr, interpolation, borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=float(border))
+    out = cv2.remap(
+        image, mc, mr, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=float(border)
+    )
     return out.ravel()[:n]
 
 
@@ -110,7 +124,7 @@ class GridLocalizer:
         self.gr = np.arange(0, h - 1 + step, step, dtype=float)
         cc, rr = np.meshgrid(self.gc, self.gr)
         pts = []
-        for hk in (lo, self.h_mid, hi):                       # u = -1, 0, 1
+        for hk in (lo, self.h_mid, hi):  # u = -1, 0, 1
             lon, lat = model.localize(cc, rr, np.full(cc.shape, hk))
             x, y = geodesy.lonlat_to_crs(lon, lat, grid.crs)
             pts.append(grid.colrow(np.asarray(x), np.asarray(y)))
@@ -118,7 +132,7 @@ class GridLocalizer:
         for axis in (0, 1):
             pm, p0, pp = (p[axis] for p in pts)
             coef += [p0, 0.5 * (pp - pm), 0.5 * (pp + pm) - p0]
-        self.coef = np.stack(coef).astype(np.float32)           # (6, len(gr), len(gc))
+        self.coef = np.stack(coef).astype(np.float32)  # (6, len(gr), len(gc))
 
     def coefficients(self, col, row):
         """The six coefficient arrays (col c0, c1, c2, row c0, c1, c2) at image pixels."""
@@ -126,8 +140,12 @@ class GridLocalizer:
         row = np.asarray(row, np.float32)
         mc, mr = col / np.float32(self.step), row / np.float32(self.step)
         if mc.ndim == 2 and max(mc.shape) < 32767:
-            return np.stack([cv2.remap(g, mc, mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                             for g in self.coef])
+            return np.stack(
+                [
+                    cv2.remap(g, mc, mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                    for g in self.coef
+                ]
+            )
         out = np.stack([_remap_flat(g, mc, mr, border=np.nan) for g in self.coef])
         return out.reshape((6,) + mc.shape)
 
@@ -137,7 +155,7 @@ class GridLocalizer:
         u = np.asarray(h, np.float32) - np.float32(self.h_mid)
         u *= np.float32(1.0 / self.h_half)
         out = []
-        for k in (0, 3):                                   # c0 + u (c1 + u c2), in place
+        for k in (0, 3):  # c0 + u (c1 + u c2), in place
             p = np.multiply(u, coef[k + 2])
             p += coef[k + 1]
             p *= u
@@ -165,9 +183,10 @@ def _iterate_heights(loc: GridLocalizer, dem: MapRaster, coef, h_start, threshol
         if not same_grid:
             pc, pr = (a.astype(np.float32) for a in dem.grid.colrow(*loc.grid.xy(pc, pr)))
         if pc.ndim == 2 and max(pc.shape) < 32767:
-            return cv2.remap(data, pc, pr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                             borderValue=np.nan)
-        return _remap_flat(data, pc, pr)                    # NaN off the DEM or in its voids
+            return cv2.remap(
+                data, pc, pr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan
+            )
+        return _remap_flat(data, pc, pr)  # NaN off the DEM or in its voids
 
     # first step on the arrays as given (2-D blocks need no re-layout), then flat
     h0 = np.asarray(h_start, np.float32)
@@ -176,7 +195,7 @@ def _iterate_heights(loc: GridLocalizer, dem: MapRaster, coef, h_start, threshol
     h = z.copy()
     f = z - h0.ravel()
     converged = np.abs(f) < threshold
-    active = np.flatnonzero(np.abs(f) >= threshold)          # finite and still moving
+    active = np.flatnonzero(np.abs(f) >= threshold)  # finite and still moving
     ca, hp, fp, ha = coef[:, active], h0.ravel()[active], f[active], z[active]
     for _ in range(max_iterations - 1):
         if active.size == 0:
@@ -196,8 +215,9 @@ def _iterate_heights(loc: GridLocalizer, dem: MapRaster, coef, h_start, threshol
     return h, converged
 
 
-def localize_on_dem_grid(loc: GridLocalizer, dem: MapRaster, col, row, *, threshold=0.01,
-                         max_iterations=30, h0=None):
+def localize_on_dem_grid(
+    loc: GridLocalizer, dem: MapRaster, col, row, *, threshold=0.01, max_iterations=30, h0=None
+):
     """DRM relief iteration for pixels using a :class:`GridLocalizer`.
 
     ``dem`` must be on ``loc.crs`` with ellipsoidal heights; ``h0`` is the starting height,
@@ -226,8 +246,17 @@ def _coarse_start_heights(loc: GridLocalizer, dem: MapRaster, h0: float):
     return np.nan_to_num(h.reshape(cc.shape), nan=h0).astype(np.float32)
 
 
-def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=16, block_rows=256,
-           heights=None, keep_ground: bool = True, h0=None):
+def render(
+    model: SensorModel,
+    dem: MapRaster,
+    radiance: MapRaster,
+    *,
+    step=16,
+    block_rows=256,
+    heights=None,
+    keep_ground: bool = True,
+    h0=None,
+):
     """Render the image seen by ``model``: radiance at each pixel's ground point on ``dem``.
 
     Every pixel is localised on the DEM by the DRM relief iteration through a
@@ -260,15 +289,21 @@ def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=16, 
         r1 = min(hgt, r0 + block_rows)
         cc, rr = np.meshgrid(cols, np.arange(r0, r1, dtype=np.float32))
         coef = loc.coefficients(cc, rr)
-        start = cv2.remap(coarse_h, cc / np.float32(step), rr / np.float32(step), cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
+        start = cv2.remap(
+            coarse_h,
+            cc / np.float32(step),
+            rr / np.float32(step),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
         h, _ = _iterate_heights(loc, dem, coef, start, 0.01, 30)
         h = h.reshape(cc.shape)
         pc, pr = loc.pixels_at(coef, np.nan_to_num(h))
         if not same_grid:
             pc, pr = (a.astype(np.float32) for a in radiance.grid.colrow(*loc.grid.xy(pc, pr)))
-        block = cv2.remap(rad, pc, pr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                          borderValue=np.nan)
+        block = cv2.remap(
+            rad, pc, pr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan
+        )
         block[~np.isfinite(h)] = np.nan
         img[r0:r1] = block
         if keep_ground:
@@ -279,8 +314,9 @@ def render(model: SensorModel, dem: MapRaster, radiance: MapRaster, *, step=16, 
     return img, gx, gy, gh, loc
 
 
-def sampled_localization_error(model: SensorModel, loc: GridLocalizer, dem: MapRaster, n=2000,
-                               seed=0, h0=None):
+def sampled_localization_error(
+    model: SensorModel, loc: GridLocalizer, dem: MapRaster, n=2000, seed=0, h0=None
+):
     """:func:`localization_error` on ``n`` random pixels localised again with ``loc`` (for
     renders made with ``keep_ground=False``)."""
     rng = np.random.default_rng(seed)

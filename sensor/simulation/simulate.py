@@ -32,6 +32,7 @@ Presets
 
 Everything is reproducible from ``seed``.
 """
+
 from __future__ import annotations
 
 import csv
@@ -83,7 +84,7 @@ def psf_sigma(mtf_nyquist: float = MTF_NYQUIST) -> float:
     """
     if not 0.0 < mtf_nyquist < 1.0:
         raise InputError(f"mtf_nyquist must be in (0, 1), got {mtf_nyquist}")
-    return float(np.sqrt(-np.log(mtf_nyquist) / (0.5 * np.pi ** 2)))
+    return float(np.sqrt(-np.log(mtf_nyquist) / (0.5 * np.pi**2)))
 
 
 @dataclass
@@ -108,6 +109,7 @@ def texture_path() -> Path:
 
 # ----------------------------------------------------------------------------- sensor pairs
 
+
 def _orbit_state(lon0, lat0, altitude, along_km, heading_deg):
     """ECEF position and velocity of a circular orbit passing over (lon0, lat0).
 
@@ -131,6 +133,7 @@ def _orbit_state(lon0, lat0, altitude, along_km, heading_deg):
 def frame_pair(lon0, lat0, h0, size, gsd=27.6, altitude=686e3, base_to_height=0.6):
     """Two BILSAT-like frame cameras on one orbit converging on ``(lon0, lat0, h0)``."""
     from stereodem.sensor.models.frame import FrameCamera
+
     w, h = size
     pitch = 0.0074
     focal = pitch * 1e-3 * altitude / gsd * 1e3
@@ -138,8 +141,11 @@ def frame_pair(lon0, lat0, h0, size, gsd=27.6, altitude=686e3, base_to_height=0.
     cams = []
     for sign in (-1.0, 1.0):
         r, v = _orbit_state(lon0, lat0, altitude, sign * along, heading_deg=-12.0)
-        cams.append(FrameCamera.looking_at(r, v, lon0, lat0, h0, width=w, height=h,
-                                           focal_mm=focal, pitch_mm=pitch))
+        cams.append(
+            FrameCamera.looking_at(
+                r, v, lon0, lat0, h0, width=w, height=h, focal_mm=focal, pitch_mm=pitch
+            )
+        )
     return cams[0], cams[1]
 
 
@@ -154,26 +160,43 @@ def aster_geometry_parameters() -> dict:
     one that reproduces the product's own lattice (notes aster-l1a-format §4.4).
     """
     from stereodem.sensor.io.aster_xml import bundled_xml, read_asp_aster_xml
+
     out = {}
     for band in ("3N", "3B"):
         g = read_asp_aster_xml(bundled_xml(band))
-        sv = g.sight_vectors[len(g.sight_vectors) // 2]            # (11, 3), orbital frame
+        sv = g.sight_vectors[len(g.sight_vectors) // 2]  # (11, 3), orbital frame
         mid = sv[sv.shape[0] // 2]
         cols = g.lattice[0, :, 0]
         first, last = sv[0] / np.linalg.norm(sv[0]), sv[-1] / np.linalg.norm(sv[-1])
         ifov = float(np.arccos(np.clip(first @ last, -1, 1)) / (cols[-1] - cols[0]))
         _, _, hsat = geodesy.ecef_to_geodetic(*np.asarray(g.satellite_positions, float).T)
-        out[band] = dict(along_deg=float(np.degrees(np.arctan2(mid[0], mid[2]))),
-                         cross_deg=float(np.degrees(np.arctan2(mid[1], mid[2]))),
-                         ifov_rad=ifov, altitude_m=float(np.mean(hsat)))
-    return dict(bands=out, line_period_s=2.1989e-3,
-                altitude_m=out["3N"]["altitude_m"],
-                gsd_m=out["3N"]["ifov_rad"] * out["3N"]["altitude_m"],
-                cross_track_right_deg=out["3N"]["cross_deg"])
+        out[band] = dict(
+            along_deg=float(np.degrees(np.arctan2(mid[0], mid[2]))),
+            cross_deg=float(np.degrees(np.arctan2(mid[1], mid[2]))),
+            ifov_rad=ifov,
+            altitude_m=float(np.mean(hsat)),
+        )
+    return dict(
+        bands=out,
+        line_period_s=2.1989e-3,
+        altitude_m=out["3N"]["altitude_m"],
+        gsd_m=out["3N"]["ifov_rad"] * out["3N"]["altitude_m"],
+        cross_track_right_deg=out["3N"]["cross_deg"],
+    )
 
 
-def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_period=2.2e-3,
-                   cross_track_tilt_deg=0.0, right_size=None):
+def pushbroom_pair(
+    lon0,
+    lat0,
+    h0,
+    size,
+    angles,
+    gsd=15.0,
+    altitude=705e3,
+    line_period=2.2e-3,
+    cross_track_tilt_deg=0.0,
+    right_size=None,
+):
     """A pushbroom pair on one orbit with along-track tilts ``angles`` (degrees).
 
     ``cross_track_tilt_deg`` follows :class:`stereodem.sensor.models.pushbroom.PushbroomModel` (positive looks
@@ -188,15 +211,25 @@ def pushbroom_pair(lon0, lat0, h0, size, angles, gsd=15.0, altitude=705e3, line_
     rw, rh = right_size if right_size is not None else size
     # one orbit: the first image, then the second (e.g. ASTER 3N then 3B, ~55 s later), both
     # centred on the same ground point at the terrain height h0
-    return PushbroomModel.synthetic_pair(lon0, lat0, width=w, height=h, backward_width=int(rw),
-                                         backward_height=int(rh), gsd=gsd, altitude=altitude,
-                                         line_period=line_period, first_tilt_deg=angles[0],
-                                         backward_tilt_deg=angles[1],
-                                         cross_track_tilt_deg=cross_track_tilt_deg,
-                                         center_height=float(h0))
+    return PushbroomModel.synthetic_pair(
+        lon0,
+        lat0,
+        width=w,
+        height=h,
+        backward_width=int(rw),
+        backward_height=int(rh),
+        gsd=gsd,
+        altitude=altitude,
+        line_period=line_period,
+        first_tilt_deg=angles[0],
+        backward_tilt_deg=angles[1],
+        cross_track_tilt_deg=cross_track_tilt_deg,
+        center_height=float(h0),
+    )
 
 
 # ----------------------------------------------------------------------------- ground fields
+
 
 def _check_footprints_on_dem(models, dem: DEM, h_range, size, right_size):
     """:class:`InputError`, before anything is allocated, when the images of the requested
@@ -211,17 +244,21 @@ def _check_footprints_on_dem(models, dem: DEM, h_range, size, right_size):
     lon, lat = np.concatenate(lons), np.concatenate(lats)
     sizes = f"{size[0]}x{size[1]} / {right_size[0]}x{right_size[1]} px"
     if not (np.all(np.isfinite(lon)) and np.all(np.isfinite(lat))):
-        raise InputError(f"image size {sizes}: the images would reach past the Earth's horizon "
-                         "from the simulated orbit; choose a smaller --size")
+        raise InputError(
+            f"image size {sizes}: the images would reach past the Earth's horizon "
+            "from the simulated orbit; choose a smaller --size"
+        )
     west, south, east, north = dem.bounds_lonlat()
     ow = max(0.0, min(east, lon.max()) - max(west, lon.min()))
     oh = max(0.0, min(north, lat.max()) - max(south, lat.min()))
     span = max(lon.max() - lon.min(), 1e-12) * max(lat.max() - lat.min(), 1e-12)
     if ow * oh < 0.5 * span:
-        raise InputError(f"{dem.path or 'DEM'}: the DEM does not cover the simulated scene of "
-                         f"{sizes} (footprint lon {lon.min():.4f}..{lon.max():.4f}, lat "
-                         f"{lat.min():.4f}..{lat.max():.4f}; DEM lon {west:.4f}..{east:.4f}, lat "
-                         f"{south:.4f}..{north:.4f}); choose a smaller --size or a larger --dem")
+        raise InputError(
+            f"{dem.path or 'DEM'}: the DEM does not cover the simulated scene of "
+            f"{sizes} (footprint lon {lon.min():.4f}..{lon.max():.4f}, lat "
+            f"{lat.min():.4f}..{lat.max():.4f}; DEM lon {west:.4f}..{east:.4f}, lat "
+            f"{south:.4f}..{north:.4f}); choose a smaller --size or a larger --dem"
+        )
 
 
 def _grid_for_models(models, crs, posting, h_range, margin_px=8):
@@ -240,8 +277,18 @@ def _grid_for_models(models, crs, posting, h_range, margin_px=8):
     return Affine(posting, 0, x0, 0, -posting, y1), (h, w)
 
 
-def _reproject_dem(dem: DEM, transform, shape, crs, *, geoid_step: int = 16, map_step: int = 16,
-                   block_rows: int = 512, upsample: int = 8, diagnostics: dict | None = None):
+def _reproject_dem(
+    dem: DEM,
+    transform,
+    shape,
+    crs,
+    *,
+    geoid_step: int = 16,
+    map_step: int = 16,
+    block_rows: int = 512,
+    upsample: int = 8,
+    diagnostics: dict | None = None,
+):
     """``dem`` resampled (bicubic, GDAL's kernel) to the grid, in ellipsoidal heights (float32).
 
     Each grid cell centre's position in the source DEM (fractional pixel) is computed exactly
@@ -269,9 +316,17 @@ def _reproject_dem(dem: DEM, transform, shape, crs, *, geoid_step: int = 16, map
     out = np.full(shape, np.nan, np.float32)
     src = np.asarray(dem.heights, np.float32)
     if max(shape) >= 32767 or max(src.shape) * upsample >= 32767:
-        reproject(dem.heights, out, src_transform=dem.transform, src_crs=dem.crs.to_wkt(),
-                  dst_transform=transform, dst_crs=crs.to_wkt(), resampling=Resampling.cubic,
-                  src_nodata=np.nan, dst_nodata=np.nan)
+        reproject(
+            dem.heights,
+            out,
+            src_transform=dem.transform,
+            src_crs=dem.crs.to_wkt(),
+            dst_transform=transform,
+            dst_crs=crs.to_wkt(),
+            resampling=Resampling.cubic,
+            src_nodata=np.nan,
+            dst_nodata=np.nan,
+        )
     else:
         coarse, err = _source_pixel_grid(dem, transform, shape, crs, map_step)
         if diagnostics is not None:
@@ -282,8 +337,10 @@ def _reproject_dem(dem: DEM, transform, shape, crs, *, geoid_step: int = 16, map
         for r0 in range(0, rows, block_rows):
             r1 = min(rows, r0 + block_rows)
             mc = np.broadcast_to(mc_cols, (r1 - r0, cols))
-            mr = np.broadcast_to((np.arange(r0, r1, dtype=np.float32)
-                                  / np.float32(map_step))[:, None], (r1 - r0, cols))
+            mr = np.broadcast_to(
+                (np.arange(r0, r1, dtype=np.float32) / np.float32(map_step))[:, None],
+                (r1 - r0, cols),
+            )
             mc, mr = np.ascontiguousarray(mc), np.ascontiguousarray(mr)
             px = cv2.remap(coarse[0], mc, mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             py = cv2.remap(coarse[1], mc, mr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
@@ -302,19 +359,26 @@ def _reproject_dem(dem: DEM, transform, shape, crs, *, geoid_step: int = 16, map
             block[outside] = np.nan
             out[r0:r1] = block
     if dem.vertical != ELLIPSOID:
-        if dem.vertical is None:          # the DEM's own error about the unknown reference
+        if dem.vertical is None:  # the DEM's own error about the unknown reference
             dem.convert_heights(np.zeros(1), np.zeros(1), np.zeros(1), ELLIPSOID)
-        geoid_on_grid(transform, shape, crs, step=geoid_step, add_to=out)   # h = H + N
+        geoid_on_grid(transform, shape, crs, step=geoid_step, add_to=out)  # h = H + N
     return out
 
 
 def _keys_weights(t, a: float = -0.5):
     """The four cubic-convolution weights (Keys 1981) of the samples at offsets -1, 0, 1, 2
     for a position ``t`` in [0, 1) after sample 0."""
+
     def k(x):
         x = abs(x)
-        return ((a + 2) * x ** 3 - (a + 3) * x ** 2 + 1) if x <= 1 else \
-            (a * x ** 3 - 5 * a * x ** 2 + 8 * a * x - 4 * a) if x < 2 else 0.0
+        return (
+            ((a + 2) * x**3 - (a + 3) * x**2 + 1)
+            if x <= 1
+            else (a * x**3 - 5 * a * x**2 + 8 * a * x - 4 * a)
+            if x < 2
+            else 0.0
+        )
+
     return np.array([k(t + 1), k(t), k(1 - t), k(2 - t)], np.float32)
 
 
@@ -332,14 +396,15 @@ def keys_upsample(src, factor: int, *, window=None, a: float = -0.5):
     P = np.pad(np.asarray(src, np.float32), ((1, 2), (1, 2)), mode="edge")
     W = [_keys_weights(p / factor, a) for p in range(factor)]
 
-    def along0(A, n):                   # rows: A[1 + i] is sample i; n output samples
+    def along0(A, n):  # rows: A[1 + i] is sample i; n output samples
         out = np.empty((n * factor,) + A.shape[1:], np.float32)
         for p, w in enumerate(W):
-            out[p::factor] = (w[0] * A[0:n] + w[1] * A[1:n + 1] + w[2] * A[2:n + 2]
-                              + w[3] * A[3:n + 3])
+            out[p::factor] = (
+                w[0] * A[0:n] + w[1] * A[1 : n + 1] + w[2] * A[2 : n + 2] + w[3] * A[3 : n + 3]
+            )
         return out
 
-    rowsup = along0(P[r0:r1 + 3, c0:c1 + 3], r1 - r0)              # (rows * f, cols + 3)
+    rowsup = along0(P[r0 : r1 + 3, c0 : c1 + 3], r1 - r0)  # (rows * f, cols + 3)
     return np.ascontiguousarray(along0(rowsup.T, c1 - c0).T)
 
 
@@ -379,15 +444,20 @@ def geoid_on_grid(transform, shape, crs, *, step: int = 16, add_to=None, block_r
     gc, gr = np.meshgrid(cc + 0.5, rc + 0.5)
     x, y = transform @ (gc, gr)
     lon, lat = geodesy.crs_to_lonlat(x, y, crs)
-    coarse = geodesy.geoid_undulation(lon, lat).astype(np.float32)      # (len(rc), len(cc))
+    coarse = geodesy.geoid_undulation(lon, lat).astype(np.float32)  # (len(rc), len(cc))
     out = add_to if add_to is not None else np.zeros(shape, np.float32)
     mc = (np.arange(cols, dtype=np.float32) / np.float32(step))[None]
     for r0 in range(0, rows, block_rows):
         r1 = min(rows, r0 + block_rows)
         mr = (np.arange(r0, r1, dtype=np.float32) / np.float32(step))[:, None]
         m1, m2 = np.broadcast_arrays(mc, mr)
-        out[r0:r1] += cv2.remap(coarse, np.ascontiguousarray(m1), np.ascontiguousarray(m2),
-                                cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out[r0:r1] += cv2.remap(
+            coarse,
+            np.ascontiguousarray(m1),
+            np.ascontiguousarray(m2),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
     return out
 
 
@@ -446,8 +516,9 @@ def _albedo(texture, shape, rng, detail=0.35):
             d += n
         else:
             # coarse cell i covers fine cells [i k, (i + 1) k) (cv2.resize's convention)
-            d += cv2.resize(n, (n.shape[1] * k, n.shape[0] * k),
-                            interpolation=cv2.INTER_CUBIC)[:shape[0], :shape[1]]
+            d += cv2.resize(n, (n.shape[1] * k, n.shape[0] * k), interpolation=cv2.INTER_CUBIC)[
+                : shape[0], : shape[1]
+            ]
         del n
     d *= 0.5 / _robust_std(d)
     np.tanh(d, out=d)
@@ -462,7 +533,7 @@ def _albedo(texture, shape, rng, detail=0.35):
     # the full-size array)
     lo, hi = (float(v) for v in np.percentile(t, [1, 99]))
     t = cv2.resize(t, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
-    t -= lo                                                   # in place: full-size arrays
+    t -= lo  # in place: full-size arrays
     t /= max(hi - lo, 1e-6)
     np.clip(t, 0, 1, out=t)
     t *= 0.7
@@ -508,7 +579,7 @@ def _hillshade_blocks(z, res, azimuth, elevation, block_rows):
         blk = np.nan_to_num(z[a:b], nan=fill).astype(np.float32, copy=False)
         gx = cv2.filter2D(blk, cv2.CV_32F, k, borderType=cv2.BORDER_REPLICATE)
         gy = cv2.filter2D(blk, cv2.CV_32F, k.T, borderType=cv2.BORDER_REPLICATE)
-        gy, gx = gy[r0 - a:r0 - a + (r1 - r0)], gx[r0 - a:r0 - a + (r1 - r0)]
+        gy, gx = gy[r0 - a : r0 - a + (r1 - r0)], gx[r0 - a : r0 - a + (r1 - r0)]
         # rows go south: the north-ward slope is -gy; normal (-gx, gy, 1) / n
         n = gx * gx
         n += gy * gy
@@ -535,6 +606,7 @@ def hillshade_factor(z, res, azimuth=SUN_AZIMUTH, elevation=SUN_ELEVATION, *, bl
 
 # ----------------------------------------------------------------------------- simulation
 
+
 @dataclass
 class _GroundFields:
     """The ground of a simulated scene: truth DEM grid, band-limited radiance field (on a grid
@@ -551,8 +623,9 @@ class _GroundFields:
     fine_range: tuple
 
 
-def _ground_fields(models, dem, lon0, lat0, h_range, gsd, texture, rng, sigma_psf, bits,
-                   diags) -> _GroundFields:
+def _ground_fields(
+    models, dem, lon0, lat0, h_range, gsd, texture, rng, sigma_psf, bits, diags
+) -> _GroundFields:
     """Truth DEM and radiance field covering every model's footprint (see the module docstring)."""
     crs = geodesy.utm_crs(lon0, lat0)
     res_truth = float(np.round(gsd, 1))
@@ -560,12 +633,16 @@ def _ground_fields(models, dem, lon0, lat0, h_range, gsd, texture, rng, sigma_ps
     # the fine radiance field and DEM (4 x the truth cells, float32) and their temporaries,
     # plus the images (float64 while rendered)
     w, h = int(models[0].width), int(models[0].height)
-    check_allocation(4 * shape[0] * shape[1] * 4 * 3 + 8 * 2 * sum(int(m.width) * int(m.height) for m in models),
-                     f"a simulated scene of {w}x{h} px ({shape[1]}x{shape[0]} truth cells)")
+    check_allocation(
+        4 * shape[0] * shape[1] * 4 * 3 + 8 * 2 * sum(int(m.width) * int(m.height) for m in models),
+        f"a simulated scene of {w}x{h} px ({shape[1]}x{shape[0]} truth cells)",
+    )
     truth = _reproject_dem(dem, transform, shape, crs, diagnostics=diags)
     if np.isnan(truth).mean() > 0.01:
-        raise InputError(f"{dem.path or 'DEM'}: the DEM does not cover the simulated scene "
-                         f"({100 * np.isnan(truth).mean():.1f}% of the scene outside or void)")
+        raise InputError(
+            f"{dem.path or 'DEM'}: the DEM does not cover the simulated scene "
+            f"({100 * np.isnan(truth).mean():.1f}% of the scene outside or void)"
+        )
 
     # fine grid (half the truth posting) for the radiance field and the rendering DEM
     ft = Affine(res_truth / 2, 0, transform.c, 0, -res_truth / 2, transform.f)
@@ -574,28 +651,46 @@ def _ground_fields(models, dem, lon0, lat0, h_range, gsd, texture, rng, sigma_ps
     # after the albedo so that the albedo's temporaries and it never coexist
     field = _albedo(texture or texture_path(), fshape, rng)
     fine_dem = _reproject_dem(dem, ft, fshape, crs, diagnostics=diags)
-    for r0, r1, shade in _hillshade_blocks(fine_dem, res_truth / 2, SUN_AZIMUTH, SUN_ELEVATION, 256):
+    for r0, r1, shade in _hillshade_blocks(
+        fine_dem, res_truth / 2, SUN_AZIMUTH, SUN_ELEVATION, 256
+    ):
         field[r0:r1] *= 0.25 + 0.75 * shade
     # the system PSF, in ground units, applied once to the radiance field: both the images
     # and truth_ortho sample this one band-limited field
     cv2.GaussianBlur(field, (0, 0), sigma_psf * gsd / (res_truth / 2), dst=field)
-    dn_max = 255.0 if bits == 8 else 4095.0               # 12-bit signal in 16-bit words
-    field *= 0.9 * dn_max / float(np.percentile(field[::4, ::4], 99.9))   # 1/16 of the cells
+    dn_max = 255.0 if bits == 8 else 4095.0  # 12-bit signal in 16-bit words
+    field *= 0.9 * dn_max / float(np.percentile(field[::4, ::4], 99.9))  # 1/16 of the cells
     fine_grid = MapGrid(ft, fine_dem.shape[1], fine_dem.shape[0], crs)
-    return _GroundFields(truth, transform, shape, crs, field, MapRaster(field, fine_grid),
-                         MapRaster(fine_dem, fine_grid), nanmean_blocks(fine_dem),
-                         (float(np.nanmin(fine_dem)), float(np.nanmax(fine_dem))))
+    return _GroundFields(
+        truth,
+        transform,
+        shape,
+        crs,
+        field,
+        MapRaster(field, fine_grid),
+        MapRaster(fine_dem, fine_grid),
+        nanmean_blocks(fine_dem),
+        (float(np.nanmin(fine_dem)), float(np.nanmax(fine_dem))),
+    )
 
 
 def _render_view(model, name, g: _GroundFields, step, noise, bits, rng, seed, diags) -> np.ndarray:
     """One image of the scene through ``model``: rendered, noisy (``noise`` DN), quantised."""
     fine_lo, fine_hi = g.fine_range
-    img, _, _, _, loc = render(model, g.dem_r, g.radiance, step=step, keep_ground=False, h0=g.h_mean,
-                               heights=(fine_lo - 50.0, fine_hi + 50.0))
-    diags[f"{name}_render_error_px"] = sampled_localization_error(model, loc, g.dem_r, seed=seed,
-                                                                  h0=g.h_mean)
+    img, _, _, _, loc = render(
+        model,
+        g.dem_r,
+        g.radiance,
+        step=step,
+        keep_ground=False,
+        h0=g.h_mean,
+        heights=(fine_lo - 50.0, fine_hi + 50.0),
+    )
+    diags[f"{name}_render_error_px"] = sampled_localization_error(
+        model, loc, g.dem_r, seed=seed, h0=g.h_mean
+    )
     diags[f"{name}_void_pct"] = float(100 * np.isnan(img).mean())
-    if noise > 0:                                     # float32 noise, added in place
+    if noise > 0:  # float32 noise, added in place
         img += np.float32(noise) * _normal_float32(rng, img.shape)
     dtype = np.uint8 if bits == 8 else np.uint16
     np.nan_to_num(img, copy=False, nan=0.0)
@@ -614,10 +709,23 @@ def _scene_centre(dem):
     return dem, (lon0, lat0, h0), (h_lo, h_hi)
 
 
-def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=None,
-                   noise: float = 1.0, seed: int = 0, bits: int = 8, angles=(0.0, -27.6),
-                   n_points: int = 60, step: int = 16, mtf_nyquist: float = MTF_NYQUIST,
-                   right_size=None, jitter=None, roll_jitter=None) -> Scene:
+def simulate_scene(
+    preset: str = "aster",
+    *,
+    size=(600, 600),
+    dem=None,
+    texture=None,
+    noise: float = 1.0,
+    seed: int = 0,
+    bits: int = 8,
+    angles=(0.0, -27.6),
+    n_points: int = 60,
+    step: int = 16,
+    mtf_nyquist: float = MTF_NYQUIST,
+    right_size=None,
+    jitter=None,
+    roll_jitter=None,
+) -> Scene:
     """Simulate a stereo scene; see the module docstring.
 
     Parameters
@@ -649,14 +757,18 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
         raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if bits not in (8, 16):
         raise InputError(f"bits must be 8 or 16, got {bits}")
-    sigma_psf = psf_sigma(mtf_nyquist)                    # GSD; validates mtf_nyquist
+    sigma_psf = psf_sigma(mtf_nyquist)  # GSD; validates mtf_nyquist
     w, h = int(size[0]), int(size[1])
     rsize = (w, h) if right_size is None else (int(right_size[0]), int(right_size[1]))
     if min(w, h, *rsize) < 32:
-        raise InputError(f"image size {w}x{h} / {rsize[0]}x{rsize[1]} is too small (at least 32x32)")
+        raise InputError(
+            f"image size {w}x{h} / {rsize[0]}x{rsize[1]} is too small (at least 32x32)"
+        )
     if preset == "frame" and rsize != (w, h):
-        raise InputError("the frame preset takes one size for both images (right_size is for "
-                         "the pushbroom presets)")
+        raise InputError(
+            "the frame preset takes one size for both images (right_size is for "
+            "the pushbroom presets)"
+        )
     rng = np.random.default_rng(seed)
     dem, (lon0, lat0, h0), (h_lo, h_hi) = _scene_centre(dem)
 
@@ -667,53 +779,102 @@ def simulate_scene(preset: str = "aster", *, size=(600, 600), dem=None, texture=
         p = aster_geometry_parameters()
         b = p["bands"]
         left_model, right_model = pushbroom_pair(
-            lon0, lat0, h0, (w, h), (b["3N"]["along_deg"], b["3B"]["along_deg"]), gsd=p["gsd_m"],
-            altitude=p["altitude_m"], line_period=p["line_period_s"],
-            cross_track_tilt_deg=-p["cross_track_right_deg"], right_size=rsize)
+            lon0,
+            lat0,
+            h0,
+            (w, h),
+            (b["3N"]["along_deg"], b["3B"]["along_deg"]),
+            gsd=p["gsd_m"],
+            altitude=p["altitude_m"],
+            line_period=p["line_period_s"],
+            cross_track_tilt_deg=-p["cross_track_right_deg"],
+            right_size=rsize,
+        )
     else:
-        left_model, right_model = pushbroom_pair(lon0, lat0, h0, (w, h), tuple(angles), right_size=rsize)
+        left_model, right_model = pushbroom_pair(
+            lon0, lat0, h0, (w, h), tuple(angles), right_size=rsize
+        )
 
     _check_footprints_on_dem([left_model, right_model], dem, (h_lo, h_hi), (w, h), rsize)
     gsd = left_model.gsd(h0)
     diags = {}
-    g = _ground_fields([left_model, right_model], dem, lon0, lat0, (h_lo, h_hi), gsd, texture,
-                       rng, sigma_psf, bits, diags)
+    g = _ground_fields(
+        [left_model, right_model],
+        dem,
+        lon0,
+        lat0,
+        (h_lo, h_hi),
+        gsd,
+        texture,
+        rng,
+        sigma_psf,
+        bits,
+        diags,
+    )
     images = []
     right_true = right_model
     for axis, spec in (("pitch", jitter), ("roll", roll_jitter)):
         if spec is None:
             continue
         from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
+
         amp_urad, freq = (float(x) for x in spec)
         if not (np.isfinite(amp_urad) and freq > 0):
-            raise InputError(f"{axis} jitter needs a finite amplitude and a positive frequency, "
-                             f"got {spec}")
+            raise InputError(
+                f"{axis} jitter needs a finite amplitude and a positive frequency, got {spec}"
+            )
         phase = float(rng.uniform(0, 2 * np.pi))
-        right_true = with_attitude_sines(right_true, SineSeries(np.array([amp_urad * 1e-6]),
-                                                                np.array([freq]), np.array([phase])),
-                                         axis=axis)
+        right_true = with_attitude_sines(
+            right_true,
+            SineSeries(np.array([amp_urad * 1e-6]), np.array([freq]), np.array([phase])),
+            axis=axis,
+        )
         key = "right_jitter" if axis == "pitch" else "right_roll_jitter"
         diags[key] = dict(axis=axis, amplitude_urad=amp_urad, frequency_hz=freq, phase_rad=phase)
     for name, m in (("left", left_model), ("right", right_true)):
         # an oscillating attitude bends the rays between coarse-grid rows: a finer grid there
         jittered = name == "right" and right_true is not right_model
-        images.append(_render_view(m, name, g, min(step, 8) if jittered else step, noise, bits,
-                                   rng, seed, diags))
+        images.append(
+            _render_view(
+                m, name, g, min(step, 8) if jittered else step, noise, bits, rng, seed, diags
+            )
+        )
     field, truth, transform, shape, crs = g.field, g.truth, g.transform, g.shape, g.crs
     # the field bilinear at the truth cell centres: each is the centre of 2 x 2 fine cells,
     # where bilinear interpolation is their mean, i.e. an exact 2:1 area reduction
     truth_ortho = cv2.resize(field, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
     truth_dem = DEM(truth, transform, crs, ELLIPSOID, None)
     points = _check_points(left_model, right_true, truth_dem, n_points, rng)
-    settings = dict(preset=preset, size=[w, h], right_size=list(rsize), noise=noise, seed=seed,
-                    bits=bits, mtf_nyquist=mtf_nyquist, psf_sigma_gsd=sigma_psf,
-                    gsd=gsd, center_lon=lon0, center_lat=lat0,
-                    angles=list(angles) if preset == "pushbroom" else None,
-                    jitter=None if jitter is None else [float(x) for x in jitter],
-                    roll_jitter=None if roll_jitter is None else [float(x) for x in roll_jitter],
-                    dem=str(dem.path), texture=str(texture or texture_path()))
-    return Scene(images[0], images[1], left_model, right_model, truth_dem,
-                 truth_ortho.astype(np.float32), points, preset, settings, diags)
+    settings = dict(
+        preset=preset,
+        size=[w, h],
+        right_size=list(rsize),
+        noise=noise,
+        seed=seed,
+        bits=bits,
+        mtf_nyquist=mtf_nyquist,
+        psf_sigma_gsd=sigma_psf,
+        gsd=gsd,
+        center_lon=lon0,
+        center_lat=lat0,
+        angles=list(angles) if preset == "pushbroom" else None,
+        jitter=None if jitter is None else [float(x) for x in jitter],
+        roll_jitter=None if roll_jitter is None else [float(x) for x in roll_jitter],
+        dem=str(dem.path),
+        texture=str(texture or texture_path()),
+    )
+    return Scene(
+        images[0],
+        images[1],
+        left_model,
+        right_model,
+        truth_dem,
+        truth_ortho.astype(np.float32),
+        points,
+        preset,
+        settings,
+        diags,
+    )
 
 
 @dataclass
@@ -730,9 +891,20 @@ class ViewsScene:
     diagnostics: dict = field(default_factory=dict)
 
 
-def simulate_views(preset: str = "pushbroom", *, angles=(15.0, 0.0, -15.0), size=(300, 300),
-                   dem=None, texture=None, noise: float = 1.0, seed: int = 0, bits: int = 8,
-                   step: int = 16, mtf_nyquist: float = MTF_NYQUIST, gsd: float = 15.0) -> ViewsScene:
+def simulate_views(
+    preset: str = "pushbroom",
+    *,
+    angles=(15.0, 0.0, -15.0),
+    size=(300, 300),
+    dem=None,
+    texture=None,
+    noise: float = 1.0,
+    seed: int = 0,
+    bits: int = 8,
+    step: int = 16,
+    mtf_nyquist: float = MTF_NYQUIST,
+    gsd: float = 15.0,
+) -> ViewsScene:
     """N images of one scene (a triplet by default), all on one orbit, one per along-track
     viewing angle in ``angles`` (degrees, positive forward), every image centred on the scene
     centre; ground, radiance and rendering as :func:`simulate_scene`.
@@ -756,29 +928,66 @@ def simulate_views(preset: str = "pushbroom", *, angles=(15.0, 0.0, -15.0), size
     altitude = 705e3
     if preset == "pushbroom":
         # the first view's orbit depends on its angle only: one orbit for every pair
-        pairs = [pushbroom_pair(lon0, lat0, h0, (w, h), (angles[0], a), gsd=gsd, altitude=altitude)
-                 for a in angles[1:]]
+        pairs = [
+            pushbroom_pair(lon0, lat0, h0, (w, h), (angles[0], a), gsd=gsd, altitude=altitude)
+            for a in angles[1:]
+        ]
         models = [pairs[0][0]] + [p[1] for p in pairs]
     else:
         from stereodem.sensor.models.frame import FrameCamera
+
         pitch = 0.0074
         focal = pitch * altitude / gsd
         models = []
         for a in angles:
             r, v = _orbit_state(lon0, lat0, altitude, altitude * np.tan(np.radians(a)) / 1e3, -12.0)
-            models.append(FrameCamera.looking_at(r, v, lon0, lat0, h0, width=w, height=h,
-                                                 focal_mm=focal, pitch_mm=pitch))
+            models.append(
+                FrameCamera.looking_at(
+                    r, v, lon0, lat0, h0, width=w, height=h, focal_mm=focal, pitch_mm=pitch
+                )
+            )
     diags = {}
-    g = _ground_fields(models, dem, lon0, lat0, (h_lo, h_hi), models[0].gsd(h0), texture, rng,
-                       sigma_psf, bits, diags)
-    images = [_render_view(m, f"view{k}", g, step, noise, bits, rng, seed, diags)
-              for k, m in enumerate(models)]
+    g = _ground_fields(
+        models,
+        dem,
+        lon0,
+        lat0,
+        (h_lo, h_hi),
+        models[0].gsd(h0),
+        texture,
+        rng,
+        sigma_psf,
+        bits,
+        diags,
+    )
+    images = [
+        _render_view(m, f"view{k}", g, step, noise, bits, rng, seed, diags)
+        for k, m in enumerate(models)
+    ]
     truth_ortho = cv2.resize(g.field, (g.shape[1], g.shape[0]), interpolation=cv2.INTER_AREA)
-    settings = dict(preset=preset, angles=angles, size=[w, h], noise=noise, seed=seed, bits=bits,
-                    mtf_nyquist=mtf_nyquist, gsd=gsd, center_lon=lon0, center_lat=lat0,
-                    dem=str(dem.path), texture=str(texture or texture_path()))
-    return ViewsScene(images, models, DEM(g.truth, g.transform, g.crs, ELLIPSOID, None),
-                      truth_ortho.astype(np.float32), preset, settings, diags)
+    settings = dict(
+        preset=preset,
+        angles=angles,
+        size=[w, h],
+        noise=noise,
+        seed=seed,
+        bits=bits,
+        mtf_nyquist=mtf_nyquist,
+        gsd=gsd,
+        center_lon=lon0,
+        center_lat=lat0,
+        dem=str(dem.path),
+        texture=str(texture or texture_path()),
+    )
+    return ViewsScene(
+        images,
+        models,
+        DEM(g.truth, g.transform, g.crs, ELLIPSOID, None),
+        truth_ortho.astype(np.float32),
+        preset,
+        settings,
+        diags,
+    )
 
 
 def _check_points(left, right, dem, n, rng):
@@ -788,14 +997,30 @@ def _check_points(left, right, dem, n, rng):
     r = rng.uniform(5, left.height - 6, m)
     loc = left.localize_dem(c, r, dem, threshold=0.001)
     cr, rr = right.project(loc.lon, loc.lat, loc.h)
-    ok = (loc.converged & np.isfinite(cr) & (cr > 5) & (cr < right.width - 6)
-          & (rr > 5) & (rr < right.height - 6))
+    ok = (
+        loc.converged
+        & np.isfinite(cr)
+        & (cr > 5)
+        & (cr < right.width - 6)
+        & (rr > 5)
+        & (rr < right.height - 6)
+    )
     idx = np.flatnonzero(ok)[:n]
     pts = []
     for k, i in enumerate(idx):
-        pts.append(dict(id=f"P{k + 1:03d}", lon=loc.lon[i], lat=loc.lat[i], h=loc.h[i],
-                        col=c[i], row=r[i], col_right=cr[i], row_right=rr[i],
-                        role="gcp" if k % 2 == 0 else "check"))
+        pts.append(
+            dict(
+                id=f"P{k + 1:03d}",
+                lon=loc.lon[i],
+                lat=loc.lat[i],
+                h=loc.h[i],
+                col=c[i],
+                row=r[i],
+                col_right=cr[i],
+                row_right=rr[i],
+                role="gcp" if k % 2 == 0 else "check",
+            )
+        )
     return pts
 
 
@@ -806,13 +1031,25 @@ def points_csv(points) -> str:
     wr = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     wr.writeheader()
     for p in points:
-        wr.writerow({k: (f"{v:.9f}" if k in ("lon", "lat") else f"{v:.4f}" if isinstance(v, float) else v)
-                     for k, v in p.items()})
+        wr.writerow(
+            {
+                k: (
+                    f"{v:.9f}" if k in ("lon", "lat") else f"{v:.4f}" if isinstance(v, float) else v
+                )
+                for k, v in p.items()
+            }
+        )
     return buf.getvalue()
 
 
-def write_scene(scene: Scene, out_dir, *, overwrite: bool = False, fit_rpcs: bool = True,
-                write_images: bool = True):
+def write_scene(
+    scene: Scene,
+    out_dir,
+    *,
+    overwrite: bool = False,
+    fit_rpcs: bool = True,
+    write_images: bool = True,
+):
     """Write a scene under fixed names in ``out_dir``.
 
     ``left.tif``/``right.tif`` (images with fitted RPC metadata and ``<name>.model.json``
@@ -831,16 +1068,34 @@ def write_scene(scene: Scene, out_dir, *, overwrite: bool = False, fit_rpcs: boo
         rpcs = None
         if fit_rpcs:
             from stereodem.sensor.estimation.rpcfit import fit_rpc
+
             lo, hi = scene.truth_dem.height_range()
             rpc, report = fit_rpc(model, height_range=(lo - 500.0, hi + 500.0))
             rpcs = rpc.to_rasterio()
             meta["rpc_fit"][name] = report.to_dict()
-        write_geotiff(out / f"{name}.tif", img, None, None, None, overwrite=overwrite, rpcs=rpcs,
-                      tags={"STEREODEM_MODEL": f"{name}.model.json"})
+        write_geotiff(
+            out / f"{name}.tif",
+            img,
+            None,
+            None,
+            None,
+            overwrite=overwrite,
+            rpcs=rpcs,
+            tags={"STEREODEM_MODEL": f"{name}.model.json"},
+        )
         save_model(model, out / f"{name}.model.json", overwrite=overwrite)
     scene.truth_dem.write(out / "truth_dem.tif", overwrite=overwrite, creation_options=TRUTH_CO)
-    write_geotiff(out / "truth_ortho.tif", scene.truth_ortho, scene.truth_dem.transform,
-                  scene.truth_dem.crs, np.nan, overwrite=overwrite, creation_options=TRUTH_CO)
+    write_geotiff(
+        out / "truth_ortho.tif",
+        scene.truth_ortho,
+        scene.truth_dem.transform,
+        scene.truth_dem.crs,
+        np.nan,
+        overwrite=overwrite,
+        creation_options=TRUTH_CO,
+    )
     write_text_atomic(out / "points.csv", points_csv(scene.points), overwrite=overwrite)
-    write_text_atomic(out / "scene.json", json.dumps(meta, indent=2, default=float), overwrite=overwrite)
+    write_text_atomic(
+        out / "scene.json", json.dumps(meta, indent=2, default=float), overwrite=overwrite
+    )
     return out

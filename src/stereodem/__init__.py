@@ -9,6 +9,7 @@ Names are resolved on first use (PEP 562 ``__getattr__``), so ``import stereodem
 ``stereodem --help`` do not load numpy, OpenCV or rasterio. Where each name lives:
 :data:`_API`; docs/api.md describes them.
 """
+
 from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
@@ -65,7 +66,7 @@ def __getattr__(name):
     if module is None:
         raise AttributeError(f"module 'stereodem' has no attribute {name!r}")
     value = getattr(import_module(module), name)
-    globals()[name] = value          # next time without __getattr__
+    globals()[name] = value  # next time without __getattr__
     return value
 
 

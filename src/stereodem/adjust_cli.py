@@ -1,5 +1,6 @@
 """``stereodem adjust``: estimate sensor-model corrections from GCPs (one image) or by bundle
 adjustment of a pair, with a statistics report."""
+
 from __future__ import annotations
 
 import argparse
@@ -31,55 +32,108 @@ the top-left pixel at 0,0). Tie CSV: col1,row1,col2,row2 (header required).
 def _model_choices():
     from stereodem.sensor.estimation.adjust import MODEL_SETS
     from stereodem.sensor.models.generic import MODEL_NAMES
+
     return sorted(MODEL_SETS) + list(MODEL_NAMES) + ["bundle"]
 
 
 def add_parser(sub):
-    p = sub.add_parser("adjust", help="adjust sensor models to GCPs / bundle-adjust a pair",
-                       description="Estimate the parameters of IMAGE's sensor model from ground "
-                                   "control points (or of a pair's two models from tie points and "
-                                   "GCPs with --model bundle), write the adjusted model as a JSON "
-                                   "sidecar readable by ortho/dem (--model), and a report: "
-                                   "adjust_report.json, adjust_report.md and the residual figure.",
-                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("image", help="image (GeoTIFF with RPCs or a <stem>.model.json sidecar), or an "
-                                 "ASTER L1A granule (its --band; with --model bundle and no IMAGE2, "
-                                 "the 3N/3B pair)")
+    p = sub.add_parser(
+        "adjust",
+        help="adjust sensor models to GCPs / bundle-adjust a pair",
+        description="Estimate the parameters of IMAGE's sensor model from ground "
+        "control points (or of a pair's two models from tie points and "
+        "GCPs with --model bundle), write the adjusted model as a JSON "
+        "sidecar readable by ortho/dem (--model), and a report: "
+        "adjust_report.json, adjust_report.md and the residual figure.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "image",
+        help="image (GeoTIFF with RPCs or a <stem>.model.json sidecar), or an "
+        "ASTER L1A granule (its --band; with --model bundle and no IMAGE2, "
+        "the 3N/3B pair)",
+    )
     p.add_argument("image2", nargs="?", help="second image of a pair (--model bundle)")
-    p.add_argument("more", nargs="*", metavar="IMAGE",
-                   help="further images (--model bundle of three or more images: -o is then the "
-                        "folder of their adjusted models <stem>.model.json)")
-    p.add_argument("--band", type=options.band, default=1,
-                   help="band of an ASTER granule (3N or 3B; default 3N)")
+    p.add_argument(
+        "more",
+        nargs="*",
+        metavar="IMAGE",
+        help="further images (--model bundle of three or more images: -o is then the "
+        "folder of their adjusted models <stem>.model.json)",
+    )
+    p.add_argument(
+        "--band",
+        type=options.band,
+        default=1,
+        help="band of an ASTER granule (3N or 3B; default 3N)",
+    )
     p.add_argument("--gcps", help="GCP / check-point CSV measured in IMAGE")
     p.add_argument("--gcps2", help="GCP / check-point CSV measured in IMAGE2 (bundle)")
-    p.add_argument("--ties", help="tie-point CSV col1,row1,col2,row2, or point,image,col,row for "
-                                  "three or more images (bundle; default: automatic SIFT matches "
-                                  "checked through the models, when available)")
-    p.add_argument("--match", action="append", metavar="FILE",
-                   help="ASP binary match file <prefix>-<stem1>__<stem2>.match as tie points "
-                        "(bundle; repeatable; refused when it belongs to other images)")
-    p.add_argument("--image-gcps", action="append", metavar="K=CSV",
-                   help="GCP / check-point CSV measured in the K-th image (bundle; repeatable)")
-    p.add_argument("--fix", action="append", type=int, metavar="K",
-                   help="hold the K-th image's model fixed (bundle; repeatable; default: the "
-                        "first image when no GCP is given)")
-    p.add_argument("--model", required=True, choices=_model_choices(), metavar="MODEL",
-                   help="parameter set (" + ", ".join(_model_choices()) + ")")
-    p.add_argument("--set", dest="param_set", default="rpc-shift",
-                   help="parameter set of each image in a bundle adjustment (default rpc-shift)")
+    p.add_argument(
+        "--ties",
+        help="tie-point CSV col1,row1,col2,row2, or point,image,col,row for "
+        "three or more images (bundle; default: automatic SIFT matches "
+        "checked through the models, when available)",
+    )
+    p.add_argument(
+        "--match",
+        action="append",
+        metavar="FILE",
+        help="ASP binary match file <prefix>-<stem1>__<stem2>.match as tie points "
+        "(bundle; repeatable; refused when it belongs to other images)",
+    )
+    p.add_argument(
+        "--image-gcps",
+        action="append",
+        metavar="K=CSV",
+        help="GCP / check-point CSV measured in the K-th image (bundle; repeatable)",
+    )
+    p.add_argument(
+        "--fix",
+        action="append",
+        type=int,
+        metavar="K",
+        help="hold the K-th image's model fixed (bundle; repeatable; default: the "
+        "first image when no GCP is given)",
+    )
+    p.add_argument(
+        "--model",
+        required=True,
+        choices=_model_choices(),
+        metavar="MODEL",
+        help="parameter set (" + ", ".join(_model_choices()) + ")",
+    )
+    p.add_argument(
+        "--set",
+        dest="param_set",
+        default="rpc-shift",
+        help="parameter set of each image in a bundle adjustment (default rpc-shift)",
+    )
     p.add_argument("-o", "--out", required=True, help="adjusted model (JSON sidecar) of IMAGE")
     p.add_argument("--out2", help="adjusted model of IMAGE2 (bundle)")
     p.add_argument("--report", help="directory for adjust_report.json/.md and the residual figure")
-    p.add_argument("--vertical", choices=VERTICALS, default="ellipsoid",
-                   help="reference of the CSV heights (geoid: EGM96)")
-    p.add_argument("--sigma-px", type=float, help="a-priori sigma of GCP image coordinates (px) "
-                   "where the CSV has none; without either sigma is estimated (Pope's tau test)")
-    p.add_argument("--sigma-tie-px", type=float, default=0.5, help="a-priori sigma of tie points (px)")
+    p.add_argument(
+        "--vertical",
+        choices=VERTICALS,
+        default="ellipsoid",
+        help="reference of the CSV heights (geoid: EGM96)",
+    )
+    p.add_argument(
+        "--sigma-px",
+        type=float,
+        help="a-priori sigma of GCP image coordinates (px) "
+        "where the CSV has none; without either sigma is estimated (Pope's tau test)",
+    )
+    p.add_argument(
+        "--sigma-tie-px", type=float, default=0.5, help="a-priori sigma of tie points (px)"
+    )
     p.add_argument("--alpha", type=float, default=0.001, help="significance level of data snooping")
     p.add_argument("--no-snooping", action="store_true", help="no outlier rejection")
     p.add_argument("--max-iterations", type=int, default=20)
-    p.add_argument("--regularization", help="lcurve, gcv or a weight: Tikhonov for rank-deficient sets")
+    p.add_argument(
+        "--regularization", help="lcurve, gcv or a weight: Tikhonov for rank-deficient sets"
+    )
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.set_defaults(run=run)
     return p
@@ -91,6 +145,7 @@ def _read_ties(path):
     from stereodem.core.errors import InputError
 
     from .adjust_images import tie_csv_rows
+
     ix, rows = tie_csv_rows(path, ["col1", "row1", "col2", "row2"])
     try:
         t = np.array([[float(r[k]) for k in ix] for r in rows])
@@ -101,13 +156,16 @@ def _read_ties(path):
 
 def _auto_ties(args, left, right):
     from stereodem.core.errors import InputError
+
     try:
         from stereodem.stereo.sparse import sparse_matches
     except ImportError:
-        raise InputError("--model bundle needs --ties CSV (automatic tie points need "
-                         "stereodem.stereo.sparse)") from None
+        raise InputError(
+            "--model bundle needs --ties CSV (automatic tie points need stereodem.stereo.sparse)"
+        ) from None
 
     from .pipeline.inputs import open_image
+
     imgs = [open_image(path, band=b).image for path, b in _pair_inputs(args)]
     m = sparse_matches(imgs[0], imgs[1], left, right)
     log.info("adjust: %d automatic tie points", len(m))
@@ -132,6 +190,7 @@ def run(args) -> int:
     check_writable(args.out, args.overwrite)
     if args.report:
         from pathlib import Path
+
         for name in ("adjust_report.json", "adjust_report.md"):
             check_writable(Path(args.report) / name, args.overwrite)
     reg = args.regularization
@@ -139,28 +198,42 @@ def run(args) -> int:
         try:
             reg = float(reg)
         except ValueError:
-            raise InputError(f"--regularization must be lcurve, gcv or a number, got {reg!r}") from None
-    common = dict(sigma_px=args.sigma_px, snooping=not args.no_snooping, alpha=args.alpha,
-                  max_iterations=args.max_iterations)
+            raise InputError(
+                f"--regularization must be lcurve, gcv or a number, got {reg!r}"
+            ) from None
+    common = dict(
+        sigma_px=args.sigma_px,
+        snooping=not args.no_snooping,
+        alpha=args.alpha,
+        max_iterations=args.max_iterations,
+    )
     if args.model == "bundle" and args.more:
         from .adjust_images import run_bundle_images
+
         print(run_bundle_images(args))
         return 0
     if args.more:
-        raise InputError(f"--model {args.model} adjusts one image; several images need --model bundle")
+        raise InputError(
+            f"--model {args.model} adjusts one image; several images need --model bundle"
+        )
     if args.model == "bundle":
         from stereodem.sensor.io.aster_l1a import is_aster_granule
+
         if reg is not None:
-            raise InputError("--regularization is not available for --model bundle: fix its rank "
-                             "defects with GCPs, or free fewer parameters (--set)")
+            raise InputError(
+                "--regularization is not available for --model bundle: fix its rank "
+                "defects with GCPs, or free fewer parameters (--set)"
+            )
         if not (args.image2 or is_aster_granule(args.image)) or not args.out2:
             raise InputError("--model bundle needs IMAGE2 (or an ASTER granule) and --out2")
         check_writable(args.out2, args.overwrite)
         left, right = (image_model(path, band=b) for path, b in _pair_inputs(args))
-        gcps = tuple(read_gcps(p, vertical=args.vertical) if p else None
-                     for p in (args.gcps, args.gcps2))
+        gcps = tuple(
+            read_gcps(p, vertical=args.vertical) if p else None for p in (args.gcps, args.gcps2)
+        )
         if args.match:
             from .adjust_images import match_ties
+
             paths = [p for p, _ in _pair_inputs(args)]
             if paths[0] == paths[1]:
                 raise InputError("--match needs two image files (not one ASTER granule)")
@@ -168,14 +241,23 @@ def run(args) -> int:
             ties = got[(0, 1)]
         else:
             ties = _read_ties(args.ties) if args.ties else _auto_ties(args, left, right)
-        res = bundle_adjust(left, right, ties, names=(args.param_set, args.param_set), gcps=gcps,
-                            sigma_tie_px=args.sigma_tie_px, **common)
+        res = bundle_adjust(
+            left,
+            right,
+            ties,
+            names=(args.param_set, args.param_set),
+            gcps=gcps,
+            sigma_tie_px=args.sigma_tie_px,
+            **common,
+        )
         save_model(res.left, args.out, overwrite=args.overwrite)
         save_model(res.right, args.out2, overwrite=args.overwrite)
-        summary = (f"bundle ({args.param_set}): {len(res.tie_rejected)} ties "
-                   f"({int(res.tie_rejected.sum())} rejected), tie RMSE {res.tie_rmse_px:.3f} px, "
-                   f"ray gap {res.parallax_before.get('ray_gap_rms_m', float('nan')):.2f} -> "
-                   f"{res.parallax_after.get('ray_gap_rms_m', float('nan')):.2f} m RMS")
+        summary = (
+            f"bundle ({args.param_set}): {len(res.tie_rejected)} ties "
+            f"({int(res.tie_rejected.sum())} rejected), tie RMSE {res.tie_rmse_px:.3f} px, "
+            f"ray gap {res.parallax_before.get('ray_gap_rms_m', float('nan')):.2f} -> "
+            f"{res.parallax_after.get('ray_gap_rms_m', float('nan')):.2f} m RMS"
+        )
     else:
         if not args.gcps:
             raise InputError(f"--model {args.model} needs --gcps CSV")
@@ -183,15 +265,27 @@ def run(args) -> int:
         if args.model in MODEL_NAMES:
             model = image_model(args.image, band=args.band) if _has_model(args.image) else None
             size = (model.width, model.height) if model is not None else None
-            res = adjust_generic(args.model, pts, image_size=size,
-                                 regularization="auto" if reg is None else reg, **common)
+            res = adjust_generic(
+                args.model,
+                pts,
+                image_size=size,
+                regularization="auto" if reg is None else reg,
+                **common,
+            )
         else:
-            res = adjust_model(image_model(args.image, band=args.band), pts, args.model, regularization=reg,
-                               **common)
+            res = adjust_model(
+                image_model(args.image, band=args.band),
+                pts,
+                args.model,
+                regularization=reg,
+                **common,
+            )
         save_model(res.model, args.out, overwrite=args.overwrite)
-        summary = (f"{args.model}: sigma0 {res.sigma0:.3f}, GCP RMSE {res.gcp_rmse_px:.3f} px, "
-                   f"check RMSE {res.check_rmse_px:.3f} px, outliers: "
-                   f"{', '.join(o['id'] for o in res.outliers) or 'none'}")
+        summary = (
+            f"{args.model}: sigma0 {res.sigma0:.3f}, GCP RMSE {res.gcp_rmse_px:.3f} px, "
+            f"check RMSE {res.check_rmse_px:.3f} px, outliers: "
+            f"{', '.join(o['id'] for o in res.outliers) or 'none'}"
+        )
     if args.report:
         write_report(res, args.report, overwrite=args.overwrite)
     print(summary)
@@ -209,6 +303,7 @@ def _has_model(image) -> bool:
     from stereodem.core.errors import SensorModelError
 
     from .pipeline.inputs import image_model
+
     try:
         image_model(image)
         return True

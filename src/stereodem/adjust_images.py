@@ -12,6 +12,7 @@ GCPs per image (``--gcps`` for the first, ``--gcps2`` for the second, ``--image-
 for any); the datum is held by the GCPs, else by the fixed images (``--fix K``, default the
 first). The adjusted models are written as ``OUT/<stem>.model.json``.
 """
+
 from __future__ import annotations
 
 import logging
@@ -32,6 +33,7 @@ def tie_csv_rows(path, need, note="") -> tuple[list, list]:
     or empty file or a header without them raises :class:`InputError` (``note`` ends that
     message)."""
     import csv
+
     try:
         with open(path, newline="") as f:
             rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
@@ -49,6 +51,7 @@ def read_tracks(path, stems) -> TieTracks:  # noqa: F821
     """Tie observations from a CSV ``point,image,col,row`` (header required; ``image`` a
     1-based position in ``stems`` or one of the stems; ``point`` any label)."""
     from stereodem.sensor.estimation.adjust.bundle_multi import TieTracks
+
     ix, rows = tie_csv_rows(path, ["point", "image", "col", "row"], " (N images)")
     labels, imgs, cols, rws = [], [], [], []
     for n, r in enumerate(rows, start=2):
@@ -59,8 +62,10 @@ def read_tracks(path, stems) -> TieTracks:  # noqa: F821
                 raise ValueError
             labels.append(p), imgs.append(k), cols.append(float(c)), rws.append(float(rr))
         except (ValueError, IndexError):
-            raise InputError(f"{path}: line {n}: expected point,image,col,row with an image among "
-                             f"1..{len(stems)} or {', '.join(stems)}") from None
+            raise InputError(
+                f"{path}: line {n}: expected point,image,col,row with an image among "
+                f"1..{len(stems)} or {', '.join(stems)}"
+            ) from None
     _, point = np.unique(np.asarray(labels), return_inverse=True)
     t = TieTracks(point.ravel(), imgs, cols, rws)
     counts = np.bincount(t.point)
@@ -75,23 +80,33 @@ def match_ties(paths, images, models) -> dict:
     from stereodem.sensor.io.asp_match import check_match_images, match_stems, read_match
     from stereodem.sensor.models.base import pair_height_bounds
     from stereodem.stereo.ties import check_match_geometry
+
     stems = [Path(p).stem for p in images]
     out = {}
     for path in paths:
         names = match_stems(path)
         if names is None:
-            raise InputError(f"{path}: not named the ASP way (<prefix>-<image1>__<image2>.match), so "
-                             "its images are unknown")
+            raise InputError(
+                f"{path}: not named the ASP way (<prefix>-<image1>__<image2>.match), so "
+                "its images are unknown"
+            )
         a, b = names
         i = next((k for k, s in enumerate(stems) if a == s or a.endswith("-" + s)), None)
         j = next((k for k, s in enumerate(stems) if b == s), None)
         if i is None or j is None or i == j:
-            raise InputError(f"{path}: matches images {a.rsplit('-', 1)[-1]!r} / {b!r}, not two of "
-                             f"{', '.join(stems)}")
+            raise InputError(
+                f"{path}: matches images {a.rsplit('-', 1)[-1]!r} / {b!r}, not two of "
+                f"{', '.join(stems)}"
+            )
         m = read_match(path)
         lo, hi = pair_height_bounds(models[i], models[j])
-        check_match_images(m, images[i], images[j], left_size=(models[i].width, models[i].height),
-                           right_size=(models[j].width, models[j].height))
+        check_match_images(
+            m,
+            images[i],
+            images[j],
+            left_size=(models[i].width, models[i].height),
+            right_size=(models[j].width, models[j].height),
+        )
         if hi > lo:
             check_match_geometry(m, models[i], models[j], (lo, hi), names=(images[i], images[j]))
         t = m.ties()
@@ -110,6 +125,7 @@ def _auto_ties(args, paths, models) -> dict:
     from .config import Config, InputSettings
     from .multiview import reference_height
     from .pipeline.inputs import open_image
+
     h0 = reference_height(Config(InputSettings(), "."), models)
     plan = choose_pairs(models, h0, names=paths)
     imgs = {}
@@ -120,7 +136,9 @@ def _auto_ties(args, paths, models) -> dict:
                 imgs[k] = open_image(paths[k], band=args.band).image
         m = sparse_matches(imgs[c.i], imgs[c.j], models[c.i], models[c.j])
         out[(c.i, c.j)] = np.stack([m.col1, m.row1, m.col2, m.row2], -1)
-        log.info("adjust: %d automatic tie points between %s and %s", len(m), paths[c.i], paths[c.j])
+        log.info(
+            "adjust: %d automatic tie points between %s and %s", len(m), paths[c.i], paths[c.j]
+        )
     return out
 
 
@@ -137,20 +155,28 @@ def run_bundle_images(args) -> str:
     from stereodem.sensor.io.sidecar import save_model
 
     from .pipeline.inputs import image_model
+
     paths = [args.image, args.image2, *args.more]
     stems = [Path(p).stem for p in paths]
     if len(set(stems)) < len(stems):
-        raise InputError("bundle: two images with one file stem (" + ", ".join(
-            s for s in stems if stems.count(s) > 1) + "): their models would overwrite each other")
+        raise InputError(
+            "bundle: two images with one file stem ("
+            + ", ".join(s for s in stems if stems.count(s) > 1)
+            + "): their models would overwrite each other"
+        )
     out = Path(args.out)
     if out.suffix == ".json":
-        raise InputError(f"{out}: with three or more images, -o is the folder of the adjusted models")
+        raise InputError(
+            f"{out}: with three or more images, -o is the folder of the adjusted models"
+        )
     targets = [out / f"{s}.model.json" for s in stems]
     for t in targets:
         check_writable(t, args.overwrite)
     models = [image_model(p, band=args.band) for p in paths]
     gcps = [None] * len(paths)
-    spec = [(0, args.gcps), (1, args.gcps2)] + [_image_gcps(s, len(paths)) for s in args.image_gcps or []]
+    spec = [(0, args.gcps), (1, args.gcps2)] + [
+        _image_gcps(s, len(paths)) for s in args.image_gcps or []
+    ]
     for k, csv in spec:
         if csv:
             if gcps[k] is not None:
@@ -159,26 +185,40 @@ def run_bundle_images(args) -> str:
     if args.ties:
         tracks = read_tracks(args.ties, stems)
     else:
-        pair_ties = match_ties(args.match, paths, models) if args.match else _auto_ties(args, paths, models)
+        pair_ties = (
+            match_ties(args.match, paths, models) if args.match else _auto_ties(args, paths, models)
+        )
         tracks = tracks_from_pairs(pair_ties)
     if tracks.n_points == 0:
         raise InputError("bundle: no tie point between the images")
     fixed = [k - 1 for k in args.fix] if args.fix else None
-    res = bundle_adjust_images(models, tracks, names=args.param_set, gcps=gcps, fixed=fixed,
-                               sigma_tie_px=args.sigma_tie_px, sigma_px=args.sigma_px,
-                               snooping=not args.no_snooping, alpha=args.alpha,
-                               max_iterations=args.max_iterations)
+    res = bundle_adjust_images(
+        models,
+        tracks,
+        names=args.param_set,
+        gcps=gcps,
+        fixed=fixed,
+        sigma_tie_px=args.sigma_tie_px,
+        sigma_px=args.sigma_px,
+        snooping=not args.no_snooping,
+        alpha=args.alpha,
+        max_iterations=args.max_iterations,
+    )
     for m, t in zip(res.models, targets):
         save_model(m, t, overwrite=args.overwrite)
     if args.report:
         write_report(res, args.report, overwrite=args.overwrite)
-    gaps = ", ".join(f"{i + 1}-{j + 1} {res.ray_gaps_before[(i, j)]['ray_gap_rms_m']:.2f}->"
-                     f"{res.ray_gaps_after.get((i, j), {}).get('ray_gap_rms_m', float('nan')):.2f}"
-                     for i, j in res.ray_gaps_before)
-    return (f"bundle ({args.param_set}) of {len(paths)} images: {tracks.n_points} tie points "
-            f"({len(tracks)} observations, {int(res.tie_rejected.sum())} rejected), tie RMSE "
-            f"{res.tie_rmse_px:.3f} px, fixed: {', '.join(str(k + 1) for k in res.fixed) or 'none (GCPs)'}; "
-            f"ray gap RMS (m) {gaps}; models in {out}")
+    gaps = ", ".join(
+        f"{i + 1}-{j + 1} {res.ray_gaps_before[(i, j)]['ray_gap_rms_m']:.2f}->"
+        f"{res.ray_gaps_after.get((i, j), {}).get('ray_gap_rms_m', float('nan')):.2f}"
+        for i, j in res.ray_gaps_before
+    )
+    return (
+        f"bundle ({args.param_set}) of {len(paths)} images: {tracks.n_points} tie points "
+        f"({len(tracks)} observations, {int(res.tie_rejected.sum())} rejected), tie RMSE "
+        f"{res.tie_rmse_px:.3f} px, fixed: {', '.join(str(k + 1) for k in res.fixed) or 'none (GCPs)'}; "
+        f"ray gap RMS (m) {gaps}; models in {out}"
+    )
 
 
 def _image_gcps(text, n):

@@ -1,5 +1,6 @@
 """``stereodem assess``: DEM accuracy against a reference DEM and check points
 (:func:`stereodem.pipeline.stages.assess_stage`, the same stage as ``stereodem run``)."""
+
 from __future__ import annotations
 
 import argparse
@@ -14,7 +15,9 @@ def _floats(text):
     try:
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers, got {text!r}"
+        ) from None
 
 
 def _names(text):
@@ -32,46 +35,84 @@ def _names(text):
 def add_parser(subparsers):
     """Add the ``assess`` sub-command to an ``argparse`` sub-parsers object."""
     p = subparsers.add_parser(
-        "assess", help="accuracy of a DEM against a reference DEM and check points",
+        "assess",
+        help="accuracy of a DEM against a reference DEM and check points",
         description="Warp DEM onto the reference grid, difference it (DEM - reference) and "
-                    "report statistics overall, per slope class, land cover and elevation band, "
-                    "optionally before and after Nuth & Kaab co-registration.",
+        "report statistics overall, per slope class, land cover and elevation band, "
+        "optionally before and after Nuth & Kaab co-registration.",
         epilog="examples:\n"
-               "  stereodem assess out/dem.tif --ref srtm.tif --ref-vertical geoid -o report\n"
-               "  stereodem assess dem.tif --ref lidar.tif --checkpoints gps.csv --coregister -o report\n"
-               "  stereodem assess dem.tif --ref ref.tif --landcover lc.tif --landcover-names 1=forest,2=urban -o r\n",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+        "  stereodem assess out/dem.tif --ref srtm.tif --ref-vertical geoid -o report\n"
+        "  stereodem assess dem.tif --ref lidar.tif --checkpoints gps.csv --coregister -o report\n"
+        "  stereodem assess dem.tif --ref ref.tif --landcover lc.tif --landcover-names 1=forest,2=urban -o r\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("dem", help="DEM GeoTIFF to assess")
     p.add_argument("--ref", required=True, help="reference DEM GeoTIFF (any CRS/resolution)")
     p.add_argument("--checkpoints", help="CSV of check points: lon,lat,height or x,y,z")
     p.add_argument("--checkpoints-crs", help="CRS of x,y check points (e.g. EPSG:32636)")
-    p.add_argument("--checkpoints-vertical", choices=VERTICALS,
-                   help="vertical reference of the check-point heights (default: the DEM's)")
+    p.add_argument(
+        "--checkpoints-vertical",
+        choices=VERTICALS,
+        help="vertical reference of the check-point heights (default: the DEM's)",
+    )
     p.add_argument("--landcover", help="land-cover raster of integer classes")
     p.add_argument("--landcover-names", type=_names, help="class names, e.g. 1=water,2=urban")
-    p.add_argument("--slope-bins", type=_floats, help="slope class edges in degrees "
-                   "(default 0,5,10,20,30,45,90)")
+    p.add_argument(
+        "--slope-bins",
+        type=_floats,
+        help="slope class edges in degrees (default 0,5,10,20,30,45,90)",
+    )
     p.add_argument("--elevation-bins", type=_floats, help="elevation band edges in metres")
-    p.add_argument("--coregister", action="store_true", help="Nuth & Kaab co-registration; "
-                   "report before and after")
-    p.add_argument("--dem-vertical", choices=VERTICALS,
-                   help="vertical reference of DEM (overrides the file)")
-    p.add_argument("--ref-vertical", choices=VERTICALS,
-                   help="vertical reference of the reference (overrides the file)")
+    p.add_argument(
+        "--coregister",
+        action="store_true",
+        help="Nuth & Kaab co-registration; report before and after",
+    )
+    p.add_argument(
+        "--dem-vertical", choices=VERTICALS, help="vertical reference of DEM (overrides the file)"
+    )
+    p.add_argument(
+        "--ref-vertical",
+        choices=VERTICALS,
+        help="vertical reference of the reference (overrides the file)",
+    )
     ea = p.add_argument_group("error analysis on stable terrain (Hugonnet et al. 2022)")
-    ea.add_argument("--error-analysis", action="store_true",
-                    help="dispersion vs slope/curvature, variogram of the standardised dh, "
-                         "sigma of area means (figures and a report section)")
-    ea.add_argument("--outlines", action="append", default=[], metavar="VECTOR",
-                    help="polygons whose mean dh gets a sigma from the variogram (repeatable)")
-    ea.add_argument("--exclude", action="append", default=[], metavar="VECTOR",
-                    help="polygons left out of the stable terrain (repeatable)")
-    ea.add_argument("--sigma-map", metavar="RASTER",
-                    help="per-cell sigma (m) of the sensor models: the share it explains is reported")
-    ea.add_argument("--chain", help="co-registration chain applied before the analysis, "
-                                    "e.g. nuth_kaab,deramp:1 (see stereodem coregister)")
-    ea.add_argument("--track-angle", type=float, metavar="DEG",
-                    help="ground-track heading for --chain (default: the DEM's own track tags)")
+    ea.add_argument(
+        "--error-analysis",
+        action="store_true",
+        help="dispersion vs slope/curvature, variogram of the standardised dh, "
+        "sigma of area means (figures and a report section)",
+    )
+    ea.add_argument(
+        "--outlines",
+        action="append",
+        default=[],
+        metavar="VECTOR",
+        help="polygons whose mean dh gets a sigma from the variogram (repeatable)",
+    )
+    ea.add_argument(
+        "--exclude",
+        action="append",
+        default=[],
+        metavar="VECTOR",
+        help="polygons left out of the stable terrain (repeatable)",
+    )
+    ea.add_argument(
+        "--sigma-map",
+        metavar="RASTER",
+        help="per-cell sigma (m) of the sensor models: the share it explains is reported",
+    )
+    ea.add_argument(
+        "--chain",
+        help="co-registration chain applied before the analysis, "
+        "e.g. nuth_kaab,deramp:1 (see stereodem coregister)",
+    )
+    ea.add_argument(
+        "--track-angle",
+        type=float,
+        metavar="DEG",
+        help="ground-track heading for --chain (default: the DEM's own track tags)",
+    )
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
     p.set_defaults(run=run)
@@ -80,16 +121,26 @@ def add_parser(subparsers):
 
 def config_from_args(args):
     from .config import AssessSettings, Config, InputSettings, validate
-    cfg = Config(inputs=InputSettings(dem=args.dem, dem_vertical=args.dem_vertical,
-                                      reference_dem=args.ref, reference_vertical=args.ref_vertical,
-                                      checkpoints=args.checkpoints, checkpoints_crs=args.checkpoints_crs,
-                                      checkpoints_vertical=args.checkpoints_vertical,
-                                      landcover=args.landcover),
-                 output_dir=str(args.output),
-                 assess=AssessSettings(coregister=args.coregister,
-                                       slope_bins=tuple(args.slope_bins) if args.slope_bins else None,
-                                       elevation_bins=tuple(args.elevation_bins) if args.elevation_bins else None,
-                                       landcover_names=args.landcover_names))
+
+    cfg = Config(
+        inputs=InputSettings(
+            dem=args.dem,
+            dem_vertical=args.dem_vertical,
+            reference_dem=args.ref,
+            reference_vertical=args.ref_vertical,
+            checkpoints=args.checkpoints,
+            checkpoints_crs=args.checkpoints_crs,
+            checkpoints_vertical=args.checkpoints_vertical,
+            landcover=args.landcover,
+        ),
+        output_dir=str(args.output),
+        assess=AssessSettings(
+            coregister=args.coregister,
+            slope_bins=tuple(args.slope_bins) if args.slope_bins else None,
+            elevation_bins=tuple(args.elevation_bins) if args.elevation_bins else None,
+            landcover_names=args.landcover_names,
+        ),
+    )
     validate(cfg, "command line")
     return cfg
 
@@ -100,25 +151,37 @@ def run(args) -> int:
 
     from . import options
     from .pipeline.stages import assess_stage
+
     options.check_common(args)
     cfg = config_from_args(args)
     check_output_dir(args.output, overwrite=args.overwrite)
-    if args.checkpoints:                       # a bad file fails before the assessment runs
+    if args.checkpoints:  # a bad file fails before the assessment runs
         from stereodem.post.assess import read_checkpoints
+
         read_checkpoints(args.checkpoints, crs=args.checkpoints_crs)
     job = None
     if args.error_analysis or args.outlines or args.sigma_map or args.chain:
         from stereodem.post.error_analysis import ErrorAnalysisJob
-        if args.chain:                          # a bad chain fails before any work
+
+        if args.chain:  # a bad chain fails before any work
             from stereodem.post.coreg import parse_chain
+
             parse_chain(args.chain)
-        job = ErrorAnalysisJob(chain=args.chain, track_angle=args.track_angle, exclude=args.exclude,
-                               outlines=args.outlines, sigma_map=args.sigma_map)
-    result, files = assess_stage(cfg, args.dem, args.output, overwrite=args.overwrite,
-                                 error_analysis=job)
+        job = ErrorAnalysisJob(
+            chain=args.chain,
+            track_angle=args.track_angle,
+            exclude=args.exclude,
+            outlines=args.outlines,
+            sigma_map=args.sigma_map,
+        )
+    result, files = assess_stage(
+        cfg, args.dem, args.output, overwrite=args.overwrite, error_analysis=job
+    )
     s = result.report["stats"]
-    print(f"n={s['n']} mean={s['mean']:.3f} rmse={s['rmse']:.3f} nmad={s['nmad']:.3f} "
-          f"le90={s['le90']:.3f} m -> {files['json']}")
+    print(
+        f"n={s['n']} mean={s['mean']:.3f} rmse={s['rmse']:.3f} nmad={s['nmad']:.3f} "
+        f"le90={s['le90']:.3f} m -> {files['json']}"
+    )
     co = result.report.get("coregistration")
     if co:
         print(f"co-registration: dx={co['dx']:.3f} m dy={co['dy']:.3f} m dz={co['dz']:.3f} m")

@@ -18,6 +18,7 @@ but ``[inputs] left/right`` and ``[output] dir``) or the defaults. Each scene wr
   scene: ``done`` / ``failed`` with its one-line reason / ``skipped``, seconds, CPU seconds,
   output folder; and a summary. A failing scene never stops the others.
 """
+
 from __future__ import annotations
 
 import json
@@ -42,9 +43,9 @@ class Scene:
 
     name: str
     path: str
-    kind: str                     # "config" | "granule" | "missing"
+    kind: str  # "config" | "granule" | "missing"
     template: str | None = None
-    size: int = 0                 # bytes of its main input: the scheduling order
+    size: int = 0  # bytes of its main input: the scheduling order
 
 
 @dataclass
@@ -53,7 +54,7 @@ class SceneStatus:
 
     name: str
     input: str
-    status: str                   # "done" | "failed" | "skipped"
+    status: str  # "done" | "failed" | "skipped"
     reason: str = ""
     output: str = ""
     seconds: float = 0.0
@@ -62,6 +63,7 @@ class SceneStatus:
 
 
 # ----------------------------------------------------------------------------- scenes
+
 
 def expand_inputs(paths, template=None) -> list[Scene]:
     """The scenes named by ``paths``: configurations (``*.toml``), granules, and list files
@@ -72,8 +74,13 @@ def expand_inputs(paths, template=None) -> list[Scene]:
     scenes, seen = [], {}
     for p in _flatten(paths):
         path = Path(p)
-        kind = ("missing" if not path.exists() else
-                "config" if path.suffix.lower() == ".toml" else "granule")
+        kind = (
+            "missing"
+            if not path.exists()
+            else "config"
+            if path.suffix.lower() == ".toml"
+            else "granule"
+        )
         stem = path.name if path.is_dir() else path.stem
         n = seen[stem] = seen.get(stem, 0) + 1
         name = stem if n == 1 else f"{stem}_{n}"
@@ -103,8 +110,11 @@ def _flatten(paths):
 
 def _size(path: Path) -> int:
     try:
-        return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() \
+        return (
+            sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+            if path.is_dir()
             else path.stat().st_size
+        )
     except OSError:
         return 0
 
@@ -113,6 +123,7 @@ def _config_size(path: Path) -> int:
     """Bytes of a configuration's images (0 when it cannot be read: it will fail later)."""
     try:
         from .config import load_config
+
         cfg = load_config(path)
     except Exception:  # noqa: BLE001 - a bad configuration fails in its own task, with its reason
         return 0
@@ -124,6 +135,7 @@ def scene_config(scene: Scene, out_dir, *, workers: int = 1, overwrite: bool = F
     import tomllib
 
     from .config import config_from_dict, load_config
+
     if scene.kind == "missing":
         raise InputError(f"{scene.path}: not found")
     resume = not overwrite
@@ -142,8 +154,14 @@ def scene_config(scene: Scene, out_dir, *, workers: int = 1, overwrite: bool = F
         raw["inputs"] = {k: v for k, v in raw["inputs"].items() if k not in ("left", "right")}
         raw["inputs"]["left"] = str(Path(scene.path).resolve())
         raw["output"] = {"dir": "."}
-        cfg = config_from_dict(raw, base=base, source=scene.template or "batch defaults",
-                               workers=workers, overwrite=overwrite, resume=resume)
+        cfg = config_from_dict(
+            raw,
+            base=base,
+            source=scene.template or "batch defaults",
+            workers=workers,
+            overwrite=overwrite,
+            resume=resume,
+        )
     cfg.output_dir = str(out_dir)
     return cfg
 
@@ -158,6 +176,7 @@ def is_done(out_dir) -> bool:
 
 # ----------------------------------------------------------------------------- one scene
 
+
 def run_scene(scene: Scene, out_root, workers: int = 1, overwrite: bool = False) -> SceneStatus:
     """Run one scene into ``out_root/<name>``; never raises: a failure is a ``failed`` row
     with a one-line reason. Runs in a pool worker or a Dask task (picklable arguments)."""
@@ -170,9 +189,12 @@ def run_scene(scene: Scene, out_root, workers: int = 1, overwrite: bool = False)
     t0, c0 = time.perf_counter(), _cpu()
     try:
         from .pipeline.job import run
+
         info = run(scene_config(scene, out, workers=workers, overwrite=overwrite))
-        row.extra = {"stages": {k: v.get("seconds") for k, v in info.get("stages", {}).items()},
-                     "headline": info.get("headline")}
+        row.extra = {
+            "stages": {k: v.get("seconds") for k, v in info.get("stages", {}).items()},
+            "headline": info.get("headline"),
+        }
     except StereodemError as exc:
         row.status, row.reason = "failed", _one_line(exc)
     except MemoryError:
@@ -196,8 +218,16 @@ def _one_line(exc) -> str:
 
 # ----------------------------------------------------------------------------- the batch
 
-def run_batch(scenes, out_root, *, workers: int | None = None, dask: str | None = None,
-              overwrite: bool = False, progress=None) -> dict:
+
+def run_batch(
+    scenes,
+    out_root,
+    *,
+    workers: int | None = None,
+    dask: str | None = None,
+    overwrite: bool = False,
+    progress=None,
+) -> dict:
     """Run ``scenes`` (:func:`expand_inputs`) into ``out_root``; returns the status table
     (also written to ``out_root/batch.json``).
 
@@ -206,11 +236,12 @@ def run_batch(scenes, out_root, *, workers: int | None = None, dask: str | None 
     (``tcp://...``), ``"local"``, or a ``Client``. ``progress(row)`` is called per finished scene.
     """
     from stereodem.core.threads import cores, job_threads, worker_threads
+
     out_root = Path(out_root)
     if out_root.exists() and not out_root.is_dir():
         raise InputError(f"{out_root}: not a folder")
     out_root.mkdir(parents=True, exist_ok=True)
-    order = sorted(scenes, key=lambda s: -s.size)               # largest first
+    order = sorted(scenes, key=lambda s: -s.size)  # largest first
     n = min(job_threads(workers), len(order))
     rows: dict[str, SceneStatus] = {}
     t0 = time.perf_counter()
@@ -227,6 +258,7 @@ def run_batch(scenes, out_root, *, workers: int | None = None, dask: str | None 
         _run_dask(order, out_root, dask, n, overwrite, collect)
     elif n <= 1:
         from stereodem.core.threads import thread_budget
+
         with thread_budget(1):
             for s in order:
                 collect(run_scene(s, out_root, 1, overwrite))
@@ -241,8 +273,13 @@ def _run_pool(order, out_root, n, threads, overwrite, collect):
 
     from stereodem.core.threads import pool_initializer
     from stereodem.stereo.runner import stop_pool
-    ex = ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=pool_initializer, initargs=(threads,))
+
+    ex = ProcessPoolExecutor(
+        max_workers=n,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=pool_initializer,
+        initargs=(threads,),
+    )
     try:
         futs = {ex.submit(run_scene, s, out_root, threads, overwrite): s for s in order}
         for f in as_completed(futs):
@@ -250,9 +287,15 @@ def _run_pool(order, out_root, n, threads, overwrite, collect):
             try:
                 collect(f.result())
             except Exception as exc:  # noqa: BLE001 - a worker died (killed, out of memory)
-                collect(SceneStatus(s.name, s.path, "failed",
-                                    reason=f"worker died: {type(exc).__name__}: {_one_line(exc)}",
-                                    output=str(Path(out_root) / s.name)))
+                collect(
+                    SceneStatus(
+                        s.name,
+                        s.path,
+                        "failed",
+                        reason=f"worker died: {type(exc).__name__}: {_one_line(exc)}",
+                        output=str(Path(out_root) / s.name),
+                    )
+                )
     except BaseException:
         stop_pool(ex)
         raise
@@ -266,10 +309,12 @@ def _run_dask(order, out_root, address, n, overwrite, collect):
     except ImportError:
         raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
     from stereodem.core.threads import register_dask_plugin
+
     cluster = None
     if address == "local":
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                               dashboard_address=None)
+        cluster = LocalCluster(
+            n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None
+        )
         client = Client(cluster)
     elif hasattr(address, "submit"):
         client = address
@@ -277,21 +322,39 @@ def _run_dask(order, out_root, address, n, overwrite, collect):
         try:
             client = Client(address, timeout="20s")
         except (OSError, TimeoutError, ValueError) as exc:
-            raise InputError(f"--dask {address}: cannot connect to the scheduler "
-                             f"({type(exc).__name__}: {_one_line(exc)})") from None
+            raise InputError(
+                f"--dask {address}: cannot connect to the scheduler "
+                f"({type(exc).__name__}: {_one_line(exc)})"
+            ) from None
     try:
         register_dask_plugin(client)
         # scenes run their tiles inside the task (Dask workers are daemon processes: no pool)
-        futs = {client.submit(run_scene, s, str(out_root), 1, overwrite, pure=False,
-                              key=f"stereodem-scene-{s.name}-{time.monotonic_ns()}"): s for s in order}
+        futs = {
+            client.submit(
+                run_scene,
+                s,
+                str(out_root),
+                1,
+                overwrite,
+                pure=False,
+                key=f"stereodem-scene-{s.name}-{time.monotonic_ns()}",
+            ): s
+            for s in order
+        }
         for f in dask_completed(futs):
             s = futs[f]
             try:
                 collect(f.result())
             except Exception as exc:  # noqa: BLE001 - a worker lost, a task cancelled
-                collect(SceneStatus(s.name, s.path, "failed",
-                                    reason=f"task lost: {type(exc).__name__}: {_one_line(exc)}",
-                                    output=str(Path(out_root) / s.name)))
+                collect(
+                    SceneStatus(
+                        s.name,
+                        s.path,
+                        "failed",
+                        reason=f"task lost: {type(exc).__name__}: {_one_line(exc)}",
+                        output=str(Path(out_root) / s.name),
+                    )
+                )
     finally:
         if client is not address:
             client.close()
@@ -301,15 +364,27 @@ def _run_dask(order, out_root, address, n, overwrite, collect):
 
 def _write_table(out_root, scenes, rows, table, seconds) -> dict:
     from stereodem.core.raster import write_text_atomic
-    listed = [asdict(rows[s.name]) if s.name in rows else
-              asdict(SceneStatus(s.name, s.path, "pending", output=str(Path(out_root) / s.name)))
-              for s in scenes]
-    counts = {k: sum(r["status"] == k for r in listed) for k in ("done", "failed", "skipped", "pending")}
-    result = {**table, "seconds": round(seconds, 3),
-              "sum_scene_seconds": round(sum(r["seconds"] for r in listed), 3),
-              "cpu_s": round(sum(r["cpu_s"] for r in listed), 2),
-              "summary": counts, "scenes": listed}
-    write_text_atomic(Path(out_root) / STATUS_FILE, json.dumps(result, indent=1) + "\n", overwrite=True)
+
+    listed = [
+        asdict(rows[s.name])
+        if s.name in rows
+        else asdict(SceneStatus(s.name, s.path, "pending", output=str(Path(out_root) / s.name)))
+        for s in scenes
+    ]
+    counts = {
+        k: sum(r["status"] == k for r in listed) for k in ("done", "failed", "skipped", "pending")
+    }
+    result = {
+        **table,
+        "seconds": round(seconds, 3),
+        "sum_scene_seconds": round(sum(r["seconds"] for r in listed), 3),
+        "cpu_s": round(sum(r["cpu_s"] for r in listed), 2),
+        "summary": counts,
+        "scenes": listed,
+    }
+    write_text_atomic(
+        Path(out_root) / STATUS_FILE, json.dumps(result, indent=1) + "\n", overwrite=True
+    )
     return result
 
 
@@ -317,11 +392,17 @@ def summary_lines(result: dict) -> list[str]:
     """The status table for people: one line per scene, then the totals."""
     lines = []
     for r in result["scenes"]:
-        what = {"done": f"done in {r['seconds']:.1f} s", "skipped": "skipped (already done)",
-                "failed": f"FAILED: {r['reason']}", "pending": "not run"}[r["status"]]
+        what = {
+            "done": f"done in {r['seconds']:.1f} s",
+            "skipped": "skipped (already done)",
+            "failed": f"FAILED: {r['reason']}",
+            "pending": "not run",
+        }[r["status"]]
         lines.append(f"  {r['name']:24s} {what}")
     c = result["summary"]
-    lines.append(f"{len(result['scenes'])} scene(s): {c['done']} done, {c['failed']} failed, "
-                 f"{c['skipped']} skipped, in {result['seconds']:.1f} s on {result['backend']} "
-                 f"({result['workers']} worker(s)); status table in {STATUS_FILE}")
+    lines.append(
+        f"{len(result['scenes'])} scene(s): {c['done']} done, {c['failed']} failed, "
+        f"{c['skipped']} skipped, in {result['seconds']:.1f} s on {result['backend']} "
+        f"({result['workers']} worker(s)); status table in {STATUS_FILE}"
+    )
     return lines

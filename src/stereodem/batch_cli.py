@@ -1,4 +1,5 @@
 """``stereodem batch SCENES... -o OUTDIR``: one job per scene, on a process pool or Dask."""
+
 from __future__ import annotations
 
 import argparse
@@ -22,18 +23,35 @@ Exit status 1 when a scene failed (the others are done).
 
 
 def add_parser(sub):
-    p = sub.add_parser("batch", help="run many scenes (configurations or granules), one job each",
-                       description=__doc__, epilog=EXAMPLES,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scenes", nargs="+", metavar="SCENE",
-                   help="TOML configurations, ASTER L1A granules, or list files (.txt/.lst) of them")
+    p = sub.add_parser(
+        "batch",
+        help="run many scenes (configurations or granules), one job each",
+        description=__doc__,
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "scenes",
+        nargs="+",
+        metavar="SCENE",
+        help="TOML configurations, ASTER L1A granules, or list files (.txt/.lst) of them",
+    )
     p.add_argument("-o", "--out", required=True, help="output folder (one sub-folder per scene)")
-    p.add_argument("--template", metavar="TOML",
-                   help="configuration for granules (its [inputs] left/right and [output] are replaced)")
-    p.add_argument("--workers", type=int,
-                   help="scenes at once: pool processes or LocalCluster workers (default: all cores)")
-    p.add_argument("--dask", metavar="ADDRESS",
-                   help="'local' for a dask LocalCluster, or a scheduler address tcp://host:port")
+    p.add_argument(
+        "--template",
+        metavar="TOML",
+        help="configuration for granules (its [inputs] left/right and [output] are replaced)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        help="scenes at once: pool processes or LocalCluster workers (default: all cores)",
+    )
+    p.add_argument(
+        "--dask",
+        metavar="ADDRESS",
+        help="'local' for a dask LocalCluster, or a scheduler address tcp://host:port",
+    )
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
@@ -41,13 +59,20 @@ def add_parser(sub):
 
 def run(args) -> int:
     from .batch import expand_inputs, run_batch, summary_lines
+
     options.check_common(args)
 
     def progress(row):
         options.say(f"  {row.name}: {row.status}" + (f" ({row.reason})" if row.reason else ""))
 
-    result = run_batch(expand_inputs(args.scenes, args.template), args.out, workers=args.workers,
-                       dask=args.dask, overwrite=args.overwrite, progress=progress)
+    result = run_batch(
+        expand_inputs(args.scenes, args.template),
+        args.out,
+        workers=args.workers,
+        dask=args.dask,
+        overwrite=args.overwrite,
+        progress=progress,
+    )
     for line in summary_lines(result):
         options.say(line)
     return 1 if result["summary"]["failed"] else 0

@@ -1,6 +1,7 @@
 """``stereodem change DEM_A DEM_B``: elevation change ``B − A`` on A's grid after
 co-registering B to A (``dh.tif``), its σ map (``dh_sigma.tif``) and, when both dates are known,
 the rate and its σ (``change.json``)."""
+
 from __future__ import annotations
 
 import argparse
@@ -21,23 +22,40 @@ EXAMPLES = """examples:
 
 def add_parser(sub):
     p = sub.add_parser(
-        "change", help="elevation change between two DEMs, with its sigma map",
+        "change",
+        help="elevation change between two DEMs, with its sigma map",
         description="Co-register DEM_B to DEM_A on stable terrain (outside --exclude), write "
-                    "dh = B - A on A's grid (dh.tif) and its per-cell sigma from the dispersion "
-                    "of dh on stable terrain against slope and curvature (dh_sigma.tif), with "
-                    "change.json (co-registration, statistics, the rate when the dates are known).",
-        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+        "dh = B - A on A's grid (dh.tif) and its per-cell sigma from the dispersion "
+        "of dh on stable terrain against slope and curvature (dh_sigma.tif), with "
+        "change.json (co-registration, statistics, the rate when the dates are known).",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("dem_a", metavar="DEM_A", help="earlier DEM (its grid is the output grid)")
     p.add_argument("dem_b", metavar="DEM_B", help="later DEM")
     p.add_argument("--a-vertical", choices=VERTICALS, help="vertical reference of DEM_A")
     p.add_argument("--b-vertical", choices=VERTICALS, help="vertical reference of DEM_B")
-    p.add_argument("--dates", help="DA,DB (default: from the DEMs' metadata when stereodem made them)")
-    p.add_argument("--chain", default="nuth_kaab,deramp:1", help="co-registration chain "
-                   "(default nuth_kaab,deramp:1)")
-    p.add_argument("--exclude", action="append", default=[], metavar="VECTOR",
-                   help="unstable terrain, any vector format and CRS; repeatable")
-    p.add_argument("--track-angle", type=float, metavar="DEG",
-                   help="ground-track heading for along/cross-track steps")
+    p.add_argument(
+        "--dates", help="DA,DB (default: from the DEMs' metadata when stereodem made them)"
+    )
+    p.add_argument(
+        "--chain",
+        default="nuth_kaab,deramp:1",
+        help="co-registration chain (default nuth_kaab,deramp:1)",
+    )
+    p.add_argument(
+        "--exclude",
+        action="append",
+        default=[],
+        metavar="VECTOR",
+        help="unstable terrain, any vector format and CRS; repeatable",
+    )
+    p.add_argument(
+        "--track-angle",
+        type=float,
+        metavar="DEG",
+        help="ground-track heading for along/cross-track steps",
+    )
     options.add_creation_options(p)
     p.add_argument("-o", "--out", required=True, help="output folder")
     options.add_overwrite(p)
@@ -58,6 +76,7 @@ def run(args) -> int:
     from stereodem.sensor.simulation.multidate import decimal_year
 
     from .outlock import output_folder
+
     a = DEM.from_file(args.dem_a, vertical=args.a_vertical)
     b = DEM.from_file(args.dem_b, vertical=args.b_vertical)
     check_inputs([args.dem_a, args.dem_b], a)
@@ -70,14 +89,20 @@ def run(args) -> int:
     else:
         try:
             dates = dem_dates([args.dem_a, args.dem_b])
-        except InputError as exc:                  # dates are optional here: no rate then
+        except InputError as exc:  # dates are optional here: no rate then
             log.info("no rate: %s", exc)
     if dates is not None and not dates[1] > dates[0]:
         raise InputError(f"{args.dem_b}: its date {dates[1]} is not after DEM_A's {dates[0]}")
     res = dem_change(a, b, chain=args.chain, exclude=args.exclude, track_angle_deg=args.track_angle)
-    info = dict(dem_a=args.dem_a, dem_b=args.dem_b, chain=args.chain, vertical=res["vertical"],
-                coregistration=res["coregistration"], stats_stable=res["stats_stable"],
-                heteroscedasticity=res["heteroscedasticity"])
+    info = dict(
+        dem_a=args.dem_a,
+        dem_b=args.dem_b,
+        chain=args.chain,
+        vertical=res["vertical"],
+        coregistration=res["coregistration"],
+        stats_stable=res["stats_stable"],
+        heteroscedasticity=res["heteroscedasticity"],
+    )
     st = res["stable"] & np.isfinite(res["dh"])
     if dates is not None:
         dt = decimal_year(dates[1]) - decimal_year(dates[0])
@@ -86,14 +111,34 @@ def run(args) -> int:
     inputs = [args.dem_a, args.dem_b] + list(args.exclude)
     co = options.creation_options(args)
     with output_folder(args.out, overwrite=args.overwrite, inputs=inputs) as out:
-        write_geotiff(out / "dh.tif", res["dh"], a.transform, a.crs, np.nan, overwrite=args.overwrite,
-                      descriptions="dh = B - A", units="metre", creation_options=co)
-        write_geotiff(out / "dh_sigma.tif", res["sigma"], a.transform, a.crs, np.nan,
-                      overwrite=args.overwrite, descriptions="sigma of dh", units="metre",
-                      creation_options=co)
-        write_text_atomic(out / "change.json", json.dumps(info, indent=1, default=float),
-                          overwrite=True)
+        write_geotiff(
+            out / "dh.tif",
+            res["dh"],
+            a.transform,
+            a.crs,
+            np.nan,
+            overwrite=args.overwrite,
+            descriptions="dh = B - A",
+            units="metre",
+            creation_options=co,
+        )
+        write_geotiff(
+            out / "dh_sigma.tif",
+            res["sigma"],
+            a.transform,
+            a.crs,
+            np.nan,
+            overwrite=args.overwrite,
+            descriptions="sigma of dh",
+            units="metre",
+            creation_options=co,
+        )
+        write_text_atomic(
+            out / "change.json", json.dumps(info, indent=1, default=float), overwrite=True
+        )
     s = res["stats_stable"]
-    options.say(f"stereodem change: {out}/dh.tif, dh_sigma.tif; stable terrain median "
-                f"{s['median']:.3f} m, NMAD {s['nmad']:.3f} m over {int(st.sum())} cells")
+    options.say(
+        f"stereodem change: {out}/dh.tif, dh_sigma.tif; stable terrain median "
+        f"{s['median']:.3f} m, NMAD {s['nmad']:.3f} m over {int(st.sum())} cells"
+    )
     return 0

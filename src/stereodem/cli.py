@@ -2,6 +2,7 @@
 
 Exit codes: 0 success, 1 the job failed (a one-line message says why), 2 bad usage.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -55,7 +56,9 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"stereodem {__version__}")
     verb = parser.add_mutually_exclusive_group()
-    verb.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    verb.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)"
+    )
     verb.add_argument("-q", "--quiet", action="store_true", help="only errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, modname in _SUBCOMMANDS.items():
@@ -68,6 +71,7 @@ def _setup_logging(args):
     """Log lines on stderr through the progress bars' writer, UTC timestamps with ``-v``,
     Python warnings routed to logging (:func:`stereodem.progress.setup_logging`)."""
     from .progress import setup_logging
+
     setup_logging(verbose=args.verbose, quiet=args.quiet)
 
 
@@ -81,13 +85,15 @@ def main(argv=None) -> int:
     _setup_logging(args)
     received = []
 
-    def on_term(signum, frame):       # SIGTERM: stop like Ctrl-C (pool stopped, lock released)
+    def on_term(signum, frame):  # SIGTERM: stop like Ctrl-C (pool stopped, lock released)
         received.append(signum)
         raise KeyboardInterrupt
+
     previous = _install(signal.SIGTERM, on_term)
     try:
-        if hasattr(args, "workers"):      # one thread budget for the command (stereodem.core.threads)
+        if hasattr(args, "workers"):  # one thread budget for the command (stereodem.core.threads)
             from stereodem.core.threads import thread_budget
+
             with thread_budget(args.workers if args.workers and args.workers > 0 else None):
                 return int(args.run(args) or 0)
         return int(args.run(args) or 0)
@@ -96,11 +102,16 @@ def main(argv=None) -> int:
         return 1
     except KeyboardInterrupt:
         name = "SIGTERM" if received else "SIGINT"
-        print(f"stereodem {args.command}: interrupted ({name}); {_resume_hint(args)}", file=sys.stderr)
+        print(
+            f"stereodem {args.command}: interrupted ({name}); {_resume_hint(args)}", file=sys.stderr
+        )
         return 128 + (signal.SIGTERM if received else signal.SIGINT)
     except MemoryError:
-        print(f"stereodem {args.command}: error: out of memory (try fewer --workers or a smaller "
-              "--tile-size)", file=sys.stderr)
+        print(
+            f"stereodem {args.command}: error: out of memory (try fewer --workers or a smaller "
+            "--tile-size)",
+            file=sys.stderr,
+        )
         return 1
     finally:
         _install(signal.SIGTERM, previous)
@@ -110,7 +121,7 @@ def _install(signum, handler):
     """Set a signal handler where that is possible (the main thread); returns the old one."""
     try:
         return signal.signal(signum, handler)
-    except (ValueError, TypeError):          # not the main thread, or no previous Python handler
+    except (ValueError, TypeError):  # not the main thread, or no previous Python handler
         return None
 
 
@@ -122,8 +133,10 @@ def _one_line(exc) -> str:
 def _resume_hint(args) -> str:
     """What the user can do after an interruption."""
     if args.command == "run":
-        return ("finished tiles are kept in the output folder's tiles/; run the same command "
-                "with --resume to continue")
+        return (
+            "finished tiles are kept in the output folder's tiles/; run the same command "
+            "with --resume to continue"
+        )
     if args.command == "demo":
         return "run it again with --overwrite"
     return "no product was written; run the command again (--overwrite if the folder is not empty)"

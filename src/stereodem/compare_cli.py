@@ -1,5 +1,6 @@
 """``stereodem compare-models``: fit many sensor models to the same GCPs and compare them at
 the same independent check points (:mod:`stereodem.sensor.estimation.compare`)."""
+
 from __future__ import annotations
 
 import json
@@ -10,28 +11,47 @@ log = logging.getLogger(__name__)
 
 def add_parser(subparsers):
     p = subparsers.add_parser(
-        "compare-models", help="compare sensor models fitted to the same GCPs",
+        "compare-models",
+        help="compare sensor models fitted to the same GCPs",
         description="Fit every model with the same GCP/ICP split and GCP counts from small to "
-                    "large; write compare.json, compare.md and compare.png to DIR.",
-        epilog="example: stereodem compare-models left.tif --gcps points.csv --models all -o cmp")
+        "large; write compare.json, compare.md and compare.png to DIR.",
+        epilog="example: stereodem compare-models left.tif --gcps points.csv --models all -o cmp",
+    )
     p.add_argument("image", help="image with a <stem>.model.json sidecar or RPC metadata")
     p.add_argument("--gcps", required=True, help="CSV id,lon,lat,h,col,row[,role,...]")
-    p.add_argument("--models", default="all",
-                   help="comma-separated model names or 'all' (generic, physical sets, orbital)")
-    p.add_argument("--counts", default="6,10,15,20,30,40",
-                   help="GCP counts (default 6,10,15,20,30,40; those above the pool are dropped)")
-    p.add_argument("--n-check", type=int, default=20,
-                   help="check points drawn when the CSV has no 'check' roles (default 20)")
+    p.add_argument(
+        "--models",
+        default="all",
+        help="comma-separated model names or 'all' (generic, physical sets, orbital)",
+    )
+    p.add_argument(
+        "--counts",
+        default="6,10,15,20,30,40",
+        help="GCP counts (default 6,10,15,20,30,40; those above the pool are dropped)",
+    )
+    p.add_argument(
+        "--n-check",
+        type=int,
+        default=20,
+        help="check points drawn when the CSV has no 'check' roles (default 20)",
+    )
     p.add_argument("--sigma-px", type=float, default=None, help="a-priori image sigma, px")
     p.add_argument("--seed", type=int, default=0, help="seed of the split")
-    p.add_argument("--splits", type=int, default=0,
-                   help="also repeat the comparison over this many random GCP/ICP splits (the "
-                        "CSV's roles ignored, --n-check check points each) and write "
-                        "splits.json / splits.md: per model and count the median and largest "
-                        "ratio of ICP RMSE to the --reference model's (default 0: off)")
-    p.add_argument("--reference", default="attitude-bias-drift",
-                   help="model the split ratios are taken against (default attitude-bias-drift, "
-                        "the rigorous pushbroom model's attitude biases and drifts)")
+    p.add_argument(
+        "--splits",
+        type=int,
+        default=0,
+        help="also repeat the comparison over this many random GCP/ICP splits (the "
+        "CSV's roles ignored, --n-check check points each) and write "
+        "splits.json / splits.md: per model and count the median and largest "
+        "ratio of ICP RMSE to the --reference model's (default 0: off)",
+    )
+    p.add_argument(
+        "--reference",
+        default="attitude-bias-drift",
+        help="model the split ratios are taken against (default attitude-bias-drift, "
+        "the rigorous pushbroom model's attitude biases and drifts)",
+    )
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.set_defaults(run=run)
@@ -56,30 +76,55 @@ def run(args) -> int:
     try:
         counts = [int(v) for v in args.counts.split(",") if v.strip()]
     except ValueError:
-        raise InputError(f"--counts: expected comma-separated integers, got {args.counts!r}") from None
+        raise InputError(
+            f"--counts: expected comma-separated integers, got {args.counts!r}"
+        ) from None
     if args.splits < 0:
         raise InputError(f"--splits: expected a count >= 0, got {args.splits}")
     out = prepare_output_dir(args.output, overwrite=args.overwrite)
     base = load_image_model(args.image)
     points = read_gcps(args.gcps)
     models = expand_models([m.strip() for m in args.models.split(",") if m.strip()], base)
-    records = compare(base, points, models, counts, n_check=args.n_check, seed=args.seed,
-                      sigma_px=args.sigma_px)
-    write_text_atomic(out / "compare.json", json.dumps(records, indent=1, default=float),
-                      overwrite=args.overwrite)
+    records = compare(
+        base, points, models, counts, n_check=args.n_check, seed=args.seed, sigma_px=args.sigma_px
+    )
+    write_text_atomic(
+        out / "compare.json", json.dumps(records, indent=1, default=float), overwrite=args.overwrite
+    )
     write_text_atomic(out / "compare.md", markdown(records), overwrite=args.overwrite)
     figure(records, out / "compare.png")
     if args.splits:
-        recs = compare_splits(base, points, models, counts, reference=args.reference,
-                              n_check=args.n_check, n_splits=args.splits, seed=args.seed,
-                              sigma_px=args.sigma_px)
+        recs = compare_splits(
+            base,
+            points,
+            models,
+            counts,
+            reference=args.reference,
+            n_check=args.n_check,
+            n_splits=args.splits,
+            seed=args.seed,
+            sigma_px=args.sigma_px,
+        )
         summary = split_summary(recs)
-        write_text_atomic(out / "splits.json",
-                          json.dumps({"reference": args.reference, "splits": args.splits,
-                                      "summary": summary, "records": recs}, indent=1, default=float),
-                          overwrite=args.overwrite)
-        write_text_atomic(out / "splits.md", split_markdown(summary, args.reference),
-                          overwrite=args.overwrite)
+        write_text_atomic(
+            out / "splits.json",
+            json.dumps(
+                {
+                    "reference": args.reference,
+                    "splits": args.splits,
+                    "summary": summary,
+                    "records": recs,
+                },
+                indent=1,
+                default=float,
+            ),
+            overwrite=args.overwrite,
+        )
+        write_text_atomic(
+            out / "splits.md", split_markdown(summary, args.reference), overwrite=args.overwrite
+        )
     ok = [r for r in records if not r.get("error")]
-    print(f"{len(models)} model(s), {len(records)} fit(s), {len(records) - len(ok)} refused -> {out}")
+    print(
+        f"{len(models)} model(s), {len(records)} fit(s), {len(records) - len(ok)} refused -> {out}"
+    )
     return 0

@@ -39,6 +39,7 @@ Sections (every key optional except ``inputs.left``/``inputs.right`` and ``outpu
     [run]
     workers = 2                    # default: all cores
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -67,8 +68,21 @@ from stereodem.stereo.settings import (
     StereoSettings,
 )
 
-__all__ = ["InputSettings", "JitterSettings", "UncertaintySettings", "FilterSettings", "FillSettings", "OrthoSettings", "AssessSettings",
-           "RunSettings", "DemSettings", "Config", "load_config", "config_from_dict", "SECTIONS"]
+__all__ = [
+    "InputSettings",
+    "JitterSettings",
+    "UncertaintySettings",
+    "FilterSettings",
+    "FillSettings",
+    "OrthoSettings",
+    "AssessSettings",
+    "RunSettings",
+    "DemSettings",
+    "Config",
+    "load_config",
+    "config_from_dict",
+    "SECTIONS",
+]
 
 
 @dataclass
@@ -355,38 +369,73 @@ class Config:
     def to_dict(self) -> dict:
         d = {"inputs": dataclasses.asdict(self.inputs), "output": {"dir": self.output_dir}}
         d.update(self.stereo.summary())
-        for name in ("jitter", "filters", "fill", "ortho", "assess", "uncertainty", "run", "dem", "fusion"):
+        for name in (
+            "jitter",
+            "filters",
+            "fill",
+            "ortho",
+            "assess",
+            "uncertainty",
+            "run",
+            "dem",
+            "fusion",
+        ):
             d[name] = dataclasses.asdict(getattr(self, name))
         return d
 
 
 #: TOML section -> (settings class, where it lives in a Config)
 SECTIONS = {
-    "inputs": InputSettings, "rectification": RectificationSettings, "matching": MatchingSettings,
-    "refinement": RefinementSettings, "gridding": GriddingSettings, "jitter": JitterSettings,
+    "inputs": InputSettings,
+    "rectification": RectificationSettings,
+    "matching": MatchingSettings,
+    "refinement": RefinementSettings,
+    "gridding": GriddingSettings,
+    "jitter": JitterSettings,
     "filters": FilterSettings,
-    "fill": FillSettings, "ortho": OrthoSettings, "assess": AssessSettings,
-    "uncertainty": UncertaintySettings, "run": RunSettings, "dem": DemSettings,
+    "fill": FillSettings,
+    "ortho": OrthoSettings,
+    "assess": AssessSettings,
+    "uncertainty": UncertaintySettings,
+    "run": RunSettings,
+    "dem": DemSettings,
     "fusion": FusionSettings,
 }
 _STEREO = ("rectification", "matching", "refinement", "gridding")
 _SECTION_PATHS = {"uncertainty": ("covariance",), "ortho": ("fill_dem",)}
-_PATH_KEYS = ("left", "right", "left_model", "right_model", "seed_dem", "reference_dem",
-              "checkpoints", "landcover", "dem")
+_PATH_KEYS = (
+    "left",
+    "right",
+    "left_model",
+    "right_model",
+    "seed_dem",
+    "reference_dem",
+    "checkpoints",
+    "landcover",
+    "dem",
+)
 
 
 # ----------------------------------------------------------------------------- checking
 
 #: string-valued option choices (Literal aliases) annotating the settings classes
-_CHOICE_TYPES = tuple(name for namespace in (dict(globals()), vars(stereo_settings))
-                      for name, value in namespace.items() if typing.get_origin(value) is typing.Literal)
+_CHOICE_TYPES = tuple(
+    name
+    for namespace in (dict(globals()), vars(stereo_settings))
+    for name, value in namespace.items()
+    if typing.get_origin(value) is typing.Literal
+)
 
 
 def _check_value(value, annotation: str, where: str):
     """``value`` converted to the annotated type, or :class:`InputError` naming ``where``."""
     ann = annotation.replace("typing.", "").replace(" ", "")
     optional = ann.startswith("Optional[") or ann.endswith("|None")
-    base = ann.removeprefix("Optional[").removesuffix("]") if ann.startswith("Optional[") else ann.removesuffix("|None")
+    base = (
+        ann.removeprefix("Optional[").removesuffix("]")
+        if ann.startswith("Optional[")
+        else ann.removesuffix("|None")
+    )
     if value is None:
         if optional or base == "Any":
             return None
@@ -407,20 +456,21 @@ def _check_value(value, annotation: str, where: str):
         if value != value or value in (float("inf"), float("-inf")):
             raise InputError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
-    if base == "str" or base in _CHOICE_TYPES:          # choices: checked by validate()
+    if base == "str" or base in _CHOICE_TYPES:  # choices: checked by validate()
         if not isinstance(value, str):
             raise InputError(f"{where}: expected a string, got {value!r}")
         return value
     if base == "tuple":
         if not isinstance(value, (list, tuple)) or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+        ):
             raise InputError(f"{where}: expected a list of numbers, got {value!r}")
         return tuple(float(v) if isinstance(v, float) else v for v in value)
     if base == "dict":
         if not isinstance(value, dict):
             raise InputError(f"{where}: expected a table, got {value!r}")
         return value
-    return value                                                # pragma: no cover
+    return value  # pragma: no cover
 
 
 def build_settings(cls, table: dict, section: str, source):
@@ -428,12 +478,17 @@ def build_settings(cls, table: dict, section: str, source):
     type are :class:`InputError`\\ s naming the file, section and key."""
     if not isinstance(table, dict):
         raise InputError(f"{source}: [{section}] must be a table")
-    hints = {f.name: f.type if isinstance(f.type, str) else typing.get_type_hints(cls)[f.name].__name__
-             for f in dataclasses.fields(cls) if f.init}
+    hints = {
+        f.name: f.type if isinstance(f.type, str) else typing.get_type_hints(cls)[f.name].__name__
+        for f in dataclasses.fields(cls)
+        if f.init
+    }
     unknown = set(table) - set(hints)
     if unknown:
-        raise InputError(f"{source}: unknown key(s) in [{section}]: {', '.join(sorted(unknown))} "
-                         f"(known: {', '.join(hints)})")
+        raise InputError(
+            f"{source}: unknown key(s) in [{section}]: {', '.join(sorted(unknown))} "
+            f"(known: {', '.join(hints)})"
+        )
     values = {k: _check_value(v, hints[k], f"{source}: [{section}] {k}") for k, v in table.items()}
     try:
         return cls(**values)
@@ -443,9 +498,13 @@ def build_settings(cls, table: dict, section: str, source):
 
 # ----------------------------------------------------------------------------- reading
 
+
 def _is_granule(path, base) -> bool:
     from stereodem.sensor.io.aster_l1a import is_aster_granule
-    return isinstance(path, str) and is_aster_granule(Path(base) / path if not os.path.isabs(path) else path)
+
+    return isinstance(path, str) and is_aster_granule(
+        Path(base) / path if not os.path.isabs(path) else path
+    )
 
 
 def load_config(path, **overrides) -> Config:
@@ -470,23 +529,33 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
     ``overrides`` (``workers``, ``resume``, ...) replace [run] keys when not None.
     """
     if "stereo" in raw:
-        raise InputError(f"{source}: the [stereo] section was split into [rectification], "
-                         "[matching], [refinement] and [gridding] (see docs/configuration.md)")
+        raise InputError(
+            f"{source}: the [stereo] section was split into [rectification], "
+            "[matching], [refinement] and [gridding] (see docs/configuration.md)"
+        )
     unknown = set(raw) - set(SECTIONS) - {"output"}
     if unknown:
         raise InputError(f"{source}: unknown section(s) {', '.join(sorted(unknown))}")
     inp = dict(raw.get("inputs", {}))
     if "images" in inp:
         imgs = inp["images"]
-        if not (isinstance(imgs, list) and len(imgs) >= 2 and all(isinstance(v, str) and v for v in imgs)):
-            raise InputError(f"{source}: [inputs] images must be a list of two or more paths, got {imgs!r}")
+        if not (
+            isinstance(imgs, list)
+            and len(imgs) >= 2
+            and all(isinstance(v, str) and v for v in imgs)
+        ):
+            raise InputError(
+                f"{source}: [inputs] images must be a list of two or more paths, got {imgs!r}"
+            )
         if "left" in inp or "right" in inp:
             raise InputError(f"{source}: [inputs] takes either images or left/right, not both")
         inp["images"] = [v if os.path.isabs(v) else str(Path(base) / v) for v in imgs]
     elif "left" not in inp:
         raise InputError(f"{source}: [inputs] needs 'left' (or 'images')")
     elif "right" not in inp and not _is_granule(inp["left"], base):
-        raise InputError(f"{source}: [inputs] needs 'right' (only an ASTER granule is a pair alone)")
+        raise InputError(
+            f"{source}: [inputs] needs 'right' (only an ASTER granule is a pair alone)"
+        )
     for key in _PATH_KEYS:
         if isinstance(inp.get(key), str) and inp[key]:
             inp[key] = str(Path(base) / inp[key]) if not os.path.isabs(inp[key]) else inp[key]
@@ -499,23 +568,34 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
             v = tables[name].get(key)
             if isinstance(v, str) and v and not os.path.isabs(v):
                 tables[name][key] = str(Path(base) / v)
-    parts = {name: build_settings(cls, tables[name], name, source) for name, cls in SECTIONS.items()}
+    parts = {
+        name: build_settings(cls, tables[name], name, source) for name, cls in SECTIONS.items()
+    }
     run = parts["run"]
     for k, v in overrides.items():
         if v is not None:
             setattr(run, k, v)
-    cfg = Config(inputs=parts["inputs"],
-                 output_dir=str(Path(base) / out) if not os.path.isabs(out) else out,
-                 stereo=StereoSettings(**{k: parts[k] for k in _STEREO}),
-                 jitter=parts["jitter"], filters=parts["filters"], fill=parts["fill"], ortho=parts["ortho"],
-                 assess=parts["assess"], uncertainty=parts["uncertainty"], run=run, dem=parts["dem"],
-                 fusion=parts["fusion"])
+    cfg = Config(
+        inputs=parts["inputs"],
+        output_dir=str(Path(base) / out) if not os.path.isabs(out) else out,
+        stereo=StereoSettings(**{k: parts[k] for k in _STEREO}),
+        jitter=parts["jitter"],
+        filters=parts["filters"],
+        fill=parts["fill"],
+        ortho=parts["ortho"],
+        assess=parts["assess"],
+        uncertainty=parts["uncertainty"],
+        run=run,
+        dem=parts["dem"],
+        fusion=parts["fusion"],
+    )
     validate(cfg, source)
     return cfg
 
 
 def validate(cfg: Config, source="configuration"):
     """Ranges and choices of the settings, checked before any work starts."""
+
     def bad(msg):
         raise InputError(f"{source}: {msg}")
 
@@ -523,8 +603,13 @@ def validate(cfg: Config, source="configuration"):
         if value not in choices:
             said = " or ".join([", ".join(repr(c) for c in choices[:-1]), repr(choices[-1])])
             bad(f"[{section}] {key} must be {said}, got {value!r}")
-    rect, match, ref, gs = (cfg.stereo.rectification, cfg.stereo.matching, cfg.stereo.refinement,
-                            cfg.stereo.gridding)
+
+    rect, match, ref, gs = (
+        cfg.stereo.rectification,
+        cfg.stereo.matching,
+        cfg.stereo.refinement,
+        cfg.stereo.gridding,
+    )
     if cfg.inputs.model not in ("physical", "rpc"):
         bad(f"[inputs] model must be 'physical' or 'rpc', got {cfg.inputs.model!r}")
     for key in ("seed_dem_vertical", "reference_vertical", "checkpoints_vertical", "dem_vertical"):
@@ -532,8 +617,12 @@ def validate(cfg: Config, source="configuration"):
         if v is not None:
             choice("inputs", key, v, VERTICALS)
     band = cfg.inputs.band
-    if isinstance(band, bool) or not (isinstance(band, int) and band >= 1 or
-                                      isinstance(band, str) and band.upper() in ("3N", "3B")):
+    if isinstance(band, bool) or not (
+        isinstance(band, int)
+        and band >= 1
+        or isinstance(band, str)
+        and band.upper() in ("3N", "3B")
+    ):
         bad(f"[inputs] band must be a band number >= 1 or an ASTER band 3N/3B, got {band!r}")
     if not 64 <= rect.tile_size <= 16384:
         bad(f"[rectification] tile_size must be 64..16384 px, got {rect.tile_size}")
@@ -550,22 +639,32 @@ def validate(cfg: Config, source="configuration"):
     if gs.res is not None and not gs.res > 0:
         bad(f"[gridding] res must be positive, got {gs.res}")
     from stereodem.core.grid import map_crs
-    for key, value in (("[gridding] crs", gs.crs), ("[ortho] crs", cfg.ortho.crs),
-                       ("[inputs] checkpoints_crs", cfg.inputs.checkpoints_crs)):
+
+    for key, value in (
+        ("[gridding] crs", gs.crs),
+        ("[ortho] crs", cfg.ortho.crs),
+        ("[inputs] checkpoints_crs", cfg.inputs.checkpoints_crs),
+    ):
         if value is not None:
             map_crs(value, f"{source}: {key}")
     choice("gridding", "method", gs.method, GRIDDING_METHODS)
     if rect.pointing_uses_seed and not cfg.inputs.seed_dem:
-        bad("[rectification] pointing_uses_seed needs a seed DEM ([inputs] seed_dem, --seed-dem) "
-            "to fix the pointing along the epipolar lines")
+        bad(
+            "[rectification] pointing_uses_seed needs a seed DEM ([inputs] seed_dem, --seed-dem) "
+            "to fix the pointing along the epipolar lines"
+        )
     j = cfg.jitter
     choice("jitter", "axes", j.axes, JITTER_AXES)
     if j.enabled and "pitch" in j.axis_names and not cfg.inputs.seed_dem:
-        bad("[jitter] enabled needs a seed DEM ([inputs] seed_dem, --seed-dem) as the reference "
-            "for the pitch jitter (axes = 'roll' needs none)")
+        bad(
+            "[jitter] enabled needs a seed DEM ([inputs] seed_dem, --seed-dem) as the reference "
+            "for the pitch jitter (axes = 'roll' needs none)"
+        )
     if j.n_sines < 1 or not 0 < j.min_frequency < j.max_frequency:
-        bad(f"[jitter] needs n_sines >= 1 and 0 < min_frequency < max_frequency, got "
-            f"{j.n_sines}, {j.min_frequency}, {j.max_frequency}")
+        bad(
+            f"[jitter] needs n_sines >= 1 and 0 < min_frequency < max_frequency, got "
+            f"{j.n_sines}, {j.min_frequency}, {j.max_frequency}"
+        )
     if cfg.filters.erode < 0:
         bad(f"[filters] erode must be >= 0, got {cfg.filters.erode}")
     if cfg.fill.max_hole_size < 0:
@@ -586,7 +685,9 @@ def validate(cfg: Config, source="configuration"):
     if u.enabled and not cfg.ortho.enabled:
         bad("[uncertainty] maps are on the orthoimage's grid: enable [ortho]")
     if u.enabled and not (u.sigma or u.covariance):
-        bad("[uncertainty] enabled needs sigma = {name = value, ...} or covariance = adjust_report.json")
+        bad(
+            "[uncertainty] enabled needs sigma = {name = value, ...} or covariance = adjust_report.json"
+        )
     if u.samples < 10:
         bad(f"[uncertainty] samples must be at least 10, got {u.samples}")
     if cfg.dem.point_cloud not in (None, "las", "laz"):
@@ -594,7 +695,9 @@ def validate(cfg: Config, source="configuration"):
     if cfg.dem.point_cloud and cfg.jitter.enabled:
         bad("[dem] point_cloud is not written with [jitter] enabled (not supported yet)")
     if cfg.dem.point_cloud and cfg.inputs.images:
-        bad("[dem] point_cloud is not written for an N-view DEM ([inputs] images; not supported yet)")
+        bad(
+            "[dem] point_cloud is not written for an N-view DEM ([inputs] images; not supported yet)"
+        )
     for msg in cfg.fusion.problems():
         bad(f"[fusion] {msg}")
     run = cfg.run
@@ -604,4 +707,5 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[run] tile_timeout must be positive, got {run.tile_timeout}")
     if run.creation_options:
         from stereodem.core.raster import parse_creation_options
+
         run.creation_options = parse_creation_options(run.creation_options)

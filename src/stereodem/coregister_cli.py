@@ -1,5 +1,6 @@
 """``stereodem coregister``: co-register a DEM to a reference DEM or altimetry points with a
 chain of corrections (:mod:`stereodem.post.coreg`), on stable terrain."""
+
 from __future__ import annotations
 
 import argparse
@@ -19,37 +20,69 @@ steps (--chain, comma separated, applied in order; ':N' = order or number of sin
 
 
 def add_parser(sub):
-    p = sub.add_parser("coregister", help="co-register a DEM to a reference DEM or altimetry points",
-                       description="Fit a chain of corrections (shift, ramp, along/cross-track "
-                                   "biases, curvature) of DEM against REF on stable terrain and "
-                                   "write the corrected DEM, a JSON report (parameters with "
-                                   "standard deviations, statistics before/after each step) and "
-                                   "figures.",
-                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "coregister",
+        help="co-register a DEM to a reference DEM or altimetry points",
+        description="Fit a chain of corrections (shift, ramp, along/cross-track "
+        "biases, curvature) of DEM against REF on stable terrain and "
+        "write the corrected DEM, a JSON report (parameters with "
+        "standard deviations, statistics before/after each step) and "
+        "figures.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("dem", help="DEM GeoTIFF to correct")
-    p.add_argument("--ref", required=True, help="reference DEM GeoTIFF (any grid/CRS), or altimetry "
-                   "points: CSV/GeoParquet with lon, lat, h[, time]")
-    p.add_argument("--chain", default="nuth_kaab", help="steps, comma separated (default nuth_kaab)")
-    p.add_argument("--track-angle", type=float, metavar="DEG",
-                   help="ground-track heading, degrees clockwise from north, for a straight "
-                        "track (default: the DEM's own track: its STEREODEM_TRACK_FRAME tag from "
-                        "the sensor model, else its STEREODEM_TRACK_HEADING tag)")
-    p.add_argument("--exclude", action="append", default=[], metavar="VECTOR",
-                   help="polygons left out of the stable terrain (any CRS; repeatable)")
-    p.add_argument("--include", action="append", default=[], metavar="VECTOR",
-                   help="polygons that are the only stable terrain (repeatable)")
+    p.add_argument(
+        "--ref",
+        required=True,
+        help="reference DEM GeoTIFF (any grid/CRS), or altimetry "
+        "points: CSV/GeoParquet with lon, lat, h[, time]",
+    )
+    p.add_argument(
+        "--chain", default="nuth_kaab", help="steps, comma separated (default nuth_kaab)"
+    )
+    p.add_argument(
+        "--track-angle",
+        type=float,
+        metavar="DEG",
+        help="ground-track heading, degrees clockwise from north, for a straight "
+        "track (default: the DEM's own track: its STEREODEM_TRACK_FRAME tag from "
+        "the sensor model, else its STEREODEM_TRACK_HEADING tag)",
+    )
+    p.add_argument(
+        "--exclude",
+        action="append",
+        default=[],
+        metavar="VECTOR",
+        help="polygons left out of the stable terrain (any CRS; repeatable)",
+    )
+    p.add_argument(
+        "--include",
+        action="append",
+        default=[],
+        metavar="VECTOR",
+        help="polygons that are the only stable terrain (repeatable)",
+    )
     p.add_argument("--stable-mask", metavar="RASTER", help="raster, non-zero = stable terrain")
     p.add_argument("--min-slope", type=float, help="stable terrain: least slope (deg)")
     p.add_argument("--max-slope", type=float, help="stable terrain: largest slope (deg)")
-    p.add_argument("--outlier-nmad", type=float, default=5.0,
-                   help="cells with |dh - median| beyond this many NMADs leave the stable terrain "
-                        "(default 5; 0: off)")
+    p.add_argument(
+        "--outlier-nmad",
+        type=float,
+        default=5.0,
+        help="cells with |dh - median| beyond this many NMADs leave the stable terrain "
+        "(default 5; 0: off)",
+    )
     p.add_argument("--dem-vertical", choices=VERTICALS, help="vertical reference of DEM")
-    p.add_argument("--ref-vertical", choices=VERTICALS,
-                   help="vertical reference of REF (required for points unless the column says)")
+    p.add_argument(
+        "--ref-vertical",
+        choices=VERTICALS,
+        help="vertical reference of REF (required for points unless the column says)",
+    )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("-o", "--output", required=True, help="output folder")
     from .options import add_creation_options, add_overwrite
+
     add_creation_options(p)
     add_overwrite(p)
     p.set_defaults(run=run)
@@ -64,20 +97,45 @@ def run(args) -> int:
 
     from .options import creation_options, say
     from .outlock import check_not_an_input
+
     if args.outlier_nmad is not None and args.outlier_nmad < 0:
         raise InputError(f"--outlier-nmad must be >= 0, got {args.outlier_nmad:g}")
     check_output_dir(args.output, overwrite=args.overwrite)
-    check_not_an_input([args.output], [args.dem, args.ref, *args.exclude, *args.include,
-                                       *([args.stable_mask] if args.stable_mask else [])])
-    job = CoregJob(dem=args.dem, ref=args.ref, chain=args.chain, dem_vertical=args.dem_vertical,
-                   ref_vertical=args.ref_vertical, track_angle=args.track_angle,
-                   exclude=args.exclude, include=args.include, stable_mask=args.stable_mask,
-                   min_slope=args.min_slope, max_slope=args.max_slope,
-                   outlier_nmad=args.outlier_nmad or None)
-    rep = run_job(job, args.output, overwrite=args.overwrite, figures=not args.no_figures,
-                  creation_options=creation_options(args))
+    check_not_an_input(
+        [args.output],
+        [
+            args.dem,
+            args.ref,
+            *args.exclude,
+            *args.include,
+            *([args.stable_mask] if args.stable_mask else []),
+        ],
+    )
+    job = CoregJob(
+        dem=args.dem,
+        ref=args.ref,
+        chain=args.chain,
+        dem_vertical=args.dem_vertical,
+        ref_vertical=args.ref_vertical,
+        track_angle=args.track_angle,
+        exclude=args.exclude,
+        include=args.include,
+        stable_mask=args.stable_mask,
+        min_slope=args.min_slope,
+        max_slope=args.max_slope,
+        outlier_nmad=args.outlier_nmad or None,
+    )
+    rep = run_job(
+        job,
+        args.output,
+        overwrite=args.overwrite,
+        figures=not args.no_figures,
+        creation_options=creation_options(args),
+    )
     for r in rep["steps"]:
-        say(f"{r['step']}: stable NMAD {r['before']['nmad']:.3f} -> {r['after']['nmad']:.3f} m "
-            f"(median {r['after']['median']:+.3f} m, n={r['after']['n']})")
+        say(
+            f"{r['step']}: stable NMAD {r['before']['nmad']:.3f} -> {r['after']['nmad']:.3f} m "
+            f"(median {r['after']['median']:+.3f} m, n={r['after']['n']})"
+        )
     say(f"-> {rep['files']['dem']}")
     return 0

@@ -4,6 +4,7 @@ Writes ``dem.tif`` (float32, NaN voids, ellipsoidal heights unless ``--geoid``),
 (mean correlation), ``count.tif`` (points per cell) and ``raygap.tif`` (mean ray gap, m), plus
 ``dem_report.json`` (settings and per-tile QA). ``stereodem filter OUT/dem.tif`` edits it.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,65 +33,119 @@ EXAMPLES = """examples:
 def add_parser(subparsers):
     """Register the ``dem`` sub-command on an ``argparse`` sub-parser set."""
     p = subparsers.add_parser(
-        "dem", help="stereo DEM from two images with sensor models",
+        "dem",
+        help="stereo DEM from two images with sensor models",
         description="Build a DEM from a stereo pair: per-tile epipolar resampling, dense "
-                    "matching, space intersection with the exact sensor models, gridding. "
-                    "LEFT/RIGHT are GeoTIFFs with RPC metadata (tags or .RPB sidecar) or a "
-                    "physical-model sidecar <stem>.model.json.",
-        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("left", help="left (reference) image GeoTIFF, or an ASTER L1A granule (V004 "
-                                "AST_L1A_*.hdf, V003 zip or folder) whose 3N/3B bands are the pair; "
-                                "two or more consecutive granules of one pass (or a folder of "
-                                "them) make one strip and one DEM")
+        "matching, space intersection with the exact sensor models, gridding. "
+        "LEFT/RIGHT are GeoTIFFs with RPC metadata (tags or .RPB sidecar) or a "
+        "physical-model sidecar <stem>.model.json.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "left",
+        help="left (reference) image GeoTIFF, or an ASTER L1A granule (V004 "
+        "AST_L1A_*.hdf, V003 zip or folder) whose 3N/3B bands are the pair; "
+        "two or more consecutive granules of one pass (or a folder of "
+        "them) make one strip and one DEM",
+    )
     p.add_argument("right", nargs="?", help="right image GeoTIFF (omitted for an ASTER granule)")
-    p.add_argument("more", nargs="*", metavar="IMAGE",
-                   help="further images of the scene: three or more images make an N-view DEM "
-                        "(pairs chosen by overlap and base-to-height ratio, their DEMs fused per "
-                        "cell; count, nmad and sigma layers)")
+    p.add_argument(
+        "more",
+        nargs="*",
+        metavar="IMAGE",
+        help="further images of the scene: three or more images make an N-view DEM "
+        "(pairs chosen by overlap and base-to-height ratio, their DEMs fused per "
+        "cell; count, nmad and sigma layers)",
+    )
     p.add_argument("-o", "--out", required=True, help="output folder")
     options.add_res(p, "2 x the left image's GSD")
     rng = p.add_mutually_exclusive_group()
-    rng.add_argument("--height-range", nargs=2, type=float, metavar=("MIN", "MAX"),
-                     help="ellipsoidal height range of the terrain, metres")
+    rng.add_argument(
+        "--height-range",
+        nargs=2,
+        type=float,
+        metavar=("MIN", "MAX"),
+        help="ellipsoidal height range of the terrain, metres",
+    )
     rng.add_argument("--seed-dem", help="coarse DEM giving each tile's height range")
-    p.add_argument("--dem-vertical", choices=VERTICALS,
-                   help="vertical reference of the seed DEM when the file does not say")
+    p.add_argument(
+        "--dem-vertical",
+        choices=VERTICALS,
+        help="vertical reference of the seed DEM when the file does not say",
+    )
     p.add_argument("--left-model", help="sensor-model file for LEFT (default: its sidecar or RPCs)")
-    p.add_argument("--right-model", help="sensor-model file for RIGHT (default: its sidecar or RPCs)")
+    p.add_argument(
+        "--right-model", help="sensor-model file for RIGHT (default: its sidecar or RPCs)"
+    )
     p.add_argument("--matcher", choices=MATCHERS, default="sgm", help="dense matcher (default sgm)")
     p.add_argument("--tile-size", type=int, default=512, help="tile side, pixels (default 512)")
-    p.add_argument("--gridding", choices=GRIDDING_METHODS, default="gaussian",
-                   help="cell estimator (default gaussian)")
-    p.add_argument("--no-pointing-correction", action="store_true",
-                   help="do not estimate the relative pointing (right-image translation)")
-    p.add_argument("--pointing-from-seed", action="store_true",
-                   help="also fix the pointing's component along the epipolar lines (a height "
-                        "offset, unobservable from two images) against --seed-dem")
+    p.add_argument(
+        "--gridding",
+        choices=GRIDDING_METHODS,
+        default="gaussian",
+        help="cell estimator (default gaussian)",
+    )
+    p.add_argument(
+        "--no-pointing-correction",
+        action="store_true",
+        help="do not estimate the relative pointing (right-image translation)",
+    )
+    p.add_argument(
+        "--pointing-from-seed",
+        action="store_true",
+        help="also fix the pointing's component along the epipolar lines (a height "
+        "offset, unobservable from two images) against --seed-dem",
+    )
     p.add_argument("--geoid", action="store_true", help="write EGM96 geoid heights")
-    p.add_argument("--jitter-correction", nargs="?", const="pitch", choices=JITTER_AXES,
-                   help="estimate the right camera's attitude jitter (sum of sines), correct its "
-                        "attitude and make the DEM again (ASTER 3B): pitch (the default) against "
-                        "--seed-dem, roll from the matcher's residual vertical parallax (no "
-                        "reference DEM), or both")
+    p.add_argument(
+        "--jitter-correction",
+        nargs="?",
+        const="pitch",
+        choices=JITTER_AXES,
+        help="estimate the right camera's attitude jitter (sum of sines), correct its "
+        "attitude and make the DEM again (ASTER 3B): pitch (the default) against "
+        "--seed-dem, roll from the matcher's residual vertical parallax (no "
+        "reference DEM), or both",
+    )
     options.add_band(p)
-    p.add_argument("--rpc-direct", action="store_true",
-                   help="localise RPCs with the file's direct model (DIMAP, rpcm JSON) instead of "
-                        "the exact inverse of the projection (the default)")
+    p.add_argument(
+        "--rpc-direct",
+        action="store_true",
+        help="localise RPCs with the file's direct model (DIMAP, rpcm JSON) instead of "
+        "the exact inverse of the projection (the default)",
+    )
     options.add_workers(p)
-    p.add_argument("--tile-timeout", type=float, default=600.0,
-                   help="seconds after which a tile is abandoned and reported (default 600)")
+    p.add_argument(
+        "--tile-timeout",
+        type=float,
+        default=600.0,
+        help="seconds after which a tile is abandoned and reported (default 600)",
+    )
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
-    p.add_argument("--point-cloud", choices=("las", "laz"),
-                   help="also write the intersected points as OUT/dem.las or dem.laz (x, y, z in "
-                        "the DEM's CRS; ray gap, score, source pair, classification)")
+    p.add_argument(
+        "--point-cloud",
+        choices=("las", "laz"),
+        help="also write the intersected points as OUT/dem.las or dem.laz (x, y, z in "
+        "the DEM's CRS; ray gap, score, source pair, classification)",
+    )
     options.add_creation_options(p)
     options.add_overwrite(p)
-    p.add_argument("--fusion", choices=FUSION_METHODS, default="weighted",
-                   help="N-view DEMs: per cell, the σ-weighted mean of the pair heights that agree "
-                        "with their median (default), or their median")
-    p.add_argument("--max-pairs", type=int, help="N-view DEMs: at most this many pairs (default all usable)")
-    p.add_argument("--force", action="store_true",
-                   help="exit 0 with a result the sanity checks call suspect (still reported)")
+    p.add_argument(
+        "--fusion",
+        choices=FUSION_METHODS,
+        default="weighted",
+        help="N-view DEMs: per cell, the σ-weighted mean of the pair heights that agree "
+        "with their median (default), or their median",
+    )
+    p.add_argument(
+        "--max-pairs", type=int, help="N-view DEMs: at most this many pairs (default all usable)"
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="exit 0 with a result the sanity checks call suspect (still reported)",
+    )
     p.set_defaults(run=run)
     return p
 
@@ -107,32 +162,54 @@ def config_from_args(args):
     )
 
     from .config import Config, DemSettings, InputSettings, JitterSettings, RunSettings, validate
+
     hr = tuple(args.height_range) if args.height_range is not None else None
     images = [args.left, args.right, *args.more] if args.more else None
     if images and (args.left_model or args.right_model):
-        raise InputError("--left-model/--right-model name a pair's models; with three or more "
-                         "images give each image its <stem>.model.json sidecar")
+        raise InputError(
+            "--left-model/--right-model name a pair's models; with three or more "
+            "images give each image its <stem>.model.json sidecar"
+        )
     cfg = Config(
-        inputs=InputSettings(left=None if images else args.left, right=None if images else args.right,
-                             images=images, band=args.band,
-                             radiometric=not args.no_radiometric,
-                             left_model=args.left_model, right_model=args.right_model,
-                             rpc_direct=args.rpc_direct, seed_dem=args.seed_dem, seed_dem_vertical=args.dem_vertical),
+        inputs=InputSettings(
+            left=None if images else args.left,
+            right=None if images else args.right,
+            images=images,
+            band=args.band,
+            radiometric=not args.no_radiometric,
+            left_model=args.left_model,
+            right_model=args.right_model,
+            rpc_direct=args.rpc_direct,
+            seed_dem=args.seed_dem,
+            seed_dem_vertical=args.dem_vertical,
+        ),
         output_dir=args.out,
         stereo=StereoSettings(
-            rectification=RectificationSettings(tile_size=args.tile_size, height_range=hr,
-                                                pointing_correction=not args.no_pointing_correction,
-                                                pointing_uses_seed=args.pointing_from_seed),
+            rectification=RectificationSettings(
+                tile_size=args.tile_size,
+                height_range=hr,
+                pointing_correction=not args.no_pointing_correction,
+                pointing_uses_seed=args.pointing_from_seed,
+            ),
             matching=MatchingSettings(matcher=args.matcher),
-            gridding=GriddingSettings(res=args.res, crs=args.crs, geoid=args.geoid,
-                                      method=args.gridding)),
-        jitter=JitterSettings(enabled=bool(args.jitter_correction),
-                              axes=args.jitter_correction or "pitch"),
-        run=RunSettings(workers=args.workers, tile_timeout=args.tile_timeout, dask=args.dask,
-                        overwrite=args.overwrite, force=args.force,
-                        creation_options=options.creation_options(args)),
+            gridding=GriddingSettings(
+                res=args.res, crs=args.crs, geoid=args.geoid, method=args.gridding
+            ),
+        ),
+        jitter=JitterSettings(
+            enabled=bool(args.jitter_correction), axes=args.jitter_correction or "pitch"
+        ),
+        run=RunSettings(
+            workers=args.workers,
+            tile_timeout=args.tile_timeout,
+            dask=args.dask,
+            overwrite=args.overwrite,
+            force=args.force,
+            creation_options=options.creation_options(args),
+        ),
         dem=DemSettings(point_cloud=args.point_cloud),
-        fusion=FusionSettings(method=args.fusion, max_pairs=args.max_pairs))
+        fusion=FusionSettings(method=args.fusion, max_pairs=args.max_pairs),
+    )
     validate(cfg, "command line")
     return cfg
 
@@ -150,42 +227,68 @@ def run(args) -> int:
     from .pipeline.inputs import input_paths, load_pair
     from .pipeline.stages import stereo_stage, suspect_error
     from .provenance import provenance, utc_now
+
     started = utc_now()
     options.check_common(args)
     from .strip import strip_granules
+
     granules = strip_granules([args.left, args.right, *args.more], args.band)
     if granules:
         return _run_strip(args, granules, started)
     cfg = config_from_args(args)
     from stereodem.core.threads import thread_budget
+
     if cfg.inputs.images:
         with thread_budget(cfg.run.workers):
             return _run_multiview(cfg, started)
-    with output_folder(cfg.output_dir, overwrite=args.overwrite, inputs=input_paths(cfg)) as out, \
-            thread_budget(cfg.run.workers):
+    with (
+        output_folder(cfg.output_dir, overwrite=args.overwrite, inputs=input_paths(cfg)) as out,
+        thread_budget(cfg.run.workers),
+    ):
         pair = load_pair(cfg)
         bar = options.progress_bar("stereo")
         pts = point_cloud.prepare(out) if cfg.dem.point_cloud else None
         prod, failed = stereo_stage(cfg, pair, progress=bar, points_dir=pts)
         bar.close()
         from stereodem.post.coreg_run import track_tags  # the track for coregister's along_track
-        prod.write(out, overwrite=True, creation_options=cfg.run.creation_options,
-                   tags=track_tags(pair.left_model, pair.left_image.shape, prod.dem.crs,
-                                   prod.dem.heights))
+
+        prod.write(
+            out,
+            overwrite=True,
+            creation_options=cfg.run.creation_options,
+            tags=track_tags(pair.left_model, pair.left_image.shape, prod.dem.crs, prod.dem.heights),
+        )
         cloud = point_cloud.point_cloud_stage(cfg, out, prod) if pts is not None else None
-        report = dict(status=prod.info.status, warnings=prod.info.warnings,
-                      provenance=provenance(started=started), input_metadata=pair.tags,
-                      left=str(args.left), right=str(args.right), settings=prod.settings,
-                      info=prod.info.to_dict(), n_points=prod.n_points, seconds=prod.seconds, tiles=prod.tiles,
-                      failed_tiles=failed, point_cloud=cloud)
-        write_text_atomic(out / "dem_report.json", json.dumps(report, indent=2, default=str) + "\n",
-                          overwrite=True)
+        report = dict(
+            status=prod.info.status,
+            warnings=prod.info.warnings,
+            provenance=provenance(started=started),
+            input_metadata=pair.tags,
+            left=str(args.left),
+            right=str(args.right),
+            settings=prod.settings,
+            info=prod.info.to_dict(),
+            n_points=prod.n_points,
+            seconds=prod.seconds,
+            tiles=prod.tiles,
+            failed_tiles=failed,
+            point_cloud=cloud,
+        )
+        write_text_atomic(
+            out / "dem_report.json",
+            json.dumps(report, indent=2, default=str) + "\n",
+            overwrite=True,
+        )
     if failed:
-        log.warning("%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed))
+        log.warning(
+            "%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed)
+        )
     suspect_error(cfg, prod, out / "dem_report.json")
     g = prod.dem.grid
-    options.say(f"stereodem dem: {out / 'dem.tif'}: {g.width}x{g.height} cells at {g.posting:g}, "
-                f"{100 * prod.info.valid_cells:.1f} % valid, {prod.seconds:.1f} s")
+    options.say(
+        f"stereodem dem: {out / 'dem.tif'}: {g.width}x{g.height} cells at {g.posting:g}, "
+        f"{100 * prod.info.valid_cells:.1f} % valid, {prod.seconds:.1f} s"
+    )
     options.say(sparse_line(prod.info.to_dict()))
     if cloud is not None:
         options.say(f"  point cloud {cloud['path']}: {cloud['n_points']} points")
@@ -198,9 +301,12 @@ def _run_strip(args, granules, started) -> int:
     from stereodem.core.errors import InputError
 
     from .strip import run_strip_dem
+
     if args.left_model or args.right_model:
-        raise InputError("--left-model/--right-model name a pair's models; a strip of ASTER "
-                         "granules takes its models from the granules")
+        raise InputError(
+            "--left-model/--right-model name a pair's models; a strip of ASTER "
+            "granules takes its models from the granules"
+        )
     one = argparse.Namespace(**{**vars(args), "left": granules[0], "right": None, "more": []})
     cfg = config_from_args(one)
     bar = options.progress_bar("stereo")
@@ -208,11 +314,17 @@ def _run_strip(args, granules, started) -> int:
     bar.close()
     g = prod.dem.grid
     seams = strip.report["seams"]["3N"]
-    options.say(f"stereodem dem: {out / 'dem.tif'}: strip of {len(granules)} granules "
-                f"({', '.join(Path(p).name for p in granules)}), {g.width}x{g.height} cells at "
-                f"{g.posting:g}, {100 * prod.info.valid_cells:.1f} % valid, {prod.seconds:.1f} s")
-    options.say("  3N line offsets " + ", ".join(str(s["offset_lines"]) for s in seams)
-                + "; overlaps " + ", ".join(f"{s['overlap_lines']} lines" for s in seams))
+    options.say(
+        f"stereodem dem: {out / 'dem.tif'}: strip of {len(granules)} granules "
+        f"({', '.join(Path(p).name for p in granules)}), {g.width}x{g.height} cells at "
+        f"{g.posting:g}, {100 * prod.info.valid_cells:.1f} % valid, {prod.seconds:.1f} s"
+    )
+    options.say(
+        "  3N line offsets "
+        + ", ".join(str(s["offset_lines"]) for s in seams)
+        + "; overlaps "
+        + ", ".join(f"{s['overlap_lines']} lines" for s in seams)
+    )
     options.say(sparse_line(prod.info.to_dict()))
     return 0
 
@@ -220,14 +332,19 @@ def _run_strip(args, granules, started) -> int:
 def _run_multiview(cfg, started) -> int:
     """``stereodem dem IMG1 IMG2 IMG3 ...``: the N-view DEM (:func:`stereodem.multiview.run_dem`)."""
     from .multiview import run_dem
+
     bar = options.progress_bar("stereo")
     prod, out = run_dem(cfg, started=started, progress=bar)
     bar.close()
     f, mv = prod.fused, prod.report
-    pairs = ", ".join(f"{r['left'] + 1}+{r['right'] + 1} (B/H {r['base_to_height']:.2f})" for r in mv["pair_runs"])
-    options.say(f"stereodem dem: {out / 'dem.tif'}: {f.grid.width}x{f.grid.height} cells at "
-                f"{f.grid.posting:g}, {100 * mv['fusion']['valid_cells']:.1f} % valid, fused from "
-                f"{len(mv['pair_runs'])} pair(s): {pairs}; {prod.seconds:.1f} s")
+    pairs = ", ".join(
+        f"{r['left'] + 1}+{r['right'] + 1} (B/H {r['base_to_height']:.2f})" for r in mv["pair_runs"]
+    )
+    options.say(
+        f"stereodem dem: {out / 'dem.tif'}: {f.grid.width}x{f.grid.height} cells at "
+        f"{f.grid.posting:g}, {100 * mv['fusion']['valid_cells']:.1f} % valid, fused from "
+        f"{len(mv['pair_runs'])} pair(s): {pairs}; {prod.seconds:.1f} s"
+    )
     for s in mv["skipped_images"]:
         options.say(f"  skipped {s['name']}: {s['reason']}")
     return 0
@@ -244,10 +361,12 @@ def sparse_line(info: dict) -> str:
     p = info.get("pointing") or {}
     if p.get("parameters"):
         pp = p["parameters"]
-        text += (f"; pointing {p['kind']} {pp['col_shift']:+.2f}/{pp['row_shift']:+.2f} px (col/row), "
-                 f"residual across the epipolar lines: median {p['residual_before_px']['median']:+.2f} "
-                 f"-> {p['residual_after_px']['median']:+.2f} px, NMAD "
-                 f"{p['residual_after_px']['nmad']:.2f} px")
+        text += (
+            f"; pointing {p['kind']} {pp['col_shift']:+.2f}/{pp['row_shift']:+.2f} px (col/row), "
+            f"residual across the epipolar lines: median {p['residual_before_px']['median']:+.2f} "
+            f"-> {p['residual_after_px']['median']:+.2f} px, NMAD "
+            f"{p['residual_after_px']['nmad']:.2f} px"
+        )
     if info.get("suspect"):
         text += "; SUSPECT: heights pile up at a bound of the search range"
     return text

@@ -6,6 +6,7 @@ whole job on that granule (the real input path: granule reader, radiometric corr
 sensor models from the granule's lattice) with the true DEM as the reference and the
 simulator's check points, and prints where the products are and the headline accuracy.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -51,12 +52,22 @@ tile_timeout = 600
 
 
 def add_parser(sub):
-    p = sub.add_parser("demo", help="simulate an ASTER-like pair and run the whole job on it",
-                       description=__doc__, epilog=EXAMPLES,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "demo",
+        help="simulate an ASTER-like pair and run the whole job on it",
+        description=__doc__,
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("-o", "--out", required=True, help="output folder")
-    p.add_argument("--size", nargs=2, type=int, default=[600, 600], metavar=("W", "H"),
-                   help="3N size in pixels, width a multiple of 10 (default 600 600; 3B in the real ratio)")
+    p.add_argument(
+        "--size",
+        nargs=2,
+        type=int,
+        default=[600, 600],
+        metavar=("W", "H"),
+        help="3N size in pixels, width a multiple of 10 (default 600 600; 3B in the real ratio)",
+    )
     p.add_argument("--seed", type=int, default=0, help="simulator random seed (default 0)")
     p.add_argument("--noise", type=float, default=1.0, help="image noise sigma, DN (default 1.0)")
     p.add_argument("--workers", type=int, help="worker processes (default: all cores)")
@@ -68,6 +79,7 @@ def add_parser(sub):
 def run(args) -> int:
     """Run ``stereodem demo`` in its locked output folder."""
     from .outlock import output_folder
+
     with output_folder(args.out, overwrite=args.overwrite) as out:
         return _demo(args, out)
 
@@ -79,18 +91,29 @@ def _demo(args, out) -> int:
     from .config import load_config
     from .pipeline.job import run as run_pipeline
     from .run_cli import progress_factory, summarize
+
     t0 = time.perf_counter()
     if args.size[0] % 10:
-        raise InputError(f"--size width {args.size[0]} must be a multiple of 10 (an ASTER granule "
-                         "has 11 lattice columns)")
-    scene = simulate_scene("aster", size=tuple(args.size), right_size=granule_right_size(args.size),
-                           seed=args.seed, noise=args.noise)
+        raise InputError(
+            f"--size width {args.size[0]} must be a multiple of 10 (an ASTER granule "
+            "has 11 lattice columns)"
+        )
+    scene = simulate_scene(
+        "aster",
+        size=tuple(args.size),
+        right_size=granule_right_size(args.size),
+        seed=args.seed,
+        noise=args.noise,
+    )
     granule = write_granule_scene(scene, out / "scene", version=4, seed=args.seed, overwrite=True)
-    print(f"simulated ASTER L1A granule (3N {args.size[0]}x{args.size[1]}, 3B "
-          f"{scene.right.shape[1]}x{scene.right.shape[0]}) in {time.perf_counter() - t0:.1f} s: {granule}")
+    print(
+        f"simulated ASTER L1A granule (3N {args.size[0]}x{args.size[1]}, 3B "
+        f"{scene.right.shape[1]}x{scene.right.shape[0]}) in {time.perf_counter() - t0:.1f} s: {granule}"
+    )
     cfg_path = Path(out) / "demo.toml"
     from stereodem.core.dem import DEM
-    seed = DEM.bundled().path          # the same real SRTM the scene was made from, as a seed
+
+    seed = DEM.bundled().path  # the same real SRTM the scene was made from, as a seed
     cfg_path.write_text(CONFIG.format(cfg=cfg_path, seed=seed, granule=granule.name))
     cfg = load_config(cfg_path, workers=args.workers, overwrite=True)
     info = run_pipeline(cfg, progress_factory=progress_factory(args))

@@ -10,6 +10,7 @@ dir``), which is how :func:`stereodem.config.config_from_dict` reads them.
     python -m stereodem.docgen > docs/configuration.md      # regenerate
     python -m stereodem.docgen --check docs/configuration.md  # exit 1 if out of date
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -44,16 +45,25 @@ def _attributes_section(doc: str | None) -> dict:
             text = " ".join(" ".join(body).split())
             for n in names:
                 out[n] = (spec, text)
+
     for i, line in enumerate(lines):
         if not inside:
-            if line.strip() == "Attributes" and i + 1 < len(lines) and set(lines[i + 1].strip()) == {"-"}:
+            if (
+                line.strip() == "Attributes"
+                and i + 1 < len(lines)
+                and set(lines[i + 1].strip()) == {"-"}
+            ):
                 inside = True
             continue
         if set(line.strip()) == {"-"}:
             continue
-        if line and not line.startswith(" ") and i + 1 < len(lines) and \
-                set(lines[i + 1].strip() or "x") == {"-"}:
-            break                                           # the next section
+        if (
+            line
+            and not line.startswith(" ")
+            and i + 1 < len(lines)
+            and set(lines[i + 1].strip() or "x") == {"-"}
+        ):
+            break  # the next section
         if line and not line.startswith(" "):
             flush()
             head, _, spec = line.partition(" : ")
@@ -80,10 +90,17 @@ def _source_comments(cls) -> dict:
     for tok in tokens:
         by_line.setdefault(tok.start[0], []).append(tok)
     for toks in by_line.values():
-        kinds = [t for t in toks if t.type not in (tokenize.INDENT, tokenize.DEDENT, tokenize.NL,
-                                                    tokenize.NEWLINE)]
-        if len(kinds) >= 3 and kinds[0].type == tokenize.NAME and kinds[1].string == ":" \
-                and kinds[-1].type == tokenize.COMMENT:
+        kinds = [
+            t
+            for t in toks
+            if t.type not in (tokenize.INDENT, tokenize.DEDENT, tokenize.NL, tokenize.NEWLINE)
+        ]
+        if (
+            len(kinds) >= 3
+            and kinds[0].type == tokenize.NAME
+            and kinds[1].string == ":"
+            and kinds[-1].type == tokenize.COMMENT
+        ):
             out[kinds[0].string] = kinds[-1].string.lstrip("#").strip()
     return out
 
@@ -98,8 +115,8 @@ def _type_name(f) -> str:
 def _default(f) -> str:
     if f.default is not dataclasses.MISSING:
         v = f.default
-    elif f.default_factory is not dataclasses.MISSING:           # type: ignore[misc]
-        v = f.default_factory()                                  # type: ignore[misc]
+    elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        v = f.default_factory()  # type: ignore[misc]
     else:
         return "*required*"
     if v is None:
@@ -133,10 +150,12 @@ def section_table(cls) -> str:
         if not f.init or f.name.startswith("_"):
             continue
         spec, desc = docs.get(f.name, ("", ""))
-        spec = _choices_spec(cls, f) or spec           # the choices are the Literal's
+        spec = _choices_spec(cls, f) or spec  # the choices are the Literal's
         desc = desc or comments.get(f.name) or ""
-        rows.append(f"| `{f.name}` | {_cell(spec) if spec else '`' + _cell(_type_name(f)) + '`'} "
-                    f"| `{_default(f)}` | {_cell(desc)} |")
+        rows.append(
+            f"| `{f.name}` | {_cell(spec) if spec else '`' + _cell(_type_name(f)) + '`'} "
+            f"| `{_default(f)}` | {_cell(desc)} |"
+        )
     return "\n".join(rows)
 
 
@@ -148,14 +167,23 @@ def configuration_markdown(sections=None) -> str:
         from stereodem.config import SECTIONS as sections
     parts = [HEADER]
     for name, cls in sections.items():
-        intro = (inspect.cleandoc(cls.__doc__).splitlines()[0]
-                 if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "(") else "")
+        intro = (
+            inspect.cleandoc(cls.__doc__).splitlines()[0]
+            if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "(")
+            else ""
+        )
         parts += [f"## `[{name}]` — `{cls.__module__}.{cls.__name__}`", ""]
         if intro:
             parts += [_md(intro), ""]
         parts += [section_table(cls), ""]
-    parts += ["## `[output]`", "", "| key | type | default | description |", "|---|---|---|---|",
-              "| `dir` | str | *required* | Output folder of the run (relative to the configuration file). |", ""]
+    parts += [
+        "## `[output]`",
+        "",
+        "| key | type | default | description |",
+        "|---|---|---|---|",
+        "| `dir` | str | *required* | Output folder of the run (relative to the configuration file). |",
+        "",
+    ]
     return "\n".join(parts).rstrip() + "\n"
 
 
@@ -163,6 +191,7 @@ def _choices_spec(owner, f) -> str | None:
     """``{"a", "b"}`` (``, optional`` when ``None`` is allowed) for a field annotated with a
     ``typing.Literal`` alias (the option choices of the library), else None."""
     import typing
+
     mod = sys.modules.get(owner.__module__)
     try:
         t = typing.get_type_hints(owner, vars(mod) if mod else None).get(f.name)
@@ -184,8 +213,8 @@ def _resolve(owner, f):
         t = hints.get(f.name)
     except Exception:
         t = None
-    if t is None and f.default_factory is not dataclasses.MISSING:     # type: ignore[misc]
-        t = type(f.default_factory())                                  # type: ignore[misc]
+    if t is None and f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        t = type(f.default_factory())  # type: ignore[misc]
     return t if isinstance(t, type) and dataclasses.is_dataclass(t) else None
 
 

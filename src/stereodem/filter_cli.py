@@ -5,6 +5,7 @@ it, runs the same filter chain and hole filling as ``stereodem run``, and writes
 its edit mask ``<CLEAN stem>_edit_mask.tif`` (filter reason 1-9, 9 = cloud, 99 border rim, 100 filled by
 IDW, 101 filled from the seed DEM, 0 kept).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,32 +23,66 @@ EXAMPLES = """examples:
 
 
 def add_parser(sub):
-    p = sub.add_parser("filter", help="blunder filters and hole filling of a stereo DEM",
-                       description=__doc__, epilog=EXAMPLES,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "filter",
+        help="blunder filters and hole filling of a stereo DEM",
+        description=__doc__,
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("dem", help="stereo DEM GeoTIFF (score.tif and raygap.tif beside it are used)")
     p.add_argument("-o", "--out", required=True, help="clean DEM GeoTIFF to write")
     p.add_argument("--thesis", action="store_true", help="the Ok thesis's filter chain")
-    p.add_argument("--erode", type=int, default=2,
-                   help="cells removed along the border of the matched area (default 2)")
+    p.add_argument(
+        "--erode",
+        type=int,
+        default=2,
+        help="cells removed along the border of the matched area (default 2)",
+    )
     p.add_argument("--no-filters", action="store_true", help="skip the blunder filters")
     p.add_argument("--no-fill", action="store_true", help="leave holes unfilled")
-    p.add_argument("--max-hole-size", type=int, default=200,
-                   help="largest hole filled by interpolation, cells (default 200)")
+    p.add_argument(
+        "--max-hole-size",
+        type=int,
+        default=200,
+        help="largest hole filled by interpolation, cells (default 200)",
+    )
     p.add_argument("--seed-dem", help="DEM for --fill-from-seed")
-    p.add_argument("--seed-vertical", choices=VERTICALS,
-                   help="vertical reference of the seed DEM when the file does not say")
-    p.add_argument("--fill-from-seed", action="store_true",
-                   help="fill holes larger than --max-hole-size from --seed-dem")
-    p.add_argument("--dem-vertical", choices=VERTICALS,
-                   help="vertical reference of DEM when the file does not say")
-    p.add_argument("--cloud-max-dev", type=float, metavar="M",
-                   help="cloud mask: remove cells deviating from --seed-dem by more than M metres "
-                        "(median difference removed), grown by --cloud-grow (edit code 9)")
-    p.add_argument("--cloud-min-score", type=float, metavar="S",
-                   help="cloud mask: also cells whose matcher score is below S")
-    p.add_argument("--cloud-grow", type=int, default=3, metavar="N",
-                   help="grow the cloud mask by N cells (default 3)")
+    p.add_argument(
+        "--seed-vertical",
+        choices=VERTICALS,
+        help="vertical reference of the seed DEM when the file does not say",
+    )
+    p.add_argument(
+        "--fill-from-seed",
+        action="store_true",
+        help="fill holes larger than --max-hole-size from --seed-dem",
+    )
+    p.add_argument(
+        "--dem-vertical",
+        choices=VERTICALS,
+        help="vertical reference of DEM when the file does not say",
+    )
+    p.add_argument(
+        "--cloud-max-dev",
+        type=float,
+        metavar="M",
+        help="cloud mask: remove cells deviating from --seed-dem by more than M metres "
+        "(median difference removed), grown by --cloud-grow (edit code 9)",
+    )
+    p.add_argument(
+        "--cloud-min-score",
+        type=float,
+        metavar="S",
+        help="cloud mask: also cells whose matcher score is below S",
+    )
+    p.add_argument(
+        "--cloud-grow",
+        type=int,
+        default=3,
+        metavar="N",
+        help="grow the cloud mask by N cells (default 3)",
+    )
     options.add_creation_options(p)
     options.add_overwrite(p)
     p.set_defaults(run=run)
@@ -58,31 +93,50 @@ def _cloud_mask(args, layers, seed):
     """The cloud mask of the DEM (None when no --cloud-* option is given); refused without the
     seed DEM for --cloud-max-dev."""
     from stereodem.core.errors import InputError
+
     if args.cloud_max_dev is None and args.cloud_min_score is None:
         return None
     from stereodem.post.clouds import CloudSettings, cloud_mask
+
     ref = None
     if args.cloud_max_dev is not None:
         if seed is None:
-            raise InputError("--cloud-max-dev needs --seed-dem (the reference the deviation is taken from)")
+            raise InputError(
+                "--cloud-max-dev needs --seed-dem (the reference the deviation is taken from)"
+            )
         from stereodem.post import warp
+
         s = seed.to_reference(layers.vertical) if seed.vertical and layers.vertical else seed
-        ref = warp.to_grid(s.heights, s.transform, s.crs, layers.transform, layers.crs, layers.shape)
-    m, _ = cloud_mask(layers.heights, reference=ref, score=layers.score,
-                      settings=CloudSettings(max_deviation=args.cloud_max_dev,
-                                             min_score=args.cloud_min_score, grow=args.cloud_grow))
+        ref = warp.to_grid(
+            s.heights, s.transform, s.crs, layers.transform, layers.crs, layers.shape
+        )
+    m, _ = cloud_mask(
+        layers.heights,
+        reference=ref,
+        score=layers.score,
+        settings=CloudSettings(
+            max_deviation=args.cloud_max_dev, min_score=args.cloud_min_score, grow=args.cloud_grow
+        ),
+    )
     return m
 
 
 def config_from_args(args):
     from .config import Config, FillSettings, FilterSettings, InputSettings, validate
-    cfg = Config(inputs=InputSettings(dem=args.dem, dem_vertical=args.dem_vertical,
-                                      seed_dem=args.seed_dem, seed_dem_vertical=args.seed_vertical),
-                 output_dir=str(args.out),
-                 filters=FilterSettings(enabled=not args.no_filters, thesis=args.thesis,
-                                        erode=args.erode),
-                 fill=FillSettings(enabled=not args.no_fill, max_hole_size=args.max_hole_size,
-                                   fallback=args.fill_from_seed))
+
+    cfg = Config(
+        inputs=InputSettings(
+            dem=args.dem,
+            dem_vertical=args.dem_vertical,
+            seed_dem=args.seed_dem,
+            seed_dem_vertical=args.seed_vertical,
+        ),
+        output_dir=str(args.out),
+        filters=FilterSettings(enabled=not args.no_filters, thesis=args.thesis, erode=args.erode),
+        fill=FillSettings(
+            enabled=not args.no_fill, max_hole_size=args.max_hole_size, fallback=args.fill_from_seed
+        ),
+    )
     validate(cfg, "command line")
     return cfg
 
@@ -96,15 +150,19 @@ def run(args) -> int:
 
     from .pipeline.inputs import load_seed_dem, read_stereo_dem
     from .pipeline.stages import post_stage
+
     if args.fill_from_seed and not args.seed_dem:
         raise InputError("--fill-from-seed needs --seed-dem")
     cfg = config_from_args(args)
     from pathlib import Path
 
     from .outlock import check_not_an_input
+
     folder = Path(args.dem).parent
-    check_not_an_input([args.out, edit_mask_path(args.out)],
-                       [args.dem, args.seed_dem, folder / "score.tif", folder / "raygap.tif"])
+    check_not_an_input(
+        [args.out, edit_mask_path(args.out)],
+        [args.dem, args.seed_dem, folder / "score.tif", folder / "raygap.tif"],
+    )
     check_writable(args.out, args.overwrite)
     check_writable(edit_mask_path(args.out), args.overwrite)
     raw = read_stereo_dem(args.dem, vertical=args.dem_vertical)
@@ -115,12 +173,15 @@ def run(args) -> int:
     clean, report = post_stage(cfg, raw, seed, path=args.out)
     if cloud is not None:
         from stereodem.post.filters import Reason
+
         clean.edit_mask[cloud & ~np.isfinite(clean.heights)] = Reason.CLOUD
         report["cloud"] = {"removed": int(cloud.sum())}
     clean.write(args.out, overwrite=args.overwrite, creation_options=options.creation_options(args))
     valid = float((clean.heights == clean.heights).mean())
-    options.say(f"stereodem filter: {args.out}: {100 * valid:.1f} % of cells valid; "
-                f"edits: {json.dumps(_summary(report))}")
+    options.say(
+        f"stereodem filter: {args.out}: {100 * valid:.1f} % of cells valid; "
+        f"edits: {json.dumps(_summary(report))}"
+    )
     return 0
 
 

@@ -13,6 +13,7 @@ for count/stddev/nmad) and ``OUT`` with ``.json`` (DEMs used and skipped, conver
 co-registration shifts, memory bound and peak). Memory is bounded by the block size and the
 number of DEMs overlapping one block, not by the mosaic's size (``--block``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,37 +37,80 @@ EXAMPLES = """examples:
 
 def add_parser(sub):
     from stereodem.post.mosaic import METHODS
-    p = sub.add_parser("mosaic", help="one DEM from many: blended seams, statistics, bounded memory",
-                       description=__doc__, epilog=EXAMPLES,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("dems", nargs="+", metavar="DEM", help="DEM GeoTIFFs, in priority order (first/last)")
+
+    p = sub.add_parser(
+        "mosaic",
+        help="one DEM from many: blended seams, statistics, bounded memory",
+        description=__doc__,
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "dems", nargs="+", metavar="DEM", help="DEM GeoTIFFs, in priority order (first/last)"
+    )
     p.add_argument("-o", "--out", required=True, help="mosaic GeoTIFF to write")
-    p.add_argument("--method", choices=METHODS, default="blend",
-                   help="value per cell (default blend: distance-to-edge weighted mean)")
-    p.add_argument("--res", type=float, metavar="RES",
-                   help="output posting in the output CRS's units (default: the first DEM's)")
+    p.add_argument(
+        "--method",
+        choices=METHODS,
+        default="blend",
+        help="value per cell (default blend: distance-to-edge weighted mean)",
+    )
+    p.add_argument(
+        "--res",
+        type=float,
+        metavar="RES",
+        help="output posting in the output CRS's units (default: the first DEM's)",
+    )
     p.add_argument("--crs", help="output CRS, e.g. EPSG:32637 (default: the first DEM's)")
-    p.add_argument("--bounds", type=float, nargs=4, metavar=("W", "S", "E", "N"),
-                   help="output extent in the output CRS (default: all DEMs); DEMs outside are skipped")
-    p.add_argument("--vertical", choices=VERTICALS,
-                   help="vertical reference of the mosaic (default: the first DEM's)")
-    p.add_argument("--dem-vertical", choices=VERTICALS,
-                   help="vertical reference of DEMs whose file does not say")
-    p.add_argument("--blend-length", type=int, default=50,
-                   help="cells over which a DEM's weight rises from its edge (default 50)")
-    p.add_argument("--weights-exponent", type=float, default=2.0,
-                   help="exponent of the distance weight (default 2, as dem_mosaic)")
+    p.add_argument(
+        "--bounds",
+        type=float,
+        nargs=4,
+        metavar=("W", "S", "E", "N"),
+        help="output extent in the output CRS (default: all DEMs); DEMs outside are skipped",
+    )
+    p.add_argument(
+        "--vertical",
+        choices=VERTICALS,
+        help="vertical reference of the mosaic (default: the first DEM's)",
+    )
+    p.add_argument(
+        "--dem-vertical",
+        choices=VERTICALS,
+        help="vertical reference of DEMs whose file does not say",
+    )
+    p.add_argument(
+        "--blend-length",
+        type=int,
+        default=50,
+        help="cells over which a DEM's weight rises from its edge (default 50)",
+    )
+    p.add_argument(
+        "--weights-exponent",
+        type=float,
+        default=2.0,
+        help="exponent of the distance weight (default 2, as dem_mosaic)",
+    )
     p.add_argument("--no-sigma", action="store_true", help="ignore the DEMs' σ layers")
     p.add_argument("--ref", help="reference DEM for --coregister")
-    p.add_argument("--coregister", action="store_true",
-                   help="co-register every DEM to --ref first (DEMs that miss it are skipped)")
-    p.add_argument("--coreg-chain", default="nuth_kaab",
-                   help="co-registration chain, steps comma separated: nuth_kaab, vshift "
-                        "(default nuth_kaab; see stereodem coregister)")
+    p.add_argument(
+        "--coregister",
+        action="store_true",
+        help="co-register every DEM to --ref first (DEMs that miss it are skipped)",
+    )
+    p.add_argument(
+        "--coreg-chain",
+        default="nuth_kaab",
+        help="co-registration chain, steps comma separated: nuth_kaab, vshift "
+        "(default nuth_kaab; see stereodem coregister)",
+    )
     p.add_argument("--block", type=int, default=512, help="output block size, cells (default 512)")
-    p.add_argument("--dask", metavar="ADDRESS",
-                   help="compute blocks on a dask.distributed scheduler (tcp://host:port, or "
-                        "'local' for a local cluster of --workers processes)")
+    p.add_argument(
+        "--dask",
+        metavar="ADDRESS",
+        help="compute blocks on a dask.distributed scheduler (tcp://host:port, or "
+        "'local' for a local cluster of --workers processes)",
+    )
     options.add_workers(p, "Dask workers of --dask local")
     options.add_creation_options(p)
     options.add_overwrite(p)
@@ -87,6 +131,7 @@ def run(args) -> int:
 
     from .outlock import check_not_an_input
     from .provenance import provenance, utc_now
+
     started = utc_now()
     options.check_common(args)
     if args.coregister and not args.ref:
@@ -101,24 +146,47 @@ def run(args) -> int:
     check_writable(out, args.overwrite)
     check_writable(rep, args.overwrite)
     reset_peak_rss()
-    plan = plan_mosaic(args.dems, method=args.method, crs=args.crs, res=args.res,
-                       bounds=args.bounds, vertical=args.vertical, dem_vertical=args.dem_vertical,
-                       block=args.block, blend_length=args.blend_length,
-                       weights_exponent=args.weights_exponent, use_sigma=not args.no_sigma,
-                       reference=args.ref if args.coregister else None,
-                       coreg_chain=args.coreg_chain)
+    plan = plan_mosaic(
+        args.dems,
+        method=args.method,
+        crs=args.crs,
+        res=args.res,
+        bounds=args.bounds,
+        vertical=args.vertical,
+        dem_vertical=args.dem_vertical,
+        block=args.block,
+        blend_length=args.blend_length,
+        weights_exponent=args.weights_exponent,
+        use_sigma=not args.no_sigma,
+        reference=args.ref if args.coregister else None,
+        coreg_chain=args.coreg_chain,
+    )
     bar = options.progress_bar("mosaic")
-    report = run_mosaic(plan, out, overwrite=args.overwrite,
-                        creation_options=options.creation_options(args), dask=args.dask,
-                        workers=args.workers, progress=bar)
+    report = run_mosaic(
+        plan,
+        out,
+        overwrite=args.overwrite,
+        creation_options=options.creation_options(args),
+        dask=args.dask,
+        workers=args.workers,
+        progress=bar,
+    )
     bar.close()
-    report.update(peak_rss_mb=process_peak_rss_mb(), provenance=provenance(started=started),
-                  inputs=[str(p) for p in args.dems], reference=args.ref)
-    write_text_atomic(rep, json.dumps(report, indent=2, default=str) + "\n", overwrite=args.overwrite)
+    report.update(
+        peak_rss_mb=process_peak_rss_mb(),
+        provenance=provenance(started=started),
+        inputs=[str(p) for p in args.dems],
+        reference=args.ref,
+    )
+    write_text_atomic(
+        rep, json.dumps(report, indent=2, default=str) + "\n", overwrite=args.overwrite
+    )
     g = plan.grid
-    options.say(f"stereodem mosaic: {out}: {report['n_used']} of {report['n_inputs']} DEMs, "
-                f"{g.width}x{g.height} cells at {g.posting:g}, {100 * report['valid_share']:.1f} % valid, "
-                f"{report['seconds']:.1f} s ({args.method})")
+    options.say(
+        f"stereodem mosaic: {out}: {report['n_used']} of {report['n_inputs']} DEMs, "
+        f"{g.width}x{g.height} cells at {g.posting:g}, {100 * report['valid_share']:.1f} % valid, "
+        f"{report['seconds']:.1f} s ({args.method})"
+    )
     for s in report["skipped"]:
         options.say(f"  skipped {s['path']}: {s['reason']}")
     return 0

@@ -19,6 +19,7 @@ The report (``dem_report.json``) holds every pair considered with its overlap, b
 ratio and why it was chosen or not, the images skipped, each matched pair's run (time,
 points, pointing correction, heights) and its agreement with the fused DEM.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -36,7 +37,14 @@ from .config import Config
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MultiviewInfo", "MultiviewProducts", "multiview_stage", "reference_height", "run_dem", "run_stage"]
+__all__ = [
+    "MultiviewInfo",
+    "MultiviewProducts",
+    "multiview_stage",
+    "reference_height",
+    "run_dem",
+    "run_stage",
+]
 
 
 @dataclass
@@ -75,6 +83,7 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
 
     from .pipeline.inputs import Pair, load_seed_dem, open_image
     from .pipeline.stages import stereo_stage
+
     t0 = time.perf_counter()
     paths = [str(p) for p in paths]
     if len(paths) < 2:
@@ -84,37 +93,64 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
         raise InputError(f"{sorted(dup)[0]}: given more than once")
     i = cfg.inputs
     granules: dict = {}
-    images = [open_image(p, band=i.band, prefer=i.model, rpc_direct=i.rpc_direct,
-                         radiometric=i.radiometric, granules=granules) for p in paths]
+    images = [
+        open_image(
+            p,
+            band=i.band,
+            prefer=i.model,
+            rpc_direct=i.rpc_direct,
+            radiometric=i.radiometric,
+            granules=granules,
+        )
+        for p in paths
+    ]
     models = [im.model for im in images]
     seed = load_seed_dem(cfg)
     h0 = reference_height(cfg, models, seed)
     fs = cfg.fusion
-    plan = choose_pairs(models, h0, min_overlap=fs.min_overlap,
-                        min_base_to_height=fs.min_base_to_height,
-                        max_base_to_height=fs.max_base_to_height, max_pairs=fs.max_pairs, names=paths)
+    plan = choose_pairs(
+        models,
+        h0,
+        min_overlap=fs.min_overlap,
+        min_base_to_height=fs.min_base_to_height,
+        max_base_to_height=fs.max_base_to_height,
+        max_pairs=fs.max_pairs,
+        names=paths,
+    )
     adjustment = None
     if fs.adjust != "never" and len(plan.pairs) >= 2:
         from stereodem.stereo.ties import agree_models
-        models, adjustment = agree_models([im.image for im in images], models,
-                                          [(c.i, c.j) for c in plan.ranked],
-                                          height_range=cfg.stereo.rectification.height_range,
-                                          min_gain=fs.adjust_min_gain, force=fs.adjust == "always")
-        log.info("models %s: %s", "adjusted" if adjustment["applied"] else "kept", adjustment["reason"])
+
+        models, adjustment = agree_models(
+            [im.image for im in images],
+            models,
+            [(c.i, c.j) for c in plan.ranked],
+            height_range=cfg.stereo.rectification.height_range,
+            min_gain=fs.adjust_min_gain,
+            force=fs.adjust == "always",
+        )
+        log.info(
+            "models %s: %s", "adjusted" if adjustment["applied"] else "kept", adjustment["reason"]
+        )
     gs = cfg.stereo.gridding
     first = models[plan.pairs[0].i]
     crs = gs.crs
     if crs is None:
         from stereodem.core import geodesy
+
         crs = geodesy.utm_crs(*first.center_lonlat(h0)).to_wkt()
     res = gs.res or default_posting(first.gsd(h0), crs)
-    pcfg = dataclasses.replace(cfg, stereo=dataclasses.replace(
-        cfg.stereo, gridding=dataclasses.replace(gs, crs=crs, res=res)))
+    pcfg = dataclasses.replace(
+        cfg,
+        stereo=dataclasses.replace(cfg.stereo, gridding=dataclasses.replace(gs, crs=crs, res=res)),
+    )
     dems, sigmas, runs, failed_tiles, failed_pairs = [], [], [], [], []
     for c in plan.pairs:
         a, b = images[c.i], images[c.j]
         name = f"{Path(paths[c.i]).name} + {Path(paths[c.j]).name}"
-        log.info("pair %s: overlap %.0f %%, base-to-height %.3f", name, 100 * c.overlap, c.base_to_height)
+        log.info(
+            "pair %s: overlap %.0f %%, base-to-height %.3f", name, 100 * c.overlap, c.base_to_height
+        )
         pair = Pair(a.image, b.image, models[c.i], models[c.j], seed, a.dtype, b.dtype, {})
         sub = None if cache_dir is None else Path(cache_dir) / f"pair_{c.i}_{c.j}"
         tp = time.perf_counter()
@@ -128,33 +164,61 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
         dems.append(prod.dem)
         info = prod.info
         sigmas.append(pair_sigma(info.gsd_m, info.base_to_height, fs.sigma_px))
-        runs.append(dict(left=c.i, right=c.j, seconds=round(time.perf_counter() - tp, 2),
-                         n_points=prod.n_points, status=info.status,
-                         warnings=info.warnings, base_to_height=info.base_to_height,
-                         height_range=info.height_range, pointing=info.pointing,
-                         valid_cells=info.valid_cells, n_tiles=info.n_tiles))
+        runs.append(
+            dict(
+                left=c.i,
+                right=c.j,
+                seconds=round(time.perf_counter() - tp, 2),
+                n_points=prod.n_points,
+                status=info.status,
+                warnings=info.warnings,
+                base_to_height=info.base_to_height,
+                height_range=info.height_range,
+                pointing=info.pointing,
+                valid_cells=info.valid_cells,
+                n_tiles=info.n_tiles,
+            )
+        )
     if not dems:
-        raise InputError("no pair could be matched: " + "; ".join(
-            f"{Path(paths[f['left']]).name} + {Path(paths[f['right']]).name}: {f['error']}"
-            for f in failed_pairs))
-    fused = fuse_dems(dems, sigmas, method=fs.method, k=fs.reject_k,
-                      grid=_bounds_grid(gs.bounds, res, crs) if gs.bounds is not None else None)
+        raise InputError(
+            "no pair could be matched: "
+            + "; ".join(
+                f"{Path(paths[f['left']]).name} + {Path(paths[f['right']]).name}: {f['error']}"
+                for f in failed_pairs
+            )
+        )
+    fused = fuse_dems(
+        dems,
+        sigmas,
+        method=fs.method,
+        k=fs.reject_k,
+        grid=_bounds_grid(gs.bounds, res, crs) if gs.bounds is not None else None,
+    )
     for run, agreement in zip(runs, fused.pairs):
         run.update(fusion=agreement)
     suspect = [w for r in runs for w in r["warnings"] if w.get("severity") == "suspect"]
-    report = dict(images=paths, reference_height_m=round(h0, 1), posting=res,
-                  **plan.to_dict(paths), adjustment=adjustment, pair_runs=runs, failed_pairs=failed_pairs,
-                  fusion=dict(dataclasses.asdict(fs),
-                              valid_cells=float(np.isfinite(fused.heights).mean()),
-                              cells_by_count={int(k): int(v) for k, v in
-                                              enumerate(np.bincount(fused.count.ravel()))}),
-                  status="suspect" if suspect else ("warning" if any(r["warnings"] for r in runs) else "ok"),
-                  warnings=suspect or [w for r in runs for w in r["warnings"]])
+    report = dict(
+        images=paths,
+        reference_height_m=round(h0, 1),
+        posting=res,
+        **plan.to_dict(paths),
+        adjustment=adjustment,
+        pair_runs=runs,
+        failed_pairs=failed_pairs,
+        fusion=dict(
+            dataclasses.asdict(fs),
+            valid_cells=float(np.isfinite(fused.heights).mean()),
+            cells_by_count={int(k): int(v) for k, v in enumerate(np.bincount(fused.count.ravel()))},
+        ),
+        status="suspect" if suspect else ("warning" if any(r["warnings"] for r in runs) else "ok"),
+        warnings=suspect or [w for r in runs for w in r["warnings"]],
+    )
     return MultiviewProducts(fused, report, failed_tiles, time.perf_counter() - t0, dems)
 
 
 def _bounds_grid(bounds, res, crs):
     from stereodem.stereo.grid import GridSpec
+
     return GridSpec.from_bounds(bounds, res, crs).grid
 
 
@@ -170,20 +234,32 @@ def run_dem(cfg: Config, *, started=None, progress=None) -> tuple:
     from .outlock import output_folder
     from .pipeline.inputs import input_paths
     from .provenance import provenance
+
     with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, inputs=input_paths(cfg)) as out:
         prod = multiview_stage(cfg, cfg.inputs.images, progress=progress)
         prod.fused.write(out / "dem.tif", overwrite=True, creation_options=cfg.run.creation_options)
-        report = dict(status=prod.report["status"], warnings=prod.report["warnings"],
-                      provenance=provenance(started=started), settings=cfg.to_dict(),
-                      seconds=round(prod.seconds, 2), multiview=prod.report,
-                      failed_tiles=prod.failed_tiles)
-        write_text_atomic(out / "dem_report.json", json.dumps(report, indent=2, default=str) + "\n",
-                          overwrite=True)
+        report = dict(
+            status=prod.report["status"],
+            warnings=prod.report["warnings"],
+            provenance=provenance(started=started),
+            settings=cfg.to_dict(),
+            seconds=round(prod.seconds, 2),
+            multiview=prod.report,
+            failed_tiles=prod.failed_tiles,
+        )
+        write_text_atomic(
+            out / "dem_report.json",
+            json.dumps(report, indent=2, default=str) + "\n",
+            overwrite=True,
+        )
     bad = [w for w in prod.report["warnings"] if w.get("severity") == "suspect"]
     if bad and not cfg.run.force:
         from stereodem.stereo.sanity import SuspectResultError
-        raise SuspectResultError(f"result suspect: {bad[0]['message']}; products kept for "
-                                 f"inspection, findings in {out / 'dem_report.json'} (--force accepts them)")
+
+        raise SuspectResultError(
+            f"result suspect: {bad[0]['message']}; products kept for "
+            f"inspection, findings in {out / 'dem_report.json'} (--force accepts them)"
+        )
     return prod, out
 
 
@@ -213,13 +289,36 @@ def run_stage(cfg: Config, *, progress=None, cache_dir=None):
     from stereodem.stereo.pipeline import DEMProducts
 
     from .pipeline.inputs import Pair, load_seed_dem, open_image
+
     prod = multiview_stage(cfg, cfg.inputs.images, progress=progress, cache_dir=cache_dir)
     first = prod.report["pair_runs"][0]
     i = cfg.inputs
-    a, b = (open_image(cfg.inputs.images[k], band=i.band, prefer=i.model, rpc_direct=i.rpc_direct,
-                       radiometric=i.radiometric) for k in (first["left"], first["right"]))
-    pair = Pair(a.image, b.image, a.model, b.model, load_seed_dem(cfg), a.dtype, b.dtype,
-                {**a.tags, **{f"RIGHT_{k}": v for k, v in b.tags.items()}})
-    products = DEMProducts(prod.fused.dem, [], sum(r["n_points"] for r in prod.report["pair_runs"]),
-                           prod.seconds, cfg.stereo.summary(), MultiviewInfo(prod.report))
+    a, b = (
+        open_image(
+            cfg.inputs.images[k],
+            band=i.band,
+            prefer=i.model,
+            rpc_direct=i.rpc_direct,
+            radiometric=i.radiometric,
+        )
+        for k in (first["left"], first["right"])
+    )
+    pair = Pair(
+        a.image,
+        b.image,
+        a.model,
+        b.model,
+        load_seed_dem(cfg),
+        a.dtype,
+        b.dtype,
+        {**a.tags, **{f"RIGHT_{k}": v for k, v in b.tags.items()}},
+    )
+    products = DEMProducts(
+        prod.fused.dem,
+        [],
+        sum(r["n_points"] for r in prod.report["pair_runs"]),
+        prod.seconds,
+        cfg.stereo.summary(),
+        MultiviewInfo(prod.report),
+    )
     return pair, products, prod.failed_tiles, prod.fused

@@ -4,6 +4,7 @@
 default UTM grids); ``--workers``, ``--overwrite`` and the DEM vertical-reference options are
 spelled and checked once here.
 """
+
 from __future__ import annotations
 
 import logging
@@ -14,14 +15,19 @@ from .progress import Progress
 
 
 def add_res(p, default_text: str):
-    p.add_argument("--res", type=float, metavar="RES",
-                   help=f"output posting in the output CRS's units, metres for UTM (default: {default_text})")
+    p.add_argument(
+        "--res",
+        type=float,
+        metavar="RES",
+        help=f"output posting in the output CRS's units, metres for UTM (default: {default_text})",
+    )
     p.add_argument("--crs", help="output CRS, e.g. EPSG:32637 (default: the scene's UTM zone)")
 
 
 def band(text: str):
     """``--band``: a band number, or an ASTER band name (3N, 3B)."""
     import argparse
+
     t = text.strip()
     if t.isdigit():
         return int(t)
@@ -32,8 +38,11 @@ def band(text: str):
 
 def add_band(p, default_text="1; 3N/3B in an ASTER granule"):
     p.add_argument("--band", type=band, default=1, help=f"image band (default {default_text})")
-    p.add_argument("--no-radiometric", action="store_true",
-                   help="ASTER granules: keep the DNs instead of radiance from the radiometric table")
+    p.add_argument(
+        "--no-radiometric",
+        action="store_true",
+        help="ASTER granules: keep the DNs instead of radiance from the radiometric table",
+    )
 
 
 def add_workers(p, what="worker processes for the stereo tiles"):
@@ -41,20 +50,29 @@ def add_workers(p, what="worker processes for the stereo tiles"):
 
 
 def add_creation_options(p):
-    p.add_argument("--co", action="append", metavar="KEY=VALUE", default=[],
-                   help="GDAL creation option of the GeoTIFF products, repeatable (as GDAL's -co), "
-                        "e.g. --co COMPRESS=ZSTD (default: COG, DEFLATE, predictor by data type)")
+    p.add_argument(
+        "--co",
+        action="append",
+        metavar="KEY=VALUE",
+        default=[],
+        help="GDAL creation option of the GeoTIFF products, repeatable (as GDAL's -co), "
+        "e.g. --co COMPRESS=ZSTD (default: COG, DEFLATE, predictor by data type)",
+    )
 
 
 def creation_options(args):
     """The ``--co`` options as a dict (None when none were given)."""
     from stereodem.core.raster import parse_creation_options
+
     return parse_creation_options(getattr(args, "co", None)) or None
 
 
 def add_overwrite(p):
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace existing outputs (default: refuse to touch them)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace existing outputs (default: refuse to touch them)",
+    )
 
 
 def check_common(args):
@@ -66,6 +84,7 @@ def check_common(args):
     if workers is not None and workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
     from stereodem.core.grid import map_crs
+
     for key in ("crs", "checkpoints_crs"):
         if getattr(args, key, None) is not None:
             map_crs(getattr(args, key), "--" + key.replace("_", "-"))

@@ -1,4 +1,5 @@
 """``stereodem ortho``: orthorectify an image onto a DEM (backward DRM projection)."""
+
 from __future__ import annotations
 
 import argparse
@@ -11,9 +12,23 @@ from . import options
 
 log = logging.getLogger(__name__)
 
-GENERIC = ["poly2d-1", "poly2d-2", "poly2d-3", "poly3d-1", "poly3d-2", "poly3d-3", "relief-1",
-           "relief-2", "projective", "projective-pushbroom", "dlt", "edlt", "rational-1",
-           "rational-2", "rational-3"]
+GENERIC = [
+    "poly2d-1",
+    "poly2d-2",
+    "poly2d-3",
+    "poly3d-1",
+    "poly3d-2",
+    "poly3d-3",
+    "relief-1",
+    "relief-2",
+    "projective",
+    "projective-pushbroom",
+    "dlt",
+    "edlt",
+    "rational-1",
+    "rational-2",
+    "rational-3",
+]
 
 EXAMPLES = """examples:
   stereodem ortho left.tif --dem dem.tif -o left_ortho.tif
@@ -25,37 +40,67 @@ EXAMPLES = """examples:
 
 
 def add_parser(sub):
-    p = sub.add_parser("ortho", help="orthorectify an image onto a DEM",
-                       description="Orthorectify IMAGE by backward projection of a north-up map grid "
-                                   "through its sensor model onto the DEM (UTM and the image GSD by "
-                                   "default). Optional layers are written beside the output as "
-                                   "<output stem>_<layer>.tif.",
-                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("image", help="image GeoTIFF (with RPCs or a <stem>.model.json sidecar), or an "
-                                 "ASTER L1A granule (choose the band with --band 3N|3B)")
+    p = sub.add_parser(
+        "ortho",
+        help="orthorectify an image onto a DEM",
+        description="Orthorectify IMAGE by backward projection of a north-up map grid "
+        "through its sensor model onto the DEM (UTM and the image GSD by "
+        "default). Optional layers are written beside the output as "
+        "<output stem>_<layer>.tif.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "image",
+        help="image GeoTIFF (with RPCs or a <stem>.model.json sidecar), or an "
+        "ASTER L1A granule (choose the band with --band 3N|3B)",
+    )
     p.add_argument("--dem", required=True, help="DEM GeoTIFF")
     p.add_argument("-o", "--out", required=True, help="output orthoimage GeoTIFF")
     options.add_res(p, "the image GSD")
-    p.add_argument("--resampling", choices=RESAMPLINGS, default="bilinear",
-                   help="interpolation kernel (lanczos: 8x8 Lanczos, closest to the band-limited signal)")
-    p.add_argument("--dem-vertical", choices=VERTICALS,
-                   help="vertical reference of the DEM heights when the file does not say")
-    p.add_argument("--model", default="auto", metavar="MODEL",
-                   help="sensor model: auto (the image's physical sidecar, else its RPCs), rpc, "
-                        "physical, a model file (e.g. OUT.model.json from 'stereodem adjust'), or "
-                        f"a generic model fitted to --gcps: {', '.join(GENERIC)} (default auto)")
+    p.add_argument(
+        "--resampling",
+        choices=RESAMPLINGS,
+        default="bilinear",
+        help="interpolation kernel (lanczos: 8x8 Lanczos, closest to the band-limited signal)",
+    )
+    p.add_argument(
+        "--dem-vertical",
+        choices=VERTICALS,
+        help="vertical reference of the DEM heights when the file does not say",
+    )
+    p.add_argument(
+        "--model",
+        default="auto",
+        metavar="MODEL",
+        help="sensor model: auto (the image's physical sidecar, else its RPCs), rpc, "
+        "physical, a model file (e.g. OUT.model.json from 'stereodem adjust'), or "
+        f"a generic model fitted to --gcps: {', '.join(GENERIC)} (default auto)",
+    )
     p.add_argument("--gcps", help="GCP CSV (id,lon,lat,h,col,row[,role]) for the generic models")
     p.add_argument("--layers", default="", help="comma-separated extra layers: incidence,occlusion")
     options.add_band(p, "1; 3N in an ASTER granule")
-    p.add_argument("--rpc-direct", action="store_true",
-                   help="localise RPCs with the file's direct model instead of the exact inverse")
-    p.add_argument("--fill-dem", metavar="OTHER.tif",
-                   help="second DEM for the cells the DEM has no height for (holes, partial coverage)")
-    p.add_argument("--fill-dem-vertical", choices=VERTICALS,
-                   help="vertical reference of --fill-dem when the file does not say")
+    p.add_argument(
+        "--rpc-direct",
+        action="store_true",
+        help="localise RPCs with the file's direct model instead of the exact inverse",
+    )
+    p.add_argument(
+        "--fill-dem",
+        metavar="OTHER.tif",
+        help="second DEM for the cells the DEM has no height for (holes, partial coverage)",
+    )
+    p.add_argument(
+        "--fill-dem-vertical",
+        choices=VERTICALS,
+        help="vertical reference of --fill-dem when the file does not say",
+    )
     options.add_workers(p, "threads for the row blocks")
-    p.add_argument("--float", action="store_true",
-                   help="write float32 values instead of the image's own data type")
+    p.add_argument(
+        "--float",
+        action="store_true",
+        help="write float32 values instead of the image's own data type",
+    )
     options.add_creation_options(p)
     options.add_overwrite(p)
     p.set_defaults(run=run)
@@ -72,19 +117,26 @@ def _open(args):
     from stereodem.sensor.models.rpc import RPCModel
 
     from .pipeline.inputs import InputImage, open_image
+
     if args.model in GENERIC:
         if not args.gcps:
             raise InputError(f"--model {args.model} needs --gcps CSV")
         from stereodem.sensor.io.gcps import read_gcps
         from stereodem.sensor.models.generic import fit_model
+
         pts = read_gcps(args.gcps)
         gcp = pts.select("gcp") if "gcp" in set(pts.role) else pts
         chk = pts.select("check")
-        model, report = fit_model(args.model, *gcp.arrays(),
-                                  check=chk.arrays() if len(chk) else None)
-        options.say(f"{args.model}: {report.n_gcp} GCPs, {report.n_check} check points; GCP RMSE "
-                    f"{report.gcp_rmse:.3f} px, check RMSE {report.check_rmse:.3f} px")
-        return InputImage(read_image(args.image, args.band), model, image_dtype(args.image, args.band))
+        model, report = fit_model(
+            args.model, *gcp.arrays(), check=chk.arrays() if len(chk) else None
+        )
+        options.say(
+            f"{args.model}: {report.n_gcp} GCPs, {report.n_check} check points; GCP RMSE "
+            f"{report.gcp_rmse:.3f} px, check RMSE {report.check_rmse:.3f} px"
+        )
+        return InputImage(
+            read_image(args.image, args.band), model, image_dtype(args.image, args.band)
+        )
     if args.gcps:
         raise InputError("--gcps is only used with a generic --model (poly2d-1 ... rational-3)")
     kw = dict(band=args.band, rpc_direct=args.rpc_direct, radiometric=not args.no_radiometric)
@@ -95,18 +147,29 @@ def _open(args):
         return img
     if Path(args.model).is_file():
         return open_image(args.image, model_file=args.model, **kw)
-    raise InputError(f"--model {args.model!r}: not auto, rpc, physical, a generic model name or "
-                     "an existing model file")
+    raise InputError(
+        f"--model {args.model!r}: not auto, rpc, physical, a generic model name or "
+        "an existing model file"
+    )
 
 
 def config_from_args(args):
     from .config import Config, InputSettings, OrthoSettings, RunSettings, validate
-    cfg = Config(inputs=InputSettings(left=args.image, band=args.band, dem=args.dem,
-                                      dem_vertical=args.dem_vertical),
-                 output_dir=str(args.out),
-                 ortho=OrthoSettings(resampling=args.resampling, res=args.res, crs=args.crs,
-                                     fill_dem=args.fill_dem, fill_dem_vertical=args.fill_dem_vertical),
-                 run=RunSettings(workers=args.workers, overwrite=args.overwrite))
+
+    cfg = Config(
+        inputs=InputSettings(
+            left=args.image, band=args.band, dem=args.dem, dem_vertical=args.dem_vertical
+        ),
+        output_dir=str(args.out),
+        ortho=OrthoSettings(
+            resampling=args.resampling,
+            res=args.res,
+            crs=args.crs,
+            fill_dem=args.fill_dem,
+            fill_dem_vertical=args.fill_dem_vertical,
+        ),
+        run=RunSettings(workers=args.workers, overwrite=args.overwrite),
+    )
     validate(cfg, "command line")
     return cfg
 
@@ -119,6 +182,7 @@ def run(args) -> int:
     from stereodem.core.raster import check_writable, write_geotiff
 
     from .pipeline.stages import ortho_stage
+
     options.check_common(args)
     layers = [s.strip() for s in args.layers.split(",") if s.strip()]
     bad = set(layers) - {"incidence", "occlusion"}
@@ -130,9 +194,12 @@ def run(args) -> int:
     from stereodem.sensor.io.sidecar import sidecar_path
 
     from .outlock import check_not_an_input
+
     model_file = args.model if args.model not in GENERIC and Path(args.model).is_file() else None
-    check_not_an_input([out, *layer_paths.values()],
-                       [args.image, args.dem, args.gcps, model_file, sidecar_path(args.image)])
+    check_not_an_input(
+        [out, *layer_paths.values()],
+        [args.image, args.dem, args.gcps, model_file, sidecar_path(args.image)],
+    )
     check_writable(out, args.overwrite)
     for p in layer_paths.values():
         check_writable(p, args.overwrite)
@@ -143,23 +210,50 @@ def run(args) -> int:
     ortho = ortho_stage(cfg, [("image", image, model)], dem, progress=bar)["image"]
     bar.close()
     co = options.creation_options(args)
-    ortho.write(out, overwrite=args.overwrite, creation_options=co, tags=src.tags,
-                dtype=None if args.float else src.dtype)
+    ortho.write(
+        out,
+        overwrite=args.overwrite,
+        creation_options=co,
+        tags=src.tags,
+        dtype=None if args.float else src.dtype,
+    )
     rep = ortho.report()
-    options.say(f"wrote {out}: {rep['width']}x{rep['height']} cells of {rep['res_m']:g} in "
-                f"{rep['crs']}, {100 * rep['valid_fraction']:.1f}% valid; map interpolation error "
-                f"{rep['interpolation_error_px']:.2g} px (measured)")
+    options.say(
+        f"wrote {out}: {rep['width']}x{rep['height']} cells of {rep['res_m']:g} in "
+        f"{rep['crs']}, {100 * rep['valid_fraction']:.1f}% valid; map interpolation error "
+        f"{rep['interpolation_error_px']:.2g} px (measured)"
+    )
     if "incidence" in layers:
         from stereodem.ortho.layers import incidence_angle
-        write_geotiff(layer_paths["incidence"], incidence_angle(ortho, model), ortho.transform,
-                      ortho.crs, float("nan"), overwrite=args.overwrite, creation_options=co,
-                      descriptions=["local incidence angle"], units=["degree"])
+
+        write_geotiff(
+            layer_paths["incidence"],
+            incidence_angle(ortho, model),
+            ortho.transform,
+            ortho.crs,
+            float("nan"),
+            overwrite=args.overwrite,
+            creation_options=co,
+            descriptions=["local incidence angle"],
+            units=["degree"],
+        )
         options.say(f"wrote {layer_paths['incidence']}: local incidence angle (deg)")
     if "occlusion" in layers:
         from stereodem.ortho.layers import occlusion_mask
+
         occ = occlusion_mask(ortho, model)
-        write_geotiff(layer_paths["occlusion"], occ.astype("uint8"), ortho.transform, ortho.crs, 255,
-                      overwrite=args.overwrite, creation_options=co,
-                      descriptions=["occlusion: 1 hidden from the sensor, 0 seen"], units=["1"])
-        options.say(f"wrote {layer_paths['occlusion']}: occlusion mask (1 = hidden, {100 * occ.mean():.2f}%)")
+        write_geotiff(
+            layer_paths["occlusion"],
+            occ.astype("uint8"),
+            ortho.transform,
+            ortho.crs,
+            255,
+            overwrite=args.overwrite,
+            creation_options=co,
+            descriptions=["occlusion: 1 hidden from the sensor, 0 seen"],
+            units=["1"],
+        )
+        options.say(
+            f"wrote {layer_paths['occlusion']}: occlusion mask (1 = hidden, {100 * occ.mean():.2f}%)"
+        )
     return 0

@@ -15,6 +15,7 @@ inputs) it writes the products beside the user's files only when none of them ha
 name: nothing of the user's is replaced or removed. If the job fails before writing anything, a folder
 it created is removed again.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -31,20 +32,60 @@ from stereodem.core.errors import InputError, OutputExistsError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LOCK_NAME", "OutputLock", "OutputLockedError", "output_folder", "remove_products",
-           "is_stereodem_output", "check_not_an_input", "PRODUCTS"]
+__all__ = [
+    "LOCK_NAME",
+    "OutputLock",
+    "OutputLockedError",
+    "output_folder",
+    "remove_products",
+    "is_stereodem_output",
+    "check_not_an_input",
+    "PRODUCTS",
+]
 
 LOCK_NAME = ".stereodem.lock"
 
 #: what a stereodem job writes into its output folder (files and folders, glob patterns)
-PRODUCTS = ("run.json", "dem_report.json", "dem.tif", "dem_edit_mask.tif", "score.tif", "count.tif", "dem.las", "dem.laz",
-            "raygap.tif", "nmad.tif", "dem_sigma_vertical.tif", "ortho_*.tif", "raw", "assess", "tiles", "demo.toml",
-            "scene", "result",
-            # stereodem stack / change
-            "stack.json", "stack.zarr", "rate.tif", "rate_sigma.tif", "n_obs.tif", "n_rejected.tif",
-            "volumes.json", "change.json", "dh.tif", "dh_sigma.tif")
+PRODUCTS = (
+    "run.json",
+    "dem_report.json",
+    "dem.tif",
+    "dem_edit_mask.tif",
+    "score.tif",
+    "count.tif",
+    "dem.las",
+    "dem.laz",
+    "raygap.tif",
+    "nmad.tif",
+    "dem_sigma_vertical.tif",
+    "ortho_*.tif",
+    "raw",
+    "assess",
+    "tiles",
+    "demo.toml",
+    "scene",
+    "result",
+    # stereodem stack / change
+    "stack.json",
+    "stack.zarr",
+    "rate.tif",
+    "rate_sigma.tif",
+    "n_obs.tif",
+    "n_rejected.tif",
+    "volumes.json",
+    "change.json",
+    "dh.tif",
+    "dh_sigma.tif",
+)
 #: files that mark a folder as a stereodem output
-MARKERS = ("run.json", "dem_report.json", "tiles/job.json", "demo.toml", "stack.json", "change.json")
+MARKERS = (
+    "run.json",
+    "dem_report.json",
+    "tiles/job.json",
+    "demo.toml",
+    "stack.json",
+    "change.json",
+)
 
 
 class OutputLockedError(OutputExistsError):
@@ -64,6 +105,7 @@ class OutputLock:
 
     def acquire(self):
         import fcntl
+
         for _ in range(50):
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
@@ -72,8 +114,10 @@ class OutputLock:
                 os.close(fd)
                 if exc.errno not in (errno.EAGAIN, errno.EACCES):
                     raise
-                raise OutputLockedError(f"{self.folder}: another stereodem job is writing this folder "
-                                        f"({self._holder()}); wait for it or choose another -o") from None
+                raise OutputLockedError(
+                    f"{self.folder}: another stereodem job is writing this folder "
+                    f"({self._holder()}); wait for it or choose another -o"
+                ) from None
             # the holder may have released and removed the file between our open and flock:
             # then we locked an unlinked file; try again with the current one
             try:
@@ -82,8 +126,16 @@ class OutputLock:
                 same = False
             if same:
                 os.ftruncate(fd, 0)
-                os.write(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
-                                         "started": time.strftime("%Y-%m-%dT%H:%M:%S")}).encode())
+                os.write(
+                    fd,
+                    json.dumps(
+                        {
+                            "pid": os.getpid(),
+                            "host": socket.gethostname(),
+                            "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                        }
+                    ).encode(),
+                )
                 self._fd = fd
                 return self
             os.close(fd)
@@ -100,8 +152,8 @@ class OutputLock:
         if self._fd is None:
             return
         with contextlib.suppress(FileNotFoundError):
-            os.unlink(self.path)              # unlink while locked: no one can lock it meanwhile
-        os.close(self._fd)                    # closing drops the flock
+            os.unlink(self.path)  # unlink while locked: no one can lock it meanwhile
+        os.close(self._fd)  # closing drops the flock
         self._fd = None
 
     def __enter__(self):
@@ -152,13 +204,17 @@ def check_not_an_input(outputs, inputs):
     for out in outputs:
         out = Path(out).resolve()
         if out in ins:
-            raise InputError(f"{out}: the output would replace the input {ins[out]}; choose another output")
+            raise InputError(
+                f"{out}: the output would replace the input {ins[out]}; choose another output"
+            )
         for src, given in ins.items():
             if out in src.parents:
                 rel = src.relative_to(out)
                 if any(rel.match(pat) or Path(rel.parts[0]).match(pat) for pat in PRODUCTS):
-                    raise InputError(f"{given}: this input is a product of the output folder {out}, "
-                                     "which the job replaces; copy it elsewhere or choose another -o")
+                    raise InputError(
+                        f"{given}: this input is a product of the output folder {out}, "
+                        "which the job replaces; copy it elsewhere or choose another -o"
+                    )
 
 
 def _check_folder(path: Path, *, overwrite: bool, resume: bool):
@@ -201,7 +257,7 @@ def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs
     except OSError as exc:
         raise OutputExistsError(f"{path}: cannot be created ({exc.strerror})") from None
     probe = None
-    try:                                          # writable? (os.access says yes to root, even in /proc)
+    try:  # writable? (os.access says yes to root, even in /proc)
         probe = path / f".stereodem-probe-{os.getpid()}"
         probe.touch()
         probe.unlink()
@@ -223,8 +279,10 @@ def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs
         others = [p for p in path.iterdir() if p.name != LOCK_NAME]
         if others:
             if not (overwrite or resume):
-                raise OutputExistsError(f"{path}: folder exists and is not empty; pass --overwrite "
-                                        "to replace its products (or --resume to continue its job)")
+                raise OutputExistsError(
+                    f"{path}: folder exists and is not empty; pass --overwrite "
+                    "to replace its products (or --resume to continue its job)"
+                )
             if is_stereodem_output(path):
                 remove_products(path, keep_tiles=resume)
             else:
@@ -232,14 +290,16 @@ def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs
                 # beside the user's files as long as none of them has a product's name
                 clash = sorted(p.name for p in set(_product_paths(path, keep_tiles=False)))
                 if clash:
-                    raise OutputExistsError(f"{path}: not a stereodem output (no run.json or "
-                                            f"dem_report.json) and it holds {', '.join(clash[:5])}, "
-                                            "which the job would replace; refusing to touch them: "
-                                            "choose an empty or new folder")
+                    raise OutputExistsError(
+                        f"{path}: not a stereodem output (no run.json or "
+                        f"dem_report.json) and it holds {', '.join(clash[:5])}, "
+                        "which the job would replace; refusing to touch them: "
+                        "choose an empty or new folder"
+                    )
         yield path
         ok = True
     finally:
         lock.release()
         if not ok and created:
             with contextlib.suppress(OSError):
-                path.rmdir()                      # only if the job left nothing in it
+                path.rmdir()  # only if the job left nothing in it

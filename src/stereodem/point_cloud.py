@@ -6,6 +6,7 @@ The tiles write ``OUT/tiles/points/points_<index>.npz``; the merge reads them on
 time (memory: one tile's points) and removes them once the LAS/LAZ is in place. A run resumed
 with ``--resume`` keeps the point files of its finished tiles.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -35,18 +36,31 @@ def point_cloud_stage(cfg, out, products, edit_codes=None, *, grid=None) -> dict
     reports). ``edit_codes``: the DEM's edit mask on ``grid`` (default the raw DEM's grid)
     for the points' classification."""
     from stereodem.stereo.pointcloud import write_las
+
     fmt = cfg.dem.point_cloud
     d = points_dir(out)
     indices = sorted(int(p.stem.split("_")[1]) for p in d.glob("points_*.npz"))
     g = grid if grid is not None else products.dem.grid
-    summary = write_las(Path(out) / f"dem.{fmt}", d, indices, g, vertical=products.dem.vertical,
-                        edit_codes=edit_codes, fmt=fmt, overwrite=True)
+    summary = write_las(
+        Path(out) / f"dem.{fmt}",
+        d,
+        indices,
+        g,
+        vertical=products.dem.vertical,
+        edit_codes=edit_codes,
+        fmt=fmt,
+        overwrite=True,
+    )
     expected = len(products.tiles)
     summary["tiles_with_points"] = len(indices)
     if len(indices) < expected:
-        log.warning("%d of %d tiles left no point file: their points are not in %s",
-                    expected - len(indices), expected, summary["path"])
+        log.warning(
+            "%d of %d tiles left no point file: their points are not in %s",
+            expected - len(indices),
+            expected,
+            summary["path"],
+        )
     shutil.rmtree(d, ignore_errors=True)
     with contextlib.suppress(OSError):
-        d.parent.rmdir()                 # the tile cache folder, when nothing else is cached
+        d.parent.rmdir()  # the tile cache folder, when nothing else is cached
     return summary

@@ -7,6 +7,7 @@ logger at INFO level (shown with ``-v``). Log records are written through :func:
 (:class:`TqdmLoggingHandler`), so warnings printed during a stage land above the bar
 instead of on its line.
 """
+
 from __future__ import annotations
 
 import logging
@@ -36,17 +37,25 @@ class Progress:
         Name of a unit of work, shown in the rate (``tiles/s``).
     """
 
-    def __init__(self, label: str, total: int, *, enabled: bool = True, stream=None,
-                 unit: str = "it"):
+    def __init__(
+        self, label: str, total: int, *, enabled: bool = True, stream=None, unit: str = "it"
+    ):
         self.label, self.total, self.enabled = label, max(int(total), 1), enabled
         self.stream = stream or sys.stderr
         self.done = 0
         self.t0 = time.perf_counter()
         self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self._bar = tqdm(total=self.total, desc=label, unit=unit, file=self.stream, leave=True,
-                         dynamic_ncols=True, disable=not (enabled and self._tty),
-                         bar_format="{desc:<10} {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
-                                    "[{elapsed}<{remaining}, {rate_fmt}]")
+        self._bar = tqdm(
+            total=self.total,
+            desc=label,
+            unit=unit,
+            file=self.stream,
+            leave=True,
+            dynamic_ncols=True,
+            disable=not (enabled and self._tty),
+            bar_format="{desc:<10} {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
+            "[{elapsed}<{remaining}, {rate_fmt}]",
+        )
 
     def update(self, n: int = 1):
         """Advance by ``n`` units."""
@@ -73,9 +82,14 @@ class Progress:
         if not self._bar.disable:
             self._bar.close()
         elif self.enabled:
-            log.info("%s: %d/%d in %.1f s", self.label, self.done, self.total,
-                     time.perf_counter() - self.t0)
-        self.enabled = False        # closing twice logs once
+            log.info(
+                "%s: %d/%d in %.1f s",
+                self.label,
+                self.done,
+                self.total,
+                time.perf_counter() - self.t0,
+            )
+        self.enabled = False  # closing twice logs once
 
     def __enter__(self):
         return self
@@ -95,7 +109,7 @@ class TqdmLoggingHandler(logging.StreamHandler):
     def emit(self, record):
         try:
             tqdm.write(self.format(record), file=sys.stderr)
-        except Exception:       # pragma: no cover - logging must never raise
+        except Exception:  # pragma: no cover - logging must never raise
             self.handleError(record)
 
 
@@ -117,11 +131,17 @@ def setup_logging(verbose: int = 0, quiet: bool = False):
     :func:`logging.basicConfig`, this does nothing when the root logger already has handlers
     (an embedding application's, pytest's).
     """
-    level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else
-                                         logging.INFO if verbose == 1 else logging.WARNING)
+    level = (
+        logging.ERROR
+        if quiet
+        else (logging.DEBUG if verbose > 1 else logging.INFO if verbose == 1 else logging.WARNING)
+    )
     handler = TqdmLoggingHandler()
-    fmt = "%(asctime)s %(levelname)s %(name)s: %(message)s" if verbose else \
-        "%(levelname)s %(name)s: %(message)s"
+    fmt = (
+        "%(asctime)s %(levelname)s %(name)s: %(message)s"
+        if verbose
+        else "%(levelname)s %(name)s: %(message)s"
+    )
     handler.setFormatter(UTCFormatter(fmt))
     logging.basicConfig(level=level, handlers=[handler])
     logging.captureWarnings(True)

@@ -6,6 +6,7 @@
     ...                                   # the work
     info["provenance"] = provenance(started=t0)
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -31,9 +32,12 @@ def git_commit(where=_PACKAGE_DIR) -> dict | None:
     Returns ``{"commit": sha, "dirty": bool}``, or ``None`` when ``where`` is not in a git
     work tree (an installed wheel, a source archive) or git is not available.
     """
+
     def git(*args):
-        return subprocess.run(["git", "-C", str(where), *args], capture_output=True, text=True,
-                              timeout=10, check=True).stdout.strip()
+        return subprocess.run(
+            ["git", "-C", str(where), *args], capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+
     try:
         if git("rev-parse", "--is-inside-work-tree") != "true":
             return None
@@ -68,8 +72,13 @@ def provenance(*, started: str | None = None, ended: str | None = None, argv=Non
     if argv and Path(argv[0]).name in ("stereodem", "__main__.py", "cli.py"):
         argv[0] = "stereodem"
     now = utc_now()
-    out = {"started_utc": started or now, "ended_utc": ended or now,
-           "command_line": shlex.join(argv), "argv": argv, "stereodem_version": __version__}
+    out = {
+        "started_utc": started or now,
+        "ended_utc": ended or now,
+        "command_line": shlex.join(argv),
+        "argv": argv,
+        "stereodem_version": __version__,
+    }
     git = git_commit()
     if git:
         out["git_commit"], out["git_dirty"] = git["commit"], git["dirty"]

@@ -1,4 +1,5 @@
 """``stereodem run CONFIG.toml``: the whole job from a configuration file."""
+
 from __future__ import annotations
 
 import argparse
@@ -19,10 +20,14 @@ indexing a list of configuration files); each run is independent and writes its 
 
 
 def add_parser(sub):
-    p = sub.add_parser("run", help="run the whole job (stereo, filters, ortho, assessment) from a TOML file",
-                       description="Sensor models -> stereo DEM -> blunder filters and hole filling -> "
-                                   "orthoimages -> accuracy report, into one output folder with run.json.",
-                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "run",
+        help="run the whole job (stereo, filters, ortho, assessment) from a TOML file",
+        description="Sensor models -> stereo DEM -> blunder filters and hole filling -> "
+        "orthoimages -> accuracy report, into one output folder with run.json.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("config", help="TOML configuration")
     add_run_options(p)
     p.set_defaults(run=run)
@@ -31,16 +36,29 @@ def add_parser(sub):
 
 def add_run_options(p):
     p.add_argument("--workers", type=int, help="worker processes for tiles (default: all cores)")
-    p.add_argument("--tile-timeout", type=float, help="seconds before a tile is abandoned and logged")
+    p.add_argument(
+        "--tile-timeout", type=float, help="seconds before a tile is abandoned and logged"
+    )
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
     p.add_argument("--resume", action="store_true", help="reuse an existing output folder")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace the products of a previous job in the output folder")
-    p.add_argument("--force", action="store_true",
-                   help="go on with a result the sanity checks call suspect (still reported)")
-    p.add_argument("--co", action="append", metavar="KEY=VALUE", default=[],
-                   help="GDAL creation option of the GeoTIFF products, repeatable (overrides [run] "
-                        "creation_options)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the products of a previous job in the output folder",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="go on with a result the sanity checks call suspect (still reported)",
+    )
+    p.add_argument(
+        "--co",
+        action="append",
+        metavar="KEY=VALUE",
+        default=[],
+        help="GDAL creation option of the GeoTIFF products, repeatable (overrides [run] "
+        "creation_options)",
+    )
 
 
 def progress_factory(args):
@@ -48,6 +66,7 @@ def progress_factory(args):
 
     def make(label):
         return Progress(label, 1, enabled=not quiet)
+
     return make
 
 
@@ -60,8 +79,11 @@ def summarize(info, stream=None):
     if info.get("headline"):
         h = info["headline"]
         print(f"report:     {out}/assess/report.md", file=stream)
-        print(f"accuracy vs reference: NMAD {h['nmad']:.2f} m, median {h['median']:+.2f} m, "
-              f"RMSE {h['rmse']:.2f} m, LE90 {h['le90']:.2f} m, {h['valid_pct']:.1f} % valid", file=stream)
+        print(
+            f"accuracy vs reference: NMAD {h['nmad']:.2f} m, median {h['median']:+.2f} m, "
+            f"RMSE {h['rmse']:.2f} m, LE90 {h['le90']:.2f} m, {h['valid_pct']:.1f} % valid",
+            file=stream,
+        )
     for w in info.get("warnings", []):
         print(f"warning: {w['message']}", file=stream)
     if info["failed_tiles"]:
@@ -74,10 +96,17 @@ def run(args) -> int:
 
     from .config import load_config
     from .pipeline.job import run as run_pipeline
-    cfg = load_config(args.config, workers=args.workers, tile_timeout=args.tile_timeout,
-                      dask=args.dask, resume=args.resume or None, overwrite=args.overwrite or None,
-                      force=args.force or None,
-                      creation_options=parse_creation_options(args.co) or None)
+
+    cfg = load_config(
+        args.config,
+        workers=args.workers,
+        tile_timeout=args.tile_timeout,
+        dask=args.dask,
+        resume=args.resume or None,
+        overwrite=args.overwrite or None,
+        force=args.force or None,
+        creation_options=parse_creation_options(args.co) or None,
+    )
     info = run_pipeline(cfg, progress_factory=progress_factory(args))
     summarize(info)
     return 0

@@ -1,4 +1,5 @@
 """``stereodem simulate``: render a stereo pair from a DEM and a texture."""
+
 from __future__ import annotations
 
 import argparse
@@ -24,44 +25,87 @@ EXAMPLES = """examples:
 
 
 def add_parser(sub):
-    p = sub.add_parser("simulate", help="simulate a stereo pair from a DEM and a texture",
-                       description="Render a stereo pair through exact sensor models from a real DEM "
-                                   "and texture; write images with RPCs, physical-model sidecars, "
-                                   "the true DEM and orthoimage, and check points. With --format "
-                                   "l1a-v004 / l1a-v003 (preset aster) the pair is written as an "
-                                   "ASTER L1A granule (3N = left, 3B = right) instead of GeoTIFFs.",
-                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "simulate",
+        help="simulate a stereo pair from a DEM and a texture",
+        description="Render a stereo pair through exact sensor models from a real DEM "
+        "and texture; write images with RPCs, physical-model sidecars, "
+        "the true DEM and orthoimage, and check points. With --format "
+        "l1a-v004 / l1a-v003 (preset aster) the pair is written as an "
+        "ASTER L1A granule (3N = left, 3B = right) instead of GeoTIFFs.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--preset", choices=["aster", "frame", "pushbroom"], default="aster")
-    p.add_argument("--format", choices=FORMATS, default="geotiff",
-                   help="geotiff (default): left/right.tif + model sidecars; l1a-v004: an "
-                        "AST_L1A_004 HDF-EOS2 granule; l1a-v003: an AST_L1A_003 zip of GeoTIFFs "
-                        "and text tables (aster preset only)")
-    p.add_argument("--dem", help="DEM GeoTIFF (default: the bundled SRTM 3\" DEM, EGM96 heights)")
-    p.add_argument("--dem-vertical", choices=VERTICALS,
-                   help="vertical reference of --dem when the file does not say")
-    p.add_argument("--texture", help="texture image (default: the bundled Landsat image plus detail)")
+    p.add_argument(
+        "--format",
+        choices=FORMATS,
+        default="geotiff",
+        help="geotiff (default): left/right.tif + model sidecars; l1a-v004: an "
+        "AST_L1A_004 HDF-EOS2 granule; l1a-v003: an AST_L1A_003 zip of GeoTIFFs "
+        "and text tables (aster preset only)",
+    )
+    p.add_argument("--dem", help='DEM GeoTIFF (default: the bundled SRTM 3" DEM, EGM96 heights)')
+    p.add_argument(
+        "--dem-vertical",
+        choices=VERTICALS,
+        help="vertical reference of --dem when the file does not say",
+    )
+    p.add_argument(
+        "--texture", help="texture image (default: the bundled Landsat image plus detail)"
+    )
     p.add_argument("--size", nargs=2, type=int, default=[600, 600], metavar=("W", "H"))
-    p.add_argument("--right-size", nargs=2, type=int, metavar=("W", "H"),
-                   help="size of the second image if different (ASTER 3B: 5000 5400 for 3N's "
-                        "4100 4200; granule formats default to that ratio)")
+    p.add_argument(
+        "--right-size",
+        nargs=2,
+        type=int,
+        metavar=("W", "H"),
+        help="size of the second image if different (ASTER 3B: 5000 5400 for 3N's "
+        "4100 4200; granule formats default to that ratio)",
+    )
     p.add_argument("--noise", type=float, default=1.0, help="sensor noise sigma in DN (default 1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--bits", type=int, choices=[8, 16], default=8)
-    p.add_argument("--angles", nargs=2, type=float, default=[0.0, -27.6], metavar=("A1", "A2"),
-                   help="along-track tilts in degrees for --preset pushbroom")
-    p.add_argument("--jitter", nargs=2, type=float, metavar=("AMPLITUDE_URAD", "FREQUENCY_HZ"),
-                   help="along-track attitude oscillation (pitch) of the second camera (3B); "
-                        "the written model/granule geometry stays nominal, as in L1A products")
-    p.add_argument("--roll-jitter", nargs=2, type=float, metavar=("AMPLITUDE_URAD", "FREQUENCY_HZ"),
-                   help="cross-track attitude oscillation (roll) of the second camera (3B), seen as "
-                        "residual vertical parallax; may be combined with --jitter")
-    p.add_argument("--velocity", choices=["inertial", "earth_fixed"], default="inertial",
-                   help="what the granule's SatelliteVelocity holds (default inertial)")
-    p.add_argument("--granules", type=int, default=1, metavar="N",
-                   help="with --format l1a-v004/l1a-v003: N consecutive granules of one pass "
-                        "(--size is one granule's 3N size; one granule every 10 lattice steps, "
-                        "about 95 %% of its lines, as the real 4200-line granules every 4000 "
-                        "lines), plus the strip's truth and strip.json")
+    p.add_argument(
+        "--angles",
+        nargs=2,
+        type=float,
+        default=[0.0, -27.6],
+        metavar=("A1", "A2"),
+        help="along-track tilts in degrees for --preset pushbroom",
+    )
+    p.add_argument(
+        "--jitter",
+        nargs=2,
+        type=float,
+        metavar=("AMPLITUDE_URAD", "FREQUENCY_HZ"),
+        help="along-track attitude oscillation (pitch) of the second camera (3B); "
+        "the written model/granule geometry stays nominal, as in L1A products",
+    )
+    p.add_argument(
+        "--roll-jitter",
+        nargs=2,
+        type=float,
+        metavar=("AMPLITUDE_URAD", "FREQUENCY_HZ"),
+        help="cross-track attitude oscillation (roll) of the second camera (3B), seen as "
+        "residual vertical parallax; may be combined with --jitter",
+    )
+    p.add_argument(
+        "--velocity",
+        choices=["inertial", "earth_fixed"],
+        default="inertial",
+        help="what the granule's SatelliteVelocity holds (default inertial)",
+    )
+    p.add_argument(
+        "--granules",
+        type=int,
+        default=1,
+        metavar="N",
+        help="with --format l1a-v004/l1a-v003: N consecutive granules of one pass "
+        "(--size is one granule's 3N size; one granule every 10 lattice steps, "
+        "about 95 %% of its lines, as the real 4200-line granules every 4000 "
+        "lines), plus the strip's truth and strip.json",
+    )
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--overwrite", action="store_true", help="reuse a non-empty output folder")
     p.set_defaults(run=run)
@@ -77,8 +121,10 @@ def run(args) -> int:
     if granule and args.preset != "aster":
         raise InputError(f"--format {args.format} needs --preset aster (an ASTER granule)")
     if granule and args.size[0] % 10:
-        raise InputError(f"--size width {args.size[0]} must be a multiple of 10 for an ASTER "
-                         f"granule (11 lattice columns)")
+        raise InputError(
+            f"--size width {args.size[0]} must be a multiple of 10 for an ASTER "
+            f"granule (11 lattice columns)"
+        )
     if args.granules < 1:
         raise InputError(f"--granules must be at least 1, got {args.granules}")
     if args.granules > 1 and not granule:
@@ -88,39 +134,73 @@ def run(args) -> int:
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical) if args.dem else None
     if args.granules > 1:
         return _run_strip(args, dem)
-    right_size = tuple(args.right_size) if args.right_size else (
-        granule_right_size(args.size) if granule else None)
+    right_size = (
+        tuple(args.right_size)
+        if args.right_size
+        else (granule_right_size(args.size) if granule else None)
+    )
     log.info("simulating %s scene %dx%d", args.preset, *args.size)
-    scene = simulate_scene(args.preset, size=tuple(args.size), right_size=right_size, dem=dem,
-                           texture=args.texture, noise=args.noise, seed=args.seed, bits=args.bits,
-                           angles=tuple(args.angles), jitter=args.jitter,
-                           roll_jitter=args.roll_jitter)
+    scene = simulate_scene(
+        args.preset,
+        size=tuple(args.size),
+        right_size=right_size,
+        dem=dem,
+        texture=args.texture,
+        noise=args.noise,
+        seed=args.seed,
+        bits=args.bits,
+        angles=tuple(args.angles),
+        jitter=args.jitter,
+        roll_jitter=args.roll_jitter,
+    )
     if not granule:
         out = write_scene(scene, args.out, overwrite=args.overwrite)
         meta = json.loads((out / "scene.json").read_text())
-        print(f"wrote {out}/left.tif, right.tif (+ .model.json), truth_dem.tif, truth_ortho.tif, points.csv")
+        print(
+            f"wrote {out}/left.tif, right.tif (+ .model.json), truth_dem.tif, truth_ortho.tif, points.csv"
+        )
         for name, rep in meta.get("rpc_fit", {}).items():
-            print(f"  {name}: RPC fit check-grid residual rms {rep.get('check_rms', float('nan')):.4f} px")
+            print(
+                f"  {name}: RPC fit check-grid residual rms {rep.get('check_rms', float('nan')):.4f} px"
+            )
         return 0
-    path = write_granule_scene(scene, args.out, version=4 if args.format == "l1a-v004" else 3,
-                               seed=args.seed, velocity=args.velocity, overwrite=args.overwrite)
-    print(f"wrote {path} (3N {scene.left.shape[1]}x{scene.left.shape[0]}, "
-          f"3B {scene.right.shape[1]}x{scene.right.shape[0]}), truth_dem.tif, truth_ortho.tif, points.csv")
+    path = write_granule_scene(
+        scene,
+        args.out,
+        version=4 if args.format == "l1a-v004" else 3,
+        seed=args.seed,
+        velocity=args.velocity,
+        overwrite=args.overwrite,
+    )
+    print(
+        f"wrote {path} (3N {scene.left.shape[1]}x{scene.left.shape[0]}, "
+        f"3B {scene.right.shape[1]}x{scene.right.shape[0]}), truth_dem.tif, truth_ortho.tif, points.csv"
+    )
     return 0
 
 
 def _run_strip(args, dem) -> int:
     """``--granules N``: consecutive granules of one pass (:mod:`stereodem.sensor.simulation.aster_strip`)."""
     from stereodem.sensor.simulation.aster_strip import simulate_strip, write_strip
+
     version = 4 if args.format == "l1a-v004" else 3
     log.info("simulating %d granules of %dx%d", args.granules, *args.size)
-    strip = simulate_strip(args.granules, size=tuple(args.size),
-                           right_size=tuple(args.right_size) if args.right_size else None,
-                           seed=args.seed, noise=args.noise, dem=dem, texture=args.texture,
-                           velocity=args.velocity, version=version)
+    strip = simulate_strip(
+        args.granules,
+        size=tuple(args.size),
+        right_size=tuple(args.right_size) if args.right_size else None,
+        seed=args.seed,
+        noise=args.noise,
+        dem=dem,
+        texture=args.texture,
+        velocity=args.velocity,
+        version=version,
+    )
     paths = write_strip(strip, args.out, overwrite=args.overwrite, version=version)
     for p, first in zip(paths, strip.first_lines):
         print(f"wrote {p} (3N lines {first}..{first + strip.heights[0] - 1} of the pass)")
-    print(f"  overlap {strip.heights[0] - strip.advance} 3N lines between granules; truth_dem.tif, "
-          f"truth_ortho.tif, points.csv, strip.json")
+    print(
+        f"  overlap {strip.heights[0] - strip.advance} 3N lines between granules; truth_dem.tif, "
+        f"truth_ortho.tif, points.csv, strip.json"
+    )
     return 0

@@ -1,6 +1,7 @@
 """``stereodem stack``: many DEMs of the same terrain in time -> a co-registered, cloud-masked
 stack (``OUT/stack.zarr``), elevation-change rates with σ (``rate.tif``, ``rate_sigma.tif``,
 ``n_obs.tif``) and, with ``--outlines``, volume change rates per polygon (``volumes.json``)."""
+
 from __future__ import annotations
 
 import argparse
@@ -24,66 +25,136 @@ EXAMPLES = """examples:
 #: reference grids of at least this many cells are built with --workers processes
 PARALLEL_BUILD_CELLS = 1_000_000
 #: products of a stack job (also in :data:`stereodem.outlock.PRODUCTS`)
-RATE_FILES = {"rate": "rate.tif", "rate_sigma": "rate_sigma.tif", "n_obs": "n_obs.tif",
-              "n_rejected": "n_rejected.tif"}
+RATE_FILES = {
+    "rate": "rate.tif",
+    "rate_sigma": "rate_sigma.tif",
+    "n_obs": "n_obs.tif",
+    "n_rejected": "n_rejected.tif",
+}
 
 
 def add_cloud_options(p):
     """The cloud-mask thresholds (``stack``)."""
-    p.add_argument("--cloud-max-dev", type=float, default=50.0, metavar="M",
-                   help="cells deviating from the reference by more than M metres (median "
-                        "difference removed) are cloud/blunder (default 50; 0 = off)")
-    p.add_argument("--cloud-min-score", type=float, metavar="S",
-                   help="also cells whose matcher score (score.tif beside the DEM) is below S")
-    p.add_argument("--cloud-max-radiance", type=float, metavar="L",
-                   help="also cells whose 3N radiance (ortho_left.tif beside the DEM, "
-                        "W m-2 sr-1 um-1) exceeds L")
-    p.add_argument("--cloud-grow", type=int, default=3, metavar="N",
-                   help="grow the cloud mask by N cells (default 3)")
+    p.add_argument(
+        "--cloud-max-dev",
+        type=float,
+        default=50.0,
+        metavar="M",
+        help="cells deviating from the reference by more than M metres (median "
+        "difference removed) are cloud/blunder (default 50; 0 = off)",
+    )
+    p.add_argument(
+        "--cloud-min-score",
+        type=float,
+        metavar="S",
+        help="also cells whose matcher score (score.tif beside the DEM) is below S",
+    )
+    p.add_argument(
+        "--cloud-max-radiance",
+        type=float,
+        metavar="L",
+        help="also cells whose 3N radiance (ortho_left.tif beside the DEM, "
+        "W m-2 sr-1 um-1) exceeds L",
+    )
+    p.add_argument(
+        "--cloud-grow",
+        type=int,
+        default=3,
+        metavar="N",
+        help="grow the cloud mask by N cells (default 3)",
+    )
 
 
 def cloud_settings(args):
     from stereodem.post.clouds import CloudSettings
-    return CloudSettings(max_deviation=args.cloud_max_dev or None, min_score=args.cloud_min_score,
-                         max_radiance=args.cloud_max_radiance, grow=args.cloud_grow)
+
+    return CloudSettings(
+        max_deviation=args.cloud_max_dev or None,
+        min_score=args.cloud_min_score,
+        max_radiance=args.cloud_max_radiance,
+        grow=args.cloud_grow,
+    )
 
 
 def add_parser(sub):
     p = sub.add_parser(
-        "stack", help="stack DEMs of many dates: co-register, mask clouds, fit rates and volumes",
+        "stack",
+        help="stack DEMs of many dates: co-register, mask clouds, fit rates and volumes",
         description="Co-register every DEM to the reference with the correction chain, mask "
-                    "clouds, put all on the reference grid as OUT/stack.zarr (xarray/Zarr), fit "
-                    "per-cell elevation-change rates by weighted least squares with outlier "
-                    "rejection in time (rate.tif, rate_sigma.tif, n_obs.tif) and, with "
-                    "--outlines, volume change rates per polygon (volumes.json).",
-        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+        "clouds, put all on the reference grid as OUT/stack.zarr (xarray/Zarr), fit "
+        "per-cell elevation-change rates by weighted least squares with outlier "
+        "rejection in time (rate.tif, rate_sigma.tif, n_obs.tif) and, with "
+        "--outlines, volume change rates per polygon (volumes.json).",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("dems", nargs="+", metavar="DEM", help="DEM GeoTIFFs (at least 2)")
     p.add_argument("--ref", required=True, help="reference DEM (its grid is the stack's grid)")
-    p.add_argument("--ref-vertical", choices=VERTICALS,
-                   help="vertical reference of --ref when the file does not say")
-    p.add_argument("--dates", help="D1,D2,... (one per DEM, YYYY-MM-DD) or a CSV of path,date "
-                                   "(default: read from each DEM's metadata, as stereodem writes it)")
-    p.add_argument("--chain", default=None,
-                   help="co-registration chain (default nuth_kaab,deramp:1,along_track where the "
-                        "DEM's track heading is known: --track-angle or the STEREODEM_TRACK_HEADING "
-                        "tag of a stereodem DEM; nuth_kaab,deramp:1 where it is not)")
-    p.add_argument("--exclude", action="append", default=[], metavar="VECTOR",
-                   help="unstable terrain (glaciers, water...), any vector format and CRS; repeatable")
-    p.add_argument("--track-angle", type=float, metavar="DEG",
-                   help="ground-track heading (deg clockwise from north) for along/cross-track steps")
+    p.add_argument(
+        "--ref-vertical",
+        choices=VERTICALS,
+        help="vertical reference of --ref when the file does not say",
+    )
+    p.add_argument(
+        "--dates",
+        help="D1,D2,... (one per DEM, YYYY-MM-DD) or a CSV of path,date "
+        "(default: read from each DEM's metadata, as stereodem writes it)",
+    )
+    p.add_argument(
+        "--chain",
+        default=None,
+        help="co-registration chain (default nuth_kaab,deramp:1,along_track where the "
+        "DEM's track heading is known: --track-angle or the STEREODEM_TRACK_HEADING "
+        "tag of a stereodem DEM; nuth_kaab,deramp:1 where it is not)",
+    )
+    p.add_argument(
+        "--exclude",
+        action="append",
+        default=[],
+        metavar="VECTOR",
+        help="unstable terrain (glaciers, water...), any vector format and CRS; repeatable",
+    )
+    p.add_argument(
+        "--track-angle",
+        type=float,
+        metavar="DEG",
+        help="ground-track heading (deg clockwise from north) for along/cross-track steps",
+    )
     add_cloud_options(p)
-    p.add_argument("--k", type=float, default=4.0,
-                   help="outlier rejection in time: studentised residual threshold (default 4)")
-    p.add_argument("--max-deviation", type=float, default=150.0, metavar="M",
-                   help="drop observations farther than M metres from the cell's temporal median "
-                        "before fitting (default 150)")
-    p.add_argument("--outlines", metavar="VECTOR",
-                   help="polygons for elevation and volume change rates (volumes.json)")
-    p.add_argument("--band-width", type=float, default=50.0, metavar="M",
-                   help="elevation band of the hypsometric void fill (default 50 m)")
-    p.add_argument("--chunk", type=int, default=256, help="chunk edge of the stack, cells (default 256)")
-    options.add_workers(p, "processes building the stack (one DEM each) and threads of the rate "
-                           "fit (default: all cores)")
+    p.add_argument(
+        "--k",
+        type=float,
+        default=4.0,
+        help="outlier rejection in time: studentised residual threshold (default 4)",
+    )
+    p.add_argument(
+        "--max-deviation",
+        type=float,
+        default=150.0,
+        metavar="M",
+        help="drop observations farther than M metres from the cell's temporal median "
+        "before fitting (default 150)",
+    )
+    p.add_argument(
+        "--outlines",
+        metavar="VECTOR",
+        help="polygons for elevation and volume change rates (volumes.json)",
+    )
+    p.add_argument(
+        "--band-width",
+        type=float,
+        default=50.0,
+        metavar="M",
+        help="elevation band of the hypsometric void fill (default 50 m)",
+    )
+    p.add_argument(
+        "--chunk", type=int, default=256, help="chunk edge of the stack, cells (default 256)"
+    )
+    options.add_workers(
+        p,
+        "processes building the stack (one DEM each) and threads of the rate "
+        "fit (default: all cores)",
+    )
     options.add_creation_options(p)
     p.add_argument("-o", "--out", required=True, help="output folder")
     options.add_overwrite(p)
@@ -93,6 +164,7 @@ def add_parser(sub):
 
 def _check(args):
     from stereodem.core.errors import InputError
+
     options.check_common(args)
     if args.chunk < 16:
         raise InputError(f"--chunk must be at least 16 cells, got {args.chunk}")
@@ -115,12 +187,17 @@ def run(args) -> int:
     from stereodem.post.stack_build import BuildSettings, build_stack, check_inputs
 
     from .outlock import output_folder
+
     t0 = time.perf_counter()
     _check(args)
     rate_settings = RateSettings(k=args.k, max_deviation=args.max_deviation)
-    settings = BuildSettings(chain=args.chain, exclude=list(args.exclude),
-                             track_angle_deg=args.track_angle, cloud=cloud_settings(args),
-                             chunk=args.chunk)
+    settings = BuildSettings(
+        chain=args.chain,
+        exclude=list(args.exclude),
+        track_angle_deg=args.track_angle,
+        cloud=cloud_settings(args),
+        chunk=args.chunk,
+    )
     # every refusal before the output folder is touched
     if len(args.dems) < 2:
         check_inputs(args.dems, None)
@@ -129,20 +206,34 @@ def run(args) -> int:
     check_inputs(args.dems, ref)
     if args.chain:
         from stereodem.post.coreg import parse_chain
+
         parse_chain(args.chain)
     outlines = _read_outlines(args.outlines, ref) if args.outlines else None
     for path in args.exclude:
         from stereodem.post.stack_build import exclude_mask
+
         exclude_mask([path], ref)
     workers = args.workers or os.cpu_count() or 1
-    inputs = list(args.dems) + [args.ref] + list(args.exclude) + ([args.outlines] if args.outlines else [])
+    inputs = (
+        list(args.dems)
+        + [args.ref]
+        + list(args.exclude)
+        + ([args.outlines] if args.outlines else [])
+    )
     with output_folder(args.out, overwrite=args.overwrite, inputs=inputs) as out:
         write_text_atomic(out / "stack.json", json.dumps({"status": "running"}), overwrite=True)
         # processes pay off on scene-sized DEMs only (each starts a Python: ~1-2 s)
         build_workers = workers if ref.heights.size >= PARALLEL_BUILD_CELLS else 1
         with options.progress_bar("stack") as bar:
-            records = build_stack(args.dems, dates, ref, out / "stack.zarr", settings,
-                                  progress=bar, workers=build_workers)
+            records = build_stack(
+                args.dems,
+                dates,
+                ref,
+                out / "stack.zarr",
+                settings,
+                progress=bar,
+                workers=build_workers,
+            )
         t_build = time.perf_counter() - t0
         ds = open_stack(out / "stack.zarr", chunk=args.chunk)
         res = stack_rates(ds, settings=rate_settings, workers=workers)
@@ -151,44 +242,81 @@ def run(args) -> int:
         for key, name in RATE_FILES.items():
             data = res[key]
             integer = np.issubdtype(data.dtype, np.integer)
-            write_geotiff(out / name, data, g.transform, g.crs, None if integer else np.nan,
-                          overwrite=args.overwrite, creation_options=co,
-                          descriptions=key, units=None if integer else "metre per year")
-        summary = dict(status="ok", dems=records,
-                       chain=sorted({r["chain"] for r in records}),
-                       rate_settings=rate_settings.__dict__, cloud_settings=settings.cloud.__dict__,
-                       dates=[str(d) for d in ds["time"].values.astype("datetime64[s]")],
-                       sigma=ds["sigma"].values.tolist(),
-                       rate_cells=int(np.isfinite(res["rate"]).sum()),
-                       rejected_observations=int(res["n_rejected"].sum()),
-                       seconds=dict(build=round(t_build, 2),
-                                    total=round(time.perf_counter() - t0, 2)), workers=workers)
+            write_geotiff(
+                out / name,
+                data,
+                g.transform,
+                g.crs,
+                None if integer else np.nan,
+                overwrite=args.overwrite,
+                creation_options=co,
+                descriptions=key,
+                units=None if integer else "metre per year",
+            )
+        summary = dict(
+            status="ok",
+            dems=records,
+            chain=sorted({r["chain"] for r in records}),
+            rate_settings=rate_settings.__dict__,
+            cloud_settings=settings.cloud.__dict__,
+            dates=[str(d) for d in ds["time"].values.astype("datetime64[s]")],
+            sigma=ds["sigma"].values.tolist(),
+            rate_cells=int(np.isfinite(res["rate"]).sum()),
+            rejected_observations=int(res["n_rejected"].sum()),
+            seconds=dict(build=round(t_build, 2), total=round(time.perf_counter() - t0, 2)),
+            workers=workers,
+        )
         stable = ds["stable"].values.astype(bool)
         from stereodem.post.stats import error_stats
+
         summary["rate_stable"] = error_stats(res["rate"][stable])
         if outlines is not None:
             from stereodem.post.volumes import outline_changes, rate_error_model
+
             model, _emp, znmad = rate_error_model(res["rate"], res["rate_sigma"], stable, g)
-            vols = outline_changes(res["rate"], res["rate_sigma"], ds["reference"].values,
-                                   outlines, g, model, band_width=args.band_width)
-            write_text_atomic(out / "volumes.json", json.dumps(
-                dict(outlines=str(args.outlines), variogram=model.to_dict(),
-                     standardised_rate_nmad_stable=znmad, polygons=vols), indent=1, default=float),
-                overwrite=True)
-            summary["volumes"] = [{k: v for k, v in r.items() if k != "hypsometric_bands"} for r in vols]
-        write_text_atomic(out / "stack.json", json.dumps(summary, indent=1, default=float),
-                          overwrite=True)
+            vols = outline_changes(
+                res["rate"],
+                res["rate_sigma"],
+                ds["reference"].values,
+                outlines,
+                g,
+                model,
+                band_width=args.band_width,
+            )
+            write_text_atomic(
+                out / "volumes.json",
+                json.dumps(
+                    dict(
+                        outlines=str(args.outlines),
+                        variogram=model.to_dict(),
+                        standardised_rate_nmad_stable=znmad,
+                        polygons=vols,
+                    ),
+                    indent=1,
+                    default=float,
+                ),
+                overwrite=True,
+            )
+            summary["volumes"] = [
+                {k: v for k, v in r.items() if k != "hypsometric_bands"} for r in vols
+            ]
+        write_text_atomic(
+            out / "stack.json", json.dumps(summary, indent=1, default=float), overwrite=True
+        )
     s = summary["rate_stable"]
-    options.say(f"stereodem stack: {len(records)} DEMs -> {out}/stack.zarr, rate.tif "
-                f"({summary['rate_cells']} cells; stable-terrain rate median {s['median']:.3f}, "
-                f"NMAD {s['nmad']:.3f} m/yr; {summary['rejected_observations']} observations "
-                "rejected in time)")
+    options.say(
+        f"stereodem stack: {len(records)} DEMs -> {out}/stack.zarr, rate.tif "
+        f"({summary['rate_cells']} cells; stable-terrain rate median {s['median']:.3f}, "
+        f"NMAD {s['nmad']:.3f} m/yr; {summary['rejected_observations']} observations "
+        "rejected in time)"
+    )
     return 0
 
 
 def _read_outlines(path, ref):
     """The polygons of ``path`` in the reference's CRS, refused when none touches its grid."""
     from stereodem.post.masks import rasterize, read_polygons
+
     geoms = read_polygons(path, ref.crs)
     rasterize(geoms, ref, path=str(path))
     return geoms

@@ -8,6 +8,7 @@ pointing for the strip, tiles), so the strip has one DEM and no seam to blend.
 ``dem_report.json`` holds the pair route's report plus ``strip`` (granules, line offsets,
 per-seam checks, the method).
 """
+
 from __future__ import annotations
 
 import json
@@ -26,8 +27,10 @@ __all__ = ["load_strip_pair", "run_strip_dem", "strip_granules"]
 def _granules_in_folder(folder: Path) -> list:
     """The granules directly inside ``folder`` (V004 ``.hdf``, V003 zips or folders), sorted."""
     from stereodem.sensor.io.aster_l1a import is_aster_granule
-    return sorted(str(p) for p in folder.iterdir()
-                  if not p.name.startswith(".") and is_aster_granule(p))
+
+    return sorted(
+        str(p) for p in folder.iterdir() if not p.name.startswith(".") and is_aster_granule(p)
+    )
 
 
 def strip_granules(paths, band=1) -> list | None:
@@ -37,10 +40,15 @@ def strip_granules(paths, band=1) -> list | None:
     (a folder that is itself a V003 granule is one granule). With an ASTER band named
     (``--band 3N``) the inputs stay single images of a pair or an N-view set instead."""
     from stereodem.sensor.io.aster_l1a import is_aster_granule
+
     if isinstance(band, str):
         return None
     paths = [Path(p) for p in paths if p]
-    if len(paths) == 1 and paths[0].is_dir() and not any(paths[0].glob("*.VNIR_Band3?.ImageData.tif")):
+    if (
+        len(paths) == 1
+        and paths[0].is_dir()
+        and not any(paths[0].glob("*.VNIR_Band3?.ImageData.tif"))
+    ):
         found = _granules_in_folder(paths[0])
         if len(found) >= 2:
             return found
@@ -58,6 +66,7 @@ def load_strip_pair(cfg: Config, paths):
     from stereodem.stereo import sanity
 
     from .pipeline.inputs import Pair, load_seed_dem
+
     strip = open_aster_strip(paths, radiometric=cfg.inputs.radiometric)
     n, b = strip.band("3N"), strip.band("3B")
     for band in (n, b):
@@ -65,8 +74,11 @@ def load_strip_pair(cfg: Config, paths):
     seed = load_seed_dem(cfg)
     if seed is not None:
         sanity.check_seed_dem(seed, n.model, b.model, name=f"seed DEM {cfg.inputs.seed_dem}:")
-    tags = {**strip.granules[0].tags(), "ASTER_BAND": "3N",
-            "ASTER_STRIP_GRANULES": ", ".join(g.granule_id for g in strip.granules)}
+    tags = {
+        **strip.granules[0].tags(),
+        "ASTER_BAND": "3N",
+        "ASTER_STRIP_GRANULES": ", ".join(g.granule_id for g in strip.granules),
+    }
     pair = Pair(n.image, b.image, n.model, b.model, seed, tags=tags)
     return pair, strip
 
@@ -82,6 +94,7 @@ def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
     from .pipeline.inputs import input_paths
     from .pipeline.stages import stereo_stage, suspect_error
     from .provenance import provenance
+
     inputs = [*paths, *input_paths(cfg)]
     with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, inputs=inputs) as out:
         pair, strip = load_strip_pair(cfg, paths)
@@ -89,14 +102,30 @@ def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
         prod, failed = stereo_stage(cfg, pair, progress=progress, points_dir=pts)
         prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
         cloud = point_cloud.point_cloud_stage(cfg, out, prod) if pts is not None else None
-        report = dict(status=prod.info.status, warnings=prod.info.warnings,
-                      provenance=provenance(started=started), input_metadata=pair.tags,
-                      left="3N strip", right="3B strip", strip=strip.report,
-                      settings=prod.settings, info=prod.info.to_dict(), n_points=prod.n_points,
-                      seconds=prod.seconds, tiles=prod.tiles, failed_tiles=failed, point_cloud=cloud)
-        write_text_atomic(out / "dem_report.json", json.dumps(report, indent=2, default=str) + "\n",
-                          overwrite=True)
+        report = dict(
+            status=prod.info.status,
+            warnings=prod.info.warnings,
+            provenance=provenance(started=started),
+            input_metadata=pair.tags,
+            left="3N strip",
+            right="3B strip",
+            strip=strip.report,
+            settings=prod.settings,
+            info=prod.info.to_dict(),
+            n_points=prod.n_points,
+            seconds=prod.seconds,
+            tiles=prod.tiles,
+            failed_tiles=failed,
+            point_cloud=cloud,
+        )
+        write_text_atomic(
+            out / "dem_report.json",
+            json.dumps(report, indent=2, default=str) + "\n",
+            overwrite=True,
+        )
     if failed:
-        log.warning("%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed))
+        log.warning(
+            "%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed)
+        )
     suspect_error(cfg, prod, out / "dem_report.json")
     return prod, out, strip

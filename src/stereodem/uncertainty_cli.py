@@ -1,4 +1,5 @@
 """``stereodem uncertainty``: per-cell horizontal σ maps and sensitivity shares of an orthoimage."""
+
 from __future__ import annotations
 
 import argparse
@@ -23,26 +24,46 @@ inputs (--sigma NAME=VALUE, 1-sigma in the input's unit):
 
 
 def add_parser(sub):
-    p = sub.add_parser("uncertainty", help="per-cell uncertainty and sensitivity maps of an orthoimage",
-                       description="First-order (J D J^T), Monte Carlo (Latin hypercube) or FAST "
-                                   "propagation of sensor-model, DEM-height and imaging-time errors "
-                                   "to the orthoimage grid: sigma_east/north/horizontal, CE90, the "
-                                   "dominant source per cell and each source's share.",
-                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "uncertainty",
+        help="per-cell uncertainty and sensitivity maps of an orthoimage",
+        description="First-order (J D J^T), Monte Carlo (Latin hypercube) or FAST "
+        "propagation of sensor-model, DEM-height and imaging-time errors "
+        "to the orthoimage grid: sigma_east/north/horizontal, CE90, the "
+        "dominant source per cell and each source's share.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("image", help="image GeoTIFF (with RPCs or a <stem>.model.json sidecar)")
     p.add_argument("--dem", required=True, help="DEM GeoTIFF")
-    p.add_argument("--dem-vertical", choices=VERTICALS,
-                   help="vertical reference of --dem when the file does not say")
+    p.add_argument(
+        "--dem-vertical",
+        choices=VERTICALS,
+        help="vertical reference of --dem when the file does not say",
+    )
     p.add_argument("--res", type=float, help="posting in metres (default: the image GSD)")
     p.add_argument("--crs", help="output CRS, e.g. EPSG:32637 (default: the UTM zone of the image)")
-    p.add_argument("--sigma", action="append", default=[], metavar="NAME=VALUE",
-                   help="1-sigma of an input (repeatable)")
-    p.add_argument("--covariance", metavar="REPORT", help="adjust_report.json with a full covariance")
+    p.add_argument(
+        "--sigma",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="1-sigma of an input (repeatable)",
+    )
+    p.add_argument(
+        "--covariance", metavar="REPORT", help="adjust_report.json with a full covariance"
+    )
     p.add_argument("--method", choices=UNCERTAINTY_METHODS, default="first-order")
-    p.add_argument("--samples", type=int, default=1000,
-                   help="Monte Carlo samples or FAST points per curve (default 1000)")
+    p.add_argument(
+        "--samples",
+        type=int,
+        default=1000,
+        help="Monte Carlo samples or FAST points per curve (default 1000)",
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--source-maps", action="store_true", help="also write share_<source>.tif per source")
+    p.add_argument(
+        "--source-maps", action="store_true", help="also write share_<source>.tif per source"
+    )
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.set_defaults(run=run)
@@ -66,14 +87,22 @@ def run(args) -> int:
     from stereodem.sensor.io.sidecar import load_image_model
 
     from . import options
+
     options.check_common(args)
     if args.samples < 3:
         raise InputError(f"--samples must be at least 3, got {args.samples}")
     if args.res is not None and not args.res > 0:
         raise InputError(f"--res must be positive, got {args.res}")
     out = Path(args.out)
-    names_out = ["sigma_horizontal.tif", "sigma_east.tif", "sigma_north.tif", "ce90.tif",
-                 "dominant_source.tif", "sensitivity.json", "uncertainty.png"]
+    names_out = [
+        "sigma_horizontal.tif",
+        "sigma_east.tif",
+        "sigma_north.tif",
+        "ce90.tif",
+        "dominant_source.tif",
+        "sensitivity.json",
+        "uncertainty.png",
+    ]
     for n in names_out:
         check_writable(out / n, args.overwrite)
     sigmas = parse_sigma_pairs(args.sigma)
@@ -82,15 +111,26 @@ def run(args) -> int:
     model, names, D = assemble(model, sigmas=sigmas, report=report, image=args.image)
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical)
     grid = grid_for_model(model, dem, res=args.res, crs=args.crs)
-    maps = ortho_uncertainty_maps(model, dem, grid, D, names, args.method, samples=args.samples,
-                                  seed=args.seed, source_maps=args.source_maps)
+    maps = ortho_uncertainty_maps(
+        model,
+        dem,
+        grid,
+        D,
+        names,
+        args.method,
+        samples=args.samples,
+        seed=args.seed,
+        source_maps=args.source_maps,
+    )
     maps.write(out, overwrite=args.overwrite, source_maps=args.source_maps)
     plot_uncertainty(maps, out / "uncertainty.png", title=Path(args.image).name)
     s = maps.summary()
     top = max(maps.shares, key=lambda k: maps.shares[k])
-    print(f"wrote {out}/sigma_horizontal.tif (+ east, north, ce90, dominant_source, sensitivity.json, "
-          f"uncertainty.png): {grid.width}x{grid.height} cells of {grid.res[0]:g} m; sigma_horizontal "
-          f"median {s['sigma_horizontal_m']['median']:.3g} m (max {s['sigma_horizontal_m']['max']:.3g}); "
-          f"largest share {top} {maps.shares[top]:.3f}; interpolation error "
-          f"{maps.interpolation_error:.2g} (relative, measured)")
+    print(
+        f"wrote {out}/sigma_horizontal.tif (+ east, north, ce90, dominant_source, sensitivity.json, "
+        f"uncertainty.png): {grid.width}x{grid.height} cells of {grid.res[0]:g} m; sigma_horizontal "
+        f"median {s['sigma_horizontal_m']['median']:.3g} m (max {s['sigma_horizontal_m']['max']:.3g}); "
+        f"largest share {top} {maps.shares[top]:.3f}; interpolation error "
+        f"{maps.interpolation_error:.2g} (relative, measured)"
+    )
     return 0

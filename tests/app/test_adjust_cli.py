@@ -1,4 +1,5 @@
 """``stereodem adjust`` end to end on the real Pleiades RPC, and model sidecar round trips."""
+
 import json
 
 import numpy as np
@@ -32,8 +33,9 @@ def _points(model, n, sigma, seed, role=None):
     lon, lat = model.localize(c, r, h)
     truth = ImageCorrectedModel(model, **BIAS)
     tc, tr = truth.project(lon, lat, h)
-    return ControlPoints.from_arrays(lon, lat, h, tc + rng.normal(0, sigma, n),
-                                     tr + rng.normal(0, sigma, n), role=role)
+    return ControlPoints.from_arrays(
+        lon, lat, h, tc + rng.normal(0, sigma, n), tr + rng.normal(0, sigma, n), role=role
+    )
 
 
 def test_corrected_rpc_sidecar_round_trip(image, tmp_path):
@@ -42,11 +44,20 @@ def test_corrected_rpc_sidecar_round_trip(image, tmp_path):
     path = save_model(m, tmp_path / "m.model.json")
     back = load_model(path)
     assert isinstance(back, ImageCorrectedModel) and isinstance(back.model, RPCModel)
-    assert (back.width, back.height) == (rpc.width, rpc.height) == (back.model.width, back.model.height)
+    assert (
+        (back.width, back.height)
+        == (rpc.width, rpc.height)
+        == (back.model.width, back.model.height)
+    )
     assert back.parameters() == m.parameters()
-    lon, lat = rpc.localize(np.array([10.0, 900.0]), np.array([20.0, 700.0]), np.array([100.0, 900.0]))
-    np.testing.assert_allclose(np.stack(back.project(lon, lat, [100.0, 900.0])),
-                               np.stack(m.project(lon, lat, [100.0, 900.0])), atol=1e-9)
+    lon, lat = rpc.localize(
+        np.array([10.0, 900.0]), np.array([20.0, 700.0]), np.array([100.0, 900.0])
+    )
+    np.testing.assert_allclose(
+        np.stack(back.project(lon, lat, [100.0, 900.0])),
+        np.stack(m.project(lon, lat, [100.0, 900.0])),
+        atol=1e-9,
+    )
     # an RPC whose size is not what its normalisation implies keeps it too
     odd = RPCModel.from_dict(rpc.to_dict(), width=777, height=555)
     assert (lambda b: (b.width, b.height))(model_from_dict(model_to_dict(odd))) == (777, 555)
@@ -57,17 +68,33 @@ def test_adjust_cli_rpc_shift(image, tmp_path, capsys):
     role = np.where(np.arange(24) < 12, "gcp", "check")
     pts = _points(rpc, 24, 0.25, seed=4, role=role)
     pts.sigma_px[:] = 0.25
-    pts.col[3] += 6.0                           # one blunder
+    pts.col[3] += 6.0  # one blunder
     csv = write_gcps(tmp_path / "gcps.csv", pts)
     out, rep = tmp_path / "adj.model.json", tmp_path / "report"
-    argv = ["adjust", str(image), "--gcps", str(csv), "--model", "rpc-shift", "-o", str(out),
-            "--report", str(rep)]
+    argv = [
+        "adjust",
+        str(image),
+        "--gcps",
+        str(csv),
+        "--model",
+        "rpc-shift",
+        "-o",
+        str(out),
+        "--report",
+        str(rep),
+    ]
     assert main(argv) == 0
     assert "outliers: P004" in capsys.readouterr().out
     model = load_model(out)
-    assert isinstance(model, ImageCorrectedModel) and (model.width, model.height) == (rpc.width, rpc.height)
+    assert isinstance(model, ImageCorrectedModel) and (model.width, model.height) == (
+        rpc.width,
+        rpc.height,
+    )
     p = model.parameters()
-    assert abs(p["col_shift"] - BIAS["col_shift"]) < 0.3 and abs(p["row_shift"] - BIAS["row_shift"]) < 0.3
+    assert (
+        abs(p["col_shift"] - BIAS["col_shift"]) < 0.3
+        and abs(p["row_shift"] - BIAS["row_shift"]) < 0.3
+    )
     report = json.loads((rep / "adjust_report.json").read_text())
     assert report["outliers"] == ["P004"]
     assert report["check_rmse_px"] < 2 * 0.25 * np.sqrt(2)
@@ -86,14 +113,40 @@ def test_adjust_cli_errors(image, tmp_path, capsys):
     rpc = load_image_model(image)
     pts = _points(rpc, 1, 0.3, seed=1)
     csv = write_gcps(tmp_path / "one.csv", pts)
-    assert main(["adjust", str(image), "--gcps", str(csv), "--model", "rpc-shift",
-                 "-o", str(tmp_path / "o.json")]) == 1
+    assert (
+        main(
+            [
+                "adjust",
+                str(image),
+                "--gcps",
+                str(csv),
+                "--model",
+                "rpc-shift",
+                "-o",
+                str(tmp_path / "o.json"),
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert err.startswith("stereodem adjust: error:") and "need at least 2 GCPs" in err
     assert main(["adjust", str(image), "--model", "rpc-shift", "-o", str(tmp_path / "o.json")]) == 1
     assert "needs --gcps" in capsys.readouterr().err
-    assert main(["adjust", str(image), "--gcps", str(csv), "--model", "bundle",
-                 "-o", str(tmp_path / "o.json")]) == 1
+    assert (
+        main(
+            [
+                "adjust",
+                str(image),
+                "--gcps",
+                str(csv),
+                "--model",
+                "bundle",
+                "-o",
+                str(tmp_path / "o.json"),
+            ]
+        )
+        == 1
+    )
     assert "needs IMAGE2" in capsys.readouterr().err
 
 
@@ -102,15 +155,35 @@ def test_adjust_cli_generic_model(image, tmp_path):
     pts = _points(rpc, 30, 0.3, seed=8, role=np.where(np.arange(30) < 20, "gcp", "check"))
     csv = write_gcps(tmp_path / "g.csv", pts)
     out = tmp_path / "generic.model.json"
-    assert main(["adjust", str(image), "--gcps", str(csv), "--model", "poly3d-2", "--sigma-px",
-                 "0.3", "-o", str(out), "--report", str(tmp_path / "r")]) == 0
+    assert (
+        main(
+            [
+                "adjust",
+                str(image),
+                "--gcps",
+                str(csv),
+                "--model",
+                "poly3d-2",
+                "--sigma-px",
+                "0.3",
+                "-o",
+                str(out),
+                "--report",
+                str(tmp_path / "r"),
+            ]
+        )
+        == 0
+    )
     model = load_model(out)
     c, r = model.project(pts.lon, pts.lat, pts.h)
     rep = json.loads((tmp_path / "r" / "adjust_report.json").read_text())
     assert rep["model_set"] == "poly3d-2" and len(rep["parameters"]) == 20
     chk = pts.role == "check"
-    np.testing.assert_allclose(np.sqrt(np.mean((c - pts.col)[chk] ** 2 + (r - pts.row)[chk] ** 2)),
-                               rep["check_rmse_px"], rtol=1e-4)   # CRS re-read from its string: um-level
+    np.testing.assert_allclose(
+        np.sqrt(np.mean((c - pts.col)[chk] ** 2 + (r - pts.row)[chk] ** 2)),
+        rep["check_rmse_px"],
+        rtol=1e-4,
+    )  # CRS re-read from its string: um-level
 
 
 @pytest.mark.slow
@@ -121,33 +194,71 @@ def test_adjust_cli_bundle_with_automatic_ties(tmp_path):
     check points at the noise level."""
     pytest.importorskip("stereodem.stereo.sparse")
     from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+
     scene = simulate_scene("pushbroom", size=(500, 500), seed=3, n_points=40, angles=(0.0, -27.6))
     out = write_scene(scene, tmp_path / "scene", fit_rpcs=False)
     bias = dict(roll_bias=4e-5, pitch_bias=-5e-5, yaw_bias=1e-4)
     save_model(scene.right_model.with_parameters(**bias), out / "right.model.json", overwrite=True)
     pts = scene.points
     role = ["gcp" if k < 8 else "check" for k in range(len(pts))]
-    arr = {k: np.array([p[k] for p in pts]) for k in ("id", "lon", "lat", "h", "col", "row",
-                                                       "col_right", "row_right")}
-    write_gcps(tmp_path / "l.csv", arr["id"], arr["lon"], arr["lat"], arr["h"], arr["col"],
-               arr["row"], role=role, sigma_px=0.05)
-    write_gcps(tmp_path / "r.csv", arr["id"], arr["lon"], arr["lat"], arr["h"], arr["col_right"],
-               arr["row_right"], role=role, sigma_px=0.05)
-    argv = ["adjust", str(out / "left.tif"), str(out / "right.tif"), "--model", "bundle",
-            "--set", "attitude-bias", "--gcps", str(tmp_path / "l.csv"), "--gcps2",
-            str(tmp_path / "r.csv"), "-o", str(tmp_path / "L.model.json"), "--out2",
-            str(tmp_path / "R.model.json"), "--report", str(tmp_path / "rep")]
+    arr = {
+        k: np.array([p[k] for p in pts])
+        for k in ("id", "lon", "lat", "h", "col", "row", "col_right", "row_right")
+    }
+    write_gcps(
+        tmp_path / "l.csv",
+        arr["id"],
+        arr["lon"],
+        arr["lat"],
+        arr["h"],
+        arr["col"],
+        arr["row"],
+        role=role,
+        sigma_px=0.05,
+    )
+    write_gcps(
+        tmp_path / "r.csv",
+        arr["id"],
+        arr["lon"],
+        arr["lat"],
+        arr["h"],
+        arr["col_right"],
+        arr["row_right"],
+        role=role,
+        sigma_px=0.05,
+    )
+    argv = [
+        "adjust",
+        str(out / "left.tif"),
+        str(out / "right.tif"),
+        "--model",
+        "bundle",
+        "--set",
+        "attitude-bias",
+        "--gcps",
+        str(tmp_path / "l.csv"),
+        "--gcps2",
+        str(tmp_path / "r.csv"),
+        "-o",
+        str(tmp_path / "L.model.json"),
+        "--out2",
+        str(tmp_path / "R.model.json"),
+        "--report",
+        str(tmp_path / "rep"),
+    ]
     assert main(argv) == 0
     rep = json.loads((tmp_path / "rep" / "adjust_report.json").read_text())
     assert rep["ties"]["n"] > 50
     R = load_model(tmp_path / "R.model.json")
     chk = np.array(role) == "check"
     c, r = R.project(arr["lon"][chk], arr["lat"][chk], arr["h"][chk])
-    before = scene.right_model.with_parameters(**bias).project(arr["lon"][chk], arr["lat"][chk], arr["h"][chk])
+    before = scene.right_model.with_parameters(**bias).project(
+        arr["lon"][chk], arr["lat"][chk], arr["h"][chk]
+    )
     err = np.hypot(c - arr["col_right"][chk], r - arr["row_right"][chk])
     err0 = np.hypot(before[0] - arr["col_right"][chk], before[1] - arr["row_right"][chk])
-    assert np.sqrt(np.mean(err0 ** 2)) > 2.0
-    assert np.sqrt(np.mean(err ** 2)) < 0.3
+    assert np.sqrt(np.mean(err0**2)) > 2.0
+    assert np.sqrt(np.mean(err**2)) < 0.3
     for side in ("left", "right"):
         assert (tmp_path / "rep" / f"adjust_residuals_{side}.png").exists()
 
@@ -164,21 +275,64 @@ def test_adjust_cli_regularization_is_honoured_or_refused(image, tmp_path, capsy
     reps = {}
     for reg in (None, "0.5"):
         out, rep = tmp_path / f"m{reg}.model.json", tmp_path / f"r{reg}"
-        argv = ["adjust", str(image), "--gcps", str(csv), "--model", "rational-1", "--sigma-px", "0.3",
-                "-o", str(out), "--report", str(rep)] + (["--regularization", reg] if reg else [])
+        argv = [
+            "adjust",
+            str(image),
+            "--gcps",
+            str(csv),
+            "--model",
+            "rational-1",
+            "--sigma-px",
+            "0.3",
+            "-o",
+            str(out),
+            "--report",
+            str(rep),
+        ] + (["--regularization", reg] if reg else [])
         assert main(argv) == 0
         reps[reg] = json.loads((rep / "adjust_report.json").read_text())
     assert reps["0.5"]["regularization"] == pytest.approx(0.5)
-    assert reps[None]["regularization"] != pytest.approx(0.5)          # the L-curve's own weight
-    assert (tmp_path / "mNone.model.json").read_bytes() != (tmp_path / "m0.5.model.json").read_bytes()
+    assert reps[None]["regularization"] != pytest.approx(0.5)  # the L-curve's own weight
+    assert (tmp_path / "mNone.model.json").read_bytes() != (
+        tmp_path / "m0.5.model.json"
+    ).read_bytes()
     for argv, what in (
-            (["adjust", str(image), "--gcps", str(csv), "--model", "poly3d-2", "--regularization", "gcv",
-              "-o", str(tmp_path / "p.model.json")], "linear least squares"),
-            (["adjust", str(image), str(image), "--model", "bundle", "--regularization", "gcv",
-              "-o", str(tmp_path / "l.model.json"), "--out2", str(tmp_path / "r.model.json")],
-             "--regularization is not available for --model bundle")):
+        (
+            [
+                "adjust",
+                str(image),
+                "--gcps",
+                str(csv),
+                "--model",
+                "poly3d-2",
+                "--regularization",
+                "gcv",
+                "-o",
+                str(tmp_path / "p.model.json"),
+            ],
+            "linear least squares",
+        ),
+        (
+            [
+                "adjust",
+                str(image),
+                str(image),
+                "--model",
+                "bundle",
+                "--regularization",
+                "gcv",
+                "-o",
+                str(tmp_path / "l.model.json"),
+                "--out2",
+                str(tmp_path / "r.model.json"),
+            ],
+            "--regularization is not available for --model bundle",
+        ),
+    ):
         capsys.readouterr()
         code = main(argv)
         err = capsys.readouterr().err
         assert code == 1 and what in err and "Traceback" not in err
-    assert not any((tmp_path / n).exists() for n in ("p.model.json", "l.model.json", "r.model.json"))
+    assert not any(
+        (tmp_path / n).exists() for n in ("p.model.json", "l.model.json", "r.model.json")
+    )

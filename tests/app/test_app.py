@@ -1,4 +1,5 @@
 """The application: configuration, end-to-end run, workers, failures, CLI behaviour."""
+
 import json
 import pickle
 import subprocess
@@ -25,9 +26,13 @@ def scene_dir(tmp_path_factory):
 
 def _cfg(scene_dir, out, **run):
     raw = {
-        "inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif"),
-                   "reference_dem": str(scene_dir / "truth_dem.tif"), "reference_vertical": "ellipsoid",
-                   "checkpoints": str(scene_dir / "points.csv")},
+        "inputs": {
+            "left": str(scene_dir / "left.tif"),
+            "right": str(scene_dir / "right.tif"),
+            "reference_dem": str(scene_dir / "truth_dem.tif"),
+            "reference_vertical": "ellipsoid",
+            "checkpoints": str(scene_dir / "points.csv"),
+        },
         "output": {"dir": str(out)},
         "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
         "run": {"workers": 1, **run},
@@ -39,8 +44,18 @@ def _cfg(scene_dir, out, **run):
 def test_run_writes_products_and_run_json(scene_dir, tmp_path):
     info = run(_cfg(scene_dir, tmp_path / "out"))
     out = tmp_path / "out"
-    for name in ("dem.tif", "dem_edit_mask.tif", "raw/dem.tif", "raw/score.tif", "raw/count.tif",
-                 "raw/raygap.tif", "ortho_left.tif", "ortho_right.tif", "assess/report.json", "run.json"):
+    for name in (
+        "dem.tif",
+        "dem_edit_mask.tif",
+        "raw/dem.tif",
+        "raw/score.tif",
+        "raw/count.tif",
+        "raw/raygap.tif",
+        "ortho_left.tif",
+        "ortho_right.tif",
+        "assess/report.json",
+        "run.json",
+    ):
         assert (out / name).exists(), name
     rj = json.loads((out / "run.json").read_text())
     assert set(rj["stages"]) >= {"load", "stereo", "post", "ortho", "assess"}
@@ -55,7 +70,7 @@ def test_run_writes_products_and_run_json(scene_dir, tmp_path):
     h = info["headline"]
     assert h["nmad"] < 4.0 and abs(h["median"]) < 1.5
     with rasterio.open(out / "ortho_left.tif") as a, rasterio.open(out / "ortho_right.tif") as b:
-        assert a.transform == b.transform and a.shape == b.shape      # same grid for both
+        assert a.transform == b.transform and a.shape == b.shape  # same grid for both
 
 
 @pytest.mark.slow
@@ -64,13 +79,26 @@ def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
     for w in (1, 2, 3):
         run(_cfg(scene_dir, tmp_path / f"w{w}", workers=w))
     for w in (2, 3):
-        for name in ("raw/dem.tif", "raw/score.tif", "raw/count.tif", "dem.tif", "dem_edit_mask.tif",
-                     "ortho_left.tif", "ortho_right.tif"):
-            with rasterio.open(tmp_path / "w1" / name) as a, rasterio.open(tmp_path / f"w{w}" / name) as b:
+        for name in (
+            "raw/dem.tif",
+            "raw/score.tif",
+            "raw/count.tif",
+            "dem.tif",
+            "dem_edit_mask.tif",
+            "ortho_left.tif",
+            "ortho_right.tif",
+        ):
+            with (
+                rasterio.open(tmp_path / "w1" / name) as a,
+                rasterio.open(tmp_path / f"w{w}" / name) as b,
+            ):
                 x, y = a.read(), b.read()
                 assert np.array_equal(x, y, equal_nan=True), (w, name)
         # the assessment's statistics too (blocks on threads, sums merged in block order)
-        reports = [json.loads((tmp_path / d / "assess" / "report.json").read_text()) for d in ("w1", f"w{w}")]
+        reports = [
+            json.loads((tmp_path / d / "assess" / "report.json").read_text())
+            for d in ("w1", f"w{w}")
+        ]
         for key in ("stats", "by_slope", "by_elevation", "slope_fit", "checkpoints"):
             assert json.dumps(reports[0][key]) == json.dumps(reports[1][key]), (w, key)
 
@@ -78,6 +106,7 @@ def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
 @pytest.mark.slow
 def test_failing_tile_is_reported_and_scene_completes(scene_dir, tmp_path, monkeypatch):
     import stereodem.stereo.pipeline as sp
+
     real = sp.process_tile
     calls = {"n": 0}
 
@@ -89,7 +118,10 @@ def test_failing_tile_is_reported_and_scene_completes(scene_dir, tmp_path, monke
 
     monkeypatch.setattr(sp, "process_tile", flaky)
     info = run(_cfg(scene_dir, tmp_path / "f"))
-    assert len(info["failed_tiles"]) == 1 and "simulated tile failure" in info["failed_tiles"][0]["reason"]
+    assert (
+        len(info["failed_tiles"]) == 1
+        and "simulated tile failure" in info["failed_tiles"][0]["reason"]
+    )
     assert info["stages"]["stereo"]["tiles"] >= 3
     with rasterio.open(tmp_path / "f" / "dem.tif") as ds:
         assert np.isfinite(ds.read(1)).mean() > 0.2
@@ -100,6 +132,7 @@ def test_existing_output_needs_overwrite(scene_dir, tmp_path):
     out.mkdir()
     (out / "keep.txt").write_text("user data")
     from stereodem.core.errors import OutputExistsError
+
     with pytest.raises(OutputExistsError):
         run(_cfg(scene_dir, out))
     assert (out / "keep.txt").read_text() == "user data"
@@ -116,12 +149,14 @@ def test_config_errors(tmp_path):
     p.write_text("[inputs]\nleft='a'\nright='b'\n[output]\ndir='o'\n[stereo]\ntile_size=300\n")
     with pytest.raises(InputError, match="split into"):
         load_config(p)
-    for table, msg in (("[filters]\nenabled='no'", "expected true or false"),
-                       ("[rectification]\ntile_size='big'", "whole number"),
-                       ("[run]\nworkers=-3", "at least 1"),
-                       ("[rectification]\nheight_range='1000-3500'", "list of numbers"),
-                       ("[inputs]\nmodel='lidar'", "physical"),
-                       ("[fill]\nmax_hole_size=-5", ">= 0")):
+    for table, msg in (
+        ("[filters]\nenabled='no'", "expected true or false"),
+        ("[rectification]\ntile_size='big'", "whole number"),
+        ("[run]\nworkers=-3", "at least 1"),
+        ("[rectification]\nheight_range='1000-3500'", "list of numbers"),
+        ("[inputs]\nmodel='lidar'", "physical"),
+        ("[fill]\nmax_hole_size=-5", ">= 0"),
+    ):
         sec, line = table.split("\n")
         head = "[inputs]\nleft='a'\nright='b'\n" + (line + "\n" if sec == "[inputs]" else "")
         body = "" if sec == "[inputs]" else f"{sec}\n{line}\n"
@@ -144,7 +179,7 @@ def test_cli_exit_codes_and_help(tmp_path, capsys):
         assert e.value.code == 0
         assert "example" in capsys.readouterr().out.lower()
     with pytest.raises(SystemExit) as e:
-        cli.main(["run"])                       # missing argument: bad usage
+        cli.main(["run"])  # missing argument: bad usage
     assert e.value.code == 2
     assert cli.main(["run", str(tmp_path / "missing.toml")]) == 1
     assert "configuration file not found" in capsys.readouterr().err
@@ -152,8 +187,22 @@ def test_cli_exit_codes_and_help(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_demo_command(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "stereodem.cli", "demo", "-o", str(tmp_path / "d"),
-                        "--size", "400", "400"], capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "stereodem.cli",
+            "demo",
+            "-o",
+            str(tmp_path / "d"),
+            "--size",
+            "400",
+            "400",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     assert "NMAD" in r.stdout and (tmp_path / "d" / "result" / "dem.tif").exists()
     nmad = float(r.stdout.split("NMAD")[1].split("m")[0])
@@ -184,7 +233,7 @@ def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
     out = tmp_path / "r"
     run(_cfg(scene_dir, out))
     cfg = _cfg(scene_dir, out, resume=True)
-    cfg.stereo.matching.matcher = "ncc"                    # other settings: the cache is not this job's
+    cfg.stereo.matching.matcher = "ncc"  # other settings: the cache is not this job's
     with pytest.raises(InputError, match="other inputs or settings"):
         run(cfg)
     # a fresh (non-resumed) run replaces the cache, so a later resume is consistent again
@@ -198,10 +247,11 @@ def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
 
 def test_pool_workers_get_memory_mapped_images(tmp_path):
     from stereodem.stereo.runner import SharedArray
+
     a = np.arange(12, dtype=np.float32).reshape(3, 4)
     sa = SharedArray.create(a, tmp_path, "img")
     clone = pickle.loads(pickle.dumps(sa))
-    assert len(pickle.dumps(sa)) < 200                     # the path, not the pixels
+    assert len(pickle.dumps(sa)) < 200  # the path, not the pixels
     assert clone.shape == (3, 4) and clone.dtype == np.float32 and clone.ndim == 2
     np.testing.assert_array_equal(clone[1:, 2:], a[1:, 2:])
     np.testing.assert_array_equal(np.asarray(clone, dtype=np.float64), a)
@@ -224,17 +274,67 @@ def test_hand_route_gives_the_rasters_of_run(scene_dir, tmp_path):
     run(_cfg(scene_dir, tmp_path / "run", workers=1))
     h = tmp_path / "hand"
     left, right = str(scene_dir / "left.tif"), str(scene_dir / "right.tif")
-    assert cli.main(["dem", left, right, "-o", str(h / "dem"), "--tile-size", "200",
-                     "--height-range", "1000", "3500", "--workers", "1"]) == 0
+    assert (
+        cli.main(
+            [
+                "dem",
+                left,
+                right,
+                "-o",
+                str(h / "dem"),
+                "--tile-size",
+                "200",
+                "--height-range",
+                "1000",
+                "3500",
+                "--workers",
+                "1",
+            ]
+        )
+        == 0
+    )
     assert cli.main(["filter", str(h / "dem" / "dem.tif"), "-o", str(h / "clean.tif")]) == 0
-    assert cli.main(["ortho", left, "--dem", str(h / "clean.tif"), "-o", str(h / "ortho.tif"),
-                     "--workers", "1"]) == 0
-    assert cli.main(["assess", str(h / "clean.tif"), "--ref", str(scene_dir / "truth_dem.tif"),
-                     "--ref-vertical", "ellipsoid", "--checkpoints", str(scene_dir / "points.csv"),
-                     "--coregister", "-o", str(h / "assess")]) == 0
-    pairs = {"raw/dem.tif": "dem/dem.tif", "raw/score.tif": "dem/score.tif",
-             "raw/raygap.tif": "dem/raygap.tif", "dem.tif": "clean.tif",
-             "dem_edit_mask.tif": "clean_edit_mask.tif", "ortho_left.tif": "ortho.tif"}
+    assert (
+        cli.main(
+            [
+                "ortho",
+                left,
+                "--dem",
+                str(h / "clean.tif"),
+                "-o",
+                str(h / "ortho.tif"),
+                "--workers",
+                "1",
+            ]
+        )
+        == 0
+    )
+    assert (
+        cli.main(
+            [
+                "assess",
+                str(h / "clean.tif"),
+                "--ref",
+                str(scene_dir / "truth_dem.tif"),
+                "--ref-vertical",
+                "ellipsoid",
+                "--checkpoints",
+                str(scene_dir / "points.csv"),
+                "--coregister",
+                "-o",
+                str(h / "assess"),
+            ]
+        )
+        == 0
+    )
+    pairs = {
+        "raw/dem.tif": "dem/dem.tif",
+        "raw/score.tif": "dem/score.tif",
+        "raw/raygap.tif": "dem/raygap.tif",
+        "dem.tif": "clean.tif",
+        "dem_edit_mask.tif": "clean_edit_mask.tif",
+        "ortho_left.tif": "ortho.tif",
+    }
     for a_name, b_name in pairs.items():
         with rasterio.open(tmp_path / "run" / a_name) as a, rasterio.open(h / b_name) as b:
             assert a.transform == b.transform and a.crs == b.crs, a_name
@@ -248,9 +348,11 @@ def test_hand_route_gives_the_rasters_of_run(scene_dir, tmp_path):
 def granule(tmp_path_factory):
     """A small simulated ASTER L1A V004 granule (3N 300 x 300, 3B in the real size ratio)."""
     from stereodem.sensor.simulation.aster_granule import granule_right_size, write_granule_scene
+
     d = tmp_path_factory.mktemp("granule")
-    sc = simulate_scene("aster", size=(300, 300), right_size=granule_right_size((300, 300)),
-                        seed=3, n_points=20)
+    sc = simulate_scene(
+        "aster", size=(300, 300), right_size=granule_right_size((300, 300)), seed=3, n_points=20
+    )
     return write_granule_scene(sc, d, version=4, seed=3), sc
 
 
@@ -259,39 +361,93 @@ def test_granule_as_delivered_to_dem_and_ortho(granule, tmp_path):
     """`dem GRANULE` takes 3N/3B; `ortho GRANULE --band 3B` orthorectifies the backward band."""
     path, sc = granule
     lo, hi = sc.truth_dem.height_range()
-    assert cli.main(["dem", str(path), "-o", str(tmp_path / "d"), "--height-range", str(lo - 100),
-                     str(hi + 100), "--workers", "1"]) == 0
+    assert (
+        cli.main(
+            [
+                "dem",
+                str(path),
+                "-o",
+                str(tmp_path / "d"),
+                "--height-range",
+                str(lo - 100),
+                str(hi + 100),
+                "--workers",
+                "1",
+            ]
+        )
+        == 0
+    )
     rep = json.loads((tmp_path / "d" / "dem_report.json").read_text())
-    assert rep["input_metadata"]["ASTER_BAND"] == "3N" and rep["input_metadata"]["RIGHT_ASTER_BAND"] == "3B"
+    assert (
+        rep["input_metadata"]["ASTER_BAND"] == "3N"
+        and rep["input_metadata"]["RIGHT_ASTER_BAND"] == "3B"
+    )
     with rasterio.open(tmp_path / "d" / "dem.tif") as ds:
         z = ds.read(1)
     assert np.isfinite(z).mean() > 0.5 and lo - 100 < np.nanmedian(z) < hi + 100
-    assert cli.main(["ortho", str(path), "--band", "3B", "--dem", str(tmp_path / "d" / "dem.tif"),
-                     "-o", str(tmp_path / "o.tif"), "--workers", "1"]) == 0
+    assert (
+        cli.main(
+            [
+                "ortho",
+                str(path),
+                "--band",
+                "3B",
+                "--dem",
+                str(tmp_path / "d" / "dem.tif"),
+                "-o",
+                str(tmp_path / "o.tif"),
+                "--workers",
+                "1",
+            ]
+        )
+        == 0
+    )
     with rasterio.open(tmp_path / "o.tif") as ds:
-        assert ds.tags()["ASTER_BAND"] == "3B" and ds.dtypes[0] == "float32"   # radiance
+        assert ds.tags()["ASTER_BAND"] == "3B" and ds.dtypes[0] == "float32"  # radiance
     # a band name on a plain GeoTIFF is a clear error
-    assert cli.main(["ortho", str(tmp_path / "o.tif"), "--band", "3N", "--dem",
-                     str(tmp_path / "d" / "dem.tif"), "-o", str(tmp_path / "x.tif")]) == 1
+    assert (
+        cli.main(
+            [
+                "ortho",
+                str(tmp_path / "o.tif"),
+                "--band",
+                "3N",
+                "--dem",
+                str(tmp_path / "d" / "dem.tif"),
+                "-o",
+                str(tmp_path / "x.tif"),
+            ]
+        )
+        == 1
+    )
 
 
 @pytest.mark.slow
 def test_run_writes_uncertainty_maps_when_asked(scene_dir, tmp_path):
-    raw = {"inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif")},
-           "output": {"dir": str(tmp_path / "u")},
-           "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
-           "ortho": {"both": False},
-           "uncertainty": {"enabled": True, "sigma": {"pitch_bias": 1e-5, "dem_height": 5.0}},
-           "run": {"workers": 1}}
+    raw = {
+        "inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif")},
+        "output": {"dir": str(tmp_path / "u")},
+        "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
+        "ortho": {"both": False},
+        "uncertainty": {"enabled": True, "sigma": {"pitch_bias": 1e-5, "dem_height": 5.0}},
+        "run": {"workers": 1},
+    }
     info = run(config_from_dict(raw))
     out = tmp_path / "u"
-    for name in ("uncertainty/sigma_horizontal.tif", "uncertainty/sensitivity.json",
-                 "dem_sigma_vertical.tif"):
+    for name in (
+        "uncertainty/sigma_horizontal.tif",
+        "uncertainty/sensitivity.json",
+        "dem_sigma_vertical.tif",
+    ):
         assert (out / name).exists(), name
     shares = info["stages"]["uncertainty"]["shares"]
-    assert set(shares) == {"pitch_bias", "dem_height"} and sum(shares.values()) == pytest.approx(1.0)
-    with rasterio.open(out / "uncertainty" / "sigma_horizontal.tif") as a, \
-            rasterio.open(out / "ortho_left.tif") as b:
+    assert set(shares) == {"pitch_bias", "dem_height"} and sum(shares.values()) == pytest.approx(
+        1.0
+    )
+    with (
+        rasterio.open(out / "uncertainty" / "sigma_horizontal.tif") as a,
+        rasterio.open(out / "ortho_left.tif") as b,
+    ):
         assert a.transform == b.transform and a.shape == b.shape
         s = a.read(1)
     # 10 urad of pitch at ~700 km is ~7 m on the ground: the map is of that order
@@ -300,13 +456,18 @@ def test_run_writes_uncertainty_maps_when_asked(scene_dir, tmp_path):
         config_from_dict({**raw, "uncertainty": {"enabled": True}})
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["dem", "a.tif", "b.tif", "-o", "o", "--co", "COMPRESS"], "KEY=VALUE"),
-    (["dem", "a.tif", "b.tif", "-o", "o", "--jitter-correction"], "seed DEM"),
-    (["dem", "a.tif", "b.tif", "-o", "o", "--pointing-from-seed"], "seed DEM"),
-    (["filter", "d.tif", "-o", "c.tif", "--fill-from-seed"], "--seed-dem"),
-])
-def test_new_options_reject_bad_values_before_any_work(tmp_path, capsys, monkeypatch, argv, message):
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["dem", "a.tif", "b.tif", "-o", "o", "--co", "COMPRESS"], "KEY=VALUE"),
+        (["dem", "a.tif", "b.tif", "-o", "o", "--jitter-correction"], "seed DEM"),
+        (["dem", "a.tif", "b.tif", "-o", "o", "--pointing-from-seed"], "seed DEM"),
+        (["filter", "d.tif", "-o", "c.tif", "--fill-from-seed"], "--seed-dem"),
+    ],
+)
+def test_new_options_reject_bad_values_before_any_work(
+    tmp_path, capsys, monkeypatch, argv, message
+):
     monkeypatch.chdir(tmp_path)
     assert cli.main(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()

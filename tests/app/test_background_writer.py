@@ -1,5 +1,6 @@
 """The run's background writer: writes overlap the next stage, errors reach the caller, and
 no write is left running when the run ends or fails."""
+
 import threading
 import time
 
@@ -21,7 +22,7 @@ def test_writes_run_in_order_off_the_calling_thread_and_finish_on_exit(tmp_path)
     with BackgroundWriter() as w:
         w.submit(write, "a", 0.2)
         w.submit(write, "b", 0.0)
-        assert done == []                        # the caller goes on while "a" is written
+        assert done == []  # the caller goes on while "a" is written
         w.wait_for(0)
         assert done[0] == "a"
     assert done == ["a", "b"] and w.count == 2 and w.seconds >= 0.2
@@ -46,9 +47,17 @@ def test_dem_prepared_write_is_independent_of_later_changes(tmp_path):
     from pyproj import CRS
 
     from stereodem.core.dem import DEM
+
     z = np.arange(12.0).reshape(3, 4)
-    g = DEM(z.copy(), Affine(30, 0, 500000, 0, -30, 4000000), CRS.from_epsg(32637), "ellipsoid",
-            count=np.ones((3, 4)), score=np.full((3, 4), 0.9), ray_gap=np.full((3, 4), 0.5))
+    g = DEM(
+        z.copy(),
+        Affine(30, 0, 500000, 0, -30, 4000000),
+        CRS.from_epsg(32637),
+        "ellipsoid",
+        count=np.ones((3, 4)),
+        score=np.full((3, 4), 0.9),
+        ray_gap=np.full((3, 4), 0.5),
+    )
     write = g.prepare_write(tmp_path / "dem.tif")
     g.heights[:] = -1.0
     g.score[:] = 0.0

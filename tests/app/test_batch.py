@@ -1,5 +1,6 @@
 """stereodem batch: one job per scene on the process pool and on a dask LocalCluster; a
 corrupt scene fails with its reason and the others are done; a second run skips done scenes."""
+
 import json
 
 import numpy as np
@@ -36,12 +37,14 @@ def scenes(tmp_path_factory):
     paths = []
     for seed in (4, 5):
         d = root / f"scene{seed}"
-        write_scene(simulate_scene("aster", size=(240, 240), seed=seed, n_points=10), d, overwrite=True)
+        write_scene(
+            simulate_scene("aster", size=(240, 240), seed=seed, n_points=10), d, overwrite=True
+        )
         cfg = root / f"scene{seed}.toml"
         cfg.write_text(CONFIG.format(d=d))
         paths.append(cfg)
     bad = root / "AST_L1A_corrupt.hdf"
-    bad.write_bytes(b"\x0e\x03\x13\x01" + bytes(range(256)) * 8)      # HDF4 magic, then junk
+    bad.write_bytes(b"\x0e\x03\x13\x01" + bytes(range(256)) * 8)  # HDF4 magic, then junk
     paths.append(bad)
     listing = root / "scenes.txt"
     listing.write_text("# three scenes\n" + "\n".join(p.name for p in paths) + "\n")
@@ -50,8 +53,11 @@ def scenes(tmp_path_factory):
 
 def _check(result, out):
     rows = {r["name"]: r for r in result["scenes"]}
-    assert [rows[n]["status"] for n in ("scene4", "scene5", "AST_L1A_corrupt")] == \
-        ["done", "done", "failed"]
+    assert [rows[n]["status"] for n in ("scene4", "scene5", "AST_L1A_corrupt")] == [
+        "done",
+        "done",
+        "failed",
+    ]
     reason = rows["AST_L1A_corrupt"]["reason"]
     assert "AST_L1A_corrupt.hdf" in reason and "\n" not in reason and "Traceback" not in reason
     assert result["summary"] == {"done": 2, "failed": 1, "skipped": 0, "pending": 0}
@@ -67,7 +73,7 @@ def _check(result, out):
 def test_batch_on_the_pool_and_resume(scenes, tmp_path, capsys):
     _, _, listing = scenes
     out = tmp_path / "out"
-    assert cli.main(["batch", str(listing), "-o", str(out), "--workers", "2"]) == 1   # one failed
+    assert cli.main(["batch", str(listing), "-o", str(out), "--workers", "2"]) == 1  # one failed
     result = json.loads((out / "batch.json").read_text())
     assert result["backend"] == "pool" and result["workers"] == 2
     _check(result, out)
@@ -99,7 +105,11 @@ def test_list_files_names_and_missing_scenes(tmp_path):
     lst = tmp_path / "l.txt"
     lst.write_text("a/x.toml\nb/x.toml  # the same stem\n\nnone.hdf\n")
     sc = expand_inputs([lst])
-    assert [(s.name, s.kind) for s in sc] == [("x", "config"), ("x_2", "config"), ("none", "missing")]
+    assert [(s.name, s.kind) for s in sc] == [
+        ("x", "config"),
+        ("x_2", "config"),
+        ("none", "missing"),
+    ]
     result = run_batch([sc[2]], tmp_path / "out", workers=1)
     row = result["scenes"][0]
     assert row["status"] == "failed" and row["reason"].endswith("none.hdf: not found")

@@ -1,5 +1,6 @@
 """Each option's choices live once (issue #23): the library's Literal aliases give the CLI's
 ``choices``, the configuration checks and the generated docs."""
+
 import argparse
 
 import pytest
@@ -20,27 +21,41 @@ def _choices(command: str, option: str):
     return tuple(action.choices)
 
 
-@pytest.mark.parametrize("command, option, choices", [
-    ("dem", "--matcher", MATCHERS), ("dem", "--gridding", GRIDDING_METHODS),
-    ("dem", "--jitter-correction", JITTER_AXES), ("dem", "--dem-vertical", VERTICALS),
-    ("filter", "--dem-vertical", VERTICALS), ("ortho", "--resampling", RESAMPLINGS),
-    ("ortho", "--dem-vertical", VERTICALS), ("assess", "--ref-vertical", VERTICALS),
-    ("uncertainty", "--method", UNCERTAINTY_METHODS),
-])
+@pytest.mark.parametrize(
+    "command, option, choices",
+    [
+        ("dem", "--matcher", MATCHERS),
+        ("dem", "--gridding", GRIDDING_METHODS),
+        ("dem", "--jitter-correction", JITTER_AXES),
+        ("dem", "--dem-vertical", VERTICALS),
+        ("filter", "--dem-vertical", VERTICALS),
+        ("ortho", "--resampling", RESAMPLINGS),
+        ("ortho", "--dem-vertical", VERTICALS),
+        ("assess", "--ref-vertical", VERTICALS),
+        ("uncertainty", "--method", UNCERTAINTY_METHODS),
+    ],
+)
 def test_cli_choices_are_the_librarys(command, option, choices):
     assert _choices(command, option) == choices
 
 
 def test_ortho_kernels_cover_the_resampling_choices():
     from stereodem.ortho.drm import RESAMPLING
+
     assert set(RESAMPLING) == set(RESAMPLINGS)
 
 
-@pytest.mark.parametrize("section, key, value", [
-    ("stereo.matching", "matcher", "bm"), ("stereo.gridding", "method", "median"),
-    ("jitter", "axes", "yaw"), ("ortho", "resampling", "area"),
-    ("uncertainty", "method", "exact"), ("ortho", "fill_dem_vertical", "navd88"),
-])
+@pytest.mark.parametrize(
+    "section, key, value",
+    [
+        ("stereo.matching", "matcher", "bm"),
+        ("stereo.gridding", "method", "median"),
+        ("jitter", "axes", "yaw"),
+        ("ortho", "resampling", "area"),
+        ("uncertainty", "method", "exact"),
+        ("ortho", "fill_dem_vertical", "navd88"),
+    ],
+)
 def test_configuration_refuses_other_values_naming_the_choices(section, key, value):
     cfg = Config(InputSettings(left="l.tif", right="r.tif"), "out")
     owner = cfg
@@ -53,5 +68,5 @@ def test_configuration_refuses_other_values_naming_the_choices(section, key, val
 
 def test_docs_list_the_literal_choices():
     text = configuration_markdown()
-    assert "| `fill_dem_vertical` | {\"geoid\", \"ellipsoid\"}, optional |" in text
+    assert '| `fill_dem_vertical` | {"geoid", "ellipsoid"}, optional |' in text
     assert "{" + ", ".join(f'"{m}"' for m in MATCHERS) + "}" in text

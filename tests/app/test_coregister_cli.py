@@ -1,5 +1,6 @@
 """``stereodem coregister`` end to end on a small real-DEM crop; bad inputs: one line, exit 1,
 nothing written."""
+
 from __future__ import annotations
 
 import json
@@ -19,10 +20,16 @@ def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("coreg")
     full = DEM.bundled()
     ref = DEM(full.heights[:150, :150].copy(), full.transform, full.crs, "geoid")
-    dem, _ = inject_errors(ref, InjectedErrors(dz=2.0, heading_deg=190.0,
-                                               along_sines=[(1.5, 3000.0, 0.0)],
-                                               noise=VariogramModel(np.array([150.0]), np.array([0.25])),
-                                               seed=1))
+    dem, _ = inject_errors(
+        ref,
+        InjectedErrors(
+            dz=2.0,
+            heading_deg=190.0,
+            along_sines=[(1.5, 3000.0, 0.0)],
+            noise=VariogramModel(np.array([150.0]), np.array([0.25])),
+            seed=1,
+        ),
+    )
     ref.write(d / "ref.tif")
     dem.write(d / "dem.tif")
     far = DEM(ref.heights, ref.transform @ Affine.translation(3000, 0), ref.crs, "geoid")
@@ -33,8 +40,20 @@ def files(tmp_path_factory):
 
 def test_coregister_writes_dem_json_and_figures(files, capsys):
     out = files / "out"
-    rc = main(["coregister", str(files / "dem.tif"), "--ref", str(files / "ref.tif"),
-               "--chain", "vshift,along_track", "--track-angle", "190", "-o", str(out)])
+    rc = main(
+        [
+            "coregister",
+            str(files / "dem.tif"),
+            "--ref",
+            str(files / "ref.tif"),
+            "--chain",
+            "vshift,along_track",
+            "--track-angle",
+            "190",
+            "-o",
+            str(out),
+        ]
+    )
     assert rc == 0
     rep = json.loads((out / "coregistration.json").read_text())
     assert [s["step"] for s in rep["steps"]] == ["vshift", "along_track"]
@@ -44,20 +63,28 @@ def test_coregister_writes_dem_json_and_figures(files, capsys):
     d = DEM.from_file(out / "dem_coregistered.tif")
     assert d.vertical == "geoid" and d.shape == (150, 150)
     # a second run into the same folder is refused without --overwrite
-    rc = main(["coregister", str(files / "dem.tif"), "--ref", str(files / "ref.tif"), "-o", str(out)])
+    rc = main(
+        ["coregister", str(files / "dem.tif"), "--ref", str(files / "ref.tif"), "-o", str(out)]
+    )
     assert rc == 1
 
 
-@pytest.mark.parametrize("extra, message", [
-    (["--ref", "far.tif"], "does not overlap"),
-    (["--ref", "unknown.tif"], "vertical reference unknown"),
-    (["--ref", "ref.tif", "--chain", "along_track"], "heading"),
-    (["--ref", "ref.tif", "--chain", "nuth_kaab,bogus"], "unknown co-registration step"),
-])
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--ref", "far.tif"], "does not overlap"),
+        (["--ref", "unknown.tif"], "vertical reference unknown"),
+        (["--ref", "ref.tif", "--chain", "along_track"], "heading"),
+        (["--ref", "ref.tif", "--chain", "nuth_kaab,bogus"], "unknown co-registration step"),
+    ],
+)
 def test_bad_input_is_one_line_and_writes_nothing(files, capsys, extra, message):
     out = files / f"bad_{abs(hash(tuple(extra)))}"
-    args = ["coregister", str(files / "dem.tif")] + \
-        [str(files / a) if a.endswith(".tif") else a for a in extra] + ["-o", str(out)]
+    args = (
+        ["coregister", str(files / "dem.tif")]
+        + [str(files / a) if a.endswith(".tif") else a for a in extra]
+        + ["-o", str(out)]
+    )
     rc = main(args)
     err = capsys.readouterr().err.strip()
     assert rc == 1
@@ -68,9 +95,21 @@ def test_bad_input_is_one_line_and_writes_nothing(files, capsys, extra, message)
 @pytest.mark.slow
 def test_assess_error_analysis_adds_section_and_figures(files):
     import json as _json
+
     out = files / "assess"
-    rc = main(["assess", str(files / "dem.tif"), "--ref", str(files / "ref.tif"), "--error-analysis",
-               "--chain", "vshift", "-o", str(out)])
+    rc = main(
+        [
+            "assess",
+            str(files / "dem.tif"),
+            "--ref",
+            str(files / "ref.tif"),
+            "--error-analysis",
+            "--chain",
+            "vshift",
+            "-o",
+            str(out),
+        ]
+    )
     assert rc == 0
     rep = _json.loads((out / "report.json").read_text())
     ea = rep["error_analysis"]
@@ -87,9 +126,17 @@ def test_track_heading_of_a_pushbroom_model_and_tag_round_trip(tmp_path):
         track_heading_of,
     )
     from stereodem.sensor.models.pushbroom import PushbroomModel
-    left, _ = PushbroomModel.synthetic_pair(40.0, 39.0, width=400, height=400, gsd=15.0,
-                                            heading_deg=195.0, first_tilt_deg=0.0,
-                                            backward_tilt_deg=-27.6)
+
+    left, _ = PushbroomModel.synthetic_pair(
+        40.0,
+        39.0,
+        width=400,
+        height=400,
+        gsd=15.0,
+        heading_deg=195.0,
+        first_tilt_deg=0.0,
+        backward_tilt_deg=-27.6,
+    )
     hdg = track_heading(left, (400, 400))
     # the ground track turns from the orbit's 195° by the Earth's rotation under it:
     # ω_E·R·cos(39°)/v_ground ≈ 7.29e-5 · 6.371e6 · 0.777 / 6.8e3 rad ≈ 3.0° (descending: to the west)
@@ -105,14 +152,30 @@ def test_assess_with_a_sensor_sigma_map_reports_the_explained_share(files):
     import json as _json
 
     from stereodem.core.raster import write_geotiff
+
     ref = DEM.from_file(files / "ref.tif")
-    write_geotiff(files / "sigma.tif", np.full(ref.shape, 0.3, np.float32), ref.transform, ref.crs,
-                  np.nan)
+    write_geotiff(
+        files / "sigma.tif", np.full(ref.shape, 0.3, np.float32), ref.transform, ref.crs, np.nan
+    )
     out = files / "assess_sigma"
-    rc = main(["assess", str(files / "dem.tif"), "--ref", str(files / "ref.tif"), "--chain",
-               "vshift", "--sigma-map", str(files / "sigma.tif"), "-o", str(out)])
+    rc = main(
+        [
+            "assess",
+            str(files / "dem.tif"),
+            "--ref",
+            str(files / "ref.tif"),
+            "--chain",
+            "vshift",
+            "--sigma-map",
+            str(files / "sigma.tif"),
+            "-o",
+            str(out),
+        ]
+    )
     assert rc == 0
-    sm = _json.loads((out / "report.json").read_text())["error_analysis"]["heteroscedasticity"]["sensor_model"]
+    sm = _json.loads((out / "report.json").read_text())["error_analysis"]["heteroscedasticity"][
+        "sensor_model"
+    ]
     # injected noise σ 0.5 m plus a 1.5 m along-track sine left in: 0.3 m explains a small share
     assert 0.0 < sm["explained_variance_share"] < 0.3
     assert sm["rms_sigma"] == pytest.approx(0.3, rel=1e-3)
@@ -124,19 +187,34 @@ def test_reference_on_another_grid_crs_and_vertical_is_warped_and_converted(file
     from affine import Affine as A
 
     from stereodem.post import warp
+
     ref = DEM.from_file(files / "ref.tif")
     t = A(90.0, 0, 0, 0, -90.0, 0)
     from stereodem.core import geodesy
+
     w, s, e, n = ref.bounds_lonlat()
     x, y = geodesy.lonlat_to_crs(np.array([w, e]), np.array([s, n]), "EPSG:32637")
     t = A(90.0, 0, float(x.min()), 0, -90.0, float(y.max()))
     shape = (int((y.max() - y.min()) / 90), int((x.max() - x.min()) / 90))
-    z = warp.to_grid(ref.heights, ref.transform, ref.crs, t, "EPSG:32637", shape, resampling="cubic")
+    z = warp.to_grid(
+        ref.heights, ref.transform, ref.crs, t, "EPSG:32637", shape, resampling="cubic"
+    )
     utm = DEM(z, t, "EPSG:32637", "geoid").to_reference("ellipsoid")
     utm.write(tmp_path / "ref_utm_ell.tif")
     out = tmp_path / "o"
-    rc = main(["coregister", str(files / "ref.tif"), "--ref", str(tmp_path / "ref_utm_ell.tif"),
-               "--chain", "vshift", "-o", str(out), "--no-figures"])
+    rc = main(
+        [
+            "coregister",
+            str(files / "ref.tif"),
+            "--ref",
+            str(tmp_path / "ref_utm_ell.tif"),
+            "--chain",
+            "vshift",
+            "-o",
+            str(out),
+            "--no-figures",
+        ]
+    )
     assert rc == 0
     rep = json.loads((out / "coregistration.json").read_text())
     assert "converted from ellipsoid to geoid" in rep["vertical"]
@@ -146,6 +224,7 @@ def test_reference_on_another_grid_crs_and_vertical_is_warped_and_converted(file
 def test_stable_mask_raster_and_include(files, tmp_path):
     from stereodem.core.raster import write_geotiff
     from stereodem.post.coreg import StableMask
+
     ref = DEM.from_file(files / "ref.tif")
     m = np.zeros(ref.shape, np.uint8)
     m[:, :75] = 1
@@ -153,8 +232,26 @@ def test_stable_mask_raster_and_include(files, tmp_path):
     got = StableMask(raster=str(tmp_path / "m.tif")).array(ref)
     assert got[:, :75].all() and not got[:, 76:].any()
     t = ref.transform
-    ring = [[t.c, t.f], [t.c + 30 * t.a, t.f], [t.c + 30 * t.a, t.f + 30 * t.e], [t.c, t.f + 30 * t.e], [t.c, t.f]]
-    (tmp_path / "inc.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [
-        {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+    ring = [
+        [t.c, t.f],
+        [t.c + 30 * t.a, t.f],
+        [t.c + 30 * t.a, t.f + 30 * t.e],
+        [t.c, t.f + 30 * t.e],
+        [t.c, t.f],
+    ]
+    (tmp_path / "inc.geojson").write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {},
+                        "geometry": {"type": "Polygon", "coordinates": [ring]},
+                    }
+                ],
+            }
+        )
+    )
     inc = StableMask(include=[str(tmp_path / "inc.geojson")]).array(ref)
     assert inc.sum() == 900 and inc[:30, :30].all()

@@ -6,6 +6,7 @@ The scene is a small simulated ASTER-like pair, built once per module; the deriv
 files (constant images, a 16-bit image, seed DEMs elsewhere or in feet, a huge declared image,
 binary files, bad TOML files) are made from it.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -26,6 +27,7 @@ from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_s
 from stereodem import cli
 
 # ----------------------------------------------------------------------------- fixtures
+
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
@@ -58,13 +60,23 @@ def hostile(sim, tmp_path_factory):
     with rasterio.open(sim / "truth_dem.tif") as ds:
         prof, z = ds.profile, ds.read(1)
     far = dict(prof, transform=prof["transform"] @ rasterio.Affine.translation(40000, 0))
-    with rasterio.open(d / "seed_far.tif", "w", **far) as out:     # ~600 km east of the scene
+    with rasterio.open(d / "seed_far.tif", "w", **far) as out:  # ~600 km east of the scene
         out.write(z[None])
     with rasterio.open(d / "seed_feet.tif", "w", **prof) as out:
         out.write((z * 3.28084)[None].astype(prof["dtype"]))
     # a GeoTIFF declaring 200 000 x 200 000 pixels (sparse: the file itself is tiny)
-    with rasterio.open(d / "huge.tif", "w", driver="GTiff", width=200_000, height=200_000, count=1,
-                       dtype="uint8", tiled=True, compress="deflate", SPARSE_OK=True) as out:
+    with rasterio.open(
+        d / "huge.tif",
+        "w",
+        driver="GTiff",
+        width=200_000,
+        height=200_000,
+        count=1,
+        dtype="uint8",
+        tiled=True,
+        compress="deflate",
+        SPARSE_OK=True,
+    ) as out:
         pass
     shutil.copy(sim / "left.model.json", d / "huge.model.json")
     f["huge"] = d / "huge.tif"
@@ -78,6 +90,7 @@ def hostile(sim, tmp_path_factory):
 
 # ----------------------------------------------------------------------------- helpers
 
+
 def _sha(path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
@@ -89,62 +102,170 @@ def _read(path):
 
 # ----------------------------------------------------------------------------- fast: checked before work
 
+
 def _dem(sim, out, *extra):
     return ["dem", sim / "left.tif", sim / "right.tif", "-o", out, "--workers", "1", *extra]
 
 
 BEFORE_WORK = {
     # id: (argv builder(sim, hostile, tmp), command, message pattern)
-    "out_under_regular_file": (lambda s, h, t: _dem(s, h["a_file"] / "out", *HR), "dem",
-                               r"not a (writable )?folder|cannot be created"),
-    "out_under_proc": (lambda s, h, t: _dem(s, "/proc/stereodem_test/out", *HR), "dem",
-                       r"cannot be created|not a writable folder"),
-    "declared_image_200000_squared": (lambda s, h, t: ["dem", h["huge"], s / "right.tif", "-o", t / "out", *HR],
-                                      "dem", r"memory|too large"),
-    "res_0.001_absurd_lattice": (lambda s, h, t: _dem(s, t / "out", "--res", "0.001", *HR), "dem",
-                                 r"lattice|cells"),
+    "out_under_regular_file": (
+        lambda s, h, t: _dem(s, h["a_file"] / "out", *HR),
+        "dem",
+        r"not a (writable )?folder|cannot be created",
+    ),
+    "out_under_proc": (
+        lambda s, h, t: _dem(s, "/proc/stereodem_test/out", *HR),
+        "dem",
+        r"cannot be created|not a writable folder",
+    ),
+    "declared_image_200000_squared": (
+        lambda s, h, t: ["dem", h["huge"], s / "right.tif", "-o", t / "out", *HR],
+        "dem",
+        r"memory|too large",
+    ),
+    "res_0.001_absurd_lattice": (
+        lambda s, h, t: _dem(s, t / "out", "--res", "0.001", *HR),
+        "dem",
+        r"lattice|cells",
+    ),
     "res_negative": (lambda s, h, t: _dem(s, t / "out", "--res", "-30", *HR), "dem", r"--res"),
-    "tile_size_0": (lambda s, h, t: _dem(s, t / "out", "--tile-size", "0", *HR), "dem", r"tile_size"),
-    "tile_timeout_negative": (lambda s, h, t: _dem(s, t / "out", "--tile-timeout", "-5", *HR), "dem",
-                              r"tile_timeout"),
+    "tile_size_0": (
+        lambda s, h, t: _dem(s, t / "out", "--tile-size", "0", *HR),
+        "dem",
+        r"tile_size",
+    ),
+    "tile_timeout_negative": (
+        lambda s, h, t: _dem(s, t / "out", "--tile-timeout", "-5", *HR),
+        "dem",
+        r"tile_timeout",
+    ),
     "workers_0": (lambda s, h, t: _dem(s, t / "out", "--workers", "0", *HR), "dem", r"workers"),
-    "height_range_inverted": (lambda s, h, t: _dem(s, t / "out", "--height-range", "3500", "1000"), "dem",
-                              r"height.range"),
-    "same_image_twice_zero_base": (lambda s, h, t: ["dem", s / "left.tif", s / "left.tif", "-o", t / "out", *HR],
-                                   "dem", r"base"),
-    "all_zeros_image": (lambda s, h, t: ["dem", h["zeros"], s / "right.tif", "-o", t / "out", *HR], "dem",
-                        r"texture|constant"),
-    "constant_image": (lambda s, h, t: ["dem", s / "left.tif", h["constant"], "-o", t / "out", *HR], "dem",
-                       r"texture|constant"),
-    "seed_dem_outside_scene": (lambda s, h, t: _dem(s, t / "out", "--seed-dem", h["seed_far"],
-                                                             "--dem-vertical", "ellipsoid"), "dem",
-                               r"seed DEM.*(cover|outside)"),
-    "missing_image": (lambda s, h, t: ["dem", t / "nope.tif", s / "right.tif", "-o", t / "out", *HR], "dem",
-                      r"nope.tif"),
-    "binary_image": (lambda s, h, t: ["dem", h["binary"], s / "right.tif", "-o", t / "out", *HR], "dem",
-                     r"binary.bin"),
-    "assess_checkpoints_binary": (lambda s, h, t: ["assess", s / "truth_dem.tif", "--ref", s / "truth_dem.tif",
-                                                   "--checkpoints", h["binary"], "-o", t / "out"],
-                                  "assess", r"binary.bin.*(text|check)"),
-    "assess_checkpoints_missing": (lambda s, h, t: ["assess", s / "truth_dem.tif", "--ref", s / "truth_dem.tif",
-                                                    "--checkpoints", t / "none.csv", "-o", t / "out"],
-                                   "assess", r"none.csv"),
-    "ortho_out_is_its_input": (lambda s, h, t: ["ortho", t / "in.tif", "--dem", s / "truth_dem.tif",
-                                                "-o", t / "in.tif"], "ortho", r"input"),
-    "ortho_out_is_its_input_overwrite": (lambda s, h, t: ["ortho", t / "in.tif", "--dem", s / "truth_dem.tif",
-                                                          "-o", t / "in.tif", "--overwrite"], "ortho", r"input"),
-    "ortho_out_is_its_dem_overwrite": (lambda s, h, t: ["ortho", t / "in.tif", "--dem", t / "dem.tif",
-                                                        "-o", t / "dem.tif", "--overwrite"], "ortho", r"input"),
-    "filter_out_is_its_input_overwrite": (lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "dem.tif",
-                                                           "--overwrite"], "filter", r"input"),
-    "filter_out_is_its_score_layer": (lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "score.tif",
-                                                       "--overwrite"], "filter", r"input"),
-    "ortho_res_0.0001_absurd_grid": (lambda s, h, t: ["ortho", t / "in.tif", "--dem", s / "truth_dem.tif",
-                                                      "-o", t / "out" / "o.tif", "--res", "0.0001"],
-                                     "ortho", r"cells|grid"),
+    "height_range_inverted": (
+        lambda s, h, t: _dem(s, t / "out", "--height-range", "3500", "1000"),
+        "dem",
+        r"height.range",
+    ),
+    "same_image_twice_zero_base": (
+        lambda s, h, t: ["dem", s / "left.tif", s / "left.tif", "-o", t / "out", *HR],
+        "dem",
+        r"base",
+    ),
+    "all_zeros_image": (
+        lambda s, h, t: ["dem", h["zeros"], s / "right.tif", "-o", t / "out", *HR],
+        "dem",
+        r"texture|constant",
+    ),
+    "constant_image": (
+        lambda s, h, t: ["dem", s / "left.tif", h["constant"], "-o", t / "out", *HR],
+        "dem",
+        r"texture|constant",
+    ),
+    "seed_dem_outside_scene": (
+        lambda s, h, t: _dem(
+            s, t / "out", "--seed-dem", h["seed_far"], "--dem-vertical", "ellipsoid"
+        ),
+        "dem",
+        r"seed DEM.*(cover|outside)",
+    ),
+    "missing_image": (
+        lambda s, h, t: ["dem", t / "nope.tif", s / "right.tif", "-o", t / "out", *HR],
+        "dem",
+        r"nope.tif",
+    ),
+    "binary_image": (
+        lambda s, h, t: ["dem", h["binary"], s / "right.tif", "-o", t / "out", *HR],
+        "dem",
+        r"binary.bin",
+    ),
+    "assess_checkpoints_binary": (
+        lambda s, h, t: [
+            "assess",
+            s / "truth_dem.tif",
+            "--ref",
+            s / "truth_dem.tif",
+            "--checkpoints",
+            h["binary"],
+            "-o",
+            t / "out",
+        ],
+        "assess",
+        r"binary.bin.*(text|check)",
+    ),
+    "assess_checkpoints_missing": (
+        lambda s, h, t: [
+            "assess",
+            s / "truth_dem.tif",
+            "--ref",
+            s / "truth_dem.tif",
+            "--checkpoints",
+            t / "none.csv",
+            "-o",
+            t / "out",
+        ],
+        "assess",
+        r"none.csv",
+    ),
+    "ortho_out_is_its_input": (
+        lambda s, h, t: ["ortho", t / "in.tif", "--dem", s / "truth_dem.tif", "-o", t / "in.tif"],
+        "ortho",
+        r"input",
+    ),
+    "ortho_out_is_its_input_overwrite": (
+        lambda s, h, t: [
+            "ortho",
+            t / "in.tif",
+            "--dem",
+            s / "truth_dem.tif",
+            "-o",
+            t / "in.tif",
+            "--overwrite",
+        ],
+        "ortho",
+        r"input",
+    ),
+    "ortho_out_is_its_dem_overwrite": (
+        lambda s, h, t: [
+            "ortho",
+            t / "in.tif",
+            "--dem",
+            t / "dem.tif",
+            "-o",
+            t / "dem.tif",
+            "--overwrite",
+        ],
+        "ortho",
+        r"input",
+    ),
+    "filter_out_is_its_input_overwrite": (
+        lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "dem.tif", "--overwrite"],
+        "filter",
+        r"input",
+    ),
+    "filter_out_is_its_score_layer": (
+        lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "score.tif", "--overwrite"],
+        "filter",
+        r"input",
+    ),
+    "ortho_res_0.0001_absurd_grid": (
+        lambda s, h, t: [
+            "ortho",
+            t / "in.tif",
+            "--dem",
+            s / "truth_dem.tif",
+            "-o",
+            t / "out" / "o.tif",
+            "--res",
+            "0.0001",
+        ],
+        "ortho",
+        r"cells|grid",
+    ),
     "overwrite_foreign_folder_holding_a_products_name": (
-        lambda s, h, t: _dem(s, t / "foreign", "--overwrite", *HR), "dem",
-        r"not a stereodem output.*holds dem.tif"),
+        lambda s, h, t: _dem(s, t / "foreign", "--overwrite", *HR),
+        "dem",
+        r"not a stereodem output.*holds dem.tif",
+    ),
 }
 
 
@@ -170,18 +291,18 @@ def test_clear_error_before_any_work(case, sim, hostile, tmp_path, capsys):
 
 
 TOML_CASES = {
-    "tile_size_string": ("[rectification]\ntile_size = \"big\"", r"tile_size"),
+    "tile_size_string": ('[rectification]\ntile_size = "big"', r"tile_size"),
     "tile_size_1": ("[rectification]\ntile_size = 1", r"tile_size"),
-    "workers_string": ("[run]\nworkers = \"two\"", r"workers"),
+    "workers_string": ('[run]\nworkers = "two"', r"workers"),
     "workers_negative": ("[run]\nworkers = -3", r"workers"),
-    "height_range_string": ("[rectification]\nheight_range = \"1000-3500\"", r"height_range"),
-    "enabled_no": ("[filters]\nenabled = \"no\"", r"enabled"),
+    "height_range_string": ('[rectification]\nheight_range = "1000-3500"', r"height_range"),
+    "enabled_no": ('[filters]\nenabled = "no"', r"enabled"),
     "model_lidar": (None, r"model"),
     "max_hole_size_negative": ("[fill]\nmax_hole_size = -5", r"max_hole_size"),
-    "unknown_key": ("[matching]\nmatch = \"sgm\"", r"unknown"),
+    "unknown_key": ('[matching]\nmatch = "sgm"', r"unknown"),
     "unknown_section": ("[stereo]\ntile_size = 256", r"stereo"),
     "tile_timeout_negative": ("[run]\ntile_timeout = -5", r"tile_timeout"),
-    "res_string": ("[gridding]\nres = \"30 m\"", r"res"),
+    "res_string": ('[gridding]\nres = "30 m"', r"res"),
 }
 
 
@@ -193,10 +314,10 @@ def test_bad_toml_is_a_clear_error(case, sim, tmp_path, capsys):
         job_toml(cfg, sim, tmp_path / "out", inputs='model = "lidar"')
     else:
         cfg.write_text(f"""[inputs]
-left = "{sim / 'left.tif'}"
-right = "{sim / 'right.tif'}"
+left = "{sim / "left.tif"}"
+right = "{sim / "right.tif"}"
 [output]
-dir = "{tmp_path / 'out'}"
+dir = "{tmp_path / "out"}"
 {body}
 """)
     code, _, err = run_cli(capsys, ["run", cfg])
@@ -206,7 +327,9 @@ dir = "{tmp_path / 'out'}"
 
 @pytest.mark.parametrize("what", ["binary", "folder", "missing", "out_under_file"])
 def test_unusable_config_file_is_a_clear_error(what, sim, hostile, tmp_path, capsys):
-    path = {"binary": hostile["binary"], "folder": tmp_path, "missing": tmp_path / "none.toml"}.get(what)
+    path = {"binary": hostile["binary"], "folder": tmp_path, "missing": tmp_path / "none.toml"}.get(
+        what
+    )
     if what == "out_under_file":
         path = job_toml(tmp_path / "job.toml", sim, hostile["a_file"] / "out")
     code, _, err = run_cli(capsys, ["run", path])
@@ -223,13 +346,19 @@ def test_a_one_line_error_for_every_cli_failure(capsys, tmp_path):
 
 # ----------------------------------------------------------------------------- the output-folder lock
 
+
 def test_lock_is_exclusive_between_processes_and_released(tmp_path):
     from stereodem.outlock import OutputLock, OutputLockedError
+
     folder = tmp_path / "out"
     folder.mkdir()
-    code = ("import sys, time; from stereodem.outlock import OutputLock\n"
-            "with OutputLock(sys.argv[1]):\n    print('locked', flush=True); time.sleep(60)\n")
-    holder = subprocess.Popen([sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE, text=True)
+    code = (
+        "import sys, time; from stereodem.outlock import OutputLock\n"
+        "with OutputLock(sys.argv[1]):\n    print('locked', flush=True); time.sleep(60)\n"
+    )
+    holder = subprocess.Popen(
+        [sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE, text=True
+    )
     try:
         assert holder.stdout.readline().strip() == "locked"
         with pytest.raises(OutputLockedError, match=rf"PID {holder.pid}"):
@@ -241,25 +370,34 @@ def test_lock_is_exclusive_between_processes_and_released(tmp_path):
     # the holder died without cleaning up (kill -9): the stale lock is recovered
     with OutputLock(folder) as lock:
         assert lock.path.exists()
-    assert not any(folder.iterdir())                 # released: the lock file is gone
+    assert not any(folder.iterdir())  # released: the lock file is gone
 
 
 def test_lock_file_left_by_a_dead_process_does_not_block(tmp_path):
     from stereodem.outlock import LOCK_NAME, OutputLock
+
     folder = tmp_path / "out"
     folder.mkdir()
-    (folder / LOCK_NAME).write_text(json.dumps({"pid": 2 ** 22 + 12345, "host": "x"}))
-    with OutputLock(folder) as lock:                 # taken over, not OutputLockedError
+    (folder / LOCK_NAME).write_text(json.dumps({"pid": 2**22 + 12345, "host": "x"}))
+    with OutputLock(folder) as lock:  # taken over, not OutputLockedError
         assert json.loads(lock.path.read_text())["pid"] == os.getpid()
     assert not (folder / LOCK_NAME).exists()
 
 
 def test_overwrite_removes_only_stereodem_products(tmp_path):
     from stereodem.outlock import remove_products
+
     out = tmp_path / "out"
     (out / "raw").mkdir(parents=True)
     (out / "assess").mkdir()
-    for name in ("run.json", "dem.tif", "ortho_left.tif", "raw/dem.tif", "assess/report.json", "notes.txt"):
+    for name in (
+        "run.json",
+        "dem.tif",
+        "ortho_left.tif",
+        "raw/dem.tif",
+        "assess/report.json",
+        "notes.txt",
+    ):
         (out / name).write_text("x")
     remove_products(out, keep_tiles=False)
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
@@ -267,9 +405,11 @@ def test_overwrite_removes_only_stereodem_products(tmp_path):
 
 # ----------------------------------------------------------------------------- the tile cache
 
+
 def test_cache_entry_of_another_tile_or_corrupt_is_not_reused(tmp_path):
     from stereodem.stereo.runner import run_tiles
     from stereodem.stereo.tiling import Tile
+
     tiles = [Tile(0, 0, 10, 10, 0), Tile(10, 0, 10, 10, 1)]
     calls = []
 
@@ -280,15 +420,15 @@ def test_cache_entry_of_another_tile_or_corrupt_is_not_reused(tmp_path):
     res, fails, _ = run_tiles(fn, tiles, 1, cache_dir=tmp_path, cache_key="job-a")
     assert not fails and calls == [0, 1]
     files = sorted(tmp_path.glob("tile_*.npz"))
-    shutil.copy(files[0], files[1])                        # tile 0's result under tile 1's name
+    shutil.copy(files[0], files[1])  # tile 0's result under tile 1's name
     calls.clear()
     res, fails, _ = run_tiles(fn, tiles, 1, cache_dir=tmp_path, cache_key="job-a", resume=True)
     assert calls == [1] and res[1]["v"][0] == 11.0
-    files[0].write_bytes(files[0].read_bytes()[:100])      # truncated: a corrupt zip
+    files[0].write_bytes(files[0].read_bytes()[:100])  # truncated: a corrupt zip
     calls.clear()
     res, fails, _ = run_tiles(fn, tiles, 1, cache_dir=tmp_path, cache_key="job-a", resume=True)
     assert calls == [0] and res[0]["v"][0] == 1.0
-    calls.clear()                                          # another job's tiles are never reused
+    calls.clear()  # another job's tiles are never reused
     res, fails, _ = run_tiles(fn, tiles, 2, cache_dir=tmp_path, cache_key="job-b", resume=True)
     assert calls == [0, 1] and res[1]["v"][0] == 12.0
     # bit rot in a stored array: the checksum no longer matches
@@ -303,11 +443,25 @@ def test_cache_entry_of_another_tile_or_corrupt_is_not_reused(tmp_path):
 
 # ----------------------------------------------------------------------------- slow: whole runs
 
-def _run_toml(tmp_path, sim, out, *, extra="", rect="tile_size = 150\nheight_range = [1000, 3500]",
-              inputs=None, name="job.toml"):
-    inputs = inputs if inputs is not None else (
-        f'reference_dem = "{sim / "truth_dem.tif"}"\nreference_vertical = "ellipsoid"\n'
-        f'checkpoints = "{sim / "points.csv"}"')
+
+def _run_toml(
+    tmp_path,
+    sim,
+    out,
+    *,
+    extra="",
+    rect="tile_size = 150\nheight_range = [1000, 3500]",
+    inputs=None,
+    name="job.toml",
+):
+    inputs = (
+        inputs
+        if inputs is not None
+        else (
+            f'reference_dem = "{sim / "truth_dem.tif"}"\nreference_vertical = "ellipsoid"\n'
+            f'checkpoints = "{sim / "points.csv"}"'
+        )
+    )
     return job_toml(tmp_path / name, sim, out, extra=extra, rect=rect, inputs=inputs)
 
 
@@ -315,13 +469,25 @@ def _run_toml(tmp_path, sim, out, *, extra="", rect="tile_size = 150\nheight_ran
 def reference_run(sim, tmp_path_factory):
     """An uninterrupted ``stereodem run`` (workers 1) to compare resumed runs with."""
     d = tmp_path_factory.mktemp("ref")
-    cfg = _run_toml(d, sim, d / "out", rect="tile_size = 64\nheight_range = [1000, 3500]",
-                    extra="[ortho]\nboth = false\n[run]\nworkers = 1")
+    cfg = _run_toml(
+        d,
+        sim,
+        d / "out",
+        rect="tile_size = 64\nheight_range = [1000, 3500]",
+        extra="[ortho]\nboth = false\n[run]\nworkers = 1",
+    )
     assert cli.main(["-q", "run", str(cfg)]) == 0
     return d / "out"
 
 
-RASTERS = ("raw/dem.tif", "raw/score.tif", "raw/count.tif", "raw/raygap.tif", "dem.tif", "ortho_left.tif")
+RASTERS = (
+    "raw/dem.tif",
+    "raw/score.tif",
+    "raw/count.tif",
+    "raw/raygap.tif",
+    "dem.tif",
+    "ortho_left.tif",
+)
 
 
 def _assert_same_rasters(a, b):
@@ -340,7 +506,9 @@ def test_wrong_height_range_is_suspect_not_silent(sim, tmp_path, capsys):
     codes = [w["code"] for w in rep["warnings"]]
     assert "heights_at_search_bound" in codes and rep["status"] == "suspect"
     # --force keeps the product but the report still says why it is suspect
-    code, _, err = run_cli(capsys, _dem(sim, tmp_path / "f", "--height-range", "0", "500", "--force"))
+    code, _, err = run_cli(
+        capsys, _dem(sim, tmp_path / "f", "--height-range", "0", "500", "--force")
+    )
     assert code == 0, err
     rep = json.loads((tmp_path / "f" / "dem_report.json").read_text())
     assert "heights_at_search_bound" in [w["code"] for w in rep["warnings"]]
@@ -353,7 +521,9 @@ def test_wrong_height_range_is_suspect_not_silent(sim, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_wrong_height_range_in_run_stops_before_ortho(sim, tmp_path, capsys):
-    cfg = _run_toml(tmp_path, sim, tmp_path / "out", rect="tile_size = 300\nheight_range = [0, 500]")
+    cfg = _run_toml(
+        tmp_path, sim, tmp_path / "out", rect="tile_size = 300\nheight_range = [0, 500]"
+    )
     code, _, err = run_cli(capsys, ["run", cfg])
     assert_clear_error(code, err, "run", r"suspect|search range")
     info = json.loads((tmp_path / "out" / "run.json").read_text())
@@ -365,8 +535,12 @@ def test_wrong_height_range_in_run_stops_before_ortho(sim, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_seed_dem_in_feet_is_not_used_quietly(sim, hostile, tmp_path, capsys):
-    code, _, err = run_cli(capsys, _dem(sim, tmp_path / "d", "--seed-dem", hostile["seed_feet"],
-                                      "--dem-vertical", "ellipsoid"))
+    code, _, err = run_cli(
+        capsys,
+        _dem(
+            sim, tmp_path / "d", "--seed-dem", hostile["seed_feet"], "--dem-vertical", "ellipsoid"
+        ),
+    )
     assert_clear_error(code, err, "dem", r"seed DEM|suspect|search range")
 
 
@@ -384,8 +558,19 @@ def test_geographic_crs_gets_a_posting_in_degrees(sim, tmp_path, capsys):
 def test_16_bit_left_with_8_bit_right_gives_the_same_coverage(sim, hostile, tmp_path, capsys):
     code, _, err = run_cli(capsys, _dem(sim, tmp_path / "both8", *HR))
     assert code == 0, err
-    code, _, err = run_cli(capsys, ["dem", hostile["left16"], sim / "right.tif", "-o", tmp_path / "mixed",
-                                  "--workers", "1", *HR])
+    code, _, err = run_cli(
+        capsys,
+        [
+            "dem",
+            hostile["left16"],
+            sim / "right.tif",
+            "-o",
+            tmp_path / "mixed",
+            "--workers",
+            "1",
+            *HR,
+        ],
+    )
     assert code == 0, err
     z8, _ = _read(tmp_path / "both8" / "dem.tif")
     zm, _ = _read(tmp_path / "mixed" / "dem.tif")
@@ -400,8 +585,14 @@ def test_run_overwrite_with_another_configuration_leaves_nothing_stale(sim, tmp_
     cfg = _run_toml(tmp_path, sim, out, rect="tile_size = 300\nheight_range = [1000, 3500]")
     assert run_cli(capsys, ["run", cfg])[0] == 0
     assert (out / "ortho_right.tif").exists() and (out / "assess" / "report.json").exists()
-    cfg2 = _run_toml(tmp_path, sim, out, rect="tile_size = 300\nheight_range = [1000, 3500]",
-                     extra="[ortho]\nenabled = false\n[assess]\nenabled = false", name="job2.toml")
+    cfg2 = _run_toml(
+        tmp_path,
+        sim,
+        out,
+        rect="tile_size = 300\nheight_range = [1000, 3500]",
+        extra="[ortho]\nenabled = false\n[assess]\nenabled = false",
+        name="job2.toml",
+    )
     code, _, err = run_cli(capsys, ["run", cfg2, "--overwrite"])
     assert code == 0, err
     assert not (out / "ortho_left.tif").exists() and not (out / "ortho_right.tif").exists()
@@ -422,8 +613,13 @@ def test_damaged_cache_entry_is_recomputed_on_resume(damage, sim, reference_run,
         shutil.copy(tiles[0], tiles[3])
     else:
         tiles[3].write_bytes(b"PK\x03\x04 not a zip")
-    cfg = _run_toml(tmp_path, sim, out, rect="tile_size = 64\nheight_range = [1000, 3500]",
-                    extra="[ortho]\nboth = false\n[run]\nworkers = 1")
+    cfg = _run_toml(
+        tmp_path,
+        sim,
+        out,
+        rect="tile_size = 64\nheight_range = [1000, 3500]",
+        extra="[ortho]\nboth = false\n[run]\nworkers = 1",
+    )
     code, _, err = run_cli(capsys, ["run", cfg, "--resume"])
     assert code == 0, err
     _assert_same_rasters(reference_run, out)
@@ -453,19 +649,29 @@ def _alive(pid):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT],
-                         ids=["SIGKILL", "SIGTERM", "SIGINT"])
+@pytest.mark.parametrize(
+    "sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT], ids=["SIGKILL", "SIGTERM", "SIGINT"]
+)
 def test_killed_run_leaves_no_process_and_resumes_bit_identical(sig, sim, reference_run, tmp_path):
     out = tmp_path / "out"
-    cfg = _run_toml(tmp_path, sim, out, rect="tile_size = 64\nheight_range = [1000, 3500]",
-                    extra="[ortho]\nboth = false")
+    cfg = _run_toml(
+        tmp_path,
+        sim,
+        out,
+        rect="tile_size = 64\nheight_range = [1000, 3500]",
+        extra="[ortho]\nboth = false",
+    )
     # output to files, not pipes: orphaned workers would hold a pipe open
     log = open(tmp_path / "stderr.txt", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "stereodem.cli", "run", str(cfg), "--workers", "2"],
-                            stdout=subprocess.DEVNULL, stderr=log, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "stereodem.cli", "run", str(cfg), "--workers", "2"],
+        stdout=subprocess.DEVNULL,
+        stderr=log,
+        text=True,
+    )
     workers = []
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None:     # until the pool works on tiles
+    while time.monotonic() < deadline and proc.poll() is None:  # until the pool works on tiles
         workers = [k for k in _children(proc.pid)]
         if len(list((out / "tiles").glob("tile_*.npz"))) >= 2 and len(workers) >= 2:
             break
@@ -478,7 +684,7 @@ def test_killed_run_leaves_no_process_and_resumes_bit_identical(sig, sim, refere
     err = (tmp_path / "stderr.txt").read_text()
     time.sleep(2.0)
     left = [p for p in family if _alive(p)]
-    for p in left:                                        # do not leave them to the next test
+    for p in left:  # do not leave them to the next test
         os.kill(p, signal.SIGKILL)
     assert left == []
     assert proc.returncode != 0
@@ -486,23 +692,52 @@ def test_killed_run_leaves_no_process_and_resumes_bit_identical(sig, sim, refere
         assert "Traceback" not in err
         assert "--resume" in err.strip().splitlines()[-1]
     assert not (out / "run.json").exists()
-    r = subprocess.run([sys.executable, "-m", "stereodem.cli", "-q", "run", str(cfg), "--resume",
-                        "--workers", "2"], capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "stereodem.cli",
+            "-q",
+            "run",
+            str(cfg),
+            "--resume",
+            "--workers",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr
     _assert_same_rasters(reference_run, out)
 
 
 @pytest.mark.slow
 def test_two_concurrent_runs_into_one_folder_exactly_one_proceeds(sim, tmp_path):
-    cfgs = [_run_toml(tmp_path, sim, tmp_path / "out", name=f"job{k}.toml",
-                      rect="tile_size = 300\nheight_range = [1000, 3500]",
-                      extra=f"[matching]\nmatcher = \"{m}\"\n[ortho]\nenabled = false\n[assess]\nenabled = false"
-                            "\n[run]\nworkers = 1", inputs="")
-            for k, m in enumerate(("sgm", "ncc"))]
+    cfgs = [
+        _run_toml(
+            tmp_path,
+            sim,
+            tmp_path / "out",
+            name=f"job{k}.toml",
+            rect="tile_size = 300\nheight_range = [1000, 3500]",
+            extra=f'[matching]\nmatcher = "{m}"\n[ortho]\nenabled = false\n[assess]\nenabled = false'
+            "\n[run]\nworkers = 1",
+            inputs="",
+        )
+        for k, m in enumerate(("sgm", "ncc"))
+    ]
     for it in range(20):
         shutil.rmtree(tmp_path / "out", ignore_errors=True)
-        procs = [subprocess.Popen([sys.executable, "-m", "stereodem.cli", "-q", "run", str(c)],
-                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for c in cfgs]
+        procs = [
+            subprocess.Popen(
+                [sys.executable, "-m", "stereodem.cli", "-q", "run", str(c)],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for c in cfgs
+        ]
         res = [(p.wait(timeout=600), p.communicate()[1]) for p in procs]
         codes = sorted(c for c, _ in res)
         assert codes == [0, 1], (it, res)
@@ -512,10 +747,11 @@ def test_two_concurrent_runs_into_one_folder_exactly_one_proceeds(sim, tmp_path)
         winner = cfgs[[c for c, _ in res].index(0)]
         info = json.loads((tmp_path / "out" / "run.json").read_text())
         assert info["config"]["matching"]["matcher"] == ("sgm" if winner == cfgs[0] else "ncc")
-        assert not list((tmp_path / "out").glob(".stereodem*"))      # the lock is released
+        assert not list((tmp_path / "out").glob(".stereodem*"))  # the lock is released
 
 
 # ----------------------------------------------------------------------------- the sanity measures
+
 
 def test_base_to_height_of_the_simulated_aster_pair(sim):
     """ASTER 3N (nadir) / 3B (27.6 deg backward) has B/H ~ 0.6 (tan 27.6 deg = 0.52 plus the
@@ -523,6 +759,7 @@ def test_base_to_height_of_the_simulated_aster_pair(sim):
     from stereodem.sensor.io.sidecar import load_image_model
     from stereodem.stereo.plan import base_to_height
     from stereodem.stereo.sanity import MIN_BASE_TO_HEIGHT
+
     left, right = load_image_model(sim / "left.tif"), load_image_model(sim / "right.tif")
     bh = base_to_height(left, right, 2300.0)
     assert 0.5 < bh < 0.7
@@ -532,10 +769,11 @@ def test_base_to_height_of_the_simulated_aster_pair(sim):
 def test_texture_check_tells_noise_from_a_constant(sim):
     from stereodem.core.errors import InputError
     from stereodem.stereo.sanity import check_texture
+
     rng = np.random.default_rng(0)
     check_texture(rng.normal(100, 5, (64, 64)).astype(np.float32), "noise")
     img = np.full((64, 64), 7.0, np.float32)
-    img[::16, ::16] = 8.0                                   # a few specks: still no texture
+    img[::16, ::16] = 8.0  # a few specks: still no texture
     with pytest.raises(InputError, match="no texture"):
         check_texture(img, "specks")
     with pytest.raises(InputError, match="no valid pixel"):

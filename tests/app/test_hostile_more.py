@@ -13,6 +13,7 @@ traceback or a wrong product, checked in every command that takes them.
 Each error case asserts exit status 1, exactly one ``stereodem CMD: error:`` line naming the
 culprit, no traceback, and nothing written.
 """
+
 from __future__ import annotations
 
 import re
@@ -42,15 +43,60 @@ def _files(folder: Path) -> dict:
 
 # ----------------------------------------------------------------------------- CRS
 
+
 def _crs_cases():
-    dem = lambda s, o, c: ["dem", s / "left.tif", s / "right.tif", "-o", o, "--workers", "1", *HR, "--crs", c]
-    ortho = lambda s, o, c: ["ortho", s / "left.tif", "--dem", s / "truth_dem.tif", "-o", o / "o.tif", "--crs", c]
-    unc = lambda s, o, c: ["uncertainty", s / "left.tif", "--dem", s / "truth_dem.tif",
-                           "--sigma", "roll_bias=1", "-o", o, "--crs", c]
-    assess = lambda s, o, c: ["assess", s / "truth_dem.tif", "--ref", s / "truth_dem.tif",
-                              "--checkpoints", s / "points.csv", "--checkpoints-crs", c, "-o", o]
-    return {"dem": (dem, "--crs"), "ortho": (ortho, "--crs"), "uncertainty": (unc, "--crs"),
-            "assess": (assess, "--checkpoints-crs")}
+    dem = lambda s, o, c: [
+        "dem",
+        s / "left.tif",
+        s / "right.tif",
+        "-o",
+        o,
+        "--workers",
+        "1",
+        *HR,
+        "--crs",
+        c,
+    ]
+    ortho = lambda s, o, c: [
+        "ortho",
+        s / "left.tif",
+        "--dem",
+        s / "truth_dem.tif",
+        "-o",
+        o / "o.tif",
+        "--crs",
+        c,
+    ]
+    unc = lambda s, o, c: [
+        "uncertainty",
+        s / "left.tif",
+        "--dem",
+        s / "truth_dem.tif",
+        "--sigma",
+        "roll_bias=1",
+        "-o",
+        o,
+        "--crs",
+        c,
+    ]
+    assess = lambda s, o, c: [
+        "assess",
+        s / "truth_dem.tif",
+        "--ref",
+        s / "truth_dem.tif",
+        "--checkpoints",
+        s / "points.csv",
+        "--checkpoints-crs",
+        c,
+        "-o",
+        o,
+    ]
+    return {
+        "dem": (dem, "--crs"),
+        "ortho": (ortho, "--crs"),
+        "uncertainty": (unc, "--crs"),
+        "assess": (assess, "--checkpoints-crs"),
+    }
 
 
 @pytest.mark.parametrize("code_", ["EPSG:999999", "EPSG:4978", "not a crs"])
@@ -64,7 +110,9 @@ def test_unusable_crs_is_a_clear_error_in_every_command(command, code_, sim, tmp
 
 @pytest.mark.parametrize("section", ["gridding", "ortho"])
 def test_unusable_crs_in_a_configuration(section, sim, tmp_path, capsys):
-    cfg = job_toml(tmp_path / "job.toml", sim, tmp_path / "out", f'[{section}]\ncrs = "EPSG:999999"\n')
+    cfg = job_toml(
+        tmp_path / "job.toml", sim, tmp_path / "out", f'[{section}]\ncrs = "EPSG:999999"\n'
+    )
     code, _, err = run_cli(capsys, ["run", cfg])
     assert_clear_error(code, err, "run", rf"\[{section}\] crs.*EPSG:999999")
     assert not (tmp_path / "out").exists()
@@ -72,26 +120,73 @@ def test_unusable_crs_in_a_configuration(section, sim, tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- -o unusable
 
+
 def _out_cases(s):
     return {
         "dem": (lambda o: ["dem", s / "left.tif", s / "right.tif", "-o", o, "--workers", "1", *HR]),
-        "ortho": (lambda o: ["ortho", s / "left.tif", "--dem", s / "truth_dem.tif", "-o", o / "o.tif"]),
+        "ortho": (
+            lambda o: ["ortho", s / "left.tif", "--dem", s / "truth_dem.tif", "-o", o / "o.tif"]
+        ),
         "filter": (lambda o: ["filter", s / "truth_dem.tif", "-o", o / "clean.tif"]),
-        "assess": (lambda o: ["assess", s / "truth_dem.tif", "--ref", s / "truth_dem.tif", "-o", o]),
-        "uncertainty": (lambda o: ["uncertainty", s / "left.tif", "--dem", s / "truth_dem.tif",
-                                   "--sigma", "roll_bias=1", "-o", o]),
-        "adjust": (lambda o: ["adjust", s / "left.tif", "--gcps", s / "points.csv", "--model",
-                              "rpc-shift", "-o", o / "a.model.json"]),
-        "compare-models": (lambda o: ["compare-models", s / "left.tif", "--gcps", s / "points.csv",
-                                      "--models", "rpc-shift", "-o", o]),
+        "assess": (
+            lambda o: ["assess", s / "truth_dem.tif", "--ref", s / "truth_dem.tif", "-o", o]
+        ),
+        "uncertainty": (
+            lambda o: [
+                "uncertainty",
+                s / "left.tif",
+                "--dem",
+                s / "truth_dem.tif",
+                "--sigma",
+                "roll_bias=1",
+                "-o",
+                o,
+            ]
+        ),
+        "adjust": (
+            lambda o: [
+                "adjust",
+                s / "left.tif",
+                "--gcps",
+                s / "points.csv",
+                "--model",
+                "rpc-shift",
+                "-o",
+                o / "a.model.json",
+            ]
+        ),
+        "compare-models": (
+            lambda o: [
+                "compare-models",
+                s / "left.tif",
+                "--gcps",
+                s / "points.csv",
+                "--models",
+                "rpc-shift",
+                "-o",
+                o,
+            ]
+        ),
         "simulate": (lambda o: ["simulate", "--size", "64", "64", "-o", o]),
         "demo": (lambda o: ["demo", "-o", o]),
     }
 
 
 @pytest.mark.parametrize("where", ["under_a_file", "in_proc"])
-@pytest.mark.parametrize("command", ["dem", "ortho", "filter", "assess", "uncertainty", "adjust",
-                                     "compare-models", "simulate", "demo"])
+@pytest.mark.parametrize(
+    "command",
+    [
+        "dem",
+        "ortho",
+        "filter",
+        "assess",
+        "uncertainty",
+        "adjust",
+        "compare-models",
+        "simulate",
+        "demo",
+    ],
+)
 def test_output_that_cannot_be_created_is_a_clear_error(command, where, sim, tmp_path, capsys):
     a_file = tmp_path / "a_file.txt"
     a_file.write_text("not a folder\n")
@@ -133,7 +228,7 @@ def test_absurd_rpc_scale_in_every_format_names_the_file_and_key(name, value, tm
     assert n == 1
     path = tmp_path / name
     path.write_text(bad)
-    if name == "dg_scene_RPC.TXT":                   # the sidecar of an image, read through GDAL
+    if name == "dg_scene_RPC.TXT":  # the sidecar of an image, read through GDAL
         shutil.copy(FILES / "dg_scene.tif", tmp_path / "dg_scene.tif")
         path = tmp_path / "dg_scene.tif"
     with pytest.raises(RPCError) as e:
@@ -146,14 +241,24 @@ def test_absurd_rpc_scale_in_every_format_names_the_file_and_key(name, value, tm
 def test_every_absurd_rpb_normalisation_value_is_refused(key, tmp_path):
     m = read_rpc(FILES / "pleiades_rpcm.json")
     m.write_rpb(tmp_path / "ok.RPB")
-    assert read_rpc(tmp_path / "ok.RPB").line_scale == m.line_scale      # the writer round-trips
-    rpb_key = {"line_off": "lineOffset", "samp_off": "sampOffset", "line_scale": "lineScale",
-               "samp_scale": "sampScale", "lat_off": "latOffset", "lon_off": "longOffset",
-               "lat_scale": "latScale", "lon_scale": "longScale", "height_off": "heightOffset",
-               "height_scale": "heightScale"}[key]
+    assert read_rpc(tmp_path / "ok.RPB").line_scale == m.line_scale  # the writer round-trips
+    rpb_key = {
+        "line_off": "lineOffset",
+        "samp_off": "sampOffset",
+        "line_scale": "lineScale",
+        "samp_scale": "sampScale",
+        "lat_off": "latOffset",
+        "lon_off": "longOffset",
+        "lat_scale": "latScale",
+        "lon_scale": "longScale",
+        "height_off": "heightOffset",
+        "height_scale": "heightScale",
+    }[key]
     lo, hi = NORMALISATION_BOUNDS[key]
     for value in [hi * 10, 1e30] + ([lo / 10] if lo > 0 else []):
-        text = re.sub(rf"({rpb_key} = )[^;]*;", rf"\g<1>{value!r};", (tmp_path / "ok.RPB").read_text())
+        text = re.sub(
+            rf"({rpb_key} = )[^;]*;", rf"\g<1>{value!r};", (tmp_path / "ok.RPB").read_text()
+        )
         (tmp_path / "bad.RPB").write_text(text)
         with pytest.raises(RPCError, match=r"bad\.RPB.*not plausible"):
             read_rpc(tmp_path / "bad.RPB")
@@ -163,37 +268,66 @@ def test_absurd_rpb_sidecar_is_a_clear_error_in_ortho(sim, tmp_path, capsys):
     with rasterio.open(sim / "left.tif") as ds:
         prof, img = ds.profile, ds.read(1)
         m = RPCModel.from_rasterio(ds.rpcs, width=ds.width, height=ds.height)
-    with rasterio.open(tmp_path / "plain.tif", "w", **prof) as out:     # no RPC tags, no sidecar
+    with rasterio.open(tmp_path / "plain.tif", "w", **prof) as out:  # no RPC tags, no sidecar
         out.write(img[None])
     m.write_rpb(tmp_path / "plain.RPB")
     text = (tmp_path / "plain.RPB").read_text()
     (tmp_path / "plain.RPB").write_text(re.sub(r"(lineScale = )[^;]*;", r"\g<1>1e30;", text))
-    code, _, err = run_cli(capsys, ["ortho", tmp_path / "plain.tif", "--dem", sim / "truth_dem.tif",
-                                  "-o", tmp_path / "out" / "o.tif"])
+    code, _, err = run_cli(
+        capsys,
+        [
+            "ortho",
+            tmp_path / "plain.tif",
+            "--dem",
+            sim / "truth_dem.tif",
+            "-o",
+            tmp_path / "out" / "o.tif",
+        ],
+    )
     assert_clear_error(code, err, "ortho", r"plain\.tif.*LINE_SCALE.*not plausible")
     assert not (tmp_path / "out").exists()
 
 
 # ----------------------------------------------------------------------------- simulate sizes
 
+
 @pytest.mark.parametrize("preset", ["aster", "frame", "pushbroom"])
-@pytest.mark.parametrize("size", [("100000000", "100000000"), ("1000000", "300"), ("300", "1000000")])
+@pytest.mark.parametrize(
+    "size", [("100000000", "100000000"), ("1000000", "300"), ("300", "1000000")]
+)
 @pytest.mark.slow
 def test_simulate_absurd_size_is_a_clear_error(preset, size, tmp_path, capsys):
-    code, _, err = run_cli(capsys, ["simulate", "--preset", preset, "--size", *size, "-o", tmp_path / "out"])
+    code, _, err = run_cli(
+        capsys, ["simulate", "--preset", preset, "--size", *size, "-o", tmp_path / "out"]
+    )
     assert_clear_error(code, err, "simulate", r"horizon|does not cover|memory")
     assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.slow
 def test_simulate_absurd_right_size_of_a_granule(tmp_path, capsys):
-    code, _, err = run_cli(capsys, ["simulate", "--format", "l1a-v004", "--size", "300", "300",
-                                  "--right-size", "99999999999", "99999999", "-o", tmp_path / "out"])
+    code, _, err = run_cli(
+        capsys,
+        [
+            "simulate",
+            "--format",
+            "l1a-v004",
+            "--size",
+            "300",
+            "300",
+            "--right-size",
+            "99999999999",
+            "99999999",
+            "-o",
+            tmp_path / "out",
+        ],
+    )
     assert_clear_error(code, err, "simulate", r"horizon|does not cover|memory")
     assert not (tmp_path / "out").exists()
 
 
 # ----------------------------------------------------------------------------- non-finite pixels
+
 
 @pytest.fixture(scope="module")
 def inf_pair(sim, tmp_path_factory):
@@ -218,11 +352,20 @@ def _dem_error_vs_truth(dem_path, truth_path):
     from rasterio.warp import Resampling, reproject
 
     from stereodem.core.stats import nmad
+
     with rasterio.open(dem_path) as d, rasterio.open(truth_path) as t:
         z = d.read(1)
         ref = np.full(z.shape, np.nan, np.float32)
-        reproject(t.read(1), ref, src_transform=t.transform, src_crs=t.crs, dst_transform=d.transform,
-                  dst_crs=d.crs, resampling=Resampling.bilinear, dst_nodata=np.nan)
+        reproject(
+            t.read(1),
+            ref,
+            src_transform=t.transform,
+            src_crs=t.crs,
+            dst_transform=d.transform,
+            dst_crs=d.crs,
+            resampling=Resampling.bilinear,
+            dst_nodata=np.nan,
+        )
     e = (z - ref)[np.isfinite(z - ref)]
     return nmad(e), e.size
 
@@ -232,24 +375,40 @@ def test_inf_columns_still_give_a_dem_through_the_sparse_stage(sim, inf_pair, tm
     """No height range: the sparse stage finds the terrain heights and the pointing from the
     rest of the image, the tiles match around the void columns; the DEM is about as complete
     and as accurate as the clean pair's."""
-    code, _, err = run_cli(capsys, ["dem", inf_pair / "left.tif", inf_pair / "right.tif", "-o",
-                                  tmp_path / "inf", "--workers", "1"])
+    code, _, err = run_cli(
+        capsys,
+        [
+            "dem",
+            inf_pair / "left.tif",
+            inf_pair / "right.tif",
+            "-o",
+            tmp_path / "inf",
+            "--workers",
+            "1",
+        ],
+    )
     assert code == 0, err
     assert "RuntimeWarning" not in err
-    code, _, err = run_cli(capsys, ["dem", sim / "left.tif", sim / "right.tif", "-o", tmp_path / "clean",
-                                  "--workers", "1"])
+    code, _, err = run_cli(
+        capsys,
+        ["dem", sim / "left.tif", sim / "right.tif", "-o", tmp_path / "clean", "--workers", "1"],
+    )
     assert code == 0, err
     nmad_inf, n_inf = _dem_error_vs_truth(tmp_path / "inf" / "dem.tif", sim / "truth_dem.tif")
     nmad_clean, n_clean = _dem_error_vs_truth(tmp_path / "clean" / "dem.tif", sim / "truth_dem.tif")
-    print(f"DEM - truth NMAD: clean {nmad_clean:.2f} m ({n_clean} cells), inf columns "
-          f"{nmad_inf:.2f} m ({n_inf} cells)")
+    print(
+        f"DEM - truth NMAD: clean {nmad_clean:.2f} m ({n_clean} cells), inf columns "
+        f"{nmad_inf:.2f} m ({n_inf} cells)"
+    )
     assert n_inf >= 0.95 * n_clean
     assert nmad_inf <= nmad_clean + 0.5
 
 
 def test_inf_pixels_are_no_data_in_the_orthoimage(sim, inf_pair, tmp_path, capsys):
-    code, _, err = run_cli(capsys, ["ortho", inf_pair / "left.tif", "--dem", sim / "truth_dem.tif",
-                                  "-o", tmp_path / "o.tif"])
+    code, _, err = run_cli(
+        capsys,
+        ["ortho", inf_pair / "left.tif", "--dem", sim / "truth_dem.tif", "-o", tmp_path / "o.tif"],
+    )
     assert code == 0, err
     with rasterio.open(tmp_path / "o.tif") as ds:
         o = ds.read(1)
@@ -259,6 +418,7 @@ def test_inf_pixels_are_no_data_in_the_orthoimage(sim, inf_pair, tmp_path, capsy
 
 # ----------------------------------------------------------------------------- -o = input folder
 
+
 @pytest.mark.slow
 def test_dem_into_the_folder_holding_its_inputs(sim, tmp_path, capsys):
     """``-o`` the inputs' own folder with --overwrite: nothing of the user's has a product's
@@ -266,15 +426,39 @@ def test_dem_into_the_folder_holding_its_inputs(sim, tmp_path, capsys):
     work = tmp_path / "work"
     shutil.copytree(sim, work)
     before = _files(work)
-    code, _, err = run_cli(capsys, ["dem", work / "left.tif", work / "right.tif", "-o", work,
-                                  "--overwrite", "--workers", "1", *HR])
+    code, _, err = run_cli(
+        capsys,
+        [
+            "dem",
+            work / "left.tif",
+            work / "right.tif",
+            "-o",
+            work,
+            "--overwrite",
+            "--workers",
+            "1",
+            *HR,
+        ],
+    )
     assert code == 0, err
     after = _files(work)
     assert {p: after[p] for p in before} == before
     assert {"dem.tif", "score.tif", "dem_report.json"} <= {p.name for p in after}
     # a second run there replaces its own products, still not the user's files
-    code, _, err = run_cli(capsys, ["dem", work / "left.tif", work / "right.tif", "-o", work,
-                                  "--overwrite", "--workers", "1", *HR])
+    code, _, err = run_cli(
+        capsys,
+        [
+            "dem",
+            work / "left.tif",
+            work / "right.tif",
+            "-o",
+            work,
+            "--overwrite",
+            "--workers",
+            "1",
+            *HR,
+        ],
+    )
     assert code == 0, err
     assert {p: _files(work)[p] for p in before} == before
 
@@ -298,7 +482,19 @@ def test_folder_holding_a_users_file_named_like_a_product_is_refused(sim, tmp_pa
     shutil.copytree(sim, work)
     (work / "score.tif").write_text("the user's own score\n")
     before = _files(work)
-    code, _, err = run_cli(capsys, ["dem", work / "left.tif", work / "right.tif", "-o", work,
-                                  "--overwrite", "--workers", "1", *HR])
+    code, _, err = run_cli(
+        capsys,
+        [
+            "dem",
+            work / "left.tif",
+            work / "right.tif",
+            "-o",
+            work,
+            "--overwrite",
+            "--workers",
+            "1",
+            *HR,
+        ],
+    )
     assert_clear_error(code, err, "dem", r"not a stereodem output.*score\.tif")
     assert _files(work) == before

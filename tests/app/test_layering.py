@@ -1,14 +1,21 @@
 """Dependencies point one way (issue #23): core <- sensor <- stereo, post, ortho <- the
 application. Every import statement of a library package, module-level or inside a function,
 is checked by reading the source (no import side effects)."""
+
 import ast
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-FOLDERS = {"core": "core", "sensor": "sensor", "stereo": "stereo", "post": "post", "ortho": "ortho",
-           "app": "src/stereodem"}
+FOLDERS = {
+    "core": "core",
+    "sensor": "sensor",
+    "stereo": "stereo",
+    "post": "post",
+    "ortho": "ortho",
+    "app": "src/stereodem",
+}
 # what each package may import from stereodem (besides itself)
 ALLOWED = {
     "core": set(),
@@ -17,8 +24,13 @@ ALLOWED = {
     "post": {"core", "sensor"},
     "ortho": {"core", "sensor"},
 }
-PACKAGE_OF = {"core": "core", "sensor": "sensor", "stereo": "stereo", "post": "post",
-              "ortho": "ortho"}
+PACKAGE_OF = {
+    "core": "core",
+    "sensor": "sensor",
+    "stereo": "stereo",
+    "post": "post",
+    "ortho": "ortho",
+}
 
 
 def _imported_packages(path: Path):

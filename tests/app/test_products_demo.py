@@ -7,6 +7,7 @@ run-to-run spread measured by ``benchmarks/bench_demo.py`` (its largest NMAD cha
 seeds 1-4 against the default seed, ``nmad_tolerance_m`` in
 ``benchmarks/results/bench_demo.json``: 0.12 m when measured).
 """
+
 from __future__ import annotations
 
 import json
@@ -32,8 +33,12 @@ def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo") / "out"
     old = os.umask(0o022)
     try:
-        r = subprocess.run([sys.executable, "-m", "stereodem.cli", "demo", "-o", str(out),
-                            "--workers", "1"], capture_output=True, text=True, timeout=900)
+        r = subprocess.run(
+            [sys.executable, "-m", "stereodem.cli", "demo", "-o", str(out), "--workers", "1"],
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
     finally:
         os.umask(old)
     assert r.returncode == 0, r.stderr
@@ -42,7 +47,7 @@ def demo(tmp_path_factory):
 
 def test_every_demo_raster_is_a_valid_cog(demo):
     rasters = sorted(demo.rglob("*.tif"))
-    assert len(rasters) >= 10          # scene (4), result (4), raw (4)
+    assert len(rasters) >= 10  # scene (4), result (4), raw (4)
     for p in rasters:
         valid, errors, warnings = cog_validate(str(p), quiet=True)
         assert valid, (p, errors)
@@ -62,7 +67,7 @@ def test_demo_dems_have_their_vertical_reference_in_the_crs(demo, name):
     with rasterio.open(demo / name) as ds:
         crs = CRS.from_wkt(ds.crs.to_wkt())
         unit = ds.units[0] if name == "result/dem.tif" else "metre"
-    assert crs.axis_info[-1].name == "Ellipsoidal height"     # the demo DEM is ellipsoidal
+    assert crs.axis_info[-1].name == "Ellipsoidal height"  # the demo DEM is ellipsoidal
     assert crs.to_2d().to_epsg() == 32637 and unit == "metre"
 
 
@@ -86,5 +91,7 @@ def test_readme_demo_figures(demo):
     assert 0 < tol < 1.0
     got = json.loads((demo / "result" / "run.json").read_text())["headline"]["nmad"]
     quoted = _readme_demo_nmad()
-    assert abs(got - quoted) <= tol, (f"the demo's NMAD is {got:.2f} m, the README quotes "
-                                      f"{quoted:.2f} m (spread {tol:.2f} m): update the README")
+    assert abs(got - quoted) <= tol, (
+        f"the demo's NMAD is {got:.2f} m, the README quotes "
+        f"{quoted:.2f} m (spread {tol:.2f} m): update the README"
+    )

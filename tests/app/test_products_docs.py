@@ -1,5 +1,6 @@
 """Docs that stay true (issue #19): docs/configuration.md is what the generator makes of the
 configuration dataclasses, and the Python API example in docs/api.md runs."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -16,13 +17,15 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_committed_configuration_md_is_the_generators_output():
     committed = (ROOT / "docs" / "configuration.md").read_text(encoding="utf-8")
-    assert committed == configuration_markdown(), \
+    assert committed == configuration_markdown(), (
         "docs/configuration.md is stale: python -m stereodem.docgen > docs/configuration.md"
+    )
     assert main(["--check", str(ROOT / "docs" / "configuration.md")]) == 0
 
 
 def test_every_config_section_and_key_is_documented():
     from stereodem.config import SECTIONS
+
     text = configuration_markdown()
     for name, cls in SECTIONS.items():
         assert f"## `[{name}]`" in text
@@ -46,7 +49,7 @@ class _Toy:
     alpha: float = 1.5
     beta: float = 2.0
     mode: str = "fast"
-    size: tuple = (3, 4)       # cells per side
+    size: tuple = (3, 4)  # cells per side
     name: str | None = None
 
 
@@ -83,7 +86,10 @@ def test_api_example_runs(capsys):
 
 def test_readme_figures_summarises_every_committed_result():
     import importlib.util
-    spec = importlib.util.spec_from_file_location("readme_figures", ROOT / "benchmarks" / "readme_figures.py")
+
+    spec = importlib.util.spec_from_file_location(
+        "readme_figures", ROOT / "benchmarks" / "readme_figures.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     text = mod.figures_markdown()
@@ -92,6 +98,7 @@ def test_readme_figures_summarises_every_committed_result():
     assert len(bullets) == len(results)
     assert "summary unavailable" not in text
     import json
+
     demo = json.loads((ROOT / "benchmarks" / "results" / "bench_demo.json").read_text())
     assert f"NMAD {demo['default_seed_figures']['nmad_m']:.2f} m" in text
 
@@ -101,7 +108,10 @@ def test_readmes_carry_the_figures_the_results_give():
     ``benchmarks/readme_figures.py --write`` makes from the committed result files (a rerun
     that is not regenerated, or a figure edited by hand, fails here)."""
     import importlib.util
-    spec = importlib.util.spec_from_file_location("readme_figures", ROOT / "benchmarks" / "readme_figures.py")
+
+    spec = importlib.util.spec_from_file_location(
+        "readme_figures", ROOT / "benchmarks" / "readme_figures.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     readme = (ROOT / "README.md").read_text()

@@ -1,5 +1,6 @@
 """Progress bars (tqdm, ETA, silent off a terminal or with -q), warnings through logging,
 UTC timestamps with -v, and the provenance record (issue #19)."""
+
 from __future__ import annotations
 
 import io
@@ -23,11 +24,11 @@ def test_bar_on_a_terminal_shows_eta_and_callback_total():
     s = _Tty()
     p = Progress("stereo", 1, stream=s)
     for k in range(1, 5):
-        p(k, 4)                       # the pipeline's callback form, total learnt late
+        p(k, 4)  # the pipeline's callback form, total learnt late
     p.close()
     out = s.getvalue()
     assert "stereo" in out and "100%" in out and "4/4" in out
-    assert "<" in out                 # tqdm's [elapsed<remaining] field: the ETA
+    assert "<" in out  # tqdm's [elapsed<remaining] field: the ETA
     assert p.done == 4 and p.total == 4
 
 
@@ -73,15 +74,21 @@ def test_utc_timestamps_and_captured_warnings():
 
 
 def test_cli_verbose_has_timestamps_and_warnings_are_logged(tmp_path):
-    code = ("import warnings, logging; from stereodem.progress import setup_logging;"
-            "setup_logging(verbose=1); logging.getLogger('stereodem').info('info line');"
-            "warnings.warn('careful')")
+    code = (
+        "import warnings, logging; from stereodem.progress import setup_logging;"
+        "setup_logging(verbose=1); logging.getLogger('stereodem').info('info line');"
+        "warnings.warn('careful')"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     lines = r.stderr.strip().splitlines()
     assert re.match(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z INFO stereodem: info line$", lines[0])
     assert re.match(r".*Z WARNING py\.warnings: .*UserWarning: careful", lines[1])
-    r = subprocess.run([sys.executable, "-c", code.replace("verbose=1", "quiet=True")],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-c", code.replace("verbose=1", "quiet=True")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.stderr == ""
 
 
@@ -92,13 +99,18 @@ def test_provenance_fields():
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", p["ended_utc"])
     assert p["command_line"] == "stereodem run 'job toml'"
     from stereodem import __version__
+
     assert p["stereodem_version"] == __version__
     git = git_commit()
     if git is None:
         assert "git_commit" not in p
     else:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                              cwd=__file__.rsplit("/", 2)[0]).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=__file__.rsplit("/", 2)[0],
+        ).stdout.strip()
         assert p["git_commit"] == head and isinstance(p["git_dirty"], bool)
 
 
@@ -111,9 +123,9 @@ def test_a_stage_that_restarts_its_count_restarts_the_bar():
     p = Progress("ortho", 1, stream=s)
     p(600, 675)
     p(675, 675)
-    p(100, 675)                       # the right image after the left one
+    p(100, 675)  # the right image after the left one
     assert p.done == 100 and p._bar.n == 100
     p(675, 675)
     p.close()
     assert p.done == 675 and p._bar.n == 675
-    assert s.getvalue().count("0/675 [") >= 2          # drawn empty again at the restart
+    assert s.getvalue().count("0/675 [") >= 2  # drawn empty again at the restart

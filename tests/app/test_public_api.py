@@ -1,5 +1,6 @@
 """The public API in one place (issue #23): every name of ``stereodem.__all__`` resolves, to
 the object of its defining module, and ``import stereodem`` stays light (lazy, PEP 562)."""
+
 import subprocess
 import sys
 
@@ -11,6 +12,7 @@ import stereodem
 @pytest.mark.parametrize("name", [n for n in stereodem.__all__ if n != "__version__"])
 def test_every_public_name_resolves_to_its_module(name):
     import importlib
+
     value = getattr(stereodem, name)
     assert value is getattr(importlib.import_module(stereodem._API[name]), name)
 
@@ -21,7 +23,9 @@ def test_unknown_names_are_attribute_errors():
 
 
 def test_import_stereodem_loads_no_heavy_library():
-    code = ("import sys, stereodem; heavy = {'numpy', 'cv2', 'rasterio', 'scipy', 'pyproj'} "
-            "& set(sys.modules); print(sorted(heavy))")
+    code = (
+        "import sys, stereodem; heavy = {'numpy', 'cv2', 'rasterio', 'scipy', 'pyproj'} "
+        "& set(sys.modules); print(sorted(heavy))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

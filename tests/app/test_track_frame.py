@@ -2,6 +2,7 @@
 left sensor model's along/cross-track frame (and heading) in the DEM's tags (the ``tags=`` path
 of ``pipeline/job.py`` included); ``stereodem coregister`` fits ``along_track`` on it without
 ``--track-angle``."""
+
 from __future__ import annotations
 
 import json
@@ -29,8 +30,22 @@ def sim(tmp_path_factory):
 @pytest.fixture(scope="module")
 def dem_dir(sim, tmp_path_factory):
     out = tmp_path_factory.mktemp("dem") / "out"
-    assert cli.main(["-q", "dem", str(sim / "left.tif"), str(sim / "right.tif"), "-o", str(out),
-                     "--workers", "1", *HR]) == 0
+    assert (
+        cli.main(
+            [
+                "-q",
+                "dem",
+                str(sim / "left.tif"),
+                str(sim / "right.tif"),
+                "-o",
+                str(out),
+                "--workers",
+                "1",
+                *HR,
+            ]
+        )
+        == 0
+    )
     return out
 
 
@@ -60,8 +75,9 @@ def test_dem_writes_the_sensor_model_track_frame(sim, dem_dir):
     assert np.max(np.abs(cross / frame.m_per_col - col)) < 0.05
     # metres per row: the ground distance between the image's first and last rows, per row
     model = load_model(sim / "left.model.json")
-    lon, lat = model.localize(np.array([149.5, 149.5]), np.array([0.0, 299.0]),
-                              np.full(2, frame.height_m))
+    lon, lat = model.localize(
+        np.array([149.5, 149.5]), np.array([0.0, 299.0]), np.full(2, frame.height_m)
+    )
     per_row = Geod(ellps="WGS84").inv(lon[0], lat[0], lon[1], lat[1])[2] / 299.0
     assert frame.m_per_row == pytest.approx(per_row, rel=0.01)
 
@@ -72,17 +88,41 @@ def test_coregister_fits_along_track_on_the_frame_without_track_angle(sim, dem_d
     the stereodem DEM's grid, with that DEM's tags, plus 1 m of noise) is found on the frame."""
     dem = DEM.from_file(dem_dir / "dem.tif")
     truth = DEM.from_file(sim / "truth_dem.tif")
-    zt = warp.to_grid(truth.heights, truth.transform, truth.crs, dem.transform, dem.crs,
-                      dem.shape, resampling="cubic")
+    zt = warp.to_grid(
+        truth.heights,
+        truth.transform,
+        truth.crs,
+        dem.transform,
+        dem.crs,
+        dem.shape,
+        resampling="cubic",
+    )
     _, _, row, _ = _model_rows_cols(sim, dem, zt)
     noise = np.random.default_rng(1).normal(0.0, 1.0, dem.shape)
     z = zt + 3.0 * np.sin(2 * np.pi * row / 100.0) + noise
     with rasterio.open(dem_dir / "dem.tif") as ds:
         tags = ds.tags()
-    DEM(z.astype(np.float32), dem.transform, dem.crs, dem.vertical).write(tmp_path / "osc.tif", tags=tags)
+    DEM(z.astype(np.float32), dem.transform, dem.crs, dem.vertical).write(
+        tmp_path / "osc.tif", tags=tags
+    )
     out = tmp_path / "co"
-    assert cli.main(["-q", "coregister", str(tmp_path / "osc.tif"), "--ref", str(sim / "truth_dem.tif"),
-                     "--chain", "along_track", "-o", str(out), "--no-figures"]) == 0
+    assert (
+        cli.main(
+            [
+                "-q",
+                "coregister",
+                str(tmp_path / "osc.tif"),
+                "--ref",
+                str(sim / "truth_dem.tif"),
+                "--chain",
+                "along_track",
+                "-o",
+                str(out),
+                "--no-figures",
+            ]
+        )
+        == 0
+    )
     rep = json.loads((out / "coregistration.json").read_text())
     frame = track_frame_of(tmp_path / "osc.tif")
     assert rep["track_frame"]["m_per_row"] == pytest.approx(frame.m_per_row)
@@ -96,15 +136,49 @@ def test_coregister_fits_along_track_on_the_frame_without_track_angle(sim, dem_d
     assert step["after"]["nmad"] < 1.1 < 2.0 < step["before"]["nmad"]
     # assess --error-analysis --chain reads the same frame from the DEM's tags
     out_a = tmp_path / "assess"
-    assert cli.main(["-q", "assess", str(tmp_path / "osc.tif"), "--ref", str(sim / "truth_dem.tif"),
-                     "--error-analysis", "--chain", "along_track", "-o", str(out_a)]) == 0
-    ea = json.loads((out_a / "report.json").read_text())["error_analysis"]["coregistration"]["steps"][0]
+    assert (
+        cli.main(
+            [
+                "-q",
+                "assess",
+                str(tmp_path / "osc.tif"),
+                "--ref",
+                str(sim / "truth_dem.tif"),
+                "--error-analysis",
+                "--chain",
+                "along_track",
+                "-o",
+                str(out_a),
+            ]
+        )
+        == 0
+    )
+    ea = json.loads((out_a / "report.json").read_text())["error_analysis"]["coregistration"][
+        "steps"
+    ][0]
     assert ea["parameters"]["track"]["source"].startswith("left sensor model")
-    assert ea["parameters"]["sine1_wavelength"]["value"] == pytest.approx(100.0 * frame.m_per_row, rel=0.005)
+    assert ea["parameters"]["sine1_wavelength"]["value"] == pytest.approx(
+        100.0 * frame.m_per_row, rel=0.005
+    )
     # the same DEM without the tags: along_track needs --track-angle, one line, nothing written
     DEM(z.astype(np.float32), dem.transform, dem.crs, dem.vertical).write(tmp_path / "bare.tif")
-    assert cli.main(["-q", "coregister", str(tmp_path / "bare.tif"), "--ref", str(sim / "truth_dem.tif"),
-                     "--chain", "along_track", "-o", str(tmp_path / "co2"), "--no-figures"]) == 1
+    assert (
+        cli.main(
+            [
+                "-q",
+                "coregister",
+                str(tmp_path / "bare.tif"),
+                "--ref",
+                str(sim / "truth_dem.tif"),
+                "--chain",
+                "along_track",
+                "-o",
+                str(tmp_path / "co2"),
+                "--no-figures",
+            ]
+        )
+        == 1
+    )
     assert not (tmp_path / "co2").exists()
 
 
@@ -127,14 +201,18 @@ def test_run_writes_the_track_tags_through_the_background_writer(sim, tmp_path):
     assert np.max(np.abs(along / frame.m_per_row - row)) < 0.01
     # the heading the tag carries is the left model's (not a default)
     from stereodem.post.coreg_run import track_heading
+
     model = load_model(sim / "left.model.json")
-    assert float(tags[TRACK_HEADING_TAG]) == pytest.approx(track_heading(model, (300, 300)), abs=1e-3)
+    assert float(tags[TRACK_HEADING_TAG]) == pytest.approx(
+        track_heading(model, (300, 300)), abs=1e-3
+    )
 
 
 def test_a_frame_for_another_crs_is_not_used(dem_dir, tmp_path):
     """A frame tag that does not match the DEM's CRS (a reprojected file keeps its tags) is
     ignored: the heading is used instead."""
     from stereodem.post.coreg_run import CoregJob, load_inputs
+
     with rasterio.open(dem_dir / "dem.tif") as ds:
         tags = ds.tags()
     d = DEM.from_file(dem_dir / "dem.tif")
@@ -143,8 +221,9 @@ def test_a_frame_for_another_crs_is_not_used(dem_dir, tmp_path):
     f["crs"] = "EPSG:32636"
     t[TRACK_FRAME_TAG] = json.dumps(f)
     d.write(tmp_path / "moved.tif", tags=t)
-    _, _, _, (heading, frame) = load_inputs(CoregJob(dem=str(tmp_path / "moved.tif"),
-                                                     ref=str(dem_dir / "dem.tif")))
+    _, _, _, (heading, frame) = load_inputs(
+        CoregJob(dem=str(tmp_path / "moved.tif"), ref=str(dem_dir / "dem.tif"))
+    )
     assert frame is None and heading == pytest.approx(float(tags[TRACK_HEADING_TAG]), abs=1e-3)
     assert TrackFrame.from_tag("{not json") is None and TrackFrame.from_tag(None) is None
 

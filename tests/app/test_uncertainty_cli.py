@@ -1,4 +1,5 @@
 """``stereodem uncertainty``: outputs, the adjustment-report covariance, hostile inputs."""
+
 import json
 
 import numpy as np
@@ -15,6 +16,7 @@ IMG = "pleiades/img_01_rpc.tif"
 @pytest.fixture(scope="module")
 def dem_path(tmp_path_factory, data_dir):
     from stereodem.sensor.models.rpc import RPCModel
+
     m = RPCModel.from_file(data_dir / IMG)
     lon, lat = m.footprint(2300.0)
     w, s, e, n = lon.min() - 0.002, lat.min() - 0.002, lon.max() + 0.002, lat.max() + 0.002
@@ -29,27 +31,63 @@ def dem_path(tmp_path_factory, data_dir):
 
 def _report(path, model, names, cov):
     from stereodem.sensor.io.sidecar import model_to_dict
-    doc = {"model": model_to_dict(model),
-           "parameters": [{"name": n, "value": 0.0, "std": float(np.sqrt(abs(cov[i][i]))) if i < len(cov) else 0.0, "unit": "px"}
-                          for i, n in enumerate(names)],
-           "covariance": cov}
+
+    doc = {
+        "model": model_to_dict(model),
+        "parameters": [
+            {
+                "name": n,
+                "value": 0.0,
+                "std": float(np.sqrt(abs(cov[i][i]))) if i < len(cov) else 0.0,
+                "unit": "px",
+            }
+            for i, n in enumerate(names)
+        ],
+        "covariance": cov,
+    }
     path.write_text(json.dumps(doc))
     return path
 
 
 def _run(data_dir, dem_path, out, *extra):
-    return main(["uncertainty", str(data_dir / IMG), "--dem", str(dem_path), "-o", str(out), "--res", "2",
-                 *extra])
+    return main(
+        [
+            "uncertainty",
+            str(data_dir / IMG),
+            "--dem",
+            str(dem_path),
+            "-o",
+            str(out),
+            "--res",
+            "2",
+            *extra,
+        ]
+    )
 
 
 def test_command_writes_maps_json_and_figure(data_dir, dem_path, tmp_path, capsys):
     out = tmp_path / "u"
-    assert _run(data_dir, dem_path, out, "--sigma", "col_shift=0.5", "--sigma", "row_shift=0.5",
-                "--sigma", "dem_height=4") == 0
+    assert (
+        _run(
+            data_dir,
+            dem_path,
+            out,
+            "--sigma",
+            "col_shift=0.5",
+            "--sigma",
+            "row_shift=0.5",
+            "--sigma",
+            "dem_height=4",
+        )
+        == 0
+    )
     for n in ("sigma_horizontal", "sigma_east", "sigma_north", "ce90", "dominant_source"):
         assert (out / f"{n}.tif").exists()
-    with rasterio.open(out / "sigma_horizontal.tif") as a, rasterio.open(out / "sigma_east.tif") as e, \
-            rasterio.open(out / "sigma_north.tif") as nn:
+    with (
+        rasterio.open(out / "sigma_horizontal.tif") as a,
+        rasterio.open(out / "sigma_east.tif") as e,
+        rasterio.open(out / "sigma_north.tif") as nn,
+    ):
         sh, se, sn = a.read(1), e.read(1), nn.read(1)
         assert a.crs.to_epsg() == 32740 and a.res == (2.0, 2.0)
     ok = np.isfinite(sh)
@@ -69,35 +107,49 @@ def test_covariance_from_an_adjustment_report(data_dir, dem_path, tmp_path):
     from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
     from stereodem.sensor.models.corrected import ImageCorrectedModel
     from stereodem.sensor.models.rpc import RPCModel
+
     rpc = RPCModel.from_file(data_dir / IMG)
     cov = [[0.25, 0.2], [0.2, 0.25]]
-    rep = _report(tmp_path / "adjust_report.json", ImageCorrectedModel(rpc, col_shift=0.7),
-                  ["col_shift", "row_shift"], cov)
+    rep = _report(
+        tmp_path / "adjust_report.json",
+        ImageCorrectedModel(rpc, col_shift=0.7),
+        ["col_shift", "row_shift"],
+        cov,
+    )
     model, names, D = assemble(rpc, sigmas={"dem_height": 3.0}, report=read_adjust_report(rep))
     assert names == ["col_shift", "row_shift", "dem_height"]
     assert np.allclose(D, [[0.25, 0.2, 0], [0.2, 0.25, 0], [0, 0, 9.0]])
-    assert model.parameters()["col_shift"] == 0.7             # the adjusted model is used
+    assert model.parameters()["col_shift"] == 0.7  # the adjusted model is used
     out = tmp_path / "u"
     assert _run(data_dir, dem_path, out, "--covariance", str(rep)) == 0
     corr = json.loads((out / "sensitivity.json").read_text())
-    rep0 = _report(tmp_path / "uncorrelated.json", ImageCorrectedModel(rpc, col_shift=0.7),
-                   ["col_shift", "row_shift"], [[0.25, 0.0], [0.0, 0.25]])
+    rep0 = _report(
+        tmp_path / "uncorrelated.json",
+        ImageCorrectedModel(rpc, col_shift=0.7),
+        ["col_shift", "row_shift"],
+        [[0.25, 0.0], [0.0, 0.25]],
+    )
     assert _run(data_dir, dem_path, tmp_path / "u0", "--covariance", str(rep0)) == 0
     unc = json.loads((tmp_path / "u0" / "sensitivity.json").read_text())
     # the correlation stretches the error ellipse: σ_h nearly the same, CE90 larger
-    assert corr["grid"] == unc["grid"] and corr["grid"]["width"] < 800      # the image's own size
+    assert corr["grid"] == unc["grid"] and corr["grid"]["width"] < 800  # the image's own size
     assert corr["ce90_m_median"] > 1.03 * unc["ce90_m_median"]
-    assert corr["sigma_horizontal_m"]["median"] == pytest.approx(unc["sigma_horizontal_m"]["median"], rel=0.01)
+    assert corr["sigma_horizontal_m"]["median"] == pytest.approx(
+        unc["sigma_horizontal_m"]["median"], rel=0.01
+    )
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--sigma", "roll=1"], "valid: col_shift, row_shift"),
-    (["--sigma", "col_shift=-1"], "non-negative"),
-    (["--sigma", "col_shift=nan"], "non-negative"),
-    (["--sigma", "col_shift"], "NAME=VALUE"),
-    ([], "no input uncertainty"),
-    (["--sigma", "col_shift=1", "--method", "monte-carlo", "--samples", "2"], "at least 3"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--sigma", "roll=1"], "valid: col_shift, row_shift"),
+        (["--sigma", "col_shift=-1"], "non-negative"),
+        (["--sigma", "col_shift=nan"], "non-negative"),
+        (["--sigma", "col_shift"], "NAME=VALUE"),
+        ([], "no input uncertainty"),
+        (["--sigma", "col_shift=1", "--method", "monte-carlo", "--samples", "2"], "at least 3"),
+    ],
+)
 def test_hostile_arguments_are_one_line_errors(data_dir, dem_path, tmp_path, capsys, args, message):
     assert _run(data_dir, dem_path, tmp_path / "x", *args) == 1
     err = capsys.readouterr().err.strip()
@@ -108,17 +160,46 @@ def test_hostile_arguments_are_one_line_errors(data_dir, dem_path, tmp_path, cap
 def test_hostile_covariance_files(data_dir, dem_path, tmp_path, capsys):
     from stereodem.sensor.models.corrected import ImageCorrectedModel
     from stereodem.sensor.models.rpc import RPCModel
+
     rpc = RPCModel.from_file(data_dir / IMG)
     other = RPCModel.from_file(data_dir / "pleiades" / "img_02_rpc.tif")
     cases = {
-        "not_psd": (_report(tmp_path / "a.json", ImageCorrectedModel(rpc), ["col_shift", "row_shift"],
-                            [[1.0, 2.0], [2.0, 1.0]]), "not positive semi-definite"),
-        "other_model": (_report(tmp_path / "b.json", ImageCorrectedModel(other), ["col_shift", "row_shift"],
-                                [[1.0, 0.0], [0.0, 1.0]]), "covariance file for another model"),
-        "bad_names": (_report(tmp_path / "c.json", ImageCorrectedModel(rpc), ["col_shift", "roll"],
-                              [[1.0, 0.0], [0.0, 1.0]]), "valid:"),
-        "shape": (_report(tmp_path / "d.json", ImageCorrectedModel(rpc), ["col_shift", "row_shift"],
-                          [[1.0, 0.0]]), "expected 2 x 2"),
+        "not_psd": (
+            _report(
+                tmp_path / "a.json",
+                ImageCorrectedModel(rpc),
+                ["col_shift", "row_shift"],
+                [[1.0, 2.0], [2.0, 1.0]],
+            ),
+            "not positive semi-definite",
+        ),
+        "other_model": (
+            _report(
+                tmp_path / "b.json",
+                ImageCorrectedModel(other),
+                ["col_shift", "row_shift"],
+                [[1.0, 0.0], [0.0, 1.0]],
+            ),
+            "covariance file for another model",
+        ),
+        "bad_names": (
+            _report(
+                tmp_path / "c.json",
+                ImageCorrectedModel(rpc),
+                ["col_shift", "roll"],
+                [[1.0, 0.0], [0.0, 1.0]],
+            ),
+            "valid:",
+        ),
+        "shape": (
+            _report(
+                tmp_path / "d.json",
+                ImageCorrectedModel(rpc),
+                ["col_shift", "row_shift"],
+                [[1.0, 0.0]],
+            ),
+            "expected 2 x 2",
+        ),
     }
     (tmp_path / "e.json").write_text("{not json")
     cases["garbled"] = (tmp_path / "e.json", "not a JSON adjustment report")
@@ -133,6 +214,7 @@ def test_hostile_covariance_files(data_dir, dem_path, tmp_path, capsys):
 def test_api_rejects_non_psd_and_nan_sigma():
     from stereodem.core.errors import InputError
     from stereodem.ortho.uncertainty.propagation import covariance_matrix
+
     with pytest.raises(InputError, match="positive semi-definite"):
         covariance_matrix(["a", "b"], covariance=[[1.0, 1.5], [1.5, 1.0]])
     with pytest.raises(InputError, match="non-negative"):
@@ -148,15 +230,23 @@ def test_bundle_report_uses_the_images_side(data_dir, tmp_path):
     from stereodem.sensor.io.sidecar import model_to_dict
     from stereodem.sensor.models.corrected import ImageCorrectedModel
     from stereodem.sensor.models.rpc import RPCModel
+
     left = RPCModel.from_file(data_dir / IMG)
     right = RPCModel.from_file(data_dir / "pleiades" / "img_02_rpc.tif")
     names = ["left.col_shift", "left.row_shift", "right.col_shift", "right.row_shift"]
     C = np.diag([0.04, 0.09, 0.16, 0.25])
     C[0, 2] = C[2, 0] = 0.03
-    doc = {"model": {"left": model_to_dict(ImageCorrectedModel(left)), "right": model_to_dict(ImageCorrectedModel(right))},
-           "parameters": [{"name": n, "value": 0.0, "std": float(np.sqrt(C[i, i])), "unit": "px"}
-                          for i, n in enumerate(names)],
-           "covariance": C.tolist()}
+    doc = {
+        "model": {
+            "left": model_to_dict(ImageCorrectedModel(left)),
+            "right": model_to_dict(ImageCorrectedModel(right)),
+        },
+        "parameters": [
+            {"name": n, "value": 0.0, "std": float(np.sqrt(C[i, i])), "unit": "px"}
+            for i, n in enumerate(names)
+        ],
+        "covariance": C.tolist(),
+    }
     p = tmp_path / "bundle.json"
     p.write_text(json.dumps(doc))
     rep = read_adjust_report(p)

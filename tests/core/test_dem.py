@@ -26,7 +26,7 @@ def test_bilinear_sampling_matches_pixel_centres_and_interpolates():
     assert dem.sample(lon, lat, reference=None) == pytest.approx(H[r, c], abs=1e-3)
     # midway between four centres: the mean of the four
     z = dem.sample(lon + dx / 2, lat - dx / 2, reference=None)
-    assert z == pytest.approx(H[r:r + 2, c:c + 2].mean(), abs=1e-3)
+    assert z == pytest.approx(H[r : r + 2, c : c + 2].mean(), abs=1e-3)
     # ellipsoidal heights add the EGM96 undulation
     ze = dem.sample(lon, lat)
     assert ze - H[r, c] == pytest.approx(float(geodesy.geoid_undulation(lon, lat)), abs=1e-3)
@@ -36,8 +36,18 @@ def test_outside_and_void_are_reported_not_invented(tmp_path):
     h = np.full((50, 60), 1000.0, np.float32)
     h[20:23, 30:33] = -9999
     path = tmp_path / "dem.tif"
-    with rasterio.open(path, "w", driver="GTiff", width=60, height=50, count=1, dtype="float32",
-                       crs="EPSG:32637", transform=Affine(30, 0, 500000, 0, -30, 4400000), nodata=-9999) as d:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=60,
+        height=50,
+        count=1,
+        dtype="float32",
+        crs="EPSG:32637",
+        transform=Affine(30, 0, 500000, 0, -30, 4400000),
+        nodata=-9999,
+    ) as d:
         d.write(h, 1)
     dem = DEM.from_file(path, vertical="ellipsoid")
     x = np.array([500000 + 31.5 * 30, 500000 + 10 * 30, 400000.0])
@@ -53,8 +63,17 @@ def test_outside_and_void_are_reported_not_invented(tmp_path):
 
 def test_unknown_vertical_reference_is_an_error(tmp_path):
     path = tmp_path / "dem.tif"
-    with rasterio.open(path, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32",
-                       crs="EPSG:4326", transform=Affine(0.01, 0, 40, 0, -0.01, 40)) as d:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=4,
+        height=4,
+        count=1,
+        dtype="float32",
+        crs="EPSG:4326",
+        transform=Affine(0.01, 0, 40, 0, -0.01, 40),
+    ) as d:
         d.write(np.ones((4, 4), np.float32), 1)
     dem = DEM.from_file(path)
     assert dem.vertical is None
@@ -82,6 +101,7 @@ def test_write_round_trip_keeps_vertical_reference(tmp_path):
     assert back.vertical == "ellipsoid"
     assert np.nanmax(np.abs(back.heights - dem.to_reference("ellipsoid").heights)) == 0
     from stereodem.core.errors import OutputExistsError
+
     with pytest.raises(OutputExistsError):
         dem.write(out)
 
@@ -93,17 +113,25 @@ def test_dem_voids_from_nodata_mask_band_or_nan(tmp_path, how):
     void = np.zeros(h.shape, bool)
     void[5:9, 11:20] = True
     path = tmp_path / "dem.tif"
-    kw = dict(driver="GTiff", width=40, height=48, count=1, crs="EPSG:32637",
-              transform=Affine(30, 0, 500000, 0, -30, 4400000))
+    kw = dict(
+        driver="GTiff",
+        width=40,
+        height=48,
+        count=1,
+        crs="EPSG:32637",
+        transform=Affine(30, 0, 500000, 0, -30, 4400000),
+    )
     data = h.copy()
     if how == "int16_nodata":
         data[void] = -32768
         with rasterio.open(path, "w", dtype="int16", nodata=-32768, **kw) as d:
             d.write(data.astype(np.int16), 1)
     elif how == "mask_band":
-        data[void] = -1.0                              # a plausible-looking value, masked out
-        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), \
-                rasterio.open(path, "w", dtype="float32", **kw) as d:
+        data[void] = -1.0  # a plausible-looking value, masked out
+        with (
+            rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True),
+            rasterio.open(path, "w", dtype="float32", **kw) as d,
+        ):
             d.write(data, 1)
             d.write_mask(np.where(void, 0, 255).astype(np.uint8))
     else:

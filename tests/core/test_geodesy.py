@@ -13,7 +13,11 @@ def test_ecef_round_trip_and_known_point():
     assert z == pytest.approx(g.B, abs=1e-6)
     rng = np.random.default_rng(1)
     # terrain heights: micrometre exact
-    lon, lat, h = rng.uniform(-180, 180, 1000), rng.uniform(-89, 89, 1000), rng.uniform(-500, 9e3, 1000)
+    lon, lat, h = (
+        rng.uniform(-180, 180, 1000),
+        rng.uniform(-89, 89, 1000),
+        rng.uniform(-500, 9e3, 1000),
+    )
     lon2, lat2, h2 = g.ecef_to_geodetic(*g.geodetic_to_ecef(lon, lat, h))
     assert np.abs(lon2 - lon).max() < 1e-10 and np.abs(lat2 - lat).max() < 1e-10
     assert np.abs(h2 - h).max() < 1e-5
@@ -38,8 +42,17 @@ def test_enu_round_trip_and_axes():
     assert np.allclose([xb, yb, zb], [x, y, z], atol=1e-6)
 
 
-@pytest.mark.parametrize("lon,lat,epsg", [(40.4, 39.6, 32637), (55.7, -21.2, 32740), (-121.7, 46.8, 32610),
-                                          (5.0, 60.0, 32632), (15.0, 78.0, 32633), (-180.0, 0.0, 32601)])
+@pytest.mark.parametrize(
+    "lon,lat,epsg",
+    [
+        (40.4, 39.6, 32637),
+        (55.7, -21.2, 32740),
+        (-121.7, 46.8, 32610),
+        (5.0, 60.0, 32632),
+        (15.0, 78.0, 32633),
+        (-180.0, 0.0, 32601),
+    ],
+)
 def test_utm_zone(lon, lat, epsg):
     assert g.utm_epsg(lon, lat) == epsg
 
@@ -51,6 +64,7 @@ def test_utm_zone_bad_input():
 
 def _grid_node(lon, lat):
     import rasterio
+
     with rasterio.open(g.egm96_path()) as d:
         r, c = d.index(lon, lat)
         return float(d.read(1)[r, c])

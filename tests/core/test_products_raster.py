@@ -1,5 +1,6 @@
 """GeoTIFF products: Cloud-Optimised layout, predictor, vertical reference in the CRS, band
 descriptions and units, umask permissions, lossless values (issue #19)."""
+
 from __future__ import annotations
 
 import os
@@ -30,8 +31,10 @@ def _rng_data(dtype, shape=(600, 700)):
     return rng.integers(info.min, info.max, size=shape, endpoint=True).astype(dtype)
 
 
-@pytest.mark.parametrize("dtype,predictor", [("float32", 3), ("float64", 3), ("uint8", 2),
-                                             ("int16", 2), ("uint16", 2), ("int32", 2)])
+@pytest.mark.parametrize(
+    "dtype,predictor",
+    [("float32", 3), ("float64", 3), ("uint8", 2), ("int16", 2), ("uint16", 2), ("int32", 2)],
+)
 def test_cog_layout_predictor_overviews_and_lossless(tmp_path, dtype, predictor):
     a = _rng_data(dtype)
     p = write_geotiff(tmp_path / f"{dtype}.tif", a, T, "EPSG:32637")
@@ -49,13 +52,27 @@ def test_cog_layout_predictor_overviews_and_lossless(tmp_path, dtype, predictor)
 
 def test_small_raster_and_unreferenced_image_with_rpcs_validate(tmp_path):
     from rasterio.rpc import RPC
-    small = write_geotiff(tmp_path / "small.tif", np.arange(12, dtype=np.int16).reshape(3, 4), T,
-                          "EPSG:32637", -1)
+
+    small = write_geotiff(
+        tmp_path / "small.tif", np.arange(12, dtype=np.int16).reshape(3, 4), T, "EPSG:32637", -1
+    )
     assert cog_validate(str(small))[0]
-    rpc = RPC(height_off=1000, height_scale=500, lat_off=39.5, lat_scale=0.1, line_den_coeff=[1] + [0] * 19,
-              line_num_coeff=[0, 0, -1] + [0] * 17, line_off=300, line_scale=300, long_off=40.4,
-              long_scale=0.1, samp_den_coeff=[1] + [0] * 19, samp_num_coeff=[0, 1] + [0] * 18,
-              samp_off=300, samp_scale=300)
+    rpc = RPC(
+        height_off=1000,
+        height_scale=500,
+        lat_off=39.5,
+        lat_scale=0.1,
+        line_den_coeff=[1] + [0] * 19,
+        line_num_coeff=[0, 0, -1] + [0] * 17,
+        line_off=300,
+        line_scale=300,
+        long_off=40.4,
+        long_scale=0.1,
+        samp_den_coeff=[1] + [0] * 19,
+        samp_num_coeff=[0, 1] + [0] * 18,
+        samp_off=300,
+        samp_scale=300,
+    )
     img = write_geotiff(tmp_path / "img.tif", _rng_data("uint8", (600, 600)), rpcs=rpc)
     assert cog_validate(str(img))[0]
     with rasterio.open(img) as ds:
@@ -64,32 +81,38 @@ def test_small_raster_and_unreferenced_image_with_rpcs_validate(tmp_path):
 
 def test_creation_options_override_defaults(tmp_path):
     a = _rng_data("float32", (300, 300))
-    p = write_geotiff(tmp_path / "z.tif", a, T, "EPSG:32637",
-                      creation_options=["COMPRESS=ZSTD", "BLOCKSIZE=512", "LEVEL=1"])
+    p = write_geotiff(
+        tmp_path / "z.tif",
+        a,
+        T,
+        "EPSG:32637",
+        creation_options=["COMPRESS=ZSTD", "BLOCKSIZE=512", "LEVEL=1"],
+    )
     with rasterio.open(p) as ds:
         assert ds.compression.name.lower() == "zstd"
         assert ds.block_shapes[0] == (300, 300) or ds.block_shapes[0] == (512, 512)
-        assert not ds.overviews(1)       # 300 < 512: no overview level needed
+        assert not ds.overviews(1)  # 300 < 512: no overview level needed
         assert np.array_equal(ds.read(1), a, equal_nan=True)
     assert parse_creation_options({"compress": "lzw"}) == {"COMPRESS": "lzw"}
     with pytest.raises(InputError, match="KEY=VALUE"):
         parse_creation_options(["COMPRESS"])
 
 
-@pytest.mark.parametrize("vertical,axis", [(GEOID, "Gravity-related height"),
-                                           (ELLIPSOID, "Ellipsoidal height")])
+@pytest.mark.parametrize(
+    "vertical,axis", [(GEOID, "Gravity-related height"), (ELLIPSOID, "Ellipsoidal height")]
+)
 @pytest.mark.parametrize("horizontal", ["EPSG:32637", "EPSG:4326"])
 def test_vertical_reference_in_the_crs(tmp_path, vertical, axis, horizontal):
     t = T if horizontal != "EPSG:4326" else Affine(0.001, 0, 40.0, 0, -0.001, 39.6)
     dem = DEM(_rng_data("float32", (300, 300)), t, horizontal, vertical)
     p = dem.write(tmp_path / "dem.tif")
     assert cog_validate(str(p))[0]
-    with rasterio.open(p) as ds:            # what GDAL reports (incl. a PAM side-car)
+    with rasterio.open(p) as ds:  # what GDAL reports (incl. a PAM side-car)
         crs = CRS.from_wkt(ds.crs.to_wkt())
         assert ds.descriptions[0].startswith("height above the")
         assert ds.units[0] == "metre"
     assert [a.name for a in crs.axis_info][-1] == axis
-    if vertical == GEOID:                   # in the GeoTIFF keys: compound with EPSG:5773
+    if vertical == GEOID:  # in the GeoTIFF keys: compound with EPSG:5773
         assert crs.is_compound and crs.sub_crs_list[1].to_epsg() == 5773
         assert not (tmp_path / "dem.tif.aux.xml").exists()
     back = DEM.from_file(p)
@@ -100,8 +123,17 @@ def test_vertical_reference_in_the_crs(tmp_path, vertical, axis, horizontal):
 
 def test_old_private_tag_still_read(tmp_path):
     p = tmp_path / "old.tif"
-    with rasterio.open(p, "w", driver="GTiff", width=8, height=8, count=1, dtype="float32",
-                       crs="EPSG:32637", transform=T) as ds:
+    with rasterio.open(
+        p,
+        "w",
+        driver="GTiff",
+        width=8,
+        height=8,
+        count=1,
+        dtype="float32",
+        crs="EPSG:32637",
+        transform=T,
+    ) as ds:
         ds.write(np.ones((1, 8, 8), np.float32))
         ds.update_tags(STEREODEM_VERTICAL="geoid")
     assert DEM.from_file(p).vertical == GEOID
@@ -110,19 +142,20 @@ def test_old_private_tag_still_read(tmp_path):
 def test_overwrite_removes_stale_sidecar(tmp_path):
     p = tmp_path / "dem.tif"
     DEM(_rng_data("float32", (64, 64)), T, "EPSG:32637", ELLIPSOID).write(p)
-    assert (tmp_path / "dem.tif.aux.xml").exists()        # projected + ellipsoidal: PAM
+    assert (tmp_path / "dem.tif.aux.xml").exists()  # projected + ellipsoidal: PAM
     DEM(_rng_data("float32", (64, 64)), T, "EPSG:32637", GEOID).write(p, overwrite=True)
     assert not (tmp_path / "dem.tif.aux.xml").exists()
     assert DEM.from_file(p).vertical == GEOID
-    assert sorted(f.name for f in tmp_path.iterdir()) == ["dem.tif"]   # no temporary left
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["dem.tif"]  # no temporary left
 
 
 @pytest.mark.parametrize("umask,mode", [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])
 def test_permissions_follow_the_umask(tmp_path, umask, mode):
     old = os.umask(umask)
     try:
-        r = write_geotiff(tmp_path / "a.tif", _rng_data("float32", (32, 32)), T, "EPSG:32637",
-                          vertical=ELLIPSOID)
+        r = write_geotiff(
+            tmp_path / "a.tif", _rng_data("float32", (32, 32)), T, "EPSG:32637", vertical=ELLIPSOID
+        )
         t = write_text_atomic(tmp_path / "a.json", "{}")
     finally:
         os.umask(old)
@@ -132,8 +165,14 @@ def test_permissions_follow_the_umask(tmp_path, umask, mode):
 
 def test_band_descriptions_units_and_count_check(tmp_path):
     a = np.stack([_rng_data("float32", (40, 50))] * 2)
-    p = write_geotiff(tmp_path / "two.tif", a, T, "EPSG:32637", descriptions=["height", "score"],
-                      units=["metre", "1"])
+    p = write_geotiff(
+        tmp_path / "two.tif",
+        a,
+        T,
+        "EPSG:32637",
+        descriptions=["height", "score"],
+        units=["metre", "1"],
+    )
     with rasterio.open(p) as ds:
         assert ds.descriptions == ("height", "score") and ds.units == ("metre", "1")
     with pytest.raises(InputError, match="3 given for 2"):
@@ -143,12 +182,14 @@ def test_band_descriptions_units_and_count_check(tmp_path):
 @pytest.fixture(scope="module")
 def small_scene():
     from stereodem.sensor.simulation.simulate import simulate_scene
+
     return simulate_scene("aster", size=(200, 200), seed=0)
 
 
 @pytest.mark.parametrize("resampling", ["bilinear", "cubic"])
 def test_ortho_keeps_the_input_data_type(tmp_path, small_scene, resampling):
     from stereodem.ortho.drm import orthorectify
+
     img = small_scene.left
     assert img.dtype == np.uint8
     o = orthorectify(img, small_scene.left_model, small_scene.truth_dem, resampling=resampling)
@@ -159,7 +200,7 @@ def test_ortho_keeps_the_input_data_type(tmp_path, small_scene, resampling):
         b = ds.read(1, masked=True)
         assert ds.descriptions[0].startswith("orthoimage")
     valid = np.asarray(o.valid)
-    assert np.array_equal(~np.ma.getmaskarray(b), valid)           # nodata only off the data
+    assert np.array_equal(~np.ma.getmaskarray(b), valid)  # nodata only off the data
     want = np.clip(np.rint(o.data[valid]), 0, 255).astype(np.uint8)
     assert np.array_equal(b.data[valid], want)
     # float32 when asked (and by default), values unchanged
@@ -171,8 +212,9 @@ def test_ortho_keeps_the_input_data_type(tmp_path, small_scene, resampling):
 
 def test_ortho_integer_mask_when_no_value_is_free(tmp_path, small_scene):
     from stereodem.ortho.drm import orthorectify
+
     img = small_scene.left.copy()
-    img[:5, :5], img[-5:, -5:] = 0, 255                 # 0 and 255 both taken, uint8 full
+    img[:5, :5], img[-5:, -5:] = 0, 255  # 0 and 255 both taken, uint8 full
     o = orthorectify(img, small_scene.left_model, small_scene.truth_dem, resampling="nearest")
     vals = np.rint(o.data[o.valid])
     if not ((vals == 0).any() and (vals == 255).any()):

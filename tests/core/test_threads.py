@@ -1,5 +1,6 @@
 """Thread budgets (stereodem.core.threads): the pool, Dask and the main process pin BLAS/OpenMP,
 OpenCV and GDAL threads to what the job's one setting gives them."""
+
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -16,9 +17,13 @@ from stereodem.stereo.tiling import tile_grid
 def _limits_tile(tile, ctx):
     """A tile function reporting the thread limits of the process that ran it."""
     lim = threads.current_limits()
-    return {"opencv": np.array(lim["opencv"]), "blas": np.array(lim["blas"] or -1),
-            "gdal": np.array(int(lim["gdal"])), "env_omp": np.array(int(os.environ["OMP_NUM_THREADS"])),
-            "pid": np.array(os.getpid())}
+    return {
+        "opencv": np.array(lim["opencv"]),
+        "blas": np.array(lim["blas"] or -1),
+        "gdal": np.array(int(lim["gdal"])),
+        "env_omp": np.array(int(os.environ["OMP_NUM_THREADS"])),
+        "pid": np.array(os.getpid()),
+    }
 
 
 def test_worker_threads_share_the_cores():
@@ -40,18 +45,20 @@ def test_pin_threads_sets_blas_opencv_gdal_and_thread_budget_restores():
     assert after["opencv"] == before["opencv"] and after["blas"] == before["blas"]
     assert after["gdal"] == before["gdal"]
     from rasterio.env import get_gdal_config
-    assert get_gdal_config("GDAL_NUM_THREADS") != "None"       # unset again, not the string "None"
+
+    assert get_gdal_config("GDAL_NUM_THREADS") != "None"  # unset again, not the string "None"
 
 
 @pytest.mark.slow
 def test_pool_initializer_pins_a_worker_to_the_budget_given():
     ctx = multiprocessing.get_context("spawn")
     for n in (1, 3):
-        with ProcessPoolExecutor(1, mp_context=ctx, initializer=threads.pool_initializer,
-                                 initargs=(n,)) as ex:
+        with ProcessPoolExecutor(
+            1, mp_context=ctx, initializer=threads.pool_initializer, initargs=(n,)
+        ) as ex:
             lim = ex.submit(threads.worker_limits).result()
         assert lim["opencv"] == n and lim["gdal"] == str(n) and lim["pinned"] == n
-        assert lim["blas"] == n               # numpy's OpenBLAS is loaded in every worker
+        assert lim["blas"] == n  # numpy's OpenBLAS is loaded in every worker
 
 
 def test_tile_pool_workers_run_with_their_share_of_the_cores():
@@ -70,12 +77,15 @@ def test_tile_pool_workers_run_with_their_share_of_the_cores():
 def test_dask_workers_are_pinned():
     distributed = pytest.importorskip("dask.distributed")
     tiles = tile_grid(32, 32, 16)
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
+    with (
+        distributed.LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
         res, fails, _ = run_tiles(_limits_tile, tiles, {"job": 1}, dask_address=client)
     assert not fails
-    want = threads.cores()                     # one task slot on this node: all its cores
+    want = threads.cores()  # one task slot on this node: all its cores
     for r in res.values():
         assert int(r["opencv"]) == want and int(r["gdal"]) == want
 
@@ -84,17 +94,23 @@ def test_a_job_pins_its_main_process_to_workers(tmp_path, monkeypatch):
     """``stereodem.run`` computes its stages under the job's budget and restores the old one."""
     from stereodem.config import config_from_dict
     from stereodem.pipeline import job
+
     seen = {}
 
     def fake_run_in(cfg, out, progress_factory):
         seen.update(threads.current_limits())
         return {}
+
     monkeypatch.setattr(job, "_run_in", fake_run_in)
     before = threads.current_limits()
     for workers in (1, 3):
-        cfg = config_from_dict({"inputs": {"left": "l.tif", "right": "r.tif"},
-                                "output": {"dir": str(tmp_path / f"o{workers}")},
-                                "run": {"workers": workers}})
+        cfg = config_from_dict(
+            {
+                "inputs": {"left": "l.tif", "right": "r.tif"},
+                "output": {"dir": str(tmp_path / f"o{workers}")},
+                "run": {"workers": workers},
+            }
+        )
         job.run(cfg)
         assert seen["opencv"] == workers and seen["gdal"] == str(workers)
         assert seen["pinned"] == workers and seen["blas"] in (None, workers)
@@ -108,7 +124,13 @@ def _order_tile(tile, ctx):
 
 def test_tiles_are_run_largest_first_and_keyed_by_index():
     from stereodem.stereo.tiling import Tile
-    tiles = [Tile(0, 0, 10, 10, 0), Tile(10, 0, 50, 40, 1), Tile(60, 0, 20, 20, 2), Tile(80, 0, 50, 41, 3)]
+
+    tiles = [
+        Tile(0, 0, 10, 10, 0),
+        Tile(10, 0, 50, 40, 1),
+        Tile(60, 0, 20, 20, 2),
+        Tile(80, 0, 50, 41, 3),
+    ]
     ctx = {"order": []}
     res, fails, _ = run_tiles(_order_tile, tiles, ctx, workers=1)
     assert ctx["order"] == [3, 1, 2, 0] and not fails

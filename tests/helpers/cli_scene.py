@@ -1,5 +1,6 @@
 """The small simulated ASTER-like scene the command-line tests run on, and their helpers
 (test helper): ``stereodem`` in this process, the one-line error check, a job TOML."""
+
 from __future__ import annotations
 
 import re
@@ -8,7 +9,7 @@ from pathlib import Path
 from stereodem import cli
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
-HR = ["--height-range", "1000", "3500"]          # the simulated terrain lies at ~1790..2870 m
+HR = ["--height-range", "1000", "3500"]  # the simulated terrain lies at ~1790..2870 m
 
 
 def write_sim_scene(d: Path) -> Path:
@@ -37,13 +38,19 @@ def assert_clear_error(code, err, command, pattern):
     assert re.search(pattern, lines[0], re.IGNORECASE), lines[0]
 
 
-def job_toml(path: Path, sim: Path, out: Path, extra: str = "", rect: str = "tile_size = 300\n"
-             "height_range = [1000, 3500]", inputs: str = "") -> Path:
+def job_toml(
+    path: Path,
+    sim: Path,
+    out: Path,
+    extra: str = "",
+    rect: str = "tile_size = 300\nheight_range = [1000, 3500]",
+    inputs: str = "",
+) -> Path:
     """A job TOML at ``path`` on the scene in ``sim`` writing to ``out``: ``inputs`` added to
     ``[inputs]``, ``rect`` the ``[rectification]`` table, ``extra`` appended (more tables)."""
     path.write_text(f"""[inputs]
-left = "{sim / 'left.tif'}"
-right = "{sim / 'right.tif'}"
+left = "{sim / "left.tif"}"
+right = "{sim / "right.tif"}"
 {inputs}
 [output]
 dir = "{out}"

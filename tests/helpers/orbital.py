@@ -1,6 +1,7 @@
 """Shared pieces of the orbital-model tests: a simulated ASTER 3N geometry whose ephemeris and
 attitude carry biases and drifts, GCP/ICP sets from it, and a small Gauss-Newton used only by
 the tests (the package's estimation engine lives in stereodem.sensor.estimation)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -25,8 +26,13 @@ def control_points(n_gcp, n_icp=40, seed=3):
     """Ground points on the DEM seen by the truth at random pixels; returns dicts ``gcp`` and
     ``icp`` with lon, lat, h, col, row (noisy, 0.3 px) and col_true, row_true."""
     _, truth, dem = aster_scene()
-    pts = points_at_pixels(truth, dem, *random_pixels(truth, 3 * (n_gcp + n_icp), seed=seed),
-                           noise_px=NOISE_PX, seed=seed)
+    pts = points_at_pixels(
+        truth,
+        dem,
+        *random_pixels(truth, 3 * (n_gcp + n_icp), seed=seed),
+        noise_px=NOISE_PX,
+        seed=seed,
+    )
     out = {}
     for key, sl in (("gcp", slice(0, n_gcp)), ("icp", slice(n_gcp, n_gcp + n_icp))):
         out[key] = {k: v[sl] for k, v in pts.items()}

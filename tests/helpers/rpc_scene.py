@@ -7,6 +7,7 @@ validity -20..2 610 m) are moved by one longitude/latitude offset onto the bundl
 within 450 m; a 512 x 512 crop of each image is rendered there through its RPC
 (stereodem.sensor.simulation.render) from a seeded band-limited texture.
 """
+
 from pathlib import Path
 
 import cv2
@@ -51,12 +52,21 @@ def rpc_steep_pair(size=512, seed=0, posting=1.0, texture_res=0.25):
     srtm = DEM.bundled()
     # terrain: SRTM (EGM96) -> ellipsoidal heights, cubic onto a 1 m UTM grid
     from rasterio.warp import Resampling, reproject
+
     tr = Affine(posting, 0, x0, 0, -posting, y1)
     shape = (int(np.ceil((y1 - y0) / posting)), int(np.ceil((x1 - x0) / posting)))
     z = np.full(shape, np.nan, np.float32)
-    reproject(srtm.heights, z, src_transform=srtm.transform, src_crs=srtm.crs.to_wkt(),
-              dst_transform=tr, dst_crs=crs.to_wkt(), resampling=Resampling.cubic,
-              src_nodata=np.nan, dst_nodata=np.nan)
+    reproject(
+        srtm.heights,
+        z,
+        src_transform=srtm.transform,
+        src_crs=srtm.crs.to_wkt(),
+        dst_transform=tr,
+        dst_crs=crs.to_wkt(),
+        resampling=Resampling.cubic,
+        src_nodata=np.nan,
+        dst_nodata=np.nan,
+    )
     cc, rr = np.meshgrid(np.arange(shape[1]) + 0.5, np.arange(shape[0]) + 0.5)
     lon, lat = geodesy.crs_to_lonlat(*(tr @ (cc, rr)), crs)
     z = srtm.convert_heights(lon, lat, z.astype(np.float64), ELLIPSOID).astype(np.float32)

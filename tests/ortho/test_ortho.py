@@ -23,9 +23,23 @@ def oblique_camera(size=384, pitch=4, dlon=1.0, dlat=-1.5, lon0=LON0, lat0=LAT0,
     """A BILSAT-like frame camera ~20 deg off nadir (distortion on), looking at (lon0, lat0)."""
     north = g.enu_basis(lon0, lat0)[1]
     pos = np.array(g.geodetic_to_ecef(lon0 + dlon, lat0 + dlat, 686e3))
-    return FrameCamera.looking_at(pos, 7500 * north, lon0, lat0, h0, width=size, height=size,
-                                  focal_mm=184.0, pitch_mm=0.0074 * pitch, k1=3.6e-4, k2=-1e-6,
-                                  p1=2e-5, p2=-1e-5, dx_mm=0.01, dy_mm=-0.02)
+    return FrameCamera.looking_at(
+        pos,
+        7500 * north,
+        lon0,
+        lat0,
+        h0,
+        width=size,
+        height=size,
+        focal_mm=184.0,
+        pitch_mm=0.0074 * pitch,
+        k1=3.6e-4,
+        k2=-1e-6,
+        p1=2e-5,
+        p2=-1e-5,
+        dx_mm=0.01,
+        dy_mm=-0.02,
+    )
 
 
 def ls_shift(a, ref):
@@ -49,6 +63,7 @@ def albedo_field(res, seed=1, n=12):
         for a, l, t, p in zip(amp, lam, th, ph):
             out += a * np.cos(2 * np.pi * (x * np.cos(t) + y * np.sin(t)) / l + p)
         return out
+
     return f
 
 
@@ -70,11 +85,13 @@ def rendered():
 
 # --------------------------------------------------------------------------- grid
 
+
 def test_grid_defaults_utm_gsd_and_footprint(rendered):
     cam, dem, grid, *_ = rendered
     assert grid.crs.to_epsg() == g.utm_epsg(LON0, LAT0) == 32637
     assert grid.res[0] == pytest.approx(cam.gsd(2000.0), rel=0.02)
     from stereodem.ortho.grid import footprint_height_range
+
     lo, hi = footprint_height_range(cam, dem)
     z = dem.sample(*cam.footprint(2000.0))
     assert lo <= np.nanmin(z) and hi >= np.nanmax(z)
@@ -90,6 +107,7 @@ def test_grid_defaults_utm_gsd_and_footprint(rendered):
 
 # --------------------------------------------------------------------------- accuracy
 
+
 def test_ortho_matches_rendered_truth(rendered):
     """Own rendering (albedo at each pixel's DRM ground point): shift <= 0.05 px, residual at
     the noise level, interpolated map within its measured bound of the exact model."""
@@ -103,7 +121,7 @@ def test_ortho_matches_rendered_truth(rendered):
     d = ls_shift(a, truth)
     assert np.all(np.abs(d) <= 0.05), d
     resid = (a - truth)[o.valid]
-    assert abs(resid.mean()) < 0.01 and resid.std() <= sigma       # at (below) the noise level
+    assert abs(resid.mean()) < 0.01 and resid.std() <= sigma  # at (below) the noise level
     # the reported bound holds on independent cells against the exact model
     rng = np.random.default_rng(7)
     iv, iu = np.nonzero(o.valid)
@@ -111,7 +129,7 @@ def test_ortho_matches_rendered_truth(rendered):
     lon, lat = grid.lonlat(iu[k], iv[k])
     ce, re = cam.project(lon, lat, o.heights[iv[k], iu[k]].astype(float))
     err = np.hypot(o.col[iv[k], iu[k]] - ce, o.row[iv[k], iu[k]] - re)
-    assert err.max() <= 0.01 + 1e-3          # + float32 storage of the maps
+    assert err.max() <= 0.01 + 1e-3  # + float32 storage of the maps
     # the heights used are the DEM's (ellipsoidal)
     assert np.allclose(o.heights[iv[k], iu[k]], dem.sample(lon, lat), atol=0.05)
 
@@ -128,6 +146,7 @@ def test_concurrent_orthos_equal_the_serial_ones(rendered):
     # two orthoimages at once (and their blocks on the budget's threads): the serial rasters;
     # the second image is another oblique view over the same grid
     from stereodem.ortho.concurrent import orthorectify_all
+
     cam, dem, grid, img, truth = rendered
     cam2 = oblique_camera(dlon=-1.0, dlat=1.0)
     items = [("left", img, cam), ("right", img[::-1].copy(), cam2)]
@@ -137,8 +156,13 @@ def test_concurrent_orthos_equal_the_serial_ones(rendered):
     both = orthorectify_all(items, dem, threads=3, progress=lambda d, t: calls.append((d, t)), **kw)
     assert list(both) == ["left", "right"] and serial["left"].grid == both["right"].grid == grid
     for name in both:
-        alone = orthorectify(items[0 if name == "left" else 1][1], items[0 if name == "left" else 1][2],
-                             dem, grid=grid, **kw)
+        alone = orthorectify(
+            items[0 if name == "left" else 1][1],
+            items[0 if name == "left" else 1][2],
+            dem,
+            grid=grid,
+            **kw,
+        )
         assert alone.valid.mean() > 0.2
         for o in (serial[name], both[name]):
             np.testing.assert_array_equal(o.data, alone.data)
@@ -161,11 +185,11 @@ def _sum_w2(frac, resampling):
     and Lanczos-4 kernels): the factor by which resampling scales white-noise variance."""
     f = np.asarray(frac, np.float64)
     if resampling == "bilinear":
-        return (1 - f) ** 2 + f ** 2
-    x = (np.arange(8)[:, None] - 3) - f[None]                  # the 8 taps' offsets
+        return (1 - f) ** 2 + f**2
+    x = (np.arange(8)[:, None] - 3) - f[None]  # the 8 taps' offsets
     w = np.sinc(x) * np.sinc(x / 4)
     w /= w.sum(0)
-    return (w ** 2).sum(0)
+    return (w**2).sum(0)
 
 
 @pytest.mark.slow
@@ -174,26 +198,35 @@ def test_simulated_scene_true_ortho():
     image (shrinking as the system MTF at Nyquist falls and the kernel improves) plus the image
     noise propagated through the kernel, sigma^2 * mean(sum of squared weights)."""
     from stereodem.sensor.simulation import simulate as sim
-    sigma = 1.0                                   # the presets' noise (simulate_scene default)
+
+    sigma = 1.0  # the presets' noise (simulate_scene default)
     rms, expected_noise_var, shifts = {}, {}, []
     for mtf in (0.3, 0.01):
         for noise in (0.0, sigma):
-            sc = sim.simulate_scene(preset="frame", size=(320, 320), noise=noise, seed=4,
-                                    mtf_nyquist=mtf)
+            sc = sim.simulate_scene(
+                preset="frame", size=(320, 320), noise=noise, seed=4, mtf_nyquist=mtf
+            )
             d = sc.truth_dem
             grid = MapGrid(d.transform, d.shape[1], d.shape[0], d.crs)
             for rs in ("bilinear", "cubic", "lanczos"):
-                o = orthorectify(sc.left, sc.left_model, d, grid=grid, resampling=rs, keep_maps=True)
+                o = orthorectify(
+                    sc.left, sc.left_model, d, grid=grid, resampling=rs, keep_maps=True
+                )
                 assert o.interpolation_error_px <= 0.01
                 a = np.where(o.valid, o.data, np.nan)
                 shifts.append(float(np.max(np.abs(ls_shift(a, sc.truth_ortho)))))
                 r = (a - sc.truth_ortho)[o.valid]
-                rms[mtf, noise, rs] = float(np.sqrt(np.mean(r ** 2)))
+                rms[mtf, noise, rs] = float(np.sqrt(np.mean(r**2)))
                 if rs != "cubic":
                     v = o.valid
-                    expected_noise_var[mtf, rs] = float(np.mean(
-                        _sum_w2(o.col[v] % 1, rs) * _sum_w2(o.row[v] % 1, rs))) * sigma ** 2
-    print({k: round(v, 3) for k, v in rms.items()}, f"largest shift vs truth_ortho {max(shifts):.4f} px")
+                    expected_noise_var[mtf, rs] = (
+                        float(np.mean(_sum_w2(o.col[v] % 1, rs) * _sum_w2(o.row[v] % 1, rs)))
+                        * sigma**2
+                    )
+    print(
+        {k: round(v, 3) for k, v in rms.items()},
+        f"largest shift vs truth_ortho {max(shifts):.4f} px",
+    )
     # geometry: every ortho sits on the true orthoimage to a few thousandths of a pixel (the
     # README's figure is this printed maximum)
     assert max(shifts) <= 0.005
@@ -209,7 +242,9 @@ def test_simulated_scene_true_ortho():
     for (mtf, rs), nv in expected_noise_var.items():
         expected = np.sqrt(rms[mtf, 0.0, rs] ** 2 + nv)
         assert rms[mtf, sigma, rs] == pytest.approx(expected, rel=0.03), (mtf, rs)
-    assert 0.4 < expected_noise_var[0.3, "bilinear"] / sigma ** 2 < 0.5    # bilinear averages noise down
+    assert (
+        0.4 < expected_noise_var[0.3, "bilinear"] / sigma**2 < 0.5
+    )  # bilinear averages noise down
 
 
 def test_nodata_image_holes_footprint_and_dem_voids(rendered):
@@ -228,7 +263,7 @@ def test_nodata_image_holes_footprint_and_dem_voids(rendered):
     # a void in the DEM -> nodata there
     lon, lat = cam.localize(np.array([190.0]), np.array([190.0]), 2000.0)
     cc, rr = ~dem.transform @ (lon, lat)
-    holed.heights[int(rr[0]) - 5:int(rr[0]) + 5, int(cc[0]) - 5:int(cc[0]) + 5] = np.nan
+    holed.heights[int(rr[0]) - 5 : int(rr[0]) + 5, int(cc[0]) - 5 : int(cc[0]) + 5] = np.nan
     o1 = orthorectify(img, cam, holed, grid=grid)
     assert np.isnan(o1.heights).sum() > 20
     assert not o1.valid[np.isnan(o1.heights)].any()
@@ -242,15 +277,19 @@ def test_dem_coverage_errors(rendered):
         orthorectify(img, cam, half, grid=grid, strict_dem=True)
     o = orthorectify(img, cam, half, grid=grid)
     assert o.dem_missing["n_cells"] > 100
-    far = DEM(dem.heights, dem.transform @ Affine.translation(5000, 0), dem.crs, dem.vertical, "far.tif")
+    far = DEM(
+        dem.heights, dem.transform @ Affine.translation(5000, 0), dem.crs, dem.vertical, "far.tif"
+    )
     with pytest.raises(DEMCoverageError, match="far.tif"):
         orthorectify(img, cam, far, grid=grid)
 
 
 # --------------------------------------------------------------------------- RPC vs GDAL
 
+
 def _rpc_setup(tmp_path, data_dir):
     from stereodem.sensor.models.rpc import RPCModel
+
     src = data_dir / "pleiades" / "img_01_rpc.tif"
     model = RPCModel.from_file(src)
     with rasterio.open(src) as ds:
@@ -277,6 +316,7 @@ def test_gdal_rpc_dem_heights_are_ellipsoidal(tmp_path, data_dir):
     """GDAL's RPC_DEM without a vertical CRS uses the values as they are (ellipsoidal here):
     a flat DEM at 2300 m gives the same pixels as RPC_HEIGHT=2300, and both match our model."""
     from rasterio.transform import RPCTransformer
+
     model, rpcs, _, _ = _rpc_setup(tmp_path, data_dir)
     lon, lat = model.footprint(2300.0)
     tr = Affine(1e-4, 0, lon.min() - 0.01, 0, -1e-4, lat.max() + 0.01)
@@ -296,20 +336,30 @@ def test_gdal_rpc_dem_heights_are_ellipsoidal(tmp_path, data_dir):
 def test_rpc_ortho_agrees_with_gdal(tmp_path, data_dir):
     from rasterio.transform import RPCTransformer
     from rasterio.warp import Resampling, reproject
+
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     dem = DEM.from_file(dem_path)
     assert dem.vertical == "ellipsoid"
     grid = grid_for_model(model, dem, res=0.5)
     o = orthorectify(img, model, dem, grid=grid, keep_maps=True)
     ref = np.full(grid.shape, np.nan, np.float32)
-    reproject(img, ref, rpcs=rpcs, src_crs="EPSG:4326", dst_crs=grid.crs, dst_transform=grid.transform,
-              resampling=Resampling.bilinear, dst_nodata=np.nan, RPC_DEM=str(dem_path))
+    reproject(
+        img,
+        ref,
+        rpcs=rpcs,
+        src_crs="EPSG:4326",
+        dst_crs=grid.crs,
+        dst_transform=grid.transform,
+        resampling=Resampling.bilinear,
+        dst_nodata=np.nan,
+        RPC_DEM=str(dem_path),
+    )
     both = o.valid & np.isfinite(ref)
     assert both.sum() > 0.9 * o.valid.sum() > 0.8 * grid.width * grid.height
     d = ls_shift(np.where(both, o.data, np.nan), ref)
     assert np.all(np.abs(d) <= 0.05), d
     # projected positions: GDAL's RPC transformer with the same DEM, at sampled cells
-    vv, uu = np.mgrid[0:grid.height:37, 0:grid.width:41]
+    vv, uu = np.mgrid[0 : grid.height : 37, 0 : grid.width : 41]
     lon, lat = grid.lonlat(uu, vv)
     with RPCTransformer(rpcs, RPC_DEM=str(dem_path)) as t:
         r, c = t.rowcol(lon.ravel(), lat.ravel(), op=lambda v: v)
@@ -324,6 +374,7 @@ def test_real_pleiades_against_gdal(shared_data, tmp_path):
     from rasterio.warp import Resampling, reproject
 
     from stereodem.sensor.models.rpc import RPCModel
+
     img_path = shared_data / "s2p_pleiades" / "pair" / "img_01.tif"
     dsm_path = shared_data / "s2p_pleiades" / "pair" / "expected_dsm.tif"
     if not img_path.exists() or not dsm_path.exists():
@@ -336,8 +387,17 @@ def test_real_pleiades_against_gdal(shared_data, tmp_path):
     grid = grid_from_bounds((w + 20, s + 20, e - 20, n - 20), 0.5, dem.crs)
     o = orthorectify(img, model, dem, grid=grid)
     ref = np.full(grid.shape, np.nan, np.float32)
-    reproject(img, ref, rpcs=rpcs, src_crs="EPSG:4326", dst_crs=grid.crs, dst_transform=grid.transform,
-              resampling=Resampling.bilinear, dst_nodata=np.nan, RPC_DEM=str(dsm_path))
+    reproject(
+        img,
+        ref,
+        rpcs=rpcs,
+        src_crs="EPSG:4326",
+        dst_crs=grid.crs,
+        dst_transform=grid.transform,
+        resampling=Resampling.bilinear,
+        dst_nodata=np.nan,
+        RPC_DEM=str(dsm_path),
+    )
     both = o.valid & np.isfinite(ref)
     assert both.mean() > 0.5
     d = ls_shift(np.where(both, o.data, np.nan), np.where(both, ref, np.nan))
@@ -348,9 +408,11 @@ def test_real_pleiades_against_gdal(shared_data, tmp_path):
 
 # --------------------------------------------------------------------------- forward DRM
 
+
 def test_forward_and_backward_mappings_agree(rendered):
     cam, dem, grid, img, _ = rendered
     from stereodem.ortho.drm import build_backward_map, crop_dem
+
     pts = forward_localize(cam, dem, step=7, crs=grid.crs, threshold=0.01)
     assert pts.converged.mean() > 0.99
     bm = build_backward_map(cam, grid, crop_dem(dem, grid), tolerance=1e-3)
@@ -380,12 +442,13 @@ def test_forward_nearest_ortho_matches_backward_nearest(rendered):
 
 # --------------------------------------------------------------------------- layers
 
+
 def _ridge_dem(width=0.006, lon0=LON0, lat0=LAT0):
     """Ellipsoidal lon/lat DEM: plain at 1000 m with a 900 m north-south Gaussian ridge."""
     st = 0.0005
     tr = Affine(st, 0, lon0 - 0.25, 0, -st, lat0 + 0.25)
     lon, lat = tr @ np.meshgrid(np.arange(1000) + 0.5, np.arange(1000) + 0.5)
-    z = 1000 + 900 * np.exp(-((lon - lon0) / width) ** 2)
+    z = 1000 + 900 * np.exp(-(((lon - lon0) / width) ** 2))
     return DEM(z.astype(np.float32), tr, "EPSG:4326", "ellipsoid")
 
 
@@ -405,13 +468,18 @@ def test_incidence_angle_against_analytic_normals():
     basis = g.enu_basis(lon, lat)
     los = np.einsum("nij,nj->ni", basis, cam.position - np.stack([x, y, z], -1))
     los /= np.linalg.norm(los, axis=1, keepdims=True)
-    m_per_deg = np.radians(1) * g.A / np.sqrt(1 - g.E2 * np.sin(np.radians(lat)) ** 2) * np.cos(np.radians(lat))
-    dzdx = 900 * np.exp(-((lon - LON0) / width) ** 2) * (-2 * (lon - LON0) / width ** 2) / m_per_deg
+    m_per_deg = (
+        np.radians(1)
+        * g.A
+        / np.sqrt(1 - g.E2 * np.sin(np.radians(lat)) ** 2)
+        * np.cos(np.radians(lat))
+    )
+    dzdx = 900 * np.exp(-(((lon - LON0) / width) ** 2)) * (-2 * (lon - LON0) / width**2) / m_per_deg
     nrm = np.stack([-dzdx, np.zeros_like(dzdx), np.ones_like(dzdx)], 1)
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     expected = np.degrees(np.arccos(np.sum(los * nrm, 1)))
     assert np.abs(inc[vv, uu] - expected).max() < 1.0
-    assert expected.max() - expected.min() > 20          # flanks facing toward and away
+    assert expected.max() - expected.min() > 20  # flanks facing toward and away
 
 
 def test_occlusion_against_exact_rays():
@@ -426,7 +494,9 @@ def test_occlusion_against_exact_rays():
     rng = np.random.default_rng(1)
     # sample occluded cells and cells near the ridge (the hard ones)
     near = finite & (o.heights > 1005)
-    cand = np.concatenate([rng.choice(np.flatnonzero(occ), 150), rng.choice(np.flatnonzero(near & ~occ), 150)])
+    cand = np.concatenate(
+        [rng.choice(np.flatnonzero(occ), 150), rng.choice(np.flatnonzero(near & ~occ), 150)]
+    )
     vv, uu = np.unravel_index(cand, occ.shape)
     lon, lat = o.grid.lonlat(uu, vv)
     h0 = o.heights[vv, uu].astype(float)
@@ -448,47 +518,82 @@ def test_second_image_on_shared_grid(rendered):
 
 # --------------------------------------------------------------------------- CLI
 
+
 @pytest.mark.slow
 def test_cli_rpc_ortho_layers_and_errors(tmp_path, data_dir, capsys):
     import argparse
 
     from stereodem.core.raster import write_geotiff
     from stereodem.ortho_cli import add_parser
+
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     image = tmp_path / "img.tif"
     write_geotiff(image, img, rpcs=rpcs)
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
     out = tmp_path / "ortho.tif"
-    args = parser.parse_args(["ortho", str(image), "--dem", str(dem_path), "-o", str(out),
-                              "--res", "1", "--layers", "incidence,occlusion"])
+    args = parser.parse_args(
+        [
+            "ortho",
+            str(image),
+            "--dem",
+            str(dem_path),
+            "-o",
+            str(out),
+            "--res",
+            "1",
+            "--layers",
+            "incidence,occlusion",
+        ]
+    )
     assert args.run(args) == 0
     with rasterio.open(out) as ds:
         assert ds.crs.to_epsg() == 32740 and ds.res == (1.0, 1.0)
         a = ds.read(1)
         assert np.isfinite(a).mean() > 0.8
-    assert (tmp_path / "ortho_incidence.tif").exists() and (tmp_path / "ortho_occlusion.tif").exists()
+    assert (tmp_path / "ortho_incidence.tif").exists() and (
+        tmp_path / "ortho_occlusion.tif"
+    ).exists()
     assert "interpolation error" in capsys.readouterr().out
     # existing output without --overwrite
     from stereodem.core.errors import InputError, OutputExistsError, SensorModelError
+
     with pytest.raises(OutputExistsError):
         args.run(args)
     # DEM far from the image
     far = tmp_path / "far.tif"
-    DEM(np.full((50, 50), 100, np.float32), Affine(1e-3, 0, 10, 0, -1e-3, 10), "EPSG:4326",
-        "ellipsoid").write(far)
-    args = parser.parse_args(["ortho", str(image), "--dem", str(far), "-o", str(tmp_path / "o2.tif")])
+    DEM(
+        np.full((50, 50), 100, np.float32),
+        Affine(1e-3, 0, 10, 0, -1e-3, 10),
+        "EPSG:4326",
+        "ellipsoid",
+    ).write(far)
+    args = parser.parse_args(
+        ["ortho", str(image), "--dem", str(far), "-o", str(tmp_path / "o2.tif")]
+    )
     with pytest.raises(DEMCoverageError, match="far.tif"):
         args.run(args)
     # no model in the image
     bare = tmp_path / "bare.tif"
     write_geotiff(bare, img)
-    args = parser.parse_args(["ortho", str(bare), "--dem", str(dem_path), "-o", str(tmp_path / "o3.tif")])
+    args = parser.parse_args(
+        ["ortho", str(bare), "--dem", str(dem_path), "-o", str(tmp_path / "o3.tif")]
+    )
     with pytest.raises(SensorModelError, match="bare.tif"):
         args.run(args)
     # a generic model without GCPs
-    args = parser.parse_args(["ortho", str(image), "--dem", str(dem_path), "-o", str(tmp_path / "o4.tif"),
-                              "--model", "poly2d-1"])
+    args = parser.parse_args(
+        [
+            "ortho",
+            str(image),
+            "--dem",
+            str(dem_path),
+            "-o",
+            str(tmp_path / "o4.tif"),
+            "--model",
+            "poly2d-1",
+        ]
+    )
     with pytest.raises(InputError, match="--gcps"):
         args.run(args)
 
@@ -499,6 +604,7 @@ def test_cli_gcp_model(tmp_path, data_dir, capsys):
     from stereodem.core.errors import InputError
     from stereodem.core.raster import write_geotiff, write_text_atomic
     from stereodem.ortho_cli import add_parser
+
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     image = tmp_path / "img.tif"
     write_geotiff(image, img)
@@ -508,19 +614,46 @@ def test_cli_gcp_model(tmp_path, data_dir, capsys):
     loc = model.localize_dem(c, r, dem, threshold=0.001, h0=2300.0)
     rows = ["id,lon,lat,h,col,row,role"] + [
         f"p{i},{loc.lon[i]:.9f},{loc.lat[i]:.9f},{loc.h[i]:.3f},{c[i]:.3f},{r[i]:.3f},{'gcp' if i < 30 else 'check'}"
-        for i in range(40)]
+        for i in range(40)
+    ]
     csv = tmp_path / "gcps.csv"
     write_text_atomic(csv, "\n".join(rows) + "\n")
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
-    args = parser.parse_args(["ortho", str(image), "--dem", str(dem_path), "-o", str(tmp_path / "o.tif"),
-                              "--model", "rational-1", "--gcps", str(csv), "--res", "1"])
+    args = parser.parse_args(
+        [
+            "ortho",
+            str(image),
+            "--dem",
+            str(dem_path),
+            "-o",
+            str(tmp_path / "o.tif"),
+            "--model",
+            "rational-1",
+            "--gcps",
+            str(csv),
+            "--res",
+            "1",
+        ]
+    )
     assert args.run(args) == 0
     out = capsys.readouterr().out
     assert "rational-1: 30 GCPs, 10 check points" in out
     few = tmp_path / "few.csv"
     write_text_atomic(few, "\n".join(rows[:4]) + "\n")
-    args = parser.parse_args(["ortho", str(image), "--dem", str(dem_path), "-o", str(tmp_path / "o5.tif"),
-                              "--model", "rational-3", "--gcps", str(few)])
+    args = parser.parse_args(
+        [
+            "ortho",
+            str(image),
+            "--dem",
+            str(dem_path),
+            "-o",
+            str(tmp_path / "o5.tif"),
+            "--model",
+            "rational-3",
+            "--gcps",
+            str(few),
+        ]
+    )
     with pytest.raises(InputError):
         args.run(args)

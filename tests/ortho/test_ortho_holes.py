@@ -1,5 +1,6 @@
 """Orthorectification onto a DEM with holes or partial coverage: nodata there, the share of
 the footprint reported, and a second DEM (``fill_dem``) filling them."""
+
 import logging
 
 import numpy as np
@@ -30,7 +31,7 @@ def _holed(dem, cam, name):
     lon, lat = cam.localize(np.array([cam.width / 2]), np.array([cam.height / 2]), 2000.0)
     c, r = ~dem.transform @ (lon, lat)
     h = dem.heights.copy()
-    h[int(r[0]) - 20:int(r[0]) + 20, int(c[0]) - 20:int(c[0]) + 20] = np.nan
+    h[int(r[0]) - 20 : int(r[0]) + 20, int(c[0]) - 20 : int(c[0]) + 20] = np.nan
     return DEM(h, dem.transform, dem.crs, dem.vertical, name)
 
 
@@ -39,7 +40,7 @@ def test_holes_give_nodata_and_a_warning_with_the_share(scene, caplog):
     full = orthorectify(img, cam, dem, grid=grid)
     holed = _holed(dem, cam, "holed.tif")
     with caplog.at_level(logging.WARNING):
-        o = orthorectify(img, cam, holed, grid=grid, strict_dem=True)   # holes are not an error
+        o = orthorectify(img, cam, holed, grid=grid, strict_dem=True)  # holes are not an error
     lost = full.valid & ~o.valid
     assert lost.sum() > 100
     share = o.dem_missing["footprint_share"]
@@ -55,11 +56,16 @@ def test_fill_dem_fills_holes_and_missing_coverage(scene):
     full = orthorectify(img, cam, dem, grid=grid)
     holed = _holed(dem, cam, "holed.tif")
     # a primary DEM with a hole that also stops short of the footprint's western part
-    west_cut = DEM(holed.heights[:, 470:], holed.transform @ Affine.translation(470, 0),
-                   holed.crs, holed.vertical, "partial.tif")
+    west_cut = DEM(
+        holed.heights[:, 470:],
+        holed.transform @ Affine.translation(470, 0),
+        holed.crs,
+        holed.vertical,
+        "partial.tif",
+    )
     alone = orthorectify(img, cam, west_cut, grid=grid)
-    assert alone.dem_missing["n_cells"] > 100                 # part of the footprint is off the DEM
-    assert alone.dem_missing["n_no_height"] > alone.dem_missing["n_cells"]   # and the hole
+    assert alone.dem_missing["n_cells"] > 100  # part of the footprint is off the DEM
+    assert alone.dem_missing["n_no_height"] > alone.dem_missing["n_cells"]  # and the hole
     o = orthorectify(img, cam, west_cut, grid=grid, fill_dem=dem)
     assert o.dem_missing["n_no_height"] == 0 and o.dem_missing["filled_cells"] > 100
     assert np.array_equal(o.valid, full.valid)
@@ -69,8 +75,9 @@ def test_fill_dem_fills_holes_and_missing_coverage(scene):
 
 def test_bundled_srtm_declares_its_vertical_reference():
     from importlib import resources
+
     path = resources.files("stereodem.core") / "data" / "srtm_ref.tif"
-    assert DEM.from_file(path).vertical == "geoid"      # no --ref-vertical / --dem-vertical needed
+    assert DEM.from_file(path).vertical == "geoid"  # no --ref-vertical / --dem-vertical needed
 
 
 @pytest.mark.slow
@@ -82,34 +89,39 @@ def test_cli_dem_with_holes_and_fill_dem(tmp_path, data_dir, caplog):
 
     from stereodem.core.raster import write_geotiff
     from stereodem.ortho_cli import add_parser
+
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     image = tmp_path / "img.tif"
     write_geotiff(image, img, rpcs=rpcs)
     full = DEM.from_file(dem_path)
     h = full.heights.copy()
     r0, c0 = h.shape[0] // 2, h.shape[1] // 2
-    h[r0 - 30:r0 + 30, c0 - 30:c0 + 30] = np.nan                 # a hole under the image
+    h[r0 - 30 : r0 + 30, c0 - 30 : c0 + 30] = np.nan  # a hole under the image
     holed = tmp_path / "holed.tif"
     DEM(h, full.transform, full.crs, "ellipsoid").write(holed)
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
 
     def ortho(*extra, out):
-        args = parser.parse_args(["ortho", str(image), "--dem", str(holed), "-o", str(out),
-                                  "--res", "1", *extra])
+        args = parser.parse_args(
+            ["ortho", str(image), "--dem", str(holed), "-o", str(out), "--res", "1", *extra]
+        )
         assert args.run(args) == 0
         with rasterio.open(out) as ds:
             return ds.read(1)
 
-    ref = parser.parse_args(["ortho", str(image), "--dem", str(dem_path), "-o", str(tmp_path / "ref.tif"),
-                             "--res", "1"])
+    ref = parser.parse_args(
+        ["ortho", str(image), "--dem", str(dem_path), "-o", str(tmp_path / "ref.tif"), "--res", "1"]
+    )
     assert ref.run(ref) == 0
     with rasterio.open(tmp_path / "ref.tif") as ds:
         a_ref = ds.read(1)
     with caplog.at_level(logging.WARNING):
-        a_holed = ortho(out=tmp_path / "holed_ortho.tif")           # holes: exit 0, nodata there
-    assert any("no DEM height under" in r.getMessage() and "--fill-dem" in r.getMessage()
-               for r in caplog.records)
+        a_holed = ortho(out=tmp_path / "holed_ortho.tif")  # holes: exit 0, nodata there
+    assert any(
+        "no DEM height under" in r.getMessage() and "--fill-dem" in r.getMessage()
+        for r in caplog.records
+    )
     lost = np.isfinite(a_ref) & ~np.isfinite(a_holed)
     assert lost.sum() > 1000
     a_fill = ortho("--fill-dem", str(dem_path), out=tmp_path / "filled_ortho.tif")
@@ -121,6 +133,7 @@ def test_rpc_ortho_on_heights_outside_its_validity_range(tmp_path, data_dir):
     from test_ortho import _rpc_setup
 
     from stereodem.core.errors import RPCError
+
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     dem = DEM.from_file(dem_path)
     feet = DEM(dem.heights * 3.28084, dem.transform, dem.crs, "ellipsoid", "dem_in_feet.tif")

@@ -1,4 +1,5 @@
 """Uncertainty and sensitivity (issue #17): propagation, sampling, indices, maps, command."""
+
 import numpy as np
 import pytest
 from affine import Affine
@@ -10,9 +11,11 @@ from stereodem.ortho.uncertainty import sampling as S
 
 # --------------------------------------------------------------------------- fixtures
 
+
 @pytest.fixture(scope="module")
 def rpc(data_dir):
     from stereodem.sensor.models.rpc import RPCModel
+
     return RPCModel.from_file(data_dir / "pleiades" / "img_01_rpc.tif")
 
 
@@ -23,8 +26,12 @@ def _dem_under(model, h0=2300.0, relief=0.0, tilt=(0.0, 0.0)):
     tr = Affine(step, 0, w, 0, -step, n)
     nx, ny = int((e - w) / step), int((n - s) / step)
     X, Y = tr @ np.meshgrid(np.arange(nx) + 0.5, np.arange(ny) + 0.5)
-    Z = h0 + relief * np.sin((X - w) / 0.0015) * np.cos((Y - s) / 0.002) \
-        + tilt[0] * (X - w) * 1e5 + tilt[1] * (Y - s) * 1e5
+    Z = (
+        h0
+        + relief * np.sin((X - w) / 0.0015) * np.cos((Y - s) / 0.002)
+        + tilt[0] * (X - w) * 1e5
+        + tilt[1] * (Y - s) * 1e5
+    )
     return DEM(Z.astype(np.float32), tr, "EPSG:4326", "ellipsoid")
 
 
@@ -36,22 +43,27 @@ def flat(rpc):
 @pytest.fixture(scope="module")
 def frame():
     from stereodem.sensor.simulation.simulate import frame_pair
+
     cam, _ = frame_pair(32.8, 39.9, 1000.0, (512, 512))
     return cam
 
 
 # --------------------------------------------------------------------------- RPC maps: closed forms
 
+
 def _map(rpc, dem, sigmas, res=4.0):
     from stereodem.ortho.grid import grid_for_model
     from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+
     grid = grid_for_model(rpc, dem, res=res)
     names = list(sigmas)
-    return grid, ortho_uncertainty_maps(rpc, dem, grid, np.diag([sigmas[n] ** 2 for n in names]), names)
+    return grid, ortho_uncertainty_maps(
+        rpc, dem, grid, np.diag([sigmas[n] ** 2 for n in names]), names
+    )
 
 
 def _cells(grid, maps, every=2):
-    r, c = np.mgrid[0:grid.height:every, 0:grid.width:every]
+    r, c = np.mgrid[0 : grid.height : every, 0 : grid.width : every]
     ok = np.isfinite(maps.sigma_horizontal[r, c])
     return c[ok].astype(float), r[ok].astype(float), ok
 
@@ -63,8 +75,10 @@ def test_image_shift_sigma_is_the_ground_size_of_the_shift_at_every_cell(rpc, fl
     c, r, _ = _cells(grid, maps)
     lon, lat = grid.lonlat(c, r)
     col, row = rpc.project(lon, lat, np.full(lon.shape, 2300.0))
-    pts = [geodesy.lonlat_to_crs(*rpc.localize(col + d, row, np.full(lon.shape, 2300.0)), grid.crs)
-           for d in (-0.5, 0.5)]
+    pts = [
+        geodesy.lonlat_to_crs(*rpc.localize(col + d, row, np.full(lon.shape, 2300.0)), grid.crs)
+        for d in (-0.5, 0.5)
+    ]
     truth = np.hypot(pts[1][0] - pts[0][0], pts[1][1] - pts[0][1])
     got = maps.sigma_horizontal[r.astype(int), c.astype(int)]
     assert c.size > 500
@@ -80,12 +94,18 @@ def test_dem_height_sigma_is_sigma_h_times_tan_off_nadir(rpc, flat):
     lon, lat = grid.lonlat(c, r)
     col, row = rpc.project(lon, lat, np.full(lon.shape, 2300.0))
     _, d = rpc.rays(col, row)
-    up = np.stack([np.cos(np.radians(lat)) * np.cos(np.radians(lon)),
-                   np.cos(np.radians(lat)) * np.sin(np.radians(lon)), np.sin(np.radians(lat))], -1)
+    up = np.stack(
+        [
+            np.cos(np.radians(lat)) * np.cos(np.radians(lon)),
+            np.cos(np.radians(lat)) * np.sin(np.radians(lon)),
+            np.sin(np.radians(lat)),
+        ],
+        -1,
+    )
     cosz = np.abs(np.sum(d * up, -1))
     truth = 10.0 * np.tan(np.arccos(cosz))
     got = maps.sigma_horizontal[r.astype(int), c.astype(int)]
-    assert np.median(truth) > 0.5                      # a real off-nadir view, not a trivial zero
+    assert np.median(truth) > 0.5  # a real off-nadir view, not a trivial zero
     assert np.max(np.abs(got / truth - 1)) < 0.01
 
 
@@ -101,6 +121,7 @@ def test_map_interpolation_error_is_measured_and_small(rpc):
 
 # --------------------------------------------------------------------------- Jacobians
 
+
 def test_dem_height_jacobian_matches_relocalisation(rpc):
     """∂G/∂h from the propagation engine equals the move of the pixel's ground point localised
     at h ± 5 m (independent path through ``localize``)."""
@@ -110,8 +131,10 @@ def test_dem_height_jacobian_matches_relocalisation(rpc):
     row = np.array([80.0, 500.0, 900.0])
     lon, lat = rpc.localize(col, row, np.full(3, 2300.0))
     gj = P.ground_jacobian(model, lon, lat, np.full(3, 2300.0), ["dem_height"], crs)
-    (Ep, Np), (Em, Nm) = (geodesy.lonlat_to_crs(*rpc.localize(col, row, np.full(3, 2300.0 + d)), crs)
-                          for d in (5.0, -5.0))
+    (Ep, Np), (Em, Nm) = (
+        geodesy.lonlat_to_crs(*rpc.localize(col, row, np.full(3, 2300.0 + d)), crs)
+        for d in (5.0, -5.0)
+    )
     fd = np.stack([(Ep - Em) / 10, (Np - Nm) / 10], -1)
     assert np.allclose(gj.J[:, :, 0], fd, atol=1e-4)
 
@@ -124,24 +147,31 @@ def test_frame_attitude_jacobian_against_relocalisation(frame):
     lon, lat = frame.localize(col, row, np.full(2, 1000.0))
     gj = P.ground_jacobian(frame, lon, lat, np.full(2, 1000.0), ["roll", "x"], crs)
     d = 1e-6
-    (Ep, Np), (Em, Nm) = (geodesy.lonlat_to_crs(*frame.with_parameters(roll=frame.roll + s).localize(
-        col, row, np.full(2, 1000.0)), crs) for s in (d, -d))
+    (Ep, Np), (Em, Nm) = (
+        geodesy.lonlat_to_crs(
+            *frame.with_parameters(roll=frame.roll + s).localize(col, row, np.full(2, 1000.0)), crs
+        )
+        for s in (d, -d)
+    )
     fd = np.stack([(Ep - Em), (Np - Nm)], -1) / (2 * d)
     assert np.allclose(gj.J[:, :, 0], fd, rtol=1e-4)
-    assert np.abs(gj.J[:, :, 0]).max() > 1e5           # ≈ 700 km lever per radian
+    assert np.abs(gj.J[:, :, 0]).max() > 1e5  # ≈ 700 km lever per radian
 
 
 # --------------------------------------------------------------------------- first order vs Monte Carlo
+
 
 @pytest.mark.slow
 def test_first_order_and_monte_carlo_agree_for_a_near_linear_case(rpc):
     dem = _dem_under(rpc, relief=30.0)
     model = P.adjustable_model(rpc)
     crs = geodesy.utm_crs(*rpc.center_lonlat(2300.0))
-    lon, lat = rpc.localize(np.array([100.0, 500, 900]), np.array([100.0, 600, 950]), np.full(3, 2300.0))
+    lon, lat = rpc.localize(
+        np.array([100.0, 500, 900]), np.array([100.0, 600, 950]), np.full(3, 2300.0)
+    )
     h = dem.sample(lon, lat)
     names = ["col_shift", "row_shift", "dem_height"]
-    D = np.diag([1.0, 0.5 ** 2, 15.0 ** 2])
+    D = np.diag([1.0, 0.5**2, 15.0**2])
     pu = P.first_order(model, lon, lat, h, names, D, crs, dem=dem)
     X, dE, dN = S.monte_carlo(model, lon, lat, h, names, D, crs, samples=1000, dem=dem, seed=1)
     mc = np.sqrt(dE.var(0, ddof=1) + dN.var(0, ddof=1))
@@ -157,11 +187,11 @@ def test_strongly_nonlinear_case_gap_is_stated(frame):
     lon, lat = frame.localize(np.array([10.0, 256.0]), np.array([10.0, 256.0]), np.full(2, 1000.0))
     h = np.full(2, 1000.0)
     sig = 0.15
-    pu = P.first_order(frame, lon, lat, h, ["pitch"], np.diag([sig ** 2]), crs)
-    X, dE, dN = S.monte_carlo(frame, lon, lat, h, ["pitch"], np.diag([sig ** 2]), crs, samples=1000)
+    pu = P.first_order(frame, lon, lat, h, ["pitch"], np.diag([sig**2]), crs)
+    X, dE, dN = S.monte_carlo(frame, lon, lat, h, ["pitch"], np.diag([sig**2]), crs, samples=1000)
     mc = np.sqrt(dE.var(0, ddof=1) + dN.var(0, ddof=1))
-    t, wt = np.polynomial.legendre.leggauss(80)        # ±4.5σ (the ±8σ of Gauss–Hermite
-    z = 4.5 * t                                        # would look past the horizon)
+    t, wt = np.polynomial.legendre.leggauss(80)  # ±4.5σ (the ±8σ of Gauss–Hermite
+    z = 4.5 * t  # would look past the horizon)
     w = wt * np.exp(-0.5 * z * z)
     w = w / w.sum()
     qE, qN = S.ground_displacements(frame, lon, lat, h, ["pitch"], (sig * z)[:, None], crs)
@@ -189,8 +219,10 @@ def test_correlated_inputs_first_order_matches_monte_carlo_and_shares_sum_to_one
     vE = sum(J[:, 0, i] * J[:, 0, j] * D[i, j] for i in range(4) for j in range(4))
     vN = sum(J[:, 1, i] * J[:, 1, j] * D[i, j] for i in range(4) for j in range(4))
     assert np.allclose(pu.sigma_horizontal, np.sqrt(vE + vN), rtol=1e-12)
-    pu0 = P.first_order(frame, lon, lat, h, names, np.diag(sd ** 2), crs)
-    assert np.all(np.abs(pu.sigma_horizontal / pu0.sigma_horizontal - 1) > 0.01)   # correlation matters
+    pu0 = P.first_order(frame, lon, lat, h, names, np.diag(sd**2), crs)
+    assert np.all(
+        np.abs(pu.sigma_horizontal / pu0.sigma_horizontal - 1) > 0.01
+    )  # correlation matters
     X, dE, dN = S.monte_carlo(frame, lon, lat, h, names, D, crs, samples=1000, seed=3)
     mc = np.sqrt(dE.var(0, ddof=1) + dN.var(0, ddof=1))
     assert np.all(np.abs(mc / pu.sigma_horizontal - 1) < 0.02)
@@ -210,8 +242,10 @@ def test_imaging_time_lever_is_the_ground_track_speed(frame):
 
 # --------------------------------------------------------------------------- sampling pieces
 
+
 def test_iman_conover_imposes_rank_correlation_and_keeps_marginals():
     from scipy import stats
+
     D = np.array([[4.0, 1.4, 0.0], [1.4, 1.0, -0.3], [0.0, -0.3, 0.25]])
     X = S.lhs_normal(D, 2000, seed=5)
     C = D / np.sqrt(np.outer(np.diag(D), np.diag(D)))
@@ -249,22 +283,28 @@ def test_ce90_closed_forms_and_monte_carlo():
 
 # --------------------------------------------------------------------------- FAST / Sobol
 
+
 def test_thesis_fast_frequency_set_is_interference_free_to_order_4():
     from stereodem.ortho.uncertainty.indices import interference_order
+
     thesis = [145, 177, 199, 41, 67, 105, 219, 229, 235, 243, 247]
     order = interference_order(thesis, max_order=7)
-    assert order == 6                                  # e.g. −3·145 + 229 + 247 − 41 = 0
+    assert order == 6  # e.g. −3·145 + 229 + 247 − 41 = 0
     assert order > 4 + 1
     # brute force over all coefficient vectors with entries in -6..6 (an independent search):
     # the lowest-order combination of this set has order 6, so none up to 4
     import itertools
+
     f = [11, 21, 27, 35, 39]
-    brute = min(sum(map(abs, a)) for a in itertools.product(range(-6, 7), repeat=len(f))
-                if any(a) and sum(x * w for x, w in zip(a, f)) == 0)
+    brute = min(
+        sum(map(abs, a))
+        for a in itertools.product(range(-6, 7), repeat=len(f))
+        if any(a) and sum(x * w for x, w in zip(a, f)) == 0
+    )
     assert brute == 6
     assert interference_order(f, max_order=8) == brute
     assert interference_order(f, max_order=4) is None
-    assert interference_order([1, 2]) == 3             # 2·1 − 2 = 0, order 3
+    assert interference_order([1, 2]) == 3  # 2·1 − 2 = 0, order 3
 
 
 def test_salib_efast_design_is_interference_free_to_order_4():
@@ -273,25 +313,27 @@ def test_salib_efast_design_is_interference_free_to_order_4():
     from SALib.sample import fast_sampler
 
     from stereodem.ortho.uncertainty.indices import efast_interference_free, sample_frequencies
+
     N, M, u = 1000, 4, 5
     problem = {"num_vars": u, "names": list("abcde"), "bounds": [[0, 1]] * u}
     X = fast_sampler.sample(problem, N, M=M, seed=0)
     for i in range(u):
-        block = X[i * N:(i + 1) * N]
+        block = X[i * N : (i + 1) * N]
         w = [sample_frequencies(block[:, j], N) for j in range(u)]
         comp = [w[j] for j in range(u) if j != i]
         assert w[i] > max(comp)
         assert efast_interference_free(w[i], comp, M, N)
-    assert not efast_interference_free(12, [3, 4], 4, 1000)      # 3·4 = 12 interferes
+    assert not efast_interference_free(12, [3, 4], 4, 1000)  # 3·4 = 12 interferes
 
 
 def test_fast_indices_match_first_order_shares_for_a_linear_case(rpc, flat):
     from stereodem.ortho.uncertainty.indices import fast_indices
+
     model = P.adjustable_model(rpc)
     crs = geodesy.utm_crs(*rpc.center_lonlat(2300.0))
     lon, lat = rpc.localize(np.array([300.0]), np.array([700.0]), np.array([2300.0]))
     names = ["col_shift", "row_shift", "dem_height"]
-    D = np.diag([1.0, 0.3 ** 2, 4.0 ** 2])
+    D = np.diag([1.0, 0.3**2, 4.0**2])
     pu = P.first_order(model, lon, lat, np.array([2300.0]), names, D, crs)
     r = fast_indices(model, lon, lat, np.array([2300.0]), names, D, crs, samples=300, M=4)
     for k, n in enumerate(r["names"]):
@@ -301,8 +343,10 @@ def test_fast_indices_match_first_order_shares_for_a_linear_case(rpc, flat):
 
 # --------------------------------------------------------------------------- DEM vertical σ
 
+
 def test_hirvonen_slopes_recover_plane_and_quadratic_gradients():
     from stereodem.ortho.uncertainty.maps import hirvonen_slopes
+
     res = 30.0
     r, c = np.mgrid[0:40, 0:50]
     E, N = c * res, -r * res
@@ -318,6 +362,7 @@ def test_dem_vertical_sigma_pleiades_pair(data_dir):
     on a tilted plane the slope term is |∇h|·σ_horizontal."""
     from stereodem.ortho.uncertainty.maps import dem_vertical_sigma
     from stereodem.sensor.models.rpc import RPCModel
+
     left = RPCModel.from_file(data_dir / "pleiades" / "img_01_rpc.tif")
     right = RPCModel.from_file(data_dir / "pleiades" / "img_02_rpc.tif")
     lon0, lat0 = left.center_lonlat(2300.0)
@@ -335,14 +380,22 @@ def test_dem_vertical_sigma_pleiades_pair(data_dir):
     # least-squares intersection of both images (disparity along the right image's motion per
     # vertical metre, not exactly along the left ray's epipolar line) gives 13 % less.
     c0, r0 = left.project(lon0, lat0, 2300.0)
-    p = [np.array(right.project(*left.localize(np.atleast_1d(c0), np.atleast_1d(r0), np.atleast_1d(hh)), hh))
-         for hh in (2300.0, 2301.0)]
+    p = [
+        np.array(
+            right.project(
+                *left.localize(np.atleast_1d(c0), np.atleast_1d(r0), np.atleast_1d(hh)), hh
+            )
+        )
+        for hh in (2300.0, 2301.0)
+    ]
     predicted = 0.2 / float(np.linalg.norm(p[1] - p[0]))
     assert np.nanmedian(a.sigma_intersection) == pytest.approx(predicted, rel=0.2)
     score = np.full(z.shape, 0.9)
     score[:50] = 0.6
     s = dem_vertical_sigma(left, right, dem, sigma_disparity=0.2, score=score)
-    assert np.nanmedian(s.sigma_intersection[60:]) == pytest.approx(np.nanmedian(a.sigma_intersection[60:]), rel=1e-5)
+    assert np.nanmedian(s.sigma_intersection[60:]) == pytest.approx(
+        np.nanmedian(a.sigma_intersection[60:]), rel=1e-5
+    )
     assert np.nanmedian(s.sigma_intersection[:40]) > 2 * np.nanmedian(a.sigma_intersection[:40])
     inner = (slice(10, -10), slice(10, -10))
     slope = np.sqrt((0.2 * a.sigma_east) ** 2 + (0.1 * a.sigma_north) ** 2)
@@ -358,18 +411,24 @@ def test_central_difference_steps_are_stable_for_every_parameter(kind, frame):
     both small), and no input is dead (all partials non-zero somewhere)."""
     if kind == "frame":
         model = frame
-        lon, lat = frame.localize(np.array([30.0, 256.0, 480.0]), np.array([20.0, 256.0, 490.0]), np.full(3, 1000.0))
+        lon, lat = frame.localize(
+            np.array([30.0, 256.0, 480.0]), np.array([20.0, 256.0, 490.0]), np.full(3, 1000.0)
+        )
         lon0, lat0 = 32.8, 39.9
     else:
         from stereodem.sensor.simulation.simulate import pushbroom_pair
+
         model, _ = pushbroom_pair(32.8, 39.9, 1000.0, (400, 400), (0.0, -27.6))
-        lon, lat = model.localize(np.array([30.0, 200.0, 380.0]), np.array([20.0, 200.0, 390.0]), np.full(3, 1000.0))
+        lon, lat = model.localize(
+            np.array([30.0, 200.0, 380.0]), np.array([20.0, 200.0, 390.0]), np.full(3, 1000.0)
+        )
         lon0, lat0 = 32.8, 39.9
     crs = geodesy.utm_crs(lon0, lat0)
     names = P.valid_names(model)
     h = np.full(3, 1000.0)
     gj = P.ground_jacobian(model, lon, lat, h, names, crs)
     from stereodem.sensor.models.parameters import default_step
+
     vals = model.parameters()
     chosen = P.propagation_steps(model, list(vals))
     fine = {n: 0.1 * chosen.get(n, default_step(n, vals[n])) for n in vals}
@@ -396,7 +455,7 @@ def test_image_shift_field_matches_exact_relocalisation_without_terrain(frame):
     lon, lat = frame.localize(cc.ravel(), rr.ravel(), np.full(cc.size, 1000.0))
     h = np.full(lon.shape, 1000.0)
     names = ["roll", "pitch", "yaw", "x", "imaging_time", "dem_height", "k1"]
-    D = np.diag([1e-10, 1e-10, 1e-10, 25.0, 1e-6, 100.0, 1e-12])      # displacements of a few pixels
+    D = np.diag([1e-10, 1e-10, 1e-10, 25.0, 1e-6, 100.0, 1e-12])  # displacements of a few pixels
     X = S.lhs_normal(D, 40, seed=2)
     e1, n1 = S.ground_displacements(frame, lon, lat, h, names, X, crs)
     e2, n2, err = S.field_displacements(frame, lon, lat, h, names, X, crs)
@@ -409,6 +468,7 @@ def test_image_shift_field_matches_exact_relocalisation_without_terrain(frame):
 def test_sampling_methods_on_the_map(rpc, flat):
     from stereodem.ortho.grid import grid_for_model
     from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+
     grid = grid_for_model(rpc, flat, res=8.0)
     names = ["col_shift", "row_shift", "dem_height"]
     D = np.diag([1.0, 0.25, 16.0])

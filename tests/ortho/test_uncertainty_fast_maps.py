@@ -11,6 +11,7 @@ per-map ``interpolation_error`` must be below it too), the same valid cells exce
 thin border, the same dominant source wherever the exact leader leads by more than 1 % of the
 variance, and whole-image shares within 1e-3.
 """
+
 import numpy as np
 import pytest
 from affine import Affine
@@ -29,16 +30,22 @@ def _rough_dem(model, h0, *, step=5e-5, void=True):
     tr = Affine(step, 0, w, 0, -step, n)
     nx, ny = int((e - w) / step), int((n - s) / step)
     X, Y = tr @ np.meshgrid(np.arange(nx) + 0.5, np.arange(ny) + 0.5)
-    Z = h0 + 60.0 * np.sin((X - w) / 0.0011) * np.cos((Y - s) / 0.0013) + 4e3 * (X - w) - 2e3 * (Y - s)
+    Z = (
+        h0
+        + 60.0 * np.sin((X - w) / 0.0011) * np.cos((Y - s) / 0.0013)
+        + 4e3 * (X - w)
+        - 2e3 * (Y - s)
+    )
     if void:
         k = max(12, nx // 40)
-        Z[ny // 2:ny // 2 + k, nx // 3:nx // 3 + k] = np.nan
+        Z[ny // 2 : ny // 2 + k, nx // 3 : nx // 3 + k] = np.nan
     return DEM(Z.astype(np.float32), tr, "EPSG:4326", "ellipsoid")
 
 
 @pytest.fixture(scope="module")
 def rpc_case(data_dir):
     from stereodem.sensor.models.rpc import RPCModel
+
     rpc = RPCModel.from_file(data_dir / "pleiades" / "img_01_rpc.tif")
     names = ["col_shift", "row_shift", "col_drift_col", "row_drift_row", "dem_height"]
     sig = [0.7, 0.4, 2e-4, 1e-4, 6.0]
@@ -48,46 +55,57 @@ def rpc_case(data_dir):
 @pytest.fixture(scope="module")
 def frame_case():
     from stereodem.sensor.simulation.simulate import frame_pair
+
     cam, _ = frame_pair(32.8, 39.9, 1000.0, (512, 512))
     names = ["roll", "pitch", "yaw", "x", "y", "z", "imaging_time", "dem_height"]
     sig = np.array([2e-5, 2e-5, 5e-5, 5.0, 5.0, 5.0, 1e-3, 5.0])
-    D = np.diag(sig ** 2)
-    D[0, 1] = D[1, 0] = 0.5 * sig[0] * sig[1]                  # correlated roll/pitch
+    D = np.diag(sig**2)
+    D[0, 1] = D[1, 0] = 0.5 * sig[0] * sig[1]  # correlated roll/pitch
     return cam, _rough_dem(cam, 1000.0, step=2e-4), names, D, None
 
 
 def _exact(model, dem, grid, names, D, every):
     """Exact first-order propagation at every ``every``-th cell: (rows, cols, PointUncertainty)."""
     m = P.adjustable_model(model)
-    r, c = np.mgrid[0:grid.height:every, 0:grid.width:every]
+    r, c = np.mgrid[0 : grid.height : every, 0 : grid.width : every]
     r, c = r.ravel(), c.ravel()
     lon, lat = grid.lonlat(c.astype(float), r.astype(float))
     h = dem.sample(lon, lat)
     col, row = (np.asarray(a) for a in m.project(lon, lat, np.where(np.isfinite(h), h, 0.0)))
-    inside = np.isfinite(h) & (col >= -0.5) & (row >= -0.5) & (col <= m.width - 0.5) & (row <= m.height - 0.5)
+    inside = (
+        np.isfinite(h)
+        & (col >= -0.5)
+        & (row >= -0.5)
+        & (col <= m.width - 0.5)
+        & (row <= m.height - 0.5)
+    )
     pu = P.first_order(m, lon[inside], lat[inside], h[inside], names, D, grid.crs, dem=dem)
     return r, c, inside, pu
 
 
 def _near_void(dem, grid, r, c, posts=2):
     from scipy import ndimage
+
     lon, lat = grid.lonlat(c.astype(float), r.astype(float))
     dc, dr, _ = P.dem_pixel_jacobian(dem, lon, lat, grid.crs)
     near = ndimage.binary_dilation(np.isnan(dem.heights), iterations=posts + 1)
-    return near[np.clip(np.floor(dr).astype(int), 0, dem.shape[0] - 1),
-                np.clip(np.floor(dc).astype(int), 0, dem.shape[1] - 1)]
+    return near[
+        np.clip(np.floor(dr).astype(int), 0, dem.shape[0] - 1),
+        np.clip(np.floor(dc).astype(int), 0, dem.shape[1] - 1),
+    ]
 
 
 @pytest.mark.parametrize("case", ["rpc_case", pytest.param("frame_case", marks=pytest.mark.slow)])
 def test_fast_maps_agree_with_exact_per_cell_propagation(case, request):
     from stereodem.ortho.grid import grid_for_model
     from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+
     model, dem, names, D, res = request.getfixturevalue(case)
     grid = grid_for_model(model, dem, res=res)
     maps = ortho_uncertainty_maps(model, dem, grid, D, names, threads=2)
     r, c, inside, pu = _exact(model, dem, grid, names, D, every=2)
     assert inside.sum() > 3000
-    assert _near_void(dem, grid, r[inside], c[inside]).sum() > 5           # the void is seen
+    assert _near_void(dem, grid, r[inside], c[inside]).sum() > 5  # the void is seen
 
     # the same valid cells, except a border of the footprint (image-position rounding)
     valid = np.isfinite(maps.sigma_horizontal[r, c])
@@ -100,7 +118,7 @@ def test_fast_maps_agree_with_exact_per_cell_propagation(case, request):
     assert rel(maps.sigma_east[rr, cc], pu.sigma_east[both]) < TOL
     assert rel(maps.sigma_north[rr, cc], pu.sigma_north[both]) < TOL
     assert rel(maps.sigma_horizontal[rr, cc], pu.sigma_horizontal[both]) < TOL
-    sub = slice(None, None, 7)                          # the exact CE90 is slow: every 7th cell
+    sub = slice(None, None, 7)  # the exact CE90 is slow: every 7th cell
     assert rel(maps.ce90[rr, cc][sub], P.ce90(pu.cov[both][sub])) < TOL
     assert maps.interpolation_error < TOL
 
@@ -116,18 +134,32 @@ def test_fast_maps_agree_with_exact_per_cell_propagation(case, request):
     for k, n in enumerate(names):
         assert maps.shares[n] == pytest.approx(exact_shares[k], abs=TOL)
     # the terrain matters here: σ on the slopes differs from the flat-terrain σ
-    flat = P.first_order(P.adjustable_model(model), *grid.lonlat(cc.astype(float), rr.astype(float)),
-                         dem.sample(*grid.lonlat(cc.astype(float), rr.astype(float))), names, D, grid.crs)
+    flat = P.first_order(
+        P.adjustable_model(model),
+        *grid.lonlat(cc.astype(float), rr.astype(float)),
+        dem.sample(*grid.lonlat(cc.astype(float), rr.astype(float))),
+        names,
+        D,
+        grid.crs,
+    )
     assert np.max(np.abs(flat.sigma_horizontal / pu.sigma_horizontal[both] - 1)) > 20 * TOL
 
 
 def test_fast_maps_source_maps_sum_to_one(rpc_case):
     from stereodem.ortho.grid import grid_for_model
     from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+
     model, dem, names, D, _ = rpc_case
     grid = grid_for_model(model, dem, res=12.0)
-    maps = ortho_uncertainty_maps(model, dem, grid, D, names, source_maps=True,
-                                  groups={"image": names[:4], "dem": ["dem_height"]})
+    maps = ortho_uncertainty_maps(
+        model,
+        dem,
+        grid,
+        D,
+        names,
+        source_maps=True,
+        groups={"image": names[:4], "dem": ["dem_height"]},
+    )
     total = maps.source_maps["image"] + maps.source_maps["dem"]
     ok = np.isfinite(maps.sigma_horizontal)
     assert ok.mean() > 0.5
@@ -146,6 +178,7 @@ def test_numpy_dem_sampling_fallback_matches_cv2_remap(rpc_case, monkeypatch):
     from stereodem.ortho.grid import grid_for_model
     from stereodem.ortho.uncertainty import first_order_maps as F
     from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+
     model, dem, names, D, _ = rpc_case
     grid = grid_for_model(model, dem, res=6.0)
     a = ortho_uncertainty_maps(model, dem, grid, D, names)
@@ -162,12 +195,17 @@ def test_numpy_dem_sampling_fallback_matches_cv2_remap(rpc_case, monkeypatch):
 def test_fast_maps_do_not_depend_on_the_thread_count(rpc_case):
     from stereodem.ortho.grid import grid_for_model
     from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+
     model, dem, names, D, _ = rpc_case
     grid = grid_for_model(model, dem, res=4.0)
     a = ortho_uncertainty_maps(model, dem, grid, D, names, threads=1)
     b = ortho_uncertainty_maps(model, dem, grid, D, names, threads=3)
     assert np.isfinite(a.sigma_horizontal).mean() > 0.5
-    for x, y in ((a.sigma_east, b.sigma_east), (a.sigma_north, b.sigma_north), (a.ce90, b.ce90),
-                 (a.dominant, b.dominant)):
+    for x, y in (
+        (a.sigma_east, b.sigma_east),
+        (a.sigma_north, b.sigma_north),
+        (a.ce90, b.ce90),
+        (a.dominant, b.dominant),
+    ):
         assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f")
     assert a.shares == pytest.approx(b.shares, rel=1e-12)

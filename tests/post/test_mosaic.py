@@ -4,6 +4,7 @@ references, co-registration, block independence, bounded memory, bad input (issu
 Small synthetic DEMs (a smooth terrain on a UTM 37N lattice, 30 m) cut into overlapping
 windows with known biases; every expectation is computed independently with numpy.
 """
+
 from __future__ import annotations
 
 import json
@@ -24,7 +25,7 @@ from stereodem.post.mosaic import memory_bound, plan_mosaic, read_on_grid, run_m
 
 CRS = "EPSG:32637"
 RES = 30.0
-X0, Y0 = 400_020.0, 4_400_010.0          # top-left corner of the truth lattice
+X0, Y0 = 400_020.0, 4_400_010.0  # top-left corner of the truth lattice
 
 
 def terrain(rows, cols, r0=0, c0=0):
@@ -32,11 +33,25 @@ def terrain(rows, cols, r0=0, c0=0):
     y = Y0 - (np.arange(r0, r0 + rows) + 0.5) * RES
     x = X0 + (np.arange(c0, c0 + cols) + 0.5) * RES
     xx, yy = np.meshgrid(x, y)
-    return (1500 + 300 * np.sin(xx / 2500.0) * np.cos(yy / 1900.0) + 0.01 * (xx - X0)).astype(np.float32)
+    return (1500 + 300 * np.sin(xx / 2500.0) * np.cos(yy / 1900.0) + 0.01 * (xx - X0)).astype(
+        np.float32
+    )
 
 
-def write_dem(path, r0, c0, rows, cols, *, bias=0.0, noise=0.0, vertical="geoid", seed=0, sigma=None,
-              heights=None):
+def write_dem(
+    path,
+    r0,
+    c0,
+    rows,
+    cols,
+    *,
+    bias=0.0,
+    noise=0.0,
+    vertical="geoid",
+    seed=0,
+    sigma=None,
+    heights=None,
+):
     z = terrain(rows, cols, r0, c0) + np.float32(bias) if heights is None else heights
     if noise:
         z = z + np.random.default_rng(seed).normal(0, noise, z.shape).astype(np.float32)
@@ -44,8 +59,15 @@ def write_dem(path, r0, c0, rows, cols, *, bias=0.0, noise=0.0, vertical="geoid"
     if sigma is None:
         write_geotiff(path, z, t, CRS, np.nan, vertical=vertical, descriptions="height")
     else:
-        write_geotiff(path, np.stack([z, np.full_like(z, sigma)]), t, CRS, np.nan, vertical=vertical,
-                      descriptions=["height", "sigma (1-sigma)"])
+        write_geotiff(
+            path,
+            np.stack([z, np.full_like(z, sigma)]),
+            t,
+            CRS,
+            np.nan,
+            vertical=vertical,
+            descriptions=["height", "sigma (1-sigma)"],
+        )
     return path
 
 
@@ -68,8 +90,25 @@ def test_blend_turns_the_seam_step_into_a_ramp(tmp_path):
     a = write_dem(tmp_path / "a.tif", 0, 0, 120, 200, bias=+1.0)
     b = write_dem(tmp_path / "b.tif", 0, 100, 120, 200, bias=-1.0)
     for method in ("first", "blend"):
-        assert main(["-q", "mosaic", str(a), str(b), "-o", str(tmp_path / f"{method}.tif"),
-                     "--method", method, "--blend-length", "40", "--block", "64"]) == 0
+        assert (
+            main(
+                [
+                    "-q",
+                    "mosaic",
+                    str(a),
+                    str(b),
+                    "-o",
+                    str(tmp_path / f"{method}.tif"),
+                    "--method",
+                    method,
+                    "--blend-length",
+                    "40",
+                    "--block",
+                    "64",
+                ]
+            )
+            == 0
+        )
     zf, truth = on_truth(tmp_path / "first.tif")
     zb, _ = on_truth(tmp_path / "blend.tif")
     ef, eb = zf - truth, zb - truth
@@ -96,9 +135,10 @@ def test_blend_does_not_depend_on_the_block_size(tmp_path):
     for i in range(4):
         z = terrain(90, 110, 13 * i, 37 * i) + np.float32(0.5 * i)
         if i == 1:
-            z[30:50, 40:70] = np.nan          # a void inside one DEM: weights fall towards it too
-        paths.append(write_dem(tmp_path / f"d{i}.tif", 13 * i, 37 * i, 90, 110, heights=z,
-                               noise=0.2, seed=i))
+            z[30:50, 40:70] = np.nan  # a void inside one DEM: weights fall towards it too
+        paths.append(
+            write_dem(tmp_path / f"d{i}.tif", 13 * i, 37 * i, 90, 110, heights=z, noise=0.2, seed=i)
+        )
     outs = []
     for block in (16, 40, 512):
         plan = plan_mosaic(paths, block=block, blend_length=12)
@@ -126,16 +166,20 @@ def _stack(tmp_path, k=5):
     """k DEMs on the same 40 x 50 cells (noise, biases, a void each) and their stack."""
     paths, layers = [], []
     for i in range(k):
-        z = terrain(40, 50, 5, 5) + np.float32(0.3 * i) + \
-            np.random.default_rng(i).normal(0, 1.0, (40, 50)).astype(np.float32)
-        z[i * 6:i * 6 + 5, 10:20] = np.nan
+        z = (
+            terrain(40, 50, 5, 5)
+            + np.float32(0.3 * i)
+            + np.random.default_rng(i).normal(0, 1.0, (40, 50)).astype(np.float32)
+        )
+        z[i * 6 : i * 6 + 5, 10:20] = np.nan
         paths.append(write_dem(tmp_path / f"s{i}.tif", 5, 5, 40, 50, heights=z))
         layers.append(z)
     return paths, np.stack(layers)
 
 
-@pytest.mark.parametrize("method", ["first", "last", "min", "max", "mean", "median", "count",
-                                    "stddev", "nmad"])
+@pytest.mark.parametrize(
+    "method", ["first", "last", "min", "max", "mean", "median", "count", "stddev", "nmad"]
+)
 @pytest.mark.slow
 def test_statistics_of_the_stack_match_numpy(tmp_path, method):
     paths, st = _stack(tmp_path)
@@ -148,12 +192,17 @@ def test_statistics_of_the_stack_match_numpy(tmp_path, method):
         first_idx = np.argmax(np.isfinite(st), axis=0)
         last_idx = st.shape[0] - 1 - np.argmax(np.isfinite(st[::-1]), axis=0)
         med = np.nanmedian(st, axis=0)
-        expect = {"first": np.take_along_axis(st, first_idx[None], 0)[0],
-                  "last": np.take_along_axis(st, last_idx[None], 0)[0],
-                  "min": np.nanmin(st, axis=0), "max": np.nanmax(st, axis=0),
-                  "mean": np.nanmean(st, axis=0), "median": med, "count": n.astype(np.float32),
-                  "stddev": np.where(n >= 2, np.nanstd(st, axis=0), np.nan),
-                  "nmad": np.where(n >= 2, 1.4826 * np.nanmedian(np.abs(st - med), axis=0), np.nan)}[method]
+        expect = {
+            "first": np.take_along_axis(st, first_idx[None], 0)[0],
+            "last": np.take_along_axis(st, last_idx[None], 0)[0],
+            "min": np.nanmin(st, axis=0),
+            "max": np.nanmax(st, axis=0),
+            "mean": np.nanmean(st, axis=0),
+            "median": med,
+            "count": n.astype(np.float32),
+            "stddev": np.where(n >= 2, np.nanstd(st, axis=0), np.nan),
+            "nmad": np.where(n >= 2, 1.4826 * np.nanmedian(np.abs(st - med), axis=0), np.nan),
+        }[method]
     np.testing.assert_allclose(z, expect, atol=2e-3, equal_nan=True)
     with rasterio.open(tmp_path / "m.tif") as ds:
         assert ds.count == (1 if method in ("count", "stddev", "nmad") else 3)
@@ -168,7 +217,7 @@ def test_sigma_layers_weight_the_blend_and_propagate(tmp_path):
     assert rep["sigma_weighting"]
     z, truth = on_truth(tmp_path / "m.tif")
     sig = read(tmp_path / "m.tif", 3)[0]
-    inner = (slice(20, 180), slice(20, 180))       # both edge weights at their cap: 1/σ² alone
+    inner = (slice(20, 180), slice(20, 180))  # both edge weights at their cap: 1/σ² alone
     expect = (1.0 / 1 * 1.0 + 1.0 / 4 * -1.5) / (1.0 + 0.25)
     np.testing.assert_allclose((z - truth)[inner], expect, atol=1e-3)
     np.testing.assert_allclose(sig[inner], np.sqrt(1.0 / (1.0 + 0.25)), atol=1e-4)
@@ -182,23 +231,40 @@ def test_dems_in_another_crs_are_reprojected(tmp_path):
     a = write_dem(tmp_path / "a.tif", 0, 0, 100, 100)
     # the same terrain as a geographic DEM (EPSG:4326, ~20 m), overlapping a on its east side
     from rasterio.warp import Resampling, calculate_default_transform, reproject
+
     src_t = Affine(RES, 0, X0 + 60 * RES, 0, -RES, Y0)
     src = terrain(100, 100, 0, 60)
-    t, w, h = calculate_default_transform(CRS, "EPSG:4326", 100, 100,
-                                          *rasterio.transform.array_bounds(100, 100, src_t),
-                                          resolution=0.0002)
+    t, w, h = calculate_default_transform(
+        CRS,
+        "EPSG:4326",
+        100,
+        100,
+        *rasterio.transform.array_bounds(100, 100, src_t),
+        resolution=0.0002,
+    )
     dst = np.full((h, w), np.nan, np.float32)
-    reproject(src, dst, src_transform=src_t, src_crs=CRS, dst_transform=t, dst_crs="EPSG:4326",
-              resampling=Resampling.cubic, dst_nodata=np.nan)
+    reproject(
+        src,
+        dst,
+        src_transform=src_t,
+        src_crs=CRS,
+        dst_transform=t,
+        dst_crs="EPSG:4326",
+        resampling=Resampling.cubic,
+        dst_nodata=np.nan,
+    )
     b = tmp_path / "b_geographic.tif"
     write_geotiff(b, dst, t, "EPSG:4326", np.nan, vertical="geoid")
-    assert main(["-q", "mosaic", str(a), str(b), "-o", str(tmp_path / "m.tif"), "--method", "mean"]) == 0
+    assert (
+        main(["-q", "mosaic", str(a), str(b), "-o", str(tmp_path / "m.tif"), "--method", "mean"])
+        == 0
+    )
     rep = json.loads((tmp_path / "m.json").read_text())
     assert rep["reprojected"] == [str(b)] and rep["grid"]["posting"] == RES
     z, truth = on_truth(tmp_path / "m.tif")
-    assert z.shape[1] >= 155                   # reaches b's eastern part
+    assert z.shape[1] >= 155  # reaches b's eastern part
     err = (z - truth)[5:-5, 5:150]
-    assert np.nanmedian(np.abs(err)) < 0.5, np.nanmedian(np.abs(err))   # resampling, not CRS errors
+    assert np.nanmedian(np.abs(err)) < 0.5, np.nanmedian(np.abs(err))  # resampling, not CRS errors
     assert np.isfinite(z[5:-5, 120:150]).mean() > 0.95
 
 
@@ -210,28 +276,63 @@ def test_vertical_references_reconciled_or_refused(tmp_path, capsys):
     cc, rr = np.meshgrid(np.arange(80) + 0.5, np.arange(60) + 0.5)
     lon, lat = geodesy.crs_to_lonlat(*(t @ (cc, rr)), CRS)
     N = geodesy.geoid_undulation(lon, lat)
-    assert np.abs(N).min() > 5                           # the conversion matters here
-    write_geotiff(tmp_path / "ell.tif", (H + N).astype(np.float32), t, CRS, np.nan, vertical="ellipsoid")
-    assert main(["-q", "mosaic", str(a), str(tmp_path / "ell.tif"), "-o", str(tmp_path / "m.tif")]) == 0
+    assert np.abs(N).min() > 5  # the conversion matters here
+    write_geotiff(
+        tmp_path / "ell.tif", (H + N).astype(np.float32), t, CRS, np.nan, vertical="ellipsoid"
+    )
+    assert (
+        main(["-q", "mosaic", str(a), str(tmp_path / "ell.tif"), "-o", str(tmp_path / "m.tif")])
+        == 0
+    )
     z, truth = on_truth(tmp_path / "m.tif")
     assert np.nanmax(np.abs(z - truth)) < 0.02
     rep = json.loads((tmp_path / "m.json").read_text())
-    assert rep["vertical_conversions"] == [dict(path=str(tmp_path / "ell.tif"), vertical="ellipsoid", to="geoid")]
+    assert rep["vertical_conversions"] == [
+        dict(path=str(tmp_path / "ell.tif"), vertical="ellipsoid", to="geoid")
+    ]
     # an ellipsoidal mosaic on request
-    assert main(["-q", "mosaic", str(a), str(tmp_path / "ell.tif"), "-o", str(tmp_path / "e.tif"),
-                 "--vertical", "ellipsoid"]) == 0
+    assert (
+        main(
+            [
+                "-q",
+                "mosaic",
+                str(a),
+                str(tmp_path / "ell.tif"),
+                "-o",
+                str(tmp_path / "e.tif"),
+                "--vertical",
+                "ellipsoid",
+            ]
+        )
+        == 0
+    )
     with rasterio.open(tmp_path / "e.tif") as ds:
         ze = ds.read(1)
     assert np.nanmax(np.abs(ze[:, 40:] - (H + N))) < 0.02
     # a DEM that does not say, among DEMs that do: refused in one line, nothing written
-    write_geotiff(tmp_path / "unknown.tif", terrain(60, 80), Affine(RES, 0, X0, 0, -RES, Y0), CRS, np.nan)
+    write_geotiff(
+        tmp_path / "unknown.tif", terrain(60, 80), Affine(RES, 0, X0, 0, -RES, Y0), CRS, np.nan
+    )
     capsys.readouterr()
     rc = main(["mosaic", str(a), str(tmp_path / "unknown.tif"), "-o", str(tmp_path / "u.tif")])
     err = capsys.readouterr().err.strip()
     assert rc == 1 and len(err.splitlines()) == 1 and "unknown.tif" in err and "vertical" in err
     assert not (tmp_path / "u.tif").exists() and not (tmp_path / "u.json").exists()
-    assert main(["-q", "mosaic", str(a), str(tmp_path / "unknown.tif"), "-o", str(tmp_path / "u.tif"),
-                 "--dem-vertical", "geoid"]) == 0
+    assert (
+        main(
+            [
+                "-q",
+                "mosaic",
+                str(a),
+                str(tmp_path / "unknown.tif"),
+                "-o",
+                str(tmp_path / "u.tif"),
+                "--dem-vertical",
+                "geoid",
+            ]
+        )
+        == 0
+    )
     with pytest.raises(VerticalReferenceError):
         plan_mosaic([tmp_path / "unknown.tif"], vertical="ellipsoid")
 
@@ -241,8 +342,18 @@ def test_dems_outside_the_extent_are_named_and_skipped(tmp_path, capsys):
     b = write_dem(tmp_path / "b.tif", 0, 40, 50, 50)
     far = write_dem(tmp_path / "far.tif", 400, 400, 30, 30)
     bounds = [X0, Y0 - 50 * RES, X0 + 90 * RES, Y0]
-    rc = main(["mosaic", str(a), str(b), str(far), "-o", str(tmp_path / "m.tif"),
-               "--bounds", *map(str, bounds)])
+    rc = main(
+        [
+            "mosaic",
+            str(a),
+            str(b),
+            str(far),
+            "-o",
+            str(tmp_path / "m.tif"),
+            "--bounds",
+            *map(str, bounds),
+        ]
+    )
     out = capsys.readouterr().out
     assert rc == 0 and "skipped" in out and "far.tif" in out
     rep = json.loads((tmp_path / "m.json").read_text())
@@ -257,12 +368,18 @@ def test_bad_inputs_are_one_line_errors_and_write_nothing(tmp_path, capsys):
     garbage = tmp_path / "garbage.tif"
     garbage.write_bytes(b"not a tiff at all")
     nocrs = tmp_path / "nocrs.tif"
-    with rasterio.open(nocrs, "w", driver="GTiff", width=10, height=10, count=1, dtype="float32") as ds:
+    with rasterio.open(
+        nocrs, "w", driver="GTiff", width=10, height=10, count=1, dtype="float32"
+    ) as ds:
         ds.write(np.ones((1, 10, 10), np.float32))
-    cases = [([str(a), str(garbage)], "garbage.tif"), ([str(a), str(nocrs)], "no CRS"),
-             ([str(a), str(tmp_path / "missing.tif")], "missing.tif"),
-             ([str(a), str(a)], "given twice"),
-             ([str(a), "--coregister"], "--ref"), ([str(a), "--method", "blend", "--block", "4"], "--block")]
+    cases = [
+        ([str(a), str(garbage)], "garbage.tif"),
+        ([str(a), str(nocrs)], "no CRS"),
+        ([str(a), str(tmp_path / "missing.tif")], "missing.tif"),
+        ([str(a), str(a)], "given twice"),
+        ([str(a), "--coregister"], "--ref"),
+        ([str(a), "--method", "blend", "--block", "4"], "--block"),
+    ]
     for args, words in cases:
         capsys.readouterr()
         rc = main(["mosaic", *args, "-o", str(tmp_path / "m.tif")])
@@ -287,8 +404,17 @@ def test_coregistration_to_a_reference_first(tmp_path):
     z = terrain(120, 120, 20, 20) + np.float32(4.0)
     write_geotiff(tmp_path / "shifted.tif", z, t, CRS, np.nan, vertical="geoid")
     far = write_dem(tmp_path / "far.tif", 600, 600, 40, 40)
-    args = ["-q", "mosaic", str(tmp_path / "shifted.tif"), str(far), "-o", str(tmp_path / "m.tif"),
-            "--ref", str(ref), "--coregister"]
+    args = [
+        "-q",
+        "mosaic",
+        str(tmp_path / "shifted.tif"),
+        str(far),
+        "-o",
+        str(tmp_path / "m.tif"),
+        "--ref",
+        str(ref),
+        "--coregister",
+    ]
     assert main(args) == 0
     rep = json.loads((tmp_path / "m.json").read_text())
     c = rep["coregistration"][str(tmp_path / "shifted.tif")]
@@ -305,16 +431,32 @@ def test_coregistration_chain_of_the_coreg_module(tmp_path, capsys):
     """--coreg-chain goes through stereodem.post.coreg.parse_chain: shift + offset steps are
     applied (nuth_kaab then vshift, summed), a surface step is refused in one line."""
     from stereodem.post.mosaic_coreg import DEMCorrection, fitter
+
     ref = write_dem(tmp_path / "ref.tif", 0, 0, 160, 160)
     t = Affine(RES, 0, X0 + 20 * RES - 35.0, 0, -RES, Y0 - 20 * RES + 25.0)
     z = terrain(120, 120, 20, 20) - np.float32(6.0)
     write_geotiff(tmp_path / "shifted.tif", z, t, CRS, np.nan, vertical="geoid")
-    args = ["-q", "mosaic", str(tmp_path / "shifted.tif"), "-o", str(tmp_path / "m.tif"),
-            "--ref", str(ref), "--coregister", "--coreg-chain", "nuth_kaab, vshift"]
+    args = [
+        "-q",
+        "mosaic",
+        str(tmp_path / "shifted.tif"),
+        "-o",
+        str(tmp_path / "m.tif"),
+        "--ref",
+        str(ref),
+        "--coregister",
+        "--coreg-chain",
+        "nuth_kaab, vshift",
+    ]
     assert main(args) == 0
-    c = json.loads((tmp_path / "m.json").read_text())["coregistration"][str(tmp_path / "shifted.tif")]
+    c = json.loads((tmp_path / "m.json").read_text())["coregistration"][
+        str(tmp_path / "shifted.tif")
+    ]
     assert abs(c["dx"] + 35.0) < 3 and abs(c["dy"] - 25.0) < 3 and abs(c["dz"] + 6.0) < 0.5, c
-    assert c["method"] == "nuth_kaab + vshift" and [s["step"] for s in c["steps"]] == ["nuth_kaab", "vshift"]
+    assert c["method"] == "nuth_kaab + vshift" and [s["step"] for s in c["steps"]] == [
+        "nuth_kaab",
+        "vshift",
+    ]
     # the vshift step found what nuth_kaab left: their sum is the offset applied
     nk, vs = (s["parameters"]["dz"]["value"] for s in c["steps"])
     assert c["dz"] == pytest.approx(nk + vs) and abs(vs) < 0.5
@@ -322,6 +464,7 @@ def test_coregistration_chain_of_the_coreg_module(tmp_path, capsys):
     assert np.nanmedian(np.abs((zm - truth)[5:-5, 5:-5])) < 0.5
     # the Python hook gives the same kind of correction
     from stereodem.core.dem import DEM as _DEM
+
     corr = fitter("nuth_kaab,vshift")(_DEM.from_file(ref), _DEM.from_file(tmp_path / "shifted.tif"))
     assert isinstance(corr, DEMCorrection) and abs(corr.dx + 35.0) < 3
     # a step that changes the surface cannot be applied by the mosaic: one line, nothing written
@@ -336,7 +479,9 @@ def test_coregistration_chain_of_the_coreg_module(tmp_path, capsys):
 @pytest.mark.slow
 def test_dask_gives_the_serial_mosaic(tmp_path):
     pytest.importorskip("dask.distributed")
-    paths = [write_dem(tmp_path / f"d{i}.tif", 20 * i, 30 * i, 70, 90, bias=0.4 * i) for i in range(3)]
+    paths = [
+        write_dem(tmp_path / f"d{i}.tif", 20 * i, 30 * i, 70, 90, bias=0.4 * i) for i in range(3)
+    ]
     plan = plan_mosaic(paths, block=32, blend_length=8)
     run_mosaic(plan, tmp_path / "serial.tif")
     rep = run_mosaic(plan, tmp_path / "dask.tif", dask="threads", workers=2)
@@ -344,15 +489,27 @@ def test_dask_gives_the_serial_mosaic(tmp_path):
     serial, parallel = read(tmp_path / "serial.tif")[0], read(tmp_path / "dask.tif")[0]
     if np.lib.NumpyVersion(np.__version__) >= "2.0.0" and int(cv2.__version__.split(".")[0]) >= 5:
         np.testing.assert_array_equal(serial, parallel)
-    else:   # measured on the declared minimum versions (numpy 1.24, OpenCV 4.8): 2 of 16,500
-        np.testing.assert_array_equal(np.isnan(serial), np.isnan(parallel))   # cells 1 ulp apart
-        np.testing.assert_array_max_ulp(serial[~np.isnan(serial)], parallel[~np.isnan(parallel)], maxulp=1)
+    else:  # measured on the declared minimum versions (numpy 1.24, OpenCV 4.8): 2 of 16,500
+        np.testing.assert_array_equal(np.isnan(serial), np.isnan(parallel))  # cells 1 ulp apart
+        np.testing.assert_array_max_ulp(
+            serial[~np.isnan(serial)], parallel[~np.isnan(parallel)], maxulp=1
+        )
 
 
 def _traced_peak(tmp_path, n_side, method):
     """Python-heap peak (numpy arrays included) of a mosaic of n_side x n_side DEMs of 120² cells."""
-    paths = [write_dem(tmp_path / f"{method}{n_side}_{i}_{j}.tif", 100 * i, 100 * j, 120, 120, bias=0.1 * (i + j))
-             for i in range(n_side) for j in range(n_side)]
+    paths = [
+        write_dem(
+            tmp_path / f"{method}{n_side}_{i}_{j}.tif",
+            100 * i,
+            100 * j,
+            120,
+            120,
+            bias=0.1 * (i + j),
+        )
+        for i in range(n_side)
+        for j in range(n_side)
+    ]
     plan = plan_mosaic(paths, method=method, block=64, blend_length=16)
     tracemalloc.start()
     run_mosaic(plan, tmp_path / f"{method}{n_side}.tif")
@@ -364,9 +521,9 @@ def _traced_peak(tmp_path, n_side, method):
 @pytest.mark.parametrize("method", ["blend", "median"])
 @pytest.mark.slow
 def test_memory_depends_on_the_block_not_on_the_mosaic(tmp_path, method):
-    small, _ = _traced_peak(tmp_path, 2, method)       # 220² cells
-    large, plan_l = _traced_peak(tmp_path, 4, method)       # 420² cells: 3.6x the area
-    gdal = (32 + 32 + 8) * 2**20                             # GDAL caches are not traced
+    small, _ = _traced_peak(tmp_path, 2, method)  # 220² cells
+    large, plan_l = _traced_peak(tmp_path, 4, method)  # 420² cells: 3.6x the area
+    gdal = (32 + 32 + 8) * 2**20  # GDAL caches are not traced
     assert large < memory_bound(plan_l) - gdal, (large, memory_bound(plan_l) - gdal)
     assert large < 1.3 * small, (small, large)
     # a full-array mosaic would hold the grid: 420² float64 sums alone are 1.4 MB per layer
@@ -375,6 +532,7 @@ def test_memory_depends_on_the_block_not_on_the_mosaic(tmp_path, method):
 
 def test_a_failure_half_way_leaves_nothing(tmp_path, monkeypatch):
     import stereodem.post.mosaic as pm
+
     paths = [write_dem(tmp_path / f"d{i}.tif", 0, 60 * i, 80, 100) for i in range(3)]
     plan = plan_mosaic(paths, block=32)
     real, calls = pm.read_on_grid, []
@@ -384,6 +542,7 @@ def test_a_failure_half_way_leaves_nothing(tmp_path, monkeypatch):
         if len(calls) > 5:
             raise pm.DEMError("d1.tif: cannot read the DEM (simulated I/O error)")
         return real(*a, **k)
+
     monkeypatch.setattr(pm, "read_on_grid", flaky)
     with pytest.raises(pm.DEMError):
         run_mosaic(plan, tmp_path / "m.tif")

@@ -54,10 +54,12 @@ def test_reference_in_another_crs_is_warped(ref):
     from rasterio.warp import calculate_default_transform
 
     from stereodem.post.warp import to_grid
+
     utm = CRS.from_epsg(32637)
     b = ref.bounds_lonlat()
-    t, w, h = calculate_default_transform("EPSG:4326", "EPSG:32637", ref.shape[1], ref.shape[0],
-                                          *b, resolution=100.0)
+    t, w, h = calculate_default_transform(
+        "EPSG:4326", "EPSG:32637", ref.shape[1], ref.shape[0], *b, resolution=100.0
+    )
     zu = to_grid(ref.heights, ref.transform, ref.crs, t, utm, (h, w), resampling="cubic")
     ref_utm = DEM(zu, t, utm, "geoid", "ref_utm")
     res = assess.assess_dem(ref, ref_utm)
@@ -89,8 +91,13 @@ def test_bad_inputs_are_clear_errors(ref):
     h[:, :] = np.nan
     h[0, 0] = 1000.0
     half = DEM(h, ref.transform, ref.crs, "geoid", "void.tif")
-    sub = DEM(ref.heights[200:, 200:].copy(), Affine.translation(200 * ref.transform.a, 200 * ref.transform.e)
-              @ ref.transform, ref.crs, "geoid", "sub")
+    sub = DEM(
+        ref.heights[200:, 200:].copy(),
+        Affine.translation(200 * ref.transform.a, 200 * ref.transform.e) @ ref.transform,
+        ref.crs,
+        "geoid",
+        "sub",
+    )
     with pytest.raises(NoOverlapError):
         assess.assess_dem(half, sub)
 
@@ -101,16 +108,24 @@ def test_checkpoints_and_landcover(ref, simulated, tmp_path):
     lon, lat = rng.uniform(w + 0.01, e - 0.01, 30), rng.uniform(s + 0.01, n - 0.01, 30)
     hz = ref.sample(lon, lat, reference="ellipsoid")
     csv = tmp_path / "cp.csv"
-    csv.write_text("id,lon,lat,height\n" + "".join(f"p{i},{a},{b},{c}\n" for i, (a, b, c) in
-                                                  enumerate(zip(lon, lat, hz))))
+    csv.write_text(
+        "id,lon,lat,height\n"
+        + "".join(f"p{i},{a},{b},{c}\n" for i, (a, b, c) in enumerate(zip(lon, lat, hz)))
+    )
     cp = assess.assess_checkpoints(ref, csv, vertical="ellipsoid")
-    assert cp["stats"]["n"] == 30 and abs(cp["stats"]["max"]) < 1e-6 and cp["points"][0]["id"] == "p0"
+    assert (
+        cp["stats"]["n"] == 30 and abs(cp["stats"]["max"]) < 1e-6 and cp["points"][0]["id"] == "p0"
+    )
     cp2 = assess.assess_checkpoints(simulated, (lon, lat, hz), vertical="ellipsoid")
     dh = simulated.sample(lon, lat, reference="ellipsoid") - hz
-    assert cp2["stats"]["rmse"] == pytest.approx(np.sqrt(np.mean(dh ** 2)))
+    assert cp2["stats"]["rmse"] == pytest.approx(np.sqrt(np.mean(dh**2)))
     lc = (ref.heights > np.nanmedian(ref.heights)).astype(np.int16) + 1
-    res = assess.assess_dem(simulated, ref, landcover=(lc, ref.transform, ref.crs),
-                            landcover_names={1: "low", 2: "high"})
+    res = assess.assess_dem(
+        simulated,
+        ref,
+        landcover=(lc, ref.transform, ref.crs),
+        landcover_names={1: "low", 2: "high"},
+    )
     names = [c["class"] for c in res.report["by_landcover"]]
     assert names == ["low", "high"]
     assert sum(c["n"] for c in res.report["by_landcover"]) == res.report["stats"]["n"]
@@ -127,22 +142,65 @@ def test_cli_writes_report_and_figures(tmp_path, ref):
     z = ref.heights.astype(np.float64)
     sh = ndi.shift(z, (-1.5, 1.0), order=3, mode="nearest") + 4.0
     DEM(sh.astype(np.float32), ref.transform, ref.crs, "geoid").write(tmp_path / "dem.tif")
-    DEM(ref.heights, ref.transform, ref.crs, None).write(tmp_path / "ref.tif")   # vertical unknown
+    DEM(ref.heights, ref.transform, ref.crs, None).write(tmp_path / "ref.tif")  # vertical unknown
     lc = np.where(np.arange(400)[None, :] < 200, 1, 2).repeat(400, 0).astype(np.uint8)
     from stereodem.core.raster import write_geotiff
+
     write_geotiff(tmp_path / "lc.tif", lc, ref.transform, ref.crs, 0)
     out = tmp_path / "out"
     from stereodem.cli import main
-    assert main(["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif"),
-                 "--landcover", str(tmp_path / "lc.tif"), "--coregister", "-o", str(out)]) == 1
-    assert not out.exists()                           # geoid vs unknown: a clear error, no output
-    args = _parser().parse_args(["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif"),
-                                 "--ref-vertical", "geoid", "--landcover", str(tmp_path / "lc.tif"),
-                                 "--slope-bins", "0,10,20,90", "--coregister", "-o", str(out)])
+
+    assert (
+        main(
+            [
+                "assess",
+                str(tmp_path / "dem.tif"),
+                "--ref",
+                str(tmp_path / "ref.tif"),
+                "--landcover",
+                str(tmp_path / "lc.tif"),
+                "--coregister",
+                "-o",
+                str(out),
+            ]
+        )
+        == 1
+    )
+    assert not out.exists()  # geoid vs unknown: a clear error, no output
+    args = _parser().parse_args(
+        [
+            "assess",
+            str(tmp_path / "dem.tif"),
+            "--ref",
+            str(tmp_path / "ref.tif"),
+            "--ref-vertical",
+            "geoid",
+            "--landcover",
+            str(tmp_path / "lc.tif"),
+            "--slope-bins",
+            "0,10,20,90",
+            "--coregister",
+            "-o",
+            str(out),
+        ]
+    )
     assert args.run(args) == 0
     rep = json.loads((out / "report.json").read_text())
-    for key in ("n", "valid_pct", "mean", "median", "std", "rmse", "nmad", "le90", "le95", "p16", "p84",
-                "min", "max"):
+    for key in (
+        "n",
+        "valid_pct",
+        "mean",
+        "median",
+        "std",
+        "rmse",
+        "nmad",
+        "le90",
+        "le95",
+        "p16",
+        "p84",
+        "min",
+        "max",
+    ):
         assert key in rep["stats"]
     assert len(rep["by_slope"]) == 3 and len(rep["by_landcover"]) == 2
     co = rep["coregistration"]
@@ -152,6 +210,7 @@ def test_cli_writes_report_and_figures(tmp_path, ref):
     assert rep["after_coregistration"]["stats"]["nmad"] < 0.2 * rep["stats"]["nmad"]
     assert "Nuth" in (out / "report.md").read_text()
     import matplotlib.image as mpimg
+
     for name in ("hillshade.png", "difference_map.png", "histogram.png", "error_vs_slope.png"):
         img = mpimg.imread(out / name)
         assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100 and img.std() > 0.01
@@ -175,13 +234,20 @@ def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
 
     from stereodem.core import geodesy
     from stereodem.post import figures
+
     monkeypatch.setattr(figures, "DISPLAY_CELLS", 100)
     drawn = []
     real = plt.Axes.imshow
-    monkeypatch.setattr(plt.Axes, "imshow", lambda self, a, **k: drawn.append(np.shape(a)) or real(self, a, **k))
+    monkeypatch.setattr(
+        plt.Axes, "imshow", lambda self, a, **k: drawn.append(np.shape(a)) or real(self, a, **k)
+    )
     z = np.add.outer(np.arange(450.0), np.arange(300.0))
-    figures.hillshade_png(z, Affine(30, 0, 500000, 0, -30, 4400000), geodesy.utm_crs(39, 39.7),
-                          tmp_path / "hs.png")
+    figures.hillshade_png(
+        z, Affine(30, 0, 500000, 0, -30, 4400000), geodesy.utm_crs(39, 39.7), tmp_path / "hs.png"
+    )
     figures.difference_map_png(z - z.mean(), tmp_path / "dh.png")
-    assert [s[:2] for s in drawn] == [(90, 60), (90, 60)]  # every 5th cell of 450 x 300 (RGBA or values)
+    assert [s[:2] for s in drawn] == [
+        (90, 60),
+        (90, 60),
+    ]  # every 5th cell of 450 x 300 (RGBA or values)
     assert (tmp_path / "hs.png").stat().st_size > 1000 and (tmp_path / "dh.png").exists()

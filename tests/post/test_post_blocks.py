@@ -1,5 +1,6 @@
 """Row bands on threads (post.blocks): the same values as the whole-grid call, so the post
 stage's rasters do not depend on the thread count."""
+
 import cv2
 import numpy as np
 import pytest
@@ -23,10 +24,11 @@ def test_local_filters_in_bands_equal_the_whole_grid(threads):
     a = rng.normal(size=(901, 257))
     a[rng.random(a.shape) < 0.01] = np.nan
     k = rng.normal(size=(5, 5))
-    for fn, halo in ((lambda b: ndi.correlate(np.nan_to_num(b), k, mode="nearest"), 2),
-                     (lambda b: ndi.gaussian_filter(np.nan_to_num(b), 1.3, mode="nearest"), 5),
-                     (lambda b: ndi.convolve(np.isnan(b).astype(float), np.ones((3, 3)),
-                                             mode="constant"), 1)):
+    for fn, halo in (
+        (lambda b: ndi.correlate(np.nan_to_num(b), k, mode="nearest"), 2),
+        (lambda b: ndi.gaussian_filter(np.nan_to_num(b), 1.3, mode="nearest"), 5),
+        (lambda b: ndi.convolve(np.isnan(b).astype(float), np.ones((3, 3)), mode="constant"), 1),
+    ):
         assert np.array_equal(by_rows(fn, a, halo=halo, threads=threads), fn(a))
     # a halo too small is visible: the test can fail
     g = lambda b: ndi.gaussian_filter(np.nan_to_num(b), 1.3, mode="nearest")
@@ -48,20 +50,25 @@ def _dem(rows=600, cols=300, seed=1):
 def test_filters_and_fill_do_not_depend_on_the_thread_count():
     from affine import Affine
     from rasterio.crs import CRS
+
     z, score = _dem()
     out = {}
     saved = cv2.getNumThreads()
     try:
         for n in (1, 2, 4):
             cv2.setNumThreads(n)
-            res = default_chain().apply(z, score=score, ray_gap=np.zeros_like(z),
-                                        transform=Affine(30, 0, 500000, 0, -30, 4000000),
-                                        crs=CRS.from_epsg(32611))
+            res = default_chain().apply(
+                z,
+                score=score,
+                ray_gap=np.zeros_like(z),
+                transform=Affine(30, 0, 500000, 0, -30, 4000000),
+                crs=CRS.from_epsg(32611),
+            )
             fr = fill_holes(res.heights, max_hole_size=400)
             out[n] = (res.removed, fr.heights, gaussian_smooth(fr.heights))
     finally:
         cv2.setNumThreads(saved)
-    assert out[1][0].any()                                  # the spikes were found
+    assert out[1][0].any()  # the spikes were found
     for n in (2, 4):
         for a, b in zip(out[1], out[n]):
             assert np.array_equal(a, b, equal_nan=True)

@@ -1,5 +1,6 @@
 """Block-by-block assessment statistics (issue #14 item 5: the assessment in blocks) against
 numpy on whole arrays: exact sums, quantiles within the stated histogram error."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -88,7 +89,9 @@ def test_empty_accumulator_gives_nan_statistics():
     acc = StreamingStats()
     acc.add(np.full(5, np.nan))
     r = acc.result(n_total=5)
-    assert r["n"] == 0 and r["valid_pct"] == 0 and np.isnan(r["nmad"]) and np.isnan(acc.quantile(0.5))
+    assert (
+        r["n"] == 0 and r["valid_pct"] == 0 and np.isnan(r["nmad"]) and np.isnan(acc.quantile(0.5))
+    )
 
 
 def test_abs_deviation_fit_equals_error_vs_slope():
@@ -97,7 +100,7 @@ def test_abs_deviation_fit_equals_error_vs_slope():
     dh = rng.normal(0.3, 1 + 0.1 * slope)
     dh[rng.random(dh.size) < 0.1] = np.nan
     slope[rng.random(dh.size) < 0.05] = np.nan
-    dh[:2] = [3000.0, -1500.0]                       # exact tail values, with a slope
+    dh[:2] = [3000.0, -1500.0]  # exact tail values, with a slope
     slope[:2] = [10.0, 20.0]
     acc = StreamingStats(covariate=True)
     for a, b in zip(np.array_split(dh, 5), np.array_split(slope, 5)):
@@ -115,13 +118,13 @@ def dem_pair():
     """A 240 x 260 reference (real SRTM relief) with voids, and a noisy DEM over part of it."""
     b = DEM.bundled()
     ref_h = b.heights[100:340, 200:460].astype(np.float32).copy()
-    ref_h[50:60, 70:90] = np.nan                      # reference voids: slope NaN around them
+    ref_h[50:60, 70:90] = np.nan  # reference voids: slope NaN around them
     rng = np.random.default_rng(1)
     z = ref_h + rng.normal(0, 2.0, ref_h.shape).astype(np.float32)
     z[:, :30] = np.nan
     z[200:, :] = np.nan
     z[120:140, 100:130] = np.nan
-    z[5, 40] += 1500.0                                # a blunder beyond the binned range
+    z[5, 40] += 1500.0  # a blunder beyond the binned range
     T = Affine(30.0, 0.0, 600000.0, 0.0, -30.0, 4390000.0)
     return (DEM(z, T, "EPSG:32637", "geoid", "dem"), DEM(ref_h, T, "EPSG:32637", "geoid", "ref"))
 
@@ -144,11 +147,13 @@ def test_blockwise_assessment_equals_the_whole_array_one(dem_pair, block_rows):
                 name = "slope_mean" if key == "by_slope" else "elevation_mean"
                 assert g[name] == pytest.approx(w[name], rel=1e-9)
     assert got["slope_fit"]["n"] == whole["slope_fit"]["n"]
-    assert got["slope_fit"]["slope_m_per_deg"] == pytest.approx(whole["slope_fit"]["slope_m_per_deg"], rel=1e-3)
+    assert got["slope_fit"]["slope_m_per_deg"] == pytest.approx(
+        whole["slope_fit"]["slope_m_per_deg"], rel=1e-3
+    )
     assert got["slope_fit"]["r"] == pytest.approx(whole["slope_fit"]["r"], rel=1e-3)
     # the display arrays are every k-th cell of the whole comparison
     full = assess.compare_on_reference_grid(dem, ref)
-    np.testing.assert_array_equal(display.dh, full.dh)            # 240 rows: k = 1
+    np.testing.assert_array_equal(display.dh, full.dh)  # 240 rows: k = 1
     np.testing.assert_allclose(display.slope, full.slope, rtol=1e-12, equal_nan=True)
 
 
@@ -166,10 +171,19 @@ def test_blockwise_landcover_classes(dem_pair):
     lc = np.where(np.arange(ref.shape[1])[None, :] < 150, 1, 2) * np.ones(ref.shape, int)
     lc[:40] = 3
     full = assess.compare_on_reference_grid(dem, ref)
-    got, _, _ = assess.blockwise_comparison(dem, ref, landcover=(lc, ref.transform, ref.crs),
-                                            landcover_names={1: "forest"}, block_rows=25)
+    got, _, _ = assess.blockwise_comparison(
+        dem,
+        ref,
+        landcover=(lc, ref.transform, ref.crs),
+        landcover_names={1: "forest"},
+        block_rows=25,
+    )
     want = st.class_stats(full.dh, lc.astype(float), names={1: "forest"})
-    assert [c["class"] for c in got["by_landcover"]] == [c["class"] for c in want] == ["forest", "2", "3"]
+    assert (
+        [c["class"] for c in got["by_landcover"]]
+        == [c["class"] for c in want]
+        == ["forest", "2", "3"]
+    )
     for g, w in zip(got["by_landcover"], want):
         assert (g["n"], g["n_total"]) == (w["n"], w["n_total"])
         _check_against_numpy(g, w)
@@ -179,16 +193,18 @@ def test_blockwise_landcover_classes(dem_pair):
 # (the spike filter's block NMAD and its median at replaced cells, vectorised for speed:
 # they must give numpy's / scipy's values exactly)
 
+
 def test_vectorised_block_nanmedian_equals_numpy():
     import warnings
 
     from stereodem.post.filters import _nanmedian_last
+
     rng = np.random.default_rng(5)
     t = rng.normal(0, 3, (40, 30, 64))
     t[rng.random(t.shape) < 0.4] = np.nan
-    t[3, 4] = np.nan                                   # a block without any value
-    t[5, 6, 1:] = np.nan                               # one value
-    t[7, 8, 2:] = np.nan                               # two values: mean of both
+    t[3, 4] = np.nan  # a block without any value
+    t[5, 6, 1:] = np.nan  # one value
+    t[7, 8, 2:] = np.nan  # two values: mean of both
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         want = np.nanmedian(t, axis=2)
@@ -199,10 +215,11 @@ def test_median_at_cells_equals_scipy_median_filter():
     from scipy import ndimage as ndi
 
     from stereodem.post.filters import _median_at
+
     rng = np.random.default_rng(6)
     z = rng.normal(1000, 20, (150, 170))
     cells = rng.random(z.shape) < 0.05
-    cells[0, :] = cells[:, -1] = True                  # edges use the nearest-value padding
+    cells[0, :] = cells[:, -1] = True  # edges use the nearest-value padding
     got = _median_at(z, cells, 7)
     want = ndi.median_filter(z, size=7, mode="nearest")
     np.testing.assert_array_equal(got[cells], want[cells])
@@ -251,6 +268,7 @@ def test_sums_do_not_depend_on_the_blas_thread_count():
     # vector dot products in BLAS (OpenBLAS's ddot splits long vectors over its threads) made
     # the slope fit's last bits follow --workers; the sums are numpy's pairwise ones now
     from threadpoolctl import threadpool_limits
+
     x = _data(n=200_000, seed=4)
     w = np.abs(x) * 3.0 + 1.0
     results = []

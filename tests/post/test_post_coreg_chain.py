@@ -1,5 +1,6 @@
 """Co-registration chains (issue 25): each step recovers what was injected into a real DEM
 crop, chains compose, altimetry points work as reference, and bad inputs get one line."""
+
 from __future__ import annotations
 
 import json
@@ -29,14 +30,18 @@ from stereodem.post.coreg import (
 from stereodem.post.spatialstats import VariogramModel
 from stereodem.post.synthetic import InjectedErrors, inject_errors
 
-N = 200       # crop of the bundled SRTM tile (~14 x 18 km)
+N = 200  # crop of the bundled SRTM tile (~14 x 18 km)
 
 
 @pytest.fixture(scope="module")
 def truth():
     full = DEM.bundled()
-    return DEM(full.heights[100:100 + N, 300:300 + N].copy(),
-               full.transform @ Affine.translation(300, 100), full.crs, "geoid")
+    return DEM(
+        full.heights[100 : 100 + N, 300 : 300 + N].copy(),
+        full.transform @ Affine.translation(300, 100),
+        full.crs,
+        "geoid",
+    )
 
 
 def _noise(s=0.5):
@@ -54,11 +59,13 @@ def test_nuth_kaab_recovers_an_integer_pixel_shift_and_offset(truth):
 
 
 def test_vshift_and_deramp_recover_offset_and_ramp(truth):
-    dem, _ = inject_errors(truth, InjectedErrors(dz=-2.5, ramp_e=1.5, ramp_n=-0.8, noise=_noise(), seed=2))
+    dem, _ = inject_errors(
+        truth, InjectedErrors(dz=-2.5, ramp_e=1.5, ramp_n=-0.8, noise=_noise(), seed=2)
+    )
     v = VerticalShift().fit(truth, dem)
     assert v.dz == pytest.approx(-2.5, abs=0.3)
     d = Deramp(1).fit(truth, dem)
-    assert d.coef[1] == pytest.approx(1.5, abs=0.1)       # m per 10 km east
+    assert d.coef[1] == pytest.approx(1.5, abs=0.1)  # m per 10 km east
     assert d.coef[2] == pytest.approx(-0.8, abs=0.1)
     assert d.coef[0] == pytest.approx(-2.5, abs=0.15)
     out = d.apply(dem)
@@ -66,8 +73,10 @@ def test_vshift_and_deramp_recover_offset_and_ramp(truth):
 
 
 def test_along_track_recovers_a_sine(truth):
-    dem, _ = inject_errors(truth, InjectedErrors(heading_deg=200.0, along_sines=[(2.0, 4000.0, 0.7)],
-                                                 noise=_noise(), seed=3))
+    dem, _ = inject_errors(
+        truth,
+        InjectedErrors(heading_deg=200.0, along_sines=[(2.0, 4000.0, 0.7)], noise=_noise(), seed=3),
+    )
     at = AlongTrack(2).fit(truth, dem, track_angle_deg=200.0)
     assert at.params["sine1_wavelength"]["value"] == pytest.approx(4000.0, rel=0.02)
     assert at.params["sine1_amplitude"]["value"] == pytest.approx(2.0, abs=0.15)
@@ -81,6 +90,7 @@ def test_along_track_needs_a_heading(truth):
 
 def test_cross_track_recovers_a_quadratic(truth):
     from stereodem.post.coreg import local_metric_coords, track_coords
+
     e, n = local_metric_coords(truth.transform, truth.crs, truth.shape)
     _, c = track_coords(e, n, 10.0)
     bias = 0.5 + 1.0 * (c / 1e4) - 2.0 * (c / 1e4) ** 2
@@ -91,9 +101,14 @@ def test_cross_track_recovers_a_quadratic(truth):
 
 def test_curvature_bias_is_recovered(truth):
     from stereodem.post.biascorr import maximum_curvature
+
     curv = maximum_curvature(truth.heights, truth.transform, truth.crs)
-    dem = DEM(truth.heights - np.nan_to_num(0.8 * curv).astype(np.float32), truth.transform,
-              truth.crs, "geoid")
+    dem = DEM(
+        truth.heights - np.nan_to_num(0.8 * curv).astype(np.float32),
+        truth.transform,
+        truth.crs,
+        "geoid",
+    )
     cv = Curvature(1).fit(truth, dem)
     # the DEM's own curvature differs slightly from the truth's: slope within 10 %
     assert cv.coef[1] == pytest.approx(-0.8, rel=0.1)
@@ -103,7 +118,7 @@ def test_icp_recovers_a_translation(truth):
     px = abs(truth.transform.a) * 111320 * math.cos(math.radians(truth.transform.f))
     dem, _ = inject_errors(truth, InjectedErrors(dx=px, dz=2.0, seed=4))
     icp = ICP().fit(truth, dem)
-    assert icp.t[0] == pytest.approx(-px, abs=1.0)      # ICP moves the DEM onto the reference
+    assert icp.t[0] == pytest.approx(-px, abs=1.0)  # ICP moves the DEM onto the reference
     assert icp.t[2] == pytest.approx(-2.0, abs=0.3)
     assert nmad(icp.apply(dem).heights - truth.heights) < 1.0
 
@@ -148,9 +163,18 @@ def test_parse_chain_rejects_unknown_steps_and_orders():
 
 # ----------------------------------------------------------------------------- bad input
 
+
 def _geojson(path, ring, crs=None):
-    d = {"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {},
-         "geometry": {"type": "Polygon", "coordinates": [ring]}}]}
+    d = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {},
+                "geometry": {"type": "Polygon", "coordinates": [ring]},
+            }
+        ],
+    }
     if crs:
         d["crs"] = {"type": "name", "properties": {"name": crs}}
     path.write_text(json.dumps(d))
@@ -165,18 +189,27 @@ def test_outline_outside_the_dem_is_one_line(truth, tmp_path):
 
 def test_outline_in_another_crs_is_reprojected(truth, tmp_path):
     from stereodem.core import geodesy
+
     w, s, e, n = truth.bounds_lonlat()
     x, y = geodesy.lonlat_to_crs(np.array([w, e]), np.array([s, n]), "EPSG:32637")
     xm, ym = (x[0] + x[1]) / 2, (y[0] + y[1]) / 2
-    ring = [[xm - 2000, ym - 2000], [xm + 2000, ym - 2000], [xm + 2000, ym + 2000],
-            [xm - 2000, ym + 2000], [xm - 2000, ym - 2000]]
+    ring = [
+        [xm - 2000, ym - 2000],
+        [xm + 2000, ym - 2000],
+        [xm + 2000, ym + 2000],
+        [xm - 2000, ym + 2000],
+        [xm - 2000, ym - 2000],
+    ]
     p = tmp_path / "utm.geojson"
     _geojson(p, ring, "urn:ogc:def:crs:EPSG::32637")
     m = StableMask(exclude=[str(p)]).array(truth)
     assert not m[N // 2, N // 2] and m[0, 0]
-    cells = (~m).sum() * (truth.transform.a * 111320 * math.cos(math.radians(truth.transform.f))) \
+    cells = (
+        (~m).sum()
+        * (truth.transform.a * 111320 * math.cos(math.radians(truth.transform.f)))
         * (abs(truth.transform.e) * 110950)
-    assert cells == pytest.approx(16e6, rel=0.1)         # 4 km x 4 km
+    )
+    assert cells == pytest.approx(16e6, rel=0.1)  # 4 km x 4 km
 
 
 def test_mask_leaving_under_5_percent_says_how_much(truth):
@@ -192,14 +225,17 @@ def test_points_with_nan_or_unsaid_datum(tmp_path):
     with pytest.raises(InputError, match="pts.csv: 1 of 2 points have NaN"):
         read_points(p, vertical="ellipsoid")
     p.write_text("lon,lat,h\n40.1,39.9,1000\n40.2,39.8,1001\n")
-    with pytest.raises(VerticalReferenceError, match="pts.csv: vertical reference of the point heights not said"):
+    with pytest.raises(
+        VerticalReferenceError, match="pts.csv: vertical reference of the point heights not said"
+    ):
         read_points(p)
     assert read_points(p, vertical="ellipsoid").vertical == "ellipsoid"
 
 
 def test_reference_that_does_not_overlap(truth):
-    far = DEM(truth.heights, truth.transform @ Affine.translation(5000, 0),
-              truth.crs, "geoid", "far.tif")
+    far = DEM(
+        truth.heights, truth.transform @ Affine.translation(5000, 0), truth.crs, "geoid", "far.tif"
+    )
     with pytest.raises(NoOverlapError, match="does not overlap"):
         VerticalShift().fit(far, truth)
     pts = AltimetryPoints([10.0, 10.1], [10.0, 10.1], [1.0, 2.0], vertical="geoid", path="far.csv")
@@ -209,13 +245,16 @@ def test_reference_that_does_not_overlap(truth):
 
 def test_points_from_csv_and_geoparquet_agree(tmp_path):
     p = tmp_path / "pts.csv"
-    p.write_text("# ATL06-like\nlongitude,latitude,h_ellipsoid,time\n40.1,39.9,1000.5,2020-01-01\n"
-                 "40.2,39.8,1001.25,2020-01-02\n")
+    p.write_text(
+        "# ATL06-like\nlongitude,latitude,h_ellipsoid,time\n40.1,39.9,1000.5,2020-01-01\n"
+        "40.2,39.8,1001.25,2020-01-02\n"
+    )
     a = read_points(p)
     assert a.vertical == "ellipsoid" and a.h.tolist() == [1000.5, 1001.25] and len(a.time) == 2
     pq = pytest.importorskip("pyarrow.parquet")
     import pyarrow as pa
     import shapely
+
     geom = shapely.to_wkb(shapely.points([40.1, 40.2], [39.9, 39.8]))
     pq.write_table(pa.table({"geometry": geom, "h": [1000.5, 1001.25]}), tmp_path / "pts.parquet")
     b = read_points(tmp_path / "pts.parquet", vertical="ellipsoid")

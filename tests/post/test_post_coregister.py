@@ -1,6 +1,7 @@
 """Nuth & Kääb of the co-registration chain (:class:`stereodem.post.biascorr.NuthKaab`, the one
 implementation since ``post/coregister.py`` was folded into the chain) on the bundled SRTM
 tile with a known shift."""
+
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
@@ -38,6 +39,7 @@ def test_nuth_kaab_recovers_known_shift(shifted):
     assert p["converged"] and rec["after"]["nmad"] < 0.1 * rec["before"]["nmad"]
     # apply() removes the shift on the DEM's own grid: the corrected DEM agrees with the reference
     from stereodem.post.assess import compare_on_reference_grid
+
     after = compare_on_reference_grid(chain.apply(dem), ref)
     before = compare_on_reference_grid(dem, ref)
     assert np.nanmedian(np.abs(after.dh)) < 0.05 * np.nanmedian(np.abs(before.dh))

@@ -11,8 +11,8 @@ def _plane(n=80):
 def test_small_holes_filled_large_left_and_flagged():
     z = _plane()
     h = z.copy()
-    h[10:15, 10:15] = np.nan          # 25 cells: small
-    h[40:60, 40:60] = np.nan          # 400 cells: large
+    h[10:15, 10:15] = np.nan  # 25 cells: small
+    h[40:60, 40:60] = np.nan  # 400 cells: large
     res = fill.fill_holes(h, max_hole_size=200)
     small = np.zeros(z.shape, bool)
     small[10:15, 10:15] = True
@@ -28,7 +28,7 @@ def test_large_hole_from_fallback_with_blended_seam():
     z = _plane()
     h = z.copy()
     h[30:60, 30:60] = np.nan
-    fallback = z - 12.0                # fallback DEM offset by a datum-like bias
+    fallback = z - 12.0  # fallback DEM offset by a datum-like bias
     res = fill.fill_holes(h, max_hole_size=200, fallback=fallback)
     hole = np.isnan(h)
     assert np.all(res.filled[hole] == fill.FILLED_FALLBACK)

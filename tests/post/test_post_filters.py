@@ -30,8 +30,10 @@ def _inject(z0, frac=0.01, seed=1):
     while bad.sum() < n:
         s = rng.integers(2, 5)
         r, c = rng.integers(0, z.shape[0] - s), rng.integers(0, z.shape[1] - s)
-        z[r:r + s, c:c + s] = z0[r:r + s, c:c + s] + rng.uniform(30, 300) * rng.choice([-1, 1])
-        bad[r:r + s, c:c + s] = True
+        z[r : r + s, c : c + s] = z0[r : r + s, c : c + s] + rng.uniform(30, 300) * rng.choice(
+            [-1, 1]
+        )
+        bad[r : r + s, c : c + s] = True
     return z, bad
 
 
@@ -61,7 +63,7 @@ def test_score_and_ray_gap_filters():
     assert reason == F.Reason.SCORE and m.sum() == 1 and m[2, 3]
     gap = np.random.default_rng(0).uniform(1, 2, z.shape)
     gap[5, 5] = 50.0
-    m, reason = F.ray_gap_filter(z, gap)          # 3 x P75
+    m, reason = F.ray_gap_filter(z, gap)  # 3 x P75
     assert reason == F.Reason.RAY_GAP and m.sum() == 1 and m[5, 5]
     m, _ = F.ray_gap_filter(z, gap, max_gap=1.5, percentile=None)
     assert m.sum() == np.sum(gap > 1.5)
@@ -77,7 +79,7 @@ def test_ok_thesis_local_tests():
     assert reason == F.Reason.LOCAL_SIGMA and m[10, 10]
     z2 = np.full((9, 9), 100.0)
     z2[3:6, 3:6] = np.nan
-    z2[4, 4] = 100.0                  # surrounded by 8 voids
+    z2[4, 4] = 100.0  # surrounded by 8 voids
     z2[2, 2] = np.nan
     m, reason = F.failed_neighbours_filter(z2, min_failed=5)
     assert reason == F.Reason.FAILED_NEIGHBOURS
@@ -90,6 +92,7 @@ def test_slope_reference_and_patch_filters():
     t = d.transform
     m, reason = F.slope_filter(z, t, d.crs, max_slope=30.0)
     from stereodem.post.terrain import slope_deg
+
     assert reason == F.Reason.SLOPE and m.sum() == np.sum(slope_deg(z, t, d.crs) > 30.0)
     ref = z + 5.0
     zz = z.copy()
@@ -107,8 +110,12 @@ def test_slope_reference_and_patch_filters():
 
 
 def test_chain_config_and_unknown_step():
-    chain = F.FilterChain([("spike", {"k": 4.0}), {"name": "small_patch", "params": {"max_size": 5}}])
-    assert chain.params == [{"step": "spike", "params": {"k": 4.0}},
-                            {"step": "small_patch", "params": {"max_size": 5}}]
+    chain = F.FilterChain(
+        [("spike", {"k": 4.0}), {"name": "small_patch", "params": {"max_size": 5}}]
+    )
+    assert chain.params == [
+        {"step": "spike", "params": {"k": 4.0}},
+        {"step": "small_patch", "params": {"max_size": 5}},
+    ]
     with pytest.raises(InputError):
         F.FilterStep("magic")

@@ -1,6 +1,7 @@
 """Spatial statistics of dh (issue 25): the empirical variogram and its fit against
 scikit-gstat on the same samples, σ of an area mean against a Monte Carlo of correlated noise,
 heteroscedasticity and the sensor-model σ's explained share."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -47,7 +48,7 @@ def test_fit_recovers_two_ranges_of_a_simulated_field():
     # variogram pooled over four fields (NaN gaps between them keep pairs within one field)
     big = np.full((150, 4 * 160), np.nan)
     for k in range(4):
-        big[:, k * 160:k * 160 + 150] = f[k]
+        big[:, k * 160 : k * 160 + 150] = f[k]
     emp = variogram(big, transform=T, crs=CRS, n_pairs=400_000, max_lag=2500.0, seed=2)
     m = fit_variogram(emp, n_models=2)
     assert m.ranges[0] == pytest.approx(90.0, rel=0.35)
@@ -64,7 +65,7 @@ def test_area_mean_sigma_agrees_with_monte_carlo():
     f = simulate_field(model, shape, 30.0, rng=7, n_fields=400)
     mc = np.std(f[:, disc].mean(axis=1), ddof=1)
     assert pred["sigma_mean"] == pytest.approx(mc, rel=0.10)
-    assert pred["sigma_naive"] < 0.5 * pred["sigma_mean"]      # σ/√N is far too small here
+    assert pred["sigma_naive"] < 0.5 * pred["sigma_mean"]  # σ/√N is far too small here
     # per-cell σ scales the result
     twice = area_mean_sigma(model, disc, T, CRS, sigma=2.0, n_samples=2000)
     assert twice["sigma_mean"] == pytest.approx(2 * pred["sigma_mean"], rel=1e-9)

@@ -2,6 +2,7 @@
 colour bars with units, legends on every line, class counts, stated clipping, transparent
 nodata; report.html parsed (and screenshotted in a headless browser when one is installed);
 valid % on the DEM's own footprint."""
+
 from __future__ import annotations
 
 import base64
@@ -33,7 +34,7 @@ def pair():
     z = ref_h + np.random.default_rng(3).normal(0, 2.0, ref_h.shape).astype(np.float32)
     z[:50], z[350:], z[:, :100], z[:, 300:] = np.nan, np.nan, np.nan, np.nan
     z[150:170, 150:170] = np.nan
-    z[200, 200] += 400.0                         # one blunder: a long histogram tail
+    z[200, 200] += 400.0  # one blunder: a long histogram tail
     return DEM(z, T, "EPSG:32637", "geoid", "dem"), DEM(ref_h, T, "EPSG:32637", "geoid", "ref")
 
 
@@ -46,6 +47,7 @@ def captured(monkeypatch):
     def keep(fig, path, overwrite):
         figs.append(fig)
         return orig(fig, path, overwrite)
+
     monkeypatch.setattr(figures, "_save", keep)
     return figs
 
@@ -53,7 +55,7 @@ def captured(monkeypatch):
 def test_valid_pct_is_measured_on_the_dem_footprint(pair):
     dem, ref = pair
     s = assess.assess_dem(dem, ref).report["stats"]
-    expected = 100.0 * (300 * 200 - 20 * 20) / (300 * 200)     # the hole, not the frame
+    expected = 100.0 * (300 * 200 - 20 * 20) / (300 * 200)  # the hole, not the frame
     assert s["n_total"] == 300 * 200
     assert s["valid_pct"] == pytest.approx(expected, abs=1e-9)
 
@@ -68,8 +70,13 @@ def _legend_ok(ax):
 
 def test_maps_have_coordinates_scale_bar_colour_bar_and_transparent_voids(pair, tmp_path, captured):
     dem, ref = pair
-    p = figures.hillshade_png(dem.heights, dem.transform, dem.crs, tmp_path / "hs.png",
-                              height_label="height above the EGM96 geoid (m)")
+    p = figures.hillshade_png(
+        dem.heights,
+        dem.transform,
+        dem.crs,
+        tmp_path / "hs.png",
+        height_label="height above the EGM96 geoid (m)",
+    )
     dh = dem.heights.astype(float) - ref.heights
     figures.difference_map_png(dh, tmp_path / "dm.png", transform=T, crs=dem.crs)
     for fig in captured:
@@ -82,7 +89,7 @@ def test_maps_have_coordinates_scale_bar_colour_bar_and_transparent_voids(pair, 
         assert abs(x1 - x0) == pytest.approx(30.0 * (200 + 2 * 12), rel=0.02)
     assert "EGM96" in captured[0].axes[1].get_ylabel()
     assert "clipped at ±" in captured[1].axes[0].get_title()
-    rgba = imread(p)                                 # no solid red (or any) void fill
+    rgba = imread(p)  # no solid red (or any) void fill
     red = (rgba[..., 0] > 0.9) & (rgba[..., 1] < 0.1) & (rgba[..., 2] < 0.1)
     assert red.sum() == 0
 
@@ -104,21 +111,22 @@ def test_error_vs_slope_counts_greys_sparse_classes_and_stays_in_axes(tmp_path, 
     rng = np.random.default_rng(0)
     slope = np.concatenate([rng.uniform(0, 40, 5000), [46.0, 47.0, 48.0, 49.0]])
     dh = rng.normal(0, 1 + slope / 20)
-    dh[-4:] = [30.0, -40.0, 55.0, 60.0]              # a 4-cell class far off the others
+    dh[-4:] = [30.0, -40.0, 55.0, 60.0]  # a 4-cell class far off the others
     from stereodem.post.stats import binned_stats
+
     by = binned_stats(dh, slope, [0, 10, 20, 30, 45, 90], unit="deg", name="slope")
     figures.error_vs_slope_png(dh, slope, by, tmp_path / "s.png")
     ax = captured[0].axes[0]
     assert _legend_ok(ax)
     top = ax.get_ylim()[1]
-    for ln in ax.get_lines():                        # every drawn point is inside the axes
+    for ln in ax.get_lines():  # every drawn point is inside the axes
         y = np.asarray(ln.get_ydata(), float)
         if ln.get_label().endswith("per slope class"):
             assert len(y) == 4 and np.all(y <= top)  # the sparse class is not joined
     counts = [t.get_text() for t in ax.child_axes[0].get_xticklabels()]
     assert counts == [f"n={e['n']:,}" for e in by]
     assert ax.child_axes[0].get_xticklabels()[-1].get_color() != "k"
-    assert any("↑" in t.get_text() for t in ax.texts)   # off-scale sparse values are stated
+    assert any("↑" in t.get_text() for t in ax.texts)  # off-scale sparse values are stated
 
 
 class _Page(HTMLParser):
@@ -151,11 +159,13 @@ def test_html_report_is_self_contained_with_figures_tables_provenance(pair, tmp_
     files = _report(pair, tmp_path / "rep")
     page = _Page()
     page.feed(files["html"].read_text(encoding="utf-8"))
-    pngs = {k: files[k].read_bytes() for k in ("hillshade", "difference", "histogram", "error_vs_slope")}
+    pngs = {
+        k: files[k].read_bytes() for k in ("hillshade", "difference", "histogram", "error_vs_slope")
+    }
     srcs = [i["src"] for i in page.imgs]
     assert len(srcs) == 4 and all(s.startswith("data:image/png;base64,") for s in srcs)
     assert sorted(base64.b64decode(s.split(",", 1)[1]) for s in srcs) == sorted(pngs.values())
-    assert page.tags.count("table") == 3            # whole DEM, slope classes, elevation bands
+    assert page.tags.count("table") == 3  # whole DEM, slope classes, elevation bands
     assert {"started_utc", "command_line", "stereodem_version"} <= set(page.dt)
     text = " ".join(page.text)
     rep = json.loads(files["json"].read_text())
@@ -165,15 +175,28 @@ def test_html_report_is_self_contained_with_figures_tables_provenance(pair, tmp_
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not (shutil.which("chromium") or shutil.which("chromium-browser")),
-                    reason="no headless browser (apt-get install chromium)")
+@pytest.mark.skipif(
+    not (shutil.which("chromium") or shutil.which("chromium-browser")),
+    reason="no headless browser (apt-get install chromium)",
+)
 def test_html_report_renders_in_a_headless_browser(pair, tmp_path):
     files = _report(pair, tmp_path / "rep")
     shot = tmp_path / "shot.png"
     exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                    f"--screenshot={shot}", "--window-size=1000,2400",
-                    files["html"].resolve().as_uri()], capture_output=True, timeout=120)
+    subprocess.run(
+        [
+            exe,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            f"--screenshot={shot}",
+            "--window-size=1000,2400",
+            files["html"].resolve().as_uri(),
+        ],
+        capture_output=True,
+        timeout=120,
+    )
     img = imread(shot)
     assert img.shape[:2] == (2400, 1000)
     # figures rendered: many distinct colours (a page of text alone is grey on white)

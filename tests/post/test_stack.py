@@ -1,6 +1,7 @@
 """DEM stacks (issue 27): per-cell rates with outlier rejection, cloud masks, hypsometric
 fill and volumes, the Zarr container, dates, and the stack/change commands with their bad
 inputs. Small synthetic inputs (a crop of the bundled real SRTM tile)."""
+
 from __future__ import annotations
 
 import json
@@ -19,6 +20,7 @@ TIMES = np.array([2003.5, 2007.6, 2011.5, 2015.6, 2019.55])
 
 # ----------------------------------------------------------------------------- rates
 
+
 def test_rates_noise_only_match_the_formal_sigma():
     rng = np.random.default_rng(0)
     n = 40_000
@@ -32,7 +34,7 @@ def test_rates_noise_only_match_the_formal_sigma():
     err = r["rate"] - true
     assert abs(np.std(err) / limit - 1) < 0.03
     assert abs(np.mean(err)) < 3 * limit / np.sqrt(n)
-    assert (r["n_obs"] >= 4).mean() > 0.999        # k = 4 rejects almost nothing from noise
+    assert (r["n_obs"] >= 4).mean() > 0.999  # k = 4 rejects almost nothing from noise
 
 
 @pytest.mark.parametrize("index", [0, 2, 4])
@@ -40,7 +42,7 @@ def test_rates_reject_a_blunder_anywhere_in_the_series(index):
     rng = np.random.default_rng(index)
     n = 2000
     h = 1000 - 1.0 * (TIMES[:, None] - 2010) + rng.normal(0, 2, (5, n))
-    h[index] += 60.0                          # 30 σ: a blunder the line must not follow
+    h[index] += 60.0  # 30 σ: a blunder the line must not follow
     r = fit_rates(h, TIMES, np.full(5, 2.0), settings=RateSettings(max_deviation=np.inf))
     assert (~r["kept"][index]).mean() > 0.99
     assert np.all(r["n_rejected"] >= 1)
@@ -50,19 +52,22 @@ def test_rates_reject_a_blunder_anywhere_in_the_series(index):
 
 def test_rates_masks_min_obs_and_gross_deviation():
     h = np.tile((100 + 0.5 * (TIMES - 2010))[:, None], (1, 4)).astype(np.float32)
-    h[1:, 0] = np.nan                       # one observation: no rate
+    h[1:, 0] = np.nan  # one observation: no rate
     valid = np.ones(h.shape, bool)
-    valid[:3, 1] = False                    # two left by the mask
-    h[2, 2] = 900.0                         # a cloud top, dropped by the temporal median
+    valid[:3, 1] = False  # two left by the mask
+    h[2, 2] = 900.0  # a cloud top, dropped by the temporal median
     r = fit_rates(h, TIMES, np.full(5, 1.0), valid=valid)
     assert np.isnan(r["rate"][0]) and r["n_obs"][0] == 1
     assert r["n_obs"][1] == 2 and r["rate"][1] == pytest.approx(0.5, abs=1e-4)
-    assert r["n_obs"][2] == 4 and not r["kept"][2, 2] and r["rate"][2] == pytest.approx(0.5, abs=1e-4)
+    assert (
+        r["n_obs"][2] == 4 and not r["kept"][2, 2] and r["rate"][2] == pytest.approx(0.5, abs=1e-4)
+    )
     assert r["rate"][3] == pytest.approx(0.5, abs=1e-4) and r["n_rejected"][3] == 0
 
 
 def test_rates_refuse_repeated_dates_and_bad_sigma():
     from stereodem.core.errors import InputError
+
     h = np.zeros((3, 2))
     with pytest.raises(InputError, match="repeated"):
         fit_rates(h, [2001.0, 2001.0, 2005.0], np.ones(3))
@@ -72,19 +77,24 @@ def test_rates_refuse_repeated_dates_and_bad_sigma():
 
 # ----------------------------------------------------------------------------- clouds, fill
 
+
 def test_cloud_mask_signs_and_growth():
     rng = np.random.default_rng(1)
     ref = rng.normal(2000, 50, (60, 60)).astype(np.float32)
     h = ref + 4.0 + rng.normal(0, 2, ref.shape).astype(np.float32)
-    h[20:30, 20:30] += 400.0                # cloud top
+    h[20:30, 20:30] += 400.0  # cloud top
     score = np.full(ref.shape, 0.9, np.float32)
-    score[40:45, 5:10] = 0.1                # low matcher score
+    score[40:45, 5:10] = 0.1  # low matcher score
     radiance = np.full(ref.shape, 60.0, np.float32)
-    radiance[5:8, 40:50] = 200.0            # bright
-    m, info = cloud_mask(h, settings=CloudSettings(max_deviation=50, min_score=0.5,
-                                                   max_radiance=150, grow=2),
-                         reference=ref, score=score, radiance=radiance)
-    assert m[20:30, 20:30].all() and m[18, 25] and not m[16, 25]       # grown by 2 cells
+    radiance[5:8, 40:50] = 200.0  # bright
+    m, info = cloud_mask(
+        h,
+        settings=CloudSettings(max_deviation=50, min_score=0.5, max_radiance=150, grow=2),
+        reference=ref,
+        score=score,
+        radiance=radiance,
+    )
+    assert m[20:30, 20:30].all() and m[18, 25] and not m[16, 25]  # grown by 2 cells
     assert m[40:45, 5:10].all() and m[5:8, 40:50].all()
     assert info["deviation_pct"] == pytest.approx(100 * 100 / 3600, abs=0.01)
     assert info["dh_nmad"] == pytest.approx(2.0, rel=0.15)
@@ -93,28 +103,30 @@ def test_cloud_mask_signs_and_growth():
 
 
 def test_hypsometric_fill_uses_the_local_elevation_bands():
-    z = np.tile(np.linspace(2000, 3000, 80), (60, 1))        # elevation rises east
-    rate = (-3 + 0.002 * (z - 2000)).astype(np.float32)       # thinning weaker higher up
+    z = np.tile(np.linspace(2000, 3000, 80), (60, 1))  # elevation rises east
+    rate = (-3 + 0.002 * (z - 2000)).astype(np.float32)  # thinning weaker higher up
     inside = np.zeros(z.shape, bool)
     inside[10:50, 5:75] = True
     holes = np.zeros(z.shape, bool)
     holes[20:40, 30:45] = True
     v = rate.copy()
     v[holes] = np.nan
-    v[~inside] = 5.0                                          # outside must not leak in
+    v[~inside] = 5.0  # outside must not leak in
     filled, where, bands = hypsometric_fill(v, z, inside, band_width=50)
     assert where.sum() == holes.sum()
-    assert np.abs(filled[holes] - rate[holes]).max() < 0.05 + 1e-6   # half a band of 0.1 m/yr
+    assert np.abs(filled[holes] - rate[holes]).max() < 0.05 + 1e-6  # half a band of 0.1 m/yr
     assert sum(b["n_filled"] for b in bands) == holes.sum()
 
 
 # ----------------------------------------------------------------------------- container
+
 
 def _grid(n=40):
     from affine import Affine
     from pyproj import CRS
 
     from stereodem.core.grid import MapGrid
+
     return MapGrid(Affine(30, 0, 500000, 0, -30, 4400000), n + 10, n, CRS.from_epsg(32637))
 
 
@@ -122,6 +134,7 @@ def test_zarr_stack_round_trip_reads_with_plain_xarray(tmp_path):
     import xarray as xr
 
     from stereodem.post import stack as st
+
     g = _grid()
     dates = [np.datetime64(d) for d in ("2004-07-01", "2011-08-02", "2019-07-20")]
     ref = np.full(g.shape, 1000, np.float32)
@@ -133,7 +146,7 @@ def test_zarr_stack_round_trip_reads_with_plain_xarray(tmp_path):
         m = np.zeros(g.shape, np.uint8)
         m[0, i] = st.MASK_CLOUD
         st.write_date(store, i, h, m, 1.5 + i)
-    ds = xr.open_zarr(store)                       # plain xarray, no stereodem reader
+    ds = xr.open_zarr(store)  # plain xarray, no stereodem reader
     assert ds["height"].dims == ("time", "y", "x")
     assert np.array_equal(ds["height"].values, np.stack(hs))
     assert ds["sigma"].values.tolist() == [1.5, 2.5, 3.5]
@@ -149,17 +162,22 @@ def test_zarr_stack_round_trip_reads_with_plain_xarray(tmp_path):
 
 # ----------------------------------------------------------------------------- dates
 
+
 def test_dates_from_metadata_csv_and_list(tmp_path):
     from affine import Affine
 
     from stereodem.core.raster import write_geotiff
     from stereodem.post.dates import dem_dates
+
     a, b = tmp_path / "a" / "dem.tif", tmp_path / "b.tif"
     a.parent.mkdir()
     for p in (a, b):
-        write_geotiff(p, np.ones((8, 8), np.float32), Affine(30, 0, 5e5, 0, -30, 4.4e6), "EPSG:32637")
-    (a.parent / "run.json").write_text(json.dumps(
-        {"input_metadata": {"ASTER_ACQUISITION_TIME": "2005-06-07T08:30:01Z"}}))
+        write_geotiff(
+            p, np.ones((8, 8), np.float32), Affine(30, 0, 5e5, 0, -30, 4.4e6), "EPSG:32637"
+        )
+    (a.parent / "run.json").write_text(
+        json.dumps({"input_metadata": {"ASTER_ACQUISITION_TIME": "2005-06-07T08:30:01Z"}})
+    )
     with pytest.raises(Exception, match="b.tif: no acquisition date"):
         dem_dates([a, b])
     csv = tmp_path / "dates.csv"
@@ -167,11 +185,16 @@ def test_dates_from_metadata_csv_and_list(tmp_path):
     got = dem_dates([a, b], str(csv))
     assert [str(d) for d in got] == ["2004-01-02T00:00:00", "2010-03-04T00:00:00"]
     from stereodem.post.dates import date_from_metadata
+
     assert str(date_from_metadata(a)) == "2005-06-07T08:30:01"
-    assert [str(d)[:10] for d in dem_dates([a, b], "2001-01-01,2002-02-02")] == ["2001-01-01", "2002-02-02"]
+    assert [str(d)[:10] for d in dem_dates([a, b], "2001-01-01,2002-02-02")] == [
+        "2001-01-01",
+        "2002-02-02",
+    ]
 
 
 # ----------------------------------------------------------------------------- commands
+
 
 @pytest.fixture(scope="module")
 def series(tmp_path_factory):
@@ -187,22 +210,34 @@ def series(tmp_path_factory):
         write_polygons,
     )
     from stereodem.sensor.simulation.multidate import thinning_truth, write_dem_series
+
     d = tmp_path_factory.mktemp("series")
     ref = utm_reference(DEM.bundled(), 70, 90.0, centre_lonlat=(40.4, 39.6))
     outline = glacier_outline(ref.grid, radius=0.2)
     truth = thinning_truth(ref.grid, ref.heights, outline, t_ref=2000.1)
     dates = ["2004-07-01", "2009-08-01", "2014-07-15", "2019-07-20"]
     noise = VariogramModel(np.array([200.0]), np.array([4.0]))
-    specs = [InjectedErrors(dx=25 - 15 * k, dy=10 * k - 15, dz=2.0 - k, ramp_e=2.0 - k,
-                            noise=noise, seed=k) for k in range(4)]
+    specs = [
+        InjectedErrors(
+            dx=25 - 15 * k, dy=10 * k - 15, dz=2.0 - k, ramp_e=2.0 - k, noise=noise, seed=k
+        )
+        for k in range(4)
+    ]
     clouds = [None, {"centre": (18, 20), "radius": 7, "top": 3600.0}, None, None]
     ser = dem_series(truth, dates, specs, clouds=clouds, vertical="geoid")
     paths = write_dem_series([s.dem for s in ser], dates, d / "dems")
     ref.path = str(d / "ref.tif")
     ref.write(ref.path)
     write_polygons(d / "glacier.gpkg", [outline], ref.crs)
-    return dict(dir=d, paths=[str(p) for p in paths], ref=ref.path, truth=truth, series=ser,
-                outline=str(d / "glacier.gpkg"), dates=dates)
+    return dict(
+        dir=d,
+        paths=[str(p) for p in paths],
+        ref=ref.path,
+        truth=truth,
+        series=ser,
+        outline=str(d / "glacier.gpkg"),
+        dates=dates,
+    )
 
 
 def _run(argv, capsys):
@@ -215,10 +250,29 @@ def _run(argv, capsys):
 def test_stack_command_recovers_the_rate_and_masks_the_cloud(series, tmp_path, capsys):
     import rasterio
     import xarray as xr
+
     out = tmp_path / "out"
-    rc, _so, se = _run(["stack", *series["paths"], "--ref", series["ref"], "--chain",
-                       "nuth_kaab,deramp:1", "--exclude", series["outline"], "--outlines",
-                       series["outline"], "--workers", "2", "--chunk", "32", "-o", str(out)], capsys)
+    rc, _so, se = _run(
+        [
+            "stack",
+            *series["paths"],
+            "--ref",
+            series["ref"],
+            "--chain",
+            "nuth_kaab,deramp:1",
+            "--exclude",
+            series["outline"],
+            "--outlines",
+            series["outline"],
+            "--workers",
+            "2",
+            "--chunk",
+            "32",
+            "-o",
+            str(out),
+        ],
+        capsys,
+    )
     assert rc == 0, se
     with rasterio.open(out / "rate.tif") as ds:
         rate = ds.read(1)
@@ -231,8 +285,8 @@ def test_stack_command_recovers_the_rate_and_masks_the_cloud(series, tmp_path, c
     assert abs(np.nanmean(err[inside])) < 0.1
     limit = noise_limit([2004.5, 2009.58, 2014.54, 2019.55], np.full(4, 2.0))
     assert nmad(rate[~inside & ~cloud]) < 1.3 * limit
-    assert np.all(n_obs[cloud] == 3)                       # the cloud date left out there
-    assert np.nanmax(np.abs(err[cloud])) < 5 * limit       # and nothing of it in the rate
+    assert np.all(n_obs[cloud] == 3)  # the cloud date left out there
+    assert np.nanmax(np.abs(err[cloud])) < 5 * limit  # and nothing of it in the rate
     ds = xr.open_zarr(out / "stack.zarr")
     assert ds.sizes["time"] == 4 and (ds["mask"].values[1][cloud] & 2).all()
     vol = json.loads((out / "volumes.json").read_text())["polygons"][0]
@@ -241,17 +295,32 @@ def test_stack_command_recovers_the_rate_and_masks_the_cloud(series, tmp_path, c
     summary = json.loads((out / "stack.json").read_text())
     assert summary["status"] == "ok" and len(summary["dems"]) == 4
     # the same folder again: refused without --overwrite, replaced with it
-    rc, _, se = _run(["stack", *series["paths"], "--ref", series["ref"], "--chain", "vshift",
-                      "-o", str(out)], capsys)
+    rc, _, se = _run(
+        ["stack", *series["paths"], "--ref", series["ref"], "--chain", "vshift", "-o", str(out)],
+        capsys,
+    )
     assert rc == 1 and "--overwrite" in se
-    rc, _, se = _run(["stack", *series["paths"][:2], "--ref", series["ref"], "--chain", "vshift",
-                      "-o", str(out), "--overwrite"], capsys)
+    rc, _, se = _run(
+        [
+            "stack",
+            *series["paths"][:2],
+            "--ref",
+            series["ref"],
+            "--chain",
+            "vshift",
+            "-o",
+            str(out),
+            "--overwrite",
+        ],
+        capsys,
+    )
     assert rc == 0, se
     assert xr.open_zarr(out / "stack.zarr").sizes["time"] == 2
 
 
 def test_change_command_gives_dh_and_sigma(series, tmp_path, capsys):
     import rasterio
+
     out = tmp_path / "chg"
     a, b = series["paths"][0], series["paths"][3]
     rc, _so, se = _run(["change", a, b, "--exclude", series["outline"], "-o", str(out)], capsys)
@@ -262,23 +331,26 @@ def test_change_command_gives_dh_and_sigma(series, tmp_path, capsys):
     inside = true != 0
     assert abs(np.nanmean(dh[inside] - true[inside])) < 1.0
     st = ~inside & np.isfinite(dh)
-    assert 0.5 < nmad(dh[st]) / np.nanmedian(sig[st]) < 1.5    # σ map says the dispersion
+    assert 0.5 < nmad(dh[st]) / np.nanmedian(sig[st]) < 1.5  # σ map says the dispersion
     info = json.loads((out / "change.json").read_text())
     assert info["years"] == pytest.approx(15.05, abs=0.01)
 
 
-@pytest.mark.parametrize("case", ["no_dates", "single", "no_overlap", "future", "repeated",
-                                  "count"])
+@pytest.mark.parametrize(
+    "case", ["no_dates", "single", "no_overlap", "future", "repeated", "count"]
+)
 def test_stack_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys, case):
     from affine import Affine
 
     from stereodem.core.raster import write_geotiff
+
     paths = series["paths"][:3]
     extra = []
     if case == "no_dates":
         bare = tmp_path / "bare.tif"
-        write_geotiff(bare, np.ones((20, 20), np.float32), Affine(90, 0, 5e5, 0, -90, 4.4e6),
-                      "EPSG:32637")
+        write_geotiff(
+            bare, np.ones((20, 20), np.float32), Affine(90, 0, 5e5, 0, -90, 4.4e6), "EPSG:32637"
+        )
         paths = [paths[0], str(bare)]
         expect = "no acquisition date"
     elif case == "single":
@@ -286,8 +358,13 @@ def test_stack_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys
         expect = "at least 2 DEMs"
     elif case == "no_overlap":
         far = tmp_path / "far.tif"
-        write_geotiff(far, np.ones((20, 20), np.float32), Affine(90, 0, 2e5, 0, -90, 1.0e6),
-                      "EPSG:32637", tags={"ACQUISITION_DATE": "2012-01-01"})
+        write_geotiff(
+            far,
+            np.ones((20, 20), np.float32),
+            Affine(90, 0, 2e5, 0, -90, 1.0e6),
+            "EPSG:32637",
+            tags={"ACQUISITION_DATE": "2012-01-01"},
+        )
         paths = [paths[0], str(far)]
         expect = "does not overlap"
     elif case == "future":
@@ -308,9 +385,10 @@ def test_stack_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys
 
 def test_gp_rate_is_wls_without_the_nonlinear_part_and_wider_with_it():
     from stereodem.post.gp import GPSettings, gp_rates
+
     rng = np.random.default_rng(4)
     h = 500 - 0.8 * (TIMES[:, None] - 2010) + rng.normal(0, 2, (5, 300))
-    h[1, :100] = np.nan                                  # two observation patterns
+    h[1, :100] = np.nan  # two observation patterns
     sig = np.array([2.0, 2.5, 2.0, 3.0, 2.0])
     w = fit_rates(h, TIMES, sig, settings=RateSettings(k=1e9, max_deviation=np.inf))
     g0 = gp_rates(h, TIMES, sig, settings=GPSettings(sigma_f=1e-6))
@@ -323,23 +401,41 @@ def test_gp_rate_is_wls_without_the_nonlinear_part_and_wider_with_it():
 
 def test_filter_uses_the_cloud_mask(series, tmp_path, capsys):
     import rasterio
+
     out = tmp_path / "clean.tif"
-    rc, _so, se = _run(["filter", series["paths"][1], "-o", str(out), "--seed-dem", series["ref"],
-                       "--cloud-max-dev", "50", "--no-fill", "--no-filters"], capsys)
+    rc, _so, se = _run(
+        [
+            "filter",
+            series["paths"][1],
+            "-o",
+            str(out),
+            "--seed-dem",
+            series["ref"],
+            "--cloud-max-dev",
+            "50",
+            "--no-fill",
+            "--no-filters",
+        ],
+        capsys,
+    )
     assert rc == 0, se
     z = rasterio.open(out).read(1)
     edit = rasterio.open(tmp_path / "clean_edit_mask.tif").read(1)
     cloud = series["series"][1].cloud
     assert np.isnan(z[cloud]).all() and (edit[cloud] == 9).all()
     assert np.isfinite(z[~cloud]).mean() > 0.9
-    rc, _, se = _run(["filter", series["paths"][1], "-o", str(tmp_path / "c2.tif"),
-                      "--cloud-max-dev", "50"], capsys)
+    rc, _, se = _run(
+        ["filter", series["paths"][1], "-o", str(tmp_path / "c2.tif"), "--cloud-max-dev", "50"],
+        capsys,
+    )
     assert rc == 1 and "--seed-dem" in se and len(se.strip().splitlines()) == 1
 
 
 def test_stack_default_chain_leaves_out_along_track_without_a_heading(series, tmp_path, capsys):
     out = tmp_path / "o"
-    rc, _so, se = _run(["stack", *series["paths"][:2], "--ref", series["ref"], "-o", str(out)], capsys)
+    rc, _so, se = _run(
+        ["stack", *series["paths"][:2], "--ref", series["ref"], "-o", str(out)], capsys
+    )
     assert rc == 0, se
     dems = json.loads((out / "stack.json").read_text())["dems"]
     assert [d["chain"] for d in dems] == ["nuth_kaab,deramp:1"] * 2
@@ -352,6 +448,7 @@ def test_parallel_build_writes_the_same_stack(series, tmp_path):
 
     from stereodem.core.dem import DEM
     from stereodem.post.stack_build import BuildSettings, build_stack
+
     ref = DEM.from_file(series["ref"])
     dates = [np.datetime64(d) for d in series["dates"][:3]]
     s = BuildSettings(chain="nuth_kaab", chunk=32)
@@ -366,6 +463,7 @@ def test_parallel_build_writes_the_same_stack(series, tmp_path):
 def test_dates_csv_missing_is_one_line(tmp_path):
     from stereodem.core.errors import InputError
     from stereodem.post.dates import dem_dates
+
     with pytest.raises(InputError, match="cannot read the dates CSV"):
         dem_dates(["a.tif", "b.tif"], str(tmp_path / "nope.csv"))
 
@@ -380,6 +478,7 @@ def test_stack_uses_the_score_and_radiance_layers_beside_a_dem(series, tmp_path)
     from stereodem.post.clouds import CloudSettings
     from stereodem.post.stack import MASK_CLOUD
     from stereodem.post.stack_build import BuildSettings, add_dem, exclude_mask
+
     d = tmp_path / "run"
     d.mkdir()
     dem = d / "dem.tif"
@@ -393,8 +492,10 @@ def test_stack_uses_the_score_and_radiance_layers_beside_a_dem(series, tmp_path)
     write_geotiff(d / "score.tif", score, t, crs)
     write_geotiff(d / "ortho_left.tif", radiance, t, crs)
     ref = DEM.from_file(series["ref"])
-    s = BuildSettings(chain="vshift", cloud=CloudSettings(max_deviation=None, min_score=0.5,
-                                                          max_radiance=150, grow=1))
+    s = BuildSettings(
+        chain="vshift",
+        cloud=CloudSettings(max_deviation=None, min_score=0.5, max_radiance=150, grow=1),
+    )
     h, flags, sigma, rec = add_dem(ref, dem, s, exclude_mask([], ref))
     cloud = (flags & MASK_CLOUD) > 0
     assert cloud[42:48, 42:48].all() and cloud[7:10, 52:58].all()

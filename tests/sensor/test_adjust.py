@@ -1,6 +1,7 @@
 """Adjustment of one sensor model from GCPs (issue #15): RPC bias compensation on a real RPC,
 statistics (sigma0, chi-square, covariance vs the spread of repeated estimates), reliability
 identities, data snooping, hostile inputs, GCP files."""
+
 import json
 
 import numpy as np
@@ -38,8 +39,9 @@ def ground_points(model, n, rng, margin=5):
 
 def observe(truth, lon, lat, h, sigma, rng, role=None):
     c, r = truth.project(lon, lat, h)
-    return ControlPoints.from_arrays(lon, lat, h, c + rng.normal(0, sigma, c.size),
-                                     r + rng.normal(0, sigma, c.size), role=role)
+    return ControlPoints.from_arrays(
+        lon, lat, h, c + rng.normal(0, sigma, c.size), r + rng.normal(0, sigma, c.size), role=role
+    )
 
 
 BIAS = dict(col_shift=3.2, row_shift=-1.7, row_drift_row=2e-5, col_drift_row=-1e-5)
@@ -58,7 +60,7 @@ def test_rpc_bias_compensation_real_rpc(rpc):
     assert isinstance(res.model, ImageCorrectedModel)
     # noise level of a radial residual: sigma * sqrt(2); a check point also carries the
     # propagated parameter error, so allow its expectation plus sampling spread
-    assert np.sqrt(np.mean(before ** 2)) > 5 * sigma * np.sqrt(2)     # the bias dominates
+    assert np.sqrt(np.mean(before**2)) > 5 * sigma * np.sqrt(2)  # the bias dominates
     assert res.check_rmse_px < 1.3 * sigma * np.sqrt(2)
     assert res.check_rmse_px > 0.7 * sigma * np.sqrt(2)
     for name in ("col_shift", "row_shift", "row_drift_row", "col_drift_row"):
@@ -78,8 +80,9 @@ def test_spread_of_estimates_matches_reported_sigma(rpc):
     sigma, draws = 0.5, 300
     est, std, s0, passed = [], [], [], 0
     for _ in range(draws):
-        pts = ControlPoints.from_arrays(lon, lat, h, c + rng.normal(0, sigma, c.size),
-                                        r + rng.normal(0, sigma, c.size))
+        pts = ControlPoints.from_arrays(
+            lon, lat, h, c + rng.normal(0, sigma, c.size), r + rng.normal(0, sigma, c.size)
+        )
         res = adjust_model(rpc, pts, "rpc-affine", sigma_px=sigma, snooping=False)
         est.append(res.values)
         std.append(res.std)
@@ -109,13 +112,15 @@ def test_reliability_identities_and_mdb_scaling(rpc):
     assert np.nansum(res.redundancy) == pytest.approx(n - u, abs=1e-9)
     assert res.dof == n - u
     Q = 1 - res.redundancy
-    np.testing.assert_allclose(res.external_reliability, 4.13 * np.sqrt(Q / res.redundancy),
-                               rtol=2e-3)
+    np.testing.assert_allclose(
+        res.external_reliability, 4.13 * np.sqrt(Q / res.redundancy), rtol=2e-3
+    )
     # internal reliability: sigma delta_0 / sqrt(r_i) in pixels
     np.testing.assert_allclose(res.mdb, 0.4 * rel.noncentrality() / np.sqrt(res.redundancy))
     # the seed's own numbers: r 0.5447 -> 3.7761, r 0.8549 -> 1.7016 (Table B.33)
-    np.testing.assert_allclose(rel.external_reliability([0.5447, 0.8549], 4.13),
-                               [3.7761, 1.7016], atol=2e-3)
+    np.testing.assert_allclose(
+        rel.external_reliability([0.5447, 0.8549], 4.13), [3.7761, 1.7016], atol=2e-3
+    )
     # standardised residuals are the whitened residuals over sqrt(r)
     e = res.residuals_px / 0.4
     np.testing.assert_allclose(res.w, e / np.sqrt(res.redundancy), rtol=1e-6, atol=1e-9)
@@ -149,38 +154,61 @@ def test_gauss_helmert_ground_observations(rpc):
     lon, lat, h = ground_points(rpc, 30, rng)
     truth = ImageCorrectedModel(rpc, **BIAS)
     tc, tr = truth.project(lon, lat, h)
-    sg = 1.0                                            # m, each of E, N, U
+    sg = 1.0  # m, each of E, N, U
     from stereodem.core import geodesy
+
     X = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)
     B = geodesy.enu_basis(lon, lat)
     X = X + np.einsum("nkj,nk->nj", B, rng.normal(0, sg, (30, 3)))
     nlon, nlat, nh = geodesy.ecef_to_geodetic(X[:, 0], X[:, 1], X[:, 2])
     s0 = []
     for ground_sigma in (None, sg):
-        pts = ControlPoints.from_arrays(nlon, nlat, nh, tc + rng.normal(0, 0.2, 30),
-                                        tr + rng.normal(0, 0.2, 30), sigma_px=0.2,
-                                        sigma_ground_m=ground_sigma)
+        pts = ControlPoints.from_arrays(
+            nlon,
+            nlat,
+            nh,
+            tc + rng.normal(0, 0.2, 30),
+            tr + rng.normal(0, 0.2, 30),
+            sigma_px=0.2,
+            sigma_ground_m=ground_sigma,
+        )
         res = adjust_model(rpc, pts, "rpc-shift", snooping=False)
         s0.append(res.sigma0)
-    assert s0[0] > 1.5                 # ground noise ignored: sigma0 too large
-    assert 0.7 < s0[1] < 1.3           # Gauss-Helmert: consistent
+    assert s0[0] > 1.5  # ground noise ignored: sigma0 too large
+    assert 0.7 < s0[1] < 1.3  # Gauss-Helmert: consistent
     assert np.any(res.ground_residuals_m != 0) and res.ground_residuals_m.shape == (30, 3)
     # near-nadir, every GCP with a ground sigma: G G^T ~ isotropic, the image and ground
     # variance components look alike and are reported as not separable (no iteration)
-    vc = adjust_model(rpc, pts, "rpc-shift", snooping=False,
-                      variance_components="iterate").variance_components
+    vc = adjust_model(
+        rpc, pts, "rpc-shift", snooping=False, variance_components="iterate"
+    ).variance_components
     assert not vc["separable"] and vc["sigma_scale_applied"] == {"image": 1.0, "ground": 1.0}
 
 
 def test_report_content(rpc, tmp_path):
     rng = np.random.default_rng(2)
     lon, lat, h = ground_points(rpc, 20, rng)
-    pts = observe(ImageCorrectedModel(rpc, **BIAS), lon, lat, h, 0.3, rng,
-                  role=np.where(np.arange(20) < 14, "gcp", "check"))
+    pts = observe(
+        ImageCorrectedModel(rpc, **BIAS),
+        lon,
+        lat,
+        h,
+        0.3,
+        rng,
+        role=np.where(np.arange(20) < 14, "gcp", "check"),
+    )
     rep = adjust_model(rpc, pts, "rpc-shift", sigma_px=0.3).to_report()
     json.dumps(rep)
-    for key in ("model", "sigma0", "parameters", "covariance", "points", "gcp_rmse_px",
-                "check_rmse_px", "outliers"):
+    for key in (
+        "model",
+        "sigma0",
+        "parameters",
+        "covariance",
+        "points",
+        "gcp_rmse_px",
+        "check_rmse_px",
+        "outliers",
+    ):
         assert key in rep
     assert rep["model"]["type"] == "image_corrected"
     assert [p["name"] for p in rep["parameters"]] == ["col_shift", "row_shift"]
@@ -245,12 +273,13 @@ def _assert_names_span_a_null_direction(message, rpc, pts, model_set):
     import re
 
     from scipy.linalg import null_space
+
     named = re.search(r"cannot separate (.+?) —", message).group(1).split(", ")
     names = list(MODEL_SETS[model_set].names)
     assert named and set(named) <= set(names), message
     J = ImageCorrectedModel(rpc).project_partials(pts.lon, pts.lat, pts.h, names)
     A = J.reshape(-1, len(names))
-    A = A / np.linalg.norm(A, axis=0)                  # the solver's column equilibration
+    A = A / np.linalg.norm(A, axis=0)  # the solver's column equilibration
     N = null_space(A, rcond=1e-9)
     assert N.shape[1] >= 1
     cols = [names.index(n) for n in named]
@@ -286,10 +315,12 @@ def test_gcv_on_a_rank_deficient_set_has_finite_statistics(rpc):
     pts = ControlPoints.from_arrays(lon, lat, pts.h, *truth.project(lon, lat, pts.h))
     res = adjust_model(rpc, pts, "rpc-shift-drift", regularization="gcv", snooping=False)
     assert res.regularization > 0
-    assert res.condition > 1e12                    # the set really is (near-)rank-deficient
+    assert res.condition > 1e12  # the set really is (near-)rank-deficient
     assert np.all(np.isfinite(res.covariance)) and np.all(np.isfinite(res.std))
     assert res.gcp_rmse_px < 0.05
-    with pytest.raises(SensorModelError, match=r"near-singular.*regularisation weight 0\).*separate") as err:
+    with pytest.raises(
+        SensorModelError, match=r"near-singular.*regularisation weight 0\).*separate"
+    ) as err:
         adjust_model(rpc, pts, "rpc-shift-drift", regularization=0.0, snooping=False)
     _assert_names_span_a_null_direction(str(err.value), rpc, pts, "rpc-shift-drift")
 
@@ -298,6 +329,7 @@ def test_linear_algebra_failure_is_a_sensor_model_error():
     """A LinAlgError inside the solve (here the model's own ``np.linalg.solve`` on a matrix that
     its parameters make singular) comes out as SensorModelError naming the parameters."""
     from stereodem.sensor.estimation.adjust import gauss_markov as gm
+
     b = np.array([1.0, 2.0])
 
     def evaluate(x):
@@ -317,8 +349,9 @@ def test_non_convergence_is_an_error(rpc):
 
 def test_model_set_registry_is_extensible(rpc):
     name = "test-col-only"
-    register_model_set(name, lambda m: ImageCorrectedModel(m), ("col_shift",),
-                       description="test", replace=True)
+    register_model_set(
+        name, lambda m: ImageCorrectedModel(m), ("col_shift",), description="test", replace=True
+    )
     try:
         res = adjust_model(rpc, _pts(rpc), name, sigma_px=0.3)
         assert res.names == ["col_shift"] and res.model_set == name
@@ -331,19 +364,27 @@ def test_model_set_registry_is_extensible(rpc):
 def test_priors_are_fictitious_observations(rpc):
     pts = _pts(rpc, 10)
     free = adjust_model(rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False)
-    tight = adjust_model(rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False,
-                         priors={"col_shift": 1e-4})
+    tight = adjust_model(
+        rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False, priors={"col_shift": 1e-4}
+    )
     k = tight.names.index("col_shift")
     assert abs(tight.values[k]) < 1e-3 and tight.std[k] < 1e-4
     assert tight.dof == free.dof + 1
-    about = adjust_model(rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False,
-                         priors={"col_shift": (2.0, 1e-4)})
+    about = adjust_model(
+        rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False, priors={"col_shift": (2.0, 1e-4)}
+    )
     assert abs(about.values[k] - 2.0) < 1e-3
     # a linear constraint (practically hard: sigma 1e-4 of the parameters' own) between two
-    con = adjust_model(rpc, pts, "rpc-shift", sigma_px=0.3, snooping=False,
-                       constraints=[({"col_shift": 1.0, "row_shift": 1.0}, 1.0, 1e-5)])
+    con = adjust_model(
+        rpc,
+        pts,
+        "rpc-shift",
+        sigma_px=0.3,
+        snooping=False,
+        constraints=[({"col_shift": 1.0, "row_shift": 1.0}, 1.0, 1e-5)],
+    )
     assert abs(con.values.sum() - 1.0) < 1e-4 and con.dof == free.dof + 1
-    assert abs(free.values.sum() - 1.0) > 0.5           # not what the data alone give
+    assert abs(free.values.sum() - 1.0) > 0.5  # not what the data alone give
     with pytest.raises(InputError, match="constraint on 'row_drift_row'"):
         adjust_model(rpc, pts, "rpc-shift", constraints=[({"row_drift_row": 1.0}, 0.0, 1e-6)])
 
@@ -364,18 +405,22 @@ def test_gcp_csv_format(tmp_path, rpc):
     # EGM96 heights
     geo = read_gcps(path, vertical="geoid")
     from stereodem.core import geodesy
+
     np.testing.assert_allclose(geo.h - back.h, geodesy.geoid_undulation(back.lon, back.lat))
     assert np.all(np.abs(geo.h - back.h) > 1)
 
 
-@pytest.mark.parametrize("text, match", [
-    ("id,lon,lat,h,col,row\na,1,2,3,4,5\na,1,2,3,4,6\n", "duplicate point id.*a"),
-    ("id,lon,lat,h,col,row\na,1,2,3,4,5\nb,1,nan,3,4,6\n", "1 missing/NaN.*'lat'.*line 3"),
-    ("id,lon,lat,h,col,row\na,-21.1,155.4,3,4,5\n", "out of range.*likely swapped lon/lat"),
-    ("id,lon,lat,h,col,row\na,100,95,3,4,5\n", "out of range"),
-    ("id,lon,lat,h,col,row,sigma_px\na,1,2,3,4,5,-1\n", "positive standard deviations"),
-    ("id,lon,lat,h,col\na,1,2,3,4\n", "missing GCP column.*row"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("id,lon,lat,h,col,row\na,1,2,3,4,5\na,1,2,3,4,6\n", "duplicate point id.*a"),
+        ("id,lon,lat,h,col,row\na,1,2,3,4,5\nb,1,nan,3,4,6\n", "1 missing/NaN.*'lat'.*line 3"),
+        ("id,lon,lat,h,col,row\na,-21.1,155.4,3,4,5\n", "out of range.*likely swapped lon/lat"),
+        ("id,lon,lat,h,col,row\na,100,95,3,4,5\n", "out of range"),
+        ("id,lon,lat,h,col,row,sigma_px\na,1,2,3,4,5,-1\n", "positive standard deviations"),
+        ("id,lon,lat,h,col\na,1,2,3,4\n", "missing GCP column.*row"),
+    ],
+)
 def test_gcp_csv_errors(tmp_path, text, match):
     path = tmp_path / "bad.csv"
     path.write_text(text)
@@ -392,6 +437,7 @@ def test_variance_components_image_and_ground(rpc):
     the ground group and 1 for the image group; the group redundancies add up to n - u."""
     from stereodem.core import geodesy
     from stereodem.sensor.simulation.simulate import pushbroom_pair
+
     pb = pushbroom_pair(-121.7, 46.85, 1500.0, (2000, 2000), (0.0, -27.6))[1]
     rng = np.random.default_rng(2)
     n = 120
@@ -400,16 +446,25 @@ def test_variance_components_image_and_ground(rpc):
     lon, lat = pb.localize(c, r, h)
     X = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)
     mapped = np.arange(n) >= n // 2
-    X[mapped] += np.einsum("nkj,nk->nj", geodesy.enu_basis(lon, lat)[mapped],
-                           rng.normal(0, 5.0, (mapped.sum(), 3)))
+    X[mapped] += np.einsum(
+        "nkj,nk->nj", geodesy.enu_basis(lon, lat)[mapped], rng.normal(0, 5.0, (mapped.sum(), 3))
+    )
     nlon, nlat, nh = geodesy.ecef_to_geodetic(X[:, 0], X[:, 1], X[:, 2])
-    pts = ControlPoints.from_arrays(nlon, nlat, nh, c + rng.normal(0, 0.3, n),
-                                    r + rng.normal(0, 0.3, n), sigma_px=0.3,
-                                    sigma_ground_m=np.where(mapped, 15.0, np.nan))
+    pts = ControlPoints.from_arrays(
+        nlon,
+        nlat,
+        nh,
+        c + rng.normal(0, 0.3, n),
+        r + rng.normal(0, 0.3, n),
+        sigma_px=0.3,
+        sigma_ground_m=np.where(mapped, 15.0, np.nan),
+    )
     est = adjust_model(pb, pts, "attitude-bias", snooping=False, variance_components="estimate")
     vc = est.variance_components
     assert vc["separable"]
-    assert vc["image"]["redundancy"] + vc["ground"]["redundancy"] == pytest.approx(est.dof, rel=1e-6)
+    assert vc["image"]["redundancy"] + vc["ground"]["redundancy"] == pytest.approx(
+        est.dof, rel=1e-6
+    )
     res = adjust_model(pb, pts, "attitude-bias", snooping=False, variance_components="iterate")
     f = res.variance_components["sigma_scale_applied"]
     assert abs(f["ground"] - 1 / 3) < 0.06 and abs(f["image"] - 1) < 0.15
@@ -423,15 +478,20 @@ def test_gauss_newton_reports_stalled_not_converged():
     solution is accepted but reported as stalled, not converged; without the jagged term the
     same problem meets the criterion."""
     from stereodem.sensor.estimation.adjust import gauss_markov as gm
+
     rng = np.random.default_rng(0)
     A = rng.normal(size=(40, 3))
     obs = A @ np.array([1.0, -2.0, 0.5]) + rng.normal(size=40)
     W = rng.normal(size=(40, 3)) * 1e4
     out = {}
     for amp in (0.0, 0.02):
+
         def res(x, amp=amp):
             return A @ x - obs + amp * np.sin(W @ x)
-        out[amp] = gm.solve(lambda x, res=res: (res(x), A), np.zeros(3), ["a", "b", "c"], residual=res)
+
+        out[amp] = gm.solve(
+            lambda x, res=res: (res(x), A), np.zeros(3), ["a", "b", "c"], residual=res
+        )
     assert out[0.0].status == "converged" and out[0.0].converged
     assert out[0.0].max_correction < 0.01
     s = out[0.02]

@@ -1,5 +1,6 @@
 """Bundle adjustment of a stereo pair (issue #15): vertical parallax removed from a biased
 pair, absolute placement with 6 GCPs, solvers, reliability, tie blunders, hostile inputs."""
+
 import json
 from types import SimpleNamespace
 
@@ -13,7 +14,7 @@ from stereodem.sensor.io.gcps import ControlPoints
 from stereodem.sensor.simulation.simulate import pushbroom_pair
 
 LEFT_BIAS = dict(roll_bias=-2e-5, pitch_bias=3e-5, yaw_bias=5e-5)
-RIGHT_BIAS = dict(roll_bias=4e-5, pitch_bias=-5e-5, yaw_bias=1e-4)     # ~30-70 m on the ground
+RIGHT_BIAS = dict(roll_bias=4e-5, pitch_bias=-5e-5, yaw_bias=1e-4)  # ~30-70 m on the ground
 
 
 @pytest.fixture(scope="module")
@@ -43,8 +44,13 @@ def gcp_pair(pair, n, sigma, rng, n_check=0):
     lon, lat, h, t = sample(pair, n + n_check, rng)
     role = np.array(["gcp"] * n + ["check"] * (len(lon) - n))
     mk = lambda k: ControlPoints.from_arrays(  # noqa: E731
-        lon, lat, h, t[:, 2 * k] + rng.normal(0, sigma, len(lon)),
-        t[:, 2 * k + 1] + rng.normal(0, sigma, len(lon)), role=role)
+        lon,
+        lat,
+        h,
+        t[:, 2 * k] + rng.normal(0, sigma, len(lon)),
+        t[:, 2 * k + 1] + rng.normal(0, sigma, len(lon)),
+        role=role,
+    )
     return mk(0), mk(1)
 
 
@@ -55,8 +61,9 @@ def test_bundle_removes_vertical_parallax(pair):
     L, R = pair
     rng = np.random.default_rng(0)
     ties = noisy_ties(pair, 300, 0.3, rng)
-    res = bundle_adjust(L, R.with_parameters(**RIGHT_BIAS), ties, names=(None, "attitude-bias"),
-                        sigma_tie_px=0.3)
+    res = bundle_adjust(
+        L, R.with_parameters(**RIGHT_BIAS), ties, names=(None, "attitude-bias"), sigma_tie_px=0.3
+    )
     before, after = res.parallax_before, res.parallax_after
     assert before["reprojection_rms_px"] > 5 * 0.3
     assert after["reprojection_rms_px"] < 0.3
@@ -65,7 +72,7 @@ def test_bundle_removes_vertical_parallax(pair):
     assert res.names == ["right.roll_bias", "right.pitch_bias", "right.yaw_bias"]
     # the truth's own parallax with these ties is the floor
     truth = intersect_matches(L, R, *ties.T)
-    assert after["ray_gap_rms_m"] < 1.2 * np.sqrt(np.mean(truth.ray_gap ** 2))
+    assert after["ray_gap_rms_m"] < 1.2 * np.sqrt(np.mean(truth.ray_gap**2))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -81,8 +88,15 @@ def test_bundle_with_6_gcps_places_the_pair(pair, seed):
     Lb, Rb = L.with_parameters(**LEFT_BIAS), R.with_parameters(**RIGHT_BIAS)
     ties = noisy_ties(pair, 300, 0.3, rng)
     P1, P2 = gcp_pair(pair, 6, 0.1, rng, n_check=10)
-    res = bundle_adjust(Lb, Rb, ties, names=("attitude-bias", "attitude-bias"), gcps=(P1, P2),
-                        sigma_tie_px=0.3, sigma_px=0.1)
+    res = bundle_adjust(
+        Lb,
+        Rb,
+        ties,
+        names=("attitude-bias", "attitude-bias"),
+        gcps=(P1, P2),
+        sigma_tie_px=0.3,
+        sigma_px=0.1,
+    )
     lon, lat, h, t = sample(pair, 400, np.random.default_rng(99))
     before = intersect_matches(Lb, Rb, *t.T)
     after = intersect_matches(res.left, res.right, *t.T)
@@ -90,9 +104,10 @@ def test_bundle_with_6_gcps_places_the_pair(pair, seed):
     assert abs(np.median(after.h - h)) < 0.2 * gsd
     # planimetry too (metres on the ground)
     from stereodem.core import geodesy
+
     e, n, _ = geodesy.ecef_to_enu(*after.ecef.T, lon, lat, h)
     assert np.hypot(np.median(e), np.median(n)) < 0.2 * gsd
-    assert res.check_rmse_px < 3 * 0.1 * np.sqrt(2) + 0.5        # check points in px, both images
+    assert res.check_rmse_px < 3 * 0.1 * np.sqrt(2) + 0.5  # check points in px, both images
     rep = res.to_report()
     assert rep["n_gcp"] == 12 and rep["n_check"] == 2 * len(P1.select("check"))
 
@@ -103,12 +118,21 @@ def test_bundle_solvers_agree_and_redundancy(data_dir):
     the same solution; sum of redundancy numbers = n - u (ties' ground coordinates counted);
     the biases are recovered within their sigma."""
     import sys
+
     sys.path.insert(0, str(data_dir.parents[1] / "benchmarks"))
     from bench_adjust import problem
+
     Lb, Rb, ties, gcps = problem(150, 8, seed=3)
-    kw = dict(names=("rpc-shift-drift", "rpc-shift-drift"), gcps=gcps, sigma_tie_px=0.3,
-              sigma_px=0.1, snooping=False)
-    out = {s: bundle_adjust(Lb, Rb, ties, solver=s, **kw) for s in ("schur", "least_squares", "dense")}
+    kw = dict(
+        names=("rpc-shift-drift", "rpc-shift-drift"),
+        gcps=gcps,
+        sigma_tie_px=0.3,
+        sigma_px=0.1,
+        snooping=False,
+    )
+    out = {
+        s: bundle_adjust(Lb, Rb, ties, solver=s, **kw) for s in ("schur", "least_squares", "dense")
+    }
     ref = out["schur"]
     for s in ("least_squares", "dense"):
         assert np.all(np.abs(out[s].values - ref.values) < 0.05 * ref.std), s
@@ -128,11 +152,18 @@ def test_bundle_solvers_agree_and_redundancy(data_dir):
 def test_bundle_schur_equals_dense(data_dir):
     """Fast check: the reduced normal equations give the dense solution and covariance."""
     import sys
+
     sys.path.insert(0, str(data_dir.parents[1] / "benchmarks"))
     from bench_adjust import problem
+
     Lb, Rb, ties, gcps = problem(40, 6, seed=5)
-    kw = dict(names=("rpc-shift", "rpc-shift-drift"), gcps=gcps, sigma_tie_px=0.3, sigma_px=0.1,
-              snooping=False)
+    kw = dict(
+        names=("rpc-shift", "rpc-shift-drift"),
+        gcps=gcps,
+        sigma_tie_px=0.3,
+        sigma_px=0.1,
+        snooping=False,
+    )
     a = bundle_adjust(Lb, Rb, ties, solver="schur", **kw)
     b = bundle_adjust(Lb, Rb, ties, solver="dense", **kw)
     assert np.all(np.abs(a.values - b.values) < 1e-3 * a.std)
@@ -148,8 +179,9 @@ def test_bundle_rejects_tie_blunders(pair):
     ties = noisy_ties(pair, 200, 0.3, rng)
     bad = rng.choice(len(ties), 5, replace=False)
     ties[bad, 2] += 4.0 * rng.choice([-1, 1], 5)
-    res = bundle_adjust(L, R.with_parameters(**RIGHT_BIAS), ties, names=(None, "attitude-bias"),
-                        sigma_tie_px=0.3)
+    res = bundle_adjust(
+        L, R.with_parameters(**RIGHT_BIAS), ties, names=(None, "attitude-bias"), sigma_tie_px=0.3
+    )
     assert set(np.flatnonzero(res.tie_rejected)) == set(bad)
     assert "5 tie point(s)" in res.outliers[0]["id"]
     # uncontrolled along-track coordinates are not tested (w NaN), controlled ones are
@@ -162,8 +194,13 @@ def test_bundle_accepts_sparse_matches_and_writes_report(pair, tmp_path):
     rng = np.random.default_rng(1)
     t = noisy_ties(pair, 80, 0.3, rng)
     matches = SimpleNamespace(col1=t[:, 0], row1=t[:, 1], col2=t[:, 2], row2=t[:, 3])
-    res = bundle_adjust(L, R.with_parameters(**RIGHT_BIAS), matches,
-                        names=(None, ["roll_bias", "yaw_bias"]), sigma_tie_px=0.3)
+    res = bundle_adjust(
+        L,
+        R.with_parameters(**RIGHT_BIAS),
+        matches,
+        names=(None, ["roll_bias", "yaw_bias"]),
+        sigma_tie_px=0.3,
+    )
     paths = write_report(res, tmp_path)
     rep = json.loads(paths["json"].read_text())
     assert rep["model_set"] == "bundle" and set(rep["model"]) == {"left", "right"}
@@ -186,13 +223,20 @@ def test_bundle_hostile_inputs(pair):
         bundle_adjust(L, R, t, names=(None, "attitude-bias"), solver="cholmod")
     # all ties at one spot of the image: roll and yaw biases move it the same way
     rng = np.random.default_rng(0)
-    c, r, h = 1500 + rng.normal(0, 0.5, 20), 500 + rng.normal(0, 0.5, 20), rng.uniform(800, 2500, 20)
+    c, r, h = (
+        1500 + rng.normal(0, 0.5, 20),
+        500 + rng.normal(0, 0.5, 20),
+        rng.uniform(800, 2500, 20),
+    )
     lon, lat = L.localize(c, r, h)
     spot = np.stack([c, r, *R.project(lon, lat, h)], -1) + rng.normal(0, 0.3, (20, 4))
-    with pytest.raises(SensorModelError, match=r"condition number [0-9.e+]+\); cannot separate "
-                                               r"right.(roll|yaw)_bias, right.(roll|yaw)_bias"):
+    with pytest.raises(
+        SensorModelError,
+        match=r"condition number [0-9.e+]+\); cannot separate "
+        r"right.(roll|yaw)_bias, right.(roll|yaw)_bias",
+    ):
         bundle_adjust(L, R, spot, names=(None, ["roll_bias", "yaw_bias"]))
-    with pytest.raises(SensorModelError, match="cannot separate"):         # not a LinAlgError
+    with pytest.raises(SensorModelError, match="cannot separate"):  # not a LinAlgError
         bundle_adjust(L, R, spot, names=(None, ["roll_bias", "yaw_bias"]), solver="dense")
     with pytest.raises(InputError, match="unknown right parameter"):
         bundle_adjust(L, R, t, names=(None, ["pitch_bais"]))
@@ -223,10 +267,18 @@ def test_bundle_with_6_gcps_gives_a_dem_within_0_2_gsd():
     loc = L.localize_dem(c, r, sc.truth_dem, h0=2000.0)
     c2, r2 = R.project(loc.lon, loc.lat, loc.h)
     mk = lambda cc, rr: ControlPoints.from_arrays(  # noqa: E731
-        loc.lon, loc.lat, loc.h, cc + rng.normal(0, 0.1, 6), rr + rng.normal(0, 0.1, 6))
+        loc.lon, loc.lat, loc.h, cc + rng.normal(0, 0.1, 6), rr + rng.normal(0, 0.1, 6)
+    )
     ties = sparse_matches(sc.left, sc.right, Lb, Rb)
-    res = bundle_adjust(Lb, Rb, ties, names=("attitude-bias", "attitude-bias"),
-                        gcps=(mk(c, r), mk(c2, r2)), sigma_tie_px=0.3, sigma_px=0.1)
+    res = bundle_adjust(
+        Lb,
+        Rb,
+        ties,
+        names=("attitude-bias", "attitude-bias"),
+        gcps=(mk(c, r), mk(c2, r2)),
+        sigma_tie_px=0.3,
+        sigma_px=0.1,
+    )
     lo, hi = sc.truth_dem.height_range()
     settings = StereoSettings(RectificationSettings(height_range=(lo - 300, hi + 300)))
 
@@ -239,7 +291,9 @@ def test_bundle_with_6_gcps_gives_a_dem_within_0_2_gsd():
 
     before, n0 = median_error(Lb, Rb)
     after, n1 = median_error(res.left, res.right)
-    print(f"DEM median error vs truth: biased models {before:+.2f} m, after the bundle with 6 GCPs "
-          f"{after:+.2f} m (GSD {gsd:.1f} m, {len(ties)} automatic ties)")
+    print(
+        f"DEM median error vs truth: biased models {before:+.2f} m, after the bundle with 6 GCPs "
+        f"{after:+.2f} m (GSD {gsd:.1f} m, {len(ties)} automatic ties)"
+    )
     assert abs(before) > 2 * gsd
     assert abs(after) < 0.2 * gsd and n1 > 0.5 * n0

@@ -1,5 +1,6 @@
 """Adjustment of the physical models (frame camera by space resection, pushbroom / ASTER
 attitude and position sets) and the 15 generic models through the same statistics (issue #15)."""
+
 import numpy as np
 import pytest
 
@@ -16,6 +17,7 @@ def _accepted(res):
     within STATIONARY_SIGMA ("stalled": which of the two depends on the LAPACK/MINPACK build,
     e.g. scipy 1.10 stalls at 0.017 sigma where 1.16 converges); the result says which."""
     from stereodem.sensor.estimation.adjust.gauss_markov import STATIONARY_SIGMA
+
     return res.converged or (res.status == "stalled" and res.max_correction < STATIONARY_SIGMA)
 
 
@@ -25,8 +27,9 @@ def _gcps(truth, n, sigma, rng, h=(700.0, 1800.0)):
     r = rng.uniform(0, truth.height - 1, n)
     hh = rng.uniform(*h, n)
     lon, lat = truth.localize(c, r, hh)
-    return ControlPoints.from_arrays(lon, lat, hh, c + rng.normal(0, sigma, n),
-                                     r + rng.normal(0, sigma, n))
+    return ControlPoints.from_arrays(
+        lon, lat, hh, c + rng.normal(0, sigma, n), r + rng.normal(0, sigma, n)
+    )
 
 
 def _z(res, truth):
@@ -41,15 +44,27 @@ def camera():
 
 
 # ------------------------------------------------------------------------- frame camera
-EO_STARTS = [dict(x=50e3), dict(y=-50e3), dict(z=50e3), dict(roll=np.radians(1)),
-             dict(pitch=np.radians(1)), dict(yaw=np.radians(1)),
-             dict(roll=np.radians(3), yaw=np.radians(5), x=-30e3, z=20e3)]
-SC_STARTS = [dict(focal_mm=5.0), dict(roll=np.radians(1)), dict(yaw=np.radians(1)),
-             dict(dx_mm=0.5, dy_mm=-0.5), dict(k1=1e-4)]
+EO_STARTS = [
+    dict(x=50e3),
+    dict(y=-50e3),
+    dict(z=50e3),
+    dict(roll=np.radians(1)),
+    dict(pitch=np.radians(1)),
+    dict(yaw=np.radians(1)),
+    dict(roll=np.radians(3), yaw=np.radians(5), x=-30e3, z=20e3),
+]
+SC_STARTS = [
+    dict(focal_mm=5.0),
+    dict(roll=np.radians(1)),
+    dict(yaw=np.radians(1)),
+    dict(dx_mm=0.5, dy_mm=-0.5),
+    dict(k1=1e-4),
+]
 
 
-@pytest.mark.parametrize("setname, starts", [("frame-eo", EO_STARTS),
-                                             ("frame-self-calibration", SC_STARTS)])
+@pytest.mark.parametrize(
+    "setname, starts", [("frame-eo", EO_STARTS), ("frame-self-calibration", SC_STARTS)]
+)
 @pytest.mark.slow
 def test_frame_resection_converges_from_perturbed_starts(camera, setname, starts):
     """Bettemir's initial-value study (§7.3, Table B.34: +50 km position, +1 deg attitude, +5 mm
@@ -70,7 +85,7 @@ def test_frame_resection_converges_from_perturbed_starts(camera, setname, starts
         assert 0.7 < res.sigma0 < 1.3
         solutions.append(res.values)
     spread = np.ptp(np.array(solutions), axis=0)
-    assert np.all(spread < 0.05 * res.std)       # one solution, whatever the start
+    assert np.all(spread < 0.05 * res.std)  # one solution, whatever the start
 
 
 @pytest.mark.slow
@@ -81,24 +96,35 @@ def test_self_calibration_has_local_minima(camera):
     the one reached from the other starts by a ridge of the sum of squares: a genuine second
     local minimum, not a convergence failure."""
     import stereodem.sensor.estimation.adjust.single as single
+
     pts = _gcps(camera, 25, 0.5, np.random.default_rng(0))
     truth = camera.parameters()
-    a = adjust_model(camera.with_parameters(focal_mm=truth["focal_mm"] + 5), pts,
-                     "frame-self-calibration", sigma_px=0.5)
-    b = adjust_model(camera.with_parameters(p1=1e-4, p2=-1e-4), pts, "frame-self-calibration",
-                     sigma_px=0.5)
+    a = adjust_model(
+        camera.with_parameters(focal_mm=truth["focal_mm"] + 5),
+        pts,
+        "frame-self-calibration",
+        sigma_px=0.5,
+    )
+    b = adjust_model(
+        camera.with_parameters(p1=1e-4, p2=-1e-4), pts, "frame-self-calibration", sigma_px=0.5
+    )
     assert _accepted(a) and _accepted(b)
-    assert np.max(np.abs(a.values - b.values) / a.std) > 1        # different solutions
-    prob = single._Problem(a.initial_model, a.names, pts, np.full(25, 0.5), a.priors, a.initial_values)
-    cost = [float(e @ e) for e in (prob.residual(a.values + t * (b.values - a.values))
-                                   for t in (0.0, 0.5, 1.0))]
-    assert cost[1] > 2 * max(cost[0], cost[2])                     # a ridge between them
+    assert np.max(np.abs(a.values - b.values) / a.std) > 1  # different solutions
+    prob = single._Problem(
+        a.initial_model, a.names, pts, np.full(25, 0.5), a.priors, a.initial_values
+    )
+    cost = [
+        float(e @ e)
+        for e in (prob.residual(a.values + t * (b.values - a.values)) for t in (0.0, 0.5, 1.0))
+    ]
+    assert cost[1] > 2 * max(cost[0], cost[2])  # a ridge between them
 
 
 def test_frame_resection_far_start_fails_loudly(camera):
     """A start 90 degrees off in yaw does not end silently wrong: either it converges to the
     truth or it raises."""
     from stereodem.core.errors import StereodemError
+
     pts = _gcps(camera, 25, 0.5, np.random.default_rng(1))
     start = camera.with_parameters(roll=camera.roll + np.radians(30))
     try:
@@ -117,8 +143,13 @@ def test_frame_spread_matches_reported_sigma(camera):
     c0, r0 = camera.project(base.lon, base.lat, base.h)
     est, std, s0 = [], [], []
     for _ in range(150):
-        pts = ControlPoints.from_arrays(base.lon, base.lat, base.h, c0 + rng.normal(0, 0.5, c0.size),
-                                        r0 + rng.normal(0, 0.5, c0.size))
+        pts = ControlPoints.from_arrays(
+            base.lon,
+            base.lat,
+            base.h,
+            c0 + rng.normal(0, 0.5, c0.size),
+            r0 + rng.normal(0, 0.5, c0.size),
+        )
         res = adjust_model(camera, pts, "frame-eo", sigma_px=0.5, snooping=False)
         est.append(res.values), std.append(res.std), s0.append(res.sigma0)
     ratio = np.std(est, axis=0, ddof=1) / np.mean(std, axis=0)
@@ -134,11 +165,22 @@ def pushbroom():
 
 TRUTHS = {
     "attitude-bias": dict(roll_bias=2e-5, pitch_bias=-3e-5, yaw_bias=1e-4),
-    "attitude-bias-drift": dict(roll_bias=2e-5, pitch_bias=-3e-5, yaw_bias=1e-4, roll_drift=1e-6,
-                                pitch_drift=-2e-6, yaw_drift=5e-6),
-    "position-attitude": dict(position_offset_x=20.0, position_offset_y=-15.0,
-                              position_offset_z=10.0, roll_bias=2e-5, pitch_bias=-3e-5,
-                              yaw_bias=1e-4),
+    "attitude-bias-drift": dict(
+        roll_bias=2e-5,
+        pitch_bias=-3e-5,
+        yaw_bias=1e-4,
+        roll_drift=1e-6,
+        pitch_drift=-2e-6,
+        yaw_drift=5e-6,
+    ),
+    "position-attitude": dict(
+        position_offset_x=20.0,
+        position_offset_y=-15.0,
+        position_offset_z=10.0,
+        roll_bias=2e-5,
+        pitch_bias=-3e-5,
+        yaw_bias=1e-4,
+    ),
     "attitude-bias-scale": dict(roll_bias=2e-5, pitch_bias=-3e-5, yaw_bias=1e-4, look_scale=2e-4),
 }
 
@@ -155,9 +197,11 @@ def test_pushbroom_sets_recover_parameters(pushbroom, setname):
     z = _z(res, truth)
     assert np.all(np.abs(z) < 4), dict(zip(res.names, z))
     assert 0.6 < res.sigma0 < 1.4
-    before = np.hypot(*(np.stack(pushbroom.project(pts.lon, pts.lat, pts.h)) - np.stack([pts.col, pts.row])))
-    assert res.gcp_rmse_px < 0.25 * np.sqrt(np.mean(before ** 2))
-    if setname == "position-attitude":      # 50 m position priors entered as observations
+    before = np.hypot(
+        *(np.stack(pushbroom.project(pts.lon, pts.lat, pts.h)) - np.stack([pts.col, pts.row]))
+    )
+    assert res.gcp_rmse_px < 0.25 * np.sqrt(np.mean(before**2))
+    if setname == "position-attitude":  # 50 m position priors entered as observations
         assert res.dof == 2 * 25 - 6 + 3 and "prior_std" in res.to_report()["parameters"][0]
 
 
@@ -191,9 +235,16 @@ def test_pushbroom_spread_matches_reported_sigma(pushbroom):
     base = _gcps(truth, 15, 0.0, rng, h=(800.0, 2500.0))
     z = []
     for _ in range(100):
-        pts = ControlPoints.from_arrays(base.lon, base.lat, base.h, base.col + rng.normal(0, 0.3, 15),
-                                        base.row + rng.normal(0, 0.3, 15))
-        z.append(_z(adjust_model(pushbroom, pts, "attitude-bias", sigma_px=0.3, snooping=False), truth))
+        pts = ControlPoints.from_arrays(
+            base.lon,
+            base.lat,
+            base.h,
+            base.col + rng.normal(0, 0.3, 15),
+            base.row + rng.normal(0, 0.3, 15),
+        )
+        z.append(
+            _z(adjust_model(pushbroom, pts, "attitude-bias", sigma_px=0.3, snooping=False), truth)
+        )
     z = np.array(z)
     assert np.all(np.abs(z.std(axis=0, ddof=1) - 1) < 0.15), z.std(axis=0, ddof=1)
     assert np.all(np.abs(z.mean(axis=0)) < 4 / np.sqrt(len(z)))

@@ -1,5 +1,6 @@
 """N-image bundle adjustment (issue 26 item 3): tie tracks, a simulated triplet with known
 biases, the datum, and ``stereodem adjust IMG1 IMG2 IMG3 --model bundle``."""
+
 import numpy as np
 import pytest
 
@@ -34,22 +35,33 @@ def _observe(truth, n, sigma, rng):
     r = rng.uniform(40, 1160, n)
     h = rng.uniform(500, 1500, n)
     lon, lat = truth[0].localize(c, r, h)
-    return (lon, lat, h), [np.column_stack(m.project(lon, lat, h)) + rng.normal(0, sigma, (n, 2))
-                           for m in truth]
+    return (lon, lat, h), [
+        np.column_stack(m.project(lon, lat, h)) + rng.normal(0, sigma, (n, 2)) for m in truth
+    ]
 
 
 def _tracks(obs):
     n = len(obs[0])
     xy = np.stack(obs, 1).reshape(-1, 2)
-    return TieTracks(np.repeat(np.arange(n), len(obs)), np.tile(np.arange(len(obs)), n), xy[:, 0], xy[:, 1])
+    return TieTracks(
+        np.repeat(np.arange(n), len(obs)), np.tile(np.arange(len(obs)), n), xy[:, 0], xy[:, 1]
+    )
 
 
 def test_tracks_from_pairs_chain_matches():
     t01 = np.array([[10.0, 20.0, 11.0, 21.0], [30.0, 40.0, 31.0, 41.0]])
-    t02 = np.array([[10.0, 20.0, 12.5, 22.0],           # chains with the first 0-1 match
-                    [50.0, 60.0, 52.0, 62.0]])
-    t12 = np.array([[31.0, 41.0, 33.0, 44.0],           # chains with the second 0-1 match
-                    [11.0, 21.0, 99.0, 99.0]])          # image 2 at another pixel: inconsistent
+    t02 = np.array(
+        [
+            [10.0, 20.0, 12.5, 22.0],  # chains with the first 0-1 match
+            [50.0, 60.0, 52.0, 62.0],
+        ]
+    )
+    t12 = np.array(
+        [
+            [31.0, 41.0, 33.0, 44.0],  # chains with the second 0-1 match
+            [11.0, 21.0, 99.0, 99.0],
+        ]
+    )  # image 2 at another pixel: inconsistent
     tr = tracks_from_pairs({(0, 1): t01, (0, 2): t02, (1, 2): t12})
     pts = {}
     for p, i, c, r in zip(tr.point, tr.image, tr.col, tr.row):
@@ -57,8 +69,10 @@ def test_tracks_from_pairs_chain_matches():
     tracks = sorted(pts.values(), key=lambda d: d[0] if 0 in d else (1e9, 0))
     # (10,20)-(11,21)-(12.5,22) is dropped with its inconsistent 1-2 match; the other chain
     # (30,40)-(31,41)-(33,44) is one point seen three times; (50,60)-(52,62) a pair
-    assert tracks == [{0: (30.0, 40.0), 1: (31.0, 41.0), 2: (33.0, 44.0)},
-                      {0: (50.0, 60.0), 2: (52.0, 62.0)}]
+    assert tracks == [
+        {0: (30.0, 40.0), 1: (31.0, 41.0), 2: (33.0, 44.0)},
+        {0: (50.0, 60.0), 2: (52.0, 62.0)},
+    ]
     pairs = tr.pairs()
     assert sorted(pairs) == [(0, 1), (0, 2), (1, 2)] and len(pairs[(0, 2)]) == 2
     np.testing.assert_array_equal(pairs[(1, 2)], [[31.0, 41.0, 33.0, 44.0]])
@@ -74,11 +88,13 @@ def test_triplet_biases_recovered_with_gcps(triplet):
         g = ControlPoints.from_arrays(lon, lat, h, o[:, 0], o[:, 1])
         g.sigma_px[:] = 0.05
         gcps.append(g)
-    res = bundle_adjust_images(delivered, _tracks(obs), names="rpc-shift", gcps=gcps, sigma_tie_px=0.2)
+    res = bundle_adjust_images(
+        delivered, _tracks(obs), names="rpc-shift", gcps=gcps, sigma_tie_px=0.2
+    )
     est = np.asarray(res.values).reshape(3, 2)
     assert np.abs(est - np.asarray(BIASES)).max() <= 0.1, est
     assert 0.8 < res.sigma0 < 1.2 and res.tie_rmse_px < 0.4
-    for k, before in res.ray_gaps_before.items():        # every pair's rays now meet
+    for k, before in res.ray_gaps_before.items():  # every pair's rays now meet
         assert res.ray_gaps_after[k]["ray_gap_rms_m"] < 0.5 * before["ray_gap_rms_m"]
     rep = res.to_report()
     assert rep["ties"]["n"] == 400 and set(rep["ray_gaps_after"]) == {"0-1", "0-2", "1-2"}
@@ -91,14 +107,14 @@ def test_datum_without_gcps(triplet):
     other (ray gaps gone), not with the ground. GCPs or priors fix that."""
     delivered, truth = triplet
     rng = np.random.default_rng(2)
-    only2 = [delivered[0].model, delivered[1].model, truth[2]]     # image 2 biased alone
+    only2 = [delivered[0].model, delivered[1].model, truth[2]]  # image 2 biased alone
     _, obs = _observe(only2, 400, 0.2, rng)
     res = bundle_adjust_images(delivered, _tracks(obs), fixed=[0, 1], sigma_tie_px=0.2)
     assert res.names == ["image2.col_shift", "image2.row_shift"]
     np.testing.assert_allclose(res.values, BIASES[2], atol=0.1)
-    _, obs = _observe([delivered[0].model] + truth[1:], 400, 0.2, rng)   # image 0 right
-    one = bundle_adjust_images(delivered, _tracks(obs), sigma_tie_px=0.2)   # image 0 fixed
-    assert one.condition > 1e6                  # the datum defect, nearly singular
+    _, obs = _observe([delivered[0].model] + truth[1:], 400, 0.2, rng)  # image 0 right
+    one = bundle_adjust_images(delivered, _tracks(obs), sigma_tie_px=0.2)  # image 0 fixed
+    assert one.condition > 1e6  # the datum defect, nearly singular
     for k, before in one.ray_gaps_before.items():  # yet the three models now agree
         assert one.ray_gaps_after[k]["ray_gap_rms_m"] < 0.5 * before["ray_gap_rms_m"]
     with pytest.raises(InputError, match="fixed image index"):
@@ -112,23 +128,37 @@ def triplet_files(triplet, tmp_path_factory):
     from stereodem.core.raster import write_geotiff
     from stereodem.sensor.io.gcps import write_gcps
     from stereodem.sensor.io.sidecar import save_model
+
     delivered, truth = triplet
     d = tmp_path_factory.mktemp("triplet")
     paths = []
     for k, m in enumerate(delivered):
         p = d / f"view{k}.tif"
-        write_geotiff(p, np.zeros((m.height, m.width), np.uint8), tags={"STEREODEM_MODEL": f"view{k}.model.json"})
+        write_geotiff(
+            p,
+            np.zeros((m.height, m.width), np.uint8),
+            tags={"STEREODEM_MODEL": f"view{k}.model.json"},
+        )
         save_model(m.model, d / f"view{k}.model.json")
         paths.append(str(p))
     rng = np.random.default_rng(3)
     _, obs = _observe(truth, 300, 0.2, rng)
-    rows = ["point,image,col,row"] + [f"t{i},{k + 1},{o[i, 0]:.4f},{o[i, 1]:.4f}"
-                                      for i in range(300) for k, o in enumerate(obs)]
+    rows = ["point,image,col,row"] + [
+        f"t{i},{k + 1},{o[i, 0]:.4f},{o[i, 1]:.4f}" for i in range(300) for k, o in enumerate(obs)
+    ]
     (d / "ties.csv").write_text("\n".join(rows) + "\n")
     (lon, lat, h), gobs = _observe(truth, 12, 0.05, rng)
     for k, o in enumerate(gobs):
-        write_gcps(d / f"gcp{k}.csv", [f"G{i}" for i in range(12)], lon, lat, h, o[:, 0], o[:, 1],
-                   sigma_px=np.full(12, 0.05))
+        write_gcps(
+            d / f"gcp{k}.csv",
+            [f"G{i}" for i in range(12)],
+            lon,
+            lat,
+            h,
+            o[:, 0],
+            o[:, 1],
+            sigma_px=np.full(12, 0.05),
+        )
     return d, paths, obs
 
 
@@ -136,37 +166,72 @@ def triplet_files(triplet, tmp_path_factory):
 def test_adjust_cli_three_images(triplet_files, capsys):
     from stereodem.cli import main
     from stereodem.sensor.io.sidecar import load_model
+
     d, paths, _ = triplet_files
     out = d / "adjusted"
-    argv = ["adjust", *paths, "--model", "bundle", "--ties", str(d / "ties.csv"), "--gcps", str(d / "gcp0.csv"),
-            "--gcps2", str(d / "gcp1.csv"), "--image-gcps", f"3={d / 'gcp2.csv'}", "--sigma-tie-px", "0.2",
-            "-o", str(out), "--report", str(d / "report")]
+    argv = [
+        "adjust",
+        *paths,
+        "--model",
+        "bundle",
+        "--ties",
+        str(d / "ties.csv"),
+        "--gcps",
+        str(d / "gcp0.csv"),
+        "--gcps2",
+        str(d / "gcp1.csv"),
+        "--image-gcps",
+        f"3={d / 'gcp2.csv'}",
+        "--sigma-tie-px",
+        "0.2",
+        "-o",
+        str(out),
+        "--report",
+        str(d / "report"),
+    ]
     assert main(argv) == 0
     line = capsys.readouterr().out
-    assert "bundle (rpc-shift) of 3 images: 300 tie points (900 observations" in line and "fixed: none" in line
+    assert (
+        "bundle (rpc-shift) of 3 images: 300 tie points (900 observations" in line
+        and "fixed: none" in line
+    )
     for k, (c, r) in enumerate(BIASES):
         m = load_model(out / f"view{k}.model.json")
         p = m.parameters()
         assert abs(p["col_shift"] - c) <= 0.1 and abs(p["row_shift"] - r) <= 0.1
     rep = (d / "report" / "adjust_report.json").read_text()
     assert '"ray_gaps_after"' in rep and (d / "report" / "adjust_residuals_image2.png").is_file()
-    assert main(argv) == 1                                      # no overwrite
+    assert main(argv) == 1  # no overwrite
     assert "exists" in capsys.readouterr().err
 
 
 def test_adjust_cli_refuses_match_of_other_images(triplet_files, capsys):
     from stereodem.cli import main
     from stereodem.sensor.io.asp_match import InterestPoints, MatchFile, write_match
+
     d, paths, obs = triplet_files
-    good = MatchFile(InterestPoints(obs[0][:, 0], obs[0][:, 1]), InterestPoints(obs[1][:, 0], obs[1][:, 1]))
+    good = MatchFile(
+        InterestPoints(obs[0][:, 0], obs[0][:, 1]), InterestPoints(obs[1][:, 0], obs[1][:, 1])
+    )
     # named right, but each point's partner is another point: the matches of other images
     other = MatchFile(good.left, InterestPoints(obs[1][::-1, 0], obs[1][::-1, 1]))
     write_match(d / "run-view0__view1.match", other)
     write_match(d / "run-view0__other.match", good)
-    base = ["adjust", *paths, "--model", "bundle", "-o", str(d / "m"), "--gcps", str(d / "gcp0.csv")]
+    base = [
+        "adjust",
+        *paths,
+        "--model",
+        "bundle",
+        "-o",
+        str(d / "m"),
+        "--gcps",
+        str(d / "gcp0.csv"),
+    ]
     assert main(base + ["--match", str(d / "run-view0__other.match")]) == 1
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "run-view0__other.match: matches images 'view0' / 'other'" in err
+    assert (
+        err.count("\n") == 1 and "run-view0__other.match: matches images 'view0' / 'other'" in err
+    )
     assert main(base + ["--match", str(d / "run-view0__view1.match")]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "across the epipolar curves" in err
@@ -177,11 +242,32 @@ def test_adjust_cli_pair_from_match_file(triplet_files, capsys):
     """A pair bundle from an ASP match file of the two images (named the ASP way)."""
     from stereodem.cli import main
     from stereodem.sensor.io.asp_match import InterestPoints, MatchFile, write_match
+
     d, paths, obs = triplet_files
-    write_match(d / "pair" / "run-view0__view2.match",
-                MatchFile(InterestPoints(obs[0][:, 0], obs[0][:, 1]), InterestPoints(obs[2][:, 0], obs[2][:, 1])))
-    argv = ["adjust", paths[0], paths[2], "--model", "bundle", "--match", str(d / "pair" / "run-view0__view2.match"),
-            "--gcps", str(d / "gcp0.csv"), "--gcps2", str(d / "gcp2.csv"), "--sigma-tie-px", "0.2",
-            "-o", str(d / "pair" / "a.model.json"), "--out2", str(d / "pair" / "b.model.json")]
+    write_match(
+        d / "pair" / "run-view0__view2.match",
+        MatchFile(
+            InterestPoints(obs[0][:, 0], obs[0][:, 1]), InterestPoints(obs[2][:, 0], obs[2][:, 1])
+        ),
+    )
+    argv = [
+        "adjust",
+        paths[0],
+        paths[2],
+        "--model",
+        "bundle",
+        "--match",
+        str(d / "pair" / "run-view0__view2.match"),
+        "--gcps",
+        str(d / "gcp0.csv"),
+        "--gcps2",
+        str(d / "gcp2.csv"),
+        "--sigma-tie-px",
+        "0.2",
+        "-o",
+        str(d / "pair" / "a.model.json"),
+        "--out2",
+        str(d / "pair" / "b.model.json"),
+    ]
     assert main(argv) == 0
     assert "bundle (rpc-shift): 300 ties (0 rejected)" in capsys.readouterr().out

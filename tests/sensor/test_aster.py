@@ -1,4 +1,5 @@
 """ASTER VNIR model from real product geometry (ASP aster2asp XML of the Rainier 2017 granule)."""
+
 import numpy as np
 import pytest
 
@@ -13,6 +14,7 @@ BANDS = ("3N", "3B")
 @pytest.fixture(scope="module")
 def xml_path():
     from stereodem.sensor.io.aster_xml import bundled_xml
+
     return lambda band: bundled_xml(band)
 
 
@@ -31,14 +33,42 @@ def _rpc00b(rpc, lon, lat, h):
     P = (lat - rpc["LATOFFSET"]) / rpc["LATSCALE"]
     H = (h - rpc["HEIGHTOFFSET"]) / rpc["HEIGHTSCALE"]
     one = np.ones_like(L)
-    terms = np.stack([one, L, P, H, L * P, L * H, P * H, L * L, P * P, H * H, P * L * H, L ** 3,
-                      L * P * P, L * H * H, L * L * P, P ** 3, P * H * H, L * L * H, P * P * H, H ** 3], -1)
-    row = (terms @ rpc["LINENUMCOEF"]) / (terms @ rpc["LINEDENCOEF"]) * rpc["LINESCALE"] + rpc["LINEOFFSET"]
-    col = (terms @ rpc["SAMPNUMCOEF"]) / (terms @ rpc["SAMPDENCOEF"]) * rpc["SAMPSCALE"] + rpc["SAMPOFFSET"]
+    terms = np.stack(
+        [
+            one,
+            L,
+            P,
+            H,
+            L * P,
+            L * H,
+            P * H,
+            L * L,
+            P * P,
+            H * H,
+            P * L * H,
+            L**3,
+            L * P * P,
+            L * H * H,
+            L * L * P,
+            P**3,
+            P * H * H,
+            L * L * H,
+            P * P * H,
+            H**3,
+        ],
+        -1,
+    )
+    row = (terms @ rpc["LINENUMCOEF"]) / (terms @ rpc["LINEDENCOEF"]) * rpc["LINESCALE"] + rpc[
+        "LINEOFFSET"
+    ]
+    col = (terms @ rpc["SAMPNUMCOEF"]) / (terms @ rpc["SAMPDENCOEF"]) * rpc["SAMPSCALE"] + rpc[
+        "SAMPOFFSET"
+    ]
     return col, row
 
 
 # ---------------------------------------------------------------------------- reader
+
 
 def test_reader_structure(xml_path):
     g = read_asp_aster_xml(xml_path("3N"))
@@ -48,7 +78,9 @@ def test_reader_structure(xml_path):
     assert (g.image_cols, g.image_rows) == (4100, 4200)
     np.testing.assert_array_equal(g.lattice_cols, np.arange(0, 4101, 410))
     np.testing.assert_array_equal(g.lattice_rows, np.arange(-232, 4569, 400))
-    np.testing.assert_allclose(g.satellite_positions[0], [-2440988.408956, -4168166.023368, 5170750.205919])
+    np.testing.assert_allclose(
+        g.satellite_positions[0], [-2440988.408956, -4168166.023368, 5170750.205919]
+    )
     np.testing.assert_allclose(np.linalg.norm(g.sight_vectors, axis=-1), 1.0, atol=1e-15)
     assert g.rpc["LINEOFFSET"] == 2168 and g.rpc["LINESCALE"] == 2400
     assert g.rpc["LINEDENCOEF"].shape == (20,) and g.rpc["LINEDENCOEF"][0] == 1.0
@@ -87,7 +119,10 @@ def test_reproduces_world_sight_vectors(band, models, xml_path):
 def test_velocity_methods(models, xml_path):
     g = models["3N"].geometry
     t = g.lattice_rows * models["3N"].line_period
-    v = {m: lattice_velocities(t, g.satellite_positions, method=m) for m in ("central", "polynomial", "lagrange")}
+    v = {
+        m: lattice_velocities(t, g.satellite_positions, method=m)
+        for m in ("central", "polynomial", "lagrange")
+    }
     # all agree to a few m/s (cm-level position noise), speed is ~7.59 km/s Earth-fixed
     assert np.max(np.linalg.norm(v["central"] - v["polynomial"], axis=-1)) < 1.0
     assert np.all(np.abs(np.linalg.norm(v["central"], axis=-1) - 7588) < 20)
@@ -100,7 +135,9 @@ def test_velocity_methods(models, xml_path):
 
 def test_lattice_ground_points_match_product_latlon(models):
     # notes §9.2: product geodetic lat/lon of lattice points (V003 text; V004 GDAL GCPs agree)
-    lon, lat = models["3N"].localize(np.array([0.0, 4100.0, 0.0]), np.array([-232.0, -232.0, 168.0]), 0.0)
+    lon, lat = models["3N"].localize(
+        np.array([0.0, 4100.0, 0.0]), np.array([-232.0, -232.0, 168.0]), 0.0
+    )
     np.testing.assert_allclose(lat, [47.3859778, 47.2758455, 47.3335056], atol=1e-5)
     np.testing.assert_allclose(lon, [-122.156571, -121.328282, -122.174866], atol=1e-5)
 
@@ -115,6 +152,7 @@ def test_3n_3b_line_correspondence(models):
 
 # ---------------------------------------------------------------------------- ASP's RPC
 
+
 @pytest.mark.parametrize("band", BANDS)
 def test_agreement_with_asp_rpc(band, models):
     m = models[band]
@@ -128,8 +166,10 @@ def test_agreement_with_asp_rpc(band, models):
     assert inside.sum() > 8000
     rc, rr = _rpc00b(rpc, lon, lat, h)
     d = np.hypot(mc - rc, mr - rr)[inside]
-    rms = float(np.sqrt(np.mean(d ** 2)))
-    print(f"{band}: model vs ASP RPC over the scene, h 0..4000 m: max {d.max():.3f} rms {rms:.3f} px")
+    rms = float(np.sqrt(np.mean(d**2)))
+    print(
+        f"{band}: model vs ASP RPC over the scene, h 0..4000 m: max {d.max():.3f} rms {rms:.3f} px"
+    )
     # measured: 3N max 3.82 rms 1.79 px; 3B max 4.16 rms 1.88 px
     assert d.max() < 4.5 and rms < 2.0
     # ... and that gap is ASP's RPC fitting error: on the product's own lattice ground points
@@ -144,13 +184,16 @@ def test_agreement_with_asp_rpc(band, models):
     model_miss = np.hypot(pc - lc, pr - lr)
     rc, rr = _rpc00b(rpc, glon, glat, gh)
     rpc_miss = np.hypot(rc - lc, rr - lr)
-    print(f"{band}: on lattice ground points model max {model_miss.max():.3f} px, "
-          f"RPC rms {np.sqrt(np.mean(rpc_miss ** 2)):.3f} px")
+    print(
+        f"{band}: on lattice ground points model max {model_miss.max():.3f} px, "
+        f"RPC rms {np.sqrt(np.mean(rpc_miss**2)):.3f} px"
+    )
     assert model_miss.max() < (0.1 if band == "3N" else 0.3)
-    assert abs(np.sqrt(np.mean(rpc_miss ** 2)) - rms) < 0.25 * rms
+    assert abs(np.sqrt(np.mean(rpc_miss**2)) - rms) < 0.25 * rms
 
 
 # ---------------------------------------------------------------------------- round trips
+
 
 @pytest.mark.parametrize("band", BANDS)
 def test_round_trips(band, models):
@@ -176,6 +219,7 @@ def test_parameters_exposed(models):
 
 # ---------------------------------------------------------------------------- bad input
 
+
 def _edit(tmp_path, src, old, new):
     text = src.read_text()
     assert old in text
@@ -194,8 +238,10 @@ def test_bad_xml(tmp_path, xml_path):
         read_asp_aster_xml(no_pos)
     with pytest.raises(SensorModelError, match="non-numeric"):
         read_asp_aster_xml(_edit(tmp_path, src, "0 168\n", "0 abc\n"))
-    with pytest.raises(SensorModelError, match="SIGHT_VECTOR"):         # one vector missing
-        read_asp_aster_xml(_edit(tmp_path, src, "0.00049399999999999997 0.105473 0.99442200000000003\n", ""))
+    with pytest.raises(SensorModelError, match="SIGHT_VECTOR"):  # one vector missing
+        read_asp_aster_xml(
+            _edit(tmp_path, src, "0.00049399999999999997 0.105473 0.99442200000000003\n", "")
+        )
     with pytest.raises(RPCError, match="LINENUMCOEF"):
         read_asp_aster_xml(_edit(tmp_path, src, "<LINENUMCOEF>-0.0001", "<LINENUMCOEF>x"))
     not_xml = tmp_path / "garbage.xml"
@@ -218,6 +264,7 @@ def test_serialisation_round_trip(models):
     import json
 
     from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
+
     m = models["3B"].with_parameters(yaw_bias=1e-5)
     d = json.loads(json.dumps(model_to_dict(m)))
     assert d["type"] == "aster"

@@ -1,5 +1,6 @@
 """ASTER L1A granules: V004 (HDF-EOS2) and V003 (zip / folder) round trips through the
 simulator's writers and the readers, radiometric correction, and bad input."""
+
 import shutil
 
 import numpy as np
@@ -21,6 +22,7 @@ from stereodem.sensor.simulation.aster_granule import (
 @pytest.fixture(scope="module")
 def scene():
     from stereodem.sensor.simulation.simulate import simulate_scene
+
     return simulate_scene("aster", size=(410, 400), right_size=(500, 540), seed=3)
 
 
@@ -70,11 +72,16 @@ def _sight_vector_error(band):
 
 # ------------------------------------------------------------------------------ ODL
 
+
 def test_odl_round_trip_and_flat_keys():
-    tree = {"INVENTORYMETADATA": {"GROUPTYPE": "MASTERGROUP",
-                                  "SHORTNAME": {"NUM_VAL": 1, "VALUE": "ASTL1A"},
-                                  "POINTINGANGLE": {"CLASS": "1", "NUM_VAL": 1, "VALUE": 8.5},
-                                  "UPPERLEFT": {"NUM_VAL": 2, "VALUE": (47.38, -122.15)}}}
+    tree = {
+        "INVENTORYMETADATA": {
+            "GROUPTYPE": "MASTERGROUP",
+            "SHORTNAME": {"NUM_VAL": 1, "VALUE": "ASTL1A"},
+            "POINTINGANGLE": {"CLASS": "1", "NUM_VAL": 1, "VALUE": 8.5},
+            "UPPERLEFT": {"NUM_VAL": 2, "VALUE": (47.38, -122.15)},
+        }
+    }
     back = parse_odl(format_odl(tree))
     assert back == tree
     flat = flatten_odl(back)
@@ -85,17 +92,24 @@ def test_odl_round_trip_and_flat_keys():
 
 # ------------------------------------------------------------------------------ V004
 
+
 def test_v004_structure_follows_the_specification(files, granule):
     """Vgroup hierarchy, SDS names repeated per swath, dimension suffixes, ODL attributes."""
     import pyhdf.V  # noqa: F401
     from pyhdf.HDF import HDF
     from pyhdf.SD import SD
+
     path = str(files["v004"])
     sd = SD(path)
     names = [sd.select(i).info()[0] for i in range(sd.info()[0])]
     assert names.count("ImageData") == 2 and names.count("SightVector") == 2
-    assert {"HDFEOSVersion", "StructMetadata.0", "coremetadata.0", "productmetadata.0",
-            "productmetadata.v"} <= set(sd.attributes())
+    assert {
+        "HDFEOSVersion",
+        "StructMetadata.0",
+        "coremetadata.0",
+        "productmetadata.0",
+        "productmetadata.v",
+    } <= set(sd.attributes())
     struct = parse_odl(sd.attributes()["StructMetadata.0"])
     assert struct["SwathStructure"]["SWATH_2"]["SwathName"] == "VNIR_Band3B"
     h = HDF(path)
@@ -107,12 +121,19 @@ def test_v004_structure_follows_the_specification(files, granule):
     assert sw._class == "SWATH"
     children = {v.attach(r)._name: r for t, r in sw.tagrefs() if t == 1965}
     assert set(children) == {"Geolocation Fields", "Data Fields", "Swath Attributes"}
-    geo = [sd.select(sd.reftoindex(r)) for t, r in v.attach(children["Geolocation Fields"]).tagrefs()]
+    geo = [
+        sd.select(sd.reftoindex(r)) for t, r in v.attach(children["Geolocation Fields"]).tagrefs()
+    ]
     assert {s.info()[0] for s in geo} == {"Latitude", "Longitude", "SceneLineNumber"}
     assert all(d.endswith(":VNIR_Band3B") for s in geo for d in s.dimensions())
-    img = [s for s in (sd.select(sd.reftoindex(r)) for t, r in
-                       v.attach(children["Data Fields"]).tagrefs()) if s.info()[0] == "ImageData"][0]
-    assert img.info()[2] == [540, 500] and img.info()[3] == 21       # uint8 (rows, cols)
+    img = [
+        s
+        for s in (
+            sd.select(sd.reftoindex(r)) for t, r in v.attach(children["Data Fields"]).tagrefs()
+        )
+        if s.info()[0] == "ImageData"
+    ][0]
+    assert img.info()[2] == [540, 500] and img.info()[3] == 21  # uint8 (rows, cols)
     assert struct_metadata(granule).count("\tGROUP=SWATH_") == 2
 
 
@@ -125,7 +146,9 @@ def test_round_trip_lattice_and_sight_vectors(files, kind):
         assert band.velocity_convention == "inertial"
         err_px = _lattice_projection_error(band)
         err_sv = _sight_vector_error(band)
-        print(f"{kind} {b}: lattice projection {err_px:.2e} px, sight vectors {1e6 * err_sv:.3f} urad")
+        print(
+            f"{kind} {b}: lattice projection {err_px:.2e} px, sight vectors {1e6 * err_sv:.3f} urad"
+        )
         assert err_px < 0.01
         assert err_sv < 2e-6
 
@@ -139,10 +162,15 @@ def test_v003_six_decimals_within_its_rounding(files, granule):
             band = g[b]
             f = band.fields
             rng_m = np.linalg.norm(
-                geodesy.intersect_height(*band.model.rays(f.lattice[..., 0].astype(float),
-                                                          f.lattice[..., 1].astype(float)),
-                                         np.zeros(f.lattice.shape[:2]))
-                - f.satellite_positions[:, None, :], axis=-1).max()
+                geodesy.intersect_height(
+                    *band.model.rays(
+                        f.lattice[..., 0].astype(float), f.lattice[..., 1].astype(float)
+                    ),
+                    np.zeros(f.lattice.shape[:2]),
+                )
+                - f.satellite_positions[:, None, :],
+                axis=-1,
+            ).max()
             gsd = band.model.gsd(0.0)
             bound_px = np.sqrt(3) * 0.5e-6 * rng_m / gsd + np.hypot(0.5e-6, 0.5e-6) * 111e3 / gsd
             err_px = _lattice_projection_error(band)
@@ -156,15 +184,19 @@ def test_v003_and_v004_give_the_same_band(files):
     for b in ("3N", "3B"):
         np.testing.assert_array_equal(a[b].dn(), c[b].dn())
         np.testing.assert_array_equal(a[b].fields.lattice, c[b].fields.lattice)
-        np.testing.assert_allclose(a[b].fields.satellite_positions, c[b].fields.satellite_positions,
-                                   atol=1e-6)
-    assert a.metadata["acquisition_time"] == c.metadata["acquisition_time"] == "2017-07-31T19:07:28Z"
+        np.testing.assert_allclose(
+            a[b].fields.satellite_positions, c[b].fields.satellite_positions, atol=1e-6
+        )
+    assert (
+        a.metadata["acquisition_time"] == c.metadata["acquisition_time"] == "2017-07-31T19:07:28Z"
+    )
 
 
 def test_metadata_from_odl(files, scene):
     g = open_aster_granule(files["v004"])
     md = g.metadata
     from stereodem.sensor.simulation.simulate import SUN_AZIMUTH, SUN_ELEVATION
+
     assert md["granule_id"] == files["v004"].stem
     assert (md["sun_azimuth_deg"], md["sun_elevation_deg"]) == (SUN_AZIMUTH, SUN_ELEVATION)
     assert md["cloud_cover_pct"] == 0.0
@@ -182,6 +214,7 @@ def test_earth_fixed_velocity_is_detected(scene, tmp_path):
 
 def test_model_sidecar_keeps_product_velocity(files, tmp_path):
     from stereodem.sensor.io.sidecar import load_model, save_model
+
     m = open_aster_granule(files["v004"]).model("3B")
     save_model(m, tmp_path / "m.json")
     back = load_model(tmp_path / "m.json")
@@ -192,6 +225,7 @@ def test_model_sidecar_keeps_product_velocity(files, tmp_path):
 
 
 # ------------------------------------------------------------------------------ radiometry
+
 
 def _column_profile_variation(image, truth):
     """(max - min) / mean of the ratio of column means of ``image`` to those of ``truth``."""
@@ -209,12 +243,13 @@ def test_radiometric_correction_removes_striping(files, granule):
         before = _column_profile_variation(g[b].image(radiometric=False), truth)
         after = _column_profile_variation(g[b].image(), truth)
         print(f"{b}: column-mean variation before {100 * before:.2f} %, after {100 * after:.3f} %")
-        assert before > 0.02                   # the injected striping is visible in the DN
+        assert before > 0.02  # the injected striping is visible in the DN
         assert after <= 0.005
 
 
 def test_fill_pixels_are_masked(granule, tmp_path):
     import copy
+
     g = copy.deepcopy(granule)
     g.bands["3N"].dn[:7, :] = 0
     band = open_aster_granule(write_v004(g, tmp_path / "fill.hdf"))["3N"]
@@ -226,8 +261,10 @@ def test_fill_pixels_are_masked(granule, tmp_path):
 
 # ------------------------------------------------------------------------------ bad input
 
+
 def test_non_aster_hdf(tmp_path):
     from pyhdf.SD import SD, SDC
+
     p = tmp_path / "MOD021KM.hdf"
     sd = SD(str(p), SDC.WRITE | SDC.CREATE)
     s = sd.create("EV_1KM_RefSB", SDC.UINT16, (4, 5))
@@ -245,17 +282,25 @@ def test_non_aster_hdf(tmp_path):
 @pytest.mark.parametrize("level,short", [("L1B", "ASTL1B"), ("L1T", "AST_L1T")])
 def test_l1b_and_l1t_are_refused(granule, tmp_path, level, short):
     import copy
+
     g = copy.deepcopy(granule)
-    g.attributes["coremetadata.0"] = g.attributes["coremetadata.0"].replace(
-        '"ASTL1A"', f'"{short}"').replace('"1A"', f'"{level[1:]}"')
+    g.attributes["coremetadata.0"] = (
+        g.attributes["coremetadata.0"]
+        .replace('"ASTL1A"', f'"{short}"')
+        .replace('"1A"', f'"{level[1:]}"')
+    )
     p = write_v004(g, tmp_path / f"AST_{level}_00407312017190728.hdf")
-    with pytest.raises(InputError, match=rf"{p.name}: this is an ASTER {level} product; "
-                                         r"stereodem needs AST_L1A .*no sensor geometry"):
+    with pytest.raises(
+        InputError,
+        match=rf"{p.name}: this is an ASTER {level} product; "
+        r"stereodem needs AST_L1A .*no sensor geometry",
+    ):
         open_aster_granule(p)
 
 
 def test_granule_without_3b(granule, tmp_path):
     import copy
+
     g = copy.deepcopy(granule)
     del g.bands["3B"]
     g.attributes["StructMetadata.0"] = struct_metadata(g)
@@ -283,30 +328,41 @@ def test_v003_folder_missing_a_table(files, tmp_path, table):
     shutil.copytree(files["v003_dir"], d)
     victim = next(d.glob(f"*.VNIR_Band3B.{table}.txt"))
     victim.unlink()
-    with pytest.raises(InputError, match=rf"granule: V003 granule has no .*VNIR_Band3B\.{table}\.txt"):
+    with pytest.raises(
+        InputError, match=rf"granule: V003 granule has no .*VNIR_Band3B\.{table}\.txt"
+    ):
         open_aster_granule(d)
 
 
 def test_inconsistent_geometry_is_refused(granule, tmp_path):
     import copy
+
     g = copy.deepcopy(granule)
-    g.bands["3N"].latitude = g.bands["3N"].latitude + 0.01          # ~1 km off
+    g.bands["3N"].latitude = g.bands["3N"].latitude + 0.01  # ~1 km off
     p = write_v004(g, tmp_path / "bad_geo.hdf")
-    with pytest.raises(SensorModelError, match=r"bad_geo\.hdf:VNIR_Band3N: SightVector/"
-                                               r"SatellitePosition do not reproduce"):
+    with pytest.raises(
+        SensorModelError,
+        match=r"bad_geo\.hdf:VNIR_Band3N: SightVector/"
+        r"SatellitePosition do not reproduce",
+    ):
         open_aster_granule(p)
 
 
 def test_v003_l1b_folder_is_refused(tmp_path):
     d = tmp_path / "l1b"
     d.mkdir()
-    (d / "AST_L1B_00307312017190728_20160404141337_1.VNIR_Swath.ImageData3N.tif").write_bytes(b"II*\0")
-    with pytest.raises(InputError, match=r"l1b: this is an ASTER L1B product; stereodem needs AST_L1A"):
+    (d / "AST_L1B_00307312017190728_20160404141337_1.VNIR_Swath.ImageData3N.tif").write_bytes(
+        b"II*\0"
+    )
+    with pytest.raises(
+        InputError, match=r"l1b: this is an ASTER L1B product; stereodem needs AST_L1A"
+    ):
         open_aster_granule(d)
 
 
 def test_band_names_and_single_band_reader(files):
     from stereodem.sensor.io.aster_l1a import read_granule_band
+
     g = open_aster_granule(files["v004"])
     assert g.band("3b") is g.band("Band3B") is g.band("VNIR_Band3B") is g["3B"]
     with pytest.raises(InputError, match=r"no band '2' in this granule \(has 3N, 3B\)"):
@@ -319,6 +375,7 @@ def test_band_names_and_single_band_reader(files):
 
 def test_is_aster_granule(files, tmp_path):
     from stereodem.sensor.io.aster_l1a import is_aster_granule
+
     assert all(is_aster_granule(files[k]) for k in ("v004", "v003_zip", "v003_dir"))
     plain = tmp_path / "left.tif"
     plain.write_bytes(b"II*\0" + bytes(100))
@@ -328,15 +385,32 @@ def test_is_aster_granule(files, tmp_path):
 
 # ------------------------------------------------------------------------------ command line
 
+
 def test_cli_simulate_granule_and_info(tmp_path, capsys):
     from stereodem.cli import main
+
     out = tmp_path / "sim"
-    assert main(["simulate", "--preset", "aster", "--format", "l1a-v004", "--size", "200", "200",
-                 "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--preset",
+                "aster",
+                "--format",
+                "l1a-v004",
+                "--size",
+                "200",
+                "200",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     hdf = next(out.glob("AST_L1A_004*.hdf"))
     assert (out / "truth_dem.tif").exists() and not (out / "left.tif").exists()
     g = open_aster_granule(hdf)
-    assert g["3N"].shape == (200, 200) and g["3B"].shape == (257, 240)   # real 3N:3B ratio
+    assert g["3N"].shape == (200, 200) and g["3B"].shape == (257, 240)  # real 3N:3B ratio
     capsys.readouterr()
     assert main(["info", str(hdf)]) == 0
     text = capsys.readouterr().out
@@ -344,10 +418,14 @@ def test_cli_simulate_granule_and_info(tmp_path, capsys):
     assert "acquired 2017-07-31T19:07:28Z" in text and "upperleft" in text
     assert main(["info", str(out / "truth_dem.tif")]) == 1
     assert "stereodem info: error:" in capsys.readouterr().err
-    assert main(["simulate", "--preset", "frame", "--format", "l1a-v003", "-o", str(tmp_path / "x")]) == 1
+    assert (
+        main(["simulate", "--preset", "frame", "--format", "l1a-v003", "-o", str(tmp_path / "x")])
+        == 1
+    )
 
 
 # ------------------------------------------------------------------------------ DEM through a granule
+
 
 @pytest.mark.slow
 def test_dem_from_granule_matches_dem_from_geotiff_and_sidecar(tmp_path):
@@ -365,19 +443,34 @@ def test_dem_from_granule_matches_dem_from_geotiff_and_sidecar(tmp_path):
     gr = open_aster_granule(write_v004(granule_from_scene(sc, seed=2), tmp_path / "g.hdf"))
     with rasterio.open(out / "left.tif") as a, rasterio.open(out / "right.tif") as b:
         left, right = a.read(1), b.read(1)
-    tif = make_dem(left, right, load_image_model(out / "left.tif"),
-                   load_image_model(out / "right.tif"), seed_dem=sc.truth_dem).dem
-    gran = make_dem(gr.read_image("3N"), gr.read_image("3B"), gr.model("3N"), gr.model("3B"),
-                    seed_dem=sc.truth_dem).dem
+    tif = make_dem(
+        left,
+        right,
+        load_image_model(out / "left.tif"),
+        load_image_model(out / "right.tif"),
+        seed_dem=sc.truth_dem,
+    ).dem
+    gran = make_dem(
+        gr.read_image("3N"),
+        gr.read_image("3B"),
+        gr.model("3N"),
+        gr.model("3B"),
+        seed_dem=sc.truth_dem,
+    ).dem
     assert gran.heights.shape == tif.heights.shape and gran.transform == tif.transform
-    cc, rr = np.meshgrid(np.arange(tif.heights.shape[1]) + 0.5, np.arange(tif.heights.shape[0]) + 0.5)
+    cc, rr = np.meshgrid(
+        np.arange(tif.heights.shape[1]) + 0.5, np.arange(tif.heights.shape[0]) + 0.5
+    )
     x, y = tif.transform @ (cc, rr)
     truth = sc.truth_dem.sample(*geodesy.crs_to_lonlat(x, y, tif.crs))
 
     from stereodem.core.stats import nmad
+
     diff = gran.heights - tif.heights
-    print(f"granule vs GeoTIFF DEM: median {np.nanmedian(diff):.4f} m, NMAD {nmad(diff):.3f} m; "
-          f"vs truth NMAD {nmad(tif.heights - truth):.2f} / {nmad(gran.heights - truth):.2f} m")
+    print(
+        f"granule vs GeoTIFF DEM: median {np.nanmedian(diff):.4f} m, NMAD {nmad(diff):.3f} m; "
+        f"vs truth NMAD {nmad(tif.heights - truth):.2f} / {nmad(gran.heights - truth):.2f} m"
+    )
     assert abs(np.nanmedian(diff)) < 0.05
     assert nmad(diff) < 0.15 * nmad(tif.heights - truth)
     assert abs(np.isfinite(gran.heights).mean() - np.isfinite(tif.heights).mean()) < 0.005

@@ -1,5 +1,6 @@
 """ASTER strips (issue 26, item 3): consecutive simulated granules of one pass, joined into
 one model per band and one DEM with no step at the seam."""
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -29,7 +30,7 @@ def strip3(tmp_path_factory):
 def test_simulated_granules_are_cut_from_one_pass(strip3):
     strip, paths, folder = strip3
     assert strip.advance == 150 and strip.heights[0] - strip.advance == 10
-    assert len({p for p in paths}) == 3                           # distinct granule ids
+    assert len({p for p in paths}) == 3  # distinct granule ids
     long_n = strip.scene.left_model
     t = []
     for k, p in enumerate(paths):
@@ -50,12 +51,14 @@ def test_simulated_granules_are_cut_from_one_pass(strip3):
 
 def test_join_recovers_the_pass(strip3):
     strip, paths, _ = strip3
-    s = open_aster_strip(paths[::-1])                            # any order
+    s = open_aster_strip(paths[::-1])  # any order
     assert [g.path for g in s.granules] == paths
-    for band, long_model, long_img in (("3N", strip.scene.left_model, strip.scene.left),
-                                       ("3B", strip.scene.right_model, strip.scene.right)):
+    for band, long_model, long_img in (
+        ("3N", strip.scene.left_model, strip.scene.left),
+        ("3B", strip.scene.right_model, strip.scene.right),
+    ):
         b = s.band(band)
-        assert b.first_lines == strip.first_lines                 # from the orbit, not the names
+        assert b.first_lines == strip.first_lines  # from the orbit, not the names
         assert b.image.shape == long_img.shape
         # the joined model is the pass's model: same line numbering, same rays
         rng = np.random.default_rng(0)
@@ -83,14 +86,21 @@ def test_non_consecutive_granules_are_refused_in_one_line(strip3, tmp_path):
     assert all(p.rsplit("/", 1)[-1] in msg for p in (paths[0], paths[2]))
     out = tmp_path / "out"
     assert main(["dem", paths[0], paths[2], "-o", str(out)]) == 1
-    assert not out.exists()                                       # nothing written
+    assert not out.exists()  # nothing written
 
 
 def test_granules_of_another_pass_are_refused(strip3, tmp_path):
     strip, paths, _ = strip3
-    later = DEFAULT_START + _dt.timedelta(days=16)                # the next repeat of the path
-    g = cut_granule(strip.scene, strip.advance, strip.heights, row_step=strip.row_step,
-                    start=later, index=1, seed=3)
+    later = DEFAULT_START + _dt.timedelta(days=16)  # the next repeat of the path
+    g = cut_granule(
+        strip.scene,
+        strip.advance,
+        strip.heights,
+        row_step=strip.row_step,
+        start=later,
+        index=1,
+        seed=3,
+    )
     other = write_v004(g, tmp_path / f"{g.granule_id}.hdf")
     with pytest.raises(InputError) as e:
         open_aster_strip([paths[0], str(other)])
@@ -101,10 +111,10 @@ def test_granules_of_another_pass_are_refused(strip3, tmp_path):
 
 def test_strip_inputs(strip3, tmp_path):
     _, paths, folder = strip3
-    assert strip_granules([str(folder)]) == paths                 # a folder of granules
+    assert strip_granules([str(folder)]) == paths  # a folder of granules
     assert strip_granules(paths[:2]) == paths[:2]
-    assert strip_granules(paths[:2], band="3N") is None           # --band 3N: a pair of bands
-    assert strip_granules([paths[0]]) is None                     # one granule: its own pair
+    assert strip_granules(paths[:2], band="3N") is None  # --band 3N: a pair of bands
+    assert strip_granules([paths[0]]) is None  # one granule: its own pair
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="no ASTER L1A granule"):
         strip_granules([str(tmp_path / "empty")])
@@ -118,6 +128,7 @@ def test_strip_dem_has_no_step_at_the_seam(strip3, tmp_path):
     from stereodem.core.stats import nmad
     from stereodem.post.assess import compare_on_reference_grid
     from stereodem.post.seams import seam_step
+
     strip, paths, folder = strip3
     truth = DEM.from_file(folder / "truth_dem.tif")
     lo, hi = truth.height_range()
@@ -138,7 +149,7 @@ def test_strip_dem_has_no_step_at_the_seam(strip3, tmp_path):
         assert main(["dem", paths[k], "-o", str(single), *common]) == 0
         d_one = compare_on_reference_grid(DEM.from_file(single / "dem.tif"), truth).dh
         same = np.isfinite(d_strip) & np.isfinite(d_one)
-        assert same.sum() > 0.9 * np.isfinite(d_one).sum()          # the strip covers the granule
+        assert same.sum() > 0.9 * np.isfinite(d_one).sum()  # the strip covers the granule
         assert abs(nmad(d_strip[same]) / nmad(d_one[same]) - 1.0) <= 0.10
 
 
@@ -155,7 +166,7 @@ def test_join_of_granules_whose_lattices_are_out_of_phase(strip3, tmp_path):
         assert b.first_lines == [0, 143]
         assert b.seams[0]["fraction"] == 0.0 and b.seams[0]["orbit_miss_m"] < 0.01
         rows = b.model.geometry.lattice_rows
-        assert np.unique(np.diff(rows)).size > 1                  # irregular lattice
+        assert np.unique(np.diff(rows)).size > 1  # irregular lattice
         c = np.linspace(0, b.model.width - 1, 9)
         r = np.linspace(0, b.model.height - 1, 9)
         lon, lat = long_model.localize(c, r, np.full(9, 2200.0))

@@ -11,8 +11,18 @@ def bilsat_like(**kw):
     lon0, lat0 = 40.4, 39.6
     north = g.enu_basis(lon0, lat0)[1]
     pos = np.array(g.geodetic_to_ecef(lon0, lat0 - 0.2, 686e3))
-    args = dict(width=2048, height=2048, focal_mm=184.0, pitch_mm=0.0074,
-                k1=3.6e-4, k2=-1e-6, p1=2e-5, p2=-1e-5, dx_mm=0.01, dy_mm=-0.02)
+    args = dict(
+        width=2048,
+        height=2048,
+        focal_mm=184.0,
+        pitch_mm=0.0074,
+        k1=3.6e-4,
+        k2=-1e-6,
+        p1=2e-5,
+        p2=-1e-5,
+        dx_mm=0.01,
+        dy_mm=-0.02,
+    )
     args.update(kw)
     return FrameCamera.looking_at(pos, 7500 * north, lon0, lat0, 2000.0, **args)
 
@@ -20,9 +30,13 @@ def bilsat_like(**kw):
 def test_eq_4_7_matrix():
     w, p, k = 0.1, -0.2, 0.3
     cw, sw, cp, sp, ck, sk = np.cos(w), np.sin(w), np.cos(p), np.sin(p), np.cos(k), np.sin(k)
-    eq47 = np.array([[ck * cp - sk * sw * sp, -sk * cw, ck * sp + sk * sw * cp],
-                     [sk * cp + ck * sw * sp, ck * cw, sk * sp - ck * sw * cp],
-                     [-cw * sp, sw, cw * cp]])
+    eq47 = np.array(
+        [
+            [ck * cp - sk * sw * sp, -sk * cw, ck * sp + sk * sw * cp],
+            [sk * cp + ck * sw * sp, ck * cw, sk * sp - ck * sw * cp],
+            [-cw * sp, sw, cw * cp],
+        ]
+    )
     assert np.abs(body_to_orbital(w, p, k) - eq47).max() < 1e-15
 
 
@@ -45,9 +59,11 @@ def test_round_trip_whole_image_and_height_range():
 def test_image_axes_orientation():
     """Image up is the flight direction (north here); image right is right of track (east)."""
     cam = bilsat_like(k1=0, k2=0, p1=0, p2=0, dx_mm=0, dy_mm=0)
-    lon, lat = cam.localize(np.array([1023.5, 1023.5, 1500.0]), np.array([1023.5, 500.0, 1023.5]), 2000.0)
-    assert lat[1] > lat[0] + 0.05          # up in the image = north
-    assert lon[2] > lon[0] + 0.05          # right in the image = east
+    lon, lat = cam.localize(
+        np.array([1023.5, 1023.5, 1500.0]), np.array([1023.5, 500.0, 1023.5]), 2000.0
+    )
+    assert lat[1] > lat[0] + 0.05  # up in the image = north
+    assert lon[2] > lon[0] + 0.05  # right in the image = east
     # the boresight hits the target
     assert lon[0] == pytest.approx(40.4, abs=1e-9) and lat[0] == pytest.approx(39.6, abs=1e-9)
     assert cam.gsd(2000.0) == pytest.approx(686e3 * 0.0074 / 184.0, rel=0.02)
@@ -91,7 +107,9 @@ def test_parameters_vector_and_copy():
     p = cam.parameters()
     assert list(p) == list(FrameCamera.PARAMETERS)
     cam2 = cam.with_parameters(roll=cam.roll + 1e-4, z=p["z"] + 10)
-    assert cam2.roll == pytest.approx(cam.roll + 1e-4) and cam2.position[2] == pytest.approx(p["z"] + 10)
+    assert cam2.roll == pytest.approx(cam.roll + 1e-4) and cam2.position[2] == pytest.approx(
+        p["z"] + 10
+    )
     c1, _ = cam.project(40.4, 39.6, 2000.0)
     c2, _ = cam2.project(40.4, 39.6, 2000.0)
     assert abs(c1 - c2) > 0.5

@@ -1,4 +1,5 @@
 """Generic orthorectification models fitted to GCPs (Ok 2005, Ch. 3.1.3 and Ch. 6)."""
+
 import numpy as np
 import pytest
 
@@ -16,11 +17,11 @@ from stereodem.sensor.models.generic import (
     n_parameters,
 )
 
-LON0, LAT0 = 32.8, 39.9          # Ankara, UTM 36N, as in the Ok thesis
+LON0, LAT0 = 32.8, 39.9  # Ankara, UTM 36N, as in the Ok thesis
 CRS = geodesy.utm_crs(LON0, LAT0)
 E0, N0 = (float(v) for v in geodesy.lonlat_to_crs(LON0, LAT0, CRS))
 GSD = 15.0
-SIZE = 4000                      # image is SIZE x SIZE pixels, 60 km x 60 km
+SIZE = 4000  # image is SIZE x SIZE pixels, 60 km x 60 km
 
 
 class MapFunctionCamera(SensorModel):
@@ -54,15 +55,18 @@ class PushbroomLike(SensorModel):
 
     def _camera(self, r):
         s = r - SIZE / 2
-        return (E0 + self.drift * s ** 2 * GSD, self.N_start + r * GSD,
-                self.H + self.hdrift * s ** 2 * GSD)
+        return (
+            E0 + self.drift * s**2 * GSD,
+            self.N_start + r * GSD,
+            self.H + self.hdrift * s**2 * GSD,
+        )
 
     def project(self, lon, lat, h):
         E, N = geodesy.lonlat_to_crs(lon, lat, CRS)
         E, N, h = np.asarray(E), np.asarray(N), np.asarray(h, float)
         ct, st = np.cos(self.tilt), np.sin(self.tilt)
         r = (N - self.N_start) / GSD
-        for _ in range(8):   # scan plane through the camera at time r: ct dN - st dh = 0
+        for _ in range(8):  # scan plane through the camera at time r: ct dN - st dh = 0
             Ec, Nc, Hc = self._camera(r)
             g = ct * (N - Nc) - st * (h - Hc)
             dg = -ct * GSD + st * 2 * self.hdrift * (r - SIZE / 2) * GSD
@@ -94,16 +98,21 @@ def _en(E, N):
 
 def _exact_geometries():
     """Ground->image functions lying exactly in each model's class (pixels)."""
+
     def poly2d(k):
         def fn(E, N, h):
             e, n = _en(E, N)
             c = 2000 + 1950 * e + 60 * n
             r = 2000 - 40 * e + 2010 * n
             if k >= 2:
-                c, r = c + 15 * e * e - 9 * e * n + 4 * n * n, r + 7 * e * e + 11 * e * n - 6 * n * n
+                c, r = (
+                    c + 15 * e * e - 9 * e * n + 4 * n * n,
+                    r + 7 * e * e + 11 * e * n - 6 * n * n,
+                )
             if k >= 3:
-                c, r = c + 3 * e ** 3 - 2 * e * e * n + 5 * n ** 3, r - 4 * e ** 3 + e * n * n + 2 * n ** 3
+                c, r = c + 3 * e**3 - 2 * e * e * n + 5 * n**3, r - 4 * e**3 + e * n * n + 2 * n**3
             return c, r
+
         return fn
 
     def poly3d(k):
@@ -117,8 +126,9 @@ def _exact_geometries():
             if k >= 2:
                 c, r = c + 2 * z * z + 5 * e * z, r - 1.5 * z * z + 4 * n * z
             if k >= 3:
-                c, r = c + z ** 3 + 2 * e * n * z - z * z * n, r - 0.7 * z ** 3 + 3 * e * e * z
+                c, r = c + z**3 + 2 * e * n * z - z * z * n, r - 0.7 * z**3 + 3 * e * e * z
             return c, r
+
         return fn
 
     def relief(k):
@@ -128,6 +138,7 @@ def _exact_geometries():
             c, r = base(E, N, h)
             z = h / 1000.0
             return c * (1 + 0.004 * z) + 6 * z, r * (1 - 0.002 * z) - 2 * z
+
         return fn
 
     def projective(E, N, h):
@@ -148,13 +159,13 @@ def _exact_geometries():
     C = np.array([E0 + 300.0, N0 - 200.0, 40e3])
 
     def dlt(E, N, h):
-        d = np.stack([E - C[0], N - C[1], h - C[2]], -1) @ R   # camera frame (rows of R^T)
+        d = np.stack([E - C[0], N - C[1], h - C[2]], -1) @ R  # camera frame (rows of R^T)
         f = 40e3 / GSD
         return 2000 + f * d[..., 0] / -d[..., 2], 2000 - f * d[..., 1] / -d[..., 2]
 
     def edlt(E, N, h):
         u, v = dlt(E, N, h)
-        a12, a13 = 2e-7, -3e-7        # per pixel: x = u + a12 x y, y = v + a13 y^2
+        a12, a13 = 2e-7, -3e-7  # per pixel: x = u + a12 x y, y = v + a13 y^2
         y = 2 * v / (1 + np.sqrt(1 - 4 * a13 * v))
         return u / (1 - a12 * y), y
 
@@ -162,9 +173,28 @@ def _exact_geometries():
         def fn(E, N, h):
             e, n = _en(E, N)
             z = (h - 1500) / 1500
-            P = [1, e, n, z, e * e, n * n, z * z, e * n, e * z, n * z,
-                 e ** 3, n ** 3, z ** 3, e * e * n, e * e * z, n * n * e, n * n * z, z * z * e,
-                 z * z * n, e * n * z][:{1: 4, 2: 10, 3: 20}[k]]
+            P = [
+                1,
+                e,
+                n,
+                z,
+                e * e,
+                n * n,
+                z * z,
+                e * n,
+                e * z,
+                n * z,
+                e**3,
+                n**3,
+                z**3,
+                e * e * n,
+                e * e * z,
+                n * n * e,
+                n * n * z,
+                z * z * e,
+                z * z * n,
+                e * n * z,
+            ][: {1: 4, 2: 10, 3: 20}[k]]
             P = np.stack(np.broadcast_arrays(*P), -1)
             m = P.shape[-1]
             rng = np.random.default_rng(k)
@@ -173,12 +203,21 @@ def _exact_geometries():
             dc = np.r_[1.0, 0.02, -0.01, 0.005, rng.normal(0, 0.004, m - 4)]
             dr = np.r_[1.0, -0.015, 0.01, 0.003, rng.normal(0, 0.004, m - 4)]
             return (P @ a) / (P @ dc), (P @ b) / (P @ dr)
+
         return fn
 
     g = {f"poly2d-{k}": poly2d(k) for k in (1, 2, 3)}
     g.update({f"poly3d-{k}": poly3d(k) for k in (1, 2, 3)})
-    g.update({"relief-1": relief(1), "relief-2": relief(2), "projective": projective,
-              "projective-pushbroom": projective_pushbroom, "dlt": dlt, "edlt": edlt})
+    g.update(
+        {
+            "relief-1": relief(1),
+            "relief-2": relief(2),
+            "projective": projective,
+            "projective-pushbroom": projective_pushbroom,
+            "dlt": dlt,
+            "edlt": edlt,
+        }
+    )
     g.update({f"rational-{k}": rational(k) for k in (1, 2, 3)})
     return g
 
@@ -191,7 +230,12 @@ def test_registry_names_and_minimum_gcps():
     assert [minimum_gcps(n) for n in ("poly2d-1", "poly2d-2", "poly2d-3")] == [3, 6, 10]
     assert [minimum_gcps(n) for n in ("poly3d-1", "poly3d-2", "poly3d-3")] == [4, 10, 20]
     assert [minimum_gcps(n) for n in ("relief-1", "relief-2")] == [6, 12]
-    assert [minimum_gcps(n) for n in ("projective", "projective-pushbroom", "dlt", "edlt")] == [4, 5, 6, 7]
+    assert [minimum_gcps(n) for n in ("projective", "projective-pushbroom", "dlt", "edlt")] == [
+        4,
+        5,
+        6,
+        7,
+    ]
     # Ok: "3rd order with the denominator constants fixed to 1 has 78 unknowns, >= 39 GCPs"
     assert [minimum_gcps(f"rational-{k}") for k in (1, 2, 3)] == [7, 19, 39]
     assert n_parameters("rational-3") == 78 and n_parameters("relief-2") == 24
@@ -246,9 +290,10 @@ def test_localize_inverts_project(name, pushbroom_fits, pushbroom_data):
 
 
 def test_localize_dem_relief_iteration_runs_on_a_fitted_model(pushbroom_fits):
-    class Plane:            # a DEM stand-in: 1200 m everywhere
+    class Plane:  # a DEM stand-in: 1200 m everywhere
         def sample(self, lon, lat):
             return np.full(np.shape(lon), 1200.0)
+
     model, _ = pushbroom_fits["rational-1"]
     res = model.localize_dem(np.array([100.0, 2000.0]), np.array([300.0, 3500.0]), Plane())
     assert np.all(res.converged)
@@ -286,8 +331,14 @@ def test_report_fields_and_dict(pushbroom_fits):
     d = rep.to_dict()
     assert d["model"] == "rational-2" and d["n_params"] == 38 and "gcp_residuals" not in d
     assert d["crs"] == "EPSG:32636"
-    _, rep0 = fit_model("poly2d-1", [32.7, 32.9, 32.8, 32.75], [39.8, 39.85, 40.0, 39.9],
-                        np.zeros(4), [0., 100., 50., 20.], [0., 10., 90., 40.])
+    _, rep0 = fit_model(
+        "poly2d-1",
+        [32.7, 32.9, 32.8, 32.75],
+        [39.8, 39.85, 40.0, 39.9],
+        np.zeros(4),
+        [0.0, 100.0, 50.0, 20.0],
+        [0.0, 10.0, 90.0, 40.0],
+    )
     assert np.isnan(rep0.check_rmse) and rep0.to_dict()["check_rmse"] is None
 
 
@@ -330,8 +381,9 @@ def test_regularize_module_on_ill_posed_problem():
         s = np.linalg.svd(A, compute_uv=False)
         assert s[-1] < lam < s[0]
         x = regularize.tikhonov_solve(A, b, lam)
-        np.testing.assert_allclose(x, np.linalg.solve(A.T @ A + lam ** 2 * np.eye(n), A.T @ b),
-                                   rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(
+            x, np.linalg.solve(A.T @ A + lam**2 * np.eye(n), A.T @ b), rtol=1e-6, atol=1e-8
+        )
         errs[name] = np.linalg.norm(x - x_true)
         assert errs[name] < np.linalg.norm(x_ls - x_true) / 10
     lams = np.logspace(-6, 1, 50)
@@ -369,8 +421,16 @@ def test_nan_in_gcps_or_checks_is_an_input_error():
 def test_gcp_csv_round_trip_and_errors(tmp_path, pushbroom_data):
     lon, lat, h, col, row = pushbroom_data[0]
     role = np.where(np.arange(lon.size) % 3 == 0, "check", "gcp")
-    path = write_gcps(tmp_path / "points.csv", [f"P{i}" for i in range(lon.size)],
-                      lon, lat, h, col, row, role=role)
+    path = write_gcps(
+        tmp_path / "points.csv",
+        [f"P{i}" for i in range(lon.size)],
+        lon,
+        lat,
+        h,
+        col,
+        row,
+        role=role,
+    )
     pts = read_gcps(path)
     assert len(pts) == lon.size and pts.id[3] == "P3"
     np.testing.assert_allclose(pts.lon, lon, atol=1e-10)

@@ -4,6 +4,7 @@ noise), through the adjustment engine with the models' registered sets (weighted
 terms for Orun & Natarajan, levelling angles for Toutin), over several random GCP/ICP splits — the issue's criterion: ICP
 RMSE within 20 % of the rigorous model's with 10 GCPs (median over the splits) — and what
 happens with fewer GCPs (``benchmarks/bench_orbital_splits.py`` gives the full table)."""
+
 import numpy as np
 import pytest
 
@@ -37,8 +38,16 @@ def view(request):
 @pytest.fixture(scope="module")
 def summary(view):
     label, meta, cp = view
-    recs = compare_splits(meta, cp, ["orun", "toutin"], (5, 10), reference=RIGOROUS,
-                          n_check=60, n_splits=N_SPLITS, sigma_px=0.3)
+    recs = compare_splits(
+        meta,
+        cp,
+        ["orun", "toutin"],
+        (5, 10),
+        reference=RIGOROUS,
+        n_check=60,
+        n_splits=N_SPLITS,
+        sigma_px=0.3,
+    )
     return label, {(s["model"], s["n_gcp"]): s for s in split_summary(recs)}
 
 
@@ -49,7 +58,7 @@ def test_orun_and_toutin_within_20_percent_of_rigorous_with_10_gcps(summary):
         s = by[(model, 10)]
         assert s["refused"] == 0, (label, model, s["error"])
         assert s["median_ratio"] < 1.2, (label, model, s)
-        assert s["median_condition"] < 1e5, (label, model, s)     # not near-singular
+        assert s["median_condition"] < 1e5, (label, model, s)  # not near-singular
 
 
 @pytest.mark.slow
@@ -64,7 +73,10 @@ def test_few_gcps_degrade_every_model(summary):
         five, ten = by[(model, 5)], by[(model, 10)]
         assert five["median_icp_px"] > ten["median_icp_px"], (label, model)
     for model in (RIGOROUS, "orun"):
-        assert by[(model, 5)]["median_condition"] > by[(model, 10)]["median_condition"], (label, model)
+        assert by[(model, 5)]["median_condition"] > by[(model, 10)]["median_condition"], (
+            label,
+            model,
+        )
     assert by[("toutin", 5)]["median_condition"] < 100, label
 
 
@@ -104,6 +116,7 @@ def test_weighted_parameters_of_the_sets():
     assert all(not any(n.startswith(("omega", "phi")) for n in v) for v in sets.values())
     assert len(sets["orun"]) == 10 and set(priors["orun"]) == {"X_2", "Y_2", "kappa_2"}
     from stereodem.sensor.estimation.adjust import model_set
+
     assert model_set("orun").priors == priors["orun"]
     assert model_set("toutin-full").priors == ToutinModel.PRIORS["toutin-full"]
     assert set(model_set("toutin").priors) == {"tau", "theta"}

@@ -1,5 +1,6 @@
 """``stereodem compare-models`` on the simulated ASTER 3N scene (orbital, physical and generic
 models on one GCP/ICP split)."""
+
 import json
 
 import numpy as np
@@ -22,17 +23,36 @@ def image(tmp_path_factory):
     g, i = pts["gcp"], pts["icp"]
     cat = {k: np.concatenate([g[k], i[k]]) for k in ("lon", "lat", "h", "col", "row")}
     role = ["gcp"] * 30 + ["check"] * 20
-    write_gcps(d / "points.csv", [f"P{k:03d}" for k in range(50)], cat["lon"], cat["lat"], cat["h"],
-               cat["col"], cat["row"], role=role)
+    write_gcps(
+        d / "points.csv",
+        [f"P{k:03d}" for k in range(50)],
+        cat["lon"],
+        cat["lat"],
+        cat["h"],
+        cat["col"],
+        cat["row"],
+        role=role,
+    )
     return d
 
 
 @pytest.mark.slow
 def test_compare_models_table_json_figure(image, tmp_path, capsys):
     out = tmp_path / "cmp"
-    rc = main(["compare-models", str(image / "left.tif"), "--gcps", str(image / "points.csv"),
-               "--models", "poly3d-1,attitude-bias-drift,eop-poly2,orun,toutin,kratky",
-               "--counts", "3,10,30", "-o", str(out)])
+    rc = main(
+        [
+            "compare-models",
+            str(image / "left.tif"),
+            "--gcps",
+            str(image / "points.csv"),
+            "--models",
+            "poly3d-1,attitude-bias-drift,eop-poly2,orun,toutin,kratky",
+            "--counts",
+            "3,10,30",
+            "-o",
+            str(out),
+        ]
+    )
     assert rc == 0
     rec = json.loads((out / "compare.json").read_text())
     assert (out / "compare.md").exists() and (out / "compare.png").stat().st_size > 10000
@@ -61,6 +81,7 @@ def test_compare_models_table_json_figure(image, tmp_path, capsys):
 
 def test_compare_models_refuses_icps_outside_image(image, tmp_path, capsys):
     import csv
+
     rows = list(csv.DictReader(open(image / "points.csv")))
     for r in rows:
         if r["role"] == "check":
@@ -71,8 +92,18 @@ def test_compare_models_refuses_icps_outside_image(image, tmp_path, capsys):
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    rc = main(["compare-models", str(image / "left.tif"), "--gcps", str(bad), "--models", "orun",
-               "-o", str(tmp_path / "o")])
+    rc = main(
+        [
+            "compare-models",
+            str(image / "left.tif"),
+            "--gcps",
+            str(bad),
+            "--models",
+            "orun",
+            "-o",
+            str(tmp_path / "o"),
+        ]
+    )
     assert rc == 1
     assert "1 of 20 check points lie outside the 4100 x 4200 image" in capsys.readouterr().err
 
@@ -80,9 +111,26 @@ def test_compare_models_refuses_icps_outside_image(image, tmp_path, capsys):
 @pytest.mark.slow
 def test_compare_models_over_random_splits(image, tmp_path):
     out = tmp_path / "spl"
-    rc = main(["compare-models", str(image / "left.tif"), "--gcps", str(image / "points.csv"),
-               "--models", "orun,toutin", "--counts", "3,10", "--n-check", "20", "--splits", "3",
-               "--sigma-px", "0.3", "-o", str(out)])
+    rc = main(
+        [
+            "compare-models",
+            str(image / "left.tif"),
+            "--gcps",
+            str(image / "points.csv"),
+            "--models",
+            "orun,toutin",
+            "--counts",
+            "3,10",
+            "--n-check",
+            "20",
+            "--splits",
+            "3",
+            "--sigma-px",
+            "0.3",
+            "-o",
+            str(out),
+        ]
+    )
     assert rc == 0
     res = json.loads((out / "splits.json").read_text())
     assert res["reference"] == "attitude-bias-drift" and res["splits"] == 3
@@ -90,8 +138,11 @@ def test_compare_models_over_random_splits(image, tmp_path):
     assert by[("attitude-bias-drift", 10)]["median_ratio"] == 1.0
     assert {r["split"] for r in res["records"]} == {0, 1, 2}
     # each split has its own check points: the reference's ICP RMSE differs between splits
-    ref = [r["icp_rmse_px"] for r in res["records"] if r["model"] == "attitude-bias-drift"
-           and r["n_gcp"] == 10]
+    ref = [
+        r["icp_rmse_px"]
+        for r in res["records"]
+        if r["model"] == "attitude-bias-drift" and r["n_gcp"] == 10
+    ]
     assert len(set(np.round(ref, 9))) == 3
     assert by[("toutin", 3)]["refused"] == 3 and "at least 4" in by[("toutin", 3)]["error"]
     for m in ("orun", "toutin"):
@@ -100,7 +151,19 @@ def test_compare_models_over_random_splits(image, tmp_path):
 
 
 def test_compare_models_refuses_negative_splits(image, tmp_path, capsys):
-    rc = main(["compare-models", str(image / "left.tif"), "--gcps", str(image / "points.csv"),
-               "--models", "orun", "--splits", "-1", "-o", str(tmp_path / "x")])
+    rc = main(
+        [
+            "compare-models",
+            str(image / "left.tif"),
+            "--gcps",
+            str(image / "points.csv"),
+            "--models",
+            "orun",
+            "--splits",
+            "-1",
+            "-o",
+            str(tmp_path / "x"),
+        ]
+    )
     assert rc == 1
     assert "--splits: expected a count >= 0, got -1" in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """Physical DIMAP ingest: a real Pleiades product (tests/data/dimap, from CNES/shareloc) and a
 SPOT-5 DIMAP written from a simulated SPOT-like model."""
+
 import xml.etree.ElementTree as ET
 from datetime import datetime
 from pathlib import Path
@@ -40,6 +41,7 @@ def test_pleiades_physical_model_agrees_with_the_products_rpc():
     """The vendor's RPC in the same file is a fit to its physical model: ours must agree to a
     small fraction of a pixel inside the RPC's height range (85 +- 575 m)."""
     from stereodem.sensor.io.rpc_formats import read_rpc
+
     m, rpc = read_dimap_physical(PHR), read_rpc(PHR)
     c, r = np.meshgrid(np.linspace(0, m.width - 1, 11), np.linspace(0, m.height - 1, 11))
     for h in (200.0, 400.0, 600.0):
@@ -58,30 +60,49 @@ def test_pleiades_dimap_feeds_the_orbital_models():
     lon, lat = m.localize(cols, rows, 550.0)
     c, r = t.project(lon, lat, 550.0)
     err = np.hypot(c - cols, r - rows)
-    assert np.max(err) < 3.0                                    # pixels of 0.5 m: 1.5 m
-    assert np.max(err[2]) < 0.01                                # the centre line is exact
+    assert np.max(err) < 3.0  # pixels of 0.5 m: 1.5 m
+    assert np.max(err[2]) < 0.01  # the centre line is exact
 
 
 @pytest.fixture()
 def spot5(tmp_path):
     """A SPOT-5-like scene (832 km, 5 m, 0.752 ms lines, 10 deg across track) written as DIMAP."""
-    ref = PushbroomModel.synthetic(31.795, 41.457, width=3000, height=3000, altitude=832e3, gsd=5.0,
-                                   line_period=7.52e-4, cross_track_tilt_deg=10.0, ephemeris_step=30.0)
+    ref = PushbroomModel.synthetic(
+        31.795,
+        41.457,
+        width=3000,
+        height=3000,
+        altitude=832e3,
+        gsd=5.0,
+        line_period=7.52e-4,
+        cross_track_tilt_deg=10.0,
+        ephemeris_step=30.0,
+    )
     los = TopanLOSModel.from_model(ref)
     eph = ref.ephemeris
     sel = (eph.times > ref.t0 - 150) & (eph.times < ref.t0 + 150)
-    t_att = np.arange(ref.t0 - 1.0, ref.t0 + 3.5, 0.125)                  # 8 Hz
+    t_att = np.arange(ref.t0 - 1.0, ref.t0 + 3.5, 0.125)  # 8 Hz
     rows = (t_att - ref.t0) / ref.line_period
     s = los._series(rows)
     ang = np.stack([s["roll"], s["pitch"], s["yaw"]], -1)
     cols = np.arange(ref.width, dtype=float)
     px, py = los.look_angles(cols)
-    path = write_spot5_dimap(tmp_path / "METADATA.DIM", width=ref.width, height=ref.height,
-                             epoch=datetime(2003, 8, 13, 9, 0, 0), ephemeris_times=eph.times[sel],
-                             positions=eph.positions[sel], velocities=eph.velocities[sel],
-                             attitude_times=t_att, angles=ang, psi_x=px, psi_y=py,
-                             line_period=ref.line_period, center_line=1499.5,
-                             center_time=ref.t0 + 1499.5 * ref.line_period)
+    path = write_spot5_dimap(
+        tmp_path / "METADATA.DIM",
+        width=ref.width,
+        height=ref.height,
+        epoch=datetime(2003, 8, 13, 9, 0, 0),
+        ephemeris_times=eph.times[sel],
+        positions=eph.positions[sel],
+        velocities=eph.velocities[sel],
+        attitude_times=t_att,
+        angles=ang,
+        psi_x=px,
+        psi_y=py,
+        line_period=ref.line_period,
+        center_line=1499.5,
+        center_time=ref.t0 + 1499.5 * ref.line_period,
+    )
     return ref, path
 
 
@@ -97,7 +118,9 @@ def test_spot5_dimap_round_trip(spot5):
 def test_dimap_without_physical_part(tmp_path):
     p = tmp_path / "RPC_only.XML"
     p.write_text("<Dimap_Document><Rational_Function_Model/></Dimap_Document>")
-    with pytest.raises(SensorModelError, match="RPC_only.XML: no physical sensor model in this DIMAP"):
+    with pytest.raises(
+        SensorModelError, match="RPC_only.XML: no physical sensor model in this DIMAP"
+    ):
         read_dimap_physical(p)
     bad = tmp_path / "broken.DIM"
     bad.write_text("<Dimap_Document><Data_Strip>")

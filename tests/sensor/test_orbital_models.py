@@ -1,5 +1,6 @@
 """Orbital models (Topan 2009, Orun & Natarajan 1994, Toutin, Kratky) on a simulated ASTER 3N
 scene whose ephemeris and attitude carry biases and drifts."""
+
 import numpy as np
 import pytest
 from helpers.orbital import NOISE_PX, aster_scene, control_points, gauss_newton, icp_rmse
@@ -22,8 +23,12 @@ def scene():
 
 
 def _grid(model, h=(0.0, 1500.0)):
-    c, r, z = np.meshgrid(np.linspace(0, model.width - 1, 7), np.linspace(0, model.height - 1, 7),
-                          np.asarray(h), indexing="ij")
+    c, r, z = np.meshgrid(
+        np.linspace(0, model.width - 1, 7),
+        np.linspace(0, model.height - 1, 7),
+        np.asarray(h),
+        indexing="ij",
+    )
     return c.ravel(), r.ravel(), z.ravel()
 
 
@@ -45,7 +50,9 @@ def test_topan_sets_are_the_19_of_table_4_2():
     assert len(SET_ORDER) == 19
     sizes = [len(EOP_SETS[k]) for k in SET_ORDER]
     assert sizes == [9, 3, 3, 3, 9, 3, 3, 3, 9, 3, 3, 3, 18, 6, 18, 6, 18, 6, 9]
-    assert eop_set("16") == eop_set("(P_S A)_0") == ["X_0", "Y_0", "Z_0", "roll_0", "pitch_0", "yaw_0"]
+    assert (
+        eop_set("16") == eop_set("(P_S A)_0") == ["X_0", "Y_0", "Z_0", "roll_0", "pitch_0", "yaw_0"]
+    )
     with pytest.raises(InputError, match="unknown Topan EOP set"):
         eop_set("P_Q")
 
@@ -58,8 +65,8 @@ def test_eop_poly2_recovers_truth_at_icps_with_10_gcps(scene):
     before = icp_rmse(start, pts["icp"], true=True)
     fitted, cond, _ = gauss_newton(start, pts["gcp"], eop_set("A"))
     after = icp_rmse(fitted, pts["icp"], true=True)
-    assert before > 2.0                      # the metadata is several pixels off
-    assert after < NOISE_PX                  # the truth, to the noise level, at independent points
+    assert before > 2.0  # the metadata is several pixels off
+    assert after < NOISE_PX  # the truth, to the noise level, at independent points
     assert np.isfinite(cond)
 
 
@@ -83,6 +90,7 @@ def test_velocity_sets_are_singular_whatever_the_gcps(scene):
     """Only the turn of V about Z changes the image: V_S0 has rank 1 (Topan's sets 5, 13-19
     blow up)."""
     from stereodem.sensor.models.parameters import project_jacobian
+
     meta, _, _ = scene
     m = TopanLOSModel.from_model(meta)
     pts = control_points(12, seed=9)["gcp"]
@@ -100,9 +108,13 @@ def test_icps_outside_image_refused(scene):
 
 def test_topan_bad_inputs():
     with pytest.raises(SensorModelError, match="monotonic"):
-        TopanLOSModel(width=10, height=10, coefficients={}, psi_x=np.zeros(3), psi_y=[0.0, 0.1, 0.05])
+        TopanLOSModel(
+            width=10, height=10, coefficients={}, psi_x=np.zeros(3), psi_y=[0.0, 0.1, 0.05]
+        )
     with pytest.raises(SensorModelError, match="unknown parameter"):
-        TopanLOSModel(width=10, height=10, coefficients={"Q_0": 1.0}, psi_x=np.zeros(3), psi_y=[0, 0.1, 0.2])
+        TopanLOSModel(
+            width=10, height=10, coefficients={"Q_0": 1.0}, psi_x=np.zeros(3), psi_y=[0, 0.1, 0.2]
+        )
     with pytest.raises(InputError, match="unknown orbital model set"):
         build("orbit-magic", None)
 
@@ -110,6 +122,7 @@ def test_topan_bad_inputs():
 @pytest.mark.parametrize("cls", [TopanLOSModel, OrunNatarajanModel, ToutinModel, KratkyModel])
 def test_sidecar_round_trip(scene, cls, tmp_path):
     from stereodem.sensor.io.sidecar import load_model, save_model
+
     meta, _, _ = scene
     m = cls.from_model(meta)
     m = m.with_parameters(**{n: v + 1e-6 for n, v in list(m.parameters().items())[:2]})

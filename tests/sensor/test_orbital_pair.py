@@ -1,6 +1,7 @@
 """A two-image bundle with Topan's orbital model (simulated ASTER 3N/3B whose ephemeris and
 attitude carry biases and drifts): GCPs, tie points and independent check points in both
 images, through the adjustment engine's bundle."""
+
 import numpy as np
 import pytest
 
@@ -33,19 +34,30 @@ def pair():
     def points(col, row):
         sel = np.concatenate([g, chk])
         role = ["gcp"] * g.size + ["check"] * chk.size
-        return ControlPoints([f"P{k}" for k in sel], P["lon"][sel], P["lat"][sel], P["h"][sel],
-                             col[sel], row[sel], role=role)
+        return ControlPoints(
+            [f"P{k}" for k in sel],
+            P["lon"][sel],
+            P["lat"][sel],
+            P["h"][sel],
+            col[sel],
+            row[sel],
+            role=role,
+        )
 
     ties = np.stack([P["col"][tie], P["row"][tie], cRn[tie], rRn[tie]], -1)
-    return dict(meta=(mL, mR), gcps=(points(P["col"], P["row"]), points(cRn, rRn)), ties=ties,
-                chk=(P["col"][chk], P["row"][chk], cRn[chk], rRn[chk]),
-                truth=np.stack(geodesy.geodetic_to_ecef(P["lon"][chk], P["lat"][chk], P["h"][chk]), -1))
+    return dict(
+        meta=(mL, mR),
+        gcps=(points(P["col"], P["row"]), points(cRn, rRn)),
+        ties=ties,
+        chk=(P["col"][chk], P["row"][chk], cRn[chk], rRn[chk]),
+        truth=np.stack(geodesy.geodetic_to_ecef(P["lon"][chk], P["lat"][chk], P["h"][chk]), -1),
+    )
 
 
 def _ground_rmse(left, right, d):
     c1, r1, c2, r2 = d["chk"]
     p, _ = intersect_rays(*left.rays(c1, r1), *right.rays(c2, r2))
-    return float(np.sqrt(np.mean(np.sum((p - d["truth"]) ** 2, -1))))       # metres, 3-D
+    return float(np.sqrt(np.mean(np.sum((p - d["truth"]) ** 2, -1))))  # metres, 3-D
 
 
 @pytest.mark.slow
@@ -58,8 +70,11 @@ def test_pair_bundle_with_orbital_models(pair):
     tl, tr = TopanLOSModel.from_model(mL), TopanLOSModel.from_model(mR)
     lin = bundle_adjust(tl, tr, pair["ties"], names=(eop_set("A_0") + eop_set("A_1"),) * 2, **kw)
     quad = bundle_adjust(tl, tr, pair["ties"], names=("eop-poly2",) * 2, **kw)
-    got_lin, got_quad = _ground_rmse(lin.left, lin.right, pair), _ground_rmse(quad.left, quad.right, pair)
-    assert before > 5 * ref                   # the metadata is 100 m off in height
+    got_lin, got_quad = (
+        _ground_rmse(lin.left, lin.right, pair),
+        _ground_rmse(quad.left, quad.right, pair),
+    )
+    assert before > 5 * ref  # the metadata is 100 m off in height
     # attitude offsets and rates of Topan's model: the rigorous model's ICP accuracy
     assert got_lin < 1.1 * ref
     # the full second-order set A with 8 GCPs: over-parameterised (worse conditioned, worse ICPs)

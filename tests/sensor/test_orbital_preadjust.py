@@ -1,4 +1,5 @@
 """Topan's pre-adjustment types 1 and 2 through the adjustment engine."""
+
 import pytest
 from helpers.orbital import NOISE_PX, aster_scene, control_points, icp_rmse
 
@@ -31,7 +32,7 @@ def test_type1_fixes_pointing_type2_fixes_the_drift(setup):
     # the attitude rates (set 11, A_1) are freed in the type-2 step
     assert start > 2.0 and after1 < 0.5 * start
     assert after2 < after1
-    assert 2 <= len(t2) <= 4                       # type 1 + at most three EOP iterations
+    assert 2 <= len(t2) <= 4  # type 1 + at most three EOP iterations
     # sequential (Topan's type 2: look angles fitted first, then held) stops short of the
     # joint adjustment of the same 9 unknowns, which reaches the truth to the noise level
     assert after_joint < NOISE_PX and after_joint < after2
@@ -56,5 +57,6 @@ def test_registered_sets_build_from_the_physical_model(setup):
 def test_velocity_set_refused_as_singular(setup):
     model, _, gcp = setup
     from stereodem.core.errors import SensorModelError
+
     with pytest.raises(SensorModelError, match="near-singular normal matrix"):
         adjust_model(model, gcp, eop_set("V_S0"), sigma_px=NOISE_PX)

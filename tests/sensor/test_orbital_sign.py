@@ -1,5 +1,6 @@
 """Topan (2009) Table 4.3 column L: the +1 in his look vector puts stereo intersections about
 1.9e6 m above the terrain along the local vertical; the SPOT Handbook's -1 does not."""
+
 import numpy as np
 import pytest
 
@@ -8,8 +9,8 @@ from stereodem.sensor.geo.intersect import intersect_rays
 from stereodem.sensor.models.orbital import TopanLOSModel
 from stereodem.sensor.models.pushbroom import PushbroomModel
 
-ZONGULDAK = (31.795, 41.457)          # Topan's test field
-TABLE_4_3_L = np.array([1230150.23, 762556.41, 1260608.51])   # H-0 GCP, m (ECEF X, Y, Z RMSE)
+ZONGULDAK = (31.795, 41.457)  # Topan's test field
+TABLE_4_3_L = np.array([1230150.23, 762556.41, 1260608.51])  # H-0 GCP, m (ECEF X, Y, Z RMSE)
 
 
 @pytest.fixture(scope="module")
@@ -37,14 +38,14 @@ def test_flipped_sign_reproduces_table_4_3_column_L_and_right_sign_avoids_it(spo
     lat = ZONGULDAK[1] + rng.uniform(-0.02, 0.02, 20)
     h = rng.uniform(0, 1800, 20)
     wrong = _intersect(t1, t2, +1, lon, lat, h)
-    rmse = np.sqrt(np.mean(wrong ** 2, axis=0))
+    rmse = np.sqrt(np.mean(wrong**2, axis=0))
     # the size and ECEF split of Topan's column L, within 5 %
     assert np.linalg.norm(rmse) == pytest.approx(np.linalg.norm(TABLE_4_3_L), rel=0.05)
     assert np.allclose(rmse, TABLE_4_3_L, rtol=0.05)
     up = geodesy.enu_basis(*ZONGULDAK)[2]
-    assert np.mean(wrong @ up / np.linalg.norm(wrong, axis=1)) > 0.999     # straight up
+    assert np.mean(wrong @ up / np.linalg.norm(wrong, axis=1)) > 0.999  # straight up
     right = _intersect(t1, t2, -1, lon, lat, h)
-    assert np.max(np.linalg.norm(right, axis=1)) < 0.01                      # metres
+    assert np.max(np.linalg.norm(right, axis=1)) < 0.01  # metres
     # and with +1 the model cannot even localise on the ground: its rays point to space
     lo, la = t1.with_los_sign(+1).localize(600.0, 600.0, 0.0)
     assert np.isnan(lo) and np.isnan(la)

@@ -1,4 +1,5 @@
 """Pushbroom sensor model, ephemeris/attitude interpolation and the synthetic orbit builder."""
+
 import time
 
 import numpy as np
@@ -14,6 +15,7 @@ from stereodem.sensor.models.pushbroom import PARAMETERS, DetectorArray, Pushbro
 
 # ---------------------------------------------------------------------------- fixtures
 
+
 @pytest.fixture(scope="module")
 def nadir():
     return PushbroomModel.synthetic(40.4, 39.6, width=2000, height=2200)
@@ -26,8 +28,9 @@ def backward():
 
 @pytest.fixture(scope="module")
 def pair():
-    return PushbroomModel.synthetic_pair(-121.8, 47.0, width=4100, height=4200,
-                                         backward_width=5000, backward_height=5400)
+    return PushbroomModel.synthetic_pair(
+        -121.8, 47.0, width=4100, height=4200, backward_width=5000, backward_height=5400
+    )
 
 
 def _image_samples(model, n, seed):
@@ -43,12 +46,16 @@ def _image_samples(model, n, seed):
 
 # ---------------------------------------------------------------------------- ephemeris
 
+
 def test_lagrange_reproduces_degree7_polynomial_and_its_derivative():
     t = np.arange(0.0, 20.0, 1.3)
-    poly = [Polynomial(np.random.default_rng(k).normal(size=8) * 10.0 ** (3 - np.arange(8))) for k in range(3)]
+    poly = [
+        Polynomial(np.random.default_rng(k).normal(size=8) * 10.0 ** (3 - np.arange(8)))
+        for k in range(3)
+    ]
     pos = np.stack([p(t) for p in poly], -1)
     eph = Ephemeris(t, pos)
-    tq = np.linspace(-1.0, 21.0, 301)                   # includes short extrapolation
+    tq = np.linspace(-1.0, 21.0, 301)  # includes short extrapolation
     want = np.stack([p(tq) for p in poly], -1)
     want_v = np.stack([p.deriv()(tq) for p in poly], -1)
     scale = np.abs(want).max()
@@ -63,7 +70,7 @@ def test_ephemeris_interpolates_circular_orbit():
     t = np.random.default_rng(0).uniform(-55, 55, 500)
     r, v = orbit.state(t)
     pe, ve = eph.state(t)
-    assert np.max(np.linalg.norm(pe - r, axis=-1)) < 1e-4          # 0.1 mm
+    assert np.max(np.linalg.norm(pe - r, axis=-1)) < 1e-4  # 0.1 mm
     assert np.max(np.linalg.norm(ve - v, axis=-1)) < 1e-6
     # velocity from the derivative of the positions when no velocity is given
     eph2 = Ephemeris(eph.times, eph.positions)
@@ -72,17 +79,21 @@ def test_ephemeris_interpolates_circular_orbit():
     assert np.max(np.abs(eph.position(eph.times) - eph.positions)) < 1e-6
     # circular speed: |v_inertial| = sqrt(GM / a)
     from stereodem.sensor.geo.rotations import inertial_velocity
+
     speed = np.linalg.norm(inertial_velocity(r, v), axis=-1)
     np.testing.assert_allclose(speed, np.sqrt(geodesy.GM / orbit.radius), rtol=1e-12)
 
 
-@pytest.mark.parametrize("times, pos", [
-    ([0.0, 1.0, 1.0], np.zeros((3, 3))),
-    ([0.0, 1.0, np.nan], np.zeros((3, 3))),
-    ([0.0, 1.0, 2.0], np.zeros((3, 2))),
-    ([0.0, 1.0, 2.0], np.array([[0, 0, 0], [0, np.nan, 0], [0, 0, 0]], float)),
-    ([0.0], np.zeros((1, 3))),
-])
+@pytest.mark.parametrize(
+    "times, pos",
+    [
+        ([0.0, 1.0, 1.0], np.zeros((3, 3))),
+        ([0.0, 1.0, np.nan], np.zeros((3, 3))),
+        ([0.0, 1.0, 2.0], np.zeros((3, 2))),
+        ([0.0, 1.0, 2.0], np.array([[0, 0, 0], [0, np.nan, 0], [0, 0, 0]], float)),
+        ([0.0], np.zeros((1, 3))),
+    ],
+)
 def test_ephemeris_rejects_bad_samples(times, pos):
     with pytest.raises(SensorModelError):
         Ephemeris(times, pos)
@@ -90,12 +101,18 @@ def test_ephemeris_rejects_bad_samples(times, pos):
 
 def test_attitude_angles_and_quaternions():
     from scipy.spatial.transform import Rotation
+
     t = np.linspace(0, 10, 11)
     ang = 1e-3 * np.stack([np.sin(t), np.cos(0.5 * t), 0.1 * t], -1)
     att = Attitude(t, ang)
-    np.testing.assert_allclose(att.matrix(t), body_to_orbital(ang[:, 0], ang[:, 1], ang[:, 2]), atol=1e-15)
+    np.testing.assert_allclose(
+        att.matrix(t), body_to_orbital(ang[:, 0], ang[:, 1], ang[:, 2]), atol=1e-15
+    )
     mid = att.angles_at(np.array([0.5, 5.5]))
-    assert np.all(np.abs(mid - 1e-3 * np.stack([np.sin([0.5, 5.5]), np.cos([0.25, 2.75]), [0.05, 0.55]], -1)) < 2e-5)
+    assert np.all(
+        np.abs(mid - 1e-3 * np.stack([np.sin([0.5, 5.5]), np.cos([0.25, 2.75]), [0.05, 0.55]], -1))
+        < 2e-5
+    )
     q = Rotation.from_matrix(body_to_orbital(ang[:, 0], ang[:, 1], ang[:, 2])).as_quat()
     attq = Attitude(t, quaternions=q)
     np.testing.assert_allclose(attq.matrix(t), att.matrix(t), atol=1e-12)
@@ -106,9 +123,13 @@ def test_attitude_angles_and_quaternions():
     assert np.max(np.abs(attq.matrix(tq) - want)) < 3e-5
     assert np.max(np.abs(att.matrix(tq) - want)) < 3e-5
     m = attq.matrix(tq)
-    np.testing.assert_allclose(m @ np.swapaxes(m, -1, -2), np.broadcast_to(np.eye(3), m.shape), atol=1e-12)
+    np.testing.assert_allclose(
+        m @ np.swapaxes(m, -1, -2), np.broadcast_to(np.eye(3), m.shape), atol=1e-12
+    )
     const = Attitude.fixed(pitch=0.01)
-    np.testing.assert_allclose(const.matrix(np.zeros(4)), np.broadcast_to(body_to_orbital(0, 0.01, 0), (4, 3, 3)))
+    np.testing.assert_allclose(
+        const.matrix(np.zeros(4)), np.broadcast_to(body_to_orbital(0, 0.01, 0), (4, 3, 3))
+    )
     with pytest.raises(SensorModelError):
         Attitude(t, ang, quaternions=q)
     with pytest.raises(SensorModelError):
@@ -117,18 +138,25 @@ def test_attitude_angles_and_quaternions():
 
 # ---------------------------------------------------------------------------- detectors
 
+
 def test_detector_table_interpolation_and_inversion():
     cols = np.linspace(0, 4100, 11)
-    vec = np.stack([np.full(11, 4.7e-4), 0.192 - 2.1e-5 * cols + 1e-10 * (cols - 2050) ** 2, np.ones(11)], -1)
+    vec = np.stack(
+        [np.full(11, 4.7e-4), 0.192 - 2.1e-5 * cols + 1e-10 * (cols - 2050) ** 2, np.ones(11)], -1
+    )
     det = DetectorArray.from_sight_vectors(vec / np.linalg.norm(vec, axis=1, keepdims=True), cols)
     tx, ty = det.tangents(cols)
     np.testing.assert_allclose(ty, vec[:, 1], atol=1e-15)
-    np.testing.assert_allclose(det.directions(cols), vec / np.linalg.norm(vec, axis=1, keepdims=True), atol=1e-15)
+    np.testing.assert_allclose(
+        det.directions(cols), vec / np.linalg.norm(vec, axis=1, keepdims=True), atol=1e-15
+    )
     q = np.random.default_rng(3).uniform(-50, 4150, 1000)
     _, tyq = det.tangents(q)
     assert np.max(np.abs(det.column(tyq) - q)) < 1e-9
     # look angles as polynomials of the column
-    det2 = DetectorArray.from_look_angles(Polynomial([1e-3, 1e-8]), Polynomial([0.1, -2e-5]), width=4100)
+    det2 = DetectorArray.from_look_angles(
+        Polynomial([1e-3, 1e-8]), Polynomial([0.1, -2e-5]), width=4100
+    )
     txq, tyq = det2.tangents(q)
     np.testing.assert_allclose(txq, np.tan(1e-3 + 1e-8 * q), rtol=1e-14)
     assert np.max(np.abs(det2.column(tyq) - q)) < 1e-9
@@ -137,9 +165,9 @@ def test_detector_table_interpolation_and_inversion():
     det3 = DetectorArray.from_sight_vectors(tab, cols, rows=np.array([0.0, 400.0]))
     np.testing.assert_allclose(det3.tangents(cols, 200.0)[1], vec[:, 1] + 0.005, atol=1e-15)
     assert np.max(np.abs(det3.column(det3.tangents(q, 100.0)[1], 100.0) - q)) < 1e-9
-    with pytest.raises(SensorModelError):          # cross-track angle not monotonic
+    with pytest.raises(SensorModelError):  # cross-track angle not monotonic
         DetectorArray.from_look_angles(0.0, Polynomial([0.0, -1e-3, 1e-6]), width=4000)
-    with pytest.raises(SensorModelError):          # polynomial without a detector count
+    with pytest.raises(SensorModelError):  # polynomial without a detector count
         DetectorArray.from_look_angles(0.0, Polynomial([0.0, -1e-3]))
     # per-detector arrays of look angles
     psi_y = np.arctan(0.1 - 2e-5 * np.arange(500.0))
@@ -148,6 +176,7 @@ def test_detector_table_interpolation_and_inversion():
 
 
 # ---------------------------------------------------------------------------- synthetic models
+
 
 def test_synthetic_geometry(nadir, backward):
     for m in (nadir, backward):
@@ -182,7 +211,9 @@ def test_round_trips_synthetic(which, nadir, backward):
     assert np.max(np.abs(cc - c)) < 1e-6 and np.max(np.abs(rr - r)) < 1e-6
     # ground -> image -> ground, points spread over the scene at random heights
     rng = np.random.default_rng(2)
-    lon2, lat2 = m.localize(rng.uniform(0, m.width - 1, 3000), rng.uniform(0, m.height - 1, 3000), 0.0)
+    lon2, lat2 = m.localize(
+        rng.uniform(0, m.width - 1, 3000), rng.uniform(0, m.height - 1, 3000), 0.0
+    )
     h2 = rng.uniform(-500, 9000, lon2.size)
     c2, r2 = m.project(lon2, lat2, h2)
     lon3, lat3 = m.localize(c2, r2, h2)
@@ -203,11 +234,14 @@ def test_pair_on_one_orbit(pair):
         lon, lat = m.center_lonlat()
         assert abs(lon + 121.8) < 1e-9 and abs(lat - 47.0) < 1e-9
     lag = back.reference_time - nad.reference_time
-    assert 50.0 < lag < 60.0                                  # ASTER: ~55 s
-    assert 0.5 < back.cross_track_tilt_deg < 2.5              # Earth rotation during the lag
+    assert 50.0 < lag < 60.0  # ASTER: ~55 s
+    assert 0.5 < back.cross_track_tilt_deg < 2.5  # Earth rotation during the lag
     # same orbit: the backward ephemeris agrees with the nadir one where both are sampled
     t = np.linspace(back.ephemeris.times[0] + 5, nad.ephemeris.times[-1] - 5, 20)
-    assert np.max(np.linalg.norm(back.ephemeris.position(t) - nad.ephemeris.position(t), axis=-1)) < 1e-3
+    assert (
+        np.max(np.linalg.norm(back.ephemeris.position(t) - nad.ephemeris.position(t), axis=-1))
+        < 1e-3
+    )
     # stereo convergence angle ~ 30 deg at the scene centre; the nadir footprint falls in the
     # backward image (its wider, longer swath)
     o1, d1 = nad.rays((nad.width - 1) / 2, (nad.height - 1) / 2)
@@ -223,7 +257,7 @@ def test_pair_on_one_orbit(pair):
 def test_project_of_many_points_is_exact(nadir):
     c, r, h = _image_samples(nadir, 100_000, seed=5)
     lon, lat = nadir.localize(c, r, h)
-    nadir.project(lon[:10], lat[:10], h[:10])                 # builds the first-guess fit
+    nadir.project(lon[:10], lat[:10], h[:10])  # builds the first-guess fit
     t = time.perf_counter()
     cc, rr = nadir.project(lon, lat, h)
     elapsed = time.perf_counter() - t
@@ -238,17 +272,24 @@ def test_localize_dem_drm(nadir):
     assert res.converged.all()
     print(f"DRM mean iterations {res.mean_iterations:.2f}, max {res.iterations.max()}")
     assert res.mean_iterations <= 5
-    assert np.nanmin(res.h) > 1000                             # real terrain (ellipsoidal heights)
+    assert np.nanmin(res.h) > 1000  # real terrain (ellipsoidal heights)
     cc, rr = nadir.project(res.lon, res.lat, res.h)
     assert np.max(np.hypot(cc - c, rr - r)) < 1e-3
 
 
 # ---------------------------------------------------------------------------- frame chain, parameters
 
+
 def test_attitude_tilt_and_bias_compose_consistently(nadir):
     c, r = np.array([0.0, 999.5, 1999.0]), np.array([0.0, 1100.0, 2199.0])
-    kw = dict(width=nadir.width, height=nadir.height, ephemeris=nadir.ephemeris,
-              detectors=nadir.detectors, line_period=nadir.line_period, t0=nadir.t0)
+    kw = dict(
+        width=nadir.width,
+        height=nadir.height,
+        ephemeris=nadir.ephemeris,
+        detectors=nadir.detectors,
+        line_period=nadir.line_period,
+        t0=nadir.t0,
+    )
     pitch = np.radians(2.0)
     by_tilt = PushbroomModel(along_track_tilt_deg=2.0, **kw)
     by_attitude = PushbroomModel(attitude=Attitude.fixed(pitch=pitch), **kw)
@@ -264,7 +305,9 @@ def test_attitude_tilt_and_bias_compose_consistently(nadir):
 def test_parameters_hook(nadir):
     p = nadir.parameters()
     assert list(p) == list(PARAMETERS) and all(v == 0.0 for v in p.values())
-    moved = nadir.with_parameters(pitch_bias=1e-4, position_offset_y=20.0, look_scale=1e-4, time_offset=0.01)
+    moved = nadir.with_parameters(
+        pitch_bias=1e-4, position_offset_y=20.0, look_scale=1e-4, time_offset=0.01
+    )
     assert nadir.parameters()["pitch_bias"] == 0.0 and moved.parameters()["pitch_bias"] == 1e-4
     lon, lat = nadir.localize([300.0, 1500.0], [200.0, 2000.0], 1000.0)
     c0, r0 = nadir.project(lon, lat, 1000.0)
@@ -282,9 +325,15 @@ def test_parameters_hook(nadir):
 def test_time_varying_attitude_round_trip(nadir):
     t = nadir.ephemeris.times
     ang = 2e-4 * np.stack([np.sin(0.7 * t), np.cos(0.3 * t), np.sin(0.1 * t)], -1)
-    m = PushbroomModel(width=nadir.width, height=nadir.height, ephemeris=nadir.ephemeris,
-                       detectors=nadir.detectors, line_period=nadir.line_period, t0=nadir.t0,
-                       attitude=Attitude(t, ang))
+    m = PushbroomModel(
+        width=nadir.width,
+        height=nadir.height,
+        ephemeris=nadir.ephemeris,
+        detectors=nadir.detectors,
+        line_period=nadir.line_period,
+        t0=nadir.t0,
+        attitude=Attitude(t, ang),
+    )
     c, r, h = _image_samples(m, 2000, seed=6)
     cc, rr = m.project(*m.localize(c, r, h), h)
     assert np.max(np.abs(cc - c)) < 1e-6 and np.max(np.abs(rr - r)) < 1e-6
@@ -296,23 +345,39 @@ def test_bad_input(nadir):
     with pytest.raises(SensorModelError, match="non-finite"):
         nadir.localize([1.0], [np.inf], 0.0)
     with pytest.raises(SensorModelError):
-        PushbroomModel.synthetic(0.0, 85.0, width=10, height=10)   # latitude not overflown
+        PushbroomModel.synthetic(0.0, 85.0, width=10, height=10)  # latitude not overflown
     with pytest.raises(SensorModelError):
-        PushbroomModel(width=10, height=10, ephemeris=nadir.ephemeris, detectors=nadir.detectors,
-                       line_period=-1.0)
+        PushbroomModel(
+            width=10,
+            height=10,
+            ephemeris=nadir.ephemeris,
+            detectors=nadir.detectors,
+            line_period=-1.0,
+        )
 
 
 def test_serialisation_round_trip(nadir):
     import json
 
     from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
+
     t = nadir.ephemeris.times
     att = Attitude(t, 1e-4 * np.stack([np.sin(t), np.cos(t), 0 * t], -1))
-    models = [nadir.with_parameters(roll_bias=1e-5),
-              PushbroomModel(width=500, height=400, ephemeris=nadir.ephemeris, line_period=nadir.line_period,
-                             t0=nadir.t0, attitude=att, cross_track_tilt_deg=3.0,
-                             detectors=DetectorArray.from_look_angles(Polynomial([1e-3, 1e-8]),
-                                                                      Polynomial([0.01, -2e-5]), width=500))]
+    models = [
+        nadir.with_parameters(roll_bias=1e-5),
+        PushbroomModel(
+            width=500,
+            height=400,
+            ephemeris=nadir.ephemeris,
+            line_period=nadir.line_period,
+            t0=nadir.t0,
+            attitude=att,
+            cross_track_tilt_deg=3.0,
+            detectors=DetectorArray.from_look_angles(
+                Polynomial([1e-3, 1e-8]), Polynomial([0.01, -2e-5]), width=500
+            ),
+        ),
+    ]
     for m in models:
         d = json.loads(json.dumps(model_to_dict(m)))
         assert d["type"] == "pushbroom"
@@ -320,12 +385,15 @@ def test_serialisation_round_trip(nadir):
         assert type(back) is PushbroomModel and back.parameters() == m.parameters()
         c, r = np.array([0.0, 250.5, 499.0]), np.array([3.0, 200.0, 399.0])
         np.testing.assert_array_equal(back.localize(c, r, 100.0), m.localize(c, r, 100.0))
-    assert model_from_dict(json.loads(json.dumps(model_to_dict(nadir)))).orbit.raan == nadir.orbit.raan
+    assert (
+        model_from_dict(json.loads(json.dumps(model_to_dict(nadir)))).orbit.raan == nadir.orbit.raan
+    )
 
 
 def test_pair_with_two_tilts():
-    fwd, bwd = PushbroomModel.synthetic_pair(40.4, 39.6, width=800, height=900, first_tilt_deg=20.0,
-                                             backward_tilt_deg=-20.0)
+    fwd, bwd = PushbroomModel.synthetic_pair(
+        40.4, 39.6, width=800, height=900, first_tilt_deg=20.0, backward_tilt_deg=-20.0
+    )
     assert fwd.orbit is bwd.orbit and fwd.along_track_tilt_deg == 20.0
     for m in (fwd, bwd):
         lon, lat = m.center_lonlat()
@@ -340,10 +408,11 @@ def test_lagrange_by_window_equals_gathered_evaluation():
     """Many times in few windows (a tile's lines) take the per-window path: the values and
     derivatives are those of the gathered-coefficient evaluation, bit for bit."""
     from stereodem.sensor.models.ephemeris import _LagrangeTable
+
     rng = np.random.default_rng(0)
     ts = np.cumsum(rng.uniform(0.9, 1.1, 40))
     tab = _LagrangeTable(ts, rng.normal(0, 7e6, (40, 3)), 8)
-    t = rng.uniform(5.0, 9.0, 5000)                      # 4-5 windows: the per-window path
+    t = rng.uniform(5.0, 9.0, 5000)  # 4-5 windows: the per-window path
     w = tab._window(t)
     assert np.unique(w).size <= 16
     x = (t - tab.centre[w]) / tab.half[w]
@@ -370,30 +439,45 @@ def test_pose_table_rays_match_exact_pose(nadir, monkeypatch):
     ASTER's) the direction error is the linear-interpolation bound (|angle''| dt^2 / 8,
     ~1e-8 rad) and stays < 1e-3 px (IFOV units), far below the matching noise (~0.1 px)."""
     from stereodem.sensor.models import pushbroom
+
     t = np.arange(nadir.line_time(-50.0), nadir.line_time(nadir.height + 50.0), 0.01)
     jitter = 2e-5 * np.sin(2 * np.pi * 5.0 * t)
     ang = np.stack([jitter + 1e-4 * np.sin(0.7 * t), 0.5 * jitter, 1e-4 * np.cos(0.3 * t)], -1)
-    m = PushbroomModel(width=nadir.width, height=nadir.height, ephemeris=nadir.ephemeris,
-                       detectors=nadir.detectors, line_period=nadir.line_period, t0=nadir.t0,
-                       attitude=Attitude(t, ang))
+    m = PushbroomModel(
+        width=nadir.width,
+        height=nadir.height,
+        ephemeris=nadir.ephemeris,
+        detectors=nadir.detectors,
+        line_period=nadir.line_period,
+        t0=nadir.t0,
+        attitude=Attitude(t, ang),
+    )
     rng = np.random.default_rng(3)
-    n = 60000                                           # a 512 x 525 tile's worth of matches
+    n = 60000  # a 512 x 525 tile's worth of matches
     col = rng.uniform(700.0, 1212.0, n)
     row = rng.uniform(900.0, 1425.0, n)
-    assert pushbroom._line_table(row) is not None       # the table path is the one tested
-    assert pushbroom._line_table(row[:100]) is None     # few rows: evaluated directly
+    assert pushbroom._line_table(row) is not None  # the table path is the one tested
+    assert pushbroom._line_table(row[:100]) is None  # few rows: evaluated directly
     o, d = m.rays(col, row)
     c_exact, rot_exact = m._exact_pose(row)
     u = m.detectors.directions(col, row)
     d_exact = np.einsum("nij,nj->ni", rot_exact, u)
     d_exact /= np.linalg.norm(d_exact, axis=1, keepdims=True)
     assert np.max(np.linalg.norm(o - c_exact, axis=1)) < 1e-4
-    ifov = np.linalg.norm(np.diff(m.rays(np.array([1000.0, 1001.0]), np.array([1000.0, 1000.0]))[1], axis=0))
+    ifov = np.linalg.norm(
+        np.diff(m.rays(np.array([1000.0, 1001.0]), np.array([1000.0, 1000.0]))[1], axis=0)
+    )
     err = np.linalg.norm(d - d_exact, axis=1)
-    bound = 2e-5 * (2 * np.pi * 5.0) ** 2 * m.line_period ** 2 / 8 * np.sqrt(1.25)
+    bound = 2e-5 * (2 * np.pi * 5.0) ** 2 * m.line_period**2 / 8 * np.sqrt(1.25)
     assert np.max(err) < 1.5 * bound + 1e-12 and np.max(err) < 1e-3 * ifov
-    smooth = PushbroomModel(width=nadir.width, height=nadir.height, ephemeris=nadir.ephemeris,
-                            detectors=nadir.detectors, line_period=nadir.line_period, t0=nadir.t0)
+    smooth = PushbroomModel(
+        width=nadir.width,
+        height=nadir.height,
+        ephemeris=nadir.ephemeris,
+        detectors=nadir.detectors,
+        line_period=nadir.line_period,
+        t0=nadir.t0,
+    )
     c_s, rot_s = smooth._exact_pose(row)
     d_s = np.einsum("nij,nj->ni", rot_s, u)
     d_s /= np.linalg.norm(d_s, axis=1, keepdims=True)
@@ -405,6 +489,6 @@ def test_pose_table_rays_match_exact_pose(nadir, monkeypatch):
     cc, rr = m.project(*m.localize(col, row, h), h)
     assert np.max(np.abs(cc - col)) < 1e-6 and np.max(np.abs(rr - row)) < 1e-6
     # spread-out rows (fewer than POSE_TABLE_ROWS_PER_LINE per line) are evaluated directly
-    monkeypatch.setattr(pushbroom, "POSE_TABLE_MIN_ROWS", 10 ** 9)
+    monkeypatch.setattr(pushbroom, "POSE_TABLE_MIN_ROWS", 10**9)
     o2, d2 = m.rays(col, row)
     np.testing.assert_array_equal(o2, c_exact)

@@ -14,6 +14,7 @@ GDAL 3.10):
   0.1 px), so the comparison passes 1e-8 px (at 1e-10 GDAL gives up on most points and
   returns inf).
 """
+
 import warnings
 
 import numpy as np
@@ -43,8 +44,11 @@ def pleiades1(data_dir):
 
 def _image_points(model, n, hlo, hhi, seed=0):
     rng = np.random.default_rng(seed)
-    return (rng.uniform(0, model.width - 1, n), rng.uniform(0, model.height - 1, n),
-            rng.uniform(hlo, hhi, n))
+    return (
+        rng.uniform(0, model.width - 1, n),
+        rng.uniform(0, model.height - 1, n),
+        rng.uniform(hlo, hhi, n),
+    )
 
 
 def _ground_m(lon1, lat1, lon2, lat2):
@@ -55,8 +59,18 @@ def _ground_m(lon1, lat1, lon2, lat2):
 def _same_coefficients(a, b):
     for attr in ("line_num", "line_den", "samp_num", "samp_den"):
         np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
-    for attr in ("line_off", "samp_off", "line_scale", "samp_scale", "lon_off", "lat_off",
-                 "lon_scale", "lat_scale", "height_off", "height_scale"):
+    for attr in (
+        "line_off",
+        "samp_off",
+        "line_scale",
+        "samp_scale",
+        "lon_off",
+        "lat_off",
+        "lon_scale",
+        "lat_scale",
+        "height_off",
+        "height_scale",
+    ):
         assert getattr(a, attr) == getattr(b, attr), attr
 
 
@@ -69,14 +83,19 @@ def test_reads_real_pleiades_metadata(pleiades, data_dir):
     np.testing.assert_array_equal(pleiades.line_num, ref.line_num_coeff)
     np.testing.assert_array_equal(pleiades.samp_den, ref.samp_den_coeff)
     assert pleiades.samp_off == ref.samp_off and pleiades.lon_scale == ref.long_scale
-    assert pleiades.height_bounds() == (ref.height_off - ref.height_scale, ref.height_off + ref.height_scale)
+    assert pleiades.height_bounds() == (
+        ref.height_off - ref.height_scale,
+        ref.height_off + ref.height_scale,
+    )
 
 
 def test_project_matches_gdal_with_half_pixel_shift(pleiades):
     col, row, h = _image_points(pleiades, 20000, 0.0, 2600.0)
     with RPCTransformer(pleiades.to_rasterio(), RPC_PIXEL_ERROR_THRESHOLD=1e-8) as gdal:
         lon, lat = (np.asarray(v) for v in gdal.xy(row, col, zs=h, offset="center"))
-        g_row, g_col = (np.asarray(v) for v in gdal.rowcol(lon.copy(), lat.copy(), zs=h.copy(), op=np.positive))
+        g_row, g_col = (
+            np.asarray(v) for v in gdal.rowcol(lon.copy(), lat.copy(), zs=h.copy(), op=np.positive)
+        )
     c, r = pleiades.project(lon, lat, h)
     # GDAL pixel/line = ours + 0.5 (GDAL's origin is the pixel corner)
     assert np.max(np.abs(c - (g_col - 0.5))) < 1e-3
@@ -140,8 +159,9 @@ def test_rpb_round_trip_and_gdal_reads_it(pleiades1, tmp_path):
     # GDAL picks the .RPB up as the sidecar of scene.tif and reads the same coefficients
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        with rasterio.open(tmp_path / "scene.tif", "w", driver="GTiff", width=16, height=16,
-                           count=1, dtype="uint8") as ds:
+        with rasterio.open(
+            tmp_path / "scene.tif", "w", driver="GTiff", width=16, height=16, count=1, dtype="uint8"
+        ) as ds:
             ds.write(np.zeros((1, 16, 16), np.uint8))
         with rasterio.open(tmp_path / "scene.tif") as ds:
             gdal_rpc = ds.rpcs
@@ -161,7 +181,9 @@ def test_geotiff_tags_round_trip(pleiades1, tmp_path):
     old = tmp_path / "old.tif"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        with rasterio.open(old, "w", driver="GTiff", width=8, height=8, count=1, dtype="uint8") as ds:
+        with rasterio.open(
+            old, "w", driver="GTiff", width=8, height=8, count=1, dtype="uint8"
+        ) as ds:
             ds.write(np.zeros((1, 8, 8), np.uint8))
     with pytest.raises(RPCError, match="old.tif"):
         RPCModel.from_file(old)
@@ -175,8 +197,18 @@ def test_geotiff_tags_round_trip(pleiades1, tmp_path):
 def _write_rpc_txt(model, path, drop=None, garble=None):
     d = model.to_dict()
     lines = []
-    for k in ("LINE_OFF", "SAMP_OFF", "LAT_OFF", "LONG_OFF", "HEIGHT_OFF", "LINE_SCALE",
-              "SAMP_SCALE", "LAT_SCALE", "LONG_SCALE", "HEIGHT_SCALE"):
+    for k in (
+        "LINE_OFF",
+        "SAMP_OFF",
+        "LAT_OFF",
+        "LONG_OFF",
+        "HEIGHT_OFF",
+        "LINE_SCALE",
+        "SAMP_SCALE",
+        "LAT_SCALE",
+        "LONG_SCALE",
+        "HEIGHT_SCALE",
+    ):
         unit = {"LAT": "degrees", "LON": "degrees", "HEI": "meters"}.get(k[:3], "pixels")
         lines.append(f"{k}: {float(d[k]):+.17g} {unit}")
     for k in COEFF_KEYS:
@@ -200,34 +232,53 @@ def test_rpc_txt_reader(pleiades1, tmp_path):
 def _dimap(model, loc=None):
     """A DIMAP v2 RPC file with ``model`` as Inverse_Model (pixel offsets counted from 1)."""
     d = model.to_dict()
-    inv = "".join(f"<{k}_{i}>{v}</{k}_{i}>" for k in ("SAMP_NUM_COEFF", "SAMP_DEN_COEFF",
-                                                        "LINE_NUM_COEFF", "LINE_DEN_COEFF")
-                  for i, v in enumerate(d[k].split(), start=1))
+    inv = "".join(
+        f"<{k}_{i}>{v}</{k}_{i}>"
+        for k in ("SAMP_NUM_COEFF", "SAMP_DEN_COEFF", "LINE_NUM_COEFF", "LINE_DEN_COEFF")
+        for i, v in enumerate(d[k].split(), start=1)
+    )
     direct = ""
     if loc is not None:
-        direct = "<Direct_Model>" + "".join(
-            f"<{k}_{i}>{v!r}</{k}_{i}>" for k, row in zip(("SAMP_NUM_COEFF", "SAMP_DEN_COEFF",
-                                                           "LINE_NUM_COEFF", "LINE_DEN_COEFF"), loc)
-            for i, v in enumerate(row.tolist(), start=1)) + "</Direct_Model>"
-    val = "".join(f"<{k}>{float(d[k]) + (1.0 if k in ('LINE_OFF', 'SAMP_OFF') else 0.0)!r}</{k}>"
-                  for k in SCALAR_KEYS)
-    return ("<?xml version='1.0' encoding='UTF-8'?>\n<Dimap_Document><Metadata_Identification>"
-            "<METADATA_FORMAT version='2.0'>DIMAP</METADATA_FORMAT><METADATA_PROFILE>PHR_SENSOR"
-            "</METADATA_PROFILE></Metadata_Identification><Rational_Function_Model><Global_RFM>"
-            f"{direct}<Inverse_Model>{inv}</Inverse_Model><RFM_Validity>"
-            "<Direct_Model_Validity_Domain><FIRST_ROW>1</FIRST_ROW><FIRST_COL>1</FIRST_COL>"
-            f"<LAST_ROW>{model.height}</LAST_ROW><LAST_COL>{model.width}</LAST_COL>"
-            f"</Direct_Model_Validity_Domain>{val}</RFM_Validity></Global_RFM>"
-            "</Rational_Function_Model></Dimap_Document>\n")
+        direct = (
+            "<Direct_Model>"
+            + "".join(
+                f"<{k}_{i}>{v!r}</{k}_{i}>"
+                for k, row in zip(
+                    ("SAMP_NUM_COEFF", "SAMP_DEN_COEFF", "LINE_NUM_COEFF", "LINE_DEN_COEFF"), loc
+                )
+                for i, v in enumerate(row.tolist(), start=1)
+            )
+            + "</Direct_Model>"
+        )
+    val = "".join(
+        f"<{k}>{float(d[k]) + (1.0 if k in ('LINE_OFF', 'SAMP_OFF') else 0.0)!r}</{k}>"
+        for k in SCALAR_KEYS
+    )
+    return (
+        "<?xml version='1.0' encoding='UTF-8'?>\n<Dimap_Document><Metadata_Identification>"
+        "<METADATA_FORMAT version='2.0'>DIMAP</METADATA_FORMAT><METADATA_PROFILE>PHR_SENSOR"
+        "</METADATA_PROFILE></Metadata_Identification><Rational_Function_Model><Global_RFM>"
+        f"{direct}<Inverse_Model>{inv}</Inverse_Model><RFM_Validity>"
+        "<Direct_Model_Validity_Domain><FIRST_ROW>1</FIRST_ROW><FIRST_COL>1</FIRST_COL>"
+        f"<LAST_ROW>{model.height}</LAST_ROW><LAST_COL>{model.width}</LAST_COL>"
+        f"</Direct_Model_Validity_Domain>{val}</RFM_Validity></Global_RFM>"
+        "</Rational_Function_Model></Dimap_Document>\n"
+    )
 
 
 def test_dimap_reader_inverse_is_projection_and_direct_seeds_localize(pleiades1, tmp_path):
     m = pleiades1
     # an image -> ground "Direct_Model" in the DIMAP layout: SAMP_* -> lon, LINE_* -> lat of
     # normalised (col, row, H) in the (L, P, H) slots
-    col, row, h = (a.ravel() for a in np.meshgrid(np.linspace(0, m.width - 1, 12),
-                                                   np.linspace(0, m.height - 1, 12),
-                                                   np.linspace(-20, 2610, 6), indexing="ij"))
+    col, row, h = (
+        a.ravel()
+        for a in np.meshgrid(
+            np.linspace(0, m.width - 1, 12),
+            np.linspace(0, m.height - 1, 12),
+            np.linspace(-20, 2610, 6),
+            indexing="ij",
+        )
+    )
     lon, lat = m.localize(col, row, h)
     cn, rn = (col - m.samp_off) / m.samp_scale, (row - m.line_off) / m.line_scale
     hn = (h - m.height_off) / m.height_scale
@@ -243,10 +294,33 @@ def test_dimap_reader_inverse_is_projection_and_direct_seeds_localize(pleiades1,
     assert (back.width, back.height) == (m.width, m.height)
     np.testing.assert_array_equal(back.loc_coeffs, loc)
     # the direct model alone lands within 1e-4 px; Newton then makes it exact
-    v = back.loc_coeffs @ np.stack([np.ones_like(cn), cn, rn, hn, cn * rn, cn * hn, rn * hn, cn**2,
-                                    rn**2, hn**2, cn * rn * hn, cn**3, cn * rn**2, cn * hn**2,
-                                    cn**2 * rn, rn**3, rn * hn**2, cn**2 * hn, rn**2 * hn, hn**3])
-    c_g, r_g = m.project(m.lon_off + m.lon_scale * v[0] / v[1], m.lat_off + m.lat_scale * v[2] / v[3], h)
+    v = back.loc_coeffs @ np.stack(
+        [
+            np.ones_like(cn),
+            cn,
+            rn,
+            hn,
+            cn * rn,
+            cn * hn,
+            rn * hn,
+            cn**2,
+            rn**2,
+            hn**2,
+            cn * rn * hn,
+            cn**3,
+            cn * rn**2,
+            cn * hn**2,
+            cn**2 * rn,
+            rn**3,
+            rn * hn**2,
+            cn**2 * hn,
+            rn**2 * hn,
+            hn**3,
+        ]
+    )
+    c_g, r_g = m.project(
+        m.lon_off + m.lon_scale * v[0] / v[1], m.lat_off + m.lat_scale * v[2] / v[3], h
+    )
     assert np.max(np.hypot(c_g - col, r_g - row)) < 1e-4
     lon2, lat2 = back.localize(col, row, h)
     c2, r2 = back.project(lon2, lat2, h)
@@ -329,8 +403,13 @@ class _Pushbroom(SensorModel):
         x, y, z = geodesy.geodetic_to_ecef(lon0, lat0 + 1.9, 0.0)  # back-looking: satellite north
         u = np.array([x, y, z], float)
         self.u = u / np.linalg.norm(u)
-        north = np.array([-np.sin(np.radians(lat0)) * np.cos(np.radians(lon0)),
-                          -np.sin(np.radians(lat0)) * np.sin(np.radians(lon0)), np.cos(np.radians(lat0))])
+        north = np.array(
+            [
+                -np.sin(np.radians(lat0)) * np.cos(np.radians(lon0)),
+                -np.sin(np.radians(lat0)) * np.sin(np.radians(lon0)),
+                np.cos(np.radians(lat0)),
+            ]
+        )
         v = -north - (-north @ self.u) * self.u  # descending, southward track
         self.v = v / np.linalg.norm(v)
         self.dt = 15.0 / (self.omega * 6371e3)  # one line per 15 m of ground track
@@ -338,8 +417,9 @@ class _Pushbroom(SensorModel):
         self.tilt = np.radians(27.6)
 
     def localize(self, col, row, h):
-        col, row, h = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float),
-                                          np.asarray(h, float))
+        col, row, h = np.broadcast_arrays(
+            np.asarray(col, float), np.asarray(row, float), np.asarray(h, float)
+        )
         t = (row - self.height / 2) * self.dt
         wt = self.omega * t
         pos = self.radius * (np.cos(wt)[..., None] * self.u + np.sin(wt)[..., None] * self.v)

@@ -1,6 +1,7 @@
 """RPC readers for every container (sensor.io.rpc_formats): each file in tests/data/rpc_formats
 (the real Pleiades RPC written in that format's layout, see tests/data/SOURCES.md) must agree
 with rpcm or GDAL, whichever reads it, to 1e-6 px on a grid of points."""
+
 import sys
 import types
 from pathlib import Path
@@ -41,9 +42,15 @@ def truth():
 
 def _grid(m):
     """Ground points of a 9 x 9 x 5 grid of image points and heights (exact localisation)."""
-    c, r, h = (a.ravel() for a in np.meshgrid(np.linspace(0, m.width - 1, 9),
-                                              np.linspace(0, m.height - 1, 9),
-                                              np.linspace(*m.height_bounds(), 5), indexing="ij"))
+    c, r, h = (
+        a.ravel()
+        for a in np.meshgrid(
+            np.linspace(0, m.width - 1, 9),
+            np.linspace(0, m.height - 1, 9),
+            np.linspace(*m.height_bounds(), 5),
+            indexing="ij",
+        )
+    )
     lon, lat = m.localize(c, r, h)
     return lon, lat, h
 
@@ -71,6 +78,7 @@ def _agree_with_gdal(ours, truth):
 
 
 # ----------------------------------------------------------------------------- one per format
+
 
 def test_dimap_v2_agrees_with_rpcm(truth):
     rpc_model, _ = _rpcm()
@@ -104,13 +112,14 @@ def test_ikonos_txt_agrees_with_rpcm(truth):
     path = FILES / "pleiades_ikonos_rpc.txt"
     ours = read_rpc(path)
     _agree_with_rpcm(ours, rpc_model.rpc_from_rpc_file(str(path)), truth)
-    assert ours.loc_coeffs is not None                     # extended IKONOS: direct model kept
-    assert ours.err_bias == pytest.approx(3.31)            # "0003.31 meters"
+    assert ours.loc_coeffs is not None  # extended IKONOS: direct model kept
+    assert ours.err_bias == pytest.approx(3.31)  # "0003.31 meters"
 
 
 def test_rpcm_json_agrees_with_rpcm(truth):
     rpc_model, _ = _rpcm()
     import json
+
     path = FILES / "pleiades_rpcm.json"
     ours = read_rpc(path)
     assert (ours.width, ours.height) == (1024, 1024)
@@ -128,7 +137,7 @@ def test_vrt_agrees_with_gdal(truth):
     path = FILES / "pleiades_rpc.vrt"
     ours = read_rpc(path)
     with rasterio.open(path) as ds:
-        assert ds.rpcs is not None                         # GDAL itself reads the VRT's RPCs
+        assert ds.rpcs is not None  # GDAL itself reads the VRT's RPCs
     assert (ours.width, ours.height) == (1024, 1024)
     _agree_with_gdal(ours, truth)
 
@@ -141,17 +150,23 @@ def test_rpc_txt_with_units_through_gdal_tags(truth):
     assert (ours.width, ours.height) == (1024, 1024)
     _agree_with_gdal(ours, truth)
     rpc_model, _ = _rpcm()
-    _agree_with_rpcm(read_rpc(FILES / "dg_scene_RPC.TXT"),
-                     rpc_model.rpc_from_rpc_file(str(FILES / "dg_scene_RPC.TXT")), truth)
+    _agree_with_rpcm(
+        read_rpc(FILES / "dg_scene_RPC.TXT"),
+        rpc_model.rpc_from_rpc_file(str(FILES / "dg_scene_RPC.TXT")),
+        truth,
+    )
 
 
 # ----------------------------------------------------------------------------- direct models
 
-@pytest.mark.parametrize("name", ["RPC_PHR1A_P_pleiades-dimap2.XML", "pleiades_rpcm.json",
-                                  "pleiades_ikonos_rpc.txt"])
+
+@pytest.mark.parametrize(
+    "name", ["RPC_PHR1A_P_pleiades-dimap2.XML", "pleiades_rpcm.json", "pleiades_ikonos_rpc.txt"]
+)
 def test_direct_model_localisation_agrees_with_rpcm(name, truth):
     rpc_model, _ = _rpcm()
     import json
+
     path = FILES / name
     ours = read_rpc(path, direct=True)
     assert isinstance(ours, DirectRPCModel)
@@ -159,9 +174,16 @@ def test_direct_model_localisation_agrees_with_rpcm(name, truth):
         ref = rpc_model.RPCModel(json.loads(path.read_text())["rpc"], dict_format="rpcm")
     else:
         ref = rpc_model.rpc_from_rpc_file(str(path))
-    assert hasattr(ref, "lon_num")                          # rpcm localises with the direct model too
-    c, r, h = (a.ravel() for a in np.meshgrid(np.linspace(0, 1023, 9), np.linspace(0, 1023, 9),
-                                              np.linspace(*truth.height_bounds(), 5), indexing="ij"))
+    assert hasattr(ref, "lon_num")  # rpcm localises with the direct model too
+    c, r, h = (
+        a.ravel()
+        for a in np.meshgrid(
+            np.linspace(0, 1023, 9),
+            np.linspace(0, 1023, 9),
+            np.linspace(*truth.height_bounds(), 5),
+            indexing="ij",
+        )
+    )
     lon, lat = ours.localize(c, r, h)
     rlon, rlat = (np.asarray(v, float) for v in ref.localization(c, r, h))
     # compared in pixels through the projection
@@ -185,6 +207,7 @@ def test_direct_model_sidecar_round_trip(tmp_path):
 
 
 # ----------------------------------------------------------------------------- bad input
+
 
 def test_no_reader_accepts_names_the_formats_tried(tmp_path):
     p = tmp_path / "mystery.dat"
@@ -220,7 +243,11 @@ def test_other_bad_files(tmp_path):
         read_rpc(vrt)
     assert "\n" not in str(e.value)
     geom = tmp_path / "a.geom"
-    geom.write_text((FILES / "pleiades.geom").read_text().replace("polynomial_format:  B", "polynomial_format:  A"))
+    geom.write_text(
+        (FILES / "pleiades.geom")
+        .read_text()
+        .replace("polynomial_format:  B", "polynomial_format:  A")
+    )
     with pytest.raises(RPCError, match=r"a\.geom.*polynomial_format 'A'"):
         read_rpc(geom)
     v1 = tmp_path / "PHRDIMAP_cut.XML"
@@ -252,6 +279,7 @@ def test_model_files_of_any_rpc_format(tmp_path):
     bad = tmp_path / "notes.json"
     bad.write_text('{"hello": 1}')
     from stereodem.core.errors import SensorModelError
+
     with pytest.raises(SensorModelError) as e:
         load_model(bad)
     assert "notes.json" in str(e.value) and "\n" not in str(e.value)

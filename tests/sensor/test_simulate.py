@@ -27,7 +27,9 @@ def frame_scene():
 
 def test_reproducible_from_seed(frame_scene):
     again = simulate_scene("frame", size=(256, 240), seed=3, noise=1.0)
-    assert np.array_equal(again.left, frame_scene.left) and np.array_equal(again.right, frame_scene.right)
+    assert np.array_equal(again.left, frame_scene.left) and np.array_equal(
+        again.right, frame_scene.right
+    )
     other = simulate_scene("frame", size=(256, 240), seed=4, noise=1.0)
     assert not np.array_equal(other.left, frame_scene.left)
 
@@ -35,8 +37,8 @@ def test_reproducible_from_seed(frame_scene):
 def test_images_are_textured_and_quantised(frame_scene):
     for img in (frame_scene.left, frame_scene.right):
         assert img.dtype == np.uint8 and img.shape == (240, 256)
-        assert img.std() > 10                       # real texture and shading
-        assert (img == 0).mean() < 0.01             # no black (nodata) areas inside the scene
+        assert img.std() > 10  # real texture and shading
+        assert (img == 0).mean() < 0.01  # no black (nodata) areas inside the scene
     sc16 = simulate_scene("frame", size=(64, 64), seed=3, bits=16)
     assert sc16.left.dtype == np.uint16 and sc16.left.max() > 255
 
@@ -49,7 +51,9 @@ def test_rendering_follows_the_exact_models(frame_scene):
     # where the right image shows the same ground (texture correlation around the point)
     p = frame_scene.points[0]
     col, row = frame_scene.right_model.project(p["lon"], p["lat"], p["h"])
-    assert col == pytest.approx(p["col_right"], abs=1e-6) and row == pytest.approx(p["row_right"], abs=1e-6)
+    assert col == pytest.approx(p["col_right"], abs=1e-6) and row == pytest.approx(
+        p["row_right"], abs=1e-6
+    )
     # truth DEM height at the point matches the point's height (DEM is the surface)
     assert frame_scene.truth_dem.sample(p["lon"], p["lat"]) == pytest.approx(p["h"], abs=0.05)
 
@@ -69,7 +73,7 @@ def test_stereo_parallax_is_along_track(frame_scene):
     par = _parallax_per_km(frame_scene.left_model, frame_scene.right_model, 128.0, 120.0)
     # 1000 m of height gives B/H * 1000 m of parallax, B/H = 0.6 by construction
     assert np.hypot(*par) * frame_scene.settings["gsd"] == pytest.approx(600.0, rel=0.1)
-    assert abs(par[1]) > 5 * abs(par[0])                          # along the rows (flight)
+    assert abs(par[1]) > 5 * abs(par[0])  # along the rows (flight)
 
 
 def test_aster_preset_geometry():
@@ -85,14 +89,23 @@ def test_aster_preset_geometry():
 
 def test_write_scene_outputs(tmp_path, frame_scene):
     out = write_scene(frame_scene, tmp_path / "sim")
-    for name in ("left.tif", "right.tif", "left.model.json", "right.model.json", "truth_dem.tif",
-                 "truth_ortho.tif", "points.csv", "scene.json"):
+    for name in (
+        "left.tif",
+        "right.tif",
+        "left.model.json",
+        "right.model.json",
+        "truth_dem.tif",
+        "truth_ortho.tif",
+        "points.csv",
+        "scene.json",
+    ):
         assert (out / name).exists(), name
     with rasterio.open(out / "left.tif") as ds:
         assert ds.rpcs is not None and ds.width == 256
     meta = json.loads((out / "scene.json").read_text())
     assert meta["rpc_fit"]["left"]["check_rms"] < 0.01
     from stereodem.sensor.io.sidecar import load_image_model
+
     m = load_image_model(out / "left.tif")
     c, r = m.project(*frame_scene.left_model.localize(10.0, 20.0, 1500.0), 1500.0)
     assert (float(c), float(r)) == pytest.approx((10.0, 20.0), abs=1e-6)
@@ -109,10 +122,11 @@ def test_bad_input():
 
 def test_aster_preset_uses_real_granule_geometry():
     from stereodem.sensor.simulation.simulate import aster_geometry_parameters
+
     p = aster_geometry_parameters()
-    assert p["bands"]["3B"]["along_deg"] == pytest.approx(-27.7, abs=0.2)     # backward band
-    assert abs(p["bands"]["3N"]["along_deg"]) < 0.1                          # nadir band
-    assert 8 < p["cross_track_right_deg"] < 9                                 # real pointing
+    assert p["bands"]["3B"]["along_deg"] == pytest.approx(-27.7, abs=0.2)  # backward band
+    assert abs(p["bands"]["3N"]["along_deg"]) < 0.1  # nadir band
+    assert 8 < p["cross_track_right_deg"] < 9  # real pointing
     assert 700e3 < p["altitude_m"] < 715e3 and 14.5 < p["gsd_m"] < 15.5
 
 
@@ -120,10 +134,11 @@ def test_aster_preset_uses_real_granule_geometry():
 @pytest.mark.slow
 def test_rpc_fitted_to_aster_preset_reproduces_it(which):
     from stereodem.sensor.estimation.rpcfit import fit_rpc
+
     sc = simulate_scene("aster", size=(600, 600), seed=0, n_points=4)
     model = getattr(sc, f"{which}_model")
     rpc, rep = fit_rpc(model, height_range=(500.0, 4000.0))
-    assert rep.check_max < 0.01                       # px, on the independent check grid
+    assert rep.check_max < 0.01  # px, on the independent check grid
     # and independently of the report: random points
     rng = np.random.default_rng(0)
     c, r, h = rng.uniform(0, 599, 500), rng.uniform(0, 599, 500), rng.uniform(500, 4000, 500)
@@ -136,10 +151,11 @@ def test_system_psf_mtf_and_band_limit():
     """The Gaussian system PSF has the stated MTF at Nyquist, and a lower MTF removes the
     image's high-frequency content (power near Nyquist falls, the low band stays)."""
     from stereodem.sensor.simulation.simulate import psf_sigma
+
     for mtf in (0.3, 0.1):
         s = psf_sigma(mtf)
-        assert np.exp(-2 * np.pi ** 2 * s ** 2 * 0.25) == pytest.approx(mtf, rel=1e-9)
-    assert 0.45 < psf_sigma(0.3) < 0.55                        # ~0.5 GSD for ASTER-like 0.3
+        assert np.exp(-2 * np.pi**2 * s**2 * 0.25) == pytest.approx(mtf, rel=1e-9)
+    assert 0.45 < psf_sigma(0.3) < 0.55  # ~0.5 GSD for ASTER-like 0.3
     with pytest.raises(InputError):
         simulate_scene("frame", size=(64, 64), mtf_nyquist=1.5)
 
@@ -150,11 +166,13 @@ def test_system_psf_mtf_and_band_limit():
         fr = np.fft.fftfreq(a.shape[0])[:, None], np.fft.fftfreq(a.shape[1])[None, :]
         r = np.maximum(np.abs(fr[0]), np.abs(fr[1]))
         return f[(r > 0.02) & (r < 0.1)].sum(), f[r > 0.35].sum()
+
     lo3, hi3 = band_power(simulate_scene("frame", size=(160, 160), seed=3, bits=16, noise=0.0).left)
-    lo1, hi1 = band_power(simulate_scene("frame", size=(160, 160), seed=3, bits=16, noise=0.0,
-                                         mtf_nyquist=0.1).left)
+    lo1, hi1 = band_power(
+        simulate_scene("frame", size=(160, 160), seed=3, bits=16, noise=0.0, mtf_nyquist=0.1).left
+    )
     # Gaussian MTF ratio squared at 0.35 cycle/px (the weakest attenuation in the band)
-    bound = np.exp(-4 * np.pi ** 2 * 0.35 ** 2 * (psf_sigma(0.1) ** 2 - psf_sigma(0.3) ** 2))
+    bound = np.exp(-4 * np.pi**2 * 0.35**2 * (psf_sigma(0.1) ** 2 - psf_sigma(0.3) ** 2))
     print(hi1 / hi3, bound, lo1 / lo3)
     assert hi1 < bound * hi3 and lo1 > 0.7 * lo3
 

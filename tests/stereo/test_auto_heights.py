@@ -1,5 +1,6 @@
 """make_dem without height arguments (heights from sparse matches), with a biased right
 model (relative pointing from sparse matches), and the suspect-DEM report (issue #13)."""
+
 import numpy as np
 import pytest
 from affine import Affine
@@ -21,13 +22,19 @@ def seen_cells(dem, truth_heights_at, models, border=3):
     seen = np.isfinite(ht)
     for m in models:
         c, r = m.project(lon, lat, np.where(seen, ht, 0.0))
-        seen &= (c >= border) & (c <= m.width - 1 - border) & (r >= border) & (r <= m.height - 1 - border)
+        seen &= (
+            (c >= border)
+            & (c <= m.width - 1 - border)
+            & (r >= border)
+            & (r <= m.height - 1 - border)
+        )
     return seen, ht
 
 
 @pytest.mark.slow
 def test_real_rpc_geometry_far_from_the_height_offset_no_height_arguments():
     from helpers.rpc_scene import rpc_steep_pair
+
     L, R, left, right, truth = rpc_steep_pair()
     prod = make_dem(L, R, left, right, StereoSettings(gridding=GriddingSettings(res=2.0)))
     assert prod.info.height_source == "sparse matches" and not prod.info.suspect
@@ -54,8 +61,9 @@ def test_aster_800_no_height_arguments():
     s = simulate_scene("aster", size=(800, 800), seed=0)
     prod = make_dem(s.left, s.right, s.left_model, s.right_model)
     assert prod.info.height_source == "sparse matches"
-    seen, ht = seen_cells(prod.dem, lambda lon, lat: s.truth_dem.sample(lon, lat),
-                          (s.left_model, s.right_model))
+    seen, ht = seen_cells(
+        prod.dem, lambda lon, lat: s.truth_dem.sample(lon, lat), (s.left_model, s.right_model)
+    )
     valid = np.isfinite(prod.dem.heights)[seen]
     assert valid.mean() >= 0.98, valid.mean()
     d = (prod.dem.heights - ht)[seen][valid]
@@ -72,12 +80,14 @@ def test_biased_right_model_is_corrected(aster600):
     biased = ImageCorrectedModel(s.right_model, col_shift=6.0, row_shift=3.0)
     prod = make_dem(s.left, s.right, s.left_model, biased, settings)
     corr = prod.info.pointing["parameters"]
-    assert abs(corr["col_shift"] + 6.0) <= 0.1                       # across the epipolar lines
+    assert abs(corr["col_shift"] + 6.0) <= 0.1  # across the epipolar lines
     assert prod.info.pointing["residual_before_px"]["median"] > 5.5
     assert abs(prod.info.pointing["residual_after_px"]["median"]) < 0.1
+
     def errors(p):
-        seen, ht = seen_cells(p.dem, lambda lon, lat: s.truth_dem.sample(lon, lat),
-                              (s.left_model, s.right_model))
+        seen, ht = seen_cells(
+            p.dem, lambda lon, lat: s.truth_dem.sample(lon, lat), (s.left_model, s.right_model)
+        )
         d = (p.dem.heights - ht)[seen]
         return d[np.isfinite(d)], float(np.isfinite(d).mean())
 
@@ -92,11 +102,19 @@ def test_biased_right_model_is_corrected(aster600):
     # ... which a seed DEM fixes when asked to (the truth, coarsened, stands for SRTM here):
     # then the DEM meets the unbiased pair's accuracy
     from stereodem.core.dem import DEM
+
     coarse = s.truth_dem.heights[::4, ::4]
-    seed = DEM(coarse, s.truth_dem.transform @ Affine.scale(4), s.truth_dem.crs,
-               s.truth_dem.vertical)
-    fixed = make_dem(s.left, s.right, s.left_model, biased,
-                     StereoSettings(RectificationSettings(pointing_uses_seed=True)), seed_dem=seed)
+    seed = DEM(
+        coarse, s.truth_dem.transform @ Affine.scale(4), s.truth_dem.crs, s.truth_dem.vertical
+    )
+    fixed = make_dem(
+        s.left,
+        s.right,
+        s.left_model,
+        biased,
+        StereoSettings(RectificationSettings(pointing_uses_seed=True)),
+        seed_dem=seed,
+    )
     assert fixed.info.pointing["along_observed"]
     corr = fixed.info.pointing["parameters"]
     assert abs(corr["row_shift"] + 3.0) <= 0.1 and abs(corr["col_shift"] + 6.0) <= 0.1
@@ -106,9 +124,14 @@ def test_biased_right_model_is_corrected(aster600):
 
 @pytest.mark.slow
 def test_wrong_height_range_is_reported_suspect(aster600):
-    s = aster600                                    # terrain ~1 900-2 850 m
-    prod = make_dem(s.left, s.right, s.left_model, s.right_model,
-                    StereoSettings(RectificationSettings(height_range=(0, 500))))
+    s = aster600  # terrain ~1 900-2 850 m
+    prod = make_dem(
+        s.left,
+        s.right,
+        s.left_model,
+        s.right_model,
+        StereoSettings(RectificationSettings(height_range=(0, 500))),
+    )
     assert prod.info.suspect and prod.info.height_source == "height range"
     p = prod.info.height_pileup
     assert max(p["low_share"], p["high_share"]) > 0.05
@@ -117,6 +140,7 @@ def test_wrong_height_range_is_reported_suspect(aster600):
 def test_no_texture_without_heights_is_one_line_error():
     from stereodem.sensor.simulation.simulate import frame_pair
     from stereodem.stereo.sparse import SparseMatchError
+
     left, right = frame_pair(40.4, 39.6, 2000.0, (128, 128))
     img = np.full((128, 128), 100, np.uint8)
     with pytest.raises(SparseMatchError) as e:
@@ -134,6 +158,7 @@ def test_overlap_over_the_whole_height_range():
     from stereodem.core.errors import NoOverlapError
     from stereodem.sensor.models.rpc import RPCModel
     from stereodem.stereo.plan import overlap_window
+
     l0 = RPCModel.from_file(DATA / "pleiades" / "img_01_rpc.tif")
     clon, clat = l0.localize(255.5, 255.5, 2400.0)
     d = TARGET[0] - float(clon), TARGET[1] - float(clat)

@@ -1,4 +1,5 @@
 """Epipolar resampling: residual vertical parallax per tile, maps, resampling, disparity range."""
+
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -18,12 +19,24 @@ def _aster_rpc(path):
     im = root.find("RPB/IMAGE")
     g = lambda t: float(im.find(t).text)  # noqa: E731
     co = lambda t: [float(x) for x in im.find(f"{t}List/{t}").text.split()]  # noqa: E731
-    return RPCModel(line_num=co("LINENUMCOEF"), line_den=co("LINEDENCOEF"), samp_num=co("SAMPNUMCOEF"),
-                    samp_den=co("SAMPDENCOEF"), line_off=g("LINEOFFSET"), samp_off=g("SAMPOFFSET"),
-                    line_scale=g("LINESCALE"), samp_scale=g("SAMPSCALE"), lon_off=g("LONGOFFSET"),
-                    lat_off=g("LATOFFSET"), lon_scale=g("LONGSCALE"), lat_scale=g("LATSCALE"),
-                    height_off=g("HEIGHTOFFSET"), height_scale=g("HEIGHTSCALE"),
-                    width=int(root.find(".//IMAGE_COLS").text), height=int(root.find(".//IMAGE_ROWS").text))
+    return RPCModel(
+        line_num=co("LINENUMCOEF"),
+        line_den=co("LINEDENCOEF"),
+        samp_num=co("SAMPNUMCOEF"),
+        samp_den=co("SAMPDENCOEF"),
+        line_off=g("LINEOFFSET"),
+        samp_off=g("SAMPOFFSET"),
+        line_scale=g("LINESCALE"),
+        samp_scale=g("SAMPSCALE"),
+        lon_off=g("LONGOFFSET"),
+        lat_off=g("LATOFFSET"),
+        lon_scale=g("LONGSCALE"),
+        lat_scale=g("LATSCALE"),
+        height_off=g("HEIGHTOFFSET"),
+        height_scale=g("HEIGHTSCALE"),
+        width=int(root.find(".//IMAGE_COLS").text),
+        height=int(root.find(".//IMAGE_ROWS").text),
+    )
 
 
 def _worst_tile(left, right, size, hr, tile=512, **kw):
@@ -85,7 +98,7 @@ def test_frame_pair_projective_and_zero_disparity_at_mean_height():
     x1, x2, _ = virtual_matches(left, right, et.tile.bounds, [2000.0], n=6)
     u1, v1 = apply_map(et.H_left, x1[:, 0], x1[:, 1])
     u2, v2 = apply_map(et.H_right, x2[:, 0], x2[:, 1])
-    assert np.abs(u1 - u2).max() < 0.5          # shear registration: d ~ 0 at the mean height
+    assert np.abs(u1 - u2).max() < 0.5  # shear registration: d ~ 0 at the mean height
     assert np.abs(v1 - v2).max() < 0.1
 
 
@@ -104,7 +117,7 @@ def test_affine_maps_keep_row_scale_and_resample_content():
     img = f(cc, rr).astype(np.float32)
     L, R = et.rectify(img, img)
     assert L.shape == et.shape and L.dtype == np.float32
-    v, u = np.mgrid[0:L.shape[0]:7, 0:L.shape[1]:7].astype(float)
+    v, u = np.mgrid[0 : L.shape[0] : 7, 0 : L.shape[1] : 7].astype(float)
     c, r = apply_map(np.linalg.inv(et.H_left), u, v)
     inside = (c > 2) & (c < 597) & (r > 2) & (r < 597)
     got = L[v.astype(int), u.astype(int)]
@@ -134,6 +147,7 @@ def test_shifted_model_translates_image_coordinates():
 
 def test_unusable_height_range_raises():
     from stereodem.core.errors import InputError
+
     left, right = frame_pair(40.4, 39.6, 2000.0, (256, 256))
     with pytest.raises(InputError):
         rectify_tile(left, right, Tile(0, 0, 256, 256), (3000.0, 1000.0))
@@ -143,8 +157,11 @@ def test_unusable_height_range_raises():
 
 def test_image_correction_affine_inverse_and_partials():
     from stereodem.sensor.models.parameters import project_jacobian
+
     left, _ = frame_pair(40.4, 39.6, 2000.0, (512, 512))
-    cm = ImageCorrectedModel(left, col_shift=2.0, row_shift=-1.0, col_drift_row=1e-3, row_drift_col=-2e-3)
+    cm = ImageCorrectedModel(
+        left, col_shift=2.0, row_shift=-1.0, col_drift_row=1e-3, row_drift_col=-2e-3
+    )
     c0 = np.array([10.0, 250.0, 500.0])
     r0 = np.array([20.0, 260.0, 490.0])
     lon, lat = cm.localize(c0, r0, 1500.0)
@@ -166,6 +183,7 @@ def test_image_correction_affine_inverse_and_partials():
 
 def test_numeric_jacobian_of_pushbroom_parameters():
     from stereodem.sensor.models.parameters import project_jacobian
+
     left, _ = pushbroom_pair(40.4, 39.6, 2000.0, (400, 400), (0.0, -27.6))
     lon, lat = left.localize(np.array([50.0, 200.0]), np.array([60.0, 300.0]), 2000.0)
     h = np.full(2, 2000.0)

@@ -1,4 +1,5 @@
 """Space intersection (closed form, exact models) and gridding to a DEM."""
+
 import numpy as np
 import pytest
 import rasterio
@@ -16,8 +17,11 @@ from stereodem.stereo.tiling import Tile
 
 def _ground(n, seed=0, lon0=40.4, lat0=39.6, spread=0.05):
     rng = np.random.default_rng(seed)
-    return (lon0 + rng.uniform(-spread, spread, n), lat0 + rng.uniform(-spread, spread, n),
-            rng.uniform(1000, 3000, n))
+    return (
+        lon0 + rng.uniform(-spread, spread, n),
+        lat0 + rng.uniform(-spread, spread, n),
+        rng.uniform(1000, 3000, n),
+    )
 
 
 @pytest.mark.parametrize("pair", ["frame", "pushbroom"])
@@ -55,10 +59,10 @@ def test_one_pixel_error_matches_the_geometry():
     lon, lat = L.localize(c1, r1, 2000.0)
     c2, r2 = R.project(lon, lat, 2000.0)
     Hi = np.linalg.inv(et.H_right)
-    along = Hi[:2, 0] / np.linalg.norm(Hi[:2, 0])   # right-image direction of the rectified rows
+    along = Hi[:2, 0] / np.linalg.norm(Hi[:2, 0])  # right-image direction of the rectified rows
     across = np.array([-along[1], along[0]])
     u2, v2 = apply_map(et.H_right, c2, r2)
-    p = intersect_matches(L, R, c1, r1, *apply_map(Hi, u2 - 1.0, v2))   # one rectified pixel
+    p = intersect_matches(L, R, c1, r1, *apply_map(Hi, u2 - 1.0, v2))  # one rectified pixel
     dh = p.h - 2000.0
     assert np.abs(np.abs(dh) - 1 / abs(et.px_per_m)).max() < 0.05 / abs(et.px_per_m)
     assert p.ray_gap.max() < 0.5
@@ -73,7 +77,7 @@ def test_intersect_rays_closed_form():
     o2, d2 = np.array([[0.0, 1, 2]]), np.array([[0.0, 0, 1]])
     p, gap = intersect_rays(o1, d1, o2, d2)
     assert np.allclose(p, [[0, 0.5, 0]]) and gap[0] == pytest.approx(1.0)
-    p, gap = intersect_rays(o1, d1, o1 + [0, 1, 0], d1)          # parallel lines
+    p, gap = intersect_rays(o1, d1, o1 + [0, 1, 0], d1)  # parallel lines
     assert np.isnan(p).all()
 
 
@@ -86,8 +90,15 @@ def test_grid_mean_count_layers_and_utm():
     ys = y0 - np.array([5.0, 20.0, 25.0, 45.0])
     lon, lat = geodesy.crs_to_lonlat(xs, ys, crs)
     h = np.array([100.0, 110.0, 120.0, 500.0])
-    g = grid_points(lon, lat, h, posting=30.0, bounds=(x0, y0 - 90, x0 + 90, y0),
-                    score=np.array([0.9, 0.8, 0.7, 0.5]), ray_gap=np.array([1.0, 2.0, 3.0, 4.0]))
+    g = grid_points(
+        lon,
+        lat,
+        h,
+        posting=30.0,
+        bounds=(x0, y0 - 90, x0 + 90, y0),
+        score=np.array([0.9, 0.8, 0.7, 0.5]),
+        ray_gap=np.array([1.0, 2.0, 3.0, 4.0]),
+    )
     assert g.crs.to_epsg() == 32637 and g.heights.shape == (3, 3)
     assert g.heights[0, 0] == pytest.approx(110.0) and g.count[0, 0] == 3
     assert g.heights[1, 2] == pytest.approx(500.0) and g.count[1, 2] == 1
@@ -120,6 +131,7 @@ def test_grid_write(tmp_path):
     paths = {k: tmp_path / f"{k}.tif" for k in ("dem", "count", "score", "raygap")}
     with rasterio.open(paths["dem"]) as ds:
         from stereodem.core.dem import horizontal_crs  # CRS carries the vertical (#19)
+
         assert ds.dtypes[0] == "float32" and np.isnan(ds.nodata)
         assert horizontal_crs(ds.crs.to_wkt()).to_epsg() == 32637
         assert ds.transform.a == 500.0
@@ -129,7 +141,7 @@ def test_grid_write(tmp_path):
     with rasterio.open(paths["count"]) as ds:
         assert ds.dtypes[0] == "int32" and ds.nodata == 0
         assert np.array_equal(ds.read(1), g.count)
-    back = DEM.from_file(paths["dem"], layers=True)         # the one reader: layers beside it
+    back = DEM.from_file(paths["dem"], layers=True)  # the one reader: layers beside it
     assert np.array_equal(back.count, g.count) and back.count.dtype == np.int32
     assert np.allclose(back.score, g.score, equal_nan=True)
     assert back.edit_mask is None and back.vertical == "ellipsoid"
@@ -142,27 +154,38 @@ def test_grid_gaussian_default_width_follows_point_density(spacing, n_per_cell):
     """Default sigma = max(posting / 2, point spacing): averages of white noise shrink alike."""
     crs = geodesy.utm_crs(40.4, 39.6)
     x0, y0 = geodesy.lonlat_to_crs(40.4, 39.6, crs)
-    xs, ys = np.meshgrid(x0 + np.arange(spacing / 2, 1200, spacing),
-                         y0 + np.arange(spacing / 2, 1200, spacing))
+    xs, ys = np.meshgrid(
+        x0 + np.arange(spacing / 2, 1200, spacing), y0 + np.arange(spacing / 2, 1200, spacing)
+    )
     xs, ys = xs.ravel(), ys.ravel()
     lon, lat = geodesy.crs_to_lonlat(xs, ys, crs)
     noise = np.random.default_rng(1).normal(0, 1.0, xs.size)
     b = (x0, y0, x0 + 1200, y0 + 1200)
     g = grid_points(lon, lat, 1000 + noise, posting=30.0, bounds=b, method="gaussian", crs=crs)
     sig = max(15.0, spacing)
-    g_explicit = grid_points(lon, lat, 1000 + noise, posting=30.0, bounds=b, method="gaussian",
-                             crs=crs, sigma=sig, radius=max(1, int(np.ceil(2 * sig / 30.0))))
+    g_explicit = grid_points(
+        lon,
+        lat,
+        1000 + noise,
+        posting=30.0,
+        bounds=b,
+        method="gaussian",
+        crs=crs,
+        sigma=sig,
+        radius=max(1, int(np.ceil(2 * sig / 30.0))),
+    )
     assert np.array_equal(g.heights, g_explicit.heights, equal_nan=True)
     inner = g.heights[2:-2, 2:-2]
     # about 6 points or more per estimate in both cases: std well below 1 / sqrt(3)
     assert np.std(inner) < 0.45, np.std(inner)
-    radius = 1 if n_per_cell == 4 else 2                  # ceil(2 sigma / posting)
+    radius = 1 if n_per_cell == 4 else 2  # ceil(2 sigma / posting)
     assert (g.count[2:-2, 2:-2] == (2 * radius + 1) ** 2 * n_per_cell).all()
 
 
 def test_tile_by_tile_gridding_equals_gridding_all_points():
     """Cell sums of separate batches, added, give the grid of all points at once."""
     from stereodem.stereo.grid import SUM_LAYERS, GridSpec, accumulate, finish
+
     rng = np.random.default_rng(5)
     crs = geodesy.utm_crs(40.0, 39.5)
     x0, y0 = geodesy.lonlat_to_crs(40.0, 39.5, crs)
@@ -170,16 +193,30 @@ def test_tile_by_tile_gridding_equals_gridding_all_points():
     lon, lat = geodesy.crs_to_lonlat(xs, ys, crs)
     h = 1500 + 0.02 * (xs - x0) + rng.normal(0, 2, xs.size)
     score, gap = rng.uniform(0.5, 1, xs.size), rng.uniform(0, 3, xs.size)
-    b = (np.floor(x0 / 30) * 30 - 60, np.floor(y0 / 30) * 30 - 60,
-         np.ceil((x0 + 3000) / 30) * 30 + 60, np.ceil((y0 + 2000) / 30) * 30 + 60)
+    b = (
+        np.floor(x0 / 30) * 30 - 60,
+        np.floor(y0 / 30) * 30 - 60,
+        np.ceil((x0 + 3000) / 30) * 30 + 60,
+        np.ceil((y0 + 2000) / 30) * 30 + 60,
+    )
     spec = GridSpec.from_bounds(b, 30.0, crs, method="gaussian", sigma=15.0)
-    whole = grid_points(lon, lat, h, posting=30.0, crs=crs, bounds=b, score=score, ray_gap=gap,
-                        method="gaussian", sigma=15.0)
+    whole = grid_points(
+        lon,
+        lat,
+        h,
+        posting=30.0,
+        crs=crs,
+        bounds=b,
+        score=score,
+        ray_gap=gap,
+        method="gaussian",
+        sigma=15.0,
+    )
     total = np.zeros((len(SUM_LAYERS),) + spec.shape)
-    parts = np.array_split(np.argsort(xs), 4)             # four vertical strips, like tiles
+    parts = np.array_split(np.argsort(xs), 4)  # four vertical strips, like tiles
     cells = [accumulate(spec, lon[p], lat[p], h[p], score=score[p], ray_gap=gap[p]) for p in parts]
     for c in cells:
-        assert c.sums.shape[2] < spec.shape[1]           # each batch touches only its window
+        assert c.sums.shape[2] < spec.shape[1]  # each batch touches only its window
         c.add_to(total)
     tiled = finish(spec, total)
     np.testing.assert_array_equal(np.isfinite(tiled.heights), np.isfinite(whole.heights))
@@ -188,9 +225,11 @@ def test_tile_by_tile_gridding_equals_gridding_all_points():
     np.testing.assert_array_equal(tiled.count, whole.count)
     assert sum(c.n_points for c in cells) == xs.size
     cropped = finish(spec, total, crop=True)
-    assert cropped.heights.shape[0] < spec.shape[0] and np.isfinite(cropped.heights[[0, -1], :]).any()
+    assert (
+        cropped.heights.shape[0] < spec.shape[0] and np.isfinite(cropped.heights[[0, -1], :]).any()
+    )
     x_c, y_c = cropped.transform * (0, 0)
-    assert (x_c - b[0]) % 30 == 0 and (b[3] - y_c) % 30 == 0   # same lattice
+    assert (x_c - b[0]) % 30 == 0 and (b[3] - y_c) % 30 == 0  # same lattice
 
 
 def _reference_sums(spec, x, y, h, score, gap, sigma, radius):
@@ -210,11 +249,15 @@ def _reference_sums(spec, x, y, h, score, gap, sigma, radius):
         for dj in range(-radius, radius + 1):
             i, j = i0 + di, j0 + dj
             m = (i >= r0) & (i < r1) & (j >= c0) & (j < c1)
-            w = np.exp(-0.5 * (((i - fi) ** 2 + (j - fj) ** 2)[m] * p ** 2) / sigma ** 2)
+            w = np.exp(-0.5 * (((i - fi) ** 2 + (j - fj) ** 2)[m] * p**2) / sigma**2)
             idx = ((i - r0) * wc + (j - c0))[m]
             ws, wg = w * sok[m], w * gok[m]
             for k, v in enumerate((w, w * h[m], None, ws, ws * score[m], wg, wg * gap[m])):
-                out[k] += np.bincount(idx, v, ncell) if v is not None else np.bincount(idx, minlength=ncell)
+                out[k] += (
+                    np.bincount(idx, v, ncell)
+                    if v is not None
+                    else np.bincount(idx, minlength=ncell)
+                )
     return r0, c0, out.reshape(7, r1 - r0, c1 - c0)
 
 
@@ -223,8 +266,10 @@ def test_gaussian_cell_sums_equal_the_plain_computation_bit_for_bit(where):
     """The gridding's shortcuts (no masks for offsets inside the lattice, shared weights of
     all-finite layers, per-axis squared offsets) change no bit of the sums."""
     from stereodem.stereo.grid import GridSpec, accumulate
-    spec = GridSpec.from_bounds((500000.0, 4000000.0, 503000.0, 4003000.0), 30.0, "EPSG:32637",
-                                sigma=21.0)
+
+    spec = GridSpec.from_bounds(
+        (500000.0, 4000000.0, 503000.0, 4003000.0), 30.0, "EPSG:32637", sigma=21.0
+    )
     rng = np.random.default_rng(3)
     n = 20000
     lo, hi = (500600.0, 502400.0) if where == "interior" else (499990.0, 500700.0)
@@ -234,7 +279,7 @@ def test_gaussian_cell_sums_equal_the_plain_computation_bit_for_bit(where):
     score = rng.uniform(0.5, 1, n)
     gap = rng.uniform(0, 3, n)
     if where == "border":
-        score[::7] = np.nan                      # the weighted score layer differs from w
+        score[::7] = np.nan  # the weighted score layer differs from w
     lon, lat = geodesy.crs_to_lonlat(x, y, spec.crs)
     got = accumulate(spec, lon, lat, h, score=score, ray_gap=gap, xy=(x, y))
     r0, c0, want = _reference_sums(spec, x, y, h, score, gap, 21.0, 2)

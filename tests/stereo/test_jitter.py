@@ -1,4 +1,5 @@
 """Attitude jitter: sum-of-sines fit, attitude injection, and the DEM correction loop."""
+
 import numpy as np
 import pytest
 import rasterio
@@ -16,9 +17,13 @@ from stereodem.sensor.estimation.jitter import (
 def test_fit_sum_of_sines_recovers_two_tones():
     rng = np.random.default_rng(1)
     t = np.sort(rng.uniform(50.0, 53.0, 400))
-    y = (3e-6 * np.sin(2 * np.pi * 1.5 * t + 0.7) + 1e-6 * np.sin(2 * np.pi * 4.2 * t + 2.0)
-         + 2e-7 * (t - 51.5) + 1e-7 * rng.standard_normal(t.size))
-    y[::37] += 5e-5                                         # outliers
+    y = (
+        3e-6 * np.sin(2 * np.pi * 1.5 * t + 0.7)
+        + 1e-6 * np.sin(2 * np.pi * 4.2 * t + 2.0)
+        + 2e-7 * (t - 51.5)
+        + 1e-7 * rng.standard_normal(t.size)
+    )
+    y[::37] += 5e-5  # outliers
     fit = fit_sum_of_sines(t, y, n_sines=2)
     order = np.argsort(fit.frequencies)
     np.testing.assert_allclose(fit.frequencies[order], [1.5, 4.2], atol=0.02)
@@ -29,8 +34,10 @@ def test_fit_sum_of_sines_recovers_two_tones():
 
 def test_attitude_sines_move_the_image_along_track():
     from stereodem.sensor.models.pushbroom import PushbroomModel
-    m = PushbroomModel.synthetic(40.0, 39.6, width=200, height=400, gsd=15.0, line_period=2.2e-3,
-                                 along_track_tilt_deg=-27.6)
+
+    m = PushbroomModel.synthetic(
+        40.0, 39.6, width=200, height=400, gsd=15.0, line_period=2.2e-3, along_track_tilt_deg=-27.6
+    )
     amp = 5e-6
     s = SineSeries(np.array([amp]), np.array([1.0]), np.array([0.0]))
     j = with_attitude_sines(m, s)
@@ -42,7 +49,7 @@ def test_attitude_sines_move_the_image_along_track():
         biased = m.with_parameters(pitch_bias=float(s(m.line_time(rows[k]))))
         cb, rb = biased.project(lon[k], lat[k], 0.0)
         assert abs(r[k] - float(rb)) < 0.02 * abs(float(rb) - rows[k]) + 1e-4
-    assert np.max(np.abs(c - 100.0)) < 0.1 * np.max(np.abs(r - rows))   # mostly along track
+    assert np.max(np.abs(c - 100.0)) < 0.1 * np.max(np.abs(r - rows))  # mostly along track
     assert np.max(np.abs(r - rows)) > 0.1
 
 
@@ -66,20 +73,30 @@ def test_dem_jitter_correction_removes_the_along_track_oscillation():
         dh = z[rr, cc] - sc.truth_dem.sample(lon, lat)
         t, med, n = along_track_profile(dh, sc.right_model, lon, lat, z[rr, cc])
         t, med = t[n >= 20], med[n >= 20]
-        a = np.stack([np.sin(2 * np.pi * f_true * t), np.cos(2 * np.pi * f_true * t),
-                      np.ones_like(t), t - t.mean()], -1)
+        a = np.stack(
+            [
+                np.sin(2 * np.pi * f_true * t),
+                np.cos(2 * np.pi * f_true * t),
+                np.ones_like(t),
+                t - t.mean(),
+            ],
+            -1,
+        )
         c, *_ = np.linalg.lstsq(a, med, rcond=None)
         return float(np.hypot(c[0], c[1]))
 
-    final, corrected, fits, first = dem_with_jitter_correction(sc.left, sc.right, sc.left_model,
-                                                               sc.right_model, sc.truth_dem)
+    final, corrected, fits, first = dem_with_jitter_correction(
+        sc.left, sc.right, sc.left_model, sc.right_model, sc.truth_dem
+    )
     fit = fits["pitch"]
     before, after = amplitude(first.dem), amplitude(final.dem)
-    print(f"jitter: injected 3.5 urad at {f_true} Hz, fitted {1e6 * fit.amplitudes[0]:.2f} urad "
-          f"at {fit.frequencies[0]:.3f} Hz; along-track height error amplitude "
-          f"{before:.2f} m -> {after:.2f} m")
-    assert 4.5 < before < 6.5                    # about +-5 m of height error, as intended
-    assert after <= 0.05 * before                # README: 5.3 m -> 0.09 m
+    print(
+        f"jitter: injected 3.5 urad at {f_true} Hz, fitted {1e6 * fit.amplitudes[0]:.2f} urad "
+        f"at {fit.frequencies[0]:.3f} Hz; along-track height error amplitude "
+        f"{before:.2f} m -> {after:.2f} m"
+    )
+    assert 4.5 < before < 6.5  # about +-5 m of height error, as intended
+    assert after <= 0.05 * before  # README: 5.3 m -> 0.09 m
     assert fit.frequencies[0] == pytest.approx(f_true, abs=0.01)
     assert fit.amplitudes[0] == pytest.approx(3.5e-6, rel=0.05)
 
@@ -100,25 +117,40 @@ def test_dem_command_corrects_jitter_against_the_seed_dem(tmp_path):
     errors = {}
     for flag in ("", "--jitter-correction"):
         out = tmp_path / f"d{flag}"
-        argv = ["dem", str(g), "-o", str(out), "--seed-dem", str(ref), "--dem-vertical", "ellipsoid",
-                "--workers", "1"] + ([flag] if flag else [])
+        argv = [
+            "dem",
+            str(g),
+            "-o",
+            str(out),
+            "--seed-dem",
+            str(ref),
+            "--dem-vertical",
+            "ellipsoid",
+            "--workers",
+            "1",
+        ] + ([flag] if flag else [])
         assert cli.main(argv) == 0
-        errors[flag] = _file_dem_nmad(out / "dem.tif", sc.truth_dem)   # NMAD (raw DEM: blunders)
+        errors[flag] = _file_dem_nmad(out / "dem.tif", sc.truth_dem)  # NMAD (raw DEM: blunders)
         rep = json.loads((out / "dem_report.json").read_text())
     jit = rep["info"]["jitter"]["pitch"]
-    assert jit["frequencies_hz"][0] == pytest.approx(sc.diagnostics["right_jitter"]["frequency_hz"], abs=0.1)
+    assert jit["frequencies_hz"][0] == pytest.approx(
+        sc.diagnostics["right_jitter"]["frequency_hz"], abs=0.1
+    )
     print(f"DEM NMAD vs truth without / with jitter correction: {errors}")
     assert errors["--jitter-correction"] < errors[""], errors
 
 
 # ----------------------------------------------------------------------------- roll jitter
 
+
 def test_attitude_roll_sines_move_the_image_across_track():
     """A roll oscillation acts locally as a roll bias of its value at that line time and
     moves the image across the track (columns), the direction two images observe."""
     from stereodem.sensor.models.pushbroom import PushbroomModel
-    m = PushbroomModel.synthetic(40.0, 39.6, width=200, height=400, gsd=15.0, line_period=2.2e-3,
-                                 along_track_tilt_deg=-27.6)
+
+    m = PushbroomModel.synthetic(
+        40.0, 39.6, width=200, height=400, gsd=15.0, line_period=2.2e-3, along_track_tilt_deg=-27.6
+    )
     s = SineSeries(np.array([20e-6]), np.array([1.0]), np.array([0.3]))
     j = with_attitude_sines(m, s, axis="roll")
     rows = np.array([50.0, 150.0, 250.0, 350.0])
@@ -128,18 +160,19 @@ def test_attitude_roll_sines_move_the_image_across_track():
         biased = m.with_parameters(roll_bias=float(s(m.line_time(rows[k]))))
         cb, _ = biased.project(lon[k], lat[k], 0.0)
         assert abs(c[k] - float(cb)) < 0.02 * abs(float(cb) - 100.0) + 1e-4
-    assert np.max(np.abs(r - rows)) < 0.1 * np.max(np.abs(c - 100.0))   # mostly across track
-    assert np.max(np.abs(c - 100.0)) > 0.5                             # ~0.9 px at 20 urad
+    assert np.max(np.abs(r - rows)) < 0.1 * np.max(np.abs(c - 100.0))  # mostly across track
+    assert np.max(np.abs(c - 100.0)) > 0.5  # ~0.9 px at 20 urad
 
 
 def test_estimate_roll_jitter_recovers_a_sine_from_noisy_parallax():
     from stereodem.sensor.estimation.jitter import estimate_roll_jitter
+
     rng = np.random.default_rng(3)
     t = rng.uniform(56.0, 58.0, 60_000)
-    sens = 4.2e4                                        # px/rad, ASTER 3B order of magnitude
+    sens = 4.2e4  # px/rad, ASTER 3B order of magnitude
     roll = 8e-6 * np.sin(2 * np.pi * 1.3 * t + 1.1)
-    cross = sens * roll + 0.003 + 0.15 * rng.standard_normal(t.size)   # offset + matcher noise
-    cross[::50] += 3.0                                                  # blunders
+    cross = sens * roll + 0.003 + 0.15 * rng.standard_normal(t.size)  # offset + matcher noise
+    cross[::50] += 3.0  # blunders
     fit, diag = estimate_roll_jitter(t, cross, sens)
     assert fit.frequencies[0] == pytest.approx(1.3, abs=0.02)
     assert fit.amplitudes[0] == pytest.approx(8e-6, rel=0.05)
@@ -158,12 +191,19 @@ def test_refine_offsets_is_not_pixel_locked(d_true, v_true):
     import cv2
 
     from stereodem.stereo.jitter import refine_offsets
+
     rng = np.random.default_rng(0)
     left = cv2.GaussianBlur(rng.standard_normal((200, 220)).astype(np.float32), (0, 0), 1.2)
     uu, vv = np.meshgrid(np.arange(220, dtype=np.float32), np.arange(200, dtype=np.float32))
     # right(x, y) = left(x + d, y + v)  <=>  left(u, v) = right(u - d, v - v)
-    right = cv2.remap(left, uu + np.float32(d_true), vv + np.float32(v_true), cv2.INTER_CUBIC,
-                      borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    right = cv2.remap(
+        left,
+        uu + np.float32(d_true),
+        vv + np.float32(v_true),
+        cv2.INTER_CUBIC,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=np.nan,
+    )
     d0 = np.full(left.shape, round(d_true), np.float32)
     v0 = np.full(left.shape, round(v_true), np.float32)
     d, v = refine_offsets(left, right, d0, v0)
@@ -178,16 +218,26 @@ def test_refine_offsets_is_not_pixel_locked(d_true, v_true):
 @pytest.mark.slow
 def test_simulator_injects_roll_and_pitch_jitter():
     from stereodem.sensor.simulation.simulate import simulate_scene
-    plain = simulate_scene("aster", size=(200, 180), right_size=(240, 210), seed=3, n_points=4,
-                           noise=0.0)
-    both = simulate_scene("aster", size=(200, 180), right_size=(240, 210), seed=3, n_points=4,
-                          noise=0.0, jitter=(3.0, 1.5), roll_jitter=(20.0, 1.2))
+
+    plain = simulate_scene(
+        "aster", size=(200, 180), right_size=(240, 210), seed=3, n_points=4, noise=0.0
+    )
+    both = simulate_scene(
+        "aster",
+        size=(200, 180),
+        right_size=(240, 210),
+        seed=3,
+        n_points=4,
+        noise=0.0,
+        jitter=(3.0, 1.5),
+        roll_jitter=(20.0, 1.2),
+    )
     d = both.diagnostics
     assert d["right_jitter"]["axis"] == "pitch" and d["right_roll_jitter"]["axis"] == "roll"
     assert d["right_roll_jitter"]["amplitude_urad"] == 20.0
     assert both.settings["roll_jitter"] == [20.0, 1.2]
     assert d["right_render_error_px"] < 0.01
-    np.testing.assert_array_equal(plain.left, both.left)          # only the right camera moves
+    np.testing.assert_array_equal(plain.left, both.left)  # only the right camera moves
     assert not np.array_equal(plain.right, both.right)
     with pytest.raises(Exception, match="roll jitter"):
         simulate_scene("aster", size=(64, 64), roll_jitter=(5.0, 0.0))
@@ -197,8 +247,28 @@ def test_cli_simulate_roll_jitter(tmp_path):
     import json
 
     from stereodem import cli
-    assert cli.main(["simulate", "--preset", "aster", "--size", "120", "100", "--roll-jitter", "10",
-                     "1.5", "--jitter", "2", "1.0", "-o", str(tmp_path / "s")]) == 0
+
+    assert (
+        cli.main(
+            [
+                "simulate",
+                "--preset",
+                "aster",
+                "--size",
+                "120",
+                "100",
+                "--roll-jitter",
+                "10",
+                "1.5",
+                "--jitter",
+                "2",
+                "1.0",
+                "-o",
+                str(tmp_path / "s"),
+            ]
+        )
+        == 0
+    )
     meta = json.loads((tmp_path / "s" / "scene.json").read_text())
     assert meta["settings"]["roll_jitter"] == [10.0, 1.5]
     assert meta["settings"]["jitter"] == [2.0, 1.0]
@@ -229,8 +299,9 @@ def _file_dem_nmad(path, truth_dem):
 
 
 def _amplitude_at(f, t, y):
-    a = np.stack([np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t), np.ones_like(t),
-                  t - t.mean()], -1)
+    a = np.stack(
+        [np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t), np.ones_like(t), t - t.mean()], -1
+    )
     c, *_ = np.linalg.lstsq(a, y, rcond=None)
     return float(np.hypot(c[0], c[1]))
 
@@ -250,12 +321,14 @@ def test_roll_jitter_from_vertical_parallax_without_reference_dem():
     )
     from stereodem.stereo.settings import StereoSettings
 
-    sc = simulate_scene("aster", size=(500, 700), right_size=(610, 900), seed=5,
-                        roll_jitter=(10.0, 1.5))
+    sc = simulate_scene(
+        "aster", size=(500, 700), right_size=(610, 900), seed=5, roll_jitter=(10.0, 1.5)
+    )
     inj = sc.diagnostics["right_roll_jitter"]
     f, a_true = inj["frequency_hz"], 1e-6 * inj["amplitude_urad"]
     final, corrected, fits, first = dem_with_jitter_correction(
-        sc.left, sc.right, sc.left_model, sc.right_model, None, axes=("roll",))
+        sc.left, sc.right, sc.left_model, sc.right_model, None, axes=("roll",)
+    )
     fit = fits["roll"]
     assert fit.frequencies[0] == pytest.approx(f, abs=0.01)
     # the model: injected minus fitted roll over the 3B time span
@@ -267,26 +340,33 @@ def test_roll_jitter_from_vertical_parallax_without_reference_dem():
     hr = (float(np.nanmin(d0.heights)), float(np.nanmax(d0.heights)))
     measured = {}
     for name, model in (("nominal", sc.right_model), ("corrected", corrected)):
-        vp = measure_vertical_parallax(sc.left, sc.right, sc.left_model, model, StereoSettings(),
-                                       hr, seed_dem=d0)
-        tb, roll, _ = roll_profile(vp["time"], vp["cross_px"], vp["sensitivity_px_per_rad"],
-                                   bin_seconds=8 * sc.right_model.line_period)
+        vp = measure_vertical_parallax(
+            sc.left, sc.right, sc.left_model, model, StereoSettings(), hr, seed_dem=d0
+        )
+        tb, roll, _ = roll_profile(
+            vp["time"],
+            vp["cross_px"],
+            vp["sensitivity_px_per_rad"],
+            bin_seconds=8 * sc.right_model.line_period,
+        )
         measured[name] = _amplitude_at(f, tb, roll)
 
     def errors(products):
         return _dem_nmad(products, sc.truth_dem), float(np.nanmedian(products.dem.score))
 
     (nmad0, score0), (nmad1, score1) = errors(first), errors(final)
-    print(f"roll jitter: injected {1e6 * a_true:.1f} urad at {f} Hz, fitted "
-          f"{1e6 * fit.amplitudes[0]:.2f} urad at {fit.frequencies[0]:.3f} Hz, left in the model "
-          f"{1e6 * left_over:.2f} urad; vertical-parallax roll at {f} Hz {1e6 * measured['nominal']:.2f} "
-          f"-> {1e6 * measured['corrected']:.2f} urad; DEM NMAD {nmad0:.2f} -> {nmad1:.2f} m, "
-          f"median score {score0:.3f} -> {score1:.3f}")
-    assert measured["nominal"] > 0.8 * a_true               # the oscillation is seen
+    print(
+        f"roll jitter: injected {1e6 * a_true:.1f} urad at {f} Hz, fitted "
+        f"{1e6 * fit.amplitudes[0]:.2f} urad at {fit.frequencies[0]:.3f} Hz, left in the model "
+        f"{1e6 * left_over:.2f} urad; vertical-parallax roll at {f} Hz {1e6 * measured['nominal']:.2f} "
+        f"-> {1e6 * measured['corrected']:.2f} urad; DEM NMAD {nmad0:.2f} -> {nmad1:.2f} m, "
+        f"median score {score0:.3f} -> {score1:.3f}"
+    )
+    assert measured["nominal"] > 0.8 * a_true  # the oscillation is seen
     assert fit.amplitudes[0] == pytest.approx(a_true, rel=0.05)
-    assert left_over <= 0.05 * a_true                      # README: 0.24 of 10 urad left
+    assert left_over <= 0.05 * a_true  # README: 0.24 of 10 urad left
     assert measured["corrected"] <= 0.05 * measured["nominal"]
-    assert nmad1 < nmad0 - 0.5 and score1 > score0          # README: 3.54 -> 2.49 m
+    assert nmad1 < nmad0 - 0.5 and score1 > score0  # README: 3.54 -> 2.49 m
     assert "roll" in final.info.jitter and final.info.jitter["roll"]["rounds"]
 
 
@@ -296,6 +376,7 @@ def test_jitter_config_axes():
     from stereodem.config import config_from_dict
     from stereodem.core.errors import InputError
     from stereodem.dem_cli import add_parser, config_from_args
+
     raw = {"inputs": {"left": "a.tif", "right": "b.tif"}, "output": {"dir": "o"}}
     cfg = config_from_dict({**raw, "jitter": {"enabled": True, "axes": "roll"}})
     assert cfg.jitter.axis_names == ("roll",)
@@ -305,6 +386,7 @@ def test_jitter_config_axes():
     with pytest.raises(InputError, match="axes"):
         config_from_dict({**raw, "jitter": {"enabled": True, "axes": "yaw"}})
     import argparse
+
     sub = argparse.ArgumentParser().add_subparsers()
     p = add_parser(sub)
     args = p.parse_args(["a.tif", "b.tif", "-o", "o", "--seed-dem", "s.tif", "--jitter-correction"])
@@ -324,8 +406,9 @@ def test_dem_command_corrects_roll_jitter_without_reference(tmp_path):
     from stereodem.sensor.simulation.aster_granule import write_granule_scene
     from stereodem.sensor.simulation.simulate import simulate_scene
 
-    sc = simulate_scene("aster", size=(500, 700), right_size=(610, 900), seed=5,
-                        roll_jitter=(10.0, 1.5))
+    sc = simulate_scene(
+        "aster", size=(500, 700), right_size=(610, 900), seed=5, roll_jitter=(10.0, 1.5)
+    )
     g = write_granule_scene(sc, tmp_path / "scene", version=4, seed=5)
     errors, reports = {}, {}
     for flag in ([], ["--jitter-correction", "roll"]):
@@ -349,18 +432,27 @@ def test_pitch_and_roll_jitter_together():
     from stereodem.sensor.simulation.simulate import simulate_scene
     from stereodem.stereo.jitter import dem_with_jitter_correction
 
-    sc = simulate_scene("aster", size=(500, 700), right_size=(610, 900), seed=5,
-                        jitter=(3.5, 1.5), roll_jitter=(10.0, 1.1))
+    sc = simulate_scene(
+        "aster",
+        size=(500, 700),
+        right_size=(610, 900),
+        seed=5,
+        jitter=(3.5, 1.5),
+        roll_jitter=(10.0, 1.1),
+    )
     final, corrected, fits, first = dem_with_jitter_correction(
-        sc.left, sc.right, sc.left_model, sc.right_model, sc.truth_dem, axes=("pitch", "roll"))
+        sc.left, sc.right, sc.left_model, sc.right_model, sc.truth_dem, axes=("pitch", "roll")
+    )
     assert fits["pitch"].frequencies[0] == pytest.approx(1.5, abs=0.05)
     assert fits["roll"].frequencies[0] == pytest.approx(1.1, abs=0.05)
     assert fits["roll"].amplitudes[0] == pytest.approx(10e-6, rel=0.2)
     assert fits["pitch"].amplitudes[0] == pytest.approx(3.5e-6, rel=0.2)
 
     before, after = _dem_nmad(first, sc.truth_dem), _dem_nmad(final, sc.truth_dem)
-    print(f"pitch + roll jitter: fits {fits['pitch'].to_dict()['amplitudes']} / "
-          f"{fits['roll'].to_dict()['amplitudes']}; DEM NMAD {before:.2f} -> {after:.2f} m")
+    print(
+        f"pitch + roll jitter: fits {fits['pitch'].to_dict()['amplitudes']} / "
+        f"{fits['roll'].to_dict()['amplitudes']}; DEM NMAD {before:.2f} -> {after:.2f} m"
+    )
     assert after < before
 
 
@@ -370,10 +462,13 @@ def test_resample_to_model_follows_the_attitude_oscillation():
     0.005 px of the exact model everywhere the oscillation moves it by up to ~0.9 px."""
     from stereodem.sensor.models.pushbroom import PushbroomModel
     from stereodem.stereo.jitter import resample_to_model
-    m = PushbroomModel.synthetic(40.0, 39.6, width=300, height=500, gsd=15.0, line_period=2.2e-3,
-                                 along_track_tilt_deg=-27.6)
-    actual = with_attitude_sines(m, SineSeries(np.array([20e-6]), np.array([1.5]), np.array([0.4])),
-                                 axis="roll")
+
+    m = PushbroomModel.synthetic(
+        40.0, 39.6, width=300, height=500, gsd=15.0, line_period=2.2e-3, along_track_tilt_deg=-27.6
+    )
+    actual = with_attitude_sines(
+        m, SineSeries(np.array([20e-6]), np.array([1.5]), np.array([0.4])), axis="roll"
+    )
     cc, rr = np.meshgrid(np.arange(300, dtype=np.float32), np.arange(500, dtype=np.float32))
     col_ramp = resample_to_model(cc, m, actual, 1500.0)
     row_ramp = resample_to_model(rr, m, actual, 1500.0)
@@ -385,15 +480,20 @@ def test_resample_to_model_follows_the_attitude_oscillation():
     ri, ci = r.astype(int), c.astype(int)
     assert np.max(np.abs(col_ramp[ri, ci] - ce)) < 0.005
     assert np.max(np.abs(row_ramp[ri, ci] - re)) < 0.005
-    assert np.max(np.abs(ce - c)) > 0.5                    # the oscillation is there
+    assert np.max(np.abs(ce - c)) > 0.5  # the oscillation is there
 
 
 def test_fit_at_fixed_frequencies_and_phasor_sum():
     from stereodem.sensor.estimation.jitter import add_series, fit_at_frequencies
+
     rng = np.random.default_rng(4)
     t = np.sort(rng.uniform(56.0, 58.0, 300))
-    y = 2e-6 * np.sin(2 * np.pi * 1.3 * t + 0.4) + 3e-8 * (t - 57) + 5e-8 * rng.standard_normal(t.size)
-    y[::29] += 4e-5                                                   # outliers
+    y = (
+        2e-6 * np.sin(2 * np.pi * 1.3 * t + 0.4)
+        + 3e-8 * (t - 57)
+        + 5e-8 * rng.standard_normal(t.size)
+    )
+    y[::29] += 4e-5  # outliers
     fit = fit_at_frequencies(t, y, [1.3])
     assert fit.amplitudes[0] == pytest.approx(2e-6, rel=0.03)
     assert fit.phases[0] == pytest.approx(0.4, abs=0.03)
@@ -407,9 +507,25 @@ def test_fit_at_fixed_frequencies_and_phasor_sum():
 @pytest.mark.parametrize("values", [["5", "0"], ["nan", "1"]])
 def test_cli_simulate_bad_roll_jitter_is_one_line_error(tmp_path, capsys, values):
     from stereodem import cli
+
     out = tmp_path / "sim"
-    assert cli.main(["simulate", "--preset", "aster", "--size", "64", "64", "--roll-jitter",
-                     *values, "-o", str(out)]) == 1
+    assert (
+        cli.main(
+            [
+                "simulate",
+                "--preset",
+                "aster",
+                "--size",
+                "64",
+                "64",
+                "--roll-jitter",
+                *values,
+                "-o",
+                str(out),
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "roll jitter" in err[0] and "Traceback" not in err[0]
     assert not out.exists() or not any(out.iterdir())

@@ -1,5 +1,6 @@
 """The library checks its own inputs (issue #23): ``make_dem`` from Python gives the same
 one-line refusals and the same rasters as ``stereodem dem`` on the same files and settings."""
+
 from __future__ import annotations
 
 import pytest
@@ -15,7 +16,7 @@ from stereodem.sensor.io.sidecar import load_image_model
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 from stereodem.stereo.pipeline import make_dem
 
-HR = ["--height-range", "1000", "3500"]          # the simulated terrain lies at ~1790..2870 m
+HR = ["--height-range", "1000", "3500"]  # the simulated terrain lies at ~1790..2870 m
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +25,7 @@ def sim(tmp_path_factory):
     write_scene(simulate_scene("aster", size=(300, 300), seed=0, n_points=20), d, overwrite=True)
     with rasterio.open(d / "truth_dem.tif") as ds:
         prof, z = ds.profile, ds.read(1)
-    with rasterio.open(d / "seed_feet.tif", "w", **prof) as out:      # heights in feet
+    with rasterio.open(d / "seed_feet.tif", "w", **prof) as out:  # heights in feet
         out.write((z * 3.28084)[None].astype(prof["dtype"]))
     return d
 
@@ -39,11 +40,21 @@ def _python(sim, left, right, argv):
     settings that command line builds."""
     args = cli.build_parser("dem").parse_args([str(a) for a in argv])
     cfg = config_from_args(args)
-    seed = (DEM.from_file(cfg.inputs.seed_dem, vertical=cfg.inputs.seed_dem_vertical)
-            if cfg.inputs.seed_dem else None)
-    return make_dem(read_image(left), read_image(right), load_image_model(left),
-                    load_image_model(right), cfg.stereo, seed_dem=seed,
-                    left_dtype=image_dtype(left), right_dtype=image_dtype(right))
+    seed = (
+        DEM.from_file(cfg.inputs.seed_dem, vertical=cfg.inputs.seed_dem_vertical)
+        if cfg.inputs.seed_dem
+        else None
+    )
+    return make_dem(
+        read_image(left),
+        read_image(right),
+        load_image_model(left),
+        load_image_model(right),
+        cfg.stereo,
+        seed_dem=seed,
+        left_dtype=image_dtype(left),
+        right_dtype=image_dtype(right),
+    )
 
 
 @pytest.mark.parametrize("case", ["same_image_twice", "seed_dem_in_feet"])
@@ -65,16 +76,28 @@ def test_make_dem_refuses_what_the_command_refuses(sim, tmp_path, capsys, case):
 
 @pytest.mark.slow
 def test_make_dem_gives_the_commands_rasters(sim, tmp_path, capsys):
-    argv = ["dem", sim / "left.tif", sim / "right.tif", "-o", tmp_path / "out", "--workers", "1",
-            *HR]
+    argv = [
+        "dem",
+        sim / "left.tif",
+        sim / "right.tif",
+        "-o",
+        tmp_path / "out",
+        "--workers",
+        "1",
+        *HR,
+    ]
     code, err = _cli(argv, capsys)
     assert code == 0, err
     # the command runs under its thread budget (--workers 1): the library call at the same
     # thread count (older BLAS/OpenCV builds round differently with more threads)
     with thread_budget(1):
         products = _python(sim, sim / "left.tif", sim / "right.tif", argv)
-    for name, layer in (("dem", products.dem.heights), ("score", products.dem.score),
-                        ("count", products.dem.count), ("raygap", products.dem.ray_gap)):
+    for name, layer in (
+        ("dem", products.dem.heights),
+        ("score", products.dem.score),
+        ("count", products.dem.count),
+        ("raygap", products.dem.ray_gap),
+    ):
         with rasterio.open(tmp_path / "out" / f"{name}.tif") as ds:
             assert ds.read(1).tobytes() == layer.tobytes(), name
     assert products.info.status == "ok" and products.info.base_to_height > 0.5

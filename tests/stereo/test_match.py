@@ -1,5 +1,6 @@
 """Dense matching (stereo.match): Middlebury cones, synthetic sub-pixel shifts, vertical
 search, no-data, per-pixel ranges, OpenCV SGBM conventions."""
+
 import warnings
 
 import cv2
@@ -11,6 +12,7 @@ from stereodem.core.errors import InputError
 from stereodem.stereo.match import MatchResult, match_rectified, zncc_at
 
 # ----------------------------------------------------------------------------- data
+
 
 @pytest.fixture(scope="module")
 def cones(data_dir):
@@ -34,8 +36,9 @@ def texture(x, y, seed=0, n=60):
     ph = rng.uniform(0, 2 * np.pi, n)
     out = np.zeros(np.broadcast(x, y).shape)
     for i in range(n):
-        out += np.cos(2 * np.pi * f[i] * (np.cos(th[i]) * x + np.sin(th[i]) * y) + ph[i]) \
-            / np.sqrt(f[i])
+        out += np.cos(2 * np.pi * f[i] * (np.cos(th[i]) * x + np.sin(th[i]) * y) + ph[i]) / np.sqrt(
+            f[i]
+        )
     return (100 + 10 * out).astype(np.float32)
 
 
@@ -54,10 +57,11 @@ def shifted_pair(grid, a, b=0.0, v=0.0):
 
 
 def rms(e):
-    return float(np.sqrt(np.nanmean(e ** 2)))
+    return float(np.sqrt(np.nanmean(e**2)))
 
 
 # ----------------------------------------------------------------------------- cones
+
 
 def cones_figures(result, truth, occ):
     nonocc = occ == 255  # Middlebury: white = non-occluded (GT is 0 only where occluded)
@@ -73,19 +77,22 @@ def cones_figures(result, truth, occ):
 def test_cones_occlusion_encoding(cones):
     _, _, truth, occ = cones
     assert set(np.unique(occ)) == {0, 255}
-    assert np.all(occ[truth == 0] == 0)            # unknown truth is marked occluded
-    assert 0.1 < np.mean(occ == 0) < 0.2           # occlusions are the minority
+    assert np.all(occ[truth == 0] == 0)  # unknown truth is marked occluded
+    assert 0.1 < np.mean(occ == 0) < 0.2  # occlusions are the minority
     assert truth.max() <= 60
 
 
-@pytest.mark.parametrize("kwargs, max_bad, min_density, max_bad_valid", [
-    # measured: bad 13.4 %, density 89.9 %, bad among valid 3.7 %
-    (dict(matcher="ncc", levels=0), 0.145, 0.88, 0.045),
-    # measured (2 levels, margin 2): bad 23.1 %, density 79.8 %, bad among valid 3.5 %
-    (dict(matcher="ncc"), 0.245, 0.78, 0.045),
-    # measured: bad 5.2 %, density 97.4 %, bad among valid 2.7 %
-    (dict(matcher="sgm"), 0.06, 0.96, 0.035),
-])
+@pytest.mark.parametrize(
+    "kwargs, max_bad, min_density, max_bad_valid",
+    [
+        # measured: bad 13.4 %, density 89.9 %, bad among valid 3.7 %
+        (dict(matcher="ncc", levels=0), 0.145, 0.88, 0.045),
+        # measured (2 levels, margin 2): bad 23.1 %, density 79.8 %, bad among valid 3.5 %
+        (dict(matcher="ncc"), 0.245, 0.78, 0.045),
+        # measured: bad 5.2 %, density 97.4 %, bad among valid 2.7 %
+        (dict(matcher="sgm"), 0.06, 0.96, 0.035),
+    ],
+)
 def test_cones_error_rate(cones, kwargs, max_bad, min_density, max_bad_valid):
     left, right, truth, occ = cones
     result = match_rectified(left, right, (0, 60), **kwargs)
@@ -110,14 +117,15 @@ def test_cones_score_layer(cones):
 
 # ----------------------------------------------------------------------------- sub-pixel
 
+
 @pytest.mark.parametrize("levels", [0, None])
 @pytest.mark.parametrize("a, b", [(3.3, 0.0), (2.0, 0.03)])
 def test_synthetic_subpixel(grid, a, b, levels):
     left, right, truth = shifted_pair(grid, a, b)
     r = match_rectified(left, right, (0, 12), levels=levels)
     err = r.disparity - truth
-    assert np.isfinite(err).mean() > 0.9         # measured 0.92 (border = window + shift)
-    assert rms(err) < 0.08                        # measured 0.060 (const), 0.065 (ramp)
+    assert np.isfinite(err).mean() > 0.9  # measured 0.92 (border = window + shift)
+    assert rms(err) < 0.08  # measured 0.060 (const), 0.065 (ramp)
     assert np.nanmax(np.abs(err)) < 0.5
 
 
@@ -137,6 +145,7 @@ def test_pixel_locking_of_parabola(grid):
 
 
 # ----------------------------------------------------------------------------- vertical
+
 
 @pytest.mark.parametrize("v", [1.0, -1.0])
 def test_vertical_search(grid, v):
@@ -165,6 +174,7 @@ def test_vertical_search_coarse_to_fine(grid):
 
 # ----------------------------------------------------------------------------- no-data
 
+
 def test_nodata_is_invalid_and_does_not_contaminate(grid):
     left, right, truth = shifted_pair(grid, 3.3)
     ref = match_rectified(left, right, (0, 8), levels=0)
@@ -174,14 +184,14 @@ def test_nodata_is_invalid_and_does_not_contaminate(grid):
     right_nd[140:160, 40:60] = np.nan
     r = match_rectified(left_nd, right_nd, (0, 8), levels=0)
     h = 3  # half window (7x7)
-    assert np.all(np.isnan(r.disparity[80 - h:100 + h, 80 - h:100 + h]))
+    assert np.all(np.isnan(r.disparity[80 - h : 100 + h, 80 - h : 100 + h]))
     assert np.all(np.isnan(r.score[80:100, 80:100]))
     # left pixels whose right window (x - d) touches the right no-data
-    assert np.all(np.isnan(r.disparity[140 - h:160 + h, 44 - h:63 + h]))
+    assert np.all(np.isnan(r.disparity[140 - h : 160 + h, 44 - h : 63 + h]))
     # away from the no-data (window + disparity + sub-pixel neighbour), results are unchanged
     far = np.ones(left.shape, bool)
-    far[80 - 2 * h - 10:100 + 2 * h + 10, 80 - 2 * h - 10:100 + 2 * h + 10] = False
-    far[140 - 2 * h - 10:160 + 2 * h + 10, 40 - 2 * h - 10:60 + 2 * h + 20] = False
+    far[80 - 2 * h - 10 : 100 + 2 * h + 10, 80 - 2 * h - 10 : 100 + 2 * h + 10] = False
+    far[140 - 2 * h - 10 : 160 + 2 * h + 10, 40 - 2 * h - 10 : 60 + 2 * h + 20] = False
     a, b = ref.disparity[far], r.disparity[far]
     assert np.array_equal(np.isnan(a), np.isnan(b))
     assert np.nanmax(np.abs(a - b)) < 1e-3
@@ -200,6 +210,7 @@ def test_nodata_pyramid_and_sgm(grid, matcher):
 
 
 # ----------------------------------------------------------------------------- ranges
+
 
 @pytest.mark.parametrize("matcher", ["ncc", "sgm"])
 def test_negative_disparity_range(grid, matcher):
@@ -224,14 +235,14 @@ def test_coarse_to_fine_on_ramp(grid):
         r = match_rectified(left, right, (0, 40), levels=levels)
         assert r.info["levels"] == levels
         assert np.isfinite(r.disparity).mean() > 0.8  # measured 0.85 / 0.83
-        assert rms(r.disparity - truth) < 0.09        # measured 0.079 / 0.081
+        assert rms(r.disparity - truth) < 0.09  # measured 0.079 / 0.081
 
 
 def test_sgm_recovers_ramp_with_opencv_conventions(grid):
     left, right, truth = shifted_pair(grid, 2.0, 0.03)
     r = match_rectified(left, right, (0, 40), matcher="sgm")  # 41 -> numDisparities 48
     ok = np.isfinite(r.disparity)
-    assert ok.mean() > 0.9            # left border kept thanks to the padding
+    assert ok.mean() > 0.9  # left border kept thanks to the padding
     assert ok[:, :20].mean() > 0.8
     assert rms(r.disparity - truth) < 0.25
     # fractional output (1/16 px), not integers only
@@ -240,7 +251,7 @@ def test_sgm_recovers_ramp_with_opencv_conventions(grid):
 
 def test_per_pixel_range_maps(grid):
     left, right, truth = shifted_pair(grid, 2.0, 0.03)
-    seed = truth + 1.0                     # a seed disparity map 1 px off, +/- 3 px
+    seed = truth + 1.0  # a seed disparity map 1 px off, +/- 3 px
     r = match_rectified(left, right, (seed - 3, seed + 3))
     assert np.isfinite(r.disparity).mean() > 0.8
     assert rms(r.disparity - truth) < 0.08  # measured 0.066
@@ -263,7 +274,7 @@ def test_zncc_at_truth_is_high(grid):
 
 def test_texture_mask(grid):
     left, right, _ = shifted_pair(grid, 3.0)
-    left[50:120, 50:120] = 100.0            # flat patch
+    left[50:120, 50:120] = 100.0  # flat patch
     right[50:120, 47:117] = 100.0
     r = match_rectified(left, right, (0, 8), levels=0)
     assert np.all(np.isnan(r.disparity[60:110, 60:110]))
@@ -288,18 +299,20 @@ def test_input_errors(grid):
 
 # ----------------------------------------------------------------------------- refinement
 
+
 def test_smooth_fill_bridges_wide_holes():
     """A hole much wider than the kernel takes the surrounding ramp, not the map's median."""
     from stereodem.stereo.refine import _smooth_fill
+
     yy, xx = np.mgrid[0:200, 0:200].astype(np.float32)
     d = 0.05 * xx
     holed = d.copy()
-    holed[:, 120:170] = np.nan                       # 50 px wide, sigma 3
+    holed[:, 120:170] = np.nan  # 50 px wide, sigma 3
     out = _smooth_fill(holed, 3.0)
     assert np.isfinite(out).all()
     err = np.abs(out - d)[:, 120:170]
-    assert np.median(err) < 1.0, np.median(err)      # the median fill is 3.5 px off there
-    assert np.abs(out - d)[:, 20:100].max() < 0.05   # away from the hole: the plain smoothing
+    assert np.median(err) < 1.0, np.median(err)  # the median fill is 3.5 px off there
+    assert np.abs(out - d)[:, 20:100].max() < 0.05  # away from the hole: the plain smoothing
 
 
 @pytest.fixture(scope="module")
@@ -325,6 +338,7 @@ def test_refine_keeps_confirmed_detail_and_drops_noise(wavy_pair):
     when its sub-window structure is noise on a smooth surface (refined error then lower
     than with the first pass's detail kept)."""
     from stereodem.stereo.refine import refine_disparity
+
     left, right, truth = wavy_pair
     inner = np.s_[20:-20, 20:-20]
     # real relief, resolved by the first pass
@@ -354,11 +368,12 @@ def test_rounded_seed_is_the_rounded_float_median():
     """The score layer's warp seed (uint8 median on rounded values when the span allows)
     equals rint of the float32 5x5 median of the hole-filled map, both branches."""
     from stereodem.stereo.match import _fill_seed, _rounded_seed
+
     rng = np.random.default_rng(3)
-    for span in (60.0, 900.0):                      # uint8 branch, float32 branch
+    for span in (60.0, 900.0):  # uint8 branch, float32 branch
         d = (np.round(rng.uniform(-span / 3, span, (70, 90)) * 16) / 16).astype(np.float32)
         d[rng.random(d.shape) < 0.05] = np.nan
-        d[10, :] = np.nan                           # a whole row of holes
+        d[10, :] = np.nan  # a whole row of holes
         ref = np.rint(_fill_seed(d, 0.0))
         assert np.array_equal(_rounded_seed(d), ref)
 
@@ -370,8 +385,9 @@ def test_sgm_stretch_and_score_match_textbook_forms():
     from numpy.lib.stride_tricks import sliding_window_view as windows
 
     from stereodem.stereo.match import _fill_seed, _to_uint8
+
     rng = np.random.default_rng(4)
-    left = rng.normal(100, 20, (40, 1500)).astype(np.float32)   # several row blocks
+    left = rng.normal(100, 20, (40, 1500)).astype(np.float32)  # several row blocks
     right = rng.normal(100, 20, (40, 1500)).astype(np.float32)
     left[5, 7] = np.nan
     l8, r8 = _to_uint8(left, right)
@@ -379,22 +395,29 @@ def test_sgm_stretch_and_score_match_textbook_forms():
     lo, hi = np.percentile(v[np.isfinite(v)][:: max(1, v.size // 400_000)], [1.0, 99.0])
     ref = np.clip((right.astype(np.float64) - lo) * (255.0 / (hi - lo)) + 0.5, 0, 255)
     assert np.array_equal(r8, ref.astype(np.uint8))
-    assert l8[5, 7] == 0 and np.array_equal(np.delete(l8.ravel(), 5 * 1500 + 7),
-        np.delete(np.clip((left.astype(np.float64) - lo) * (255.0 / (hi - lo)) + 0.5, 0,
-                          255).ravel(), 5 * 1500 + 7).astype(np.uint8))
+    assert l8[5, 7] == 0 and np.array_equal(
+        np.delete(l8.ravel(), 5 * 1500 + 7),
+        np.delete(
+            np.clip((left.astype(np.float64) - lo) * (255.0 / (hi - lo)) + 0.5, 0, 255).ravel(),
+            5 * 1500 + 7,
+        ).astype(np.uint8),
+    )
     left, right = left[:, :60].copy(), right[:, :60].copy()
     left[5, 7] = 1.0
     d = rng.uniform(0, 4, left.shape).astype(np.float32)
     s = zncc_at(left, right, d)
     seed = np.rint(_fill_seed(d, 0.0)).astype(int)
     cols = np.arange(60)[None, :] - seed
-    warped = np.where((cols >= 0) & (cols < 60),
-                      np.take_along_axis(right, np.clip(cols, 0, 59), axis=1), np.nan)
+    warped = np.where(
+        (cols >= 0) & (cols < 60), np.take_along_axis(right, np.clip(cols, 0, 59), axis=1), np.nan
+    )
     a = windows(left.astype(np.float64), (7, 7))
     b = windows(warped.astype(np.float64), (7, 7))
     a = a - a.mean(axis=(-2, -1), keepdims=True)
     b = b - b.mean(axis=(-2, -1), keepdims=True)
-    ref = (a * b).sum(axis=(-2, -1)) / np.sqrt((a * a).sum(axis=(-2, -1)) * (b * b).sum(axis=(-2, -1)))
+    ref = (a * b).sum(axis=(-2, -1)) / np.sqrt(
+        (a * a).sum(axis=(-2, -1)) * (b * b).sum(axis=(-2, -1))
+    )
     inner = s[3:-3, 3:-3]
     assert np.isnan(s[:3]).all() and np.isnan(s[:, -3:]).all()
     both = np.isfinite(ref)

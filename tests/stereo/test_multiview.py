@@ -1,5 +1,6 @@
 """N-view DEMs (issue 26 item 1): pair choice, per-cell fusion and its layers, and
 ``stereodem dem IMG1 IMG2 IMG3`` on a simulated pushbroom triplet."""
+
 import json
 
 import numpy as np
@@ -26,9 +27,18 @@ CRS = "EPSG:32633"
 
 def _dem(heights, x0=500000.0, y1=4000000.0, posting=10.0, score=0.9, gap=0.5):
     h = np.asarray(heights, np.float32)
-    g = MapGrid(Affine(posting, 0, x0, 0, -posting, y1), h.shape[1], h.shape[0], geodesy.utm_crs(15.0, 36.0))
-    return DEM(h, g.transform, g.crs, "ellipsoid", count=np.ones(h.shape, np.int32),
-               score=np.full(h.shape, score, np.float32), ray_gap=np.full(h.shape, gap, np.float32))
+    g = MapGrid(
+        Affine(posting, 0, x0, 0, -posting, y1), h.shape[1], h.shape[0], geodesy.utm_crs(15.0, 36.0)
+    )
+    return DEM(
+        h,
+        g.transform,
+        g.crs,
+        "ellipsoid",
+        count=np.ones(h.shape, np.int32),
+        score=np.full(h.shape, score, np.float32),
+        ray_gap=np.full(h.shape, gap, np.float32),
+    )
 
 
 def test_fusion_layers_by_hand():
@@ -36,7 +46,7 @@ def test_fusion_layers_by_hand():
     the numbers worked out by hand, and cells seen by fewer pairs have fewer heights."""
     a = _dem(np.full((4, 5), 100.0))
     b = _dem(np.full((4, 5), 101.0))
-    c = _dem(np.full((4, 5), 130.0), x0=500010.0)           # one cell east: a 6-column union
+    c = _dem(np.full((4, 5), 130.0), x0=500010.0)  # one cell east: a 6-column union
     c.heights[0, 0] = 100.6
     f = fuse_dems([a, b, c], [1.0, 1.0, 1.0])
     assert f.grid.shape == (4, 6) and f.transform.c == 500000.0
@@ -46,7 +56,9 @@ def test_fusion_layers_by_hand():
     # two kept heights of σ 1 m that scatter by 0.5 m about their mean: formal σ 1/sqrt(2)
     assert f.sigma[1, 1] == pytest.approx(1 / np.sqrt(2), rel=1e-6)
     # cell (0, 1): c's corner 100.6 agrees: mean of 100, 101, 100.6
-    assert f.count[0, 1] == 3 and f.heights[0, 1] == pytest.approx((100 + 101 + 100.6) / 3, abs=1e-4)
+    assert f.count[0, 1] == 3 and f.heights[0, 1] == pytest.approx(
+        (100 + 101 + 100.6) / 3, abs=1e-4
+    )
     # column 0: only a and b; column 5: only c (one height: no NMAD, σ the pair's)
     assert f.count[2, 0] == 2 and f.count[2, 5] == 1 and f.heights[2, 5] == pytest.approx(130.0)
     assert np.isnan(f.nmad[2, 5]) and f.sigma[2, 5] == pytest.approx(1.0)
@@ -65,7 +77,7 @@ def test_fusion_layers_by_hand():
 
 def test_fusion_refuses_other_lattices():
     a = _dem(np.full((3, 3), 1.0))
-    b = _dem(np.full((3, 3), 1.0), x0=500005.0)              # half a cell off
+    b = _dem(np.full((3, 3), 1.0), x0=500005.0)  # half a cell off
     with pytest.raises(InputError, match="not whole"):
         fuse_dems([a, b], [1.0, 1.0])
     with pytest.raises(InputError, match="one positive σ"):
@@ -75,12 +87,14 @@ def test_fusion_refuses_other_lattices():
 @pytest.fixture(scope="module")
 def triplet():
     """A pushbroom triplet (+15, 0, -15 deg: B/H 0.3, 0.6, 0.3) with noisy images (6 DN)."""
-    return simulate_views("pushbroom", angles=(15.0, 0.0, -15.0), size=(240, 240), seed=1, noise=6.0)
+    return simulate_views(
+        "pushbroom", angles=(15.0, 0.0, -15.0), size=(240, 240), seed=1, noise=6.0
+    )
 
 
 def test_choose_pairs_names_isolated_image(triplet):
     lo, hi = triplet.truth_dem.height_range()
-    far = PushbroomModel.synthetic_pair(16.5, 37.5, width=240, height=240)[0]   # another scene
+    far = PushbroomModel.synthetic_pair(16.5, 37.5, width=240, height=240)[0]  # another scene
     plan = choose_pairs(triplet.models + [far], 0.5 * (lo + hi), names=["a", "b", "c", "far"])
     assert [(c.i, c.j) for c in plan.pairs] == [(0, 1), (0, 2), (1, 2)]
     bh = {(c.i, c.j): c.base_to_height for c in plan.pairs}
@@ -88,7 +102,7 @@ def test_choose_pairs_names_isolated_image(triplet):
     assert plan.skipped == {3: "overlaps no other image"}
     assert plan.to_dict(["a", "b", "c", "far"])["skipped_images"][0]["name"] == "far"
     few = choose_pairs(triplet.models, 0.5 * (lo + hi), max_pairs=1)
-    assert [(c.i, c.j) for c in few.pairs] == [(0, 2)]       # the widest base wins
+    assert [(c.i, c.j) for c in few.pairs] == [(0, 2)]  # the widest base wins
     with pytest.raises(InputError, match="no usable pair"):
         choose_pairs(triplet.models, 0.5 * (lo + hi), min_base_to_height=0.9)
 
@@ -96,8 +110,8 @@ def test_choose_pairs_names_isolated_image(triplet):
 def _errors(dem_path, truth):
     with rasterio.open(dem_path) as ds:
         z = ds.read(1)
-        rows, cols = np.mgrid[0:ds.height, 0:ds.width]
-        t = ds.transform                                      # north-up
+        rows, cols = np.mgrid[0 : ds.height, 0 : ds.width]
+        t = ds.transform  # north-up
         x, y = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e
         lon, lat = geodesy.crs_to_lonlat(x.ravel(), y.ravel(), ds.crs)
     return z - truth.sample(lon, lat).reshape(z.shape)
@@ -123,8 +137,12 @@ def test_dem_cli_triplet(triplet, tmp_path, capsys):
     lo, hi = triplet.truth_dem.height_range()
     out = tmp_path / "out"
     hr = [str(lo - 50), str(hi + 50)]
-    assert main(["dem", *paths, "-o", str(out), "--height-range", *hr, "--res", "30",
-                 "--workers", "1"]) == 0
+    assert (
+        main(
+            ["dem", *paths, "-o", str(out), "--height-range", *hr, "--res", "30", "--workers", "1"]
+        )
+        == 0
+    )
     assert "fused from 3 pair(s)" in capsys.readouterr().out
     rep = json.loads((out / "dem_report.json").read_text())["multiview"]
     assert [(r["left"], r["right"]) for r in rep["pair_runs"]] == [(0, 1), (0, 2), (1, 2)]
@@ -140,18 +158,22 @@ def test_dem_cli_triplet(triplet, tmp_path, capsys):
     with rasterio.open(out / "dem.tif") as ds:
         b = ds.bounds
         crs = ds.crs.to_wkt()
-    st = StereoSettings(RectificationSettings(height_range=(lo - 50, hi + 50)),
-                        gridding=GriddingSettings(res=30.0, crs=crs, bounds=(b.left, b.bottom, b.right, b.top)))
+    st = StereoSettings(
+        RectificationSettings(height_range=(lo - 50, hi + 50)),
+        gridding=GriddingSettings(res=30.0, crs=crs, bounds=(b.left, b.bottom, b.right, b.top)),
+    )
     best = make_dem(triplet.images[0], triplet.images[2], triplet.models[0], triplet.models[2], st)
     path = tmp_path / "best"
     best.write(path)
     e_best = _errors(path / "dem.tif", triplet.truth_dem)
     cells = np.isfinite(e_best)
-    assert np.isfinite(err[cells]).all()                     # covers every cell the best pair does
+    assert np.isfinite(err[cells]).all()  # covers every cell the best pair does
     assert np.isfinite(err).sum() >= cells.sum()
     fused_nmad, best_nmad = nmad(err[cells]), nmad(e_best[cells])
     assert fused_nmad <= 1.05 * best_nmad, (fused_nmad, best_nmad)
-    narrow = make_dem(triplet.images[0], triplet.images[1], triplet.models[0], triplet.models[1], st)
+    narrow = make_dem(
+        triplet.images[0], triplet.images[1], triplet.models[0], triplet.models[1], st
+    )
     narrow.write(tmp_path / "narrow")
     e_narrow = _errors(tmp_path / "narrow" / "dem.tif", triplet.truth_dem)
     assert fused_nmad < 0.8 * nmad(e_narrow[np.isfinite(e_narrow)])
@@ -173,28 +195,42 @@ def test_run_with_images_list(triplet, tmp_path):
     filters and the orthoimage stage as a pair's does; raw/ holds the fused layers."""
     from stereodem.config import load_config
     from stereodem.pipeline.job import run
+
     for k, (img, model) in enumerate(zip(triplet.images, triplet.models)):
         write_geotiff(tmp_path / f"v{k}.tif", img, tags={"STEREODEM_MODEL": f"v{k}.model.json"})
         save_model(model, tmp_path / f"v{k}.model.json")
     lo, hi = triplet.truth_dem.height_range()
     (tmp_path / "job.toml").write_text(
         f'[inputs]\nimages = ["v0.tif", "v1.tif", "v2.tif"]\n[output]\ndir = "out"\n'
-        f'[rectification]\nheight_range = [{lo - 50:.0f}, {hi + 50:.0f}]\n[gridding]\nres = 30.0\n'
-        f'[fusion]\nmax_pairs = 2\n[run]\nworkers = 1\n')
+        f"[rectification]\nheight_range = [{lo - 50:.0f}, {hi + 50:.0f}]\n[gridding]\nres = 30.0\n"
+        f"[fusion]\nmax_pairs = 2\n[run]\nworkers = 1\n"
+    )
     cfg = load_config(tmp_path / "job.toml")
     info = run(cfg)
     out = tmp_path / "out"
-    for name in ("raw/dem.tif", "raw/nmad.tif", "raw/dem_sigma_vertical.tif", "raw/count.tif", "dem.tif",
-                 "ortho_left.tif"):
+    for name in (
+        "raw/dem.tif",
+        "raw/nmad.tif",
+        "raw/dem_sigma_vertical.tif",
+        "raw/count.tif",
+        "dem.tif",
+        "ortho_left.tif",
+    ):
         assert (out / name).is_file(), name
     mv = info["stereo"]["info"]
-    assert len(mv["pair_runs"]) == 2 and mv["pair_runs"][0]["right"] == 2      # widest base first
+    assert len(mv["pair_runs"]) == 2 and mv["pair_runs"][0]["right"] == 2  # widest base first
     assert sum(not p["selected"] for p in mv["pairs"]) == 1
-    err, raw = _errors(out / "dem.tif", triplet.truth_dem), _errors(out / "raw" / "dem.tif", triplet.truth_dem)
-    assert nmad(err[np.isfinite(err)]) <= nmad(raw[np.isfinite(raw)])      # the filters edit it
+    err, raw = (
+        _errors(out / "dem.tif", triplet.truth_dem),
+        _errors(out / "raw" / "dem.tif", triplet.truth_dem),
+    )
+    assert nmad(err[np.isfinite(err)]) <= nmad(raw[np.isfinite(raw)])  # the filters edit it
     with pytest.raises(InputError, match="images or left/right"):
         from stereodem.config import config_from_dict
-        config_from_dict({"inputs": {"images": ["a.tif", "b.tif"], "left": "a.tif"}, "output": {"dir": "o"}})
+
+        config_from_dict(
+            {"inputs": {"images": ["a.tif", "b.tif"], "left": "a.tif"}, "output": {"dir": "o"}}
+        )
 
 
 @pytest.mark.slow
@@ -207,33 +243,47 @@ def test_models_that_disagree_are_adjusted_first(triplet, tmp_path):
     from stereodem.sensor.models.corrected import ImageCorrectedModel
     from stereodem.stereo.fusion import FusionSettings
     from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
+
     paths = []
     for k, (img, model) in enumerate(zip(triplet.images, triplet.models)):
         write_geotiff(tmp_path / f"v{k}.tif", img, tags={"STEREODEM_MODEL": f"v{k}.model.json"})
-        save_model(ImageCorrectedModel(model, row_shift=1.5) if k == 1 else model, tmp_path / f"v{k}.model.json")
+        save_model(
+            ImageCorrectedModel(model, row_shift=1.5) if k == 1 else model,
+            tmp_path / f"v{k}.model.json",
+        )
         paths.append(str(tmp_path / f"v{k}.tif"))
     lo, hi = triplet.truth_dem.height_range()
     out = {}
     for adjust in ("never", "auto"):
-        cfg = Config(inputs=InputSettings(images=paths), output_dir=str(tmp_path / "o"),
-                     stereo=StereoSettings(RectificationSettings(height_range=(lo - 50, hi + 50)),
-                                           gridding=GriddingSettings(res=30.0)),
-                     run=RunSettings(workers=1), fusion=FusionSettings(adjust=adjust))
+        cfg = Config(
+            inputs=InputSettings(images=paths),
+            output_dir=str(tmp_path / "o"),
+            stereo=StereoSettings(
+                RectificationSettings(height_range=(lo - 50, hi + 50)),
+                gridding=GriddingSettings(res=30.0),
+            ),
+            run=RunSettings(workers=1),
+            fusion=FusionSettings(adjust=adjust),
+        )
         out[adjust] = multiview_stage(cfg, paths)
     adj = out["auto"].report["adjustment"]
     assert out["never"].report["adjustment"] is None and adj["applied"]
     assert adj["reprojection_rms_px_after"] < 0.5 * adj["reprojection_rms_px_before"]
     # the rays of image 1 miss their points by metres before, not after; the pairwise ray
     # gaps cannot see it (the error lies along the epipolar lines)
-    before, after = adj["point_ray_gaps_before"]["rms_m_per_image"], adj["point_ray_gaps_after"]["rms_m_per_image"]
+    before, after = (
+        adj["point_ray_gaps_before"]["rms_m_per_image"],
+        adj["point_ray_gaps_after"]["rms_m_per_image"],
+    )
     assert after[1] < 0.3 * before[1], (before, after)
     assert adj["datum"].startswith("image 0 fixed, image 2")
     # image 1's delivered row_shift of 1.5 px is adjusted back to the true 0
     assert abs(adj["parameters"]["image1.row_shift"][0]) < 0.2, adj["parameters"]
 
-    def spread(prod):           # pair medians against the fused DEM: how far the pairs disagree
+    def spread(prod):  # pair medians against the fused DEM: how far the pairs disagree
         meds = [r["fusion"]["median_vs_fused_m"] for r in prod.report["pair_runs"]]
         return max(meds) - min(meds)
+
     assert spread(out["auto"]) < 0.5 * spread(out["never"])
     errs = {}
     for k, prod in out.items():
@@ -246,10 +296,13 @@ def test_models_that_disagree_are_adjusted_first(triplet, tmp_path):
 def test_dem_cli_names_and_skips_an_isolated_image(triplet, tmp_path, capsys):
     """An image that overlaps no other is named and skipped; the others make the DEM. The
     same image twice is refused in one line, nothing written."""
-    far = PushbroomModel.synthetic_pair(16.5, 37.5, width=240, height=240)[0]    # another scene
+    far = PushbroomModel.synthetic_pair(16.5, 37.5, width=240, height=240)[0]  # another scene
     rng = np.random.default_rng(0)
-    items = [(triplet.images[0], triplet.models[0]), (triplet.images[2], triplet.models[2]),
-             (rng.integers(0, 255, (240, 240)).astype(np.uint8), far)]
+    items = [
+        (triplet.images[0], triplet.models[0]),
+        (triplet.images[2], triplet.models[2]),
+        (rng.integers(0, 255, (240, 240)).astype(np.uint8), far),
+    ]
     paths = []
     for k, (img, model) in enumerate(items):
         write_geotiff(tmp_path / f"i{k}.tif", img, tags={"STEREODEM_MODEL": f"i{k}.model.json"})
@@ -257,13 +310,33 @@ def test_dem_cli_names_and_skips_an_isolated_image(triplet, tmp_path, capsys):
         paths.append(str(tmp_path / f"i{k}.tif"))
     lo, hi = triplet.truth_dem.height_range()
     hr = [str(lo - 50), str(hi + 50)]
-    assert main(["dem", *paths, "-o", str(tmp_path / "out"), "--height-range", *hr, "--res", "30",
-                 "--workers", "1"]) == 0
+    assert (
+        main(
+            [
+                "dem",
+                *paths,
+                "-o",
+                str(tmp_path / "out"),
+                "--height-range",
+                *hr,
+                "--res",
+                "30",
+                "--workers",
+                "1",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "fused from 1 pair(s)" in out and f"skipped {paths[2]}: overlaps no other image" in out
     rep = json.loads((tmp_path / "out" / "dem_report.json").read_text())["multiview"]
     assert rep["skipped_images"] == [dict(index=2, name=paths[2], reason="overlaps no other image")]
-    assert main(["dem", paths[0], paths[1], paths[0], "-o", str(tmp_path / "o2"), "--height-range", *hr]) == 1
+    assert (
+        main(
+            ["dem", paths[0], paths[1], paths[0], "-o", str(tmp_path / "o2"), "--height-range", *hr]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "given more than once" in err
     assert not (tmp_path / "o2").exists() or not any((tmp_path / "o2").iterdir())

@@ -1,5 +1,6 @@
 """Point clouds of the stereo DEM (issue 26 item 5): tiles write their points, merged into one
 LAS/LAZ in chunks (laspy), CRS in a WKT VLR, extra dimensions, the filters' classification."""
+
 from __future__ import annotations
 
 import json
@@ -29,6 +30,7 @@ def scene_dir(tmp_path_factory):
 def _bilinear(path, x, y):
     """The raster interpolated bilinearly at map points (NaN next to voids and outside)."""
     from scipy.ndimage import map_coordinates
+
     with rasterio.open(path) as ds:
         a = ds.read(1).astype(np.float64)
         col, row = ~ds.transform @ (np.asarray(x), np.asarray(y))
@@ -49,19 +51,42 @@ def _cell_values(path, x, y, band=1):
 @pytest.mark.slow
 def test_dem_point_cloud_lies_on_the_dem(scene_dir, tmp_path):
     out = tmp_path / "dem"
-    assert main(["-q", "dem", str(scene_dir / "left.tif"), str(scene_dir / "right.tif"), "-o", str(out),
-                 "--tile-size", "200", "--height-range", "1000", "3500", "--workers", "1",
-                 "--point-cloud", "laz"]) == 0
+    assert (
+        main(
+            [
+                "-q",
+                "dem",
+                str(scene_dir / "left.tif"),
+                str(scene_dir / "right.tif"),
+                "-o",
+                str(out),
+                "--tile-size",
+                "200",
+                "--height-range",
+                "1000",
+                "3500",
+                "--workers",
+                "1",
+                "--point-cloud",
+                "laz",
+            ]
+        )
+        == 0
+    )
     rep = json.loads((out / "dem_report.json").read_text())
     las = laspy.read(out / "dem.laz")
     assert rep["point_cloud"]["n_points"] == rep["n_points"] == len(las.points) > 10000
-    assert not (out / "tiles").exists()                         # per-tile files removed after the merge
+    assert not (out / "tiles").exists()  # per-tile files removed after the merge
     # CRS: the DEM's (UTM 37N with ellipsoidal heights), from the WKT VLR
     with rasterio.open(out / "dem.tif") as ds:
         dem_crs = CRS.from_wkt(ds.crs.to_wkt())
     crs = las.header.parse_crs()
     assert crs is not None and las.header.global_encoding.wkt
-    assert crs.equals(dem_crs) or CRS.from_user_input(crs.sub_crs_list[0] if crs.is_compound else crs.to_2d()).to_epsg() == 32637
+    assert (
+        crs.equals(dem_crs)
+        or CRS.from_user_input(crs.sub_crs_list[0] if crs.is_compound else crs.to_2d()).to_epsg()
+        == 32637
+    )
     assert any("ellipsoidal height" in a.name.lower() for a in crs.axis_info)
     # points on the DEM: each point against the DEM interpolated at its position
     z = np.asarray(las.z)
@@ -76,10 +101,13 @@ def test_dem_point_cloud_lies_on_the_dem(scene_dir, tmp_path):
     names = set(las.point_format.extra_dimension_names)
     assert {"ray_gap", "score", "source_pair", "edit_code"} <= names
     assert np.all(las.ray_gap >= 0) and np.all(las.ray_gap <= rep["info"]["max_ray_gap_m"] + 1e-3)
-    np.testing.assert_allclose(np.median(las.ray_gap), np.nanmedian(
-        _cell_values(out / "raygap.tif", las.x, las.y)), rtol=0.3)
+    np.testing.assert_allclose(
+        np.median(las.ray_gap),
+        np.nanmedian(_cell_values(out / "raygap.tif", las.x, las.y)),
+        rtol=0.3,
+    )
     score = np.asarray(las.score)
-    fin = np.isfinite(score)                  # NaN where the matcher kept a pixel without a score
+    fin = np.isfinite(score)  # NaN where the matcher kept a pixel without a score
     print(f"scores: {100 * fin.mean():.1f} % finite, median {np.median(score[fin]):.3f}")
     assert fin.mean() > 0.5 and np.all(score[fin] <= 1.0) and np.all(score[fin] >= -1.0)
     assert np.all(las.source_pair == 0) and np.all(las.classification == 1)
@@ -94,13 +122,25 @@ def test_write_las_in_chunks_with_classes_and_geoid_crs(tmp_path):
         x = rng.uniform(500_000, 500_200, n)
         y = rng.uniform(4_399_900, 4_400_000, n)
         from stereodem.core import geodesy
+
         lon, lat = geodesy.crs_to_lonlat(x, y, "EPSG:32637")
-        save_tile_points(tmp_path / "pts", index, lon, lat, np.full(n, 1500.0), rng.uniform(0, 1, n),
-                         rng.uniform(0, 3, n), crs="EPSG:32637", geoid=True, pair=index)
+        save_tile_points(
+            tmp_path / "pts",
+            index,
+            lon,
+            lat,
+            np.full(n, 1500.0),
+            rng.uniform(0, 1, n),
+            rng.uniform(0, 3, n),
+            crs="EPSG:32637",
+            geoid=True,
+            pair=index,
+        )
     codes = np.zeros((10, 20), np.uint8)
-    codes[:, 10:] = 3                                  # a filter removed the east half
-    info = write_las(tmp_path / "c.las", tmp_path / "pts", [0, 1, 2, 3], grid, vertical="geoid",
-                     edit_codes=codes)
+    codes[:, 10:] = 3  # a filter removed the east half
+    info = write_las(
+        tmp_path / "c.las", tmp_path / "pts", [0, 1, 2, 3], grid, vertical="geoid", edit_codes=codes
+    )
     assert info["n_points"] == 800 and info["missing_tiles"] == [1]
     las = laspy.read(tmp_path / "c.las")
     assert len(las.points) == 800
@@ -108,9 +148,12 @@ def test_write_las_in_chunks_with_classes_and_geoid_crs(tmp_path):
     assert np.all(las.classification[east] == 7) and np.all(las.classification[~east] == 1)
     assert np.all(las.edit_code[east] == 3) and np.all(las.edit_code[~east] == 0)
     assert info["classes"]["noise (filtered)"] == int(east.sum())
-    assert sorted(set(las.source_pair)) == [0, 2] and np.array_equal(las.point_source_id, las.source_pair)
+    assert sorted(set(las.source_pair)) == [0, 2] and np.array_equal(
+        las.point_source_id, las.source_pair
+    )
     # geoid heights: z = h - N (N about +25 m here), and a compound CRS with EGM96 height
     from stereodem.core import geodesy
+
     n_geoid = geodesy.geoid_undulation(lon0, lat0)
     assert abs(float(np.median(las.z)) - (1500.0 - float(n_geoid))) < 1.0
     crs = las.header.parse_crs()
@@ -124,25 +167,37 @@ def test_write_las_in_chunks_with_classes_and_geoid_crs(tmp_path):
 def test_bad_point_cloud_settings_are_one_line_errors(tmp_path, capsys):
     from stereodem.config import config_from_dict
     from stereodem.core.errors import InputError
-    raw = {"inputs": {"left": "a.tif", "right": "b.tif"}, "output": {"dir": str(tmp_path / "o")},
-           "dem": {"point_cloud": "ply"}}
+
+    raw = {
+        "inputs": {"left": "a.tif", "right": "b.tif"},
+        "output": {"dir": str(tmp_path / "o")},
+        "dem": {"point_cloud": "ply"},
+    }
     with pytest.raises(InputError, match=r"\[dem\] point_cloud must be 'las' or 'laz'"):
         config_from_dict(raw)
     with pytest.raises(SystemExit) as e:
         main(["dem", "a.tif", "b.tif", "-o", str(tmp_path / "o"), "--point-cloud", "xyz"])
     assert e.value.code == 2
     with pytest.raises(InputError):
-        write_las(tmp_path / "c.xyz", tmp_path, [], MapGrid(Affine(1, 0, 0, 0, -1, 0), 2, 2, "EPSG:32637"))
+        write_las(
+            tmp_path / "c.xyz", tmp_path, [], MapGrid(Affine(1, 0, 0, 0, -1, 0), 2, 2, "EPSG:32637")
+        )
 
 
 @pytest.mark.slow
 def test_run_classifies_the_points_of_filtered_cells(scene_dir, tmp_path):
     from stereodem.config import config_from_dict
     from stereodem.pipeline.job import run
+
     out = tmp_path / "run"
-    raw = {"inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif")},
-           "output": {"dir": str(out)}, "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
-           "ortho": {"enabled": False}, "run": {"workers": 1}, "dem": {"point_cloud": "las"}}
+    raw = {
+        "inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif")},
+        "output": {"dir": str(out)},
+        "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
+        "ortho": {"enabled": False},
+        "run": {"workers": 1},
+        "dem": {"point_cloud": "las"},
+    }
     run(config_from_dict(raw))
     rj = json.loads((out / "run.json").read_text())
     pc = rj["stages"]["point_cloud"]
@@ -155,4 +210,6 @@ def test_run_classifies_the_points_of_filtered_cells(scene_dir, tmp_path):
     np.testing.assert_array_equal(np.asarray(las.edit_code)[ok], mask[ok].astype(np.uint8))
     removed = ok & (mask >= 1) & (mask <= 99)
     assert removed.any() and (~removed & ok).any()
-    assert np.all(las.classification[removed] == 7) and np.all(las.classification[~removed & ok] == 1)
+    assert np.all(las.classification[removed] == 7) and np.all(
+        las.classification[~removed & ok] == 1
+    )

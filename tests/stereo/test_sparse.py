@@ -1,4 +1,5 @@
 """Sparse matches, relative pointing and terrain heights (stereo.sparse / pointing / terrain)."""
+
 from pathlib import Path
 
 import numpy as np
@@ -38,24 +39,33 @@ def biased(scene):
 
 def _overlap_truth(scene, step=10):
     """True heights at left pixels that the right image also sees."""
-    c, r = np.meshgrid(np.arange(0, scene.left_model.width, step, dtype=float),
-                       np.arange(0, scene.left_model.height, step, dtype=float))
+    c, r = np.meshgrid(
+        np.arange(0, scene.left_model.width, step, dtype=float),
+        np.arange(0, scene.left_model.height, step, dtype=float),
+    )
     loc = scene.left_model.localize_dem(c.ravel(), r.ravel(), scene.truth_dem, h0=2000.0)
     c2, r2 = scene.right_model.project(loc.lon, loc.lat, loc.h)
-    inside = ((c2 >= 0) & (c2 <= scene.right_model.width - 1) & (r2 >= 0)
-              & (r2 <= scene.right_model.height - 1) & np.isfinite(loc.h))
+    inside = (
+        (c2 >= 0)
+        & (c2 <= scene.right_model.width - 1)
+        & (r2 >= 0)
+        & (r2 <= scene.right_model.height - 1)
+        & np.isfinite(loc.h)
+    )
     return loc.lon[inside], loc.lat[inside], loc.h[inside]
 
 
 # ----------------------------------------------------------------------------- sparse
 
+
 def test_matches_lie_on_the_true_epipolar_curves(scene):
     m = sparse_matches(scene.left, scene.right, scene.left_model, scene.right_model)
     assert len(m) > 300
-    assert abs(m.offset_cross) < 0.2                      # unbiased models: no offset found
+    assert abs(m.offset_cross) < 0.2  # unbiased models: no offset found
     # through the true models every kept match is within the tolerance of its curve
-    r = cross_residuals(scene.left_model, scene.right_model, m.col1, m.row1, m.col2, m.row2,
-                        m.height_range)
+    r = cross_residuals(
+        scene.left_model, scene.right_model, m.col1, m.row1, m.col2, m.row2, m.height_range
+    )
     assert np.all(np.abs(r) <= 2.0)
     assert nmad(r) < 0.3
 
@@ -71,15 +81,16 @@ def test_matches_found_despite_offset_of_tens_of_pixels(scene):
 
 def test_any_dtype_voids_and_reduced_scale(scene):
     left = scene.left.astype(np.float32) * 13.7 + 1000.0
-    left[:, :60] = np.nan                                  # a void band
+    left[:, :60] = np.nan  # a void band
     right16 = scene.right.astype(np.uint16) * 16
     m = sparse_matches(left, right16, scene.left_model, scene.right_model, max_size=220)
     assert m.info["scale"] < 0.6
     assert len(m) > 50
-    assert m.col1.min() > 60                               # nothing detected on the void
+    assert m.col1.min() > 60  # nothing detected on the void
     # positions are in full-resolution pixels: the true models agree to about a pixel
-    r = cross_residuals(scene.left_model, scene.right_model, m.col1, m.row1, m.col2, m.row2,
-                        m.height_range)
+    r = cross_residuals(
+        scene.left_model, scene.right_model, m.col1, m.row1, m.col2, m.row2, m.height_range
+    )
     assert np.median(np.abs(r)) < 0.6
 
 
@@ -100,6 +111,7 @@ def test_textureless_images_give_one_line_error(scene):
 
 # ----------------------------------------------------------------------------- pointing
 
+
 def test_pointing_recovers_the_cross_epipolar_bias(scene, biased):
     given, m = biased
     pc = relative_pointing(m, scene.left_model, given)
@@ -109,7 +121,7 @@ def test_pointing_recovers_the_cross_epipolar_bias(scene, biased):
     nbar /= np.linalg.norm(nbar)
     corr = np.array([pc.parameters["col_shift"], pc.parameters["row_shift"]])
     assert abs(np.dot(nbar, corr + [6.0, 3.0])) <= 0.1
-    assert abs(pc.parameters["col_shift"] + 6.0) <= 0.1     # cross-track = col here
+    assert abs(pc.parameters["col_shift"] + 6.0) <= 0.1  # cross-track = col here
     assert abs(pc.before["median"]) > 5.5 and abs(pc.after["median"]) < 0.1
     assert pc.after["nmad"] < 0.5 and pc.warning is None
 
@@ -147,8 +159,9 @@ def test_pointing_warns_when_residual_stays_large(scene, biased):
     rng = np.random.default_rng(0)
     noisy = m.subset(np.arange(len(m)))
     noisy.col2 = noisy.col2 + rng.normal(0, 1.5, len(m))
-    noisy.cross = cross_residuals(scene.left_model, given, noisy.col1, noisy.row1, noisy.col2,
-                                  noisy.row2, m.height_range)
+    noisy.cross = cross_residuals(
+        scene.left_model, given, noisy.col1, noisy.row1, noisy.col2, noisy.row2, m.height_range
+    )
     pc = relative_pointing(noisy, scene.left_model, given)
     assert pc.after["nmad"] > 0.5
     assert pc.warning is not None and "0.5 px" in pc.warning
@@ -162,6 +175,7 @@ def test_pointing_too_few_matches(scene, biased):
 
 
 # ----------------------------------------------------------------------------- terrain
+
 
 @pytest.mark.slow
 def test_height_range_contains_the_true_terrain(scene):
@@ -197,11 +211,13 @@ def test_terrain_too_few_points(scene, biased):
 
 # ----------------------------------------------------------------------------- real pair
 
+
 @pytest.mark.slow
 def test_real_pleiades_pair():
     import rasterio
 
     from stereodem.sensor.models.rpc import RPCModel
+
     pair = _shared_pair()
     images = [rasterio.open(pair / n).read(1) for n in ("img_01.tif", "img_02.tif")]
     left, right = (RPCModel.from_file(pair / n) for n in ("img_01.tif", "img_02.tif"))
@@ -209,7 +225,7 @@ def test_real_pleiades_pair():
         dsm = ds.read(1)
     dsm = dsm[np.isfinite(dsm)]
     m = sparse_matches(images[0], images[1], left, right)
-    assert len(m) > 500                     # ~970 with the default 512 px detection scale
+    assert len(m) > 500  # ~970 with the default 512 px detection scale
     pc = relative_pointing(m, left, right)
     assert pc.after["nmad"] < 0.5 and abs(pc.after["median"]) < 0.1
     th = terrain_heights(m, left, pc.model)
@@ -223,11 +239,14 @@ def test_real_pleiades_pair():
 
 # ----------------------------------------------------------------------------- the stage
 
+
 def test_sparse_stage_corrects_and_bounds_the_biased_pair(scene):
     from stereodem.stereo.sparse_stage import run_sparse_stage
+
     given = ImageCorrectedModel(scene.right_model, col_shift=6.0, row_shift=3.0)
-    st = run_sparse_stage(scene.left, scene.right, scene.left_model, given,
-                          reference_dem=scene.truth_dem)
+    st = run_sparse_stage(
+        scene.left, scene.right, scene.left_model, given, reference_dem=scene.truth_dem
+    )
     lon, lat, h = _overlap_truth(scene, step=40)
     c0, r0 = scene.right_model.project(lon, lat, h)
     c1, r1 = st.right_model.project(lon, lat, h)
@@ -241,17 +260,21 @@ def test_sparse_stage_corrects_and_bounds_the_biased_pair(scene):
 
 def test_height_pileup():
     from stereodem.stereo.sparse_stage import height_pileup
+
     rng = np.random.default_rng(1)
-    good = rng.normal(500, 50, 10000)                      # terrain well inside 0..1000
+    good = rng.normal(500, 50, 10000)  # terrain well inside 0..1000
     assert not height_pileup(good, (0, 1000))["suspect"]
-    stuck = np.concatenate([good[:7000], np.full(3000, 1.0)])   # 30 % at the lower bound
+    stuck = np.concatenate([good[:7000], np.full(3000, 1.0)])  # 30 % at the lower bound
     r = height_pileup(stuck, (0, 1000))
-    assert r["suspect"] and r["low_share"] == pytest.approx(0.3, abs=0.01) and r["high_share"] < 0.01
+    assert (
+        r["suspect"] and r["low_share"] == pytest.approx(0.3, abs=0.01) and r["high_share"] < 0.01
+    )
 
 
 def seen_by_both(dem, left, right, step=4):
     """(lon, lat, h) of the cells of a truth MapRaster that both images see."""
     from stereodem.core import geodesy
+
     rows, cols = dem.data.shape
     cc, rr = np.meshgrid(np.arange(0, cols, step) + 0.5, np.arange(0, rows, step) + 0.5)
     x, y = dem.transform @ (cc, rr)
@@ -269,6 +292,7 @@ def test_real_rpc_geometry_over_steep_terrain_far_from_the_height_offset():
     from helpers.rpc_scene import rpc_steep_pair
 
     from stereodem.stereo.sparse_stage import run_sparse_stage
+
     L, R, left, right, truth = rpc_steep_pair()
     st = run_sparse_stage(L, R, left, right)
     lon, lat, h = seen_by_both(truth, left, right)
@@ -276,7 +300,7 @@ def test_real_rpc_geometry_over_steep_terrain_far_from_the_height_offset():
     assert lo <= h.min() and hi >= h.max()
     # the terrain is ~1 100 m above the RPCs' height offset (1 295 m), outside the range found
     assert h.min() - left.height_off > 900 and lo > left.height_off + 500
-    assert abs(st.pointing.parameters["col_shift"]) < 0.05     # no pointing error simulated
+    assert abs(st.pointing.parameters["col_shift"]) < 0.05  # no pointing error simulated
 
 
 def test_repeatable(scene):
@@ -289,27 +313,30 @@ def test_zncc_scores_equal_direct_correlation_with_voids():
     """The batched FFT + box-sum ZNCC of the sparse refinement equals the direct per-shift
     ZNCC (mean-removed patches) to 1e-10, and is NaN exactly where a window holds a void."""
     from stereodem.stereo.sparse import zncc_scores
+
     rng = np.random.default_rng(4)
     n, half, search = 40, 7, 5
     w, k = 2 * half + 1, 2 * search + 1
     S = 100.0 + 20.0 * rng.normal(size=(n, w + k - 1, w + k - 1))
-    T = S[:, 3:3 + w, 6:6 + w] + rng.normal(size=(n, w, w))
-    S[0, 2, 2] = np.nan                                  # a void in one search window
-    T[1, 4, 4] = np.nan                                  # a void in one template
+    T = S[:, 3 : 3 + w, 6 : 6 + w] + rng.normal(size=(n, w, w))
+    S[0, 2, 2] = np.nan  # a void in one search window
+    T[1, 4, 4] = np.nan  # a void in one template
     got = zncc_scores(T, S)
     want = np.full((n, k, k), np.nan)
     for dy in range(k):
         for dx in range(k):
-            P = S[:, dy:dy + w, dx:dx + w]
+            P = S[:, dy : dy + w, dx : dx + w]
             P = P - P.mean(axis=(1, 2), keepdims=True)
             Tc = T - T.mean(axis=(1, 2), keepdims=True)
-            want[:, dy, dx] = (Tc * P).sum((1, 2)) / np.sqrt((Tc * Tc).sum((1, 2)) * (P * P).sum((1, 2)))
+            want[:, dy, dx] = (Tc * P).sum((1, 2)) / np.sqrt(
+                (Tc * Tc).sum((1, 2)) * (P * P).sum((1, 2))
+            )
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     assert np.isnan(got[0, :3, :3]).all() and not np.isnan(got[0, 3:, 3:]).any()
     assert np.isnan(got[1]).all()
     ok = np.isfinite(want)
     assert np.max(np.abs(got[ok] - want[ok])) < 1e-10
-    assert (got[2:].reshape(n - 2, -1).argmax(1) == 3 * k + 6).all()   # the true shift wins
+    assert (got[2:].reshape(n - 2, -1).argmax(1) == 3 * k + 6).all()  # the true shift wins
 
 
 def test_keypoints_on_two_threads_equal_the_serial_ones(scene):

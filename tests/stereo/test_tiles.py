@@ -18,8 +18,10 @@ def _tile_fn(tile, ctx):
         time.sleep(30)
     rng = np.random.default_rng(tile.index + ctx["seed"])
     block = ctx["image"][rows, cols].astype(np.float64)
-    return {"value": (block * rng.random(block.shape)).astype(np.float32),
-            "pid": np.array(os.getpid())}
+    return {
+        "value": (block * rng.random(block.shape)).astype(np.float32),
+        "pid": np.array(os.getpid()),
+    }
 
 
 def _ctx(**kw):
@@ -32,7 +34,7 @@ def test_tile_grid_covers_image_once_in_index_order():
     cover = np.zeros((100, 130), int)
     for t in tiles:
         c0, r0, c1, r1 = t.bounds
-        cover[r0:r1 + 1, c0:c1 + 1] += 1
+        cover[r0 : r1 + 1, c0 : c1 + 1] += 1
     assert (cover == 1).all()
     assert [t.index for t in tiles] == list(range(len(tiles)))
 
@@ -51,7 +53,9 @@ def test_pool_results_identical_to_serial():
 @pytest.mark.slow
 def test_failed_and_timed_out_tiles_are_reported_and_the_rest_completes():
     tiles = tile_grid(130, 100, 32)
-    res, failures, _ = run_tiles(_tile_fn, tiles, _ctx(fail=(2,), hang=(5,)), workers=2, timeout=2.0)
+    res, failures, _ = run_tiles(
+        _tile_fn, tiles, _ctx(fail=(2,), hang=(5,)), workers=2, timeout=2.0
+    )
     assert [f.tile.index for f in failures] == [2, 5]
     assert "boom" in failures[0].reason and "timed out" in failures[1].reason
     assert set(res) == {t.index for t in tiles} - {2, 5}
@@ -66,8 +70,10 @@ def test_resume_skips_done_tiles(tmp_path):
 
     res1, _, t1 = run_tiles(_tile_fn, tiles, _ctx(fail=(1,)), cache_dir=tmp_path)
     assert 1 not in res1 and len(t1) == len(tiles)
-    res2, fail2, t2 = run_tiles(_tile_fn, tiles, _ctx(), cache_dir=tmp_path, resume=True, progress=progress)
-    assert not fail2 and list(t2) == [1]                # only the failed tile is recomputed
+    res2, fail2, t2 = run_tiles(
+        _tile_fn, tiles, _ctx(), cache_dir=tmp_path, resume=True, progress=progress
+    )
+    assert not fail2 and list(t2) == [1]  # only the failed tile is recomputed
     assert np.array_equal(res2[0]["value"], res1[0]["value"])
     assert calls[-1] == len(tiles)
 
@@ -77,8 +83,12 @@ def test_dask_local_cluster_same_results():
     distributed = pytest.importorskip("dask.distributed")
     tiles = tile_grid(130, 100, 50)
     ser, _, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
         res, failures, _ = run_tiles(_tile_fn, tiles, _ctx(), dask_address=client)
     assert not failures
     for k in ser:
@@ -90,10 +100,12 @@ def test_results_can_stay_in_the_cache_only(tmp_path):
     """hold_results=False keeps no tile in memory: each is read back from its cache file,
     identical to the held result (what lets a scene's stereo hold one tile at a time)."""
     from stereodem.stereo.runner import load_cached
+
     tiles = tile_grid(130, 100, 32)
     held, _, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1, cache_dir=tmp_path / "a")
-    lean, fails, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=2, cache_dir=tmp_path / "b",
-                               hold_results=False)
+    lean, fails, _ = run_tiles(
+        _tile_fn, tiles, _ctx(), workers=2, cache_dir=tmp_path / "b", hold_results=False
+    )
     assert not fails and sorted(lean) == sorted(held) == [t.index for t in tiles]
     assert all(v is None for v in lean.values())
     for t in tiles:

@@ -16,6 +16,7 @@ Sources: Bettemir (2006) §5–7 and Tables B.32/B.33 (mixed model, constraints,
 Topan (2009) §3.3, §3.6 (Gauss–Helmert adjustment of orbital models), Baarda (1968), Pope
 (1976), Förstner (1987), Grodecki & Dial (2003), Fraser & Hanley (2005).
 """
+
 from stereodem.sensor.estimation.adjust.model_sets import (
     MODEL_SETS,
     ModelSet,
@@ -25,19 +26,32 @@ from stereodem.sensor.estimation.adjust.model_sets import (
 from stereodem.sensor.estimation.adjust.result import AdjustmentResult
 from stereodem.sensor.estimation.adjust.single import adjust_model, required_gcps
 
-__all__ = ["adjust_model", "AdjustmentResult", "MODEL_SETS", "ModelSet", "model_set",
-           "register_model_set", "required_gcps", "bundle_adjust", "BundleResult",
-           "adjust_generic", "write_report"]
+__all__ = [
+    "adjust_model",
+    "AdjustmentResult",
+    "MODEL_SETS",
+    "ModelSet",
+    "model_set",
+    "register_model_set",
+    "required_gcps",
+    "bundle_adjust",
+    "BundleResult",
+    "adjust_generic",
+    "write_report",
+]
 
 
-def __getattr__(name):   # heavier parts imported on first use
+def __getattr__(name):  # heavier parts imported on first use
     if name in ("bundle_adjust", "BundleResult"):
         from stereodem.sensor.estimation.adjust import bundle
+
         return getattr(bundle, name)
     if name == "adjust_generic":
         from stereodem.sensor.estimation.adjust.generic import adjust_generic
+
         return adjust_generic
     if name == "write_report":
         from stereodem.sensor.estimation.adjust.report import write_report
+
         return write_report
     raise AttributeError(name)

@@ -27,6 +27,7 @@ Datum: without GCPs the pair fixes only its relative orientation; free parameter
 model (default when no GCP is given: the right one), or priors, avoid the datum defect, which
 is otherwise reported as a near-singular normal matrix naming the parameters.
 """
+
 from __future__ import annotations
 
 import math
@@ -66,12 +67,16 @@ def _resolve(model, names, priors, side):
         m, n, p = ms.prepare(model)
         return m, n, {**p, **(priors or {})}, ms.name
     if not is_adjustable(model):
-        raise SensorModelError(f"bundle: the {side} model ({type(model).__name__}) has no "
-                               "adjustable parameters (use a model set such as 'rpc-shift')")
+        raise SensorModelError(
+            f"bundle: the {side} model ({type(model).__name__}) has no "
+            "adjustable parameters (use a model set such as 'rpc-shift')"
+        )
     known = model.parameters()
     bad = [n for n in names if n not in known]
     if bad:
-        raise InputError(f"bundle: unknown {side} parameter(s) {', '.join(bad)} (known: {', '.join(known)})")
+        raise InputError(
+            f"bundle: unknown {side} parameter(s) {', '.join(bad)} (known: {', '.join(known)})"
+        )
     return model, list(names), dict(priors or {}), None
 
 
@@ -80,17 +85,19 @@ class _Problem(schur.SchurProblem):
 
     def __init__(self, models, names, priors, ties, gcps, sigma_tie, gcp_sigma):
         self.models = models
-        self.names = names                          # (names_l, names_r)
+        self.names = names  # (names_l, names_r)
         self.u_l, self.u_r = len(names[0]), len(names[1])
         self.u = self.u_l + self.u_r
         self.x0 = np.array([models[k].parameters()[n] for k in (0, 1) for n in names[k]], float)
-        self.ties = np.asarray(ties, float)          # (n, 4)
+        self.ties = np.asarray(ties, float)  # (n, 4)
         self.n = len(self.ties)
         self.sigma_tie = float(sigma_tie)
-        self.gcps = gcps                            # (ControlPoints or None) x 2
-        self.gcp_sigma = gcp_sigma                  # (sigma arrays) x 2
-        allp = {**{f"left.{k}": v for k, v in priors[0].items()},
-                **{f"right.{k}": v for k, v in priors[1].items()}}
+        self.gcps = gcps  # (ControlPoints or None) x 2
+        self.gcp_sigma = gcp_sigma  # (sigma arrays) x 2
+        allp = {
+            **{f"left.{k}": v for k, v in priors[0].items()},
+            **{f"right.{k}": v for k, v in priors[1].items()},
+        }
         self.full_names = [f"left.{n}" for n in names[0]] + [f"right.{n}" for n in names[1]]
         self.prior_idx = np.array([self.full_names.index(k) for k in allp], dtype=int)
         self.prior_sigma = np.array(list(allp.values()), dtype=float)
@@ -106,7 +113,9 @@ class _Problem(schur.SchurProblem):
                 continue
             ground = np.isfinite(p.sigma_ground_m) & (p.sigma_ground_m > 0)
             G = gh.ground_partials(models[k], p.lon, p.lat, p.h) if np.any(ground) else None
-            M = gh.misclosure_covariance(gcp_sigma[k], p.sigma_ground_m if G is not None else None, G)
+            M = gh.misclosure_covariance(
+                gcp_sigma[k], p.sigma_ground_m if G is not None else None, G
+            )
             self.gcp_W.append(gh.whitening(M)), self.gcp_M.append(M), self.gcp_G.append(G)
 
     # ---------------------------------------------------------------- state
@@ -117,11 +126,11 @@ class _Problem(schur.SchurProblem):
         return initial_ground(*self.models, self.ties)
 
     def split(self, z):
-        return z[:self.u], z[self.u:].reshape(self.n, 3)
+        return z[: self.u], z[self.u :].reshape(self.n, 3)
 
     def model_at(self, z, k):
-        x = z[:self.u]
-        vals = x[:self.u_l] if k == 0 else x[self.u_l:]
+        x = z[: self.u]
+        vals = x[: self.u_l] if k == 0 else x[self.u_l :]
         if not self.names[k]:
             return self.models[k]
         return self.models[k].with_parameters(**dict(zip(self.names[k], (float(v) for v in vals))))
@@ -145,18 +154,27 @@ class _Problem(schur.SchurProblem):
             off = 0 if k == 0 else self.u_l
             cols = slice(2 * k, 2 * k + 2)
             if n:
-                e_t[:, cols], A, G = tie_block(m, names, (lon, lat, h), self.ties[:, cols],
-                                               self.sigma_tie, jacobian)
+                e_t[:, cols], A, G = tie_block(
+                    m, names, (lon, lat, h), self.ties[:, cols], self.sigma_tie, jacobian
+                )
                 if A is not None:
-                    A_t[:, cols, off:off + len(names)] = A
+                    A_t[:, cols, off : off + len(names)] = A
                 if jacobian:
                     G_t[:, cols] = G
             p = self.gcps[k]
             if p is not None and len(p):
                 W = self.gcp_W[k]
-                gcp_block(m, names, p, (off, u), jacobian, e_g, A_g,
-                          lambda mis, W=W: np.einsum("nij,nj->ni", W, mis),
-                          lambda J, W=W: np.einsum("nij,nju->niu", W, J))
+                gcp_block(
+                    m,
+                    names,
+                    p,
+                    (off, u),
+                    jacobian,
+                    e_g,
+                    A_g,
+                    lambda mis, W=W: np.einsum("nij,nj->ni", W, mis),
+                    lambda J, W=W: np.einsum("nij,nju->niu", W, J),
+                )
         e_g = np.concatenate(e_g) if e_g else np.zeros((0, 2))
         A_g = np.concatenate(A_g) if A_g else np.zeros((0, 2, u))
         e_p, A_p = schur.prior_blocks(z[:u], self.x0, self.prior_idx, self.prior_sigma, u)
@@ -174,18 +192,28 @@ class _Problem(schur.SchurProblem):
         pr, pc, pv = [], [], []
         for k, (lo, hi) in enumerate(((0, self.u_l), (self.u_l, u))):
             if hi > lo and n:
-                r = np.repeat(rows_t[:, 2 * k:2 * k + 2].reshape(-1), hi - lo)
+                r = np.repeat(rows_t[:, 2 * k : 2 * k + 2].reshape(-1), hi - lo)
                 c = np.tile(np.arange(lo, hi), 2 * n)
-                pr.append(r), pc.append(c), pv.append(b["A_t"][:, 2 * k:2 * k + 2, lo:hi].reshape(-1))
+                (
+                    pr.append(r),
+                    pc.append(c),
+                    pv.append(b["A_t"][:, 2 * k : 2 * k + 2, lo:hi].reshape(-1)),
+                )
         gr = np.repeat(rows_t.reshape(-1), 3)
-        gc = (u + 3 * np.arange(n)[:, None, None] + np.arange(3)[None, None, :]).repeat(4, 1).reshape(-1)
+        gc = (
+            (u + 3 * np.arange(n)[:, None, None] + np.arange(3)[None, None, :])
+            .repeat(4, 1)
+            .reshape(-1)
+        )
         m_g = b["A_g"].shape[0]
         Ag = b["A_g"].reshape(2 * m_g, u)
         Ap = b["A_p"]
         gcp_rows = 4 * n + np.arange(2 * m_g)
         pri_rows = 4 * n + 2 * m_g + np.arange(Ap.shape[0])
         r_all = np.concatenate(pr + [gr, np.repeat(gcp_rows, u), np.repeat(pri_rows, u)])
-        c_all = np.concatenate(pc + [gc, np.tile(np.arange(u), 2 * m_g), np.tile(np.arange(u), Ap.shape[0])])
+        c_all = np.concatenate(
+            pc + [gc, np.tile(np.arange(u), 2 * m_g), np.tile(np.arange(u), Ap.shape[0])]
+        )
         v_all = np.concatenate(pv + [b["G_t"].reshape(-1), Ag.reshape(-1), Ap.reshape(-1)])
         shape = (4 * n + 2 * m_g + Ap.shape[0], u + 3 * n)
         J = sp.csr_matrix((v_all, (r_all.astype(np.int64), c_all.astype(np.int64))), shape=shape)
@@ -193,6 +221,8 @@ class _Problem(schur.SchurProblem):
         return J
 
     # ---------------------------------------------------------------- normal equations
+
+
 def initial_ground(left, right, ties) -> np.ndarray:
     """First ground points (ECEF, m) of tie points ``ties`` (n, 4: col1, row1, col2, row2):
     along each left ray, the point whose right projection is nearest the right measurement
@@ -203,8 +233,11 @@ def initial_ground(left, right, ties) -> np.ndarray:
     n = len(t)
     lo, hi = _height_span(left, right)
     o, d = left.rays(t[:, 0], t[:, 1])
-    P = geodesy.intersect_height(np.concatenate([o, o]), np.concatenate([d, d]),
-                                 np.concatenate([np.full(n, lo), np.full(n, hi)]))
+    P = geodesy.intersect_height(
+        np.concatenate([o, o]),
+        np.concatenate([d, d]),
+        np.concatenate([np.full(n, lo), np.full(n, hi)]),
+    )
     Plo, Phi = P[:n], P[n:]
     lon, lat, h = geodesy.ecef_to_geodetic(P[:, 0], P[:, 1], P[:, 2])
     c, r = right.project(lon, lat, h)
@@ -216,8 +249,10 @@ def initial_ground(left, right, ties) -> np.ndarray:
     X = Plo + s[:, None] * (Phi - Plo)
     bad = ~np.all(np.isfinite(X), axis=1)
     if np.any(bad):
-        raise InputError(f"bundle: {int(bad.sum())} tie point(s) whose rays do not intersect "
-                         f"(first #{int(np.flatnonzero(bad)[0])})")
+        raise InputError(
+            f"bundle: {int(bad.sum())} tie point(s) whose rays do not intersect "
+            f"(first #{int(np.flatnonzero(bad)[0])})"
+        )
     return X
 
 
@@ -255,7 +290,7 @@ def gcp_block(model, names, gcps, cols, jacobian, e_g, A_g, whiten_e, whiten_A):
     e_g.append(whiten_e(np.stack([np.asarray(c) - gcps.col, np.asarray(r) - gcps.row], -1)))
     if jacobian:
         Ak = np.zeros((len(gcps), 2, u))
-        Ak[:, :, off:off + len(names)] = whiten_A(J)
+        Ak[:, :, off : off + len(names)] = whiten_A(J)
         A_g.append(Ak)
 
 
@@ -279,7 +314,7 @@ def _enu_partials(model, lon, lat, h, basis=None, step_m=1.0, base=None):
     phi = np.radians(lat)
     w = np.sqrt(1.0 - geodesy.E2 * np.sin(phi) ** 2)
     N = geodesy.A / w
-    M = geodesy.A * (1.0 - geodesy.E2) / w ** 3
+    M = geodesy.A * (1.0 - geodesy.E2) / w**3
     dlon = np.degrees(step_m / ((N + h) * np.cos(phi)))
     dlat = np.degrees(step_m / (M + h))
     n = lon.size
@@ -332,7 +367,7 @@ class BundleResult(ParameterEstimate):
     parallax_after: dict = field(default_factory=dict)
     #: "converged" (criterion met) or "stalled" (line search stopped below STATIONARY_SIGMA)
     status: str = "converged"
-    max_correction: float = float("nan")    #: last max |dz_k| / sigma_k
+    max_correction: float = float("nan")  #: last max |dz_k| / sigma_k
 
     @property
     def models(self):
@@ -346,8 +381,11 @@ class BundleResult(ParameterEstimate):
 
     @property
     def gcp_rmse_px(self) -> float:
-        res = [r[~_mask(g, self.outliers, side)] for r, g, side in
-               zip(self.gcp_residuals_px, self.gcps, ("left", "right")) if g is not None]
+        res = [
+            r[~_mask(g, self.outliers, side)]
+            for r, g, side in zip(self.gcp_residuals_px, self.gcps, ("left", "right"))
+            if g is not None
+        ]
         return rmse(np.concatenate(res)) if res else float("nan")
 
     @property
@@ -361,24 +399,44 @@ class BundleResult(ParameterEstimate):
         if g is not None:
             bad = _mask(g, self.outliers, side)
             for i in range(len(g)):
-                out.append({"id": str(g.id[i]), "role": "gcp", "image": side,
-                            "col": float(g.col[i]), "row": float(g.row[i]),
-                            "residual_px": [_num(v) for v in self.gcp_residuals_px[k][i]],
-                            "w": [_num(v) for v in self.gcp_w[k][i]],
-                            "r": [_num(v) for v in self.gcp_redundancy[k][i]],
-                            "mdb_px": None, "ground_residual_m": None, "outlier": bool(bad[i])})
+                out.append(
+                    {
+                        "id": str(g.id[i]),
+                        "role": "gcp",
+                        "image": side,
+                        "col": float(g.col[i]),
+                        "row": float(g.row[i]),
+                        "residual_px": [_num(v) for v in self.gcp_residuals_px[k][i]],
+                        "w": [_num(v) for v in self.gcp_w[k][i]],
+                        "r": [_num(v) for v in self.gcp_redundancy[k][i]],
+                        "mdb_px": None,
+                        "ground_residual_m": None,
+                        "outlier": bool(bad[i]),
+                    }
+                )
         c = self.checks[k]
         if c is not None:
             for i in range(len(c)):
-                out.append({"id": str(c.id[i]), "role": "check", "image": side,
-                            "col": float(c.col[i]), "row": float(c.row[i]),
-                            "residual_px": [_num(v) for v in self.check_residuals_px[k][i]],
-                            "w": None, "r": None, "mdb_px": None, "ground_residual_m": None,
-                            "outlier": False})
+                out.append(
+                    {
+                        "id": str(c.id[i]),
+                        "role": "check",
+                        "image": side,
+                        "col": float(c.col[i]),
+                        "row": float(c.row[i]),
+                        "residual_px": [_num(v) for v in self.check_residuals_px[k][i]],
+                        "w": None,
+                        "r": None,
+                        "mdb_px": None,
+                        "ground_residual_m": None,
+                        "outlier": False,
+                    }
+                )
         return out
 
     def to_report(self) -> dict:
         from stereodem.sensor.io.sidecar import model_to_dict
+
         kept = ~self.tie_rejected
         return {
             "model": {"left": model_to_dict(self.left), "right": model_to_dict(self.right)},
@@ -387,26 +445,39 @@ class BundleResult(ParameterEstimate):
             "solver": self.solver,
             **self._estimate_report(len(self.names) + 3 * int(kept.sum())),
             "points": self._points(0, "left") + self._points(1, "right"),
-            "gcp_rmse_px": _num(self.gcp_rmse_px), "check_rmse_px": _num(self.check_rmse_px),
-            "n_gcp": int(sum(len(g) for g in self.gcps if g is not None)
-                         - sum(o.get("kind") == "gcp" for o in self.outliers)),
+            "gcp_rmse_px": _num(self.gcp_rmse_px),
+            "check_rmse_px": _num(self.check_rmse_px),
+            "n_gcp": int(
+                sum(len(g) for g in self.gcps if g is not None)
+                - sum(o.get("kind") == "gcp" for o in self.outliers)
+            ),
             "n_check": int(sum(len(c) for c in self.checks if c is not None)),
-            "ties": {"n": int(len(self.tie_rejected)), "rejected": int(self.tie_rejected.sum()),
-                     "rmse_px": _num(self.tie_rmse_px),
-                     "rmse_left_col_row_px": [_num(v) for v in _axis(self.tie_residuals_px[kept, :2])],
-                     "rmse_right_col_row_px": [_num(v) for v in _axis(self.tie_residuals_px[kept, 2:])],
-                     "max_abs_w": _num(np.nanmax(np.abs(self.tie_w))) if kept.any() else None,
-                     "ground_std_m_median": [_num(v) for v in np.nanmedian(self.tie_std_m[kept], 0)]
-                     if kept.any() else None},
-            "parallax_before": self.parallax_before, "parallax_after": self.parallax_after,
+            "ties": {
+                "n": int(len(self.tie_rejected)),
+                "rejected": int(self.tie_rejected.sum()),
+                "rmse_px": _num(self.tie_rmse_px),
+                "rmse_left_col_row_px": [_num(v) for v in _axis(self.tie_residuals_px[kept, :2])],
+                "rmse_right_col_row_px": [_num(v) for v in _axis(self.tie_residuals_px[kept, 2:])],
+                "max_abs_w": _num(np.nanmax(np.abs(self.tie_w))) if kept.any() else None,
+                "ground_std_m_median": [_num(v) for v in np.nanmedian(self.tie_std_m[kept], 0)]
+                if kept.any()
+                else None,
+            },
+            "parallax_before": self.parallax_before,
+            "parallax_after": self.parallax_after,
             "outliers": [o["id"] for o in self.outliers if o.get("kind") == "gcp"],
             "outlier_details": self.outliers,
-            "test": self.test, "iterations": int(self.iterations), "converged": bool(self.converged),
-            "status": self.status, "max_correction": _num(self.max_correction),
+            "test": self.test,
+            "iterations": int(self.iterations),
+            "converged": bool(self.converged),
+            "status": self.status,
+            "max_correction": _num(self.max_correction),
             "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
             "regularization": None,
-            "redundancy_sum": _num(np.nansum(self.tie_redundancy) + sum(
-                np.nansum(r) for r in self.gcp_redundancy if r is not None)),
+            "redundancy_sum": _num(
+                np.nansum(self.tie_redundancy)
+                + sum(np.nansum(r) for r in self.gcp_redundancy if r is not None)
+            ),
         }
 
     def figures(self):
@@ -416,20 +487,27 @@ class BundleResult(ParameterEstimate):
         for k, (side, m) in enumerate((("left", self.left), ("right", self.right))):
             pts = [p for p in base["points"] if p["image"] == side]
             kept = ~self.tie_rejected
-            n = min(int(kept.sum()), 2000)     # draw at most 2000 ties
+            n = min(int(kept.sum()), 2000)  # draw at most 2000 ties
             idx = np.flatnonzero(kept)[:n]
             for i in idx:
-                res = self.tie_residuals_px[i, 2 * k:2 * k + 2]
-                pts.append({"id": f"tie{i}", "role": "tie", "col": float(self._tie_obs[i, 2 * k]),
-                            "row": float(self._tie_obs[i, 2 * k + 1]),
-                            "residual_px": [float(res[0]), float(res[1])], "outlier": False})
+                res = self.tie_residuals_px[i, 2 * k : 2 * k + 2]
+                pts.append(
+                    {
+                        "id": f"tie{i}",
+                        "role": "tie",
+                        "col": float(self._tie_obs[i, 2 * k]),
+                        "row": float(self._tie_obs[i, 2 * k + 1]),
+                        "residual_px": [float(res[0]), float(res[1])],
+                        "outlier": False,
+                    }
+                )
             out[side] = ({**base, "points": pts}, m.width, m.height)
         return out
 
 
 def _axis(res):
     res = np.asarray(res, float).reshape(-1, 2)
-    return np.sqrt(np.mean(res ** 2, axis=0)) if len(res) else np.array([np.nan, np.nan])
+    return np.sqrt(np.mean(res**2, axis=0)) if len(res) else np.array([np.nan, np.nan])
 
 
 def _mask(pts, outliers, side):
@@ -443,38 +521,58 @@ def tie_parallax(left, right, ties, *, max_points: int = 2000) -> dict:
     from the other image's ray at the intersection (the "vertical parallax" left once heights
     are free). At most ``max_points`` ties (evenly spaced in the list) are used."""
     from stereodem.sensor.geo.intersect import intersect_matches
+
     t = np.asarray(ties, float)
-    if len(t) > max_points:     # a diagnostic: an evenly spread subset is enough
+    if len(t) > max_points:  # a diagnostic: an evenly spread subset is enough
         t = t[np.linspace(0, len(t) - 1, max_points).astype(int)]
     inter = intersect_matches(left, right, t[:, 0], t[:, 1], t[:, 2], t[:, 3])
     cl, rl = left.project(inter.lon, inter.lat, inter.h)
     cr, rr = right.project(inter.lon, inter.lat, inter.h)
     d = np.stack([cl - t[:, 0], rl - t[:, 1], cr - t[:, 2], rr - t[:, 3]], -1)
-    return {"ray_gap_rms_m": float(np.sqrt(np.nanmean(inter.ray_gap ** 2))),
-            "ray_gap_median_m": float(np.nanmedian(inter.ray_gap)),
-            "reprojection_rms_px": rmse(d.reshape(-1, 2))}
+    return {
+        "ray_gap_rms_m": float(np.sqrt(np.nanmean(inter.ray_gap**2))),
+        "ray_gap_median_m": float(np.nanmedian(inter.ray_gap)),
+        "reprojection_rms_px": rmse(d.reshape(-1, 2)),
+    }
 
 
 def _as_ties(ties):
     if ties is None:
         return np.zeros((0, 4))
-    if hasattr(ties, "col1"):       # stereodem.stereo.sparse.SparseMatches
+    if hasattr(ties, "col1"):  # stereodem.stereo.sparse.SparseMatches
         ties = np.stack([ties.col1, ties.row1, ties.col2, ties.row2], -1)
     t = np.asarray(ties, dtype=np.float64)
     if t.ndim != 2 or t.shape[1] != 4:
-        raise InputError(f"bundle: tie points must be an (n, 4) array col1,row1,col2,row2, got shape {t.shape}")
+        raise InputError(
+            f"bundle: tie points must be an (n, 4) array col1,row1,col2,row2, got shape {t.shape}"
+        )
     bad = ~np.all(np.isfinite(t), axis=1)
     if np.any(bad):
         raise InputError(f"bundle: {int(bad.sum())} tie point(s) with NaN/inf coordinates")
     return t
 
 
-def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(None, None),
-                  sigma_tie_px: float = 0.5, sigma_px=None, priors=(None, None),
-                  max_iterations: int = 20, tolerance: float = 1e-2, snooping: bool = True,
-                  alpha: float = 0.001, power: float = 0.80, solver: str = "schur",
-                  max_condition: float = gm.MAX_CONDITION, max_tie_rounds: int = 5,
-                  chi2_alpha: float = 0.05, check_inputs: bool = True) -> BundleResult:
+def bundle_adjust(
+    left,
+    right,
+    ties,
+    *,
+    names=("rpc-shift", "rpc-shift"),
+    gcps=(None, None),
+    sigma_tie_px: float = 0.5,
+    sigma_px=None,
+    priors=(None, None),
+    max_iterations: int = 20,
+    tolerance: float = 1e-2,
+    snooping: bool = True,
+    alpha: float = 0.001,
+    power: float = 0.80,
+    solver: str = "schur",
+    max_condition: float = gm.MAX_CONDITION,
+    max_tie_rounds: int = 5,
+    chi2_alpha: float = 0.05,
+    check_inputs: bool = True,
+) -> BundleResult:
     """Bundle adjustment of a stereo pair (see the module docstring).
 
     Parameters
@@ -523,14 +621,16 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         gg, cc = g.select("gcp"), g.select("check")
         s, known = _sigmas(gg, sigma_px)
         gcp_sets.append(gg), chk_sets.append(cc), sig_sets.append(s), known_all.append(known)
-    sigma_known = all(known_all) if known_all else True   # ties: sigma_tie_px is a-priori
+    sigma_known = all(known_all) if known_all else True  # ties: sigma_tie_px is a-priori
     if len(t) == 0 and not has_gcp:
         raise InputError("bundle: no tie points and no GCPs")
     u = len(nl) + len(nr)
     n_obs = 4 * len(t) + sum(2 * len(g) for g in gcp_sets if g is not None) + len(pl) + len(pr)
     if n_obs - u - 3 * len(t) < 1:
-        raise InputError(f"bundle: {u} free parameter(s) and {len(t)} tie point(s) need more "
-                         f"observations: have {n_obs}, need at least {u + 3 * len(t) + 1}")
+        raise InputError(
+            f"bundle: {u} free parameter(s) and {len(t)} tie point(s) need more "
+            f"observations: have {n_obs}, need at least {u + 3 * len(t) + 1}"
+        )
     delta0 = rel.noncentrality(alpha, power)
     active_t = np.ones(len(t), bool)
     active_g = [None if g is None else np.ones(len(g), bool) for g in gcp_sets]
@@ -540,9 +640,8 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         sub = [None if g is None else g.subset(a) for g, a in zip(gcp_sets, active_g)]
         subs = [None if s is None else s[a] for s, a in zip(sig_sets, active_g)]
         prob = _Problem((ml, mr), (nl, nr), (pl, pr), t[active_t], sub, sigma_tie_px, subs)
-        z, sol = _solve(prob, solver, max_iterations, tolerance, max_condition,
-                        x_start=z_prev)
-        b = sol["b"]                    # blocks at the solution (from the last check)
+        z, sol = _solve(prob, solver, max_iterations, tolerance, max_condition, x_start=z_prev)
+        b = sol["b"]  # blocks at the solution (from the last check)
         R = sol["R"]
         Sinv = sol["Sinv"]
         e_all = np.concatenate([b["e_t"].ravel(), b["e_g"].ravel(), b["e_p"]])
@@ -552,7 +651,7 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
         # hat diagonal: ties (reduced form), GCPs and priors (parameters only)
         A_t, G_t = b["A_t"], b["G_t"]
-        Bt = A_t - G_t @ np.swapaxes(R["M"], 1, 2)                    # (n, 4, u)
+        Bt = A_t - G_t @ np.swapaxes(R["M"], 1, 2)  # (n, 4, u)
         h_t = np.sum((Bt @ Sinv) * Bt, axis=2) + np.sum((G_t @ R["T"]) * G_t, axis=2)
         Ag = b["A_g"]
         h_g = np.sum((Ag @ Sinv) * Ag, axis=2)
@@ -569,37 +668,60 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
             idx = np.flatnonzero(active_t)[bad_t]
             active_t[idx] = False
             rounds += 1
-            z_prev = z[:prob.u]
+            z_prev = z[: prob.u]
             continue
         # GCPs: one at a time, the largest
         stat_g = np.nan_to_num(np.nanmax(np.abs(w_g), axis=1), nan=0.0) if len(w_g) else np.zeros(0)
         if len(stat_g) and stat_g.max() > thr:
             k = int(np.argmax(stat_g))
-            owners = [(j, i) for j, a in enumerate(active_g) if a is not None for i in np.flatnonzero(a)]
+            owners = [
+                (j, i) for j, a in enumerate(active_g) if a is not None for i in np.flatnonzero(a)
+            ]
             j, i = owners[k]
             trial = [a.copy() if a is not None else None for a in active_g]
             trial[j][i] = False
             left_after = sum(int(a.sum()) for a in trial if a is not None)
-            if 2 * left_after + 4 * int(active_t.sum()) + len(pl) + len(pr) - u - 3 * int(active_t.sum()) >= 1:
+            if (
+                2 * left_after
+                + 4 * int(active_t.sum())
+                + len(pl)
+                + len(pr)
+                - u
+                - 3 * int(active_t.sum())
+                >= 1
+            ):
                 side = ("left", "right")[j]
-                outliers.append({"id": str(gcp_sets[j].id[i]), "kind": "gcp", "image": side,
-                                 "statistic": float(stat_g[k]), "threshold": thr,
-                                 "reason": f"|{'w' if sigma_known else 'tau'}| = {stat_g[k]:.2f} > "
-                                           f"{thr:.2f} in the {side} image "
-                                           f"({'Baarda data snooping' if sigma_known else 'Pope tau test'}, "
-                                           f"alpha = {alpha:g} per observation)"})
+                outliers.append(
+                    {
+                        "id": str(gcp_sets[j].id[i]),
+                        "kind": "gcp",
+                        "image": side,
+                        "statistic": float(stat_g[k]),
+                        "threshold": thr,
+                        "reason": f"|{'w' if sigma_known else 'tau'}| = {stat_g[k]:.2f} > "
+                        f"{thr:.2f} in the {side} image "
+                        f"({'Baarda data snooping' if sigma_known else 'Pope tau test'}, "
+                        f"alpha = {alpha:g} per observation)",
+                    }
+                )
                 active_g = trial
-                z_prev = z[:prob.u]
+                z_prev = z[: prob.u]
                 continue
         break
     if (~active_t).any():
-        outliers.append({"id": f"{int((~active_t).sum())} tie point(s)", "kind": "tie",
-                         "statistic": None, "threshold": thr,
-                         "reason": f"standardised residual above {thr:.2f} in {rounds} round(s) "
-                                   "of tie-point snooping"})
+        outliers.append(
+            {
+                "id": f"{int((~active_t).sum())} tie point(s)",
+                "kind": "tie",
+                "statistic": None,
+                "threshold": thr,
+                "reason": f"standardised residual above {thr:.2f} in {rounds} round(s) "
+                "of tie-point snooping",
+            }
+        )
     # ------------------------------------------------------------ result
     L, Rm = prob.model_at(z, 0), prob.model_at(z, 1)
-    x = z[:prob.u]
+    x = z[: prob.u]
     n_all = len(t)
     tie_res = np.full((n_all, 4), np.nan)
     tie_w = np.full((n_all, 4), np.nan)
@@ -613,6 +735,7 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         glon, glat, gh_ = lon.copy(), lat.copy(), h.copy()
         if (~active_t).any():
             from stereodem.sensor.geo.intersect import intersect_matches
+
             tr = t[~active_t]
             inter = intersect_matches(L, Rm, tr[:, 0], tr[:, 1], tr[:, 2], tr[:, 3])
             glon[~active_t], glat[~active_t], gh_[~active_t] = inter.lon, inter.lat, inter.h
@@ -620,7 +743,7 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         cr, rr = Rm.project(glon, glat, gh_)
         tie_res = np.stack([cl - t[:, 0], rl - t[:, 1], cr - t[:, 2], rr - t[:, 3]], -1)
     std_g = np.full((n_all, 3), np.nan)
-    std_g[active_t] = sol["sigma"][prob.u:].reshape(-1, 3) * scale
+    std_g[active_t] = sol["sigma"][prob.u :].reshape(-1, 3) * scale
     gres, gw, gr_, cres = [], [], [], []
     off = 0
     for k, (g, a, c) in enumerate(zip(gcp_sets, active_g, chk_sets)):
@@ -632,7 +755,7 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
         gres.append(np.stack([cc - g.col, rr_ - g.row], -1))
         ww, rrr = np.full((len(g), 2), np.nan), np.full((len(g), 2), np.nan)
         na = int(a.sum())
-        ww[a], rrr[a] = w_g[off:off + na], r_g[off:off + na]
+        ww[a], rrr[a] = w_g[off : off + na], r_g[off : off + na]
         off += na
         gw.append(ww), gr_.append(rrr)
         if c is not None and len(c):
@@ -640,25 +763,61 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
             cres.append(np.stack([qc - c.col, qr - c.row], -1))
         else:
             cres.append(np.zeros((0, 2)))
-    cov = Sinv * scale ** 2
-    units = [parameter_unit((ml, mr)[0 if n.startswith("left.") else 1], n.split(".", 1)[1])
-             for n in prob.full_names]
+    cov = Sinv * scale**2
+    units = [
+        parameter_unit((ml, mr)[0 if n.startswith("left.") else 1], n.split(".", 1)[1])
+        for n in prob.full_names
+    ]
     res = BundleResult(
-        left=L, right=Rm, names=prob.full_names, values=x, initial_values=prob.x0,
-        std=np.sqrt(np.diag(cov)), units=units, covariance=cov, condition=sol["cond"],
-        sigma0=sigma0, sigma_known=sigma_known, dof=dof, n_observations=m_obs,
-        chi2_test=rel.variance_test(vtpv, dof, chi2_alpha) if sigma_known else
-        {"statistic": vtpv, "dof": dof, "alpha": chi2_alpha, "passed": None},
-        tie_residuals_px=tie_res, tie_w=tie_w, tie_redundancy=tie_r, tie_lon=lon, tie_lat=lat,
-        tie_h=h, tie_std_m=std_g, tie_rejected=~active_t, gcps=tuple(gcp_sets),
-        gcp_residuals_px=tuple(gres), gcp_w=tuple(gw), gcp_redundancy=tuple(gr_),
-        checks=tuple(chk_sets), check_residuals_px=tuple(cres), outliers=outliers,
-        iterations=sol["iterations"], converged=sol["converged"], tolerance=tolerance,
-        status=sol["status"], max_correction=float(sol["max_correction"]),
-        test={"name": "baarda" if sigma_known else "pope", "alpha": alpha, "power": power,
-              "threshold": float(thr), "delta0": delta0, "snooping": bool(snooping)},
-        solver=solver, model_sets=(setl, setr), parallax_before=before,
-        parallax_after=tie_parallax(L, Rm, t[active_t]) if active_t.any() else {})
+        left=L,
+        right=Rm,
+        names=prob.full_names,
+        values=x,
+        initial_values=prob.x0,
+        std=np.sqrt(np.diag(cov)),
+        units=units,
+        covariance=cov,
+        condition=sol["cond"],
+        sigma0=sigma0,
+        sigma_known=sigma_known,
+        dof=dof,
+        n_observations=m_obs,
+        chi2_test=rel.variance_test(vtpv, dof, chi2_alpha)
+        if sigma_known
+        else {"statistic": vtpv, "dof": dof, "alpha": chi2_alpha, "passed": None},
+        tie_residuals_px=tie_res,
+        tie_w=tie_w,
+        tie_redundancy=tie_r,
+        tie_lon=lon,
+        tie_lat=lat,
+        tie_h=h,
+        tie_std_m=std_g,
+        tie_rejected=~active_t,
+        gcps=tuple(gcp_sets),
+        gcp_residuals_px=tuple(gres),
+        gcp_w=tuple(gw),
+        gcp_redundancy=tuple(gr_),
+        checks=tuple(chk_sets),
+        check_residuals_px=tuple(cres),
+        outliers=outliers,
+        iterations=sol["iterations"],
+        converged=sol["converged"],
+        tolerance=tolerance,
+        status=sol["status"],
+        max_correction=float(sol["max_correction"]),
+        test={
+            "name": "baarda" if sigma_known else "pope",
+            "alpha": alpha,
+            "power": power,
+            "threshold": float(thr),
+            "delta0": delta0,
+            "snooping": bool(snooping),
+        },
+        solver=solver,
+        model_sets=(setl, setr),
+        parallax_before=before,
+        parallax_after=tie_parallax(L, Rm, t[active_t]) if active_t.any() else {},
+    )
     res._tie_obs = t
     return res
 
@@ -666,16 +825,25 @@ def bundle_adjust(left, right, ties, *, names=("rpc-shift", "rpc-shift"), gcps=(
 def _solve(prob, solver, max_iterations, tolerance, max_condition, x_start=None):
     """Iterate to convergence; returns ``(z, info)`` with the reduced system at the solution."""
     z = prob.z0()
-    if x_start is not None:     # parameters carried over from a previous round of snooping
-        z[:prob.u] = x_start
+    if x_start is not None:  # parameters carried over from a previous round of snooping
+        z[: prob.u] = x_start
     it = 0
     if solver == "least_squares" and max_iterations > 0:
+
         def jac(zz):
             return prob.sparse_jacobian(prob.blocks(zz))
+
         # scipy's default tolerances (1e-8); the Gauss-Newton steps below then bring it to the
         # stated criterion, so every solver stops at the same max |dz|/sigma < tolerance
-        sol = least_squares(prob.residual, z, jac=jac, method="trf", tr_solver="lsmr",
-                            x_scale="jac", max_nfev=4 * max_iterations + 10)
+        sol = least_squares(
+            prob.residual,
+            z,
+            jac=jac,
+            method="trf",
+            tr_solver="lsmr",
+            x_scale="jac",
+            max_nfev=4 * max_iterations + 10,
+        )
         z, it = sol.x, int(sol.njev or sol.nfev)
     worst, stalled = np.inf, False
     # after scipy's run, up to five Gauss-Newton steps to meet the stated criterion
@@ -706,12 +874,22 @@ def _solve(prob, solver, max_iterations, tolerance, max_condition, x_start=None)
         z = zn
         it += 1
     if worst >= tolerance and not stalled:
-        raise ConvergenceError(f"bundle: no convergence in {it} iteration(s) (last correction "
-                               f"{worst:.3g} sigma; criterion max |dz|/sigma < {tolerance:g})")
+        raise ConvergenceError(
+            f"bundle: no convergence in {it} iteration(s) (last correction "
+            f"{worst:.3g} sigma; criterion max |dz|/sigma < {tolerance:g})"
+        )
     converged = worst < tolerance
-    return z, {"R": R, "Sinv": Sinv, "cond": cond, "sigma": sig, "iterations": it, "b": b,
-               "converged": converged, "status": "converged" if converged else "stalled",
-               "max_correction": worst}
+    return z, {
+        "R": R,
+        "Sinv": Sinv,
+        "cond": cond,
+        "sigma": sig,
+        "iterations": it,
+        "b": b,
+        "converged": converged,
+        "status": "converged" if converged else "stalled",
+        "max_correction": worst,
+    }
 
 
 def _dense_step(prob, b, max_condition):

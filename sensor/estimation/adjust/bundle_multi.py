@@ -24,6 +24,7 @@ Datum: tie points fix only the relative orientation of the images. GCPs fix the 
 them one image is held fixed (``fixed``, default the first), or priors on every parameter
 hold it; otherwise the near-singular normal matrix is reported, naming the parameters.
 """
+
 from __future__ import annotations
 
 import math
@@ -66,7 +67,7 @@ class TieTracks:
         self.image = np.asarray(self.image, np.int64)
         self.col = np.asarray(self.col, np.float64)
         self.row = np.asarray(self.row, np.float64)
-        order = np.lexsort((self.image, self.point))          # observations grouped by point
+        order = np.lexsort((self.image, self.point))  # observations grouped by point
         for name in ("point", "image", "col", "row"):
             setattr(self, name, getattr(self, name)[order])
 
@@ -94,9 +95,11 @@ class TieTracks:
             for b in range(a + 1, int(counts.max(initial=0))):
                 ok = counts > b
                 oa, ob = starts[ok] + a, starts[ok] + b
-                for (i, j) in set(zip(self.image[oa].tolist(), self.image[ob].tolist())):
+                for i, j in set(zip(self.image[oa].tolist(), self.image[ob].tolist())):
                     s = (self.image[oa] == i) & (self.image[ob] == j)
-                    t = np.column_stack([self.col[oa[s]], self.row[oa[s]], self.col[ob[s]], self.row[ob[s]]])
+                    t = np.column_stack(
+                        [self.col[oa[s]], self.row[oa[s]], self.col[ob[s]], self.row[ob[s]]]
+                    )
                     out[(i, j)] = np.concatenate([out[(i, j)], t]) if (i, j) in out else t
         return out
 
@@ -110,6 +113,7 @@ def tracks_from_pairs(pair_ties: dict, *, decimals: int = 2) -> TieTracks:
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
+
     imgs, cols, rows, edges = [], [], [], []
     base = 0
     for (i, j), t in pair_ties.items():
@@ -127,7 +131,7 @@ def tracks_from_pairs(pair_ties: dict, *, decimals: int = 2) -> TieTracks:
     if base == 0:
         return TieTracks(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
     image, col, row = np.concatenate(imgs), np.concatenate(cols), np.concatenate(rows)
-    key = np.column_stack([image, np.round(col * 10 ** decimals), np.round(row * 10 ** decimals)])
+    key = np.column_stack([image, np.round(col * 10**decimals), np.round(row * 10**decimals)])
     _, node = np.unique(key, axis=0, return_inverse=True)
     node = node.ravel()
     e = node[np.concatenate(edges)]
@@ -154,14 +158,18 @@ class _Problem(schur.SchurProblem):
         self.models, self.names = models, names
         self.off = np.cumsum([0] + [len(nm) for nm in names])
         self.u = int(self.off[-1])
-        self.x0 = np.array([models[k].parameters()[nm] for k in range(len(models)) for nm in names[k]], float)
+        self.x0 = np.array(
+            [models[k].parameters()[nm] for k in range(len(models)) for nm in names[k]], float
+        )
         self.full_names = [f"image{k}.{nm}" for k in range(len(models)) for nm in names[k]]
         allp = {f"image{k}.{nm}": v for k, pk in enumerate(priors) for nm, v in pk.items()}
         self.prior_idx = np.array([self.full_names.index(k) for k in allp], dtype=int)
         self.prior_sigma = np.array(list(allp.values()), dtype=float)
         self.tracks, self.n, self.m = tracks, tracks.n_points, len(tracks)
         self.sigma_tie = float(sigma_tie)
-        self.starts = np.flatnonzero(np.r_[True, np.diff(tracks.point) != 0]) if self.m else np.zeros(0, int)
+        self.starts = (
+            np.flatnonzero(np.r_[True, np.diff(tracks.point) != 0]) if self.m else np.zeros(0, int)
+        )
         self.gcps, self.gcp_sigma = gcps, gcp_sigma
         self.X0 = self._initial_ground()
         lon, lat, _ = geodesy.ecef_to_geodetic(self.X0[:, 0], self.X0[:, 1], self.X0[:, 2])
@@ -184,7 +192,7 @@ class _Problem(schur.SchurProblem):
     def model_at(self, z, k):
         if not self.names[k]:
             return self.models[k]
-        vals = z[self.off[k]:self.off[k + 1]]
+        vals = z[self.off[k] : self.off[k + 1]]
         return self.models[k].with_parameters(**dict(zip(self.names[k], (float(v) for v in vals))))
 
     def blocks(self, z, *, jacobian=True):
@@ -202,18 +210,32 @@ class _Problem(schur.SchurProblem):
             sel = np.flatnonzero(t.image == k)
             if sel.size:
                 pts = t.point[sel]
-                e_t[sel], A, G = tie_block(mdl, names, (lon[pts], lat[pts], h[pts]),
-                                           np.column_stack([t.col[sel], t.row[sel]]),
-                                           self.sigma_tie, jacobian)
+                e_t[sel], A, G = tie_block(
+                    mdl,
+                    names,
+                    (lon[pts], lat[pts], h[pts]),
+                    np.column_stack([t.col[sel], t.row[sel]]),
+                    self.sigma_tie,
+                    jacobian,
+                )
                 if A is not None:
-                    A_t[sel, :, off:off + len(names)] = A
+                    A_t[sel, :, off : off + len(names)] = A
                 if jacobian:
                     G_t[sel] = G
             p = self.gcps[k]
             if p is not None and len(p):
                 s = self.gcp_sigma[k][:, None]
-                gcp_block(mdl, names, p, (off, u), jacobian, e_g, A_g,
-                          lambda mis, s=s: mis / s, lambda J, s=s: J / s[:, :, None])
+                gcp_block(
+                    mdl,
+                    names,
+                    p,
+                    (off, u),
+                    jacobian,
+                    e_g,
+                    A_g,
+                    lambda mis, s=s: mis / s,
+                    lambda J, s=s: J / s[:, :, None],
+                )
         e_g = np.concatenate(e_g) if e_g else np.zeros((0, 2))
         A_g = np.concatenate(A_g) if A_g else np.zeros((0, 2, u))
         e_p, A_p = schur.prior_blocks(z[:u], self.x0, self.prior_idx, self.prior_sigma, u)
@@ -274,21 +296,32 @@ class MultiBundleResult(ParameterEstimate):
 
         def rms(v):
             v = v[np.isfinite(v)]
-            return _num(np.sqrt(np.mean(v ** 2))) if v.size else None
-        return {"rms_m": rms(g[kept]), "median_m": _num(np.nanmedian(g[kept])) if kept.any() else None,
-                "rms_m_per_image": [rms(g[kept & (self.tracks.image == k)]) for k in range(len(self.models))]}
+            return _num(np.sqrt(np.mean(v**2))) if v.size else None
+
+        return {
+            "rms_m": rms(g[kept]),
+            "median_m": _num(np.nanmedian(g[kept])) if kept.any() else None,
+            "rms_m_per_image": [
+                rms(g[kept & (self.tracks.image == k)]) for k in range(len(self.models))
+            ],
+        }
 
     def image_rmse_px(self) -> list:
         kept = ~self.tie_rejected[self.tracks.point]
-        return [rmse(self.tie_residuals_px[kept & (self.tracks.image == k)]) for k in range(len(self.models))]
+        return [
+            rmse(self.tie_residuals_px[kept & (self.tracks.image == k)])
+            for k in range(len(self.models))
+        ]
 
     def to_report(self) -> dict:
         from stereodem.sensor.io.sidecar import model_to_dict
+
         kept = ~self.tie_rejected
         n_obs_kept = int((~self.tie_rejected[self.tracks.point]).sum())
 
         def pair_key(k):
             return f"{k[0]}-{k[1]}"
+
         return {
             "model": {f"image{k}": model_to_dict(m) for k, m in enumerate(self.models)},
             "model_set": "bundle",
@@ -297,26 +330,37 @@ class MultiBundleResult(ParameterEstimate):
             "solver": "schur",
             **self._estimate_report(len(self.names) + 3 * int(kept.sum())),
             "points": [],
-            "gcp_rmse_px": _num(rmse(np.concatenate([r for r in self.gcp_residuals_px if r is not None]))
-                                if any(r is not None for r in self.gcp_residuals_px) else float("nan")),
-            "check_rmse_px": _num(rmse(np.concatenate([r for r in self.check_residuals_px if r is not None]))
-                                  if any(r is not None for r in self.check_residuals_px) else float("nan")),
+            "gcp_rmse_px": _num(
+                rmse(np.concatenate([r for r in self.gcp_residuals_px if r is not None]))
+                if any(r is not None for r in self.gcp_residuals_px)
+                else float("nan")
+            ),
+            "check_rmse_px": _num(
+                rmse(np.concatenate([r for r in self.check_residuals_px if r is not None]))
+                if any(r is not None for r in self.check_residuals_px)
+                else float("nan")
+            ),
             "n_gcp": int(sum(len(r) for r in self.gcp_residuals_px if r is not None)),
             "n_check": int(sum(len(r) for r in self.check_residuals_px if r is not None)),
-            "ties": {"n": int(len(kept)), "rejected": int(self.tie_rejected.sum()),
-                     "observations": int(len(self.tracks)), "observations_kept": n_obs_kept,
-                     "rmse_px": _num(self.tie_rmse_px),
-                     "rmse_px_per_image": [_num(v) for v in self.image_rmse_px()]},
+            "ties": {
+                "n": int(len(kept)),
+                "rejected": int(self.tie_rejected.sum()),
+                "observations": int(len(self.tracks)),
+                "observations_kept": n_obs_kept,
+                "rmse_px": _num(self.tie_rmse_px),
+                "rmse_px_per_image": [_num(v) for v in self.image_rmse_px()],
+            },
             "point_ray_gaps": self.point_ray_gaps(),
             "ray_gaps_before": {pair_key(k): v for k, v in self.ray_gaps_before.items()},
             "ray_gaps_after": {pair_key(k): v for k, v in self.ray_gaps_after.items()},
             "outliers": [o["id"] for o in self.outliers],
             "outlier_details": self.outliers,
-            "test": self.test, "iterations": int(self.iterations), "converged": bool(self.converged),
+            "test": self.test,
+            "iterations": int(self.iterations),
+            "converged": bool(self.converged),
             "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
             "regularization": None,
         }
-
 
     def figures(self, *, max_points: int = 2000):
         """Per image ``{"image<k>": (report, width, height)}`` for the residual figures: its
@@ -326,32 +370,69 @@ class MultiBundleResult(ParameterEstimate):
         out = {}
         for k, m in enumerate(self.models):
             idx = np.flatnonzero(kept & (self.tracks.image == k))
-            idx = idx[np.linspace(0, idx.size - 1, min(idx.size, max_points)).astype(int)] if idx.size else idx
-            pts = [{"id": f"tie{int(self.tracks.point[o])}", "role": "tie", "col": float(self.tracks.col[o]),
-                    "row": float(self.tracks.row[o]), "residual_px": [float(v) for v in self.tie_residuals_px[o]],
-                    "outlier": False} for o in idx]
-            for role, res, pts_k in (("gcp", self.gcp_residuals_px[k], self.gcp_points[k]),
-                                     ("check", self.check_residuals_px[k], self.check_points[k])):
+            idx = (
+                idx[np.linspace(0, idx.size - 1, min(idx.size, max_points)).astype(int)]
+                if idx.size
+                else idx
+            )
+            pts = [
+                {
+                    "id": f"tie{int(self.tracks.point[o])}",
+                    "role": "tie",
+                    "col": float(self.tracks.col[o]),
+                    "row": float(self.tracks.row[o]),
+                    "residual_px": [float(v) for v in self.tie_residuals_px[o]],
+                    "outlier": False,
+                }
+                for o in idx
+            ]
+            for role, res, pts_k in (
+                ("gcp", self.gcp_residuals_px[k], self.gcp_points[k]),
+                ("check", self.check_residuals_px[k], self.check_points[k]),
+            ):
                 if res is None:
                     continue
-                pts += [{"id": str(pts_k.id[i]), "role": role, "col": float(pts_k.col[i]),
-                         "row": float(pts_k.row[i]), "residual_px": [float(v) for v in res[i]],
-                         "outlier": False} for i in range(len(res))]
+                pts += [
+                    {
+                        "id": str(pts_k.id[i]),
+                        "role": role,
+                        "col": float(pts_k.col[i]),
+                        "row": float(pts_k.row[i]),
+                        "residual_px": [float(v) for v in res[i]],
+                        "outlier": False,
+                    }
+                    for i in range(len(res))
+                ]
             out[f"image{k}"] = ({**base, "points": pts}, m.width, m.height)
         return out
 
 
 def _ray_gaps(models, tracks, *, max_points: int = 2000) -> dict:
     """:func:`.bundle.tie_parallax` of every image pair sharing tie points."""
-    return {k: tie_parallax(models[k[0]], models[k[1]], t, max_points=max_points)
-            for k, t in sorted(tracks.pairs().items())}
+    return {
+        k: tie_parallax(models[k[0]], models[k[1]], t, max_points=max_points)
+        for k, t in sorted(tracks.pairs().items())
+    }
 
 
-def bundle_adjust_images(models, tracks: TieTracks, *, names="rpc-shift", gcps=None, fixed=None,
-                         priors=None, sigma_tie_px: float = 0.5, sigma_px=None,
-                         max_iterations: int = 20, tolerance: float = 1e-2, snooping: bool = True,
-                         alpha: float = 0.001, max_tie_rounds: int = 5,
-                         max_condition: float = gm.MAX_CONDITION, ray_gaps: bool = True) -> MultiBundleResult:
+def bundle_adjust_images(
+    models,
+    tracks: TieTracks,
+    *,
+    names="rpc-shift",
+    gcps=None,
+    fixed=None,
+    priors=None,
+    sigma_tie_px: float = 0.5,
+    sigma_px=None,
+    max_iterations: int = 20,
+    tolerance: float = 1e-2,
+    snooping: bool = True,
+    alpha: float = 0.001,
+    max_tie_rounds: int = 5,
+    max_condition: float = gm.MAX_CONDITION,
+    ray_gaps: bool = True,
+) -> MultiBundleResult:
     """Bundle adjustment of N images (see the module docstring).
 
     Parameters
@@ -381,7 +462,9 @@ def bundle_adjust_images(models, tracks: TieTracks, *, names="rpc-shift", gcps=N
     gcps = list(gcps) if gcps is not None else [None] * n_img
     priors = list(priors) if priors is not None else [None] * n_img
     if len(gcps) != n_img or len(priors) != n_img:
-        raise InputError(f"bundle: {n_img} images but {len(gcps)} GCP sets / {len(priors)} prior sets")
+        raise InputError(
+            f"bundle: {n_img} images but {len(gcps)} GCP sets / {len(priors)} prior sets"
+        )
     per = [names] * n_img if isinstance(names, str) or names is None else list(names)
     if len(per) != n_img:
         raise InputError(f"bundle: {n_img} images but {len(per)} parameter sets")
@@ -394,8 +477,12 @@ def bundle_adjust_images(models, tracks: TieTracks, *, names="rpc-shift", gcps=N
     for k in fixed:
         per[k] = None
     if len(tracks) and (tracks.image.max() >= n_img or tracks.image.min() < 0):
-        raise InputError(f"bundle: tie observations of image {int(tracks.image.max())}, but {n_img} images")
-    resolved = [_resolve(m, nm, pr, f"image {k}") for k, (m, nm, pr) in enumerate(zip(models, per, priors))]
+        raise InputError(
+            f"bundle: tie observations of image {int(tracks.image.max())}, but {n_img} images"
+        )
+    resolved = [
+        _resolve(m, nm, pr, f"image {k}") for k, (m, nm, pr) in enumerate(zip(models, per, priors))
+    ]
     ms = [r[0] for r in resolved]
     nms = [r[1] for r in resolved]
     prs = [r[2] for r in resolved]
@@ -411,10 +498,16 @@ def bundle_adjust_images(models, tracks: TieTracks, *, names="rpc-shift", gcps=N
         gcp_sets.append(gg), chk_sets.append(cc), sig_sets.append(s), known_all.append(known)
     sigma_known = all(known_all) if known_all else True
     u = sum(len(n) for n in nms)
-    n_obs = 2 * len(tracks) + sum(2 * len(g) for g in gcp_sets if g is not None) + sum(len(p) for p in prs)
+    n_obs = (
+        2 * len(tracks)
+        + sum(2 * len(g) for g in gcp_sets if g is not None)
+        + sum(len(p) for p in prs)
+    )
     if n_obs - u - 3 * tracks.n_points < 1:
-        raise InputError(f"bundle: {u} free parameter(s) and {tracks.n_points} tie point(s) need more "
-                         f"observations: have {n_obs}, need at least {u + 3 * tracks.n_points + 1}")
+        raise InputError(
+            f"bundle: {u} free parameter(s) and {tracks.n_points} tie point(s) need more "
+            f"observations: have {n_obs}, need at least {u + 3 * tracks.n_points + 1}"
+        )
     before = _ray_gaps(ms, tracks) if ray_gaps and len(tracks) else {}
     active = np.ones(tracks.n_points, bool)
     outliers, x_prev, rounds = [], None, 0
@@ -431,9 +524,11 @@ def bundle_adjust_images(models, tracks: TieTracks, *, names="rpc-shift", gcps=N
         if not snooping or rounds >= max_tie_rounds or prob.n == 0:
             break
         # hat diagonal of tie observations (reduced form), standardised residuals per point
-        Mo = R["M"][sub.point]                                        # (m, u, 3)
+        Mo = R["M"][sub.point]  # (m, u, 3)
         Bt = b["A_t"] - b["G_t"] @ np.swapaxes(Mo, 1, 2)
-        h_t = np.sum((Bt @ Sinv) * Bt, axis=2) + np.sum((b["G_t"] @ R["T"][sub.point]) * b["G_t"], axis=2)
+        h_t = np.sum((Bt @ Sinv) * Bt, axis=2) + np.sum(
+            (b["G_t"] @ R["T"][sub.point]) * b["G_t"], axis=2
+        )
         scale = 1.0 if sigma_known else sigma0
         w_t = rel.standardized_residuals(b["e_t"], np.clip(1 - h_t, 0, 1), scale)
         stat = np.zeros(prob.n)
@@ -443,19 +538,33 @@ def bundle_adjust_images(models, tracks: TieTracks, *, names="rpc-shift", gcps=N
             break
         active[np.flatnonzero(active)[bad]] = False
         rounds += 1
-        x_prev = z[:prob.u]
+        x_prev = z[: prob.u]
     if (~active).any():
-        outliers.append({"id": f"{int((~active).sum())} tie point(s)", "kind": "tie", "statistic": None,
-                         "threshold": thr, "reason": f"standardised residual above {thr:.2f} in "
-                                                     f"{rounds} round(s) of tie-point snooping"})
+        outliers.append(
+            {
+                "id": f"{int((~active).sum())} tie point(s)",
+                "kind": "tie",
+                "statistic": None,
+                "threshold": thr,
+                "reason": f"standardised residual above {thr:.2f} in "
+                f"{rounds} round(s) of tie-point snooping",
+            }
+        )
     final = [prob.model_at(z, k) for k in range(n_img)]
     # residuals of every observation from the final models (rejected points re-intersected
     # from their first two observations)
     lon, lat, h = (np.full(tracks.n_points, np.nan) for _ in range(3))
     lon[active], lat[active], h[active] = prob.ground(z)
     if (~active).any():
-        rej = _Problem(final, [[] for _ in final], [{} for _ in final], tracks.subset(~active),
-                       [None] * n_img, sigma_tie_px, [None] * n_img)
+        rej = _Problem(
+            final,
+            [[] for _ in final],
+            [{} for _ in final],
+            tracks.subset(~active),
+            [None] * n_img,
+            sigma_tie_px,
+            [None] * n_img,
+        )
         lon[~active], lat[~active], h[~active] = rej.ground(rej.z0())
     res = np.full((len(tracks), 2), np.nan)
     for k, m in enumerate(final):
@@ -463,7 +572,7 @@ def bundle_adjust_images(models, tracks: TieTracks, *, names="rpc-shift", gcps=N
         if s.any():
             c, r = m.project(lon[tracks.point[s]], lat[tracks.point[s]], h[tracks.point[s]])
             res[s] = np.column_stack([np.asarray(c) - tracks.col[s], np.asarray(r) - tracks.row[s]])
-    gap = np.full(len(tracks), np.nan)            # distance of each ray from its point, m
+    gap = np.full(len(tracks), np.nan)  # distance of each ray from its point, m
     X = np.column_stack(geodesy.geodetic_to_ecef(lon, lat, h))
     for k, m in enumerate(final):
         s = np.flatnonzero(tracks.image == k) if ray_gaps else np.zeros(0, int)
@@ -480,28 +589,58 @@ def bundle_adjust_images(models, tracks: TieTracks, *, names="rpc-shift", gcps=N
             c, r = m.project(p.lon, p.lat, p.h)
             out.append(np.column_stack([np.asarray(c) - p.col, np.asarray(r) - p.row]))
     scale = 1.0 if sigma_known else sigma0
-    cov = Sinv * scale ** 2
-    units = [parameter_unit(ms[int(nm.split(".", 1)[0][5:])], nm.split(".", 1)[1]) for nm in prob.full_names]
+    cov = Sinv * scale**2
+    units = [
+        parameter_unit(ms[int(nm.split(".", 1)[0][5:])], nm.split(".", 1)[1])
+        for nm in prob.full_names
+    ]
     return MultiBundleResult(
-        names=prob.full_names, values=z[:prob.u], initial_values=prob.x0,
-        std=np.sqrt(np.diag(cov)) if prob.u else np.zeros(0), units=units, covariance=cov,
-        condition=sol["cond"], sigma0=sigma0, sigma_known=sigma_known, dof=dof,
+        names=prob.full_names,
+        values=z[: prob.u],
+        initial_values=prob.x0,
+        std=np.sqrt(np.diag(cov)) if prob.u else np.zeros(0),
+        units=units,
+        covariance=cov,
+        condition=sol["cond"],
+        sigma0=sigma0,
+        sigma_known=sigma_known,
+        dof=dof,
         n_observations=e_all.size,
-        chi2_test=rel.variance_test(vtpv, dof) if sigma_known else
-        {"statistic": vtpv, "dof": dof, "alpha": 0.05, "passed": None},
-        models=final, model_sets=sets, tracks=tracks, tie_residuals_px=res, tie_rejected=~active,
-        tie_h=h, tie_ray_gap_m=gap, gcp_residuals_px=gres, check_residuals_px=cres, outliers=outliers,
-        iterations=sol["iterations"], converged=True, tolerance=tolerance,
-        test={"name": "baarda", "alpha": alpha, "threshold": float(thr), "snooping": bool(snooping)},
-        fixed=fixed, gcp_points=gcp_sets, check_points=chk_sets, ray_gaps_before=before,
-        ray_gaps_after=_ray_gaps(final, tracks.subset(active)) if ray_gaps and active.any() else {})
+        chi2_test=rel.variance_test(vtpv, dof)
+        if sigma_known
+        else {"statistic": vtpv, "dof": dof, "alpha": 0.05, "passed": None},
+        models=final,
+        model_sets=sets,
+        tracks=tracks,
+        tie_residuals_px=res,
+        tie_rejected=~active,
+        tie_h=h,
+        tie_ray_gap_m=gap,
+        gcp_residuals_px=gres,
+        check_residuals_px=cres,
+        outliers=outliers,
+        iterations=sol["iterations"],
+        converged=True,
+        tolerance=tolerance,
+        test={
+            "name": "baarda",
+            "alpha": alpha,
+            "threshold": float(thr),
+            "snooping": bool(snooping),
+        },
+        fixed=fixed,
+        gcp_points=gcp_sets,
+        check_points=chk_sets,
+        ray_gaps_before=before,
+        ray_gaps_after=_ray_gaps(final, tracks.subset(active)) if ray_gaps and active.any() else {},
+    )
 
 
 def _solve(prob, max_iterations, tolerance, max_condition, x_start=None):
     """Gauss–Newton with step halving on the reduced system; ``(z, info)`` at the solution."""
     z = prob.z0()
     if x_start is not None:
-        z[:prob.u] = x_start
+        z[: prob.u] = x_start
     worst, it = np.inf, 0
     for _ in range(max_iterations + 1):
         b = prob.blocks(z)
@@ -523,6 +662,8 @@ def _solve(prob, max_iterations, tolerance, max_condition, x_start=None):
         z = zn
         it += 1
     if worst >= tolerance:
-        raise ConvergenceError(f"bundle: no convergence in {it} iteration(s) (last correction "
-                               f"{worst:.3g} sigma; criterion max |dz|/sigma < {tolerance:g})")
+        raise ConvergenceError(
+            f"bundle: no convergence in {it} iteration(s) (last correction "
+            f"{worst:.3g} sigma; criterion max |dz|/sigma < {tolerance:g})"
+        )
     return z, {"R": R, "Sinv": Sinv, "cond": cond, "sigma": sig, "iterations": it, "b": b}

@@ -17,14 +17,21 @@ corrections to pixel coordinates and heights), and the observation residuals
 So the estimation runs through :mod:`.gauss_markov` on ``M^-1/2 e``; this module supplies
 ``G``, the whitening matrices and the back-substitution of ``v_l`` and ``v_g``.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 from stereodem.core import geodesy
 
-__all__ = ["ground_partials", "misclosure_covariance", "whitening", "observation_residuals",
-           "variance_components", "SEPARABLE_CONDITION"]
+__all__ = [
+    "ground_partials",
+    "misclosure_covariance",
+    "whitening",
+    "observation_residuals",
+    "variance_components",
+    "SEPARABLE_CONDITION",
+]
 
 #: condition number of the variance-component normal matrix above which the image and ground
 #: components are reported as not separable (not iterated). A near-nadir view with every GCP
@@ -40,14 +47,14 @@ def ground_partials(model, lon, lat, h, *, step_m: float = 1.0) -> np.ndarray:
     east/north/up axes (the map is smooth over metres for every model of the project).
     """
     lon, lat, h = (np.atleast_1d(np.asarray(a, dtype=np.float64)).ravel() for a in (lon, lat, h))
-    X = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)               # (n, 3)
-    basis = np.asarray(geodesy.enu_basis(lon, lat)).reshape(-1, 3, 3)    # rows east, north, up
-    offsets = step_m * np.concatenate([basis, -basis], axis=1)            # (n, 6, 3)
+    X = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)  # (n, 3)
+    basis = np.asarray(geodesy.enu_basis(lon, lat)).reshape(-1, 3, 3)  # rows east, north, up
+    offsets = step_m * np.concatenate([basis, -basis], axis=1)  # (n, 6, 3)
     P = (X[:, None, :] + offsets).reshape(-1, 3)
     plon, plat, ph = geodesy.ecef_to_geodetic(P[:, 0], P[:, 1], P[:, 2])
     c, r = model.project(plon, plat, ph)
-    img = np.stack([c, r], -1).reshape(-1, 6, 2)                          # (n, 6, 2)
-    G = np.swapaxes((img[:, :3] - img[:, 3:]) / (2.0 * step_m), 1, 2)    # (n, 2, 3)
+    img = np.stack([c, r], -1).reshape(-1, 6, 2)  # (n, 6, 2)
+    G = np.swapaxes((img[:, :3] - img[:, 3:]) / (2.0 * step_m), 1, 2)  # (n, 2, 3)
     return G
 
 
@@ -57,10 +64,10 @@ def misclosure_covariance(sigma_px, sigma_ground_m=None, G=None) -> np.ndarray:
     ``sigma_ground_m`` NaN or None: the ground coordinates are fixed (Gauss–Markov).
     """
     s = np.asarray(sigma_px, dtype=np.float64)
-    M = (s ** 2)[:, None, None] * np.eye(2)
+    M = (s**2)[:, None, None] * np.eye(2)
     if sigma_ground_m is not None and G is not None:
         g = np.nan_to_num(np.asarray(sigma_ground_m, dtype=np.float64), nan=0.0)
-        M = M + (g ** 2)[:, None, None] * np.einsum("nik,njk->nij", G, G)
+        M = M + (g**2)[:, None, None] * np.einsum("nik,njk->nij", G, G)
     return M
 
 
@@ -77,7 +84,7 @@ def observation_residuals(e, M, sigma_px, sigma_ground_m=None, G=None):
     v_g = np.zeros(e.shape[:-1] + (3,))
     if sigma_ground_m is not None and G is not None:
         g = np.nan_to_num(np.asarray(sigma_ground_m, float), nan=0.0)
-        v_g = -(g ** 2)[:, None] * np.einsum("nik,ni->nk", G, Me)
+        v_g = -(g**2)[:, None] * np.einsum("nik,ni->nk", G, Me)
     return v_l, v_g
 
 
@@ -99,7 +106,7 @@ def variance_components(W, A_w, Qxx, e, sigma_px, sigma_ground_m, G) -> dict:
     ground covariance maps to the image as a multiple of the image covariance (``G G^T``
     isotropic, e.g. a near-nadir view) the two components cannot be told apart.
     """
-    H = A_w @ Qxx @ np.swapaxes(A_w, 1, 2)                         # (n, 2, 2)
+    H = A_w @ Qxx @ np.swapaxes(A_w, 1, 2)  # (n, 2, 2)
     C = np.swapaxes(W, 1, 2) @ (np.eye(2) - H) @ W
     s_l = np.asarray(sigma_px, float) ** 2
     g = np.nan_to_num(np.asarray(sigma_ground_m, float), nan=0.0) ** 2
@@ -109,18 +116,26 @@ def variance_components(W, A_w, Qxx, e, sigma_px, sigma_ground_m, G) -> dict:
     M = s_l[:, None, None] * np.eye(2) + GG
     v_l, v_g = observation_residuals(e, M, np.sqrt(s_l), np.sqrt(g), G)
     with np.errstate(divide="ignore", invalid="ignore"):
-        q_l = float(np.sum(np.sum(v_l ** 2, axis=1) / s_l))
-        q_g = float(np.sum(np.where(g > 0, np.sum(v_g ** 2, axis=1) / np.where(g > 0, g, 1), 0.0)))
+        q_l = float(np.sum(np.sum(v_l**2, axis=1) / s_l))
+        q_g = float(np.sum(np.where(g > 0, np.sum(v_g**2, axis=1) / np.where(g > 0, g, 1), 0.0)))
     # separability: the (block-diagonal) normal matrix of the two components, Förstner (1979)
     Sl = s_l[:, None, None] * np.eye(2)
     CSl, CSg = C @ Sl, C @ GG
-    N = np.array([[np.einsum("nij,nji->", CSl, CSl), np.einsum("nij,nji->", CSl, CSg)],
-                  [np.einsum("nij,nji->", CSg, CSl), np.einsum("nij,nji->", CSg, CSg)]])
+    N = np.array(
+        [
+            [np.einsum("nij,nji->", CSl, CSl), np.einsum("nij,nji->", CSl, CSg)],
+            [np.einsum("nij,nji->", CSg, CSl), np.einsum("nij,nji->", CSg, CSg)],
+        ]
+    )
     ev = np.linalg.eigvalsh(N)
     cond = float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
     out = {"condition": cond, "separable": bool(cond < SEPARABLE_CONDITION)}
     for name, q, r in (("image", q_l, r_l), ("ground", q_g, r_g)):
         var = q / r if r > 1e-9 else float("nan")
-        out[name] = {"vtpv": q, "redundancy": r, "variance": var,
-                     "sigma0": float(np.sqrt(var)) if np.isfinite(var) else None}
+        out[name] = {
+            "vtpv": q,
+            "redundancy": r,
+            "variance": var,
+            "sigma0": float(np.sqrt(var)) if np.isfinite(var) else None,
+        }
     return out

@@ -31,6 +31,7 @@ rank-deficient parameter set with a positive Tikhonov weight has finite statisti
 :class:`numpy.linalg.LinAlgError` that still arises (an SVD that does not converge, or the
 model's own linear algebra) is raised as :class:`~stereodem.core.errors.SensorModelError`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -54,15 +55,15 @@ STATIONARY_SIGMA = 0.1
 class GaussMarkovSolution:
     """Result of :func:`solve` (all at the final parameters)."""
 
-    x: np.ndarray            #: parameters
-    e: np.ndarray            #: whitened residuals (m,)
-    A: np.ndarray            #: whitened Jacobian (m, u)
-    Qxx: np.ndarray          #: cofactor matrix of the parameters (u, u), (A^T A + R)^-1
-    condition: float         #: condition number of the equilibrated A^T A
+    x: np.ndarray  #: parameters
+    e: np.ndarray  #: whitened residuals (m,)
+    A: np.ndarray  #: whitened Jacobian (m, u)
+    Qxx: np.ndarray  #: cofactor matrix of the parameters (u, u), (A^T A + R)^-1
+    condition: float  #: condition number of the equilibrated A^T A
     iterations: int
-    converged: bool          #: the stated criterion max |dx_k| / sigma_k < tolerance was met
-    max_correction: float    #: last max |dx_k| / sigma_k
-    regularization: float    #: Tikhonov weight used (0: none)
+    converged: bool  #: the stated criterion max |dx_k| / sigma_k < tolerance was met
+    max_correction: float  #: last max |dx_k| / sigma_k
+    regularization: float  #: Tikhonov weight used (0: none)
     #: "converged", or "stalled": the line search could no longer lower the sum of squares
     #: with a correction below STATIONARY_SIGMA (accepted, but the criterion was not met)
     status: str = "converged"
@@ -88,9 +89,18 @@ def _condition(s):
     return float((s[0] / s[-1]) ** 2) if s[-1] > 0 else float("inf")
 
 
-def solve(evaluate, x0, names, *, residual=None, max_iterations: int = 20,
-          tolerance: float = 1e-2, regularization=None, max_condition: float = MAX_CONDITION,
-          what: str = "adjustment") -> GaussMarkovSolution:
+def solve(
+    evaluate,
+    x0,
+    names,
+    *,
+    residual=None,
+    max_iterations: int = 20,
+    tolerance: float = 1e-2,
+    regularization=None,
+    max_condition: float = MAX_CONDITION,
+    what: str = "adjustment",
+) -> GaussMarkovSolution:
     """Damped Gauss–Newton on a whitened least-squares problem (see the module docstring).
 
     Parameters
@@ -120,38 +130,51 @@ def solve(evaluate, x0, names, *, residual=None, max_iterations: int = 20,
         No convergence within ``max_iterations``.
     """
     try:
-        return _solve(evaluate, x0, names, residual=residual, max_iterations=max_iterations,
-                      tolerance=tolerance, regularization=regularization,
-                      max_condition=max_condition, what=what)
+        return _solve(
+            evaluate,
+            x0,
+            names,
+            residual=residual,
+            max_iterations=max_iterations,
+            tolerance=tolerance,
+            regularization=regularization,
+            max_condition=max_condition,
+            what=what,
+        )
     except np.linalg.LinAlgError as exc:
         raise SensorModelError(
             f"{what}: linear algebra failed ({exc}) with parameters {', '.join(names)} — the set "
-            "is probably rank-deficient: free fewer parameters, add priors, or regularise") from None
+            "is probably rank-deficient: free fewer parameters, add priors, or regularise"
+        ) from None
 
 
-def _solve(evaluate, x0, names, *, residual, max_iterations, tolerance, regularization,
-           max_condition, what) -> GaussMarkovSolution:
+def _solve(
+    evaluate, x0, names, *, residual, max_iterations, tolerance, regularization, max_condition, what
+) -> GaussMarkovSolution:
     x_ref = np.asarray(x0, dtype=np.float64).copy()
     residual = residual or (lambda z: evaluate(z)[0])
     e, A = evaluate(x_ref)
     _check_finite(e, A, what)
     zero = np.flatnonzero(np.linalg.norm(A, axis=0) == 0)
     if zero.size:
-        raise SensorModelError(f"{what}: parameter(s) {', '.join(names[k] for k in zero)} "
-                               "have no effect on the observations")
+        raise SensorModelError(
+            f"{what}: parameter(s) {', '.join(names[k] for k in zero)} "
+            "have no effect on the observations"
+        )
     D, U, s, Vt = equilibrated_svd(A)
     cond = _condition(s)
     lam, D_reg = 0.0, None
     if regularization is not None:
         lam = _weight(regularization, A / D, -e)
-        if lam > 0:          # a zero weight is no regularisation: the condition check applies
+        if lam > 0:  # a zero weight is no regularisation: the condition check applies
             D_reg = D.copy()
     if D_reg is None and cond > max_condition:
         raise SensorModelError(
             f"{what}: near-singular normal matrix (condition number {cond:.3g}"
             + (f", regularisation weight {lam:g}" if regularization is not None else "")
             + f"); cannot separate {', '.join(inseparable(Vt, s, names)) or 'the parameters'} — "
-            "free fewer parameters, add priors, or regularise")
+            "free fewer parameters, add priors, or regularise"
+        )
 
     # Tikhonov as fictitious observations lam * D (x - x0) = 0 (equilibrated units)
     def fun(z):
@@ -166,10 +189,18 @@ def _solve(evaluate, x0, names, *, residual, max_iterations, tolerance, regulari
     if max_iterations > 0:
         with np.errstate(all="ignore"):
             try:
-                sol = least_squares(fun, x_ref, jac=jac, method="lm", x_scale="jac",
-                                    xtol=1e-10, ftol=1e-12, gtol=1e-12,
-                                    max_nfev=4 * max_iterations + 10)
-            except ValueError as exc:   # residuals not finite at the start
+                sol = least_squares(
+                    fun,
+                    x_ref,
+                    jac=jac,
+                    method="lm",
+                    x_scale="jac",
+                    xtol=1e-10,
+                    ftol=1e-12,
+                    gtol=1e-12,
+                    max_nfev=4 * max_iterations + 10,
+                )
+            except ValueError as exc:  # residuals not finite at the start
                 raise SensorModelError(f"{what}: {exc}") from None
         x, iterations = sol.x, int(sol.njev or sol.nfev)
 
@@ -182,7 +213,7 @@ def _solve(evaluate, x0, names, *, residual, max_iterations, tolerance, regulari
         eb = e if D_reg is None else np.concatenate([e, lam * D_reg * (x - x_ref)])
         D, U, s, Vt = equilibrated_svd(Ab)
         cond = _condition(equilibrated_svd(A)[2]) if D_reg is not None else _condition(s)
-        Q = (Vt.T / s ** 2) @ Vt / np.outer(D, D)
+        Q = (Vt.T / s**2) @ Vt / np.outer(D, D)
         sigma = np.sqrt(np.maximum(np.diag(Q), 1e-300))
         dx = (Vt.T @ ((U.T @ -eb) / s)) / D
         worst = float(np.max(np.abs(dx) / sigma))
@@ -203,9 +234,11 @@ def _solve(evaluate, x0, names, *, residual, max_iterations, tolerance, regulari
             f"sigma of {names[int(np.argmax(np.abs(dx) / sigma))]}; criterion "
             f"max |dx|/sigma < {tolerance:g}; condition number {cond:.3g}"
             + (f", weakly separable: {', '.join(inseparable(Vt, s, names))}" if cond > 1e8 else "")
-            + ") — check the initial model and the points, or free fewer parameters")
-    return GaussMarkovSolution(x, e, A, Q, cond, iterations, converged, worst, lam,
-                               "converged" if converged else "stalled")
+            + ") — check the initial model and the points, or free fewer parameters"
+        )
+    return GaussMarkovSolution(
+        x, e, A, Q, cond, iterations, converged, worst, lam, "converged" if converged else "stalled"
+    )
 
 
 def _weight(method, A, b):
@@ -223,5 +256,7 @@ def _weight(method, A, b):
 
 def _check_finite(e, A, what):
     if not (np.all(np.isfinite(e)) and np.all(np.isfinite(A))):
-        raise SensorModelError(f"{what}: the model gives non-finite image coordinates or "
-                               "derivatives at some points (outside its validity range?)")
+        raise SensorModelError(
+            f"{what}: the model gives non-finite image coordinates or "
+            "derivatives at some points (outside its validity range?)"
+        )

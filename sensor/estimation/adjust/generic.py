@@ -13,6 +13,7 @@ normal matrices are near-singular (Ok 2005, §6.2); for the 2nd and 3rd order on
 coefficients) the statistics are those of the regularised fit itself, without re-estimation
 or snooping.
 """
+
 from __future__ import annotations
 
 from stereodem.core.errors import InputError
@@ -23,8 +24,9 @@ from stereodem.sensor.models.generic import MODEL_NAMES, fit_model
 __all__ = ["adjust_generic"]
 
 
-def adjust_generic(name: str, points: ControlPoints, *, image_size=None, crs=None,
-                   regularization="auto", **kwargs):
+def adjust_generic(
+    name: str, points: ControlPoints, *, image_size=None, crs=None, regularization="auto", **kwargs
+):
     """Fit generic model ``name`` to the GCPs of ``points`` and adjust it with statistics.
 
     Parameters
@@ -55,23 +57,34 @@ def adjust_generic(name: str, points: ControlPoints, *, image_size=None, crs=Non
     if regularization == "auto":
         model, _ = fit_model(name, *gcp.arrays(), crs=crs, image_size=image_size)
         regularization = "lcurve" if name.startswith("rational") else None
-    else:                  # the caller's choice, for the initial fit and the adjustment alike
+    else:  # the caller's choice, for the initial fit and the adjustment alike
         from stereodem.sensor.models.generic import _form
+
         if regularization is not None and not _form(name).regularizable:
             # Tikhonov about the initial fit cannot move a least-squares fit of a model linear
             # in its coefficients: accepting the weight would change nothing but the report
             regularizable = ", ".join(n for n in MODEL_NAMES if _form(n).regularizable)
-            raise InputError(f"generic model '{name}' is fitted exactly by linear least squares; "
-                             f"regularisation applies to {regularizable} (and to parameter sets "
-                             "of physical/RPC models)")
-        model, _ = fit_model(name, *gcp.arrays(), crs=crs, image_size=image_size,
-                             regularization=regularization)
+            raise InputError(
+                f"generic model '{name}' is fitted exactly by linear least squares; "
+                f"regularisation applies to {regularizable} (and to parameter sets "
+                "of physical/RPC models)"
+            )
+        model, _ = fit_model(
+            name, *gcp.arrays(), crs=crs, image_size=image_size, regularization=regularization
+        )
     if name in ("rational-2", "rational-3"):
         # 38/78 coefficients, condition numbers 1e11-1e14: statistics of the regularised fit
         # itself (no re-estimation, hence no snooping, which would need a re-fit)
         kwargs.update(max_iterations=0, snooping=False)
-    res = adjust_model(model, points, list(model.parameters()), regularization=regularization,
-                       check_inputs=False, what=f"generic model '{name}'", **kwargs)
+    res = adjust_model(
+        model,
+        points,
+        list(model.parameters()),
+        regularization=regularization,
+        check_inputs=False,
+        what=f"generic model '{name}'",
+        **kwargs,
+    )
     res.model_set = name
     for k in range(len(res.units)):
         res.units[k] = "1"

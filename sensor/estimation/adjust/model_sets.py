@@ -10,6 +10,7 @@ module); :func:`model_set` looks a name up.
 
 Units of the parameters are those of the model's ``PARAMETERS`` table (:func:`parameter_unit`).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -18,8 +19,14 @@ from dataclasses import dataclass, field
 from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 
-__all__ = ["ModelSet", "MODEL_SETS", "register_model_set", "model_set", "parameter_unit",
-           "image_corrected"]
+__all__ = [
+    "ModelSet",
+    "MODEL_SETS",
+    "register_model_set",
+    "model_set",
+    "parameter_unit",
+    "image_corrected",
+]
 
 
 @dataclass(frozen=True)
@@ -50,11 +57,15 @@ class ModelSet:
 
     def prepare(self, model):
         """``(adjustable model, names, priors)`` for ``model``."""
-        if self.applies_to and not isinstance(model, self.applies_to) and not (
-                isinstance(model, ImageCorrectedModel) and self.build is image_corrected):
+        if (
+            self.applies_to
+            and not isinstance(model, self.applies_to)
+            and not (isinstance(model, ImageCorrectedModel) and self.build is image_corrected)
+        ):
             kinds = ", ".join(t.__name__ for t in self.applies_to)
-            raise SensorModelError(f"model set '{self.name}' applies to {kinds}, "
-                                   f"not to {type(model).__name__}")
+            raise SensorModelError(
+                f"model set '{self.name}' applies to {kinds}, not to {type(model).__name__}"
+            )
         return self.build(model), list(self.names), dict(self.priors)
 
 
@@ -62,8 +73,9 @@ class ModelSet:
 MODEL_SETS: dict[str, ModelSet] = {}
 
 
-def register_model_set(name, build, names, *, description="", priors=None, applies_to=(),
-                       replace=False) -> ModelSet:
+def register_model_set(
+    name, build, names, *, description="", priors=None, applies_to=(), replace=False
+) -> ModelSet:
     """Register a named parameter set (see :class:`ModelSet`); returns it."""
     if name in MODEL_SETS and not replace:
         raise InputError(f"model set '{name}' is already registered")
@@ -77,7 +89,9 @@ def model_set(name: str) -> ModelSet:
     try:
         return MODEL_SETS[name]
     except KeyError:
-        raise InputError(f"unknown model set '{name}' (known: {', '.join(sorted(MODEL_SETS))})") from None
+        raise InputError(
+            f"unknown model set '{name}' (known: {', '.join(sorted(MODEL_SETS))})"
+        ) from None
 
 
 def parameter_unit(model, name: str) -> str:
@@ -89,9 +103,21 @@ def parameter_unit(model, name: str) -> str:
     return _FRAME_UNITS.get(name, "")
 
 
-_FRAME_UNITS = {"focal_mm": "mm", "dx_mm": "mm", "dy_mm": "mm", "k1": "1/mm^2", "k2": "1/mm^4",
-                "p1": "1/mm", "p2": "1/mm", "roll": "rad", "pitch": "rad", "yaw": "rad",
-                "x": "m", "y": "m", "z": "m"}
+_FRAME_UNITS = {
+    "focal_mm": "mm",
+    "dx_mm": "mm",
+    "dy_mm": "mm",
+    "k1": "1/mm^2",
+    "k2": "1/mm^4",
+    "p1": "1/mm",
+    "p2": "1/mm",
+    "roll": "rad",
+    "pitch": "rad",
+    "yaw": "rad",
+    "x": "m",
+    "y": "m",
+    "z": "m",
+}
 
 
 # ------------------------------------------------------------------------------ builders
@@ -110,48 +136,100 @@ def _register_defaults():
 
     # RPC (or any model) bias compensation in image space: Grodecki & Dial 2003, Fraser &
     # Hanley 2005. "shift-drift": shifts plus a drift of both coordinates with the line (time)
-    register_model_set("rpc-shift", image_corrected, ("col_shift", "row_shift"),
-                       description="image-space shift (bias compensation, 2 parameters)")
-    register_model_set("rpc-shift-drift", image_corrected,
-                       ("col_shift", "row_shift", "col_drift_row", "row_drift_row"),
-                       description="image-space shift and along-track drift (4 parameters)")
-    register_model_set("rpc-affine", image_corrected,
-                       ("col_shift", "row_shift", "col_drift_col", "col_drift_row",
-                        "row_drift_col", "row_drift_row"),
-                       description="image-space affine correction (6 parameters)")
+    register_model_set(
+        "rpc-shift",
+        image_corrected,
+        ("col_shift", "row_shift"),
+        description="image-space shift (bias compensation, 2 parameters)",
+    )
+    register_model_set(
+        "rpc-shift-drift",
+        image_corrected,
+        ("col_shift", "row_shift", "col_drift_row", "row_drift_row"),
+        description="image-space shift and along-track drift (4 parameters)",
+    )
+    register_model_set(
+        "rpc-affine",
+        image_corrected,
+        (
+            "col_shift",
+            "row_shift",
+            "col_drift_col",
+            "col_drift_row",
+            "row_drift_col",
+            "row_drift_row",
+        ),
+        description="image-space affine correction (6 parameters)",
+    )
     eo = ("roll", "pitch", "yaw", "x", "y", "z")
-    register_model_set("frame-eo", _identity, eo, applies_to=(FrameCamera,),
-                       description="frame camera space resection: exterior orientation (6)")
+    register_model_set(
+        "frame-eo",
+        _identity,
+        eo,
+        applies_to=(FrameCamera,),
+        description="frame camera space resection: exterior orientation (6)",
+    )
     # a satellite frame camera cannot separate focal length from range (Bettemir 2006 §5.2:
     # f, c and the altitude are correlated; he fixed the altitude): with interior orientation
     # free, the telemetry position is a prior (15 m, the GPS sigma of the thesis)
     gps = dict.fromkeys(("x", "y", "z"), 15.0)
-    register_model_set("frame-eo-io", _identity, eo + ("focal_mm", "dx_mm", "dy_mm"),
-                       applies_to=(FrameCamera,), priors=gps,
-                       description="exterior + interior orientation, position prior 15 m (9)")
-    register_model_set("frame-self-calibration", _identity,
-                       eo + ("focal_mm", "dx_mm", "dy_mm", "k1", "k2", "p1", "p2"),
-                       applies_to=(FrameCamera,), priors=gps,
-                       description="exterior + interior orientation + Brown distortion, "
-                                   "position prior 15 m (13)")
+    register_model_set(
+        "frame-eo-io",
+        _identity,
+        eo + ("focal_mm", "dx_mm", "dy_mm"),
+        applies_to=(FrameCamera,),
+        priors=gps,
+        description="exterior + interior orientation, position prior 15 m (9)",
+    )
+    register_model_set(
+        "frame-self-calibration",
+        _identity,
+        eo + ("focal_mm", "dx_mm", "dy_mm", "k1", "k2", "p1", "p2"),
+        applies_to=(FrameCamera,),
+        priors=gps,
+        description="exterior + interior orientation + Brown distortion, position prior 15 m (13)",
+    )
     att = ("roll_bias", "pitch_bias", "yaw_bias")
     drift = ("roll_drift", "pitch_drift", "yaw_drift")
     pos = ("position_offset_x", "position_offset_y", "position_offset_z")
-    register_model_set("attitude-bias", _identity, att, applies_to=(PushbroomModel,),
-                       description="pushbroom attitude biases roll/pitch/yaw (3)")
-    register_model_set("attitude-bias-drift", _identity, att + drift, applies_to=(PushbroomModel,),
-                       description="pushbroom attitude biases and drifts (6)")
-    register_model_set("attitude-bias-scale", _identity, att + ("look_scale",),
-                       applies_to=(PushbroomModel,),
-                       description="attitude biases and the cross-track look scale (4)")
+    register_model_set(
+        "attitude-bias",
+        _identity,
+        att,
+        applies_to=(PushbroomModel,),
+        description="pushbroom attitude biases roll/pitch/yaw (3)",
+    )
+    register_model_set(
+        "attitude-bias-drift",
+        _identity,
+        att + drift,
+        applies_to=(PushbroomModel,),
+        description="pushbroom attitude biases and drifts (6)",
+    )
+    register_model_set(
+        "attitude-bias-scale",
+        _identity,
+        att + ("look_scale",),
+        applies_to=(PushbroomModel,),
+        description="attitude biases and the cross-track look scale (4)",
+    )
     # position offsets and attitude biases are nearly interchangeable over a narrow field of
     # view; 50 m a-priori position sigma (fictitious observations) keeps them apart
-    register_model_set("position-attitude", _identity, pos + att, applies_to=(PushbroomModel,),
-                       priors=dict.fromkeys(pos, 50.0),
-                       description="position offsets (prior 50 m) and attitude biases (6)")
-    register_model_set("pushbroom-time", _identity, ("time_offset",) + att[:1] + att[2:],
-                       applies_to=(PushbroomModel,),
-                       description="time offset with roll and yaw biases (3)")
+    register_model_set(
+        "position-attitude",
+        _identity,
+        pos + att,
+        applies_to=(PushbroomModel,),
+        priors=dict.fromkeys(pos, 50.0),
+        description="position offsets (prior 50 m) and attitude biases (6)",
+    )
+    register_model_set(
+        "pushbroom-time",
+        _identity,
+        ("time_offset",) + att[:1] + att[2:],
+        applies_to=(PushbroomModel,),
+        description="time offset with roll and yaw biases (3)",
+    )
 
 
 _register_defaults()
@@ -160,6 +238,7 @@ _register_defaults()
 def _register_orbital():
     # orbital models of Topan (2009) / Ok (2005): eop-poly2, eop-<Table 4.2 set>, orun, toutin, kratky
     from stereodem.sensor.models.orbital import register_sets
+
     register_sets(register_model_set)
 
 

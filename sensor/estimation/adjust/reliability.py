@@ -20,14 +20,23 @@ Errata of the seed fixed here (notes §4.4 and §9.2 item 10): the threshold tha
 ``alpha_0 = 0.001`` is 3.29, not the 1.96 the thesis used, and ``sigma_i = sigma_0 / sqrt(p_i)``
 (not ``sigma_0 sqrt(p_i)``).
 """
+
 from __future__ import annotations
 
 import numpy as np
 from scipy import stats
 
-__all__ = ["hat_diagonal", "redundancy_numbers", "standardized_residuals", "baarda_threshold",
-           "pope_threshold", "noncentrality", "minimal_detectable_bias",
-           "external_reliability", "variance_test"]
+__all__ = [
+    "hat_diagonal",
+    "redundancy_numbers",
+    "standardized_residuals",
+    "baarda_threshold",
+    "pope_threshold",
+    "noncentrality",
+    "minimal_detectable_bias",
+    "external_reliability",
+    "variance_test",
+]
 
 
 def hat_diagonal(A, Qxx) -> np.ndarray:
@@ -100,10 +109,23 @@ def variance_test(vtpv: float, dof: int, alpha: float = 0.05) -> dict:
     """
     dof = int(dof)
     if dof <= 0:
-        return {"statistic": float(vtpv), "dof": dof, "alpha": alpha, "lower": None,
-                "upper": None, "p_value": None, "passed": None}
+        return {
+            "statistic": float(vtpv),
+            "dof": dof,
+            "alpha": alpha,
+            "lower": None,
+            "upper": None,
+            "p_value": None,
+            "passed": None,
+        }
     lo, hi = stats.chi2.ppf([alpha / 2.0, 1.0 - alpha / 2.0], dof)
     cdf = stats.chi2.cdf(vtpv, dof)
-    return {"statistic": float(vtpv), "dof": dof, "alpha": alpha, "lower": float(lo),
-            "upper": float(hi), "p_value": float(2.0 * min(cdf, 1.0 - cdf)),
-            "passed": bool(lo <= vtpv <= hi)}
+    return {
+        "statistic": float(vtpv),
+        "dof": dof,
+        "alpha": alpha,
+        "lower": float(lo),
+        "upper": float(hi),
+        "p_value": float(2.0 * min(cdf, 1.0 - cdf)),
+        "passed": bool(lo <= vtpv <= hi),
+    }

@@ -1,4 +1,5 @@
 """The result of an adjustment and its JSON report (``adjust_report.json``)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -12,13 +13,13 @@ def rmse(res) -> float:
     """Radial RMSE of (n, 2) pixel residuals, ``sqrt(mean(dc^2 + dr^2))``; NaN when empty."""
     res = np.asarray(res, float).reshape(-1, 2)
     res = res[np.all(np.isfinite(res), axis=1)]
-    return float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))) if len(res) else float("nan")
+    return float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if len(res) else float("nan")
 
 
 def _axis_rmse(res):
     res = np.asarray(res, float).reshape(-1, 2)
     res = res[np.all(np.isfinite(res), axis=1)]
-    return [float(v) for v in np.sqrt(np.mean(res ** 2, axis=0))] if len(res) else [None, None]
+    return [float(v) for v in np.sqrt(np.mean(res**2, axis=0))] if len(res) else [None, None]
 
 
 def _num(v):
@@ -71,10 +72,19 @@ class ParameterEstimate:
             "dof": int(self.dof),
             "n_observations": int(self.n_observations),
             "n_unknowns": int(n_unknowns),
-            "parameters": [{"name": n, "value": float(v), "initial": float(v0), "std": _num(s),
-                            "unit": u, **({"prior_std": priors[n]} if n in priors else {})}
-                           for n, v, v0, s, u in zip(self.names, self.values, self.initial_values,
-                                                     self.std, self.units)],
+            "parameters": [
+                {
+                    "name": n,
+                    "value": float(v),
+                    "initial": float(v0),
+                    "std": _num(s),
+                    "unit": u,
+                    **({"prior_std": priors[n]} if n in priors else {}),
+                }
+                for n, v, v0, s, u in zip(
+                    self.names, self.values, self.initial_values, self.std, self.units
+                )
+            ],
             "covariance": [[_num(v) for v in row] for row in self.covariance],
             "correlation": [[_num(v) for v in row] for row in self.correlation],
             "condition": _num(self.condition),
@@ -133,7 +143,7 @@ class AdjustmentResult(ParameterEstimate):
     variance_components: dict | None = None
     #: "converged" (criterion met) or "stalled" (line search stopped below STATIONARY_SIGMA)
     status: str = "converged"
-    max_correction: float = float("nan")    #: last max |dx_k| / sigma_k
+    max_correction: float = float("nan")  #: last max |dx_k| / sigma_k
 
     # ---------------------------------------------------------------- derived
     @property
@@ -164,26 +174,42 @@ class AdjustmentResult(ParameterEstimate):
     def to_report(self) -> dict:
         """The content of ``adjust_report.json`` (JSON-ready; NaN -> null)."""
         from stereodem.sensor.io.sidecar import model_to_dict
+
         out_mask = self.outlier_mask
         points = []
         for k, pid in enumerate(self.gcp_ids):
-            points.append({
-                "id": str(pid), "role": "gcp", "col": float(self.gcp_points.col[k]),
-                "row": float(self.gcp_points.row[k]),
-                "residual_px": [_num(v) for v in self.residuals_px[k]],
-                "w": [_num(v) for v in self.w[k]], "r": [_num(v) for v in self.redundancy[k]],
-                "mdb_px": [_num(v) for v in self.mdb[k]],
-                "ground_residual_m": [_num(v) for v in self.ground_residuals_m[k]],
-                "outlier": bool(out_mask[k])})
+            points.append(
+                {
+                    "id": str(pid),
+                    "role": "gcp",
+                    "col": float(self.gcp_points.col[k]),
+                    "row": float(self.gcp_points.row[k]),
+                    "residual_px": [_num(v) for v in self.residuals_px[k]],
+                    "w": [_num(v) for v in self.w[k]],
+                    "r": [_num(v) for v in self.redundancy[k]],
+                    "mdb_px": [_num(v) for v in self.mdb[k]],
+                    "ground_residual_m": [_num(v) for v in self.ground_residuals_m[k]],
+                    "outlier": bool(out_mask[k]),
+                }
+            )
         for k, pid in enumerate(self.check_ids):
-            points.append({
-                "id": str(pid), "role": "check", "col": float(self.check_points.col[k]),
-                "row": float(self.check_points.row[k]),
-                "residual_px": [_num(v) for v in self.check_residuals_px[k]],
-                "w": None, "r": None, "mdb_px": None, "ground_residual_m": None, "outlier": False})
+            points.append(
+                {
+                    "id": str(pid),
+                    "role": "check",
+                    "col": float(self.check_points.col[k]),
+                    "row": float(self.check_points.row[k]),
+                    "residual_px": [_num(v) for v in self.check_residuals_px[k]],
+                    "w": None,
+                    "r": None,
+                    "mdb_px": None,
+                    "ground_residual_m": None,
+                    "outlier": False,
+                }
+            )
         try:
             model_dict = model_to_dict(self.model)
-        except Exception as exc:   # a model without a serialiser still gets its statistics
+        except Exception as exc:  # a model without a serialiser still gets its statistics
             model_dict = {"type": type(self.model).__name__, "error": str(exc)}
         return {
             "model": model_dict,
@@ -201,7 +227,8 @@ class AdjustmentResult(ParameterEstimate):
             "test": self.test,
             "iterations": int(self.iterations),
             "converged": bool(self.converged),
-            "status": self.status, "max_correction": _num(self.max_correction),
+            "status": self.status,
+            "max_correction": _num(self.max_correction),
             "convergence_criterion": f"max |dx_k| / sigma_k < {self.tolerance:g}",
             "regularization": _num(self.regularization),
             "redundancy_sum": _num(np.nansum(self.redundancy)),

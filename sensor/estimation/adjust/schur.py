@@ -8,6 +8,7 @@ observation blocks are whitened (unit variance). Per tie point ``j``::
     S = N_pp - sum_j N_pg,j N_gg,j^-1 N_pg,j^T,    S dp = b_p - sum_j N_pg,j N_gg,j^-1 b_g,j,
     dg_j = N_gg,j^-1 (b_g,j - N_pg,j^T dp)
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,8 +16,14 @@ import numpy as np
 from stereodem.core import geodesy
 from stereodem.core.errors import SensorModelError
 
-__all__ = ["SchurProblem", "ground_points", "prior_blocks", "reduced_normal", "solve_reduced",
-           "back_substitute"]
+__all__ = [
+    "SchurProblem",
+    "ground_points",
+    "prior_blocks",
+    "reduced_normal",
+    "solve_reduced",
+    "back_substitute",
+]
 
 
 def ground_points(X0, basis, d):
@@ -45,17 +52,17 @@ def reduced_normal(b, u, starts=None):
     the per-point blocks :func:`back_substitute` needs."""
     A_t, G_t, e_t, Ag = b["A_t"], b["G_t"], b["e_t"], b["A_g"]
     GtT = np.swapaxes(G_t, 1, 2)
-    N_pg = np.swapaxes(A_t, 1, 2) @ G_t                              # (m, u, 3)
-    N_gg = GtT @ G_t                                                  # (m, 3, 3)
-    b_g = -(GtT @ e_t[..., None])[..., 0]                             # (m, 3)
-    if starts is not None:                                            # -> (n, ...) per point
+    N_pg = np.swapaxes(A_t, 1, 2) @ G_t  # (m, u, 3)
+    N_gg = GtT @ G_t  # (m, 3, 3)
+    b_g = -(GtT @ e_t[..., None])[..., 0]  # (m, 3)
+    if starts is not None:  # -> (n, ...) per point
         N_pg, N_gg, b_g = (np.add.reduceat(a, starts, axis=0) for a in (N_pg, N_gg, b_g))
-    At2 = A_t.reshape(A_t.shape[0] * A_t.shape[1], u)             # BLAS products over all rows
+    At2 = A_t.reshape(A_t.shape[0] * A_t.shape[1], u)  # BLAS products over all rows
     Ag2 = Ag.reshape(Ag.shape[0] * Ag.shape[1], u)
     N_pp = At2.T @ At2 + Ag2.T @ Ag2 + b["A_p"].T @ b["A_p"]
     b_p = -(At2.T @ e_t.ravel() + Ag2.T @ b["e_g"].ravel() + b["A_p"].T @ b["e_p"])
     T = np.linalg.inv(N_gg)
-    M = N_pg @ T                                                   # (n, u, 3)
+    M = N_pg @ T  # (n, u, 3)
     S = N_pp - np.tensordot(M, N_pg, axes=([0, 2], [0, 2]))
     rhs = b_p - np.tensordot(M, b_g, axes=([0, 2], [0, 1]))
     return dict(S=S, rhs=rhs, T=T, M=M, N_pg=N_pg, b_g=b_g)
@@ -77,7 +84,8 @@ def solve_reduced(R, full_names, max_condition, what="bundle", remedy="fix one m
         names = [full_names[k] for k in np.argsort(v)[::-1] if v[k] >= 0.1]
         raise SensorModelError(
             f"{what}: near-singular normal matrix (condition number {cond:.3g}); cannot "
-            f"separate {', '.join(names)} — add GCPs, {remedy} or add priors")
+            f"separate {', '.join(names)} — add GCPs, {remedy} or add priors"
+        )
     Sinv = (V / w) @ V.T / np.outer(d, d)
     return Sinv @ R["rhs"], Sinv, cond
 
@@ -88,7 +96,7 @@ def back_substitute(R, dp, Sinv):
     rg = R["b_g"] - np.tensordot(R["N_pg"], dp, axes=([1], [0]))
     dg = (R["T"] @ rg[..., None])[..., 0]
     sp_ = np.sqrt(np.maximum(np.diag(Sinv), 1e-300))
-    MS = np.tensordot(R["M"], Sinv, axes=([1], [0]))                 # (n, 3, u)
+    MS = np.tensordot(R["M"], Sinv, axes=([1], [0]))  # (n, 3, u)
     qgg = np.einsum("nii->ni", R["T"]) + np.sum(MS * np.swapaxes(R["M"], 1, 2), axis=2)
     sg = np.sqrt(np.maximum(qgg, 1e-300))
     return np.concatenate([dp, dg.ravel()]), np.concatenate([sp_, sg.ravel()])
@@ -109,7 +117,7 @@ class SchurProblem:
 
     def ground(self, z):
         """(lon, lat, h) of the tie points at ``z`` (degrees, metres)."""
-        return ground_points(self.X0, self.basis, z[self.u:].reshape(self.n, 3))
+        return ground_points(self.X0, self.basis, z[self.u :].reshape(self.n, 3))
 
     def reduced(self, b):
         """Reduced normal equations ``S dp = rhs`` and the per-point blocks."""

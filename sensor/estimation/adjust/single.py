@@ -9,6 +9,7 @@ least-squares problem is iterated to convergence by :mod:`.gauss_markov`; data s
 critical value, one at a time, re-adjusting after each rejection, and reports what it removed
 and why. Check points (role ``check``) never enter the estimation.
 """
+
 from __future__ import annotations
 
 import math
@@ -54,17 +55,22 @@ def _rpc_of(model):
     return model
 
 
-def check_points_against_model(model, points: ControlPoints, what: str = "adjustment",
-                               *, margin: float = 1.0):
+def check_points_against_model(
+    model, points: ControlPoints, what: str = "adjustment", *, margin: float = 1.0
+):
     """Refuse points measured outside the image, or whose ground coordinates lie outside the
     model's validity range (RPC normalisation domain, or projecting farther than ``margin``
     image sizes outside the image); say when swapping lon and lat would fit."""
     W, H = model.width, model.height
-    out = (points.col < -0.5) | (points.col > W - 0.5) | (points.row < -0.5) | (points.row > H - 0.5)
+    out = (
+        (points.col < -0.5) | (points.col > W - 0.5) | (points.row < -0.5) | (points.row > H - 0.5)
+    )
     if np.any(out):
         k = int(np.flatnonzero(out)[0])
-        raise InputError(f"{what}: {int(out.sum())} point(s) measured outside the {W} x {H} image, "
-                         f"e.g. {points.id[k]} at col {points.col[k]:.1f}, row {points.row[k]:.1f}")
+        raise InputError(
+            f"{what}: {int(out.sum())} point(s) measured outside the {W} x {H} image, "
+            f"e.g. {points.id[k]} at col {points.col[k]:.1f}, row {points.row[k]:.1f}"
+        )
 
     def invalid(lon, lat, h):
         rpc = _rpc_of(model)
@@ -76,18 +82,22 @@ def check_points_against_model(model, points: ControlPoints, what: str = "adjust
             c, r = model.project(lon, lat, h)
         c, r = np.asarray(c, float), np.asarray(r, float)
         bad |= ~np.isfinite(c) | ~np.isfinite(r)
-        bad |= (c < -margin * W) | (c > (1 + margin) * W) | (r < -margin * H) | (r > (1 + margin) * H)
+        bad |= (
+            (c < -margin * W) | (c > (1 + margin) * W) | (r < -margin * H) | (r > (1 + margin) * H)
+        )
         return bad
 
     bad = invalid(points.lon, points.lat, points.h)
     if np.any(bad):
         k = int(np.flatnonzero(bad)[0])
-        swapped = (np.all(np.abs(points.lon) <= 90)
-                   and not np.any(invalid(points.lat, points.lon, points.h)[bad]))
+        swapped = np.all(np.abs(points.lon) <= 90) and not np.any(
+            invalid(points.lat, points.lon, points.h)[bad]
+        )
         raise InputError(
             f"{what}: {int(bad.sum())} point(s) outside the model's validity range or far outside "
             f"the image, e.g. {points.id[k]} (lon {points.lon[k]:.6f}, lat {points.lat[k]:.6f})"
-            + (" — likely swapped lon/lat" if swapped else ""))
+            + (" — likely swapped lon/lat" if swapped else "")
+        )
 
 
 def _sigmas(points, sigma_px):
@@ -157,13 +167,27 @@ class _Problem:
         return np.concatenate([e, self._prior_rows(x)]), np.vstack([A, P])
 
 
-def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iterations: int = 20,
-                 tolerance: float = 1e-2, snooping: bool = True, alpha: float = 0.001,
-                 power: float = 0.80, priors: dict | None = None, regularization=None,
-                 max_rejections: int | None = None, chi2_alpha: float = 0.05,
-                 max_condition: float = gm.MAX_CONDITION, check_inputs: bool = True,
-                 variance_components: str | None = None, constraints=(),
-                 what: str = "adjustment") -> AdjustmentResult:
+def adjust_model(
+    model,
+    points: ControlPoints,
+    names,
+    *,
+    sigma_px=None,
+    max_iterations: int = 20,
+    tolerance: float = 1e-2,
+    snooping: bool = True,
+    alpha: float = 0.001,
+    power: float = 0.80,
+    priors: dict | None = None,
+    regularization=None,
+    max_rejections: int | None = None,
+    chi2_alpha: float = 0.05,
+    max_condition: float = gm.MAX_CONDITION,
+    check_inputs: bool = True,
+    variance_components: str | None = None,
+    constraints=(),
+    what: str = "adjustment",
+) -> AdjustmentResult:
     """Estimate parameters of a sensor model from GCPs, with statistics and data snooping.
 
     Parameters
@@ -233,13 +257,17 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         set_name = ms.name
     names = list(names)
     if not is_adjustable(model):
-        raise SensorModelError(f"{what}: {type(model).__name__} has no adjustable parameters "
-                               "(wrap it, e.g. with the 'rpc-shift' model set)")
+        raise SensorModelError(
+            f"{what}: {type(model).__name__} has no adjustable parameters "
+            "(wrap it, e.g. with the 'rpc-shift' model set)"
+        )
     known = model.parameters()
     unknown = [n for n in names if n not in known]
     if unknown or not names:
-        raise InputError(f"{what}: unknown parameter(s) {', '.join(unknown) or '(none given)'} "
-                         f"of {type(model).__name__} (known: {', '.join(known)})")
+        raise InputError(
+            f"{what}: unknown parameter(s) {', '.join(unknown) or '(none given)'} "
+            f"of {type(model).__name__} (known: {', '.join(known)})"
+        )
     if len(set(names)) != len(names):
         raise InputError(f"{what}: a parameter is named twice in {names}")
     bad_prior = [n for n in priors if n not in names]
@@ -251,8 +279,10 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
     u, n_prior = len(names), len(priors) + len(constraints)
     need = required_gcps(u, n_prior)
     if len(gcp) < need:
-        raise InputError(f"{what}: {u} free parameter(s) ({', '.join(names)}) need at least {need} "
-                         f"GCPs (2 observations each plus one redundant), got {len(gcp)}")
+        raise InputError(
+            f"{what}: {u} free parameter(s) ({', '.join(names)}) need at least {need} "
+            f"GCPs (2 observations each plus one redundant), got {len(gcp)}"
+        )
     if check_inputs:
         check_points_against_model(model, points, what)
     sigma, sigma_known = _sigmas(gcp, sigma_px)
@@ -264,17 +294,25 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
     x_start = x0
     while True:
         prob = _Problem(model, names, gcp.subset(active), sigma[active], priors, x0, constraints)
-        sol = gm.solve(prob.evaluate, x_start, names, residual=prob.residual,
-                       max_iterations=max_iterations, tolerance=tolerance,
-                       regularization=regularization, max_condition=max_condition, what=what)
+        sol = gm.solve(
+            prob.evaluate,
+            x_start,
+            names,
+            residual=prob.residual,
+            max_iterations=max_iterations,
+            tolerance=tolerance,
+            regularization=regularization,
+            max_condition=max_condition,
+            what=what,
+        )
         m_obs = sol.e.size
         dof = m_obs - u
         vtpv = float(sol.e @ sol.e)
         sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
         r_all = rel.redundancy_numbers(sol.A, sol.Qxx)
         n_act = int(active.sum())
-        r = r_all[:2 * n_act].reshape(n_act, 2)
-        e_w = sol.e[:2 * n_act].reshape(n_act, 2)
+        r = r_all[: 2 * n_act].reshape(n_act, 2)
+        e_w = sol.e[: 2 * n_act].reshape(n_act, 2)
         scale = 1.0 if sigma_known else sigma0
         w = rel.standardized_residuals(e_w, r, scale)
         thr = rel.baarda_threshold(alpha) if sigma_known else rel.pope_threshold(alpha, dof)
@@ -288,9 +326,15 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
         idx = np.flatnonzero(active)[k]
         axis = "col" if abs(np.nan_to_num(w[k, 0])) >= abs(np.nan_to_num(w[k, 1])) else "row"
         test = "Baarda data snooping" if sigma_known else "Pope tau test"
-        outliers.append({"id": str(gcp.id[idx]), "statistic": float(stat[k]), "threshold": thr,
-                         "reason": f"|{'w' if sigma_known else 'tau'}| = {stat[k]:.2f} > {thr:.2f} "
-                                   f"in {axis} ({test}, alpha = {alpha:g} per observation)"})
+        outliers.append(
+            {
+                "id": str(gcp.id[idx]),
+                "statistic": float(stat[k]),
+                "threshold": thr,
+                "reason": f"|{'w' if sigma_known else 'tau'}| = {stat[k]:.2f} > {thr:.2f} "
+                f"in {axis} ({test}, alpha = {alpha:g} per observation)",
+            }
+        )
         active[idx] = False
         x_start = sol.x
 
@@ -301,33 +345,46 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
     if variance_components and prob.G is not None:
         scale_l = scale_g = 1.0
         for _ in range(10 if variance_components == "iterate" else 1):
-            A_w = sol.A[:2 * n_act].reshape(n_act, 2, u)
-            vc = gh.variance_components(prob.W, A_w, sol.Qxx, prob.misclosure(sol.x), prob.sigma,
-                                        prob.sg, prob.G)
+            A_w = sol.A[: 2 * n_act].reshape(n_act, 2, u)
+            vc = gh.variance_components(
+                prob.W, A_w, sol.Qxx, prob.misclosure(sol.x), prob.sigma, prob.sg, prob.G
+            )
             f_l, f_g = vc["image"]["sigma0"], vc["ground"]["sigma0"]
-            if variance_components == "estimate" or not (f_l and f_g) or not vc["separable"] or \
-                    (abs(f_l - 1) < 0.02 and abs(f_g - 1) < 0.02):
+            if (
+                variance_components == "estimate"
+                or not (f_l and f_g)
+                or not vc["separable"]
+                or (abs(f_l - 1) < 0.02 and abs(f_g - 1) < 0.02)
+            ):
                 break
             scale_l, scale_g = scale_l * f_l, scale_g * f_g
             sub = gcp.subset(active)
             sub.sigma_ground_m = sub.sigma_ground_m * scale_g
             prob = _Problem(model, names, sub, sigma[active] * scale_l, priors, x0, constraints)
-            sol = gm.solve(prob.evaluate, sol.x, names, residual=prob.residual,
-                           max_iterations=max_iterations, tolerance=tolerance,
-                           regularization=regularization, max_condition=max_condition, what=what)
+            sol = gm.solve(
+                prob.evaluate,
+                sol.x,
+                names,
+                residual=prob.residual,
+                max_iterations=max_iterations,
+                tolerance=tolerance,
+                regularization=regularization,
+                max_condition=max_condition,
+                what=what,
+            )
             vtpv = float(sol.e @ sol.e)
             sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
             r_all = rel.redundancy_numbers(sol.A, sol.Qxx)
-            r = r_all[:2 * n_act].reshape(n_act, 2)
-            e_w = sol.e[:2 * n_act].reshape(n_act, 2)
+            r = r_all[: 2 * n_act].reshape(n_act, 2)
+            e_w = sol.e[: 2 * n_act].reshape(n_act, 2)
             w = rel.standardized_residuals(e_w, r, 1.0 if sigma_known else sigma0)
         vc["sigma_scale_applied"] = {"image": scale_l, "ground": scale_g}
 
     # ------------------------------------------------------------ result
     adjusted = prob.at(sol.x)
-    cov = sol.Qxx * (scale ** 2)
+    cov = sol.Qxx * (scale**2)
     n = len(gcp)
-    full = lambda a, k: _scatter(a, active, n, k)   # noqa: E731
+    full = lambda a, k: _scatter(a, active, n, k)  # noqa: E731
     sig_obs = np.sqrt(np.stack([prob.M[:, 0, 0], prob.M[:, 1, 1]], -1)) * scale
     mdb = rel.minimal_detectable_bias(sig_obs, r, delta0)
     ext = rel.external_reliability(r, delta0)
@@ -337,22 +394,58 @@ def adjust_model(model, points: ControlPoints, names, *, sigma_px=None, max_iter
     ground[active] = v_g
     chk_res = _project_residuals(adjusted, chk) if len(chk) else np.zeros((0, 2))
     return AdjustmentResult(
-        model=adjusted, names=names, values=sol.x, initial_values=x0,
-        std=np.sqrt(np.diag(cov)), units=[parameter_unit(adjusted, nm) for nm in names],
-        covariance=cov, condition=sol.condition, sigma0=sigma0, sigma_known=sigma_known,
-        dof=dof, n_observations=m_obs,
-        chi2_test=rel.variance_test(vtpv, dof, chi2_alpha) if sigma_known else
-        {"statistic": vtpv, "dof": dof, "alpha": chi2_alpha, "passed": None,
-         "note": "a-priori sigma unknown: sigma0 estimated, not tested"},
-        gcp_ids=gcp.id, check_ids=chk.id, gcp_points=gcp, check_points=chk,
-        residuals_px=mis_all, check_residuals_px=chk_res, ground_residuals_m=ground,
-        redundancy=full(r, 2), w=full(w, 2), mdb=full(mdb, 2), external_reliability=full(ext, 2),
-        outliers=outliers, iterations=sol.iterations, converged=sol.converged,
-        status=sol.status, max_correction=float(sol.max_correction), tolerance=tolerance,
-        test={"name": "baarda" if sigma_known else "pope", "alpha": alpha, "power": power,
-              "threshold": float(thr), "delta0": delta0, "snooping": bool(snooping)},
-        model_set=set_name, priors=priors, regularization=sol.regularization,
-        initial_model=model, variance_components=vc)
+        model=adjusted,
+        names=names,
+        values=sol.x,
+        initial_values=x0,
+        std=np.sqrt(np.diag(cov)),
+        units=[parameter_unit(adjusted, nm) for nm in names],
+        covariance=cov,
+        condition=sol.condition,
+        sigma0=sigma0,
+        sigma_known=sigma_known,
+        dof=dof,
+        n_observations=m_obs,
+        chi2_test=rel.variance_test(vtpv, dof, chi2_alpha)
+        if sigma_known
+        else {
+            "statistic": vtpv,
+            "dof": dof,
+            "alpha": chi2_alpha,
+            "passed": None,
+            "note": "a-priori sigma unknown: sigma0 estimated, not tested",
+        },
+        gcp_ids=gcp.id,
+        check_ids=chk.id,
+        gcp_points=gcp,
+        check_points=chk,
+        residuals_px=mis_all,
+        check_residuals_px=chk_res,
+        ground_residuals_m=ground,
+        redundancy=full(r, 2),
+        w=full(w, 2),
+        mdb=full(mdb, 2),
+        external_reliability=full(ext, 2),
+        outliers=outliers,
+        iterations=sol.iterations,
+        converged=sol.converged,
+        status=sol.status,
+        max_correction=float(sol.max_correction),
+        tolerance=tolerance,
+        test={
+            "name": "baarda" if sigma_known else "pope",
+            "alpha": alpha,
+            "power": power,
+            "threshold": float(thr),
+            "delta0": delta0,
+            "snooping": bool(snooping),
+        },
+        model_set=set_name,
+        priors=priors,
+        regularization=sol.regularization,
+        initial_model=model,
+        variance_components=vc,
+    )
 
 
 def _scatter(a, active, n, k):

@@ -40,6 +40,7 @@ Models of Topan's survey (§3.2.2) left out, and why
   ``L`` set of :mod:`.topan_los` at first order and as
   :class:`stereodem.sensor.models.corrected.ImageCorrectedModel` in image space.
 """
+
 from stereodem.sensor.models.orbital.kratky import KratkyModel
 from stereodem.sensor.models.orbital.orun_natarajan import OrunNatarajanModel
 from stereodem.sensor.models.orbital.topan_los import EOP_SETS, SET_ORDER, TopanLOSModel
@@ -53,18 +54,31 @@ PARAMETER_SETS = {
     **{k: (KratkyModel, v) for k, v in KratkyModel.ADJUST_SETS.items()},
 }
 #: The default orbital model sets of a comparison (``eop-poly2`` = Topan set A).
-DEFAULT_SETS = {"eop-poly2": (TopanLOSModel, list(EOP_SETS["A"])),
-                "orun": PARAMETER_SETS["orun"], "toutin": PARAMETER_SETS["toutin"],
-                "kratky": PARAMETER_SETS["kratky"]}
+DEFAULT_SETS = {
+    "eop-poly2": (TopanLOSModel, list(EOP_SETS["A"])),
+    "orun": PARAMETER_SETS["orun"],
+    "toutin": PARAMETER_SETS["toutin"],
+    "kratky": PARAMETER_SETS["kratky"],
+}
 
-__all__ = ["TopanLOSModel", "OrunNatarajanModel", "ToutinModel", "KratkyModel", "EOP_SETS",
-           "SET_ORDER", "PARAMETER_SETS", "DEFAULT_SETS", "build"]
+__all__ = [
+    "TopanLOSModel",
+    "OrunNatarajanModel",
+    "ToutinModel",
+    "KratkyModel",
+    "EOP_SETS",
+    "SET_ORDER",
+    "PARAMETER_SETS",
+    "DEFAULT_SETS",
+    "build",
+]
 
 
 def build(name: str, reference):
     """The orbital model of parameter set ``name`` built from the image's model ``reference``;
     returns ``(model, parameter names)``."""
     from stereodem.core.errors import InputError
+
     table = {**PARAMETER_SETS, **DEFAULT_SETS}
     if name not in table:
         raise InputError(f"unknown orbital model set {name!r}; choose one of {', '.join(table)}")
@@ -82,5 +96,11 @@ def register_sets(register) -> None:
     for name, (cls, names) in {**PARAMETER_SETS, **DEFAULT_SETS}.items():
         priors = getattr(cls, "PRIORS", {}).get(name, {})
         weighted = f", {len(priors)} weighted" if priors else ""
-        register(name, cls.from_model, names, replace=True, priors=priors,
-                 description=f"{cls.__name__}: {len(names)} parameters{weighted}")
+        register(
+            name,
+            cls.from_model,
+            names,
+            replace=True,
+            priors=priors,
+            description=f"{cls.__name__}: {len(names)} parameters{weighted}",
+        )

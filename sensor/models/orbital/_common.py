@@ -8,6 +8,7 @@ across the image (Topan 2009 notes §3.4: "centre and scale the polynomial varia
 coefficient ``P_1`` is therefore the change of ``P`` from the centre line to the last line,
 in the unit of ``P``.
 """
+
 from __future__ import annotations
 
 import copy
@@ -36,8 +37,9 @@ class CoefficientModel:
         return new
 
     def _set(self, values):
-        self._c.update(checked_parameters(self._c, values, self.name,
-                                          listing=self._parameter_listing()))
+        self._c.update(
+            checked_parameters(self._c, values, self.name, listing=self._parameter_listing())
+        )
 
     def _parameter_listing(self) -> str | None:
         """How an unknown-parameter error lists the accepted names (None: all of ``_c``)."""
@@ -106,14 +108,20 @@ def virtual_points(reference, *, n: int = 9, heights=(-200.0, 1000.0, 3000.0)):
     values (the way an RPC is fitted to a physical model).
     """
     w, hgt = reference.width, reference.height
-    c, r, z = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, hgt - 1, n),
-                          np.asarray(heights, float), indexing="ij")
+    c, r, z = np.meshgrid(
+        np.linspace(0, w - 1, n),
+        np.linspace(0, hgt - 1, n),
+        np.asarray(heights, float),
+        indexing="ij",
+    )
     c, r, z = c.ravel(), r.ravel(), z.ravel()
     lon, lat = reference.localize(c, r, z)
     ok = np.isfinite(lon) & np.isfinite(lat)
     if ok.sum() < 12:
-        raise SensorModelError(f"{type(reference).__name__}: too few pixels see the Earth to "
-                               "initialise an orbital model")
+        raise SensorModelError(
+            f"{type(reference).__name__}: too few pixels see the Earth to "
+            "initialise an orbital model"
+        )
     return lon[ok], lat[ok], z[ok], c[ok], r[ok]
 
 
@@ -134,25 +142,43 @@ def fit_to_points(model, names, lon, lat, h, col, row, *, what: str):
         r = np.concatenate([pc - col, pr - row])
         return np.where(np.isfinite(r), r, 1e6)
 
-    sol = least_squares(resid, np.zeros(len(names)), method="lm", x_scale=1.0, xtol=1e-12,
-                        ftol=1e-12, max_nfev=200 * (len(names) + 1))
+    sol = least_squares(
+        resid,
+        np.zeros(len(names)),
+        method="lm",
+        x_scale=1.0,
+        xtol=1e-12,
+        ftol=1e-12,
+        max_nfev=200 * (len(names) + 1),
+    )
     fitted = model.with_parameters(**dict(zip(names, x0 + sol.x * steps)))
-    rms = float(np.sqrt(np.mean(sol.fun ** 2)))
+    rms = float(np.sqrt(np.mean(sol.fun**2)))
     if not np.isfinite(rms) or rms > 50.0:
-        raise ConvergenceError(f"{what}: the initial fit to the metadata model failed "
-                               f"(rms {rms:.3g} px)")
+        raise ConvergenceError(
+            f"{what}: the initial fit to the metadata model failed (rms {rms:.3g} px)"
+        )
     return fitted, rms
 
 
-def invert_projection(model, col, row, h, *, lon0: float, lat0: float, iterations: int = 20,
-                      tolerance_px: float = 1e-7):
+def invert_projection(
+    model,
+    col,
+    row,
+    h,
+    *,
+    lon0: float,
+    lat0: float,
+    iterations: int = 20,
+    tolerance_px: float = 1e-7,
+):
     """``(lon, lat)`` such that ``model.project(lon, lat, h) == (col, row)``, by Newton steps
     in a local east/north frame (metres) with a finite-difference Jacobian; vectorised.
 
     NaN where the iteration does not converge.
     """
-    col, row, h = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float),
-                                      np.asarray(h, float))
+    col, row, h = np.broadcast_arrays(
+        np.asarray(col, float), np.asarray(row, float), np.asarray(h, float)
+    )
     shape = col.shape
     c, r, hh = col.ravel(), row.ravel(), h.ravel()
     e = np.zeros(c.size)
@@ -196,20 +222,28 @@ def require_gcps(n_gcp: int, names, what: str, *, n_prior: int = 0) -> None:
     ``n_prior`` weighted parameters counts as one observation)."""
     from stereodem.core.errors import InputError
     from stereodem.sensor.estimation.adjust.single import required_gcps
+
     u = len(list(names))
     need = required_gcps(u, n_prior)
     if n_gcp < need:
         weighted = f" ({n_prior} of them weighted)" if n_prior else ""
-        raise InputError(f"{what}: {n_gcp} GCP(s) cannot determine its {u} "
-                         f"parameters{weighted}; at least {need} are needed")
+        raise InputError(
+            f"{what}: {n_gcp} GCP(s) cannot determine its {u} "
+            f"parameters{weighted}; at least {need} are needed"
+        )
 
 
 def require_inside(model, col, row, *, what: str = "check points") -> None:
     """Raise :class:`~stereodem.core.errors.InputError` when image points fall outside the
     image (pixel centres from -0.5 to width - 0.5)."""
     from stereodem.core.errors import InputError
+
     col, row = np.asarray(col, float), np.asarray(row, float)
-    out = ~((col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5))
+    out = ~(
+        (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5)
+    )
     if np.any(out):
-        raise InputError(f"{int(out.sum())} of {col.size} {what} lie outside the "
-                         f"{model.width} x {model.height} image")
+        raise InputError(
+            f"{int(out.sum())} of {col.size} {what} lie outside the "
+            f"{model.width} x {model.height} image"
+        )

@@ -12,6 +12,7 @@ scan-line scale (7: the projection centres are held at the ephemeris, which fixe
 ``phi``/``X`` and ``omega``/``Y`` correlation that makes the full set ill-conditioned);
 ``kratky-full`` adjusts all 16 coefficients.
 """
+
 from __future__ import annotations
 
 from stereodem.sensor.models.orbital.linecam import PolynomialLineCamera
@@ -22,7 +23,9 @@ _ATT = ("omega_0", "omega_1", "phi_0", "phi_1", "kappa_0", "kappa_1")
 class KratkyModel(PolynomialLineCamera):
     """Kratky's model; build it with :meth:`from_model`."""
 
-    ADJUSTABLE = ("X_0", "X_1", "X_2", "Y_0", "Y_1", "Y_2", "Z_0", "Z_1", "Z_2") + _ATT + ("scan_scale",)
+    ADJUSTABLE = (
+        ("X_0", "X_1", "X_2", "Y_0", "Y_1", "Y_2", "Z_0", "Z_1", "Z_2") + _ATT + ("scan_scale",)
+    )
     ADJUST_SETS = {"kratky": list(_ATT + ("scan_scale",)), "kratky-full": list(ADJUSTABLE)}
     MODEL_TYPE = "kratky"
 

@@ -16,6 +16,7 @@ flight), ``y`` along the detector line and ``z`` opposite to the boresight, and 
 come from the metadata model. Which coefficients a model exposes as adjustable parameters, and
 which it freezes, is what distinguishes Orun & Natarajan from Kratky.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,8 +36,9 @@ from stereodem.sensor.models.orbital._common import (
 )
 
 #: Every coefficient of the line camera (units: m for X/Y/Z, rad for angles, 1 for the scale).
-COEFFICIENTS = tuple(f"{p}_{k}" for p in ("X", "Y", "Z", "omega", "phi", "kappa") for k in range(3)) \
-    + ("scan_scale",)
+COEFFICIENTS = tuple(
+    f"{p}_{k}" for p in ("X", "Y", "Z", "omega", "phi", "kappa") for k in range(3)
+) + ("scan_scale",)
 
 
 def _steps():
@@ -56,11 +58,23 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
     PARAMETER_STEPS = _steps()
     MODEL_TYPE = "linecam"
 
-    def __init__(self, *, width: int, height: int, lon0: float, lat0: float, col0: float,
-                 ifov: float, coefficients: dict, name: str | None = None,
-                 height_range=(-500.0, 9000.0)):
+    def __init__(
+        self,
+        *,
+        width: int,
+        height: int,
+        lon0: float,
+        lat0: float,
+        col0: float,
+        ifov: float,
+        coefficients: dict,
+        name: str | None = None,
+        height_range=(-500.0, 9000.0),
+    ):
         if int(width) < 2 or int(height) < 2:
-            raise SensorModelError(f"line camera: image must be at least 2 x 2, got {width} x {height}")
+            raise SensorModelError(
+                f"line camera: image must be at least 2 x 2, got {width} x {height}"
+            )
         if not (np.isfinite(ifov) and ifov != 0):
             raise SensorModelError(f"line camera: IFOV must be finite and non-zero, got {ifov}")
         self.width, self.height = int(width), int(height)
@@ -70,7 +84,7 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
         self._c = dict.fromkeys(COEFFICIENTS, 0.0)
         self._set(coefficients)
         self._hr = tuple(float(v) for v in height_range)
-        self._enu = geodesy.enu_basis(self.lon0, self.lat0)       # rows: e, n, u in ECEF
+        self._enu = geodesy.enu_basis(self.lon0, self.lat0)  # rows: e, n, u in ECEF
         self._o = np.array(geodesy.geodetic_to_ecef(self.lon0, self.lat0, 0.0), float)
 
     # ------------------------------------------------------------------ parameters
@@ -88,8 +102,12 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
     def _pose(self, row):
         tau = line_variable(row, self.height)
         c = self._c
-        centre = np.stack([quadratic(c[f"{a}_0"], c[f"{a}_1"], c[f"{a}_2"], tau) for a in "XYZ"], -1)
-        om, ph, ka = (quadratic(c[f"{a}_0"], c[f"{a}_1"], c[f"{a}_2"], tau) for a in ("omega", "phi", "kappa"))
+        centre = np.stack(
+            [quadratic(c[f"{a}_0"], c[f"{a}_1"], c[f"{a}_2"], tau) for a in "XYZ"], -1
+        )
+        om, ph, ka = (
+            quadratic(c[f"{a}_0"], c[f"{a}_1"], c[f"{a}_2"], tau) for a in ("omega", "phi", "kappa")
+        )
         return centre, R3(ka) @ R2(ph) @ R1(om)
 
     def _to_enu(self, lon, lat, h):
@@ -138,8 +156,9 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
 
     # ------------------------------------------------------------------ initial values
     @classmethod
-    def from_model(cls, reference, *, name: str | None = None, samples: int = 21,
-                   altitude: float = 705e3):
+    def from_model(
+        cls, reference, *, name: str | None = None, samples: int = 21, altitude: float = 705e3
+    ):
         """Initial values from a metadata model (pushbroom, ASTER, RPC...).
 
         Projection centres: the origins of the reference's exact rays when it has an
@@ -151,7 +170,7 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
         in :attr:`init_rms_px`.
         """
         if isinstance(reference, cls):
-            return reference                    # already this model (e.g. from a model set)
+            return reference  # already this model (e.g. from a model set)
         w, hgt = reference.width, reference.height
         lon0, lat0 = reference.center_lonlat(0.0)
         col0 = 0.5 * (w - 1)
@@ -175,7 +194,7 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
         x *= np.sign(np.sum(x * flight, -1))[:, None]
         z = -b
         y = np.cross(z, x)
-        rot = np.stack([x, y, z], -2)                                # ground -> camera rows
+        rot = np.stack([x, y, z], -2)  # ground -> camera rows
         ang = Rotation.from_matrix(np.swapaxes(rot, -1, -2)).as_euler("XYZ")
         ang = np.unwrap(ang, axis=0)
         tau = line_variable(rows, hgt)
@@ -190,8 +209,17 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
         cam = rot[samples // 2] @ (dl[samples // 2] @ enu.T)
         ifov = float(-cam[1] / cam[2])
         lo, hi = reference.height_bounds()
-        model = cls(width=w, height=hgt, lon0=lon0, lat0=lat0, col0=col0, ifov=ifov,
-                    coefficients=cls._shape_initial(coef), name=name, height_range=(lo, hi))
+        model = cls(
+            width=w,
+            height=hgt,
+            lon0=lon0,
+            lat0=lat0,
+            col0=col0,
+            ifov=ifov,
+            coefficients=cls._shape_initial(coef),
+            name=name,
+            height_range=(lo, hi),
+        )
         pts = virtual_points(reference)
         names = list(model.ADJUSTABLE) + [n for n in cls.REFINE_FROZEN if n not in model.ADJUSTABLE]
         model, rms = fit_to_points(model, names, *pts, what=model.name)
@@ -208,13 +236,29 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
 
     def to_dict(self) -> dict:
         """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
-        return {"width": self.width, "height": self.height, "lon0": self.lon0, "lat0": self.lat0,
-                "col0": self.col0, "ifov": self.ifov, "coefficients": dict(self._c),
-                "name": self.name, "height_range": list(self._hr)}
+        return {
+            "width": self.width,
+            "height": self.height,
+            "lon0": self.lon0,
+            "lat0": self.lat0,
+            "col0": self.col0,
+            "ifov": self.ifov,
+            "coefficients": dict(self._c),
+            "name": self.name,
+            "height_range": list(self._hr),
+        }
 
     @classmethod
     def from_dict(cls, d: dict):
         """Inverse of :meth:`to_dict`."""
-        return cls(width=d["width"], height=d["height"], lon0=d["lon0"], lat0=d["lat0"], col0=d["col0"],
-                   ifov=d["ifov"], coefficients=d["coefficients"], name=d.get("name"),
-                   height_range=tuple(d.get("height_range", (-500.0, 9000.0))))
+        return cls(
+            width=d["width"],
+            height=d["height"],
+            lon0=d["lon0"],
+            lat0=d["lat0"],
+            col0=d["col0"],
+            ifov=d["ifov"],
+            coefficients=d["coefficients"],
+            name=d.get("name"),
+            height_range=tuple(d.get("height_range", (-500.0, 9000.0))),
+        )

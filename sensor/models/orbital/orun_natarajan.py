@@ -45,6 +45,7 @@ pixels off at the check points, and 3 GCPs are refused (4 needed).
 Ok's thesis (§3.2) prints a different split (``omega`` quadratic, ``phi`` and ``kappa``
 constant) and a wrong count; this module follows Topan's transcription of the 1994 paper.
 """
+
 from __future__ import annotations
 
 from stereodem.sensor.models.orbital.linecam import PolynomialLineCamera
@@ -66,8 +67,9 @@ class OrunNatarajanModel(PolynomialLineCamera):
         "orun-full": list(ADJUSTABLE),
     }
     #: Weighted parameters of each set: name -> a-priori sigma about the initial value.
-    PRIORS = {k: {n: s for n, s in SECOND_ORDER_SIGMA.items() if n in v}
-              for k, v in ADJUST_SETS.items()}
+    PRIORS = {
+        k: {n: s for n, s in SECOND_ORDER_SIGMA.items() if n in v} for k, v in ADJUST_SETS.items()
+    }
     REFINE_FROZEN = ("omega_0", "phi_0", "phi_1")
     MODEL_TYPE = "orun-natarajan"
 

@@ -51,6 +51,7 @@ check points) with :func:`stereodem.sensor.estimation.adjust.bundle_adjust` (mod
 
 Models left out of Topan's survey (package docstring, :mod:`stereodem.sensor.models.orbital`).
 """
+
 from __future__ import annotations
 
 import copy
@@ -82,12 +83,24 @@ _P, _V, _A = ("X", "Y", "Z"), ("VX", "VY", "VZ"), ("roll", "pitch", "yaw")
 #: Topan (2009) Table 4.2: the 19 EOP sets (names as printed; ``"1"``-``"19"`` as aliases),
 #: plus ``"L"``: the look-angle corrections of the type-1 pre-adjustment.
 EOP_SETS = {
-    "P_S": _group(_P), "P_S0": _group(_P, (0,)), "P_S1": _group(_P, (1,)), "P_S2": _group(_P, (2,)),
-    "V_S": _group(_V), "V_S0": _group(_V, (0,)), "V_S1": _group(_V, (1,)), "V_S2": _group(_V, (2,)),
-    "A": _group(_A), "A_0": _group(_A, (0,)), "A_1": _group(_A, (1,)), "A_2": _group(_A, (2,)),
-    "P_S V_S": _group(_P) + _group(_V), "(P_S V_S)_0": _group(_P, (0,)) + _group(_V, (0,)),
-    "P_S A": _group(_P) + _group(_A), "(P_S A)_0": _group(_P, (0,)) + _group(_A, (0,)),
-    "V_S A": _group(_V) + _group(_A), "(V_S A)_0": _group(_V, (0,)) + _group(_A, (0,)),
+    "P_S": _group(_P),
+    "P_S0": _group(_P, (0,)),
+    "P_S1": _group(_P, (1,)),
+    "P_S2": _group(_P, (2,)),
+    "V_S": _group(_V),
+    "V_S0": _group(_V, (0,)),
+    "V_S1": _group(_V, (1,)),
+    "V_S2": _group(_V, (2,)),
+    "A": _group(_A),
+    "A_0": _group(_A, (0,)),
+    "A_1": _group(_A, (1,)),
+    "A_2": _group(_A, (2,)),
+    "P_S V_S": _group(_P) + _group(_V),
+    "(P_S V_S)_0": _group(_P, (0,)) + _group(_V, (0,)),
+    "P_S A": _group(_P) + _group(_A),
+    "(P_S A)_0": _group(_P, (0,)) + _group(_A, (0,)),
+    "V_S A": _group(_V) + _group(_A),
+    "(V_S A)_0": _group(_V, (0,)) + _group(_A, (0,)),
     "(P_S V_S A)_0": _group(_P, (0,)) + _group(_V, (0,)) + _group(_A, (0,)),
 }
 for _k, _name in enumerate(list(EOP_SETS), start=1):
@@ -101,8 +114,9 @@ def eop_set(name) -> list[str]:
     """Coefficient names of a Topan parameter set (name of Table 4.2, its number, or ``L``)."""
     key = str(name).strip()
     if key not in EOP_SETS:
-        raise InputError(f"unknown Topan EOP set {name!r}; choose one of {', '.join(SET_ORDER)}, "
-                         "1-19 or L")
+        raise InputError(
+            f"unknown Topan EOP set {name!r}; choose one of {', '.join(SET_ORDER)}, 1-19 or L"
+        )
     return list(EOP_SETS[key])
 
 
@@ -137,22 +151,46 @@ class TopanLOSModel(CoefficientModel, SensorModel):
         ``z`` of the payload look vector: -1 (correct) or +1 (Topan's print).
     """
 
-    PARAMETER_STEPS = {**{n: (1.0 if n[0] in "XYZ" else 1e-3 if n[0] == "V" else 1e-7) for n in EOP},
-                       **{n: 1e-7 for n in LOOK}}
+    PARAMETER_STEPS = {
+        **{n: (1.0 if n[0] in "XYZ" else 1e-3 if n[0] == "V" else 1e-7) for n in EOP},
+        **{n: 1e-7 for n in LOOK},
+    }
     MODEL_TYPE = "topan-los"
 
-    def __init__(self, *, width: int, height: int, coefficients: dict, psi_x, psi_y, cols=None,
-                 los_sign: int = -1, name: str | None = None, height_range=(-500.0, 9000.0)):
+    def __init__(
+        self,
+        *,
+        width: int,
+        height: int,
+        coefficients: dict,
+        psi_x,
+        psi_y,
+        cols=None,
+        los_sign: int = -1,
+        name: str | None = None,
+        height_range=(-500.0, 9000.0),
+    ):
         self.width, self.height = int(width), int(height)
         if self.width < 2 or self.height < 2:
-            raise SensorModelError(f"Topan LOS model: image must be at least 2 x 2, got {width} x {height}")
+            raise SensorModelError(
+                f"Topan LOS model: image must be at least 2 x 2, got {width} x {height}"
+            )
         px, py = np.asarray(psi_x, float), np.asarray(psi_y, float)
         c = np.arange(py.size, dtype=float) if cols is None else np.asarray(cols, float)
-        if px.shape != py.shape or c.shape != py.shape or py.size < 2 or not np.all(np.isfinite(py)):
-            raise SensorModelError("Topan LOS model: look-angle tables must be finite 1-D arrays of one length")
+        if (
+            px.shape != py.shape
+            or c.shape != py.shape
+            or py.size < 2
+            or not np.all(np.isfinite(py))
+        ):
+            raise SensorModelError(
+                "Topan LOS model: look-angle tables must be finite 1-D arrays of one length"
+            )
         d = np.diff(py)
         if not (np.all(d > 0) or np.all(d < 0)):
-            raise SensorModelError("Topan LOS model: psi_y must be strictly monotonic in the column")
+            raise SensorModelError(
+                "Topan LOS model: psi_y must be strictly monotonic in the column"
+            )
         if los_sign not in (-1, 1):
             raise SensorModelError(f"Topan LOS model: los_sign must be -1 or +1, got {los_sign}")
         self._cols, self._px, self._py = c, px, py
@@ -198,8 +236,12 @@ class TopanLOSModel(CoefficientModel, SensorModel):
     def look_angles(self, col):
         """``(psi_x, psi_y)`` (rad) of (fractional) columns, corrections included."""
         c, nu = self._c, self._nu(col)
-        px = np.interp(col, self._cols, self._px) + quadratic(c["psi_x_0"], c["psi_x_1"], c["psi_x_2"], nu)
-        py = np.interp(col, self._cols, self._py) + quadratic(c["psi_y_0"], c["psi_y_1"], c["psi_y_2"], nu)
+        px = np.interp(col, self._cols, self._px) + quadratic(
+            c["psi_x_0"], c["psi_x_1"], c["psi_x_2"], nu
+        )
+        py = np.interp(col, self._cols, self._py) + quadratic(
+            c["psi_y_0"], c["psi_y_1"], c["psi_y_2"], nu
+        )
         return px, py
 
     def _column(self, psi_y):
@@ -263,9 +305,23 @@ class TopanLOSModel(CoefficientModel, SensorModel):
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_series(cls, *, width, height, row_times, position, velocity, angles, psi_x, psi_y,
-                    cols=None, samples: int = 41, los_sign: int = -1, name=None,
-                    height_range=(-500.0, 9000.0)):
+    def from_series(
+        cls,
+        *,
+        width,
+        height,
+        row_times,
+        position,
+        velocity,
+        angles,
+        psi_x,
+        psi_y,
+        cols=None,
+        samples: int = 41,
+        los_sign: int = -1,
+        name=None,
+        height_range=(-500.0, 9000.0),
+    ):
         """Build from metadata series, as GeoSpot-1.0 does (Topan Fig. 4.4): the ephemeris and
         attitude interpolated at ``samples`` lines and fitted with quadratics in ``tau``.
 
@@ -275,14 +331,29 @@ class TopanLOSModel(CoefficientModel, SensorModel):
         rows = np.linspace(0.0, height - 1.0, samples)
         t = row_times(rows)
         tau = line_variable(rows, height)
-        data = np.concatenate([np.asarray(position(t), float), np.asarray(velocity(t), float),
-                               np.asarray(angles(t), float)], -1)
+        data = np.concatenate(
+            [
+                np.asarray(position(t), float),
+                np.asarray(velocity(t), float),
+                np.asarray(angles(t), float),
+            ],
+            -1,
+        )
         coef = {}
         for j, sname in enumerate(SERIES):
             c2, c1, c0 = np.polyfit(tau, data[:, j], 2)
             coef.update({f"{sname}_0": c0, f"{sname}_1": c1, f"{sname}_2": c2})
-        return cls(width=width, height=height, coefficients=coef, psi_x=psi_x, psi_y=psi_y, cols=cols,
-                   los_sign=los_sign, name=name, height_range=height_range)
+        return cls(
+            width=width,
+            height=height,
+            coefficients=coef,
+            psi_x=psi_x,
+            psi_y=psi_y,
+            cols=cols,
+            los_sign=los_sign,
+            name=name,
+            height_range=height_range,
+        )
 
     @classmethod
     def from_model(cls, reference, *, samples: int = 41, name=None, attitude_from_reference=True):
@@ -296,10 +367,12 @@ class TopanLOSModel(CoefficientModel, SensorModel):
         other lines.
         """
         if isinstance(reference, cls):
-            return reference                    # already this model (e.g. from a model set)
+            return reference  # already this model (e.g. from a model set)
         if not hasattr(reference, "ephemeris") or not hasattr(reference, "line_time"):
-            raise SensorModelError(f"{type(reference).__name__}: the Topan LOS model needs a physical "
-                                   "model with an ephemeris (pushbroom, ASTER or DIMAP)")
+            raise SensorModelError(
+                f"{type(reference).__name__}: the Topan LOS model needs a physical "
+                "model with an ephemeris (pushbroom, ASTER or DIMAP)"
+            )
         w, hgt = reference.width, reference.height
         rc = 0.5 * (hgt - 1)
         eph = reference.ephemeris
@@ -315,7 +388,7 @@ class TopanLOSModel(CoefficientModel, SensorModel):
         t_c = reference.line_time(np.array(rc))
         p_c, v_c = eph.state(t_c)
         m_c = orbital_to_ecef(p_c, v_c)
-        u = d @ m_c                                        # rows: d in orbital axes
+        u = d @ m_c  # rows: d in orbital axes
         k = u[:, 2] / -1.0
         psi_x, psi_y = np.arctan(u[:, 1] / k), np.arctan(-u[:, 0] / k)
         f_c = frame(np.array(rc))
@@ -324,7 +397,7 @@ class TopanLOSModel(CoefficientModel, SensorModel):
             rows = (t - reference.line_time(np.array(0.0))) / reference.line_period
             if not attitude_from_reference:
                 return np.zeros(rows.shape + (3,))
-            delta = frame(rows) @ f_c.T                     # R_PO(t) with R_PO(t_c) = I
+            delta = frame(rows) @ f_c.T  # R_PO(t) with R_PO(t_c) = I
             e = Rotation.from_matrix(delta).as_euler("XYZ")  # (-pitch, -roll, yaw)
             return np.stack([-e[:, 1], -e[:, 0], e[:, 2]], -1)
 
@@ -332,35 +405,71 @@ class TopanLOSModel(CoefficientModel, SensorModel):
             return eph.state(t)[0] + _position_offset(reference, t)
 
         lo, hi = reference.height_bounds()
-        return cls.from_series(width=w, height=hgt, row_times=reference.line_time, position=pos,
-                               velocity=lambda t: eph.state(t)[1], angles=angles, psi_x=psi_x,
-                               psi_y=psi_y, samples=samples, name=name, height_range=(lo, hi))
+        return cls.from_series(
+            width=w,
+            height=hgt,
+            row_times=reference.line_time,
+            position=pos,
+            velocity=lambda t: eph.state(t)[1],
+            angles=angles,
+            psi_x=psi_x,
+            psi_y=psi_y,
+            samples=samples,
+            name=name,
+            height_range=(lo, hi),
+        )
 
     def to_dict(self) -> dict:
         """Plain description (arrays inside), for :mod:`stereodem.sensor.io.sidecar`."""
-        return {"width": self.width, "height": self.height, "coefficients": dict(self._c),
-                "cols": self._cols, "psi_x": self._px, "psi_y": self._py, "los_sign": self.los_sign,
-                "name": self.name, "height_range": list(self._hr)}
+        return {
+            "width": self.width,
+            "height": self.height,
+            "coefficients": dict(self._c),
+            "cols": self._cols,
+            "psi_x": self._px,
+            "psi_y": self._py,
+            "los_sign": self.los_sign,
+            "name": self.name,
+            "height_range": list(self._hr),
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> TopanLOSModel:
         """Inverse of :meth:`to_dict`."""
-        return cls(width=d["width"], height=d["height"], coefficients=d["coefficients"],
-                   psi_x=d["psi_x"], psi_y=d["psi_y"], cols=d.get("cols"),
-                   los_sign=int(d.get("los_sign", -1)), name=d.get("name"),
-                   height_range=tuple(d.get("height_range", (-500.0, 9000.0))))
+        return cls(
+            width=d["width"],
+            height=d["height"],
+            coefficients=d["coefficients"],
+            psi_x=d["psi_x"],
+            psi_y=d["psi_y"],
+            cols=d.get("cols"),
+            los_sign=int(d.get("los_sign", -1)),
+            name=d.get("name"),
+            height_range=tuple(d.get("height_range", (-500.0, 9000.0))),
+        )
 
 
 def _position_offset(reference, t):
     """The reference's own adjustable position offsets (pushbroom parameters), in ECEF."""
-    c, _ = reference._pose((np.asarray(t) - reference.line_time(np.array(0.0))) / reference.line_period)
+    c, _ = reference._pose(
+        (np.asarray(t) - reference.line_time(np.array(0.0))) / reference.line_period
+    )
     return c - reference.ephemeris.state(t)[0]
 
 
 # ---------------------------------------------------------------------------- pre-adjustment
 
-def preadjust(model: TopanLOSModel, points, *, eop_set_name=None, kind: int = 1, adjust=None,
-              sigma_px: float = 1.0, iterations: int = 3):
+
+def preadjust(
+    model: TopanLOSModel,
+    points,
+    *,
+    eop_set_name=None,
+    kind: int = 1,
+    adjust=None,
+    sigma_px: float = 1.0,
+    iterations: int = 3,
+):
     """Topan's pre-adjustment of one image with its GCPs.
 
     Parameters

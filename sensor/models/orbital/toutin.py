@@ -60,6 +60,7 @@ the equations to its virtual points (:meth:`ToutinModel.from_model`) and then he
 Set ``toutin-full`` frees them too (15), as weighted observations about those values
 (:data:`SECOND_ORDER_SIGMA`: each about 1-2 m at the ends of the scene).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -76,15 +77,22 @@ from stereodem.sensor.models.orbital._common import (
 
 ADJUSTED = ("P", "Q", "tau", "theta", "a", "x0", "y0", "rot")
 SECOND_ORDER = ("b", "c", "dgamma", "dT_2", "dT_3", "dR_2", "dR_3")
-_Y_SCALE = 1e5          # m, the unit L of x and y in the second-order terms
+_Y_SCALE = 1e5  # m, the unit L of x and y in the second-order terms
 #: A-priori sigma of the levelling angles ``tau, theta`` (tangents of the scan plane's tilts)
 #: about their metadata values: 3e-4 (about 1 arcmin of attitude knowledge; ``d tan`` of a
 #: 31 degree tilt is 1.4 x the angle error), the order of the pointing accuracy of ASTER/SPOT.
 LEVELLING_SIGMA = 3e-4
 #: A-priori sigmas of the second-order terms about their metadata values (``toutin-full``):
 #: each moves the image by about 2 m at the ends of the scene (|y| ~ 35 km, H0 ~ 7e5 m).
-SECOND_ORDER_SIGMA = {"b": 2e-4, "c": 2e-4, "dgamma": 2e-4, "dT_2": 2e-5, "dT_3": 5e-5,
-                      "dR_2": 2e-5, "dR_3": 5e-5}
+SECOND_ORDER_SIGMA = {
+    "b": 2e-4,
+    "c": 2e-4,
+    "dgamma": 2e-4,
+    "dT_2": 2e-5,
+    "dT_3": 5e-5,
+    "dR_2": 2e-5,
+    "dR_3": 5e-5,
+}
 
 
 def scan_plane_tilt(boresight, line_direction, up) -> float:
@@ -104,22 +112,52 @@ class ToutinModel(CoefficientModel, SensorModel):
 
     ADJUST_SETS = {"toutin": list(ADJUSTED), "toutin-full": list(ADJUSTED + SECOND_ORDER)}
     #: Weighted parameters of each set: name -> a-priori sigma about the initial value.
-    PRIORS = {"toutin": {"tau": LEVELLING_SIGMA, "theta": LEVELLING_SIGMA},
-              "toutin-full": {"tau": LEVELLING_SIGMA, "theta": LEVELLING_SIGMA,
-                              **SECOND_ORDER_SIGMA}}
-    PARAMETER_STEPS = {"P": 1e-6, "Q": 1.0, "tau": 1e-7, "theta": 1e-7, "a": 1e-7, "x0": 0.1,
-                       "y0": 0.1, "rot": 1e-7, "b": 1e-6, "c": 1e-6, "dgamma": 1e-6,
-                       "dT_2": 1e-8, "dT_3": 1e-8, "dR_2": 1e-8, "dR_3": 1e-8,
-                       "chi": 1e-4}
+    PRIORS = {
+        "toutin": {"tau": LEVELLING_SIGMA, "theta": LEVELLING_SIGMA},
+        "toutin-full": {"tau": LEVELLING_SIGMA, "theta": LEVELLING_SIGMA, **SECOND_ORDER_SIGMA},
+    }
+    PARAMETER_STEPS = {
+        "P": 1e-6,
+        "Q": 1.0,
+        "tau": 1e-7,
+        "theta": 1e-7,
+        "a": 1e-7,
+        "x0": 0.1,
+        "y0": 0.1,
+        "rot": 1e-7,
+        "b": 1e-6,
+        "c": 1e-6,
+        "dgamma": 1e-6,
+        "dT_2": 1e-8,
+        "dT_3": 1e-8,
+        "dR_2": 1e-8,
+        "dR_3": 1e-8,
+        "chi": 1e-4,
+    }
     MODEL_TYPE = "toutin"
 
-    def __init__(self, *, width, height, lon0, lat0, N0, H0, alpha, chi, values: dict,
-                 name=None, height_range=(-500.0, 9000.0)):
+    def __init__(
+        self,
+        *,
+        width,
+        height,
+        lon0,
+        lat0,
+        N0,
+        H0,
+        alpha,
+        chi,
+        values: dict,
+        name=None,
+        height_range=(-500.0, 9000.0),
+    ):
         self.width, self.height = int(width), int(height)
         self.lon0, self.lat0 = float(lon0), float(lat0)
         self.N0, self.H0, self.alpha = float(N0), float(H0), float(alpha)
         if not all(np.isfinite(v) for v in (self.N0, self.H0, self.alpha, chi)) or self.alpha == 0:
-            raise SensorModelError("Toutin model: N0, H0, alpha, chi must be finite (alpha non-zero)")
+            raise SensorModelError(
+                "Toutin model: N0, H0, alpha, chi must be finite (alpha non-zero)"
+            )
         self.name = name or "toutin"
         self._c = dict.fromkeys(ADJUSTED + SECOND_ORDER, 0.0)
         self._c["chi"] = float(chi)
@@ -144,7 +182,9 @@ class ToutinModel(CoefficientModel, SensorModel):
 
     # ------------------------------------------------------------------ equations
     def _local(self, lon, lat, h):
-        e, n, _ = geodesy.ecef_to_enu(*geodesy.geodetic_to_ecef(lon, lat, 0.0 * h), self.lon0, self.lat0, 0.0)
+        e, n, _ = geodesy.ecef_to_enu(
+            *geodesy.geodetic_to_ecef(lon, lat, 0.0 * h), self.lon0, self.lat0, 0.0
+        )
         v = self._c
         cr, sr = np.cos(v["rot"]), np.sin(v["rot"])
         de, dn = np.asarray(e) - v["x0"], np.asarray(n) - v["y0"]
@@ -159,15 +199,18 @@ class ToutinModel(CoefficientModel, SensorModel):
         xs, ys = x / _Y_SCALE, y / _Y_SCALE
         # Earth-rotation skew at the acquisition time of the point: the line that sees it is
         # ``y - tau h`` (ground metres) from the centre line, not ``y`` (oblique views)
-        X = (x - v["a"] * (y - v["tau"] * h)) * (1.0 + h / self.N0) \
-            + _Y_SCALE * (v["b"] * ys ** 2 + v["c"] * xs * ys)
-        H = h - X ** 2 / (2.0 * self.N0)
-        dT = ys ** 2 * (v["dT_2"] + v["dT_3"] * ys)
-        dR = ys ** 2 * (v["dR_2"] + v["dR_3"] * ys)
+        X = (x - v["a"] * (y - v["tau"] * h)) * (1.0 + h / self.N0) + _Y_SCALE * (
+            v["b"] * ys**2 + v["c"] * xs * ys
+        )
+        H = h - X**2 / (2.0 * self.N0)
+        dT = ys**2 * (v["dT_2"] + v["dT_3"] * ys)
+        dR = ys**2 * (v["dR_2"] + v["dR_3"] * ys)
         with np.errstate(divide="ignore", invalid="ignore"):
             p = (v["tau"] * H + self.H0 * dT - y * (1.0 + v["dgamma"] * X / _Y_SCALE)) / v["P"]
             k = 1.0 / np.cos(v["chi"])
-            q = (v["Q"] * dR - X - v["theta"] * H * k) / (self.alpha * (v["Q"] + v["theta"] * X - H * k))
+            q = (v["Q"] * dR - X - v["theta"] * H * k) / (
+                self.alpha * (v["Q"] + v["theta"] * X - H * k)
+            )
         return self.c_c + q, self.r_c + p
 
     def localize(self, col, row, h):
@@ -184,7 +227,7 @@ class ToutinModel(CoefficientModel, SensorModel):
         at several heights (the fit's RMS, pixels, in :attr:`init_rms_px`). ``chi`` stays a
         constant of the geometry afterwards (not a GCP unknown)."""
         if isinstance(reference, cls):
-            return reference                    # already this model (e.g. from a model set)
+            return reference  # already this model (e.g. from a model set)
         w, hgt = reference.width, reference.height
         lon0, lat0 = reference.center_lonlat(0.0)
         c0, r0 = 0.5 * (w - 1), 0.5 * (hgt - 1)
@@ -210,28 +253,62 @@ class ToutinModel(CoefficientModel, SensorModel):
         g_col = (enu(c0 + 100, r0) - enu(c0 - 100, r0)) / 200.0
         rot = float(np.arctan2(g_row[0], g_row[1]))
         xdir = np.array([np.cos(rot), -np.sin(rot)])
-        Q = H0 / np.cos(off_nadir)          # about the slant range of the centre detector
+        Q = H0 / np.cos(off_nadir)  # about the slant range of the centre detector
         alpha = -float(g_col @ xdir) / Q
-        values = dict(P=-float(np.linalg.norm(g_row)), Q=Q, x0=float(g0[0]), y0=float(g0[1]), rot=rot)
+        values = dict(
+            P=-float(np.linalg.norm(g_row)), Q=Q, x0=float(g0[0]), y0=float(g0[1]), rot=rot
+        )
         lo, hi = reference.height_bounds()
-        model = cls(width=w, height=hgt, lon0=lon0, lat0=lat0, N0=N0, H0=H0, alpha=alpha, chi=chi,
-                    values=values, name=name, height_range=(lo, hi))
+        model = cls(
+            width=w,
+            height=hgt,
+            lon0=lon0,
+            lat0=lat0,
+            N0=N0,
+            H0=H0,
+            alpha=alpha,
+            chi=chi,
+            values=values,
+            name=name,
+            height_range=(lo, hi),
+        )
         pts = virtual_points(reference)
         model, _ = fit_to_points(model, list(ADJUSTED), *pts, what=model.name)
-        model, rms = fit_to_points(model, list(ADJUSTED + SECOND_ORDER) + ["chi"], *pts,
-                                   what=model.name)
+        model, rms = fit_to_points(
+            model, list(ADJUSTED + SECOND_ORDER) + ["chi"], *pts, what=model.name
+        )
         model.init_rms_px = rms
         return model
 
     def to_dict(self) -> dict:
         """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
-        return {"width": self.width, "height": self.height, "lon0": self.lon0, "lat0": self.lat0,
-                "N0": self.N0, "H0": self.H0, "alpha": self.alpha, "chi": self.chi,
-                "values": self.parameters(), "name": self.name, "height_range": list(self._hr)}
+        return {
+            "width": self.width,
+            "height": self.height,
+            "lon0": self.lon0,
+            "lat0": self.lat0,
+            "N0": self.N0,
+            "H0": self.H0,
+            "alpha": self.alpha,
+            "chi": self.chi,
+            "values": self.parameters(),
+            "name": self.name,
+            "height_range": list(self._hr),
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> ToutinModel:
         """Inverse of :meth:`to_dict`."""
-        return cls(width=d["width"], height=d["height"], lon0=d["lon0"], lat0=d["lat0"], N0=d["N0"],
-                   H0=d["H0"], alpha=d["alpha"], chi=d["chi"], values=d["values"], name=d.get("name"),
-                   height_range=tuple(d.get("height_range", (-500.0, 9000.0))))
+        return cls(
+            width=d["width"],
+            height=d["height"],
+            lon0=d["lon0"],
+            lat0=d["lat0"],
+            N0=d["N0"],
+            H0=d["H0"],
+            alpha=d["alpha"],
+            chi=d["chi"],
+            values=d["values"],
+            name=d.get("name"),
+            height_range=tuple(d.get("height_range", (-500.0, 9000.0))),
+        )

@@ -1,6 +1,7 @@
 """Inputs of every command: images (GeoTIFF + RPCs/sidecar, or an ASTER L1A granule's band)
 with their sensor models through one layer (:func:`open_image`), the seed DEM, a stereo DEM
 with its layers, and the cheap checks of the assessment inputs."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -49,13 +50,22 @@ class InputImage:
 ASTER_STEREO_BANDS = ("3N", "3B")
 
 
-def open_image(path, *, band=1, prefer: str = "physical", model_file=None, rpc_direct: bool = False,
-               radiometric: bool = True, granules: dict | None = None) -> InputImage:
+def open_image(
+    path,
+    *,
+    band=1,
+    prefer: str = "physical",
+    model_file=None,
+    rpc_direct: bool = False,
+    radiometric: bool = True,
+    granules: dict | None = None,
+) -> InputImage:
     """The one input layer: a GeoTIFF (with RPCs or a model sidecar) or an ASTER L1A granule
     (V004 ``.hdf``, V003 ``.zip`` or folder; ``band`` ``"3N"``/``"3B"``, radiance by the
     granule's radiometric table unless ``radiometric`` is false), with its model (or the
     ``model_file``), checked against each other. ``granules`` caches opened granules by path."""
     from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
+
     if is_aster_granule(path):
         key = str(Path(path).resolve())
         g = (granules or {}).get(key) or open_aster_granule(path)
@@ -65,17 +75,28 @@ def open_image(path, *, band=1, prefer: str = "physical", model_file=None, rpc_d
         img = g.read_image(name, radiometric=radiometric)
         model = load_model(model_file) if model_file else g.model(name)
         dtype = np.dtype("float32") if radiometric else g.band(name).dn.dtype
-        tags = {**g.tags(), "ASTER_BAND": str(name).upper(), "ASTER_RADIOMETRIC": str(bool(radiometric))}
+        tags = {
+            **g.tags(),
+            "ASTER_BAND": str(name).upper(),
+            "ASTER_RADIOMETRIC": str(bool(radiometric)),
+        }
     else:
         if isinstance(band, str):
-            raise InputError(f"{path}: band {band!r} names an ASTER band, but this is not an ASTER "
-                             "granule (give a band number)")
-        model = (load_model(model_file, rpc_direct=rpc_direct) if model_file else
-                 load_image_model(path, prefer=prefer, rpc_direct=rpc_direct))
+            raise InputError(
+                f"{path}: band {band!r} names an ASTER band, but this is not an ASTER "
+                "granule (give a band number)"
+            )
+        model = (
+            load_model(model_file, rpc_direct=rpc_direct)
+            if model_file
+            else load_image_model(path, prefer=prefer, rpc_direct=rpc_direct)
+        )
         img, dtype, tags = read_image(path, band), image_dtype(path, band), {}
     if img.shape != (model.height, model.width):
-        raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
-                         f"describes {model.width}x{model.height}")
+        raise InputError(
+            f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
+            f"describes {model.width}x{model.height}"
+        )
     sanity.check_texture(img, f"{path}" + (f" band {band}" if isinstance(band, str) else ""))
     return InputImage(img, model, dtype, tags)
 
@@ -84,8 +105,11 @@ def image_model(path, *, band=1, prefer: str = "physical"):
     """The sensor model of an input (the image's sidecar or RPCs, or band ``band`` of an ASTER
     granule), without reading the pixels."""
     from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
+
     if is_aster_granule(path):
-        return open_aster_granule(path).model(band if isinstance(band, str) else ASTER_STEREO_BANDS[0])
+        return open_aster_granule(path).model(
+            band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
+        )
     return load_image_model(path, prefer=prefer)
 
 
@@ -103,6 +127,7 @@ def load_pair(cfg: Config) -> Pair:
     if not i.left:
         raise InputError("a stereo DEM needs two images ([inputs] left and right)")
     from stereodem.sensor.io.aster_l1a import is_aster_granule
+
     granule = is_aster_granule(i.left)
     right = i.right or (i.left if granule else None)
     if not right:
@@ -114,8 +139,16 @@ def load_pair(cfg: Config) -> Pair:
     left = open_image(i.left, band=bands[0], model_file=i.left_model, **kw)
     right = open_image(right, band=bands[1], model_file=i.right_model, **kw)
     seed = load_seed_dem(cfg)
-    return Pair(left.image, right.image, left.model, right.model, seed,
-                left.dtype, right.dtype, {**left.tags, **{f"RIGHT_{k}": v for k, v in right.tags.items()}})
+    return Pair(
+        left.image,
+        right.image,
+        left.model,
+        right.model,
+        seed,
+        left.dtype,
+        right.dtype,
+        {**left.tags, **{f"RIGHT_{k}": v for k, v in right.tags.items()}},
+    )
 
 
 def read_stereo_dem(dem_path, *, vertical=None) -> DEM:
@@ -124,9 +157,12 @@ def read_stereo_dem(dem_path, *, vertical=None) -> DEM:
     unstated vertical reference is stereodem's own, the ellipsoid."""
     dem = DEM.from_file(dem_path, vertical=vertical, layers=("score", "ray_gap"))
     void = np.full(dem.shape, np.nan, np.float32)
-    return dataclasses.replace(dem, vertical=dem.vertical or ELLIPSOID,
-                               score=void if dem.score is None else dem.score,
-                               ray_gap=void if dem.ray_gap is None else dem.ray_gap)
+    return dataclasses.replace(
+        dem,
+        vertical=dem.vertical or ELLIPSOID,
+        score=void if dem.score is None else dem.score,
+        ray_gap=void if dem.ray_gap is None else dem.ray_gap,
+    )
 
 
 def check_inputs(cfg: Config):
@@ -137,11 +173,26 @@ def check_inputs(cfg: Config):
         DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
         if i.checkpoints:
             from stereodem.post.assess import read_checkpoints
+
             read_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
 
 
 def input_paths(cfg: Config) -> list:
     """Every input file of a job (none may be among its outputs)."""
     i = cfg.inputs
-    return [p for p in (i.left, i.right, *(i.images or ()), i.left_model, i.right_model, i.seed_dem,
-                        i.reference_dem, i.checkpoints, i.landcover, i.dem) if p]
+    return [
+        p
+        for p in (
+            i.left,
+            i.right,
+            *(i.images or ()),
+            i.left_model,
+            i.right_model,
+            i.seed_dem,
+            i.reference_dem,
+            i.checkpoints,
+            i.landcover,
+            i.dem,
+        )
+        if p
+    ]

@@ -18,6 +18,7 @@ Output folder of :func:`run`::
     tiles/tile_<n>.npz           finished stereo tiles (reused by --resume)
     run.json
 """
+
 from __future__ import annotations
 
 import json
@@ -64,8 +65,15 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
 
     ``progress_factory(label)`` may return a ``progress(done, total)`` callable per stage.
     """
-    with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, resume=cfg.run.resume,
-                       inputs=input_paths(cfg)) as out, thread_budget(cfg.run.workers):
+    with (
+        output_folder(
+            cfg.output_dir,
+            overwrite=cfg.run.overwrite,
+            resume=cfg.run.resume,
+            inputs=input_paths(cfg),
+        ) as out,
+        thread_budget(cfg.run.workers),
+    ):
         return _run_in(cfg, out, progress_factory)
 
 
@@ -91,6 +99,7 @@ class BackgroundWriter:
 
     def __init__(self):
         from concurrent.futures import ThreadPoolExecutor
+
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereodem-writer")
         self._futures = []
         self.seconds = 0.0
@@ -106,6 +115,7 @@ class BackgroundWriter:
                 return fn(*args, **kwargs)
             finally:
                 self.seconds += time.perf_counter() - t0
+
         self._futures.append(self._pool.submit(timed))
 
     def wait_for(self, index: int):
@@ -143,16 +153,26 @@ class Job:
 
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     from ..provenance import utc_now
+
     started = utc_now()
     with BackgroundWriter() as writer:
-        return _run_stages(Job(cfg, out, progress_factory or (lambda label: None), writer,
-                               writer_options(cfg), started))
+        return _run_stages(
+            Job(
+                cfg,
+                out,
+                progress_factory or (lambda label: None),
+                writer,
+                writer_options(cfg),
+                started,
+            )
+        )
 
 
 def _run_stages(job: Job) -> dict:
     """The stages of :func:`_run_in` after loading; GeoTIFF writes go to ``job.writer`` (a
     :class:`BackgroundWriter`) and overlap the next stage."""
     from ..provenance import provenance
+
     cfg, out, prog, stages, writer = job.cfg, job.out, job.progress, job.stages, job.writer
     t_all, started, co, written = job.t_start, job.started, job.creation_options, job.written
     t0 = stages.start()
@@ -163,19 +183,28 @@ def _run_stages(job: Job) -> dict:
     t0 = stages.start()
     bar = prog("stereo")
     pts = point_cloud.prepare(out, resume=cfg.run.resume) if cfg.dem.point_cloud else None
-    if cfg.inputs.images:                 # N-view DEM: pairs fused per cell (stereodem.multiview)
+    if cfg.inputs.images:  # N-view DEM: pairs fused per cell (stereodem.multiview)
         from ..multiview import run_stage
+
         pair, products, failed, raw = run_stage(cfg, progress=bar, cache_dir=out / "tiles")
     else:
-        products, failed = stereo_stage(cfg, pair, progress=bar, cache_dir=out / "tiles", points_dir=pts)
+        products, failed = stereo_stage(
+            cfg, pair, progress=bar, cache_dir=out / "tiles", points_dir=pts
+        )
         raw = products.dem
     _close(bar)
     writer.submit(raw.prepare_write(out / "raw" / "dem.tif", overwrite=True, creation_options=co))
     raw = None
     written.append("raw")
     tile_rss = [t.get("process_peak_rss_mb", 0.0) for t in products.tiles]
-    stages.record("stereo", t0, tiles=len(products.tiles), points=int(products.n_points),
-                  failed_tiles=len(failed), tile_process_peak_rss_mb=max(tile_rss, default=0.0))
+    stages.record(
+        "stereo",
+        t0,
+        tiles=len(products.tiles),
+        points=int(products.n_points),
+        failed_tiles=len(failed),
+        tile_process_peak_rss_mb=max(tile_rss, default=0.0),
+    )
     warnings = products.info.warnings
     suspect = sanity.status(warnings) == "suspect" and not cfg.run.force
 
@@ -184,12 +213,16 @@ def _run_stages(job: Job) -> dict:
         t0 = stages.start()
         clean, post_report = post_stage(cfg, products.dem, pair.seed_dem, path=out / "dem.tif")
         from stereodem.post.coreg_run import track_tags  # the track for coregister's along_track
+
         tags = track_tags(pair.left_model, pair.left_image.shape, clean.crs, clean.heights)
-        writer.submit(clean.prepare_write(out / "dem.tif", overwrite=True, creation_options=co,
-                                          tags=tags))
+        writer.submit(
+            clean.prepare_write(out / "dem.tif", overwrite=True, creation_options=co, tags=tags)
+        )
         written += ["dem.tif", edit_mask_path(out / "dem.tif").name]
-        stages.record("post", t0, valid_pct=round(float(100 * np.isfinite(clean.heights).mean()), 3))
-        if pts is not None:                 # the points, classified by the edit mask
+        stages.record(
+            "post", t0, valid_pct=round(float(100 * np.isfinite(clean.heights).mean()), 3)
+        )
+        if pts is not None:  # the points, classified by the edit mask
             t0 = stages.start()
             pc = point_cloud.point_cloud_stage(cfg, out, products, clean.edit_mask, grid=clean.grid)
             written.append(Path(pc["path"]).name)
@@ -204,52 +237,80 @@ def _run_stages(job: Job) -> dict:
             orthos = ortho_stage(cfg, images, clean, progress=bar)
             _close(bar)
             dtypes = {"left": pair.left_dtype, "right": pair.right_dtype}
-            for name, o in orthos.items():           # in the image's own data type
-                writer.submit(o.write, out / f"ortho_{name}.tif", overwrite=True, dtype=dtypes[name],
-                              creation_options=co)
+            for name, o in orthos.items():  # in the image's own data type
+                writer.submit(
+                    o.write,
+                    out / f"ortho_{name}.tif",
+                    overwrite=True,
+                    dtype=dtypes[name],
+                    creation_options=co,
+                )
                 written.append(f"ortho_{name}.tif")
-            stages.record("ortho", t0, interpolation_error_px={k: o.interpolation_error_px
-                                                               for k, o in orthos.items()})
+            stages.record(
+                "ortho",
+                t0,
+                interpolation_error_px={k: o.interpolation_error_px for k, o in orthos.items()},
+            )
             ortho_grid = orthos["left"].grid
-            del orthos, images, o                     # written: their memory goes back
+            del orthos, images, o  # written: their memory goes back
 
         if cfg.uncertainty.enabled:
-            writer.wait()                              # its layers go beside dem.tif
+            writer.wait()  # its layers go beside dem.tif
             t0 = stages.start()
-            summary, dsig = uncertainty_stage(cfg, pair, clean, ortho_grid, products.dem,
-                                              out / "uncertainty")
+            summary, dsig = uncertainty_stage(
+                cfg, pair, clean, ortho_grid, products.dem, out / "uncertainty"
+            )
             dsig.write(out / "dem.tif", clean, overwrite=True)
             written += ["uncertainty", "dem_sigma_vertical.tif"]
-            stages.record("uncertainty", t0, shares=summary["shares"],
-                          sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"])
+            stages.record(
+                "uncertainty",
+                t0,
+                shares=summary["shares"],
+                sigma_horizontal_median_m=summary["sigma_horizontal_m"]["median"],
+            )
 
         # the images and the raw layers are not needed any more (the assessment's memory)
-        writer.wait_for(0)        # the raw layers are on disk (the orthoimages may still go)
+        writer.wait_for(0)  # the raw layers are on disk (the orthoimages may still go)
         pair.left_image = pair.right_image = None
         products.dem = None
         if cfg.assess.enabled and cfg.inputs.reference_dem:
             t0 = stages.start()
-            report = assess_stage(cfg, clean, out / "assess", overwrite=True,
-                                  provenance=provenance(started=started))[0].report
+            report = assess_stage(
+                cfg, clean, out / "assess", overwrite=True, provenance=provenance(started=started)
+            )[0].report
             written.append("assess")
             stages.record("assess", t0)
 
     t0 = stages.start()
     writer.wait()
-    stages.record("writes", t0, background_s=round(writer.seconds, 3), files=writer.count,
-                  note="GeoTIFF writes in a background thread, overlapping the following "
-                       "stages (their CPU counts in those stages); seconds: the wait for the "
-                       "last ones")
+    stages.record(
+        "writes",
+        t0,
+        background_s=round(writer.seconds, 3),
+        files=writer.count,
+        note="GeoTIFF writes in a background thread, overlapping the following "
+        "stages (their CPU counts in those stages); seconds: the wait for the "
+        "last ones",
+    )
     written += ["tiles", "run.json"]
-    run_info = dict(status=sanity.status(warnings), warnings=warnings,
-                    provenance=provenance(started=started), config=cfg.to_dict(),
-                    input_metadata=pair.tags,
-                    versions=versions(), stages=stages.stages,
-                    seconds=round(time.perf_counter() - t_all, 3), failed_tiles=failed,
-                    stereo=dict(tiles=products.tiles, info=products.info.to_dict()), post=post_report,
-                    outputs=sorted(written), headline=headline(report))
-    write_text_atomic(out / "run.json", json.dumps(run_info, indent=1, default=json_default),
-                      overwrite=True)
+    run_info = dict(
+        status=sanity.status(warnings),
+        warnings=warnings,
+        provenance=provenance(started=started),
+        config=cfg.to_dict(),
+        input_metadata=pair.tags,
+        versions=versions(),
+        stages=stages.stages,
+        seconds=round(time.perf_counter() - t_all, 3),
+        failed_tiles=failed,
+        stereo=dict(tiles=products.tiles, info=products.info.to_dict()),
+        post=post_report,
+        outputs=sorted(written),
+        headline=headline(report),
+    )
+    write_text_atomic(
+        out / "run.json", json.dumps(run_info, indent=1, default=json_default), overwrite=True
+    )
     if suspect:
         suspect_error(cfg, products, out / "run.json")
     return run_info

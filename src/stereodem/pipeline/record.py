@@ -1,5 +1,6 @@
 """The run record (``run.json``): per-stage wall and CPU seconds and peak memory, the
 versions of the libraries that shape the results, the accuracy headline."""
+
 from __future__ import annotations
 
 import logging
@@ -58,11 +59,15 @@ class StageLog:
     def record(self, name, t0, **extra):
         own, kids = _peak_rss_mb()
         cpu, workers = _cpu_seconds()
-        self.stages[name] = dict(seconds=round(time.perf_counter() - t0, 3),
-                                 cpu_s=round(cpu - self._cpu0[0], 2),
-                                 worker_cpu_s=round(workers - self._cpu0[1], 2),
-                                 peak_rss_mb=own, peak_rss_scope=self._scope,
-                                 peak_worker_rss_mb=kids, **extra)
+        self.stages[name] = dict(
+            seconds=round(time.perf_counter() - t0, 3),
+            cpu_s=round(cpu - self._cpu0[0], 2),
+            worker_cpu_s=round(workers - self._cpu0[1], 2),
+            peak_rss_mb=own,
+            peak_rss_scope=self._scope,
+            peak_worker_rss_mb=kids,
+            **extra,
+        )
         log.info("stage %s: %.1f s", name, self.stages[name]["seconds"])
 
 
@@ -71,9 +76,18 @@ def versions() -> dict:
     import cv2
     import pyproj
     import scipy
-    return dict(stereodem=__version__, python=platform.python_version(), numpy=np.__version__,
-                scipy=scipy.__version__, opencv=cv2.__version__, rasterio=rasterio.__version__,
-                gdal=rasterio.__gdal_version__, pyproj=pyproj.__version__, platform=platform.platform())
+
+    return dict(
+        stereodem=__version__,
+        python=platform.python_version(),
+        numpy=np.__version__,
+        scipy=scipy.__version__,
+        opencv=cv2.__version__,
+        rasterio=rasterio.__version__,
+        gdal=rasterio.__gdal_version__,
+        pyproj=pyproj.__version__,
+        platform=platform.platform(),
+    )
 
 
 def headline(report) -> dict | None:
@@ -81,8 +95,14 @@ def headline(report) -> dict | None:
     if not report:
         return None
     s = report["stats"]
-    h = dict(n=s["n"], valid_pct=s["valid_pct"], median=s["median"], nmad=s["nmad"], rmse=s["rmse"],
-             le90=s["le90"])
+    h = dict(
+        n=s["n"],
+        valid_pct=s["valid_pct"],
+        median=s["median"],
+        nmad=s["nmad"],
+        rmse=s["rmse"],
+        le90=s["le90"],
+    )
     if report.get("coregistration"):
         h["coregistration"] = {k: report["coregistration"].get(k) for k in ("dx", "dy", "dz")}
         h["nmad_after_coregistration"] = report["after_coregistration"]["stats"]["nmad"]

@@ -1,6 +1,7 @@
 """One function per stage of a job, shared by the commands and ``stereodem run``:
 :func:`stereo_stage` (``stereodem dem``), :func:`post_stage` (``filter``), :func:`ortho_stage`
 (``ortho``), :func:`uncertainty_stage`, :func:`assess_stage` (``assess``)."""
+
 from __future__ import annotations
 
 import logging
@@ -30,20 +31,36 @@ def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None, poin
     ``(products, failed_tiles)``. ``points_dir``: the tiles also write their points there
     (:mod:`stereodem.point_cloud`)."""
     from stereodem.stereo.pipeline import make_dem
+
     runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
     args = (pair.left_image, pair.right_image, pair.left_model, pair.right_model)
     dtypes = dict(left_dtype=pair.left_dtype, right_dtype=pair.right_dtype)
     if cfg.jitter.enabled:
         from stereodem.stereo.jitter import dem_with_jitter_correction
+
         j = cfg.jitter
         products, corrected, fit, first = dem_with_jitter_correction(
-            *args, pair.seed_dem, cfg.stereo, seed_dem=pair.seed_dem, n_sines=j.n_sines,
-            f_range=(j.min_frequency, j.max_frequency), runner=runner, axes=j.axis_names, **dtypes)
+            *args,
+            pair.seed_dem,
+            cfg.stereo,
+            seed_dem=pair.seed_dem,
+            n_sines=j.n_sines,
+            f_range=(j.min_frequency, j.max_frequency),
+            runner=runner,
+            axes=j.axis_names,
+            **dtypes,
+        )
         pair.right_model = corrected
         log.info("jitter of the right camera: %s", products.info.jitter)
     else:
-        products = make_dem(*args, cfg.stereo, seed_dem=pair.seed_dem, runner=runner,
-                            points_dir=points_dir, **dtypes)
+        products = make_dem(
+            *args,
+            cfg.stereo,
+            seed_dem=pair.seed_dem,
+            runner=runner,
+            points_dir=points_dir,
+            **dtypes,
+        )
     return products, [f.to_dict() for f in runner.failures]
 
 
@@ -54,7 +71,8 @@ def suspect_error(cfg: Config, products, report_path) -> None:
     if bad and not cfg.run.force:
         raise sanity.SuspectResultError(
             f"result suspect: {bad[0]['message']}; products kept for inspection, findings in "
-            f"{report_path} (--force accepts them)")
+            f"{report_path} (--force accepts them)"
+        )
 
 
 def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=None):
@@ -67,16 +85,23 @@ def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=No
     """
     from stereodem.post.fill import fill_holes, gaussian_smooth
     from stereodem.post.filters import default_chain
+
     z = layers.heights
     mask = np.zeros(z.shape, np.uint8)
     report = {}
     if cfg.filters.enabled:
         res = default_chain(thesis=cfg.filters.thesis).apply(
-            z, score=layers.score, ray_gap=layers.ray_gap, transform=layers.transform, crs=layers.crs)
+            z,
+            score=layers.score,
+            ray_gap=layers.ray_gap,
+            transform=layers.transform,
+            crs=layers.crs,
+        )
         z, mask = res.heights, res.removed.copy()
         report["filters"] = res.report
     if cfg.filters.enabled and cfg.filters.erode > 0:
         from stereodem.post.filters import border_rim
+
         rim = border_rim(z, cfg.filters.erode)
         z = np.where(rim, np.nan, z)
         mask[rim] = EditCode.BORDER_RIM
@@ -91,8 +116,14 @@ def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=No
         report["fill"] = fr.report
         if cfg.fill.smooth_sigma > 0:
             z = gaussian_smooth(z, sigma=cfg.fill.smooth_sigma)
-    clean = DEM(z.astype(np.float32), layers.transform, layers.crs, layers.vertical,
-                None if path is None else str(path), edit_mask=mask)
+    clean = DEM(
+        z.astype(np.float32),
+        layers.transform,
+        layers.crs,
+        layers.vertical,
+        None if path is None else str(path),
+        edit_mask=mask,
+    )
     return clean, report
 
 
@@ -100,10 +131,17 @@ def _fallback_on_grid(seed, layers: DEM):
     """The seed DEM warped onto the stereo grid, in the grid's vertical reference."""
     seed = seed.to_reference(layers.vertical)
     out = np.full(layers.heights.shape, np.nan, np.float32)
-    rasterio.warp.reproject(seed.heights, out, src_transform=seed.transform, src_crs=seed.crs.to_wkt(),
-                            dst_transform=layers.transform, dst_crs=layers.crs.to_wkt(),
-                            resampling=rasterio.warp.Resampling.bilinear, src_nodata=np.nan,
-                            dst_nodata=np.nan)
+    rasterio.warp.reproject(
+        seed.heights,
+        out,
+        src_transform=seed.transform,
+        src_crs=seed.crs.to_wkt(),
+        dst_transform=layers.transform,
+        dst_crs=layers.crs.to_wkt(),
+        resampling=rasterio.warp.Resampling.bilinear,
+        src_nodata=np.nan,
+        dst_nodata=np.nan,
+    )
     return out
 
 
@@ -117,11 +155,23 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
     (:func:`stereodem.ortho.concurrent.orthorectify_all`; the result does not depend on it).
     """
     from stereodem.ortho.concurrent import orthorectify_all
-    fill = (DEM.from_file(cfg.ortho.fill_dem, vertical=cfg.ortho.fill_dem_vertical)
-            if cfg.ortho.fill_dem else None)
-    return orthorectify_all(images, dem, grid=grid, res=cfg.ortho.res, crs=cfg.ortho.crs,
-                            resampling=cfg.ortho.resampling, progress=progress,
-                            threads=job_threads(cfg.run.workers), fill_dem=fill)
+
+    fill = (
+        DEM.from_file(cfg.ortho.fill_dem, vertical=cfg.ortho.fill_dem_vertical)
+        if cfg.ortho.fill_dem
+        else None
+    )
+    return orthorectify_all(
+        images,
+        dem,
+        grid=grid,
+        res=cfg.ortho.res,
+        crs=cfg.ortho.crs,
+        resampling=cfg.ortho.resampling,
+        progress=progress,
+        threads=job_threads(cfg.run.workers),
+        fill_dem=fill,
+    )
 
 
 def uncertainty_stage(cfg: Config, pair: Pair, dem: DEM, ortho_grid: MapGrid, raw: DEM, out_dir):
@@ -129,20 +179,39 @@ def uncertainty_stage(cfg: Config, pair: Pair, dem: DEM, ortho_grid: MapGrid, ra
     vertical σ of the DEM; returns (summary dict, the DEM σ object)."""
     from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
     from stereodem.ortho.uncertainty.maps import dem_vertical_sigma, ortho_uncertainty_maps
+
     u = cfg.uncertainty
     report = read_adjust_report(u.covariance) if u.covariance else None
-    model, names, D = assemble(pair.left_model, sigmas=u.sigma, report=report, image=cfg.inputs.left)
-    maps = ortho_uncertainty_maps(model, dem, ortho_grid, D, names, u.method, samples=u.samples,
-                                  threads=job_threads(cfg.run.workers))
+    model, names, D = assemble(
+        pair.left_model, sigmas=u.sigma, report=report, image=cfg.inputs.left
+    )
+    maps = ortho_uncertainty_maps(
+        model,
+        dem,
+        ortho_grid,
+        D,
+        names,
+        u.method,
+        samples=u.samples,
+        threads=job_threads(cfg.run.workers),
+    )
     maps.write(out_dir, overwrite=True)
     model_names = [n for n in names if n != "dem_height"]
     keep = [names.index(n) for n in model_names]
-    dsig = dem_vertical_sigma(pair.left_model, pair.right_model, dem, score=raw.score,
-                              left_covariance=np.asarray(D)[np.ix_(keep, keep)], left_names=model_names)
+    dsig = dem_vertical_sigma(
+        pair.left_model,
+        pair.right_model,
+        dem,
+        score=raw.score,
+        left_covariance=np.asarray(D)[np.ix_(keep, keep)],
+        left_names=model_names,
+    )
     return maps.summary(), dsig
 
 
-def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True, provenance=None, error_analysis=None):
+def assess_stage(
+    cfg: Config, dem, out_dir, *, overwrite=True, provenance=None, error_analysis=None
+):
     """Accuracy report of ``dem`` (a :class:`DEM` or a path) against the reference DEM and
     check points of the configuration, written into ``out_dir``; returns (assessment, files).
 
@@ -150,26 +219,44 @@ def assess_stage(cfg: Config, dem, out_dir, *, overwrite=True, provenance=None, 
     stable-terrain error analysis section and its figures to the report."""
     from stereodem.post.assess import assess_dem
     from stereodem.post.report import write_report
+
     i, a = cfg.inputs, cfg.assess
     if not i.reference_dem:
         raise InputError("the assessment needs a reference DEM ([inputs] reference_dem, --ref)")
     dem = dem if isinstance(dem, DEM) else DEM.from_file(dem, vertical=i.dem_vertical)
     ref = DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
     kw = {} if a.slope_bins is None else dict(slope_bins=a.slope_bins)
-    result = assess_dem(dem, ref, coregister=a.coregister, checkpoints=i.checkpoints,
-                        checkpoint_crs=i.checkpoints_crs, checkpoint_vertical=i.checkpoints_vertical,
-                        landcover=i.landcover,
-                        landcover_names={int(k): v for k, v in (a.landcover_names or {}).items()},
-                        elevation_bins=a.elevation_bins, threads=job_threads(cfg.run.workers),
-                        **kw)
+    result = assess_dem(
+        dem,
+        ref,
+        coregister=a.coregister,
+        checkpoints=i.checkpoints,
+        checkpoint_crs=i.checkpoints_crs,
+        checkpoint_vertical=i.checkpoints_vertical,
+        landcover=i.landcover,
+        landcover_names={int(k): v for k, v in (a.landcover_names or {}).items()},
+        elevation_bins=a.elevation_bins,
+        threads=job_threads(cfg.run.workers),
+        **kw,
+    )
     extra = None
     if error_analysis is not None:
         from stereodem.post import error_analysis as ea
         from stereodem.post.assess import reconcile_vertical
+
         section, plots = ea.analyse(reconcile_vertical(dem, ref)[0], ref, error_analysis)
 
         def extra(out, ow):
             return "error_analysis", section, ea.write_figures(plots, out, overwrite=ow)
-    files = write_report(result, out_dir, dem_heights=dem.heights, dem_transform=dem.transform,
-                         dem_crs=dem.crs, overwrite=overwrite, provenance=provenance, extra=extra)
+
+    files = write_report(
+        result,
+        out_dir,
+        dem_heights=dem.heights,
+        dem_transform=dem.transform,
+        dem_crs=dem.crs,
+        overwrite=overwrite,
+        provenance=provenance,
+        extra=extra,
+    )
     return result, files
