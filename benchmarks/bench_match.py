@@ -25,7 +25,13 @@ import cv2
 import numpy as np
 import rasterio
 
-from stereodem.stereo.match import _to_uint8, match_rectified
+from stereodem.stereo.match import (
+    _sgbm,
+    _to_uint8,
+    _zncc_left,
+    _zncc_warped,
+    match_rectified,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "bench_match.json"
@@ -176,8 +182,10 @@ def main(argv=None):
         print(
             f"sgm overhead, {o['threads']} thread(s): stereodem {o['stereodem_cpu_s']:.3f} s CPU "
             f"/ {o['stereodem_wall_s']:.3f} s wall, bare SGBM {o['bare_cpu_s']:.3f} / "
-            f"{o['bare_wall_s']:.3f} s: ratio {o['ratio_cpu']:.3f} CPU, {o['ratio_wall']:.3f} wall"
+            f"{o['bare_wall_s']:.3f} s: ratio {o['ratio_cpu']:.3f} CPU, {o['ratio_wall']:.3f} wall, "
+            f"{o['ratio_cpu_of_minima']:.3f} CPU of the minima"
         )
+    print("sgm parts, 1 thread, % of the bare call:", overhead["parts_1thread"]["percent_of_bare"])
     print(f"wrote {OUT}")
 
 
@@ -191,8 +199,11 @@ def sgm_overhead(left, right, l8, r8, repeats=REPEATS, threads=(1, 2)):
     any caller does); the wrapper adds the 8-bit stretch, the border padding (so the first 64
     columns get disparities: 6 % more columns at 1024 px), the no-data handling and the ZNCC
     score layer."""
+    import os
+
     saved = cv2.getNumThreads()
     out = []
+    load_before = [round(x, 2) for x in os.getloadavg()]
     try:
         for n in threads:
             cv2.setNumThreads(n)
@@ -209,6 +220,7 @@ def sgm_overhead(left, right, l8, r8, repeats=REPEATS, threads=(1, 2)):
                     fn()
                     t[name].append((time.perf_counter() - w0, time.process_time() - c0))
             med = {k: np.median(np.array(v), axis=0) for k, v in t.items()}
+            low = {k: np.min(np.array(v), axis=0) for k, v in t.items()}
             out.append(
                 {
                     "threads": n,
@@ -219,15 +231,49 @@ def sgm_overhead(left, right, l8, r8, repeats=REPEATS, threads=(1, 2)):
                     "bare_cpu_s": round(float(med["bare"][1]), 4),
                     "ratio_wall": round(float(med["stereodem"][0] / med["bare"][0]), 3),
                     "ratio_cpu": round(float(med["stereodem"][1] / med["bare"][1]), 3),
+                    "ratio_cpu_of_minima": round(float(low["stereodem"][1] / low["bare"][1]), 3),
                 }
             )
+        parts = sgm_parts(left, right, l8, r8, repeats)
     finally:
         cv2.setNumThreads(saved)
     return {
         "what": "match_rectified(matcher='sgm') / bare cv2.StereoSGBM.compute (+ float "
-        "conversion), same 1024x1024 tile, same cv2.setNumThreads, alternating "
-        "repeats, medians; target <= 1.15 (issue 28)",
+        "conversion), same 1024x1024 tile, same cv2.setNumThreads, interleaved "
+        "(alternating) repeats, medians (and the ratio of the minima); target <= 1.15 "
+        "(issue 28)",
         "by_threads": out,
+        "parts_1thread": parts,
+        "load_average_before_after": [load_before, [round(x, 2) for x in os.getloadavg()]],
+    }
+
+
+def sgm_parts(left, right, l8, r8, repeats=REPEATS):
+    """Where the wrapper's time goes at 1 thread: CPU seconds (medians, interleaved) of the
+    bare call, the wrapper's padded SGBM call (the padding's cost is the difference), the
+    8-bit stretch of both images, and the score layer's left and warped parts; in % of the
+    bare call as well."""
+    cv2.setNumThreads(1)
+    disp = _sgbm(l8, r8, DMIN, DMAX)
+    lw = _zncc_left(left, 7)
+    fns = {
+        "bare_sgbm": lambda: _raw_sgbm(l8, r8, "sgbm"),
+        "padded_sgbm": lambda: _sgbm(l8, r8, DMIN, DMAX),
+        "stretch_8bit": lambda: _to_uint8(left, right),
+        "score_left": lambda: _zncc_left(left, 7),
+        "score_warped": lambda: _zncc_warped(lw, right, disp),
+        "wrapper": lambda: match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
+    }
+    ts = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            c0 = time.process_time()
+            fn()
+            ts[k].append(time.process_time() - c0)
+    med = {k: float(np.median(v)) for k, v in ts.items()}
+    return {
+        "cpu_s": {k: round(v, 4) for k, v in med.items()},
+        "percent_of_bare": {k: round(100 * v / med["bare_sgbm"], 1) for k, v in med.items()},
     }
 
 

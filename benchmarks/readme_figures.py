@@ -122,7 +122,13 @@ def match(d):
     if o:
         parts = "; ".join(
             f"{r['threads']} thread(s): {r['ratio_cpu']:.2f}× CPU, {r['ratio_wall']:.2f}× "
-            f"wall ({r['stereodem_cpu_s']:.3f} vs {r['bare_cpu_s']:.3f} CPU s)"
+            f"wall ({r['stereodem_cpu_s']:.3f} vs {r['bare_cpu_s']:.3f} CPU s"
+            + (
+                f"; {r['ratio_cpu_of_minima']:.2f}× CPU of the minima"
+                if "ratio_cpu_of_minima" in r
+                else ""
+            )
+            + ")"
             for r in o["by_threads"]
         )
         out += (
@@ -131,6 +137,14 @@ def match(d):
             f"{o['by_threads'][0]['repeats']}: {parts} (target ≤ 1.15×; load "
             f"{d.get('load_average', ['?'])[0]})."
         )
+        pb = o.get("parts_1thread", {}).get("percent_of_bare")
+        if pb:
+            out += (
+                f" Where it goes (1 thread, % of the bare call): padded SGBM "
+                f"{pb['padded_sgbm']:.0f} %, 8-bit stretch {pb['stretch_8bit']:.1f} %, score layer "
+                f"{pb['score_left']:.1f} % (left windows) + {pb['score_warped']:.1f} % (warped "
+                f"right), whole wrapper {pb['wrapper']:.0f} %."
+            )
         ba = o.get("before_after")
         if ba:
             out += (

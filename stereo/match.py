@@ -102,8 +102,53 @@ def _finite_sample(arrays, n):
 
 def _robust_range(a):
     v = _finite_sample([a], 200_000)
-    lo, hi = np.percentile(v, [2.0, 98.0])
+    lo, hi = _percentiles(v, (2.0, 98.0))
     return float(lo), float(hi)
+
+
+def _percentiles(v, q, step=64):
+    """``np.percentile(v, q)`` (linear method) of a 1-D array of finite values, bit for bit,
+    without NumPy's partition of the whole sample around six ranks.
+
+    The two order statistics each percentile interpolates between are found among the values
+    lying between two bounds taken from a sorted 1-in-``step`` sub-sample (a few comparison
+    passes and a sort of a small set); the counts below the bounds check that the wanted ranks
+    lie inside (else: ``np.percentile`` itself).  The interpolation is NumPy's own formula
+    (``_lerp``: float32 differences, float64 weights, the ``>= 0.5`` branch)."""
+    v = np.asarray(v)
+    q = np.asarray(q, dtype=np.float64)
+    n = v.size
+    if v.ndim != 1 or n < 16 * step or not ((q > 0) & (q < 100)).all():
+        return np.percentile(v, q)
+    vi = (n - 1) * np.true_divide(q, 100)
+    prev = np.floor(vi)
+    gamma = vi - prev
+    ranks = prev.astype(np.intp)
+    sub = np.sort(v[::step])
+    a = np.empty(q.shape, v.dtype)
+    b = np.empty(q.shape, v.dtype)
+    for i, r in enumerate(ranks):
+        j = r // step  # about where rank r falls in the sub-sample
+        m = 16 + 4 * int(math.sqrt(min(j, sub.size - j) + 1))  # ~4 sigma of the rank's spread
+        lo_i, hi_i = j - m, j + 1 + m
+        sel = None
+        below = 0
+        if hi_i < sub.size:
+            sel = v <= sub[hi_i]
+        if lo_i > 0:
+            t = sub[lo_i]
+            low = v < t
+            below = int(np.count_nonzero(low))
+            sel = ~low if sel is None else sel & ~low
+        cand = v[sel] if sel is not None else v
+        if not (below <= r and r + 1 < below + cand.size):
+            return np.percentile(v, q)
+        cand.partition((r - below, r + 1 - below))
+        a[i], b[i] = cand[r - below], cand[r + 1 - below]
+    diff = b - a
+    out = np.add(a, diff * gamma)
+    np.subtract(b, diff * (1 - gamma), out=out, where=gamma >= 0.5, casting="unsafe")
+    return out
 
 
 class _Stats(NamedTuple):
@@ -112,17 +157,21 @@ class _Stats(NamedTuple):
     inv: np.ndarray  # 1 / window std; NaN where invalid (no-data, no texture)
 
 
-def _window_stats(img, window, min_std):
+def _window_stats(img, window, min_std, finite=False):
     """Window mean and inverse standard deviation of a float32 image with NaN no-data.
 
     ``inv`` is NaN where the window touches no-data or its standard deviation is below
     ``min_std``; the image border (windows leaving the image) is NaN as well. ``zero`` is
     ``img`` itself when it has no NaN (read-only use). The arithmetic is done in place
     (same operations, same float32 results as the textbook form ``1 / sqrt(E[x^2] - E[x]^2)``).
+    ``finite=True``: the caller knows ``img`` has no NaN (its scan is skipped).
     """
     img = np.asarray(img, dtype=F32)
-    nan = ~np.isfinite(img)
-    has_nan = bool(nan.any())
+    if finite:
+        nan, has_nan = None, False
+    else:
+        nan = ~np.isfinite(img)
+        has_nan = bool(nan.any())
     if has_nan:  # NaN -> 0 (a copy and a masked fill: a third of np.where)
         zero = img.copy()
         np.copyto(zero, F32(0), where=nan)
@@ -592,7 +641,7 @@ def _to_uint8(left, right, executor=None):
     ``round-half-up((a - lo) * 255 / (hi - lo))`` clipped to 0..255, in float64, in place;
     with ``executor`` (a thread pool) the right image is converted there meanwhile."""
     v = _finite_sample([left, right], 400_000)
-    lo, hi = np.percentile(v, [1.0, 99.0])
+    lo, hi = _percentiles(v, (1.0, 99.0))
     scale = 255.0 / max(hi - lo, 1e-12)
 
     def conv(a):
@@ -671,8 +720,8 @@ def _sgbm(
     )
     raw = sgbm.compute(left8, right8)
     raw = raw[:, padl : raw.shape[1] - padr]
-    disp = raw.astype(F32) / F32(16.0)
-    disp[raw < lo * 16] = np.nan
+    disp = np.divide(raw, F32(16.0), dtype=F32)
+    np.copyto(disp, F32(np.nan), where=raw < lo * 16)
     return disp
 
 
@@ -717,12 +766,17 @@ class _LeftWindows(NamedTuple):
     window: int
 
 
-def _zncc_left(left, window):
+def _zncc_left(left, window, finite=None):
+    """``finite``: whether ``left`` is known to have no NaN (None: scan it)."""
     # without no-data, np.mean of a C-contiguous image sums in the same (pairwise) order as
     # np.nanmean, so it gives the same float32, in one pass instead of three
-    plain = left.flags.c_contiguous and np.isfinite(left).all()
-    off = np.mean(left) if plain else np.nanmean(left)
-    return _LeftWindows(off, _window_stats(np.subtract(left, off, dtype=F32), window, 0.0), window)
+    if finite is None:
+        finite = bool(np.isfinite(left).all())
+    off = np.mean(left) if finite and left.flags.c_contiguous else np.nanmean(left)
+    # a finite image minus a finite constant below 1e30 stays finite (no overflow)
+    z = np.subtract(left, off, dtype=F32)
+    finite = finite and bool(np.isfinite(off)) and abs(float(off)) < 1e30
+    return _LeftWindows(off, _window_stats(z, window, 0.0, finite=finite), window)
 
 
 def _zncc_warped(a: _LeftWindows, right, disparity):
@@ -918,13 +972,14 @@ def match_rectified(
         SGBM on a second thread when this process has more than one (cv2.getNumThreads)."""
         nan_l, nan_r = ~np.isfinite(left), ~np.isfinite(right)
         masks = None
-        if nan_l.any() or nan_r.any():
+        left_nan = bool(nan_l.any())
+        if left_nan or nan_r.any():
             k = (window, window)
             masks = (
                 cv2.boxFilter(nan_l.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5,
                 cv2.boxFilter(nan_r.astype(F32), cv2.CV_32F, k, normalize=False) > 0.5,
             )
-        return masks, _zncc_left(left, score_window)
+        return masks, _zncc_left(left, score_window, finite=not left_nan)
 
     overlap = cv2.getNumThreads() > 1 and sgm_mode == "sgbm"
     if overlap:

@@ -423,3 +423,22 @@ def test_sgm_stretch_and_score_match_textbook_forms():
     both = np.isfinite(ref)
     assert np.array_equal(np.isfinite(inner), both)
     assert np.max(np.abs(inner[both] - ref[both])) < 1e-4
+
+
+def test_fast_percentiles_equal_numpy_bit_for_bit():
+    """The 8-bit stretch's percentiles (rank selection between sub-sample bounds) are
+    ``np.percentile``'s, bit for bit: continuous, tied, sorted and float64 samples."""
+    from stereodem.stereo.match import _percentiles
+
+    rng = np.random.default_rng(7)
+    samples = [
+        rng.normal(100, 20, 400_000).astype(np.float32),
+        rng.integers(0, 40, 123_457).astype(np.float32),  # many ties around the ranks
+        np.sort(rng.exponential(1.0, 250_001)).astype(np.float32),
+        rng.uniform(-1e6, 1e6, 99_999),
+        rng.normal(0, 1, 700).astype(np.float32),  # small: NumPy itself
+    ]
+    for v in samples:
+        for q in ((1.0, 99.0), (2.0, 98.0), (0.1, 99.9), (50.0,)):
+            got, ref = _percentiles(v, q), np.percentile(v, q)
+            assert got.dtype == ref.dtype and np.array_equal(got, ref), (v.dtype, v.size, q)
