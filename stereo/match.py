@@ -694,13 +694,13 @@ def _sgbm(
 ):
     """Run ``cv2.StereoSGBM`` on uint8 images for ``lo..hi``; float32 disparity, NaN invalid.
 
-    The pair is padded on the left by the largest positive and on the right by the largest
-    negative disparity (edge replication) so that OpenCV does not blank the first
-    ``numDisparities`` columns; the padding is cropped from the result.
+    OpenCV leaves the columns ``x < minDisparity + numDisparities`` and
+    ``x >= width + min(minDisparity, 0)`` invalid, so the pair is padded by that many columns
+    on each side (edge replication) and the padding cropped from the result: every column of
+    the tile can be matched.
     """
     nd = int(math.ceil((hi - lo + 1) / 16.0)) * 16
-    max_d = lo + nd - 1
-    padl, padr = max(max_d, 0), max(-lo, 0)
+    padl, padr = max(lo + nd, 0), max(-lo, 0)
     if padl or padr:
         left8 = cv2.copyMakeBorder(left8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)
         right8 = cv2.copyMakeBorder(right8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)
