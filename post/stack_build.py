@@ -295,19 +295,21 @@ def build_stack(
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(
+        from stereodem.core.pool import stop_pool
+
+        pool = ProcessPoolExecutor(
             max_workers=min(workers, len(dems)),
             mp_context=mp.get_context("spawn"),
             initializer=_init_worker,
             initargs=(reference, settings, stable_grid, str(store)),
-        ) as pool:
+        )
+        try:
             futures = {pool.submit(_add_and_write, k, str(p)): k for k, p in enumerate(dems)}
-            try:
-                for f in as_completed(futures):
-                    done(futures[f], f.result())
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
+            for f in as_completed(futures):
+                done(futures[f], f.result())
+        except BaseException:  # Ctrl-C, SIGTERM, a failed DEM: stop the workers now
+            stop_pool(pool)
+            raise
+        pool.shutdown(wait=True)
     set_attrs(store, dem_reports=records, sources=[str(p) for p in dems])
     return records

@@ -271,8 +271,8 @@ def _run_pool(order, out_root, n, threads, overwrite, collect):
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
+    from stereodem.core.pool import stop_pool
     from stereodem.core.threads import pool_initializer
-    from stereodem.stereo.runner import stop_pool
 
     ex = ProcessPoolExecutor(
         max_workers=n,
