@@ -2,8 +2,8 @@
 
 A 1024 x 1024 rectified pair is made from the bundled Landsat texture (the fully valid
 320 x 320 centre, upsampled x3.2 with bicubic interpolation, plus independent Gaussian noise
-of 1 DN in each image) and a smooth disparity field in about 8..56 px (slopes up to ~0.1 px/px); all matchers search the
-same 64 disparities 0..63.  Throughput is megapixels x disparities per second
+of 1 DN in each image) and a smooth disparity field in about 8..56 px (slopes up to ~0.1 px/px); all
+matchers search the same 64 disparities 0..63.  Throughput is megapixels x disparities per second
 (1024 * 1024 * 64 / 1e6 / seconds); accuracy is the RMS disparity error over the valid
 pixels and the share of valid pixels (and of pixels with error > 1 px, counting invalid as
 errors).

@@ -16,9 +16,9 @@ The per-cell maps are evaluated in float32 (separable lattice interpolation, flo
 bilinear sampling, Horner in height; ~2e-4 px rounding for images of a few thousand pixels) and
 row blocks can run on several threads (``threads``): numpy and OpenCV release the GIL.
 
-Resampling is :func:`cv2.remap` (bilinear, bicubic, Lanczos-4 or nearest) on row blocks; an output cell is
-nodata when the kernel touches an image nodata pixel or leaves the image, when the DEM has no
-height there, or when it falls outside the image footprint.
+Resampling is :func:`cv2.remap` (bilinear, bicubic, Lanczos-4 or nearest) on row blocks; an output
+cell is nodata when the kernel touches an image nodata pixel or leaves the image, when the DEM has
+no height there, or when it falls outside the image footprint.
 """
 
 from __future__ import annotations
@@ -75,8 +75,9 @@ def crop_dem(dem: DEM, grid: MapGrid, *, margin: int = 3, fill: DEM | None = Non
     if c1 - c0 < 2 or r1 - r0 < 2 or not np.isfinite(dem.heights[r0:r1, c0:c1]).any():
         raise DEMCoverageError(
             f"{dem.path or 'DEM'}: the DEM does not cover the orthoimage area lon "
-            f"{np.nanmin(lon):.5f}..{np.nanmax(lon):.5f}, lat {np.nanmin(lat):.5f}..{np.nanmax(lat):.5f} "
-            f"(DEM extent lon/lat {tuple(round(v, 5) for v in dem.bounds_lonlat())})"
+            f"{np.nanmin(lon):.5f}..{np.nanmax(lon):.5f}, lat "
+            f"{np.nanmin(lat):.5f}..{np.nanmax(lat):.5f} (DEM extent lon/lat "
+            f"{tuple(round(v, 5) for v in dem.bounds_lonlat())})"
         )
     sub = DEM(
         dem.heights[r0:r1, c0:c1].copy(),
@@ -847,7 +848,8 @@ def orthorectify(
     if n_missing:
         msg = (
             f"{dem.path or 'DEM'}: the DEM does not cover the image footprint: {n_missing} cell(s) "
-            f"missing in lon {miss_lo[0]:.5f}..{miss_hi[0]:.5f}, lat {miss_lo[1]:.5f}..{miss_hi[1]:.5f}"
+            f"missing in lon {miss_lo[0]:.5f}..{miss_hi[0]:.5f}, lat "
+            f"{miss_lo[1]:.5f}..{miss_hi[1]:.5f}"
         )
         if strict_dem:
             raise DEMCoverageError(msg)

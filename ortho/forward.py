@@ -1,11 +1,12 @@
 """The forward DRM of Bettemir (2006, §4.1 and §6.5): image -> ground, pixel by pixel.
 
 Each image pixel's line of sight is intersected with the ellipsoid and moved along the ray by
-the relief iteration until it meets the DEM (:meth:`stereodem.sensor.models.base.SensorModel.localize_dem`);
-the irregular ground points are then put on a map grid by nearest neighbour ("round to the
-nearest", thesis §4.1.9). This is the thesis's method, kept for comparison and validation:
-holes appear where the ground is sampled more finely than the image, and the backward
-projection of :mod:`stereodem.ortho.drm` is the production path.
+the relief iteration until it meets the DEM
+(:meth:`stereodem.sensor.models.base.SensorModel.localize_dem`); the irregular ground points are
+then put on a map grid by nearest neighbour ("round to the nearest", thesis §4.1.9). This is the
+thesis's method, kept for comparison and validation: holes appear where the ground is sampled more
+finely than the image, and the backward projection of :mod:`stereodem.ortho.drm` is the production
+path.
 """
 
 from __future__ import annotations

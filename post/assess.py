@@ -9,8 +9,9 @@ error against slope; optionally before and after co-registration with a chain of
 :mod:`stereodem.post.coreg` (default the chain's :class:`~stereodem.post.biascorr.NuthKaab`).
 
 :func:`assess_dem` works through the reference grid in blocks of :data:`BLOCK_ROWS` rows
-(warp, difference, slope, class statistics per block: :class:`~stereodem.post.blockstats.StreamingStats`),
-so its memory does not grow with the reference's size; the quantile statistics are then within
+(warp, difference, slope, class statistics per block:
+:class:`~stereodem.post.blockstats.StreamingStats`), so its memory does not grow with the
+reference's size; the quantile statistics are then within
 :data:`~stereodem.post.blockstats.QUANTILE_ERROR` of the exact ones (stated in the report) and
 the figures are drawn from the decimated arrays they display anyway.
 """

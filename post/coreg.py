@@ -251,7 +251,8 @@ def _check_fraction(n_keep, n_valid, what, path, min_fraction):
     if share < min_fraction or n_keep < 20:
         raise InputError(
             f"{path or 'stable mask'}: only {100 * share:.1f} % of the overlapping {what} "
-            f"({n_keep} of {n_valid}) are stable terrain; at least {100 * min_fraction:.0f} % needed"
+            f"({n_keep} of {n_valid}) are stable terrain; at least {100 * min_fraction:.0f} % "
+            "needed"
         )
 
 

@@ -7,8 +7,8 @@ lays one output grid over the footprints (the first DEM's CRS, posting and latti
 told otherwise); :func:`mosaic_block` computes one block of the output from the DEMs whose
 footprint meets it, read through windows (directly where a DEM lies on the output lattice,
 through GDAL's warper — bilinear — where it does not: other CRS, posting or a co-registration
-shift); :func:`run_mosaic` writes the blocks into a COG (:class:`~stereodem.core.blockwrite.BlockWriter`),
-here or on a ``dask.distributed`` cluster.
+shift); :func:`run_mosaic` writes the blocks into a COG
+(:class:`~stereodem.core.blockwrite.BlockWriter`), here or on a ``dask.distributed`` cluster.
 
 Methods, per output cell, over the DEMs with a height there (``count`` of them):
 

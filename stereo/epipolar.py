@@ -20,9 +20,10 @@ Franchis et al., ICIP 2014; s2p ``rectification.py``). Per tile:
 
 The rectified tile frame is chosen so that array index ``[v, u]`` of a rectified image is the
 rectified coordinate ``(u, v)``; a left pixel ``(u, v)`` matches the right pixel
-``(u - d, v)`` for a disparity ``d`` (the convention of :func:`stereodem.stereo.match.match_rectified`).
-Triangulation never uses the approximation: :meth:`EpipolarTile.to_image` maps matches back
-to each image's own coordinates, which are intersected with the exact models.
+``(u - d, v)`` for a disparity ``d`` (the convention of
+:func:`stereodem.stereo.match.match_rectified`). Triangulation never uses the approximation:
+:meth:`EpipolarTile.to_image` maps matches back to each image's own coordinates, which are
+intersected with the exact models.
 """
 
 from __future__ import annotations

@@ -33,7 +33,8 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
     """A tile runner for :func:`stereodem.stereo.pipeline.make_dem` backed by :func:`run_tiles`.
 
     ``run_settings`` has ``workers``, ``tile_timeout``, ``resume`` and ``dask`` (the address of
-    a Dask scheduler or None): :class:`stereodem.config.RunSettings`. Finished tiles are cached in ``cache_dir`` (``tile_<n>.npz``) so ``--resume`` skips them.
+    a Dask scheduler or None): :class:`stereodem.config.RunSettings`. Finished tiles are cached in
+    ``cache_dir`` (``tile_<n>.npz``) so ``--resume`` skips them.
     """
     failures = []
 

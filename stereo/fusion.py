@@ -19,13 +19,13 @@ pair stereo:
   height by the pair's base.
 
 Layers of the fused DEM (:class:`FusedDEM`, a :class:`~stereodem.core.dem.DEM` with its layers
-plus ``nmad``): ``heights``; ``count``, the pair heights fused in the cell (after rejection); ``nmad``, the NMAD (m) of all pair heights of the cell about their
-median (NaN with fewer than two), the pairs' agreement; ``sigma``, the σ (m) of the fused
-height: the formal σ of the weighted mean of the kept heights, ``1 / sqrt(sum w)``, times
-``sqrt(chi2 / (n - 1))`` when the kept heights scatter more than their σ say (n ≥ 2);
-``score`` and ``raygap``, the weighted means of the kept pairs' layers. Written as a DEM's
-files (:meth:`stereodem.core.dem.DEM.write`: ``dem.tif``, ``count.tif``, ``score.tif``,
-``raygap.tif``, ``dem_sigma_vertical.tif``) plus ``nmad.tif``.
+plus ``nmad``): ``heights``; ``count``, the pair heights fused in the cell (after rejection);
+``nmad``, the NMAD (m) of all pair heights of the cell about their median (NaN with fewer than two),
+the pairs' agreement; ``sigma``, the σ (m) of the fused height: the formal σ of the weighted mean of
+the kept heights, ``1 / sqrt(sum w)``, times ``sqrt(chi2 / (n - 1))`` when the kept heights scatter
+more than their σ say (n ≥ 2); ``score`` and ``raygap``, the weighted means of the kept pairs'
+layers. Written as a DEM's files (:meth:`stereodem.core.dem.DEM.write`: ``dem.tif``, ``count.tif``,
+``score.tif``, ``raygap.tif``, ``dem_sigma_vertical.tif``) plus ``nmad.tif``.
 
 Memory: the fusion holds the pair DEMs on the common lattice, 3 float32 layers per pair
 (height, score, ray gap): 12 bytes x pairs x cells, and at its peak about as much again in
@@ -406,7 +406,8 @@ def fuse_dems(
     Parameters
     ----------
     dems : list of DEM
-        The pair DEMs (with ``score`` and ``ray_gap`` layers): one CRS, posting and vertical reference, lattices offset by whole cells.
+        The pair DEMs (with ``score`` and ``ray_gap`` layers): one CRS, posting and vertical
+        reference, lattices offset by whole cells.
     sigmas : list of float
         Each pair's a-priori height σ (m, :func:`pair_sigma`).
     method : {"weighted", "median"}

@@ -400,8 +400,9 @@ def _match_pass(ref, tgt, seed, klo, khi, window, min_std, subpixel, vertical, b
     ``seed`` is a float seed disparity map ``S`` (None: a plain full search over
     ``klo..khi``): ``tgt`` is first warped (bicubic) to ``tgt'(x) = tgt(x - S(x), y - dy)``,
     then ``ref(x)`` is correlated with ``tgt'(x - k)``, so the window follows the seed
-    surface and the disparity is ``k + S(x - k)`` plus the sub-pixel offset.  Returns disparity (float, NaN where no peak), score, vertical offset, and
-    (with ``back``) the integer disparity map of ``tgt`` seen from ``tgt`` (full search only).
+    surface and the disparity is ``k + S(x - k)`` plus the sub-pixel offset.  Returns disparity
+    (float, NaN where no peak), score, vertical offset, and (with ``back``) the integer disparity
+    map of ``tgt`` seen from ``tgt`` (full search only).
     """
     h, w = ref.shape
     rstats = _window_stats(ref, window, min_std)

@@ -4,9 +4,9 @@
 two images, the sparse stage (:mod:`.sparse_stage`: SIFT matches checked through the models,
 the relative pointing correction of the right model, and — without a height range or seed
 DEM — the scene's height range and a coarse seed surface), the tiles over the overlap at every
-height of the range, the output lattice, then for every tile :func:`process_tile` (a pure function of the tile, the
-inputs and the settings, so tiles can run in a process pool), and finally the tiles' cell sums
-added into the DEM. Per tile:
+height of the range, the output lattice, then for every tile :func:`process_tile` (a pure function
+of the tile, the inputs and the settings, so tiles can run in a process pool), and finally the
+tiles' cell sums added into the DEM. Per tile:
 
 1. height range (the settings' range, or the seed DEM — given, or from the sparse matches —
    under the tile plus a margin);
@@ -96,7 +96,8 @@ class TilePoints:
 @dataclass
 class TileResult:
     """One tile's contribution to the DEM: its points' weighted sums on a window of the output
-    lattice (:class:`stereodem.stereo.grid.CellSums`, a few MB whatever the scene size) and its QA."""
+    lattice (:class:`stereodem.stereo.grid.CellSums`, a few MB whatever the scene size) and its
+    QA."""
 
     cells: CellSums
     summary: dict

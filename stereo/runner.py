@@ -179,7 +179,8 @@ def _alarm(signum, frame):
 
 
 def _run_one(fn, tile, timeout, context=None):
-    """Run ``fn`` on one tile with a timeout; returns (index, result | None, error | None, seconds)."""
+    """Run ``fn`` on one tile with a timeout; returns (index, result | None, error | None,
+    seconds)."""
     ctx = _CONTEXT if context is None else context
     t0 = time.perf_counter()
     # SIGALRM only in a main thread (a Dask task runs in a worker thread: no per-tile timeout)

@@ -21,9 +21,9 @@ per grid row (``numpy.matmul``); the DEM height and gradient are sampled with
 :func:`cv2.remap`. Blocks run on threads (numpy and OpenCV release the GIL).
 
 The interpolation error is measured, never assumed: the lattice is refined until the relative
-error of σ_E, σ_N and σ_horizontal at check cells (lattice mid-cells and random cells) against the exact
-per-cell propagation (:func:`stereodem.ortho.uncertainty.propagation.first_order`) is below the
-tolerance, and the finished float32 maps are compared with the same exact values
+error of σ_E, σ_N and σ_horizontal at check cells (lattice mid-cells and random cells) against the
+exact per-cell propagation (:func:`stereodem.ortho.uncertainty.propagation.first_order`) is below
+the tolerance, and the finished float32 maps are compared with the same exact values
 (``UncertaintyMaps.interpolation_error``).
 """
 

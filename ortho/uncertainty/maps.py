@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 METHODS = UNCERTAINTY_METHODS
 
 
-# ----------------------------------------------------------------------------- lattice interpolation
+# ---------------------------------------------------------------------------- lattice interpolation
 
 
 def _interp(L, Wy, Wx, dtype=np.float32):

@@ -1,4 +1,5 @@
-"""First-order propagation of sensor-model errors to ground positions (Bettemir 2010, eqs 4–8, 14–15).
+"""First-order propagation of sensor-model errors to ground positions (Bettemir 2010, eqs 4–8,
+14–15).
 
 The ground point of an image pixel is where its line of sight meets the DEM. A small change
 ``δp`` of the model's inputs moves the pixel's image position by ``J_img δp`` (pixels) at a
@@ -394,7 +395,8 @@ def covariance_matrix(names, sigmas: dict | None = None, covariance=None) -> np.
         bad = [n for n, v in zip(names, s) if not np.isfinite(v) or v < 0]
         if bad:
             raise InputError(
-                f"sigma must be finite and non-negative: {', '.join(f'{n}={sigmas[n]}' for n in bad)}"
+                "sigma must be finite and non-negative: "
+                f"{', '.join(f'{n}={sigmas[n]}' for n in bad)}"
             )
         D = np.diag(s**2)
     check_psd(D, names)

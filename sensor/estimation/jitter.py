@@ -7,10 +7,11 @@ or behind where its model says, and the stereo heights carry stripes across the 
 repeat along it (MMASTER fits them with a sum of sines against a reference DEM; ASP's
 ``jitter_solve`` adjusts the attitude). Here:
 
-* :func:`with_attitude_sines` gives a copy of a :class:`~stereodem.sensor.models.pushbroom.PushbroomModel`
-  (or :class:`~stereodem.sensor.models.aster.AsterModel`) whose attitude angle ``axis``
-  (``roll``/``pitch``/``yaw``, radians) is ``sum_k a_k sin(2 pi f_k t + phi_k)`` on the model's
-  time base - used by the simulator to inject jitter and by the correction;
+* :func:`with_attitude_sines` gives a copy of a
+  :class:`~stereodem.sensor.models.pushbroom.PushbroomModel` (or
+  :class:`~stereodem.sensor.models.aster.AsterModel`) whose attitude angle ``axis``
+  (``roll``/``pitch``/``yaw``, radians) is ``sum_k a_k sin(2 pi f_k t + phi_k)`` on the model's time
+  base - used by the simulator to inject jitter and by the correction;
 * :func:`height_sensitivity` is the height change (m per rad) of a stereo intersection when
   the second model's pitch changes, from the two models (numerical, per point);
 * :func:`fit_sum_of_sines` finds the strongest frequencies of a sampled signal by a

@@ -98,7 +98,8 @@ class ControlPoints:
         return self.subset(self.role == role)
 
     def arrays(self):
-        """``(lon, lat, h, col, row)``, e.g. for :func:`stereodem.sensor.models.generic.fit_model`."""
+        """``(lon, lat, h, col, row)``, e.g. for
+        :func:`stereodem.sensor.models.generic.fit_model`."""
         return self.lon, self.lat, self.h, self.col, self.row
 
     @classmethod

@@ -5,7 +5,8 @@ The product geometry is a lattice of 11 columns x N rows (ASTER notes §2.4): pe
 a satellite position (ECEF, m) and per lattice point a unit sight vector in the orbital frame
 (z = -r/|r|, y = -(r x v)/|r x v|, x = y x z, built with the **inertial** velocity
 ``v + omega_E x r``; notes §4.2-4.3). Lattice integers are pixel centres, the project's
-convention. The model (:class:`AsterModel`) is a :class:`stereodem.sensor.models.pushbroom.PushbroomModel`:
+convention. The model (:class:`AsterModel`) is a
+:class:`stereodem.sensor.models.pushbroom.PushbroomModel`:
 
 * line times ``t(row) = row * line_period`` with ``line_period`` = 2.1989 ms (notes §4.4);
 * positions interpolated by 8-point Lagrange polynomials over the lattice-row samples; the

@@ -194,8 +194,8 @@ class Attitude:
         Sample times, seconds, strictly increasing.
     angles : array_like (n, 3), optional
         Roll, pitch, yaw in radians (Bettemir Eq. 4.7 convention, see
-        :func:`stereodem.sensor.geo.rotations.body_to_orbital`). Interpolated by a natural cubic spline per
-        angle; a single sample is a constant attitude.
+        :func:`stereodem.sensor.geo.rotations.body_to_orbital`). Interpolated by a natural cubic
+        spline per angle; a single sample is a constant attitude.
     quaternions : array_like (n, 4), optional
         Unit quaternions ``(q1, q2, q3, q4)``, scalar last (scipy convention), of the rotation
         taking body vectors to orbital ones (``d_O = M d_B``). Interpolated with scipy's

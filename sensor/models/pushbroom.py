@@ -13,8 +13,9 @@ ASTER notes §4.2-4.6):
   turns the view towards -y (left of the flight direction).
 * **orbital frame** — body -> orbital by the interpolated attitude (roll, pitch, yaw,
   Bettemir Eq. 4.7) and the adjustable bias/drift angles.
-* **ECEF** — orbital frame from position and velocity (:func:`stereodem.sensor.geo.rotations.orbital_frame`),
-  built by default with the *inertial* velocity ``v + omega_E x r`` (ASTER notes §4.3).
+* **ECEF** — orbital frame from position and velocity
+  (:func:`stereodem.sensor.geo.rotations.orbital_frame`), built by default with the *inertial*
+  velocity ``v + omega_E x r`` (ASTER notes §4.3).
 
 Line ``row`` is acquired at ``t(row) = t0 + row * line_period`` (pixel centres at integers).
 Ground -> image (:meth:`PushbroomModel.project`) is not in the seeds (Bettemir §3.3 of the
@@ -516,7 +517,8 @@ class PushbroomModel(SensorModel):
 
     # ---------------------------------------------------------------- parameters
     def parameters(self) -> dict:
-        """Adjustable parameters as an ordered ``{name: value}`` dict (units in :data:`PARAMETERS`)."""
+        """Adjustable parameters as an ordered ``{name: value}`` dict (units in
+        :data:`PARAMETERS`)."""
         return dict(self._params)
 
     def with_parameters(self, **values) -> PushbroomModel:
@@ -776,9 +778,9 @@ class PushbroomModel(SensorModel):
         along-track tilt ``first_tilt_deg`` (0: nadir, ASTER 3N); the second flies on the same
         orbit with along-track tilt ``backward_tilt_deg`` (ASTER 3B: -27.6 deg) and is
         acquired later when it looks further back (about 55 s at 705 km for 0 / -27.6 deg;
-        any pair of tilts works, e.g. +20 / -20 deg). Because the Earth turns meanwhile, the backward camera's
-        cross-track tilt is adjusted (by about 1.3 deg at mid-latitudes, as ASTER's wider 3B
-        swath absorbs) so that its centre pixel sees the same ground centre; its
+        any pair of tilts works, e.g. +20 / -20 deg). Because the Earth turns meanwhile, the
+        backward camera's cross-track tilt is adjusted (by about 1.3 deg at mid-latitudes, as
+        ASTER's wider 3B swath absorbs) so that its centre pixel sees the same ground centre; its
         ``cross_track_tilt_deg`` attribute holds the adjusted value. Both cameras have the
         same IFOV.
         """

@@ -2,13 +2,13 @@
 
 The simulator recipe of the ASTER notes (``aster-l1a-format.md`` §8, §2.7, §3):
 
-* the 3N and 3B models of an ``aster`` scene (:func:`stereodem.sensor.simulation.simulate.simulate_scene`)
-  are sampled on an 11-column lattice (columns ``0, w/10, ..., w``; rows every ``row_step``
-  lines from a negative first row, past the last line): per lattice row the ECEF satellite
-  position, ``SatelliteVelocity`` (inertial in ECEF axes by default, or Earth-fixed),
-  ``ObservationTime`` (days since 1958-01-01, ms of day split as MicMac reads it, us); per
-  lattice point the sight vector in the orbital frame (z = -r, y = -(r x v_in), x = y x z) and
-  the geocentric latitude / longitude of its ellipsoid intersection;
+* the 3N and 3B models of an ``aster`` scene
+  (:func:`stereodem.sensor.simulation.simulate.simulate_scene`) are sampled on an 11-column lattice
+  (columns ``0, w/10, ..., w``; rows every ``row_step`` lines from a negative first row, past the
+  last line): per lattice row the ECEF satellite position, ``SatelliteVelocity`` (inertial in ECEF
+  axes by default, or Earth-fixed), ``ObservationTime`` (days since 1958-01-01, ms of day split as
+  MicMac reads it, us); per lattice point the sight vector in the orbital frame (z = -r, y = -(r x
+  v_in), x = y x z) and the geocentric latitude / longitude of its ellipsoid intersection;
 * the scene's image is taken as radiance ``L`` and turned into L1A DN with a per-detector
   ``RadiometricCorrTable`` (D, A, G) that has a smooth across-track trend and a few outlying
   detectors (visible stripes): ``DN = clip(round((L - D) G / A), 1, 255)``, 0 kept for fill;

@@ -11,8 +11,8 @@ A scene is built on a UTM grid around the DEM's centre:
   image is the point sample of this band-limited field; an unblurred field would hold
   content above the image Nyquist frequency that no interpolation of the image can recover;
 * the two images: every pixel is localised on the DEM through its sensor model (DRM relief
-  iteration, :mod:`stereodem.sensor.simulation.render`) and reads the radiance there; then sensor noise
-  (Gaussian, ``noise`` DN) and 8- or 16-bit quantisation;
+  iteration, :mod:`stereodem.sensor.simulation.render`) and reads the radiance there; then sensor
+  noise (Gaussian, ``noise`` DN) and 8- or 16-bit quantisation;
 * ``truth_ortho``: the same band-limited radiance field at the ``truth_dem`` cell centres, in
   the same DN scale without noise or quantisation (the left image's true orthoimage). An
   exact orthorectification differs from it by the interpolator's error on the band-limited
@@ -152,8 +152,8 @@ def frame_pair(lon0, lat0, h0, size, gsd=27.6, altitude=686e3, base_to_height=0.
 def aster_geometry_parameters() -> dict:
     """Pointing, IFOV, orbit height and line period of the bundled real ASTER 3N/3B granule.
 
-    Read from the real product geometry (:func:`stereodem.sensor.io.aster_xml.bundled_xml`): the centre
-    detector's sight vector in the orbital frame gives the along-track angle of each band
+    Read from the real product geometry (:func:`stereodem.sensor.io.aster_xml.bundled_xml`): the
+    centre detector's sight vector in the orbital frame gives the along-track angle of each band
     (3N about +0.03 deg, 3B about -27.7 deg) and their common cross-track pointing (about
     8.6 deg to the right of the track); the angle between the first and last detectors gives
     the IFOV; the satellite positions give the orbit height. The line period 2.1989 ms is the
@@ -199,9 +199,9 @@ def pushbroom_pair(
 ):
     """A pushbroom pair on one orbit with along-track tilts ``angles`` (degrees).
 
-    ``cross_track_tilt_deg`` follows :class:`stereodem.sensor.models.pushbroom.PushbroomModel` (positive looks
-    left of the flight direction). ``right_size`` (width, height) gives the second image its
-    own size (ASTER 3B: about 5000 x 4600 against 3N's 4100 x 4200); default ``size``.
+    ``cross_track_tilt_deg`` follows :class:`stereodem.sensor.models.pushbroom.PushbroomModel`
+    (positive looks left of the flight direction). ``right_size`` (width, height) gives the second
+    image its own size (ASTER 3B: about 5000 x 4600 against 3N's 4100 x 4200); default ``size``.
     """
     try:
         from stereodem.sensor.models.pushbroom import PushbroomModel

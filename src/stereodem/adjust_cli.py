@@ -15,13 +15,17 @@ log = logging.getLogger(__name__)
 EXAMPLES = """examples:
   stereodem adjust img.tif --gcps points.csv --model rpc-shift -o img_adj.model.json --report adj/
   stereodem adjust img.tif --gcps points.csv --model rpc-affine --sigma-px 0.5 -o out.model.json
-  stereodem adjust aster_3n.tif --gcps pts.csv --vertical geoid --model attitude-bias -o 3n.model.json
+  stereodem adjust aster_3n.tif --gcps pts.csv --vertical geoid --model attitude-bias \\
+      -o 3n.model.json
   stereodem adjust img.tif --gcps points.csv --model rational-1 -o fitted.model.json --report rep/
-  stereodem adjust left.tif right.tif --model bundle --set rpc-shift --gcps left.csv --gcps2 right.csv \\
-      -o left.model.json --out2 right.model.json --report ba/
-  stereodem adjust left.tif right.tif --model bundle --ties ties.csv -o l.model.json --out2 r.model.json
-  stereodem adjust img_01.tif img_02.tif img_03.tif --model bundle --image-gcps 3=pts3.csv -o adjusted/
-  stereodem adjust 3N.tif 3B.tif --model bundle --match run-3N__3B.match -o 3n.model.json --out2 3b.model.json
+  stereodem adjust left.tif right.tif --model bundle --set rpc-shift --gcps left.csv \\
+      --gcps2 right.csv -o left.model.json --out2 right.model.json --report ba/
+  stereodem adjust left.tif right.tif --model bundle --ties ties.csv -o l.model.json \\
+      --out2 r.model.json
+  stereodem adjust img_01.tif img_02.tif img_03.tif --model bundle --image-gcps 3=pts3.csv \\
+      -o adjusted/
+  stereodem adjust 3N.tif 3B.tif --model bundle --match run-3N__3B.match -o 3n.model.json \\
+      --out2 3b.model.json
 
 GCP CSV: id,lon,lat,h,col,row[,sigma_px][,sigma_ground_m][,role]  (role gcp or check; lon/lat
 degrees WGS84, h ellipsoidal metres unless --vertical geoid, col/row pixels with the centre of

@@ -7,10 +7,11 @@ images the ASP way, ``<prefix>-<stem1>__<stem2>.match``, and is checked against 
 :func:`stereodem.sensor.io.asp_match.check_match_images`), or automatic SIFT matches checked
 through the models (:func:`stereodem.stereo.sparse.sparse_matches`) for every pair chosen by
 overlap and base (:func:`stereodem.stereo.fusion.choose_pairs`). Pair matches sharing a pixel
-are chained into tracks (:func:`~stereodem.sensor.estimation.adjust.bundle_multi.tracks_from_pairs`).
-GCPs per image (``--gcps`` for the first, ``--gcps2`` for the second, ``--image-gcps K=CSV``
-for any); the datum is held by the GCPs, else by the fixed images (``--fix K``, default the
-first). The adjusted models are written as ``OUT/<stem>.model.json``.
+are chained into tracks
+(:func:`~stereodem.sensor.estimation.adjust.bundle_multi.tracks_from_pairs`). GCPs per image
+(``--gcps`` for the first, ``--gcps2`` for the second, ``--image-gcps K=CSV`` for any); the datum is
+held by the GCPs, else by the fixed images (``--fix K``, default the first). The adjusted models are
+written as ``OUT/<stem>.model.json``.
 """
 
 from __future__ import annotations
@@ -216,8 +217,9 @@ def run_bundle_images(args) -> str:
     return (
         f"bundle ({args.param_set}) of {len(paths)} images: {tracks.n_points} tie points "
         f"({len(tracks)} observations, {int(res.tie_rejected.sum())} rejected), tie RMSE "
-        f"{res.tie_rmse_px:.3f} px, fixed: {', '.join(str(k + 1) for k in res.fixed) or 'none (GCPs)'}; "
-        f"ray gap RMS (m) {gaps}; models in {out}"
+        f"{res.tie_rmse_px:.3f} px, fixed: "
+        f"{', '.join(str(k + 1) for k in res.fixed) or 'none (GCPs)'}; ray gap RMS (m) {gaps}; "
+        f"models in {out}"
     )
 
 

@@ -686,7 +686,8 @@ def validate(cfg: Config, source="configuration"):
         bad("[uncertainty] maps are on the orthoimage's grid: enable [ortho]")
     if u.enabled and not (u.sigma or u.covariance):
         bad(
-            "[uncertainty] enabled needs sigma = {name = value, ...} or covariance = adjust_report.json"
+            "[uncertainty] enabled needs sigma = {name = value, ...} or covariance = "
+            "adjust_report.json"
         )
     if u.samples < 10:
         bad(f"[uncertainty] samples must be at least 10, got {u.samples}")
@@ -696,7 +697,8 @@ def validate(cfg: Config, source="configuration"):
         bad("[dem] point_cloud is not written with [jitter] enabled (not supported yet)")
     if cfg.dem.point_cloud and cfg.inputs.images:
         bad(
-            "[dem] point_cloud is not written for an N-view DEM ([inputs] images; not supported yet)"
+            "[dem] point_cloud is not written for an N-view DEM ([inputs] images; not supported "
+            "yet)"
         )
     for msg in cfg.fusion.problems():
         bad(f"[fusion] {msg}")

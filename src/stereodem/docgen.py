@@ -181,7 +181,8 @@ def configuration_markdown(sections=None) -> str:
         "",
         "| key | type | default | description |",
         "|---|---|---|---|",
-        "| `dir` | str | *required* | Output folder of the run (relative to the configuration file). |",
+        "| `dir` | str | *required* | Output folder of the run (relative to the configuration "
+        "file). |",
         "",
     ]
     return "\n".join(parts).rstrip() + "\n"

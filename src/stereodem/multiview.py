@@ -225,8 +225,9 @@ def _bounds_grid(bounds, res, crs):
 def run_dem(cfg: Config, *, started=None, progress=None) -> tuple:
     """``stereodem dem IMG1 IMG2 IMG3 ...``: the N-view DEM written into ``cfg.output_dir``
     (``dem.tif``, ``count.tif``, ``nmad.tif``, ``dem_sigma_vertical.tif``, ``score.tif``,
-    ``raygap.tif``, ``dem_report.json``), the folder locked for the job. Returns ``(products, folder)``;
-    a suspect pair result fails afterwards unless ``--force`` (as a pair job)."""
+    ``raygap.tif``, ``dem_report.json``), the folder locked for the job. Returns
+    ``(products, folder)``; a suspect pair result fails afterwards unless ``--force`` (as a pair
+    job)."""
     import json
 
     from stereodem.core.raster import write_text_atomic

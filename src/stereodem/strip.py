@@ -3,8 +3,8 @@
 Consecutive L1A granules of one pass are joined into one stereo pair, 3N strip + 3B strip,
 each with one model spanning the strip (:func:`stereodem.sensor.io.aster_strip.open_aster_strip`:
 the checks that they are one pass, the line offsets from the orbit, the overlap); the pair
-stage then runs unchanged (:func:`stereodem.pipeline.stages.stereo_stage`: sparse stage, one relative
-pointing for the strip, tiles), so the strip has one DEM and no seam to blend.
+stage then runs unchanged (:func:`stereodem.pipeline.stages.stereo_stage`: sparse stage, one
+relative pointing for the strip, tiles), so the strip has one DEM and no seam to blend.
 ``dem_report.json`` holds the pair route's report plus ``strip`` (granules, line offsets,
 per-seam checks, the method).
 """

@@ -139,7 +139,8 @@ def test_track_heading_of_a_pushbroom_model_and_tag_round_trip(tmp_path):
     )
     hdg = track_heading(left, (400, 400))
     # the ground track turns from the orbit's 195° by the Earth's rotation under it:
-    # ω_E·R·cos(39°)/v_ground ≈ 7.29e-5 · 6.371e6 · 0.777 / 6.8e3 rad ≈ 3.0° (descending: to the west)
+    # ω_E·R·cos(39°)/v_ground ≈ 7.29e-5 · 6.371e6 · 0.777 / 6.8e3 rad ≈ 3.0° (descending: to the
+    # west)
     assert hdg == pytest.approx(198.0, abs=1.0)
     full = DEM.bundled()
     d = DEM(full.heights[:50, :50].copy(), full.transform, full.crs, "geoid")

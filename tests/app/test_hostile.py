@@ -100,7 +100,7 @@ def _read(path):
         return ds.read(1), ds.transform
 
 
-# ----------------------------------------------------------------------------- fast: checked before work
+# ------------------------------------------------------------------------ fast: checked before work
 
 
 def _dem(sim, out, *extra):
@@ -344,7 +344,7 @@ def test_a_one_line_error_for_every_cli_failure(capsys, tmp_path):
     assert_clear_error(code, err, "ortho", r"bad.tif")
 
 
-# ----------------------------------------------------------------------------- the output-folder lock
+# --------------------------------------------------------------------------- the output-folder lock
 
 
 def test_lock_is_exclusive_between_processes_and_released(tmp_path):
@@ -721,8 +721,8 @@ def test_two_concurrent_runs_into_one_folder_exactly_one_proceeds(sim, tmp_path)
             tmp_path / "out",
             name=f"job{k}.toml",
             rect="tile_size = 300\nheight_range = [1000, 3500]",
-            extra=f'[matching]\nmatcher = "{m}"\n[ortho]\nenabled = false\n[assess]\nenabled = false'
-            "\n[run]\nworkers = 1",
+            extra=f'[matching]\nmatcher = "{m}"\n[ortho]\nenabled = false\n[assess]\nenabled = '
+            "false\n[run]\nworkers = 1",
             inputs="",
         )
         for k, m in enumerate(("sgm", "ncc"))

@@ -613,7 +613,8 @@ def test_cli_gcp_model(tmp_path, data_dir, capsys):
     c, r = rng.uniform(10, 1010, 40), rng.uniform(10, 1010, 40)
     loc = model.localize_dem(c, r, dem, threshold=0.001, h0=2300.0)
     rows = ["id,lon,lat,h,col,row,role"] + [
-        f"p{i},{loc.lon[i]:.9f},{loc.lat[i]:.9f},{loc.h[i]:.3f},{c[i]:.3f},{r[i]:.3f},{'gcp' if i < 30 else 'check'}"
+        f"p{i},{loc.lon[i]:.9f},{loc.lat[i]:.9f},{loc.h[i]:.3f},{c[i]:.3f},{r[i]:.3f},"
+        f"{'gcp' if i < 30 else 'check'}"
         for i in range(40)
     ]
     csv = tmp_path / "gcps.csv"

@@ -158,7 +158,7 @@ def test_frame_attitude_jacobian_against_relocalisation(frame):
     assert np.abs(gj.J[:, :, 0]).max() > 1e5  # ≈ 700 km lever per radian
 
 
-# --------------------------------------------------------------------------- first order vs Monte Carlo
+# ----------------------------------------------------------------------- first order vs Monte Carlo
 
 
 @pytest.mark.slow

@@ -497,7 +497,8 @@ def test_dask_gives_the_serial_mosaic(tmp_path):
 
 
 def _traced_peak(tmp_path, n_side, method):
-    """Python-heap peak (numpy arrays included) of a mosaic of n_side x n_side DEMs of 120² cells."""
+    """Python-heap peak (numpy arrays included) of a mosaic of n_side x n_side DEMs of 120²
+    cells."""
     paths = [
         write_dem(
             tmp_path / f"{method}{n_side}_{i}_{j}.tif",

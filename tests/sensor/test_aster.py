@@ -26,8 +26,8 @@ def models(xml_path):
 def _rpc00b(rpc, lon, lat, h):
     """Evaluate an RPC00B block (dict of RPB keys) at ground points: (col, row).
 
-    Private helper so that this test does not depend on stereodem.sensor.models.rpc. Term order of RPC00B /
-    NITF: 1 L P H LP LH PH L^2 P^2 H^2 PLH L^3 LP^2 LH^2 L^2P P^3 PH^2 L^2H P^2H H^3.
+    Private helper so that this test does not depend on stereodem.sensor.models.rpc. Term order of
+    RPC00B / NITF: 1 L P H LP LH PH L^2 P^2 H^2 PLH L^3 LP^2 LH^2 L^2P P^3 PH^2 L^2H P^2H H^3.
     """
     L = (lon - rpc["LONGOFFSET"]) / rpc["LONGSCALE"]
     P = (lat - rpc["LATOFFSET"]) / rpc["LATSCALE"]

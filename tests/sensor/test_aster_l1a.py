@@ -424,7 +424,7 @@ def test_cli_simulate_granule_and_info(tmp_path, capsys):
     )
 
 
-# ------------------------------------------------------------------------------ DEM through a granule
+# ---------------------------------------------------------------------------- DEM through a granule
 
 
 @pytest.mark.slow

@@ -1,9 +1,10 @@
 """Orun & Natarajan and the Toutin-type model against the rigorous pushbroom model on the
 simulated ASTER 3N and 3B views (ephemeris and attitude with biases and drifts, 0.3 px image
 noise), through the adjustment engine with the models' registered sets (weighted second-order
-terms for Orun & Natarajan, levelling angles for Toutin), over several random GCP/ICP splits — the issue's criterion: ICP
-RMSE within 20 % of the rigorous model's with 10 GCPs (median over the splits) — and what
-happens with fewer GCPs (``benchmarks/bench_orbital_splits.py`` gives the full table)."""
+terms for Orun & Natarajan, levelling angles for Toutin), over several random GCP/ICP splits — the
+issue's criterion: ICP RMSE within 20 % of the rigorous model's with 10 GCPs (median over the
+splits) — and what happens with fewer GCPs (``benchmarks/bench_orbital_splits.py`` gives the full
+table)."""
 
 import numpy as np
 import pytest

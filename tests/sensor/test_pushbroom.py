@@ -277,7 +277,7 @@ def test_localize_dem_drm(nadir):
     assert np.max(np.hypot(cc - c, rr - r)) < 1e-3
 
 
-# ---------------------------------------------------------------------------- frame chain, parameters
+# -------------------------------------------------------------------------- frame chain, parameters
 
 
 def test_attitude_tilt_and_bias_compose_consistently(nadir):

@@ -276,7 +276,8 @@ def test_cli_simulate_roll_jitter(tmp_path):
 
 
 def _nmad_vs_truth(heights, transform, crs, truth_dem):
-    """NMAD (m) of DEM ``heights`` (on ``transform``/``crs``) against the truth, over valid cells."""
+    """NMAD (m) of DEM ``heights`` (on ``transform``/``crs``) against the truth, over valid
+    cells."""
     z = np.asarray(heights, float)
     rr, cc = np.nonzero(np.isfinite(z))
     x, y = transform @ (cc + 0.5, rr + 0.5)
@@ -358,9 +359,9 @@ def test_roll_jitter_from_vertical_parallax_without_reference_dem():
     print(
         f"roll jitter: injected {1e6 * a_true:.1f} urad at {f} Hz, fitted "
         f"{1e6 * fit.amplitudes[0]:.2f} urad at {fit.frequencies[0]:.3f} Hz, left in the model "
-        f"{1e6 * left_over:.2f} urad; vertical-parallax roll at {f} Hz {1e6 * measured['nominal']:.2f} "
-        f"-> {1e6 * measured['corrected']:.2f} urad; DEM NMAD {nmad0:.2f} -> {nmad1:.2f} m, "
-        f"median score {score0:.3f} -> {score1:.3f}"
+        f"{1e6 * left_over:.2f} urad; vertical-parallax roll at {f} Hz "
+        f"{1e6 * measured['nominal']:.2f} -> {1e6 * measured['corrected']:.2f} urad; DEM NMAD "
+        f"{nmad0:.2f} -> {nmad1:.2f} m, median score {score0:.3f} -> {score1:.3f}"
     )
     assert measured["nominal"] > 0.8 * a_true  # the oscillation is seen
     assert fit.amplitudes[0] == pytest.approx(a_true, rel=0.05)

@@ -472,7 +472,9 @@ class BundleResult(ParameterEstimate):
             "converged": bool(self.converged),
             "status": self.status,
             "max_correction": _num(self.max_correction),
-            "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
+            "convergence_criterion": (
+                f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)"
+            ),
             "regularization": None,
             "redundancy_sum": _num(
                 np.nansum(self.tie_redundancy)

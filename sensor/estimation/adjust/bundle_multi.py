@@ -358,7 +358,9 @@ class MultiBundleResult(ParameterEstimate):
             "test": self.test,
             "iterations": int(self.iterations),
             "converged": bool(self.converged),
-            "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
+            "convergence_criterion": (
+                f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)"
+            ),
             "regularization": None,
         }
 

@@ -236,7 +236,8 @@ _register_defaults()
 
 
 def _register_orbital():
-    # orbital models of Topan (2009) / Ok (2005): eop-poly2, eop-<Table 4.2 set>, orun, toutin, kratky
+    # orbital models of Topan (2009) / Ok (2005): eop-poly2, eop-<Table 4.2 set>, orun, toutin,
+    # kratky
     from stereodem.sensor.models.orbital import register_sets
 
     register_sets(register_model_set)

@@ -85,9 +85,11 @@ def dimap_v1(m, loc):
         '<Metadata_Identification><METADATA_PROFILE version="1.4">PHR_SENSOR</METADATA_PROFILE>'
         "<METADATA_FORMAT>DIMAP_PHR</METADATA_FORMAT></Metadata_Identification>\n"
         "<Geoposition><Rational_Sensor_Model><Global_RFM>\n"
-        f"<Direct_Model><F_LON>{j(loc[0], loc[1])}</F_LON>\n<F_LAT>{j(loc[2], loc[3])}</F_LAT></Direct_Model>\n"
+        f"<Direct_Model><F_LON>{j(loc[0], loc[1])}</F_LON>\n"
+        f"<F_LAT>{j(loc[2], loc[3])}</F_LAT></Direct_Model>\n"
         f"<Inverse_Model><F_COL>{j(c['SAMP_NUM_COEFF'], c['SAMP_DEN_COEFF'])}</F_COL>\n"
-        f"<F_ROW>{j(c['LINE_NUM_COEFF'], c['LINE_DEN_COEFF'])}</F_ROW></Inverse_Model>\n<RFM_Validity>\n"
+        f"<F_ROW>{j(c['LINE_NUM_COEFF'], c['LINE_DEN_COEFF'])}</F_ROW></Inverse_Model>\n"
+        "<RFM_Validity>\n"
         "<Direct_Model_Validity_Domain><FIRST_ROW>1</FIRST_ROW><FIRST_COL>1</FIRST_COL>"
         f"<LAST_ROW>{m.height}</LAST_ROW><LAST_COL>{m.width}</LAST_COL></Direct_Model_Validity_Domain>\n"
         + ab("Lon", m.lon_scale, m.lon_off)
@@ -218,7 +220,8 @@ def vrt(m):
     md = "".join(f'    <MDI key="{k}">{v}</MDI>\n' for k, v in m.to_dict().items())
     return (
         '<VRTDataset rasterXSize="8" rasterYSize="8">\n  <Metadata>\n'
-        f'    <MDI key="SOURCE_WIDTH">{m.width}</MDI>\n    <MDI key="SOURCE_HEIGHT">{m.height}</MDI>\n'
+        f'    <MDI key="SOURCE_WIDTH">{m.width}</MDI>\n'
+        f'    <MDI key="SOURCE_HEIGHT">{m.height}</MDI>\n'
         '  </Metadata>\n  <Metadata domain="RPC">\n' + md + "  </Metadata>\n"
         '  <VRTRasterBand dataType="Byte" band="1">\n    <SimpleSource>\n'
         '      <SourceFilename relativeToVRT="1">../pleiades/img_01_rpc.tif</SourceFilename>\n'
