@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -275,8 +276,6 @@ class DEM:
     @classmethod
     def bundled(cls) -> DEM:
         """The bundled real SRTM 3" DEM (eastern Turkey, EGM96 geoid heights)."""
-        from importlib import resources
-
         return cls.from_file(
             resources.files("stereodem.core") / "data" / "srtm_ref.tif", vertical=GEOID
         )

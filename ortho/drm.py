@@ -24,6 +24,7 @@ no height there, or when it falls outside the image footprint.
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -31,9 +32,12 @@ import numpy as np
 from affine import Affine
 
 from stereodem.core import geodesy
-from stereodem.core.dem import DEM, ELLIPSOID
+from stereodem.core.dem import DEM, ELLIPSOID, as_dem
 from stereodem.core.errors import DEMCoverageError, InputError, SensorModelError
 from stereodem.core.grid import MapGrid, OnGrid
+from stereodem.core.raster import write_geotiff
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.models.rpc_direct import check_validity
 
 from .grid import grid_for_model
 
@@ -122,9 +126,6 @@ def _check_rpc_heights(model, dem: DEM):
     """An RPC (possibly image-corrected) evaluated on DEM heights outside its validity range
     extrapolates its polynomials: raise a one-line :class:`RPCError` instead (a DEM in feet,
     or the wrong DEM)."""
-    from stereodem.sensor.models.rpc import RPCModel
-    from stereodem.sensor.models.rpc_direct import check_validity
-
     inner = model
     while not isinstance(inner, RPCModel) and hasattr(inner, "model"):
         inner = inner.model
@@ -649,8 +650,6 @@ class Ortho(OnGrid):
         creation_options : dict or list of "KEY=VALUE", optional
             GDAL COG creation options (:func:`stereodem.core.raster.write_geotiff`).
         """
-        from stereodem.core.raster import write_geotiff
-
         t = {f"STEREODEM_{k.upper()}": v for k, v in self.report().items()}
         t.update(tags or {})
         data, nodata, mask = self.data, self.nodata, None
@@ -756,8 +755,6 @@ def orthorectify(
     -------
     Ortho
     """
-    from stereodem.core.dem import as_dem
-
     if resampling not in RESAMPLING:
         raise InputError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
     dem = as_dem(dem)
@@ -816,8 +813,6 @@ def orthorectify(
 
     starts = range(0, H, block_rows)
     if int(threads) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
         with ThreadPoolExecutor(max_workers=int(threads)) as pool:
             done = list(_progressing(pool.map(run_block, starts), progress, H))
     else:

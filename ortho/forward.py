@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pyproj import CRS
 
 from stereodem.core import geodesy
 from stereodem.core.errors import InputError
@@ -104,8 +105,6 @@ def forward_ortho(image, points: ForwardPoints, grid: MapGrid, *, nodata: float 
     source : ndarray int64 (grid rows, cols)
         Flat index (into ``points``) of the pixel that filled each cell, -1 where empty.
     """
-    from pyproj import CRS
-
     if CRS.from_user_input(points.crs) != grid.crs:
         raise InputError("forward_ortho: the ground points and the grid use different CRSs")
     img = np.asarray(image)

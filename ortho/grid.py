@@ -15,6 +15,7 @@ from pyproj import CRS
 from stereodem.core import geodesy
 from stereodem.core.errors import CRSError, DEMCoverageError
 from stereodem.core.grid import MapGrid, grid_from_bounds
+from stereodem.core.memory import check_allocation
 
 
 def _nice_posting(gsd: float) -> float:
@@ -85,7 +86,6 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
     x, y = np.concatenate(xs), np.concatenate(ys)
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise CRSError(f"the image footprint cannot be expressed in {crs.to_string()}")
-    from stereodem.core.memory import check_allocation
 
     cells = (x.max() - x.min()) / res * ((y.max() - y.min()) / res)
     # the orthoimage (float32) and its per-cell image coordinates (2 x float64)

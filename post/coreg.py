@@ -39,6 +39,7 @@ from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.stats import nmad
 
 from . import warp
+from .altimetry import AltimetryPoints
 
 log = logging.getLogger(__name__)
 
@@ -182,8 +183,6 @@ def make_sampler(
     Raises :class:`InputError` when under ``min_stable_fraction`` of the DEM's valid cells
     (or of the points on the DEM) remain stable, saying how much was left.
     """
-    from .altimetry import AltimetryPoints
-
     if stable is not None:
         stable = np.asarray(stable, bool)
         if stable.shape != dem.shape:

@@ -18,6 +18,7 @@ import numpy as np
 from stereodem.core.raster import prepare_output_dir, write_text_atomic
 
 from . import figures
+from .error_analysis import markdown_lines
 
 log = logging.getLogger(__name__)
 
@@ -132,8 +133,6 @@ def markdown(report: dict, figure_files: dict) -> str:
             "",
         ]
     if report.get("error_analysis"):
-        from .error_analysis import markdown_lines
-
         lines += markdown_lines(report["error_analysis"]) + [""]
     lines += ["## Figures", ""] + [f"![{k}]({v})" for k, v in figure_files.items()] + [""]
     prov = report.get("provenance")
@@ -253,8 +252,6 @@ def html_report(report: dict, figure_paths: dict) -> str:
             _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
         ]
     if report.get("error_analysis"):
-        from .error_analysis import markdown_lines
-
         ea = markdown_lines(report["error_analysis"])
         parts += (
             ["<h2>Error analysis (stable terrain)</h2>", "<ul>"]

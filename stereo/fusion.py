@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 from affine import Affine
+from shapely.geometry import Polygon
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
@@ -195,8 +196,6 @@ class PairPlan:
 
 
 def _footprints(models, height, crs):
-    from shapely.geometry import Polygon
-
     out = []
     for m in models:
         lon, lat = m.footprint(height)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import functools
 import math
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import cv2
@@ -929,8 +930,6 @@ def match_rectified(
 
     overlap = cv2.getNumThreads() > 1 and sgm_mode == "sgbm"
     if overlap:
-        from concurrent.futures import ThreadPoolExecutor
-
         with ThreadPoolExecutor(1, thread_name_prefix="stereodem-sgm") as ex:
             l8, r8 = _to_uint8(left, right, ex)
             pending = ex.submit(before_disparity)

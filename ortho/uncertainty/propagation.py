@@ -25,13 +25,16 @@ input ``k`` is its covariance contribution ``J_k (D Jᵀ)_k / V``, which is Helt
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import sys
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.special import erf as _erf
 
 from stereodem.core import geodesy
 from stereodem.core.errors import InputError
+from stereodem.ortho.drm import bilinear_nan
+from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 
 #: pseudo-parameters understood on top of a model's own parameters (name -> unit)
@@ -81,7 +84,6 @@ def adjustable_model(model):
     correction (RPC and fitted models: ``col_shift``, ``row_shift`` ... in pixels)."""
     if is_adjustable(model):
         return model
-    from stereodem.sensor.models.corrected import ImageCorrectedModel
 
     return ImageCorrectedModel(model)
 
@@ -121,8 +123,6 @@ def advance_frame_camera(model, dt: float):
     Earth-fixed velocity propagated along the orbit (two-body gravity plus the Coriolis and
     centrifugal terms of the rotating frame; second order in ``dt``). Attitude relative to the
     orbital frame is kept, so the look direction turns with the orbit."""
-    from dataclasses import replace
-
     r, v = np.asarray(model.position, float), np.asarray(model.velocity, float)
     w = np.array([0.0, 0.0, geodesy.OMEGA_EARTH])
     a = -geodesy.GM * r / np.linalg.norm(r) ** 3 - 2 * np.cross(w, v) - np.cross(w, np.cross(w, r))
@@ -146,8 +146,6 @@ def perturbed_model(model, values: dict):
 
 def parameter_unit(model, name) -> str | None:
     """Unit of a model parameter from the model's ``PARAMETERS`` table (None if unknown)."""
-    import sys
-
     table = getattr(model, "PARAMETERS", None)
     if not isinstance(table, dict):  # module-level table (pushbroom, ASTER)
         for cls in type(model).__mro__:
@@ -258,8 +256,6 @@ def dem_gradient(dem, lon, lat, crs, *, arrays=None):
 def slope_from_pixels(gc, gr, c, r, P):
     """Map-axis gradient from the DEM-pixel gradient arrays sampled at (c, r) with the pixel
     Jacobian ``P = ∂(c, r)/∂(E, N)``; 0 where the DEM has no value."""
-    from stereodem.ortho.drm import bilinear_nan
-
     a, b = np.nan_to_num(bilinear_nan(gc, c, r)), np.nan_to_num(bilinear_nan(gr, c, r))
     return a * P[..., 0, 0] + b * P[..., 1, 0], a * P[..., 0, 1] + b * P[..., 1, 1]
 

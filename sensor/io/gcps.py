@@ -23,6 +23,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from stereodem.core import geodesy
 from stereodem.core.errors import InputError, where
 from stereodem.core.raster import write_text_atomic
 
@@ -210,8 +211,6 @@ def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
         role = np.full(ids.shape, "gcp")
     h = values["h"]
     if vertical == "geoid":
-        from stereodem.core import geodesy
-
         h = geodesy.geoid_to_ellipsoid(lon, lat, h)
     return ControlPoints(
         ids, lon, lat, h, values["col"], values["row"], role, opt["sigma_px"], opt["sigma_ground_m"]

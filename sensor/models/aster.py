@@ -30,7 +30,7 @@ import numpy as np
 
 from stereodem.core import geodesy
 from stereodem.core.errors import SensorModelError
-from stereodem.sensor.models.ephemeris import Ephemeris
+from stereodem.sensor.models.ephemeris import Attitude, Ephemeris
 from stereodem.sensor.models.pushbroom import DetectorArray, PushbroomModel
 
 #: ASTER VNIR line period, seconds (0.87958 s per 400-line lattice step; notes §4.4).
@@ -275,8 +275,6 @@ class AsterModel(PushbroomModel):
             model._set_parameters(d["parameters"])
         a = d.get("attitude")
         if a is not None:
-            from stereodem.sensor.models.ephemeris import Attitude
-
             model.attitude = Attitude(a["times"], a.get("angles"), quaternions=a.get("quaternions"))
         return model
 

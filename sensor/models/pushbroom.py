@@ -30,6 +30,8 @@ import copy
 import logging
 
 import numpy as np
+from numpy.polynomial import Polynomial
+from scipy.interpolate import CubicSpline
 
 from stereodem.core import geodesy
 from stereodem.core.errors import ConvergenceError, SensorModelError
@@ -92,7 +94,6 @@ class DetectorArray:
             Number of detectors; required when ``psi_y`` is a polynomial (the cross-track
             angle is checked to be monotonic over ``0..width-1``).
         """
-        from numpy.polynomial import Polynomial
 
         def curve(psi, name):
             if isinstance(psi, Polynomial):
@@ -120,7 +121,6 @@ class DetectorArray:
                 raise SensorModelError(
                     f"detector array: {name} has {a.size} values for {x.size} columns"
                 )
-            from scipy.interpolate import CubicSpline
 
             s = CubicSpline(x, np.tan(a))
             ds = s.derivative()
@@ -202,8 +202,6 @@ class DetectorArray:
         The tangents ``x/z`` and ``y/z`` are interpolated with a cubic spline in the column,
         which reproduces the table exactly at its columns; directions are renormalised.
         """
-        from scipy.interpolate import CubicSpline
-
         v = np.asarray(vectors, dtype=np.float64)
         x = np.asarray(cols, dtype=np.float64)
         if v.ndim == 2:
@@ -263,8 +261,6 @@ class DetectorArray:
     @classmethod
     def from_spec(cls, spec: dict) -> DetectorArray:
         """Rebuild a detector array from its :attr:`spec` (e.g. read back from JSON)."""
-        from numpy.polynomial import Polynomial
-
         try:
             kind = spec["kind"]
             if kind == "linear":

@@ -43,6 +43,7 @@ import re
 import warnings
 
 import numpy as np
+from rasterio.rpc import RPC
 
 from stereodem.core.errors import RPCError, where
 from stereodem.sensor.models.base import SensorModel
@@ -655,8 +656,6 @@ class RPCModel(SensorModel):
 
     def to_rasterio(self):
         """The model as a :class:`rasterio.rpc.RPC` (for ``RPCTransformer`` or ``rpcs=``)."""
-        from rasterio.rpc import RPC
-
         return RPC(
             height_off=self.height_off,
             height_scale=self.height_scale,

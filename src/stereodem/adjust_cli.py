@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 
@@ -193,8 +194,6 @@ def run(args) -> int:
 
     check_writable(args.out, args.overwrite)
     if args.report:
-        from pathlib import Path
-
         for name in ("adjust_report.json", "adjust_report.md"):
             check_writable(Path(args.report) / name, args.overwrite)
     reg = args.regularization

@@ -51,8 +51,11 @@ from pathlib import Path
 import tomllib
 
 from stereodem.core.errors import InputError
+from stereodem.core.grid import map_crs
+from stereodem.core.raster import parse_creation_options
 from stereodem.core.vertical import VERTICALS, Vertical
 from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS, Resampling, UncertaintyMethod
+from stereodem.sensor.io.aster_l1a import is_aster_granule
 from stereodem.stereo import settings as stereo_settings
 from stereodem.stereo.fusion import FusionSettings
 from stereodem.stereo.settings import (
@@ -500,8 +503,6 @@ def build_settings(cls, table: dict, section: str, source):
 
 
 def _is_granule(path, base) -> bool:
-    from stereodem.sensor.io.aster_l1a import is_aster_granule
-
     return isinstance(path, str) and is_aster_granule(
         Path(base) / path if not os.path.isabs(path) else path
     )
@@ -638,7 +639,6 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[refinement] window must be an odd number >= 3, got {ref.window}")
     if gs.res is not None and not gs.res > 0:
         bad(f"[gridding] res must be positive, got {gs.res}")
-    from stereodem.core.grid import map_crs
 
     for key, value in (
         ("[gridding] crs", gs.crs),
@@ -708,6 +708,4 @@ def validate(cfg: Config, source="configuration"):
     if run.tile_timeout is not None and not run.tile_timeout > 0:
         bad(f"[run] tile_timeout must be positive, got {run.tile_timeout}")
     if run.creation_options:
-        from stereodem.core.raster import parse_creation_options
-
         run.creation_options = parse_creation_options(run.creation_options)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 
@@ -155,7 +156,6 @@ def run(args) -> int:
     if args.fill_from_seed and not args.seed_dem:
         raise InputError("--fill-from-seed needs --seed-dem")
     cfg = config_from_args(args)
-    from pathlib import Path
 
     from .outlock import check_not_an_input
 

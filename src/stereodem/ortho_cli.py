@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 from stereodem.ortho.choices import RESAMPLINGS
@@ -112,8 +113,6 @@ def _open(args):
     """The image and its model: the image's own (sidecar, RPCs, granule band), a model file, or
     a generic model fitted to ``--gcps``; returns an
     :class:`stereodem.pipeline.inputs.InputImage`."""
-    from pathlib import Path
-
     from stereodem.core.errors import InputError, SensorModelError
     from stereodem.core.raster import image_dtype, read_image
     from stereodem.sensor.models.rpc import RPCModel
@@ -177,8 +176,6 @@ def config_from_args(args):
 
 
 def run(args) -> int:
-    from pathlib import Path
-
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
     from stereodem.core.raster import check_writable, write_geotiff

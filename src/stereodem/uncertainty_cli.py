@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 from stereodem.ortho.choices import UNCERTAINTY_METHODS
@@ -73,8 +74,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from pathlib import Path
-
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
     from stereodem.core.raster import check_writable

@@ -1,11 +1,14 @@
 """ASTER VNIR model from real product geometry (ASP aster2asp XML of the Rainier 2017 granule)."""
 
+import json
+
 import numpy as np
 import pytest
 
 from stereodem.core import geodesy
 from stereodem.core.errors import RPCError, SensorModelError
-from stereodem.sensor.io.aster_xml import read_asp_aster_xml
+from stereodem.sensor.io.aster_xml import bundled_xml, read_asp_aster_xml
+from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
 from stereodem.sensor.models.aster import AsterGeometry, AsterModel, lattice_velocities
 
 BANDS = ("3N", "3B")
@@ -13,8 +16,6 @@ BANDS = ("3N", "3B")
 
 @pytest.fixture(scope="module")
 def xml_path():
-    from stereodem.sensor.io.aster_xml import bundled_xml
-
     return lambda band: bundled_xml(band)
 
 
@@ -261,10 +262,6 @@ def test_nan_coordinates(models):
 
 
 def test_serialisation_round_trip(models):
-    import json
-
-    from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
-
     m = models["3B"].with_parameters(yaw_bias=1e-5)
     d = json.loads(json.dumps(model_to_dict(m)))
     assert d["type"] == "aster"

@@ -9,6 +9,7 @@ table)."""
 import numpy as np
 import pytest
 
+from stereodem.sensor.estimation.adjust import model_set
 from stereodem.sensor.estimation.compare import compare_splits, split_summary
 from stereodem.sensor.models.orbital import OrunNatarajanModel, ToutinModel
 from stereodem.sensor.models.orbital._common import virtual_points
@@ -116,7 +117,6 @@ def test_weighted_parameters_of_the_sets():
     sets, priors = OrunNatarajanModel.ADJUST_SETS, OrunNatarajanModel.PRIORS
     assert all(not any(n.startswith(("omega", "phi")) for n in v) for v in sets.values())
     assert len(sets["orun"]) == 10 and set(priors["orun"]) == {"X_2", "Y_2", "kappa_2"}
-    from stereodem.sensor.estimation.adjust import model_set
 
     assert model_set("orun").priors == priors["orun"]
     assert model_set("toutin-full").priors == ToutinModel.PRIORS["toutin-full"]

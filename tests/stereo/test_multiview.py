@@ -9,16 +9,20 @@ import rasterio
 from affine import Affine
 
 from stereodem.cli import main
+from stereodem.config import Config, InputSettings, RunSettings, config_from_dict, load_config
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
 from stereodem.core.raster import write_geotiff
 from stereodem.core.stats import NMAD_FACTOR, nmad
+from stereodem.multiview import multiview_stage
+from stereodem.pipeline.job import run
 from stereodem.sensor.io.sidecar import save_model
+from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.pushbroom import PushbroomModel
 from stereodem.sensor.simulation.simulate import simulate_views
-from stereodem.stereo.fusion import choose_pairs, fuse_dems, pair_sigma
+from stereodem.stereo.fusion import FusionSettings, choose_pairs, fuse_dems, pair_sigma
 from stereodem.stereo.pipeline import make_dem
 from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
 
@@ -193,9 +197,6 @@ def test_dem_cli_triplet(triplet, tmp_path, capsys):
 def test_run_with_images_list(triplet, tmp_path):
     """``[inputs] images`` in a ``stereodem run`` configuration: the fused DEM goes through the
     filters and the orthoimage stage as a pair's does; raw/ holds the fused layers."""
-    from stereodem.config import load_config
-    from stereodem.pipeline.job import run
-
     for k, (img, model) in enumerate(zip(triplet.images, triplet.models)):
         write_geotiff(tmp_path / f"v{k}.tif", img, tags={"STEREODEM_MODEL": f"v{k}.model.json"})
         save_model(model, tmp_path / f"v{k}.model.json")
@@ -226,8 +227,6 @@ def test_run_with_images_list(triplet, tmp_path):
     )
     assert nmad(err[np.isfinite(err)]) <= nmad(raw[np.isfinite(raw)])  # the filters edit it
     with pytest.raises(InputError, match="images or left/right"):
-        from stereodem.config import config_from_dict
-
         config_from_dict(
             {"inputs": {"images": ["a.tif", "b.tif"], "left": "a.tif"}, "output": {"dir": "o"}}
         )
@@ -238,12 +237,6 @@ def test_models_that_disagree_are_adjusted_first(triplet, tmp_path):
     """Image 1's delivered model is 1.5 px off along track: its pairs' heights are offset
     (opposite signs for 0-1 and 1-2). The bundle adjustment before the pairs removes the
     disagreement (the wide pair 0-2 is the datum) and the fused DEM is better for it."""
-    from stereodem.config import Config, InputSettings, RunSettings
-    from stereodem.multiview import multiview_stage
-    from stereodem.sensor.models.corrected import ImageCorrectedModel
-    from stereodem.stereo.fusion import FusionSettings
-    from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
-
     paths = []
     for k, (img, model) in enumerate(zip(triplet.images, triplet.models)):
         write_geotiff(tmp_path / f"v{k}.tif", img, tags={"STEREODEM_MODEL": f"v{k}.model.json"})

@@ -8,9 +8,13 @@ rational fit on a 12 x 12 x 6 grid of the image and the height range).
 Run from the repository: ``python tests/data/rpc_formats/make_rpc_files.py``.
 """
 
+import json
+import warnings
 from pathlib import Path
 
 import numpy as np
+import rasterio
+from rasterio.errors import NotGeoreferencedWarning
 
 from stereodem.sensor.estimation.rpcfit import fit_rational
 from stereodem.sensor.models.rpc import COEFF_KEYS, RPCModel
@@ -185,8 +189,6 @@ def ikonos_txt(m, loc=None):
 
 
 def rpcm_json(m, loc):
-    import json
-
     c = coeffs(m)
     rpc = dict(
         row_offset=m.line_off,
@@ -240,10 +242,6 @@ def main():
     (HERE / "pleiades_rpcm.json").write_text(rpcm_json(m, loc))
     (HERE / "pleiades_rpc.vrt").write_text(vrt(m))
     # an image whose RPCs come only from a DigitalGlobe _RPC.TXT sidecar (values with units)
-    import warnings
-
-    import rasterio
-    from rasterio.errors import NotGeoreferencedWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
