@@ -339,6 +339,10 @@ def on_grid(array, grid: MapGrid, target: MapGrid, fill=np.nan) -> np.ndarray:
     return out
 
 
+#: band description of a fused DEM's ``count.tif`` (a pair DEM's counts points: core.dem.LAYERS)
+COUNT_DESCRIPTION = "stereo pairs per cell (pair heights fused, after rejection)"
+
+
 @dataclass
 class FusedDEM:
     """A DEM fused from pair DEMs on one lattice (layers in the module docstring).
@@ -367,7 +371,10 @@ class FusedDEM:
         """The writes of :meth:`write`, prepared now (layers copied), run by the returned
         callable (e.g. on a :class:`stereodem.pipeline.job.BackgroundWriter`)."""
         write_dem = self.dem.prepare_write(
-            path, overwrite=overwrite, creation_options=creation_options
+            path,
+            overwrite=overwrite,
+            creation_options=creation_options,
+            layer_descriptions={"count": COUNT_DESCRIPTION},
         )
         spread, transform, crs = self.nmad.astype(np.float32), self.dem.transform, self.dem.crs
         nmad_path = Path(path).with_name("nmad.tif")

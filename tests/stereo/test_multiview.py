@@ -79,6 +79,19 @@ def test_fusion_layers_by_hand():
     assert m.heights[1, 1] == pytest.approx(100.5) and m.heights[0, 1] == pytest.approx(100.6)
 
 
+def test_fused_count_layer_says_stereo_pairs(tmp_path):
+    """The fused ``count.tif`` holds stereo pairs per cell and its band description says so; a
+    pair DEM's ``count.tif`` keeps its points-per-cell description."""
+    f = fuse_dems([_dem(np.full((2, 3), 100.0)), _dem(np.full((2, 3), 101.0))], [1.0, 1.0])
+    paths = f.write(tmp_path / "fused" / "dem.tif")
+    with rasterio.open(paths["count"]) as ds:
+        assert ds.descriptions == ("stereo pairs per cell (pair heights fused, after rejection)",)
+        assert ds.read(1).tolist() == [[2, 2, 2], [2, 2, 2]]
+    pair = _dem(np.full((2, 3), 100.0)).write(tmp_path / "pair" / "dem.tif")
+    with rasterio.open(pair.with_name("count.tif")) as ds:
+        assert ds.descriptions == ("space-intersected points per cell",)
+
+
 def test_fusion_refuses_other_lattices():
     a = _dem(np.full((3, 3), 1.0))
     b = _dem(np.full((3, 3), 1.0), x0=500005.0)  # half a cell off
@@ -154,6 +167,8 @@ def test_dem_cli_triplet(triplet, tmp_path, capsys):
     err = _errors(out / "dem.tif", triplet.truth_dem)
     with rasterio.open(out / "count.tif") as ds:
         count = ds.read(1)
+        # the fused count is of stereo pairs (a pair DEM's count.tif counts points)
+        assert ds.descriptions == ("stereo pairs per cell (pair heights fused, after rejection)",)
     with rasterio.open(out / "nmad.tif") as ds:
         spread = ds.read(1)
     with rasterio.open(out / "dem_sigma_vertical.tif") as ds:
