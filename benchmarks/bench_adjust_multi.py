@@ -135,9 +135,9 @@ def main():
     load = [round(v, 2) for v in os.getloadavg()]
     r = run(a.ties, a.gcps)
     print(
-        f"{r['ties']} ties ({r['observations']} observations), {a.gcps} GCPs/image: {r['seconds']:.2f} s "
-        f"wall, {r['cpu_seconds']:.2f} s CPU, {r['iterations']} iteration(s); max bias error "
-        f"{r['max_abs_error_px']:.3f} px; load {load}"
+        f"{r['ties']} ties ({r['observations']} observations), {a.gcps} GCPs/image: "
+        f"{r['seconds']:.2f} s wall, {r['cpu_seconds']:.2f} s CPU, {r['iterations']} iteration(s); "
+        f"max bias error {r['max_abs_error_px']:.3f} px; load {load}"
     )
     for k in r["ray_gaps_before"]:
         print(

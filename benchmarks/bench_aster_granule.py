@@ -118,8 +118,8 @@ def main(argv=None):
             "peak_rss_gb": round(peak_gb(), 3),
         }
         print(
-            f"{name:28s} {stages[name]['seconds']:8.2f} s wall {stages[name]['cpu_seconds']:8.2f} s CPU"
-            f"   peak RSS {stages[name]['peak_rss_gb']:.2f} GB",
+            f"{name:28s} {stages[name]['seconds']:8.2f} s wall {stages[name]['cpu_seconds']:8.2f} "
+            f"s CPU   peak RSS {stages[name]['peak_rss_gb']:.2f} GB",
             flush=True,
         )
         return res
@@ -224,9 +224,9 @@ def main(argv=None):
                     },
                     {"step": "+ true ortho by row blocks (this run)"},
                 ],
-                "equivalence": "410x400 / 500x520 scene, seed 2, against the code before block rendering: "
-                "images differ by 1 DN in 0.001 % (3N) / 0.03 % (3B) of pixels (rounding), "
-                "truth DEM by <= 0.25 mm, truth ortho by <= 3e-4 DN",
+                "equivalence": "410x400 / 500x520 scene, seed 2, against the code before block "
+                "rendering: images differ by 1 DN in 0.001 % (3N) / 0.03 % (3B) of pixels "
+                "(rounding), truth DEM by <= 0.25 mm, truth ortho by <= 3e-4 DN",
             },
         },
         "note": f"2 cores, load average {os.getloadavg()[0]:.2f} at the end (other jobs raise wall "

@@ -218,8 +218,8 @@ def print_stage_table(run):
     )
     for r in run["stage_table"]:
         print(
-            f"  {r['stage']:8s} {r['wall_s']:7.1f} {r['cpu_s'] or 0:7.1f} {r['worker_cpu_s'] or 0:14.1f} "
-            f"{r['main_peak_rss_mb']:13.0f}"
+            f"  {r['stage']:8s} {r['wall_s']:7.1f} {r['cpu_s'] or 0:7.1f} "
+            f"{r['worker_cpu_s'] or 0:14.1f} {r['main_peak_rss_mb']:13.0f}"
         )
 
 
@@ -351,7 +351,8 @@ def main(argv=None):
         return rerun(out, args.run_workers)
     if t_sim is not None:
         print(
-            f"simulated {args.size} + {args.right_size} in {t_sim:.1f} s, granule written in {t_granule:.1f} s"
+            f"simulated {args.size} + {args.right_size} in {t_sim:.1f} s, granule written in "
+            f"{t_granule:.1f} s"
         )
     dem_runs = []
     for w in (1, 2):
@@ -382,7 +383,8 @@ def main(argv=None):
             print(
                 f"stereodem run workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s, peak "
                 f"{r['peak_rss_mb_all_processes']} MB, NMAD {r['headline']['nmad']:.2f} m, "
-                f"{r['headline']['valid_pct']:.2f} % valid (load average {r['load_average_at_start']})"
+                f"{r['headline']['valid_pct']:.2f} % valid (load average "
+                f"{r['load_average_at_start']})"
             )
             print_stage_table(r)
         same["run"] = identical(out / "w1", out / "w2", RUN_LAYERS)

@@ -141,8 +141,8 @@ def main(argv=None):
         print(name, runs[name], flush=True)
     sum_single = sum(s["wall_s"] for s in singles)
     result = dict(
-        scenes=f"{N_GOOD} simulated ASTER L1A V004 granules, 3N {SIZE[0]} x {SIZE[1]} (3B in the real "
-        "ratio), run with both orthoimages and the assessment; 1 corrupt granule",
+        scenes=f"{N_GOOD} simulated ASTER L1A V004 granules, 3N {SIZE[0]} x {SIZE[1]} (3B in the "
+        "real ratio), run with both orthoimages and the assessment; 1 corrupt granule",
         workers=a.workers,
         cpus=os.cpu_count(),
         load_average_before=[round(x, 2) for x in load0],
@@ -151,7 +151,10 @@ def main(argv=None):
         sum_of_single_runs_cpu_s=round(sum(s["cpu_s"] for s in singles), 2),
         batch=runs,
         speedup_vs_single_runs={k: round(sum_single / v["wall_s"], 2) for k, v in runs.items()},
-        note="wall seconds under the shared machine's load (load averages); every figure from this run",
+        note=(
+            "wall seconds under the shared machine's load (load averages); every figure from this "
+            "run"
+        ),
     )
     DEST.write_text(json.dumps(result, indent=1) + "\n")
     print(

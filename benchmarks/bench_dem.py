@@ -1,11 +1,12 @@
 """Stereo DEM on the real Pleiades pair (s2p test data) against s2p's own DSM.
 
-Runs :func:`stereodem.stereo.pipeline.make_dem` on ``../shared/data/s2p_pleiades/pair/img_0{1,2}.tif``
-(RPCs from the GeoTIFF metadata) onto s2p's output grid (EPSG:32740, 0.5 m), and compares the
-result with ``expected_dsm.tif`` (ellipsoidal heights): median offset, NMAD of the
-difference, fraction of s2p's valid cells covered, wall time, and the sparse stage's share of
-it (SIFT matches, relative pointing and — in the run without a height range — the automatic
-terrain heights; issue #13 asks for at most 10 %). Writes ``benchmarks/results/bench_dem.json``.
+Runs :func:`stereodem.stereo.pipeline.make_dem` on
+``../shared/data/s2p_pleiades/pair/img_0{1,2}.tif`` (RPCs from the GeoTIFF metadata) onto s2p's
+output grid (EPSG:32740, 0.5 m), and compares the result with ``expected_dsm.tif`` (ellipsoidal
+heights): median offset, NMAD of the difference, fraction of s2p's valid cells covered, wall time,
+and the sparse stage's share of it (SIFT matches, relative pointing and — in the run without a
+height range — the automatic terrain heights; issue #13 asks for at most 10 %). Writes
+``benchmarks/results/bench_dem.json``.
 
 The defaults (matcher, tile size, filters) were tuned on that pair, so the same defaults are
 also run, with automatic heights, on the three pairs of the Pleiades triplet over Marseille

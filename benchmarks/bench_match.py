@@ -2,8 +2,8 @@
 
 A 1024 x 1024 rectified pair is made from the bundled Landsat texture (the fully valid
 320 x 320 centre, upsampled x3.2 with bicubic interpolation, plus independent Gaussian noise
-of 1 DN in each image) and a smooth disparity field in about 8..56 px (slopes up to ~0.1 px/px); all matchers search the
-same 64 disparities 0..63.  Throughput is megapixels x disparities per second
+of 1 DN in each image) and a smooth disparity field in about 8..56 px (slopes up to ~0.1 px/px); all
+matchers search the same 64 disparities 0..63.  Throughput is megapixels x disparities per second
 (1024 * 1024 * 64 / 1e6 / seconds); accuracy is the RMS disparity error over the valid
 pixels and the share of valid pixels (and of pixels with error > 1 px, counting invalid as
 errors).
@@ -182,7 +182,8 @@ def main(argv=None):
         print(
             f"sgm overhead, {o['threads']} thread(s): stereodem {o['stereodem_cpu_s']:.3f} s CPU "
             f"/ {o['stereodem_wall_s']:.3f} s wall, bare SGBM {o['bare_cpu_s']:.3f} / "
-            f"{o['bare_wall_s']:.3f} s: ratio {o['ratio_cpu']:.3f} CPU, {o['ratio_wall']:.3f} wall, "
+            f"{o['bare_wall_s']:.3f} s: ratio {o['ratio_cpu']:.3f} CPU, "
+            f"{o['ratio_wall']:.3f} wall, "
             f"{o['ratio_cpu_of_minima']:.3f} CPU of the minima"
         )
     print("sgm parts, 1 thread, % of the bare call:", overhead["parts_1thread"]["percent_of_bare"])

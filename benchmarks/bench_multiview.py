@@ -154,17 +154,17 @@ def main():
         print(f"{'DEM':22} {'B/H':>6} {'time s':>7} {'median m':>9} {'NMAD m':>7} {'cover':>6}")
         for p in res["pairs"]:
             print(
-                f"{p['pair']:22} {p['base_to_height']:6.3f} {p['seconds']:7.1f} {p['median_offset_m']:9.3f} "
-                f"{p['nmad_m']:7.3f} {p['coverage_of_s2p_valid']:6.4f}"
+                f"{p['pair']:22} {p['base_to_height']:6.3f} {p['seconds']:7.1f} "
+                f"{p['median_offset_m']:9.3f} {p['nmad_m']:7.3f} {p['coverage_of_s2p_valid']:6.4f}"
             )
         for m, f in res["fused"].items():
             print(
-                f"{'fused (' + m + ')':22} {'':6} {'':7} {f['median_offset_m']:9.3f} {f['nmad_m']:7.3f} "
-                f"{f['coverage_of_s2p_valid']:6.4f}"
+                f"{'fused (' + m + ')':22} {'':6} {'':7} {f['median_offset_m']:9.3f} "
+                f"{f['nmad_m']:7.3f} {f['coverage_of_s2p_valid']:6.4f}"
             )
         print(
-            f"N-view job {res['seconds_nview_job']:.1f} s (pairs {res['seconds_pairs_sum']:.1f} s), "
-            f"load {res['load_average']}"
+            f"N-view job {res['seconds_nview_job']:.1f} s (pairs {res['seconds_pairs_sum']:.1f} "
+            f"s), load {res['load_average']}"
         )
     res = dict(runs=runs)
     out = HERE / "results" / "bench_multiview.json"

@@ -233,13 +233,15 @@ def main(argv=None):
     print(f"{'method':<32}{'seconds':>9}{'Mcells/s':>10}{'stereodem x (same threads)':>28}")
     for k, v in results.items():
         print(
-            f"{k:<32}{v['seconds']:9.3f}{v['mcells_per_s']:10.2f}{v.get('speedup_of_stereodem_same_threads', 1.0):28.2f}"
+            f"{k:<32}{v['seconds']:9.3f}{v['mcells_per_s']:10.2f}"
+            f"{v.get('speedup_of_stereodem_same_threads', 1.0):28.2f}"
         )
     print("ratios: " + ", ".join(f"{k} {v:.2f}x" for k, v in ratios.items()))
     print(
-        f"stereodem map interpolation error (measured): {results['stereodem_1thread']['interpolation_error_px']:.2e} px; "
-        f"max position difference vs GDAL RPC transformer: {pos:.2e} px; "
-        f"ortho shift vs exact GDAL: {results['gdal_exact_1thread']['ortho_shift_px']}"
+        "stereodem map interpolation error (measured): "
+        f"{results['stereodem_1thread']['interpolation_error_px']:.2e} px; max position difference "
+        f"vs GDAL RPC transformer: {pos:.2e} px; ortho shift vs exact GDAL: "
+        f"{results['gdal_exact_1thread']['ortho_shift_px']}"
     )
     print(f"wrote {args.out}")
 

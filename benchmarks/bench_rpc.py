@@ -122,9 +122,10 @@ def main():
     )
     for label in ("gdal_default", "gdal_1e-6px"):
         g = lz[label]
+        errors = f"{lz['ours_max_err_px']:.1e} / {g['gdal_max_err_px']:.1e}"
         print(
-            f"{'localize vs ' + label:<34}{lz['ours_s']:>12.3f}{g['gdal_s']:>10.3f}{g['speedup']:>9.1f}x"
-            f"{format(lz['ours_max_err_px'], '.1e') + ' / ' + format(g['gdal_max_err_px'], '.1e'):>22}"
+            f"{'localize vs ' + label:<34}{lz['ours_s']:>12.3f}{g['gdal_s']:>10.3f}"
+            f"{g['speedup']:>9.1f}x{errors:>22}"
         )
     print(f"wrote {OUT.relative_to(ROOT)}")
 

@@ -118,8 +118,8 @@ def table(runs) -> str:
     base = {r["workers"]: r for r in runs}
     ref2 = base.get(2) or runs[0]
     lines = [
-        "| workers | `run` wall s | `run` CPU s | CPU / CPU(2 w) | stereo s | post / ortho / assess s "
-        "| peak MB | load before |",
+        "| workers | `run` wall s | `run` CPU s | CPU / CPU(2 w) | stereo s | post / ortho / "
+        "assess s | peak MB | load before |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
@@ -170,8 +170,9 @@ def main(argv=None):
             )
         runs.append(r)
         print(
-            f"workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s ({r['cpu_s_psutil']} by psutil), "
-            f"peak {r['peak_rss_mb_all_processes']} MB, load {r['load_average_before'][0]}",
+            f"workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s ({r['cpu_s_psutil']} by "
+            f"psutil), peak {r['peak_rss_mb_all_processes']} MB, load "
+            f"{r['load_average_before'][0]}",
             flush=True,
         )
     by = {r["workers"]: r for r in runs}

@@ -17,7 +17,8 @@ re-run with Tikhonov regularisation (weight by GCV) and marked ``regularised``.
 
     python benchmarks/bench_topan_sets.py [--rerender]
 
-(``--rerender`` rebuilds the tables from the stored JSON.) Writes benchmarks/results/bench_topan_sets.json, .md and .png.
+(``--rerender`` rebuilds the tables from the stored JSON.) Writes
+benchmarks/results/bench_topan_sets.json, .md and .png.
 """
 
 from __future__ import annotations
@@ -243,8 +244,8 @@ def markdown(rows, ranking):
         "singular or failing at an ICP = not solved), then the median ICP RMSE over them "
         "(px); grouped layouts alongside.",
         "",
-        "| rank | set | H solved | median ICP H | G solved | median ICP G | condition H-20 | status "
-        "| Topan 2009 |",
+        "| rank | set | H solved | median ICP H | G solved | median ICP G | condition H-20 | "
+        "status | Topan 2009 |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for k, d in enumerate(ranking, start=1):

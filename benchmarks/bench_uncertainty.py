@@ -446,7 +446,9 @@ def thesis_footprints():
         "terrain_height_fit_m": float(h1),
         "rms_misfit_m": m1,
         "notes_expectation": "198 m RMS at h = 0 (psi 347.7), 87 m with h ~ 1.38 km",
-        "note": "nominal localisations (the Monte Carlo mean to first order); input sigmas unpublished",
+        "note": (
+            "nominal localisations (the Monte Carlo mean to first order); input sigmas unpublished"
+        ),
     }
 
 
@@ -686,9 +688,9 @@ def main(argv=None):
     for c in b["cells"]:
         s = c["shares"]
         print(
-            f"{c['analysis']:>2} {c['table']:>2} {c['component']} {str(c['pixel']):12s} {c['HU']:8.3f} "
-            f"{c['HU_paper']:8.3f} {c['HU_rel_diff_pct']:+6.2f}  {s['POS']:.4f} {s['ATT']:.4f} {s['DEM']:.4f} "
-            f"{s['dt']:.4f} {s['INT']:.4f}"
+            f"{c['analysis']:>2} {c['table']:>2} {c['component']} {str(c['pixel']):12s} "
+            f"{c['HU']:8.3f} {c['HU_paper']:8.3f} {c['HU_rel_diff_pct']:+6.2f}  {s['POS']:.4f} "
+            f"{s['ATT']:.4f} {s['DEM']:.4f} {s['dt']:.4f} {s['INT']:.4f}"
         )
     print("largest:", json.dumps(b["largest"]))
     print("levers:", json.dumps(b["levers_centre"]))

@@ -2,7 +2,7 @@
 
     python benchmarks/readme_figures.py            # Markdown block on stdout
     python benchmarks/readme_figures.py --results DIR
-    python benchmarks/readme_figures.py --write    # README.md's list and benchmarks/README.md's table
+    python benchmarks/readme_figures.py --write    # README's list, benchmarks/README's table
 
 Each result file has its own summariser (the figures a reader needs, with the command that
 measured them); a file without one is listed by name, and a summariser that no longer finds
@@ -33,9 +33,9 @@ def demo(d):
         f"`stereodem demo` (600 × 600 simulated ASTER-like pair, `benchmarks/bench_demo.py`): "
         f"DEM − truth NMAD {f['nmad_m']:.2f} m, median {f['median_m']:+.2f} m, LE90 "
         f"{f['le90_m']:.2f} m, {f['valid_pct']:.1f} % of the DEM's footprint valid, "
-        f"{c.get('fastest_demo_wall_seconds', f['wall_seconds']):.1f} s end to end; over seeds 1–{len(d['runs']) - 2} the NMAD "
-        f"moves by up to {d['spread_over_seeds']['nmad_m']:.2f} m (LE90 "
-        f"{d['spread_over_seeds']['le90_m']:.2f} m). Writing its rasters as Cloud-Optimised "
+        f"{c.get('fastest_demo_wall_seconds', f['wall_seconds']):.1f} s end to end; over seeds "
+        f"1–{len(d['runs']) - 2} the NMAD moves by up to {d['spread_over_seeds']['nmad_m']:.2f} m "
+        f"(LE90 {d['spread_over_seeds']['le90_m']:.2f} m). Writing its rasters as Cloud-Optimised "
         f"GeoTIFFs (predictor, overviews) costs {c['extra_seconds']:+.2f} s "
         f"({100 * c['extra_fraction_of_demo_wall']:.1f} % of the run) against plain tiled "
         f"GeoTIFFs; files {c['old_bytes'] / 1e6:.2f} → {c['cog_bytes'] / 1e6:.2f} MB."
@@ -87,8 +87,8 @@ def dem(d):
     if "ncc" in r:
         n = r["ncc"]
         out += (
-            f" With `--matcher ncc`: {n['nmad_m']:.3f} m, {100 * n['coverage_of_s2p_valid']:.1f} %, "
-            f"{n['seconds']:.1f} s."
+            f" With `--matcher ncc`: {n['nmad_m']:.3f} m, {100 * n['coverage_of_s2p_valid']:.1f} "
+            f"%, {n['seconds']:.1f} s."
         )
     un = d.get("untuned_pairs") or []
     if un:
@@ -178,12 +178,13 @@ def ortho_pair(d):
     same = all(r["identical_to_first"] for r in d["runs"])
     loads = [r["load_before"] for r in d["runs"]]
     return (
-        f"Both orthoimages of a pair at once vs one after the other (`benchmarks/bench_ortho_pair.py`, "
-        f"{d['grid'][0]} × {d['grid'][1]} cells each, {d['threads']} threads, medians of "
-        f"{len(d['runs']) // 2} alternating runs): serial {m['serial']['wall_s']:.2f} s wall / "
-        f"{m['serial']['cpu_s']:.2f} s CPU, concurrent {m['concurrent']['wall_s']:.2f} s / "
-        f"{m['concurrent']['cpu_s']:.2f} s; outputs {'bit-identical' if same else 'NOT identical'} "
-        f"(load {min(loads):.1f}–{max(loads):.1f} on 2 shared cores: no wall gain measurable here)."
+        "Both orthoimages of a pair at once vs one after the other "
+        f"(`benchmarks/bench_ortho_pair.py`, {d['grid'][0]} × {d['grid'][1]} cells each, "
+        f"{d['threads']} threads, medians of {len(d['runs']) // 2} alternating runs): serial "
+        f"{m['serial']['wall_s']:.2f} s wall / {m['serial']['cpu_s']:.2f} s CPU, concurrent "
+        f"{m['concurrent']['wall_s']:.2f} s / {m['concurrent']['cpu_s']:.2f} s; outputs "
+        f"{'bit-identical' if same else 'NOT identical'} (load {min(loads):.1f}–{max(loads):.1f} "
+        "on 2 shared cores: no wall gain measurable here)."
     )
 
 
@@ -270,9 +271,9 @@ def adjust(d):
         f"Bundle adjustment of the real Pleiades RPC pair (`benchmarks/bench_adjust.py`), "
         f"{s['ties']:,} ties + {s['gcps']} GCPs ({s['unknowns']:,} unknowns, "
         f"{s['observations']:,} observations), every solver on 1 BLAS thread and stopped at the "
-        f"same criterion (max |dz|/σ < 0.01): Schur-reduced normal equations **{s['seconds']:.2f} s** "
-        f"wall, {s['cpu_seconds']:.2f} s CPU ({s['iterations']} iterations, σ0 {s['sigma0']:.3f}, tie "
-        f"RMSE {s['tie_rmse_px']:.3f} px; target {d['target']})"
+        f"same criterion (max |dz|/σ < 0.01): Schur-reduced normal equations **{s['seconds']:.2f} "
+        f"s** wall, {s['cpu_seconds']:.2f} s CPU ({s['iterations']} iterations, σ0 "
+        f"{s['sigma0']:.3f}, tie RMSE {s['tie_rmse_px']:.3f} px; target {d['target']})"
     )
     if "least_squares" in full:
         q = full["least_squares"]
@@ -290,8 +291,8 @@ def adjust(d):
             + " / ".join(f"{r['ties']}" for r in steps)
             + " ties vs "
             + " / ".join(f"{1e3 * r['schur_cpu_seconds_per_iteration']:.1f}" for r in steps)
-            + f" ms for the Schur step (full size would need a {d['dense_memory_at_full_size_gb']:.0f} GB "
-            "normal matrix: not run, not extrapolated)"
+            + " ms for the Schur step (full size would need a "
+            f"{d['dense_memory_at_full_size_gb']:.0f} GB normal matrix: not run, not extrapolated)"
         )
     return out + (
         f"; load average {load['load_average_at_start'][0]:.1f} → "
@@ -314,8 +315,8 @@ def aster_granule(d):
         f"{st['simulate_scene']['seconds']:.0f} s (render error {e['left_render_error_px']:.4f} / "
         f"{e['right_render_error_px']:.4f} px left / right), written as V004 HDF-EOS2 "
         f"({d['file_mb']['v004']:.1f} MB) in {st['write_v004']['seconds']:.2f} s and as a V003 zip "
-        f"({d['file_mb']['v003_zip']:.1f} MB) in {st['write_v003_zip']['seconds']:.2f} s, read back "
-        f"(models + images) in {st['open_v004_and_read_images']['seconds']:.2f} / "
+        f"({d['file_mb']['v003_zip']:.1f} MB) in {st['write_v003_zip']['seconds']:.2f} s, read "
+        f"back (models + images) in {st['open_v004_and_read_images']['seconds']:.2f} / "
         f"{st['open_v003_and_read_images']['seconds']:.2f} s; {d['total_seconds']:.0f} s in all, "
         f"peak {d['peak_rss_gb']:.1f} GB"
     )
@@ -324,14 +325,16 @@ def aster_granule(d):
         out += (
             f"; `stereodem simulate --preset aster --format l1a-v004` end to end "
             f"{c['wall_s']:g} s wall / {c['cpu_s']:g} s CPU, peak {c['peak_rss_gb']:.2f} GB "
-            f"(load average {c['load_average_before_after'][0]:g}-{c['load_average_before_after'][1]:g}; "
-            f"targets <= 40 s, <= 3 GB)"
+            "(load average "
+            f"{c['load_average_before_after'][0]:g}-{c['load_average_before_after'][1]:g}; targets "
+            "<= 40 s, <= 3 GB)"
         )
     if q:
         out += (
             f" (an earlier session's measurement, not re-run by this script: quarter-area "
             f"simulation before/after block rendering: {q['before'][0]:g} → "
-            f"{q['after'][0]:g} {q['unit'][0]}, {q['before'][1]:g} → {q['after'][1]:g} {q['unit'][1]})"
+            f"{q['after'][0]:g} {q['unit'][0]}, {q['before'][1]:g} → {q['after'][1]:g} "
+            f"{q['unit'][1]})"
         )
     return out + "."
 
@@ -367,14 +370,17 @@ def uncertainty(d):
         f"{b['max_abs_HU_diff_pct']:.2f} % at worst (analysis {w['analysis']}, "
         f"{w['HU']:.2f} vs {w['HU_paper']:.2f} m) — a calibration, not a prediction; predicted "
         f"from the orbit and camera geometry alone, the levers the tables imply: imaging time "
-        f"{abs(lv['dN_dt_m_per_s']['model']):.0f} N / {abs(lv['dE_dt_m_per_s']['model']):.0f} E m/s vs "
-        f"{lv['dN_dt_m_per_s']['paper_implied']:.0f} / {lv['dE_dt_m_per_s']['paper_implied']:.0f} "
-        f"({lv['dN_dt_m_per_s']['abs_rel_diff_pct']:.1f} % / {lv['dE_dt_m_per_s']['abs_rel_diff_pct']:.1f} %), "
-        f"roll {abs(lv['dE_droll_m_per_arcsec']['model']):.3f} vs "
+        f"{abs(lv['dN_dt_m_per_s']['model']):.0f} N / {abs(lv['dE_dt_m_per_s']['model']):.0f} E "
+        f"m/s vs {lv['dN_dt_m_per_s']['paper_implied']:.0f} / "
+        f"{lv['dE_dt_m_per_s']['paper_implied']:.0f} "
+        f"({lv['dN_dt_m_per_s']['abs_rel_diff_pct']:.1f} % / "
+        f"{lv['dE_dt_m_per_s']['abs_rel_diff_pct']:.1f} %), roll "
+        f"{abs(lv['dE_droll_m_per_arcsec']['model']):.3f} vs "
         f"{lv['dE_droll_m_per_arcsec']['paper_implied']:.3f} m/″ "
-        f"({lv['dE_droll_m_per_arcsec']['abs_rel_diff_pct']:.1f} %), while the DEM lever's direction "
-        f"does not reproduce (∂E/∂h {abs(lv['dE_dh']['model']):.3f}, ∂N/∂h {abs(lv['dN_dh']['model']):.3f} "
-        f"vs {lv['dE_dh']['paper_implied']:.3f}, {lv['dN_dh']['paper_implied']:.3f})"
+        f"({lv['dE_droll_m_per_arcsec']['abs_rel_diff_pct']:.1f} %), while the DEM lever's "
+        f"direction does not reproduce (∂E/∂h {abs(lv['dE_dh']['model']):.3f}, ∂N/∂h "
+        f"{abs(lv['dN_dh']['model']):.3f} vs {lv['dE_dh']['paper_implied']:.3f}, "
+        f"{lv['dN_dh']['paper_implied']:.3f})"
     )
     t = d.get("thesis_footprints")
     if t:
@@ -489,16 +495,17 @@ def mosaic(d):
         f"Mosaic of {d['inputs']['n_dems']} simulated overlapping DEMs cut from the bundled "
         f"SRTM tile ({d['inputs']['res_m']:g} m, {b['cells'] / 1e6:.1f} M cells, biases, tilts, "
         f"noise, voids; `benchmarks/bench_mosaic.py`): `stereodem mosaic` (blend) peaks at "
-        f"**+{m['peak_above_baseline_mb']:.0f} MB** above the interpreter, under its stated bound of "
-        f"{m['bound_mb']:.0f} MB (half the area: +{m['half_area_peak_above_baseline_mb']:.0f} MB); "
-        f"`rasterio.merge` +{m['rasterio_merge_peak_above_baseline_mb']:.0f} MB and a naive "
-        f"full-array blend +{m['naive_blend_peak_above_baseline_mb']:.0f} MB (both hold whole-mosaic "
-        f"arrays). Seams: median |error step| across footprint edges / elsewhere "
+        f"**+{m['peak_above_baseline_mb']:.0f} MB** above the interpreter, under its stated bound "
+        f"of {m['bound_mb']:.0f} MB (half the area: +{m['half_area_peak_above_baseline_mb']:.0f} "
+        f"MB); `rasterio.merge` +{m['rasterio_merge_peak_above_baseline_mb']:.0f} MB and a naive "
+        f"full-array blend +{m['naive_blend_peak_above_baseline_mb']:.0f} MB (both hold "
+        "whole-mosaic arrays). Seams: median |error step| across footprint edges / elsewhere "
         f"**{s['blend']['ratio']:.2f}** (blend) vs {s['first']['ratio']:.2f} (first) and "
-        f"{s['rasterio_merge']['ratio']:.2f} (`rasterio.merge`). {b['cpu_s'] / b['n_dems']:.2f} s CPU "
-        f"({b['seconds_per_dem']:.2f} s wall, of which the COG finish {b['seconds_cog_finish']:.0f} s in all) "
-        f"per DEM; `rasterio.merge` {rm['cpu_s'] / rm['n_dems']:.2f} s "
-        f"CPU, naive blend {nb['cpu_s'] / nb['n_dems']:.2f} s CPU per DEM, both writing plain GeoTIFFs (load average {load:.1f} on "
+        f"{s['rasterio_merge']['ratio']:.2f} (`rasterio.merge`). {b['cpu_s'] / b['n_dems']:.2f} s "
+        f"CPU ({b['seconds_per_dem']:.2f} s wall, of which the COG finish "
+        f"{b['seconds_cog_finish']:.0f} s in all) per DEM; `rasterio.merge` "
+        f"{rm['cpu_s'] / rm['n_dems']:.2f} s CPU, naive blend {nb['cpu_s'] / nb['n_dems']:.2f} s "
+        f"CPU per DEM, both writing plain GeoTIFFs (load average {load:.1f} on "
         f"{d['machine']['cpus']} cores)."
     )
 
@@ -543,19 +550,20 @@ def coreg(d):
     return (
         f"Co-registration of the bundled SRTM tile (UTM, {d['truth']['shape'][0]} × "
         f"{d['truth']['shape'][1]} at 90 m) with an injected 1 px shift, 3 m offset, ramp, 3 m / "
-        f"5.5 km along-track sine, correlated noise (NMAD {c['noise_nmad']:.2f} m) and a −30 m change "
-        f"in an excluded outline (`benchmarks/bench_coreg.py`): stereodem "
+        f"5.5 km along-track sine, correlated noise (NMAD {c['noise_nmad']:.2f} m) and a −30 m "
+        "change in an excluded outline (`benchmarks/bench_coreg.py`): stereodem "
         f"`{d['chains']['stereodem']}` leaves a stable NMAD of **{sd['nmad_after']:.2f} m** "
         f"(xdem {d.get('xdem_version', '')} NuthKaab + Deramp + DirectionalBias: "
         f"{xd['nmad_after']:.2f} m), shift error {sd['shift']['dx_error']:+.2f} / "
         f"{sd['shift']['dy_error']:+.2f} m, change {sd['change_recovered']:+.2f} m, in "
         f"{sd['seconds']:.1f} s (xdem {xd['seconds']:.1f} s, 1 thread, load "
-        f"{d['load_avg_start'][0]:.1f}); with a sub-pixel shift {sub['stereodem']['nmad_after']:.2f} m "
-        f"vs {sub['xdem']['nmad_after']:.2f} m (resampling error included). Variogram range/sill vs "
-        f"scikit-gstat on the same dh: {100 * v['range_rel_diff']:.3f} % / "
-        f"{100 * v['sill_rel_diff']:.4f} %; σ of a {a['radius_m'] / 1e3:.0f} km-radius area mean "
-        f"{a['sigma_from_variogram']:.3f} m vs Monte Carlo {a['sigma_monte_carlo']:.3f} m "
-        f"({100 * a['rel_diff']:.1f} %; σ/√N would say {a['sigma_naive']:.3f} m)."
+        f"{d['load_avg_start'][0]:.1f}); with a sub-pixel shift "
+        f"{sub['stereodem']['nmad_after']:.2f} m vs {sub['xdem']['nmad_after']:.2f} m (resampling "
+        "error included). Variogram range/sill vs scikit-gstat on the same dh: "
+        f"{100 * v['range_rel_diff']:.3f} % / {100 * v['sill_rel_diff']:.4f} %; σ of a "
+        f"{a['radius_m'] / 1e3:.0f} km-radius area mean {a['sigma_from_variogram']:.3f} m vs Monte "
+        f"Carlo {a['sigma_monte_carlo']:.3f} m ({100 * a['rel_diff']:.1f} %; σ/√N would say "
+        f"{a['sigma_naive']:.3f} m)."
     )
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -98,14 +99,24 @@ def edit_mask_path(dem_path) -> Path:
 
 
 def write_layer(
-    dem_path, layer: str, data, transform, crs, *, overwrite=False, creation_options=None
+    dem_path,
+    layer: str,
+    data,
+    transform,
+    crs,
+    *,
+    overwrite=False,
+    creation_options=None,
+    description=None,
 ) -> Path:
     """Write companion ``layer`` of the DEM at ``dem_path`` (stored type, nodata, description
-    and unit of :data:`LAYERS`); the one place a layer file is written."""
+    and unit of :data:`LAYERS`; ``description`` replaces the band description, e.g. a fused
+    DEM's ``count`` counts stereo pairs, not points); the one place a layer file is written."""
     spec = LAYERS[layer]
     kw = {}
-    if spec.description:
-        kw = dict(descriptions=[spec.description], units=[spec.unit])
+    description = description or spec.description
+    if description:
+        kw = dict(descriptions=[description], units=[spec.unit])
     return write_geotiff(
         spec.path(dem_path),
         np.asarray(data).astype(spec.dtype, copy=False),
@@ -275,8 +286,6 @@ class DEM:
     @classmethod
     def bundled(cls) -> DEM:
         """The bundled real SRTM 3" DEM (eastern Turkey, EGM96 geoid heights)."""
-        from importlib import resources
-
         return cls.from_file(
             resources.files("stereodem.core") / "data" / "srtm_ref.tif", vertical=GEOID
         )
@@ -420,11 +429,20 @@ class DEM:
         )()["dem"]
 
     def prepare_write(
-        self, path, *, overwrite=False, creation_options=None, layers=True, tags=None
+        self,
+        path,
+        *,
+        overwrite=False,
+        creation_options=None,
+        layers=True,
+        tags=None,
+        layer_descriptions=None,
     ):
         """:meth:`write` in two steps: the heights and layers are copied to their stored types
         now, and the returned callable writes them (returning ``{"dem": path, layer: path}``);
-        it can run in another thread while this DEM changes or goes away."""
+        it can run in another thread while this DEM changes or goes away.
+        ``layer_descriptions``: band descriptions replacing those of :data:`LAYERS`, by layer."""
+        layer_descriptions = dict(layer_descriptions or {})
         heights = self.heights.astype(np.float32)
         layers = {
             name: np.asarray(getattr(self, name)).astype(spec.dtype)
@@ -450,7 +468,15 @@ class DEM:
                 )
             }
             for name, data in layers.items():
-                out[name] = write_layer(path, name, data, transform, crs, **kw)
+                out[name] = write_layer(
+                    path,
+                    name,
+                    data,
+                    transform,
+                    crs,
+                    description=layer_descriptions.get(name),
+                    **kw,
+                )
             return out
 
         return write_files

@@ -211,9 +211,10 @@ def intersect_height(origin, direction, h, iterations: int = 6):
     -----
     The first guess intersects the ellipsoid with semi-axes ``(a + h, b + h)`` in closed form
     (Bettemir thesis Eq. 4.32-4.36, with the erratum of its root fixed: with
-    ``alpha s^2 + 2 beta s + gamma = 0`` the near root is ``(-beta - sqrt(beta^2 - alpha gamma))/alpha``).
-    That surface is not exactly at height ``h``, so Newton steps along the ray on the true
-    geodetic height follow (the derivative is the ray's component on the local up vector).
+    ``alpha s^2 + 2 beta s + gamma = 0`` the near root is
+    ``(-beta - sqrt(beta^2 - alpha gamma))/alpha``). That surface is not exactly at height ``h``, so
+    Newton steps along the ray on the true geodetic height follow (the derivative is the ray's
+    component on the local up vector).
     """
     o = np.asarray(origin, dtype=np.float64)
     d = np.asarray(direction, dtype=np.float64)

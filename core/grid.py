@@ -88,7 +88,8 @@ class MapGrid:
         return (t.c, t.f + t.e * self.height, t.c + t.a * self.width, t.f)
 
     def xy(self, cols, rows):
-        """Map coordinates of cell centres at (fractional) grid ``cols, rows`` (0 = first centre)."""
+        """Map coordinates of cell centres at (fractional) grid ``cols, rows`` (0 = first
+        centre)."""
         t = self.transform
         return (
             t.c + t.a * (np.asarray(cols, float) + 0.5),

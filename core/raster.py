@@ -22,6 +22,8 @@ from pyproj.crs import CompoundCRS
 
 from stereodem.core.errors import InputError, OutputExistsError
 
+from .memory import check_allocation
+
 
 def check_writable(path, overwrite: bool = False) -> Path:
     """Raise :class:`OutputExistsError` if ``path`` exists and ``overwrite`` is false, is a
@@ -370,13 +372,10 @@ def read_image(path, band: int = 1) -> np.ndarray:
     finite. Raises :class:`InputError` naming the file when it cannot be read or has no such
     band.
     """
-    from stereodem.core.errors import InputError
-
     try:
         with reading_env(), rasterio.open(path) as ds:
             if not 1 <= int(band) <= ds.count:
                 raise InputError(f"{path}: no band {band} (the image has {ds.count})")
-            from .memory import check_allocation  # before reading: the header may lie
 
             check_allocation(
                 ds.width * ds.height * (4 + np.dtype(ds.dtypes[band - 1]).itemsize + 1),
@@ -394,8 +393,6 @@ def read_image(path, band: int = 1) -> np.ndarray:
 
 def image_dtype(path, band: int = 1) -> np.dtype:
     """The stored data type of one band of an image (products keep it, e.g. orthoimages)."""
-    from stereodem.core.errors import InputError
-
     try:
         with rasterio.open(path) as ds:
             return np.dtype(ds.dtypes[int(band) - 1])

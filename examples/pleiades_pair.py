@@ -10,7 +10,8 @@ Equivalent command line:
 
     stereodem dem img_01.tif img_02.tif -o pleiades_out --res 0.5 --crs EPSG:32740 \\
         --height-range 2100 2600
-    stereodem assess pleiades_out/dem.tif --ref expected_dsm.tif --ref-vertical ellipsoid -o pleiades_out/assess
+    stereodem assess pleiades_out/dem.tif --ref expected_dsm.tif --ref-vertical ellipsoid \\
+        -o pleiades_out/assess
 """
 
 from __future__ import annotations

@@ -16,14 +16,15 @@ The per-cell maps are evaluated in float32 (separable lattice interpolation, flo
 bilinear sampling, Horner in height; ~2e-4 px rounding for images of a few thousand pixels) and
 row blocks can run on several threads (``threads``): numpy and OpenCV release the GIL.
 
-Resampling is :func:`cv2.remap` (bilinear, bicubic, Lanczos-4 or nearest) on row blocks; an output cell is
-nodata when the kernel touches an image nodata pixel or leaves the image, when the DEM has no
-height there, or when it falls outside the image footprint.
+Resampling is :func:`cv2.remap` (bilinear, bicubic, Lanczos-4 or nearest) on row blocks; an output
+cell is nodata when the kernel touches an image nodata pixel or leaves the image, when the DEM has
+no height there, or when it falls outside the image footprint.
 """
 
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -31,9 +32,12 @@ import numpy as np
 from affine import Affine
 
 from stereodem.core import geodesy
-from stereodem.core.dem import DEM, ELLIPSOID
+from stereodem.core.dem import DEM, ELLIPSOID, as_dem
 from stereodem.core.errors import DEMCoverageError, InputError, SensorModelError
 from stereodem.core.grid import MapGrid, OnGrid
+from stereodem.core.raster import write_geotiff
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.models.rpc_direct import check_validity
 
 from .grid import grid_for_model
 
@@ -75,8 +79,9 @@ def crop_dem(dem: DEM, grid: MapGrid, *, margin: int = 3, fill: DEM | None = Non
     if c1 - c0 < 2 or r1 - r0 < 2 or not np.isfinite(dem.heights[r0:r1, c0:c1]).any():
         raise DEMCoverageError(
             f"{dem.path or 'DEM'}: the DEM does not cover the orthoimage area lon "
-            f"{np.nanmin(lon):.5f}..{np.nanmax(lon):.5f}, lat {np.nanmin(lat):.5f}..{np.nanmax(lat):.5f} "
-            f"(DEM extent lon/lat {tuple(round(v, 5) for v in dem.bounds_lonlat())})"
+            f"{np.nanmin(lon):.5f}..{np.nanmax(lon):.5f}, lat "
+            f"{np.nanmin(lat):.5f}..{np.nanmax(lat):.5f} (DEM extent lon/lat "
+            f"{tuple(round(v, 5) for v in dem.bounds_lonlat())})"
         )
     sub = DEM(
         dem.heights[r0:r1, c0:c1].copy(),
@@ -121,9 +126,6 @@ def _check_rpc_heights(model, dem: DEM):
     """An RPC (possibly image-corrected) evaluated on DEM heights outside its validity range
     extrapolates its polynomials: raise a one-line :class:`RPCError` instead (a DEM in feet,
     or the wrong DEM)."""
-    from stereodem.sensor.models.rpc import RPCModel
-    from stereodem.sensor.models.rpc_direct import check_validity
-
     inner = model
     while not isinstance(inner, RPCModel) and hasattr(inner, "model"):
         inner = inner.model
@@ -648,8 +650,6 @@ class Ortho(OnGrid):
         creation_options : dict or list of "KEY=VALUE", optional
             GDAL COG creation options (:func:`stereodem.core.raster.write_geotiff`).
         """
-        from stereodem.core.raster import write_geotiff
-
         t = {f"STEREODEM_{k.upper()}": v for k, v in self.report().items()}
         t.update(tags or {})
         data, nodata, mask = self.data, self.nodata, None
@@ -755,8 +755,6 @@ def orthorectify(
     -------
     Ortho
     """
-    from stereodem.core.dem import as_dem
-
     if resampling not in RESAMPLING:
         raise InputError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
     dem = as_dem(dem)
@@ -815,8 +813,6 @@ def orthorectify(
 
     starts = range(0, H, block_rows)
     if int(threads) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
         with ThreadPoolExecutor(max_workers=int(threads)) as pool:
             done = list(_progressing(pool.map(run_block, starts), progress, H))
     else:
@@ -847,7 +843,8 @@ def orthorectify(
     if n_missing:
         msg = (
             f"{dem.path or 'DEM'}: the DEM does not cover the image footprint: {n_missing} cell(s) "
-            f"missing in lon {miss_lo[0]:.5f}..{miss_hi[0]:.5f}, lat {miss_lo[1]:.5f}..{miss_hi[1]:.5f}"
+            f"missing in lon {miss_lo[0]:.5f}..{miss_hi[0]:.5f}, lat "
+            f"{miss_lo[1]:.5f}..{miss_hi[1]:.5f}"
         )
         if strict_dem:
             raise DEMCoverageError(msg)

@@ -1,11 +1,12 @@
 """The forward DRM of Bettemir (2006, §4.1 and §6.5): image -> ground, pixel by pixel.
 
 Each image pixel's line of sight is intersected with the ellipsoid and moved along the ray by
-the relief iteration until it meets the DEM (:meth:`stereodem.sensor.models.base.SensorModel.localize_dem`);
-the irregular ground points are then put on a map grid by nearest neighbour ("round to the
-nearest", thesis §4.1.9). This is the thesis's method, kept for comparison and validation:
-holes appear where the ground is sampled more finely than the image, and the backward
-projection of :mod:`stereodem.ortho.drm` is the production path.
+the relief iteration until it meets the DEM
+(:meth:`stereodem.sensor.models.base.SensorModel.localize_dem`); the irregular ground points are
+then put on a map grid by nearest neighbour ("round to the nearest", thesis §4.1.9). This is the
+thesis's method, kept for comparison and validation: holes appear where the ground is sampled more
+finely than the image, and the backward projection of :mod:`stereodem.ortho.drm` is the production
+path.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pyproj import CRS
 
 from stereodem.core import geodesy
 from stereodem.core.errors import InputError
@@ -103,8 +105,6 @@ def forward_ortho(image, points: ForwardPoints, grid: MapGrid, *, nodata: float 
     source : ndarray int64 (grid rows, cols)
         Flat index (into ``points``) of the pixel that filled each cell, -1 where empty.
     """
-    from pyproj import CRS
-
     if CRS.from_user_input(points.crs) != grid.crs:
         raise InputError("forward_ortho: the ground points and the grid use different CRSs")
     img = np.asarray(image)

@@ -2,9 +2,9 @@
 
 The grid of an orthoimage is chosen from the sensor model and the DEM: the CRS is the UTM zone
 of the image centre unless one is given, the posting is the image's ground sample distance
-(:meth:`stereodem.sensor.models.base.SensorModel.gsd`) unless given, and the bounds enclose the image footprint
-localised at the lowest and highest DEM heights under it, snapped outward to multiples of the
-posting.
+(:meth:`stereodem.sensor.models.base.SensorModel.gsd`) unless given, and the bounds enclose the
+image footprint localised at the lowest and highest DEM heights under it, snapped outward to
+multiples of the posting.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from pyproj import CRS
 from stereodem.core import geodesy
 from stereodem.core.errors import CRSError, DEMCoverageError
 from stereodem.core.grid import MapGrid, grid_from_bounds
+from stereodem.core.memory import check_allocation
 
 
 def _nice_posting(gsd: float) -> float:
@@ -41,8 +42,9 @@ def footprint_height_range(model, dem, *, samples: int = 41):
         if not np.isfinite(z).any():
             raise DEMCoverageError(
                 f"{dem.path or 'DEM'}: no valid height under the image footprint lon "
-                f"{np.nanmin(lon):.5f}..{np.nanmax(lon):.5f}, lat {np.nanmin(lat):.5f}..{np.nanmax(lat):.5f} "
-                f"(DEM extent lon/lat {tuple(round(v, 5) for v in dem.bounds_lonlat())})"
+                f"{np.nanmin(lon):.5f}..{np.nanmax(lon):.5f}, lat "
+                f"{np.nanmin(lat):.5f}..{np.nanmax(lat):.5f} (DEM extent lon/lat "
+                f"{tuple(round(v, 5) for v in dem.bounds_lonlat())})"
             )
         h_lo, h_hi = float(np.nanmin(z)), float(np.nanmax(z))
         lon1, lat1 = model.footprint(h_lo)
@@ -84,7 +86,6 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
     x, y = np.concatenate(xs), np.concatenate(ys)
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise CRSError(f"the image footprint cannot be expressed in {crs.to_string()}")
-    from stereodem.core.memory import check_allocation
 
     cells = (x.max() - x.min()) / res * ((y.max() - y.min()) / res)
     # the orthoimage (float32) and its per-cell image coordinates (2 x float64)

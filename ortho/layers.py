@@ -1,8 +1,8 @@
 """Optional orthoimage layers: local incidence angle and terrain occlusion.
 
 Both need the line of sight at each grid cell. It is computed exactly on the lattice of the
-orthoimage's :class:`stereodem.ortho.drm.BackwardMap` (project the node at the mid height, localise the
-same pixel 100 m higher) and interpolated bilinearly: lines of sight turn slowly across a
+orthoimage's :class:`stereodem.ortho.drm.BackwardMap` (project the node at the mid height, localise
+the same pixel 100 m higher) and interpolated bilinearly: lines of sight turn slowly across a
 scene. Directions are expressed in the map frame (x east, y north, z up, metres), ignoring the
 map scale factor (< 0.1 % in UTM) — angles, not lengths, matter here.
 

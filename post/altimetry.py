@@ -9,11 +9,14 @@ be said (``ellipsoid`` for ICESat-2) unless the file's column is named ``h_ellip
 
 from __future__ import annotations
 
+import csv
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import shapely
 
+from stereodem.core import geodesy
 from stereodem.core.errors import InputError, VerticalReferenceError
 from stereodem.core.vertical import ELLIPSOID, GEOID
 
@@ -62,8 +65,6 @@ class AltimetryPoints:
 
     def to_reference(self, to: str) -> AltimetryPoints:
         """Heights converted to ``to`` (EGM96 geoid or WGS84 ellipsoid)."""
-        from stereodem.core import geodesy
-
         if self.vertical == to:
             return self
         if self.vertical is None:
@@ -110,8 +111,6 @@ def _pick(columns, names, path, what, required=True):
 def _read_csv(path):
     """Columns of a CSV file with a header line (``#`` comment lines skipped): name -> array of
     strings."""
-    import csv
-
     with open(path, newline="", encoding="utf-8") as f:
         rows = [
             r
@@ -176,8 +175,6 @@ def read_points(path, *, vertical: str | None = None) -> AltimetryPoints:
     names = list(cols)
     lon_c = _pick(names, _LON, path, "longitude", required=False)
     if lon_c is None and "geometry" in names:
-        import shapely
-
         geom = shapely.from_wkb(cols["geometry"])
         lon, lat = shapely.get_x(geom), shapely.get_y(geom)
     else:

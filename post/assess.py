@@ -9,8 +9,9 @@ error against slope; optionally before and after co-registration with a chain of
 :mod:`stereodem.post.coreg` (default the chain's :class:`~stereodem.post.biascorr.NuthKaab`).
 
 :func:`assess_dem` works through the reference grid in blocks of :data:`BLOCK_ROWS` rows
-(warp, difference, slope, class statistics per block: :class:`~stereodem.post.blockstats.StreamingStats`),
-so its memory does not grow with the reference's size; the quantile statistics are then within
+(warp, difference, slope, class statistics per block:
+:class:`~stereodem.post.blockstats.StreamingStats`), so its memory does not grow with the
+reference's size; the quantile statistics are then within
 :data:`~stereodem.post.blockstats.QUANTILE_ERROR` of the exact ones (stated in the report) and
 the figures are drawn from the decimated arrays they display anyway.
 """
@@ -19,9 +20,11 @@ from __future__ import annotations
 
 import csv
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 import rasterio
 from affine import Affine
@@ -39,6 +42,7 @@ from stereodem.core.errors import (
 from . import stats as st
 from . import terrain, warp
 from .blockstats import QUANTILE_ERROR, RESOLUTION, StreamingStats
+from .coreg import CoregChain, parse_chain
 
 log = logging.getLogger(__name__)
 
@@ -159,8 +163,6 @@ def dem_footprint(z) -> np.ndarray:
     hull = _hull(_row_ends(fin, 0))
     out = np.zeros(fin.shape, dtype=np.uint8)
     if hull is not None:
-        import cv2
-
         cv2.fillConvexPoly(out, hull, 1)
     return out.astype(bool) | fin
 
@@ -178,8 +180,6 @@ def _row_ends(fin, row0):
 
 def _hull(points):
     """Convex hull (OpenCV int32 vertices) of (col, row) points, or None without points."""
-    import cv2
-
     pts = np.concatenate(points) if isinstance(points, list) else points
     return cv2.convexHull(pts) if len(pts) else None
 
@@ -397,8 +397,6 @@ def blockwise_comparison(
 
     Raises :class:`NoOverlapError` if the footprints or the valid cells do not overlap.
     """
-    import cv2
-
     from . import figures
 
     warp.check_overlap(
@@ -438,8 +436,6 @@ def blockwise_comparison(
             total.merge(b)
 
     if threads > 1 and len(blocks) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
         with ThreadPoolExecutor(max_workers=threads) as ex:
             # at most 2 blocks per thread in flight (memory), merged in block order
             pending = []
@@ -586,8 +582,6 @@ def assess_dem(
         report["checkpoints"] = None
     report["coregistration"] = None
     if coregister:
-        from .coreg import CoregChain, parse_chain
-
         chain = coregistration if coregistration is not None else "nuth_kaab"
         chain = (
             parse_chain(chain)

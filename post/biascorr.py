@@ -20,6 +20,7 @@ import logging
 import numpy as np
 from scipy import optimize
 
+from stereodem.core import geodesy
 from stereodem.core.errors import ConvergenceError, InputError
 from stereodem.core.stats import nmad
 
@@ -288,7 +289,6 @@ def _ellipsoidal(dem, z):
     z = np.asarray(z, np.float64)
     if dem.vertical != "geoid":
         return z
-    from stereodem.core import geodesy
 
     lon, lat = geodesy.crs_to_lonlat(
         *(dem.transform @ (dem.shape[1] / 2.0, dem.shape[0] / 2.0)), dem.crs

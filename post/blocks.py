@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 
+import cv2
 import numpy as np
 
 #: bands smaller than this many rows are not worth a thread
@@ -25,8 +26,6 @@ MIN_ROWS = 128
 
 def default_threads() -> int:
     """The process's thread budget (OpenCV's setting, pinned by the application)."""
-    import cv2
-
     return max(1, int(cv2.getNumThreads()))
 
 

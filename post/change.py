@@ -16,6 +16,10 @@ from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 
 from . import terrain, warp
+from .assess import reconcile_vertical
+from .biascorr import maximum_curvature
+from .spatialstats import heteroscedasticity
+from .stack_build import BuildSettings, exclude_mask, fit_chain
 from .stats import error_stats
 
 
@@ -30,11 +34,6 @@ def dem_change(
     """``dh = B − A`` on A's grid and its σ map; returns a dict with ``dh``, ``sigma`` (arrays,
     m), ``stable`` (bool), ``coregistration`` (the chain's report), ``stats_stable`` (after) and
     ``heteroscedasticity`` (the binned table, without the per-cell array)."""
-    from .assess import reconcile_vertical
-    from .biascorr import maximum_curvature
-    from .spatialstats import heteroscedasticity
-    from .stack_build import BuildSettings, exclude_mask, fit_chain
-
     dem_b, vnote = reconcile_vertical(dem_b, dem_a)
     warp.check_overlap(
         dem_b.bounds_lonlat(),

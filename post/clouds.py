@@ -18,6 +18,7 @@ the fraction each sign flagged.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,8 +86,6 @@ def temporal_deviation(stack, max_deviation: float) -> np.ndarray:
     """Observations of a stack ``(T, ...)`` farther than ``max_deviation`` metres from their
     cell's temporal median (the stack's own blunder test; :mod:`stereodem.post.rates` applies
     it per cell before fitting)."""
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         med = np.nanmedian(stack, axis=0)

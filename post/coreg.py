@@ -39,6 +39,7 @@ from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.stats import nmad
 
 from . import warp
+from .altimetry import AltimetryPoints
 
 log = logging.getLogger(__name__)
 
@@ -182,8 +183,6 @@ def make_sampler(
     Raises :class:`InputError` when under ``min_stable_fraction`` of the DEM's valid cells
     (or of the points on the DEM) remain stable, saying how much was left.
     """
-    from .altimetry import AltimetryPoints
-
     if stable is not None:
         stable = np.asarray(stable, bool)
         if stable.shape != dem.shape:
@@ -251,7 +250,8 @@ def _check_fraction(n_keep, n_valid, what, path, min_fraction):
     if share < min_fraction or n_keep < 20:
         raise InputError(
             f"{path or 'stable mask'}: only {100 * share:.1f} % of the overlapping {what} "
-            f"({n_keep} of {n_valid}) are stable terrain; at least {100 * min_fraction:.0f} % needed"
+            f"({n_keep} of {n_valid}) are stable terrain; at least {100 * min_fraction:.0f} % "
+            "needed"
         )
 
 

@@ -7,6 +7,9 @@ from pathlib import Path
 
 import matplotlib
 
+from .altimetry import AltimetryPoints
+from .coreg import reference_on_grid
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
@@ -17,11 +20,8 @@ from .figures import _save
 
 
 def _dh_on_grid(ref, dem):
-    from .altimetry import AltimetryPoints
-
     if isinstance(ref, AltimetryPoints):
         return None
-    from .coreg import reference_on_grid
 
     return reference_on_grid(ref, dem)
 

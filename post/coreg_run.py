@@ -20,14 +20,20 @@ from pathlib import Path
 
 import numpy as np
 import rasterio
+from pyproj import Geod
+from pyproj.exceptions import ProjError
+from scipy import ndimage
 
+from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError, StereodemError, VerticalReferenceError
+from stereodem.core.raster import write_text_atomic
 
 from . import terrain
 from .altimetry import AltimetryPoints, is_points_file, read_points
-from .coreg import CoregChain, bilinear, parse_chain
+from .coreg import CoregChain, bilinear, parse_chain, reference_on_grid
 from .masks import StableMask
+from .track import TRACK_FRAME_TAG, TrackFrame, track_frame_of
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +64,6 @@ def track_heading(model, shape, h: float = 0.0) -> float:
     """Ground-track heading (degrees clockwise from north, 0–360) of a pushbroom-like image:
     the azimuth on the WGS84 ellipsoid from the image centre to the point 100 rows further
     (rows follow the satellite's motion), both localised at height ``h``."""
-    from pyproj import Geod
-
     rows, cols = shape[:2]
     c, r = (cols - 1) / 2.0, (rows - 1) / 2.0
     lon, lat = model.localize(np.array([c, c]), np.array([r, r + 100.0]), np.array([h, h]))
@@ -73,8 +77,6 @@ def track_tags(model, shape, crs=None, heights=None) -> dict:
     ``STEREODEM_TRACK_FRAME`` (:class:`~stereodem.post.track.TrackFrame`, fitted at the
     median of ``heights``, m). What the model cannot give is left out (a localisation failure
     never fails the DEM)."""
-    from .track import TRACK_FRAME_TAG, TrackFrame
-
     tags = {}
     try:
         tags[TRACK_HEADING_TAG] = f"{track_heading(model, shape):.4f}"
@@ -83,7 +85,6 @@ def track_tags(model, shape, crs=None, heights=None) -> dict:
     if crs is not None:
         h = np.asarray(heights, np.float64) if heights is not None else np.zeros(1)
         h0 = float(np.nanmedian(h)) if np.isfinite(h).any() else 0.0
-        from pyproj.exceptions import ProjError
 
         try:
             tags[TRACK_FRAME_TAG] = TrackFrame.from_model(model, shape, crs, height=h0).to_tag()
@@ -146,7 +147,6 @@ def track_of(path, crs, track_angle: float | None = None):
         return float(track_angle), None
     if path is None:
         return None, None
-    from .track import track_frame_of
 
     frame = track_frame_of(path)
     if frame is not None and not frame.matches(crs):
@@ -179,8 +179,6 @@ def run(
     """Fit and apply the chain; write the products into ``out_dir`` (checked by the caller with
     :func:`stereodem.core.raster.check_output_dir`, created here once the fit succeeded).
     Returns the JSON report (a dict)."""
-    from stereodem.core.raster import write_text_atomic
-
     needs_heading = any(
         s.strip().split(":")[0] in ("along_track", "cross_track") for s in job.chain.split(",")
     )
@@ -230,8 +228,6 @@ def _fit(chain: CoregChain, ref, dem, mask, track, job):
     """Fit ``chain``; with ``outlier_nmad``, cells whose first ``dh`` is beyond that many NMADs
     of the median (clouds, blunders) leave the stable terrain first (DEM references)."""
     if job.outlier_nmad and not isinstance(ref, AltimetryPoints):
-        from .coreg import reference_on_grid
-
         dh = dem.heights.astype(np.float64) - reference_on_grid(ref, dem)
         mask = mask & StableMask(outlier_nmad=job.outlier_nmad).array(
             dem, dh=np.where(mask, dh, np.nan)
@@ -258,14 +254,11 @@ def _mask_summary(chain, mask, dem):
 
 
 def _point_residuals(points: AltimetryPoints, dem: DEM, out: DEM, mask) -> dict:
-    from stereodem.core import geodesy
-
     x, y = geodesy.lonlat_to_crs(points.lon, points.lat, dem.crs)
     c, r = ~dem.transform @ (np.asarray(x), np.asarray(y))
     rows, cols = np.asarray(r) - 0.5, np.asarray(c) - 0.5
     before = bilinear(dem.heights, rows, cols) - points.h
     after = bilinear(out.heights, rows, cols) - points.h
-    from scipy import ndimage
 
     used = ndimage.map_coordinates(mask.astype(np.uint8), [rows, cols], order=0, cval=0).astype(
         bool

@@ -19,6 +19,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import rasterio
 
 from stereodem.core.errors import InputError
 
@@ -44,8 +45,6 @@ def parse_date(text, where: str = "") -> np.datetime64:
 
 def date_from_metadata(path) -> np.datetime64 | None:
     """The date stereodem stored with DEM ``path`` (module docstring), or None."""
-    import rasterio
-
     path = Path(path)
     try:
         with rasterio.open(path) as ds:

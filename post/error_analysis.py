@@ -14,14 +14,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import rasterio
 
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
+from stereodem.core.raster import read_image
 from stereodem.core.stats import nmad
 
 from . import spatialstats as ss
+from . import warp
 from .biascorr import maximum_curvature
-from .coreg import reference_on_grid
+from .coreg import parse_chain, reference_on_grid
+from .coreg_run import track_of
 from .masks import StableMask, rasterize, read_polygons
 from .terrain import slope_deg
 
@@ -44,9 +48,6 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     stable = StableMask(exclude=list(job.exclude)).array(dem)
     chain_rep = None
     if job.chain:
-        from .coreg import parse_chain
-        from .coreg_run import track_of  # --track-angle, else the DEM's own track
-
         heading, frame = track_of(dem.path, dem.crs, job.track_angle)
         ch = parse_chain(job.chain).fit(
             ref, dem, stable=stable, track_angle_deg=heading, track_frame=frame
@@ -102,12 +103,6 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
 
 
 def _sigma_map(path, dem: DEM):
-    import rasterio
-
-    from stereodem.core.raster import read_image
-
-    from . import warp
-
     a = read_image(path)
     with rasterio.open(path) as ds:
         if ds.crs is None:

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import matplotlib
 
+from .blockstats import StreamingStats
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
@@ -232,8 +234,6 @@ def histogram_png(dh, path, *, title="Histogram of DEM − reference", overwrite
 
     ``dh`` is an array of differences (NaN ignored) or a
     :class:`~stereodem.post.blockstats.StreamingStats` of them (counts by its ~1 mm bins)."""
-    from .blockstats import StreamingStats
-
     if isinstance(dh, StreamingStats):
         s = dh.result()
         lo, hi = dh.quantile([0.005, 0.995]) if dh.n else (-1.0, 1.0)

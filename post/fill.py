@@ -19,6 +19,8 @@ from scipy.spatial import cKDTree
 
 from stereodem.core.errors import InputError
 
+from .blocks import by_rows, default_threads
+
 log = logging.getLogger(__name__)
 
 ORIGINAL, FILLED_IDW, FILLED_FALLBACK = 0, 1, 2
@@ -44,7 +46,6 @@ class FillResult:
 def _idw(points_rc, values, query_rc, *, k: int, power: float):
     tree = cKDTree(points_rc)
     k = int(min(k, len(points_rc)))
-    from .blocks import default_threads
 
     d, i = tree.query(query_rc, k=k, workers=default_threads())  # per query: same values
     if k == 1:
@@ -167,7 +168,6 @@ def gaussian_smooth(heights, *, sigma: float = 0.85, passes: int = 1, truncate: 
     z = np.asarray(heights, dtype=np.float64)
     valid = np.isfinite(z)
     out = z.copy()
-    from .blocks import by_rows
 
     halo = int(truncate * float(sigma) + 0.5)  # scipy's kernel radius
 

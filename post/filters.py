@@ -31,6 +31,7 @@ from enum import IntEnum
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy import ndimage as ndi
 
 from stereodem.core.errors import InputError
@@ -219,8 +220,6 @@ def _block_scale(r, valid, block: int):
 def _median_at(z, cells, size: int):
     """``ndi.median_filter(z, size, mode="nearest")`` evaluated only at the True cells of
     ``cells`` (same values): the windows of those cells gathered from the edge-padded grid."""
-    from numpy.lib.stride_tricks import sliding_window_view
-
     half = size // 2
     rr, cc = np.nonzero(cells)
     pad = np.pad(z, half, mode="edge")

@@ -12,9 +12,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import pyogrio
+import rasterio
+import shapely
+from pyproj import CRS, Transformer
+from rasterio.features import rasterize as rio_rasterize
 
 from stereodem.core.dem import DEM
 from stereodem.core.errors import CRSError, InputError, NoOverlapError
+from stereodem.core.raster import reading_env
+from stereodem.core.stats import nmad
+
+from . import warp
 
 
 def read_polygons(path, crs):
@@ -22,10 +31,6 @@ def read_polygons(path, crs):
 
     Raises :class:`InputError` (one line naming the file) when it cannot be read, has no CRS,
     or holds no polygon."""
-    import pyogrio
-    import shapely
-    from pyproj import CRS, Transformer
-
     path = str(path)
     try:
         meta, _, geom_wkb, _ = pyogrio.raw.read(path, columns=[])
@@ -57,9 +62,6 @@ def read_polygons(path, crs):
 def rasterize(geoms, dem: DEM, *, path: str = "outlines") -> np.ndarray:
     """Bool array on ``dem``'s grid, True in the polygons; :class:`NoOverlapError` when no
     polygon touches the DEM."""
-    import shapely
-    from rasterio.features import rasterize as rio_rasterize
-
     rows, cols = dem.shape
     t = dem.transform
     xs, ys = sorted([t.c, t.c + t.a * cols]), sorted([t.f, t.f + t.e * rows])
@@ -97,10 +99,6 @@ class StableMask:
 
     def array(self, dem: DEM, *, slope=None, dh=None) -> np.ndarray:
         """The bool mask on ``dem``'s grid (True = stable)."""
-        from stereodem.core.stats import nmad
-
-        from . import warp
-
         m = np.ones(dem.shape, bool)
         if self.include:
             m = np.zeros(dem.shape, bool)
@@ -109,10 +107,6 @@ class StableMask:
         for path in self.exclude or []:
             m &= ~rasterize(read_polygons(path, dem.crs), dem, path=str(path))
         if self.raster:
-            import rasterio
-
-            from stereodem.core.raster import reading_env
-
             try:
                 with reading_env(), rasterio.open(self.raster) as ds:
                     a = ds.read(1, masked=True).filled(0).astype(np.uint8)

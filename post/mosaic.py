@@ -7,8 +7,8 @@ lays one output grid over the footprints (the first DEM's CRS, posting and latti
 told otherwise); :func:`mosaic_block` computes one block of the output from the DEMs whose
 footprint meets it, read through windows (directly where a DEM lies on the output lattice,
 through GDAL's warper — bilinear — where it does not: other CRS, posting or a co-registration
-shift); :func:`run_mosaic` writes the blocks into a COG (:class:`~stereodem.core.blockwrite.BlockWriter`),
-here or on a ``dask.distributed`` cluster.
+shift); :func:`run_mosaic` writes the blocks into a COG
+(:class:`~stereodem.core.blockwrite.BlockWriter`), here or on a ``dask.distributed`` cluster.
 
 Methods, per output cell, over the DEMs with a height there (``count`` of them):
 
@@ -51,11 +51,13 @@ from rasterio.vrt import WarpedVRT
 from rasterio.windows import Window
 
 from stereodem.core import geodesy
+from stereodem.core.blockwrite import CACHE_MB, OVERVIEW_CHUNK_MB, BlockWriter
 from stereodem.core.dem import DEM, ELLIPSOID, GEOID
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.grid import MapGrid
 from stereodem.core.stats import nmad
 
+from .mosaic_coreg import crop_reference, fitter
 from .mosaic_sources import (
     Source,
     open_sources,
@@ -63,6 +65,7 @@ from .mosaic_sources import (
     reconcile_vertical,
     select_sources,
 )
+from .warp import translated
 
 log = logging.getLogger(__name__)
 
@@ -275,8 +278,6 @@ def coregister_sources(sources, reference, *, chain: str | None = None, dem_vert
     over that DEM's footprint only). Returns (sources with their grids moved and ``dz`` set,
     skipped ``[{path, reason}]``, ``{path: correction report}``). A DEM that misses the
     reference or cannot be fitted is named and skipped."""
-    from .mosaic_coreg import crop_reference, fitter
-
     fit = fitter(chain or "nuth_kaab")
     out, skipped, reports = [], [], {}
     for s in sources:
@@ -296,7 +297,6 @@ def coregister_sources(sources, reference, *, chain: str | None = None, dem_vert
             log.warning("%s: not co-registered, skipped (%s)", s.path, reason)
             skipped.append(dict(path=s.path, reason=f"co-registration: {reason}"))
             continue
-        from .warp import translated
 
         t = translated(s.transform, s.crs, (s.height, s.width), -corr.dx, -corr.dy)
         out.append(replace(s, transform=t, shift_m=(-corr.dx, -corr.dy), dz=float(corr.dz)))
@@ -346,8 +346,6 @@ def memory_bound(plan: MosaicPlan, k: int | None = None) -> int:
     final COG copy. ``b`` block, ``L`` halo,
     ``K`` DEMs meeting one block (:func:`max_overlap`).
     """
-    from stereodem.core.blockwrite import CACHE_MB, OVERVIEW_CHUNK_MB
-
     k = max_overlap(plan) if k is None else int(k)
     b, h = plan.block, plan.halo
     n = 48 * (b + 2 * h) ** 2 + 64 * b * b + len(plan.bands()) * 4 * b * b
@@ -609,8 +607,6 @@ def run_mosaic(
     report (plan, bands, seconds, valid share). ``dask``: scheduler address, ``"local"`` for
     a local cluster of ``workers`` processes; None computes here, block after block.
     ``progress(done, total)`` after each block."""
-    from stereodem.core.blockwrite import BlockWriter
-
     t0 = time.perf_counter()
     todo = blocks(plan)
     tags = dict(STEREODEM_MOSAIC_METHOD=plan.method, STEREODEM_MOSAIC_DEMS=len(plan.sources))

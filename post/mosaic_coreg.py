@@ -22,11 +22,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import rasterio
 from pyproj import CRS
+from rasterio.warp import transform_bounds
 from rasterio.windows import from_bounds
 
 from stereodem.core.dem import DEM, _vertical_from_crs, horizontal_crs
 from stereodem.core.errors import ConvergenceError, DEMError, InputError, NoOverlapError
 from stereodem.core.raster import reading_env
+
+from .assess import coregistration_summary
+from .coreg import parse_chain
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +58,6 @@ def chain_fitter(text: str) -> Callable | None:
     :data:`SHIFT_STEPS`: the chain fitted on the DEM's grid, its ``nuth_kaab`` shifts and
     ``nuth_kaab``/``vshift`` offsets summed into one :class:`DEMCorrection`. None for a
     string that is not a chain; :class:`InputError` for a chain with another step."""
-    from .coreg import parse_chain
-
     try:
         chain = parse_chain(text)
     except InputError:
@@ -69,8 +71,6 @@ def chain_fitter(text: str) -> Callable | None:
         )
 
     def fit(reference: DEM, dem: DEM) -> DEMCorrection:
-        from .assess import coregistration_summary
-
         try:
             ch = parse_chain(text).fit(reference, dem)
         except (InputError, ConvergenceError) as exc:  # too little stable terrain: skipped
@@ -113,8 +113,6 @@ def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -
     """The reference DEM over ``bounds`` (west, south, east, north in ``crs``) plus a margin,
     read through a window (the whole reference is never read); :class:`NoOverlapError` when it
     misses them."""
-    from rasterio.warp import transform_bounds
-
     path = str(path)
     try:
         with reading_env(), rasterio.open(path) as ds:

@@ -18,6 +18,7 @@ import numpy as np
 from stereodem.core.raster import prepare_output_dir, write_text_atomic
 
 from . import figures
+from .error_analysis import markdown_lines
 
 log = logging.getLogger(__name__)
 
@@ -132,8 +133,6 @@ def markdown(report: dict, figure_files: dict) -> str:
             "",
         ]
     if report.get("error_analysis"):
-        from .error_analysis import markdown_lines
-
         lines += markdown_lines(report["error_analysis"]) + [""]
     lines += ["## Figures", ""] + [f"![{k}]({v})" for k, v in figure_files.items()] + [""]
     prov = report.get("provenance")
@@ -156,7 +155,9 @@ FIGURE_CAPTIONS = {
     "histogram": "Distribution of DEM − reference with the mean, median and median ± NMAD.",
     "error_vs_slope": "Error statistics per slope class of the reference (n: valid cells).",
     "error_vs_terrain": "NMAD of dh on stable terrain against slope and maximum curvature, fitted.",
-    "variogram": "Variogram of the standardised dh on stable terrain and its fit (two spherical models).",
+    "variogram": (
+        "Variogram of the standardised dh on stable terrain and its fit (two spherical models)."
+    ),
 }
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:980px;margin:1.5em auto;padding:0 1em;
@@ -166,7 +167,8 @@ th,td{border:1px solid #ccc;padding:.25em .5em;text-align:right}th{background:#f
 td:first-child,th:first-child{text-align:left}figure{display:inline-block;margin:.5em;
 vertical-align:top;max-width:460px}figure img{max-width:100%;border:1px solid #ddd}
 figcaption{font-size:.85em;color:#555}code{background:#f5f5f5;padding:0 .2em}
-.note{font-size:.85em;color:#555}dl{display:grid;grid-template-columns:max-content auto;gap:.2em 1em}
+.note{font-size:.85em;color:#555}\
+dl{display:grid;grid-template-columns:max-content auto;gap:.2em 1em}
 dt{font-weight:600}dd{margin:0;font-family:monospace;word-break:break-all}"""
 
 
@@ -250,8 +252,6 @@ def html_report(report: dict, figure_paths: dict) -> str:
             _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
         ]
     if report.get("error_analysis"):
-        from .error_analysis import markdown_lines
-
         ea = markdown_lines(report["error_analysis"])
         parts += (
             ["<h2>Error analysis (stable terrain)</h2>", "<ul>"]

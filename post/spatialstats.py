@@ -19,6 +19,7 @@ Distances are metres (east/north of :func:`stereodem.post.coreg.local_metric_coo
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 from scipy import optimize
@@ -27,6 +28,9 @@ from scipy.spatial.distance import pdist
 
 from stereodem.core.errors import InputError
 from stereodem.core.stats import nmad
+
+from . import warp
+from .coreg import local_metric_coords
 
 #: scattered samples up to which :func:`variogram` uses every pair
 ALL_PAIRS_MAX = 6000
@@ -165,7 +169,6 @@ def variogram(
             edges = default_edges(max(np.min(d[d > 0]), 1e-6), max_lag or d.max() / 2)
         lag, gamma, cnt = _bin(d, sq, np.asarray(edges, float))
         return EmpiricalVariogram(np.asarray(edges, float), lag, gamma, cnt)
-    from . import warp
 
     if v.ndim != 2 or transform is None:
         raise InputError(
@@ -269,8 +272,6 @@ def fit_variogram(
 
 def _increasing_combinations(values, k):
     """Strictly increasing k-tuples of ``values`` (few: 5 values, k ≤ 3)."""
-    from itertools import combinations
-
     return list(combinations(sorted(values), k))
 
 
@@ -302,7 +303,6 @@ def area_mean_sigma(
     rng = np.random.default_rng(seed)
     if transform is not None:
         a = np.asarray(area, bool)
-        from .coreg import local_metric_coords
 
         e, n = local_metric_coords(transform, crs, a.shape)
         sig = np.broadcast_to(np.asarray(sigma, float), a.shape)

@@ -33,9 +33,12 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from affine import Affine
+from pyproj import CRS
 
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
+from stereodem.sensor.simulation.multidate import decimal_year
 
 from .rates import RATE_LAYERS, RateSettings, fit_block
 
@@ -71,8 +74,6 @@ def grid_mapping_attrs(grid: MapGrid) -> dict:
 def _dataset(grid: MapGrid, dates, *, chunk: int, reference, stable):
     import dask.array as da
     import xarray as xr
-
-    from stereodem.sensor.simulation.multidate import decimal_year
 
     x, y = grid_coords(grid)
     T, (ny, nx) = len(dates), grid.shape
@@ -199,9 +200,6 @@ def open_stack(path, *, chunk: int | None = CHUNK):
 
 def stack_grid(ds) -> MapGrid:
     """The :class:`MapGrid` of a stack dataset (from ``spatial_ref``)."""
-    from affine import Affine
-    from pyproj import CRS
-
     sr = ds["spatial_ref"].attrs
     c, a, b, f, d, e = (float(v) for v in sr["GeoTransform"].split())
     return MapGrid(

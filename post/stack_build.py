@@ -21,17 +21,28 @@ Per DEM, in date order:
 from __future__ import annotations
 
 import logging
+import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import rasterio
+from rasterio.warp import transform_bounds
+from scipy import ndimage
 
 from stereodem.core.dem import DEM
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
+from stereodem.core.pool import stop_pool
+from stereodem.core.raster import read_image
 from stereodem.core.stats import nmad
 
 from . import warp
+from .assess import reconcile_vertical
 from .clouds import CloudSettings, cloud_mask, deviation_mask
+from .coreg import parse_chain
+from .coreg_run import track_heading_of
+from .masks import StableMask
 from .stack import CHUNK, MASK_CLOUD, MASK_VOID, create_stack, set_attrs, write_date
 
 log = logging.getLogger(__name__)
@@ -72,9 +83,6 @@ class BuildSettings:
 
 def header_bounds_lonlat(path):
     """(west, south, east, north) of a raster from its header only (no pixels read)."""
-    import rasterio
-    from rasterio.warp import transform_bounds
-
     try:
         with rasterio.open(path) as ds:
             if ds.crs is None:
@@ -111,8 +119,6 @@ def exclude_mask(paths, dem: DEM) -> np.ndarray:
     """True outside the ``paths`` outlines on ``dem``'s grid (all True without outlines)."""
     m = np.ones(dem.shape, bool)
     if paths:
-        from .masks import StableMask
-
         m &= StableMask(exclude=list(paths)).array(dem)
     return m
 
@@ -127,8 +133,6 @@ def chain_for(settings: BuildSettings, heading) -> str:
 def fit_chain(reference: DEM, dem: DEM, stable, settings: BuildSettings, heading=None):
     """Fit the chain of ``settings`` on ``stable`` cells of ``dem`` (``heading``: its ground-track
     heading, degrees, or None); returns (corrected DEM, report list, chain text)."""
-    from .coreg import parse_chain
-
     text = chain_for(settings, heading)
     chain = parse_chain(text).fit(reference, dem, stable=stable, track_angle_deg=heading)
     return chain.apply(dem), chain.report(), text
@@ -136,14 +140,10 @@ def fit_chain(reference: DEM, dem: DEM, stable, settings: BuildSettings, heading
 
 def _layer_beside(dem_path, names, grid):
     """A layer stereodem wrote beside the DEM (score, radiance orthoimage) on ``grid``, or None."""
-    from stereodem.core.raster import read_image
-
     folder = Path(dem_path).parent
     for name in names:
         p = folder / name
         if p.is_file():
-            import rasterio
-
             with rasterio.open(p) as ds:
                 t, crs = ds.transform, ds.crs.to_wkt() if ds.crs else None
             if crs is None:
@@ -156,9 +156,6 @@ def _layer_beside(dem_path, names, grid):
 
 def add_dem(reference: DEM, path, settings: BuildSettings, stable_grid):
     """One DEM co-registered and masked on the reference grid: (heights, mask flags, σ, report)."""
-    from .assess import reconcile_vertical
-    from .coreg_run import track_heading_of
-
     dem = DEM.from_file(path)
     heading = (
         settings.track_angle_deg if settings.track_angle_deg is not None else track_heading_of(path)
@@ -169,8 +166,6 @@ def add_dem(reference: DEM, path, settings: BuildSettings, stable_grid):
     )
     stable = exclude_mask(settings.exclude, dem)
     if settings.cloud.max_deviation is not None:
-        from scipy import ndimage
-
         gross = deviation_mask(dem.heights, ref_on_dem, settings.cloud.max_deviation, stable=stable)
         stable &= ~ndimage.binary_dilation(gross, iterations=max(settings.cloud.grow, 1))
     corrected, report, chain = fit_chain(reference, dem, stable, settings, heading)
@@ -292,11 +287,6 @@ def build_stack(
             write_date(store, k, h, flags, sigma)
             done(k, rec)
     else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-
-        from stereodem.core.pool import stop_pool
-
         pool = ProcessPoolExecutor(
             max_workers=min(workers, len(dems)),
             mp_context=mp.get_context("spawn"),

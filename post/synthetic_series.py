@@ -9,11 +9,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pyogrio
+import shapely
+from affine import Affine
+from pyproj import CRS
 
+from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.sensor.simulation.multidate import ChangeTruth, cloud_blunder, decimal_year
 
+from . import warp
 from .synthetic import InjectedErrors, inject_errors
 
 
@@ -61,10 +67,6 @@ def dem_series(truth: ChangeTruth, dates, specs, *, clouds=None, vertical=None) 
 def write_polygons(path, geoms, crs, *, driver: str | None = None):
     """Write shapely polygons with their CRS as a vector file (pyogrio; the driver from the
     suffix: .gpkg, .geojson, .shp), one ``id`` field (1, 2, ...)."""
-    import pyogrio
-    import shapely
-    from pyproj import CRS
-
     geoms = list(geoms)
     wkb = np.array([shapely.to_wkb(g) for g in geoms], dtype=object)
     pyogrio.raw.write(
@@ -82,12 +84,6 @@ def write_polygons(path, geoms, crs, *, driver: str | None = None):
 def utm_reference(dem: DEM, size: int, res: float, *, centre_lonlat=None) -> DEM:
     """A ``size`` × ``size`` crop of ``dem`` resampled (cubic) on a UTM grid of ``res`` metres
     around ``centre_lonlat`` (default the DEM's centre); keeps the vertical reference."""
-    from affine import Affine
-
-    from stereodem.core import geodesy
-
-    from . import warp
-
     if centre_lonlat is None:
         w, s, e, n = dem.bounds_lonlat()
         centre_lonlat = ((w + e) / 2, (s + n) / 2)
@@ -105,8 +101,6 @@ def utm_reference(dem: DEM, size: int, res: float, *, centre_lonlat=None) -> DEM
 def glacier_outline(grid, *, centre=(0.6, 0.45), radius=0.15):
     """A disc-like outline at ``centre`` (col, row fractions) of ``radius`` × the grid width,
     in the grid's CRS (a shapely polygon), slightly irregular."""
-    import shapely
-
     cx, cy = grid.transform @ (grid.width * centre[0], grid.height * centre[1])
     r = grid.width * abs(grid.transform.a) * radius
     ang = np.linspace(0, 2 * np.pi, 73)[:-1]

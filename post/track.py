@@ -28,7 +28,8 @@ import logging
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from pyproj import CRS
+import rasterio
+from pyproj import CRS, Geod
 
 from stereodem.core import geodesy
 
@@ -178,7 +179,6 @@ class TrackFrame:
         lo, la = model.localize(
             np.array([cc, cc, cc + 1.0]), np.array([rc, rc + 1.0, rc]), np.full(3, float(height))
         )
-        from pyproj import Geod
 
         g = Geod(ellps="WGS84")
         m_row = float(g.inv(lo[0], la[0], lo[1], la[1])[2])
@@ -210,8 +210,6 @@ class TrackFrame:
 
 def track_frame_of(path) -> TrackFrame | None:
     """The track frame a stereodem DEM carries in its tags, if any."""
-    import rasterio
-
     try:
         with rasterio.open(path) as ds:
             return TrackFrame.from_tag(ds.tags().get(TRACK_FRAME_TAG))

@@ -25,18 +25,20 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from rasterio.features import rasterize
 
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
 from stereodem.core.stats import nmad
+
+from . import terrain
+from .spatialstats import area_mean_sigma, fit_variogram, variogram
 
 log = logging.getLogger(__name__)
 
 
 def cell_areas(grid: MapGrid) -> np.ndarray:
     """Area of each cell in m² (per row on lon/lat grids), broadcastable to ``grid.shape``."""
-    from . import terrain
-
     pe, pn = terrain.pixel_size_m(grid.transform, grid.crs, grid.shape)
     return np.abs(pe * pn)
 
@@ -123,8 +125,6 @@ def rate_error_model(
     injected 200 m and 2 km, while a third model runs off to a 1000 km range, beyond the data,
     and inflates the σ of an area mean); returns (model, empirical variogram, NMAD of the
     standardised rate)."""
-    from .spatialstats import fit_variogram, variogram
-
     z = np.where(stable & np.isfinite(rate) & (rate_sigma > 0), rate / rate_sigma, np.nan)
     if np.isfinite(z).sum() < 100:
         raise InputError(
@@ -152,10 +152,6 @@ def outline_changes(
     """Elevation and volume change rates of each polygon of ``outlines`` (shapely geometries in
     the grid's CRS), with σ from ``model`` (:func:`rate_error_model`); see the module docstring.
     """
-    from rasterio.features import rasterize
-
-    from .spatialstats import area_mean_sigma
-
     areas = np.broadcast_to(cell_areas(grid), grid.shape)
     rate = np.asarray(rate, np.float32)
     rs = np.asarray(rate_sigma, np.float32)

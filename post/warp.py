@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from affine import Affine
+from rasterio.crs import CRS as RioCRS
 from rasterio.warp import Resampling, reproject
 
 from stereodem.core import geodesy
@@ -55,8 +56,6 @@ def to_grid(
 
 
 def _rio_crs(crs):
-    from rasterio.crs import CRS as RioCRS
-
     return RioCRS.from_wkt(geodesy._crs_key(crs))
 
 

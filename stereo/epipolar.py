@@ -20,9 +20,10 @@ Franchis et al., ICIP 2014; s2p ``rectification.py``). Per tile:
 
 The rectified tile frame is chosen so that array index ``[v, u]`` of a rectified image is the
 rectified coordinate ``(u, v)``; a left pixel ``(u, v)`` matches the right pixel
-``(u - d, v)`` for a disparity ``d`` (the convention of :func:`stereodem.stereo.match.match_rectified`).
-Triangulation never uses the approximation: :meth:`EpipolarTile.to_image` maps matches back
-to each image's own coordinates, which are intersected with the exact models.
+``(u - d, v)`` for a disparity ``d`` (the convention of
+:func:`stereodem.stereo.match.match_rectified`). Triangulation never uses the approximation:
+:meth:`EpipolarTile.to_image` maps matches back to each image's own coordinates, which are
+intersected with the exact models.
 """
 
 from __future__ import annotations
@@ -32,8 +33,10 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from stereodem.core.errors import InputError, SensorModelError
+from stereodem.sensor.models.frame import FrameCamera
 from stereodem.stereo.tiling import Tile
 
 log = logging.getLogger(__name__)
@@ -248,8 +251,6 @@ def _warp(image, H, shape, interpolation):
     unit gradient that would bias sub-pixel matching). No-data (NaN) pixels of the source make
     the output pixels whose interpolation support touches them NaN.
     """
-    from scipy import ndimage
-
     rows, cols = int(shape[0]), int(shape[1])
     ih, iw = image.shape[:2]
     Hinv = np.linalg.inv(H)
@@ -353,8 +354,6 @@ def rectify_tile(
             "is the tile outside the right image's model domain?"
         )
     if method == "auto":
-        from stereodem.sensor.models.frame import FrameCamera
-
         method = (
             "projective"
             if isinstance(left, FrameCamera) and isinstance(right, FrameCamera)

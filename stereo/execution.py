@@ -6,8 +6,10 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
+import pickle
 import tempfile
 from pathlib import Path
 
@@ -33,7 +35,8 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
     """A tile runner for :func:`stereodem.stereo.pipeline.make_dem` backed by :func:`run_tiles`.
 
     ``run_settings`` has ``workers``, ``tile_timeout``, ``resume`` and ``dask`` (the address of
-    a Dask scheduler or None): :class:`stereodem.config.RunSettings`. Finished tiles are cached in ``cache_dir`` (``tile_<n>.npz``) so ``--resume`` skips them.
+    a Dask scheduler or None): :class:`stereodem.config.RunSettings`. Finished tiles are cached in
+    ``cache_dir`` (``tile_<n>.npz``) so ``--resume`` skips them.
     """
     failures = []
 
@@ -81,8 +84,6 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
 def _cache_key(tiles, inputs, settings) -> str:
     """Fingerprint of everything a stereo tile's result depends on (settings, tiles, lattice,
     models, the images' bytes), so ``--resume`` never reuses tiles of another job."""
-    import hashlib
-
     h = hashlib.sha256()
     g = inputs.lattice
     h.update(
@@ -118,8 +119,6 @@ def _model_fingerprint(model) -> bytes:
     """Bytes identifying a sensor model's parameters: a wrapper with a ``model`` attribute (an
     image-space correction) gives its own parameters plus its model's, other models their
     ``to_dict``, else their pickle."""
-    import pickle
-
     if hasattr(model, "model") and hasattr(model, "parameters"):
         own = json.dumps(model.parameters(), sort_keys=True).encode()
         return own + _model_fingerprint(model.model)

@@ -19,13 +19,13 @@ pair stereo:
   height by the pair's base.
 
 Layers of the fused DEM (:class:`FusedDEM`, a :class:`~stereodem.core.dem.DEM` with its layers
-plus ``nmad``): ``heights``; ``count``, the pair heights fused in the cell (after rejection); ``nmad``, the NMAD (m) of all pair heights of the cell about their
-median (NaN with fewer than two), the pairs' agreement; ``sigma``, the σ (m) of the fused
-height: the formal σ of the weighted mean of the kept heights, ``1 / sqrt(sum w)``, times
-``sqrt(chi2 / (n - 1))`` when the kept heights scatter more than their σ say (n ≥ 2);
-``score`` and ``raygap``, the weighted means of the kept pairs' layers. Written as a DEM's
-files (:meth:`stereodem.core.dem.DEM.write`: ``dem.tif``, ``count.tif``, ``score.tif``,
-``raygap.tif``, ``dem_sigma_vertical.tif``) plus ``nmad.tif``.
+plus ``nmad``): ``heights``; ``count``, the pair heights fused in the cell (after rejection);
+``nmad``, the NMAD (m) of all pair heights of the cell about their median (NaN with fewer than two),
+the pairs' agreement; ``sigma``, the σ (m) of the fused height: the formal σ of the weighted mean of
+the kept heights, ``1 / sqrt(sum w)``, times ``sqrt(chi2 / (n - 1))`` when the kept heights scatter
+more than their σ say (n ≥ 2); ``score`` and ``raygap``, the weighted means of the kept pairs'
+layers. Written as a DEM's files (:meth:`stereodem.core.dem.DEM.write`: ``dem.tif``, ``count.tif``,
+``score.tif``, ``raygap.tif``, ``dem_sigma_vertical.tif``) plus ``nmad.tif``.
 
 Memory: the fusion holds the pair DEMs on the common lattice, 3 float32 layers per pair
 (height, score, ray gap): 12 bytes x pairs x cells, and at its peak about as much again in
@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 from affine import Affine
+from shapely.geometry import Polygon
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
@@ -195,8 +196,6 @@ class PairPlan:
 
 
 def _footprints(models, height, crs):
-    from shapely.geometry import Polygon
-
     out = []
     for m in models:
         lon, lat = m.footprint(height)
@@ -340,6 +339,10 @@ def on_grid(array, grid: MapGrid, target: MapGrid, fill=np.nan) -> np.ndarray:
     return out
 
 
+#: band description of a fused DEM's ``count.tif`` (a pair DEM's counts points: core.dem.LAYERS)
+COUNT_DESCRIPTION = "stereo pairs per cell (pair heights fused, after rejection)"
+
+
 @dataclass
 class FusedDEM:
     """A DEM fused from pair DEMs on one lattice (layers in the module docstring).
@@ -368,7 +371,10 @@ class FusedDEM:
         """The writes of :meth:`write`, prepared now (layers copied), run by the returned
         callable (e.g. on a :class:`stereodem.pipeline.job.BackgroundWriter`)."""
         write_dem = self.dem.prepare_write(
-            path, overwrite=overwrite, creation_options=creation_options
+            path,
+            overwrite=overwrite,
+            creation_options=creation_options,
+            layer_descriptions={"count": COUNT_DESCRIPTION},
         )
         spread, transform, crs = self.nmad.astype(np.float32), self.dem.transform, self.dem.crs
         nmad_path = Path(path).with_name("nmad.tif")
@@ -406,7 +412,8 @@ def fuse_dems(
     Parameters
     ----------
     dems : list of DEM
-        The pair DEMs (with ``score`` and ``ray_gap`` layers): one CRS, posting and vertical reference, lattices offset by whole cells.
+        The pair DEMs (with ``score`` and ``ray_gap`` layers): one CRS, posting and vertical
+        reference, lattices offset by whole cells.
     sigmas : list of float
         Each pair's a-priori height σ (m, :func:`pair_sigma`).
     method : {"weighted", "median"}

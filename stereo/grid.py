@@ -42,7 +42,8 @@ __all__ = [
 
 
 def grid_bounds(x, y, posting):
-    """Bounds ``(xmin, ymin, xmax, ymax)`` of the points snapped outward to multiples of ``posting``."""
+    """Bounds ``(xmin, ymin, xmax, ymax)`` of the points snapped outward to multiples of
+    ``posting``."""
     x, y = np.asarray(x), np.asarray(y)
     return (
         np.floor(np.nanmin(x) / posting) * posting,

@@ -25,18 +25,24 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+import cv2
 import numpy as np
+from scipy import ndimage
 
 from stereodem.core.dem import ELLIPSOID, as_dem
 from stereodem.core.errors import InputError
 from stereodem.core.stats import nmad
 from stereodem.sensor.estimation.jitter import (
+    add_series,
     cross_track_sensitivity,
     estimate_pitch_jitter,
     estimate_roll_jitter,
+    fit_at_frequencies,
+    roll_profile,
     with_attitude_sines,
 )
 from stereodem.stereo import epipolar
+from stereodem.stereo.match import match_rectified
 from stereodem.stereo.pipeline import PairInputs, dem_of_checked_pair
 from stereodem.stereo.plan import plan_tiles, tile_height_range
 from stereodem.stereo.sanity import check_pair
@@ -76,8 +82,6 @@ def refine_offsets(left, right, disparity, vertical, *, window: int = 9, iterati
     per pixel. Returns refined ``(disparity, vertical)`` (float32, NaN where the window holds
     no data or the system is singular).
     """
-    import cv2
-
     f32 = np.float32
     h, w = left.shape
     k = (int(window), int(window))
@@ -147,8 +151,6 @@ def measure_vertical_parallax(
     ``cross_px``, ``sensitivity_px_per_rad``, ``col_right``, ``row_right``, plus ``tiles``
     (per-tile summaries).
     """
-    from stereodem.stereo.match import match_rectified
-
     rect = settings.rectification
     inputs = PairInputs(
         left_image, right_image, left_model, right_model, tuple(height_range), seed_dem=seed_dem
@@ -235,8 +237,6 @@ def resample_to_model(image, model, actual, height: float, *, row_step: int = 4,
     NaN cells. A roll shifts the ground by an angle, so the shift hardly depends on
     ``height``.
     """
-    import cv2
-
     h_img, w_img = image.shape
     rows = np.r_[np.arange(0, h_img - 1, row_step), h_img - 1].astype(float)
     cols = np.linspace(0, w_img - 1, n_cols)
@@ -246,7 +246,6 @@ def resample_to_model(image, model, actual, height: float, *, row_step: int = 4,
     grid = np.stack([np.asarray(ca) - cc, np.asarray(ra) - rr]).astype(np.float32)
     mc = np.interp(np.arange(w_img), cols, np.arange(n_cols)).astype(np.float32)
     mr = np.interp(np.arange(h_img), rows, np.arange(rows.size)).astype(np.float32)
-    from scipy import ndimage
 
     src = np.asarray(image, np.float32)
     void = ~np.isfinite(src)
@@ -311,7 +310,6 @@ def correct_roll_jitter(
     matches and the vertical-parallax NMAD (px) before and after each round.
     """
     lo, hi = (float(np.nanpercentile(dem.heights, p)) for p in (0.5, 99.5))
-    from stereodem.sensor.estimation.jitter import add_series, fit_at_frequencies, roll_profile
 
     model, total, rounds_info = right_model, None, []
     period = 8 * abs(float(right_model.line_period))

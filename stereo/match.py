@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import functools
 import math
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import cv2
@@ -449,8 +450,9 @@ def _match_pass(ref, tgt, seed, klo, khi, window, min_std, subpixel, vertical, b
     ``seed`` is a float seed disparity map ``S`` (None: a plain full search over
     ``klo..khi``): ``tgt`` is first warped (bicubic) to ``tgt'(x) = tgt(x - S(x), y - dy)``,
     then ``ref(x)`` is correlated with ``tgt'(x - k)``, so the window follows the seed
-    surface and the disparity is ``k + S(x - k)`` plus the sub-pixel offset.  Returns disparity (float, NaN where no peak), score, vertical offset, and
-    (with ``back``) the integer disparity map of ``tgt`` seen from ``tgt`` (full search only).
+    surface and the disparity is ``k + S(x - k)`` plus the sub-pixel offset.  Returns disparity
+    (float, NaN where no peak), score, vertical offset, and (with ``back``) the integer disparity
+    map of ``tgt`` seen from ``tgt`` (full search only).
     """
     h, w = ref.shape
     rstats = _window_stats(ref, window, min_std)
@@ -983,8 +985,6 @@ def match_rectified(
 
     overlap = cv2.getNumThreads() > 1 and sgm_mode == "sgbm"
     if overlap:
-        from concurrent.futures import ThreadPoolExecutor
-
         with ThreadPoolExecutor(1, thread_name_prefix="stereodem-sgm") as ex:
             l8, r8 = _to_uint8(left, right, ex)
             pending = ex.submit(before_disparity)

@@ -4,9 +4,9 @@
 two images, the sparse stage (:mod:`.sparse_stage`: SIFT matches checked through the models,
 the relative pointing correction of the right model, and — without a height range or seed
 DEM — the scene's height range and a coarse seed surface), the tiles over the overlap at every
-height of the range, the output lattice, then for every tile :func:`process_tile` (a pure function of the tile, the
-inputs and the settings, so tiles can run in a process pool), and finally the tiles' cell sums
-added into the DEM. Per tile:
+height of the range, the output lattice, then for every tile :func:`process_tile` (a pure function
+of the tile, the inputs and the settings, so tiles can run in a process pool), and finally the
+tiles' cell sums added into the DEM. Per tile:
 
 1. height range (the settings' range, or the seed DEM — given, or from the sparse matches —
    under the tile plus a margin);
@@ -31,17 +31,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pyproj import CRS
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM, as_dem
 from stereodem.core.errors import InputError
 from stereodem.core.jsonutil import json_default
+from stereodem.core.memory import check_allocation
 from stereodem.sensor.geo.intersect import intersect_matches
 from stereodem.sensor.models.base import pair_height_bounds
 
 from . import epipolar
 from .grid import SUM_LAYERS, CellSums, GridSpec, accumulate, finish
+from .match import match_rectified
 from .plan import footprint_bounds, overlap_window, pair_height_range, plan_tiles, tile_height_range
+from .pointcloud import save_tile_points
 from .refine import refine_disparity
 from .sanity import check_pair
 from .settings import StereoSettings
@@ -96,7 +100,8 @@ class TilePoints:
 @dataclass
 class TileResult:
     """One tile's contribution to the DEM: its points' weighted sums on a window of the output
-    lattice (:class:`stereodem.stereo.grid.CellSums`, a few MB whatever the scene size) and its QA."""
+    lattice (:class:`stereodem.stereo.grid.CellSums`, a few MB whatever the scene size) and its
+    QA."""
 
     cells: CellSums
     summary: dict
@@ -209,8 +214,6 @@ def process_tile(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Ti
     """
     pts = tile_points(tile, inputs, settings)
     if inputs.points_dir is not None:
-        from .pointcloud import save_tile_points
-
         save_tile_points(
             inputs.points_dir,
             tile.index,
@@ -234,8 +237,6 @@ def process_tile(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Ti
 
 def tile_points(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> TilePoints:
     """Rectify, match and intersect one tile; returns its ground points and QA summary."""
-    from .match import match_rectified
-
     t0 = time.perf_counter()
     rect, ref = settings.rectification, settings.refinement
     L, R = inputs.left_model, inputs.right_model
@@ -309,8 +310,6 @@ def tile_points(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Til
 def default_posting(gsd: float, crs) -> float:
     """Default DEM posting: twice the GSD (``gsd`` in metres), in the units of ``crs`` (for
     a geographic CRS, degrees of latitude: metres / 111 320 m)."""
-    from pyproj import CRS
-
     posting = float(f"{2.0 * gsd:.2g}")
     crs = CRS.from_user_input(crs)
     if crs.is_geographic:
@@ -322,8 +321,6 @@ def default_posting(gsd: float, crs) -> float:
 def check_lattice(bounds, posting: float):
     """:class:`InputError` when the DEM lattice of ``bounds`` at ``posting`` cannot be held:
     its cell sums (``len(SUM_LAYERS)`` float64 layers) exceed the available memory."""
-    from stereodem.core.memory import check_allocation
-
     cols = (bounds[2] - bounds[0]) / posting
     rows = (bounds[3] - bounds[1]) / posting
     nbytes = 8.0 * len(SUM_LAYERS) * max(cols, 0) * max(rows, 0)

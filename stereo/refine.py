@@ -7,6 +7,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .match import match_rectified
+
 __all__ = ["refine_disparity"]
 
 
@@ -92,8 +94,6 @@ def refine_disparity(
 
     Returns ``(disparity, score, detail_gain)`` (NaN where the refinement failed).
     """
-    from .match import match_rectified
-
     D = _smooth_fill(disparity, sigma)
     if D is None:
         return disparity, np.full(disparity.shape, np.nan, np.float32), 1.0

@@ -23,9 +23,12 @@ disparity range (see the stereo pipeline), not by the scene size.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import multiprocessing
 import os
+import resource
+import shutil
 import signal
 import tempfile
 import threading
@@ -38,7 +41,10 @@ from typing import Any
 
 import numpy as np
 
+from stereodem.core.errors import InputError
 from stereodem.core.pool import stop_pool
+from stereodem.core.raster import atomic_path
+from stereodem.core.threads import register_dask_plugin, worker_threads
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +60,6 @@ def process_peak_rss_mb() -> float:
         with open("/proc/self/status") as f:
             return next(int(line.split()[1]) for line in f if line.startswith("VmHWM")) / 1024.0
     except (OSError, StopIteration, ValueError):
-        import resource
-
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
@@ -181,7 +185,8 @@ def _alarm(signum, frame):
 
 
 def _run_one(fn, tile, timeout, context=None):
-    """Run ``fn`` on one tile with a timeout; returns (index, result | None, error | None, seconds)."""
+    """Run ``fn`` on one tile with a timeout; returns (index, result | None, error | None,
+    seconds)."""
     ctx = _CONTEXT if context is None else context
     t0 = time.perf_counter()
     # SIGALRM only in a main thread (a Dask task runs in a worker thread: no per-tile timeout)
@@ -223,8 +228,6 @@ def _identity(tile):
 
 
 def _digest(result) -> str:
-    import hashlib
-
     h = hashlib.sha256()
     for k in sorted(result):
         a = np.ascontiguousarray(result[k])
@@ -236,8 +239,6 @@ def _digest(result) -> str:
 def _save(cache_dir, tile, result, key=None):
     """Store a finished tile atomically, with the permissions of every other output, its
     identity, job key and checksum."""
-    from stereodem.core.raster import atomic_path
-
     meta = {
         "__tile__": _identity(tile),
         "__job__": np.array(key or ""),
@@ -282,8 +283,6 @@ def load_cached(cache_dir, tile) -> dict:
 def clean_cache(cache_dir):
     """Remove what an interrupted run may leave in a tile cache: partial tile files and
     shared image maps (finished tiles stay)."""
-    import shutil
-
     d = Path(cache_dir)
     for p in d.glob("*.part"):
         p.unlink(missing_ok=True)
@@ -393,7 +392,6 @@ def run_tiles(
         # "spawn", not fork: a forked child inherits OpenCV's and PROJ's thread state and can
         # deadlock in its first cv2 call
         ctx = multiprocessing.get_context("spawn")
-        from stereodem.core.threads import worker_threads
 
         ex = ProcessPoolExecutor(
             max_workers=n,
@@ -418,14 +416,10 @@ def _run_dask(fn, todo, context, timeout, address, collect):
         from dask.distributed import Client
         from dask.distributed import as_completed as dask_completed
     except ImportError:
-        from stereodem.core.errors import InputError
-
         raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
     own = not hasattr(address, "submit")
     client = Client(address) if own else address
     try:
-        from stereodem.core.threads import register_dask_plugin
-
         register_dask_plugin(client)  # each worker's BLAS/OpenCV/GDAL threads pinned
         ctx = client.scatter(context, broadcast=True)
         futs = [client.submit(_run_one, fn, t, timeout, ctx, pure=False) for t in todo]

@@ -16,8 +16,8 @@ depth are brought to one radiometric scale before matching.
 
 After the stereo work (:func:`check_result`, findings of severity ``"suspect"``): the
 heights pile against a bound of the height search range
-(:func:`stereodem.stereo.sparse_stage.height_pileup`, counted per tile), i.e. the terrain is probably
-outside the range (a wrong ``--height-range``, a seed DEM in the wrong units). A suspect
+(:func:`stereodem.stereo.sparse_stage.height_pileup`, counted per tile), i.e. the terrain is
+probably outside the range (a wrong ``--height-range``, a seed DEM in the wrong units). A suspect
 result makes the command exit with status 1 unless ``--force``; the findings are written in
 ``dem_report.json`` / ``run.json`` under ``warnings`` either way.
 """
@@ -167,8 +167,8 @@ def comparable_radiometry(left, right, left_dtype=None, right_dtype=None):
         np.float32
     )
     msg = (
-        f"the images differ in bit depth ({np.dtype(left_dtype).name} / {np.dtype(right_dtype).name}): "
-        f"the right image was rescaled by {gain:.4g} for matching"
+        f"the images differ in bit depth ({np.dtype(left_dtype).name} / "
+        f"{np.dtype(right_dtype).name}): the right image was rescaled by {gain:.4g} for matching"
     )
     log.warning(msg)
     return left, right, [Finding("radiometry_rescaled", "warning", msg, float(gain)).to_dict()]
@@ -190,9 +190,9 @@ def check_result(info) -> list[dict]:
             Finding(
                 "heights_at_search_bound",
                 "suspect",
-                f"{100 * share:.0f} % of the heights lie at the {side} end of the height search range: "
-                "the terrain is probably outside the range (check --height-range, or the seed DEM's "
-                "units and vertical reference)",
+                f"{100 * share:.0f} % of the heights lie at the {side} end of the height search "
+                "range: the terrain is probably outside the range (check --height-range, or the "
+                "seed DEM's units and vertical reference)",
                 round(share, 4),
             ).to_dict()
         )

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -189,7 +190,6 @@ def _keypoints_both(left_image, right_image, n_features, max_size, threads=None)
         (L8, Lv), (R8, Rv) = to_uint8(left_image), to_uint8(right_image)
         scale = min(1.0, max_size / max(L8.shape + R8.shape))
         return _sift(L8, Lv, n_features, scale), _sift(R8, Rv, n_features, scale), scale
-    from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(2, thread_name_prefix="stereodem-sift") as ex:
         stretched = list(ex.map(to_uint8, (left_image, right_image)))  # 2-D uint8 + mask

@@ -17,11 +17,19 @@ import logging
 
 import numpy as np
 
-from stereodem.sensor.estimation.adjust.bundle_multi import TieTracks
+from stereodem.core.errors import InputError, StereodemError
+from stereodem.sensor.estimation.adjust.bundle_multi import TieTracks, bundle_adjust_images
+from stereodem.sensor.estimation.adjust.model_sets import image_corrected
 from stereodem.sensor.geo.intersect import intersect_matches
 from stereodem.sensor.models.base import pair_height_bounds
 
-from .sparse import SparseMatchError, refine_matches, sparse_matches
+from .sparse import (
+    SparseMatchError,
+    distance_to_curves,
+    epipolar_curves,
+    refine_matches,
+    sparse_matches,
+)
 
 log = logging.getLogger(__name__)
 
@@ -85,8 +93,6 @@ def multiview_ties(
 def _across_epipolar_parameter(left, right, height_range) -> str:
     """The shift of ``right`` across its epipolar lines with ``left`` (``col_shift`` when the
     lines run along the rows, as for along-track stereo, else ``row_shift``)."""
-    from .sparse import epipolar_curves
-
     c, r = (left.width - 1) / 2, (left.height - 1) / 2
     curve = epipolar_curves(left, right, [c], [r], list(height_range))[0]
     d = curve[1] - curve[0]
@@ -117,10 +123,6 @@ def agree_models(
     along the epipolar lines shows in) before and after, the per-pair ray gaps (which see only
     the part across them), the shifts and whether they were applied.
     """
-    from stereodem.core.errors import StereodemError
-    from stereodem.sensor.estimation.adjust.bundle_multi import bundle_adjust_images
-    from stereodem.sensor.estimation.adjust.model_sets import image_corrected
-
     i, j = pairs[0]
     report = dict(datum=f"image {i} fixed, image {j} free across its epipolar lines only")
     tracks = multiview_ties(images, models, pairs[:1], height_range=height_range)
@@ -189,10 +191,6 @@ def check_match_geometry(
     models' images: the median distance (px) of the right points across the epipolar curves
     of the left points (heights ``height_range``, m) must stay below ``max_cross_px`` (a
     pointing bias of a few pixels passes; other images do not). Returns that median."""
-    from stereodem.core.errors import InputError
-
-    from .sparse import distance_to_curves, epipolar_curves
-
     path = match.path or "match file"
     heights = np.linspace(float(height_range[0]), float(height_range[1]), 5)
     curves = epipolar_curves(left_model, right_model, match.left.x, match.left.y, heights)

@@ -2,6 +2,8 @@ from pathlib import Path
 
 import pytest
 
+from stereodem.sensor.simulation.simulate import simulate_scene
+
 DATA = Path(__file__).parent / "data"
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -23,6 +25,4 @@ def shared_data():
 def aster600():
     """The 600 x 600 simulated ASTER-like pair (noise 1 DN, seed 0) shared by the stereo tests;
     read-only (tests that change a scene simulate their own)."""
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     return simulate_scene("aster", size=(600, 600), noise=1.0, seed=0)

@@ -17,6 +17,7 @@ image's model, and joins it with independent σ pairs (block-diagonal covariance
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 from dataclasses import dataclass
@@ -26,6 +27,7 @@ import numpy as np
 
 from stereodem.core.errors import InputError
 from stereodem.ortho.uncertainty.propagation import adjustable_model, check_names, check_psd
+from stereodem.sensor.io.sidecar import model_from_dict
 
 
 def parse_sigma_pairs(pairs) -> dict:
@@ -76,8 +78,6 @@ class AdjustReport:
 
 def read_adjust_report(path) -> AdjustReport:
     """Read and check an ``adjust_report.json`` (one-line :class:`InputError` on any defect)."""
-    from stereodem.sensor.io.sidecar import model_from_dict
-
     p = Path(path)
     try:
         doc = json.loads(p.read_text())
@@ -141,8 +141,6 @@ def _same_geometry(a, b, tol_px: float = 1e-3) -> float:
 
 
 def _has_footprint_n(model) -> bool:
-    import inspect
-
     try:
         return "n" in inspect.signature(model.footprint).parameters
     except (TypeError, ValueError):

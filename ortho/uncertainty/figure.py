@@ -3,7 +3,11 @@ chart of the sources' shares of the horizontal variance."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+from stereodem.core.raster import atomic_path
 
 
 def plot_uncertainty(maps, path, *, title: str | None = None):
@@ -12,8 +16,6 @@ def plot_uncertainty(maps, path, *, title: str | None = None):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from stereodem.core.raster import atomic_path
 
     sh = maps.sigma_horizontal
     w, s, e, n = maps.grid.bounds
@@ -43,7 +45,6 @@ def plot_uncertainty(maps, path, *, title: str | None = None):
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    from pathlib import Path
 
     path = Path(path)
     with atomic_path(path) as tmp:

@@ -21,9 +21,9 @@ per grid row (``numpy.matmul``); the DEM height and gradient are sampled with
 :func:`cv2.remap`. Blocks run on threads (numpy and OpenCV release the GIL).
 
 The interpolation error is measured, never assumed: the lattice is refined until the relative
-error of σ_E, σ_N and σ_horizontal at check cells (lattice mid-cells and random cells) against the exact
-per-cell propagation (:func:`stereodem.ortho.uncertainty.propagation.first_order`) is below the
-tolerance, and the finished float32 maps are compared with the same exact values
+error of σ_E, σ_N and σ_horizontal at check cells (lattice mid-cells and random cells) against the
+exact per-cell propagation (:func:`stereodem.ortho.uncertainty.propagation.first_order`) is below
+the tolerance, and the finished float32 maps are compared with the same exact values
 (``UncertaintyMaps.interpolation_error``).
 """
 
@@ -32,11 +32,13 @@ from __future__ import annotations
 import logging
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
-from stereodem.ortho.drm import bilinear_nan, crop_dem
+from stereodem.ortho.drm import _lattice, bilinear_nan, crop_dem
 from stereodem.ortho.uncertainty.propagation import (
     _ce90_table,
     ce90_from_cov,
@@ -116,8 +118,6 @@ def metric(m00, m01, m10, m11):
 
 
 def _node_lattice(grid, st):
-    from stereodem.ortho.drm import _lattice
-
     uu, vv = _lattice(grid, st)
     uu = np.minimum(uu, grid.width - 1).astype(float)
     vv = np.minimum(vv, grid.height - 1).astype(float)
@@ -403,8 +403,6 @@ def first_order_maps(
     garr = dem_gradient_arrays(dem_e)
     near_void = None
     if np.isnan(z).any():
-        from scipy import ndimage
-
         near_void = ndimage.binary_dilation(np.isnan(z), iterations=3)
     big = max(grid.width, grid.height)
     st = int(step or min(256, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
@@ -484,8 +482,6 @@ def first_order_maps(
     n_threads = max(1, int(threads or os.cpu_count() or 1))
     totals = np.zeros(len(lat_.sources))
     if n_threads > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
         with ThreadPoolExecutor(n_threads) as pool:
             for part in pool.map(lambda a: blk.run(*a), jobs):
                 totals += part

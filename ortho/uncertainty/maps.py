@@ -22,12 +22,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from stereodem.core import geodesy
-from stereodem.core.dem import ELLIPSOID
+from stereodem.core.dem import ELLIPSOID, write_layer
 from stereodem.core.errors import InputError
+from stereodem.core.raster import write_geotiff, write_text_atomic
 from stereodem.ortho.choices import UNCERTAINTY_METHODS
-from stereodem.ortho.uncertainty.first_order_maps import _node_lattice, _weights
+from stereodem.ortho.uncertainty.first_order_maps import _node_lattice, _weights, first_order_maps
+from stereodem.ortho.uncertainty.indices import fast_indices
 from stereodem.ortho.uncertainty.propagation import (
     adjustable_model,
     ce90,
@@ -38,13 +41,14 @@ from stereodem.ortho.uncertainty.propagation import (
     image_jacobian,
     propagate,
 )
+from stereodem.ortho.uncertainty.sampling import monte_carlo, src
 
 log = logging.getLogger(__name__)
 
 METHODS = UNCERTAINTY_METHODS
 
 
-# ----------------------------------------------------------------------------- lattice interpolation
+# ---------------------------------------------------------------------------- lattice interpolation
 
 
 def _interp(L, Wy, Wx, dtype=np.float32):
@@ -121,8 +125,6 @@ class UncertaintyMaps:
         """Write ``sigma_{horizontal,east,north}.tif``, ``ce90.tif``, ``dominant_source.tif``,
         ``sensitivity.json`` (and ``share_<source>.tif`` with ``source_maps``) into
         ``out_dir``; returns the paths."""
-        from stereodem.core.raster import write_geotiff, write_text_atomic
-
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         t, crs = self.grid.transform, self.grid.crs
@@ -196,8 +198,6 @@ def _node_fields(model, dem, grid, U, V, D, names, groups, method, samples, seed
         share = np.stack([pu.shares[s] for s in srcs], -1)
         col, row = gj.col, gj.row
     else:
-        from stereodem.ortho.uncertainty.sampling import monte_carlo, src
-
         col, row = (np.asarray(a, float) for a in model.project(lo, la, hh))
         if method == "monte-carlo":
             X, dE, dN = monte_carlo(
@@ -211,8 +211,6 @@ def _node_fields(model, dem, grid, U, V, D, names, groups, method, samples, seed
             sh_E = np.stack([(bE[[idx[m] for m in members[s]]] ** 2).sum(0) for s in srcs], -1)
             sh_N = np.stack([(bN[[idx[m] for m in members[s]]] ** 2).sum(0) for s in srcs], -1)
         else:
-            from stereodem.ortho.uncertainty.indices import fast_indices
-
             r = fast_indices(
                 model, lo, la, hh, names, D, grid.crs, samples=samples, dem=dem, seed=seed
             )
@@ -306,8 +304,6 @@ def ortho_uncertainty_maps(
             groups = {**groups, **{m: [m] for m in missing}}
     dem = _ellipsoidal(dem)
     if method == "first-order":
-        from stereodem.ortho.uncertainty.first_order_maps import first_order_maps
-
         return first_order_maps(
             model,
             dem,
@@ -442,8 +438,6 @@ def hirvonen_slope_kernels(size: int, res, c: float = 12.2):
 def hirvonen_slopes(heights, res, *, c: float = 12.2, size: int = 11):
     """Slopes ``(∂h/∂E, ∂h/∂N)`` (m/m) of every DEM cell from the Hirvonen-weighted quadratic
     surface over its ``size × size`` neighbourhood (NaN where the window has a void)."""
-    from scipy import ndimage
-
     z = np.asarray(heights, float)
     bad = ~np.isfinite(z)
     zf = np.where(bad, 0.0, z)
@@ -508,8 +502,6 @@ class DEMUncertainty:
     def write(self, dem_path, dem, *, overwrite=False):
         """Write ``<dem stem>_sigma_vertical.tif`` beside the DEM (its ``sigma`` layer,
         :data:`stereodem.core.dem.LAYERS`); returns the path."""
-        from stereodem.core.dem import write_layer
-
         return write_layer(
             dem_path, "sigma", self.sigma_vertical, dem.transform, dem.crs, overwrite=overwrite
         )

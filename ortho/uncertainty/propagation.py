@@ -1,4 +1,5 @@
-"""First-order propagation of sensor-model errors to ground positions (Bettemir 2010, eqs 4–8, 14–15).
+"""First-order propagation of sensor-model errors to ground positions (Bettemir 2010, eqs 4–8,
+14–15).
 
 The ground point of an image pixel is where its line of sight meets the DEM. A small change
 ``δp`` of the model's inputs moves the pixel's image position by ``J_img δp`` (pixels) at a
@@ -24,13 +25,16 @@ input ``k`` is its covariance contribution ``J_k (D Jᵀ)_k / V``, which is Helt
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import sys
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.special import erf as _erf
 
 from stereodem.core import geodesy
 from stereodem.core.errors import InputError
+from stereodem.ortho.drm import bilinear_nan
+from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 
 #: pseudo-parameters understood on top of a model's own parameters (name -> unit)
@@ -80,7 +84,6 @@ def adjustable_model(model):
     correction (RPC and fitted models: ``col_shift``, ``row_shift`` ... in pixels)."""
     if is_adjustable(model):
         return model
-    from stereodem.sensor.models.corrected import ImageCorrectedModel
 
     return ImageCorrectedModel(model)
 
@@ -120,8 +123,6 @@ def advance_frame_camera(model, dt: float):
     Earth-fixed velocity propagated along the orbit (two-body gravity plus the Coriolis and
     centrifugal terms of the rotating frame; second order in ``dt``). Attitude relative to the
     orbital frame is kept, so the look direction turns with the orbit."""
-    from dataclasses import replace
-
     r, v = np.asarray(model.position, float), np.asarray(model.velocity, float)
     w = np.array([0.0, 0.0, geodesy.OMEGA_EARTH])
     a = -geodesy.GM * r / np.linalg.norm(r) ** 3 - 2 * np.cross(w, v) - np.cross(w, np.cross(w, r))
@@ -145,8 +146,6 @@ def perturbed_model(model, values: dict):
 
 def parameter_unit(model, name) -> str | None:
     """Unit of a model parameter from the model's ``PARAMETERS`` table (None if unknown)."""
-    import sys
-
     table = getattr(model, "PARAMETERS", None)
     if not isinstance(table, dict):  # module-level table (pushbroom, ASTER)
         for cls in type(model).__mro__:
@@ -257,8 +256,6 @@ def dem_gradient(dem, lon, lat, crs, *, arrays=None):
 def slope_from_pixels(gc, gr, c, r, P):
     """Map-axis gradient from the DEM-pixel gradient arrays sampled at (c, r) with the pixel
     Jacobian ``P = ∂(c, r)/∂(E, N)``; 0 where the DEM has no value."""
-    from stereodem.ortho.drm import bilinear_nan
-
     a, b = np.nan_to_num(bilinear_nan(gc, c, r)), np.nan_to_num(bilinear_nan(gr, c, r))
     return a * P[..., 0, 0] + b * P[..., 1, 0], a * P[..., 0, 1] + b * P[..., 1, 1]
 
@@ -394,7 +391,8 @@ def covariance_matrix(names, sigmas: dict | None = None, covariance=None) -> np.
         bad = [n for n, v in zip(names, s) if not np.isfinite(v) or v < 0]
         if bad:
             raise InputError(
-                f"sigma must be finite and non-negative: {', '.join(f'{n}={sigmas[n]}' for n in bad)}"
+                "sigma must be finite and non-negative: "
+                f"{', '.join(f'{n}={sigmas[n]}' for n in bad)}"
             )
         D = np.diag(s**2)
     check_psd(D, names)

@@ -17,7 +17,7 @@ from scipy.stats import qmc
 
 from stereodem.core import geodesy
 from stereodem.core.errors import ConvergenceError, InputError
-from stereodem.ortho.uncertainty.propagation import check_names, perturbed_model
+from stereodem.ortho.uncertainty.propagation import check_names, ground_jacobian, perturbed_model
 
 
 def iman_conover(X, C, *, rng=None):
@@ -201,8 +201,6 @@ def field_displacements(model, lon, lat, h, names, X, crs, *, dem=None, nodes: i
     ground → image map over the displacement, ``δG = −A⁻¹ δp`` with ``A`` on the DEM surface.
     For displacements of a few pixels the neglected term is second order (≈ δp²/footprint).
     Returns ``dE, dN`` (s, n) and the measured field error (px)."""
-    from stereodem.ortho.uncertainty.propagation import ground_jacobian
-
     dc, dr, err = image_shift_field(model, lon, lat, h, names, X, nodes=nodes)
     gj = ground_jacobian(model, lon, lat, h, [], crs, dem=dem)
     Ainv = np.linalg.inv(gj.A)  # (n, 2, 2) metres per pixel

@@ -22,18 +22,18 @@ import logging
 import numpy as np
 
 from stereodem.core.errors import InputError, StereodemError
+from stereodem.sensor.estimation.adjust import MODEL_SETS, adjust_model, model_set
 from stereodem.sensor.io.gcps import ControlPoints
+from stereodem.sensor.models.generic import MODEL_NAMES, fit_model, n_parameters
+from stereodem.sensor.models.orbital import DEFAULT_SETS
+from stereodem.sensor.models.orbital._common import require_gcps, require_inside
+from stereodem.sensor.models.pushbroom import PushbroomModel
 
 log = logging.getLogger(__name__)
 
 
 def expand_models(names, base) -> list[str]:
     """The model list: ``all`` expanded for the image model ``base``; unknown names refused."""
-    from stereodem.sensor.estimation.adjust import MODEL_SETS
-    from stereodem.sensor.models.generic import MODEL_NAMES
-    from stereodem.sensor.models.orbital import DEFAULT_SETS
-    from stereodem.sensor.models.pushbroom import PushbroomModel
-
     out = []
     for name in names:
         if name == "all":
@@ -114,8 +114,6 @@ def _concat(a, b):
 
 
 def _generic_record(name, gcp, icp, sigma_px=None):
-    from stereodem.sensor.models.generic import fit_model, n_parameters
-
     model, rep = fit_model(
         name,
         *(getattr(gcp, k) for k in ("lon", "lat", "h", "col", "row")),
@@ -150,11 +148,6 @@ def compare(
     sigma0, condition`` and ``error`` (the one-line reason when the fit was refused).
     ``prepared`` (a dict, filled here) keeps the models built from ``base`` for another call
     with the same ``base``."""
-    from stereodem.sensor.estimation.adjust import adjust_model, model_set
-    from stereodem.sensor.estimation.adjust.model_sets import MODEL_SETS
-    from stereodem.sensor.models.generic import MODEL_NAMES, n_parameters
-    from stereodem.sensor.models.orbital._common import require_gcps, require_inside
-
     pool, icp = split_points(points, n_check, seed)
     require_inside(base, icp.col, icp.row)
     counts = sorted({int(c) for c in counts if 0 < int(c) <= len(pool)})

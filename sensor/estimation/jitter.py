@@ -7,10 +7,11 @@ or behind where its model says, and the stereo heights carry stripes across the 
 repeat along it (MMASTER fits them with a sum of sines against a reference DEM; ASP's
 ``jitter_solve`` adjusts the attitude). Here:
 
-* :func:`with_attitude_sines` gives a copy of a :class:`~stereodem.sensor.models.pushbroom.PushbroomModel`
-  (or :class:`~stereodem.sensor.models.aster.AsterModel`) whose attitude angle ``axis``
-  (``roll``/``pitch``/``yaw``, radians) is ``sum_k a_k sin(2 pi f_k t + phi_k)`` on the model's
-  time base - used by the simulator to inject jitter and by the correction;
+* :func:`with_attitude_sines` gives a copy of a
+  :class:`~stereodem.sensor.models.pushbroom.PushbroomModel` (or
+  :class:`~stereodem.sensor.models.aster.AsterModel`) whose attitude angle ``axis``
+  (``roll``/``pitch``/``yaw``, radians) is ``sum_k a_k sin(2 pi f_k t + phi_k)`` on the model's time
+  base - used by the simulator to inject jitter and by the correction;
 * :func:`height_sensitivity` is the height change (m per rad) of a stereo intersection when
   the second model's pitch changes, from the two models (numerical, per point);
 * :func:`fit_sum_of_sines` finds the strongest frequencies of a sampled signal by a
@@ -35,7 +36,11 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import lombscargle
 
+from stereodem.core import geodesy
+from stereodem.core.dem import ELLIPSOID
 from stereodem.core.errors import InputError
 from stereodem.sensor.models.ephemeris import Attitude
 
@@ -112,8 +117,6 @@ def height_sensitivity(left, right, lon, lat, h, *, dpitch: float = 1e-6):
     The point is seen by ``left`` and ``right``; ``right`` is pitched by ``dpitch`` and the two
     rays are intersected again (closest point of the two lines).
     """
-    from stereodem.core import geodesy
-
     cl, rl = left.project(lon, lat, h)
     cr, rr = right.project(lon, lat, h)
     tilted = right.with_parameters(pitch_bias=right.parameters()["pitch_bias"] + dpitch)
@@ -139,9 +142,6 @@ def fit_sum_of_sines(
     (``scipy.signal.lombscargle``) within ``f_range`` (Hz), then all parameters are refined
     together by ``scipy.optimize.least_squares`` (soft-L1 loss against outliers).
     """
-    from scipy.optimize import least_squares
-    from scipy.signal import lombscargle
-
     t = np.asarray(t, float)
     y = np.asarray(y, float)
     ok = np.isfinite(t) & np.isfinite(y)
@@ -232,9 +232,6 @@ def estimate_pitch_jitter(
     fitted :class:`SineSeries` is ``j(t)``: ``with_attitude_sines(right, fit)`` is the
     corrected model. Returns ``(SineSeries, diagnostics)`` with the profile used.
     """
-    from stereodem.core import geodesy
-    from stereodem.core.dem import ELLIPSOID
-
     z = np.asarray(dem.heights, float)
     rows, cols = np.nonzero(np.isfinite(z))
     if rows.size > max_cells:

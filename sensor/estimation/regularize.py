@@ -200,7 +200,8 @@ def gcv_weight(A, b, *, lams=None, svd: SVDSystem | None = None) -> float:
 
 
 def lcurve(A, b, lams, *, svd: SVDSystem | None = None):
-    """Points of the L-curve: ``(log ||A x_lam - b||, log ||x_lam||)`` at each weight in ``lams``."""
+    """Points of the L-curve: ``(log ||A x_lam - b||, log ||x_lam||)`` at each weight in
+    ``lams``."""
     sv = _system(A, b, svd)
     lams = np.asarray(lams, dtype=np.float64)
     rho = 0.5 * np.log(np.maximum(sv.residual_norm2(lams), 1e-300))

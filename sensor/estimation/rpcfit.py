@@ -146,7 +146,8 @@ def fit_rpc(
     width=None,
     height=None,
 ):
-    """Fit a terrain-independent RPC00B model to any :class:`~stereodem.sensor.models.base.SensorModel`.
+    """Fit a terrain-independent RPC00B model to any
+    :class:`~stereodem.sensor.models.base.SensorModel`.
 
     Parameters
     ----------

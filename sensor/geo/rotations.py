@@ -16,6 +16,7 @@ Conventions (Bettemir 2006, Ch. 2; ASTER L1A, notes §4.2)
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from stereodem.core.geodesy import OMEGA_EARTH
 
@@ -94,7 +95,5 @@ def quaternion_to_matrix(q):
 
     Uses scipy's convention (active rotation, scalar last): ``M @ v`` rotates ``v``.
     """
-    from scipy.spatial.transform import Rotation
-
     q = np.asarray(q, float)
     return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))

@@ -1,2 +1,2 @@
-"""Files in and out (rasters: :mod:`stereodem.core.raster`): RPC formats, ASTER product geometry, model sidecars
-and ground control point tables."""
+"""Files in and out (rasters: :mod:`stereodem.core.raster`): RPC formats, ASTER product geometry,
+model sidecars and ground control point tables."""

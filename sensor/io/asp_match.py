@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core.errors import InputError
+from stereodem.core.raster import atomic_path, check_writable
 
 __all__ = [
     "InterestPoints",
@@ -201,8 +202,6 @@ def _points_bytes(p: InterestPoints) -> bytes:
 def write_match(path, match: MatchFile, *, overwrite: bool = False) -> Path:
     """Write ``match`` as an ASP binary ``.match`` file (atomically; ASP reads it back, e.g.
     ``bundle_adjust --match-files-prefix``). Points without descriptors get empty ones."""
-    from stereodem.core.raster import atomic_path, check_writable
-
     if len(match.left) != len(match.right):
         raise InputError(f"{path}: {len(match.left)} left and {len(match.right)} right points")
     data = (

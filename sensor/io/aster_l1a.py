@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import re
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -292,7 +293,6 @@ def is_aster_granule(path) -> bool:
     if p.suffix.lower() == ".zip":
         if p.name.upper().startswith("AST_L1"):
             return True
-        import zipfile
 
         try:
             with zipfile.ZipFile(p) as z:

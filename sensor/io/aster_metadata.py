@@ -20,7 +20,8 @@ _LEVEL_NAMES = {"1B": "L1B", "1T": "L1T", "L1B": "L1B", "L1T": "L1T"}
 
 
 def product_level(flat: dict, name: str) -> str | None:
-    """``"L1A"``, ``"L1B"``, ``"L1T"`` or None from the short name / processing level / file name."""
+    """``"L1A"``, ``"L1B"``, ``"L1T"`` or None from the short name / processing level / file
+    name."""
     short = str(flat.get("SHORTNAME", "")).upper().replace("_", "")
     if short.startswith("ASTL1A"):
         return "L1A"

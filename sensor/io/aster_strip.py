@@ -37,8 +37,10 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core.errors import InputError
+from stereodem.sensor.io.aster_l1a import open_aster_granule
 from stereodem.sensor.io.aster_metadata import first_key
 from stereodem.sensor.io.odl import flatten_odl
+from stereodem.sensor.models.aster import AsterGeometry, AsterModel
 
 #: largest distance (m) of a granule's satellite positions from the previous granule's
 #: ephemeris at the matching time for one pass (real products: cm-level position noise;
@@ -214,8 +216,6 @@ class StripBand:
 
 def join_band(granules, band: str, *, radiometric: bool = True) -> StripBand:
     """Join band ``band`` of ordered consecutive granules (see the module docstring)."""
-    from stereodem.sensor.models.aster import AsterGeometry, AsterModel
-
     bands = [g.band(band) for g in granules]
     models = [b.model for b in bands]
     names = [Path(g.path).name for g in granules]
@@ -322,8 +322,6 @@ class AsterStrip:
 def open_aster_strip(paths, *, radiometric: bool = True) -> AsterStrip:
     """Open the granules ``paths`` (any order), check that they are consecutive granules of
     one pass and join their 3N and 3B bands (see the module docstring)."""
-    from stereodem.sensor.io.aster_l1a import open_aster_granule
-
     if len(paths) < 2:
         raise InputError("a strip needs at least two granules")
     granules = order_granules([open_aster_granule(p) for p in paths])

@@ -21,11 +21,12 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import rasterio
 
 from stereodem.core.errors import InputError
 from stereodem.sensor.io.aster_l1a import VNIR_BANDS, L1ABandFields, swath_name
 from stereodem.sensor.io.aster_metadata import not_l1a_message, product_level
-from stereodem.sensor.io.odl import parse_odl
+from stereodem.sensor.io.odl import flatten_odl, parse_odl
 from stereodem.sensor.io.tables import TableError, numeric_blocks
 
 #: tables a band needs (besides ``ImageData.tif``); ASP's aster2asp requires the same set
@@ -146,8 +147,6 @@ def read_v003(path):
     elif met:
         odl["met"] = parse_odl(src.text(met[0]), source=f"{path}:{met[0]}")
     if odl:
-        from stereodem.sensor.io.odl import flatten_odl
-
         level = product_level(flatten_odl(odl["met"]), gid)
         if level in ("L1B", "L1T"):
             raise InputError(not_l1a_message(path, level))
@@ -173,8 +172,6 @@ def read_v003(path):
 
 
 def _band(src: _Source, band, sw, img_member, t):
-    import rasterio
-
     where = f"{src.path}:{sw}"
     rpath = src.raster_path(img_member)
     try:

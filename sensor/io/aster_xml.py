@@ -9,6 +9,7 @@ product), ``WORLD_SIGHT_VECTOR`` (ECEF, from the product's latitude/longitude),
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from importlib import resources
 
 import numpy as np
 
@@ -143,8 +144,6 @@ def bundled_xml(band: str):
 
     One V003 granule over Mt Rainier, 2017-07-31 (uw-cryo/asp_plot test data, BSD-3-Clause).
     """
-    from importlib import resources
-
     if band not in ("3N", "3B"):
         raise SensorModelError(f"ASTER band must be '3N' or '3B', got {band!r}")
     return resources.files("stereodem.sensor") / "data" / "aster" / f"out-Band{band}.xml"

@@ -38,13 +38,18 @@ DIMAP counts pixels from 1; stereodem from 0 (centre of the first pixel).
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from datetime import datetime
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from stereodem.core.errors import SensorModelError
+from stereodem.core.raster import write_text_atomic
+from stereodem.sensor.geo.rotations import orbital_frame
+from stereodem.sensor.models.ephemeris import Attitude, Ephemeris
+from stereodem.sensor.models.orbital.topan_los import orbital_to_ecef, payload_to_orbital
+from stereodem.sensor.models.pushbroom import DetectorArray, PushbroomModel
 
 __all__ = ["read_dimap_physical", "write_spot5_dimap"]
 
@@ -166,9 +171,6 @@ def _pleiades(root, smc, path, step):
 
 
 def _spot5(root, path):
-    from stereodem.sensor.models.ephemeris import Ephemeris
-    from stereodem.sensor.models.orbital.topan_los import orbital_to_ecef, payload_to_orbital
-
     width, height = _size(root, path)
     ds = root.find(".//Data_Strip")
     points = ds.findall("Ephemeris/Points/Point")
@@ -232,10 +234,6 @@ def _pushbroom(
     width, height, t0, line_period, t_eph, pos, vel, t_att, sat_to_ecef, sight, cols, *, name
 ):
     """PushbroomModel from ECEF ephemeris, satellite -> ECEF rotations and sight vectors."""
-    from stereodem.sensor.geo.rotations import orbital_frame
-    from stereodem.sensor.models.ephemeris import Attitude, Ephemeris
-    from stereodem.sensor.models.pushbroom import DetectorArray, PushbroomModel
-
     z_down = bool(np.all(sight[:, 2] > 0))
     D = _TO_INSTRUMENT[z_down]  # instrument = D @ satellite
     inst = sight @ D.T
@@ -278,9 +276,6 @@ def write_spot5_dimap(
     reads), e.g. from a simulated scene. Times are seconds after ``epoch`` (a
     :class:`datetime.datetime`); ``line_period`` in seconds; ``center_line`` 0-based;
     angles in radians (roll, pitch, yaw per row; SPOT frames, see the module docstring)."""
-    from datetime import timedelta
-
-    from stereodem.core.raster import write_text_atomic
 
     def ts(t):
         return (epoch + timedelta(seconds=float(t))).strftime("%Y-%m-%dT%H:%M:%S.%f")

@@ -23,6 +23,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from stereodem.core import geodesy
 from stereodem.core.errors import InputError, where
 from stereodem.core.raster import write_text_atomic
 
@@ -98,7 +99,8 @@ class ControlPoints:
         return self.subset(self.role == role)
 
     def arrays(self):
-        """``(lon, lat, h, col, row)``, e.g. for :func:`stereodem.sensor.models.generic.fit_model`."""
+        """``(lon, lat, h, col, row)``, e.g. for
+        :func:`stereodem.sensor.models.generic.fit_model`."""
         return self.lon, self.lat, self.h, self.col, self.row
 
     @classmethod
@@ -209,8 +211,6 @@ def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
         role = np.full(ids.shape, "gcp")
     h = values["h"]
     if vertical == "geoid":
-        from stereodem.core import geodesy
-
         h = geodesy.geoid_to_ellipsoid(lon, lat, h)
     return ControlPoints(
         ids, lon, lat, h, values["col"], values["row"], role, opt["sigma_px"], opt["sigma_ground_m"]

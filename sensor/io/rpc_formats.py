@@ -41,8 +41,10 @@ from pathlib import Path
 from xml.etree import ElementTree
 
 import numpy as np
+import rasterio
 
 from stereodem.core.errors import RPCError
+from stereodem.core.raster import write_geotiff, write_text_atomic
 from stereodem.sensor.models.rpc import (
     _RPB_KEYS,
     COEFF_KEYS,
@@ -51,6 +53,7 @@ from stereodem.sensor.models.rpc import (
     _parse_coeffs,
     _parse_float,
 )
+from stereodem.sensor.models.rpc_direct import DirectRPCModel
 
 #: formats named in the error when no reader accepts a file
 FORMATS_TRIED = (
@@ -92,8 +95,6 @@ def read_rpc(path, *, direct: bool = False) -> RPCModel:
         why = f"; {gdal_note}" if gdal_note else ""
         raise RPCError(f"{path}: no RPC model found (tried: {', '.join(FORMATS_TRIED)}){why}")
     if direct:
-        from stereodem.sensor.models.rpc_direct import DirectRPCModel
-
         return DirectRPCModel.from_rpc(model)
     return model
 
@@ -102,8 +103,6 @@ def read_rpc(path, *, direct: bool = False) -> RPCModel:
 def _read_gdal(path: Path):
     """``(model, None)`` when GDAL opens the file and finds RPCs (tags or sidecars), else
     ``(None, note)``."""
-    import rasterio
-
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -506,8 +505,6 @@ def _read_dg_xml(path: Path, root) -> RPCModel:
 # ---------------------------------------------------------------------- writers
 def write_rpb(model, path, *, overwrite=False):
     """Write a GDAL/DigitalGlobe ``.RPB`` file (readable by GDAL as an image sidecar)."""
-    from stereodem.core.raster import write_text_atomic
-
     f = lambda v: format(float(v), "+.17g")  # noqa: E731
     lines = [
         'satId = "UNKNOWN";',
@@ -549,12 +546,8 @@ def write_geotiff_rpc(model, path, *, data=None, overwrite=False):
     (no overwrite unless ``overwrite``); without it the RPCs of the existing file ``path``
     are replaced in place.
     """
-    import rasterio
-
     path = Path(path)
     if data is not None:
-        from stereodem.core.raster import write_geotiff
-
         return write_geotiff(path, data, rpcs=model.to_rasterio(), overwrite=overwrite)
     if not path.is_file():
         raise RPCError(f"{path}: no such GeoTIFF to add RPC metadata to (pass data= to create one)")

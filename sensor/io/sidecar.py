@@ -9,12 +9,16 @@ model) and falls back to the image's RPC metadata (GeoTIFF tags, ``.RPB``, ``_RP
 from __future__ import annotations
 
 import json
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
 
 from stereodem.core.errors import RPCError, SensorModelError
 from stereodem.core.raster import write_text_atomic
+from stereodem.sensor.io.rpc_formats import read_rpc
+from stereodem.sensor.models import frame
+from stereodem.sensor.models.rpc import RPCModel
 
 _REGISTRY: dict[str, tuple[type, callable, callable]] = {}
 
@@ -37,11 +41,7 @@ def _jsonable(v):
 
 
 def _ensure_registered():
-    from stereodem.sensor.models import frame
-
     if "frame" not in _REGISTRY:
-        from dataclasses import fields
-
         names = [f.name for f in fields(frame.FrameCamera) if f.init]
         register(
             "frame",
@@ -51,7 +51,6 @@ def _ensure_registered():
         )
     if "rpcmodel" not in _REGISTRY:
         # the RPC00B metadata domain does not carry the image size: keep it in the sidecar
-        from stereodem.sensor.models.rpc import RPCModel
 
         register(
             "rpcmodel",
@@ -129,7 +128,6 @@ def load_model(path, *, rpc_direct: bool = False):
         d = None
     if isinstance(d, dict) and "type" in d:
         return model_from_dict(d, source=path)
-    from stereodem.sensor.io.rpc_formats import read_rpc
 
     try:
         return read_rpc(path, direct=rpc_direct)
@@ -157,8 +155,6 @@ def load_image_model(image, *, prefer: str = "physical", rpc_direct: bool = Fals
     if prefer == "physical" and side.exists():
         return load_model(side)
     try:
-        from stereodem.sensor.models.rpc import RPCModel
-
         return RPCModel.from_file(image, direct=rpc_direct)
     except RPCError as exc:
         raise SensorModelError(

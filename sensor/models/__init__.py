@@ -5,5 +5,6 @@ frame camera (:mod:`.frame`), pushbroom with ephemeris and attitude (:mod:`.push
 :mod:`.ephemeris`), ASTER from its product geometry (:mod:`.aster`), RPC00B (:mod:`.rpc`), the
 GCP-fitted generic models of the Ok thesis (:mod:`.generic`), the parametric orbital models of
 Topan's survey (:mod:`.orbital`: Topan's EOP-polynomial line of sight, Orun & Natarajan,
-Toutin-type, Kratky) and image-space corrections of any model (:mod:`.corrected`). Adjustable parameters are named vectors (:mod:`.parameters`).
+Toutin-type, Kratky) and image-space corrections of any model (:mod:`.corrected`). Adjustable
+parameters are named vectors (:mod:`.parameters`).
 """

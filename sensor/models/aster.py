@@ -5,7 +5,8 @@ The product geometry is a lattice of 11 columns x N rows (ASTER notes §2.4): pe
 a satellite position (ECEF, m) and per lattice point a unit sight vector in the orbital frame
 (z = -r/|r|, y = -(r x v)/|r x v|, x = y x z, built with the **inertial** velocity
 ``v + omega_E x r``; notes §4.2-4.3). Lattice integers are pixel centres, the project's
-convention. The model (:class:`AsterModel`) is a :class:`stereodem.sensor.models.pushbroom.PushbroomModel`:
+convention. The model (:class:`AsterModel`) is a
+:class:`stereodem.sensor.models.pushbroom.PushbroomModel`:
 
 * line times ``t(row) = row * line_period`` with ``line_period`` = 2.1989 ms (notes §4.4);
 * positions interpolated by 8-point Lagrange polynomials over the lattice-row samples; the
@@ -29,7 +30,7 @@ import numpy as np
 
 from stereodem.core import geodesy
 from stereodem.core.errors import SensorModelError
-from stereodem.sensor.models.ephemeris import Ephemeris
+from stereodem.sensor.models.ephemeris import Attitude, Ephemeris
 from stereodem.sensor.models.pushbroom import DetectorArray, PushbroomModel
 
 #: ASTER VNIR line period, seconds (0.87958 s per 400-line lattice step; notes §4.4).
@@ -274,8 +275,6 @@ class AsterModel(PushbroomModel):
             model._set_parameters(d["parameters"])
         a = d.get("attitude")
         if a is not None:
-            from stereodem.sensor.models.ephemeris import Attitude
-
             model.attitude = Attitude(a["times"], a.get("angles"), quaternions=a.get("quaternions"))
         return model
 

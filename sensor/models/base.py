@@ -189,7 +189,8 @@ class SensorModel:
         return float(0.5 * (np.linalg.norm(p[1] - p[0]) + np.linalg.norm(p[2] - p[0])))
 
     def check_inputs(self, *arrays, what="coordinates"):
-        """Raise :class:`SensorModelError` when inputs contain NaN/inf (clear error, no NaN soup)."""
+        """Raise :class:`SensorModelError` when inputs contain NaN/inf (clear error, no NaN
+        soup)."""
         for a in arrays:
             a = np.asarray(a, dtype=float)
             if not np.all(np.isfinite(a)):

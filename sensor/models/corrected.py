@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from stereodem.core.errors import SensorModelError
+from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
 from stereodem.sensor.models.base import SensorModel
 from stereodem.sensor.models.parameters import checked_parameters
 
@@ -124,14 +125,10 @@ class ImageCorrectedModel(SensorModel):
 
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict:
-        from stereodem.sensor.io.sidecar import model_to_dict
-
         return {"model": model_to_dict(self.model), "parameters": self.parameters()}
 
     @classmethod
     def from_dict(cls, d: dict) -> ImageCorrectedModel:
-        from stereodem.sensor.io.sidecar import model_from_dict
-
         return cls(model_from_dict(d["model"]), **d.get("parameters", {}))
 
     def __repr__(self):

@@ -13,8 +13,11 @@ Times are seconds on any one time base shared with the sensor model's line times
 from __future__ import annotations
 
 import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, RotationSpline
 
 from stereodem.core.errors import SensorModelError
+from stereodem.core.geodesy import GM, OMEGA_EARTH
 from stereodem.sensor.geo.rotations import body_to_orbital
 
 
@@ -194,8 +197,8 @@ class Attitude:
         Sample times, seconds, strictly increasing.
     angles : array_like (n, 3), optional
         Roll, pitch, yaw in radians (Bettemir Eq. 4.7 convention, see
-        :func:`stereodem.sensor.geo.rotations.body_to_orbital`). Interpolated by a natural cubic spline per
-        angle; a single sample is a constant attitude.
+        :func:`stereodem.sensor.geo.rotations.body_to_orbital`). Interpolated by a natural cubic
+        spline per angle; a single sample is a constant attitude.
     quaternions : array_like (n, 4), optional
         Unit quaternions ``(q1, q2, q3, q4)``, scalar last (scipy convention), of the rotation
         taking body vectors to orbital ones (``d_O = M d_B``). Interpolated with scipy's
@@ -203,9 +206,6 @@ class Attitude:
     """
 
     def __init__(self, times, angles=None, *, quaternions=None):
-        from scipy.interpolate import CubicSpline
-        from scipy.spatial.transform import Rotation, RotationSpline
-
         if (angles is None) == (quaternions is None):
             raise SensorModelError("attitude: give exactly one of angles or quaternions")
         self.times = _as_times(times, "attitude")
@@ -272,8 +272,6 @@ class CircularOrbit:
     """
 
     def __init__(self, radius: float, inclination: float, raan: float, u0: float):
-        from stereodem.core.geodesy import GM
-
         self.radius, self.inclination, self.raan, self.u0 = (
             float(radius),
             float(inclination),
@@ -284,8 +282,6 @@ class CircularOrbit:
 
     def state(self, t):
         """ECEF position (m) and Earth-fixed ECEF velocity (m/s) at times ``t`` (s)."""
-        from stereodem.core.geodesy import OMEGA_EARTH
-
         t = np.asarray(t, dtype=np.float64)
         a, n, i, om = self.radius, self.mean_motion, self.inclination, self.raan
         u = self.u0 + n * t

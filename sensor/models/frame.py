@@ -16,7 +16,8 @@ The chain follows Bettemir (2006) §4.1, with the errata of notes §9.2 fixed:
 * Camera -> body: ``R3(-90 deg) R1(180 deg)`` so ``D_B = (y, x, f)/n`` (Eq. 4.5: image up is the
   flight direction, the ray points down). The thesis's Appendix C drops R3(-90 deg); that is an
   erratum (notes §2.4).
-* Body -> orbital: roll/pitch/yaw by Eq. 4.7 (:func:`stereodem.sensor.geo.rotations.body_to_orbital`).
+* Body -> orbital: roll/pitch/yaw by Eq. 4.7
+  (:func:`stereodem.sensor.geo.rotations.body_to_orbital`).
 * Orbital -> ECEF: orbital frame from the position and the inertial velocity; the
   precession/nutation/sidereal chain of Eq. 4.22-4.31 cancels exactly (notes §2.6), so the
   model is independent of the epoch.

@@ -42,9 +42,9 @@ solution obtained by multiplying through by the denominator, refined by Gauss–
 (the algebraic solution alone shifts error between x and y; Ok's DLT y residuals suggest that
 is what happened there). Rational functions: linearised by the denominator and solved with
 Tikhonov regularisation, the weight chosen from the GCPs alone by generalised cross-validation
-or the L-curve (:mod:`stereodem.sensor.estimation.regularize`) — not by minimising the check-point error as Ok did —
-and re-solved with rows reweighted by the previous denominator (Tao & Hu 2001) so that the
-minimised quantity approaches the image residual.
+or the L-curve (:mod:`stereodem.sensor.estimation.regularize`) — not by minimising the check-point
+error as Ok did — and re-solved with rows reweighted by the previous denominator (Tao & Hu 2001) so
+that the minimised quantity approaches the image residual.
 
 GCP files
 ---------
@@ -394,8 +394,8 @@ class _Normalization:
 class GenericModel(SensorModel):
     """A generic model fitted to GCPs; see the module docstring for the forms.
 
-    Built by :func:`fit_model`. Implements the :class:`stereodem.sensor.models.base.SensorModel` contract:
-    ``project(lon, lat, h) -> (col, row)`` (degrees, ellipsoidal metres -> pixels) and
+    Built by :func:`fit_model`. Implements the :class:`stereodem.sensor.models.base.SensorModel`
+    contract: ``project(lon, lat, h) -> (col, row)`` (degrees, ellipsoidal metres -> pixels) and
     ``localize(col, row, h) -> (lon, lat)`` by Newton iteration on ``project`` in the map plane.
 
     Attributes
@@ -534,7 +534,8 @@ class GenericModel(SensorModel):
         return lon.reshape(shape), lat.reshape(shape)
 
     def height_bounds(self):
-        """Heights (m) between which rays are built: the GCP height range widened by half its span."""
+        """Heights (m) between which rays are built: the GCP height range widened by half its
+        span."""
         lo, hi = self.h_range
         pad = 0.5 * (hi - lo) + 100.0
         return (lo - pad, hi + pad)

@@ -13,8 +13,9 @@ ASTER notes §4.2-4.6):
   turns the view towards -y (left of the flight direction).
 * **orbital frame** — body -> orbital by the interpolated attitude (roll, pitch, yaw,
   Bettemir Eq. 4.7) and the adjustable bias/drift angles.
-* **ECEF** — orbital frame from position and velocity (:func:`stereodem.sensor.geo.rotations.orbital_frame`),
-  built by default with the *inertial* velocity ``v + omega_E x r`` (ASTER notes §4.3).
+* **ECEF** — orbital frame from position and velocity
+  (:func:`stereodem.sensor.geo.rotations.orbital_frame`), built by default with the *inertial*
+  velocity ``v + omega_E x r`` (ASTER notes §4.3).
 
 Line ``row`` is acquired at ``t(row) = t0 + row * line_period`` (pixel centres at integers).
 Ground -> image (:meth:`PushbroomModel.project`) is not in the seeds (Bettemir §3.3 of the
@@ -29,6 +30,8 @@ import copy
 import logging
 
 import numpy as np
+from numpy.polynomial import Polynomial
+from scipy.interpolate import CubicSpline
 
 from stereodem.core import geodesy
 from stereodem.core.errors import ConvergenceError, SensorModelError
@@ -91,7 +94,6 @@ class DetectorArray:
             Number of detectors; required when ``psi_y`` is a polynomial (the cross-track
             angle is checked to be monotonic over ``0..width-1``).
         """
-        from numpy.polynomial import Polynomial
 
         def curve(psi, name):
             if isinstance(psi, Polynomial):
@@ -119,7 +121,6 @@ class DetectorArray:
                 raise SensorModelError(
                     f"detector array: {name} has {a.size} values for {x.size} columns"
                 )
-            from scipy.interpolate import CubicSpline
 
             s = CubicSpline(x, np.tan(a))
             ds = s.derivative()
@@ -201,8 +202,6 @@ class DetectorArray:
         The tangents ``x/z`` and ``y/z`` are interpolated with a cubic spline in the column,
         which reproduces the table exactly at its columns; directions are renormalised.
         """
-        from scipy.interpolate import CubicSpline
-
         v = np.asarray(vectors, dtype=np.float64)
         x = np.asarray(cols, dtype=np.float64)
         if v.ndim == 2:
@@ -262,8 +261,6 @@ class DetectorArray:
     @classmethod
     def from_spec(cls, spec: dict) -> DetectorArray:
         """Rebuild a detector array from its :attr:`spec` (e.g. read back from JSON)."""
-        from numpy.polynomial import Polynomial
-
         try:
             kind = spec["kind"]
             if kind == "linear":
@@ -516,7 +513,8 @@ class PushbroomModel(SensorModel):
 
     # ---------------------------------------------------------------- parameters
     def parameters(self) -> dict:
-        """Adjustable parameters as an ordered ``{name: value}`` dict (units in :data:`PARAMETERS`)."""
+        """Adjustable parameters as an ordered ``{name: value}`` dict (units in
+        :data:`PARAMETERS`)."""
         return dict(self._params)
 
     def with_parameters(self, **values) -> PushbroomModel:
@@ -776,9 +774,9 @@ class PushbroomModel(SensorModel):
         along-track tilt ``first_tilt_deg`` (0: nadir, ASTER 3N); the second flies on the same
         orbit with along-track tilt ``backward_tilt_deg`` (ASTER 3B: -27.6 deg) and is
         acquired later when it looks further back (about 55 s at 705 km for 0 / -27.6 deg;
-        any pair of tilts works, e.g. +20 / -20 deg). Because the Earth turns meanwhile, the backward camera's
-        cross-track tilt is adjusted (by about 1.3 deg at mid-latitudes, as ASTER's wider 3B
-        swath absorbs) so that its centre pixel sees the same ground centre; its
+        any pair of tilts works, e.g. +20 / -20 deg). Because the Earth turns meanwhile, the
+        backward camera's cross-track tilt is adjusted (by about 1.3 deg at mid-latitudes, as
+        ASTER's wider 3B swath absorbs) so that its centre pixel sees the same ground centre; its
         ``cross_track_tilt_deg`` attribute holds the adjusted value. Both cameras have the
         same IFOV.
         """

@@ -6,7 +6,8 @@ DigitalGlobe XML, OSSIM ``.geom``, rpcm JSON) are read and written by
 
 An RPC00B model (NITF STDI-0002 RPC00B, GDAL RFC 22) maps normalised ground coordinates
 
-    L = (lon - LONG_OFF) / LONG_SCALE,  P = (lat - LAT_OFF) / LAT_SCALE,  H = (h - HEIGHT_OFF) / HEIGHT_SCALE
+    L = (lon - LONG_OFF) / LONG_SCALE,  P = (lat - LAT_OFF) / LAT_SCALE,
+    H = (h - HEIGHT_OFF) / HEIGHT_SCALE
 
 to normalised image coordinates through four cubic polynomials of 20 terms each::
 
@@ -42,6 +43,7 @@ import re
 import warnings
 
 import numpy as np
+from rasterio.rpc import RPC
 
 from stereodem.core.errors import RPCError, where
 from stereodem.sensor.models.base import SensorModel
@@ -521,7 +523,8 @@ class RPCModel(SensorModel):
         )
 
     def _newton_block(self, cn, rn, H, Lout, Pout, tol_s, tol_l, max_iterations, buf):
-        """Newton iterations on one block; writes converged (L, P) into Lout/Pout, returns #failed."""
+        """Newton iterations on one block; writes converged (L, P) into Lout/Pout, returns
+        #failed."""
         finite = np.isfinite(cn) & np.isfinite(rn) & np.isfinite(H)
         idx = np.flatnonzero(finite)
         if idx.size == cn.size:
@@ -570,7 +573,8 @@ class RPCModel(SensorModel):
     # ------------------------------------------------------------------ constructors
     @classmethod
     def from_dict(cls, d, *, path=None, width=None, height=None, loc_coeffs=None):
-        """Build from a GDAL RPC-domain mapping (keys of :data:`SCALAR_KEYS` and :data:`COEFF_KEYS`).
+        """Build from a GDAL RPC-domain mapping (keys of :data:`SCALAR_KEYS` and
+        :data:`COEFF_KEYS`).
 
         Values may be numbers, numeric strings, or (for coefficients) sequences or
         whitespace-separated strings of 20 numbers. ``ERR_BIAS``/``ERR_RAND`` are optional.
@@ -652,8 +656,6 @@ class RPCModel(SensorModel):
 
     def to_rasterio(self):
         """The model as a :class:`rasterio.rpc.RPC` (for ``RPCTransformer`` or ``rpcs=``)."""
-        from rasterio.rpc import RPC
-
         return RPC(
             height_off=self.height_off,
             height_scale=self.height_scale,
@@ -674,13 +676,15 @@ class RPCModel(SensorModel):
         )
 
     def write_rpb(self, path, *, overwrite=False):
-        """Write a GDAL/DigitalGlobe ``.RPB`` file (:func:`stereodem.sensor.io.rpc_formats.write_rpb`)."""
+        """Write a GDAL/DigitalGlobe ``.RPB`` file
+        (:func:`stereodem.sensor.io.rpc_formats.write_rpb`)."""
         from stereodem.sensor.io.rpc_formats import write_rpb
 
         return write_rpb(self, path, overwrite=overwrite)
 
     def write_geotiff_tags(self, path, *, data=None, overwrite=False):
-        """Store the RPCs in a GeoTIFF (:func:`stereodem.sensor.io.rpc_formats.write_geotiff_rpc`)."""
+        """Store the RPCs in a GeoTIFF
+        (:func:`stereodem.sensor.io.rpc_formats.write_geotiff_rpc`)."""
         from stereodem.sensor.io.rpc_formats import write_geotiff_rpc
 
         return write_geotiff_rpc(self, path, data=data, overwrite=overwrite)
@@ -688,5 +692,6 @@ class RPCModel(SensorModel):
     def __repr__(self):
         return (
             f"RPCModel({self.width}x{self.height}, lon {self.lon_off:.6f}±{self.lon_scale:.6f}, "
-            f"lat {self.lat_off:.6f}±{self.lat_scale:.6f}, h {self.height_off:g}±{self.height_scale:g})"
+            f"lat {self.lat_off:.6f}±{self.lat_scale:.6f}, h "
+            f"{self.height_off:g}±{self.height_scale:g})"
         )

@@ -90,7 +90,8 @@ def check_validity(model: RPCModel, lon, lat, h, *, tolerance: float = 0.1):
             f"{where(model.source)}{int(bad.sum())} of {bad.size} point(s) outside the "
             f"RPC validity range (lon {model.lon_off - abs(model.lon_scale):.4f}.."
             f"{model.lon_off + abs(model.lon_scale):.4f}, lat "
-            f"{model.lat_off - abs(model.lat_scale):.4f}..{model.lat_off + abs(model.lat_scale):.4f}, "
+            f"{model.lat_off - abs(model.lat_scale):.4f}.."
+            f"{model.lat_off + abs(model.lat_scale):.4f}, "
             f"h {model.height_off - s:.0f}..{model.height_off + s:.0f} m)"
         )
     return ~bad

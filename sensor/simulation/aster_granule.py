@@ -2,13 +2,13 @@
 
 The simulator recipe of the ASTER notes (``aster-l1a-format.md`` §8, §2.7, §3):
 
-* the 3N and 3B models of an ``aster`` scene (:func:`stereodem.sensor.simulation.simulate.simulate_scene`)
-  are sampled on an 11-column lattice (columns ``0, w/10, ..., w``; rows every ``row_step``
-  lines from a negative first row, past the last line): per lattice row the ECEF satellite
-  position, ``SatelliteVelocity`` (inertial in ECEF axes by default, or Earth-fixed),
-  ``ObservationTime`` (days since 1958-01-01, ms of day split as MicMac reads it, us); per
-  lattice point the sight vector in the orbital frame (z = -r, y = -(r x v_in), x = y x z) and
-  the geocentric latitude / longitude of its ellipsoid intersection;
+* the 3N and 3B models of an ``aster`` scene
+  (:func:`stereodem.sensor.simulation.simulate.simulate_scene`) are sampled on an 11-column lattice
+  (columns ``0, w/10, ..., w``; rows every ``row_step`` lines from a negative first row, past the
+  last line): per lattice row the ECEF satellite position, ``SatelliteVelocity`` (inertial in ECEF
+  axes by default, or Earth-fixed), ``ObservationTime`` (days since 1958-01-01, ms of day split as
+  MicMac reads it, us); per lattice point the sight vector in the orbital frame (z = -r, y = -(r x
+  v_in), x = y x z) and the geocentric latitude / longitude of its ellipsoid intersection;
 * the scene's image is taken as radiance ``L`` and turned into L1A DN with a per-detector
   ``RadiometricCorrTable`` (D, A, G) that has a smooth across-track trend and a few outlying
   detectors (visible stripes): ``DN = clip(round((L - D) G / A), 1, 255)``, 0 kept for fill;
@@ -39,10 +39,12 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core import geodesy
-from stereodem.core.errors import InputError
+from stereodem.core.errors import InputError, OutputExistsError
+from stereodem.core.raster import write_geotiff
 from stereodem.sensor.geo.rotations import inertial_velocity, orbital_frame
 from stereodem.sensor.io.aster_l1a import swath_name
 from stereodem.sensor.io.odl import format_odl
+from stereodem.sensor.simulation.simulate import SUN_AZIMUTH, SUN_ELEVATION, write_scene
 
 #: unit conversion coefficient of 3N/3B at normal gain (W m-2 sr-1 um-1 per DN)
 UCC_NORMAL = 0.862
@@ -256,8 +258,6 @@ def _obj(value, cls=None):
 
 
 def _odl_attributes(g: SimulatedGranule, scene) -> dict:
-    from stereodem.sensor.simulation.simulate import SUN_AZIMUTH, SUN_ELEVATION
-
     m3n = scene.left_model
     corners = _corners(m3n)
     lats = [c[0] for c in corners.values()]
@@ -434,8 +434,6 @@ def struct_metadata(g: SimulatedGranule) -> str:
 
 
 def _check_target(path: Path, overwrite: bool):
-    from stereodem.core.errors import OutputExistsError
-
     if path.exists() and not overwrite:
         raise OutputExistsError(f"{path}: exists; pass --overwrite to replace it")
 
@@ -534,8 +532,6 @@ def write_v003(
     """Write ``g`` as a V003 granule: a folder, or a zip if ``path`` ends in ``.zip``
     (then the ODL metadata goes to ``<zip>.met`` beside it). ``decimals`` as
     :func:`v003_tables`."""
-    from stereodem.core.raster import write_geotiff
-
     path = Path(path)
     _check_target(path, overwrite)
     as_zip = path.suffix.lower() == ".zip"
@@ -586,8 +582,6 @@ def write_granule_scene(
 ) -> Path:
     """Write a simulated ASTER scene as an L1A granule (V004 ``.hdf`` or V003 ``.zip``) plus its
     truth (DEM, orthoimage, check points) in ``out``; returns the granule's path."""
-    from stereodem.sensor.simulation.simulate import write_scene
-
     g = granule_from_scene(scene, seed=seed, velocity=velocity, version=version)
     out = write_scene(scene, out, overwrite=overwrite, write_images=False)
     if version == 4:

@@ -26,9 +26,18 @@ from __future__ import annotations
 import copy
 import dataclasses
 import datetime as _dt
+import json
 
 from stereodem.core.errors import InputError
-from stereodem.sensor.simulation.aster_granule import DEFAULT_START, granule_from_scene
+from stereodem.core.raster import write_text_atomic
+from stereodem.sensor.simulation.aster_granule import (
+    DEFAULT_START,
+    granule_from_scene,
+    granule_right_size,
+    write_v003,
+    write_v004,
+)
+from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
 
 def granule_row_step(height: int) -> int:
@@ -114,9 +123,6 @@ def simulate_strip(
     ``size`` is one granule's 3N (width, lines); ``right_size`` its 3B size (default the real
     3N:3B ratio, :func:`stereodem.sensor.simulation.aster_granule.granule_right_size`).
     """
-    from stereodem.sensor.simulation.aster_granule import granule_right_size
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     n = int(n_granules)
     if n < 1:
         raise InputError(f"a strip needs at least one granule, got {n_granules}")
@@ -162,12 +168,6 @@ def write_strip(strip: SimulatedStrip, out, *, overwrite: bool = False, version:
     (``truth_dem.tif``, ``truth_ortho.tif``, ``points.csv``, ``scene.json``) and ``strip.json``
     (the granule files, where each was cut: 3N/3B first line, lines, the advance and the row
     step) into ``out``; returns the granule paths in time order."""
-    import json
-
-    from stereodem.core.raster import write_text_atomic
-    from stereodem.sensor.simulation.aster_granule import write_v003, write_v004
-    from stereodem.sensor.simulation.simulate import write_scene
-
     folder = write_scene(strip.scene, out, overwrite=overwrite, write_images=False)
     paths = []
     for g in strip.granules:

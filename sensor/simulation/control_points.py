@@ -12,7 +12,10 @@ import functools
 
 import numpy as np
 
+from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
+from stereodem.sensor.io.gcps import ControlPoints
+from stereodem.sensor.simulation.simulate import aster_geometry_parameters, pushbroom_pair
 
 #: Pointing and position errors of the truth against the metadata (PushbroomModel parameters):
 #: about 1.5 px of attitude bias, 0.5 px of attitude drift over the scene, 20 m of position.
@@ -48,9 +51,6 @@ def aster_pair_scene():
     """``(metadata_3N, metadata_3B, truth_3N, truth_3B, dem)``: the simulator's full-size ASTER
     pair geometry (4100 x 4200 and 5000 x 4600) over the bundled DEM, the truths carrying
     :data:`TRUTH_ERRORS` and :data:`TRUTH_ERRORS_BACKWARD`."""
-    from stereodem.core.dem import DEM
-    from stereodem.sensor.simulation.simulate import aster_geometry_parameters, pushbroom_pair
-
     p = aster_geometry_parameters()
     b = p["bands"]
     dem = DEM.bundled()
@@ -118,8 +118,6 @@ def random_pixels(model, n: int, *, seed: int = 0, margin: float = 20.0):
 
 def to_control_points(pts: dict, role):
     """A :class:`~stereodem.sensor.io.gcps.ControlPoints` of a :func:`points_at_pixels` dict."""
-    from stereodem.sensor.io.gcps import ControlPoints
-
     n = pts["lon"].size
     return ControlPoints.from_arrays(
         pts["lon"],

@@ -18,13 +18,18 @@ from __future__ import annotations
 
 import datetime as _dt
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+from rasterio.features import rasterize
 from scipy import ndimage
 
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
+from stereodem.core.raster import write_geotiff
+from stereodem.sensor.simulation.aster_granule import granule_from_scene, write_v004
+from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
 DAYS_PER_YEAR = 365.25
 
@@ -81,8 +86,6 @@ def thinning_truth(
     """A glacier-like change: inside ``outline`` (shapely polygon, grid CRS) the rate varies
     linearly with elevation from ``rate_low`` (m/yr) at the outline's lowest cell to
     ``rate_high`` at its highest (thinning strongest at the tongue); 0 outside."""
-    from rasterio.features import rasterize
-
     inside = rasterize(
         [(outline, 1)], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8"
     ).astype(bool)
@@ -98,10 +101,6 @@ def thinning_truth(
 def write_dem_series(dems, dates, out_dir, *, overwrite: bool = False, stem: str = "dem") -> list:
     """Write each :class:`DEM` as ``<stem>_<YYYY-MM-DD>.tif`` with its date in the GeoTIFF tag
     ``ACQUISITION_DATE`` (how :mod:`stereodem.post.dates` finds it); returns the paths."""
-    from pathlib import Path
-
-    from stereodem.core.raster import write_geotiff
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -150,11 +149,6 @@ def simulate_granule_series(
     raises the rendered surface of one date to a cloud top (the matcher sees the cloud).
 
     Returns a list of dicts: ``date``, ``granule`` (path), ``folder`` (with the scene truth)."""
-    from pathlib import Path
-
-    from stereodem.sensor.simulation.aster_granule import granule_from_scene, write_v004
-    from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
-
     g = dem.grid
     truth = thinning_truth(
         g, dem.heights, outline_lonlat, t_ref=t_ref, rate_low=rate_low, rate_high=rate_high

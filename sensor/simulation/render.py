@@ -1,9 +1,9 @@
 """Rendering an image through a sensor model over a DEM (used by the scene simulator).
 
 Every image pixel is localised on the DEM by the DRM relief iteration (as
-:meth:`stereodem.sensor.models.base.SensorModel.localize_dem`), and the ground radiance is read there. To keep
-ASTER-sized scenes fast, the exact model is evaluated on a coarse grid of pixels at three
-heights and stored as the map-grid pixel coordinates of each ray, quadratic in height
+:meth:`stereodem.sensor.models.base.SensorModel.localize_dem`), and the ground radiance is read
+there. To keep ASTER-sized scenes fast, the exact model is evaluated on a coarse grid of pixels at
+three heights and stored as the map-grid pixel coordinates of each ray, quadratic in height
 (:class:`GridLocalizer`); the relief iteration then runs on float32 arrays in the DEM's pixel
 coordinates with OpenCV bilinear sampling, block by block, each pixel starting from the height
 of its coarse-grid neighbours. :func:`sampled_localization_error` measures the error of that

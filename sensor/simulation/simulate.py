@@ -11,8 +11,8 @@ A scene is built on a UTM grid around the DEM's centre:
   image is the point sample of this band-limited field; an unblurred field would hold
   content above the image Nyquist frequency that no interpolation of the image can recover;
 * the two images: every pixel is localised on the DEM through its sensor model (DRM relief
-  iteration, :mod:`stereodem.sensor.simulation.render`) and reads the radiance there; then sensor noise
-  (Gaussian, ``noise`` DN) and 8- or 16-bit quantisation;
+  iteration, :mod:`stereodem.sensor.simulation.render`) and reads the radiance there; then sensor
+  noise (Gaussian, ``noise`` DN) and 8- or 16-bit quantisation;
 * ``truth_ortho``: the same band-limited radiance field at the ``truth_dem`` cell centres, in
   the same DN scale without noise or quantisation (the left image's true orthoimage). An
   exact orthorectification differs from it by the interpolator's error on the band-limited
@@ -54,7 +54,14 @@ from stereodem.core.dem import DEM, ELLIPSOID, as_dem
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
 from stereodem.core.memory import check_allocation
+from stereodem.core.raster import prepare_output_dir, write_geotiff, write_text_atomic
+from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
+from stereodem.sensor.estimation.rpcfit import fit_rpc
+from stereodem.sensor.io.aster_xml import bundled_xml, read_asp_aster_xml
+from stereodem.sensor.io.sidecar import save_model
 from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.models.frame import FrameCamera
+from stereodem.sensor.models.pushbroom import PushbroomModel
 from stereodem.sensor.simulation.render import (
     MapRaster,
     nanmean_blocks,
@@ -132,8 +139,6 @@ def _orbit_state(lon0, lat0, altitude, along_km, heading_deg):
 
 def frame_pair(lon0, lat0, h0, size, gsd=27.6, altitude=686e3, base_to_height=0.6):
     """Two BILSAT-like frame cameras on one orbit converging on ``(lon0, lat0, h0)``."""
-    from stereodem.sensor.models.frame import FrameCamera
-
     w, h = size
     pitch = 0.0074
     focal = pitch * 1e-3 * altitude / gsd * 1e3
@@ -152,15 +157,13 @@ def frame_pair(lon0, lat0, h0, size, gsd=27.6, altitude=686e3, base_to_height=0.
 def aster_geometry_parameters() -> dict:
     """Pointing, IFOV, orbit height and line period of the bundled real ASTER 3N/3B granule.
 
-    Read from the real product geometry (:func:`stereodem.sensor.io.aster_xml.bundled_xml`): the centre
-    detector's sight vector in the orbital frame gives the along-track angle of each band
+    Read from the real product geometry (:func:`stereodem.sensor.io.aster_xml.bundled_xml`): the
+    centre detector's sight vector in the orbital frame gives the along-track angle of each band
     (3N about +0.03 deg, 3B about -27.7 deg) and their common cross-track pointing (about
     8.6 deg to the right of the track); the angle between the first and last detectors gives
     the IFOV; the satellite positions give the orbit height. The line period 2.1989 ms is the
     one that reproduces the product's own lattice (notes aster-l1a-format §4.4).
     """
-    from stereodem.sensor.io.aster_xml import bundled_xml, read_asp_aster_xml
-
     out = {}
     for band in ("3N", "3B"):
         g = read_asp_aster_xml(bundled_xml(band))
@@ -199,14 +202,10 @@ def pushbroom_pair(
 ):
     """A pushbroom pair on one orbit with along-track tilts ``angles`` (degrees).
 
-    ``cross_track_tilt_deg`` follows :class:`stereodem.sensor.models.pushbroom.PushbroomModel` (positive looks
-    left of the flight direction). ``right_size`` (width, height) gives the second image its
-    own size (ASTER 3B: about 5000 x 4600 against 3N's 4100 x 4200); default ``size``.
+    ``cross_track_tilt_deg`` follows :class:`stereodem.sensor.models.pushbroom.PushbroomModel`
+    (positive looks left of the flight direction). ``right_size`` (width, height) gives the second
+    image its own size (ASTER 3B: about 5000 x 4600 against 3N's 4100 x 4200); default ``size``.
     """
-    try:
-        from stereodem.sensor.models.pushbroom import PushbroomModel
-    except ImportError as exc:  # pragma: no cover - the module is part of the package
-        raise InputError(f"pushbroom presets need sensor.pushbroom ({exc})") from None
     w, h = size
     rw, rh = right_size if right_size is not None else size
     # one orbit: the first image, then the second (e.g. ASTER 3N then 3B, ~55 s later), both
@@ -816,7 +815,6 @@ def simulate_scene(
     for axis, spec in (("pitch", jitter), ("roll", roll_jitter)):
         if spec is None:
             continue
-        from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
 
         amp_urad, freq = (float(x) for x in spec)
         if not (np.isfinite(amp_urad) and freq > 0):
@@ -934,8 +932,6 @@ def simulate_views(
         ]
         models = [pairs[0][0]] + [p[1] for p in pairs]
     else:
-        from stereodem.sensor.models.frame import FrameCamera
-
         pitch = 0.0074
         focal = pitch * altitude / gsd
         models = []
@@ -1058,17 +1054,12 @@ def write_scene(
     and ``scene.json`` (settings, diagnostics, RPC fit residuals). ``write_images=False``
     leaves out the images and their models (a granule writer stores them instead).
     """
-    from stereodem.core.raster import prepare_output_dir, write_geotiff, write_text_atomic
-    from stereodem.sensor.io.sidecar import save_model
-
     out = prepare_output_dir(out_dir, overwrite=overwrite)
     meta = dict(settings=scene.settings, diagnostics=dict(scene.diagnostics), rpc_fit={})
     pairs = (("left", scene.left, scene.left_model), ("right", scene.right, scene.right_model))
     for name, img, model in pairs if write_images else ():
         rpcs = None
         if fit_rpcs:
-            from stereodem.sensor.estimation.rpcfit import fit_rpc
-
             lo, hi = scene.truth_dem.height_range()
             rpc, report = fit_rpc(model, height_range=(lo - 500.0, hi + 500.0))
             rpcs = rpc.to_rasterio()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 
@@ -15,13 +16,17 @@ log = logging.getLogger(__name__)
 EXAMPLES = """examples:
   stereodem adjust img.tif --gcps points.csv --model rpc-shift -o img_adj.model.json --report adj/
   stereodem adjust img.tif --gcps points.csv --model rpc-affine --sigma-px 0.5 -o out.model.json
-  stereodem adjust aster_3n.tif --gcps pts.csv --vertical geoid --model attitude-bias -o 3n.model.json
+  stereodem adjust aster_3n.tif --gcps pts.csv --vertical geoid --model attitude-bias \\
+      -o 3n.model.json
   stereodem adjust img.tif --gcps points.csv --model rational-1 -o fitted.model.json --report rep/
-  stereodem adjust left.tif right.tif --model bundle --set rpc-shift --gcps left.csv --gcps2 right.csv \\
-      -o left.model.json --out2 right.model.json --report ba/
-  stereodem adjust left.tif right.tif --model bundle --ties ties.csv -o l.model.json --out2 r.model.json
-  stereodem adjust img_01.tif img_02.tif img_03.tif --model bundle --image-gcps 3=pts3.csv -o adjusted/
-  stereodem adjust 3N.tif 3B.tif --model bundle --match run-3N__3B.match -o 3n.model.json --out2 3b.model.json
+  stereodem adjust left.tif right.tif --model bundle --set rpc-shift --gcps left.csv \\
+      --gcps2 right.csv -o left.model.json --out2 right.model.json --report ba/
+  stereodem adjust left.tif right.tif --model bundle --ties ties.csv -o l.model.json \\
+      --out2 r.model.json
+  stereodem adjust img_01.tif img_02.tif img_03.tif --model bundle --image-gcps 3=pts3.csv \\
+      -o adjusted/
+  stereodem adjust 3N.tif 3B.tif --model bundle --match run-3N__3B.match -o 3n.model.json \\
+      --out2 3b.model.json
 
 GCP CSV: id,lon,lat,h,col,row[,sigma_px][,sigma_ground_m][,role]  (role gcp or check; lon/lat
 degrees WGS84, h ellipsoidal metres unless --vertical geoid, col/row pixels with the centre of
@@ -189,8 +194,6 @@ def run(args) -> int:
 
     check_writable(args.out, args.overwrite)
     if args.report:
-        from pathlib import Path
-
         for name in ("adjust_report.json", "adjust_report.md"):
             check_writable(Path(args.report) / name, args.overwrite)
     reg = args.regularization

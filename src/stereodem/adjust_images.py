@@ -7,20 +7,40 @@ images the ASP way, ``<prefix>-<stem1>__<stem2>.match``, and is checked against 
 :func:`stereodem.sensor.io.asp_match.check_match_images`), or automatic SIFT matches checked
 through the models (:func:`stereodem.stereo.sparse.sparse_matches`) for every pair chosen by
 overlap and base (:func:`stereodem.stereo.fusion.choose_pairs`). Pair matches sharing a pixel
-are chained into tracks (:func:`~stereodem.sensor.estimation.adjust.bundle_multi.tracks_from_pairs`).
-GCPs per image (``--gcps`` for the first, ``--gcps2`` for the second, ``--image-gcps K=CSV``
-for any); the datum is held by the GCPs, else by the fixed images (``--fix K``, default the
-first). The adjusted models are written as ``OUT/<stem>.model.json``.
+are chained into tracks
+(:func:`~stereodem.sensor.estimation.adjust.bundle_multi.tracks_from_pairs`). GCPs per image
+(``--gcps`` for the first, ``--gcps2`` for the second, ``--image-gcps K=CSV`` for any); the datum is
+held by the GCPs, else by the fixed images (``--fix K``, default the first). The adjusted models are
+written as ``OUT/<stem>.model.json``.
 """
 
 from __future__ import annotations
 
+import csv
 import logging
 from pathlib import Path
 
 import numpy as np
 
 from stereodem.core.errors import InputError
+from stereodem.core.raster import check_writable
+from stereodem.sensor.estimation.adjust import write_report
+from stereodem.sensor.estimation.adjust.bundle_multi import (
+    TieTracks,
+    bundle_adjust_images,
+    tracks_from_pairs,
+)
+from stereodem.sensor.io.asp_match import check_match_images, match_stems, read_match
+from stereodem.sensor.io.gcps import read_gcps
+from stereodem.sensor.io.sidecar import save_model
+from stereodem.sensor.models.base import pair_height_bounds
+from stereodem.stereo.fusion import choose_pairs
+from stereodem.stereo.sparse import sparse_matches
+from stereodem.stereo.ties import check_match_geometry
+
+from .config import Config, InputSettings
+from .multiview import reference_height
+from .pipeline.inputs import image_model, open_image
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +52,6 @@ def tie_csv_rows(path, need, note="") -> tuple[list, list]:
     the column index of each name in ``need`` (header required, case-insensitive); a missing
     or empty file or a header without them raises :class:`InputError` (``note`` ends that
     message)."""
-    import csv
-
     try:
         with open(path, newline="") as f:
             rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
@@ -50,8 +68,6 @@ def tie_csv_rows(path, need, note="") -> tuple[list, list]:
 def read_tracks(path, stems) -> TieTracks:  # noqa: F821
     """Tie observations from a CSV ``point,image,col,row`` (header required; ``image`` a
     1-based position in ``stems`` or one of the stems; ``point`` any label)."""
-    from stereodem.sensor.estimation.adjust.bundle_multi import TieTracks
-
     ix, rows = tie_csv_rows(path, ["point", "image", "col", "row"], " (N images)")
     labels, imgs, cols, rws = [], [], [], []
     for n, r in enumerate(rows, start=2):
@@ -77,10 +93,6 @@ def read_tracks(path, stems) -> TieTracks:  # noqa: F821
 def match_ties(paths, images, models) -> dict:
     """``{(i, j): ties}`` from ASP match files, each refused in one line when it does not
     belong to two of ``images`` (name, image bounds, epipolar geometry)."""
-    from stereodem.sensor.io.asp_match import check_match_images, match_stems, read_match
-    from stereodem.sensor.models.base import pair_height_bounds
-    from stereodem.stereo.ties import check_match_geometry
-
     stems = [Path(p).stem for p in images]
     out = {}
     for path in paths:
@@ -119,13 +131,6 @@ def match_ties(paths, images, models) -> dict:
 
 def _auto_ties(args, paths, models) -> dict:
     """Sparse SIFT matches checked through the models, for every usable pair."""
-    from stereodem.stereo.fusion import choose_pairs
-    from stereodem.stereo.sparse import sparse_matches
-
-    from .config import Config, InputSettings
-    from .multiview import reference_height
-    from .pipeline.inputs import open_image
-
     h0 = reference_height(Config(InputSettings(), "."), models)
     plan = choose_pairs(models, h0, names=paths)
     imgs = {}
@@ -145,17 +150,6 @@ def _auto_ties(args, paths, models) -> dict:
 def run_bundle_images(args) -> str:
     """The bundle adjustment of ``args.image``, ``args.image2`` and ``args.more``; writes the
     adjusted models into the folder ``args.out`` (and the report); returns the summary line."""
-    from stereodem.core.raster import check_writable
-    from stereodem.sensor.estimation.adjust import write_report
-    from stereodem.sensor.estimation.adjust.bundle_multi import (
-        bundle_adjust_images,
-        tracks_from_pairs,
-    )
-    from stereodem.sensor.io.gcps import read_gcps
-    from stereodem.sensor.io.sidecar import save_model
-
-    from .pipeline.inputs import image_model
-
     paths = [args.image, args.image2, *args.more]
     stems = [Path(p).stem for p in paths]
     if len(set(stems)) < len(stems):
@@ -177,11 +171,11 @@ def run_bundle_images(args) -> str:
     spec = [(0, args.gcps), (1, args.gcps2)] + [
         _image_gcps(s, len(paths)) for s in args.image_gcps or []
     ]
-    for k, csv in spec:
-        if csv:
+    for k, csv_path in spec:
+        if csv_path:
             if gcps[k] is not None:
-                raise InputError(f"{csv}: a second GCP file for image {k + 1} ({paths[k]})")
-            gcps[k] = read_gcps(csv, vertical=args.vertical)
+                raise InputError(f"{csv_path}: a second GCP file for image {k + 1} ({paths[k]})")
+            gcps[k] = read_gcps(csv_path, vertical=args.vertical)
     if args.ties:
         tracks = read_tracks(args.ties, stems)
     else:
@@ -216,8 +210,9 @@ def run_bundle_images(args) -> str:
     return (
         f"bundle ({args.param_set}) of {len(paths)} images: {tracks.n_points} tie points "
         f"({len(tracks)} observations, {int(res.tie_rejected.sum())} rejected), tie RMSE "
-        f"{res.tie_rmse_px:.3f} px, fixed: {', '.join(str(k + 1) for k in res.fixed) or 'none (GCPs)'}; "
-        f"ray gap RMS (m) {gaps}; models in {out}"
+        f"{res.tie_rmse_px:.3f} px, fixed: "
+        f"{', '.join(str(k + 1) for k in res.fixed) or 'none (GCPs)'}; ray gap RMS (m) {gaps}; "
+        f"models in {out}"
     )
 
 

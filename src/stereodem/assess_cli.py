@@ -43,7 +43,8 @@ def add_parser(subparsers):
         epilog="examples:\n"
         "  stereodem assess out/dem.tif --ref srtm.tif --ref-vertical geoid -o report\n"
         "  stereodem assess dem.tif --ref lidar.tif --checkpoints gps.csv --coregister -o report\n"
-        "  stereodem assess dem.tif --ref ref.tif --landcover lc.tif --landcover-names 1=forest,2=urban -o r\n",
+        "  stereodem assess dem.tif --ref ref.tif --landcover lc.tif --landcover-names "
+        "1=forest,2=urban -o r\n",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("dem", help="DEM GeoTIFF to assess")

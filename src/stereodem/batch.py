@@ -23,12 +23,29 @@ from __future__ import annotations
 
 import json
 import logging
+import multiprocessing
 import os
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import tomllib
+
 from stereodem.core.errors import InputError, StereodemError
+from stereodem.core.pool import stop_pool
+from stereodem.core.raster import write_text_atomic
+from stereodem.core.threads import (
+    cores,
+    job_threads,
+    pool_initializer,
+    register_dask_plugin,
+    thread_budget,
+    worker_threads,
+)
+
+from .config import config_from_dict, load_config
+from .pipeline.job import run
 
 log = logging.getLogger(__name__)
 
@@ -122,8 +139,6 @@ def _size(path: Path) -> int:
 def _config_size(path: Path) -> int:
     """Bytes of a configuration's images (0 when it cannot be read: it will fail later)."""
     try:
-        from .config import load_config
-
         cfg = load_config(path)
     except Exception:  # noqa: BLE001 - a bad configuration fails in its own task, with its reason
         return 0
@@ -132,10 +147,6 @@ def _config_size(path: Path) -> int:
 
 def scene_config(scene: Scene, out_dir, *, workers: int = 1, overwrite: bool = False):
     """The :class:`stereodem.config.Config` of one scene, writing into ``out_dir``."""
-    import tomllib
-
-    from .config import config_from_dict, load_config
-
     if scene.kind == "missing":
         raise InputError(f"{scene.path}: not found")
     resume = not overwrite
@@ -188,8 +199,6 @@ def run_scene(scene: Scene, out_root, workers: int = 1, overwrite: bool = False)
         return row
     t0, c0 = time.perf_counter(), _cpu()
     try:
-        from .pipeline.job import run
-
         info = run(scene_config(scene, out, workers=workers, overwrite=overwrite))
         row.extra = {
             "stages": {k: v.get("seconds") for k, v in info.get("stages", {}).items()},
@@ -235,8 +244,6 @@ def run_batch(
     ``LocalCluster``'s worker processes with ``dask="local"``; ``dask``: a scheduler address
     (``tcp://...``), ``"local"``, or a ``Client``. ``progress(row)`` is called per finished scene.
     """
-    from stereodem.core.threads import cores, job_threads, worker_threads
-
     out_root = Path(out_root)
     if out_root.exists() and not out_root.is_dir():
         raise InputError(f"{out_root}: not a folder")
@@ -257,8 +264,6 @@ def run_batch(
     if dask is not None:
         _run_dask(order, out_root, dask, n, overwrite, collect)
     elif n <= 1:
-        from stereodem.core.threads import thread_budget
-
         with thread_budget(1):
             for s in order:
                 collect(run_scene(s, out_root, 1, overwrite))
@@ -268,12 +273,6 @@ def run_batch(
 
 
 def _run_pool(order, out_root, n, threads, overwrite, collect):
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    from stereodem.core.pool import stop_pool
-    from stereodem.core.threads import pool_initializer
-
     ex = ProcessPoolExecutor(
         max_workers=n,
         mp_context=multiprocessing.get_context("spawn"),
@@ -308,7 +307,6 @@ def _run_dask(order, out_root, address, n, overwrite, collect):
         from dask.distributed import as_completed as dask_completed
     except ImportError:
         raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
-    from stereodem.core.threads import register_dask_plugin
 
     cluster = None
     if address == "local":
@@ -363,8 +361,6 @@ def _run_dask(order, out_root, address, n, overwrite, collect):
 
 
 def _write_table(out_root, scenes, rows, table, seconds) -> dict:
-    from stereodem.core.raster import write_text_atomic
-
     listed = [
         asdict(rows[s.name])
         if s.name in rows

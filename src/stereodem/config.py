@@ -51,8 +51,11 @@ from pathlib import Path
 import tomllib
 
 from stereodem.core.errors import InputError
+from stereodem.core.grid import map_crs
+from stereodem.core.raster import parse_creation_options
 from stereodem.core.vertical import VERTICALS, Vertical
 from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS, Resampling, UncertaintyMethod
+from stereodem.sensor.io.aster_l1a import is_aster_granule
 from stereodem.stereo import settings as stereo_settings
 from stereodem.stereo.fusion import FusionSettings
 from stereodem.stereo.settings import (
@@ -500,8 +503,6 @@ def build_settings(cls, table: dict, section: str, source):
 
 
 def _is_granule(path, base) -> bool:
-    from stereodem.sensor.io.aster_l1a import is_aster_granule
-
     return isinstance(path, str) and is_aster_granule(
         Path(base) / path if not os.path.isabs(path) else path
     )
@@ -638,7 +639,6 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[refinement] window must be an odd number >= 3, got {ref.window}")
     if gs.res is not None and not gs.res > 0:
         bad(f"[gridding] res must be positive, got {gs.res}")
-    from stereodem.core.grid import map_crs
 
     for key, value in (
         ("[gridding] crs", gs.crs),
@@ -686,7 +686,8 @@ def validate(cfg: Config, source="configuration"):
         bad("[uncertainty] maps are on the orthoimage's grid: enable [ortho]")
     if u.enabled and not (u.sigma or u.covariance):
         bad(
-            "[uncertainty] enabled needs sigma = {name = value, ...} or covariance = adjust_report.json"
+            "[uncertainty] enabled needs sigma = {name = value, ...} or covariance = "
+            "adjust_report.json"
         )
     if u.samples < 10:
         bad(f"[uncertainty] samples must be at least 10, got {u.samples}")
@@ -696,7 +697,8 @@ def validate(cfg: Config, source="configuration"):
         bad("[dem] point_cloud is not written with [jitter] enabled (not supported yet)")
     if cfg.dem.point_cloud and cfg.inputs.images:
         bad(
-            "[dem] point_cloud is not written for an N-view DEM ([inputs] images; not supported yet)"
+            "[dem] point_cloud is not written for an N-view DEM ([inputs] images; not supported "
+            "yet)"
         )
     for msg in cfg.fusion.problems():
         bad(f"[fusion] {msg}")
@@ -706,6 +708,4 @@ def validate(cfg: Config, source="configuration"):
     if run.tile_timeout is not None and not run.tile_timeout > 0:
         bad(f"[run] tile_timeout must be positive, got {run.tile_timeout}")
     if run.creation_options:
-        from stereodem.core.raster import parse_creation_options
-
         run.creation_options = parse_creation_options(run.creation_options)

@@ -11,7 +11,8 @@ EXAMPLES = """examples:
   stereodem coregister aster_dem.tif --ref srtm.tif -o coreg
   stereodem coregister dem.tif --ref ref.tif --chain nuth_kaab,deramp:2,along_track \\
       --track-angle 192 --exclude glaciers.gpkg -o coreg
-  stereodem coregister dem.tif --ref atl06.csv --ref-vertical ellipsoid --chain nuth_kaab,vshift -o coreg
+  stereodem coregister dem.tif --ref atl06.csv --ref-vertical ellipsoid --chain nuth_kaab,vshift \\
+      -o coreg
 
 steps (--chain, comma separated, applied in order; ':N' = order or number of sines):
   nuth_kaab (horizontal + vertical shift), vshift, deramp[:1-3], along_track[:N sines],

@@ -330,7 +330,8 @@ def _run_strip(args, granules, started) -> int:
 
 
 def _run_multiview(cfg, started) -> int:
-    """``stereodem dem IMG1 IMG2 IMG3 ...``: the N-view DEM (:func:`stereodem.multiview.run_dem`)."""
+    """``stereodem dem IMG1 IMG2 IMG3 ...``: the N-view DEM
+    (:func:`stereodem.multiview.run_dem`)."""
     from .multiview import run_dem
 
     bar = options.progress_bar("stereo")

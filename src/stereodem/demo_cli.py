@@ -108,7 +108,8 @@ def _demo(args, out) -> int:
     granule = write_granule_scene(scene, out / "scene", version=4, seed=args.seed, overwrite=True)
     print(
         f"simulated ASTER L1A granule (3N {args.size[0]}x{args.size[1]}, 3B "
-        f"{scene.right.shape[1]}x{scene.right.shape[0]}) in {time.perf_counter() - t0:.1f} s: {granule}"
+        f"{scene.right.shape[1]}x{scene.right.shape[0]}) in {time.perf_counter() - t0:.1f} s: "
+        f"{granule}"
     )
     cfg_path = Path(out) / "demo.toml"
     from stereodem.core.dem import DEM

@@ -20,6 +20,7 @@ import re
 import sys
 import tokenize
 import types
+import typing
 from pathlib import Path
 
 HEADER = """# Configuration keys (`stereodem run CONFIG.toml`)
@@ -181,7 +182,8 @@ def configuration_markdown(sections=None) -> str:
         "",
         "| key | type | default | description |",
         "|---|---|---|---|",
-        "| `dir` | str | *required* | Output folder of the run (relative to the configuration file). |",
+        "| `dir` | str | *required* | Output folder of the run (relative to the configuration "
+        "file). |",
         "",
     ]
     return "\n".join(parts).rstrip() + "\n"
@@ -190,8 +192,6 @@ def configuration_markdown(sections=None) -> str:
 def _choices_spec(owner, f) -> str | None:
     """``{"a", "b"}`` (``, optional`` when ``None`` is allowed) for a field annotated with a
     ``typing.Literal`` alias (the option choices of the library), else None."""
-    import typing
-
     mod = sys.modules.get(owner.__module__)
     try:
         t = typing.get_type_hints(owner, vars(mod) if mod else None).get(f.name)

@@ -2,14 +2,15 @@
 
 Reads ``DEM`` (as written by ``stereodem dem``) and the ``score.tif`` / ``raygap.tif`` beside
 it, runs the same filter chain and hole filling as ``stereodem run``, and writes ``CLEAN`` and
-its edit mask ``<CLEAN stem>_edit_mask.tif`` (filter reason 1-9, 9 = cloud, 99 border rim, 100 filled by
-IDW, 101 filled from the seed DEM, 0 kept).
+its edit mask ``<CLEAN stem>_edit_mask.tif`` (filter reason 1-9, 9 = cloud, 99 border rim, 100
+filled by IDW, 101 filled from the seed DEM, 0 kept).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 
@@ -18,7 +19,8 @@ from . import options
 EXAMPLES = """examples:
   stereodem filter out/dem.tif -o out/dem_clean.tif
   stereodem filter out/dem.tif -o clean.tif --thesis --max-hole-size 50
-  stereodem filter out/dem.tif -o clean.tif --seed-dem srtm.tif --dem-vertical geoid --fill-from-seed
+  stereodem filter out/dem.tif -o clean.tif --seed-dem srtm.tif --dem-vertical geoid \\
+      --fill-from-seed
 """
 
 
@@ -154,7 +156,6 @@ def run(args) -> int:
     if args.fill_from_seed and not args.seed_dem:
         raise InputError("--fill-from-seed needs --seed-dem")
     cfg = config_from_args(args)
-    from pathlib import Path
 
     from .outlock import check_not_an_input
 

@@ -30,7 +30,8 @@ log = logging.getLogger(__name__)
 EXAMPLES = """examples:
   stereodem mosaic dem_*.tif -o mosaic.tif
   stereodem mosaic a/dem.tif b/dem.tif --method median -o median.tif --res 30
-  stereodem mosaic tiles/*.tif -o m.tif --crs EPSG:32637 --vertical ellipsoid --dask local --workers 2
+  stereodem mosaic tiles/*.tif -o m.tif --crs EPSG:32637 --vertical ellipsoid --dask local \\
+      --workers 2
   stereodem mosaic dem_*.tif --ref srtm.tif --coregister -o m.tif --dem-vertical geoid
 """
 

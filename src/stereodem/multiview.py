@@ -23,6 +23,7 @@ points, pointing correction, heights) and its agreement with the fused DEM.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -30,10 +31,20 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core import geodesy
 from stereodem.core.errors import InputError, StereodemError
+from stereodem.core.raster import write_text_atomic
 from stereodem.stereo.fusion import FusedDEM, choose_pairs, fuse_dems, pair_sigma
+from stereodem.stereo.grid import GridSpec
+from stereodem.stereo.pipeline import DEMProducts, default_posting
+from stereodem.stereo.sanity import SuspectResultError
+from stereodem.stereo.ties import agree_models
 
 from .config import Config
+from .outlock import output_folder
+from .pipeline.inputs import Pair, input_paths, load_seed_dem, open_image
+from .pipeline.stages import stereo_stage
+from .provenance import provenance
 
 log = logging.getLogger(__name__)
 
@@ -79,11 +90,6 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
     ``progress`` is passed to each pair's stereo stage; ``cache_dir`` (a job's ``tiles/``)
     gets one sub-folder per pair (``pair_<i>_<j>``), so ``run --resume`` reuses pair tiles.
     """
-    from stereodem.stereo.pipeline import default_posting
-
-    from .pipeline.inputs import Pair, load_seed_dem, open_image
-    from .pipeline.stages import stereo_stage
-
     t0 = time.perf_counter()
     paths = [str(p) for p in paths]
     if len(paths) < 2:
@@ -119,8 +125,6 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
     )
     adjustment = None
     if fs.adjust != "never" and len(plan.pairs) >= 2:
-        from stereodem.stereo.ties import agree_models
-
         models, adjustment = agree_models(
             [im.image for im in images],
             models,
@@ -136,8 +140,6 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
     first = models[plan.pairs[0].i]
     crs = gs.crs
     if crs is None:
-        from stereodem.core import geodesy
-
         crs = geodesy.utm_crs(*first.center_lonlat(h0)).to_wkt()
     res = gs.res or default_posting(first.gsd(h0), crs)
     pcfg = dataclasses.replace(
@@ -217,24 +219,15 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
 
 
 def _bounds_grid(bounds, res, crs):
-    from stereodem.stereo.grid import GridSpec
-
     return GridSpec.from_bounds(bounds, res, crs).grid
 
 
 def run_dem(cfg: Config, *, started=None, progress=None) -> tuple:
     """``stereodem dem IMG1 IMG2 IMG3 ...``: the N-view DEM written into ``cfg.output_dir``
     (``dem.tif``, ``count.tif``, ``nmad.tif``, ``dem_sigma_vertical.tif``, ``score.tif``,
-    ``raygap.tif``, ``dem_report.json``), the folder locked for the job. Returns ``(products, folder)``;
-    a suspect pair result fails afterwards unless ``--force`` (as a pair job)."""
-    import json
-
-    from stereodem.core.raster import write_text_atomic
-
-    from .outlock import output_folder
-    from .pipeline.inputs import input_paths
-    from .provenance import provenance
-
+    ``raygap.tif``, ``dem_report.json``), the folder locked for the job. Returns
+    ``(products, folder)``; a suspect pair result fails afterwards unless ``--force`` (as a pair
+    job)."""
     with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, inputs=input_paths(cfg)) as out:
         prod = multiview_stage(cfg, cfg.inputs.images, progress=progress)
         prod.fused.write(out / "dem.tif", overwrite=True, creation_options=cfg.run.creation_options)
@@ -254,8 +247,6 @@ def run_dem(cfg: Config, *, started=None, progress=None) -> tuple:
         )
     bad = [w for w in prod.report["warnings"] if w.get("severity") == "suspect"]
     if bad and not cfg.run.force:
-        from stereodem.stereo.sanity import SuspectResultError
-
         raise SuspectResultError(
             f"result suspect: {bad[0]['message']}; products kept for "
             f"inspection, findings in {out / 'dem_report.json'} (--force accepts them)"
@@ -286,10 +277,6 @@ def run_stage(cfg: Config, *, progress=None, cache_dir=None):
     ``products.info`` the N-view report (:class:`MultiviewInfo`); ``fused`` the
     :class:`~stereodem.stereo.fusion.FusedDEM` (``fused.prepare_write(raw / "dem.tif")``
     writes its layers, ``nmad.tif`` included)."""
-    from stereodem.stereo.pipeline import DEMProducts
-
-    from .pipeline.inputs import Pair, load_seed_dem, open_image
-
     prod = multiview_stage(cfg, cfg.inputs.images, progress=progress, cache_dir=cache_dir)
     first = prod.report["pair_runs"][0]
     i = cfg.inputs

@@ -7,6 +7,7 @@ spelled and checked once here.
 
 from __future__ import annotations
 
+import argparse
 import logging
 
 from stereodem.core.errors import InputError
@@ -26,8 +27,6 @@ def add_res(p, default_text: str):
 
 def band(text: str):
     """``--band``: a band number, or an ASTER band name (3N, 3B)."""
-    import argparse
-
     t = text.strip()
     if t.isdigit():
         return int(t)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 from stereodem.ortho.choices import RESAMPLINGS
@@ -32,7 +33,8 @@ GENERIC = [
 
 EXAMPLES = """examples:
   stereodem ortho left.tif --dem dem.tif -o left_ortho.tif
-  stereodem ortho img.tif --dem srtm.tif --dem-vertical geoid --res 0.5 --resampling cubic -o ortho.tif
+  stereodem ortho img.tif --dem srtm.tif --dem-vertical geoid --res 0.5 --resampling cubic \\
+      -o ortho.tif
   stereodem ortho img.tif --dem dem.tif --model rational-2 --gcps points.csv -o ortho.tif
   stereodem ortho img.tif --dem dem.tif --layers incidence,occlusion -o ortho.tif
   stereodem ortho AST_L1A_00307312017190728_20250708114426.hdf --band 3B --dem dem.tif -o 3B.tif
@@ -109,9 +111,8 @@ def add_parser(sub):
 
 def _open(args):
     """The image and its model: the image's own (sidecar, RPCs, granule band), a model file, or
-    a generic model fitted to ``--gcps``; returns an :class:`stereodem.pipeline.inputs.InputImage`."""
-    from pathlib import Path
-
+    a generic model fitted to ``--gcps``; returns an
+    :class:`stereodem.pipeline.inputs.InputImage`."""
     from stereodem.core.errors import InputError, SensorModelError
     from stereodem.core.raster import image_dtype, read_image
     from stereodem.sensor.models.rpc import RPCModel
@@ -175,8 +176,6 @@ def config_from_args(args):
 
 
 def run(args) -> int:
-    from pathlib import Path
-
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
     from stereodem.core.raster import check_writable, write_geotiff
@@ -254,6 +253,7 @@ def run(args) -> int:
             units=["1"],
         )
         options.say(
-            f"wrote {layer_paths['occlusion']}: occlusion mask (1 = hidden, {100 * occ.mean():.2f}%)"
+            f"wrote {layer_paths['occlusion']}: occlusion mask (1 = hidden, "
+            f"{100 * occ.mean():.2f}%)"
         )
     return 0

@@ -12,14 +12,15 @@ with ``overwrite``, removes the products of the previous job (only in a folder t
 stereodem job wrote, recognised by its ``run.json``, ``dem_report.json`` or tile cache);
 on ``resume`` it keeps the tile cache. In a folder of the user's (e.g. the one holding the
 inputs) it writes the products beside the user's files only when none of them has a product's
-name: nothing of the user's is replaced or removed. If the job fails before writing anything, a folder
-it created is removed again.
+name: nothing of the user's is replaced or removed. If the job fails before writing anything, a
+folder it created is removed again.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import json
 import logging
 import os
@@ -104,8 +105,6 @@ class OutputLock:
         self._fd = None
 
     def acquire(self):
-        import fcntl
-
         for _ in range(50):
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:

@@ -14,6 +14,8 @@ import logging
 import shutil
 from pathlib import Path
 
+from stereodem.stereo.pointcloud import write_las
+
 log = logging.getLogger(__name__)
 
 
@@ -35,8 +37,6 @@ def point_cloud_stage(cfg, out, products, edit_codes=None, *, grid=None) -> dict
     """Merge the tiles' points into ``OUT/dem.<las|laz>``; returns its summary (for the
     reports). ``edit_codes``: the DEM's edit mask on ``grid`` (default the raw DEM's grid)
     for the points' classification."""
-    from stereodem.stereo.pointcloud import write_las
-
     fmt = cfg.dem.point_cloud
     d = points_dir(out)
     indices = sorted(int(p.stem.split("_")[1]) for p in d.glob("points_*.npz"))

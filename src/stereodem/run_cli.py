@@ -13,9 +13,10 @@ EXAMPLES = """examples:
   stereodem run job.toml --resume                 # skip what is already done
   stereodem run job.toml --dask tcp://scheduler:8786
 
-The configuration keys and their defaults are listed in docs/configuration.md; 'stereodem demo' writes one.
-Many scenes: one configuration per scene, one 'stereodem run' per job (e.g. a Slurm job array
-indexing a list of configuration files); each run is independent and writes its own folder.
+The configuration keys and their defaults are listed in docs/configuration.md; 'stereodem demo'
+writes one. Many scenes: one configuration per scene, one 'stereodem run' per job (e.g. a Slurm
+job array indexing a list of configuration files); each run is independent and writes its own
+folder.
 """
 
 

@@ -157,11 +157,13 @@ def run(args) -> int:
         out = write_scene(scene, args.out, overwrite=args.overwrite)
         meta = json.loads((out / "scene.json").read_text())
         print(
-            f"wrote {out}/left.tif, right.tif (+ .model.json), truth_dem.tif, truth_ortho.tif, points.csv"
+            f"wrote {out}/left.tif, right.tif (+ .model.json), truth_dem.tif, truth_ortho.tif, "
+            "points.csv"
         )
         for name, rep in meta.get("rpc_fit", {}).items():
             print(
-                f"  {name}: RPC fit check-grid residual rms {rep.get('check_rms', float('nan')):.4f} px"
+                f"  {name}: RPC fit check-grid residual rms "
+                f"{rep.get('check_rms', float('nan')):.4f} px"
             )
         return 0
     path = write_granule_scene(
@@ -174,13 +176,15 @@ def run(args) -> int:
     )
     print(
         f"wrote {path} (3N {scene.left.shape[1]}x{scene.left.shape[0]}, "
-        f"3B {scene.right.shape[1]}x{scene.right.shape[0]}), truth_dem.tif, truth_ortho.tif, points.csv"
+        f"3B {scene.right.shape[1]}x{scene.right.shape[0]}), truth_dem.tif, truth_ortho.tif, "
+        "points.csv"
     )
     return 0
 
 
 def _run_strip(args, dem) -> int:
-    """``--granules N``: consecutive granules of one pass (:mod:`stereodem.sensor.simulation.aster_strip`)."""
+    """``--granules N``: consecutive granules of one pass
+    (:mod:`stereodem.sensor.simulation.aster_strip`)."""
     from stereodem.sensor.simulation.aster_strip import simulate_strip, write_strip
 
     version = 4 if args.format == "l1a-v004" else 3

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import time
 
 from stereodem.core.vertical import VERTICALS
@@ -175,8 +176,6 @@ def _check(args):
 
 
 def run(args) -> int:
-    import os
-
     import numpy as np
 
     from stereodem.core.dem import DEM

@@ -3,8 +3,8 @@
 Consecutive L1A granules of one pass are joined into one stereo pair, 3N strip + 3B strip,
 each with one model spanning the strip (:func:`stereodem.sensor.io.aster_strip.open_aster_strip`:
 the checks that they are one pass, the line offsets from the orbit, the overlap); the pair
-stage then runs unchanged (:func:`stereodem.pipeline.stages.stereo_stage`: sparse stage, one relative
-pointing for the strip, tiles), so the strip has one DEM and no seam to blend.
+stage then runs unchanged (:func:`stereodem.pipeline.stages.stereo_stage`: sparse stage, one
+relative pointing for the strip, tiles), so the strip has one DEM and no seam to blend.
 ``dem_report.json`` holds the pair route's report plus ``strip`` (granules, line offsets,
 per-seam checks, the method).
 """
@@ -16,8 +16,17 @@ import logging
 from pathlib import Path
 
 from stereodem.core.errors import InputError
+from stereodem.core.raster import write_text_atomic
+from stereodem.sensor.io.aster_l1a import is_aster_granule
+from stereodem.sensor.io.aster_strip import open_aster_strip
+from stereodem.stereo import sanity
 
+from . import point_cloud
 from .config import Config
+from .outlock import output_folder
+from .pipeline.inputs import Pair, input_paths, load_seed_dem
+from .pipeline.stages import stereo_stage, suspect_error
+from .provenance import provenance
 
 log = logging.getLogger(__name__)
 
@@ -26,8 +35,6 @@ __all__ = ["load_strip_pair", "run_strip_dem", "strip_granules"]
 
 def _granules_in_folder(folder: Path) -> list:
     """The granules directly inside ``folder`` (V004 ``.hdf``, V003 zips or folders), sorted."""
-    from stereodem.sensor.io.aster_l1a import is_aster_granule
-
     return sorted(
         str(p) for p in folder.iterdir() if not p.name.startswith(".") and is_aster_granule(p)
     )
@@ -39,8 +46,6 @@ def strip_granules(paths, band=1) -> list | None:
     A strip is two or more ASTER granules given as files, or a folder holding two or more
     (a folder that is itself a V003 granule is one granule). With an ASTER band named
     (``--band 3N``) the inputs stay single images of a pair or an N-view set instead."""
-    from stereodem.sensor.io.aster_l1a import is_aster_granule
-
     if isinstance(band, str):
         return None
     paths = [Path(p) for p in paths if p]
@@ -62,11 +67,6 @@ def strip_granules(paths, band=1) -> list | None:
 
 def load_strip_pair(cfg: Config, paths):
     """``(Pair, AsterStrip)``: the joined 3N and 3B strips with their models, and the seed DEM."""
-    from stereodem.sensor.io.aster_strip import open_aster_strip
-    from stereodem.stereo import sanity
-
-    from .pipeline.inputs import Pair, load_seed_dem
-
     strip = open_aster_strip(paths, radiometric=cfg.inputs.radiometric)
     n, b = strip.band("3N"), strip.band("3B")
     for band in (n, b):
@@ -87,14 +87,6 @@ def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
     """Make the strip's DEM into ``cfg.output_dir`` (the pair route's layers and
     ``dem_report.json`` with a ``strip`` section), the folder locked for the job.
     Returns ``(products, folder, strip)``; a suspect result fails afterwards (``--force``)."""
-    from stereodem.core.raster import write_text_atomic
-
-    from . import point_cloud
-    from .outlock import output_folder
-    from .pipeline.inputs import input_paths
-    from .pipeline.stages import stereo_stage, suspect_error
-    from .provenance import provenance
-
     inputs = [*paths, *input_paths(cfg)]
     with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, inputs=inputs) as out:
         pair, strip = load_strip_pair(cfg, paths)

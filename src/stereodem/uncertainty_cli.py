@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 from stereodem.ortho.choices import UNCERTAINTY_METHODS
@@ -13,8 +14,10 @@ log = logging.getLogger(__name__)
 EXAMPLES = """examples:
   stereodem uncertainty img.tif --dem dem.tif --sigma col_shift=0.5 --sigma row_shift=0.5 \\
       --sigma dem_height=5 -o unc
-  stereodem uncertainty left.tif --dem dem.tif --covariance adjust_report.json --sigma dem_height=3 -o unc
-  stereodem uncertainty left.tif --dem dem.tif --sigma roll_bias=2e-5 --method monte-carlo --samples 500 -o unc
+  stereodem uncertainty left.tif --dem dem.tif --covariance adjust_report.json \\
+      --sigma dem_height=3 -o unc
+  stereodem uncertainty left.tif --dem dem.tif --sigma roll_bias=2e-5 --method monte-carlo \\
+      --samples 500 -o unc
 
 inputs (--sigma NAME=VALUE, 1-sigma in the input's unit):
   RPC and fitted models: col_shift, row_shift (px), col_drift_col ... (px/px), dem_height (m)
@@ -71,8 +74,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from pathlib import Path
-
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
     from stereodem.core.raster import check_writable
@@ -127,10 +128,10 @@ def run(args) -> int:
     s = maps.summary()
     top = max(maps.shares, key=lambda k: maps.shares[k])
     print(
-        f"wrote {out}/sigma_horizontal.tif (+ east, north, ce90, dominant_source, sensitivity.json, "
-        f"uncertainty.png): {grid.width}x{grid.height} cells of {grid.res[0]:g} m; sigma_horizontal "
-        f"median {s['sigma_horizontal_m']['median']:.3g} m (max {s['sigma_horizontal_m']['max']:.3g}); "
-        f"largest share {top} {maps.shares[top]:.3f}; interpolation error "
-        f"{maps.interpolation_error:.2g} (relative, measured)"
+        f"wrote {out}/sigma_horizontal.tif (+ east, north, ce90, dominant_source, "
+        f"sensitivity.json, uncertainty.png): {grid.width}x{grid.height} cells of {grid.res[0]:g} "
+        f"m; sigma_horizontal median {s['sigma_horizontal_m']['median']:.3g} m (max "
+        f"{s['sigma_horizontal_m']['max']:.3g}); largest share {top} {maps.shares[top]:.3f}; "
+        f"interpolation error {maps.interpolation_error:.2g} (relative, measured)"
     )
     return 0

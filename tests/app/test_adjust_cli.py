@@ -16,6 +16,7 @@ from stereodem.sensor.io.sidecar import (
 )
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
 BIAS = dict(col_shift=-4.1, row_shift=2.6)
 
@@ -193,7 +194,6 @@ def test_adjust_cli_bundle_with_automatic_ties(tmp_path):
     models, adjusts both attitudes with 8 GCPs per image, and the adjusted models place the
     check points at the noise level."""
     pytest.importorskip("stereodem.stereo.sparse")
-    from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
     scene = simulate_scene("pushbroom", size=(500, 500), seed=3, n_points=40, angles=(0.0, -27.6))
     out = write_scene(scene, tmp_path / "scene", fit_rpcs=False)

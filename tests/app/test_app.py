@@ -9,11 +9,14 @@ import numpy as np
 import pytest
 import rasterio
 
+import stereodem.stereo.pipeline as sp
 from stereodem import cli
 from stereodem.config import config_from_dict, load_config
-from stereodem.core.errors import InputError
+from stereodem.core.errors import InputError, OutputExistsError
 from stereodem.pipeline.job import run
+from stereodem.sensor.simulation.aster_granule import granule_right_size, write_granule_scene
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+from stereodem.stereo.runner import SharedArray
 
 
 @pytest.fixture(scope="module")
@@ -105,8 +108,6 @@ def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
 
 @pytest.mark.slow
 def test_failing_tile_is_reported_and_scene_completes(scene_dir, tmp_path, monkeypatch):
-    import stereodem.stereo.pipeline as sp
-
     real = sp.process_tile
     calls = {"n": 0}
 
@@ -131,7 +132,6 @@ def test_existing_output_needs_overwrite(scene_dir, tmp_path):
     out = tmp_path / "o"
     out.mkdir()
     (out / "keep.txt").write_text("user data")
-    from stereodem.core.errors import OutputExistsError
 
     with pytest.raises(OutputExistsError):
         run(_cfg(scene_dir, out))
@@ -214,7 +214,6 @@ def test_resume_reuses_finished_tiles(scene_dir, tmp_path, monkeypatch):
     first = run(_cfg(scene_dir, tmp_path / "r"))
     n_tiles = first["stages"]["stereo"]["tiles"]
     assert len(list((tmp_path / "r" / "tiles").glob("tile_*.npz"))) == n_tiles
-    import stereodem.stereo.pipeline as sp
 
     def must_not_run(*a, **k):
         raise AssertionError("a finished tile was recomputed")
@@ -246,8 +245,6 @@ def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
 
 
 def test_pool_workers_get_memory_mapped_images(tmp_path):
-    from stereodem.stereo.runner import SharedArray
-
     a = np.arange(12, dtype=np.float32).reshape(3, 4)
     sa = SharedArray.create(a, tmp_path, "img")
     clone = pickle.loads(pickle.dumps(sa))
@@ -347,8 +344,6 @@ def test_hand_route_gives_the_rasters_of_run(scene_dir, tmp_path):
 @pytest.fixture(scope="module")
 def granule(tmp_path_factory):
     """A small simulated ASTER L1A V004 granule (3N 300 x 300, 3B in the real size ratio)."""
-    from stereodem.sensor.simulation.aster_granule import granule_right_size, write_granule_scene
-
     d = tmp_path_factory.mktemp("granule")
     sc = simulate_scene(
         "aster", size=(300, 300), right_size=granule_right_size((300, 300)), seed=3, n_points=20

@@ -6,7 +6,11 @@ import time
 
 import numpy as np
 import pytest
+import rasterio
+from affine import Affine
+from pyproj import CRS
 
+from stereodem.core.dem import DEM
 from stereodem.pipeline.job import BackgroundWriter
 
 
@@ -42,12 +46,6 @@ def test_write_error_reaches_the_caller():
 def test_dem_prepared_write_is_independent_of_later_changes(tmp_path):
     """The heights and layers are converted when the write is prepared: changing the DEM
     afterwards (the post stage works on it) does not change what is written."""
-    import rasterio
-    from affine import Affine
-    from pyproj import CRS
-
-    from stereodem.core.dem import DEM
-
     z = np.arange(12.0).reshape(3, 4)
     g = DEM(
         z.copy(),

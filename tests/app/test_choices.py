@@ -11,6 +11,7 @@ from stereodem.core.errors import InputError
 from stereodem.core.vertical import VERTICALS
 from stereodem.docgen import configuration_markdown
 from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS
+from stereodem.ortho.drm import RESAMPLING
 from stereodem.stereo.settings import GRIDDING_METHODS, JITTER_AXES, MATCHERS
 
 
@@ -40,8 +41,6 @@ def test_cli_choices_are_the_librarys(command, option, choices):
 
 
 def test_ortho_kernels_cover_the_resampling_choices():
-    from stereodem.ortho.drm import RESAMPLING
-
     assert set(RESAMPLING) == set(RESAMPLINGS)
 
 

@@ -4,15 +4,23 @@ nothing written."""
 from __future__ import annotations
 
 import json
+import json as _json
 
 import numpy as np
 import pytest
 from affine import Affine
+from affine import Affine as A
 
 from stereodem.cli import main
+from stereodem.core import geodesy
 from stereodem.core.dem import DEM
+from stereodem.core.raster import write_geotiff
+from stereodem.post import warp
+from stereodem.post.coreg import StableMask
+from stereodem.post.coreg_run import TRACK_HEADING_TAG, track_heading, track_heading_of
 from stereodem.post.spatialstats import VariogramModel
 from stereodem.post.synthetic import InjectedErrors, inject_errors
+from stereodem.sensor.models.pushbroom import PushbroomModel
 
 
 @pytest.fixture(scope="module")
@@ -94,8 +102,6 @@ def test_bad_input_is_one_line_and_writes_nothing(files, capsys, extra, message)
 
 @pytest.mark.slow
 def test_assess_error_analysis_adds_section_and_figures(files):
-    import json as _json
-
     out = files / "assess"
     rc = main(
         [
@@ -120,13 +126,6 @@ def test_assess_error_analysis_adds_section_and_figures(files):
 
 
 def test_track_heading_of_a_pushbroom_model_and_tag_round_trip(tmp_path):
-    from stereodem.post.coreg_run import (
-        TRACK_HEADING_TAG,
-        track_heading,
-        track_heading_of,
-    )
-    from stereodem.sensor.models.pushbroom import PushbroomModel
-
     left, _ = PushbroomModel.synthetic_pair(
         40.0,
         39.0,
@@ -139,7 +138,8 @@ def test_track_heading_of_a_pushbroom_model_and_tag_round_trip(tmp_path):
     )
     hdg = track_heading(left, (400, 400))
     # the ground track turns from the orbit's 195° by the Earth's rotation under it:
-    # ω_E·R·cos(39°)/v_ground ≈ 7.29e-5 · 6.371e6 · 0.777 / 6.8e3 rad ≈ 3.0° (descending: to the west)
+    # ω_E·R·cos(39°)/v_ground ≈ 7.29e-5 · 6.371e6 · 0.777 / 6.8e3 rad ≈ 3.0° (descending: to the
+    # west)
     assert hdg == pytest.approx(198.0, abs=1.0)
     full = DEM.bundled()
     d = DEM(full.heights[:50, :50].copy(), full.transform, full.crs, "geoid")
@@ -149,10 +149,6 @@ def test_track_heading_of_a_pushbroom_model_and_tag_round_trip(tmp_path):
 
 @pytest.mark.slow
 def test_assess_with_a_sensor_sigma_map_reports_the_explained_share(files):
-    import json as _json
-
-    from stereodem.core.raster import write_geotiff
-
     ref = DEM.from_file(files / "ref.tif")
     write_geotiff(
         files / "sigma.tif", np.full(ref.shape, 0.3, np.float32), ref.transform, ref.crs, np.nan
@@ -184,13 +180,8 @@ def test_assess_with_a_sensor_sigma_map_reports_the_explained_share(files):
 def test_reference_on_another_grid_crs_and_vertical_is_warped_and_converted(files, tmp_path):
     """An ellipsoidal UTM reference for a geoid lon/lat DEM: warped onto the DEM's grid and
     converted through EGM96 (the offset left is the warp's, not the ~-20 m geoid height)."""
-    from affine import Affine as A
-
-    from stereodem.post import warp
-
     ref = DEM.from_file(files / "ref.tif")
     t = A(90.0, 0, 0, 0, -90.0, 0)
-    from stereodem.core import geodesy
 
     w, s, e, n = ref.bounds_lonlat()
     x, y = geodesy.lonlat_to_crs(np.array([w, e]), np.array([s, n]), "EPSG:32637")
@@ -222,9 +213,6 @@ def test_reference_on_another_grid_crs_and_vertical_is_warped_and_converted(file
 
 
 def test_stable_mask_raster_and_include(files, tmp_path):
-    from stereodem.core.raster import write_geotiff
-    from stereodem.post.coreg import StableMask
-
     ref = DEM.from_file(files / "ref.tif")
     m = np.zeros(ref.shape, np.uint8)
     m[:, :75] = 1

@@ -25,6 +25,13 @@ import rasterio
 from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_sim_scene
 
 from stereodem import cli
+from stereodem.core.errors import InputError
+from stereodem.outlock import LOCK_NAME, OutputLock, OutputLockedError, remove_products
+from stereodem.sensor.io.sidecar import load_image_model
+from stereodem.stereo.plan import base_to_height
+from stereodem.stereo.runner import run_tiles
+from stereodem.stereo.sanity import MIN_BASE_TO_HEIGHT, check_texture
+from stereodem.stereo.tiling import Tile
 
 # ----------------------------------------------------------------------------- fixtures
 
@@ -100,7 +107,7 @@ def _read(path):
         return ds.read(1), ds.transform
 
 
-# ----------------------------------------------------------------------------- fast: checked before work
+# ------------------------------------------------------------------------ fast: checked before work
 
 
 def _dem(sim, out, *extra):
@@ -344,12 +351,10 @@ def test_a_one_line_error_for_every_cli_failure(capsys, tmp_path):
     assert_clear_error(code, err, "ortho", r"bad.tif")
 
 
-# ----------------------------------------------------------------------------- the output-folder lock
+# --------------------------------------------------------------------------- the output-folder lock
 
 
 def test_lock_is_exclusive_between_processes_and_released(tmp_path):
-    from stereodem.outlock import OutputLock, OutputLockedError
-
     folder = tmp_path / "out"
     folder.mkdir()
     code = (
@@ -374,8 +379,6 @@ def test_lock_is_exclusive_between_processes_and_released(tmp_path):
 
 
 def test_lock_file_left_by_a_dead_process_does_not_block(tmp_path):
-    from stereodem.outlock import LOCK_NAME, OutputLock
-
     folder = tmp_path / "out"
     folder.mkdir()
     (folder / LOCK_NAME).write_text(json.dumps({"pid": 2**22 + 12345, "host": "x"}))
@@ -385,8 +388,6 @@ def test_lock_file_left_by_a_dead_process_does_not_block(tmp_path):
 
 
 def test_overwrite_removes_only_stereodem_products(tmp_path):
-    from stereodem.outlock import remove_products
-
     out = tmp_path / "out"
     (out / "raw").mkdir(parents=True)
     (out / "assess").mkdir()
@@ -407,9 +408,6 @@ def test_overwrite_removes_only_stereodem_products(tmp_path):
 
 
 def test_cache_entry_of_another_tile_or_corrupt_is_not_reused(tmp_path):
-    from stereodem.stereo.runner import run_tiles
-    from stereodem.stereo.tiling import Tile
-
     tiles = [Tile(0, 0, 10, 10, 0), Tile(10, 0, 10, 10, 1)]
     calls = []
 
@@ -721,8 +719,8 @@ def test_two_concurrent_runs_into_one_folder_exactly_one_proceeds(sim, tmp_path)
             tmp_path / "out",
             name=f"job{k}.toml",
             rect="tile_size = 300\nheight_range = [1000, 3500]",
-            extra=f'[matching]\nmatcher = "{m}"\n[ortho]\nenabled = false\n[assess]\nenabled = false'
-            "\n[run]\nworkers = 1",
+            extra=f'[matching]\nmatcher = "{m}"\n[ortho]\nenabled = false\n[assess]\nenabled = '
+            "false\n[run]\nworkers = 1",
             inputs="",
         )
         for k, m in enumerate(("sgm", "ncc"))
@@ -756,10 +754,6 @@ def test_two_concurrent_runs_into_one_folder_exactly_one_proceeds(sim, tmp_path)
 def test_base_to_height_of_the_simulated_aster_pair(sim):
     """ASTER 3N (nadir) / 3B (27.6 deg backward) has B/H ~ 0.6 (tan 27.6 deg = 0.52 plus the
     Earth's curvature over the ~370 km baseline); the same image twice has none."""
-    from stereodem.sensor.io.sidecar import load_image_model
-    from stereodem.stereo.plan import base_to_height
-    from stereodem.stereo.sanity import MIN_BASE_TO_HEIGHT
-
     left, right = load_image_model(sim / "left.tif"), load_image_model(sim / "right.tif")
     bh = base_to_height(left, right, 2300.0)
     assert 0.5 < bh < 0.7
@@ -767,9 +761,6 @@ def test_base_to_height_of_the_simulated_aster_pair(sim):
 
 
 def test_texture_check_tells_noise_from_a_constant(sim):
-    from stereodem.core.errors import InputError
-    from stereodem.stereo.sanity import check_texture
-
     rng = np.random.default_rng(0)
     check_texture(rng.normal(100, 5, (64, 64)).astype(np.float32), "noise")
     img = np.full((64, 64), 7.0, np.float32)

@@ -24,8 +24,10 @@ import numpy as np
 import pytest
 import rasterio
 from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_sim_scene
+from rasterio.warp import Resampling, reproject
 
 from stereodem.core.errors import RPCError
+from stereodem.core.stats import nmad
 from stereodem.sensor.io.rpc_formats import read_rpc
 from stereodem.sensor.models.rpc import NORMALISATION_BOUNDS, RPCModel
 
@@ -349,10 +351,6 @@ def inf_pair(sim, tmp_path_factory):
 
 
 def _dem_error_vs_truth(dem_path, truth_path):
-    from rasterio.warp import Resampling, reproject
-
-    from stereodem.core.stats import nmad
-
     with rasterio.open(dem_path) as d, rasterio.open(truth_path) as t:
         z = d.read(1)
         ref = np.full(z.shape, np.nan, np.float32)

@@ -3,6 +3,9 @@ sub-packages of ``stereodem`` and nothing generic lands at the top of site-packa
 The application sits in ``src/stereodem`` (issue #23) so that no root-level ``stereodem/``
 folder shadows a non-editable install when tests run from the repository root."""
 
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import tomllib
@@ -55,10 +58,6 @@ def test_ci_installs_what_the_readme_says():
     would make the README's command skip or fail tests on a fresh machine; CI installs without
     the README's -e, test_no_root_level_folder_shadows_the_installed_package), and the
     minimum-version environment pins every declared lower bound."""
-    import re
-    import subprocess
-    import sys
-
     readme = (ROOT / "README.md").read_text()
     line = next(ln for ln in readme.splitlines() if 'pip install -e ".[test]"' in ln)
     install = re.match(r"\s*(.*?)\s*&& python -m pytest -q", line).group(1)

@@ -4,12 +4,15 @@ configuration dataclasses, and the Python API example in docs/api.md runs."""
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
+import json
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from stereodem.config import SECTIONS
 from stereodem.docgen import _attributes_section, configuration_markdown, main, section_table
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -24,8 +27,6 @@ def test_committed_configuration_md_is_the_generators_output():
 
 
 def test_every_config_section_and_key_is_documented():
-    from stereodem.config import SECTIONS
-
     text = configuration_markdown()
     for name, cls in SECTIONS.items():
         assert f"## `[{name}]`" in text
@@ -85,8 +86,6 @@ def test_api_example_runs(capsys):
 
 
 def test_readme_figures_summarises_every_committed_result():
-    import importlib.util
-
     spec = importlib.util.spec_from_file_location(
         "readme_figures", ROOT / "benchmarks" / "readme_figures.py"
     )
@@ -97,7 +96,6 @@ def test_readme_figures_summarises_every_committed_result():
     bullets = [ln for ln in text.splitlines() if ln.startswith("* ")]
     assert len(bullets) == len(results)
     assert "summary unavailable" not in text
-    import json
 
     demo = json.loads((ROOT / "benchmarks" / "results" / "bench_demo.json").read_text())
     assert f"NMAD {demo['default_seed_figures']['nmad_m']:.2f} m" in text
@@ -107,8 +105,6 @@ def test_readmes_carry_the_figures_the_results_give():
     """README.md's list of measured figures and benchmarks/README.md's table are exactly what
     ``benchmarks/readme_figures.py --write`` makes from the committed result files (a rerun
     that is not regenerated, or a figure edited by hand, fails here)."""
-    import importlib.util
-
     spec = importlib.util.spec_from_file_location(
         "readme_figures", ROOT / "benchmarks" / "readme_figures.py"
     )

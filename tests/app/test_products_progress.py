@@ -11,6 +11,7 @@ import sys
 
 import pytest
 
+from stereodem import __version__
 from stereodem.progress import Progress, TqdmLoggingHandler, UTCFormatter
 from stereodem.provenance import git_commit, provenance, utc_now
 
@@ -98,7 +99,6 @@ def test_provenance_fields():
     assert p["started_utc"] == t0 and p["ended_utc"] >= t0
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", p["ended_utc"])
     assert p["command_line"] == "stereodem run 'job toml'"
-    from stereodem import __version__
 
     assert p["stereodem_version"] == __version__
     git = git_commit()

@@ -1,6 +1,7 @@
 """The public API in one place (issue #23): every name of ``stereodem.__all__`` resolves, to
 the object of its defining module, and ``import stereodem`` stays light (lazy, PEP 562)."""
 
+import importlib
 import subprocess
 import sys
 
@@ -11,8 +12,6 @@ import stereodem
 
 @pytest.mark.parametrize("name", [n for n in stereodem.__all__ if n != "__version__"])
 def test_every_public_name_resolves_to_its_module(name):
-    import importlib
-
     value = getattr(stereodem, name)
     assert value is getattr(importlib.import_module(stereodem._API[name]), name)
 

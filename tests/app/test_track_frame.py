@@ -17,7 +17,7 @@ from stereodem import cli
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.post import warp
-from stereodem.post.coreg_run import TRACK_HEADING_TAG
+from stereodem.post.coreg_run import TRACK_HEADING_TAG, CoregJob, load_inputs, track_heading
 from stereodem.post.track import TRACK_FRAME_TAG, TrackFrame, track_frame_of
 from stereodem.sensor.io.sidecar import load_model
 
@@ -200,7 +200,6 @@ def test_run_writes_the_track_tags_through_the_background_writer(sim, tmp_path):
     along, _ = frame.coords(x, y, h)
     assert np.max(np.abs(along / frame.m_per_row - row)) < 0.01
     # the heading the tag carries is the left model's (not a default)
-    from stereodem.post.coreg_run import track_heading
 
     model = load_model(sim / "left.model.json")
     assert float(tags[TRACK_HEADING_TAG]) == pytest.approx(
@@ -211,8 +210,6 @@ def test_run_writes_the_track_tags_through_the_background_writer(sim, tmp_path):
 def test_a_frame_for_another_crs_is_not_used(dem_dir, tmp_path):
     """A frame tag that does not match the DEM's CRS (a reprojected file keeps its tags) is
     ignored: the heading is used instead."""
-    from stereodem.post.coreg_run import CoregJob, load_inputs
-
     with rasterio.open(dem_dir / "dem.tif") as ds:
         tags = ds.tags()
     d = DEM.from_file(dem_dir / "dem.tif")

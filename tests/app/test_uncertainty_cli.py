@@ -9,14 +9,18 @@ from affine import Affine
 
 from stereodem.cli import main
 from stereodem.core.dem import DEM
+from stereodem.core.errors import InputError
+from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
+from stereodem.ortho.uncertainty.propagation import covariance_matrix
+from stereodem.sensor.io.sidecar import model_to_dict
+from stereodem.sensor.models.corrected import ImageCorrectedModel
+from stereodem.sensor.models.rpc import RPCModel
 
 IMG = "pleiades/img_01_rpc.tif"
 
 
 @pytest.fixture(scope="module")
 def dem_path(tmp_path_factory, data_dir):
-    from stereodem.sensor.models.rpc import RPCModel
-
     m = RPCModel.from_file(data_dir / IMG)
     lon, lat = m.footprint(2300.0)
     w, s, e, n = lon.min() - 0.002, lat.min() - 0.002, lon.max() + 0.002, lat.max() + 0.002
@@ -30,8 +34,6 @@ def dem_path(tmp_path_factory, data_dir):
 
 
 def _report(path, model, names, cov):
-    from stereodem.sensor.io.sidecar import model_to_dict
-
     doc = {
         "model": model_to_dict(model),
         "parameters": [
@@ -104,10 +106,6 @@ def test_command_writes_maps_json_and_figure(data_dir, dem_path, tmp_path, capsy
 
 @pytest.mark.slow
 def test_covariance_from_an_adjustment_report(data_dir, dem_path, tmp_path):
-    from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
-    from stereodem.sensor.models.corrected import ImageCorrectedModel
-    from stereodem.sensor.models.rpc import RPCModel
-
     rpc = RPCModel.from_file(data_dir / IMG)
     cov = [[0.25, 0.2], [0.2, 0.25]]
     rep = _report(
@@ -158,9 +156,6 @@ def test_hostile_arguments_are_one_line_errors(data_dir, dem_path, tmp_path, cap
 
 
 def test_hostile_covariance_files(data_dir, dem_path, tmp_path, capsys):
-    from stereodem.sensor.models.corrected import ImageCorrectedModel
-    from stereodem.sensor.models.rpc import RPCModel
-
     rpc = RPCModel.from_file(data_dir / IMG)
     other = RPCModel.from_file(data_dir / "pleiades" / "img_02_rpc.tif")
     cases = {
@@ -212,9 +207,6 @@ def test_hostile_covariance_files(data_dir, dem_path, tmp_path, capsys):
 
 
 def test_api_rejects_non_psd_and_nan_sigma():
-    from stereodem.core.errors import InputError
-    from stereodem.ortho.uncertainty.propagation import covariance_matrix
-
     with pytest.raises(InputError, match="positive semi-definite"):
         covariance_matrix(["a", "b"], covariance=[[1.0, 1.5], [1.5, 1.0]])
     with pytest.raises(InputError, match="non-negative"):
@@ -226,11 +218,6 @@ def test_api_rejects_non_psd_and_nan_sigma():
 def test_bundle_report_uses_the_images_side(data_dir, tmp_path):
     """A pair (bundle) report: the side whose geometry is the image's is picked, with its block
     of the joint covariance."""
-    from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
-    from stereodem.sensor.io.sidecar import model_to_dict
-    from stereodem.sensor.models.corrected import ImageCorrectedModel
-    from stereodem.sensor.models.rpc import RPCModel
-
     left = RPCModel.from_file(data_dir / IMG)
     right = RPCModel.from_file(data_dir / "pleiades" / "img_02_rpc.tif")
     names = ["left.col_shift", "left.row_shift", "right.col_shift", "right.row_shift"]

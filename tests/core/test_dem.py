@@ -5,7 +5,13 @@ from affine import Affine
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM, OUTSIDE, VOID
-from stereodem.core.errors import CRSError, DEMCoverageError, DEMError, VerticalReferenceError
+from stereodem.core.errors import (
+    CRSError,
+    DEMCoverageError,
+    DEMError,
+    OutputExistsError,
+    VerticalReferenceError,
+)
 
 
 def test_bundled_dem_metadata():
@@ -100,7 +106,6 @@ def test_write_round_trip_keeps_vertical_reference(tmp_path):
     back = DEM.from_file(out)
     assert back.vertical == "ellipsoid"
     assert np.nanmax(np.abs(back.heights - dem.to_reference("ellipsoid").heights)) == 0
-    from stereodem.core.errors import OutputExistsError
 
     with pytest.raises(OutputExistsError):
         dem.write(out)

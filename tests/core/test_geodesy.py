@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+import rasterio
 
 from stereodem.core import geodesy as g
 from stereodem.core.errors import CRSError
@@ -63,8 +64,6 @@ def test_utm_zone_bad_input():
 
 
 def _grid_node(lon, lat):
-    import rasterio
-
     with rasterio.open(g.egm96_path()) as d:
         r, c = d.index(lon, lat)
         return float(d.read(1)[r, c])

@@ -11,6 +11,10 @@ import pytest
 import rasterio
 from affine import Affine
 from pyproj import CRS
+from rasterio.rpc import RPC
+
+from stereodem.ortho.drm import orthorectify
+from stereodem.sensor.simulation.simulate import simulate_scene
 
 cog_validate = pytest.importorskip("rio_cogeo.cogeo").cog_validate
 
@@ -51,8 +55,6 @@ def test_cog_layout_predictor_overviews_and_lossless(tmp_path, dtype, predictor)
 
 
 def test_small_raster_and_unreferenced_image_with_rpcs_validate(tmp_path):
-    from rasterio.rpc import RPC
-
     small = write_geotiff(
         tmp_path / "small.tif", np.arange(12, dtype=np.int16).reshape(3, 4), T, "EPSG:32637", -1
     )
@@ -181,15 +183,11 @@ def test_band_descriptions_units_and_count_check(tmp_path):
 
 @pytest.fixture(scope="module")
 def small_scene():
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     return simulate_scene("aster", size=(200, 200), seed=0)
 
 
 @pytest.mark.parametrize("resampling", ["bilinear", "cubic"])
 def test_ortho_keeps_the_input_data_type(tmp_path, small_scene, resampling):
-    from stereodem.ortho.drm import orthorectify
-
     img = small_scene.left
     assert img.dtype == np.uint8
     o = orthorectify(img, small_scene.left_model, small_scene.truth_dem, resampling=resampling)
@@ -211,8 +209,6 @@ def test_ortho_keeps_the_input_data_type(tmp_path, small_scene, resampling):
 
 
 def test_ortho_integer_mask_when_no_value_is_free(tmp_path, small_scene):
-    from stereodem.ortho.drm import orthorectify
-
     img = small_scene.left.copy()
     img[:5, :5], img[-5:, -5:] = 0, 255  # 0 and 255 both taken, uint8 full
     o = orthorectify(img, small_scene.left_model, small_scene.truth_dem, resampling="nearest")

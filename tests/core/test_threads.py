@@ -8,10 +8,13 @@ from concurrent.futures import ProcessPoolExecutor
 import cv2
 import numpy as np
 import pytest
+from rasterio.env import get_gdal_config
 
+from stereodem.config import config_from_dict
 from stereodem.core import threads
+from stereodem.pipeline import job
 from stereodem.stereo.runner import run_tiles
-from stereodem.stereo.tiling import tile_grid
+from stereodem.stereo.tiling import Tile, tile_grid
 
 
 def _limits_tile(tile, ctx):
@@ -44,7 +47,6 @@ def test_pin_threads_sets_blas_opencv_gdal_and_thread_budget_restores():
     after = threads.current_limits()
     assert after["opencv"] == before["opencv"] and after["blas"] == before["blas"]
     assert after["gdal"] == before["gdal"]
-    from rasterio.env import get_gdal_config
 
     assert get_gdal_config("GDAL_NUM_THREADS") != "None"  # unset again, not the string "None"
 
@@ -92,9 +94,6 @@ def test_dask_workers_are_pinned():
 
 def test_a_job_pins_its_main_process_to_workers(tmp_path, monkeypatch):
     """``stereodem.run`` computes its stages under the job's budget and restores the old one."""
-    from stereodem.config import config_from_dict
-    from stereodem.pipeline import job
-
     seen = {}
 
     def fake_run_in(cfg, out, progress_factory):
@@ -123,8 +122,6 @@ def _order_tile(tile, ctx):
 
 
 def test_tiles_are_run_largest_first_and_keyed_by_index():
-    from stereodem.stereo.tiling import Tile
-
     tiles = [
         Tile(0, 0, 10, 10, 0),
         Tile(10, 0, 50, 40, 1),

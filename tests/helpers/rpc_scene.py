@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from affine import Affine
+from rasterio.warp import Resampling, reproject
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM, ELLIPSOID
@@ -51,7 +52,6 @@ def rpc_steep_pair(size=512, seed=0, posting=1.0, texture_res=0.25):
     y0, y1 = np.min(np.concatenate(ys)) - 50, np.max(np.concatenate(ys)) + 50
     srtm = DEM.bundled()
     # terrain: SRTM (EGM96) -> ellipsoidal heights, cubic onto a 1 m UTM grid
-    from rasterio.warp import Resampling, reproject
 
     tr = Affine(posting, 0, x0, 0, -posting, y1)
     shape = (int(np.ceil((y1 - y0) / posting)), int(np.ceil((x1 - x0) / posting)))

@@ -1,20 +1,29 @@
 """DRM orthorectification: accuracy against known truth, GDAL's RPC ortho, the forward DRM,
 layers and the command line."""
 
+import argparse
+
 import numpy as np
 import pytest
 import rasterio
 from affine import Affine
+from rasterio.transform import RPCTransformer
+from rasterio.warp import Resampling, reproject
 
 from stereodem.core import geodesy as g
 from stereodem.core.dem import DEM
-from stereodem.core.errors import DEMCoverageError
+from stereodem.core.errors import DEMCoverageError, InputError, OutputExistsError, SensorModelError
 from stereodem.core.grid import MapGrid, grid_from_bounds
-from stereodem.ortho.drm import orthorectify
+from stereodem.core.raster import write_geotiff, write_text_atomic
+from stereodem.ortho.concurrent import orthorectify_all
+from stereodem.ortho.drm import build_backward_map, crop_dem, orthorectify
 from stereodem.ortho.forward import forward_localize, forward_ortho
-from stereodem.ortho.grid import grid_for_model
+from stereodem.ortho.grid import footprint_height_range, grid_for_model
 from stereodem.ortho.layers import incidence_angle, occlusion_mask
+from stereodem.ortho_cli import add_parser
 from stereodem.sensor.models.frame import FrameCamera
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation import simulate as sim
 
 LON0, LAT0 = 40.4, 39.6
 
@@ -90,7 +99,6 @@ def test_grid_defaults_utm_gsd_and_footprint(rendered):
     cam, dem, grid, *_ = rendered
     assert grid.crs.to_epsg() == g.utm_epsg(LON0, LAT0) == 32637
     assert grid.res[0] == pytest.approx(cam.gsd(2000.0), rel=0.02)
-    from stereodem.ortho.grid import footprint_height_range
 
     lo, hi = footprint_height_range(cam, dem)
     z = dem.sample(*cam.footprint(2000.0))
@@ -145,8 +153,6 @@ def test_threads_give_the_same_ortho(rendered):
 def test_concurrent_orthos_equal_the_serial_ones(rendered):
     # two orthoimages at once (and their blocks on the budget's threads): the serial rasters;
     # the second image is another oblique view over the same grid
-    from stereodem.ortho.concurrent import orthorectify_all
-
     cam, dem, grid, img, truth = rendered
     cam2 = oblique_camera(dlon=-1.0, dlat=1.0)
     items = [("left", img, cam), ("right", img[::-1].copy(), cam2)]
@@ -197,8 +203,6 @@ def test_simulated_scene_true_ortho():
     """Simulator truth: ortho - truth_ortho is the interpolator's error on the band-limited
     image (shrinking as the system MTF at Nyquist falls and the kernel improves) plus the image
     noise propagated through the kernel, sigma^2 * mean(sum of squared weights)."""
-    from stereodem.sensor.simulation import simulate as sim
-
     sigma = 1.0  # the presets' noise (simulate_scene default)
     rms, expected_noise_var, shifts = {}, {}, []
     for mtf in (0.3, 0.01):
@@ -288,8 +292,6 @@ def test_dem_coverage_errors(rendered):
 
 
 def _rpc_setup(tmp_path, data_dir):
-    from stereodem.sensor.models.rpc import RPCModel
-
     src = data_dir / "pleiades" / "img_01_rpc.tif"
     model = RPCModel.from_file(src)
     with rasterio.open(src) as ds:
@@ -315,8 +317,6 @@ def _rpc_setup(tmp_path, data_dir):
 def test_gdal_rpc_dem_heights_are_ellipsoidal(tmp_path, data_dir):
     """GDAL's RPC_DEM without a vertical CRS uses the values as they are (ellipsoidal here):
     a flat DEM at 2300 m gives the same pixels as RPC_HEIGHT=2300, and both match our model."""
-    from rasterio.transform import RPCTransformer
-
     model, rpcs, _, _ = _rpc_setup(tmp_path, data_dir)
     lon, lat = model.footprint(2300.0)
     tr = Affine(1e-4, 0, lon.min() - 0.01, 0, -1e-4, lat.max() + 0.01)
@@ -334,9 +334,6 @@ def test_gdal_rpc_dem_heights_are_ellipsoidal(tmp_path, data_dir):
 
 @pytest.mark.slow
 def test_rpc_ortho_agrees_with_gdal(tmp_path, data_dir):
-    from rasterio.transform import RPCTransformer
-    from rasterio.warp import Resampling, reproject
-
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     dem = DEM.from_file(dem_path)
     assert dem.vertical == "ellipsoid"
@@ -371,10 +368,6 @@ def test_rpc_ortho_agrees_with_gdal(tmp_path, data_dir):
 
 def test_real_pleiades_against_gdal(shared_data, tmp_path):
     """Real Pleiades image and RPC over s2p's DSM (ellipsoidal heights), both orthos compared."""
-    from rasterio.warp import Resampling, reproject
-
-    from stereodem.sensor.models.rpc import RPCModel
-
     img_path = shared_data / "s2p_pleiades" / "pair" / "img_01.tif"
     dsm_path = shared_data / "s2p_pleiades" / "pair" / "expected_dsm.tif"
     if not img_path.exists() or not dsm_path.exists():
@@ -411,7 +404,6 @@ def test_real_pleiades_against_gdal(shared_data, tmp_path):
 
 def test_forward_and_backward_mappings_agree(rendered):
     cam, dem, grid, img, _ = rendered
-    from stereodem.ortho.drm import build_backward_map, crop_dem
 
     pts = forward_localize(cam, dem, step=7, crs=grid.crs, threshold=0.01)
     assert pts.converged.mean() > 0.99
@@ -521,11 +513,6 @@ def test_second_image_on_shared_grid(rendered):
 
 @pytest.mark.slow
 def test_cli_rpc_ortho_layers_and_errors(tmp_path, data_dir, capsys):
-    import argparse
-
-    from stereodem.core.raster import write_geotiff
-    from stereodem.ortho_cli import add_parser
-
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     image = tmp_path / "img.tif"
     write_geotiff(image, img, rpcs=rpcs)
@@ -556,7 +543,6 @@ def test_cli_rpc_ortho_layers_and_errors(tmp_path, data_dir, capsys):
     ).exists()
     assert "interpolation error" in capsys.readouterr().out
     # existing output without --overwrite
-    from stereodem.core.errors import InputError, OutputExistsError, SensorModelError
 
     with pytest.raises(OutputExistsError):
         args.run(args)
@@ -599,12 +585,6 @@ def test_cli_rpc_ortho_layers_and_errors(tmp_path, data_dir, capsys):
 
 
 def test_cli_gcp_model(tmp_path, data_dir, capsys):
-    import argparse
-
-    from stereodem.core.errors import InputError
-    from stereodem.core.raster import write_geotiff, write_text_atomic
-    from stereodem.ortho_cli import add_parser
-
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     image = tmp_path / "img.tif"
     write_geotiff(image, img)
@@ -613,7 +593,8 @@ def test_cli_gcp_model(tmp_path, data_dir, capsys):
     c, r = rng.uniform(10, 1010, 40), rng.uniform(10, 1010, 40)
     loc = model.localize_dem(c, r, dem, threshold=0.001, h0=2300.0)
     rows = ["id,lon,lat,h,col,row,role"] + [
-        f"p{i},{loc.lon[i]:.9f},{loc.lat[i]:.9f},{loc.h[i]:.3f},{c[i]:.3f},{r[i]:.3f},{'gcp' if i < 30 else 'check'}"
+        f"p{i},{loc.lon[i]:.9f},{loc.lat[i]:.9f},{loc.h[i]:.3f},{c[i]:.3f},{r[i]:.3f},"
+        f"{'gcp' if i < 30 else 'check'}"
         for i in range(40)
     ]
     csv = tmp_path / "gcps.csv"

@@ -1,17 +1,23 @@
 """Orthorectification onto a DEM with holes or partial coverage: nodata there, the share of
 the footprint reported, and a second DEM (``fill_dem``) filling them."""
 
+import argparse
 import logging
+from importlib import resources
 
 import numpy as np
 import pytest
+import rasterio
 from affine import Affine
 from test_ortho import albedo_field, oblique_camera  # noqa: F401  (shared scene builders)
 
 from stereodem.core import geodesy as g
 from stereodem.core.dem import DEM
+from stereodem.core.errors import RPCError
+from stereodem.core.raster import write_geotiff
 from stereodem.ortho.drm import orthorectify
 from stereodem.ortho.grid import grid_for_model
+from stereodem.ortho_cli import add_parser
 
 
 @pytest.fixture(scope="module")
@@ -74,21 +80,13 @@ def test_fill_dem_fills_holes_and_missing_coverage(scene):
 
 
 def test_bundled_srtm_declares_its_vertical_reference():
-    from importlib import resources
-
     path = resources.files("stereodem.core") / "data" / "srtm_ref.tif"
     assert DEM.from_file(path).vertical == "geoid"  # no --ref-vertical / --dem-vertical needed
 
 
 @pytest.mark.slow
 def test_cli_dem_with_holes_and_fill_dem(tmp_path, data_dir, caplog):
-    import argparse
-
-    import rasterio
     from test_ortho import _rpc_setup
-
-    from stereodem.core.raster import write_geotiff
-    from stereodem.ortho_cli import add_parser
 
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     image = tmp_path / "img.tif"
@@ -131,8 +129,6 @@ def test_cli_dem_with_holes_and_fill_dem(tmp_path, data_dir, caplog):
 
 def test_rpc_ortho_on_heights_outside_its_validity_range(tmp_path, data_dir):
     from test_ortho import _rpc_setup
-
-    from stereodem.core.errors import RPCError
 
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     dem = DEM.from_file(dem_path)

@@ -1,21 +1,37 @@
 """Uncertainty and sensitivity (issue #17): propagation, sampling, indices, maps, command."""
 
+import itertools
+
 import numpy as np
 import pytest
 from affine import Affine
+from scipy import stats
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
+from stereodem.ortho.grid import grid_for_model
 from stereodem.ortho.uncertainty import propagation as P
 from stereodem.ortho.uncertainty import sampling as S
+from stereodem.ortho.uncertainty.indices import (
+    efast_interference_free,
+    fast_indices,
+    interference_order,
+    sample_frequencies,
+)
+from stereodem.ortho.uncertainty.maps import (
+    dem_vertical_sigma,
+    hirvonen_slopes,
+    ortho_uncertainty_maps,
+)
+from stereodem.sensor.models.parameters import default_step
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation.simulate import frame_pair, pushbroom_pair
 
 # --------------------------------------------------------------------------- fixtures
 
 
 @pytest.fixture(scope="module")
 def rpc(data_dir):
-    from stereodem.sensor.models.rpc import RPCModel
-
     return RPCModel.from_file(data_dir / "pleiades" / "img_01_rpc.tif")
 
 
@@ -42,8 +58,6 @@ def flat(rpc):
 
 @pytest.fixture(scope="module")
 def frame():
-    from stereodem.sensor.simulation.simulate import frame_pair
-
     cam, _ = frame_pair(32.8, 39.9, 1000.0, (512, 512))
     return cam
 
@@ -52,9 +66,6 @@ def frame():
 
 
 def _map(rpc, dem, sigmas, res=4.0):
-    from stereodem.ortho.grid import grid_for_model
-    from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
-
     grid = grid_for_model(rpc, dem, res=res)
     names = list(sigmas)
     return grid, ortho_uncertainty_maps(
@@ -158,7 +169,7 @@ def test_frame_attitude_jacobian_against_relocalisation(frame):
     assert np.abs(gj.J[:, :, 0]).max() > 1e5  # ≈ 700 km lever per radian
 
 
-# --------------------------------------------------------------------------- first order vs Monte Carlo
+# ----------------------------------------------------------------------- first order vs Monte Carlo
 
 
 @pytest.mark.slow
@@ -244,8 +255,6 @@ def test_imaging_time_lever_is_the_ground_track_speed(frame):
 
 
 def test_iman_conover_imposes_rank_correlation_and_keeps_marginals():
-    from scipy import stats
-
     D = np.array([[4.0, 1.4, 0.0], [1.4, 1.0, -0.3], [0.0, -0.3, 0.25]])
     X = S.lhs_normal(D, 2000, seed=5)
     C = D / np.sqrt(np.outer(np.diag(D), np.diag(D)))
@@ -285,15 +294,12 @@ def test_ce90_closed_forms_and_monte_carlo():
 
 
 def test_thesis_fast_frequency_set_is_interference_free_to_order_4():
-    from stereodem.ortho.uncertainty.indices import interference_order
-
     thesis = [145, 177, 199, 41, 67, 105, 219, 229, 235, 243, 247]
     order = interference_order(thesis, max_order=7)
     assert order == 6  # e.g. −3·145 + 229 + 247 − 41 = 0
     assert order > 4 + 1
     # brute force over all coefficient vectors with entries in -6..6 (an independent search):
     # the lowest-order combination of this set has order 6, so none up to 4
-    import itertools
 
     f = [11, 21, 27, 35, 39]
     brute = min(
@@ -312,8 +318,6 @@ def test_salib_efast_design_is_interference_free_to_order_4():
     the samples by FFT) read the first 4 harmonics cleanly."""
     from SALib.sample import fast_sampler
 
-    from stereodem.ortho.uncertainty.indices import efast_interference_free, sample_frequencies
-
     N, M, u = 1000, 4, 5
     problem = {"num_vars": u, "names": list("abcde"), "bounds": [[0, 1]] * u}
     X = fast_sampler.sample(problem, N, M=M, seed=0)
@@ -327,8 +331,6 @@ def test_salib_efast_design_is_interference_free_to_order_4():
 
 
 def test_fast_indices_match_first_order_shares_for_a_linear_case(rpc, flat):
-    from stereodem.ortho.uncertainty.indices import fast_indices
-
     model = P.adjustable_model(rpc)
     crs = geodesy.utm_crs(*rpc.center_lonlat(2300.0))
     lon, lat = rpc.localize(np.array([300.0]), np.array([700.0]), np.array([2300.0]))
@@ -345,8 +347,6 @@ def test_fast_indices_match_first_order_shares_for_a_linear_case(rpc, flat):
 
 
 def test_hirvonen_slopes_recover_plane_and_quadratic_gradients():
-    from stereodem.ortho.uncertainty.maps import hirvonen_slopes
-
     res = 30.0
     r, c = np.mgrid[0:40, 0:50]
     E, N = c * res, -r * res
@@ -360,9 +360,6 @@ def test_hirvonen_slopes_recover_plane_and_quadratic_gradients():
 def test_dem_vertical_sigma_pleiades_pair(data_dir):
     """Pleiades pair (real RPCs): the matching term scales with the disparity σ and the score;
     on a tilted plane the slope term is |∇h|·σ_horizontal."""
-    from stereodem.ortho.uncertainty.maps import dem_vertical_sigma
-    from stereodem.sensor.models.rpc import RPCModel
-
     left = RPCModel.from_file(data_dir / "pleiades" / "img_01_rpc.tif")
     right = RPCModel.from_file(data_dir / "pleiades" / "img_02_rpc.tif")
     lon0, lat0 = left.center_lonlat(2300.0)
@@ -416,8 +413,6 @@ def test_central_difference_steps_are_stable_for_every_parameter(kind, frame):
         )
         lon0, lat0 = 32.8, 39.9
     else:
-        from stereodem.sensor.simulation.simulate import pushbroom_pair
-
         model, _ = pushbroom_pair(32.8, 39.9, 1000.0, (400, 400), (0.0, -27.6))
         lon, lat = model.localize(
             np.array([30.0, 200.0, 380.0]), np.array([20.0, 200.0, 390.0]), np.full(3, 1000.0)
@@ -427,7 +422,6 @@ def test_central_difference_steps_are_stable_for_every_parameter(kind, frame):
     names = P.valid_names(model)
     h = np.full(3, 1000.0)
     gj = P.ground_jacobian(model, lon, lat, h, names, crs)
-    from stereodem.sensor.models.parameters import default_step
 
     vals = model.parameters()
     chosen = P.propagation_steps(model, list(vals))
@@ -466,9 +460,6 @@ def test_image_shift_field_matches_exact_relocalisation_without_terrain(frame):
 
 
 def test_sampling_methods_on_the_map(rpc, flat):
-    from stereodem.ortho.grid import grid_for_model
-    from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
-
     grid = grid_for_model(rpc, flat, res=8.0)
     names = ["col_shift", "row_shift", "dem_height"]
     D = np.diag([1.0, 0.25, 16.0])

@@ -12,12 +12,19 @@ thin border, the same dominant source wherever the exact leader leads by more th
 variance, and whole-image shares within 1e-3.
 """
 
+import cv2
 import numpy as np
 import pytest
 from affine import Affine
+from scipy import ndimage
 
 from stereodem.core.dem import DEM
+from stereodem.ortho.grid import grid_for_model
+from stereodem.ortho.uncertainty import first_order_maps as F
 from stereodem.ortho.uncertainty import propagation as P
+from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation.simulate import frame_pair
 
 TOL = 1e-3
 
@@ -44,8 +51,6 @@ def _rough_dem(model, h0, *, step=5e-5, void=True):
 
 @pytest.fixture(scope="module")
 def rpc_case(data_dir):
-    from stereodem.sensor.models.rpc import RPCModel
-
     rpc = RPCModel.from_file(data_dir / "pleiades" / "img_01_rpc.tif")
     names = ["col_shift", "row_shift", "col_drift_col", "row_drift_row", "dem_height"]
     sig = [0.7, 0.4, 2e-4, 1e-4, 6.0]
@@ -54,8 +59,6 @@ def rpc_case(data_dir):
 
 @pytest.fixture(scope="module")
 def frame_case():
-    from stereodem.sensor.simulation.simulate import frame_pair
-
     cam, _ = frame_pair(32.8, 39.9, 1000.0, (512, 512))
     names = ["roll", "pitch", "yaw", "x", "y", "z", "imaging_time", "dem_height"]
     sig = np.array([2e-5, 2e-5, 5e-5, 5.0, 5.0, 5.0, 1e-3, 5.0])
@@ -84,8 +87,6 @@ def _exact(model, dem, grid, names, D, every):
 
 
 def _near_void(dem, grid, r, c, posts=2):
-    from scipy import ndimage
-
     lon, lat = grid.lonlat(c.astype(float), r.astype(float))
     dc, dr, _ = P.dem_pixel_jacobian(dem, lon, lat, grid.crs)
     near = ndimage.binary_dilation(np.isnan(dem.heights), iterations=posts + 1)
@@ -97,9 +98,6 @@ def _near_void(dem, grid, r, c, posts=2):
 
 @pytest.mark.parametrize("case", ["rpc_case", pytest.param("frame_case", marks=pytest.mark.slow)])
 def test_fast_maps_agree_with_exact_per_cell_propagation(case, request):
-    from stereodem.ortho.grid import grid_for_model
-    from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
-
     model, dem, names, D, res = request.getfixturevalue(case)
     grid = grid_for_model(model, dem, res=res)
     maps = ortho_uncertainty_maps(model, dem, grid, D, names, threads=2)
@@ -146,9 +144,6 @@ def test_fast_maps_agree_with_exact_per_cell_propagation(case, request):
 
 
 def test_fast_maps_source_maps_sum_to_one(rpc_case):
-    from stereodem.ortho.grid import grid_for_model
-    from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
-
     model, dem, names, D, _ = rpc_case
     grid = grid_for_model(model, dem, res=12.0)
     maps = ortho_uncertainty_maps(
@@ -173,12 +168,6 @@ def test_numpy_dem_sampling_fallback_matches_cv2_remap(rpc_case, monkeypatch):
     """DEMs larger than OpenCV's remap limit are sampled with numpy (exact bilinear); both
     samplings give the same maps: 1e-4 relative with OpenCV >= 5; OpenCV 4 rounds remap
     positions to 1/32 post (INTER_BITS), measured 6.6e-4 relative with 4.8 and 4.10."""
-    import cv2
-
-    from stereodem.ortho.grid import grid_for_model
-    from stereodem.ortho.uncertainty import first_order_maps as F
-    from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
-
     model, dem, names, D, _ = rpc_case
     grid = grid_for_model(model, dem, res=6.0)
     a = ortho_uncertainty_maps(model, dem, grid, D, names)
@@ -193,9 +182,6 @@ def test_numpy_dem_sampling_fallback_matches_cv2_remap(rpc_case, monkeypatch):
 
 
 def test_fast_maps_do_not_depend_on_the_thread_count(rpc_case):
-    from stereodem.ortho.grid import grid_for_model
-    from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
-
     model, dem, names, D, _ = rpc_case
     grid = grid_for_model(model, dem, res=4.0)
     a = ortho_uncertainty_maps(model, dem, grid, D, names, threads=1)

@@ -16,12 +16,16 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
+from rasterio.warp import Resampling, calculate_default_transform, reproject
 
+import stereodem.post.mosaic as pm
 from stereodem.cli import main
 from stereodem.core import geodesy
+from stereodem.core.dem import DEM as _DEM
 from stereodem.core.errors import VerticalReferenceError
 from stereodem.core.raster import write_geotiff
 from stereodem.post.mosaic import memory_bound, plan_mosaic, read_on_grid, run_mosaic
+from stereodem.post.mosaic_coreg import DEMCorrection, fitter
 
 CRS = "EPSG:32637"
 RES = 30.0
@@ -230,7 +234,6 @@ def test_sigma_layers_weight_the_blend_and_propagate(tmp_path):
 def test_dems_in_another_crs_are_reprojected(tmp_path):
     a = write_dem(tmp_path / "a.tif", 0, 0, 100, 100)
     # the same terrain as a geographic DEM (EPSG:4326, ~20 m), overlapping a on its east side
-    from rasterio.warp import Resampling, calculate_default_transform, reproject
 
     src_t = Affine(RES, 0, X0 + 60 * RES, 0, -RES, Y0)
     src = terrain(100, 100, 0, 60)
@@ -430,8 +433,6 @@ def test_coregistration_to_a_reference_first(tmp_path):
 def test_coregistration_chain_of_the_coreg_module(tmp_path, capsys):
     """--coreg-chain goes through stereodem.post.coreg.parse_chain: shift + offset steps are
     applied (nuth_kaab then vshift, summed), a surface step is refused in one line."""
-    from stereodem.post.mosaic_coreg import DEMCorrection, fitter
-
     ref = write_dem(tmp_path / "ref.tif", 0, 0, 160, 160)
     t = Affine(RES, 0, X0 + 20 * RES - 35.0, 0, -RES, Y0 - 20 * RES + 25.0)
     z = terrain(120, 120, 20, 20) - np.float32(6.0)
@@ -463,7 +464,6 @@ def test_coregistration_chain_of_the_coreg_module(tmp_path, capsys):
     zm, truth = on_truth(tmp_path / "m.tif")
     assert np.nanmedian(np.abs((zm - truth)[5:-5, 5:-5])) < 0.5
     # the Python hook gives the same kind of correction
-    from stereodem.core.dem import DEM as _DEM
 
     corr = fitter("nuth_kaab,vshift")(_DEM.from_file(ref), _DEM.from_file(tmp_path / "shifted.tif"))
     assert isinstance(corr, DEMCorrection) and abs(corr.dx + 35.0) < 3
@@ -497,7 +497,8 @@ def test_dask_gives_the_serial_mosaic(tmp_path):
 
 
 def _traced_peak(tmp_path, n_side, method):
-    """Python-heap peak (numpy arrays included) of a mosaic of n_side x n_side DEMs of 120² cells."""
+    """Python-heap peak (numpy arrays included) of a mosaic of n_side x n_side DEMs of 120²
+    cells."""
     paths = [
         write_dem(
             tmp_path / f"{method}{n_side}_{i}_{j}.tif",
@@ -531,8 +532,6 @@ def test_memory_depends_on_the_block_not_on_the_mosaic(tmp_path, method):
 
 
 def test_a_failure_half_way_leaves_nothing(tmp_path, monkeypatch):
-    import stereodem.post.mosaic as pm
-
     paths = [write_dem(tmp_path / f"d{i}.tif", 0, 60 * i, 80, 100) for i in range(3)]
     plan = plan_mosaic(paths, block=32)
     real, calls = pm.read_on_grid, []

@@ -4,9 +4,13 @@ import json
 import numpy as np
 import pytest
 from affine import Affine
+from pyproj import CRS
+from rasterio.warp import calculate_default_transform
 from scipy import ndimage as ndi
 
 from stereodem import assess_cli
+from stereodem.cli import main
+from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import (
     DEMError,
@@ -14,8 +18,10 @@ from stereodem.core.errors import (
     OutputExistsError,
     VerticalReferenceError,
 )
-from stereodem.post import assess
+from stereodem.core.raster import write_geotiff
+from stereodem.post import assess, figures
 from stereodem.post.report import write_report
+from stereodem.post.warp import to_grid
 
 
 @pytest.fixture(scope="module")
@@ -50,11 +56,6 @@ def test_slope_classes_show_error_growing_with_slope(ref, simulated):
 
 def test_reference_in_another_crs_is_warped(ref):
     # the reference put on a UTM grid: the DEM (lon/lat) is warped onto it
-    from pyproj import CRS
-    from rasterio.warp import calculate_default_transform
-
-    from stereodem.post.warp import to_grid
-
     utm = CRS.from_epsg(32637)
     b = ref.bounds_lonlat()
     t, w, h = calculate_default_transform(
@@ -144,11 +145,9 @@ def test_cli_writes_report_and_figures(tmp_path, ref):
     DEM(sh.astype(np.float32), ref.transform, ref.crs, "geoid").write(tmp_path / "dem.tif")
     DEM(ref.heights, ref.transform, ref.crs, None).write(tmp_path / "ref.tif")  # vertical unknown
     lc = np.where(np.arange(400)[None, :] < 200, 1, 2).repeat(400, 0).astype(np.uint8)
-    from stereodem.core.raster import write_geotiff
 
     write_geotiff(tmp_path / "lc.tif", lc, ref.transform, ref.crs, 0)
     out = tmp_path / "out"
-    from stereodem.cli import main
 
     assert (
         main(
@@ -231,9 +230,6 @@ def test_write_report_refuses_nonempty_dir(tmp_path, ref, simulated):
 def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
     """Figures draw at most DISPLAY_CELLS per side: a big raster costs no more than a small one."""
     import matplotlib.pyplot as plt
-
-    from stereodem.core import geodesy
-    from stereodem.post import figures
 
     monkeypatch.setattr(figures, "DISPLAY_CELLS", 100)
     drawn = []

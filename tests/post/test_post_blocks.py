@@ -4,6 +4,8 @@ stage's rasters do not depend on the thread count."""
 import cv2
 import numpy as np
 import pytest
+from affine import Affine
+from rasterio.crs import CRS
 from scipy import ndimage as ndi
 
 from stereodem.post.blocks import by_rows, row_bands
@@ -48,9 +50,6 @@ def _dem(rows=600, cols=300, seed=1):
 
 
 def test_filters_and_fill_do_not_depend_on_the_thread_count():
-    from affine import Affine
-    from rasterio.crs import CRS
-
     z, score = _dem()
     out = {}
     saved = cv2.getNumThreads()

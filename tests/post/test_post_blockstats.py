@@ -3,14 +3,19 @@ numpy on whole arrays: exact sums, quantiles within the stated histogram error."
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from affine import Affine
+from scipy import ndimage as ndi
+from threadpoolctl import threadpool_limits
 
 from stereodem.core.dem import DEM
 from stereodem.post import assess
 from stereodem.post import stats as st
 from stereodem.post.blockstats import QUANTILE_ERROR, RESOLUTION, StreamingStats, quantile_error
+from stereodem.post.filters import _median_at, _nanmedian_last
 
 EXACT = ("n", "mean", "std", "rmse", "mae", "min", "max", "le90_gauss", "le95_gauss")
 QUANTILES = ("median", "p16", "p84", "le90", "le95")
@@ -195,10 +200,6 @@ def test_blockwise_landcover_classes(dem_pair):
 
 
 def test_vectorised_block_nanmedian_equals_numpy():
-    import warnings
-
-    from stereodem.post.filters import _nanmedian_last
-
     rng = np.random.default_rng(5)
     t = rng.normal(0, 3, (40, 30, 64))
     t[rng.random(t.shape) < 0.4] = np.nan
@@ -212,10 +213,6 @@ def test_vectorised_block_nanmedian_equals_numpy():
 
 
 def test_median_at_cells_equals_scipy_median_filter():
-    from scipy import ndimage as ndi
-
-    from stereodem.post.filters import _median_at
-
     rng = np.random.default_rng(6)
     z = rng.normal(1000, 20, (150, 170))
     cells = rng.random(z.shape) < 0.05
@@ -267,8 +264,6 @@ def test_merged_accumulators_equal_one_accumulator():
 def test_sums_do_not_depend_on_the_blas_thread_count():
     # vector dot products in BLAS (OpenBLAS's ddot splits long vectors over its threads) made
     # the slope fit's last bits follow --workers; the sums are numpy's pairwise ones now
-    from threadpoolctl import threadpool_limits
-
     x = _data(n=200_000, seed=4)
     w = np.abs(x) * 3.0 + 1.0
     results = []

@@ -8,12 +8,15 @@ import math
 
 import numpy as np
 import pytest
+import shapely
 from affine import Affine
 
+from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError, NoOverlapError, VerticalReferenceError
 from stereodem.core.stats import nmad
 from stereodem.post.altimetry import AltimetryPoints, read_points
+from stereodem.post.biascorr import maximum_curvature
 from stereodem.post.coreg import (
     ICP,
     AlongTrack,
@@ -25,7 +28,9 @@ from stereodem.post.coreg import (
     StableMask,
     VerticalShift,
     bilinear,
+    local_metric_coords,
     parse_chain,
+    track_coords,
 )
 from stereodem.post.spatialstats import VariogramModel
 from stereodem.post.synthetic import InjectedErrors, inject_errors
@@ -89,8 +94,6 @@ def test_along_track_needs_a_heading(truth):
 
 
 def test_cross_track_recovers_a_quadratic(truth):
-    from stereodem.post.coreg import local_metric_coords, track_coords
-
     e, n = local_metric_coords(truth.transform, truth.crs, truth.shape)
     _, c = track_coords(e, n, 10.0)
     bias = 0.5 + 1.0 * (c / 1e4) - 2.0 * (c / 1e4) ** 2
@@ -100,8 +103,6 @@ def test_cross_track_recovers_a_quadratic(truth):
 
 
 def test_curvature_bias_is_recovered(truth):
-    from stereodem.post.biascorr import maximum_curvature
-
     curv = maximum_curvature(truth.heights, truth.transform, truth.crs)
     dem = DEM(
         truth.heights - np.nan_to_num(0.8 * curv).astype(np.float32),
@@ -188,8 +189,6 @@ def test_outline_outside_the_dem_is_one_line(truth, tmp_path):
 
 
 def test_outline_in_another_crs_is_reprojected(truth, tmp_path):
-    from stereodem.core import geodesy
-
     w, s, e, n = truth.bounds_lonlat()
     x, y = geodesy.lonlat_to_crs(np.array([w, e]), np.array([s, n]), "EPSG:32637")
     xm, ym = (x[0] + x[1]) / 2, (y[0] + y[1]) / 2
@@ -253,7 +252,6 @@ def test_points_from_csv_and_geoparquet_agree(tmp_path):
     assert a.vertical == "ellipsoid" and a.h.tolist() == [1000.5, 1001.25] and len(a.time) == 2
     pq = pytest.importorskip("pyarrow.parquet")
     import pyarrow as pa
-    import shapely
 
     geom = shapely.to_wkb(shapely.points([40.1, 40.2], [39.9, 39.8]))
     pq.write_table(pa.table({"geometry": geom, "h": [1000.5, 1001.25]}), tmp_path / "pts.parquet")

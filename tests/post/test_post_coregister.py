@@ -8,6 +8,7 @@ from scipy import ndimage as ndi
 
 from stereodem.core.dem import DEM
 from stereodem.core.errors import DEMError
+from stereodem.post.assess import compare_on_reference_grid
 from stereodem.post.biascorr import NuthKaab
 from stereodem.post.coreg import CoregChain
 from stereodem.post.terrain import pixel_size_m
@@ -38,7 +39,6 @@ def test_nuth_kaab_recovers_known_shift(shifted):
     rec = chain.report()[0]
     assert p["converged"] and rec["after"]["nmad"] < 0.1 * rec["before"]["nmad"]
     # apply() removes the shift on the DEM's own grid: the corrected DEM agrees with the reference
-    from stereodem.post.assess import compare_on_reference_grid
 
     after = compare_on_reference_grid(chain.apply(dem), ref)
     before = compare_on_reference_grid(dem, ref)

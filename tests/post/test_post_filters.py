@@ -5,6 +5,7 @@ from scipy import ndimage as ndi
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.post import filters as F
+from stereodem.post.terrain import slope_deg
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +92,6 @@ def test_slope_reference_and_patch_filters():
     z = d.heights.astype(np.float64)[:200, :200].copy()
     t = d.transform
     m, reason = F.slope_filter(z, t, d.crs, max_slope=30.0)
-    from stereodem.post.terrain import slope_deg
 
     assert reason == F.Reason.SLOPE and m.sum() == np.sum(slope_deg(z, t, d.crs) > 30.0)
     ref = z + 5.0

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from scipy import stats as sst
 
 from stereodem.core.errors import InputError
 from stereodem.core.stats import nmad
@@ -18,7 +19,6 @@ def test_error_stats_match_independent_numpy():
     assert s["std"] == pytest.approx(np.sqrt(np.sum((x - x.mean()) ** 2) / x.size), rel=1e-12)
     assert s["rmse"] == pytest.approx(np.sqrt(np.sum(x * x) / x.size), rel=1e-12)
     assert s["rmse"] ** 2 == pytest.approx(s["mean"] ** 2 + s["std"] ** 2, rel=1e-9)
-    from scipy import stats as sst
 
     assert s["nmad"] == pytest.approx(sst.median_abs_deviation(x, scale=1 / 1.4826), rel=1e-12)
     assert s["le90"] == pytest.approx(sst.scoreatpercentile(np.abs(x), 90), rel=1e-12)

@@ -20,6 +20,7 @@ from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 from stereodem.core.dem import DEM
 from stereodem.post import assess, figures
 from stereodem.post.report import write_report
+from stereodem.post.stats import binned_stats
 from stereodem.provenance import provenance
 
 T = Affine(30.0, 0.0, 600000.0, 0.0, -30.0, 4390000.0)
@@ -112,7 +113,6 @@ def test_error_vs_slope_counts_greys_sparse_classes_and_stays_in_axes(tmp_path, 
     slope = np.concatenate([rng.uniform(0, 40, 5000), [46.0, 47.0, 48.0, 49.0]])
     dh = rng.normal(0, 1 + slope / 20)
     dh[-4:] = [30.0, -40.0, 55.0, 60.0]  # a 4-cell class far off the others
-    from stereodem.post.stats import binned_stats
 
     by = binned_stats(dh, slope, [0, 10, 20, 30, 45, 90], unit="deg", name="slope")
     figures.error_vs_slope_png(dh, slope, by, tmp_path / "s.png")

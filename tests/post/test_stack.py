@@ -5,15 +5,37 @@ inputs. Small synthetic inputs (a crop of the bundled real SRTM tile)."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
+import rasterio
+from affine import Affine
+from pyproj import CRS
 
 from stereodem.cli import main
+from stereodem.core.dem import DEM
+from stereodem.core.errors import InputError
+from stereodem.core.grid import MapGrid
+from stereodem.core.raster import write_geotiff
 from stereodem.core.stats import nmad
+from stereodem.post import stack as st
 from stereodem.post.clouds import CloudSettings, cloud_mask
+from stereodem.post.dates import date_from_metadata, dem_dates
+from stereodem.post.gp import GPSettings, gp_rates
 from stereodem.post.rates import RateSettings, fit_rates, noise_limit
+from stereodem.post.spatialstats import VariogramModel
+from stereodem.post.stack import MASK_CLOUD
+from stereodem.post.stack_build import BuildSettings, add_dem, build_stack, exclude_mask
+from stereodem.post.synthetic import InjectedErrors
+from stereodem.post.synthetic_series import (
+    dem_series,
+    glacier_outline,
+    utm_reference,
+    write_polygons,
+)
 from stereodem.post.volumes import hypsometric_fill
+from stereodem.sensor.simulation.multidate import thinning_truth, write_dem_series
 
 TIMES = np.array([2003.5, 2007.6, 2011.5, 2015.6, 2019.55])
 
@@ -66,8 +88,6 @@ def test_rates_masks_min_obs_and_gross_deviation():
 
 
 def test_rates_refuse_repeated_dates_and_bad_sigma():
-    from stereodem.core.errors import InputError
-
     h = np.zeros((3, 2))
     with pytest.raises(InputError, match="repeated"):
         fit_rates(h, [2001.0, 2001.0, 2005.0], np.ones(3))
@@ -122,18 +142,11 @@ def test_hypsometric_fill_uses_the_local_elevation_bands():
 
 
 def _grid(n=40):
-    from affine import Affine
-    from pyproj import CRS
-
-    from stereodem.core.grid import MapGrid
-
     return MapGrid(Affine(30, 0, 500000, 0, -30, 4400000), n + 10, n, CRS.from_epsg(32637))
 
 
 def test_zarr_stack_round_trip_reads_with_plain_xarray(tmp_path):
     import xarray as xr
-
-    from stereodem.post import stack as st
 
     g = _grid()
     dates = [np.datetime64(d) for d in ("2004-07-01", "2011-08-02", "2019-07-20")]
@@ -164,11 +177,6 @@ def test_zarr_stack_round_trip_reads_with_plain_xarray(tmp_path):
 
 
 def test_dates_from_metadata_csv_and_list(tmp_path):
-    from affine import Affine
-
-    from stereodem.core.raster import write_geotiff
-    from stereodem.post.dates import dem_dates
-
     a, b = tmp_path / "a" / "dem.tif", tmp_path / "b.tif"
     a.parent.mkdir()
     for p in (a, b):
@@ -184,7 +192,6 @@ def test_dates_from_metadata_csv_and_list(tmp_path):
     csv.write_text("path,date\na/dem.tif,2004-01-02\nb.tif,2010-03-04\n")
     got = dem_dates([a, b], str(csv))
     assert [str(d) for d in got] == ["2004-01-02T00:00:00", "2010-03-04T00:00:00"]
-    from stereodem.post.dates import date_from_metadata
 
     assert str(date_from_metadata(a)) == "2005-06-07T08:30:01"
     assert [str(d)[:10] for d in dem_dates([a, b], "2001-01-01,2002-02-02")] == [
@@ -200,17 +207,6 @@ def test_dates_from_metadata_csv_and_list(tmp_path):
 def series(tmp_path_factory):
     """Four dated DEMs of a 70 x 70 crop of the bundled SRTM (90 m) with shift, offset, ramp,
     correlated noise, a cloud in one and a thinning inside an outline; reference and outline."""
-    from stereodem.core.dem import DEM
-    from stereodem.post.spatialstats import VariogramModel
-    from stereodem.post.synthetic import InjectedErrors
-    from stereodem.post.synthetic_series import (
-        dem_series,
-        glacier_outline,
-        utm_reference,
-        write_polygons,
-    )
-    from stereodem.sensor.simulation.multidate import thinning_truth, write_dem_series
-
     d = tmp_path_factory.mktemp("series")
     ref = utm_reference(DEM.bundled(), 70, 90.0, centre_lonlat=(40.4, 39.6))
     outline = glacier_outline(ref.grid, radius=0.2)
@@ -248,7 +244,6 @@ def _run(argv, capsys):
 
 @pytest.mark.slow
 def test_stack_command_recovers_the_rate_and_masks_the_cloud(series, tmp_path, capsys):
-    import rasterio
     import xarray as xr
 
     out = tmp_path / "out"
@@ -319,8 +314,6 @@ def test_stack_command_recovers_the_rate_and_masks_the_cloud(series, tmp_path, c
 
 
 def test_change_command_gives_dh_and_sigma(series, tmp_path, capsys):
-    import rasterio
-
     out = tmp_path / "chg"
     a, b = series["paths"][0], series["paths"][3]
     rc, _so, se = _run(["change", a, b, "--exclude", series["outline"], "-o", str(out)], capsys)
@@ -340,10 +333,6 @@ def test_change_command_gives_dh_and_sigma(series, tmp_path, capsys):
     "case", ["no_dates", "single", "no_overlap", "future", "repeated", "count"]
 )
 def test_stack_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys, case):
-    from affine import Affine
-
-    from stereodem.core.raster import write_geotiff
-
     paths = series["paths"][:3]
     extra = []
     if case == "no_dates":
@@ -384,8 +373,6 @@ def test_stack_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys
 
 
 def test_gp_rate_is_wls_without_the_nonlinear_part_and_wider_with_it():
-    from stereodem.post.gp import GPSettings, gp_rates
-
     rng = np.random.default_rng(4)
     h = 500 - 0.8 * (TIMES[:, None] - 2010) + rng.normal(0, 2, (5, 300))
     h[1, :100] = np.nan  # two observation patterns
@@ -400,8 +387,6 @@ def test_gp_rate_is_wls_without_the_nonlinear_part_and_wider_with_it():
 
 
 def test_filter_uses_the_cloud_mask(series, tmp_path, capsys):
-    import rasterio
-
     out = tmp_path / "clean.tif"
     rc, _so, se = _run(
         [
@@ -446,9 +431,6 @@ def test_stack_default_chain_leaves_out_along_track_without_a_heading(series, tm
 def test_parallel_build_writes_the_same_stack(series, tmp_path):
     import xarray as xr
 
-    from stereodem.core.dem import DEM
-    from stereodem.post.stack_build import BuildSettings, build_stack
-
     ref = DEM.from_file(series["ref"])
     dates = [np.datetime64(d) for d in series["dates"][:3]]
     s = BuildSettings(chain="nuth_kaab", chunk=32)
@@ -461,24 +443,11 @@ def test_parallel_build_writes_the_same_stack(series, tmp_path):
 
 
 def test_dates_csv_missing_is_one_line(tmp_path):
-    from stereodem.core.errors import InputError
-    from stereodem.post.dates import dem_dates
-
     with pytest.raises(InputError, match="cannot read the dates CSV"):
         dem_dates(["a.tif", "b.tif"], str(tmp_path / "nope.csv"))
 
 
 def test_stack_uses_the_score_and_radiance_layers_beside_a_dem(series, tmp_path):
-    import shutil
-
-    import rasterio
-
-    from stereodem.core.dem import DEM
-    from stereodem.core.raster import write_geotiff
-    from stereodem.post.clouds import CloudSettings
-    from stereodem.post.stack import MASK_CLOUD
-    from stereodem.post.stack_build import BuildSettings, add_dem, exclude_mask
-
     d = tmp_path / "run"
     d.mkdir()
     dem = d / "dem.tif"

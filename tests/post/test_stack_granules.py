@@ -6,21 +6,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import rasterio
+import shapely
 
 from stereodem.cli import main
+from stereodem.core.dem import DEM
+from stereodem.core.stats import nmad
+from stereodem.post import warp
+from stereodem.post.synthetic_series import write_polygons
+from stereodem.sensor.simulation.multidate import simulate_granule_series, thinning_truth
 
 
 @pytest.mark.slow
 def test_granules_to_rate_map(tmp_path, capsys):
-    import rasterio
-    import shapely
-
-    from stereodem.core.dem import DEM
-    from stereodem.core.stats import nmad
-    from stereodem.post import warp
-    from stereodem.post.synthetic_series import write_polygons
-    from stereodem.sensor.simulation.multidate import simulate_granule_series, thinning_truth
-
     dem = DEM.bundled()
     dates = ["2004-08-01", "2009-07-20", "2014-08-05", "2019-07-28"]
     outline = shapely.Point(40.425, 39.58).buffer(0.02)

@@ -3,10 +3,13 @@ statistics (sigma0, chi-square, covariance vs the spread of repeated estimates),
 identities, data snooping, hostile inputs, GCP files."""
 
 import json
+import re
 
 import numpy as np
 import pytest
+from scipy.linalg import null_space
 
+from stereodem.core import geodesy
 from stereodem.core.errors import ConvergenceError, InputError, SensorModelError
 from stereodem.sensor.estimation.adjust import (
     MODEL_SETS,
@@ -15,10 +18,12 @@ from stereodem.sensor.estimation.adjust import (
     register_model_set,
     required_gcps,
 )
+from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
 from stereodem.sensor.io.gcps import ControlPoints, read_gcps, write_gcps
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation.simulate import pushbroom_pair
 
 
 @pytest.fixture(scope="module")
@@ -155,7 +160,6 @@ def test_gauss_helmert_ground_observations(rpc):
     truth = ImageCorrectedModel(rpc, **BIAS)
     tc, tr = truth.project(lon, lat, h)
     sg = 1.0  # m, each of E, N, U
-    from stereodem.core import geodesy
 
     X = np.stack(geodesy.geodetic_to_ecef(lon, lat, h), -1)
     B = geodesy.enu_basis(lon, lat)
@@ -270,10 +274,6 @@ def _assert_names_span_a_null_direction(message, rpc, pts, model_set):
     linearly dependent, and each of them has a component in the null space. (Which vector of a
     null space of dimension > 1 the SVD returns is the library's choice: all GCPs on one row
     make both col_shift/col_drift_row and row_shift/row_drift_row inseparable.)"""
-    import re
-
-    from scipy.linalg import null_space
-
     named = re.search(r"cannot separate (.+?) —", message).group(1).split(", ")
     names = list(MODEL_SETS[model_set].names)
     assert named and set(named) <= set(names), message
@@ -328,8 +328,6 @@ def test_gcv_on_a_rank_deficient_set_has_finite_statistics(rpc):
 def test_linear_algebra_failure_is_a_sensor_model_error():
     """A LinAlgError inside the solve (here the model's own ``np.linalg.solve`` on a matrix that
     its parameters make singular) comes out as SensorModelError naming the parameters."""
-    from stereodem.sensor.estimation.adjust import gauss_markov as gm
-
     b = np.array([1.0, 2.0])
 
     def evaluate(x):
@@ -404,7 +402,6 @@ def test_gcp_csv_format(tmp_path, rpc):
     assert header == "id,lon,lat,h,col,row,sigma_px,sigma_ground_m,role"
     # EGM96 heights
     geo = read_gcps(path, vertical="geoid")
-    from stereodem.core import geodesy
 
     np.testing.assert_allclose(geo.h - back.h, geodesy.geoid_undulation(back.lon, back.lat))
     assert np.all(np.abs(geo.h - back.h) > 1)
@@ -435,9 +432,6 @@ def test_variance_components_image_and_ground(rpc):
     """Half the GCPs surveyed (ground fixed), half from a map whose stated 15 m sigma is three
     times too pessimistic (true 5 m): iterated variance components recover the factor 1/3 for
     the ground group and 1 for the image group; the group redundancies add up to n - u."""
-    from stereodem.core import geodesy
-    from stereodem.sensor.simulation.simulate import pushbroom_pair
-
     pb = pushbroom_pair(-121.7, 46.85, 1500.0, (2000, 2000), (0.0, -27.6))[1]
     rng = np.random.default_rng(2)
     n = 120
@@ -477,8 +471,6 @@ def test_gauss_newton_reports_stalled_not_converged():
     Gauss-Newton correction (here 0.01..0.1 sigma) no longer lowers the sum of squares. The
     solution is accepted but reported as stalled, not converged; without the jagged term the
     same problem meets the criterion."""
-    from stereodem.sensor.estimation.adjust import gauss_markov as gm
-
     rng = np.random.default_rng(0)
     A = rng.normal(size=(40, 3))
     obs = A @ np.array([1.0, -2.0, 0.5]) + rng.normal(size=40)

@@ -2,16 +2,21 @@
 pair, absolute placement with 6 GCPs, solvers, reliability, tie blunders, hostile inputs."""
 
 import json
+import sys
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from stereodem.core import geodesy
 from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.estimation.adjust import bundle_adjust, write_report
 from stereodem.sensor.geo.intersect import intersect_matches
 from stereodem.sensor.io.gcps import ControlPoints
-from stereodem.sensor.simulation.simulate import pushbroom_pair
+from stereodem.sensor.simulation.simulate import pushbroom_pair, simulate_scene
+from stereodem.stereo.pipeline import make_dem
+from stereodem.stereo.settings import RectificationSettings, StereoSettings
+from stereodem.stereo.sparse import sparse_matches
 
 LEFT_BIAS = dict(roll_bias=-2e-5, pitch_bias=3e-5, yaw_bias=5e-5)
 RIGHT_BIAS = dict(roll_bias=4e-5, pitch_bias=-5e-5, yaw_bias=1e-4)  # ~30-70 m on the ground
@@ -103,7 +108,6 @@ def test_bundle_with_6_gcps_places_the_pair(pair, seed):
     assert abs(np.median(before.h - h)) > 3 * gsd
     assert abs(np.median(after.h - h)) < 0.2 * gsd
     # planimetry too (metres on the ground)
-    from stereodem.core import geodesy
 
     e, n, _ = geodesy.ecef_to_enu(*after.ecef.T, lon, lat, h)
     assert np.hypot(np.median(e), np.median(n)) < 0.2 * gsd
@@ -117,8 +121,6 @@ def test_bundle_solvers_agree_and_redundancy(data_dir):
     reduced normal equations, scipy's sparse least_squares and the dense normal equations reach
     the same solution; sum of redundancy numbers = n - u (ties' ground coordinates counted);
     the biases are recovered within their sigma."""
-    import sys
-
     sys.path.insert(0, str(data_dir.parents[1] / "benchmarks"))
     from bench_adjust import problem
 
@@ -151,8 +153,6 @@ def test_bundle_solvers_agree_and_redundancy(data_dir):
 
 def test_bundle_schur_equals_dense(data_dir):
     """Fast check: the reduced normal equations give the dense solution and covariance."""
-    import sys
-
     sys.path.insert(0, str(data_dir.parents[1] / "benchmarks"))
     from bench_adjust import problem
 
@@ -250,13 +250,6 @@ def test_bundle_with_6_gcps_gives_a_dem_within_0_2_gsd():
     metres), automatic SIFT tie points, 6 GCPs measured to 0.1 px; the DEM made with the
     adjusted models has a median error against the truth below 0.2 GSD (it is several GSD
     with the biased models)."""
-    from stereodem.core import geodesy
-    from stereodem.sensor.io.gcps import ControlPoints
-    from stereodem.sensor.simulation.simulate import simulate_scene
-    from stereodem.stereo.pipeline import make_dem
-    from stereodem.stereo.settings import RectificationSettings, StereoSettings
-    from stereodem.stereo.sparse import sparse_matches
-
     sc = simulate_scene("aster", size=(500, 500), seed=4)
     L, R = sc.left_model, sc.right_model
     gsd = L.gsd()

@@ -4,7 +4,10 @@ attitude and position sets) and the 15 generic models through the same statistic
 import numpy as np
 import pytest
 
+import stereodem.sensor.estimation.adjust.single as single
+from stereodem.core.errors import StereodemError
 from stereodem.sensor.estimation.adjust import adjust_generic, adjust_model
+from stereodem.sensor.estimation.adjust.gauss_markov import STATIONARY_SIGMA
 from stereodem.sensor.io.aster_xml import bundled_xml
 from stereodem.sensor.io.gcps import ControlPoints
 from stereodem.sensor.models.aster import AsterModel
@@ -16,8 +19,6 @@ def _accepted(res):
     """The solver's acceptance: the criterion met ("converged"), or a stalled line search
     within STATIONARY_SIGMA ("stalled": which of the two depends on the LAPACK/MINPACK build,
     e.g. scipy 1.10 stalls at 0.017 sigma where 1.16 converges); the result says which."""
-    from stereodem.sensor.estimation.adjust.gauss_markov import STATIONARY_SIGMA
-
     return res.converged or (res.status == "stalled" and res.max_correction < STATIONARY_SIGMA)
 
 
@@ -95,8 +96,6 @@ def test_self_calibration_has_local_minima(camera):
     in the start (p1 = 1e-4, p2 = -1e-4 /mm) ends in another converged solution, separated from
     the one reached from the other starts by a ridge of the sum of squares: a genuine second
     local minimum, not a convergence failure."""
-    import stereodem.sensor.estimation.adjust.single as single
-
     pts = _gcps(camera, 25, 0.5, np.random.default_rng(0))
     truth = camera.parameters()
     a = adjust_model(
@@ -123,8 +122,6 @@ def test_self_calibration_has_local_minima(camera):
 def test_frame_resection_far_start_fails_loudly(camera):
     """A start 90 degrees off in yaw does not end silently wrong: either it converges to the
     truth or it raises."""
-    from stereodem.core.errors import StereodemError
-
     pts = _gcps(camera, 25, 0.5, np.random.default_rng(1))
     start = camera.with_parameters(roll=camera.roll + np.radians(30))
     try:

@@ -4,13 +4,17 @@ biases, the datum, and ``stereodem adjust IMG1 IMG2 IMG3 --model bundle``."""
 import numpy as np
 import pytest
 
+from stereodem.cli import main
 from stereodem.core.errors import InputError
+from stereodem.core.raster import write_geotiff
 from stereodem.sensor.estimation.adjust.bundle_multi import (
     TieTracks,
     bundle_adjust_images,
     tracks_from_pairs,
 )
-from stereodem.sensor.io.gcps import ControlPoints
+from stereodem.sensor.io.asp_match import InterestPoints, MatchFile, write_match
+from stereodem.sensor.io.gcps import ControlPoints, write_gcps
+from stereodem.sensor.io.sidecar import load_model, save_model
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.simulation.simulate import pushbroom_pair
 
@@ -125,10 +129,6 @@ def test_datum_without_gcps(triplet):
 def triplet_files(triplet, tmp_path_factory):
     """The delivered models as sidecars of three (blank) image files, with tie and GCP CSVs
     measured through the true models."""
-    from stereodem.core.raster import write_geotiff
-    from stereodem.sensor.io.gcps import write_gcps
-    from stereodem.sensor.io.sidecar import save_model
-
     delivered, truth = triplet
     d = tmp_path_factory.mktemp("triplet")
     paths = []
@@ -164,9 +164,6 @@ def triplet_files(triplet, tmp_path_factory):
 
 @pytest.mark.slow
 def test_adjust_cli_three_images(triplet_files, capsys):
-    from stereodem.cli import main
-    from stereodem.sensor.io.sidecar import load_model
-
     d, paths, _ = triplet_files
     out = d / "adjusted"
     argv = [
@@ -206,9 +203,6 @@ def test_adjust_cli_three_images(triplet_files, capsys):
 
 
 def test_adjust_cli_refuses_match_of_other_images(triplet_files, capsys):
-    from stereodem.cli import main
-    from stereodem.sensor.io.asp_match import InterestPoints, MatchFile, write_match
-
     d, paths, obs = triplet_files
     good = MatchFile(
         InterestPoints(obs[0][:, 0], obs[0][:, 1]), InterestPoints(obs[1][:, 0], obs[1][:, 1])
@@ -240,9 +234,6 @@ def test_adjust_cli_refuses_match_of_other_images(triplet_files, capsys):
 
 def test_adjust_cli_pair_from_match_file(triplet_files, capsys):
     """A pair bundle from an ASP match file of the two images (named the ASP way)."""
-    from stereodem.cli import main
-    from stereodem.sensor.io.asp_match import InterestPoints, MatchFile, write_match
-
     d, paths, obs = triplet_files
     write_match(
         d / "pair" / "run-view0__view2.match",

@@ -1,11 +1,14 @@
 """ASTER VNIR model from real product geometry (ASP aster2asp XML of the Rainier 2017 granule)."""
 
+import json
+
 import numpy as np
 import pytest
 
 from stereodem.core import geodesy
 from stereodem.core.errors import RPCError, SensorModelError
-from stereodem.sensor.io.aster_xml import read_asp_aster_xml
+from stereodem.sensor.io.aster_xml import bundled_xml, read_asp_aster_xml
+from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
 from stereodem.sensor.models.aster import AsterGeometry, AsterModel, lattice_velocities
 
 BANDS = ("3N", "3B")
@@ -13,8 +16,6 @@ BANDS = ("3N", "3B")
 
 @pytest.fixture(scope="module")
 def xml_path():
-    from stereodem.sensor.io.aster_xml import bundled_xml
-
     return lambda band: bundled_xml(band)
 
 
@@ -26,8 +27,8 @@ def models(xml_path):
 def _rpc00b(rpc, lon, lat, h):
     """Evaluate an RPC00B block (dict of RPB keys) at ground points: (col, row).
 
-    Private helper so that this test does not depend on stereodem.sensor.models.rpc. Term order of RPC00B /
-    NITF: 1 L P H LP LH PH L^2 P^2 H^2 PLH L^3 LP^2 LH^2 L^2P P^3 PH^2 L^2H P^2H H^3.
+    Private helper so that this test does not depend on stereodem.sensor.models.rpc. Term order of
+    RPC00B / NITF: 1 L P H LP LH PH L^2 P^2 H^2 PLH L^3 LP^2 LH^2 L^2P P^3 PH^2 L^2H P^2H H^3.
     """
     L = (lon - rpc["LONGOFFSET"]) / rpc["LONGSCALE"]
     P = (lat - rpc["LATOFFSET"]) / rpc["LATSCALE"]
@@ -261,10 +262,6 @@ def test_nan_coordinates(models):
 
 
 def test_serialisation_round_trip(models):
-    import json
-
-    from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
-
     m = models["3B"].with_parameters(yaw_bias=1e-5)
     d = json.loads(json.dumps(model_to_dict(m)))
     assert d["type"] == "aster"

@@ -1,28 +1,43 @@
 """ASTER L1A granules: V004 (HDF-EOS2) and V003 (zip / folder) round trips through the
 simulator's writers and the readers, radiometric correction, and bad input."""
 
+import copy
 import shutil
 
 import numpy as np
 import pytest
+import rasterio
 
+from stereodem.cli import main
 from stereodem.core import geodesy
 from stereodem.core.errors import InputError, SensorModelError
+from stereodem.core.stats import nmad
 from stereodem.sensor.geo.rotations import orbital_frame
-from stereodem.sensor.io.aster_l1a import AsterGranule, open_aster_granule
+from stereodem.sensor.io.aster_l1a import (
+    AsterGranule,
+    is_aster_granule,
+    open_aster_granule,
+    read_granule_band,
+)
 from stereodem.sensor.io.odl import flatten_odl, format_odl, parse_odl
+from stereodem.sensor.io.sidecar import load_image_model, load_model, save_model
 from stereodem.sensor.simulation.aster_granule import (
     granule_from_scene,
     struct_metadata,
     write_v003,
     write_v004,
 )
+from stereodem.sensor.simulation.simulate import (
+    SUN_AZIMUTH,
+    SUN_ELEVATION,
+    simulate_scene,
+    write_scene,
+)
+from stereodem.stereo.pipeline import make_dem
 
 
 @pytest.fixture(scope="module")
 def scene():
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     return simulate_scene("aster", size=(410, 400), right_size=(500, 540), seed=3)
 
 
@@ -195,7 +210,6 @@ def test_v003_and_v004_give_the_same_band(files):
 def test_metadata_from_odl(files, scene):
     g = open_aster_granule(files["v004"])
     md = g.metadata
-    from stereodem.sensor.simulation.simulate import SUN_AZIMUTH, SUN_ELEVATION
 
     assert md["granule_id"] == files["v004"].stem
     assert (md["sun_azimuth_deg"], md["sun_elevation_deg"]) == (SUN_AZIMUTH, SUN_ELEVATION)
@@ -213,8 +227,6 @@ def test_earth_fixed_velocity_is_detected(scene, tmp_path):
 
 
 def test_model_sidecar_keeps_product_velocity(files, tmp_path):
-    from stereodem.sensor.io.sidecar import load_model, save_model
-
     m = open_aster_granule(files["v004"]).model("3B")
     save_model(m, tmp_path / "m.json")
     back = load_model(tmp_path / "m.json")
@@ -248,8 +260,6 @@ def test_radiometric_correction_removes_striping(files, granule):
 
 
 def test_fill_pixels_are_masked(granule, tmp_path):
-    import copy
-
     g = copy.deepcopy(granule)
     g.bands["3N"].dn[:7, :] = 0
     band = open_aster_granule(write_v004(g, tmp_path / "fill.hdf"))["3N"]
@@ -281,8 +291,6 @@ def test_non_aster_hdf(tmp_path):
 
 @pytest.mark.parametrize("level,short", [("L1B", "ASTL1B"), ("L1T", "AST_L1T")])
 def test_l1b_and_l1t_are_refused(granule, tmp_path, level, short):
-    import copy
-
     g = copy.deepcopy(granule)
     g.attributes["coremetadata.0"] = (
         g.attributes["coremetadata.0"]
@@ -299,8 +307,6 @@ def test_l1b_and_l1t_are_refused(granule, tmp_path, level, short):
 
 
 def test_granule_without_3b(granule, tmp_path):
-    import copy
-
     g = copy.deepcopy(granule)
     del g.bands["3B"]
     g.attributes["StructMetadata.0"] = struct_metadata(g)
@@ -335,8 +341,6 @@ def test_v003_folder_missing_a_table(files, tmp_path, table):
 
 
 def test_inconsistent_geometry_is_refused(granule, tmp_path):
-    import copy
-
     g = copy.deepcopy(granule)
     g.bands["3N"].latitude = g.bands["3N"].latitude + 0.01  # ~1 km off
     p = write_v004(g, tmp_path / "bad_geo.hdf")
@@ -361,8 +365,6 @@ def test_v003_l1b_folder_is_refused(tmp_path):
 
 
 def test_band_names_and_single_band_reader(files):
-    from stereodem.sensor.io.aster_l1a import read_granule_band
-
     g = open_aster_granule(files["v004"])
     assert g.band("3b") is g.band("Band3B") is g.band("VNIR_Band3B") is g["3B"]
     with pytest.raises(InputError, match=r"no band '2' in this granule \(has 3N, 3B\)"):
@@ -374,8 +376,6 @@ def test_band_names_and_single_band_reader(files):
 
 
 def test_is_aster_granule(files, tmp_path):
-    from stereodem.sensor.io.aster_l1a import is_aster_granule
-
     assert all(is_aster_granule(files[k]) for k in ("v004", "v003_zip", "v003_dir"))
     plain = tmp_path / "left.tif"
     plain.write_bytes(b"II*\0" + bytes(100))
@@ -387,8 +387,6 @@ def test_is_aster_granule(files, tmp_path):
 
 
 def test_cli_simulate_granule_and_info(tmp_path, capsys):
-    from stereodem.cli import main
-
     out = tmp_path / "sim"
     assert (
         main(
@@ -424,7 +422,7 @@ def test_cli_simulate_granule_and_info(tmp_path, capsys):
     )
 
 
-# ------------------------------------------------------------------------------ DEM through a granule
+# ---------------------------------------------------------------------------- DEM through a granule
 
 
 @pytest.mark.slow
@@ -432,12 +430,6 @@ def test_dem_from_granule_matches_dem_from_geotiff_and_sidecar(tmp_path):
     """The same simulated scene given as a V004 granule (radiance images, AsterModel from the
     lattice) and as GeoTIFFs with exact model sidecars gives the same DEM: the difference is
     a small fraction of either DEM's error against the truth."""
-    import rasterio
-
-    from stereodem.sensor.io.sidecar import load_image_model
-    from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
-    from stereodem.stereo.pipeline import make_dem
-
     sc = simulate_scene("aster", size=(410, 400), right_size=(500, 520), seed=2)
     out = write_scene(sc, tmp_path / "tif")
     gr = open_aster_granule(write_v004(granule_from_scene(sc, seed=2), tmp_path / "g.hdf"))
@@ -463,8 +455,6 @@ def test_dem_from_granule_matches_dem_from_geotiff_and_sidecar(tmp_path):
     )
     x, y = tif.transform @ (cc, rr)
     truth = sc.truth_dem.sample(*geodesy.crs_to_lonlat(x, y, tif.crs))
-
-    from stereodem.core.stats import nmad
 
     diff = gran.heights - tif.heights
     print(

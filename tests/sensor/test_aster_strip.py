@@ -10,7 +10,11 @@ import numpy as np
 import pytest
 
 from stereodem.cli import main
+from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
+from stereodem.core.stats import nmad
+from stereodem.post.assess import compare_on_reference_grid
+from stereodem.post.seams import seam_step
 from stereodem.sensor.io.aster_l1a import open_aster_granule
 from stereodem.sensor.io.aster_strip import open_aster_strip
 from stereodem.sensor.simulation.aster_granule import DEFAULT_START, write_v004
@@ -124,11 +128,6 @@ def test_strip_inputs(strip3, tmp_path):
 def test_strip_dem_has_no_step_at_the_seam(strip3, tmp_path):
     """Two adjacent granules: the strip DEM's error does not step across the seam line
     (<= 0.5 m) and its NMAD against the truth is a single granule's within 10 % (same cells)."""
-    from stereodem.core.dem import DEM
-    from stereodem.core.stats import nmad
-    from stereodem.post.assess import compare_on_reference_grid
-    from stereodem.post.seams import seam_step
-
     strip, paths, folder = strip3
     truth = DEM.from_file(folder / "truth_dem.tif")
     lo, hi = truth.height_range()

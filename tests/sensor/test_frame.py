@@ -70,7 +70,8 @@ def test_image_axes_orientation():
 
 
 def test_distortion_moves_corners_as_the_thesis_says():
-    """With k1 = 3.6e-4 (Table B.8) the correction shifts corner rays by tens of pixels (notes §2.2)."""
+    """With k1 = 3.6e-4 (Table B.8) the correction shifts corner rays by tens of pixels (notes
+    §2.2)."""
     cam = bilsat_like(k2=0, p1=0, p2=0, dx_mm=0, dy_mm=0)
     plain = bilsat_like(k1=0, k2=0, p1=0, p2=0, dx_mm=0, dy_mm=0)
     lon, lat = cam.localize(0.0, 0.0, 1000.0)

@@ -1,13 +1,15 @@
 """Orun & Natarajan and the Toutin-type model against the rigorous pushbroom model on the
 simulated ASTER 3N and 3B views (ephemeris and attitude with biases and drifts, 0.3 px image
 noise), through the adjustment engine with the models' registered sets (weighted second-order
-terms for Orun & Natarajan, levelling angles for Toutin), over several random GCP/ICP splits — the issue's criterion: ICP
-RMSE within 20 % of the rigorous model's with 10 GCPs (median over the splits) — and what
-happens with fewer GCPs (``benchmarks/bench_orbital_splits.py`` gives the full table)."""
+terms for Orun & Natarajan, levelling angles for Toutin), over several random GCP/ICP splits — the
+issue's criterion: ICP RMSE within 20 % of the rigorous model's with 10 GCPs (median over the
+splits) — and what happens with fewer GCPs (``benchmarks/bench_orbital_splits.py`` gives the full
+table)."""
 
 import numpy as np
 import pytest
 
+from stereodem.sensor.estimation.adjust import model_set
 from stereodem.sensor.estimation.compare import compare_splits, split_summary
 from stereodem.sensor.models.orbital import OrunNatarajanModel, ToutinModel
 from stereodem.sensor.models.orbital._common import virtual_points
@@ -115,7 +117,6 @@ def test_weighted_parameters_of_the_sets():
     sets, priors = OrunNatarajanModel.ADJUST_SETS, OrunNatarajanModel.PRIORS
     assert all(not any(n.startswith(("omega", "phi")) for n in v) for v in sets.values())
     assert len(sets["orun"]) == 10 and set(priors["orun"]) == {"X_2", "Y_2", "kappa_2"}
-    from stereodem.sensor.estimation.adjust import model_set
 
     assert model_set("orun").priors == priors["orun"]
     assert model_set("toutin-full").priors == ToutinModel.PRIORS["toutin-full"]

@@ -1,6 +1,7 @@
 """``stereodem compare-models`` on the simulated ASTER 3N scene (orbital, physical and generic
 models on one GCP/ICP split)."""
 
+import csv
 import json
 
 import numpy as np
@@ -80,8 +81,6 @@ def test_compare_models_table_json_figure(image, tmp_path, capsys):
 
 
 def test_compare_models_refuses_icps_outside_image(image, tmp_path, capsys):
-    import csv
-
     rows = list(csv.DictReader(open(image / "points.csv")))
     for r in rows:
         if r["role"] == "check":

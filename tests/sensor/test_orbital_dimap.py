@@ -11,6 +11,7 @@ import pytest
 from stereodem.core import geodesy
 from stereodem.core.errors import SensorModelError
 from stereodem.sensor.io.dimap_physical import read_dimap_physical, write_spot5_dimap
+from stereodem.sensor.io.rpc_formats import read_rpc
 from stereodem.sensor.models.orbital import TopanLOSModel
 from stereodem.sensor.models.pushbroom import PushbroomModel
 
@@ -40,8 +41,6 @@ def test_pleiades_dimap_lands_on_its_own_corner_coordinates():
 def test_pleiades_physical_model_agrees_with_the_products_rpc():
     """The vendor's RPC in the same file is a fit to its physical model: ours must agree to a
     small fraction of a pixel inside the RPC's height range (85 +- 575 m)."""
-    from stereodem.sensor.io.rpc_formats import read_rpc
-
     m, rpc = read_dimap_physical(PHR), read_rpc(PHR)
     c, r = np.meshgrid(np.linspace(0, m.width - 1, 11), np.linspace(0, m.height - 1, 11))
     for h in (200.0, 400.0, 600.0):

@@ -6,6 +6,7 @@ import pytest
 from helpers.orbital import NOISE_PX, aster_scene, control_points, gauss_newton, icp_rmse
 
 from stereodem.core.errors import InputError, SensorModelError
+from stereodem.sensor.io.sidecar import load_model, save_model
 from stereodem.sensor.models.orbital import (
     KratkyModel,
     OrunNatarajanModel,
@@ -15,6 +16,7 @@ from stereodem.sensor.models.orbital import (
 )
 from stereodem.sensor.models.orbital._common import require_gcps, require_inside
 from stereodem.sensor.models.orbital.topan_los import EOP_SETS, SET_ORDER, eop_set
+from stereodem.sensor.models.parameters import project_jacobian
 
 
 @pytest.fixture(scope="module")
@@ -89,8 +91,6 @@ def test_few_gcps_failure_mode_is_ill_conditioning(scene):
 def test_velocity_sets_are_singular_whatever_the_gcps(scene):
     """Only the turn of V about Z changes the image: V_S0 has rank 1 (Topan's sets 5, 13-19
     blow up)."""
-    from stereodem.sensor.models.parameters import project_jacobian
-
     meta, _, _ = scene
     m = TopanLOSModel.from_model(meta)
     pts = control_points(12, seed=9)["gcp"]
@@ -121,8 +121,6 @@ def test_topan_bad_inputs():
 
 @pytest.mark.parametrize("cls", [TopanLOSModel, OrunNatarajanModel, ToutinModel, KratkyModel])
 def test_sidecar_round_trip(scene, cls, tmp_path):
-    from stereodem.sensor.io.sidecar import load_model, save_model
-
     meta, _, _ = scene
     m = cls.from_model(meta)
     m = m.with_parameters(**{n: v + 1e-6 for n, v in list(m.parameters().items())[:2]})

@@ -3,7 +3,7 @@
 import pytest
 from helpers.orbital import NOISE_PX, aster_scene, control_points, icp_rmse
 
-from stereodem.core.errors import InputError
+from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.estimation.adjust import adjust_model, model_set
 from stereodem.sensor.models.orbital import TopanLOSModel
 from stereodem.sensor.models.orbital.topan_los import LOOK, eop_set, preadjust
@@ -56,7 +56,6 @@ def test_registered_sets_build_from_the_physical_model(setup):
 
 def test_velocity_set_refused_as_singular(setup):
     model, _, gcp = setup
-    from stereodem.core.errors import SensorModelError
 
     with pytest.raises(SensorModelError, match="near-singular normal matrix"):
         adjust_model(model, gcp, eop_set("V_S0"), sigma_px=NOISE_PX)

@@ -1,16 +1,20 @@
 """Pushbroom sensor model, ephemeris/attitude interpolation and the synthetic orbit builder."""
 
+import json
 import time
 
 import numpy as np
 import pytest
 from numpy.polynomial import Polynomial
+from scipy.spatial.transform import Rotation
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import SensorModelError
-from stereodem.sensor.geo.rotations import body_to_orbital
-from stereodem.sensor.models.ephemeris import Attitude, CircularOrbit, Ephemeris
+from stereodem.sensor.geo.rotations import body_to_orbital, inertial_velocity
+from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
+from stereodem.sensor.models import pushbroom
+from stereodem.sensor.models.ephemeris import Attitude, CircularOrbit, Ephemeris, _LagrangeTable
 from stereodem.sensor.models.pushbroom import PARAMETERS, DetectorArray, PushbroomModel
 
 # ---------------------------------------------------------------------------- fixtures
@@ -78,7 +82,6 @@ def test_ephemeris_interpolates_circular_orbit():
     # nodes are reproduced exactly
     assert np.max(np.abs(eph.position(eph.times) - eph.positions)) < 1e-6
     # circular speed: |v_inertial| = sqrt(GM / a)
-    from stereodem.sensor.geo.rotations import inertial_velocity
 
     speed = np.linalg.norm(inertial_velocity(r, v), axis=-1)
     np.testing.assert_allclose(speed, np.sqrt(geodesy.GM / orbit.radius), rtol=1e-12)
@@ -100,8 +103,6 @@ def test_ephemeris_rejects_bad_samples(times, pos):
 
 
 def test_attitude_angles_and_quaternions():
-    from scipy.spatial.transform import Rotation
-
     t = np.linspace(0, 10, 11)
     ang = 1e-3 * np.stack([np.sin(t), np.cos(0.5 * t), 0.1 * t], -1)
     att = Attitude(t, ang)
@@ -277,7 +278,7 @@ def test_localize_dem_drm(nadir):
     assert np.max(np.hypot(cc - c, rr - r)) < 1e-3
 
 
-# ---------------------------------------------------------------------------- frame chain, parameters
+# -------------------------------------------------------------------------- frame chain, parameters
 
 
 def test_attitude_tilt_and_bias_compose_consistently(nadir):
@@ -357,10 +358,6 @@ def test_bad_input(nadir):
 
 
 def test_serialisation_round_trip(nadir):
-    import json
-
-    from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
-
     t = nadir.ephemeris.times
     att = Attitude(t, 1e-4 * np.stack([np.sin(t), np.cos(t), 0 * t], -1))
     models = [
@@ -407,8 +404,6 @@ def test_pair_with_two_tilts():
 def test_lagrange_by_window_equals_gathered_evaluation():
     """Many times in few windows (a tile's lines) take the per-window path: the values and
     derivatives are those of the gathered-coefficient evaluation, bit for bit."""
-    from stereodem.sensor.models.ephemeris import _LagrangeTable
-
     rng = np.random.default_rng(0)
     ts = np.cumsum(rng.uniform(0.9, 1.1, 40))
     tab = _LagrangeTable(ts, rng.normal(0, 7e6, (40, 3)), 8)
@@ -438,8 +433,6 @@ def test_pose_table_rays_match_exact_pose(nadir, monkeypatch):
     < 1e-10 rad without jitter; with an attitude jitter of 20 urad at 5 Hz (stronger than
     ASTER's) the direction error is the linear-interpolation bound (|angle''| dt^2 / 8,
     ~1e-8 rad) and stays < 1e-3 px (IFOV units), far below the matching noise (~0.1 px)."""
-    from stereodem.sensor.models import pushbroom
-
     t = np.arange(nadir.line_time(-50.0), nadir.line_time(nadir.height + 50.0), 0.01)
     jitter = 2e-5 * np.sin(2 * np.pi * 5.0 * t)
     ang = np.stack([jitter + 1e-4 * np.sin(0.7 * t), 0.5 * jitter, 1e-4 * np.cos(0.3 * t)], -1)

@@ -2,6 +2,7 @@
 (the real Pleiades RPC written in that format's layout, see tests/data/SOURCES.md) must agree
 with rpcm or GDAL, whichever reads it, to 1e-6 px on a grid of points."""
 
+import json
 import sys
 import types
 from pathlib import Path
@@ -11,7 +12,7 @@ import pytest
 import rasterio
 from rasterio.transform import RPCTransformer
 
-from stereodem.core.errors import RPCError
+from stereodem.core.errors import RPCError, SensorModelError
 from stereodem.sensor.io.rpc_formats import read_rpc
 from stereodem.sensor.io.sidecar import load_model, save_model
 from stereodem.sensor.models.rpc import RPCModel
@@ -118,7 +119,6 @@ def test_ikonos_txt_agrees_with_rpcm(truth):
 
 def test_rpcm_json_agrees_with_rpcm(truth):
     rpc_model, _ = _rpcm()
-    import json
 
     path = FILES / "pleiades_rpcm.json"
     ours = read_rpc(path)
@@ -165,7 +165,6 @@ def test_rpc_txt_with_units_through_gdal_tags(truth):
 )
 def test_direct_model_localisation_agrees_with_rpcm(name, truth):
     rpc_model, _ = _rpcm()
-    import json
 
     path = FILES / name
     ours = read_rpc(path, direct=True)
@@ -278,7 +277,6 @@ def test_model_files_of_any_rpc_format(tmp_path):
     assert isinstance(d, DirectRPCModel)
     bad = tmp_path / "notes.json"
     bad.write_text('{"hello": 1}')
-    from stereodem.core.errors import SensorModelError
 
     with pytest.raises(SensorModelError) as e:
         load_model(bad)

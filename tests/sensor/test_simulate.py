@@ -6,7 +6,14 @@ import rasterio
 
 from stereodem.core import geodesy
 from stereodem.core.errors import InputError, OutputExistsError
-from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+from stereodem.sensor.estimation.rpcfit import fit_rpc
+from stereodem.sensor.io.sidecar import load_image_model
+from stereodem.sensor.simulation.simulate import (
+    aster_geometry_parameters,
+    psf_sigma,
+    simulate_scene,
+    write_scene,
+)
 
 
 def _parallax_per_km(left, right, col, row):
@@ -104,7 +111,6 @@ def test_write_scene_outputs(tmp_path, frame_scene):
         assert ds.rpcs is not None and ds.width == 256
     meta = json.loads((out / "scene.json").read_text())
     assert meta["rpc_fit"]["left"]["check_rms"] < 0.01
-    from stereodem.sensor.io.sidecar import load_image_model
 
     m = load_image_model(out / "left.tif")
     c, r = m.project(*frame_scene.left_model.localize(10.0, 20.0, 1500.0), 1500.0)
@@ -121,8 +127,6 @@ def test_bad_input():
 
 
 def test_aster_preset_uses_real_granule_geometry():
-    from stereodem.sensor.simulation.simulate import aster_geometry_parameters
-
     p = aster_geometry_parameters()
     assert p["bands"]["3B"]["along_deg"] == pytest.approx(-27.7, abs=0.2)  # backward band
     assert abs(p["bands"]["3N"]["along_deg"]) < 0.1  # nadir band
@@ -133,8 +137,6 @@ def test_aster_preset_uses_real_granule_geometry():
 @pytest.mark.parametrize("which", ["left", "right"])
 @pytest.mark.slow
 def test_rpc_fitted_to_aster_preset_reproduces_it(which):
-    from stereodem.sensor.estimation.rpcfit import fit_rpc
-
     sc = simulate_scene("aster", size=(600, 600), seed=0, n_points=4)
     model = getattr(sc, f"{which}_model")
     rpc, rep = fit_rpc(model, height_range=(500.0, 4000.0))
@@ -150,8 +152,6 @@ def test_rpc_fitted_to_aster_preset_reproduces_it(which):
 def test_system_psf_mtf_and_band_limit():
     """The Gaussian system PSF has the stated MTF at Nyquist, and a lower MTF removes the
     image's high-frequency content (power near Nyquist falls, the low band stays)."""
-    from stereodem.sensor.simulation.simulate import psf_sigma
-
     for mtf in (0.3, 0.1):
         s = psf_sigma(mtf)
         assert np.exp(-2 * np.pi**2 * s**2 * 0.25) == pytest.approx(mtf, rel=1e-9)

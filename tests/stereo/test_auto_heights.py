@@ -4,13 +4,19 @@ model (relative pointing from sparse matches), and the suspect-DEM report (issue
 import numpy as np
 import pytest
 from affine import Affine
+from helpers.rpc_scene import DATA, TARGET, moved_rpc, rpc_steep_pair
 
 from stereodem.core import geodesy
+from stereodem.core.dem import DEM
+from stereodem.core.errors import NoOverlapError
 from stereodem.core.stats import nmad
 from stereodem.sensor.models.corrected import ImageCorrectedModel
-from stereodem.sensor.simulation.simulate import simulate_scene
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation.simulate import frame_pair, simulate_scene
 from stereodem.stereo.pipeline import make_dem
+from stereodem.stereo.plan import overlap_window
 from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
+from stereodem.stereo.sparse import SparseMatchError
 
 
 def seen_cells(dem, truth_heights_at, models, border=3):
@@ -33,8 +39,6 @@ def seen_cells(dem, truth_heights_at, models, border=3):
 
 @pytest.mark.slow
 def test_real_rpc_geometry_far_from_the_height_offset_no_height_arguments():
-    from helpers.rpc_scene import rpc_steep_pair
-
     L, R, left, right, truth = rpc_steep_pair()
     prod = make_dem(L, R, left, right, StereoSettings(gridding=GriddingSettings(res=2.0)))
     assert prod.info.height_source == "sparse matches" and not prod.info.suspect
@@ -101,7 +105,6 @@ def test_biased_right_model_is_corrected(aster600):
     assert 40 < abs(offset) < 100
     # ... which a seed DEM fixes when asked to (the truth, coarsened, stands for SRTM here):
     # then the DEM meets the unbiased pair's accuracy
-    from stereodem.core.dem import DEM
 
     coarse = s.truth_dem.heights[::4, ::4]
     seed = DEM(
@@ -138,9 +141,6 @@ def test_wrong_height_range_is_reported_suspect(aster600):
 
 
 def test_no_texture_without_heights_is_one_line_error():
-    from stereodem.sensor.simulation.simulate import frame_pair
-    from stereodem.stereo.sparse import SparseMatchError
-
     left, right = frame_pair(40.4, 39.6, 2000.0, (128, 128))
     img = np.full((128, 128), 100, np.uint8)
     with pytest.raises(SparseMatchError) as e:
@@ -153,12 +153,6 @@ def test_overlap_over_the_whole_height_range():
     """The shipped Pleiades crop RPCs over terrain ~1 100 m above their height offset: at the
     offset the crops do not overlap (the old single-height test's false "no overlap"); over
     the validity range they do."""
-    from helpers.rpc_scene import DATA, TARGET, moved_rpc
-
-    from stereodem.core.errors import NoOverlapError
-    from stereodem.sensor.models.rpc import RPCModel
-    from stereodem.stereo.plan import overlap_window
-
     l0 = RPCModel.from_file(DATA / "pleiades" / "img_01_rpc.tif")
     clon, clat = l0.localize(255.5, 255.5, 2400.0)
     d = TARGET[0] - float(clon), TARGET[1] - float(clat)

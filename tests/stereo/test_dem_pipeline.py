@@ -1,15 +1,20 @@
 """End-to-end stereo DEM: simulated ASTER pair vs truth, overlap and CLI errors, Pleiades vs s2p."""
 
+import argparse
 import time
 
 import numpy as np
 import pytest
 import rasterio
 
+from stereodem.cli import main
 from stereodem.core import geodesy
+from stereodem.core.dem import horizontal_crs
 from stereodem.core.errors import NoOverlapError
 from stereodem.core.stats import nmad
-from stereodem.sensor.simulation.simulate import frame_pair
+from stereodem.dem_cli import add_parser
+from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation.simulate import frame_pair, write_scene
 from stereodem.stereo.pipeline import make_dem
 from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
 
@@ -73,9 +78,6 @@ def _write_rpc_image(path, model, data=None):
 
 
 def test_cli_errors(tmp_path, data_dir):
-    from stereodem.cli import main
-    from stereodem.sensor.models.rpc import RPCModel
-
     def run(*argv):
         return main(["dem", *map(str, argv)])
 
@@ -145,11 +147,6 @@ def test_cli_errors(tmp_path, data_dir):
 @pytest.mark.slow
 def test_cli_on_simulated_scene(tmp_path, aster600, capsys):
     """The CLI on a written scene (physical-model sidecars) writes the four layers."""
-    import argparse
-
-    from stereodem.dem_cli import add_parser
-    from stereodem.sensor.simulation.simulate import write_scene
-
     write_scene(aster600, tmp_path / "scene", fit_rpcs=False)
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
@@ -176,7 +173,6 @@ def test_cli_on_simulated_scene(tmp_path, aster600, capsys):
     with rasterio.open(tmp_path / "out" / "dem.tif") as ds:
         z = ds.read(1)
         assert ds.dtypes[0] == "float32" and np.isnan(ds.nodata) and ds.transform.a == 45.0
-        from stereodem.core.dem import horizontal_crs  # CRS carries the vertical (#19)
 
         assert horizontal_crs(ds.crs.to_wkt()).to_epsg() == 32637
         assert np.isfinite(z).mean() > 0.5 and lo - 100 < np.nanmedian(z) < hi + 100
@@ -188,8 +184,6 @@ def test_cli_on_simulated_scene(tmp_path, aster600, capsys):
 @pytest.mark.slow
 def test_pleiades_pair_vs_s2p(shared_data):
     """Real Pleiades pair on s2p's grid (EPSG:32740, 0.5 m) against s2p's DSM."""
-    from stereodem.sensor.models.rpc import RPCModel
-
     pair = shared_data / "s2p_pleiades" / "pair"
     with rasterio.open(pair / "expected_dsm.tif") as ds:
         ref = ds.read(1).astype(np.float64)

@@ -5,8 +5,10 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
+from stereodem.core.errors import InputError
 from stereodem.sensor.io.aster_xml import bundled_xml
 from stereodem.sensor.models.corrected import ImageCorrectedModel
+from stereodem.sensor.models.parameters import project_jacobian
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation.simulate import frame_pair, pushbroom_pair
 from stereodem.stereo.epipolar import apply_map, rectify_tile, virtual_matches
@@ -146,8 +148,6 @@ def test_shifted_model_translates_image_coordinates():
 
 
 def test_unusable_height_range_raises():
-    from stereodem.core.errors import InputError
-
     left, right = frame_pair(40.4, 39.6, 2000.0, (256, 256))
     with pytest.raises(InputError):
         rectify_tile(left, right, Tile(0, 0, 256, 256), (3000.0, 1000.0))
@@ -156,8 +156,6 @@ def test_unusable_height_range_raises():
 
 
 def test_image_correction_affine_inverse_and_partials():
-    from stereodem.sensor.models.parameters import project_jacobian
-
     left, _ = frame_pair(40.4, 39.6, 2000.0, (512, 512))
     cm = ImageCorrectedModel(
         left, col_shift=2.0, row_shift=-1.0, col_drift_row=1e-3, row_drift_col=-2e-3
@@ -182,8 +180,6 @@ def test_image_correction_affine_inverse_and_partials():
 
 
 def test_numeric_jacobian_of_pushbroom_parameters():
-    from stereodem.sensor.models.parameters import project_jacobian
-
     left, _ = pushbroom_pair(40.4, 39.6, 2000.0, (400, 400), (0.0, -27.6))
     lon, lat = left.localize(np.array([50.0, 200.0]), np.array([60.0, 300.0]), 2000.0)
     h = np.full(2, 2000.0)

@@ -5,13 +5,13 @@ import pytest
 import rasterio
 
 from stereodem.core import geodesy
-from stereodem.core.dem import DEM
+from stereodem.core.dem import DEM, horizontal_crs
 from stereodem.core.errors import OutputExistsError
 from stereodem.sensor.geo.intersect import intersect_matches, intersect_rays
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation.simulate import frame_pair, pushbroom_pair
 from stereodem.stereo.epipolar import apply_map, rectify_tile
-from stereodem.stereo.grid import grid_points
+from stereodem.stereo.grid import SUM_LAYERS, GridSpec, accumulate, finish, grid_points
 from stereodem.stereo.tiling import Tile
 
 
@@ -130,8 +130,6 @@ def test_grid_write(tmp_path):
     assert g.write(tmp_path / "dem.tif") == tmp_path / "dem.tif"
     paths = {k: tmp_path / f"{k}.tif" for k in ("dem", "count", "score", "raygap")}
     with rasterio.open(paths["dem"]) as ds:
-        from stereodem.core.dem import horizontal_crs  # CRS carries the vertical (#19)
-
         assert ds.dtypes[0] == "float32" and np.isnan(ds.nodata)
         assert horizontal_crs(ds.crs.to_wkt()).to_epsg() == 32637
         assert ds.transform.a == 500.0
@@ -184,8 +182,6 @@ def test_grid_gaussian_default_width_follows_point_density(spacing, n_per_cell):
 
 def test_tile_by_tile_gridding_equals_gridding_all_points():
     """Cell sums of separate batches, added, give the grid of all points at once."""
-    from stereodem.stereo.grid import SUM_LAYERS, GridSpec, accumulate, finish
-
     rng = np.random.default_rng(5)
     crs = geodesy.utm_crs(40.0, 39.5)
     x0, y0 = geodesy.lonlat_to_crs(40.0, 39.5, crs)
@@ -265,8 +261,6 @@ def _reference_sums(spec, x, y, h, score, gap, sigma, radius):
 def test_gaussian_cell_sums_equal_the_plain_computation_bit_for_bit(where):
     """The gridding's shortcuts (no masks for offsets inside the lattice, shared weights of
     all-finite layers, per-axis squared offsets) change no bit of the sums."""
-    from stereodem.stereo.grid import GridSpec, accumulate
-
     spec = GridSpec.from_bounds(
         (500000.0, 4000000.0, 503000.0, 4003000.0), 30.0, "EPSG:32637", sigma=21.0
     )

@@ -1,17 +1,39 @@
 """Attitude jitter: sum-of-sines fit, attitude injection, and the DEM correction loop."""
 
+import argparse
+import json
+
+import cv2
 import numpy as np
 import pytest
 import rasterio
 
+from stereodem import cli
+from stereodem.config import config_from_dict
 from stereodem.core import geodesy
+from stereodem.core.errors import InputError
 from stereodem.core.stats import nmad
+from stereodem.dem_cli import add_parser, config_from_args
 from stereodem.sensor.estimation.jitter import (
     SineSeries,
+    add_series,
     along_track_profile,
+    estimate_roll_jitter,
+    fit_at_frequencies,
     fit_sum_of_sines,
+    roll_profile,
     with_attitude_sines,
 )
+from stereodem.sensor.models.pushbroom import PushbroomModel
+from stereodem.sensor.simulation.aster_granule import write_granule_scene
+from stereodem.sensor.simulation.simulate import simulate_scene
+from stereodem.stereo.jitter import (
+    dem_with_jitter_correction,
+    measure_vertical_parallax,
+    refine_offsets,
+    resample_to_model,
+)
+from stereodem.stereo.settings import StereoSettings
 
 
 def test_fit_sum_of_sines_recovers_two_tones():
@@ -33,8 +55,6 @@ def test_fit_sum_of_sines_recovers_two_tones():
 
 
 def test_attitude_sines_move_the_image_along_track():
-    from stereodem.sensor.models.pushbroom import PushbroomModel
-
     m = PushbroomModel.synthetic(
         40.0, 39.6, width=200, height=400, gsd=15.0, line_period=2.2e-3, along_track_tilt_deg=-27.6
     )
@@ -59,9 +79,6 @@ def test_dem_jitter_correction_removes_the_along_track_oscillation():
     DEM residuals against the reference DEM (amplitude within 5 %, frequency within 0.01 Hz)
     and corrected: the along-track error profile loses >= 95 % of its amplitude at the jitter
     frequency."""
-    from stereodem.sensor.simulation.simulate import simulate_scene
-    from stereodem.stereo.jitter import dem_with_jitter_correction
-
     sc = simulate_scene("aster", size=(500, 700), right_size=(610, 900), seed=5, jitter=(3.5, 1.5))
     f_true = sc.diagnostics["right_jitter"]["frequency_hz"]
 
@@ -105,12 +122,6 @@ def test_dem_jitter_correction_removes_the_along_track_oscillation():
 def test_dem_command_corrects_jitter_against_the_seed_dem(tmp_path):
     """`stereodem dem --seed-dem REF --jitter-correction` on a granule with injected 3B jitter
     reports the fitted oscillation and gives a DEM closer to the truth than without it."""
-    import json
-
-    from stereodem import cli
-    from stereodem.sensor.simulation.aster_granule import write_granule_scene
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     sc = simulate_scene("aster", size=(500, 700), right_size=(610, 900), seed=5, jitter=(3.5, 1.5))
     g = write_granule_scene(sc, tmp_path / "scene", version=4, seed=5)
     ref = tmp_path / "scene" / "truth_dem.tif"
@@ -146,8 +157,6 @@ def test_dem_command_corrects_jitter_against_the_seed_dem(tmp_path):
 def test_attitude_roll_sines_move_the_image_across_track():
     """A roll oscillation acts locally as a roll bias of its value at that line time and
     moves the image across the track (columns), the direction two images observe."""
-    from stereodem.sensor.models.pushbroom import PushbroomModel
-
     m = PushbroomModel.synthetic(
         40.0, 39.6, width=200, height=400, gsd=15.0, line_period=2.2e-3, along_track_tilt_deg=-27.6
     )
@@ -165,8 +174,6 @@ def test_attitude_roll_sines_move_the_image_across_track():
 
 
 def test_estimate_roll_jitter_recovers_a_sine_from_noisy_parallax():
-    from stereodem.sensor.estimation.jitter import estimate_roll_jitter
-
     rng = np.random.default_rng(3)
     t = rng.uniform(56.0, 58.0, 60_000)
     sens = 4.2e4  # px/rad, ASTER 3B order of magnitude
@@ -188,10 +195,6 @@ def test_refine_offsets_is_not_pixel_locked(d_true, v_true):
     over the tile) with a per-window scatter below 0.1 px. With OpenCV 4, whose remap rounds
     positions to 1/32 px (the shifted image here and the refinement's resampling), the bias
     measured 0.014-0.023 px: 0.025 px there."""
-    import cv2
-
-    from stereodem.stereo.jitter import refine_offsets
-
     rng = np.random.default_rng(0)
     left = cv2.GaussianBlur(rng.standard_normal((200, 220)).astype(np.float32), (0, 0), 1.2)
     uu, vv = np.meshgrid(np.arange(220, dtype=np.float32), np.arange(200, dtype=np.float32))
@@ -217,8 +220,6 @@ def test_refine_offsets_is_not_pixel_locked(d_true, v_true):
 
 @pytest.mark.slow
 def test_simulator_injects_roll_and_pitch_jitter():
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     plain = simulate_scene(
         "aster", size=(200, 180), right_size=(240, 210), seed=3, n_points=4, noise=0.0
     )
@@ -244,10 +245,6 @@ def test_simulator_injects_roll_and_pitch_jitter():
 
 
 def test_cli_simulate_roll_jitter(tmp_path):
-    import json
-
-    from stereodem import cli
-
     assert (
         cli.main(
             [
@@ -276,7 +273,8 @@ def test_cli_simulate_roll_jitter(tmp_path):
 
 
 def _nmad_vs_truth(heights, transform, crs, truth_dem):
-    """NMAD (m) of DEM ``heights`` (on ``transform``/``crs``) against the truth, over valid cells."""
+    """NMAD (m) of DEM ``heights`` (on ``transform``/``crs``) against the truth, over valid
+    cells."""
     z = np.asarray(heights, float)
     rr, cc = np.nonzero(np.isfinite(z))
     x, y = transform @ (cc + 0.5, rr + 0.5)
@@ -313,14 +311,6 @@ def test_roll_jitter_from_vertical_parallax_without_reference_dem():
     amplitude within 5 %, >= 95 % of it removed from the model, the vertical parallax measured
     through the corrected model loses >= 95 % of its oscillation, and the DEM's NMAD falls by
     more than 0.5 m."""
-    from stereodem.sensor.estimation.jitter import roll_profile
-    from stereodem.sensor.simulation.simulate import simulate_scene
-    from stereodem.stereo.jitter import (
-        dem_with_jitter_correction,
-        measure_vertical_parallax,
-    )
-    from stereodem.stereo.settings import StereoSettings
-
     sc = simulate_scene(
         "aster", size=(500, 700), right_size=(610, 900), seed=5, roll_jitter=(10.0, 1.5)
     )
@@ -358,9 +348,9 @@ def test_roll_jitter_from_vertical_parallax_without_reference_dem():
     print(
         f"roll jitter: injected {1e6 * a_true:.1f} urad at {f} Hz, fitted "
         f"{1e6 * fit.amplitudes[0]:.2f} urad at {fit.frequencies[0]:.3f} Hz, left in the model "
-        f"{1e6 * left_over:.2f} urad; vertical-parallax roll at {f} Hz {1e6 * measured['nominal']:.2f} "
-        f"-> {1e6 * measured['corrected']:.2f} urad; DEM NMAD {nmad0:.2f} -> {nmad1:.2f} m, "
-        f"median score {score0:.3f} -> {score1:.3f}"
+        f"{1e6 * left_over:.2f} urad; vertical-parallax roll at {f} Hz "
+        f"{1e6 * measured['nominal']:.2f} -> {1e6 * measured['corrected']:.2f} urad; DEM NMAD "
+        f"{nmad0:.2f} -> {nmad1:.2f} m, median score {score0:.3f} -> {score1:.3f}"
     )
     assert measured["nominal"] > 0.8 * a_true  # the oscillation is seen
     assert fit.amplitudes[0] == pytest.approx(a_true, rel=0.05)
@@ -373,10 +363,6 @@ def test_roll_jitter_from_vertical_parallax_without_reference_dem():
 def test_jitter_config_axes():
     """``[jitter] axes``: roll needs no reference DEM, pitch and both need the seed DEM, and
     an unknown axis is refused; ``--jitter-correction`` alone still means pitch."""
-    from stereodem.config import config_from_dict
-    from stereodem.core.errors import InputError
-    from stereodem.dem_cli import add_parser, config_from_args
-
     raw = {"inputs": {"left": "a.tif", "right": "b.tif"}, "output": {"dir": "o"}}
     cfg = config_from_dict({**raw, "jitter": {"enabled": True, "axes": "roll"}})
     assert cfg.jitter.axis_names == ("roll",)
@@ -385,7 +371,6 @@ def test_jitter_config_axes():
             config_from_dict({**raw, "jitter": {"enabled": True, "axes": axes}})
     with pytest.raises(InputError, match="axes"):
         config_from_dict({**raw, "jitter": {"enabled": True, "axes": "yaw"}})
-    import argparse
 
     sub = argparse.ArgumentParser().add_subparsers()
     p = add_parser(sub)
@@ -400,12 +385,6 @@ def test_jitter_config_axes():
 def test_dem_command_corrects_roll_jitter_without_reference(tmp_path):
     """`stereodem dem GRANULE --jitter-correction roll` (no seed DEM) on a granule with injected
     3B roll jitter reports the fitted oscillation and gives a DEM closer to the truth."""
-    import json
-
-    from stereodem import cli
-    from stereodem.sensor.simulation.aster_granule import write_granule_scene
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     sc = simulate_scene(
         "aster", size=(500, 700), right_size=(610, 900), seed=5, roll_jitter=(10.0, 1.5)
     )
@@ -429,9 +408,6 @@ def test_pitch_and_roll_jitter_together():
     """Both axes at once (pitch 3.5 urad at 1.5 Hz against the reference, roll 10 urad at
     1.1 Hz from the vertical parallax): each fit finds its own oscillation and the DEM
     improves."""
-    from stereodem.sensor.simulation.simulate import simulate_scene
-    from stereodem.stereo.jitter import dem_with_jitter_correction
-
     sc = simulate_scene(
         "aster",
         size=(500, 700),
@@ -460,9 +436,6 @@ def test_resample_to_model_follows_the_attitude_oscillation():
     """On ramp images (cubic interpolation reproduces them exactly) the resampled values are
     the positions the corrected camera sees each nominal pixel's ground point at: within
     0.005 px of the exact model everywhere the oscillation moves it by up to ~0.9 px."""
-    from stereodem.sensor.models.pushbroom import PushbroomModel
-    from stereodem.stereo.jitter import resample_to_model
-
     m = PushbroomModel.synthetic(
         40.0, 39.6, width=300, height=500, gsd=15.0, line_period=2.2e-3, along_track_tilt_deg=-27.6
     )
@@ -484,8 +457,6 @@ def test_resample_to_model_follows_the_attitude_oscillation():
 
 
 def test_fit_at_fixed_frequencies_and_phasor_sum():
-    from stereodem.sensor.estimation.jitter import add_series, fit_at_frequencies
-
     rng = np.random.default_rng(4)
     t = np.sort(rng.uniform(56.0, 58.0, 300))
     y = (
@@ -506,8 +477,6 @@ def test_fit_at_fixed_frequencies_and_phasor_sum():
 
 @pytest.mark.parametrize("values", [["5", "0"], ["nan", "1"]])
 def test_cli_simulate_bad_roll_jitter_is_one_line_error(tmp_path, capsys, values):
-    from stereodem import cli
-
     out = tmp_path / "sim"
     assert (
         cli.main(

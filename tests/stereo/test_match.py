@@ -7,9 +7,18 @@ import cv2
 import numpy as np
 import pytest
 import rasterio
+from numpy.lib.stride_tricks import sliding_window_view as windows
 
 from stereodem.core.errors import InputError
-from stereodem.stereo.match import MatchResult, match_rectified, zncc_at
+from stereodem.stereo.match import (
+    MatchResult,
+    _fill_seed,
+    _rounded_seed,
+    _to_uint8,
+    match_rectified,
+    zncc_at,
+)
+from stereodem.stereo.refine import _smooth_fill, refine_disparity
 
 # ----------------------------------------------------------------------------- data
 
@@ -304,8 +313,6 @@ def test_input_errors(grid):
 
 def test_smooth_fill_bridges_wide_holes():
     """A hole much wider than the kernel takes the surrounding ramp, not the map's median."""
-    from stereodem.stereo.refine import _smooth_fill
-
     yy, xx = np.mgrid[0:200, 0:200].astype(np.float32)
     d = 0.05 * xx
     holed = d.copy()
@@ -339,8 +346,6 @@ def test_refine_keeps_confirmed_detail_and_drops_noise(wavy_pair):
     """The detail gain is ~1 when the first pass resolved real sub-window relief, and small
     when its sub-window structure is noise on a smooth surface (refined error then lower
     than with the first pass's detail kept)."""
-    from stereodem.stereo.refine import refine_disparity
-
     left, right, truth = wavy_pair
     inner = np.s_[20:-20, 20:-20]
     # real relief, resolved by the first pass
@@ -369,8 +374,6 @@ def test_refine_keeps_confirmed_detail_and_drops_noise(wavy_pair):
 def test_rounded_seed_is_the_rounded_float_median():
     """The score layer's warp seed (uint8 median on rounded values when the span allows)
     equals rint of the float32 5x5 median of the hole-filled map, both branches."""
-    from stereodem.stereo.match import _fill_seed, _rounded_seed
-
     rng = np.random.default_rng(3)
     for span in (60.0, 900.0):  # uint8 branch, float32 branch
         d = (np.round(rng.uniform(-span / 3, span, (70, 90)) * 16) / 16).astype(np.float32)
@@ -384,10 +387,6 @@ def test_sgm_stretch_and_score_match_textbook_forms():
     """The 8-bit stretch (by row blocks) and the score layer equal their textbook forms:
     round-half-up of the 1-99 % stretch in float64, and the windowed ZNCC of the left image
     with the right one gathered at the rounded median-filtered disparity."""
-    from numpy.lib.stride_tricks import sliding_window_view as windows
-
-    from stereodem.stereo.match import _fill_seed, _to_uint8
-
     rng = np.random.default_rng(4)
     left = rng.normal(100, 20, (40, 1500)).astype(np.float32)  # several row blocks
     right = rng.normal(100, 20, (40, 1500)).astype(np.float32)

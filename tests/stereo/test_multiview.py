@@ -9,16 +9,20 @@ import rasterio
 from affine import Affine
 
 from stereodem.cli import main
+from stereodem.config import Config, InputSettings, RunSettings, config_from_dict, load_config
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
 from stereodem.core.raster import write_geotiff
 from stereodem.core.stats import NMAD_FACTOR, nmad
+from stereodem.multiview import multiview_stage
+from stereodem.pipeline.job import run
 from stereodem.sensor.io.sidecar import save_model
+from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.pushbroom import PushbroomModel
 from stereodem.sensor.simulation.simulate import simulate_views
-from stereodem.stereo.fusion import choose_pairs, fuse_dems, pair_sigma
+from stereodem.stereo.fusion import FusionSettings, choose_pairs, fuse_dems, pair_sigma
 from stereodem.stereo.pipeline import make_dem
 from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
 
@@ -73,6 +77,19 @@ def test_fusion_layers_by_hand():
     assert w.heights[0, 0] == pytest.approx((100 * 1 + 101 * 0.25) / 1.25, abs=1e-4)
     m = fuse_dems([a, b, c], [1.0, 1.0, 1.0], method="median")
     assert m.heights[1, 1] == pytest.approx(100.5) and m.heights[0, 1] == pytest.approx(100.6)
+
+
+def test_fused_count_layer_says_stereo_pairs(tmp_path):
+    """The fused ``count.tif`` holds stereo pairs per cell and its band description says so; a
+    pair DEM's ``count.tif`` keeps its points-per-cell description."""
+    f = fuse_dems([_dem(np.full((2, 3), 100.0)), _dem(np.full((2, 3), 101.0))], [1.0, 1.0])
+    paths = f.write(tmp_path / "fused" / "dem.tif")
+    with rasterio.open(paths["count"]) as ds:
+        assert ds.descriptions == ("stereo pairs per cell (pair heights fused, after rejection)",)
+        assert ds.read(1).tolist() == [[2, 2, 2], [2, 2, 2]]
+    pair = _dem(np.full((2, 3), 100.0)).write(tmp_path / "pair" / "dem.tif")
+    with rasterio.open(pair.with_name("count.tif")) as ds:
+        assert ds.descriptions == ("space-intersected points per cell",)
 
 
 def test_fusion_refuses_other_lattices():
@@ -150,6 +167,8 @@ def test_dem_cli_triplet(triplet, tmp_path, capsys):
     err = _errors(out / "dem.tif", triplet.truth_dem)
     with rasterio.open(out / "count.tif") as ds:
         count = ds.read(1)
+        # the fused count is of stereo pairs (a pair DEM's count.tif counts points)
+        assert ds.descriptions == ("stereo pairs per cell (pair heights fused, after rejection)",)
     with rasterio.open(out / "nmad.tif") as ds:
         spread = ds.read(1)
     with rasterio.open(out / "dem_sigma_vertical.tif") as ds:
@@ -193,9 +212,6 @@ def test_dem_cli_triplet(triplet, tmp_path, capsys):
 def test_run_with_images_list(triplet, tmp_path):
     """``[inputs] images`` in a ``stereodem run`` configuration: the fused DEM goes through the
     filters and the orthoimage stage as a pair's does; raw/ holds the fused layers."""
-    from stereodem.config import load_config
-    from stereodem.pipeline.job import run
-
     for k, (img, model) in enumerate(zip(triplet.images, triplet.models)):
         write_geotiff(tmp_path / f"v{k}.tif", img, tags={"STEREODEM_MODEL": f"v{k}.model.json"})
         save_model(model, tmp_path / f"v{k}.model.json")
@@ -226,8 +242,6 @@ def test_run_with_images_list(triplet, tmp_path):
     )
     assert nmad(err[np.isfinite(err)]) <= nmad(raw[np.isfinite(raw)])  # the filters edit it
     with pytest.raises(InputError, match="images or left/right"):
-        from stereodem.config import config_from_dict
-
         config_from_dict(
             {"inputs": {"images": ["a.tif", "b.tif"], "left": "a.tif"}, "output": {"dir": "o"}}
         )
@@ -238,12 +252,6 @@ def test_models_that_disagree_are_adjusted_first(triplet, tmp_path):
     """Image 1's delivered model is 1.5 px off along track: its pairs' heights are offset
     (opposite signs for 0-1 and 1-2). The bundle adjustment before the pairs removes the
     disagreement (the wide pair 0-2 is the datum) and the fused DEM is better for it."""
-    from stereodem.config import Config, InputSettings, RunSettings
-    from stereodem.multiview import multiview_stage
-    from stereodem.sensor.models.corrected import ImageCorrectedModel
-    from stereodem.stereo.fusion import FusionSettings
-    from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
-
     paths = []
     for k, (img, model) in enumerate(zip(triplet.images, triplet.models)):
         write_geotiff(tmp_path / f"v{k}.tif", img, tags={"STEREODEM_MODEL": f"v{k}.model.json"})

@@ -10,9 +10,14 @@ import pytest
 import rasterio
 from affine import Affine
 from pyproj import CRS
+from scipy.ndimage import map_coordinates
 
 from stereodem.cli import main
+from stereodem.config import config_from_dict
+from stereodem.core import geodesy
+from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
+from stereodem.pipeline.job import run
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 from stereodem.stereo.pointcloud import save_tile_points, write_las
 
@@ -29,8 +34,6 @@ def scene_dir(tmp_path_factory):
 
 def _bilinear(path, x, y):
     """The raster interpolated bilinearly at map points (NaN next to voids and outside)."""
-    from scipy.ndimage import map_coordinates
-
     with rasterio.open(path) as ds:
         a = ds.read(1).astype(np.float64)
         col, row = ~ds.transform @ (np.asarray(x), np.asarray(y))
@@ -121,7 +124,6 @@ def test_write_las_in_chunks_with_classes_and_geoid_crs(tmp_path):
     for index, n in ((0, 500), (2, 300), (3, 0)):
         x = rng.uniform(500_000, 500_200, n)
         y = rng.uniform(4_399_900, 4_400_000, n)
-        from stereodem.core import geodesy
 
         lon, lat = geodesy.crs_to_lonlat(x, y, "EPSG:32637")
         save_tile_points(
@@ -152,7 +154,6 @@ def test_write_las_in_chunks_with_classes_and_geoid_crs(tmp_path):
         las.point_source_id, las.source_pair
     )
     # geoid heights: z = h - N (N about +25 m here), and a compound CRS with EGM96 height
-    from stereodem.core import geodesy
 
     n_geoid = geodesy.geoid_undulation(lon0, lat0)
     assert abs(float(np.median(las.z)) - (1500.0 - float(n_geoid))) < 1.0
@@ -165,9 +166,6 @@ def test_write_las_in_chunks_with_classes_and_geoid_crs(tmp_path):
 
 
 def test_bad_point_cloud_settings_are_one_line_errors(tmp_path, capsys):
-    from stereodem.config import config_from_dict
-    from stereodem.core.errors import InputError
-
     raw = {
         "inputs": {"left": "a.tif", "right": "b.tif"},
         "output": {"dir": str(tmp_path / "o")},
@@ -186,9 +184,6 @@ def test_bad_point_cloud_settings_are_one_line_errors(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_run_classifies_the_points_of_filtered_cells(scene_dir, tmp_path):
-    from stereodem.config import config_from_dict
-    from stereodem.pipeline.job import run
-
     out = tmp_path / "run"
     raw = {
         "inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif")},

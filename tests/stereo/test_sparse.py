@@ -4,12 +4,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rasterio
+from helpers.rpc_scene import rpc_steep_pair
 
+from stereodem.core import geodesy
 from stereodem.core.stats import nmad
 from stereodem.sensor.models.corrected import ImageCorrectedModel
+from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation.simulate import simulate_scene
 from stereodem.stereo.pointing import cross_residuals, relative_pointing
-from stereodem.stereo.sparse import SparseMatchError, sparse_matches, to_uint8
+from stereodem.stereo.sparse import SparseMatchError, sparse_matches, to_uint8, zncc_scores
+from stereodem.stereo.sparse_stage import height_pileup, run_sparse_stage
 from stereodem.stereo.terrain import terrain_heights, tile_height_range
 
 
@@ -214,10 +219,6 @@ def test_terrain_too_few_points(scene, biased):
 
 @pytest.mark.slow
 def test_real_pleiades_pair():
-    import rasterio
-
-    from stereodem.sensor.models.rpc import RPCModel
-
     pair = _shared_pair()
     images = [rasterio.open(pair / n).read(1) for n in ("img_01.tif", "img_02.tif")]
     left, right = (RPCModel.from_file(pair / n) for n in ("img_01.tif", "img_02.tif"))
@@ -241,8 +242,6 @@ def test_real_pleiades_pair():
 
 
 def test_sparse_stage_corrects_and_bounds_the_biased_pair(scene):
-    from stereodem.stereo.sparse_stage import run_sparse_stage
-
     given = ImageCorrectedModel(scene.right_model, col_shift=6.0, row_shift=3.0)
     st = run_sparse_stage(
         scene.left, scene.right, scene.left_model, given, reference_dem=scene.truth_dem
@@ -259,8 +258,6 @@ def test_sparse_stage_corrects_and_bounds_the_biased_pair(scene):
 
 
 def test_height_pileup():
-    from stereodem.stereo.sparse_stage import height_pileup
-
     rng = np.random.default_rng(1)
     good = rng.normal(500, 50, 10000)  # terrain well inside 0..1000
     assert not height_pileup(good, (0, 1000))["suspect"]
@@ -273,8 +270,6 @@ def test_height_pileup():
 
 def seen_by_both(dem, left, right, step=4):
     """(lon, lat, h) of the cells of a truth MapRaster that both images see."""
-    from stereodem.core import geodesy
-
     rows, cols = dem.data.shape
     cc, rr = np.meshgrid(np.arange(0, cols, step) + 0.5, np.arange(0, rows, step) + 0.5)
     x, y = dem.transform @ (cc, rr)
@@ -289,10 +284,6 @@ def seen_by_both(dem, left, right, step=4):
 
 @pytest.mark.slow
 def test_real_rpc_geometry_over_steep_terrain_far_from_the_height_offset():
-    from helpers.rpc_scene import rpc_steep_pair
-
-    from stereodem.stereo.sparse_stage import run_sparse_stage
-
     L, R, left, right, truth = rpc_steep_pair()
     st = run_sparse_stage(L, R, left, right)
     lon, lat, h = seen_by_both(truth, left, right)
@@ -312,8 +303,6 @@ def test_repeatable(scene):
 def test_zncc_scores_equal_direct_correlation_with_voids():
     """The batched FFT + box-sum ZNCC of the sparse refinement equals the direct per-shift
     ZNCC (mean-removed patches) to 1e-10, and is NaN exactly where a window holds a void."""
-    from stereodem.stereo.sparse import zncc_scores
-
     rng = np.random.default_rng(4)
     n, half, search = 40, 7, 5
     w, k = 2 * half + 1, 2 * search + 1

@@ -4,7 +4,7 @@ import time
 import numpy as np
 import pytest
 
-from stereodem.stereo.runner import run_tiles
+from stereodem.stereo.runner import load_cached, run_tiles
 from stereodem.stereo.tiling import tile_grid
 
 
@@ -99,8 +99,6 @@ def test_dask_local_cluster_same_results():
 def test_results_can_stay_in_the_cache_only(tmp_path):
     """hold_results=False keeps no tile in memory: each is read back from its cache file,
     identical to the held result (what lets a scene's stereo hold one tile at a time)."""
-    from stereodem.stereo.runner import load_cached
-
     tiles = tile_grid(130, 100, 32)
     held, _, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1, cache_dir=tmp_path / "a")
     lean, fails, _ = run_tiles(

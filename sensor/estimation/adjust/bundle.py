@@ -50,6 +50,8 @@ from stereodem.sensor.estimation.adjust.single import (
     _sigmas,
     check_points_against_model,
 )
+from stereodem.sensor.geo.intersect import intersect_matches
+from stereodem.sensor.io.sidecar import model_to_dict
 from stereodem.sensor.models.base import pair_height_bounds
 from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 
@@ -435,8 +437,6 @@ class BundleResult(ParameterEstimate):
         return out
 
     def to_report(self) -> dict:
-        from stereodem.sensor.io.sidecar import model_to_dict
-
         kept = ~self.tie_rejected
         return {
             "model": {"left": model_to_dict(self.left), "right": model_to_dict(self.right)},
@@ -472,7 +472,9 @@ class BundleResult(ParameterEstimate):
             "converged": bool(self.converged),
             "status": self.status,
             "max_correction": _num(self.max_correction),
-            "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
+            "convergence_criterion": (
+                f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)"
+            ),
             "regularization": None,
             "redundancy_sum": _num(
                 np.nansum(self.tie_redundancy)
@@ -520,8 +522,6 @@ def tie_parallax(left, right, ties, *, max_points: int = 2000) -> dict:
     distance of their rays (m), and the RMS reprojection discrepancy (px) of each image point
     from the other image's ray at the intersection (the "vertical parallax" left once heights
     are free). At most ``max_points`` ties (evenly spaced in the list) are used."""
-    from stereodem.sensor.geo.intersect import intersect_matches
-
     t = np.asarray(ties, float)
     if len(t) > max_points:  # a diagnostic: an evenly spread subset is enough
         t = t[np.linspace(0, len(t) - 1, max_points).astype(int)]
@@ -734,8 +734,6 @@ def bundle_adjust(
         # final models
         glon, glat, gh_ = lon.copy(), lat.copy(), h.copy()
         if (~active_t).any():
-            from stereodem.sensor.geo.intersect import intersect_matches
-
             tr = t[~active_t]
             inter = intersect_matches(L, Rm, tr[:, 0], tr[:, 1], tr[:, 2], tr[:, 3])
             glon[~active_t], glat[~active_t], gh_[~active_t] = inter.lon, inter.lat, inter.h

@@ -31,6 +31,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from stereodem.core import geodesy
 from stereodem.core.errors import ConvergenceError, InputError
@@ -47,6 +49,7 @@ from stereodem.sensor.estimation.adjust.bundle import (
 from stereodem.sensor.estimation.adjust.model_sets import parameter_unit
 from stereodem.sensor.estimation.adjust.result import ParameterEstimate, _num, rmse
 from stereodem.sensor.estimation.adjust.single import _check_arrays, _sigmas
+from stereodem.sensor.io.sidecar import model_to_dict
 
 __all__ = ["TieTracks", "tracks_from_pairs", "bundle_adjust_images", "MultiBundleResult"]
 
@@ -111,9 +114,6 @@ def tracks_from_pairs(pair_ties: dict, *, decimals: int = 2) -> TieTracks:
     point (connected components of the match graph, :mod:`scipy.sparse.csgraph`); a chain
     that meets one image at two different pixels is inconsistent and dropped.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     imgs, cols, rows, edges = [], [], [], []
     base = 0
     for (i, j), t in pair_ties.items():
@@ -314,8 +314,6 @@ class MultiBundleResult(ParameterEstimate):
         ]
 
     def to_report(self) -> dict:
-        from stereodem.sensor.io.sidecar import model_to_dict
-
         kept = ~self.tie_rejected
         n_obs_kept = int((~self.tie_rejected[self.tracks.point]).sum())
 
@@ -358,7 +356,9 @@ class MultiBundleResult(ParameterEstimate):
             "test": self.test,
             "iterations": int(self.iterations),
             "converged": bool(self.converged),
-            "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
+            "convergence_criterion": (
+                f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)"
+            ),
             "regularization": None,
         }
 

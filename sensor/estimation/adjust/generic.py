@@ -19,7 +19,7 @@ from __future__ import annotations
 from stereodem.core.errors import InputError
 from stereodem.sensor.estimation.adjust.single import adjust_model
 from stereodem.sensor.io.gcps import ControlPoints
-from stereodem.sensor.models.generic import MODEL_NAMES, fit_model
+from stereodem.sensor.models.generic import MODEL_NAMES, _form, fit_model
 
 __all__ = ["adjust_generic"]
 
@@ -58,8 +58,6 @@ def adjust_generic(
         model, _ = fit_model(name, *gcp.arrays(), crs=crs, image_size=image_size)
         regularization = "lcurve" if name.startswith("rational") else None
     else:  # the caller's choice, for the initial fit and the adjustment alike
-        from stereodem.sensor.models.generic import _form
-
         if regularization is not None and not _form(name).regularizable:
             # Tikhonov about the initial fit cannot move a least-squares fit of a model linear
             # in its coefficients: accepting the weight would change nothing but the report

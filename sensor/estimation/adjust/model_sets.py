@@ -18,6 +18,9 @@ from dataclasses import dataclass, field
 
 from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.models.corrected import ImageCorrectedModel
+from stereodem.sensor.models.frame import FrameCamera
+from stereodem.sensor.models.orbital import register_sets
+from stereodem.sensor.models.pushbroom import PushbroomModel
 
 __all__ = [
     "ModelSet",
@@ -131,9 +134,6 @@ def _identity(model):
 
 
 def _register_defaults():
-    from stereodem.sensor.models.frame import FrameCamera
-    from stereodem.sensor.models.pushbroom import PushbroomModel
-
     # RPC (or any model) bias compensation in image space: Grodecki & Dial 2003, Fraser &
     # Hanley 2005. "shift-drift": shifts plus a drift of both coordinates with the line (time)
     register_model_set(
@@ -236,9 +236,8 @@ _register_defaults()
 
 
 def _register_orbital():
-    # orbital models of Topan (2009) / Ok (2005): eop-poly2, eop-<Table 4.2 set>, orun, toutin, kratky
-    from stereodem.sensor.models.orbital import register_sets
-
+    # orbital models of Topan (2009) / Ok (2005): eop-poly2, eop-<Table 4.2 set>, orun, toutin,
+    # kratky
     register_sets(register_model_set)
 
 

@@ -37,8 +37,8 @@ def markdown(report: dict, figure: str | None = None) -> str:
         f"* sigma0 = {_f(report['sigma0'])} (a priori 1; sigma "
         f"{'known' if report['sigma_known'] else 'unknown: covariance scaled by sigma0²'})"
         + (
-            f"; chi² test ({chi['dof']} dof, alpha {chi['alpha']}): statistic {_f(chi['statistic'])} "
-            f"in [{_f(chi['lower'])}, {_f(chi['upper'])}] → "
+            f"; chi² test ({chi['dof']} dof, alpha {chi['alpha']}): statistic "
+            f"{_f(chi['statistic'])} in [{_f(chi['lower'])}, {_f(chi['upper'])}] → "
             f"{'passed' if chi['passed'] else 'FAILED'}"
             if chi.get("passed") is not None
             else ""
@@ -47,7 +47,8 @@ def markdown(report: dict, figure: str | None = None) -> str:
         f"* GCP RMSE {_f(report['gcp_rmse_px'])} px ({report['n_gcp']} GCPs), check-point RMSE "
         f"{_f(report['check_rmse_px'])} px ({report['n_check']} check points)",
         f"* outlier test: {test.get('name')} (alpha {test.get('alpha')} per observation, "
-        f"critical value {_f(test.get('threshold'), '.3f')}, delta0 {_f(test.get('delta0'), '.3f')})",
+        f"critical value {_f(test.get('threshold'), '.3f')}, delta0 "
+        f"{_f(test.get('delta0'), '.3f')})",
         "",
         "## Parameters",
         "",
@@ -90,7 +91,8 @@ def markdown(report: dict, figure: str | None = None) -> str:
         lines.append(
             f"| {p['id']} | {p['role']} | {_f(res[0], '.3f')} | {_f(res[1], '.3f')} | "
             f"{_f(w[0], '.2f')} | {_f(w[1], '.2f')} | {_f(r[0], '.2f')} | "
-            f"{_f(r[1], '.2f')} | {_f(max((m for m in mdb if m is not None), default=None), '.2f')} | "
+            f"{_f(r[1], '.2f')} | "
+            f"{_f(max((m for m in mdb if m is not None), default=None), '.2f')} | "
             f"{'yes' if p['outlier'] else ''} |"
         )
     if figure:

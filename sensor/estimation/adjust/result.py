@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from stereodem.sensor.io.sidecar import model_to_dict
+
 __all__ = ["AdjustmentResult", "ParameterEstimate", "rmse"]
 
 
@@ -173,8 +175,6 @@ class AdjustmentResult(ParameterEstimate):
     # ---------------------------------------------------------------- report
     def to_report(self) -> dict:
         """The content of ``adjust_report.json`` (JSON-ready; NaN -> null)."""
-        from stereodem.sensor.io.sidecar import model_to_dict
-
         out_mask = self.outlier_mask
         points = []
         for k, pid in enumerate(self.gcp_ids):

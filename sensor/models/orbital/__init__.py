@@ -41,6 +41,7 @@ Models of Topan's survey (§3.2.2) left out, and why
   :class:`stereodem.sensor.models.corrected.ImageCorrectedModel` in image space.
 """
 
+from stereodem.core.errors import InputError
 from stereodem.sensor.models.orbital.kratky import KratkyModel
 from stereodem.sensor.models.orbital.orun_natarajan import OrunNatarajanModel
 from stereodem.sensor.models.orbital.topan_los import EOP_SETS, SET_ORDER, TopanLOSModel
@@ -77,8 +78,6 @@ __all__ = [
 def build(name: str, reference):
     """The orbital model of parameter set ``name`` built from the image's model ``reference``;
     returns ``(model, parameter names)``."""
-    from stereodem.core.errors import InputError
-
     table = {**PARAMETER_SETS, **DEFAULT_SETS}
     if name not in table:
         raise InputError(f"unknown orbital model set {name!r}; choose one of {', '.join(table)}")

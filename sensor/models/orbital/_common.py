@@ -17,7 +17,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from stereodem.core import geodesy
-from stereodem.core.errors import ConvergenceError, SensorModelError
+from stereodem.core.errors import ConvergenceError, InputError, SensorModelError
 from stereodem.sensor.models.parameters import checked_parameters
 
 
@@ -220,7 +220,6 @@ def require_gcps(n_gcp: int, names, what: str, *, n_prior: int = 0) -> None:
     observations each) cannot determine the parameters ``names`` with one redundant
     observation (so that sigma0 exists; the adjustment engine's rule, in which each of
     ``n_prior`` weighted parameters counts as one observation)."""
-    from stereodem.core.errors import InputError
     from stereodem.sensor.estimation.adjust.single import required_gcps
 
     u = len(list(names))
@@ -236,8 +235,6 @@ def require_gcps(n_gcp: int, names, what: str, *, n_prior: int = 0) -> None:
 def require_inside(model, col, row, *, what: str = "check points") -> None:
     """Raise :class:`~stereodem.core.errors.InputError` when image points fall outside the
     image (pixel centres from -0.5 to width - 0.5)."""
-    from stereodem.core.errors import InputError
-
     col, row = np.asarray(col, float), np.asarray(row, float)
     out = ~(
         (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5)

@@ -54,11 +54,11 @@ weighted observations about the metadata's values (:data:`LEVELLING_SIGMA`). Unw
 over a few km of relief fix them poorly (``tau`` trades the row against the height): median ICP
 RMSE 1.06 / 1.14 x the rigorous model's on ASTER 3N / 3B, up to 1.6 x on single splits, and
 condition numbers ~400; weighted, 0.98 / 1.01 x and condition numbers ~10, and from 6 GCPs on
-better than the rigorous model's six unweighted attitude unknowns. ``b, c, dgamma`` and the attitude variations are computed from the
-orbit in Toutin's model; here they are taken from the metadata model of the image by fitting
-the equations to its virtual points (:meth:`ToutinModel.from_model`) and then held fixed.
-Set ``toutin-full`` frees them too (15), as weighted observations about those values
-(:data:`SECOND_ORDER_SIGMA`: each about 1-2 m at the ends of the scene).
+better than the rigorous model's six unweighted attitude unknowns. ``b, c, dgamma`` and the attitude
+variations are computed from the orbit in Toutin's model; here they are taken from the metadata
+model of the image by fitting the equations to its virtual points (:meth:`ToutinModel.from_model`)
+and then held fixed. Set ``toutin-full`` frees them too (15), as weighted observations about those
+values (:data:`SECOND_ORDER_SIGMA`: each about 1-2 m at the ends of the scene).
 """
 
 from __future__ import annotations

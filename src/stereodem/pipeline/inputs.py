@@ -14,6 +14,8 @@ import numpy as np
 from stereodem.core.dem import DEM, ELLIPSOID
 from stereodem.core.errors import InputError
 from stereodem.core.raster import image_dtype, read_image
+from stereodem.post.assess import read_checkpoints
+from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
 from stereodem.sensor.io.sidecar import load_image_model, load_model
 from stereodem.stereo import sanity
 
@@ -64,8 +66,6 @@ def open_image(
     (V004 ``.hdf``, V003 ``.zip`` or folder; ``band`` ``"3N"``/``"3B"``, radiance by the
     granule's radiometric table unless ``radiometric`` is false), with its model (or the
     ``model_file``), checked against each other. ``granules`` caches opened granules by path."""
-    from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
-
     if is_aster_granule(path):
         key = str(Path(path).resolve())
         g = (granules or {}).get(key) or open_aster_granule(path)
@@ -104,8 +104,6 @@ def open_image(
 def image_model(path, *, band=1, prefer: str = "physical"):
     """The sensor model of an input (the image's sidecar or RPCs, or band ``band`` of an ASTER
     granule), without reading the pixels."""
-    from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
-
     if is_aster_granule(path):
         return open_aster_granule(path).model(
             band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
@@ -126,7 +124,6 @@ def load_pair(cfg: Config) -> Pair:
     i = cfg.inputs
     if not i.left:
         raise InputError("a stereo DEM needs two images ([inputs] left and right)")
-    from stereodem.sensor.io.aster_l1a import is_aster_granule
 
     granule = is_aster_granule(i.left)
     right = i.right or (i.left if granule else None)
@@ -172,8 +169,6 @@ def check_inputs(cfg: Config):
     if cfg.assess.enabled and i.reference_dem:
         DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
         if i.checkpoints:
-            from stereodem.post.assess import read_checkpoints
-
             read_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
 
 

@@ -26,6 +26,7 @@ import logging
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,11 +36,14 @@ from stereodem.core.dem import edit_mask_path
 from stereodem.core.jsonutil import json_default
 from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import thread_budget
+from stereodem.post.coreg_run import track_tags
 from stereodem.stereo import sanity
 
 from .. import point_cloud
 from ..config import Config
+from ..multiview import run_stage
 from ..outlock import output_folder
+from ..provenance import provenance, utc_now
 from .inputs import check_inputs, input_paths, load_pair
 from .record import StageLog, headline, versions
 from .stages import (
@@ -98,8 +102,6 @@ class BackgroundWriter:
     """
 
     def __init__(self):
-        from concurrent.futures import ThreadPoolExecutor
-
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereodem-writer")
         self._futures = []
         self.seconds = 0.0
@@ -152,8 +154,6 @@ class Job:
 
 
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
-    from ..provenance import utc_now
-
     started = utc_now()
     with BackgroundWriter() as writer:
         return _run_stages(
@@ -171,8 +171,6 @@ def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
 def _run_stages(job: Job) -> dict:
     """The stages of :func:`_run_in` after loading; GeoTIFF writes go to ``job.writer`` (a
     :class:`BackgroundWriter`) and overlap the next stage."""
-    from ..provenance import provenance
-
     cfg, out, prog, stages, writer = job.cfg, job.out, job.progress, job.stages, job.writer
     t_all, started, co, written = job.t_start, job.started, job.creation_options, job.written
     t0 = stages.start()
@@ -184,8 +182,6 @@ def _run_stages(job: Job) -> dict:
     bar = prog("stereo")
     pts = point_cloud.prepare(out, resume=cfg.run.resume) if cfg.dem.point_cloud else None
     if cfg.inputs.images:  # N-view DEM: pairs fused per cell (stereodem.multiview)
-        from ..multiview import run_stage
-
         pair, products, failed, raw = run_stage(cfg, progress=bar, cache_dir=out / "tiles")
     else:
         products, failed = stereo_stage(
@@ -212,7 +208,6 @@ def _run_stages(job: Job) -> dict:
     if not suspect:
         t0 = stages.start()
         clean, post_report = post_stage(cfg, products.dem, pair.seed_dem, path=out / "dem.tif")
-        from stereodem.post.coreg_run import track_tags  # the track for coregister's along_track
 
         tags = track_tags(pair.left_model, pair.left_image.shape, clean.crs, clean.heights)
         writer.submit(

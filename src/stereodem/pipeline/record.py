@@ -10,9 +10,12 @@ import resource
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
+import pyproj
 import rasterio
 import rasterio.warp
+import scipy
 
 from stereodem.stereo.runner import (
     process_peak_rss_mb,
@@ -73,10 +76,6 @@ class StageLog:
 
 def versions() -> dict:
     """Versions of stereodem and of the libraries that shape its results."""
-    import cv2
-    import pyproj
-    import scipy
-
     return dict(
         stereodem=__version__,
         python=platform.python_version(),

@@ -14,9 +14,17 @@ from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
 from stereodem.core.threads import job_threads
-from stereodem.post.filters import EditCode
+from stereodem.ortho.concurrent import orthorectify_all
+from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
+from stereodem.ortho.uncertainty.maps import dem_vertical_sigma, ortho_uncertainty_maps
+from stereodem.post import error_analysis as ea
+from stereodem.post.assess import assess_dem, reconcile_vertical
+from stereodem.post.fill import fill_holes, gaussian_smooth
+from stereodem.post.filters import EditCode, border_rim, default_chain
 from stereodem.stereo import sanity
 from stereodem.stereo.execution import tile_runner
+from stereodem.stereo.jitter import dem_with_jitter_correction
+from stereodem.stereo.pipeline import make_dem
 
 from ..config import Config
 from .inputs import Pair
@@ -30,14 +38,10 @@ def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None, poin
     seed DEM, corrected and the DEM made again: :mod:`stereodem.stereo.jitter`); returns
     ``(products, failed_tiles)``. ``points_dir``: the tiles also write their points there
     (:mod:`stereodem.point_cloud`)."""
-    from stereodem.stereo.pipeline import make_dem
-
     runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
     args = (pair.left_image, pair.right_image, pair.left_model, pair.right_model)
     dtypes = dict(left_dtype=pair.left_dtype, right_dtype=pair.right_dtype)
     if cfg.jitter.enabled:
-        from stereodem.stereo.jitter import dem_with_jitter_correction
-
         j = cfg.jitter
         products, corrected, fit, first = dem_with_jitter_correction(
             *args,
@@ -83,9 +87,6 @@ def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=No
     The edit mask holds the filter :class:`~stereodem.post.filters.Reason` of removed cells or
     an :class:`~stereodem.post.filters.EditCode`.
     """
-    from stereodem.post.fill import fill_holes, gaussian_smooth
-    from stereodem.post.filters import default_chain
-
     z = layers.heights
     mask = np.zeros(z.shape, np.uint8)
     report = {}
@@ -100,8 +101,6 @@ def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=No
         z, mask = res.heights, res.removed.copy()
         report["filters"] = res.report
     if cfg.filters.enabled and cfg.filters.erode > 0:
-        from stereodem.post.filters import border_rim
-
         rim = border_rim(z, cfg.filters.erode)
         z = np.where(rim, np.nan, z)
         mask[rim] = EditCode.BORDER_RIM
@@ -154,8 +153,6 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
     concurrently, their row blocks on threads, ``cfg.run.workers`` threads in all
     (:func:`stereodem.ortho.concurrent.orthorectify_all`; the result does not depend on it).
     """
-    from stereodem.ortho.concurrent import orthorectify_all
-
     fill = (
         DEM.from_file(cfg.ortho.fill_dem, vertical=cfg.ortho.fill_dem_vertical)
         if cfg.ortho.fill_dem
@@ -177,9 +174,6 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
 def uncertainty_stage(cfg: Config, pair: Pair, dem: DEM, ortho_grid: MapGrid, raw: DEM, out_dir):
     """Per-cell horizontal σ of the left orthoimage (on its grid) into ``out_dir`` and the
     vertical σ of the DEM; returns (summary dict, the DEM σ object)."""
-    from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
-    from stereodem.ortho.uncertainty.maps import dem_vertical_sigma, ortho_uncertainty_maps
-
     u = cfg.uncertainty
     report = read_adjust_report(u.covariance) if u.covariance else None
     model, names, D = assemble(
@@ -217,7 +211,6 @@ def assess_stage(
 
     ``error_analysis`` (:class:`stereodem.post.error_analysis.ErrorAnalysisJob`) adds the
     stable-terrain error analysis section and its figures to the report."""
-    from stereodem.post.assess import assess_dem
     from stereodem.post.report import write_report
 
     i, a = cfg.inputs, cfg.assess
@@ -241,9 +234,6 @@ def assess_stage(
     )
     extra = None
     if error_analysis is not None:
-        from stereodem.post import error_analysis as ea
-        from stereodem.post.assess import reconcile_vertical
-
         section, plots = ea.analyse(reconcile_vertical(dem, ref)[0], ref, error_analysis)
 
         def extra(out, ow):

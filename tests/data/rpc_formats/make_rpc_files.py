@@ -8,9 +8,13 @@ rational fit on a 12 x 12 x 6 grid of the image and the height range).
 Run from the repository: ``python tests/data/rpc_formats/make_rpc_files.py``.
 """
 
+import json
+import warnings
 from pathlib import Path
 
 import numpy as np
+import rasterio
+from rasterio.errors import NotGeoreferencedWarning
 
 from stereodem.sensor.estimation.rpcfit import fit_rational
 from stereodem.sensor.models.rpc import COEFF_KEYS, RPCModel
@@ -85,9 +89,11 @@ def dimap_v1(m, loc):
         '<Metadata_Identification><METADATA_PROFILE version="1.4">PHR_SENSOR</METADATA_PROFILE>'
         "<METADATA_FORMAT>DIMAP_PHR</METADATA_FORMAT></Metadata_Identification>\n"
         "<Geoposition><Rational_Sensor_Model><Global_RFM>\n"
-        f"<Direct_Model><F_LON>{j(loc[0], loc[1])}</F_LON>\n<F_LAT>{j(loc[2], loc[3])}</F_LAT></Direct_Model>\n"
+        f"<Direct_Model><F_LON>{j(loc[0], loc[1])}</F_LON>\n"
+        f"<F_LAT>{j(loc[2], loc[3])}</F_LAT></Direct_Model>\n"
         f"<Inverse_Model><F_COL>{j(c['SAMP_NUM_COEFF'], c['SAMP_DEN_COEFF'])}</F_COL>\n"
-        f"<F_ROW>{j(c['LINE_NUM_COEFF'], c['LINE_DEN_COEFF'])}</F_ROW></Inverse_Model>\n<RFM_Validity>\n"
+        f"<F_ROW>{j(c['LINE_NUM_COEFF'], c['LINE_DEN_COEFF'])}</F_ROW></Inverse_Model>\n"
+        "<RFM_Validity>\n"
         "<Direct_Model_Validity_Domain><FIRST_ROW>1</FIRST_ROW><FIRST_COL>1</FIRST_COL>"
         f"<LAST_ROW>{m.height}</LAST_ROW><LAST_COL>{m.width}</LAST_COL></Direct_Model_Validity_Domain>\n"
         + ab("Lon", m.lon_scale, m.lon_off)
@@ -183,8 +189,6 @@ def ikonos_txt(m, loc=None):
 
 
 def rpcm_json(m, loc):
-    import json
-
     c = coeffs(m)
     rpc = dict(
         row_offset=m.line_off,
@@ -218,7 +222,8 @@ def vrt(m):
     md = "".join(f'    <MDI key="{k}">{v}</MDI>\n' for k, v in m.to_dict().items())
     return (
         '<VRTDataset rasterXSize="8" rasterYSize="8">\n  <Metadata>\n'
-        f'    <MDI key="SOURCE_WIDTH">{m.width}</MDI>\n    <MDI key="SOURCE_HEIGHT">{m.height}</MDI>\n'
+        f'    <MDI key="SOURCE_WIDTH">{m.width}</MDI>\n'
+        f'    <MDI key="SOURCE_HEIGHT">{m.height}</MDI>\n'
         '  </Metadata>\n  <Metadata domain="RPC">\n' + md + "  </Metadata>\n"
         '  <VRTRasterBand dataType="Byte" band="1">\n    <SimpleSource>\n'
         '      <SourceFilename relativeToVRT="1">../pleiades/img_01_rpc.tif</SourceFilename>\n'
@@ -237,10 +242,6 @@ def main():
     (HERE / "pleiades_rpcm.json").write_text(rpcm_json(m, loc))
     (HERE / "pleiades_rpc.vrt").write_text(vrt(m))
     # an image whose RPCs come only from a DigitalGlobe _RPC.TXT sidecar (values with units)
-    import warnings
-
-    import rasterio
-    from rasterio.errors import NotGeoreferencedWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
