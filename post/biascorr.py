@@ -25,6 +25,7 @@ from stereodem.core.errors import ConvergenceError, InputError
 from stereodem.core.stats import nmad
 
 from . import terrain, warp
+from .blocks import default_threads
 from .coreg import (
     Coreg,
     bilinear,
@@ -42,8 +43,26 @@ def _warp_shift(dem, east_m, north_m, resampling="bilinear"):
     moved off the grid)."""
     t = warp.translated(dem.transform, dem.crs, dem.shape, east_m, north_m)
     return warp.to_grid(
-        dem.heights, t, dem.crs, dem.transform, dem.crs, dem.shape, resampling=resampling
+        dem.heights,
+        t,
+        dem.crs,
+        dem.transform,
+        dem.crs,
+        dem.shape,
+        resampling=resampling,
+        threads=default_threads(),  # the whole grid at once: on the process's thread budget
     ).astype(np.float64)
+
+
+def _gradient_at_samples(sampler, z, dem):
+    """East and north gradients of the heights ``z`` (m/m) at the sampler's positions: on a
+    DEM grid's own cells only those cells are differenced (:func:`terrain.gradient_at`, the
+    same values as the whole grid's gradient there); points between cells interpolate the
+    whole grid's gradient."""
+    if sampler.kind == "dem":
+        return terrain.gradient_at(z, dem.transform, dem.crs, sampler.rows, sampler.cols)
+    ge, gn = terrain.gradient(z, dem.transform, dem.crs)
+    return sampler.values(ge), sampler.values(gn)
 
 
 # ----------------------------------------------------------------------------- shifts
@@ -122,17 +141,16 @@ class NuthKaab(Coreg):
                 if it == 1
                 else _warp_shift(dem, -east, -north, self.resampling)
             )
-            ge, gn = terrain.gradient(z, dem.transform, dem.crs)
-            slope = np.degrees(np.arctan(np.hypot(ge, gn)))
+            sge, sgn = _gradient_at_samples(sampler, z, dem)
+            s = np.degrees(np.arctan(np.hypot(sge, sgn)))
             d = sampler.dh(z)
-            s = sampler.values(slope)
             ok = np.isfinite(d) & (s >= self.min_slope) & (s <= self.max_slope)
             if ok.sum() < 50:
                 raise InputError(
                     f"{dem.path or 'DEM'}: only {int(ok.sum())} stable samples with "
                     "usable slope; cannot co-register"
                 )
-            cols = [-sampler.values(ge), -sampler.values(gn), np.ones(d.size)]
+            cols = [-sge, -sgn, np.ones(d.size)]
             if self.tilt:
                 cols += [sampler.east / 1e4, sampler.north / 1e4]
             a = np.column_stack(cols)

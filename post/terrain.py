@@ -97,6 +97,44 @@ def gradient(heights, transform, crs):
     return gc / dx, gr / dy
 
 
+def gradient_at(heights, transform, crs, rows, cols):
+    """:func:`gradient` at the cells ``rows, cols`` (integer indices) only, by the same
+    arithmetic (``numpy.gradient``'s central differences, one-sided on the grid's edges), so
+    the values equal those of the whole grid's gradient there; cost proportional to the cells
+    asked for, not to the grid.
+
+    Returns
+    -------
+    dzde, dzdn : ndarray float64 of the shape of ``rows``
+    """
+    z = np.asarray(heights, dtype=np.float64)
+    rows, cols = np.asarray(rows, np.intp), np.asarray(cols, np.intp)
+    nr, nc = z.shape
+    if nr < 2 or nc < 2:
+        nan = np.full(rows.shape, np.nan)
+        return nan, nan.copy()
+    dx, dy = pixel_size_m(transform, crs, z.shape)
+    return (
+        _central_difference(z, rows, cols, axis=1) / dx[rows, 0],
+        _central_difference(z, rows, cols, axis=0) / dy[rows, 0],
+    )
+
+
+def _central_difference(z, rows, cols, axis):
+    """``numpy.gradient(z)[axis]`` at ``rows, cols``: ``(f[k+1] - f[k-1]) / 2`` inside,
+    ``f[1] - f[0]`` and ``f[n-1] - f[n-2]`` on the edges (unit spacing, edge_order 1)."""
+    k = rows if axis == 0 else cols
+    n = z.shape[axis]
+    hi = np.minimum(k + 1, n - 1)
+    lo = np.maximum(k - 1, 0)
+    if axis == 0:
+        diff = z[hi, cols] - z[lo, cols]
+    else:
+        diff = z[rows, hi] - z[rows, lo]
+    inner = (k > 0) & (k < n - 1)
+    return np.where(inner, diff / 2.0, diff)
+
+
 def slope_deg(heights, transform, crs):
     """Slope in degrees (0 flat, 90 vertical), NaN on and next to voids."""
     ge, gn = gradient(heights, transform, crs)

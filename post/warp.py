@@ -31,9 +31,13 @@ def to_grid(
     resampling: str = "bilinear",
     src_nodata=np.nan,
     dst_dtype=np.float32,
+    threads: int | None = None,
 ):
     """Warp a 2-D array onto a destination grid; cells without data are NaN (or ``src_nodata``
-    for integer rasters)."""
+    for integer rasters). GDAL's warper runs on ``threads`` threads (default 1: callers
+    that warp blocks on a thread pool already use the cores; a caller that warps a whole grid
+    passes the process's budget, :func:`stereodem.post.blocks.default_threads`); the result
+    does not depend on it."""
     src = np.asarray(data)
     if np.issubdtype(np.dtype(dst_dtype), np.floating):
         src = src.astype(np.float32, copy=False)
@@ -51,6 +55,7 @@ def to_grid(
         dst_crs=_rio_crs(dst_crs),
         dst_nodata=fill,
         resampling=_RESAMPLING[resampling],
+        num_threads=max(1, int(threads or 1)),
     )
     return dst
 

@@ -266,3 +266,26 @@ def test_points_file_with_a_bad_value_names_the_row(tmp_path):
     p.write_text("lon,lat,h\n40.1,39.9,1000\n40.2,39.8,abc\n")
     with pytest.raises(InputError, match=r"bad.csv: column 'h', row 3: 'abc' is not a number"):
         read_points(p, vertical="geoid")
+
+
+@pytest.mark.parametrize("crs", ["EPSG:32637", "EPSG:4326"])
+def test_gradient_at_cells_equals_the_whole_grids_gradient(crs):
+    """Nuth & Kääb differences only its stable samples: terrain.gradient_at must give the
+    whole grid's gradient there to the bit (edges, voids and geographic rows included)."""
+    from rasterio.transform import from_origin
+
+    from stereodem.post import terrain
+
+    rng = np.random.default_rng(3)
+    z = rng.normal(1000.0, 50.0, (40, 57))
+    z[10:13, 20:22] = np.nan
+    t = (
+        from_origin(500000, 4400000, 30, 30)
+        if crs != "EPSG:4326"
+        else from_origin(40, 39, 1e-3, 1e-3)
+    )
+    ge, gn = terrain.gradient(z, t, crs)
+    rows, cols = np.meshgrid(np.arange(40), np.arange(57), indexing="ij")
+    se, sn = terrain.gradient_at(z, t, crs, rows.ravel(), cols.ravel())
+    np.testing.assert_array_equal(se, ge.ravel())
+    np.testing.assert_array_equal(sn, gn.ravel())
