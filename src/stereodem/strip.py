@@ -11,7 +11,6 @@ per-seam checks, the method).
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -87,13 +86,10 @@ def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
     """Make the strip's DEM into ``cfg.output_dir`` (the pair route's layers and
     ``dem_report.json`` with a ``strip`` section), the folder locked for the job.
     Returns ``(products, folder, strip)``; a suspect result fails afterwards (``--force``)."""
-    from stereodem.core.raster import write_text_atomic
-
     from . import point_cloud
     from .outlock import output_folder
     from .pipeline.inputs import input_paths
-    from .pipeline.stages import stereo_stage, suspect_error
-    from .provenance import provenance
+    from .pipeline.stages import check_dem_result, stereo_stage, write_dem_report
 
     inputs = [*paths, *input_paths(cfg)]
     with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, inputs=inputs) as out:
@@ -102,30 +98,16 @@ def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
         prod, failed = stereo_stage(cfg, pair, progress=progress, points_dir=pts)
         prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
         cloud = point_cloud.point_cloud_stage(cfg, out, prod) if pts is not None else None
-        report = dict(
-            status=prod.info.status,
-            warnings=prod.info.warnings,
-            provenance=provenance(started=started),
-            input_metadata=pair.tags,
+        write_dem_report(
+            out,
+            prod,
+            failed,
+            pair,
+            started,
+            cloud,
             left="3N strip",
             right="3B strip",
             strip=strip.report,
-            settings=prod.settings,
-            info=prod.info.to_dict(),
-            n_points=prod.n_points,
-            seconds=prod.seconds,
-            tiles=prod.tiles,
-            failed_tiles=failed,
-            point_cloud=cloud,
         )
-        write_text_atomic(
-            out / "dem_report.json",
-            json.dumps(report, indent=2, default=str) + "\n",
-            overwrite=True,
-        )
-    if failed:
-        log.warning(
-            "%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed)
-        )
-    suspect_error(cfg, prod, out / "dem_report.json")
+    check_dem_result(cfg, prod, failed, out / "dem_report.json")
     return prod, out, strip
