@@ -38,12 +38,12 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 
 from stereodem.core import geodesy
-from stereodem.core.errors import ConvergenceError, InputError, SensorModelError
+from stereodem.core.errors import ConvergenceError, InputError
 from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
 from stereodem.sensor.estimation.adjust import schur
-from stereodem.sensor.estimation.adjust.model_sets import model_set, parameter_unit
+from stereodem.sensor.estimation.adjust.model_sets import free_parameters, parameter_unit
 from stereodem.sensor.estimation.adjust.result import ParameterEstimate, _num, rmse
 from stereodem.sensor.estimation.adjust.single import (
     _check_arrays,
@@ -51,7 +51,7 @@ from stereodem.sensor.estimation.adjust.single import (
     check_points_against_model,
 )
 from stereodem.sensor.models.base import pair_height_bounds
-from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
+from stereodem.sensor.models.parameters import project_jacobian
 
 __all__ = ["bundle_adjust", "BundleResult", "tie_parallax"]
 
@@ -59,25 +59,10 @@ SOLVERS = ("schur", "least_squares", "dense")
 
 
 def _resolve(model, names, priors, side):
-    """(model, names, priors, set name) for one image."""
+    """(model, names, priors, set name) for one image; no names: the image is held fixed."""
     if names is None or (not isinstance(names, str) and len(names) == 0):
         return model, [], {}, None
-    if isinstance(names, str):
-        ms = model_set(names)
-        m, n, p = ms.prepare(model)
-        return m, n, {**p, **(priors or {})}, ms.name
-    if not is_adjustable(model):
-        raise SensorModelError(
-            f"bundle: the {side} model ({type(model).__name__}) has no "
-            "adjustable parameters (use a model set such as 'rpc-shift')"
-        )
-    known = model.parameters()
-    bad = [n for n in names if n not in known]
-    if bad:
-        raise InputError(
-            f"bundle: unknown {side} parameter(s) {', '.join(bad)} (known: {', '.join(known)})"
-        )
-    return model, list(names), dict(priors or {}), None
+    return free_parameters(model, names, priors, what="bundle", side=side)
 
 
 class _Problem(schur.SchurProblem):

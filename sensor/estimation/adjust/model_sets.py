@@ -18,12 +18,14 @@ from dataclasses import dataclass, field
 
 from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.models.corrected import ImageCorrectedModel
+from stereodem.sensor.models.parameters import is_adjustable
 
 __all__ = [
     "ModelSet",
     "MODEL_SETS",
     "register_model_set",
     "model_set",
+    "free_parameters",
     "parameter_unit",
     "image_corrected",
 ]
@@ -92,6 +94,46 @@ def model_set(name: str) -> ModelSet:
         raise InputError(
             f"unknown model set '{name}' (known: {', '.join(sorted(MODEL_SETS))})"
         ) from None
+
+
+def free_parameters(model, names, priors=None, *, what: str, side: str = ""):
+    """The model to adjust and its free parameters.
+
+    ``names``: a model set's name (:func:`model_set`: the model is built by the set, its priors
+    come first, ``priors`` override them) or the names of ``model``'s own parameters.
+    ``priors``: name -> a-priori standard deviation, in the parameter's unit
+    (:func:`parameter_unit`). Errors name ``what`` (the caller) and ``side`` (which image of a
+    bundle, e.g. ``"left"``). Returns ``(model, names, priors, set name or None)``.
+
+    Raises
+    ------
+    SensorModelError
+        The model has no adjustable parameters.
+    InputError
+        An unknown set or parameter name, or no parameter named.
+    """
+    whose = f"{side} " if side else ""
+    set_name = None
+    priors = dict(priors or {})
+    if isinstance(names, str):
+        ms = model_set(names)
+        model, names, set_priors = ms.prepare(model)
+        priors = {**set_priors, **priors}
+        set_name = ms.name
+    names = list(names)
+    if not is_adjustable(model):
+        raise SensorModelError(
+            f"{what}: the {whose}model ({type(model).__name__}) has no adjustable parameters "
+            "(wrap it, e.g. with the 'rpc-shift' model set)"
+        )
+    known = model.parameters()
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        raise InputError(
+            f"{what}: unknown {whose}parameter(s) {', '.join(unknown) or '(none given)'} "
+            f"of {type(model).__name__} (known: {', '.join(known)})"
+        )
+    return model, names, priors, set_name
 
 
 def parameter_unit(model, name: str) -> str:

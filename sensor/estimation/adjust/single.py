@@ -16,14 +16,14 @@ import math
 
 import numpy as np
 
-from stereodem.core.errors import InputError, SensorModelError
+from stereodem.core.errors import InputError
 from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
-from stereodem.sensor.estimation.adjust.model_sets import model_set, parameter_unit
+from stereodem.sensor.estimation.adjust.model_sets import free_parameters, parameter_unit
 from stereodem.sensor.estimation.adjust.result import AdjustmentResult
 from stereodem.sensor.io.gcps import ControlPoints
-from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
+from stereodem.sensor.models.parameters import project_jacobian
 
 __all__ = ["adjust_model", "required_gcps", "check_points_against_model"]
 
@@ -248,26 +248,7 @@ def adjust_model(
     ConvergenceError
         No convergence.
     """
-    set_name = None
-    priors = dict(priors or {})
-    if isinstance(names, str):
-        ms = model_set(names)
-        model, names, set_priors = ms.prepare(model)
-        priors = {**set_priors, **priors}
-        set_name = ms.name
-    names = list(names)
-    if not is_adjustable(model):
-        raise SensorModelError(
-            f"{what}: {type(model).__name__} has no adjustable parameters "
-            "(wrap it, e.g. with the 'rpc-shift' model set)"
-        )
-    known = model.parameters()
-    unknown = [n for n in names if n not in known]
-    if unknown or not names:
-        raise InputError(
-            f"{what}: unknown parameter(s) {', '.join(unknown) or '(none given)'} "
-            f"of {type(model).__name__} (known: {', '.join(known)})"
-        )
+    model, names, priors, set_name = free_parameters(model, names, priors, what=what)
     if len(set(names)) != len(names):
         raise InputError(f"{what}: a parameter is named twice in {names}")
     bad_prior = [n for n in priors if n not in names]
@@ -286,6 +267,7 @@ def adjust_model(
     if check_inputs:
         check_points_against_model(model, points, what)
     sigma, sigma_known = _sigmas(gcp, sigma_px)
+    known = model.parameters()
     x0 = np.array([known[n] for n in names], dtype=np.float64)
     delta0 = rel.noncentrality(alpha, power)
     active = np.ones(len(gcp), bool)
