@@ -167,6 +167,21 @@ class _Problem:
         return np.concatenate([e, self._prior_rows(x)]), np.vstack([A, P])
 
 
+def _test_statistics(sol, n_act: int, dof: int, sigma_known: bool):
+    """Statistics of a Gauss-Markov solution ``sol`` (:func:`.gauss_markov.solve`) whose first
+    ``2 n_act`` whitened residuals are the image observations (col, row) of ``n_act`` points:
+    ``vtpv`` (weighted sum of squared residuals), ``sigma0`` (a-posteriori standard deviation of
+    unit weight; NaN without degrees of freedom ``dof``), the redundancy numbers ``r`` and the
+    standardised residuals ``w`` (both (n_act, 2); ``w`` scaled by ``sigma0`` when the a-priori
+    sigma is not known: Pope's tau)."""
+    vtpv = float(sol.e @ sol.e)
+    sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
+    r = rel.redundancy_numbers(sol.A, sol.Qxx)[: 2 * n_act].reshape(n_act, 2)
+    e_w = sol.e[: 2 * n_act].reshape(n_act, 2)
+    w = rel.standardized_residuals(e_w, r, 1.0 if sigma_known else sigma0)
+    return vtpv, sigma0, r, w
+
+
 def adjust_model(
     model,
     points: ControlPoints,
@@ -274,9 +289,9 @@ def adjust_model(
     outliers = []
     limit = len(gcp) if max_rejections is None else int(max_rejections)
     x_start = x0
-    while True:
-        prob = _Problem(model, names, gcp.subset(active), sigma[active], priors, x0, constraints)
-        sol = gm.solve(
+
+    def solve(prob, x_start):
+        return gm.solve(
             prob.evaluate,
             x_start,
             names,
@@ -287,16 +302,15 @@ def adjust_model(
             max_condition=max_condition,
             what=what,
         )
+
+    while True:
+        prob = _Problem(model, names, gcp.subset(active), sigma[active], priors, x0, constraints)
+        sol = solve(prob, x_start)
         m_obs = sol.e.size
         dof = m_obs - u
-        vtpv = float(sol.e @ sol.e)
-        sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
-        r_all = rel.redundancy_numbers(sol.A, sol.Qxx)
         n_act = int(active.sum())
-        r = r_all[: 2 * n_act].reshape(n_act, 2)
-        e_w = sol.e[: 2 * n_act].reshape(n_act, 2)
+        vtpv, sigma0, r, w = _test_statistics(sol, n_act, dof, sigma_known)
         scale = 1.0 if sigma_known else sigma0
-        w = rel.standardized_residuals(e_w, r, scale)
         thr = rel.baarda_threshold(alpha) if sigma_known else rel.pope_threshold(alpha, dof)
         if not (snooping and len(outliers) < limit and n_act - 1 >= need and np.isfinite(thr)):
             break
@@ -343,23 +357,8 @@ def adjust_model(
             sub = gcp.subset(active)
             sub.sigma_ground_m = sub.sigma_ground_m * scale_g
             prob = _Problem(model, names, sub, sigma[active] * scale_l, priors, x0, constraints)
-            sol = gm.solve(
-                prob.evaluate,
-                sol.x,
-                names,
-                residual=prob.residual,
-                max_iterations=max_iterations,
-                tolerance=tolerance,
-                regularization=regularization,
-                max_condition=max_condition,
-                what=what,
-            )
-            vtpv = float(sol.e @ sol.e)
-            sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
-            r_all = rel.redundancy_numbers(sol.A, sol.Qxx)
-            r = r_all[: 2 * n_act].reshape(n_act, 2)
-            e_w = sol.e[: 2 * n_act].reshape(n_act, 2)
-            w = rel.standardized_residuals(e_w, r, 1.0 if sigma_known else sigma0)
+            sol = solve(prob, sol.x)
+            vtpv, sigma0, r, w = _test_statistics(sol, n_act, dof, sigma_known)
         vc["sigma_scale_applied"] = {"image": scale_l, "ground": scale_g}
 
     # ------------------------------------------------------------ result
