@@ -44,7 +44,12 @@ from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
 from stereodem.sensor.estimation.adjust import schur
 from stereodem.sensor.estimation.adjust.model_sets import free_parameters, parameter_unit
-from stereodem.sensor.estimation.adjust.result import ParameterEstimate, _num, rmse
+from stereodem.sensor.estimation.adjust.result import (
+    ParameterEstimate,
+    _num,
+    fit_statistics,
+    rmse,
+)
 from stereodem.sensor.estimation.adjust.single import (
     _check_arrays,
     _sigmas,
@@ -341,11 +346,6 @@ class BundleResult(ParameterEstimate):
     gcp_redundancy: tuple
     checks: tuple
     check_residuals_px: tuple
-    outliers: list
-    iterations: int
-    converged: bool
-    tolerance: float
-    test: dict
     solver: str
     model_sets: tuple = (None, None)
     parallax_before: dict = field(default_factory=dict)
@@ -451,10 +451,7 @@ class BundleResult(ParameterEstimate):
             "parallax_before": self.parallax_before,
             "parallax_after": self.parallax_after,
             "outliers": [o["id"] for o in self.outliers if o.get("kind") == "gcp"],
-            "outlier_details": self.outliers,
-            "test": self.test,
-            "iterations": int(self.iterations),
-            "converged": bool(self.converged),
+            **self._test_report(),
             "status": self.status,
             "max_correction": _num(self.max_correction),
             "convergence_criterion": f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)",
@@ -763,13 +760,7 @@ def bundle_adjust(
         units=units,
         covariance=cov,
         condition=sol["cond"],
-        sigma0=sigma0,
-        sigma_known=sigma_known,
-        dof=dof,
-        n_observations=m_obs,
-        chi2_test=rel.variance_test(vtpv, dof, chi2_alpha)
-        if sigma_known
-        else {"statistic": vtpv, "dof": dof, "alpha": chi2_alpha, "passed": None},
+        **fit_statistics(vtpv, dof, m_obs, sigma_known, chi2_alpha),
         tie_residuals_px=tie_res,
         tie_w=tie_w,
         tie_redundancy=tie_r,
@@ -790,14 +781,7 @@ def bundle_adjust(
         tolerance=tolerance,
         status=sol["status"],
         max_correction=float(sol["max_correction"]),
-        test={
-            "name": "baarda" if sigma_known else "pope",
-            "alpha": alpha,
-            "power": power,
-            "threshold": float(thr),
-            "delta0": delta0,
-            "snooping": bool(snooping),
-        },
+        test=rel.outlier_test(sigma_known, alpha, power, thr, delta0, snooping),
         solver=solver,
         model_sets=(setl, setr),
         parallax_before=before,

@@ -21,7 +21,7 @@ from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
 from stereodem.sensor.estimation.adjust.model_sets import free_parameters, parameter_unit
-from stereodem.sensor.estimation.adjust.result import AdjustmentResult
+from stereodem.sensor.estimation.adjust.result import AdjustmentResult, fit_statistics
 from stereodem.sensor.io.gcps import ControlPoints
 from stereodem.sensor.models.parameters import project_jacobian
 
@@ -383,19 +383,7 @@ def adjust_model(
         units=[parameter_unit(adjusted, nm) for nm in names],
         covariance=cov,
         condition=sol.condition,
-        sigma0=sigma0,
-        sigma_known=sigma_known,
-        dof=dof,
-        n_observations=m_obs,
-        chi2_test=rel.variance_test(vtpv, dof, chi2_alpha)
-        if sigma_known
-        else {
-            "statistic": vtpv,
-            "dof": dof,
-            "alpha": chi2_alpha,
-            "passed": None,
-            "note": "a-priori sigma unknown: sigma0 estimated, not tested",
-        },
+        **fit_statistics(vtpv, dof, m_obs, sigma_known, chi2_alpha),
         gcp_ids=gcp.id,
         check_ids=chk.id,
         gcp_points=gcp,
@@ -413,14 +401,7 @@ def adjust_model(
         status=sol.status,
         max_correction=float(sol.max_correction),
         tolerance=tolerance,
-        test={
-            "name": "baarda" if sigma_known else "pope",
-            "alpha": alpha,
-            "power": power,
-            "threshold": float(thr),
-            "delta0": delta0,
-            "snooping": bool(snooping),
-        },
+        test=rel.outlier_test(sigma_known, alpha, power, thr, delta0, snooping),
         model_set=set_name,
         priors=priors,
         regularization=sol.regularization,
