@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.models.corrected import ImageCorrectedModel
+from stereodem.sensor.models.frame import FrameCamera
 from stereodem.sensor.models.parameters import is_adjustable
 
 __all__ = [
@@ -142,24 +143,7 @@ def parameter_unit(model, name: str) -> str:
     if isinstance(table, dict) and name in table:
         text = str(table[name])
         return text.rsplit(", ", 1)[-1] if ", " in text else text
-    return _FRAME_UNITS.get(name, "")
-
-
-_FRAME_UNITS = {
-    "focal_mm": "mm",
-    "dx_mm": "mm",
-    "dy_mm": "mm",
-    "k1": "1/mm^2",
-    "k2": "1/mm^4",
-    "p1": "1/mm",
-    "p2": "1/mm",
-    "roll": "rad",
-    "pitch": "rad",
-    "yaw": "rad",
-    "x": "m",
-    "y": "m",
-    "z": "m",
-}
+    return FrameCamera.PARAMETER_UNITS.get(name, "")
 
 
 # ------------------------------------------------------------------------------ builders
