@@ -102,6 +102,17 @@ class Assessment:
     histogram: StreamingStats | None = None
 
 
+def _check_overlap(dem: DEM, reference: DEM) -> None:
+    """:class:`NoOverlapError` (naming both files) unless the footprints of ``dem`` and
+    ``reference`` overlap (lon/lat bounds, degrees)."""
+    warp.check_overlap(
+        dem.bounds_lonlat(),
+        reference.bounds_lonlat(),
+        dem.path or "DEM",
+        reference.path or "reference",
+    )
+
+
 def compare_on_reference_grid(
     dem: DEM, reference: DEM, *, resampling: str = "bilinear"
 ) -> Comparison:
@@ -109,12 +120,7 @@ def compare_on_reference_grid(
 
     Raises :class:`NoOverlapError` if the footprints or the valid cells do not overlap.
     """
-    warp.check_overlap(
-        dem.bounds_lonlat(),
-        reference.bounds_lonlat(),
-        dem.path or "DEM",
-        reference.path or "reference",
-    )
+    _check_overlap(dem, reference)
     z = warp.to_grid(
         dem.heights,
         dem.transform,
@@ -399,12 +405,7 @@ def blockwise_comparison(
     """
     from . import figures
 
-    warp.check_overlap(
-        dem.bounds_lonlat(),
-        reference.bounds_lonlat(),
-        dem.path or "DEM",
-        reference.path or "reference",
-    )
+    _check_overlap(dem, reference)
     ref = reference.heights
     rows, cols = ref.shape
     T = reference.transform

@@ -322,17 +322,28 @@ class Coreg:
         max_samples: int = MAX_SAMPLES,
         seed: int = 0,
     ):
-        """Fit this step alone (a chain of one); returns ``self``."""
-        CoregChain([self]).fit(
-            ref,
-            dem,
-            stable=stable,
-            track_angle_deg=track_angle_deg,
-            track_frame=track_frame,
-            max_samples=max_samples,
-            seed=seed,
-        )
+        """Fit on ``dem`` against ``ref`` (a :class:`DEM` on any grid, or
+        :class:`~stereodem.post.altimetry.AltimetryPoints`), on the ``stable`` cells (bool
+        array on the DEM grid): this step alone (a chain of one), or every step of a
+        :class:`CoregChain` in turn. ``track_angle_deg``: ground-track heading (degrees clockwise
+        from north) for ``along_track``/``cross_track``; ``track_frame``
+        (:class:`~stereodem.post.track.TrackFrame`, in the DEM's CRS): the sensor model's
+        along/cross-track coordinates, used by those steps instead of the heading's straight
+        track. Returns ``self``."""
+        chain = self._as_chain()
+        sampler = make_sampler(ref, dem, stable, max_samples=max_samples, seed=seed)
+        context = {
+            "track_angle_deg": track_angle_deg,
+            "track_frame": track_frame,
+            "reference": ref,
+            "stable": stable,
+        }
+        chain.fit_samples(sampler, dem, context)
         return self
+
+    def _as_chain(self) -> CoregChain:
+        """The chain :meth:`fit` runs: this step alone."""
+        return CoregChain([self])
 
     def fit_samples(self, sampler: Sampler, dem: DEM, context: dict):
         self._fit(sampler, dem, context)
@@ -375,34 +386,15 @@ class CoregChain(Coreg):
     def __repr__(self):
         return " + ".join(repr(s) for s in self.steps)
 
-    def fit(
-        self,
-        ref,
-        dem: DEM,
-        stable=None,
-        *,
-        track_angle_deg: float | None = None,
-        track_frame=None,
-        max_samples: int = MAX_SAMPLES,
-        seed: int = 0,
-    ) -> CoregChain:
-        """Fit every step in turn on ``dem`` against ``ref`` (a :class:`DEM` on any grid, or
-        :class:`~stereodem.post.altimetry.AltimetryPoints`), on the ``stable`` cells (bool
-        array on the DEM grid). ``track_angle_deg``: ground-track heading (degrees clockwise
-        from north) for ``along_track``/``cross_track``; ``track_frame``
-        (:class:`~stereodem.post.track.TrackFrame`, in the DEM's CRS): the sensor model's
-        along/cross-track coordinates, used by those steps instead of the heading's straight
-        track. Returns ``self``."""
+    def _as_chain(self) -> CoregChain:
         if not self.steps:
             raise InputError("empty co-registration chain")
-        sampler = make_sampler(ref, dem, stable, max_samples=max_samples, seed=seed)
+        return self
+
+    def _fit(self, sampler, dem, context):
+        """Every step in turn, each fitted on ``dem`` corrected by the ones before it; the
+        stable-cell statistics before and after each step go to :meth:`report`."""
         self.sampler = sampler
-        context = {
-            "track_angle_deg": track_angle_deg,
-            "track_frame": track_frame,
-            "reference": ref,
-            "stable": stable,
-        }
         self.records = []
         current = dem
         for step in self.steps:
@@ -427,9 +419,7 @@ class CoregChain(Coreg):
                 after["nmad"],
                 after["n"],
             )
-        self.fitted = True
         self.corrected = current
-        return self
 
     def apply(self, dem: DEM) -> DEM:
         if not self.fitted:

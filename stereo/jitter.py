@@ -43,8 +43,8 @@ from stereodem.sensor.estimation.jitter import (
 )
 from stereodem.stereo import epipolar
 from stereodem.stereo.match import match_rectified
-from stereodem.stereo.pipeline import PairInputs, dem_of_checked_pair
-from stereodem.stereo.plan import plan_tiles, tile_height_range
+from stereodem.stereo.pipeline import PairInputs, dem_of_checked_pair, rectify_pair_tile
+from stereodem.stereo.plan import plan_tiles
 from stereodem.stereo.sanity import check_pair
 from stereodem.stereo.settings import StereoSettings
 from stereodem.stereo.sparse import distance_to_curves, epipolar_curves
@@ -161,16 +161,7 @@ def measure_vertical_parallax(
     for tile in probe_tiles(
         left_model, right_model, settings, height_range, tiles_across=tiles_across
     ):
-        hr = tile_height_range(tile, inputs, rect.height_margin)
-        et = epipolar.rectify_tile(
-            left_model,
-            right_model,
-            tile,
-            hr,
-            halo=rect.halo,
-            method=rect.method,
-            disparity_margin=rect.disparity_margin,
-        )
+        et, hr = rectify_pair_tile(tile, inputs, rect)
         lr, rr = et.rectify(left_image, right_image)
         if not (np.isfinite(lr).any() and np.isfinite(rr).any()):
             continue

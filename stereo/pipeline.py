@@ -235,15 +235,31 @@ def process_tile(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Ti
     return TileResult(cells, pts.summary)
 
 
+def rectify_pair_tile(tile: Tile, inputs: PairInputs, rect):
+    """The epipolar rectification (:func:`stereodem.stereo.epipolar.rectify_tile`) of ``tile`` of
+    the left image with the ``[rectification]`` settings ``rect`` (halo in pixels, method,
+    disparity margin), over the tile's height range (m, ellipsoidal:
+    :func:`~stereodem.stereo.plan.tile_height_range` with ``rect.height_margin``). Returns
+    ``(EpipolarTile, height range)``."""
+    hr = tile_height_range(tile, inputs, rect.height_margin)
+    et = epipolar.rectify_tile(
+        inputs.left_model,
+        inputs.right_model,
+        tile,
+        hr,
+        halo=rect.halo,
+        method=rect.method,
+        disparity_margin=rect.disparity_margin,
+    )
+    return et, hr
+
+
 def tile_points(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> TilePoints:
     """Rectify, match and intersect one tile; returns its ground points and QA summary."""
     t0 = time.perf_counter()
     rect, ref = settings.rectification, settings.refinement
     L, R = inputs.left_model, inputs.right_model
-    hr = tile_height_range(tile, inputs, rect.height_margin)
-    et = epipolar.rectify_tile(
-        L, R, tile, hr, halo=rect.halo, method=rect.method, disparity_margin=rect.disparity_margin
-    )
+    et, hr = rectify_pair_tile(tile, inputs, rect)
     left_r, right_r = et.rectify(inputs.left_image, inputs.right_image)
     t1 = time.perf_counter()
     summary = et.summary()

@@ -35,6 +35,7 @@ from stereodem.core import geodesy
 from stereodem.core.errors import InputError
 from stereodem.ortho.drm import bilinear_nan
 from stereodem.sensor.models.corrected import ImageCorrectedModel
+from stereodem.sensor.models.frame import FrameCamera
 from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
 
 #: pseudo-parameters understood on top of a model's own parameters (name -> unit)
@@ -61,18 +62,6 @@ UNIT_STEPS = {
     "px": 1.0,
     "px/px": 1e-4,
     "mm": 1e-3,
-}
-#: units of the frame camera's parameters (its ``PARAMETERS`` is a plain tuple)
-FRAME_UNITS = {
-    "focal_mm": "mm",
-    "dx_mm": "mm",
-    "dy_mm": "mm",
-    "roll": "rad",
-    "pitch": "rad",
-    "yaw": "rad",
-    "x": "m",
-    "y": "m",
-    "z": "m",
 }
 
 
@@ -155,8 +144,8 @@ def parameter_unit(model, name) -> str | None:
     if isinstance(table, dict) and name in table:
         text = str(table[name])
         return text.rsplit(",", 1)[-1].strip() if "," in text else text.strip()
-    if hasattr(model, "position") and name in FRAME_UNITS:
-        return FRAME_UNITS[name]
+    if hasattr(model, "position") and name in FrameCamera.PARAMETER_UNITS:
+        return FrameCamera.PARAMETER_UNITS[name]
     return None
 
 

@@ -118,6 +118,8 @@ def _size(root, path):
 
 
 def _pleiades(root, smc, path, step):
+    from stereodem.sensor.models.ephemeris import Ephemeris
+
     width, height = _size(root, path)
     points = smc.findall("Sensor_Ephemeris/Point_List/Point")
     if len(points) < 2:
@@ -154,20 +156,8 @@ def _pleiades(root, smc, path, step):
     # the polynomials are the direction's tangents (checked against the product's RPC: taking
     # tan() of them leaves a psi^3/3 error, 1.35 px at the swath edges)
     sight = np.stack([psi_y, -psi_x, np.ones_like(cols)], -1)  # satellite frame
-    return _pushbroom(
-        width,
-        height,
-        t0,
-        line_period,
-        t_eph,
-        pos,
-        vel,
-        t_att,
-        sat_to_ecef,
-        sight,
-        cols,
-        name=path.stem,
-    )
+    eph = Ephemeris(t_eph, pos, vel)
+    return _pushbroom(width, height, t0, line_period, eph, t_att, sat_to_ecef, sight, cols, path)
 
 
 def _spot5(root, path):
@@ -210,34 +200,22 @@ def _spot5(root, path):
     p, v = eph.state(t_att)
     sat_to_ecef = orbital_to_ecef(p, v) @ payload_to_orbital(ang[:, 0], ang[:, 1], ang[:, 2])
     sight = np.stack([-np.tan(psi_y), np.tan(psi_x), -np.ones_like(psi_x)], -1)  # payload frame
-    return _pushbroom(
-        width,
-        height,
-        t0,
-        line_period,
-        t_eph,
-        pos,
-        vel,
-        t_att,
-        sat_to_ecef,
-        sight,
-        det,
-        name=path.stem,
-    )
+    return _pushbroom(width, height, t0, line_period, eph, t_att, sat_to_ecef, sight, det, path)
 
 
 #: Payload/satellite frame -> pushbroom instrument frame (x along track, y across, z down).
 _TO_INSTRUMENT = {True: np.eye(3), False: np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])}
 
 
-def _pushbroom(
-    width, height, t0, line_period, t_eph, pos, vel, t_att, sat_to_ecef, sight, cols, *, name
-):
-    """PushbroomModel from ECEF ephemeris, satellite -> ECEF rotations and sight vectors."""
+def _pushbroom(width, height, t0, line_period, eph, t_att, sat_to_ecef, sight, cols, path):
+    """PushbroomModel of the DIMAP file ``path`` (named after it): image size (pixels), first
+    line's time ``t0`` and ``line_period`` (s), the ECEF :class:`Ephemeris` ``eph``, the
+    satellite -> ECEF rotations ``sat_to_ecef`` (n, 3, 3) at times ``t_att`` (s) and the sight
+    vectors (satellite or payload frame, z along the boresight up or down) of the detectors at
+    columns ``cols`` (0-based)."""
     z_down = bool(np.all(sight[:, 2] > 0))
     D = _TO_INSTRUMENT[z_down]  # instrument = D @ satellite
     inst = sight @ D.T
-    eph = Ephemeris(t_eph, pos, vel)
     p, v = eph.state(t_att)
     body_to_orb = np.swapaxes(orbital_frame(p, v), -1, -2) @ sat_to_ecef @ D.T
     quat = Rotation.from_matrix(body_to_orb).as_quat()
@@ -250,7 +228,7 @@ def _pushbroom(
         line_period=line_period,
         t0=t0,
         attitude=Attitude(t_att, quaternions=quat),
-        name=name,
+        name=path.stem,
     )
 
 

@@ -92,6 +92,23 @@ class FrameCamera(SensorModel):
         "y",
         "z",
     )
+    #: unit of each parameter (focal length and principal point in mm, the radial and
+    #: tangential distortion per mm^2, mm^4 and mm, attitude in rad, position in m)
+    PARAMETER_UNITS = {
+        "focal_mm": "mm",
+        "dx_mm": "mm",
+        "dy_mm": "mm",
+        "k1": "1/mm^2",
+        "k2": "1/mm^4",
+        "p1": "1/mm",
+        "p2": "1/mm",
+        "roll": "rad",
+        "pitch": "rad",
+        "yaw": "rad",
+        "x": "m",
+        "y": "m",
+        "z": "m",
+    }
 
     def __post_init__(self):
         self.position = np.asarray(self.position, dtype=np.float64).reshape(3)

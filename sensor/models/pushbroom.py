@@ -695,6 +695,7 @@ class PushbroomModel(SensorModel):
         ephemeris_step: float = 1.0,
         inertial_frame: bool = True,
         name: str | None = None,
+        center_height: float = 0.0,
     ) -> PushbroomModel:
         """A pushbroom camera on a circular Keplerian orbit, aimed at a ground centre.
 
@@ -710,7 +711,9 @@ class PushbroomModel(SensorModel):
         Parameters
         ----------
         center_lon, center_lat : float
-            Ground centre, degrees (geodetic, on the ellipsoid).
+            Ground centre, degrees (geodetic).
+        center_height : float
+            Ellipsoidal height of the ground centre, m (0: on the ellipsoid).
         heading_deg : float, optional
             Inertial azimuth of the orbit track at the sub-satellite point (degrees clockwise
             from north); when given it replaces ``inclination_deg`` (and a northward heading
@@ -726,6 +729,7 @@ class PushbroomModel(SensorModel):
             heading_deg=heading_deg,
             along_deg=along_track_tilt_deg,
             cross_deg=cross_track_tilt_deg,
+            height=center_height,
         )
         ifov = gsd / _nadir_height(orbit, 0.0)
         return _model_on_orbit(
@@ -780,31 +784,25 @@ class PushbroomModel(SensorModel):
         ``cross_track_tilt_deg`` attribute holds the adjusted value. Both cameras have the
         same IFOV.
         """
-        orbit = _aimed_orbit(
+        nadir = cls.synthetic(
             center_lon,
             center_lat,
+            width=width,
+            height=height,
+            center_height=center_height,
+            along_track_tilt_deg=first_tilt_deg,
+            cross_track_tilt_deg=cross_track_tilt_deg,
             altitude=altitude,
             inclination_deg=inclination_deg,
             heading_deg=heading_deg,
-            along_deg=first_tilt_deg,
-            cross_deg=cross_track_tilt_deg,
-            height=center_height,
-        )
-        ifov = gsd / _nadir_height(orbit, 0.0)
-        nadir = _model_on_orbit(
-            cls,
-            orbit,
-            0.0,
-            width=width,
-            height=height,
+            gsd=gsd,
             line_period=line_period,
-            ifov=ifov,
-            along_deg=first_tilt_deg,
-            cross_deg=cross_track_tilt_deg,
-            step=ephemeris_step,
-            inertial=inertial_frame,
+            ephemeris_step=ephemeris_step,
+            inertial_frame=inertial_frame,
             name="nadir" if first_tilt_deg == 0 else "first",
         )
+        orbit = nadir.orbit  # the backward camera flies on the same orbit, with the same IFOV
+        ifov = gsd / _nadir_height(orbit, 0.0)
         target = np.array(
             geodesy.geodetic_to_ecef(center_lon, center_lat, float(center_height)), float
         )

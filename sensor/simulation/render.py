@@ -36,20 +36,7 @@ class MapRaster(OnGrid):
         mr = ((np.asarray(y) - t.f) / t.e - 0.5).astype(np.float32)
         shape = mc.shape
         if mc.ndim == 1:
-            # cv2.remap maps must be < 32767 on each side: lay long vectors out in rows
-            n, width = mc.size, 1024 if mc.size > 32000 else 1
-            pad = -n % width
-            mc = np.pad(mc, (0, pad)).reshape(-1, width)
-            mr = np.pad(mr, (0, pad)).reshape(-1, width)
-            out = cv2.remap(
-                self.data.astype(np.float32, copy=False),
-                mc,
-                mr,
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=float(border),
-            )
-            return out.ravel()[:n]
+            return _remap_flat(self.data.astype(np.float32, copy=False), mc, mr, border=border)
         out = cv2.remap(
             self.data.astype(np.float32, copy=False),
             mc,

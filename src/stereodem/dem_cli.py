@@ -8,7 +8,6 @@ Writes ``dem.tif`` (float32, NaN voids, ellipsoidal heights unless ``--geoid``),
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
@@ -220,13 +219,11 @@ def run(args) -> int:
     The output folder is locked for the job; a suspect result (:mod:`stereodem.stereo.sanity`) is
     written with its findings in ``dem_report.json`` and fails the command unless ``--force``.
     """
-    from stereodem.core.raster import write_text_atomic
-
     from . import point_cloud
     from .outlock import output_folder
     from .pipeline.inputs import input_paths, load_pair
-    from .pipeline.stages import stereo_stage, suspect_error
-    from .provenance import provenance, utc_now
+    from .pipeline.stages import check_dem_result, stereo_stage, write_dem_report
+    from .provenance import utc_now
 
     started = utc_now()
     options.check_common(args)
@@ -259,31 +256,10 @@ def run(args) -> int:
             tags=track_tags(pair.left_model, pair.left_image.shape, prod.dem.crs, prod.dem.heights),
         )
         cloud = point_cloud.point_cloud_stage(cfg, out, prod) if pts is not None else None
-        report = dict(
-            status=prod.info.status,
-            warnings=prod.info.warnings,
-            provenance=provenance(started=started),
-            input_metadata=pair.tags,
-            left=str(args.left),
-            right=str(args.right),
-            settings=prod.settings,
-            info=prod.info.to_dict(),
-            n_points=prod.n_points,
-            seconds=prod.seconds,
-            tiles=prod.tiles,
-            failed_tiles=failed,
-            point_cloud=cloud,
+        write_dem_report(
+            out, prod, failed, pair, started, cloud, left=str(args.left), right=str(args.right)
         )
-        write_text_atomic(
-            out / "dem_report.json",
-            json.dumps(report, indent=2, default=str) + "\n",
-            overwrite=True,
-        )
-    if failed:
-        log.warning(
-            "%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed)
-        )
-    suspect_error(cfg, prod, out / "dem_report.json")
+    check_dem_result(cfg, prod, failed, out / "dem_report.json")
     g = prod.dem.grid
     options.say(
         f"stereodem dem: {out / 'dem.tif'}: {g.width}x{g.height} cells at {g.posting:g}, "

@@ -78,13 +78,7 @@ def add_parser(sub):
         metavar="S",
         help="cloud mask: also cells whose matcher score is below S",
     )
-    p.add_argument(
-        "--cloud-grow",
-        type=int,
-        default=3,
-        metavar="N",
-        help="grow the cloud mask by N cells (default 3)",
-    )
+    options.add_cloud_grow(p)
     options.add_creation_options(p)
     options.add_overwrite(p)
     p.set_defaults(run=run)

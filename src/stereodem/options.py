@@ -74,6 +74,17 @@ def add_overwrite(p):
     )
 
 
+def add_cloud_grow(p):
+    """``--cloud-grow N``: how many cells the cloud mask is grown by (``filter``, ``stack``)."""
+    p.add_argument(
+        "--cloud-grow",
+        type=int,
+        default=3,
+        metavar="N",
+        help="grow the cloud mask by N cells (default 3)",
+    )
+
+
 def check_common(args):
     """Range checks of the shared options, before any work starts."""
     res = getattr(args, "res", None)

@@ -57,13 +57,7 @@ def add_cloud_options(p):
         help="also cells whose 3N radiance (ortho_left.tif beside the DEM, "
         "W m-2 sr-1 um-1) exceeds L",
     )
-    p.add_argument(
-        "--cloud-grow",
-        type=int,
-        default=3,
-        metavar="N",
-        help="grow the cloud mask by N cells (default 3)",
-    )
+    options.add_cloud_grow(p)
 
 
 def cloud_settings(args):

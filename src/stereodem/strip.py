@@ -11,12 +11,10 @@ per-seam checks, the method).
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
 from stereodem.core.errors import InputError
-from stereodem.core.raster import write_text_atomic
 from stereodem.sensor.io.aster_l1a import is_aster_granule
 from stereodem.sensor.io.aster_strip import open_aster_strip
 from stereodem.stereo import sanity
@@ -25,8 +23,7 @@ from . import point_cloud
 from .config import Config
 from .outlock import output_folder
 from .pipeline.inputs import Pair, input_paths, load_seed_dem
-from .pipeline.stages import stereo_stage, suspect_error
-from .provenance import provenance
+from .pipeline.stages import check_dem_result, stereo_stage, write_dem_report
 
 log = logging.getLogger(__name__)
 
@@ -94,30 +91,16 @@ def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
         prod, failed = stereo_stage(cfg, pair, progress=progress, points_dir=pts)
         prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
         cloud = point_cloud.point_cloud_stage(cfg, out, prod) if pts is not None else None
-        report = dict(
-            status=prod.info.status,
-            warnings=prod.info.warnings,
-            provenance=provenance(started=started),
-            input_metadata=pair.tags,
+        write_dem_report(
+            out,
+            prod,
+            failed,
+            pair,
+            started,
+            cloud,
             left="3N strip",
             right="3B strip",
             strip=strip.report,
-            settings=prod.settings,
-            info=prod.info.to_dict(),
-            n_points=prod.n_points,
-            seconds=prod.seconds,
-            tiles=prod.tiles,
-            failed_tiles=failed,
-            point_cloud=cloud,
         )
-        write_text_atomic(
-            out / "dem_report.json",
-            json.dumps(report, indent=2, default=str) + "\n",
-            overwrite=True,
-        )
-    if failed:
-        log.warning(
-            "%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed)
-        )
-    suspect_error(cfg, prod, out / "dem_report.json")
+    check_dem_result(cfg, prod, failed, out / "dem_report.json")
     return prod, out, strip

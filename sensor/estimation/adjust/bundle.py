@@ -38,13 +38,18 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 
 from stereodem.core import geodesy
-from stereodem.core.errors import ConvergenceError, InputError, SensorModelError
+from stereodem.core.errors import ConvergenceError, InputError
 from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
 from stereodem.sensor.estimation.adjust import schur
-from stereodem.sensor.estimation.adjust.model_sets import model_set, parameter_unit
-from stereodem.sensor.estimation.adjust.result import ParameterEstimate, _num, rmse
+from stereodem.sensor.estimation.adjust.model_sets import free_parameters, parameter_unit
+from stereodem.sensor.estimation.adjust.result import (
+    ParameterEstimate,
+    _num,
+    fit_statistics,
+    rmse,
+)
 from stereodem.sensor.estimation.adjust.single import (
     _check_arrays,
     _sigmas,
@@ -53,7 +58,7 @@ from stereodem.sensor.estimation.adjust.single import (
 from stereodem.sensor.geo.intersect import intersect_matches
 from stereodem.sensor.io.sidecar import model_to_dict
 from stereodem.sensor.models.base import pair_height_bounds
-from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
+from stereodem.sensor.models.parameters import project_jacobian
 
 __all__ = ["bundle_adjust", "BundleResult", "tie_parallax"]
 
@@ -61,25 +66,10 @@ SOLVERS = ("schur", "least_squares", "dense")
 
 
 def _resolve(model, names, priors, side):
-    """(model, names, priors, set name) for one image."""
+    """(model, names, priors, set name) for one image; no names: the image is held fixed."""
     if names is None or (not isinstance(names, str) and len(names) == 0):
         return model, [], {}, None
-    if isinstance(names, str):
-        ms = model_set(names)
-        m, n, p = ms.prepare(model)
-        return m, n, {**p, **(priors or {})}, ms.name
-    if not is_adjustable(model):
-        raise SensorModelError(
-            f"bundle: the {side} model ({type(model).__name__}) has no "
-            "adjustable parameters (use a model set such as 'rpc-shift')"
-        )
-    known = model.parameters()
-    bad = [n for n in names if n not in known]
-    if bad:
-        raise InputError(
-            f"bundle: unknown {side} parameter(s) {', '.join(bad)} (known: {', '.join(known)})"
-        )
-    return model, list(names), dict(priors or {}), None
+    return free_parameters(model, names, priors, what="bundle", side=side)
 
 
 class _Problem(schur.SchurProblem):
@@ -358,11 +348,6 @@ class BundleResult(ParameterEstimate):
     gcp_redundancy: tuple
     checks: tuple
     check_residuals_px: tuple
-    outliers: list
-    iterations: int
-    converged: bool
-    tolerance: float
-    test: dict
     solver: str
     model_sets: tuple = (None, None)
     parallax_before: dict = field(default_factory=dict)
@@ -466,10 +451,7 @@ class BundleResult(ParameterEstimate):
             "parallax_before": self.parallax_before,
             "parallax_after": self.parallax_after,
             "outliers": [o["id"] for o in self.outliers if o.get("kind") == "gcp"],
-            "outlier_details": self.outliers,
-            "test": self.test,
-            "iterations": int(self.iterations),
-            "converged": bool(self.converged),
+            **self._test_report(),
             "status": self.status,
             "max_correction": _num(self.max_correction),
             "convergence_criterion": (
@@ -776,13 +758,7 @@ def bundle_adjust(
         units=units,
         covariance=cov,
         condition=sol["cond"],
-        sigma0=sigma0,
-        sigma_known=sigma_known,
-        dof=dof,
-        n_observations=m_obs,
-        chi2_test=rel.variance_test(vtpv, dof, chi2_alpha)
-        if sigma_known
-        else {"statistic": vtpv, "dof": dof, "alpha": chi2_alpha, "passed": None},
+        **fit_statistics(vtpv, dof, m_obs, sigma_known, chi2_alpha),
         tie_residuals_px=tie_res,
         tie_w=tie_w,
         tie_redundancy=tie_r,
@@ -803,14 +779,7 @@ def bundle_adjust(
         tolerance=tolerance,
         status=sol["status"],
         max_correction=float(sol["max_correction"]),
-        test={
-            "name": "baarda" if sigma_known else "pope",
-            "alpha": alpha,
-            "power": power,
-            "threshold": float(thr),
-            "delta0": delta0,
-            "snooping": bool(snooping),
-        },
+        test=rel.outlier_test(sigma_known, alpha, power, thr, delta0, snooping),
         solver=solver,
         model_sets=(setl, setr),
         parallax_before=before,

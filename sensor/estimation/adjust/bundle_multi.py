@@ -47,7 +47,7 @@ from stereodem.sensor.estimation.adjust.bundle import (
     tie_parallax,
 )
 from stereodem.sensor.estimation.adjust.model_sets import parameter_unit
-from stereodem.sensor.estimation.adjust.result import ParameterEstimate, _num, rmse
+from stereodem.sensor.estimation.adjust.result import ParameterEstimate, _num, fit_statistics, rmse
 from stereodem.sensor.estimation.adjust.single import _check_arrays, _sigmas
 from stereodem.sensor.io.sidecar import model_to_dict
 
@@ -267,11 +267,6 @@ class MultiBundleResult(ParameterEstimate):
     tie_ray_gap_m: np.ndarray
     gcp_residuals_px: list
     check_residuals_px: list
-    outliers: list
-    iterations: int
-    converged: bool
-    tolerance: float
-    test: dict
     fixed: list = field(default_factory=list)
     gcp_points: list = field(default_factory=list)
     check_points: list = field(default_factory=list)
@@ -352,10 +347,7 @@ class MultiBundleResult(ParameterEstimate):
             "ray_gaps_before": {pair_key(k): v for k, v in self.ray_gaps_before.items()},
             "ray_gaps_after": {pair_key(k): v for k, v in self.ray_gaps_after.items()},
             "outliers": [o["id"] for o in self.outliers],
-            "outlier_details": self.outliers,
-            "test": self.test,
-            "iterations": int(self.iterations),
-            "converged": bool(self.converged),
+            **self._test_report(),
             "convergence_criterion": (
                 f"max |dz_k| / sigma_k < {self.tolerance:g} (parameters and tie ground coordinates)"
             ),
@@ -602,13 +594,7 @@ def bundle_adjust_images(
         units=units,
         covariance=cov,
         condition=sol["cond"],
-        sigma0=sigma0,
-        sigma_known=sigma_known,
-        dof=dof,
-        n_observations=e_all.size,
-        chi2_test=rel.variance_test(vtpv, dof)
-        if sigma_known
-        else {"statistic": vtpv, "dof": dof, "alpha": 0.05, "passed": None},
+        **fit_statistics(vtpv, dof, e_all.size, sigma_known),
         models=final,
         model_sets=sets,
         tracks=tracks,

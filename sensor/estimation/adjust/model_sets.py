@@ -20,6 +20,7 @@ from stereodem.core.errors import InputError, SensorModelError
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.frame import FrameCamera
 from stereodem.sensor.models.orbital import register_sets
+from stereodem.sensor.models.parameters import is_adjustable
 from stereodem.sensor.models.pushbroom import PushbroomModel
 
 __all__ = [
@@ -27,6 +28,7 @@ __all__ = [
     "MODEL_SETS",
     "register_model_set",
     "model_set",
+    "free_parameters",
     "parameter_unit",
     "image_corrected",
 ]
@@ -97,30 +99,53 @@ def model_set(name: str) -> ModelSet:
         ) from None
 
 
+def free_parameters(model, names, priors=None, *, what: str, side: str = ""):
+    """The model to adjust and its free parameters.
+
+    ``names``: a model set's name (:func:`model_set`: the model is built by the set, its priors
+    come first, ``priors`` override them) or the names of ``model``'s own parameters.
+    ``priors``: name -> a-priori standard deviation, in the parameter's unit
+    (:func:`parameter_unit`). Errors name ``what`` (the caller) and ``side`` (which image of a
+    bundle, e.g. ``"left"``). Returns ``(model, names, priors, set name or None)``.
+
+    Raises
+    ------
+    SensorModelError
+        The model has no adjustable parameters.
+    InputError
+        An unknown set or parameter name, or no parameter named.
+    """
+    whose = f"{side} " if side else ""
+    set_name = None
+    priors = dict(priors or {})
+    if isinstance(names, str):
+        ms = model_set(names)
+        model, names, set_priors = ms.prepare(model)
+        priors = {**set_priors, **priors}
+        set_name = ms.name
+    names = list(names)
+    if not is_adjustable(model):
+        raise SensorModelError(
+            f"{what}: the {whose}model ({type(model).__name__}) has no adjustable parameters "
+            "(wrap it, e.g. with the 'rpc-shift' model set)"
+        )
+    known = model.parameters()
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        raise InputError(
+            f"{what}: unknown {whose}parameter(s) {', '.join(unknown) or '(none given)'} "
+            f"of {type(model).__name__} (known: {', '.join(known)})"
+        )
+    return model, names, priors, set_name
+
+
 def parameter_unit(model, name: str) -> str:
     """Unit of parameter ``name`` from the model's ``PARAMETERS``/``PARAMETER_UNITS`` tables."""
     table = getattr(model, "PARAMETER_UNITS", None) or getattr(model, "PARAMETERS", None)
     if isinstance(table, dict) and name in table:
         text = str(table[name])
         return text.rsplit(", ", 1)[-1] if ", " in text else text
-    return _FRAME_UNITS.get(name, "")
-
-
-_FRAME_UNITS = {
-    "focal_mm": "mm",
-    "dx_mm": "mm",
-    "dy_mm": "mm",
-    "k1": "1/mm^2",
-    "k2": "1/mm^4",
-    "p1": "1/mm",
-    "p2": "1/mm",
-    "roll": "rad",
-    "pitch": "rad",
-    "yaw": "rad",
-    "x": "m",
-    "y": "m",
-    "z": "m",
-}
+    return FrameCamera.PARAMETER_UNITS.get(name, "")
 
 
 # ------------------------------------------------------------------------------ builders

@@ -36,6 +36,7 @@ __all__ = [
     "minimal_detectable_bias",
     "external_reliability",
     "variance_test",
+    "outlier_test",
 ]
 
 
@@ -100,6 +101,21 @@ def external_reliability(r, delta0: float) -> np.ndarray:
     r = np.asarray(r, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(r > 0, delta0 * np.sqrt((1.0 - r) / np.maximum(r, 1e-300)), np.inf)
+
+
+def outlier_test(sigma_known: bool, alpha: float, power: float, threshold, delta0, snooping):
+    """The ``test`` entry of an adjustment report: ``name`` (``baarda`` when the a-priori
+    sigma is known, else Pope's ``pope``), ``alpha`` (significance per observation), ``power``,
+    ``threshold`` (of ``|w|`` or ``|tau|``, unitless), ``delta0`` (:func:`noncentrality`) and
+    ``snooping`` (whether outliers were rejected)."""
+    return {
+        "name": "baarda" if sigma_known else "pope",
+        "alpha": alpha,
+        "power": power,
+        "threshold": float(threshold),
+        "delta0": delta0,
+        "snooping": bool(snooping),
+    }
 
 
 def variance_test(vtpv: float, dof: int, alpha: float = 0.05) -> dict:

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from stereodem.sensor.estimation.adjust import reliability as rel
 from stereodem.sensor.io.sidecar import model_to_dict
 
-__all__ = ["AdjustmentResult", "ParameterEstimate", "rmse"]
+__all__ = ["AdjustmentResult", "ParameterEstimate", "fit_statistics", "rmse"]
 
 
 def rmse(res) -> float:
@@ -29,6 +31,30 @@ def _num(v):
     return v if np.isfinite(v) else None
 
 
+def fit_statistics(vtpv: float, dof: int, n_observations: int, sigma_known: bool, alpha=0.05):
+    """The :class:`ParameterEstimate` fields of a fit's statistics, from ``vtpv`` (weighted sum of
+    squared residuals), the redundancy ``dof`` and the number of observations: ``sigma0``
+    (a-posteriori standard deviation of unit weight, ``sqrt(vtpv / dof)``; NaN without
+    redundancy), ``sigma_known``, ``dof``, ``n_observations`` and ``chi2_test``
+    (:func:`.reliability.variance_test` at level ``alpha`` when the a-priori sigma is known; else
+    the statistic only, not tested)."""
+    return dict(
+        sigma0=math.sqrt(vtpv / dof) if dof > 0 else float("nan"),
+        sigma_known=sigma_known,
+        dof=dof,
+        n_observations=n_observations,
+        chi2_test=rel.variance_test(vtpv, dof, alpha)
+        if sigma_known
+        else {
+            "statistic": vtpv,
+            "dof": dof,
+            "alpha": alpha,
+            "passed": None,
+            "note": "a-priori sigma unknown: sigma0 estimated, not tested",
+        },
+    )
+
+
 @dataclass
 class ParameterEstimate:
     """What every adjustment (single image or bundle) estimates and reports.
@@ -42,6 +68,11 @@ class ParameterEstimate:
     sigma_known : whether the a-priori observation sigmas were given
     dof, n_observations : redundancy and number of observations
     chi2_test : dict of :func:`.reliability.variance_test`
+    outliers : list of dict (``id``, ``reason``, ``statistic``) in rejection order
+    test : the outlier test (``name``: baarda or pope, ``alpha``, ``power``, ``threshold``,
+        ``delta0``, ``snooping``)
+    iterations, converged, tolerance : the iteration (criterion ``max |dx_k| / sigma_k <
+        tolerance``)
     """
 
     names: list
@@ -56,6 +87,11 @@ class ParameterEstimate:
     dof: int
     n_observations: int
     chi2_test: dict
+    outliers: list = field(kw_only=True)
+    test: dict = field(kw_only=True)
+    iterations: int = field(kw_only=True)
+    converged: bool = field(kw_only=True)
+    tolerance: float = field(kw_only=True)
 
     @property
     def correlation(self) -> np.ndarray:
@@ -90,6 +126,15 @@ class ParameterEstimate:
             "covariance": [[_num(v) for v in row] for row in self.covariance],
             "correlation": [[_num(v) for v in row] for row in self.correlation],
             "condition": _num(self.condition),
+        }
+
+    def _test_report(self) -> dict:
+        """The report entries ``outlier_details`` ... ``converged``."""
+        return {
+            "outlier_details": self.outliers,
+            "test": self.test,
+            "iterations": int(self.iterations),
+            "converged": bool(self.converged),
         }
 
 
@@ -133,11 +178,6 @@ class AdjustmentResult(ParameterEstimate):
     w: np.ndarray
     mdb: np.ndarray
     external_reliability: np.ndarray
-    outliers: list
-    iterations: int
-    converged: bool
-    tolerance: float
-    test: dict
     model_set: str | None = None
     priors: dict = field(default_factory=dict)
     regularization: float = 0.0
@@ -223,10 +263,7 @@ class AdjustmentResult(ParameterEstimate):
             "n_gcp": int(len(self.gcp_ids) - out_mask.sum()),
             "n_check": int(len(self.check_ids)),
             "outliers": [o["id"] for o in self.outliers],
-            "outlier_details": self.outliers,
-            "test": self.test,
-            "iterations": int(self.iterations),
-            "converged": bool(self.converged),
+            **self._test_report(),
             "status": self.status,
             "max_correction": _num(self.max_correction),
             "convergence_criterion": f"max |dx_k| / sigma_k < {self.tolerance:g}",

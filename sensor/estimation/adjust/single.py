@@ -16,14 +16,14 @@ import math
 
 import numpy as np
 
-from stereodem.core.errors import InputError, SensorModelError
+from stereodem.core.errors import InputError
 from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
-from stereodem.sensor.estimation.adjust.model_sets import model_set, parameter_unit
-from stereodem.sensor.estimation.adjust.result import AdjustmentResult
+from stereodem.sensor.estimation.adjust.model_sets import free_parameters, parameter_unit
+from stereodem.sensor.estimation.adjust.result import AdjustmentResult, fit_statistics
 from stereodem.sensor.io.gcps import ControlPoints
-from stereodem.sensor.models.parameters import is_adjustable, project_jacobian
+from stereodem.sensor.models.parameters import project_jacobian
 
 __all__ = ["adjust_model", "required_gcps", "check_points_against_model"]
 
@@ -167,6 +167,21 @@ class _Problem:
         return np.concatenate([e, self._prior_rows(x)]), np.vstack([A, P])
 
 
+def _test_statistics(sol, n_act: int, dof: int, sigma_known: bool):
+    """Statistics of a Gauss-Markov solution ``sol`` (:func:`.gauss_markov.solve`) whose first
+    ``2 n_act`` whitened residuals are the image observations (col, row) of ``n_act`` points:
+    ``vtpv`` (weighted sum of squared residuals), ``sigma0`` (a-posteriori standard deviation of
+    unit weight; NaN without degrees of freedom ``dof``), the redundancy numbers ``r`` and the
+    standardised residuals ``w`` (both (n_act, 2); ``w`` scaled by ``sigma0`` when the a-priori
+    sigma is not known: Pope's tau)."""
+    vtpv = float(sol.e @ sol.e)
+    sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
+    r = rel.redundancy_numbers(sol.A, sol.Qxx)[: 2 * n_act].reshape(n_act, 2)
+    e_w = sol.e[: 2 * n_act].reshape(n_act, 2)
+    w = rel.standardized_residuals(e_w, r, 1.0 if sigma_known else sigma0)
+    return vtpv, sigma0, r, w
+
+
 def adjust_model(
     model,
     points: ControlPoints,
@@ -248,26 +263,7 @@ def adjust_model(
     ConvergenceError
         No convergence.
     """
-    set_name = None
-    priors = dict(priors or {})
-    if isinstance(names, str):
-        ms = model_set(names)
-        model, names, set_priors = ms.prepare(model)
-        priors = {**set_priors, **priors}
-        set_name = ms.name
-    names = list(names)
-    if not is_adjustable(model):
-        raise SensorModelError(
-            f"{what}: {type(model).__name__} has no adjustable parameters "
-            "(wrap it, e.g. with the 'rpc-shift' model set)"
-        )
-    known = model.parameters()
-    unknown = [n for n in names if n not in known]
-    if unknown or not names:
-        raise InputError(
-            f"{what}: unknown parameter(s) {', '.join(unknown) or '(none given)'} "
-            f"of {type(model).__name__} (known: {', '.join(known)})"
-        )
+    model, names, priors, set_name = free_parameters(model, names, priors, what=what)
     if len(set(names)) != len(names):
         raise InputError(f"{what}: a parameter is named twice in {names}")
     bad_prior = [n for n in priors if n not in names]
@@ -286,15 +282,16 @@ def adjust_model(
     if check_inputs:
         check_points_against_model(model, points, what)
     sigma, sigma_known = _sigmas(gcp, sigma_px)
+    known = model.parameters()
     x0 = np.array([known[n] for n in names], dtype=np.float64)
     delta0 = rel.noncentrality(alpha, power)
     active = np.ones(len(gcp), bool)
     outliers = []
     limit = len(gcp) if max_rejections is None else int(max_rejections)
     x_start = x0
-    while True:
-        prob = _Problem(model, names, gcp.subset(active), sigma[active], priors, x0, constraints)
-        sol = gm.solve(
+
+    def solve(prob, x_start):
+        return gm.solve(
             prob.evaluate,
             x_start,
             names,
@@ -305,16 +302,15 @@ def adjust_model(
             max_condition=max_condition,
             what=what,
         )
+
+    while True:
+        prob = _Problem(model, names, gcp.subset(active), sigma[active], priors, x0, constraints)
+        sol = solve(prob, x_start)
         m_obs = sol.e.size
         dof = m_obs - u
-        vtpv = float(sol.e @ sol.e)
-        sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
-        r_all = rel.redundancy_numbers(sol.A, sol.Qxx)
         n_act = int(active.sum())
-        r = r_all[: 2 * n_act].reshape(n_act, 2)
-        e_w = sol.e[: 2 * n_act].reshape(n_act, 2)
+        vtpv, sigma0, r, w = _test_statistics(sol, n_act, dof, sigma_known)
         scale = 1.0 if sigma_known else sigma0
-        w = rel.standardized_residuals(e_w, r, scale)
         thr = rel.baarda_threshold(alpha) if sigma_known else rel.pope_threshold(alpha, dof)
         if not (snooping and len(outliers) < limit and n_act - 1 >= need and np.isfinite(thr)):
             break
@@ -361,23 +357,8 @@ def adjust_model(
             sub = gcp.subset(active)
             sub.sigma_ground_m = sub.sigma_ground_m * scale_g
             prob = _Problem(model, names, sub, sigma[active] * scale_l, priors, x0, constraints)
-            sol = gm.solve(
-                prob.evaluate,
-                sol.x,
-                names,
-                residual=prob.residual,
-                max_iterations=max_iterations,
-                tolerance=tolerance,
-                regularization=regularization,
-                max_condition=max_condition,
-                what=what,
-            )
-            vtpv = float(sol.e @ sol.e)
-            sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
-            r_all = rel.redundancy_numbers(sol.A, sol.Qxx)
-            r = r_all[: 2 * n_act].reshape(n_act, 2)
-            e_w = sol.e[: 2 * n_act].reshape(n_act, 2)
-            w = rel.standardized_residuals(e_w, r, 1.0 if sigma_known else sigma0)
+            sol = solve(prob, sol.x)
+            vtpv, sigma0, r, w = _test_statistics(sol, n_act, dof, sigma_known)
         vc["sigma_scale_applied"] = {"image": scale_l, "ground": scale_g}
 
     # ------------------------------------------------------------ result
@@ -402,19 +383,7 @@ def adjust_model(
         units=[parameter_unit(adjusted, nm) for nm in names],
         covariance=cov,
         condition=sol.condition,
-        sigma0=sigma0,
-        sigma_known=sigma_known,
-        dof=dof,
-        n_observations=m_obs,
-        chi2_test=rel.variance_test(vtpv, dof, chi2_alpha)
-        if sigma_known
-        else {
-            "statistic": vtpv,
-            "dof": dof,
-            "alpha": chi2_alpha,
-            "passed": None,
-            "note": "a-priori sigma unknown: sigma0 estimated, not tested",
-        },
+        **fit_statistics(vtpv, dof, m_obs, sigma_known, chi2_alpha),
         gcp_ids=gcp.id,
         check_ids=chk.id,
         gcp_points=gcp,
@@ -432,14 +401,7 @@ def adjust_model(
         status=sol.status,
         max_correction=float(sol.max_correction),
         tolerance=tolerance,
-        test={
-            "name": "baarda" if sigma_known else "pope",
-            "alpha": alpha,
-            "power": power,
-            "threshold": float(thr),
-            "delta0": delta0,
-            "snooping": bool(snooping),
-        },
+        test=rel.outlier_test(sigma_known, alpha, power, thr, delta0, snooping),
         model_set=set_name,
         priors=priors,
         regularization=sol.regularization,

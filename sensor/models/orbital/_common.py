@@ -27,8 +27,46 @@ class CoefficientModel:
 
     Gives ``with_parameters`` (a copy with some coefficients changed), ``_set`` (checked by
     :func:`~stereodem.sensor.models.parameters.checked_parameters`; the error lists
-    :meth:`_parameter_listing`) and ``height_bounds``.
+    :meth:`_parameter_listing`), ``height_bounds`` and the plain description ``to_dict`` /
+    ``from_dict`` (for :mod:`stereodem.sensor.io.sidecar`): image size (pixels), the
+    :attr:`DICT_FIELDS`, the model's own entries (:meth:`_dict_entries`), name and validity
+    heights (metres above the ellipsoid).
     """
+
+    #: Constructor arguments kept as attributes of the same name, written as they are.
+    DICT_FIELDS: tuple = ()
+
+    def _dict_entries(self) -> dict:
+        """Hook: the description's entries after :attr:`DICT_FIELDS` (coefficients, tables)."""
+        return {}
+
+    @classmethod
+    def _entries_from_dict(cls, d: dict) -> dict:
+        """Hook: constructor arguments from the entries of :meth:`_dict_entries`."""
+        return {}
+
+    def to_dict(self) -> dict:
+        """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
+        return {
+            "width": self.width,
+            "height": self.height,
+            **{k: getattr(self, k) for k in self.DICT_FIELDS},
+            **self._dict_entries(),
+            "name": self.name,
+            "height_range": list(self._hr),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        """Inverse of :meth:`to_dict`."""
+        return cls(
+            width=d["width"],
+            height=d["height"],
+            **{k: d[k] for k in cls.DICT_FIELDS},
+            **cls._entries_from_dict(d),
+            name=d.get("name"),
+            height_range=tuple(d.get("height_range", (-500.0, 9000.0))),
+        )
 
     def with_parameters(self, **values):
         new = copy.copy(self)
@@ -158,6 +196,18 @@ def fit_to_points(model, names, lon, lat, h, col, row, *, what: str):
             f"{what}: the initial fit to the metadata model failed (rms {rms:.3g} px)"
         )
     return fitted, rms
+
+
+def fit_to_reference(model, reference, *name_sets):
+    """``model``'s initial values fitted (:func:`fit_to_points`) to the virtual points of the
+    metadata model ``reference`` (:func:`virtual_points`), one fit per list of parameter names in
+    ``name_sets``, each started from the last; the last fit's RMS (pixels) is kept in the
+    returned model's ``init_rms_px``."""
+    pts = virtual_points(reference)
+    for names in name_sets:
+        model, rms = fit_to_points(model, names, *pts, what=model.name)
+    model.init_rms_px = rms
+    return model
 
 
 def invert_projection(

@@ -28,11 +28,10 @@ from stereodem.sensor.geo.rotations import R1, R2, R3
 from stereodem.sensor.models.base import SensorModel, localize_on_rays
 from stereodem.sensor.models.orbital._common import (
     CoefficientModel,
-    fit_to_points,
+    fit_to_reference,
     line_variable,
     quadratic,
     secant_rows,
-    virtual_points,
 )
 
 #: Every coefficient of the line camera (units: m for X/Y/Z, rad for angles, 1 for the scale).
@@ -57,6 +56,7 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
     ADJUST_SETS: dict = {}
     PARAMETER_STEPS = _steps()
     MODEL_TYPE = "linecam"
+    DICT_FIELDS = ("lon0", "lat0", "col0", "ifov")
 
     def __init__(
         self,
@@ -208,7 +208,6 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
         # signed IFOV from the neighbouring detector
         cam = rot[samples // 2] @ (dl[samples // 2] @ enu.T)
         ifov = float(-cam[1] / cam[2])
-        lo, hi = reference.height_bounds()
         model = cls(
             width=w,
             height=hgt,
@@ -218,13 +217,10 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
             ifov=ifov,
             coefficients=cls._shape_initial(coef),
             name=name,
-            height_range=(lo, hi),
+            height_range=reference.height_bounds(),
         )
-        pts = virtual_points(reference)
         names = list(model.ADJUSTABLE) + [n for n in cls.REFINE_FROZEN if n not in model.ADJUSTABLE]
-        model, rms = fit_to_points(model, names, *pts, what=model.name)
-        model.init_rms_px = rms
-        return model
+        return fit_to_reference(model, reference, names)
 
     #: Frozen coefficients still refined when the model is initialised from metadata.
     REFINE_FROZEN: tuple = ()
@@ -234,31 +230,9 @@ class PolynomialLineCamera(CoefficientModel, SensorModel):
         """Hook: set the frozen coefficients of the initial values (default: keep all)."""
         return coef
 
-    def to_dict(self) -> dict:
-        """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
-        return {
-            "width": self.width,
-            "height": self.height,
-            "lon0": self.lon0,
-            "lat0": self.lat0,
-            "col0": self.col0,
-            "ifov": self.ifov,
-            "coefficients": dict(self._c),
-            "name": self.name,
-            "height_range": list(self._hr),
-        }
+    def _dict_entries(self) -> dict:
+        return {"coefficients": dict(self._c)}
 
     @classmethod
-    def from_dict(cls, d: dict):
-        """Inverse of :meth:`to_dict`."""
-        return cls(
-            width=d["width"],
-            height=d["height"],
-            lon0=d["lon0"],
-            lat0=d["lat0"],
-            col0=d["col0"],
-            ifov=d["ifov"],
-            coefficients=d["coefficients"],
-            name=d.get("name"),
-            height_range=tuple(d.get("height_range", (-500.0, 9000.0))),
-        )
+    def _entries_from_dict(cls, d: dict) -> dict:
+        return {"coefficients": d["coefficients"]}

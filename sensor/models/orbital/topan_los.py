@@ -419,33 +419,24 @@ class TopanLOSModel(CoefficientModel, SensorModel):
             height_range=(lo, hi),
         )
 
-    def to_dict(self) -> dict:
-        """Plain description (arrays inside), for :mod:`stereodem.sensor.io.sidecar`."""
+    def _dict_entries(self) -> dict:
+        """The coefficients and look-angle tables (arrays)."""
         return {
-            "width": self.width,
-            "height": self.height,
             "coefficients": dict(self._c),
             "cols": self._cols,
             "psi_x": self._px,
             "psi_y": self._py,
             "los_sign": self.los_sign,
-            "name": self.name,
-            "height_range": list(self._hr),
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> TopanLOSModel:
-        """Inverse of :meth:`to_dict`."""
-        return cls(
-            width=d["width"],
-            height=d["height"],
+    def _entries_from_dict(cls, d: dict) -> dict:
+        return dict(
             coefficients=d["coefficients"],
             psi_x=d["psi_x"],
             psi_y=d["psi_y"],
             cols=d.get("cols"),
             los_sign=int(d.get("los_sign", -1)),
-            name=d.get("name"),
-            height_range=tuple(d.get("height_range", (-500.0, 9000.0))),
         )
 
 

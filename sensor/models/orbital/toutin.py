@@ -70,9 +70,8 @@ from stereodem.core.errors import SensorModelError
 from stereodem.sensor.models.base import SensorModel
 from stereodem.sensor.models.orbital._common import (
     CoefficientModel,
-    fit_to_points,
+    fit_to_reference,
     invert_projection,
-    virtual_points,
 )
 
 ADJUSTED = ("P", "Q", "tau", "theta", "a", "x0", "y0", "rot")
@@ -135,6 +134,7 @@ class ToutinModel(CoefficientModel, SensorModel):
         "chi": 1e-4,
     }
     MODEL_TYPE = "toutin"
+    DICT_FIELDS = ("lon0", "lat0", "N0", "H0", "alpha", "chi")
 
     def __init__(
         self,
@@ -258,7 +258,6 @@ class ToutinModel(CoefficientModel, SensorModel):
         values = dict(
             P=-float(np.linalg.norm(g_row)), Q=Q, x0=float(g0[0]), y0=float(g0[1]), rot=rot
         )
-        lo, hi = reference.height_bounds()
         model = cls(
             width=w,
             height=hgt,
@@ -270,45 +269,13 @@ class ToutinModel(CoefficientModel, SensorModel):
             chi=chi,
             values=values,
             name=name,
-            height_range=(lo, hi),
+            height_range=reference.height_bounds(),
         )
-        pts = virtual_points(reference)
-        model, _ = fit_to_points(model, list(ADJUSTED), *pts, what=model.name)
-        model, rms = fit_to_points(
-            model, list(ADJUSTED + SECOND_ORDER) + ["chi"], *pts, what=model.name
-        )
-        model.init_rms_px = rms
-        return model
+        return fit_to_reference(model, reference, list(ADJUSTED), [*ADJUSTED, *SECOND_ORDER, "chi"])
 
-    def to_dict(self) -> dict:
-        """Plain description, for :mod:`stereodem.sensor.io.sidecar`."""
-        return {
-            "width": self.width,
-            "height": self.height,
-            "lon0": self.lon0,
-            "lat0": self.lat0,
-            "N0": self.N0,
-            "H0": self.H0,
-            "alpha": self.alpha,
-            "chi": self.chi,
-            "values": self.parameters(),
-            "name": self.name,
-            "height_range": list(self._hr),
-        }
+    def _dict_entries(self) -> dict:
+        return {"values": self.parameters()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> ToutinModel:
-        """Inverse of :meth:`to_dict`."""
-        return cls(
-            width=d["width"],
-            height=d["height"],
-            lon0=d["lon0"],
-            lat0=d["lat0"],
-            N0=d["N0"],
-            H0=d["H0"],
-            alpha=d["alpha"],
-            chi=d["chi"],
-            values=d["values"],
-            name=d.get("name"),
-            height_range=tuple(d.get("height_range", (-500.0, 9000.0))),
-        )
+    def _entries_from_dict(cls, d: dict) -> dict:
+        return {"values": d["values"]}

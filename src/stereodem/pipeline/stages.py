@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 
 import numpy as np
@@ -13,6 +14,7 @@ import rasterio.warp
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
+from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import job_threads
 from stereodem.ortho.concurrent import orthorectify_all
 from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
@@ -27,6 +29,7 @@ from stereodem.stereo.jitter import dem_with_jitter_correction
 from stereodem.stereo.pipeline import make_dem
 
 from ..config import Config
+from ..provenance import provenance
 from .inputs import Pair
 
 log = logging.getLogger(__name__)
@@ -77,6 +80,45 @@ def suspect_error(cfg: Config, products, report_path) -> None:
             f"result suspect: {bad[0]['message']}; products kept for inspection, findings in "
             f"{report_path} (--force accepts them)"
         )
+
+
+def write_dem_report(out, products, failed, pair: Pair, started, cloud, *, left, right, **extra):
+    """Write the pair route's ``dem_report.json`` into the output folder ``out``: status and
+    warnings of the stereo result, provenance (``started``: the job's UTC start), the pair's input
+    metadata, the ``left``/``right`` inputs as named to the user, then ``extra`` sections (e.g.
+    ``strip``), the settings, the stereo info, point count, seconds (wall clock), tiles, the
+    ``failed`` tiles and the ``cloud`` (point cloud) section."""
+    report = dict(
+        status=products.info.status,
+        warnings=products.info.warnings,
+        provenance=provenance(started=started),
+        input_metadata=pair.tags,
+        left=left,
+        right=right,
+        **extra,
+        settings=products.settings,
+        info=products.info.to_dict(),
+        n_points=products.n_points,
+        seconds=products.seconds,
+        tiles=products.tiles,
+        failed_tiles=failed,
+        point_cloud=cloud,
+    )
+    write_text_atomic(
+        out / "dem_report.json",
+        json.dumps(report, indent=2, default=str) + "\n",
+        overwrite=True,
+    )
+
+
+def check_dem_result(cfg: Config, products, failed, report_path) -> None:
+    """After a pair DEM job (its folder released): log the ``failed`` tiles (holes in the DEM),
+    then :func:`suspect_error` against the report at ``report_path``."""
+    if failed:
+        log.warning(
+            "%d tile(s) failed (listed in dem_report.json); the DEM has holes there", len(failed)
+        )
+    suspect_error(cfg, products, report_path)
 
 
 def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=None):
