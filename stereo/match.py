@@ -983,29 +983,8 @@ def match_rectified(
             )
         return masks, _zncc_left(left, score_window, finite=not left_nan)
 
-    overlap = cv2.getNumThreads() > 1 and sgm_mode == "sgbm"
-    if overlap:
-        with ThreadPoolExecutor(1, thread_name_prefix="stereodem-sgm") as ex:
-            l8, r8 = _to_uint8(left, right, ex)
-            pending = ex.submit(before_disparity)
-            disp = _sgbm(
-                l8,
-                r8,
-                lo,
-                hi,
-                block_size=window,
-                p1=sgm_p1,
-                p2=sgm_p2,
-                lr_tolerance=lr_tolerance,
-                uniqueness=sgm_uniqueness,
-                speckle_window=sgm_speckle_window,
-                speckle_range=sgm_speckle_range,
-                mode=sgm_mode,
-            )
-            masks, left_windows = pending.result()
-    else:
-        l8, r8 = _to_uint8(left, right)
-        disp = _sgbm(
+    def disparity(l8, r8):
+        return _sgbm(
             l8,
             r8,
             lo,
@@ -1019,6 +998,15 @@ def match_rectified(
             speckle_range=sgm_speckle_range,
             mode=sgm_mode,
         )
+
+    if cv2.getNumThreads() > 1 and sgm_mode == "sgbm":  # the score's left windows overlap SGBM
+        with ThreadPoolExecutor(1, thread_name_prefix="stereodem-sgm") as ex:
+            l8, r8 = _to_uint8(left, right, ex)
+            pending = ex.submit(before_disparity)
+            disp = disparity(l8, r8)
+            masks, left_windows = pending.result()
+    else:
+        disp = disparity(*_to_uint8(left, right))
         masks, left_windows = before_disparity()
     # no-data: the block around the left pixel or around its match touches NaN
     if masks is not None:
