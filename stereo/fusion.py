@@ -30,7 +30,8 @@ layers. Written as a DEM's files (:meth:`stereodem.core.dem.DEM.write`: ``dem.ti
 Memory: the fusion holds the pair DEMs on the common lattice, 3 float32 layers per pair
 (height, score, ray gap): 12 bytes x pairs x cells, and at its peak about as much again in
 float32 temporaries plus the float64 temporaries of the per-cell NMAD (16 bytes x pairs x
-cells): about 40 bytes x pairs x cells (e.g. 3 pairs on a 10 000² lattice: 12 GB; a coarser
+cells), and the per-pair rejection mask kept with the result (1 byte x pairs x cells): about
+40 bytes x pairs x cells (e.g. 3 pairs on a 10 000² lattice: 12 GB; a coarser
 ``--res`` or fewer pairs for larger scenes).
 """
 
@@ -350,12 +351,15 @@ class FusedDEM:
     ``dem``: the fused heights as a :class:`~stereodem.core.dem.DEM` with its ``count`` (pair
     heights fused per cell), ``sigma``, ``score`` and ``ray_gap`` layers; ``nmad``: the pairs'
     spread per cell (m); ``pairs``: per pair, its σ (m) and its agreement with the fused DEM
-    (median and NMAD of pair - fused, cells kept and rejected)."""
+    (median and NMAD of pair - fused, cells kept and rejected); ``rejected``: bool
+    ``(pairs, rows, cols)``, True where the pair had a height that the rejection rule removed
+    (the point cloud's :data:`~stereodem.stereo.pointcloud.FUSION_REJECTED` points)."""
 
     dem: DEM
     nmad: np.ndarray
     method: str = "weighted"
     pairs: list = field(default_factory=list)
+    rejected: np.ndarray | None = None
 
     heights = property(lambda self: self.dem.heights)
     count = property(lambda self: self.dem.count)
@@ -488,4 +492,4 @@ def fuse_dems(
         ray_gap=gap.astype(np.float32),
         sigma=sigma.astype(np.float32),
     )
-    return FusedDEM(dem, nmad, method, stats)
+    return FusedDEM(dem, nmad, method, stats, valid & ~keep)

@@ -366,9 +366,12 @@ def dem_with_jitter_correction(
     roll_rounds: int = 2,
     left_dtype=None,
     right_dtype=None,
+    points_dir=None,
+    pair_id: int = 0,
 ):
-    """``(products, corrected_right_model, fits, first_products)``; ``runner`` as
-    :func:`~stereodem.stereo.pipeline.make_dem`'s. ``corrected_right_model`` describes the
+    """``(products, corrected_right_model, fits, first_products)``; ``runner``, ``points_dir``
+    and ``pair_id`` as :func:`~stereodem.stereo.pipeline.make_dem`'s (only the final DEM, the
+    one made with the corrected model, writes its points). ``corrected_right_model`` describes the
     given right image (nominal model plus the fitted attitude oscillations).
 
     ``axes`` names the oscillations estimated: ``"roll"`` from the residual vertical parallax
@@ -447,7 +450,15 @@ def dem_with_jitter_correction(
         fits["pitch"] = fit
         info["pitch"] = {**fit.to_dict(), "sensitivity_m_per_rad": diag["sensitivity_m_per_rad"]}
     final = dem_of_checked_pair(
-        left_image, right_for_dem, left_model, model_for_dem, settings, seed_dem=seed, runner=runner
+        left_image,
+        right_for_dem,
+        left_model,
+        model_for_dem,
+        settings,
+        seed_dem=seed,
+        runner=runner,
+        points_dir=points_dir,
+        pair_id=pair_id,
     )
     final.info.jitter = info
     checked.report(final)

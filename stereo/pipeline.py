@@ -361,6 +361,7 @@ def make_dem(
     left_dtype=None,
     right_dtype=None,
     points_dir=None,
+    pair_id: int = 0,
 ) -> DEMProducts:
     """Stereo DEM from two images and their sensor models.
 
@@ -392,6 +393,8 @@ def make_dem(
     points_dir : path, optional
         Each tile also writes its points to ``points_<index>.npz`` there
         (:func:`stereodem.stereo.pointcloud.write_las` merges them).
+    pair_id : int
+        The points' ``source_pair`` (an N-view job's pair id; 0 for a pair job).
 
     Returns
     -------
@@ -428,6 +431,7 @@ def make_dem(
         progress=progress,
         runner=runner,
         points_dir=points_dir,
+        pair_id=pair_id,
     )
     return checked.report(products)
 
@@ -443,6 +447,7 @@ def dem_of_checked_pair(
     progress=None,
     runner=None,
     points_dir=None,
+    pair_id: int = 0,
 ) -> DEMProducts:
     """:func:`make_dem` after :func:`~stereodem.stereo.sanity.check_pair` (for callers that
     make several DEMs of one checked pair, as the jitter correction does)."""
@@ -494,6 +499,7 @@ def dem_of_checked_pair(
         spec,
         seed_margin,
         points_dir=str(points_dir) if points_dir is not None else None,
+        pair_id=int(pair_id),
     )
     # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask)
     if runner is None:

@@ -192,7 +192,9 @@ def run(args) -> int:
 
     from .pipeline.inputs import image_model
 
-    check_writable(args.out, args.overwrite)
+    n_images = args.model == "bundle" and args.more
+    if not n_images:  # N images: -o is a folder, each model checked by run_bundle_images
+        check_writable(args.out, args.overwrite)
     if args.report:
         for name in ("adjust_report.json", "adjust_report.md"):
             check_writable(Path(args.report) / name, args.overwrite)
@@ -210,7 +212,7 @@ def run(args) -> int:
         alpha=args.alpha,
         max_iterations=args.max_iterations,
     )
-    if args.model == "bundle" and args.more:
+    if n_images:
         from .adjust_images import run_bundle_images
 
         print(run_bundle_images(args))

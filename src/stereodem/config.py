@@ -346,7 +346,9 @@ class DemSettings:
     point_cloud : {"las", "laz"}, optional
         Also write the intersected points as ``dem.las`` / ``dem.laz`` (laspy; LAZ through
         lazrs): x, y, z in the DEM's CRS and vertical reference, with ray gap, score, source
-        pair and the filters' classification as extra dimensions.
+        pair and the filters' classification as extra dimensions. An N-view job writes one
+        cloud of every matched pair's points (``source_pair`` = the pair's ``pair_id`` in the
+        report; points whose pair height the fusion rejected are noise, edit code 98).
     """
 
     point_cloud: str | None = None
@@ -693,13 +695,6 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[uncertainty] samples must be at least 10, got {u.samples}")
     if cfg.dem.point_cloud not in (None, "las", "laz"):
         bad(f"[dem] point_cloud must be 'las' or 'laz', got {cfg.dem.point_cloud!r}")
-    if cfg.dem.point_cloud and cfg.jitter.enabled:
-        bad("[dem] point_cloud is not written with [jitter] enabled (not supported yet)")
-    if cfg.dem.point_cloud and cfg.inputs.images:
-        bad(
-            "[dem] point_cloud is not written for an N-view DEM ([inputs] images; not supported "
-            "yet)"
-        )
     for msg in cfg.fusion.problems():
         bad(f"[fusion] {msg}")
     run = cfg.run

@@ -126,7 +126,8 @@ def add_parser(subparsers):
         "--point-cloud",
         choices=("las", "laz"),
         help="also write the intersected points as OUT/dem.las or dem.laz (x, y, z in "
-        "the DEM's CRS; ray gap, score, source pair, classification)",
+        "the DEM's CRS; ray gap, score, source pair, classification); with several "
+        "images one cloud of every pair's points, source_pair = pair_id in dem_report.json",
     )
     options.add_creation_options(p)
     options.add_overwrite(p)
@@ -255,7 +256,11 @@ def run(args) -> int:
             creation_options=cfg.run.creation_options,
             tags=track_tags(pair.left_model, pair.left_image.shape, prod.dem.crs, prod.dem.heights),
         )
-        cloud = point_cloud.point_cloud_stage(cfg, out, prod) if pts is not None else None
+        cloud = None
+        if pts is not None:
+            cloud = point_cloud.point_cloud_stage(
+                cfg, out, prod, pairs={0: (str(args.left), str(args.right))}
+            )
         write_dem_report(
             out, prod, failed, pair, started, cloud, left=str(args.left), right=str(args.right)
         )
@@ -324,6 +329,12 @@ def _run_multiview(cfg, started) -> int:
     )
     for s in mv["skipped_images"]:
         options.say(f"  skipped {s['name']}: {s['reason']}")
+    cloud = prod.point_cloud
+    if cloud is not None:
+        options.say(
+            f"  point cloud {cloud['path']}: {cloud['n_points']} points of "
+            f"{len(cloud['pairs'])} pair(s) (source_pair: pair_id in dem_report.json)"
+        )
     return 0
 
 

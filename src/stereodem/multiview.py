@@ -44,6 +44,8 @@ from .config import Config
 from .outlock import output_folder
 from .pipeline.inputs import Pair, input_paths, load_seed_dem, open_image
 from .pipeline.stages import stereo_stage
+from .point_cloud import multiview_point_cloud_stage, pair_points_dir
+from .point_cloud import prepare as prepare_points
 from .provenance import provenance
 
 log = logging.getLogger(__name__)
@@ -55,19 +57,22 @@ __all__ = [
     "reference_height",
     "run_dem",
     "run_stage",
+    "source_pairs",
 ]
 
 
 @dataclass
 class MultiviewProducts:
     """The fused DEM and the job's account: pair plan, per-pair runs, failed tiles/pairs, and
-    the pair DEMs themselves (``pair_dems``, in the order of ``report["pair_runs"]``)."""
+    the pair DEMs themselves (``pair_dems``, in the order of ``report["pair_runs"]``) and the
+    point cloud's summary (``point_cloud``, when :func:`run_dem` wrote one)."""
 
     fused: FusedDEM
     report: dict
     failed_tiles: list = field(default_factory=list)
     seconds: float = 0.0
     pair_dems: list = field(default_factory=list)
+    point_cloud: dict | None = None
 
 
 def reference_height(cfg: Config, models, seed_dem=None) -> float:
@@ -84,11 +89,17 @@ def reference_height(cfg: Config, models, seed_dem=None) -> float:
     return float(np.median(mids))
 
 
-def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> MultiviewProducts:
+def multiview_stage(
+    cfg: Config, paths, *, progress=None, cache_dir=None, points_dir=None
+) -> MultiviewProducts:
     """Pair DEMs of the chosen pairs of ``paths`` on one lattice, fused per cell.
 
     ``progress`` is passed to each pair's stereo stage; ``cache_dir`` (a job's ``tiles/``)
     gets one sub-folder per pair (``pair_<i>_<j>``), so ``run --resume`` reuses pair tiles.
+    Each chosen pair has an id, its rank in the plan (``pair_id`` in the report's
+    ``pair_runs``); with ``points_dir`` its tiles write their points into
+    ``points_dir/pair_<id>/`` with ``source_pair`` = the id
+    (:func:`stereodem.point_cloud.multiview_point_cloud_stage` merges them).
     """
     t0 = time.perf_counter()
     paths = [str(p) for p in paths]
@@ -147,7 +158,7 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
         stereo=dataclasses.replace(cfg.stereo, gridding=dataclasses.replace(gs, crs=crs, res=res)),
     )
     dems, sigmas, runs, failed_tiles, failed_pairs = [], [], [], [], []
-    for c in plan.pairs:
+    for pair_id, c in enumerate(plan.pairs):
         a, b = images[c.i], images[c.j]
         name = f"{Path(paths[c.i]).name} + {Path(paths[c.j]).name}"
         log.info(
@@ -157,10 +168,17 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
         sub = None if cache_dir is None else Path(cache_dir) / f"pair_{c.i}_{c.j}"
         tp = time.perf_counter()
         try:
-            prod, failed = stereo_stage(pcfg, pair, progress=progress, cache_dir=sub)
+            prod, failed = stereo_stage(
+                pcfg,
+                pair,
+                progress=progress,
+                cache_dir=sub,
+                points_dir=None if points_dir is None else pair_points_dir(points_dir, pair_id),
+                pair_id=pair_id,
+            )
         except StereodemError as exc:
             log.warning("pair %s failed: %s; left out of the fusion", name, exc)
-            failed_pairs.append(dict(left=c.i, right=c.j, error=str(exc)))
+            failed_pairs.append(dict(pair_id=pair_id, left=c.i, right=c.j, error=str(exc)))
             continue
         failed_tiles.extend(dict(pair=[c.i, c.j], **f) for f in failed)
         dems.append(prod.dem)
@@ -168,6 +186,7 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
         sigmas.append(pair_sigma(info.gsd_m, info.base_to_height, fs.sigma_px))
         runs.append(
             dict(
+                pair_id=pair_id,
                 left=c.i,
                 right=c.j,
                 seconds=round(time.perf_counter() - tp, 2),
@@ -218,6 +237,13 @@ def multiview_stage(cfg: Config, paths, *, progress=None, cache_dir=None) -> Mul
     return MultiviewProducts(fused, report, failed_tiles, time.perf_counter() - t0, dems)
 
 
+def source_pairs(report: dict) -> dict:
+    """``{pair id: (left image, right image)}`` of the matched pairs of an N-view report, in
+    fusion order (the point cloud's ``source_pair`` values)."""
+    images = report["images"]
+    return {r["pair_id"]: (images[r["left"]], images[r["right"]]) for r in report["pair_runs"]}
+
+
 def _bounds_grid(bounds, res, crs):
     return GridSpec.from_bounds(bounds, res, crs).grid
 
@@ -225,12 +251,21 @@ def _bounds_grid(bounds, res, crs):
 def run_dem(cfg: Config, *, started=None, progress=None) -> tuple:
     """``stereodem dem IMG1 IMG2 IMG3 ...``: the N-view DEM written into ``cfg.output_dir``
     (``dem.tif``, ``count.tif``, ``nmad.tif``, ``dem_sigma_vertical.tif``, ``score.tif``,
-    ``raygap.tif``, ``dem_report.json``), the folder locked for the job. Returns
+    ``raygap.tif``, ``dem_report.json``; with ``[dem] point_cloud`` ``dem.las|laz`` holding
+    every matched pair's points), the folder locked for the job. Returns
     ``(products, folder)``; a suspect pair result fails afterwards unless ``--force`` (as a pair
     job)."""
     with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, inputs=input_paths(cfg)) as out:
-        prod = multiview_stage(cfg, cfg.inputs.images, progress=progress)
+        pts = prepare_points(out) if cfg.dem.point_cloud else None
+        prod = multiview_stage(cfg, cfg.inputs.images, progress=progress, points_dir=pts)
         prod.fused.write(out / "dem.tif", overwrite=True, creation_options=cfg.run.creation_options)
+        cloud = None
+        if pts is not None:
+            f = prod.fused
+            cloud = multiview_point_cloud_stage(
+                cfg, out, f.grid, f.vertical, source_pairs(prod.report), f.rejected
+            )
+            prod.point_cloud = cloud
         report = dict(
             status=prod.report["status"],
             warnings=prod.report["warnings"],
@@ -239,6 +274,7 @@ def run_dem(cfg: Config, *, started=None, progress=None) -> tuple:
             seconds=round(prod.seconds, 2),
             multiview=prod.report,
             failed_tiles=prod.failed_tiles,
+            point_cloud=cloud,
         )
         write_text_atomic(
             out / "dem_report.json",
@@ -269,15 +305,17 @@ class MultiviewInfo:
         return dict(self.report, valid_cells=self.valid_cells)
 
 
-def run_stage(cfg: Config, *, progress=None, cache_dir=None):
+def run_stage(cfg: Config, *, progress=None, cache_dir=None, points_dir=None):
     """The N-view stereo stage of ``stereodem run`` (``[inputs] images``): returns ``(pair,
     products, failed_tiles, fused)`` shaped like the pair route's, so the later stages run
     unchanged: ``pair`` holds the first matched pair's images (the orthoimages' sources),
     ``products.dem`` the fused DEM with its score and ray-gap layers (the filters' inputs),
     ``products.info`` the N-view report (:class:`MultiviewInfo`); ``fused`` the
     :class:`~stereodem.stereo.fusion.FusedDEM` (``fused.prepare_write(raw / "dem.tif")``
-    writes its layers, ``nmad.tif`` included)."""
-    prod = multiview_stage(cfg, cfg.inputs.images, progress=progress, cache_dir=cache_dir)
+    writes its layers, ``nmad.tif`` included). ``points_dir``: as :func:`multiview_stage`'s."""
+    prod = multiview_stage(
+        cfg, cfg.inputs.images, progress=progress, cache_dir=cache_dir, points_dir=points_dir
+    )
     first = prod.report["pair_runs"][0]
     i = cfg.inputs
     a, b = (

@@ -5,6 +5,13 @@
 The tiles write ``OUT/tiles/points/points_<index>.npz``; the merge reads them one tile at a
 time (memory: one tile's points) and removes them once the LAS/LAZ is in place. A run resumed
 with ``--resume`` keeps the point files of its finished tiles.
+
+An N-view job (:mod:`stereodem.multiview`) gives each chosen pair an id (its rank in the pair
+plan, ``pair_id`` in ``dem_report.json``) and a folder ``OUT/tiles/points/pair_<id>/``;
+:func:`multiview_point_cloud_stage` merges the matched pairs' points into ONE cloud, each point's
+``source_pair`` (and LAS ``point_source_id``) its pair's id, the pair list (id -> images) in a
+VLR and in the report, and the points whose pair height the fusion rejected in their cell
+classified as noise (edit code :data:`~stereodem.stereo.pointcloud.FUSION_REJECTED`).
 """
 
 from __future__ import annotations
@@ -14,7 +21,9 @@ import logging
 import shutil
 from pathlib import Path
 
-from stereodem.stereo.pointcloud import write_las
+import numpy as np
+
+from stereodem.stereo.pointcloud import FUSION_REJECTED, write_las, write_las_files
 
 log = logging.getLogger(__name__)
 
@@ -22,6 +31,11 @@ log = logging.getLogger(__name__)
 def points_dir(out) -> Path:
     """Where the tiles of a job in ``out`` write their points."""
     return Path(out) / "tiles" / "points"
+
+
+def pair_points_dir(points: Path, pair_id: int) -> Path:
+    """The folder of N-view pair ``pair_id``'s points inside a job's points folder."""
+    return Path(points) / f"pair_{int(pair_id)}"
 
 
 def prepare(out, *, resume: bool = False) -> Path:
@@ -33,10 +47,10 @@ def prepare(out, *, resume: bool = False) -> Path:
     return d
 
 
-def point_cloud_stage(cfg, out, products, edit_codes=None, *, grid=None) -> dict:
+def point_cloud_stage(cfg, out, products, edit_codes=None, *, grid=None, pairs=None) -> dict:
     """Merge the tiles' points into ``OUT/dem.<las|laz>``; returns its summary (for the
     reports). ``edit_codes``: the DEM's edit mask on ``grid`` (default the raw DEM's grid)
-    for the points' classification."""
+    for the points' classification; ``pairs``: ``{0: (left, right)}`` for the cloud's pair VLR."""
     fmt = cfg.dem.point_cloud
     d = points_dir(out)
     indices = sorted(int(p.stem.split("_")[1]) for p in d.glob("points_*.npz"))
@@ -50,6 +64,7 @@ def point_cloud_stage(cfg, out, products, edit_codes=None, *, grid=None) -> dict
         edit_codes=edit_codes,
         fmt=fmt,
         overwrite=True,
+        pairs=pairs,
     )
     expected = len(products.tiles)
     summary["tiles_with_points"] = len(indices)
@@ -60,7 +75,66 @@ def point_cloud_stage(cfg, out, products, edit_codes=None, *, grid=None) -> dict
             expected,
             summary["path"],
         )
+    _clean(d)
+    return summary
+
+
+def _clean(d: Path) -> None:
     shutil.rmtree(d, ignore_errors=True)
     with contextlib.suppress(OSError):
         d.parent.rmdir()  # the tile cache folder, when nothing else is cached
+
+
+def multiview_point_cloud_stage(
+    cfg, out, grid, vertical, pairs, rejected=None, edit_codes=None
+) -> dict:
+    """Merge the N-view pairs' points into ``OUT/dem.<las|laz>``; returns its summary.
+
+    Parameters
+    ----------
+    grid : MapGrid
+        The fused DEM's grid (its CRS is the cloud's; ``rejected`` and ``edit_codes`` lie on it).
+    vertical : {"geoid", "ellipsoid"}
+        Vertical reference of the heights.
+    pairs : dict
+        ``{pair id: (left image, right image)}`` of the matched pairs, in fusion order (the
+        order of ``rejected``'s first axis).
+    rejected : ndarray (len(pairs), rows, cols) of bool, optional
+        Where the fusion rejected each pair's height
+        (:attr:`stereodem.stereo.fusion.FusedDEM.rejected`): those points get edit code
+        ``FUSION_REJECTED`` and LAS class 7 (noise).
+    edit_codes : ndarray (rows, cols), optional
+        The filtered DEM's edit mask (``stereodem run``): the other points take their cell's code.
+    """
+    fmt = cfg.dem.point_cloud
+    d = points_dir(out)
+    ids = [int(k) for k in pairs]
+    base = (
+        np.zeros(grid.shape, np.uint8)
+        if edit_codes is None
+        else np.asarray(edit_codes).astype(np.uint8)
+    )
+    codes = np.empty((max(ids) + 1,) + tuple(base.shape), np.uint8)
+    codes[:] = base
+    if rejected is not None:
+        for k, pid in enumerate(ids):
+            codes[pid][rejected[k]] = FUSION_REJECTED
+    files, per_pair = [], {}
+    for pid in ids:
+        found = sorted(pair_points_dir(d, pid).glob("points_*.npz"))
+        per_pair[str(pid)] = len(found)
+        files += found
+    summary = write_las_files(
+        Path(out) / f"dem.{fmt}",
+        files,
+        grid,
+        vertical=vertical,
+        edit_codes=codes,
+        fmt=fmt,
+        overwrite=True,
+        pairs=pairs,
+    )
+    summary.pop("missing_files")
+    summary["tiles_with_points"] = per_pair
+    _clean(d)
     return summary

@@ -1,8 +1,11 @@
 """N-image bundle adjustment (issue 26 item 3): tie tracks, a simulated triplet with known
 biases, the datum, and ``stereodem adjust IMG1 IMG2 IMG3 --model bundle``."""
 
+import re
+
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from stereodem.cli import main
 from stereodem.core.errors import InputError
@@ -16,7 +19,7 @@ from stereodem.sensor.io.asp_match import InterestPoints, MatchFile, write_match
 from stereodem.sensor.io.gcps import ControlPoints, write_gcps
 from stereodem.sensor.io.sidecar import load_model, save_model
 from stereodem.sensor.models.corrected import ImageCorrectedModel
-from stereodem.sensor.simulation.simulate import pushbroom_pair
+from stereodem.sensor.simulation.simulate import pushbroom_pair, simulate_views
 
 #: shifts (col, row; px) of the true models from the delivered ones
 BIASES = [(0.8, -0.6), (2.5, -1.5), (-1.8, 3.2)]
@@ -262,3 +265,58 @@ def test_adjust_cli_pair_from_match_file(triplet_files, capsys):
     ]
     assert main(argv) == 0
     assert "bundle (rpc-shift): 300 ties (0 rejected)" in capsys.readouterr().out
+
+
+def test_adjust_cli_three_images_automatic_ties(tmp_path, capsys):
+    """``stereodem adjust IMG1 IMG2 IMG3 --model bundle`` without ``--ties``/``--match``: SIFT tie
+    points matched between every chosen pair of real (simulated) images and chained into tracks.
+
+    The images are rendered through the true models (the nominal triplet shifted by BIASES in
+    image space: the rendered images shifted by the same amounts), the sidecars hold the
+    nominal models. GCPs on images 1 and 3 only: image 2's bias comes from the automatic ties
+    alone, and is recovered within the CSV-ties test's 0.1 px like the others (measured
+    0.01-0.02 px, 2800 ties of 0.07 px RMSE).
+    """
+    size = 400
+    sc = simulate_views("pushbroom", angles=(15.0, 0.0, -15.0), size=(size, size), seed=1)
+    truth = [
+        ImageCorrectedModel(m, col_shift=c, row_shift=r) for m, (c, r) in zip(sc.models, BIASES)
+    ]
+    paths = []
+    for k, (img, m) in enumerate(zip(sc.images, sc.models)):
+        c, r = BIASES[k]  # the true image at (col, row) shows the nominal one's (col-c, row-r)
+        moved = ndimage.shift(img.astype(np.float32), (r, c), order=3, mode="nearest")
+        p = tmp_path / f"view{k}.tif"
+        write_geotiff(
+            p,
+            np.clip(np.rint(moved), 0, 255).astype(np.uint8),
+            tags={"STEREODEM_MODEL": f"view{k}.model.json"},
+        )
+        save_model(m, tmp_path / f"view{k}.model.json")
+        paths.append(str(p))
+    rng = np.random.default_rng(3)
+    lo, hi = sc.truth_dem.height_range()
+    c0, r0 = rng.uniform(40, size - 40, (2, 12))
+    h = rng.uniform(lo, hi, 12)
+    lon, lat = truth[0].localize(c0, r0, h)
+    for k in (0, 2):
+        col, row = truth[k].project(lon, lat, h) + rng.normal(0, 0.05, (2, 12))
+        g = tmp_path / f"gcp{k}.csv"
+        write_gcps(
+            g, [f"G{i}" for i in range(12)], lon, lat, h, col, row, sigma_px=np.full(12, 0.05)
+        )
+    out = tmp_path / "adjusted"
+    argv = ["adjust", *paths, "--model", "bundle", "--gcps", str(tmp_path / "gcp0.csv")]
+    argv += ["--image-gcps", f"3={tmp_path / 'gcp2.csv'}", "-o", str(out)]
+    assert main(argv) == 0
+    line = capsys.readouterr().out
+    n_points, n_obs = (int(v) for v in re.search(r"(\d+) tie points \((\d+) obs", line).groups())
+    assert n_points > 1000 and n_obs > 2 * n_points, line  # tracks chained across 3 images
+    before, after = zip(*(map(float, g) for g in re.findall(r"(\d+\.\d+)->(\d+\.\d+)", line)))
+    assert len(after) == 3 and max(after) < 0.2 * min(before), line  # every pair's rays meet
+    for k, (c, r) in enumerate(BIASES):
+        p = load_model(out / f"view{k}.model.json").parameters()
+        assert abs(p["col_shift"] - c) <= 0.1 and abs(p["row_shift"] - r) <= 0.1, (k, p)
+    assert main(argv) == 1  # the models exist
+    assert "view0.model.json: exists" in capsys.readouterr().err
+    assert main(argv + ["--overwrite"]) == 0  # -o is a folder: --overwrite replaces the models

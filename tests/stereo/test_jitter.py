@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import pytest
 import rasterio
+from scipy.ndimage import map_coordinates
 
 from stereodem import cli
 from stereodem.config import config_from_dict
@@ -390,7 +391,7 @@ def test_dem_command_corrects_roll_jitter_without_reference(tmp_path):
     )
     g = write_granule_scene(sc, tmp_path / "scene", version=4, seed=5)
     errors, reports = {}, {}
-    for flag in ([], ["--jitter-correction", "roll"]):
+    for flag in ([], ["--jitter-correction", "roll", "--point-cloud", "las"]):
         out = tmp_path / ("roll" if flag else "plain")
         argv = ["dem", str(g), "-o", str(out), "--workers", "1", "--force"] + flag
         assert cli.main(argv) == 0
@@ -401,6 +402,18 @@ def test_dem_command_corrects_roll_jitter_without_reference(tmp_path):
     assert roll["amplitudes"][0] == pytest.approx(10e-6, rel=0.2)
     print(f"DEM NMAD vs truth without / with roll correction: {errors}")
     assert errors["roll"] < errors["plain"], errors
+    # the point cloud (wired with the jitter correction): the final DEM's points, on it
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(tmp_path / "roll" / "dem.las")
+    assert reports["roll"]["point_cloud"]["n_points"] == reports["roll"]["n_points"] == len(las)
+    with rasterio.open(tmp_path / "roll" / "dem.tif") as ds:
+        a = ds.read(1).astype(np.float64)
+        col, row = ~ds.transform @ (np.asarray(las.x), np.asarray(las.y))
+    d = np.asarray(las.z) - map_coordinates(a, [row - 0.5, col - 0.5], order=1, cval=np.nan)
+    d = d[np.isfinite(d)]
+    med, bias = float(np.median(np.abs(d))), float(np.median(d))
+    print(f"points vs the corrected DEM: median |z - dem| {med:.3f} m, median {bias:+.3f} m")
+    assert d.size > 0.97 * len(las) and med < 1.5 and abs(bias) < 0.2, (med, bias)
 
 
 @pytest.mark.slow

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
+from scipy.ndimage import map_coordinates
 
 from stereodem.cli import main
 from stereodem.config import Config, InputSettings, RunSettings, config_from_dict, load_config
@@ -24,6 +25,7 @@ from stereodem.sensor.models.pushbroom import PushbroomModel
 from stereodem.sensor.simulation.simulate import simulate_views
 from stereodem.stereo.fusion import FusionSettings, choose_pairs, fuse_dems, pair_sigma
 from stereodem.stereo.pipeline import make_dem
+from stereodem.stereo.pointcloud import FUSION_REJECTED, read_pairs
 from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
 
 CRS = "EPSG:32633"
@@ -219,7 +221,7 @@ def test_run_with_images_list(triplet, tmp_path):
     (tmp_path / "job.toml").write_text(
         f'[inputs]\nimages = ["v0.tif", "v1.tif", "v2.tif"]\n[output]\ndir = "out"\n'
         f"[rectification]\nheight_range = [{lo - 50:.0f}, {hi + 50:.0f}]\n[gridding]\nres = 30.0\n"
-        f"[fusion]\nmax_pairs = 2\n[run]\nworkers = 1\n"
+        f'[fusion]\nmax_pairs = 2\n[run]\nworkers = 1\n[dem]\npoint_cloud = "laz"\n'
     )
     cfg = load_config(tmp_path / "job.toml")
     info = run(cfg)
@@ -241,6 +243,24 @@ def test_run_with_images_list(triplet, tmp_path):
         _errors(out / "raw" / "dem.tif", triplet.truth_dem),
     )
     assert nmad(err[np.isfinite(err)]) <= nmad(raw[np.isfinite(raw)])  # the filters edit it
+    # the point cloud of both pairs, classified by the filters' edit mask (with two pairs the
+    # fusion rejects nothing: 3 x the NMAD of two heights exceeds their half-difference)
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(out / "dem.laz")
+    pc = info["stages"]["point_cloud"]
+    assert sorted(read_pairs(las)) == [r["pair_id"] for r in mv["pair_runs"]] == [0, 1]
+    assert pc["n_points"] == len(las.points) == sum(r["n_points"] for r in mv["pair_runs"])
+    assert not (out / "tiles" / "points").exists()
+    with rasterio.open(out / "dem_edit_mask.tif") as ds:
+        mask = ds.read(1)
+        col, row = ~ds.transform @ (np.asarray(las.x), np.asarray(las.y))
+    c, r = np.floor(col).astype(int), np.floor(row).astype(int)
+    assert c.min() >= 0 and r.min() >= 0 and c.max() < mask.shape[1] and r.max() < mask.shape[0]
+    cell_code, code = mask[r, c], np.asarray(las.edit_code)
+    assert not (code == FUSION_REJECTED).any() and np.array_equal(code, cell_code)
+    filtered = (cell_code >= 1) & (cell_code <= 99)
+    assert filtered.any() and (~filtered).any()
+    assert np.array_equal(np.asarray(las.classification) == 7, filtered)
     with pytest.raises(InputError, match="images or left/right"):
         config_from_dict(
             {"inputs": {"images": ["a.tif", "b.tif"], "left": "a.tif"}, "output": {"dir": "o"}}
@@ -348,3 +368,82 @@ def test_dem_cli_names_and_skips_an_isolated_image(triplet, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "given more than once" in err
     assert not (tmp_path / "o2").exists() or not any((tmp_path / "o2").iterdir())
+
+
+def _at_points(path, x, y):
+    """The raster interpolated bilinearly at map points (NaN next to voids and outside)."""
+    with rasterio.open(path) as ds:
+        a = ds.read(1).astype(np.float64)
+        col, row = ~ds.transform @ (np.asarray(x), np.asarray(y))
+    return map_coordinates(a, [row - 0.5, col - 0.5], order=1, cval=np.nan)
+
+
+def test_dem_cli_triplet_point_cloud(triplet, tmp_path, capsys):
+    """``stereodem dem IMG1 IMG2 IMG3 --point-cloud las``: one cloud of every chosen pair's
+    points, ``source_pair`` = the pair's ``pair_id`` in the report (and in the cloud's VLR), the
+    points whose pair height the fusion rejected in their cell classified as noise (edit code
+    98), and the points on the fused DEM.
+
+    The pair-cloud test's bounds (median |z - DEM| < 1.5 m, |median z - DEM| < 0.2 m, ASTER pair
+    of B/H 0.6) are for another scene: here the images are noisier (6 DN) and the narrow pairs
+    have half the base, so a point's scatter about the DEM is set per pair in its a-priori σ
+    (0.3 px x GSD / (B/H), 7.6 m wide, 15 m narrow; measured 0.24 σ wide, 0.35-0.36 σ narrow:
+    1.9 m and 5.2-5.5 m); a shift of the points by half a cell (15 m) moves the median by
+    0.8-2 m and one cell by 2-3.7 m, which the 0.2 m bias bound catches.
+    """
+    laspy = pytest.importorskip("laspy")
+    paths = []
+    for k, (img, model) in enumerate(zip(triplet.images, triplet.models)):
+        p = tmp_path / f"view{k}.tif"
+        write_geotiff(p, img, tags={"STEREODEM_MODEL": f"view{k}.model.json"})
+        save_model(model, tmp_path / f"view{k}.model.json")
+        paths.append(str(p))
+    lo, hi = triplet.truth_dem.height_range()
+    out = tmp_path / "out"
+    argv = ["dem", *paths, "-o", str(out), "--height-range", str(lo - 50), str(hi + 50)]
+    assert main(argv + ["--res", "30", "--workers", "1", "--point-cloud", "las"]) == 0
+    assert "points of 3 pair(s)" in capsys.readouterr().out
+    rep = json.loads((out / "dem_report.json").read_text())
+    runs, pc = rep["multiview"]["pair_runs"], rep["point_cloud"]
+    las = laspy.read(out / "dem.las")
+    assert not (out / "tiles").exists()  # the pairs' point files are removed after the merge
+    # the pair list: id -> images, in the report and in the cloud's VLR
+    expected = {r["pair_id"]: [paths[r["left"]], paths[r["right"]]] for r in runs}
+    assert sorted(expected) == [0, 1, 2]
+    assert pc["pairs"] == {str(k): v for k, v in expected.items()}
+    assert read_pairs(las) == expected
+    # every pair's points, and only its own: the counts are the pair runs'
+    sp = np.asarray(las.source_pair)
+    assert np.array_equal(np.asarray(las.point_source_id), sp)
+    assert pc["n_points"] == len(las.points) == sum(r["n_points"] for r in runs)
+    for r in runs:
+        assert int((sp == r["pair_id"]).sum()) == r["n_points"] > 10000, r["pair_id"]
+    # the fusion's rejections: class 7 exactly where edit code 98, in as many cells as the
+    # report counts at most, far from the fused DEM
+    z = np.asarray(las.z)
+    dem = _at_points(out / "dem.tif", las.x, las.y)
+    assert np.isfinite(dem).mean() > 0.97
+    code, cls = np.asarray(las.edit_code), np.asarray(las.classification)
+    rejected = code == FUSION_REJECTED
+    assert set(np.unique(code)) <= {0, FUSION_REJECTED}  # `dem` does not filter
+    assert np.array_equal(cls == 7, rejected) and np.all(cls[~rejected] == 1)
+    assert pc["classes"]["of which rejected by the N-view fusion"] == int(rejected.sum())
+    with rasterio.open(out / "dem.tif") as ds:
+        col, row = ~ds.transform @ (np.asarray(las.x), np.asarray(las.y))
+    cell = np.floor(row).astype(np.int64) * 100_000 + np.floor(col).astype(np.int64)
+    for r in runs:
+        mine = rejected & (sp == r["pair_id"])
+        assert 0 < np.unique(cell[mine]).size <= r["fusion"]["rejected"], r
+    d = z - dem
+    ok = np.isfinite(d)
+    assert np.median(np.abs(d[rejected & ok])) > 5 * np.median(np.abs(d[~rejected & ok]))
+    # the kept points lie on the fused DEM
+    kept = ok & ~rejected
+    bias = float(np.median(d[kept]))
+    print(f"median z - fused DEM over {kept.sum()} kept points: {bias:+.3f} m")
+    assert abs(bias) < 0.2, bias
+    for r in runs:
+        m = kept & (sp == r["pair_id"])
+        spread = float(np.median(np.abs(d[m])))
+        print(f"pair {r['pair_id']}: median |z - DEM| {spread:.2f} m, σ {r['fusion']['sigma_m']} m")
+        assert spread < 0.5 * r["fusion"]["sigma_m"], (r["pair_id"], spread)

@@ -19,7 +19,7 @@ from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
 from stereodem.pipeline.job import run
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
-from stereodem.stereo.pointcloud import save_tile_points, write_las
+from stereodem.stereo.pointcloud import FUSION_REJECTED, read_pairs, save_tile_points, write_las
 
 laspy = pytest.importorskip("laspy")
 pytest.importorskip("lazrs")
@@ -160,6 +160,28 @@ def test_write_las_in_chunks_with_classes_and_geoid_crs(tmp_path):
     crs = las.header.parse_crs()
     assert crs.is_compound and "EGM96" in crs.sub_crs_list[1].name
     assert crs.sub_crs_list[0].to_epsg() == 32637
+    # one mask per pair id (N-view: the fusion's rejections differ by pair), the pair list in
+    # a VLR; a mask off the grid is refused in one line
+    per_pair = np.zeros((3, 10, 20), np.uint8)
+    per_pair[2, :, :10] = FUSION_REJECTED  # pair 2 rejected in the west half
+    info = write_las(
+        tmp_path / "n.las",
+        tmp_path / "pts",
+        [0, 2],
+        grid,
+        vertical="geoid",
+        edit_codes=per_pair,
+        pairs={0: ("a.tif", "b.tif"), 2: ("b.tif", "c.tif")},
+    )
+    las = laspy.read(tmp_path / "n.las")
+    west2 = (np.asarray(las.x) < 500_100) & (np.asarray(las.source_pair) == 2)
+    assert west2.any() and np.array_equal(np.asarray(las.edit_code) == FUSION_REJECTED, west2)
+    assert np.array_equal(las.classification == 7, west2)
+    assert info["classes"]["of which rejected by the N-view fusion"] == int(west2.sum())
+    assert read_pairs(las) == {0: ["a.tif", "b.tif"], 2: ["b.tif", "c.tif"]}
+    assert read_pairs(laspy.read(tmp_path / "c.las")) == {}
+    with pytest.raises(InputError, match="do not match the grid"):
+        write_las(tmp_path / "m.las", tmp_path / "pts", [0], grid, edit_codes=codes[:5])
     # never over an existing file without overwrite
     with pytest.raises(FileExistsError):
         write_las(tmp_path / "c.las", tmp_path / "pts", [0], grid, vertical="geoid")

@@ -41,7 +41,7 @@ from stereodem.stereo import sanity
 
 from .. import point_cloud
 from ..config import Config
-from ..multiview import run_stage
+from ..multiview import run_stage, source_pairs
 from ..outlock import output_folder
 from ..provenance import provenance, utc_now
 from .inputs import check_inputs, input_paths, load_pair
@@ -181,8 +181,13 @@ def _run_stages(job: Job) -> dict:
     t0 = stages.start()
     bar = prog("stereo")
     pts = point_cloud.prepare(out, resume=cfg.run.resume) if cfg.dem.point_cloud else None
+    cloud_args = None  # N-view: (source pairs, the fusion's rejections) for the point cloud
     if cfg.inputs.images:  # N-view DEM: pairs fused per cell (stereodem.multiview)
-        pair, products, failed, raw = run_stage(cfg, progress=bar, cache_dir=out / "tiles")
+        pair, products, failed, raw = run_stage(
+            cfg, progress=bar, cache_dir=out / "tiles", points_dir=pts
+        )
+        if pts is not None:
+            cloud_args = (source_pairs(products.info.report), raw.rejected)
     else:
         products, failed = stereo_stage(
             cfg, pair, progress=bar, cache_dir=out / "tiles", points_dir=pts
@@ -219,7 +224,15 @@ def _run_stages(job: Job) -> dict:
         )
         if pts is not None:  # the points, classified by the edit mask
             t0 = stages.start()
-            pc = point_cloud.point_cloud_stage(cfg, out, products, clean.edit_mask, grid=clean.grid)
+            if cloud_args is not None:
+                pc = point_cloud.multiview_point_cloud_stage(
+                    cfg, out, clean.grid, clean.vertical, *cloud_args, edit_codes=clean.edit_mask
+                )
+                cloud_args = None
+            else:
+                pc = point_cloud.point_cloud_stage(
+                    cfg, out, products, clean.edit_mask, grid=clean.grid, pairs=_pair_names(cfg)
+                )
             written.append(Path(pc["path"]).name)
             stages.record("point_cloud", t0, **pc)
 
@@ -309,6 +322,11 @@ def _run_stages(job: Job) -> dict:
     if suspect:
         suspect_error(cfg, products, out / "run.json")
     return run_info
+
+
+def _pair_names(cfg: Config) -> dict:
+    """The pair cloud's source pair: ``{0: (left, right)}``."""
+    return {0: (str(cfg.inputs.left), str(cfg.inputs.right))}
 
 
 def _close(bar):

@@ -35,12 +35,15 @@ from .inputs import Pair
 log = logging.getLogger(__name__)
 
 
-def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None, points_dir=None):
+def stereo_stage(
+    cfg: Config, pair: Pair, *, progress=None, cache_dir=None, points_dir=None, pair_id: int = 0
+):
     """Stereo DEM (raw): :func:`stereodem.stereo.pipeline.make_dem` with the configured tile
     runner (and, with ``[jitter] enabled``, the right camera's jitter estimated against the
     seed DEM, corrected and the DEM made again: :mod:`stereodem.stereo.jitter`); returns
-    ``(products, failed_tiles)``. ``points_dir``: the tiles also write their points there
-    (:mod:`stereodem.point_cloud`)."""
+    ``(products, failed_tiles)``. ``points_dir``: the tiles (of the final DEM, with jitter
+    correction) also write their points there (:mod:`stereodem.point_cloud`), ``source_pair``
+    ``pair_id``."""
     runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
     args = (pair.left_image, pair.right_image, pair.left_model, pair.right_model)
     dtypes = dict(left_dtype=pair.left_dtype, right_dtype=pair.right_dtype)
@@ -55,6 +58,8 @@ def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None, poin
             f_range=(j.min_frequency, j.max_frequency),
             runner=runner,
             axes=j.axis_names,
+            points_dir=points_dir,
+            pair_id=pair_id,
             **dtypes,
         )
         pair.right_model = corrected
@@ -66,6 +71,7 @@ def stereo_stage(cfg: Config, pair: Pair, *, progress=None, cache_dir=None, poin
             seed_dem=pair.seed_dem,
             runner=runner,
             points_dir=points_dir,
+            pair_id=pair_id,
             **dtypes,
         )
     return products, [f.to_dict() for f in runner.failures]
