@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import json
 import json as _json
+from pathlib import Path
 
 import numpy as np
 import pytest
+import shapely
 from affine import Affine
 from affine import Affine as A
 
@@ -16,7 +18,8 @@ from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.raster import write_geotiff
 from stereodem.post import warp
-from stereodem.post.coreg import StableMask
+from stereodem.post.altimetry import read_points
+from stereodem.post.coreg import StableMask, bilinear
 from stereodem.post.coreg_run import TRACK_HEADING_TAG, track_heading, track_heading_of
 from stereodem.post.spatialstats import VariogramModel
 from stereodem.post.synthetic import InjectedErrors, inject_errors
@@ -243,3 +246,105 @@ def test_stable_mask_raster_and_include(files, tmp_path):
     )
     inc = StableMask(include=[str(tmp_path / "inc.geojson")]).array(ref)
     assert inc.sum() == 900 and inc[:30, :30].all()
+
+
+# ----------------------------------------------------------------------------- altimetry points
+
+
+@pytest.fixture(scope="module")
+def points_case(tmp_path_factory):
+    """A DEM shifted one cell east (~71 m) and raised 3 m, with 0.5 m correlated noise, and 800
+    points of the unshifted truth (geoid heights) as CSV and GeoParquet."""
+    d = tmp_path_factory.mktemp("points")
+    full = DEM.bundled()
+    truth = DEM(full.heights[:150, :150].copy(), full.transform, full.crs, "geoid")
+    px = abs(truth.transform.a) * 111320 * np.cos(np.radians(truth.transform.f))
+    dem, _ = inject_errors(
+        truth,
+        InjectedErrors(
+            dx=px, dz=3.0, noise=VariogramModel(np.array([150.0]), np.array([0.25])), seed=6
+        ),
+    )
+    dem.write(d / "dem.tif")
+    rng = np.random.default_rng(0)
+    r, c = rng.uniform(2, 147, 800), rng.uniform(2, 147, 800)
+    lon, lat = truth.transform @ (c + 0.5, r + 0.5)
+    h = bilinear(truth.heights, r, c)
+    with open(d / "pts.csv", "w") as f:
+        f.write("# ATL06-like points of the truth\nlon,lat,h\n")
+        f.writelines(
+            f"{a!r},{b!r},{z!r}\n" for a, b, z in zip(lon.tolist(), lat.tolist(), h.tolist())
+        )
+    pa = pytest.importorskip("pyarrow")
+    pq = pytest.importorskip("pyarrow.parquet")
+    geom = shapely.to_wkb(shapely.points(lon, lat))
+    pq.write_table(pa.table({"geometry": geom, "h": h}), d / "pts.parquet")
+    return dict(dir=d, px=px, n=800)
+
+
+def _coregister_points(dem, ref, out, *extra):
+    rc = main(
+        ["coregister", str(dem), "--ref", str(ref), "--chain", "nuth_kaab,vshift"]
+        + [*extra, "-o", str(out)]
+    )
+    assert rc == 0
+    return json.loads((out / "coregistration.json").read_text())
+
+
+def _residuals(rep):
+    cols = rep["points"]["columns"]
+    rows = np.array([[np.nan if v is None else v for v in r] for r in rep["points"]["rows"]])
+    return {k: rows[:, i] for i, k in enumerate(cols)}
+
+
+def test_coregister_to_altimetry_points_csv_and_geoparquet(points_case, tmp_path):
+    """``--ref points.csv --ref-vertical geoid``: the shift and offset are recovered from the
+    points, coregistration.json carries one residual per point (DEM - point, before and
+    after), the residuals shrink to the noise; the GeoParquet file gives the same result."""
+    d = points_case["dir"]
+    rep = _coregister_points(
+        d / "dem.tif", d / "pts.csv", tmp_path / "csv", "--ref-vertical", "geoid"
+    )
+    assert rep["reference_kind"] == "points"
+    nk = rep["steps"][0]["parameters"]
+    assert nk["dx"]["value"] == pytest.approx(points_case["px"], abs=0.5)
+    assert nk["dy"]["value"] == pytest.approx(0.0, abs=0.5)
+    assert nk["dz"]["value"] == pytest.approx(3.0, abs=0.1)
+    pts = rep["points"]
+    assert pts["n"] == pts["n_on_dem"] == points_case["n"] == len(pts["rows"])
+    assert pts["columns"] == ["lon", "lat", "h", "dh_before", "dh_after", "stable"]
+    r = _residuals(rep)
+    rms_before = np.sqrt(np.mean(r["dh_before"] ** 2))
+    rms_after = np.sqrt(np.mean(r["dh_after"] ** 2))
+    # before: the 3 m offset and the shift on slopes; after: the 0.5 m noise alone
+    assert rms_before > 5.0 and rms_after < 0.6
+    assert abs(np.median(r["dh_after"])) < 0.05
+    # no dh map for points; the Nuth & Kääb curve is drawn from them
+    assert {"dem", "nuth_kaab_png"} <= set(rep["files"])
+    assert all(Path(f).is_file() for f in rep["files"].values())
+
+    rep_pq = _coregister_points(
+        d / "dem.tif", d / "pts.parquet", tmp_path / "pq", "--ref-vertical", "geoid", "--no-figures"
+    )
+    for a, b in zip(rep["steps"], rep_pq["steps"]):
+        for k, v in a["parameters"].items():
+            if isinstance(v, dict):
+                assert b["parameters"][k]["value"] == pytest.approx(v["value"], abs=1e-6)
+    np.testing.assert_allclose(_residuals(rep_pq)["dh_after"], r["dh_after"], atol=1e-6)
+
+
+def test_altimetry_points_in_another_datum_are_converted(points_case, tmp_path):
+    """The same points as WGS84 ellipsoidal heights (column ``h_ellipsoid``, datum said by the
+    column): converted to the DEM's geoid through EGM96, the same offset is found."""
+    d = points_case["dir"]
+    g = read_points(d / "pts.csv", vertical="geoid")
+    p = g.to_reference("ellipsoid")
+    assert abs(np.mean(p.h - g.h)) > 5.0  # the geoid height here: a wrong datum would show
+    with open(tmp_path / "ell.csv", "w") as f:
+        f.write("lon,lat,h_ellipsoid\n")
+        f.writelines(
+            f"{a!r},{b!r},{z!r}\n" for a, b, z in zip(*(v.tolist() for v in (p.lon, p.lat, p.h)))
+        )
+    rep = _coregister_points(d / "dem.tif", tmp_path / "ell.csv", tmp_path / "o", "--no-figures")
+    assert "converted from ellipsoid to geoid" in rep["vertical"]
+    assert rep["steps"][0]["parameters"]["dz"]["value"] == pytest.approx(3.0, abs=0.1)
