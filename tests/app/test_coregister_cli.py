@@ -12,12 +12,13 @@ import pytest
 import shapely
 from affine import Affine
 from affine import Affine as A
+from helpers.cli_scene import assert_clear_error, run_cli
 
 from stereodem.cli import main
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.raster import write_geotiff
-from stereodem.post import warp
+from stereodem.post import terrain, warp
 from stereodem.post.altimetry import read_points
 from stereodem.post.coreg import StableMask, bilinear
 from stereodem.post.coreg_run import TRACK_HEADING_TAG, track_heading, track_heading_of
@@ -398,3 +399,102 @@ def test_assess_outlines_give_the_area_mean_sigma_from_the_variogram(files, tmp_
         assert abs(a["mean_dh"]) < 4 * a["sigma_mean"]
     md = (out / "report.md").read_text()
     assert "outlines.geojson #0: mean dh" in md and "outlines.geojson #1: mean dh" in md
+
+
+# ------------------------------------------------------------------------ stable-terrain limits
+
+
+@pytest.fixture(scope="module")
+def cloudy(tmp_path_factory):
+    """The reference crop and a DEM of it raised 2 m, 0.5 m noise, and a 20 x 20 cell cloud
+    (+100 m) in rows/columns 20..39."""
+    d = tmp_path_factory.mktemp("cloudy")
+    full = DEM.bundled()
+    ref = DEM(full.heights[:150, :150].copy(), full.transform, full.crs, "geoid")
+    dem, _ = inject_errors(
+        ref,
+        InjectedErrors(dz=2.0, noise=VariogramModel(np.array([150.0]), np.array([0.25])), seed=1),
+    )
+    h = dem.heights.copy()
+    h[20:40, 20:40] += 100.0
+    ref.write(d / "ref.tif")
+    DEM(h, dem.transform, dem.crs, "geoid").write(d / "dem.tif")
+    return d
+
+
+def _coreg_stable(d, out, *extra):
+    rc = main(
+        ["coregister", str(d / "dem.tif"), "--ref", str(d / "ref.tif"), "--chain", "vshift"]
+        + ["--no-figures", *extra, "-o", str(out)]
+    )
+    assert rc == 0
+    rep = json.loads((out / "coregistration.json").read_text())
+    return rep["stable"], rep["steps"][0]
+
+
+def test_outlier_nmad_is_honoured(cloudy, tmp_path):
+    """Default 5 NMAD: the cloud's 400 cells (and nothing else at 0.5 m noise) leave the stable
+    terrain; 3 NMAD removes a few noise cells more; 0 turns the test off."""
+    s5, step5 = _coreg_stable(cloudy, tmp_path / "n5")
+    s3, _ = _coreg_stable(cloudy, tmp_path / "n3", "--outlier-nmad", "3")
+    s0, step0 = _coreg_stable(cloudy, tmp_path / "n0", "--outlier-nmad", "0")
+    assert s5["valid_cells"] == s0["valid_cells"] == 150 * 150
+    assert (s0["outlier_nmad"], s0["outlier_cells"], s0["stable_cells"]) == (None, 0, 150 * 150)
+    assert s5["outlier_nmad"] == 5.0 and s5["outlier_cells"] == 400
+    assert s5["stable_cells"] == 150 * 150 - 400
+    assert s3["outlier_nmad"] == 3.0 and 400 < s3["outlier_cells"] < 600
+    assert s3["stable_cells"] == 150 * 150 - s3["outlier_cells"]
+    for s, step in ((s5, step5), (s0, step0)):  # the fit used exactly the stable terrain said
+        assert s["samples_used"] == step["before"]["n"] == s["stable_cells"]
+    # the cloud out, the 0.5 m noise alone is left on stable terrain; in, it dominates the std
+    assert step5["after"]["std"] < 0.7 and step0["after"]["std"] > 10.0
+
+
+@pytest.mark.parametrize(
+    "option, keep",
+    [
+        (["--max-slope", "10"], lambda s: s <= 10),
+        (["--min-slope", "10"], lambda s: s >= 10),
+        (["--min-slope", "5", "--max-slope", "15"], lambda s: (s >= 5) & (s <= 15)),
+    ],
+)
+def test_slope_limits_are_honoured(cloudy, tmp_path, option, keep):
+    """The stable terrain is exactly the cells whose slope (of the DEM, degrees) is within the
+    limits (outlier test off, so that nothing else changes it)."""
+    dem = DEM.from_file(cloudy / "dem.tif")
+    slope = terrain.slope_deg(dem.heights, dem.transform, dem.crs)
+    with np.errstate(invalid="ignore"):
+        want = int(keep(slope).sum())
+    assert 0.2 * slope.size < want < 0.8 * slope.size  # the limits do cut
+    s, step = _coreg_stable(cloudy, tmp_path / "o", "--outlier-nmad", "0", *option)
+    assert s["stable_cells"] == want == step["before"]["n"]
+
+
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        (["--max-slope", "100"], r"--max-slope must be a slope in degrees, 0 to 90, got 100"),
+        (["--min-slope", "-1"], r"--min-slope must be a slope in degrees, 0 to 90, got -1"),
+        (["--max-slope", "nan"], r"--max-slope must be .*got nan"),
+        (
+            ["--min-slope", "20", "--max-slope", "10"],
+            r"--min-slope 20 must be below --max-slope 10",
+        ),
+        (["--outlier-nmad", "-1"], r"--outlier-nmad must be a number >= 0 .*got -1"),
+        (["--outlier-nmad", "nan"], r"--outlier-nmad must be .*got nan"),
+        (
+            ["--min-slope", "60"],
+            r"dem\.tif: --min-slope 60: only 0\.0 % of the DEM's valid cells \(0 of 22500\) are "
+            r"left as stable terrain",
+        ),
+    ],
+)
+def test_bad_stable_terrain_limits_are_one_line(cloudy, tmp_path, capsys, option, message):
+    out = tmp_path / "o"
+    code, _, err = run_cli(
+        capsys,
+        ["coregister", cloudy / "dem.tif", "--ref", cloudy / "ref.tif", *option, "-o", out],
+    )
+    assert_clear_error(code, err, "coregister", message)
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists()
