@@ -498,3 +498,109 @@ def test_bad_stable_terrain_limits_are_one_line(cloudy, tmp_path, capsys, option
     assert_clear_error(code, err, "coregister", message)
     assert len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- bad input, CLI
+
+
+@pytest.fixture(scope="module")
+def bad_inputs(files):
+    """Hostile inputs beside ``files``: an outline far from the DEM, a stable mask of its first
+    5 rows (3.3 %), points with a NaN height (CSV and GeoParquet), points with no datum."""
+    d = files / "bad_inputs"
+    d.mkdir()
+    ring = [[10, 10], [10.1, 10], [10.1, 10.1], [10, 10]]
+    (d / "far.geojson").write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {},
+                        "geometry": {"type": "Polygon", "coordinates": [ring]},
+                    }
+                ],
+            }
+        )
+    )
+    ref = DEM.from_file(files / "ref.tif")
+    m = np.zeros(ref.shape, np.uint8)
+    m[:5, :] = 1
+    write_geotiff(d / "mask.tif", m, ref.transform, ref.crs, None)
+    (d / "nan.csv").write_text(
+        "# two points on the DEM, one height missing\nlon,lat,h\n"
+        "40.05,39.95,1000\n40.06,39.94,nan\n"
+    )
+    (d / "nodatum.csv").write_text("lon,lat,h\n40.05,39.95,1000\n40.06,39.94,1001\n")
+    pa = pytest.importorskip("pyarrow")
+    pq = pytest.importorskip("pyarrow.parquet")
+    pq.write_table(
+        pa.table({"lon": [40.05, 40.06], "lat": [39.95, 39.94], "h": [1000.0, float("nan")]}),
+        d / "nan.parquet",
+    )
+    return d
+
+
+def _bad_cases(f, b):
+    far = r"far\.geojson: no outline overlaps the DEM"
+    cor = ["coregister", f / "dem.tif"]
+    return {
+        "coregister-exclude": (cor + ["--ref", f / "ref.tif", "--exclude", b / "far.geojson"], far),
+        "coregister-include": (cor + ["--ref", f / "ref.tif", "--include", b / "far.geojson"], far),
+        "assess-outlines": (
+            ["assess", f / "dem.tif", "--ref", f / "ref.tif", "--outlines", b / "far.geojson"],
+            far,
+        ),
+        "assess-exclude": (
+            ["assess", f / "dem.tif", "--ref", f / "ref.tif", "--error-analysis"]
+            + ["--exclude", b / "far.geojson"],
+            far,
+        ),
+        "change-exclude": (
+            ["change", f / "ref.tif", f / "dem.tif", "--exclude", b / "far.geojson"],
+            far,
+        ),
+        "coregister-mask-3pct": (
+            cor + ["--ref", f / "ref.tif", "--stable-mask", b / "mask.tif"],
+            r"mask\.tif: only 3\.3 % of the DEM's valid cells \(750 of 22500\) are left as "
+            r"stable terrain \(need at least 5 %\)",
+        ),
+        "coregister-points-nan-csv": (
+            cor + ["--ref", b / "nan.csv", "--ref-vertical", "geoid"],
+            r"nan\.csv: 1 of 2 points have NaN/inf lon, lat or h \(first at line 4\)",
+        ),
+        "coregister-points-nan-parquet": (
+            cor + ["--ref", b / "nan.parquet", "--ref-vertical", "geoid"],
+            r"nan\.parquet: 1 of 2 points have NaN/inf lon, lat or h \(first at row 2\)",
+        ),
+        "coregister-points-no-datum": (
+            cor + ["--ref", b / "nodatum.csv"],
+            r"nodatum\.csv: vertical reference of the point heights not said; give --ref-vertical",
+        ),
+    }
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "coregister-exclude",
+        "coregister-include",
+        "assess-outlines",
+        "assess-exclude",
+        "change-exclude",
+        "coregister-mask-3pct",
+        "coregister-points-nan-csv",
+        "coregister-points-nan-parquet",
+        "coregister-points-no-datum",
+    ],
+)
+def test_bad_outlines_masks_and_points_through_the_cli(files, bad_inputs, tmp_path, capsys, case):
+    """Exit 1, one ``stereodem CMD: error:`` line naming the file and the problem (how much
+    stable terrain is left, where the NaN is), nothing else on stderr, nothing in -o."""
+    argv, message = _bad_cases(files, bad_inputs)[case]
+    out = tmp_path / "out"
+    code, _, err = run_cli(capsys, [*argv, "-o", out])
+    assert_clear_error(code, err, argv[0], message)
+    assert len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
