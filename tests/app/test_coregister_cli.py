@@ -3,8 +3,11 @@ nothing written."""
 
 from __future__ import annotations
 
+import base64
 import json
 import json as _json
+import re
+from html import escape as html_escape
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +25,7 @@ from stereodem.post import terrain, warp
 from stereodem.post.altimetry import read_points
 from stereodem.post.coreg import StableMask, bilinear
 from stereodem.post.coreg_run import TRACK_HEADING_TAG, track_heading, track_heading_of
+from stereodem.post.report import FIGURE_CAPTIONS
 from stereodem.post.spatialstats import VariogramModel, area_mean_sigma
 from stereodem.post.synthetic import InjectedErrors, inject_errors
 from stereodem.sensor.models.pushbroom import PushbroomModel
@@ -104,7 +108,25 @@ def test_bad_input_is_one_line_and_writes_nothing(files, capsys, extra, message)
     assert not out.exists()
 
 
-@pytest.mark.slow
+def _assert_error_analysis_in_html(out):
+    """report.html holds the error-analysis section (the variogram's fit and every Markdown
+    item of the section) and embeds variogram.png and error_vs_terrain.png byte for byte,
+    with their captions."""
+    html = (out / "report.html").read_text()
+    assert html.count("<h2>Error analysis (stable terrain)</h2>") == 1
+    section = html.split("<h2>Error analysis (stable terrain)</h2>", 1)[1]
+    md = (out / "report.md").read_text().split("## Error analysis (stable terrain)", 1)[1]
+    items = [ln[2:] for ln in md.splitlines() if ln.startswith("* ")]
+    assert any(i.startswith("variogram of standardised dh: range") for i in items)
+    for item in items:
+        assert f"<li>{html_escape(item)}</li>" in section
+    for name in ("variogram", "error_vs_terrain"):
+        m = re.search(rf'<img alt="{name}" src="data:image/png;base64,([^"]+)">', html)
+        assert m, name
+        assert base64.b64decode(m.group(1)) == (out / f"{name}.png").read_bytes()
+        assert FIGURE_CAPTIONS[name] in html
+
+
 def test_assess_error_analysis_adds_section_and_figures(files):
     out = files / "assess"
     rc = main(
@@ -127,6 +149,7 @@ def test_assess_error_analysis_adds_section_and_figures(files):
     assert ea["coregistration"]["steps"][0]["step"] == "vshift"
     assert (out / "variogram.png").is_file() and (out / "error_vs_terrain.png").is_file()
     assert "Error analysis" in (out / "report.md").read_text()
+    _assert_error_analysis_in_html(out)
 
 
 def test_track_heading_of_a_pushbroom_model_and_tag_round_trip(tmp_path):
@@ -399,6 +422,8 @@ def test_assess_outlines_give_the_area_mean_sigma_from_the_variogram(files, tmp_
         assert abs(a["mean_dh"]) < 4 * a["sigma_mean"]
     md = (out / "report.md").read_text()
     assert "outlines.geojson #0: mean dh" in md and "outlines.geojson #1: mean dh" in md
+    _assert_error_analysis_in_html(out)  # the area means are items of the HTML section too
+    assert "outlines.geojson #1: mean dh" in (out / "report.html").read_text()
 
 
 # ------------------------------------------------------------------------ stable-terrain limits
