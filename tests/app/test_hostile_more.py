@@ -554,3 +554,41 @@ def test_folder_holding_a_users_file_named_like_a_product_is_refused(sim, tmp_pa
     )
     assert_clear_error(code, err, "dem", r"not a stereodem output.*score\.tif")
     assert _files(work) == before
+
+
+# ----------------------------------------------------------------------------- mosaic --ref
+
+
+@pytest.mark.parametrize("kind", ["points_csv", "no_crs"])
+def test_mosaic_reference_that_is_not_a_dem_is_one_line(kind, dems, tmp_path, capsys):
+    """An unreadable or CRS-less ``--ref`` is the reference's fault: refused once, naming it
+    (not a warning per DEM, each skipped, then an error)."""
+    if kind == "points_csv":
+        ref = tmp_path / "points.csv"
+        ref.write_text("lon,lat,h\n40.05,39.95,1000\n")
+        message = r"points\.csv: cannot read the reference DEM"
+    else:
+        ref = tmp_path / "bare.tif"
+        with rasterio.open(dems / "ref.tif") as ds:
+            z, prof = ds.read(1), ds.profile
+        prof.pop("crs", None)
+        with rasterio.open(ref, "w", **prof) as out:
+            out.write(z[None])
+        message = r"bare\.tif: the reference DEM has no CRS"
+    out = tmp_path / "m"
+    code, _, err = run_cli(
+        capsys,
+        [
+            "mosaic",
+            dems / "a.tif",
+            dems / "b.tif",
+            "--ref",
+            ref,
+            "--coregister",
+            "-o",
+            out / "m.tif",
+        ],
+    )
+    assert_clear_error(code, err, "mosaic", message)
+    assert len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
