@@ -109,25 +109,27 @@ def _pick(columns, names, path, what, required=True):
 
 
 def _read_csv(path):
-    """Columns of a CSV file with a header line (``#`` comment lines skipped): name -> array of
-    strings."""
+    """Columns of a CSV file with a header line (``#`` comment and blank lines skipped): name
+    -> array of strings, and the file's line number (1-based) of each data row."""
     with open(path, newline="", encoding="utf-8") as f:
-        rows = [
-            r
-            for r in csv.reader(line for line in f if not line.lstrip().startswith("#"))
-            if any(c.strip() for c in r)
+        numbered = [
+            (k, line)
+            for k, line in enumerate(f, 1)
+            if line.strip() and not line.lstrip().startswith("#")
         ]
+    rows = list(csv.reader(line for _, line in numbered))
+    lines = [k for k, _ in numbered]
     if len(rows) < 2:
         raise InputError(f"{path}: no header and data rows in the CSV file")
     head = [h.strip() for h in rows[0]]
-    body = rows[1:]
+    body, lines = rows[1:], lines[1:]
     bad = next((i for i, r in enumerate(body) if len(r) != len(head)), None)
     if bad is not None:
         raise InputError(
-            f"{path}: row {bad + 2} has {len(body[bad])} fields, the header {len(head)}"
+            f"{path}: line {lines[bad]} has {len(body[bad])} fields, the header {len(head)}"
         )
     cols = list(zip(*body))
-    return {h: np.asarray(c, dtype=object) for h, c in zip(head, cols)}
+    return {h: np.asarray(c, dtype=object) for h, c in zip(head, cols)}, lines
 
 
 def _read_parquet(path):
@@ -143,7 +145,12 @@ def _read_parquet(path):
     return {name: table.column(name).to_numpy(zero_copy_only=False) for name in table.column_names}
 
 
-def _numbers(col, path, name):
+def _where(lines, i) -> str:
+    """Where data row ``i`` (0-based) is: its CSV line, or its row in a Parquet table."""
+    return f"line {lines[i]}" if lines is not None else f"row {i + 1}"
+
+
+def _numbers(col, path, name, lines=None):
     try:
         return np.asarray(col, dtype=np.float64)
     except (TypeError, ValueError):
@@ -153,7 +160,7 @@ def _numbers(col, path, name):
                 out[i] = float(v)
             except (TypeError, ValueError):
                 raise InputError(
-                    f"{path}: column {name!r}, row {i + 2}: {v!r} is not a number"
+                    f"{path}: column {name!r}, {_where(lines, i)}: {v!r} is not a number"
                 ) from None
         return out
 
@@ -165,9 +172,10 @@ def read_points(path, *, vertical: str | None = None) -> AltimetryPoints:
     if not Path(path).is_file():
         raise InputError(f"{path}: no such file")
     try:
-        cols = (
-            _read_parquet(path) if suffix in (".parquet", ".geoparquet", ".pq") else _read_csv(path)
-        )
+        if suffix in (".parquet", ".geoparquet", ".pq"):
+            cols, lines = _read_parquet(path), None
+        else:
+            cols, lines = _read_csv(path)
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - any garbled file: one line
@@ -178,10 +186,16 @@ def read_points(path, *, vertical: str | None = None) -> AltimetryPoints:
         geom = shapely.from_wkb(cols["geometry"])
         lon, lat = shapely.get_x(geom), shapely.get_y(geom)
     else:
-        lon = _numbers(cols[_pick(names, _LON, path, "longitude")], path, "lon")
-        lat = _numbers(cols[_pick(names, _LAT, path, "latitude")], path, "lat")
+        lon = _numbers(cols[_pick(names, _LON, path, "longitude")], path, "lon", lines)
+        lat = _numbers(cols[_pick(names, _LAT, path, "latitude")], path, "lat", lines)
     hc = _pick(names, _H, path, "height")
-    h = _numbers(cols[hc], path, hc)
+    h = _numbers(cols[hc], path, hc, lines)
+    bad = ~(np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h))
+    if bad.any():  # here, where the file's lines are known
+        raise InputError(
+            f"{path}: {int(bad.sum())} of {bad.size} points have NaN/inf lon, lat or h "
+            f"(first at {_where(lines, int(np.flatnonzero(bad)[0]))}); drop them first"
+        )
     tc = _pick(names, _T, path, "time", required=False)
     said = {"h_ellipsoid": ELLIPSOID, "h_geoid": GEOID}.get(hc.lower())
     vert = vertical or said

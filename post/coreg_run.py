@@ -31,8 +31,8 @@ from stereodem.core.raster import write_text_atomic
 
 from . import terrain
 from .altimetry import AltimetryPoints, is_points_file, read_points
-from .coreg import CoregChain, bilinear, parse_chain, reference_on_grid
-from .masks import StableMask
+from .coreg import MIN_STABLE_FRACTION, CoregChain, bilinear, parse_chain, reference_on_grid
+from .masks import StableMask, check_stable
 from .track import TRACK_FRAME_TAG, TrackFrame, track_frame_of
 
 log = logging.getLogger(__name__)
@@ -58,6 +58,38 @@ class CoregJob:
     max_slope: float | None = None
     outlier_nmad: float | None = 5.0
     max_samples: int = 200_000
+
+    def check(self):
+        """One-line :class:`InputError` for limits that cannot be honoured: slopes not in
+        0–90 degrees or not finite, ``min_slope`` not below ``max_slope``, ``outlier_nmad``
+        negative or not finite (``None`` or 0: no outlier rejection)."""
+        for name, v in (("--min-slope", self.min_slope), ("--max-slope", self.max_slope)):
+            if v is not None and not (np.isfinite(v) and 0.0 <= v <= 90.0):
+                raise InputError(f"{name} must be a slope in degrees, 0 to 90, got {v:g}")
+        if (
+            self.min_slope is not None
+            and self.max_slope is not None
+            and not self.min_slope < self.max_slope
+        ):
+            raise InputError(
+                f"--min-slope {self.min_slope:g} must be below --max-slope {self.max_slope:g}: "
+                "no slope would be stable terrain"
+            )
+        v = self.outlier_nmad
+        if v is not None and not (np.isfinite(v) and v >= 0.0):
+            raise InputError(f"--outlier-nmad must be a number >= 0 (0: off), got {v:g}")
+
+    def mask_sources(self) -> list[str]:
+        """What restricts the stable terrain, as the options that said it (for messages)."""
+        out = [f"--exclude {p}" for p in self.exclude or []]
+        out += [f"--include {p}" for p in self.include or []]
+        if self.stable_mask:
+            out.append(f"--stable-mask {self.stable_mask}")
+        if self.min_slope is not None:
+            out.append(f"--min-slope {self.min_slope:g}")
+        if self.max_slope is not None:
+            out.append(f"--max-slope {self.max_slope:g}")
+        return out
 
 
 def track_heading(model, shape, h: float = 0.0) -> float:
@@ -158,7 +190,9 @@ def track_of(path, crs, track_angle: float | None = None):
 
 
 def stable_mask(job: CoregJob, dem: DEM, ref) -> np.ndarray:
-    """The stable mask of the job on the DEM grid (vectors, raster, slope, outliers)."""
+    """The stable mask of the job on the DEM grid (vectors, raster, slope; the outliers are
+    left out later, by :func:`_fit`). One-line :class:`InputError` naming the options that
+    did it when under 5 % of the DEM's valid cells are left, saying how much is."""
     sm = StableMask(
         exclude=list(job.exclude or []),
         include=list(job.include or []),
@@ -170,7 +204,16 @@ def stable_mask(job: CoregJob, dem: DEM, ref) -> np.ndarray:
     slope = None
     if job.min_slope is not None or job.max_slope is not None:
         slope = terrain.slope_deg(dem.heights, dem.transform, dem.crs)
-    return sm.array(dem, slope=slope)
+    m = sm.array(dem, slope=slope)
+    sources = job.mask_sources()
+    if sources:
+        check_stable(
+            m,
+            np.isfinite(dem.heights),
+            min_fraction=MIN_STABLE_FRACTION,
+            what=f"{job.dem}: {', '.join(sources)}",
+        )
+    return m
 
 
 def run(
@@ -182,6 +225,7 @@ def run(
     needs_heading = any(
         s.strip().split(":")[0] in ("along_track", "cross_track") for s in job.chain.split(",")
     )
+    job.check()
     chain = parse_chain(job.chain)  # bad text fails before any reading
     dem, ref, note, (heading, frame) = load_inputs(job)
     if needs_heading and heading is None and frame is None:
@@ -190,7 +234,7 @@ def run(
             "carries none: give --track-angle DEG (clockwise from north)"
         )
     mask = stable_mask(job, dem, ref)
-    chain = _fit(chain, ref, dem, mask, (heading, frame), job)
+    chain, mask, n_outliers = _fit(chain, ref, dem, mask, (heading, frame), job)
     out = chain.apply(dem)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)  # only now: bad inputs leave nothing behind
@@ -206,7 +250,7 @@ def run(
         "vertical_reference": dem.vertical,
         "track_heading_deg": heading,
         "track_frame": frame.describe() if frame is not None else None,
-        "stable": _mask_summary(chain, mask, dem),
+        "stable": _mask_summary(chain, mask, dem, job, ref, n_outliers),
         "steps": chain.report(),
         "sigma_note": "formal least-squares standard deviations (samples taken as independent)",
     }
@@ -226,14 +270,19 @@ def run(
 
 def _fit(chain: CoregChain, ref, dem, mask, track, job):
     """Fit ``chain``; with ``outlier_nmad``, cells whose first ``dh`` is beyond that many NMADs
-    of the median (clouds, blunders) leave the stable terrain first (DEM references)."""
+    of the median (clouds, blunders) leave the stable terrain first (DEM references).
+    Returns ``(chain, mask, n_outliers)``: the mask the fit used and the valid stable cells the
+    outlier test removed."""
+    n_outliers = 0
     if job.outlier_nmad and not isinstance(ref, AltimetryPoints):
         dh = dem.heights.astype(np.float64) - reference_on_grid(ref, dem)
-        mask = mask & StableMask(outlier_nmad=job.outlier_nmad).array(
+        kept = mask & StableMask(outlier_nmad=job.outlier_nmad).array(
             dem, dh=np.where(mask, dh, np.nan)
         )
+        n_outliers = int((mask & ~kept & np.isfinite(dh)).sum())
+        mask = kept
     heading, frame = track
-    return chain.fit(
+    chain = chain.fit(
         ref,
         dem,
         stable=mask,
@@ -241,15 +290,22 @@ def _fit(chain: CoregChain, ref, dem, mask, track, job):
         track_frame=frame,
         max_samples=job.max_samples,
     )
+    return chain, mask, n_outliers
 
 
-def _mask_summary(chain, mask, dem):
+def _mask_summary(chain, mask, dem, job, ref, n_outliers):
+    """The stable terrain the fit used (after the outlier test), on the DEM's valid cells."""
     valid = np.isfinite(dem.heights)
     return {
         "stable_cells": int((mask & valid).sum()),
         "valid_cells": int(valid.sum()),
         "stable_fraction": float((mask & valid).sum() / max(valid.sum(), 1)),
         "samples_used": int(chain.sampler.rows.size) if chain.sampler is not None else 0,
+        "min_slope_deg": job.min_slope,
+        "max_slope_deg": job.max_slope,
+        # points: no outlier test on the mask (each step's fit is robust)
+        "outlier_nmad": None if isinstance(ref, AltimetryPoints) else (job.outlier_nmad or None),
+        "outlier_cells": n_outliers,
     }
 
 

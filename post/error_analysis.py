@@ -46,6 +46,10 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     """Run the analysis; returns ``(section, plots)``: a JSON-ready dict and what
     :func:`write_figures` draws. ``dem`` and ``ref`` in the same vertical reference."""
     stable = StableMask(exclude=list(job.exclude)).array(dem)
+    # outlines read and checked before any work: one outside the DEM is one line at once
+    outlines = [(path, read_polygons(path, dem.crs)) for path in job.outlines]
+    for path, geoms in outlines:
+        rasterize(geoms, dem, path=str(path))
     chain_rep = None
     if job.chain:
         heading, frame = track_of(dem.path, dem.crs, job.track_angle)
@@ -83,8 +87,7 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     if chain_rep is not None:
         section["coregistration"] = {"chain": job.chain, "steps": chain_rep}
     areas = []
-    for path in job.outlines:
-        geoms = read_polygons(path, dem.crs)
+    for path, geoms in outlines:
         for k, g in enumerate(geoms):
             m = rasterize([g], dem, path=str(path)) & np.isfinite(dh)
             if not m.any():

@@ -137,7 +137,7 @@ class StableMask:
                     m &= s >= self.min_slope
                 if self.max_slope is not None:
                     m &= s <= self.max_slope
-        if dh is not None and self.outlier_nmad:
+        if dh is not None and self.outlier_nmad and np.isfinite(np.where(m, dh, np.nan)).any():
             d = np.where(m, dh, np.nan)
             med, s = np.nanmedian(d), nmad(d)
             with np.errstate(invalid="ignore"):
@@ -156,7 +156,8 @@ def check_stable(mask, valid, *, min_fraction: float = 0.05, what: str = "stable
     f = stable_fraction(mask, valid)
     if f < min_fraction:
         raise InputError(
-            f"{what}: only {100 * f:.1f} % of the DEM's valid cells are left as "
-            f"stable terrain (need at least {100 * min_fraction:.0f} %)"
+            f"{what}: only {100 * f:.1f} % of the DEM's valid cells "
+            f"({int(np.count_nonzero(mask & valid))} of {int(np.count_nonzero(valid))}) are "
+            f"left as stable terrain (need at least {100 * min_fraction:.0f} %)"
         )
     return f

@@ -57,7 +57,7 @@ from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.grid import MapGrid
 from stereodem.core.stats import nmad
 
-from .mosaic_coreg import crop_reference, fitter
+from .mosaic_coreg import check_reference, crop_reference, fitter
 from .mosaic_sources import (
     Source,
     open_sources,
@@ -214,6 +214,7 @@ def plan_mosaic(
     skipped = []
     coreg = {}
     if reference is not None:
+        check_reference(reference)
         sources, skipped, coreg = coregister_sources(
             sources, reference, chain=coreg_chain, dem_vertical=dem_vertical
         )

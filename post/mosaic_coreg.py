@@ -109,6 +109,20 @@ def fitter(chain: str = "nuth_kaab") -> Callable:
     )
 
 
+def check_reference(path) -> None:
+    """:class:`DEMError` (one line naming ``path``) when the reference cannot be read as a
+    raster or has no CRS: a fault of the reference, not of each DEM, so refused at once."""
+    path = str(path)
+    try:
+        with reading_env(), rasterio.open(path) as ds:
+            if ds.crs is None:
+                raise DEMError(f"{path}: the reference DEM has no CRS")
+    except rasterio.errors.RasterioIOError as exc:
+        raise DEMError(
+            f"{path}: cannot read the reference DEM ({str(exc).splitlines()[0][:120]})"
+        ) from None
+
+
 def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -> DEM:
     """The reference DEM over ``bounds`` (west, south, east, north in ``crs``) plus a margin,
     read through a window (the whole reference is never read); :class:`NoOverlapError` when it

@@ -32,9 +32,9 @@ from pathlib import Path
 
 import tomllib
 
-from stereodem.core.errors import InputError, StereodemError
+from stereodem.core.errors import InputError, OutputExistsError, StereodemError
 from stereodem.core.pool import stop_pool
-from stereodem.core.raster import write_text_atomic
+from stereodem.core.raster import check_creatable, write_text_atomic
 from stereodem.core.threads import (
     cores,
     job_threads,
@@ -247,7 +247,13 @@ def run_batch(
     out_root = Path(out_root)
     if out_root.exists() and not out_root.is_dir():
         raise InputError(f"{out_root}: not a folder")
-    out_root.mkdir(parents=True, exist_ok=True)
+    # under a file, in a read-only place (/proc): one line, nothing made (an existing folder is
+    # kept: a second run resumes in it)
+    check_creatable(out_root / "batch.json" if out_root.is_dir() else out_root)
+    try:
+        out_root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputExistsError(f"{out_root}: cannot create the folder ({exc.strerror})") from None
     order = sorted(scenes, key=lambda s: -s.size)  # largest first
     n = min(job_threads(workers), len(order))
     rows: dict[str, SceneStatus] = {}

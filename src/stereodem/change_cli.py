@@ -68,7 +68,7 @@ def run(args) -> int:
 
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
-    from stereodem.core.raster import write_geotiff, write_text_atomic
+    from stereodem.core.raster import check_output_dir, write_geotiff, write_text_atomic
     from stereodem.post.change import dem_change
     from stereodem.post.coreg import parse_chain
     from stereodem.post.dates import dem_dates
@@ -77,6 +77,8 @@ def run(args) -> int:
 
     from .outlock import output_folder
 
+    # an -o that cannot be a folder is refused before the DEMs are compared
+    check_output_dir(args.out, overwrite=args.overwrite)
     a = DEM.from_file(args.dem_a, vertical=args.a_vertical)
     b = DEM.from_file(args.dem_b, vertical=args.b_vertical)
     check_inputs([args.dem_a, args.dem_b], a)

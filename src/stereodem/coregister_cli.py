@@ -91,7 +91,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from stereodem.core.errors import InputError
     from stereodem.core.raster import check_output_dir
     from stereodem.post.coreg_run import CoregJob
     from stereodem.post.coreg_run import run as run_job
@@ -99,8 +98,6 @@ def run(args) -> int:
     from .options import creation_options, say
     from .outlock import check_not_an_input
 
-    if args.outlier_nmad is not None and args.outlier_nmad < 0:
-        raise InputError(f"--outlier-nmad must be >= 0, got {args.outlier_nmad:g}")
     check_output_dir(args.output, overwrite=args.overwrite)
     check_not_an_input(
         [args.output],
@@ -126,6 +123,7 @@ def run(args) -> int:
         max_slope=args.max_slope,
         outlier_nmad=args.outlier_nmad or None,
     )
+    job.check()  # limits that cannot be honoured fail before any reading
     rep = run_job(
         job,
         args.output,

@@ -26,6 +26,7 @@ import rasterio
 from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_sim_scene
 from rasterio.warp import Resampling, reproject
 
+from stereodem.core.dem import DEM
 from stereodem.core.errors import RPCError
 from stereodem.core.stats import nmad
 from stereodem.sensor.io.rpc_formats import read_rpc
@@ -37,6 +38,19 @@ FILES = Path(__file__).resolve().parents[1] / "data" / "rpc_formats"
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
     return write_sim_scene(tmp_path_factory.mktemp("sim"))
+
+
+@pytest.fixture(scope="module")
+def dems(tmp_path_factory):
+    """Three 60 x 60 DEMs of the bundled SRTM tile (geoid heights): ``ref.tif`` and
+    ``a.tif``/``b.tif`` (+1 m, +2 m), for the DEM-to-DEM commands."""
+    d = tmp_path_factory.mktemp("dems")
+    full = DEM.bundled()
+    ref = DEM(full.heights[:60, :60].copy(), full.transform, full.crs, "geoid")
+    ref.write(d / "ref.tif")
+    DEM(ref.heights + 1.0, ref.transform, ref.crs, "geoid").write(d / "a.tif")
+    DEM(ref.heights + 2.0, ref.transform, ref.crs, "geoid").write(d / "b.tif")
+    return d
 
 
 def _files(folder: Path) -> dict:
@@ -93,11 +107,21 @@ def _crs_cases():
         "-o",
         o,
     ]
+    mosaic = lambda s, o, c: [
+        "mosaic",
+        s / "truth_dem.tif",
+        s / "truth_dem.tif",
+        "-o",
+        o / "m.tif",
+        "--crs",
+        c,
+    ]
     return {
         "dem": (dem, "--crs"),
         "ortho": (ortho, "--crs"),
         "uncertainty": (unc, "--crs"),
         "assess": (assess, "--checkpoints-crs"),
+        "mosaic": (mosaic, "--crs"),
     }
 
 
@@ -123,7 +147,8 @@ def test_unusable_crs_in_a_configuration(section, sim, tmp_path, capsys):
 # ----------------------------------------------------------------------------- -o unusable
 
 
-def _out_cases(s):
+def _out_cases(s, d):
+    """``-o`` builders per command: ``s`` the simulated scene, ``d`` the small DEMs."""
     return {
         "dem": (lambda o: ["dem", s / "left.tif", s / "right.tif", "-o", o, "--workers", "1", *HR]),
         "ortho": (
@@ -171,6 +196,29 @@ def _out_cases(s):
         ),
         "simulate": (lambda o: ["simulate", "--size", "64", "64", "-o", o]),
         "demo": (lambda o: ["demo", "-o", o]),
+        "coregister": (
+            lambda o: (
+                ["coregister", d / "a.tif", "--ref", d / "ref.tif", "--chain", "vshift"] + ["-o", o]
+            )
+        ),
+        "mosaic": (lambda o: ["mosaic", d / "a.tif", d / "b.tif", "-o", o / "m.tif"]),
+        "stack": (
+            lambda o: (
+                ["stack", d / "a.tif", d / "b.tif", "--ref", d / "ref.tif"]
+                + ["--dates", "2001-01-01,2005-01-01", "--chain", "vshift", "-o", o]
+            )
+        ),
+        "change": (lambda o: ["change", d / "a.tif", d / "b.tif", "--chain", "vshift", "-o", o]),
+        "batch": (
+            lambda o: [
+                "batch",
+                job_toml(d / "job.toml", s, d / "ignored"),
+                "--workers",
+                "1",
+                "-o",
+                o,
+            ]
+        ),
     }
 
 
@@ -187,18 +235,28 @@ def _out_cases(s):
         "compare-models",
         "simulate",
         "demo",
+        "coregister",
+        "mosaic",
+        "stack",
+        "change",
+        "batch",
     ],
 )
-def test_output_that_cannot_be_created_is_a_clear_error(command, where, sim, tmp_path, capsys):
+def test_output_that_cannot_be_created_is_a_clear_error(
+    command, where, sim, dems, tmp_path, capsys
+):
     a_file = tmp_path / "a_file.txt"
     a_file.write_text("not a folder\n")
     out = a_file / "out" if where == "under_a_file" else Path("/proc/stereodem_test_out")
     if where == "in_proc" and not Path("/proc/self").is_dir():
         pytest.skip("no /proc here")
-    before = _files(tmp_path)
-    code, _, err = run_cli(capsys, _out_cases(sim)[command](out))
+    argv = _out_cases(sim, dems)[command](out)
+    before, inputs_before = _files(tmp_path), _files(dems)
+    code, _, err = run_cli(capsys, argv)
     assert_clear_error(code, err, command, r"cannot be created|not a (writable )?folder")
-    assert _files(tmp_path) == before
+    assert re.search(r"(a_file\.txt/out|stereodem_test_out)", err)  # names the -o given
+    assert _files(tmp_path) == before and _files(dems) == inputs_before
+    assert not Path("/proc/stereodem_test_out").exists()
 
 
 def test_run_output_in_proc_is_a_clear_error(sim, tmp_path, capsys):
@@ -496,3 +554,41 @@ def test_folder_holding_a_users_file_named_like_a_product_is_refused(sim, tmp_pa
     )
     assert_clear_error(code, err, "dem", r"not a stereodem output.*score\.tif")
     assert _files(work) == before
+
+
+# ----------------------------------------------------------------------------- mosaic --ref
+
+
+@pytest.mark.parametrize("kind", ["points_csv", "no_crs"])
+def test_mosaic_reference_that_is_not_a_dem_is_one_line(kind, dems, tmp_path, capsys):
+    """An unreadable or CRS-less ``--ref`` is the reference's fault: refused once, naming it
+    (not a warning per DEM, each skipped, then an error)."""
+    if kind == "points_csv":
+        ref = tmp_path / "points.csv"
+        ref.write_text("lon,lat,h\n40.05,39.95,1000\n")
+        message = r"points\.csv: cannot read the reference DEM"
+    else:
+        ref = tmp_path / "bare.tif"
+        with rasterio.open(dems / "ref.tif") as ds:
+            z, prof = ds.read(1), ds.profile
+        prof.pop("crs", None)
+        with rasterio.open(ref, "w", **prof) as out:
+            out.write(z[None])
+        message = r"bare\.tif: the reference DEM has no CRS"
+    out = tmp_path / "m"
+    code, _, err = run_cli(
+        capsys,
+        [
+            "mosaic",
+            dems / "a.tif",
+            dems / "b.tif",
+            "--ref",
+            ref,
+            "--coregister",
+            "-o",
+            out / "m.tif",
+        ],
+    )
+    assert_clear_error(code, err, "mosaic", message)
+    assert len(err.strip().splitlines()) == 1, err
+    assert not out.exists()

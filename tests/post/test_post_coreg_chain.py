@@ -263,8 +263,11 @@ def test_points_from_csv_and_geoparquet_agree(tmp_path):
 
 def test_points_file_with_a_bad_value_names_the_row(tmp_path):
     p = tmp_path / "bad.csv"
-    p.write_text("lon,lat,h\n40.1,39.9,1000\n40.2,39.8,abc\n")
-    with pytest.raises(InputError, match=r"bad.csv: column 'h', row 3: 'abc' is not a number"):
+    p.write_text("# a comment\nlon,lat,h\n40.1,39.9,1000\n\n40.2,39.8,abc\n")
+    with pytest.raises(InputError, match=r"bad.csv: column 'h', line 5: 'abc' is not a number"):
+        read_points(p, vertical="geoid")
+    p.write_text("# a comment\nlon,lat,h\n40.1,39.9,1000\n40.2,39.8,nan\n")
+    with pytest.raises(InputError, match=r"bad.csv: 1 of 2 points .*NaN.* \(first at line 4\)"):
         read_points(p, vertical="geoid")
 
 
