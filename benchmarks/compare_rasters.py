@@ -10,6 +10,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
 import rasterio
 
 
@@ -27,6 +28,32 @@ def describe(path: Path):
     return data, meta
 
 
+def _what_differs(a, b, ma, mb) -> str:
+    """Empty when all is equal, else what differs: pixels (how many, largest difference) and
+    which metadata (tags added, removed or changed, by name)."""
+    out = []
+    if a.shape != b.shape or a.dtype != b.dtype:
+        out.append(f"shape/type {a.shape} {a.dtype} -> {b.shape} {b.dtype}")
+    elif a.tobytes() != b.tobytes():
+        x, y = a.astype(float), b.astype(float)
+        diff = ~((x == y) | (np.isnan(x) & np.isnan(y)))
+        both = np.isfinite(x) & np.isfinite(y)
+        big = float(np.abs(x - y)[both & diff].max()) if (both & diff).any() else 0.0
+        out.append(f"{int(diff.sum())} pixels (max |difference| {big:.4g})")
+    names = ("transform", "crs", "nodata", "dtypes", "tags", "blockxsize")
+    for name, u, v in zip(names, ma, mb):
+        if u == v:
+            continue
+        if name == "tags":
+            added = sorted(set(v) - set(u))
+            removed = sorted(set(u) - set(v))
+            changed = sorted(k for k in set(u) & set(v) if u[k] != v[k])
+            out.append(f"tags added {added} removed {removed} changed {changed}")
+        else:
+            out.append(name)
+    return (": " + "; ".join(out)) if out else ""
+
+
 def main(before: str, after: str) -> int:
     before_root, after_root = Path(before), Path(after)
     bad = 0
@@ -42,8 +69,9 @@ def main(before: str, after: str) -> int:
             continue
         a, ma = describe(before_root / rel)
         b, mb = describe(other)
-        same = a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes() and ma == mb
-        print(f"{'same    ' if same else 'DIFFERS '} {rel}")
+        pixels = a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+        same = pixels and ma == mb
+        print(f"{'same    ' if same else 'DIFFERS '} {rel}{_what_differs(a, b, ma, mb)}")
         bad += not same
     print(f"{len(paths) - bad}/{len(paths)} rasters bit-identical")
     return 1 if bad else 0
