@@ -113,6 +113,14 @@ def _read(path):
         return ds.read(1)
 
 
+def _georef(path):
+    """(transform, crs) of a raster."""
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        return ds.transform, ds.crs
+
+
 def _load():
     return [round(v, 2) for v in os.getloadavg()]
 
@@ -393,6 +401,12 @@ def part_granules(work: Path) -> dict:
         ]
     )
     rate = _read(o / "rate.tif")
+    n_obs_seen = sum(
+        np.isfinite(
+            warp.to_grid(_read(p), *_georef(p), g.transform, g.crs, g.shape, resampling="nearest")
+        ).astype(int)
+        for p in dems
+    )
     truth = thinning_truth(dem.grid, dem.heights, outline, t_ref=t_ref)
     true_rate = warp.to_grid(
         truth.rate, dem.transform, dem.crs, g.transform, g.crs, g.shape, resampling="nearest"
@@ -407,6 +421,12 @@ def part_granules(work: Path) -> dict:
         "run_s_per_granule": run_s,
         "stack": run,
         "cells_with_rate_pct": float(100 * np.isfinite(rate).mean()),
+        # the reference grid is the simulator's truth grid, larger than the images' footprints:
+        # the share that matters is that of the cells the DEMs observe
+        "cells_observed_by_2_or_more_dates_pct": float(100 * (n_obs_seen >= 2).mean()),
+        "cells_with_rate_of_those_observed_twice_pct": float(
+            100 * np.isfinite(rate[n_obs_seen >= 2]).mean()
+        ),
         "inside_cells": int(inside.sum()),
         "inside_mean_rate_error_m_per_yr": float(np.nanmean(err[inside])),
         "inside_true_mean_rate_m_per_yr": float(np.mean(true_rate[inside])),
