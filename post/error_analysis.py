@@ -67,6 +67,12 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     hs = ss.heteroscedasticity(d_st, slope, curv, sigma_model=sig_model)
     per_cell = hs["sigma_sensor"] if sig_model is not None else hs["sigma"]
     zstd = ss.standardise(d_st, per_cell)
+    if np.isfinite(zstd).sum() < 10:  # e.g. a DEM that differs from its reference by a constant
+        raise InputError(
+            f"{dem.path or 'DEM'} against {ref.path or 'the reference'}: the stable-terrain dh "
+            f"has no dispersion to analyse (NMAD {nmad(d_st):.3g} m over "
+            f"{int(np.isfinite(d_st).sum())} cells)"
+        )
     emp = ss.variogram(zstd, transform=dem.transform, crs=dem.crs, n_pairs=job.n_pairs)
     model = ss.fit_variogram(emp, n_models=2)
     section = {

@@ -152,6 +152,30 @@ def test_assess_error_analysis_adds_section_and_figures(files):
     _assert_error_analysis_in_html(out)
 
 
+def test_assess_error_analysis_of_a_constant_difference_is_one_line(files, tmp_path, capsys):
+    """A DEM that differs from its reference by a constant has no dispersion to analyse: one
+    line naming both files, nothing written (it was "variogram: only 0 valid cells")."""
+    ref = DEM.from_file(files / "ref.tif")
+    DEM(ref.heights + 5.0, ref.transform, ref.crs, "geoid").write(tmp_path / "const.tif")
+    out = tmp_path / "assess"
+    rc = main(
+        [
+            "assess",
+            str(tmp_path / "const.tif"),
+            "--ref",
+            str(files / "ref.tif"),
+            "--error-analysis",
+            "-o",
+            str(out),
+        ]
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1
+    assert len(err) == 1 and "no dispersion" in err[0] and "const.tif" in err[0], err
+    assert "ref.tif" in err[0]
+    assert not out.exists() or not any(out.iterdir())
+
+
 def test_track_heading_of_a_pushbroom_model_and_tag_round_trip(tmp_path):
     left, _ = PushbroomModel.synthetic_pair(
         40.0,
