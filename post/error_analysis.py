@@ -50,13 +50,15 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     outlines = [(path, read_polygons(path, dem.crs)) for path in job.outlines]
     for path, geoms in outlines:
         rasterize(geoms, dem, path=str(path))
-    chain_rep = None
+    chain_rep = chain_plot = None
     if job.chain:
         heading, frame = track_of(dem.path, dem.crs, job.track_angle)
         ch = parse_chain(job.chain).fit(
             ref, dem, stable=stable, track_angle_deg=heading, track_frame=frame
         )
-        dem = ch.apply(dem)
+        corrected = ch.apply(dem)
+        chain_plot = (ch, ref, dem, corrected, stable)  # the chain's figures (write_figures)
+        dem = corrected
         chain_rep = ch.report()
     z = reference_on_grid(ref, dem)
     dh = dem.heights.astype(np.float64) - z
@@ -107,7 +109,7 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     if job.outlines and not areas:
         raise InputError(f"{job.outlines[0]}: no polygon covers a valid cell of the DEM")
     section["area_means"] = areas
-    plots = {"hs": hs, "emp": emp, "model": model}
+    plots = {"hs": hs, "emp": emp, "model": model, "chain": chain_plot}
     return section, plots
 
 
@@ -124,7 +126,10 @@ def _sigma_map(path, dem: DEM):
 
 
 def write_figures(plots, out_dir, *, overwrite=False) -> dict:
-    """``error_vs_terrain.png`` (NMAD of dh against slope and curvature) and ``variogram.png``."""
+    """``error_vs_terrain.png`` (NMAD of dh against slope and curvature), ``variogram.png`` and,
+    when a correction chain ran first, its figures as ``stereodem coregister`` draws them
+    (``coreg_dh.png``: dh before/after; ``coreg_<i>_<step>.png``: each bias curve and its fit),
+    named ``coreg_dh`` and ``coreg_<step>`` in the returned name -> path dict."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -170,6 +175,12 @@ def write_figures(plots, out_dir, *, overwrite=False) -> dict:
     axis.set_ylabel("semivariance (standardised dh)")
     axis.legend(fontsize=7)
     files["variogram"] = _save(fig, out_dir / "variogram.png", overwrite)
+    if plots.get("chain") is not None:
+        from .coreg_figures import chain_figures
+
+        ch, ref, before, after, stable = plots["chain"]
+        made = chain_figures(ch, ref, before, after, stable, out_dir, overwrite=overwrite)
+        files.update({"coreg_" + k.removesuffix("_png"): v for k, v in made.items()})
     return files
 
 

@@ -160,6 +160,21 @@ FIGURE_CAPTIONS = {
     ),
 }
 
+
+def figure_caption(name: str) -> str:
+    """The caption of report figure ``name`` (the correction chain's: ``coreg_dh``,
+    ``coreg_<step>``)."""
+    if name == "coreg_dh":
+        return "DEM − reference before and after the correction chain (stable NMAD in the titles)."
+    if name.startswith("coreg_"):
+        step = name.removeprefix("coreg_")
+        return (
+            f"Correction step {step}: binned dh on stable terrain against its variable, "
+            "and the fit."
+        )
+    return FIGURE_CAPTIONS.get(name, name)
+
+
 _CSS = """body{font-family:system-ui,sans-serif;max-width:980px;margin:1.5em auto;padding:0 1em;
 color:#222;line-height:1.4}h1{font-size:1.6em}h2{font-size:1.25em;border-bottom:1px solid #ccc;
 padding-bottom:.2em;margin-top:1.6em}table{border-collapse:collapse;font-size:.85em;margin:.6em 0}
@@ -216,7 +231,7 @@ def html_report(report: dict, figure_paths: dict) -> str:
     ]
     for name, fp in figure_paths.items():
         data = base64.b64encode(Path(fp).read_bytes()).decode("ascii")
-        cap = FIGURE_CAPTIONS.get(name, name)
+        cap = figure_caption(name)
         parts.append(
             f'<figure><img alt="{esc(name)}" src="data:image/png;base64,{data}">'
             f"<figcaption>{esc(cap)}</figcaption></figure>"

@@ -25,7 +25,7 @@ from stereodem.post import terrain, warp
 from stereodem.post.altimetry import read_points
 from stereodem.post.coreg import StableMask, bilinear
 from stereodem.post.coreg_run import TRACK_HEADING_TAG, track_heading, track_heading_of
-from stereodem.post.report import FIGURE_CAPTIONS
+from stereodem.post.report import FIGURE_CAPTIONS, figure_caption
 from stereodem.post.spatialstats import VariogramModel, area_mean_sigma
 from stereodem.post.synthetic import InjectedErrors, inject_errors
 from stereodem.sensor.models.pushbroom import PushbroomModel
@@ -137,7 +137,9 @@ def test_assess_error_analysis_adds_section_and_figures(files):
             str(files / "ref.tif"),
             "--error-analysis",
             "--chain",
-            "vshift",
+            "vshift,along_track",
+            "--track-angle",
+            "190",
             "-o",
             str(out),
         ]
@@ -146,10 +148,23 @@ def test_assess_error_analysis_adds_section_and_figures(files):
     rep = _json.loads((out / "report.json").read_text())
     ea = rep["error_analysis"]
     assert len(ea["variogram"]["model"]["ranges_m"]) == 2
-    assert ea["coregistration"]["steps"][0]["step"] == "vshift"
+    assert [s["step"] for s in ea["coregistration"]["steps"]] == ["vshift", "along_track"]
     assert (out / "variogram.png").is_file() and (out / "error_vs_terrain.png").is_file()
     assert "Error analysis" in (out / "report.md").read_text()
     _assert_error_analysis_in_html(out)
+    # the chain's figures, as `stereodem coregister` draws them, in every form of the report
+    assert rep["figures"]["coreg_dh"] == "coreg_dh.png"
+    assert rep["figures"]["coreg_along_track"] == "coreg_1_along_track.png"
+    html = (out / "report.html").read_text()
+    for name, file in (
+        ("coreg_dh", "coreg_dh.png"),
+        ("coreg_along_track", "coreg_1_along_track.png"),
+    ):
+        m = re.search(rf'<img alt="{name}" src="data:image/png;base64,([^"]+)">', html)
+        assert m, name
+        assert base64.b64decode(m.group(1)) == (out / file).read_bytes()
+        assert html_escape(figure_caption(name)) in html
+    assert "coreg_dh.png" in (out / "report.md").read_text()
 
 
 def test_assess_error_analysis_of_a_constant_difference_is_one_line(files, tmp_path, capsys):
