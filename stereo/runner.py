@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from stereodem.core import interrupt
 from stereodem.core.errors import InputError
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import atomic_path
@@ -361,6 +362,7 @@ def run_tiles(
 
     def collect(index, out, err, secs):
         nonlocal done
+        interrupt.check()  # a stop request that an earlier KeyboardInterrupt did not deliver
         done += 1
         timings[index] = secs
         if err is not None:

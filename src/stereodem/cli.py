@@ -11,6 +11,7 @@ import logging
 import signal
 import sys
 
+from stereodem.core import interrupt
 from stereodem.core.errors import StereodemError
 
 from . import __version__
@@ -83,13 +84,17 @@ def main(argv=None) -> int:
         parser.print_help(sys.stderr)
         return 2
     _setup_logging(args)
-    received = []
 
-    def on_term(signum, frame):  # SIGTERM: stop like Ctrl-C (pool stopped, lock released)
-        received.append(signum)
+    def on_signal(signum, frame):  # SIGTERM stops like Ctrl-C (pool stopped, lock released)
+        interrupt.request(signum)  # and stays requested: stereodem.core.interrupt
         raise KeyboardInterrupt
 
-    previous = _install(signal.SIGTERM, on_term)
+    previous = _install(signal.SIGTERM, on_signal)
+    previous_int = (
+        _install(signal.SIGINT, on_signal)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        else None
+    )
     try:
         if hasattr(args, "workers"):  # one thread budget for the command (stereodem.core.threads)
             from stereodem.core.threads import thread_budget
@@ -101,11 +106,12 @@ def main(argv=None) -> int:
         print(f"stereodem {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        name = "SIGTERM" if received else "SIGINT"
+        sig = interrupt.requested() or signal.SIGINT
+        name = signal.Signals(sig).name
         print(
             f"stereodem {args.command}: interrupted ({name}); {_resume_hint(args)}", file=sys.stderr
         )
-        return 128 + (signal.SIGTERM if received else signal.SIGINT)
+        return 128 + sig
     except MemoryError:
         print(
             f"stereodem {args.command}: error: out of memory (try fewer --workers or a smaller "
@@ -115,6 +121,9 @@ def main(argv=None) -> int:
         return 1
     finally:
         _install(signal.SIGTERM, previous)
+        if previous_int is not None:
+            _install(signal.SIGINT, previous_int)
+        interrupt.clear()
 
 
 def _install(signum, handler):

@@ -17,6 +17,7 @@ import rasterio
 import rasterio.warp
 import scipy
 
+from stereodem.core import interrupt
 from stereodem.stereo.runner import (
     process_peak_rss_mb,
     reset_peak_rss,
@@ -54,7 +55,9 @@ class StageLog:
     _scope: str = "process"
 
     def start(self) -> float:
-        """Mark the start of a stage; returns its ``time.perf_counter()``."""
+        """Mark the start of a stage; returns its ``time.perf_counter()``. A pending stop
+        request (:mod:`stereodem.core.interrupt`) stops the job here."""
+        interrupt.check()
         self._scope = "stage" if reset_peak_rss() else "process"
         self._cpu0 = _cpu_seconds()
         return time.perf_counter()
