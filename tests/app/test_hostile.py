@@ -623,6 +623,11 @@ def test_damaged_cache_entry_is_recomputed_on_resume(damage, sim, reference_run,
     _assert_same_rasters(reference_run, out)
 
 
+def _default_sigint():
+    """In the child before exec: SIGINT to its default (Python then raises KeyboardInterrupt)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _children(pid):
     """PIDs whose parent is ``pid`` (Linux /proc)."""
     kids = []
@@ -666,6 +671,9 @@ def test_killed_run_leaves_no_process_and_resumes_bit_identical(sig, sim, refere
         stdout=subprocess.DEVNULL,
         stderr=log,
         text=True,
+        # as from a terminal: a suite started in the background (`cmd &`, CI) ignores SIGINT,
+        # and a child inherits that, so Ctrl-C would never reach it
+        preexec_fn=_default_sigint,
     )
     workers = []
     deadline = time.monotonic() + 120
