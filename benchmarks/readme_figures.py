@@ -173,6 +173,22 @@ def scaling(d):
     )
 
 
+def worker_start(d):
+    rows = "; ".join(
+        f"{r['workers']} workers: {r['forkserver_cpu_s']:.2f} vs {r['spawn_cpu_s']:.2f} CPU s "
+        f"({r['forkserver_wall_s']:.2f} vs {r['spawn_wall_s']:.2f} s wall)"
+        for r in d["runs"]
+    )
+    same = all(r["identical"] for r in d["runs"])
+    load = d["load_average_before_after"][0][0]
+    return (
+        "Tile pool start, fork server with the tile code preloaded vs spawned workers "
+        f"(`benchmarks/bench_worker_start.py`, 2 × N equal tiles, medians of {d['repeat']}, "
+        f"{d['machine']['cpus']} cores, load {load:.1f}): {rows}; results "
+        f"{'identical' if same else 'NOT identical'}."
+    )
+
+
 def ortho_pair(d):
     m = d["median"]
     same = all(r["identical_to_first"] for r in d["runs"])
@@ -587,6 +603,7 @@ SUMMARISERS = {
     "bench_mosaic": mosaic,
     "bench_scaling": scaling,
     "bench_scaling_full": scaling,
+    "bench_worker_start": worker_start,
     "bench_batch": batch,
     "bench_coreg": coreg,
     "bench_multiview": multiview,
@@ -690,6 +707,11 @@ BENCHMARKS = {
         "scaling with `--workers`, full granule",
         "python benchmarks/bench_scaling.py --results benchmarks/results/bench_scaling_full.json",
         "itself at 1 worker (1, 2, 4, … up to the cores)",
+    ),
+    "bench_worker_start": (
+        "tile pool start: fork server vs spawn (issue 28)",
+        "python benchmarks/bench_worker_start.py",
+        "the same pool with spawned workers, same run",
     ),
     "bench_batch": (
         "many scenes (`stereodem batch`)",

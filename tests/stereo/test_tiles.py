@@ -110,3 +110,52 @@ def test_results_can_stay_in_the_cache_only(tmp_path):
         got = load_cached(tmp_path / "b", t)
         assert got.keys() == held[t.index].keys()
         np.testing.assert_array_equal(got["value"], held[t.index]["value"])
+
+
+def _busy_tile(tile, ctx):
+    """A tile that burns ``ctx["cpu_s"]`` CPU seconds and says what its worker had imported
+    before the tile ran, who its parent is and how much CPU it had used."""
+    import resource
+    import sys
+
+    preloaded = "stereodem.stereo.pipeline" in sys.modules  # this module does not import it
+    t0 = time.process_time()
+    while time.process_time() - t0 < ctx["cpu_s"]:
+        pass
+    return {
+        "pid": np.array(os.getpid()),
+        "ppid": np.array(os.getppid()),
+        "preloaded": np.array(preloaded),
+        "cpu_s": np.array(sum(resource.getrusage(resource.RUSAGE_SELF)[:2])),
+    }
+
+
+@pytest.mark.skipif(
+    "forkserver" not in __import__("multiprocessing").get_all_start_methods(),
+    reason="no fork server on this platform",
+)
+def test_pool_workers_fork_from_a_preloaded_server_whose_cpu_is_counted():
+    """Workers are forked from a server that imported the tile code once (a spawned worker
+    imports numpy, SciPy, OpenCV, rasterio, pyproj itself: ~1 CPU s each), and the server is
+    stopped and waited for after the pool, so the workers' CPU seconds reach this process's
+    RUSAGE_CHILDREN (run.json's worker_cpu_s) although they were not its children."""
+    import resource
+    from multiprocessing import forkserver
+
+    import stereodem.stereo.pipeline  # noqa: F401  (not what the workers' check looks at)
+
+    tiles = tile_grid(130, 100, 50)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    res, failures, _ = run_tiles(_busy_tile, tiles, {"cpu_s": 0.2}, workers=2)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    assert not failures
+    assert all(bool(r["preloaded"]) for r in res.values())
+    assert {int(r["ppid"]) for r in res.values()} != {os.getpid()}  # the server's children
+    # each worker's CPU at its last tile, summed: all of it is now this process's children's
+    last = {}
+    for r in res.values():
+        last[int(r["pid"])] = max(last.get(int(r["pid"]), 0.0), float(r["cpu_s"]))
+    counted = sum(after[:2]) - sum(before[:2])
+    assert len(tiles) >= 4 and sum(last.values()) >= len(tiles) * 0.2
+    assert counted >= sum(last.values())
+    assert forkserver._forkserver._forkserver_pid is None  # stopped with its pool
