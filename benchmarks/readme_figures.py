@@ -549,13 +549,15 @@ def stack(d):
             f"; granules → DEMs → stack ({len(g['dates'])} dates): rate inside off by "
             f"{g['inside_mean_rate_error_m_per_yr']:+.3f} m/yr"
         )
-    h = d.get("heavy")
-    if h:
-        out += (
-            f"; `stack` of {h['dems']} DEMs of {h['cells']} cells on {h['workers']} workers: "
-            f"{h['wall_s'] / 60:.1f} min, peak {h['peak_rss_mib'] / 1024:.2f} GiB "
-            f"(load average {h['load_before'][0]:.0f}–{h['load_after'][0]:.0f})"
-        )
+    for key in ("heavy", "heavy_chain"):
+        h = d.get(key)
+        if h:
+            out += (
+                f"; `stack` of {h['dems']} DEMs of {h['cells']} cells, chain `{h['chain']}`, on "
+                f"{h['workers']} workers: {h['wall_s'] / 60:.1f} min, peak "
+                f"{h['peak_rss_mib'] / 1024:.2f} GiB (load average "
+                f"{h['load_before'][0]:.0f}–{h['load_after'][0]:.0f})"
+            )
     return out + "."
 
 
