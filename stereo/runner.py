@@ -180,30 +180,37 @@ def _die_with_parent():
         os._exit(1)
     if armed and owner == ppid:
         return
-    _watch_process(owner)
+    _watch_process(owner, ppid)
 
 
-def _watch_process(pid):
-    """A daemon thread that ends this process (exit status 1) when process ``pid`` ends."""
+def _watch_process(owner, ppid):
+    """A daemon thread that ends this process (exit status 1) when the process ``owner`` ends:
+    through its pidfd (Linux >= 5.3), else by polling that this process's parent is still
+    ``ppid`` (it is reparented when its parent ends) and, when ``owner`` is not that parent (a
+    fork server's worker, POSIX only), that ``owner`` exists."""
     try:
-        fd = os.pidfd_open(pid)
+        fd = os.pidfd_open(owner)
     except ProcessLookupError:  # already gone
         os._exit(1)
-    except (AttributeError, OSError):  # no pidfd (not Linux >= 5.3): poll the PID
+    except (AttributeError, OSError):  # no pidfd: poll
         fd = None
+
+    def gone(pid):
+        try:
+            os.kill(pid, 0)  # POSIX: signal 0 only checks that the process exists
+        except ProcessLookupError:
+            return True
+        except PermissionError:
+            pass
+        return False
 
     def watch():
         if fd is not None:
             select.select([fd], [], [])  # readable when the process ends
             os._exit(1)
-        while True:
-            try:
-                os.kill(pid, 0)
-            except ProcessLookupError:
-                os._exit(1)
-            except PermissionError:
-                pass
+        while os.getppid() == ppid and (owner == ppid or not gone(owner)):
             time.sleep(0.5)
+        os._exit(1)
 
     threading.Thread(target=watch, daemon=True, name="pool-owner-watchdog").start()
 
@@ -226,6 +233,26 @@ def pool_context():
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(_PRELOAD)
     return ctx
+
+
+_OPEN_POOLS = 0  # tile pools of this process now running (threads may each run one)
+_OPEN_POOLS_LOCK = threading.Lock()
+
+
+def _pool_opened():
+    global _OPEN_POOLS
+    with _OPEN_POOLS_LOCK:
+        _OPEN_POOLS += 1
+
+
+def _pool_closed(ctx, *, stop_server: bool):
+    """One pool less; the last one closed normally stops the fork server
+    (:func:`_stop_fork_server`): a server still serving another thread's pool is left alone."""
+    global _OPEN_POOLS
+    with _OPEN_POOLS_LOCK:
+        _OPEN_POOLS -= 1
+        if stop_server and _OPEN_POOLS == 0:
+            _stop_fork_server(ctx)
 
 
 def _stop_fork_server(ctx):
@@ -464,15 +491,17 @@ def run_tiles(
             initializer=_init_worker,
             initargs=(context, worker_threads(n)),
         )
+        _pool_opened()
         try:
             futs = [ex.submit(_run_one, fn, t, timeout) for t in todo]
             for f in as_completed(futs):
                 collect(*f.result())
         except BaseException:  # Ctrl-C, SIGTERM, an error: stop the workers now (the fork
             stop_pool(ex)  # server, if any, then ends with this process: nothing waits for it)
+            _pool_closed(ctx, stop_server=False)
             raise
         ex.shutdown(wait=True)
-        _stop_fork_server(ctx)
+        _pool_closed(ctx, stop_server=True)
     failures.sort(key=lambda f: f.tile.index)
     return results, failures, timings
 

@@ -159,3 +159,22 @@ def test_pool_workers_fork_from_a_preloaded_server_whose_cpu_is_counted():
     assert len(tiles) >= 4 and sum(last.values()) >= len(tiles) * 0.2
     assert counted >= sum(last.values())
     assert forkserver._forkserver._forkserver_pid is None  # stopped with its pool
+
+
+@pytest.mark.skipif(
+    "forkserver" not in __import__("multiprocessing").get_all_start_methods(),
+    reason="no fork server on this platform",
+)
+def test_pools_in_two_threads_share_the_fork_server_until_the_last_ends():
+    """Two threads' pools fork their workers from one server: both complete (the first to end
+    leaves the server to the other, whose workers it serves), and the last stops it."""
+    from concurrent.futures import ThreadPoolExecutor
+    from multiprocessing import forkserver
+
+    tiles = tile_grid(130, 100, 50)
+    with ThreadPoolExecutor(2) as tp:
+        short = tp.submit(run_tiles, _busy_tile, tiles, {"cpu_s": 0.05}, workers=2)
+        long = tp.submit(run_tiles, _busy_tile, tiles, {"cpu_s": 0.2}, workers=2)
+        (r1, f1, _), (r2, f2, _) = short.result(timeout=120), long.result(timeout=120)
+    assert not f1 and not f2 and len(r1) == len(r2) == len(tiles)
+    assert forkserver._forkserver._forkserver_pid is None
