@@ -235,6 +235,24 @@ def pool_context():
     return ctx
 
 
+def warm_fork_server(workers: int | None, n_tiles: int, dask_address=None) -> bool:
+    """Start the fork server of a tile pool about to come (a run's stereo stage, before its
+    sparse matching and planning), so that the server's imports (~1 s) overlap this process's
+    work instead of delaying the first tiles. Returns whether one was started; nothing happens
+    where :func:`run_tiles` would not start a pool (one worker, ``n_tiles`` <= 1, Dask) or a
+    platform without a fork server. A server no pool used is stopped by the next
+    :func:`run_tiles` (its CPU is then counted as a waited-for child's)."""
+    if pool_size(workers, n_tiles, dask_address) == 0:
+        return False
+    ctx = pool_context()
+    if ctx.get_start_method() != "forkserver":
+        return False
+    from multiprocessing import forkserver
+
+    forkserver.ensure_running()
+    return True
+
+
 _OPEN_POOLS = 0  # tile pools of this process now running (threads may each run one)
 _OPEN_POOLS_LOCK = threading.Lock()
 
@@ -253,6 +271,13 @@ def _pool_closed(ctx, *, stop_server: bool):
         _OPEN_POOLS -= 1
         if stop_server and _OPEN_POOLS == 0:
             _stop_fork_server(ctx)
+
+
+def _stop_idle_fork_server():
+    """Stop a fork server that :func:`warm_fork_server` started for a pool that did not come
+    (the tiles ran here or on Dask), unless another thread's pool is using it."""
+    _pool_opened()
+    _pool_closed(pool_context(), stop_server=True)
 
 
 def _stop_fork_server(ctx):
@@ -479,9 +504,11 @@ def run_tiles(
     n = pool_size(workers, len(todo), dask_address)
     if dask_address is not None:
         _run_dask(fn, todo, context, timeout, dask_address, collect)
+        _stop_idle_fork_server()
     elif n == 0:
         for t in todo:
             collect(*_run_one(fn, t, timeout, context))
+        _stop_idle_fork_server()
     else:
         ctx = pool_context()
 

@@ -178,3 +178,34 @@ def test_pools_in_two_threads_share_the_fork_server_until_the_last_ends():
         (r1, f1, _), (r2, f2, _) = short.result(timeout=120), long.result(timeout=120)
     assert not f1 and not f2 and len(r1) == len(r2) == len(tiles)
     assert forkserver._forkserver._forkserver_pid is None
+
+
+@pytest.mark.skipif(
+    "forkserver" not in __import__("multiprocessing").get_all_start_methods(),
+    reason="no fork server on this platform",
+)
+def test_a_warmed_fork_server_is_used_by_the_pool_or_stopped_without_one():
+    """warm_fork_server starts the coming pool's server early (its imports overlap the
+    sparse stage); the pool then forks from it, and where no pool comes (the tiles ran here)
+    the next run_tiles stops it: no server outlives the stage, its CPU counted as a child's."""
+    import resource
+    from multiprocessing import forkserver
+
+    from stereodem.stereo.runner import warm_fork_server
+
+    tiles = tile_grid(130, 100, 50)
+    assert not warm_fork_server(1, len(tiles))  # one worker: no pool, no server
+    assert not warm_fork_server(2, 1)  # one tile: no pool
+    assert forkserver._forkserver._forkserver_pid is None
+    assert warm_fork_server(2, len(tiles))
+    server = forkserver._forkserver._forkserver_pid
+    res, failures, _ = run_tiles(_busy_tile, tiles, {"cpu_s": 0.01}, workers=2)
+    assert not failures and {int(r["ppid"]) for r in res.values()} == {server}
+    assert forkserver._forkserver._forkserver_pid is None
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    assert warm_fork_server(2, len(tiles))
+    res, failures, _ = run_tiles(_busy_tile, tiles, {"cpu_s": 0.01}, workers=1)
+    assert not failures and {int(r["pid"]) for r in res.values()} == {os.getpid()}
+    assert forkserver._forkserver._forkserver_pid is None
+    # the unused server's imports (numpy, OpenCV, ... ~1 CPU s) came back as a child's
+    assert sum(resource.getrusage(resource.RUSAGE_CHILDREN)[:2]) - sum(before[:2]) > 0.2

@@ -27,6 +27,7 @@ from stereodem.stereo import sanity
 from stereodem.stereo.execution import tile_runner
 from stereodem.stereo.jitter import dem_with_jitter_correction
 from stereodem.stereo.pipeline import make_dem
+from stereodem.stereo.runner import warm_fork_server
 
 from ..config import Config
 from ..provenance import provenance
@@ -45,6 +46,9 @@ def stereo_stage(
     correction) also write their points there (:mod:`stereodem.point_cloud`), ``source_pair``
     ``pair_id``."""
     runner = tile_runner(cfg.run, progress, cache_dir=cache_dir)
+    # the pool's fork server imports while the sparse stage and the planning run here
+    tiles_estimate = pair.left_image.size // cfg.stereo.rectification.tile_size**2
+    warm_fork_server(cfg.run.workers, tiles_estimate, cfg.run.dask)
     args = (pair.left_image, pair.right_image, pair.left_model, pair.right_model)
     dtypes = dict(left_dtype=pair.left_dtype, right_dtype=pair.right_dtype)
     if cfg.jitter.enabled:
