@@ -37,12 +37,13 @@ def row_bands(n_rows: int, threads: int, min_rows: int = MIN_ROWS) -> list[tuple
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
-def by_rows(fn, *arrays, halo: int, threads: int | None = None, out=None):
+def by_rows(fn, *arrays, halo: int, threads: int | None = None, out=None, min_rows: int = MIN_ROWS):
     """``fn(*arrays)`` computed in row bands on threads (see the module docstring); ``fn`` must
-    be local within ``halo`` rows and return an array of the inputs' 2-D shape."""
+    be local within ``halo`` rows and return an array with the inputs' rows (first axis).
+    ``min_rows``: the smallest band worth a thread (rows of blocks, not cells, are fewer)."""
     threads = default_threads() if threads is None else int(threads)
     rows = arrays[0].shape[0]
-    bands = row_bands(rows, threads)
+    bands = row_bands(rows, threads, min_rows)
     if len(bands) == 1:
         return fn(*arrays)
     results = [None] * len(bands)

@@ -207,9 +207,13 @@ def _block_scale(r, valid, block: int):
     pad = np.full((nb_r * block, nb_c * block), np.nan)
     pad[:rows, :cols] = np.where(valid, r, np.nan)
     t = pad.reshape(nb_r, block, nb_c, block).transpose(0, 2, 1, 3).reshape(nb_r, nb_c, -1)
-    med = _nanmedian_last(t)
-    with np.errstate(invalid="ignore"):
-        scale = NMAD_FACTOR * _nanmedian_last(np.abs(t - med[..., None]))
+
+    def nmad_of_blocks(a):  # each block alone: any split into rows of blocks gives the same
+        med = _nanmedian_last(a)
+        with np.errstate(invalid="ignore"):
+            return NMAD_FACTOR * _nanmedian_last(np.abs(a - med[..., None]))
+
+    scale = by_rows(nmad_of_blocks, t, halo=0, min_rows=4)
     glob = NMAD_FACTOR * np.median(np.abs(r[valid] - np.median(r[valid])))
     scale = np.where(np.isfinite(scale), scale, glob).astype(np.float32)
     if scale.shape == (1, 1):
@@ -265,9 +269,14 @@ def spike_filter(
     def predict(a):  # the quadratic-surface prediction, in row bands
         return by_rows(lambda b: ndi.correlate(b, kern, mode="nearest"), a, halo=window // 2)
 
+    def flagged(a, zf_, limit_, valid_):  # |zf - prediction from a| over the limit
+        with np.errstate(invalid="ignore"):
+            return valid_ & (np.abs(zf_ - ndi.correlate(a, kern, mode="nearest")) > limit_)
+
     r = zf - predict(zf)
     limit = np.maximum(k * _block_scale(r, valid, block), min_deviation)
     flag = valid & (np.abs(r) > limit)
+    del r
     med = replaced = None
     for _ in range(max(0, iterations - 1)):
         if not flag.any():
@@ -278,8 +287,7 @@ def spike_filter(
         med = m if med is None else np.where(todo, m, med)
         replaced = flag if replaced is None else replaced | flag
         work = np.where(replaced, med, zf)
-        r = zf - predict(work)
-        new = valid & (np.abs(r) > limit)
+        new = by_rows(flagged, work, zf, limit, valid, halo=window // 2)  # in row bands
         if np.array_equal(new, flag):
             break
         flag = new
