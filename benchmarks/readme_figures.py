@@ -165,9 +165,12 @@ def scaling(d):
     same = all(
         all(v.values()) for x in d["runs"] for k, v in x.items() if k.startswith("bit_identical")
     )
+    rep = d.get("repeat", 1)
+    how = f", the median-wall run of {rep} alternating rounds" if rep > 1 else ""
     return (
         f"Scaling with `--workers` (`benchmarks/bench_scaling.py`, `stereodem run` on a simulated "
-        f"V004 granule, 3N {g['left'][0]} × {g['left'][1]}, {d['machine']['cpus']} cores): {rows}; "
+        f"V004 granule, 3N {g['left'][0]} × {g['left'][1]}, {d['machine']['cpus']} cores{how}): "
+        f"{rows}; "
         + ", ".join(f"{k} {v}" for k, v in r.items())
         + f"; rasters {'bit-identical' if same else 'NOT identical'} across worker counts."
     )
@@ -605,6 +608,7 @@ SUMMARISERS = {
     "bench_mosaic": mosaic,
     "bench_scaling": scaling,
     "bench_scaling_full": scaling,
+    "bench_scaling_full_forkserver": scaling,
     "bench_worker_start": worker_start,
     "bench_batch": batch,
     "bench_coreg": coreg,
@@ -709,6 +713,12 @@ BENCHMARKS = {
         "scaling with `--workers`, full granule",
         "python benchmarks/bench_scaling.py --results benchmarks/results/bench_scaling_full.json",
         "itself at 1 worker (1, 2, 4, … up to the cores)",
+    ),
+    "bench_scaling_full_forkserver": (
+        "scaling, full granule, workers forked from a preloaded server (issue 28)",
+        "python benchmarks/bench_scaling.py --workers 1 2 --repeat 3 --results "
+        "benchmarks/results/bench_scaling_full_forkserver.json",
+        "the same job with 1 worker, same run",
     ),
     "bench_worker_start": (
         "tile pool start: fork server vs spawn (issue 28)",
