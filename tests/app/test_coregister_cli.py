@@ -127,6 +127,7 @@ def _assert_error_analysis_in_html(out):
         assert FIGURE_CAPTIONS[name] in html
 
 
+@pytest.mark.slow
 def test_assess_error_analysis_adds_section_and_figures(files):
     out = files / "assess"
     rc = main(
@@ -433,6 +434,7 @@ def _box_geojson(path, dem: DEM, boxes):
     return path
 
 
+@pytest.mark.slow
 def test_assess_outlines_give_the_area_mean_sigma_from_the_variogram(files, tmp_path):
     """``assess --outlines``: per polygon, the σ of the mean dh from the fitted variogram. With
     the offset and the along-track sine removed, what is left is the injected noise (spherical,

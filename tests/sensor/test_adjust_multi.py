@@ -267,6 +267,7 @@ def test_adjust_cli_pair_from_match_file(triplet_files, capsys):
     assert "bundle (rpc-shift): 300 ties (0 rejected)" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_adjust_cli_three_images_automatic_ties(tmp_path, capsys):
     """``stereodem adjust IMG1 IMG2 IMG3 --model bundle`` without ``--ties``/``--match``: SIFT tie
     points matched between every chosen pair of real (simulated) images and chained into tracks.

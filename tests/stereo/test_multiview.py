@@ -378,6 +378,7 @@ def _at_points(path, x, y):
     return map_coordinates(a, [row - 0.5, col - 0.5], order=1, cval=np.nan)
 
 
+@pytest.mark.slow
 def test_dem_cli_triplet_point_cloud(triplet, tmp_path, capsys):
     """``stereodem dem IMG1 IMG2 IMG3 --point-cloud las``: one cloud of every chosen pair's
     points, ``source_pair`` = the pair's ``pair_id`` in the report (and in the cloud's VLR), the

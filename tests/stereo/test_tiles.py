@@ -161,6 +161,7 @@ def test_pool_workers_fork_from_a_preloaded_server_whose_cpu_is_counted():
     assert forkserver._forkserver._forkserver_pid is None  # stopped with its pool
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     "forkserver" not in __import__("multiprocessing").get_all_start_methods(),
     reason="no fork server on this platform",
@@ -180,6 +181,7 @@ def test_pools_in_two_threads_share_the_fork_server_until_the_last_ends():
     assert forkserver._forkserver._forkserver_pid is None
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     "forkserver" not in __import__("multiprocessing").get_all_start_methods(),
     reason="no fork server on this platform",
