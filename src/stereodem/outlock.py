@@ -45,6 +45,8 @@ __all__ = [
 ]
 
 LOCK_NAME = ".stereodem.lock"
+#: the writability probe a job starting in the folder leaves there for an instant
+PROBE_PREFIX = ".stereodem-probe-"
 
 #: what a stereodem job writes into its output folder (files and folders, glob patterns)
 PRODUCTS = (
@@ -257,7 +259,7 @@ def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs
         raise OutputExistsError(f"{path}: cannot be created ({exc.strerror})") from None
     probe = None
     try:  # writable? (os.access says yes to root, even in /proc)
-        probe = path / f".stereodem-probe-{os.getpid()}"
+        probe = path / f"{PROBE_PREFIX}{os.getpid()}"
         probe.touch()
         probe.unlink()
     except OSError as exc:
@@ -275,7 +277,11 @@ def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs
         raise
     ok = False
     try:
-        others = [p for p in path.iterdir() if p.name != LOCK_NAME]
+        # another job starting here at the same moment may have its probe in the folder:
+        # not a file of the user's (it then finds the folder locked and gives up)
+        others = [
+            p for p in path.iterdir() if p.name != LOCK_NAME and not p.name.startswith(PROBE_PREFIX)
+        ]
         if others:
             if not (overwrite or resume):
                 raise OutputExistsError(
