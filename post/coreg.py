@@ -26,6 +26,7 @@ correlated errors they are lower bounds (see :mod:`stereodem.post.spatialstats`)
 
 from __future__ import annotations
 
+import abc
 import logging
 import time
 from dataclasses import dataclass
@@ -290,7 +291,7 @@ def param(value, sigma, unit: str = "") -> dict:
 # ----------------------------------------------------------------------------- base classes
 
 
-class Coreg:
+class Coreg(abc.ABC):
     """One correction step: :meth:`fit` estimates, :meth:`apply` removes (same grid).
 
     Subclasses implement ``_fit(sampler, dem, context)`` (set ``self.params``: name ->
@@ -358,11 +359,13 @@ class Coreg:
             np.asarray(self._apply(dem), np.float32), dem.transform, dem.crs, dem.vertical, dem.path
         )
 
-    def _fit(self, sampler, dem, context):  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _fit(self, sampler, dem, context):
+        """Estimate this step's parameters on the stable samples (``sampler``) of ``dem``."""
 
-    def _apply(self, dem):  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _apply(self, dem):
+        """The heights of ``dem`` (array on its grid) with the fitted error removed."""
 
     def parameters(self) -> dict:
         return self.params
@@ -427,6 +430,9 @@ class CoregChain(Coreg):
         for step in self.steps:
             dem = step.apply(dem)
         return dem
+
+    def _apply(self, dem):
+        return self.apply(dem).heights
 
     def parameters(self) -> dict:
         return {f"{i}:{s.name}": s.parameters() for i, s in enumerate(self.steps)}

@@ -23,6 +23,7 @@ disparity range (see the stereo pipeline), not by the scene size.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import multiprocessing
@@ -219,10 +220,15 @@ def _watch_process(owner, ppid):
 # interpreter spends about 1 CPU s importing numpy, SciPy, OpenCV, rasterio and pyproj, a fork
 # of the server milliseconds (16 workers: ~16 CPU s saved per pool). Not a fork of this
 # process: a forked child inherits OpenCV's and PROJ's thread state and can deadlock in its
-# first cv2 call; the server has only imported modules. The server is stopped with its pool
-# (:func:`_stop_fork_server`), so that its workers' CPU time comes back to this process as a
-# waited-for child's (``RUSAGE_CHILDREN``: run.json's ``worker_cpu_s``).
+# first cv2 call; the server has only imported modules. The server this module starts is
+# stopped when the process's last running tile pool ends (:func:`_pool_closed`), so that its
+# workers' CPU time comes back to this process as a waited-for child's (``RUSAGE_CHILDREN``:
+# run.json's ``worker_cpu_s``); a server someone else started is left alone.
 _PRELOAD = ["stereodem.stereo.pipeline", "stereodem.stereo.execution"]
+
+_OPEN_POOLS = 0  # tile pools of this process now running (threads may each run one)
+_OWN_SERVER = None  # PID of the fork server this module started, while it runs
+_SERVER_LOCK = threading.Lock()
 
 
 def pool_context():
@@ -235,67 +241,85 @@ def pool_context():
     return ctx
 
 
+def _fork_server():
+    """CPython's fork server object (None where there is none)."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return None
+    from multiprocessing import forkserver
+
+    return getattr(forkserver, "_forkserver", None)
+
+
+def _start_fork_server() -> bool:
+    """Start the fork server now (its imports then run in the background) and remember it as
+    this module's if none ran; returns whether one runs. Caller holds ``_SERVER_LOCK``."""
+    global _OWN_SERVER
+    server = _fork_server()
+    if server is None or not hasattr(server, "ensure_running"):
+        return False
+    was = getattr(server, "_forkserver_pid", None)
+    server.ensure_running()
+    if was is None:
+        _OWN_SERVER = getattr(server, "_forkserver_pid", None)
+    return True
+
+
+def _stop_unused_fork_server():
+    """Stop this module's fork server when no tile pool of this process runs: it exits, this
+    process waits for it, and the CPU time of the workers it reaped is added to this
+    process's ``RUSAGE_CHILDREN``. Caller holds ``_SERVER_LOCK``."""
+    global _OWN_SERVER
+    server = _fork_server()
+    if _OPEN_POOLS or _OWN_SERVER is None or server is None:
+        return
+    if getattr(server, "_forkserver_pid", None) == _OWN_SERVER:
+        stop = getattr(server, "_stop", None)  # CPython's own (its tests use it), 3.8+
+        if stop is not None:
+            with contextlib.suppress(OSError, ChildProcessError):
+                stop()
+    _OWN_SERVER = None
+
+
 def warm_fork_server(workers: int | None, n_tiles: int, dask_address=None) -> bool:
     """Start the fork server of a tile pool about to come (a run's stereo stage, before its
     sparse matching and planning), so that the server's imports (~1 s) overlap this process's
-    work instead of delaying the first tiles. Returns whether one was started; nothing happens
-    where :func:`run_tiles` would not start a pool (one worker, ``n_tiles`` <= 1, Dask) or a
+    work instead of delaying the first tiles. Returns whether one runs; nothing happens where
+    :func:`run_tiles` would not start a pool (one worker, ``n_tiles`` <= 1, Dask) or a
     platform without a fork server. A server no pool used is stopped by the next
     :func:`run_tiles` (its CPU is then counted as a waited-for child's)."""
     if pool_size(workers, n_tiles, dask_address) == 0:
         return False
-    ctx = pool_context()
-    if ctx.get_start_method() != "forkserver":
+    if pool_context().get_start_method() != "forkserver":
         return False
-    from multiprocessing import forkserver
-
-    forkserver.ensure_running()
-    return True
+    with _SERVER_LOCK:
+        return _start_fork_server()
 
 
-_OPEN_POOLS = 0  # tile pools of this process now running (threads may each run one)
-_OPEN_POOLS_LOCK = threading.Lock()
-
-
-def _pool_opened():
+def _pool_opened(ctx):
+    """A tile pool of context ``ctx`` starts: a fork server (started here if needed) runs until
+    it ends."""
     global _OPEN_POOLS
-    with _OPEN_POOLS_LOCK:
+    with _SERVER_LOCK:
+        if ctx.get_start_method() == "forkserver":
+            _start_fork_server()
         _OPEN_POOLS += 1
 
 
-def _pool_closed(ctx, *, stop_server: bool):
-    """One pool less; the last one closed normally stops the fork server
-    (:func:`_stop_fork_server`): a server still serving another thread's pool is left alone."""
+def _pool_closed(*, stop_server: bool = True):
+    """A tile pool ended; the last one to end normally stops this module's fork server (on an
+    interrupt it is left to end with this process: nothing waits for it)."""
     global _OPEN_POOLS
-    with _OPEN_POOLS_LOCK:
+    with _SERVER_LOCK:
         _OPEN_POOLS -= 1
-        if stop_server and _OPEN_POOLS == 0:
-            _stop_fork_server(ctx)
+        if stop_server:
+            _stop_unused_fork_server()
 
 
 def _stop_idle_fork_server():
     """Stop a fork server that :func:`warm_fork_server` started for a pool that did not come
-    (the tiles ran here or on Dask), unless another thread's pool is using it."""
-    _pool_opened()
-    _pool_closed(pool_context(), stop_server=True)
-
-
-def _stop_fork_server(ctx):
-    """Stop the fork server after its pool (its workers have exited): it exits, this process
-    waits for it, and the CPU time of the workers it reaped is added to this process's
-    ``RUSAGE_CHILDREN``. Not an error if there is none or it is gone."""
-    if ctx.get_start_method() != "forkserver":
-        return
-    from multiprocessing import forkserver
-
-    server = getattr(forkserver, "_forkserver", None)
-    stop = getattr(server, "_stop", None)  # CPython's own (its tests use it), 3.8+
-    if stop is None:
-        return
-    try:
-        stop()
-    except (OSError, ChildProcessError):
-        pass
+    (the tiles ran here or on Dask), unless a pool of another thread uses it."""
+    with _SERVER_LOCK:
+        _stop_unused_fork_server()
 
 
 def _alarm(signum, frame):
@@ -511,24 +535,23 @@ def run_tiles(
         _stop_idle_fork_server()
     else:
         ctx = pool_context()
-
+        _pool_opened(ctx)
         ex = ProcessPoolExecutor(
             max_workers=n,
             mp_context=ctx,
             initializer=_init_worker,
             initargs=(context, worker_threads(n)),
         )
-        _pool_opened()
         try:
             futs = [ex.submit(_run_one, fn, t, timeout) for t in todo]
             for f in as_completed(futs):
                 collect(*f.result())
         except BaseException:  # Ctrl-C, SIGTERM, an error: stop the workers now (the fork
             stop_pool(ex)  # server, if any, then ends with this process: nothing waits for it)
-            _pool_closed(ctx, stop_server=False)
+            _pool_closed(stop_server=False)
             raise
         ex.shutdown(wait=True)
-        _pool_closed(ctx, stop_server=True)
+        _pool_closed()
     failures.sort(key=lambda f: f.tile.index)
     return results, failures, timings
 
