@@ -192,10 +192,9 @@ def main(argv=None):
             r["rounds_wall_s"] = [x["wall_s"] for x in rounds[w]]
             r["rounds_cpu_s"] = [x["cpu_s"] for x in rounds[w]]
             r["median_cpu_s"] = float(np.median(r["rounds_cpu_s"]))
-            r[f"bit_identical_to_workers_{counts[0]}"] = {
-                k: all(x.get(f"bit_identical_to_workers_{counts[0]}", {k: True})[k] for x in rs)
-                for k in r.get(f"bit_identical_to_workers_{counts[0]}", {})
-            }
+            same = f"bit_identical_to_workers_{counts[0]}"
+            if same in r:  # identical in every round, layer by layer
+                r[same] = {k: all(x[same][k] for x in rs) for k in r[same]}
         runs.append(r)
     by = {r["workers"]: r for r in runs}
     ratios = {}
