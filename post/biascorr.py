@@ -136,11 +136,7 @@ class NuthKaab(Coreg):
         history, converged = [], False
         cov = np.full((3, 3), np.nan)
         for it in range(1, self.max_iterations + 1):
-            z = (
-                dem.heights.astype(np.float64)
-                if it == 1
-                else _warp_shift(dem, -east, -north, self.resampling)
-            )
+            z = dem.heights.astype(np.float64) if it == 1 else self._moved(dem, -east, -north)
             sge, sgn = _gradient_at_samples(sampler, z, dem)
             s = np.degrees(np.arctan(np.hypot(sge, sgn)))
             d = sampler.dh(z)
@@ -173,8 +169,7 @@ class NuthKaab(Coreg):
                 self.max_iterations,
                 history[-1]["step_px"],
             )
-        z = _warp_shift(dem, -east, -north, self.resampling)
-        d = sampler.dh(z)
+        d = sampler.dh(self._moved(dem, -east, -north))
         d = d[np.isfinite(d)]
         if d.size == 0:
             raise ConvergenceError(
@@ -203,6 +198,18 @@ class NuthKaab(Coreg):
         if self.curves:
             self.curves["y_label"] = "dh / tan(slope) (m)"
         self.curves["log"] = history
+
+    def _moved(self, dem, east_m, north_m):
+        """The DEM moved by ``east_m, north_m`` for an iteration's samples: with cubic
+        resampling, GDAL's cubic kernel as one separable filter
+        (:func:`stereodem.post.warp.shifted_cubic`, 5-10x faster than the warp on a 3000²
+        grid; the same heights to float32 rounding, NaN instead of GDAL's re-weighting where
+        the 4 x 4 support meets a void or the edge: those cells are left out of the fit);
+        the applied DEM uses GDAL's warp itself (:func:`_warp_shift`)."""
+        if self.resampling != "cubic":
+            return _warp_shift(dem, east_m, north_m, self.resampling)
+        cols, rows = warp.shift_in_pixels(dem.transform, dem.crs, dem.shape, east_m, north_m)
+        return warp.shifted_cubic(dem.heights, cols, rows)
 
     def _apply(self, dem):
         return _warp_shift(dem, -self.dx, -self.dy, self.resampling) - self.dz

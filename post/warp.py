@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from affine import Affine
 from rasterio.crs import CRS as RioCRS
@@ -78,6 +79,47 @@ def translated(transform, crs, shape, east_m: float, north_m: float) -> Affine:
     """``transform`` moved by ``east_m``, ``north_m`` metres (converted at the grid centre)."""
     fx, fy = metres_per_unit(transform, crs, shape)
     return Affine.translation(east_m / fx, north_m / fy) @ transform
+
+
+def _keys_cubic(t: float) -> np.ndarray:
+    """The four weights of GDAL's cubic kernel (Keys, a = -0.5) for a sample ``t`` in [0, 1)
+    of the way from tap 1 to tap 2 (taps at -1, 0, 1, 2)."""
+    a = -0.5
+    d = np.abs(np.array([t + 1.0, t, 1.0 - t, 2.0 - t]))
+    near = (a + 2) * d**3 - (a + 3) * d**2 + 1
+    far = a * d**3 - 5 * a * d**2 + 8 * a * d - 4 * a
+    return np.where(d <= 1, near, far)
+
+
+def shifted_cubic(z, cols: float, rows: float) -> np.ndarray:
+    """``z`` sampled at ``(row + rows, col + cols)`` for every cell, by the cubic convolution
+    of GDAL's warper (Keys, a = -0.5): a pure translation of a grid is one separable 4 x 4
+    filter with the same weights everywhere, so it runs as ``cv2.sepFilter2D`` (float64)
+    instead of a warp. NaN where the 4 x 4 support leaves the grid or touches a NaN (GDAL
+    instead re-weights the valid taps there: the two agree to rounding elsewhere).
+
+    ``cols``/``rows``: the shift in pixels (any real numbers). Returns float64."""
+    z = np.asarray(z, dtype=np.float64)
+    h, w = z.shape
+    ic, ir = int(np.floor(cols)), int(np.floor(rows))
+    kx, ky = _keys_cubic(cols - ic), _keys_cubic(rows - ir)
+    pad = cv2.copyMakeBorder(z, 2, 2, 2, 2, cv2.BORDER_CONSTANT, value=np.nan)
+    # correlation with anchor 1: f[y, x] = sum_k k[k] * pad[y, x + k - 1], the sample at x + t
+    f = cv2.sepFilter2D(pad, cv2.CV_64F, kx, ky, anchor=(1, 1), borderType=cv2.BORDER_REPLICATE)
+    out = np.full((h, w), np.nan)
+    # out[r, c] = f[r + ir + 2, c + ic + 2] where that lies inside f's valid part
+    r0, r1 = max(0, -ir - 2), min(h, h - ir + 2)
+    c0, c1 = max(0, -ic - 2), min(w, w - ic + 2)
+    if r1 > r0 and c1 > c0:
+        out[r0:r1, c0:c1] = f[r0 + ir + 2 : r1 + ir + 2, c0 + ic + 2 : c1 + ic + 2]
+    return out
+
+
+def shift_in_pixels(transform, crs, shape, east_m: float, north_m: float):
+    """``(cols, rows)``: the pixel offsets at which :func:`translated`'s grid, warped back
+    onto ``transform``, samples the original (a grid moved east samples to the west)."""
+    t = translated(transform, crs, shape, east_m, north_m)
+    return -(t.c - transform.c) / transform.a, -(t.f - transform.f) / transform.e
 
 
 def check_overlap(a_bounds, b_bounds, a_name="DEM", b_name="reference"):
