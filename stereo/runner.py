@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from stereodem.core import interrupt
+from stereodem.core import interrupt, threads
 from stereodem.core.errors import InputError
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import atomic_path
@@ -436,8 +436,8 @@ def clean_cache(cache_dir):
 def pool_size(workers: int | None, n_tiles: int, dask_address=None) -> int:
     """Worker processes :func:`run_tiles` starts for ``n_tiles`` tiles: 0 when it runs them
     in this process (one worker, at most one tile, or Dask), else ``workers`` (None: all
-    cores)."""
-    n = workers or os.cpu_count() or 1
+    cores: :func:`stereodem.core.threads.pool_size`)."""
+    n = threads.pool_size(workers)
     return 0 if dask_address is not None or n == 1 or n_tiles <= 1 else n
 
 

@@ -37,8 +37,8 @@ from stereodem.core.pool import stop_pool
 from stereodem.core.raster import check_creatable, write_text_atomic
 from stereodem.core.threads import (
     cores,
-    job_threads,
     pool_initializer,
+    pool_size,
     register_dask_plugin,
     thread_budget,
     worker_threads,
@@ -255,7 +255,7 @@ def run_batch(
     except OSError as exc:
         raise OutputExistsError(f"{out_root}: cannot create the folder ({exc.strerror})") from None
     order = sorted(scenes, key=lambda s: -s.size)  # largest first
-    n = min(job_threads(workers), len(order))
+    n = min(pool_size(workers), len(order))
     rows: dict[str, SceneStatus] = {}
     t0 = time.perf_counter()
     backend = "dask" if dask is not None else "pool" if n > 1 else "serial"

@@ -34,8 +34,19 @@ def test_worker_threads_share_the_cores():
     assert threads.worker_threads(4, 16) == 4
     assert threads.worker_threads(3, 16) == 5
     assert threads.worker_threads(32, 16) == 1
-    assert threads.job_threads(3) == 3
     assert threads.job_threads(None) == threads.cores()
+    n = threads.cores()
+    # the pool gets the processes asked for; the main process never more threads than cores
+    assert threads.pool_size(n + 5) == n + 5 and threads.pool_size(None) == n
+    assert threads.job_threads(n + 5) == n and threads.job_threads(1) == 1
+    assert threads.worker_threads(n + 5) == 1
+
+
+def test_main_process_threads_are_capped_at_the_cores(monkeypatch):
+    monkeypatch.setattr(threads, "cores", lambda: 2)
+    assert threads.job_threads(16) == 2 and threads.pool_size(16) == 16
+    with threads.thread_budget(16) as lim:
+        assert lim["opencv"] == 2 and lim["gdal"] == "2" and lim["pinned"] == 2
 
 
 def test_pin_threads_sets_blas_opencv_gdal_and_thread_budget_restores():
@@ -101,8 +112,9 @@ def test_a_job_pins_its_main_process_to_workers(tmp_path, monkeypatch):
         return {}
 
     monkeypatch.setattr(job, "_run_in", fake_run_in)
+    monkeypatch.setattr(threads, "cores", lambda: 4)  # 6 workers: 4 threads, the cores
     before = threads.current_limits()
-    for workers in (1, 3):
+    for workers, want in ((1, 1), (3, 3), (6, 4)):
         cfg = config_from_dict(
             {
                 "inputs": {"left": "l.tif", "right": "r.tif"},
@@ -111,8 +123,8 @@ def test_a_job_pins_its_main_process_to_workers(tmp_path, monkeypatch):
             }
         )
         job.run(cfg)
-        assert seen["opencv"] == workers and seen["gdal"] == str(workers)
-        assert seen["pinned"] == workers and seen["blas"] in (None, workers)
+        assert seen["opencv"] == want and seen["gdal"] == str(want)
+        assert seen["pinned"] == want and seen["blas"] in (None, want)
     assert threads.current_limits() == before
 
 
