@@ -101,6 +101,12 @@ def run_once(scene: Path, out: Path, workers: int) -> dict:
         )
         for k, v in info["stages"].items()
     }
+    tile_cpu = [t["cpu_s"] for t in info["stereo"]["tiles"] if "cpu_s" in t]
+    if tile_cpu:  # the tiles' own CPU seconds (in their workers): the same work at any N?
+        stages["stereo"].update(
+            tile_cpu_s_sum=round(float(np.sum(tile_cpu)), 2),
+            tile_cpu_s_median=round(float(np.median(tile_cpu)), 3),
+        )
     return dict(
         workers=workers,
         wall_s=round(wall, 2),

@@ -176,6 +176,25 @@ def scaling(d):
     )
 
 
+def scaling_16_on_2(d):
+    by = {r["workers"]: r for r in d["runs"]}
+    hi = max(by)
+    parts = []
+    for w in (2, hi):
+        st = by[w]["stages"]["stereo"]
+        parts.append(
+            f"{w} w: tiles {st['tile_cpu_s_sum']:.1f} CPU s (median {st['tile_cpu_s_median']:.2f} "
+            f"s per tile), workers {st['worker_cpu_s']:.1f} CPU s in all"
+        )
+    return (
+        scaling(d)
+        + f" The {hi} workers share {d['machine']['cpus']} cores ({hi // d['machine']['cpus']} "
+        "processes per core): the tiles' own CPU seconds, measured in their workers: "
+        + "; ".join(parts)
+        + "."
+    )
+
+
 def worker_start(d):
     rows = "; ".join(
         f"{r['workers']} workers: {r['forkserver_cpu_s']:.2f} vs {r['spawn_cpu_s']:.2f} CPU s "
@@ -628,6 +647,7 @@ SUMMARISERS = {
     "bench_scaling": scaling,
     "bench_scaling_full": scaling,
     "bench_scaling_full_forkserver": scaling,
+    "bench_scaling_16_on_2": scaling_16_on_2,
     "bench_worker_start": worker_start,
     "bench_batch": batch,
     "bench_coreg": coreg,
@@ -744,6 +764,12 @@ BENCHMARKS = {
         "python benchmarks/bench_scaling.py --workers 1 2 --repeat 3 --results "
         "benchmarks/results/bench_scaling_full_forkserver.json",
         "the same job with 1 worker, same run",
+    ),
+    "bench_scaling_16_on_2": (
+        "16 workers on this 2-core machine, full granule (issue 28, no 16-core machine lent)",
+        "python benchmarks/bench_scaling.py --workers 2 16 --repeat 2 --results "
+        "benchmarks/results/bench_scaling_16_on_2.json",
+        "the same job with 2 workers, same run",
     ),
     "bench_worker_start": (
         "tile pool start: fork server vs spawn (issue 28)",

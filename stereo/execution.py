@@ -11,6 +11,7 @@ import json
 import logging
 import pickle
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -150,7 +151,10 @@ def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
 
 def _tile_job(tile, ctx):
     """One stereo tile as plain arrays (:meth:`~stereodem.stereo.pipeline.TileResult.to_arrays`,
-    cacheable), its summary with the worker's peak memory."""
+    cacheable), its summary with the worker's peak memory and the tile's CPU seconds (the
+    process's, all its threads)."""
+    cpu0 = time.process_time()
     res = ctx["fn"](tile, ctx["inputs"], ctx["settings"])
+    res.summary["cpu_s"] = round(time.process_time() - cpu0, 3)
     res.summary["process_peak_rss_mb"] = round(process_peak_rss_mb(), 1)
     return res.to_arrays()
