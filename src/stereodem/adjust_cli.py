@@ -10,6 +10,7 @@ from pathlib import Path
 from stereodem.core.vertical import VERTICALS
 
 from . import options
+from .commands import help_line
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,7 @@ def _model_choices():
 def add_parser(sub):
     p = sub.add_parser(
         "adjust",
-        help="adjust sensor models to GCPs / bundle-adjust a pair",
+        help=help_line("adjust"),
         description="Estimate the parameters of IMAGE's sensor model from ground "
         "control points (or of a pair's two models from tie points and "
         "GCPs with --model bundle), write the adjusted model as a JSON "

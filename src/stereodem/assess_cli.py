@@ -8,6 +8,8 @@ import logging
 
 from stereodem.core.vertical import VERTICALS
 
+from .commands import help_line
+
 log = logging.getLogger(__name__)
 
 
@@ -36,7 +38,7 @@ def add_parser(subparsers):
     """Add the ``assess`` sub-command to an ``argparse`` sub-parsers object."""
     p = subparsers.add_parser(
         "assess",
-        help="accuracy of a DEM against a reference DEM and check points",
+        help=help_line("assess"),
         description="Warp DEM onto the reference grid, difference it (DEM - reference) and "
         "report statistics overall, per slope class, land cover and elevation band, "
         "optionally before and after Nuth & Kaab co-registration.",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from . import options
+from .commands import help_line
 
 EXAMPLES = """examples:
   stereodem batch a.toml b.toml c.toml -o out                    # configurations
@@ -25,7 +26,7 @@ Exit status 1 when a scene failed (the others are done).
 def add_parser(sub):
     p = sub.add_parser(
         "batch",
-        help="run many scenes (configurations or granules), one job each",
+        help=help_line("batch"),
         description=__doc__,
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -11,6 +11,7 @@ import logging
 from stereodem.core.vertical import VERTICALS
 
 from . import options
+from .commands import help_line
 
 log = logging.getLogger(__name__)
 
@@ -23,7 +24,7 @@ EXAMPLES = """examples:
 def add_parser(sub):
     p = sub.add_parser(
         "change",
-        help="elevation change between two DEMs, with its sigma map",
+        help=help_line("change"),
         description="Co-register DEM_B to DEM_A on stable terrain (outside --exclude), write "
         "dh = B - A on A's grid (dh.tif) and its per-cell sigma from the dispersion "
         "of dh on stable terrain against slope and curvature (dh_sigma.tif), with "

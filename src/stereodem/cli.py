@@ -15,41 +15,23 @@ from stereodem.core import interrupt
 from stereodem.core.errors import StereodemError
 
 from . import __version__
+from .commands import COMMANDS
 
 log = logging.getLogger("stereodem")
-
-#: sub-commands implemented in their own modules: name -> module with add_parser/run
-_SUBCOMMANDS = {
-    "demo": "stereodem.demo_cli",
-    "run": "stereodem.run_cli",
-    "batch": "stereodem.batch_cli",
-    "simulate": "stereodem.simulate_cli",
-    "dem": "stereodem.dem_cli",
-    "filter": "stereodem.filter_cli",
-    "ortho": "stereodem.ortho_cli",
-    "assess": "stereodem.assess_cli",
-    "coregister": "stereodem.coregister_cli",
-    "adjust": "stereodem.adjust_cli",
-    "compare-models": "stereodem.compare_cli",
-    "uncertainty": "stereodem.uncertainty_cli",
-    "info": "stereodem.info_cli",
-    "mosaic": "stereodem.mosaic_cli",
-    "stack": "stereodem.stack_cli",
-    "change": "stereodem.change_cli",
-}
-
 
 def _named_command(argv) -> str | None:
     """The sub-command ``argv`` names (its first word that is not an option), if known."""
     for word in argv:
         if not word.startswith("-"):
-            return word if word in _SUBCOMMANDS else None
+            return word if word in COMMANDS else None
     return None
 
 
-def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+def build_parser(only: str | None = None, *, listing: bool = False) -> argparse.ArgumentParser:
     """The command-line parser; with ``only``, just that sub-command's (the others' modules,
-    some of them slow to import, are then not loaded: a job starts about a second sooner)."""
+    some of them slow to import, are then not loaded: a job starts about a second sooner).
+    ``listing``: the sub-commands by name and summary only (:data:`COMMANDS`), none of their
+    modules imported: what ``stereodem``, ``stereodem --help`` and a misspelt command need."""
     parser = argparse.ArgumentParser(
         prog="stereodem",
         description="Satellite stereo photogrammetry: stereo pairs in, DEMs and orthoimages out.",
@@ -62,8 +44,10 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     )
     verb.add_argument("-q", "--quiet", action="store_true", help="only errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, modname in _SUBCOMMANDS.items():
-        if only is None or name == only:
+    for name, (modname, summary) in COMMANDS.items():
+        if listing:
+            sub.add_parser(name, help=summary)
+        elif only is None or name == only:
             importlib.import_module(modname).add_parser(sub)
     return parser
 
@@ -78,7 +62,8 @@ def _setup_logging(args):
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(_named_command(argv))
+    named = _named_command(argv)
+    parser = build_parser(named, listing=named is None)
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):
         parser.print_help(sys.stderr)

@@ -6,13 +6,15 @@ from __future__ import annotations
 import json
 import logging
 
+from .commands import help_line
+
 log = logging.getLogger(__name__)
 
 
 def add_parser(subparsers):
     p = subparsers.add_parser(
         "compare-models",
-        help="compare sensor models fitted to the same GCPs",
+        help=help_line("compare-models"),
         description="Fit every model with the same GCP/ICP split and GCP counts from small to "
         "large; write compare.json, compare.md and compare.png to DIR.",
         epilog="example: stereodem compare-models left.tif --gcps points.csv --models all -o cmp",

@@ -7,6 +7,8 @@ import argparse
 
 from stereodem.core.vertical import VERTICALS
 
+from .commands import help_line
+
 EXAMPLES = """examples:
   stereodem coregister aster_dem.tif --ref srtm.tif -o coreg
   stereodem coregister dem.tif --ref ref.tif --chain nuth_kaab,deramp:2,along_track \\
@@ -23,7 +25,7 @@ steps (--chain, comma separated, applied in order; ':N' = order or number of sin
 def add_parser(sub):
     p = sub.add_parser(
         "coregister",
-        help="co-register a DEM to a reference DEM or altimetry points",
+        help=help_line("coregister"),
         description="Fit a chain of corrections (shift, ramp, along/cross-track "
         "biases, curvature) of DEM against REF on stable terrain and "
         "write the corrected DEM, a JSON report (parameters with "

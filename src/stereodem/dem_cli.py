@@ -15,6 +15,7 @@ from stereodem.core.vertical import VERTICALS
 from stereodem.stereo.settings import FUSION_METHODS, GRIDDING_METHODS, JITTER_AXES, MATCHERS
 
 from . import options
+from .commands import help_line
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +34,7 @@ def add_parser(subparsers):
     """Register the ``dem`` sub-command on an ``argparse`` sub-parser set."""
     p = subparsers.add_parser(
         "dem",
-        help="stereo DEM from two images with sensor models",
+        help=help_line("dem"),
         description="Build a DEM from a stereo pair: per-tile epipolar resampling, dense "
         "matching, space intersection with the exact sensor models, gridding. "
         "LEFT/RIGHT are GeoTIFFs with RPC metadata (tags or .RPB sidecar) or a "

@@ -15,6 +15,8 @@ from pathlib import Path
 
 from stereodem.core.errors import InputError
 
+from .commands import help_line
+
 EXAMPLES = """examples:
   stereodem demo -o demo_out
   stereodem demo -o demo_out --size 800 800 --workers 2 --overwrite
@@ -54,7 +56,7 @@ tile_timeout = 600
 def add_parser(sub):
     p = sub.add_parser(
         "demo",
-        help="simulate an ASTER-like pair and run the whole job on it",
+        help=help_line("demo"),
         description=__doc__,
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,

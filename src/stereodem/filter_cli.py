@@ -15,6 +15,7 @@ from pathlib import Path
 from stereodem.core.vertical import VERTICALS
 
 from . import options
+from .commands import help_line
 
 EXAMPLES = """examples:
   stereodem filter out/dem.tif -o out/dem_clean.tif
@@ -27,7 +28,7 @@ EXAMPLES = """examples:
 def add_parser(sub):
     p = sub.add_parser(
         "filter",
-        help="blunder filters and hole filling of a stereo DEM",
+        help=help_line("filter"),
         description=__doc__,
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from .commands import help_line
+
 EXAMPLES = """examples:
   stereodem info AST_L1A_00407312017190728_20250822173530.hdf
   stereodem info AST_L1A_00307312017190728_20160404141337_21031.zip --json
@@ -14,7 +16,7 @@ EXAMPLES = """examples:
 def add_parser(sub):
     p = sub.add_parser(
         "info",
-        help="describe an ASTER L1A granule",
+        help=help_line("info"),
         description="Print the bands, image sizes, acquisition time, corner "
         "coordinates and lattice of an ASTER L1A granule.",
         epilog=EXAMPLES,

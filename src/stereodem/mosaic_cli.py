@@ -24,6 +24,7 @@ from pathlib import Path
 from stereodem.core.vertical import VERTICALS
 
 from . import options
+from .commands import help_line
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +42,7 @@ def add_parser(sub):
 
     p = sub.add_parser(
         "mosaic",
-        help="one DEM from many: blended seams, statistics, bounded memory",
+        help=help_line("mosaic"),
         description=__doc__,
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,

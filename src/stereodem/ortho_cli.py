@@ -10,6 +10,7 @@ from stereodem.core.vertical import VERTICALS
 from stereodem.ortho.choices import RESAMPLINGS
 
 from . import options
+from .commands import help_line
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,7 @@ EXAMPLES = """examples:
 def add_parser(sub):
     p = sub.add_parser(
         "ortho",
-        help="orthorectify an image onto a DEM",
+        help=help_line("ortho"),
         description="Orthorectify IMAGE by backward projection of a north-up map grid "
         "through its sensor model onto the DEM (UTM and the image GSD by "
         "default). Optional layers are written beside the output as "

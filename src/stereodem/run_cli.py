@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .commands import help_line
 from .progress import Progress
 
 EXAMPLES = """examples:
@@ -23,7 +24,7 @@ folder.
 def add_parser(sub):
     p = sub.add_parser(
         "run",
-        help="run the whole job (stereo, filters, ortho, assessment) from a TOML file",
+        help=help_line("run"),
         description="Sensor models -> stereo DEM -> blunder filters and hole filling -> "
         "orthoimages -> accuracy report, into one output folder with run.json.",
         epilog=EXAMPLES,

@@ -9,6 +9,8 @@ import logging
 from stereodem.core.errors import InputError
 from stereodem.core.vertical import VERTICALS
 
+from .commands import help_line
+
 log = logging.getLogger(__name__)
 
 FORMATS = ("geotiff", "l1a-v004", "l1a-v003")
@@ -27,7 +29,7 @@ EXAMPLES = """examples:
 def add_parser(sub):
     p = sub.add_parser(
         "simulate",
-        help="simulate a stereo pair from a DEM and a texture",
+        help=help_line("simulate"),
         description="Render a stereo pair through exact sensor models from a real DEM "
         "and texture; write images with RPCs, physical-model sidecars, "
         "the true DEM and orthoimage, and check points. With --format "

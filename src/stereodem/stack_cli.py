@@ -13,6 +13,7 @@ import time
 from stereodem.core.vertical import VERTICALS
 
 from . import options
+from .commands import help_line
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +75,7 @@ def cloud_settings(args):
 def add_parser(sub):
     p = sub.add_parser(
         "stack",
-        help="stack DEMs of many dates: co-register, mask clouds, fit rates and volumes",
+        help=help_line("stack"),
         description="Co-register every DEM to the reference with the correction chain, mask "
         "clouds, put all on the reference grid as OUT/stack.zarr (xarray/Zarr), fit "
         "per-cell elevation-change rates by weighted least squares with outlier "

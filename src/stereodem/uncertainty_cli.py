@@ -9,6 +9,8 @@ from pathlib import Path
 from stereodem.core.vertical import VERTICALS
 from stereodem.ortho.choices import UNCERTAINTY_METHODS
 
+from .commands import help_line
+
 log = logging.getLogger(__name__)
 
 EXAMPLES = """examples:
@@ -29,7 +31,7 @@ inputs (--sigma NAME=VALUE, 1-sigma in the input's unit):
 def add_parser(sub):
     p = sub.add_parser(
         "uncertainty",
-        help="per-cell uncertainty and sensitivity maps of an orthoimage",
+        help=help_line("uncertainty"),
         description="First-order (J D J^T), Monte Carlo (Latin hypercube) or FAST "
         "propagation of sensor-model, DEM-height and imaging-time errors "
         "to the orthoimage grid: sigma_east/north/horizontal, CE90, the "

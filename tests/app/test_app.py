@@ -474,3 +474,37 @@ def test_band_names_are_checked_by_the_parser(capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["ortho", "a.tif", "--dem", "d.tif", "-o", "o.tif", "--band", "3X"])
     assert e.value.code == 2 and "3N/3B" in capsys.readouterr().err
+
+
+def test_top_level_help_lists_every_command_without_importing_them():
+    """`stereodem --help` (and a bare or misspelt `stereodem`) lists the commands from
+    stereodem.commands alone; each command's own parser carries the same summary."""
+    import subprocess
+    import sys
+
+    from stereodem.commands import COMMANDS
+
+    code = (
+        "import sys, contextlib, io\n"
+        "from stereodem.cli import main\n"
+        "buf = io.StringIO()\n"
+        "with contextlib.redirect_stdout(buf):\n"
+        "    try:\n"
+        "        main(['--help'])\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "mods = sorted(m for m in sys.modules if m.endswith('_cli'))\n"
+        "print(repr(mods)); print(buf.getvalue())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    first, _, text = out.stdout.partition("\n")
+    assert first == "[]"
+    for name in COMMANDS:
+        assert name in text
+    full = cli.build_parser()
+    sub = next(a for a in full._actions if a.__class__.__name__ == "_SubParsersAction")
+    helps = {a.dest: a.help for a in sub._choices_actions}
+    assert helps == {name: summary for name, (_, summary) in COMMANDS.items()}
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["no-such-command"])
+    assert exc.value.code == 2
