@@ -31,7 +31,6 @@ from enum import IntEnum
 
 import cv2
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 from scipy import ndimage as ndi
 
 from stereodem.core.errors import InputError
@@ -121,8 +120,8 @@ def ray_gap_filter(
 
 
 def _ring8(a):
-    """Sum of the 8 neighbours (outside = 0), in row bands on threads (same values)."""
-    return by_rows(lambda b: ndi.convolve(b, _RING8, mode="constant"), a, halo=1)
+    """Sum of the 8 neighbours (outside = 0); call it within a row band (:func:`by_rows`)."""
+    return ndi.convolve(a, _RING8, mode="constant")
 
 
 def _neighbour_moments(z):
@@ -146,26 +145,31 @@ def local_sigma_filter(
     ``mean₈`` and ``σ₈`` are the mean and standard deviation of the valid 8-neighbours; cells
     with fewer than ``min_neighbours`` valid neighbours are not tested. The thesis used
     k = 2 and no floor; on noisy but sound terrain that removes several per cent of good cells,
-    so the default chain uses a larger k and a floor in metres.
+    so the default chain uses a larger k and a floor in metres. Computed whole in row bands
+    on threads (local within one row: the same mask as one call on the grid).
     """
-    z = _heights(heights)
-    n, mean, sd = _neighbour_moments(z)
-    with np.errstate(invalid="ignore"):
-        mask = (
-            np.isfinite(z)
-            & (n >= min_neighbours)
-            & (np.abs(z - mean) > np.maximum(k * sd, min_deviation))
-        )
-    return mask, Reason.LOCAL_SIGMA
+
+    def band(z):
+        n, mean, sd = _neighbour_moments(z)
+        with np.errstate(invalid="ignore"):
+            return (
+                np.isfinite(z)
+                & (n >= min_neighbours)
+                & (np.abs(z - mean) > np.maximum(k * sd, min_deviation))
+            )
+
+    return by_rows(band, _heights(heights), halo=1), Reason.LOCAL_SIGMA
 
 
 def failed_neighbours_filter(heights, *, min_failed: int = 5):
     """The Ok (2005) test: valid cells with ≥ ``min_failed`` void 8-neighbours (cells beyond
-    the grid edge do not count as failed)."""
-    z = _heights(heights)
-    void = (~np.isfinite(z)).astype(np.float64)
-    nfail = _ring8(void)
-    return np.isfinite(z) & (nfail >= min_failed), Reason.FAILED_NEIGHBOURS
+    the grid edge do not count as failed); in row bands on threads."""
+
+    def band(z):
+        fin = np.isfinite(z)
+        return fin & (_ring8((~fin).astype(np.float64)) >= min_failed)
+
+    return by_rows(band, _heights(heights), halo=1), Reason.FAILED_NEIGHBOURS
 
 
 def _fill_nearest(z):
@@ -221,17 +225,18 @@ def _block_scale(r, valid, block: int):
     return cv2.resize(scale, (cols, rows), interpolation=cv2.INTER_LINEAR).astype(np.float64)
 
 
-def _median_at(z, cells, size: int):
-    """``ndi.median_filter(z, size, mode="nearest")`` evaluated only at the True cells of
-    ``cells`` (same values): the windows of those cells gathered from the edge-padded grid."""
+def _median_at(z, rows, cols, size: int):
+    """``ndi.median_filter(z, size, mode="nearest")`` evaluated only at the cells ``(rows,
+    cols)`` (same values, 1-D): each cell's window gathered with its indices clipped to the
+    grid (the nearest-value edge), without padding the grid."""
     half = size // 2
-    rr, cc = np.nonzero(cells)
-    pad = np.pad(z, half, mode="edge")
-    win = sliding_window_view(pad, (size, size))
-    out = np.full(z.shape, np.nan)
-    for a in range(0, rr.size, 65536):  # bounded working memory
-        w = win[rr[a : a + 65536], cc[a : a + 65536]].reshape(-1, size * size)
-        out[rr[a : a + 65536], cc[a : a + 65536]] = np.median(w, axis=1)
+    off = np.arange(-half, half + 1)
+    out = np.empty(rows.size)
+    h, w = z.shape
+    for a in range(0, rows.size, 65536):  # bounded working memory
+        r = np.clip(rows[a : a + 65536, None, None] + off[None, :, None], 0, h - 1)
+        c = np.clip(cols[a : a + 65536, None, None] + off[None, None, :], 0, w - 1)
+        out[a : a + 65536] = np.median(z[r, c].reshape(r.shape[0], -1), axis=1)
     return out
 
 
@@ -277,16 +282,18 @@ def spike_filter(
     limit = np.maximum(k * _block_scale(r, valid, block), min_deviation)
     flag = valid & (np.abs(r) > limit)
     del r
-    med = replaced = None
+    work = replaced = None
     for _ in range(max(0, iterations - 1)):
         if not flag.any():
             break
-        # the median is only used at replaced cells: computed there, as they are added
+        # replaced cells take the median of the filled heights, computed there as they are
+        # added (a cell once replaced stays replaced)
         todo = flag if replaced is None else flag & ~replaced
-        m = _median_at(zf, todo, median_size)
-        med = m if med is None else np.where(todo, m, med)
+        rr, cc = np.nonzero(todo)
+        if work is None:
+            work = zf.copy()
+        work[rr, cc] = _median_at(zf, rr, cc, median_size)
         replaced = flag if replaced is None else replaced | flag
-        work = np.where(replaced, med, zf)
         new = by_rows(flagged, work, zf, limit, valid, halo=window // 2)  # in row bands
         if np.array_equal(new, flag):
             break

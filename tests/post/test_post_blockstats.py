@@ -217,10 +217,10 @@ def test_median_at_cells_equals_scipy_median_filter():
     z = rng.normal(1000, 20, (150, 170))
     cells = rng.random(z.shape) < 0.05
     cells[0, :] = cells[:, -1] = True  # edges use the nearest-value padding
-    got = _median_at(z, cells, 7)
+    rr, cc = np.nonzero(cells)
+    got = _median_at(z, rr, cc, 7)
     want = ndi.median_filter(z, size=7, mode="nearest")
-    np.testing.assert_array_equal(got[cells], want[cells])
-    assert np.isnan(got[~cells]).all()
+    np.testing.assert_array_equal(got, want[cells])
 
 
 def test_blockwise_assessment_does_not_depend_on_threads(dem_pair):
