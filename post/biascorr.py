@@ -206,7 +206,8 @@ class NuthKaab(Coreg):
         grid; the same heights to float32 rounding, NaN instead of GDAL's re-weighting where
         the 4 x 4 support meets a void or the edge: those cells are left out of the fit);
         the applied DEM uses GDAL's warp itself (:func:`_warp_shift`)."""
-        if self.resampling != "cubic":
+        t = dem.transform
+        if self.resampling != "cubic" or t.b or t.d:  # a rotated grid: GDAL's warp
             return _warp_shift(dem, east_m, north_m, self.resampling)
         cols, rows = warp.shift_in_pixels(dem.transform, dem.crs, dem.shape, east_m, north_m)
         return warp.shifted_cubic(dem.heights, cols, rows)

@@ -117,7 +117,8 @@ def shifted_cubic(z, cols: float, rows: float) -> np.ndarray:
 
 def shift_in_pixels(transform, crs, shape, east_m: float, north_m: float):
     """``(cols, rows)``: the pixel offsets at which :func:`translated`'s grid, warped back
-    onto ``transform``, samples the original (a grid moved east samples to the west)."""
+    onto ``transform``, samples the original (a grid moved east samples to the west); for a
+    north-up ``transform`` (no rotation terms)."""
     t = translated(transform, crs, shape, east_m, north_m)
     return -(t.c - transform.c) / transform.a, -(t.f - transform.f) / transform.e
 

@@ -70,3 +70,17 @@ def test_shifted_cubic_is_gdals_cubic_warp_of_a_translation(east, north):
     assert np.abs(fast[both] - gdal[both]).max() < 1e-6 * np.nanmax(np.abs(z)) + 1e-9
     assert not (np.isfinite(fast) & ~np.isfinite(gdal)).any()
     assert np.isnan(fast[120:140, 60:90]).all()
+
+
+def test_iterations_of_a_rotated_grid_use_gdals_warp():
+    """The separable-filter translation assumes a north-up grid; a rotated one is warped."""
+    from affine import Affine
+
+    from stereodem.post.biascorr import _warp_shift
+
+    ref = DEM.bundled()
+    z = ref.heights[200:300, 100:220]
+    t = Affine(30.0, 2.0, 400000.0, 1.5, -30.0, 4500000.0)
+    dem = DEM(z, t, "EPSG:32637", ref.vertical)
+    got = NuthKaab()._moved(dem, 13.0, -7.0)
+    np.testing.assert_array_equal(got, _warp_shift(dem, 13.0, -7.0, "cubic"))
