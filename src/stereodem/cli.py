@@ -19,6 +19,7 @@ from .commands import COMMANDS
 
 log = logging.getLogger("stereodem")
 
+
 def _named_command(argv) -> str | None:
     """The sub-command ``argv`` names (its first word that is not an option), if known."""
     for word in argv:
