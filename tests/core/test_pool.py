@@ -23,6 +23,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow
 def test_stopped_pool_exits_even_with_half_a_result_in_its_pipe(tmp_path):
     """A worker killed while sending its tile leaves a partial message in the result pipe;
     the pool's manager thread then blocks in recv() and the interpreter, which joins it at

@@ -74,6 +74,7 @@ def test_pool_initializer_pins_a_worker_to_the_budget_given():
         assert lim["blas"] == n  # numpy's OpenBLAS is loaded in every worker
 
 
+@pytest.mark.slow
 def test_tile_pool_workers_run_with_their_share_of_the_cores():
     tiles = tile_grid(64, 64, 16)
     res, fails, _ = run_tiles(_limits_tile, tiles, {}, workers=2)

@@ -130,6 +130,7 @@ def _busy_tile(tile, ctx):
     }
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     "forkserver" not in __import__("multiprocessing").get_all_start_methods(),
     reason="no fork server on this platform",
