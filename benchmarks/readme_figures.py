@@ -648,6 +648,10 @@ SUMMARISERS = {
     "bench_scaling_full": scaling,
     "bench_scaling_full_forkserver": scaling,
     "bench_scaling_16_on_2": scaling_16_on_2,
+    "bench_scaling_16_on_2_uncapped": lambda d: (
+        "Before the main process's threads were "
+        "capped at the cores (the code of 81c4148): " + scaling(d)
+    ),
     "bench_worker_start": worker_start,
     "bench_batch": batch,
     "bench_coreg": coreg,
@@ -769,6 +773,11 @@ BENCHMARKS = {
         "16 workers on this 2-core machine, full granule (issue 28, no 16-core machine lent)",
         "python benchmarks/bench_scaling.py --workers 2 16 --repeat 2 --results "
         "benchmarks/results/bench_scaling_16_on_2.json",
+        "the same job with 2 workers, same run",
+    ),
+    "bench_scaling_16_on_2_uncapped": (
+        "16 workers on 2 cores before the main-process thread cap (issue 28)",
+        "the bench_scaling_16_on_2 command on the code of c05bdea",
         "the same job with 2 workers, same run",
     ),
     "bench_worker_start": (
