@@ -121,6 +121,26 @@ def run_once(scene: Path, out: Path, workers: int) -> dict:
     )
 
 
+def scaling_ratios(runs, top: int) -> dict:
+    """Speed-ups (walls of the median-wall runs) and CPU ratios (medians of the rounds' CPU
+    seconds when there are rounds) of 2 workers against 1 and of ``top`` against 2."""
+    by = {r["workers"]: r for r in runs}
+
+    def cpu(w):
+        return by[w].get("median_cpu_s", by[w]["cpu_s"])
+
+    ratios = {}
+    if 1 in by and 2 in by:
+        ratios.update(
+            speedup_2_vs_1=round(by[1]["wall_s"] / by[2]["wall_s"], 2),
+            cpu_2_over_1=round(cpu(2) / cpu(1), 3),
+        )
+    if 2 in by and top > 2 and top in by:
+        ratios[f"speedup_{top}_vs_2"] = round(by[2]["wall_s"] / by[top]["wall_s"], 2)
+        ratios[f"cpu_{top}_over_2"] = round(cpu(top) / cpu(2), 3)
+    return ratios
+
+
 def table(runs) -> str:
     base = {r["workers"]: r for r in runs}
     ref2 = base.get(2) or runs[0]
@@ -202,24 +222,7 @@ def main(argv=None):
             if same in r:  # identical in every round, layer by layer
                 r[same] = {k: all(x[same][k] for x in rs) for k in r[same]}
         runs.append(r)
-    by = {r["workers"]: r for r in runs}
-    ratios = {}
-    if 1 in by and 2 in by:
-        ratios.update(
-            speedup_2_vs_1=round(by[1]["wall_s"] / by[2]["wall_s"], 2),
-            cpu_2_over_1=round(
-                by[2].get("median_cpu_s", by[2]["cpu_s"])
-                / by[1].get("median_cpu_s", by[1]["cpu_s"]),
-                3,
-            ),
-        )
-    if 2 in by and counts[-1] > 2:
-        ratios.update(
-            {
-                f"speedup_{counts[-1]}_vs_2": round(by[2]["wall_s"] / by[counts[-1]]["wall_s"], 2),
-                f"cpu_{counts[-1]}_over_2": round(by[counts[-1]]["cpu_s"] / by[2]["cpu_s"], 3),
-            }
-        )
+    ratios = scaling_ratios(runs, counts[-1])
     result = dict(
         granule=dict(left=list(size), right=list(right), input="ASTER L1A V004, simulated"),
         machine=dict(cpus=cores, python=platform.python_version(), node=platform.node()),

@@ -650,7 +650,7 @@ SUMMARISERS = {
     "bench_scaling_16_on_2": scaling_16_on_2,
     "bench_scaling_16_on_2_uncapped": lambda d: (
         "Before the main process's threads were "
-        "capped at the cores (the code of 81c4148): " + scaling(d)
+        "capped at the cores (the code of c05bdea): " + scaling(d)
     ),
     "bench_worker_start": worker_start,
     "bench_batch": batch,

@@ -209,7 +209,7 @@ class NuthKaab(Coreg):
         t = dem.transform
         if self.resampling != "cubic" or t.b or t.d:  # a rotated grid: GDAL's warp
             return _warp_shift(dem, east_m, north_m, self.resampling)
-        cols, rows = warp.shift_in_pixels(dem.transform, dem.crs, dem.shape, east_m, north_m)
+        cols, rows = warp.shift_in_pixels(t, dem.crs, dem.shape, east_m, north_m)
         return warp.shifted_cubic(dem.heights, cols, rows)
 
     def _apply(self, dem):
