@@ -29,7 +29,7 @@ import numpy as np
 import rasterio
 from affine import Affine
 
-from stereodem.core import geodesy
+from stereodem.core import geodesy, interrupt
 from stereodem.core.dem import DEM, as_dem
 from stereodem.core.errors import (
     CRSError,
@@ -441,6 +441,7 @@ def blockwise_comparison(
             # at most 2 blocks per thread in flight (memory), merged in block order
             pending = []
             for r0, r1 in blocks:
+                interrupt.check()  # a stop request ends the comparison between blocks
                 pending.append(ex.submit(_compare_block, r0, r1, *args))
                 if len(pending) >= 2 * threads:
                     take(pending.pop(0).result())
@@ -448,6 +449,7 @@ def blockwise_comparison(
                 take(f.result())
     else:
         for r0, r1 in blocks:
+            interrupt.check()
             take(_compare_block(r0, r1, *args))
     overall = total.overall
     if overall.n == 0:

@@ -21,11 +21,11 @@ import numpy as np
 from scipy import optimize
 
 from stereodem.core import geodesy
+from stereodem.core.blocks import default_threads
 from stereodem.core.errors import ConvergenceError, InputError
 from stereodem.core.stats import nmad
 
 from . import terrain, warp
-from .blocks import default_threads
 from .coreg import (
     Coreg,
     bilinear,

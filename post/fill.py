@@ -17,9 +17,8 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
+from stereodem.core.blocks import by_rows, default_threads
 from stereodem.core.errors import InputError
-
-from .blocks import by_rows, default_threads
 
 log = logging.getLogger(__name__)
 

@@ -33,11 +33,11 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
+from stereodem.core.blocks import by_rows
 from stereodem.core.errors import InputError
 from stereodem.core.stats import NMAD_FACTOR
 
 from . import terrain
-from .blocks import by_rows
 
 log = logging.getLogger(__name__)
 

@@ -37,7 +37,7 @@ def to_grid(
     """Warp a 2-D array onto a destination grid; cells without data are NaN (or ``src_nodata``
     for integer rasters). GDAL's warper runs on ``threads`` threads (default 1: callers
     that warp blocks on a thread pool already use the cores; a caller that warps a whole grid
-    passes the process's budget, :func:`stereodem.post.blocks.default_threads`); the result
+    passes the process's budget, :func:`stereodem.core.blocks.default_threads`); the result
     does not depend on it."""
     src = np.asarray(data)
     if np.issubdtype(np.dtype(dst_dtype), np.floating):

@@ -19,12 +19,14 @@ pixel-corner affine transform; cell ``[i, j]`` has its centre at ``transform * (
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from affine import Affine
 
 from stereodem.core import geodesy
+from stereodem.core.blocks import default_threads, row_bands
 from stereodem.core.dem import DEM, ELLIPSOID, GEOID
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid, OnGrid, as_crs
@@ -237,7 +239,9 @@ def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False) -> DEM:
     """The DEM and its ``count``, ``score`` and ``ray_gap`` layers from the summed
     :class:`CellSums` of a whole lattice.
 
-    ``crop`` trims the grid to the cells that received points (keeping the lattice).
+    ``crop`` trims the grid to the cells that received points (keeping the lattice). The
+    layers are computed in row bands on the process's threads
+    (:func:`stereodem.core.blocks.row_bands`; cell by cell, so the same values).
     """
     t = total
     transform = spec.transform
@@ -247,19 +251,40 @@ def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False) -> DEM:
         if rows_ok.size:
             t = t[:, rows_ok[0] : rows_ok[-1] + 1, cols_ok[0] : cols_ok[-1] + 1]
             transform = transform @ Affine.translation(int(cols_ok[0]), int(rows_ok[0]))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        height = np.where(t[0] > 0, t[1] / t[0], np.nan)
-        sc = np.where(t[3] > 0, t[4] / t[3], np.nan)
-        gp = np.where(t[5] > 0, t[6] / t[5], np.nan)
+    shape = t.shape[1:]
+    height, sc, gp = (np.empty(shape, np.float32) for _ in range(3))
+    count = np.empty(shape, np.int32)
+
+    def band(rows):
+        r = slice(*rows)
+        for out, num, den in ((height, t[1, r], t[0, r]), (sc, t[4, r], t[3, r])):
+            _mean(num, den, out[r])
+        _mean(t[6, r], t[5, r], gp[r])
+        count[r] = t[2, r]
+
+    bands = row_bands(shape[0], default_threads())
+    if len(bands) == 1:
+        band(bands[0])
+    else:
+        with ThreadPoolExecutor(len(bands), thread_name_prefix="stereodem-rows") as ex:
+            list(ex.map(band, bands))
     return DEM(
-        height.astype(np.float32),
+        height,
         transform,
         spec.crs,
         GEOID if spec.geoid else ELLIPSOID,
-        count=t[2].astype(np.int32),
-        score=sc.astype(np.float32),
-        ray_gap=gp.astype(np.float32),
+        count=count,
+        score=sc,
+        ray_gap=gp,
     )
+
+
+def _mean(num, den, out):
+    """``num / den`` (float64) as float32 into ``out`` where ``den > 0``, else NaN."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = np.divide(num, den)
+    q[~(den > 0)] = np.nan
+    out[...] = q
 
 
 def grid_points(

@@ -162,14 +162,17 @@ def read_stereo_dem(dem_path, *, vertical=None) -> DEM:
     )
 
 
-def check_inputs(cfg: Config):
-    """Cheap checks of the assessment inputs, so that a bad reference DEM or check-point file
-    fails the job before the stereo work rather than after it."""
+def check_inputs(cfg: Config) -> DEM | None:
+    """Checks of the assessment inputs, so that a bad reference DEM or check-point file fails
+    the job before the stereo work rather than after it; returns the reference DEM read (the
+    assessment's, so that it is read once), None when the job assesses nothing."""
     i = cfg.inputs
-    if cfg.assess.enabled and i.reference_dem:
-        DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
-        if i.checkpoints:
-            read_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
+    if not (cfg.assess.enabled and i.reference_dem):
+        return None
+    reference = DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
+    if i.checkpoints:
+        read_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
+    return reference
 
 
 def input_paths(cfg: Config) -> list:

@@ -8,7 +8,7 @@ from affine import Affine
 from rasterio.crs import CRS
 from scipy import ndimage as ndi
 
-from stereodem.post.blocks import by_rows, row_bands
+from stereodem.core.blocks import by_rows, row_bands
 from stereodem.post.fill import fill_holes, gaussian_smooth
 from stereodem.post.filters import default_chain
 
