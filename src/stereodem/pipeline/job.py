@@ -138,8 +138,9 @@ class BackgroundWriter:
 
 class BackgroundStage:
     """A stage run on its own thread while the job's next stages go on: the assessment beside
-    the orthoimages, so that each one's serial parts (the report's imports and figures, the
-    orthoimages' backward maps) use the cores the other leaves idle. ``result()`` waits for it and
+    the orthoimages, the reading of the reference DEM beside the images', so that each one's
+    serial parts (the report's imports and figures, the orthoimages' backward maps, the HDF
+    reads) use the cores the other leaves idle. ``result()`` waits for it and
     returns its value (or raises its error); ``started`` and ``seconds`` are its own start
     (``perf_counter``) and wall time. Only with 2 or more threads: on one core the stages
     would just take turns."""
@@ -210,8 +211,18 @@ def _run_stages(job: Job) -> dict:
     cfg, out, prog, stages, writer = job.cfg, job.out, job.progress, job.stages, job.writer
     t_all, started, co, written = job.t_start, job.started, job.creation_options, job.written
     t0 = stages.start()
-    reference = check_inputs(cfg)  # the assessment's reference DEM, read once
+    # the assessment's reference DEM, read once, beside the images when there are 2+ threads
+    # (and checked before any stereo work)
+    checking = None
+    if job_threads(cfg.run.workers) > 1:
+        checking = BackgroundStage(check_inputs, cfg)
+        job.background.append(checking)
+        reference = None
+    else:
+        reference = check_inputs(cfg)
     pair = None if cfg.inputs.images else load_pair(cfg)
+    if checking is not None:
+        reference = checking.result()
     stages.record("load", t0)
 
     t0 = stages.start()
