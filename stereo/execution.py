@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import json
@@ -24,12 +23,11 @@ from stereodem.stereo.pipeline import TileResult
 from stereodem.stereo.runner import (
     SharedArray,
     clean_cache,
-    iter_tiles,
     load_cached,
     pool_size,
     process_peak_rss_mb,
+    run_tiles,
 )
-from stereodem.stereo.tiling import schedule
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +42,6 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
     failures = []
 
     def runner(process_tile, tiles, inputs, settings):
-        """The tiles' :class:`TileResult`, in :func:`schedule` order, each as soon as it and
-        those before it are done (the caller merges them while the pool works on the rest)."""
         pool = pool_size(run_settings.workers, len(tiles), run_settings.dask) > 0
         key = None
         if cache_dir is not None:
@@ -59,7 +55,7 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
                     right_image=SharedArray.create(inputs.right_image, tmp, "right"),
                 )
             ctx = dict(inputs=inputs, settings=settings, fn=process_tile)
-            finished = iter_tiles(
+            results, fails, _ = run_tiles(
                 _tile_job,
                 tiles,
                 ctx,
@@ -71,30 +67,19 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
                 progress=progress,
                 cache_key=key,
                 hold_results=cache_dir is None,
-                failures=failures,
             )
-            with contextlib.closing(finished):  # an early exit stops the pool
-                yield from in_order(finished, schedule(tiles), cache_dir)
+        failures.extend(fails)
+        by_index = {t.index: t for t in tiles}
+        # in tile order, one at a time: a cached run holds one tile's cell sums, not all
+        return (
+            TileResult.from_arrays(
+                results[i] if results[i] is not None else load_cached(cache_dir, by_index[i])
+            )
+            for i in sorted(results)
+        )
 
     runner.failures = failures
     return runner
-
-
-def in_order(finished, order, cache_dir=None):
-    """The :class:`TileResult` of the tiles of ``finished`` (:class:`TileDone` in any order) in
-    the order of the tiles ``order``, each as soon as every tile before it is done (failed
-    tiles are skipped). A result not held in memory is read back from ``cache_dir``; one that
-    arrives early waits, held, for its turn (a few: tiles finish nearly in order)."""
-    order = list(order)
-    waiting, k = {}, 0
-    for d in finished:
-        waiting[d.index] = d
-        while k < len(order) and order[k].index in waiting:
-            d = waiting.pop(order[k].index)
-            if d.error is None:
-                arrays = d.result if d.result is not None else load_cached(cache_dir, order[k])
-                yield TileResult.from_arrays(arrays)
-            k += 1
 
 
 def _cache_key(tiles, inputs, settings) -> str:

@@ -21,7 +21,6 @@ tiles' cell sums added into the DEM. Per tile:
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import logging
@@ -52,7 +51,7 @@ from .sanity import check_pair
 from .settings import StereoSettings
 from .sparse import SparseMatchError
 from .sparse_stage import height_pileup, run_sparse_stage
-from .tiling import Tile, schedule
+from .tiling import Tile
 
 log = logging.getLogger(__name__)
 
@@ -214,7 +213,6 @@ def process_tile(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Ti
     process; what it returns is small (cell sums, not points).
     """
     pts = tile_points(tile, inputs, settings)
-    pts.summary["index"] = tile.index
     if inputs.points_dir is not None:
         save_tile_points(
             inputs.points_dir,
@@ -503,12 +501,11 @@ def dem_of_checked_pair(
         points_dir=str(points_dir) if points_dir is not None else None,
         pair_id=int(pair_id),
     )
-    # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask), in
-    # the runner's schedule (the order fixes the sums of step 4, whatever ran the tiles)
+    # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask)
     if runner is None:
 
         def serial():
-            for k, tile in enumerate(schedule(tiles), start=1):
+            for k, tile in enumerate(tiles, start=1):
                 res = process_tile(tile, inputs, settings)
                 if progress is not None:
                     progress(k, len(tiles), res.summary)
@@ -517,26 +514,23 @@ def dem_of_checked_pair(
         results = serial()
     else:
         results = runner(process_tile, tiles, inputs, settings)
-    # 4. grid: the tiles' cell sums, added in schedule order as they come (while a pool runs
-    # the next tiles), keeping only each tile's QA summary
+    # 4. grid: the tiles' cell sums, added in tile order (independent of the runner) as they
+    # come, keeping only each tile's QA summary
     total = np.zeros((len(SUM_LAYERS),) + tuple(spec.shape))
     summaries, n_points = [], 0
-    closing = contextlib.closing(results) if hasattr(results, "close") else contextlib.nullcontext()
-    with closing:  # an early exit stops a runner's pool
-        for res in results:
-            s = res.summary
-            log.info(
-                "tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
-                s["tile"],
-                s["residual_rms_px"],
-                *s["disparity_range"],
-                s["n_points"],
-            )
-            res.cells.add_to(total)
-            n_points += int(res.cells.n_points)
-            summaries.append(s)
-            del res
-    summaries.sort(key=lambda s: s.get("index", 0))
+    for res in results:
+        s = res.summary
+        log.info(
+            "tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
+            s["tile"],
+            s["residual_rms_px"],
+            *s["disparity_range"],
+            s["n_points"],
+        )
+        res.cells.add_to(total)
+        n_points += int(res.cells.n_points)
+        summaries.append(s)
+    del res
     if n_points == 0 and gs.bounds is None:
         raise InputError("no point was matched in any tile (no texture, or a wrong height range?)")
     dem = finish(spec, total, crop=gs.bounds is None)

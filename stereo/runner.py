@@ -48,7 +48,6 @@ from stereodem.core.errors import InputError
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import atomic_path
 from stereodem.core.threads import register_dask_plugin, worker_threads
-from stereodem.stereo.tiling import schedule
 
 log = logging.getLogger(__name__)
 
@@ -442,17 +441,6 @@ def pool_size(workers: int | None, n_tiles: int, dask_address=None) -> int:
     return 0 if dask_address is not None or n == 1 or n_tiles <= 1 else n
 
 
-@dataclass
-class TileDone:
-    """A finished tile of :func:`iter_tiles`: its ``index``, its ``result`` (None when it
-    failed, or when it is kept only in its cache file: :func:`load_cached`) and the
-    ``error`` of a failed tile (None otherwise)."""
-
-    index: int
-    result: dict | None
-    error: str | None = None
-
-
 def run_tiles(
     fn,
     tiles,
@@ -494,77 +482,26 @@ def run_tiles(
     results : dict[int, dict[str, ndarray]]
     failures : list[TileFailure]
     timings : dict[int, float] seconds per computed tile
-
-    :func:`iter_tiles` gives the same tiles one by one as they finish.
-    """
-    failures, timings = [], {}
-    results = {
-        d.index: d.result
-        for d in iter_tiles(
-            fn,
-            tiles,
-            context,
-            workers=workers,
-            timeout=timeout,
-            cache_dir=cache_dir,
-            resume=resume,
-            progress=progress,
-            dask_address=dask_address,
-            cache_key=cache_key,
-            hold_results=hold_results,
-            failures=failures,
-            timings=timings,
-        )
-        if d.error is None
-    }
-    return results, failures, timings
-
-
-def iter_tiles(
-    fn,
-    tiles,
-    context,
-    *,
-    workers: int | None = 1,
-    timeout: float | None = None,
-    cache_dir=None,
-    resume: bool = False,
-    progress=None,
-    dask_address: str | None = None,
-    cache_key: str | None = None,
-    hold_results: bool = True,
-    failures: list | None = None,
-    timings: dict | None = None,
-):
-    """:func:`run_tiles` as a generator: a :class:`TileDone` for each tile as it finishes
-    (cached tiles of a ``resume`` first), in this thread, while the pool works on the others,
-    so the caller merges results during the run instead of after it.
-
-    Failed tiles are also appended to ``failures`` (sorted by index at the end), and the
-    seconds of each computed tile go to ``timings``. Leaving the loop early (an error or
-    Ctrl-C in the caller, or ``close()``) stops the pool's workers at once.
     """
     tiles = list(tiles)
-    failures = [] if failures is None else failures
-    timings = {} if timings is None else timings
-    todo, cached = [], []
+    results, failures, timings = {}, [], {}
+    todo = []
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
-    for t in schedule(tiles):
-        out = None
+    for t in tiles:
+        cached = None
         if resume and cache_dir is not None and _cache_file(cache_dir, t).exists():
-            out = _load(cache_dir, t, cache_key)
-        if out is not None:
-            cached.append(TileDone(t.index, out if hold_results or cache_dir is None else None))
+            cached = _load(cache_dir, t, cache_key)
+        if cached is not None:
+            results[t.index] = cached if hold_results or cache_dir is None else None
         else:
             todo.append(t)
-    if resume and cached:
-        log.info("resume: %d of %d tile(s) already done", len(cached), len(tiles))
-    total, done = len(tiles), len(cached)
+    if resume and results:
+        log.info("resume: %d of %d tile(s) already done", len(results), len(tiles))
+    total, done = len(tiles), len(results)
     by_index = {t.index: t for t in tiles}
-    yield from cached
 
-    def collect(index, out, err, secs) -> TileDone:
+    def collect(index, out, err, secs):
         nonlocal done
         interrupt.check()  # a stop request that an earlier KeyboardInterrupt did not deliver
         done += 1
@@ -578,21 +515,23 @@ def iter_tiles(
                 err,
             )
             failures.append(TileFailure(by_index[index], err))
-        elif cache_dir is not None:
-            _save(cache_dir, by_index[index], out, cache_key)
+        else:
+            if cache_dir is not None:
+                _save(cache_dir, by_index[index], out, cache_key)
+            results[index] = out if hold_results or cache_dir is None else None
         if progress:
             progress(done, total)
-        if err is not None:
-            return TileDone(index, None, err)
-        return TileDone(index, out if hold_results or cache_dir is None else None)
 
+    # largest tiles first: the pool's last tiles are small ones, so no core idles behind a big
+    # tile at the end (results are keyed by index: the order does not change them)
+    todo.sort(key=lambda t: -int(t.cols) * int(t.rows))
     n = pool_size(workers, len(todo), dask_address)
     if dask_address is not None:
-        yield from _run_dask(fn, todo, context, timeout, dask_address, collect)
+        _run_dask(fn, todo, context, timeout, dask_address, collect)
         _stop_idle_fork_server()
     elif n == 0:
         for t in todo:
-            yield collect(*_run_one(fn, t, timeout, context))
+            collect(*_run_one(fn, t, timeout, context))
         _stop_idle_fork_server()
     else:
         ctx = pool_context()
@@ -606,14 +545,15 @@ def iter_tiles(
         try:
             futs = [ex.submit(_run_one, fn, t, timeout) for t in todo]
             for f in as_completed(futs):
-                yield collect(*f.result())
-        except BaseException:  # Ctrl-C, SIGTERM, an error (here or in the caller's loop, or
-            stop_pool(ex)  # the loop closed early): stop the workers now (the fork server, if
-            _pool_closed(stop_server=False)  # any, then ends with this process)
+                collect(*f.result())
+        except BaseException:  # Ctrl-C, SIGTERM, an error: stop the workers now (the fork
+            stop_pool(ex)  # server, if any, then ends with this process: nothing waits for it)
+            _pool_closed(stop_server=False)
             raise
         ex.shutdown(wait=True)
         _pool_closed()
     failures.sort(key=lambda f: f.tile.index)
+    return results, failures, timings
 
 
 def _run_dask(fn, todo, context, timeout, address, collect):
@@ -629,7 +569,7 @@ def _run_dask(fn, todo, context, timeout, address, collect):
         ctx = client.scatter(context, broadcast=True)
         futs = [client.submit(_run_one, fn, t, timeout, ctx, pure=False) for t in todo]
         for f in dask_completed(futs):
-            yield collect(*f.result())
+            collect(*f.result())
     finally:
         if own:
             client.close()

@@ -1,9 +1,9 @@
 """Tiles of the left (reference) image: the unit of work of the stereo stage.
 
 A tile is a rectangle of pixel centres ``col0 .. col0 + cols - 1`` by ``row0 .. row0 + rows - 1``
-with its position ``index`` in the plan. :func:`schedule` fixes the order in which tiles run and
-their cell sums are added, so the DEM does not depend on how many workers ran them.
-Rectification adds its own halo around a tile; only the tile's own points are kept.
+with its position ``index`` in the plan (tile order fixes the order in which the tiles' cell
+sums are added, so the DEM does not depend on how tiles are scheduled). Rectification adds
+its own halo around a tile; only the tile's own points are kept.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["Tile", "schedule", "tile_grid"]
+__all__ = ["Tile", "tile_grid"]
 
 
 @dataclass(frozen=True)
@@ -77,26 +77,3 @@ def tile_grid(width: int, height: int, tile_size: int, *, window=None) -> list[T
 def renumber(tiles) -> list[Tile]:
     """The tiles with ``index`` set to their position in the list."""
     return [replace(t, index=k) for k, t in enumerate(tiles)]
-
-
-def schedule(tiles) -> list:
-    """The order in which :func:`~stereodem.stereo.runner.run_tiles` submits ``tiles`` and
-    the stereo stage merges their results: the tiles of about full size (at least 90 % of the
-    largest tile's pixels) in index order, then the smaller ones largest first (ties by
-    index), so that the pool's last tiles are small ones and no core idles behind a big tile
-    at the end.
-
-    The order depends on the tiles alone (not on the workers), so results added in it give the
-    same floating-point sums however the tiles ran; :func:`tile_grid`'s tiles differ by a pixel
-    at most, so they run, finish and merge nearly in index order.
-    """
-    tiles = list(tiles)
-    if not tiles:
-        return tiles
-    largest = max(int(t.cols) * int(t.rows) for t in tiles)
-
-    def key(t):
-        area = int(t.cols) * int(t.rows)
-        return (0, 0, t.index) if 10 * area >= 9 * largest else (1, -area, t.index)
-
-    return sorted(tiles, key=key)

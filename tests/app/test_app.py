@@ -4,8 +4,6 @@ import json
 import pickle
 import subprocess
 import sys
-import threading
-import time
 
 import numpy as np
 import pytest
@@ -15,7 +13,6 @@ import stereodem.stereo.pipeline as sp
 from stereodem import cli
 from stereodem.config import config_from_dict, load_config
 from stereodem.core.errors import InputError, OutputExistsError
-from stereodem.core.threads import job_threads
 from stereodem.pipeline.job import run
 from stereodem.sensor.simulation.aster_granule import granule_right_size, write_granule_scene
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
@@ -107,49 +104,24 @@ def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
         ]
         for key in ("stats", "by_slope", "by_elevation", "slope_fit", "checkpoints"):
             assert json.dumps(reports[0][key]) == json.dumps(reports[1][key]), (w, key)
-        # with 2+ threads the assessment ran beside the orthoimages
-        stages = json.loads((tmp_path / f"w{w}" / "run.json").read_text())["stages"]
-        assert stages["assess"].get("background", False) == (job_threads(w) > 1)
-        assert stages["assess"]["seconds"] > 0 and stages["assess"].get("wait_s", 0) >= 0
-
-
-def _stage_threads():
-    return [t for t in threading.enumerate() if t.name.startswith("stereodem-stage")]
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(job_threads(2) < 2, reason="one core: the assessment runs after the others")
-def test_background_assessment_errors_and_job_errors_leave_no_thread_behind(
-    scene_dir, tmp_path, monkeypatch
-):
-    """The assessment's own error is the job's; an error of the orthoimages while the
-    assessment runs beside them is the job's too, and the job waits for the assessment
-    before it returns (nothing keeps writing into the output folder)."""
-    import stereodem.pipeline.job as job
+def test_run_reads_the_reference_dem_once(scene_dir, tmp_path, monkeypatch):
+    """The input checks read the reference DEM before the stereo work and hand it to the
+    assessment: one read of a file that may hold tens of millions of cells."""
+    from stereodem.core.dem import DEM
 
-    def bad_assessment(*a, **k):
-        raise InputError("simulated assessment failure")
+    real, reads = DEM.from_file.__func__, []
 
-    monkeypatch.setattr(job, "assess_stage", bad_assessment)
-    with pytest.raises(InputError, match="simulated assessment failure"):
-        run(_cfg(scene_dir, tmp_path / "a", workers=2))
-    assert not _stage_threads()
+    def counting(cls, path, *a, **k):
+        reads.append(str(path))
+        return real(cls, path, *a, **k)
 
-    ended = []
-
-    def slow_assessment(*a, **k):
-        time.sleep(1.5)
-        ended.append(time.perf_counter())
-        raise InputError("never reported")
-
-    def bad_ortho(*a, **k):
-        raise RuntimeError("simulated ortho failure")
-
-    monkeypatch.setattr(job, "assess_stage", slow_assessment)
-    monkeypatch.setattr(job, "ortho_stage", bad_ortho)
-    with pytest.raises(RuntimeError, match="simulated ortho failure"):
-        run(_cfg(scene_dir, tmp_path / "b", workers=2))
-    assert ended and ended[0] <= time.perf_counter() and not _stage_threads()
+    monkeypatch.setattr(DEM, "from_file", classmethod(counting))
+    info = run(_cfg(scene_dir, tmp_path / "once"))
+    assert reads.count(str(scene_dir / "truth_dem.tif")) == 1
+    assert info["headline"]["nmad"] < 4.0
 
 
 @pytest.mark.slow

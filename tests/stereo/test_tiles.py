@@ -4,11 +4,8 @@ import time
 import numpy as np
 import pytest
 
-from stereodem.stereo.execution import in_order
-from stereodem.stereo.grid import CellSums
-from stereodem.stereo.pipeline import TileResult
-from stereodem.stereo.runner import TileDone, iter_tiles, load_cached, run_tiles
-from stereodem.stereo.tiling import Tile, schedule, tile_grid
+from stereodem.stereo.runner import load_cached, run_tiles
+from stereodem.stereo.tiling import tile_grid
 
 
 def _tile_fn(tile, ctx):
@@ -51,66 +48,6 @@ def test_pool_results_identical_to_serial():
         assert np.array_equal(ser[k]["value"], par[k]["value"])
     # really ran in other processes
     assert {int(v["pid"]) for v in par.values()} != {os.getpid()}
-
-
-def _arrays(index):
-    return TileResult(CellSums(0, 0, np.full((7, 1, 1), float(index)), index), {}).to_arrays()
-
-
-def test_results_are_merged_in_schedule_order_as_soon_as_their_turn_comes(tmp_path):
-    """in_order gives each result once every tile before it (in schedule order) is done,
-    skips failed tiles, and reads results not held in memory from the cache."""
-    tiles = [Tile(0, 0, 10, 10, 0), Tile(10, 0, 10, 10, 1), Tile(20, 0, 3, 10, 2)]
-    tiles.append(Tile(30, 0, 10, 10, 3))
-    order = schedule(tiles)
-    assert [t.index for t in order] == [0, 1, 3, 2]  # the small tile last
-    seen = []
-
-    def finished():
-        for d in (TileDone(1, _arrays(1)), TileDone(2, _arrays(2))):
-            yield d
-            seen.append(d.index)
-        assert merged == []  # tile 0 not done: nothing merged yet
-        yield TileDone(0, None, "boom")  # failed: skipped, and 1 can go
-        seen.append(0)
-        assert [int(r.cells.n_points) for r in merged] == [1]
-        yield TileDone(3, None)  # only in the cache
-        seen.append(3)
-
-    from stereodem.stereo.runner import _save
-
-    _save(tmp_path, tiles[3], _arrays(3))
-    merged = []
-    for r in in_order(finished(), order, tmp_path):
-        merged.append(r)
-    assert [int(r.cells.n_points) for r in merged] == [1, 3, 2]
-    assert seen == [1, 2, 0, 3]
-
-
-@pytest.mark.slow
-def test_closing_the_tile_iterator_early_stops_the_pool():
-    """The stereo stage consumes the tiles as they finish; leaving that loop early (an error
-    while merging) must stop the workers, not leave them running."""
-    import psutil
-
-    tiles = tile_grid(130, 100, 16)
-    it = iter_tiles(_busy_tile, tiles, {"cpu_s": 0.5}, workers=2)  # ~12 s of tiles
-    first = next(it)
-    assert first.error is None
-    server = psutil.Process(int(first.result["ppid"]))  # the workers' parent
-
-    def workers():
-        try:
-            return [c for c in server.children() if c.status() != psutil.STATUS_ZOMBIE]
-        except psutil.Error:  # the server itself is gone
-            return []
-
-    assert len(workers()) == 2
-    it.close()
-    deadline = time.time() + 4  # SIGTERM at once, SIGKILL after 2 s
-    while workers() and time.time() < deadline:
-        time.sleep(0.1)
-    assert workers() == []
 
 
 @pytest.mark.slow

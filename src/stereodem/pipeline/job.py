@@ -35,7 +35,7 @@ import numpy as np
 from stereodem.core.dem import edit_mask_path
 from stereodem.core.jsonutil import json_default
 from stereodem.core.raster import write_text_atomic
-from stereodem.core.threads import job_threads, thread_budget
+from stereodem.core.threads import thread_budget
 from stereodem.post.coreg_run import track_tags
 from stereodem.stereo import sanity
 
@@ -136,44 +136,6 @@ class BackgroundWriter:
         return False
 
 
-class BackgroundStage:
-    """A stage run on its own thread while the job's next stages go on: the assessment beside
-    the orthoimages, the reading of the reference DEM beside the images', so that each one's
-    serial parts (the report's imports and figures, the orthoimages' backward maps, the HDF
-    reads) use the cores the other leaves idle. ``result()`` waits for it and
-    returns its value (or raises its error); ``started`` and ``seconds`` are its own start
-    (``perf_counter``) and wall time. Only with 2 or more threads: on one core the stages
-    would just take turns."""
-
-    def __init__(self, fn, *args, **kwargs):
-        self.started = time.perf_counter()
-        self.seconds = None
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="stereodem-stage")
-
-        def timed():
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                self.seconds = time.perf_counter() - self.started
-
-        self._future = self._pool.submit(timed)
-
-    def result(self):
-        try:
-            return self._future.result()
-        finally:
-            self._pool.shutdown(wait=True)
-
-    def close(self):
-        """Wait for the stage to end, whatever it gives (a job that failed or was interrupted
-        does not leave it writing into the output folder; an interrupted assessment stops at
-        its next block)."""
-        try:
-            self.result()
-        except BaseException:  # the job's own error is the one reported
-            pass
-
-
 @dataclass
 class Job:
     """One run in progress: its configuration and output folder, the per-stage progress
@@ -189,20 +151,21 @@ class Job:
     t_start: float = field(default_factory=time.perf_counter)
     stages: StageLog = field(default_factory=StageLog)
     written: list = field(default_factory=list)
-    background: list = field(default_factory=list)  # BackgroundStage still running
 
 
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     started = utc_now()
     with BackgroundWriter() as writer:
-        job = Job(
-            cfg, out, progress_factory or (lambda label: None), writer, writer_options(cfg), started
+        return _run_stages(
+            Job(
+                cfg,
+                out,
+                progress_factory or (lambda label: None),
+                writer,
+                writer_options(cfg),
+                started,
+            )
         )
-        try:
-            return _run_stages(job)
-        finally:  # nothing keeps writing into the folder once the job has ended
-            for stage in job.background:
-                stage.close()
 
 
 def _run_stages(job: Job) -> dict:
@@ -211,18 +174,8 @@ def _run_stages(job: Job) -> dict:
     cfg, out, prog, stages, writer = job.cfg, job.out, job.progress, job.stages, job.writer
     t_all, started, co, written = job.t_start, job.started, job.creation_options, job.written
     t0 = stages.start()
-    # the assessment's reference DEM, read once, beside the images when there are 2+ threads
-    # (and checked before any stereo work)
-    checking = None
-    if job_threads(cfg.run.workers) > 1:
-        checking = BackgroundStage(check_inputs, cfg)
-        job.background.append(checking)
-        reference = None
-    else:
-        reference = check_inputs(cfg)
+    reference = check_inputs(cfg)  # the assessment's reference DEM, read once
     pair = None if cfg.inputs.images else load_pair(cfg)
-    if checking is not None:
-        reference = checking.result()
     stages.record("load", t0)
 
     t0 = stages.start()
@@ -269,19 +222,6 @@ def _run_stages(job: Job) -> dict:
         stages.record(
             "post", t0, valid_pct=round(float(100 * np.isfinite(clean.heights).mean()), 3)
         )
-        assessing = None  # the assessment beside the next stages (2 or more threads)
-        if cfg.assess.enabled and cfg.inputs.reference_dem and job_threads(cfg.run.workers) > 1:
-            assessing = BackgroundStage(
-                assess_stage,
-                cfg,
-                clean,
-                out / "assess",
-                overwrite=True,
-                provenance=provenance(started=started),
-                reference=reference,
-            )
-            reference = None  # the assessment's now
-            job.background.append(assessing)
         if pts is not None:  # the points, classified by the edit mask
             t0 = stages.start()
             if cloud_args is not None:
@@ -341,12 +281,7 @@ def _run_stages(job: Job) -> dict:
         writer.wait_for(0)  # the raw layers are on disk (the orthoimages may still go)
         pair.left_image = pair.right_image = None
         products.dem = None
-        if assessing is not None:
-            t0 = stages.start()
-            report = assessing.result()[0].report
-            written.append("assess")
-            stages.record_background("assess", assessing, t0)
-        elif cfg.assess.enabled and cfg.inputs.reference_dem:
+        if cfg.assess.enabled and cfg.inputs.reference_dem:
             t0 = stages.start()
             report = assess_stage(
                 cfg,

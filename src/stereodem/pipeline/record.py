@@ -63,25 +63,9 @@ class StageLog:
         return time.perf_counter()
 
     def record(self, name, t0, **extra):
-        """Record the stage ``name`` that started at ``t0`` (:meth:`start`)."""
-        self.stages[name] = self._entry(t0, **extra)
-        log.info("stage %s: %.1f s", name, self.stages[name]["seconds"])
-
-    def record_background(self, name, stage, t0, **extra):
-        """Record a stage that ran on its own thread (a :class:`~stereodem.pipeline.job.
-        BackgroundStage`) beside the stages recorded since it started: ``seconds`` is its own
-        wall time, ``wait_s`` how long the job then waited for it (``t0``: the :meth:`start`
-        of that wait). Its CPU seconds are counted in the stages it overlapped (one process,
-        shared threads), so its ``cpu_s`` covers the wait only."""
-        rec = self._entry(t0, **extra)
-        rec.update(wait_s=rec["seconds"], seconds=round(stage.seconds, 3), background=True)
-        self.stages[name] = rec
-        log.info("stage %s: %.1f s, beside the others", name, rec["seconds"])
-
-    def _entry(self, t0, **extra) -> dict:
         own, kids = _peak_rss_mb()
         cpu, workers = _cpu_seconds()
-        return dict(
+        self.stages[name] = dict(
             seconds=round(time.perf_counter() - t0, 3),
             cpu_s=round(cpu - self._cpu0[0], 2),
             worker_cpu_s=round(workers - self._cpu0[1], 2),
@@ -90,6 +74,7 @@ class StageLog:
             peak_worker_rss_mb=kids,
             **extra,
         )
+        log.info("stage %s: %.1f s", name, self.stages[name]["seconds"])
 
 
 def versions() -> dict:
