@@ -283,6 +283,27 @@ class DEM:
                     )
         return cls(heights, transform, horizontal_crs(crs), vert, path, **found)
 
+    @staticmethod
+    def check_file(path, vertical: str | None = None, band: int = 1) -> None:
+        """The checks of :meth:`from_file` that need no full read: the file opens as a raster
+        with the band, has a CRS, its first block decodes, and ``vertical`` (if given) is a
+        vertical reference; raises what :meth:`from_file` raises. For input checks before
+        long work, without holding the heights meanwhile (a void-only DEM passes here and
+        fails when it is read)."""
+        path = str(path)
+        if vertical is not None and vertical not in VERTICALS:
+            raise DEMError(f"vertical reference must be 'geoid' or 'ellipsoid', got {vertical!r}")
+        try:
+            with reading_env(), rasterio.open(path) as ds:
+                if ds.crs is None:
+                    raise CRSError(f"{path}: the DEM has no CRS")
+                if not 1 <= band <= ds.count:
+                    raise DEMError(f"{path}: no band {band} (the file has {ds.count})")
+                h, w = ds.block_shapes[band - 1]
+                ds.read(band, window=((0, min(h, ds.height)), (0, min(w, ds.width))))
+        except rasterio.errors.RasterioIOError as exc:
+            raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
+
     @classmethod
     def bundled(cls) -> DEM:
         """The bundled real SRTM 3" DEM (eastern Turkey, EGM96 geoid heights)."""

@@ -108,8 +108,9 @@ def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
 
 @pytest.mark.slow
 def test_run_reads_the_reference_dem_once(scene_dir, tmp_path, monkeypatch):
-    """The input checks read the reference DEM before the stereo work and hand it to the
-    assessment: one read of a file that may hold tens of millions of cells."""
+    """The input checks look at the reference DEM's header and first block before the stereo
+    work; the assessment reads it: one full read of a file that may hold tens of millions of
+    cells (it was two)."""
     from stereodem.core.dem import DEM
 
     real, reads = DEM.from_file.__func__, []

@@ -100,6 +100,34 @@ def test_bad_dems(tmp_path):
         DEM.from_file(tmp_path / "missing.tif")
 
 
+def test_check_file_refuses_what_from_file_refuses(tmp_path):
+    """The input checks' cheap look (header, first block) gives from_file's errors."""
+    path = tmp_path / "nocrs.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32") as d:
+        d.write(np.ones((4, 4), np.float32), 1)
+    with pytest.raises(CRSError, match="nocrs.tif: the DEM has no CRS"):
+        DEM.check_file(path)
+    csv = tmp_path / "points.csv"
+    csv.write_text("lon,lat,h\n40,39,1000\n")
+    for bad in (tmp_path / "missing.tif", csv):
+        with pytest.raises(DEMError, match="cannot read the DEM"):
+            DEM.check_file(bad)
+    DEM.bundled().write(tmp_path / "whole.tif")  # tiled and compressed
+    with rasterio.open(tmp_path / "whole.tif") as ds:
+        offset = int(ds.get_tag_item("BLOCK_OFFSET_0_0", "TIFF", bidx=1))
+    data = bytearray((tmp_path / "whole.tif").read_bytes())
+    data[offset : offset + 64] = b"\xff" * 64  # the first block does not decode any more
+    broken = tmp_path / "broken.tif"
+    broken.write_bytes(bytes(data))
+    with pytest.raises(DEMError, match="broken.tif: cannot read the DEM"):
+        DEM.check_file(broken)
+    DEM.check_file(tmp_path / "whole.tif", vertical="geoid")  # a good one passes
+    with pytest.raises(DEMError, match="vertical reference must be"):
+        DEM.check_file(tmp_path / "whole.tif", vertical="msl")
+    with pytest.raises(DEMError, match="no band 2"):
+        DEM.check_file(tmp_path / "whole.tif", band=2)
+
+
 def test_write_round_trip_keeps_vertical_reference(tmp_path):
     dem = DEM.bundled()
     out = dem.to_reference("ellipsoid").write(tmp_path / "e.tif")

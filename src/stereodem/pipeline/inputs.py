@@ -162,17 +162,17 @@ def read_stereo_dem(dem_path, *, vertical=None) -> DEM:
     )
 
 
-def check_inputs(cfg: Config) -> DEM | None:
-    """Checks of the assessment inputs, so that a bad reference DEM or check-point file fails
-    the job before the stereo work rather than after it; returns the reference DEM read (the
-    assessment's, so that it is read once), None when the job assesses nothing."""
+def check_inputs(cfg: Config):
+    """Cheap checks of the assessment inputs, so that a bad reference DEM or check-point file
+    fails the job before the stereo work rather than after it: the reference DEM's header and
+    first block (:meth:`DEM.check_file`; the assessment reads it, once, when it needs it: a
+    full read here cost ~0.7 s on a 45 M-cell reference, or held it in memory through the
+    stereo and ortho stages), the check points read."""
     i = cfg.inputs
-    if not (cfg.assess.enabled and i.reference_dem):
-        return None
-    reference = DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
-    if i.checkpoints:
-        read_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
-    return reference
+    if cfg.assess.enabled and i.reference_dem:
+        DEM.check_file(i.reference_dem, vertical=i.reference_vertical)
+        if i.checkpoints:
+            read_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
 
 
 def input_paths(cfg: Config) -> list:

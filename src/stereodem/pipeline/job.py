@@ -174,7 +174,7 @@ def _run_stages(job: Job) -> dict:
     cfg, out, prog, stages, writer = job.cfg, job.out, job.progress, job.stages, job.writer
     t_all, started, co, written = job.t_start, job.started, job.creation_options, job.written
     t0 = stages.start()
-    reference = check_inputs(cfg)  # the assessment's reference DEM, read once
+    check_inputs(cfg)
     pair = None if cfg.inputs.images else load_pair(cfg)
     stages.record("load", t0)
 
@@ -284,14 +284,8 @@ def _run_stages(job: Job) -> dict:
         if cfg.assess.enabled and cfg.inputs.reference_dem:
             t0 = stages.start()
             report = assess_stage(
-                cfg,
-                clean,
-                out / "assess",
-                overwrite=True,
-                provenance=provenance(started=started),
-                reference=reference,
+                cfg, clean, out / "assess", overwrite=True, provenance=provenance(started=started)
             )[0].report
-            reference = None
             written.append("assess")
             stages.record("assess", t0)
 

@@ -256,29 +256,20 @@ def uncertainty_stage(cfg: Config, pair: Pair, dem: DEM, ortho_grid: MapGrid, ra
 
 
 def assess_stage(
-    cfg: Config,
-    dem,
-    out_dir,
-    *,
-    overwrite=True,
-    provenance=None,
-    error_analysis=None,
-    reference: DEM | None = None,
+    cfg: Config, dem, out_dir, *, overwrite=True, provenance=None, error_analysis=None
 ):
     """Accuracy report of ``dem`` (a :class:`DEM` or a path) against the reference DEM and
     check points of the configuration, written into ``out_dir``; returns (assessment, files).
 
     ``error_analysis`` (:class:`stereodem.post.error_analysis.ErrorAnalysisJob`) adds the
-    stable-terrain error analysis section and its figures to the report. ``reference``: the
-    configuration's reference DEM already read (:func:`~stereodem.pipeline.inputs.
-    check_inputs`), else it is read here."""
+    stable-terrain error analysis section and its figures to the report."""
     from stereodem.post.report import write_report
 
     i, a = cfg.inputs, cfg.assess
     if not i.reference_dem:
         raise InputError("the assessment needs a reference DEM ([inputs] reference_dem, --ref)")
     dem = dem if isinstance(dem, DEM) else DEM.from_file(dem, vertical=i.dem_vertical)
-    ref = reference or DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
+    ref = DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
     kw = {} if a.slope_bins is None else dict(slope_bins=a.slope_bins)
     result = assess_dem(
         dem,
