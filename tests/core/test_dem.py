@@ -88,12 +88,17 @@ def test_unknown_vertical_reference_is_an_error(tmp_path):
         dem.sample(40.015, 39.985)
 
 
-def test_bad_dems(tmp_path):
+def _no_crs_tif(tmp_path):
+    """A 4 x 4 float32 GeoTIFF without a CRS."""
     path = tmp_path / "nocrs.tif"
     with rasterio.open(path, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32") as d:
         d.write(np.ones((4, 4), np.float32), 1)
+    return path
+
+
+def test_bad_dems(tmp_path):
     with pytest.raises(CRSError, match="nocrs.tif: the DEM has no CRS"):
-        DEM.from_file(path)
+        DEM.from_file(_no_crs_tif(tmp_path))
     with pytest.raises(DEMError, match="all nodata"):
         DEM(np.full((3, 3), np.nan), Affine.identity(), "EPSG:4326")
     with pytest.raises(DEMError, match="cannot read"):
@@ -102,11 +107,8 @@ def test_bad_dems(tmp_path):
 
 def test_check_file_refuses_what_from_file_refuses(tmp_path):
     """The input checks' cheap look (header, first block) gives from_file's errors."""
-    path = tmp_path / "nocrs.tif"
-    with rasterio.open(path, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32") as d:
-        d.write(np.ones((4, 4), np.float32), 1)
     with pytest.raises(CRSError, match="nocrs.tif: the DEM has no CRS"):
-        DEM.check_file(path)
+        DEM.check_file(_no_crs_tif(tmp_path))
     csv = tmp_path / "points.csv"
     csv.write_text("lon,lat,h\n40,39,1000\n")
     for bad in (tmp_path / "missing.tif", csv):
