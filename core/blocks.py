@@ -37,27 +37,35 @@ def row_bands(n_rows: int, threads: int, min_rows: int = MIN_ROWS) -> list[tuple
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
+def each_band(fn, n_rows: int, *, threads: int | None = None, min_rows: int = MIN_ROWS) -> list:
+    """``fn((r0, r1))`` for each band of :func:`row_bands` of ``n_rows`` rows, on one thread
+    per band (none with a single band); returns the results in band order. ``fn`` must only
+    read shared arrays and write its own rows."""
+    threads = default_threads() if threads is None else int(threads)
+    bands = row_bands(n_rows, threads, min_rows)
+    if len(bands) == 1:
+        return [fn(bands[0])]
+    with ThreadPoolExecutor(len(bands), thread_name_prefix="stereodem-rows") as ex:
+        return list(ex.map(fn, bands))
+
+
 def by_rows(fn, *arrays, halo: int, threads: int | None = None, out=None, min_rows: int = MIN_ROWS):
     """``fn(*arrays)`` computed in row bands on threads (see the module docstring); ``fn`` must
     be local within ``halo`` rows and return an array with the inputs' rows (first axis).
     ``min_rows``: the smallest band worth a thread (rows of blocks, not cells, are fewer)."""
-    threads = default_threads() if threads is None else int(threads)
     rows = arrays[0].shape[0]
-    bands = row_bands(rows, threads, min_rows)
-    if len(bands) == 1:
-        return fn(*arrays)
-    results = [None] * len(bands)
 
-    def one(i):
-        r0, r1 = bands[i]
+    def one(band):
+        r0, r1 = band
         a0, a1 = max(0, r0 - halo), min(rows, r1 + halo)
         res = fn(*(a[a0:a1] for a in arrays))
-        results[i] = res[r0 - a0 : r0 - a0 + (r1 - r0)]
+        return band, res[r0 - a0 : r0 - a0 + (r1 - r0)]
 
-    with ThreadPoolExecutor(len(bands), thread_name_prefix="stereodem-rows") as ex:
-        list(ex.map(one, range(len(bands))))
+    results = each_band(one, rows, threads=threads, min_rows=min_rows)
+    if len(results) == 1:  # one band: the whole grid, as computed
+        return results[0][1]
     if out is None:
-        out = np.empty((rows,) + results[0].shape[1:], results[0].dtype)
-    for (r0, r1), res in zip(bands, results):
+        out = np.empty((rows,) + results[0][1].shape[1:], results[0][1].dtype)
+    for (r0, r1), res in results:
         out[r0:r1] = res
     return out

@@ -168,6 +168,12 @@ def horizontal_crs(crs: CRS) -> CRS:
     return crs
 
 
+def _check_vertical(vertical: str | None) -> None:
+    """A DEM's vertical reference is None (unknown) or one of :data:`VERTICALS`."""
+    if vertical is not None and vertical not in VERTICALS:
+        raise DEMError(f"vertical reference must be 'geoid' or 'ellipsoid', got {vertical!r}")
+
+
 @dataclass
 class DEM:
     """A DEM raster in memory.
@@ -216,10 +222,7 @@ class DEM:
                 f"{self.path or 'DEM'}: expected a 2-D height array, got shape {h.shape}"
             )
         self.heights = h
-        if self.vertical is not None and self.vertical not in VERTICALS:
-            raise DEMError(
-                f"vertical reference must be 'geoid' or 'ellipsoid', got {self.vertical!r}"
-            )
+        _check_vertical(self.vertical)
         for name in LAYERS:
             layer = getattr(self, name)
             if layer is not None and np.shape(layer) != h.shape:
@@ -291,8 +294,7 @@ class DEM:
         long work, without holding the heights meanwhile (a void-only DEM passes here and
         fails when it is read)."""
         path = str(path)
-        if vertical is not None and vertical not in VERTICALS:
-            raise DEMError(f"vertical reference must be 'geoid' or 'ellipsoid', got {vertical!r}")
+        _check_vertical(vertical)
         try:
             with reading_env(), rasterio.open(path) as ds:
                 if ds.crs is None:

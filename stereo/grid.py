@@ -19,14 +19,13 @@ pixel-corner affine transform; cell ``[i, j]`` has its centre at ``transform * (
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from affine import Affine
 
 from stereodem.core import geodesy
-from stereodem.core.blocks import default_threads, row_bands
+from stereodem.core.blocks import each_band
 from stereodem.core.dem import DEM, ELLIPSOID, GEOID
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid, OnGrid, as_crs
@@ -241,7 +240,7 @@ def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False) -> DEM:
 
     ``crop`` trims the grid to the cells that received points (keeping the lattice). The
     layers are computed in row bands on the process's threads
-    (:func:`stereodem.core.blocks.row_bands`; cell by cell, so the same values).
+    (:func:`stereodem.core.blocks.each_band`; cell by cell, so the same values).
     """
     t = total
     transform = spec.transform
@@ -255,19 +254,13 @@ def finish(spec: GridSpec, total: np.ndarray, *, crop: bool = False) -> DEM:
     height, sc, gp = (np.empty(shape, np.float32) for _ in range(3))
     count = np.empty(shape, np.int32)
 
-    def band(rows):
+    def band(rows):  # layer = weighted sum / weight, for (out, sum layer, weight layer)
         r = slice(*rows)
-        for out, num, den in ((height, t[1, r], t[0, r]), (sc, t[4, r], t[3, r])):
-            _mean(num, den, out[r])
-        _mean(t[6, r], t[5, r], gp[r])
+        for out, num, den in ((height, 1, 0), (sc, 4, 3), (gp, 6, 5)):
+            _mean(t[num, r], t[den, r], out[r])
         count[r] = t[2, r]
 
-    bands = row_bands(shape[0], default_threads())
-    if len(bands) == 1:
-        band(bands[0])
-    else:
-        with ThreadPoolExecutor(len(bands), thread_name_prefix="stereodem-rows") as ex:
-            list(ex.map(band, bands))
+    each_band(band, shape[0])
     return DEM(
         height,
         transform,
