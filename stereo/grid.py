@@ -1,7 +1,8 @@
 """Gridding of 3-D points into a DEM raster, with count, score and ray-gap layers.
 
 Points (lon, lat, h) are projected into a map CRS (the UTM zone of the points by default) and
-accumulated into cells of a regular grid with ``np.bincount``:
+accumulated into cells of a regular grid (weighted sums of every layer at once, as the
+product of a sparse cells x points weight matrix with the points' values):
 
 * ``"mean"``: the mean height of the points falling in each cell (s2p ``dsm_radius = 0``);
 * ``"gaussian"``: each point spreads into the cells within ``radius`` cells of it, weighted by
@@ -23,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from affine import Affine
+from scipy import sparse
 
 from stereodem.core import geodesy
 from stereodem.core.blocks import each_band
@@ -54,14 +56,16 @@ def grid_bounds(x, y, posting):
     )
 
 
-def _density_sigma(fi, fj, rows, cols, posting):
-    """Default gaussian width: ``max(posting / 2, mean point spacing)`` (CRS units)."""
-    i, j = np.rint(fi).astype(np.int64), np.rint(fj).astype(np.int64)
+def _density_sigma(i, j, rows, cols, posting):
+    """Default gaussian width: ``max(posting / 2, mean point spacing)`` (CRS units), from the
+    points' cells ``(i, j)`` (integers; those outside the ``rows x cols`` lattice ignored)."""
     inside = (i >= 0) & (i < rows) & (j >= 0) & (j < cols)
     if not inside.any():
         return 0.5 * posting
-    counts = np.bincount((i * cols + j)[inside])
-    per_cell = inside.sum() / max(np.count_nonzero(counts), 1)
+    i, j = i[inside], j[inside]
+    i0, j0 = int(i.min()), int(j.min())
+    counts = np.bincount((i - i0) * (int(j.max()) - j0 + 1) + (j - j0))
+    per_cell = i.size / max(np.count_nonzero(counts), 1)
     return max(0.5 * posting, posting / np.sqrt(per_cell))
 
 
@@ -158,65 +162,113 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
     # continuous cell coordinates, cell centres at integers
     fj = (np.asarray(x, float) - spec.transform.c) / posting - 0.5
     fi = (spec.transform.f - np.asarray(y, float)) / posting - 0.5
+    i0, j0 = np.rint(fi).astype(np.int64), np.rint(fj).astype(np.int64)
     if spec.method == "mean":
-        offsets, sig, radius = [(0, 0)], None, 0
+        sig, radius = None, 0
     else:
-        sig = float(spec.sigma) if spec.sigma else _density_sigma(fi, fj, rows, cols, posting)
+        sig = float(spec.sigma) if spec.sigma else _density_sigma(i0, j0, rows, cols, posting)
         radius = (
             spec.radius
             if spec.radius is not None
             else max(1, int(np.ceil(2.0 * sig / posting - 1e-9)))
         )
-        offsets = [
-            (di, dj) for di in range(-radius, radius + 1) for dj in range(-radius, radius + 1)
-        ]
-    i0, j0 = np.rint(fi).astype(np.int64), np.rint(fj).astype(np.int64)
-    # the window: the points' cells plus the support, clipped to the lattice
-    r0, r1 = max(int(i0.min()) - radius, 0), min(int(i0.max()) + radius + 1, rows)
-    c0, c1 = max(int(j0.min()) - radius, 0), min(int(j0.max()) + radius + 1, cols)
-    if r1 <= r0 or c1 <= c0:
-        return empty
-    wr, wc = r1 - r0, c1 - c0
-    ncell = wr * wc
-    sums = np.zeros((len(SUM_LAYERS), ncell))
-    sok, gok = np.isfinite(score), np.isfinite(ray_gap)
-    all_sok, all_gok = bool(sok.all()), bool(gok.all())
-    score, ray_gap = np.where(sok, score, 0.0), np.where(gok, ray_gap, 0.0)
-    base = (i0 - r0) * wc + (j0 - c0)  # cell index of each point in the window
-    lo_i, hi_i, lo_j, hi_j = int(i0.min()), int(i0.max()), int(j0.min()), int(j0.max())
-    if sig is not None:  # squared offsets along each axis, shared
-        dsq_i = {di: ((i0 + di) - fi) ** 2 for di in range(-radius, radius + 1)}
-        dsq_j = {dj: ((j0 + dj) - fj) ** 2 for dj in range(-radius, radius + 1)}
-    for di, dj in offsets:  # a handful of neighbour offsets
-        if r0 <= lo_i + di and hi_i + di < r1 and c0 <= lo_j + dj and hi_j + dj < c1:
-            sel = slice(None)  # every point's cell is in the window
-        else:
-            i, j = i0 + di, j0 + dj
-            sel = (i >= r0) & (i < r1) & (j >= c0) & (j < c1)
-        if sig is None:
-            w = np.ones(h.size if isinstance(sel, slice) else int(sel.sum()))
-        else:
-            # exp(-0.5 r2 / sig^2), r2 = (dsq_i + dsq_j) posting^2: the same operations in
-            # the same order, in place
-            w = dsq_i[di] + dsq_j[dj] if isinstance(sel, slice) else (dsq_i[di] + dsq_j[dj])[sel]
-            w *= posting**2
-            w *= -0.5
-            w /= sig**2
-            np.exp(w, out=w)
-        idx = (base + (di * wc + dj))[sel]
-        bw = np.bincount(idx, w, ncell)
-        sums[0] += bw
-        sums[1] += np.bincount(idx, w * h[sel], ncell)
-        # a layer whose values are all finite has the weights of the height layer (w · 1)
-        ws = w if all_sok else w * sok[sel]
-        wg = w if all_gok else w * gok[sel]
-        sums[3] += bw if all_sok else np.bincount(idx, ws, ncell)
-        sums[4] += np.bincount(idx, ws * score[sel], ncell)
-        sums[5] += bw if all_gok else np.bincount(idx, wg, ncell)
-        sums[6] += np.bincount(idx, wg * ray_gap[sel], ncell)
-    sums[2] = _support_counts(i0 - r0, j0 - c0, wr, wc, radius).ravel()
     n_points = int(((i0 >= 0) & (i0 < rows) & (j0 >= 0) & (j0 < cols)).sum())
-    return CellSums(r0, c0, sums.reshape(len(SUM_LAYERS), wr, wc), n_points)
+    # the points whose support reaches the lattice
+    near = (i0 >= -radius) & (i0 < rows + radius) & (j0 >= -radius) & (j0 < cols + radius)
+    if not near.all():
+        i0, j0, fi, fj = i0[near], j0[near], fi[near], fj[near]
+        h, score, ray_gap = h[near], score[near], ray_gap[near]
+    if h.size == 0:
+        return empty
+    # the padded window: the points' cells plus the support, which may reach up to
+    # ``radius`` cells beyond the lattice; cropped to the lattice at the end
+    pr0, pc0 = int(i0.min()) - radius, int(j0.min()) - radius
+    shape = (int(i0.max()) + radius + 1 - pr0, int(j0.max()) + radius + 1 - pc0)
+    # the value layers: a layer whose values are all finite has the weights of the height
+    # layer (w · 1), so its weight column is the first one
+    sok, gok = np.isfinite(score), np.isfinite(ray_gap)
+    columns, layer_of = [np.ones(h.size), h], {0: 0, 1: 1}
+    for layer, (fin, v) in zip((3, 5), ((sok, score), (gok, ray_gap))):
+        if fin.all():
+            layer_of[layer] = 0
+        else:
+            layer_of[layer] = len(columns)
+            columns.append(fin.astype(np.float64))
+        layer_of[layer + 1] = len(columns)
+        columns.append(v if layer_of[layer] == 0 else np.where(fin, v, 0.0))
+    k = 0.0 if sig is None else 0.5 * posting**2 / sig**2  # per cell^2
+    spread = _gaussian_spread(
+        i0 - pr0, j0 - pc0, fi - i0, fj - j0, np.stack(columns, 1), k, radius, shape
+    )
+    r0, r1 = max(pr0, 0), min(pr0 + shape[0], rows)
+    c0, c1 = max(pc0, 0), min(pc0 + shape[1], cols)
+    spread = spread.reshape(shape + (len(columns),))[r0 - pr0 : r1 - pr0, c0 - pc0 : c1 - pc0]
+    wr, wc = r1 - r0, c1 - c0
+    sums = np.empty((len(SUM_LAYERS), wr, wc))
+    for layer, col in layer_of.items():
+        sums[layer] = spread[:, :, col]
+    sums[2] = _support_counts(i0 - r0, j0 - c0, wr, wc, radius)
+    return CellSums(r0, c0, sums, n_points)
+
+
+#: points per block of :func:`_gaussian_spread` (its sparse matrix stays a few MB)
+SPREAD_BLOCK = 32768
+
+
+def _gaussian_spread(i, j, u, v, values, k, radius, shape):
+    """Sums over the points of ``exp(-k ((di - u)^2 + (dj - v)^2)) · values`` into the cells
+    ``(i + di, j + dj)``, ``|di|, |dj| <= radius``, of a window of ``shape`` cells.
+
+    ``(i, j)``: each point's cell in the window (its support lies inside the window);
+    ``(u, v)``: the point's offset from that cell's centre (cells, in [-0.5, 0.5]); ``values``
+    (n, L): the layers to sum; ``k``: the Gaussian's ``1 / (2 sigma^2)`` in cells^-2 (0: a
+    plain sum, weight 1). Returns (rows · cols, L).
+
+    The weight is separable (one factor per row offset, one per column offset). The points'
+    weights form a sparse matrix (cells x points, ``(2 radius + 1)^2`` entries per point)
+    whose product with ``values`` gives every layer in one pass; it is built for blocks of
+    :data:`SPREAD_BLOCK` points over the rows of cells each block reaches. The sums are in a
+    fixed order (blocks, then points), so they do not depend on the machine.
+    """
+    n, nv = values.shape
+    rows, cols = shape
+    m = 2 * radius + 1
+    off = np.arange(-radius, radius + 1, dtype=np.float64)
+    dtype = np.int32 if rows * cols < 2**31 else np.int64
+    cell_off = (
+        (np.arange(-radius, radius + 1)[:, None] * cols + np.arange(-radius, radius + 1))
+        .astype(dtype)
+        .ravel()
+    )
+    out = np.zeros((rows * cols, nv))
+    block = min(n, SPREAD_BLOCK)
+    weights, idx = np.empty((block, m, m)), np.empty((block, m * m), dtype)
+    ptr = np.arange(0, block * m * m + 1, m * m, dtype=dtype)
+    for s in range(0, n, SPREAD_BLOCK):
+        b = slice(s, min(s + SPREAD_BLOCK, n))
+        ib, jb = i[b], j[b]
+        lo, hi = int(ib.min()) - radius, int(ib.max()) + radius + 1  # the block's rows of cells
+        if k:
+            wi = np.subtract(off, u[b, None])
+            wj = np.subtract(off, v[b, None])
+            for w in (wi, wj):
+                np.square(w, out=w)
+                w *= -k
+                np.exp(w, out=w)
+            w = np.multiply(wi[:, :, None], wj[:, None, :], out=weights[: ib.size])
+        else:
+            w = weights[: ib.size]
+            w.fill(1.0)
+        cell = ((ib - lo) * cols + jb).astype(dtype)
+        if cell.min() + cell_off[0] < 0 or cell.max() + cell_off[-1] >= (hi - lo) * cols:
+            # scipy does not check the indices of a matrix built from its arrays
+            raise RuntimeError("gridding: a point's support leaves its window")
+        ix = np.add(cell[:, None], cell_off[None, :], out=idx[: ib.size])
+        mat = sparse.csc_matrix(
+            (w.ravel(), ix.ravel(), ptr[: ib.size + 1]), shape=((hi - lo) * cols, ib.size)
+        )
+        out[lo * cols : hi * cols] += mat @ values[b]
+    return out
 
 
 def _support_counts(i, j, rows, cols, radius):
