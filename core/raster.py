@@ -142,6 +142,10 @@ COG_DEFAULTS = {
     "OVERVIEWS": "AUTO",
     "BIGTIFF": "IF_SAFER",
 }
+#: DEFLATE level when none is given: the fastest. On stereodem's float products (noisy
+#: heights, resampled grey levels) level 1 costs 1-3 % more bytes than GDAL's default 6 and
+#: 30-40 % less CPU (full ASTER granule: orthoimage 70.3 -> 71.1 MB, 1.73 -> 1.19 CPU s)
+DEFLATE_LEVEL = "1"
 
 #: the private tag stereodem wrote before the vertical reference went into the CRS (still
 #: written, and read by :meth:`stereodem.core.dem.DEM.from_file`, for old readers)
@@ -200,7 +204,8 @@ def cog_creation_options(
 ) -> dict:
     """GDAL COG creation options of a product of ``dtype``: :data:`COG_DEFAULTS`, the predictor
     of the data type, overview resampling (``average`` for floats, ``nearest`` for integers),
-    then ``compress`` and the user's ``creation_options`` on top."""
+    then ``compress`` and the user's ``creation_options`` on top; DEFLATE at
+    :data:`DEFLATE_LEVEL` unless a ``LEVEL`` is given."""
     is_float = np.issubdtype(np.dtype(dtype), np.floating)
     co = dict(
         COG_DEFAULTS,
@@ -210,6 +215,8 @@ def cog_creation_options(
     if compress:
         co["COMPRESS"] = str(compress).upper()
     co.update(parse_creation_options(creation_options))
+    if co.get("COMPRESS", "").upper() == "DEFLATE":
+        co.setdefault("LEVEL", DEFLATE_LEVEL)
     if co.get("COMPRESS", "").upper() in (
         "NONE",
         "JPEG",
@@ -256,7 +263,8 @@ def write_geotiff(
     """Write ``data`` (2-D, or 3-D band-first) atomically as a Cloud-Optimised GeoTIFF.
 
     GDAL's COG driver (through rasterio) lays the file out for range reads: 256² tiles,
-    DEFLATE with the predictor of the data type (2 for integers, 3 for floats), internal
+    DEFLATE (level 1, :data:`DEFLATE_LEVEL`) with the predictor of the data type (2 for
+    integers, 3 for floats), internal
     overviews when the raster is larger than a tile, the overviews before the full
     resolution. Pixel values are stored losslessly unless ``creation_options`` say otherwise.
 

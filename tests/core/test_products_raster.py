@@ -20,7 +20,13 @@ cog_validate = pytest.importorskip("rio_cogeo.cogeo").cog_validate
 
 from stereodem.core.dem import DEM, ELLIPSOID, GEOID
 from stereodem.core.errors import InputError
-from stereodem.core.raster import parse_creation_options, write_geotiff, write_text_atomic
+from stereodem.core.raster import (
+    DEFLATE_LEVEL,
+    cog_creation_options,
+    parse_creation_options,
+    write_geotiff,
+    write_text_atomic,
+)
 
 T = Affine(30.0, 0.0, 500000.0, 0.0, -30.0, 4400000.0)
 
@@ -79,6 +85,13 @@ def test_small_raster_and_unreferenced_image_with_rpcs_validate(tmp_path):
     assert cog_validate(str(img))[0]
     with rasterio.open(img) as ds:
         assert ds.rpcs is not None and abs(ds.rpcs.lat_off - 39.5) < 1e-9
+
+
+def test_deflate_level_defaults_to_the_fastest_unless_given():
+    assert cog_creation_options("float32")["LEVEL"] == DEFLATE_LEVEL == "1"
+    assert cog_creation_options("float32", {"LEVEL": "9"})["LEVEL"] == "9"
+    for other in ("LZW", "WEBP", "NONE"):  # LEVEL means something else or nothing there
+        assert "LEVEL" not in cog_creation_options("uint8", compress=other)
 
 
 def test_creation_options_override_defaults(tmp_path):
