@@ -443,3 +443,80 @@ def test_fast_percentiles_equal_numpy_bit_for_bit():
         for q in ((1.0, 99.0), (2.0, 98.0), (0.1, 99.9), (50.0,)):
             got, ref = _percentiles(v, q), np.percentile(v, q)
             assert got.dtype == ref.dtype and np.array_equal(got, ref), (v.dtype, v.size, q)
+
+
+def _textbook_zncc(left, right, d, window=7):
+    """Float64 ZNCC of each left window with the right image gathered at the rounded
+    median-filtered, hole-filled disparity (NaN outside the image and at no-data), NaN at the
+    image border and where ``d`` is not finite."""
+    h, w = left.shape
+    seed = np.rint(_fill_seed(d, 0.0)).astype(int)
+    cols = np.arange(w)[None, :] - seed
+    warped = np.where(
+        (cols >= 0) & (cols < w), np.take_along_axis(right, np.clip(cols, 0, w - 1), axis=1), np.nan
+    )
+    a = windows(left.astype(np.float64), (window, window))
+    b = windows(warped.astype(np.float64), (window, window))
+    a = a - a.mean(axis=(-2, -1), keepdims=True)
+    b = b - b.mean(axis=(-2, -1), keepdims=True)
+    inner = (a * b).sum(axis=(-2, -1)) / np.sqrt(
+        (a * a).sum(axis=(-2, -1)) * (b * b).sum(axis=(-2, -1))
+    )
+    r = window // 2
+    out = np.full((h, w), np.nan)
+    out[r:-r, r:-r] = inner
+    out[~np.isfinite(d)] = np.nan
+    return out
+
+
+def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc():
+    """The score layer's shortcuts for a right image without NaN (no NaN scan, the warp
+    zero-filled outside the image, the windows reaching outside located on the column strips
+    where the warp can leave the image, invalid disparities set by index) give the general
+    path's score bit for bit, and both equal the float64 textbook ZNCC to 1e-4 with the same
+    NaN cells: no-data (NaN patches in either image), image border, windows reaching outside
+    the image (positive, negative and mixed disparities; strips that meet on a narrow image),
+    invalid disparities."""
+    from stereodem.stereo.match import _zncc_left, _zncc_warped
+
+    rng = np.random.default_rng(5)
+    cases = (
+        ((40, 90), (-6, 9)),
+        ((30, 70), (0, 12)),
+        ((30, 70), (-12, 0)),
+        ((30, 70), (9, 9)),  # constant: the warp leaves the image right at the strips' edges
+        ((30, 70), (-9, -9)),
+        ((25, 16), (-9, 9)),
+    )
+    for shape, (dlo, dhi) in cases:
+        left = rng.normal(100, 20, shape).astype(np.float32)
+        right = rng.normal(100, 20, shape).astype(np.float32)
+        d = rng.uniform(dlo, dhi, shape).astype(np.float32)
+        d[rng.random(shape) < 0.05] = np.nan
+        d[3, :] = np.nan  # a row without a valid disparity (the column-wise fill)
+        lw = _zncc_left(left, 7)
+        fast = _zncc_warped(lw, right, d, right_finite=True)
+        general = _zncc_warped(lw, right, d, right_finite=False)
+        assert np.array_equal(fast, general, equal_nan=True), shape
+        assert np.array_equal(zncc_at(left, right, d), fast, equal_nan=True)
+        for lnan, rnan in ((False, False), (True, False), (False, True)):
+            lt, rt = left.copy(), right.copy()
+            if lnan:
+                lt[10:13, 5:9] = np.nan
+            if rnan:
+                rt[12:15, 8:11] = np.nan
+            s = zncc_at(lt, rt, d)
+            ref = _textbook_zncc(lt, rt, d)
+            both = np.isfinite(ref)
+            assert np.array_equal(np.isfinite(s), both), (shape, lnan, rnan)
+            assert np.max(np.abs(s[both] - ref[both]), initial=0) < 1e-4
+
+
+def test_stretch_with_known_finite_images_is_the_scanned_one():
+    """``_to_uint8``'s ``finite`` flags (NaN scans skipped) do not change the stretch."""
+    rng = np.random.default_rng(6)
+    left = rng.normal(100, 20, (50, 300)).astype(np.float32)
+    right = rng.normal(90, 25, (50, 300)).astype(np.float32)
+    a = _to_uint8(left, right)
+    b = _to_uint8(left, right, finite=(True, True))
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
