@@ -753,7 +753,9 @@ def _to_uint8(left, right, executor=None, finite=(False, False)):
                 cv2.addWeighted(
                     blk, float(scale), blk, 0.0, 0.0, dst=b[r : r + step], dtype=cv2.CV_8U
                 )
-        if not finite:  # no-data takes the value of ``lo`` (as float32, like the image)
+        bad = None if finite else ~np.isfinite(a)
+        if bad is not None and bad.any():
+            # no-data takes the value of ``lo`` (as float32, like the image)
             b[np.isnan(a)] = np.uint8(np.clip(np.rint((a.dtype.type(lo) - lo) * scale), 0, 255))
             b[a == np.inf] = 255
             b[a == -np.inf] = 0
