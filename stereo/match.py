@@ -200,29 +200,43 @@ def _window_stats(img, window, min_std, finite=False, outside=()):
     mean = cv2.boxFilter(zero, cv2.CV_32F, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
     tmp = np.multiply(zero, zero)
     var = cv2.boxFilter(tmp, cv2.CV_32F, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
-    np.multiply(mean, mean, out=tmp)
-    np.subtract(var, tmp, out=var)  # E[x^2] - E[x]^2
-    if min_std != 0:
-        np.copyto(var, F32(np.nan), where=var < F32(min_std) ** 2)
+    near = None
     if has_nan:  # a NaN in the window: a dilation of the NaN mask (outside = 0)
         near = cv2.dilate(
             nan.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0
-        )
-        np.copyto(var, F32(np.nan), where=near.view(bool))
-    for cols, mask in outside:
-        var[:, cols][mask] = np.nan
-    h = window // 2
-    var[:h] = np.nan
-    var[-h:] = np.nan
-    var[:, :h] = np.nan
-    var[:, -h:] = np.nan
+        ).view(bool)
+    floor = F32(min_std) ** 2 if min_std != 0 else None
     # 1 / sqrt(max(var, 1e-30)) == 1 / max(sqrt(var), sqrt(1e-30)) bit for bit (the rounded
     # square root is monotone), and the second form keeps NaN (negative variances included)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.sqrt(var, out=var)
-        np.maximum(inv, _SQRT_TINY, out=inv)
-        np.divide(F32(1), inv, out=inv)
+        for rows in _row_bands(var.shape):  # element-wise, by bands that stay in cache
+            v, t = var[rows], tmp[rows]
+            np.multiply(mean[rows], mean[rows], out=t)
+            np.subtract(v, t, out=v)  # E[x^2] - E[x]^2
+            if floor is not None:
+                np.copyto(v, F32(np.nan), where=v < floor)
+            if near is not None:
+                np.copyto(v, F32(np.nan), where=near[rows])
+            np.sqrt(v, out=v)
+            np.maximum(v, _SQRT_TINY, out=v)
+            np.divide(F32(1), v, out=v)
+    inv = var
+    for cols, mask in outside:
+        inv[:, cols][mask] = np.nan
+    h = window // 2
+    inv[:h] = np.nan
+    inv[-h:] = np.nan
+    inv[:, :h] = np.nan
+    inv[:, -h:] = np.nan
     return _Stats(zero, mean, inv)
+
+
+def _row_bands(shape, nbytes=1 << 18):
+    """Row slices of an image of ``shape`` covering it in bands of about ``nbytes`` bytes of
+    float32 each (256 KiB: a few such arrays stay in a core's cache between element-wise
+    passes)."""
+    step = max(1, nbytes // (4 * max(shape[1], 1)))
+    return [slice(r, r + step) for r in range(0, shape[0], step)]
 
 
 def _gather_cols(a, cols, fill=np.nan):
@@ -912,11 +926,14 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None):
     ksize = (a.window, a.window)
     prod = np.multiply(a.stats.zero, b.zero, out=map_x)
     cov = cv2.boxFilter(prod, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_CONSTANT)
-    np.multiply(a.stats.mean, b.mean, out=prod)
-    np.subtract(cov, prod, out=cov)
-    np.multiply(cov, a.stats.inv, out=cov)
-    np.multiply(cov, b.inv, out=cov)
-    score = np.clip(cov, -1, 1, out=cov)
+    for rows in _row_bands(cov.shape):  # element-wise, by bands that stay in cache
+        c, p = cov[rows], prod[rows]
+        np.multiply(a.stats.mean[rows], b.mean[rows], out=p)
+        np.subtract(c, p, out=c)
+        np.multiply(c, a.stats.inv[rows], out=c)
+        np.multiply(c, b.inv[rows], out=c)
+        np.clip(c, -1, 1, out=c)
+    score = cov
     score.ravel()[holes] = np.nan  # a fresh C-contiguous array: ravel() is a view
     return score
 
