@@ -744,35 +744,30 @@ def _match_ncc(
 def _to_uint8(left, right, executor=None, finite=(False, False)):
     """Joint 1-99 % percentile stretch of both images to uint8 (NaN -> 0).
 
-    ``(a - lo) * 255 / (hi - lo)`` (``a - lo`` and the scale in float32, their product exact
-    in float64) rounded to the nearest integer, ties to even (OpenCV's ``saturate_cast``; a tie
-    needs the product to be exactly halfway between two integers: measure-zero for float
-    images), clipped to 0..255 (+inf -> 255, -inf -> 0); with ``executor`` (a thread pool)
-    the right image is converted there meanwhile.  ``finite``: for each image, whether the
-    caller knows it has no NaN or infinity (scans skipped)."""
+    ``round-half-up((a - lo) * 255 / (hi - lo))`` clipped to 0..255, in float64, in place;
+    with ``executor`` (a thread pool) the right image is converted there meanwhile.
+    ``finite``: for each image, whether the caller knows it has no NaN (scans skipped)."""
     v = _finite_sample([left, right], 400_000, finite=all(finite))
     lo, hi = _percentiles(v, (1.0, 99.0))
     scale = 255.0 / max(hi - lo, 1e-12)
 
     def conv(a, finite):
         b = np.empty(a.shape, np.uint8)
-        # by blocks of rows through one small float64 buffer that stays in cache; OpenCV's
-        # addWeighted on float64 works in float64 and rounds and saturates to uint8 in one go
+        # by blocks of rows through one small float64 buffer that stays in cache
         step = max(1, 32768 // max(a.shape[1], 1))
         buf = np.empty((step, a.shape[1]), np.float64)
         with np.errstate(invalid="ignore"):  # NaN (no-data): set just below
             for r in range(0, a.shape[0], step):
                 blk = buf[: min(step, a.shape[0] - r)]
                 np.subtract(a[r : r + step], lo, out=blk)
-                cv2.addWeighted(
-                    blk, float(scale), blk, 0.0, 0.0, dst=b[r : r + step], dtype=cv2.CV_8U
-                )
-        bad = None if finite else ~np.isfinite(a)
-        if bad is not None and bad.any():
-            # no-data takes the value of ``lo`` (as float32, like the image)
-            b[np.isnan(a)] = np.uint8(np.clip(np.rint((a.dtype.type(lo) - lo) * scale), 0, 255))
-            b[a == np.inf] = 255
-            b[a == -np.inf] = 0
+                np.multiply(blk, scale, out=blk)
+                np.add(blk, 0.5, out=blk)
+                np.clip(blk, 0, 255, out=blk)
+                np.copyto(b[r : r + step], blk, casting="unsafe")
+        nan = None if finite else np.isnan(a)
+        # no-data takes the value of ``lo`` (as float32, like the image)
+        if nan is not None and nan.any():
+            b[nan] = np.uint8(np.clip((a.dtype.type(lo) - lo) * scale + 0.5, 0, 255))
         return b
 
     if executor is not None:

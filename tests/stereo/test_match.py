@@ -385,9 +385,9 @@ def test_rounded_seed_is_the_rounded_float_median():
 
 def test_sgm_stretch_and_score_match_textbook_forms():
     """The 8-bit stretch (by row blocks) and the score layer equal their textbook forms:
-    the 1-99 % stretch in float64 rounded to nearest (no ties in these random images: see
-    test_stretch_rounds_ties_to_even_and_saturates), and the windowed ZNCC of the left image
-    with the right one gathered at the rounded median-filtered disparity."""
+    round-half-up of the 1-99 % stretch in float64 (ties: see
+    test_stretch_rounds_ties_up_and_saturates), and the windowed ZNCC of the left image with
+    the right one gathered at the rounded median-filtered disparity."""
     rng = np.random.default_rng(4)
     left = rng.normal(100, 20, (40, 1500)).astype(np.float32)  # several row blocks
     right = rng.normal(100, 20, (40, 1500)).astype(np.float32)
@@ -523,15 +523,15 @@ def test_stretch_with_known_finite_images_is_the_scanned_one():
     assert all(np.array_equal(x, y) for x, y in zip(a, b))
 
 
-def test_stretch_rounds_ties_to_even_and_saturates():
-    """The stretch's documented rounding: to nearest, ties to even; clipped to 0..255, +inf
-    -> 255, -inf -> 0, NaN -> the value of the 1 % percentile (0).  Percentiles 0 and 255
-    make the scale exactly 1, so x.5 values are ties."""
+def test_stretch_rounds_ties_up_and_saturates():
+    """The stretch's documented rounding, half up (ties are common on integer images: here
+    the percentiles 0 and 255 make the scale exactly 1, so x.5 values are ties); clipped to
+    0..255, +inf -> 255, -inf -> 0, NaN -> the value of the 1 % percentile (0)."""
     a = np.zeros((40, 50), np.float32)
     a[20:] = 255.0  # 1 % -> 0, 99 % -> 255: scale 1
     a[0, :6] = [2.5, 3.5, 2.4999998, 2.5000002, -7.0, 300.0]
     a[1, :3] = [np.inf, -np.inf, np.nan]
     b8, _ = _to_uint8(a, a)
-    assert list(b8[0, :6]) == [2, 4, 2, 3, 0, 255]
+    assert list(b8[0, :6]) == [3, 4, 2, 3, 0, 255]
     assert list(b8[1, :3]) == [255, 0, 0]
     assert np.array_equal(b8[20:], np.full((20, 50), 255, np.uint8))
