@@ -231,10 +231,11 @@ def _window_stats(img, window, min_std, finite=False, outside=()):
     return _Stats(zero, mean, inv)
 
 
-def _row_bands(shape, nbytes=1 << 18):
+def _row_bands(shape, nbytes=1 << 19):
     """Row slices of an image of ``shape`` covering it in bands of about ``nbytes`` bytes of
-    float32 each (256 KiB: a few such arrays stay in a core's cache between element-wise
-    passes)."""
+    float32 each (512 KiB: the few arrays of a band mostly stay in a core's 2 MiB cache
+    between element-wise passes, and the calls per pass stay few; 256 KiB measured 0.75 ms
+    slower on the 1024 x 1024 score layer)."""
     step = max(1, nbytes // (4 * max(shape[1], 1)))
     return [slice(r, r + step) for r in range(0, shape[0], step)]
 
@@ -753,8 +754,8 @@ def _to_uint8(left, right, executor=None, finite=(False, False)):
 
     def conv(a, finite):
         b = np.empty(a.shape, np.uint8)
-        # by blocks of rows through one small float64 buffer that stays in cache
-        step = max(1, 32768 // max(a.shape[1], 1))
+        # by blocks of rows through one float64 buffer (1 MiB) that stays in cache
+        step = max(1, (1 << 17) // max(a.shape[1], 1))
         buf = np.empty((step, a.shape[1]), np.float64)
         with np.errstate(invalid="ignore"):  # NaN (no-data): set just below
             for r in range(0, a.shape[0], step):

@@ -389,8 +389,8 @@ def test_sgm_stretch_and_score_match_textbook_forms():
     test_stretch_rounds_ties_up_and_saturates), and the windowed ZNCC of the left image with
     the right one gathered at the rounded median-filtered disparity."""
     rng = np.random.default_rng(4)
-    left = rng.normal(100, 20, (40, 1500)).astype(np.float32)  # several row blocks
-    right = rng.normal(100, 20, (40, 1500)).astype(np.float32)
+    left = rng.normal(100, 20, (200, 1500)).astype(np.float32)  # 3 row blocks (87 rows)
+    right = rng.normal(100, 20, (200, 1500)).astype(np.float32)
     left[5, 7] = np.nan
     l8, r8 = _to_uint8(left, right)
     v = np.concatenate([left.ravel(), right.ravel()])
@@ -470,15 +470,22 @@ def _textbook_zncc(left, right, d, window=7):
     return out
 
 
-def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc():
+@pytest.mark.parametrize("band_bytes", [None, 4096])
+def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc(band_bytes, monkeypatch):
     """The score layer's shortcuts for a right image without NaN (no NaN scan, the warp
     zero-filled outside the image, the windows reaching outside located on the column strips
     where the warp can leave the image, invalid disparities set by index) give the general
     path's score bit for bit, and both equal the float64 textbook ZNCC to 1e-4 with the same
     NaN cells: no-data (NaN patches in either image), image border, windows reaching outside
     the image (positive, negative and mixed disparities; strips that meet on a narrow image),
-    invalid disparities."""
+    invalid disparities.  ``band_bytes=4096``: the element-wise passes by bands of 11 rows or
+    fewer (several bands and their edges in these small images)."""
+    from stereodem.stereo import match
     from stereodem.stereo.match import _zncc_left, _zncc_warped
+
+    if band_bytes:
+        bands = match._row_bands
+        monkeypatch.setattr(match, "_row_bands", lambda shape: bands(shape, band_bytes))
 
     rng = np.random.default_rng(5)
     cases = (
