@@ -1123,9 +1123,10 @@ def match_rectified(
             pending = ex.submit(before_disparity)
             disp = disparity(l8, r8)
             masks, left_windows = pending.result()
-    else:
-        disp = disparity(*_to_uint8(left, right, finite=(left_finite, right_finite)))
+    else:  # before SGBM, while the stretch has left the images in cache (0.5 ms measured)
+        l8, r8 = _to_uint8(left, right, finite=(left_finite, right_finite))
         masks, left_windows = before_disparity()
+        disp = disparity(l8, r8)
     # no-data: the block around the left pixel or around its match touches NaN
     if masks is not None:
         bad_l, bad_r = masks
