@@ -181,9 +181,10 @@ def _window_stats(img, window, min_std, finite=False, outside=()):
     array of the shape of ``inv[:, columns]``), e.g. windows touching no-data the caller
     replaced by 0 and located itself.
 
-    Invalid windows get a NaN variance before the square root (NaN propagates through the
-    square root, the floor and the division); with ``min_std == 0`` a negative variance
-    (rounding, flat windows) needs no mask at all: its square root is NaN already.
+    Windows below ``min_std`` or touching no-data get a NaN variance before the square root
+    (NaN propagates through the square root, the floor and the division; with
+    ``min_std == 0`` a negative variance, from rounding, needs no mask at all: its square root
+    is NaN already); the image border and ``outside`` are set to NaN in ``inv`` afterwards.
     """
     img = np.asarray(img, dtype=F32)
     if finite:
