@@ -253,16 +253,17 @@ def sgm_parts(left, right, l8, r8, repeats=REPEATS):
     """Where the wrapper's time goes at 1 thread: CPU seconds (medians, interleaved) of the
     bare call, the wrapper's padded SGBM call (the padding's cost is the difference), the
     8-bit stretch of both images, and the score layer's left and warped parts; in % of the
-    bare call as well."""
+    bare call as well.  The parts are called as the wrapper calls them on this pair: told
+    that the images have no NaN (the wrapper's one scan per image is in its glue)."""
     cv2.setNumThreads(1)
     disp = _sgbm(l8, r8, DMIN, DMAX)
-    lw = _zncc_left(left, 7)
+    lw = _zncc_left(left, 7, finite=True)
     fns = {
         "bare_sgbm": lambda: _raw_sgbm(l8, r8, "sgbm"),
         "padded_sgbm": lambda: _sgbm(l8, r8, DMIN, DMAX),
-        "stretch_8bit": lambda: _to_uint8(left, right),
-        "score_left": lambda: _zncc_left(left, 7),
-        "score_warped": lambda: _zncc_warped(lw, right, disp),
+        "stretch_8bit": lambda: _to_uint8(left, right, finite=(True, True)),
+        "score_left": lambda: _zncc_left(left, 7, finite=True),
+        "score_warped": lambda: _zncc_warped(lw, right, disp, right_finite=True),
         "wrapper": lambda: match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
     }
     ts = {k: [] for k in fns}

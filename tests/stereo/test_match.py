@@ -385,11 +385,12 @@ def test_rounded_seed_is_the_rounded_float_median():
 
 def test_sgm_stretch_and_score_match_textbook_forms():
     """The 8-bit stretch (by row blocks) and the score layer equal their textbook forms:
-    round-half-up of the 1-99 % stretch in float64, and the windowed ZNCC of the left image
-    with the right one gathered at the rounded median-filtered disparity."""
+    round-half-up of the 1-99 % stretch in float64 (ties: see
+    test_stretch_rounds_ties_up_and_saturates), and the windowed ZNCC of the left image with
+    the right one gathered at the rounded median-filtered disparity."""
     rng = np.random.default_rng(4)
-    left = rng.normal(100, 20, (40, 1500)).astype(np.float32)  # several row blocks
-    right = rng.normal(100, 20, (40, 1500)).astype(np.float32)
+    left = rng.normal(100, 20, (200, 1500)).astype(np.float32)  # 3 row blocks (87 rows)
+    right = rng.normal(100, 20, (200, 1500)).astype(np.float32)
     left[5, 7] = np.nan
     l8, r8 = _to_uint8(left, right)
     v = np.concatenate([left.ravel(), right.ravel()])
@@ -443,3 +444,101 @@ def test_fast_percentiles_equal_numpy_bit_for_bit():
         for q in ((1.0, 99.0), (2.0, 98.0), (0.1, 99.9), (50.0,)):
             got, ref = _percentiles(v, q), np.percentile(v, q)
             assert got.dtype == ref.dtype and np.array_equal(got, ref), (v.dtype, v.size, q)
+
+
+def _textbook_zncc(left, right, d, window=7):
+    """Float64 ZNCC of each left window with the right image gathered at the rounded
+    median-filtered, hole-filled disparity (NaN outside the image and at no-data), NaN at the
+    image border and where ``d`` is not finite."""
+    h, w = left.shape
+    seed = np.rint(_fill_seed(d, 0.0)).astype(int)
+    cols = np.arange(w)[None, :] - seed
+    warped = np.where(
+        (cols >= 0) & (cols < w), np.take_along_axis(right, np.clip(cols, 0, w - 1), axis=1), np.nan
+    )
+    a = windows(left.astype(np.float64), (window, window))
+    b = windows(warped.astype(np.float64), (window, window))
+    a = a - a.mean(axis=(-2, -1), keepdims=True)
+    b = b - b.mean(axis=(-2, -1), keepdims=True)
+    inner = (a * b).sum(axis=(-2, -1)) / np.sqrt(
+        (a * a).sum(axis=(-2, -1)) * (b * b).sum(axis=(-2, -1))
+    )
+    r = window // 2
+    out = np.full((h, w), np.nan)
+    out[r:-r, r:-r] = inner
+    out[~np.isfinite(d)] = np.nan
+    return out
+
+
+@pytest.mark.parametrize("band_bytes", [None, 4096])
+def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc(band_bytes, monkeypatch):
+    """The score layer's shortcuts for a right image without NaN (no NaN scan, the warp
+    zero-filled outside the image, the windows reaching outside located on the column strips
+    where the warp can leave the image, invalid disparities set by index) give the general
+    path's score bit for bit, and both equal the float64 textbook ZNCC to 1e-4 with the same
+    NaN cells: no-data (NaN patches in either image), image border, windows reaching outside
+    the image (positive, negative and mixed disparities; strips that meet on a narrow image),
+    invalid disparities.  ``band_bytes=4096``: the element-wise passes by bands of 11 rows or
+    fewer (several bands and their edges in these small images)."""
+    from stereodem.stereo import match
+    from stereodem.stereo.match import _zncc_left, _zncc_warped
+
+    if band_bytes:
+        bands = match._row_bands
+        monkeypatch.setattr(match, "_row_bands", lambda shape: bands(shape, band_bytes))
+
+    rng = np.random.default_rng(5)
+    cases = (
+        ((40, 90), (-6, 9)),
+        ((30, 70), (0, 12)),
+        ((30, 70), (-12, 0)),
+        ((30, 70), (9, 9)),  # constant: the warp leaves the image right at the strips' edges
+        ((30, 70), (-9, -9)),
+        ((25, 16), (-9, 9)),
+    )
+    for shape, (dlo, dhi) in cases:
+        left = rng.normal(100, 20, shape).astype(np.float32)
+        right = rng.normal(100, 20, shape).astype(np.float32)
+        d = rng.uniform(dlo, dhi, shape).astype(np.float32)
+        d[rng.random(shape) < 0.05] = np.nan
+        d[3, :] = np.nan  # a row without a valid disparity (the column-wise fill)
+        lw = _zncc_left(left, 7)
+        fast = _zncc_warped(lw, right, d, right_finite=True)
+        general = _zncc_warped(lw, right, d, right_finite=False)
+        assert np.array_equal(fast, general, equal_nan=True), shape
+        assert np.array_equal(zncc_at(left, right, d), fast, equal_nan=True)
+        for lnan, rnan in ((False, False), (True, False), (False, True)):
+            lt, rt = left.copy(), right.copy()
+            if lnan:
+                lt[10:13, 5:9] = np.nan
+            if rnan:
+                rt[12:15, 8:11] = np.nan
+            s = zncc_at(lt, rt, d)
+            ref = _textbook_zncc(lt, rt, d)
+            both = np.isfinite(ref)
+            assert np.array_equal(np.isfinite(s), both), (shape, lnan, rnan)
+            assert np.max(np.abs(s[both] - ref[both]), initial=0) < 1e-4
+
+
+def test_stretch_with_known_finite_images_is_the_scanned_one():
+    """``_to_uint8``'s ``finite`` flags (NaN scans skipped) do not change the stretch."""
+    rng = np.random.default_rng(6)
+    left = rng.normal(100, 20, (50, 300)).astype(np.float32)
+    right = rng.normal(90, 25, (50, 300)).astype(np.float32)
+    a = _to_uint8(left, right)
+    b = _to_uint8(left, right, finite=(True, True))
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
+def test_stretch_rounds_ties_up_and_saturates():
+    """The stretch's documented rounding, half up (ties are common on integer images: here
+    the percentiles 0 and 255 make the scale exactly 1, so x.5 values are ties); clipped to
+    0..255, +inf -> 255, -inf -> 0, NaN -> the value of the 1 % percentile (0)."""
+    a = np.zeros((40, 50), np.float32)
+    a[20:] = 255.0  # 1 % -> 0, 99 % -> 255: scale 1
+    a[0, :6] = [2.5, 3.5, 2.4999998, 2.5000002, -7.0, 300.0]
+    a[1, :3] = [np.inf, -np.inf, np.nan]
+    b8, _ = _to_uint8(a, a)
+    assert list(b8[0, :6]) == [3, 4, 2, 3, 0, 255]
+    assert list(b8[1, :3]) == [255, 0, 0]
+    assert np.array_equal(b8[20:], np.full((20, 50), 255, np.uint8))
