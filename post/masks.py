@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import pyogrio
 import rasterio
 import shapely
 from pyproj import CRS, Transformer
@@ -31,6 +30,8 @@ def read_polygons(path, crs):
 
     Raises :class:`InputError` (one line naming the file) when it cannot be read, has no CRS,
     or holds no polygon."""
+    import pyogrio  # here: importing it imports pandas (0.2 s), which a run does not need
+
     path = str(path)
     try:
         meta, _, geom_wkb, _ = pyogrio.raw.read(path, columns=[])
