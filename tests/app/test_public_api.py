@@ -28,3 +28,15 @@ def test_import_stereodem_loads_no_heavy_library():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_the_run_pipeline_imports_no_dataframe_or_plotting_library():
+    """What ``stereodem run`` imports before its first stage (every run and every worker
+    start pays it): no pandas (pyogrio imports it; vectors are read only when given) and no
+    matplotlib (the report's figures import it when drawn)."""
+    code = (
+        "import sys, stereodem.run_cli, stereodem.pipeline.job; "
+        "print(sorted({'pandas', 'matplotlib'} & set(sys.modules)))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
