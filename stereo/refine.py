@@ -28,15 +28,35 @@ def _smooth_fill(d, sigma):
     m = ok.astype(np.float32)
     out = np.full(d.shape, np.nan, np.float32)
     s = float(sigma)
+    window = (slice(None), slice(None))
     while True:
-        num = cv2.GaussianBlur(z, (0, 0), s)
-        den = cv2.GaussianBlur(m, (0, 0), s)
+        # the wider passes only fill what is left: they are computed on the bounding box of
+        # the remaining holes plus the kernel's reach (OpenCV's radius for float images is
+        # 4 sigma), where they equal the whole image's blur (same border rule at the image's
+        # edges, and no cell of the box sees the crop's)
+        num = cv2.GaussianBlur(z[window], (0, 0), s)
+        den = cv2.GaussianBlur(m[window], (0, 0), s)
+        o = out[window]
         with np.errstate(invalid="ignore", divide="ignore"):
-            out = np.where(np.isfinite(out), out, np.where(den > 0.05, num / den, np.nan))
-        if np.isfinite(out).all() or s > max(d.shape):
+            o[...] = np.where(np.isfinite(o), o, np.where(den > 0.05, num / den, np.nan))
+        holes = ~np.isfinite(out)
+        if not holes.any() or s > max(d.shape):
             break
         s *= 2.0
+        window = _holes_window(holes, int(np.ceil(4.0 * s)) + 2)
     return np.where(np.isfinite(out), out, np.nanmedian(d[ok])).astype(np.float32)
+
+
+def _holes_window(holes, margin):
+    """Row and column slices of the bounding box of ``holes`` (bool) grown by ``margin``
+    cells, clipped to the array."""
+    rows = np.flatnonzero(holes.any(axis=1))
+    cols = np.flatnonzero(holes.any(axis=0))
+    h, w = holes.shape
+    return (
+        slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+        slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)),
+    )
 
 
 def _detail_gain(dp, Dw, detail, xq, ys, window, *, min_pixels: int = 1000):

@@ -324,6 +324,45 @@ def test_smooth_fill_bridges_wide_holes():
     assert np.abs(out - d)[:, 20:100].max() < 0.05  # away from the hole: the plain smoothing
 
 
+def _smooth_fill_whole_image(d, sigma):
+    """The hole-filling smoothing with every pass on the whole image (the plain form)."""
+    ok = np.isfinite(d)
+    z, m = np.where(ok, d, 0).astype(np.float32), ok.astype(np.float32)
+    out, s = np.full(d.shape, np.nan, np.float32), float(sigma)
+    while True:
+        num = cv2.GaussianBlur(z, (0, 0), s)
+        den = cv2.GaussianBlur(m, (0, 0), s)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = np.where(np.isfinite(out), out, np.where(den > 0.05, num / den, np.nan))
+        if np.isfinite(out).all() or s > max(d.shape):
+            break
+        s *= 2.0
+    return np.where(np.isfinite(out), out, np.nanmedian(d[ok])).astype(np.float32)
+
+
+@pytest.mark.parametrize("holes", ["edges", "corner", "interior", "everywhere"])
+def test_smooth_fill_on_the_holes_box_equals_the_whole_image_passes(holes):
+    """The wider passes run on the bounding box of the holes left (plus the kernel's reach):
+    the same fill as whole-image passes, to float32 rounding (OpenCV's vector and scalar
+    column tails sum in different orders)."""
+    rng = np.random.default_rng(4)
+    yy, xx = np.mgrid[0:300, 0:347].astype(np.float32)
+    d = (0.05 * xx - 0.02 * yy + rng.normal(0, 0.2, xx.shape)).astype(np.float32)
+    if holes == "edges":  # strips along two sides, as at a tile's no-data edges
+        d[:, 330:] = np.nan
+        d[:23] = np.nan
+    elif holes == "corner":
+        d[250:, 290:] = np.nan
+    elif holes == "interior":
+        d[100:160, 120:200] = np.nan
+    else:
+        d[rng.random(d.shape) < 0.3] = np.nan
+        d[:, :40] = np.nan
+    got, want = _smooth_fill(d, 3.0), _smooth_fill_whole_image(d, 3.0)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-5)
+
+
 @pytest.fixture(scope="module")
 def wavy_pair():
     """Rectified pair of an exact band-limited texture over a disparity with sub-window
