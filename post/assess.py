@@ -27,6 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import rasterio
+import rasterio.warp
 from affine import Affine
 
 from stereodem.core import geodesy, interrupt
@@ -354,6 +355,31 @@ class _Block:
             self.by_lc.merge(other.by_lc)
 
 
+#: DEM cells beyond its edges within which a block is still warped (resampling kernels reach
+#: two cells; the rest is margin)
+MISS_MARGIN_CELLS = 8
+
+
+def _misses(dem: DEM, transform, crs, shape) -> bool:
+    """Whether the grid ``transform``, ``shape`` (in ``crs``) lies wholly beyond one edge of
+    ``dem``'s grid, by more than :data:`MISS_MARGIN_CELLS` cells: no cell of it gets a
+    height from the warp. Its outline (21 points a side) is taken to DEM pixels; a region
+    whose outline lies beyond an edge lies there whole."""
+    rows, cols = shape
+    t = np.linspace(0.0, 1.0, 21)
+    one, zero = np.ones_like(t), np.zeros_like(t)
+    x, y = transform @ (
+        np.concatenate([t, one, t, zero]) * cols,
+        np.concatenate([zero, t, one, t]) * rows,
+    )
+    x, y = rasterio.warp.transform(warp._rio_crs(crs), warp._rio_crs(dem.crs), x, y)
+    c, r = ~dem.transform @ (np.asarray(x), np.asarray(y))
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(r))):
+        return False
+    m, (n_r, n_c) = MISS_MARGIN_CELLS, dem.shape
+    return bool(c.max() < -m or c.min() > n_c + m or r.max() < -m or r.min() > n_r + m)
+
+
 def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, elev_edges, lc, k):
     """Warp, difference, slope and class statistics of reference rows ``r0:r1``.
 
@@ -364,15 +390,18 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
     rows, cols = ref.shape
     T = reference.transform
     tb = T @ Affine.translation(0, r0)
-    z = warp.to_grid(
-        dem.heights,
-        dem.transform,
-        dem.crs,
-        tb,
-        reference.crs,
-        (r1 - r0, cols),
-        resampling=resampling,
-    )
+    if _misses(dem, tb, reference.crs, (r1 - r0, cols)):
+        z = np.full((r1 - r0, cols), np.nan, np.float32)  # what the warp gives there
+    else:
+        z = warp.to_grid(
+            dem.heights,
+            dem.transform,
+            dem.crs,
+            tb,
+            reference.crs,
+            (r1 - r0, cols),
+            resampling=resampling,
+        )
     h0, h1 = max(r0 - 1, 0), min(r1 + 1, rows)
     slope = terrain.slope_deg(
         ref[h0:h1], T @ Affine.translation(0, h0), reference.crs, rows=slice(r0 - h0, r1 - h0)

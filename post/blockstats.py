@@ -134,12 +134,13 @@ class StreamingStats:
                 w = w[near]
             if x.size == 0:
                 return
-        self._add_to_histogram(x, w)
+        self._add_to_histogram(x, w, buf[: x.size])
 
-    def _add_to_histogram(self, x, w):
+    def _add_to_histogram(self, x, w, work):
         """Count the values ``x`` (within ± limit) in their bins ``floor(x / resolution)``,
-        with the per-bin covariate sums."""
-        b = np.divide(x, self.resolution)
+        with the per-bin covariate sums; ``work``: a float64 array of the size of ``x`` to
+        use."""
+        b = np.divide(x, self.resolution, out=work)
         np.floor(b, out=b)  # bin indices, exact integers in float64
         lo, hi = int(b.min()), int(b.max())
         self._grow(lo, hi)

@@ -135,22 +135,31 @@ def _central_difference(z, rows, cols, axis):
     return np.where(inner, diff / 2.0, diff)
 
 
+#: rows of one band of :func:`slope_deg`'s work: its float64 temporaries stay a few MB
+#: (in cache, and reused by the allocator instead of mapped afresh for each grid)
+SLOPE_BAND_ROWS = 64
+
+
 def slope_deg(heights, transform, crs, *, rows: slice | None = None):
     """Slope in degrees (0 flat, 90 vertical), NaN on and next to voids.
 
     ``rows`` (a slice, step 1): only those rows of the grid, the others read as their
-    neighbours; equal to ``slope_deg(heights, transform, crs)[rows]`` (the same numbers as
-    :func:`gradient`'s, with one float64 array of the rows' size for the work)."""
+    neighbours; equal to ``slope_deg(heights, transform, crs)[rows]``. The numbers are those
+    of :func:`gradient`, worked out in bands of :data:`SLOPE_BAND_ROWS` rows."""
     z = np.asarray(heights)
     r0, r1, _ = (rows if rows is not None else slice(None)).indices(z.shape[0])
     if z.shape[0] < 2 or z.shape[1] < 2:
         return np.full((max(r1 - r0, 0), z.shape[1]), np.nan)
     dx, dy = pixel_size_m(transform, crs, z.shape)
-    ge, gn = _gradient_rows(z, dx, dy, r0, r1)
-    slope = np.hypot(ge, gn, out=ge)
-    del gn
-    np.arctan(slope, out=slope)
-    return np.degrees(slope, out=slope)
+    out = np.empty((max(r1 - r0, 0), z.shape[1]))
+    for b0 in range(r0, r1, SLOPE_BAND_ROWS):
+        b1 = min(b0 + SLOPE_BAND_ROWS, r1)
+        ge, gn = _gradient_rows(z, dx, dy, b0, b1)
+        band = out[b0 - r0 : b1 - r0]
+        np.hypot(ge, gn, out=band)
+        np.arctan(band, out=band)
+        np.degrees(band, out=band)
+    return out
 
 
 def _gradient_rows(z, dx, dy, r0, r1):

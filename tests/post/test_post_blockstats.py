@@ -401,13 +401,66 @@ def test_slope_of_some_rows_equals_the_whole_grid_slope(crs):
         if crs != "EPSG:4326"
         else Affine(1 / 3600, 0, 30, 0, -1 / 3600, 40.3)
     )
-    for shape in [(1, 5), (2, 2), (2, 7), (3, 3), (37, 29)]:
+    for shape in [(1, 5), (2, 2), (2, 7), (3, 3), (37, 29), (150, 9)]:  # 150: bands
         z = (rng.normal(size=shape) * 50 + 1000).astype(np.float32)
         z[rng.random(shape) < 0.05] = np.nan
         ge, gn = terrain.gradient(z, T, crs)
         want = np.degrees(np.arctan(np.hypot(ge, gn)))
         np.testing.assert_array_equal(terrain.slope_deg(z, T, crs), want)
-        for r0 in range(shape[0]):
-            for r1 in {r0 + 1, min(r0 + 5, shape[0]), shape[0]}:
+        for r0 in range(0, shape[0], 7 if shape[0] > 40 else 1):
+            for r1 in {r0 + 1, min(r0 + 5, shape[0]), min(r0 + 70, shape[0]), shape[0]}:
                 got = terrain.slope_deg(z, T, crs, rows=slice(r0, r1))
                 np.testing.assert_array_equal(got, want[r0:r1])
+
+
+def test_blocks_beyond_the_dem_are_not_warped_and_the_result_is_the_same(dem_pair, monkeypatch):
+    """A DEM over the middle rows of a larger reference: the blocks beyond it skip the warp
+    (all NaN, as the warp gives), the blocks near it are warped; the result is the same."""
+    dem, ref = dem_pair
+    part = DEM(
+        dem.heights[90:150, 40:200].copy(),
+        dem.transform @ Affine.translation(40, 90),
+        dem.crs,
+        dem.vertical,
+        "part",
+    )
+    skipped = []
+    misses = assess._misses
+
+    def spy(d, t, crs, shape):
+        out = misses(d, t, crs, shape)
+        skipped.append(out)
+        return out
+
+    monkeypatch.setattr(assess, "_misses", spy)
+    got, d1, h1 = assess.blockwise_comparison(part, ref, block_rows=16)
+    assert any(skipped) and not all(skipped)
+    monkeypatch.setattr(assess, "_misses", lambda *a: False)
+    want, d2, h2 = assess.blockwise_comparison(part, ref, block_rows=16)
+    assert _same(got, want)
+    np.testing.assert_array_equal(d1.dem, d2.dem)
+    np.testing.assert_array_equal(h1.counts, h2.counts)
+
+
+def test_misses_only_grids_beyond_the_dem_margin(dem_pair):
+    dem, _ = dem_pair
+    T, (rows, cols) = dem.transform, dem.shape
+    m = assess.MISS_MARGIN_CELLS
+    for (r, c), miss in {
+        (-11 - m, 0): True,  # above, by more than the margin
+        (-10, 0): False,  # within the margin: its last row is warped
+        (rows + m + 1, 0): True,
+        (0, cols + m + 1): True,
+        (0, -11 - m): True,
+        (-10 - m, 0): False,  # its last row on the margin
+        (5, 5): False,
+    }.items():
+        assert assess._misses(dem, T @ Affine.translation(c, r), dem.crs, (10, 10)) == miss
+    # another CRS: the outline is projected (here: lon/lat)
+    lon_lat = DEM(dem.heights, dem.transform, dem.crs, "geoid").bounds_lonlat()
+    west, south, east, north = lon_lat
+    step = (east - west) / cols
+    inside = Affine(step, 0, west, 0, -step, north)
+    beyond = Affine(step, 0, east + 20 * step, 0, -step, north)
+    assert not assess._misses(dem, inside, "EPSG:4326", (10, 10))
+    assert assess._misses(dem, beyond, "EPSG:4326", (10, 10))
