@@ -224,7 +224,7 @@ def class_codes(v, edges) -> tuple[np.ndarray, np.ndarray]:
     """The bin of each cell of ``v`` among ``edges`` (bins ``[e_i, e_i+1)``, the last one
     closed, as :func:`~stereodem.post.stats.binned_stats`) and the number of cells per bin.
 
-    Returns ``codes`` (the shape of ``v``, the smallest signed integer type holding the bins;
+    Returns ``codes`` (the shape of ``v``, :func:`_code_type` of the bins;
     -1 for cells outside the bins or not finite) and ``counts`` (int64, one per bin)."""
     e = np.asarray(edges, dtype=np.float64)
     n_bins = e.size - 1
@@ -236,7 +236,7 @@ def class_codes(v, edges) -> tuple[np.ndarray, np.ndarray]:
         for edge in e[1:-1]:
             codes += v >= edge  # edges passed: [e_i, e_i+1) -> i, e_last -> the last bin
     else:
-        codes = np.searchsorted(e[1:-1], v, side="right").astype(np.min_scalar_type(-n_bins))
+        codes = np.searchsorted(e[1:-1], v, side="right").astype(_code_type(n_bins))
     np.copyto(codes, -1, where=~inside)
     if n_bins <= _COMPARE_EDGES:  # a count per bin is cheaper than bincount's int64 copy
         counts = np.array([np.count_nonzero(codes == i) for i in range(n_bins)], np.int64)
@@ -245,11 +245,11 @@ def class_codes(v, edges) -> tuple[np.ndarray, np.ndarray]:
     return codes, counts
 
 
-def _sort_key(codes):
-    """``codes`` as the smallest integer type for numpy's stable sort (a radix sort for 8-
-    and 16-bit integers)."""
-    n = int(codes.max(initial=0)) + 1
-    return codes.astype(np.min_scalar_type(-n), copy=False)
+def _code_type(n_classes: int):
+    """The smallest signed integer type holding -1 … ``n_classes`` (one more than the
+    largest code: the bound of the last class); 8 or 16 bits for up to 32766 classes, which
+    numpy's stable sort sorts by radix."""
+    return np.min_scalar_type(-(n_classes + 1))
 
 
 class _ClassAccumulator:
@@ -272,10 +272,11 @@ class _ClassAccumulator:
         ``x`` the differences (float64, m), ``codes`` their class (index into ``keys``, -1:
         none) and ``v`` the class variable. The cells are grouped by class with one stable
         sort of their codes, so each class sees its cells in the block's order."""
-        order = np.argsort(_sort_key(codes), kind="stable")
+        order = np.argsort(codes, kind="stable")  # a radix sort for 8-/16-bit codes
         sorted_codes = codes[order]
         x, v = x[order], v[order]
-        bounds = np.searchsorted(sorted_codes, np.arange(len(keys) + 1))
+        # bounds of the classes (class indices in the codes' own type: no int64 copy)
+        bounds = np.searchsorted(sorted_codes, np.arange(len(keys) + 1, dtype=codes.dtype))
         for i, key in enumerate(keys):
             k = int(key) if self.edges is not None else float(key)
             acc = self._entry(k)
@@ -322,7 +323,7 @@ def _value_codes(v):
     each cell's index into them (-1: none) and the number of cells of each."""
     fin = np.isfinite(v)
     keys, inverse = np.unique(v[fin], return_inverse=True)
-    codes = np.full(v.shape, -1, np.int64)
+    codes = np.full(v.shape, -1, _code_type(keys.size))
     codes[fin] = inverse.ravel()
     return keys, codes, np.bincount(inverse.ravel(), minlength=keys.size)
 
@@ -429,9 +430,11 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
     else:
         b.fit.add_finite(dh[fit_ok], slope_b[fit_ok])
     codes, n_cls = class_codes(slope, slope_edges)
-    b.by_slope.add(np.arange(slope_edges.size - 1), n_cls, dh, codes[both], slope_b)
+    keys = np.arange(slope_edges.size - 1)
+    b.by_slope.add(keys, n_cls, dh, codes[both], slope_b)
     codes, n_cls = class_codes(rb, elev_edges)
-    b.by_elev.add(np.arange(elev_edges.size - 1), n_cls, dh, codes[both], ref_b)
+    keys = np.arange(elev_edges.size - 1)
+    b.by_elev.add(keys, n_cls, dh, codes[both], ref_b)
     del codes
     if lc is not None:
         cls = warp.to_grid(

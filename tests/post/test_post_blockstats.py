@@ -332,6 +332,7 @@ def _codes_by_search(v, e):
         [0, 5, 10, 20, 30, 45, 90],  # compared edge by edge
         [-3.0, 0.5, np.inf],  # an open last class
         list(np.linspace(-40, 40, 41)),  # binary search (more edges than _COMPARE_EDGES)
+        list(np.linspace(-45, 95, 300)),  # 16-bit codes
     ],
 )
 def test_class_codes_equal_the_binary_search_and_binned_stats(edges):
