@@ -135,6 +135,8 @@ def _central_difference(z, rows, cols, axis):
     return np.where(inner, diff / 2.0, diff)
 
 
+_DEG_PER_RAD = 180.0 / np.pi
+
 #: rows of one band of :func:`slope_deg`'s work: its float64 temporaries stay a few MB
 #: (in cache, and reused by the allocator instead of mapped afresh for each grid)
 SLOPE_BAND_ROWS = 64
@@ -158,7 +160,7 @@ def slope_deg(heights, transform, crs, *, rows: slice | None = None):
         band = out[b0 - r0 : b1 - r0]
         np.hypot(ge, gn, out=band)
         np.arctan(band, out=band)
-        np.degrees(band, out=band)
+        np.multiply(band, _DEG_PER_RAD, out=band)  # numpy's degrees: x * (180 / pi)
     return out
 
 
