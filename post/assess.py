@@ -423,11 +423,12 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
         np.packbits(fin_z, axis=1),
         {},
     )
-    b.overall.add_finite(dh)
     fit_ok = np.isfinite(slope_b)  # slope is void next to reference voids
-    if fit_ok.all():
+    if fit_ok.all():  # the fit takes every difference: its moments and bins are overall's
         b.fit.add_finite(dh, slope_b)
+        b.overall = b.fit.without_covariate()
     else:
+        b.overall.add_finite(dh)
         b.fit.add_finite(dh[fit_ok], slope_b[fit_ok])
     codes, n_cls = class_codes(slope, slope_edges)
     keys = np.arange(slope_edges.size - 1)

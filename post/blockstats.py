@@ -154,6 +154,16 @@ class StreamingStats:
             self._bw[sl] += np.bincount(rel, weights=w, minlength=hi - lo + 1)
             self._bwx[sl] += np.bincount(rel, weights=w * x, minlength=hi - lo + 1)
 
+    def without_covariate(self) -> StreamingStats:
+        """These values' statistics without the covariate: what an accumulator without one
+        would hold had it been given the same values (the moments, histogram and tail
+        copied; the per-bin covariate sums left out)."""
+        out = StreamingStats(self.resolution, self.limit)
+        out.n, out._mean, out._m2 = self.n, self._mean, self._m2
+        out._sumsq, out._sumabs, out.min, out.max = self._sumsq, self._sumabs, self.min, self.max
+        out._lo, out.counts, out._tail = self._lo, self.counts.copy(), list(self._tail)
+        return out
+
     def _merge_moments(self, n, mean, m2, sumsq, sumabs, lo, hi):
         """Chan et al.'s pairwise update of count, mean and squared deviations (the first
         set is taken as it is, so one block added equals that block's own figures)."""

@@ -465,3 +465,22 @@ def test_misses_only_grids_beyond_the_dem_margin(dem_pair):
     beyond = Affine(step, 0, east + 20 * step, 0, -step, north)
     assert not assess._misses(dem, inside, "EPSG:4326", (10, 10))
     assert assess._misses(dem, beyond, "EPSG:4326", (10, 10))
+
+
+def test_statistics_without_the_covariate_equal_those_of_the_values_alone():
+    x = _data(40_000, seed=12)
+    x = x[np.isfinite(x)]  # tails beyond the binned range kept
+    w = np.random.default_rng(3).uniform(0, 60, x.size)
+    fit = StreamingStats(covariate=True)
+    fit.add_finite(x, w)
+    alone = StreamingStats()
+    alone.add_finite(x)
+    got = fit.without_covariate()
+    assert not got.covariate
+    for name in ("n", "_mean", "_m2", "_sumsq", "_sumabs", "min", "max", "_lo"):
+        assert getattr(got, name) == getattr(alone, name), name
+    np.testing.assert_array_equal(got.counts, alone.counts)
+    np.testing.assert_array_equal(np.concatenate(got._tail), np.concatenate(alone._tail))
+    assert _same(got.result(), alone.result())
+    got.merge(alone)  # a plain accumulator: merges with plain ones
+    assert got.n == 2 * alone.n
