@@ -203,7 +203,8 @@ def hillshade_png(
     rgba[..., 3] = fin  # no data: transparent
     fig, ax = plt.subplots(figsize=(6.5, 6))
     extent = _map_axes(ax, transform, crs, z.shape)
-    ax.imshow(rgba, extent=extent, interpolation="nearest")
+    # as bytes: what matplotlib turns float colours into after its nearest-cell resampling
+    ax.imshow((rgba * 255).astype(np.uint8), extent=extent, interpolation="nearest")
     sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
     fig.colorbar(sm, ax=ax, shrink=0.8, extend="both", label=height_label)
     void = (~fin).sum()

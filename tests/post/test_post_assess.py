@@ -280,3 +280,25 @@ def test_figures_crop_as_bbox_inches_tight_pixel_for_pixel(ref, simulated, monke
         assert pngs[0].shape == pngs[1].shape
         np.testing.assert_array_equal(pngs[0], pngs[1])
         plt.close(fig)
+
+
+def test_colours_as_bytes_draw_as_float_colours_with_nearest_cells():
+    """hillshade_png hands matplotlib its colours as bytes, (rgba · 255) cast as matplotlib
+    casts float colours after resampling to the nearest cell: the PNG is the same."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    rng = np.random.default_rng(4)
+    for shape in ((900, 700), (60, 40)):  # fewer cells than pixels, more
+        rgba = rng.random((*shape, 4))
+        rgba[..., 3] = rng.random(shape) > 0.3  # transparent cells
+        pngs = []
+        for image in (rgba, (rgba * 255).astype(np.uint8)):
+            fig, ax = plt.subplots(figsize=(6.5, 6))
+            ax.imshow(image, extent=(0, 7000, 0, 9000), interpolation="nearest")
+            buf = io.BytesIO()
+            fig.savefig(buf, dpi=figures.DPI, format="png")
+            plt.close(fig)
+            pngs.append(plt.imread(io.BytesIO(buf.getvalue())))
+        np.testing.assert_array_equal(pngs[0], pngs[1])
