@@ -152,7 +152,8 @@ class StreamingStats:
         if self.covariate:
             self._bx[sl] += np.bincount(rel, weights=x, minlength=hi - lo + 1)
             self._bw[sl] += np.bincount(rel, weights=w, minlength=hi - lo + 1)
-            self._bwx[sl] += np.bincount(rel, weights=w * x, minlength=hi - lo + 1)
+            wx = np.multiply(w, x, out=work)  # the bins are in rel now
+            self._bwx[sl] += np.bincount(rel, weights=wx, minlength=hi - lo + 1)
 
     def without_covariate(self) -> StreamingStats:
         """These values' statistics without the covariate: what an accumulator without one
