@@ -256,6 +256,8 @@ def test_figures_crop_as_bbox_inches_tight_pixel_for_pixel(ref, simulated, monke
 
     import matplotlib.pyplot as plt
 
+    from stereodem.post import coreg_figures  # before _save is replaced: it imports _save
+
     cmp = assess.compare_on_reference_grid(simulated, ref)
     figs = []
     monkeypatch.setattr(figures, "_save", lambda fig, path, overwrite: figs.append(fig))
@@ -265,8 +267,6 @@ def test_figures_crop_as_bbox_inches_tight_pixel_for_pixel(ref, simulated, monke
     figures.histogram_png(cmp.dh, "hist.png")
     stats = assess.comparison_stats(cmp)
     figures.error_vs_slope_png(cmp.dh, cmp.slope, stats["by_slope"], "e.png")
-    from stereodem.post import coreg_figures
-
     monkeypatch.setattr(coreg_figures, "_save", lambda fig, path, overwrite: figs.append(fig))
     mask = np.isfinite(cmp.dh)
     coreg_figures.dh_before_after_png(ref.heights, simulated, simulated, mask, "c.png")
