@@ -27,6 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import rasterio
+import rasterio.warp
 from affine import Affine
 
 from stereodem.core import geodesy, interrupt
@@ -214,6 +215,43 @@ def comparison_stats(
     return out
 
 
+#: up to this many bin edges, :func:`class_codes` compares with each edge (one cheap pass
+#: per edge) instead of a binary search per cell
+_COMPARE_EDGES = 16
+
+
+def class_codes(v, edges) -> tuple[np.ndarray, np.ndarray]:
+    """The bin of each cell of ``v`` among ``edges`` (bins ``[e_i, e_i+1)``, the last one
+    closed, as :func:`~stereodem.post.stats.binned_stats`) and the number of cells per bin.
+
+    Returns ``codes`` (the shape of ``v``, :func:`_code_type` of the bins;
+    -1 for cells outside the bins or not finite) and ``counts`` (int64, one per bin)."""
+    e = np.asarray(edges, dtype=np.float64)
+    n_bins = e.size - 1
+    inside = np.isfinite(v)
+    inside &= v >= e[0]
+    inside &= v <= e[-1]
+    if e.size <= _COMPARE_EDGES:
+        codes = np.zeros(v.shape, np.int8)
+        for edge in e[1:-1]:
+            codes += v >= edge  # edges passed: [e_i, e_i+1) -> i, e_last -> the last bin
+    else:
+        codes = np.searchsorted(e[1:-1], v, side="right").astype(_code_type(n_bins))
+    np.copyto(codes, -1, where=~inside)
+    if n_bins <= _COMPARE_EDGES:  # a count per bin is cheaper than bincount's int64 copy
+        counts = np.array([np.count_nonzero(codes == i) for i in range(n_bins)], np.int64)
+    else:
+        counts = np.bincount(codes[inside], minlength=n_bins).astype(np.int64)
+    return codes, counts
+
+
+def _code_type(n_classes: int):
+    """The smallest signed integer type holding -1 … ``n_classes`` (one more than the
+    largest code: the bound of the last class); 8 or 16 bits for up to 32766 classes, which
+    numpy's stable sort sorts by radix."""
+    return np.min_scalar_type(-(n_classes + 1))
+
+
 class _ClassAccumulator:
     """Per-class statistics of ``dh`` in classes of a variable (bins of edges, or the integer
     values of a land-cover raster), accumulated block by block; gives the entries of
@@ -228,34 +266,23 @@ class _ClassAccumulator:
             self.stats[key], self.n_total[key], self.var_sum[key] = StreamingStats(), 0, 0.0
         return self.stats[key]
 
-    def add(self, dh, variable, fin_dh):
-        """Add a block: differences ``dh``, the class variable (same shape), ``isfinite(dh)``.
-        The cells are grouped by class with one stable sort of their class indices."""
-        v = variable
-        fin = np.isfinite(v)
-        if self.edges is not None:
-            e = self.edges
-            idx = np.searchsorted(e, v, side="right") - 1  # [e_i, e_i+1)
-            idx[fin & (v == e[-1])] = e.size - 2  # the last bin is closed
-            inside = fin & (idx >= 0) & (idx <= e.size - 2)
-            keys = np.arange(e.size - 1)
-        else:
-            inside = fin
-            keys, idx_in = np.unique(v[fin], return_inverse=True)
-            idx = np.full(v.shape, -1, np.int64)
-            idx[fin] = idx_in.ravel()
-        n_cls = np.bincount(idx[inside], minlength=keys.size)
-        m = inside & fin_dh
-        ci = idx[m]
-        order = np.argsort(ci.astype(np.int16) if keys.size < 2**15 else ci, kind="stable")
-        ci, d, vv = ci[order], dh[m][order], v[m][order]
-        bounds = np.searchsorted(ci, np.arange(keys.size + 1))
+    def add(self, keys, n_cls, x, codes, v):
+        """Add a block already classed: ``keys`` the classes, ``n_cls`` the block's cells of
+        each (whatever ``dh``), and at the cells of finite difference, in the block's order:
+        ``x`` the differences (float64, m), ``codes`` their class (index into ``keys``, -1:
+        none) and ``v`` the class variable. The cells are grouped by class with one stable
+        sort of their codes, so each class sees its cells in the block's order."""
+        order = np.argsort(codes, kind="stable")  # a radix sort for 8-/16-bit codes
+        sorted_codes = codes[order]
+        x, v = x[order], v[order]
+        # bounds of the classes (class indices in the codes' own type: no int64 copy)
+        bounds = np.searchsorted(sorted_codes, np.arange(len(keys) + 1, dtype=codes.dtype))
         for i, key in enumerate(keys):
             k = int(key) if self.edges is not None else float(key)
             acc = self._entry(k)
             self.n_total[k] += int(n_cls[i])
-            acc.add(d[bounds[i] : bounds[i + 1]])
-            self.var_sum[k] += float(vv[bounds[i] : bounds[i + 1]].sum(dtype=np.float64))
+            acc.add_finite(x[bounds[i] : bounds[i + 1]])
+            self.var_sum[k] += float(v[bounds[i] : bounds[i + 1]].sum(dtype=np.float64))
 
     def merge(self, other: _ClassAccumulator) -> _ClassAccumulator:
         """Add another block's class statistics (same classes) into these; returns self."""
@@ -291,6 +318,16 @@ class _ClassAccumulator:
         return out
 
 
+def _value_codes(v):
+    """Classes of a land-cover block ``v`` (float, NaN for none): the class values found,
+    each cell's index into them (-1: none) and the number of cells of each."""
+    fin = np.isfinite(v)
+    keys, inverse = np.unique(v[fin], return_inverse=True)
+    codes = np.full(v.shape, -1, _code_type(keys.size))
+    codes[fin] = inverse.ravel()
+    return keys, codes, np.bincount(inverse.ravel(), minlength=keys.size)
+
+
 def _row_blocks(n_rows: int, block_rows: int):
     for r0 in range(0, n_rows, block_rows):
         yield r0, min(r0 + block_rows, n_rows)
@@ -319,29 +356,63 @@ class _Block:
             self.by_lc.merge(other.by_lc)
 
 
+#: DEM cells beyond its edges within which a block is still warped (resampling kernels reach
+#: two cells; the rest is margin)
+MISS_MARGIN_CELLS = 8
+
+
+def _misses(dem: DEM, transform, crs, shape) -> bool:
+    """Whether the grid ``transform``, ``shape`` (in ``crs``) lies wholly beyond one edge of
+    ``dem``'s grid, by more than :data:`MISS_MARGIN_CELLS` cells: no cell of it gets a
+    height from the warp. Its outline (21 points a side) is taken to DEM pixels; a region
+    whose outline lies beyond an edge lies there whole."""
+    rows, cols = shape
+    t = np.linspace(0.0, 1.0, 21)
+    one, zero = np.ones_like(t), np.zeros_like(t)
+    x, y = transform @ (
+        np.concatenate([t, one, t, zero]) * cols,
+        np.concatenate([zero, t, one, t]) * rows,
+    )
+    x, y = rasterio.warp.transform(warp._rio_crs(crs), warp._rio_crs(dem.crs), x, y)
+    c, r = ~dem.transform @ (np.asarray(x), np.asarray(y))
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(r))):
+        return False
+    m, (n_r, n_c) = MISS_MARGIN_CELLS, dem.shape
+    return bool(c.max() < -m or c.min() > n_c + m or r.max() < -m or r.min() > n_r + m)
+
+
 def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, elev_edges, lc, k):
-    """Warp, difference, slope and class statistics of reference rows ``r0:r1``."""
+    """Warp, difference, slope and class statistics of reference rows ``r0:r1``.
+
+    The statistics take the cells where both heights are finite (``dh`` finite), as
+    compressed 1-D arrays in the block's order: ``dh`` (float64, m), the slope (degrees)
+    and the reference height there, each computed once for every accumulator."""
     ref = reference.heights
     rows, cols = ref.shape
     T = reference.transform
     tb = T @ Affine.translation(0, r0)
-    z = warp.to_grid(
-        dem.heights,
-        dem.transform,
-        dem.crs,
-        tb,
-        reference.crs,
-        (r1 - r0, cols),
-        resampling=resampling,
-    )
+    if _misses(dem, tb, reference.crs, (r1 - r0, cols)):
+        z = np.full((r1 - r0, cols), np.nan, np.float32)  # what the warp gives there
+    else:
+        z = warp.to_grid(
+            dem.heights,
+            dem.transform,
+            dem.crs,
+            tb,
+            reference.crs,
+            (r1 - r0, cols),
+            resampling=resampling,
+        )
     h0, h1 = max(r0 - 1, 0), min(r1 + 1, rows)
-    slope = terrain.slope_deg(ref[h0:h1], T @ Affine.translation(0, h0), reference.crs)
-    slope = slope[r0 - h0 : r0 - h0 + (r1 - r0)]
+    slope = terrain.slope_deg(
+        ref[h0:h1], T @ Affine.translation(0, h0), reference.crs, rows=slice(r0 - h0, r1 - h0)
+    )
     rb = ref[r0:r1]
-    dh = z.astype(np.float64)
-    dh -= rb
-    fin_dh = np.isfinite(dh)
     fin_z = np.isfinite(z)
+    both = fin_z & np.isfinite(rb)  # where dh = z - rb is finite
+    ref_b = rb[both]
+    dh = np.subtract(z[both], ref_b, dtype=np.float64)
+    slope_b = slope[both]
     b = _Block(
         StreamingStats(),
         StreamingStats(covariate=True),
@@ -352,10 +423,20 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
         np.packbits(fin_z, axis=1),
         {},
     )
-    b.overall.add(dh[fin_dh])
-    b.fit.add(dh, slope)
-    b.by_slope.add(dh, slope, fin_dh)
-    b.by_elev.add(dh, rb, fin_dh)
+    fit_ok = np.isfinite(slope_b)  # slope is void next to reference voids
+    if fit_ok.all():  # the fit takes every difference: its moments and bins are overall's
+        b.fit.add_finite(dh, slope_b)
+        b.overall = b.fit.without_covariate()
+    else:
+        b.overall.add_finite(dh)
+        b.fit.add_finite(dh[fit_ok], slope_b[fit_ok])
+    codes, n_cls = class_codes(slope, slope_edges)
+    keys = np.arange(slope_edges.size - 1)
+    b.by_slope.add(keys, n_cls, dh, codes[both], slope_b)
+    codes, n_cls = class_codes(rb, elev_edges)
+    keys = np.arange(elev_edges.size - 1)
+    b.by_elev.add(keys, n_cls, dh, codes[both], ref_b)
+    del codes
     if lc is not None:
         cls = warp.to_grid(
             lc[0],
@@ -367,10 +448,16 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
             resampling="nearest",
             dst_dtype=np.float64,
         )
-        b.by_lc.add(dh, cls, fin_dh)
+        keys, codes, n_cls = _value_codes(cls)
+        b.by_lc.add(keys, n_cls, dh, codes[both], cls[both])
     s0 = (-r0) % k
-    for name, a in (("dem", z), ("ref", rb), ("dh", dh), ("slope", slope)):
-        b.display[name] = np.array(a[s0::k, ::k])
+    zd, rd = z[s0::k, ::k], rb[s0::k, ::k]
+    b.display = {
+        "dem": np.array(zd),
+        "ref": np.array(rd),
+        "dh": np.subtract(zd, rd, dtype=np.float64),
+        "slope": np.array(slope[s0::k, ::k]),
+    }
     return b
 
 

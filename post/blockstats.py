@@ -98,42 +98,72 @@ class StreamingStats:
         if self.covariate:
             w = np.asarray(w, dtype=np.float64).ravel()
             ok &= np.isfinite(w)
-            w = w[ok]
+        if not ok.all():
+            x = x[ok]
+            w = w[ok] if self.covariate else None
+        self.add_finite(x, w)
+
+    def add_finite(self, x, w=None):
+        """:meth:`add` for values known to be finite: ``x`` a 1-D float64 array (m), ``w``
+        the covariate at the same cells (finite, float64) when the accumulator keeps one.
+        The block's moments, histogram bins and covariate sums are the same numbers
+        :meth:`add` gives, with fewer passes over ``x``."""
+        if self.covariate:
             self._sw += float(w.sum())
             self._sww += _dot(w, w)
-        x = x[ok]
         if x.size == 0:
             return
-        mean = float(x.mean())
-        self._merge_moments(
-            x.size,
-            mean,
-            float(np.sum((x - mean) ** 2)),
-            _dot(x, x),
-            float(np.abs(x).sum()),
-            float(x.min()),
-            float(x.max()),
-        )
-        far = np.abs(x) > self.limit
-        if far.any():
+        n = x.size
+        mean = float(x.sum()) / n  # what x.mean() gives
+        buf = np.subtract(x, mean)
+        np.multiply(buf, buf, out=buf)
+        m2 = float(buf.sum())
+        np.multiply(x, x, out=buf)
+        sumsq = float(buf.sum())
+        np.abs(x, out=buf)
+        sumabs = float(buf.sum())
+        lo_x, hi_x = float(x.min()), float(x.max())
+        self._merge_moments(n, mean, m2, sumsq, sumabs, lo_x, hi_x)
+        if max(-lo_x, hi_x) > self.limit:
+            far = buf > self.limit
             self._tail.append(x[far])
+            near = ~far
+            x = x[near]
             if self.covariate:
                 self._tail_w.append(w[far])
-            x = x[~far]
-            if self.covariate:
-                w = w[~far]
-        if x.size == 0:
-            return
-        idx = np.floor(x / self.resolution).astype(np.int64)
-        lo, hi = int(idx.min()), int(idx.max())
+                w = w[near]
+            if x.size == 0:
+                return
+        self._add_to_histogram(x, w, buf[: x.size])
+
+    def _add_to_histogram(self, x, w, work):
+        """Count the values ``x`` (within ± limit) in their bins ``floor(x / resolution)``,
+        with the per-bin covariate sums; ``work``: a float64 array of the size of ``x`` to
+        use."""
+        b = np.divide(x, self.resolution, out=work)
+        np.floor(b, out=b)  # bin indices, exact integers in float64
+        lo, hi = int(b.min()), int(b.max())
         self._grow(lo, hi)
-        rel = idx - self._lo
-        self.counts += np.bincount(rel, minlength=self.counts.size)
+        b -= lo
+        rel = b.astype(np.intp)
+        a = lo - self._lo  # the block's bins are counts[a : a + hi - lo + 1]
+        sl = slice(a, a + hi - lo + 1)
+        self.counts[sl] += np.bincount(rel, minlength=hi - lo + 1)
         if self.covariate:
-            sz = self.counts.size
-            self._bx += np.bincount(rel, weights=x, minlength=sz)
-            self._bw += np.bincount(rel, weights=w, minlength=sz)
-            self._bwx += np.bincount(rel, weights=w * x, minlength=sz)
+            self._bx[sl] += np.bincount(rel, weights=x, minlength=hi - lo + 1)
+            self._bw[sl] += np.bincount(rel, weights=w, minlength=hi - lo + 1)
+            wx = np.multiply(w, x, out=work)  # the bins are in rel now
+            self._bwx[sl] += np.bincount(rel, weights=wx, minlength=hi - lo + 1)
+
+    def without_covariate(self) -> StreamingStats:
+        """These values' statistics without the covariate: what an accumulator without one
+        would hold had it been given the same values (the moments, histogram and tail
+        copied; the per-bin covariate sums left out)."""
+        out = StreamingStats(self.resolution, self.limit)
+        out.n, out._mean, out._m2 = self.n, self._mean, self._m2
+        out._sumsq, out._sumabs, out.min, out.max = self._sumsq, self._sumabs, self.min, self.max
+        out._lo, out.counts, out._tail = self._lo, self.counts.copy(), list(self._tail)
+        return out
 
     def _merge_moments(self, n, mean, m2, sumsq, sumabs, lo, hi):
         """Chan et al.'s pairwise update of count, mean and squared deviations (the first

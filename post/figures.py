@@ -41,9 +41,27 @@ DPI = 110
 def _save(fig, path, overwrite):
     path = check_writable(path, overwrite)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=DPI, bbox_inches="tight", format="png")
+        fig.savefig(tmp, dpi=DPI, bbox_inches=_tight_bbox(fig), format="png")
     plt.close(fig)
     return path
+
+
+def _tight_bbox(fig):
+    """The box (inches) that ``savefig(bbox_inches="tight")`` crops to, found without the
+    images: ``"tight"`` draws the whole figure once to measure it, resampling every image
+    for nothing (an image lies inside its axes, so it never widens the box). The PNG is
+    the same, pixel for pixel."""
+    images = [im for ax in fig.axes for im in ax.get_images() if im.get_visible()]
+    for im in images:
+        im.set_visible(False)
+    try:
+        fig.set_dpi(DPI)  # as savefig measures: text extents depend on the dpi
+        fig.draw_without_rendering()
+        box = fig.get_tightbbox(fig.canvas.get_renderer())
+    finally:
+        for im in images:
+            im.set_visible(True)
+    return box.padded(plt.rcParams["savefig.pad_inches"])
 
 
 def _decimation(shape) -> int:
@@ -185,7 +203,8 @@ def hillshade_png(
     rgba[..., 3] = fin  # no data: transparent
     fig, ax = plt.subplots(figsize=(6.5, 6))
     extent = _map_axes(ax, transform, crs, z.shape)
-    ax.imshow(rgba, extent=extent, interpolation="nearest")
+    # as bytes: what matplotlib turns float colours into after its nearest-cell resampling
+    ax.imshow((rgba * 255).astype(np.uint8), extent=extent, interpolation="nearest")
     sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
     fig.colorbar(sm, ax=ax, shrink=0.8, extend="both", label=height_label)
     void = (~fin).sum()

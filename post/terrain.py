@@ -135,10 +135,64 @@ def _central_difference(z, rows, cols, axis):
     return np.where(inner, diff / 2.0, diff)
 
 
-def slope_deg(heights, transform, crs):
-    """Slope in degrees (0 flat, 90 vertical), NaN on and next to voids."""
-    ge, gn = gradient(heights, transform, crs)
-    return np.degrees(np.arctan(np.hypot(ge, gn)))
+_DEG_PER_RAD = 180.0 / np.pi
+
+#: rows of one band of :func:`slope_deg`'s work: its float64 temporaries stay a few MB
+#: (in cache, and reused by the allocator instead of mapped afresh for each grid)
+SLOPE_BAND_ROWS = 64
+
+
+def slope_deg(heights, transform, crs, *, rows: slice | None = None):
+    """Slope in degrees (0 flat, 90 vertical), NaN on and next to voids.
+
+    ``rows`` (a slice, step 1): only those rows of the grid, the others read as their
+    neighbours; equal to ``slope_deg(heights, transform, crs)[rows]``. The numbers are those
+    of :func:`gradient`, worked out in bands of :data:`SLOPE_BAND_ROWS` rows."""
+    z = np.asarray(heights)
+    r0, r1, _ = (rows if rows is not None else slice(None)).indices(z.shape[0])
+    if z.shape[0] < 2 or z.shape[1] < 2:
+        return np.full((max(r1 - r0, 0), z.shape[1]), np.nan)
+    dx, dy = pixel_size_m(transform, crs, z.shape)
+    out = np.empty((max(r1 - r0, 0), z.shape[1]))
+    for b0 in range(r0, r1, SLOPE_BAND_ROWS):
+        b1 = min(b0 + SLOPE_BAND_ROWS, r1)
+        ge, gn = _gradient_rows(z, dx, dy, b0, b1)
+        band = out[b0 - r0 : b1 - r0]
+        np.hypot(ge, gn, out=band)
+        np.arctan(band, out=band)
+        np.multiply(band, _DEG_PER_RAD, out=band)  # numpy's degrees: x * (180 / pi)
+    return out
+
+
+def _gradient_rows(z, dx, dy, r0, r1):
+    """:func:`gradient` (east, north; m/m) of rows ``r0:r1`` of ``z`` bit for bit: numpy's
+    differences (``(f[k+1] − f[k−1]) / 2`` inside, ``f[1] − f[0]`` and ``f[n−1] − f[n−2]`` on
+    the edges) divided by the pixel size ``dx``/``dy`` (m, per row), taken in one division
+    by ``2·size`` inside (halving is exact, so ``(d / 2) / s`` equals ``d / (2 s)``)."""
+    n_r, n_c = z.shape
+    f64 = np.float64
+    band = z[r0:r1]
+    sx = dx[r0:r1]
+    ge = np.empty(band.shape, f64)
+    np.subtract(band[:, 2:], band[:, :-2], out=ge[:, 1:-1], dtype=f64)
+    ge[:, 1:-1] /= 2.0 * sx
+    np.subtract(band[:, 1:2], band[:, :1], out=ge[:, :1], dtype=f64)
+    np.subtract(band[:, -1:], band[:, -2:-1], out=ge[:, -1:], dtype=f64)
+    ge[:, :1] /= sx
+    ge[:, -1:] /= sx
+    gn = np.empty(band.shape, f64)
+    i0, i1 = max(r0, 1), min(r1, n_r - 1)  # rows with both neighbours
+    if i1 > i0:
+        inner = gn[i0 - r0 : i1 - r0]
+        np.subtract(z[i0 + 1 : i1 + 1], z[i0 - 1 : i1 - 1], out=inner, dtype=f64)
+        inner /= 2.0 * dy[i0:i1]
+    if r0 == 0:
+        np.subtract(z[1], z[0], out=gn[0], dtype=f64)
+        gn[0] /= dy[0]
+    if r1 == n_r:
+        np.subtract(z[-1], z[-2], out=gn[-1], dtype=f64)
+        gn[-1] /= dy[-1]
+    return ge, gn
 
 
 def aspect_deg(heights, transform, crs):

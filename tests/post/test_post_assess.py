@@ -247,3 +247,58 @@ def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
         (90, 60),
     ]  # every 5th cell of 450 x 300 (RGBA or values)
     assert (tmp_path / "hs.png").stat().st_size > 1000 and (tmp_path / "dh.png").exists()
+
+
+def test_figures_crop_as_bbox_inches_tight_pixel_for_pixel(ref, simulated, monkeypatch):
+    """figures._save measures the tight box without drawing the images; the PNG equals
+    savefig(bbox_inches="tight")'s."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    from stereodem.post import coreg_figures  # before _save is replaced: it imports _save
+
+    cmp = assess.compare_on_reference_grid(simulated, ref)
+    figs = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path, overwrite: figs.append(fig))
+    figures.hillshade_png(ref.heights, ref.transform, ref.crs, "h.png")
+    figures.difference_map_png(cmp.dh, "d.png", transform=cmp.transform, crs=cmp.crs)
+    figures.difference_map_png(cmp.dh, "d.png")
+    figures.histogram_png(cmp.dh, "hist.png")
+    stats = assess.comparison_stats(cmp)
+    figures.error_vs_slope_png(cmp.dh, cmp.slope, stats["by_slope"], "e.png")
+    monkeypatch.setattr(coreg_figures, "_save", lambda fig, path, overwrite: figs.append(fig))
+    mask = np.isfinite(cmp.dh)
+    coreg_figures.dh_before_after_png(ref.heights, simulated, simulated, mask, "c.png")
+    for fig in figs:
+        pngs = []
+        for box in ("tight", None):
+            buf = io.BytesIO()
+            bbox = box or figures._tight_bbox(fig)
+            fig.savefig(buf, dpi=figures.DPI, bbox_inches=bbox, format="png")
+            pngs.append(plt.imread(io.BytesIO(buf.getvalue())))
+        assert pngs[0].shape == pngs[1].shape
+        np.testing.assert_array_equal(pngs[0], pngs[1])
+        plt.close(fig)
+
+
+def test_colours_as_bytes_draw_as_float_colours_with_nearest_cells():
+    """hillshade_png hands matplotlib its colours as bytes, (rgba · 255) cast as matplotlib
+    casts float colours after resampling to the nearest cell: the PNG is the same."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    rng = np.random.default_rng(4)
+    for shape in ((900, 700), (60, 40)):  # fewer cells than pixels, more
+        rgba = rng.random((*shape, 4))
+        rgba[..., 3] = rng.random(shape) > 0.3  # transparent cells
+        pngs = []
+        for image in (rgba, (rgba * 255).astype(np.uint8)):
+            fig, ax = plt.subplots(figsize=(6.5, 6))
+            ax.imshow(image, extent=(0, 7000, 0, 9000), interpolation="nearest")
+            buf = io.BytesIO()
+            fig.savefig(buf, dpi=figures.DPI, format="png")
+            plt.close(fig)
+            pngs.append(plt.imread(io.BytesIO(buf.getvalue())))
+        np.testing.assert_array_equal(pngs[0], pngs[1])

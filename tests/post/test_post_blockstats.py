@@ -275,3 +275,212 @@ def test_sums_do_not_depend_on_the_blas_thread_count():
     assert results[0][1]["n"] > 100_000
     for r in results[1:]:
         assert repr(r) == repr(results[0])
+
+
+# ----------------------------------------------------------------------------- fast paths
+# (issue #28: the assessment's per-block work in fewer passes; each path gives the numbers of
+# the plain computation it replaced, bit for bit)
+
+
+def _moments_by_numpy(x):
+    """A block's moments as StreamingStats.add computed them before the fast path."""
+    mean = float(x.mean())
+    return (
+        x.size,
+        mean,
+        float(np.sum((x - mean) ** 2)),
+        float(np.sum(np.multiply(x, x))),
+        float(np.abs(x).sum()),
+    )
+
+
+@pytest.mark.parametrize("covariate", [False, True])
+def test_add_finite_gives_the_numpy_moments_and_bins(covariate):
+    x = _data(50_000, seed=11)
+    w = np.abs(np.random.default_rng(2).normal(20, 10, x.size))
+    w[7::97] = np.nan
+    ok = np.isfinite(x) & (np.isfinite(w) if covariate else True)
+    xf, wf = x[ok], w[ok]
+    acc = StreamingStats(covariate=covariate)
+    acc.add(x, w if covariate else None)
+    assert (acc.n, acc._mean, acc._m2, acc._sumsq, acc._sumabs) == _moments_by_numpy(xf)
+    assert (acc.min, acc.max) == (xf.min(), xf.max())
+    far = np.abs(xf) > acc.limit
+    np.testing.assert_array_equal(np.concatenate(acc._tail), xf[far])
+    idx = np.floor(xf[~far] / acc.resolution).astype(np.int64) - acc._lo
+    np.testing.assert_array_equal(acc.counts, np.bincount(idx))
+    if covariate:
+        wn, xn = wf[~far], xf[~far]
+        np.testing.assert_array_equal(acc._bx, np.bincount(idx, weights=xn))
+        np.testing.assert_array_equal(acc._bwx, np.bincount(idx, weights=wn * xn))
+        assert (acc._sw, acc._sww) == (float(wf.sum()), float(np.sum(wf * wf)))
+    finite = StreamingStats(covariate=covariate)
+    finite.add_finite(xf, wf if covariate else None)
+    assert _same(finite.result(), acc.result())
+
+
+def _codes_by_search(v, e):
+    """Bin of each value as the class accumulator found it before: a binary search."""
+    idx = np.searchsorted(e, v, side="right") - 1
+    idx[np.isfinite(v) & (v == e[-1])] = e.size - 2
+    return np.where(np.isfinite(v) & (idx >= 0) & (idx <= e.size - 2), idx, -1)
+
+
+@pytest.mark.parametrize(
+    "edges",
+    [
+        [0, 5, 10, 20, 30, 45, 90],  # compared edge by edge
+        [-3.0, 0.5, np.inf],  # an open last class
+        list(np.linspace(-40, 40, 41)),  # binary search (more edges than _COMPARE_EDGES)
+        list(np.linspace(-45, 95, 300)),  # 16-bit codes
+    ],
+)
+def test_class_codes_equal_the_binary_search_and_binned_stats(edges):
+    rng = np.random.default_rng(3)
+    e = np.asarray(edges, float)
+    v = rng.uniform(-50, 100, (60, 70))
+    fin_e = e[np.isfinite(e)]
+    v.flat[: 3 * fin_e.size : 3] = fin_e  # values on every edge, the last one included
+    v[5, :4] = [np.nan, np.inf, -np.inf, np.nextafter(fin_e[-1], np.inf)]
+    for dtype in (np.float64, np.float32):
+        vv = v.astype(dtype)
+        codes, counts = assess.class_codes(vv, e)
+        np.testing.assert_array_equal(codes, _codes_by_search(vv, e))
+        dh = np.zeros(v.shape)
+        want = [c["n_total"] for c in st.binned_stats(dh, vv, e)]
+        assert list(counts) == want
+
+
+def _class_entries_one_by_one(dh, v, e):
+    """Per-class StreamingStats of each class's cells in order (what the accumulator keeps)."""
+    codes = _codes_by_search(v, e)
+    out = []
+    for i in range(e.size - 1):
+        sel = (codes == i) & np.isfinite(dh)
+        acc = StreamingStats()
+        acc.add(dh[sel])
+        var = float(v[sel].sum(dtype=np.float64))
+        out.append((acc.result(n_total=int((codes == i).sum())), var))
+    return out
+
+
+def test_class_accumulator_groups_as_the_one_class_at_a_time_statistics():
+    rng = np.random.default_rng(8)
+    shape = (90, 110)
+    dh = rng.standard_t(3, shape) * 2.0
+    dh[rng.random(shape) < 0.2] = np.nan
+    dh[0, :3] = [1500.0, -2000.0, 3.0]  # tails beyond the binned range
+    e = np.array([0, 5, 10, 20, 30, 45, 90.0])
+    slope = rng.uniform(0, 60, shape)
+    slope.flat[:35:5] = e  # on the edges
+    slope[rng.random(shape) < 0.05] = np.nan
+    for v in (slope, (slope * 40).astype(np.float32)):  # float64 slope, float32 heights
+        edges = e if v.dtype == np.float64 else e * 40
+        fin = np.isfinite(dh)
+        codes, n_cls = assess.class_codes(v, edges)
+        acc = assess._ClassAccumulator(edges, unit="deg", name="slope")
+        acc.add(np.arange(edges.size - 1), n_cls, dh[fin], codes[fin], v[fin])
+        for i, (want, var) in enumerate(_class_entries_one_by_one(dh, v, edges)):
+            assert _same(acc.stats[i].result(n_total=acc.n_total[i]), want)
+            assert acc.var_sum[i] == var
+        got = acc.binned()
+        ref = st.binned_stats(dh, v, edges, unit="deg", name="slope")
+        for g, w in zip(got, ref):
+            assert (g["class"], g["n"], g["n_total"]) == (w["class"], w["n"], w["n_total"])
+            if w["n"]:
+                _check_against_numpy(g, w)
+                assert g["slope_mean"] == pytest.approx(w["slope_mean"], rel=1e-12)
+
+
+@pytest.mark.parametrize("crs", ["EPSG:32636", "EPSG:4326"])
+def test_slope_of_some_rows_equals_the_whole_grid_slope(crs):
+    from stereodem.post import terrain
+
+    rng = np.random.default_rng(1)
+    T = (
+        Affine(15.2, 0, 500000, 0, -15.2, 4e6)
+        if crs != "EPSG:4326"
+        else Affine(1 / 3600, 0, 30, 0, -1 / 3600, 40.3)
+    )
+    for shape in [(1, 5), (2, 2), (2, 7), (3, 3), (37, 29), (150, 9)]:  # 150: bands
+        z = (rng.normal(size=shape) * 50 + 1000).astype(np.float32)
+        z[rng.random(shape) < 0.05] = np.nan
+        ge, gn = terrain.gradient(z, T, crs)
+        want = np.degrees(np.arctan(np.hypot(ge, gn)))
+        np.testing.assert_array_equal(terrain.slope_deg(z, T, crs), want)
+        for r0 in range(0, shape[0], 7 if shape[0] > 40 else 1):
+            for r1 in {r0 + 1, min(r0 + 5, shape[0]), min(r0 + 70, shape[0]), shape[0]}:
+                got = terrain.slope_deg(z, T, crs, rows=slice(r0, r1))
+                np.testing.assert_array_equal(got, want[r0:r1])
+
+
+def test_blocks_beyond_the_dem_are_not_warped_and_the_result_is_the_same(dem_pair, monkeypatch):
+    """A DEM over the middle rows of a larger reference: the blocks beyond it skip the warp
+    (all NaN, as the warp gives), the blocks near it are warped; the result is the same."""
+    dem, ref = dem_pair
+    part = DEM(
+        dem.heights[90:150, 40:200].copy(),
+        dem.transform @ Affine.translation(40, 90),
+        dem.crs,
+        dem.vertical,
+        "part",
+    )
+    skipped = []
+    misses = assess._misses
+
+    def spy(d, t, crs, shape):
+        out = misses(d, t, crs, shape)
+        skipped.append(out)
+        return out
+
+    monkeypatch.setattr(assess, "_misses", spy)
+    got, d1, h1 = assess.blockwise_comparison(part, ref, block_rows=16)
+    assert any(skipped) and not all(skipped)
+    monkeypatch.setattr(assess, "_misses", lambda *a: False)
+    want, d2, h2 = assess.blockwise_comparison(part, ref, block_rows=16)
+    assert _same(got, want)
+    np.testing.assert_array_equal(d1.dem, d2.dem)
+    np.testing.assert_array_equal(h1.counts, h2.counts)
+
+
+def test_misses_only_grids_beyond_the_dem_margin(dem_pair):
+    dem, _ = dem_pair
+    T, (rows, cols) = dem.transform, dem.shape
+    m = assess.MISS_MARGIN_CELLS
+    for (r, c), miss in {
+        (-11 - m, 0): True,  # above, by more than the margin
+        (-10, 0): False,  # within the margin: its last row is warped
+        (rows + m + 1, 0): True,
+        (0, cols + m + 1): True,
+        (0, -11 - m): True,
+        (-10 - m, 0): False,  # its last row on the margin
+        (5, 5): False,
+    }.items():
+        assert assess._misses(dem, T @ Affine.translation(c, r), dem.crs, (10, 10)) == miss
+    # another CRS: the outline is projected (here: lon/lat)
+    lon_lat = DEM(dem.heights, dem.transform, dem.crs, "geoid").bounds_lonlat()
+    west, south, east, north = lon_lat
+    step = (east - west) / cols
+    inside = Affine(step, 0, west, 0, -step, north)
+    beyond = Affine(step, 0, east + 20 * step, 0, -step, north)
+    assert not assess._misses(dem, inside, "EPSG:4326", (10, 10))
+    assert assess._misses(dem, beyond, "EPSG:4326", (10, 10))
+
+
+def test_statistics_without_the_covariate_equal_those_of_the_values_alone():
+    x = _data(40_000, seed=12)
+    x = x[np.isfinite(x)]  # tails beyond the binned range kept
+    w = np.random.default_rng(3).uniform(0, 60, x.size)
+    fit = StreamingStats(covariate=True)
+    fit.add_finite(x, w)
+    alone = StreamingStats()
+    alone.add_finite(x)
+    got = fit.without_covariate()
+    assert not got.covariate
+    for name in ("n", "_mean", "_m2", "_sumsq", "_sumabs", "min", "max", "_lo"):
+        assert getattr(got, name) == getattr(alone, name), name
+    np.testing.assert_array_equal(got.counts, alone.counts)
+    np.testing.assert_array_equal(np.concatenate(got._tail), np.concatenate(alone._tail))
+    assert _same(got.result(), alone.result())
+    got.merge(alone)  # a plain accumulator: merges with plain ones
+    assert got.n == 2 * alone.n
