@@ -8,7 +8,9 @@ The tile function is a pure function ``fn(tile, context) -> dict[str, ndarray]``
   its worker goes on with the next tile;
 * logs failed tiles (exception or timeout) and returns them instead of failing the run;
 * with ``cache_dir``, stores each finished tile as ``tile_<index>.npz`` (atomically) and, on
-  ``resume``, skips tiles already there;
+  ``resume``, skips tiles already there; when the caller reads the tiles back from there
+  (``hold_results=False``) a process pool's workers store them themselves, so their arrays
+  never travel through the main process;
 * submits the largest tiles first (scene-edge tiles are smaller);
 * pins each worker's BLAS/OpenMP, OpenCV and GDAL threads to its share of the cores
   (:mod:`stereodem.core.threads`);
@@ -24,6 +26,7 @@ disparity range (see the stereo pipeline), not by the scene size.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import logging
 import multiprocessing
@@ -354,6 +357,21 @@ def _run_one(fn, tile, timeout, context=None):
             signal.signal(signal.SIGALRM, old)
 
 
+#: what a pool worker returns for a tile it stored in the cache itself (:func:`_run_and_store`)
+_STORED = "stored in the tile cache"
+
+
+def _run_and_store(fn, tile, timeout, cache_dir, cache_key):
+    """:func:`_run_one`, the finished tile then stored in ``cache_dir`` by the worker itself
+    (:func:`_save`: identity, job key, checksum): its arrays need not travel back to the main
+    process, which reads them from the cache when it merges the tiles."""
+    index, out, err, secs = _run_one(fn, tile, timeout)
+    if err is None:
+        _save(cache_dir, tile, out, cache_key)
+        out = _STORED
+    return index, out, err, secs
+
+
 # --------------------------------------------------------------------------- cache
 # Each cached tile stores, beside its result arrays, the tile's identity (index and bounds),
 # the job key and a SHA-256 of the result arrays; a file that is not a readable archive, was
@@ -516,7 +534,7 @@ def run_tiles(
             )
             failures.append(TileFailure(by_index[index], err))
         else:
-            if cache_dir is not None:
+            if cache_dir is not None and not (isinstance(out, str) and out == _STORED):
                 _save(cache_dir, by_index[index], out, cache_key)
             results[index] = out if hold_results or cache_dir is None else None
         if progress:
@@ -542,8 +560,15 @@ def run_tiles(
             initializer=_init_worker,
             initargs=(context, worker_threads(n)),
         )
+        # a pool's workers store their tiles themselves when the caller reads them back from
+        # the cache (the main process then neither unpickles nor checksums nor writes them)
+        job = (
+            functools.partial(_run_and_store, cache_dir=cache_dir, cache_key=cache_key)
+            if cache_dir is not None and not hold_results
+            else _run_one
+        )
         try:
-            futs = [ex.submit(_run_one, fn, t, timeout) for t in todo]
+            futs = [ex.submit(job, fn, t, timeout) for t in todo]
             for f in as_completed(futs):
                 collect(*f.result())
         except BaseException:  # Ctrl-C, SIGTERM, an error: stop the workers now (the fork

@@ -267,6 +267,11 @@ def test_fill_pixels_are_masked(granule, tmp_path):
     assert band.fill_mask()[:7].all() and not band.fill_mask()[7:].any()
     assert np.isnan(img[:7]).all() and np.isfinite(img[7:]).all()
     assert np.isnan(band.image(radiometric=False)[:7]).all()
+    # the radiance is L = A V / G + D per detector (column), float32, in that order
+    v = band.dn().astype(np.float32)
+    d, a, gain = (band.fields.rc_table[:, k].astype(np.float32) for k in range(3))
+    want = np.where(band.dn() == 0, np.float32(np.nan), a * v / gain + d)
+    assert img.dtype == np.float32 and np.array_equal(img, want, equal_nan=True)
 
 
 # ------------------------------------------------------------------------------ bad input

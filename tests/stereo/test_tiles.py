@@ -112,6 +112,38 @@ def test_results_can_stay_in_the_cache_only(tmp_path):
         np.testing.assert_array_equal(got["value"], held[t.index]["value"])
 
 
+def test_pool_workers_store_their_tiles_when_results_stay_in_the_cache(tmp_path, monkeypatch):
+    """With hold_results=False a pool's workers write their tiles to the cache themselves (the
+    main process stores none), with the identity, job key and checksum that --resume checks;
+    a failed tile is not stored."""
+    import stereodem.stereo.runner as runner
+
+    stored_here = []
+    monkeypatch.setattr(runner, "_save", lambda *a, **k: stored_here.append(a[1].index))
+    tiles = tile_grid(130, 100, 32)
+    res, fails, _ = run_tiles(
+        _tile_fn,
+        tiles,
+        _ctx(fail=(3,)),
+        workers=2,
+        cache_dir=tmp_path,
+        cache_key="job-a",
+        hold_results=False,
+    )
+    assert [f.tile.index for f in fails] == [3] and not stored_here
+    assert sorted(p.name for p in tmp_path.glob("tile_*.npz")) == [
+        f"tile_{t.index:05d}.npz" for t in tiles if t.index != 3
+    ]
+    monkeypatch.undo()
+    again, fails, timings = run_tiles(
+        _tile_fn, tiles, _ctx(), cache_dir=tmp_path, resume=True, cache_key="job-a"
+    )
+    assert not fails and list(timings) == [3]  # only the failed tile is computed again
+    serial, _, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1)
+    for t in tiles:
+        np.testing.assert_array_equal(again[t.index]["value"], serial[t.index]["value"])
+
+
 def _busy_tile(tile, ctx):
     """A tile that burns ``ctx["cpu_s"]`` CPU seconds and says what its worker had imported
     before the tile ran, who its parent is and how much CPU it had used."""
