@@ -761,7 +761,8 @@ def _to_uint8(left, right, executor=None, finite=(False, False)):
         with np.errstate(invalid="ignore"):  # NaN (no-data): set just below
             for r in range(0, a.shape[0], step):
                 blk = buf[: min(step, a.shape[0] - r)]
-                np.subtract(a[r : r + step], lo, out=blk)
+                # float64 stated: numpy 1 subtracts a float scalar from float32 in float32
+                np.subtract(a[r : r + step], lo, out=blk, dtype=np.float64)
                 np.multiply(blk, scale, out=blk)
                 np.add(blk, 0.5, out=blk)
                 np.clip(blk, 0, 255, out=blk)
