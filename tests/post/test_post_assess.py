@@ -249,6 +249,7 @@ def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
     assert (tmp_path / "hs.png").stat().st_size > 1000 and (tmp_path / "dh.png").exists()
 
 
+@pytest.mark.slow
 def test_figures_crop_as_bbox_inches_tight_pixel_for_pixel(ref, simulated, monkeypatch):
     """figures._save measures the tight box without drawing the images; the PNG equals
     savefig(bbox_inches="tight")'s."""
