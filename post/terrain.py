@@ -88,13 +88,12 @@ def gradient(heights, transform, crs):
     -------
     dzde, dzdn : ndarray float64
     """
-    z = np.asarray(heights, dtype=np.float64)
+    z = np.asarray(heights)
     dx, dy = pixel_size_m(transform, crs, z.shape)
     if z.shape[0] < 2 or z.shape[1] < 2:
         nan = np.full(z.shape, np.nan)
         return nan, nan.copy()
-    gr, gc = np.gradient(z)  # per row step, per column step
-    return gc / dx, gr / dy
+    return _gradient_rows(z, dx, dy, 0, z.shape[0])
 
 
 def gradient_at(heights, transform, crs, rows, cols):
@@ -165,10 +164,11 @@ def slope_deg(heights, transform, crs, *, rows: slice | None = None):
 
 
 def _gradient_rows(z, dx, dy, r0, r1):
-    """:func:`gradient` (east, north; m/m) of rows ``r0:r1`` of ``z`` bit for bit: numpy's
-    differences (``(f[k+1] − f[k−1]) / 2`` inside, ``f[1] − f[0]`` and ``f[n−1] − f[n−2]`` on
-    the edges) divided by the pixel size ``dx``/``dy`` (m, per row), taken in one division
-    by ``2·size`` inside (halving is exact, so ``(d / 2) / s`` equals ``d / (2 s)``)."""
+    """East and north gradients (m/m) of rows ``r0:r1`` of ``z``, ``numpy.gradient``'s bit
+    for bit: its differences (``(f[k+1] − f[k−1]) / 2`` inside, ``f[1] − f[0]`` and
+    ``f[n−1] − f[n−2]`` on the edges) divided by the pixel size ``dx``/``dy`` (m, per row),
+    taken in one division by ``2·size`` inside (halving is exact, so ``(d / 2) / s`` equals
+    ``d / (2 s)``)."""
     n_r, n_c = z.shape
     f64 = np.float64
     band = z[r0:r1]

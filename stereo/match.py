@@ -472,13 +472,6 @@ def _seed_columns(d, w, holes=None):
     return np.subtract(np.subtract(_col_index(w), F32(base)), m, out=m), lo, hi
 
 
-def _rounded_seed(d):
-    """``np.rint(_fill_seed(d, 0.0))``: see :func:`_rounded_filled` and
-    :func:`_median_offset`."""
-    base, med = _median_offset(*_rounded_filled(d))
-    return np.add(med, F32(base), dtype=F32)
-
-
 def _rounded_filled(d, holes=None):
     """``np.rint(_fill_seed_holes(d, 0.0))`` (a new array) and its min and max.
 
