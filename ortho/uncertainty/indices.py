@@ -61,6 +61,11 @@ def fast_indices(
         raise InputError(
             f"FAST needs more than {4 * M * M} samples per curve (M={M}), got {samples}"
         )
+    if seed == 0 and not hasattr(fast_sampler, "handle_seed"):
+        # SALib < 1.6 seeds its (global, legacy) generator only for a nonzero seed (``if
+        # seed:``): seed 0 drew other random phases at each call. Seeded as SALib seeds
+        # any other integer there.
+        np.random.seed(0)
     Xl = fast_sampler.sample(problem, samples, M=M, seed=seed)
 
     def analyze(Y):
