@@ -209,16 +209,19 @@ def _block_scale(r, valid, block: int):
     rows, cols = r.shape
     nb_r, nb_c = max(1, -(-rows // block)), max(1, -(-cols // block))
     pad = np.full((nb_r * block, nb_c * block), np.nan)
-    pad[:rows, :cols] = np.where(valid, r, np.nan)
-    t = pad.reshape(nb_r, block, nb_c, block).transpose(0, 2, 1, 3).reshape(nb_r, nb_c, -1)
+    np.copyto(pad[:rows, :cols], r, where=valid)
+    blocks = pad.reshape(nb_r, block, nb_c, block)  # a view: rows of blocks first
 
     def nmad_of_blocks(a):  # each block alone: any split into rows of blocks gives the same
-        med = _nanmedian_last(a)
+        t = a.transpose(0, 2, 1, 3).reshape(a.shape[0], nb_c, -1)  # this band's copy
+        med = _nanmedian_last(t)
         with np.errstate(invalid="ignore"):
-            return NMAD_FACTOR * _nanmedian_last(np.abs(a - med[..., None]))
+            return NMAD_FACTOR * _nanmedian_last(np.abs(t - med[..., None]))
 
-    scale = by_rows(nmad_of_blocks, t, halo=0, min_rows=4)
-    glob = NMAD_FACTOR * np.median(np.abs(r[valid] - np.median(r[valid])))
+    scale = by_rows(nmad_of_blocks, blocks, halo=0, min_rows=4)
+    rv = r[valid]  # a copy: the global NMAD is computed in it
+    np.subtract(rv, np.median(rv), out=rv)
+    glob = NMAD_FACTOR * np.median(np.abs(rv, out=rv), overwrite_input=True)
     scale = np.where(np.isfinite(scale), scale, glob).astype(np.float32)
     if scale.shape == (1, 1):
         return np.full(r.shape, float(scale[0, 0]))

@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from stereodem.core.errors import InputError
+from stereodem.core.stretch import linear_to_uint8
 from stereodem.stereo.settings import MATCHERS
 
 from .pyramid import build_pyramid, upsample_field
@@ -739,7 +740,8 @@ def _match_ncc(
 def _to_uint8(left, right, executor=None, finite=(False, False)):
     """Joint 1-99 % percentile stretch of both images to uint8 (NaN -> 0).
 
-    ``round-half-up((a - lo) * 255 / (hi - lo))`` clipped to 0..255, in float64, in place;
+    ``round-half-up((a - lo) * 255 / (hi - lo))`` clipped to 0..255, in float64
+    (:func:`stereodem.core.stretch.linear_to_uint8`);
     with ``executor`` (a thread pool) the right image is converted there meanwhile.
     ``finite``: for each image, whether the caller knows it has no NaN (scans skipped)."""
     v = _finite_sample([left, right], 400_000, finite=all(finite))
@@ -747,19 +749,7 @@ def _to_uint8(left, right, executor=None, finite=(False, False)):
     scale = 255.0 / max(hi - lo, 1e-12)
 
     def conv(a, finite):
-        b = np.empty(a.shape, np.uint8)
-        # by blocks of rows through one float64 buffer (1 MiB) that stays in cache
-        step = max(1, (1 << 17) // max(a.shape[1], 1))
-        buf = np.empty((step, a.shape[1]), np.float64)
-        with np.errstate(invalid="ignore"):  # NaN (no-data): set just below
-            for r in range(0, a.shape[0], step):
-                blk = buf[: min(step, a.shape[0] - r)]
-                # float64 stated: numpy 1 subtracts a float scalar from float32 in float32
-                np.subtract(a[r : r + step], lo, out=blk, dtype=np.float64)
-                np.multiply(blk, scale, out=blk)
-                np.add(blk, 0.5, out=blk)
-                np.clip(blk, 0, 255, out=blk)
-                np.copyto(b[r : r + step], blk, casting="unsafe")
+        b = linear_to_uint8(a, lo, scale)
         nan = None if finite else np.isnan(a)
         # no-data takes the value of ``lo`` (as float32, like the image)
         if nan is not None and nan.any():

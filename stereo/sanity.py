@@ -95,9 +95,12 @@ def check_texture(image, name: str):
         raise InputError(
             f"{name}: (almost) no valid pixel ({100 * finite.mean():.2f} % of the image)"
         )
-    d = np.abs(np.diff(rows, axis=1))
-    d = d[np.isfinite(d)]
-    frac = float((d > 0).mean()) if d.size else 0.0
+    # pairs of valid neighbours that differ (boolean arrays: no float temporaries to touch)
+    both = finite[:, 1:] & finite[:, :-1]
+    differ = rows[:, 1:] != rows[:, :-1]
+    differ &= both
+    n = np.count_nonzero(both)
+    frac = np.count_nonzero(differ) / n if n else 0.0
     if frac < MIN_TEXTURED_FRACTION:
         raise InputError(
             f"{name}: no texture to match ({100 * frac:.2f} % of neighbouring pixels "

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from stereodem.core.errors import StereodemError
+from stereodem.core.stretch import linear_to_uint8
 from stereodem.sensor.models.base import pair_height_bounds
 
 log = logging.getLogger(__name__)
@@ -147,15 +148,11 @@ def to_uint8(image, *, percentiles=(1.0, 99.0)):
         v = v[:: v.size // 400_000]
     lo, hi = np.percentile(v, percentiles)
     scale = 255.0 / max(float(hi - lo), 1e-12)
-    # (a - lo) * scale + 0.5 clipped to 0..255, in float64, in place; voids -> 0
-    t = np.asarray(a, np.float64).copy() if a.dtype == np.float64 else a.astype(np.float64)
-    t -= lo
-    t *= scale
-    t += 0.5
-    np.clip(t, 0.0, 255.0, out=t)
+    # (a - lo) * scale + 0.5 clipped to 0..255, in float64 (by bands of rows); voids -> 0
+    out = linear_to_uint8(a, lo, scale)
     if not all_valid:
-        t[~valid] = 0.0
-    return t.astype(np.uint8), valid
+        out[~valid] = 0
+    return out, valid
 
 
 def _sift(image8, mask, n_features, scale):
