@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import stat
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -92,6 +94,36 @@ def test_deflate_level_defaults_to_the_fastest_unless_given():
     assert cog_creation_options("float32", {"LEVEL": "9"})["LEVEL"] == "9"
     for other in ("LZW", "WEBP", "NONE"):  # LEVEL means something else or nothing there
         assert "LEVEL" not in cog_creation_options("uint8", compress=other)
+
+
+def test_a_cog_write_lets_the_other_threads_run(tmp_path):
+    """The background writer overlaps the next stage only if GDAL compresses with the GIL
+    released. Closing a dataset opened with ``driver="COG"`` copies it to the COG holding
+    the GIL (rasterio 1.3-1.4): the thread below then stalls for most of the write.
+    :func:`write_geotiff` copies a MEM dataset with ``rasterio.shutil.copy`` instead, during
+    which another thread keeps running; the longest stall is compared with the write's own
+    length, in the same run."""
+    a = np.random.default_rng(5).random((2048, 2048)).astype(np.float32)
+    done = threading.Event()
+
+    def write():
+        try:
+            write_geotiff(tmp_path / "w.tif", a, Affine(30, 0, 0, 0, -30, 0), "EPSG:32633")
+        finally:
+            done.set()
+
+    gaps, th = [], threading.Thread(target=write)
+    last = time.perf_counter()
+    th.start()
+    while not done.is_set():
+        time.sleep(0.001)
+        now = time.perf_counter()
+        gaps.append(now - last)
+        last = now
+    th.join()
+    assert len(gaps) > 20 and max(gaps) < 0.5 * sum(gaps), (len(gaps), max(gaps), sum(gaps))
+    with rasterio.open(tmp_path / "w.tif") as f:
+        assert np.array_equal(f.read(1), a)
 
 
 def test_creation_options_override_defaults(tmp_path):
