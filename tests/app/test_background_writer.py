@@ -43,6 +43,30 @@ def test_write_error_reaches_the_caller():
             w.wait()
 
 
+def test_with_one_thread_writes_run_at_once_in_the_calling_thread(tmp_path):
+    """A job of one worker has no core to spare: each write runs when it is submitted, in the
+    caller's thread; an error still reaches the caller at ``wait``, as from the thread."""
+    done, threads = [], []
+
+    def write(name):
+        threads.append(threading.current_thread().name)
+        done.append(name)
+
+    def fail():
+        raise OSError("disk full")
+
+    with BackgroundWriter(threads=1) as w:
+        w.submit(write, "a")
+        assert done == ["a"]
+        w.submit(fail)
+        w.submit(write, "b")
+        assert done == ["a", "b"] and w.count == 3
+        w.wait_for(0)
+        with pytest.raises(OSError, match="disk full"):
+            w.wait()
+    assert threads == [threading.current_thread().name] * 2
+
+
 def test_dem_prepared_write_is_independent_of_later_changes(tmp_path):
     """The heights and layers are converted when the write is prepared: changing the DEM
     afterwards (the post stage works on it) does not change what is written."""

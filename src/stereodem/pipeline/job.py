@@ -26,7 +26,7 @@ import logging
 import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,7 +35,7 @@ import numpy as np
 from stereodem.core.dem import edit_mask_path
 from stereodem.core.jsonutil import json_default
 from stereodem.core.raster import write_text_atomic
-from stereodem.core.threads import thread_budget
+from stereodem.core.threads import job_threads, thread_budget
 from stereodem.post.coreg_run import track_tags
 from stereodem.stereo import sanity
 
@@ -94,15 +94,24 @@ def writer_options(cfg: Config) -> dict:
 
 class BackgroundWriter:
     """One thread that writes output files while the run goes on (GDAL compresses with the
-    GIL released, so a write overlaps the next stage's numpy work on the other core).
+    GIL released, :func:`stereodem.core.raster.write_geotiff`, so a write overlaps the next
+    stage's work on another core).
+
+    ``threads``: the job's thread budget (:func:`stereodem.core.threads.job_threads`); below
+    2 there is no core to spare, so each write runs at once in the calling thread and a job
+    of one worker keeps to one core.
 
     ``submit(fn, *args)`` queues a write; ``wait_for(i)`` waits for the ``i``-th one,
     ``wait()`` for all, re-raising the first error. Used as a context manager it waits for
     every queued write on exit (also when the run fails), so no file is left half-written.
     """
 
-    def __init__(self):
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereodem-writer")
+    def __init__(self, threads: int = 2):
+        self._pool = (
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="stereodem-writer")
+            if threads >= 2
+            else None
+        )
         self._futures = []
         self.seconds = 0.0
 
@@ -118,7 +127,15 @@ class BackgroundWriter:
             finally:
                 self.seconds += time.perf_counter() - t0
 
-        self._futures.append(self._pool.submit(timed))
+        if self._pool is not None:
+            self._futures.append(self._pool.submit(timed))
+            return
+        done = Future()  # written here and now; an error is raised by wait(), as queued
+        try:
+            done.set_result(timed())
+        except Exception as err:
+            done.set_exception(err)
+        self._futures.append(done)
 
     def wait_for(self, index: int):
         if index < len(self._futures):
@@ -132,7 +149,8 @@ class BackgroundWriter:
         return self
 
     def __exit__(self, *exc):
-        self._pool.shutdown(wait=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
         return False
 
 
@@ -155,7 +173,7 @@ class Job:
 
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     started = utc_now()
-    with BackgroundWriter() as writer:
+    with BackgroundWriter(job_threads(cfg.run.workers)) as writer:
         return _run_stages(
             Job(
                 cfg,
