@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from stereodem.core.blocks import each_band
 from stereodem.core.errors import StereodemError
 from stereodem.core.stretch import linear_to_uint8
 from stereodem.sensor.models.base import pair_height_bounds
@@ -264,10 +265,15 @@ def refine_matches(left, right, x1, x2, *, half: int = 7, search: int = 2, min_s
     if idx.size == 0:
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), inside
     oy, ox = np.mgrid[-half : half + 1, -half : half + 1]
-    T = left[p1[idx, 1, None, None] + oy, p1[idx, 0, None, None] + ox].astype(np.float64)
     sy, sx = np.mgrid[-r : r + 1, -r : r + 1]
-    S = right[p2[idx, 1, None, None] + sy, p2[idx, 0, None, None] + sx].astype(np.float64)
-    scores = zncc_scores(T, S)
+
+    def scores_of(band):  # the scores of matches idx[a:b]: each match's alone, so any split
+        sel = idx[band[0] : band[1]]  # into bands on threads gives the same numbers
+        T = left[p1[sel, 1, None, None] + oy, p1[sel, 0, None, None] + ox].astype(np.float64)
+        S = right[p2[sel, 1, None, None] + sy, p2[sel, 0, None, None] + sx].astype(np.float64)
+        return zncc_scores(T, S)
+
+    scores = np.concatenate(each_band(scores_of, idx.size, min_rows=64))
     k = 2 * search + 1
     scores = np.where(np.isfinite(scores), scores, -np.inf)
     flat = scores.reshape(idx.size, -1).argmax(1)

@@ -9,11 +9,18 @@ from helpers.rpc_scene import rpc_steep_pair
 
 from stereodem.core import geodesy
 from stereodem.core.stats import nmad
+from stereodem.core.threads import thread_budget
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation.simulate import simulate_scene
 from stereodem.stereo.pointing import cross_residuals, relative_pointing
-from stereodem.stereo.sparse import SparseMatchError, sparse_matches, to_uint8, zncc_scores
+from stereodem.stereo.sparse import (
+    SparseMatchError,
+    refine_matches,
+    sparse_matches,
+    to_uint8,
+    zncc_scores,
+)
 from stereodem.stereo.sparse_stage import height_pileup, run_sparse_stage
 from stereodem.stereo.terrain import terrain_heights, tile_height_range
 
@@ -105,6 +112,27 @@ def test_to_uint8_stretch():
     b, valid = to_uint8(a)
     assert b.dtype == np.uint8 and not valid[0, 0] and valid.sum() == a.size - 1
     assert b[50, 50] in range(120, 136) and b[-1, -1] == 255
+
+
+def test_match_refinement_is_the_same_on_one_thread_or_several():
+    """The refinement scores its matches in bands on the thread budget's threads: the same
+    numbers as on one thread, and the known shift found."""
+    import cv2
+
+    rng = np.random.default_rng(8)
+    left = cv2.GaussianBlur(rng.random((600, 600)).astype(np.float32), (5, 5), 1.5) * 255
+    right = np.roll(left, (3, 5), axis=(0, 1))  # right(x + 5, y + 3) = left(x, y)
+    x1 = rng.random((300, 2)) * 500 + 50
+    x2 = x1 + [5.0, 3.0] + rng.normal(0, 1.0, x1.shape)
+    out = {}
+    for n in (1, 2, 3):
+        with thread_budget(n):
+            out[n] = refine_matches(left, right, x1, x2, search=4)
+    for n in (2, 3):
+        assert all(np.array_equal(a, b) for a, b in zip(out[1], out[n]))
+    y1, y2, score, keep = out[1]
+    err = np.abs(y2 - y1 - [5.0, 3.0])  # parabola peaks on blurred noise: ~0.015 px typical
+    assert keep.sum() > 250 and np.median(err) < 0.03 and err.max() < 0.15
 
 
 def test_textureless_images_give_one_line_error(scene):
