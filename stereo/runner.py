@@ -157,6 +157,32 @@ def _init_worker(context, threads=1):
     from stereodem.core.threads import pin_threads
 
     pin_threads(threads)
+    _keep_freed_memory()
+
+
+#: glibc's ``mallopt`` parameters (``malloc.h``) and the pool workers' values: freed memory is
+#: kept for the next tile (trimmed back to the system only above 512 MB) and blocks up to
+#: glibc's largest threshold (32 MB on 64-bit) come from the heap instead of fresh maps
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_WORKER_TRIM_BYTES, _WORKER_MMAP_BYTES = 512 << 20, 32 << 20
+
+
+def _keep_freed_memory() -> bool:
+    """Let this pool worker's allocator keep the memory its tiles free (glibc ``mallopt``):
+    the next tile reuses those pages instead of mapping and faulting in fresh ones, which
+    the kernel zero-fills page by page (a tile allocates and frees about its own size
+    again and again). The worker's peak is the same: a tile's working set is reused, not
+    added to. Returns whether it applied (False where the C library is not glibc)."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    ok = mallopt(_M_TRIM_THRESHOLD, _WORKER_TRIM_BYTES) == 1
+    return mallopt(_M_MMAP_THRESHOLD, _WORKER_MMAP_BYTES) == 1 and ok
 
 
 def _die_with_parent():
