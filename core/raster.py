@@ -327,8 +327,8 @@ def write_geotiff(
     # the raster is assembled in a MEM dataset, then copied to the COG by GDAL's CreateCopy
     # through rasterio.shutil.copy, which releases the GIL while it compresses; closing a
     # dataset opened with driver="COG" runs the same copy (the same bytes) holding the GIL
-    # (rasterio 1.4), which stalls every Python thread (1.5 s for a 100 MB raster): a write
-    # in the background would not overlap the next stage's work
+    # (rasterio 1.3.8 and 1.4.4), which stalls every Python thread (1.5 s for a 100 MB
+    # raster): a write in the background would not overlap the next stage's work
     profile = dict(
         driver="MEM",
         width=arr.shape[2],

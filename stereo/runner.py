@@ -560,7 +560,7 @@ def run_tiles(
             )
             failures.append(TileFailure(by_index[index], err))
         else:
-            if cache_dir is not None and not (isinstance(out, str) and out == _STORED):
+            if cache_dir is not None and out != _STORED:  # a dict of arrays, or _STORED
                 _save(cache_dir, by_index[index], out, cache_key)
             results[index] = out if hold_results or cache_dir is None else None
         if progress:
