@@ -1,9 +1,11 @@
 """The application: configuration, end-to-end run, workers, failures, CLI behaviour."""
 
+import dataclasses
 import json
 import pickle
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -104,6 +106,42 @@ def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
         ]
         for key in ("stats", "by_slope", "by_elevation", "slope_fit", "checkpoints"):
             assert json.dumps(reports[0][key]) == json.dumps(reports[1][key]), (w, key)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("assess", [True, False])
+def test_writes_overlapping_a_stage_compress_on_one_thread(
+    scene_dir, tmp_path, monkeypatch, assess
+):
+    """The background writer is one thread of the budget: a GeoTIFF written while a following
+    stage runs compresses on that thread alone; a write the job waits for at its end (the
+    orthoimages when no assessment follows) compresses on all the job's workers."""
+    import rasterio.shutil
+
+    seen, copy = {}, rasterio.shutil.copy
+
+    def record(src, dst, **kw):
+        seen[str(dst)] = kw.get("num_threads")
+        return copy(src, dst, **kw)
+
+    monkeypatch.setattr(rasterio.shutil, "copy", record)
+    cfg = _cfg(scene_dir, tmp_path / "out", workers=3)
+    if not assess:
+        cfg = dataclasses.replace(cfg, assess=dataclasses.replace(cfg.assess, enabled=False))
+    run(cfg)
+    threads = {
+        name: {n for path, n in seen.items() if f"{name}." in Path(path).name}
+        for name in ("dem", "dem_edit_mask", "ortho_left", "ortho_right")
+    }
+    assert threads["dem"] == {"1"}  # raw/dem.tif and dem.tif: the next stage runs meanwhile
+    assert threads["dem_edit_mask"] == {"1"}
+    last = "1" if assess else "3"
+    assert threads["ortho_left"] == threads["ortho_right"] == {last}
+    # a configured NUM_THREADS is the user's choice, kept for every write
+    seen.clear()
+    cfg = _cfg(scene_dir, tmp_path / "out2", workers=3, creation_options={"NUM_THREADS": "2"})
+    run(cfg)
+    assert set(seen.values()) == {"2"}
 
 
 @pytest.mark.slow
