@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.signal import lombscargle
 
 from stereodem.core import geodesy
 from stereodem.core.dem import ELLIPSOID
@@ -142,6 +141,10 @@ def fit_sum_of_sines(
     (``scipy.signal.lombscargle``) within ``f_range`` (Hz), then all parameters are refined
     together by ``scipy.optimize.least_squares`` (soft-L1 loss against outliers).
     """
+    # imported here: scipy.signal loads scipy.stats (0.2 s together), which every command
+    # importing the jitter correction would pay, and only this fit needs it
+    from scipy.signal import lombscargle
+
     t = np.asarray(t, float)
     y = np.asarray(y, float)
     ok = np.isfinite(t) & np.isfinite(y)

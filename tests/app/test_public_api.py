@@ -32,11 +32,12 @@ def test_import_stereodem_loads_no_heavy_library():
 
 def test_the_run_pipeline_imports_no_dataframe_or_plotting_library():
     """What ``stereodem run`` imports before its first stage (every run and every worker
-    start pays it): no pandas (pyogrio imports it; vectors are read only when given) and no
-    matplotlib (the report's figures import it when drawn)."""
+    start pays it): no pandas (pyogrio imports it; vectors are read only when given), no
+    matplotlib (the report's figures import it when drawn) and no scipy.stats (0.2 s; the
+    adjustment's quantiles come from scipy.special)."""
     code = (
         "import sys, stereodem.run_cli, stereodem.pipeline.job; "
-        "print(sorted({'pandas', 'matplotlib'} & set(sys.modules)))"
+        "print(sorted({'pandas', 'matplotlib', 'scipy.stats'} & set(sys.modules)))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

@@ -489,3 +489,29 @@ def test_gauss_newton_reports_stalled_not_converged():
     s = out[0.02]
     assert s.status == "stalled" and not s.converged
     assert 0.01 <= s.max_correction < gm.STATIONARY_SIGMA
+
+
+def test_test_quantiles_are_those_of_scipy_stats():
+    """The thresholds and the variance test take their quantiles from scipy.special, as
+    scipy.stats computes them (the same numbers, without its import)."""
+    from scipy import stats
+
+    for alpha in (0.001, 0.01, 0.05):
+        assert rel.baarda_threshold(alpha) == pytest.approx(
+            stats.norm.ppf(1 - alpha / 2), rel=1e-14
+        )
+        for f in (2, 3, 10, 1000):
+            t = stats.t.ppf(1 - alpha / 2, f - 1)
+            pope = np.sqrt(f) * t / np.sqrt(f - 1 + t * t)
+            assert rel.pope_threshold(alpha, f) == pytest.approx(pope, rel=1e-14)
+    assert rel.noncentrality(0.001, 0.8) == pytest.approx(
+        stats.norm.ppf(0.9995) + stats.norm.ppf(0.8), rel=1e-14
+    )
+    for dof in (1, 7, 300):
+        for vtpv in (0.3 * dof, dof, 1.8 * dof):
+            out = rel.variance_test(vtpv, dof, alpha=0.05)
+            lo, hi = stats.chi2.ppf([0.025, 0.975], dof)
+            assert out["lower"] == pytest.approx(lo, rel=1e-14)
+            assert out["upper"] == pytest.approx(hi, rel=1e-14)
+            cdf = stats.chi2.cdf(vtpv, dof)
+            assert out["p_value"] == pytest.approx(2 * min(cdf, 1 - cdf), rel=1e-14)

@@ -18,7 +18,6 @@ from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import job_threads
 from stereodem.ortho.concurrent import orthorectify_all
 from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
-from stereodem.ortho.uncertainty.maps import dem_vertical_sigma, ortho_uncertainty_maps
 from stereodem.post import error_analysis as ea
 from stereodem.post.assess import assess_dem, reconcile_vertical
 from stereodem.post.fill import fill_holes, gaussian_smooth
@@ -226,6 +225,9 @@ def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, p
 def uncertainty_stage(cfg: Config, pair: Pair, dem: DEM, ortho_grid: MapGrid, raw: DEM, out_dir):
     """Per-cell horizontal σ of the left orthoimage (on its grid) into ``out_dir`` and the
     vertical σ of the DEM; returns (summary dict, the DEM σ object)."""
+    # imported here: the maps' sampling needs scipy.stats (0.2 s), which no other stage does
+    from stereodem.ortho.uncertainty.maps import dem_vertical_sigma, ortho_uncertainty_maps
+
     u = cfg.uncertainty
     report = read_adjust_report(u.covariance) if u.covariance else None
     model, names, D = assemble(
