@@ -4,13 +4,16 @@ The orthoimages of a stereo pair share the grid and the DEM but nothing else: ea
 own backward map (exact sensor-model evaluations on a lattice, mostly numpy) and resamples its
 own image (:func:`cv2.remap` on row blocks). :func:`orthorectify_all` runs them on concurrent
 threads (numpy and OpenCV release the GIL), so the serial parts of one (DEM crop, backward
-map, validity erosion) overlap the other's, and shares the budget out: ``threads`` in all,
-``threads // concurrent`` row-block threads for each. :func:`stereodem.ortho.drm.orthorectify`
-does not depend on its thread count, so the orthoimages are those of the serial calls.
+map, validity erosion) overlap the other's, and their row blocks go to one pool of
+``threads`` threads: when the smaller orthoimage is done, the larger one's remaining blocks
+take every thread (with ``threads // 2`` threads each, the last seconds of a pair ran on one
+core). :func:`stereodem.ortho.drm.orthorectify` does not depend on its threads, so the
+orthoimages are those of the serial calls.
 """
 
 from __future__ import annotations
 
+import functools
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -36,8 +39,8 @@ def orthorectify_all(
     on ``grid`` (default :func:`~stereodem.ortho.grid.grid_for_model` of the first image with
     ``res`` metres and ``crs``, as :func:`~stereodem.ortho.drm.orthorectify` lays it).
 
-    ``threads``: the thread budget; with 2 or more, up to ``threads`` orthoimages run at once,
-    each with ``threads // running`` row-block threads. ``progress(rows_done, rows_total)``
+    ``threads``: the thread budget; with 2 or more, up to ``threads`` orthoimages run at once
+    and share a pool of ``threads`` row-block threads. ``progress(rows_done, rows_total)``
     counts the rows of all orthoimages (called under a lock, from the worker threads).
     ``options`` go to :func:`~stereodem.ortho.drm.orthorectify`. The first error raised (in
     image order) propagates.
@@ -48,11 +51,10 @@ def orthorectify_all(
         grid = grid_for_model(images[0][2], dem, res=res, crs=crs)
     threads = max(1, int(threads))
     running = max(1, min(len(images), threads))
-    each = max(1, threads // running)
     total = grid.shape[0] * len(images) if grid is not None else 0
     done, lock = {}, threading.Lock()
 
-    def one(item):
+    def one(item, blocks=1):
         name, image, model = item
 
         def step(rows, _):
@@ -62,10 +64,13 @@ def orthorectify_all(
                     progress(sum(done.values()), total)
 
         return name, orthorectify(
-            image, model, dem, grid=grid, threads=each, progress=step, **options
+            image, model, dem, grid=grid, threads=blocks, progress=step, **options
         )
 
     if running == 1:
-        return dict(map(one, images))
-    with ThreadPoolExecutor(running, thread_name_prefix="stereodem-ortho") as ex:
-        return dict(ex.map(one, images))
+        return dict(one(item, threads) for item in images)
+    with (
+        ThreadPoolExecutor(threads, thread_name_prefix="stereodem-ortho-rows") as blocks,
+        ThreadPoolExecutor(running, thread_name_prefix="stereodem-ortho") as ex,
+    ):
+        return dict(ex.map(functools.partial(one, blocks=blocks), images))

@@ -24,7 +24,7 @@ no height there, or when it falls outside the image footprint.
 from __future__ import annotations
 
 import logging
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -741,9 +741,11 @@ def orthorectify(
     progress : callable, optional
         Called as ``progress(rows_done, rows_total)`` after each block (from the calling
         thread, in row order).
-    threads : int
+    threads : int or concurrent.futures.Executor
         Row blocks processed concurrently by this many threads (numpy and OpenCV release the
-        GIL); the result does not depend on it.
+        GIL), or submitted to this thread pool (one pool shared by several orthoimages keeps
+        every thread busy until the last block of any of them); the result does not depend
+        on it.
     fill_dem : DEM or path, optional
         Fallback heights where ``dem`` has none (holes, or outside it).
 
@@ -812,7 +814,9 @@ def orthorectify(
         return r1, (miss, n_foot)
 
     starts = range(0, H, block_rows)
-    if int(threads) > 1:
+    if isinstance(threads, Executor):
+        done = list(_progressing(threads.map(run_block, starts), progress, H))
+    elif int(threads) > 1:
         with ThreadPoolExecutor(max_workers=int(threads)) as pool:
             done = list(_progressing(pool.map(run_block, starts), progress, H))
     else:

@@ -177,6 +177,32 @@ def test_concurrent_orthos_equal_the_serial_ones(rendered):
     assert [d for d, _ in calls] == sorted(d for d, _ in calls)
 
 
+def test_concurrent_orthos_share_one_pool_of_block_threads(rendered, monkeypatch):
+    """With a budget of 2 threads for 2 orthoimages, each one's row blocks run on both
+    threads of one shared pool (not on one thread each: the larger one then finished alone
+    on one core), and no more than 2 block threads exist."""
+    import threading
+    import time
+
+    import stereodem.ortho.drm as drm
+
+    cam, dem, grid, img, truth = rendered
+    ran, remap = {}, drm.remap_nan
+
+    def record(image, *args, **kw):
+        ran.setdefault(id(image), set()).add(threading.current_thread().name)
+        time.sleep(0.005)  # a block's work: both threads take blocks
+        return remap(image, *args, **kw)
+
+    monkeypatch.setattr(drm, "remap_nan", record)
+    items = [("left", img, cam), ("right", img[::-1].copy(), oblique_camera(dlon=-1.0, dlat=1.0))]
+    orthorectify_all(items, dem, resampling="cubic", block_rows=8, threads=2)
+    assert len(ran) == 2
+    for names in ran.values():
+        assert len(names) == 2 and all(n.startswith("stereodem-ortho-rows") for n in names)
+    assert len(set.union(*ran.values())) == 2
+
+
 def test_wrong_dem_is_detected(rendered):
     """Negative control: a DEM 150 m too high displaces the oblique ortho measurably."""
     cam, dem, grid, img, truth = rendered
