@@ -285,6 +285,29 @@ def test_resume_reuses_finished_tiles(scene_dir, tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
+def test_a_pool_run_clears_an_interrupted_runs_leftovers_but_not_its_own_image_maps(
+    scene_dir, tmp_path
+):
+    """The images' maps for the workers are written while the cache key is hashed: the
+    leftovers of an interrupted run (maps, partial tiles) are removed before, this run's maps
+    are what the workers read, and none is left after the run, refused or not."""
+    out = tmp_path / "r"
+    first = run(_cfg(scene_dir, out, workers=2))
+    tiles = out / "tiles"
+    (tiles / "shared-interrupted").mkdir()
+    (tiles / "shared-interrupted" / "left.npy").write_bytes(b"old map")
+    (tiles / "tile_0.npz.part").write_bytes(b"half a tile")
+    again = run(_cfg(scene_dir, out, workers=2, resume=True))
+    assert again["headline"]["nmad"] == pytest.approx(first["headline"]["nmad"])
+    assert not list(tiles.glob("shared-*")) and not list(tiles.glob("*.part"))
+    cfg = _cfg(scene_dir, out, workers=2, resume=True)
+    cfg.stereo.matching.matcher = "ncc"
+    with pytest.raises(InputError, match="other inputs or settings"):
+        run(cfg)
+    assert not list(tiles.glob("shared-*"))
+
+
+@pytest.mark.slow
 def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
     out = tmp_path / "r"
     run(_cfg(scene_dir, out))
