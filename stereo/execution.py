@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core.blocks import default_threads
 from stereodem.core.errors import InputError
 from stereodem.core.jsonutil import json_default
 from stereodem.core.raster import write_text_atomic
@@ -75,16 +76,30 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
             )
         failures.extend(fails)
         by_index = {t.index: t for t in tiles}
-        # in tile order, one at a time: a cached run holds one tile's cell sums, not all
-        return (
-            TileResult.from_arrays(
-                results[i] if results[i] is not None else load_cached(cache_dir, by_index[i])
-            )
-            for i in sorted(results)
-        )
+
+        def arrays(i):
+            return results[i] if results[i] is not None else load_cached(cache_dir, by_index[i])
+
+        # in tile order, one at a time: a cached run holds one tile's cell sums (and, with
+        # threads to spare, the next one's, read meanwhile), not all
+        order = sorted(results)
+        if default_threads() > 1 and len(order) > 1:
+            return (TileResult.from_arrays(a) for a in _read_ahead(arrays, order))
+        return (TileResult.from_arrays(arrays(i)) for i in order)
 
     runner.failures = failures
     return runner
+
+
+def _read_ahead(read, keys):
+    """``read(k)`` for each of ``keys`` in order, the next one read on a thread while the
+    caller works on the current one (file reads release the GIL)."""
+    with ThreadPoolExecutor(1, thread_name_prefix="stereodem-read") as ex:
+        pending = ex.submit(read, keys[0])
+        for k in keys[1:]:
+            current, pending = pending.result(), ex.submit(read, k)
+            yield current
+        yield pending.result()
 
 
 def _share_images(inputs, directory):

@@ -293,3 +293,32 @@ def test_pool_workers_keep_the_memory_their_tiles_free():
     if plain < 200:  # e.g. transparent huge pages for everything: 2 MB per fault
         pytest.skip(f"{plain} page faults per pass without it: too few to compare")
     assert max(in_pool) < plain / 10, (in_pool, plain)
+
+
+def test_cached_tiles_are_read_one_ahead_in_tile_order():
+    """The tiles a pool stored are read back in tile order, the next one on a thread while
+    the caller adds the current one: never more than one read ahead (memory: two tiles)."""
+    import threading
+
+    from stereodem.stereo.execution import _read_ahead
+
+    reads, consumed, ahead = [], [], []
+
+    def read(k):
+        reads.append((k, threading.current_thread().name))
+        return k * 10
+
+    for v in _read_ahead(read, [3, 5, 8, 9]):
+        ahead.append(len(reads) - len(consumed))
+        consumed.append(v)
+    assert consumed == [30, 50, 80, 90]
+    assert [k for k, _ in reads] == [3, 5, 8, 9]
+    assert max(ahead) <= 2 and all(name.startswith("stereodem-read") for _, name in reads)
+
+    def fails(k):
+        if k == 5:
+            raise OSError("tile 5: unreadable")
+        return k
+
+    with pytest.raises(OSError, match="tile 5"):
+        list(_read_ahead(fails, [3, 5, 8]))
