@@ -69,3 +69,19 @@ def by_rows(fn, *arrays, halo: int, threads: int | None = None, out=None, min_ro
     for (r0, r1), res in results:
         out[r0:r1] = res
     return out
+
+
+def each_fixed_band(fn, n_rows: int, band_rows: int, *, threads: int | None = None) -> list:
+    """``fn((r0, r1))`` for consecutive bands of ``band_rows`` rows (the last one shorter) on
+    the budget's threads; returns the results in band order.
+
+    Unlike :func:`each_band`, the bands do not depend on the number of threads: for an
+    operation that is exact only within some reach of each cell (a nearest-valid-cell fill
+    read only near the valid cells), computing the same bands on any number of threads gives
+    the same result."""
+    threads = default_threads() if threads is None else int(threads)
+    bands = [(r, min(n_rows, r + band_rows)) for r in range(0, n_rows, max(1, int(band_rows)))]
+    if threads == 1 or len(bands) == 1:
+        return [fn(b) for b in bands]
+    with ThreadPoolExecutor(min(threads, len(bands)), thread_name_prefix="stereodem-rows") as ex:
+        return list(ex.map(fn, bands))

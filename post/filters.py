@@ -26,6 +26,7 @@ Filters (with where they come from):
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -33,7 +34,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from stereodem.core.blocks import by_rows
+from stereodem.core.blocks import by_rows, default_threads, each_fixed_band
 from stereodem.core.errors import InputError
 from stereodem.core.stats import NMAD_FACTOR
 
@@ -172,12 +173,39 @@ def failed_neighbours_filter(heights, *, min_failed: int = 5):
     return by_rows(band, _heights(heights), halo=1), Reason.FAILED_NEIGHBOURS
 
 
+#: rows of the bands :func:`_fill_nearest` works in, and the rows each band reads beyond its
+#: own (more than 3·√2: a void cell within 3 cells of a valid one has its nearest valid cell
+#: within 4.3 cells, inside the band)
+FILL_BAND_ROWS, FILL_HALO_ROWS = 256, 8
+
+
 def _fill_nearest(z):
+    """``z`` with the void cells within 3 cells (8-connected) of a valid one set to the height
+    of their nearest valid cell (Euclidean): all that the spike filter's 5 x 5 prediction and
+    7 x 7 median read. Computed in bands of :data:`FILL_BAND_ROWS` rows on the budget's
+    threads (a band's distance transform sees its neighbours' rows within
+    :data:`FILL_HALO_ROWS`); the bands do not depend on the threads, so neither does the
+    result. Void cells farther from data get the nearest valid height of their band's rows,
+    or 0 where these have none. (The whole grid's transform took 0.3-0.5 s on one core for a
+    2527 x 2382 ASTER DEM; the bands 0.2 s on one, 0.12 s on two.)"""
     v = np.isfinite(z)
     if v.all():
         return z
-    idx = ndi.distance_transform_edt(~v, return_distances=False, return_indices=True)
-    return z[tuple(idx)]
+    out = np.empty_like(z)
+    rows = z.shape[0]
+
+    def band(b):
+        r0, r1 = b
+        a0, a1 = max(0, r0 - FILL_HALO_ROWS), min(rows, r1 + FILL_HALO_ROWS)
+        vb = v[a0:a1]
+        if not vb.any():
+            out[r0:r1] = 0.0
+            return
+        idx = ndi.distance_transform_edt(~vb, return_distances=False, return_indices=True)
+        out[r0:r1] = z[a0:a1][tuple(i[r0 - a0 : r1 - a0] for i in idx)]
+
+    each_fixed_band(band, rows, FILL_BAND_ROWS)
+    return out
 
 
 def _quadratic_kernel(half: int):
@@ -218,10 +246,19 @@ def _block_scale(r, valid, block: int):
         with np.errstate(invalid="ignore"):
             return NMAD_FACTOR * _nanmedian_last(np.abs(t - med[..., None]))
 
-    scale = by_rows(nmad_of_blocks, blocks, halo=0, min_rows=4)
-    rv = r[valid]  # a copy: the global NMAD is computed in it
-    np.subtract(rv, np.median(rv), out=rv)
-    glob = NMAD_FACTOR * np.median(np.abs(rv, out=rv), overwrite_input=True)
+    def global_nmad():
+        rv = r[valid]  # a copy: the global NMAD is computed in it
+        np.subtract(rv, np.median(rv), out=rv)
+        return NMAD_FACTOR * np.median(np.abs(rv, out=rv), overwrite_input=True)
+
+    if default_threads() > 1:  # the global NMAD (0.1 s, serial) beside the blocks' ones
+        with ThreadPoolExecutor(1, thread_name_prefix="stereodem-nmad") as ex:
+            pending = ex.submit(global_nmad)
+            scale = by_rows(nmad_of_blocks, blocks, halo=0, min_rows=4)
+            glob = pending.result()
+    else:
+        scale = by_rows(nmad_of_blocks, blocks, halo=0, min_rows=4)
+        glob = global_nmad()
     scale = np.where(np.isfinite(scale), scale, glob).astype(np.float32)
     if scale.shape == (1, 1):
         return np.full(r.shape, float(scale[0, 0]))

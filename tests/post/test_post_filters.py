@@ -119,3 +119,38 @@ def test_chain_config_and_unknown_step():
     ]
     with pytest.raises(InputError):
         F.FilterStep("magic")
+
+
+def test_nearest_fill_is_exact_near_the_data_and_the_same_on_any_threads():
+    """The spike filter's void fill works in fixed bands of rows: every void cell within 3
+    cells of a valid one (what the 5 x 5 prediction and 7 x 7 median read) gets the height of
+    a valid cell at the nearest distance of the whole grid's transform; the bands do not
+    depend on the threads, so 1 and 3 threads give the same array."""
+    import cv2
+
+    rng = np.random.default_rng(4)
+    rows, cols = 3 * F.FILL_BAND_ROWS + 37, 300
+    r, c = np.mgrid[0:rows, 0:cols]
+    z = (r * 1000 + c).astype(np.float64)  # each height names its cell
+    void = ndi.binary_dilation(rng.random((rows, cols)) < 0.004, iterations=4)
+    void |= (r - 0.6 * c) > 0.55 * rows  # a large void corner, as outside a footprint
+    void[F.FILL_BAND_ROWS - 20 : F.FILL_BAND_ROWS + 30, :] = True  # across a band edge
+    z[void] = np.nan
+    saved = cv2.getNumThreads()
+    try:
+        filled = {}
+        for n in (1, 3):
+            cv2.setNumThreads(n)
+            filled[n] = F._fill_nearest(z)
+    finally:
+        cv2.setNumThreads(saved)
+    np.testing.assert_array_equal(filled[1], filled[3])
+    out = filled[1]
+    assert np.array_equal(out[~void], z[~void])
+    near = ndi.binary_dilation(~void, structure=np.ones((3, 3)), iterations=3) & void
+    assert near.sum() > 5000
+    src_r, src_c = np.divmod(out[near].astype(np.int64), 1000)
+    assert not void[src_r, src_c].any()  # a valid cell's height
+    got = np.hypot(src_r - r[near], src_c - c[near])
+    best = ndi.distance_transform_edt(void)[near]
+    np.testing.assert_allclose(got, best, rtol=0, atol=1e-12)
