@@ -26,6 +26,7 @@ import logging
 import os
 import shutil
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -39,6 +40,7 @@ __all__ = [
     "OutputLockedError",
     "output_folder",
     "remove_products",
+    "remove_products_in_background",
     "is_stereodem_output",
     "check_not_an_input",
     "PRODUCTS",
@@ -47,6 +49,8 @@ __all__ = [
 LOCK_NAME = ".stereodem.lock"
 #: the writability probe a job starting in the folder leaves there for an instant
 PROBE_PREFIX = ".stereodem-probe-"
+#: the folder a job moves the previous job's products into, to delete them while it runs
+REMOVING_PREFIX = ".stereodem-removing-"
 
 #: what a stereodem job writes into its output folder (files and folders, glob patterns)
 PRODUCTS = (
@@ -79,6 +83,8 @@ PRODUCTS = (
     "change.json",
     "dh.tif",
     "dh_sigma.tif",
+    # what a job that was killed while it deleted its predecessor's products left
+    REMOVING_PREFIX + "*",
 )
 #: files that mark a folder as a stereodem output
 MARKERS = (
@@ -166,9 +172,10 @@ class OutputLock:
 
 
 def is_stereodem_output(folder) -> bool:
-    """Whether ``folder`` holds the products of a stereodem job."""
+    """Whether ``folder`` holds the products of a stereodem job (or what a job killed while it
+    deleted them left: :func:`remove_products_in_background`)."""
     folder = Path(folder)
-    return any((folder / m).exists() for m in MARKERS)
+    return any((folder / m).exists() for m in MARKERS) or any(folder.glob(REMOVING_PREFIX + "*"))
 
 
 def _product_paths(folder: Path, keep_tiles: bool):
@@ -181,17 +188,54 @@ def _product_paths(folder: Path, keep_tiles: bool):
 def remove_products(folder, *, keep_tiles: bool) -> list[str]:
     """Remove the previous job's products from ``folder`` (the tile cache too unless
     ``keep_tiles``); other files are left alone. Returns the names removed."""
+    removed, paths = _products_to_remove(Path(folder), keep_tiles)
+    for p in paths:
+        _delete(p)
+    return removed
+
+
+def remove_products_in_background(folder, *, keep_tiles: bool):
+    """:func:`remove_products`, the deletion on a thread: the products are moved into a hidden
+    folder of ``folder`` (a rename each: out of the job's way at once) and deleted there while
+    the job runs. Returns (the names removed, the deleting thread or None).
+
+    Deleting a previous job's half gigabyte of tiles and rasters took 0.2-0.4 s, mostly in
+    the kernel, before any work could start. A job killed meanwhile leaves the hidden folder,
+    which the next ``--overwrite`` removes as one of the products (:data:`PRODUCTS`)."""
     folder = Path(folder)
-    removed = []
-    for p in sorted(set(_product_paths(folder, keep_tiles))):
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p)
-        else:
-            p.unlink()
-        removed.append(p.name)
+    removed, paths = _products_to_remove(folder, keep_tiles)
+    if not paths:
+        return removed, None
+    trash = folder / f"{REMOVING_PREFIX}{os.getpid()}-{time.monotonic_ns()}"
+    try:
+        trash.mkdir()
+        for p in paths:
+            p.rename(trash / p.name)
+    except OSError:  # one could not be moved: all are deleted here and now
+        for p in (*paths, trash):
+            if p.exists() or p.is_symlink():
+                _delete(p)
+        return removed, None
+    thread = threading.Thread(
+        target=shutil.rmtree, args=(trash,), kwargs={"ignore_errors": True}, name="stereodem-rm"
+    )
+    thread.start()
+    return removed, thread
+
+
+def _products_to_remove(folder: Path, keep_tiles: bool):
+    paths = sorted(set(_product_paths(folder, keep_tiles)))
+    removed = [p.name for p in paths]
     if removed:
         log.info("%s: removed the previous job's %s", folder, ", ".join(removed))
-    return removed
+    return removed, paths
+
+
+def _delete(p: Path):
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p)
+    else:
+        p.unlink()
 
 
 def check_not_an_input(outputs, inputs):
@@ -229,7 +273,9 @@ def _check_folder(path: Path, *, overwrite: bool, resume: bool):
 
 
 @contextlib.contextmanager
-def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs=()):
+def output_folder(
+    path, *, overwrite: bool = False, resume: bool = False, inputs=(), background: bool = False
+):
     """The output folder of a job, created if needed, locked for the job's duration.
 
     Parameters
@@ -241,6 +287,10 @@ def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs
         Continue a previous job: keep its tile cache (its other products are replaced).
     inputs : iterable of paths
         The job's input files; none may be among the outputs.
+    background : bool
+        Delete the previous job's products on a thread while the job runs (they are moved
+        out of its way first: :func:`remove_products`); the deletion ends before the lock
+        is released. For jobs with a core to spare.
 
     Raises
     ------
@@ -276,6 +326,7 @@ def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs
                 path.rmdir()
         raise
     ok = False
+    deleting = None
     try:
         # another job starting here at the same moment may have its probe in the folder:
         # not a file of the user's (it then finds the folder locked and gives up)
@@ -288,7 +339,9 @@ def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs
                     f"{path}: folder exists and is not empty; pass --overwrite "
                     "to replace its products (or --resume to continue its job)"
                 )
-            if is_stereodem_output(path):
+            if is_stereodem_output(path) and background:
+                deleting = remove_products_in_background(path, keep_tiles=resume)[1]
+            elif is_stereodem_output(path):
                 remove_products(path, keep_tiles=resume)
             else:
                 # a folder of the user's (e.g. the one holding the inputs): the products go
@@ -304,6 +357,8 @@ def output_folder(path, *, overwrite: bool = False, resume: bool = False, inputs
         yield path
         ok = True
     finally:
+        if deleting is not None:
+            deleting.join()
         lock.release()
         if not ok and created:
             with contextlib.suppress(OSError):

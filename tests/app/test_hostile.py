@@ -424,6 +424,50 @@ def test_overwrite_removes_only_stereodem_products(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
+def test_products_deleted_in_the_background_are_out_of_the_way_at_once(tmp_path, monkeypatch):
+    """A job with a core to spare moves the previous job's products into a hidden folder and
+    deletes them while it runs: none of their names is left when the job starts, the user's
+    files stay, and nothing is left when the job ends. A hidden folder a killed job left is
+    removed by the next --overwrite, which still knows the folder for a stereodem output."""
+    import shutil
+    import threading
+
+    from stereodem.outlock import REMOVING_PREFIX, output_folder
+
+    out = tmp_path / "out"
+    (out / "tiles").mkdir(parents=True)
+    for name in ("run.json", "dem.tif", "tiles/tile_00001.npz", "notes.txt"):
+        (out / name).write_text("x")
+    release, rmtree = threading.Event(), shutil.rmtree
+
+    def slow_rmtree(path, *a, **kw):  # the deletion still runs when the job starts
+        release.wait(5)
+        return rmtree(path, *a, **kw)
+
+    monkeypatch.setattr(shutil, "rmtree", slow_rmtree)
+    with output_folder(out, overwrite=True, background=True):
+        names = sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME)
+        assert len(names) == 2 and names[1] == "notes.txt"
+        assert names[0].startswith(REMOVING_PREFIX)
+        assert sorted(p.name for p in (out / names[0]).iterdir()) == [
+            "dem.tif",
+            "run.json",
+            "tiles",
+        ]
+        (out / "dem.tif").write_text("this job's")
+        release.set()
+    assert sorted(p.name for p in out.iterdir()) == ["dem.tif", "notes.txt"]
+    assert (out / "dem.tif").read_text() == "this job's"
+    monkeypatch.setattr(shutil, "rmtree", rmtree)
+    # what a job killed during the deletion leaves: only the hidden folder
+    (out / "dem.tif").unlink()
+    (out / f"{REMOVING_PREFIX}123-4").mkdir()
+    (out / f"{REMOVING_PREFIX}123-4" / "run.json").write_text("x")
+    with output_folder(out, overwrite=True, background=True):
+        pass
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
 # ----------------------------------------------------------------------------- the tile cache
 
 
