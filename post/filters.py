@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from stereodem.core.blocks import by_rows, default_threads, each_fixed_band
+from stereodem.core.blocks import by_rows, default_threads, each_band, each_fixed_band
 from stereodem.core.errors import InputError
 from stereodem.core.stats import NMAD_FACTOR
 
@@ -383,20 +383,41 @@ def small_patch_filter(
     valid = np.isfinite(z)
     if not valid.any():
         return np.zeros(z.shape, bool), Reason.SMALL_PATCH
+    rows = z.shape[0]
+
+    def jumps_and_range(band):  # a band's finite jumps (to the right, to the row below)
+        r0, r1 = band
+        zb = z[r0:r1]
+        jx = np.abs(np.diff(zb, axis=1))
+        jy = np.abs(np.diff(z[r0 : min(rows, r1 + 1)], axis=0))
+        fin = zb[np.isfinite(zb)]
+        span = (fin.min(), fin.max()) if fin.size else (np.inf, -np.inf)
+        return jx[np.isfinite(jx)], jy[np.isfinite(jy)], span
+
+    # on the budget's threads: a percentile of all the jumps, a min and a max, whatever the
+    # bands (the same numbers as on the whole grid)
+    parts = each_band(jumps_and_range, rows)
     if max_jump is None:
-        jx = np.abs(np.diff(z, axis=1))
-        jy = np.abs(np.diff(z, axis=0))
-        j = np.concatenate([jx[np.isfinite(jx)], jy[np.isfinite(jy)]])
+        j = np.concatenate([a for jx, jy, _ in parts for a in (jx, jy)])
         max_jump = (
             max(min_jump, jump_factor * float(np.percentile(j, jump_percentile)))
             if j.size
             else min_jump
         )
-    lo, hi = float(np.min(z[valid])), float(np.max(z[valid]))
+        del j
+    lo = float(min(p[2][0] for p in parts))
+    hi = float(max(p[2][1] for p in parts))
+    del parts
     q = max((hi - lo) / 60000.0, max_jump / 30000.0, 1e-3)  # metres per quantum
-    zq = np.full(z.shape, -32768, dtype=np.int16)
-    zq[valid] = np.round((z[valid] - lo) / q - 30000.0).astype(np.int16)
-    out, _ = cv2.filterSpeckles(zq.copy(), -32768, int(max_size), int(np.floor(max_jump / q)))
+
+    def quantise(zb):
+        vb = np.isfinite(zb)
+        out = np.full(zb.shape, -32768, dtype=np.int16)
+        out[vb] = np.round((zb[vb] - lo) / q - 30000.0).astype(np.int16)
+        return out
+
+    zq = by_rows(quantise, z, halo=0)
+    out, _ = cv2.filterSpeckles(zq, -32768, int(max_size), int(np.floor(max_jump / q)))
     return valid & (out == -32768), Reason.SMALL_PATCH
 
 

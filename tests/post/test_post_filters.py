@@ -154,3 +154,32 @@ def test_nearest_fill_is_exact_near_the_data_and_the_same_on_any_threads():
     got = np.hypot(src_r - r[near], src_c - c[near])
     best = ndi.distance_transform_edt(void)[near]
     np.testing.assert_allclose(got, best, rtol=0, atol=1e-12)
+
+
+def test_small_patch_jump_limit_and_mask_do_not_depend_on_the_threads():
+    """The jump limit is the percentile of all the grid's jumps, gathered in row bands on
+    threads: the same limit as the whole grid's (given explicitly here), and the same mask on
+    1 and 3 threads."""
+    import cv2
+
+    rng = np.random.default_rng(8)
+    r, c = np.mgrid[0:700, 0:400]
+    z = 800 + 0.3 * r + 40 * np.sin(c / 30.0) + rng.normal(0, 0.5, r.shape)
+    z[rng.random(z.shape) < 0.02] = np.nan
+    islands = rng.random(z.shape) < 0.001  # small clumps standing off the terrain
+    z[ndi.binary_dilation(islands, iterations=1)] += 300
+    jx, jy = np.abs(np.diff(z, axis=1)), np.abs(np.diff(z, axis=0))
+    j = np.concatenate([jx[np.isfinite(jx)], jy[np.isfinite(jy)]])
+    limit = max(10.0, 2.0 * float(np.percentile(j, 99.0)))
+    saved = cv2.getNumThreads()
+    try:
+        masks = {}
+        for n in (1, 3):
+            cv2.setNumThreads(n)
+            masks[n] = F.small_patch_filter(z)[0]
+        explicit = F.small_patch_filter(z, max_jump=limit)[0]
+    finally:
+        cv2.setNumThreads(saved)
+    assert masks[1].sum() > 50  # the clumps are found
+    np.testing.assert_array_equal(masks[1], masks[3])
+    np.testing.assert_array_equal(masks[1], explicit)
