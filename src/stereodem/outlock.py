@@ -289,8 +289,8 @@ def output_folder(
         The job's input files; none may be among the outputs.
     background : bool
         Delete the previous job's products on a thread while the job runs (they are moved
-        out of its way first: :func:`remove_products`); the deletion ends before the lock
-        is released. For jobs with a core to spare.
+        out of its way first: :func:`remove_products_in_background`); the deletion ends
+        before the lock is released. For jobs with a core to spare.
 
     Raises
     ------

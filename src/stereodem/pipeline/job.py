@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -87,14 +86,15 @@ def writer_options(cfg: Config, *, overlapped: bool = False) -> dict:
     compresses on (``NUM_THREADS``; the bytes written do not depend on it) unless the
     configuration sets it.
 
-    A write the job waits for compresses on the job's workers. An ``overlapped`` write (one
-    the :class:`BackgroundWriter` does while a following stage keeps the budget's threads
-    busy) compresses on the writer's one thread: more compression threads would only
-    oversubscribe the cores (at 2 workers on 2 cores, ``stereodem run`` on the full granule
-    was 0.7-1.7 s faster and used 0.8-2.5 CPU-s less, three alternating pairs).
+    A write the job waits for compresses on the job's thread budget (:func:`job_threads`).
+    An ``overlapped`` write (one the :class:`BackgroundWriter` does while a following stage
+    keeps the budget's threads busy) compresses on the writer's one thread: more compression
+    threads would only oversubscribe the cores (at 2 workers on 2 cores, ``stereodem run`` on
+    the full granule was 0.7-1.7 s faster and used 0.8-2.5 CPU-s less, three alternating
+    pairs).
     """
     co = dict(cfg.run.creation_options or {})
-    threads = 1 if overlapped else (cfg.run.workers or os.cpu_count() or 1)
+    threads = 1 if overlapped else job_threads(cfg.run.workers)
     if not any(k.upper() == "NUM_THREADS" for k in co):
         co["NUM_THREADS"] = str(threads)
     return co
