@@ -235,13 +235,18 @@ def run(args) -> int:
     if granules:
         return _run_strip(args, granules, started)
     cfg = config_from_args(args)
-    from stereodem.core.threads import thread_budget
+    from stereodem.core.threads import job_threads, thread_budget
 
     if cfg.inputs.images:
         with thread_budget(cfg.run.workers):
             return _run_multiview(cfg, started)
     with (
-        output_folder(cfg.output_dir, overwrite=args.overwrite, inputs=input_paths(cfg)) as out,
+        output_folder(
+            cfg.output_dir,
+            overwrite=args.overwrite,
+            inputs=input_paths(cfg),
+            background=job_threads(cfg.run.workers) > 1,  # as `run` does
+        ) as out,
         thread_budget(cfg.run.workers),
     ):
         pair = load_pair(cfg)

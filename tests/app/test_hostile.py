@@ -662,6 +662,22 @@ def test_run_overwrite_with_another_configuration_leaves_nothing_stale(sim, tmp_
     info = json.loads((out / "run.json").read_text())
     assert not any(o.startswith(("ortho", "assess")) for o in info["outputs"])
     assert all((out / o).exists() for o in info["outputs"])
+    assert not list(out.glob(".stereodem-removing-*"))  # deleted while the job ran
+
+
+@pytest.mark.slow
+def test_dem_overwrite_on_two_workers_replaces_the_products(sim, tmp_path, capsys):
+    """`stereodem dem --overwrite` with threads to spare deletes the previous products on a
+    thread while it runs, as `run` does: the new products are there, nothing else is."""
+    out = tmp_path / "out"
+    argv = ["dem", sim / "left.tif", sim / "right.tif", "-o", out, "--workers", "2", *HR]
+    assert run_cli(capsys, argv)[0] == 0
+    (out / "dem.tif").write_bytes(b"the previous job's")  # must not survive
+    code, _, err = run_cli(capsys, [*argv, "--overwrite"])
+    assert code == 0, err
+    with rasterio.open(out / "dem.tif") as ds:
+        assert np.isfinite(ds.read(1)).mean() > 0.2
+    assert not list(out.glob(".stereodem-removing-*"))
 
 
 @pytest.mark.slow
