@@ -42,10 +42,15 @@ def each_band(fn, n_rows: int, *, threads: int | None = None, min_rows: int = MI
     per band (none with a single band); returns the results in band order. ``fn`` must only
     read shared arrays and write its own rows."""
     threads = default_threads() if threads is None else int(threads)
-    bands = row_bands(n_rows, threads, min_rows)
-    if len(bands) == 1:
-        return [fn(bands[0])]
-    with ThreadPoolExecutor(len(bands), thread_name_prefix="stereodem-rows") as ex:
+    return _on_threads(fn, row_bands(n_rows, threads, min_rows), threads)
+
+
+def _on_threads(fn, bands, threads: int) -> list:
+    """``fn(band)`` for each band, on up to ``threads`` threads (none for a single band or
+    thread); the results in band order."""
+    if threads == 1 or len(bands) == 1:
+        return [fn(b) for b in bands]
+    with ThreadPoolExecutor(min(threads, len(bands)), thread_name_prefix="stereodem-rows") as ex:
         return list(ex.map(fn, bands))
 
 
@@ -80,8 +85,5 @@ def each_fixed_band(fn, n_rows: int, band_rows: int, *, threads: int | None = No
     read only near the valid cells), computing the same bands on any number of threads gives
     the same result."""
     threads = default_threads() if threads is None else int(threads)
-    bands = [(r, min(n_rows, r + band_rows)) for r in range(0, n_rows, max(1, int(band_rows)))]
-    if threads == 1 or len(bands) == 1:
-        return [fn(b) for b in bands]
-    with ThreadPoolExecutor(min(threads, len(bands)), thread_name_prefix="stereodem-rows") as ex:
-        return list(ex.map(fn, bands))
+    step = max(1, int(band_rows))
+    return _on_threads(fn, [(r, min(n_rows, r + step)) for r in range(0, n_rows, step)], threads)

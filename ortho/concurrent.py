@@ -54,7 +54,7 @@ def orthorectify_all(
     total = grid.shape[0] * len(images) if grid is not None else 0
     done, lock = {}, threading.Lock()
 
-    def one(item, blocks=1):
+    def one(item, blocks):
         name, image, model = item
 
         def step(rows, _):

@@ -251,14 +251,11 @@ def _block_scale(r, valid, block: int):
         np.subtract(rv, np.median(rv), out=rv)
         return NMAD_FACTOR * np.median(np.abs(rv, out=rv), overwrite_input=True)
 
-    if default_threads() > 1:  # the global NMAD (0.1 s, serial) beside the blocks' ones
-        with ThreadPoolExecutor(1, thread_name_prefix="stereodem-nmad") as ex:
-            pending = ex.submit(global_nmad)
-            scale = by_rows(nmad_of_blocks, blocks, halo=0, min_rows=4)
-            glob = pending.result()
-    else:
+    # with threads to spare, the global NMAD (0.1 s, serial) beside the blocks' ones
+    with ThreadPoolExecutor(1, thread_name_prefix="stereodem-nmad") as ex:
+        pending = ex.submit(global_nmad) if default_threads() > 1 else None
         scale = by_rows(nmad_of_blocks, blocks, halo=0, min_rows=4)
-        glob = global_nmad()
+        glob = pending.result() if pending is not None else global_nmad()
     scale = np.where(np.isfinite(scale), scale, glob).astype(np.float32)
     if scale.shape == (1, 1):
         return np.full(r.shape, float(scale[0, 0]))
@@ -385,28 +382,32 @@ def small_patch_filter(
         return np.zeros(z.shape, bool), Reason.SMALL_PATCH
     rows = z.shape[0]
 
+    need_jumps = max_jump is None
+
     def jumps_and_range(band):  # a band's finite jumps (to the right, to the row below)
         r0, r1 = band
         zb = z[r0:r1]
-        jx = np.abs(np.diff(zb, axis=1))
-        jy = np.abs(np.diff(z[r0 : min(rows, r1 + 1)], axis=0))
         fin = zb[np.isfinite(zb)]
         span = (fin.min(), fin.max()) if fin.size else (np.inf, -np.inf)
-        return jx[np.isfinite(jx)], jy[np.isfinite(jy)], span
+        if not need_jumps:
+            return (), span
+        jx = np.abs(np.diff(zb, axis=1))
+        jy = np.abs(np.diff(z[r0 : min(rows, r1 + 1)], axis=0))
+        return (jx[np.isfinite(jx)], jy[np.isfinite(jy)]), span
 
     # on the budget's threads: a percentile of all the jumps, a min and a max, whatever the
     # bands (the same numbers as on the whole grid)
     parts = each_band(jumps_and_range, rows)
-    if max_jump is None:
-        j = np.concatenate([a for jx, jy, _ in parts for a in (jx, jy)])
+    if need_jumps:
+        j = np.concatenate([a for jumps, _ in parts for a in jumps])
         max_jump = (
             max(min_jump, jump_factor * float(np.percentile(j, jump_percentile)))
             if j.size
             else min_jump
         )
         del j
-    lo = float(min(p[2][0] for p in parts))
-    hi = float(max(p[2][1] for p in parts))
+    lo = float(min(span[0] for _, span in parts))
+    hi = float(max(span[1] for _, span in parts))
     del parts
     q = max((hi - lo) / 60000.0, max_jump / 30000.0, 1e-3)  # metres per quantum
 

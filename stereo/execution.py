@@ -167,8 +167,8 @@ def _model_fingerprint(model) -> bytes:
 
 def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
     """Keep the tile cache consistent with this job: on ``resume`` the cache must hold tiles of
-    the same job (else :class:`InputError`); otherwise old tiles are removed first."""
-    cache_dir.mkdir(parents=True, exist_ok=True)
+    the same job (else :class:`InputError`); otherwise old tiles are removed first. The
+    folder exists (:func:`tile_runner` made it and cleared an interrupted run's leftovers)."""
     manifest = cache_dir / "job.json"
     try:
         old = json.loads(manifest.read_text()).get("key") if manifest.exists() else None

@@ -339,10 +339,11 @@ def output_folder(
                     f"{path}: folder exists and is not empty; pass --overwrite "
                     "to replace its products (or --resume to continue its job)"
                 )
-            if is_stereodem_output(path) and background:
-                deleting = remove_products_in_background(path, keep_tiles=resume)[1]
-            elif is_stereodem_output(path):
-                remove_products(path, keep_tiles=resume)
+            if is_stereodem_output(path):
+                if background:
+                    deleting = remove_products_in_background(path, keep_tiles=resume)[1]
+                else:
+                    remove_products(path, keep_tiles=resume)
             else:
                 # a folder of the user's (e.g. the one holding the inputs): the products go
                 # beside the user's files as long as none of them has a product's name
