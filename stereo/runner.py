@@ -25,7 +25,6 @@ disparity range (see the stereo pipeline), not by the scene size.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import logging
@@ -46,11 +45,20 @@ from typing import Any
 
 import numpy as np
 
-from stereodem.core import interrupt, threads
+from stereodem.core import interrupt
 from stereodem.core.errors import InputError
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import atomic_path
 from stereodem.core.threads import register_dask_plugin, worker_threads
+
+from .fork_server import (  # noqa: F401  (warm_fork_server: part of this module's interface)
+    pool_closed,
+    pool_context,
+    pool_opened,
+    pool_size,
+    stop_idle_fork_server,
+    warm_fork_server,
+)
 
 log = logging.getLogger(__name__)
 
@@ -245,112 +253,6 @@ def _watch_process(owner, ppid):
     threading.Thread(target=watch, daemon=True, name="pool-owner-watchdog").start()
 
 
-# Pool workers start from a fork server that has imported the tile code once: a spawned
-# interpreter spends about 1 CPU s importing numpy, SciPy, OpenCV, rasterio and pyproj, a fork
-# of the server milliseconds (16 workers: ~16 CPU s saved per pool). Not a fork of this
-# process: a forked child inherits OpenCV's and PROJ's thread state and can deadlock in its
-# first cv2 call; the server has only imported modules. The server this module starts is
-# stopped when the process's last running tile pool ends (:func:`_pool_closed`), so that its
-# workers' CPU time comes back to this process as a waited-for child's (``RUSAGE_CHILDREN``:
-# run.json's ``worker_cpu_s``); a server someone else started is left alone.
-_PRELOAD = ["stereodem.stereo.pipeline", "stereodem.stereo.execution"]
-
-_OPEN_POOLS = 0  # tile pools of this process now running (threads may each run one)
-_OWN_SERVER = None  # PID of the fork server this module started, while it runs
-_SERVER_LOCK = threading.Lock()
-
-
-def pool_context():
-    """The multiprocessing context of the tile pool: ``forkserver`` with the tile code
-    preloaded where the platform has it (Linux, macOS), else ``spawn``."""
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        return multiprocessing.get_context("spawn")
-    ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(_PRELOAD)
-    return ctx
-
-
-def _fork_server():
-    """CPython's fork server object (None where there is none)."""
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        return None
-    from multiprocessing import forkserver
-
-    return getattr(forkserver, "_forkserver", None)
-
-
-def _start_fork_server() -> bool:
-    """Start the fork server now (its imports then run in the background) and remember it as
-    this module's if none ran; returns whether one runs. Caller holds ``_SERVER_LOCK``."""
-    global _OWN_SERVER
-    server = _fork_server()
-    if server is None or not hasattr(server, "ensure_running"):
-        return False
-    was = getattr(server, "_forkserver_pid", None)
-    server.ensure_running()
-    if was is None:
-        _OWN_SERVER = getattr(server, "_forkserver_pid", None)
-    return True
-
-
-def _stop_unused_fork_server():
-    """Stop this module's fork server when no tile pool of this process runs: it exits, this
-    process waits for it, and the CPU time of the workers it reaped is added to this
-    process's ``RUSAGE_CHILDREN``. Caller holds ``_SERVER_LOCK``."""
-    global _OWN_SERVER
-    server = _fork_server()
-    if _OPEN_POOLS or _OWN_SERVER is None or server is None:
-        return
-    if getattr(server, "_forkserver_pid", None) == _OWN_SERVER:
-        stop = getattr(server, "_stop", None)  # CPython's own (its tests use it), 3.8+
-        if stop is not None:
-            with contextlib.suppress(OSError, ChildProcessError):
-                stop()
-    _OWN_SERVER = None
-
-
-def warm_fork_server(workers: int | None, n_tiles: int, dask_address=None) -> bool:
-    """Start the fork server of a tile pool about to come (a run's stereo stage, before its
-    sparse matching and planning), so that the server's imports (~1 s) overlap this process's
-    work instead of delaying the first tiles. Returns whether one runs; nothing happens where
-    :func:`run_tiles` would not start a pool (one worker, ``n_tiles`` <= 1, Dask) or a
-    platform without a fork server. A server no pool used is stopped by the next
-    :func:`run_tiles` (its CPU is then counted as a waited-for child's)."""
-    if pool_size(workers, n_tiles, dask_address) == 0:
-        return False
-    if pool_context().get_start_method() != "forkserver":
-        return False
-    with _SERVER_LOCK:
-        return _start_fork_server()
-
-
-def _pool_opened(ctx):
-    """A tile pool of context ``ctx`` starts: a fork server (started here if needed) runs until
-    it ends."""
-    global _OPEN_POOLS
-    with _SERVER_LOCK:
-        if ctx.get_start_method() == "forkserver":
-            _start_fork_server()
-        _OPEN_POOLS += 1
-
-
-def _pool_closed(*, stop_server: bool = True):
-    """A tile pool ended; the last one to end normally stops this module's fork server (on an
-    interrupt it is left to end with this process: nothing waits for it)."""
-    global _OPEN_POOLS
-    with _SERVER_LOCK:
-        _OPEN_POOLS -= 1
-        if stop_server:
-            _stop_unused_fork_server()
-
-
-def _stop_idle_fork_server():
-    """Stop a fork server that :func:`warm_fork_server` started for a pool that did not come
-    (the tiles ran here or on Dask), unless a pool of another thread uses it."""
-    with _SERVER_LOCK:
-        _stop_unused_fork_server()
-
-
 def _alarm(signum, frame):
     raise TileTimeout()
 
@@ -477,14 +379,6 @@ def clean_cache(cache_dir):
 
 
 # --------------------------------------------------------------------------- driver
-def pool_size(workers: int | None, n_tiles: int, dask_address=None) -> int:
-    """Worker processes :func:`run_tiles` starts for ``n_tiles`` tiles: 0 when it runs them
-    in this process (one worker, at most one tile, or Dask), else ``workers`` (None: all
-    cores: :func:`stereodem.core.threads.pool_size`)."""
-    n = threads.pool_size(workers)
-    return 0 if dask_address is not None or n == 1 or n_tiles <= 1 else n
-
-
 def run_tiles(
     fn,
     tiles,
@@ -572,14 +466,14 @@ def run_tiles(
     n = pool_size(workers, len(todo), dask_address)
     if dask_address is not None:
         _run_dask(fn, todo, context, timeout, dask_address, collect)
-        _stop_idle_fork_server()
+        stop_idle_fork_server()
     elif n == 0:
         for t in todo:
             collect(*_run_one(fn, t, timeout, context))
-        _stop_idle_fork_server()
+        stop_idle_fork_server()
     else:
         ctx = pool_context()
-        _pool_opened(ctx)
+        pool_opened(ctx)
         ex = ProcessPoolExecutor(
             max_workers=n,
             mp_context=ctx,
@@ -599,10 +493,10 @@ def run_tiles(
                 collect(*f.result())
         except BaseException:  # Ctrl-C, SIGTERM, an error: stop the workers now (the fork
             stop_pool(ex)  # server, if any, then ends with this process: nothing waits for it)
-            _pool_closed(stop_server=False)
+            pool_closed(stop_server=False)
             raise
         ex.shutdown(wait=True)
-        _pool_closed()
+        pool_closed()
     failures.sort(key=lambda f: f.tile.index)
     return results, failures, timings
 

@@ -220,7 +220,16 @@ def run(args) -> int:
 
     The output folder is locked for the job; a suspect result (:mod:`stereodem.stereo.sanity`) is
     written with its findings in ``dem_report.json`` and fails the command unless ``--force``.
+    The tile pool's fork server starts first, while the job's modules load
+    (:func:`stereodem.stereo.fork_server.fork_server_for_job`).
     """
+    from stereodem.stereo.fork_server import fork_server_for_job
+
+    with fork_server_for_job(args.workers, args.dask):
+        return _run(args)
+
+
+def _run(args) -> int:
     from . import point_cloud
     from .outlock import output_folder
     from .pipeline.inputs import input_paths, load_pair

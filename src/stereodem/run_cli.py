@@ -93,7 +93,36 @@ def summarize(info, stream=None):
     print(f"total {info['seconds']:.1f} s; details in {out}/run.json", file=stream)
 
 
+def _pool_request(args):
+    """``(workers, dask)`` of the job, read before its modules load so that the tile pool's
+    fork server starts meanwhile (:func:`stereodem.stereo.fork_server.fork_server_for_job`):
+    the command line's, else the TOML's ``[run]`` values (workers absent: all cores). A file
+    that cannot be read, or values of another type, give ``(1, None)``: no early start, and
+    :func:`stereodem.config.load_config` then reports the problem."""
+    import tomllib
+
+    try:
+        with open(args.config, "rb") as f:
+            table = tomllib.load(f).get("run", {})
+    except (OSError, ValueError):  # TOMLDecodeError and UnicodeDecodeError are ValueErrors
+        return 1, None
+    if not isinstance(table, dict):
+        return 1, None
+    workers = args.workers if args.workers is not None else table.get("workers")
+    dask = args.dask if args.dask is not None else table.get("dask")
+    if not isinstance(workers, int | None):
+        return 1, None
+    return workers, dask if isinstance(dask, str) else None
+
+
 def run(args) -> int:
+    from stereodem.stereo.fork_server import fork_server_for_job
+
+    with fork_server_for_job(*_pool_request(args)):
+        return _run(args)
+
+
+def _run(args) -> int:
     from stereodem.core.raster import parse_creation_options
 
     from .config import load_config

@@ -1,0 +1,107 @@
+"""`run` and `dem` start the tile pool's fork server before they import their pipeline
+(its imports then use a core the command's start leaves idle), and no server outlives a job
+that did not use it."""
+
+import subprocess
+import sys
+import textwrap
+from types import SimpleNamespace
+
+import pytest
+
+from stereodem.run_cli import _pool_request
+
+needs_fork_server = pytest.mark.skipif(
+    "forkserver" not in __import__("multiprocessing").get_all_start_methods(),
+    reason="no fork server on this platform",
+)
+
+
+def _args(config, workers=None, dask=None):
+    return SimpleNamespace(config=str(config), workers=workers, dask=dask)
+
+
+def test_the_pool_request_is_the_command_lines_else_the_run_tables(tmp_path):
+    cfg = tmp_path / "job.toml"
+    cfg.write_text('[run]\nworkers = 3\ndask = "tcp://h:8786"\n')
+    assert _pool_request(_args(cfg)) == (3, "tcp://h:8786")
+    assert _pool_request(_args(cfg, workers=2, dask="tcp://x:1")) == (2, "tcp://x:1")
+    cfg.write_text("[output]\ndir = 'o'\n")
+    assert _pool_request(_args(cfg)) == (None, None)  # no [run]: all cores, no Dask
+    # unreadable or ill-typed: no early start (load_config reports the problem)
+    assert _pool_request(_args(tmp_path / "missing.toml")) == (1, None)
+    cfg.write_text("[run\n")
+    assert _pool_request(_args(cfg)) == (1, None)
+    cfg.write_text('[run]\nworkers = "two"\n')
+    assert _pool_request(_args(cfg)) == (1, None)
+    cfg.write_text("run = 3\n")
+    assert _pool_request(_args(cfg)) == (1, None)
+    cfg.write_bytes(b"[run]\nworkers = 2\n\x80\xff")
+    assert _pool_request(_args(cfg)) == (1, None)
+
+
+_PROBE = """
+import sys
+from multiprocessing import forkserver
+import stereodem.stereo.fork_server as fs
+seen = []
+real = fs._start_fork_server
+def probe():
+    seen.append("stereodem.stereo.pipeline" in sys.modules)
+    return real()
+fs._start_fork_server = probe
+from stereodem.cli import main
+rc = main({argv!r})
+print(rc, seen, forkserver._forkserver._forkserver_pid)
+"""
+
+
+@needs_fork_server
+@pytest.mark.parametrize("command", ["run", "dem"])
+def test_the_server_starts_before_the_pipeline_loads_and_ends_with_a_failed_job(
+    tmp_path, command
+):
+    if command == "run":
+        cfg = tmp_path / "job.toml"
+        missing = tmp_path / "missing.hdf"
+        cfg.write_text(
+            f'[inputs]\nleft = "{missing}"\nright = "{missing}"\n'
+            f'[output]\ndir = "{tmp_path / "out"}"\n[run]\nworkers = 2\n'
+        )
+        argv = ["-q", "run", str(cfg)]
+    else:
+        missing = str(tmp_path / "missing.hdf")
+        argv = ["-q", "dem", missing, missing, "-o", str(tmp_path / "out"), "--workers", "2"]
+    p = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(_PROBE.format(argv=argv))],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert p.returncode == 0, p.stderr
+    rc, rest = p.stdout.split(maxsplit=1)
+    seen, pid = rest.rsplit(maxsplit=1)
+    assert rc == "1" and "missing.hdf" in p.stderr  # the job failed, with a clear message
+    assert seen.startswith("[False")  # started before the tile code was imported here
+    assert pid == "None"  # and stopped: no server outlives the job
+
+
+@needs_fork_server
+def test_one_worker_starts_no_server(tmp_path):
+    cfg = tmp_path / "job.toml"
+    cfg.write_text(
+        f'[inputs]\nleft = "{tmp_path / "missing.hdf"}"\n'
+        f'[output]\ndir = "{tmp_path / "out"}"\n[run]\nworkers = 1\n'
+    )
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            textwrap.dedent(_PROBE.format(argv=["-q", "run", str(cfg)])),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split() == ["1", "[]", "None"]
