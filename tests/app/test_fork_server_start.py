@@ -58,9 +58,7 @@ print(rc, seen, forkserver._forkserver._forkserver_pid)
 
 @needs_fork_server
 @pytest.mark.parametrize("command", ["run", "dem"])
-def test_the_server_starts_before_the_pipeline_loads_and_ends_with_a_failed_job(
-    tmp_path, command
-):
+def test_the_server_starts_before_the_pipeline_loads_and_ends_with_a_failed_job(tmp_path, command):
     if command == "run":
         cfg = tmp_path / "job.toml"
         missing = tmp_path / "missing.hdf"
