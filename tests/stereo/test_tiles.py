@@ -222,7 +222,7 @@ def test_pools_in_two_threads_share_the_fork_server_until_the_last_ends():
 def test_a_warmed_fork_server_is_used_by_the_pool_or_stopped_without_one():
     """warm_fork_server starts the coming pool's server early (its imports overlap the
     sparse stage); the pool then forks from it, and where no pool comes (the tiles ran here)
-    the next run_tiles stops it: no server outlives the stage, its CPU counted as a child's."""
+    the next run_tiles ends it: no server outlives the stage, its CPU counted as a child's."""
     import resource
     from multiprocessing import forkserver
 
@@ -242,8 +242,9 @@ def test_a_warmed_fork_server_is_used_by_the_pool_or_stopped_without_one():
     res, failures, _ = run_tiles(_busy_tile, tiles, {"cpu_s": 0.01}, workers=1)
     assert not failures and {int(r["pid"]) for r in res.values()} == {os.getpid()}
     assert forkserver._forkserver._forkserver_pid is None
-    # the unused server's imports (numpy, OpenCV, ... ~1 CPU s) came back as a child's
-    assert sum(resource.getrusage(resource.RUSAGE_CHILDREN)[:2]) - sum(before[:2]) > 0.2
+    # the unused server was ended (SIGTERM: it need not finish its imports) and waited for:
+    # its CPU came back as a child's, and no zombie is left
+    assert sum(resource.getrusage(resource.RUSAGE_CHILDREN)[:2]) > sum(before[:2])
 
 
 def _working_set_tile(tile, ctx):
