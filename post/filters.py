@@ -34,7 +34,13 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from stereodem.core.blocks import by_rows, default_threads, each_band, each_fixed_band
+from stereodem.core.blocks import (
+    by_rows,
+    default_threads,
+    each_band,
+    each_fixed_band,
+    percentile_of_parts,
+)
 from stereodem.core.errors import InputError
 from stereodem.core.stats import NMAD_FACTOR
 
@@ -374,7 +380,10 @@ def small_patch_filter(
     This removes small valid islands inside voids and small clumps standing off the terrain.
     ``max_jump`` defaults to ``jump_factor`` × the ``jump_percentile`` of the neighbour height
     differences (at least ``min_jump``), so it adapts to the relief and the grid spacing.
-    Implemented with OpenCV's ``filterSpeckles`` on heights quantised to int16.
+    Implemented with OpenCV's ``filterSpeckles`` on heights quantised to int16, in row bands
+    on the budget's threads (each with ``max_size`` + 1 rows of halo: the same blobs as on the
+    whole grid). The jump percentile is NumPy's linear one, computed in float64 from the
+    exact order statistics (:func:`stereodem.core.blocks.percentile_of_parts`).
     """
     z = _heights(heights)
     valid = np.isfinite(z)
@@ -399,26 +408,30 @@ def small_patch_filter(
     # bands (the same numbers as on the whole grid)
     parts = each_band(jumps_and_range, rows)
     if need_jumps:
-        j = np.concatenate([a for jumps, _ in parts for a in jumps])
+        jumps = [a for js, _ in parts for a in js]
         max_jump = (
-            max(min_jump, jump_factor * float(np.percentile(j, jump_percentile)))
-            if j.size
+            max(min_jump, jump_factor * percentile_of_parts(jumps, jump_percentile))
+            if any(a.size for a in jumps)
             else min_jump
         )
-        del j
+        del jumps
     lo = float(min(span[0] for _, span in parts))
     hi = float(max(span[1] for _, span in parts))
     del parts
     q = max((hi - lo) / 60000.0, max_jump / 30000.0, 1e-3)  # metres per quantum
+    max_diff = int(np.floor(max_jump / q))
 
-    def quantise(zb):
+    def speckles(zb):  # a band (and its halo) quantised, its blobs of <= max_size cells cleared
         vb = np.isfinite(zb)
         out = np.full(zb.shape, -32768, dtype=np.int16)
         out[vb] = np.round((zb[vb] - lo) / q - 30000.0).astype(np.int16)
+        cv2.filterSpeckles(out, -32768, int(max_size), max_diff)
         return out
 
-    zq = by_rows(quantise, z, halo=0)
-    out, _ = cv2.filterSpeckles(zq, -32768, int(max_size), int(np.floor(max_jump / q)))
+    # a blob of at most max_size cells lies within max_size rows of each of its cells, and a
+    # larger one reaching out of a band's window has more than max_size cells inside it: with
+    # that halo, each band finds the blobs the whole grid has (exact, tested)
+    out = by_rows(speckles, z, halo=int(max_size) + 1)
     return valid & (out == -32768), Reason.SMALL_PATCH
 
 

@@ -8,7 +8,7 @@ from affine import Affine
 from rasterio.crs import CRS
 from scipy import ndimage as ndi
 
-from stereodem.core.blocks import by_rows, row_bands
+from stereodem.core.blocks import by_rows, percentile_of_parts, row_bands
 from stereodem.post.fill import fill_holes, gaussian_smooth
 from stereodem.post.filters import default_chain
 
@@ -71,3 +71,22 @@ def test_filters_and_fill_do_not_depend_on_the_thread_count():
     for n in (2, 4):
         for a, b in zip(out[1], out[n]):
             assert np.array_equal(a, b, equal_nan=True)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_percentile_of_parts_is_numpys_percentile_of_all_the_values(threads):
+    """The order statistics come from each part's largest (or smallest) values, the
+    interpolation is NumPy's linear one: bit for bit np.percentile of the concatenation, with
+    ties, parts of any size (empty ones too) and the extreme percentiles."""
+    rng = np.random.default_rng(threads)
+    for trial in range(400):
+        n = int(rng.integers(1, 300))
+        v = rng.normal(size=n)
+        if trial % 3 == 0:
+            v = np.round(v * 3)  # many ties
+        parts = np.split(v, np.sort(rng.integers(0, n + 1, int(rng.integers(0, 4)))))
+        for q in (0.0, 1.0, 49.9, 50.0, 90.0, 99.0, 100.0, float(rng.uniform(0, 100))):
+            got = percentile_of_parts(parts, q, threads=threads)
+            assert got == float(np.percentile(v, q)), (n, q)
+    with pytest.raises(ValueError):
+        percentile_of_parts([np.array([])], 50.0)

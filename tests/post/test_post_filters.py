@@ -183,3 +183,27 @@ def test_small_patch_jump_limit_and_mask_do_not_depend_on_the_threads():
     assert masks[1].sum() > 50  # the clumps are found
     np.testing.assert_array_equal(masks[1], masks[3])
     np.testing.assert_array_equal(masks[1], explicit)
+
+
+def test_small_patch_blobs_across_row_bands_are_measured_whole():
+    """A blob larger than max_size that a row band cuts into pieces smaller than max_size is
+    kept on any threads (each band reads max_size + 1 rows beyond its own), and a small blob
+    at a band's edge is still removed: the masks equal the single-band one."""
+    import cv2
+
+    z = np.full((400, 40), np.nan)
+    z[195:207, 10] = 100.0  # 12 cells in one column across row 200 (two bands' boundary)
+    z[196:204, 20] = 100.0  # 8 cells across the same boundary: a small patch
+    z[300:303, 5:8] = 50.0  # 9 cells inside a band
+    saved = cv2.getNumThreads()
+    try:
+        masks = {}
+        for n in (1, 2, 3):
+            cv2.setNumThreads(n)
+            masks[n] = F.small_patch_filter(z, max_size=10, max_jump=5.0)[0]
+    finally:
+        cv2.setNumThreads(saved)
+    assert not masks[1][195:207, 10].any()
+    assert masks[1][196:204, 20].all() and masks[1][300:303, 5:8].all()
+    np.testing.assert_array_equal(masks[1], masks[2])
+    np.testing.assert_array_equal(masks[1], masks[3])
