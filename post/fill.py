@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
@@ -53,6 +54,15 @@ def _idw(points_rc, values, query_rc, *, k: int, power: float):
     return np.sum(w * values[i], axis=1) / np.sum(w, axis=1)
 
 
+def _dilate8(mask):
+    """``ndi.binary_dilation(mask, structure=_EIGHT)`` (the cells with a ``mask`` cell among
+    their 8 neighbours or themselves; outside the grid counts as False), by OpenCV's uint8
+    dilation: the same mask, ~20x faster."""
+    m = np.ascontiguousarray(mask, dtype=bool)
+    k = np.ones((3, 3), np.uint8)
+    return cv2.dilate(m.view(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
+
+
 def idw_fill(heights, holes, *, k: int = 12, power: float = 2.0):
     """Inverse-distance fill of the cells of ``holes`` from the valid cells on their rims.
 
@@ -60,17 +70,20 @@ def idw_fill(heights, holes, *, k: int = 12, power: float = 2.0):
     Returns a float64 copy of ``heights`` with the hole cells filled.
     """
     z = np.asarray(heights, dtype=np.float64).copy()
-    holes = np.asarray(holes, bool)
+    _idw_fill_into(z, np.asarray(holes, bool), k=k, power=power)
+    return z
+
+
+def _idw_fill_into(z, holes, *, k: int, power: float):
+    """:func:`idw_fill` in place on the float64 grid ``z``."""
     if not holes.any():
-        return z
-    valid = np.isfinite(z)
-    rim = ndi.binary_dilation(holes, structure=_EIGHT) & valid
+        return
+    rim = _dilate8(holes) & np.isfinite(z)
     if not rim.any():
         raise InputError("holes have no valid rim to interpolate from")
     pr = np.column_stack(np.nonzero(rim)).astype(np.float64)
     q = np.column_stack(np.nonzero(holes)).astype(np.float64)
     z[holes] = _idw(pr, z[rim], q, k=k, power=power)
-    return z
 
 
 def fill_holes(
@@ -120,15 +133,18 @@ def fill_holes(
         return FillResult(z.astype(np.float32), filled, report)
     if not np.isfinite(z).any():
         raise InputError("the DEM has no valid height to fill from")
-    lab, nlab = ndi.label(void, structure=_EIGHT)
-    sizes = np.bincount(lab.ravel())
-    small_ids = np.zeros(nlab + 1, bool)
-    small_ids[1:] = sizes[1:] < max_hole_size
+    # the holes: 8-connected components of the voids (OpenCV's labelling, with their sizes)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(
+        void.view(np.uint8), connectivity=8, ltype=cv2.CV_32S
+    )
+    small_ids = np.zeros(n, bool)  # label 0: the valid cells
+    small_ids[1:] = stats[1:, cv2.CC_STAT_AREA] < max_hole_size
     small = small_ids[lab]
+    del lab
     large = void & ~small
-    report.update(holes=int(nlab), small_holes=int(small_ids.sum()))
+    report.update(holes=int(n - 1), small_holes=int(small_ids.sum()))
     if small.any():
-        z = idw_fill(z, small, k=k, power=power)
+        _idw_fill_into(z, small, k=k, power=power)
         filled[small] = FILLED_IDW
     if large.any() and fallback is not None:
         fb = np.asarray(fallback, dtype=np.float64)
@@ -136,7 +152,7 @@ def fill_holes(
             raise InputError(f"fallback DEM has shape {fb.shape}, the DEM {z.shape}")
         offset = z - fb  # defined where both are valid
         cover = large & np.isfinite(fb)
-        rim = ndi.binary_dilation(large, structure=_EIGHT) & np.isfinite(offset)
+        rim = _dilate8(large) & np.isfinite(offset)
         if cover.any() and rim.any():
             pr = np.column_stack(np.nonzero(rim)).astype(np.float64)
             q = np.column_stack(np.nonzero(cover)).astype(np.float64)
