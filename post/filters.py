@@ -228,7 +228,9 @@ def _quadratic_kernel(half: int):
 
 def _nanmedian_last(t):
     """``np.nanmedian(t, axis=-1)`` (same values; NaN where a row has no finite value),
-    vectorised: one sort along the last axis instead of numpy's per-row loop."""
+    vectorised: one sort along the last axis instead of numpy's per-row loop (NumPy's SIMD
+    sort of 1024 values beats ``np.partition`` around the two middle ones: 43 vs 97 ms on the
+    granule's 5900 blocks)."""
     s = np.sort(t, axis=-1)  # NaNs sort last
     n = np.count_nonzero(np.isfinite(t), axis=-1)
     lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
@@ -249,8 +251,9 @@ def _block_scale(r, valid, block: int):
     def nmad_of_blocks(a):  # each block alone: any split into rows of blocks gives the same
         t = a.transpose(0, 2, 1, 3).reshape(a.shape[0], nb_c, -1)  # this band's copy
         med = _nanmedian_last(t)
+        dev = np.subtract(t, med[..., None], out=t)  # this band's blocks only: no other reads them
         with np.errstate(invalid="ignore"):
-            return NMAD_FACTOR * _nanmedian_last(np.abs(t - med[..., None]))
+            return NMAD_FACTOR * _nanmedian_last(np.abs(dev, out=dev))
 
     def global_nmad():
         rv = r[valid]  # a copy: the global NMAD is computed in it
@@ -266,6 +269,21 @@ def _block_scale(r, valid, block: int):
     if scale.shape == (1, 1):
         return np.full(r.shape, float(scale[0, 0]))
     return cv2.resize(scale, (cols, rows), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+
+
+def _correlate_at(a, rows, cols, kern):
+    """``ndi.correlate(a, kern, mode="nearest")`` at the cells ``(rows, cols)`` only (1-D): the
+    same float64 values, because SciPy sums weight × value over the kernel's non-zero weights
+    (``|w| > eps``) in C order starting from 0.0, as this does (tested bit for bit)."""
+    h, w = a.shape
+    hr, hc = kern.shape[0] // 2, kern.shape[1] // 2
+    out = np.zeros(rows.size)
+    for (dy, dx), wt in np.ndenumerate(kern):
+        if abs(wt) > np.finfo(np.float64).eps:
+            r = np.clip(rows + (dy - hr), 0, h - 1)
+            c = np.clip(cols + (dx - hc), 0, w - 1)
+            out += a[r, c] * wt
+    return out
 
 
 def _median_at(z, rows, cols, size: int):
@@ -317,14 +335,12 @@ def spike_filter(
     def predict(a):  # the quadratic-surface prediction, in row bands
         return by_rows(lambda b: ndi.correlate(b, kern, mode="nearest"), a, halo=window // 2)
 
-    def flagged(a, zf_, limit_, valid_):  # |zf - prediction from a| over the limit
-        with np.errstate(invalid="ignore"):
-            return valid_ & (np.abs(zf_ - ndi.correlate(a, kern, mode="nearest")) > limit_)
-
     r = zf - predict(zf)
     limit = np.maximum(k * _block_scale(r, valid, block), min_deviation)
     flag = valid & (np.abs(r) > limit)
     del r
+    first = flag  # the flags of every cell whose window no replaced cell reaches
+    reach = np.ones(kern.shape, np.uint8)
     work = replaced = None
     for _ in range(max(0, iterations - 1)):
         if not flag.any():
@@ -337,7 +353,14 @@ def spike_filter(
             work = zf.copy()
         work[rr, cc] = _median_at(zf, rr, cc, median_size)
         replaced = flag if replaced is None else replaced | flag
-        new = by_rows(flagged, work, zf, limit, valid, halo=window // 2)  # in row bands
+        # the prediction changes only where the window reaches a replaced cell: predicted
+        # again there (the values the whole grid's correlation gives), kept elsewhere
+        near = cv2.dilate(replaced.view(np.uint8), reach, borderType=cv2.BORDER_CONSTANT)
+        ar, ac = np.nonzero(near)
+        new = first.copy()
+        with np.errstate(invalid="ignore"):
+            again = np.abs(zf[ar, ac] - _correlate_at(work, ar, ac, kern)) > limit[ar, ac]
+        new[ar, ac] = valid[ar, ac] & again
         if np.array_equal(new, flag):
             break
         flag = new

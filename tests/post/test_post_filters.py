@@ -207,3 +207,49 @@ def test_small_patch_blobs_across_row_bands_are_measured_whole():
     assert masks[1][196:204, 20].all() and masks[1][300:303, 5:8].all()
     np.testing.assert_array_equal(masks[1], masks[2])
     np.testing.assert_array_equal(masks[1], masks[3])
+
+
+def test_spike_repredicts_only_where_a_window_reaches_a_replaced_cell():
+    """The iterations predict again only the cells whose window reaches a replaced cell
+    (SciPy's correlation evaluated there, bit for bit) and keep the first pass's flags
+    elsewhere: the same mask as predicting the whole grid again at each iteration."""
+    rng = np.random.default_rng(15)
+    r, c = np.mgrid[0:300, 0:260]
+    z = 500 + 0.4 * r + 30 * np.sin(c / 25.0) + rng.normal(0, 0.4, r.shape)
+    z[rng.random(z.shape) < 0.03] = np.nan
+    spikes = rng.random(z.shape) < 0.01  # single spikes and pits of any size
+    z[spikes] += rng.normal(0, 40, spikes.sum())
+    z[ndi.binary_dilation(rng.random(z.shape) < 0.003)] += 60  # clumps: several iterations
+    z[:3, 100:104] += 50  # spikes at the grid's edge (the nearest-value border)
+
+    kern = F._quadratic_kernel(2)
+    rows, cols = np.nonzero(rng.random(z.shape) < 0.1)
+    a = np.nan_to_num(z, nan=500.0)
+    np.testing.assert_array_equal(
+        F._correlate_at(a, rows, cols, kern), ndi.correlate(a, kern, mode="nearest")[rows, cols]
+    )
+
+    def whole_grid(z, k=5.0, min_deviation=5.0, iterations=4):  # every iteration on all cells
+        valid = np.isfinite(z)
+        zf = F._fill_nearest(z)
+        res = zf - ndi.correlate(zf, kern, mode="nearest")
+        limit = np.maximum(k * F._block_scale(res, valid, 32), min_deviation)
+        flag = valid & (np.abs(res) > limit)
+        work, replaced, n = zf.copy(), None, 0
+        for _ in range(iterations - 1):
+            if not flag.any():
+                break
+            todo = flag if replaced is None else flag & ~replaced
+            rr, cc = np.nonzero(todo)
+            work[rr, cc] = F._median_at(zf, rr, cc, 7)
+            replaced = flag if replaced is None else replaced | flag
+            new = valid & (np.abs(zf - ndi.correlate(work, kern, mode="nearest")) > limit)
+            n += 1
+            if np.array_equal(new, flag):
+                break
+            flag = new
+        return flag, n
+
+    expected, passes = whole_grid(z)
+    assert passes >= 2 and expected.sum() > 100
+    np.testing.assert_array_equal(F.spike_filter(z)[0], expected)
