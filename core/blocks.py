@@ -122,6 +122,17 @@ def percentile_of_parts(parts, q: float, *, threads: int | None = None) -> float
     k = union.size - m if top else i  # where rank i of all the values lies in the union
     ranks = (k, k + j - i)
     union.partition(ranks)
-    a, b = float(union[ranks[0]]), float(union[ranks[1]])
+    a, b = np.float64(union[ranks[0]]), np.float64(union[ranks[1]])
+    return float(numpy_lerp(a, b, np.float64(gamma)))
+
+
+def numpy_lerp(a, b, gamma):
+    """NumPy's interpolation between the order statistics ``a`` and ``b`` of a linear
+    percentile (its ``_lerp``): ``a + (b − a)·γ``, or ``b − (b − a)·(1 − γ)`` where γ ≥ 0.5, in
+    the arrays' own types (the difference in ``a``'s, the weights as given)."""
+    a, b, gamma = np.asarray(a), np.asarray(b), np.asarray(gamma)
     diff = b - a
-    return b - diff * (1.0 - gamma) if gamma >= 0.5 else a + diff * gamma
+    step = diff * gamma
+    out = np.add(a, step, out=np.empty(np.shape(step), np.result_type(a, step)))
+    np.subtract(b, diff * (1 - gamma), out=out, where=gamma >= 0.5, casting="unsafe")
+    return out

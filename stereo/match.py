@@ -36,6 +36,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from stereodem.core.blocks import numpy_lerp
 from stereodem.core.errors import InputError
 from stereodem.core.stretch import linear_to_uint8
 from stereodem.stereo.settings import MATCHERS
@@ -157,10 +158,7 @@ def _percentiles(v, q, step=64):
             return np.percentile(v, q)
         cand.partition((r - below, r + 1 - below))
         a[i], b[i] = cand[r - below], cand[r + 1 - below]
-    diff = b - a
-    out = np.add(a, diff * gamma)
-    np.subtract(b, diff * (1 - gamma), out=out, where=gamma >= 0.5, casting="unsafe")
-    return out
+    return numpy_lerp(a, b, gamma)
 
 
 class _Stats(NamedTuple):
