@@ -7,6 +7,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
 import tomllib
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -54,6 +55,7 @@ def test_exit_handlers_run_and_streams_and_logs_are_flushed(tmp_path):
     assert not (tmp_path / (tmp_path / "tmpdir_name").read_text()).exists()
 
 
+@pytest.mark.slow  # a subprocess importing the program
 def test_a_running_thread_is_waited_for(tmp_path):
     # os._exit would end the thread before it writes; the normal exit waits for it
     p = _python(
@@ -72,6 +74,7 @@ def test_a_running_thread_is_waited_for(tmp_path):
     assert (tmp_path / "thread_done").read_text() == "yes"
 
 
+@pytest.mark.slow  # a subprocess importing the program
 def test_the_programs_output_and_exit_code_survive_the_quick_exit(tmp_path):
     ok = subprocess.run(
         [sys.executable, "-m", "stereodem.cli", "--version"], capture_output=True, text=True

@@ -56,6 +56,7 @@ print(rc, seen, forkserver._forkserver._forkserver_pid)
 """
 
 
+@pytest.mark.slow  # a subprocess importing the whole program (~1 s each)
 @needs_fork_server
 @pytest.mark.parametrize("command", ["run", "dem"])
 def test_the_server_starts_before_the_pipeline_loads_and_ends_with_a_failed_job(tmp_path, command):
@@ -84,6 +85,7 @@ def test_the_server_starts_before_the_pipeline_loads_and_ends_with_a_failed_job(
     assert pid == "None"  # and stopped: no server outlives the job
 
 
+@pytest.mark.slow
 @needs_fork_server
 def test_one_worker_starts_no_server(tmp_path):
     cfg = tmp_path / "job.toml"

@@ -79,7 +79,9 @@ def test_percentile_of_parts_is_numpys_percentile_of_all_the_values(threads):
     interpolation is NumPy's linear one: bit for bit np.percentile of the concatenation, with
     ties, parts of any size (empty ones too) and the extreme percentiles."""
     rng = np.random.default_rng(threads)
-    for trial in range(400):
+    # the order statistics are the same on any threads: the many-case sweep runs once, the
+    # threaded cases check the parts' selection on their threads
+    for trial in range(400 if threads == 1 else 60):
         n = int(rng.integers(1, 300))
         v = rng.normal(size=n)
         if trial % 3 == 0:
