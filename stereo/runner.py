@@ -47,6 +47,7 @@ import numpy as np
 
 from stereodem.core import interrupt
 from stereodem.core.errors import InputError
+from stereodem.core.memory import keep_freed_memory
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import atomic_path
 from stereodem.core.threads import register_dask_plugin, worker_threads
@@ -165,32 +166,7 @@ def _init_worker(context, threads=1):
     from stereodem.core.threads import pin_threads
 
     pin_threads(threads)
-    _keep_freed_memory()
-
-
-#: glibc's ``mallopt`` parameters (``malloc.h``) and the pool workers' values: freed memory is
-#: kept for the next tile (trimmed back to the system only above 512 MB) and blocks up to
-#: glibc's largest threshold (32 MB on 64-bit) come from the heap instead of fresh maps
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-_WORKER_TRIM_BYTES, _WORKER_MMAP_BYTES = 512 << 20, 32 << 20
-
-
-def _keep_freed_memory() -> bool:
-    """Let this pool worker's allocator keep the memory its tiles free (glibc ``mallopt``):
-    the next tile reuses those pages instead of mapping and faulting in fresh ones, which
-    the kernel zero-fills page by page (a tile allocates and frees about its own size
-    again and again). The worker's peak is the same: a tile's working set is reused, not
-    added to. Returns whether it applied (False where the C library is not glibc)."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    ok = mallopt(_M_TRIM_THRESHOLD, _WORKER_TRIM_BYTES) == 1
-    return mallopt(_M_MMAP_THRESHOLD, _WORKER_MMAP_BYTES) == 1 and ok
+    keep_freed_memory()  # a tile reuses the pages the previous one freed
 
 
 def _die_with_parent():
@@ -468,6 +444,8 @@ def run_tiles(
         _run_dask(fn, todo, context, timeout, dask_address, collect)
         stop_idle_fork_server()
     elif n == 0:
+        # in this process, as in a pool worker: each tile reuses the pages the last one freed
+        keep_freed_memory()
         for t in todo:
             collect(*_run_one(fn, t, timeout, context))
         stop_idle_fork_server()
