@@ -374,7 +374,9 @@ def run_tiles(
     Parameters
     ----------
     workers : int or None
-        1 runs in this process; N > 1 a process pool of N; None uses all cores.
+        1 runs in this process (its allocator then set like a pool worker's, for the rest
+        of the process: :func:`stereodem.core.memory.keep_freed_memory`); N > 1 a process
+        pool of N; None uses all cores.
     timeout : float, optional
         Per-tile limit in seconds; a tile over it is reported as failed.
     cache_dir : path, optional

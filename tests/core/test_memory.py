@@ -37,6 +37,7 @@ def _faults(then):
     return int(p.stdout.split()[-1])
 
 
+@pytest.mark.slow  # two subprocesses
 @glibc_only
 def test_tiles_run_in_this_process_keep_the_memory_they_free():
     """With one worker the tiles run in the calling process, which is then set like a pool
