@@ -13,6 +13,8 @@ Companion layers live beside the heights file (:data:`LAYERS`): a stereo DEM's `
 from __future__ import annotations
 
 import dataclasses
+import functools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -32,7 +34,13 @@ from stereodem.core.errors import (
     VerticalReferenceError,
 )
 from stereodem.core.grid import MapGrid
-from stereodem.core.raster import VERTICAL_TAG, read_image, reading_env, write_geotiff
+from stereodem.core.raster import (
+    VERTICAL_TAG,
+    parse_creation_options,
+    read_image,
+    reading_env,
+    write_geotiff,
+)
 from stereodem.core.vertical import ELLIPSOID, GEOID, VERTICALS
 
 #: status codes returned by :meth:`DEM.sample`
@@ -436,7 +444,7 @@ class DEM:
         return float(np.nanmin(d.heights)), float(np.nanmax(d.heights))
 
     def write(
-        self, path, *, overwrite=False, creation_options=None, layers=True, tags=None
+        self, path, *, overwrite=False, creation_options=None, layers=True, tags=None, threads=1
     ) -> Path:
         """Write the heights as a float32 Cloud-Optimised GeoTIFF with NaN nodata, the vertical
         reference in the CRS (and the ``STEREODEM_VERTICAL`` tag), band description and unit
@@ -445,10 +453,16 @@ class DEM:
 
         ``creation_options``: GDAL COG creation options (see
         :func:`stereodem.core.raster.write_geotiff`); ``tags``: dataset tags of the heights file
-        (e.g. the ground-track heading ``STEREODEM_TRACK_HEADING`` that ``coregister`` reads).
+        (e.g. the ground-track heading ``STEREODEM_TRACK_HEADING`` that ``coregister`` reads);
+        ``threads``: see :meth:`prepare_write`.
         """
         return self.prepare_write(
-            path, overwrite=overwrite, creation_options=creation_options, layers=layers, tags=tags
+            path,
+            overwrite=overwrite,
+            creation_options=creation_options,
+            layers=layers,
+            tags=tags,
+            threads=threads,
         )()["dem"]
 
     def prepare_write(
@@ -460,12 +474,24 @@ class DEM:
         layers=True,
         tags=None,
         layer_descriptions=None,
+        threads=1,
     ):
         """:meth:`write` in two steps: the heights and layers are copied to their stored types
         now, and the returned callable writes them (returning ``{"dem": path, layer: path}``);
         it can run in another thread while this DEM changes or goes away.
-        ``layer_descriptions``: band descriptions replacing those of :data:`LAYERS`, by layer."""
+        ``layer_descriptions``: band descriptions replacing those of :data:`LAYERS`, by layer.
+
+        ``threads`` > 1 writes the files that many at a time, each compressed on one GDAL
+        thread (``NUM_THREADS=1`` unless ``creation_options`` sets it): the overviews and the
+        COG's assembly are serial within a file, so files side by side use the cores better
+        than one file's compression threads (``stereodem dem``'s four rasters of the full
+        ASTER granule at 2 threads: 0.92-1.10 -> 0.71-0.83 s, 1.6-1.9 -> 1.3-1.5 CPU s). The
+        files have the same bytes either way."""
         layer_descriptions = dict(layer_descriptions or {})
+        threads = max(1, int(threads))
+        if threads > 1:
+            creation_options = parse_creation_options(creation_options)
+            creation_options.setdefault("NUM_THREADS", "1")
         heights = self.heights.astype(np.float32)
         layers = {
             name: np.asarray(getattr(self, name)).astype(spec.dtype)
@@ -475,32 +501,39 @@ class DEM:
         transform, crs, vertical = self.transform, self.crs, self.vertical
         kw = dict(overwrite=overwrite, creation_options=creation_options)
 
+        writes = {
+            "dem": functools.partial(
+                write_geotiff,
+                path,
+                heights,
+                transform,
+                crs,
+                np.nan,
+                vertical=vertical,
+                descriptions=_HEIGHT_DESCRIPTION.get(vertical, "height"),
+                units="metre",
+                tags=tags,
+                **kw,
+            )
+        }
+        for name, data in layers.items():
+            writes[name] = functools.partial(
+                write_layer,
+                path,
+                name,
+                data,
+                transform,
+                crs,
+                description=layer_descriptions.get(name),
+                **kw,
+            )
+
         def write_files():
-            out = {
-                "dem": write_geotiff(
-                    path,
-                    heights,
-                    transform,
-                    crs,
-                    np.nan,
-                    vertical=vertical,
-                    descriptions=_HEIGHT_DESCRIPTION.get(vertical, "height"),
-                    units="metre",
-                    tags=tags,
-                    **kw,
-                )
-            }
-            for name, data in layers.items():
-                out[name] = write_layer(
-                    path,
-                    name,
-                    data,
-                    transform,
-                    crs,
-                    description=layer_descriptions.get(name),
-                    **kw,
-                )
-            return out
+            if threads == 1 or len(writes) == 1:
+                return {name: write() for name, write in writes.items()}
+            with ThreadPoolExecutor(min(threads, len(writes)), "stereodem-dem-write") as ex:
+                futures = {name: ex.submit(write) for name, write in writes.items()}
+                return {name: f.result() for name, f in futures.items()}
 
         return write_files
 

@@ -190,14 +190,17 @@ class DEMProducts:
     settings: dict
     info: StereoInfo
 
-    def write(self, directory, *, overwrite=False, creation_options=None, tags=None):
+    def write(self, directory, *, overwrite=False, creation_options=None, tags=None, threads=1):
         """Write ``dem.tif``, ``score.tif``, ``count.tif``, ``raygap.tif`` in ``directory``
-        (``tags``: dataset tags of ``dem.tif``); returns ``{"dem": path, "count": path, ...}``."""
+        (``tags``: dataset tags of ``dem.tif``; ``threads``: files written at a time,
+        :meth:`stereodem.core.dem.DEM.prepare_write`); returns ``{"dem": path, "count": path,
+        ...}``."""
         return self.dem.prepare_write(
             Path(directory) / "dem.tif",
             overwrite=overwrite,
             creation_options=creation_options,
             tags=tags,
+            threads=threads,
         )()
 
 

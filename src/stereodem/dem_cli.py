@@ -265,11 +265,12 @@ def _run(args) -> int:
         bar.close()
         from stereodem.post.coreg_run import track_tags  # the track for coregister's along_track
 
-        prod.write(
+        prod.write(  # the job waits for these: its files side by side on its threads
             out,
             overwrite=True,
             creation_options=cfg.run.creation_options,
             tags=track_tags(pair.left_model, pair.left_image.shape, prod.dem.crs, prod.dem.heights),
+            threads=job_threads(cfg.run.workers),
         )
         cloud = None
         if pts is not None:

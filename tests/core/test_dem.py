@@ -177,3 +177,55 @@ def test_dem_voids_from_nodata_mask_band_or_nan(tmp_path, how):
     assert dem.heights.dtype == np.float32
     np.testing.assert_array_equal(np.isnan(dem.heights), void)
     np.testing.assert_array_equal(dem.heights[~void], h[~void])
+
+
+def test_files_written_side_by_side_have_the_same_bytes_and_one_gdal_thread_each(
+    tmp_path, monkeypatch
+):
+    """``threads`` > 1 writes a DEM's files concurrently, each compressed on one GDAL thread
+    (unless the creation options say otherwise): the bytes are those of the plain write, and
+    an error in one file reaches the caller."""
+    import dataclasses
+    import threading
+
+    import stereodem.core.dem as dem_module
+
+    base = DEM.bundled()
+    rng = np.random.default_rng(0)
+    dem = dataclasses.replace(
+        base,
+        count=rng.integers(0, 9, base.shape).astype(np.int32),
+        score=rng.random(base.shape).astype(np.float32),
+        ray_gap=rng.random(base.shape).astype(np.float32),
+    )
+    files = {}
+    for threads in (1, 3):
+        out = tmp_path / f"t{threads}"
+        out.mkdir()
+        files[threads] = dem.prepare_write(out / "dem.tif", threads=threads)()
+    assert set(files[1]) == {"dem", "count", "score", "ray_gap"}
+    for name, path in files[1].items():
+        assert path.read_bytes() == files[3][name].read_bytes(), name
+
+    seen = []
+    real = dem_module.write_layer
+
+    def recording(*args, creation_options=None, **kw):
+        seen.append((threading.current_thread().name, dict(creation_options or {})))
+        if args[1] == "score":
+            raise OSError("disk full")
+        return real(*args, creation_options=creation_options, **kw)
+
+    monkeypatch.setattr(dem_module, "write_layer", recording)
+    (tmp_path / "err").mkdir()
+    with pytest.raises(OSError, match="disk full"):
+        dem.prepare_write(tmp_path / "err" / "dem.tif", threads=2)()
+    assert all(name.startswith("stereodem-dem-write") for name, _ in seen)
+    assert all(co["NUM_THREADS"] == "1" for _, co in seen)
+    seen.clear()
+    (tmp_path / "user").mkdir()
+    with pytest.raises(OSError):
+        dem.prepare_write(
+            tmp_path / "user" / "dem.tif", threads=2, creation_options=["NUM_THREADS=4"]
+        )()
+    assert all(co["NUM_THREADS"] == "4" for _, co in seen)
