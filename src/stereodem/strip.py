@@ -15,6 +15,7 @@ import logging
 from pathlib import Path
 
 from stereodem.core.errors import InputError
+from stereodem.core.threads import job_threads
 from stereodem.sensor.io.aster_l1a import is_aster_granule
 from stereodem.sensor.io.aster_strip import open_aster_strip
 from stereodem.stereo import sanity
@@ -89,7 +90,12 @@ def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
         pair, strip = load_strip_pair(cfg, paths)
         pts = point_cloud.prepare(out) if cfg.dem.point_cloud else None
         prod, failed = stereo_stage(cfg, pair, progress=progress, points_dir=pts)
-        prod.write(out, overwrite=True, creation_options=cfg.run.creation_options)
+        prod.write(  # waited for: its files side by side on the job's threads, as `dem` does
+            out,
+            overwrite=True,
+            creation_options=cfg.run.creation_options,
+            threads=job_threads(cfg.run.workers),
+        )
         cloud = point_cloud.point_cloud_stage(cfg, out, prod) if pts is not None else None
         write_dem_report(
             out,
