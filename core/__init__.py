@@ -6,7 +6,8 @@ post-processing, orthoimages and the application all stand on.
 * :mod:`.grid` — ``MapGrid``, the one map-grid type;
 * :mod:`.dem` — ``DEM``, the one DEM type (heights + vertical reference + companion layers);
 * :mod:`.raster` — GeoTIFF/COG reading and atomic writing, output checks;
-* :mod:`.memory` — will an allocation fit (checked before it).
+* :mod:`.memory` — will an allocation fit (checked before it); the allocator keeping freed memory;
+* :mod:`.morphology` — square dilations of boolean masks (OpenCV).
 
 Nothing here imports another stereodem package.
 """

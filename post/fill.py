@@ -20,11 +20,11 @@ from scipy.spatial import cKDTree
 
 from stereodem.core.blocks import by_rows, default_threads
 from stereodem.core.errors import InputError
+from stereodem.core.morphology import square_dilation
 
 log = logging.getLogger(__name__)
 
 ORIGINAL, FILLED_IDW, FILLED_FALLBACK = 0, 1, 2
-_EIGHT = np.ones((3, 3), bool)
 
 
 @dataclass
@@ -54,15 +54,6 @@ def _idw(points_rc, values, query_rc, *, k: int, power: float):
     return np.sum(w * values[i], axis=1) / np.sum(w, axis=1)
 
 
-def _dilate8(mask):
-    """``ndi.binary_dilation(mask, structure=_EIGHT)`` (the cells with a ``mask`` cell among
-    their 8 neighbours or themselves; outside the grid counts as False), by OpenCV's uint8
-    dilation: the same mask, ~20x faster."""
-    m = np.ascontiguousarray(mask, dtype=bool)
-    k = np.ones((3, 3), np.uint8)
-    return cv2.dilate(m.view(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
-
-
 def idw_fill(heights, holes, *, k: int = 12, power: float = 2.0):
     """Inverse-distance fill of the cells of ``holes`` from the valid cells on their rims.
 
@@ -78,7 +69,7 @@ def _idw_fill_into(z, holes, *, k: int, power: float):
     """:func:`idw_fill` in place on the float64 grid ``z``."""
     if not holes.any():
         return
-    rim = _dilate8(holes) & np.isfinite(z)
+    rim = square_dilation(holes, 3) & np.isfinite(z)  # the holes' 8 neighbours
     if not rim.any():
         raise InputError("holes have no valid rim to interpolate from")
     pr = np.column_stack(np.nonzero(rim)).astype(np.float64)
@@ -115,7 +106,8 @@ def fill_holes(
         raise InputError(f"expected a 2-D height grid, got shape {z.shape}")
     if grow > 0:
         void = ~np.isfinite(z)
-        z[ndi.binary_dilation(void, structure=_EIGHT, iterations=int(grow))] = np.nan
+        # ``grow`` 8-neighbour steps: the cells within ``grow`` cells (Chebyshev) of a void
+        z[square_dilation(void, 2 * int(grow) + 1)] = np.nan
     void = ~np.isfinite(z)
     filled = np.zeros(z.shape, np.uint8)
     report = {
@@ -152,7 +144,7 @@ def fill_holes(
             raise InputError(f"fallback DEM has shape {fb.shape}, the DEM {z.shape}")
         offset = z - fb  # defined where both are valid
         cover = large & np.isfinite(fb)
-        rim = _dilate8(large) & np.isfinite(offset)
+        rim = square_dilation(large, 3) & np.isfinite(offset)
         if cover.any() and rim.any():
             pr = np.column_stack(np.nonzero(rim)).astype(np.float64)
             q = np.column_stack(np.nonzero(cover)).astype(np.float64)

@@ -42,6 +42,7 @@ from stereodem.core.blocks import (
     percentile_of_parts,
 )
 from stereodem.core.errors import InputError
+from stereodem.core.morphology import square_dilation
 from stereodem.core.stats import NMAD_FACTOR
 
 from . import terrain
@@ -340,7 +341,6 @@ def spike_filter(
     flag = valid & (np.abs(r) > limit)
     del r
     first = flag  # the flags of every cell whose window no replaced cell reaches
-    reach = np.ones(kern.shape, np.uint8)
     work = replaced = None
     for _ in range(max(0, iterations - 1)):
         if not flag.any():
@@ -355,8 +355,7 @@ def spike_filter(
         replaced = flag if replaced is None else replaced | flag
         # the prediction changes only where the window reaches a replaced cell: predicted
         # again there (the values the whole grid's correlation gives), kept elsewhere
-        near = cv2.dilate(replaced.view(np.uint8), reach, borderType=cv2.BORDER_CONSTANT)
-        ar, ac = np.nonzero(near)
+        ar, ac = np.nonzero(square_dilation(replaced, kern.shape[0]))
         new = first.copy()
         with np.errstate(invalid="ignore"):
             again = np.abs(zf[ar, ac] - _correlate_at(work, ar, ac, kern)) > limit[ar, ac]

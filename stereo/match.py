@@ -38,6 +38,7 @@ import numpy as np
 
 from stereodem.core.blocks import numpy_lerp
 from stereodem.core.errors import InputError
+from stereodem.core.morphology import square_dilation
 from stereodem.core.stretch import linear_to_uint8
 from stereodem.stereo.settings import MATCHERS
 
@@ -202,9 +203,7 @@ def _window_stats(img, window, min_std, finite=False, outside=()):
     var = cv2.boxFilter(tmp, cv2.CV_32F, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
     near = None
     if has_nan:  # a NaN in the window: a dilation of the NaN mask (outside = 0)
-        near = cv2.dilate(
-            nan.view(np.uint8), np.ones(k, np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0
-        ).view(bool)
+        near = square_dilation(nan, window)
     floor = F32(min_std) ** 2 if min_std != 0 else None
     # 1 / sqrt(max(var, 1e-30)) == 1 / max(sqrt(var), sqrt(1e-30)) bit for bit (the rounded
     # square root is monotone), and the second form keeps NaN (negative variances included)
@@ -276,7 +275,7 @@ def _warp_cols(a, seed):
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=1.0,
         )
-        out[cv2.dilate((bad > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0] = np.nan
+        out[square_dilation(bad > 0, 3)] = np.nan
     # outside the image
     out[(map_x < 0) | (map_x > w - 1)] = np.nan
     return out
@@ -524,11 +523,7 @@ def _dilated_outside(map_x, w, window):
     """Boolean mask of the ``window`` x ``window`` windows containing a ``map_x`` outside
     ``0 .. w - 1`` (``w``: the image width; ``map_x``: the whole map or a strip of whole
     columns of it, zero padding at its edges)."""
-    out = (map_x < 0) | (map_x > w - 1)
-    k = np.ones((window, window), np.uint8)
-    return cv2.dilate(out.view(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0).view(
-        bool
-    )
+    return square_dilation((map_x < 0) | (map_x > w - 1), window)
 
 
 def _lr_check(d_left, d_right, tol):
