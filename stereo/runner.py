@@ -52,13 +52,12 @@ from stereodem.core.pool import stop_pool
 from stereodem.core.raster import atomic_path
 from stereodem.core.threads import register_dask_plugin, worker_threads
 
-from .fork_server import (  # noqa: F401  (warm_fork_server: part of this module's interface)
+from .fork_server import (
     pool_closed,
     pool_context,
     pool_opened,
     pool_size,
     stop_idle_fork_server,
-    warm_fork_server,
 )
 
 log = logging.getLogger(__name__)

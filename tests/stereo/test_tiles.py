@@ -226,7 +226,7 @@ def test_a_warmed_fork_server_is_used_by_the_pool_or_stopped_without_one():
     import resource
     from multiprocessing import forkserver
 
-    from stereodem.stereo.runner import warm_fork_server
+    from stereodem.stereo.fork_server import warm_fork_server
 
     tiles = tile_grid(130, 100, 50)
     assert not warm_fork_server(1, len(tiles))  # one worker: no pool, no server

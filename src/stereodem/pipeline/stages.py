@@ -24,9 +24,9 @@ from stereodem.post.fill import fill_holes, gaussian_smooth
 from stereodem.post.filters import EditCode, border_rim, default_chain
 from stereodem.stereo import sanity
 from stereodem.stereo.execution import tile_runner
+from stereodem.stereo.fork_server import warm_fork_server
 from stereodem.stereo.jitter import dem_with_jitter_correction
 from stereodem.stereo.pipeline import make_dem
-from stereodem.stereo.runner import warm_fork_server
 
 from ..config import Config
 from ..provenance import provenance
