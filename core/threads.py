@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
+import threading
 
 _ENV_VARS = (
     "OMP_NUM_THREADS",
@@ -121,6 +123,32 @@ def thread_budget(n: int | None):
         else:
             set_gdal_config("GDAL_NUM_THREADS", saved_gdal)
         _LIMITS, _PINNED = saved[0], saved[1]
+
+
+#: how much less CPU priority a background thread takes (nice increment): weight 110 against
+#: 1024 under Linux's scheduler, so the thread takes ~10 % of a core wanted by another, and
+#: all of a core nobody else wants
+BACKGROUND_NICE = 10
+
+
+def lower_thread_priority(increment: int = BACKGROUND_NICE) -> bool:
+    """Let the calling thread yield its core to the process's other threads: raise its nice
+    value by ``increment`` (at most 19). Linux only, where the nice value belongs to each
+    thread (elsewhere ``setpriority`` would act on the whole process, or on a process whose
+    PID happened to equal a thread id): returns whether the priority was lowered. A thread
+    cannot raise it back (that needs CAP_SYS_NICE), so call it in a thread of its own, e.g. a
+    pool's ``initializer``; threads it starts (GDAL's) inherit it. Background work at this
+    priority fills the cores the foreground leaves idle instead of slowing it (as RocksDB
+    lowers the priority of its compaction threads)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        tid = threading.get_native_id()
+        nice = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, nice + int(increment)))
+    except (AttributeError, OSError):
+        return False
+    return True
 
 
 def pinned() -> int | None:

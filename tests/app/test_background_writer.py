@@ -1,6 +1,8 @@
 """The run's background writer: writes overlap the next stage, errors reach the caller, and
 no write is left running when the run ends or fails."""
 
+import os
+import sys
 import threading
 import time
 
@@ -89,3 +91,23 @@ def test_dem_prepared_write_is_independent_of_later_changes(tmp_path):
         np.testing.assert_array_equal(ds.read(1), z.astype(np.float32))
     with rasterio.open(tmp_path / "score.tif") as ds:
         np.testing.assert_array_equal(ds.read(1), np.float32(0.9))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice: Linux")
+def test_writer_thread_yields_the_cpu_to_the_job_and_the_caller_keeps_its_priority():
+    """The writer thread runs 10 nice levels below the caller (at most 19), so that its
+    compression takes the cores the job's stages leave idle; the caller's own priority, and
+    that of a write done in the caller's thread (one worker), are unchanged."""
+
+    def nice():
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    mine = nice()
+    with BackgroundWriter(threads=2) as w:
+        w.submit(nice)
+        writer = w._futures[0].result()
+    assert writer == min(19, mine + 10)
+    assert nice() == mine
+    with BackgroundWriter(threads=1) as w:
+        w.submit(nice)
+        assert w._futures[0].result() == mine
