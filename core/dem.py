@@ -475,11 +475,15 @@ class DEM:
         tags=None,
         layer_descriptions=None,
         threads=1,
+        more=None,
     ):
         """:meth:`write` in two steps: the heights and layers are copied to their stored types
         now, and the returned callable writes them (returning ``{"dem": path, layer: path}``);
         it can run in another thread while this DEM changes or goes away.
         ``layer_descriptions``: band descriptions replacing those of :data:`LAYERS`, by layer.
+        ``more``: other files written with these, ``{name: write(creation_options)}`` (each
+        callable writes its file with the creation options given and returns its path), e.g.
+        a fused DEM's spread.
 
         ``threads`` > 1 writes the files that many at a time, each compressed on one GDAL
         thread (``NUM_THREADS=1`` unless ``creation_options`` sets it): the overviews and the
@@ -527,6 +531,9 @@ class DEM:
                 description=layer_descriptions.get(name),
                 **kw,
             )
+
+        for name, write in (more or {}).items():
+            writes[name] = functools.partial(write, creation_options)
 
         def write_files():
             if threads == 1 or len(writes) == 1:

@@ -37,6 +37,7 @@ cells), and the per-pair rejection mask kept with the result (1 byte x pairs x c
 
 from __future__ import annotations
 
+import functools
 import logging
 import warnings
 from dataclasses import dataclass, field
@@ -371,41 +372,38 @@ class FusedDEM:
     crs = property(lambda self: self.dem.crs)
     vertical = property(lambda self: self.dem.vertical)
 
-    def prepare_write(self, path, *, overwrite=False, creation_options=None):
+    def prepare_write(self, path, *, overwrite=False, creation_options=None, threads=1):
         """The writes of :meth:`write`, prepared now (layers copied), run by the returned
         callable (e.g. on a :class:`stereodem.pipeline.job.BackgroundWriter`)."""
-        write_dem = self.dem.prepare_write(
+        nmad = functools.partial(
+            write_geotiff,
+            Path(path).with_name("nmad.tif"),
+            self.nmad.astype(np.float32),
+            self.dem.transform,
+            self.dem.crs,
+            np.nan,
+            descriptions=["NMAD of the pair heights about their median"],
+            units=["metre"],
+            overwrite=overwrite,
+        )
+        return self.dem.prepare_write(
             path,
             overwrite=overwrite,
             creation_options=creation_options,
             layer_descriptions={"count": COUNT_DESCRIPTION},
+            threads=threads,
+            more={"nmad": lambda co: nmad(creation_options=co)},
         )
-        spread, transform, crs = self.nmad.astype(np.float32), self.dem.transform, self.dem.crs
-        nmad_path = Path(path).with_name("nmad.tif")
 
-        def write_files():
-            out = write_dem()
-            out["nmad"] = write_geotiff(
-                nmad_path,
-                spread,
-                transform,
-                crs,
-                np.nan,
-                descriptions=["NMAD of the pair heights about their median"],
-                units=["metre"],
-                overwrite=overwrite,
-                creation_options=creation_options,
-            )
-            return out
-
-        return write_files
-
-    def write(self, path, *, overwrite=False, creation_options=None) -> dict:
+    def write(self, path, *, overwrite=False, creation_options=None, threads=1) -> dict:
         """Write the fused DEM at ``path`` (``dem.tif``) with its layers beside it
         (:meth:`stereodem.core.dem.DEM.write`: ``count.tif``, ``score.tif``, ``raygap.tif``,
-        ``<stem>_sigma_vertical.tif``) and ``nmad.tif``; COGs, written atomically. Returns
-        their paths by layer."""
-        return self.prepare_write(path, overwrite=overwrite, creation_options=creation_options)()
+        ``<stem>_sigma_vertical.tif``) and ``nmad.tif``; COGs, written atomically, ``threads``
+        files at a time (:meth:`stereodem.core.dem.DEM.prepare_write`). Returns their paths by
+        layer."""
+        return self.prepare_write(
+            path, overwrite=overwrite, creation_options=creation_options, threads=threads
+        )()
 
 
 def fuse_dems(

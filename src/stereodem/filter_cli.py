@@ -144,6 +144,7 @@ def run(args) -> int:
     from stereodem.core.dem import edit_mask_path
     from stereodem.core.errors import InputError
     from stereodem.core.raster import check_writable
+    from stereodem.core.threads import job_threads
 
     from .pipeline.inputs import load_seed_dem, read_stereo_dem
     from .pipeline.stages import post_stage
@@ -172,7 +173,12 @@ def run(args) -> int:
 
         clean.edit_mask[cloud & ~np.isfinite(clean.heights)] = Reason.CLOUD
         report["cloud"] = {"removed": int(cloud.sum())}
-    clean.write(args.out, overwrite=args.overwrite, creation_options=options.creation_options(args))
+    clean.write(
+        args.out,
+        overwrite=args.overwrite,
+        creation_options=options.creation_options(args),
+        threads=job_threads(cfg.run.workers),
+    )
     valid = float((clean.heights == clean.heights).mean())
     options.say(
         f"stereodem filter: {args.out}: {100 * valid:.1f} % of cells valid; "

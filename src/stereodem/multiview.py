@@ -34,6 +34,7 @@ import numpy as np
 from stereodem.core import geodesy
 from stereodem.core.errors import InputError, StereodemError
 from stereodem.core.raster import write_text_atomic
+from stereodem.core.threads import job_threads
 from stereodem.stereo.fusion import FusedDEM, choose_pairs, fuse_dems, pair_sigma
 from stereodem.stereo.grid import GridSpec
 from stereodem.stereo.pipeline import DEMProducts, default_posting
@@ -258,7 +259,12 @@ def run_dem(cfg: Config, *, started=None, progress=None) -> tuple:
     with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, inputs=input_paths(cfg)) as out:
         pts = prepare_points(out) if cfg.dem.point_cloud else None
         prod = multiview_stage(cfg, cfg.inputs.images, progress=progress, points_dir=pts)
-        prod.fused.write(out / "dem.tif", overwrite=True, creation_options=cfg.run.creation_options)
+        prod.fused.write(
+            out / "dem.tif",
+            overwrite=True,
+            creation_options=cfg.run.creation_options,
+            threads=job_threads(cfg.run.workers),
+        )
         cloud = None
         if pts is not None:
             f = prod.fused

@@ -94,6 +94,21 @@ def test_fused_count_layer_says_stereo_pairs(tmp_path):
         assert ds.descriptions == ("space-intersected points per cell",)
 
 
+def test_fused_dem_files_side_by_side_have_the_same_bytes(tmp_path):
+    """``threads`` > 1 writes the fused DEM's files (the DEM, its layers and ``nmad.tif``)
+    side by side, each on one GDAL thread: the same files, byte for byte, as one at a time."""
+    rng = np.random.default_rng(1)
+    dems = [_dem(100 + rng.normal(0, 1, (40, 50))) for _ in range(3)]
+    f = fuse_dems(dems, [1.0, 1.0, 1.0])
+    one = f.write(tmp_path / "one" / "dem.tif")
+    three = f.write(tmp_path / "three" / "dem.tif", threads=3)
+    assert set(one) == set(three) and "nmad" in one and "sigma" in one
+    for name, path in one.items():
+        assert path.read_bytes() == three[name].read_bytes(), name
+    with rasterio.open(three["nmad"]) as ds:
+        np.testing.assert_array_equal(ds.read(1), f.nmad.astype(np.float32))
+
+
 def test_fusion_refuses_other_lattices():
     a = _dem(np.full((3, 3), 1.0))
     b = _dem(np.full((3, 3), 1.0), x0=500005.0)  # half a cell off
