@@ -30,6 +30,7 @@ def test_import_stereodem_loads_no_heavy_library():
     assert out.stdout.strip() == "[]"
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_the_run_pipeline_imports_no_dataframe_or_plotting_library():
     """What ``stereodem run`` imports before its first stage (every run and every worker
     start pays it): no pandas (pyogrio imports it; vectors are read only when given), no

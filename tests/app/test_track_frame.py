@@ -182,6 +182,7 @@ def test_coregister_fits_along_track_on_the_frame_without_track_angle(sim, dem_d
     assert not (tmp_path / "co2").exists()
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_run_writes_the_track_tags_through_the_background_writer(sim, tmp_path):
     """``stereodem run``: ``pipeline/job.py`` passes the track tags to ``DEM.prepare_write``
     (``tags=``), which the background writer puts in ``dem.tif``."""

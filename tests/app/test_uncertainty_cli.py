@@ -67,6 +67,7 @@ def _run(data_dir, dem_path, out, *extra):
     )
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_command_writes_maps_json_and_figure(data_dir, dem_path, tmp_path, capsys):
     out = tmp_path / "u"
     assert (

@@ -179,6 +179,7 @@ def test_dem_voids_from_nodata_mask_band_or_nan(tmp_path, how):
     np.testing.assert_array_equal(dem.heights[~void], h[~void])
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_files_written_side_by_side_have_the_same_bytes_and_one_gdal_thread_each(
     tmp_path, monkeypatch
 ):

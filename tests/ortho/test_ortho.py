@@ -150,6 +150,7 @@ def test_threads_give_the_same_ortho(rendered):
     np.testing.assert_array_equal(one.valid, two.valid)
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_concurrent_orthos_equal_the_serial_ones(rendered):
     # two orthoimages at once (and their blocks on the budget's threads): the serial rasters;
     # the second image is another oblique view over the same grid
@@ -610,6 +611,7 @@ def test_cli_rpc_ortho_layers_and_errors(tmp_path, data_dir, capsys):
         args.run(args)
 
 
+@pytest.mark.slow  # over 0.5 s: out of the fast subset (CI runs it)
 def test_cli_gcp_model(tmp_path, data_dir, capsys):
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     image = tmp_path / "img.tif"

@@ -90,6 +90,7 @@ def on_truth(path):
     return z, terrain(z.shape[0], z.shape[1], r0, c0)
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_blend_turns_the_seam_step_into_a_ramp(tmp_path):
     a = write_dem(tmp_path / "a.tif", 0, 0, 120, 200, bias=+1.0)
     b = write_dem(tmp_path / "b.tif", 0, 100, 120, 200, bias=-1.0)

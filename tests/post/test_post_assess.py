@@ -227,6 +227,7 @@ def test_write_report_refuses_nonempty_dir(tmp_path, ref, simulated):
         write_report(res, tmp_path)
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
     """Figures draw at most DISPLAY_CELLS per side: a big raster costs no more than a small one."""
     import matplotlib.pyplot as plt

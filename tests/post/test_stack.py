@@ -145,6 +145,7 @@ def _grid(n=40):
     return MapGrid(Affine(30, 0, 500000, 0, -30, 4400000), n + 10, n, CRS.from_epsg(32637))
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_zarr_stack_round_trip_reads_with_plain_xarray(tmp_path):
     import xarray as xr
 
@@ -416,6 +417,7 @@ def test_filter_uses_the_cloud_mask(series, tmp_path, capsys):
     assert rc == 1 and "--seed-dem" in se and len(se.strip().splitlines()) == 1
 
 
+@pytest.mark.slow  # over 0.5 s: out of the fast subset (CI runs it)
 def test_stack_default_chain_leaves_out_along_track_without_a_heading(series, tmp_path, capsys):
     out = tmp_path / "o"
     rc, _so, se = _run(

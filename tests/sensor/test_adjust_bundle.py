@@ -189,6 +189,7 @@ def test_bundle_rejects_tie_blunders(pair):
     assert np.all(np.isnan(res.tie_w[kept][:, 3])) and np.all(np.isfinite(res.tie_w[kept][:, 2]))
 
 
+@pytest.mark.slow  # over 0.5 s: out of the fast subset (CI runs it)
 def test_bundle_accepts_sparse_matches_and_writes_report(pair, tmp_path):
     L, R = pair
     rng = np.random.default_rng(1)

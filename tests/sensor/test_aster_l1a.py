@@ -391,6 +391,7 @@ def test_is_aster_granule(files, tmp_path):
 # ------------------------------------------------------------------------------ command line
 
 
+@pytest.mark.slow  # over 0.5 s: out of the fast subset (CI runs it)
 def test_cli_simulate_granule_and_info(tmp_path, capsys):
     out = tmp_path / "sim"
     assert (

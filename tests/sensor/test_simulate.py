@@ -32,6 +32,7 @@ def frame_scene():
     return simulate_scene("frame", size=(256, 240), seed=3, noise=1.0)
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_reproducible_from_seed(frame_scene):
     again = simulate_scene("frame", size=(256, 240), seed=3, noise=1.0)
     assert np.array_equal(again.left, frame_scene.left) and np.array_equal(
@@ -149,6 +150,7 @@ def test_rpc_fitted_to_aster_preset_reproduces_it(which):
     assert np.hypot(pc - c, pr - r).max() < 0.01
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_system_psf_mtf_and_band_limit():
     """The Gaussian system PSF has the stated MTF at Nyquist, and a lower MTF removes the
     image's high-frequency content (power near Nyquist falls, the low band stays)."""

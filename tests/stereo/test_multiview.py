@@ -336,6 +336,7 @@ def test_models_that_disagree_are_adjusted_first(triplet, tmp_path):
     assert errs["auto"][0] <= errs["never"][0] and errs["auto"][1] < 1.0, errs
 
 
+@pytest.mark.slow  # over 0.5 s: out of the fast subset (CI runs it)
 def test_dem_cli_names_and_skips_an_isolated_image(triplet, tmp_path, capsys):
     """An image that overlaps no other is named and skipped; the others make the DEM. The
     same image twice is refused in one line, nothing written."""

@@ -39,6 +39,7 @@ def test_tile_grid_covers_image_once_in_index_order():
     assert [t.index for t in tiles] == list(range(len(tiles)))
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_pool_results_identical_to_serial():
     tiles = tile_grid(130, 100, 32)
     ser, f1, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1)
@@ -112,6 +113,7 @@ def test_results_can_stay_in_the_cache_only(tmp_path):
         np.testing.assert_array_equal(got["value"], held[t.index]["value"])
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_pool_workers_store_their_tiles_when_results_stay_in_the_cache(tmp_path, monkeypatch):
     """With hold_results=False a pool's workers write their tiles to the cache themselves (the
     main process stores none), with the identity, job key and checksum that --resume checks;
@@ -262,6 +264,7 @@ def _working_set_tile(tile, ctx):
     return {"faults": np.array(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)}
 
 
+@pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 @pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="glibc's mallopt only")
 def test_pool_workers_keep_the_memory_their_tiles_free():
     """glibc trims the freed top of its heap back to the system beyond a threshold that grows
