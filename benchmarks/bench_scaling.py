@@ -183,6 +183,29 @@ def table(runs) -> str:
     return "\n".join(lines)
 
 
+def speed_index(repeats=9):
+    """The machine's speed at the time: milliseconds of one bare ``cv2.StereoSGBM`` call
+    (MODE_SGBM, 1 thread, 64 disparities) on ``bench_match.py``'s 1024 x 1024 pair, median of
+    ``repeats``; measured before and after the runs, so that figures from different sessions
+    (shared machines that drift) can be compared."""
+    import cv2
+    from bench_match import _raw_sgbm, _to_uint8, make_pair
+
+    left, right, _ = make_pair()
+    l8, r8 = _to_uint8(left, right)
+    saved = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        ts = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            _raw_sgbm(l8, r8, "sgbm")
+            ts.append(time.perf_counter() - t)
+    finally:
+        cv2.setNumThreads(saved)
+    return round(1e3 * float(np.median(ts)), 1)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -219,6 +242,7 @@ def main(argv=None):
         env=child_env(),
         check=True,
     )
+    speed_before = speed_index()
     rounds = {w: [] for w in counts}
     for _ in range(max(1, args.repeat)):
         for w in counts:
@@ -250,7 +274,15 @@ def main(argv=None):
     ratios = scaling_ratios(runs, counts[-1])
     result = dict(
         granule=dict(left=list(size), right=list(right), input="ASTER L1A V004, simulated"),
-        machine=dict(cpus=cores, python=platform.python_version(), node=platform.node()),
+        machine=dict(
+            cpus=cores,
+            python=platform.python_version(),
+            node=platform.node(),
+            speed_index_ms=[speed_before, speed_index()],
+            speed_index="ms of one bare cv2.StereoSGBM call (MODE_SGBM, 1 thread, 64 "
+            "disparities) on bench_match.py's 1024 x 1024 pair, median of 9, before and after "
+            "the runs",
+        ),
         measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         repeat=max(1, args.repeat),
         runs=runs,

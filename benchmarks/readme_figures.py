@@ -173,6 +173,18 @@ def scaling(d):
         f"{rows}; "
         + ", ".join(f"{k} {v}" for k, v in r.items())
         + f"; rasters {'bit-identical' if same else 'NOT identical'} across worker counts."
+        + _speed(d)
+    )
+
+
+def _speed(d):
+    """The machine's speed index of a scaling run (absent before session 15)."""
+    sp = d["machine"].get("speed_index_ms")
+    if not sp:
+        return ""
+    return (
+        f" Machine speed: one bare `cv2.StereoSGBM` call on a 1024² tile (1 thread, 64 "
+        f"disparities) took {sp[0]:.0f} ms before the runs and {sp[1]:.0f} ms after."
     )
 
 
