@@ -481,9 +481,9 @@ class DEM:
         now, and the returned callable writes them (returning ``{"dem": path, layer: path}``);
         it can run in another thread while this DEM changes or goes away.
         ``layer_descriptions``: band descriptions replacing those of :data:`LAYERS`, by layer.
-        ``more``: other files written with these, ``{name: write(creation_options)}`` (each
-        callable writes its file with the creation options given and returns its path), e.g.
-        a fused DEM's spread.
+        ``more``: other files written with these, ``{name: write}``: each ``write`` takes the
+        keyword ``creation_options`` (these files' own), writes its file and returns its path,
+        e.g. a fused DEM's spread.
 
         ``threads`` > 1 writes the files that many at a time, each compressed on one GDAL
         thread (``NUM_THREADS=1`` unless ``creation_options`` sets it): the overviews and the
@@ -531,9 +531,8 @@ class DEM:
                 description=layer_descriptions.get(name),
                 **kw,
             )
-
         for name, write in (more or {}).items():
-            writes[name] = functools.partial(write, creation_options)
+            writes[name] = functools.partial(write, creation_options=creation_options)
 
         def write_files():
             if threads == 1 or len(writes) == 1:

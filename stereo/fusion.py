@@ -392,7 +392,7 @@ class FusedDEM:
             creation_options=creation_options,
             layer_descriptions={"count": COUNT_DESCRIPTION},
             threads=threads,
-            more={"nmad": lambda co: nmad(creation_options=co)},
+            more={"nmad": nmad},
         )
 
     def write(self, path, *, overwrite=False, creation_options=None, threads=1) -> dict:
