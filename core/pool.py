@@ -4,7 +4,11 @@ a stack)."""
 
 from __future__ import annotations
 
+import sys
 import time
+
+#: the ``-W`` filter for multiprocessing's resource tracker's own reports
+_TRACKER_FILTER = "ignore::UserWarning:multiprocessing.resource_tracker"
 
 
 def stop_pool(ex, grace: float = 2.0):
@@ -34,3 +38,21 @@ def stop_pool(ex, grace: float = 2.0):
             writer.close()
         except OSError:
             pass
+
+
+def quiet_resource_tracker() -> None:
+    """Keep multiprocessing's resource tracker from printing on the command's stderr.
+
+    The tracker is a helper process that unlinks the named semaphores of a pool (its queues'
+    locks) whose owner exited without unlinking them, as after an interrupted job whose
+    finalisers did not all run. It reports each as a ``UserWarning`` on the shared stderr, and
+    it does so after the command has ended, below the command's own last line (the
+    ``--resume`` hint): Python internals a user can do nothing about. The tracker still
+    unlinks them; only its report is silenced.
+
+    The tracker is started with the parent's interpreter flags, ``sys.warnoptions`` included
+    (``multiprocessing.util._args_from_interpreter_flags``), so the filter is added there; it
+    applies to the helper processes started after this call (the tracker, spawned workers)
+    and leaves this process's own warning filters as they are."""
+    if _TRACKER_FILTER not in sys.warnoptions:
+        sys.warnoptions.append(_TRACKER_FILTER)

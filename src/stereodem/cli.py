@@ -16,6 +16,7 @@ import threading
 
 from stereodem.core import interrupt
 from stereodem.core.errors import StereodemError
+from stereodem.core.pool import quiet_resource_tracker
 
 from . import __version__
 from .commands import COMMANDS
@@ -73,6 +74,7 @@ def main(argv=None) -> int:
         parser.print_help(sys.stderr)
         return 2
     _setup_logging(args)
+    quiet_resource_tracker()  # before any pool starts the tracker
 
     def on_signal(signum, frame):  # SIGTERM stops like Ctrl-C (pool stopped, lock released)
         interrupt.request(signum)  # and stays requested: stereodem.core.interrupt
