@@ -23,7 +23,6 @@ import numpy as np
 import rasterio
 import rasterio.crs
 import rasterio.shutil
-from pyproj import CRS as PCRS
 from rasterio.windows import Window
 
 from .raster import (
@@ -32,6 +31,8 @@ from .raster import (
     check_writable,
     cog_creation_options,
     crs_with_vertical,
+    geotiff_crs,
+    write_pam_crs,
 )
 
 __all__ = ["CACHE_MB", "BlockWriter"]
@@ -108,7 +109,7 @@ class BlockWriter:
         )
         os.close(fd)
         g = self.grid
-        crs = crs_with_vertical(g.crs, self.vertical)
+        crs, self._side_crs = geotiff_crs(crs_with_vertical(g.crs, self.vertical))
         profile = dict(
             driver="GTiff",
             width=g.width,
@@ -124,7 +125,7 @@ class BlockWriter:
             predictor=3,
             bigtiff="IF_SAFER",
             transform=g.transform,
-            crs=rasterio.crs.CRS.from_wkt(PCRS.from_user_input(crs).to_wkt()),
+            crs=rasterio.crs.CRS.from_wkt(crs.to_wkt()),
         )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
@@ -161,6 +162,8 @@ class BlockWriter:
                     **{k.lower(): v for k, v in self.co.items()},
                 )
                 self.cog_seconds = time.perf_counter() - t0
+                if self._side_crs is not None:  # moved into place with the file
+                    write_pam_crs(self._final_tmp, self._side_crs)
         except BaseException as err:
             self._atomic.__exit__(type(err), err, err.__traceback__)
             raise

@@ -260,8 +260,9 @@ class DEM:
 
         ``vertical`` overrides the vertical reference; otherwise it is taken from the file's
         CRS (compound *horizontal + EGM96 height*, or 3-D with ellipsoidal heights, as
-        :meth:`write` stores it) or, for files written by older versions, stereodem's own
-        ``STEREODEM_VERTICAL`` tag, and is ``None`` (unknown) if neither says. ``crs`` is the
+        :meth:`write` stores it, the latter in the ``.aux.xml`` side-car for projected grids)
+        or else stereodem's own ``STEREODEM_VERTICAL`` tag (older files, or a file copied
+        without its side-car), and is ``None`` (unknown) if neither says. ``crs`` is the
         horizontal part.
         """
         path = str(path)

@@ -3,7 +3,8 @@
 A raster is written to a temporary file in the destination folder and moved into place with
 ``os.replace`` only when complete, so a crash never leaves a half-written product under the
 final name. Rasters are Cloud-Optimised GeoTIFFs (GDAL's COG driver) with the vertical
-reference of heights in the CRS; every file gets the permissions of the umask.
+reference of heights in the CRS (:func:`geotiff_crs`: a file is georeferenced on its own);
+every file gets the permissions of the umask.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import contextlib
 import os
 import tempfile
 import warnings
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -148,8 +150,10 @@ COG_DEFAULTS = {
 #: 30-40 % less CPU (full ASTER granule: orthoimage 70.3 -> 71.1 MB, 1.73 -> 1.19 CPU s)
 DEFLATE_LEVEL = "1"
 
-#: the private tag stereodem wrote before the vertical reference went into the CRS (still
-#: written, and read by :meth:`stereodem.core.dem.DEM.from_file`, for old readers)
+#: the file's own record of its heights' vertical reference, read by
+#: :meth:`stereodem.core.dem.DEM.from_file` when the CRS does not say it: files of older
+#: versions, and a projected grid with ellipsoidal heights whose ``.aux.xml`` side-car (the
+#: 3-D CRS, :func:`geotiff_crs`) was not copied with it
 VERTICAL_TAG = "STEREODEM_VERTICAL"
 
 
@@ -183,8 +187,8 @@ def crs_with_vertical(crs, vertical: str | None):
     ``"geoid"`` gives the compound CRS *horizontal + EGM96 height* (EPSG:5773), written in the
     GeoTIFF keys; ``"ellipsoid"`` gives the horizontal CRS promoted to 3-D with a *WGS 84
     ellipsoidal height* axis (EPSG:4979 for geographic grids). GeoTIFF keys cannot encode a
-    projected CRS with ellipsoidal heights, so GDAL stores that one in a ``.aux.xml`` side-car,
-    as ``gdal_translate`` does. ``None`` returns ``crs`` unchanged.
+    projected CRS with ellipsoidal heights: :func:`geotiff_crs` says how such a file is
+    written. ``None`` returns ``crs`` unchanged.
     """
     if crs is None or vertical is None:
         return crs
@@ -198,6 +202,44 @@ def crs_with_vertical(crs, vertical: str | None):
             PCRS("EPSG:4979") if h.equals(PCRS("EPSG:4326"), ignore_axis_order=True) else h.to_3d()
         )
     raise InputError(f"vertical reference must be 'geoid' or 'ellipsoid', got {vertical!r}")
+
+
+def geotiff_crs(crs):
+    """``(keys, side_car)``: the CRS to write in a GeoTIFF's keys, and the one to write in its
+    PAM side-car (``.aux.xml``), or None.
+
+    A projected CRS with ellipsoidal heights (a projected CRS promoted to 3-D) has no GeoTIFF
+    encoding: GDAL then writes it in the side-car only (the geotransform too), and the file
+    alone has no CRS at all (GDAL issue 9741), so a DEM copied, uploaded or read from object
+    storage without its side-car would lose its georeferencing. Such a CRS goes to the keys as
+    its horizontal part, so that the file alone is georeferenced (its heights' reference is
+    then in the ``STEREODEM_VERTICAL`` tag and the band description), and whole to the
+    side-car, which GDAL reads before the keys (``GDAL_GEOREF_SOURCES``: PAM first). Every
+    other CRS (2-D, compound with a vertical CRS, geographic 3-D such as EPSG:4979) has a
+    GeoTIFF encoding and goes to the keys alone."""
+    if crs is None:
+        return None, None
+    c = PCRS.from_user_input(crs)
+    if c.is_projected and not c.is_compound and len(c.axis_info) == 3:
+        return c.to_2d(), c
+    return c, None
+
+
+def write_pam_crs(path, crs) -> Path:
+    """Write GDAL's PAM side-car of the raster ``path`` (``path.aux.xml``) holding ``crs``
+    (what GDAL itself writes for a CRS its GeoTIFF keys cannot encode: an ``SRS`` element
+    with the WKT and GDAL's data-axis mapping, columns to the easting in the traditional GIS
+    order). Returns the side-car's path."""
+    c = PCRS.from_user_input(crs)
+    first = c.axis_info[0].direction.lower() if c.axis_info else "east"
+    mapping = [2, 1] if first in ("north", "south") else [1, 2]
+    mapping += list(range(3, len(c.axis_info) + 1))
+    root = ET.Element("PAMDataset")
+    srs = ET.SubElement(root, "SRS", dataAxisToSRSAxisMapping=",".join(map(str, mapping)))
+    srs.text = c.to_wkt()
+    side = Path(f"{path}.aux.xml")
+    side.write_bytes(ET.tostring(root, encoding="utf-8") + b"\n")
+    return side
 
 
 def cog_creation_options(
@@ -337,8 +379,9 @@ def write_geotiff(
         dtype=arr.dtype,
         nodata=nodata,
     )
+    crs, side_crs = geotiff_crs(crs)
     if crs is not None:
-        profile["crs"] = rasterio.crs.CRS.from_wkt(PCRS.from_user_input(crs).to_wkt())
+        profile["crs"] = rasterio.crs.CRS.from_wkt(crs.to_wkt())
     if transform is not None:
         profile["transform"] = transform
     if rpcs is not None:
@@ -359,6 +402,8 @@ def write_geotiff(
                 if unit:
                     dst.set_band_unit(i, unit)
             rasterio.shutil.copy(dst, tmp, driver="COG", **{k.lower(): v for k, v in co.items()})
+        if side_crs is not None:  # moved into place with the file (atomic_path)
+            write_pam_crs(tmp, side_crs)
     return path
 
 

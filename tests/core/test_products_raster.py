@@ -168,6 +168,55 @@ def test_vertical_reference_in_the_crs(tmp_path, vertical, axis, horizontal):
     assert np.array_equal(back.heights, dem.heights, equal_nan=True)
 
 
+def _write_with_block_writer(path, data, transform, crs, vertical):
+    from stereodem.core.blockwrite import BlockWriter
+    from stereodem.core.grid import MapGrid
+
+    grid = MapGrid(transform, data.shape[1], data.shape[0], crs)
+    with BlockWriter(path, grid, ["height"], vertical=vertical) as w:
+        w.write(0, 0, data[None])
+    return path
+
+
+def _write_dem(path, data, transform, crs, vertical):
+    return DEM(data, transform, crs, vertical).write(path)
+
+
+@pytest.mark.parametrize("writer", [_write_dem, _write_with_block_writer], ids=["DEM", "blocks"])
+@pytest.mark.parametrize("horizontal", ["EPSG:32637", "EPSG:2193", "EPSG:4326"])
+def test_file_alone_keeps_its_crs_when_the_side_car_is_lost(tmp_path, writer, horizontal):
+    """A projected CRS with ellipsoidal heights has no GeoTIFF encoding: GDAL put it, with the
+    geotransform, in the .aux.xml side-car only, and a DEM copied without it had no CRS
+    (DEM.from_file refused it). The file now holds the horizontal CRS in its keys and the
+    vertical reference in its tag; the side-car adds the 3-D CRS for GDAL readers."""
+    import shutil
+
+    t = T if horizontal != "EPSG:4326" else Affine(0.001, 0, 40.0, 0, -0.001, 39.6)
+    if horizontal == "EPSG:2193":  # a projected CRS whose EPSG axis order is north, east
+        t = Affine(30.0, 0.0, 1600000.0, 0.0, -30.0, 5400000.0)
+    data = _rng_data("float32", (300, 300))
+    p = writer(tmp_path / "dem.tif", data, t, horizontal, ELLIPSOID)
+    side_car = tmp_path / "dem.tif.aux.xml"
+    assert side_car.exists() == (horizontal != "EPSG:4326")  # geographic 3-D: in the keys
+    with rasterio.open(p) as ds:  # with the side-car: the 3-D CRS, as GDAL writes it
+        crs = CRS.from_wkt(ds.crs.to_wkt())
+        assert [a.name for a in crs.axis_info][-1] == "Ellipsoidal height"
+        assert ds.transform == t
+    alone = tmp_path / "copy" / "dem.tif"
+    alone.parent.mkdir()
+    shutil.copy(p, alone)
+    with rasterio.open(alone) as ds:
+        assert ds.crs is not None and ds.transform == t
+        epsg = CRS(horizontal).to_3d().to_epsg() if horizontal == "EPSG:4326" else None
+        assert ds.crs.to_epsg() == (epsg or CRS(horizontal).to_epsg())
+    back = DEM.from_file(alone)
+    assert back.vertical == ELLIPSOID
+    # GDAL reads NZTM's keys with easting first and an unnamed conversion: the same CRS,
+    # identified with less confidence
+    assert back.crs.to_epsg(min_confidence=20) == CRS(horizontal).to_epsg()
+    assert np.array_equal(back.heights, data, equal_nan=True)
+
+
 def test_old_private_tag_still_read(tmp_path):
     p = tmp_path / "old.tif"
     with rasterio.open(
