@@ -176,6 +176,19 @@ def horizontal_crs(crs: CRS) -> CRS:
     return crs
 
 
+def _no_crs_message(path, ds) -> str:
+    """Why the DEM file ``path`` (open as ``ds``) has no CRS, and what to do: a DEM written by
+    an older stereodem on a projected grid with ellipsoidal heights kept its CRS in its
+    ``.aux.xml`` side-car only (:func:`stereodem.core.raster.geotiff_crs`)."""
+    msg = f"{path}: the DEM has no CRS"
+    if ds.tags().get(VERTICAL_TAG) and not Path(f"{path}.aux.xml").exists():
+        msg += (
+            f" (a DEM of an older stereodem kept it in the side-car {Path(path).name}.aux.xml "
+            "only: copy that file beside it, or set the CRS with gdal_edit.py -a_srs EPSG:code)"
+        )
+    return msg
+
+
 def _check_vertical(vertical: str | None) -> None:
     """A DEM's vertical reference is None (unknown) or one of :data:`VERTICALS`."""
     if vertical is not None and vertical not in VERTICALS:
@@ -269,7 +282,7 @@ class DEM:
         try:
             with reading_env(), rasterio.open(path) as ds:
                 if ds.crs is None:
-                    raise CRSError(f"{path}: the DEM has no CRS")
+                    raise CRSError(_no_crs_message(path, ds))
                 flags = ds.mask_flag_enums[band - 1]
                 if all(f in (MaskFlags.nodata, MaskFlags.all_valid) for f in flags):
                     # nodata value or none: read straight into float32 (no mask array, no copy)
@@ -307,7 +320,7 @@ class DEM:
         try:
             with reading_env(), rasterio.open(path) as ds:
                 if ds.crs is None:
-                    raise CRSError(f"{path}: the DEM has no CRS")
+                    raise CRSError(_no_crs_message(path, ds))
                 if not 1 <= band <= ds.count:
                     raise DEMError(f"{path}: no band {band} (the file has {ds.count})")
                 h, w = ds.block_shapes[band - 1]

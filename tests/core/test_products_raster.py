@@ -217,6 +217,31 @@ def test_file_alone_keeps_its_crs_when_the_side_car_is_lost(tmp_path, writer, ho
     assert np.array_equal(back.heights, data, equal_nan=True)
 
 
+def test_old_dem_without_its_side_car_says_where_its_crs_went(tmp_path, capsys):
+    """A DEM written as older versions did (the 3-D CRS in the side-car only), copied without
+    the side-car: a one-line error that names the missing side-car, not just "no CRS"."""
+    import rasterio.shutil
+
+    from stereodem.cli import main
+    from stereodem.core.errors import CRSError
+
+    p = tmp_path / "dem.tif"
+    profile = dict(driver="MEM", width=64, height=64, count=1, dtype="float32")
+    crs3d = rasterio.crs.CRS.from_wkt(CRS("EPSG:32637").to_3d().to_wkt())
+    with rasterio.open("", "w", crs=crs3d, transform=T, **profile) as ds:
+        ds.write(_rng_data("float32", (64, 64))[None])
+        ds.update_tags(STEREODEM_VERTICAL="ellipsoid")
+        rasterio.shutil.copy(ds, p, driver="COG")
+    assert DEM.from_file(p).vertical == ELLIPSOID  # with its side-car: as before
+    (tmp_path / "dem.tif.aux.xml").unlink()
+    for read in (DEM.from_file, DEM.check_file):
+        with pytest.raises(CRSError, match=r"has no CRS \(.*dem\.tif\.aux\.xml only"):
+            read(p)
+    assert main(["assess", str(p), "--ref", str(p), "-o", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "dem.tif.aux.xml" in err[0] and "Traceback" not in err[0]
+
+
 def test_old_private_tag_still_read(tmp_path):
     p = tmp_path / "old.tif"
     with rasterio.open(
