@@ -145,13 +145,23 @@ def _config_size(path: Path) -> int:
     return sum(_size(Path(p)) for p in (cfg.inputs.left, cfg.inputs.right) if p)
 
 
-def scene_config(scene: Scene, out_dir, *, workers: int = 1, overwrite: bool = False):
-    """The :class:`stereodem.config.Config` of one scene, writing into ``out_dir``."""
+def scene_config(
+    scene: Scene,
+    out_dir,
+    *,
+    workers: int = 1,
+    overwrite: bool = False,
+    keep_tiles: bool | None = None,
+):
+    """The :class:`stereodem.config.Config` of one scene, writing into ``out_dir``;
+    ``keep_tiles`` (None: the configuration's ``[run] keep_tiles``) overrides it."""
     if scene.kind == "missing":
         raise InputError(f"{scene.path}: not found")
     resume = not overwrite
     if scene.kind == "config":
-        cfg = load_config(scene.path, workers=workers, overwrite=overwrite, resume=resume)
+        cfg = load_config(
+            scene.path, workers=workers, overwrite=overwrite, resume=resume, keep_tiles=keep_tiles
+        )
     else:
         raw, base = {}, "."
         if scene.template:
@@ -172,6 +182,7 @@ def scene_config(scene: Scene, out_dir, *, workers: int = 1, overwrite: bool = F
             workers=workers,
             overwrite=overwrite,
             resume=resume,
+            keep_tiles=keep_tiles,
         )
     cfg.output_dir = str(out_dir)
     return cfg
@@ -188,7 +199,13 @@ def is_done(out_dir) -> bool:
 # ----------------------------------------------------------------------------- one scene
 
 
-def run_scene(scene: Scene, out_root, workers: int = 1, overwrite: bool = False) -> SceneStatus:
+def run_scene(
+    scene: Scene,
+    out_root,
+    workers: int = 1,
+    overwrite: bool = False,
+    keep_tiles: bool | None = None,
+) -> SceneStatus:
     """Run one scene into ``out_root/<name>``; never raises: a failure is a ``failed`` row
     with a one-line reason. Runs in a pool worker or a Dask task (picklable arguments)."""
     out = Path(out_root) / scene.name
@@ -199,7 +216,8 @@ def run_scene(scene: Scene, out_root, workers: int = 1, overwrite: bool = False)
         return row
     t0, c0 = time.perf_counter(), _cpu()
     try:
-        info = run(scene_config(scene, out, workers=workers, overwrite=overwrite))
+        cfg = scene_config(scene, out, workers=workers, overwrite=overwrite, keep_tiles=keep_tiles)
+        info = run(cfg)
         row.extra = {
             "stages": {k: v.get("seconds") for k, v in info.get("stages", {}).items()},
             "headline": info.get("headline"),
@@ -235,6 +253,7 @@ def run_batch(
     workers: int | None = None,
     dask: str | None = None,
     overwrite: bool = False,
+    keep_tiles: bool | None = None,
     progress=None,
 ) -> dict:
     """Run ``scenes`` (:func:`expand_inputs`) into ``out_root``; returns the status table
@@ -242,7 +261,9 @@ def run_batch(
 
     ``workers``: scenes at once on the process pool (default: all cores), or the
     ``LocalCluster``'s worker processes with ``dask="local"``; ``dask``: a scheduler address
-    (``tcp://...``), ``"local"``, or a ``Client``. ``progress(row)`` is called per finished scene.
+    (``tcp://...``), ``"local"``, or a ``Client``. ``keep_tiles``: whether each scene keeps
+    its tile cache once done (None: its configuration's ``[run] keep_tiles``).
+    ``progress(row)`` is called per finished scene.
     """
     out_root = Path(out_root)
     if out_root.exists() and not out_root.is_dir():
@@ -268,17 +289,19 @@ def run_batch(
             progress(row)
 
     if dask is not None:
-        _run_dask(order, out_root, dask, n, overwrite, collect)
+        _run_dask(order, out_root, dask, n, (overwrite, keep_tiles), collect)
     elif n <= 1:
         with thread_budget(1):
             for s in order:
-                collect(run_scene(s, out_root, 1, overwrite))
+                collect(run_scene(s, out_root, 1, overwrite, keep_tiles))
     else:
-        _run_pool(order, out_root, n, worker_threads(n), overwrite, collect)
+        _run_pool(order, out_root, n, worker_threads(n), (overwrite, keep_tiles), collect)
     return _write_table(out_root, scenes, rows, table, time.perf_counter() - t0)
 
 
-def _run_pool(order, out_root, n, threads, overwrite, collect):
+def _run_pool(order, out_root, n, threads, scene_options, collect):
+    """The scenes on a process pool; ``scene_options``: :func:`run_scene`'s ``(overwrite,
+    keep_tiles)``."""
     ex = ProcessPoolExecutor(
         max_workers=n,
         mp_context=multiprocessing.get_context("spawn"),
@@ -286,7 +309,7 @@ def _run_pool(order, out_root, n, threads, overwrite, collect):
         initargs=(threads,),
     )
     try:
-        futs = {ex.submit(run_scene, s, out_root, threads, overwrite): s for s in order}
+        futs = {ex.submit(run_scene, s, out_root, threads, *scene_options): s for s in order}
         for f in as_completed(futs):
             s = futs[f]
             try:
@@ -307,7 +330,8 @@ def _run_pool(order, out_root, n, threads, overwrite, collect):
     ex.shutdown(wait=True)
 
 
-def _run_dask(order, out_root, address, n, overwrite, collect):
+def _run_dask(order, out_root, address, n, scene_options, collect):
+    """The scenes as tasks of a Dask cluster; ``scene_options`` as :func:`_run_pool`'s."""
     try:
         from dask.distributed import Client, LocalCluster
         from dask.distributed import as_completed as dask_completed
@@ -339,7 +363,7 @@ def _run_dask(order, out_root, address, n, overwrite, collect):
                 s,
                 str(out_root),
                 1,
-                overwrite,
+                *scene_options,
                 pure=False,
                 key=f"stereodem-scene-{s.name}-{time.monotonic_ns()}",
             ): s

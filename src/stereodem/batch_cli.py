@@ -53,6 +53,12 @@ def add_parser(sub):
         metavar="ADDRESS",
         help="'local' for a dask LocalCluster, or a scheduler address tcp://host:port",
     )
+    p.add_argument(
+        "--clean-tiles",
+        action="store_true",
+        help="remove each scene's tile cache once it is done (a failed scene keeps its tiles "
+        "for the next run)",
+    )
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
@@ -72,6 +78,7 @@ def run(args) -> int:
         workers=args.workers,
         dask=args.dask,
         overwrite=args.overwrite,
+        keep_tiles=False if args.clean_tiles else None,
         progress=progress,
     )
     for line in summary_lines(result):

@@ -326,6 +326,11 @@ class RunSettings:
         the findings are still reported.
     creation_options : dict, optional
         GDAL creation options of the GeoTIFF products (as ``-co``), e.g. {COMPRESS = "ZSTD"}.
+    keep_tiles : bool
+        Keep the tile cache ``OUT/tiles`` after a job that succeeded, for a later ``--resume``
+        (e.g. with other filter, ortho or assessment settings); false removes it once the
+        products are written (``--clean-tiles``; a full ASTER granule's cache is ~330 MB, more
+        than its products). A failed, interrupted or suspect job keeps it either way.
     """
 
     workers: int | None = None
@@ -335,6 +340,7 @@ class RunSettings:
     overwrite: bool = False
     force: bool = False
     creation_options: dict | None = None
+    keep_tiles: bool = True
 
 
 @dataclass

@@ -231,6 +231,16 @@ def _products_to_remove(folder: Path, keep_tiles: bool):
     return removed, paths
 
 
+def remove_tile_cache(folder) -> bool:
+    """Remove the tile cache ``folder/tiles`` of a finished job (its tiles and the points a
+    point cloud was merged from); returns whether there was one."""
+    cache = Path(folder) / "tiles"
+    if not (cache.exists() or cache.is_symlink()):
+        return False
+    _delete(cache)
+    return True
+
+
 def _delete(p: Path):
     if p.is_dir() and not p.is_symlink():
         shutil.rmtree(p)

@@ -54,6 +54,12 @@ def add_run_options(p):
         help="go on with a result the sanity checks call suspect (still reported)",
     )
     p.add_argument(
+        "--clean-tiles",
+        action="store_true",
+        help="remove the tile cache OUT/tiles once the job has succeeded (it is kept for "
+        "--resume otherwise; [run] keep_tiles)",
+    )
+    p.add_argument(
         "--co",
         action="append",
         metavar="KEY=VALUE",
@@ -137,6 +143,7 @@ def _run(args) -> int:
         overwrite=args.overwrite or None,
         force=args.force or None,
         creation_options=parse_creation_options(args.co) or None,
+        keep_tiles=False if args.clean_tiles else None,
     )
     info = run_pipeline(cfg, progress_factory=progress_factory(args))
     summarize(info)

@@ -64,6 +64,8 @@ def test_run_writes_products_and_run_json(scene_dir, tmp_path):
     ):
         assert (out / name).exists(), name
     rj = json.loads((out / "run.json").read_text())
+    # the tile cache is kept by default (for --resume) and listed with the outputs
+    assert "tiles" in rj["outputs"] and list((out / "tiles").glob("tile_*.npz"))
     assert set(rj["stages"]) >= {"load", "stereo", "post", "ortho", "assess"}
     assert all(s["seconds"] >= 0 and s["peak_rss_mb"] > 0 for s in rj["stages"].values())
     # CPU seconds per stage: the stereo stage's matching is work of this process or its workers
@@ -82,8 +84,10 @@ def test_run_writes_products_and_run_json(scene_dir, tmp_path):
 @pytest.mark.slow
 def test_workers_2_bit_identical_to_workers_1(scene_dir, tmp_path):
     # 3 workers on any machine: 3 tile processes, 3 threads for the main process's stages
-    for w in (1, 2, 3):
-        run(_cfg(scene_dir, tmp_path / f"w{w}", workers=w))
+    for w in (1, 2, 3):  # the last without its tile cache: the products do not change
+        run(_cfg(scene_dir, tmp_path / f"w{w}", workers=w, keep_tiles=w < 3))
+    assert (tmp_path / "w2" / "tiles").is_dir() and not (tmp_path / "w3" / "tiles").exists()
+    assert "tiles" not in json.loads((tmp_path / "w3" / "run.json").read_text())["outputs"]
     for w in (2, 3):
         for name in (
             "raw/dem.tif",
@@ -589,3 +593,24 @@ def test_top_level_help_lists_every_command_without_importing_them():
     with pytest.raises(SystemExit) as exc:
         cli.main(["no-such-command"])
     assert exc.value.code == 2
+
+
+def test_clean_tiles_option_reaches_the_job(tmp_path, monkeypatch):
+    """``run --clean-tiles`` is ``[run] keep_tiles = false``; without it the TOML decides."""
+    import stereodem.pipeline.job as job
+    from stereodem import cli
+
+    seen = []
+
+    def fake_run(cfg, progress_factory=None):
+        seen.append(cfg.run.keep_tiles)
+        raise InputError("stop here")
+
+    monkeypatch.setattr(job, "run", fake_run)
+    toml = tmp_path / "job.toml"
+    toml.write_text('[inputs]\nleft = "l.tif"\nright = "r.tif"\n[output]\ndir = "out"\n')
+    assert cli.main(["-q", "run", str(toml), "--clean-tiles"]) == 1
+    assert cli.main(["-q", "run", str(toml)]) == 1
+    toml.write_text(toml.read_text() + "[run]\nkeep_tiles = false\n")
+    assert cli.main(["-q", "run", str(toml)]) == 1
+    assert seen == [False, True, False]

@@ -79,6 +79,7 @@ def test_batch_on_the_pool_and_resume(scenes, tmp_path, capsys):
     _check(result, out)
     printed = capsys.readouterr().out
     assert "FAILED" in printed and "2 done, 1 failed" in printed
+    assert list((out / "scene4" / "tiles").glob("tile_*.npz"))  # kept by default
     # again: the done scenes are skipped, the corrupt one fails again, nothing recomputed
     mtime = (out / "scene4" / "dem.tif").stat().st_mtime_ns
     again = run_batch(expand_inputs([listing]), out, workers=2)
@@ -92,9 +93,11 @@ def test_batch_on_a_dask_local_cluster(scenes, tmp_path):
     pytest.importorskip("dask.distributed")
     _, paths, _ = scenes
     out = tmp_path / "out"
-    result = run_batch(expand_inputs(paths), out, workers=2, dask="local")
+    result = run_batch(expand_inputs(paths), out, workers=2, dask="local", keep_tiles=False)
     assert result["backend"] == "dask"
     _check(result, out)
+    for n in ("scene4", "scene5"):  # --clean-tiles: the done scenes' caches removed
+        assert not (out / n / "tiles").exists()
 
 
 def test_list_files_names_and_missing_scenes(tmp_path):

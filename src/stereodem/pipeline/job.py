@@ -41,7 +41,7 @@ from stereodem.stereo import sanity
 from .. import point_cloud
 from ..config import Config
 from ..multiview import run_stage, source_pairs
-from ..outlock import output_folder
+from ..outlock import output_folder, remove_tile_cache
 from ..provenance import provenance, utc_now
 from .inputs import check_inputs, input_paths, load_pair
 from .record import StageLog, headline, versions
@@ -342,7 +342,13 @@ def _run_stages(job: Job) -> dict:
         "stages (their CPU counts in those stages); seconds: the wait for the "
         "last ones",
     )
-    written += ["tiles", "run.json"]
+    # the tile cache, for a later --resume: kept unless asked, and always after a suspect
+    # result (the job stops below; --force --resume then reuses the tiles)
+    if cfg.run.keep_tiles or suspect:
+        written.append("tiles")
+    else:
+        remove_tile_cache(out)
+    written.append("run.json")
     run_info = dict(
         status=sanity.status(warnings),
         warnings=warnings,
