@@ -202,11 +202,15 @@ def comparison_stats(
     ``by_elevation``, ``by_landcover`` (if any), ``slope_fit`` and ``slope_class_trend``."""
     footprint = dem_footprint(cmp.dem) & np.isfinite(cmp.ref)
     out = {"stats": st.error_stats(cmp.dh, n_total=int(footprint.sum()))}
-    out["by_slope"] = st.binned_stats(cmp.dh, cmp.slope, slope_bins, unit="deg", name="slope")
+    out["by_slope"] = st.binned_stats(
+        cmp.dh, cmp.slope, slope_bins, unit="deg", name="slope", footprint=footprint
+    )
     ebins = elevation_bins if elevation_bins is not None else st.default_elevation_bins(cmp.ref)
-    out["by_elevation"] = st.binned_stats(cmp.dh, cmp.ref, ebins, unit="m", name="elevation")
+    out["by_elevation"] = st.binned_stats(
+        cmp.dh, cmp.ref, ebins, unit="m", name="elevation", footprint=footprint
+    )
     out["by_landcover"] = (
-        st.class_stats(cmp.dh, cmp.landcover, names=landcover_names)
+        st.class_stats(cmp.dh, cmp.landcover, names=landcover_names, footprint=footprint)
         if cmp.landcover is not None
         else None
     )
@@ -243,6 +247,12 @@ def class_codes(v, edges) -> tuple[np.ndarray, np.ndarray]:
     else:
         counts = np.bincount(codes[inside], minlength=n_bins).astype(np.int64)
     return codes, counts
+
+
+def _counts_inside(codes, inside, n_classes: int) -> np.ndarray:
+    """Cells of each class (``codes``: -1 for none) where ``inside`` is True (int64)."""
+    c = codes[inside]
+    return np.bincount(c[c >= 0], minlength=n_classes)[:n_classes].astype(np.int64)
 
 
 def _code_type(n_classes: int):
@@ -284,6 +294,12 @@ class _ClassAccumulator:
             acc.add_finite(x[bounds[i] : bounds[i + 1]])
             self.var_sum[k] += float(v[bounds[i] : bounds[i + 1]].sum(dtype=np.float64))
 
+    def set_totals(self, counts: dict) -> None:
+        """Replace each class's cell count (``valid_pct``'s denominator) by ``counts[key]``
+        (0 for a class not in it): the cells of the class inside the DEM's footprint."""
+        for key in self.n_total:
+            self.n_total[key] = int(counts.get(key, 0))
+
     def merge(self, other: _ClassAccumulator) -> _ClassAccumulator:
         """Add another block's class statistics (same classes) into these; returns self."""
         for key, acc in other.stats.items():
@@ -309,8 +325,12 @@ class _ClassAccumulator:
         return out
 
     def classes(self, names=None) -> list[dict]:
+        """The entries of the classes with cells (in the footprint, after
+        :meth:`set_totals`), by class value."""
         out = []
         for value in sorted(self.stats):
+            if self.n_total[value] == 0:
+                continue
             key = int(value) if float(value).is_integer() else float(value)
             entry = {"class": (names or {}).get(key, str(key)), "value": key}
             entry.update(self.stats[value].result(n_total=self.n_total[value]))
@@ -346,6 +366,9 @@ class _Block:
     ends: np.ndarray
     fin_bits: np.ndarray
     display: dict
+    #: each cell's class: ``"slope"``/``"elevation"`` codes (-1: none), ``"landcover"``
+    #: ``(values, codes)``; counted inside the footprint once it is known
+    classes: dict = field(default_factory=dict)
 
     def merge(self, other: _Block):
         self.overall.merge(other.overall)
@@ -433,10 +456,11 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
     codes, n_cls = class_codes(slope, slope_edges)
     keys = np.arange(slope_edges.size - 1)
     b.by_slope.add(keys, n_cls, dh, codes[both], slope_b)
+    b.classes["slope"] = codes
     codes, n_cls = class_codes(rb, elev_edges)
     keys = np.arange(elev_edges.size - 1)
     b.by_elev.add(keys, n_cls, dh, codes[both], ref_b)
-    del codes
+    b.classes["elevation"] = codes
     if lc is not None:
         cls = warp.to_grid(
             lc[0],
@@ -450,6 +474,7 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
         )
         keys, codes, n_cls = _value_codes(cls)
         b.by_lc.add(keys, n_cls, dh, codes[both], cls[both])
+        b.classes["landcover"] = (keys, codes)
     s0 = (-r0) % k
     zd, rd = z[s0::k, ::k], rb[s0::k, ::k]
     b.display = {
@@ -509,15 +534,17 @@ def blockwise_comparison(
     blocks = list(_row_blocks(rows, block_rows))
     args = (dem, reference, resampling, slope_edges, elev_edges, lc, k)
     ends, fin_bits, disp = [], [], {"dem": [], "ref": [], "dh": [], "slope": []}
+    classes = []
     total = None
 
     def take(b: _Block):
         nonlocal total
         ends.append(b.ends)
         fin_bits.append(b.fin_bits)
+        classes.append(b.classes)
         for name, a in b.display.items():
             disp[name].append(a)
-        b.ends = b.fin_bits = b.display = None
+        b.ends = b.fin_bits = b.display = b.classes = None
         if total is None:
             total = b
         else:
@@ -551,11 +578,29 @@ def blockwise_comparison(
     mask = np.zeros((rows, cols), np.uint8)
     if hull is not None:
         cv2.fillConvexPoly(mask, hull, 1)
+    # the cells of each class inside the footprint: valid_pct per class is the share of valid
+    # cells where the DEM could have data, as the overall one (not diluted by the class's
+    # cells of the reference beyond the DEM)
     n_total = 0
-    for (r0, r1), bits in zip(blocks, fin_bits):
+    n_slope = np.zeros(slope_edges.size - 1, np.int64)
+    n_elev = np.zeros(elev_edges.size - 1, np.int64)
+    n_lc: dict = {}
+    for (r0, r1), bits, cls in zip(blocks, fin_bits, classes):
         inside = mask[r0:r1].astype(bool) | np.unpackbits(bits, axis=1, count=cols).astype(bool)
-        n_total += int(np.count_nonzero(inside & np.isfinite(ref[r0:r1])))
+        inside &= np.isfinite(ref[r0:r1])
+        n_total += int(np.count_nonzero(inside))
+        n_slope += _counts_inside(cls["slope"], inside, n_slope.size)
+        n_elev += _counts_inside(cls["elevation"], inside, n_elev.size)
+        if "landcover" in cls:
+            keys, codes = cls["landcover"]
+            for key, n in zip(keys, _counts_inside(codes, inside, keys.size)):
+                n_lc[float(key)] = n_lc.get(float(key), 0) + int(n)
     del mask
+    classes.clear()  # the codes: a byte per reference cell and classification
+    total.by_slope.set_totals(dict(enumerate(n_slope.tolist())))
+    total.by_elev.set_totals(dict(enumerate(n_elev.tolist())))
+    if total.by_lc is not None:
+        total.by_lc.set_totals(n_lc)
     out = {"stats": overall.result(n_total=n_total)}
     out["by_slope"] = total.by_slope.binned()
     out["by_elevation"] = total.by_elev.binned()

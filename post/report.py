@@ -146,7 +146,7 @@ def markdown(report: dict, figure_files: dict) -> str:
 VALID_NOTE = (
     "valid_pct: share of the reference cells inside the DEM's footprint (the convex "
     "hull of its data on the reference grid) where the DEM has a height; per class, "
-    "share of the class's cells."
+    "the same share among the class's cells inside the footprint (n_total)."
 )
 
 FIGURE_CAPTIONS = {

@@ -101,13 +101,17 @@ def bin_edges(bins, name: str = "bin") -> np.ndarray:
     return edges
 
 
-def binned_stats(dh, variable, bins, *, unit: str = "", name: str = "bin") -> list[dict]:
+def binned_stats(
+    dh, variable, bins, *, unit: str = "", name: str = "bin", footprint=None
+) -> list[dict]:
     """Statistics of ``dh`` in bins of ``variable`` (same shape).
 
     Bins are ``[edge_i, edge_{i+1})``, the last one closed; an upper edge of ``inf`` makes the
     last class open-ended. Each entry holds ``class`` (a label), ``lower``, ``upper``,
     ``<name>_mean`` (mean of the variable in the class) and the :func:`error_stats` keys, with
-    ``n_total`` the number of cells of the class whatever ``dh``.
+    ``n_total`` the number of cells of the class whatever ``dh`` (inside ``footprint``, a
+    boolean array of the same shape, when given: ``valid_pct`` is then the class's share of
+    valid cells within the DEM's footprint, not diluted by the class's cells outside it).
     """
     dh = np.asarray(dh, dtype=np.float64)
     v = np.asarray(variable, dtype=np.float64)
@@ -120,7 +124,7 @@ def binned_stats(dh, variable, bins, *, unit: str = "", name: str = "bin") -> li
         lo, hi = edges[i], edges[i + 1]
         last = i == edges.size - 2
         sel = fin & (v >= lo) & ((v <= hi) if last else (v < hi))
-        st = error_stats(dh[sel], n_total=int(sel.sum()))
+        st = error_stats(dh[sel], n_total=_count_in(sel, footprint))
         entry = {
             "class": _bin_label(lo, hi, unit, last),
             "lower": float(lo),
@@ -132,10 +136,18 @@ def binned_stats(dh, variable, bins, *, unit: str = "", name: str = "bin") -> li
     return out
 
 
-def class_stats(dh, classes, *, names: dict | None = None, nodata=None) -> list[dict]:
+def _count_in(sel, footprint) -> int:
+    """Cells of ``sel`` (inside ``footprint`` when given)."""
+    return int(np.count_nonzero(sel if footprint is None else sel & footprint))
+
+
+def class_stats(
+    dh, classes, *, names: dict | None = None, nodata=None, footprint=None
+) -> list[dict]:
     """Statistics of ``dh`` per integer class of ``classes`` (e.g. a land-cover raster).
 
-    ``names`` maps class values to labels; ``nodata`` (and non-finite values) is skipped.
+    ``names`` maps class values to labels; ``nodata`` (and non-finite values) is skipped;
+    ``footprint`` as :func:`binned_stats`' (a class with no cell in it is left out).
     """
     dh = np.asarray(dh, dtype=np.float64)
     c = np.asarray(classes)
@@ -148,8 +160,11 @@ def class_stats(dh, classes, *, names: dict | None = None, nodata=None) -> list[
     for value in np.unique(c[valid]):
         sel = valid & (c == value)
         key = int(value) if float(value).is_integer() else float(value)
+        n_total = _count_in(sel, footprint)
+        if n_total == 0:  # only beyond the DEM
+            continue
         entry = {"class": (names or {}).get(key, str(key)), "value": key}
-        entry.update(error_stats(dh[sel], n_total=int(sel.sum())))
+        entry.update(error_stats(dh[sel], n_total=n_total))
         out.append(entry)
     return out
 

@@ -61,6 +61,36 @@ def test_valid_pct_is_measured_on_the_dem_footprint(pair):
     assert s["valid_pct"] == pytest.approx(expected, abs=1e-9)
 
 
+@pytest.mark.parametrize("blockwise", [True, False], ids=["blocks", "whole"])
+def test_valid_pct_per_class_is_measured_on_the_dem_footprint_too(pair, blockwise):
+    """Per slope, elevation and land-cover class, valid_pct is the share of the class's cells
+    inside the DEM's footprint that have a height: the reference's cells beyond the DEM no
+    longer dilute it (a DEM without voids on steep slopes read 30-55 % valid per class)."""
+    dem, ref = pair
+    lc = (np.arange(400)[None, :] // 100 + np.zeros((400, 1), int)).astype(float)
+    if blockwise:
+        s, _, _ = assess.blockwise_comparison(
+            dem, ref, block_rows=64, landcover=(lc, ref.transform, ref.crs)
+        )
+    else:
+        cmp = assess.compare_on_reference_grid(dem, ref)
+        cmp.landcover = lc
+        s = assess.comparison_stats(cmp)
+    n_total = s["stats"]["n_total"]
+    assert n_total == 300 * 200
+    # every finite reference cell is in one elevation band: the bands share out the footprint
+    assert sum(c["n_total"] for c in s["by_elevation"]) == n_total
+    assert sum(c["n_total"] for c in s["by_landcover"]) == n_total
+    assert 0.99 * n_total <= sum(c["n_total"] for c in s["by_slope"]) <= n_total
+    # land-cover columns 100-199 and 200-299 lie inside the DEM (one holds the 20 x 20 void);
+    # 0-99 and 300-399 outside it: those classes have no cell in the footprint, left out
+    by_lc = {c["value"]: c for c in s["by_landcover"]}
+    assert sorted(by_lc) == [1, 2]
+    assert by_lc[1]["n_total"] == by_lc[2]["n_total"] == 300 * 100
+    assert by_lc[1]["valid_pct"] == pytest.approx(100.0 * (300 * 100 - 400) / (300 * 100))
+    assert by_lc[2]["valid_pct"] == pytest.approx(100.0)
+
+
 def _legend_ok(ax):
     """Every labelled line of ``ax`` is in its legend."""
     leg = ax.get_legend()
