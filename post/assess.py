@@ -249,12 +249,6 @@ def class_codes(v, edges) -> tuple[np.ndarray, np.ndarray]:
     return codes, counts
 
 
-def _counts_inside(codes, inside, n_classes: int) -> np.ndarray:
-    """Cells of each class (``codes``: -1 for none) where ``inside`` is True (int64)."""
-    c = codes[inside]
-    return np.bincount(c[c >= 0], minlength=n_classes)[:n_classes].astype(np.int64)
-
-
 def _code_type(n_classes: int):
     """The smallest signed integer type holding -1 … ``n_classes`` (one more than the
     largest code: the bound of the last class); 8 or 16 bits for up to 32766 classes, which
@@ -578,24 +572,39 @@ def blockwise_comparison(
     mask = np.zeros((rows, cols), np.uint8)
     if hull is not None:
         cv2.fillConvexPoly(mask, hull, 1)
+
     # the cells of each class inside the footprint: valid_pct per class is the share of valid
     # cells where the DEM could have data, as the overall one (not diluted by the class's
     # cells of the reference beyond the DEM)
+    def counts(i):  # the footprint's cells in block i, and per class
+        (r0, r1), cls = blocks[i], classes[i]
+        inside = mask[r0:r1].view(bool) | np.unpackbits(fin_bits[i], axis=1, count=cols).view(bool)
+        inside &= np.isfinite(ref[r0:r1])
+        outside = ~inside
+        got = {"all": int(cols * (r1 - r0) - np.count_nonzero(outside))}
+        for name, codes in cls.items():
+            values, codes = codes if name == "landcover" else (None, codes)
+            np.copyto(codes, -1, where=outside)  # the block's own codes: nobody else reads them
+            n = len(values) if values is not None else (n_slope, n_elev)[name == "elevation"].size
+            if n <= _COMPARE_EDGES:  # a pass per class (byte compares) beats bincount's copy
+                got[name] = (values, [np.count_nonzero(codes == k) for k in range(n)])
+            else:
+                got[name] = (values, np.bincount(codes[codes >= 0], minlength=n)[:n].tolist())
+        return got
+
     n_total = 0
     n_slope = np.zeros(slope_edges.size - 1, np.int64)
     n_elev = np.zeros(elev_edges.size - 1, np.int64)
     n_lc: dict = {}
-    for (r0, r1), bits, cls in zip(blocks, fin_bits, classes):
-        inside = mask[r0:r1].astype(bool) | np.unpackbits(bits, axis=1, count=cols).astype(bool)
-        inside &= np.isfinite(ref[r0:r1])
-        n_total += int(np.count_nonzero(inside))
-        n_slope += _counts_inside(cls["slope"], inside, n_slope.size)
-        n_elev += _counts_inside(cls["elevation"], inside, n_elev.size)
-        if "landcover" in cls:
-            keys, codes = cls["landcover"]
-            for key, n in zip(keys, _counts_inside(codes, inside, keys.size)):
-                n_lc[float(key)] = n_lc.get(float(key), 0) + int(n)
-    del mask
+    with ThreadPoolExecutor(max(1, threads)) as ex:  # element-wise passes: the GIL released
+        for got in ex.map(counts, range(len(blocks))):
+            n_total += got["all"]
+            n_slope += np.asarray(got["slope"][1], np.int64)
+            n_elev += np.asarray(got["elevation"][1], np.int64)
+            if "landcover" in got:
+                for key, n in zip(*got["landcover"]):
+                    n_lc[float(key)] = n_lc.get(float(key), 0) + int(n)
+    mask = None  # the footprint: a byte per reference cell
     classes.clear()  # the codes: a byte per reference cell and classification
     total.by_slope.set_totals(dict(enumerate(n_slope.tolist())))
     total.by_elev.set_totals(dict(enumerate(n_elev.tolist())))

@@ -494,3 +494,21 @@ def test_statistics_without_the_covariate_equal_those_of_the_values_alone():
     assert _same(got.result(), alone.result())
     got.merge(alone)  # a plain accumulator: merges with plain ones
     assert got.n == 2 * alone.n
+
+
+def test_blockwise_many_landcover_classes_counted_in_the_footprint(dem_pair):
+    """More classes than the per-class passes take (a bincount then): the same cell counts in
+    the footprint as the whole-array statistics, and they share the footprint out."""
+    dem, ref = dem_pair
+    rows, cols = ref.shape
+    lc = ((np.arange(cols)[None, :] + 7 * np.arange(rows)[:, None]) % 40).astype(float)
+    got, _, _ = assess.blockwise_comparison(
+        dem, ref, landcover=(lc, ref.transform, ref.crs), block_rows=17
+    )
+    full = assess.compare_on_reference_grid(dem, ref)
+    footprint = assess.dem_footprint(full.dem) & np.isfinite(full.ref)
+    want = st.class_stats(full.dh, lc, footprint=footprint)
+    assert len(got["by_landcover"]) == len(want) == 40
+    for g, w in zip(got["by_landcover"], want):
+        assert (g["value"], g["n"], g["n_total"]) == (w["value"], w["n"], w["n_total"])
+    assert sum(c["n_total"] for c in want) == got["stats"]["n_total"]
