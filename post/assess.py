@@ -504,8 +504,12 @@ def blockwise_comparison(
     :class:`~stereodem.post.blockstats.StreamingStats` of all differences. Each block of
     ``block_rows`` reference rows is warped, differenced and its slope taken (with one halo
     row each side, so slopes equal those of the whole grid); memory is ``threads`` blocks'
-    arrays plus the accumulators. Blocks run on ``threads`` threads and their accumulators
-    are merged in block order, so the result does not depend on ``threads``.
+    arrays plus the accumulators, and a byte per reference cell for the footprint (the
+    convex hull of the warped DEM's cells, known after the last block) and for each
+    classification, whose cells inside it are then counted (``valid_pct`` per class: the
+    class's share of valid cells in the footprint, as the overall one). Blocks run on
+    ``threads`` threads and their accumulators are merged in block order, so the result
+    does not depend on ``threads``.
 
     Raises :class:`NoOverlapError` if the footprints or the valid cells do not overlap.
     """
