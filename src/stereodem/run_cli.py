@@ -82,8 +82,8 @@ def summarize(info, stream=None):
     stream = stream or sys.stdout
     out = info["config"]["output"]["dir"]
     print(f"DEM:        {out}/dem.tif  (raw layers in {out}/raw/)", file=stream)
-    if "ortho" in info["stages"]:
-        print(f"orthoimage: {out}/ortho_left.tif", file=stream)
+    for name in sorted(o for o in info.get("outputs", []) if o.startswith("ortho_")):
+        print(f"orthoimage: {out}/{name}", file=stream)  # the left, and the right if asked
     if info.get("headline"):
         h = info["headline"]
         print(f"report:     {out}/assess/report.md", file=stream)

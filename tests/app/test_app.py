@@ -614,3 +614,28 @@ def test_clean_tiles_option_reaches_the_job(tmp_path, monkeypatch):
     toml.write_text(toml.read_text() + "[run]\nkeep_tiles = false\n")
     assert cli.main(["-q", "run", str(toml)]) == 1
     assert seen == [False, True, False]
+
+
+def test_summary_names_every_orthoimage_written():
+    """The closing lines of ``stereodem run`` list each orthoimage of run.json's outputs (the
+    right one too with ``[ortho] both``), not a fixed left one."""
+    import io
+
+    from stereodem.run_cli import summarize
+
+    info = {
+        "config": {"output": {"dir": "out"}},
+        "stages": {"ortho": {}},
+        "outputs": ["dem.tif", "ortho_left.tif", "ortho_right.tif", "run.json"],
+        "warnings": [],
+        "failed_tiles": [],
+        "seconds": 1.0,
+    }
+    buf = io.StringIO()
+    summarize(info, buf)
+    lines = [ln for ln in buf.getvalue().splitlines() if ln.startswith("orthoimage:")]
+    assert lines == ["orthoimage: out/ortho_left.tif", "orthoimage: out/ortho_right.tif"]
+    info["outputs"] = ["dem.tif", "run.json"]  # [ortho] enabled = false
+    buf = io.StringIO()
+    summarize(info, buf)
+    assert "orthoimage" not in buf.getvalue()
