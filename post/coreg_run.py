@@ -13,7 +13,6 @@ checked):
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +23,7 @@ from pyproj import Geod
 from pyproj.exceptions import ProjError
 from scipy import ndimage
 
-from stereodem.core import geodesy
+from stereodem.core import geodesy, jsonutil
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError, StereodemError, VerticalReferenceError
 from stereodem.core.raster import write_text_atomic
@@ -262,9 +261,7 @@ def run(
 
         files.update(chain_figures(chain, ref, dem, out, mask, out_dir, overwrite=overwrite))
     report["files"] = files
-    write_text_atomic(
-        out_dir / "coregistration.json", json.dumps(_clean(report), indent=1), overwrite=overwrite
-    )
+    write_text_atomic(out_dir / "coregistration.json", jsonutil.dumps(report), overwrite=overwrite)
     return report
 
 
@@ -332,19 +329,3 @@ def _point_residuals(points: AltimetryPoints, dem: DEM, out: DEM, mask) -> dict:
 
 def _f(v):
     return float(v) if np.isfinite(v) else None
-
-
-def _clean(obj):
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        return float(obj) if np.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj

@@ -8,13 +8,11 @@ from __future__ import annotations
 
 import base64
 import html as _html
-import json
 import logging
 import math
 from pathlib import Path
 
-import numpy as np
-
+from stereodem.core import jsonutil
 from stereodem.core.raster import prepare_output_dir, write_text_atomic
 
 from . import figures
@@ -28,22 +26,6 @@ FIGURES = {
     "histogram": "histogram.png",
     "error_vs_slope": "error_vs_slope.png",
 }
-
-
-def _clean(obj):
-    """JSON-ready copy: NaN/inf -> None, numpy scalars -> Python."""
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
 
 
 def _fmt(v, nd=2):
@@ -355,13 +337,15 @@ def write_report(
     if provenance:
         rep["provenance"] = provenance
     files["json"] = write_text_atomic(
-        out / "report.json", json.dumps(_clean(rep), indent=2), overwrite=overwrite
+        out / "report.json", jsonutil.dumps(rep, indent=2), overwrite=overwrite
     )
     files["markdown"] = write_text_atomic(
-        out / "report.md", markdown(_clean(rep), rel), overwrite=overwrite
+        out / "report.md", markdown(jsonutil.json_ready(rep), rel), overwrite=overwrite
     )
     files["html"] = write_text_atomic(
-        out / "report.html", html_report(_clean(rep), figure_paths), overwrite=overwrite
+        out / "report.html",
+        html_report(jsonutil.json_ready(rep), figure_paths),
+        overwrite=overwrite,
     )
     log.info("report written to %s", out)
     return files

@@ -28,7 +28,6 @@ hold the per-DEM co-registration reports (JSON text, ``dem_reports``).
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -36,6 +35,7 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
+from stereodem.core import jsonutil
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
 from stereodem.sensor.simulation.multidate import decimal_year
@@ -166,13 +166,16 @@ def write_date(path, index: int, heights, mask, sigma: float):
 
 
 def set_attrs(path, **attrs):
-    """Add dataset attributes to the store (values JSON-encoded when not plain strings)."""
+    """Add dataset attributes to the store: strings and numbers as they are (a non-finite
+    number as null), anything else as a strict JSON string (:mod:`stereodem.core.jsonutil`)."""
     import zarr
 
     g = zarr.open_group(str(path), mode="r+")
     g.attrs.update(
         {
-            k: v if isinstance(v, (str, int, float)) else json.dumps(v, default=float)
+            k: jsonutil.json_ready(v)
+            if isinstance(v, (str, int, float))
+            else jsonutil.dumps(v, indent=None).rstrip("\n")
             for k, v in attrs.items()
         }
     )

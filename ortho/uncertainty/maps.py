@@ -16,7 +16,6 @@ surface, ``σ_v² = σ_h,int² + (∂h/∂E σ_E)² + (∂h/∂N σ_N)²``.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from stereodem.core import geodesy
+from stereodem.core import geodesy, jsonutil
 from stereodem.core.dem import ELLIPSOID, write_layer
 from stereodem.core.errors import InputError
 from stereodem.core.raster import write_geotiff, write_text_atomic
@@ -171,7 +170,7 @@ class UncertaintyMaps:
         doc["dominant_source_codes"] = {i: s for i, s in enumerate(self.sources)}
         paths.append(
             write_text_atomic(
-                out / "sensitivity.json", json.dumps(doc, indent=2) + "\n", overwrite=overwrite
+                out / "sensitivity.json", jsonutil.dumps(doc, indent=2), overwrite=overwrite
             )
         )
         return paths

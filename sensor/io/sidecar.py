@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core import jsonutil
 from stereodem.core.errors import RPCError, SensorModelError
 from stereodem.core.raster import write_text_atomic
 from stereodem.sensor.io.rpc_formats import read_rpc
@@ -108,7 +109,7 @@ def model_from_dict(d: dict, source=None):
 
 def save_model(model, path, *, overwrite=False):
     """Write a model to a JSON sidecar (atomically)."""
-    return write_text_atomic(path, json.dumps(model_to_dict(model), indent=1), overwrite=overwrite)
+    return write_text_atomic(path, jsonutil.dumps(model_to_dict(model)), overwrite=overwrite)
 
 
 def load_model(path, *, rpc_direct: bool = False):

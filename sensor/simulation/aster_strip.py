@@ -26,8 +26,8 @@ from __future__ import annotations
 import copy
 import dataclasses
 import datetime as _dt
-import json
 
+from stereodem.core import jsonutil
 from stereodem.core.errors import InputError
 from stereodem.core.raster import write_text_atomic
 from stereodem.sensor.simulation.aster_granule import (
@@ -184,7 +184,7 @@ def write_strip(strip: SimulatedStrip, out, *, overwrite: bool = False, version:
         overlap_3N=strip.heights[0] - strip.advance,
         row_step=strip.row_step,
     )
-    write_text_atomic(folder / "strip.json", json.dumps(cut, indent=2) + "\n", overwrite=overwrite)
+    write_text_atomic(folder / "strip.json", jsonutil.dumps(cut, indent=2), overwrite=overwrite)
     return paths
 
 

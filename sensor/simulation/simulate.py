@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import logging
 from dataclasses import dataclass, field
 from importlib import resources
@@ -49,7 +48,7 @@ import rasterio
 from affine import Affine
 from rasterio.warp import Resampling, reproject
 
-from stereodem.core import geodesy
+from stereodem.core import geodesy, jsonutil
 from stereodem.core.dem import DEM, ELLIPSOID, as_dem
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
@@ -1086,7 +1085,5 @@ def write_scene(
         creation_options=TRUTH_CO,
     )
     write_text_atomic(out / "points.csv", points_csv(scene.points), overwrite=overwrite)
-    write_text_atomic(
-        out / "scene.json", json.dumps(meta, indent=2, default=float), overwrite=overwrite
-    )
+    write_text_atomic(out / "scene.json", jsonutil.dumps(meta, indent=2), overwrite=overwrite)
     return out

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import tomllib
 
+from stereodem.core import jsonutil
 from stereodem.core.errors import InputError, OutputExistsError, StereodemError
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import check_creatable, write_text_atomic
@@ -408,9 +409,7 @@ def _write_table(out_root, scenes, rows, table, seconds) -> dict:
         "summary": counts,
         "scenes": listed,
     }
-    write_text_atomic(
-        Path(out_root) / STATUS_FILE, json.dumps(result, indent=1) + "\n", overwrite=True
-    )
+    write_text_atomic(Path(out_root) / STATUS_FILE, jsonutil.dumps(result), overwrite=True)
     return result
 
 

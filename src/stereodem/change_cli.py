@@ -5,9 +5,9 @@ the rate and its σ (``change.json``)."""
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 
+from stereodem.core import jsonutil
 from stereodem.core.vertical import VERTICALS
 
 from . import options
@@ -136,9 +136,7 @@ def run(args) -> int:
             units="metre",
             creation_options=co,
         )
-        write_text_atomic(
-            out / "change.json", json.dumps(info, indent=1, default=float), overwrite=True
-        )
+        write_text_atomic(out / "change.json", jsonutil.dumps(info), overwrite=True)
     s = res["stats_stable"]
     options.say(
         f"stereodem change: {out}/dh.tif, dh_sigma.tif; stable terrain median "

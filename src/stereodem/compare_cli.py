@@ -3,8 +3,9 @@ the same independent check points (:mod:`stereodem.sensor.estimation.compare`)."
 
 from __future__ import annotations
 
-import json
 import logging
+
+from stereodem.core import jsonutil
 
 from .commands import help_line
 
@@ -90,9 +91,7 @@ def run(args) -> int:
     records = compare(
         base, points, models, counts, n_check=args.n_check, seed=args.seed, sigma_px=args.sigma_px
     )
-    write_text_atomic(
-        out / "compare.json", json.dumps(records, indent=1, default=float), overwrite=args.overwrite
-    )
+    write_text_atomic(out / "compare.json", jsonutil.dumps(records), overwrite=args.overwrite)
     write_text_atomic(out / "compare.md", markdown(records), overwrite=args.overwrite)
     figure(records, out / "compare.png")
     if args.splits:
@@ -110,15 +109,13 @@ def run(args) -> int:
         summary = split_summary(recs)
         write_text_atomic(
             out / "splits.json",
-            json.dumps(
+            jsonutil.dumps(
                 {
                     "reference": args.reference,
                     "splits": args.splits,
                     "summary": summary,
                     "records": recs,
-                },
-                indent=1,
-                default=float,
+                }
             ),
             overwrite=args.overwrite,
         )

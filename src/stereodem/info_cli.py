@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 from .commands import help_line
 
@@ -61,7 +60,9 @@ def run(args) -> int:
 
     s = granule_summary(open_aster_granule(args.granule, bands=()))
     if args.json:
-        print(json.dumps(s, indent=2, default=str))
+        from stereodem.core import jsonutil
+
+        print(jsonutil.dumps(s, indent=2), end="")
         return 0
     md = s["metadata"]
     print(f"{s['granule']}: {s['product']}, granule {md['granule_id']}")

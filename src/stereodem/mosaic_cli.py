@@ -17,10 +17,10 @@ number of DEMs overlapping one block, not by the mosaic's size (``--block``).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
+from stereodem.core import jsonutil
 from stereodem.core.vertical import VERTICALS
 
 from . import options
@@ -180,9 +180,7 @@ def run(args) -> int:
         inputs=[str(p) for p in args.dems],
         reference=args.ref,
     )
-    write_text_atomic(
-        rep, json.dumps(report, indent=2, default=str) + "\n", overwrite=args.overwrite
-    )
+    write_text_atomic(rep, jsonutil.dumps(report, indent=2), overwrite=args.overwrite)
     g = plan.grid
     options.say(
         f"stereodem mosaic: {out}: {report['n_used']} of {report['n_inputs']} DEMs, "

@@ -23,7 +23,6 @@ points, pointing correction, heights) and its agreement with the fused DEM.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -31,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.core import geodesy
+from stereodem.core import geodesy, jsonutil
 from stereodem.core.errors import InputError, StereodemError
 from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import job_threads
@@ -284,7 +283,7 @@ def run_dem(cfg: Config, *, started=None, progress=None) -> tuple:
         )
         write_text_atomic(
             out / "dem_report.json",
-            json.dumps(report, indent=2, default=str) + "\n",
+            jsonutil.dumps(report, indent=2),
             overwrite=True,
         )
     bad = [w for w in prod.report["warnings"] if w.get("severity") == "suspect"]

@@ -5,11 +5,11 @@ stack (``OUT/stack.zarr``), elevation-change rates with σ (``rate.tif``, ``rate
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import time
 
+from stereodem.core import jsonutil
 from stereodem.core.vertical import VERTICALS
 
 from . import options
@@ -215,7 +215,7 @@ def run(args) -> int:
         + ([args.outlines] if args.outlines else [])
     )
     with output_folder(args.out, overwrite=args.overwrite, inputs=inputs) as out:
-        write_text_atomic(out / "stack.json", json.dumps({"status": "running"}), overwrite=True)
+        write_text_atomic(out / "stack.json", jsonutil.dumps({"status": "running"}), overwrite=True)
         # processes pay off on scene-sized DEMs only (each starts a Python: ~1-2 s)
         build_workers = workers if ref.heights.size >= PARALLEL_BUILD_CELLS else 1
         with options.progress_bar("stack") as bar:
@@ -279,24 +279,20 @@ def run(args) -> int:
             )
             write_text_atomic(
                 out / "volumes.json",
-                json.dumps(
+                jsonutil.dumps(
                     dict(
                         outlines=str(args.outlines),
                         variogram=model.to_dict(),
                         standardised_rate_nmad_stable=znmad,
                         polygons=vols,
-                    ),
-                    indent=1,
-                    default=float,
+                    )
                 ),
                 overwrite=True,
             )
             summary["volumes"] = [
                 {k: v for k, v in r.items() if k != "hypsometric_bands"} for r in vols
             ]
-        write_text_atomic(
-            out / "stack.json", json.dumps(summary, indent=1, default=float), overwrite=True
-        )
+        write_text_atomic(out / "stack.json", jsonutil.dumps(summary), overwrite=True)
     s = summary["rate_stable"]
     options.say(
         f"stereodem stack: {len(records)} DEMs -> {out}/stack.zarr, rate.tif "

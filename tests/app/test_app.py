@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+from helpers.strict_json import strict_loads
 
 import stereodem.stereo.pipeline as sp
 from stereodem import cli
@@ -66,6 +67,9 @@ def test_run_writes_products_and_run_json(scene_dir, tmp_path):
     rj = json.loads((out / "run.json").read_text())
     # the tile cache is kept by default (for --resume) and listed with the outputs
     assert "tiles" in rj["outputs"] and list((out / "tiles").glob("tile_*.npz"))
+    # every JSON file of the job is strict JSON (jq, JavaScript): no NaN or Infinity
+    for f in out.rglob("*.json"):
+        strict_loads(f.read_text())
     assert set(rj["stages"]) >= {"load", "stereo", "post", "ortho", "assess"}
     assert all(s["seconds"] >= 0 and s["peak_rss_mb"] > 0 for s in rj["stages"].values())
     # CPU seconds per stage: the stereo stage's matching is work of this process or its workers

@@ -2,11 +2,11 @@
 models on one GCP/ICP split)."""
 
 import csv
-import json
 
 import numpy as np
 import pytest
 from helpers.orbital import aster_scene, control_points
+from helpers.strict_json import strict_loads
 
 from stereodem.cli import main
 from stereodem.core.raster import write_geotiff
@@ -55,7 +55,7 @@ def test_compare_models_table_json_figure(image, tmp_path, capsys):
         ]
     )
     assert rc == 0
-    rec = json.loads((out / "compare.json").read_text())
+    rec = strict_loads((out / "compare.json").read_text())
     assert (out / "compare.md").exists() and (out / "compare.png").stat().st_size > 10000
     by = {(r["model"], r["n_gcp"]): r for r in rec}
     for k in ("model", "n_params", "gcp_rmse_px", "icp_rmse_px", "sigma0", "condition"):
@@ -131,7 +131,8 @@ def test_compare_models_over_random_splits(image, tmp_path):
         ]
     )
     assert rc == 0
-    res = json.loads((out / "splits.json").read_text())
+    # strict JSON: a model with no ratio (undefined) is null, not NaN (which jq refuses)
+    res = strict_loads((out / "splits.json").read_text())
     assert res["reference"] == "attitude-bias-drift" and res["splits"] == 3
     by = {(s["model"], s["n_gcp"]): s for s in res["summary"]}
     assert by[("attitude-bias-drift", 10)]["median_ratio"] == 1.0

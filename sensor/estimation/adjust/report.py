@@ -3,11 +3,11 @@ of the residual vectors over the image (``adjust_residuals.png``)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from stereodem.core import jsonutil
 from stereodem.core.raster import atomic_path, check_writable, write_text_atomic
 
 __all__ = ["write_report", "markdown", "residual_figure", "REPORT_NAME"]
@@ -213,9 +213,7 @@ def write_report(result, out_dir, *, overwrite: bool = False, prefix: str = "adj
             title=f"{tag}: residuals (model − measured)" if tag else None,
         )
         fig_names.append(name)
-    write_text_atomic(
-        paths["json"], json.dumps(rep, indent=1, allow_nan=False), overwrite=overwrite
-    )
+    write_text_atomic(paths["json"], jsonutil.dumps(rep), overwrite=overwrite)
     write_text_atomic(
         paths["markdown"],
         markdown(rep, fig_names[0] if len(fig_names) == 1 else None)

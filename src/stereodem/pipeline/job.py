@@ -21,7 +21,6 @@ Output folder of :func:`run`::
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from collections.abc import Callable
@@ -31,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core import jsonutil
 from stereodem.core.dem import edit_mask_path
-from stereodem.core.jsonutil import json_default
 from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import job_threads, lower_thread_priority, thread_budget
 from stereodem.post.coreg_run import track_tags
@@ -364,9 +363,7 @@ def _run_stages(job: Job) -> dict:
         outputs=sorted(written),
         headline=headline(report),
     )
-    write_text_atomic(
-        out / "run.json", json.dumps(run_info, indent=1, default=json_default), overwrite=True
-    )
+    write_text_atomic(out / "run.json", jsonutil.dumps(run_info), overwrite=True)
     if suspect:
         suspect_error(cfg, products, out / "run.json")
     return run_info

@@ -4,13 +4,13 @@
 
 from __future__ import annotations
 
-import json
 import logging
 
 import numpy as np
 import rasterio
 import rasterio.warp
 
+from stereodem.core import jsonutil
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
@@ -115,7 +115,7 @@ def write_dem_report(out, products, failed, pair: Pair, started, cloud, *, left,
     )
     write_text_atomic(
         out / "dem_report.json",
-        json.dumps(report, indent=2, default=str) + "\n",
+        jsonutil.dumps(report, indent=2),
         overwrite=True,
     )
 
