@@ -208,11 +208,12 @@ def test_file_alone_keeps_its_crs_when_the_side_car_is_lost(tmp_path, writer, ho
     with rasterio.open(alone) as ds:
         assert ds.crs is not None and ds.transform == t
         epsg = CRS(horizontal).to_3d().to_epsg() if horizontal == "EPSG:4326" else None
-        assert ds.crs.to_epsg() == (epsg or CRS(horizontal).to_epsg())
+        # GDAL reads NZTM's keys with easting first and an unnamed conversion: the same CRS,
+        # identified with less confidence (GDAL 3.6 below 70 %)
+        got = CRS.from_wkt(ds.crs.to_wkt()).to_epsg(min_confidence=20)
+        assert got == (epsg or CRS(horizontal).to_epsg())
     back = DEM.from_file(alone)
     assert back.vertical == ELLIPSOID
-    # GDAL reads NZTM's keys with easting first and an unnamed conversion: the same CRS,
-    # identified with less confidence
     assert back.crs.to_epsg(min_confidence=20) == CRS(horizontal).to_epsg()
     assert np.array_equal(back.heights, data, equal_nan=True)
 
