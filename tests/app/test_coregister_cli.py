@@ -54,6 +54,7 @@ def files(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_coregister_writes_dem_json_and_figures(files, capsys):
     out = files / "out"
     rc = main(

@@ -130,6 +130,7 @@ def test_check_file_refuses_what_from_file_refuses(tmp_path):
         DEM.check_file(tmp_path / "whole.tif", band=2)
 
 
+@pytest.mark.slow
 def test_write_round_trip_keeps_vertical_reference(tmp_path):
     dem = DEM.bundled()
     out = dem.to_reference("ellipsoid").write(tmp_path / "e.tif")

@@ -96,6 +96,7 @@ def test_deflate_level_defaults_to_the_fastest_unless_given():
         assert "LEVEL" not in cog_creation_options("uint8", compress=other)
 
 
+@pytest.mark.slow
 def test_a_cog_write_lets_the_other_threads_run(tmp_path):
     """The background writer overlaps the next stage only if GDAL compresses with the GIL
     released. Closing a dataset opened with ``driver="COG"`` copies it to the COG holding

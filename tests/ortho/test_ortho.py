@@ -178,6 +178,7 @@ def test_concurrent_orthos_equal_the_serial_ones(rendered):
     assert [d for d, _ in calls] == sorted(d for d, _ in calls)
 
 
+@pytest.mark.slow
 def test_concurrent_orthos_share_one_pool_of_block_threads(rendered, monkeypatch):
     """With a budget of 2 threads for 2 orthoimages, each one's row blocks run on both
     threads of one shared pool (not on one thread each: the larger one then finished alone

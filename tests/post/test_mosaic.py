@@ -367,6 +367,7 @@ def test_dems_outside_the_extent_are_named_and_skipped(tmp_path, capsys):
     assert plan.report["islands"] == [str(far)] and plan.report["n_used"] == 3
 
 
+@pytest.mark.slow
 def test_bad_inputs_are_one_line_errors_and_write_nothing(tmp_path, capsys):
     a = write_dem(tmp_path / "a.tif", 0, 0, 50, 50)
     garbage = tmp_path / "garbage.tif"

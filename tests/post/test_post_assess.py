@@ -284,6 +284,7 @@ def test_figures_crop_as_bbox_inches_tight_pixel_for_pixel(ref, simulated, monke
         plt.close(fig)
 
 
+@pytest.mark.slow
 def test_colours_as_bytes_draw_as_float_colours_with_nearest_cells():
     """hillshade_png hands matplotlib its colours as bytes, (rgba · 255) cast as matplotlib
     casts float colours after resampling to the nearest cell: the PNG is the same."""

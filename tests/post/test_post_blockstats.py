@@ -393,6 +393,7 @@ def test_class_accumulator_groups_as_the_one_class_at_a_time_statistics():
                 assert g["slope_mean"] == pytest.approx(w["slope_mean"], rel=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("crs", ["EPSG:32636", "EPSG:4326"])
 def test_slope_of_some_rows_equals_the_whole_grid_slope(crs):
     from stereodem.post import terrain

@@ -99,6 +99,7 @@ def _legend_ok(ax):
     return leg is not None and all(lab in labels for lab in lines)
 
 
+@pytest.mark.slow
 def test_maps_have_coordinates_scale_bar_colour_bar_and_transparent_voids(pair, tmp_path, captured):
     dem, ref = pair
     p = figures.hillshade_png(

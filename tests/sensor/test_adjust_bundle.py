@@ -171,6 +171,7 @@ def test_bundle_schur_equals_dense(data_dir):
     np.testing.assert_allclose(a.tie_std_m, b.tie_std_m, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_bundle_rejects_tie_blunders(pair):
     """Five mismatched ties (4 px across track, the testable direction of an along-track pair)
     are rejected by tie snooping and no good one is."""

@@ -212,6 +212,7 @@ def test_pushbroom_blunder_flagged(pushbroom):
     assert np.all(np.abs(_z(res, truth)) < 4)
 
 
+@pytest.mark.slow
 def test_aster_real_geometry_attitude_bias():
     """The bundled real ASTER 3N geometry (ASP XML) with an injected attitude bias."""
     model = AsterModel.from_xml(bundled_xml("3N"))

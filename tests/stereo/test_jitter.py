@@ -245,6 +245,7 @@ def test_simulator_injects_roll_and_pitch_jitter():
         simulate_scene("aster", size=(64, 64), roll_jitter=(5.0, 0.0))
 
 
+@pytest.mark.slow
 def test_cli_simulate_roll_jitter(tmp_path):
     assert (
         cli.main(

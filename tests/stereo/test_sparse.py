@@ -322,6 +322,7 @@ def test_real_rpc_geometry_over_steep_terrain_far_from_the_height_offset():
     assert abs(st.pointing.parameters["col_shift"]) < 0.05  # no pointing error simulated
 
 
+@pytest.mark.slow
 def test_repeatable(scene):
     a = sparse_matches(scene.left, scene.right, scene.left_model, scene.right_model)
     b = sparse_matches(scene.left, scene.right, scene.left_model, scene.right_model)
@@ -356,6 +357,7 @@ def test_zncc_scores_equal_direct_correlation_with_voids():
     assert (got[2:].reshape(n - 2, -1).argmax(1) == 3 * k + 6).all()  # the true shift wins
 
 
+@pytest.mark.slow
 def test_keypoints_on_two_threads_equal_the_serial_ones(scene):
     # the two images are detected concurrently when the budget allows: same matches
     a = sparse_matches(scene.left, scene.right, scene.left_model, scene.right_model, threads=1)
