@@ -209,7 +209,7 @@ def geotiff_crs(crs):
     PAM side-car (``.aux.xml``), or None.
 
     A projected CRS with ellipsoidal heights (a projected CRS promoted to 3-D) has no GeoTIFF
-    encoding: GDAL then writes it in the side-car only (the geotransform too), and the file
+    encoding: GDAL then writes it in the side-car only and no CRS keys in the file, which
     alone has no CRS at all (GDAL issue 9741), so a DEM copied, uploaded or read from object
     storage without its side-car would lose its georeferencing. Such a CRS goes to the keys as
     its horizontal part, so that the file alone is georeferenced (its heights' reference is

@@ -224,12 +224,13 @@ def comparison_stats(
 _COMPARE_EDGES = 16
 
 
-def class_codes(v, edges) -> tuple[np.ndarray, np.ndarray]:
+def class_codes(v, edges, *, counts: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """The bin of each cell of ``v`` among ``edges`` (bins ``[e_i, e_i+1)``, the last one
     closed, as :func:`~stereodem.post.stats.binned_stats`) and the number of cells per bin.
 
     Returns ``codes`` (the shape of ``v``, :func:`_code_type` of the bins;
-    -1 for cells outside the bins or not finite) and ``counts`` (int64, one per bin)."""
+    -1 for cells outside the bins or not finite) and ``counts`` (int64, one per bin; None
+    with ``counts=False``: the assessment counts its classes in the footprint instead)."""
     e = np.asarray(edges, dtype=np.float64)
     n_bins = e.size - 1
     inside = np.isfinite(v)
@@ -242,6 +243,8 @@ def class_codes(v, edges) -> tuple[np.ndarray, np.ndarray]:
     else:
         codes = np.searchsorted(e[1:-1], v, side="right").astype(_code_type(n_bins))
     np.copyto(codes, -1, where=~inside)
+    if not counts:
+        return codes, None
     if n_bins <= _COMPARE_EDGES:  # a count per bin is cheaper than bincount's int64 copy
         counts = np.array([np.count_nonzero(codes == i) for i in range(n_bins)], np.int64)
     else:
@@ -270,12 +273,12 @@ class _ClassAccumulator:
             self.stats[key], self.n_total[key], self.var_sum[key] = StreamingStats(), 0, 0.0
         return self.stats[key]
 
-    def add(self, keys, n_cls, x, codes, v):
-        """Add a block already classed: ``keys`` the classes, ``n_cls`` the block's cells of
-        each (whatever ``dh``), and at the cells of finite difference, in the block's order:
-        ``x`` the differences (float64, m), ``codes`` their class (index into ``keys``, -1:
-        none) and ``v`` the class variable. The cells are grouped by class with one stable
-        sort of their codes, so each class sees its cells in the block's order."""
+    def add(self, keys, x, codes, v):
+        """Add a block already classed: ``keys`` the classes, and at the cells of finite
+        difference, in the block's order: ``x`` the differences (float64, m), ``codes``
+        their class (index into ``keys``, -1: none) and ``v`` the class variable. The cells
+        are grouped by class with one stable sort of their codes, so each class sees its
+        cells in the block's order. The classes' cell counts come from :meth:`set_totals`."""
         order = np.argsort(codes, kind="stable")  # a radix sort for 8-/16-bit codes
         sorted_codes = codes[order]
         x, v = x[order], v[order]
@@ -284,13 +287,13 @@ class _ClassAccumulator:
         for i, key in enumerate(keys):
             k = int(key) if self.edges is not None else float(key)
             acc = self._entry(k)
-            self.n_total[k] += int(n_cls[i])
             acc.add_finite(x[bounds[i] : bounds[i + 1]])
             self.var_sum[k] += float(v[bounds[i] : bounds[i + 1]].sum(dtype=np.float64))
 
     def set_totals(self, counts: dict) -> None:
         """Replace each class's cell count (``valid_pct``'s denominator) by ``counts[key]``
-        (0 for a class not in it): the cells of the class inside the DEM's footprint."""
+        (0 for a class not in it): the cells of the class inside the DEM's footprint, known
+        once every block is in (:func:`blockwise_comparison`)."""
         for key in self.n_total:
             self.n_total[key] = int(counts.get(key, 0))
 
@@ -333,13 +336,13 @@ class _ClassAccumulator:
 
 
 def _value_codes(v):
-    """Classes of a land-cover block ``v`` (float, NaN for none): the class values found,
-    each cell's index into them (-1: none) and the number of cells of each."""
+    """Classes of a land-cover block ``v`` (float, NaN for none): the class values found and
+    each cell's index into them (-1: none)."""
     fin = np.isfinite(v)
     keys, inverse = np.unique(v[fin], return_inverse=True)
     codes = np.full(v.shape, -1, _code_type(keys.size))
     codes[fin] = inverse.ravel()
-    return keys, codes, np.bincount(inverse.ravel(), minlength=keys.size)
+    return keys, codes
 
 
 def _row_blocks(n_rows: int, block_rows: int):
@@ -447,13 +450,13 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
     else:
         b.overall.add_finite(dh)
         b.fit.add_finite(dh[fit_ok], slope_b[fit_ok])
-    codes, n_cls = class_codes(slope, slope_edges)
+    codes, _ = class_codes(slope, slope_edges, counts=False)
     keys = np.arange(slope_edges.size - 1)
-    b.by_slope.add(keys, n_cls, dh, codes[both], slope_b)
+    b.by_slope.add(keys, dh, codes[both], slope_b)
     b.classes["slope"] = codes
-    codes, n_cls = class_codes(rb, elev_edges)
+    codes, _ = class_codes(rb, elev_edges, counts=False)
     keys = np.arange(elev_edges.size - 1)
-    b.by_elev.add(keys, n_cls, dh, codes[both], ref_b)
+    b.by_elev.add(keys, dh, codes[both], ref_b)
     b.classes["elevation"] = codes
     if lc is not None:
         cls = warp.to_grid(
@@ -466,8 +469,8 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
             resampling="nearest",
             dst_dtype=np.float64,
         )
-        keys, codes, n_cls = _value_codes(cls)
-        b.by_lc.add(keys, n_cls, dh, codes[both], cls[both])
+        keys, codes = _value_codes(cls)
+        b.by_lc.add(keys, dh, codes[both], cls[both])
         b.classes["landcover"] = (keys, codes)
     s0 = (-r0) % k
     zd, rd = z[s0::k, ::k], rb[s0::k, ::k]
@@ -580,6 +583,8 @@ def blockwise_comparison(
     # the cells of each class inside the footprint: valid_pct per class is the share of valid
     # cells where the DEM could have data, as the overall one (not diluted by the class's
     # cells of the reference beyond the DEM)
+    n_classes = {"slope": slope_edges.size - 1, "elevation": elev_edges.size - 1}
+
     def counts(i):  # the footprint's cells in block i, and per class
         (r0, r1), cls = blocks[i], classes[i]
         inside = mask[r0:r1].view(bool) | np.unpackbits(fin_bits[i], axis=1, count=cols).view(bool)
@@ -589,7 +594,7 @@ def blockwise_comparison(
         for name, codes in cls.items():
             values, codes = codes if name == "landcover" else (None, codes)
             np.copyto(codes, -1, where=outside)  # the block's own codes: nobody else reads them
-            n = len(values) if values is not None else (n_slope, n_elev)[name == "elevation"].size
+            n = n_classes[name] if values is None else len(values)
             if n <= _COMPARE_EDGES:  # a pass per class (byte compares) beats bincount's copy
                 got[name] = (values, [np.count_nonzero(codes == k) for k in range(n)])
             else:
@@ -597,8 +602,8 @@ def blockwise_comparison(
         return got
 
     n_total = 0
-    n_slope = np.zeros(slope_edges.size - 1, np.int64)
-    n_elev = np.zeros(elev_edges.size - 1, np.int64)
+    n_slope = np.zeros(n_classes["slope"], np.int64)
+    n_elev = np.zeros(n_classes["elevation"], np.int64)
     n_lc: dict = {}
     with ThreadPoolExecutor(max(1, threads)) as ex:  # element-wise passes: the GIL released
         for got in ex.map(counts, range(len(blocks))):

@@ -618,6 +618,9 @@ def test_clean_tiles_option_reaches_the_job(tmp_path, monkeypatch):
     toml.write_text(toml.read_text() + "[run]\nkeep_tiles = false\n")
     assert cli.main(["-q", "run", str(toml)]) == 1
     assert seen == [False, True, False]
+    toml.write_text(toml.read_text().replace("keep_tiles = false", 'keep_tiles = "no"'))
+    assert cli.main(["-q", "run", str(toml)]) == 1  # a one-line error, the job not started
+    assert seen == [False, True, False]
 
 
 def test_summary_names_every_orthoimage_written():
