@@ -26,7 +26,7 @@ import numpy as np
 from affine import Affine
 from scipy import sparse
 
-from stereodem.core import geodesy
+from stereodem.core import geodesy, localfit
 from stereodem.core.blocks import each_band
 from stereodem.core.dem import DEM, ELLIPSOID, GEOID
 from stereodem.core.errors import InputError
@@ -152,7 +152,8 @@ def accumulate(spec: GridSpec, lon, lat, h, *, score=None, ray_gap=None, xy=None
     if h.size == 0:
         return empty
     if xy is None:
-        x, y = geodesy.lonlat_to_crs(lon, lat, spec.crs)
+        tol = geodesy.metres_in_crs(localfit.TILE_TOLERANCE_M, spec.crs)
+        x, y = geodesy.lonlat_to_crs(lon, lat, spec.crs, tolerance=tol)
     else:
         x, y = (np.asarray(v, np.float64).ravel()[ok] for v in xy)
     if spec.geoid:

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from pyproj import CRS
 
-from stereodem.core import geodesy
+from stereodem.core import geodesy, localfit
 from stereodem.core.dem import DEM, as_dem
 from stereodem.core.errors import InputError
 from stereodem.core.jsonutil import json_default
@@ -305,7 +305,7 @@ def tile_points(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Til
     c2, r2 = epipolar.apply_map(np.linalg.inv(et.H_right), u - d, v - vert)
     keep = tile.contains(c1, r1)
     c1, r1, c2, r2, score = c1[keep], r1[keep], c2[keep], r2[keep], score[keep]
-    pts = intersect_matches(L, R, c1, r1, c2, r2)
+    pts = intersect_matches(L, R, c1, r1, c2, r2, tolerance_m=localfit.TILE_TOLERANCE_M)
     ok = np.isfinite(pts.h) & (pts.ray_gap <= inputs.max_ray_gap)
     ok &= (pts.h >= hr[0] - rect.height_margin) & (pts.h <= hr[1] + rect.height_margin)
     t3 = time.perf_counter()

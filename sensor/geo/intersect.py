@@ -77,7 +77,9 @@ def intersect_rays(o1, d1, o2, d2):
     return 0.5 * (p1 + p2), np.sqrt(dot(gap, gap))
 
 
-def intersect_matches(left, right, col1, row1, col2, row2) -> Intersection:
+def intersect_matches(
+    left, right, col1, row1, col2, row2, *, tolerance_m: float | None = None
+) -> Intersection:
     """Intersect the lines of sight of matched pixels of two sensor models.
 
     Parameters
@@ -86,6 +88,10 @@ def intersect_matches(left, right, col1, row1, col2, row2) -> Intersection:
         Exact models of the two images.
     col1, row1, col2, row2 : array_like (N,)
         Matched pixel coordinates in the left and right images (pixel centres at integers).
+    tolerance_m : float, optional
+        Geodetic coordinates of many points in a small extent may come from a polynomial
+        checked against PROJ within this many metres
+        (:func:`stereodem.core.geodesy.ecef_to_geodetic`); None: PROJ for every point.
 
     Returns
     -------
@@ -95,5 +101,8 @@ def intersect_matches(left, right, col1, row1, col2, row2) -> Intersection:
     o1, d1 = left.rays(col1, row1)
     o2, d2 = right.rays(col2, row2)
     p, gap = intersect_rays(o1, d1, o2, d2)
-    lon, lat, h = geodesy.ecef_to_geodetic(p[:, 0], p[:, 1], p[:, 2]) if len(p) else (p[:, 0],) * 3
+    if len(p):
+        lon, lat, h = geodesy.ecef_to_geodetic(p[:, 0], p[:, 1], p[:, 2], tolerance_m=tolerance_m)
+    else:
+        lon = lat = h = p[:, 0]
     return Intersection(p, np.asarray(lon), np.asarray(lat), np.asarray(h), gap)
