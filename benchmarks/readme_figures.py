@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 from pathlib import Path
 
@@ -641,6 +642,25 @@ def nuth_kaab(d):
     )
 
 
+def tile(d):
+    rows = d["tiles"]
+    cpu = ", ".join(f"{r['cpu_ms']:.0f}" for r in rows)
+    parts = {k: statistics.median(r["parts_ms"][k] for r in rows) for k in rows[0]["parts_ms"]}
+    c = d["conversions"]
+    g, u = c["ecef_to_geodetic"], c["geodetic_to_dem_crs"]
+    return (
+        f"One stereo tile of the full simulated granule (`benchmarks/bench_tile.py`, "
+        f"{len(rows)} of its {d['n_tiles']} tiles, 1 thread, medians of {d['repeat']}): "
+        f"{cpu} ms CPU per tile; parts (median over the tiles, ms): "
+        + ", ".join(f"{k} {v:.0f}" for k, v in parts.items())
+        + f". On one tile's {c['n_points']} points, PROJ vs its checked polynomial stand-in "
+        f"(`core/localfit.py`, tolerance {c['tolerance_m'] * 1000:g} mm): ECEF → geodetic "
+        f"{g['proj_ms']:.1f} vs {g['localfit_ms']:.1f} ms ({g['ratio']:.1f}×), geodetic → UTM "
+        f"{u['proj_ms']:.1f} vs {u['localfit_ms']:.1f} ms ({u['ratio']:.1f}×); largest "
+        f"difference {max(g['max_difference_m'] + u['max_difference_m']) * 1e6:.1f} µm."
+    )
+
+
 SUMMARISERS = {
     "bench_demo": demo,
     "bench_rpc": rpc,
@@ -673,6 +693,7 @@ SUMMARISERS = {
     "bench_aster_strip": aster_strip,
     "bench_stack": stack,
     "bench_ortho_pair": ortho_pair,
+    "bench_tile": tile,
 }
 
 
@@ -780,6 +801,11 @@ BENCHMARKS = {
         "python benchmarks/bench_scaling.py --workers 1 2 --repeat 4 --results "
         "benchmarks/results/bench_scaling_full_forkserver.json",
         "the same job with 1 worker, same run",
+    ),
+    "bench_tile": (
+        "one stereo tile, its parts, PROJ vs core.localfit (issue 28)",
+        "python benchmarks/bench_tile.py",
+        "PROJ (pyproj) on the same points, same run",
     ),
     "bench_scaling_16_on_2": (
         "16 workers on this 2-core machine, full granule (issue 28, no 16-core machine lent)",
