@@ -40,6 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core.jsonutil import dumps as strict_json
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -190,7 +192,7 @@ def main():
         "target": "<= 2 s on 2 cores for 20 000 ties + 10 GCPs (issue #15)",
     }
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(out, indent=1))
+    Path(a.out).write_text(strict_json(out, indent=1))
     print(
         json.dumps(
             {

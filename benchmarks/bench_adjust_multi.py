@@ -20,12 +20,13 @@ Writes benchmarks/results/bench_adjust_multi.json (with the machine's load avera
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from pathlib import Path
 
 import numpy as np
+
+from stereodem.core.jsonutil import dumps as strict_json
 
 HERE = Path(__file__).resolve().parent
 TRIPLET = next(
@@ -146,7 +147,7 @@ def main():
         )
     out = HERE / "results" / "bench_adjust_multi.json"
     out.write_text(
-        json.dumps(
+        strict_json(
             {
                 "benchmark": "N-image bundle adjustment (rpc-shift, real Pleiades triplet RPCs)",
                 "target": "<= 3 s on 2 cores for 20 000 ties (issue 26)",

@@ -31,6 +31,8 @@ import sys
 import time
 from pathlib import Path
 
+from stereodem.core.jsonutil import dumps as strict_json
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
@@ -233,7 +235,7 @@ def main(argv=None):
         "times, see the load averages); cpu_seconds counts all threads of the process",
     }
     res_path = ROOT / "benchmarks" / "results" / "bench_aster_granule.json"
-    res_path.write_text(json.dumps(result, indent=2) + "\n")
+    res_path.write_text(strict_json(result, indent=2))
     print(json.dumps(result, indent=2))
 
 

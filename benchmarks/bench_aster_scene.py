@@ -45,6 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core.jsonutil import dumps as strict_json
+
 ROOT = Path(__file__).resolve().parents[1]
 MIRROR_CELLS = 300
 
@@ -323,7 +325,7 @@ def rerun(out: Path, workers):
             ),
             speedup_total=round(runs[1]["wall_s"] / runs[2]["wall_s"], 2),
         )
-    dest.write_text(json.dumps(result, indent=1, default=float))
+    dest.write_text(strict_json(result, indent=1))
     print(f"updated {dest}")
 
 
@@ -403,7 +405,7 @@ def main(argv=None):
     result["matcher"] = matcher_throughput(out / "scene")
     print(json.dumps({k: result[k] for k in ("bit_identical", "speedup_dem", "matcher")}, indent=1))
     dest = ROOT / "benchmarks" / "results" / "bench_aster_scene.json"
-    dest.write_text(json.dumps(result, indent=1, default=float))
+    dest.write_text(strict_json(result, indent=1))
     print(f"wrote {dest}")
 
 

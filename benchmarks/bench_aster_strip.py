@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core.jsonutil import dumps as strict_json
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -153,7 +155,7 @@ def main(argv=None):
         res["cpu_count"] = os.cpu_count()
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    Path(a.out).write_text(json.dumps(res, indent=2, default=float) + "\n")
+    Path(a.out).write_text(strict_json(res, indent=2))
     print(
         json.dumps(
             {

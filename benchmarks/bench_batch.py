@@ -29,6 +29,8 @@ import sys
 import time
 from pathlib import Path
 
+from stereodem.core.jsonutil import dumps as strict_json
+
 ROOT = Path(__file__).resolve().parents[1]
 DEST = ROOT / "benchmarks" / "results" / "bench_batch.json"
 SIZE = (600, 600)
@@ -156,7 +158,7 @@ def main(argv=None):
             "run"
         ),
     )
-    DEST.write_text(json.dumps(result, indent=1) + "\n")
+    DEST.write_text(strict_json(result, indent=1))
     print(
         json.dumps({k: result[k] for k in ("sum_of_single_runs_wall_s", "speedup_vs_single_runs")})
     )

@@ -53,6 +53,7 @@ if str(ROOT) not in stereodem.__path__:
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 from stereodem.core.dem import DEM  # noqa: E402
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.core.stats import nmad  # noqa: E402
 from stereodem.post import warp  # noqa: E402
 from stereodem.post.biascorr import NuthKaab, maximum_curvature  # noqa: E402
@@ -496,7 +497,7 @@ def main():
             str(OUT / "bench_coreg"),
         )
     results["load_avg_end"] = os.getloadavg()
-    (OUT / "bench_coreg.json").write_text(json.dumps(results, indent=1, default=float))
+    (OUT / "bench_coreg.json").write_text(strict_json(results, indent=1))
     print(
         json.dumps(
             {

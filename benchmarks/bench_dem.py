@@ -20,7 +20,6 @@ Usage: ``python benchmarks/bench_dem.py [--matcher sgm|ncc] [--out DIR]``
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -58,6 +57,7 @@ S2P_TIME = (
 HEIGHT_RANGE = (2100.0, 2600.0)
 
 
+from stereodem.core.jsonutil import dumps as strict_json  # noqa: E402
 from stereodem.core.stats import nmad  # noqa: E402
 
 
@@ -180,7 +180,7 @@ def main():
     out = HERE / "results" / "bench_dem.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(
-        json.dumps(
+        strict_json(
             dict(
                 pair=str(PAIR),
                 s2p_reference="expected_dsm.tif",

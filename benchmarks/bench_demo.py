@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core.jsonutil import dumps as strict_json
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -193,7 +195,7 @@ def main(argv=None):
         ),
     }
     dst = ROOT / "benchmarks" / "results" / "bench_demo.json"
-    dst.write_text(json.dumps(res, indent=1) + "\n")
+    dst.write_text(strict_json(res, indent=1))
     print(json.dumps({k: res[k] for k in ("default_seed_figures", "spread_over_seeds")}, indent=1))
     c = res["cog_writing"]
     print(

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import rasterio
 
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.stereo.match import (
     _sgbm,
     _to_uint8,
@@ -170,7 +171,7 @@ def main(argv=None):
         "load_average": [round(x, 2) for x in __import__("os").getloadavg()],
     }
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(result, indent=2) + "\n")
+    OUT.write_text(strict_json(result, indent=2))
     print(f"{'matcher':58s} {'s':>7s} {'Mpx.d/s':>8s} {'valid%':>7s} {'RMS px':>7s} {'bad1%':>6s}")
     for r in rows:
         print(

@@ -48,6 +48,8 @@ import rasterio
 from affine import Affine
 from rasterio.windows import Window
 
+from stereodem.core.jsonutil import dumps as strict_json
+
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 UTM = "EPSG:32637"
@@ -498,7 +500,7 @@ def main(argv=None):
         figure="benchmarks/results/bench_mosaic.png",
     )
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "bench_mosaic.json").write_text(json.dumps(result, indent=2) + "\n")
+    (RESULTS / "bench_mosaic.json").write_text(strict_json(result, indent=2))
     print(json.dumps(dict(memory=result["memory"], seams=seams, accuracy=acc), indent=1))
     return 0
 

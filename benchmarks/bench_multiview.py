@@ -17,7 +17,6 @@ Usage: ``python benchmarks/bench_multiview.py [--workers N]``
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 import rasterio
 
 from stereodem.config import Config, InputSettings, RunSettings
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.core.stats import nmad
 from stereodem.multiview import multiview_stage
 from stereodem.stereo.fusion import FusionSettings, fuse_dems
@@ -169,7 +169,7 @@ def main():
     res = dict(runs=runs)
     out = HERE / "results" / "bench_multiview.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n")
+    out.write_text(strict_json(res, indent=2))
     print(f"wrote {out}")
 
 

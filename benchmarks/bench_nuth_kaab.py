@@ -30,6 +30,7 @@ from affine import Affine
 from rasterio.crs import CRS
 
 from stereodem.core.dem import DEM
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.core.threads import thread_budget
 from stereodem.post import biascorr
 from stereodem.post.coreg import CoregChain
@@ -136,7 +137,7 @@ def main(argv=None):
         "runs": runs,
     }
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(result, indent=2) + "\n")
+    OUT.write_text(strict_json(result, indent=2))
     print(f"wrote {OUT}")
 
 

@@ -19,10 +19,10 @@ Writes benchmarks/results/bench_orbital_splits.json and .md.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.sensor.estimation.compare import compare_splits, split_summary
 from stereodem.sensor.simulation.control_points import (
     aster_pair_scene,
@@ -76,7 +76,7 @@ def main():
         note="timings under contention (2 cores shared by several jobs)",
     )
     dest = ROOT / "benchmarks/results"
-    (dest / "bench_orbital_splits.json").write_text(json.dumps(res, indent=1, default=float))
+    (dest / "bench_orbital_splits.json").write_text(strict_json(res, indent=1))
     (dest / "bench_orbital_splits.md").write_text(
         f"ICP RMSE of each model over the rigorous model's ({REFERENCE}, 6 parameters) on the "
         f"same split: median and largest over {N_SPLITS} random splits ({N_CHECK} check points, "

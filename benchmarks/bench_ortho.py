@@ -25,7 +25,6 @@ Run: ``python benchmarks/bench_ortho.py [--size 4096] [--repeat 3] [--real]``
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -43,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from stereodem.core.dem import DEM  # noqa: E402
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.ortho.drm import orthorectify  # noqa: E402
 from stereodem.ortho.grid import grid_for_model  # noqa: E402
 from stereodem.sensor.models.rpc import RPCModel  # noqa: E402
@@ -229,7 +229,7 @@ def main(argv=None):
         results=results,
     )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(summary, indent=2) + "\n")
+    Path(args.out).write_text(strict_json(summary, indent=2))
     print(f"{'method':<32}{'seconds':>9}{'Mcells/s':>10}{'stereodem x (same threads)':>28}")
     for k, v in results.items():
         print(

@@ -25,12 +25,12 @@ Writes benchmarks/results/bench_ortho_models.json, .md and .png.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.sensor.estimation.compare import compare, figure
 from stereodem.sensor.io.gcps import ControlPoints
 from stereodem.sensor.models.generic import MODEL_NAMES
@@ -117,7 +117,7 @@ def main():
         fit_seconds=round(fit_seconds, 1),
         seconds=round(time.perf_counter() - t0, 1),
     )
-    (out / "bench_ortho_models.json").write_text(json.dumps(res, indent=1, default=float))
+    (out / "bench_ortho_models.json").write_text(strict_json(res, indent=1))
     (out / "bench_ortho_models.md").write_text(
         "RMSE in pixels (1 px = 15 m) at GCPs / at 60 independent check points; image coordinates "
         f"with {NOISE_PX} px noise; u = parameters; sigma0 and condition number at 40 GCPs; "

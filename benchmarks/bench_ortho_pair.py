@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.config import load_config
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.core.threads import thread_budget
 from stereodem.ortho.concurrent import orthorectify_all
 from stereodem.ortho.drm import orthorectify
@@ -93,7 +94,7 @@ def main():
         note="wall seconds depend on the machine's load (2 shared cores); CPU seconds of "
         "this process are the robust figure",
     )
-    Path(a.results).write_text(json.dumps(out, indent=1))
+    Path(a.results).write_text(strict_json(out, indent=1))
     print(json.dumps(summary))
 
 

@@ -16,7 +16,6 @@ Run: ``python benchmarks/bench_rpc.py``
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -27,6 +26,7 @@ import numpy as np
 import rasterio
 from rasterio.transform import RPCTransformer
 
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.sensor.models.rpc import RPCModel
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,7 +108,7 @@ def main():
         }
 
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(res, indent=2) + "\n")
+    OUT.write_text(strict_json(res, indent=2))
 
     p, lz = res["project"], res["localize"]
     print(

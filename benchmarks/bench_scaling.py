@@ -37,6 +37,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_aster_scene import CONFIG, RUN_LAYERS, granule, identical, simulate
 
+from stereodem.core.jsonutil import dumps as strict_json
+
 DEST = ROOT / "benchmarks" / "results" / "bench_scaling.json"
 
 
@@ -296,7 +298,7 @@ def main(argv=None):
     )
     dest = Path(args.results)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    dest.write_text(json.dumps(result, indent=1, default=float) + "\n")
+    dest.write_text(strict_json(result, indent=1))
     print(result["table_markdown"])
     print(json.dumps(ratios))
     print(f"wrote {dest}")

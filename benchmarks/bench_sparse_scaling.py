@@ -10,10 +10,10 @@ Usage: ``python benchmarks/bench_sparse_scaling.py``
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.sensor.simulation.simulate import simulate_scene
 from stereodem.stereo.sparse_stage import run_sparse_stage
 
@@ -41,7 +41,7 @@ def main(sizes=(800, 1600, 3200)):
         print(rows[-1], flush=True)
     out = HERE / "results" / "bench_sparse_scaling.json"
     out.write_text(
-        json.dumps(
+        strict_json(
             dict(
                 runs=rows,
                 note="2-core machine shared with other jobs: wall "

@@ -51,6 +51,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core.jsonutil import dumps as strict_json
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULT = ROOT / "benchmarks" / "results" / "bench_stack.json"
 DATES = ["2003-07-10", "2007-08-02", "2011-07-21", "2015-08-14", "2019-07-25"]
@@ -562,7 +564,7 @@ def main(argv=None):
         key = "heavy_chain"  # beside the vshift run: the container at scale vs the chain's cost
     allres[key] = res
     RESULT.parent.mkdir(parents=True, exist_ok=True)
-    RESULT.write_text(json.dumps(allres, indent=1, default=float) + "\n")
+    RESULT.write_text(strict_json(allres, indent=1))
     print(json.dumps(res, indent=1, default=float)[:6000])
 
 

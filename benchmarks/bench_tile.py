@@ -21,7 +21,6 @@ writes ``benchmarks/results/bench_tile.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import sys
@@ -29,6 +28,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from stereodem.core.jsonutil import dumps as strict_json
 
 ROOT = Path(__file__).resolve().parents[1]
 DEST = ROOT / "benchmarks" / "results" / "bench_tile.json"
@@ -190,7 +191,7 @@ def main(argv=None):
         "note": "CPU ms of process_tile (medians); parts from the tile's own seconds record "
         "(wall on one thread); conversions: CPU ms, medians, after one warm-up call",
     }
-    Path(args.results).write_text(json.dumps(result, indent=1) + "\n")
+    Path(args.results).write_text(strict_json(result, indent=1))
     print("wrote", args.results)
 
 

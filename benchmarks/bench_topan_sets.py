@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core.errors import StereodemError
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.sensor.estimation.adjust import adjust_model
 from stereodem.sensor.models.orbital import TopanLOSModel
 from stereodem.sensor.models.orbital.topan_los import LOOK, SET_ORDER, eop_set
@@ -154,7 +155,7 @@ def main():
     md = markdown(rows, ranking)
     out = ROOT / "benchmarks/results"
     (out / "bench_topan_sets.json").write_text(
-        json.dumps(
+        strict_json(
             dict(
                 scene="ASTER 3N geometry 4100x4200 with attitude/ephemeris biases and drifts "
                 "(stereodem.sensor.simulation.control_points.TRUTH_ERRORS)",
@@ -165,7 +166,6 @@ def main():
                 seconds=round(time.perf_counter() - t0, 1),
             ),
             indent=1,
-            default=float,
         )
     )
     (out / "bench_topan_sets.md").write_text(md)
@@ -322,7 +322,7 @@ def rerender():
     out = ROOT / "benchmarks/results"
     data = json.loads((out / "bench_topan_sets.json").read_text())
     data["ranking"] = rank(data["rows"])
-    (out / "bench_topan_sets.json").write_text(json.dumps(data, indent=1, default=float))
+    (out / "bench_topan_sets.json").write_text(strict_json(data, indent=1))
     md = markdown(data["rows"], data["ranking"])
     (out / "bench_topan_sets.md").write_text(md)
     figure(data["rows"], out / "bench_topan_sets.png")

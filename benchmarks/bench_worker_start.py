@@ -34,6 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DEST = ROOT / "benchmarks" / "results" / "bench_worker_start.json"
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from stereodem.core.jsonutil import dumps as strict_json
 from stereodem.stereo import runner  # noqa: E402
 from stereodem.stereo.tiling import tile_grid  # noqa: E402
 
@@ -117,7 +118,7 @@ def main(argv=None):
         "load_average_before_after": [load0, [round(x, 2) for x in os.getloadavg()]],
         "runs": rows,
     }
-    Path(args.results).write_text(json.dumps(out, indent=1) + "\n")
+    Path(args.results).write_text(strict_json(out, indent=1))
     print(f"wrote {args.results}")
 
 

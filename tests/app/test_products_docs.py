@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.strict_json import strict_loads
 
 from stereodem.config import SECTIONS
 from stereodem.docgen import _attributes_section, configuration_markdown, main, section_table
@@ -99,6 +100,16 @@ def test_readme_figures_summarises_every_committed_result():
 
     demo = json.loads((ROOT / "benchmarks" / "results" / "bench_demo.json").read_text())
     assert f"NMAD {demo['default_seed_figures']['nmad_m']:.2f} m" in text
+
+
+def test_benchmark_results_are_strict_json():
+    """Every committed result file is what jq and JavaScript read (no NaN or Infinity: the
+    benchmarks write through ``stereodem.core.jsonutil.dumps``)."""
+    for path in sorted((ROOT / "benchmarks" / "results").glob("*.json")):
+        try:
+            strict_loads(path.read_text())
+        except ValueError as exc:
+            raise AssertionError(f"{path.name}: {exc}") from None
 
 
 def test_readmes_carry_the_figures_the_results_give():
