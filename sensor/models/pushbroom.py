@@ -347,15 +347,34 @@ def _line_table_pose(centre, rot, k, w, shape):
     whole lines, ``k``/``w`` from :func:`_line_table`; returns arrays of ``shape + (3,)`` and
     ``shape + (3, 3)``. Interpolated rotation matrices are orthonormal to ~ (angle per
     line)^2 / 8 (the rays are renormalised)."""
-    k, w = k.ravel(), w.ravel()[:, None]
-    out = []
-    for table in (centre.reshape(len(centre), -1), rot.reshape(len(rot), -1)):
-        v = np.take(table, k, axis=0)
-        step = np.take(np.diff(table, axis=0), k, axis=0)
-        step *= w
-        v += step
-        out.append(v)
-    return out[0].reshape(shape + (3,)), out[1].reshape(shape + (3, 3))
+    return _PoseTable(centre, rot).at(k, w, shape)
+
+
+class _PoseTable:
+    """A pose tabulated at whole lines (:func:`_line_table_pose`), with its line-to-line
+    steps computed once, for looking up many rows in chunks."""
+
+    def __init__(self, centre, rot):
+        n = len(centre)
+        self.tables = [centre.reshape(n, -1), rot.reshape(n, -1)]
+        self.steps = [np.diff(t, axis=0) for t in self.tables]
+
+    def at(self, k, w, shape):
+        """Centre ``shape + (3,)`` and rotation ``shape + (3, 3)`` at ``row = lines[k] + w``."""
+        k, w = k.ravel(), w.ravel()[:, None]
+        out = []
+        for table, steps in zip(self.tables, self.steps):
+            v = np.take(table, k, axis=0)
+            step = np.take(steps, k, axis=0)
+            step *= w
+            v += step
+            out.append(v)
+        return out[0].reshape(shape + (3,)), out[1].reshape(shape + (3, 3))
+
+
+#: rays of many rows are computed this many points at a time (the poses gathered for them,
+#: 24 float64 a point, stay in a core's cache; the values do not depend on it)
+RAY_CHUNK = 8192
 
 
 # ======================================================================= the model
@@ -591,15 +610,34 @@ class PushbroomModel(SensorModel):
             c, rot = self._pose(row)
             u = self.detectors.directions(col, row, cross_scale=scale)
             d = (rot @ u[..., None])[..., 0]
-        else:
-            # rot @ [tan_x, s tan_y, 1] column by column (the look vector's length cancels in
-            # the normalisation below), without stacking per-point look vectors
-            c, rot = self._pose(row)
-            tx, ty = self.detectors.tangents(col, row)
-            d = rot[..., 2].copy()
-            d += rot[..., 0] * tx[..., None]
-            d += rot[..., 1] * (scale * ty)[..., None]
-        return c, d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
+            return c, d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
+        table = _line_table(row)
+        if table is None:
+            c, rot = self._exact_pose(row)
+            return c, self._look(rot, col, row, scale)
+        # many rows over few lines: the pose table's look-ups and the directions by chunks
+        # (:data:`RAY_CHUNK`), the same arithmetic point by point as in one piece
+        lines, k, w = table
+        poses = _PoseTable(*self._exact_pose(lines))
+        shape = row.shape
+        col, row, k, w = (np.ascontiguousarray(a).ravel() for a in (col, row, k, w))
+        c, d = np.empty((row.size, 3)), np.empty((row.size, 3))
+        for s in range(0, row.size, RAY_CHUNK):
+            part = slice(s, s + RAY_CHUNK)
+            c[part], rot = poses.at(k[part], w[part], k[part].shape)
+            d[part] = self._look(rot, col[part], row[part], scale)
+        return c.reshape(shape + (3,)), d.reshape(shape + (3,))
+
+    def _look(self, rot, col, row, scale):
+        """Unit look directions (ECEF) of detectors ``col`` at ``row`` for instrument ->
+        ECEF rotations ``rot``: ``rot @ [tan_x, s tan_y, 1]`` column by column (the look
+        vector's length cancels in the normalisation), without stacking per-point look
+        vectors."""
+        tx, ty = self.detectors.tangents(col, row)
+        d = rot[..., 2].copy()
+        d += rot[..., 0] * tx[..., None]
+        d += rot[..., 1] * (scale * ty)[..., None]
+        return d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
 
     def localize(self, col, row, h):
         """Image ``(col, row)`` at ellipsoidal height ``h`` (m) -> ``(lon, lat)`` degrees.

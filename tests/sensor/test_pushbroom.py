@@ -481,6 +481,17 @@ def test_pose_table_rays_match_exact_pose(nadir, monkeypatch):
     h = rng.uniform(0.0, 3000.0, n)
     cc, rr = m.project(*m.localize(col, row, h), h)
     assert np.max(np.abs(cc - col)) < 1e-6 and np.max(np.abs(rr - row)) < 1e-6
+    # the table path computes the rays by chunks of RAY_CHUNK points: the same values, bit
+    # for bit, as in one piece (and for a 2-D array of points)
+    assert n > 2 * pushbroom.RAY_CHUNK
+    with monkeypatch.context() as mp:
+        mp.setattr(pushbroom, "RAY_CHUNK", n)
+        o1, d1 = m.rays(col, row)
+    np.testing.assert_array_equal(o1, o)
+    np.testing.assert_array_equal(d1, d)
+    o3, d3 = m.rays(col.reshape(300, 200), row.reshape(300, 200))
+    assert o3.shape == d3.shape == (300, 200, 3)
+    np.testing.assert_array_equal(d3.reshape(-1, 3), d)
     # spread-out rows (fewer than POSE_TABLE_ROWS_PER_LINE per line) are evaluated directly
     monkeypatch.setattr(pushbroom, "POSE_TABLE_MIN_ROWS", 10**9)
     o2, d2 = m.rays(col, row)
