@@ -244,27 +244,35 @@ def _gaussian_spread(i, j, u, v, values, k, radius, shape):
     out = np.zeros((rows * cols, nv))
     block = min(n, SPREAD_BLOCK)
     weights, idx = np.empty((block, m, m)), np.empty((block, m * m), dtype)
+    outer = np.empty((m, m, block))
     ptr = np.arange(0, block * m * m + 1, m * m, dtype=dtype)
     for s in range(0, n, SPREAD_BLOCK):
         b = slice(s, min(s + SPREAD_BLOCK, n))
         ib, jb = i[b], j[b]
+        nb = ib.size
         lo, hi = int(ib.min()) - radius, int(ib.max()) + radius + 1  # the block's rows of cells
+        w = weights[:nb]
         if k:
-            wi = np.subtract(off, u[b, None])
-            wj = np.subtract(off, v[b, None])
-            for w in (wi, wj):
-                np.square(w, out=w)
-                w *= -k
-                np.exp(w, out=w)
-            w = np.multiply(wi[:, :, None], wj[:, None, :], out=weights[: ib.size])
+            # offset-major (m, nb) factors and their outer product along the points (numpy's
+            # loops run over the points, not over m), then point-major for the matrix: the
+            # same products wi[a] * wj[c] of each point, 4x faster than broadcasting (nb, m)
+            wi = np.subtract(off[:, None], u[None, b])
+            wj = np.subtract(off[:, None], v[None, b])
+            for f in (wi, wj):
+                np.square(f, out=f)
+                f *= -k
+                np.exp(f, out=f)
+            prod = np.multiply(wi[:, None, :], wj[None, :, :], out=outer[:, :, :nb])
+            w.reshape(nb, m * m)[...] = prod.reshape(m * m, nb).T
         else:
-            w = weights[: ib.size]
             w.fill(1.0)
         cell = ((ib - lo) * cols + jb).astype(dtype)
         if cell.min() + cell_off[0] < 0 or cell.max() + cell_off[-1] >= (hi - lo) * cols:
             # scipy does not check the indices of a matrix built from its arrays
             raise RuntimeError("gridding: a point's support leaves its window")
-        ix = np.add(cell[:, None], cell_off[None, :], out=idx[: ib.size])
+        ix = idx[:nb]
+        for t in range(m * m):  # per offset: long contiguous loops, not (nb, m^2) broadcasting
+            np.add(cell, cell_off[t], out=ix[:, t])
         mat = sparse.csc_matrix(
             (w.ravel(), ix.ravel(), ptr[: ib.size + 1]), shape=((hi - lo) * cols, ib.size)
         )
