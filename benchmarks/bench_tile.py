@@ -21,6 +21,7 @@ writes ``benchmarks/results/bench_tile.json``.
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import sys
@@ -178,7 +179,7 @@ def main(argv=None):
     result = {
         "granule": "bench_scaling.py's full simulated V004 granule, [rectification] tile_size 512",
         "machine": {
-            "cpus": __import__("os").cpu_count(),
+            "cpus": os.cpu_count(),
             "python": platform.python_version(),
             "opencv": cv2.__version__,
             "numpy": np.__version__,

@@ -45,6 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from stereodem.core import geodesy  # noqa: E402
+from stereodem.core.jsonutil import dumps as strict_json  # noqa: E402
 from stereodem.ortho.uncertainty.propagation import ground_jacobian, propagate, variance_shares  # noqa: E402
 from stereodem.sensor.models.frame import FrameCamera  # noqa: E402
 
@@ -636,10 +637,7 @@ def main(argv=None):
     )
     args = ap.parse_args(argv)
     out = ROOT / "benchmarks" / "results" / "bench_uncertainty.json"
-    dump = lambda r: (
-        json.dumps(r, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
-        + "\n"
-    )
+    dump = lambda r: strict_json(r, indent=1)  # noqa: E731
     if args.speed_only:
         res = json.loads(out.read_text()) if out.exists() else {}
         res["speed"] = speed()

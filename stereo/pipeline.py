@@ -330,11 +330,8 @@ def default_posting(gsd: float, crs) -> float:
     """Default DEM posting: twice the GSD (``gsd`` in metres), in the units of ``crs`` (for
     a geographic CRS, degrees of latitude: metres / 111 320 m)."""
     posting = float(f"{2.0 * gsd:.2g}")
-    crs = CRS.from_user_input(crs)
-    if crs.is_geographic:
-        return float(f"{posting / (np.pi / 180.0 * geodesy.A):.2g}")
-    unit = crs.axis_info[0].unit_conversion_factor if crs.axis_info else 1.0
-    return posting / unit if unit else posting
+    value = geodesy.metres_in_crs(posting, crs)
+    return float(f"{value:.2g}") if CRS.from_user_input(crs).is_geographic else value
 
 
 def check_lattice(bounds, posting: float):
