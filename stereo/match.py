@@ -853,8 +853,47 @@ class _LeftWindows(NamedTuple):
     window: int
 
 
-def _zncc_left(left, window, finite=None):
-    """``finite``: whether ``left`` is known to have no NaN (None: scan it)."""
+#: rows of a band of the score layer (plus its halo of ``window // 2`` rows each side): the
+#: band's arrays stay in a core's cache between the box filters and the element-wise passes,
+#: and the bands can run on several threads; fixed, so the score does not depend on the
+#: thread count
+SCORE_BAND_ROWS = 128
+
+
+def _score_bands(n_rows: int, window: int) -> list[tuple[int, int, int, int]]:
+    """The score layer's row bands ``(r0, r1, a, b)``: output rows ``r0:r1`` computed from
+    input rows ``a:b`` (the band and ``window // 2`` halo rows each side, within the image):
+    every kept row's window lies inside ``a:b``, so a band's values are those of the whole
+    image."""
+    h = window // 2
+    return [
+        (
+            r0,
+            min(r0 + SCORE_BAND_ROWS, n_rows),
+            max(r0 - h, 0),
+            min(r0 + SCORE_BAND_ROWS + h, n_rows),
+        )
+        for r0 in range(0, n_rows, SCORE_BAND_ROWS)
+    ]
+
+
+def _for_bands(fn, bands, threads: int) -> None:
+    """``fn(band)`` for every band, on ``threads`` threads (OpenCV's filters and numpy's
+    element-wise passes release the GIL) or in this one."""
+    if threads > 1 and len(bands) > 1:
+        with ThreadPoolExecutor(
+            min(threads, len(bands)), thread_name_prefix="stereodem-score"
+        ) as ex:
+            for _ in ex.map(fn, bands):  # re-raises a band's error
+                pass
+    else:
+        for b in bands:
+            fn(b)
+
+
+def _zncc_left(left, window, finite=None, threads=1):
+    """``finite``: whether ``left`` is known to have no NaN (None: scan it); the window
+    statistics by row bands (:func:`_score_bands`) on ``threads`` threads."""
     # without no-data, np.mean of a C-contiguous image sums in the same (pairwise) order as
     # np.nanmean, so it gives the same float32, in one pass instead of three
     if finite is None:
@@ -863,11 +902,24 @@ def _zncc_left(left, window, finite=None):
     # a finite image minus a finite constant below 1e30 stays finite (no overflow)
     z = np.subtract(left, off, dtype=F32)
     finite = finite and bool(np.isfinite(off)) and abs(float(off)) < 1e30
-    return _LeftWindows(off, _window_stats(z, window, 0.0, finite=finite), window)
+    zero = z if finite else np.empty_like(z)
+    mean, inv = np.empty_like(z), np.empty_like(z)
+
+    def band(rows):
+        r0, r1, a, b = rows
+        s = _window_stats(z[a:b], window, 0.0, finite=finite)
+        keep = slice(r0 - a, r1 - a)
+        mean[r0:r1], inv[r0:r1] = s.mean[keep], s.inv[keep]
+        if zero is not z:
+            zero[r0:r1] = s.zero[keep]
+
+    _for_bands(band, _score_bands(z.shape[0], window), threads)
+    return _LeftWindows(off, _Stats(zero, mean, inv), window)
 
 
-def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None):
-    """:func:`zncc_at` given the left image's part (:func:`_zncc_left`).
+def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1):
+    """:func:`zncc_at` given the left image's part (:func:`_zncc_left`), by row bands
+    (:func:`_score_bands`) on ``threads`` threads.
 
     ``right_finite``: whether ``right`` is known to have no NaN (None: scan it); then the
     warp is zero-filled outside the image directly and the windows reaching outside are
@@ -883,31 +935,37 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None):
         right_finite = bool(np.isfinite(right).all())
     # a finite image minus a finite constant below 1e30 stays finite (see _zncc_left)
     fast = right_finite and abs(float(a.off)) < 1e30
-    warped = cv2.remap(
-        right,
-        map_x,
-        _row_map(h, w),
-        cv2.INTER_NEAREST,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=float(a.off) if fast else np.nan,  # outside: 0 (fast) or NaN once centred
-    )
-    np.subtract(warped, a.off, out=warped, dtype=F32)
-    if fast:
-        outside = _outside_windows(map_x, lo, hi, a.window)
-        b = _window_stats(warped, a.window, 0.0, finite=True, outside=outside)
-    else:
-        b = _window_stats(warped, a.window, 0.0)
+    rows_map = _row_map(h, w)
     ksize = (a.window, a.window)
-    prod = np.multiply(a.stats.zero, b.zero, out=map_x)
-    cov = cv2.boxFilter(prod, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_CONSTANT)
-    for rows in _row_bands(cov.shape):  # element-wise, by bands that stay in cache
-        c, p = cov[rows], prod[rows]
-        np.multiply(a.stats.mean[rows], b.mean[rows], out=p)
+    score = np.empty((h, w), F32)
+
+    def band(rows):
+        r0, r1, i0, i1 = rows
+        warped = cv2.remap(
+            right,
+            map_x[i0:i1],
+            rows_map[i0:i1],
+            cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=float(a.off) if fast else np.nan,  # outside: 0 (fast) or NaN once centred
+        )
+        np.subtract(warped, a.off, out=warped, dtype=F32)
+        if fast:
+            outside = _outside_windows(map_x[i0:i1], lo, hi, a.window)
+            b = _window_stats(warped, a.window, 0.0, finite=True, outside=outside)
+        else:
+            b = _window_stats(warped, a.window, 0.0)
+        prod = np.multiply(a.stats.zero[i0:i1], b.zero)
+        cov = cv2.boxFilter(prod, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_CONSTANT)
+        keep = slice(r0 - i0, r1 - i0)
+        c, p = cov[keep], prod[keep]
+        np.multiply(a.stats.mean[r0:r1], b.mean[keep], out=p)
         np.subtract(c, p, out=c)
-        np.multiply(c, a.stats.inv[rows], out=c)
-        np.multiply(c, b.inv[rows], out=c)
-        np.clip(c, -1, 1, out=c)
-    score = cov
+        np.multiply(c, a.stats.inv[r0:r1], out=c)
+        np.multiply(c, b.inv[keep], out=c)
+        np.clip(c, -1, 1, out=score[r0:r1])
+
+    _for_bands(band, _score_bands(h, a.window), threads)
     score.ravel()[holes] = np.nan  # a fresh C-contiguous array: ravel() is a view
     return score
 
@@ -1112,7 +1170,10 @@ def match_rectified(
             xr = np.where(np.isfinite(disp), np.rint(np.arange(left.shape[1]) - disp), -1)
         bad = bad_l | (_gather_cols(bad_r.astype(F32), xr.astype(np.int64), fill=1) > 0.5)
         disp[bad] = np.nan
-    score = _zncc_warped(left_windows, right, disp, right_finite=right_finite)
+    # the score's bands on OpenCV's threads (SGBM itself runs on one)
+    score = _zncc_warped(
+        left_windows, right, disp, right_finite=right_finite, threads=cv2.getNumThreads()
+    )
     if range_maps is not None:
         with np.errstate(invalid="ignore"):
             disp[~((disp >= range_maps[0] - 0.5) & (disp <= range_maps[1] + 0.5))] = np.nan

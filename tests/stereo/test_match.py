@@ -511,8 +511,10 @@ def _textbook_zncc(left, right, d, window=7):
     return out
 
 
-@pytest.mark.parametrize("band_bytes", [None, 4096])
-def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc(band_bytes, monkeypatch):
+@pytest.mark.parametrize("band_bytes, score_rows", [(None, None), (4096, None), (None, 4)])
+def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc(
+    band_bytes, score_rows, monkeypatch
+):
     """The score layer's shortcuts for a right image without NaN (no NaN scan, the warp
     zero-filled outside the image, the windows reaching outside located on the column strips
     where the warp can leave the image, invalid disparities set by index) give the general
@@ -520,13 +522,17 @@ def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc(band_bytes,
     NaN cells: no-data (NaN patches in either image), image border, windows reaching outside
     the image (positive, negative and mixed disparities; strips that meet on a narrow image),
     invalid disparities.  ``band_bytes=4096``: the element-wise passes by bands of 11 rows or
-    fewer (several bands and their edges in these small images)."""
+    fewer (several bands and their edges in these small images); ``score_rows=4``: the score
+    layer by row bands of 4 rows and their halos (band edges everywhere, NaN patches across
+    them), on 1 and 3 threads, bit for bit."""
     from stereodem.stereo import match
     from stereodem.stereo.match import _zncc_left, _zncc_warped
 
     if band_bytes:
         bands = match._row_bands
         monkeypatch.setattr(match, "_row_bands", lambda shape: bands(shape, band_bytes))
+    if score_rows:
+        monkeypatch.setattr(match, "SCORE_BAND_ROWS", score_rows)
 
     rng = np.random.default_rng(5)
     cases = (
@@ -548,6 +554,11 @@ def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc(band_bytes,
         general = _zncc_warped(lw, right, d, right_finite=False)
         assert np.array_equal(fast, general, equal_nan=True), shape
         assert np.array_equal(zncc_at(left, right, d), fast, equal_nan=True)
+        if score_rows:  # the bands on threads: the same values
+            lw3 = _zncc_left(left, 7, threads=3)
+            assert all(np.array_equal(x, y, equal_nan=True) for x, y in zip(lw.stats, lw3.stats))
+            threaded = _zncc_warped(lw3, right, d, right_finite=True, threads=3)
+            assert np.array_equal(threaded, fast, equal_nan=True)
         for lnan, rnan in ((False, False), (True, False), (False, True)):
             lt, rt = left.copy(), right.copy()
             if lnan:
