@@ -21,6 +21,7 @@ tiles' cell sums added into the DEM. Per tile:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -51,7 +52,7 @@ from .sanity import check_pair
 from .settings import StereoSettings
 from .sparse import SparseMatchError
 from .sparse_stage import height_pileup, run_sparse_stage
-from .tiling import Tile
+from .tiling import Tile, tile_order
 
 log = logging.getLogger(__name__)
 
@@ -387,9 +388,11 @@ def make_dem(
         Called as ``progress(done, total, tile_summary)`` after each tile (serial run).
     runner : callable, optional
         ``runner(process_tile, tiles, inputs, settings) -> iterable of TileResult`` runs the
-        tiles elsewhere (process pool, Dask: :func:`stereodem.stereo.runner.run_tiles`); it may drop
-        failed tiles. Results must come back in tile order so the output is independent of
-        the runner; they are taken one at a time (a generator need hold only one).
+        tiles elsewhere (process pool, Dask: :func:`stereodem.stereo.execution.tile_runner`); it
+        may drop failed tiles. Results must come back in
+        :func:`~stereodem.stereo.tiling.tile_order` so the output is independent of the
+        runner; they are taken one at a time as they come (a generator need hold only one,
+        and its tiles' sums are added while it runs the next ones).
     points_dir : path, optional
         Each tile also writes its points to ``points_<index>.npz`` there
         (:func:`stereodem.stereo.pointcloud.write_las` merges them).
@@ -501,11 +504,12 @@ def dem_of_checked_pair(
         points_dir=str(points_dir) if points_dir is not None else None,
         pair_id=int(pair_id),
     )
-    # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask)
+    # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask), in
+    # tile_order (largest first): the order their sums are added in, whatever runs them
     if runner is None:
 
         def serial():
-            for k, tile in enumerate(tiles, start=1):
+            for k, tile in enumerate(tile_order(tiles), start=1):
                 res = process_tile(tile, inputs, settings)
                 if progress is not None:
                     progress(k, len(tiles), res.summary)
@@ -514,23 +518,27 @@ def dem_of_checked_pair(
         results = serial()
     else:
         results = runner(process_tile, tiles, inputs, settings)
-    # 4. grid: the tiles' cell sums, added in tile order (independent of the runner) as they
+    # 4. grid: the tiles' cell sums, added in tile_order (independent of the runner) as they
     # come, keeping only each tile's QA summary
     total = np.zeros((len(SUM_LAYERS),) + tuple(spec.shape))
     summaries, n_points = [], 0
-    for res in results:
-        s = res.summary
-        log.info(
-            "tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
-            s["tile"],
-            s["residual_rms_px"],
-            *s["disparity_range"],
-            s["n_points"],
-        )
-        res.cells.add_to(total)
-        n_points += int(res.cells.n_points)
-        summaries.append(s)
-    del res
+    with contextlib.closing(results) if hasattr(results, "close") else contextlib.nullcontext():
+        for res in results:  # an error here closes a runner's generator: its pool stops
+            s = res.summary
+            log.info(
+                "tile %s: y-parallax RMS %.3f px, disparity %.0f..%.0f px, %d points",
+                s["tile"],
+                s["residual_rms_px"],
+                *s["disparity_range"],
+                s["n_points"],
+            )
+            res.cells.add_to(total)
+            n_points += int(res.cells.n_points)
+            summaries.append(s)
+            res = None
+    # the summaries in tile (index) order, as the tiles were planned
+    position = {tuple(t.bounds): k for k, t in enumerate(tiles)}
+    summaries.sort(key=lambda s: position.get(tuple(s["tile"]), len(tiles)))
     if n_points == 0 and gs.bounds is None:
         raise InputError("no point was matched in any tile (no texture, or a wrong height range?)")
     dem = finish(spec, total, crop=gs.bounds is None)

@@ -11,11 +11,15 @@ The tile function is a pure function ``fn(tile, context) -> dict[str, ndarray]``
   ``resume``, skips tiles already there; when the caller reads the tiles back from there
   (``hold_results=False``) a process pool's workers store them themselves, so their arrays
   never travel through the main process;
-* submits the largest tiles first (scene-edge tiles are smaller);
+* submits the tiles in :func:`~stereodem.stereo.tiling.tile_order` (largest first: scene-edge
+  tiles are smaller);
+* hands each tile to the caller as it finishes (:func:`iter_tiles`), so the caller merges
+  tiles while the pool runs the others;
 * pins each worker's BLAS/OpenMP, OpenCV and GDAL threads to its share of the cores
   (:mod:`stereodem.core.threads`);
-* returns results keyed by tile index, so merging is independent of completion order and
-  ``workers=N`` gives bit-identical output to ``workers=1``.
+* tells each result's tile index: a caller that merges in one fixed order (the stereo DEM:
+  :func:`~stereodem.stereo.tiling.tile_order`) gets bit-identical output for any
+  ``workers``.
 
 Memory: large read-only arrays of the context (the images) go to workers as
 :class:`SharedArray` memory maps, not copies, so a worker holds one tile's working arrays
@@ -25,6 +29,7 @@ disparity range (see the stereo pipeline), not by the scene size.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import logging
@@ -59,6 +64,7 @@ from .fork_server import (
     pool_size,
     stop_idle_fork_server,
 )
+from .tiling import tile_order
 
 log = logging.getLogger(__name__)
 
@@ -354,6 +360,20 @@ def clean_cache(cache_dir):
 
 
 # --------------------------------------------------------------------------- driver
+@dataclass(frozen=True)
+class TileDone:
+    """A tile :func:`iter_tiles` has finished (or loaded from the cache).
+
+    ``result``: its arrays; None when it failed, or when they stay in the cache
+    (``hold_results=False``: :func:`load_cached`). ``failure``: None when it succeeded.
+    ``seconds``: its run time, None when it was loaded from the cache."""
+
+    index: int
+    result: Any
+    failure: TileFailure | None
+    seconds: float | None
+
+
 def run_tiles(
     fn,
     tiles,
@@ -368,7 +388,63 @@ def run_tiles(
     cache_key: str | None = None,
     hold_results: bool = True,
 ):
-    """Run ``fn(tile, context)`` over ``tiles``.
+    """Run ``fn(tile, context)`` over ``tiles`` (:func:`iter_tiles`, all of them).
+
+    Returns
+    -------
+    results : dict[int, dict[str, ndarray]]
+        By tile index (None for a tile left in the cache: ``hold_results=False``).
+    failures : list[TileFailure]
+        By tile index.
+    timings : dict[int, float] seconds per computed tile
+    """
+    results, failures, timings = {}, [], {}
+    with contextlib.closing(
+        iter_tiles(
+            fn,
+            tiles,
+            context,
+            workers=workers,
+            timeout=timeout,
+            cache_dir=cache_dir,
+            resume=resume,
+            progress=progress,
+            dask_address=dask_address,
+            cache_key=cache_key,
+            hold_results=hold_results,
+        )
+    ) as finished:
+        for d in finished:
+            if d.failure is None:
+                results[d.index] = d.result
+            else:
+                failures.append(d.failure)
+            if d.seconds is not None:
+                timings[d.index] = d.seconds
+    failures.sort(key=lambda f: f.tile.index)
+    return results, failures, timings
+
+
+def iter_tiles(
+    fn,
+    tiles,
+    context,
+    *,
+    workers: int | None = 1,
+    timeout: float | None = None,
+    cache_dir=None,
+    resume: bool = False,
+    progress=None,
+    dask_address: str | None = None,
+    cache_key: str | None = None,
+    hold_results: bool = True,
+):
+    """Run ``fn(tile, context)`` over ``tiles``, yielding a :class:`TileDone` for each tile as
+    it finishes: the cached ones first (``resume``), then the others in the order they end;
+    they are submitted in :func:`~stereodem.stereo.tiling.tile_order` (largest first).
+
+    The caller can work on each finished tile while the pool runs the others. Closing the
+    generator early (``contextlib.closing``, or an error in the caller) stops the pool.
 
     Parameters
     ----------
@@ -384,43 +460,38 @@ def run_tiles(
     cache_key : str, optional
         Identifies the job in each cached tile; tiles of another key are recomputed.
     hold_results : bool
-        With ``cache_dir``, False keeps no result in memory: ``results`` then maps each
-        finished tile to None and its arrays are read back from its cache file
-        (:func:`load_cached`), so the caller can take them one at a time.
+        With ``cache_dir``, False keeps no result in memory: a finished tile's ``result`` is
+        then None and its arrays are read back from its cache file (:func:`load_cached`), so
+        the caller can take them one at a time.
     progress : callable(done, total), optional
     dask_address : str, optional
         A ``dask.distributed`` scheduler address (``tcp://host:port``) or a ``Client``; tiles
         are then submitted there.
-
-    Returns
-    -------
-    results : dict[int, dict[str, ndarray]]
-    failures : list[TileFailure]
-    timings : dict[int, float] seconds per computed tile
     """
     tiles = list(tiles)
-    results, failures, timings = {}, [], {}
-    todo = []
+    todo, cached = [], []
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
     for t in tiles:
-        cached = None
+        got = None
         if resume and cache_dir is not None and _cache_file(cache_dir, t).exists():
-            cached = _load(cache_dir, t, cache_key)
-        if cached is not None:
-            results[t.index] = cached if hold_results or cache_dir is None else None
+            got = _load(cache_dir, t, cache_key)
+        if got is not None:
+            cached.append(TileDone(t.index, got if hold_results else None, None, None))
         else:
             todo.append(t)
-    if resume and results:
-        log.info("resume: %d of %d tile(s) already done", len(results), len(tiles))
-    total, done = len(tiles), len(results)
+    if resume and cached:
+        log.info("resume: %d of %d tile(s) already done", len(cached), len(tiles))
+    total, done = len(tiles), len(cached)
+    yield from cached
+    cached = None
     by_index = {t.index: t for t in tiles}
 
-    def collect(index, out, err, secs):
+    def collect(index, out, err, secs) -> TileDone:
         nonlocal done
         interrupt.check()  # a stop request that an earlier KeyboardInterrupt did not deliver
         done += 1
-        timings[index] = secs
+        failure = None
         if err is not None:
             log.warning(
                 "tile %d (row %d, col %d) failed: %s",
@@ -429,26 +500,29 @@ def run_tiles(
                 by_index[index].col0,
                 err,
             )
-            failures.append(TileFailure(by_index[index], err))
+            failure = TileFailure(by_index[index], err)
+            out = None
         else:
             if cache_dir is not None and out != _STORED:  # a dict of arrays, or _STORED
                 _save(cache_dir, by_index[index], out, cache_key)
-            results[index] = out if hold_results or cache_dir is None else None
+            if not hold_results and cache_dir is not None:
+                out = None
         if progress:
             progress(done, total)
+        return TileDone(index, out, failure, secs)
 
     # largest tiles first: the pool's last tiles are small ones, so no core idles behind a big
-    # tile at the end (results are keyed by index: the order does not change them)
-    todo.sort(key=lambda t: -int(t.cols) * int(t.rows))
+    # tile at the end
+    todo = tile_order(todo)
     n = pool_size(workers, len(todo), dask_address)
     if dask_address is not None:
-        _run_dask(fn, todo, context, timeout, dask_address, collect)
+        yield from _run_dask(fn, todo, context, timeout, dask_address, collect)
         stop_idle_fork_server()
     elif n == 0:
         # in this process, as in a pool worker: each tile reuses the pages the last one freed
         keep_freed_memory()
         for t in todo:
-            collect(*_run_one(fn, t, timeout, context))
+            yield collect(*_run_one(fn, t, timeout, context))
         stop_idle_fork_server()
     else:
         ctx = pool_context()
@@ -469,18 +543,17 @@ def run_tiles(
         try:
             futs = [ex.submit(job, fn, t, timeout) for t in todo]
             for f in as_completed(futs):
-                collect(*f.result())
-        except BaseException:  # Ctrl-C, SIGTERM, an error: stop the workers now (the fork
-            stop_pool(ex)  # server, if any, then ends with this process: nothing waits for it)
-            pool_closed(stop_server=False)
+                yield collect(*f.result())
+        except BaseException:  # Ctrl-C, SIGTERM, an error, the caller closing the generator:
+            stop_pool(ex)  # stop the workers now (the fork server, if any, then ends with this
+            pool_closed(stop_server=False)  # process: nothing waits for it)
             raise
         ex.shutdown(wait=True)
         pool_closed()
-    failures.sort(key=lambda f: f.tile.index)
-    return results, failures, timings
 
 
 def _run_dask(fn, todo, context, timeout, address, collect):
+    """:func:`iter_tiles` on Dask: yields ``collect(...)`` of each tile as it finishes."""
     try:
         from dask.distributed import Client
         from dask.distributed import as_completed as dask_completed
@@ -493,7 +566,7 @@ def _run_dask(fn, todo, context, timeout, address, collect):
         ctx = client.scatter(context, broadcast=True)
         futs = [client.submit(_run_one, fn, t, timeout, ctx, pure=False) for t in todo]
         for f in dask_completed(futs):
-            collect(*f.result())
+            yield collect(*f.result())
     finally:
         if own:
             client.close()

@@ -74,6 +74,15 @@ def tile_grid(width: int, height: int, tile_size: int, *, window=None) -> list[T
     return renumber(tiles)
 
 
+def tile_order(tiles) -> list[Tile]:
+    """The order in which tiles are run and their sums added: largest first (the tiles at the
+    scene's edges are smaller, so no worker of a pool is left with a big tile while the others
+    idle), ties by index. One order for every runner and worker count, so the DEM's float
+    sums do not depend on them, and close to the order a pool finishes the tiles in, so their
+    sums can be added while the pool runs."""
+    return sorted(tiles, key=lambda t: (-int(t.cols) * int(t.rows), t.index))
+
+
 def renumber(tiles) -> list[Tile]:
     """The tiles with ``index`` set to their position in the list."""
     return [replace(t, index=k) for k, t in enumerate(tiles)]

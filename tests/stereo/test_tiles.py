@@ -299,30 +299,56 @@ def test_pool_workers_keep_the_memory_their_tiles_free():
     assert max(in_pool) < plain / 10, (in_pool, plain)
 
 
-def test_cached_tiles_are_read_one_ahead_in_tile_order():
-    """The tiles a pool stored are read back in tile order, the next one on a thread while
-    the caller adds the current one: never more than one read ahead (memory: two tiles)."""
-    import threading
+def test_tile_runner_yields_each_tile_in_tile_order_as_soon_as_its_turn_comes(monkeypatch):
+    """The stereo tile runner hands the tiles over in ``tile_order`` (largest first, the order
+    their sums are added in, whatever the pool's completion order), each as soon as it and
+    every tile before it have finished, not after the pool: here the pool finishes them in a
+    scrambled order, one tile fails (skipped, reported by index) and the caller closing the
+    runner early closes the pool's generator."""
+    from stereodem.config import RunSettings
+    from stereodem.stereo import execution
+    from stereodem.stereo.grid import CellSums
+    from stereodem.stereo.pipeline import TileResult
+    from stereodem.stereo.runner import TileDone, TileFailure
+    from stereodem.stereo.tiling import tile_order
 
-    from stereodem.stereo.execution import _read_ahead
+    tiles = tile_grid(130, 100, 32)  # 12 tiles of 32-33 x 33-34 px
+    order = [t.index for t in tile_order(tiles)]
+    sizes = [tiles[i].size for i in order]
+    assert order != sorted(order) and sizes == sorted(sizes, reverse=True)  # largest first
+    finishing = [order[k] for k in (2, 0, 1, 5, 3, 4, 6, 7, 11, 10, 9, 8)]  # the pool's order
+    failing = order[4]
+    state = {"yielded": 0, "closed": False}
 
-    reads, consumed, ahead = [], [], []
+    def fake_iter_tiles(fn, tiles_, ctx, **kw):
+        try:
+            for i in finishing:
+                state["yielded"] += 1
+                if i == failing:
+                    yield TileDone(i, None, TileFailure(tiles[i], "boom"), 0.1)
+                else:
+                    summary = {"tile": list(tiles[i].bounds), "index": i}
+                    res = TileResult(CellSums(0, 0, np.zeros((1, 0, 0)), 0), summary)
+                    yield TileDone(i, res.to_arrays(), None, 0.1)
+        finally:
+            state["closed"] = True
 
-    def read(k):
-        reads.append((k, threading.current_thread().name))
-        return k * 10
+    monkeypatch.setattr(execution, "iter_tiles", fake_iter_tiles)
+    monkeypatch.setattr(execution, "_cache_key", lambda *a: "k")
+    runner = execution.tile_runner(RunSettings(workers=1))
+    got, seen = [], []
+    for res in runner(None, tiles, None, None):
+        got.append(res.summary["index"])
+        seen.append(state["yielded"])
+    expected = [i for i in order if i != failing]
+    assert got == expected
+    # each tile came as soon as the pool had finished it and every tile before it
+    needed = [max(finishing.index(j) for j in order[: order.index(i) + 1]) + 1 for i in got]
+    assert seen == needed and seen[0] < len(finishing)
+    assert [f.tile.index for f in runner.failures] == [failing] and state["closed"]
 
-    for v in _read_ahead(read, [3, 5, 8, 9]):
-        ahead.append(len(reads) - len(consumed))
-        consumed.append(v)
-    assert consumed == [30, 50, 80, 90]
-    assert [k for k, _ in reads] == [3, 5, 8, 9]
-    assert max(ahead) <= 2 and all(name.startswith("stereodem-read") for _, name in reads)
-
-    def fails(k):
-        if k == 5:
-            raise OSError("tile 5: unreadable")
-        return k
-
-    with pytest.raises(OSError, match="tile 5"):
-        list(_read_ahead(fails, [3, 5, 8]))
+    state.update(yielded=0, closed=False)
+    first = runner(None, tiles, None, None)
+    next(first)
+    first.close()  # the caller stops early (an error while adding): the pool is closed
+    assert state["closed"] and state["yielded"] < len(finishing)
