@@ -374,21 +374,10 @@ class TileDone:
     seconds: float | None
 
 
-def run_tiles(
-    fn,
-    tiles,
-    context,
-    *,
-    workers: int | None = 1,
-    timeout: float | None = None,
-    cache_dir=None,
-    resume: bool = False,
-    progress=None,
-    dask_address: str | None = None,
-    cache_key: str | None = None,
-    hold_results: bool = True,
-):
-    """Run ``fn(tile, context)`` over ``tiles`` (:func:`iter_tiles`, all of them).
+def run_tiles(fn, tiles, context, **options):
+    """Run ``fn(tile, context)`` over ``tiles`` (:func:`iter_tiles`, all of them; ``options``
+    are its keywords: ``workers``, ``timeout``, ``cache_dir``, ``resume``, ``progress``,
+    ``dask_address``, ``cache_key``, ``hold_results``).
 
     Returns
     -------
@@ -399,21 +388,7 @@ def run_tiles(
     timings : dict[int, float] seconds per computed tile
     """
     results, failures, timings = {}, [], {}
-    with contextlib.closing(
-        iter_tiles(
-            fn,
-            tiles,
-            context,
-            workers=workers,
-            timeout=timeout,
-            cache_dir=cache_dir,
-            resume=resume,
-            progress=progress,
-            dask_address=dask_address,
-            cache_key=cache_key,
-            hold_results=hold_results,
-        )
-    ) as finished:
+    with contextlib.closing(iter_tiles(fn, tiles, context, **options)) as finished:
         for d in finished:
             if d.failure is None:
                 results[d.index] = d.result
