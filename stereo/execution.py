@@ -92,12 +92,12 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
                         failed.append(d.failure)
                     waiting[d.index] = d
                     while turn < len(order) and order[turn] in waiting:
-                        d = waiting.pop(order[turn])
+                        ready = waiting.pop(order[turn])
                         turn += 1
-                        if d.failure is None:
-                            arrays = d.result
+                        if ready.failure is None:
+                            arrays = ready.result
                             if arrays is None:
-                                arrays = load_cached(cache_dir, by_index[d.index])
+                                arrays = load_cached(cache_dir, by_index[ready.index])
                             yield TileResult.from_arrays(arrays)
         failures.extend(sorted(failed, key=lambda f: f.tile.index))
 

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from stereodem.core.blocks import numpy_lerp
+from stereodem.core.blocks import each_fixed_band, numpy_lerp
 from stereodem.core.errors import InputError
 from stereodem.core.morphology import square_dilation
 from stereodem.core.stretch import linear_to_uint8
@@ -853,47 +853,25 @@ class _LeftWindows(NamedTuple):
     window: int
 
 
-#: rows of a band of the score layer (plus its halo of ``window // 2`` rows each side): the
-#: band's arrays stay in a core's cache between the box filters and the element-wise passes,
-#: and the bands can run on several threads; fixed, so the score does not depend on the
+#: rows of a band of the score layer (computed with its halo of ``window // 2`` rows each
+#: side, :func:`_halo`): the band's arrays stay in a core's cache between the box filters and
+#: the element-wise passes, and the bands can run on several threads
+#: (:func:`stereodem.core.blocks.each_fixed_band`); fixed, so the score does not depend on the
 #: thread count
 SCORE_BAND_ROWS = 128
 
 
-def _score_bands(n_rows: int, window: int) -> list[tuple[int, int, int, int]]:
-    """The score layer's row bands ``(r0, r1, a, b)``: output rows ``r0:r1`` computed from
-    input rows ``a:b`` (the band and ``window // 2`` halo rows each side, within the image):
-    every kept row's window lies inside ``a:b``, so a band's values are those of the whole
-    image."""
+def _halo(r0: int, r1: int, n_rows: int, window: int) -> tuple[int, int]:
+    """Input rows ``a:b`` of the score's output rows ``r0:r1``: the band and ``window // 2``
+    rows each side, within the image; every kept row's window lies inside them, so a band's
+    values are those of the whole image."""
     h = window // 2
-    return [
-        (
-            r0,
-            min(r0 + SCORE_BAND_ROWS, n_rows),
-            max(r0 - h, 0),
-            min(r0 + SCORE_BAND_ROWS + h, n_rows),
-        )
-        for r0 in range(0, n_rows, SCORE_BAND_ROWS)
-    ]
-
-
-def _for_bands(fn, bands, threads: int) -> None:
-    """``fn(band)`` for every band, on ``threads`` threads (OpenCV's filters and numpy's
-    element-wise passes release the GIL) or in this one."""
-    if threads > 1 and len(bands) > 1:
-        with ThreadPoolExecutor(
-            min(threads, len(bands)), thread_name_prefix="stereodem-score"
-        ) as ex:
-            for _ in ex.map(fn, bands):  # re-raises a band's error
-                pass
-    else:
-        for b in bands:
-            fn(b)
+    return max(r0 - h, 0), min(r1 + h, n_rows)
 
 
 def _zncc_left(left, window, finite=None, threads=1):
     """``finite``: whether ``left`` is known to have no NaN (None: scan it); the window
-    statistics by row bands (:func:`_score_bands`) on ``threads`` threads."""
+    statistics by bands of :data:`SCORE_BAND_ROWS` rows on ``threads`` threads."""
     # without no-data, np.mean of a C-contiguous image sums in the same (pairwise) order as
     # np.nanmean, so it gives the same float32, in one pass instead of three
     if finite is None:
@@ -906,20 +884,21 @@ def _zncc_left(left, window, finite=None, threads=1):
     mean, inv = np.empty_like(z), np.empty_like(z)
 
     def band(rows):
-        r0, r1, a, b = rows
+        r0, r1 = rows
+        a, b = _halo(r0, r1, z.shape[0], window)
         s = _window_stats(z[a:b], window, 0.0, finite=finite)
         keep = slice(r0 - a, r1 - a)
         mean[r0:r1], inv[r0:r1] = s.mean[keep], s.inv[keep]
         if zero is not z:
             zero[r0:r1] = s.zero[keep]
 
-    _for_bands(band, _score_bands(z.shape[0], window), threads)
+    each_fixed_band(band, z.shape[0], SCORE_BAND_ROWS, threads=threads)
     return _LeftWindows(off, _Stats(zero, mean, inv), window)
 
 
 def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1):
-    """:func:`zncc_at` given the left image's part (:func:`_zncc_left`), by row bands
-    (:func:`_score_bands`) on ``threads`` threads.
+    """:func:`zncc_at` given the left image's part (:func:`_zncc_left`), by bands of
+    :data:`SCORE_BAND_ROWS` rows on ``threads`` threads.
 
     ``right_finite``: whether ``right`` is known to have no NaN (None: scan it); then the
     warp is zero-filled outside the image directly and the windows reaching outside are
@@ -940,7 +919,8 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
     score = np.empty((h, w), F32)
 
     def band(rows):
-        r0, r1, i0, i1 = rows
+        r0, r1 = rows
+        i0, i1 = _halo(r0, r1, h, a.window)
         warped = cv2.remap(
             right,
             map_x[i0:i1],
@@ -965,7 +945,7 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
         np.multiply(c, b.inv[keep], out=c)
         np.clip(c, -1, 1, out=score[r0:r1])
 
-    _for_bands(band, _score_bands(h, a.window), threads)
+    each_fixed_band(band, h, SCORE_BAND_ROWS, threads=threads)
     score.ravel()[holes] = np.nan  # a fresh C-contiguous array: ravel() is a view
     return score
 

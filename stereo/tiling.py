@@ -80,7 +80,7 @@ def tile_order(tiles) -> list[Tile]:
     idle), ties by index. One order for every runner and worker count, so the DEM's float
     sums do not depend on them, and close to the order a pool finishes the tiles in, so their
     sums can be added while the pool runs."""
-    return sorted(tiles, key=lambda t: (-int(t.cols) * int(t.rows), t.index))
+    return sorted(tiles, key=lambda t: (-t.size, t.index))
 
 
 def renumber(tiles) -> list[Tile]:
