@@ -185,6 +185,63 @@ def table(runs) -> str:
     return "\n".join(lines)
 
 
+def _ceiling_worker(calls, barrier, results):
+    """One process of :func:`parallel_ceiling`: ``calls`` bare SGBM calls (1 thread) after
+    every process is ready; puts (wall s, CPU s) of the calls."""
+    import cv2
+    from bench_match import _raw_sgbm, _to_uint8, make_pair
+
+    cv2.setNumThreads(1)
+    l8, r8 = _to_uint8(*make_pair()[:2])
+    _raw_sgbm(l8, r8, "sgbm")  # warm: first-call allocations out of the timing
+    barrier.wait()
+    w0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(calls):
+        _raw_sgbm(l8, r8, "sgbm")
+    results.put((time.perf_counter() - w0, time.process_time() - c0))
+
+
+def _ceiling_once(n, calls) -> tuple[float, float]:
+    """Wall s of the slowest of ``n`` processes of :func:`_ceiling_worker`, and CPU s per call."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    barrier, results = ctx.Barrier(n), ctx.Queue()
+    procs = [ctx.Process(target=_ceiling_worker, args=(calls, barrier, results)) for _ in range(n)]
+    for p in procs:
+        p.start()
+    got = [results.get(timeout=600) for _ in procs]
+    for p in procs:
+        p.join()
+    return max(w for w, _ in got), sum(c for _, c in got) / (n * calls)
+
+
+def parallel_ceiling(counts, calls=6, rounds=3) -> dict:
+    """What this machine gives perfectly parallel work at each process count: N processes
+    (spawned, 1 thread each, no shared data) each run ``calls`` bare ``cv2.StereoSGBM`` calls
+    on bench_match.py's pair at once, as N tile workers would. For each N: the speed-up in
+    throughput against 1 process (``N x wall(1) / wall(N)``, wall of the slowest) and the CPU
+    seconds per call against 1 process, each the median of ``rounds`` rounds (1 process and
+    every N in each, back to back). No stereodem code runs: a job's speed-up and CPU ratio
+    are read against these (shared or virtual cores lose some of both to each other)."""
+    ns = sorted(set(counts) | {1})
+    per = {n: [] for n in ns}
+    for _ in range(rounds):
+        w1, c1 = _ceiling_once(1, calls)
+        for n in ns:
+            w, c = (w1, c1) if n == 1 else _ceiling_once(n, calls)
+            per[n].append((n * w1 / w, c / c1, w))
+    return {
+        str(n): dict(
+            speedup_vs_1=round(float(np.median([x[0] for x in v])), 3),
+            cpu_per_call_over_1=round(float(np.median([x[1] for x in v])), 3),
+            rounds_speedup=[round(x[0], 3) for x in v],
+            rounds_wall_s=[round(x[2], 3) for x in v],
+        )
+        for n, v in per.items()
+    }
+
+
 def speed_index(repeats=9):
     """The machine's speed at the time: milliseconds of one bare ``cv2.StereoSGBM`` call
     (MODE_SGBM, 1 thread, 64 disparities) on ``bench_match.py``'s 1024 x 1024 pair, median of
@@ -245,6 +302,8 @@ def main(argv=None):
         check=True,
     )
     speed_before = speed_index()
+    ceiling_before = parallel_ceiling(counts)
+    print("parallel ceiling (bare SGBM, N processes):", json.dumps(ceiling_before), flush=True)
     rounds = {w: [] for w in counts}
     for _ in range(max(1, args.repeat)):
         for w in counts:
@@ -284,6 +343,9 @@ def main(argv=None):
             speed_index="ms of one bare cv2.StereoSGBM call (MODE_SGBM, 1 thread, 64 "
             "disparities) on bench_match.py's 1024 x 1024 pair, median of 9, before and after "
             "the runs",
+            parallel_ceiling=[ceiling_before, parallel_ceiling(counts)],
+            parallel_ceiling_what=parallel_ceiling.__doc__.split("\n\n")[0]
+            + " Measured before and after the runs.",
         ),
         measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         repeat=max(1, args.repeat),

@@ -183,10 +183,27 @@ def _speed(d):
     sp = d["machine"].get("speed_index_ms")
     if not sp:
         return ""
-    return (
+    out = (
         f" Machine speed: one bare `cv2.StereoSGBM` call on a 1024² tile (1 thread, 64 "
         f"disparities) took {sp[0]:.0f} ms before the runs and {sp[1]:.0f} ms after."
     )
+    ceiling = d["machine"].get("parallel_ceiling")
+    if ceiling:  # absent before session 19
+        parts = [
+            f"{n} processes {c[0][n]['speedup_vs_1']:.2f}× / {c[1][n]['speedup_vs_1']:.2f}× "
+            f"(CPU per call {c[0][n]['cpu_per_call_over_1']:.2f} / "
+            f"{c[1][n]['cpu_per_call_over_1']:.2f})"
+            for c in [ceiling]
+            for n in c[0]
+            if n != "1"
+        ]
+        out += (
+            " The machine's own ceiling, bare SGBM calls in N processes at once (no stereodem "
+            "code; throughput against 1 process, before / after the runs): "
+            + "; ".join(parts)
+            + "."
+        )
+    return out
 
 
 def scaling_16_on_2(d):

@@ -2,16 +2,29 @@
 
 from __future__ import annotations
 
+import warnings
+
 import cv2
 import numpy as np
 from affine import Affine
 from rasterio.crs import CRS as RioCRS
+from rasterio.errors import NotGeoreferencedWarning
 from rasterio.warp import Resampling, reproject
 
 from stereodem.core import geodesy
 from stereodem.core.errors import NoOverlapError
 
 from . import terrain
+
+#: rasterio's ``reproject`` of arrays warns "Dataset has no geotransform, gcps, or rpcs" from
+#: its in-memory datasets although it is given their transforms; it suppresses that with
+#: ``warnings.catch_warnings``, which is not thread-safe before Python 3.14 (one thread leaving
+#: the block restores the filters another thread had set), so blocks warped on threads printed
+#: the warning at random (about 1 in 2000 calls on 4 threads; the same in geoutils #851,
+#: odc-geo #131). One filter, set once when this module is imported, for that warning from
+#: ``rasterio.warp`` only (every call here passes both transforms): reading a file without
+#: georeferencing still warns, and a DEM without one is an error (:mod:`stereodem.core.dem`).
+warnings.filterwarnings("ignore", category=NotGeoreferencedWarning, module=r"rasterio\.warp$")
 
 _RESAMPLING = {
     "nearest": Resampling.nearest,

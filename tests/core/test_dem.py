@@ -105,6 +105,28 @@ def test_bad_dems(tmp_path):
         DEM.from_file(tmp_path / "missing.tif")
 
 
+def test_a_dem_with_a_crs_but_no_geotransform_is_refused(tmp_path):
+    """Without a geotransform rasterio gives the identity (with a warning only): the heights
+    would be placed at CRS coordinates 0..width, so reading and checking both refuse it."""
+    path = tmp_path / "nogt.tif"
+    with pytest.warns(rasterio.errors.NotGeoreferencedWarning):
+        with rasterio.open(
+            path,
+            "w",
+            driver="GTiff",
+            width=4,
+            height=4,
+            count=1,
+            dtype="float32",
+            crs="EPSG:32633",
+        ) as d:
+            d.write(np.ones((4, 4), np.float32), 1)
+    for read in (DEM.from_file, DEM.check_file):
+        with pytest.warns(rasterio.errors.NotGeoreferencedWarning):
+            with pytest.raises(DEMError, match="nogt.tif: the DEM has no geotransform"):
+                read(path)
+
+
 def test_check_file_refuses_what_from_file_refuses(tmp_path):
     """The input checks' cheap look (header, first block) gives from_file's errors."""
     with pytest.raises(CRSError, match="nocrs.tif: the DEM has no CRS"):

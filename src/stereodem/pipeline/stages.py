@@ -7,8 +7,6 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-import rasterio
-import rasterio.warp
 
 from stereodem.core import jsonutil
 from stereodem.core.dem import DEM
@@ -22,6 +20,7 @@ from stereodem.post import error_analysis as ea
 from stereodem.post.assess import assess_dem, reconcile_vertical
 from stereodem.post.fill import fill_holes, gaussian_smooth
 from stereodem.post.filters import EditCode, border_rim, default_chain
+from stereodem.post.warp import to_grid
 from stereodem.stereo import sanity
 from stereodem.stereo.execution import tile_runner
 from stereodem.stereo.fork_server import warm_fork_server
@@ -180,19 +179,15 @@ def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=No
 def _fallback_on_grid(seed, layers: DEM):
     """The seed DEM warped onto the stereo grid, in the grid's vertical reference."""
     seed = seed.to_reference(layers.vertical)
-    out = np.full(layers.heights.shape, np.nan, np.float32)
-    rasterio.warp.reproject(
+    return to_grid(
         seed.heights,
-        out,
-        src_transform=seed.transform,
-        src_crs=seed.crs.to_wkt(),
-        dst_transform=layers.transform,
-        dst_crs=layers.crs.to_wkt(),
-        resampling=rasterio.warp.Resampling.bilinear,
-        src_nodata=np.nan,
-        dst_nodata=np.nan,
+        seed.transform,
+        seed.crs,
+        layers.transform,
+        layers.crs,
+        layers.heights.shape,
+        resampling="bilinear",
     )
-    return out
 
 
 def ortho_stage(cfg: Config, images, dem: DEM, *, grid: MapGrid | None = None, progress=None):
