@@ -16,7 +16,6 @@ from __future__ import annotations
 import os
 import tempfile
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -127,9 +126,9 @@ class BlockWriter:
             transform=g.transform,
             crs=rasterio.crs.CRS.from_wkt(crs.to_wkt()),
         )
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-            self._ds = rasterio.open(self._tmp, "w", **profile)
+        # georeferenced (a map grid): no warning to silence, and no warnings.catch_warnings,
+        # which is not thread-safe (these writers run beside other threads)
+        self._ds = rasterio.open(self._tmp, "w", **profile)
         return self
 
     def write(self, row0: int, col0: int, arrays):

@@ -283,6 +283,20 @@ def _as_list(value, count, what):
     return value
 
 
+@contextlib.contextmanager
+def _without_georeferencing_warning(transform, rpcs):
+    """Where a raster is written without a geotransform or RPCs on purpose (an image in
+    sensor geometry), rasterio's NotGeoreferencedWarning is silenced; otherwise nothing is
+    done: ``warnings.catch_warnings`` saves and restores the process's filters, which a
+    write on a background thread would do under the main thread's feet (Python < 3.14)."""
+    if transform is not None or rpcs is not None:
+        yield
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        yield
+
+
 def write_geotiff(
     path,
     data,
@@ -386,8 +400,7 @@ def write_geotiff(
         profile["transform"] = transform
     if rpcs is not None:
         profile["rpcs"] = rpcs
-    with atomic_path(path) as tmp, warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+    with atomic_path(path) as tmp, _without_georeferencing_warning(transform, rpcs):
         with rasterio.open("", "w", **profile) as dst:
             dst.write(arr)
             if tags:

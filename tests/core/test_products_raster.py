@@ -340,3 +340,29 @@ def test_ortho_integer_mask_when_no_value_is_free(tmp_path, small_scene):
     with rasterio.open(p) as ds:
         assert ds.nodata is None
         assert np.array_equal(ds.read_masks(1) > 0, o.valid)
+
+
+def test_georeferenced_writes_leave_the_warning_filters_alone(tmp_path, monkeypatch):
+    """``warnings.catch_warnings`` saves and restores the whole process's filters (not
+    thread-safe before Python 3.14), and products are written on a background thread: a
+    georeferenced write does not enter it; one in sensor geometry (no transform, no RPCs)
+    still silences rasterio's NotGeoreferencedWarning."""
+    import warnings
+
+    a = np.ones((4, 5), np.float32)
+    real = warnings.catch_warnings
+
+    def refused(*args, **kw):
+        raise AssertionError("catch_warnings entered for a georeferenced write")
+
+    monkeypatch.setattr(warnings, "catch_warnings", refused)
+    write_geotiff(
+        tmp_path / "map.tif", a, crs=CRS.from_epsg(32633), transform=Affine(30, 0, 5e5, 0, -30, 4e6)
+    )
+    monkeypatch.setattr(warnings, "catch_warnings", real)
+    with warnings.catch_warnings(record=True) as log:
+        warnings.simplefilter("always")
+        write_geotiff(tmp_path / "sensor.tif", a)
+    assert not [w for w in log if issubclass(w.category, rasterio.errors.NotGeoreferencedWarning)]
+    with rasterio.open(tmp_path / "map.tif") as d:
+        assert d.transform == Affine(30, 0, 5e5, 0, -30, 4e6)
