@@ -68,19 +68,9 @@ def test_outside_and_void_are_reported_not_invented(tmp_path):
 
 
 def test_unknown_vertical_reference_is_an_error(tmp_path):
-    path = tmp_path / "dem.tif"
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=4,
-        height=4,
-        count=1,
-        dtype="float32",
-        crs="EPSG:4326",
-        transform=Affine(0.01, 0, 40, 0, -0.01, 40),
-    ) as d:
-        d.write(np.ones((4, 4), np.float32), 1)
+    path = _ones_tif(
+        tmp_path / "dem.tif", crs="EPSG:4326", transform=Affine(0.01, 0, 40, 0, -0.01, 40)
+    )
     dem = DEM.from_file(path)
     assert dem.vertical is None
     assert dem.sample(40.015, 39.985, reference=None) == pytest.approx(1.0)
@@ -88,12 +78,18 @@ def test_unknown_vertical_reference_is_an_error(tmp_path):
         dem.sample(40.015, 39.985)
 
 
-def _no_crs_tif(tmp_path):
-    """A 4 x 4 float32 GeoTIFF without a CRS."""
-    path = tmp_path / "nocrs.tif"
-    with rasterio.open(path, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32") as d:
+def _ones_tif(path, **georeferencing):
+    """A 4 x 4 float32 GeoTIFF of ones at ``path`` with the ``crs`` and ``transform`` given."""
+    with rasterio.open(
+        path, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32", **georeferencing
+    ) as d:
         d.write(np.ones((4, 4), np.float32), 1)
     return path
+
+
+def _no_crs_tif(tmp_path):
+    """A 4 x 4 float32 GeoTIFF without a CRS."""
+    return _ones_tif(tmp_path / "nocrs.tif")
 
 
 def test_bad_dems(tmp_path):
@@ -108,19 +104,8 @@ def test_bad_dems(tmp_path):
 def test_a_dem_with_a_crs_but_no_geotransform_is_refused(tmp_path):
     """Without a geotransform rasterio gives the identity (with a warning only): the heights
     would be placed at CRS coordinates 0..width, so reading and checking both refuse it."""
-    path = tmp_path / "nogt.tif"
     with pytest.warns(rasterio.errors.NotGeoreferencedWarning):
-        with rasterio.open(
-            path,
-            "w",
-            driver="GTiff",
-            width=4,
-            height=4,
-            count=1,
-            dtype="float32",
-            crs="EPSG:32633",
-        ) as d:
-            d.write(np.ones((4, 4), np.float32), 1)
+        path = _ones_tif(tmp_path / "nogt.tif", crs="EPSG:32633")
     for read in (DEM.from_file, DEM.check_file):
         with pytest.warns(rasterio.errors.NotGeoreferencedWarning):
             with pytest.raises(DEMError, match="nogt.tif: the DEM has no geotransform"):
