@@ -16,15 +16,28 @@ from stereodem.core.errors import NoOverlapError
 
 from . import terrain
 
-#: rasterio's ``reproject`` of arrays warns "Dataset has no geotransform, gcps, or rpcs" from
-#: its in-memory datasets although it is given their transforms; it suppresses that with
-#: ``warnings.catch_warnings``, which is not thread-safe before Python 3.14 (one thread leaving
-#: the block restores the filters another thread had set), so blocks warped on threads printed
-#: the warning at random (about 1 in 2000 calls on 4 threads; the same in geoutils #851,
-#: odc-geo #131). One filter, set once when this module is imported, for that warning from
-#: ``rasterio.warp`` only (every call here passes both transforms): reading a file without
-#: georeferencing still warns, and a DEM without one is an error (:mod:`stereodem.core.dem`).
-warnings.filterwarnings("ignore", category=NotGeoreferencedWarning, module=r"rasterio\.warp$")
+_IN_MEMORY_WARP = r"rasterio\.warp$"
+
+
+def _ignore_in_memory_warp_warning() -> None:
+    """rasterio's ``reproject`` of arrays warns "Dataset has no geotransform, gcps, or rpcs"
+    from its in-memory datasets although it is given their transforms; it suppresses that
+    with ``warnings.catch_warnings``, which is not thread-safe before Python 3.14 (one thread
+    leaving the block restores the filters another thread had set), so blocks warped on
+    threads printed the warning at random (about 1 in 2000 calls on 4 threads; the same in
+    geoutils #851, odc-geo #131). One process-wide filter, for that warning from
+    ``rasterio.warp`` only (every call here passes both transforms; reading a file without
+    georeferencing still warns, and a DEM without one is an error: :mod:`stereodem.core.dem`),
+    set when this module is imported and again by a warp that finds it gone (a
+    ``catch_warnings`` block around the import, as pytest's, restores the filters of before)."""
+    for action, _, category, module, _ in warnings.filters:
+        if category is NotGeoreferencedWarning and module is not None:
+            if action == "ignore" and module.pattern == _IN_MEMORY_WARP:
+                return
+    warnings.filterwarnings("ignore", category=NotGeoreferencedWarning, module=_IN_MEMORY_WARP)
+
+
+_ignore_in_memory_warp_warning()
 
 _RESAMPLING = {
     "nearest": Resampling.nearest,
@@ -52,6 +65,7 @@ def to_grid(
     that warp blocks on a thread pool already use the cores; a caller that warps a whole grid
     passes the process's budget, :func:`stereodem.core.blocks.default_threads`); the result
     does not depend on it."""
+    _ignore_in_memory_warp_warning()
     src = np.asarray(data)
     if np.issubdtype(np.dtype(dst_dtype), np.floating):
         src = src.astype(np.float32, copy=False)

@@ -343,3 +343,29 @@ print(json.dumps([shown, same]))
     # shown (before the threads: rasterio's racing blocks can also leave an ignore behind);
     # none from the warps on threads
     assert shown == [["NotGeoreferencedWarning", "__init__.py"]] and same
+
+
+def test_a_warp_sets_the_in_memory_warp_filter_again_when_it_is_gone():
+    """A ``catch_warnings`` block around the module's import (pytest's, a notebook's) restores
+    the filters of before and drops the module's; the next warp sets it again, so blocks
+    warped on threads afterwards do not warn either."""
+    import warnings
+
+    from rasterio.errors import NotGeoreferencedWarning
+
+    def ours():
+        return [
+            f
+            for f in warnings.filters
+            if f[0] == "ignore" and f[2] is NotGeoreferencedWarning and f[3] is not None
+        ]
+
+    crs = CRS.from_epsg(32633)
+    t = Affine(30, 0, 500000, 0, -30, 4000000)
+    with warnings.catch_warnings():
+        warnings.resetwarnings()
+        assert not ours()
+        to_grid(np.ones((4, 4), np.float32), t, crs, t, crs, (4, 4))
+        assert [f[3].pattern for f in ours()] == [r"rasterio\.warp$"]
+        to_grid(np.ones((4, 4), np.float32), t, crs, t, crs, (4, 4))
+        assert len(ours()) == 1  # once
