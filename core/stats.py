@@ -2,12 +2,26 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 #: NMAD scale: 1 / Φ⁻¹(3/4), so that the NMAD of normal errors estimates their σ
 NMAD_FACTOR = 1.4826
+
+
+def nanmedian(a, axis: int = 0) -> np.ndarray:
+    """``np.nanmedian(a, axis=axis)`` (the same values), NaN where a slice has no non-NaN
+    value, without the RuntimeWarning numpy gives for those slices: they are left out of the
+    call instead of silenced with ``warnings.catch_warnings``, which saves and restores the
+    whole process's filters and is not thread-safe before Python 3.14."""
+    a = np.asarray(a)
+    have = ~np.isnan(a).all(axis=axis)
+    if have.all():
+        return np.nanmedian(a, axis=axis)
+    out = np.full(have.shape, np.nan, np.result_type(a.dtype, np.float16))
+    if have.any():
+        moved = np.moveaxis(a, axis, 0)
+        out[have] = np.nanmedian(moved[:, have], axis=0)
+    return out
 
 
 def nmad(x, axis=None):
@@ -18,10 +32,9 @@ def nmad(x, axis=None):
     axis as a float64 array (NaN where a column has no finite value); otherwise a float."""
     if axis is not None:
         a = np.asarray(x, dtype=np.float64)
-        with np.errstate(invalid="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns -> NaN
-            med = np.nanmedian(a, axis=axis, keepdims=True)
-            return NMAD_FACTOR * np.nanmedian(np.abs(a - med), axis=axis)
+        med = np.expand_dims(nanmedian(a, axis=axis), axis)
+        with np.errstate(invalid="ignore"):
+            return NMAD_FACTOR * nanmedian(np.abs(a - med), axis=axis)
     x = np.asarray(x, dtype=np.float64)
     x = x[np.isfinite(x)]
     if x.size == 0:

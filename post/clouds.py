@@ -18,14 +18,13 @@ the fraction each sign flagged.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
 from stereodem.core.errors import InputError
-from stereodem.core.stats import nmad
+from stereodem.core.stats import nanmedian, nmad
 
 
 @dataclass(frozen=True)
@@ -86,9 +85,7 @@ def temporal_deviation(stack, max_deviation: float) -> np.ndarray:
     """Observations of a stack ``(T, ...)`` farther than ``max_deviation`` metres from their
     cell's temporal median (the stack's own blunder test; :mod:`stereodem.post.rates` applies
     it per cell before fitting)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(stack, axis=0)
+    med = nanmedian(stack, axis=0)
     with np.errstate(invalid="ignore"):
         return np.abs(np.asarray(stack) - med) > max_deviation
 

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import logging
 import time
-import warnings
 from dataclasses import asdict, dataclass, field, replace
 
 import cv2
@@ -55,7 +54,7 @@ from stereodem.core.blockwrite import CACHE_MB, OVERVIEW_CHUNK_MB, BlockWriter
 from stereodem.core.dem import DEM, ELLIPSOID, GEOID
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.grid import MapGrid
-from stereodem.core.stats import nmad
+from stereodem.core.stats import nanmedian, nmad
 
 from .mosaic_coreg import check_reference, crop_reference, fitter
 from .mosaic_sources import (
@@ -531,9 +530,7 @@ def _mosaic_block(plan, r0, c0, rows, cols):
         if stack:
             st = np.stack(stack)
             del stack
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN cells
-                value = np.nanmedian(st, axis=0) if m == "median" else nmad(st, axis=0)
+            value = nanmedian(st, axis=0) if m == "median" else nmad(st, axis=0)
             del st
     if m == "count":
         bands = [n.astype(np.float32)]

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stereodem.core.errors import InputError
+from stereodem.core.stats import nanmedian
 
 
 @dataclass(frozen=True)
@@ -119,12 +120,7 @@ def fit_rates(heights, times, sigma, *, settings: RateSettings = RateSettings(),
         ok &= np.asarray(valid, bool).reshape(T, -1)
     n_in = ok.sum(0)
     if np.isfinite(settings.max_deviation):
-        have = ok.any(0)  # cells with no observation: no median
-        if have.all():
-            med = np.nanmedian(np.where(ok, h, np.nan), axis=0)
-        else:
-            med = np.full(h.shape[1], np.nan)
-            med[have] = np.nanmedian(np.where(ok[:, have], h[:, have], np.nan), axis=0)
+        med = nanmedian(np.where(ok, h, np.nan), axis=0)  # NaN: no observation
         with np.errstate(invalid="ignore"):
             ok &= ~(np.abs(h - med) > settings.max_deviation)
     tt = t[:, None]

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import warnings
 from dataclasses import dataclass, field
 from itertools import combinations
 from pathlib import Path
@@ -53,6 +52,7 @@ from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
 from stereodem.core.raster import write_geotiff
+from stereodem.core.stats import nanmedian
 from stereodem.core.stats import nmad as nmad_of
 
 from .plan import base_to_height
@@ -441,9 +441,7 @@ def fuse_dems(
     sig = np.asarray(sigmas, np.float32)[:, None, None]
     valid = np.isfinite(H)
     n_valid = valid.sum(axis=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN cells
-        med = np.nanmedian(H, axis=0)
+    med = nanmedian(H, axis=0)
     dev = np.abs(H - med)
     nmad = np.where(n_valid >= 2, nmad_of(H, axis=0), np.nan).astype(np.float32)
     tol = k * np.maximum(sig, np.nan_to_num(nmad, nan=0.0)[None])
@@ -454,9 +452,7 @@ def fuse_dems(
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = (w * np.where(keep, H, 0.0)).sum(axis=0) / sw
         if method == "median":
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                fused = np.nanmedian(np.where(keep, H, np.nan), axis=0)
+            fused = nanmedian(np.where(keep, H, np.nan), axis=0)
         else:
             fused = mean
         chi2 = (w * np.where(keep, H - mean, 0.0) ** 2).sum(axis=0)
