@@ -60,12 +60,21 @@ def child_env() -> dict:
     return env
 
 
+def _idle_core_s(psutil) -> float:
+    """Seconds the machine's cores have been idle (all cores summed, iowait included)."""
+    t = psutil.cpu_times()
+    return t.idle + getattr(t, "iowait", 0.0)
+
+
 def measured(cmd):
     """Run ``cmd``: wall s, CPU s (rusage of waited-for descendants), CPU s by psutil over the
-    process tree (last sample of each process), peak RSS MB summed over the tree."""
+    process tree (last sample of each process), peak RSS MB summed over the tree, and the
+    machine's idle core-seconds meanwhile (all cores; on a machine doing nothing else, the
+    cores the job left unused: its serial parts and waits)."""
     import psutil
 
     cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    idle0 = _idle_core_s(psutil)
     t0 = time.perf_counter()
     p = subprocess.Popen(
         cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env()
@@ -89,18 +98,19 @@ def measured(cmd):
         time.sleep(0.2)
     _, err = p.communicate()
     wall = time.perf_counter() - t0
+    idle = _idle_core_s(psutil) - idle0
     cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if p.returncode != 0:
         raise SystemExit(f"{' '.join(map(str, cmd))} failed:\n{err[-3000:]}")
     cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
-    return wall, cpu, sum(cpu_seen.values()), peak / 2**20
+    return wall, cpu, sum(cpu_seen.values()), peak / 2**20, idle
 
 
 def run_once(scene: Path, out: Path, workers: int) -> dict:
     cfg = out.with_suffix(".toml")
     cfg.write_text(CONFIG.format(scene=scene, granule=granule(scene), out=out, workers=workers))
     load0 = os.getloadavg()
-    wall, cpu, cpu_ps, peak = measured(
+    wall, cpu, cpu_ps, peak, idle = measured(
         [sys.executable, "-m", "stereodem.cli", "-q", "run", str(cfg), "--overwrite"]
     )
     info = json.loads((out / "run.json").read_text())
@@ -126,6 +136,7 @@ def run_once(scene: Path, out: Path, workers: int) -> dict:
         cpu_s=round(cpu, 2),
         cpu_s_psutil=round(cpu_ps, 2),
         peak_rss_mb_all_processes=round(peak),
+        idle_core_s=round(idle, 2),
         load_average_before=[round(x, 2) for x in load0],
         load_average_after=[round(x, 2) for x in os.getloadavg()],
         stages=stages,
@@ -316,8 +327,8 @@ def main(argv=None):
             rounds[w].append(r)
             print(
                 f"workers {w}: {r['wall_s']} s wall, {r['cpu_s']} CPU s ({r['cpu_s_psutil']} by "
-                f"psutil), peak {r['peak_rss_mb_all_processes']} MB, load "
-                f"{r['load_average_before'][0]}",
+                f"psutil), peak {r['peak_rss_mb_all_processes']} MB, idle "
+                f"{r['idle_core_s']} core-s, load {r['load_average_before'][0]}",
                 flush=True,
             )
     runs = []

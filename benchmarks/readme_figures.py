@@ -160,7 +160,9 @@ def scaling(d):
     g, r = d["granule"], d["ratios"]
     rows = "; ".join(
         f"{x['workers']} w: {x['wall_s']:.1f} s wall / {x['cpu_s']:.1f} CPU s, peak "
-        f"{x['peak_rss_mb_all_processes']} MB (load {x['load_average_before'][0]:.1f})"
+        f"{x['peak_rss_mb_all_processes']} MB"
+        + (f", cores idle {x['idle_core_s']:.1f} s" if "idle_core_s" in x else "")
+        + f" (load {x['load_average_before'][0]:.1f})"
         for x in d["runs"]
     )
     same = all(
