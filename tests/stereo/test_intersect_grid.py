@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 import rasterio
+from rasterio.windows import Window
+from rasterio.windows import transform as window_transform
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM, horizontal_crs
@@ -225,7 +227,7 @@ def test_tile_by_tile_gridding_equals_gridding_all_points():
     assert (
         cropped.heights.shape[0] < spec.shape[0] and np.isfinite(cropped.heights[[0, -1], :]).any()
     )
-    x_c, y_c = cropped.transform * (0, 0)
+    x_c, y_c = cropped.transform.c, cropped.transform.f  # the corner of pixel (0, 0)
     assert (x_c - b[0]) % 30 == 0 and (b[3] - y_c) % 30 == 0  # same lattice
 
 
@@ -327,6 +329,7 @@ def test_finish_in_row_bands_gives_the_cell_by_cell_layers():
                 got = getattr(dem, name)
                 assert got.dtype == np.float32 and np.array_equal(got, want, equal_nan=True)
             assert np.array_equal(dem.count, t[2][7:, :-5].astype(np.int32))
-            assert dem.transform == spec.transform * spec.transform.translation(0, 7)
+            # the grid's transform with its origin moved down 7 rows
+            assert dem.transform == window_transform(Window(0, 7, 1, 1), spec.transform)
     finally:
         cv2.setNumThreads(saved)
