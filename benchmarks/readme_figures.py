@@ -125,6 +125,12 @@ def match(d):
             f"{r['threads']} thread(s): {r['ratio_cpu']:.2f}× CPU, {r['ratio_wall']:.2f}× "
             f"wall ({r['stereodem_cpu_s']:.3f} vs {r['bare_cpu_s']:.3f} CPU s"
             + (
+                f"; call by call {r['ratio_cpu_paired']:.3f}× CPU, "
+                f"{r['ratio_wall_paired']:.3f}× wall"
+                if "ratio_cpu_paired" in r
+                else ""
+            )
+            + (
                 f"; {r['ratio_cpu_of_minima']:.2f}× CPU of the minima"
                 if "ratio_cpu_of_minima" in r
                 else ""
@@ -143,15 +149,30 @@ def match(d):
             out += (
                 f" Where it goes (1 thread, % of the bare call): padded SGBM "
                 f"{pb['padded_sgbm']:.0f} %, 8-bit stretch {pb['stretch_8bit']:.1f} %, score layer "
-                f"{pb['score_left']:.1f} % (left windows) + {pb['score_warped']:.1f} % (warped "
-                f"right), whole wrapper {pb['wrapper']:.0f} %."
+                + (
+                    f"{pb['score']:.1f} %"
+                    if "score" in pb
+                    else f"{pb['score_left']:.1f} % (left windows) + {pb['score_warped']:.1f} % "
+                    "(warped right)"
+                )
+                + f", whole wrapper {pb['wrapper']:.0f} %."
             )
         ba = o.get("before_after")
         if ba:
             out += (
                 f" Before/after in the same run (revision {ba['revision']}, 1 thread, CPU s): "
                 f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call, outputs "
-                f"{'bit-identical' if ba['bit_identical'] else 'NOT identical'}."
+                + (
+                    "bit-identical."
+                    if ba["bit_identical"]
+                    else (
+                        "disparities "
+                        + ("bit-identical" if ba.get("disparity_identical") else "changed")
+                        + f", scores within {ba['score_max_abs_change']:.1e}."
+                        if "score_max_abs_change" in ba
+                        else "NOT identical."
+                    )
+                )
             )
     return out
 
