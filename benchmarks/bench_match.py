@@ -286,11 +286,12 @@ def sgm_parts(left, right, l8, r8, repeats=REPEATS):
     }
 
 
-def sgm_before_after(left, right, l8, r8, rev, repeats=11):
+def sgm_before_after(left, right, l8, r8, rev, repeats=REPEATS):
     """The SGM wrapper of git revision ``rev`` (its ``stereo/match.py``, loaded as a module)
-    against today's and the bare call, alternating, 1 thread, CPU seconds (medians); also
-    whether the two wrappers' disparities and scores are bit-identical, and the largest score
-    change."""
+    against today's and the bare call, alternating (the order of the three rotates from one
+    repeat to the next, so none always follows another), 1 thread, CPU seconds (medians, and
+    the medians of each repeat's ratios to its bare call); also whether the two wrappers'
+    disparities and scores are bit-identical, and the largest score change."""
     import importlib.util
     import subprocess
     import tempfile
@@ -316,10 +317,11 @@ def sgm_before_after(left, right, l8, r8, rev, repeats=11):
     }
     try:
         ts = {k: [] for k in fns}
-        for _ in range(repeats):
-            for k, fn in fns.items():
+        names = list(fns)
+        for i in range(repeats):
+            for k in names[i % 3 :] + names[: i % 3]:
                 c0 = time.process_time()
-                fn()
+                fns[k]()
                 ts[k].append(time.process_time() - c0)
         a, b = fns["before"](), fns["now"]()  # MatchResult: disparity, score
     finally:
@@ -337,6 +339,10 @@ def sgm_before_after(left, right, l8, r8, rev, repeats=11):
         "cpu_s": {k: round(v, 4) for k, v in med.items()},
         "ratio_before": round(med["before"] / med["bare"], 3),
         "ratio_now": round(med["now"] / med["bare"], 3),
+        "ratio_before_paired": round(
+            float(np.median(np.array(ts["before"]) / np.array(ts["bare"]))), 3
+        ),
+        "ratio_now_paired": round(float(np.median(np.array(ts["now"]) / np.array(ts["bare"]))), 3),
         "bit_identical": bool(same),
         "disparity_identical": bool(np.array_equal(a.disparity, b.disparity, equal_nan=True)),
         "score_same_cells": bool(np.array_equal(np.isfinite(a.score), np.isfinite(b.score))),

@@ -161,7 +161,14 @@ def match(d):
         if ba:
             out += (
                 f" Before/after in the same run (revision {ba['revision']}, 1 thread, CPU s): "
-                f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call, outputs "
+                f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call"
+                + (
+                    f" (call by call {ba['ratio_before_paired']:.3f}× → "
+                    f"{ba['ratio_now_paired']:.3f}×)"
+                    if "ratio_now_paired" in ba
+                    else ""
+                )
+                + ", outputs "
                 + (
                     "bit-identical."
                     if ba["bit_identical"]
