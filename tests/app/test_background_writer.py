@@ -16,23 +16,35 @@ from stereodem.core.dem import DEM
 from stereodem.pipeline.job import BackgroundWriter
 
 
-def test_writes_run_in_order_off_the_calling_thread_and_finish_on_exit(tmp_path):
+def test_writes_run_off_the_calling_thread_side_by_side_and_finish_on_exit(tmp_path):
+    """With a budget of two threads (the default), a second write runs while the first one is
+    still going (the first waits for the second to start: one thread would make it time out);
+    ``wait_for(i)`` waits for the ``i``-th write, and leaving the context for all of them."""
     done, threads = [], []
+    second_started = threading.Event()
 
-    def write(name, delay):
-        time.sleep(delay)
+    def first():
+        ok = second_started.wait(timeout=30)
+        threads.append(threading.current_thread().name)
+        time.sleep(0.1)
+        (tmp_path / "a").write_text("a")
+        done.append(("a", ok))
+
+    def second(name):
+        second_started.set()
         threads.append(threading.current_thread().name)
         (tmp_path / name).write_text(name)
         done.append(name)
 
     with BackgroundWriter() as w:
-        w.submit(write, "a", 0.2)
-        w.submit(write, "b", 0.0)
-        assert done == []  # the caller goes on while "a" is written
+        w.submit(first)
+        w.submit(second, "b")
+        w.submit(second, "c")
         w.wait_for(0)
-        assert done[0] == "a"
-    assert done == ["a", "b"] and w.count == 2 and w.seconds >= 0.2
-    assert all(t != threading.current_thread().name for t in threads)
+        assert ("a", True) in done
+    assert sorted(map(str, done)) == ["('a', True)", "b", "c"] and w.count == 3
+    assert w.seconds >= 0.1 and (tmp_path / "c").read_text() == "c"
+    assert len(set(threads)) == 2 and threading.current_thread().name not in threads
 
 
 def test_write_error_reaches_the_caller():

@@ -100,15 +100,19 @@ def writer_options(cfg: Config, *, overlapped: bool = False) -> dict:
 
 
 class BackgroundWriter:
-    """One thread that writes output files while the run goes on (GDAL compresses with the
-    GIL released, :func:`stereodem.core.raster.write_geotiff`, so a write overlaps the next
+    """Threads that write output files while the run goes on (GDAL compresses with the GIL
+    released, :func:`stereodem.core.raster.write_geotiff`, so a write overlaps the next
     stage's work on another core).
 
     ``threads``: the job's thread budget (:func:`stereodem.core.threads.job_threads`); below
     2 there is no core to spare, so each write runs at once in the calling thread and a job
-    of one worker keeps to one core.
+    of one worker keeps to one core. Otherwise up to that many files are written at once:
+    the two orthoimages, queued together, then compress side by side on the cores the
+    assessment leaves idle and in the final wait (at 2 workers on 2 cores, ``stereodem run``
+    on the full granule: the final wait 0.34-0.42 s instead of 0.51-0.90 s, three
+    alternating pairs; the files' bytes do not depend on it).
 
-    The writer thread runs at a lower CPU priority
+    The writer threads run at a lower CPU priority
     (:func:`stereodem.core.threads.lower_thread_priority`, Linux): while a stage keeps every
     core busy it takes little of them, and it compresses at full speed on the cores that
     stage leaves idle or while the job waits for it. At 2 workers on 2 cores the orthoimages'
@@ -125,7 +129,7 @@ class BackgroundWriter:
     def __init__(self, threads: int = 2):
         self._pool = (
             ThreadPoolExecutor(
-                max_workers=1,
+                max_workers=threads,
                 thread_name_prefix="stereodem-writer",
                 initializer=lower_thread_priority,
             )
