@@ -114,14 +114,20 @@ def enu_to_ecef(e, n, u, lon0, lat0, h0):
     return x0 + d[..., 0, 0], y0 + d[..., 1, 0], z0 + d[..., 2, 0]
 
 
+def _mean_without_nan(a) -> float:
+    """``np.nanmean`` of ``a`` as a float, NaN (no warning) when every value is NaN."""
+    a = np.asarray(a, dtype=np.float64).ravel()
+    a = a[~np.isnan(a)]
+    return float(a.mean()) if a.size else float("nan")
+
+
 def utm_epsg(lon, lat) -> int:
     """EPSG code of the WGS84 UTM zone containing ``(lon, lat)`` (degrees).
 
     Uses the standard 6-degree zones with the Norway/Svalbard exceptions; for arrays, the
     zone of the mean position is returned (one zone per product).
     """
-    lon = float(np.nanmean(np.asarray(lon, dtype=np.float64)))
-    lat = float(np.nanmean(np.asarray(lat, dtype=np.float64)))
+    lon, lat = _mean_without_nan(lon), _mean_without_nan(lat)
     if not (np.isfinite(lon) and np.isfinite(lat)) or abs(lat) > 90:
         raise CRSError(f"cannot choose a UTM zone for lon={lon}, lat={lat}")
     lon = (lon + 180.0) % 360.0 - 180.0

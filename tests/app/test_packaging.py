@@ -34,7 +34,14 @@ def test_every_package_folder_is_installed_under_the_namespace():
         for init in (ROOT / folder).rglob("__init__.py"):
             rel = init.parent.relative_to(ROOT / folder)
             found.add(".".join([name, *rel.parts]))
+        # the data folders: namespace packages of package data (no code, no __pycache__)
+        for data in (ROOT / folder).rglob("data"):
+            for d in [data, *data.rglob("*")]:
+                if d.is_dir() and d.name != "__pycache__" and any(f.is_file() for f in d.iterdir()):
+                    found.add(".".join([name, *d.relative_to(ROOT / folder).parts]))
     assert found == listed, (found - listed, listed - found)
+    data_packages = {p for p in listed if ".data" in p}
+    assert data_packages and data_packages <= set(cfg["package-data"]), data_packages
     assert all(p == "stereodem" or p.startswith("stereodem.") for p in listed)
 
 

@@ -59,6 +59,7 @@ def test_utm_zone(lon, lat, epsg):
 
 
 def test_utm_zone_bad_input():
+    """A clear error, and no NumPy warning before it (all-NaN coordinates)."""
     with pytest.raises(CRSError):
         g.utm_epsg(np.nan, 10)
 
