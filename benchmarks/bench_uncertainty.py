@@ -476,28 +476,14 @@ def speed():
         ground_displacements,
         lhs_normal,
     )
-    from stereodem.sensor.simulation.simulate import aster_geometry_parameters, pushbroom_pair
+    from stereodem.sensor.simulation.control_points import aster_size_pair
 
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from bench_aster_scene import mirrored_dem
 
     dem = mirrored_dem().to_reference("ellipsoid")
     lon0, lat0 = (lambda b: ((b[0] + b[2]) / 2, (b[1] + b[3]) / 2))(dem.bounds_lonlat())
-    h0 = float(dem.sample(lon0, lat0))
-    p = aster_geometry_parameters()
-    b = p["bands"]
-    left, _ = pushbroom_pair(
-        lon0,
-        lat0,
-        h0,
-        (4100, 4200),
-        (b["3N"]["along_deg"], b["3B"]["along_deg"]),
-        gsd=p["gsd_m"],
-        altitude=p["altitude_m"],
-        line_period=p["line_period_s"],
-        cross_track_tilt_deg=-p["cross_track_right_deg"],
-        right_size=(5000, 4600),
-    )
+    left, _ = aster_size_pair(lon0, lat0, float(dem.sample(lon0, lat0)))
     grid = grid_for_model(left, dem, res=15.0)
     img = (np.random.default_rng(0).random((4200, 4100)) * 255).astype(np.uint8)
     threads = os.cpu_count() or 1

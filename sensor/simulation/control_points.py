@@ -47,17 +47,13 @@ TRUTH_ERRORS_BACKWARD = dict(
 
 
 @functools.lru_cache(maxsize=1)
-def aster_pair_scene():
-    """``(metadata_3N, metadata_3B, truth_3N, truth_3B, dem)``: the simulator's full-size ASTER
-    pair geometry (4100 x 4200 and 5000 x 4600) over the bundled DEM, the truths carrying
-    :data:`TRUTH_ERRORS` and :data:`TRUTH_ERRORS_BACKWARD`."""
+def aster_size_pair(lon0: float, lat0: float, h0: float):
+    """``(nadir, backward)``: the simulator's full-size ASTER pair geometry (3N 4100 x 4200,
+    3B 5000 x 4600 pixels, :func:`aster_geometry_parameters`) looking at ``(lon0, lat0, h0)``
+    (degrees, metres above the ellipsoid), without errors."""
     p = aster_geometry_parameters()
     b = p["bands"]
-    dem = DEM.bundled()
-    w, s, e, n = dem.bounds_lonlat()
-    lon0, lat0 = (w + e) / 2, (s + n) / 2
-    h0 = float(dem.sample(lon0, lat0))
-    nadir, back = pushbroom_pair(
+    return pushbroom_pair(
         lon0,
         lat0,
         h0,
@@ -69,6 +65,16 @@ def aster_pair_scene():
         cross_track_tilt_deg=-p["cross_track_right_deg"],
         right_size=(5000, 4600),
     )
+
+
+def aster_pair_scene():
+    """``(metadata_3N, metadata_3B, truth_3N, truth_3B, dem)``: the simulator's full-size ASTER
+    pair geometry (:func:`aster_size_pair`) over the bundled DEM, the truths carrying
+    :data:`TRUTH_ERRORS` and :data:`TRUTH_ERRORS_BACKWARD`."""
+    dem = DEM.bundled()
+    w, s, e, n = dem.bounds_lonlat()
+    lon0, lat0 = (w + e) / 2, (s + n) / 2
+    nadir, back = aster_size_pair(lon0, lat0, float(dem.sample(lon0, lat0)))
     return (
         nadir,
         back,
