@@ -99,6 +99,10 @@ def writer_options(cfg: Config, *, overlapped: bool = False) -> dict:
     return co
 
 
+#: files the background writer compresses at once (with a thread budget of 2 or more)
+_MAX_WRITERS = 2
+
+
 class BackgroundWriter:
     """Threads that write output files while the run goes on (GDAL compresses with the GIL
     released, :func:`stereodem.core.raster.write_geotiff`, so a write overlaps the next
@@ -106,11 +110,13 @@ class BackgroundWriter:
 
     ``threads``: the job's thread budget (:func:`stereodem.core.threads.job_threads`); below
     2 there is no core to spare, so each write runs at once in the calling thread and a job
-    of one worker keeps to one core. Otherwise up to that many files are written at once:
-    the two orthoimages, queued together, then compress side by side on the cores the
-    assessment leaves idle and in the final wait (at 2 workers on 2 cores, ``stereodem run``
-    on the full granule: the final wait 0.34-0.42 s instead of 0.51-0.90 s, three
-    alternating pairs; the files' bytes do not depend on it).
+    of one worker keeps to one core. Otherwise two files are written at once
+    (:data:`_MAX_WRITERS`): the two orthoimages, queued together, then compress side by side
+    on the cores the assessment leaves idle and in the final wait (at 2 workers on 2 cores,
+    ``stereodem run`` on the full granule: the final wait 0.34-0.42 s instead of 0.51-0.90 s,
+    three alternating pairs), for a higher peak of memory while both are written (the
+    assessment's peak 1.83-1.90 GB instead of 1.68-1.71 GB, two alternating pairs). More
+    would add a file's buffers to the peak for each; the files' bytes do not depend on it.
 
     The writer threads run at a lower CPU priority
     (:func:`stereodem.core.threads.lower_thread_priority`, Linux): while a stage keeps every
@@ -129,7 +135,7 @@ class BackgroundWriter:
     def __init__(self, threads: int = 2):
         self._pool = (
             ThreadPoolExecutor(
-                max_workers=threads,
+                max_workers=min(threads, _MAX_WRITERS),
                 thread_name_prefix="stereodem-writer",
                 initializer=lower_thread_priority,
             )
