@@ -910,8 +910,8 @@ def _band_offset(a: _LeftWindows, i0: int, i1: int) -> np.float32:
     a constant is taken from both images, so any constant gives the same score in exact
     arithmetic; in float32, ``E[x^2] - E[x]^2`` loses the digits of ``x``'s distance to the
     constant, and a band's own level keeps that distance small where the brightness changes
-    from band to band (a bright half of a 12-bit scene: errors of 0.17 with the image's mean
-    alone, 2000 DN above it)."""
+    from band to band (half a scene 2000 DN brighter than the rest: scores off by up to 0.1
+    away from the step with the image's mean alone, 1.2e-4 with the bands' own levels)."""
     sub = a.left[i0:i1:4]
     if not a.finite:
         sub = sub[np.isfinite(sub)]
@@ -943,16 +943,16 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
     def band(rows):
         r0, r1 = rows
         i0, i1 = _halo(r0, r1, h, a.window)
-        c = _band_offset(a, i0, i1)
+        level = _band_offset(a, i0, i1)
         warped = cv2.remap(
             right,
             map_x[i0:i1],
             rows_map[i0:i1],
             cv2.INTER_NEAREST,
             borderMode=cv2.BORDER_CONSTANT,
-            borderValue=float(c) if fast else np.nan,  # outside: 0 (fast) or NaN once centred
+            borderValue=float(level) if fast else np.nan,  # outside: 0 (fast) or NaN centred
         )
-        np.subtract(warped, c, out=warped, dtype=F32)
+        np.subtract(warped, level, out=warped, dtype=F32)
         if fast:
             outside = _outside_windows(map_x[i0:i1], lo, hi, a.window)
             b = _window_stats(warped, a.window, 0.0, finite=True, outside=outside, inverse=False)
@@ -961,7 +961,7 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
         keep = slice(r0 - i0, r1 - i0)
         # the band's left statistics (its own rows and halo: those of the whole image), next
         # to the warped ones while the band is in cache
-        z = np.subtract(a.left[i0:i1], c, dtype=F32)
+        z = np.subtract(a.left[i0:i1], level, dtype=F32)
         s = _window_stats(z, a.window, 0.0, finite=a.finite, inverse=False)
         l_zero, l_mean, l_std = s.zero, s.mean[keep], s.inv[keep]
         prod = np.multiply(l_zero, b.zero)
