@@ -912,11 +912,16 @@ def _band_offset(a: _LeftWindows, i0: int, i1: int) -> np.float32:
     constant, and a band's own level keeps that distance small where the brightness changes
     from band to band (half a scene 2000 DN brighter than the rest: scores off by up to 0.1
     away from the step with the image's mean alone, 1.2e-4 with the bands' own levels)."""
-    sub = a.left[i0:i1:4]
-    if not a.finite:
-        sub = sub[np.isfinite(sub)]
-    c = np.mean(sub, dtype=F32) if sub.size else a.off
-    return F32(c) if np.isfinite(c) and abs(float(c)) < 1e30 else F32(a.off)
+    return _level(a.left[i0:i1:4], a.off, finite=a.finite)
+
+
+def _level(sample, fallback, finite=False) -> np.float32:
+    """The mean of the finite values of ``sample`` (float32), else ``fallback``: a centring
+    constant (:func:`_band_offset`). ``finite=True``: ``sample`` is known to have no NaN."""
+    if not finite:
+        sample = sample[np.isfinite(sample)]
+    c = np.mean(sample, dtype=F32) if sample.size else fallback
+    return F32(c) if np.isfinite(c) and abs(float(c)) < 1e30 else F32(fallback)
 
 
 def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1):
@@ -924,8 +929,12 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
     :data:`SCORE_BAND_ROWS` rows on ``threads`` threads.
 
     ``right_finite``: whether ``right`` is known to have no NaN (None: scan it); then the
-    warp is zero-filled outside the image directly and the windows reaching outside are
-    located from the warp's column map (:func:`_outside_windows`), same result."""
+    warp is filled with a finite value outside the image and the windows reaching outside
+    are located from the warp's column map (:func:`_outside_windows`), same result.
+
+    Each band is centred by its own levels, the left's and the right's in its rows
+    (:func:`_band_offset`), so the float32 sums keep their digits where the brightness
+    changes from band to band or the two images sit at different levels."""
     d = np.asarray(disparity, dtype=F32)
     holes = np.flatnonzero(~np.isfinite(d))  # invalid disparities (flat indices)
     if holes.size == d.size:
@@ -950,9 +959,15 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
             rows_map[i0:i1],
             cv2.INTER_NEAREST,
             borderMode=cv2.BORDER_CONSTANT,
-            borderValue=float(level) if fast else np.nan,  # outside: 0 (fast) or NaN centred
+            # outside the image: any finite value (fast: the windows reaching there are found
+            # from the map and set invalid) or NaN (then invalid through the NaN itself)
+            borderValue=float(level) if fast else np.nan,
         )
-        np.subtract(warped, level, out=warped, dtype=F32)
+        # the warped band by the right image's own level in these rows (the warp moves pixels
+        # along rows only): the right image may sit at another level than the left (gains and
+        # offsets of two sensors, 12- or 16-bit data), where the left's level loses digits
+        level_r = _level(right[i0:i1:4], level, finite=right_finite)
+        np.subtract(warped, level_r, out=warped, dtype=F32)
         if fast:
             outside = _outside_windows(map_x[i0:i1], lo, hi, a.window)
             b = _window_stats(warped, a.window, 0.0, finite=True, outside=outside, inverse=False)
@@ -1108,11 +1123,11 @@ def match_rectified(
     if matcher == "ncc":
         if min_score is None:
             min_score = 0.5
-        # centring by one constant keeps ZNCC exact and float32 sums well conditioned
-        off = F32(np.nanmean(left))
+        # centring each image by a constant keeps ZNCC exact and float32 sums well
+        # conditioned; each by its own, since the two may sit at different levels
         disp, score, vert, extra = _match_ncc(
-            left - off,
-            right - off,
+            left - F32(np.nanmean(left)),
+            right - F32(np.nanmean(right)),
             lo,
             hi,
             range_maps,

@@ -620,3 +620,36 @@ def test_score_keeps_its_digits_beside_a_brightness_step():
     ok = np.isfinite(ref) & away[:, None]
     assert np.abs(s[ok] - ref[ok]).max() < 1e-3
     assert np.isfinite(s[away]).mean() > 0.9
+
+
+def test_score_keeps_its_digits_when_the_images_sit_at_different_levels():
+    """The right image 3000 DN above the left (two sensors' gains and offsets, 16-bit data):
+    each band's warped right side is centred by the right image's level in those rows, and
+    the score keeps the float64 ZNCC to 1e-3 (centred by the left's level, it was off by up
+    to 1.0); the NCC matcher centres each image by its own mean, so its disparities do not
+    depend on the offset."""
+    import rasterio
+
+    from stereodem.sensor.simulation.simulate import texture_path
+
+    with rasterio.open(texture_path()) as f:
+        tex = f.read().astype(np.float32).mean(axis=0)[260:580, 100:420]  # fully valid
+    tex = cv2.resize(tex, (400, 400), interpolation=cv2.INTER_CUBIC)
+    rng = np.random.default_rng(0)
+    left = tex[:, 5:305] + rng.normal(0, 1, (400, 300)).astype(np.float32)
+    right = tex[:, 2:302] + rng.normal(0, 1, (400, 300)).astype(np.float32)
+    d = np.full(left.shape, 3.0, np.float32)
+    s, ref = zncc_at(left, right + 3000, d), _textbook_zncc(left, right + 3000, d)
+    ok = np.isfinite(ref)
+    assert np.array_equal(np.isfinite(s), ok) and ok.mean() > 0.9
+    assert np.abs(s[ok] - ref[ok]).max() < 1e-3
+    # left(x) = right(x + 3): disparity -3; the right image + 3000 DN only loses the digits
+    # float32 has at 3000 (centred by the left's mean, 0.1 % of the disparities moved by
+    # 0.9 px or more, up to 3.9, and the scores by up to 0.95)
+    a = match_rectified(left, right, (-6, 0), levels=0)
+    b = match_rectified(left, right + 3000, (-6, 0), levels=0)
+    assert np.array_equal(np.isfinite(a.disparity), np.isfinite(b.disparity))
+    ok = np.isfinite(a.disparity)
+    assert ok.mean() > 0.6
+    assert np.abs(a.disparity[ok] - b.disparity[ok]).max() < 0.01
+    assert np.abs(a.score[ok] - b.score[ok]).max() < 0.005
