@@ -594,11 +594,9 @@ def test_stretch_rounds_ties_up_and_saturates():
     assert np.array_equal(b8[20:], np.full((20, 50), 255, np.uint8))
 
 
-def test_score_keeps_its_digits_beside_a_brightness_step():
-    """The score layer centres each row band by its own level: where a 12-bit scene's
-    brightness steps by 2000 DN between bands (a bright half), the score keeps the float64
-    ZNCC to 1e-3 outside the band holding the step (centred by the image's mean alone, float32
-    ``E[x^2] - E[x]^2`` lost up to 0.1 there); inside that band the step itself limits it."""
+def _texture_pair():
+    """A 400 x 300 pair cut from the bundled Landsat texture (its fully valid centre, x1.25
+    bicubic), 1 DN of noise in each image, ``left(x) = right(x + 3)`` (disparity -3)."""
     import rasterio
 
     from stereodem.sensor.simulation.simulate import texture_path
@@ -609,6 +607,15 @@ def test_score_keeps_its_digits_beside_a_brightness_step():
     rng = np.random.default_rng(0)
     left = tex[:, 5:305] + rng.normal(0, 1, (400, 300)).astype(np.float32)
     right = tex[:, 2:302] + rng.normal(0, 1, (400, 300)).astype(np.float32)
+    return left, right
+
+
+def test_score_keeps_its_digits_beside_a_brightness_step():
+    """The score layer centres each row band by its own level: where a 12-bit scene's
+    brightness steps by 2000 DN between bands (a bright half), the score keeps the float64
+    ZNCC to 1e-3 outside the band holding the step (centred by the image's mean alone, float32
+    ``E[x^2] - E[x]^2`` lost up to 0.1 there); inside that band the step itself limits it."""
+    left, right = _texture_pair()
     left[200:] += 2000.0
     right[200:] += 2000.0
     d = np.full(left.shape, 3.0, np.float32)
@@ -628,16 +635,7 @@ def test_score_keeps_its_digits_when_the_images_sit_at_different_levels():
     the score keeps the float64 ZNCC to 1e-3 (centred by the left's level, it was off by up
     to 1.0); the NCC matcher centres each image by its own mean, so its disparities do not
     depend on the offset."""
-    import rasterio
-
-    from stereodem.sensor.simulation.simulate import texture_path
-
-    with rasterio.open(texture_path()) as f:
-        tex = f.read().astype(np.float32).mean(axis=0)[260:580, 100:420]  # fully valid
-    tex = cv2.resize(tex, (400, 400), interpolation=cv2.INTER_CUBIC)
-    rng = np.random.default_rng(0)
-    left = tex[:, 5:305] + rng.normal(0, 1, (400, 300)).astype(np.float32)
-    right = tex[:, 2:302] + rng.normal(0, 1, (400, 300)).astype(np.float32)
+    left, right = _texture_pair()
     d = np.full(left.shape, 3.0, np.float32)
     s, ref = zncc_at(left, right + 3000, d), _textbook_zncc(left, right + 3000, d)
     ok = np.isfinite(ref)
