@@ -124,12 +124,7 @@ def match(d):
         parts = "; ".join(
             f"{r['threads']} thread(s): {r['ratio_cpu']:.2f}× CPU, {r['ratio_wall']:.2f}× "
             f"wall ({r['stereodem_cpu_s']:.3f} vs {r['bare_cpu_s']:.3f} CPU s"
-            + (
-                f"; call by call {r['ratio_cpu_paired']:.3f}× CPU, "
-                f"{r['ratio_wall_paired']:.3f}× wall"
-                if "ratio_cpu_paired" in r
-                else ""
-            )
+            + f"; call by call {r['ratio_cpu_paired']:.3f}× CPU, {r['ratio_wall_paired']:.3f}× wall"
             + (
                 f"; {r['ratio_cpu_of_minima']:.2f}× CPU of the minima"
                 if "ratio_cpu_of_minima" in r
@@ -149,36 +144,20 @@ def match(d):
             out += (
                 f" Where it goes (1 thread, % of the bare call): padded SGBM "
                 f"{pb['padded_sgbm']:.0f} %, 8-bit stretch {pb['stretch_8bit']:.1f} %, score layer "
-                + (
-                    f"{pb['score']:.1f} %"
-                    if "score" in pb
-                    else f"{pb['score_left']:.1f} % (left windows) + {pb['score_warped']:.1f} % "
-                    "(warped right)"
-                )
-                + f", whole wrapper {pb['wrapper']:.0f} %."
+                f"{pb['score']:.1f} %, whole wrapper {pb['wrapper']:.0f} %."
             )
         ba = o.get("before_after")
         if ba:
             out += (
                 f" Before/after in the same run (revision {ba['revision']}, 1 thread, CPU s): "
-                f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call"
-                + (
-                    f" (call by call {ba['ratio_before_paired']:.3f}× → "
-                    f"{ba['ratio_now_paired']:.3f}×)"
-                    if "ratio_now_paired" in ba
-                    else ""
-                )
-                + ", outputs "
+                f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call (call by call "
+                f"{ba['ratio_before_paired']:.3f}× → {ba['ratio_now_paired']:.3f}×), outputs "
                 + (
                     "bit-identical."
                     if ba["bit_identical"]
-                    else (
-                        "disparities "
-                        + ("bit-identical" if ba.get("disparity_identical") else "changed")
-                        + f", scores within {ba['score_max_abs_change']:.1e}."
-                        if "score_max_abs_change" in ba
-                        else "NOT identical."
-                    )
+                    else "disparities "
+                    + ("bit-identical" if ba["disparity_identical"] else "changed")
+                    + f", scores within {ba['score_max_abs_change']:.1e}."
                 )
             )
     return out
@@ -219,12 +198,12 @@ def _speed(d):
     )
     ceiling = d["machine"].get("parallel_ceiling")
     if ceiling:  # absent before session 19
+        before, after = ceiling
         parts = [
-            f"{n} processes {c[0][n]['speedup_vs_1']:.2f}× / {c[1][n]['speedup_vs_1']:.2f}× "
-            f"(CPU per call {c[0][n]['cpu_per_call_over_1']:.2f} / "
-            f"{c[1][n]['cpu_per_call_over_1']:.2f})"
-            for c in [ceiling]
-            for n in c[0]
+            f"{n} processes {before[n]['speedup_vs_1']:.2f}× / {after[n]['speedup_vs_1']:.2f}× "
+            f"(CPU per call {before[n]['cpu_per_call_over_1']:.2f} / "
+            f"{after[n]['cpu_per_call_over_1']:.2f})"
+            for n in before
             if n != "1"
         ]
         out += (

@@ -902,22 +902,18 @@ def _zncc_left(left, window, finite=None):
     return _LeftWindows(off, window, left, finite)
 
 
-def _band_offset(a: _LeftWindows, i0: int, i1: int) -> np.float32:
-    """The centring constant of the score's band of input rows ``i0:i1``: the mean of every
-    4th left row of the band (its finite values), else the image's mean.
-
-    Every window of the band's output rows lies in those rows, and ZNCC does not change when
-    a constant is taken from both images, so any constant gives the same score in exact
-    arithmetic; in float32, ``E[x^2] - E[x]^2`` loses the digits of ``x``'s distance to the
-    constant, and a band's own level keeps that distance small where the brightness changes
-    from band to band (half a scene 2000 DN brighter than the rest: scores off by up to 0.1
-    away from the step with the image's mean alone, 1.2e-4 with the bands' own levels)."""
-    return _level(a.left[i0:i1:4], a.off, finite=a.finite)
-
-
 def _level(sample, fallback, finite=False) -> np.float32:
-    """The mean of the finite values of ``sample`` (float32), else ``fallback``: a centring
-    constant (:func:`_band_offset`). ``finite=True``: ``sample`` is known to have no NaN."""
+    """A centring constant of the score layer: the mean of the finite values of ``sample``
+    (float32; every 4th row of a band), else ``fallback``. ``finite=True``: ``sample`` is
+    known to have no NaN.
+
+    Every window of a band's output rows lies in the band's rows, and ZNCC does not change
+    when a constant is taken from an image, so any constant gives the same score in exact
+    arithmetic; in float32, ``E[x^2] - E[x]^2`` loses the digits of ``x``'s distance to the
+    constant, and each image's own level in the band keeps that distance small where the
+    brightness changes from band to band or the two images sit at different levels (half a
+    scene 2000 DN brighter: scores off by up to 0.1 away from the step with the left image's
+    mean alone, 1.2e-4 with the bands' own levels)."""
     if not finite:
         sample = sample[np.isfinite(sample)]
     c = np.mean(sample, dtype=F32) if sample.size else fallback
@@ -933,7 +929,7 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
     are located from the warp's column map (:func:`_outside_windows`), same result.
 
     Each band is centred by its own levels, the left's and the right's in its rows
-    (:func:`_band_offset`), so the float32 sums keep their digits where the brightness
+    (:func:`_level`), so the float32 sums keep their digits where the brightness
     changes from band to band or the two images sit at different levels."""
     d = np.asarray(disparity, dtype=F32)
     holes = np.flatnonzero(~np.isfinite(d))  # invalid disparities (flat indices)
@@ -952,7 +948,7 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
     def band(rows):
         r0, r1 = rows
         i0, i1 = _halo(r0, r1, h, a.window)
-        level = _band_offset(a, i0, i1)
+        level = _level(a.left[i0:i1:4], a.off, finite=a.finite)  # the left's, these rows
         warped = cv2.remap(
             right,
             map_x[i0:i1],

@@ -46,7 +46,6 @@ TRUTH_ERRORS_BACKWARD = dict(
 )
 
 
-@functools.lru_cache(maxsize=1)
 def aster_size_pair(lon0: float, lat0: float, h0: float):
     """``(nadir, backward)``: the simulator's full-size ASTER pair geometry (3N 4100 x 4200,
     3B 5000 x 4600 pixels, :func:`aster_geometry_parameters`) looking at ``(lon0, lat0, h0)``
@@ -67,6 +66,7 @@ def aster_size_pair(lon0: float, lat0: float, h0: float):
     )
 
 
+@functools.lru_cache(maxsize=1)
 def aster_pair_scene():
     """``(metadata_3N, metadata_3B, truth_3N, truth_3B, dem)``: the simulator's full-size ASTER
     pair geometry (:func:`aster_size_pair`) over the bundled DEM, the truths carrying
