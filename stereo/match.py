@@ -799,12 +799,13 @@ def _sgbm(
     """Run ``cv2.StereoSGBM`` on uint8 images for ``lo..hi``; float32 disparity, NaN invalid.
 
     OpenCV leaves the columns ``x < minDisparity + numDisparities`` and
-    ``x >= width + min(minDisparity, 0)`` invalid, so the pair is padded by that many columns
-    on each side (edge replication) and the padding cropped from the result: every column of
-    the tile can be matched.
+    ``x >= width + min(minDisparity, 0)`` invalid, so the pair is padded on each side (edge
+    replication) by what it takes for every column that can have a match to be matched, and
+    the padding is cropped from the result (:func:`_sgbm_padding`). A disparity whose match
+    ``x - d`` falls outside the right image (onto the padding) is no measurement: it is NaN.
     """
     nd = int(math.ceil((hi - lo + 1) / 16.0)) * 16
-    padl, padr = max(lo + nd, 0), max(-lo, 0)
+    padl, padr = _sgbm_padding(lo, hi, nd)
     if padl or padr:
         left8 = cv2.copyMakeBorder(left8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)
         right8 = cv2.copyMakeBorder(right8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)
@@ -826,7 +827,35 @@ def _sgbm(
     raw = raw[:, padl : raw.shape[1] - padr]
     disp = np.divide(raw, F32(16.0), dtype=F32)
     disp[raw < lo * 16] = np.nan  # few cells: an index is cheaper than a masked copy
+    w = disp.shape[1]
+    # matches onto the padding: x - d < -0.5 (d > x + 0.5) in the first columns, or
+    # x - d > w - 0.5 in the last ones (d < x - w + 0.5); only the strips where that can
+    # happen are looked at
+    a = min(max(lo + nd + 1, 0), w)  # d < lo + nd: x - d > -0.5 from x = lo + nd on
+    if a > 0:
+        left = disp[:, :a]
+        with np.errstate(invalid="ignore"):
+            left[left > _col_index(w)[:, :a] + F32(0.5)] = np.nan
+    b = max(w + min(lo, 0) - 1, 0)  # d >= lo: x - d < w - 0.5 below x = w + lo
+    if b < w:
+        right = disp[:, b:]
+        with np.errstate(invalid="ignore"):
+            right[right < _col_index(w)[:, b:] - F32(w - 0.5)] = np.nan
     return disp
+
+
+def _sgbm_padding(lo: int, hi: int, nd: int) -> tuple[int, int]:
+    """Columns of edge padding (left, right) for ``cv2.StereoSGBM`` to match every column of
+    a tile that can have a match in ``lo..hi`` (``nd``: the rounded ``numDisparities``).
+
+    A left column ``x`` can have a match only if ``0 <= x - d < width`` for some ``d`` in
+    ``lo..hi``: ``x >= max(lo, 0)`` and ``x < width + min(hi, 0)``. OpenCV computes the
+    columns ``lo + nd <= x' < width' + min(lo, 0)`` of the padded pair (``x' = x + left``,
+    ``width' = width + left + right``), hence ``left = lo + nd - max(lo, 0)`` and
+    ``right = min(hi, 0) - min(lo, 0)`` (at least 0); columns that cannot have a match get
+    no padding (a one-sided range of ``lo > 0`` saves ``lo`` columns, one of ``hi < 0``
+    saves ``-hi``)."""
+    return max(lo + nd - max(lo, 0), 0), max(min(hi, 0) - min(lo, 0), 0)
 
 
 def zncc_at(left, right, disparity, *, window=7):
@@ -1062,8 +1091,8 @@ def match_rectified(
     Returns
     -------
     MatchResult
-        ``disparity`` (float32, NaN invalid), ``score`` (float32 ZNCC), ``vertical`` (or
-        None), ``info``.
+        ``disparity`` (float32, NaN invalid; never a match outside the right image),
+        ``score`` (float32 ZNCC), ``vertical`` (or None), ``info``.
 
     Raises
     ------

@@ -253,12 +253,60 @@ def test_sgm_recovers_ramp_with_opencv_conventions(grid):
     r = match_rectified(left, right, (0, 40), matcher="sgm")  # 41 -> numDisparities 48
     ok = np.isfinite(r.disparity)
     assert ok.mean() > 0.9  # left border kept thanks to the padding
-    assert ok[:, :20].mean() > 0.8
-    # OpenCV blanks x < minDisparity + numDisparities: the first column too is padded for
-    assert ok[:, 0].mean() > 0.8
+    # OpenCV blanks x < minDisparity + numDisparities: the padding gives every column whose
+    # match lies in the right image a disparity (d = 2 + 0.03 x: from x = 2 on) ...
+    assert ok[:, 2:20].mean() > 0.8
+    assert ok[:, 2].mean() > 0.8
+    # ... and none to the columns whose match falls outside it (onto the padding; measured:
+    # 1 of 200 cells of column 0 kept, a blunder of d = 0 whose match is inside)
+    assert ok[:, 0].mean() < 0.05
+    x = np.arange(ok.shape[1])[None, :]
+    with np.errstate(invalid="ignore"):
+        assert not np.any(x - r.disparity < -0.5)
     assert rms(r.disparity - truth) < 0.25
     # fractional output (1/16 px), not integers only
     assert np.mean(r.disparity[ok] != np.round(r.disparity[ok])) > 0.5
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_sgm_gives_no_match_outside_the_right_image(grid, sign):
+    # a one-sided range (5..20 px, or -20..-5 with the images swapped): the first (last) 5
+    # columns cannot have a match, and every match found lies inside the right image
+    left, right, truth = shifted_pair(grid, 12.0)
+    if sign < 0:
+        left, right = right, left
+    r = match_rectified(left, right, (5, 20) if sign > 0 else (-20, -5), matcher="sgm")
+    d = r.disparity
+    ok = np.isfinite(d)
+    w = d.shape[1]
+    x = np.arange(w)[None, :]
+    with np.errstate(invalid="ignore"):
+        assert not np.any(x - d < -0.5) and not np.any(x - d > w - 0.5)
+    edge = ok[:, :5] if sign > 0 else ok[:, -5:]
+    assert not edge.any()
+    # the columns whose match is inside are matched (12 px: from x = 12 on, or up to w - 13)
+    inside = ok[:, 12:40] if sign > 0 else ok[:, w - 40 : w - 12]
+    assert inside.mean() > 0.9
+    assert abs(np.median(d[ok]) - sign * 12.0) < 0.25
+
+
+@pytest.mark.parametrize(
+    "lo, hi, nd, pads",
+    [(0, 63, 64, (64, 0)), (8, 63, 64, (64, 0)), (-55, 54, 112, (57, 55)), (-45, -22, 32, (0, 23))],
+)
+def test_sgbm_padding_covers_the_columns_that_can_match(lo, hi, nd, pads):
+    from stereodem.stereo.match import _sgbm_padding
+
+    assert _sgbm_padding(lo, hi, nd) == pads
+    left, right = pads
+    w = 500
+    # OpenCV's computed columns of the padded pair, in the tile's columns
+    first, end = lo + nd - left, w + right + min(lo, 0)
+    # every column with a possible match (0 <= x - d < w for a d in lo..hi) is computed,
+    # and with the padding one column narrower on either side, one of them would not be
+    assert first <= max(lo, 0) and end >= w + min(hi, 0)
+    assert left == 0 or first + 1 > max(lo, 0)
+    assert right == 0 or end - 1 < w + min(hi, 0)
 
 
 def test_per_pixel_range_maps(grid):
