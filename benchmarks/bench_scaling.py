@@ -196,29 +196,57 @@ def table(runs) -> str:
     return "\n".join(lines)
 
 
-def _ceiling_worker(calls, barrier, results):
-    """One process of :func:`parallel_ceiling`: ``calls`` bare SGBM calls (1 thread) after
-    every process is ready; puts (wall s, CPU s) of the calls."""
-    import cv2
-    from bench_match import _raw_sgbm, _to_uint8, make_pair
+#: rows x columns of the float32 arrays of the streaming ceiling: 80 MB each, far beyond any
+#: cache, as a DEM's or an orthoimage's full-size layers are
+_STREAM_SHAPE = (4000, 5000)
 
-    cv2.setNumThreads(1)
-    l8, r8 = _to_uint8(*make_pair()[:2])
-    _raw_sgbm(l8, r8, "sgbm")  # warm: first-call allocations out of the timing
+
+def _stream_call(a, b, c):
+    """One call of the streaming ceiling: two element-wise passes over 80 MB float32 arrays
+    (``c = a + b``, ``a = c * b``), memory-bound, as a full-size layer's NumPy passes are."""
+    np.add(a, b, out=c)
+    np.multiply(c, b, out=a)
+
+
+def _ceiling_worker(calls, barrier, results, kind="sgbm"):
+    """One process of :func:`parallel_ceiling`: ``calls`` calls of ``kind`` (1 thread) after
+    every process is ready; puts (wall s, CPU s) of the calls. ``kind``: ``"sgbm"``, a bare
+    SGBM call on bench_match.py's pair (compute-bound, its data in cache), or ``"stream"``,
+    :func:`_stream_call` (bound by the memory's bandwidth)."""
+    if kind == "stream":
+        a = np.ones(_STREAM_SHAPE, np.float32)
+        b, c = np.ones_like(a), np.empty_like(a)
+
+        def call():
+            _stream_call(a, b, c)
+
+    else:
+        import cv2
+        from bench_match import _raw_sgbm, _to_uint8, make_pair
+
+        cv2.setNumThreads(1)
+        l8, r8 = _to_uint8(*make_pair()[:2])
+
+        def call():
+            _raw_sgbm(l8, r8, "sgbm")
+
+    call()  # warm: first-call allocations and page faults out of the timing
     barrier.wait()
     w0, c0 = time.perf_counter(), time.process_time()
     for _ in range(calls):
-        _raw_sgbm(l8, r8, "sgbm")
+        call()
     results.put((time.perf_counter() - w0, time.process_time() - c0))
 
 
-def _ceiling_once(n, calls) -> tuple[float, float]:
+def _ceiling_once(n, calls, kind="sgbm") -> tuple[float, float]:
     """Wall s of the slowest of ``n`` processes of :func:`_ceiling_worker`, and CPU s per call."""
     import multiprocessing
 
     ctx = multiprocessing.get_context("spawn")
     barrier, results = ctx.Barrier(n), ctx.Queue()
-    procs = [ctx.Process(target=_ceiling_worker, args=(calls, barrier, results)) for _ in range(n)]
+    procs = [
+        ctx.Process(target=_ceiling_worker, args=(calls, barrier, results, kind)) for _ in range(n)
+    ]
     for p in procs:
         p.start()
     got = [results.get(timeout=600) for _ in procs]
@@ -227,20 +255,26 @@ def _ceiling_once(n, calls) -> tuple[float, float]:
     return max(w for w, _ in got), sum(c for _, c in got) / (n * calls)
 
 
-def parallel_ceiling(counts, calls=6, rounds=3) -> dict:
+def parallel_ceiling(counts, calls=6, rounds=3, kind="sgbm") -> dict:
     """What this machine gives perfectly parallel work at each process count: N processes
     (spawned, 1 thread each, no shared data) each run ``calls`` bare ``cv2.StereoSGBM`` calls
-    on bench_match.py's pair at once, as N tile workers would. For each N: the speed-up in
-    throughput against 1 process (``N x wall(1) / wall(N)``, wall of the slowest) and the CPU
-    seconds per call against 1 process, each the median of ``rounds`` rounds (1 process and
-    every N in each, back to back). No stereodem code runs: a job's speed-up and CPU ratio
-    are read against these (shared or virtual cores lose some of both to each other)."""
+    on bench_match.py's pair at once, as N tile workers would (``kind="stream"``: element-wise
+    NumPy passes over 80 MB arrays instead, :func:`_stream_call`, bound by the memory's
+    bandwidth, as the full-size layers' passes of the filters, orthoimages and assessment
+    are). For each N: the speed-up in throughput against 1 process (``N x wall(1) /
+    wall(N)``, wall of the slowest) and the CPU seconds per call against 1 process, each the
+    median of ``rounds`` rounds (1 process and every N in each, back to back). No stereodem
+    code runs: a job's speed-up and CPU ratio are read against these (shared or virtual cores
+    lose some of both to each other; cores that share one memory bus lose the streaming
+    work's)."""
     ns = sorted(set(counts) | {1})
     per = {n: [] for n in ns}
+    if kind == "stream":
+        calls *= 5  # 6 SGBM calls take ~1 s, 30 streaming calls ~0.5-1 s
     for _ in range(rounds):
-        w1, c1 = _ceiling_once(1, calls)
+        w1, c1 = _ceiling_once(1, calls, kind)
         for n in ns:
-            w, c = (w1, c1) if n == 1 else _ceiling_once(n, calls)
+            w, c = (w1, c1) if n == 1 else _ceiling_once(n, calls, kind)
             per[n].append((n * w1 / w, c / c1, w))
     return {
         str(n): dict(
@@ -315,6 +349,8 @@ def main(argv=None):
     speed_before = speed_index()
     ceiling_before = parallel_ceiling(counts)
     print("parallel ceiling (bare SGBM, N processes):", json.dumps(ceiling_before), flush=True)
+    stream_before = parallel_ceiling(counts, kind="stream")
+    print("streaming ceiling (80 MB passes, N processes):", json.dumps(stream_before), flush=True)
     rounds = {w: [] for w in counts}
     for _ in range(max(1, args.repeat)):
         for w in counts:
@@ -357,6 +393,7 @@ def main(argv=None):
             parallel_ceiling=[ceiling_before, parallel_ceiling(counts)],
             parallel_ceiling_what=parallel_ceiling.__doc__.split("\n\n")[0]
             + " Measured before and after the runs.",
+            streaming_ceiling=[stream_before, parallel_ceiling(counts, kind="stream")],
         ),
         measured=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         repeat=max(1, args.repeat),

@@ -212,6 +212,21 @@ def _speed(d):
             + "; ".join(parts)
             + "."
         )
+    stream = d["machine"].get("streaming_ceiling")
+    if stream:  # absent before session 21
+        before, after = stream
+        parts = [
+            f"{n} processes {before[n]['speedup_vs_1']:.2f}× / {after[n]['speedup_vs_1']:.2f}× "
+            f"(CPU per call {before[n]['cpu_per_call_over_1']:.2f} / "
+            f"{after[n]['cpu_per_call_over_1']:.2f})"
+            for n in before
+            if n != "1"
+        ]
+        out += (
+            " Its ceiling for memory-bound work, element-wise NumPy passes over 80 MB arrays in "
+            "N processes at once (as the full-size layers' passes of the filters, orthoimages "
+            "and assessment): " + "; ".join(parts) + "."
+        )
     return out
 
 
