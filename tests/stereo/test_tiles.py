@@ -236,9 +236,14 @@ def test_a_warmed_fork_server_is_used_by_the_pool_or_stopped_without_one():
     assert forkserver._forkserver._forkserver_pid is None
     assert warm_fork_server(2, len(tiles))
     server = forkserver._forkserver._forkserver_pid
-    res, failures, _ = run_tiles(_busy_tile, tiles, {"cpu_s": 0.01}, workers=2)
+    used = sum(resource.getrusage(resource.RUSAGE_CHILDREN)[:2])
+    res, failures, _ = run_tiles(_busy_tile, tiles, {"cpu_s": 0.1}, workers=2)
     assert not failures and {int(r["ppid"]) for r in res.values()} == {server}
     assert forkserver._forkserver._forkserver_pid is None
+    # the server that served the pool is ended at once (SIGTERM) and waited for: its
+    # workers, reaped before, count as children of this process with all their CPU
+    used = sum(resource.getrusage(resource.RUSAGE_CHILDREN)[:2]) - used
+    assert used >= 0.9 * 0.1 * len(tiles)
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     assert warm_fork_server(2, len(tiles))
     res, failures, _ = run_tiles(_busy_tile, tiles, {"cpu_s": 0.01}, workers=1)
