@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
 import importlib
 import logging
 import os
@@ -90,7 +91,12 @@ def main(argv=None) -> int:
         if hasattr(args, "workers"):  # one thread budget for the command (stereodem.core.threads)
             from stereodem.core.threads import thread_budget
 
-            with thread_budget(args.workers if args.workers and args.workers > 0 else None):
+            # the tile pool's fork server first: its imports then run on another core while
+            # the budget's (OpenCV, rasterio) and the command's modules load here
+            with (
+                _fork_server(args),
+                thread_budget(args.workers if args.workers and args.workers > 0 else None),
+            ):
                 return int(args.run(args) or 0)
         return int(args.run(args) or 0)
     except StereodemError as exc:
@@ -115,6 +121,21 @@ def main(argv=None) -> int:
         if previous_int is not None:
             _install(signal.SIGINT, previous_int)
         interrupt.clear()
+
+
+def _fork_server(args):
+    """The job's tile-pool fork server (:func:`stereodem.stereo.fork_server.fork_server_for_job`)
+    for a command that declares its pool (``pool_request(args) -> (workers, dask)`` among the
+    parser's defaults: ``run``, ``dem``), started before anything heavy is imported: started
+    after the thread budget, it waited ~1 s for OpenCV, threadpoolctl and rasterio to load on
+    one core, and its own imports then ran beside the job's first stages (load, sparse
+    matching) instead of beside this process's imports."""
+    request = getattr(args, "pool_request", None)
+    if request is None:
+        return contextlib.nullcontext()
+    from stereodem.stereo.fork_server import fork_server_for_job
+
+    return fork_server_for_job(*request(args))
 
 
 def _install(signum, handler):

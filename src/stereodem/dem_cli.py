@@ -147,7 +147,8 @@ def add_parser(subparsers):
         action="store_true",
         help="exit 0 with a result the sanity checks call suspect (still reported)",
     )
-    p.set_defaults(run=run)
+    # the tile pool's fork server starts before the job's modules load (cli._fork_server)
+    p.set_defaults(run=run, pool_request=_pool_request)
     return p
 
 
@@ -215,21 +216,20 @@ def config_from_args(args):
     return cfg
 
 
+def _pool_request(args):
+    """``(workers, dask)`` of the job, for the CLI's early start of the tile pool's fork server
+    (:func:`stereodem.cli._fork_server`)."""
+    return args.workers, args.dask
+
+
 def run(args) -> int:
     """Run ``stereodem dem``; returns the exit status (0 ok; errors propagate to the CLI).
 
     The output folder is locked for the job; a suspect result (:mod:`stereodem.stereo.sanity`) is
     written with its findings in ``dem_report.json`` and fails the command unless ``--force``.
-    The tile pool's fork server starts first, while the job's modules load
-    (:func:`stereodem.stereo.fork_server.fork_server_for_job`).
+    The CLI starts the tile pool's fork server before this (``pool_request``,
+    :func:`stereodem.cli._fork_server`), while the job's modules load.
     """
-    from stereodem.stereo.fork_server import fork_server_for_job
-
-    with fork_server_for_job(args.workers, args.dask):
-        return _run(args)
-
-
-def _run(args) -> int:
     from . import point_cloud
     from .outlock import output_folder
     from .pipeline.inputs import input_paths, load_pair

@@ -32,7 +32,8 @@ def add_parser(sub):
     )
     p.add_argument("config", help="TOML configuration")
     add_run_options(p)
-    p.set_defaults(run=run)
+    # the tile pool's fork server starts before the job's modules load (cli._fork_server)
+    p.set_defaults(run=run, pool_request=_pool_request)
     return p
 
 
@@ -101,7 +102,7 @@ def summarize(info, stream=None):
 
 def _pool_request(args):
     """``(workers, dask)`` of the job, read before its modules load so that the tile pool's
-    fork server starts meanwhile (:func:`stereodem.stereo.fork_server.fork_server_for_job`):
+    fork server starts meanwhile (:func:`stereodem.cli._fork_server`):
     the command line's, else the TOML's ``[run]`` values (workers absent: all cores). A file
     that cannot be read, or values of another type, give ``(1, None)``: no early start, and
     :func:`stereodem.config.load_config` then reports the problem."""
@@ -122,13 +123,8 @@ def _pool_request(args):
 
 
 def run(args) -> int:
-    from stereodem.stereo.fork_server import fork_server_for_job
-
-    with fork_server_for_job(*_pool_request(args)):
-        return _run(args)
-
-
-def _run(args) -> int:
+    """Run ``stereodem run``; the CLI starts the tile pool's fork server before this
+    (``pool_request``: :func:`_pool_request`, :func:`stereodem.cli._fork_server`)."""
     from stereodem.core.raster import parse_creation_options
 
     from .config import load_config
