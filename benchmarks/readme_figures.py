@@ -198,36 +198,33 @@ def _speed(d):
     )
     ceiling = d["machine"].get("parallel_ceiling")
     if ceiling:  # absent before session 19
-        before, after = ceiling
-        parts = [
-            f"{n} processes {before[n]['speedup_vs_1']:.2f}× / {after[n]['speedup_vs_1']:.2f}× "
-            f"(CPU per call {before[n]['cpu_per_call_over_1']:.2f} / "
-            f"{after[n]['cpu_per_call_over_1']:.2f})"
-            for n in before
-            if n != "1"
-        ]
         out += (
             " The machine's own ceiling, bare SGBM calls in N processes at once (no stereodem "
             "code; throughput against 1 process, before / after the runs): "
-            + "; ".join(parts)
+            + _ceiling_parts(ceiling)
             + "."
         )
     stream = d["machine"].get("streaming_ceiling")
     if stream:  # absent before session 21
-        before, after = stream
-        parts = [
-            f"{n} processes {before[n]['speedup_vs_1']:.2f}× / {after[n]['speedup_vs_1']:.2f}× "
-            f"(CPU per call {before[n]['cpu_per_call_over_1']:.2f} / "
-            f"{after[n]['cpu_per_call_over_1']:.2f})"
-            for n in before
-            if n != "1"
-        ]
         out += (
             " Its ceiling for memory-bound work, element-wise NumPy passes over 80 MB arrays in "
             "N processes at once (as the full-size layers' passes of the filters, orthoimages "
-            "and assessment): " + "; ".join(parts) + "."
+            "and assessment): " + _ceiling_parts(stream) + "."
         )
     return out
+
+
+def _ceiling_parts(ceiling) -> str:
+    """``N processes`` speed-up and CPU per call, before / after the runs, of one of
+    bench_scaling.py's ceilings (``[before, after]``, each keyed by process count)."""
+    before, after = ceiling
+    return "; ".join(
+        f"{n} processes {before[n]['speedup_vs_1']:.2f}× / {after[n]['speedup_vs_1']:.2f}× "
+        f"(CPU per call {before[n]['cpu_per_call_over_1']:.2f} / "
+        f"{after[n]['cpu_per_call_over_1']:.2f})"
+        for n in before
+        if n != "1"
+    )
 
 
 def scaling_16_on_2(d):
