@@ -836,7 +836,7 @@ BENCHMARKS = {
     ),
     "bench_scaling_full_forkserver": (
         "scaling, full granule, workers forked from a preloaded server (issue 28)",
-        "python benchmarks/bench_scaling.py --workers 1 2 --repeat 4 --results "
+        "python benchmarks/bench_scaling.py --workers 1 2 --repeat 3 --results "
         "benchmarks/results/bench_scaling_full_forkserver.json",
         "the same job with 1 worker, same run",
     ),
