@@ -802,7 +802,9 @@ def _sgbm(
     ``x >= width + min(minDisparity, 0)`` invalid, so the pair is padded on each side (edge
     replication) by what it takes for every column that can have a match to be matched, and
     the padding is cropped from the result (:func:`_sgbm_padding`). A disparity whose match
-    ``x - d`` falls outside the right image (onto the padding) is no measurement: it is NaN.
+    ``x - d`` falls outside the right image (onto the padding) is no measurement: it is NaN,
+    and so is one beyond ``hi + 0.5`` (OpenCV searches ``numDisparities`` rounded up to a
+    multiple of 16).
     """
     nd = int(math.ceil((hi - lo + 1) / 16.0)) * 16
     padl, padr = _sgbm_padding(lo, hi, nd)
@@ -826,7 +828,13 @@ def _sgbm(
     raw = sgbm.compute(left8, right8)
     raw = raw[:, padl : raw.shape[1] - padr]
     disp = np.divide(raw, F32(16.0), dtype=F32)
-    disp[raw < lo * 16] = np.nan  # few cells: an index is cheaper than a masked copy
+    if lo + nd - 1 > hi:
+        # OpenCV searched lo .. lo + nd - 1 (nd rounded up to 16): a disparity beyond the
+        # requested hi by more than half a pixel (the per-pixel range maps' tolerance) lies
+        # outside the range the caller asked for
+        disp[(raw < lo * 16) | (raw > hi * 16 + 8)] = np.nan
+    else:
+        disp[raw < lo * 16] = np.nan  # few cells: an index is cheaper than a masked copy
     w = disp.shape[1]
     # matches onto the padding: x - d < -0.5 (d > x + 0.5) in the first columns, or
     # x - d > w - 0.5 in the last ones (d < x - w + 0.5); only the strips where that can

@@ -290,6 +290,18 @@ def test_sgm_gives_no_match_outside_the_right_image(grid, sign):
     assert abs(np.median(d[ok]) - sign * 12.0) < 0.25
 
 
+def test_sgm_keeps_to_the_requested_range(grid):
+    # truth 12 px, range 0..10: OpenCV searches 0..15 (16 disparities) and finds 12 in most
+    # of the image; what lies beyond hi + 0.5 is outside the range asked for
+    left, right, truth = shifted_pair(grid, 12.0)
+    r = match_rectified(left, right, (0, 10), matcher="sgm")
+    d = r.disparity[np.isfinite(r.disparity)]
+    assert np.all(d <= 10.5)
+    # the same pair in a range that holds the truth is matched
+    r2 = match_rectified(left, right, (0, 15), matcher="sgm")
+    assert np.isfinite(r2.disparity).mean() > 0.8
+
+
 @pytest.mark.parametrize(
     "lo, hi, nd, pads",
     [(0, 63, 64, (64, 0)), (8, 63, 64, (64, 0)), (-55, 54, 112, (57, 55)), (-45, -22, 32, (0, 23))],
