@@ -807,6 +807,9 @@ def _sgbm(
     multiple of 16).
     """
     nd = int(math.ceil((hi - lo + 1) / 16.0)) * 16
+    h, w = left8.shape
+    if max(lo, 0) >= w + min(hi, 0):  # no column can have a match in lo..hi
+        return np.full((h, w), np.nan, F32)
     padl, padr = _sgbm_padding(lo, hi, nd)
     if padl or padr:
         left8 = cv2.copyMakeBorder(left8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)
@@ -835,7 +838,6 @@ def _sgbm(
         disp[(raw < lo * 16) | (raw > hi * 16 + 8)] = np.nan
     else:
         disp[raw < lo * 16] = np.nan  # few cells: an index is cheaper than a masked copy
-    w = disp.shape[1]
     # matches onto the padding: x - d < -0.5 (d > x + 0.5) in the first columns, or
     # x - d > w - 0.5 in the last ones (d < x - w + 0.5); only the strips where that can
     # happen are looked at

@@ -290,6 +290,17 @@ def test_sgm_gives_no_match_outside_the_right_image(grid, sign):
     assert abs(np.median(d[ok]) - sign * 12.0) < 0.25
 
 
+@pytest.mark.parametrize("rng", [(40, 41), (90, 100), (-45, -44), (-100, -90)])
+def test_sgm_on_a_tile_where_no_column_can_match(rng):
+    # 40 columns: every match of these ranges falls outside the right image; the result is
+    # all NaN, without a "match" on the padding and without OpenCV's error on an empty
+    # region (found in session 21 when the padding became what the columns need)
+    g = np.random.default_rng(1)
+    left, right = (g.random((30, 40)).astype(np.float32) * 100 for _ in range(2))
+    r = match_rectified(left, right, rng, matcher="sgm")
+    assert r.disparity.shape == left.shape and np.isnan(r.disparity).all()
+
+
 def test_sgm_keeps_to_the_requested_range(grid):
     # truth 12 px, range 0..10: OpenCV searches 0..15 (16 disparities) and finds 12 in most
     # of the image; what lies beyond hi + 0.5 is outside the range asked for
