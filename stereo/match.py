@@ -811,6 +811,9 @@ def _sgbm(
     if max(lo, 0) >= w + min(hi, 0):  # no column can have a match in lo..hi
         return np.full((h, w), np.nan, F32)
     padl, padr = _sgbm_padding(lo, hi, nd)
+    # OpenCV refuses a pair not wider than minDisparity + numDisparities + blockSize // 2
+    # (a tile with few columns that can match): more padding on the left, cropped as well
+    padl += max(lo + nd + block_size // 2 + 1 - (w + padl + padr), 0)
     if padl or padr:
         left8 = cv2.copyMakeBorder(left8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)
         right8 = cv2.copyMakeBorder(right8, 0, 0, padl, padr, cv2.BORDER_REPLICATE)

@@ -301,6 +301,24 @@ def test_sgm_on_a_tile_where_no_column_can_match(rng):
     assert r.disparity.shape == left.shape and np.isnan(r.disparity).all()
 
 
+def test_sgm_on_narrow_tiles_keeps_its_contract():
+    # tiles with few columns that can match (w = 33, range 32..32: one column): OpenCV
+    # refuses a pair not wider than minDisparity + numDisparities + blockSize // 2, so the
+    # padding grows; every result is in range and its match inside the right image
+    g = np.random.default_rng(2)
+    for w in (2, 5, 33):
+        left, right = (g.random((12, w)).astype(np.float32) * 100 for _ in range(2))
+        x = np.arange(w)[None, :]
+        for lo in (-40, -33, -5, 0, 4, 31, 32, 40):
+            for span in (0, 15, 16):
+                hi = lo + span
+                d = match_rectified(left, right, (lo, hi), matcher="sgm").disparity
+                assert d.shape == left.shape
+                with np.errstate(invalid="ignore"):
+                    assert not np.any((d < lo) | (d > hi + 0.5))
+                    assert not np.any((x - d < -0.5) | (x - d > w - 0.5))
+
+
 def test_sgm_keeps_to_the_requested_range(grid):
     # truth 12 px, range 0..10: OpenCV searches 0..15 (16 disparities) and finds 12 in most
     # of the image; what lies beyond hi + 0.5 is outside the range asked for
