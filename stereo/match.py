@@ -801,7 +801,8 @@ def _sgbm(
     OpenCV leaves the columns ``x < minDisparity + numDisparities`` and
     ``x >= width + min(minDisparity, 0)`` invalid, so the pair is padded on each side (edge
     replication) by what it takes for every column that can have a match to be matched, and
-    the padding is cropped from the result (:func:`_sgbm_padding`). A disparity whose match
+    the padding is cropped from the result (:func:`_sgbm_padding`; more on the left where
+    OpenCV needs a wider pair; no call at all where no column can match). A disparity whose match
     ``x - d`` falls outside the right image (onto the padding) is no measurement: it is NaN,
     and so is one beyond ``hi + 0.5`` (OpenCV searches ``numDisparities`` rounded up to a
     multiple of 16).
