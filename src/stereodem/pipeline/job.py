@@ -22,6 +22,7 @@ Output folder of :func:`run`::
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -143,7 +144,8 @@ class BackgroundWriter:
             else None
         )
         self._futures = []
-        self.seconds = 0.0
+        self.seconds = 0.0  # of every write, summed over the writer threads
+        self._seconds_lock = threading.Lock()  # two writers may finish at once
 
     @property
     def count(self) -> int:
@@ -155,7 +157,9 @@ class BackgroundWriter:
             try:
                 return fn(*args, **kwargs)
             finally:
-                self.seconds += time.perf_counter() - t0
+                dt = time.perf_counter() - t0
+                with self._seconds_lock:
+                    self.seconds += dt
 
         if self._pool is not None:
             self._futures.append(self._pool.submit(timed))
