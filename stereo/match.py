@@ -400,8 +400,9 @@ def _scan(ref, tgt, klo, khi, window, min_std, back=False):
             np.copyto(cm, cprev, where=upd)
             upd, upd_prev = upd_prev, upd
             have_prev = True
-            if back:
-                # tgt pixel xt = x - k is matched by ref pixel x = xt + k
+            if back and abs(k) < w:
+                # tgt pixel xt = x - k is matched by ref pixel x = xt + k (at |k| >= w no
+                # pixel has a partner inside the other image)
                 if k >= 0:
                     cs, bs = c[:, k:], np.s_[:, : w - k]
                 else:
@@ -714,6 +715,9 @@ def _match_ncc(
         f = 2**levels
         clo, chi = math.floor(lo / f), math.ceil(hi / f)
         seedL = seedR = None
+        # the coarse levels' seeds are always left-right checked (at least 1 px); the caller's
+        # lr_tolerance (None: no check) applies to the result
+        seed_tol = 1.0 if lr_tolerance is None else max(lr_tolerance, 1.0)
         for lev in range(levels, -1, -1):
             L, R = pl[lev], pr[lev]
             vert = math.ceil(vertical_search / 2**lev)
@@ -724,8 +728,8 @@ def _match_ncc(
                 seedR = upsample_field(seedR, L.shape)
                 dL, sL, vL, dR = both_ways(L, R, seedL, seedR, -margin, margin, vert)
             if lev > 0:
-                okL = _lr_check(dL, dR, max(lr_tolerance, 1.0))
-                okR = _lr_check(dR[flip], dL[flip], max(lr_tolerance, 1.0))[flip]
+                okL = _lr_check(dL, dR, seed_tol)
+                okR = _lr_check(dR[flip], dL[flip], seed_tol)[flip]
                 fb = 0.5 * (lo + hi) / 2**lev
                 seedL = _fill_seed(np.where(okL & (sL >= min(min_score, 0.3)), dL, np.nan), fb)
                 seedR = _fill_seed(np.where(okR, dR, np.nan), fb)

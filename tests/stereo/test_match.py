@@ -319,6 +319,53 @@ def test_sgm_on_narrow_tiles_keeps_its_contract():
                     assert not np.any((x - d < -0.5) | (x - d > w - 0.5))
 
 
+@pytest.mark.parametrize("levels", [0, 1])
+def test_ncc_range_wider_than_the_tile(levels):
+    # a search range wider than the tile (Pleiades over mountains without a seed DEM: +-600
+    # px on a 576 px tile) has offsets where no pixel has a partner in the other image; the
+    # right-view map's bookkeeping sliced those into mismatched shapes (ValueError, the tile
+    # failed); every offset is now searched and the truth (-37 px) is found
+    y, x = np.mgrid[0:48, 0:200].astype(float)
+    left = texture(x, y)
+    right = texture(x - 37.0, y)  # left(x) = right(x + 37): d = -37
+    r = match_rectified(left, right, (-300, 300), levels=levels)
+    d = r.disparity
+    ok = np.isfinite(d)
+    assert ok.mean() > 0.5
+    assert np.median(d[ok]) == pytest.approx(-37.0, abs=0.1)
+    with np.errstate(invalid="ignore"):
+        assert not np.any((x - d < -0.5) | (x - d > 199.5))
+
+
+def test_ncc_without_lr_check_on_a_pyramid(grid):
+    # lr_tolerance=None (no left-right check) with coarse levels: the levels' seeds are still
+    # left-right checked at 1 px (max(None, 1.0) raised a TypeError before); the result keeps
+    # every match the check would have dropped
+    left, right, truth = shifted_pair(grid, 12.0)
+    free = match_rectified(left, right, (0, 40), levels=2, lr_tolerance=None)
+    checked = match_rectified(left, right, (0, 40), levels=2)
+    ok = np.isfinite(free.disparity)
+    assert ok.mean() > 0.8
+    assert np.all(np.isfinite(checked.disparity) <= ok)
+    assert rms(free.disparity[ok] - truth[ok]) < 0.2
+
+
+def test_ncc_on_narrow_tiles_keeps_its_contract():
+    # narrow and short tiles, ranges beyond their width on either side or spanning them,
+    # pyramid or not: no error, every result in range and its match inside the right image
+    g = np.random.default_rng(5)
+    for w, h in ((3, 9), (17, 8), (33, 40)):
+        left, right = (g.random((h, w)).astype(np.float32) * 100 for _ in range(2))
+        x = np.arange(w)[None, :]
+        for lo, hi in ((-40, -30), (-5, 5), (3, 12), (20, 40), (-70, 70)):
+            for levels in (0, None):
+                d = match_rectified(left, right, (lo, hi), levels=levels).disparity
+                assert d.shape == left.shape
+                with np.errstate(invalid="ignore"):
+                    assert not np.any((d < lo - 0.5) | (d > hi + 0.5))
+                    assert not np.any((x - d < -0.5) | (x - d > w - 0.5))
+
+
 def test_sgm_keeps_to_the_requested_range(grid):
     # truth 12 px, range 0..10: OpenCV searches 0..15 (16 disparities) and finds 12 in most
     # of the image; what lies beyond hi + 0.5 is outside the range asked for
