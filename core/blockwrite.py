@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 import rasterio
 import rasterio.crs
-import rasterio.shutil
 from rasterio.windows import Window
 
 from .raster import (
@@ -29,6 +28,7 @@ from .raster import (
     atomic_path,
     check_writable,
     cog_creation_options,
+    copy_to_cog,
     crs_with_vertical,
     geotiff_crs,
     write_pam_crs,
@@ -154,12 +154,7 @@ class BlockWriter:
             if exc_type is None:
                 t0 = time.perf_counter()
                 # one thread: GDAL's overview chunks (GDAL_OVR_CHUNK_MAX_SIZE) are per thread
-                rasterio.shutil.copy(
-                    self._tmp,
-                    self._final_tmp,
-                    driver="COG",
-                    **{k.lower(): v for k, v in self.co.items()},
-                )
+                copy_to_cog(self._tmp, self._final_tmp, self.co, path=self.path)
                 self.cog_seconds = time.perf_counter() - t0
                 if self._side_crs is not None:  # moved into place with the file
                     write_pam_crs(self._final_tmp, self._side_crs)

@@ -47,6 +47,11 @@ class OutputExistsError(StereodemError, FileExistsError):
     """An output exists and overwriting was not allowed."""
 
 
+class OutputWriteError(StereodemError, OSError):
+    """An output could not be written (GDAL refused the creation options for its data, the
+    disk is full, ...)."""
+
+
 class ConvergenceError(StereodemError, RuntimeError):
     """An iterative solution did not converge."""
 

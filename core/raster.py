@@ -10,6 +10,8 @@ every file gets the permissions of the umask.
 from __future__ import annotations
 
 import contextlib
+import functools
+import logging
 import os
 import tempfile
 import warnings
@@ -19,11 +21,15 @@ from pathlib import Path
 import numpy as np
 import rasterio
 import rasterio.crs
+import rasterio.errors
 import rasterio.shutil
+from affine import Affine
 from pyproj import CRS as PCRS
 from pyproj.crs import CompoundCRS
+from rasterio._err import CPLE_BaseError
+from rasterio.io import MemoryFile
 
-from stereodem.core.errors import InputError, OutputExistsError
+from stereodem.core.errors import InputError, OutputExistsError, OutputWriteError
 
 from .memory import check_allocation
 
@@ -174,6 +180,126 @@ def parse_creation_options(options) -> dict:
             raise InputError(f"creation option {item!r}: expected KEY=VALUE (e.g. COMPRESS=ZSTD)")
         out[key.strip().upper()] = value.strip()
     return out
+
+
+#: GDAL's complaints (logged by rasterio as warnings) about a creation option it does not
+#: know or a value it does not accept: it then ignores the option and writes the file anyway
+_OPTION_COMPLAINTS = ("CPLE_NotSupported in ", "CPLE_IllegalArg in ")
+
+
+class _Complaints(logging.Handler):
+    """Collects GDAL's complaints about creation options (:data:`_OPTION_COMPLAINTS`) that
+    rasterio logs on ``rasterio._env``."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.found = []
+
+    def emit(self, record):
+        text = record.getMessage()
+        for prefix in _OPTION_COMPLAINTS:
+            if text.startswith(prefix) and text[len(prefix) :] not in self.found:
+                self.found.append(text[len(prefix) :])
+
+
+def options_text(co: dict) -> str:
+    """Creation options as GDAL's tools print them (``COMPRESS=ZSTD LEVEL=9``)."""
+    return " ".join(f"{k}={v}" for k, v in co.items())
+
+
+def check_creation_options(
+    options, *, source: str = "creation options", float_products: bool = False
+) -> dict:
+    """:func:`parse_creation_options`, with each option and value checked against GDAL's COG
+    driver (the driver of every product) before any work: GDAL ignores an option it does not
+    know (``FOO=1``) or a value it does not accept (``COMPRESS=NOPE``, ``BLOCKSIZE=13``) with
+    a warning and writes the file without it, so a typo would silently give other products
+    than asked for. A 16 x 16 raster is written to memory with the options (on top of the
+    defaults, :func:`cog_creation_options`) and GDAL's complaints become an
+    :class:`InputError` naming ``source``. What depends on a product's data type
+    (``COMPRESS=JPEG`` is fine for 8-bit orthoimages, not for float heights) is checked by
+    each write (:func:`copy_to_cog`), unless ``float_products`` says that the caller's
+    products include float32 rasters (a DEM: every command but ``ortho``): then GDAL's
+    refusal to write float32 with the options is an :class:`InputError` here as well.
+
+    Called where options enter (the command line, a job's configuration) on the calling
+    thread: GDAL's warnings are collected from rasterio's logger while the probe runs."""
+    co = parse_creation_options(options)
+    if not co:
+        return co
+    complaints = _Complaints()
+    log = logging.getLogger("rasterio._env")
+    level, propagate = log.level, log.propagate
+    log.addHandler(complaints)
+    log.setLevel(logging.WARNING)
+    log.propagate = False  # not shown to the user as well: the error below says it
+    try:
+        # not the cached probe: GDAL warns only while it writes
+        items = tuple(cog_creation_options("float32", co).items())
+        refused = _probe_cog_write.__wrapped__("float32", 1, items)
+    finally:
+        log.removeHandler(complaints)
+        log.setLevel(level)
+        log.propagate = propagate
+    if refused and float_products:
+        complaints.found.append(f"{refused} (the products include float32 rasters)")
+    if complaints.found:
+        raise InputError(
+            f"{source} {options_text(co)}: GDAL's COG driver: {'; '.join(complaints.found)}"
+        )
+    return co
+
+
+def _lower(co: dict) -> dict:
+    """Creation options as rasterio's keyword arguments (lower-case keys)."""
+    return {k.lower(): v for k, v in co.items()}
+
+
+@functools.lru_cache(maxsize=64)
+def _probe_cog_write(dtype: str, count: int, items: tuple) -> str | None:
+    """GDAL's refusal (its message) to write a COG of ``count`` bands of ``dtype`` with the
+    creation options ``items`` (``(KEY, VALUE)`` pairs), found by writing 16 x 16 cells to
+    memory; None when it writes. The compression runs on the calling thread (``NUM_THREADS``
+    1: an error in one of GDAL's own threads is printed, not raised), which does not change
+    what can be written. Cached: one probe per data type, band count and options."""
+    probe = {**dict(items), "NUM_THREADS": "1"}
+    profile = dict(driver="MEM", width=16, height=16, count=count, dtype=dtype)
+    with rasterio.open("", "w", transform=Affine(10, 0, 0, 0, -10, 160), **profile) as src:
+        src.write(np.zeros((count, 16, 16), dtype))
+        with MemoryFile() as mem:
+            try:
+                rasterio.shutil.copy(src, mem.name, driver="COG", **_lower(probe))
+            except (rasterio.errors.RasterioError, CPLE_BaseError) as exc:
+                return " ".join(str(exc).split())
+    return None
+
+
+def copy_to_cog(src, tmp, co: dict, *, path) -> None:
+    """GDAL's COG copy of ``src`` (an open dataset or a file) into ``tmp`` with the creation
+    options ``co`` (:func:`rasterio.shutil.copy`, which releases the GIL while it
+    compresses); a GDAL failure is an :class:`OutputWriteError` naming the product ``path``
+    and the options (e.g. ``COMPRESS=JPEG`` on float32 heights, ``COMPRESS=WEBP`` on one
+    band, ``PREDICTOR=3`` on integers, a full disk).
+
+    Whether GDAL can write the data type and band count with the options is probed first
+    (:func:`_probe_cog_write`): with ``NUM_THREADS`` above 1 GDAL compresses on its own
+    threads, which print a refusal on stderr and leave the copy to succeed with blank tiles
+    (``COMPRESS=WEBP`` on a single-band orthoimage: all zeros, exit status 0)."""
+    if isinstance(src, str | os.PathLike):
+        with rasterio.open(src) as ds:
+            dtype, count = ds.dtypes[0], ds.count
+    else:
+        dtype, count = src.dtypes[0], src.count
+    refused = _probe_cog_write(str(dtype), int(count), tuple(co.items()))
+    if refused is None:
+        try:
+            rasterio.shutil.copy(src, tmp, driver="COG", **_lower(co))
+        except (rasterio.errors.RasterioError, CPLE_BaseError) as exc:
+            refused = " ".join(str(exc).split())
+    if refused is not None:
+        raise OutputWriteError(
+            f"{path}: cannot be written with the creation options {options_text(co)} ({refused})"
+        )
 
 
 def predictor_for(dtype) -> str:
@@ -414,7 +540,7 @@ def write_geotiff(
                     dst.set_band_description(i, desc)
                 if unit:
                     dst.set_band_unit(i, unit)
-            rasterio.shutil.copy(dst, tmp, driver="COG", **{k.lower(): v for k, v in co.items()})
+            copy_to_cog(dst, tmp, co, path=path)
         if side_crs is not None:  # moved into place with the file (atomic_path)
             write_pam_crs(tmp, side_crs)
     return path

@@ -26,6 +26,7 @@ _API = {
     "DEMError": "stereodem.core.errors",
     "VerticalReferenceError": "stereodem.core.errors",
     "OutputExistsError": "stereodem.core.errors",
+    "OutputWriteError": "stereodem.core.errors",
     "DEM": "stereodem.core.dem",
     "MapGrid": "stereodem.core.grid",
     "read_image": "stereodem.core.raster",

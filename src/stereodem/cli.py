@@ -97,7 +97,9 @@ def main(argv=None) -> int:
                 _fork_server(args),
                 thread_budget(args.workers if args.workers and args.workers > 0 else None),
             ):
+                _check_creation_options(args)
                 return int(args.run(args) or 0)
+        _check_creation_options(args)
         return int(args.run(args) or 0)
     except StereodemError as exc:
         print(f"stereodem {args.command}: error: {_one_line(exc)}", file=sys.stderr)
@@ -121,6 +123,18 @@ def main(argv=None) -> int:
         if previous_int is not None:
             _install(signal.SIGINT, previous_int)
         interrupt.clear()
+
+
+def _check_creation_options(args):
+    """A command's ``--co`` GDAL creation options, checked before it does any work
+    (:func:`stereodem.core.raster.check_creation_options`: GDAL would ignore an option it
+    does not know, or a value it does not accept, and write the products without it)."""
+    if getattr(args, "co", None):
+        from stereodem.core.raster import check_creation_options
+
+        check_creation_options(
+            args.co, source="--co", float_products=getattr(args, "co_float_products", False)
+        )
 
 
 def _fork_server(args):

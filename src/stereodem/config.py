@@ -52,7 +52,7 @@ import tomllib
 
 from stereodem.core.errors import InputError
 from stereodem.core.grid import map_crs
-from stereodem.core.raster import parse_creation_options
+from stereodem.core.raster import check_creation_options
 from stereodem.core.vertical import VERTICALS, Vertical
 from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS, Resampling, UncertaintyMethod
 from stereodem.sensor.io.aster_l1a import is_aster_granule
@@ -325,7 +325,9 @@ class RunSettings:
         Keep going with a result the sanity checks call suspect (:mod:`stereodem.stereo.sanity`);
         the findings are still reported.
     creation_options : dict, optional
-        GDAL creation options of the GeoTIFF products (as ``-co``), e.g. {COMPRESS = "ZSTD"}.
+        GDAL creation options of the GeoTIFF products (as ``-co``), e.g. {COMPRESS = "ZSTD"};
+        checked against GDAL's COG driver when the configuration is read (an option or value
+        GDAL does not know, or one it cannot write the float32 DEMs with, is an error).
     keep_tiles : bool
         Keep the tile cache ``OUT/tiles`` after a job that succeeded, for a later ``--resume``
         (e.g. with other filter, ortho or assessment settings); false removes it once the
@@ -709,4 +711,9 @@ def validate(cfg: Config, source="configuration"):
     if run.tile_timeout is not None and not run.tile_timeout > 0:
         bad(f"[run] tile_timeout must be positive, got {run.tile_timeout}")
     if run.creation_options:
-        run.creation_options = parse_creation_options(run.creation_options)
+        # the [run] table's, or --co on the command line over them
+        run.creation_options = check_creation_options(
+            run.creation_options,
+            source=f"{source}: [run] creation_options (or --co)",
+            float_products=True,  # a job's DEMs
+        )

@@ -48,7 +48,11 @@ def add_workers(p, what="worker processes for the stereo tiles"):
     p.add_argument("--workers", type=int, help=f"{what} (default: all cores)")
 
 
-def add_creation_options(p):
+def add_creation_options(p, *, float_products: bool = True):
+    """``--co KEY=VALUE``; ``float_products``: the command's products include float32 rasters
+    (its options are then checked against them before any work:
+    :func:`stereodem.core.raster.check_creation_options`)."""
+    p.set_defaults(co_float_products=float_products)
     p.add_argument(
         "--co",
         action="append",
@@ -60,7 +64,9 @@ def add_creation_options(p):
 
 
 def creation_options(args):
-    """The ``--co`` options as a dict (None when none were given)."""
+    """The ``--co`` options as a dict (None when none were given; :func:`stereodem.cli.main`
+    has checked them against GDAL's COG driver before the command ran:
+    :func:`stereodem.core.raster.check_creation_options`)."""
     from stereodem.core.raster import parse_creation_options
 
     return parse_creation_options(getattr(args, "co", None)) or None

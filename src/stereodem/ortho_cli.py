@@ -104,7 +104,7 @@ def add_parser(sub):
         action="store_true",
         help="write float32 values instead of the image's own data type",
     )
-    options.add_creation_options(p)
+    options.add_creation_options(p, float_products=False)  # the image's type, unless --float
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p

@@ -33,7 +33,7 @@ def add_parser(sub):
     p.add_argument("config", help="TOML configuration")
     add_run_options(p)
     # the tile pool's fork server starts before the job's modules load (cli._fork_server)
-    p.set_defaults(run=run, pool_request=_pool_request)
+    p.set_defaults(run=run, pool_request=_pool_request, co_float_products=True)
     return p
 
 

@@ -21,9 +21,10 @@ from stereodem.sensor.simulation.simulate import simulate_scene
 cog_validate = pytest.importorskip("rio_cogeo.cogeo").cog_validate
 
 from stereodem.core.dem import DEM, ELLIPSOID, GEOID
-from stereodem.core.errors import InputError
+from stereodem.core.errors import InputError, OutputWriteError
 from stereodem.core.raster import (
     DEFLATE_LEVEL,
+    check_creation_options,
     cog_creation_options,
     parse_creation_options,
     write_geotiff,
@@ -144,6 +145,61 @@ def test_creation_options_override_defaults(tmp_path):
     assert parse_creation_options({"compress": "lzw"}) == {"COMPRESS": "lzw"}
     with pytest.raises(InputError, match="KEY=VALUE"):
         parse_creation_options(["COMPRESS"])
+
+
+@pytest.mark.parametrize(
+    "options, complaint",
+    [
+        (["COMPRESS=NOPE"], "'NOPE' is an unexpected value for COMPRESS"),
+        (["FOO=1"], "does not support creation option FOO"),
+        (["BLOCKSIZE=13"], "should be >= 128"),
+        (["COMPRESS=ZSTD", "PREDICTOR=7"], "'7' is an unexpected value for PREDICTOR"),
+    ],
+)
+def test_creation_options_gdal_would_ignore_are_an_error(options, complaint):
+    # GDAL ignores an option it does not know, or a value it does not accept, with a warning
+    # and writes the file without it: checked before any work instead
+    for _ in range(2):  # again (a batch, a second job in one process): not a cached pass
+        with pytest.raises(InputError, match=complaint) as e:
+            check_creation_options(options, source="--co")
+        assert str(e.value).startswith(f"--co {' '.join(options)}: GDAL's COG driver: ")
+
+
+def test_creation_options_gdal_knows_pass_their_check():
+    assert check_creation_options(None) == {}
+    assert check_creation_options(["compress=zstd", "LEVEL=9"]) == {
+        "COMPRESS": "zstd",
+        "LEVEL": "9",
+    }
+    # valid for 8-bit orthoimages, not for float heights: a matter of each product's write
+    assert check_creation_options(["COMPRESS=JPEG"]) == {"COMPRESS": "JPEG"}
+
+
+def test_a_write_gdal_refuses_is_an_error_naming_the_file(tmp_path):
+    # JPEG cannot hold float32 heights, WEBP needs 3 or 4 bands: a one-line error naming the
+    # product and its options (a rasterio CPLE_AppDefinedError traceback before), no file
+    for co in (["COMPRESS=JPEG"], ["COMPRESS=WEBP"]):
+        with pytest.raises(OutputWriteError, match=r"z\.tif: cannot be written with the creation"):
+            write_geotiff(
+                tmp_path / "z.tif", _rng_data("float32", (40, 40)), T, creation_options=co
+            )
+        assert not list(tmp_path.iterdir())
+    # compressed on GDAL's own threads, a refusal was printed, not raised: the copy wrote
+    # blank tiles and succeeded (a single-band WEBP orthoimage of zeros, exit status 0)
+    with pytest.raises(OutputWriteError, match="WEBP driver doesn't support 1 bands"):
+        write_geotiff(
+            tmp_path / "w.tif",
+            _rng_data("uint8", (600, 700)),
+            T,
+            creation_options=["COMPRESS=WEBP", "NUM_THREADS=2"],
+        )
+    assert not list(tmp_path.iterdir())
+    # the same options on what they suit are written
+    p = write_geotiff(
+        tmp_path / "u8.tif", _rng_data("uint8", (40, 40)), T, creation_options=["COMPRESS=JPEG"]
+    )
+    with rasterio.open(p) as ds:
+        assert ds.compression.name.lower() == "jpeg"
 
 
 @pytest.mark.parametrize(
