@@ -274,6 +274,17 @@ def _probe_cog_write(dtype: str, count: int, items: tuple) -> str | None:
     return None
 
 
+def _compression_threads(co: dict) -> str:
+    """The threads GDAL compresses a COG on: ``NUM_THREADS`` of the options, else the
+    ``GDAL_NUM_THREADS`` configuration (:func:`stereodem.core.threads.pin_threads`), else 1."""
+    n = co.get("NUM_THREADS")
+    if n is None:
+        from rasterio.env import get_gdal_config
+
+        n = get_gdal_config("GDAL_NUM_THREADS")
+    return str(n or "1").strip().upper()
+
+
 def copy_to_cog(src, tmp, co: dict, *, path) -> None:
     """GDAL's COG copy of ``src`` (an open dataset or a file) into ``tmp`` with the creation
     options ``co`` (:func:`rasterio.shutil.copy`, which releases the GIL while it
@@ -281,16 +292,19 @@ def copy_to_cog(src, tmp, co: dict, *, path) -> None:
     and the options (e.g. ``COMPRESS=JPEG`` on float32 heights, ``COMPRESS=WEBP`` on one
     band, ``PREDICTOR=3`` on integers, a full disk).
 
-    Whether GDAL can write the data type and band count with the options is probed first
-    (:func:`_probe_cog_write`): with ``NUM_THREADS`` above 1 GDAL compresses on its own
-    threads, which print a refusal on stderr and leave the copy to succeed with blank tiles
-    (``COMPRESS=WEBP`` on a single-band orthoimage: all zeros, exit status 0)."""
-    if isinstance(src, str | os.PathLike):
-        with rasterio.open(src) as ds:
-            dtype, count = ds.dtypes[0], ds.count
-    else:
-        dtype, count = src.dtypes[0], src.count
-    refused = _probe_cog_write(str(dtype), int(count), tuple(co.items()))
+    With more than one compression thread (``NUM_THREADS``, else ``GDAL_NUM_THREADS``) GDAL
+    compresses on its own threads, which print a refusal on stderr and leave the copy to
+    succeed with blank tiles (``COMPRESS=WEBP`` on a single-band orthoimage: all zeros, exit
+    status 0), so whether GDAL can write the data type and band count with the options is
+    probed first (:func:`_probe_cog_write`, once per data type, band count and options)."""
+    refused = None
+    if _compression_threads(co) != "1":
+        if isinstance(src, str | os.PathLike):
+            with rasterio.open(src) as ds:
+                dtype, count = ds.dtypes[0], ds.count
+        else:
+            dtype, count = src.dtypes[0], src.count
+        refused = _probe_cog_write(str(dtype), int(count), tuple(co.items()))
     if refused is None:
         try:
             rasterio.shutil.copy(src, tmp, driver="COG", **_lower(co))
