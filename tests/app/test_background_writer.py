@@ -59,7 +59,8 @@ def test_write_error_reaches_the_caller():
 
 def test_with_one_thread_writes_run_at_once_in_the_calling_thread(tmp_path):
     """A job of one worker has no core to spare: each write runs when it is submitted, in the
-    caller's thread; an error still reaches the caller at ``wait``, as from the thread."""
+    caller's thread; an error is raised there and then (the job stops at the failed write,
+    not after its later stages), and again by a later submit or ``wait``."""
     done, threads = [], []
 
     def write(name):
@@ -72,13 +73,31 @@ def test_with_one_thread_writes_run_at_once_in_the_calling_thread(tmp_path):
     with BackgroundWriter(threads=1) as w:
         w.submit(write, "a")
         assert done == ["a"]
-        w.submit(fail)
-        w.submit(write, "b")
-        assert done == ["a", "b"] and w.count == 3
+        with pytest.raises(OSError, match="disk full"):
+            w.submit(fail)
+        with pytest.raises(OSError, match="disk full"):
+            w.submit(write, "b")
+        assert done == ["a"] and w.count == 2
         w.wait_for(0)
         with pytest.raises(OSError, match="disk full"):
             w.wait()
-    assert threads == [threading.current_thread().name] * 2
+    assert threads == [threading.current_thread().name]
+
+
+def test_a_failed_background_write_stops_the_next_submit():
+    """A write that failed on the writer's thread stops the job at its next write, not only
+    at the final wait (a full disk after the stereo stage: not after the orthoimages)."""
+
+    def fail():
+        raise OSError("disk full")
+
+    with BackgroundWriter(threads=2) as w:
+        w.submit(fail)
+        with pytest.raises(OSError, match="disk full"):
+            w.wait_for(0)
+        with pytest.raises(OSError, match="disk full"):
+            w.submit(lambda: None)
+        assert w.count == 1
 
 
 def test_dem_prepared_write_is_independent_of_later_changes(tmp_path):

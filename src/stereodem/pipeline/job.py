@@ -129,8 +129,11 @@ class BackgroundWriter:
     run`` on the full granule (0.57-0.79 s).
 
     ``submit(fn, *args)`` queues a write; ``wait_for(i)`` waits for the ``i``-th one,
-    ``wait()`` for all, re-raising the first error. Used as a context manager it waits for
-    every queued write on exit (also when the run fails), so no file is left half-written.
+    ``wait()`` for all, re-raising the first error. A write that failed stops the job at the
+    next ``submit`` (at once without a pool: a full disk or creation options GDAL refuses for
+    the raw DEM end the job there, not after the filters and orthoimages). Used as a context
+    manager it waits for every queued write on exit (also when the run fails), so no file is
+    left half-written.
     """
 
     def __init__(self, threads: int = 2):
@@ -161,15 +164,19 @@ class BackgroundWriter:
                 with self._seconds_lock:
                     self.seconds += dt
 
+        for f in self._futures:  # an earlier write failed: the job stops here
+            if f.done() and f.exception() is not None:
+                raise f.exception()
         if self._pool is not None:
             self._futures.append(self._pool.submit(timed))
             return
-        done = Future()  # written here and now; an error is raised by wait(), as queued
+        done = Future()  # written here and now
+        self._futures.append(done)
         try:
             done.set_result(timed())
         except Exception as err:
             done.set_exception(err)
-        self._futures.append(done)
+            raise
 
     def wait_for(self, index: int):
         if index < len(self._futures):
