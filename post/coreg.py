@@ -208,7 +208,9 @@ def make_sampler(
             keep &= ndimage.map_coordinates(
                 stable.astype(np.uint8), [rows, cols], order=0, mode="constant", cval=0
             ).astype(bool)
-        _check_fraction(int(keep.sum()), int(on_dem.sum()), "points", ref.path, min_stable_fraction)
+        _check_fraction(
+            int(keep.sum()), int(on_dem.sum()), "points", ref.path, min_stable_fraction, dem.path
+        )
         idx = np.flatnonzero(keep)
         if idx.size > max_samples:
             idx = np.sort(rng.choice(idx, max_samples, replace=False))
@@ -228,7 +230,9 @@ def make_sampler(
     z = reference_on_grid(ref, dem)
     valid = np.isfinite(z) & np.isfinite(dem.heights)
     keep = valid if stable is None else valid & stable
-    _check_fraction(int(keep.sum()), int(valid.sum()), "cells", ref.path, min_stable_fraction)
+    _check_fraction(
+        int(keep.sum()), int(valid.sum()), "cells", ref.path, min_stable_fraction, dem.path
+    )
     idx = np.flatnonzero(keep)
     if idx.size > max_samples:
         idx = np.sort(rng.choice(idx, max_samples, replace=False))
@@ -246,13 +250,23 @@ def make_sampler(
     )
 
 
-def _check_fraction(n_keep, n_valid, what, path, min_fraction):
+#: fewest stable samples a co-registration is fitted on
+MIN_STABLE_SAMPLES = 20
+
+
+def _check_fraction(n_keep, n_valid, what, path, min_fraction, dem_path=None):
     share = n_keep / n_valid if n_valid else 0.0
-    if share < min_fraction or n_keep < 20:
+    if share < min_fraction:
         raise InputError(
             f"{path or 'stable mask'}: only {100 * share:.1f} % of the overlapping {what} "
             f"({n_keep} of {n_valid}) are stable terrain; at least {100 * min_fraction:.0f} % "
             "needed"
+        )
+    if n_keep < MIN_STABLE_SAMPLES:  # a tiny overlap: the share says nothing
+        raise InputError(
+            f"{path or 'reference'}: only {n_keep} stable {what} overlap valid cells of "
+            f"{dem_path or 'the DEM'} ({n_valid} overlapping in all); at least "
+            f"{MIN_STABLE_SAMPLES} needed to co-register"
         )
 
 

@@ -109,6 +109,20 @@ def test_bad_input_is_one_line_and_writes_nothing(files, capsys, extra, message)
     assert not out.exists()
 
 
+def test_tiny_overlap_says_how_many_cells_not_a_share(files, tmp_path, capsys):
+    """A 3 x 3 DEM on the reference: all 9 overlapping cells are stable (100 %), too few to fit;
+    the error said "only 100.0 % ... stable terrain; at least 5 % needed"."""
+    ref = DEM.from_file(files / "ref.tif")
+    DEM(ref.heights[:3, :3] + 1, ref.transform, ref.crs, "geoid").write(tmp_path / "tiny.tif")
+    out = tmp_path / "out"
+    argv = ["coregister", tmp_path / "tiny.tif", "--ref", files / "ref.tif", "-o", out]
+    code, _, err = run_cli(capsys, argv)
+    assert_clear_error(
+        code, err, "coregister", r"ref\.tif: only 9 stable cells overlap .*tiny\.tif.* 20 needed"
+    )
+    assert not out.exists()
+
+
 def _assert_error_analysis_in_html(out):
     """report.html holds the error-analysis section (the variogram's fit and every Markdown
     item of the section) and embeds variogram.png and error_vs_terrain.png byte for byte,
