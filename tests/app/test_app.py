@@ -562,6 +562,24 @@ def test_new_options_reject_bad_values_before_any_work(
     assert not (tmp_path / "o").exists() and not (tmp_path / "c.tif").exists()
 
 
+@pytest.mark.parametrize("extra", [[], ["--no-fill"]])
+def test_filter_removing_every_cell_names_the_dem(tmp_path, capsys, extra):
+    """A 3 x 3 DEM: the blunder filters remove all its cells; the error said "the DEM has no
+    valid height to fill from" (no file), or with --no-fill named the output as all void."""
+    from stereodem.core.dem import DEM
+
+    z = np.arange(9, dtype=np.float32).reshape(3, 3) + 1500
+    DEM(z, rasterio.Affine(30, 0, 5e5, 0, -30, 4.3e6), "EPSG:32637", "geoid").write(
+        tmp_path / "tiny.tif"
+    )
+    out = tmp_path / "clean.tif"
+    assert cli.main(["filter", str(tmp_path / "tiny.tif"), "-o", str(out), *extra]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0], err
+    assert "tiny.tif: the blunder filters removed all 9 valid cells" in err[0], err
+    assert not out.exists()
+
+
 def test_band_names_are_checked_by_the_parser(capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["ortho", "a.tif", "--dem", "d.tif", "-o", "o.tif", "--band", "3X"])
