@@ -608,7 +608,7 @@ def run_mosaic(
     t0 = time.perf_counter()
     todo = blocks(plan)
     tags = dict(STEREODEM_MOSAIC_METHOD=plan.method, STEREODEM_MOSAIC_DEMS=len(plan.sources))
-    n_valid = 0
+    n_valid = n_data = 0
     with BlockWriter(
         out,
         plan.grid,
@@ -627,8 +627,13 @@ def run_mosaic(
         for k, (r0, c0, arrays) in enumerate(results, start=1):
             w.write(r0, c0, arrays)
             n_valid += int(np.isfinite(arrays[0]).sum())
+            if plan.method == "count":
+                n_data += int(np.count_nonzero(arrays[0] > 0))
             if progress is not None:
                 progress(k, len(todo))
+        if (n_data if plan.method == "count" else n_valid) == 0:
+            # all-void DEMs, or --bounds over their voids: refused, not written as a mosaic
+            raise DEMError(_empty_mosaic_message(plan))
     report = dict(
         plan.report,
         output=str(out),
@@ -640,6 +645,20 @@ def run_mosaic(
         dask=dask,
     )
     return report
+
+
+def _empty_mosaic_message(plan: MosaicPlan) -> str:
+    """Why a mosaic has no valid cell: its DEMs have no valid height over its extent (or,
+    for stddev / nmad, no cell is covered by two of them)."""
+    paths = [s.path for s in plan.sources]
+    names = ", ".join(paths[:3]) + (f" and {len(paths) - 3} more" if len(paths) > 3 else "")
+    if plan.method in ("stddev", "nmad"):
+        return (
+            f"{names}: no cell of the mosaic has valid heights from two DEMs "
+            f"(--method {plan.method} needs two); nothing to write"
+        )
+    b = tuple(round(v, 3) for v in plan.grid.bounds)
+    return f"{names}: no valid height over the mosaic's extent {b}; nothing to write"
 
 
 def plan_summary(plan: MosaicPlan) -> dict:

@@ -8,6 +8,7 @@ windows with known biases; every expectation is computed independently with nump
 from __future__ import annotations
 
 import json
+import re
 import tracemalloc
 import warnings
 
@@ -365,6 +366,31 @@ def test_dems_outside_the_extent_are_named_and_skipped(tmp_path, capsys):
     # without bounds it is kept, and named as overlapping no other DEM
     plan = plan_mosaic([a, b, far])
     assert plan.report["islands"] == [str(far)] and plan.report["n_used"] == 3
+
+
+@pytest.mark.parametrize(
+    "which, method, words",
+    [
+        (["void"], "blend", "void.tif: no valid height over the mosaic's extent"),
+        (["void", "void2"], "count", "void.tif, .*void2.tif: no valid height"),
+        (["a"], "nmad", "a.tif: no cell of the mosaic has valid heights from two DEMs"),
+    ],
+)
+def test_a_mosaic_without_a_valid_cell_is_refused(tmp_path, capsys, which, method, words):
+    """All-void DEMs (or one DEM with nmad) made an all-void mosaic, reported as written with
+    "0.0 % valid" and exit status 0."""
+    void = np.full((8, 8), np.nan, np.float32)
+    write_dem(tmp_path / "a.tif", 0, 0, 8, 8)
+    write_dem(tmp_path / "void.tif", 0, 0, 8, 8, heights=void)
+    write_dem(tmp_path / "void2.tif", 4, 4, 8, 8, heights=void)
+    out = tmp_path / "m.tif"
+    argv = ["mosaic", *(str(tmp_path / f"{w}.tif") for w in which), "-o", str(out)]
+    capsys.readouterr()
+    assert main([*argv, "--method", method]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert re.search(words, err), err
+    assert not out.exists() and not (tmp_path / "m.json").exists()
 
 
 @pytest.mark.slow
