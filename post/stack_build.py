@@ -31,7 +31,7 @@ import rasterio
 from rasterio.warp import transform_bounds
 from scipy import ndimage
 
-from stereodem.core.dem import DEM
+from stereodem.core.dem import DEM, _check_georeferenced
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import read_image
@@ -85,9 +85,15 @@ def header_bounds_lonlat(path):
     """(west, south, east, north) of a raster from its header only (no pixels read)."""
     try:
         with rasterio.open(path) as ds:
-            if ds.crs is None:
-                raise DEMError(f"{path}: the DEM has no CRS")
-            return transform_bounds(ds.crs, "EPSG:4326", *ds.bounds, densify_pts=21)
+            _check_georeferenced(path, ds)
+            # the corners through the transform: ``ds.bounds`` of a south-up grid has its
+            # bottom above its top (and ignores rotation), which made it miss everything
+            x, y = ds.transform @ (
+                np.array([0, ds.width, ds.width, 0]),
+                np.array([0, 0, ds.height, ds.height]),
+            )
+            box = (min(x), min(y), max(x), max(y))
+            return transform_bounds(ds.crs, "EPSG:4326", *box, densify_pts=21)
     except rasterio.errors.RasterioIOError as exc:
         raise DEMError(f"{path}: cannot read the DEM ({str(exc).splitlines()[0][:100]})") from None
 

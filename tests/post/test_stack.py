@@ -473,3 +473,22 @@ def test_stack_uses_the_score_and_radiance_layers_beside_a_dem(series, tmp_path)
     assert rec["score_layer"] and rec["radiance_layer"]
     assert rec["clouds"]["score_pct"] > 0 and rec["clouds"]["radiance_pct"] > 0
     assert cloud.mean() < 0.1 and sigma > 0
+
+
+def test_header_footprint_of_a_south_up_or_ungeoreferenced_dem(tmp_path):
+    """``ds.bounds`` of a south-up grid has its bottom above its top: in a geographic CRS the
+    footprint came out inverted and `change`/`stack` refused the DEM as not overlapping the
+    reference; a file without a geotransform was said not to overlap either."""
+    from stereodem.core.errors import DEMError
+    from stereodem.post.stack_build import header_bounds_lonlat
+
+    prof = dict(driver="GTiff", width=4, height=3, count=1, dtype="float32", crs="EPSG:4326")
+    t = Affine(0.01, 0, 40.0, 0, 0.01, 39.0)  # rows going north
+    with rasterio.open(tmp_path / "south_up.tif", "w", transform=t, **prof) as ds:
+        ds.write(np.ones((1, 3, 4), np.float32))
+    b = header_bounds_lonlat(tmp_path / "south_up.tif")
+    assert b == pytest.approx((40.0, 39.0, 40.04, 39.03))
+    with rasterio.open(tmp_path / "no_transform.tif", "w", **prof) as ds:
+        ds.write(np.ones((1, 3, 4), np.float32))
+    with pytest.raises(DEMError, match=r"no_transform\.tif: the DEM has no geotransform"):
+        header_bounds_lonlat(tmp_path / "no_transform.tif")
