@@ -350,8 +350,12 @@ class DEM:
     # ---------------------------------------------------------------- geometry
     @property
     def grid(self) -> MapGrid:
-        """The DEM's :class:`~stereodem.core.grid.MapGrid`."""
-        return MapGrid(self.transform, self.heights.shape[1], self.heights.shape[0], self.crs)
+        """The DEM's :class:`~stereodem.core.grid.MapGrid` (:class:`DEMError` naming the file
+        when its grid is not one, e.g. not north-up)."""
+        try:
+            return MapGrid(self.transform, self.heights.shape[1], self.heights.shape[0], self.crs)
+        except InputError as exc:
+            raise DEMError(f"{self.path or 'DEM'}: {exc}") from None
 
     @property
     def shape(self):

@@ -67,7 +67,9 @@ class MapGrid:
         object.__setattr__(self, "crs", as_crs(self.crs))
         t = self.transform
         if abs(t.b) > 0 or abs(t.d) > 0 or t.a <= 0 or t.e >= 0:
-            raise InputError(f"MapGrid: the transform must be north-up (got {tuple(t)[:6]})")
+            raise InputError(
+                f"the grid is not north-up (transform {tuple(t)[:6]}); warp it first (gdalwarp)"
+            )
         if self.width < 1 or self.height < 1:
             raise InputError(f"MapGrid: empty grid {self.width} x {self.height}")
 

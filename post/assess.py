@@ -700,6 +700,9 @@ def assess_dem(
                 reference.heights, reference.transform, reference.crs, ref_vertical, reference.path
             )
         )
+    # slopes on the reference's grid, the hillshade on the DEM's: neither may be rotated
+    terrain.check_not_rotated(reference.transform, reference.path or "reference")
+    terrain.check_not_rotated(dem.transform, dem.path)
     dem_v, vnote = reconcile_vertical(dem, reference)
     kw = dict(
         resampling=resampling,

@@ -39,7 +39,7 @@ from stereodem.core.dem import DEM
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.stats import nmad
 
-from . import warp
+from . import terrain, warp
 from .altimetry import AltimetryPoints
 
 log = logging.getLogger(__name__)
@@ -184,6 +184,7 @@ def make_sampler(
     Raises :class:`InputError` when under ``min_stable_fraction`` of the DEM's valid cells
     (or of the points on the DEM) remain stable, saying how much was left.
     """
+    terrain.check_not_rotated(dem.transform, dem.path)  # the fits take its slopes
     if stable is not None:
         stable = np.asarray(stable, bool)
         if stable.shape != dem.shape:

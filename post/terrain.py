@@ -48,6 +48,16 @@ def _linear_unit_factor(crs) -> float:
     return float(f or 1.0)
 
 
+def check_not_rotated(transform, path=None) -> None:
+    """The terrain derivatives need a grid without rotation terms: :class:`CRSError`, naming
+    the DEM file ``path`` when given, otherwise."""
+    if abs(transform.b) > 1e-12 * abs(transform.a) or abs(transform.d) > 1e-12 * abs(transform.e):
+        raise CRSError(
+            f"{path or 'DEM'}: rotated DEM grids are not supported; warp the DEM to a north-up "
+            "grid first (gdalwarp)"
+        )
+
+
 def pixel_size_m(transform, crs, shape):
     """Pixel size in metres along columns (east) and rows (north), per row.
 
@@ -65,8 +75,7 @@ def pixel_size_m(transform, crs, shape):
         Signed metres per pixel step: ``dx`` eastwards per column step, ``dy`` northwards per
         row step (negative for a north-up grid).
     """
-    if abs(transform.b) > 1e-12 * abs(transform.a) or abs(transform.d) > 1e-12 * abs(transform.e):
-        raise CRSError("rotated DEM grids are not supported; warp the DEM to a north-up grid first")
+    check_not_rotated(transform)
     rows = shape[0]
     if _is_geographic(crs):
         lat = transform.f + transform.e * (np.arange(rows) + 0.5)

@@ -123,6 +123,43 @@ def test_tiny_overlap_says_how_many_cells_not_a_share(files, tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    "command, grid, words",
+    [
+        ("coregister", "rotated", "rotated DEM grids are not supported"),
+        ("assess", "rotated", "rotated DEM grids are not supported"),
+        ("change-b", "rotated", "rotated DEM grids are not supported"),
+        ("change-a", "south_up", "the grid is not north-up"),
+    ],
+)
+def test_a_grid_that_is_not_north_up_is_named(files, tmp_path, capsys, command, grid, words):
+    """A rotated or south-up DEM grid was refused without naming the file ("rotated DEM grids
+    are not supported", "MapGrid: the transform must be north-up"), assess after its work."""
+    import rasterio
+
+    ref = DEM.from_file(files / "ref.tif")
+    z, t = ref.heights[:40, :40], ref.transform
+    if grid == "rotated":
+        t, bad = t @ Affine.rotation(10), tmp_path / "rotated.tif"
+    else:
+        z, t = z[::-1], Affine(t.a, 0, t.c, 0, -t.e, t.f + 40 * t.e)
+        bad = tmp_path / "south_up.tif"
+    prof = dict(driver="GTiff", width=40, height=40, count=1, dtype="float32", crs=ref.crs)
+    with rasterio.open(bad, "w", transform=t, nodata=np.nan, **prof) as ds:
+        ds.write(z[None])
+        ds.update_tags(STEREODEM_VERTICAL="geoid")
+    good, out = files / "ref.tif", tmp_path / "out"
+    argv = {
+        "coregister": ["coregister", bad, "--ref", good],
+        "assess": ["assess", bad, "--ref", good],
+        "change-b": ["change", good, bad],
+        "change-a": ["change", bad, good],
+    }[command]
+    code, _, err = run_cli(capsys, [*argv, "-o", out])
+    assert_clear_error(code, err, argv[0], rf"{re.escape(str(bad))}: {words}")
+    assert not out.exists()
+
+
 def _assert_error_analysis_in_html(out):
     """report.html holds the error-analysis section (the variogram's fit and every Markdown
     item of the section) and embeds variogram.png and error_vs_terrain.png byte for byte,
