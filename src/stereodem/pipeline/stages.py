@@ -155,15 +155,16 @@ def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=No
         z = np.where(rim, np.nan, z)
         mask[rim] = EditCode.BORDER_RIM
         report["erode"] = {"cells": int(cfg.filters.erode), "removed": int(rim.sum())}
-    if cfg.filters.enabled and not np.isfinite(z).any():
+    n = int(np.isfinite(layers.heights).sum()) if not np.isfinite(z).any() else 0
+    if cfg.filters.enabled and n:
         # e.g. a DEM a few cells wide: the small-patch filter or the border rim takes every
         # cell (then the hole filling had nothing to fill from, or the clean DEM was all void)
-        n = int(np.isfinite(layers.heights).sum())
         rim = report.get("erode", {}).get("removed", 0)
-        by, keep = "the blunder filters", "--no-filters"
+        off = "--no-filters ([filters] enabled = false)"
+        by, keep = "the blunder filters", off
         if rim:
             by = f"the blunder filters ({n - rim}) and the border rim ({rim})"
-            keep = f"a smaller --erode (now {int(cfg.filters.erode)}) or --no-filters"
+            keep = f"a smaller --erode ([filters] erode, now {int(cfg.filters.erode)}) or {off}"
         raise InputError(
             f"{layers.path or 'stereo DEM'}: {by} removed all {n} valid cells of the "
             f"{z.shape[0]} x {z.shape[1]} DEM; {keep} keeps them"
