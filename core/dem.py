@@ -189,7 +189,7 @@ def _no_crs_message(path, ds) -> str:
     return msg
 
 
-def _check_georeferenced(path, ds) -> None:
+def check_georeferenced(path, ds) -> None:
     """A DEM file ``path`` (open as ``ds``) has a CRS and a geotransform: without one rasterio
     gives the identity (cell corners at whole CRS units from 0, rows going north), which
     would put the heights at a wrong place without an error (ground control points alone are
@@ -295,7 +295,7 @@ class DEM:
         path = str(path)
         try:
             with reading_env(), rasterio.open(path) as ds:
-                _check_georeferenced(path, ds)
+                check_georeferenced(path, ds)
                 flags = ds.mask_flag_enums[band - 1]
                 if all(f in (MaskFlags.nodata, MaskFlags.all_valid) for f in flags):
                     # nodata value or none: read straight into float32 (no mask array, no copy)
@@ -332,7 +332,7 @@ class DEM:
         _check_vertical(vertical)
         try:
             with reading_env(), rasterio.open(path) as ds:
-                _check_georeferenced(path, ds)
+                check_georeferenced(path, ds)
                 if not 1 <= band <= ds.count:
                     raise DEMError(f"{path}: no band {band} (the file has {ds.count})")
                 h, w = ds.block_shapes[band - 1]

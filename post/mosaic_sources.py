@@ -27,6 +27,7 @@ from stereodem.core.dem import (
     ELLIPSOID,
     GEOID,
     _vertical_from_crs,
+    check_georeferenced,
     horizontal_crs,
 )
 from stereodem.core.errors import (
@@ -127,8 +128,7 @@ def open_source(path, order: int = 0, *, vertical: str | None = None) -> Source:
         raise DEMError(f"{path}: no such file")
     try:
         with rasterio.open(path) as ds:
-            if ds.crs is None:
-                raise CRSError(f"{path}: the DEM has no CRS")
+            check_georeferenced(path, ds)  # a CRS and a geotransform
             t = ds.transform
             if abs(t.b) > 0 or abs(t.d) > 0 or t.a <= 0 or t.e >= 0:
                 raise DEMError(

@@ -403,9 +403,24 @@ def test_bad_inputs_are_one_line_errors_and_write_nothing(tmp_path, capsys):
         nocrs, "w", driver="GTiff", width=10, height=10, count=1, dtype="float32"
     ) as ds:
         ds.write(np.ones((1, 10, 10), np.float32))
+    nogt = tmp_path / "nogt.tif"  # a CRS but no geotransform ("not north-up" before)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(
+            nogt,
+            "w",
+            driver="GTiff",
+            width=10,
+            height=10,
+            count=1,
+            dtype="float32",
+            crs="EPSG:32637",
+        ) as ds:
+            ds.write(np.ones((1, 10, 10), np.float32))
     cases = [
         ([str(a), str(garbage)], "garbage.tif"),
         ([str(a), str(nocrs)], "no CRS"),
+        ([str(a), str(nogt)], "nogt.tif: the DEM has no geotransform"),
         ([str(a), str(tmp_path / "missing.tif")], "missing.tif"),
         ([str(a), str(a)], "given twice"),
         ([str(a), "--coregister"], "--ref"),
