@@ -205,6 +205,12 @@ def add_dem(reference: DEM, path, settings: BuildSettings, stable_grid):
             "reference; cannot estimate its sigma"
         )
     sigma = nmad(h[sel] - reference.heights[sel])
+    if not sigma > 0:  # the rates weight each date by 1 / sigma**2
+        raise InputError(
+            f"{path}: its heights equal the reference's on the stable terrain (NMAD "
+            f"{sigma:g} m): the reference itself, or a copy, has no error against it to weight "
+            "it by; leave it out of the stack's dates"
+        )
     rec = dict(
         path=str(path),
         vertical=vnote,

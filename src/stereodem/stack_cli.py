@@ -5,6 +5,7 @@ stack (``OUT/stack.zarr``), elevation-change rates with σ (``rate.tif``, ``rate
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import time
@@ -170,6 +171,22 @@ def _check(args):
         raise InputError(f"--cloud-max-dev must be >= 0, got {args.cloud_max_dev}")
 
 
+@contextlib.contextmanager
+def _status_if_stopped(path):
+    """``stack.json`` says ``failed`` (with the one-line reason) or ``interrupted`` when the
+    job stops after its output folder was opened (a DEM refused while the stack is built):
+    not ``running`` for ever beside a partial store."""
+    from stereodem.core.raster import write_text_atomic
+
+    try:
+        yield
+    except BaseException as exc:
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        write_text_atomic(path, jsonutil.dumps({"status": status, "error": reason}), overwrite=True)
+        raise
+
+
 def run(args) -> int:
     import numpy as np
 
@@ -214,7 +231,10 @@ def run(args) -> int:
         + list(args.exclude)
         + ([args.outlines] if args.outlines else [])
     )
-    with output_folder(args.out, overwrite=args.overwrite, inputs=inputs) as out:
+    with (
+        output_folder(args.out, overwrite=args.overwrite, inputs=inputs) as out,
+        _status_if_stopped(out / "stack.json"),
+    ):
         write_text_atomic(out / "stack.json", jsonutil.dumps({"status": "running"}), overwrite=True)
         # processes pay off on scene-sized DEMs only (each starts a Python: ~1-2 s)
         build_workers = workers if ref.heights.size >= PARALLEL_BUILD_CELLS else 1

@@ -331,7 +331,7 @@ def test_change_command_gives_dh_and_sigma(series, tmp_path, capsys):
 
 
 @pytest.mark.parametrize(
-    "case", ["no_dates", "single", "no_overlap", "future", "repeated", "count"]
+    "case", ["no_dates", "single", "no_overlap", "future", "repeated", "count", "reference"]
 )
 def test_stack_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys, case):
     paths = series["paths"][:3]
@@ -363,6 +363,10 @@ def test_stack_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys
     elif case == "repeated":
         extra = ["--dates", "2004-07-01,2009-08-01,2009-08-01"]
         expect = "repeats"
+    elif case == "reference":  # the reference as a date: no error against itself
+        paths = [paths[0], series["ref"]]
+        extra = ["--dates", "2004-07-01,2012-01-01"]
+        expect = f"{series['ref']}: its heights equal the reference's"
     else:
         extra = ["--dates", "2004-07-01,2009-08-01"]
         expect = "2 date"
@@ -370,7 +374,11 @@ def test_stack_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys
     rc, _so, se = _run(["stack", *paths, "--ref", series["ref"], *extra, "-o", str(out)], capsys)
     assert rc == 1
     assert len(se.strip().splitlines()) == 1 and expect in se and "Traceback" not in se
-    assert not out.exists()
+    if case == "reference":  # refused while the stack is built: the folder says so
+        status = json.loads((out / "stack.json").read_text())
+        assert status["status"] == "failed" and expect in status["error"]
+    else:  # refused before the output folder is touched
+        assert not out.exists()
 
 
 def test_gp_rate_is_wls_without_the_nonlinear_part_and_wider_with_it():
