@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
@@ -45,6 +46,18 @@ from stereodem.core.vertical import ELLIPSOID, GEOID, VERTICALS
 
 #: status codes returned by :meth:`DEM.sample`
 OK, OUTSIDE, VOID = 0, 1, 2
+
+#: heights (m) that no place on Earth has, above the ellipsoid or the geoid: the deepest
+#: ocean floor is about -11 000 m, the highest summit 8 849 m, the geoid within +-110 m. A DEM
+#: file's cells outside are no-data (an undeclared nodata value such as -9999, -32768 or
+#: 1e30), read as NaN with a warning (:meth:`DEM.from_file`)
+PLAUSIBLE_HEIGHTS_M = (-12_000.0, 10_000.0)
+
+#: the nodata value most DEM software writes (ArcGIS, ASCII grids), inside the plausible
+#: range: a file that declares no nodata value has no-data there too
+UNDECLARED_NODATA = -9999.0
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -189,6 +202,41 @@ def _no_crs_message(path, ds) -> str:
     return msg
 
 
+def _void_implausible(heights, path, n_sentinel: int = 0) -> None:
+    """Set to NaN, in place, the cells of ``heights`` (m) that are not finite or lie outside
+    :data:`PLAUSIBLE_HEIGHTS_M`; a warning names the file, how many finite cells that was
+    (with the ``n_sentinel`` cells the caller found at :data:`UNDECLARED_NODATA` in a file
+    without a nodata value) and some of their values: read as heights, -9999 put a mean of
+    -1455 m into an assessment, 1e30 a mean of 1.6e28 m."""
+    lo, hi = PLAUSIBLE_HEIGHTS_M
+    with np.errstate(invalid="ignore"):
+        void = ~((heights >= lo) & (heights <= hi))  # NaN and +-inf compare False
+    wild = heights[void & np.isfinite(heights)] if void.any() else heights[:0, 0]
+    if wild.size or n_sentinel:
+        values = np.unique(wild)
+        seen = [f"{UNDECLARED_NODATA:g}"] if n_sentinel else []
+        seen += [f"{v:g}" for v in values[: 3 - len(seen)]]
+        more = ", ..." if len(values) + bool(n_sentinel) > len(seen) else ""
+        log.warning(
+            "%s: %d cell(s) hold %s (%s%s): read as no-data; declare the file's nodata value "
+            "(gdal_edit.py -a_nodata) if that is what they are",
+            path,
+            wild.size + n_sentinel,
+            f"heights no place on Earth has (outside {lo:g}..{hi:g} m) or "
+            f"{UNDECLARED_NODATA:g} without a nodata value"
+            if wild.size and n_sentinel
+            else (
+                f"{UNDECLARED_NODATA:g} and the file declares no nodata value"
+                if n_sentinel
+                else f"heights no place on Earth has (outside {lo:g}..{hi:g} m)"
+            ),
+            ", ".join(seen),
+            more,
+        )
+    if void.any():
+        heights[void] = np.nan
+
+
 def check_georeferenced(path, ds) -> None:
     """A DEM file ``path`` (open as ``ds``) has a CRS and a geotransform: without one rasterio
     gives the identity (cell corners at whole CRS units from 0, rows going north), which
@@ -304,11 +352,21 @@ class DEM:
                         heights[heights == np.float32(ds.nodata)] = np.nan
                 else:  # a mask band or alpha: GDAL's mask
                     heights = ds.read(band, masked=True).astype(np.float32).filled(np.nan)
+                n_sentinel = 0
+                if ds.nodata is None:  # -9999 without a nodata value: no-data all the same
+                    sentinel = heights == np.float32(UNDECLARED_NODATA)
+                    n_sentinel = int(np.count_nonzero(sentinel))
+                    if n_sentinel:
+                        heights[sentinel] = np.nan
+                scale, offset = ds.scales[band - 1], ds.offsets[band - 1]
+                if (scale, offset) != (1.0, 0.0):  # stored as e.g. centimetres: GDAL's scaling
+                    heights *= np.float32(scale)
+                    heights += np.float32(offset)
                 transform, crs = ds.transform, CRS.from_user_input(ds.crs.to_wkt())
                 tag = ds.tags().get(VERTICAL_TAG)
         except rasterio.errors.RasterioIOError as exc:
             raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
-        np.copyto(heights, np.float32(np.nan), where=~np.isfinite(heights))
+        _void_implausible(heights, path, n_sentinel)
         vert = vertical or _vertical_from_crs(crs) or (tag.lower() if tag else None)
         found = {}
         for name in tuple(LAYERS) if layers is True else layers or ():

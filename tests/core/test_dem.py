@@ -238,3 +238,51 @@ def test_files_written_side_by_side_have_the_same_bytes_and_one_gdal_thread_each
             tmp_path / "user" / "dem.tif", threads=2, creation_options=["NUM_THREADS=4"]
         )()
     assert all(co["NUM_THREADS"] == "4" for _, co in seen)
+
+
+def _dem_file(path, a, **profile):
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=a.shape[1],
+        height=a.shape[0],
+        count=1,
+        dtype=a.dtype,
+        crs="EPSG:32637",
+        transform=Affine(30, 0, 5e5, 0, -30, 4.4e6),
+        **profile,
+    ) as ds:
+        ds.write(a, 1)
+        return ds.name
+
+
+def test_undeclared_nodata_is_no_data_with_a_warning(tmp_path, caplog):
+    # read as heights, -9999 without a nodata value put a mean of -1455 m into an assessment
+    # and 1e30 a mean of 1.6e28 m; int16 -32768 (SRTM voids) lies below any height on Earth
+    a = np.full((20, 20), 1500.0, np.float32)
+    a[:3, :3] = -9999.0
+    a[5, 5] = 1e30
+    a[6, 6] = -11_000.0  # the deepest ocean floor: a height
+    with caplog.at_level("WARNING", logger="stereodem.core.dem"):
+        d = DEM.from_file(_dem_file(tmp_path / "a.tif", a))
+    assert np.isnan(d.heights).sum() == 10 and d.heights[6, 6] == -11_000.0
+    assert "a.tif: 10 cell(s)" in caplog.text and "-9999, 1e+30" in caplog.text
+    b = np.full((20, 20), -32768, np.int16)
+    b[5:, 5:] = 300
+    assert np.isnan(DEM.from_file(_dem_file(tmp_path / "b.tif", b)).heights).sum() == 175
+    # a file that declares another nodata value keeps -9999 (its producer said what is void)
+    c = DEM.from_file(_dem_file(tmp_path / "c.tif", a.clip(None, 5000), nodata=-32768))
+    assert np.isnan(c.heights).sum() == 0 and c.heights[0, 0] == -9999.0
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stereodem.core.dem"):
+        DEM.from_file(_dem_file(tmp_path / "d.tif", np.full((9, 9), 1500.0, np.float32)))
+    assert not caplog.text
+
+
+def test_scaled_heights_are_read_in_metres(tmp_path):
+    # stored as decimetres plus an offset (GDAL's scale and offset): read as metres
+    a = np.full((8, 8), 15000, np.int16)
+    with rasterio.open(_dem_file(tmp_path / "s.tif", a), "r+") as ds:
+        ds.scales, ds.offsets = (0.1,), (100.0,)
+    assert np.all(DEM.from_file(tmp_path / "s.tif").heights == 1600.0)
