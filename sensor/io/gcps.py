@@ -27,7 +27,14 @@ from stereodem.core import geodesy
 from stereodem.core.errors import InputError, where
 from stereodem.core.raster import write_text_atomic
 
-__all__ = ["ControlPoints", "read_gcps", "write_gcps", "GCP_COLUMNS", "OPTIONAL_COLUMNS"]
+__all__ = [
+    "ControlPoints",
+    "csv_rows",
+    "read_gcps",
+    "write_gcps",
+    "GCP_COLUMNS",
+    "OPTIONAL_COLUMNS",
+]
 
 #: required columns, in order
 GCP_COLUMNS = ("id", "lon", "lat", "h", "col", "row")
@@ -130,6 +137,24 @@ def _numbers(path, col_of, k, *, required):
     return a
 
 
+def csv_rows(path, what: str) -> list:
+    """The non-blank rows (lists of strings) of the CSV file ``path``, read as UTF-8 (a leading
+    byte-order mark, as spreadsheets write, is dropped). An unreadable file, or one that is not
+    UTF-8 text (binary, another encoding, NUL bytes), raises :class:`InputError` naming the
+    file and ``what`` it should be."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            text = f.read()
+        rows = list(csv.reader(io.StringIO(text)))
+    except OSError as exc:
+        raise InputError(f"{where(path)}cannot read {what} ({exc.strerror})") from None
+    except (UnicodeDecodeError, csv.Error):
+        raise InputError(
+            f"{where(path)}not a UTF-8 text CSV (binary or another encoding); expected a {what}"
+        ) from None
+    return [r for r in rows if r and any(c.strip() for c in r)]
+
+
 def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
     """Read a GCP/check-point CSV (see the module docstring).
 
@@ -149,12 +174,7 @@ def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
     """
     if vertical not in ("ellipsoid", "geoid"):
         raise InputError(f"{where(path)}vertical must be 'ellipsoid' or 'geoid', got {vertical!r}")
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            text = f.read()
-    except OSError as exc:
-        raise InputError(f"{where(path)}cannot read GCP file ({exc.strerror})") from None
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    rows = csv_rows(path, "GCP file")
     if not rows:
         raise InputError(f"{where(path)}empty GCP file")
     header = [c.strip().lower() for c in rows[0]]

@@ -16,7 +16,6 @@ written as ``OUT/<stem>.model.json``.
 
 from __future__ import annotations
 
-import csv
 import logging
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from stereodem.sensor.estimation.adjust.bundle_multi import (
     tracks_from_pairs,
 )
 from stereodem.sensor.io.asp_match import check_match_images, match_stems, read_match
-from stereodem.sensor.io.gcps import read_gcps
+from stereodem.sensor.io.gcps import csv_rows, read_gcps
 from stereodem.sensor.io.sidecar import save_model
 from stereodem.sensor.models.base import pair_height_bounds
 from stereodem.stereo.fusion import choose_pairs
@@ -52,11 +51,7 @@ def tie_csv_rows(path, need, note="") -> tuple[list, list]:
     the column index of each name in ``need`` (header required, case-insensitive); a missing
     or empty file or a header without them raises :class:`InputError` (``note`` ends that
     message)."""
-    try:
-        with open(path, newline="") as f:
-            rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read tie-point file ({exc.strerror})") from None
+    rows = csv_rows(path, "tie-point file")
     if not rows:
         raise InputError(f"{path}: empty tie-point file")
     head = [c.strip().lower() for c in rows[0]]

@@ -427,6 +427,38 @@ def test_gcp_csv_errors(tmp_path, text, match):
         assert "swapped" not in str(pytest.raises(InputError, read_gcps, path).value)
 
 
+@pytest.mark.parametrize(
+    "data",
+    [
+        bytes(range(256)) * 8,  # binary
+        "id,lon,lat,h,col,row\nPointé,1,2,3,4,5\n".encode("latin-1"),  # not UTF-8
+    ],
+    ids=["binary", "latin1"],
+)
+def test_gcp_csv_that_is_not_utf8_text_is_an_input_error(tmp_path, data):
+    """A GCP (or tie-point) file that is binary or in another encoding: an InputError naming
+    the file (was a UnicodeDecodeError traceback)."""
+    from stereodem.adjust_images import tie_csv_rows
+
+    path = tmp_path / "bad.csv"
+    path.write_bytes(data)
+    with pytest.raises(InputError, match="bad.csv: not a UTF-8 text CSV.*GCP file"):
+        read_gcps(path)
+    with pytest.raises(InputError, match="bad.csv: not a UTF-8 text CSV.*tie-point file"):
+        tie_csv_rows(path, ["col1", "row1", "col2", "row2"])
+
+
+def test_gcp_csv_with_a_byte_order_mark_reads_as_without(tmp_path):
+    """Spreadsheets save "CSV UTF-8" with a byte-order mark: it was read into the first
+    column's name ("\ufeffid"), and the file refused for a missing 'id' column."""
+    text = "id,lon,lat,h,col,row,role\na,1,2,3,4,5,gcp\nb,1.5,2.5,3,6,7,check\n"
+    (tmp_path / "plain.csv").write_text(text, encoding="utf-8")
+    (tmp_path / "bom.csv").write_text(text, encoding="utf-8-sig")
+    a, b = read_gcps(tmp_path / "plain.csv"), read_gcps(tmp_path / "bom.csv")
+    for f in ("id", "lon", "lat", "h", "col", "row", "role"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+
+
 @pytest.mark.slow
 def test_variance_components_image_and_ground(rpc):
     """Half the GCPs surveyed (ground fixed), half from a map whose stated 15 m sigma is three
