@@ -671,6 +671,27 @@ def _rmse(res, ddof):
     return rx, ry, float(np.hypot(rx, ry))
 
 
+#: smallest ratio of the GCPs' ground spread across their principal line to that along it
+#: (1e-3: 10 m across a 10 km line; well-spread sets are above 0.1)
+MIN_SPREAD_RATIO = 1e-3
+
+
+def _check_spread(name, EN):
+    """Refuse GCPs that lie on one line on the ground (or on one point): every generic model
+    maps the ground plane, which such a set leaves undetermined across the line; the fit then
+    "succeeds" with a near-zero RMSE and localises far from the truth off the line."""
+    d = EN - EN.mean(0)
+    s = np.linalg.svd(d, compute_uv=False)
+    if s[0] == 0 or s[1] < MIN_SPREAD_RATIO * s[0]:
+        n = EN.shape[0]
+        along, across = (2 * s / np.sqrt(n)) if s[0] > 0 else (0.0, 0.0)
+        raise InputError(
+            f"model '{name}': the {n} GCPs lie on one line on the ground (spread "
+            f"{across:.3g} m across it for {along:.3g} m along it): the model is undetermined "
+            "across it; use GCPs spread over the image"
+        )
+
+
 def _scale(lo, hi):
     s = 0.5 * (hi - lo)
     return np.where(s > 0, s, 1.0)
@@ -733,8 +754,9 @@ def fit_model(
     Raises
     ------
     InputError
-        Unknown model, NaN/inf coordinates, arrays of different lengths, or fewer GCPs than
-        :func:`minimum_gcps`.
+        Unknown model, NaN/inf coordinates, arrays of different lengths, fewer GCPs than
+        :func:`minimum_gcps`, or GCPs on one line on the ground (the model is undetermined
+        across it).
     """
     form = _form(name)
     lon, lat, h, col, row = _as_points(name, (gcp_lon, gcp_lat, gcp_h, gcp_col, gcp_row), "GCP")
@@ -755,6 +777,7 @@ def fit_model(
             raise CRSError(f"{name}: the fitting frame must be a projected CRS, got {crs.name}")
     E, N = geodesy.lonlat_to_crs(lon, lat, crs)
     Gr = np.stack([np.asarray(E, float), np.asarray(N, float), h], -1)
+    _check_spread(name, Gr[:, :2])
     g_lo, g_hi = Gr.min(0), Gr.max(0)
     img = np.stack([col, row], -1)
     if form.centre_image:

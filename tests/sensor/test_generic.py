@@ -405,6 +405,24 @@ def test_too_few_gcps_is_an_input_error():
         fit_model("poly4d-9", *gcp)
 
 
+@pytest.mark.parametrize("name", ["poly2d-1", "poly3d-1", "rational-1", "dlt"])
+def test_gcps_on_one_line_are_an_input_error(name):
+    """GCPs along one road (collinear on the ground): the fit used to "succeed" with an RMSE
+    of 1e-6 px and a model undetermined across the line (ortho then localised the image
+    corners to NaN and blamed the DEM); now an InputError saying so."""
+    rng = np.random.default_rng(7)
+    cam = PushbroomLike()
+    t = rng.uniform(0, 1, 40)
+    E, N = E0 - 20e3 + 40e3 * t, N0 - 10e3 + 25e3 * t + rng.normal(0, 1.0, 40)  # 1 m off
+    lon, lat = geodesy.crs_to_lonlat(E, N, CRS)
+    h = rng.uniform(0, 3000, 40)
+    col, row = cam.project(lon, lat, h)
+    with pytest.raises(InputError, match=f"'{name}'.*GCPs lie on one line"):
+        fit_model(name, lon, lat, h, col, row)
+    # the same number of points spread over the scene fits
+    fit_model(name, *observe(cam, 40, rng))
+
+
 def test_nan_in_gcps_or_checks_is_an_input_error():
     rng = np.random.default_rng(6)
     lon, lat, h, col, row = observe(PushbroomLike(), 30, rng)
