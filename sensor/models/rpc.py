@@ -321,6 +321,21 @@ class RPCModel(SensorModel):
             a = getattr(self, name)
             if a.shape != (20,) or not np.all(np.isfinite(a)):
                 raise RPCError(f"{where(self.source)}RPC {name}: need 20 finite coefficients")
+            # a blank (all-zero) denominator divides by zero everywhere; a numerator without a
+            # ground term maps every ground point to one line / column: no image is described
+            # (a blank or corrupt RPC; ortho then blamed the DEM for a footprint of NaN)
+            blank = not a.any() if name.endswith("_den") else not a[1:].any()
+            if blank:
+                key = name.replace("samp", "SAMP").replace("line", "LINE").upper() + "_COEFF"
+                raise RPCError(
+                    f"{where(self.source)}RPC {key}: "
+                    + (
+                        "all 20 coefficients are zero"
+                        if name.endswith("_den") or not a[0]
+                        else "no ground-dependent coefficient (only the constant term)"
+                    )
+                    + "; the RPC is blank or corrupt"
+                )
         self.line_off, self.samp_off = float(line_off), float(samp_off)
         self.line_scale, self.samp_scale = float(line_scale), float(samp_scale)
         self.lon_off, self.lat_off = float(lon_off), float(lat_off)

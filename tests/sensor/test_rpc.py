@@ -369,6 +369,34 @@ def test_garbled_number(pleiades1, tmp_path):
         RPCModel.from_file(x)
 
 
+@pytest.mark.parametrize(
+    "key, coeffs, match",
+    [
+        ("LINE_DEN_COEFF", [0.0] * 20, "all 20 coefficients are zero"),
+        ("SAMP_NUM_COEFF", [0.0] * 20, "all 20 coefficients are zero"),
+        ("LINE_NUM_COEFF", [0.3] + [0.0] * 19, r"\(only the constant term\)"),
+    ],
+)
+def test_blank_rpc_polynomial_names_the_file_and_key(pleiades1, tmp_path, key, coeffs, match):
+    """A GeoTIFF whose RPC tags hold a blank polynomial (zeros, as some tools write for "no
+    RPC"): refused when read, naming the file and key. It was accepted; ortho and uncertainty
+    then blamed the DEM ("no valid height under the image footprint lon nan..nan") and adjust
+    wrote an "adjusted" model of it."""
+    d = pleiades1.to_dict()
+    d[key] = " ".join(str(c) for c in coeffs)
+    with pytest.raises(RPCError, match=f"blank.tif: RPC {key}: .*{match}"):
+        RPCModel.from_dict(d, path=tmp_path / "blank.tif")
+    tif = tmp_path / "blank.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(
+            tif, "w", driver="GTiff", width=8, height=8, count=1, dtype="uint8"
+        ) as ds:
+            ds.update_tags(ns="RPC", **d)
+    with pytest.raises(RPCError, match=f"blank.tif: RPC {key}: .*{match}"):
+        RPCModel.from_file(tif)
+
+
 def test_files_without_rpc(tmp_path):
     txt = tmp_path / "notes.txt"
     txt.write_text("hello\n")
