@@ -98,12 +98,16 @@ def model_to_dict(model) -> dict:
 def model_from_dict(d: dict, source=None):
     _ensure_registered()
     kind = d.get("type")
-    if kind not in _REGISTRY:
+    if not isinstance(kind, str) or kind not in _REGISTRY:
         raise SensorModelError(f"{source or 'model'}: unknown model type {kind!r}")
     body = {k: v for k, v in d.items() if k not in ("type", "version")}
     try:
         return _REGISTRY[kind][2](body)
-    except (KeyError, TypeError, ValueError) as exc:
+    except KeyError as exc:
+        raise SensorModelError(
+            f"{source or 'model'}: garbled {kind} model (missing key {exc})"
+        ) from None
+    except (TypeError, ValueError) as exc:
         raise SensorModelError(f"{source or 'model'}: garbled {kind} model ({exc})") from None
 
 

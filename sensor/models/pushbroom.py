@@ -442,6 +442,18 @@ class PushbroomModel(SensorModel):
             raise SensorModelError(
                 f"pushbroom: image size must be positive, got {width} x {height}"
             )
+        for key, v in (
+            ("line_period", line_period),
+            ("t0", t0),
+            ("along_track_tilt_deg", along_track_tilt_deg),
+            ("cross_track_tilt_deg", cross_track_tilt_deg),
+        ):
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise SensorModelError(f"pushbroom: {key} must be a number, got {v!r}") from None
+            if not np.isfinite(v) and key != "line_period":
+                raise SensorModelError(f"pushbroom: {key} must be finite, got {v}")
         if not (np.isfinite(line_period) and line_period > 0):
             raise SensorModelError(f"pushbroom: line period must be positive, got {line_period}")
         if not isinstance(ephemeris, Ephemeris):

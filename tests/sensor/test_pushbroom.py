@@ -387,6 +387,32 @@ def test_serialisation_round_trip(nadir):
     )
 
 
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (dict(cross_track_tilt_deg=float("nan")), "cross_track_tilt_deg must be finite, got nan"),
+        (dict(along_track_tilt_deg=float("inf")), "along_track_tilt_deg must be finite"),
+        (dict(t0=float("nan")), "t0 must be finite"),
+        (dict(line_period="fast"), "line_period must be a number, got 'fast'"),
+        (dict(type=["pushbroom"]), r"unknown model type \['pushbroom'\]"),
+        (dict(ephemeris=None), "missing key 'ephemeris'"),
+    ],
+)
+def test_garbled_sidecar_names_the_file_and_the_field(nadir, tmp_path, edit, match):
+    """A hand-edited ``<stem>.model.json``: a NaN tilt or t0 was accepted (ortho then blamed
+    the DEM for a footprint of NaN, dem reported "non-finite ground coordinates"), a list as
+    the type raised a TypeError traceback, a missing key read "garbled model ('ephemeris')"."""
+    from stereodem.sensor.io.sidecar import load_model
+
+    d = model_to_dict(nadir)
+    d.update(edit)
+    d = {k: v for k, v in d.items() if v is not None}
+    path = tmp_path / "img.model.json"
+    path.write_text(json.dumps(d))
+    with pytest.raises(SensorModelError, match=f"img.model.json: .*{match}"):
+        load_model(path)
+
+
 def test_pair_with_two_tilts():
     fwd, bwd = PushbroomModel.synthetic_pair(
         40.4, 39.6, width=800, height=900, first_tilt_deg=20.0, backward_tilt_deg=-20.0
