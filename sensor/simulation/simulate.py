@@ -522,8 +522,11 @@ def _albedo(texture, shape, rng, detail=0.35):
     np.tanh(d, out=d)
     d *= detail
     d += 1.0
-    with rasterio.open(texture) as ds:
-        t = ds.read().astype(np.float32)
+    try:
+        with rasterio.open(texture) as ds:
+            t = ds.read().astype(np.float32)
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(f"{texture}: cannot read the texture image ({exc})") from None
     r0, r1, c0, c1 = _valid_box(t.sum(axis=0) > 0)
     t = t[:, r0:r1, c0:c1]
     t = t.mean(axis=0) if t.shape[0] > 1 else t[0]
@@ -991,7 +994,11 @@ def _check_points(left, right, dem, n, rng):
     c = rng.uniform(5, left.width - 6, m)
     r = rng.uniform(5, left.height - 6, m)
     loc = left.localize_dem(c, r, dem, threshold=0.001)
-    cr, rr = right.project(loc.lon, loc.lat, loc.h)
+    # pixels whose ray leaves the DEM (a --dem that just covers the scene) localise to NaN,
+    # which project() refuses: project the others only
+    fin = np.isfinite(loc.lon) & np.isfinite(loc.lat) & np.isfinite(loc.h)
+    cr, rr = np.full(m, np.nan), np.full(m, np.nan)
+    cr[fin], rr[fin] = right.project(loc.lon[fin], loc.lat[fin], loc.h[fin])
     ok = (
         loc.converged
         & np.isfinite(cr)

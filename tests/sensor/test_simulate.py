@@ -127,6 +127,20 @@ def test_bad_input():
         simulate_scene("frame", size=(8, 8))
 
 
+def test_dem_that_just_covers_the_scene(tmp_path):
+    """``simulate --dem`` with a DEM that just covers the scene (here the truth DEM of a
+    larger scene): some of the check points' candidate pixels localise off the DEM (NaN), and
+    projecting them into the right image raised "PushbroomModel: non-finite ground
+    coordinates given"; they are skipped. A texture that is not an image names the file."""
+    big = simulate_scene("aster", size=(200, 200), seed=0, n_points=1)
+    sc = simulate_scene("aster", size=(100, 100), seed=0, n_points=20, dem=big.truth_dem)
+    assert len(sc.points) == 20
+    bad = tmp_path / "texture.tif"
+    bad.write_text("not an image\n")
+    with pytest.raises(InputError, match="texture.tif: cannot read the texture image"):
+        simulate_scene("frame", size=(64, 64), texture=bad)
+
+
 def test_aster_preset_uses_real_granule_geometry():
     p = aster_geometry_parameters()
     assert p["bands"]["3B"]["along_deg"] == pytest.approx(-27.7, abs=0.2)  # backward band
