@@ -288,8 +288,8 @@ def run(args) -> int:
             )
         save_model(res.model, args.out, overwrite=args.overwrite)
         summary = (
-            f"{args.model}: sigma0 {res.sigma0:.3f}, GCP RMSE {res.gcp_rmse_px:.3f} px, "
-            f"check RMSE {res.check_rmse_px:.3f} px, outliers: "
+            f"{args.model}: sigma0 {res.sigma0:.3f}, GCP RMSE {options.rmse_px(res.gcp_rmse_px)}, "
+            f"check RMSE {options.rmse_px(res.check_rmse_px, 'n/a (no check point)')}, outliers: "
             f"{', '.join(o['id'] for o in res.outliers) or 'none'}"
         )
     if args.report:

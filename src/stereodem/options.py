@@ -116,3 +116,11 @@ def say(message: str):
     unless -q; logs and progress go to standard error."""
     if logging.getLogger().getEffectiveLevel() <= logging.WARNING:
         print(message)
+
+
+def rmse_px(value, none: str = "n/a") -> str:
+    """A result line's RMSE in pixels, ``"1.234 px"``, or ``none`` where there is no figure
+    (NaN: no check point, no redundancy), rather than "nan px"."""
+    import math
+
+    return f"{value:.3f} px" if value is not None and math.isfinite(value) else none

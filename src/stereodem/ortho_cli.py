@@ -134,7 +134,8 @@ def _open(args):
         )
         options.say(
             f"{args.model}: {report.n_gcp} GCPs, {report.n_check} check points; GCP RMSE "
-            f"{report.gcp_rmse:.3f} px, check RMSE {report.check_rmse:.3f} px"
+            f"{options.rmse_px(report.gcp_rmse)}, check RMSE "
+            f"{options.rmse_px(report.check_rmse, 'n/a (no check point)')}"
         )
         return InputImage(
             read_image(args.image, args.band), model, image_dtype(args.image, args.band)

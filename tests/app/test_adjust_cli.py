@@ -151,6 +151,16 @@ def test_adjust_cli_errors(image, tmp_path, capsys):
     assert "needs IMAGE2" in capsys.readouterr().err
 
 
+def test_adjust_cli_without_check_points_prints_no_nan(image, tmp_path, capsys):
+    """No check point in the CSV: the summary said "check RMSE nan px"."""
+    pts = _points(load_image_model(image), 8, 0.3, seed=2)
+    csv = write_gcps(tmp_path / "g.csv", pts)
+    argv = ["adjust", str(image), "--gcps", str(csv), "--model", "rpc-shift"]
+    assert main(argv + ["-o", str(tmp_path / "o.model.json")]) == 0
+    out = capsys.readouterr().out
+    assert "check RMSE n/a (no check point)" in out and "nan" not in out, out
+
+
 def test_adjust_cli_generic_model(image, tmp_path):
     rpc = load_image_model(image)
     pts = _points(rpc, 30, 0.3, seed=8, role=np.where(np.arange(30) < 20, "gcp", "check"))

@@ -667,3 +667,48 @@ def test_cli_gcp_model(tmp_path, data_dir, capsys):
     )
     with pytest.raises(InputError):
         args.run(args)
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    """A 100 x 100 simulated ASTER-like left image with its model sidecar, the truth DEM and
+    16 points (as ``points``)."""
+    from stereodem.sensor.io.sidecar import save_model
+
+    d = tmp_path_factory.mktemp("small_scene")
+    sc = sim.simulate_scene("aster", size=(100, 100), seed=0, n_points=16)
+    write_geotiff(d / "left.tif", sc.left)
+    save_model(sc.left_model, d / "left.model.json")
+    sc.truth_dem.write(d / "truth_dem.tif")
+    return d, sc.points
+
+
+def _points_with_roles(scene, path, role):
+    _, pts = scene
+    rows = ["id,lon,lat,h,col,row,role"] + [
+        f"{p['id']},{p['lon']:.9f},{p['lat']:.9f},{p['h']:.3f},{p['col']:.4f},{p['row']:.4f},{role}"
+        for p in pts
+    ]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def _ortho_gcp_args(scene, csv, out):
+    d, _ = scene
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    return parser.parse_args(
+        ["ortho", str(d / "left.tif"), "--dem", str(d / "truth_dem.tif"), "-o", str(out)]
+        + ["--model", "poly2d-1", "--gcps", str(csv), "--workers", "1"]
+    )
+
+
+def test_cli_gcp_model_without_check_points_prints_no_nan(small_scene, tmp_path, capsys):
+    """Every point a GCP: the summary said "check RMSE nan px"."""
+    args = _ortho_gcp_args(
+        small_scene, _points_with_roles(small_scene, tmp_path / "g.csv", "gcp"), tmp_path / "o.tif"
+    )
+    assert args.run(args) == 0
+    out = capsys.readouterr().out
+    assert "16 GCPs, 0 check points" in out and "nan" not in out, out
+    assert "check RMSE n/a (no check point)" in out
