@@ -127,8 +127,14 @@ def _open(args):
         from stereodem.sensor.models.generic import fit_model
 
         pts = read_gcps(args.gcps)
-        gcp = pts.select("gcp") if "gcp" in set(pts.role) else pts
-        chk = pts.select("check")
+        gcp, chk = pts.select("gcp"), pts.select("check")
+        if not len(gcp):
+            # fitting the check points instead made them GCPs and check points at once (the
+            # "check RMSE" was the GCP RMSE): as adjust, refuse
+            raise InputError(
+                f"{args.gcps}: no GCP to fit --model {args.model}: all {len(pts)} point(s) "
+                "have role 'check'"
+            )
         model, report = fit_model(
             args.model, *gcp.arrays(), check=chk.arrays() if len(chk) else None
         )

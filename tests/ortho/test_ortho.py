@@ -712,3 +712,13 @@ def test_cli_gcp_model_without_check_points_prints_no_nan(small_scene, tmp_path,
     out = capsys.readouterr().out
     assert "16 GCPs, 0 check points" in out and "nan" not in out, out
     assert "check RMSE n/a (no check point)" in out
+
+
+def test_cli_gcp_model_with_only_check_points_is_refused(small_scene, tmp_path):
+    """Every point a check point: ortho fitted the model to the check points and reported them
+    as check points too (its "check RMSE" was the GCP RMSE); refused now, as adjust does."""
+    csv = _points_with_roles(small_scene, tmp_path / "c.csv", "check")
+    args = _ortho_gcp_args(small_scene, csv, tmp_path / "o.tif")
+    with pytest.raises(InputError, match=r"c.csv: no GCP to fit --model poly2d-1.*role 'check'"):
+        args.run(args)
+    assert not (tmp_path / "o.tif").exists()
