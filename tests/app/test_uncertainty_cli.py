@@ -242,3 +242,31 @@ def test_bundle_report_uses_the_images_side(data_dir, tmp_path):
     assert n_r == ["col_shift", "row_shift"] and np.allclose(D_r, np.diag([0.16, 0.25]))
     _, n_l, D_l = assemble(left, report=rep)
     assert np.allclose(D_l, np.diag([0.04, 0.09]))
+
+
+@pytest.mark.slow  # over 0.6 s (the command writes its figure): out of the fast subset (CI runs it)
+def test_dem_covering_part_of_the_image_is_a_warning(tmp_path, caplog):
+    """A DEM under the western part of the image only: the maps are nodata over the rest, and
+    the command said nothing (ortho warns); now a warning naming the DEM and the share of the
+    image without a height (none with the DEM covering the image)."""
+    from stereodem.core.raster import write_geotiff
+    from stereodem.sensor.io.sidecar import save_model
+    from stereodem.sensor.simulation.simulate import simulate_scene
+
+    sc = simulate_scene("aster", size=(100, 100), seed=0, n_points=1)
+    write_geotiff(tmp_path / "img.tif", sc.left)
+    save_model(sc.left_model, tmp_path / "img.model.json")
+    dem = sc.truth_dem
+    part = tmp_path / "part.tif"
+    DEM(dem.heights[:, : dem.heights.shape[1] // 3], dem.transform, dem.crs, "ellipsoid").write(
+        part
+    )
+    argv = ["uncertainty", str(tmp_path / "img.tif"), "--dem", str(part)]
+    with caplog.at_level("WARNING"):
+        assert main(argv + ["--sigma", "dem_height=4", "-o", str(tmp_path / "u")]) == 0
+    msg = [r.getMessage() for r in caplog.records if "no DEM height under" in r.getMessage()]
+    assert len(msg) == 1 and "part.tif" in msg[0], caplog.text
+    assert 20 < float(msg[0].split("no DEM height under ")[1].split("%")[0]) < 95, msg[0]
+    from stereodem.ortho.grid import share_without_dem
+
+    assert share_without_dem(sc.left_model, dem, float(np.nanmean(dem.heights))) == 0.0
