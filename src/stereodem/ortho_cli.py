@@ -135,17 +135,21 @@ def _open(args):
                 f"{args.gcps}: no GCP to fit --model {args.model}: all {len(pts)} point(s) "
                 "have role 'check'"
             )
+        image = read_image(args.image, args.band)
         model, report = fit_model(
-            args.model, *gcp.arrays(), check=chk.arrays() if len(chk) else None
+            args.model,
+            *gcp.arrays(),
+            check=chk.arrays() if len(chk) else None,
+            # the image's size (without it the model took the GCPs' extent, and the image's
+            # rows and columns beyond the outermost GCPs were left out of the orthoimage)
+            image_size=(image.shape[1], image.shape[0]),
         )
         options.say(
             f"{args.model}: {report.n_gcp} GCPs, {report.n_check} check points; GCP RMSE "
             f"{options.rmse_px(report.gcp_rmse)}, check RMSE "
             f"{options.rmse_px(report.check_rmse, 'n/a (no check point)')}"
         )
-        return InputImage(
-            read_image(args.image, args.band), model, image_dtype(args.image, args.band)
-        )
+        return InputImage(image, model, image_dtype(args.image, args.band))
     if args.gcps:
         raise InputError("--gcps is only used with a generic --model (poly2d-1 ... rational-3)")
     kw = dict(band=args.band, rpc_direct=args.rpc_direct, radiometric=not args.no_radiometric)
