@@ -344,6 +344,12 @@ class DEM:
         try:
             with reading_env(), rasterio.open(path) as ds:
                 check_georeferenced(path, ds)
+                if not 1 <= band <= ds.count:
+                    raise DEMError(f"{path}: no band {band} (the file has {ds.count})")
+                if ds.count > 1:  # an image given as a DEM, or a DEM with other layers
+                    log.warning(
+                        "%s: %d bands; the heights are read from band %d", path, ds.count, band
+                    )
                 flags = ds.mask_flag_enums[band - 1]
                 if all(f in (MaskFlags.nodata, MaskFlags.all_valid) for f in flags):
                     # nodata value or none: read straight into float32 (no mask array, no copy)

@@ -286,3 +286,26 @@ def test_scaled_heights_are_read_in_metres(tmp_path):
     with rasterio.open(_dem_file(tmp_path / "s.tif", a), "r+") as ds:
         ds.scales, ds.offsets = (0.1,), (100.0,)
     assert np.all(DEM.from_file(tmp_path / "s.tif").heights == 1600.0)
+
+
+def test_a_multi_band_file_read_as_a_dem_says_which_band(tmp_path, caplog):
+    a = np.full((2, 6, 6), 1500.0, np.float32)
+    a[1] = 10.0
+    path = tmp_path / "two.tif"
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=6,
+        height=6,
+        count=2,
+        dtype="float32",
+        crs="EPSG:32637",
+        transform=Affine(30, 0, 5e5, 0, -30, 4.4e6),
+    ) as ds:
+        ds.write(a)
+    with caplog.at_level("WARNING", logger="stereodem.core.dem"):
+        assert np.all(DEM.from_file(path).heights == 1500.0)
+    assert "two.tif: 2 bands; the heights are read from band 1" in caplog.text
+    with pytest.raises(DEMError, match="two.tif: no band 3"):
+        DEM.from_file(path, band=3)
