@@ -13,7 +13,7 @@ import numpy as np
 from pyproj import CRS
 
 from stereodem.core import geodesy
-from stereodem.core.errors import CRSError, DEMCoverageError
+from stereodem.core.errors import CRSError, DEMCoverageError, SensorModelError
 from stereodem.core.grid import MapGrid, grid_from_bounds
 from stereodem.core.memory import check_allocation
 
@@ -33,6 +33,13 @@ def footprint_height_range(model, dem, *, samples: int = 41):
     step = max(1, int(np.sqrt(dem.heights.size / 1e5)))
     h0 = float(np.nanmedian(dem.heights[::step, ::step]))  # first guess, any vertical datum
     lon, lat = model.footprint(h0)
+    if not (np.isfinite(lon).any() and np.isfinite(lat).any()):
+        # the model sees no ground at all (an absurd tilt, zero positions): not the DEM's fault
+        name = getattr(model, "source", None) or getattr(model, "name", None) or "?"
+        raise SensorModelError(
+            f"the image's sensor model ({name}) localises no point of the image's border on "
+            f"the Earth (at {h0:.0f} m): the model or its sidecar is wrong, not the DEM"
+        )
     for _ in range(2):
         lo_, la_ = np.meshgrid(
             np.linspace(np.nanmin(lon), np.nanmax(lon), samples),

@@ -746,3 +746,26 @@ def test_cli_gcp_model_covers_the_whole_image(small_scene, tmp_path):
     ):
         for a, b in ((g.width, p.width), (g.height, p.height)):
             assert abs(a - b) <= 0.04 * b, (g.shape, p.shape)
+
+
+def test_a_model_that_sees_no_ground_is_blamed_not_the_dem(small_scene, tmp_path):
+    """A sidecar with an absurd tilt (89.9 degrees across track) localises no pixel on the
+    Earth: the error was "DEM: no valid height under the image footprint lon nan..nan"."""
+    import json
+
+    from stereodem.core.errors import SensorModelError
+
+    d, _ = small_scene
+    model = json.loads((d / "left.model.json").read_text())
+    model["cross_track_tilt_deg"] = 89.9
+    (tmp_path / "left.tif").write_bytes((d / "left.tif").read_bytes())
+    (tmp_path / "left.model.json").write_text(json.dumps(model))
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    args = parser.parse_args(
+        ["ortho", str(tmp_path / "left.tif"), "--dem", str(d / "truth_dem.tif")]
+        + ["-o", str(tmp_path / "o.tif"), "--workers", "1"]
+    )
+    with pytest.raises(SensorModelError, match="localises no point of the image's border"):
+        args.run(args)
+    assert not (tmp_path / "o.tif").exists()
