@@ -87,11 +87,18 @@ def expand_inputs(paths, template=None) -> list[Scene]:
     """The scenes named by ``paths``: configurations (``*.toml``), granules, and list files
     (``*.txt``/``*.lst``: one path per line, ``#`` comments, relative to the list). Names are
     the file stems, made unique with ``_2``, ``_3``, ...; a path that does not exist becomes a
-    scene that fails with "not found" (the others still run). A list file that cannot be read
-    is an :class:`InputError`."""
-    scenes, seen = [], {}
+    scene that fails with "not found" (the others still run). A list file that cannot be read,
+    a scene given twice (it would be run twice) and a ``template`` that cannot be read as TOML
+    are an :class:`InputError` (before any scene runs)."""
+    if template is not None:
+        _read_template(template)
+    scenes, seen, given = [], {}, {}
     for p in _flatten(paths):
         path = Path(p)
+        key = str(path.resolve())
+        if key in given:
+            raise InputError(f"{p}: scene given twice (also as {given[key]})")
+        given[key] = p
         kind = (
             "missing"
             if not path.exists()
@@ -107,6 +114,16 @@ def expand_inputs(paths, template=None) -> list[Scene]:
     if not scenes:
         raise InputError("batch: no scene given")
     return scenes
+
+
+def _read_template(template) -> dict:
+    """The template configuration's TOML tables (:class:`InputError` naming it when it cannot
+    be read or parsed)."""
+    t = Path(template)
+    try:
+        return tomllib.loads(t.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"{t}: cannot read the template configuration ({exc})") from None
 
 
 def _flatten(paths):
@@ -166,12 +183,8 @@ def scene_config(
     else:
         raw, base = {}, "."
         if scene.template:
-            t = Path(scene.template)
-            try:
-                raw = tomllib.loads(t.read_text())
-            except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-                raise InputError(f"{t}: cannot read the template configuration ({exc})") from None
-            base = t.parent
+            raw = _read_template(scene.template)
+            base = Path(scene.template).parent
         raw.setdefault("inputs", {})
         raw["inputs"] = {k: v for k, v in raw["inputs"].items() if k not in ("left", "right")}
         raw["inputs"]["left"] = str(Path(scene.path).resolve())

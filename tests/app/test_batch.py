@@ -9,6 +9,7 @@ import rasterio
 
 from stereodem import cli
 from stereodem.batch import expand_inputs, run_batch
+from stereodem.core.errors import InputError
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
 CONFIG = """
@@ -116,3 +117,17 @@ def test_list_files_names_and_missing_scenes(tmp_path):
     result = run_batch([sc[2]], tmp_path / "out", workers=1)
     row = result["scenes"][0]
     assert row["status"] == "failed" and row["reason"].endswith("none.hdf: not found")
+
+
+def test_a_scene_given_twice_and_an_unreadable_template_are_refused(tmp_path):
+    # the same configuration twice (a list and the command line) ran twice, into x and x_2;
+    # a --template that does not exist was ignored when no granule needed it
+    (tmp_path / "x.toml").write_text("")
+    (tmp_path / "l.txt").write_text("x.toml\n")
+    with pytest.raises(InputError, match=r"x.toml: scene given twice"):
+        expand_inputs([tmp_path / "l.txt", tmp_path / "x.toml"])
+    with pytest.raises(InputError, match=r"none.toml: cannot read the template configuration"):
+        expand_inputs([tmp_path / "x.toml"], template=str(tmp_path / "none.toml"))
+    (tmp_path / "bad.toml").write_text("[run\n")
+    with pytest.raises(InputError, match=r"bad.toml: cannot read the template"):
+        expand_inputs([tmp_path / "x.toml"], template=str(tmp_path / "bad.toml"))
