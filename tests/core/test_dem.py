@@ -38,24 +38,30 @@ def test_bilinear_sampling_matches_pixel_centres_and_interpolates():
     assert ze - H[r, c] == pytest.approx(float(geodesy.geoid_undulation(lon, lat)), abs=1e-3)
 
 
-def test_outside_and_void_are_reported_not_invented(tmp_path):
-    h = np.full((50, 60), 1000.0, np.float32)
-    h[20:23, 30:33] = -9999
-    path = tmp_path / "dem.tif"
+def _dem_file(path, a, **profile):
+    """Write ``a`` (rows, cols) or (bands, rows, cols) as a GeoTIFF on a UTM 37N grid of
+    30 m cells; the path."""
+    bands = a if a.ndim == 3 else a[None]
     with rasterio.open(
         path,
         "w",
         driver="GTiff",
-        width=60,
-        height=50,
-        count=1,
-        dtype="float32",
+        width=bands.shape[2],
+        height=bands.shape[1],
+        count=bands.shape[0],
+        dtype=a.dtype,
         crs="EPSG:32637",
         transform=Affine(30, 0, 500000, 0, -30, 4400000),
-        nodata=-9999,
-    ) as d:
-        d.write(h, 1)
-    dem = DEM.from_file(path, vertical="ellipsoid")
+        **profile,
+    ) as ds:
+        ds.write(bands)
+        return ds.name
+
+
+def test_outside_and_void_are_reported_not_invented(tmp_path):
+    h = np.full((50, 60), 1000.0, np.float32)
+    h[20:23, 30:33] = -9999
+    dem = DEM.from_file(_dem_file(tmp_path / "dem.tif", h, nodata=-9999), vertical="ellipsoid")
     x = np.array([500000 + 31.5 * 30, 500000 + 10 * 30, 400000.0])
     y = np.array([4400000 - 21.5 * 30, 4400000 - 10 * 30, 4400000.0])
     lon, lat = geodesy.crs_to_lonlat(x, y, "EPSG:32637")
@@ -240,23 +246,6 @@ def test_files_written_side_by_side_have_the_same_bytes_and_one_gdal_thread_each
     assert all(co["NUM_THREADS"] == "4" for _, co in seen)
 
 
-def _dem_file(path, a, **profile):
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=a.shape[1],
-        height=a.shape[0],
-        count=1,
-        dtype=a.dtype,
-        crs="EPSG:32637",
-        transform=Affine(30, 0, 5e5, 0, -30, 4.4e6),
-        **profile,
-    ) as ds:
-        ds.write(a, 1)
-        return ds.name
-
-
 def test_undeclared_nodata_is_no_data_with_a_warning(tmp_path, caplog):
     # read as heights, -9999 without a nodata value put a mean of -1455 m into an assessment
     # and 1e30 a mean of 1.6e28 m; int16 -32768 (SRTM voids) lies below any height on Earth
@@ -291,19 +280,7 @@ def test_scaled_heights_are_read_in_metres(tmp_path):
 def test_a_multi_band_file_read_as_a_dem_says_which_band(tmp_path, caplog):
     a = np.full((2, 6, 6), 1500.0, np.float32)
     a[1] = 10.0
-    path = tmp_path / "two.tif"
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=6,
-        height=6,
-        count=2,
-        dtype="float32",
-        crs="EPSG:32637",
-        transform=Affine(30, 0, 5e5, 0, -30, 4.4e6),
-    ) as ds:
-        ds.write(a)
+    path = _dem_file(tmp_path / "two.tif", a)
     with caplog.at_level("WARNING", logger="stereodem.core.dem"):
         assert np.all(DEM.from_file(path).heights == 1500.0)
     assert "two.tif: 2 bands; the heights are read from band 1" in caplog.text

@@ -180,18 +180,26 @@ def test_rpb_round_trip_and_gdal_reads_it(pleiades1, tmp_path):
         pleiades1.write_rpb(rpb)
 
 
+def _bare_tiff(path, rpc_tags=None):
+    """An 8 x 8 uint8 GeoTIFF of zeros without georeferencing (and with ``rpc_tags`` in its
+    RPC domain); the path."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(
+            path, "w", driver="GTiff", width=8, height=8, count=1, dtype="uint8"
+        ) as ds:
+            ds.write(np.zeros((1, 8, 8), np.uint8))
+            if rpc_tags:
+                ds.update_tags(ns="RPC", **rpc_tags)
+    return path
+
+
 def test_geotiff_tags_round_trip(pleiades1, tmp_path):
     new = tmp_path / "new.tif"
     pleiades1.write_geotiff_tags(new, data=np.zeros((8, 8), np.uint8))
     _same_coefficients(RPCModel.from_file(new), pleiades1)
     # into an existing GeoTIFF, in place
-    old = tmp_path / "old.tif"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        with rasterio.open(
-            old, "w", driver="GTiff", width=8, height=8, count=1, dtype="uint8"
-        ) as ds:
-            ds.write(np.zeros((1, 8, 8), np.uint8))
+    old = _bare_tiff(tmp_path / "old.tif")
     with pytest.raises(RPCError, match="old.tif"):
         RPCModel.from_file(old)
     pleiades1.write_geotiff_tags(old)
@@ -386,13 +394,7 @@ def test_blank_rpc_polynomial_names_the_file_and_key(pleiades1, tmp_path, key, c
     d[key] = " ".join(str(c) for c in coeffs)
     with pytest.raises(RPCError, match=f"blank.tif: RPC {key}: .*{match}"):
         RPCModel.from_dict(d, path=tmp_path / "blank.tif")
-    tif = tmp_path / "blank.tif"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        with rasterio.open(
-            tif, "w", driver="GTiff", width=8, height=8, count=1, dtype="uint8"
-        ) as ds:
-            ds.update_tags(ns="RPC", **d)
+    tif = _bare_tiff(tmp_path / "blank.tif", rpc_tags=d)
     with pytest.raises(RPCError, match=f"blank.tif: RPC {key}: .*{match}"):
         RPCModel.from_file(tif)
 
