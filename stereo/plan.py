@@ -10,7 +10,7 @@ import numpy as np
 
 from stereodem.core import geodesy
 from stereodem.core.dem import as_dem
-from stereodem.core.errors import InputError, NoOverlapError
+from stereodem.core.errors import InputError, NoOverlapError, SensorModelError
 from stereodem.sensor.models.base import pair_height_bounds
 
 from .settings import RectificationSettings
@@ -197,10 +197,24 @@ def base_to_height(left, right, h0: float, *, dh: float = 100.0, n: int = 5) -> 
     c, r = (a.ravel() for a in np.meshgrid(cs, rs))
     h = np.full(c.size, float(h0))
     lon, lat = left.localize(c, r, h)
-    c2, r2 = right.project(lon, lat, h)
+    ok = np.isfinite(lon) & np.isfinite(lat)  # pixels beyond the horizon localise nowhere
+    if not ok.any():
+        raise SensorModelError(
+            f"the left image's sensor model localises none of its pixels on the Earth (at "
+            f"{h0:.0f} m): the model or its sidecar is wrong"
+        )
+    c, r, h, lon, lat = c[ok], r[ok], h[ok], lon[ok], lat[ok]
+    c2, r2 = (np.asarray(a, float) for a in right.project(lon, lat, h))
+    ok = np.isfinite(c2) & np.isfinite(r2)
+    if not ok.any():
+        raise SensorModelError(
+            "the right image's sensor model sees none of the ground the left image sees: "
+            "the model or its sidecar is wrong"
+        )
+    c, r, h, c2, r2 = c[ok], r[ok], h[ok], c2[ok], r2[ok]
     up = h + dh
     lon_l, lat_l = left.localize(c, r, up)
-    lon_r, lat_r = right.localize(np.asarray(c2, float), np.asarray(r2, float), up)
+    lon_r, lat_r = right.localize(c2, r2, up)
     pl = np.stack(geodesy.geodetic_to_ecef(lon_l, lat_l, up))
     pr = np.stack(geodesy.geodetic_to_ecef(lon_r, lat_r, up))
     sep = np.linalg.norm(pl - pr, axis=0)

@@ -103,6 +103,25 @@ def test_bad_inputs_are_clear_errors(ref):
         assess.assess_dem(half, sub)
 
 
+def test_an_assessment_on_a_few_cells_warns(ref, caplog):
+    # a 2 x 2 DEM on the reference: NMAD 0 m from 4 cells was reported without a word
+    tiny = DEM(
+        ref.heights[100:102, 100:102].copy(),
+        Affine.translation(100 * ref.transform.a, 100 * ref.transform.e) @ ref.transform,
+        ref.crs,
+        "geoid",
+        "tiny.tif",
+    )
+    with caplog.at_level("WARNING", logger="stereodem.post.assess"):
+        res = assess.assess_dem(tiny, ref)
+    assert 0 < res.report["stats"]["n"] < assess.MIN_RELIABLE_CELLS
+    assert "tiny.tif: only" in caplog.text and "rest on them alone" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stereodem.post.assess"):
+        assess.assess_dem(ref, ref)
+    assert "rest on them alone" not in caplog.text
+
+
 def test_checkpoints_and_landcover(ref, simulated, tmp_path):
     rng = np.random.default_rng(2)
     w, s, e, n = ref.bounds_lonlat()

@@ -101,3 +101,20 @@ def test_make_dem_gives_the_commands_rasters(sim, tmp_path, capsys):
         with rasterio.open(tmp_path / "out" / f"{name}.tif") as ds:
             assert ds.read(1).tobytes() == layer.tobytes(), name
     assert products.info.status == "ok" and products.info.base_to_height > 0.5
+
+
+def test_a_model_that_sees_no_ground_is_named_not_its_coordinates(sim, tmp_path, capsys):
+    # a sidecar tilt of 89.9 degrees: "PushbroomModel: non-finite ground coordinates given
+    # (25 value(s))" came from inside the base-to-height check
+    import json
+
+    model = json.loads((sim / "left.model.json").read_text())
+    model["cross_track_tilt_deg"] = 89.9
+    (tmp_path / "left.tif").write_bytes((sim / "left.tif").read_bytes())
+    (tmp_path / "left.model.json").write_text(json.dumps(model))
+    code, err = _cli(
+        ["dem", tmp_path / "left.tif", sim / "right.tif", "-o", tmp_path / "out", "--workers", 1],
+        capsys,
+    )
+    assert code == 1 and len(err.splitlines()) == 1
+    assert "the left image's sensor model localises none of its pixels on the Earth" in err
