@@ -211,30 +211,23 @@ def _void_implausible(heights, path, n_sentinel: int = 0) -> None:
     lo, hi = PLAUSIBLE_HEIGHTS_M
     with np.errstate(invalid="ignore"):
         void = ~((heights >= lo) & (heights <= hi))  # NaN and +-inf compare False
-    wild = heights[void & np.isfinite(heights)] if void.any() else heights[:0, 0]
-    if wild.size or n_sentinel:
-        values = np.unique(wild)
-        seen = [f"{UNDECLARED_NODATA:g}"] if n_sentinel else []
-        seen += [f"{v:g}" for v in values[: 3 - len(seen)]]
-        more = ", ..." if len(values) + bool(n_sentinel) > len(seen) else ""
+    if not void.any():  # (the caller's sentinel cells are NaN already: void)
+        return
+    values = heights[void & np.isfinite(heights)]  # finite, outside the plausible range
+    n_wild, wild = values.size, np.unique(values)
+    if n_wild or n_sentinel:
+        what = [f"heights no place on Earth has (outside {lo:g}..{hi:g} m)"] if n_wild else []
+        what += [f"{UNDECLARED_NODATA:g} without a nodata value"] if n_sentinel else []
+        seen = ([f"{UNDECLARED_NODATA:g}"] if n_sentinel else []) + [f"{v:g}" for v in wild]
         log.warning(
-            "%s: %d cell(s) hold %s (%s%s): read as no-data; declare the file's nodata value "
+            "%s: %d cell(s) hold %s (%s): read as no-data; declare the file's nodata value "
             "(gdal_edit.py -a_nodata) if that is what they are",
             path,
-            wild.size + n_sentinel,
-            f"heights no place on Earth has (outside {lo:g}..{hi:g} m) or "
-            f"{UNDECLARED_NODATA:g} without a nodata value"
-            if wild.size and n_sentinel
-            else (
-                f"{UNDECLARED_NODATA:g} and the file declares no nodata value"
-                if n_sentinel
-                else f"heights no place on Earth has (outside {lo:g}..{hi:g} m)"
-            ),
-            ", ".join(seen),
-            more,
+            n_wild + n_sentinel,
+            " or ".join(what),
+            ", ".join(seen[:3]) + (", ..." if len(seen) > 3 else ""),
         )
-    if void.any():
-        heights[void] = np.nan
+    heights[void] = np.nan
 
 
 def check_georeferenced(path, ds) -> None:

@@ -155,10 +155,11 @@ def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=No
         z = np.where(rim, np.nan, z)
         mask[rim] = EditCode.BORDER_RIM
         report["erode"] = {"cells": int(cfg.filters.erode), "removed": int(rim.sum())}
-    n = int(np.isfinite(layers.heights).sum()) if not np.isfinite(z).any() else 0
-    if cfg.filters.enabled and n:
-        # e.g. a DEM a few cells wide: the small-patch filter or the border rim takes every
-        # cell (then the hole filling had nothing to fill from, or the clean DEM was all void)
+    # e.g. a DEM a few cells wide: the small-patch filter or the border rim takes every cell
+    # (then the hole filling had nothing to fill from, or the clean DEM was all void)
+    gone = cfg.filters.enabled and not np.isfinite(z).any()
+    n = int(np.isfinite(layers.heights).sum()) if gone else 0
+    if n:  # (an all-void DEM keeps its own error)
         rim = report.get("erode", {}).get("removed", 0)
         off = "--no-filters ([filters] enabled = false)"
         by, keep = "the blunder filters", off
