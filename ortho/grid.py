@@ -109,4 +109,11 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
         f"an orthoimage grid of {cells:.3g} cells at posting {res:g} (choose a coarser --res)",
         fraction=0.5,
     )
-    return grid_from_bounds((x.min(), y.min(), x.max(), y.max()), res, crs)
+    x0, x1, y0, y1 = x.min(), x.max(), y.min(), y.max()
+    # an image of one row or column (or one pixel) has a footprint of no width through its
+    # pixel centres: the pixel's own extent, half a posting each side, gives it one cell
+    if x1 - x0 < res:
+        x0, x1 = 0.5 * (x0 + x1) - 0.5 * res, 0.5 * (x0 + x1) + 0.5 * res
+    if y1 - y0 < res:
+        y0, y1 = 0.5 * (y0 + y1) - 0.5 * res, 0.5 * (y0 + y1) + 0.5 * res
+    return grid_from_bounds((x0, y0, x1, y1), res, crs)

@@ -441,7 +441,9 @@ def _read_env():
 
 
 def mosaic_block(plan: MosaicPlan, r0: int, c0: int, rows: int, cols: int):
-    """One output block: ``(r0, c0, arrays)`` with ``arrays`` (bands, rows, cols) float32.
+    """One output block: ``(r0, c0, arrays, contributors)`` with ``arrays`` (bands, rows,
+    cols) float32 and ``contributors`` the indices (into ``plan.sources``) of the DEMs with a
+    valid height in the block.
 
     Pure function of the plan and the files (runs in Dask workers)."""
     with _read_env():
@@ -462,6 +464,7 @@ def _mosaic_block(plan, r0, c0, rows, cols):
     swz = np.zeros((rows, cols))
     sw2s2 = np.zeros((rows, cols))
     stack = []
+    contributors = []
     for i in _meeting(plan, r0, c0, rows, cols):
         s = plan.sources[i]
         if m == "blend":
@@ -481,6 +484,7 @@ def _mosaic_block(plan, r0, c0, rows, cols):
         valid = np.isfinite(zc)
         if not valid.any():
             continue
+        contributors.append(i)
         n += valid
         zz = np.where(valid, zc, np.float32(0)).astype(np.float64)
         s1 += zz
@@ -540,7 +544,7 @@ def _mosaic_block(plan, r0, c0, rows, cols):
         bands = [np.where(n >= 2, value, np.nan)]
     else:
         bands = [value, np.where(have, n, np.nan), spread]
-    return r0, c0, np.stack([np.asarray(b, np.float32) for b in bands])
+    return r0, c0, np.stack([np.asarray(b, np.float32) for b in bands]), contributors
 
 
 # --------------------------------------------------------------------------- the job
@@ -602,13 +606,16 @@ def run_mosaic(
     progress=None,
 ) -> dict:
     """Compute every block and write the mosaic ``out`` (a COG, atomically). Returns the
-    report (plan, bands, seconds, valid share). ``dask``: scheduler address, ``"local"`` for
+    report (plan, bands, seconds, valid share); a DEM whose footprint meets the mosaic but
+    that has no valid height in it is not counted in ``n_used`` and is listed in
+    ``skipped``, with a warning. ``dask``: scheduler address, ``"local"`` for
     a local cluster of ``workers`` processes; None computes here, block after block.
     ``progress(done, total)`` after each block."""
     t0 = time.perf_counter()
     todo = blocks(plan)
     tags = dict(STEREODEM_MOSAIC_METHOD=plan.method, STEREODEM_MOSAIC_DEMS=len(plan.sources))
     n_valid = n_data = 0
+    contributed = set()
     with BlockWriter(
         out,
         plan.grid,
@@ -624,8 +631,9 @@ def run_mosaic(
             if dask is None
             else _dask_blocks(plan, todo, dask, workers)
         )
-        for k, (r0, c0, arrays) in enumerate(results, start=1):
+        for k, (r0, c0, arrays, contributors) in enumerate(results, start=1):
             w.write(r0, c0, arrays)
+            contributed.update(contributors)
             n_valid += int(np.isfinite(arrays[0]).sum())
             if plan.method == "count":
                 n_data += int(np.count_nonzero(arrays[0] > 0))
@@ -634,8 +642,14 @@ def run_mosaic(
         if (n_data if plan.method == "count" else n_valid) == 0:
             # all-void DEMs, or --bounds over their voids: refused, not written as a mosaic
             raise DEMError(_empty_mosaic_message(plan))
+    void = [s.path for i, s in enumerate(plan.sources) if i not in contributed]
+    for path in void:
+        log.warning("%s: no valid height over the mosaic's extent; it contributed nothing", path)
     report = dict(
         plan.report,
+        n_used=len(plan.sources) - len(void),
+        skipped=plan.report["skipped"]
+        + [dict(path=p, reason="no valid height over the mosaic's extent") for p in void],
         output=str(out),
         bands=plan.bands(),
         n_blocks=len(todo),

@@ -2,6 +2,7 @@
 layers and the command line."""
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -111,6 +112,23 @@ def test_grid_defaults_utm_gsd_and_footprint(rendered):
     assert w % grid.res[0] == pytest.approx(0, abs=1e-6) and grid.transform.e < 0
     g2 = grid_for_model(cam, dem, res=250.0, crs="EPSG:32638")
     assert g2.res == (250.0, 250.0) and g2.crs.to_epsg() == 32638
+
+
+@pytest.mark.parametrize("width, height", [(1, 1), (1, 40), (40, 1)])
+def test_grid_of_a_one_pixel_wide_image_has_a_cell(width, height):
+    """An image of one pixel, row or column has a footprint of no width through its pixel
+    centres: the grid was refused ("empty or invalid grid bounds"), so ``uncertainty`` and
+    ``ortho`` failed on it."""
+    one = replace(oblique_camera(), width=width, height=height)
+    dem = DEM.bundled()
+    grid = grid_for_model(one, dem, res=30.0)
+    assert grid.width >= 1 and grid.height >= 1
+    w, s, e, n = grid.bounds
+    xy = [g.lonlat_to_crs(*one.footprint(h), grid.crs) for h in footprint_height_range(one, dem)]
+    x, y = np.concatenate([p[0] for p in xy]), np.concatenate([p[1] for p in xy])
+    assert (x >= w).all() and (x <= e).all() and (y >= s).all() and (y <= n).all()
+    # no more than the footprint (at the DEM's lowest and highest heights) and a cell around
+    assert e - w <= x.max() - x.min() + 3 * 30.0 and n - s <= y.max() - y.min() + 3 * 30.0
 
 
 # --------------------------------------------------------------------------- accuracy

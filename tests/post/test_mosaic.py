@@ -393,6 +393,23 @@ def test_a_mosaic_without_a_valid_cell_is_refused(tmp_path, capsys, which, metho
     assert not out.exists() and not (tmp_path / "m.json").exists()
 
 
+def test_an_all_void_dem_beside_a_valid_one_is_not_counted_as_used(tmp_path, capsys):
+    """A DEM whose footprint meets the mosaic but holds no valid height was reported among
+    the DEMs used ("2 of 2 DEMs")."""
+    write_dem(tmp_path / "a.tif", 0, 0, 8, 8)
+    write_dem(tmp_path / "void.tif", 4, 4, 8, 8, heights=np.full((8, 8), np.nan, np.float32))
+    out = tmp_path / "m.tif"
+    argv = ["mosaic", str(tmp_path / "a.tif"), str(tmp_path / "void.tif"), "-o", str(out)]
+    assert main(argv) == 0
+    said = capsys.readouterr().out
+    assert "1 of 2 DEMs" in said and "skipped" in said and "void.tif" in said, said
+    rep = json.loads((tmp_path / "m.json").read_text())
+    assert rep["n_used"] == 1
+    assert rep["skipped"] == [
+        dict(path=str(tmp_path / "void.tif"), reason="no valid height over the mosaic's extent")
+    ]
+
+
 @pytest.mark.slow
 def test_bad_inputs_are_one_line_errors_and_write_nothing(tmp_path, capsys):
     a = write_dem(tmp_path / "a.tif", 0, 0, 50, 50)
