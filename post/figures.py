@@ -23,7 +23,7 @@ from matplotlib.ticker import FuncFormatter  # noqa: E402
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar  # noqa: E402
 from pyproj import CRS  # noqa: E402
 
-from stereodem.core.raster import atomic_path, check_writable  # noqa: E402
+from stereodem.core.png import save_png  # noqa: E402
 
 from . import terrain  # noqa: E402
 from .stats import error_stats  # noqa: E402
@@ -39,11 +39,8 @@ DPI = 110
 
 
 def _save(fig, path, overwrite):
-    path = check_writable(path, overwrite)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=DPI, bbox_inches=_tight_bbox(fig), format="png")
-    plt.close(fig)
-    return path
+    """Write ``fig`` to ``path`` cropped as ``bbox_inches="tight"`` (:func:`_tight_bbox`)."""
+    return save_png(fig, path, dpi=DPI, overwrite=overwrite, bbox_inches=_tight_bbox(fig))
 
 
 def _tight_bbox(fig):

@@ -3,15 +3,14 @@ chart of the sources' shares of the horizontal variance."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-from stereodem.core.raster import atomic_path
+from stereodem.core.png import save_png
 
 
-def plot_uncertainty(maps, path, *, title: str | None = None):
-    """Write a PNG of ``maps`` (:class:`stereodem.ortho.uncertainty.maps.UncertaintyMaps`)."""
+def plot_uncertainty(maps, path, *, title: str | None = None, overwrite: bool = False):
+    """Write a PNG of ``maps`` (:class:`stereodem.ortho.uncertainty.maps.UncertaintyMaps`);
+    ``overwrite``: replace an existing ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -46,8 +45,4 @@ def plot_uncertainty(maps, path, *, title: str | None = None):
         fig.suptitle(title)
     fig.tight_layout()
 
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return save_png(fig, path, dpi=110, overwrite=overwrite)

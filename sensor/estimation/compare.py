@@ -22,6 +22,7 @@ import logging
 import numpy as np
 
 from stereodem.core.errors import InputError, StereodemError
+from stereodem.core.png import save_png
 from stereodem.sensor.estimation.adjust import MODEL_SETS, adjust_model, model_set
 from stereodem.sensor.io.gcps import ControlPoints
 from stereodem.sensor.models.generic import MODEL_NAMES, fit_model, n_parameters
@@ -332,8 +333,9 @@ def markdown(records) -> str:
     return "\n".join(lines) + "\n"
 
 
-def figure(records, path):
-    """ICP RMSE against GCP count, one line per model (log axes)."""
+def figure(records, path, *, overwrite: bool = False):
+    """ICP RMSE against GCP count, one line per model (log axes), written to ``path`` (PNG;
+    ``overwrite``: replace an existing file)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -378,5 +380,4 @@ def figure(records, path):
         title_fontsize=7,
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    return save_png(fig, path, dpi=120, overwrite=overwrite)

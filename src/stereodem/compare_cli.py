@@ -93,7 +93,7 @@ def run(args) -> int:
     )
     write_text_atomic(out / "compare.json", jsonutil.dumps(records), overwrite=args.overwrite)
     write_text_atomic(out / "compare.md", markdown(records), overwrite=args.overwrite)
-    figure(records, out / "compare.png")
+    figure(records, out / "compare.png", overwrite=args.overwrite)
     if args.splits:
         recs = compare_splits(
             base,

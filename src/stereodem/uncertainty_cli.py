@@ -136,7 +136,9 @@ def run(args) -> int:
         source_maps=args.source_maps,
     )
     maps.write(out, overwrite=args.overwrite, source_maps=args.source_maps)
-    plot_uncertainty(maps, out / "uncertainty.png", title=Path(args.image).name)
+    plot_uncertainty(
+        maps, out / "uncertainty.png", title=Path(args.image).name, overwrite=args.overwrite
+    )
     s = maps.summary()
     top = max(maps.shares, key=lambda k: maps.shares[k])
     print(

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core import jsonutil
-from stereodem.core.raster import atomic_path, check_writable, write_text_atomic
+from stereodem.core.png import save_png
+from stereodem.core.raster import check_writable, write_text_atomic
 
 __all__ = ["write_report", "markdown", "residual_figure", "REPORT_NAME"]
 
@@ -177,10 +178,7 @@ def residual_figure(
     )
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(alpha=0.3)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    plt.close(fig)
-    return path
+    return save_png(fig, path, dpi=110, overwrite=overwrite, bbox_inches="tight")
 
 
 def write_report(result, out_dir, *, overwrite: bool = False, prefix: str = "adjust") -> dict:
