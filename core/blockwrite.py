@@ -154,7 +154,14 @@ class BlockWriter:
             if exc_type is None:
                 t0 = time.perf_counter()
                 # one thread: GDAL's overview chunks (GDAL_OVR_CHUNK_MAX_SIZE) are per thread
-                copy_to_cog(self._tmp, self._final_tmp, self.co, path=self.path)
+                g, nbytes = self.grid, 4 * len(self.descriptions)
+                copy_to_cog(
+                    self._tmp,
+                    self._final_tmp,
+                    self.co,
+                    path=self.path,
+                    nbytes=nbytes * g.width * g.height,  # float32 bands
+                )
                 self.cog_seconds = time.perf_counter() - t0
                 if self._side_crs is not None:  # moved into place with the file
                     write_pam_crs(self._final_tmp, self._side_crs)

@@ -13,6 +13,7 @@ import contextlib
 import functools
 import logging
 import os
+import shutil
 import tempfile
 import warnings
 import xml.etree.ElementTree as ET
@@ -285,12 +286,13 @@ def _compression_threads(co: dict) -> str:
     return str(n or "1").strip().upper()
 
 
-def copy_to_cog(src, tmp, co: dict, *, path) -> None:
+def copy_to_cog(src, tmp, co: dict, *, path, nbytes: int | None = None) -> None:
     """GDAL's COG copy of ``src`` (an open dataset or a file) into ``tmp`` with the creation
     options ``co`` (:func:`rasterio.shutil.copy`, which releases the GIL while it
     compresses); a GDAL failure is an :class:`OutputWriteError` naming the product ``path``
     and the options (e.g. ``COMPRESS=JPEG`` on float32 heights, ``COMPRESS=WEBP`` on one
-    band, ``PREDICTOR=3`` on integers, a full disk).
+    band, ``PREDICTOR=3`` on integers), or the full disk where the disk holding ``tmp`` has
+    less free space than the raster before compression (``nbytes``; None: ``src``'s).
 
     With more than one compression thread (``NUM_THREADS``, else ``GDAL_NUM_THREADS``) GDAL
     compresses on its own threads, which print a refusal on stderr and leave the copy to
@@ -298,22 +300,49 @@ def copy_to_cog(src, tmp, co: dict, *, path) -> None:
     status 0), so whether GDAL can write the data type and band count with the options is
     probed first (:func:`_probe_cog_write`, once per data type, band count and options)."""
     refused = None
-    if _compression_threads(co) != "1":
+    try:
         if isinstance(src, str | os.PathLike):
             with rasterio.open(src) as ds:
-                dtype, count = ds.dtypes[0], ds.count
+                dtype, count, cells = ds.dtypes[0], ds.count, ds.width * ds.height
         else:
-            dtype, count = src.dtypes[0], src.count
-        refused = _probe_cog_write(str(dtype), int(count), tuple(co.items()))
-    if refused is None:
-        try:
+            dtype, count, cells = src.dtypes[0], src.count, src.width * src.height
+        if nbytes is None:
+            nbytes = cells * count * np.dtype(dtype).itemsize
+        if _compression_threads(co) != "1":
+            refused = _probe_cog_write(str(dtype), int(count), tuple(co.items()))
+        if refused is None:
             rasterio.shutil.copy(src, tmp, driver="COG", **_lower(co))
-        except (rasterio.errors.RasterioError, CPLE_BaseError) as exc:
-            refused = " ".join(str(exc).split())
+    except (rasterio.errors.RasterioError, CPLE_BaseError) as exc:
+        refused = " ".join(str(exc).split())
+        full = _short_of_space(tmp, nbytes or 0)
+        if full is not None:
+            raise OutputWriteError(f"{path}: cannot be written: {full} ({refused})") from None
     if refused is not None:
         raise OutputWriteError(
             f"{path}: cannot be written with the creation options {options_text(co)} ({refused})"
         )
+
+
+def _short_of_space(path, nbytes: int) -> str | None:
+    """Why a write of ``nbytes`` (the raster before compression) into ``path`` failed when
+    the disk holding it has less than that free (GDAL's own error is then a symptom, e.g. a
+    block it cannot read back: 'TIFFReadEncodedTile() failed'), else None."""
+    folder = Path(path).parent
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return None
+    if free >= nbytes:
+        return None
+    return (
+        f"the disk holding {folder} is full: {_size_text(free)} free for a raster of "
+        f"{_size_text(nbytes)} before compression"
+    )
+
+
+def _size_text(nbytes: int) -> str:
+    """``nbytes`` in MB with one decimal, or in kB below 0.1 MB."""
+    return f"{nbytes / 2**20:.1f} MB" if nbytes >= 0.1 * 2**20 else f"{nbytes / 2**10:.0f} kB"
 
 
 def predictor_for(dtype) -> str:

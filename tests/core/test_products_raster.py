@@ -175,6 +175,42 @@ def test_creation_options_gdal_knows_pass_their_check():
     assert check_creation_options(["COMPRESS=JPEG"]) == {"COMPRESS": "JPEG"}
 
 
+def test_a_write_onto_a_full_disk_says_so(tmp_path, monkeypatch):
+    """A full disk made GDAL fail to read back a block it had not written ('IReadBlock
+    failed ... TIFFReadEncodedTile() failed'), and the error blamed the creation options."""
+    import shutil as stdlib_shutil
+
+    import stereodem.core.raster as raster
+
+    def failing_copy(*args, **kwargs):
+        raise rasterio.errors.RasterioIOError("IReadBlock failed: TIFFReadEncodedTile() failed.")
+
+    monkeypatch.setattr(raster.rasterio.shutil, "copy", failing_copy)
+    usage = stdlib_shutil.disk_usage(tmp_path)
+    for free, words in (
+        (
+            1000,
+            r"z\.tif: cannot be written: the disk holding .* is full: "
+            r"1 kB free for a raster of 6 kB",
+        ),
+        (usage.free, r"z\.tif: cannot be written with the creation options"),
+    ):
+        monkeypatch.setattr(raster.shutil, "disk_usage", lambda p, f=free: usage._replace(free=f))
+        with pytest.raises(OutputWriteError, match=words) as err:
+            write_geotiff(tmp_path / "z.tif", _rng_data("float32", (40, 40)), T)
+        assert "TIFFReadEncodedTile() failed" in str(err.value)
+        assert not list(tmp_path.iterdir())
+    # a raster written in blocks (mosaics, orthoimages): its size is the grid's, float32 bands
+    from stereodem.core.blockwrite import BlockWriter
+    from stereodem.core.grid import MapGrid
+
+    monkeypatch.setattr(raster.shutil, "disk_usage", lambda p: usage._replace(free=1000))
+    with pytest.raises(OutputWriteError, match="1 kB free for a raster of 19 kB before"):
+        with BlockWriter(tmp_path / "b.tif", MapGrid(T, 40, 40, "EPSG:32637"), list("abc")) as w:
+            w.write(0, 0, np.zeros((3, 40, 40), np.float32))
+    assert not list(tmp_path.iterdir())
+
+
 def test_a_write_gdal_refuses_is_an_error_naming_the_file(tmp_path):
     # JPEG cannot hold float32 heights, WEBP needs 3 or 4 bands: a one-line error naming the
     # product and its options (a rasterio CPLE_AppDefinedError traceback before), no file
