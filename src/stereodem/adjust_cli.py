@@ -194,10 +194,11 @@ def run(args) -> int:
     from .pipeline.inputs import image_model
 
     n_images = args.model == "bundle" and args.more
+    _check_outputs(args, n_images)
     if not n_images:  # N images: -o is a folder, each model checked by run_bundle_images
         check_writable(args.out, args.overwrite)
     if args.report:
-        for name in ("adjust_report.json", "adjust_report.md"):
+        for name in _report_names(args, n_images):
             check_writable(Path(args.report) / name, args.overwrite)
     reg = args.regularization
     if reg is not None and reg not in ("lcurve", "gcv"):
@@ -296,6 +297,46 @@ def run(args) -> int:
         write_report(res, args.report, overwrite=args.overwrite)
     print(summary)
     return 0
+
+
+def _report_names(args, n_images) -> list[str]:
+    """The files ``--report`` writes (:func:`stereodem.sensor.estimation.adjust.write_report`):
+    the report and one residual figure per image."""
+    if n_images:
+        figures = [f"adjust_residuals_image{k}.png" for k in range(2 + len(args.more))]
+    elif args.model == "bundle":
+        figures = ["adjust_residuals_left.png", "adjust_residuals_right.png"]
+    else:
+        figures = ["adjust_residuals.png"]
+    return ["adjust_report.json", "adjust_report.md", *figures]
+
+
+def _check_outputs(args, n_images):
+    """Before any work: no output is one of the inputs (an image, its model sidecar, a GCP,
+    tie or match file), even with --overwrite, and no two outputs are one file (-o and
+    --out2: the second model replaced the first)."""
+    from stereodem.core.errors import InputError
+    from stereodem.sensor.io.sidecar import sidecar_path
+
+    from .outlock import check_not_an_input
+
+    images = [p for p in (args.image, args.image2, *(args.more or [])) if p]
+    sidecars = [s for s in map(sidecar_path, images) if s.exists()]
+    tables = [args.gcps, args.gcps2, args.ties, *(args.match or [])]
+    tables += [t.partition("=")[2] for t in args.image_gcps or []]
+    if n_images:
+        outputs = [Path(args.out) / f"{Path(p).stem}.model.json" for p in images]
+    else:
+        outputs = [p for p in (args.out, args.out2 if args.model == "bundle" else None) if p]
+    if args.report:
+        outputs += [Path(args.report) / n for n in _report_names(args, n_images)]
+    check_not_an_input(outputs, [*images, *sidecars, *tables])
+    seen = {}
+    for out in [] if n_images else outputs:  # N images: two with one stem are refused later
+        key = Path(out).resolve()
+        if key in seen:
+            raise InputError(f"{out}: given twice as an output (also as {seen[key]})")
+        seen[key] = out
 
 
 def _pair_inputs(args):

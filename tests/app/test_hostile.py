@@ -114,6 +114,10 @@ def _dem(sim, out, *extra):
     return ["dem", sim / "left.tif", sim / "right.tif", "-o", out, "--workers", "1", *extra]
 
 
+def _adjust(t, model="rpc-shift", *image2):
+    return ["adjust", t / "in.tif", *image2, "--gcps", t / "gcps.csv", "--model", model]
+
+
 BEFORE_WORK = {
     # id: (argv builder(sim, hostile, tmp), command, message pattern)
     "out_under_regular_file": (
@@ -268,6 +272,41 @@ BEFORE_WORK = {
         "ortho",
         r"cells|grid",
     ),
+    # adjust wrote its model over the GCP file, the image or its sidecar with --overwrite; -o
+    # and --out2 naming one file kept the second model only; an existing residual figure of
+    # the report was found after the model had been written
+    "adjust_out_is_its_gcps_overwrite": (
+        lambda s, h, t: [*_adjust(t), "-o", t / "gcps.csv", "--overwrite"],
+        "adjust",
+        r"gcps.csv.*input",
+    ),
+    "adjust_out_is_its_image_overwrite": (
+        lambda s, h, t: [*_adjust(t), "-o", t / "in.tif", "--overwrite"],
+        "adjust",
+        r"in.tif.*input",
+    ),
+    "adjust_out_is_its_model_sidecar_overwrite": (
+        lambda s, h, t: [*_adjust(t), "-o", t / "in.model.json", "--overwrite"],
+        "adjust",
+        r"in.model.json.*input",
+    ),
+    "adjust_out2_is_out": (
+        lambda s, h, t: [
+            *_adjust(t, "bundle", s / "right.tif"),
+            "-o",
+            t / "m.json",
+            "--out2",
+            t / "rep" / ".." / "m.json",
+            "--overwrite",
+        ],
+        "adjust",
+        r"m.json: given twice",
+    ),
+    "adjust_report_figure_exists": (
+        lambda s, h, t: [*_adjust(t), "-o", t / "m.json", "--report", t / "rep"],
+        "adjust",
+        r"adjust_residuals.png: exists",
+    ),
     "overwrite_foreign_folder_holding_a_products_name": (
         lambda s, h, t: _dem(s, t / "foreign", "--overwrite", *HR),
         "dem",
@@ -283,6 +322,9 @@ def test_clear_error_before_any_work(case, sim, hostile, tmp_path, capsys):
     shutil.copy(sim / "left.model.json", tmp_path / "in.model.json")
     shutil.copy(sim / "truth_dem.tif", tmp_path / "dem.tif")
     shutil.copy(sim / "truth_dem.tif", tmp_path / "score.tif")
+    shutil.copy(sim / "points.csv", tmp_path / "gcps.csv")
+    (tmp_path / "rep").mkdir()
+    (tmp_path / "rep" / "adjust_residuals.png").write_bytes(b"the user's figure")
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "notes.txt").write_text("my notes\n")
     (tmp_path / "foreign" / "dem.tif").write_text("the user's own file named like a product\n")
