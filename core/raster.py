@@ -39,10 +39,10 @@ def check_writable(path, overwrite: bool = False) -> Path:
     """Raise :class:`OutputExistsError` if ``path`` exists and ``overwrite`` is false, is a
     folder, or cannot be created (:func:`check_creatable`)."""
     path = Path(path)
+    if path.is_dir():  # before the advice to pass --overwrite, which cannot replace a folder
+        raise OutputExistsError(f"{path}: is a folder; give a file name")
     if path.exists() and not overwrite:
         raise OutputExistsError(f"{path}: exists; pass overwrite=True (--overwrite) to replace it")
-    if path.is_dir():
-        raise OutputExistsError(f"{path}: is a folder; give a file name")
     check_creatable(path)
     return path
 

@@ -253,6 +253,12 @@ BEFORE_WORK = {
         "filter",
         r"input",
     ),
+    # a folder as the output file: "exists; pass --overwrite", which then said "is a folder"
+    "filter_out_is_a_folder": (
+        lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "rep"],
+        "filter",
+        r"rep: is a folder",
+    ),
     "filter_out_is_its_score_layer": (
         lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "score.tif", "--overwrite"],
         "filter",
