@@ -478,6 +478,8 @@ def _check_value(value, annotation: str, where: str):
             isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
         ):
             raise InputError(f"{where}: expected a list of numbers, got {value!r}")
+        if not all(abs(v) < float("inf") for v in value):  # nan, inf: a traceback later
+            raise InputError(f"{where}: expected a list of finite numbers, got {value!r}")
         return tuple(float(v) if isinstance(v, float) else v for v in value)
     if base == "dict":
         if not isinstance(value, dict):
@@ -512,10 +514,15 @@ def build_settings(cls, table: dict, section: str, source):
 # ----------------------------------------------------------------------------- reading
 
 
+def _path(value: str, base) -> str:
+    """A configuration's path: ``~`` is the home folder; a relative path is relative to the
+    configuration file (``base``). (``dir = "~/out"`` made a folder named ``~`` there.)"""
+    value = os.path.expanduser(value)
+    return value if os.path.isabs(value) else str(Path(base) / value)
+
+
 def _is_granule(path, base) -> bool:
-    return isinstance(path, str) and is_aster_granule(
-        Path(base) / path if not os.path.isabs(path) else path
-    )
+    return isinstance(path, str) and is_aster_granule(_path(path, base))
 
 
 def load_config(path, **overrides) -> Config:
@@ -560,7 +567,7 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
             )
         if "left" in inp or "right" in inp:
             raise InputError(f"{source}: [inputs] takes either images or left/right, not both")
-        inp["images"] = [v if os.path.isabs(v) else str(Path(base) / v) for v in imgs]
+        inp["images"] = [_path(v, base) for v in imgs]
     elif "left" not in inp:
         raise InputError(f"{source}: [inputs] needs 'left' (or 'images')")
     elif "right" not in inp and not _is_granule(inp["left"], base):
@@ -569,16 +576,21 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
         )
     for key in _PATH_KEYS:
         if isinstance(inp.get(key), str) and inp[key]:
-            inp[key] = str(Path(base) / inp[key]) if not os.path.isabs(inp[key]) else inp[key]
+            inp[key] = _path(inp[key], base)
     out = raw.get("output", {}).get("dir") if isinstance(raw.get("output"), dict) else None
     if not out or not isinstance(out, str):
         raise InputError(f"{source}: [output] needs 'dir'")
+    if set(raw["output"]) - {"dir"}:  # a typo was ignored
+        raise InputError(
+            f"{source}: unknown key(s) in [output]: "
+            f"{', '.join(sorted(set(raw['output']) - {'dir'}))} (known: dir)"
+        )
     tables = {name: dict(inp if name == "inputs" else raw.get(name, {})) for name in SECTIONS}
     for name, keys in _SECTION_PATHS.items():
         for key in keys:
             v = tables[name].get(key)
-            if isinstance(v, str) and v and not os.path.isabs(v):
-                tables[name][key] = str(Path(base) / v)
+            if isinstance(v, str) and v:
+                tables[name][key] = _path(v, base)
     parts = {
         name: build_settings(cls, tables[name], name, source) for name, cls in SECTIONS.items()
     }
@@ -588,7 +600,7 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
             setattr(run, k, v)
     cfg = Config(
         inputs=parts["inputs"],
-        output_dir=str(Path(base) / out) if not os.path.isabs(out) else out,
+        output_dir=_path(out, base),
         stereo=StereoSettings(**{k: parts[k] for k in _STEREO}),
         jitter=parts["jitter"],
         filters=parts["filters"],
@@ -643,6 +655,21 @@ def validate(cfg: Config, source="configuration"):
             bad(f"[rectification] height_range must be [MIN, MAX] with MIN <= MAX, got {list(hr)}")
     if rect.height_margin < 0:
         bad(f"[rectification] height_margin must be >= 0, got {rect.height_margin}")
+    # the next ones failed in every tile ("no point was matched") or with a traceback
+    halo = rect.halo
+    if len(halo) != 2 or not all(isinstance(v, int) and v >= 0 for v in halo):
+        bad(f"[rectification] halo must be [COLUMNS, ROWS], whole numbers >= 0, got {list(halo)}")
+    if rect.disparity_margin < 0:
+        bad(f"[rectification] disparity_margin must be >= 0, got {rect.disparity_margin}")
+    if not ref.sigma > 0:
+        bad(f"[refinement] sigma must be positive, got {ref.sigma}")
+    for key in ("gaussian_sigma", "max_ray_gap"):
+        v = getattr(gs, key)
+        if v is not None and not v > 0:
+            bad(f"[gridding] {key} must be positive, got {v}")
+    b = gs.bounds
+    if b is not None and (len(b) != 4 or not (b[0] < b[2] and b[1] < b[3])):
+        bad(f"[gridding] bounds must be [XMIN, YMIN, XMAX, YMAX] with MIN < MAX, got {list(b)}")
     choice("rectification", "method", rect.method, RECTIFICATION_METHODS)
     choice("matching", "matcher", match.matcher, MATCHERS)
     if ref.window < 3 or ref.window % 2 == 0:
@@ -699,6 +726,9 @@ def validate(cfg: Config, source="configuration"):
             "[uncertainty] enabled needs sigma = {name = value, ...} or covariance = "
             "adjust_report.json"
         )
+    for name, v in (u.sigma or {}).items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
+            bad(f"[uncertainty] sigma {name} must be a number >= 0, got {v!r}")
     if u.samples < 10:
         bad(f"[uncertainty] samples must be at least 10, got {u.samples}")
     if cfg.dem.point_cloud not in (None, "las", "laz"):

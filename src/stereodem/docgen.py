@@ -29,7 +29,8 @@ HEADER = """# Configuration keys (`stereodem run CONFIG.toml`)
      do not edit by hand: tests/app/test_products_docs.py checks this file is up to date -->
 
 Every key is optional unless its default says *required*. Relative paths are relative to the
-configuration file. `stereodem demo -o DIR` writes a working example (`DIR/demo.toml`).
+configuration file (`~` is the home folder). `stereodem demo -o DIR` writes a working example
+(`DIR/demo.toml`).
 """
 
 

@@ -235,6 +235,24 @@ def test_config_errors(tmp_path):
         load_config(p)
 
 
+def test_config_tilde_is_the_home_folder(tmp_path, monkeypatch):
+    """``~`` in a configuration's paths was taken as a folder named ``~`` beside the file
+    (``dir = "~/out"`` made ``CONFIG_DIR/~/out``); it is the home folder, as in a shell."""
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    p = tmp_path / "cfg" / "job.toml"
+    p.parent.mkdir()
+    p.write_text(
+        "[inputs]\nleft = '~/l.tif'\nright = 'r.tif'\nseed_dem = '~/seed.tif'\n"
+        "[output]\ndir = '~/out'\n[ortho]\nfill_dem = '~/fill.tif'\n"
+    )
+    cfg = load_config(p)
+    home = tmp_path / "home"
+    assert cfg.output_dir == str(home / "out")
+    assert (cfg.inputs.left, cfg.inputs.seed_dem) == (str(home / "l.tif"), str(home / "seed.tif"))
+    assert cfg.ortho.fill_dem == str(home / "fill.tif")
+    assert cfg.inputs.right == str(p.parent / "r.tif")  # relative: to the file
+
+
 def test_cli_exit_codes_and_help(tmp_path, capsys):
     assert cli.main([]) == 2
     with pytest.raises(SystemExit) as e:

@@ -358,6 +358,19 @@ TOML_CASES = {
     "unknown_section": ("[stereo]\ntile_size = 256", r"stereo"),
     "tile_timeout_negative": ("[run]\ntile_timeout = -5", r"tile_timeout"),
     "res_string": ('[gridding]\nres = "30 m"', r"res"),
+    # accepted before, then a traceback (bounds), every tile failing with "no point was
+    # matched" (sigma, max_ray_gap) or the DEM made before the uncertainty maps failed
+    "bounds_nan": ("[gridding]\nbounds = [nan, 0, 1, 1]", r"bounds.*finite"),
+    "bounds_two_values": ("[gridding]\nbounds = [10, 10]", r"bounds must be"),
+    "height_range_infinite": ("[rectification]\nheight_range = [-inf, inf]", r"height_range"),
+    "halo_negative": ("[rectification]\nhalo = [-5, -5]", r"halo"),
+    "refinement_sigma_negative": ("[refinement]\nsigma = -3", r"\[refinement\] sigma"),
+    "max_ray_gap_negative": ("[gridding]\nmax_ray_gap = -1", r"max_ray_gap"),
+    "uncertainty_sigma_string": (
+        '[uncertainty]\nenabled = true\nsigma = {dem_height = "five"}',
+        r"sigma dem_height",
+    ),
+    "output_key_typo": ('dri = "elsewhere"', r"unknown key.*\[output\]: dri"),
 }
 
 
