@@ -11,7 +11,8 @@ but ``[inputs] left/right`` and ``[output] dir``) or the defaults. Each scene wr
   scene (its tiles then run in that many processes: ``[run] workers``). Dask: one task per
   scene on any worker (``--dask tcp://host:port`` or ``--dask local`` for a ``LocalCluster``),
   each worker pinned to its share of its node's cores; the scene's tiles run inside the task.
-* **Resumable**: a scene whose folder holds a ``run.json`` with status ``ok`` is *skipped*;
+* **Resumable**: a scene whose folder holds a ``run.json`` with status ``ok`` is *skipped*
+  (unless its configuration or template changed since: it then fails, naming the ``run.json``);
   one that failed or was interrupted runs again with its finished tiles reused (``--resume``
   semantics); ``overwrite`` recomputes every scene.
 * **Status table**: ``OUTDIR/batch.json`` (rewritten atomically as scenes finish), one row per
@@ -176,15 +177,21 @@ def scene_config(
     if scene.kind == "missing":
         raise InputError(f"{scene.path}: not found")
     resume = not overwrite
+    # absolute: the paths run.json records then name the same files from any folder
+    # (:func:`done_with_other_settings` compares them)
     if scene.kind == "config":
         cfg = load_config(
-            scene.path, workers=workers, overwrite=overwrite, resume=resume, keep_tiles=keep_tiles
+            Path(scene.path).absolute(),
+            workers=workers,
+            overwrite=overwrite,
+            resume=resume,
+            keep_tiles=keep_tiles,
         )
     else:
         raw, base = {}, "."
         if scene.template:
             raw = _read_template(scene.template)
-            base = Path(scene.template).parent
+            base = Path(scene.template).absolute().parent
         raw.setdefault("inputs", {})
         raw["inputs"] = {k: v for k, v in raw["inputs"].items() if k not in ("left", "right")}
         raw["inputs"]["left"] = str(Path(scene.path).resolve())
@@ -210,6 +217,41 @@ def is_done(out_dir) -> bool:
         return False
 
 
+#: settings of a scene's configuration, with their paths: what its products depend on
+_PATHS = {
+    "inputs": ("left", "right", "left_model", "right_model", "seed_dem", "reference_dem")
+    + ("checkpoints", "landcover", "dem", "images"),
+    "uncertainty": ("covariance",),
+    "ortho": ("fill_dem",),
+}
+
+
+def _settings(config: dict) -> dict:
+    """A configuration's :meth:`~stereodem.config.Config.to_dict` as ``run.json`` holds it,
+    without how it was run (``[run]``, the output folder) and with absolute paths."""
+    d = json.loads(jsonutil.dumps(config))
+    for section, keys in _PATHS.items():
+        table = d.get(section) or {}
+        for k in keys:
+            v = table.get(k)
+            if isinstance(v, str):
+                table[k] = os.path.abspath(v)
+            elif isinstance(v, list):
+                table[k] = [os.path.abspath(p) if isinstance(p, str) else p for p in v]
+    return {k: v for k, v in d.items() if k not in ("run", "output")}
+
+
+def done_with_other_settings(out_dir, cfg) -> bool:
+    """Whether the finished job in ``out_dir`` was run with other settings or inputs than the
+    scene's configuration ``cfg`` now has (it was edited since). False when ``run.json`` does
+    not record them."""
+    try:
+        old = json.loads((Path(out_dir) / "run.json").read_text()).get("config")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return isinstance(old, dict) and _settings(old) != _settings(cfg.to_dict())
+
+
 # ----------------------------------------------------------------------------- one scene
 
 
@@ -225,8 +267,23 @@ def run_scene(
     out = Path(out_root) / scene.name
     row = SceneStatus(scene.name, scene.path, "done", output=str(out))
     if not overwrite and is_done(out):
-        row.status = "skipped"
-        row.reason = "already done (run.json status ok)"
+        # a scene whose configuration (or template) changed since was skipped: its products,
+        # of the old settings, were reported as done
+        try:
+            cfg = scene_config(scene, out, workers=workers, keep_tiles=keep_tiles)
+            changed = done_with_other_settings(out, cfg)
+        except StereodemError as exc:
+            row.status, row.reason = "failed", _one_line(exc)
+            return row
+        if not changed:
+            row.status = "skipped"
+            row.reason = "already done (run.json status ok)"
+            return row
+        row.status = "failed"
+        row.reason = (
+            f"{out / 'run.json'}: done with other settings or inputs than {scene.path} "
+            "now has; pass --overwrite to recompute (or use another -o)"
+        )
         return row
     t0, c0 = time.perf_counter(), _cpu()
     try:

@@ -17,8 +17,9 @@ EXAMPLES = """examples:
 
 Each scene writes OUTDIR/<name>/ (its file's stem) as 'stereodem run' does; OUTDIR/batch.json
 lists every scene as done, failed (with its one-line reason) or skipped. A scene already done
-is skipped; a failed or interrupted one runs again, reusing its finished tiles (--overwrite:
-recompute all). A Slurm/PBS cluster through dask-jobqueue: docs/batch.md.
+is skipped (one whose configuration changed since fails until --overwrite); a failed or
+interrupted one runs again, reusing its finished tiles (--overwrite: recompute all). A
+Slurm/PBS cluster through dask-jobqueue: docs/batch.md.
 Exit status 1 when a scene failed (the others are done).
 """
 

@@ -131,3 +131,29 @@ def test_a_scene_given_twice_and_an_unreadable_template_are_refused(tmp_path):
     (tmp_path / "bad.toml").write_text("[run\n")
     with pytest.raises(InputError, match=r"bad.toml: cannot read the template"):
         expand_inputs([tmp_path / "x.toml"], template=str(tmp_path / "bad.toml"))
+
+
+def test_a_done_scene_whose_configuration_changed_is_not_skipped(tmp_path, monkeypatch):
+    """A scene done before and edited since (another matcher) was skipped as "already done":
+    its products, of the old settings, stood as the new configuration's. It fails naming its
+    run.json until --overwrite; unchanged, it is skipped from any working folder."""
+    from stereodem.config import load_config
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "cfg").mkdir()
+    cfg = tmp_path / "cfg" / "a.toml"
+    cfg.write_text(CONFIG.format(d="../data"))
+    out = tmp_path / "out"
+    (out / "a").mkdir(parents=True)
+    # what the job records of a scene (stereodem.pipeline.job.run), without running it
+    done = load_config(cfg.absolute())
+    (out / "a" / "run.json").write_text(json.dumps({"status": "ok", "config": done.to_dict()}))
+    monkeypatch.setattr("stereodem.batch.run", lambda c: pytest.fail("ran a done scene"))
+    for where, scene in ((tmp_path, "cfg/a.toml"), (tmp_path / "cfg", "a.toml")):
+        monkeypatch.chdir(where)
+        row = run_batch(expand_inputs([scene]), out.absolute(), workers=1)["scenes"][0]
+        assert row["status"] == "skipped", row
+    cfg.write_text(CONFIG.format(d="../data") + '[matching]\nmatcher = "ncc"\n')
+    row = run_batch(expand_inputs(["a.toml"]), out, workers=1)["scenes"][0]
+    assert row["status"] == "failed" and "run.json: done with other settings" in row["reason"]
+    assert "--overwrite" in row["reason"]
