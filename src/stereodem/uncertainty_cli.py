@@ -106,6 +106,10 @@ def run(args) -> int:
         "sensitivity.json",
         "uncertainty.png",
     ]
+    from .outlock import check_not_an_input
+
+    # an input named like a map in the output folder was replaced with --overwrite
+    check_not_an_input([out / n for n in names_out], [args.image, args.dem, args.covariance])
     for n in names_out:
         check_writable(out / n, args.overwrite)
     sigmas = parse_sigma_pairs(args.sigma)

@@ -253,6 +253,22 @@ BEFORE_WORK = {
         "filter",
         r"input",
     ),
+    # the DEM named like one of the maps in the output folder was replaced with --overwrite
+    "uncertainty_dem_is_one_of_its_maps_overwrite": (
+        lambda s, h, t: [
+            "uncertainty",
+            t / "in.tif",
+            "--dem",
+            t / "rep" / "ce90.tif",
+            "--sigma",
+            "roll_bias=5",
+            "-o",
+            t / "rep",
+            "--overwrite",
+        ],
+        "uncertainty",
+        r"ce90.tif.*input",
+    ),
     # a folder as the output file: "exists; pass --overwrite", which then said "is a folder"
     "filter_out_is_a_folder": (
         lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "rep"],
@@ -331,6 +347,7 @@ def test_clear_error_before_any_work(case, sim, hostile, tmp_path, capsys):
     shutil.copy(sim / "points.csv", tmp_path / "gcps.csv")
     (tmp_path / "rep").mkdir()
     (tmp_path / "rep" / "adjust_residuals.png").write_bytes(b"the user's figure")
+    shutil.copy(sim / "truth_dem.tif", tmp_path / "rep" / "ce90.tif")
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "notes.txt").write_text("my notes\n")
     (tmp_path / "foreign" / "dem.tif").write_text("the user's own file named like a product\n")
