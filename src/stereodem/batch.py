@@ -244,12 +244,24 @@ def _settings(config: dict) -> dict:
 def done_with_other_settings(out_dir, cfg) -> bool:
     """Whether the finished job in ``out_dir`` was run with other settings or inputs than the
     scene's configuration ``cfg`` now has (it was edited since). False when ``run.json`` does
-    not record them."""
+    not record them. Only the keys both record are compared: a key a later version added
+    (or removed) is no edit of the user's, and would otherwise redo every scene."""
     try:
         old = json.loads((Path(out_dir) / "run.json").read_text()).get("config")
     except (OSError, ValueError, AttributeError):
         return False
-    return isinstance(old, dict) and _settings(old) != _settings(cfg.to_dict())
+    if not isinstance(old, dict):
+        return False
+    was, now = _settings(old), _settings(cfg.to_dict())
+    for section in was.keys() & now.keys():
+        a, b = was[section], now[section]
+        if not (isinstance(a, dict) and isinstance(b, dict)):
+            if a != b:
+                return True
+            continue
+        if any(a[k] != b[k] for k in a.keys() & b.keys()):
+            return True
+    return False
 
 
 # ----------------------------------------------------------------------------- one scene

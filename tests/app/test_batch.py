@@ -153,6 +153,16 @@ def test_a_done_scene_whose_configuration_changed_is_not_skipped(tmp_path, monke
         monkeypatch.chdir(where)
         row = run_batch(expand_inputs([scene]), out.absolute(), workers=1)["scenes"][0]
         assert row["status"] == "skipped", row
+    # a run.json of an older version, which lacked a key (and had one since removed): no edit
+    older = done.to_dict()
+    section = next(
+        k for k, v in older.items() if isinstance(v, dict) and v and k not in ("run", "matching")
+    )
+    older[section].pop(sorted(older[section])[0])
+    older[section]["a_key_since_removed"] = 1
+    (out / "a" / "run.json").write_text(json.dumps({"status": "ok", "config": older}))
+    row = run_batch(expand_inputs(["a.toml"]), out.absolute(), workers=1)["scenes"][0]
+    assert row["status"] == "skipped", row
     cfg.write_text(CONFIG.format(d="../data") + '[matching]\nmatcher = "ncc"\n')
     row = run_batch(expand_inputs(["a.toml"]), out, workers=1)["scenes"][0]
     assert row["status"] == "failed" and "run.json: done with other settings" in row["reason"]
