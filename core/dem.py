@@ -178,6 +178,49 @@ def _vertical_from_crs(crs: CRS | None) -> str | None:
     return None
 
 
+#: metres per foot, by the names of a height unit: GDAL's unit type of a band (which a GeoTIFF
+#: takes from its vertical CRS, e.g. ``US survey foot`` for NAVD88 height (ftUS), EPSG:6360) or
+#: the unit of a CRS's vertical axis
+_FEET_M = {
+    "ft": 0.3048,
+    "foot": 0.3048,
+    "feet": 0.3048,
+    "international foot": 0.3048,
+    "us survey foot": 1200 / 3937,
+    "us survey feet": 1200 / 3937,
+    "us-ft": 1200 / 3937,
+    "ftus": 1200 / 3937,
+    "us_survey_foot": 1200 / 3937,
+}
+
+
+def height_unit_m(ds, band: int = 1, crs: CRS | None = None) -> float:
+    """Metres per stored height unit of band ``band`` of the open raster ``ds``: a foot when
+    its unit (GDAL's unit type) or else the vertical axis of its CRS (``crs``, the file's
+    when not given) says so, else 1 (metres, the project's unit). Heights in feet read as
+    metres put 3.28 times the height into every difference (2616 m of 3762 ft)."""
+    unit = (ds.units[band - 1] or "").strip().lower()
+    if unit in _FEET_M:
+        return _FEET_M[unit]
+    if crs is None and ds.crs is not None:
+        try:
+            crs = CRS.from_wkt(ds.crs.to_wkt())
+        except Exception:  # an unparsable CRS is refused where it is used
+            return 1.0
+    axes = [a for a in (crs.axis_info if crs is not None else ()) if a.direction == "up"]
+    if axes and axes[0].unit_name.strip().lower() in _FEET_M:
+        return float(axes[0].unit_conversion_factor)
+    return 1.0
+
+
+def height_scaling(ds, band: int = 1, crs: CRS | None = None) -> tuple[float, float]:
+    """``(scale, offset)`` taking the stored values of band ``band`` of the open raster ``ds``
+    to metres, ``metres = value * scale + offset``: GDAL's scale and offset (a DEM stored as
+    decimetres) in the height unit (:func:`height_unit_m`); ``(1.0, 0.0)`` for metres."""
+    unit = height_unit_m(ds, band, crs)
+    return ds.scales[band - 1] * unit, ds.offsets[band - 1] * unit
+
+
 def horizontal_crs(crs: CRS) -> CRS:
     """The horizontal part of ``crs`` (the first member of a compound CRS, a 3-D CRS
     demoted to 2-D); a 2-D CRS is returned as it is."""
@@ -331,7 +374,8 @@ class DEM:
         :meth:`write` stores it, the latter in the ``.aux.xml`` side-car for projected grids)
         or else stereodem's own ``STEREODEM_VERTICAL`` tag (older files, or a file copied
         without its side-car), and is ``None`` (unknown) if neither says. ``crs`` is the
-        horizontal part.
+        horizontal part. Heights are metres: GDAL's scale and offset are applied, and heights
+        in feet (the band's unit or the vertical CRS's, :func:`height_scaling`) converted.
         """
         path = str(path)
         try:
@@ -357,11 +401,12 @@ class DEM:
                     n_sentinel = int(np.count_nonzero(sentinel))
                     if n_sentinel:
                         heights[sentinel] = np.nan
-                scale, offset = ds.scales[band - 1], ds.offsets[band - 1]
-                if (scale, offset) != (1.0, 0.0):  # stored as e.g. centimetres: GDAL's scaling
+                transform, crs = ds.transform, CRS.from_user_input(ds.crs.to_wkt())
+                # stored as e.g. centimetres (GDAL's scaling) or feet (the vertical CRS's unit)
+                scale, offset = height_scaling(ds, band, crs)
+                if (scale, offset) != (1.0, 0.0):
                     heights *= np.float32(scale)
                     heights += np.float32(offset)
-                transform, crs = ds.transform, CRS.from_user_input(ds.crs.to_wkt())
                 tag = ds.tags().get(VERTICAL_TAG)
         except rasterio.errors.RasterioIOError as exc:
             raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
