@@ -51,7 +51,7 @@ from rasterio.windows import Window
 
 from stereodem.core import geodesy
 from stereodem.core.blockwrite import CACHE_MB, OVERVIEW_CHUNK_MB, BlockWriter
-from stereodem.core.dem import DEM, ELLIPSOID, GEOID
+from stereodem.core.dem import DEM, ELLIPSOID, GEOID, height_scaling
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.grid import MapGrid
 from stereodem.core.stats import nanmedian, nmad
@@ -370,8 +370,10 @@ def read_on_grid(
     s: Source, grid: MapGrid, r0: int, c0: int, rows: int, cols: int, layer=None
 ) -> np.ndarray:
     """The DEM's values (or its σ layer: ``layer=(path, band)``) on the output cells
-    ``[r0:r0+rows, c0:c0+cols]``: float32, NaN where it has none. Cells on the output lattice
-    are copied; otherwise GDAL's warper resamples (bilinear) through a window."""
+    ``[r0:r0+rows, c0:c0+cols]``: float32 metres (GDAL's scale and offset applied, feet
+    converted: :func:`~stereodem.core.dem.height_scaling`), NaN where it has none. Cells on
+    the output lattice are copied; otherwise GDAL's warper resamples (bilinear) through a
+    window."""
     path, band = layer or (s.path, 1)
     out = np.full((rows, cols), np.nan, np.float32)
     try:
@@ -406,6 +408,10 @@ def read_on_grid(
                 ) as vrt:
                     a = vrt.read(band, window=Window(c0, r0, cols, rows), masked=True)
                     out[:] = a.filled(np.nan)
+            scale, offset = height_scaling(ds, band)  # decimetres, feet: metres
+            if (scale, offset) != (1.0, 0.0):
+                out *= np.float32(scale)
+                out += np.float32(offset)
     except rasterio.errors.RasterioIOError as exc:
         raise DEMError(f"{path}: cannot read the DEM ({str(exc).splitlines()[0][:120]})") from None
     out[~np.isfinite(out)] = np.nan

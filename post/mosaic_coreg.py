@@ -25,7 +25,7 @@ from pyproj import CRS
 from rasterio.warp import transform_bounds
 from rasterio.windows import from_bounds
 
-from stereodem.core.dem import DEM, _vertical_from_crs, horizontal_crs
+from stereodem.core.dem import DEM, _vertical_from_crs, height_scaling, horizontal_crs
 from stereodem.core.errors import ConvergenceError, DEMError, InputError, NoOverlapError
 from stereodem.core.raster import reading_env
 
@@ -144,6 +144,10 @@ def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -
             z = ds.read(1, window=w, masked=True).astype(np.float32).filled(np.nan)
             t = ds.window_transform(w)
             pcrs = CRS.from_wkt(ds.crs.to_wkt())
+            scale, offset = height_scaling(ds, 1, pcrs)  # decimetres, feet: metres
+            if (scale, offset) != (1.0, 0.0):
+                z *= np.float32(scale)
+                z += np.float32(offset)
             tag = ds.tags().get("STEREODEM_VERTICAL")
             vert = _vertical_from_crs(pcrs) or (tag.lower() if tag else None) or vertical
     except rasterio.errors.RasterioIOError as exc:

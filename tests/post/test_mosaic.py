@@ -606,3 +606,28 @@ def test_a_failure_half_way_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(pm.DEMError):
         run_mosaic(plan, tmp_path / "m.tif")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d0.tif", "d1.tif", "d2.tif"]
+
+
+def test_scaled_and_feet_dems_are_mosaicked_in_metres(tmp_path):
+    """The mosaic read each DEM's stored values as they were: an int16 DEM stored as
+    decimetres (GDAL scale 0.1) came out ten times too high (11 473 m for 1147 m of terrain)
+    and one in feet 3.28 times; so did a reference cropped for --coregister."""
+    a = write_dem(tmp_path / "a.tif", 0, 0, 40, 40)
+    t = Affine(RES, 0, X0 + 20 * RES, 0, -RES, Y0)
+    dm = np.round(terrain(40, 40, 0, 20) * 10).astype(np.int16)
+    kw = dict(driver="GTiff", width=40, height=40, count=1, crs=CRS, transform=t)
+    with rasterio.open(tmp_path / "dm.tif", "w", dtype="int16", nodata=-32768, **kw) as ds:
+        ds.write(dm, 1)
+        ds.scales = (0.1,)
+    ft = terrain(40, 40, 20, 0) / np.float32(0.3048)
+    write_geotiff(tmp_path / "ft.tif", ft, Affine(RES, 0, X0, 0, -RES, Y0 - 20 * RES), CRS, np.nan)
+    with rasterio.open(tmp_path / "ft.tif", "r+", IGNORE_COG_LAYOUT_BREAK="YES") as ds:
+        ds.units = ("ft",)
+    out = tmp_path / "m.tif"
+    args = ["-q", "mosaic", str(a), str(tmp_path / "dm.tif"), str(tmp_path / "ft.tif")]
+    assert main(args + ["-o", str(out), "--method", "max", "--dem-vertical", "geoid"]) == 0
+    z, truth = on_truth(out)
+    assert z.shape == (60, 60) and np.isfinite(z).mean() > 0.8
+    assert np.nanmax(np.abs(z - truth)) < 0.06  # decimetre rounding, float32 feet
+    ref = pm.crop_reference(tmp_path / "dm.tif", (X0 + 600, Y0 - 1200, X0 + 1800, Y0), CRS)
+    assert np.nanmax(np.abs(ref.heights - terrain(40, 40, 0, 20))) < 0.06
