@@ -230,6 +230,8 @@ def output_grid(sources, *, crs=None, res: float | None = None, bounds=None):
         if not np.all(np.isfinite(b)):
             raise CRSError(f"{s.path}: its footprint has no place in {crs.name}")
         placed.append(replace(s, bounds=tuple(float(v) for v in b)))
+    if crs.is_geographic:
+        placed = _beside_each_other(placed, bounds)
     if res is None:
         if first.crs.equals(crs):
             res = float(first.transform.a)
@@ -255,6 +257,28 @@ def output_grid(sources, *, crs=None, res: float | None = None, bounds=None):
     width, height = int(round((x1 - x0) / res)), int(round((y1 - y0) / res))
     grid = MapGrid(Affine(res, 0.0, x0, 0.0, -res, y1), max(width, 1), max(height, 1), crs)
     return grid, placed
+
+
+def _beside_each_other(placed, bounds=None):
+    """Footprints in a geographic output CRS, degrees, moved by whole turns to the longitudes
+    of the first (or of ``bounds``, the mosaic's extent when given), so that DEMs on both sides
+    of the antimeridian lie side by side: a footprint that crosses it (west > east, as GDAL
+    gives it) ends east of 180, a DEM west of -180 + 180 is moved 360 degrees east, and a
+    geographic DEM's grid moves with it (a projected DEM is warped to any longitude). Without
+    this, the tiles at 179.9 and -180 E made a mosaic 360 degrees wide and a DEM crossing 180
+    was skipped as outside."""
+    w0, _, e0, _ = bounds if bounds is not None else placed[0].bounds
+    centre = (w0 + e0 + (360.0 if w0 > e0 else 0.0)) / 2.0
+    out = []
+    for s in placed:
+        w, south, e, north = s.bounds
+        e += 360.0 if w > e else 0.0
+        turn = 360.0 * round((centre - (w + e) / 2.0) / 360.0)
+        t = s.transform
+        if turn and s.crs.is_geographic:
+            t = Affine.translation(turn, 0.0) @ t
+        out.append(replace(s, transform=t, bounds=(w + turn, south, e + turn, north)))
+    return out
 
 
 def _overlaps(a, b) -> bool:

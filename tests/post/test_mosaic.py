@@ -631,3 +631,37 @@ def test_scaled_and_feet_dems_are_mosaicked_in_metres(tmp_path):
     assert np.nanmax(np.abs(z - truth)) < 0.06  # decimetre rounding, float32 feet
     ref = pm.crop_reference(tmp_path / "dm.tif", (X0 + 600, Y0 - 1200, X0 + 1800, Y0), CRS)
     assert np.nanmax(np.abs(ref.heights - terrain(40, 40, 0, 20))) < 0.06
+
+
+def test_dems_either_side_of_the_antimeridian_are_mosaicked_side_by_side(tmp_path):
+    """Geographic tiles at 179.9..180 E and -180..-179.9 E made a mosaic 360 degrees wide
+    (36 000 x 10 cells, 0.1 % valid), and a projected DEM crossing 180 (its footprint from
+    179.98 to -179.98) was skipped as outside a geographic mosaic."""
+
+    def height(lon, lat):  # smooth across the antimeridian
+        return 1000 + 20 * np.sin(np.radians((lon - 180.0) % 360.0) * 50) + 100 * (lat - 65)
+
+    def tile(name, west):
+        t = Affine(0.01, 0, west, 0, -0.01, 65.1)
+        lon, lat = t @ np.meshgrid(np.arange(10) + 0.5, np.arange(10) + 0.5)
+        z = height(lon, lat).astype(np.float32)
+        return write_geotiff(tmp_path / name, z, t, "EPSG:4326", np.nan, vertical="geoid")
+
+    east, west = tile("e.tif", 179.9), tile("w.tif", -180.0)
+    # UTM zone 1N across 180 E at 65.05 N
+    x0, y0 = geodesy.lonlat_to_crs(180.0, 65.05, "EPSG:32601")
+    t = Affine(200, 0, float(x0) - 2000, 0, -200, float(y0) + 2000)
+    x, y = t @ np.meshgrid(np.arange(20) + 0.5, np.arange(20) + 0.5)
+    z = height(*geodesy.crs_to_lonlat(x, y, "EPSG:32601")).astype(np.float32)
+    write_geotiff(tmp_path / "utm.tif", z, t, "EPSG:32601", np.nan, vertical="geoid")
+    for first, second, extent in ((east, west, (179.9, 180.1)), (west, east, (-180.1, -179.9))):
+        out = tmp_path / f"m_{first.stem}.tif"
+        args = ["-q", "mosaic", str(first), str(second), str(tmp_path / "utm.tif")]
+        assert main(args + ["-o", str(out), "--method", "mean"]) == 0
+        rep = json.loads(out.with_suffix(".json").read_text())
+        assert rep["n_used"] == 3 and not rep["skipped"]
+        with rasterio.open(out) as ds:
+            zm, tm = ds.read(1), ds.transform
+        assert zm.shape == (10, 20) and (tm.c, tm.c + 20 * tm.a) == pytest.approx(extent)
+        lon, lat = tm @ np.meshgrid(np.arange(20) + 0.5, np.arange(10) + 0.5)
+        assert np.all(np.abs(zm - height(lon, lat)) < 0.5)
