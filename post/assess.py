@@ -398,7 +398,8 @@ def _misses(dem: DEM, transform, crs, shape) -> bool:
         np.concatenate([zero, t, one, t]) * rows,
     )
     x, y = rasterio.warp.transform(warp._rio_crs(crs), warp._rio_crs(dem.crs), x, y)
-    c, r = ~dem.transform @ (np.asarray(x), np.asarray(y))
+    dem_t = warp.beside(dem.transform, dem.crs, dem.shape, transform, crs, shape)
+    c, r = ~dem_t @ (np.asarray(x), np.asarray(y))
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(r))):
         return False
     m, (n_r, n_c) = MISS_MARGIN_CELLS, dem.shape

@@ -67,6 +67,7 @@ def to_grid(
     does not depend on it."""
     _ignore_in_memory_warp_warning()
     src = np.asarray(data)
+    src_transform = beside(src_transform, src_crs, src.shape, dst_transform, dst_crs, dst_shape)
     if np.issubdtype(np.dtype(dst_dtype), np.floating):
         src = src.astype(np.float32, copy=False)
         fill = np.nan
@@ -86,6 +87,28 @@ def to_grid(
         num_threads=max(1, int(threads or 1)),
     )
     return dst
+
+
+def _turn(a_west, a_east, b_west, b_east) -> float:
+    """Whole turns (degrees, a multiple of 360) that put longitudes ``b_west..b_east`` nearest
+    ``a_west..a_east``: 0 unless they lie on either side of the antimeridian."""
+    return 360.0 * round(((a_west + a_east) - (b_west + b_east)) / 720.0)
+
+
+def beside(src_transform, src_crs, src_shape, dst_transform, dst_crs, dst_shape) -> Affine:
+    """``src_transform`` moved by whole turns of longitude beside the grid ``dst_transform``
+    when both CRSs are geographic (a DEM at 179.97..180.03 E and a reference tile at
+    -180..-179.9 E overlap; GDAL does not wrap between grids in one geographic CRS, so
+    warping one onto the other gave no cell); unchanged otherwise."""
+    if not (terrain._is_geographic(src_crs) and terrain._is_geographic(dst_crs)):
+        return src_transform
+    turn = _turn(
+        dst_transform.c,
+        dst_transform.c + dst_transform.a * dst_shape[-1],
+        src_transform.c,
+        src_transform.c + src_transform.a * src_shape[-1],
+    )
+    return Affine.translation(turn, 0.0) @ src_transform if turn else src_transform
 
 
 def _rio_crs(crs):
@@ -151,9 +174,11 @@ def shift_in_pixels(transform, crs, shape, east_m: float, north_m: float):
 
 
 def check_overlap(a_bounds, b_bounds, a_name="DEM", b_name="reference"):
-    """Raise :class:`NoOverlapError` if two (west, south, east, north) boxes do not overlap."""
-    w = max(a_bounds[0], b_bounds[0])
-    e = min(a_bounds[2], b_bounds[2])
+    """Raise :class:`NoOverlapError` if two (west, south, east, north) boxes do not overlap
+    (longitudes compared modulo 360 degrees: 179.97..180.03 overlaps -180..-179.9)."""
+    turn = _turn(a_bounds[0], a_bounds[2], b_bounds[0], b_bounds[2])
+    w = max(a_bounds[0], b_bounds[0] + turn)
+    e = min(a_bounds[2], b_bounds[2] + turn)
     s = max(a_bounds[1], b_bounds[1])
     n = min(a_bounds[3], b_bounds[3])
     if w >= e or s >= n:

@@ -20,6 +20,7 @@ from stereodem.core.errors import (
 )
 from stereodem.core.raster import write_geotiff
 from stereodem.post import assess, figures
+from stereodem.post.coreg import reference_on_grid
 from stereodem.post.report import write_report
 from stereodem.post.warp import to_grid
 
@@ -101,6 +102,27 @@ def test_bad_inputs_are_clear_errors(ref):
     )
     with pytest.raises(NoOverlapError):
         assess.assess_dem(half, sub)
+
+
+def test_grids_either_side_of_the_antimeridian_are_compared(ref):
+    """A lon/lat DEM at 179.97..180.03 E and a reference tile at -180..-179.9 E (both
+    EPSG:4326) overlap by 0.03 degrees, but assess, coregister and change refused them as
+    not overlapping (and GDAL, which does not wrap within one geographic CRS, warped no cell
+    of one onto the other)."""
+
+    def dem(west, res, shape, name):
+        t = Affine(res, 0, west, 0, -res, 65.1)
+        lon, lat = t @ np.meshgrid(np.arange(shape[1]) + 0.5, np.arange(shape[0]) + 0.5)
+        z = 1000 + 50 * np.sin(np.radians((lon - 180.0) % 360.0) * 200) + 800 * (lat - 65)
+        return DEM(z.astype(np.float32), t, "EPSG:4326", "geoid", name)
+
+    a = dem(179.97, 0.0005, (100, 120), "a.tif")
+    b = dem(-180.0, 0.0004, (125, 250), "b.tif")
+    for d, r, n in ((a, b, 75 * 125), (b, a, 60 * 100)):
+        rep = assess.assess_dem(d, r).report
+        assert rep["stats"]["n"] == n and abs(rep["stats"]["mean"]) < 0.01, rep["stats"]
+    z = reference_on_grid(b, a)
+    assert np.isfinite(z[:, 62:-2]).all() and not np.isfinite(z[:, :58]).any()
 
 
 def test_an_assessment_on_a_few_cells_warns(ref, caplog):
