@@ -306,3 +306,17 @@ def test_heights_in_feet_are_read_in_metres(tmp_path):
     assert DEM.from_file(tmp_path / "ft.tif").heights == pytest.approx(1600.0 * 0.3048)
     # metres stay as they are (an EGM96 compound CRS, or a band unit of metre)
     assert np.all(DEM.from_file(tmp_path / "m.tif").heights == 3000.0)
+
+
+def test_a_lon_lat_dem_is_sampled_across_the_antimeridian():
+    """A lon/lat DEM stored at 179.97..180.03 E reported the point -179.99 E on it as outside
+    (and one stored at 0..360 E every point west of Greenwich): longitudes were compared
+    without wrapping."""
+    t = Affine(0.01, 0, 179.97, 0, -0.01, 65.1)
+    d = DEM(np.arange(60, dtype=np.float32).reshape(10, 6), t, "EPSG:4326", "geoid")
+    z, status = d.sample(
+        [-179.985, 179.975 + 360], [65.095, 65.005], return_status=True, reference=None
+    )
+    assert list(status) == [0, 0] and list(z) == pytest.approx([4.0, 54.0])
+    g = DEM(np.arange(36, dtype=np.float32)[None].repeat(3, 0), Affine(10, 0, 0, 0, -10, 30), 4326)
+    assert g.sample(-5.0, 15.0, reference=None) == pytest.approx(35.0)
