@@ -175,10 +175,14 @@ def shift_in_pixels(transform, crs, shape, east_m: float, north_m: float):
 
 def check_overlap(a_bounds, b_bounds, a_name="DEM", b_name="reference"):
     """Raise :class:`NoOverlapError` if two (west, south, east, north) boxes do not overlap
-    (longitudes compared modulo 360 degrees: 179.97..180.03 overlaps -180..-179.9)."""
-    turn = _turn(a_bounds[0], a_bounds[2], b_bounds[0], b_bounds[2])
-    w = max(a_bounds[0], b_bounds[0] + turn)
-    e = min(a_bounds[2], b_bounds[2] + turn)
+    (longitudes compared modulo 360 degrees: 179.97..180.03 overlaps -180..-179.9; a box whose
+    west exceeds its east, as GDAL gives a footprint across the antimeridian, ends east of
+    180)."""
+    aw, ae = a_bounds[0], a_bounds[2] + (360.0 if a_bounds[0] > a_bounds[2] else 0.0)
+    bw, be = b_bounds[0], b_bounds[2] + (360.0 if b_bounds[0] > b_bounds[2] else 0.0)
+    turn = _turn(aw, ae, bw, be)
+    w = max(aw, bw + turn)
+    e = min(ae, be + turn)
     s = max(a_bounds[1], b_bounds[1])
     n = min(a_bounds[3], b_bounds[3])
     if w >= e or s >= n:

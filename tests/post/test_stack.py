@@ -500,3 +500,24 @@ def test_header_footprint_of_a_south_up_or_ungeoreferenced_dem(tmp_path):
         ds.write(np.ones((1, 3, 4), np.float32))
     with pytest.raises(DEMError, match=r"no_transform\.tif: the DEM has no geotransform"):
         header_bounds_lonlat(tmp_path / "no_transform.tif")
+
+
+def test_a_projected_dem_across_the_antimeridian_overlaps_its_reference(tmp_path):
+    """GDAL gives the footprint of a UTM zone 1 DEM across 180 E as west 179.98 > east
+    -179.98: `stack` refused it as not overlapping a reference over the same ground."""
+    from stereodem.core import geodesy
+    from stereodem.post.stack_build import check_inputs
+
+    x0, y0 = geodesy.lonlat_to_crs(180.0, 60.0, "EPSG:32601")
+    t = Affine(100, 0, float(x0) - 1000, 0, -100, float(y0) + 1000)
+    prof = dict(driver="GTiff", width=20, height=20, count=1, dtype="float32")
+    for name in ("a.tif", "b.tif"):
+        with rasterio.open(tmp_path / name, "w", crs="EPSG:32601", transform=t, **prof) as ds:
+            ds.write(np.full((1, 20, 20), 500.0, np.float32))
+    ref = DEM(
+        np.full((30, 30), 500.0, np.float32), Affine(0.001, 0, 179.985, 0, -0.001, 60.015), 4326
+    )
+    check_inputs([tmp_path / "a.tif", tmp_path / "b.tif"], ref)  # no NoOverlapError
+    far = DEM(ref.heights, Affine(0.001, 0, 170.0, 0, -0.001, 60.015), 4326, path="far.tif")
+    with pytest.raises(InputError, match="does not overlap the reference far.tif"):
+        check_inputs([tmp_path / "a.tif", tmp_path / "b.tif"], far)
