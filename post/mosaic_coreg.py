@@ -29,6 +29,7 @@ from stereodem.core.dem import DEM, _vertical_from_crs, height_scaling, horizont
 from stereodem.core.errors import ConvergenceError, DEMError, InputError, NoOverlapError
 from stereodem.core.raster import reading_env
 
+from . import warp
 from .assess import coregistration_summary
 from .coreg import parse_chain
 
@@ -132,8 +133,14 @@ def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -
         with reading_env(), rasterio.open(path) as ds:
             if ds.crs is None:
                 raise DEMError(f"{path}: the reference DEM has no CRS")
-            b = transform_bounds(horizontal_crs(crs).to_wkt(), ds.crs, *bounds, densify_pts=21)
-            win = from_bounds(*b, transform=ds.transform)
+            w, s, e, n = transform_bounds(
+                horizontal_crs(crs).to_wkt(), ds.crs, *bounds, densify_pts=21
+            )
+            if ds.crs.is_geographic:  # across the antimeridian: west > east, as GDAL gives it
+                e += 360.0 if w > e else 0.0
+                turn = warp._turn(ds.bounds.left, ds.bounds.right, w, e)
+                w, e = w + turn, e + turn
+            win = from_bounds(w, s, e, n, transform=ds.transform)
             c0 = max(int(np.floor(win.col_off)) - margin_cells, 0)
             r0 = max(int(np.floor(win.row_off)) - margin_cells, 0)
             c1 = min(int(np.ceil(win.col_off + win.width)) + margin_cells, ds.width)
@@ -154,6 +161,8 @@ def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -
         raise DEMError(
             f"{path}: cannot read the reference DEM ({str(exc).splitlines()[0][:120]})"
         ) from None
+    except rasterio.errors.WindowError:  # bounds beyond its grid's reach
+        raise NoOverlapError(f"{path}: the reference DEM does not overlap {bounds}") from None
     if not np.isfinite(z).any():
         raise NoOverlapError(f"{path}: the reference DEM has no valid height over {bounds}")
     return DEM(z, t, horizontal_crs(pcrs), vert, path)

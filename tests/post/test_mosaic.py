@@ -665,3 +665,15 @@ def test_dems_either_side_of_the_antimeridian_are_mosaicked_side_by_side(tmp_pat
         assert zm.shape == (10, 20) and (tm.c, tm.c + 20 * tm.a) == pytest.approx(extent)
         lon, lat = tm @ np.meshgrid(np.arange(20) + 0.5, np.arange(10) + 0.5)
         assert np.all(np.abs(zm - height(lon, lat)) < 0.5)
+
+
+def test_a_reference_across_the_antimeridian_is_cropped_for_coregister(tmp_path):
+    """mosaic --coregister of a UTM zone 1 DEM across 180 E against a lon/lat reference at
+    179.98..180.02 E ended in a traceback (rasterio's WindowError): the DEM's footprint in
+    the reference's CRS came back as west 179.98 > east -179.98."""
+    x0, y0 = geodesy.lonlat_to_crs(180.0, 60.0, "EPSG:32601")
+    b = (float(x0) - 500, float(y0) - 500, float(x0) + 500, float(y0) + 500)
+    t = Affine(0.001, 0, 179.98, 0, -0.001, 60.02)
+    write_geotiff(tmp_path / "r.tif", np.full((40, 40), 9.0, np.float32), t, "EPSG:4326", np.nan)
+    ref = pm.crop_reference(tmp_path / "r.tif", b, "EPSG:32601", margin_cells=0)
+    assert ref.transform.c == pytest.approx(179.99, abs=0.002) and ref.shape[1] < 30
