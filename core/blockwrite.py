@@ -60,6 +60,9 @@ class BlockWriter:
         One band description per band; ``units`` one unit each (or one for all).
     vertical : {"geoid", "ellipsoid"} or None
         Vertical reference of the heights, put in the CRS (as :func:`write_geotiff` does).
+    geoid_crs : pyproj.CRS, optional
+        With ``vertical="geoid"``: the geoid's vertical CRS when it is not EGM96
+        (:attr:`stereodem.core.dem.DEM.geoid_crs`).
     creation_options : dict or list of "KEY=VALUE", optional
         COG creation options on top of the project's defaults.
     tags : dict, optional
@@ -74,6 +77,7 @@ class BlockWriter:
         *,
         units="metre",
         vertical=None,
+        geoid_crs=None,
         overwrite=False,
         creation_options=None,
         tags=None,
@@ -87,6 +91,7 @@ class BlockWriter:
             else list(units)
         )
         self.vertical = vertical
+        self.geoid_crs = geoid_crs
         self.co = cog_creation_options(np.float32, creation_options)
         self.tags = {k: str(v) for k, v in (tags or {}).items()}
         if vertical:
@@ -108,7 +113,7 @@ class BlockWriter:
         )
         os.close(fd)
         g = self.grid
-        crs, self._side_crs = geotiff_crs(crs_with_vertical(g.crs, self.vertical))
+        crs, self._side_crs = geotiff_crs(crs_with_vertical(g.crs, self.vertical, self.geoid_crs))
         profile = dict(
             driver="GTiff",
             width=g.width,

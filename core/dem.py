@@ -24,6 +24,7 @@ import numpy as np
 import rasterio
 from affine import Affine
 from pyproj import CRS
+from pyproj.crs import VerticalCRS
 from rasterio.enums import MaskFlags
 
 from stereodem.core import geodesy
@@ -37,6 +38,7 @@ from stereodem.core.errors import (
 from stereodem.core.grid import MapGrid
 from stereodem.core.raster import (
     VERTICAL_TAG,
+    crs_with_vertical,
     parse_creation_options,
     read_image,
     reading_env,
@@ -194,6 +196,35 @@ _FEET_M = {
 }
 
 
+def other_geoid(crs: CRS | None) -> CRS | None:
+    """The vertical part of a compound ``crs`` when it is a gravity-related height above
+    another geoid than EGM96 (EGM2008 height, EPSG:3855; NAVD88 height, EPSG:5703; ...), else
+    None (EGM96 height, EPSG:5773, is the geoid of every conversion here)."""
+    try:
+        pcrs = CRS.from_user_input(crs) if crs is not None else None
+    except Exception:
+        return None
+    if pcrs is None or not pcrs.is_compound:
+        return None
+    for sub in pcrs.sub_crs_list:
+        if sub.is_vertical and "ellipsoid" not in sub.name.lower():
+            if "egm96" in sub.name.lower():
+                return None
+            unit = sub.axis_info[0].unit_name.lower() if sub.axis_info else "metre"
+            if unit not in ("metre", "meter", "m"):  # heights are read in metres (feet: 0.3048)
+                return VerticalCRS(name=f"{sub.datum.name} height", datum=sub.datum)
+            return sub
+    return None
+
+
+def geoid_name(dem: DEM) -> str | None:
+    """The name of the geoid ``dem``'s heights are above (``"EGM96 height"`` unless its file
+    named another: :attr:`DEM.geoid_crs`); None when they are not geoid heights."""
+    if dem.vertical != GEOID:
+        return None
+    return dem.geoid_crs.name if dem.geoid_crs is not None else "EGM96 height"
+
+
 def height_unit_m(ds, band: int = 1, crs: CRS | None = None) -> float:
     """Metres per stored height unit of band ``band`` of the open raster ``ds``: a foot when
     its unit (GDAL's unit type) or else the vertical axis of its CRS (``crs``, the file's
@@ -314,6 +345,11 @@ class DEM:
     count, score, ray_gap, sigma, edit_mask : ndarray (rows, cols), optional
         Companion layers on the same grid (:data:`LAYERS`): points per cell (int), mean
         correlation score, mean ray gap (m), vertical σ (m), edit code (uint8).
+    geoid_crs : pyproj.CRS, optional
+        With ``vertical == "geoid"``: the vertical CRS of the heights when its file names a
+        geoid other than EGM96 (EGM2008 height, NAVD88 height, ...; :func:`other_geoid`);
+        None for EGM96, the geoid of every conversion here. Written back with the heights,
+        and :meth:`to_reference` warns that its conversion uses EGM96.
 
     A DEM read or built as an input must hold a valid height; a stereo product (one with a
     ``count`` layer) may be all void (nothing matched: reported, not refused).
@@ -329,6 +365,7 @@ class DEM:
     ray_gap: np.ndarray | None = None
     sigma: np.ndarray | None = None
     edit_mask: np.ndarray | None = None
+    geoid_crs: CRS | None = None
     _lonlat_is_native: bool = field(init=False, repr=False, default=False)
 
     def __post_init__(self):
@@ -412,6 +449,7 @@ class DEM:
             raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
         _void_implausible(heights, path, n_sentinel)
         vert = vertical or _vertical_from_crs(crs) or (tag.lower() if tag else None)
+        geoid = other_geoid(crs) if vert == GEOID else None
         found = {}
         for name in tuple(LAYERS) if layers is True else layers or ():
             lp = LAYERS[name].path(path)
@@ -421,7 +459,7 @@ class DEM:
                     raise InputError(
                         f"{lp}: {found[name].shape} cells, but the DEM has {heights.shape}"
                     )
-        return cls(heights, transform, horizontal_crs(crs), vert, path, **found)
+        return cls(heights, transform, horizontal_crs(crs), vert, path, geoid_crs=geoid, **found)
 
     @staticmethod
     def check_file(path, vertical: str | None = None, band: int = 1) -> None:
@@ -566,12 +604,21 @@ class DEM:
         """A copy of this DEM with heights converted to ``to`` (``geoid`` or ``ellipsoid``)."""
         if self.vertical == to:
             return self
+        if self.geoid_crs is not None:
+            log.warning(
+                "%s: heights above %s converted to the %s with EGM96, stereodem's geoid: off "
+                "by the separation of the two (EGM2008 - EGM96: within about 1 m over most "
+                "land, a few metres in high mountains)",
+                self.path or "DEM",
+                self.geoid_crs.name,
+                to,
+            )
         rows, cols = self.shape
         cc, rr = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
         x, y = self.transform @ (cc, rr)
         lon, lat = geodesy.crs_to_lonlat(x, y, self.crs)
         z = self.convert_heights(lon, lat, self.heights.astype(np.float64), to)
-        return dataclasses.replace(self, heights=z.astype(np.float32), vertical=to)
+        return dataclasses.replace(self, heights=z.astype(np.float32), vertical=to, geoid_crs=None)
 
     def height_range(self, reference: str | None = ELLIPSOID):
         """(min, max) of the valid heights, in the requested reference (metres)."""
@@ -638,6 +685,8 @@ class DEM:
             if layers and getattr(self, name) is not None
         }
         transform, crs, vertical = self.transform, self.crs, self.vertical
+        if vertical == GEOID and self.geoid_crs is not None:  # its own geoid, not EGM96's
+            crs = crs_with_vertical(crs, vertical, self.geoid_crs)
         kw = dict(overwrite=overwrite, creation_options=creation_options)
 
         writes = {

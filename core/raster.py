@@ -350,14 +350,16 @@ def predictor_for(dtype) -> str:
     return "3" if np.issubdtype(np.dtype(dtype), np.floating) else "2"
 
 
-def crs_with_vertical(crs, vertical: str | None):
+def crs_with_vertical(crs, vertical: str | None, geoid_crs=None):
     """``crs`` (horizontal) with the vertical reference of the heights in it.
 
-    ``"geoid"`` gives the compound CRS *horizontal + EGM96 height* (EPSG:5773), written in the
-    GeoTIFF keys; ``"ellipsoid"`` gives the horizontal CRS promoted to 3-D with a *WGS 84
-    ellipsoidal height* axis (EPSG:4979 for geographic grids). GeoTIFF keys cannot encode a
-    projected CRS with ellipsoidal heights: :func:`geotiff_crs` says how such a file is
-    written. ``None`` returns ``crs`` unchanged.
+    ``"geoid"`` gives the compound CRS *horizontal + EGM96 height* (EPSG:5773), or
+    *horizontal + geoid_crs* when the heights are above another geoid (EGM2008 height, ...:
+    :attr:`stereodem.core.dem.DEM.geoid_crs`), written in the GeoTIFF keys; ``"ellipsoid"``
+    gives the horizontal CRS promoted to 3-D with a *WGS 84 ellipsoidal height* axis
+    (EPSG:4979 for geographic grids). GeoTIFF keys cannot encode a projected CRS with
+    ellipsoidal heights: :func:`geotiff_crs` says how such a file is written. ``None``
+    returns ``crs`` unchanged.
     """
     if crs is None or vertical is None:
         return crs
@@ -365,7 +367,8 @@ def crs_with_vertical(crs, vertical: str | None):
     if h.is_compound or len(h.axis_info) == 3:
         return h  # already carries a vertical axis
     if vertical == "geoid":
-        return PCRS.from_user_input(CompoundCRS(f"{h.name} + EGM96 height", [h, PCRS("EPSG:5773")]))
+        v = PCRS("EPSG:5773") if geoid_crs is None else PCRS.from_user_input(geoid_crs)
+        return PCRS.from_user_input(CompoundCRS(f"{h.name} + {v.name}", [h, v]))
     if vertical == "ellipsoid":
         return (
             PCRS("EPSG:4979") if h.equals(PCRS("EPSG:4326"), ignore_axis_order=True) else h.to_3d()

@@ -31,7 +31,7 @@ import rasterio.warp
 from affine import Affine
 
 from stereodem.core import geodesy, interrupt
-from stereodem.core.dem import DEM, as_dem
+from stereodem.core.dem import DEM, as_dem, geoid_name
 from stereodem.core.errors import (
     CRSError,
     DEMError,
@@ -67,6 +67,18 @@ def reconcile_vertical(dem: DEM, reference: DEM) -> tuple[DEM, str]:
     """
     a, b = dem.vertical, reference.vertical
     if a == b:
+        ga, gb = geoid_name(dem), geoid_name(reference)
+        if ga != gb:  # EGM2008 against EGM96 heights: no conversion here between the two
+            log.warning(
+                "%s: heights above %s compared with %s's above %s as if one geoid: off by "
+                "their separation (EGM2008 - EGM96: within about 1 m over most land, a few "
+                "metres in high mountains)",
+                dem.path or "DEM",
+                ga,
+                reference.path or "the reference",
+                gb,
+            )
+            return dem, f"both geoid, but {ga} and {gb}: compared unconverted"
         return dem, (f"both {a}" if a else "both unknown; assumed identical")
     if a is None or b is None:
         unknown = dem if a is None else reference

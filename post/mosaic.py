@@ -45,6 +45,7 @@ from dataclasses import asdict, dataclass, field, replace
 import cv2
 import numpy as np
 import rasterio
+from pyproj import CRS
 from rasterio.enums import Resampling
 from rasterio.vrt import WarpedVRT
 from rasterio.windows import Window
@@ -59,6 +60,7 @@ from stereodem.core.stats import nanmedian, nmad
 from .mosaic_coreg import check_reference, crop_reference, fitter
 from .mosaic_sources import (
     Source,
+    mosaic_geoid,
     open_sources,
     output_grid,
     reconcile_vertical,
@@ -111,6 +113,9 @@ class MosaicPlan:
         ``p`` of the blending weight.
     use_sigma : bool
         Every DEM carries a σ layer: ``blend`` weights by 1/σ² and propagates σ.
+    geoid_wkt : str or None
+        With ``vertical == "geoid"``: the output's geoid (vertical CRS, WKT) when it is not
+        EGM96 (:func:`~stereodem.post.mosaic_sources.mosaic_geoid`).
     """
 
     grid: MapGrid
@@ -122,6 +127,7 @@ class MosaicPlan:
     weights_exponent: float = 2.0
     use_sigma: bool = False
     report: dict = field(default_factory=dict, compare=False)
+    geoid_wkt: str | None = None
 
     @property
     def halo(self) -> int:
@@ -129,8 +135,9 @@ class MosaicPlan:
 
     def bands(self) -> list[str]:
         """Band descriptions of the output."""
+        geoid = CRS.from_wkt(self.geoid_wkt).name if self.geoid_wkt else "EGM96 height"
         what = {
-            GEOID: "height above the EGM96 geoid",
+            GEOID: f"height above the {geoid.removesuffix(' height')} geoid",
             ELLIPSOID: "height above the WGS84 ellipsoid",
         }
         if self.method in SINGLE_BAND:
@@ -220,6 +227,7 @@ def plan_mosaic(
     grid, placed = output_grid(sources, crs=crs, res=res, bounds=bounds)
     used, outside, islands = select_sources(placed, grid)
     skipped += outside
+    geoid = mosaic_geoid(used, target)
     sigma = bool(use_sigma) and all(s.sigma is not None for s in used)
     if use_sigma and not sigma and any(s.sigma is not None for s in used):
         log.warning(
@@ -239,6 +247,7 @@ def plan_mosaic(
         skipped=skipped,
         islands=islands,
         vertical=target,
+        geoid=(CRS.from_wkt(geoid).name if geoid else "EGM96 height") if target == GEOID else None,
         vertical_conversions=conversions,
         sigma_weighting=sigma,
         coregistration=coreg,
@@ -261,6 +270,7 @@ def plan_mosaic(
         float(weights_exponent),
         sigma,
         report,
+        geoid,
     )
     k = max_overlap(plan)
     report.update(
@@ -628,6 +638,7 @@ def run_mosaic(
         plan.bands(),
         units=plan.units(),
         vertical=plan.vertical,
+        geoid_crs=CRS.from_wkt(plan.geoid_wkt) if plan.geoid_wkt else None,
         overwrite=overwrite,
         creation_options=creation_options,
         tags=tags,

@@ -29,6 +29,7 @@ from stereodem.core.dem import (
     _vertical_from_crs,
     check_georeferenced,
     horizontal_crs,
+    other_geoid,
 )
 from stereodem.core.errors import (
     CRSError,
@@ -43,6 +44,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "Source",
+    "mosaic_geoid",
     "open_source",
     "open_sources",
     "output_grid",
@@ -67,6 +69,9 @@ class Source:
     width, height : int
     vertical : {"geoid", "ellipsoid"} or None
         Vertical reference of the heights (None: the file does not say).
+    geoid_wkt : str or None
+        With ``vertical == "geoid"``: the vertical CRS (WKT) when the file names a geoid other
+        than EGM96 (:func:`stereodem.core.dem.other_geoid`).
     sigma : (path, band) or None
         Where the DEM's 1σ vertical layer (m) is.
     bounds : tuple
@@ -89,6 +94,7 @@ class Source:
     bounds: tuple = ()
     shift_m: tuple = (0.0, 0.0)
     dz: float = 0.0
+    geoid_wkt: str | None = None
     info: dict = field(default_factory=dict, compare=False)
 
     @property
@@ -138,6 +144,7 @@ def open_source(path, order: int = 0, *, vertical: str | None = None) -> Source:
             crs = CRS.from_wkt(ds.crs.to_wkt())
             tag = ds.tags().get(VERTICAL_TAG)
             vert = _vertical_from_crs(crs) or (tag.lower() if tag else None) or vertical
+            geoid = other_geoid(crs) if vert == GEOID else None
             return Source(
                 str(path),
                 order,
@@ -148,6 +155,7 @@ def open_source(path, order: int = 0, *, vertical: str | None = None) -> Source:
                 vert,
                 _sigma_layer(path, ds),
                 bounds=tuple(ds.bounds),
+                geoid_wkt=geoid.to_wkt() if geoid is not None else None,
             )
     except rasterio.errors.RasterioIOError as exc:
         raise DEMError(f"{path}: cannot read the DEM ({str(exc).splitlines()[0][:120]})") from None
@@ -193,6 +201,35 @@ def reconcile_vertical(sources, target: str | None = None) -> str | None:
             "say it with --dem-vertical geoid|ellipsoid"
         )
     return target or sources[0].vertical
+
+
+def mosaic_geoid(sources, target: str | None) -> str | None:
+    """The vertical CRS (WKT) of a geoid mosaic's heights when its geoid is not EGM96: the
+    first geoid DEM's; None for EGM96 or a mosaic of other heights. DEMs above different
+    geoids (EGM2008 and EGM96 tiles), or a conversion with EGM96 (the only geoid of the
+    conversions here) of heights above another, are mosaicked with a warning naming them:
+    their seams carry the separation of the geoids (EGM2008 - EGM96: within about 1 m over
+    most land, a few metres in high mountains)."""
+
+    def name(s):
+        return CRS.from_wkt(s.geoid_wkt).name if s.geoid_wkt else "EGM96 height"
+
+    geoids = [s for s in sources if s.vertical == GEOID]
+    names = {name(s) for s in geoids}
+    converted = [s for s in sources if s.vertical is not None and s.vertical != target]
+    mixed = len(names) > 1 or (converted and names - {"EGM96 height"})
+    if mixed:
+        log.warning(
+            "%s: heights above %s mosaicked as %s heights (conversions with EGM96): the seams "
+            "carry the separation of the geoids (EGM2008 - EGM96: within about 1 m over most "
+            "land, a few metres in high mountains)",
+            ", ".join(s.path for s in geoids[:3]) + (" ..." if len(geoids) > 3 else ""),
+            " and ".join(sorted(names)),
+            target,
+        )
+    if target != GEOID or not geoids:
+        return None
+    return geoids[0].geoid_wkt
 
 
 def _anchor(first: Source, crs: CRS, res: float):

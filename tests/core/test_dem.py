@@ -308,6 +308,47 @@ def test_heights_in_feet_are_read_in_metres(tmp_path):
     assert np.all(DEM.from_file(tmp_path / "m.tif").heights == 3000.0)
 
 
+@pytest.mark.parametrize(
+    "crs, name, factor",
+    [
+        ("EPSG:32637+3855", "EGM2008 height", 1.0),
+        ("EPSG:32637+6360", "North American Vertical Datum 1988 height", 1200 / 3937),
+    ],
+)
+def test_a_geoid_other_than_egm96_is_kept_and_its_conversion_warns(
+    tmp_path, caplog, crs, name, factor
+):
+    """Heights above EGM2008 (the Copernicus DEM's geoid) or NAVD88 were taken for EGM96
+    heights: written back as EGM96 (EPSG:5773), converted to the ellipsoid with EGM96 and
+    compared with EGM96 heights without a word (an error up to a few metres)."""
+    from stereodem.core.dem import geoid_name
+    from stereodem.post.assess import reconcile_vertical
+
+    a = np.full((6, 6), 1000.0, np.float32)
+    with rasterio.open(_dem_file(tmp_path / "g.tif", a), "r+") as ds:
+        ds.crs = rasterio.crs.CRS.from_user_input(crs)
+    d = DEM.from_file(tmp_path / "g.tif")
+    assert d.vertical == "geoid" and geoid_name(d) == name
+    assert d.heights == pytest.approx(1000.0 * factor)
+    # written back above its own geoid (in metres), not EGM96's
+    back = DEM.from_file(d.write(tmp_path / "back.tif"))
+    assert geoid_name(back) == name and back.heights == pytest.approx(d.heights)
+    # converted with EGM96: said
+    caplog.clear()
+    e = back.to_reference("ellipsoid")
+    assert e.geoid_crs is None and f"heights above {name} converted to the ellipsoid" in (
+        caplog.text
+    )
+    # compared with EGM96 heights: said, and in the note
+    egm96 = DEM(a, d.transform, d.crs, "geoid", "egm96.tif")
+    assert geoid_name(egm96) == "EGM96 height"
+    caplog.clear()
+    _, note = reconcile_vertical(back, egm96)
+    assert f"{name} and EGM96 height" in note and "as if one geoid" in caplog.text
+    caplog.clear()
+    assert reconcile_vertical(back, back)[1] == "both geoid" and not caplog.text
+
+
 def test_a_lon_lat_dem_is_sampled_across_the_antimeridian():
     """A lon/lat DEM stored at 179.97..180.03 E reported the point -179.99 E on it as outside
     (and one stored at 0..360 E every point west of Greenwich): longitudes were compared

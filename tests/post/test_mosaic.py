@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
+from pyproj.crs import CompoundCRS
 from rasterio.warp import Resampling, calculate_default_transform, reproject
 
 import stereodem.post.mosaic as pm
@@ -391,6 +392,43 @@ def test_a_mosaic_without_a_valid_cell_is_refused(tmp_path, capsys, which, metho
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err
     assert re.search(words, err), err
     assert not out.exists() and not (tmp_path / "m.json").exists()
+
+
+def test_a_mosaic_keeps_its_dems_geoid_and_says_when_geoids_are_mixed(tmp_path, caplog):
+    """Tiles of heights above EGM2008 (the Copernicus DEM's geoid) made a mosaic labelled
+    EGM96 (EPSG:5773 in its CRS, "height above the EGM96 geoid"); EGM2008 and EGM96 tiles were
+    blended without a word (their seams carry the separation of the two geoids)."""
+    from pyproj import CRS as PCRS
+
+    egm08 = PCRS("EPSG:3855")
+    for name, r0 in (("a", 0), ("b", 40)):
+        z, t = terrain(50, 50, r0, 0), Affine(RES, 0, X0, 0, -RES, Y0 - r0 * RES)
+        write_geotiff(tmp_path / f"{name}.tif", z, t, CRS, np.nan, vertical="geoid")
+        write_geotiff(  # the same above EGM2008
+            tmp_path / f"{name}08.tif",
+            z,
+            t,
+            PCRS.from_user_input(CompoundCRS("x", [PCRS(CRS), egm08])),
+            np.nan,
+            vertical="geoid",
+        )
+    caplog.clear()
+    rep = run_mosaic(plan_mosaic([tmp_path / "a08.tif", tmp_path / "b08.tif"]), tmp_path / "m.tif")
+    assert rep["geoid"] == "EGM2008 height" and "separation" not in caplog.text
+    with rasterio.open(tmp_path / "m.tif") as ds:
+        assert "EGM2008" in ds.crs.to_wkt() and "EGM96" not in ds.crs.to_wkt()
+        assert ds.descriptions[0] == "height above the EGM2008 geoid"
+    back = _DEM.from_file(tmp_path / "m.tif")
+    assert back.vertical == "geoid" and back.geoid_crs.name == "EGM2008 height"
+    # EGM2008 and EGM96 tiles: mosaicked, and said
+    rep = run_mosaic(plan_mosaic([tmp_path / "a08.tif", tmp_path / "b.tif"]), tmp_path / "x.tif")
+    assert "EGM2008 height and EGM96 height" in caplog.text and "a08.tif" in caplog.text
+    # EGM96 tiles alone: EGM96, nothing said
+    caplog.clear()
+    rep = run_mosaic(plan_mosaic([tmp_path / "a.tif", tmp_path / "b.tif"]), tmp_path / "e.tif")
+    assert rep["geoid"] == "EGM96 height" and not caplog.text
+    with rasterio.open(tmp_path / "e.tif") as ds:
+        assert ds.descriptions[0] == "height above the EGM96 geoid"
 
 
 def test_an_all_void_dem_beside_a_valid_one_is_not_counted_as_used(tmp_path, capsys):
