@@ -782,6 +782,9 @@ _SGBM_MODES = {
     "hh": cv2.STEREO_SGBM_MODE_HH,
     "hh4": cv2.STEREO_SGBM_MODE_HH4,
 }
+#: ``sgm_mode`` and ``subpixel`` choices of :func:`match_rectified`
+SGM_MODES: tuple[str, ...] = tuple(_SGBM_MODES)
+SUBPIXELS: tuple[str, ...] = ("parabola", "vfit")
 
 
 def _sgbm(
@@ -1048,20 +1051,20 @@ def match_rectified(
     disp_range,
     matcher="ncc",
     *,
-    window=None,
-    min_score=None,
-    min_std=None,
-    lr_tolerance=1.0,
-    subpixel="parabola",
-    levels=None,
-    margin=2,
-    vertical_search=0,
-    sgm_mode="sgbm",
-    sgm_p1=None,
-    sgm_p2=None,
-    sgm_uniqueness=10,
-    sgm_speckle_window=100,
-    sgm_speckle_range=2,
+    window: int | None = None,
+    min_score: float | None = None,
+    min_std: float | None = None,
+    lr_tolerance: float | None = 1.0,
+    subpixel: str = "parabola",
+    levels: int | None = None,
+    margin: int = 2,
+    vertical_search: int = 0,
+    sgm_mode: str = "sgbm",
+    sgm_p1: int | None = None,
+    sgm_p2: int | None = None,
+    sgm_uniqueness: int = 10,
+    sgm_speckle_window: int = 100,
+    sgm_speckle_range: int = 2,
 ):
     """Dense disparity of a rectified pair (rows correspond).
 
@@ -1126,7 +1129,7 @@ def match_rectified(
         raise InputError(
             f"matcher: unknown {matcher!r}, expected {' or '.join(map(repr, MATCHERS))}"
         )
-    if subpixel not in ("parabola", "vfit"):
+    if subpixel not in SUBPIXELS:
         raise InputError(f"subpixel: unknown {subpixel!r}, expected 'parabola' or 'vfit'")
     if window is None:
         window = 7 if matcher == "ncc" else 5

@@ -74,7 +74,8 @@ class RectificationSettings:
         otherwise the models' whole height validity range is searched.
     sparse_options : dict
         Keyword options of :func:`stereodem.stereo.sparse.sparse_matches` (``max_offset``,
-        ``ratio``, ``max_size``, ...).
+        ``ratio``, ``max_size``, ...); an unknown key or a value of the wrong type or range
+        is an error when the configuration is read.
     """
 
     tile_size: int = 512
@@ -98,7 +99,9 @@ class MatchingSettings:
     matcher : {"sgm", "ncc"}
         OpenCV semi-global matching or coarse-to-fine ZNCC.
     options : dict
-        Keyword options of :func:`stereodem.stereo.match.match_rectified` (window, min_score, ...).
+        Keyword options of :func:`stereodem.stereo.match.match_rectified` (window, min_score,
+        ...); an unknown key or a value of the wrong type or range is an error when the
+        configuration is read.
     """
 
     matcher: Matcher = "sgm"

@@ -453,7 +453,7 @@ def sparse_matches(
     n_features: int = 4000,
     n_heights: int = 5,
     refine: bool = True,
-    left_window=None,
+    left_window: tuple | None = None,
     threads: int | None = None,
 ) -> SparseMatches:
     """SIFT matches between two images, checked through their sensor models.

@@ -43,6 +43,8 @@ Sections (every key optional except ``inputs.left``/``inputs.right`` and ``outpu
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import inspect
 import os
 import typing
 from dataclasses import dataclass, field
@@ -488,6 +490,48 @@ def _check_value(value, annotation: str, where: str):
     return value  # pragma: no cover
 
 
+def unknown_keys(given, known, where: str) -> str | None:
+    """``"unknown key(s) in WHERE: windw (did you mean window?) (known: ...)"``, the keys of
+    ``given`` that are not in ``known`` each with the closest known key when one is close, or
+    None when every key is known."""
+    known = list(known)
+    unknown = sorted(set(given) - set(known))
+    if not unknown:
+        return None
+    said = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, known, n=1)
+        said.append(f"{key} (did you mean {close[0]}?)" if close else key)
+    return f"unknown key(s) in {where}: {', '.join(said)} (known: {', '.join(known)})"
+
+
+def check_options(options: dict, function, where: str) -> dict:
+    """``options``, a table of keyword options passed on to ``function``, with each value
+    checked against (and converted to) the type of its parameter, or :class:`InputError`
+    naming ``where``: a key that is not one of ``function``'s keyword-only parameters (the
+    others are the caller's: passing one of them fails too) or a value of the wrong type.
+    A parameter's type is its annotation, or its default's type."""
+    params = {
+        name: p
+        for name, p in inspect.signature(function).parameters.items()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY
+    }
+    unknown = unknown_keys(options, params, where)
+    if unknown:
+        raise InputError(unknown)
+    checked = {}
+    for key, value in options.items():
+        p = params[key]
+        if isinstance(p.annotation, str):
+            annotation = p.annotation
+        elif p.default is not None and p.default is not inspect.Parameter.empty:
+            annotation = type(p.default).__name__
+        else:
+            annotation = "Any"
+        checked[key] = _check_value(value, annotation, f"{where} {key}")
+    return checked
+
+
 def build_settings(cls, table: dict, section: str, source):
     """A settings object of ``cls`` from a TOML table: unknown keys and values of the wrong
     type are :class:`InputError`\\ s naming the file, section and key."""
@@ -498,12 +542,9 @@ def build_settings(cls, table: dict, section: str, source):
         for f in dataclasses.fields(cls)
         if f.init
     }
-    unknown = set(table) - set(hints)
+    unknown = unknown_keys(table, hints, f"[{section}]")
     if unknown:
-        raise InputError(
-            f"{source}: unknown key(s) in [{section}]: {', '.join(sorted(unknown))} "
-            f"(known: {', '.join(hints)})"
-        )
+        raise InputError(f"{source}: {unknown}")
     values = {k: _check_value(v, hints[k], f"{source}: [{section}] {k}") for k, v in table.items()}
     try:
         return cls(**values)
@@ -580,11 +621,9 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
     out = raw.get("output", {}).get("dir") if isinstance(raw.get("output"), dict) else None
     if not out or not isinstance(out, str):
         raise InputError(f"{source}: [output] needs 'dir'")
-    if set(raw["output"]) - {"dir"}:  # a typo was ignored
-        raise InputError(
-            f"{source}: unknown key(s) in [output]: "
-            f"{', '.join(sorted(set(raw['output']) - {'dir'}))} (known: dir)"
-        )
+    unknown = unknown_keys(raw["output"], ("dir",), "[output]")
+    if unknown:  # a typo was ignored
+        raise InputError(f"{source}: {unknown}")
     tables = {name: dict(inp if name == "inputs" else raw.get(name, {})) for name in SECTIONS}
     for name, keys in _SECTION_PATHS.items():
         for key in keys:
@@ -672,8 +711,15 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[gridding] bounds must be [XMIN, YMIN, XMAX, YMAX] with MIN < MAX, got {list(b)}")
     choice("rectification", "method", rect.method, RECTIFICATION_METHODS)
     choice("matching", "matcher", match.matcher, MATCHERS)
+    _check_stereo_options(rect, match, source, bad, choice)
     if ref.window < 3 or ref.window % 2 == 0:
         bad(f"[refinement] window must be an odd number >= 3, got {ref.window}")
+    # accepted before: a score threshold no ZNCC reaches (every refined match dropped) or a
+    # gain outside the share of the first pass's detail kept (0..1), a distorted DEM
+    if ref.min_score is not None and not -1 <= ref.min_score <= 1:
+        bad(f"[refinement] min_score is a ZNCC, -1..1, got {ref.min_score}")
+    if ref.detail_gain is not None and not 0 <= ref.detail_gain <= 1:
+        bad(f"[refinement] detail_gain must be 0..1, got {ref.detail_gain}")
     if gs.res is not None and not gs.res > 0:
         bad(f"[gridding] res must be positive, got {gs.res}")
 
@@ -746,4 +792,55 @@ def validate(cfg: Config, source="configuration"):
             run.creation_options,
             source=f"{source}: [run] creation_options (or --co)",
             float_products=True,  # a job's DEMs
+        )
+
+
+def _check_stereo_options(rect, match, source, bad, choice):
+    """[matching] options and [rectification] sparse_options: keys and types against the
+    signatures of the functions they are passed to, then the ranges of those whose meaning is
+    clear. (An unknown key or a bad value failed in every tile, ending in "no point was
+    matched in any tile", or at the sparse stage with a traceback.)"""
+    from stereodem.stereo.match import SGM_MODES, SUBPIXELS, match_rectified
+    from stereodem.stereo.sparse import sparse_matches
+
+    where = f"{source}: [matching] options"
+    o = match.options = check_options(match.options, match_rectified, where)
+
+    def at_least(section, key, value, low):
+        if value is not None and not value >= low:
+            bad(f"{section} {key} must be >= {low}, got {value}")
+
+    w = o.get("window")
+    if w is not None and (w < 3 or w % 2 == 0):
+        bad(f"[matching] options window must be an odd number >= 3, got {w}")
+    if o.get("min_score") is not None and not -1 <= o["min_score"] <= 1:
+        bad(f"[matching] options min_score is a ZNCC, -1..1, got {o['min_score']}")
+    for key in ("min_std", "lr_tolerance", "levels", "margin", "vertical_search"):
+        at_least("[matching] options", key, o.get(key), 0)
+    for key in ("sgm_p1", "sgm_p2", "sgm_uniqueness", "sgm_speckle_window", "sgm_speckle_range"):
+        at_least("[matching] options", key, o.get(key), 0)
+    if "subpixel" in o:
+        choice("matching", "options subpixel", o["subpixel"], SUBPIXELS)
+    if "sgm_mode" in o:
+        choice("matching", "options sgm_mode", o["sgm_mode"], SGM_MODES)
+    if o.get("vertical_search") and match.matcher != "ncc":
+        bad("[matching] options vertical_search needs matcher = 'ncc'")
+
+    where = f"{source}: [rectification] sparse_options"
+    o = rect.sparse_options = check_options(rect.sparse_options, sparse_matches, where)
+    if "ratio" in o and not 0 < o["ratio"] <= 1:
+        bad(
+            f"[rectification] sparse_options ratio (Lowe's test) must be in (0, 1], "
+            f"got {o['ratio']}"
+        )
+    if "tolerance" in o and not o["tolerance"] > 0:
+        bad(f"[rectification] sparse_options tolerance must be positive, got {o['tolerance']}")
+    for key, low in (("max_offset", 0), ("max_size", 1), ("n_features", 0), ("n_heights", 2)):
+        at_least("[rectification] sparse_options", key, o.get(key), low)
+    at_least("[rectification] sparse_options", "threads", o.get("threads"), 1)
+    lw = o.get("left_window")
+    if lw is not None and (len(lw) != 4 or not (lw[0] < lw[2] and lw[1] < lw[3])):
+        bad(
+            "[rectification] sparse_options left_window must be [COL0, ROW0, COL1, ROW1] with "
+            f"COL0 < COL1 and ROW0 < ROW1, got {list(lw)}"
         )

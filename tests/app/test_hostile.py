@@ -388,6 +388,41 @@ TOML_CASES = {
         r"sigma dem_height",
     ),
     "output_key_typo": ('dri = "elsewhere"', r"unknown key.*\[output\]: dri"),
+    # accepted before: every tile failed with a TypeError (unknown keyword, a string compared
+    # with a number) and the job ended "no point was matched in any tile", or the sparse
+    # stage failed with a traceback; now one line naming the key, with the closest known one
+    "matching_option_typo": (
+        "[matching]\noptions = {windw = 5}",
+        r"unknown key.*\[matching\] options: windw \(did you mean window\?\)",
+    ),
+    "matching_option_of_the_caller": (
+        "[matching]\noptions = {matcher = 'ncc'}",
+        r"\[matching\] options: matcher",
+    ),
+    "matching_option_string": ('[matching]\noptions = {window = "5"}', r"options window"),
+    "matching_option_min_score_2": ("[matching]\noptions = {min_score = 2}", r"min_score"),
+    "matching_option_sgm_mode": ('[matching]\noptions = {sgm_mode = "fast"}', r"sgm_mode"),
+    "sparse_option_typo": (
+        "[rectification]\nsparse_options = {max_ofset = 80}",
+        r"sparse_options: max_ofset \(did you mean max_offset\?\)",
+    ),
+    "sparse_option_of_the_caller": (
+        "[rectification]\nsparse_options = {height_range = [0, 1]}",
+        r"sparse_options: height_range",
+    ),
+    "sparse_option_ratio_2": ("[rectification]\nsparse_options = {ratio = 2}", r"ratio"),
+    "sparse_option_refine_string": (
+        '[rectification]\nsparse_options = {refine = "yes"}',
+        r"sparse_options refine.*true or false",
+    ),
+    "section_key_typo": ('[matching]\nmatchr = "ncc"', r"matchr \(did you mean matcher\?\)"),
+    # accepted before, and the run succeeded: a score threshold no ZNCC reaches dropped every
+    # refined match (min_score), a negative gain turned the first pass's detail upside down
+    "refinement_min_score_5": ("[refinement]\nmin_score = 5", r"\[refinement\] min_score"),
+    "refinement_detail_gain_negative": (
+        "[refinement]\ndetail_gain = -1",
+        r"\[refinement\] detail_gain",
+    ),
 }
 
 
