@@ -168,6 +168,22 @@ def _model_fingerprint(model) -> bytes:
     return pickle.dumps(model, protocol=4)
 
 
+class OtherJobTilesError(InputError):
+    """A resumed job's tile cache ``cache_dir`` holds the tiles of a job with other inputs or
+    settings (the message is ``stereodem run``'s: a caller without ``--resume``, such as
+    ``batch``, words its own from ``cache_dir``)."""
+
+    def __init__(self, cache_dir):
+        self.cache_dir = cache_dir
+        super().__init__(cache_dir)
+
+    def __str__(self):
+        return (
+            f"{self.cache_dir}: the cached tiles belong to a run with other inputs or "
+            "settings; run again without --resume (and with --overwrite)"
+        )
+
+
 def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
     """Keep the tile cache consistent with this job: on ``resume`` the cache must hold tiles of
     the same job (else :class:`InputError`); otherwise old tiles are removed first. The
@@ -178,10 +194,7 @@ def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
     except (ValueError, AttributeError, UnicodeDecodeError):
         old = "unreadable"
     if resume and old is not None and old != key:
-        raise InputError(
-            f"{cache_dir}: the cached tiles belong to a run with other inputs or "
-            "settings; run again without --resume (and with --overwrite)"
-        )
+        raise OtherJobTilesError(cache_dir)
     if not resume or old is None:
         for f in cache_dir.glob("tile_*.npz"):
             f.unlink()

@@ -45,6 +45,7 @@ from stereodem.core.threads import (
     thread_budget,
     worker_threads,
 )
+from stereodem.stereo.execution import OtherJobTilesError
 
 from .config import config_from_dict, load_config
 from .pipeline.job import run
@@ -305,6 +306,15 @@ def run_scene(
             "stages": {k: v.get("seconds") for k, v in info.get("stages", {}).items()},
             "headline": info.get("headline"),
         }
+    except OtherJobTilesError as exc:
+        # a failed or interrupted scene edited since: its tiles are not reused; run's message
+        # said "run again without --resume", a flag batch does not have
+        row.status = "failed"
+        row.reason = (
+            f"{exc.cache_dir}: the cached tiles belong to a run with other inputs or settings "
+            f"than {scene.path} now has; pass --overwrite to recompute that scene (or use "
+            "another -o)"
+        )
     except StereodemError as exc:
         row.status, row.reason = "failed", _one_line(exc)
     except MemoryError:

@@ -167,3 +167,34 @@ def test_a_done_scene_whose_configuration_changed_is_not_skipped(tmp_path, monke
     row = run_batch(expand_inputs(["a.toml"]), out, workers=1)["scenes"][0]
     assert row["status"] == "failed" and "run.json: done with other settings" in row["reason"]
     assert "--overwrite" in row["reason"]
+
+
+def test_a_failed_scene_whose_configuration_changed_says_what_batch_takes(tmp_path, monkeypatch):
+    """A scene that failed (or was interrupted) and was edited since is refused by the tile
+    cache's resume check; the reason was stereodem run's, "run again without --resume (and
+    with --overwrite)", and batch has no --resume flag. It says to pass --overwrite (or use
+    another -o); and --overwrite recomputes the scene."""
+    from stereodem.stereo.execution import _check_tile_cache
+
+    cfg = tmp_path / "a.toml"
+    cfg.write_text(CONFIG.format(d=tmp_path / "data"))
+    out = tmp_path / "out"
+    tiles = out / "a" / "tiles"
+    tiles.mkdir(parents=True)
+    (tiles / "job.json").write_text(json.dumps({"key": "the failed run's settings"}))
+    (tiles / "tile_0.npz").write_bytes(b"a finished tile of the failed run")
+
+    def run(c):  # the job up to its tile cache check (stereodem.stereo.execution), no stereo
+        _check_tile_cache(tiles, "the edited configuration's", c.run.resume)
+        return {}
+
+    monkeypatch.setattr("stereodem.batch.run", run)
+    row = run_batch(expand_inputs([cfg]), out, workers=1)["scenes"][0]
+    assert row["status"] == "failed"
+    assert row["reason"].startswith(f"{tiles}: the cached tiles belong to a run with other")
+    assert "pass --overwrite to recompute that scene" in row["reason"]
+    assert "--resume" not in row["reason"]
+    assert (tiles / "tile_0.npz").exists()  # kept: nothing was recomputed
+    row = run_batch(expand_inputs([cfg]), out, workers=1, overwrite=True)["scenes"][0]
+    assert row["status"] == "done", row
+    assert not (tiles / "tile_0.npz").exists()
