@@ -276,32 +276,86 @@ def _no_crs_message(path, ds) -> str:
     return msg
 
 
-def _void_implausible(heights, path, n_sentinel: int = 0) -> None:
-    """Set to NaN, in place, the cells of ``heights`` (m) that are not finite or lie outside
-    :data:`PLAUSIBLE_HEIGHTS_M`; a warning names the file, how many finite cells that was
-    (with the ``n_sentinel`` cells the caller found at :data:`UNDECLARED_NODATA` in a file
-    without a nodata value) and some of their values: read as heights, -9999 put a mean of
-    -1455 m into an assessment, 1e30 a mean of 1.6e28 m."""
-    lo, hi = PLAUSIBLE_HEIGHTS_M
-    with np.errstate(invalid="ignore"):
-        void = ~((heights >= lo) & (heights <= hi))  # NaN and +-inf compare False
-    if not void.any():  # (the caller's sentinel cells are NaN already: void)
-        return
-    values = heights[void & np.isfinite(heights)]  # finite, outside the plausible range
-    n_wild, wild = values.size, np.unique(values)
-    if n_wild or n_sentinel:
-        what = [f"heights no place on Earth has (outside {lo:g}..{hi:g} m)"] if n_wild else []
-        what += [f"{UNDECLARED_NODATA:g} without a nodata value"] if n_sentinel else []
-        seen = ([f"{UNDECLARED_NODATA:g}"] if n_sentinel else []) + [f"{v:g}" for v in wild]
+@dataclass
+class Voided:
+    """What the DEM reading rules (:func:`void_nodata`) made no-data in a file's heights:
+    ``n_sentinel`` cells at :data:`UNDECLARED_NODATA` in a file without a nodata value,
+    ``n_wild`` finite cells outside :data:`PLAUSIBLE_HEIGHTS_M`, ``wild`` some of their values
+    (sorted, at most four). Counts of reads of one file add up (:meth:`add`: a mosaic's
+    blocks), and :meth:`warn` says it once."""
+
+    n_sentinel: int = 0
+    n_wild: int = 0
+    wild: tuple = ()
+
+    def __bool__(self) -> bool:
+        return bool(self.n_sentinel or self.n_wild)
+
+    def add(self, other: Voided) -> Voided:
+        """Both reads' counts (in place); returns self."""
+        self.n_sentinel += other.n_sentinel
+        self.n_wild += other.n_wild
+        self.wild = tuple(sorted(set(self.wild) | set(other.wild)))[:4]
+        return self
+
+    def warn(self, path) -> None:
+        """The warning naming the file ``path``, how many cells and some of their values
+        (nothing when no cell was voided)."""
+        if not self:
+            return
+        lo, hi = PLAUSIBLE_HEIGHTS_M
+        what = [f"heights no place on Earth has (outside {lo:g}..{hi:g} m)"] if self.n_wild else []
+        what += [f"{UNDECLARED_NODATA:g} without a nodata value"] if self.n_sentinel else []
+        seen = [f"{UNDECLARED_NODATA:g}"] if self.n_sentinel else []
+        seen += [f"{v:g}" for v in self.wild]
         log.warning(
             "%s: %d cell(s) hold %s (%s): read as no-data; declare the file's nodata value "
             "(gdal_edit.py -a_nodata) if that is what they are",
             path,
-            n_wild + n_sentinel,
+            self.n_wild + self.n_sentinel,
             " or ".join(what),
             ", ".join(seen[:3]) + (", ..." if len(seen) > 3 else ""),
         )
+
+
+def void_nodata(
+    heights, nodata, scale: float = 1.0, offset: float = 0.0, *, sentinel=None, count=None
+) -> Voided:
+    """The DEM reading rules, in place on ``heights`` (float32 values as stored in a file whose
+    nodata value is ``nodata``, NaN where the file's nodata or mask says): with no nodata value
+    declared, cells at :data:`UNDECLARED_NODATA` are no-data; the values are taken to metres
+    (``metres = value * scale + offset``, :func:`height_scaling`); cells not finite or outside
+    :data:`PLAUSIBLE_HEIGHTS_M` are no-data. Read as heights, -9999 put a mean of -1455 m into
+    an assessment, 1e30 a mean of 1.6e28 m.
+
+    ``sentinel``: the cells at :data:`UNDECLARED_NODATA` when the caller found them otherwise
+    (a warped read, where GDAL took the value for no-data); ``count``: an index of the cells
+    counted in the returned :class:`Voided` (a block without its halo), default all. The
+    caller warns (:meth:`Voided.warn`): once per file."""
+    if sentinel is None:
+        sentinel = heights == np.float32(UNDECLARED_NODATA) if nodata is None else False
+    sentinel = np.asarray(sentinel, bool)
+    if sentinel.any():
+        heights[np.broadcast_to(sentinel, heights.shape)] = np.nan
+    if (scale, offset) != (1.0, 0.0):  # stored as e.g. decimetres or feet
+        heights *= np.float32(scale)
+        heights += np.float32(offset)
+    lo, hi = PLAUSIBLE_HEIGHTS_M
+    with np.errstate(invalid="ignore"):
+        void = ~((heights >= lo) & (heights <= hi))  # NaN and +-inf compare False
+    sentinel = np.broadcast_to(sentinel, heights.shape)
+    if count is None:
+        count = ...
+    if not void.any():  # (the sentinel cells are NaN already: void)
+        return Voided(int(np.count_nonzero(sentinel[count])))
+    wild = void & np.isfinite(heights)
+    values = heights[count][wild[count]]
     heights[void] = np.nan
+    return Voided(
+        int(np.count_nonzero(sentinel[count])),
+        values.size,
+        tuple(float(v) for v in np.unique(values)[:4]),
+    )
 
 
 def check_georeferenced(path, ds) -> None:
@@ -432,22 +486,14 @@ class DEM:
                         heights[heights == np.float32(ds.nodata)] = np.nan
                 else:  # a mask band or alpha: GDAL's mask
                     heights = ds.read(band, masked=True).astype(np.float32).filled(np.nan)
-                n_sentinel = 0
-                if ds.nodata is None:  # -9999 without a nodata value: no-data all the same
-                    sentinel = heights == np.float32(UNDECLARED_NODATA)
-                    n_sentinel = int(np.count_nonzero(sentinel))
-                    if n_sentinel:
-                        heights[sentinel] = np.nan
                 transform, crs = ds.transform, CRS.from_user_input(ds.crs.to_wkt())
-                # stored as e.g. centimetres (GDAL's scaling) or feet (the vertical CRS's unit)
-                scale, offset = height_scaling(ds, band, crs)
-                if (scale, offset) != (1.0, 0.0):
-                    heights *= np.float32(scale)
-                    heights += np.float32(offset)
+                # -9999 without a nodata value, implausible heights: no-data; stored as e.g.
+                # centimetres (GDAL's scaling) or feet (the vertical CRS's unit): metres
+                voided = void_nodata(heights, ds.nodata, *height_scaling(ds, band, crs))
                 tag = ds.tags().get(VERTICAL_TAG)
         except rasterio.errors.RasterioIOError as exc:
             raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
-        _void_implausible(heights, path, n_sentinel)
+        voided.warn(path)
         vert = vertical or _vertical_from_crs(crs) or (tag.lower() if tag else None)
         geoid = other_geoid(crs) if vert == GEOID else None
         found = {}

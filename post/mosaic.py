@@ -52,7 +52,15 @@ from rasterio.windows import Window
 
 from stereodem.core import geodesy
 from stereodem.core.blockwrite import CACHE_MB, OVERVIEW_CHUNK_MB, BlockWriter
-from stereodem.core.dem import DEM, ELLIPSOID, GEOID, height_scaling
+from stereodem.core.dem import (
+    DEM,
+    ELLIPSOID,
+    GEOID,
+    UNDECLARED_NODATA,
+    Voided,
+    height_scaling,
+    void_nodata,
+)
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.grid import MapGrid
 from stereodem.core.stats import nanmedian, nmad
@@ -290,9 +298,12 @@ def coregister_sources(sources, reference, *, chain: str | None = None, dem_vert
     reference or cannot be fitted is named and skipped."""
     fit = fitter(chain or "nuth_kaab")
     out, skipped, reports = [], [], {}
+    voided = {}  # the reference's cells the DEM reading rules voided: one warning
     for s in sources:
         try:
-            ref = crop_reference(reference, s.native_bounds, s.crs, vertical=dem_vertical)
+            ref = crop_reference(
+                reference, s.native_bounds, s.crs, vertical=dem_vertical, voided=voided
+            )
             if ref.vertical != s.vertical:
                 if ref.vertical is None or s.vertical is None:
                     raise InputError(
@@ -314,6 +325,8 @@ def coregister_sources(sources, reference, *, chain: str | None = None, dem_vert
         log.info(
             "%s: co-registered dx %+.2f m dy %+.2f m dz %+.2f m", s.path, corr.dx, corr.dy, corr.dz
         )
+    for path, v in voided.items():
+        v.warn(path)
     if not out:
         raise NoOverlapError(f"{reference}: no DEM could be co-registered to the reference")
     return out, skipped, reports
@@ -377,17 +390,34 @@ def _on_lattice(s: Source, grid: MapGrid) -> bool:
 
 
 def read_on_grid(
-    s: Source, grid: MapGrid, r0: int, c0: int, rows: int, cols: int, layer=None
+    s: Source,
+    grid: MapGrid,
+    r0: int,
+    c0: int,
+    rows: int,
+    cols: int,
+    layer=None,
+    *,
+    voided: dict | None = None,
+    count=None,
 ) -> np.ndarray:
     """The DEM's values (or its σ layer: ``layer=(path, band)``) on the output cells
     ``[r0:r0+rows, c0:c0+cols]``: float32 metres (GDAL's scale and offset applied, feet
     converted: :func:`~stereodem.core.dem.height_scaling`), NaN where it has none. Cells on
     the output lattice are copied; otherwise GDAL's warper resamples (bilinear) through a
-    window."""
+    window.
+
+    Heights follow :meth:`DEM.from_file`'s reading rules (:func:`~stereodem.core.dem.void_nodata`:
+    -9999 in a file without a nodata value and heights no place on Earth has are no-data):
+    what they voided (the cells ``count`` indexes, default all) is added to
+    ``voided[s.path]`` (a :class:`~stereodem.core.dem.Voided`), for one warning per file
+    once every block is read, or warned at once without ``voided``."""
     path, band = layer or (s.path, 1)
     out = np.full((rows, cols), np.nan, np.float32)
+    sentinel = None
     try:
         with rasterio.open(path) as ds:
+            nodata = ds.nodata
             if _on_lattice(s, grid):
                 g, t = grid.transform, s.transform
                 dc, dr = int(round((g.c - t.c) / t.a)), int(round((g.f - t.f) / t.e))
@@ -401,31 +431,58 @@ def read_on_grid(
                 ).filled(np.nan)
             else:
                 src_nodata = ds.nodata
-                if src_nodata is None and np.issubdtype(np.dtype(ds.dtypes[band - 1]), np.floating):
+                dtype = np.dtype(ds.dtypes[band - 1])
+                if src_nodata is None and np.issubdtype(dtype, np.floating):
                     src_nodata = np.nan
-                with WarpedVRT(
-                    ds,
-                    src_crs=s.crs_wkt,
-                    src_transform=s.transform,
-                    src_nodata=src_nodata,
-                    crs=grid.crs.to_wkt(),
-                    transform=grid.transform,
-                    width=grid.width,
-                    height=grid.height,
-                    nodata=np.nan,
-                    dtype="float32",
-                    resampling=Resampling.bilinear,
-                ) as vrt:
-                    a = vrt.read(band, window=Window(c0, r0, cols, rows), masked=True)
-                    out[:] = a.filled(np.nan)
-            scale, offset = height_scaling(ds, band)  # decimetres, feet: metres
-            if (scale, offset) != (1.0, 0.0):
-                out *= np.float32(scale)
-                out += np.float32(offset)
+                undeclared = (
+                    layer is None and ds.nodata is None and _holds(dtype, UNDECLARED_NODATA)
+                )
+                if undeclared:  # GDAL's no-data (NaN too), not blended into its neighbours
+                    src_nodata = UNDECLARED_NODATA
+
+                def warped(src, resampling):
+                    with WarpedVRT(
+                        ds,
+                        src_crs=s.crs_wkt,
+                        src_transform=s.transform,
+                        src_nodata=src,
+                        crs=grid.crs.to_wkt(),
+                        transform=grid.transform,
+                        width=grid.width,
+                        height=grid.height,
+                        nodata=np.nan,
+                        dtype="float32",
+                        resampling=resampling,
+                    ) as vrt:
+                        return vrt.read(band, window=Window(c0, r0, cols, rows), masked=True)
+
+                out[:] = warped(src_nodata, Resampling.bilinear).filled(np.nan)
+                if undeclared:  # the cells whose nearest stored value is the sentinel
+                    near = warped(None, Resampling.nearest).filled(np.nan)
+                    sentinel = near == np.float32(UNDECLARED_NODATA)
+            scaling = height_scaling(ds, band)  # decimetres, feet: metres
     except rasterio.errors.RasterioIOError as exc:
         raise DEMError(f"{path}: cannot read the DEM ({str(exc).splitlines()[0][:120]})") from None
-    out[~np.isfinite(out)] = np.nan
+    if layer is not None:  # a σ layer: no height rules
+        if scaling != (1.0, 0.0):
+            out *= np.float32(scaling[0])
+            out += np.float32(scaling[1])
+        out[~np.isfinite(out)] = np.nan
+        return out
+    found = void_nodata(out, nodata, *scaling, sentinel=sentinel, count=count)
+    if voided is None:
+        found.warn(s.path)
+    elif found:
+        voided.setdefault(s.path, Voided()).add(found)
     return out
+
+
+def _holds(dtype: np.dtype, value: float) -> bool:
+    """Whether rasters of ``dtype`` can store ``value``."""
+    if np.issubdtype(dtype, np.integer):
+        info = np.iinfo(dtype)
+        return info.min <= value <= info.max
+    return True
 
 
 def edge_weight(
@@ -457,9 +514,11 @@ def _read_env():
 
 
 def mosaic_block(plan: MosaicPlan, r0: int, c0: int, rows: int, cols: int):
-    """One output block: ``(r0, c0, arrays, contributors)`` with ``arrays`` (bands, rows,
-    cols) float32 and ``contributors`` the indices (into ``plan.sources``) of the DEMs with a
-    valid height in the block.
+    """One output block: ``(r0, c0, arrays, contributors, voided)`` with ``arrays`` (bands,
+    rows, cols) float32, ``contributors`` the indices (into ``plan.sources``) of the DEMs with
+    a valid height in the block and ``voided`` what the DEM reading rules made no-data in the
+    block, by path (:class:`~stereodem.core.dem.Voided`; :func:`run_mosaic` warns once per
+    file).
 
     Pure function of the plan and the files (runs in Dask workers)."""
     with _read_env():
@@ -481,12 +540,13 @@ def _mosaic_block(plan, r0, c0, rows, cols):
     sw2s2 = np.zeros((rows, cols))
     stack = []
     contributors = []
+    voided = {}
     for i in _meeting(plan, r0, c0, rows, cols):
         s = plan.sources[i]
-        if m == "blend":
-            z = read_on_grid(s, g, wr0, wc0, wr1 - wr0, wc1 - wc0)
+        if m == "blend":  # the halo's cells are counted in their own blocks
+            z = read_on_grid(s, g, wr0, wc0, wr1 - wr0, wc1 - wc0, voided=voided, count=core)
         else:
-            z = read_on_grid(s, g, r0, c0, rows, cols)
+            z = read_on_grid(s, g, r0, c0, rows, cols, voided=voided)
         if s.vertical is not None and plan.vertical is not None and s.vertical != plan.vertical:
             if undulation is None:
                 jj, ii = np.meshgrid(np.arange(wc0, wc1), np.arange(wr0, wr1))
@@ -560,7 +620,7 @@ def _mosaic_block(plan, r0, c0, rows, cols):
         bands = [np.where(n >= 2, value, np.nan)]
     else:
         bands = [value, np.where(have, n, np.nan), spread]
-    return r0, c0, np.stack([np.asarray(b, np.float32) for b in bands]), contributors
+    return r0, c0, np.stack([np.asarray(b, np.float32) for b in bands]), contributors, voided
 
 
 # --------------------------------------------------------------------------- the job
@@ -632,6 +692,7 @@ def run_mosaic(
     tags = dict(STEREODEM_MOSAIC_METHOD=plan.method, STEREODEM_MOSAIC_DEMS=len(plan.sources))
     n_valid = n_data = 0
     contributed = set()
+    voided = {}  # by path: what the DEM reading rules made no-data, over every block
     with BlockWriter(
         out,
         plan.grid,
@@ -648,14 +709,18 @@ def run_mosaic(
             if dask is None
             else _dask_blocks(plan, todo, dask, workers)
         )
-        for k, (r0, c0, arrays, contributors) in enumerate(results, start=1):
+        for k, (r0, c0, arrays, contributors, found) in enumerate(results, start=1):
             w.write(r0, c0, arrays)
             contributed.update(contributors)
+            for path, v in found.items():
+                voided.setdefault(path, Voided()).add(v)
             n_valid += int(np.isfinite(arrays[0]).sum())
             if plan.method == "count":
                 n_data += int(np.count_nonzero(arrays[0] > 0))
             if progress is not None:
                 progress(k, len(todo))
+        for path, v in voided.items():  # once per file, not per block
+            v.warn(path)
         if (n_data if plan.method == "count" else n_valid) == 0:
             # all-void DEMs, or --bounds over their voids: refused, not written as a mosaic
             raise DEMError(_empty_mosaic_message(plan))

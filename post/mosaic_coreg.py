@@ -25,7 +25,14 @@ from pyproj import CRS
 from rasterio.warp import transform_bounds
 from rasterio.windows import from_bounds
 
-from stereodem.core.dem import DEM, _vertical_from_crs, height_scaling, horizontal_crs
+from stereodem.core.dem import (
+    DEM,
+    Voided,
+    _vertical_from_crs,
+    height_scaling,
+    horizontal_crs,
+    void_nodata,
+)
 from stereodem.core.errors import ConvergenceError, DEMError, InputError, NoOverlapError
 from stereodem.core.raster import reading_env
 
@@ -124,10 +131,14 @@ def check_reference(path) -> None:
         ) from None
 
 
-def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -> DEM:
+def crop_reference(
+    path, bounds, crs, *, vertical=None, margin_cells: int = 8, voided: dict | None = None
+) -> DEM:
     """The reference DEM over ``bounds`` (west, south, east, north in ``crs``) plus a margin,
     read through a window (the whole reference is never read); :class:`NoOverlapError` when it
-    misses them."""
+    misses them. The heights follow :meth:`DEM.from_file`'s reading rules
+    (:func:`~stereodem.core.dem.void_nodata`): what they voided is added to ``voided[path]``
+    (for one warning per file over several crops), or warned at once without ``voided``."""
     path = str(path)
     try:
         with reading_env(), rasterio.open(path) as ds:
@@ -151,10 +162,9 @@ def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -
             z = ds.read(1, window=w, masked=True).astype(np.float32).filled(np.nan)
             t = ds.window_transform(w)
             pcrs = CRS.from_wkt(ds.crs.to_wkt())
-            scale, offset = height_scaling(ds, 1, pcrs)  # decimetres, feet: metres
-            if (scale, offset) != (1.0, 0.0):
-                z *= np.float32(scale)
-                z += np.float32(offset)
+            # -9999 without a nodata value, implausible heights: no-data; decimetres, feet:
+            # metres
+            found = void_nodata(z, ds.nodata, *height_scaling(ds, 1, pcrs))
             tag = ds.tags().get("STEREODEM_VERTICAL")
             vert = _vertical_from_crs(pcrs) or (tag.lower() if tag else None) or vertical
     except rasterio.errors.RasterioIOError as exc:
@@ -163,6 +173,10 @@ def crop_reference(path, bounds, crs, *, vertical=None, margin_cells: int = 8) -
         ) from None
     except rasterio.errors.WindowError:  # bounds beyond its grid's reach
         raise NoOverlapError(f"{path}: the reference DEM does not overlap {bounds}") from None
+    if voided is None:
+        found.warn(path)
+    elif found:
+        voided.setdefault(path, Voided()).add(found)
     if not np.isfinite(z).any():
         raise NoOverlapError(f"{path}: the reference DEM has no valid height over {bounds}")
     return DEM(z, t, horizontal_crs(pcrs), vert, path)

@@ -671,6 +671,54 @@ def test_scaled_and_feet_dems_are_mosaicked_in_metres(tmp_path):
     assert np.nanmax(np.abs(ref.heights - terrain(40, 40, 0, 20))) < 0.06
 
 
+def test_undeclared_nodata_and_implausible_heights_are_no_data_once_warned(tmp_path, caplog):
+    """The mosaic did not apply DEM.from_file's reading rules: in a DEM with no nodata value
+    declared, -9999 (and a 1e30 fill) were mosaicked as heights (the blend of a -9999 hole with
+    its neighbour a ramp down to -9999 m; a warped DEM's -9999 smeared into the cells around
+    it), and a reference cropped for --coregister kept them as well. They are no-data, with
+    one warning per file (not one per block)."""
+    kw = dict(driver="GTiff", count=1, crs=CRS, dtype="float32")  # no nodata value
+    a = terrain(40, 40)
+    a[10:14, 10:14] = -9999.0
+    a[30, 5] = 1e30
+    with rasterio.open(
+        tmp_path / "a.tif",
+        "w",
+        width=40,
+        height=40,
+        transform=Affine(RES, 0, X0, 0, -RES, Y0),
+        **kw,
+    ) as ds:
+        ds.write(a, 1)
+    # b: half a cell off the lattice (read through GDAL's warper), a -9999 hole over a's own
+    t = Affine(RES, 0, X0 + 20.5 * RES, 0, -RES, Y0 - 0.5 * RES)
+    xx, yy = t @ np.meshgrid(np.arange(40) + 0.5, np.arange(40) + 0.5)
+    b = (1500 + 300 * np.sin(xx / 2500.0) * np.cos(yy / 1900.0) + 0.01 * (xx - X0)).astype(
+        np.float32
+    )
+    b[20:26, 20:26] = -9999.0
+    with rasterio.open(tmp_path / "b.tif", "w", width=40, height=40, transform=t, **kw) as ds:
+        ds.write(b, 1)
+    plan = plan_mosaic([tmp_path / "a.tif", tmp_path / "b.tif"], block=16, dem_vertical="geoid")
+    with caplog.at_level("WARNING", logger="stereodem"):
+        run_mosaic(plan, tmp_path / "m.tif")
+    z, truth = on_truth(tmp_path / "m.tif")
+    assert np.nanmin(z) > 1000 and np.nanmax(z) < 2000  # terrain 1200..1800 m: no fill value
+    assert np.isnan(z[10:14, 10:14]).all() and np.isnan(z[30, 5])  # a alone there
+    assert np.nanmax(np.abs(z - truth)) < 5.0  # (bilinear on b: ~2 m; a smeared -9999: 100s)
+    said = [r.getMessage() for r in caplog.records if "read as no-data" in r.getMessage()]
+    assert len(said) == 2, said  # once per file, not per block (12 blocks)
+    (sa,) = [m for m in said if "a.tif" in m]
+    assert "a.tif: 17 cell(s)" in sa and "-9999, 1e+30" in sa
+    assert any("b.tif" in m and "-9999 without a nodata value" in m for m in said)
+    # the reference of --coregister, cropped: the same rules
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stereodem"):
+        ref = pm.crop_reference(tmp_path / "a.tif", (X0, Y0 - 40 * RES, X0 + 40 * RES, Y0), CRS)
+    assert np.isnan(ref.heights).sum() == 17 and np.nanmin(ref.heights) > 1000
+    assert "a.tif: 17 cell(s)" in caplog.text
+
+
 def test_dems_either_side_of_the_antimeridian_are_mosaicked_side_by_side(tmp_path):
     """Geographic tiles at 179.9..180 E and -180..-179.9 E made a mosaic 360 degrees wide
     (36 000 x 10 cells, 0.1 % valid), and a projected DEM crossing 180 (its footprint from
