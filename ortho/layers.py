@@ -12,11 +12,55 @@ The orthoimage of the second image of a stereo pair on the same grid needs no la
 
 from __future__ import annotations
 
+import logging
+from pathlib import Path
+
 import numpy as np
+import rasterio
 
 from stereodem.core import geodesy
 
 from .drm import Ortho, bilinear_nan
+
+log = logging.getLogger(__name__)
+
+#: ``stereodem ortho --layers``: each layer's band description, its file ``<stem>_<name>.tif``
+#: beside the orthoimage (:func:`layer_path`)
+LAYERS = {
+    "incidence": "local incidence angle",
+    "occlusion": "occlusion: 1 hidden from the sensor, 0 seen",
+}
+
+
+def layer_path(ortho_path, name: str) -> Path:
+    """Where layer ``name`` (a key of :data:`LAYERS`) of the orthoimage ``ortho_path`` lives."""
+    p = Path(ortho_path)
+    return p.with_name(f"{p.stem}_{name}.tif")
+
+
+def remove_stale_layers(ortho_path, keep=()) -> list[Path]:
+    """Remove the layers of :data:`LAYERS` other than ``keep`` beside ``ortho_path``: an
+    earlier orthoimage's, which no longer belong to the one written there now (as ``dem
+    --overwrite`` removes the earlier job's companions). Only a layer this package wrote (its
+    band description) is removed; a file of another origin by that name is left, with a
+    warning. Returns the paths removed."""
+    removed = []
+    for name, description in LAYERS.items():
+        p = layer_path(ortho_path, name)
+        if name in keep or not p.is_file():
+            continue
+        try:
+            with rasterio.open(p) as ds:
+                ours = ds.count == 1 and ds.descriptions[0] == description
+        except rasterio.errors.RasterioIOError:
+            ours = False
+        if not ours:
+            log.warning("%s: not an orthoimage layer of stereodem; left as it is", p)
+            continue
+        p.unlink()
+        Path(f"{p}.aux.xml").unlink(missing_ok=True)
+        removed.append(p)
+    return removed
 
 
 def line_of_sight(

@@ -201,7 +201,9 @@ def run(args) -> int:
         raise InputError(f"unknown layer(s) {', '.join(sorted(bad))}; choose incidence, occlusion")
     cfg = config_from_args(args)
     out = Path(args.out)
-    layer_paths = {name: out.with_name(f"{out.stem}_{name}.tif") for name in layers}
+    from stereodem.ortho.layers import LAYERS, layer_path, remove_stale_layers
+
+    layer_paths = {name: layer_path(out, name) for name in layers}
     from stereodem.sensor.io.sidecar import sidecar_path
 
     from .outlock import check_not_an_input
@@ -228,6 +230,9 @@ def run(args) -> int:
         tags=src.tags,
         dtype=None if args.float else src.dtype,
     )
+    if args.overwrite:  # an earlier run's layers not made now would pass for this one's
+        for p in remove_stale_layers(out, keep=layers):
+            options.say(f"removed {p}: a layer of the orthoimage {out} replaced")
     rep = ortho.report()
     options.say(
         f"wrote {out}: {rep['width']}x{rep['height']} cells of {rep['res_m']:g} in "
@@ -245,7 +250,7 @@ def run(args) -> int:
             float("nan"),
             overwrite=args.overwrite,
             creation_options=co,
-            descriptions=["local incidence angle"],
+            descriptions=[LAYERS["incidence"]],
             units=["degree"],
         )
         options.say(f"wrote {layer_paths['incidence']}: local incidence angle (deg)")
@@ -261,7 +266,7 @@ def run(args) -> int:
             255,
             overwrite=args.overwrite,
             creation_options=co,
-            descriptions=["occlusion: 1 hidden from the sensor, 0 seen"],
+            descriptions=[LAYERS["occlusion"]],
             units=["1"],
         )
         options.say(

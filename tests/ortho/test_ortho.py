@@ -787,3 +787,30 @@ def test_a_model_that_sees_no_ground_is_blamed_not_the_dem(small_scene, tmp_path
     with pytest.raises(SensorModelError, match="localises no point of the image's border"):
         args.run(args)
     assert not (tmp_path / "o.tif").exists()
+
+
+def test_ortho_overwrite_removes_the_layers_of_the_earlier_orthoimage(small_scene, tmp_path):
+    """``ortho -o o.tif --overwrite`` without ``--layers`` kept an earlier run's
+    o_incidence.tif / o_occlusion.tif beside the new orthoimage, which they no longer belong
+    to (another DEM, grid or image). They are removed, as ``dem --overwrite`` removes the
+    earlier job's companions; a layer asked for again is rewritten, and a file of the user's
+    by a layer's name is left."""
+    d, _ = small_scene
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    base = ["ortho", str(d / "left.tif"), "--dem", str(d / "truth_dem.tif")]
+    base += ["-o", str(tmp_path / "o.tif"), "--workers", "1"]
+    args = parser.parse_args([*base, "--layers", "incidence,occlusion"])
+    assert args.run(args) == 0
+    inc, occ = tmp_path / "o_incidence.tif", tmp_path / "o_occlusion.tif"
+    assert inc.exists() and occ.exists()
+    args = parser.parse_args([*base, "--overwrite", "--layers", "occlusion"])
+    assert args.run(args) == 0
+    assert not inc.exists() and occ.exists()
+    args = parser.parse_args([*base, "--overwrite"])
+    assert args.run(args) == 0
+    assert not occ.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o.tif"]
+    inc.write_text("the user's own notes\n")
+    assert args.run(args) == 0
+    assert inc.read_text() == "the user's own notes\n"
