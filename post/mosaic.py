@@ -41,6 +41,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -80,6 +81,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "METHODS",
+    "MosaicBlock",
     "MosaicPlan",
     "blocks",
     "coregister_sources",
@@ -513,14 +515,21 @@ def _read_env():
     return rasterio.Env(GDAL_CACHEMAX=READ_CACHE_MB, GDAL_DISABLE_READDIR_ON_OPEN="EMPTY_DIR")
 
 
-def mosaic_block(plan: MosaicPlan, r0: int, c0: int, rows: int, cols: int):
-    """One output block: ``(r0, c0, arrays, contributors, voided)`` with ``arrays`` (bands,
-    rows, cols) float32, ``contributors`` the indices (into ``plan.sources``) of the DEMs with
-    a valid height in the block and ``voided`` what the DEM reading rules made no-data in the
-    block, by path (:class:`~stereodem.core.dem.Voided`; :func:`run_mosaic` warns once per
-    file).
+class MosaicBlock(NamedTuple):
+    """One computed block of a mosaic (:func:`mosaic_block`)."""
 
-    Pure function of the plan and the files (runs in Dask workers)."""
+    r0: int  #: first output row
+    c0: int  #: first output column
+    arrays: np.ndarray  #: (bands, rows, cols) float32
+    contributors: list  #: indices into ``plan.sources`` of the DEMs with a valid height here
+    #: what the DEM reading rules made no-data here, by path
+    #: (:class:`~stereodem.core.dem.Voided`; :func:`run_mosaic` warns once per file)
+    voided: dict
+
+
+def mosaic_block(plan: MosaicPlan, r0: int, c0: int, rows: int, cols: int) -> MosaicBlock:
+    """One output block (:class:`MosaicBlock`). Pure function of the plan and the files
+    (runs in Dask workers)."""
     with _read_env():
         return _mosaic_block(plan, r0, c0, rows, cols)
 
@@ -620,7 +629,8 @@ def _mosaic_block(plan, r0, c0, rows, cols):
         bands = [np.where(n >= 2, value, np.nan)]
     else:
         bands = [value, np.where(have, n, np.nan), spread]
-    return r0, c0, np.stack([np.asarray(b, np.float32) for b in bands]), contributors, voided
+    arrays = np.stack([np.asarray(b, np.float32) for b in bands])
+    return MosaicBlock(r0, c0, arrays, contributors, voided)
 
 
 # --------------------------------------------------------------------------- the job
@@ -709,14 +719,14 @@ def run_mosaic(
             if dask is None
             else _dask_blocks(plan, todo, dask, workers)
         )
-        for k, (r0, c0, arrays, contributors, found) in enumerate(results, start=1):
-            w.write(r0, c0, arrays)
-            contributed.update(contributors)
-            for path, v in found.items():
+        for k, b in enumerate(results, start=1):
+            w.write(b.r0, b.c0, b.arrays)
+            contributed.update(b.contributors)
+            for path, v in b.voided.items():
                 voided.setdefault(path, Voided()).add(v)
-            n_valid += int(np.isfinite(arrays[0]).sum())
+            n_valid += int(np.isfinite(b.arrays[0]).sum())
             if plan.method == "count":
-                n_data += int(np.count_nonzero(arrays[0] > 0))
+                n_data += int(np.count_nonzero(b.arrays[0] > 0))
             if progress is not None:
                 progress(k, len(todo))
         for path, v in voided.items():  # once per file, not per block
