@@ -140,7 +140,7 @@ def add_parser(sub):
     p.add_argument(
         "--regularization", help="lcurve, gcv or a weight: Tikhonov for rank-deficient sets"
     )
-    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
 
@@ -198,8 +198,14 @@ def run(args) -> int:
     if not n_images:  # N images: -o is a folder, each model checked by run_bundle_images
         check_writable(args.out, args.overwrite)
     if args.report:
-        for name in _report_names(args, n_images):
-            check_writable(Path(args.report) / name, args.overwrite)
+        from .outlock import check_output_folder
+
+        check_output_folder(
+            args.report,
+            report_products(args, n_images),
+            overwrite=args.overwrite,
+            inputs=_inputs(args),
+        )
     reg = args.regularization
     if reg is not None and reg not in ("lcurve", "gcv"):
         try:
@@ -257,8 +263,7 @@ def run(args) -> int:
             sigma_tie_px=args.sigma_tie_px,
             **common,
         )
-        save_model(res.left, args.out, overwrite=args.overwrite)
-        save_model(res.right, args.out2, overwrite=args.overwrite)
+        saves = [(res.left, args.out), (res.right, args.out2)]
         summary = (
             f"bundle ({args.param_set}): {len(res.tie_rejected)} ties "
             f"({int(res.tie_rejected.sum())} rejected), tie RMSE {res.tie_rmse_px:.3f} px, "
@@ -287,14 +292,17 @@ def run(args) -> int:
                 regularization=reg,
                 **common,
             )
-        save_model(res.model, args.out, overwrite=args.overwrite)
+        saves = [(res.model, args.out)]
         summary = (
             f"{args.model}: sigma0 {res.sigma0:.3f}, GCP RMSE {options.rmse_px(res.gcp_rmse_px)}, "
             f"check RMSE {options.rmse_px(res.check_rmse_px, 'n/a (no check point)')}, outliers: "
             f"{', '.join(o['id'] for o in res.outliers) or 'none'}"
         )
-    if args.report:
-        write_report(res, args.report, overwrite=args.overwrite)
+    with report_folder(args, n_images) as rep:
+        for model, path in saves:
+            save_model(model, path, overwrite=args.overwrite)
+        if rep is not None:
+            write_report(res, rep, overwrite=True)
     print(summary)
     return 0
 
@@ -311,26 +319,67 @@ def _report_names(args, n_images) -> list[str]:
     return ["adjust_report.json", "adjust_report.md", *figures]
 
 
-def _check_outputs(args, n_images):
-    """Before any work: no output is one of the inputs (an image, its model sidecar, a GCP,
-    tie or match file), even with --overwrite, and no two outputs are one file (-o and
-    --out2: the second model replaced the first)."""
-    from stereodem.core.errors import InputError
-    from stereodem.sensor.io.sidecar import sidecar_path
+def _model_outputs(args, n_images) -> list:
+    """The adjusted models' files (``-o``, ``--out2``; N images: one per image in ``-o``)."""
+    if n_images:
+        images = [p for p in (args.image, args.image2, *(args.more or [])) if p]
+        return [Path(args.out) / f"{Path(p).stem}.model.json" for p in images]
+    return [p for p in (args.out, args.out2 if args.model == "bundle" else None) if p]
 
-    from .outlock import check_not_an_input
+
+def _inputs(args) -> list:
+    """The input files: images, their model sidecars, GCP, tie and match files."""
+    from stereodem.sensor.io.sidecar import sidecar_path
 
     images = [p for p in (args.image, args.image2, *(args.more or [])) if p]
     sidecars = [s for s in map(sidecar_path, images) if s.exists()]
     tables = [args.gcps, args.gcps2, args.ties, *(args.match or [])]
     tables += [t.partition("=")[2] for t in args.image_gcps or []]
-    if n_images:
-        outputs = [Path(args.out) / f"{Path(p).stem}.model.json" for p in images]
-    else:
-        outputs = [p for p in (args.out, args.out2 if args.model == "bundle" else None) if p]
+    return [*images, *sidecars, *tables]
+
+
+def report_products(args, n_images):
+    """What ``--report`` writes into its folder (:func:`_report_names`; the report marks the
+    folder as an adjustment's), and the adjusted models that ``-o`` puts there too."""
+    from .outlock import Products
+
+    report = Path(args.report).resolve()
+    models = [
+        Path(p).name for p in _model_outputs(args, n_images) if Path(p).resolve().parent == report
+    ]
+    return Products((*_report_names(args, n_images), *models), markers=("adjust_report.json",))
+
+
+def report_folder(args, n_images):
+    """The ``--report`` folder, locked while the models and the report are written (their
+    previous versions removed with ``--overwrite``): yields its path, or None without
+    ``--report``."""
+    import contextlib
+
+    from .outlock import output_folder
+
+    if not args.report:
+        return contextlib.nullcontext()
+    return output_folder(
+        args.report,
+        report_products(args, n_images),
+        overwrite=args.overwrite,
+        inputs=_inputs(args),
+    )
+
+
+def _check_outputs(args, n_images):
+    """Before any work: no output is one of the inputs (an image, its model sidecar, a GCP,
+    tie or match file), even with --overwrite, and no two outputs are one file (-o and
+    --out2: the second model replaced the first)."""
+    from stereodem.core.errors import InputError
+
+    from .outlock import check_not_an_input
+
+    outputs = _model_outputs(args, n_images)
     if args.report:
         outputs += [Path(args.report) / n for n in _report_names(args, n_images)]
-    check_not_an_input(outputs, [*images, *sidecars, *tables])
+    check_not_an_input(outputs, _inputs(args))
     seen = {}
     for out in [] if n_images else outputs:  # N images: two with one stem are refused later
         key = Path(out).resolve()

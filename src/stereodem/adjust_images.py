@@ -193,10 +193,13 @@ def run_bundle_images(args) -> str:
         alpha=args.alpha,
         max_iterations=args.max_iterations,
     )
-    for m, t in zip(res.models, targets):
-        save_model(m, t, overwrite=args.overwrite)
-    if args.report:
-        write_report(res, args.report, overwrite=args.overwrite)
+    from .adjust_cli import report_folder
+
+    with report_folder(args, len(paths)) as rep:
+        for m, t in zip(res.models, targets):
+            save_model(m, t, overwrite=args.overwrite)
+        if rep is not None:
+            write_report(res, rep, overwrite=True)
     gaps = ", ".join(
         f"{i + 1}-{j + 1} {res.ray_gaps_before[(i, j)]['ray_gap_rms_m']:.2f}->"
         f"{res.ray_gaps_after.get((i, j), {}).get('ray_gap_rms_m', float('nan')):.2f}"

@@ -8,7 +8,27 @@ import logging
 
 from stereodem.core.vertical import VERTICALS
 
+from . import options
 from .commands import help_line
+from .outlock import Products
+
+#: what ``stereodem assess`` writes into its output folder (:func:`stereodem.post.report.
+#: write_report`: the reports, its figures, :data:`stereodem.post.report.FIGURES`, and those of
+#: the error analysis)
+PRODUCTS = Products(
+    (
+        "report.json",
+        "report.md",
+        "report.html",
+        "hillshade.png",
+        "difference_map.png",
+        "histogram.png",
+        "error_vs_slope.png",
+        "error_vs_terrain.png",
+        "variogram.png",
+    ),
+    markers=("report.json",),
+)
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +137,7 @@ def add_parser(subparsers):
         help="ground-track heading for --chain (default: the DEM's own track tags)",
     )
     p.add_argument("-o", "--output", required=True, help="output folder")
-    p.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
+    options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
 
@@ -150,14 +170,22 @@ def config_from_args(args):
 
 def run(args) -> int:
     """Run ``stereodem assess`` from parsed arguments; returns the exit status."""
-    from stereodem.core.raster import check_output_dir
-
-    from . import options
+    from .outlock import check_output_folder, output_folder
     from .pipeline.stages import assess_stage
 
     options.check_common(args)
     cfg = config_from_args(args)
-    check_output_dir(args.output, overwrite=args.overwrite)
+    products = PRODUCTS
+    inputs = [
+        args.dem,
+        args.ref,
+        args.checkpoints,
+        args.landcover,
+        args.sigma_map,
+        *(args.exclude or []),
+        *(args.outlines or []),
+    ]
+    check_output_folder(args.output, products, overwrite=args.overwrite, inputs=inputs)
     if args.checkpoints:  # a bad file fails before the assessment runs
         from stereodem.post.assess import read_checkpoints
 
@@ -177,9 +205,8 @@ def run(args) -> int:
             outlines=args.outlines,
             sigma_map=args.sigma_map,
         )
-    result, files = assess_stage(
-        cfg, args.dem, args.output, overwrite=args.overwrite, error_analysis=job
-    )
+    with output_folder(args.output, products, overwrite=args.overwrite, inputs=inputs) as out:
+        result, files = assess_stage(cfg, args.dem, out, overwrite=True, error_analysis=job)
     s = result.report["stats"]
     print(
         f"n={s['n']} mean={s['mean']:.3f} rmse={s['rmse']:.3f} nmad={s['nmad']:.3f} "

@@ -12,6 +12,10 @@ from stereodem.core.vertical import VERTICALS
 
 from . import options
 from .commands import help_line
+from .outlock import Products
+
+#: what ``stereodem change`` writes into its output folder
+PRODUCTS = Products(("dh.tif", "dh_sigma.tif", "change.json"), markers=("change.json",))
 
 log = logging.getLogger(__name__)
 
@@ -69,17 +73,18 @@ def run(args) -> int:
 
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
-    from stereodem.core.raster import check_output_dir, write_geotiff, write_text_atomic
+    from stereodem.core.raster import write_geotiff, write_text_atomic
     from stereodem.post.change import dem_change
     from stereodem.post.coreg import parse_chain
     from stereodem.post.dates import dem_dates
     from stereodem.post.stack_build import check_inputs, exclude_mask
     from stereodem.sensor.simulation.multidate import decimal_year
 
-    from .outlock import output_folder
+    from .outlock import check_output_folder, output_folder
 
     # an -o that cannot be a folder is refused before the DEMs are compared
-    check_output_dir(args.out, overwrite=args.overwrite)
+    inputs = [args.dem_a, args.dem_b] + list(args.exclude)
+    check_output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
     a = DEM.from_file(args.dem_a, vertical=args.a_vertical)
     b = DEM.from_file(args.dem_b, vertical=args.b_vertical)
     check_inputs([args.dem_a, args.dem_b], a)
@@ -111,16 +116,15 @@ def run(args) -> int:
         dt = decimal_year(dates[1]) - decimal_year(dates[0])
         info.update(dates=[str(d) for d in dates], years=dt)
         info["rate_note"] = "rate = dh / years; its sigma = dh_sigma / years"
-    inputs = [args.dem_a, args.dem_b] + list(args.exclude)
     co = options.creation_options(args)
-    with output_folder(args.out, overwrite=args.overwrite, inputs=inputs) as out:
+    with output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
         write_geotiff(
             out / "dh.tif",
             res["dh"],
             a.transform,
             a.crs,
             np.nan,
-            overwrite=args.overwrite,
+            overwrite=True,
             descriptions="dh = B - A",
             units="metre",
             creation_options=co,
@@ -131,7 +135,7 @@ def run(args) -> int:
             a.transform,
             a.crs,
             np.nan,
-            overwrite=args.overwrite,
+            overwrite=True,
             descriptions="sigma of dh",
             units="metre",
             creation_options=co,

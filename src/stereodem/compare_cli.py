@@ -7,7 +7,15 @@ import logging
 
 from stereodem.core import jsonutil
 
+from . import options
 from .commands import help_line
+from .outlock import Products
+
+#: what ``stereodem compare-models`` writes into its output folder
+PRODUCTS = Products(
+    ("compare.json", "compare.md", "compare.png", "splits.json", "splits.md"),
+    markers=("compare.json",),
+)
 
 log = logging.getLogger(__name__)
 
@@ -56,25 +64,23 @@ def add_parser(subparsers):
         "the rigorous pushbroom model's attitude biases and drifts)",
     )
     p.add_argument("-o", "--output", required=True, help="output folder")
-    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
 
 
 def run(args) -> int:
     from stereodem.core.errors import InputError
-    from stereodem.core.raster import prepare_output_dir, write_text_atomic
     from stereodem.sensor.estimation.compare import (
         compare,
         compare_splits,
         expand_models,
-        figure,
-        markdown,
-        split_markdown,
         split_summary,
     )
     from stereodem.sensor.io.gcps import read_gcps
-    from stereodem.sensor.io.sidecar import load_image_model
+    from stereodem.sensor.io.sidecar import load_image_model, sidecar_path
+
+    from .outlock import check_output_folder, output_folder
 
     try:
         counts = [int(v) for v in args.counts.split(",") if v.strip()]
@@ -84,16 +90,15 @@ def run(args) -> int:
         ) from None
     if args.splits < 0:
         raise InputError(f"--splits: expected a count >= 0, got {args.splits}")
-    out = prepare_output_dir(args.output, overwrite=args.overwrite)
+    inputs = [args.image, sidecar_path(args.image), args.gcps]
+    check_output_folder(args.output, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
     base = load_image_model(args.image)
     points = read_gcps(args.gcps)
     models = expand_models([m.strip() for m in args.models.split(",") if m.strip()], base)
     records = compare(
         base, points, models, counts, n_check=args.n_check, seed=args.seed, sigma_px=args.sigma_px
     )
-    write_text_atomic(out / "compare.json", jsonutil.dumps(records), overwrite=args.overwrite)
-    write_text_atomic(out / "compare.md", markdown(records), overwrite=args.overwrite)
-    figure(records, out / "compare.png", overwrite=args.overwrite)
+    splits = None
     if args.splits:
         recs = compare_splits(
             base,
@@ -106,24 +111,33 @@ def run(args) -> int:
             seed=args.seed,
             sigma_px=args.sigma_px,
         )
-        summary = split_summary(recs)
-        write_text_atomic(
-            out / "splits.json",
-            jsonutil.dumps(
-                {
-                    "reference": args.reference,
-                    "splits": args.splits,
-                    "summary": summary,
-                    "records": recs,
-                }
-            ),
-            overwrite=args.overwrite,
-        )
-        write_text_atomic(
-            out / "splits.md", split_markdown(summary, args.reference), overwrite=args.overwrite
-        )
+        splits = {
+            "reference": args.reference,
+            "splits": args.splits,
+            "summary": split_summary(recs),
+            "records": recs,
+        }
+    with output_folder(args.output, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
+        _write(out, records, splits)
     ok = [r for r in records if not r.get("error")]
     print(
         f"{len(models)} model(s), {len(records)} fit(s), {len(records) - len(ok)} refused -> {out}"
     )
     return 0
+
+
+def _write(out, records, splits):
+    """The products, into the locked output folder ``out`` (a previous run's removed)."""
+    from stereodem.core.raster import write_text_atomic
+    from stereodem.sensor.estimation.compare import figure, markdown, split_markdown
+
+    write_text_atomic(out / "compare.json", jsonutil.dumps(records), overwrite=True)
+    write_text_atomic(out / "compare.md", markdown(records), overwrite=True)
+    figure(records, out / "compare.png", overwrite=True)
+    if splits is not None:
+        write_text_atomic(out / "splits.json", jsonutil.dumps(splits), overwrite=True)
+        write_text_atomic(
+            out / "splits.md",
+            split_markdown(splits["summary"], splits["reference"]),
+            overwrite=True,
+        )

@@ -8,6 +8,7 @@ import argparse
 from stereodem.core.vertical import VERTICALS
 
 from .commands import help_line
+from .outlock import Products
 
 EXAMPLES = """examples:
   stereodem coregister aster_dem.tif --ref srtm.tif -o coreg
@@ -92,25 +93,22 @@ def add_parser(sub):
     return p
 
 
+#: what ``stereodem coregister`` writes into its output folder (:mod:`stereodem.post.coreg_run`)
+PRODUCTS = Products(
+    ("dem_coregistered.tif", "coregistration.json", "coreg_*.png"), markers=("coregistration.json",)
+)
+
+
 def run(args) -> int:
-    from stereodem.core.raster import check_output_dir
     from stereodem.post.coreg_run import CoregJob
     from stereodem.post.coreg_run import run as run_job
 
     from .options import creation_options, say
-    from .outlock import check_not_an_input
+    from .outlock import check_output_folder, output_folder
 
-    check_output_dir(args.output, overwrite=args.overwrite)
-    check_not_an_input(
-        [args.output],
-        [
-            args.dem,
-            args.ref,
-            *args.exclude,
-            *args.include,
-            *([args.stable_mask] if args.stable_mask else []),
-        ],
-    )
+    products = PRODUCTS
+    inputs = [args.dem, args.ref, *args.exclude, *args.include, args.stable_mask]
+    check_output_folder(args.output, products, overwrite=args.overwrite, inputs=inputs)
     job = CoregJob(
         dem=args.dem,
         ref=args.ref,
@@ -126,13 +124,14 @@ def run(args) -> int:
         outlier_nmad=args.outlier_nmad or None,
     )
     job.check()  # limits that cannot be honoured fail before any reading
-    rep = run_job(
-        job,
-        args.output,
-        overwrite=args.overwrite,
-        figures=not args.no_figures,
-        creation_options=creation_options(args),
-    )
+    with output_folder(args.output, products, overwrite=args.overwrite, inputs=inputs) as out:
+        rep = run_job(
+            job,
+            out,
+            overwrite=True,
+            figures=not args.no_figures,
+            creation_options=creation_options(args),
+        )
     for r in rep["steps"]:
         say(
             f"{r['step']}: stable NMAD {r['before']['nmad']:.3f} -> {r['after']['nmad']:.3f} m "

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from stereodem.core.errors import InputError
 
+from . import options
 from .commands import help_line
 
 EXAMPLES = """examples:
@@ -73,7 +74,7 @@ def add_parser(sub):
     p.add_argument("--seed", type=int, default=0, help="simulator random seed (default 0)")
     p.add_argument("--noise", type=float, default=1.0, help="image noise sigma, DN (default 1.0)")
     p.add_argument("--workers", type=int, help="worker processes (default: all cores)")
-    p.add_argument("--overwrite", action="store_true", help="write into an existing output folder")
+    options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
 

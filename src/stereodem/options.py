@@ -72,12 +72,18 @@ def creation_options(args):
     return parse_creation_options(getattr(args, "co", None)) or None
 
 
+#: the one help text of ``--overwrite`` (the policy: :func:`stereodem.outlock.check_output_folder`
+#: for output folders, :func:`stereodem.core.raster.check_writable` for output files)
+OVERWRITE_HELP = (
+    "replace the outputs of a previous run (in an output folder only the command's own "
+    "products: the folder's other files and the inputs are never touched; default: refuse "
+    "an existing output and a non-empty output folder)"
+)
+
+
 def add_overwrite(p):
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace existing outputs (default: refuse to touch them)",
-    )
+    """``--overwrite``, with one meaning and one help text in every command."""
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
 
 def add_cloud_grow(p):

@@ -1,5 +1,16 @@
 """One job per output folder: an exclusive lock, products replaced only on request, inputs
-never among the outputs.
+never among the outputs. The one overwrite policy of every command that writes into a folder.
+
+The policy (:func:`check_output_folder`, applied before any work and again under the lock by
+:func:`output_folder`); each command declares its products (:class:`Products`):
+
+* ``-o`` is a folder or can be created;
+* no input is one of the command's products in the folder, even with ``--overwrite``;
+* without ``--overwrite`` a non-empty folder is refused, naming its products (or its files);
+* with ``--overwrite`` the command's products of a previous stereodem run (a folder holding one
+  of its markers, e.g. ``run.json``) are replaced; in a folder of the user's the products go
+  beside the user's files as long as none of them has a product's name (else refused, naming
+  it); a file of another name is never touched.
 
 :class:`OutputLock` holds ``OUT/.stereodem.lock`` with ``fcntl.flock`` (exclusive,
 non-blocking) for the life of a job. The kernel drops the lock when the process dies, however
@@ -28,6 +39,7 @@ import shutil
 import socket
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from stereodem.core.errors import InputError, OutputExistsError
@@ -43,6 +55,9 @@ __all__ = [
     "remove_products_in_background",
     "is_stereodem_output",
     "check_not_an_input",
+    "check_output_folder",
+    "Products",
+    "JOB",
     "PRODUCTS",
 ]
 
@@ -52,7 +67,8 @@ PROBE_PREFIX = ".stereodem-probe-"
 #: the folder a job moves the previous job's products into, to delete them while it runs
 REMOVING_PREFIX = ".stereodem-removing-"
 
-#: what a stereodem job writes into its output folder (files and folders, glob patterns)
+#: what a stereodem job (``dem``, ``run``, ``demo``) writes into its output folder (files and
+#: folders, glob patterns)
 PRODUCTS = (
     "run.json",
     "dem_report.json",
@@ -72,17 +88,6 @@ PRODUCTS = (
     "demo.toml",
     "scene",
     "result",
-    # stereodem stack / change
-    "stack.json",
-    "stack.zarr",
-    "rate.tif",
-    "rate_sigma.tif",
-    "n_obs.tif",
-    "n_rejected.tif",
-    "volumes.json",
-    "change.json",
-    "dh.tif",
-    "dh_sigma.tif",
     # what a job that was killed while it deleted its predecessor's products left
     REMOVING_PREFIX + "*",
 )
@@ -95,6 +100,25 @@ MARKERS = (
     "stack.json",
     "change.json",
 )
+
+
+@dataclass(frozen=True)
+class Products:
+    """What a command writes into its output folder: ``names`` (file or folder names, glob
+    patterns) and ``markers``, the names of which one in the folder marks it as written by a
+    previous run of the command (whose products ``--overwrite`` then replaces)."""
+
+    names: tuple
+    markers: tuple
+
+    def __post_init__(self):
+        # what a job killed while it deleted its predecessor's products left is a product too
+        if REMOVING_PREFIX + "*" not in self.names:
+            object.__setattr__(self, "names", (*self.names, REMOVING_PREFIX + "*"))
+
+
+#: the products of a stereodem job (``dem``, ``run``, ``demo``)
+JOB = Products(PRODUCTS, MARKERS)
 
 
 class OutputLockedError(OutputExistsError):
@@ -171,30 +195,30 @@ class OutputLock:
         return False
 
 
-def is_stereodem_output(folder) -> bool:
-    """Whether ``folder`` holds the products of a stereodem job (or what a job killed while it
-    deleted them left: :func:`remove_products_in_background`)."""
+def is_stereodem_output(folder, markers=MARKERS) -> bool:
+    """Whether ``folder`` holds the products of a stereodem job (one of ``markers``), or what
+    a job killed while it deleted them left (:func:`remove_products_in_background`)."""
     folder = Path(folder)
-    return any((folder / m).exists() for m in MARKERS) or any(folder.glob(REMOVING_PREFIX + "*"))
+    return any((folder / m).exists() for m in markers) or any(folder.glob(REMOVING_PREFIX + "*"))
 
 
-def _product_paths(folder: Path, keep_tiles: bool):
-    for pattern in PRODUCTS:
+def _product_paths(folder: Path, keep_tiles: bool, names=PRODUCTS):
+    for pattern in names:
         if keep_tiles and pattern == "tiles":
             continue
         yield from folder.glob(pattern)
 
 
-def remove_products(folder, *, keep_tiles: bool) -> list[str]:
-    """Remove the previous job's products from ``folder`` (the tile cache too unless
+def remove_products(folder, *, keep_tiles: bool, products: Products = JOB) -> list[str]:
+    """Remove the previous job's ``products`` from ``folder`` (the tile cache too unless
     ``keep_tiles``); other files are left alone. Returns the names removed."""
-    removed, paths = _products_to_remove(Path(folder), keep_tiles)
+    removed, paths = _products_to_remove(Path(folder), keep_tiles, products)
     for p in paths:
         _delete(p)
     return removed
 
 
-def remove_products_in_background(folder, *, keep_tiles: bool):
+def remove_products_in_background(folder, *, keep_tiles: bool, products: Products = JOB):
     """:func:`remove_products`, the deletion on a thread: the products are moved into a hidden
     folder of ``folder`` (a rename each: out of the job's way at once) and deleted there while
     the job runs. Returns (the names removed, the deleting thread or None).
@@ -203,7 +227,7 @@ def remove_products_in_background(folder, *, keep_tiles: bool):
     the kernel, before any work could start. A job killed meanwhile leaves the hidden folder,
     which the next ``--overwrite`` removes as one of the products (:data:`PRODUCTS`)."""
     folder = Path(folder)
-    removed, paths = _products_to_remove(folder, keep_tiles)
+    removed, paths = _products_to_remove(folder, keep_tiles, products)
     if not paths:
         return removed, None
     trash = folder / f"{REMOVING_PREFIX}{os.getpid()}-{time.monotonic_ns()}"
@@ -223,8 +247,8 @@ def remove_products_in_background(folder, *, keep_tiles: bool):
     return removed, thread
 
 
-def _products_to_remove(folder: Path, keep_tiles: bool):
-    paths = sorted(set(_product_paths(folder, keep_tiles)))
+def _products_to_remove(folder: Path, keep_tiles: bool, products: Products = JOB):
+    paths = sorted(set(_product_paths(folder, keep_tiles, products.names)))
     removed = [p.name for p in paths]
     if removed:
         log.info("%s: removed the previous job's %s", folder, ", ".join(removed))
@@ -248,9 +272,9 @@ def _delete(p: Path):
         p.unlink()
 
 
-def check_not_an_input(outputs, inputs):
+def check_not_an_input(outputs, inputs, products: Products = JOB):
     """:class:`InputError` if an output path is one of the input files (or, for an output
-    folder, holds an input among the products it replaces)."""
+    folder, holds an input among the ``products`` it replaces)."""
     ins = {}
     for p in inputs:
         if p:
@@ -265,14 +289,15 @@ def check_not_an_input(outputs, inputs):
         for src, given in ins.items():
             if out in src.parents:
                 rel = src.relative_to(out)
-                if any(rel.match(pat) or Path(rel.parts[0]).match(pat) for pat in PRODUCTS):
+                if any(rel.match(pat) or Path(rel.parts[0]).match(pat) for pat in products.names):
                     raise InputError(
                         f"{given}: this input is a product of the output folder {out}, "
                         "which the job replaces; copy it elsewhere or choose another -o"
                     )
 
 
-def _check_folder(path: Path, *, overwrite: bool, resume: bool):
+def _check_folder(path: Path):
+    """``path`` is a folder, or can be created as one."""
     if path.exists() and not path.is_dir():
         raise OutputExistsError(f"{path}: exists and is not a folder")
     for parent in path.absolute().parents:
@@ -282,17 +307,88 @@ def _check_folder(path: Path, *, overwrite: bool, resume: bool):
             break
 
 
+def _names(paths, n=5) -> str:
+    names = sorted(p.name for p in paths)
+    return ", ".join(names[:n]) + (f" and {len(names) - n} more" if len(names) > n else "")
+
+
+def _check_contents(path: Path, products: Products, *, overwrite: bool, resume: bool):
+    """The policy on what ``path`` (an existing folder) holds; raises
+    :class:`OutputExistsError` naming the files in the way."""
+    # another job starting here at the same moment may have its lock or its probe in the
+    # folder: not a file of the user's (it then finds the folder locked and gives up)
+    others = [
+        p for p in path.iterdir() if p.name != LOCK_NAME and not p.name.startswith(PROBE_PREFIX)
+    ]
+    if not others:
+        return
+    present = set(_product_paths(path, keep_tiles=False, names=products.names))
+    if not (overwrite or resume):
+        if present:
+            first, *rest = sorted(present)
+            also = f" (as do {_names(rest)})" if rest else ""
+            raise OutputExistsError(
+                f"{first}: exists{also}; pass --overwrite to replace the products of a previous run"
+            )
+        raise OutputExistsError(
+            f"{path}: folder exists and is not empty (it holds {_names(others, 3)}); "
+            "pass --overwrite to write the products beside its files"
+        )
+    if present and not is_stereodem_output(path, products.markers):
+        # a folder of the user's (e.g. the one holding the inputs): the products go beside
+        # the user's files as long as none of them has a product's name
+        raise OutputExistsError(
+            f"{path}: not a stereodem output (no {' or '.join(products.markers)}) and it "
+            f"holds {_names(present)}, which the job would replace; refusing to touch them: "
+            "move them or choose an empty or new folder"
+        )
+
+
+def check_output_folder(
+    path, products: Products = JOB, *, overwrite: bool = False, resume: bool = False, inputs=()
+) -> Path:
+    """The one overwrite policy of an output folder, checked before any work; creates and
+    changes nothing (:func:`output_folder` checks it again under the lock).
+
+    ``path`` must be a folder or creatable; no input may be among the ``products`` it would
+    hold, even with ``overwrite`` (:class:`InputError`); without ``overwrite`` (or ``resume``)
+    a non-empty folder is refused, naming its products (or files); with ``overwrite`` a folder
+    that holds a product's name must be a previous run's output (one of ``products.markers``):
+    a file of the user's is never replaced. Raises :class:`OutputExistsError` naming the
+    folder and its files in the way.
+    """
+    from stereodem.core.raster import check_creatable
+
+    path = Path(path)
+    _check_folder(path)
+    check_not_an_input([path], inputs, products)
+    check_creatable(path / "x" if path.is_dir() else path)
+    if path.is_dir():
+        _check_contents(path, products, overwrite=overwrite, resume=resume)
+    return path
+
+
 @contextlib.contextmanager
 def output_folder(
-    path, *, overwrite: bool = False, resume: bool = False, inputs=(), background: bool = False
+    path,
+    products: Products = JOB,
+    *,
+    overwrite: bool = False,
+    resume: bool = False,
+    inputs=(),
+    background: bool = False,
 ):
-    """The output folder of a job, created if needed, locked for the job's duration.
+    """The output folder of a job, created if needed, locked for the job's duration; the
+    policy of :func:`check_output_folder` is checked under the lock.
 
     Parameters
     ----------
+    products : Products
+        What the job writes into the folder (default: a stereodem job's, :data:`JOB`).
     overwrite : bool
-        Replace the products of a previous job; in a non-empty folder that is not a stereodem
-        output, write beside its files only when none has a product's name (:data:`PRODUCTS`).
+        Replace the products of a previous run (they are removed first); in a non-empty
+        folder that is not a stereodem output, write beside its files only when none has a
+        product's name.
     resume : bool
         Continue a previous job: keep its tile cache (its other products are replaced).
     inputs : iterable of paths
@@ -305,13 +401,14 @@ def output_folder(
     Raises
     ------
     OutputExistsError
-        Not a folder, cannot be created, not empty (without ``overwrite``/``resume``).
+        Not a folder, cannot be created, not empty (without ``overwrite``/``resume``), or a
+        file of the user's has a product's name.
     OutputLockedError
         Another job holds the folder.
     """
     path = Path(path)
-    _check_folder(path, overwrite=overwrite, resume=resume)
-    check_not_an_input([path], inputs)
+    _check_folder(path)
+    check_not_an_input([path], inputs, products)
     created = not path.exists()
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -338,33 +435,14 @@ def output_folder(
     ok = False
     deleting = None
     try:
-        # another job starting here at the same moment may have its probe in the folder:
-        # not a file of the user's (it then finds the folder locked and gives up)
-        others = [
-            p for p in path.iterdir() if p.name != LOCK_NAME and not p.name.startswith(PROBE_PREFIX)
-        ]
-        if others:
-            if not (overwrite or resume):
-                raise OutputExistsError(
-                    f"{path}: folder exists and is not empty; pass --overwrite "
-                    "to replace its products (or --resume to continue its job)"
-                )
-            if is_stereodem_output(path):
-                if background:
-                    deleting = remove_products_in_background(path, keep_tiles=resume)[1]
-                else:
-                    remove_products(path, keep_tiles=resume)
+        _check_contents(path, products, overwrite=overwrite, resume=resume)
+        if (overwrite or resume) and is_stereodem_output(path, products.markers):
+            if background:
+                deleting = remove_products_in_background(
+                    path, keep_tiles=resume, products=products
+                )[1]
             else:
-                # a folder of the user's (e.g. the one holding the inputs): the products go
-                # beside the user's files as long as none of them has a product's name
-                clash = sorted(p.name for p in set(_product_paths(path, keep_tiles=False)))
-                if clash:
-                    raise OutputExistsError(
-                        f"{path}: not a stereodem output (no run.json or "
-                        f"dem_report.json) and it holds {', '.join(clash[:5])}, "
-                        "which the job would replace; refusing to touch them: "
-                        "choose an empty or new folder"
-                    )
+                remove_products(path, keep_tiles=resume, products=products)
         yield path
         ok = True
     finally:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from . import options
 from .commands import help_line
 from .progress import Progress
 
@@ -44,11 +45,7 @@ def add_run_options(p):
     )
     p.add_argument("--dask", metavar="ADDRESS", help="dask.distributed scheduler (tcp://host:port)")
     p.add_argument("--resume", action="store_true", help="reuse an existing output folder")
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace the products of a previous job in the output folder",
-    )
+    options.add_overwrite(p)
     p.add_argument(
         "--force",
         action="store_true",

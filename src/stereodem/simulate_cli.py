@@ -9,7 +9,29 @@ import logging
 from stereodem.core.errors import InputError
 from stereodem.core.vertical import VERTICALS
 
+from . import options
 from .commands import help_line
+from .outlock import Products
+
+#: what ``stereodem simulate`` writes into its output folder (:func:`stereodem.sensor.
+#: simulation.simulate.write_scene`, the granules of ``--format l1a-*`` and a strip's
+#: ``strip.json``)
+PRODUCTS = Products(
+    (
+        "left.tif",
+        "right.tif",
+        "left.model.json",
+        "right.model.json",
+        "truth_dem.tif",
+        "truth_ortho.tif",
+        "points.csv",
+        "scene.json",
+        "strip.json",
+        "AST_L1A_*.hdf",
+        "AST_L1A_*.zip",
+    ),
+    markers=("scene.json",),
+)
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +131,7 @@ def add_parser(sub):
         "lines), plus the strip's truth and strip.json",
     )
     p.add_argument("-o", "--out", required=True, help="output folder")
-    p.add_argument("--overwrite", action="store_true", help="reuse a non-empty output folder")
+    options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
 
@@ -118,6 +140,8 @@ def run(args) -> int:
     from stereodem.core.dem import DEM
     from stereodem.sensor.simulation.aster_granule import granule_right_size, write_granule_scene
     from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+
+    from .outlock import check_output_folder, output_folder
 
     granule = args.format != "geotiff"
     if granule and args.preset != "aster":
@@ -133,9 +157,12 @@ def run(args) -> int:
         raise InputError("--granules needs --format l1a-v004 or l1a-v003 (ASTER granules)")
     if args.granules > 1 and (args.jitter or args.roll_jitter):
         raise InputError("--granules does not combine with --jitter/--roll-jitter")
+    # an input among the products (--dem s/truth_dem.tif -o s) was replaced with --overwrite
+    inputs = [args.dem, args.texture]
+    check_output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical) if args.dem else None
     if args.granules > 1:
-        return _run_strip(args, dem)
+        return _run_strip(args, dem, inputs)
     right_size = (
         tuple(args.right_size)
         if args.right_size
@@ -156,7 +183,8 @@ def run(args) -> int:
         roll_jitter=args.roll_jitter,
     )
     if not granule:
-        out = write_scene(scene, args.out, overwrite=args.overwrite)
+        with output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
+            write_scene(scene, out, overwrite=True)
         meta = json.loads((out / "scene.json").read_text())
         print(
             f"wrote {out}/left.tif, right.tif (+ .model.json), truth_dem.tif, truth_ortho.tif, "
@@ -168,14 +196,15 @@ def run(args) -> int:
                 f"{rep.get('check_rms', float('nan')):.4f} px"
             )
         return 0
-    path = write_granule_scene(
-        scene,
-        args.out,
-        version=4 if args.format == "l1a-v004" else 3,
-        seed=args.seed,
-        velocity=args.velocity,
-        overwrite=args.overwrite,
-    )
+    with output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
+        path = write_granule_scene(
+            scene,
+            out,
+            version=4 if args.format == "l1a-v004" else 3,
+            seed=args.seed,
+            velocity=args.velocity,
+            overwrite=True,
+        )
     print(
         f"wrote {path} (3N {scene.left.shape[1]}x{scene.left.shape[0]}, "
         f"3B {scene.right.shape[1]}x{scene.right.shape[0]}), truth_dem.tif, truth_ortho.tif, "
@@ -184,10 +213,12 @@ def run(args) -> int:
     return 0
 
 
-def _run_strip(args, dem) -> int:
+def _run_strip(args, dem, inputs) -> int:
     """``--granules N``: consecutive granules of one pass
     (:mod:`stereodem.sensor.simulation.aster_strip`)."""
     from stereodem.sensor.simulation.aster_strip import simulate_strip, write_strip
+
+    from .outlock import output_folder
 
     version = 4 if args.format == "l1a-v004" else 3
     log.info("simulating %d granules of %dx%d", args.granules, *args.size)
@@ -202,7 +233,8 @@ def _run_strip(args, dem) -> int:
         velocity=args.velocity,
         version=version,
     )
-    paths = write_strip(strip, args.out, overwrite=args.overwrite, version=version)
+    with output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
+        paths = write_strip(strip, out, overwrite=True, version=version)
     for p, first in zip(paths, strip.first_lines):
         print(f"wrote {p} (3N lines {first}..{first + strip.heights[0] - 1} of the pass)")
     print(

@@ -15,6 +15,7 @@ from stereodem.core.vertical import VERTICALS
 
 from . import options
 from .commands import help_line
+from .outlock import Products
 
 log = logging.getLogger(__name__)
 
@@ -27,13 +28,17 @@ EXAMPLES = """examples:
 
 #: reference grids of at least this many cells are built with --workers processes
 PARALLEL_BUILD_CELLS = 1_000_000
-#: products of a stack job (also in :data:`stereodem.outlock.PRODUCTS`)
+#: the rasters of the rate fit
 RATE_FILES = {
     "rate": "rate.tif",
     "rate_sigma": "rate_sigma.tif",
     "n_obs": "n_obs.tif",
     "n_rejected": "n_rejected.tif",
 }
+#: what ``stereodem stack`` writes into its output folder
+PRODUCTS = Products(
+    ("stack.json", "stack.zarr", *RATE_FILES.values(), "volumes.json"), markers=("stack.json",)
+)
 
 
 def add_cloud_options(p):
@@ -197,7 +202,7 @@ def run(args) -> int:
     from stereodem.post.stack import open_stack, stack_grid, stack_rates
     from stereodem.post.stack_build import BuildSettings, build_stack, check_inputs
 
-    from .outlock import output_folder
+    from .outlock import check_output_folder, output_folder
 
     t0 = time.perf_counter()
     _check(args)
@@ -210,6 +215,13 @@ def run(args) -> int:
         chunk=args.chunk,
     )
     # every refusal before the output folder is touched
+    inputs = (
+        list(args.dems)
+        + [args.ref]
+        + list(args.exclude)
+        + ([args.outlines] if args.outlines else [])
+    )
+    check_output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
     if len(args.dems) < 2:
         check_inputs(args.dems, None)
     ref = DEM.from_file(args.ref, vertical=args.ref_vertical)
@@ -225,14 +237,8 @@ def run(args) -> int:
 
         exclude_mask([path], ref)
     workers = args.workers or os.cpu_count() or 1
-    inputs = (
-        list(args.dems)
-        + [args.ref]
-        + list(args.exclude)
-        + ([args.outlines] if args.outlines else [])
-    )
     with (
-        output_folder(args.out, overwrite=args.overwrite, inputs=inputs) as out,
+        output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out,
         _status_if_stopped(out / "stack.json"),
     ):
         write_text_atomic(out / "stack.json", jsonutil.dumps({"status": "running"}), overwrite=True)
@@ -262,7 +268,7 @@ def run(args) -> int:
                 g.transform,
                 g.crs,
                 None if integer else np.nan,
-                overwrite=args.overwrite,
+                overwrite=True,
                 creation_options=co,
                 descriptions=key,
                 units=None if integer else "metre per year",

@@ -9,7 +9,25 @@ from pathlib import Path
 from stereodem.core.vertical import VERTICALS
 from stereodem.ortho.choices import UNCERTAINTY_METHODS
 
+from . import options
 from .commands import help_line
+from .outlock import Products
+
+#: what ``stereodem uncertainty`` writes into its output folder
+#: (:meth:`stereodem.ortho.uncertainty.maps.UncertaintyMaps.write` and the figure)
+PRODUCTS = Products(
+    (
+        "sigma_horizontal.tif",
+        "sigma_east.tif",
+        "sigma_north.tif",
+        "ce90.tif",
+        "dominant_source.tif",
+        "share_*.tif",
+        "sensitivity.json",
+        "uncertainty.png",
+    ),
+    markers=("sensitivity.json",),
+)
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +88,7 @@ def add_parser(sub):
         "--source-maps", action="store_true", help="also write share_<source>.tif per source"
     )
     p.add_argument("-o", "--out", required=True, help="output folder")
-    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
 
@@ -78,7 +96,6 @@ def add_parser(sub):
 def run(args) -> int:
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
-    from stereodem.core.raster import check_writable
     from stereodem.ortho.grid import footprint_height_range, grid_for_model, share_without_dem
     from stereodem.ortho.uncertainty.covariance import (
         assemble,
@@ -96,22 +113,11 @@ def run(args) -> int:
         raise InputError(f"--samples must be at least 3, got {args.samples}")
     if args.res is not None and not args.res > 0:
         raise InputError(f"--res must be positive, got {args.res}")
-    out = Path(args.out)
-    names_out = [
-        "sigma_horizontal.tif",
-        "sigma_east.tif",
-        "sigma_north.tif",
-        "ce90.tif",
-        "dominant_source.tif",
-        "sensitivity.json",
-        "uncertainty.png",
-    ]
-    from .outlock import check_not_an_input
+    from .outlock import check_output_folder, output_folder
 
     # an input named like a map in the output folder was replaced with --overwrite
-    check_not_an_input([out / n for n in names_out], [args.image, args.dem, args.covariance])
-    for n in names_out:
-        check_writable(out / n, args.overwrite)
+    inputs = [args.image, args.dem, args.covariance]
+    check_output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
     sigmas = parse_sigma_pairs(args.sigma)
     report = read_adjust_report(args.covariance) if args.covariance else None
     model = load_image_model(args.image)
@@ -139,10 +145,9 @@ def run(args) -> int:
         seed=args.seed,
         source_maps=args.source_maps,
     )
-    maps.write(out, overwrite=args.overwrite, source_maps=args.source_maps)
-    plot_uncertainty(
-        maps, out / "uncertainty.png", title=Path(args.image).name, overwrite=args.overwrite
-    )
+    with output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
+        maps.write(out, overwrite=True, source_maps=args.source_maps)
+        plot_uncertainty(maps, out / "uncertainty.png", title=Path(args.image).name, overwrite=True)
     s = maps.summary()
     top = max(maps.shares, key=lambda k: maps.shares[k])
     print(
