@@ -112,9 +112,13 @@ class Products:
     markers: tuple
 
     def __post_init__(self):
-        # what a job killed while it deleted its predecessor's products left is a product too
-        if REMOVING_PREFIX + "*" not in self.names:
-            object.__setattr__(self, "names", (*self.names, REMOVING_PREFIX + "*"))
+        # a GeoTIFF's GDAL side-car is part of it (core.raster.atomic_path moves it with the
+        # file), and what a job killed while it deleted its predecessor's products left is a
+        # product too
+        more = [f"{n}.aux.xml" for n in self.names if n.endswith(".tif")]
+        more += [REMOVING_PREFIX + "*"]
+        names = (*self.names, *(n for n in more if n not in self.names))
+        object.__setattr__(self, "names", names)
 
 
 #: the products of a stereodem job (``dem``, ``run``, ``demo``)

@@ -592,3 +592,281 @@ def test_mosaic_reference_that_is_not_a_dem_is_one_line(kind, dems, tmp_path, ca
     assert_clear_error(code, err, "mosaic", message)
     assert len(err.strip().splitlines()) == 1, err
     assert not out.exists()
+
+
+# ------------------------------------------------ one overwrite policy for every output folder
+
+#: command -> (argv builder(s, d, out), one of its products, what it writes first: the work
+#: that a refusal must come before, "module:function")
+FOLDER_COMMANDS = {
+    "dem": (
+        lambda s, d, o: ["dem", s / "left.tif", s / "right.tif", "-o", o, "--workers", "1", *HR],
+        "score.tif",
+        "stereodem.pipeline.inputs:load_pair",
+    ),
+    "run": (
+        lambda s, d, o: [
+            "run",
+            job_toml(o.parent / "job.toml", s, o, "[ortho]\nenabled = false\n"),
+            "--workers",
+            "1",
+        ],
+        "dem.tif",
+        "stereodem.pipeline.job:_run_in",
+    ),
+    "demo": (
+        lambda s, d, o: ["demo", "-o", o, "--size", "100", "100"],
+        "result",
+        "stereodem.sensor.simulation.simulate:simulate_scene",
+    ),
+    "assess": (
+        lambda s, d, o: ["assess", d / "a.tif", "--ref", d / "ref.tif", "-o", o],
+        "report.md",
+        "stereodem.pipeline.stages:assess_stage",
+    ),
+    "coregister": (
+        lambda s, d, o: (
+            ["coregister", d / "a.tif", "--ref", d / "ref.tif"]
+            + ["--chain", "vshift", "--no-figures", "-o", o]
+        ),
+        "dem_coregistered.tif",
+        "stereodem.post.coreg_run:run",
+    ),
+    "compare-models": (
+        lambda s, d, o: (
+            ["compare-models", s / "left.tif", "--gcps", s / "points.csv"]
+            + ["--models", "rpc-shift", "--counts", "6", "-o", o]
+        ),
+        "compare.md",
+        "stereodem.sensor.estimation.compare:compare",
+    ),
+    "simulate": (
+        lambda s, d, o: ["simulate", "--size", "64", "64", "-o", o],
+        "truth_dem.tif",
+        "stereodem.sensor.simulation.simulate:simulate_scene",
+    ),
+    "uncertainty": (
+        lambda s, d, o: (
+            ["uncertainty", s / "left.tif", "--dem", s / "truth_dem.tif"]
+            + ["--sigma", "roll_bias=1", "--res", "150", "-o", o]
+        ),
+        "ce90.tif",
+        "stereodem.ortho.uncertainty.maps:ortho_uncertainty_maps",
+    ),
+    "adjust": (
+        lambda s, d, o: (
+            ["adjust", s / "left.tif", "--gcps", s / "points.csv"]
+            + ["--model", "rpc-shift", "-o", o.parent / "m.model.json", "--report", o]
+        ),
+        "adjust_report.md",
+        "stereodem.sensor.estimation.adjust:adjust_model",
+    ),
+    "stack": (
+        lambda s, d, o: (
+            ["stack", d / "a.tif", d / "b.tif", "--ref", d / "ref.tif"]
+            + ["--dates", "2001-01-01,2005-01-01", "--chain", "vshift", "-o", o]
+        ),
+        "rate.tif",
+        "stereodem.post.stack_build:build_stack",
+    ),
+    "change": (
+        lambda s, d, o: ["change", d / "a.tif", d / "b.tif", "--chain", "vshift", "-o", o],
+        "dh.tif",
+        "stereodem.post.change:dem_change",
+    ),
+}
+
+
+@pytest.fixture(scope="module")
+def noisy(tmp_path_factory):
+    """``ref.tif`` and ``a.tif``/``b.tif`` (+1 m, +2 m and noise of 0.3 m: a DEM identical to
+    its reference up to a shift is refused by stack) on 60 x 60 cells of the bundled SRTM."""
+    d = tmp_path_factory.mktemp("noisy")
+    full = DEM.bundled()
+    ref = DEM(full.heights[:60, :60].copy(), full.transform, full.crs, "geoid")
+    ref.write(d / "ref.tif")
+    rng = np.random.default_rng(0)
+    for name, dz in (("a.tif", 1.0), ("b.tif", 2.0)):
+        h = ref.heights + dz + rng.normal(0, 0.3, ref.heights.shape).astype(np.float32)
+        DEM(h, ref.transform, ref.crs, "geoid").write(d / name)
+    return d
+
+
+def _no_work(monkeypatch, target):
+    """Make the command's first work fail loudly: a refusal must come before it."""
+    import importlib
+
+    module, name = target.split(":")
+
+    def work(*a, **k):
+        raise AssertionError(f"{target} ran: the refusal came after the work started")
+
+    monkeypatch.setattr(importlib.import_module(module), name, work)
+
+
+@pytest.mark.parametrize("overwrite", [False, True], ids=["plain", "overwrite"])
+@pytest.mark.parametrize("command", sorted(FOLDER_COMMANDS))
+def test_a_users_file_named_like_a_product_is_refused_before_any_work(
+    command, overwrite, sim, noisy, tmp_path, capsys, monkeypatch
+):
+    """Every command writing into a folder refuses one holding a file with one of its
+    products' names, names that file, writes nothing and starts no work. Without --overwrite:
+    the file "exists". With --overwrite, in a folder no run of the command wrote: "not a
+    stereodem output". Before, assess, coregister, compare-models, simulate, uncertainty and
+    adjust --report replaced the user's file with --overwrite (a user's report.md in -o .),
+    and without it refused with "folder exists and is not empty", naming no file."""
+    build, product, target = FOLDER_COMMANDS[command]
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / product).write_text("the user's own file named like a product\n")
+    (out / "notes.txt").write_text("my notes\n")
+    argv = build(sim, noisy, out) + (["--overwrite"] if overwrite else [])
+    before = _files(tmp_path)
+    _no_work(monkeypatch, target)
+    code, _, err = run_cli(capsys, argv)
+    name = re.escape(product)
+    pattern = rf"not a stereodem output.*{name}" if overwrite else rf"{name}: exists"
+    assert_clear_error(code, err, command, pattern)
+    assert _files(tmp_path) == before
+    assert sorted(p.name for p in out.iterdir()) == sorted([product, "notes.txt"])
+
+
+#: command -> (argv builder(s, d, out) with an input in ``out`` named like a product, the
+#: input's name there, the file it is a copy of (s: the scene, d: the DEMs))
+INPUT_AS_PRODUCT = {
+    "dem": (
+        lambda s, d, o: ["dem", o / "score.tif", s / "right.tif", "-o", o, "--workers", "1", *HR],
+        "score.tif",
+        ("s", "left.tif"),
+    ),
+    "assess": (
+        lambda s, d, o: ["assess", d / "a.tif", "--ref", o / "report.json", "-o", o],
+        "report.json",
+        ("d", "ref.tif"),
+    ),
+    "coregister": (
+        lambda s, d, o: (
+            ["coregister", o / "dem_coregistered.tif", "--ref", d / "ref.tif"]
+            + ["--chain", "vshift", "-o", o]
+        ),
+        "dem_coregistered.tif",
+        ("d", "a.tif"),
+    ),
+    "compare-models": (
+        lambda s, d, o: (
+            ["compare-models", s / "left.tif", "--gcps", o / "compare.md"]
+            + ["--models", "rpc-shift", "-o", o]
+        ),
+        "compare.md",
+        ("s", "points.csv"),
+    ),
+    "simulate": (
+        lambda s, d, o: ["simulate", "--dem", o / "truth_dem.tif", "--size", "64", "64", "-o", o],
+        "truth_dem.tif",
+        ("s", "truth_dem.tif"),
+    ),
+    "simulate-texture": (
+        lambda s, d, o: (
+            ["simulate", "--texture", o / "truth_ortho.tif"] + ["--size", "64", "64", "-o", o]
+        ),
+        "truth_ortho.tif",
+        ("s", "truth_ortho.tif"),
+    ),
+    "uncertainty": (
+        lambda s, d, o: (
+            ["uncertainty", s / "left.tif", "--dem", o / "ce90.tif"]
+            + ["--sigma", "roll_bias=1", "-o", o]
+        ),
+        "ce90.tif",
+        ("s", "truth_dem.tif"),
+    ),
+    "adjust": (
+        lambda s, d, o: (
+            ["adjust", s / "left.tif", "--gcps", o / "adjust_report.md"]
+            + ["--model", "rpc-shift", "-o", o.parent / "m.model.json", "--report", o]
+        ),
+        "adjust_report.md",
+        ("s", "points.csv"),
+    ),
+    "stack": (
+        lambda s, d, o: (
+            ["stack", d / "a.tif", d / "b.tif", "--ref", o / "rate.tif"]
+            + ["--dates", "2001-01-01,2005-01-01", "-o", o]
+        ),
+        "rate.tif",
+        ("d", "ref.tif"),
+    ),
+    "change": (
+        lambda s, d, o: ["change", d / "a.tif", o / "dh.tif", "-o", o],
+        "dh.tif",
+        ("d", "b.tif"),
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(INPUT_AS_PRODUCT))
+def test_an_input_named_like_a_product_is_refused_even_with_overwrite(
+    case, sim, noisy, tmp_path, capsys
+):
+    """An input in the output folder under one of the command's products' names is refused
+    with --overwrite too, even in a folder a previous run wrote (its marker there), and
+    nothing is written. Before, ``simulate --dem s/truth_dem.tif -o s --overwrite`` (and
+    --texture s/truth_ortho.tif) replaced its own input, as did assess, compare-models and
+    adjust --report with an input named like one of their products; stack and change
+    checked the products of every command (a DEM named dem.tif was refused by change)."""
+    build, name, (where, src) = INPUT_AS_PRODUCT[case]
+    command = case.split("-texture")[0]
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copy((sim if where == "s" else noisy) / src, out / name)
+    before = _files(tmp_path)
+    code, _, err = run_cli(capsys, [*build(sim, noisy, out), "--overwrite"])
+    culprit = rf"{re.escape(name)}: (this input is a product|the output would replace the input)"
+    assert_clear_error(code, err, command, culprit)
+    assert _files(tmp_path) == before
+
+
+#: the commands whose previous products a quick run replaces (dem, run and demo: above and
+#: in test_hostile.py)
+QUICK = ["assess", "coregister", "compare-models", "simulate", "uncertainty", "adjust"]
+QUICK += ["stack", "change"]
+
+
+@pytest.mark.parametrize("command", QUICK)
+def test_overwrite_replaces_the_commands_products_and_nothing_else(
+    command, sim, noisy, tmp_path, capsys
+):
+    """With --overwrite a command replaces the products of its previous run in the folder
+    and leaves a file of the user's (another name) untouched; everything else it writes there
+    is one of its declared products. Before, stack and change removed every command's
+    products (a dem.tif of a run in the folder), and the other commands had no list."""
+    import fnmatch
+    import importlib
+
+    from stereodem.commands import COMMANDS
+
+    build, _, _ = FOLDER_COMMANDS[command]
+    out = tmp_path / "out"
+    code, _, err = run_cli(capsys, build(sim, noisy, out))
+    assert code == 0, err
+    first = _files(out)
+    (out / "notes.txt").write_text("my notes\n")
+    if command != "change":  # a product of another command: not this one's
+        (out / "dh.tif").write_text("change's, not this command's\n")
+    keep = {p: b for p, b in _files(out).items() if p not in first}
+    for p in first:  # stale versions of every product: all must be replaced
+        p.write_bytes(b"stale")
+    code, _, err = run_cli(capsys, [*build(sim, noisy, out), "--overwrite"])
+    assert code == 0, err
+    after = _files(out)
+    assert {p: after[p] for p in keep} == keep  # the user's files untouched
+    assert all(after.get(p) not in (None, b"stale") for p in first), sorted(
+        p.name for p in first if after.get(p) in (None, b"stale")
+    )
+    if command == "adjust":  # --report: adjust_cli.report_products
+        products = ("adjust_report.json", "adjust_report.md", "adjust_residuals*.png")
+    else:
+        products = importlib.import_module(COMMANDS[command][0]).PRODUCTS.names
+    for p in set(after) - set(keep):
+        top = p.relative_to(out).parts[0]
+        assert any(fnmatch.fnmatch(top, pat) for pat in products), (command, top)
