@@ -256,6 +256,11 @@ def _lower(co: dict) -> dict:
     return {k.lower(): v for k, v in co.items()}
 
 
+#: what a GDAL failure raises through rasterio (RasterioIOError is an OSError, not a
+#: RasterioError, before rasterio 1.4)
+_GDAL_ERRORS = (rasterio.errors.RasterioError, rasterio.errors.RasterioIOError, CPLE_BaseError)
+
+
 @functools.lru_cache(maxsize=64)
 def _probe_cog_write(dtype: str, count: int, items: tuple) -> str | None:
     """GDAL's refusal (its message) to write a COG of ``count`` bands of ``dtype`` with the
@@ -270,7 +275,7 @@ def _probe_cog_write(dtype: str, count: int, items: tuple) -> str | None:
         with MemoryFile() as mem:
             try:
                 rasterio.shutil.copy(src, mem.name, driver="COG", **_lower(probe))
-            except (rasterio.errors.RasterioError, CPLE_BaseError) as exc:
+            except _GDAL_ERRORS as exc:
                 return " ".join(str(exc).split())
     return None
 
@@ -312,7 +317,7 @@ def copy_to_cog(src, tmp, co: dict, *, path, nbytes: int | None = None) -> None:
             refused = _probe_cog_write(str(dtype), int(count), tuple(co.items()))
         if refused is None:
             rasterio.shutil.copy(src, tmp, driver="COG", **_lower(co))
-    except (rasterio.errors.RasterioError, CPLE_BaseError) as exc:
+    except _GDAL_ERRORS as exc:
         refused = " ".join(str(exc).split())
         full = _short_of_space(tmp, nbytes or 0)
         if full is not None:
