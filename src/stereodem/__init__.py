@@ -21,12 +21,20 @@ except PackageNotFoundError:  # running from a source tree without installation
 #: public name -> defining module
 _API = {
     # core: errors, rasters, grids, the DEM type
+    # (every class of stereodem.core.errors: what the public functions raise can be caught
+    # by its own name from here)
     "StereodemError": "stereodem.core.errors",
     "InputError": "stereodem.core.errors",
+    "RPCError": "stereodem.core.errors",
+    "SensorModelError": "stereodem.core.errors",
+    "CRSError": "stereodem.core.errors",
     "DEMError": "stereodem.core.errors",
+    "DEMCoverageError": "stereodem.core.errors",
     "VerticalReferenceError": "stereodem.core.errors",
+    "NoOverlapError": "stereodem.core.errors",
     "OutputExistsError": "stereodem.core.errors",
     "OutputWriteError": "stereodem.core.errors",
+    "ConvergenceError": "stereodem.core.errors",
     "DEM": "stereodem.core.dem",
     "MapGrid": "stereodem.core.grid",
     "read_image": "stereodem.core.raster",

@@ -42,3 +42,19 @@ def test_the_run_pipeline_imports_no_dataframe_or_plotting_library():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_every_error_class_is_public():
+    """Every exception class of ``stereodem.core.errors`` is a public name. Before,
+    ``CRSError``, ``SensorModelError``, ``RPCError``, ``DEMCoverageError``, ``NoOverlapError``
+    and ``ConvergenceError`` were missing from ``stereodem.__all__``: ``DEM(h, t, None)``
+    raised a ``CRSError`` that ``from stereodem import CRSError`` could not import."""
+    from stereodem.core import errors
+
+    classes = {
+        name
+        for name, value in vars(errors).items()
+        if isinstance(value, type) and issubclass(value, Exception)
+    }
+    assert classes <= set(stereodem.__all__)
+    assert all(getattr(stereodem, n) is getattr(errors, n) for n in classes)
