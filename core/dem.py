@@ -35,7 +35,7 @@ from stereodem.core.errors import (
     InputError,
     VerticalReferenceError,
 )
-from stereodem.core.grid import MapGrid
+from stereodem.core.grid import MapGrid, map_crs
 from stereodem.core.raster import (
     VERTICAL_TAG,
     crs_with_vertical,
@@ -423,10 +423,19 @@ class DEM:
     _lonlat_is_native: bool = field(init=False, repr=False, default=False)
 
     def __post_init__(self):
+        what = self.path or "DEM"
         if self.crs is None:
-            raise CRSError(f"{self.path or 'DEM'}: the DEM has no CRS")
-        self.crs = CRS.from_user_input(self.crs)
-        h = np.asarray(self.heights, dtype=np.float32)
+            raise CRSError(f"{what}: the DEM has no CRS")
+        self.crs = map_crs(self.crs, f"{what}: crs")
+        if not isinstance(self.transform, Affine):  # a GDAL geotransform tuple is another order
+            raise DEMError(
+                f"{what}: transform must be an affine.Affine (a rasterio dataset's "
+                f"transform), got {type(self.transform).__name__}"
+            )
+        try:
+            h = np.asarray(self.heights, dtype=np.float32)
+        except (TypeError, ValueError) as exc:
+            raise DEMError(f"{what}: heights are not numbers ({exc})") from None
         if h.ndim != 2:
             raise DEMError(
                 f"{self.path or 'DEM'}: expected a 2-D height array, got shape {h.shape}"
@@ -594,9 +603,17 @@ class DEM:
         -------
         heights : ndarray float64, metres, NaN where unavailable.
         """
-        lon, lat = np.broadcast_arrays(
-            np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64)
-        )
+        if lon is None or lat is None:  # asarray(None, float) is a NaN: "outside", not an error
+            raise InputError("DEM.sample: lon and lat are required (degrees), got None")
+        try:
+            lon, lat = np.broadcast_arrays(
+                np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64)
+            )
+        except (TypeError, ValueError) as exc:
+            raise InputError(
+                f"DEM.sample: lon {np.shape(lon)} and lat {np.shape(lat)} must be numbers of "
+                f"one shape ({' '.join(str(exc).split())})"
+            ) from None
         out_shape = lon.shape
         lon, lat = lon.ravel(), lat.ravel()
         c, r = self._lonlat_to_pixel(lon, lat)

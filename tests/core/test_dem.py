@@ -9,6 +9,7 @@ from stereodem.core.errors import (
     CRSError,
     DEMCoverageError,
     DEMError,
+    InputError,
     OutputExistsError,
     VerticalReferenceError,
 )
@@ -361,3 +362,28 @@ def test_a_lon_lat_dem_is_sampled_across_the_antimeridian():
     assert list(status) == [0, 0] and list(z) == pytest.approx([4.0, 54.0])
     g = DEM(np.arange(36, dtype=np.float32)[None].repeat(3, 0), Affine(10, 0, 0, 0, -10, 30), 4326)
     assert g.sample(-5.0, 15.0, reference=None) == pytest.approx(35.0)
+
+
+def test_a_dem_built_from_bad_arguments_is_refused_naming_the_argument():
+    """Before, an unknown CRS escaped as pyproj's CRSError (not stereodem's), a transform that
+    was no Affine (None, a GDAL geotransform tuple) made a DEM that failed later or placed the
+    heights wrongly, and text heights gave numpy's bare ValueError."""
+    h, t = np.ones((4, 4), np.float32), Affine(30, 0, 500000, 0, -30, 4000000)
+    for crs in ("EPSG:999999", "foo"):
+        with pytest.raises(CRSError, match=f"DEM: crs: unknown or unusable CRS '{crs}'"):
+            DEM(h, t, crs)
+    for transform in (None, (500000, 30, 0, 4000000, 0, -30)):
+        with pytest.raises(DEMError, match="transform must be an affine.Affine"):
+            DEM(h, transform, "EPSG:32633")
+    with pytest.raises(DEMError, match="heights are not numbers"):
+        DEM(np.array([["a", "b"]]), t, "EPSG:32633")
+
+
+def test_sample_refuses_mismatched_or_missing_coordinates():
+    """Before, lon and lat of different shapes raised numpy's broadcasting ValueError, and
+    None gave a NaN height with status "outside" instead of an error."""
+    dem = DEM(np.ones((4, 4), np.float32), Affine(0.01, 0, 10, 0, -0.01, 45), "EPSG:4326")
+    with pytest.raises(InputError, match=r"DEM.sample: lon \(3,\) and lat \(2,\)"):
+        dem.sample(np.zeros(3), np.zeros(2), reference=None)
+    with pytest.raises(InputError, match="lon and lat are required"):
+        dem.sample(None, None, reference=None)
