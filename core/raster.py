@@ -30,7 +30,7 @@ from pyproj.crs import CompoundCRS
 from rasterio._err import CPLE_BaseError
 from rasterio.io import MemoryFile
 
-from stereodem.core.errors import InputError, OutputExistsError, OutputWriteError
+from stereodem.core.errors import CRSError, InputError, OutputExistsError, OutputWriteError
 
 from .memory import check_allocation
 
@@ -538,8 +538,20 @@ def write_geotiff(
     """
     path = check_writable(path, overwrite)
     arr = np.asarray(data)
+    if arr.ndim not in (2, 3) or arr.size == 0 or arr.dtype.kind not in "biufc":
+        raise InputError(
+            f"{path}: data must be a non-empty 2-D (rows, cols) or 3-D (bands, rows, cols) "
+            f"array of numbers, got shape {arr.shape} of {arr.dtype}"
+        )
     if arr.ndim == 2:
         arr = arr[None]
+    if crs is not None:
+        try:
+            crs = PCRS.from_user_input(crs)
+        except Exception as exc:
+            raise CRSError(
+                f"{path}: unknown or unusable CRS {crs!r} ({' '.join(str(exc).split())})"
+            ) from None
     if dtype is not None:
         arr = arr.astype(dtype)
     if arr.dtype == np.bool_:

@@ -21,7 +21,7 @@ from stereodem.sensor.simulation.simulate import simulate_scene
 cog_validate = pytest.importorskip("rio_cogeo.cogeo").cog_validate
 
 from stereodem.core.dem import DEM, ELLIPSOID, GEOID
-from stereodem.core.errors import InputError, OutputWriteError
+from stereodem.core.errors import CRSError, InputError, OutputWriteError
 from stereodem.core.raster import (
     DEFLATE_LEVEL,
     check_creation_options,
@@ -458,3 +458,16 @@ def test_georeferenced_writes_leave_the_warning_filters_alone(tmp_path, monkeypa
     assert not [w for w in log if issubclass(w.category, rasterio.errors.NotGeoreferencedWarning)]
     with rasterio.open(tmp_path / "map.tif") as d:
         assert d.transform == Affine(30, 0, 5e5, 0, -30, 4e6)
+
+
+def test_write_geotiff_refuses_bad_data_and_crs_naming_them(tmp_path):
+    """Before, 1-D or None ``data`` raised a bare IndexError from the profile's shape, and an
+    unknown CRS pyproj's own CRSError (not stereodem's); now InputError / CRSError naming
+    the file, and nothing is written."""
+    path = tmp_path / "x.tif"
+    for data in (np.zeros(5), None, np.zeros((0, 4))):
+        with pytest.raises(InputError, match=r"x.tif: data must be a non-empty 2-D"):
+            write_geotiff(path, data, T, "EPSG:32633")
+    with pytest.raises(CRSError, match=r"x.tif: unknown or unusable CRS 'foo'"):
+        write_geotiff(path, np.ones((4, 4), np.float32), T, "foo")
+    assert not path.exists()
