@@ -13,10 +13,12 @@ from .coreg import reference_on_grid
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from affine import Affine
+from matplotlib.ticker import MaxNLocator
 
 from stereodem.core.stats import nmad
 
-from .figures import _save
+from .figures import _map_axes, _save
 
 
 def _dh_on_grid(ref, dem):
@@ -27,19 +29,24 @@ def _dh_on_grid(ref, dem):
 
 
 def dh_before_after_png(z_ref, dem, out, mask, path, *, overwrite=False):
-    """Two maps of DEM − reference (before, after), stable NMAD in the titles; ±3 NMAD
-    before as the colour range."""
+    """Two maps of DEM − reference (before, after) in map coordinates (km axes, a scale bar),
+    stable NMAD in the titles; colour range ± twice the 98th percentile of |dh| after on
+    stable terrain."""
     b = dem.heights - z_ref
     a = out.heights - z_ref
     k = max(1, int(np.ceil(max(b.shape) / 900)))
     lim = float(np.nanpercentile(np.abs(a[mask]), 98)) * 2 if np.isfinite(a[mask]).any() else 5.0
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.6))
+    transform = dem.transform @ Affine.scale(k)
     for axis, d, title in zip(ax, (b, a), ("before", "after")):
-        im = axis.imshow(d[::k, ::k], cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
-        axis.set_title(f"DEM − reference, {title} (stable NMAD {nmad(d[mask]):.2f} m)", fontsize=9)
-        axis.set_xticks([])
-        axis.set_yticks([])
-    fig.colorbar(im, ax=ax, shrink=0.8, label="dh (m)")
+        stable_nmad, d = nmad(d[mask]), d[::k, ::k]
+        extent = _map_axes(axis, transform, dem.crs, d.shape)  # km axes and a scale bar
+        axis.yaxis.set_major_locator(MaxNLocator(5))  # rotated labels: fewer, apart
+        im = axis.imshow(
+            d, cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest", extent=extent
+        )
+        axis.set_title(f"DEM − reference, {title} (stable NMAD {stable_nmad:.2f} m)", fontsize=9)
+    fig.colorbar(im, ax=ax, shrink=0.8, extend="both", label="DEM − reference (m)")
     return _save(fig, path, overwrite)
 
 

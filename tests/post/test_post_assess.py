@@ -410,3 +410,26 @@ def test_a_warp_sets_the_in_memory_warp_filter_again_when_it_is_gone():
         assert [f[3].pattern for f in ours()] == [r"rasterio\.warp$"]
         to_grid(np.ones((4, 4), np.float32), t, crs, t, crs, (4, 4))
         assert len(ours()) == 1  # once
+
+
+def test_coreg_dh_maps_have_km_axes_a_scale_bar_and_a_labelled_colour_bar(monkeypatch):
+    """coreg_dh.png: before, the two dh maps had no axes at all (ticks removed, no scale bar:
+    no idea of the size of a pattern) and a colour bar labelled "dh (m)"; now easting/northing
+    in km with a scale bar, as the assessment's maps, and "DEM − reference (m)"."""
+    from matplotlib.offsetbox import AnchoredOffsetbox
+
+    from stereodem.post import coreg_figures
+
+    figs = []
+    monkeypatch.setattr(coreg_figures, "_save", lambda fig, path, overwrite: figs.append(fig))
+    t = Affine(30, 0, 500000, 0, -30, 4000000)
+    z = np.random.default_rng(0).normal(1000, 5, (40, 50)).astype(np.float32)
+    dem = DEM(z, t, "EPSG:32633", "ellipsoid")
+    coreg_figures.dh_before_after_png(z - 1, dem, dem, np.ones(z.shape, bool), "c.png")
+    (fig,) = figs
+    maps, bar = fig.axes[:2], fig.axes[2]
+    for ax in maps:
+        assert (ax.get_xlabel(), ax.get_ylabel()) == ("easting (km)", "northing (km)")
+        assert ax.get_xlim() == (500000, 500000 + 50 * 30)
+        assert any(isinstance(a, AnchoredOffsetbox) for a in ax.artists)  # the scale bar
+    assert bar.get_ylabel() == "DEM − reference (m)"
