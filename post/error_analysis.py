@@ -157,7 +157,7 @@ def write_figures(plots, out_dir, *, overwrite=False) -> dict:
                 label="sensor-model σ (RMS)",
             )
         axis.set_xlabel(label)
-        axis.set_ylabel("m")
+        axis.set_ylabel("NMAD of dh (m)")
         axis.legend(fontsize=7)
     fig.suptitle("Dispersion of dh on stable terrain", fontsize=10)
     files = {"error_vs_terrain": _save(fig, out_dir / "error_vs_terrain.png", overwrite)}
@@ -173,6 +173,10 @@ def write_figures(plots, out_dir, *, overwrite=False) -> dict:
     )
     axis.set_xlabel("lag (m)")
     axis.set_ylabel("semivariance (standardised dh)")
+    axis.set_title(
+        "Variogram of dh on stable terrain, standardised by its per-cell σ (unitless)",
+        fontsize=9,
+    )
     axis.legend(fontsize=7)
     files["variogram"] = _save(fig, out_dir / "variogram.png", overwrite)
     if plots.get("chain") is not None:
