@@ -625,6 +625,21 @@ def reading_env():
     return rasterio.Env(GDAL_NUM_THREADS=os.environ.get("GDAL_NUM_THREADS") or "ALL_CPUS")
 
 
+def check_map_raster(path, ds, what: str) -> None:
+    """A raster ``path`` (open as ``ds``) that is read onto a map grid (a land-cover, mask or
+    σ raster) has a CRS and a geotransform: without a geotransform rasterio gives the identity
+    (cells at whole CRS units from 0) with a warning only, which placed it where it covers
+    nothing (empty per-class statistics, no error). :class:`CRSError` / :class:`InputError`
+    naming ``what``."""
+    if ds.crs is None:
+        raise CRSError(f"{path}: {what} has no CRS")
+    if ds.transform.is_identity and not ds.gcps[0]:
+        raise InputError(
+            f"{path}: {what} has no geotransform (its cells are not placed on the map; set "
+            "one with gdal_edit.py -a_ullr or -a_gt)"
+        )
+
+
 def read_image(path, band: int = 1) -> np.ndarray:
     """One band of an image as float32, NaN where the file marks no data.
 

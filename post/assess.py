@@ -39,6 +39,7 @@ from stereodem.core.errors import (
     NoOverlapError,
     VerticalReferenceError,
 )
+from stereodem.core.raster import check_map_raster
 
 from . import stats as st
 from . import terrain, warp
@@ -164,8 +165,7 @@ def _landcover_source(landcover):
     if isinstance(landcover, (str, Path)):
         try:
             with rasterio.open(landcover) as ds:
-                if ds.crs is None:
-                    raise CRSError(f"{landcover}: the land-cover raster has no CRS")
+                check_map_raster(landcover, ds, "the land-cover raster")
                 arr = ds.read(1).astype(np.float64)
                 nod = ds.nodata
                 if nod is not None:

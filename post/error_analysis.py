@@ -18,7 +18,7 @@ import rasterio
 
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
-from stereodem.core.raster import read_image
+from stereodem.core.raster import check_map_raster, read_image
 from stereodem.core.stats import nmad
 
 from . import spatialstats as ss
@@ -116,8 +116,7 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
 def _sigma_map(path, dem: DEM):
     a = read_image(path)
     with rasterio.open(path) as ds:
-        if ds.crs is None:
-            raise InputError(f"{path}: the σ map has no CRS")
+        check_map_raster(path, ds, "the σ map")
         t, crs = ds.transform, ds.crs.to_wkt()
     z = warp.to_grid(a, t, crs, dem.transform, dem.crs, dem.shape).astype(float)
     if not np.isfinite(z).any():

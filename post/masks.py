@@ -19,7 +19,7 @@ from rasterio.features import rasterize as rio_rasterize
 
 from stereodem.core.dem import DEM
 from stereodem.core.errors import CRSError, InputError, NoOverlapError
-from stereodem.core.raster import reading_env
+from stereodem.core.raster import check_map_raster, reading_env
 from stereodem.core.stats import nmad
 
 from . import warp
@@ -111,8 +111,7 @@ class StableMask:
             try:
                 with reading_env(), rasterio.open(self.raster) as ds:
                     a = ds.read(1, masked=True).filled(0).astype(np.uint8)
-                    if ds.crs is None:
-                        raise CRSError(f"{self.raster}: the stable-mask raster has no CRS")
+                    check_map_raster(self.raster, ds, "the stable-mask raster")
                     z = warp.to_grid(
                         a,
                         ds.transform,

@@ -14,6 +14,7 @@ from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import (
     DEMError,
+    InputError,
     NoOverlapError,
     OutputExistsError,
     VerticalReferenceError,
@@ -433,3 +434,25 @@ def test_coreg_dh_maps_have_km_axes_a_scale_bar_and_a_labelled_colour_bar(monkey
         assert ax.get_xlim() == (500000, 500000 + 50 * 30)
         assert any(isinstance(a, AnchoredOffsetbox) for a in ax.artists)  # the scale bar
     assert bar.get_ylabel() == "DEM − reference (m)"
+
+
+def test_a_landcover_raster_without_geotransform_is_refused(tmp_path):
+    """A land-cover GeoTIFF with a CRS but no geotransform: rasterio gives the identity
+    transform with a warning only, so before the classes were placed at CRS coordinates
+    0..width, overlapped nothing and ``by_landcover`` came out empty without an error."""
+    import warnings
+
+    import rasterio
+
+    t = Affine(30, 0, 500000, 0, -30, 4000000)
+    z = np.random.default_rng(0).normal(1000, 5, (30, 30)).astype(np.float32)
+    dem = DEM(z, t, "EPSG:32633", "ellipsoid")
+    lc = tmp_path / "lc.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(
+            lc, "w", driver="GTiff", width=30, height=30, count=1, dtype="uint8", crs="EPSG:32633"
+        ) as ds:
+            ds.write(np.ones((1, 30, 30), np.uint8))
+        with pytest.raises(InputError, match="lc.tif: the land-cover raster has no geotransform"):
+            assess.assess_dem(dem, dem, landcover=lc)
