@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+import warnings
 
 from tqdm import tqdm
 
@@ -145,4 +146,13 @@ def setup_logging(verbose: int = 0, quiet: bool = False):
     handler.setFormatter(UTCFormatter(fmt))
     logging.basicConfig(level=level, handlers=[handler])
     logging.captureWarnings(True)
+    # rasterio's NotGeoreferencedWarning on opening a raster without a geotransform: images
+    # in sensor geometry have none by nature (their sensor models place them), and a raster
+    # that must be on the map (DEM, land cover, masks, σ maps) is refused with a message that
+    # says so (core.dem.check_georeferenced, core.raster.check_map_raster); the warning was
+    # a two-line traceback-like noise before that error. By message: rasterio is not loaded
+    # here (stereodem --help stays light).
+    warnings.filterwarnings(
+        "ignore", message="Dataset has no geotransform, gcps, or rpcs", module="rasterio"
+    )
     return level

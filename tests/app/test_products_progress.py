@@ -93,6 +93,24 @@ def test_cli_verbose_has_timestamps_and_warnings_are_logged(tmp_path):
     assert r.stderr == ""
 
 
+def test_cli_logging_drops_rasterios_not_georeferenced_warning():
+    """Before, opening a raster without a geotransform printed rasterio's warning as a
+    two-line ``WARNING py.warnings: .../rasterio/__init__.py:356: NotGeoreferencedWarning``
+    with a source line, before the DEM's own one-line refusal (or for every image in sensor
+    geometry, which has no geotransform by nature); other warnings are still logged."""
+    code = (
+        "import warnings; from rasterio.errors import NotGeoreferencedWarning;"
+        "from stereodem.progress import setup_logging; setup_logging();"
+        "msg = 'Dataset has no geotransform, gcps, or rpcs. The identity matrix will be "
+        "returned.';"
+        "warnings.warn_explicit(msg, NotGeoreferencedWarning, 'x/rasterio/__init__.py', 356,"
+        " module='rasterio'); warnings.warn('careful')"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert "NotGeoreferenced" not in r.stderr
+    assert re.fullmatch(r"WARNING py\.warnings: .*UserWarning: careful\n.*\n?", r.stderr, re.S)
+
+
 def test_provenance_fields():
     t0 = utc_now()
     p = provenance(started=t0, argv=["/usr/bin/stereodem", "run", "job toml"])
