@@ -37,6 +37,7 @@ from pyproj import CRS
 from stereodem.core import geodesy, localfit
 from stereodem.core.dem import DEM, as_dem
 from stereodem.core.errors import InputError
+from stereodem.core.grid import map_crs
 from stereodem.core.jsonutil import json_default
 from stereodem.core.memory import check_allocation
 from stereodem.sensor.geo.intersect import intersect_matches
@@ -49,7 +50,14 @@ from .plan import footprint_bounds, overlap_window, pair_height_range, plan_tile
 from .pointcloud import save_tile_points
 from .refine import refine_disparity
 from .sanity import check_pair
-from .settings import StereoSettings
+from .settings import (
+    MATCHERS,
+    GriddingSettings,
+    MatchingSettings,
+    RectificationSettings,
+    RefinementSettings,
+    StereoSettings,
+)
 from .sparse import SparseMatchError
 from .sparse_stage import height_pileup, run_sparse_stage
 from .tiling import Tile, tile_order
@@ -349,6 +357,45 @@ def check_lattice(bounds, posting: float):
     )
 
 
+def check_settings(settings) -> None:
+    """:class:`InputError` naming the field for settings a library call could pass that the
+    configuration file's checks (:func:`stereodem.config.load_config`) refuse: before,
+    ``make_dem`` took them as they were and failed after the sparse matching with NumPy's or
+    Python's own error (a dict or a string for a settings object: AttributeError; a tile
+    size of 0: ZeroDivisionError; a posting given as text: UFuncTypeError) or pyproj's
+    CRSError for an unknown output CRS."""
+    parts = {
+        "rectification": RectificationSettings,
+        "matching": MatchingSettings,
+        "refinement": RefinementSettings,
+        "gridding": GriddingSettings,
+    }
+    if not isinstance(settings, StereoSettings):
+        raise InputError(f"settings must be a StereoSettings, got {type(settings).__name__}")
+    for name, kind in parts.items():
+        if not isinstance(getattr(settings, name), kind):
+            raise InputError(
+                f"settings.{name} must be a {kind.__name__}, got "
+                f"{type(getattr(settings, name)).__name__}"
+            )
+    tile = settings.rectification.tile_size
+    if isinstance(tile, bool) or not isinstance(tile, (int, np.integer)) or not 64 <= tile <= 16384:
+        raise InputError(f"settings.rectification.tile_size must be 64..16384 px, got {tile!r}")
+    if settings.matching.matcher not in MATCHERS:
+        raise InputError(
+            f"settings.matching.matcher must be one of {', '.join(MATCHERS)}, got "
+            f"{settings.matching.matcher!r}"
+        )
+    res = settings.gridding.res
+    number = isinstance(res, (int, float, np.number)) and not isinstance(res, bool)
+    if res is not None and not (number and 0 < res < np.inf):
+        raise InputError(
+            f"settings.gridding.res must be a positive posting (CRS units), got {res!r}"
+        )
+    if settings.gridding.crs is not None:
+        map_crs(settings.gridding.crs, "settings.gridding.crs")
+
+
 def make_dem(
     left_image,
     right_image,
@@ -413,6 +460,7 @@ def make_dem(
         No height range or seed DEM given, and too few sparse matches to find the heights.
     """
     settings = settings or StereoSettings()
+    check_settings(settings)
     seed = as_dem(seed_dem) if seed_dem is not None else None
     checked = check_pair(
         left_image,

@@ -10,13 +10,18 @@ import rasterio
 from stereodem.cli import main
 from stereodem.core import geodesy
 from stereodem.core.dem import horizontal_crs
-from stereodem.core.errors import NoOverlapError
+from stereodem.core.errors import CRSError, InputError, NoOverlapError
 from stereodem.core.stats import nmad
 from stereodem.dem_cli import add_parser
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation.simulate import frame_pair, write_scene
 from stereodem.stereo.pipeline import make_dem
-from stereodem.stereo.settings import GriddingSettings, RectificationSettings, StereoSettings
+from stereodem.stereo.settings import (
+    GriddingSettings,
+    MatchingSettings,
+    RectificationSettings,
+    StereoSettings,
+)
 
 
 @pytest.mark.slow
@@ -215,3 +220,40 @@ def test_pleiades_pair_vs_s2p(shared_data):
     corr = prod.info.pointing["parameters"]
     assert abs(corr["row_shift"]) + abs(corr["col_shift"]) > 0.2  # s2p's pair: ~0.7 px across
     assert prod.info.pointing["residual_after_px"]["nmad"] < 0.5
+
+
+@pytest.mark.parametrize(
+    "settings,error,message",
+    [
+        ({"matching": {"matcher": "ncc"}}, InputError, "settings must be a StereoSettings"),
+        (StereoSettings(matching="ncc"), InputError, "settings.matching must be a Matching"),
+        (
+            StereoSettings(RectificationSettings(tile_size=0)),
+            InputError,
+            "tile_size must be 64..16384 px, got 0",
+        ),
+        (
+            StereoSettings(matching=MatchingSettings(matcher="foo")),
+            InputError,
+            "matcher must be one of sgm, ncc, got 'foo'",
+        ),
+        (
+            StereoSettings(gridding=GriddingSettings(res="30")),
+            InputError,
+            "gridding.res must be a positive posting",
+        ),
+        (
+            StereoSettings(gridding=GriddingSettings(crs="foo")),
+            CRSError,
+            "settings.gridding.crs: unknown or unusable CRS 'foo'",
+        ),
+    ],
+)
+def test_make_dem_refuses_bad_settings_before_any_work(settings, error, message):
+    """Before, make_dem took a dict, a string, a tile size of 0, a posting as text or an
+    unknown CRS as they were, and failed after the pair checks and the sparse matching with
+    AttributeError, ZeroDivisionError, NumPy's UFuncTypeError or pyproj's CRSError; now the
+    settings are checked first (the models are not even looked at here)."""
+    img = np.zeros((100, 100), np.float32)
+    with pytest.raises(error, match=message):
+        make_dem(img, img, None, None, settings)
