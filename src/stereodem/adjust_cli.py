@@ -223,7 +223,7 @@ def run(args) -> int:
     if n_images:
         from .adjust_images import run_bundle_images
 
-        print(run_bundle_images(args))
+        options.say(run_bundle_images(args))
         return 0
     if args.more:
         raise InputError(
@@ -303,7 +303,7 @@ def run(args) -> int:
             save_model(model, path, overwrite=args.overwrite)
         if rep is not None:
             write_report(res, rep, overwrite=True)
-    print(summary)
+    options.say(summary)
     return 0
 
 

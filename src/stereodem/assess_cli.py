@@ -208,11 +208,11 @@ def run(args) -> int:
     with output_folder(args.output, products, overwrite=args.overwrite, inputs=inputs) as out:
         result, files = assess_stage(cfg, args.dem, out, overwrite=True, error_analysis=job)
     s = result.report["stats"]
-    print(
+    options.say(
         f"n={s['n']} mean={s['mean']:.3f} rmse={s['rmse']:.3f} nmad={s['nmad']:.3f} "
         f"le90={s['le90']:.3f} m -> {files['json']}"
     )
     co = result.report.get("coregistration")
     if co:
-        print(f"co-registration: dx={co['dx']:.3f} m dy={co['dy']:.3f} m dz={co['dz']:.3f} m")
+        options.say(f"co-registration: dx={co['dx']:.3f} m dy={co['dy']:.3f} m dz={co['dz']:.3f} m")
     return 0

@@ -120,7 +120,7 @@ def run(args) -> int:
     with output_folder(args.output, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
         _write(out, records, splits)
     ok = [r for r in records if not r.get("error")]
-    print(
+    options.say(
         f"{len(models)} model(s), {len(records)} fit(s), {len(records) - len(ok)} refused -> {out}"
     )
     return 0

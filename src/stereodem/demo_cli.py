@@ -109,7 +109,7 @@ def _demo(args, out) -> int:
         noise=args.noise,
     )
     granule = write_granule_scene(scene, out / "scene", version=4, seed=args.seed, overwrite=True)
-    print(
+    options.say(
         f"simulated ASTER L1A granule (3N {args.size[0]}x{args.size[1]}, 3B "
         f"{scene.right.shape[1]}x{scene.right.shape[0]}) in {time.perf_counter() - t0:.1f} s: "
         f"{granule}"
@@ -122,5 +122,5 @@ def _demo(args, out) -> int:
     cfg = load_config(cfg_path, workers=args.workers, overwrite=True)
     info = run_pipeline(cfg, progress_factory=progress_factory(args))
     summarize(info)
-    print(f"end to end {time.perf_counter() - t0:.1f} s")
+    options.say(f"end to end {time.perf_counter() - t0:.1f} s")
     return 0

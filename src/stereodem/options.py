@@ -117,10 +117,16 @@ def progress_bar(label: str):
     return Progress(label, 1, enabled=logging.getLogger().getEffectiveLevel() <= logging.WARNING)
 
 
+def quiet() -> bool:
+    """Whether -q asked for errors only (the root logger above WARNING): result lines too
+    are left out."""
+    return logging.getLogger().getEffectiveLevel() > logging.WARNING
+
+
 def say(message: str):
     """A result line for the user on standard output (what was written, headline figures),
     unless -q; logs and progress go to standard error."""
-    if logging.getLogger().getEffectiveLevel() <= logging.WARNING:
+    if not quiet():
         print(message)
 
 

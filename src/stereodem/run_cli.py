@@ -77,6 +77,10 @@ def progress_factory(args):
 
 
 def summarize(info, stream=None):
+    """The job's result lines (what was written, the headline figures, warnings) on ``stream``
+    (standard output), unless -q (:func:`stereodem.options.quiet`)."""
+    if options.quiet():
+        return
     stream = stream or sys.stdout
     out = info["config"]["output"]["dir"]
     print(f"DEM:        {out}/dem.tif  (raw layers in {out}/raw/)", file=stream)

@@ -186,12 +186,12 @@ def run(args) -> int:
         with output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
             write_scene(scene, out, overwrite=True)
         meta = json.loads((out / "scene.json").read_text())
-        print(
+        options.say(
             f"wrote {out}/left.tif, right.tif (+ .model.json), truth_dem.tif, truth_ortho.tif, "
             "points.csv"
         )
         for name, rep in meta.get("rpc_fit", {}).items():
-            print(
+            options.say(
                 f"  {name}: RPC fit check-grid residual rms "
                 f"{rep.get('check_rms', float('nan')):.4f} px"
             )
@@ -205,7 +205,7 @@ def run(args) -> int:
             velocity=args.velocity,
             overwrite=True,
         )
-    print(
+    options.say(
         f"wrote {path} (3N {scene.left.shape[1]}x{scene.left.shape[0]}, "
         f"3B {scene.right.shape[1]}x{scene.right.shape[0]}), truth_dem.tif, truth_ortho.tif, "
         "points.csv"
@@ -236,8 +236,8 @@ def _run_strip(args, dem, inputs) -> int:
     with output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
         paths = write_strip(strip, out, overwrite=True, version=version)
     for p, first in zip(paths, strip.first_lines):
-        print(f"wrote {p} (3N lines {first}..{first + strip.heights[0] - 1} of the pass)")
-    print(
+        options.say(f"wrote {p} (3N lines {first}..{first + strip.heights[0] - 1} of the pass)")
+    options.say(
         f"  overlap {strip.heights[0] - strip.advance} 3N lines between granules; truth_dem.tif, "
         f"truth_ortho.tif, points.csv, strip.json"
     )

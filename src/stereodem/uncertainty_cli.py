@@ -150,7 +150,7 @@ def run(args) -> int:
         plot_uncertainty(maps, out / "uncertainty.png", title=Path(args.image).name, overwrite=True)
     s = maps.summary()
     top = max(maps.shares, key=lambda k: maps.shares[k])
-    print(
+    options.say(
         f"wrote {out}/sigma_horizontal.tif (+ east, north, ce90, dominant_source, "
         f"sensitivity.json, uncertainty.png): {grid.width}x{grid.height} cells of {grid.res[0]:g} "
         f"m; sigma_horizontal median {s['sigma_horizontal_m']['median']:.3g} m (max "

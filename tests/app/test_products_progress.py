@@ -147,3 +147,28 @@ def test_a_stage_that_restarts_its_count_restarts_the_bar():
     p.close()
     assert p.done == 675 and p._bar.n == 675
     assert s.getvalue().count("0/675 [") >= 2  # drawn empty again at the restart
+
+
+@pytest.mark.slow
+def test_quiet_leaves_out_every_commands_result_lines(tmp_path):
+    """``-q`` ("only errors") silenced the result lines of ``dem`` and ``mosaic`` but not those
+    of ``simulate``, ``assess``, ``run``, ``demo``, ``adjust``, ``compare-models`` and
+    ``uncertainty``, which printed straight to standard output."""
+
+    def cli(*argv):
+        return subprocess.run(
+            [sys.executable, "-m", "stereodem.cli", *map(str, argv)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+
+    sim = tmp_path / "sim"
+    r = cli("-q", "simulate", "--size", "64", "64", "-o", sim)
+    assert r.returncode == 0 and r.stdout == "" and r.stderr == "", r.stdout + r.stderr
+    dem = sim / "truth_dem.tif"
+    r = cli("-q", "assess", dem, "--ref", dem, "-o", tmp_path / "a")
+    assert r.returncode == 0 and r.stdout == "" and r.stderr == "", r.stdout + r.stderr
+    # without -q the same command says what it wrote
+    r = cli("assess", dem, "--ref", dem, "-o", tmp_path / "b")
+    assert r.returncode == 0 and "nmad=" in r.stdout
