@@ -58,3 +58,13 @@ def test_every_error_class_is_public():
     }
     assert classes <= set(stereodem.__all__)
     assert all(getattr(stereodem, n) is getattr(errors, n) for n in classes)
+
+
+@pytest.mark.parametrize("cfg", ["job.toml", None])
+def test_run_given_no_config_says_what_it_takes(cfg):
+    """``stereodem.run("job.toml")`` (or None) failed with an AttributeError from inside the
+    job ('str' object has no attribute 'output_dir')."""
+    import stereodem
+
+    with pytest.raises(stereodem.InputError, match="expected a Config.*load_config"):
+        stereodem.run(cfg)

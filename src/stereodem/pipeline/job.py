@@ -33,6 +33,7 @@ import numpy as np
 
 from stereodem.core import jsonutil
 from stereodem.core.dem import edit_mask_path
+from stereodem.core.errors import InputError
 from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import job_threads, lower_thread_priority, thread_budget
 from stereodem.post.coreg_run import track_tags
@@ -67,7 +68,14 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
     unless ``cfg.run.force``.
 
     ``progress_factory(label)`` may return a ``progress(done, total)`` callable per stage.
+    Raises :class:`~stereodem.core.errors.InputError` when ``cfg`` is not a :class:`Config`
+    (a path: read it with :func:`stereodem.config.load_config`).
     """
+    if not isinstance(cfg, Config):
+        raise InputError(
+            f"run: expected a Config, got {type(cfg).__name__} "
+            f"{cfg!r:.80}; read a TOML file with stereodem.load_config(path)"
+        )
     with (
         output_folder(
             cfg.output_dir,
