@@ -670,6 +670,14 @@ def blockwise_comparison(
     return out, display, overall
 
 
+def _with_vertical(d, vertical: str | None) -> DEM:
+    """``d`` (a :class:`DEM` or a path) as a DEM whose vertical reference is ``vertical`` when
+    given; anything else is a :class:`DEMError` naming its type (:func:`as_dem`)."""
+    if not isinstance(d, DEM):
+        return as_dem(d, vertical=vertical)
+    return d if vertical is None else DEM(d.heights, d.transform, d.crs, vertical, d.path)
+
+
 def assess_dem(
     dem,
     reference,
@@ -710,20 +718,8 @@ def assess_dem(
         Threads for the blocks of :func:`blockwise_comparison` (the result does not depend
         on it).
     """
-    if dem_vertical is not None or isinstance(dem, (str, Path)):
-        dem = (
-            as_dem(dem, vertical=dem_vertical)
-            if isinstance(dem, (str, Path))
-            else DEM(dem.heights, dem.transform, dem.crs, dem_vertical, dem.path)
-        )
-    if ref_vertical is not None or isinstance(reference, (str, Path)):
-        reference = (
-            as_dem(reference, vertical=ref_vertical)
-            if isinstance(reference, (str, Path))
-            else DEM(
-                reference.heights, reference.transform, reference.crs, ref_vertical, reference.path
-            )
-        )
+    dem = _with_vertical(dem, dem_vertical)
+    reference = _with_vertical(reference, ref_vertical)
     # slopes on the reference's grid, the hillshade on the DEM's: neither may be rotated
     terrain.check_not_rotated(reference.transform, reference.path or "reference")
     terrain.check_not_rotated(dem.transform, dem.path)

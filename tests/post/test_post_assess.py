@@ -456,3 +456,13 @@ def test_a_landcover_raster_without_geotransform_is_refused(tmp_path):
             ds.write(np.ones((1, 30, 30), np.uint8))
         with pytest.raises(InputError, match="lc.tif: the land-cover raster has no geotransform"):
             assess.assess_dem(dem, dem, landcover=lc)
+
+
+@pytest.mark.parametrize("bad", [None, np.zeros((3, 3), np.float32), 5])
+def test_assess_dem_given_no_dem_says_what_it_takes(bad, ref):
+    """An array, None or a number for the DEM raised an AttributeError ('NoneType' object has
+    no attribute 'transform') from inside the assessment."""
+    with pytest.raises(DEMError, match="expected a DEM or a path"):
+        assess.assess_dem(bad, ref)
+    with pytest.raises(DEMError, match="expected a DEM or a path"):
+        assess.assess_dem(ref, bad, dem_vertical="geoid")
