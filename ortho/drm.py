@@ -36,6 +36,7 @@ from stereodem.core.dem import DEM, ELLIPSOID, as_dem
 from stereodem.core.errors import DEMCoverageError, InputError, SensorModelError
 from stereodem.core.grid import MapGrid, OnGrid
 from stereodem.core.raster import write_geotiff
+from stereodem.sensor.models.base import SensorModel
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.models.rpc_direct import check_validity
 
@@ -759,6 +760,11 @@ def orthorectify(
     """
     if resampling not in RESAMPLING:
         raise InputError(f"resampling must be one of {sorted(RESAMPLING)}, got {resampling!r}")
+    if not isinstance(model, SensorModel):
+        raise InputError(
+            f"orthorectify: model must be a sensor model (stereodem.load_model), got "
+            f"{type(model).__name__}"
+        )
     dem = as_dem(dem)
     _check_rpc_heights(model, dem)
     img, valid = _as_image(image, image_nodata)

@@ -10,11 +10,10 @@ multiples of the posting.
 from __future__ import annotations
 
 import numpy as np
-from pyproj import CRS
 
 from stereodem.core import geodesy
 from stereodem.core.errors import CRSError, DEMCoverageError, SensorModelError
-from stereodem.core.grid import MapGrid, grid_from_bounds
+from stereodem.core.grid import MapGrid, grid_from_bounds, map_crs
 from stereodem.core.memory import check_allocation
 
 
@@ -87,8 +86,8 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
     h_lo, h_hi = h_range if h_range is not None else footprint_height_range(model, dem)
     if crs is None:
         crs = geodesy.utm_crs(*model.center_lonlat(0.5 * (h_lo + h_hi)))
-    crs = CRS.from_user_input(crs)
-    if crs.is_geographic:
+    crs = map_crs(crs, "the orthoimage CRS")
+    if not crs.is_projected:
         raise CRSError(f"the orthoimage CRS must be projected (metres), got {crs.to_string()}")
     if res is None:
         res = _nice_posting(model.gsd(0.5 * (h_lo + h_hi)))

@@ -814,3 +814,17 @@ def test_ortho_overwrite_removes_the_layers_of_the_earlier_orthoimage(small_scen
     inc.write_text("the user's own notes\n")
     assert args.run(args) == 0
     assert inc.read_text() == "the user's own notes\n"
+
+
+def test_orthorectify_given_no_model_or_an_unknown_crs_says_so(rendered):
+    """``model=None`` raised an AttributeError from inside the DRM, and ``crs="foo"`` pyproj's
+    own CRSError, not stereodem's."""
+    from stereodem.core.errors import CRSError as StereodemCRSError
+
+    cam, dem, grid, img, _ = rendered
+    with pytest.raises(InputError, match="model must be a sensor model"):
+        orthorectify(img, None, dem, grid=grid)
+    with pytest.raises(
+        StereodemCRSError, match="the orthoimage CRS: unknown or unusable CRS 'foo'"
+    ):
+        orthorectify(img, cam, dem, crs="foo")
