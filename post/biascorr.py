@@ -21,7 +21,7 @@ import numpy as np
 from scipy import optimize
 
 from stereodem.core import geodesy
-from stereodem.core.blocks import default_threads
+from stereodem.core.blocks import default_threads, each_fixed_band
 from stereodem.core.errors import ConvergenceError, InputError
 from stereodem.core.stats import nmad
 
@@ -635,17 +635,53 @@ class AlongTrack(Coreg):
 # ----------------------------------------------------------------------------- curvature
 
 
-def maximum_curvature(heights, transform, crs):
+#: rows of one band of :func:`maximum_curvature`'s work (its float64 temporaries, a dozen
+#: arrays of the band's size, stay a few tens of MB whatever the grid)
+CURVATURE_BAND_ROWS = 256
+
+
+def maximum_curvature(heights, transform, crs, *, threads: int | None = None):
     """Signed principal curvature of largest magnitude of the height field, in 1/(100 m)
     (xdem's unit); positive where the surface is convex up (ridges negative... see below).
 
     The Hessian of z(east, north) in m⁻¹ from central differences; its eigenvalue of largest
     absolute value, times 100. Negative on ridges and peaks, positive in valleys and pits.
+
+    Worked out in bands of :data:`CURVATURE_BAND_ROWS` rows on ``threads`` threads (default:
+    the process's budget, :func:`stereodem.core.blocks.default_threads`), each band with the
+    one row of first gradients either side that its second differences read: the numbers of
+    :func:`terrain.gradient` applied twice to the whole grid, bit for bit, on any number of
+    threads.
     """
     z = np.asarray(heights, np.float64)
+    n_r = z.shape[0]
+    if z.ndim != 2 or n_r < 2 or z.shape[1] < 2:
+        return _maximum_curvature_whole(z, transform, crs)
+    dx, dy = terrain.pixel_size_m(transform, crs, z.shape)
+    out = np.empty(z.shape, np.float64)
+
+    def band(rows):
+        r0, r1 = rows
+        a0, a1 = max(0, r0 - 1), min(n_r, r1 + 1)
+        ge, gn = terrain._gradient_rows(z, dx, dy, a0, a1)  # first gradients, rows a0:a1
+        sx, sy = dx[a0:a1], dy[a0:a1]
+        gee, gen = terrain._gradient_rows(ge, sx, sy, r0 - a0, r1 - a0)
+        gne, gnn = terrain._gradient_rows(gn, sx, sy, r0 - a0, r1 - a0)
+        out[r0:r1] = _largest_eigenvalue(gee, gen, gne, gnn)
+
+    each_fixed_band(band, n_r, CURVATURE_BAND_ROWS, threads=threads)
+    return out
+
+
+def _maximum_curvature_whole(z, transform, crs):
     ge, gn = terrain.gradient(z, transform, crs)
     gee, gen = terrain.gradient(ge, transform, crs)
     gne, gnn = terrain.gradient(gn, transform, crs)
+    return _largest_eigenvalue(gee, gen, gne, gnn)
+
+
+def _largest_eigenvalue(gee, gen, gne, gnn):
+    """The Hessian's eigenvalue of largest magnitude, times 100 (1/(100 m))."""
     gx = 0.5 * (gen + gne)
     m = 0.5 * (gee + gnn)
     r = np.sqrt(0.25 * (gee - gnn) ** 2 + gx**2)

@@ -292,3 +292,38 @@ def test_gradient_at_cells_equals_the_whole_grids_gradient(crs):
     se, sn = terrain.gradient_at(z, t, crs, rows.ravel(), cols.ravel())
     np.testing.assert_array_equal(se, ge.ravel())
     np.testing.assert_array_equal(sn, gn.ravel())
+
+
+@pytest.mark.parametrize("crs", ["EPSG:32637", "EPSG:4326"])
+def test_maximum_curvature_in_bands_is_the_whole_grids_on_any_number_of_threads(monkeypatch, crs):
+    """The curvature in row bands on threads: the numbers of the whole grid's gradients taken
+    twice, to the bit, on a projected and a geographic grid (row-dependent cell size), voids
+    and the grid's edges included (issue 28)."""
+    from stereodem.post import biascorr, terrain
+
+    rng = np.random.default_rng(3)
+    rows, cols = np.mgrid[0:61, 0:47]
+    z = 1500 + 40 * np.sin(rows / 9.0) * np.cos(cols / 7.0) + rng.normal(0, 0.5, rows.shape)
+    z = z.astype(np.float32)
+    z[20:24, 10:13] = np.nan
+    if crs == "EPSG:4326":
+        t = Affine(0.0008, 0, 40.0, 0, -0.0008, 39.5)
+    else:
+        t = Affine(30.0, 0, 500000, 0, -30.0, 4400000)
+
+    def whole(z):
+        ge, gn = terrain.gradient(np.asarray(z, np.float64), t, crs)
+        gee, gen = terrain.gradient(ge, t, crs)
+        gne, gnn = terrain.gradient(gn, t, crs)
+        gx = 0.5 * (gen + gne)
+        m = 0.5 * (gee + gnn)
+        r = np.sqrt(0.25 * (gee - gnn) ** 2 + gx**2)
+        l1, l2 = m + r, m - r
+        return 100.0 * np.where(np.abs(l1) >= np.abs(l2), l1, l2)
+
+    monkeypatch.setattr(biascorr, "CURVATURE_BAND_ROWS", 7)  # 9 bands, the last one of 5 rows
+    for part in (z, z[:2], z[:8], z[:1]):
+        ref = whole(part)
+        for threads in (1, 2, 3):
+            got = maximum_curvature(part, t, crs, threads=threads)
+            assert got.dtype == ref.dtype and got.tobytes() == ref.tobytes()
