@@ -45,10 +45,17 @@ def each_band(fn, n_rows: int, *, threads: int | None = None, min_rows: int = MI
     return _on_threads(fn, row_bands(n_rows, threads, min_rows), threads)
 
 
+def each_item(fn, items, *, threads: int | None = None) -> list:
+    """``fn(item)`` for each of ``items`` (bins, chunks: independent pieces of work) on the
+    budget's threads (none for one item or one thread); the results in the items' order."""
+    threads = default_threads() if threads is None else int(threads)
+    return _on_threads(fn, list(items), threads)
+
+
 def _on_threads(fn, bands, threads: int) -> list:
     """``fn(band)`` for each band, on up to ``threads`` threads (none for a single band or
     thread); the results in band order."""
-    if threads == 1 or len(bands) == 1:
+    if threads == 1 or len(bands) <= 1:
         return [fn(b) for b in bands]
     with ThreadPoolExecutor(min(threads, len(bands)), thread_name_prefix="stereodem-rows") as ex:
         return list(ex.map(fn, bands))

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from stereodem.core.blocks import default_threads
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 
@@ -30,10 +31,16 @@ def dem_change(
     chain: str = "nuth_kaab,deramp:1",
     exclude=(),
     track_angle_deg: float | None = None,
+    threads: int | None = None,
 ) -> dict:
     """``dh = B − A`` on A's grid and its σ map; returns a dict with ``dh``, ``sigma`` (arrays,
     m), ``stable`` (bool), ``coregistration`` (the chain's report), ``stats_stable`` (after) and
-    ``heteroscedasticity`` (the binned table, without the per-cell array)."""
+    ``heteroscedasticity`` (the binned table, without the per-cell array).
+
+    ``threads``: threads of the warp onto A's grid, the curvature and the σ map (default: the
+    process's budget, :func:`stereodem.core.blocks.default_threads`); the numbers do not
+    depend on it."""
+    threads = default_threads() if threads is None else int(threads)
     dem_b, vnote = reconcile_vertical(dem_b, dem_a)
     warp.check_overlap(
         dem_b.bounds_lonlat(),
@@ -46,15 +53,21 @@ def dem_change(
     corrected, report, _ = fit_chain(dem_a, dem_b, stable_b, settings, track_angle_deg)
     g = dem_a.grid
     hb = warp.to_grid(
-        corrected.heights, corrected.transform, corrected.crs, g.transform, g.crs, g.shape
+        corrected.heights,
+        corrected.transform,
+        corrected.crs,
+        g.transform,
+        g.crs,
+        g.shape,
+        threads=threads,
     )
     dh = (hb - dem_a.heights).astype(np.float32)
     if not np.isfinite(dh).any():
         raise InputError(f"{dem_b.path}: no overlap with {dem_a.path} after co-registration")
     stable = exclude_mask(list(exclude), dem_a)
     slope = terrain.slope_deg(dem_a.heights, g.transform, g.crs)
-    curv = maximum_curvature(dem_a.heights, g.transform, g.crs)
-    het = heteroscedasticity(np.where(stable, dh, np.nan), slope, curv)
+    curv = maximum_curvature(dem_a.heights, g.transform, g.crs, threads=threads)
+    het = heteroscedasticity(np.where(stable, dh, np.nan), slope, curv, threads=threads)
     sigma = np.where(np.isfinite(dh), het.pop("sigma"), np.nan).astype(np.float32)
     return dict(
         dh=dh,

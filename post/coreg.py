@@ -35,6 +35,7 @@ import numpy as np
 from scipy import ndimage
 
 from stereodem.core import geodesy
+from stereodem.core.blocks import default_threads
 from stereodem.core.dem import DEM
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.stats import nmad
@@ -160,6 +161,7 @@ def reference_on_grid(ref: DEM, dem: DEM, *, resampling: str = "bilinear") -> np
             dem.crs,
             dem.shape,
             resampling=resampling,
+            threads=default_threads(),  # the whole grid at once: on the process's thread budget
         ).astype(np.float64)
     if not (np.isfinite(z) & np.isfinite(dem.heights)).any():
         raise NoOverlapError(

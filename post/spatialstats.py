@@ -26,6 +26,7 @@ from scipy import optimize
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial.distance import pdist
 
+from stereodem.core.blocks import default_threads, each_item
 from stereodem.core.errors import InputError
 from stereodem.core.stats import nmad
 
@@ -353,15 +354,49 @@ def _quantile_edges(x, n_bins):
     return e if e.size >= 2 else np.array([np.nanmin(x), np.nanmax(x) + 1e-9])
 
 
-def _binned_nmad(d, k, n):
+#: values per piece of the per-value work of :func:`heteroscedasticity` (bin indices, the
+#: interpolation at each cell) spread over threads: a few MB of temporaries each
+CHUNK = 1 << 20
+
+
+def _bin_index(edges, x, threads=None):
+    """The bin of each value of ``x`` (1-D) between ``edges`` (outer values in the outer bins),
+    in chunks of :data:`CHUNK` values on ``threads`` threads."""
+    out = np.empty(x.shape, np.intp)
+
+    def one(i0):
+        v = x[i0 : i0 + CHUNK]
+        out[i0 : i0 + CHUNK] = np.clip(
+            np.searchsorted(edges, v, side="right") - 1, 0, edges.size - 2
+        )
+
+    each_item(one, range(0, x.size, CHUNK), threads=threads)
+    return out
+
+
+def _binned_nmad(d, k, n, x=None, threads=None):
+    """NMAD of ``d`` in each of the ``n`` bins ``k`` holding 20 values or more (NaN in the
+    others) and the count per bin; with ``x``, also the median of ``x`` per non-empty bin. The
+    bins (tens) are worked out on ``threads`` threads, the same numbers on any number."""
     out = np.full(n, np.nan)
     cnt = np.bincount(k, minlength=n)
-    for i in np.flatnonzero(cnt >= 20):  # loop over bins (tens), not cells
-        out[i] = nmad(d[k == i])
-    return out, cnt
+    cen = np.full(n, np.nan)
+
+    def one(i):
+        sel = k == i
+        return (nmad(d[sel]) if cnt[i] >= 20 else np.nan), (
+            np.median(x[sel]) if x is not None else np.nan
+        )
+
+    bins = np.flatnonzero(cnt >= 20) if x is None else np.flatnonzero(cnt)
+    for i, (v, c) in zip(bins, each_item(one, bins, threads=threads)):
+        out[i], cen[i] = v, c
+    return (out, cnt) if x is None else (out, cnt, cen)
 
 
-def heteroscedasticity(dh, slope, curvature, *, n_bins: int = 8, sigma_model=None) -> dict:
+def heteroscedasticity(
+    dh, slope, curvature, *, n_bins: int = 8, sigma_model=None, threads: int | None = None
+) -> dict:
     """Dispersion of ``dh`` (m, NaN outside stable terrain) against slope (deg) and maximum
     curvature (1/100 m; its absolute value is binned).
 
@@ -375,7 +410,12 @@ def heteroscedasticity(dh, slope, curvature, *, n_bins: int = 8, sigma_model=Non
     binned NMAD against binned RMS σ_model over the 2-D bins, and NMAD(dh/σ_model); and
     ``sigma_sensor``: the per-cell σ built on the sensor model, √(σ_model² + σ_u²) with σ_u² the
     variance the model leaves unexplained in the cell's 2-D bin.
+
+    The bins and the per-cell interpolation are worked out on ``threads`` threads (default:
+    the process's budget, :func:`stereodem.core.blocks.default_threads`); the numbers do not
+    depend on it.
     """
+    threads = default_threads() if threads is None else int(threads)
     dh = np.asarray(dh, float)
     s = np.asarray(slope, float)
     c = np.abs(np.asarray(curvature, float))
@@ -386,9 +426,8 @@ def heteroscedasticity(dh, slope, curvature, *, n_bins: int = 8, sigma_model=Non
     out = {}
     for name, x, unit in (("slope", s[ok], "deg"), ("curvature", c[ok], "1/(100 m), absolute")):
         edges = _quantile_edges(x, n_bins)
-        k = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, edges.size - 2)
-        nm, cnt = _binned_nmad(d, k, edges.size - 1)
-        cen = np.array([np.median(x[k == i]) if cnt[i] else np.nan for i in range(edges.size - 1)])
+        k = _bin_index(edges, x, threads)
+        nm, cnt, cen = _binned_nmad(d, k, edges.size - 1, x=x, threads=threads)
         good = np.isfinite(nm) & np.isfinite(cen)
         coef = np.polyfit(cen[good], nm[good], 2).tolist() if good.sum() >= 3 else []
         out[name] = {
@@ -400,15 +439,16 @@ def heteroscedasticity(dh, slope, curvature, *, n_bins: int = 8, sigma_model=Non
             "quadratic_fit": coef,
         }
     es, ec = np.asarray(out["slope"]["edges"]), np.asarray(out["curvature"]["edges"])
-    ks = np.clip(np.searchsorted(es, s[ok], side="right") - 1, 0, es.size - 2)
-    kc = np.clip(np.searchsorted(ec, c[ok], side="right") - 1, 0, ec.size - 2)
+    ks = _bin_index(es, s[ok], threads)
+    kc = _bin_index(ec, c[ok], threads)
     flat = ks * (ec.size - 1) + kc
-    nm2, cnt2 = _binned_nmad(d, flat, (es.size - 1) * (ec.size - 1))
+    nm2, cnt2 = _binned_nmad(d, flat, (es.size - 1) * (ec.size - 1), threads=threads)
     table = nm2.reshape(es.size - 1, ec.size - 1)
     # fill empty 2-D bins from the 1-D slope curve, then interpolate at each cell
     fill = np.asarray(out["slope"]["nmad"], float)[:, None] * np.ones((1, ec.size - 1))
     table_f = np.where(np.isfinite(table), table, fill)
-    table_f = np.where(np.isfinite(table_f), table_f, nmad(d))
+    nmad_all = nmad(d)
+    table_f = np.where(np.isfinite(table_f), table_f, nmad_all)
     cs = np.asarray(out["slope"]["centre"], float)
     cc = np.asarray(out["curvature"]["centre"], float)
     interp = RegularGridInterpolator(
@@ -416,15 +456,30 @@ def heteroscedasticity(dh, slope, curvature, *, n_bins: int = 8, sigma_model=Non
     )
     sig = np.full(dh.shape, np.nan)
     fin = np.isfinite(s) & np.isfinite(c)
-    pts = np.column_stack(
-        [np.clip(s[fin], cs.min(), cs.max()), np.clip(c[fin], cc.min(), cc.max())]
+    flat_s, flat_c, flat_fin, flat_sig = (
+        s.reshape(-1),
+        c.reshape(-1),
+        fin.reshape(-1),
+        sig.reshape(-1),
     )
-    sig[fin] = interp(pts)
+
+    def at_cells(i0):  # the table interpolated at the cells i0 : i0 + CHUNK (row-major)
+        part = slice(i0, i0 + CHUNK)
+        f = flat_fin[part]
+        pts = np.column_stack(
+            [
+                np.clip(flat_s[part][f], cs.min(), cs.max()),
+                np.clip(flat_c[part][f], cc.min(), cc.max()),
+            ]
+        )
+        flat_sig[part][f] = interp(pts)
+
+    each_item(at_cells, range(0, sig.size, CHUNK), threads=threads)
     out["table"] = {
         "nmad": np.where(np.isfinite(table), table, np.nan).tolist(),
         "count": cnt2.reshape(table.shape).tolist(),
     }
-    out["nmad_all"] = nmad(d)
+    out["nmad_all"] = nmad_all
     out["sigma"] = sig
     if sigma_model is not None:
         sm = np.asarray(sigma_model, float)
@@ -441,7 +496,7 @@ def heteroscedasticity(dh, slope, curvature, *, n_bins: int = 8, sigma_model=Non
         nb = (es.size - 1) * (ec.size - 1)
         cnt = np.bincount(f2, minlength=nb)
         rms = np.sqrt(np.bincount(f2, weights=smv**2, minlength=nb) / np.maximum(cnt, 1))
-        obs, _ = _binned_nmad(dd, f2, nb)
+        obs, _ = _binned_nmad(dd, f2, nb, threads=threads)
         g = np.isfinite(obs) & (cnt >= 20)
         r = float(np.corrcoef(obs[g], rms[g])[0, 1]) if g.sum() >= 3 else float("nan")
         rms_slope = np.sqrt(

@@ -61,6 +61,11 @@ def add_parser(sub):
         metavar="DEG",
         help="ground-track heading for along/cross-track steps",
     )
+    options.add_workers(
+        p,
+        "threads of the warps, the curvature, the sigma map's bins and cells and the "
+        "GeoTIFF compression",
+    )
     options.add_creation_options(p)
     p.add_argument("-o", "--out", required=True, help="output folder")
     options.add_overwrite(p)
@@ -74,6 +79,7 @@ def run(args) -> int:
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
     from stereodem.core.raster import write_geotiff, write_text_atomic
+    from stereodem.core.threads import job_threads
     from stereodem.post.change import dem_change
     from stereodem.post.coreg import parse_chain
     from stereodem.post.dates import dem_dates
@@ -82,6 +88,7 @@ def run(args) -> int:
 
     from .outlock import check_output_folder, output_folder
 
+    options.check_common(args)
     # an -o that cannot be a folder is refused before the DEMs are compared
     inputs = [args.dem_a, args.dem_b] + list(args.exclude)
     check_output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
@@ -101,7 +108,14 @@ def run(args) -> int:
             log.info("no rate: %s", exc)
     if dates is not None and not dates[1] > dates[0]:
         raise InputError(f"{args.dem_b}: its date {dates[1]} is not after DEM_A's {dates[0]}")
-    res = dem_change(a, b, chain=args.chain, exclude=args.exclude, track_angle_deg=args.track_angle)
+    res = dem_change(
+        a,
+        b,
+        chain=args.chain,
+        exclude=args.exclude,
+        track_angle_deg=args.track_angle,
+        threads=job_threads(args.workers),
+    )
     info = dict(
         dem_a=args.dem_a,
         dem_b=args.dem_b,

@@ -92,3 +92,11 @@ def test_percentile_of_parts_is_numpys_percentile_of_all_the_values(threads):
             assert got == float(np.percentile(v, q)), (n, q)
     with pytest.raises(ValueError):
         percentile_of_parts([np.array([])], 50.0)
+
+
+def test_each_item_keeps_the_items_order_on_any_number_of_threads():
+    from stereodem.core.blocks import each_item
+
+    for threads in (1, 2, 5):
+        assert each_item(lambda i: i * i, range(7), threads=threads) == [i * i for i in range(7)]
+    assert each_item(lambda i: i, [], threads=2) == []

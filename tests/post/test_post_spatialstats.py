@@ -90,3 +90,34 @@ def test_heteroscedasticity_finds_dispersion_growing_with_slope_and_sensor_share
     z = dh / h["sigma_sensor"]
     assert np.nanstd(z) == pytest.approx(1.0, abs=0.08)
     assert np.median(np.abs(h["sigma_sensor"] / sig - 1)) < 0.1
+
+
+def _same(a, b):
+    """Equal to the bit: arrays by their bytes, the rest by its JSON text (NaN included)."""
+    import json
+
+    if isinstance(a, np.ndarray):
+        return isinstance(b, np.ndarray) and a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    return json.dumps(a) == json.dumps(b)
+
+
+@pytest.mark.parametrize("with_model", [False, True])
+def test_heteroscedasticity_is_the_same_on_any_number_of_threads(monkeypatch, with_model):
+    """The bins and the per-cell interpolation on threads, in pieces: the numbers of one
+    piece on one thread, to the bit (issue 28)."""
+    import stereodem.post.spatialstats as ss
+
+    rng = np.random.default_rng(1)
+    slope = rng.uniform(0, 40, (120, 90))
+    curv = rng.normal(0, 1, slope.shape)
+    sig = 0.5 + 0.05 * slope
+    dh = rng.normal(0, 1, slope.shape) * sig
+    dh[::7, ::5] = np.nan
+    slope[3] = np.nan
+    kw = {"sigma_model": 0.7 * sig} if with_model else {}
+    whole = heteroscedasticity(dh, slope, curv, threads=1, **kw)  # one piece (CHUNK > cells)
+    monkeypatch.setattr(ss, "CHUNK", 1000)  # 11 pieces of the cells, 10 of the stable ones
+    for threads in (1, 2, 3):
+        assert _same(heteroscedasticity(dh, slope, curv, threads=threads, **kw), whole)

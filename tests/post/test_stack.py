@@ -330,6 +330,43 @@ def test_change_command_gives_dh_and_sigma(series, tmp_path, capsys):
     assert info["years"] == pytest.approx(15.05, abs=0.01)
 
 
+def _without_seconds(x):
+    """A report without its timings (``seconds`` keys)."""
+    if isinstance(x, dict):
+        return {k: _without_seconds(v) for k, v in x.items() if k != "seconds"}
+    if isinstance(x, list):
+        return [_without_seconds(v) for v in x]
+    return x
+
+
+def test_change_command_is_the_same_on_any_number_of_workers(series, tmp_path, capsys, monkeypatch):
+    """--workers 1 and 2 write the same dh, σ map and report, to the bit: the warp, the
+    curvature's row bands and the σ map's bins and cells on threads (issue 28). Small pieces
+    so that a 70 x 70 grid is cut as a large one is."""
+    import stereodem.post.biascorr as biascorr
+    import stereodem.post.spatialstats as ss
+
+    monkeypatch.setattr(biascorr, "CURVATURE_BAND_ROWS", 8)
+    monkeypatch.setattr(ss, "CHUNK", 500)
+    a, b = series["paths"][0], series["paths"][3]
+    outs = []
+    for workers in ("1", "2"):
+        out = tmp_path / f"chg{workers}"
+        rc, _so, se = _run(
+            ["change", a, b, "--exclude", series["outline"], "--workers", workers, "-o", str(out)],
+            capsys,
+        )
+        assert rc == 0, se
+        outs.append(out)
+    for name in ("dh.tif", "dh_sigma.tif"):
+        one, two = (rasterio.open(o / name).read(1) for o in outs)
+        assert one.tobytes() == two.tobytes(), name
+    one, two = (_without_seconds(json.loads((o / "change.json").read_text())) for o in outs)
+    assert json.dumps(one) == json.dumps(two)
+    rc, _so, se = _run(["change", a, b, "--workers", "0", "-o", str(tmp_path / "w0")], capsys)
+    assert rc == 1 and "--workers must be at least 1" in se and not (tmp_path / "w0").exists()
+
+
 @pytest.mark.parametrize(
     "case", ["no_dates", "single", "no_overlap", "future", "repeated", "count", "reference"]
 )
