@@ -87,6 +87,11 @@ def add_parser(sub):
     p.add_argument(
         "--source-maps", action="store_true", help="also write share_<source>.tif per source"
     )
+    options.add_workers(
+        p,
+        "threads of the maps' row blocks and the GeoTIFF compression, written while the "
+        "figure is drawn",
+    )
     p.add_argument("-o", "--out", required=True, help="output folder")
     options.add_overwrite(p)
     p.set_defaults(run=run)
@@ -96,13 +101,13 @@ def add_parser(sub):
 def run(args) -> int:
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
+    from stereodem.core.threads import job_threads
     from stereodem.ortho.grid import footprint_height_range, grid_for_model, share_without_dem
     from stereodem.ortho.uncertainty.covariance import (
         assemble,
         parse_sigma_pairs,
         read_adjust_report,
     )
-    from stereodem.ortho.uncertainty.figure import plot_uncertainty
     from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
     from stereodem.sensor.io.sidecar import load_image_model
 
@@ -134,6 +139,7 @@ def run(args) -> int:
             100 * missing,
         )
     grid = grid_for_model(model, dem, res=args.res, crs=args.crs, h_range=h_range)
+    threads = job_threads(args.workers)
     maps = ortho_uncertainty_maps(
         model,
         dem,
@@ -144,10 +150,10 @@ def run(args) -> int:
         samples=args.samples,
         seed=args.seed,
         source_maps=args.source_maps,
+        threads=threads,
     )
     with output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
-        maps.write(out, overwrite=True, source_maps=args.source_maps)
-        plot_uncertainty(maps, out / "uncertainty.png", title=Path(args.image).name, overwrite=True)
+        _write_and_plot(maps, out, args, threads)
     s = maps.summary()
     top = max(maps.shares, key=lambda k: maps.shares[k])
     options.say(
@@ -158,3 +164,29 @@ def run(args) -> int:
         f"interpolation error {maps.interpolation_error:.2g} (relative, measured)"
     )
     return 0
+
+
+def _write_and_plot(maps, out, args, threads: int):
+    """The maps' GeoTIFFs and the figure: with more than one thread the GeoTIFFs are written
+    (GDAL compresses without the GIL) on a thread of their own while the figure is drawn
+    (matplotlib, which holds it); the same files either way."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from stereodem.ortho.uncertainty.figure import plot_uncertainty
+
+    def write():
+        maps.write(out, overwrite=True, source_maps=args.source_maps)
+
+    def plot():
+        plot_uncertainty(maps, out / "uncertainty.png", title=Path(args.image).name, overwrite=True)
+
+    if threads <= 1:
+        write()
+        plot()
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="stereodem-maps-write") as ex:
+        written = ex.submit(write)
+        try:
+            plot()
+        finally:
+            written.result()  # the GeoTIFFs waited for whatever the figure did

@@ -105,6 +105,25 @@ def test_command_writes_maps_json_and_figure(data_dir, dem_path, tmp_path, capsy
     assert "exists" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # two runs of the command, each over 0.6 s
+def test_workers_1_and_2_write_the_same_files(data_dir, dem_path, tmp_path):
+    """--workers 1 and 2 (issue 28): the maps' row blocks on the budget's threads, the GeoTIFFs
+    written while the figure is drawn: the same maps, bit for bit, the same figure and report
+    (its timings apart)."""
+    sigmas = ("--sigma", "col_shift=0.5", "--sigma", "row_shift=0.5", "--sigma", "dem_height=4")
+    outs = [tmp_path / f"w{w}" for w in (1, 2)]
+    for w, out in zip((1, 2), outs):
+        assert _run(data_dir, dem_path, out, *sigmas, "--workers", str(w)) == 0
+    names = ("sigma_horizontal", "sigma_east", "sigma_north", "ce90", "dominant_source")
+    for n in names:
+        with rasterio.open(outs[0] / f"{n}.tif") as a, rasterio.open(outs[1] / f"{n}.tif") as b:
+            assert a.read().tobytes() == b.read().tobytes(), n
+    assert (outs[0] / "uncertainty.png").read_bytes() == (outs[1] / "uncertainty.png").read_bytes()
+    one, two = (json.loads((o / "sensitivity.json").read_text()) for o in outs)
+    assert one.pop("seconds").keys() == two.pop("seconds").keys()  # timings apart
+    assert json.dumps(one) == json.dumps(two)
+
+
 @pytest.mark.slow
 def test_covariance_from_an_adjustment_report(data_dir, dem_path, tmp_path):
     rpc = RPCModel.from_file(data_dir / IMG)
