@@ -36,6 +36,7 @@ from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import read_image
 from stereodem.core.stats import nmad
+from stereodem.core.threads import pool_initializer, worker_threads
 
 from . import warp
 from .assess import reconcile_vertical
@@ -302,8 +303,17 @@ def build_stack(
         pool = ProcessPoolExecutor(
             max_workers=min(workers, len(dems)),
             mp_context=mp.get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(reference, settings, stable_grid, str(store)),
+            # each process pinned to its share of the cores (BLAS, OpenCV, GDAL), as the tile
+            # pool's are (spawned, each inherited the whole budget of the parent)
+            initializer=pool_initializer,
+            initargs=(
+                worker_threads(min(workers, len(dems))),
+                _init_worker,
+                reference,
+                settings,
+                stable_grid,
+                str(store),
+            ),
         )
         try:
             futures = {pool.submit(_add_and_write, k, str(p)): k for k, p in enumerate(dems)}

@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
-import os
 import time
 
 from stereodem.core import jsonutil
@@ -236,7 +235,9 @@ def run(args) -> int:
         from stereodem.post.stack_build import exclude_mask
 
         exclude_mask([path], ref)
-    workers = args.workers or os.cpu_count() or 1
+    from stereodem.core.threads import job_threads, pool_size
+
+    workers = pool_size(args.workers)  # processes of the build (the cores, by default)
     with (
         output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out,
         _status_if_stopped(out / "stack.json"),
@@ -256,7 +257,7 @@ def run(args) -> int:
             )
         t_build = time.perf_counter() - t0
         ds = open_stack(out / "stack.zarr", chunk=args.chunk)
-        res = stack_rates(ds, settings=rate_settings, workers=workers)
+        res = stack_rates(ds, settings=rate_settings, workers=job_threads(args.workers))
         g = stack_grid(ds)
         co = options.creation_options(args)
         for key, name in RATE_FILES.items():

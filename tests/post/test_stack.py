@@ -489,6 +489,32 @@ def test_parallel_build_writes_the_same_stack(series, tmp_path):
     assert [r["sigma"] for r in one] == [r["sigma"] for r in two]
 
 
+def test_parallel_build_pins_each_process_to_its_share_of_the_cores(series, tmp_path, monkeypatch):
+    """The build's processes are pinned as the tile pool's are (issue 28): spawned, they
+    took the parent's whole thread budget each (2 processes x 2 BLAS/OpenCV/GDAL threads on 2
+    cores)."""
+    import stereodem.post.stack_build as sb
+    from stereodem.core.threads import pool_initializer, worker_threads
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def pool(**kw):
+        seen.update(kw)
+        raise Stop
+
+    monkeypatch.setattr(sb, "ProcessPoolExecutor", pool)
+    ref = DEM.from_file(series["ref"])
+    dates = [np.datetime64(d) for d in series["dates"][:3]]
+    s = BuildSettings(chain="vshift", chunk=32)
+    with pytest.raises(Stop):
+        build_stack(series["paths"][:3], dates, ref, tmp_path / "a.zarr", s, workers=2)
+    assert seen["max_workers"] == 2 and seen["initializer"] is pool_initializer
+    assert seen["initargs"][:2] == (worker_threads(2), sb._init_worker)
+
+
 def test_dates_csv_missing_is_one_line(tmp_path):
     with pytest.raises(InputError, match="cannot read the dates CSV"):
         dem_dates(["a.tif", "b.tif"], str(tmp_path / "nope.csv"))
