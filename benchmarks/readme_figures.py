@@ -293,6 +293,19 @@ def batch(d):
     )
 
 
+def commands(d):
+    parts = "; ".join(
+        f"`{r['command']}` {r['w1']['wall_s']:.1f} → {r['w2']['wall_s']:.1f} s "
+        f"({r['speedup_2_vs_1']:.2f}×, {r['w2']['cores']:.2f} cores)"
+        for r in d["commands"]
+    )
+    return (
+        f"The standalone commands at 1 → 2 workers (`benchmarks/bench_commands.py`, 3000² DEMs "
+        f"and the full granule's scene, median of {d['repeat']}): {parts} "
+        f"(load {d['load_average'][0]:.1f})."
+    )
+
+
 def ortho(d):
     s = d["speed_ratios"]
     return (
@@ -724,6 +737,7 @@ SUMMARISERS = {
     ),
     "bench_worker_start": worker_start,
     "bench_batch": batch,
+    "bench_commands": commands,
     "bench_coreg": coreg,
     "bench_nuth_kaab": nuth_kaab,
     "bench_multiview": multiview,
@@ -860,6 +874,11 @@ BENCHMARKS = {
         "tile pool start: fork server vs spawn (issue 28)",
         "python benchmarks/bench_worker_start.py",
         "the same pool with spawned workers, same run",
+    ),
+    "bench_commands": (
+        "the standalone commands at 1 and 2 workers (issue 28)",
+        "python benchmarks/bench_commands.py  # after bench_scaling.py --workers 2",
+        "themselves at 1 worker (`--workers 1`, or one core by `taskset`)",
     ),
     "bench_batch": (
         "many scenes (`stereodem batch`)",
