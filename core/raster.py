@@ -640,6 +640,15 @@ def check_map_raster(path, ds, what: str) -> None:
         )
 
 
+def as_path(path, what: str = "path") -> Path:
+    """``path`` (a ``str`` or ``os.PathLike``) as a :class:`~pathlib.Path`;
+    :class:`InputError` naming ``what`` for anything else (``None`` was pathlib's or
+    rasterio's ``TypeError``)."""
+    if not isinstance(path, str | os.PathLike):
+        raise InputError(f"{what}: expected a file path, got {type(path).__name__}")
+    return Path(path)
+
+
 def read_image(path, band: int = 1) -> np.ndarray:
     """One band of an image as float32, NaN where the file marks no data.
 
@@ -648,6 +657,8 @@ def read_image(path, band: int = 1) -> np.ndarray:
     finite. Raises :class:`InputError` naming the file when it cannot be read or has no such
     band.
     """
+    if not hasattr(path, "read"):  # rasterio also opens file objects
+        as_path(path, "image")
     try:
         with reading_env(), rasterio.open(path) as ds:
             if not 1 <= int(band) <= ds.count:

@@ -16,7 +16,7 @@ import numpy as np
 
 from stereodem.core import jsonutil
 from stereodem.core.errors import RPCError, SensorModelError
-from stereodem.core.raster import write_text_atomic
+from stereodem.core.raster import as_path, write_text_atomic
 from stereodem.sensor.io.rpc_formats import read_rpc
 from stereodem.sensor.models import frame
 from stereodem.sensor.models.rpc import RPCModel
@@ -120,7 +120,7 @@ def load_model(path, *, rpc_direct: bool = False):
     """Read a model from a JSON sidecar, or from an RPC file of any format
     :func:`stereodem.sensor.io.rpc_formats.read_rpc` reads (DIMAP ``RPC_*.XML``, ``.geom``,
     ``_RPC.TXT``, rpcm JSON, ...; ``rpc_direct`` as there)."""
-    path = Path(path)
+    path = as_path(path, "sensor model")
     try:
         text = path.read_text(errors="replace")
     except FileNotFoundError:

@@ -710,6 +710,18 @@ def _scene_centre(dem):
     return dem, (lon0, lat0, h0), (h_lo, h_hi)
 
 
+def _size_pair(size, what: str) -> tuple[int, int]:
+    """``(width, height)`` pixels from ``size``; :class:`InputError` naming ``what`` for
+    anything but two whole numbers (``size=50`` was a TypeError from inside)."""
+    try:
+        w, h = size
+        if float(w) != int(w) or float(h) != int(h):
+            raise ValueError
+        return int(w), int(h)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be (width, height) in pixels, got {size!r}") from None
+
+
 def simulate_scene(
     preset: str = "aster",
     *,
@@ -759,8 +771,8 @@ def simulate_scene(
     if bits not in (8, 16):
         raise InputError(f"bits must be 8 or 16, got {bits}")
     sigma_psf = psf_sigma(mtf_nyquist)  # GSD; validates mtf_nyquist
-    w, h = int(size[0]), int(size[1])
-    rsize = (w, h) if right_size is None else (int(right_size[0]), int(right_size[1]))
+    w, h = _size_pair(size, "size")
+    rsize = (w, h) if right_size is None else _size_pair(right_size, "right_size")
     if min(w, h, *rsize) < 32:
         raise InputError(
             f"image size {w}x{h} / {rsize[0]}x{rsize[1]} is too small (at least 32x32)"

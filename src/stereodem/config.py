@@ -54,7 +54,7 @@ import tomllib
 
 from stereodem.core.errors import InputError
 from stereodem.core.grid import map_crs
-from stereodem.core.raster import check_creation_options
+from stereodem.core.raster import as_path, check_creation_options
 from stereodem.core.vertical import VERTICALS, Vertical
 from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS, Resampling, UncertaintyMethod
 from stereodem.sensor.io.aster_l1a import is_aster_granule
@@ -568,7 +568,7 @@ def _is_granule(path, base) -> bool:
 
 def load_config(path, **overrides) -> Config:
     """Read a TOML configuration; relative input paths are relative to the file."""
-    path = Path(path)
+    path = as_path(path, "configuration")
     try:
         raw = tomllib.loads(path.read_text())
     except FileNotFoundError:

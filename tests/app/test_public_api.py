@@ -68,3 +68,24 @@ def test_run_given_no_config_says_what_it_takes(cfg):
 
     with pytest.raises(stereodem.InputError, match="expected a Config.*load_config"):
         stereodem.run(cfg)
+
+
+@pytest.mark.parametrize("name", ["read_image", "load_model", "load_config"])
+def test_readers_given_no_path_say_so(name):
+    """``read_image(None)``, ``load_model(None)`` and ``load_config(None)`` raised pathlib's or
+    rasterio's TypeError."""
+    import stereodem
+
+    with pytest.raises(stereodem.InputError, match="expected a file path, got NoneType"):
+        getattr(stereodem, name)(None)
+
+
+@pytest.mark.parametrize("size", [50, (50,), ("a", 60), (60.5, 60)])
+def test_simulate_scene_given_a_bad_size_says_so(size):
+    """``simulate_scene(size=50)`` raised a TypeError from inside ('int' object is not
+    subscriptable)."""
+    from stereodem.core.errors import InputError
+    from stereodem.sensor.simulation.simulate import simulate_scene
+
+    with pytest.raises(InputError, match="size must be \\(width, height\\) in pixels"):
+        simulate_scene("frame", size=size)
