@@ -306,26 +306,34 @@ def copy_to_cog(src, tmp, co: dict, *, path, nbytes: int | None = None) -> None:
     probed first (:func:`_probe_cog_write`, once per data type, band count and options)."""
     refused = None
     try:
-        if isinstance(src, str | os.PathLike):
-            with rasterio.open(src) as ds:
-                dtype, count, cells = ds.dtypes[0], ds.count, ds.width * ds.height
-        else:
-            dtype, count, cells = src.dtypes[0], src.count, src.width * src.height
-        if nbytes is None:
-            nbytes = cells * count * np.dtype(dtype).itemsize
         if _compression_threads(co) != "1":
+            dtype, count, _ = _raster_shape(src)
             refused = _probe_cog_write(str(dtype), int(count), tuple(co.items()))
         if refused is None:
             rasterio.shutil.copy(src, tmp, driver="COG", **_lower(co))
     except _GDAL_ERRORS as exc:
         refused = " ".join(str(exc).split())
-        full = _short_of_space(tmp, nbytes or 0)
+        if nbytes is None:
+            try:
+                dtype, count, cells = _raster_shape(src)
+                nbytes = cells * count * np.dtype(dtype).itemsize
+            except _GDAL_ERRORS:  # a source the full disk left unreadable: size unknown
+                nbytes = 0
+        full = _short_of_space(tmp, nbytes)
         if full is not None:
             raise OutputWriteError(f"{path}: cannot be written: {full} ({refused})") from None
     if refused is not None:
         raise OutputWriteError(
             f"{path}: cannot be written with the creation options {options_text(co)} ({refused})"
         )
+
+
+def _raster_shape(src) -> tuple[str, int, int]:
+    """(data type, band count, cells) of ``src``, an open dataset or a file."""
+    if isinstance(src, str | os.PathLike):
+        with rasterio.open(src) as ds:
+            return ds.dtypes[0], ds.count, ds.width * ds.height
+    return src.dtypes[0], src.count, src.width * src.height
 
 
 def _short_of_space(path, nbytes: int) -> str | None:

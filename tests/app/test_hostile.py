@@ -269,6 +269,23 @@ BEFORE_WORK = {
         "uncertainty",
         r"ce90.tif.*input",
     ),
+    # uncertainty's new --workers (the maps' threads), refused before any work
+    "uncertainty_workers_0": (
+        lambda s, h, t: [
+            "uncertainty",
+            t / "in.tif",
+            "--dem",
+            t / "dem.tif",
+            "--sigma",
+            "roll_bias=5",
+            "-o",
+            t / "u",
+            "--workers",
+            "0",
+        ],
+        "uncertainty",
+        r"--workers must be at least 1",
+    ),
     # a folder as the output file: "exists; pass --overwrite", which then said "is a folder"
     "filter_out_is_a_folder": (
         lambda s, h, t: ["filter", t / "dem.tif", "-o", t / "rep"],
