@@ -35,6 +35,27 @@ from stereodem.stereo.tiling import tile_order
 log = logging.getLogger(__name__)
 
 
+class ProgressPasses:
+    """One ``progress(done, total)`` count over several passes of a tile loop that each count
+    from 0 (the jitter correction's two DEMs, an N-view stage's pairs): a pass's tiles are
+    counted after those of the passes before it, so the stage's one bar counts up once
+    instead of starting again at every pass (its total grows as passes start).
+
+    :func:`tile_runner` starts a pass (:meth:`next_pass`) at each call; a caller running
+    several :func:`tile_runner` under one bar passes them the same instance."""
+
+    def __init__(self, progress):
+        self.progress, self.base, self.last = progress, 0, 0
+
+    def next_pass(self):
+        """Count the next calls after the units of the passes so far."""
+        self.base, self.last = self.base + self.last, 0
+
+    def __call__(self, done, total, *_):
+        self.last = int(total)
+        self.progress(self.base + int(done), self.base + int(total))
+
+
 def tile_runner(run_settings, progress=None, cache_dir=None):
     """A tile runner for :func:`stereodem.stereo.pipeline.make_dem` backed by
     :func:`~stereodem.stereo.runner.iter_tiles`.
@@ -45,12 +66,17 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
     :func:`~stereodem.stereo.tiling.tile_order` as soon as each and those before it are done,
     so that the caller adds a tile's sums while the pool runs the later ones (not all of them
     after the pool: 0.5 s of one core on the full ASTER granule); ``runner.failures`` collects
-    the failed tiles (by index, per call).
+    the failed tiles (by index, per call). ``progress(done, total)`` counts on over the calls
+    (:class:`ProgressPasses`).
     """
     failures = []
+    if progress is not None and not isinstance(progress, ProgressPasses):
+        progress = ProgressPasses(progress)
 
     def runner(process_tile, tiles, inputs, settings):
         pool = pool_size(run_settings.workers, len(tiles), run_settings.dask) > 0
+        if progress is not None:
+            progress.next_pass()
         key = None
         if cache_dir is not None:  # what an interrupted run left, before this run's maps exist
             Path(cache_dir).mkdir(parents=True, exist_ok=True)

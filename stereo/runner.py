@@ -458,6 +458,8 @@ def iter_tiles(
     if resume and cached:
         log.info("resume: %d of %d tile(s) already done", len(cached), len(tiles))
     total, done = len(tiles), len(cached)
+    if progress and done:  # a resumed run's bar starts at the tiles it has
+        progress(done, total)
     yield from cached
     cached = None
     by_index = {t.index: t for t in tiles}

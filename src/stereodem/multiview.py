@@ -34,6 +34,7 @@ from stereodem.core import geodesy, jsonutil
 from stereodem.core.errors import InputError, StereodemError
 from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import job_threads
+from stereodem.stereo.execution import ProgressPasses
 from stereodem.stereo.fusion import FusedDEM, choose_pairs, fuse_dems, pair_sigma
 from stereodem.stereo.grid import GridSpec
 from stereodem.stereo.pipeline import DEMProducts, default_posting
@@ -94,7 +95,8 @@ def multiview_stage(
 ) -> MultiviewProducts:
     """Pair DEMs of the chosen pairs of ``paths`` on one lattice, fused per cell.
 
-    ``progress`` is passed to each pair's stereo stage; ``cache_dir`` (a job's ``tiles/``)
+    ``progress(done, total)`` counts the tiles of all pairs, pair after pair
+    (:class:`~stereodem.stereo.execution.ProgressPasses`); ``cache_dir`` (a job's ``tiles/``)
     gets one sub-folder per pair (``pair_<i>_<j>``), so ``run --resume`` reuses pair tiles.
     Each chosen pair has an id, its rank in the plan (``pair_id`` in the report's
     ``pair_runs``); with ``points_dir`` its tiles write their points into
@@ -158,6 +160,8 @@ def multiview_stage(
         stereo=dataclasses.replace(cfg.stereo, gridding=dataclasses.replace(gs, crs=crs, res=res)),
     )
     dems, sigmas, runs, failed_tiles, failed_pairs = [], [], [], [], []
+    if progress is not None:  # one count over the pairs' tiles, not one per pair
+        progress = ProgressPasses(progress)
     for pair_id, c in enumerate(plan.pairs):
         a, b = images[c.i], images[c.j]
         name = f"{Path(paths[c.i]).name} + {Path(paths[c.j]).name}"

@@ -12,7 +12,7 @@ import logging
 
 from stereodem.core.errors import InputError
 
-from .progress import Progress
+from .progress import stage_bar
 
 
 def add_res(p, default_text: str):
@@ -112,9 +112,9 @@ def check_common(args):
             map_crs(getattr(args, key), "--" + key.replace("_", "-"))
 
 
-def progress_bar(label: str):
-    """A progress callable for a stage, silent with -q."""
-    return Progress(label, 1, enabled=logging.getLogger().getEffectiveLevel() <= logging.WARNING)
+def progress_bar(stage: str):
+    """The progress bar of ``stage`` (:data:`stereodem.progress.STAGES`), silent with -q."""
+    return stage_bar(stage, enabled=not quiet())
 
 
 def quiet() -> bool:

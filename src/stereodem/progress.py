@@ -1,11 +1,16 @@
 """Progress bars and log output on stderr for long jobs (tqdm).
 
-A stage's bar (``Progress("stereo", total)``) shows the fraction done, the rate, the elapsed
-time and the ETA. It is drawn only when stderr is a terminal and the run is not quiet
-(``-q``); in logs and pipes it is silent, and one summary line goes to the ``stereodem``
-logger at INFO level (shown with ``-v``). Log records are written through :func:`tqdm.write`
-(:class:`TqdmLoggingHandler`), so warnings printed during a stage land above the bar
-instead of on its line.
+Every bar is made by :func:`stage_bar` from the stage's entry in :data:`STAGES` (its
+description and its unit of work: ``stereo  40%|####  | 12/30 tiles [00:07<00:10,
+1.71tile/s]``). It shows the fraction done, the count, the rate, the elapsed time and the
+ETA, and is drawn only when stderr is a terminal and the run is not quiet (``-q``); in logs
+and pipes it is silent, and one summary line goes to the ``stereodem`` logger at INFO level
+(shown with ``-v``). A bar whose total is not known yet is not drawn until the stage's first
+``progress(done, total)``, and it never counts down: a stage that runs its loop several times
+(N-view pairs, the jitter correction's second DEM) counts on through
+:class:`stereodem.stereo.execution.ProgressPasses`. Log records are written through
+:func:`tqdm.write` (:class:`TqdmLoggingHandler`), so warnings printed during a stage land
+above the bar instead of on its line.
 """
 
 from __future__ import annotations
@@ -19,78 +24,120 @@ from tqdm import tqdm
 
 log = logging.getLogger("stereodem.progress")
 
+#: stage -> (description shown before the bar, unit of work counted by the stage's callback)
+STAGES = {
+    "stereo": ("stereo", "tile"),
+    "ortho": ("orthoimages", "row"),
+    "mosaic": ("mosaic", "block"),
+    "stack": ("stack", "DEM"),
+}
+
+
+def stage_bar(stage: str, *, enabled: bool = True, stream=None) -> Progress:
+    """The progress bar of ``stage`` (a key of :data:`STAGES`), its total learnt from the
+    stage's first ``progress(done, total)``; ``enabled`` False (``-q``) draws and logs
+    nothing. The one place the command line makes its bars."""
+    label, unit = STAGES[stage]
+    return Progress(label, None, enabled=enabled, stream=stream, unit=unit)
+
 
 class Progress:
-    """A stage's progress bar: ``Progress("matching", total)`` then ``update(n)``, or the
-    callback form ``progress(done, total)`` that library functions call.
+    """A stage's progress bar: ``Progress("stereo", total, unit="tile")`` then
+    ``update(n)``, or the callback form ``progress(done, total)`` that library functions
+    call. Made by :func:`stage_bar` on the command line.
 
     Parameters
     ----------
     label : str
-        Stage name shown before the bar.
-    total : int
-        Units of work (tiles, rows); may be changed later by the callback's ``total``.
+        Description shown before the bar.
+    total : int or None
+        Units of work; None until the callback's first ``total`` (nothing is drawn before).
     enabled : bool
         False for ``-q``: nothing is drawn or logged.
     stream : file, optional
         Where the bar goes (default ``sys.stderr``); drawn only if it is a terminal.
     unit : str
-        Name of a unit of work, shown in the rate (``tiles/s``).
+        Name of a unit of work, shown after the count (``12/30 tiles``) and in the rate
+        (``1.71tile/s``).
     """
 
     def __init__(
-        self, label: str, total: int, *, enabled: bool = True, stream=None, unit: str = "it"
+        self,
+        label: str,
+        total: int | None = None,
+        *,
+        enabled: bool = True,
+        stream=None,
+        unit: str = "item",
     ):
-        self.label, self.total, self.enabled = label, max(int(total), 1), enabled
+        self.label, self.unit, self.enabled = label, unit, enabled
+        self.total = None if total is None else max(int(total), 1)
         self.stream = stream or sys.stderr
         self.done = 0
         self.t0 = time.perf_counter()
-        self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self._draw = enabled and tty
+        self._bar = None
+        if self.total is not None:
+            self._open()
+
+    def _open(self):
         self._bar = tqdm(
             total=self.total,
-            desc=label,
-            unit=unit,
+            initial=self.done,
+            desc=self.label,
+            unit=self.unit,
             file=self.stream,
             leave=True,
             dynamic_ncols=True,
-            disable=not (enabled and self._tty),
-            bar_format="{desc:<10} {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
-            "[{elapsed}<{remaining}, {rate_fmt}]",
+            disable=not self._draw,
+            bar_format="{desc:<11} {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
+            + self.unit
+            + "s [{elapsed}<{remaining}, {rate_fmt}]",
         )
 
     def update(self, n: int = 1):
         """Advance by ``n`` units."""
-        n = max(0, min(int(n), self.total - self.done))
+        if self._bar is None:
+            self._open()
+        if self.total is not None:
+            n = min(int(n), self.total - self.done)
+        n = max(0, int(n))
         self.done += n
         self._bar.update(n)
 
-    def __call__(self, done: int, total: int | None = None):
-        """Callback form ``progress(done, total)``: ``done`` units of ``total`` are finished.
+    def __call__(self, done: int, total: int | None = None, *_):
+        """Callback form ``progress(done, total)``: ``done`` units of ``total`` are finished
+        (further arguments, such as a tile's summary, are ignored).
 
-        A ``done`` below the previous one starts the count again (a stage that runs the
-        same loop twice, e.g. the left then the right orthoimage)."""
-        if int(done) < self.done:
-            self.done = 0
-            self._bar.reset(total=self.total)
-        if total and int(total) != self.total:
+        The count never goes back: a ``done`` below the previous one is ignored (a stage
+        that runs a loop again counts on, through
+        :class:`~stereodem.stereo.execution.ProgressPasses`)."""
+        if total and (self.total is None or int(total) != self.total):
             self.total = max(int(total), 1)
-            self._bar.total = self.total
-            self._bar.refresh()
+            if self._bar is None:
+                self._open()
+            else:
+                self._bar.total = self.total
+                self._bar.refresh()
         self.update(int(done) - self.done)
 
     def close(self):
         """End the bar (terminal) or log one summary line (logs, pipes)."""
-        if not self._bar.disable:
+        if self._draw and self._bar is not None:
             self._bar.close()
         elif self.enabled:
             log.info(
-                "%s: %d/%d in %.1f s",
+                "%s: %d/%s %ss in %.1f s",
                 self.label,
                 self.done,
-                self.total,
+                "?" if self.total is None else self.total,
+                self.unit,
                 time.perf_counter() - self.t0,
             )
-        self.enabled = False  # closing twice logs once
+        elif self._bar is not None:
+            self._bar.close()
+        self.enabled = self._draw = False  # closing twice logs once
 
     def __enter__(self):
         return self

@@ -7,7 +7,7 @@ import sys
 
 from . import options
 from .commands import help_line
-from .progress import Progress
+from .progress import stage_bar
 
 EXAMPLES = """examples:
   stereodem run job.toml
@@ -68,10 +68,12 @@ def add_run_options(p):
 
 
 def progress_factory(args):
+    """The job's ``progress_factory(stage)``: :func:`stereodem.progress.stage_bar`, silent
+    with -q."""
     quiet = getattr(args, "quiet", False)
 
-    def make(label):
-        return Progress(label, 1, enabled=not quiet)
+    def make(stage):
+        return stage_bar(stage, enabled=not quiet)
 
     return make
 

@@ -12,7 +12,7 @@ import sys
 import pytest
 
 from stereodem import __version__
-from stereodem.progress import Progress, TqdmLoggingHandler, UTCFormatter
+from stereodem.progress import STAGES, Progress, TqdmLoggingHandler, UTCFormatter, stage_bar
 from stereodem.provenance import git_commit, provenance, utc_now
 
 
@@ -37,11 +37,12 @@ def test_bar_on_a_terminal_shows_eta_and_callback_total():
 def test_silent_off_a_terminal_or_quiet(tty, enabled, caplog):
     s = _Tty() if tty else io.StringIO()
     with caplog.at_level(logging.INFO, logger="stereodem.progress"):
-        with Progress("ortho", 10, stream=s, enabled=enabled) as p:
+        with stage_bar("ortho", stream=s, enabled=enabled) as p:
             p(10, 10)
     assert s.getvalue() == ""
     summary = [r.getMessage() for r in caplog.records if r.name == "stereodem.progress"]
-    assert summary == (["ortho: 10/10 in " + summary[0].split(" in ")[1]] if enabled else [])
+    expected = ["orthoimages: 10/10 rows in " + summary[0].split(" in ")[1]] if enabled else []
+    assert summary == expected
 
 
 def test_log_lines_go_above_the_bar(monkeypatch):
@@ -136,17 +137,75 @@ def test_no_commit_outside_a_work_tree(tmp_path):
     assert git_commit(tmp_path) is None
 
 
-def test_a_stage_that_restarts_its_count_restarts_the_bar():
+def test_every_bar_has_its_stages_description_and_unit():
+    """Before, the bars were made in two places with the stage's name only: tqdm's default
+    ``it/s`` rate and a bare ``12/30`` count."""
+    for stage, (label, unit) in STAGES.items():
+        s = _Tty()
+        with stage_bar(stage, stream=s) as p:
+            p(3, 7)
+        out = s.getvalue()
+        assert p.label == label and p.unit == unit
+        assert f"3/7 {unit}s" in out and f"{unit}/s" in out and "it/s" not in out, out
+        assert out.lstrip("\r").startswith(label)
+    assert STAGES["stereo"][1] == "tile" and STAGES["ortho"][1] == "row"
+    assert STAGES["mosaic"][1] == "block" and STAGES["stack"][1] == "DEM"
+    with pytest.raises(KeyError):
+        stage_bar("no such stage")
+
+
+def test_the_command_lines_bars_come_from_stage_bar():
+    """:func:`stage_bar` is the one place bars are made: the options' and the job's."""
+    from stereodem import options
+    from stereodem.run_cli import progress_factory
+
+    class Args:
+        quiet = False
+
+    for p in (options.progress_bar("ortho"), progress_factory(Args())("ortho")):
+        assert (p.label, p.unit) == STAGES["ortho"]
+        p.close()
+    assert progress_factory(type("A", (), {"quiet": True})())("stereo").enabled is False
+
+
+def test_a_bar_is_drawn_from_its_first_total_and_never_counts_down():
+    """Before, the orthoimage stage's bar was drawn at 0/1 (its total unknown), then again at
+    0/675, and a count below the last one started it again from 0."""
     s = _Tty()
-    p = Progress("ortho", 1, stream=s)
+    p = stage_bar("ortho", stream=s)
+    assert s.getvalue() == ""  # nothing drawn before the stage says its total
     p(600, 675)
     p(675, 675)
-    p(100, 675)  # the right image after the left one
-    assert p.done == 100 and p._bar.n == 100
-    p(675, 675)
-    p.close()
+    p(100, 675)  # a count below the last one: ignored, not a restart
     assert p.done == 675 and p._bar.n == 675
-    assert s.getvalue().count("0/675 [") >= 2  # drawn empty again at the restart
+    p.close()
+    out = s.getvalue()
+    assert "| 0/1 " not in out and out.count("| 0/675 ") == 1, out  # drawn empty once
+    assert "675/675 rows" in out
+
+
+def test_passes_count_on_in_one_bar():
+    """The jitter correction's second DEM, or an N-view stage's next pair, counts on after
+    the tiles of the passes before it (it started the stereo bar again from 0 before)."""
+    from stereodem.stereo.execution import ProgressPasses
+
+    seen = []
+    passes = ProgressPasses(lambda done, total: seen.append((done, total)))
+    passes.next_pass()
+    for k in (1, 2, 3):
+        passes(k, 3, {"tile": k})  # the serial runner's third argument, a tile's summary
+    passes.next_pass()
+    for k in (1, 2):
+        passes(k, 2)
+    assert seen == [(1, 3), (2, 3), (3, 3), (4, 5), (5, 5)]
+    s = _Tty()
+    with stage_bar("stereo", stream=s) as bar:
+        passes = ProgressPasses(bar)
+        for n in (3, 2):
+            passes.next_pass()
+            for k in range(1, n + 1):
+                passes(k, n)
+    assert bar.done == 5 and bar.total == 5 and "5/5 tiles" in s.getvalue()
 
 
 @pytest.mark.slow

@@ -77,6 +77,7 @@ def test_resume_skips_done_tiles(tmp_path):
     assert not fail2 and list(t2) == [1]  # only the failed tile is recomputed
     assert np.array_equal(res2[0]["value"], res1[0]["value"])
     assert calls[-1] == len(tiles)
+    assert calls[0] == len(tiles) - 1  # the bar starts at the tiles the cache had
 
 
 @pytest.mark.slow
