@@ -26,6 +26,7 @@ from rasterio.windows import Window
 from .raster import (
     VERTICAL_TAG,
     atomic_path,
+    check_creation_options,
     check_writable,
     cog_creation_options,
     copy_to_cog,
@@ -92,6 +93,7 @@ class BlockWriter:
         )
         self.vertical = vertical
         self.geoid_crs = geoid_crs
+        check_creation_options(creation_options, source=f"{self.path}: creation options")
         self.co = cog_creation_options(np.float32, creation_options)
         self.tags = {k: str(v) for k, v in (tags or {}).items()}
         if vertical:

@@ -15,6 +15,7 @@ import logging
 import os
 import shutil
 import tempfile
+import threading
 import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -195,8 +196,11 @@ class _Complaints(logging.Handler):
     def __init__(self):
         super().__init__(logging.WARNING)
         self.found = []
+        self.thread = threading.get_ident()
 
     def emit(self, record):
+        if record.thread != self.thread:  # another thread's GDAL call, not the probe
+            return
         text = record.getMessage()
         for prefix in _OPTION_COMPLAINTS:
             if text.startswith(prefix) and text[len(prefix) :] not in self.found:
@@ -223,32 +227,46 @@ def check_creation_options(
     products include float32 rasters (a DEM: every command but ``ortho``): then GDAL's
     refusal to write float32 with the options is an :class:`InputError` here as well.
 
-    Called where options enter (the command line, a job's configuration) on the calling
-    thread: GDAL's warnings are collected from rasterio's logger while the probe runs."""
+    The one check of creation options: where options enter (the command line, a job's
+    configuration) and in every library write (:func:`write_geotiff`,
+    :class:`~stereodem.core.blockwrite.BlockWriter`, ``source`` then names the file). One
+    probe per set of options (cached)."""
     co = parse_creation_options(options)
     if not co:
         return co
+    found, refused = _option_complaints(tuple(cog_creation_options("float32", co).items()))
+    found = list(found)
+    if refused and float_products:
+        found.append(f"{refused} (the products include float32 rasters)")
+    if found:
+        raise InputError(f"{source} {options_text(co)}: GDAL's COG driver: {'; '.join(found)}")
+    return co
+
+
+_PROBE_LOCK = threading.Lock()
+
+
+@functools.lru_cache(maxsize=64)
+def _option_complaints(items: tuple) -> tuple[tuple[str, ...], str | None]:
+    """GDAL's complaints about the COG creation options ``items`` (``(KEY, VALUE)`` pairs),
+    and its refusal to write float32 with them (None when it writes), from a probe write
+    (:func:`_probe_cog_write`, not its cache: GDAL warns only while it writes). GDAL's
+    warnings are collected from rasterio's logger (``rasterio._env``), on this thread only,
+    one probe at a time."""
     complaints = _Complaints()
     log = logging.getLogger("rasterio._env")
-    level, propagate = log.level, log.propagate
-    log.addHandler(complaints)
-    log.setLevel(logging.WARNING)
-    log.propagate = False  # not shown to the user as well: the error below says it
-    try:
-        # not the cached probe: GDAL warns only while it writes
-        items = tuple(cog_creation_options("float32", co).items())
-        refused = _probe_cog_write.__wrapped__("float32", 1, items)
-    finally:
-        log.removeHandler(complaints)
-        log.setLevel(level)
-        log.propagate = propagate
-    if refused and float_products:
-        complaints.found.append(f"{refused} (the products include float32 rasters)")
-    if complaints.found:
-        raise InputError(
-            f"{source} {options_text(co)}: GDAL's COG driver: {'; '.join(complaints.found)}"
-        )
-    return co
+    with _PROBE_LOCK:
+        level, propagate = log.level, log.propagate
+        log.addHandler(complaints)
+        log.setLevel(logging.WARNING)
+        log.propagate = False  # not shown to the user as well: the caller's error says it
+        try:
+            refused = _probe_cog_write.__wrapped__("float32", 1, items)
+        finally:
+            log.removeHandler(complaints)
+            log.setLevel(level)
+            log.propagate = propagate
+    return tuple(complaints.found), refused
 
 
 def _lower(co: dict) -> dict:
@@ -532,7 +550,9 @@ def write_geotiff(
         Band descriptions and units (e.g. ``"metre"``), one per band or one for all.
     creation_options : dict or list of "KEY=VALUE", optional
         GDAL COG creation options overriding the defaults (:data:`COG_DEFAULTS`, the
-        predictor, ``OVERVIEW_RESAMPLING``), as ``gdal_translate -co``.
+        predictor, ``OVERVIEW_RESAMPLING``), as ``gdal_translate -co``. An option or value
+        GDAL's COG driver does not accept is an :class:`InputError` naming the file and the
+        option (:func:`check_creation_options`), not an option GDAL ignores with a warning.
     overview_resampling : str, optional
         Overview resampling; default ``average`` for floats, ``nearest`` for integers
         (classes, masks and counts keep their values).
@@ -545,6 +565,11 @@ def write_geotiff(
     pathlib.Path
     """
     path = check_writable(path, overwrite)
+    if creation_options or compress:  # GDAL would ignore an option it does not know
+        user = parse_creation_options(creation_options)
+        if compress:
+            user = {"COMPRESS": str(compress).upper(), **user}
+        check_creation_options(user, source=f"{path}: creation options")
     arr = np.asarray(data)
     if arr.ndim not in (2, 3) or arr.size == 0 or arr.dtype.kind not in "biufc":
         raise InputError(

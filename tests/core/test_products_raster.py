@@ -4,9 +4,11 @@ descriptions and units, umask permissions, lossless values (issue #19)."""
 from __future__ import annotations
 
 import os
+import re
 import stat
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -163,6 +165,44 @@ def test_creation_options_gdal_would_ignore_are_an_error(options, complaint):
         with pytest.raises(InputError, match=complaint) as e:
             check_creation_options(options, source="--co")
         assert str(e.value).startswith(f"--co {' '.join(options)}: GDAL's COG driver: ")
+
+
+@pytest.mark.parametrize(
+    "kwargs, complaint",
+    [
+        (dict(creation_options={"FOO": "1"}), "FOO=1: .*does not support creation option FOO"),
+        (dict(creation_options=["COMPRESS=NOPE"]), "COMPRESS=NOPE: .*'NOPE' is an unexpected"),
+        (dict(compress="nope"), "COMPRESS=NOPE: .*'NOPE' is an unexpected value"),
+    ],
+)
+def test_library_writes_check_their_creation_options(tmp_path, kwargs, complaint):
+    """``write_geotiff(..., creation_options=...)`` and ``BlockWriter`` wrote the file without
+    an option GDAL did not know, with a warning only (only the command line and the
+    configuration checked them): an InputError naming the file and the option, nothing
+    written."""
+    from stereodem.core.blockwrite import BlockWriter
+    from stereodem.core.grid import MapGrid
+
+    path = tmp_path / "z.tif"
+    with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: creation options {complaint}"):
+        write_geotiff(path, _rng_data("float32", (40, 40)), T, "EPSG:32637", **kwargs)
+    if "creation_options" in kwargs:
+        with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: creation options "):
+            BlockWriter(path, MapGrid(T, 40, 40, "EPSG:32637"), ["a"], **kwargs)
+    assert not list(tmp_path.iterdir())
+    # accepted options still write, from any thread
+    with ThreadPoolExecutor(2) as ex:
+        done = ex.map(
+            lambda k: write_geotiff(
+                tmp_path / f"ok{k}.tif",
+                _rng_data("float32", (40, 40)),
+                T,
+                "EPSG:32637",
+                creation_options={"COMPRESS": "ZSTD"},
+            ),
+            range(2),
+        )
+        assert len(list(done)) == 2
 
 
 def test_creation_options_gdal_knows_pass_their_check():
