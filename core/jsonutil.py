@@ -4,12 +4,47 @@ JavaScript's ``JSON.parse`` and most parsers refuse), numpy values as plain numb
 
 from __future__ import annotations
 
+import functools
 import json
 import math
+from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
 
-__all__ = ["dumps", "json_default", "json_ready"]
+__all__ = ["dumps", "json_default", "json_ready", "STAMP", "stamped", "is_stamped"]
+
+#: the key of the records that mark a folder as a stereodem command's output (``run.json``,
+#: ``report.json``, ...: :data:`stereodem.outlock.MARKERS`); its value is the version that
+#: wrote the record. A file of the user's with a marker's name lacks it, so ``--overwrite``
+#: does not take the folder for a previous run's (:func:`stereodem.outlock.is_stereodem_output`)
+STAMP = "stereodem_version"
+
+
+@functools.lru_cache(maxsize=1)
+def stereodem_version() -> str:
+    """The installed stereodem's version (``0+unknown`` in a source tree without one)."""
+    try:
+        return version("stereodem")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def stamped(record: dict) -> dict:
+    """``record`` with :data:`STAMP` first: what every output-folder marker is written as."""
+    return {STAMP: stereodem_version(), **{k: v for k, v in record.items() if k != STAMP}}
+
+
+def is_stamped(obj) -> bool:
+    """Whether a parsed record is one stereodem wrote: :data:`STAMP` at its top level or in
+    its ``provenance`` section (``run.json``, ``dem_report.json``), a version string; a list
+    (``compare.json``) when every item is."""
+    if isinstance(obj, list):
+        return bool(obj) and all(is_stamped(o) for o in obj)
+    if not isinstance(obj, dict):
+        return False
+    prov = obj.get("provenance")
+    found = obj.get(STAMP, prov.get(STAMP) if isinstance(prov, dict) else None)
+    return isinstance(found, str) and bool(found)
 
 
 def json_default(o):

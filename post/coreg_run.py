@@ -261,7 +261,11 @@ def run(
 
         files.update(chain_figures(chain, ref, dem, out, mask, out_dir, overwrite=overwrite))
     report["files"] = files
-    write_text_atomic(out_dir / "coregistration.json", jsonutil.dumps(report), overwrite=overwrite)
+    write_text_atomic(
+        out_dir / "coregistration.json",
+        jsonutil.dumps(jsonutil.stamped(report)),
+        overwrite=overwrite,
+    )
     return report
 
 

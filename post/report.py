@@ -337,7 +337,7 @@ def write_report(
     if provenance:
         rep["provenance"] = provenance
     files["json"] = write_text_atomic(
-        out / "report.json", jsonutil.dumps(rep, indent=2), overwrite=overwrite
+        out / "report.json", jsonutil.dumps(jsonutil.stamped(rep), indent=2), overwrite=overwrite
     )
     files["markdown"] = write_text_atomic(
         out / "report.md", markdown(jsonutil.json_ready(rep), rel), overwrite=overwrite

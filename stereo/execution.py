@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core.errors import InputError
-from stereodem.core.jsonutil import json_default
+from stereodem.core.jsonutil import json_default, stamped
 from stereodem.core.raster import write_text_atomic
 from stereodem.stereo.pipeline import TileResult
 from stereodem.stereo.runner import (
@@ -224,7 +224,7 @@ def _check_tile_cache(cache_dir: Path, key: str, resume: bool):
     if not resume or old is None:
         for f in cache_dir.glob("tile_*.npz"):
             f.unlink()
-    write_text_atomic(manifest, json.dumps({"key": key}), overwrite=True)
+    write_text_atomic(manifest, json.dumps(stamped({"key": key})), overwrite=True)
 
 
 def _tile_job(tile, ctx):

@@ -170,7 +170,9 @@ class UncertaintyMaps:
         doc["dominant_source_codes"] = {i: s for i, s in enumerate(self.sources)}
         paths.append(
             write_text_atomic(
-                out / "sensitivity.json", jsonutil.dumps(doc, indent=2), overwrite=overwrite
+                out / "sensitivity.json",
+                jsonutil.dumps(jsonutil.stamped(doc), indent=2),
+                overwrite=overwrite,
             )
         )
         return paths

@@ -1104,5 +1104,7 @@ def write_scene(
         creation_options=TRUTH_CO,
     )
     write_text_atomic(out / "points.csv", points_csv(scene.points), overwrite=overwrite)
-    write_text_atomic(out / "scene.json", jsonutil.dumps(meta, indent=2), overwrite=overwrite)
+    write_text_atomic(
+        out / "scene.json", jsonutil.dumps(jsonutil.stamped(meta), indent=2), overwrite=overwrite
+    )
     return out

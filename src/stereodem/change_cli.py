@@ -154,7 +154,9 @@ def run(args) -> int:
             units="metre",
             creation_options=co,
         )
-        write_text_atomic(out / "change.json", jsonutil.dumps(info), overwrite=True)
+        write_text_atomic(
+            out / "change.json", jsonutil.dumps(jsonutil.stamped(info)), overwrite=True
+        )
     s = res["stats_stable"]
     options.say(
         f"stereodem change: {out}/dh.tif, dh_sigma.tif; stable terrain median "

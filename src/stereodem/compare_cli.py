@@ -131,7 +131,9 @@ def _write(out, records, splits):
     from stereodem.core.raster import write_text_atomic
     from stereodem.sensor.estimation.compare import figure, markdown, split_markdown
 
-    write_text_atomic(out / "compare.json", jsonutil.dumps(records), overwrite=True)
+    write_text_atomic(
+        out / "compare.json", jsonutil.dumps([jsonutil.stamped(r) for r in records]), overwrite=True
+    )
     write_text_atomic(out / "compare.md", markdown(records), overwrite=True)
     figure(records, out / "compare.png", overwrite=True)
     if splits is not None:

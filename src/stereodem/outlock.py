@@ -8,7 +8,8 @@ The policy (:func:`check_output_folder`, applied before any work and again under
 * no input is one of the command's products in the folder, even with ``--overwrite``;
 * without ``--overwrite`` a non-empty folder is refused, naming its products (or its files);
 * with ``--overwrite`` the command's products of a previous stereodem run (a folder holding one
-  of its markers, e.g. ``run.json``) are replaced; in a folder of the user's the products go
+  of its markers, e.g. ``run.json``, with stereodem's stamp in it: :func:`is_marker`; a file of
+  the user's of that name is not one) are replaced; in a folder of the user's the products go
   beside the user's files as long as none of them has a product's name (else refused, naming
   it); a file of another name is never touched.
 
@@ -20,7 +21,8 @@ release.
 
 :func:`output_folder` is what the commands use: it checks the folder, takes the lock, then,
 with ``overwrite``, removes the products of the previous job (only in a folder that a
-stereodem job wrote, recognised by its ``run.json``, ``dem_report.json`` or tile cache);
+stereodem job wrote, recognised by its ``run.json``, ``dem_report.json`` or tile cache
+manifest, read: each carries the version of stereodem that wrote it);
 on ``resume`` it keeps the tile cache. In a folder of the user's (e.g. the one holding the
 inputs) it writes the products beside the user's files only when none of them has a product's
 name: nothing of the user's is replaced or removed. If the job fails before writing anything, a
@@ -105,8 +107,9 @@ MARKERS = (
 @dataclass(frozen=True)
 class Products:
     """What a command writes into its output folder: ``names`` (file or folder names, glob
-    patterns) and ``markers``, the names of which one in the folder marks it as written by a
-    previous run of the command (whose products ``--overwrite`` then replaces)."""
+    patterns) and ``markers``, the names of which one in the folder, when stereodem wrote it
+    (:func:`is_marker`: its record carries stereodem's version), marks the folder as written by
+    a previous run of the command (whose products ``--overwrite`` then replaces)."""
 
     names: tuple
     markers: tuple
@@ -199,11 +202,38 @@ class OutputLock:
         return False
 
 
+#: the first line of the configuration ``stereodem demo`` writes (``demo.toml``, a marker)
+DEMO_TOML_STAMP = "# written by 'stereodem demo'"
+
+
+def is_marker(path) -> bool:
+    """Whether ``path`` (a marker's name in a folder) is a record stereodem wrote, not a file
+    of the user's of that name: a JSON record carrying :data:`~stereodem.core.jsonutil.STAMP`
+    (the version that wrote it, :func:`~stereodem.core.jsonutil.is_stamped`), or the demo's
+    configuration with its first line (:data:`DEMO_TOML_STAMP`)."""
+    from stereodem.core.jsonutil import is_stamped
+
+    path = Path(path)
+    try:
+        if not path.is_file():
+            return False
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return False
+    if path.suffix == ".toml":
+        return text.startswith(DEMO_TOML_STAMP)
+    try:
+        return is_stamped(json.loads(text))
+    except ValueError:
+        return False
+
+
 def is_stereodem_output(folder, markers=MARKERS) -> bool:
-    """Whether ``folder`` holds the products of a stereodem job (one of ``markers``), or what
-    a job killed while it deleted them left (:func:`remove_products_in_background`)."""
+    """Whether ``folder`` holds the products of a stereodem job (one of ``markers`` that
+    stereodem wrote, :func:`is_marker`: a file of the user's of that name does not count), or
+    what a job killed while it deleted them left (:func:`remove_products_in_background`)."""
     folder = Path(folder)
-    return any((folder / m).exists() for m in markers) or any(folder.glob(REMOVING_PREFIX + "*"))
+    return any(is_marker(folder / m) for m in markers) or any(folder.glob(REMOVING_PREFIX + "*"))
 
 
 def _product_paths(folder: Path, keep_tiles: bool, names=PRODUCTS):
@@ -342,7 +372,8 @@ def _check_contents(path: Path, products: Products, *, overwrite: bool, resume: 
         # a folder of the user's (e.g. the one holding the inputs): the products go beside
         # the user's files as long as none of them has a product's name
         raise OutputExistsError(
-            f"{path}: not a stereodem output (no {' or '.join(products.markers)}) and it "
+            f"{path}: not a stereodem output (no {' or '.join(products.markers)} written by "
+            f"stereodem) and it "
             f"holds {_names(present)}, which the job would replace; refusing to touch them: "
             "move them or choose an empty or new folder"
         )

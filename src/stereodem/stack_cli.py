@@ -187,7 +187,11 @@ def _status_if_stopped(path):
     except BaseException as exc:
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
         reason = " ".join(str(exc).split()) or type(exc).__name__
-        write_text_atomic(path, jsonutil.dumps({"status": status, "error": reason}), overwrite=True)
+        write_text_atomic(
+            path,
+            jsonutil.dumps(jsonutil.stamped({"status": status, "error": reason})),
+            overwrite=True,
+        )
         raise
 
 
@@ -242,7 +246,11 @@ def run(args) -> int:
         output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out,
         _status_if_stopped(out / "stack.json"),
     ):
-        write_text_atomic(out / "stack.json", jsonutil.dumps({"status": "running"}), overwrite=True)
+        write_text_atomic(
+            out / "stack.json",
+            jsonutil.dumps(jsonutil.stamped({"status": "running"})),
+            overwrite=True,
+        )
         # processes pay off on scene-sized DEMs only (each starts a Python: ~1-2 s)
         build_workers = workers if ref.heights.size >= PARALLEL_BUILD_CELLS else 1
         with options.progress_bar("stack") as bar:
@@ -319,7 +327,9 @@ def run(args) -> int:
             summary["volumes"] = [
                 {k: v for k, v in r.items() if k != "hypsometric_bands"} for r in vols
             ]
-        write_text_atomic(out / "stack.json", jsonutil.dumps(summary), overwrite=True)
+        write_text_atomic(
+            out / "stack.json", jsonutil.dumps(jsonutil.stamped(summary)), overwrite=True
+        )
     s = summary["rate_stable"]
     options.say(
         f"stereodem stack: {len(records)} DEMs -> {out}/stack.zarr, rate.tif "

@@ -25,6 +25,7 @@ import rasterio
 from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_sim_scene
 
 from stereodem import cli
+from stereodem.core import jsonutil
 from stereodem.core.errors import InputError, OutputExistsError
 from stereodem.outlock import LOCK_NAME, OutputLock, OutputLockedError, remove_products
 from stereodem.sensor.io.sidecar import load_image_model
@@ -568,6 +569,7 @@ def test_products_deleted_in_the_background_are_out_of_the_way_at_once(tmp_path,
     (out / "tiles").mkdir(parents=True)
     for name in ("run.json", "dem.tif", "tiles/tile_00001.npz", "notes.txt"):
         (out / name).write_text("x")
+    (out / "run.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
     release, rmtree = threading.Event(), shutil.rmtree
 
     def slow_rmtree(path, *a, **kw):  # the deletion still runs when the job starts

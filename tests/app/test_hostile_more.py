@@ -731,6 +731,73 @@ def test_a_users_file_named_like_a_product_is_refused_before_any_work(
     assert sorted(p.name for p in out.iterdir()) == sorted([product, "notes.txt"])
 
 
+#: command -> its marker: the record whose presence, written by stereodem, makes a folder a
+#: previous run's output (outlock.Products.markers)
+MARKER_OF = {
+    "dem": "dem_report.json",
+    "run": "run.json",
+    "demo": "demo.toml",
+    "assess": "report.json",
+    "coregister": "coregistration.json",
+    "compare-models": "compare.json",
+    "simulate": "scene.json",
+    "uncertainty": "sensitivity.json",
+    "adjust": "adjust_report.json",
+    "stack": "stack.json",
+    "change": "change.json",
+}
+
+
+@pytest.mark.parametrize("command", sorted(FOLDER_COMMANDS))
+def test_a_users_file_named_like_a_marker_does_not_open_the_folder_to_overwrite(
+    command, sim, noisy, tmp_path, capsys, monkeypatch
+):
+    """A folder counted as a previous run's output when a file with the name of one of the
+    command's markers was in it, whatever it held: the user's own report.json beside their
+    report.md let ``assess --overwrite`` replace the report.md. A marker counts when
+    stereodem wrote it (its record carries stereodem's version); the folder is refused,
+    naming the files, and nothing is touched."""
+    build, product, target = FOLDER_COMMANDS[command]
+    marker = MARKER_OF[command]
+    out = tmp_path / "out"
+    out.mkdir()
+    mine = "title = 'mine'\n" if marker.endswith(".toml") else '{"my": "own record"}\n'
+    (out / marker).write_text(mine)
+    (out / product).write_text("the user's own file named like a product\n")
+    argv = build(sim, noisy, out) + ["--overwrite"]
+    before = _files(tmp_path)
+    _no_work(monkeypatch, target)
+    code, _, err = run_cli(capsys, argv)
+    assert_clear_error(code, err, command, rf"not a stereodem output.*{re.escape(product)}")
+    assert _files(tmp_path) == before
+
+
+def test_a_marker_counts_when_stereodem_wrote_it(tmp_path):
+    from stereodem.core import jsonutil
+    from stereodem.outlock import DEMO_TOML_STAMP, is_marker, is_stereodem_output
+
+    cases = {
+        "stamped.json": (jsonutil.dumps(jsonutil.stamped({"a": 1})), True),
+        "provenance.json": ('{"provenance": {"stereodem_version": "0.9"}}', True),
+        "list.json": (jsonutil.dumps([jsonutil.stamped({"a": 1})] * 2), True),
+        "users.json": ('{"my": "report"}', False),
+        "empty.json": ("", False),
+        "version_not_text.json": ('{"stereodem_version": 3}', False),
+        "garbled.json": ("{not json", False),
+        "binary.json": (b"\xff\xfe\x00", False),
+        "demo.toml": (DEMO_TOML_STAMP + "; run again with ...\n", True),
+        "users.toml": ("title = 'mine'\n", False),
+    }
+    for name, (text, expected) in cases.items():
+        p = tmp_path / name
+        p.write_bytes(text if isinstance(text, bytes) else text.encode())
+        assert is_marker(p) is expected, name
+    (tmp_path / "folder.json").mkdir()
+    assert not is_marker(tmp_path / "folder.json") and not is_marker(tmp_path / "none.json")
+    assert is_stereodem_output(tmp_path, ("users.json", "stamped.json"))
+    assert not is_stereodem_output(tmp_path, ("users.json", "users.toml", "none.json"))
+
+
 #: command -> (argv builder(s, d, out) with an input in ``out`` named like a product, the
 #: input's name there, the file it is a copy of (s: the scene, d: the DEMs))
 INPUT_AS_PRODUCT = {
@@ -854,8 +921,11 @@ def test_overwrite_replaces_the_commands_products_and_nothing_else(
     if command != "change":  # a product of another command: not this one's
         (out / "dh.tif").write_text("change's, not this command's\n")
     keep = {p: b for p, b in _files(out).items() if p not in first}
-    for p in first:  # stale versions of every product: all must be replaced
-        p.write_bytes(b"stale")
+    from stereodem.outlock import is_marker
+
+    for p in first:  # stale versions of every product but the run's record: all replaced
+        if not is_marker(p):
+            p.write_bytes(b"stale")
     code, _, err = run_cli(capsys, [*build(sim, noisy, out), "--overwrite"])
     assert code == 0, err
     after = _files(out)

@@ -211,7 +211,7 @@ def write_report(result, out_dir, *, overwrite: bool = False, prefix: str = "adj
             title=f"{tag}: residuals (model − measured)" if tag else None,
         )
         fig_names.append(name)
-    write_text_atomic(paths["json"], jsonutil.dumps(rep), overwrite=overwrite)
+    write_text_atomic(paths["json"], jsonutil.dumps(jsonutil.stamped(rep)), overwrite=overwrite)
     write_text_atomic(
         paths["markdown"],
         markdown(rep, fig_names[0] if len(fig_names) == 1 else None)
