@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import rasterio
+from affine import Affine
 from pyproj import CRS
 from rasterio.warp import transform_bounds
 from rasterio.windows import from_bounds
@@ -131,6 +132,20 @@ def check_reference(path) -> None:
         ) from None
 
 
+def _read_columns(ds, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """Band 1 of ``ds`` over rows ``r0:r1``, columns ``c0:c1`` as float32 (NaN where masked);
+    columns outside ``0..ds.width`` are those of a global grid's other edge (modulo its
+    width)."""
+    parts, c = [], c0
+    while c < c1:
+        k = c % ds.width
+        n = min(c1 - c, ds.width - k)
+        win = rasterio.windows.Window(k, r0, n, r1 - r0)
+        parts.append(ds.read(1, window=win, masked=True).astype(np.float32).filled(np.nan))
+        c += n
+    return np.concatenate(parts, axis=1)
+
+
 def crop_reference(
     path, bounds, crs, *, vertical=None, margin_cells: int = 8, voided: dict | None = None
 ) -> DEM:
@@ -152,15 +167,21 @@ def crop_reference(
                 turn = warp._turn(ds.bounds.left, ds.bounds.right, w, e)
                 w, e = w + turn, e + turn
             win = from_bounds(w, s, e, n, transform=ds.transform)
-            c0 = max(int(np.floor(win.col_off)) - margin_cells, 0)
+            # a global lon/lat reference goes on across 180: columns beyond its edge are
+            # read from its other edge (the part of a DEM at 179.9..180.1 E beyond 180)
+            wrap = warp.is_global(ds.transform, ds.crs, (ds.height, ds.width))
+            c0 = int(np.floor(win.col_off)) - margin_cells
+            c1 = int(np.ceil(win.col_off + win.width)) + margin_cells
+            if wrap:
+                c1 = min(c1, c0 + ds.width)
+            else:
+                c0, c1 = max(c0, 0), min(c1, ds.width)
             r0 = max(int(np.floor(win.row_off)) - margin_cells, 0)
-            c1 = min(int(np.ceil(win.col_off + win.width)) + margin_cells, ds.width)
             r1 = min(int(np.ceil(win.row_off + win.height)) + margin_cells, ds.height)
             if c1 <= c0 or r1 <= r0:
                 raise NoOverlapError(f"{path}: the reference DEM does not overlap {bounds}")
-            w = rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0)
-            z = ds.read(1, window=w, masked=True).astype(np.float32).filled(np.nan)
-            t = ds.window_transform(w)
+            z = _read_columns(ds, r0, r1, c0, c1)
+            t = ds.transform @ Affine.translation(c0, r0)
             pcrs = CRS.from_wkt(ds.crs.to_wkt())
             # -9999 without a nodata value, implausible heights: no-data; decimetres, feet:
             # metres

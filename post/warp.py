@@ -6,10 +6,11 @@ import warnings
 
 import cv2
 import numpy as np
+import rasterio.transform
 from affine import Affine
 from rasterio.crs import CRS as RioCRS
 from rasterio.errors import NotGeoreferencedWarning
-from rasterio.warp import Resampling, reproject
+from rasterio.warp import Resampling, reproject, transform_bounds
 
 from stereodem.core import geodesy
 from stereodem.core.errors import NoOverlapError
@@ -68,16 +69,17 @@ def to_grid(
     _ignore_in_memory_warp_warning()
     src = np.asarray(data)
     src_transform = beside(src_transform, src_crs, src.shape, dst_transform, dst_crs, dst_shape)
+    if is_global(src_transform, src_crs, src.shape) and _near_seam(
+        src_transform, src_crs, src.shape, dst_transform, dst_crs, dst_shape
+    ):  # interpolated across its seam at 180
+        src, src_transform = wrapped(src, src_transform, WRAP_CELLS)
     if np.issubdtype(np.dtype(dst_dtype), np.floating):
         src = src.astype(np.float32, copy=False)
         fill = np.nan
     else:
         fill = src_nodata if src_nodata is not None else 0
     dst = np.full(dst_shape, fill, dtype=dst_dtype)
-    reproject(
-        src,
-        dst,
-        src_transform=src_transform,
+    kw = dict(
         src_crs=_rio_crs(src_crs),
         src_nodata=src_nodata,
         dst_transform=dst_transform,
@@ -86,7 +88,66 @@ def to_grid(
         resampling=_RESAMPLING[resampling],
         num_threads=max(1, int(threads or 1)),
     )
+    reproject(src, dst, src_transform=src_transform, **kw)
+    for turn in _overflow_turns(
+        src_transform, src_crs, src.shape, dst_transform, dst_crs, dst_shape
+    ):
+        # the part of ``src`` beyond 180 (or -180) of a global grid: on its other edge
+        more = np.full(dst_shape, fill, dtype=dst_dtype)
+        reproject(src, more, src_transform=Affine.translation(turn, 0.0) @ src_transform, **kw)
+        empty = np.isnan(dst) if np.isnan(fill) else dst == fill
+        dst[empty] = more[empty]
     return dst
+
+
+#: columns a global lon/lat grid is extended by on either side, from its other edge, before
+#: a warp: the support of the cubic kernels (2), so cells within a cell of 180 E interpolate
+#: across it instead of taking the edge column's value
+WRAP_CELLS = 3
+
+
+def is_global(transform, crs, shape) -> bool:
+    """Whether a north-up grid in a geographic CRS spans the whole turn of longitude (within
+    half a cell): its east edge is its west edge again."""
+    if transform.b or transform.d or not terrain._is_geographic(crs):
+        return False
+    return abs(abs(transform.a) * shape[-1] - 360.0) <= abs(transform.a) / 2
+
+
+def wrapped(data, transform, cells: int):
+    """A global lon/lat grid (:func:`is_global`) extended by ``cells`` columns on either side,
+    from its other edge (west of -180 the columns at 180 and so on); returns
+    ``(data, transform)``."""
+    data = np.asarray(data)
+    cells = min(int(cells), data.shape[-1])
+    data = np.concatenate([data[..., -cells:], data, data[..., :cells]], axis=-1)
+    return data, transform @ Affine.translation(-cells, 0)
+
+
+def _near_seam(src_transform, src_crs, src_shape, dst_transform, dst_crs, dst_shape) -> bool:
+    """Whether the grid ``dst`` comes within :data:`WRAP_CELLS` cells of the edges of the
+    global lon/lat grid ``src`` (or crosses the antimeridian): only then is ``src`` extended
+    (a copy of it)."""
+    bounds = rasterio.transform.array_bounds(*dst_shape[-2:], dst_transform)
+    try:
+        w, _, e, _ = transform_bounds(_rio_crs(dst_crs), _rio_crs(src_crs), *bounds, densify_pts=21)
+    except Exception:  # noqa: BLE001 - bounds PROJ cannot take: extend, to be safe
+        return True
+    margin = WRAP_CELLS * abs(src_transform.a)
+    sw, se = sorted((src_transform.c, src_transform.c + src_transform.a * src_shape[-1]))
+    return w > e or w < sw + margin or e > se - margin
+
+
+def _overflow_turns(src_transform, src_crs, src_shape, dst_transform, dst_crs, dst_shape):
+    """The turns (±360) that put the part of a lon/lat grid ``src`` lying beyond the edge of a
+    global lon/lat grid ``dst`` (:func:`is_global`: a DEM at 179.9..180.1 E against a
+    -180..180 reference) onto ``dst``'s other edge; GDAL does not wrap between grids of one
+    geographic CRS."""
+    if not (terrain._is_geographic(src_crs) and is_global(dst_transform, dst_crs, dst_shape)):
+        return []
+    sw, se = sorted((src_transform.c, src_transform.c + src_transform.a * src_shape[-1]))
+    dw, de = sorted((dst_transform.c, dst_transform.c + dst_transform.a * dst_shape[-1]))
+    return [t for t, beyond in ((-360.0, se > de), (360.0, sw < dw)) if beyond]
 
 
 def _turn(a_west, a_east, b_west, b_east) -> float:

@@ -126,6 +126,64 @@ def test_grids_either_side_of_the_antimeridian_are_compared(ref):
     assert np.isfinite(z[:, 62:-2]).all() and not np.isfinite(z[:, :58]).any()
 
 
+def _global_reference(res=0.05, lat0=66.0, rows=40):
+    """A -180..180 lon/lat reference, heights periodic in longitude (smooth across 180)."""
+    t = Affine(res, 0, -180.0, 0, -res, lat0)
+    lon, lat = t @ np.meshgrid(np.arange(round(360 / res)) + 0.5, np.arange(rows) + 0.5)
+    return t, _height(lon, lat).astype(np.float32)
+
+
+def _height(lon, lat):
+    return 1000 + 50 * np.sin(np.radians(lon) * 20) + 800 * (lat - 65)
+
+
+def test_a_global_reference_wraps_across_the_antimeridian(tmp_path):
+    """A DEM at 179.9..180.1 E (lon/lat, or a projected CRS) against a global -180..180
+    reference: its part beyond 180 got no reference (assess compared half of it, a mosaic's
+    reference crop stopped at 180) and cells within a cell of 180 took the edge column's
+    height; the reference now goes on across 180 from its west edge."""
+    from stereodem.post.mosaic_coreg import crop_reference
+
+    t, z = _global_reference()
+    glob = DEM(z, t, "EPSG:4326", "geoid", "global.tif")
+    dt = Affine(0.002, 0, 179.9, 0, -0.002, 65.5)  # 100 x 50 cells, half beyond 180
+    lon, lat = dt @ np.meshgrid(np.arange(100) + 0.5, np.arange(50) + 0.5)
+    dem = DEM(_height(lon, lat).astype(np.float32), dt, "EPSG:4326", "geoid", "a.tif")
+    # the reference on the DEM's grid: every cell, interpolated across 180
+    on_dem = reference_on_grid(glob, dem)
+    assert np.isfinite(on_dem).all()
+    assert np.abs(on_dem - dem.heights).max() < 0.05
+    # the DEM on the reference's grid: the reference cells either side of 180
+    rep = assess.assess_dem(dem, glob).report
+    assert rep["stats"]["n"] == 4 * 2 and abs(rep["stats"]["mean"]) < 0.05, rep["stats"]
+    # a projected DEM across 180 (EPSG:3832, Pacific Mercator), both ways
+    to_merc = geodesy.transformer("EPSG:4326", "EPSG:3832").transform
+    x0, y0 = to_merc(179.9, 65.5)
+    x1, _ = to_merc(180.1, 65.5)
+    pt = Affine((x1 - x0) / 100, 0, x0, 0, -(x1 - x0) / 100, y0)
+    plon, plat = geodesy.transformer("EPSG:3832", "EPSG:4326").transform(
+        *(pt @ np.meshgrid(np.arange(100) + 0.5, np.arange(50) + 0.5))
+    )
+    pdem = DEM(_height(plon, plat).astype(np.float32), pt, "EPSG:3832", "geoid", "p.tif")
+    on_p = reference_on_grid(glob, pdem)
+    assert np.isfinite(on_p).all() and np.abs(on_p - pdem.heights).max() < 0.05
+    assert assess.assess_dem(pdem, glob).report["stats"]["n"] == 4  # 4 cols x 1 row
+    # a mosaic's crop of the reference file reads on across 180 from its west edge
+    write_geotiff(tmp_path / "global.tif", z, t, "EPSG:4326")
+    for crs, bounds in (
+        ("EPSG:4326", (179.9, 65.4, 180.1, 65.5)),
+        ("EPSG:3832", (x0, y0 - (x1 - x0) / 2, x1, y0)),
+    ):
+        crop = crop_reference(tmp_path / "global.tif", bounds, crs, margin_cells=2)
+        w = crop.transform.c
+        e = w + crop.transform.a * crop.shape[1]
+        assert w < 179.9 and e > 180.1, (crs, w, e)
+        clon, clat = crop.transform @ np.meshgrid(
+            np.arange(crop.shape[1]) + 0.5, np.arange(crop.shape[0]) + 0.5
+        )
+        assert np.abs(crop.heights - _height(clon, clat)).max() < 1e-3
+
+
 def test_an_assessment_on_a_few_cells_warns(ref, caplog):
     # a 2 x 2 DEM on the reference: NMAD 0 m from 4 cells was reported without a word
     tiny = DEM(
