@@ -705,7 +705,9 @@ def assess_dem(
         step or a chain string; default ``"nuth_kaab"``) and assess again; the report then has
         ``coregistration`` (:func:`coregistration_summary`: ``dx``, ``dy``, ``dz`` metres
         east/north/up, the DEM's displacement relative to the reference, with σ, and every
-        step) and ``after_coregistration``.
+        step; ``dx``/``dy`` in the DEM grid's metres, the CRS's units on a projected grid,
+        with the projection's ``scale_factor`` and, where it matters, ``dx_ground``/``dy_ground``)
+        and ``after_coregistration``.
     landcover : path or (array, transform, crs)
         Integer classes; warped onto the reference grid by nearest neighbour.
     slope_bins, elevation_bins : sequence of edges
@@ -790,13 +792,24 @@ def coregistration_summary(chain, reference: DEM) -> dict:
     ``dy`` (m east/north, summed over the ``nuth_kaab`` steps; ``dx_px``/``dy_px`` in reference
     pixels) and ``dz`` (m up, summed over ``nuth_kaab``/``vshift``) with their σ (root sum of
     squares), ``iterations``/``converged`` of the shift steps, the stable-terrain NMAD before
-    the first and after the last step, and every step's record (:meth:`CoregChain.report`)."""
+    the first and after the last step, and every step's record (:meth:`CoregChain.report`).
+
+    ``dx``/``dy`` are metres of the DEM's grid (:func:`~stereodem.post.warp.metres_per_unit`:
+    the CRS's units, grid metres, on a projected grid); ``scale_factor`` is the projection's
+    ``[h, k]`` at that grid's centre (None without ``nuth_kaab``), ``horizontal_unit`` says
+    which metres, and ``dx_ground``/``dy_ground`` (with ``_sigma``) are the shift in ground
+    metres where the scale differs from 1 by over 0.1 %
+    (:func:`~stereodem.post.warp.ground_shift`)."""
     dx = dy = dz = 0.0
     vx = vy = vz = 0.0
     iterations, converged = 0, True
+    scale, ground, unit = None, False, None
     for step in chain.steps:
         p = step.parameters()
         if step.name == "nuth_kaab":
+            scale = p.get("scale_factor", scale)  # every step on the DEM's grid: the same
+            ground = ground or "dx_ground" in p
+            unit = p.get("horizontal_unit", unit)
             dx, dy = dx + p["dx"]["value"], dy + p["dy"]["value"]
             vx, vy = vx + p["dx"]["sigma"] ** 2, vy + p["dy"]["sigma"] ** 2
             iterations += int(p["iterations"])
@@ -805,7 +818,7 @@ def coregistration_summary(chain, reference: DEM) -> dict:
             dz, vz = dz + p["dz"]["value"], vz + p["dz"]["sigma"] ** 2
     pe, pn = _pixel_size_report(reference)
     rec = chain.report()
-    return {
+    out = {
         "method": " + ".join(s.name for s in chain.steps),
         "dx": dx,
         "dy": dy,
@@ -820,9 +833,17 @@ def coregistration_summary(chain, reference: DEM) -> dict:
         "converged": converged,
         "nmad_before": rec[0]["before"]["nmad"],
         "nmad_after": rec[-1]["after"]["nmad"],
-        "frame": "metres east/north/up; displacement of the DEM relative to the reference",
+        "frame": "metres east/north/up (dx, dy: see horizontal_unit); displacement of the DEM "
+        "relative to the reference",
+        "scale_factor": scale,
+        "horizontal_unit": unit,
         "steps": rec,
     }
+    if ground:  # the projection's scale differs from 1 by over 0.1 % (warp.ground_shift)
+        for name, v, var, k in (("dx", dx, vx, scale[0]), ("dy", dy, vy, scale[1])):
+            out[f"{name}_ground"] = v / k
+            out[f"{name}_ground_sigma"] = float(np.sqrt(var)) / k
+    return out
 
 
 def _pixel_size_report(d: DEM):

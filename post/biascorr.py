@@ -39,7 +39,8 @@ log = logging.getLogger(__name__)
 
 
 def _warp_shift(dem, east_m, north_m, resampling="bilinear"):
-    """Heights of ``dem`` moved by ``east_m, north_m`` metres, on its own grid (NaN where
+    """Heights of ``dem`` moved by ``east_m, north_m`` metres (grid metres on a projected grid:
+    :func:`~stereodem.post.warp.metres_per_unit`), on its own grid (NaN where
     moved off the grid)."""
     t = warp.translated(dem.transform, dem.crs, dem.shape, east_m, north_m)
     return warp.to_grid(
@@ -96,7 +97,11 @@ class NuthKaab(Coreg):
 
     ``dx, dy, dz``: displacement of the DEM relative to the reference (metres east, north,
     up); ``apply`` removes it on the DEM's own grid (a DEM whose features sit 50 m east of
-    the reference's has ``dx = +50``).
+    the reference's has ``dx = +50``). ``dx, dy`` are metres of the DEM's grid
+    (:func:`~stereodem.post.warp.metres_per_unit`): ground metres on a geographic grid, the
+    CRS's units (grid metres, along its x/y axes) on a projected one, as xdem's; the
+    parameters add the projection's ``scale_factor`` at the grid centre and, where it differs
+    from 1 by over 0.1 %, ``dx_ground``/``dy_ground`` (:func:`~stereodem.post.warp.ground_shift`).
 
     ``tilt=True`` (default) adds a plane in east/north to the least squares as a nuisance
     (fitted, not applied: ``deramp`` removes it): a ramp left in ``dh`` otherwise leaks into
@@ -184,6 +189,17 @@ class NuthKaab(Coreg):
             "iterations": len(history),
             "converged": converged,
         }
+        self.params.update(
+            warp.ground_shift(
+                dem.transform,
+                dem.crs,
+                dem.shape,
+                ("dx", "dy"),
+                (self.dx, self.dy),
+                sd[:2],
+                what=f"{dem.path or 'DEM'}: nuth_kaab",
+            )
+        )
         d0, ge0, gn0 = first
         tan = np.hypot(ge0, gn0)
         aspect = np.degrees(np.arctan2(-ge0, -gn0)) % 360.0
@@ -738,10 +754,12 @@ class Curvature(Coreg):
 
 class ICP(Coreg):
     """Rigid point-to-plane ICP of the DEM surface onto the reference: a translation
-    (tx, ty, tz metres) and small rotations (ωe, ωn, ωu radians about the grid centre at the
-    mean height), linearised and iterated. Normals from the DEM's gradient; each DEM cell's
-    counterpart is the reference directly below it (vertical correspondences on gridded
-    surfaces). ``apply`` moves the surface rigidly and resamples it on the DEM grid."""
+    (tx, ty, tz metres; tx, ty in the grid's metres as NuthKaab's dx, dy, with ``scale_factor``
+    and ``tx_ground``/``ty_ground`` likewise) and small rotations (ωe, ωn, ωu radians about
+    the grid centre at the mean height), linearised and iterated. Normals from the DEM's
+    gradient; each DEM cell's counterpart is the reference directly below it (vertical
+    correspondences on gridded surfaces). ``apply`` moves the surface rigidly and resamples it
+    on the DEM grid."""
 
     name = "icp"
 
@@ -784,6 +802,17 @@ class ICP(Coreg):
         units = ["m", "m", "m", "rad", "rad", "rad"]
         vals = np.concatenate([self.t, self.w])
         self.params = {k: param(v, s, u) for k, v, s, u in zip(names, vals, sd, units)}
+        self.params.update(
+            warp.ground_shift(
+                dem.transform,
+                dem.crs,
+                dem.shape,
+                ("tx", "ty"),
+                self.t[:2],
+                sd[:2],
+                what=f"{dem.path or 'DEM'}: icp",
+            )
+        )
 
     def _moved(self, dem):
         """The DEM moved by the current rigid transform, resampled on its grid: a cell at

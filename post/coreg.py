@@ -56,7 +56,8 @@ MIN_STABLE_FRACTION = 0.05
 
 def local_metric_coords(transform, crs, shape, x=None, y=None):
     """East/north metres from the grid centre of CRS coordinates ``x, y`` (default: every
-    cell centre of the grid, arrays of ``shape``)."""
+    cell centre of the grid, arrays of ``shape``): :func:`~stereodem.post.warp.metres_per_unit`'s
+    metres, grid metres (the CRS's units) on a projected grid."""
     fx, fy = warp.metres_per_unit(transform, crs, shape)
     x0, y0 = transform @ (shape[1] / 2.0, shape[0] / 2.0)
     if x is None:

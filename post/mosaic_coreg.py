@@ -49,8 +49,10 @@ __all__ = ["CHAINS", "DEMCorrection", "chain_fitter", "crop_reference", "fitter"
 @dataclass(frozen=True)
 class DEMCorrection:
     """What co-registration found for one DEM: ``dx, dy`` (m east/north, the DEM's
-    displacement relative to the reference, removed by moving its grid by −dx, −dy) and ``dz``
-    (m, subtracted from its heights); ``report`` is the fit's own record (JSON-able)."""
+    displacement relative to the reference, removed by moving its grid by −dx, −dy; the DEM
+    grid's metres, the CRS's units on a projected grid: :func:`~stereodem.post.warp.translated`)
+    and ``dz`` (m, subtracted from its heights); ``report`` is the fit's own record
+    (JSON-able; with the projection's ``scale_factor`` and, where it matters, ``dx_ground``)."""
 
     dx: float
     dy: float

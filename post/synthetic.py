@@ -22,7 +22,8 @@ from .spatialstats import VariogramModel, simulate_field
 
 @dataclass
 class InjectedErrors:
-    """What :func:`inject_errors` put in (metres unless said)."""
+    """What :func:`inject_errors` put in (metres unless said; ``dx``/``dy`` in the grid's
+    metres, :func:`~stereodem.post.warp.translated`'s)."""
 
     dx: float = 0.0  #: displacement east of the DEM relative to the truth
     dy: float = 0.0  #: displacement north

@@ -1,13 +1,17 @@
-"""Putting one raster on another's grid (rasterio.warp.reproject), with shifts in metres."""
+"""Putting one raster on another's grid (rasterio.warp.reproject), with shifts in metres
+(ground metres on a geographic grid, grid metres, the CRS's units, on a projected one)."""
 
 from __future__ import annotations
 
+import logging
 import warnings
 
 import cv2
 import numpy as np
 import rasterio.transform
 from affine import Affine
+from pyproj import CRS, Proj
+from pyproj.exceptions import CRSError, ProjError
 from rasterio.crs import CRS as RioCRS
 from rasterio.errors import NotGeoreferencedWarning
 from rasterio.warp import Resampling, reproject, transform_bounds
@@ -16,6 +20,8 @@ from stereodem.core import geodesy
 from stereodem.core.errors import NoOverlapError
 
 from . import terrain
+
+log = logging.getLogger(__name__)
 
 _IN_MEMORY_WARP = r"rasterio\.warp$"
 
@@ -177,7 +183,15 @@ def _rio_crs(crs):
 
 
 def metres_per_unit(transform, crs, shape):
-    """Metres per CRS unit east and north at the grid centre."""
+    """Metres per CRS unit along the grid's x (east) and y (north) axes at the grid centre.
+
+    Geographic CRS: ground metres per degree of longitude and of latitude at the centre's
+    latitude (WGS84 radii). Projected CRS: the CRS's linear unit in metres (1.0 for metres,
+    0.3048 for feet), the same everywhere: a length so converted is in *grid metres*, not
+    ground metres; ground metres = grid metres / the projection's scale factor
+    (:func:`scale_factors`; within 0.04 % of 1 in UTM, several % in a polar stereographic
+    grid away from its true-scale latitude). Shifts in metres on a projected grid
+    (:func:`translated`, the co-registration's ``dx``/``dy``) are grid metres."""
     if terrain._is_geographic(crs):
         _, lat = terrain.grid_centre_lonlat(transform, crs, shape)
         mlon, mlat = terrain.metres_per_degree(lat)
@@ -186,8 +200,83 @@ def metres_per_unit(transform, crs, shape):
     return f, f
 
 
+#: |k - 1| above which a co-registration report adds the horizontal shift in ground metres
+GROUND_SHIFT_REPORTED = 1e-3
+#: |k - 1| above which a co-registration logs that its shifts are in grid metres
+GROUND_SHIFT_WARNED = 1e-2
+
+
+def scale_factors(transform, crs, shape) -> tuple[float, float]:
+    """The projection's point scale factors at the grid centre: ``(h, k)``, grid length over
+    ground (WGS84 ellipsoid) length along the parallel (east) and along the meridian (north),
+    pyproj's ``parallel_scale`` and ``meridional_scale`` (dimensionless; equal in a conformal
+    projection: UTM, polar stereographic, Mercator). ``(1.0, 1.0)`` for a geographic CRS,
+    whose degrees :func:`metres_per_unit` converts to ground metres itself.
+
+    A length of ``d`` grid metres (CRS units times :func:`metres_per_unit`) along the grid's
+    x axis is ``d / h`` ground metres, along y ``d / k`` (exact for a conformal projection,
+    whose scale is the same in every direction, also where the grid's axes are turned from
+    east/north; approximate for another away from its central meridian)."""
+    if terrain._is_geographic(crs):
+        return 1.0, 1.0
+    lon, lat = terrain.grid_centre_lonlat(transform, crs, shape)
+    f = Proj(CRS.from_user_input(crs)).get_factors(lon, lat)
+    return float(f.parallel_scale), float(f.meridional_scale)
+
+
+def ground_shift(transform, crs, shape, names, values, sigmas, *, what="shift") -> dict:
+    """The report's record of a horizontal shift fitted on the grid ``transform, crs, shape``:
+    ``values``/``sigmas`` (x/east, y/north, metres per :func:`metres_per_unit`: grid metres
+    on a projected grid) named ``names`` (e.g. ``("dx", "dy")``).
+
+    Returns ``scale_factor`` (``[h, k]``, :func:`scale_factors` at the grid centre),
+    ``horizontal_unit`` (a sentence) and, where ``|h - 1|`` or ``|k - 1|`` exceeds
+    :data:`GROUND_SHIFT_REPORTED` (0.1 %), ``<name>_ground`` for each name: value and σ in
+    ground metres (grid metres / h, / k). Logs one warning beyond :data:`GROUND_SHIFT_WARNED`
+    (1 %). A projection whose factors PROJ cannot give there has ``scale_factor`` None (the
+    report never fails the fit)."""
+    if terrain._is_geographic(crs):
+        return {
+            "scale_factor": [1.0, 1.0],
+            "horizontal_unit": "ground metres east/north at the grid centre",
+        }
+    unit = (
+        "grid metres (the CRS's units) along the grid's x/y axes; ground metres = grid "
+        "metres / scale_factor (at the grid centre, [along x, along y])"
+    )
+    try:
+        h, k = scale_factors(transform, crs, shape)
+    except (ProjError, CRSError, ValueError) as exc:
+        h = k = float("nan")
+        log.info("%s: no projection scale factor at the grid centre: %s", what, exc)
+    if not (np.isfinite(h) and np.isfinite(k) and h > 0 and k > 0):
+        return {"scale_factor": None, "horizontal_unit": unit}
+    rec = {"scale_factor": [h, k], "horizontal_unit": unit}
+    dev = max(abs(h - 1.0), abs(k - 1.0))
+    if dev > GROUND_SHIFT_REPORTED:
+        for name, v, s, kk in zip(names, values, sigmas, (h, k)):
+            rec[f"{name}_ground"] = {"value": float(v / kk), "sigma": float(s / kk), "unit": "m"}
+    if dev > GROUND_SHIFT_WARNED:
+        log.warning(
+            "%s: shifts are in CRS units; at this grid's centre the projection's scale factor "
+            "is k = %s, ground metres = grid metres / k",
+            what,
+            format_scale((h, k)),
+        )
+    return rec
+
+
+def format_scale(scale) -> str:
+    """``"1.02331"`` for a conformal projection's ``[h, k]`` (equal to 6 digits), else
+    ``"0.98 (x), 1.02 (y)"``."""
+    h, k = (f"{v:.6g}" for v in scale)
+    return k if h == k else f"{h} (x), {k} (y)"
+
+
 def translated(transform, crs, shape, east_m: float, north_m: float) -> Affine:
-    """``transform`` moved by ``east_m``, ``north_m`` metres (converted at the grid centre)."""
+    """``transform`` moved by ``east_m``, ``north_m`` metres along its x/y axes (converted by
+    :func:`metres_per_unit` at the grid centre: grid metres, the CRS's units, on a projected
+    grid)."""
     fx, fy = metres_per_unit(transform, crs, shape)
     return Affine.translation(east_m / fx, north_m / fy) @ transform
 

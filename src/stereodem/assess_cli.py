@@ -214,5 +214,10 @@ def run(args) -> int:
     )
     co = result.report.get("coregistration")
     if co:
-        options.say(f"co-registration: dx={co['dx']:.3f} m dy={co['dy']:.3f} m dz={co['dz']:.3f} m")
+        from stereodem.post.report import shift_units
+
+        options.say(
+            f"co-registration: dx={co['dx']:.3f} m dy={co['dy']:.3f} m dz={co['dz']:.3f} m."
+            + shift_units(co)
+        )
     return 0
