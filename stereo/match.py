@@ -126,8 +126,10 @@ def _percentiles(v, q, step=64):
 
     The two order statistics each percentile interpolates between are found among the values
     lying between two bounds taken from a sorted 1-in-``step`` sub-sample (a few comparison
-    passes and a sort of a small set); the counts below the bounds check that the wanted ranks
-    lie inside (else: ``np.percentile`` itself).  The interpolation is NumPy's own formula
+    passes and a sort of a small set; a rank near either end of the sample, as the 1 and 99 %
+    of the stretch, needs one bound only: all the values up to it, or from it, one comparison
+    pass); the counts below the bounds check that the wanted ranks lie inside (else:
+    ``np.percentile`` itself).  The interpolation is NumPy's own formula
     (``_lerp``: float32 differences, float64 weights, the ``>= 0.5`` branch)."""
     v = np.asarray(v)
     q = np.asarray(q, dtype=np.float64)
@@ -147,13 +149,17 @@ def _percentiles(v, q, step=64):
         lo_i, hi_i = j - m, j + 1 + m
         sel = None
         below = 0
-        if hi_i < sub.size:
-            sel = v <= sub[hi_i]
-        if lo_i > 0:
+        near = 3 * (2 * m + 1)  # a rank this near an end: one bound, one comparison pass
+        if hi_i < sub.size and (lo_i <= 0 or hi_i <= near):
+            sel = v <= sub[hi_i]  # all the values up to the upper bound (a tail: few)
+        elif lo_i > 0 and (hi_i >= sub.size or sub.size - lo_i <= near):
+            sel = v >= sub[lo_i]  # all the values from the lower bound up
+            below = n - int(np.count_nonzero(sel))
+        elif hi_i < sub.size:  # both bounds
             t = sub[lo_i]
             low = v < t
             below = int(np.count_nonzero(low))
-            sel = ~low if sel is None else sel & ~low
+            sel = (v <= sub[hi_i]) & ~low
         cand = v[sel] if sel is not None else v
         if not (below <= r and r + 1 < below + cand.size):
             return np.percentile(v, q)
@@ -239,9 +245,9 @@ def _window_stats(img, window, min_std, finite=False, outside=(), inverse=True):
                 np.copyto(v, F32(np.nan), where=v < floor)
             if near is not None:
                 np.copyto(v, F32(np.nan), where=near[rows])
-            np.sqrt(v, out=v)
+            cv2.sqrt(v, dst=v)  # IEEE, as np.sqrt (NaN below 0), twice as fast
             if inverse:
-                np.maximum(v, _SQRT_TINY, out=v)
+                np.maximum(v, _sqrt_tiny_row(v.shape[1]), out=v)
                 np.divide(F32(1), v, out=v)
     inv = var
     for cols, mask in outside:
@@ -976,7 +982,10 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
 
     ``right_finite``: whether ``right`` is known to have no NaN (None: scan it); then the
     warp is filled with a finite value outside the image and the windows reaching outside
-    are located from the warp's column map (:func:`_outside_windows`), same result.
+    are located from the warp's column map (:func:`_outside_windows`), same result; with a
+    left image without NaN as well, each band takes :func:`_zncc_band_finite` (the same
+    operations on the same values, fewer passes) and the cells no window statistic is valid
+    for (image border, windows reaching outside the right image) are set NaN once at the end.
 
     Each band is centred by its own levels, the left's and the right's in its rows
     (:func:`_level`), so the float32 sums keep their digits where the brightness
@@ -992,6 +1001,7 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
         right_finite = bool(np.isfinite(right).all())
     # a finite image minus a finite constant below 1e30 stays finite (see _zncc_left)
     fast = right_finite and abs(float(a.off)) < 1e30
+    fused = fast and a.finite  # no NaN on either side: _zncc_band_finite
     rows_map = _row_map(h, w)
     score = np.empty((h, w), F32)
 
@@ -1014,15 +1024,18 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
         # offsets of two sensors, 12- or 16-bit data), where the left's level loses digits
         level_r = _level(right[i0:i1:4], level, finite=right_finite)
         np.subtract(warped, level_r, out=warped, dtype=F32)
+        keep = slice(r0 - i0, r1 - i0)
+        # the band's left statistics (its own rows and halo: those of the whole image), next
+        # to the warped ones while the band is in cache
+        z = np.subtract(a.left[i0:i1], level, dtype=F32)
+        if fused:
+            _zncc_band_finite(z, warped, a.window, keep, score[r0:r1])
+            return
         if fast:
             outside = _outside_windows(map_x[i0:i1], lo, hi, a.window)
             b = _window_stats(warped, a.window, 0.0, finite=True, outside=outside, inverse=False)
         else:
             b = _window_stats(warped, a.window, 0.0, inverse=False)
-        keep = slice(r0 - i0, r1 - i0)
-        # the band's left statistics (its own rows and halo: those of the whole image), next
-        # to the warped ones while the band is in cache
-        z = np.subtract(a.left[i0:i1], level, dtype=F32)
         s = _window_stats(z, a.window, 0.0, finite=a.finite, inverse=False)
         l_zero, l_mean, l_std = s.zero, s.mean[keep], s.inv[keep]
         prod = np.multiply(l_zero, b.zero)
@@ -1033,13 +1046,81 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
         # one division by the product of the two standard deviations, floored at 1e-30 (NaN,
         # where either window is invalid, propagates through the product, floor and division)
         np.multiply(den, l_std, out=den)
-        np.maximum(den, _TINY, out=den)
+        np.maximum(den, _tiny_row(den.shape[1]), out=den)
         np.divide(c, den, out=c)
         np.clip(c, -1, 1, out=score[r0:r1])
 
     each_fixed_band(band, h, SCORE_BAND_ROWS, threads=threads)
+    if fused:  # what _window_stats sets NaN in its statistics, set in the score instead
+        for cols, mask in _outside_windows(map_x, lo, hi, a.window):
+            score[:, cols][mask] = np.nan
+        _nan_border(score, a.window // 2)
     score.ravel()[holes] = np.nan  # a fresh C-contiguous array: ravel() is a view
     return score
+
+
+@functools.lru_cache(maxsize=8)
+def _tiny_row(w):
+    """:data:`_TINY` as a (1, w) float32 row (read-only, cached): ``np.maximum`` against a
+    row takes NumPy's vectorised loop, against a scalar a loop 2-3 times as slow."""
+    a = np.full((1, w), _TINY, F32)
+    a.flags.writeable = False
+    return a
+
+
+@functools.lru_cache(maxsize=8)
+def _sqrt_tiny_row(w):
+    """:data:`_SQRT_TINY` as a (1, w) float32 row (read-only, cached; see :func:`_tiny_row`)."""
+    a = np.full((1, w), _SQRT_TINY, F32)
+    a.flags.writeable = False
+    return a
+
+
+def _nan_border(a, h):
+    """Set the ``h`` first and last rows and columns of ``a`` to NaN (in place): the cells
+    whose ``2 h + 1`` window leaves the image."""
+    if h:
+        a[:h] = np.nan
+        a[-h:] = np.nan
+        a[:, :h] = np.nan
+        a[:, -h:] = np.nan
+
+
+def _zncc_band_finite(z, warped, window, keep, out):
+    """A band of the score layer where neither image has NaN: ``out`` (the band's output
+    rows) = ZNCC of the windows of the left band ``z`` and the warped right band ``warped``
+    (both float32, centred by their levels, the output rows ``keep`` and their halo).
+
+    The operations of :func:`_window_stats` (``inverse=False``) on each side and of the
+    score's last steps, on the same float32 values in the same order, so the same bits: the
+    five window means by :func:`_box_mean` over the whole band, then ``E[x^2] - E[x]^2``, its
+    square root (``cv2.sqrt``: IEEE, as ``np.sqrt``, twice as fast), ``E[lr] - E[l] E[r]``,
+    the product of the standard deviations floored at 1e-30 and the division, on the output
+    rows only. What :func:`_window_stats` sets NaN (image border, windows reaching outside
+    the right image) is left to the caller."""
+    mean_r = _box_mean(warped, window)
+    buf = np.multiply(warped, warped)
+    var_r = _box_mean(buf, window)
+    mean_l = _box_mean(z, window)
+    np.multiply(z, z, out=buf)
+    var_l = _box_mean(buf, window)
+    np.multiply(z, warped, out=buf)
+    cov = _box_mean(buf, window)
+    t, mr, ml = buf[keep], mean_r[keep], mean_l[keep]
+    vr, vl, c = var_r[keep], var_l[keep], cov[keep]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        np.multiply(mr, mr, out=t)
+        np.subtract(vr, t, out=vr)  # E[r^2] - E[r]^2
+        cv2.sqrt(vr, dst=vr)  # NaN where negative (rounding), as np.sqrt
+        np.multiply(ml, ml, out=t)
+        np.subtract(vl, t, out=vl)
+        cv2.sqrt(vl, dst=vl)
+        np.multiply(ml, mr, out=t)
+        np.subtract(c, t, out=c)  # E[lr] - E[l] E[r]
+        np.multiply(vr, vl, out=vr)
+        np.maximum(vr, _tiny_row(vr.shape[1]), out=vr)
+        np.divide(c, vr, out=c)
+        np.clip(c, -1, 1, out=out)
 
 
 # ----------------------------------------------------------------------------- public

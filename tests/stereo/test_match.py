@@ -654,7 +654,9 @@ def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc(
     """The score layer's shortcuts for a right image without NaN (no NaN scan, the warp
     zero-filled outside the image, the windows reaching outside located on the column strips
     where the warp can leave the image, invalid disparities set by index) give the general
-    path's score bit for bit, and both equal the float64 textbook ZNCC to 1e-4 with the same
+    path's score bit for bit (with a left image without NaN as well: the fused band of
+    ``_zncc_band_finite``, border and outside windows set NaN once at the end), and both equal
+    the float64 textbook ZNCC to 1e-4 with the same
     NaN cells: no-data (NaN patches in either image), image border, windows reaching outside
     the image (positive, negative and mixed disparities; strips that meet on a narrow image),
     invalid disparities.  ``band_bytes=4096``: the element-wise passes by bands of 11 rows or
