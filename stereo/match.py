@@ -82,18 +82,29 @@ def _as_image(a, name):
     return _image_and_finite(a, name)[0]
 
 
-def _image_and_finite(a, name):
-    """``a`` as a float32 2-D image (checked: some pixel is finite), and whether all its
-    pixels are (one scan)."""
+def _image_and_finite(a, name, mean=False):
+    """``a`` as a float32 2-D image (checked: some pixel is finite), whether all its pixels
+    are (one scan), and, with ``mean=True``, ``np.mean(a)`` where it proves the image finite
+    (else None).
+
+    ``mean=True`` (a caller that needs the image's mean: the score layer's centring constant,
+    :func:`_zncc_left`): the float32 mean of a C-contiguous image is taken first, and a finite
+    one replaces the scan (a float32 sum with a NaN or an infinity among its terms is not
+    finite); a NaN or an overflow falls back to the scan."""
     a = np.asarray(a)
     if a.ndim != 2:
         raise InputError(f"{name}: expected a 2-D single-band image, got shape {a.shape}")
     a = a.astype(F32, copy=False)
+    if mean and a.size and a.flags.c_contiguous:
+        with np.errstate(over="ignore", invalid="ignore"):  # inf, NaN: the scan tells
+            m = np.mean(a)
+        if np.isfinite(m):
+            return a, True, m
     fin = np.isfinite(a)
     finite = bool(fin.all())
     if not finite and not fin.any():
         raise InputError(f"{name}: image has no valid (finite) pixel")
-    return a, finite
+    return a, finite, None
 
 
 def _finite_sample(arrays, n, finite=False):
@@ -945,14 +956,18 @@ def _halo(r0: int, r1: int, n_rows: int, window: int) -> tuple[int, int]:
     return max(r0 - h, 0), min(r1 + h, n_rows)
 
 
-def _zncc_left(left, window, finite=None):
+def _zncc_left(left, window, finite=None, mean=None):
     """The left image's part of the score layer (:class:`_LeftWindows`); ``finite``: whether
-    ``left`` is known to have no NaN (None: scan it)."""
+    ``left`` is known to have no NaN (None: scan it); ``mean``: ``np.mean(left)`` when the
+    caller has it (:func:`_image_and_finite`; ``left`` finite and C-contiguous)."""
     # without no-data, np.mean of a C-contiguous image sums in the same (pairwise) order as
     # np.nanmean, so it gives the same float32, in one pass instead of three
-    if finite is None:
-        finite = bool(np.isfinite(left).all())
-    off = np.mean(left) if finite and left.flags.c_contiguous else np.nanmean(left)
+    if mean is not None:
+        finite, off = True, mean
+    else:
+        if finite is None:
+            finite = bool(np.isfinite(left).all())
+        off = np.mean(left) if finite and left.flags.c_contiguous else np.nanmean(left)
     # a finite image minus a finite constant below 1e30 stays finite (no overflow)
     finite = finite and bool(np.isfinite(off)) and abs(float(off)) < 1e30
     return _LeftWindows(off, window, left, finite)
@@ -1202,8 +1217,9 @@ def match_rectified(
         Shapes differ, images are not 2-D or all no-data, the range is empty, or an option
         is out of its domain.
     """
-    left, left_finite = _image_and_finite(left, "left")
-    right, right_finite = _image_and_finite(right, "right")
+    # the sgm score layer centres by the left image's mean: taken first, it spares the scan
+    left, left_finite, left_mean = _image_and_finite(left, "left", mean=matcher == "sgm")
+    right, right_finite, _ = _image_and_finite(right, "right")
     if left.shape != right.shape:
         raise InputError(f"left/right: shapes differ, {left.shape} vs {right.shape}")
     if matcher not in MATCHERS:
@@ -1303,7 +1319,7 @@ def match_rectified(
     # (SGBM itself runs on one): computing them beside SGBM on a second thread, as before,
     # took as long on 2 cores and more CPU (bench_match.py: 1.136 vs 1.140 x the bare call's
     # wall, 1.17 vs 1.20 x its CPU)
-    left_windows = _zncc_left(left, score_window, finite=left_finite)
+    left_windows = _zncc_left(left, score_window, finite=left_finite, mean=left_mean)
     # no-data: the block around the left pixel or around its match touches NaN
     if masks is not None:
         bad_l, bad_r = masks

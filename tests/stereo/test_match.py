@@ -789,3 +789,24 @@ def test_score_keeps_its_digits_when_the_images_sit_at_different_levels():
     assert ok.mean() > 0.6
     assert np.abs(a.disparity[ok] - b.disparity[ok]).max() < 0.01
     assert np.abs(a.score[ok] - b.score[ok]).max() < 0.005
+
+
+def test_image_mean_replaces_the_finite_scan_only_when_it_proves_it():
+    """``_image_and_finite(..., mean=True)``: a finite float32 mean proves every pixel finite
+    (it is then ``np.mean`` itself, the score layer's centring constant); a NaN, an infinity
+    or a sum that overflows (finite pixels of 3e38) falls back to the scan."""
+    from stereodem.stereo.match import _image_and_finite
+
+    rng = np.random.default_rng(12)
+    a = rng.normal(100, 20, (30, 40)).astype(np.float32)
+    img, finite, m = _image_and_finite(a, "a", mean=True)
+    assert finite and m is not None and m == np.mean(a) and m.dtype == np.float32
+    assert _image_and_finite(a, "a")[1:] == (True, None)
+    for bad in (np.nan, np.inf, -np.inf):
+        b = a.copy()
+        b[3, 4] = bad
+        assert _image_and_finite(b, "b", mean=True)[1:] == (False, None)
+    big = np.full((30, 40), 3e38, np.float32)  # finite, but the float32 sum overflows
+    assert _image_and_finite(big, "big", mean=True)[1:] == (True, None)
+    with pytest.raises(InputError):
+        _image_and_finite(np.full((3, 3), np.nan, np.float32), "c", mean=True)
