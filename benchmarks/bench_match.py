@@ -8,7 +8,7 @@ matchers search the same 64 disparities 0..63.  Throughput is megapixels x dispa
 pixels and the share of valid pixels (and of pixels with error > 1 px, counting invalid as
 errors).
 
-    python benchmarks/bench_match.py [--before REV]
+    python benchmarks/bench_match.py [--before REV] [--repeats N]
 
 ``--before REV`` also times the SGM wrapper as it was at git revision REV (before/after, same
 run, bit-identity checked). Writes ``benchmarks/results/bench_match.json`` and prints a table.
@@ -99,6 +99,12 @@ def main(argv=None):
         metavar="REV",
         help="also time the SGM wrapper of this git revision (before/after)",
     )
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=REPEATS,
+        help=f"alternating repeats of the SGM overhead timings (default {REPEATS})",
+    )
     args = ap.parse_args(argv)
     left, right, truth = make_pair()
     mpd = SIZE * SIZE * ND / 1e6
@@ -148,9 +154,11 @@ def main(argv=None):
             "no padding (first 64 columns invalid)",
             nthr,
         )
-    overhead = sgm_overhead(left, right, l8, r8)
+    overhead = sgm_overhead(left, right, l8, r8, repeats=args.repeats)
     if args.before:
-        overhead["before_after"] = sgm_before_after(left, right, l8, r8, args.before)
+        overhead["before_after"] = sgm_before_after(
+            left, right, l8, r8, args.before, repeats=args.repeats
+        )
         print("sgm before/after:", json.dumps(overhead["before_after"]))
     result = {
         "pair": f"{SIZE}x{SIZE} Landsat texture x3.2 + smooth disparity ~8..56 px, noise 1 DN",
@@ -286,63 +294,93 @@ def sgm_parts(left, right, l8, r8, repeats=REPEATS):
     }
 
 
-def sgm_before_after(left, right, l8, r8, rev, repeats=REPEATS):
-    """The SGM wrapper of git revision ``rev`` (its ``stereo/match.py``, loaded as a module)
-    against today's and the bare call, alternating (the order of the three rotates from one
-    repeat to the next, so none always follows another), 1 thread, CPU seconds (medians, and
-    the medians of each repeat's ratios to its bare call); also whether the two wrappers'
-    disparities and scores are bit-identical, and the largest score change."""
+def sgm_before_after(left, right, l8, r8, rev, repeats=REPEATS, threads=(1, 2)):
+    """The SGM wrapper of git revision ``rev`` (its ``stereo/match.py`` and the 8-bit stretch
+    of its ``core/stretch.py``, loaded as modules) against today's and the bare call,
+    alternating (the order of the three rotates from one repeat to the next, so none always
+    follows another), at each of ``threads`` (``cv2.setNumThreads``), wall and CPU seconds
+    (medians, and the medians of each repeat's ratios to its bare call; the first thread
+    count's CPU figures also at the top level); also whether the two wrappers' disparities
+    and scores are bit-identical, and the largest score change."""
     import importlib.util
     import subprocess
     import tempfile
 
-    src = subprocess.run(
-        ["git", "-C", str(ROOT), "show", f"{rev}:stereo/match.py"],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "match_before.py"
-        path.write_text(src)
-        spec = importlib.util.spec_from_file_location("stereodem.stereo.match_before", path)
-        before = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(before)
+    def load(relpath, name):
+        src = subprocess.run(
+            ["git", "-C", str(ROOT), "show", f"{rev}:{relpath}"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / f"{name.rsplit('.', 1)[-1]}.py"
+            path.write_text(src)
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+        return module
+
+    before = load("stereo/match.py", "stereodem.stereo.match_before")
+    # the 8-bit stretch the wrapper calls lives in core/stretch.py: the revision's as well
+    if hasattr(before, "linear_to_uint8"):
+        before.linear_to_uint8 = load(
+            "core/stretch.py", "stereodem.core.stretch_before"
+        ).linear_to_uint8
     saved = cv2.getNumThreads()
-    cv2.setNumThreads(1)
     fns = {
         "before": lambda: before.match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
         "now": lambda: match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
         "bare": lambda: _raw_sgbm(l8, r8, "sgbm"),
     }
+    rows = []
     try:
-        ts = {k: [] for k in fns}
-        names = list(fns)
-        for i in range(repeats):
-            for k in names[i % 3 :] + names[: i % 3]:
-                c0 = time.process_time()
-                fns[k]()
-                ts[k].append(time.process_time() - c0)
+        for n in threads:
+            cv2.setNumThreads(n)
+            ts = {k: [] for k in fns}  # (wall, CPU) seconds of each call
+            names = list(fns)
+            for i in range(repeats):
+                for k in names[i % 3 :] + names[: i % 3]:
+                    w0, c0 = time.perf_counter(), time.process_time()
+                    fns[k]()
+                    ts[k].append((time.perf_counter() - w0, time.process_time() - c0))
+            t = {k: np.array(v) for k, v in ts.items()}
+            med = {k: np.median(v, axis=0) for k, v in t.items()}
+            pair = {k: np.median(t[k] / t["bare"], axis=0) for k in ("before", "now")}
+            rows.append(
+                {
+                    "threads": n,
+                    "cpu_s": {k: round(float(v[1]), 4) for k, v in med.items()},
+                    "wall_s": {k: round(float(v[0]), 4) for k, v in med.items()},
+                    "ratio_before": round(float(med["before"][1] / med["bare"][1]), 3),
+                    "ratio_now": round(float(med["now"][1] / med["bare"][1]), 3),
+                    "ratio_before_paired": round(float(pair["before"][1]), 3),
+                    "ratio_now_paired": round(float(pair["now"][1]), 3),
+                    "ratio_before_wall": round(float(med["before"][0] / med["bare"][0]), 3),
+                    "ratio_now_wall": round(float(med["now"][0] / med["bare"][0]), 3),
+                    "ratio_before_wall_paired": round(float(pair["before"][0]), 3),
+                    "ratio_now_wall_paired": round(float(pair["now"][0]), 3),
+                }
+            )
         a, b = fns["before"](), fns["now"]()  # MatchResult: disparity, score
     finally:
         cv2.setNumThreads(saved)
-    med = {k: float(np.median(v)) for k, v in ts.items()}
     same = all(
         np.array_equal(x, y, equal_nan=True)
         for x, y in ((a.disparity, b.disparity), (a.score, b.score))
     )
     both = np.isfinite(a.score) & np.isfinite(b.score)
+    first = rows[0]  # the first thread count's figures at the top level, as before
     return {
         "revision": rev,
-        "threads": 1,
+        "threads": first["threads"],
         "repeats": repeats,
-        "cpu_s": {k: round(v, 4) for k, v in med.items()},
-        "ratio_before": round(med["before"] / med["bare"], 3),
-        "ratio_now": round(med["now"] / med["bare"], 3),
-        "ratio_before_paired": round(
-            float(np.median(np.array(ts["before"]) / np.array(ts["bare"]))), 3
-        ),
-        "ratio_now_paired": round(float(np.median(np.array(ts["now"]) / np.array(ts["bare"]))), 3),
+        "cpu_s": first["cpu_s"],
+        "ratio_before": first["ratio_before"],
+        "ratio_now": first["ratio_now"],
+        "ratio_before_paired": first["ratio_before_paired"],
+        "ratio_now_paired": first["ratio_now_paired"],
+        "by_threads": rows,
         "bit_identical": bool(same),
         "disparity_identical": bool(np.array_equal(a.disparity, b.disparity, equal_nan=True)),
         "score_same_cells": bool(np.array_equal(np.isfinite(a.score), np.isfinite(b.score))),

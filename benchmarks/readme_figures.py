@@ -147,7 +147,25 @@ def match(d):
                 f"{pb['score']:.1f} %, whole wrapper {pb['wrapper']:.0f} %."
             )
         ba = o.get("before_after")
-        if ba:
+        if ba and "by_threads" in ba:  # each thread count, CPU and wall
+            runs = "; ".join(
+                f"{r['threads']} thread(s): {r['ratio_before']:.3f}× → {r['ratio_now']:.3f}× CPU "
+                f"(call by call {r['ratio_before_paired']:.3f}× → {r['ratio_now_paired']:.3f}×), "
+                f"{r['ratio_before_wall']:.3f}× → {r['ratio_now_wall']:.3f}× wall"
+                for r in ba["by_threads"]
+            )
+            out += (
+                f" Before/after in the same run (revision {ba['revision']}, against the bare "
+                f"call, medians of {ba['repeats']}): {runs}; outputs "
+                + (
+                    "bit-identical."
+                    if ba["bit_identical"]
+                    else "disparities "
+                    + ("bit-identical" if ba["disparity_identical"] else "changed")
+                    + f", scores within {ba['score_max_abs_change']:.1e}."
+                )
+            )
+        elif ba:
             out += (
                 f" Before/after in the same run (revision {ba['revision']}, 1 thread, CPU s): "
                 f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call (call by call "
@@ -759,7 +777,7 @@ BENCHMARKS = {
     ),
     "bench_match": (
         "dense matching",
-        "python benchmarks/bench_match.py [--before REV]",
+        "python benchmarks/bench_match.py [--before REV] [--repeats N]",
         (
             "`cv2.StereoSGBM` (1 thread, 3-way); the bare SGBM call at the same "
             "`cv2.setNumThreads` (the SGM wrapper's overhead)"
