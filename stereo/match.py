@@ -899,9 +899,11 @@ def _sgbm_padding(lo: int, hi: int, nd: int) -> tuple[int, int]:
 def zncc_at(left, right, disparity, *, window=7):
     """ZNCC of each left window with the right image warped by ``disparity``.
 
-    The right window of pixel ``x`` is made of the right pixels ``x' - round(d(x'))`` for
-    ``x'`` in the left window (the window follows the disparity surface); NaN disparities
-    are filled from their row neighbours for the warp, and their score is NaN.
+    The right window of pixel ``x`` is made of the right pixels ``x' - s(x')`` for ``x'``
+    in the left window (the window follows the disparity surface), where ``s`` is the
+    disparity rounded to whole pixels with its NaN filled from their row neighbours, then
+    smoothed by a 5 x 5 median (:func:`_seed_columns`: a lone outlier does not tear the
+    warp); the score of a NaN disparity is NaN.
 
     Returns
     -------
