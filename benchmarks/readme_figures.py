@@ -156,29 +156,24 @@ def match(d):
             )
             out += (
                 f" Before/after in the same run (revision {ba['revision']}, against the bare "
-                f"call, medians of {ba['repeats']}): {runs}; outputs "
-                + (
-                    "bit-identical."
-                    if ba["bit_identical"]
-                    else "disparities "
-                    + ("bit-identical" if ba["disparity_identical"] else "changed")
-                    + f", scores within {ba['score_max_abs_change']:.1e}."
-                )
+                f"call, medians of {ba['repeats']}): {runs}; outputs " + _outputs_changed(ba)
             )
         elif ba:
             out += (
                 f" Before/after in the same run (revision {ba['revision']}, 1 thread, CPU s): "
                 f"{ba['ratio_before']:.2f}× → {ba['ratio_now']:.2f}× the bare call (call by call "
                 f"{ba['ratio_before_paired']:.3f}× → {ba['ratio_now_paired']:.3f}×), outputs "
-                + (
-                    "bit-identical."
-                    if ba["bit_identical"]
-                    else "disparities "
-                    + ("bit-identical" if ba["disparity_identical"] else "changed")
-                    + f", scores within {ba['score_max_abs_change']:.1e}."
-                )
+                + _outputs_changed(ba)
             )
     return out
+
+
+def _outputs_changed(ba) -> str:
+    """How the SGM wrapper's outputs compare before and after (bench_match's record)."""
+    if ba["bit_identical"]:
+        return "bit-identical."
+    same = "bit-identical" if ba["disparity_identical"] else "changed"
+    return f"disparities {same}, scores within {ba['score_max_abs_change']:.1e}."
 
 
 def scaling(d):
