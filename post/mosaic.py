@@ -66,6 +66,7 @@ from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.grid import MapGrid
 from stereodem.core.stats import nanmedian, nmad
 
+from .choices import MOSAIC_METHODS
 from .mosaic_coreg import check_reference, crop_reference, fitter
 from .mosaic_sources import (
     Source,
@@ -91,7 +92,7 @@ __all__ = [
     "run_mosaic",
 ]
 
-METHODS = ("blend", "first", "last", "min", "max", "mean", "median", "count", "stddev", "nmad")
+METHODS = MOSAIC_METHODS  # the choices live in a light module (the parser imports them)
 #: methods that need the stack of one block (K layers) rather than running sums
 STACK_METHODS = ("median", "nmad")
 #: methods whose statistic is the only band

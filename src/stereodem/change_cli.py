@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import logging
 
-from stereodem.core import jsonutil
 from stereodem.core.vertical import VERTICALS
 
 from . import options
@@ -76,6 +75,7 @@ def add_parser(sub):
 def run(args) -> int:
     import numpy as np
 
+    from stereodem.core import jsonutil
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
     from stereodem.core.raster import write_geotiff, write_text_atomic

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import logging
 
-from stereodem.core import jsonutil
-
 from . import options
 from .commands import help_line
 from .outlock import Products
@@ -128,6 +126,7 @@ def run(args) -> int:
 
 def _write(out, records, splits):
     """The products, into the locked output folder ``out`` (a previous run's removed)."""
+    from stereodem.core import jsonutil
     from stereodem.core.raster import write_text_atomic
     from stereodem.sensor.estimation.compare import figure, markdown, split_markdown
 

@@ -20,7 +20,6 @@ import argparse
 import logging
 from pathlib import Path
 
-from stereodem.core import jsonutil
 from stereodem.core.vertical import VERTICALS
 
 from . import options
@@ -38,7 +37,7 @@ EXAMPLES = """examples:
 
 
 def add_parser(sub):
-    from stereodem.post.mosaic import METHODS
+    from stereodem.post.choices import MOSAIC_METHODS as METHODS
 
     p = sub.add_parser(
         "mosaic",
@@ -126,6 +125,7 @@ def report_path(out) -> Path:
 
 
 def run(args) -> int:
+    from stereodem.core import jsonutil
     from stereodem.core.errors import InputError
     from stereodem.core.raster import check_writable, write_text_atomic
     from stereodem.post.mosaic import plan_mosaic, run_mosaic

@@ -9,7 +9,6 @@ import contextlib
 import logging
 import time
 
-from stereodem.core import jsonutil
 from stereodem.core.vertical import VERTICALS
 
 from . import options
@@ -153,8 +152,7 @@ def add_parser(sub):
     )
     options.add_workers(
         p,
-        "processes building the stack (one DEM each) and threads of the rate "
-        "fit (default: all cores)",
+        "processes building the stack (one DEM each) and threads of the rate fit",
     )
     options.add_creation_options(p)
     p.add_argument("-o", "--out", required=True, help="output folder")
@@ -180,6 +178,7 @@ def _status_if_stopped(path):
     """``stack.json`` says ``failed`` (with the one-line reason) or ``interrupted`` when the
     job stops after its output folder was opened (a DEM refused while the stack is built):
     not ``running`` for ever beside a partial store."""
+    from stereodem.core import jsonutil
     from stereodem.core.raster import write_text_atomic
 
     try:
@@ -198,6 +197,7 @@ def _status_if_stopped(path):
 def run(args) -> int:
     import numpy as np
 
+    from stereodem.core import jsonutil
     from stereodem.core.dem import DEM
     from stereodem.core.raster import write_geotiff, write_text_atomic
     from stereodem.post.dates import dem_dates

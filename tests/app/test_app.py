@@ -638,6 +638,27 @@ def test_top_level_help_lists_every_command_without_importing_them():
     assert exc.value.code == 2
 
 
+def test_command_parsers_load_no_numpy():
+    """A command's parser loads no numpy/OpenCV/rasterio (DESIGN.md, imports, reason (a)):
+    change, compare-models, mosaic and stack imported core.jsonutil (numpy) at their top.
+    adjust is the one exception: its --model choices come from the sensor packages."""
+    import subprocess
+    import sys
+
+    from stereodem.commands import COMMANDS
+
+    names = [n for n in COMMANDS if n != "adjust"]
+    code = (
+        "import sys\n"
+        "from stereodem.cli import build_parser\n"
+        f"for name in {names!r}:\n"
+        "    build_parser(name)\n"
+        "    heavy = [m for m in ('numpy', 'cv2', 'rasterio', 'scipy') if m in sys.modules]\n"
+        "    assert not heavy, (name, heavy)\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
 def test_clean_tiles_option_reaches_the_job(tmp_path, monkeypatch):
     """``run --clean-tiles`` is ``[run] keep_tiles = false``; without it the TOML decides."""
     import stereodem.pipeline.job as job

@@ -12,6 +12,8 @@ from stereodem.core.vertical import VERTICALS
 from stereodem.docgen import configuration_markdown
 from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS
 from stereodem.ortho.drm import RESAMPLING
+from stereodem.post import mosaic
+from stereodem.post.choices import MOSAIC_METHODS
 from stereodem.stereo.settings import GRIDDING_METHODS, JITTER_AXES, MATCHERS
 
 
@@ -34,10 +36,15 @@ def _choices(command: str, option: str):
         ("ortho", "--dem-vertical", VERTICALS),
         ("assess", "--ref-vertical", VERTICALS),
         ("uncertainty", "--method", UNCERTAINTY_METHODS),
+        ("mosaic", "--method", MOSAIC_METHODS),
     ],
 )
 def test_cli_choices_are_the_librarys(command, option, choices):
     assert _choices(command, option) == choices
+
+
+def test_mosaic_methods_are_the_light_modules():
+    assert mosaic.METHODS is MOSAIC_METHODS
 
 
 def test_ortho_kernels_cover_the_resampling_choices():
