@@ -64,8 +64,7 @@ def add_parser(sub):
         choices=VERTICALS,
         help="vertical reference of --dem when the file does not say",
     )
-    p.add_argument("--res", type=float, help="posting in metres (default: the image GSD)")
-    p.add_argument("--crs", help="output CRS, e.g. EPSG:32637 (default: the UTM zone of the image)")
+    options.add_res(p, "the image GSD")
     p.add_argument(
         "--sigma",
         action="append",
@@ -116,8 +115,6 @@ def run(args) -> int:
     options.check_common(args)
     if args.samples < 3:
         raise InputError(f"--samples must be at least 3, got {args.samples}")
-    if args.res is not None and not args.res > 0:
-        raise InputError(f"--res must be positive, got {args.res}")
     from .outlock import check_output_folder, output_folder
 
     # an input named like a map in the output folder was replaced with --overwrite
