@@ -16,7 +16,6 @@ from stereodem.core import jsonutil
 from stereodem.core.raster import prepare_output_dir, write_text_atomic
 
 from . import figures, warp
-from .error_analysis import markdown_lines
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +135,8 @@ def markdown(report: dict, figure_files: dict) -> str:
             "",
         ]
     if report.get("error_analysis"):
+        from .error_analysis import markdown_lines  # (its variogram modules: when used)
+
         lines += markdown_lines(report["error_analysis"]) + [""]
     lines += ["## Figures", ""] + [f"![{k}]({v})" for k, v in figure_files.items()] + [""]
     prov = report.get("provenance")
@@ -271,6 +272,8 @@ def html_report(report: dict, figure_paths: dict) -> str:
             _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
         ]
     if report.get("error_analysis"):
+        from .error_analysis import markdown_lines
+
         ea = markdown_lines(report["error_analysis"])
         parts += (
             ["<h2>Error analysis (stable terrain)</h2>", "<ul>"]

@@ -1,5 +1,5 @@
 """``stereodem assess``: DEM accuracy against a reference DEM and check points
-(:func:`stereodem.pipeline.stages.assess_stage`, the same stage as ``stereodem run``)."""
+(:func:`stereodem.pipeline.assessment.assess_stage`, the same stage as ``stereodem run``)."""
 
 from __future__ import annotations
 
@@ -136,6 +136,7 @@ def add_parser(subparsers):
         metavar="DEG",
         help="ground-track heading for --chain (default: the DEM's own track tags)",
     )
+    options.add_workers(p, "threads of the comparison's row blocks and of GDAL's reads")
     p.add_argument("-o", "--output", required=True, help="output folder")
     options.add_overwrite(p)
     p.set_defaults(run=run)
@@ -143,7 +144,7 @@ def add_parser(subparsers):
 
 
 def config_from_args(args):
-    from .config import AssessSettings, Config, InputSettings, validate
+    from .config import AssessSettings, Config, InputSettings, RunSettings, validate
 
     cfg = Config(
         inputs=InputSettings(
@@ -163,6 +164,7 @@ def config_from_args(args):
             elevation_bins=tuple(args.elevation_bins) if args.elevation_bins else None,
             landcover_names=args.landcover_names,
         ),
+        run=RunSettings(workers=getattr(args, "workers", None)),
     )
     validate(cfg, "command line")
     return cfg
@@ -171,7 +173,7 @@ def config_from_args(args):
 def run(args) -> int:
     """Run ``stereodem assess`` from parsed arguments; returns the exit status."""
     from .outlock import check_output_folder, output_folder
-    from .pipeline.stages import assess_stage
+    from .pipeline.assessment import assess_stage
 
     options.check_common(args)
     cfg = config_from_args(args)

@@ -57,7 +57,6 @@ from stereodem.core.grid import map_crs
 from stereodem.core.raster import as_path, check_creation_options
 from stereodem.core.vertical import VERTICALS, Vertical
 from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS, Resampling, UncertaintyMethod
-from stereodem.sensor.io.aster_l1a import is_aster_granule
 from stereodem.stereo import settings as stereo_settings
 from stereodem.stereo.fusion import FusionSettings
 from stereodem.stereo.settings import (
@@ -563,6 +562,10 @@ def _path(value: str, base) -> str:
 
 
 def _is_granule(path, base) -> bool:
+    # imported here: the ASTER reader brings SciPy's interpolation (0.3 s), which commands
+    # that never read a granule (assess, change, ...) then do not import
+    from stereodem.sensor.io.aster_l1a import is_aster_granule
+
     return isinstance(path, str) and is_aster_granule(_path(path, base))
 
 

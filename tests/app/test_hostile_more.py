@@ -622,7 +622,7 @@ FOLDER_COMMANDS = {
     "assess": (
         lambda s, d, o: ["assess", d / "a.tif", "--ref", d / "ref.tif", "-o", o],
         "report.md",
-        "stereodem.pipeline.stages:assess_stage",
+        "stereodem.pipeline.assessment:assess_stage",
     ),
     "coregister": (
         lambda s, d, o: (

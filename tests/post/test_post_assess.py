@@ -320,6 +320,26 @@ def test_cli_writes_report_and_figures(tmp_path, ref):
     assert args.run(args) == 0
 
 
+@pytest.mark.slow
+def test_assess_at_1_and_2_workers_writes_the_same_bytes(tmp_path):
+    """`stereodem assess --workers N` (the comparison's blocks of 512 rows on N threads,
+    GDAL's reads on N threads): the report and the figures of 1 and 2 workers are the same
+    files, byte for byte; a worker count below 1 is refused before any work."""
+    b = DEM.bundled()  # 1000 x 1000 cells: two blocks
+    z = ndi.shift(b.heights.astype(np.float64), (0.3, -0.4), order=3, mode="nearest")
+    z += np.random.default_rng(11).normal(0, 2.0, z.shape)
+    DEM(z.astype(np.float32), b.transform, b.crs, "geoid").write(tmp_path / "dem.tif")
+    b.write(tmp_path / "ref.tif")
+    argv = ["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif")]
+    for w in (1, 2):
+        assert main([*argv, "--workers", str(w), "-o", str(tmp_path / f"w{w}")]) == 0
+    files = [{p.name: p.read_bytes() for p in (tmp_path / f"w{w}").iterdir()} for w in (1, 2)]
+    assert sorted(files[0]) == sorted(files[1]) and "hillshade.png" in files[0]
+    assert all(files[0][name] == files[1][name] for name in files[0])
+    assert main([*argv, "--workers", "0", "-o", str(tmp_path / "w0")]) == 1
+    assert not (tmp_path / "w0").exists()
+
+
 def test_write_report_refuses_nonempty_dir(tmp_path, ref, simulated):
     (tmp_path / "x.txt").write_text("x")
     res = assess.assess_dem(simulated, ref)
