@@ -140,6 +140,7 @@ def add_parser(sub):
     p.add_argument(
         "--regularization", help="lcurve, gcv or a weight: Tikhonov for rank-deficient sets"
     )
+    options.add_workers(p, "threads of the tie matching (SIFT) and the least squares (BLAS)")
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
@@ -193,6 +194,7 @@ def run(args) -> int:
 
     from .pipeline.inputs import image_model
 
+    options.check_common(args)
     n_images = args.model == "bundle" and args.more
     _check_outputs(args, n_images)
     if not n_images:  # N images: -o is a folder, each model checked by run_bundle_images

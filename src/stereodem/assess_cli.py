@@ -136,8 +136,8 @@ def add_parser(subparsers):
         metavar="DEG",
         help="ground-track heading for --chain (default: the DEM's own track tags)",
     )
-    options.add_workers(p, "threads of the comparison's row blocks and of GDAL's reads")
     p.add_argument("-o", "--output", required=True, help="output folder")
+    options.add_workers(p, "threads of the comparison's row blocks and of GDAL's reads")
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
@@ -164,7 +164,7 @@ def config_from_args(args):
             elevation_bins=tuple(args.elevation_bins) if args.elevation_bins else None,
             landcover_names=args.landcover_names,
         ),
-        run=RunSettings(workers=getattr(args, "workers", None)),
+        run=RunSettings(workers=args.workers),  # the budget (cli.main), as `dem` sets it
     )
     validate(cfg, "command line")
     return cfg

@@ -91,12 +91,12 @@ def main(argv=None) -> int:
         if hasattr(args, "workers"):  # one thread budget for the command (stereodem.core.threads)
             from stereodem.core.threads import thread_budget
 
+            from .options import check_workers
+
+            check_workers(args)  # --workers 0 refused before any work, in every command
             # the tile pool's fork server first: its imports then run on another core while
             # the budget's (OpenCV, rasterio) and the command's modules load here
-            with (
-                _fork_server(args),
-                thread_budget(args.workers if args.workers and args.workers > 0 else None),
-            ):
+            with _fork_server(args), thread_budget(args.workers):
                 _check_creation_options(args)
                 return int(args.run(args) or 0)
         _check_creation_options(args)

@@ -62,6 +62,7 @@ def add_parser(subparsers):
         "the rigorous pushbroom model's attitude biases and drifts)",
     )
     p.add_argument("-o", "--output", required=True, help="output folder")
+    options.add_workers(p, "threads of the least-squares fits (BLAS)")
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p

@@ -313,7 +313,8 @@ class RunSettings:
     Attributes
     ----------
     workers : int, optional
-        Worker processes for the stereo tiles (threads for orthoimages); default all cores.
+        Worker processes for the stereo tiles, and the main process's threads (OpenCV,
+        BLAS, GDAL, row blocks: post, ortho, assessment), at most the cores; default all cores.
     tile_timeout : float, optional
         Seconds after which a tile is abandoned and reported.
     resume : bool

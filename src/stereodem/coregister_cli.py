@@ -85,8 +85,9 @@ def add_parser(sub):
     )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("-o", "--output", required=True, help="output folder")
-    from .options import add_creation_options, add_overwrite
+    from .options import add_creation_options, add_overwrite, add_workers
 
+    add_workers(p, "threads of the warps, the slopes and the GeoTIFF compression")
     add_creation_options(p)
     add_overwrite(p)
     p.set_defaults(run=run)
@@ -103,9 +104,10 @@ def run(args) -> int:
     from stereodem.post.coreg_run import CoregJob
     from stereodem.post.coreg_run import run as run_job
 
-    from .options import creation_options, say
+    from .options import check_common, creation_options, say
     from .outlock import check_output_folder, output_folder
 
+    check_common(args)
     products = PRODUCTS
     inputs = [args.dem, args.ref, *args.exclude, *args.include, args.stable_mask]
     check_output_folder(args.output, products, overwrite=args.overwrite, inputs=inputs)

@@ -80,6 +80,9 @@ def add_parser(sub):
         help="cloud mask: also cells whose matcher score is below S",
     )
     options.add_cloud_grow(p)
+    options.add_workers(
+        p, "threads of the filters' and the hole filling's row bands and the GeoTIFF compression"
+    )
     options.add_creation_options(p)
     options.add_overwrite(p)
     p.set_defaults(run=run)
@@ -119,7 +122,14 @@ def _cloud_mask(args, layers, seed):
 
 
 def config_from_args(args):
-    from .config import Config, FillSettings, FilterSettings, InputSettings, validate
+    from .config import (
+        Config,
+        FillSettings,
+        FilterSettings,
+        InputSettings,
+        RunSettings,
+        validate,
+    )
 
     cfg = Config(
         inputs=InputSettings(
@@ -133,6 +143,7 @@ def config_from_args(args):
         fill=FillSettings(
             enabled=not args.no_fill, max_hole_size=args.max_hole_size, fallback=args.fill_from_seed
         ),
+        run=RunSettings(workers=args.workers),  # the budget (cli.main), as `dem` sets it
     )
     validate(cfg, "command line")
     return cfg
@@ -149,6 +160,7 @@ def run(args) -> int:
     from .pipeline.inputs import load_seed_dem, read_stereo_dem
     from .pipeline.stages import post_stage
 
+    options.check_common(args)
     if args.fill_from_seed and not args.seed_dem:
         raise InputError("--fill-from-seed needs --seed-dem")
     cfg = config_from_args(args)

@@ -45,7 +45,18 @@ def add_band(p, default_text="1; 3N/3B in an ASTER granule"):
 
 
 def add_workers(p, what="worker processes for the stereo tiles"):
+    """``--workers N``: the command's one thread budget (:mod:`stereodem.core.threads`):
+    :func:`stereodem.cli.main` pins the process's OpenCV, BLAS/OpenMP and GDAL threads, and
+    the row blocks of :mod:`stereodem.core.blocks`, to N (at most the cores) around the
+    command; ``what`` says what else N counts in the command (its pool's processes)."""
     p.add_argument("--workers", type=int, help=f"{what} (default: all cores)")
+
+
+def check_workers(args):
+    """``--workers`` at least 1 (refused before any work: :func:`stereodem.cli.main`)."""
+    workers = getattr(args, "workers", None)
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers must be at least 1, got {workers}")
 
 
 def add_creation_options(p, *, float_products: bool = True):
@@ -102,9 +113,7 @@ def check_common(args):
     res = getattr(args, "res", None)
     if res is not None and not res > 0:
         raise InputError(f"--res must be positive, got {res:g}")
-    workers = getattr(args, "workers", None)
-    if workers is not None and workers < 1:
-        raise InputError(f"--workers must be at least 1, got {workers}")
+    check_workers(args)
     from stereodem.core.grid import map_crs
 
     for key in ("crs", "checkpoints_crs"):

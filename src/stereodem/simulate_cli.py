@@ -131,6 +131,7 @@ def add_parser(sub):
         "lines), plus the strip's truth and strip.json",
     )
     p.add_argument("-o", "--out", required=True, help="output folder")
+    options.add_workers(p, "threads of the rendering (OpenCV, BLAS) and the GeoTIFF compression")
     options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
