@@ -639,21 +639,25 @@ def _mosaic_block(plan, r0, c0, rows, cols):
 
 def _dask_blocks(plan, todo, address, workers):
     """Blocks computed on a ``dask.distributed`` cluster (``address``, or a local cluster of
-    ``workers`` processes for ``"local"``), yielded as they finish, with at most two per
-    worker in flight (so finished blocks never pile up in the client)."""
+    ``workers`` processes for ``"local"``, default all cores, each pinned to its share of the
+    cores: :func:`stereodem.core.threads.worker_threads`), yielded as they finish, with at
+    most two per worker in flight (so finished blocks never pile up in the client)."""
     try:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:  # pragma: no cover - optional extra
         raise InputError("--dask needs dask.distributed (pip install 'stereodem[dask]')") from None
+    from stereodem.core.threads import pool_size, register_dask_plugin, worker_threads
+
     cluster = None
     if address in (None, "local"):
         cluster = LocalCluster(
-            n_workers=max(int(workers or 1), 1),
+            n_workers=pool_size(workers),
             threads_per_worker=1,
             processes=True,
             dashboard_address=None,
         )
         client = Client(cluster)
+        register_dask_plugin(client, worker_threads(workers))  # N workers: the cores shared
     elif address == "threads":  # in-process cluster (tests)
         cluster = LocalCluster(
             n_workers=1,
@@ -696,7 +700,8 @@ def run_mosaic(
     report (plan, bands, seconds, valid share); a DEM whose footprint meets the mosaic but
     that has no valid height in it is not counted in ``n_used`` and is listed in
     ``skipped``, with a warning. ``dask``: scheduler address, ``"local"`` for
-    a local cluster of ``workers`` processes; None computes here, block after block.
+    a local cluster of ``workers`` processes (default all cores); None computes here, block
+    after block, on the calling process's thread budget (``stereodem mosaic --workers``).
     ``progress(done, total)`` after each block."""
     t0 = time.perf_counter()
     todo = blocks(plan)

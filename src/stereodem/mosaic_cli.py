@@ -112,7 +112,12 @@ def add_parser(sub):
         help="compute blocks on a dask.distributed scheduler (tcp://host:port, or "
         "'local' for a local cluster of --workers processes)",
     )
-    options.add_workers(p, "Dask workers of --dask local")
+    options.add_workers(
+        p,
+        "threads of this process (the blocks' reads and weights without --dask, the COG's "
+        "compression); with --dask local also the cluster's worker processes, each pinned to "
+        "its share of the cores",
+    )
     options.add_creation_options(p)
     options.add_overwrite(p)
     p.set_defaults(run=run)

@@ -594,6 +594,50 @@ def test_dask_gives_the_serial_mosaic(tmp_path):
         )
 
 
+def test_dask_local_cluster_is_workers_processes_sharing_the_cores(tmp_path, monkeypatch):
+    """``--dask local``: ``--workers`` processes (default all cores, as its help says; it
+    was 1), each pinned to its share of the cores (a Dask worker plugin), not to all of them."""
+    distributed = pytest.importorskip("dask.distributed")
+    from stereodem.core import threads
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    class FakeCluster:
+        def __init__(self, **kw):
+            seen["cluster"] = kw
+
+        def close(self):
+            pass
+
+    class FakeClient:
+        def __init__(self, cluster):
+            pass
+
+        def register_plugin(self, plugin, name):
+            seen["plugin_threads"] = plugin.threads
+
+        def nthreads(self):
+            raise Stop
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(distributed, "LocalCluster", FakeCluster)
+    monkeypatch.setattr(distributed, "Client", FakeClient)
+    monkeypatch.setattr(threads, "cores", lambda: 4)
+    paths = [write_dem(tmp_path / f"d{i}.tif", 20 * i, 30 * i, 40, 50) for i in range(2)]
+    plan = plan_mosaic(paths, block=32)
+    for workers, n, per_worker in ((None, 4, 1), (2, 2, 2), (8, 8, 1)):
+        seen.clear()
+        with pytest.raises(Stop):
+            run_mosaic(plan, tmp_path / "m.tif", dask="local", workers=workers, overwrite=True)
+        assert seen["cluster"]["n_workers"] == n and seen["cluster"]["threads_per_worker"] == 1
+        assert seen["plugin_threads"] == per_worker
+
+
 def _traced_peak(tmp_path, n_side, method):
     """Python-heap peak (numpy arrays included) of a mosaic of n_side x n_side DEMs of 120²
     cells."""
