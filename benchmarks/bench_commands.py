@@ -7,10 +7,12 @@ of the truth DEM (15.2 m) for ``change``, ``coregister``, ``stack``, ``assess`` 
 ``mosaic`` (one shifted, offset and noisy, with a hole; two overlapping tiles), and the
 stereo DEM of the 2-worker job for ``filter``, ``ortho`` and ``uncertainty``.
 
-A command with ``--workers`` runs with ``--workers 1`` and ``--workers 2``; one without it
-runs under ``taskset -c 0`` (one core: its thread budget follows the affinity mask) and
-unrestricted. The counts alternate (w1, w2, w1, ...) and each figure is the median of
-``--repeat`` runs; CPU seconds are the child's (``os.wait4``)::
+Every command runs with ``--workers 1`` and ``--workers 2`` (each takes it: the thread budget
+of its process, :mod:`stereodem.core.threads`; ``mosaic``'s computes here, without
+``--dask``). A command that lacked the option would run under ``taskset -c 0`` (one core:
+its thread budget follows the affinity mask) and unrestricted. The counts alternate (w1, w2,
+w1, ...) and each figure is the median of ``--repeat`` runs; CPU seconds are the child's
+(``os.wait4``)::
 
     python benchmarks/bench_commands.py [--repeat 3] [--only change uncertainty]
         [--scaling /tmp/bench_scaling] [--out /tmp/bench_commands]
@@ -107,11 +109,12 @@ def commands(scaling: Path, i: Path) -> dict:
 
 
 def has_workers(command: str) -> bool:
-    """Whether ``stereodem COMMAND`` takes ``--workers`` (for its own stages, not only Dask)."""
+    """Whether ``stereodem COMMAND`` takes ``--workers`` (every command that computes does:
+    its process's thread budget; mosaic's also sizes its ``--dask local`` cluster)."""
     out = subprocess.run(
         [sys.executable, "-m", "stereodem.cli", command, "--help"], capture_output=True, text=True
     ).stdout
-    return "--workers" in out and command != "mosaic"  # mosaic's: the Dask cluster's
+    return "--workers" in out
 
 
 def run_once(argv, out: Path, workers: int, own_option: bool):
@@ -146,13 +149,15 @@ def main(argv=None):
     need = [scaling / "scene" / "truth_dem.tif", scaling / "w2" / "dem.tif"]
     if not all(p.exists() for p in need):
         raise SystemExit(f"{scaling}: run python benchmarks/bench_scaling.py --workers 2 first")
-    if shutil.which("taskset") is None:
-        raise SystemExit("taskset (util-linux) is needed for the commands without --workers")
     make_inputs(scaling, out / "in")
     cmds = commands(scaling, out / "in")
+    names = args.only or list(cmds)
+    own_option = {name: has_workers(name) for name in names}
+    if not all(own_option.values()) and shutil.which("taskset") is None:
+        raise SystemExit("taskset (util-linux) is needed for the commands without --workers")
     rows = []
-    for name in args.only or cmds:
-        own = has_workers(name)
+    for name in names:
+        own = own_option[name]
         runs = {1: [], 2: []}
         for _ in range(args.repeat):
             for w in (1, 2):
