@@ -186,11 +186,12 @@ def pool_initializer(n: int, then=None, *args):
 
 def register_dask_plugin(client, threads: int | None = None):
     """Pin every present and future worker of ``client``'s cluster to ``threads`` per task
-    slot (default: the node's cores shared out over the worker's task slots):
+    slot (default: each node's cores shared out over the task slots of all the workers on that
+    node, counted now: :func:`stereodem.core.dask_threads.slots_by_host`):
     :class:`stereodem.core.dask_threads.ThreadsPlugin`."""
-    from .dask_threads import ThreadsPlugin
+    from .dask_threads import ThreadsPlugin, slots_by_host
 
-    plugin = ThreadsPlugin(threads)
+    plugin = ThreadsPlugin(threads, None if threads else slots_by_host(client))
     if hasattr(client, "register_plugin"):
         client.register_plugin(plugin, name=ThreadsPlugin.name)
     else:  # pragma: no cover - dask < 2023.9

@@ -667,7 +667,10 @@ def _dask_blocks(plan, todo, address, workers):
         )
         client = Client(cluster)
     else:
-        client = Client(address)
+        from stereodem.core.dask_threads import connect
+
+        client = connect(address)
+        register_dask_plugin(client)  # each node's cores shared out over its workers' slots
     try:
         nthreads = max(sum(client.nthreads().values()), 1)
         [p] = client.scatter([plan], broadcast=True)

@@ -532,12 +532,16 @@ def iter_tiles(
 def _run_dask(fn, todo, context, timeout, address, collect):
     """:func:`iter_tiles` on Dask: yields ``collect(...)`` of each tile as it finishes."""
     try:
-        from dask.distributed import Client
         from dask.distributed import as_completed as dask_completed
     except ImportError:
         raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
     own = not hasattr(address, "submit")
-    client = Client(address) if own else address
+    if own:
+        from stereodem.core.dask_threads import connect
+
+        client = connect(address)
+    else:
+        client = address
     try:
         register_dask_plugin(client)  # each worker's BLAS/OpenCV/GDAL threads pinned
         ctx = client.scatter(context, broadcast=True)

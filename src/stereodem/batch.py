@@ -440,13 +440,9 @@ def _run_dask(order, out_root, address, n, scene_options, collect):
     elif hasattr(address, "submit"):
         client = address
     else:
-        try:
-            client = Client(address, timeout="20s")
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise InputError(
-                f"--dask {address}: cannot connect to the scheduler "
-                f"({type(exc).__name__}: {_one_line(exc)})"
-            ) from None
+        from stereodem.core.dask_threads import connect
+
+        client = connect(address)
     try:
         register_dask_plugin(client)
         # scenes run their tiles inside the task (Dask workers are daemon processes: no pool)

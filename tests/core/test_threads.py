@@ -12,6 +12,7 @@ from rasterio.env import get_gdal_config
 
 from stereodem.config import config_from_dict
 from stereodem.core import threads
+from stereodem.core.errors import InputError
 from stereodem.pipeline import job
 from stereodem.stereo.runner import run_tiles
 from stereodem.stereo.tiling import Tile, tile_grid
@@ -102,6 +103,62 @@ def test_dask_workers_are_pinned():
     want = threads.cores()  # one task slot on this node: all its cores
     for r in res.values():
         assert int(r["opencv"]) == want and int(r["gdal"]) == want
+
+
+@pytest.mark.slow
+def test_dask_workers_on_one_node_share_its_cores():
+    """Two single-slot worker processes on this node (a ``LocalCluster``, as ``batch --dask
+    local`` starts): each gets half the cores, not all of them (2 x the cores in all)."""
+    distributed = pytest.importorskip("dask.distributed")
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        threads.register_dask_plugin(client)
+        limits = client.run(threads.worker_limits)
+    assert len(limits) == 2
+    want = max(1, threads.cores() // 2)
+    for lim in limits.values():
+        assert lim["opencv"] == want and lim["gdal"] == str(want) and lim["pinned"] == want
+
+
+def test_threads_plugin_counts_the_slots_of_its_host(monkeypatch):
+    dask_threads = pytest.importorskip("stereodem.core.dask_threads")
+    pinned = []
+    monkeypatch.setattr(dask_threads, "pin_threads", pinned.append)
+    monkeypatch.setattr(dask_threads, "cores", lambda: 16)
+
+    class Worker:
+        def __init__(self, address, nthreads):
+            self.address, self.nthreads = address, nthreads
+
+    class Client:
+        def scheduler_info(self):
+            return {
+                "workers": {
+                    "tcp://10.0.0.1:4001": {"host": "10.0.0.1", "nthreads": 1},
+                    "tcp://10.0.0.1:4002": {"host": "10.0.0.1", "nthreads": 1},
+                    "tcp://10.0.0.1:4003": {"host": "10.0.0.1", "nthreads": 2},
+                    "tcp://10.0.0.2:4001": {"host": "10.0.0.2", "nthreads": 4},
+                }
+            }
+
+    slots = dask_threads.slots_by_host(Client())
+    assert slots == {"10.0.0.1": 4, "10.0.0.2": 4}
+    plugin = dask_threads.ThreadsPlugin(None, slots)
+    plugin.setup(Worker("tcp://10.0.0.1:4001", 1))  # 4 slots share 16 cores
+    plugin.setup(Worker("tcp://10.0.0.3:4001", 2))  # a host that joined later: its own slots
+    plugin.setup(Worker("inproc://x", 1))  # an address without a host it counts: its own
+    dask_threads.ThreadsPlugin(3, slots).setup(Worker("tcp://10.0.0.1:4001", 1))  # given
+    assert pinned == [4, 8, 16, 3]
+
+
+def test_an_unreachable_scheduler_is_one_clear_error():
+    dask_threads = pytest.importorskip("stereodem.core.dask_threads")
+    with pytest.raises(InputError, match=r"--dask tcp://127\.0\.0\.1:9: cannot connect"):
+        dask_threads.connect("tcp://127.0.0.1:9")
 
 
 def test_a_job_pins_its_main_process_to_workers(tmp_path, monkeypatch):
