@@ -706,3 +706,18 @@ def test_summary_names_every_orthoimage_written():
     buf = io.StringIO()
     summarize(info, buf)
     assert "orthoimage" not in buf.getvalue()
+
+
+def test_no_option_help_states_its_default_twice():
+    """Each option's help says its default once (``stack --workers`` said "(default: all
+    cores) (default: all cores)": its text carried the default that ``add_workers`` adds)."""
+    import re
+
+    from stereodem.commands import COMMANDS
+
+    full = cli.build_parser()
+    sub = next(a for a in full._actions if a.__class__.__name__ == "_SubParsersAction")
+    for name in COMMANDS:
+        for action in sub.choices[name]._actions:
+            text = action.help or ""
+            assert len(re.findall(r"\(default", text)) <= 1, (name, action.dest, text)
