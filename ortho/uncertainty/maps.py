@@ -128,11 +128,13 @@ class UncertaintyMaps:
         out.mkdir(parents=True, exist_ok=True)
         t, crs = self.grid.transform, self.grid.crs
         paths = []
-        for name, arr in (
-            ("sigma_horizontal", self.sigma_horizontal),
-            ("sigma_east", self.sigma_east),
-            ("sigma_north", self.sigma_north),
-            ("ce90", self.ce90),
+        # band descriptions and units, as every other product carries (the σ are ground
+        # metres whatever the grid's CRS)
+        for name, arr, description in (
+            ("sigma_horizontal", self.sigma_horizontal, "horizontal sigma, hypot(east, north)"),
+            ("sigma_east", self.sigma_east, "sigma east"),
+            ("sigma_north", self.sigma_north, "sigma north"),
+            ("ce90", self.ce90, "CE90 (90 % circular error)"),
         ):
             paths.append(
                 write_geotiff(
@@ -142,8 +144,11 @@ class UncertaintyMaps:
                     crs,
                     float("nan"),
                     overwrite=overwrite,
+                    descriptions=description,
+                    units="metre",
                 )
             )
+        codes = ", ".join(f"{i} {s}" for i, s in enumerate(self.sources))
         paths.append(
             write_geotiff(
                 out / "dominant_source.tif",
@@ -152,6 +157,8 @@ class UncertaintyMaps:
                 crs,
                 -1,
                 overwrite=overwrite,
+                descriptions=f"dominant source of the variance (code: {codes})",
+                units="1",
             )
         )
         if source_maps:
@@ -164,6 +171,8 @@ class UncertaintyMaps:
                         crs,
                         float("nan"),
                         overwrite=overwrite,
+                        descriptions=f"share of the horizontal variance from {k} (per cell)",
+                        units="1",
                     )
                 )
         doc = self.summary()

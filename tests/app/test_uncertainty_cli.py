@@ -81,11 +81,22 @@ def test_command_writes_maps_json_and_figure(data_dir, dem_path, tmp_path, capsy
             "row_shift=0.5",
             "--sigma",
             "dem_height=4",
+            "--source-maps",
         )
         == 0
     )
     for n in ("sigma_horizontal", "sigma_east", "sigma_north", "ce90", "dominant_source"):
         assert (out / f"{n}.tif").exists()
+    # each map says what it holds and in which unit, as the other products do (they had
+    # neither a band description nor a unit)
+    for n in ("sigma_horizontal", "sigma_east", "sigma_north", "ce90", "dominant_source"):
+        with rasterio.open(out / f"{n}.tif") as f:
+            assert f.descriptions[0] and f.units[0], n
+            assert f.units[0] == ("1" if n == "dominant_source" else "metre"), n
+    with rasterio.open(out / "dominant_source.tif") as f:
+        assert "0 col_shift" in f.descriptions[0] and "2 dem_height" in f.descriptions[0]
+    with rasterio.open(out / "share_dem_height.tif") as f:
+        assert "dem_height" in f.descriptions[0] and f.units[0] == "1"
     with (
         rasterio.open(out / "sigma_horizontal.tif") as a,
         rasterio.open(out / "sigma_east.tif") as e,
