@@ -61,3 +61,23 @@ def connect(address):
         raise InputError(
             f"--dask {address}: cannot connect to the scheduler ({type(exc).__name__}: {reason})"
         ) from None
+
+
+def quiet_distributed_logging() -> None:
+    """Bring ``distributed``'s loggers to the root logger's level when that is above INFO.
+
+    ``distributed`` sets its logger to INFO when it is imported (its default configuration)
+    and lets the records propagate: under the command line's handler (warnings and errors by
+    default) ``stereodem batch --dask local`` printed some twenty lines of scheduler, nanny
+    and connection chatter around its own result lines. With ``-v`` (root at INFO or DEBUG),
+    or an application whose root logger shows INFO, they are left as ``distributed`` set them.
+    Call it after importing ``dask.distributed``.
+    """
+    import logging
+
+    level = logging.getLogger().getEffectiveLevel()
+    if level <= logging.INFO:
+        return
+    logger = logging.getLogger("distributed")
+    if logger.level != logging.NOTSET and logger.level < level:
+        logger.setLevel(level)

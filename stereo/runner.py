@@ -535,6 +535,9 @@ def _run_dask(fn, todo, context, timeout, address, collect):
         from dask.distributed import as_completed as dask_completed
     except ImportError:
         raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
+    from stereodem.core.dask_threads import quiet_distributed_logging
+
+    quiet_distributed_logging()
     own = not hasattr(address, "submit")
     if own:
         from stereodem.core.dask_threads import connect

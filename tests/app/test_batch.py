@@ -198,3 +198,23 @@ def test_a_failed_scene_whose_configuration_changed_says_what_batch_takes(tmp_pa
     row = run_batch(expand_inputs([cfg]), out, workers=1, overwrite=True)["scenes"][0]
     assert row["status"] == "done", row
     assert not (tiles / "tile_0.npz").exists()
+
+
+@pytest.mark.slow  # a LocalCluster's start and stop (~3 s)
+def test_dask_local_prints_no_cluster_chatter(tmp_path):
+    """`batch --dask local` printed some twenty INFO lines of distributed's (scheduler,
+    nanny, connections) around its own: distributed sets its logger to INFO on import."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("dask.distributed")
+    cfg = tmp_path / "a.toml"
+    cfg.write_text('[inputs]\nleft = "none_l.tif"\nright = "none_r.tif"\n')
+    code = "import sys; from stereodem.cli import main; sys.exit(main(sys.argv[1:]))"
+    args = [str(cfg), "-o", str(tmp_path / "out"), "--dask", "local", "--workers", "1"]
+    done = subprocess.run(
+        [sys.executable, "-c", code, "batch", *args], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 1, done.stderr  # the scene fails: its images do not exist
+    assert "1 failed" in done.stdout
+    assert "distributed" not in done.stderr, done.stderr
