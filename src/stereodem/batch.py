@@ -159,7 +159,7 @@ def _size(path: Path) -> int:
 def _config_size(path: Path) -> int:
     """Bytes of a configuration's images (0 when it cannot be read: it will fail later)."""
     try:
-        cfg = load_config(path)
+        cfg = load_config(path, output_dir=".")
     except Exception:  # noqa: BLE001 - a bad configuration fails in its own task, with its reason
         return 0
     return sum(_size(Path(p)) for p in (cfg.inputs.left, cfg.inputs.right) if p)
@@ -181,8 +181,11 @@ def scene_config(
     # absolute: the paths run.json records then name the same files from any folder
     # (:func:`done_with_other_settings` compares them)
     if scene.kind == "config":
+        # the scene's folder is OUT/<name> whatever its [output] dir says, which it then
+        # need not have (a configuration without it failed: "[output] needs 'dir'")
         cfg = load_config(
             Path(scene.path).absolute(),
+            output_dir=out_dir,
             workers=workers,
             overwrite=overwrite,
             resume=resume,
@@ -196,10 +199,11 @@ def scene_config(
         raw.setdefault("inputs", {})
         raw["inputs"] = {k: v for k, v in raw["inputs"].items() if k not in ("left", "right")}
         raw["inputs"]["left"] = str(Path(scene.path).resolve())
-        raw["output"] = {"dir": "."}
+        raw.pop("output", None)
         cfg = config_from_dict(
             raw,
             base=base,
+            output_dir=out_dir,
             source=scene.template or "batch defaults",
             workers=workers,
             overwrite=overwrite,
@@ -430,7 +434,9 @@ def _run_dask(order, out_root, address, n, scene_options, collect):
         from dask.distributed import as_completed as dask_completed
     except ImportError:
         raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
+    from stereodem.core.dask_threads import quiet_distributed_logging
 
+    quiet_distributed_logging()
     cluster = None
     if address == "local":
         cluster = LocalCluster(

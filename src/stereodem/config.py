@@ -571,7 +571,8 @@ def _is_granule(path, base) -> bool:
 
 
 def load_config(path, **overrides) -> Config:
-    """Read a TOML configuration; relative input paths are relative to the file."""
+    """Read a TOML configuration; relative input paths are relative to the file;
+    ``overrides`` as :func:`config_from_dict`'s (``output_dir``, [run] keys)."""
     path = as_path(path, "configuration")
     try:
         raw = tomllib.loads(path.read_text())
@@ -586,10 +587,14 @@ def load_config(path, **overrides) -> Config:
     return config_from_dict(raw, base=path.parent, source=path, **overrides)
 
 
-def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides) -> Config:
+def config_from_dict(
+    raw: dict, *, base=".", source="configuration", output_dir=None, **overrides
+) -> Config:
     """A :class:`Config` from a parsed TOML mapping (see the module docstring).
 
-    ``overrides`` (``workers``, ``resume``, ...) replace [run] keys when not None.
+    ``output_dir``: the folder the job writes into, whatever ``[output] dir`` says, which is
+    then optional (``stereodem batch``: ``OUT/<scene>``). ``overrides`` (``workers``,
+    ``resume``, ...) replace [run] keys when not None.
     """
     if "stereo" in raw:
         raise InputError(
@@ -623,9 +628,12 @@ def config_from_dict(raw: dict, *, base=".", source="configuration", **overrides
         if isinstance(inp.get(key), str) and inp[key]:
             inp[key] = _path(inp[key], base)
     out = raw.get("output", {}).get("dir") if isinstance(raw.get("output"), dict) else None
-    if not out or not isinstance(out, str):
+    if output_dir is not None:
+        out = str(output_dir)
+    elif not out or not isinstance(out, str):
         raise InputError(f"{source}: [output] needs 'dir'")
-    unknown = unknown_keys(raw["output"], ("dir",), "[output]")
+    section = raw.get("output", {})
+    unknown = unknown_keys(section if isinstance(section, dict) else {}, ("dir",), "[output]")
     if unknown:  # a typo was ignored
         raise InputError(f"{source}: {unknown}")
     tables = {name: dict(inp if name == "inputs" else raw.get(name, {})) for name in SECTIONS}

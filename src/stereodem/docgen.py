@@ -184,7 +184,8 @@ def configuration_markdown(sections=None) -> str:
         "| key | type | default | description |",
         "|---|---|---|---|",
         "| `dir` | str | *required* | Output folder of the run (relative to the configuration "
-        "file). |",
+        "file); `stereodem batch` writes each scene into `OUT/<scene>` instead, and does not "
+        "need it. |",
         "",
     ]
     return "\n".join(parts).rstrip() + "\n"

@@ -200,6 +200,27 @@ def test_a_failed_scene_whose_configuration_changed_says_what_batch_takes(tmp_pa
     assert not (tiles / "tile_0.npz").exists()
 
 
+def test_a_scene_configuration_needs_no_output_dir(tmp_path):
+    """batch writes each scene into OUT/<name>, whatever its [output] dir says: a
+    configuration without one failed ("[output] needs 'dir'") though it would be ignored."""
+    from stereodem.batch import scene_config
+    from stereodem.config import load_config
+
+    img = tmp_path / "l.tif"
+    img.write_bytes(b"")
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(f'[inputs]\nleft = "{img}"\nright = "{img}"\n')
+    (scene,) = expand_inputs([cfg])
+    got = scene_config(scene, tmp_path / "out" / "s")
+    assert got.output_dir == str(tmp_path / "out" / "s")
+    # `stereodem run` itself still needs it; a misspelt [output] key is still refused
+    with pytest.raises(InputError, match=r"\[output\] needs 'dir'"):
+        load_config(cfg)
+    cfg.write_text(f'[inputs]\nleft = "{img}"\nright = "{img}"\n[output]\ndri = "x"\n')
+    with pytest.raises(InputError, match=r"dri \(did you mean dir\?\)"):
+        scene_config(scene, tmp_path / "out" / "s")
+
+
 @pytest.mark.slow  # a LocalCluster's start and stop (~3 s)
 def test_dask_local_prints_no_cluster_chatter(tmp_path):
     """`batch --dask local` printed some twenty INFO lines of distributed's (scheduler,
