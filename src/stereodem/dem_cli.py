@@ -283,7 +283,7 @@ def run(args) -> int:
     check_dem_result(cfg, prod, failed, out / "dem_report.json")
     g = prod.dem.grid
     options.say(
-        f"stereodem dem: {out / 'dem.tif'}: {g.width}x{g.height} cells at {g.posting:g}, "
+        f"stereodem dem: {out / 'dem.tif'}: {g.width}x{g.height} cells at {options.posting(g)}, "
         f"{100 * prod.info.valid_cells:.1f} % valid, {prod.seconds:.1f} s"
     )
     options.say(sparse_line(prod.info.to_dict()))
@@ -314,7 +314,7 @@ def _run_strip(args, granules, started) -> int:
     options.say(
         f"stereodem dem: {out / 'dem.tif'}: strip of {len(granules)} granules "
         f"({', '.join(Path(p).name for p in granules)}), {g.width}x{g.height} cells at "
-        f"{g.posting:g}, {100 * prod.info.valid_cells:.1f} % valid, {prod.seconds:.1f} s"
+        f"{options.posting(g)}, {100 * prod.info.valid_cells:.1f} % valid, {prod.seconds:.1f} s"
     )
     options.say(
         "  3N line offsets "
@@ -340,7 +340,7 @@ def _run_multiview(cfg, started) -> int:
     )
     options.say(
         f"stereodem dem: {out / 'dem.tif'}: {f.grid.width}x{f.grid.height} cells at "
-        f"{f.grid.posting:g}, {100 * mv['fusion']['valid_cells']:.1f} % valid, fused from "
+        f"{options.posting(f.grid)}, {100 * mv['fusion']['valid_cells']:.1f} % valid, fused from "
         f"{len(mv['pair_runs'])} pair(s): {pairs}; {prod.seconds:.1f} s"
     )
     for s in mv["skipped_images"]:

@@ -189,8 +189,8 @@ def run(args) -> int:
     g = plan.grid
     options.say(
         f"stereodem mosaic: {out}: {report['n_used']} of {report['n_inputs']} DEMs, "
-        f"{g.width}x{g.height} cells at {g.posting:g}, {100 * report['valid_share']:.1f} % valid, "
-        f"{report['seconds']:.1f} s ({args.method})"
+        f"{g.width}x{g.height} cells at {options.posting(g)}, "
+        f"{100 * report['valid_share']:.1f} % valid, {report['seconds']:.1f} s ({args.method})"
     )
     for s in report["skipped"]:
         options.say(f"  skipped {s['path']}: {s['reason']}")

@@ -155,9 +155,10 @@ def run(args) -> int:
     top = max(maps.shares, key=lambda k: maps.shares[k])
     options.say(
         f"wrote {out}/sigma_horizontal.tif (+ east, north, ce90, dominant_source, "
-        f"sensitivity.json, uncertainty.png): {grid.width}x{grid.height} cells of {grid.res[0]:g} "
-        f"m; sigma_horizontal median {s['sigma_horizontal_m']['median']:.3g} m (max "
-        f"{s['sigma_horizontal_m']['max']:.3g}); largest share {top} {maps.shares[top]:.3f}; "
+        f"sensitivity.json, uncertainty.png): {grid.width}x{grid.height} cells of "
+        f"{options.posting(grid)}; sigma_horizontal median "
+        f"{s['sigma_horizontal_m']['median']:.3g} m (max {s['sigma_horizontal_m']['max']:.3g}); "
+        f"largest share {top} {maps.shares[top]:.3f}; "
         f"interpolation error {maps.interpolation_error:.2g} (relative, measured)"
     )
     return 0

@@ -807,3 +807,22 @@ def test_a_reference_across_the_antimeridian_is_cropped_for_coregister(tmp_path)
     write_geotiff(tmp_path / "r.tif", np.full((40, 40), 9.0, np.float32), t, "EPSG:4326", np.nan)
     ref = pm.crop_reference(tmp_path / "r.tif", b, "EPSG:32601", margin_cells=0)
     assert ref.transform.c == pytest.approx(179.99, abs=0.002) and ref.shape[1] < 30
+
+
+def test_result_line_gives_the_posting_with_its_unit(tmp_path, capsys):
+    """`stereodem mosaic` (and dem, uncertainty) say "cells at 30 m", not "cells at 30":
+    a bare number did not say metres or degrees (a lon/lat grid's 0.000833)."""
+    from pyproj import CRS as PCRS
+
+    from stereodem.core.grid import MapGrid
+    from stereodem.options import posting
+
+    a = write_dem(tmp_path / "a.tif", 0, 0, 40, 40)
+    assert main(["mosaic", str(a), "-o", str(tmp_path / "m.tif")]) == 0
+    assert f"cells at {RES:g} m," in capsys.readouterr().out
+    t = Affine(30.0, 0, 500000, 0, -30.0, 4e6)
+    assert posting(MapGrid(t, 4, 4, PCRS("EPSG:32637"))) == "30 m"
+    assert posting(MapGrid(t, 4, 4, PCRS("EPSG:32637+5773"))) == "30 m"  # compound
+    g = MapGrid(Affine(0.000833, 0, 40, 0, -0.000833, 39), 4, 4, PCRS("EPSG:4326"))
+    assert posting(g) == "0.000833°"
+    assert posting(MapGrid(t, 4, 4, PCRS("EPSG:2227"))) == "30 US survey foot"
