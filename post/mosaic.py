@@ -646,8 +646,8 @@ def _dask_blocks(plan, todo, address, workers):
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:  # pragma: no cover - optional extra
         raise InputError("--dask needs dask.distributed (pip install 'stereodem[dask]')") from None
-    from stereodem.core.threads import pool_size, register_dask_plugin, worker_threads
     from stereodem.core.dask_threads import quiet_distributed_logging
+    from stereodem.core.threads import pool_size, register_dask_plugin, worker_threads
 
     quiet_distributed_logging()
     cluster = None
