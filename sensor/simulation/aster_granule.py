@@ -51,6 +51,8 @@ UCC_NORMAL = 0.862
 #: default acquisition start (UTC) of simulated granules (the bundled Rainier granule's day)
 DEFAULT_START = _dt.datetime(2017, 7, 31, 19, 7, 28)
 _EPOCH_1958 = _dt.datetime(1958, 1, 1)
+#: production time of simulated granules before :func:`production_time` adds the seed's minutes
+_PRODUCTION_BASE = _dt.datetime(2026, 11, 21, 12, 0, 0)
 #: first lattice row as a fraction of the row step (fixture: -232/400 for 3N, -39/400 for 3B)
 _FIRST_ROW_FRACTION = {"3N": -0.58, "3B": -0.0975}
 
@@ -82,6 +84,7 @@ class SimulatedGranule:
     bands: dict
     attributes: dict = field(default_factory=dict)  #: ODL global attributes (V004 names)
     settings: dict = field(default_factory=dict)
+    production: _dt.datetime = _PRODUCTION_BASE  #: production time (the id's second stamp)
 
 
 # ============================================================================ geometry
@@ -179,7 +182,9 @@ def granule_from_scene(
 
     ``scene_index`` numbers the granules of one simulated pass
     (:mod:`stereodem.sensor.simulation.aster_strip`): it is added to the row of
-    ``ASTERSCENEID`` and, in seconds, to the production time of the granule id.
+    ``ASTERSCENEID`` and, in seconds, to the production time of the granule id; the seed sets
+    the production time's minute (:func:`production_time`), so granules of different seeds
+    have different ids (file names) though they share the acquisition start.
 
     The scene image (DN-like, 0 = void) times ``radiance_scale`` is the true radiance.
     ``row_step`` defaults to 400 lines for full-size images, else about a tenth of the 3N height.
@@ -221,7 +226,7 @@ def granule_from_scene(
             lon,
             t,
         )
-    now = _dt.datetime(2026, 11, 21, 12, 0, 0) + _dt.timedelta(seconds=int(scene_index))
+    now = production_time(seed, scene_index)
     gid = f"AST_L1A_00{version}{start:%m%d%Y%H%M%S}_{now:%Y%m%d%H%M%S}"
     g = SimulatedGranule(
         gid,
@@ -234,9 +239,20 @@ def granule_from_scene(
             radiance_scale=radiance_scale,
             scene_index=int(scene_index),
         ),
+        production=now,
     )
     g.attributes = _odl_attributes(g, scene)
     return g
+
+
+def production_time(seed: int = 0, scene_index: int = 0) -> _dt.datetime:
+    """The production time of a simulated granule, the second time stamp of its id
+    (``AST_L1A_004<acquisition MMDDYYYYHHMMSS>_<production YYYYMMDDHHMMSS>``, as real ids):
+    a fixed day plus ``seed`` minutes (modulo 10^6, about two years) plus ``scene_index``
+    seconds, so two granules simulated with different seeds get different file names and
+    can share a folder (``batch``)."""
+    minutes = int(seed) % 1_000_000
+    return _PRODUCTION_BASE + _dt.timedelta(minutes=minutes, seconds=int(scene_index))
 
 
 def _corners(model):
@@ -271,7 +287,7 @@ def _odl_attributes(g: SimulatedGranule, scene) -> dict:
             "GROUPTYPE": "MASTERGROUP",
             "ECSDATAGRANULE": {
                 "LOCALGRANULEID": _obj(g.granule_id + ".hdf"),
-                "PRODUCTIONDATETIME": _obj("2026-11-21T12:00:00.000Z"),
+                "PRODUCTIONDATETIME": _obj(f"{g.production:%Y-%m-%dT%H:%M:%S}.000Z"),
             },
             "COLLECTIONDESCRIPTIONCLASS": {"SHORTNAME": _obj("ASTL1A"), "VERSIONID": _obj(4)},
             "RANGEDATETIME": {

@@ -56,7 +56,10 @@ def add_parser(sub):
         "and texture; write images with RPCs, physical-model sidecars, "
         "the true DEM and orthoimage, and check points. With --format "
         "l1a-v004 / l1a-v003 (preset aster) the pair is written as an "
-        "ASTER L1A granule (3N = left, 3B = right) instead of GeoTIFFs.",
+        "ASTER L1A granule (3N = left, 3B = right) instead of GeoTIFFs, named "
+        "AST_L1A_00<v><acquired MMDDYYYYHHMMSS>_<produced YYYYMMDDHHMMSS> as real granules; "
+        "the production stamp follows --seed, so granules of different seeds can share "
+        "a folder.",
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -470,3 +470,33 @@ def test_dem_from_granule_matches_dem_from_geotiff_and_sidecar(tmp_path):
     assert abs(np.nanmedian(diff)) < 0.05
     assert nmad(diff) < 0.15 * nmad(tif.heights - truth)
     assert abs(np.isfinite(gran.heights).mean() - np.isfinite(tif.heights).mean()) < 0.005
+
+
+@pytest.mark.slow
+def test_simulated_granules_of_different_seeds_share_a_folder(tmp_path):
+    """`simulate --seed N`: the granule's id (file name) carries a production stamp from the
+    seed, in the real AST_L1A_004<acquired>_<produced> pattern, so granules of two seeds copied
+    into one folder do not overwrite each other and `batch` sees two scenes."""
+    import re
+
+    from stereodem.batch import expand_inputs
+
+    both = tmp_path / "both"
+    both.mkdir()
+    for seed in (1, 2):
+        out = tmp_path / f"s{seed}"
+        args = ["simulate", "--preset", "aster", "--format", "l1a-v004", "--size", "120", "120"]
+        assert main([*args, "--seed", str(seed), "-o", str(out)]) == 0
+        (hdf,) = out.glob("AST_L1A_004*.hdf")
+        assert re.fullmatch(r"AST_L1A_004\d{14}_\d{14}\.hdf", hdf.name), hdf.name
+        assert not (both / hdf.name).exists(), f"seed {seed}: {hdf.name} is already there"
+        shutil.copy(hdf, both / hdf.name)
+    granules = sorted(both.glob("*.hdf"))
+    assert len(granules) == 2
+    for p in granules:
+        g = open_aster_granule(p)
+        assert g["3N"].shape == (120, 120)
+        md = g.metadata
+        assert md["granule_id"] == p.stem and md["acquisition_time"] == "2017-07-31T19:07:28Z"
+    scenes = expand_inputs([str(p) for p in granules])
+    assert len({s.name for s in scenes}) == 2 and {s.kind for s in scenes} == {"granule"}
