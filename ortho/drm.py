@@ -601,8 +601,9 @@ class Ortho(OnGrid):
     backward_map : BackwardMap
     dem_missing : dict
         ``n_cells`` inside the image footprint but outside the DEM, and their lon/lat bounds;
-        ``n_no_height`` footprint cells without a height (holes or outside), their
-        ``footprint_share``, and ``filled_cells`` taken from ``fill_dem``.
+        ``n_footprint`` cells under the image footprint, ``n_no_height`` of them without a
+        height (holes or outside), their ``footprint_share`` (:func:`dem_gaps`' rule), and
+        ``filled_cells`` taken from ``fill_dem``.
     col, row : ndarray float32, optional
         Image coordinates per cell (``keep_maps=True``).
     """
@@ -691,6 +692,55 @@ def _progressing(results, progress, total):
         yield r1, miss
 
 
+# ----------------------------------------------------------------- DEM gaps under the footprint
+# One rule for "no DEM height under X % of the image footprint", which ortho and uncertainty
+# (and the pipeline) report: of the map-grid cells whose image position (at their DEM height,
+# at the middle height where there is none) lies in the image, the share without a DEM height
+# (DEM voids, or outside the DEM). Counted exactly, cell by cell, on the product's grid.
+
+
+def _footprint_counts(col, row, h, model) -> tuple[int, int]:
+    """(footprint cells, footprint cells without a DEM height) of one block of the backward
+    map (:meth:`BackwardMap.block`'s ``col, row, h``)."""
+    foot = (col >= -0.5) & (row >= -0.5) & (col <= model.width - 0.5) & (row <= model.height - 0.5)
+    return int(foot.sum()), int((foot & ~np.isfinite(h)).sum())
+
+
+def _no_height_share(n_no_height: int, n_footprint: int) -> float:
+    return float(n_no_height) / max(int(n_footprint), 1)
+
+
+def dem_gaps(model, dem, grid: MapGrid, *, fill_dem=None, tolerance: float = 0.01) -> dict:
+    """Cells of ``grid`` under the image footprint without a height in ``dem`` (voids, or
+    outside it; ``fill_dem`` fills them as :func:`orthorectify` does): ``n_footprint``,
+    ``n_no_height`` and their ``footprint_share``, the figures :func:`orthorectify` reports
+    (``Ortho.dem_missing``) for the same model, DEM and grid, without resampling an image
+    (the uncertainty maps' warning uses it)."""
+    dem = as_dem(dem)
+    fill = as_dem(fill_dem) if fill_dem is not None else None
+    bm = build_backward_map(model, grid, crop_dem(dem, grid, fill=fill), tolerance=tolerance)
+    H, W = grid.shape
+    rows = max(16, min(H, 262_144 // max(W, 1)))
+    n_foot = n_no = 0
+    for r0 in range(0, H, rows):
+        a, b = _footprint_counts(*bm.block(r0, min(H, r0 + rows)), model)
+        n_foot, n_no = n_foot + a, n_no + b
+    return dict(
+        n_footprint=n_foot, n_no_height=n_no, footprint_share=_no_height_share(n_no, n_foot)
+    )
+
+
+def no_height_message(dem_name, missing: dict, consequence: str) -> str:
+    """The warning for ``missing`` (:func:`dem_gaps` or ``Ortho.dem_missing``) that every
+    command gives: ``"<dem>: no DEM height under 5.1% of the image footprint (N map cell(s):
+    holes or outside the DEM): <consequence>"``."""
+    return (
+        f"{dem_name or 'DEM'}: no DEM height under {100 * missing['footprint_share']:.1f}% of "
+        f"the image footprint ({missing['n_no_height']} map cell(s): holes or outside the DEM): "
+        f"{consequence}"
+    )
+
+
 def orthorectify(
     image,
     model,
@@ -751,8 +801,9 @@ def orthorectify(
         Fallback heights where ``dem`` has none (holes, or outside it).
 
     Cells of the image footprint without a DEM height are nodata; their number and share of
-    the footprint are logged as a warning and returned in ``Ortho.dem_missing``
-    (``n_no_height``, ``footprint_share``).
+    the footprint's cells are logged as a warning and returned in ``Ortho.dem_missing``
+    (``n_no_height``, ``n_footprint``, ``footprint_share``; :func:`dem_gaps` gives the same
+    figures without an image).
 
     Returns
     -------
@@ -795,15 +846,13 @@ def orthorectify(
         heights[r0:r1] = h
         nohgt = ~np.isfinite(h)
         miss = None
-        n_foot = 0
+        # footprint cells, and those without a DEM height (the one rule: _footprint_counts)
+        counts = _footprint_counts(col, row, h, model)
         if nohgt.any():
-            # cells in the footprint (their image position at the middle height, which the
-            # block map gives where there is no height) that have no DEM height
-            ci, ri = col[nohgt], row[nohgt]
+            ci, ri = col[nohgt], row[nohgt]  # at the middle height where there is no height
             infoot = (
                 (ci >= -0.5) & (ri >= -0.5) & (ci <= model.width - 0.5) & (ri <= model.height - 0.5)
             )
-            n_foot = int(infoot.sum())
             dcc, drr = dcol[nohgt][infoot], drow[nohgt][infoot]
             outside = (dcc < 0) | (drr < 0) | (dcc > dr_cols - 1) | (drr > dr_rows - 1)
             if outside.any():
@@ -817,7 +866,7 @@ def orthorectify(
         data[r0:r1] = remap_nan(img, ok, col, row, resampling, nodata)
         if keep_maps:
             cols_map[r0:r1], rows_map[r0:r1] = col, row
-        return r1, (miss, n_foot)
+        return r1, (miss, counts)
 
     starts = range(0, H, block_rows)
     if isinstance(threads, Executor):
@@ -827,29 +876,24 @@ def orthorectify(
             done = list(_progressing(pool.map(run_block, starts), progress, H))
     else:
         done = list(_progressing(map(run_block, starts), progress, H))
-    n_no_height = sum(m[1] for _, m in done)
+    n_footprint = sum(m[1][0] for _, m in done)
+    n_no_height = sum(m[1][1] for _, m in done)
     misses = [m[0] for _, m in done if m[0] is not None]
     n_missing = sum(m[0] for m in misses)
     miss_lo = np.min([m[1] for m in misses], axis=0) if misses else None
     miss_hi = np.max([m[2] for m in misses], axis=0) if misses else None
     valid_out = np.isfinite(data) if np.isnan(nodata) else data != nodata
-    share = n_no_height / max(n_no_height + int(valid_out.sum()), 1)
     missing = dict(
         n_cells=n_missing,
         lonlat_bounds=(tuple(float(v) for v in (*miss_lo, *miss_hi)) if n_missing else None),
         n_no_height=int(n_no_height),
-        footprint_share=float(share),
+        n_footprint=int(n_footprint),
+        footprint_share=_no_height_share(n_no_height, n_footprint),
         filled_cells=int(getattr(dem_e, "filled_cells", 0)),
     )
     if n_no_height and not (strict_dem and n_missing):
-        log.warning(
-            "%s: no DEM height under %.1f%% of the image footprint (%d cell(s): holes or "
-            "outside the DEM): nodata there%s",
-            dem.path or "DEM",
-            100 * share,
-            n_no_height,
-            "" if fill is not None else "; a second DEM can fill them (fill_dem / --fill-dem)",
-        )
+        hint = "" if fill is not None else "; a second DEM can fill them (fill_dem / --fill-dem)"
+        log.warning("%s", no_height_message(dem.path, missing, "nodata there" + hint))
     if n_missing:
         msg = (
             f"{dem.path or 'DEM'}: the DEM does not cover the image footprint: {n_missing} cell(s) "

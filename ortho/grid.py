@@ -59,14 +59,6 @@ def footprint_height_range(model, dem, *, samples: int = 41):
     return h_lo, h_hi
 
 
-def share_without_dem(model, dem, h: float, *, n: int = 21) -> float:
-    """Share (0..1) of the image without a DEM height: of an ``n x n`` lattice of pixels
-    localised at height ``h``, those where ``dem`` has no height (outside it or on voids)."""
-    c, r = np.meshgrid(np.linspace(0, model.width - 1, n), np.linspace(0, model.height - 1, n))
-    lon, lat = model.localize(c.ravel(), r.ravel(), np.full(c.size, float(h)))
-    return float(np.mean(~np.isfinite(dem.sample(lon, lat))))
-
-
 def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=None) -> MapGrid:
     """The map grid of an orthoimage of ``model``'s image over ``dem``.
 

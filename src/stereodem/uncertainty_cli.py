@@ -101,7 +101,8 @@ def run(args) -> int:
     from stereodem.core.dem import DEM
     from stereodem.core.errors import InputError
     from stereodem.core.threads import job_threads
-    from stereodem.ortho.grid import footprint_height_range, grid_for_model, share_without_dem
+    from stereodem.ortho.drm import dem_gaps, no_height_message
+    from stereodem.ortho.grid import footprint_height_range, grid_for_model
     from stereodem.ortho.uncertainty.covariance import (
         assemble,
         parse_sigma_pairs,
@@ -126,16 +127,13 @@ def run(args) -> int:
     model, names, D = assemble(model, sigmas=sigmas, report=report, image=args.image)
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical)
     h_range = footprint_height_range(model, dem)
-    missing = share_without_dem(model, dem, 0.5 * sum(h_range))
-    if missing > 0:
-        # the maps are nodata there, as the orthoimage (which says so too)
-        log.warning(
-            "%s: no DEM height under %.1f%% of the image (outside the DEM or on its voids): "
-            "the uncertainty maps are nodata there",
-            args.dem,
-            100 * missing,
-        )
     grid = grid_for_model(model, dem, res=args.res, crs=args.crs, h_range=h_range)
+    # the maps are nodata there, as the orthoimage on this grid: the figure ortho reports
+    missing = dem_gaps(model, dem, grid)
+    if missing["n_no_height"]:
+        log.warning(
+            "%s", no_height_message(args.dem, missing, "the uncertainty maps are nodata there")
+        )
     threads = job_threads(args.workers)
     maps = ortho_uncertainty_maps(
         model,

@@ -297,6 +297,46 @@ def test_dem_covering_part_of_the_image_is_a_warning(tmp_path, caplog):
     msg = [r.getMessage() for r in caplog.records if "no DEM height under" in r.getMessage()]
     assert len(msg) == 1 and "part.tif" in msg[0], caplog.text
     assert 20 < float(msg[0].split("no DEM height under ")[1].split("%")[0]) < 95, msg[0]
-    from stereodem.ortho.grid import share_without_dem
+    from stereodem.ortho.drm import dem_gaps
+    from stereodem.ortho.grid import grid_for_model
 
-    assert share_without_dem(sc.left_model, dem, float(np.nanmean(dem.heights))) == 0.0
+    grid = grid_for_model(sc.left_model, dem)
+    assert dem_gaps(sc.left_model, dem, grid)["n_no_height"] == 0
+
+
+@pytest.mark.slow
+def test_ortho_and_uncertainty_report_the_same_dem_gap(tmp_path, caplog):
+    """On one image and DEM (a hole, and the DEM stopping short of the image), `ortho` said
+    "no DEM height under 5.1% of the image footprint" (its map cells) and `uncertainty`
+    "17.5% of the image" (a 21 x 21 image lattice); both now count the footprint's map cells
+    without a height on the same grid (ortho.drm.dem_gaps' rule) and say it in one wording."""
+    import re
+
+    from stereodem.core.raster import write_geotiff
+    from stereodem.sensor.io.sidecar import save_model
+    from stereodem.sensor.simulation.simulate import simulate_scene
+
+    sc = simulate_scene("aster", size=(120, 120), seed=1, n_points=1)
+    write_geotiff(tmp_path / "img.tif", sc.left)
+    save_model(sc.left_model, tmp_path / "img.model.json")
+    dem = sc.truth_dem
+    h = dem.heights.copy()
+    rng = np.random.default_rng(0)
+    h[rng.random(h.shape) < 0.04] = np.nan  # scattered voids: the old figures differed most
+    r, c = h.shape
+    h[r // 2 - 8 : r // 2 + 8, c // 2 - 8 : c // 2 + 8] = np.nan  # a hole under the image
+    h = h[:, : 3 * c // 5]  # stops short of the image's eastern part
+    DEM(h, dem.transform, dem.crs, "ellipsoid").write(tmp_path / "gappy.tif")
+    img, gappy = str(tmp_path / "img.tif"), str(tmp_path / "gappy.tif")
+    figures = {}
+    for cmd, extra in (("ortho", []), ("uncertainty", ["--sigma", "dem_height=4"])):
+        caplog.clear()
+        with caplog.at_level("WARNING"):
+            assert main([cmd, img, "--dem", gappy, *extra, "-o", str(tmp_path / cmd)]) == 0
+        (msg,) = [r.getMessage() for r in caplog.records if "no DEM height" in r.getMessage()]
+        m = re.search(r"no DEM height under ([\d.]+)% of the image", msg)
+        assert m and "gappy.tif" in msg, msg
+        n = re.search(r"image footprint \((\d+) map cell", msg)
+        figures[cmd] = (float(m.group(1)), int(n.group(1)) if n else None)
+    assert figures["ortho"] == figures["uncertainty"], figures
+    assert 10 < figures["ortho"][0] < 90, figures
