@@ -118,6 +118,25 @@ class MapGrid:
         """Cell size along x, map units (square cells)."""
         return float(self.transform.a)
 
+    @property
+    def unit(self) -> str:
+        """The map unit (the CRS's first horizontal axis): ``"metre"``, ``"degree"``, or
+        another name as pyproj gives it (``"US survey foot"``); ``""`` when the CRS does not
+        say. :attr:`res` and :attr:`posting` are in it, metres only when it is ``"metre"``."""
+        crs = self.crs
+        axes = crs.axis_info or (crs.sub_crs_list[0].axis_info if crs.sub_crs_list else [])
+        unit = axes[0].unit_name.strip() if axes else ""
+        return "metre" if unit.lower() in ("metre", "meter") else unit
+
+    def res_report(self) -> dict:
+        """The posting for a report: ``res`` (map units), ``res_unit`` (:attr:`unit`), and
+        ``res_m`` (the key reports had) only when the unit is the metre: it is not metres
+        on a lon/lat or a feet grid."""
+        rep = {"res": self.posting, "res_unit": self.unit}
+        if rep["res_unit"] == "metre":
+            rep["res_m"] = self.posting
+        return rep
+
     def cell_centres(self):
         """Map coordinates ``(x, y)`` of all cell centres, arrays of :attr:`shape`."""
         jj, ii = np.meshgrid(np.arange(self.width), np.arange(self.height))

@@ -626,7 +626,7 @@ class Ortho(OnGrid):
         return dict(
             width=self.grid.width,
             height=self.grid.height,
-            res_m=self.grid.res[0],
+            **self.grid.res_report(),  # res, res_unit (res_m only on a metre grid)
             crs=self.grid.crs.to_string(),
             resampling=self.resampling,
             valid_fraction=float(self.valid.mean()),

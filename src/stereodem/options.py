@@ -143,13 +143,8 @@ def posting(grid) -> str:
     """A result line's cell size with its CRS's unit: ``"30 m"``, ``"0.000833°"``,
     ``"100 US survey foot"`` (a bare number did not say whether it was metres or degrees)."""
     text = f"{grid.posting:g}"
-    try:
-        crs = grid.crs
-        axes = crs.axis_info or (crs.sub_crs_list[0].axis_info if crs.sub_crs_list else [])
-        unit = axes[0].unit_name.strip() if axes else ""
-    except (AttributeError, IndexError):  # pragma: no cover - a grid without a pyproj CRS
-        return text
-    if unit.lower() in ("metre", "meter"):
+    unit = grid.unit  # core.grid.MapGrid.unit: the CRS's horizontal axis unit
+    if unit == "metre":
         return f"{text} m"
     if unit.lower() == "degree":
         return f"{text}°"

@@ -235,7 +235,7 @@ def run(args) -> int:
             options.say(f"removed {p}: a layer of the orthoimage {out} replaced")
     rep = ortho.report()
     options.say(
-        f"wrote {out}: {rep['width']}x{rep['height']} cells of {rep['res_m']:g} in "
+        f"wrote {out}: {rep['width']}x{rep['height']} cells of {options.posting(ortho.grid)} in "
         f"{rep['crs']}, {100 * rep['valid_fraction']:.1f}% valid; map interpolation error "
         f"{rep['interpolation_error_px']:.2g} px (measured)"
     )

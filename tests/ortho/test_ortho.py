@@ -828,3 +828,40 @@ def test_orthorectify_given_no_model_or_an_unknown_crs_says_so(rendered):
         StereodemCRSError, match="the orthoimage CRS: unknown or unusable CRS 'foo'"
     ):
         orthorectify(img, cam, dem, crs="foo")
+
+
+def test_result_line_and_tags_give_the_posting_in_the_crs_unit(tmp_path, capsys):
+    """`ortho` said "cells of 15.2 in EPSG:32637" from a field named res_m, which is in the
+    CRS's units: now "cells of 15.2 m" (options.posting), and the report/tags carry res and
+    res_unit, with res_m only on a metre grid (on a feet grid it was feet)."""
+    import json
+
+    from stereodem.cli import main
+    from stereodem.sensor.io.sidecar import save_model
+
+    sc = sim.simulate_scene("aster", size=(80, 80), seed=0, n_points=1)
+    write_geotiff(tmp_path / "img.tif", sc.left)
+    save_model(sc.left_model, tmp_path / "img.model.json")
+    sc.truth_dem.write(tmp_path / "dem.tif")
+    img, dem = str(tmp_path / "img.tif"), str(tmp_path / "dem.tif")
+    assert main(["ortho", img, "--dem", dem, "--res", "15", "-o", str(tmp_path / "m.tif")]) == 0
+    assert "cells of 15 m in EPSG:32637" in capsys.readouterr().out
+    with rasterio.open(tmp_path / "m.tif") as ds:
+        tags = ds.tags()
+    assert (tags["STEREODEM_RES"], tags["STEREODEM_RES_UNIT"], tags["STEREODEM_RES_M"]) == (
+        "15.0",
+        "metre",
+        "15.0",
+    )
+    feet = "+proj=utm +zone=37 +datum=WGS84 +units=us-ft +type=crs"
+    argv = ["ortho", img, "--dem", dem, "--crs", feet, "--res", "50", "-o", str(tmp_path / "f.tif")]
+    assert main(argv) == 0
+    assert "cells of 50 US survey foot in " in capsys.readouterr().out
+    with rasterio.open(tmp_path / "f.tif") as ds:
+        tags = ds.tags()
+    assert tags["STEREODEM_RES_UNIT"] == "US survey foot" and "STEREODEM_RES_M" not in tags
+    # the uncertainty maps' sensitivity.json: the same fields
+    u = tmp_path / "u"
+    assert main(["uncertainty", img, "--dem", dem, "--sigma", "dem_height=4", "-o", str(u)]) == 0
+    grid = json.loads((u / "sensitivity.json").read_text())["grid"]
+    assert grid["res_unit"] == "metre" and grid["res"] == grid["res_m"]
