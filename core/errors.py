@@ -43,8 +43,51 @@ class NoOverlapError(InputError):
     """Two images, or an image and a DEM, do not overlap."""
 
 
+#: what lets a write replace an existing output, in each caller's words: the library's keyword
+#: argument and the command line's flag (:meth:`OutputExistsError.needs_overwrite`)
+OVERWRITE_WORDS = {"library": "overwrite=True", "command line": "--overwrite"}
+
+
 class OutputExistsError(StereodemError, FileExistsError):
-    """An output exists and overwriting was not allowed."""
+    """An output exists and overwriting was not allowed.
+
+    Made by :meth:`needs_overwrite`, it carries its advice in both vocabularies
+    (:data:`OVERWRITE_WORDS`): ``str(error)`` is the library's ("pass overwrite=True to
+    replace it"), ``error.message("command line")`` the command line's ("pass --overwrite to
+    replace it"), which ``stereodem`` prints (:func:`error_message`).
+    """
+
+    def __init__(self, message, *, advice: str | None = None):
+        self.problem = str(message)
+        self.advice = advice
+        super().__init__(self.message("library"))
+
+    @classmethod
+    def needs_overwrite(cls, problem: str, advice: str = "to replace it"):
+        """``"<problem>; pass overwrite=True <advice>"`` (``--overwrite`` on the command
+        line): the one way an output refused for want of overwriting is worded."""
+        return cls(problem, advice=advice)
+
+    def message(self, words: str = "library") -> str:
+        """The message in ``words`` (a key of :data:`OVERWRITE_WORDS`)."""
+        if self.advice is None:
+            return self.problem
+        return f"{self.problem}; pass {OVERWRITE_WORDS[words]} {self.advice}"
+
+    def __reduce__(self):  # across processes (batch, dask) with both wordings
+        return (_rebuild_output_exists, (type(self), self.problem, self.advice))
+
+
+def _rebuild_output_exists(cls, problem, advice):
+    return cls(problem, advice=advice)
+
+
+def error_message(exc: BaseException, words: str = "library") -> str:
+    """``str(exc)``, or for an :class:`OutputExistsError` its message in ``words``
+    (``"command line"``: the ``stereodem`` program's vocabulary)."""
+    if isinstance(exc, OutputExistsError):
+        return exc.message(words)
+    return str(exc)
 
 
 class OutputWriteError(StereodemError, OSError):

@@ -40,10 +40,10 @@ def check_writable(path, overwrite: bool = False) -> Path:
     """Raise :class:`OutputExistsError` if ``path`` exists and ``overwrite`` is false, is a
     folder, or cannot be created (:func:`check_creatable`)."""
     path = Path(path)
-    if path.is_dir():  # before the advice to pass --overwrite, which cannot replace a folder
+    if path.is_dir():  # before the advice to pass overwrite, which cannot replace a folder
         raise OutputExistsError(f"{path}: is a folder; give a file name")
     if path.exists() and not overwrite:
-        raise OutputExistsError(f"{path}: exists; pass overwrite=True (--overwrite) to replace it")
+        raise OutputExistsError.needs_overwrite(f"{path}: exists")
     check_creatable(path)
     return path
 
@@ -129,8 +129,8 @@ def check_output_dir(path, *, overwrite: bool = False) -> Path:
     if path.exists() and not path.is_dir():
         raise OutputExistsError(f"{path}: exists and is not a folder")
     if path.is_dir() and any(path.iterdir()) and not overwrite:
-        raise OutputExistsError(
-            f"{path}: folder exists and is not empty; pass --overwrite to reuse it"
+        raise OutputExistsError.needs_overwrite(
+            f"{path}: folder exists and is not empty", "to reuse it"
         )
     check_creatable(path / "x" if path.is_dir() else path)
     return path

@@ -451,7 +451,7 @@ def struct_metadata(g: SimulatedGranule) -> str:
 
 def _check_target(path: Path, overwrite: bool):
     if path.exists() and not overwrite:
-        raise OutputExistsError(f"{path}: exists; pass --overwrite to replace it")
+        raise OutputExistsError.needs_overwrite(f"{path}: exists")
 
 
 def write_v004(g: SimulatedGranule, path, *, overwrite: bool = False) -> Path:

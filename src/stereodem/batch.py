@@ -34,7 +34,7 @@ from pathlib import Path
 import tomllib
 
 from stereodem.core import jsonutil
-from stereodem.core.errors import InputError, OutputExistsError, StereodemError
+from stereodem.core.errors import InputError, OutputExistsError, StereodemError, error_message
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import check_creatable, write_text_atomic
 from stereodem.core.threads import (
@@ -337,7 +337,8 @@ def _cpu() -> float:
 
 
 def _one_line(exc) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
+    # the command line's words, as its other reasons ("pass --overwrite")
+    return " ".join(error_message(exc, "command line").split()) or type(exc).__name__
 
 
 # ----------------------------------------------------------------------------- the batch

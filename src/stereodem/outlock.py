@@ -361,12 +361,12 @@ def _check_contents(path: Path, products: Products, *, overwrite: bool, resume: 
         if present:
             first, *rest = sorted(present)
             also = f" (as do {_names(rest)})" if rest else ""
-            raise OutputExistsError(
-                f"{first}: exists{also}; pass --overwrite to replace the products of a previous run"
+            raise OutputExistsError.needs_overwrite(
+                f"{first}: exists{also}", "to replace the products of a previous run"
             )
-        raise OutputExistsError(
-            f"{path}: folder exists and is not empty (it holds {_names(others, 3)}); "
-            "pass --overwrite to write the products beside its files"
+        raise OutputExistsError.needs_overwrite(
+            f"{path}: folder exists and is not empty (it holds {_names(others, 3)})",
+            "to write the products beside its files",
         )
     if present and not is_stereodem_output(path, products.markers):
         # a folder of the user's (e.g. the one holding the inputs): the products go beside

@@ -511,3 +511,36 @@ def test_write_geotiff_refuses_bad_data_and_crs_naming_them(tmp_path):
     with pytest.raises(CRSError, match=r"x.tif: unknown or unusable CRS 'foo'"):
         write_geotiff(path, np.ones((4, 4), np.float32), T, "foo")
     assert not path.exists()
+
+
+def test_overwrite_advice_in_the_callers_words(tmp_path, capsys):
+    """An existing output: the library said "pass overwrite=True (--overwrite)" to both its
+    callers; now the library's message says overwrite=True and the command line's --overwrite
+    (core.errors.OutputExistsError.needs_overwrite, worded by error_message), also after a trip
+    through pickle (batch's and dask's workers)."""
+    import pickle
+
+    from stereodem.cli import main
+    from stereodem.core.errors import OutputExistsError, error_message
+
+    p = tmp_path / "dem.tif"
+    DEM(_rng_data("float32", (64, 64)), T, "EPSG:32637", GEOID).write(p)
+    with pytest.raises(OutputExistsError) as info:
+        DEM(_rng_data("float32", (64, 64)), T, "EPSG:32637", GEOID).write(p)
+    for exc in (info.value, pickle.loads(pickle.dumps(info.value))):
+        lib, cli = str(exc), error_message(exc, "command line")
+        assert lib == f"{p}: exists; pass overwrite=True to replace it", lib
+        assert cli == f"{p}: exists; pass --overwrite to replace it", cli
+        assert type(exc) is OutputExistsError and error_message(exc) == lib
+    capsys.readouterr()
+    assert main(["mosaic", str(p), "-o", str(p.with_name("m.tif"))]) == 0
+    capsys.readouterr()
+    assert main(["mosaic", str(p), "-o", str(p.with_name("m.tif"))]) == 1
+    err = capsys.readouterr().err
+    assert "pass --overwrite" in err and "overwrite=True" not in err, err
+    # a non-empty output folder (the command line's folder policy, stereodem.outlock)
+    (tmp_path / "sim").mkdir()
+    (tmp_path / "sim" / "mine.txt").write_text("x")
+    assert main(["simulate", "--size", "60", "60", "-o", str(tmp_path / "sim")]) == 1
+    err = capsys.readouterr().err
+    assert "pass --overwrite to write the products beside" in err and "=True" not in err, err
