@@ -30,7 +30,6 @@ the tolerance, and the finished float32 maps are compared with the same exact va
 from __future__ import annotations
 
 import logging
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -38,6 +37,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from stereodem.core.blocks import default_threads
 from stereodem.ortho.drm import _lattice, bilinear_nan, crop_dem
 from stereodem.ortho.uncertainty.propagation import (
     _ce90_table,
@@ -479,7 +479,8 @@ def first_order_maps(
     bw = int(np.max(np.diff(uu)))
     jobs = blk.bands(max(8, cells_per_block // max(bw, 1)))
     _ce90_table()  # tabulated once, before the threads
-    n_threads = max(1, int(threads or os.cpu_count() or 1))
+    # the process's thread budget (as every library routine), not the machine's cores
+    n_threads = max(1, default_threads() if threads is None else int(threads))
     totals = np.zeros(len(lat_.sources))
     if n_threads > 1:
         with ThreadPoolExecutor(n_threads) as pool:

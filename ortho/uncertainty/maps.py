@@ -295,7 +295,8 @@ def ortho_uncertainty_maps(
         Keep each source's share map (full grid, float32 each); the dominant source is always
         computed.
     threads : int, optional
-        Threads for the first-order blocks (default: all cores).
+        Threads for the first-order blocks (default: the process's thread budget,
+        :func:`stereodem.core.blocks.default_threads`; the maps do not depend on it).
 
     Returns
     -------

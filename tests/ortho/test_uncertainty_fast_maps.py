@@ -195,3 +195,33 @@ def test_fast_maps_do_not_depend_on_the_thread_count(rpc_case):
     ):
         assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f")
     assert a.shares == pytest.approx(b.shares, rel=1e-12)
+
+
+def test_fast_maps_default_to_the_process_thread_budget(rpc_case, monkeypatch):
+    """Without ``threads`` the first-order blocks ran on os.cpu_count() threads, whatever the
+    process's budget (a library caller's pin_threads, --workers): now on the budget
+    (core.blocks.default_threads, OpenCV's pinned setting)."""
+    import os
+
+    model, dem, names, D, _ = rpc_case
+    grid = grid_for_model(model, dem, res=8.0)
+    pools = []
+
+    class Recording(F.ThreadPoolExecutor):
+        def __init__(self, n, *a, **k):
+            pools.append(n)
+            super().__init__(n, *a, **k)
+
+    monkeypatch.setattr(F, "ThreadPoolExecutor", Recording)
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    before = cv2.getNumThreads()
+    try:
+        maps = {}
+        for budget in (1, 3):
+            cv2.setNumThreads(budget)
+            pools.clear()
+            maps[budget] = ortho_uncertainty_maps(model, dem, grid, D, names)
+            assert pools == ([] if budget == 1 else [budget]), (budget, pools)
+    finally:
+        cv2.setNumThreads(before)
+    assert np.array_equal(maps[1].sigma_east, maps[3].sigma_east, equal_nan=True)
