@@ -104,7 +104,7 @@ def test_workers_below_one_is_refused_before_any_work(command, workers, dems, tm
 
 #: a library function each command calls once its inputs are checked, by module and name
 PATCHED = {
-    "assess": ("stereodem.pipeline.stages", "assess_dem"),
+    "assess": ("stereodem.pipeline.assessment", "assess_dem"),
     "coregister": ("stereodem.post.coreg_run", "run"),
     "filter": ("stereodem.pipeline.stages", "post_stage"),
     "adjust": ("stereodem.sensor.io.gcps", "read_gcps"),
