@@ -64,6 +64,7 @@ from scipy.optimize import least_squares
 
 from stereodem.core import geodesy
 from stereodem.core.errors import CRSError, InputError
+from stereodem.sensor.choices import GENERIC_MODEL_NAMES
 from stereodem.sensor.estimation import regularize
 from stereodem.sensor.models.base import SensorModel
 
@@ -354,8 +355,9 @@ def _make_forms():
 
 
 _FORMS = _make_forms()
-#: Names of the fitted models, as exposed on the command line.
-MODEL_NAMES = tuple(_FORMS)
+#: Names of the fitted models, as exposed on the command line: the light module's tuple (the
+#: parser imports it), checked equal to the forms' names by tests/app/test_choices.py.
+MODEL_NAMES = GENERIC_MODEL_NAMES
 
 
 def _form(name):

@@ -8,6 +8,7 @@ import logging
 from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
+from stereodem.sensor.choices import ADJUST_MODELS
 
 from . import options
 from .commands import help_line
@@ -33,13 +34,6 @@ GCP CSV: id,lon,lat,h,col,row[,sigma_px][,sigma_ground_m][,role]  (role gcp or c
 degrees WGS84, h ellipsoidal metres unless --vertical geoid, col/row pixels with the centre of
 the top-left pixel at 0,0). Tie CSV: col1,row1,col2,row2 (header required).
 """
-
-
-def _model_choices():
-    from stereodem.sensor.estimation.adjust import MODEL_SETS
-    from stereodem.sensor.models.generic import MODEL_NAMES
-
-    return sorted(MODEL_SETS) + list(MODEL_NAMES) + ["bundle"]
 
 
 def add_parser(sub):
@@ -106,9 +100,9 @@ def add_parser(sub):
     p.add_argument(
         "--model",
         required=True,
-        choices=_model_choices(),
+        choices=ADJUST_MODELS,
         metavar="MODEL",
-        help="parameter set (" + ", ".join(_model_choices()) + ")",
+        help="parameter set (" + ", ".join(ADJUST_MODELS) + ")",
     )
     p.add_argument(
         "--set",

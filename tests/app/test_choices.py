@@ -14,6 +14,9 @@ from stereodem.ortho.choices import RESAMPLINGS, UNCERTAINTY_METHODS
 from stereodem.ortho.drm import RESAMPLING
 from stereodem.post import mosaic
 from stereodem.post.choices import MOSAIC_METHODS
+from stereodem.sensor.choices import ADJUST_MODELS, GENERIC_MODEL_NAMES, MODEL_SET_NAMES
+from stereodem.sensor.estimation.adjust import MODEL_SETS
+from stereodem.sensor.models import generic
 from stereodem.stereo.settings import GRIDDING_METHODS, JITTER_AXES, MATCHERS
 
 
@@ -37,6 +40,7 @@ def _choices(command: str, option: str):
         ("assess", "--ref-vertical", VERTICALS),
         ("uncertainty", "--method", UNCERTAINTY_METHODS),
         ("mosaic", "--method", MOSAIC_METHODS),
+        ("adjust", "--model", ADJUST_MODELS),
     ],
 )
 def test_cli_choices_are_the_librarys(command, option, choices):
@@ -45,6 +49,15 @@ def test_cli_choices_are_the_librarys(command, option, choices):
 
 def test_mosaic_methods_are_the_light_modules():
     assert mosaic.METHODS is MOSAIC_METHODS
+
+
+def test_adjust_models_are_the_librarys():
+    """The light table of `adjust --model` names is the library's: the fitted models' forms
+    and the registry of built-in parameter sets (a test registering its own set removes it)."""
+    assert generic.MODEL_NAMES is GENERIC_MODEL_NAMES
+    assert tuple(generic._FORMS) == GENERIC_MODEL_NAMES
+    assert tuple(sorted(MODEL_SETS)) == MODEL_SET_NAMES
+    assert ADJUST_MODELS == (*sorted(MODEL_SETS), *generic.MODEL_NAMES, "bundle")
 
 
 def test_ortho_kernels_cover_the_resampling_choices():
