@@ -704,10 +704,10 @@ def assess_dem(
         Also co-register (``coregistration``: a :class:`~stereodem.post.coreg.CoregChain`, a
         step or a chain string; default ``"nuth_kaab"``) and assess again; the report then has
         ``coregistration`` (:func:`coregistration_summary`: ``dx``, ``dy``, ``dz`` metres
-        east/north/up, the DEM's displacement relative to the reference, with σ, and every
-        step; ``dx``/``dy`` in the DEM grid's metres, the CRS's units on a projected grid,
-        with the projection's ``scale_factor`` and, where it matters, ``dx_ground``/``dy_ground``)
-        and ``after_coregistration``.
+        along x (grid east), y (grid north), up, the DEM's displacement relative to the
+        reference, with σ, and every step; ``dx``/``dy`` in the DEM grid's metres, the CRS's
+        units on a projected grid, with the projection's ``scale_factor`` and, where it
+        matters, ``dx_ground``/``dy_ground``) and ``after_coregistration``.
     landcover : path or (array, transform, crs)
         Integer classes; warped onto the reference grid by nearest neighbour.
     slope_bins, elevation_bins : sequence of edges
@@ -789,10 +789,11 @@ def assess_dem(
 
 def coregistration_summary(chain, reference: DEM) -> dict:
     """The assessment's ``coregistration`` entry from a fitted chain: the total shift ``dx``,
-    ``dy`` (m east/north, summed over the ``nuth_kaab`` steps; ``dx_px``/``dy_px`` in reference
-    pixels) and ``dz`` (m up, summed over ``nuth_kaab``/``vshift``) with their σ (root sum of
-    squares), ``iterations``/``converged`` of the shift steps, the stable-terrain NMAD before
-    the first and after the last step, and every step's record (:meth:`CoregChain.report`).
+    ``dy`` (m along the grid's x/y axes, grid east/north, summed over the ``nuth_kaab``
+    steps; ``dx_px``/``dy_px`` in reference pixels) and ``dz`` (m up, summed over
+    ``nuth_kaab``/``vshift``) with their σ (root sum of squares), ``iterations``/``converged``
+    of the shift steps, the stable-terrain NMAD before the first and after the last step, and
+    every step's record (:meth:`CoregChain.report`).
 
     ``dx``/``dy`` are metres of the DEM's grid (:func:`~stereodem.post.warp.metres_per_unit`:
     the CRS's units, grid metres, on a projected grid); ``scale_factor`` is the projection's
@@ -833,8 +834,8 @@ def coregistration_summary(chain, reference: DEM) -> dict:
         "converged": converged,
         "nmad_before": rec[0]["before"]["nmad"],
         "nmad_after": rec[-1]["after"]["nmad"],
-        "frame": "metres east/north/up (dx, dy: see horizontal_unit); displacement of the DEM "
-        "relative to the reference",
+        "frame": "metres along x (grid east), y (grid north), up (dx, dy: see "
+        "horizontal_unit); displacement of the DEM relative to the reference",
         "scale_factor": scale,
         "horizontal_unit": unit,
         "steps": rec,

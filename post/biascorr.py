@@ -95,11 +95,11 @@ class NuthKaab(Coreg):
     cells of slope ``min_slope``–``max_slope`` degrees, the DEM re-warped with the shift found
     so far until the increment is below ``tolerance_px`` pixel.
 
-    ``dx, dy, dz``: displacement of the DEM relative to the reference (metres east, north,
-    up); ``apply`` removes it on the DEM's own grid (a DEM whose features sit 50 m east of
-    the reference's has ``dx = +50``). ``dx, dy`` are metres of the DEM's grid
-    (:func:`~stereodem.post.warp.metres_per_unit`): ground metres on a geographic grid, the
-    CRS's units (grid metres, along its x/y axes) on a projected one, as xdem's; the
+    ``dx, dy, dz``: displacement of the DEM relative to the reference (metres along x (grid
+    east), y (grid north), up); ``apply`` removes it on the DEM's own grid (a DEM whose
+    features sit 50 m east of the reference's has ``dx = +50``). ``dx, dy`` are metres of the
+    DEM's grid (:func:`~stereodem.post.warp.metres_per_unit`): ground metres on a geographic
+    grid, the CRS's units (grid metres, along its x/y axes) on a projected one, as xdem's; the
     parameters add the projection's ``scale_factor`` at the grid centre and, where it differs
     from 1 by over 0.1 %, ``dx_ground``/``dy_ground`` (:func:`~stereodem.post.warp.ground_shift`).
 

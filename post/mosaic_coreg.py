@@ -48,7 +48,7 @@ __all__ = ["CHAINS", "DEMCorrection", "chain_fitter", "crop_reference", "fitter"
 
 @dataclass(frozen=True)
 class DEMCorrection:
-    """What co-registration found for one DEM: ``dx, dy`` (m east/north, the DEM's
+    """What co-registration found for one DEM: ``dx, dy`` (m along x/y, grid east/north, the DEM's
     displacement relative to the reference, removed by moving its grid by −dx, −dy; the DEM
     grid's metres, the CRS's units on a projected grid: :func:`~stereodem.post.warp.translated`)
     and ``dz`` (m, subtracted from its heights); ``report`` is the fit's own record

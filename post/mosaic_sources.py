@@ -78,8 +78,8 @@ class Source:
         (west, south, east, north) of the footprint in the output CRS (set by
         :func:`output_grid`; the file's own CRS before).
     shift_m : (float, float)
-        Co-registration: metres east/north by which the DEM's grid is moved before mosaicking
-        (its grid's metres: the CRS's units on a projected grid,
+        Co-registration: metres along x/y (grid east/north) by which the DEM's grid is
+        moved before mosaicking (its grid's metres: the CRS's units on a projected grid,
         :func:`~stereodem.post.warp.translated`).
     dz : float
         Co-registration: metres subtracted from its heights.

@@ -126,8 +126,8 @@ def markdown(report: dict, figure_files: dict) -> str:
         lines += [
             "## Co-registration (Nuth & Kääb)",
             "",
-            f"Shift of the DEM relative to the reference: dx = {co['dx']:.2f} m east, "
-            f"dy = {co['dy']:.2f} m north, dz = {co['dz']:.2f} m up "
+            "Shift of the DEM relative to the reference: "
+            f"{warp.shift_phrase(co['dx'], co['dy'])}, dz = {co['dz']:.2f} m up "
             f"({co['dx_px']:.2f}, {co['dy_px']:.2f} px; {co['iterations']} iterations, "
             f"{'converged' if co['converged'] else 'NOT converged'}).{shift_units(co)}",
             "",
@@ -265,9 +265,10 @@ def html_report(report: dict, figure_paths: dict) -> str:
         a = report["after_coregistration"]["stats"]
         parts += [
             "<h2>Co-registration (Nuth &amp; Kääb)</h2>",
-            f"<p>Shift of the DEM relative to the reference: dx = {co['dx']:.2f} m east, "
-            f"dy = {co['dy']:.2f} m north, dz = {co['dz']:.2f} m up ({co['iterations']} "
-            f"iterations, {'converged' if co['converged'] else 'NOT converged'})."
+            "<p>Shift of the DEM relative to the reference: "
+            f"{esc(warp.shift_phrase(co['dx'], co['dy']))}, dz = {co['dz']:.2f} m up "
+            f"({co['iterations']} iterations, "
+            f"{'converged' if co['converged'] else 'NOT converged'})."
             f"{esc(shift_units(co))}</p>",
             _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
         ]

@@ -266,6 +266,20 @@ def ground_shift(transform, crs, shape, names, values, sigmas, *, what="shift") 
     return rec
 
 
+#: How every report, summary and log line names the axes of a horizontal shift ``dx, dy``: the
+#: grid's x and y axes (the JSON fields keep their names). True on both kinds of grid: on a
+#: lon/lat grid they are east and north; on a projected one they are the grid's own east and
+#: north, turned from true east/north away from the central meridian (by the longitude's
+#: difference from it on a polar stereographic grid).
+SHIFT_AXES = ("x (grid east)", "y (grid north)")
+
+
+def shift_phrase(dx: float, dy: float, spec: str = ".2f") -> str:
+    """``"dx = 1.20 m along x (grid east), dy = -0.40 m along y (grid north)"``: a horizontal
+    shift in the wording of :data:`SHIFT_AXES` (``spec`` formats the numbers)."""
+    return f"dx = {dx:{spec}} m along {SHIFT_AXES[0]}, dy = {dy:{spec}} m along {SHIFT_AXES[1]}"
+
+
 def format_scale(scale) -> str:
     """``"1.02331"`` for a conformal projection's ``[h, k]`` (equal to 6 digits), else
     ``"0.98 (x), 1.02 (y)"``."""

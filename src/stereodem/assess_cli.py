@@ -217,9 +217,10 @@ def run(args) -> int:
     co = result.report.get("coregistration")
     if co:
         from stereodem.post.report import shift_units
+        from stereodem.post.warp import shift_phrase
 
         options.say(
-            f"co-registration: dx={co['dx']:.3f} m dy={co['dy']:.3f} m dz={co['dz']:.3f} m."
-            + shift_units(co)
+            f"co-registration: {shift_phrase(co['dx'], co['dy'], '.3f')}, "
+            f"dz = {co['dz']:.3f} m." + shift_units(co)
         )
     return 0

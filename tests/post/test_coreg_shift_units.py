@@ -15,7 +15,7 @@ from stereodem.core.dem import DEM
 from stereodem.post import warp
 from stereodem.post.assess import assess_dem
 from stereodem.post.biascorr import NuthKaab
-from stereodem.post.report import markdown
+from stereodem.post.report import html_report, markdown
 from stereodem.post.synthetic import InjectedErrors, inject_errors
 
 N = 200
@@ -82,6 +82,11 @@ def test_polar_stereographic_reports_the_scale_factor_and_ground_metres(heights,
     text = markdown(a.report, {})
     assert f"k = {k:.6g}" in text and f"dx = {co['dx_ground']:.2f} m" in text
     assert "grid metres" in text
+    # dx/dy are along the grid's axes, turned from true east/north on a polar grid: the
+    # markdown (and HTML) say so, not "m east"/"m north"; the JSON keeps dx/dy
+    said = f"dx = {co['dx']:.2f} m along x (grid east), dy = {co['dy']:.2f} m along y (grid north)"
+    assert said in text and "m east" not in text and "m north" not in text
+    assert said in html_report(a.report, {})
 
 
 def test_utm_scale_factor_is_near_one_without_warning(heights, caplog):
