@@ -76,7 +76,7 @@ from .mosaic_sources import (
     reconcile_vertical,
     select_sources,
 )
-from .warp import translated
+from .warp import shift_phrase, shift_units, translated
 
 log = logging.getLogger(__name__)
 
@@ -326,7 +326,11 @@ def coregister_sources(sources, reference, *, chain: str | None = None, dem_vert
         out.append(replace(s, transform=t, shift_m=(-corr.dx, -corr.dy), dz=float(corr.dz)))
         reports[s.path] = dict(corr.report, dx=corr.dx, dy=corr.dy, dz=corr.dz)
         log.info(
-            "%s: co-registered dx %+.2f m dy %+.2f m dz %+.2f m", s.path, corr.dx, corr.dy, corr.dz
+            "%s: co-registered, %s, dz = %+.2f m.%s",
+            s.path,
+            shift_phrase(corr.dx, corr.dy, "+.2f"),
+            corr.dz,
+            shift_units(reports[s.path]),
         )
     for path, v in voided.items():
         v.warn(path)

@@ -48,27 +48,6 @@ def _table(entries, label="class"):
     return "\n".join([head, sep, *rows])
 
 
-def shift_units(co: dict) -> str:
-    """A sentence (with a leading space) on the metres of a co-registration summary's ``dx``,
-    ``dy`` (:func:`~stereodem.post.assess.coregistration_summary`): on a projected grid they
-    are grid metres (the CRS's units), with the projection's scale factor at the grid centre
-    and, where that differs from 1 by over 0.1 %, the shift in ground metres. Empty on a
-    geographic grid (ground metres) and for a summary without ``scale_factor``."""
-    scale = co.get("scale_factor")
-    if not scale or not str(co.get("horizontal_unit") or "").startswith("grid"):
-        return ""
-    k = warp.format_scale(scale)
-    if co.get("dx_ground") is None:
-        return (
-            f" dx, dy are grid metres (the CRS's units; scale factor k = {k} at the grid centre)."
-        )
-    return (
-        f" dx, dy are grid metres (the CRS's units); the projection's scale factor at the grid "
-        f"centre is k = {k}: in ground metres (grid metres / k) dx = {co['dx_ground']:.2f} m, "
-        f"dy = {co['dy_ground']:.2f} m."
-    )
-
-
 def markdown(report: dict, figure_files: dict) -> str:
     """A short Markdown summary of a report dict."""
     s = report["stats"]
@@ -129,7 +108,7 @@ def markdown(report: dict, figure_files: dict) -> str:
             "Shift of the DEM relative to the reference: "
             f"{warp.shift_phrase(co['dx'], co['dy'])}, dz = {co['dz']:.2f} m up "
             f"({co['dx_px']:.2f}, {co['dy_px']:.2f} px; {co['iterations']} iterations, "
-            f"{'converged' if co['converged'] else 'NOT converged'}).{shift_units(co)}",
+            f"{'converged' if co['converged'] else 'NOT converged'}).{warp.shift_units(co)}",
             "",
             _table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
             "",
@@ -269,7 +248,7 @@ def html_report(report: dict, figure_paths: dict) -> str:
             f"{esc(warp.shift_phrase(co['dx'], co['dy']))}, dz = {co['dz']:.2f} m up "
             f"({co['iterations']} iterations, "
             f"{'converged' if co['converged'] else 'NOT converged'})."
-            f"{esc(shift_units(co))}</p>",
+            f"{esc(warp.shift_units(co))}</p>",
             _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
         ]
     if report.get("error_analysis"):

@@ -280,6 +280,38 @@ def shift_phrase(dx: float, dy: float, spec: str = ".2f") -> str:
     return f"dx = {dx:{spec}} m along {SHIFT_AXES[0]}, dy = {dy:{spec}} m along {SHIFT_AXES[1]}"
 
 
+def shift_units(co: dict) -> str:
+    """A sentence (with a leading space) on the metres of a co-registration summary's ``dx``,
+    ``dy`` (:func:`~stereodem.post.assess.coregistration_summary`, a mosaic's correction
+    record, or a step's parameters with :func:`ground_shift`'s keys): on a projected grid they
+    are grid metres (the CRS's units), with the projection's scale factor at the grid centre
+    and, where that differs from 1 by over 0.1 %, the shift in ground metres. Empty on a
+    geographic grid (ground metres) and for a summary without ``scale_factor``."""
+    scale = co.get("scale_factor")
+    if not scale or not str(co.get("horizontal_unit") or "").startswith("grid"):
+        return ""
+    k = format_scale(scale)
+    gx, gy = (_value(co.get(f"{n}_ground")) for n in ("dx", "dy"))
+    if gx is None or gy is None:
+        return (
+            f" dx, dy are grid metres (the CRS's units; scale factor k = {k} at the grid centre)."
+        )
+    return (
+        f" dx, dy are grid metres (the CRS's units); the projection's scale factor at the grid "
+        f"centre is k = {k}: in ground metres (grid metres / k) dx = {gx:.2f} m, "
+        f"dy = {gy:.2f} m."
+    )
+
+
+def _value(v):
+    """A number of a summary (``1.2``) or of a step's parameters (``{"value": 1.2, ...}``)."""
+    v = v.get("value") if isinstance(v, dict) else v
+    try:
+        return None if v is None else float(v)
+    except (TypeError, ValueError):
+        return None
+
+
 def format_scale(scale) -> str:
     """``"1.02331"`` for a conformal projection's ``[h, k]`` (equal to 6 digits), else
     ``"0.98 (x), 1.02 (y)"``."""

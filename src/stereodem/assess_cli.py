@@ -216,8 +216,7 @@ def run(args) -> int:
     )
     co = result.report.get("coregistration")
     if co:
-        from stereodem.post.report import shift_units
-        from stereodem.post.warp import shift_phrase
+        from stereodem.post.warp import shift_phrase, shift_units
 
         options.say(
             f"co-registration: {shift_phrase(co['dx'], co['dy'], '.3f')}, "

@@ -8,6 +8,7 @@ windows with known biases; every expectation is computed independently with nump
 from __future__ import annotations
 
 import json
+import logging
 import re
 import tracemalloc
 import warnings
@@ -526,6 +527,30 @@ def test_coregistration_to_a_reference_first(tmp_path):
     assert np.nanmedian(np.abs(err)) < 0.5
     # an unknown chain is a one-line error
     assert main(args[1:] + ["--coreg-chain", "bias+tilt", "--overwrite"]) == 1
+
+
+def test_coregistration_log_line_says_grid_metres(tmp_path, caplog):
+    """The INFO line of a co-registered DEM words the shift as the reports do (one rule,
+    post.warp.shift_phrase/shift_units): along the grid's x/y axes, grid metres on a projected
+    grid with the scale factor, as the JSON record's horizontal_unit says."""
+    ref = write_dem(tmp_path / "ref.tif", 0, 0, 160, 160)
+    t = Affine(RES, 0, X0 + 20 * RES + 45.0, 0, -RES, Y0 - 20 * RES + 30.0)
+    dem = tmp_path / "shifted.tif"
+    write_geotiff(dem, terrain(120, 120, 20, 20), t, CRS, np.nan, vertical="geoid")
+    args = ["mosaic", str(dem), "-o", str(tmp_path / "m.tif"), "--ref", str(ref), "--coregister"]
+    with caplog.at_level(logging.INFO, logger="stereodem.post.mosaic"):
+        assert main(args) == 0
+    c = json.loads((tmp_path / "m.json").read_text())["coregistration"][
+        str(tmp_path / "shifted.tif")
+    ]
+    assert c["horizontal_unit"].startswith("grid metres")
+    lines = [r.getMessage() for r in caplog.records if "co-registered" in r.getMessage()]
+    assert len(lines) == 1, lines
+    assert f"dx = {c['dx']:+.2f} m along x (grid east)" in lines[0]
+    assert f"dy = {c['dy']:+.2f} m along y (grid north)" in lines[0]
+    k = c["scale_factor"][1]
+    assert 0.9996 < k < 1.0004  # UTM: grid metres within 0.04 % of ground metres, said
+    assert "dx, dy are grid metres" in lines[0] and f"scale factor k = {k:.6g}" in lines[0]
 
 
 def test_coregistration_chain_of_the_coreg_module(tmp_path, capsys):
