@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 import warnings
 
 import cv2
@@ -204,6 +205,10 @@ def metres_per_unit(transform, crs, shape):
 GROUND_SHIFT_REPORTED = 1e-3
 #: |k - 1| above which a co-registration logs that its shifts are in grid metres
 GROUND_SHIFT_WARNED = 1e-2
+#: the CRSs (WKT) whose grid-metres warning this process has logged (:func:`ground_shift`):
+#: once per CRS, not once per fit (a mosaic of 50 DEMs on one polar grid says it once)
+_GROUND_SHIFT_WARNED_CRS: set[str] = set()
+_GROUND_SHIFT_WARNED_LOCK = threading.Lock()
 
 
 def scale_factors(transform, crs, shape) -> tuple[float, float]:
@@ -226,15 +231,15 @@ def scale_factors(transform, crs, shape) -> tuple[float, float]:
 
 def ground_shift(transform, crs, shape, names, values, sigmas, *, what="shift") -> dict:
     """The report's record of a horizontal shift fitted on the grid ``transform, crs, shape``:
-    ``values``/``sigmas`` (x/east, y/north, metres per :func:`metres_per_unit`: grid metres
-    on a projected grid) named ``names`` (e.g. ``("dx", "dy")``).
+    ``values``/``sigmas`` (along x/y, grid east/north, metres per :func:`metres_per_unit`:
+    grid metres on a projected grid) named ``names`` (e.g. ``("dx", "dy")``).
 
     Returns ``scale_factor`` (``[h, k]``, :func:`scale_factors` at the grid centre),
     ``horizontal_unit`` (a sentence) and, where ``|h - 1|`` or ``|k - 1|`` exceeds
     :data:`GROUND_SHIFT_REPORTED` (0.1 %), ``<name>_ground`` for each name: value and σ in
     ground metres (grid metres / h, / k). Logs one warning beyond :data:`GROUND_SHIFT_WARNED`
-    (1 %). A projection whose factors PROJ cannot give there has ``scale_factor`` None (the
-    report never fails the fit)."""
+    (1 %), once per CRS in a process. A projection whose factors PROJ cannot give there has
+    ``scale_factor`` None (the report never fails the fit)."""
     if terrain._is_geographic(crs):
         return {
             "scale_factor": [1.0, 1.0],
@@ -256,14 +261,29 @@ def ground_shift(transform, crs, shape, names, values, sigmas, *, what="shift") 
     if dev > GROUND_SHIFT_REPORTED:
         for name, v, s, kk in zip(names, values, sigmas, (h, k)):
             rec[f"{name}_ground"] = {"value": float(v / kk), "sigma": float(s / kk), "unit": "m"}
-    if dev > GROUND_SHIFT_WARNED:
+    if dev > GROUND_SHIFT_WARNED and _first_warning(crs):
         log.warning(
             "%s: shifts are in CRS units; at this grid's centre the projection's scale factor "
-            "is k = %s, ground metres = grid metres / k",
+            "is k = %s, ground metres = grid metres / k (said once per CRS; every report "
+            "gives its own grid's k)",
             what,
             format_scale((h, k)),
         )
     return rec
+
+
+def _first_warning(crs) -> bool:
+    """Whether :func:`ground_shift`'s warning is the first for ``crs`` in this process (the
+    CRS is then remembered, by its WKT)."""
+    try:
+        key = CRS.from_user_input(crs).to_wkt()
+    except CRSError:
+        key = str(crs)
+    with _GROUND_SHIFT_WARNED_LOCK:
+        if key in _GROUND_SHIFT_WARNED_CRS:
+            return False
+        _GROUND_SHIFT_WARNED_CRS.add(key)
+        return True
 
 
 #: How every report, summary and log line names the axes of a horizontal shift ``dx, dy``: the

@@ -23,6 +23,12 @@ PX = 90.0  # the bundled SRTM tile's cells are ~90 m: its slopes kept on the pro
 SHIFT = (40.0, -25.0)  # grid metres, x/east and y/north
 
 
+@pytest.fixture(autouse=True)
+def fresh_warnings(monkeypatch):
+    """The grid-metres warning is once per CRS per process: each test starts with none said."""
+    monkeypatch.setattr(warp, "_GROUND_SHIFT_WARNED_CRS", set())
+
+
 @pytest.fixture(scope="module")
 def heights():
     full = DEM.bundled()
@@ -87,6 +93,22 @@ def test_polar_stereographic_reports_the_scale_factor_and_ground_metres(heights,
     said = f"dx = {co['dx']:.2f} m along x (grid east), dy = {co['dy']:.2f} m along y (grid north)"
     assert said in text and "m east" not in text and "m north" not in text
     assert said in html_report(a.report, {})
+
+
+def test_the_warning_is_once_per_crs(heights, caplog):
+    """Two fits on one polar grid (a mosaic's DEMs) warn once; another CRS warns again."""
+    first = _on("EPSG:3413", 0.0, 80.0, heights[1])
+    second = _on("EPSG:3413", 60.0, 79.0, heights[1])  # same CRS, another grid centre
+    nk1, warned1 = _fit(first, caplog)
+    caplog.clear()
+    nk2, warned2 = _fit(second, caplog)
+    assert len(warned1) == 1 and not warned2
+    # each fit's record still has its own grid's scale factor and ground metres
+    assert nk1.params["scale_factor"] != nk2.params["scale_factor"]
+    assert "dx_ground" in nk1.params and "dx_ground" in nk2.params
+    caplog.clear()
+    _, warned3 = _fit(_on("EPSG:3031", 0.0, -80.0, heights[1]), caplog)
+    assert len(warned3) == 1 and "said once per CRS" in warned3[0].getMessage()
 
 
 def test_utm_scale_factor_is_near_one_without_warning(heights, caplog):
