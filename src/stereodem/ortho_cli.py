@@ -8,29 +8,15 @@ from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 from stereodem.ortho.choices import RESAMPLINGS
+from stereodem.sensor.choices import GENERIC_MODEL_NAMES
 
 from . import options
 from .commands import help_line
 
 log = logging.getLogger(__name__)
 
-GENERIC = [
-    "poly2d-1",
-    "poly2d-2",
-    "poly2d-3",
-    "poly3d-1",
-    "poly3d-2",
-    "poly3d-3",
-    "relief-1",
-    "relief-2",
-    "projective",
-    "projective-pushbroom",
-    "dlt",
-    "edlt",
-    "rational-1",
-    "rational-2",
-    "rational-3",
-]
+#: the generic models `ortho --model` fits to --gcps (the library's names)
+GENERIC = GENERIC_MODEL_NAMES
 
 EXAMPLES = """examples:
   stereodem ortho left.tif --dem dem.tif -o left_ortho.tif
