@@ -48,14 +48,14 @@ class ThreadsPlugin(WorkerPlugin):
         pin_threads(self.threads or max(1, cores() // self.slots(worker)))
 
 
-def connect(address):
+def connect(address, timeout: str = "20s"):
     """A ``Client`` of the Dask scheduler at ``address`` (``tcp://host:port``, a scheduler
-    file's address...); a scheduler that cannot be reached is an :class:`InputError` naming
-    it, not a traceback."""
+    file's address...), waiting up to ``timeout`` (Dask's duration string) for it; a
+    scheduler that cannot be reached is an :class:`InputError` naming it, not a traceback."""
     from distributed import Client
 
     try:
-        return Client(address, timeout="20s")
+        return Client(address, timeout=timeout)
     except (OSError, TimeoutError, ValueError) as exc:
         reason = " ".join(str(exc).split()) or type(exc).__name__
         raise InputError(

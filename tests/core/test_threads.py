@@ -158,7 +158,7 @@ def test_threads_plugin_counts_the_slots_of_its_host(monkeypatch):
 def test_an_unreachable_scheduler_is_one_clear_error():
     dask_threads = pytest.importorskip("stereodem.core.dask_threads")
     with pytest.raises(InputError, match=r"--dask tcp://127\.0\.0\.1:9: cannot connect"):
-        dask_threads.connect("tcp://127.0.0.1:9")
+        dask_threads.connect("tcp://127.0.0.1:9", timeout="1s")
 
 
 def test_a_job_pins_its_main_process_to_workers(tmp_path, monkeypatch):
