@@ -125,7 +125,9 @@ def _crs_cases():
     }
 
 
-@pytest.mark.parametrize("code_", ["EPSG:999999", "EPSG:4978", "not a crs"])
+@pytest.mark.parametrize(
+    "code_", ["EPSG:999999", "EPSG:4978", pytest.param("not a crs", marks=pytest.mark.slow)]
+)
 @pytest.mark.parametrize("command", sorted(_crs_cases()))
 def test_unusable_crs_is_a_clear_error_in_every_command(command, code_, sim, tmp_path, capsys):
     build, option = _crs_cases()[command]
@@ -899,7 +901,13 @@ QUICK = ["assess", "coregister", "compare-models", "simulate", "uncertainty", "a
 QUICK += ["stack", "change"]
 
 
-@pytest.mark.parametrize("command", QUICK)
+#: the ones that take a second or more (a whole assessment, maps, a stack): the full suite's
+_SLOWER = {"assess", "uncertainty", "stack", "simulate"}
+
+
+@pytest.mark.parametrize(
+    "command", [pytest.param(c, marks=pytest.mark.slow) if c in _SLOWER else c for c in QUICK]
+)
 def test_overwrite_replaces_the_commands_products_and_nothing_else(
     command, sim, noisy, tmp_path, capsys
 ):

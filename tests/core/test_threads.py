@@ -155,6 +155,7 @@ def test_threads_plugin_counts_the_slots_of_its_host(monkeypatch):
     assert pinned == [4, 8, 16, 3]
 
 
+@pytest.mark.slow
 def test_an_unreachable_scheduler_is_one_clear_error():
     dask_threads = pytest.importorskip("stereodem.core.dask_threads")
     with pytest.raises(InputError, match=r"--dask tcp://127\.0\.0\.1:9: cannot connect"):

@@ -830,6 +830,7 @@ def test_orthorectify_given_no_model_or_an_unknown_crs_says_so(rendered):
         orthorectify(img, cam, dem, crs="foo")
 
 
+@pytest.mark.slow
 def test_result_line_and_tags_give_the_posting_in_the_crs_unit(tmp_path, capsys):
     """`ortho` said "cells of 15.2 in EPSG:32637" from a field named res_m, which is in the
     CRS's units: now "cells of 15.2 m" (options.posting), and the report/tags carry res and

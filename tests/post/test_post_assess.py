@@ -427,6 +427,7 @@ def test_colours_as_bytes_draw_as_float_colours_with_nearest_cells():
         np.testing.assert_array_equal(pngs[0], pngs[1])
 
 
+@pytest.mark.slow
 def test_blocks_warped_on_threads_do_not_warn_not_georeferenced():
     """rasterio's reproject of arrays warns "no geotransform" from its in-memory datasets when
     threads race on its ``warnings.catch_warnings`` (about 1 in 2000 calls on 4 threads
