@@ -800,7 +800,7 @@ def coregistration_summary(chain, reference: DEM) -> dict:
     ``[h, k]`` at that grid's centre (None without ``nuth_kaab``), ``horizontal_unit`` says
     which metres, and ``dx_ground``/``dy_ground`` (with ``_sigma``) are the shift in ground
     metres where the scale differs from 1 by over 0.1 %
-    (:func:`~stereodem.post.warp.ground_shift`)."""
+    (:func:`~stereodem.post.shift_units.ground_shift`)."""
     dx = dy = dz = 0.0
     vx = vy = vz = 0.0
     iterations, converged = 0, True
@@ -840,7 +840,7 @@ def coregistration_summary(chain, reference: DEM) -> dict:
         "horizontal_unit": unit,
         "steps": rec,
     }
-    if ground:  # the projection's scale differs from 1 by over 0.1 % (warp.ground_shift)
+    if ground:  # the projection's scale differs from 1 by over 0.1 % (shift_units.ground_shift)
         for name, v, var, k in (("dx", dx, vx, scale[0]), ("dy", dy, vy, scale[1])):
             out[f"{name}_ground"] = v / k
             out[f"{name}_ground_sigma"] = float(np.sqrt(var)) / k

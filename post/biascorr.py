@@ -25,7 +25,7 @@ from stereodem.core.blocks import default_threads, each_fixed_band
 from stereodem.core.errors import ConvergenceError, InputError
 from stereodem.core.stats import nmad
 
-from . import terrain, warp
+from . import shift_units, terrain, warp
 from .coreg import (
     Coreg,
     bilinear,
@@ -101,7 +101,8 @@ class NuthKaab(Coreg):
     DEM's grid (:func:`~stereodem.post.warp.metres_per_unit`): ground metres on a geographic
     grid, the CRS's units (grid metres, along its x/y axes) on a projected one, as xdem's; the
     parameters add the projection's ``scale_factor`` at the grid centre and, where it differs
-    from 1 by over 0.1 %, ``dx_ground``/``dy_ground`` (:func:`~stereodem.post.warp.ground_shift`).
+    from 1 by over 0.1 %, ``dx_ground``/``dy_ground``
+    (:func:`~stereodem.post.shift_units.ground_shift`).
 
     ``tilt=True`` (default) adds a plane in east/north to the least squares as a nuisance
     (fitted, not applied: ``deramp`` removes it): a ramp left in ``dh`` otherwise leaks into
@@ -190,7 +191,7 @@ class NuthKaab(Coreg):
             "converged": converged,
         }
         self.params.update(
-            warp.ground_shift(
+            shift_units.ground_shift(
                 dem.transform,
                 dem.crs,
                 dem.shape,
@@ -803,7 +804,7 @@ class ICP(Coreg):
         vals = np.concatenate([self.t, self.w])
         self.params = {k: param(v, s, u) for k, v, s, u in zip(names, vals, sd, units)}
         self.params.update(
-            warp.ground_shift(
+            shift_units.ground_shift(
                 dem.transform,
                 dem.crs,
                 dem.shape,

@@ -76,7 +76,8 @@ from .mosaic_sources import (
     reconcile_vertical,
     select_sources,
 )
-from .warp import shift_phrase, shift_units, translated
+from .shift_units import shift_phrase, shift_units
+from .warp import translated
 
 log = logging.getLogger(__name__)
 

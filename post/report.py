@@ -15,7 +15,7 @@ from pathlib import Path
 from stereodem.core import jsonutil
 from stereodem.core.raster import prepare_output_dir, write_text_atomic
 
-from . import figures, warp
+from . import figures, shift_units
 
 log = logging.getLogger(__name__)
 
@@ -106,9 +106,9 @@ def markdown(report: dict, figure_files: dict) -> str:
             "## Co-registration (Nuth & Kääb)",
             "",
             "Shift of the DEM relative to the reference: "
-            f"{warp.shift_phrase(co['dx'], co['dy'])}, dz = {co['dz']:.2f} m up "
+            f"{shift_units.shift_phrase(co['dx'], co['dy'])}, dz = {co['dz']:.2f} m up "
             f"({co['dx_px']:.2f}, {co['dy_px']:.2f} px; {co['iterations']} iterations, "
-            f"{'converged' if co['converged'] else 'NOT converged'}).{warp.shift_units(co)}",
+            f"{'converged' if co['converged'] else 'NOT converged'}).{shift_units.shift_units(co)}",
             "",
             _table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
             "",
@@ -245,10 +245,10 @@ def html_report(report: dict, figure_paths: dict) -> str:
         parts += [
             "<h2>Co-registration (Nuth &amp; Kääb)</h2>",
             "<p>Shift of the DEM relative to the reference: "
-            f"{esc(warp.shift_phrase(co['dx'], co['dy']))}, dz = {co['dz']:.2f} m up "
+            f"{esc(shift_units.shift_phrase(co['dx'], co['dy']))}, dz = {co['dz']:.2f} m up "
             f"({co['iterations']} iterations, "
             f"{'converged' if co['converged'] else 'NOT converged'})."
-            f"{esc(warp.shift_units(co))}</p>",
+            f"{esc(shift_units.shift_units(co))}</p>",
             _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
         ]
     if report.get("error_analysis"):

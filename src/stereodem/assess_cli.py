@@ -216,7 +216,7 @@ def run(args) -> int:
     )
     co = result.report.get("coregistration")
     if co:
-        from stereodem.post.warp import shift_phrase, shift_units
+        from stereodem.post.shift_units import shift_phrase, shift_units
 
         options.say(
             f"co-registration: {shift_phrase(co['dx'], co['dy'], '.3f')}, "

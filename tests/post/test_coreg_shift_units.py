@@ -12,7 +12,7 @@ from affine import Affine
 from pyproj import Geod, Transformer
 
 from stereodem.core.dem import DEM
-from stereodem.post import warp
+from stereodem.post import shift_units, warp
 from stereodem.post.assess import assess_dem
 from stereodem.post.biascorr import NuthKaab
 from stereodem.post.report import html_report, markdown
@@ -26,7 +26,7 @@ SHIFT = (40.0, -25.0)  # grid metres, x/east and y/north
 @pytest.fixture(autouse=True)
 def fresh_warnings(monkeypatch):
     """The grid-metres warning is once per CRS per process: each test starts with none said."""
-    monkeypatch.setattr(warp, "_GROUND_SHIFT_WARNED_CRS", set())
+    monkeypatch.setattr(shift_units, "_GROUND_SHIFT_WARNED_CRS", set())
 
 
 @pytest.fixture(scope="module")

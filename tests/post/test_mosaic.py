@@ -531,8 +531,8 @@ def test_coregistration_to_a_reference_first(tmp_path):
 
 def test_coregistration_log_line_says_grid_metres(tmp_path, caplog):
     """The INFO line of a co-registered DEM words the shift as the reports do (one rule,
-    post.warp.shift_phrase/shift_units): along the grid's x/y axes, grid metres on a projected
-    grid with the scale factor, as the JSON record's horizontal_unit says."""
+    post.shift_units.shift_phrase/shift_units): along the grid's x/y axes, grid metres on a
+    projected grid with the scale factor, as the JSON record's horizontal_unit says."""
     ref = write_dem(tmp_path / "ref.tif", 0, 0, 160, 160)
     t = Affine(RES, 0, X0 + 20 * RES + 45.0, 0, -RES, Y0 - 20 * RES + 30.0)
     dem = tmp_path / "shifted.tif"
