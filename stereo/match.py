@@ -258,7 +258,7 @@ def _window_stats(img, window, min_std, finite=False, outside=(), inverse=True):
                 np.copyto(v, F32(np.nan), where=near[rows])
             cv2.sqrt(v, dst=v)  # IEEE, as np.sqrt (NaN below 0), twice as fast
             if inverse:
-                np.maximum(v, _sqrt_tiny_row(v.shape[1]), out=v)
+                np.maximum(v, _floor_row(_SQRT_TINY, v.shape[1]), out=v)
                 np.divide(F32(1), v, out=v)
     inv = var
     for cols, mask in outside:
@@ -1063,7 +1063,7 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
         # one division by the product of the two standard deviations, floored at 1e-30 (NaN,
         # where either window is invalid, propagates through the product, floor and division)
         np.multiply(den, l_std, out=den)
-        np.maximum(den, _tiny_row(den.shape[1]), out=den)
+        np.maximum(den, _floor_row(_TINY, den.shape[1]), out=den)
         np.divide(c, den, out=c)
         np.clip(c, -1, 1, out=score[r0:r1])
 
@@ -1077,18 +1077,11 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
 
 
 @functools.lru_cache(maxsize=8)
-def _tiny_row(w):
-    """:data:`_TINY` as a (1, w) float32 row (read-only, cached): ``np.maximum`` against a
-    row takes NumPy's vectorised loop, against a scalar a loop 2-3 times as slow."""
-    a = np.full((1, w), _TINY, F32)
-    a.flags.writeable = False
-    return a
-
-
-@functools.lru_cache(maxsize=8)
-def _sqrt_tiny_row(w):
-    """:data:`_SQRT_TINY` as a (1, w) float32 row (read-only, cached; see :func:`_tiny_row`)."""
-    a = np.full((1, w), _SQRT_TINY, F32)
+def _floor_row(value: float, w: int):
+    """``value`` as a (1, w) float32 row (read-only, cached): ``np.maximum`` against a row
+    takes NumPy's vectorised loop, against a scalar a loop 2-3 times as slow (the floors
+    :data:`_TINY` and :data:`_SQRT_TINY`)."""
+    a = np.full((1, w), value, F32)
     a.flags.writeable = False
     return a
 
@@ -1135,7 +1128,7 @@ def _zncc_band_finite(z, warped, window, keep, out):
         np.multiply(ml, mr, out=t)
         np.subtract(c, t, out=c)  # E[lr] - E[l] E[r]
         np.multiply(vr, vl, out=vr)
-        np.maximum(vr, _tiny_row(vr.shape[1]), out=vr)
+        np.maximum(vr, _floor_row(_TINY, vr.shape[1]), out=vr)
         np.divide(c, vr, out=c)
         np.clip(c, -1, 1, out=out)
 
