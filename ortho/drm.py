@@ -699,11 +699,16 @@ def _progressing(results, progress, total):
 # (DEM voids, or outside the DEM). Counted exactly, cell by cell, on the product's grid.
 
 
-def _footprint_counts(col, row, h, model) -> tuple[int, int]:
-    """(footprint cells, footprint cells without a DEM height) of one block of the backward
-    map (:meth:`BackwardMap.block`'s ``col, row, h``)."""
-    foot = (col >= -0.5) & (row >= -0.5) & (col <= model.width - 0.5) & (row <= model.height - 0.5)
-    return int(foot.sum()), int((foot & ~np.isfinite(h)).sum())
+def _in_footprint(col, row, model) -> np.ndarray:
+    """Whether each cell's image position (:meth:`BackwardMap.block`'s ``col, row``: at the
+    middle height where there is no DEM height) lies in the image."""
+    return (col >= -0.5) & (row >= -0.5) & (col <= model.width - 0.5) & (row <= model.height - 0.5)
+
+
+def _footprint_counts(foot, no_height) -> tuple[int, int]:
+    """(footprint cells, footprint cells without a DEM height) of one block, from its
+    footprint mask (:func:`_in_footprint`) and its cells without a height."""
+    return int(np.count_nonzero(foot)), int(np.count_nonzero(foot & no_height))
 
 
 def _no_height_share(n_no_height: int, n_footprint: int) -> float:
@@ -723,7 +728,8 @@ def dem_gaps(model, dem, grid: MapGrid, *, fill_dem=None, tolerance: float = 0.0
     rows = max(16, min(H, 262_144 // max(W, 1)))
     n_foot = n_no = 0
     for r0 in range(0, H, rows):
-        a, b = _footprint_counts(*bm.block(r0, min(H, r0 + rows)), model)
+        col, row, h = bm.block(r0, min(H, r0 + rows))
+        a, b = _footprint_counts(_in_footprint(col, row, model), ~np.isfinite(h))
         n_foot, n_no = n_foot + a, n_no + b
     return dict(
         n_footprint=n_foot, n_no_height=n_no, footprint_share=_no_height_share(n_no, n_foot)
@@ -847,12 +853,10 @@ def orthorectify(
         nohgt = ~np.isfinite(h)
         miss = None
         # footprint cells, and those without a DEM height (the one rule: _footprint_counts)
-        counts = _footprint_counts(col, row, h, model)
+        foot = _in_footprint(col, row, model)
+        counts = _footprint_counts(foot, nohgt)
         if nohgt.any():
-            ci, ri = col[nohgt], row[nohgt]  # at the middle height where there is no height
-            infoot = (
-                (ci >= -0.5) & (ri >= -0.5) & (ci <= model.width - 0.5) & (ri <= model.height - 0.5)
-            )
+            infoot = foot[nohgt]
             dcc, drr = dcol[nohgt][infoot], drow[nohgt][infoot]
             outside = (dcc < 0) | (drr < 0) | (dcc > dr_cols - 1) | (drr > dr_rows - 1)
             if outside.any():
