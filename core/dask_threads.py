@@ -7,7 +7,7 @@ from collections import Counter
 from distributed.comm import get_address_host
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from .errors import InputError
+from .errors import InputError, one_line
 from .threads import cores, pin_threads
 
 
@@ -57,9 +57,9 @@ def connect(address, timeout: str = "20s"):
     try:
         return Client(address, timeout=timeout)
     except (OSError, TimeoutError, ValueError) as exc:
-        reason = " ".join(str(exc).split()) or type(exc).__name__
         raise InputError(
-            f"--dask {address}: cannot connect to the scheduler ({type(exc).__name__}: {reason})"
+            f"--dask {address}: cannot connect to the scheduler "
+            f"({type(exc).__name__}: {one_line(exc)})"
         ) from None
 
 

@@ -82,6 +82,12 @@ def _rebuild_output_exists(cls, problem, advice):
     return cls(problem, advice=advice)
 
 
+def one_line(exc: BaseException, words: str = "library") -> str:
+    """:func:`error_message` on one line (messages relayed from GDAL or Dask may carry
+    newlines), or the exception's type name when it has no message."""
+    return " ".join(error_message(exc, words).split()) or type(exc).__name__
+
+
 def error_message(exc: BaseException, words: str = "library") -> str:
     """``str(exc)``, or for an :class:`OutputExistsError` its message in ``words``
     (``"command line"``: the ``stereodem`` program's vocabulary)."""

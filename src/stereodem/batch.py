@@ -34,7 +34,7 @@ from pathlib import Path
 import tomllib
 
 from stereodem.core import jsonutil
-from stereodem.core.errors import InputError, OutputExistsError, StereodemError, error_message
+from stereodem.core.errors import InputError, OutputExistsError, StereodemError, one_line
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import check_creatable, write_text_atomic
 from stereodem.core.threads import (
@@ -338,7 +338,7 @@ def _cpu() -> float:
 
 def _one_line(exc) -> str:
     # the command line's words, as its other reasons ("pass --overwrite")
-    return " ".join(error_message(exc, "command line").split()) or type(exc).__name__
+    return one_line(exc, "command line")
 
 
 # ----------------------------------------------------------------------------- the batch

@@ -16,7 +16,7 @@ import sys
 import threading
 
 from stereodem.core import interrupt
-from stereodem.core.errors import StereodemError, error_message
+from stereodem.core.errors import StereodemError, one_line
 from stereodem.core.pool import quiet_resource_tracker
 
 from . import __version__
@@ -164,7 +164,7 @@ def _one_line(exc) -> str:
     """An error message on one line (messages relayed from GDAL may carry newlines), in the
     command line's words ("pass --overwrite", not the library's "overwrite=True":
     :func:`stereodem.core.errors.error_message`)."""
-    return " ".join(error_message(exc, "command line").split())
+    return one_line(exc, "command line")
 
 
 def _resume_hint(args) -> str:
