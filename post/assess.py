@@ -40,6 +40,7 @@ from stereodem.core.errors import (
     VerticalReferenceError,
 )
 from stereodem.core.raster import check_map_raster
+from stereodem.sensor.io.gcps import ROLES
 
 from . import stats as st
 from . import terrain, warp
@@ -862,11 +863,38 @@ _Y = ("y", "northing", "n")
 _Z = ("height", "h", "z", "elevation", "alt", "altitude")
 
 
+def _check_roles(path, roles) -> np.ndarray:
+    """Which rows of a check-point CSV with a ``role`` column are check points: ``check``
+    (an empty role is ``gcp``, as :func:`stereodem.sensor.io.gcps.read_gcps` reads it);
+    an unknown role, or no check point at all, is an :class:`InputError` naming the file."""
+    role = np.array([(r or "").strip().lower() or "gcp" for r in roles], dtype=str)
+    unknown = sorted(set(role) - set(ROLES))
+    if unknown:
+        raise InputError(
+            f"{path}: unknown role(s) {', '.join(unknown)} in the check points "
+            "(expected gcp or check)"
+        )
+    keep = role == "check"
+    if not keep.any():
+        raise InputError(
+            f"{path}: no check point: its {role.size} point(s) all have the role gcp (used in "
+            "the estimation, no independent check); mark the check points role=check"
+        )
+    if not keep.all():
+        log.info(
+            "%s: %d check point(s); %d GCP(s) (role gcp) left out", path, keep.sum(), (~keep).sum()
+        )
+    return keep
+
+
 def read_checkpoints(path, *, crs=None):
     """Read check points from a CSV with a header.
 
     Columns ``lon``/``lat`` (degrees WGS84) or ``x``/``y`` (then ``crs`` is required), and
-    ``height``/``h``/``z``; an ``id`` column is kept if present.
+    ``height``/``h``/``z``; an ``id`` column is kept if present. A ``role`` column (the GCP
+    CSV of ``stereodem adjust``, :mod:`stereodem.sensor.io.gcps`: ``gcp``, the default, or
+    ``check``) keeps the ``check`` points only: a GCP used in the estimation is no
+    independent check of the result.
 
     Returns
     -------
@@ -905,6 +933,10 @@ def read_checkpoints(path, *, crs=None):
         raise InputError(f"{path}: non-numeric check point coordinate ({exc})") from None
     cid = pick(("id", "name", "point"))
     ids = [r[cid] for r in rows] if cid else [str(i) for i in range(len(rows))]
+    crole = pick(("role",))
+    if crole is not None:
+        keep = _check_roles(path, [r[crole] for r in rows])
+        x, y, z, ids = x[keep], y[keep], z[keep], [i for i, k in zip(ids, keep) if k]
     if geographic and crs is None:
         lon, lat = x, y
     else:

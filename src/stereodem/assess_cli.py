@@ -71,7 +71,11 @@ def add_parser(subparsers):
     )
     p.add_argument("dem", help="DEM GeoTIFF to assess")
     p.add_argument("--ref", required=True, help="reference DEM GeoTIFF (any CRS/resolution)")
-    p.add_argument("--checkpoints", help="CSV of check points: lon,lat,height or x,y,z")
+    p.add_argument(
+        "--checkpoints",
+        help="CSV of check points: lon,lat,height or x,y,z (with a role column, as in "
+        "adjust's GCP CSV: the role=check rows only)",
+    )
     p.add_argument("--checkpoints-crs", help="CRS of x,y check points (e.g. EPSG:32636)")
     p.add_argument(
         "--checkpoints-vertical",

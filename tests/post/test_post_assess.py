@@ -203,6 +203,35 @@ def test_an_assessment_on_a_few_cells_warns(ref, caplog):
     assert "rest on them alone" not in caplog.text
 
 
+def test_checkpoints_role_column_keeps_check_points_only(ref, tmp_path):
+    """The GCP CSV of ``stereodem adjust`` (role gcp/check, as ``simulate`` and ``demo`` write
+    it) given as check points: the GCPs, used in the estimation, are no independent check
+    (they were all counted, an optimistic figure)."""
+    w, s, e, n = ref.bounds_lonlat()
+    lon = np.linspace(w + 0.01, e - 0.01, 6)
+    lat = np.linspace(s + 0.01, n - 0.01, 6)
+    hz = ref.sample(lon, lat, reference="ellipsoid")
+    hz[:3] += 100.0  # the GCPs: wrong heights, that a check-point figure must not see
+    roles = ["gcp", "", "GCP", "check", " Check", "check"]
+    csv = tmp_path / "points.csv"
+    csv.write_text(
+        "id,lon,lat,h,col,row,role\n"
+        + "".join(
+            f"P{i},{a},{b},{c},0,0,{r}\n" for i, (a, b, c, r) in enumerate(zip(lon, lat, hz, roles))
+        )
+    )
+    lon2, lat2, z2, ids = assess.read_checkpoints(csv)
+    assert ids == ["P3", "P4", "P5"] and z2.size == lon2.size == lat2.size == 3
+    cp = assess.assess_checkpoints(ref, csv, vertical="ellipsoid")
+    assert cp["stats"]["n"] == 3 and abs(cp["stats"]["max"]) < 1e-6
+    csv.write_text("id,lon,lat,h,role\nP0,40.1,39.5,1000,gcp\n")
+    with pytest.raises(InputError, match=r"points.csv: no check point.*role gcp"):
+        assess.read_checkpoints(csv)
+    csv.write_text("id,lon,lat,h,role\nP0,40.1,39.5,1000,ground\n")
+    with pytest.raises(InputError, match=r"points.csv: unknown role\(s\) ground"):
+        assess.read_checkpoints(csv)
+
+
 def test_checkpoints_and_landcover(ref, simulated, tmp_path):
     rng = np.random.default_rng(2)
     w, s, e, n = ref.bounds_lonlat()
