@@ -469,7 +469,8 @@ class DEM:
         :class:`InputError`. Float layers read as float32 with NaN at nodata, integer layers
         in their stored type.
 
-        ``vertical`` overrides the vertical reference; otherwise it is taken from the file's
+        ``vertical`` overrides the vertical reference (with a warning naming the file when
+        the file says the other one); otherwise it is taken from the file's
         CRS (compound *horizontal + EGM96 height*, or 3-D with ellipsoidal heights, as
         :meth:`write` stores it, the latter in the ``.aux.xml`` side-car for projected grids)
         or else stereodem's own ``STEREODEM_VERTICAL`` tag (older files, or a file copied
@@ -503,7 +504,16 @@ class DEM:
         except rasterio.errors.RasterioIOError as exc:
             raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
         voided.warn(path)
-        vert = vertical or _vertical_from_crs(crs) or (tag.lower() if tag else None)
+        own = _vertical_from_crs(crs) or (tag.lower() if tag else None)
+        if vertical in VERTICALS and own in VERTICALS and own != vertical:
+            log.warning(
+                "%s: read as %s heights as asked, though the file says %s: wrong by the geoid "
+                "undulation (tens of metres) unless the file is mislabelled",
+                path,
+                vertical,
+                own,
+            )
+        vert = vertical or own
         geoid = other_geoid(crs) if vert == GEOID else None
         found = {}
         for name in tuple(LAYERS) if layers is True else layers or ():

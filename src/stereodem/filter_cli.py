@@ -20,7 +20,7 @@ from .commands import help_line
 EXAMPLES = """examples:
   stereodem filter out/dem.tif -o out/dem_clean.tif
   stereodem filter out/dem.tif -o clean.tif --thesis --max-hole-size 50
-  stereodem filter out/dem.tif -o clean.tif --seed-dem srtm.tif --dem-vertical geoid \\
+  stereodem filter out/dem.tif -o clean.tif --seed-dem srtm.tif --seed-vertical geoid \\
       --fill-from-seed
 """
 

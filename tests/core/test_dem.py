@@ -247,6 +247,26 @@ def test_files_written_side_by_side_have_the_same_bytes_and_one_gdal_thread_each
     assert all(co["NUM_THREADS"] == "4" for _, co in seen)
 
 
+def test_a_vertical_contradicting_the_file_is_read_with_a_warning(tmp_path, caplog):
+    """``vertical=`` (``--dem-vertical``, ``--ref-vertical``, ...) relabelled a file that says
+    the other reference without a word (``filter``'s help example turned a stereodem DEM's
+    ellipsoidal heights into a clean DEM tagged EGM96): read as asked, with a warning."""
+    a = np.full((6, 6), 1500.0, np.float32)
+    path = _dem_file(tmp_path / "e.tif", a)
+    with rasterio.open(path, "r+") as ds:
+        ds.update_tags(STEREODEM_VERTICAL="ellipsoid")
+    with caplog.at_level("WARNING", logger="stereodem.core.dem"):
+        d = DEM.from_file(path, vertical="geoid")
+    assert d.vertical == "geoid"
+    assert "e.tif: read as geoid heights as asked, though the file says ellipsoid" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stereodem.core.dem"):
+        assert DEM.from_file(path, vertical="ellipsoid").vertical == "ellipsoid"
+        # a file that does not say: the given reference, quietly
+        assert DEM.from_file(_dem_file(tmp_path / "n.tif", a), vertical="geoid").vertical == "geoid"
+    assert not caplog.text
+
+
 def test_undeclared_nodata_is_no_data_with_a_warning(tmp_path, caplog):
     # read as heights, -9999 without a nodata value put a mean of -1455 m into an assessment
     # and 1e30 a mean of 1.6e28 m; int16 -32768 (SRTM voids) lies below any height on Earth
