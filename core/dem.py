@@ -180,6 +180,29 @@ def _vertical_from_crs(crs: CRS | None) -> str | None:
     return None
 
 
+def file_vertical(path, crs: CRS | None, tag: str | None, given: str | None) -> str | None:
+    """The vertical reference of a DEM file's heights: what the file says (its CRS, else
+    stereodem's ``STEREODEM_VERTICAL`` tag ``tag``), else ``given`` (``--dem-vertical``,
+    ``--ref-vertical``, a configuration's ``*_vertical``: the reference of files that do not
+    say), else ``None`` (unknown). The one rule of every command and reader.
+
+    A ``given`` that contradicts the file is not applied (a default or a template would
+    otherwise relabel a correct file: an ellipsoidal stereodem DEM read as EGM96 heights is
+    off by the geoid undulation, tens of metres); a warning names the file. A mislabelled
+    file is mended at its source (``gdal_edit.py -a_srs``)."""
+    own = _vertical_from_crs(crs) or (tag.lower() if tag else None)
+    if own in VERTICALS and given in VERTICALS and given != own:
+        log.warning(
+            "%s: the file says %s heights: read as %s (the %s given applies to files that do "
+            "not say; a mislabelled file is mended with gdal_edit.py -a_srs)",
+            path,
+            own,
+            own,
+            given,
+        )
+    return own or given
+
+
 #: metres per foot, by the names of a height unit: GDAL's unit type of a band (which a GeoTIFF
 #: takes from its vertical CRS, e.g. ``US survey foot`` for NAVD88 height (ftUS), EPSG:6360) or
 #: the unit of a CRS's vertical axis
@@ -469,14 +492,15 @@ class DEM:
         :class:`InputError`. Float layers read as float32 with NaN at nodata, integer layers
         in their stored type.
 
-        ``vertical`` overrides the vertical reference (with a warning naming the file when
-        the file says the other one); otherwise it is taken from the file's
-        CRS (compound *horizontal + EGM96 height*, or 3-D with ellipsoidal heights, as
-        :meth:`write` stores it, the latter in the ``.aux.xml`` side-car for projected grids)
-        or else stereodem's own ``STEREODEM_VERTICAL`` tag (older files, or a file copied
-        without its side-car), and is ``None`` (unknown) if neither says. ``crs`` is the
-        horizontal part. Heights are metres: GDAL's scale and offset are applied, and heights
-        in feet (the band's unit or the vertical CRS's, :func:`height_scaling`) converted.
+        The vertical reference is the file's: its CRS (compound *horizontal + EGM96 height*, or
+        3-D with ellipsoidal heights, as :meth:`write` stores it, the latter in the
+        ``.aux.xml`` side-car for projected grids) or else stereodem's own
+        ``STEREODEM_VERTICAL`` tag (older files, or a file copied without its side-car);
+        ``vertical`` applies when neither says (``None``: unknown), and one that contradicts
+        the file is not applied, with a warning naming the file (:func:`file_vertical`).
+        ``crs`` is the horizontal part. Heights are metres: GDAL's scale and offset are
+        applied, and heights in feet (the band's unit or the vertical CRS's,
+        :func:`height_scaling`) converted.
         """
         path = str(path)
         try:
@@ -504,16 +528,7 @@ class DEM:
         except rasterio.errors.RasterioIOError as exc:
             raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
         voided.warn(path)
-        own = _vertical_from_crs(crs) or (tag.lower() if tag else None)
-        if vertical in VERTICALS and own in VERTICALS and own != vertical:
-            log.warning(
-                "%s: read as %s heights as asked, though the file says %s: wrong by the geoid "
-                "undulation (tens of metres) unless the file is mislabelled",
-                path,
-                vertical,
-                own,
-            )
-        vert = vertical or own
+        vert = file_vertical(path, crs, tag, vertical)
         geoid = other_geoid(crs) if vert == GEOID else None
         found = {}
         for name in tuple(LAYERS) if layers is True else layers or ():

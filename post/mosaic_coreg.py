@@ -29,13 +29,13 @@ from rasterio.windows import from_bounds
 from stereodem.core.dem import (
     DEM,
     Voided,
-    _vertical_from_crs,
+    file_vertical,
     height_scaling,
     horizontal_crs,
     void_nodata,
 )
 from stereodem.core.errors import ConvergenceError, DEMError, InputError, NoOverlapError
-from stereodem.core.raster import reading_env
+from stereodem.core.raster import VERTICAL_TAG, reading_env
 
 from . import warp
 from .assess import coregistration_summary
@@ -188,8 +188,8 @@ def crop_reference(
             # -9999 without a nodata value, implausible heights: no-data; decimetres, feet:
             # metres
             found = void_nodata(z, ds.nodata, *height_scaling(ds, 1, pcrs))
-            tag = ds.tags().get("STEREODEM_VERTICAL")
-            vert = _vertical_from_crs(pcrs) or (tag.lower() if tag else None) or vertical
+            tag = ds.tags().get(VERTICAL_TAG)
+            vert = file_vertical(path, pcrs, tag, vertical)
     except rasterio.errors.RasterioIOError as exc:
         raise DEMError(
             f"{path}: cannot read the reference DEM ({str(exc).splitlines()[0][:120]})"

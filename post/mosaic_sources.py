@@ -26,8 +26,8 @@ from rasterio.warp import calculate_default_transform, transform_bounds
 from stereodem.core.dem import (
     ELLIPSOID,
     GEOID,
-    _vertical_from_crs,
     check_georeferenced,
+    file_vertical,
     horizontal_crs,
     other_geoid,
 )
@@ -145,7 +145,7 @@ def open_source(path, order: int = 0, *, vertical: str | None = None) -> Source:
                 )
             crs = CRS.from_wkt(ds.crs.to_wkt())
             tag = ds.tags().get(VERTICAL_TAG)
-            vert = _vertical_from_crs(crs) or (tag.lower() if tag else None) or vertical
+            vert = file_vertical(path, crs, tag, vertical)
             geoid = other_geoid(crs) if vert == GEOID else None
             return Source(
                 str(path),

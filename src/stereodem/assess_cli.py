@@ -96,12 +96,14 @@ def add_parser(subparsers):
         help="Nuth & Kaab co-registration; report before and after",
     )
     p.add_argument(
-        "--dem-vertical", choices=VERTICALS, help="vertical reference of DEM (overrides the file)"
+        "--dem-vertical",
+        choices=VERTICALS,
+        help="vertical reference of DEM when the file does not say",
     )
     p.add_argument(
         "--ref-vertical",
         choices=VERTICALS,
-        help="vertical reference of the reference (overrides the file)",
+        help="vertical reference of the reference when the file does not say",
     )
     ea = p.add_argument_group("error analysis on stable terrain (Hugonnet et al. 2022)")
     ea.add_argument(

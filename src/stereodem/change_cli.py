@@ -37,8 +37,16 @@ def add_parser(sub):
     )
     p.add_argument("dem_a", metavar="DEM_A", help="earlier DEM (its grid is the output grid)")
     p.add_argument("dem_b", metavar="DEM_B", help="later DEM")
-    p.add_argument("--a-vertical", choices=VERTICALS, help="vertical reference of DEM_A")
-    p.add_argument("--b-vertical", choices=VERTICALS, help="vertical reference of DEM_B")
+    p.add_argument(
+        "--a-vertical",
+        choices=VERTICALS,
+        help="vertical reference of DEM_A when the file does not say",
+    )
+    p.add_argument(
+        "--b-vertical",
+        choices=VERTICALS,
+        help="vertical reference of DEM_B when the file does not say",
+    )
     p.add_argument(
         "--dates", help="DA,DB (default: from the DEMs' metadata when stereodem made them)"
     )

@@ -77,7 +77,11 @@ def add_parser(sub):
         help="cells with |dh - median| beyond this many NMADs leave the stable terrain "
         "(default 5; 0: off)",
     )
-    p.add_argument("--dem-vertical", choices=VERTICALS, help="vertical reference of DEM")
+    p.add_argument(
+        "--dem-vertical",
+        choices=VERTICALS,
+        help="vertical reference of DEM when the file does not say",
+    )
     p.add_argument(
         "--ref-vertical",
         choices=VERTICALS,

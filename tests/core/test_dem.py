@@ -13,6 +13,7 @@ from stereodem.core.errors import (
     OutputExistsError,
     VerticalReferenceError,
 )
+from stereodem.post.mosaic_sources import open_source
 
 
 def test_bundled_dem_metadata():
@@ -247,23 +248,27 @@ def test_files_written_side_by_side_have_the_same_bytes_and_one_gdal_thread_each
     assert all(co["NUM_THREADS"] == "4" for _, co in seen)
 
 
-def test_a_vertical_contradicting_the_file_is_read_with_a_warning(tmp_path, caplog):
-    """``vertical=`` (``--dem-vertical``, ``--ref-vertical``, ...) relabelled a file that says
-    the other reference without a word (``filter``'s help example turned a stereodem DEM's
-    ellipsoidal heights into a clean DEM tagged EGM96): read as asked, with a warning."""
+def test_a_vertical_contradicting_the_file_is_not_applied(tmp_path, caplog):
+    """``vertical=`` (``--dem-vertical``, ``--ref-vertical``, a configuration's
+    ``*_vertical``) is the reference of files that do not say: it relabelled a file that says
+    the other one without a word (``filter``'s help example turned a stereodem DEM's
+    ellipsoidal heights into a clean DEM tagged EGM96). The file's own is kept, with a
+    warning naming the file; the same rule in the mosaic's header-only reader."""
     a = np.full((6, 6), 1500.0, np.float32)
     path = _dem_file(tmp_path / "e.tif", a)
     with rasterio.open(path, "r+") as ds:
         ds.update_tags(STEREODEM_VERTICAL="ellipsoid")
     with caplog.at_level("WARNING", logger="stereodem.core.dem"):
         d = DEM.from_file(path, vertical="geoid")
-    assert d.vertical == "geoid"
-    assert "e.tif: read as geoid heights as asked, though the file says ellipsoid" in caplog.text
+        src = open_source(path, vertical="geoid")
+    assert d.vertical == "ellipsoid" and src.vertical == "ellipsoid"
+    assert caplog.text.count("e.tif: the file says ellipsoid heights: read as ellipsoid") == 2
     caplog.clear()
     with caplog.at_level("WARNING", logger="stereodem.core.dem"):
         assert DEM.from_file(path, vertical="ellipsoid").vertical == "ellipsoid"
         # a file that does not say: the given reference, quietly
         assert DEM.from_file(_dem_file(tmp_path / "n.tif", a), vertical="geoid").vertical == "geoid"
+        assert DEM.from_file(tmp_path / "n.tif").vertical is None
     assert not caplog.text
 
 
