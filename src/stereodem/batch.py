@@ -386,14 +386,20 @@ def run_batch(
         if progress:
             progress(row)
 
-    if dask is not None:
-        _run_dask(order, out_root, dask, n, (overwrite, keep_tiles), collect)
-    elif n <= 1:
-        with thread_budget(1):
-            for s in order:
-                collect(run_scene(s, out_root, 1, overwrite, keep_tiles))
-    else:
-        _run_pool(order, out_root, n, worker_threads(n), (overwrite, keep_tiles), collect)
+    try:
+        if dask is not None:
+            _run_dask(order, out_root, dask, n, (overwrite, keep_tiles), collect)
+        elif n <= 1:
+            with thread_budget(1):
+                for s in order:
+                    collect(run_scene(s, out_root, 1, overwrite, keep_tiles))
+        else:
+            _run_pool(order, out_root, n, worker_threads(n), (overwrite, keep_tiles), collect)
+    except BaseException:
+        # interrupted (Ctrl-C, SIGTERM): the table still says which scenes are done and which
+        # are pending (a run interrupted before its first scene finished left none at all)
+        _write_table(out_root, scenes, rows, table, time.perf_counter() - t0)
+        raise
     return _write_table(out_root, scenes, rows, table, time.perf_counter() - t0)
 
 

@@ -176,6 +176,12 @@ def _resume_hint(args) -> str:
         )
     if args.command == "demo":
         return "run it again with --overwrite"
+    if args.command == "batch":
+        # batch resumes in its folder; --overwrite would recompute the scenes already done
+        return (
+            "the scenes done are kept (batch.json lists them); run the same command again to "
+            "continue: done scenes are skipped, the others reuse their finished tiles"
+        )
     return "no product was written; run the command again (--overwrite if the folder is not empty)"
 
 

@@ -239,3 +239,34 @@ def test_dask_local_prints_no_cluster_chatter(tmp_path):
     assert done.returncode == 1, done.stderr  # the scene fails: its images do not exist
     assert "1 failed" in done.stdout
     assert "distributed" not in done.stderr, done.stderr
+
+
+def test_an_interrupted_batch_says_how_to_resume(tmp_path, monkeypatch, capsys):
+    """Ctrl-C during a batch: the hint is batch's (run it again: done scenes are skipped), not
+    "no product was written ... --overwrite" (which would recompute the done scenes), and
+    batch.json lists the scene done and the one pending."""
+    import signal
+
+    from stereodem import batch
+    from stereodem.batch import SceneStatus
+
+    for n in ("a", "b"):
+        (tmp_path / f"{n}.toml").write_text("")
+    calls = []
+
+    def fake(scene, out_root, *args, **kwargs):
+        calls.append(scene.name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return SceneStatus(scene.name, scene.path, "done")
+
+    monkeypatch.setattr(batch, "run_scene", fake)
+    out = tmp_path / "out"
+    argv = ["batch", str(tmp_path / "a.toml"), str(tmp_path / "b.toml"), "-o", str(out)]
+    rc = cli.main([*argv, "--workers", "1"])
+    assert rc == 128 + signal.SIGINT
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "run the same command again" in err
+    assert "--overwrite" not in err and "no product was written" not in err
+    table = json.loads((out / "batch.json").read_text())
+    assert table["summary"] == {"done": 1, "failed": 0, "skipped": 0, "pending": 1}
