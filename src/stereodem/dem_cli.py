@@ -232,7 +232,7 @@ def run(args) -> int:
     """
     from . import point_cloud
     from .outlock import output_folder
-    from .pipeline.inputs import input_paths, load_pair
+    from .pipeline.inputs import input_paths, load_pair, pair_names
     from .pipeline.stages import check_dem_result, stereo_stage, write_dem_report
     from .provenance import utc_now
 
@@ -272,14 +272,11 @@ def run(args) -> int:
             tags=track_tags(pair.left_model, pair.left_image.shape, prod.dem.crs, prod.dem.heights),
             threads=job_threads(cfg.run.workers),
         )
+        left, right = pair_names(args.left, args.right)
         cloud = None
         if pts is not None:
-            cloud = point_cloud.point_cloud_stage(
-                cfg, out, prod, pairs={0: (str(args.left), str(args.right))}
-            )
-        write_dem_report(
-            out, prod, failed, pair, started, cloud, left=str(args.left), right=str(args.right)
-        )
+            cloud = point_cloud.point_cloud_stage(cfg, out, prod, pairs={0: (left, right)})
+        write_dem_report(out, prod, failed, pair, started, cloud, left=left, right=right)
     check_dem_result(cfg, prod, failed, out / "dem_report.json")
     g = prod.dem.grid
     options.say(
@@ -307,7 +304,7 @@ def _run_strip(args, granules, started) -> int:
     one = argparse.Namespace(**{**vars(args), "left": granules[0], "right": None, "more": []})
     cfg = config_from_args(one)
     bar = options.progress_bar("stereo")
-    prod, out, strip = run_strip_dem(cfg, granules, started=started, progress=bar)
+    prod, out, strip, cloud = run_strip_dem(cfg, granules, started=started, progress=bar)
     bar.close()
     g = prod.dem.grid
     seams = strip.report["seams"]["3N"]
@@ -323,6 +320,8 @@ def _run_strip(args, granules, started) -> int:
         + ", ".join(f"{s['overlap_lines']} lines" for s in seams)
     )
     options.say(sparse_line(prod.info.to_dict()))
+    if cloud is not None:  # as the pair and N-view routes say it
+        options.say(f"  point cloud {cloud['path']}: {cloud['n_points']} points")
     return 0
 
 

@@ -30,6 +30,9 @@ log = logging.getLogger(__name__)
 
 __all__ = ["load_strip_pair", "run_strip_dem", "strip_granules"]
 
+#: the strip's pair as its report and point cloud name it (the granules are in ``strip``)
+STRIP_PAIR = ("3N strip", "3B strip")
+
 
 def _granules_in_folder(folder: Path) -> list:
     """The granules directly inside ``folder`` (V004 ``.hdf``, V003 zips or folders), sorted."""
@@ -84,7 +87,9 @@ def load_strip_pair(cfg: Config, paths):
 def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
     """Make the strip's DEM into ``cfg.output_dir`` (the pair route's layers and
     ``dem_report.json`` with a ``strip`` section), the folder locked for the job.
-    Returns ``(products, folder, strip)``; a suspect result fails afterwards (``--force``)."""
+    Returns ``(products, folder, strip, cloud)``, ``cloud`` the summary of the point cloud
+    written with ``[dem] point_cloud`` (else None); a suspect result fails afterwards
+    (``--force``)."""
     inputs = [*paths, *input_paths(cfg)]
     with output_folder(cfg.output_dir, overwrite=cfg.run.overwrite, inputs=inputs) as out:
         pair, strip = load_strip_pair(cfg, paths)
@@ -96,7 +101,11 @@ def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
             creation_options=cfg.run.creation_options,
             threads=job_threads(cfg.run.workers),
         )
-        cloud = point_cloud.point_cloud_stage(cfg, out, prod) if pts is not None else None
+        cloud = (
+            point_cloud.point_cloud_stage(cfg, out, prod, pairs={0: STRIP_PAIR})
+            if pts is not None
+            else None
+        )
         write_dem_report(
             out,
             prod,
@@ -104,9 +113,9 @@ def run_strip_dem(cfg: Config, paths, *, started=None, progress=None):
             pair,
             started,
             cloud,
-            left="3N strip",
-            right="3B strip",
+            left=STRIP_PAIR[0],
+            right=STRIP_PAIR[1],
             strip=strip.report,
         )
     check_dem_result(cfg, prod, failed, out / "dem_report.json")
-    return prod, out, strip
+    return prod, out, strip, cloud

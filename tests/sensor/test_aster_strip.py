@@ -171,3 +171,29 @@ def test_join_of_granules_whose_lattices_are_out_of_phase(strip3, tmp_path):
         lon, lat = long_model.localize(c, r, np.full(9, 2200.0))
         cs, rs = b.model.project(lon, lat, np.full(9, 2200.0))
         assert np.max(np.hypot(cs - c, rs - r)) < 0.01
+
+
+def test_granule_point_clouds_name_their_pair(strip3, tmp_path, capsys):
+    """``dem G.hdf --point-cloud``: the report and the cloud's pair list name the granule's
+    bands (they said the granule and "None"); ``dem G1 G2 --point-cloud`` (a strip) names its
+    pair in the cloud too and prints the cloud's line, as the pair and N-view routes do."""
+    laspy = pytest.importorskip("laspy")
+    from stereodem.stereo.pointcloud import read_pairs
+
+    strip, paths, folder = strip3
+    lo, hi = DEM.from_file(folder / "truth_dem.tif").height_range()
+    common = ["--height-range", f"{lo - 100:.0f}", f"{hi + 100:.0f}", "--point-cloud", "las"]
+    one = tmp_path / "one"
+    assert main(["dem", paths[0], "-o", str(one), *common]) == 0
+    report = json.loads((one / "dem_report.json").read_text())
+    names = [f"{paths[0]} (3N)", f"{paths[0]} (3B)"]
+    assert [report["left"], report["right"]] == names
+    assert report["point_cloud"]["pairs"] == {"0": names}
+    with laspy.open(one / "dem.las") as f:
+        assert read_pairs(f.header) == {0: names}
+    capsys.readouterr()
+    two = tmp_path / "strip"
+    assert main(["dem", paths[0], paths[1], "-o", str(two), *common]) == 0
+    assert f"point cloud {two / 'dem.las'}: " in capsys.readouterr().out
+    with laspy.open(two / "dem.las") as f:
+        assert read_pairs(f.header) == {0: ["3N strip", "3B strip"]}

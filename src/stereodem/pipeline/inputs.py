@@ -148,6 +148,19 @@ def load_pair(cfg: Config) -> Pair:
     )
 
 
+def pair_names(left, right) -> tuple[str, str]:
+    """The pair's two images as named to the user (reports, the point cloud's pair list): an
+    ASTER granule given alone (or as both images) is its bands, ``"G.hdf (3N)"`` and
+    ``"G.hdf (3B)"`` (:func:`load_pair`), not the granule and ``"None"``."""
+    if (
+        left
+        and is_aster_granule(left)
+        and (not right or Path(right).resolve() == Path(left).resolve())
+    ):
+        return tuple(f"{left} ({b})" for b in ASTER_STEREO_BANDS)
+    return str(left), str(right)
+
+
 def read_stereo_dem(dem_path, *, vertical=None) -> DEM:
     """A stereo DEM written by ``stereodem dem`` with its ``score.tif`` and ``raygap.tif``
     beside it (missing layers are NaN: the filters that need them then keep every cell); an

@@ -44,7 +44,7 @@ from ..config import Config
 from ..multiview import run_stage, source_pairs
 from ..outlock import output_folder, remove_tile_cache
 from ..provenance import provenance, utc_now
-from .inputs import check_inputs, input_paths, load_pair
+from .inputs import check_inputs, input_paths, load_pair, pair_names
 from .record import StageLog, headline, versions
 from .stages import (
     assess_stage,
@@ -399,8 +399,8 @@ def _run_stages(job: Job) -> dict:
 
 
 def _pair_names(cfg: Config) -> dict:
-    """The pair cloud's source pair: ``{0: (left, right)}``."""
-    return {0: (str(cfg.inputs.left), str(cfg.inputs.right))}
+    """The pair cloud's source pair: ``{0: (left, right)}`` (:func:`.inputs.pair_names`)."""
+    return {0: pair_names(cfg.inputs.left, cfg.inputs.right)}
 
 
 def _close(bar):
