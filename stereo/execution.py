@@ -190,8 +190,19 @@ def _model_fingerprint(model) -> bytes:
         own = json.dumps(model.parameters(), sort_keys=True).encode()
         return own + _model_fingerprint(model.model)
     if hasattr(model, "to_dict"):
-        return json.dumps(model.to_dict(), default=json_default, sort_keys=True).encode()
+        d = _without_paths(model.to_dict())
+        return json.dumps(d, default=json_default, sort_keys=True).encode()
     return pickle.dumps(model, protocol=4)
+
+
+def _without_paths(d):
+    """A model's description without the file it was read from (an ASTER model's
+    ``geometry.path``): the same granule named ``g.hdf`` or ``/data/g.hdf`` (a configuration
+    given by a relative path, then an absolute one) is the same model, and its tiles the same
+    tiles; the images' bytes are in the key."""
+    if isinstance(d, dict):
+        return {k: _without_paths(v) for k, v in d.items() if k != "path"}
+    return d
 
 
 class OtherJobTilesError(InputError):

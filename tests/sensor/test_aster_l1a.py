@@ -500,3 +500,18 @@ def test_simulated_granules_of_different_seeds_share_a_folder(tmp_path):
         assert md["granule_id"] == p.stem and md["acquisition_time"] == "2017-07-31T19:07:28Z"
     scenes = expand_inputs([str(p) for p in granules])
     assert len({s.name for s in scenes}) == 2 and {s.kind for s in scenes} == {"granule"}
+
+
+def test_tile_cache_key_does_not_depend_on_how_the_granule_is_named(files, monkeypatch):
+    """The same granule by a relative and by an absolute path is the same model for the tile
+    cache: ``stereodem demo -o /abs/out`` then ``stereodem run out/demo.toml --resume`` refused
+    the demo's tiles ("belong to a run with other inputs or settings": the model's description
+    holds the path it was read from)."""
+    from stereodem.stereo.execution import _model_fingerprint
+
+    path = files["v004"]
+    monkeypatch.chdir(path.parent)
+    absolute = open_aster_granule(str(path))["3N"].model
+    relative = open_aster_granule(path.name)["3N"].model
+    assert absolute.to_dict()["geometry"]["path"] != relative.to_dict()["geometry"]["path"]
+    assert _model_fingerprint(absolute) == _model_fingerprint(relative)
