@@ -23,9 +23,11 @@ release.
 with ``overwrite``, removes the products of the previous job (only in a folder that a
 stereodem job wrote, recognised by its ``run.json``, ``dem_report.json`` or tile cache
 manifest, read: each carries the version of stereodem that wrote it);
-on ``resume`` it keeps the tile cache. In a folder of the user's (e.g. the one holding the
-inputs) it writes the products beside the user's files only when none of them has a product's
-name: nothing of the user's is replaced or removed. If the job fails before writing anything, a
+on ``resume`` it keeps the tile cache and sets the other products aside until the job has
+written its own (put back if it stops before: a refused ``--resume`` loses nothing). In a
+folder of the user's (e.g. the one holding the inputs) it writes the products beside the
+user's files only when none of them has a product's name: nothing of the user's is replaced
+or removed. If the job fails before writing anything, a
 folder it created is removed again.
 """
 
@@ -55,6 +57,8 @@ __all__ = [
     "output_folder",
     "remove_products",
     "remove_products_in_background",
+    "restore_products",
+    "set_aside_products",
     "is_stereodem_output",
     "check_not_an_input",
     "check_output_folder",
@@ -281,11 +285,52 @@ def remove_products_in_background(folder, *, keep_tiles: bool, products: Product
     return removed, thread
 
 
-def _products_to_remove(folder: Path, keep_tiles: bool, products: Products = JOB):
+def set_aside_products(folder, *, products: Products = JOB) -> Path | None:
+    """Move the previous job's ``products`` except its tile cache into a hidden folder of
+    ``folder`` (a rename each), for a job that continues it (``--resume``): the job may still
+    refuse the tiles or fail before writing anything, and the previous products are then put
+    back (:func:`restore_products`); the job that succeeds deletes them. Returns the hidden
+    folder (None: nothing to set aside). A job killed meanwhile leaves the hidden folder, which
+    the next ``--overwrite`` removes as one of the products (:data:`PRODUCTS`)."""
+    folder = Path(folder)
+    _, paths = _products_to_remove(folder, True, products, verb="set aside")
+    if not paths:
+        return None
+    aside = folder / f"{REMOVING_PREFIX}{os.getpid()}-{time.monotonic_ns()}"
+    aside.mkdir()
+    for p in paths:
+        p.rename(aside / p.name)
+    return aside
+
+
+def restore_products(folder, aside: Path) -> bool:
+    """Put the products :func:`set_aside_products` moved into ``aside`` back into ``folder``
+    when the job wrote none of them (it failed or was refused before writing anything), else
+    delete them (the job's own are there: mixing the two would make a folder no job wrote).
+    Returns whether they were put back."""
+    folder, aside = Path(folder), Path(aside)
+    names = [p.name for p in aside.iterdir()]
+    if any((folder / n).exists() or (folder / n).is_symlink() for n in names):
+        shutil.rmtree(aside, ignore_errors=True)
+        return False
+    for n in names:
+        (aside / n).rename(folder / n)
+    aside.rmdir()
+    log.warning(
+        "%s: the job stopped before writing its products: the previous job's %s are kept",
+        folder,
+        ", ".join(sorted(names)),
+    )
+    return True
+
+
+def _products_to_remove(
+    folder: Path, keep_tiles: bool, products: Products = JOB, verb: str = "removed"
+):
     paths = sorted(set(_product_paths(folder, keep_tiles, products.names)))
     removed = [p.name for p in paths]
     if removed:
-        log.info("%s: removed the previous job's %s", folder, ", ".join(removed))
+        log.info("%s: %s the previous job's %s", folder, verb, ", ".join(removed))
     return removed, paths
 
 
@@ -425,7 +470,9 @@ def output_folder(
         folder that is not a stereodem output, write beside its files only when none has a
         product's name.
     resume : bool
-        Continue a previous job: keep its tile cache (its other products are replaced).
+        Continue a previous job: keep its tile cache; its other products are set aside
+        (:func:`set_aside_products`) and replaced when the job succeeds, put back when it
+        stops before writing any of its own (e.g. it refused the tiles as another job's).
     inputs : iterable of paths
         The job's input files; none may be among the outputs.
     background : bool
@@ -468,11 +515,13 @@ def output_folder(
                 path.rmdir()
         raise
     ok = False
-    deleting = None
+    deleting = aside = None
     try:
         _check_contents(path, products, overwrite=overwrite, resume=resume)
         if (overwrite or resume) and is_stereodem_output(path, products.markers):
-            if background:
+            if resume:  # kept until the job has written its own (it may refuse the tiles)
+                aside = set_aside_products(path, products=products)
+            elif background:
                 deleting = remove_products_in_background(
                     path, keep_tiles=resume, products=products
                 )[1]
@@ -483,6 +532,11 @@ def output_folder(
     finally:
         if deleting is not None:
             deleting.join()
+        if aside is not None:
+            if ok:
+                shutil.rmtree(aside, ignore_errors=True)
+            else:
+                restore_products(path, aside)
         lock.release()
         if not ok and created:
             with contextlib.suppress(OSError):

@@ -339,10 +339,16 @@ def test_a_pool_run_clears_an_interrupted_runs_leftovers_but_not_its_own_image_m
 def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
     out = tmp_path / "r"
     run(_cfg(scene_dir, out))
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    assert "dem.tif" in before and "run.json" in before
     cfg = _cfg(scene_dir, out, resume=True)
     cfg.stereo.matching.matcher = "ncc"  # other settings: the cache is not this job's
     with pytest.raises(InputError, match="other inputs or settings"):
         run(cfg)
+    # the refused resume took nothing of the previous job (its products were deleted first)
+    after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    assert after == before
+    assert not list(out.glob(".stereodem-removing-*"))
     # a fresh (non-resumed) run replaces the cache, so a later resume is consistent again
     stale = out / "tiles" / "tile_99999.npz"
     stale.write_bytes(b"stale")

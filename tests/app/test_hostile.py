@@ -27,7 +27,13 @@ from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_s
 from stereodem import cli
 from stereodem.core import jsonutil
 from stereodem.core.errors import InputError, OutputExistsError
-from stereodem.outlock import LOCK_NAME, OutputLock, OutputLockedError, remove_products
+from stereodem.outlock import (
+    LOCK_NAME,
+    OutputLock,
+    OutputLockedError,
+    output_folder,
+    remove_products,
+)
 from stereodem.sensor.io.sidecar import load_image_model
 from stereodem.stereo.plan import base_to_height
 from stereodem.stereo.runner import run_tiles
@@ -553,6 +559,40 @@ def test_overwrite_removes_only_stereodem_products(tmp_path):
         (out / name).write_text("x")
     remove_products(out, keep_tiles=False)
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_resume_sets_the_products_aside_until_the_job_writes_its_own(tmp_path):
+    """--resume removed the previous job's products before the job checked its tile cache:
+    a resume refused as another job's (changed settings) left only tiles/. They are set aside
+    now: put back when the job stops before writing any of its own, replaced when it
+    succeeds, and the tile cache is kept either way."""
+    out = tmp_path / "out"
+    (out / "tiles").mkdir(parents=True)
+    for name in ("dem.tif", "tiles/tile_00001.npz", "notes.txt"):
+        (out / name).write_text("old")
+    (out / "run.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
+    files = sorted(p.name for p in out.iterdir())
+    with pytest.raises(InputError, match="refused"):
+        with output_folder(out, resume=True, background=True) as o:
+            assert sorted(p.name for p in o.iterdir() if not p.name.startswith(".")) == [
+                "notes.txt",
+                "tiles",
+            ]
+            raise InputError("cached tiles refused")
+    assert sorted(p.name for p in out.iterdir()) == files
+    assert (out / "dem.tif").read_text() == "old"
+    # a job that wrote its own products before failing: the old ones are not mixed in
+    with pytest.raises(RuntimeError):
+        with output_folder(out, resume=True) as o:
+            (o / "dem.tif").write_text("new")
+            raise RuntimeError("ortho failed")
+    assert sorted(p.name for p in out.iterdir()) == ["dem.tif", "notes.txt", "tiles"]
+    assert (out / "dem.tif").read_text() == "new"
+    (out / "run.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
+    with output_folder(out, resume=True) as o:  # success: the job's own, nothing hidden left
+        (o / "dem.tif").write_text("newer")
+    assert sorted(p.name for p in out.iterdir()) == ["dem.tif", "notes.txt", "tiles"]
+    assert (out / "tiles" / "tile_00001.npz").read_text() == "old"
 
 
 def test_products_deleted_in_the_background_are_out_of_the_way_at_once(tmp_path, monkeypatch):
