@@ -1,8 +1,10 @@
 """The application: configuration, end-to-end run, workers, failures, CLI behaviour."""
 
 import dataclasses
+import io
 import json
 import pickle
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -10,14 +12,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+import rasterio.shutil
 from helpers.strict_json import strict_loads
 
+import stereodem.pipeline.job as job
 import stereodem.stereo.pipeline as sp
 from stereodem import cli
+from stereodem.commands import COMMANDS
 from stereodem.config import config_from_dict, load_config
+from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError, OutputExistsError
 from stereodem.core.threads import job_threads
 from stereodem.pipeline.job import run
+from stereodem.run_cli import summarize
 from stereodem.sensor.simulation.aster_granule import granule_right_size, write_granule_scene
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 from stereodem.stereo.runner import SharedArray
@@ -125,8 +132,6 @@ def test_writes_overlapping_a_stage_compress_on_one_thread(
     """The background writer is one thread of the budget: a GeoTIFF written while a following
     stage runs compresses on that thread alone; a write the job waits for at its end (the
     orthoimages when no assessment follows) compresses on all the job's workers."""
-    import rasterio.shutil
-
     seen, copy = {}, rasterio.shutil.copy
 
     def record(src, dst, **kw):
@@ -159,8 +164,6 @@ def test_run_reads_the_reference_dem_once(scene_dir, tmp_path, monkeypatch):
     """The input checks look at the reference DEM's header and first block before the stereo
     work; the assessment reads it: one full read of a file that may hold tens of millions of
     cells (it was two)."""
-    from stereodem.core.dem import DEM
-
     real, reads = DEM.from_file.__func__, []
 
     def counting(cls, path, *a, **k):
@@ -590,8 +593,6 @@ def test_new_options_reject_bad_values_before_any_work(
 def test_filter_removing_every_cell_names_the_dem(tmp_path, capsys, extra):
     """A 3 x 3 DEM: the blunder filters remove all its cells; the error said "the DEM has no
     valid height to fill from" (no file), or with --no-fill named the output as all void."""
-    from stereodem.core.dem import DEM
-
     z = np.arange(9, dtype=np.float32).reshape(3, 3) + 1500
     DEM(z, rasterio.Affine(30, 0, 5e5, 0, -30, 4.3e6), "EPSG:32637", "geoid").write(
         tmp_path / "tiny.tif"
@@ -613,11 +614,6 @@ def test_band_names_are_checked_by_the_parser(capsys):
 def test_top_level_help_lists_every_command_without_importing_them():
     """`stereodem --help` (and a bare or misspelt `stereodem`) lists the commands from
     stereodem.commands alone; each command's own parser carries the same summary."""
-    import subprocess
-    import sys
-
-    from stereodem.commands import COMMANDS
-
     code = (
         "import sys, contextlib, io\n"
         "from stereodem.cli import main\n"
@@ -648,11 +644,6 @@ def test_command_parsers_load_no_numpy():
     """A command's parser loads no numpy/OpenCV/rasterio (DESIGN.md, imports, reason (a)):
     change, compare-models, mosaic and stack imported core.jsonutil (numpy) at their top;
     adjust's --model choices came from the sensor packages (now sensor.choices)."""
-    import subprocess
-    import sys
-
-    from stereodem.commands import COMMANDS
-
     names = list(COMMANDS)
     assert "adjust" in names
     code = (
@@ -668,9 +659,6 @@ def test_command_parsers_load_no_numpy():
 
 def test_clean_tiles_option_reaches_the_job(tmp_path, monkeypatch):
     """``run --clean-tiles`` is ``[run] keep_tiles = false``; without it the TOML decides."""
-    import stereodem.pipeline.job as job
-    from stereodem import cli
-
     seen = []
 
     def fake_run(cfg, progress_factory=None):
@@ -693,10 +681,6 @@ def test_clean_tiles_option_reaches_the_job(tmp_path, monkeypatch):
 def test_summary_names_every_orthoimage_written():
     """The closing lines of ``stereodem run`` list each orthoimage of run.json's outputs (the
     right one too with ``[ortho] both``), not a fixed left one."""
-    import io
-
-    from stereodem.run_cli import summarize
-
     info = {
         "config": {"output": {"dir": "out"}},
         "stages": {"ortho": {}},
@@ -718,10 +702,6 @@ def test_summary_names_every_orthoimage_written():
 def test_no_option_help_states_its_default_twice():
     """Each option's help says its default once (``stack --workers`` said "(default: all
     cores) (default: all cores)": its text carried the default that ``add_workers`` adds)."""
-    import re
-
-    from stereodem.commands import COMMANDS
-
     full = cli.build_parser()
     sub = next(a for a in full._actions if a.__class__.__name__ == "_SubParsersAction")
     for name in COMMANDS:

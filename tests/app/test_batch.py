@@ -2,15 +2,19 @@
 corrupt scene fails with its reason and the others are done; a second run skips done scenes."""
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import rasterio
 
 from stereodem import cli
-from stereodem.batch import expand_inputs, run_batch
+from stereodem.batch import expand_inputs, run_batch, scene_config
+from stereodem.config import load_config
 from stereodem.core.errors import InputError
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
+from stereodem.stereo.execution import _check_tile_cache
 
 CONFIG = """
 [inputs]
@@ -137,8 +141,6 @@ def test_a_done_scene_whose_configuration_changed_is_not_skipped(tmp_path, monke
     """A scene done before and edited since (another matcher) was skipped as "already done":
     its products, of the old settings, stood as the new configuration's. It fails naming its
     run.json until --overwrite; unchanged, it is skipped from any working folder."""
-    from stereodem.config import load_config
-
     monkeypatch.chdir(tmp_path)
     (tmp_path / "cfg").mkdir()
     cfg = tmp_path / "cfg" / "a.toml"
@@ -174,8 +176,6 @@ def test_a_failed_scene_whose_configuration_changed_says_what_batch_takes(tmp_pa
     cache's resume check; the reason was stereodem run's, "run again without --resume (and
     with --overwrite)", and batch has no --resume flag. It says to pass --overwrite (or use
     another -o); and --overwrite recomputes the scene."""
-    from stereodem.stereo.execution import _check_tile_cache
-
     cfg = tmp_path / "a.toml"
     cfg.write_text(CONFIG.format(d=tmp_path / "data"))
     out = tmp_path / "out"
@@ -203,9 +203,6 @@ def test_a_failed_scene_whose_configuration_changed_says_what_batch_takes(tmp_pa
 def test_a_scene_configuration_needs_no_output_dir(tmp_path):
     """batch writes each scene into OUT/<name>, whatever its [output] dir says: a
     configuration without one failed ("[output] needs 'dir'") though it would be ignored."""
-    from stereodem.batch import scene_config
-    from stereodem.config import load_config
-
     img = tmp_path / "l.tif"
     img.write_bytes(b"")
     cfg = tmp_path / "s.toml"
@@ -225,9 +222,6 @@ def test_a_scene_configuration_needs_no_output_dir(tmp_path):
 def test_dask_local_prints_no_cluster_chatter(tmp_path):
     """`batch --dask local` printed some twenty INFO lines of distributed's (scheduler,
     nanny, connections) around its own: distributed sets its logger to INFO on import."""
-    import subprocess
-    import sys
-
     pytest.importorskip("dask.distributed")
     cfg = tmp_path / "a.toml"
     cfg.write_text('[inputs]\nleft = "none_l.tif"\nright = "none_r.tif"\n')

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rasterio
 import shapely
 from affine import Affine
 from affine import Affine as A
@@ -135,8 +136,6 @@ def test_tiny_overlap_says_how_many_cells_not_a_share(files, tmp_path, capsys):
 def test_a_grid_that_is_not_north_up_is_named(files, tmp_path, capsys, command, grid, words):
     """A rotated or south-up DEM grid was refused without naming the file ("rotated DEM grids
     are not supported", "MapGrid: the transform must be north-up"), assess after its work."""
-    import rasterio
-
     ref = DEM.from_file(files / "ref.tif")
     z, t = ref.heights[:40, :40], ref.transform
     if grid == "rotated":

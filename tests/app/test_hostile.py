@@ -16,6 +16,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -29,6 +30,8 @@ from stereodem.core import jsonutil
 from stereodem.core.errors import InputError, OutputExistsError
 from stereodem.outlock import (
     LOCK_NAME,
+    PROBE_PREFIX,
+    REMOVING_PREFIX,
     OutputLock,
     OutputLockedError,
     output_folder,
@@ -528,8 +531,6 @@ def test_a_second_job_starting_at_the_same_moment_does_not_make_the_folder_non_e
     """Two jobs started together into a new folder: the one that takes the lock must not count
     the other's writability probe as a file of the user's (both then failed: one on 'folder
     exists and is not empty', the other on the lock; seen once in 20 x 2 concurrent runs)."""
-    from stereodem.outlock import PROBE_PREFIX, output_folder
-
     out = tmp_path / "out"
     out.mkdir()
     (out / f"{PROBE_PREFIX}4242").touch()  # the other job's probe, between touch and unlink
@@ -600,11 +601,6 @@ def test_products_deleted_in_the_background_are_out_of_the_way_at_once(tmp_path,
     deletes them while it runs: none of their names is left when the job starts, the user's
     files stay, and nothing is left when the job ends. A hidden folder a killed job left is
     removed by the next --overwrite, which still knows the folder for a stereodem output."""
-    import shutil
-    import threading
-
-    from stereodem.outlock import REMOVING_PREFIX, output_folder
-
     out = tmp_path / "out"
     (out / "tiles").mkdir(parents=True)
     for name in ("run.json", "dem.tif", "tiles/tile_00001.npz", "notes.txt"):

@@ -16,6 +16,8 @@ culprit, no traceback, and nothing written.
 
 from __future__ import annotations
 
+import fnmatch
+import importlib
 import re
 import shutil
 from pathlib import Path
@@ -26,9 +28,12 @@ import rasterio
 from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_sim_scene
 from rasterio.warp import Resampling, reproject
 
+from stereodem.commands import COMMANDS
+from stereodem.core import jsonutil
 from stereodem.core.dem import DEM
 from stereodem.core.errors import RPCError
 from stereodem.core.stats import nmad
+from stereodem.outlock import DEMO_TOML_STAMP, is_marker, is_stereodem_output
 from stereodem.sensor.io.rpc_formats import read_rpc
 from stereodem.sensor.models.rpc import NORMALISATION_BOUNDS, RPCModel
 
@@ -696,8 +701,6 @@ def noisy(tmp_path_factory):
 
 def _no_work(monkeypatch, target):
     """Make the command's first work fail loudly: a refusal must come before it."""
-    import importlib
-
     module, name = target.split(":")
 
     def work(*a, **k):
@@ -775,9 +778,6 @@ def test_a_users_file_named_like_a_marker_does_not_open_the_folder_to_overwrite(
 
 
 def test_a_marker_counts_when_stereodem_wrote_it(tmp_path):
-    from stereodem.core import jsonutil
-    from stereodem.outlock import DEMO_TOML_STAMP, is_marker, is_stereodem_output
-
     cases = {
         "stamped.json": (jsonutil.dumps(jsonutil.stamped({"a": 1})), True),
         "provenance.json": ('{"provenance": {"stereodem_version": "0.9"}}', True),
@@ -915,11 +915,6 @@ def test_overwrite_replaces_the_commands_products_and_nothing_else(
     and leaves a file of the user's (another name) untouched; everything else it writes there
     is one of its declared products. Before, stack and change removed every command's
     products (a dem.tif of a run in the folder), and the other commands had no list."""
-    import fnmatch
-    import importlib
-
-    from stereodem.commands import COMMANDS
-
     build, _, _ = FOLDER_COMMANDS[command]
     out = tmp_path / "out"
     code, _, err = run_cli(capsys, build(sim, noisy, out))
@@ -929,7 +924,6 @@ def test_overwrite_replaces_the_commands_products_and_nothing_else(
     if command != "change":  # a product of another command: not this one's
         (out / "dh.tif").write_text("change's, not this command's\n")
     keep = {p: b for p, b in _files(out).items() if p not in first}
-    from stereodem.outlock import is_marker
 
     for p in first:  # stale versions of every product but the run's record: all replaced
         if not is_marker(p):

@@ -3,6 +3,7 @@ sub-packages of ``stereodem`` and nothing generic lands at the top of site-packa
 The application sits in ``src/stereodem`` (issue #23) so that no root-level ``stereodem/``
 folder shadows a non-editable install when tests run from the repository root."""
 
+import importlib.util
 import re
 import subprocess
 import sys
@@ -46,9 +47,6 @@ def test_every_package_folder_is_installed_under_the_namespace():
 
 
 def test_generic_names_are_not_importable_from_the_distribution():
-    import importlib.util
-    import sys
-
     # the repository root is not on sys.path here only when tests run from an install; what
     # must hold everywhere is that the package's own modules import through the namespace
     import stereodem.sensor.models.base as base
@@ -94,6 +92,7 @@ def test_no_root_level_folder_shadows_the_installed_package():
     """`pip install .` then `python -m pytest` in the clone: the clone's root is sys.path[0], so
     a folder named like the package there would be imported instead of the installed one and
     miss the mapped sub-packages (ModuleNotFoundError: stereodem.sensor)."""
+    # the imports are what this test checks (here, not at the top: a failure is this test's)
     import stereodem
     import stereodem.sensor
 

@@ -11,9 +11,11 @@ import sys
 
 import pytest
 
-from stereodem import __version__
+from stereodem import __version__, options
 from stereodem.progress import STAGES, Progress, TqdmLoggingHandler, UTCFormatter, stage_bar
 from stereodem.provenance import git_commit, provenance, utc_now
+from stereodem.run_cli import progress_factory
+from stereodem.stereo.execution import ProgressPasses
 
 
 class _Tty(io.StringIO):
@@ -156,8 +158,6 @@ def test_every_bar_has_its_stages_description_and_unit():
 
 def test_the_command_lines_bars_come_from_stage_bar():
     """:func:`stage_bar` is the one place bars are made: the options' and the job's."""
-    from stereodem import options
-    from stereodem.run_cli import progress_factory
 
     class Args:
         quiet = False
@@ -187,8 +187,6 @@ def test_a_bar_is_drawn_from_its_first_total_and_never_counts_down():
 def test_passes_count_on_in_one_bar():
     """The jitter correction's second DEM, or an N-view stage's next pair, counts on after
     the tiles of the passes before it (it started the stereo bar again from 0 before)."""
-    from stereodem.stereo.execution import ProgressPasses
-
     seen = []
     passes = ProgressPasses(lambda done, total: seen.append((done, total)))
     passes.next_pass()

@@ -8,6 +8,9 @@ import sys
 import pytest
 
 import stereodem
+from stereodem.core import errors
+from stereodem.core.errors import InputError
+from stereodem.sensor.simulation.simulate import simulate_scene
 
 
 @pytest.mark.parametrize("name", [n for n in stereodem.__all__ if n != "__version__"])
@@ -65,8 +68,6 @@ def test_every_error_class_is_public():
     ``CRSError``, ``SensorModelError``, ``RPCError``, ``DEMCoverageError``, ``NoOverlapError``
     and ``ConvergenceError`` were missing from ``stereodem.__all__``: ``DEM(h, t, None)``
     raised a ``CRSError`` that ``from stereodem import CRSError`` could not import."""
-    from stereodem.core import errors
-
     classes = {
         name
         for name, value in vars(errors).items()
@@ -80,8 +81,6 @@ def test_every_error_class_is_public():
 def test_run_given_no_config_says_what_it_takes(cfg):
     """``stereodem.run("job.toml")`` (or None) failed with an AttributeError from inside the
     job ('str' object has no attribute 'output_dir')."""
-    import stereodem
-
     with pytest.raises(stereodem.InputError, match="expected a Config.*load_config"):
         stereodem.run(cfg)
 
@@ -90,8 +89,6 @@ def test_run_given_no_config_says_what_it_takes(cfg):
 def test_readers_given_no_path_say_so(name):
     """``read_image(None)``, ``load_model(None)`` and ``load_config(None)`` raised pathlib's or
     rasterio's TypeError."""
-    import stereodem
-
     with pytest.raises(stereodem.InputError, match="expected a file path, got NoneType"):
         getattr(stereodem, name)(None)
 
@@ -100,8 +97,5 @@ def test_readers_given_no_path_say_so(name):
 def test_simulate_scene_given_a_bad_size_says_so(size):
     """``simulate_scene(size=50)`` raised a TypeError from inside ('int' object is not
     subscriptable)."""
-    from stereodem.core.errors import InputError
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     with pytest.raises(InputError, match="size must be \\(width, height\\) in pixels"):
         simulate_scene("frame", size=size)

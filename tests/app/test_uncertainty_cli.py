@@ -1,6 +1,7 @@
 """``stereodem uncertainty``: outputs, the adjustment-report covariance, hostile inputs."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -10,11 +11,15 @@ from affine import Affine
 from stereodem.cli import main
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
+from stereodem.core.raster import write_geotiff
+from stereodem.ortho.drm import dem_gaps
+from stereodem.ortho.grid import grid_for_model
 from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
 from stereodem.ortho.uncertainty.propagation import covariance_matrix
-from stereodem.sensor.io.sidecar import model_to_dict
+from stereodem.sensor.io.sidecar import model_to_dict, save_model
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.rpc import RPCModel
+from stereodem.sensor.simulation.simulate import simulate_scene
 
 IMG = "pleiades/img_01_rpc.tif"
 
@@ -279,10 +284,6 @@ def test_dem_covering_part_of_the_image_is_a_warning(tmp_path, caplog):
     """A DEM under the western part of the image only: the maps are nodata over the rest, and
     the command said nothing (ortho warns); now a warning naming the DEM and the share of the
     image without a height (none with the DEM covering the image)."""
-    from stereodem.core.raster import write_geotiff
-    from stereodem.sensor.io.sidecar import save_model
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     sc = simulate_scene("aster", size=(100, 100), seed=0, n_points=1)
     write_geotiff(tmp_path / "img.tif", sc.left)
     save_model(sc.left_model, tmp_path / "img.model.json")
@@ -297,8 +298,6 @@ def test_dem_covering_part_of_the_image_is_a_warning(tmp_path, caplog):
     msg = [r.getMessage() for r in caplog.records if "no DEM height under" in r.getMessage()]
     assert len(msg) == 1 and "part.tif" in msg[0], caplog.text
     assert 20 < float(msg[0].split("no DEM height under ")[1].split("%")[0]) < 95, msg[0]
-    from stereodem.ortho.drm import dem_gaps
-    from stereodem.ortho.grid import grid_for_model
 
     grid = grid_for_model(sc.left_model, dem)
     assert dem_gaps(sc.left_model, dem, grid)["n_no_height"] == 0
@@ -310,12 +309,6 @@ def test_ortho_and_uncertainty_report_the_same_dem_gap(tmp_path, caplog):
     "no DEM height under 5.1% of the image footprint" (its map cells) and `uncertainty`
     "17.5% of the image" (a 21 x 21 image lattice); both now count the footprint's map cells
     without a height on the same grid (ortho.drm.dem_gaps' rule) and say it in one wording."""
-    import re
-
-    from stereodem.core.raster import write_geotiff
-    from stereodem.sensor.io.sidecar import save_model
-    from stereodem.sensor.simulation.simulate import simulate_scene
-
     sc = simulate_scene("aster", size=(120, 120), seed=1, n_points=1)
     write_geotiff(tmp_path / "img.tif", sc.left)
     save_model(sc.left_model, tmp_path / "img.model.json")

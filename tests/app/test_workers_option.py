@@ -5,6 +5,7 @@ products do not depend on it."""
 
 from __future__ import annotations
 
+import importlib
 import json
 
 import numpy as np
@@ -119,8 +120,6 @@ def test_the_command_runs_under_its_workers_budget(command, dems, tmp_path, monk
     """Inside the command (a library function it calls, patched to record and stop), OpenCV,
     BLAS, GDAL and the row blocks are pinned to ``--workers`` (at most the cores: 4 here),
     and restored after it."""
-    import importlib
-
     module, name = PATCHED[command]
     mod = importlib.import_module(module)
     seen = {}
