@@ -8,7 +8,7 @@ from affine import Affine
 from rasterio.crs import CRS
 from scipy import ndimage as ndi
 
-from stereodem.core.blocks import by_rows, percentile_of_parts, row_bands
+from stereodem.core.blocks import by_rows, each_item, percentile_of_parts, row_bands
 from stereodem.post.fill import fill_holes, gaussian_smooth
 from stereodem.post.filters import default_chain
 
@@ -95,8 +95,6 @@ def test_percentile_of_parts_is_numpys_percentile_of_all_the_values(threads):
 
 
 def test_each_item_keeps_the_items_order_on_any_number_of_threads():
-    from stereodem.core.blocks import each_item
-
     for threads in (1, 2, 5):
         assert each_item(lambda i: i * i, range(7), threads=threads) == [i * i for i in range(7)]
     assert each_item(lambda i: i, [], threads=2) == []

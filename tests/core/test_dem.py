@@ -1,10 +1,14 @@
+import dataclasses
+import threading
+
 import numpy as np
 import pytest
 import rasterio
 from affine import Affine
 
+import stereodem.core.dem as dem_module
 from stereodem.core import geodesy
-from stereodem.core.dem import DEM, OUTSIDE, VOID
+from stereodem.core.dem import DEM, OUTSIDE, VOID, geoid_name
 from stereodem.core.errors import (
     CRSError,
     DEMCoverageError,
@@ -13,6 +17,7 @@ from stereodem.core.errors import (
     OutputExistsError,
     VerticalReferenceError,
 )
+from stereodem.post.assess import reconcile_vertical
 from stereodem.post.mosaic_sources import open_source
 
 
@@ -202,11 +207,6 @@ def test_files_written_side_by_side_have_the_same_bytes_and_one_gdal_thread_each
     """``threads`` > 1 writes a DEM's files concurrently, each compressed on one GDAL thread
     (unless the creation options say otherwise): the bytes are those of the plain write, and
     an error in one file reaches the caller."""
-    import dataclasses
-    import threading
-
-    import stereodem.core.dem as dem_module
-
     base = DEM.bundled()
     rng = np.random.default_rng(0)
     dem = dataclasses.replace(
@@ -347,9 +347,6 @@ def test_a_geoid_other_than_egm96_is_kept_and_its_conversion_warns(
     """Heights above EGM2008 (the Copernicus DEM's geoid) or NAVD88 were taken for EGM96
     heights: written back as EGM96 (EPSG:5773), converted to the ellipsoid with EGM96 and
     compared with EGM96 heights without a word (an error up to a few metres)."""
-    from stereodem.core.dem import geoid_name
-    from stereodem.post.assess import reconcile_vertical
-
     a = np.full((6, 6), 1000.0, np.float32)
     with rasterio.open(_dem_file(tmp_path / "g.tif", a), "r+") as ds:
         ds.crs = rasterio.crs.CRS.from_user_input(crs)

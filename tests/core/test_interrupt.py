@@ -5,8 +5,11 @@ import signal
 
 import pytest
 
+from stereodem import cli
 from stereodem.core import interrupt
 from stereodem.pipeline.record import StageLog
+from stereodem.stereo.runner import run_tiles
+from stereodem.stereo.tiling import tile_grid
 
 
 @pytest.fixture(autouse=True)
@@ -28,9 +31,6 @@ def test_a_pending_request_stops_at_the_next_stage():
 
 
 def test_a_pending_request_stops_the_tile_loop():
-    from stereodem.stereo.runner import run_tiles
-    from stereodem.stereo.tiling import tile_grid
-
     seen = []
 
     def fn(tile, ctx):
@@ -46,8 +46,6 @@ def test_a_pending_request_stops_the_tile_loop():
 
 
 def test_the_command_line_reports_the_signal_and_forgets_it(monkeypatch, capsys):
-    from stereodem import cli
-
     def interrupted(args):
         interrupt.request(signal.SIGTERM)
         raise KeyboardInterrupt

@@ -1,6 +1,12 @@
 """stereodem.core.pool: stopping a process pool at once."""
 
+import subprocess
+import sys
+
 import pytest
+
+from stereodem.cli import main
+from stereodem.core.pool import _TRACKER_FILTER
 
 _HALF_SENT_RESULT = """
 import os, struct, sys, time
@@ -29,9 +35,6 @@ def test_stopped_pool_exits_even_with_half_a_result_in_its_pipe(tmp_path):
     the pool's manager thread then blocks in recv() and the interpreter, which joins it at
     exit, hung for ever after an interrupted run (seen with SIGTERM in CI). stop_pool ends
     that wait: the process exits."""
-    import subprocess
-    import sys
-
     script = tmp_path / "half_sent.py"
     script.write_text(_HALF_SENT_RESULT)
     try:
@@ -61,18 +64,13 @@ if __name__ == "__main__":
 """
 
 
-@pytest.mark.skipif(
-    __import__("sys").platform == "win32", reason="the resource tracker is POSIX only"
-)
+@pytest.mark.skipif(sys.platform == "win32", reason="the resource tracker is POSIX only")
 @pytest.mark.parametrize("mode", ["quiet", "default"])
 def test_resource_tracker_reports_nothing_on_the_commands_stderr(tmp_path, mode):
     """After an interrupted job, multiprocessing's resource tracker printed two UserWarning
     lines (leaked semaphores, one 'No such file') after the command's own last line.
     quiet_resource_tracker silences the tracker's reports; "default" shows that this script
     does provoke them (the test can fail)."""
-    import subprocess
-    import sys
-
     script = tmp_path / "tracker.py"
     script.write_text(_TRACKER_REPORT)
     # captured output waits for the end of the pipes: the tracker's too, which exits last
@@ -90,11 +88,6 @@ def test_resource_tracker_reports_nothing_on_the_commands_stderr(tmp_path, mode)
 def test_command_line_quiets_the_tracker_before_any_pool(monkeypatch, tmp_path, capsys):
     """``stereodem.cli.main`` adds the tracker's filter to ``sys.warnoptions`` (the flags the
     tracker is started with) for every command, once."""
-    import sys
-
-    from stereodem.cli import main
-    from stereodem.core.pool import _TRACKER_FILTER
-
     monkeypatch.setattr(sys, "warnoptions", [])
     missing = str(tmp_path / "missing.tif")
     assert main(["change", missing, missing, "-o", str(tmp_path / "out")]) != 0

@@ -4,26 +4,40 @@ descriptions and units, umask permissions, lossless values (issue #19)."""
 from __future__ import annotations
 
 import os
+import pickle
 import re
+import shutil
 import stat
 import threading
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 import rasterio
+import rasterio.shutil
 from affine import Affine
 from pyproj import CRS
 from rasterio.rpc import RPC
 
+import stereodem.core.raster as raster
+from stereodem.cli import main
+from stereodem.core.blockwrite import BlockWriter
+from stereodem.core.grid import MapGrid
 from stereodem.ortho.drm import orthorectify
 from stereodem.sensor.simulation.simulate import simulate_scene
 
 cog_validate = pytest.importorskip("rio_cogeo.cogeo").cog_validate
 
 from stereodem.core.dem import DEM, ELLIPSOID, GEOID
-from stereodem.core.errors import CRSError, InputError, OutputWriteError
+from stereodem.core.errors import (
+    CRSError,
+    InputError,
+    OutputExistsError,
+    OutputWriteError,
+    error_message,
+)
 from stereodem.core.raster import (
     DEFLATE_LEVEL,
     check_creation_options,
@@ -180,9 +194,6 @@ def test_library_writes_check_their_creation_options(tmp_path, kwargs, complaint
     an option GDAL did not know, with a warning only (only the command line and the
     configuration checked them): an InputError naming the file and the option, nothing
     written."""
-    from stereodem.core.blockwrite import BlockWriter
-    from stereodem.core.grid import MapGrid
-
     path = tmp_path / "z.tif"
     with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: creation options {complaint}"):
         write_geotiff(path, _rng_data("float32", (40, 40)), T, "EPSG:32637", **kwargs)
@@ -218,15 +229,12 @@ def test_creation_options_gdal_knows_pass_their_check():
 def test_a_write_onto_a_full_disk_says_so(tmp_path, monkeypatch):
     """A full disk made GDAL fail to read back a block it had not written ('IReadBlock
     failed ... TIFFReadEncodedTile() failed'), and the error blamed the creation options."""
-    import shutil as stdlib_shutil
-
-    import stereodem.core.raster as raster
 
     def failing_copy(*args, **kwargs):
         raise rasterio.errors.RasterioIOError("IReadBlock failed: TIFFReadEncodedTile() failed.")
 
     monkeypatch.setattr(raster.rasterio.shutil, "copy", failing_copy)
-    usage = stdlib_shutil.disk_usage(tmp_path)
+    usage = shutil.disk_usage(tmp_path)
     for free, words in (
         (
             1000,
@@ -241,9 +249,6 @@ def test_a_write_onto_a_full_disk_says_so(tmp_path, monkeypatch):
         assert "TIFFReadEncodedTile() failed" in str(err.value)
         assert not list(tmp_path.iterdir())
     # a raster written in blocks (mosaics, orthoimages): its size is the grid's, float32 bands
-    from stereodem.core.blockwrite import BlockWriter
-    from stereodem.core.grid import MapGrid
-
     monkeypatch.setattr(raster.shutil, "disk_usage", lambda p: usage._replace(free=1000))
     with pytest.raises(OutputWriteError, match="1 kB free for a raster of 19 kB before"):
         with BlockWriter(tmp_path / "b.tif", MapGrid(T, 40, 40, "EPSG:32637"), list("abc")) as w:
@@ -302,9 +307,6 @@ def test_vertical_reference_in_the_crs(tmp_path, vertical, axis, horizontal):
 
 
 def _write_with_block_writer(path, data, transform, crs, vertical):
-    from stereodem.core.blockwrite import BlockWriter
-    from stereodem.core.grid import MapGrid
-
     grid = MapGrid(transform, data.shape[1], data.shape[0], crs)
     with BlockWriter(path, grid, ["height"], vertical=vertical) as w:
         w.write(0, 0, data[None])
@@ -322,8 +324,6 @@ def test_file_alone_keeps_its_crs_when_the_side_car_is_lost(tmp_path, writer, ho
     geotransform, in the .aux.xml side-car only, and a DEM copied without it had no CRS
     (DEM.from_file refused it). The file now holds the horizontal CRS in its keys and the
     vertical reference in its tag; the side-car adds the 3-D CRS for GDAL readers."""
-    import shutil
-
     t = T if horizontal != "EPSG:4326" else Affine(0.001, 0, 40.0, 0, -0.001, 39.6)
     if horizontal == "EPSG:2193":  # a projected CRS whose EPSG axis order is north, east
         t = Affine(30.0, 0.0, 1600000.0, 0.0, -30.0, 5400000.0)
@@ -354,11 +354,6 @@ def test_file_alone_keeps_its_crs_when_the_side_car_is_lost(tmp_path, writer, ho
 def test_old_dem_without_its_side_car_says_where_its_crs_went(tmp_path, capsys):
     """A DEM written as older versions did (the 3-D CRS in the side-car only), copied without
     the side-car: a one-line error that names the missing side-car, not just "no CRS"."""
-    import rasterio.shutil
-
-    from stereodem.cli import main
-    from stereodem.core.errors import CRSError
-
     p = tmp_path / "dem.tif"
     profile = dict(driver="MEM", width=64, height=64, count=1, dtype="float32")
     crs3d = rasterio.crs.CRS.from_wkt(CRS("EPSG:32637").to_3d().to_wkt())
@@ -479,8 +474,6 @@ def test_georeferenced_writes_leave_the_warning_filters_alone(tmp_path, monkeypa
     thread-safe before Python 3.14), and products are written on a background thread: a
     georeferenced write does not enter it; one in sensor geometry (no transform, no RPCs)
     still silences rasterio's NotGeoreferencedWarning."""
-    import warnings
-
     a = np.ones((4, 5), np.float32)
     real = warnings.catch_warnings
 
@@ -518,11 +511,6 @@ def test_overwrite_advice_in_the_callers_words(tmp_path, capsys):
     callers; now the library's message says overwrite=True and the command line's --overwrite
     (core.errors.OutputExistsError.needs_overwrite, worded by error_message), also after a trip
     through pickle (batch's and dask's workers)."""
-    import pickle
-
-    from stereodem.cli import main
-    from stereodem.core.errors import OutputExistsError, error_message
-
     p = tmp_path / "dem.tif"
     DEM(_rng_data("float32", (64, 64)), T, "EPSG:32637", GEOID).write(p)
     with pytest.raises(OutputExistsError) as info:
