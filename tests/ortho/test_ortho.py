@@ -2,6 +2,9 @@
 layers and the command line."""
 
 import argparse
+import json
+import threading
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -11,8 +14,11 @@ from affine import Affine
 from rasterio.transform import RPCTransformer
 from rasterio.warp import Resampling, reproject
 
+import stereodem.ortho.drm as drm
+from stereodem.cli import main
 from stereodem.core import geodesy as g
 from stereodem.core.dem import DEM
+from stereodem.core.errors import CRSError as StereodemCRSError
 from stereodem.core.errors import DEMCoverageError, InputError, OutputExistsError, SensorModelError
 from stereodem.core.grid import MapGrid, grid_from_bounds
 from stereodem.core.raster import write_geotiff, write_text_atomic
@@ -22,6 +28,7 @@ from stereodem.ortho.forward import forward_localize, forward_ortho
 from stereodem.ortho.grid import footprint_height_range, grid_for_model
 from stereodem.ortho.layers import incidence_angle, occlusion_mask
 from stereodem.ortho_cli import add_parser
+from stereodem.sensor.io.sidecar import save_model
 from stereodem.sensor.models.frame import FrameCamera
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.sensor.simulation import simulate as sim
@@ -201,11 +208,6 @@ def test_concurrent_orthos_share_one_pool_of_block_threads(rendered, monkeypatch
     """With a budget of 2 threads for 2 orthoimages, each one's row blocks run on both
     threads of one shared pool (not on one thread each: the larger one then finished alone
     on one core), and no more than 2 block threads exist."""
-    import threading
-    import time
-
-    import stereodem.ortho.drm as drm
-
     cam, dem, grid, img, truth = rendered
     ran, remap = {}, drm.remap_nan
 
@@ -691,8 +693,6 @@ def test_cli_gcp_model(tmp_path, data_dir, capsys):
 def small_scene(tmp_path_factory):
     """A 100 x 100 simulated ASTER-like left image with its model sidecar, the truth DEM and
     16 points (as ``points``)."""
-    from stereodem.sensor.io.sidecar import save_model
-
     d = tmp_path_factory.mktemp("small_scene")
     sc = sim.simulate_scene("aster", size=(100, 100), seed=0, n_points=16)
     write_geotiff(d / "left.tif", sc.left)
@@ -769,10 +769,6 @@ def test_cli_gcp_model_covers_the_whole_image(small_scene, tmp_path):
 def test_a_model_that_sees_no_ground_is_blamed_not_the_dem(small_scene, tmp_path):
     """A sidecar with an absurd tilt (89.9 degrees across track) localises no pixel on the
     Earth: the error was "DEM: no valid height under the image footprint lon nan..nan"."""
-    import json
-
-    from stereodem.core.errors import SensorModelError
-
     d, _ = small_scene
     model = json.loads((d / "left.model.json").read_text())
     model["cross_track_tilt_deg"] = 89.9
@@ -819,8 +815,6 @@ def test_ortho_overwrite_removes_the_layers_of_the_earlier_orthoimage(small_scen
 def test_orthorectify_given_no_model_or_an_unknown_crs_says_so(rendered):
     """``model=None`` raised an AttributeError from inside the DRM, and ``crs="foo"`` pyproj's
     own CRSError, not stereodem's."""
-    from stereodem.core.errors import CRSError as StereodemCRSError
-
     cam, dem, grid, img, _ = rendered
     with pytest.raises(InputError, match="model must be a sensor model"):
         orthorectify(img, None, dem, grid=grid)
@@ -835,11 +829,6 @@ def test_result_line_and_tags_give_the_posting_in_the_crs_unit(tmp_path, capsys)
     """`ortho` said "cells of 15.2 in EPSG:32637" from a field named res_m, which is in the
     CRS's units: now "cells of 15.2 m" (options.posting), and the report/tags carry res and
     res_unit, with res_m only on a metre grid (on a feet grid it was feet)."""
-    import json
-
-    from stereodem.cli import main
-    from stereodem.sensor.io.sidecar import save_model
-
     sc = sim.simulate_scene("aster", size=(80, 80), seed=0, n_points=1)
     write_geotiff(tmp_path / "img.tif", sc.left)
     save_model(sc.left_model, tmp_path / "img.model.json")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from test_ortho import albedo_field, oblique_camera  # noqa: F401  (shared scene builders)
+from test_ortho import _rpc_setup, albedo_field, oblique_camera  # the shared scene builders
 
 from stereodem.core import geodesy as g
 from stereodem.core.dem import DEM
@@ -86,8 +86,6 @@ def test_bundled_srtm_declares_its_vertical_reference():
 
 @pytest.mark.slow
 def test_cli_dem_with_holes_and_fill_dem(tmp_path, data_dir, caplog):
-    from test_ortho import _rpc_setup
-
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     image = tmp_path / "img.tif"
     write_geotiff(image, img, rpcs=rpcs)
@@ -128,8 +126,6 @@ def test_cli_dem_with_holes_and_fill_dem(tmp_path, data_dir, caplog):
 
 
 def test_rpc_ortho_on_heights_outside_its_validity_range(tmp_path, data_dir):
-    from test_ortho import _rpc_setup
-
     model, rpcs, dem_path, img = _rpc_setup(tmp_path, data_dir)
     dem = DEM.from_file(dem_path)
     feet = DEM(dem.heights * 3.28084, dem.transform, dem.crs, "ellipsoid", "dem_in_feet.tif")

@@ -316,7 +316,7 @@ def test_thesis_fast_frequency_set_is_interference_free_to_order_4():
 def test_salib_efast_design_is_interference_free_to_order_4():
     """The frequencies SALib's eFAST sampler really puts on the search curves (read back from
     the samples by FFT) read the first 4 harmonics cleanly."""
-    from SALib.sample import fast_sampler
+    from SALib.sample import fast_sampler  # optional (the uncertainty extra)
 
     N, M, u = 1000, 4, 5
     problem = {"num_vars": u, "names": list("abcde"), "bounds": [[0, 1]] * u}

@@ -12,6 +12,8 @@ thin border, the same dominant source wherever the exact leader leads by more th
 variance, and whole-image shares within 1e-3.
 """
 
+import os
+
 import cv2
 import numpy as np
 import pytest
@@ -201,8 +203,6 @@ def test_fast_maps_default_to_the_process_thread_budget(rpc_case, monkeypatch):
     """Without ``threads`` the first-order blocks ran on os.cpu_count() threads, whatever the
     process's budget (a library caller's pin_threads, --workers): now on the budget
     (core.blocks.default_threads, OpenCV's pinned setting)."""
-    import os
-
     model, dem, names, D, _ = rpc_case
     grid = grid_for_model(model, dem, res=8.0)
     pools = []
