@@ -18,15 +18,18 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
+from pyproj import CRS as PCRS
 from pyproj.crs import CompoundCRS
 from rasterio.warp import Resampling, calculate_default_transform, reproject
 
 import stereodem.post.mosaic as pm
 from stereodem.cli import main
-from stereodem.core import geodesy
+from stereodem.core import geodesy, threads
 from stereodem.core.dem import DEM as _DEM
 from stereodem.core.errors import VerticalReferenceError
+from stereodem.core.grid import MapGrid
 from stereodem.core.raster import write_geotiff
+from stereodem.options import posting
 from stereodem.post.mosaic import memory_bound, plan_mosaic, read_on_grid, run_mosaic
 from stereodem.post.mosaic_coreg import DEMCorrection, fitter
 
@@ -399,8 +402,6 @@ def test_a_mosaic_keeps_its_dems_geoid_and_says_when_geoids_are_mixed(tmp_path, 
     """Tiles of heights above EGM2008 (the Copernicus DEM's geoid) made a mosaic labelled
     EGM96 (EPSG:5773 in its CRS, "height above the EGM96 geoid"); EGM2008 and EGM96 tiles were
     blended without a word (their seams carry the separation of the two geoids)."""
-    from pyproj import CRS as PCRS
-
     egm08 = PCRS("EPSG:3855")
     for name, r0 in (("a", 0), ("b", 40)):
         z, t = terrain(50, 50, r0, 0), Affine(RES, 0, X0, 0, -RES, Y0 - r0 * RES)
@@ -623,7 +624,6 @@ def test_dask_local_cluster_is_workers_processes_sharing_the_cores(tmp_path, mon
     """``--dask local``: ``--workers`` processes (default all cores, as its help says; it
     was 1), each pinned to its share of the cores (a Dask worker plugin), not to all of them."""
     distributed = pytest.importorskip("dask.distributed")
-    from stereodem.core import threads
 
     seen = {}
 
@@ -837,11 +837,6 @@ def test_a_reference_across_the_antimeridian_is_cropped_for_coregister(tmp_path)
 def test_result_line_gives_the_posting_with_its_unit(tmp_path, capsys):
     """`stereodem mosaic` (and dem, uncertainty) say "cells at 30 m", not "cells at 30":
     a bare number did not say metres or degrees (a lon/lat grid's 0.000833)."""
-    from pyproj import CRS as PCRS
-
-    from stereodem.core.grid import MapGrid
-    from stereodem.options import posting
-
     a = write_dem(tmp_path / "a.tif", 0, 0, 40, 40)
     assert main(["mosaic", str(a), "-o", str(tmp_path / "m.tif")]) == 0
     assert f"cells at {RES:g} m," in capsys.readouterr().out

@@ -1,10 +1,16 @@
 import argparse
+import io
 import json
+import subprocess
+import sys
+import warnings
 
 import numpy as np
 import pytest
+import rasterio
 from affine import Affine
 from pyproj import CRS
+from rasterio.errors import NotGeoreferencedWarning
 from rasterio.warp import calculate_default_transform
 from scipy import ndimage as ndi
 
@@ -22,6 +28,7 @@ from stereodem.core.errors import (
 from stereodem.core.raster import write_geotiff
 from stereodem.post import assess, figures
 from stereodem.post.coreg import reference_on_grid
+from stereodem.post.mosaic_coreg import crop_reference
 from stereodem.post.report import write_report
 from stereodem.post.warp import to_grid
 
@@ -142,8 +149,6 @@ def test_a_global_reference_wraps_across_the_antimeridian(tmp_path):
     reference: its part beyond 180 got no reference (assess compared half of it, a mosaic's
     reference crop stopped at 180) and cells within a cell of 180 took the edge column's
     height; the reference now goes on across 180 from its west edge."""
-    from stereodem.post.mosaic_coreg import crop_reference
-
     t, z = _global_reference()
     glob = DEM(z, t, "EPSG:4326", "geoid", "global.tif")
     dt = Affine(0.002, 0, 179.9, 0, -0.002, 65.5)  # 100 x 50 cells, half beyond 180
@@ -337,6 +342,7 @@ def test_cli_writes_report_and_figures(tmp_path, ref):
     assert co["dx"] == pytest.approx(co["dx_px"] * px, rel=0.02)
     assert rep["after_coregistration"]["stats"]["nmad"] < 0.2 * rep["stats"]["nmad"]
     assert "Nuth" in (out / "report.md").read_text()
+    # matplotlib where a figure is drawn or read (DESIGN.md, imports, reason (b))
     import matplotlib.image as mpimg
 
     for name in ("hillshade.png", "difference_map.png", "histogram.png", "error_vs_slope.png"):
@@ -379,6 +385,7 @@ def test_write_report_refuses_nonempty_dir(tmp_path, ref, simulated):
 @pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
     """Figures draw at most DISPLAY_CELLS per side: a big raster costs no more than a small one."""
+    # matplotlib where a figure is drawn or read (DESIGN.md, imports, reason (b))
     import matplotlib.pyplot as plt
 
     monkeypatch.setattr(figures, "DISPLAY_CELLS", 100)
@@ -403,8 +410,7 @@ def test_large_rasters_are_decimated_for_figures(tmp_path, monkeypatch):
 def test_figures_crop_as_bbox_inches_tight_pixel_for_pixel(ref, simulated, monkeypatch):
     """figures._save measures the tight box without drawing the images; the PNG equals
     savefig(bbox_inches="tight")'s."""
-    import io
-
+    # matplotlib where a figure is drawn or read (DESIGN.md, imports, reason (b))
     import matplotlib.pyplot as plt
 
     from stereodem.post import coreg_figures  # before _save is replaced: it imports _save
@@ -437,8 +443,7 @@ def test_figures_crop_as_bbox_inches_tight_pixel_for_pixel(ref, simulated, monke
 def test_colours_as_bytes_draw_as_float_colours_with_nearest_cells():
     """hillshade_png hands matplotlib its colours as bytes, (rgba · 255) cast as matplotlib
     casts float colours after resampling to the nearest cell: the PNG is the same."""
-    import io
-
+    # matplotlib where a figure is drawn or read (DESIGN.md, imports, reason (b))
     import matplotlib.pyplot as plt
 
     rng = np.random.default_rng(4)
@@ -463,9 +468,6 @@ def test_blocks_warped_on_threads_do_not_warn_not_georeferenced():
     measured): the filter :mod:`stereodem.post.warp` sets when imported ignores that warning
     from ``rasterio.warp`` only, for every thread. In a fresh interpreter, as a command runs
     (pytest restores the filters of before each test module's import)."""
-    import subprocess
-    import sys
-
     code = """
 import json, warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -499,9 +501,6 @@ def test_a_warp_sets_the_in_memory_warp_filter_again_when_it_is_gone():
     """A ``catch_warnings`` block around the module's import (pytest's, a notebook's) restores
     the filters of before and drops the module's; the next warp sets it again, so blocks
     warped on threads afterwards do not warn either."""
-    import warnings
-
-    from rasterio.errors import NotGeoreferencedWarning
 
     def ours():
         return [
@@ -525,6 +524,7 @@ def test_coreg_dh_maps_have_km_axes_a_scale_bar_and_a_labelled_colour_bar(monkey
     """coreg_dh.png: before, the two dh maps had no axes at all (ticks removed, no scale bar:
     no idea of the size of a pattern) and a colour bar labelled "dh (m)"; now easting/northing
     in km with a scale bar, as the assessment's maps, and "DEM − reference (m)"."""
+    # matplotlib where a figure is drawn or read (DESIGN.md, imports, reason (b))
     from matplotlib.offsetbox import AnchoredOffsetbox
 
     from stereodem.post import coreg_figures
@@ -548,10 +548,6 @@ def test_a_landcover_raster_without_geotransform_is_refused(tmp_path):
     """A land-cover GeoTIFF with a CRS but no geotransform: rasterio gives the identity
     transform with a warning only, so before the classes were placed at CRS coordinates
     0..width, overlapped nothing and ``by_landcover`` came out empty without an error."""
-    import warnings
-
-    import rasterio
-
     t = Affine(30, 0, 500000, 0, -30, 4000000)
     z = np.random.default_rng(0).normal(1000, 5, (30, 30)).astype(np.float32)
     dem = DEM(z, t, "EPSG:32633", "ellipsoid")

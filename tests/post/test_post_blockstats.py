@@ -12,7 +12,7 @@ from scipy import ndimage as ndi
 from threadpoolctl import threadpool_limits
 
 from stereodem.core.dem import DEM
-from stereodem.post import assess
+from stereodem.post import assess, terrain
 from stereodem.post import stats as st
 from stereodem.post.blockstats import QUANTILE_ERROR, RESOLUTION, StreamingStats, quantile_error
 from stereodem.post.filters import _median_at, _nanmedian_last
@@ -397,8 +397,6 @@ def test_class_accumulator_groups_as_the_one_class_at_a_time_statistics():
 @pytest.mark.slow
 @pytest.mark.parametrize("crs", ["EPSG:32636", "EPSG:4326"])
 def test_slope_of_some_rows_equals_the_whole_grid_slope(crs):
-    from stereodem.post import terrain
-
     rng = np.random.default_rng(1)
     T = (
         Affine(15.2, 0, 500000, 0, -15.2, 4e6)

@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 import shapely
 from affine import Affine
+from rasterio.transform import from_origin
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError, NoOverlapError, VerticalReferenceError
 from stereodem.core.stats import nmad
+from stereodem.post import biascorr, terrain
 from stereodem.post.altimetry import AltimetryPoints, read_points
 from stereodem.post.biascorr import maximum_curvature
 from stereodem.post.coreg import (
@@ -251,7 +253,7 @@ def test_points_from_csv_and_geoparquet_agree(tmp_path):
     a = read_points(p)
     assert a.vertical == "ellipsoid" and a.h.tolist() == [1000.5, 1001.25] and len(a.time) == 2
     pq = pytest.importorskip("pyarrow.parquet")
-    import pyarrow as pa
+    import pyarrow as pa  # optional (the altimetry extra): there past the importorskip
 
     geom = shapely.to_wkb(shapely.points([40.1, 40.2], [39.9, 39.8]))
     pq.write_table(pa.table({"geometry": geom, "h": [1000.5, 1001.25]}), tmp_path / "pts.parquet")
@@ -275,10 +277,6 @@ def test_points_file_with_a_bad_value_names_the_row(tmp_path):
 def test_gradient_at_cells_equals_the_whole_grids_gradient(crs):
     """Nuth & Kääb differences only its stable samples: terrain.gradient_at must give the
     whole grid's gradient there to the bit (edges, voids and geographic rows included)."""
-    from rasterio.transform import from_origin
-
-    from stereodem.post import terrain
-
     rng = np.random.default_rng(3)
     z = rng.normal(1000.0, 50.0, (40, 57))
     z[10:13, 20:22] = np.nan
@@ -299,8 +297,6 @@ def test_maximum_curvature_in_bands_is_the_whole_grids_on_any_number_of_threads(
     """The curvature in row bands on threads: the numbers of the whole grid's gradients taken
     twice, to the bit, on a projected and a geographic grid (row-dependent cell size), voids
     and the grid's edges included (issue 28)."""
-    from stereodem.post import biascorr, terrain
-
     rng = np.random.default_rng(3)
     rows, cols = np.mgrid[0:61, 0:47]
     z = 1500 + 40 * np.sin(rows / 9.0) * np.cos(cols / 7.0) + rng.normal(0, 0.5, rows.shape)

@@ -4,12 +4,14 @@ tile with a known shift."""
 
 import numpy as np
 import pytest
+from affine import Affine
 from scipy import ndimage as ndi
 
 from stereodem.core.dem import DEM
 from stereodem.core.errors import DEMError
+from stereodem.post import warp
 from stereodem.post.assess import compare_on_reference_grid
-from stereodem.post.biascorr import NuthKaab
+from stereodem.post.biascorr import NuthKaab, _warp_shift
 from stereodem.post.coreg import CoregChain
 from stereodem.post.terrain import pixel_size_m
 
@@ -55,8 +57,6 @@ def test_shifted_cubic_is_gdals_cubic_warp_of_a_translation(east, north):
     """The iterations' fast translation (one separable filter) against GDAL's cubic warp of
     the translated grid: the same heights to the warp's float32 rounding wherever both have
     a value; NaN (never a value GDAL lacks) on the rims of voids and edges."""
-    from stereodem.post import warp
-
     ref = DEM.bundled()
     z = ref.heights.astype(np.float64)[200:500, 100:420].copy()
     z[120:140, 60:90] = np.nan  # a void
@@ -74,10 +74,6 @@ def test_shifted_cubic_is_gdals_cubic_warp_of_a_translation(east, north):
 
 def test_iterations_of_a_rotated_grid_use_gdals_warp():
     """The separable-filter translation assumes a north-up grid; a rotated one is warped."""
-    from affine import Affine
-
-    from stereodem.post.biascorr import _warp_shift
-
     ref = DEM.bundled()
     z = ref.heights[200:300, 100:220]
     t = Affine(30.0, 2.0, 400000.0, 1.5, -30.0, 4500000.0)

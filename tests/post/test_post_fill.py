@@ -1,5 +1,7 @@
 import numpy as np
+from scipy import ndimage as ndi
 
+from stereodem.core.morphology import square_dilation
 from stereodem.post import fill
 
 
@@ -57,10 +59,6 @@ def test_hole_sizes_and_rims_are_scipys():
     """The holes (OpenCV's 8-connected labelling, with sizes) and their rims (OpenCV's
     dilation) are the components and dilations SciPy gives: the same cells filled, the same
     counts, on holes touching the grid's edges and corners too."""
-    from scipy import ndimage as ndi
-
-    from stereodem.core.morphology import square_dilation
-
     rng = np.random.default_rng(5)
     z = rng.normal(100, 5, (180, 150))
     z[ndi.binary_dilation(rng.random(z.shape) < 0.01, iterations=2)] = np.nan

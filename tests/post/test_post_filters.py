@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
@@ -126,8 +127,6 @@ def test_nearest_fill_is_exact_near_the_data_and_the_same_on_any_threads():
     cells of a valid one (what the 5 x 5 prediction and 7 x 7 median read) gets the height of
     a valid cell at the nearest distance of the whole grid's transform; the bands do not
     depend on the threads, so 1 and 3 threads give the same array."""
-    import cv2
-
     rng = np.random.default_rng(4)
     rows, cols = 3 * F.FILL_BAND_ROWS + 37, 300
     r, c = np.mgrid[0:rows, 0:cols]
@@ -160,8 +159,6 @@ def test_small_patch_jump_limit_and_mask_do_not_depend_on_the_threads():
     """The jump limit is the percentile of all the grid's jumps, gathered in row bands on
     threads: the same limit as the whole grid's (given explicitly here), and the same mask on
     1 and 3 threads."""
-    import cv2
-
     rng = np.random.default_rng(8)
     r, c = np.mgrid[0:700, 0:400]
     z = 800 + 0.3 * r + 40 * np.sin(c / 30.0) + rng.normal(0, 0.5, r.shape)
@@ -189,8 +186,6 @@ def test_small_patch_blobs_across_row_bands_are_measured_whole():
     """A blob larger than max_size that a row band cuts into pieces smaller than max_size is
     kept on any threads (each band reads max_size + 1 rows beyond its own), and a small blob
     at a band's edge is still removed: the masks equal the single-band one."""
-    import cv2
-
     z = np.full((400, 40), np.nan)
     z[195:207, 10] = 100.0  # 12 cells in one column across row 200 (two bands' boundary)
     z[196:204, 20] = 100.0  # 8 cells across the same boundary: a small patch

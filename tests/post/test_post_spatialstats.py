@@ -4,10 +4,13 @@ heteroscedasticity and the sensor-model σ's explained share."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from affine import Affine
 
+import stereodem.post.spatialstats as ss
 from stereodem.post.spatialstats import (
     EmpiricalVariogram,
     VariogramModel,
@@ -94,8 +97,6 @@ def test_heteroscedasticity_finds_dispersion_growing_with_slope_and_sensor_share
 
 def _same(a, b):
     """Equal to the bit: arrays by their bytes, the rest by its JSON text (NaN included)."""
-    import json
-
     if isinstance(a, np.ndarray):
         return isinstance(b, np.ndarray) and a.dtype == b.dtype and a.tobytes() == b.tobytes()
     if isinstance(a, dict):
@@ -107,8 +108,6 @@ def _same(a, b):
 def test_heteroscedasticity_is_the_same_on_any_number_of_threads(monkeypatch, with_model):
     """The bins and the per-cell interpolation on threads, in pieces: the numbers of one
     piece on one thread, to the bit (issue 28)."""
-    import stereodem.post.spatialstats as ss
-
     rng = np.random.default_rng(1)
     slope = rng.uniform(0, 40, (120, 90))
     curv = rng.normal(0, 1, slope.shape)

@@ -13,12 +13,17 @@ import rasterio
 from affine import Affine
 from pyproj import CRS
 
+import stereodem.post.biascorr as biascorr
+import stereodem.post.spatialstats as ss
+import stereodem.post.stack_build as sb
 from stereodem.cli import main
+from stereodem.core import geodesy
 from stereodem.core.dem import DEM
-from stereodem.core.errors import InputError
+from stereodem.core.errors import DEMError, InputError
 from stereodem.core.grid import MapGrid
 from stereodem.core.raster import write_geotiff
 from stereodem.core.stats import nmad
+from stereodem.core.threads import pool_initializer, worker_threads
 from stereodem.post import stack as st
 from stereodem.post.clouds import CloudSettings, cloud_mask
 from stereodem.post.dates import date_from_metadata, dem_dates
@@ -26,7 +31,14 @@ from stereodem.post.gp import GPSettings, gp_rates
 from stereodem.post.rates import RateSettings, fit_rates, noise_limit
 from stereodem.post.spatialstats import VariogramModel
 from stereodem.post.stack import MASK_CLOUD
-from stereodem.post.stack_build import BuildSettings, add_dem, build_stack, exclude_mask
+from stereodem.post.stack_build import (
+    BuildSettings,
+    add_dem,
+    build_stack,
+    check_inputs,
+    exclude_mask,
+    header_bounds_lonlat,
+)
 from stereodem.post.synthetic import InjectedErrors
 from stereodem.post.synthetic_series import (
     dem_series,
@@ -147,7 +159,7 @@ def _grid(n=40):
 
 @pytest.mark.slow  # over 0.6 s: out of the fast subset (CI runs it)
 def test_zarr_stack_round_trip_reads_with_plain_xarray(tmp_path):
-    import xarray as xr
+    import xarray as xr  # optional (the stack extra)
 
     g = _grid()
     dates = [np.datetime64(d) for d in ("2004-07-01", "2011-08-02", "2019-07-20")]
@@ -245,7 +257,7 @@ def _run(argv, capsys):
 
 @pytest.mark.slow
 def test_stack_command_recovers_the_rate_and_masks_the_cloud(series, tmp_path, capsys):
-    import xarray as xr
+    import xarray as xr  # optional (the stack extra)
 
     out = tmp_path / "out"
     rc, _so, se = _run(
@@ -343,9 +355,6 @@ def test_change_command_is_the_same_on_any_number_of_workers(series, tmp_path, c
     """--workers 1 and 2 write the same dh, σ map and report, to the bit: the warp, the
     curvature's row bands and the σ map's bins and cells on threads (issue 28). Small pieces
     so that a 70 x 70 grid is cut as a large one is."""
-    import stereodem.post.biascorr as biascorr
-    import stereodem.post.spatialstats as ss
-
     monkeypatch.setattr(biascorr, "CURVATURE_BAND_ROWS", 8)
     monkeypatch.setattr(ss, "CHUNK", 500)
     a, b = series["paths"][0], series["paths"][3]
@@ -476,7 +485,7 @@ def test_stack_default_chain_leaves_out_along_track_without_a_heading(series, tm
 
 @pytest.mark.slow
 def test_parallel_build_writes_the_same_stack(series, tmp_path):
-    import xarray as xr
+    import xarray as xr  # optional (the stack extra)
 
     ref = DEM.from_file(series["ref"])
     dates = [np.datetime64(d) for d in series["dates"][:3]]
@@ -493,9 +502,6 @@ def test_parallel_build_pins_each_process_to_its_share_of_the_cores(series, tmp_
     """The build's processes are pinned as the tile pool's are (issue 28): spawned, they
     took the parent's whole thread budget each (2 processes x 2 BLAS/OpenCV/GDAL threads on 2
     cores)."""
-    import stereodem.post.stack_build as sb
-    from stereodem.core.threads import pool_initializer, worker_threads
-
     seen = {}
 
     class Stop(Exception):
@@ -550,9 +556,6 @@ def test_header_footprint_of_a_south_up_or_ungeoreferenced_dem(tmp_path):
     """``ds.bounds`` of a south-up grid has its bottom above its top: in a geographic CRS the
     footprint came out inverted and `change`/`stack` refused the DEM as not overlapping the
     reference; a file without a geotransform was said not to overlap either."""
-    from stereodem.core.errors import DEMError
-    from stereodem.post.stack_build import header_bounds_lonlat
-
     prof = dict(driver="GTiff", width=4, height=3, count=1, dtype="float32", crs="EPSG:4326")
     t = Affine(0.01, 0, 40.0, 0, 0.01, 39.0)  # rows going north
     with rasterio.open(tmp_path / "south_up.tif", "w", transform=t, **prof) as ds:
@@ -568,9 +571,6 @@ def test_header_footprint_of_a_south_up_or_ungeoreferenced_dem(tmp_path):
 def test_a_projected_dem_across_the_antimeridian_overlaps_its_reference(tmp_path):
     """GDAL gives the footprint of a UTM zone 1 DEM across 180 E as west 179.98 > east
     -179.98: `stack` refused it as not overlapping a reference over the same ground."""
-    from stereodem.core import geodesy
-    from stereodem.post.stack_build import check_inputs
-
     x0, y0 = geodesy.lonlat_to_crs(180.0, 60.0, "EPSG:32601")
     t = Affine(100, 0, float(x0) - 1000, 0, -100, float(y0) + 1000)
     prof = dict(driver="GTiff", width=20, height=20, count=1, dtype="float32")
