@@ -7,8 +7,10 @@ import re
 
 import numpy as np
 import pytest
+from scipy import stats
 from scipy.linalg import null_space
 
+from stereodem.adjust_images import tie_csv_rows
 from stereodem.core import geodesy
 from stereodem.core.errors import ConvergenceError, InputError, SensorModelError
 from stereodem.sensor.estimation.adjust import (
@@ -438,8 +440,6 @@ def test_gcp_csv_errors(tmp_path, text, match):
 def test_gcp_csv_that_is_not_utf8_text_is_an_input_error(tmp_path, data):
     """A GCP (or tie-point) file that is binary or in another encoding: an InputError naming
     the file (was a UnicodeDecodeError traceback)."""
-    from stereodem.adjust_images import tie_csv_rows
-
     path = tmp_path / "bad.csv"
     path.write_bytes(data)
     with pytest.raises(InputError, match="bad.csv: not a UTF-8 text CSV.*GCP file"):
@@ -526,8 +526,6 @@ def test_gauss_newton_reports_stalled_not_converged():
 def test_test_quantiles_are_those_of_scipy_stats():
     """The thresholds and the variance test take their quantiles from scipy.special, as
     scipy.stats computes them (the same numbers, without its import)."""
-    from scipy import stats
-
     for alpha in (0.001, 0.01, 0.05):
         assert rel.baarda_threshold(alpha) == pytest.approx(
             stats.norm.ppf(1 - alpha / 2), rel=1e-14

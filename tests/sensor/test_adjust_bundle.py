@@ -122,7 +122,7 @@ def test_bundle_solvers_agree_and_redundancy(data_dir):
     the same solution; sum of redundancy numbers = n - u (ties' ground coordinates counted);
     the biases are recovered within their sigma."""
     sys.path.insert(0, str(data_dir.parents[1] / "benchmarks"))
-    from bench_adjust import problem
+    from bench_adjust import problem  # found through the sys.path entry above
 
     Lb, Rb, ties, gcps = problem(150, 8, seed=3)
     kw = dict(
@@ -154,7 +154,7 @@ def test_bundle_solvers_agree_and_redundancy(data_dir):
 def test_bundle_schur_equals_dense(data_dir):
     """Fast check: the reduced normal equations give the dense solution and covariance."""
     sys.path.insert(0, str(data_dir.parents[1] / "benchmarks"))
-    from bench_adjust import problem
+    from bench_adjust import problem  # found through the sys.path entry above
 
     Lb, Rb, ties, gcps = problem(40, 6, seed=5)
     kw = dict(

@@ -2,12 +2,14 @@
 simulator's writers and the readers, radiometric correction, and bad input."""
 
 import copy
+import re
 import shutil
 
 import numpy as np
 import pytest
 import rasterio
 
+from stereodem.batch import expand_inputs
 from stereodem.cli import main
 from stereodem.core import geodesy
 from stereodem.core.errors import InputError, SensorModelError
@@ -110,6 +112,7 @@ def test_odl_round_trip_and_flat_keys():
 
 def test_v004_structure_follows_the_specification(files, granule):
     """Vgroup hierarchy, SDS names repeated per swath, dimension suffixes, ODL attributes."""
+    # pyhdf where an HDF file is read (DESIGN.md, imports, reason (b))
     import pyhdf.V  # noqa: F401
     from pyhdf.HDF import HDF
     from pyhdf.SD import SD
@@ -278,7 +281,7 @@ def test_fill_pixels_are_masked(granule, tmp_path):
 
 
 def test_non_aster_hdf(tmp_path):
-    from pyhdf.SD import SD, SDC
+    from pyhdf.SD import SD, SDC  # DESIGN.md, imports, reason (b)
 
     p = tmp_path / "MOD021KM.hdf"
     sd = SD(str(p), SDC.WRITE | SDC.CREATE)
@@ -477,10 +480,6 @@ def test_simulated_granules_of_different_seeds_share_a_folder(tmp_path):
     """`simulate --seed N`: the granule's id (file name) carries a production stamp from the
     seed, in the real AST_L1A_004<acquired>_<produced> pattern, so granules of two seeds copied
     into one folder do not overwrite each other and `batch` sees two scenes."""
-    import re
-
-    from stereodem.batch import expand_inputs
-
     both = tmp_path / "both"
     both.mkdir()
     for seed in (1, 2):

@@ -12,7 +12,7 @@ from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.core.errors import SensorModelError
 from stereodem.sensor.geo.rotations import body_to_orbital, inertial_velocity
-from stereodem.sensor.io.sidecar import model_from_dict, model_to_dict
+from stereodem.sensor.io.sidecar import load_model, model_from_dict, model_to_dict
 from stereodem.sensor.models import pushbroom
 from stereodem.sensor.models.ephemeris import Attitude, CircularOrbit, Ephemeris, _LagrangeTable
 from stereodem.sensor.models.pushbroom import PARAMETERS, DetectorArray, PushbroomModel
@@ -402,8 +402,6 @@ def test_garbled_sidecar_names_the_file_and_the_field(nadir, tmp_path, edit, mat
     """A hand-edited ``<stem>.model.json``: a NaN tilt or t0 was accepted (ortho then blamed
     the DEM for a footprint of NaN, dem reported "non-finite ground coordinates"), a list as
     the type raised a TypeError traceback, a missing key read "garbled model ('ephemeris')"."""
-    from stereodem.sensor.io.sidecar import load_model
-
     d = model_to_dict(nadir)
     d.update(edit)
     d = {k: v for k, v in d.items() if v is not None}

@@ -1,5 +1,6 @@
 """Space intersection (closed form, exact models) and gridding to a DEM."""
 
+import cv2
 import numpy as np
 import pytest
 import rasterio
@@ -304,8 +305,6 @@ def test_gaussian_cell_sums_equal_the_plain_computation(where):
 def test_finish_in_row_bands_gives_the_cell_by_cell_layers():
     """finish() computes its layers in row bands on the thread budget: the same values as
     the whole-grid formulas (sums / weights, NaN without weight), at 1 or 3 threads."""
-    import cv2
-
     spec = GridSpec.from_bounds((0, 0, 300 * 30.0, 420 * 30.0), 30.0, "EPSG:32637")
     rng = np.random.default_rng(5)
     t = np.zeros((len(SUM_LAYERS),) + spec.shape)

@@ -3,6 +3,8 @@ one-line refusals and the same rasters as ``stereodem dem`` on the same files an
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import rasterio
 
@@ -106,8 +108,6 @@ def test_make_dem_gives_the_commands_rasters(sim, tmp_path, capsys):
 def test_a_model_that_sees_no_ground_is_named_not_its_coordinates(sim, tmp_path, capsys):
     # a sidecar tilt of 89.9 degrees: "PushbroomModel: non-finite ground coordinates given
     # (25 value(s))" came from inside the base-to-height check
-    import json
-
     model = json.loads((sim / "left.model.json").read_text())
     model["cross_track_tilt_deg"] = 89.9
     (tmp_path / "left.tif").write_bytes((sim / "left.tif").read_bytes())

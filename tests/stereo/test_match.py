@@ -10,12 +10,19 @@ import rasterio
 from numpy.lib.stride_tricks import sliding_window_view as windows
 
 from stereodem.core.errors import InputError
+from stereodem.sensor.simulation.simulate import texture_path
+from stereodem.stereo import match
 from stereodem.stereo.match import (
     MatchResult,
     _fill_seed,
+    _image_and_finite,
     _median_offset,
+    _percentiles,
     _rounded_filled,
+    _sgbm_padding,
     _to_uint8,
+    _zncc_left,
+    _zncc_warped,
     match_rectified,
     zncc_at,
 )
@@ -383,8 +390,6 @@ def test_sgm_keeps_to_the_requested_range(grid):
     [(0, 63, 64, (64, 0)), (8, 63, 64, (64, 0)), (-55, 54, 112, (57, 55)), (-45, -22, 32, (0, 23))],
 )
 def test_sgbm_padding_covers_the_columns_that_can_match(lo, hi, nd, pads):
-    from stereodem.stereo.match import _sgbm_padding
-
     assert _sgbm_padding(lo, hi, nd) == pads
     left, right = pads
     w = 500
@@ -607,8 +612,6 @@ def test_sgm_stretch_and_score_match_textbook_forms():
 def test_fast_percentiles_equal_numpy_bit_for_bit():
     """The 8-bit stretch's percentiles (rank selection between sub-sample bounds) are
     ``np.percentile``'s, bit for bit: continuous, tied, sorted and float64 samples."""
-    from stereodem.stereo.match import _percentiles
-
     rng = np.random.default_rng(7)
     samples = [
         rng.normal(100, 20, 400_000).astype(np.float32),
@@ -663,9 +666,6 @@ def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc(
     fewer (several bands and their edges in these small images); ``score_rows=4``: the score
     layer by row bands of 4 rows and their halos (band edges everywhere, NaN patches across
     them), on 1 and 3 threads, bit for bit."""
-    from stereodem.stereo import match
-    from stereodem.stereo.match import _zncc_left, _zncc_warped
-
     if band_bytes:
         bands = match._row_bands
         monkeypatch.setattr(match, "_row_bands", lambda shape: bands(shape, band_bytes))
@@ -735,10 +735,6 @@ def test_stretch_rounds_ties_up_and_saturates():
 def _texture_pair():
     """A 400 x 300 pair cut from the bundled Landsat texture (its fully valid centre, x1.25
     bicubic), 1 DN of noise in each image, ``left(x) = right(x + 3)`` (disparity -3)."""
-    import rasterio
-
-    from stereodem.sensor.simulation.simulate import texture_path
-
     with rasterio.open(texture_path()) as f:
         tex = f.read().astype(np.float32).mean(axis=0)[260:580, 100:420]  # fully valid
     tex = cv2.resize(tex, (400, 400), interpolation=cv2.INTER_CUBIC)
@@ -795,8 +791,6 @@ def test_image_mean_replaces_the_finite_scan_only_when_it_proves_it():
     """``_image_and_finite(..., mean=True)``: a finite float32 mean proves every pixel finite
     (it is then ``np.mean`` itself, the score layer's centring constant); a NaN, an infinity
     or a sum that overflows (finite pixels of 3e38) falls back to the scan."""
-    from stereodem.stereo.match import _image_and_finite
-
     rng = np.random.default_rng(12)
     a = rng.normal(100, 20, (30, 40)).astype(np.float32)
     img, finite, m = _image_and_finite(a, "a", mean=True)

@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import rasterio
@@ -117,8 +118,6 @@ def test_to_uint8_stretch():
 def test_match_refinement_is_the_same_on_one_thread_or_several():
     """The refinement scores its matches in bands on the thread budget's threads: the same
     numbers as on one thread, and the known shift found."""
-    import cv2
-
     rng = np.random.default_rng(8)
     left = cv2.GaussianBlur(rng.random((600, 600)).astype(np.float32), (5, 5), 1.5) * 255
     right = np.roll(left, (3, 5), axis=(0, 1))  # right(x + 5, y + 3) = left(x, y)

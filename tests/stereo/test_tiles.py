@@ -1,11 +1,20 @@
 import os
+import resource
+import subprocess
+import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
+from multiprocessing import forkserver
 
 import numpy as np
 import pytest
 
-from stereodem.stereo.runner import load_cached, run_tiles
-from stereodem.stereo.tiling import tile_grid
+import stereodem.stereo.runner as runner
+from stereodem.config import RunSettings
+from stereodem.stereo.fork_server import warm_fork_server
+from stereodem.stereo.grid import CellSums
+from stereodem.stereo.runner import TileDone, TileFailure, load_cached, run_tiles
+from stereodem.stereo.tiling import tile_grid, tile_order
 
 
 def _tile_fn(tile, ctx):
@@ -119,8 +128,6 @@ def test_pool_workers_store_their_tiles_when_results_stay_in_the_cache(tmp_path,
     """With hold_results=False a pool's workers write their tiles to the cache themselves (the
     main process stores none), with the identity, job key and checksum that --resume checks;
     a failed tile is not stored."""
-    import stereodem.stereo.runner as runner
-
     stored_here = []
     monkeypatch.setattr(runner, "_save", lambda *a, **k: stored_here.append(a[1].index))
     tiles = tile_grid(130, 100, 32)
@@ -150,9 +157,6 @@ def test_pool_workers_store_their_tiles_when_results_stay_in_the_cache(tmp_path,
 def _busy_tile(tile, ctx):
     """A tile that burns ``ctx["cpu_s"]`` CPU seconds and says what its worker had imported
     before the tile ran, who its parent is and how much CPU it had used."""
-    import resource
-    import sys
-
     preloaded = "stereodem.stereo.pipeline" in sys.modules  # this module does not import it
     t0 = time.process_time()
     while time.process_time() - t0 < ctx["cpu_s"]:
@@ -175,9 +179,6 @@ def test_pool_workers_fork_from_a_preloaded_server_whose_cpu_is_counted():
     imports numpy, SciPy, OpenCV, rasterio, pyproj itself: ~1 CPU s each), and the server is
     stopped and waited for after the pool, so the workers' CPU seconds reach this process's
     RUSAGE_CHILDREN (run.json's worker_cpu_s) although they were not its children."""
-    import resource
-    from multiprocessing import forkserver
-
     import stereodem.stereo.pipeline  # noqa: F401  (not what the workers' check looks at)
 
     tiles = tile_grid(130, 100, 50)
@@ -205,9 +206,6 @@ def test_pool_workers_fork_from_a_preloaded_server_whose_cpu_is_counted():
 def test_pools_in_two_threads_share_the_fork_server_until_the_last_ends():
     """Two threads' pools fork their workers from one server: both complete (the first to end
     leaves the server to the other, whose workers it serves), and the last stops it."""
-    from concurrent.futures import ThreadPoolExecutor
-    from multiprocessing import forkserver
-
     tiles = tile_grid(130, 100, 50)
     with ThreadPoolExecutor(2) as tp:
         short = tp.submit(run_tiles, _busy_tile, tiles, {"cpu_s": 0.05}, workers=2)
@@ -226,11 +224,6 @@ def test_a_warmed_fork_server_is_used_by_the_pool_or_stopped_without_one():
     """warm_fork_server starts the coming pool's server early (its imports overlap the
     sparse stage); the pool then forks from it, and where no pool comes (the tiles ran here)
     the next run_tiles ends it: no server outlives the stage, its CPU counted as a child's."""
-    import resource
-    from multiprocessing import forkserver
-
-    from stereodem.stereo.fork_server import warm_fork_server
-
     tiles = tile_grid(130, 100, 50)
     assert not warm_fork_server(1, len(tiles))  # one worker: no pool, no server
     assert not warm_fork_server(2, 1)  # one tile: no pool
@@ -258,7 +251,6 @@ def test_a_warmed_fork_server_is_used_by_the_pool_or_stopped_without_one():
 def _working_set_tile(tile, ctx):
     """A tile's memory pattern: ~100 MB of arrays alive at once, then all freed; returns the
     page faults of its second pass (the first may fault: the pages are new to the worker)."""
-    import resource
 
     def one_pass():
         live = [np.ones(s * 2**20 // 8) for s in (20, 12, 24, 8, 16, 20)]
@@ -278,9 +270,6 @@ def test_pool_workers_keep_the_memory_their_tiles_free():
     raise it (``mallopt``), so a tile reuses the pages the previous one freed. In a fresh
     interpreter without it the same pattern faults ~3 000 pages per pass here (measured
     below, so that the test compares against the trimming)."""
-    import subprocess
-    import sys
-
     tiles = tile_grid(40, 40, 20)[:2]
     res, failures, _ = run_tiles(_working_set_tile, tiles, {}, workers=2)
     assert not failures
@@ -311,12 +300,10 @@ def test_tile_runner_yields_each_tile_in_tile_order_as_soon_as_its_turn_comes(mo
     every tile before it have finished, not after the pool: here the pool finishes them in a
     scrambled order, one tile fails (skipped, reported by index) and the caller closing the
     runner early closes the pool's generator."""
-    from stereodem.config import RunSettings
+    # not at the top: this module must not load stereo.pipeline (which stereo.execution
+    # imports), or _busy_tile's workers would find it loaded whatever their server did
     from stereodem.stereo import execution
-    from stereodem.stereo.grid import CellSums
     from stereodem.stereo.pipeline import TileResult
-    from stereodem.stereo.runner import TileDone, TileFailure
-    from stereodem.stereo.tiling import tile_order
 
     tiles = tile_grid(130, 100, 32)  # 12 tiles of 32-33 x 33-34 px
     order = [t.index for t in tile_order(tiles)]
