@@ -297,9 +297,21 @@ def set_aside_products(folder, *, products: Products = JOB) -> Path | None:
     if not paths:
         return None
     aside = folder / f"{REMOVING_PREFIX}{os.getpid()}-{time.monotonic_ns()}"
-    aside.mkdir()
-    for p in paths:
-        p.rename(aside / p.name)
+    moved = []
+    try:
+        aside.mkdir()
+        for p in paths:
+            p.rename(aside / p.name)
+            moved.append(p)
+    except OSError as exc:  # as they were, and a one-line refusal
+        for p in moved:
+            with contextlib.suppress(OSError):
+                (aside / p.name).rename(p)
+        with contextlib.suppress(OSError):
+            aside.rmdir()
+        raise OutputExistsError(
+            f"{folder}: cannot set the previous job's products aside ({exc.strerror})"
+        ) from None
     return aside
 
 
