@@ -26,7 +26,7 @@ from . import warp
 from .biascorr import maximum_curvature
 from .coreg import parse_chain, reference_on_grid
 from .coreg_run import track_of
-from .masks import StableMask, rasterize, read_polygons
+from .masks import StableMask, rasterize, read_outlines
 from .terrain import slope_deg
 
 
@@ -47,9 +47,9 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     :func:`write_figures` draws. ``dem`` and ``ref`` in the same vertical reference."""
     stable = StableMask(exclude=list(job.exclude)).array(dem)
     # outlines read and checked before any work: one outside the DEM is one line at once
-    outlines = [(path, read_polygons(path, dem.crs)) for path in job.outlines]
-    for path, geoms in outlines:
-        rasterize(geoms, dem, path=str(path))
+    outlines = [(path, read_outlines(path, dem.crs)) for path in job.outlines]
+    for path, polys in outlines:
+        rasterize([o.geom for o in polys], dem, path=str(path))
     chain_rep = chain_plot = None
     if job.chain:
         heading, frame = track_of(dem.path, dem.crs, job.track_angle)
@@ -95,16 +95,16 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
     if chain_rep is not None:
         section["coregistration"] = {"chain": job.chain, "steps": chain_rep}
     areas = []
-    for path, geoms in outlines:
-        for k, g in enumerate(geoms):
-            m = rasterize([g], dem, path=str(path)) & np.isfinite(dh)
+    for path, polys in outlines:
+        for o in polys:
+            m = rasterize([o.geom], dem, path=str(path)) & np.isfinite(dh)
             if not m.any():
                 continue
             a = ss.area_mean_sigma(
                 model, m, dem.transform, dem.crs, sigma=np.where(m, per_cell, np.nan)
             )
             areas.append(
-                {"file": str(path), "polygon": k, "mean_dh": float(np.nanmean(dh[m])), **a}
+                {"file": str(path), "polygon": o.label, "mean_dh": float(np.nanmean(dh[m])), **a}
             )
     if job.outlines and not areas:
         raise InputError(f"{job.outlines[0]}: no polygon covers a valid cell of the DEM")

@@ -24,9 +24,34 @@ from stereodem.core.stats import nmad
 
 from . import warp
 
+#: attributes that name a polygon, in order of preference (case-insensitive)
+LABEL_FIELDS = ("id", "name")
+
+
+@dataclass(frozen=True)
+class Outline:
+    """One polygon of a vector file: ``label`` is what reports and logs call it (see
+    :func:`read_outlines`), ``geom`` the shapely geometry in the CRS asked for."""
+
+    label: int | str
+    geom: object
+
 
 def read_polygons(path, crs):
     """Polygons of a vector file reprojected to ``crs``; a list of shapely geometries.
+
+    Raises :class:`InputError` (one line naming the file) when it cannot be read, has no CRS,
+    or holds no polygon."""
+    return [o.geom for o in read_outlines(path, crs)]
+
+
+def read_outlines(path, crs) -> list[Outline]:
+    """The polygons of a vector file reprojected to ``crs``, each with its label: the one
+    numbering of polygons in every report and log (``assess --outlines``, ``stack
+    --outlines``). The label is the polygon's own ``id`` attribute, else its ``name``
+    (:data:`LABEL_FIELDS`; as geopandas/xdem users name their features) when every polygon has
+    one and no two share it; otherwise the feature's 1-based number in the file (features that
+    are not polygons keep their numbers).
 
     Raises :class:`InputError` (one line naming the file) when it cannot be read, has no CRS,
     or holds no polygon."""
@@ -34,7 +59,7 @@ def read_polygons(path, crs):
 
     path = str(path)
     try:
-        meta, _, geom_wkb, _ = pyogrio.raw.read(path, columns=[])
+        meta, _, geom_wkb, fields = pyogrio.raw.read(path)
         geoms = shapely.from_wkb(geom_wkb)
     except Exception as exc:  # noqa: BLE001 - pyogrio/GDAL errors of many types: one line
         raise InputError(
@@ -43,13 +68,15 @@ def read_polygons(path, crs):
     src = meta.get("crs")
     if src is None:
         raise CRSError(f"{path}: the vector file has no CRS")
-    geoms = [
-        g
-        for g in geoms
+    keep = [
+        k
+        for k, g in enumerate(geoms)
         if g is not None and not g.is_empty and g.geom_type in ("Polygon", "MultiPolygon")
     ]
-    if not geoms:
+    if not keep:
         raise InputError(f"{path}: no polygon in the vector file")
+    labels = _labels(list(meta.get("fields", [])), fields, keep)
+    geoms = [geoms[k] for k in keep]
     src, dst = CRS.from_user_input(src), CRS.from_user_input(crs)
     if src != dst:
         tr = Transformer.from_crs(src, dst, always_xy=True)
@@ -57,7 +84,33 @@ def read_polygons(path, crs):
             shapely.transform(g, lambda xy: np.column_stack(tr.transform(xy[:, 0], xy[:, 1])))
             for g in geoms
         ]
-    return geoms
+    return [Outline(lab, g) for lab, g in zip(labels, geoms)]
+
+
+def _labels(names, columns, keep) -> list:
+    """The labels of the kept features ``keep`` (indices in the file): see
+    :func:`read_outlines`."""
+    lower = [str(n).lower() for n in names]
+    for want in LABEL_FIELDS:
+        if want not in lower:
+            continue
+        labels = []
+        for v in (columns[lower.index(want)][k] for k in keep):
+            if isinstance(v, bytes):
+                v = v.decode("utf-8", "replace")
+            if isinstance(v, (np.integer, int)) or (
+                isinstance(v, (np.floating, float)) and np.isfinite(v) and float(v).is_integer()
+            ):
+                v = int(v)
+            elif isinstance(v, str) and v.strip():
+                v = v.strip()
+            else:  # missing (None, NaN, blank) or a type that makes no name: not this field
+                break
+            labels.append(v)
+        else:
+            if len(set(map(str, labels))) == len(labels):
+                return labels
+    return [k + 1 for k in keep]
 
 
 def rasterize(geoms, dem: DEM, *, path: str = "outlines") -> np.ndarray:

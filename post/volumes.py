@@ -32,6 +32,7 @@ from stereodem.core.grid import MapGrid
 from stereodem.core.stats import nmad
 
 from . import terrain
+from .masks import Outline
 from .spatialstats import area_mean_sigma, fit_variogram, variogram
 
 log = logging.getLogger(__name__)
@@ -149,19 +150,25 @@ def outline_changes(
     min_cells: int = 5,
     seed: int = 0,
 ) -> list[dict]:
-    """Elevation and volume change rates of each polygon of ``outlines`` (shapely geometries in
-    the grid's CRS), with σ from ``model`` (:func:`rate_error_model`); see the module docstring.
+    """Elevation and volume change rates of each polygon of ``outlines`` (the
+    :class:`~stereodem.post.masks.Outline` polygons of :func:`~stereodem.post.masks.read_outlines`,
+    or bare shapely geometries, in the grid's CRS), with σ from ``model``
+    (:func:`rate_error_model`); see the module docstring. Each record's ``id`` is the polygon's
+    label (bare geometries: their 1-based number, as ``read_outlines`` numbers a file's).
     """
     areas = np.broadcast_to(cell_areas(grid), grid.shape)
     rate = np.asarray(rate, np.float32)
     rs = np.asarray(rate_sigma, np.float32)
     out = []
-    for i, geom in enumerate(outlines, start=1):
+    for i, item in enumerate(outlines, start=1):
+        label, geom = (item.label, item.geom) if isinstance(item, Outline) else (i, item)
         inside = rasterize(
             [(geom, 1)], out_shape=grid.shape, transform=grid.transform, fill=0, dtype="uint8"
         ).astype(bool) & np.isfinite(reference)
         if not inside.any():
-            out.append(dict(id=i, n_cells=0, error="the outline covers no cell of the stack grid"))
+            out.append(
+                dict(id=label, n_cells=0, error="the outline covers no cell of the stack grid")
+            )
             continue
         filled, holes, bands = hypsometric_fill(
             rate, reference, inside, band_width=band_width, min_cells=min_cells
@@ -183,7 +190,7 @@ def outline_changes(
             seed=seed + i,
         )
         rec = dict(
-            id=i,
+            id=label,
             n_cells=int(inside.sum()),
             area_m2=area,
             filled_cells=int(holes.sum()),

@@ -341,9 +341,10 @@ def run(args) -> int:
 
 
 def _read_outlines(path, ref):
-    """The polygons of ``path`` in the reference's CRS, refused when none touches its grid."""
-    from stereodem.post.masks import rasterize, read_polygons
+    """The polygons of ``path`` (labelled: ``post.masks.read_outlines``) in the reference's
+    CRS, refused when none touches its grid."""
+    from stereodem.post.masks import rasterize, read_outlines
 
-    geoms = read_polygons(path, ref.crs)
-    rasterize(geoms, ref, path=str(path))
-    return geoms
+    outlines = read_outlines(path, ref.crs)
+    rasterize([o.geom for o in outlines], ref, path=str(path))
+    return outlines

@@ -502,7 +502,7 @@ def test_assess_outlines_give_the_area_mean_sigma_from_the_variogram(files, tmp_
     )
     assert rc == 0
     areas = _json.loads((out / "report.json").read_text())["error_analysis"]["area_means"]
-    assert [(a["file"], a["polygon"]) for a in areas] == [(str(outlines), 0), (str(outlines), 1)]
+    assert [(a["file"], a["polygon"]) for a in areas] == [(str(outlines), 1), (str(outlines), 2)]
     noise = VariogramModel(np.array([150.0]), np.array([0.25]))
     for a, (r0, r1, c0, c1) in zip(areas, boxes):
         m = np.zeros(ref.shape, bool)
@@ -513,9 +513,9 @@ def test_assess_outlines_give_the_area_mean_sigma_from_the_variogram(files, tmp_
         assert a["sigma_mean"] == pytest.approx(truth["sigma_mean"], rel=0.15)
         assert abs(a["mean_dh"]) < 4 * a["sigma_mean"]
     md = (out / "report.md").read_text()
-    assert "outlines.geojson #0: mean dh" in md and "outlines.geojson #1: mean dh" in md
+    assert "outlines.geojson #1: mean dh" in md and "outlines.geojson #2: mean dh" in md
     _assert_error_analysis_in_html(out)  # the area means are items of the HTML section too
-    assert "outlines.geojson #1: mean dh" in (out / "report.html").read_text()
+    assert "outlines.geojson #2: mean dh" in (out / "report.html").read_text()
 
 
 # ------------------------------------------------------------------------ stable-terrain limits
