@@ -99,9 +99,10 @@ def header_bounds_lonlat(path):
         raise DEMError(f"{path}: cannot read the DEM ({str(exc).splitlines()[0][:100]})") from None
 
 
-def check_inputs(dems, reference: DEM):
+def check_inputs(dems, reference: DEM, *, reference_name: str | None = None):
     """Refuse, before anything is written: fewer than 2 DEMs, the same file twice, a DEM that
-    does not overlap the reference."""
+    does not overlap the reference. ``reference_name``: what the messages call the reference
+    (default "the reference PATH"; ``stereodem change`` compares with DEM_A)."""
     if len(dems) < 2:
         raise InputError(
             f"a stack needs at least 2 DEMs, got {len(dems)}" + (f" ({dems[0]})" if dems else "")
@@ -118,7 +119,7 @@ def check_inputs(dems, reference: DEM):
             header_bounds_lonlat(p),
             rb,
             a_name=f"{p}",
-            b_name=f"the reference {reference.path or ''}".strip(),
+            b_name=reference_name or f"the reference {reference.path or ''}".strip(),
         )
 
 

@@ -102,7 +102,7 @@ def run(args) -> int:
     check_output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
     a = DEM.from_file(args.dem_a, vertical=args.a_vertical)
     b = DEM.from_file(args.dem_b, vertical=args.b_vertical)
-    check_inputs([args.dem_a, args.dem_b], a)
+    check_inputs([args.dem_a, args.dem_b], a, reference_name=f"DEM_A {args.dem_a}")
     parse_chain(args.chain)
     for path in args.exclude:
         exclude_mask([path], a)

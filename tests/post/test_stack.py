@@ -584,3 +584,17 @@ def test_a_projected_dem_across_the_antimeridian_overlaps_its_reference(tmp_path
     far = DEM(ref.heights, Affine(0.001, 0, 170.0, 0, -0.001, 60.015), 4326, path="far.tif")
     with pytest.raises(InputError, match="does not overlap the reference far.tif"):
         check_inputs([tmp_path / "a.tif", tmp_path / "b.tif"], far)
+
+
+def test_change_no_overlap_names_dem_a_not_a_reference(tmp_path, capsys):
+    """``stereodem change A B``: B beside A is refused naming A as DEM_A (the command has no
+    reference), one line, nothing written."""
+    z = np.full((20, 20), 100.0, np.float32)
+    a, b = tmp_path / "a.tif", tmp_path / "b.tif"
+    write_geotiff(a, z, Affine(90, 0, 5e5, 0, -90, 4.4e6), "EPSG:32637")
+    write_geotiff(b, z, Affine(90, 0, 2e5, 0, -90, 1.0e6), "EPSG:32637")
+    out = tmp_path / "out"
+    rc, _so, se = _run(["change", str(a), str(b), "-o", str(out)], capsys)
+    assert rc == 1 and len(se.strip().splitlines()) == 1, se
+    assert f"does not overlap DEM_A {a}" in se and "reference" not in se
+    assert not out.exists()
