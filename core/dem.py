@@ -42,6 +42,7 @@ from stereodem.core.raster import (
     parse_creation_options,
     read_image,
     reading_env,
+    unreadable,
     write_geotiff,
 )
 from stereodem.core.vertical import ELLIPSOID, GEOID, VERTICALS
@@ -526,7 +527,7 @@ class DEM:
                 voided = void_nodata(heights, ds.nodata, *height_scaling(ds, band, crs))
                 tag = ds.tags().get(VERTICAL_TAG)
         except rasterio.errors.RasterioIOError as exc:
-            raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
+            raise DEMError(unreadable(path, "DEM", exc)) from None
         voided.warn(path)
         vert = file_vertical(path, crs, tag, vertical)
         geoid = other_geoid(crs) if vert == GEOID else None
@@ -558,7 +559,7 @@ class DEM:
                 h, w = ds.block_shapes[band - 1]
                 ds.read(band, window=((0, min(h, ds.height)), (0, min(w, ds.width))))
         except rasterio.errors.RasterioIOError as exc:
-            raise DEMError(f"{path}: cannot read the DEM ({exc})") from None
+            raise DEMError(unreadable(path, "DEM", exc)) from None
 
     @classmethod
     def bundled(cls) -> DEM:

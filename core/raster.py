@@ -682,6 +682,18 @@ def as_path(path, what: str = "path") -> Path:
     return Path(path)
 
 
+def unreadable(path, what: str, exc) -> str:
+    """The one-line message for a raster ``path`` that GDAL could not open or read as ``what``
+    ("DEM", "image", "reference DEM"): a folder given for the file says so ("PATH: is a
+    directory, not a DEM file"; GDAL's "not recognized as being in a supported file format"
+    said nothing of it), anything else "PATH: cannot read the WHAT (GDAL's first line)". Every
+    reader of DEM files and images words its failure with it."""
+    if isinstance(path, str | os.PathLike) and Path(path).is_dir():
+        article = "an" if what[:1].lower() in "aeiou" else "a"
+        return f"{path}: is a directory, not {article} {what} file"
+    return f"{path}: cannot read the {what} ({str(exc).splitlines()[0][:120]})"
+
+
 def read_image(path, band: int = 1) -> np.ndarray:
     """One band of an image as float32, NaN where the file marks no data.
 
@@ -703,9 +715,7 @@ def read_image(path, band: int = 1) -> np.ndarray:
             )
             data = ds.read(int(band), masked=True)
     except rasterio.errors.RasterioIOError as exc:
-        raise InputError(
-            f"{path}: cannot read the image ({str(exc).splitlines()[0][:120]})"
-        ) from None
+        raise InputError(unreadable(path, "image", exc)) from None
     img = np.ma.getdata(data).astype(np.float32)
     img[np.ma.getmaskarray(data) | ~np.isfinite(img)] = np.nan  # +-inf too (defective L1 columns)
     return img
@@ -716,5 +726,7 @@ def image_dtype(path, band: int = 1) -> np.dtype:
     try:
         with rasterio.open(path) as ds:
             return np.dtype(ds.dtypes[int(band) - 1])
-    except (rasterio.errors.RasterioIOError, IndexError) as exc:
-        raise InputError(f"{path}: cannot read band {band} ({exc})") from None
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(unreadable(path, "image", exc)) from None
+    except IndexError:
+        raise InputError(f"{path}: no band {band}") from None

@@ -64,6 +64,7 @@ from stereodem.core.dem import (
 )
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.grid import MapGrid
+from stereodem.core.raster import unreadable
 from stereodem.core.stats import nanmedian, nmad
 
 from .choices import MOSAIC_METHODS
@@ -470,7 +471,7 @@ def read_on_grid(
                     sentinel = near == np.float32(UNDECLARED_NODATA)
             scaling = height_scaling(ds, band)  # decimetres, feet: metres
     except rasterio.errors.RasterioIOError as exc:
-        raise DEMError(f"{path}: cannot read the DEM ({str(exc).splitlines()[0][:120]})") from None
+        raise DEMError(unreadable(path, "DEM", exc)) from None
     if layer is not None:  # a σ layer: no height rules
         if scaling != (1.0, 0.0):
             out *= np.float32(scaling[0])

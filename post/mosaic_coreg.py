@@ -35,7 +35,7 @@ from stereodem.core.dem import (
     void_nodata,
 )
 from stereodem.core.errors import ConvergenceError, DEMError, InputError, NoOverlapError
-from stereodem.core.raster import VERTICAL_TAG, reading_env
+from stereodem.core.raster import VERTICAL_TAG, reading_env, unreadable
 
 from . import warp
 from .assess import coregistration_summary
@@ -129,9 +129,7 @@ def check_reference(path) -> None:
             if ds.crs is None:
                 raise DEMError(f"{path}: the reference DEM has no CRS")
     except rasterio.errors.RasterioIOError as exc:
-        raise DEMError(
-            f"{path}: cannot read the reference DEM ({str(exc).splitlines()[0][:120]})"
-        ) from None
+        raise DEMError(unreadable(path, "reference DEM", exc)) from None
 
 
 def _read_columns(ds, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
@@ -191,9 +189,7 @@ def crop_reference(
             tag = ds.tags().get(VERTICAL_TAG)
             vert = file_vertical(path, pcrs, tag, vertical)
     except rasterio.errors.RasterioIOError as exc:
-        raise DEMError(
-            f"{path}: cannot read the reference DEM ({str(exc).splitlines()[0][:120]})"
-        ) from None
+        raise DEMError(unreadable(path, "reference DEM", exc)) from None
     except rasterio.errors.WindowError:  # bounds beyond its grid's reach
         raise NoOverlapError(f"{path}: the reference DEM does not overlap {bounds}") from None
     if voided is None:

@@ -38,7 +38,7 @@ from stereodem.core.errors import (
     VerticalReferenceError,
 )
 from stereodem.core.grid import MapGrid, as_crs
-from stereodem.core.raster import VERTICAL_TAG
+from stereodem.core.raster import VERTICAL_TAG, unreadable
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +160,7 @@ def open_source(path, order: int = 0, *, vertical: str | None = None) -> Source:
                 geoid_wkt=geoid.to_wkt() if geoid is not None else None,
             )
     except rasterio.errors.RasterioIOError as exc:
-        raise DEMError(f"{path}: cannot read the DEM ({str(exc).splitlines()[0][:120]})") from None
+        raise DEMError(unreadable(path, "DEM", exc)) from None
 
 
 def open_sources(paths, *, vertical: str | None = None) -> list[Source]:

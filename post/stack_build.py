@@ -34,7 +34,7 @@ from scipy import ndimage
 from stereodem.core.dem import DEM, check_georeferenced
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.pool import stop_pool
-from stereodem.core.raster import read_image
+from stereodem.core.raster import read_image, unreadable
 from stereodem.core.stats import nmad
 from stereodem.core.threads import pool_initializer, worker_threads
 
@@ -96,7 +96,7 @@ def header_bounds_lonlat(path):
             box = (min(x), min(y), max(x), max(y))
             return transform_bounds(ds.crs, "EPSG:4326", *box, densify_pts=21)
     except rasterio.errors.RasterioIOError as exc:
-        raise DEMError(f"{path}: cannot read the DEM ({str(exc).splitlines()[0][:100]})") from None
+        raise DEMError(unreadable(path, "DEM", exc)) from None
 
 
 def check_inputs(dems, reference: DEM, *, reference_name: str | None = None):

@@ -942,3 +942,29 @@ def test_overwrite_replaces_the_commands_products_and_nothing_else(
     for p in set(after) - set(keep):
         top = p.relative_to(out).parts[0]
         assert any(fnmatch.fnmatch(top, pat) for pat in products), (command, top)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["assess", "{dir}", "--ref", "{dem}", "-o", "{out}"],
+        ["assess", "{dem}", "--ref", "{dir}", "-o", "{out}"],
+        ["filter", "{dir}", "-o", "{out}"],
+        ["change", "{dem}", "{dir}", "-o", "{out}"],
+        ["coregister", "{dir}", "--ref", "{dem}", "-o", "{out}"],
+    ],
+    ids=lambda a: " ".join(a[:2]).replace("{", "").replace("}", ""),
+)
+def test_a_directory_for_a_dem_is_one_clear_line(argv, tmp_path, capsys):
+    """A folder where a DEM file is expected: "PATH: is a directory, not a DEM file"
+    (``core.raster.unreadable``), not GDAL's "not recognized as being in a supported file
+    format"; nothing written."""
+    folder = tmp_path / "scene"
+    folder.mkdir()
+    dem = tmp_path / "dem.tif"
+    DEM.bundled().write(dem)
+    out = tmp_path / "out"
+    names = {"dir": folder, "dem": dem, "out": out}
+    code, _, err = run_cli(capsys, [a.format(**names) for a in argv])
+    assert_clear_error(code, err, argv[0], re.escape(f"{folder}: is a directory, not a DEM file"))
+    assert not out.exists()

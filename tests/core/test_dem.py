@@ -17,8 +17,11 @@ from stereodem.core.errors import (
     OutputExistsError,
     VerticalReferenceError,
 )
+from stereodem.core.raster import image_dtype, read_image
 from stereodem.post.assess import reconcile_vertical
+from stereodem.post.mosaic_coreg import check_reference
 from stereodem.post.mosaic_sources import open_source
+from stereodem.post.stack_build import header_bounds_lonlat
 
 
 def test_bundled_dem_metadata():
@@ -409,3 +412,23 @@ def test_sample_refuses_mismatched_or_missing_coordinates():
         dem.sample(np.zeros(3), np.zeros(2), reference=None)
     with pytest.raises(InputError, match="lon and lat are required"):
         dem.sample(None, None, reference=None)
+
+
+def test_a_directory_given_for_a_dem_or_an_image_says_so(tmp_path):
+    """Every reader of DEM files and images (``core.raster.unreadable``): a folder is "is a
+    directory, not a DEM file", not GDAL's "not recognized as being in a supported file
+    format"."""
+    folder = tmp_path / "scene"
+    folder.mkdir()
+    for read in (DEM.from_file, DEM.check_file, open_source, header_bounds_lonlat):
+        with pytest.raises(DEMError) as e:
+            read(folder)
+        assert str(e.value) == f"{folder}: is a directory, not a DEM file"
+    with pytest.raises(DEMError, match="is a directory, not a reference DEM file$"):
+        check_reference(folder)
+    for read in (read_image, image_dtype):
+        with pytest.raises(InputError) as e:
+            read(folder)
+        assert str(e.value) == f"{folder}: is a directory, not an image file"
+    with pytest.raises(DEMError, match="cannot read the DEM .*No such file"):
+        DEM.from_file(tmp_path / "missing.tif")
