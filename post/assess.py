@@ -863,10 +863,11 @@ _Y = ("y", "northing", "n")
 _Z = ("height", "h", "z", "elevation", "alt", "altitude")
 
 
-def _check_roles(path, roles) -> np.ndarray:
+def _check_roles(path, roles, *, quiet: bool = False) -> np.ndarray:
     """Which rows of a check-point CSV with a ``role`` column are check points: ``check``
     (an empty role is ``gcp``, as :func:`stereodem.sensor.io.gcps.read_gcps` reads it);
-    an unknown role, or no check point at all, is an :class:`InputError` naming the file."""
+    an unknown role, or no check point at all, is an :class:`InputError` naming the file.
+    The GCPs left out are logged unless ``quiet``."""
     role = np.array([(r or "").strip().lower() or "gcp" for r in roles], dtype=str)
     unknown = sorted(set(role) - set(ROLES))
     if unknown:
@@ -880,21 +881,27 @@ def _check_roles(path, roles) -> np.ndarray:
             f"{path}: no check point: its {role.size} point(s) all have the role gcp (used in "
             "the estimation, no independent check); mark the check points role=check"
         )
-    if not keep.all():
+    if not keep.all() and not quiet:
         log.info(
             "%s: %d check point(s); %d GCP(s) (role gcp) left out", path, keep.sum(), (~keep).sum()
         )
     return keep
 
 
-def read_checkpoints(path, *, crs=None):
+def check_checkpoints(path, *, crs=None) -> None:
+    """The refusals of :func:`read_checkpoints` before any work, without its log line (which
+    the read that uses the points gives: the file is read twice, logged once)."""
+    read_checkpoints(path, crs=crs, quiet=True)
+
+
+def read_checkpoints(path, *, crs=None, quiet: bool = False):
     """Read check points from a CSV with a header.
 
     Columns ``lon``/``lat`` (degrees WGS84) or ``x``/``y`` (then ``crs`` is required), and
     ``height``/``h``/``z``; an ``id`` column is kept if present. A ``role`` column (the GCP
     CSV of ``stereodem adjust``, :mod:`stereodem.sensor.io.gcps`: ``gcp``, the default, or
     ``check``) keeps the ``check`` points only: a GCP used in the estimation is no
-    independent check of the result.
+    independent check of the result; how many are left out is logged (not when ``quiet``).
 
     Returns
     -------
@@ -935,7 +942,7 @@ def read_checkpoints(path, *, crs=None):
     ids = [r[cid] for r in rows] if cid else [str(i) for i in range(len(rows))]
     crole = pick(("role",))
     if crole is not None:
-        keep = _check_roles(path, [r[crole] for r in rows])
+        keep = _check_roles(path, [r[crole] for r in rows], quiet=quiet)
         x, y, z, ids = x[keep], y[keep], z[keep], [i for i, k in zip(ids, keep) if k]
     if geographic and crs is None:
         lon, lat = x, y

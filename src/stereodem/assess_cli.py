@@ -195,9 +195,9 @@ def run(args) -> int:
     ]
     check_output_folder(args.output, products, overwrite=args.overwrite, inputs=inputs)
     if args.checkpoints:  # a bad file fails before the assessment runs
-        from stereodem.post.assess import read_checkpoints
+        from stereodem.post.assess import check_checkpoints
 
-        read_checkpoints(args.checkpoints, crs=args.checkpoints_crs)
+        check_checkpoints(args.checkpoints, crs=args.checkpoints_crs)
     job = None
     if args.error_analysis or args.outlines or args.sigma_map or args.chain:
         from stereodem.post.error_analysis import ErrorAnalysisJob

@@ -237,6 +237,32 @@ def test_checkpoints_role_column_keeps_check_points_only(ref, tmp_path):
         assess.read_checkpoints(csv)
 
 
+def test_assess_logs_the_check_points_line_once(ref, simulated, tmp_path, caplog):
+    """``assess --checkpoints`` reads the file to check it before any work and again to use
+    it: the line saying how many GCPs are left out is logged once (``check_checkpoints`` is
+    quiet), as ``run``'s input check does."""
+    w, s, e, n = ref.bounds_lonlat()
+    lon = np.linspace(w + 0.01, e - 0.01, 6)
+    lat = np.linspace(s + 0.01, n - 0.01, 6)
+    hz = ref.sample(lon, lat)
+    csv = tmp_path / "points.csv"
+    csv.write_text(
+        "id,lon,lat,h,role\n"
+        + "".join(
+            f"P{i},{a},{b},{c},{'check' if i % 2 else 'gcp'}\n"
+            for i, (a, b, c) in enumerate(zip(lon, lat, hz))
+        )
+    )
+    ref.write(tmp_path / "ref.tif")
+    simulated.write(tmp_path / "dem.tif")
+    argv = ["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif")]
+    with caplog.at_level("INFO", logger="stereodem.post.assess"):
+        rc = main([*argv, "--checkpoints", str(csv), "-o", str(tmp_path / "o")])
+    assert rc == 0
+    lines = [r.getMessage() for r in caplog.records if "GCP(s) (role gcp) left out" in r.message]
+    assert lines == [f"{csv}: 3 check point(s); 3 GCP(s) (role gcp) left out"]
+
+
 def test_checkpoints_and_landcover(ref, simulated, tmp_path):
     rng = np.random.default_rng(2)
     w, s, e, n = ref.bounds_lonlat()

@@ -14,7 +14,7 @@ import numpy as np
 from stereodem.core.dem import DEM, ELLIPSOID
 from stereodem.core.errors import InputError
 from stereodem.core.raster import image_dtype, read_image
-from stereodem.post.assess import read_checkpoints
+from stereodem.post.assess import check_checkpoints
 from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
 from stereodem.sensor.io.sidecar import load_image_model, load_model
 from stereodem.stereo import sanity
@@ -185,7 +185,7 @@ def check_inputs(cfg: Config):
     if cfg.assess.enabled and i.reference_dem:
         DEM.check_file(i.reference_dem, vertical=i.reference_vertical)
         if i.checkpoints:
-            read_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
+            check_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
 
 
 def input_paths(cfg: Config) -> list:
