@@ -514,21 +514,29 @@ def _write_table(out_root, scenes, rows, table, seconds) -> dict:
     return result
 
 
+def status_text(status: str, reason: str = "", seconds: float = 0.0) -> str:
+    """How a scene's status reads for people, in the progress lines and the status table:
+    "done in 12.3 s", "skipped: already done (run.json status ok)", "FAILED: REASON", "not
+    run" (the reason after a colon: one level of brackets, never "skipped (already done
+    (...))"). batch.json keeps ``status`` and ``reason`` as fields."""
+    if status == "done":
+        return f"done in {seconds:.1f} s"
+    if status == "pending":
+        return "not run"
+    word = "FAILED" if status == "failed" else status
+    return f"{word}: {reason}" if reason else word
+
+
 def summary_lines(result: dict) -> list[str]:
     """The status table for people: one line per scene, then the totals."""
     lines = []
     for r in result["scenes"]:
-        what = {
-            "done": f"done in {r['seconds']:.1f} s",
-            "skipped": "skipped (already done)",
-            "failed": f"FAILED: {r['reason']}",
-            "pending": "not run",
-        }[r["status"]]
+        what = status_text(r["status"], r["reason"], r["seconds"])
         lines.append(f"  {r['name']:24s} {what}")
     c = result["summary"]
     lines.append(
         f"{len(result['scenes'])} scene(s): {c['done']} done, {c['failed']} failed, "
         f"{c['skipped']} skipped, in {result['seconds']:.1f} s on {result['backend']} "
-        f"({result['workers']} worker(s)); status table in {STATUS_FILE}"
+        f"with {result['workers']} worker(s); status table in {STATUS_FILE}"
     )
     return lines

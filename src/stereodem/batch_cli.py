@@ -66,12 +66,12 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from .batch import expand_inputs, run_batch, summary_lines
+    from .batch import expand_inputs, run_batch, status_text, summary_lines
 
     options.check_common(args)
 
     def progress(row):
-        options.say(f"  {row.name}: {row.status}" + (f" ({row.reason})" if row.reason else ""))
+        options.say(f"  {row.name}: {status_text(row.status, row.reason, row.seconds)}")
 
     result = run_batch(
         expand_inputs(args.scenes, args.template),

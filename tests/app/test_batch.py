@@ -171,6 +171,30 @@ def test_a_done_scene_whose_configuration_changed_is_not_skipped(tmp_path, monke
     assert "--overwrite" in row["reason"]
 
 
+def test_a_skipped_scene_reads_with_one_level_of_brackets(tmp_path, monkeypatch, capsys):
+    """The progress line and the status table say "skipped: already done (run.json status
+    ok)" (it read "skipped (already done (run.json status ok))"); batch.json keeps its
+    status and reason fields as they were."""
+    from stereodem.config import load_config
+
+    monkeypatch.chdir(tmp_path)
+    cfg = tmp_path / "a.toml"
+    cfg.write_text(CONFIG.format(d="data"))
+    out = tmp_path / "out"
+    (out / "a").mkdir(parents=True)
+    done = load_config(cfg.absolute())
+    (out / "a" / "run.json").write_text(json.dumps({"status": "ok", "config": done.to_dict()}))
+    monkeypatch.setattr("stereodem.batch.run", lambda c: pytest.fail("ran a done scene"))
+    capsys.readouterr()
+    assert cli.main(["batch", str(cfg), "-o", str(out), "--workers", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert "  a: skipped: already done (run.json status ok)\n" in printed
+    assert f"  {'a':24s} skipped: already done (run.json status ok)\n" in printed
+    assert "((" not in printed and "))" not in printed
+    row = json.loads((out / "batch.json").read_text())["scenes"][0]
+    assert (row["status"], row["reason"]) == ("skipped", "already done (run.json status ok)")
+
+
 def test_a_failed_scene_whose_configuration_changed_says_what_batch_takes(tmp_path, monkeypatch):
     """A scene that failed (or was interrupted) and was edited since is refused by the tile
     cache's resume check; the reason was stereodem run's, "run again without --resume (and
