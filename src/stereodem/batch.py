@@ -49,6 +49,7 @@ from stereodem.stereo.execution import OtherJobTilesError
 
 from .config import config_from_dict, load_config
 from .pipeline.job import run
+from .progress import setup_worker_logging, worker_logging
 
 log = logging.getLogger(__name__)
 
@@ -403,15 +404,22 @@ def run_batch(
     return _write_table(out_root, scenes, rows, table, time.perf_counter() - t0)
 
 
-def _run_pool(order, out_root, n, threads, scene_options, collect):
-    """The scenes on a process pool; ``scene_options``: :func:`run_scene`'s ``(overwrite,
-    keep_tiles)``."""
-    ex = ProcessPoolExecutor(
+def scene_pool(n: int, threads: int) -> ProcessPoolExecutor:
+    """The scenes' process pool: ``n`` spawned workers pinned to ``threads`` threads, logging
+    as the main process does (:func:`stereodem.progress.worker_logging`: "WARNING logger:
+    message" as in a serial run, not the message alone)."""
+    return ProcessPoolExecutor(
         max_workers=n,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=pool_initializer,
-        initargs=(threads,),
+        initargs=(threads, setup_worker_logging, worker_logging()),
     )
+
+
+def _run_pool(order, out_root, n, threads, scene_options, collect):
+    """The scenes on a process pool; ``scene_options``: :func:`run_scene`'s ``(overwrite,
+    keep_tiles)``."""
+    ex = scene_pool(n, threads)
     try:
         futs = {ex.submit(run_scene, s, out_root, threads, *scene_options): s for s in order}
         for f in as_completed(futs):

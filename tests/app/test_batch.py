@@ -2,6 +2,8 @@
 corrupt scene fails with its reason and the others are done; a second run skips done scenes."""
 
 import json
+import logging
+import re
 import subprocess
 import sys
 
@@ -9,8 +11,8 @@ import numpy as np
 import pytest
 import rasterio
 
-from stereodem import cli
-from stereodem.batch import expand_inputs, run_batch, scene_config
+from stereodem import cli, progress
+from stereodem.batch import expand_inputs, run_batch, scene_config, scene_pool
 from stereodem.config import load_config
 from stereodem.core.errors import InputError
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
@@ -193,6 +195,27 @@ def test_a_skipped_scene_reads_with_one_level_of_brackets(tmp_path, monkeypatch,
     assert "((" not in printed and "))" not in printed
     row = json.loads((out / "batch.json").read_text())["scenes"][0]
     assert (row["status"], row["reason"]) == ("skipped", "already done (run.json status ok)")
+
+
+@pytest.mark.parametrize("verbose", [0, 1])
+def test_the_scene_pools_workers_log_as_the_main_process(verbose, monkeypatch, capfd):
+    """A warning logged in a batch worker reads "WARNING logger: message" as in a serial run
+    (it printed the message alone: a spawned worker had no handler but Python's last resort),
+    and -v's info lines of a worker are not lost."""
+    monkeypatch.setattr(progress, "_SETUP", None)
+    progress.setup_logging(verbose=verbose)  # as the command line does (pytest's handlers stay)
+    pool = scene_pool(1, 1)
+    try:
+        log = logging.getLogger("stereodem.post.assess")
+        pool.submit(log.warning, "%s: only %d cells", "dem.tif", 12).result()
+        pool.submit(log.info, "an info line").result()
+    finally:
+        pool.shutdown()
+    err = capfd.readouterr().err
+    assert re.search(r"^(\S+ )?WARNING stereodem.post.assess: dem.tif: only 12 cells$", err, re.M)
+    assert ("INFO stereodem.post.assess: an info line" in err) == bool(verbose)
+    if verbose:  # UTC timestamps with -v, as the main process's lines
+        assert re.search(r"^\d{4}-\d\d-\d\dT\S+Z WARNING ", err, re.M), err
 
 
 def test_a_failed_scene_whose_configuration_changed_says_what_batch_takes(tmp_path, monkeypatch):
