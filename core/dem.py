@@ -241,12 +241,59 @@ def other_geoid(crs: CRS | None) -> CRS | None:
     return None
 
 
-def geoid_name(dem: DEM) -> str | None:
+def geoid_name(dem) -> str | None:
     """The name of the geoid ``dem``'s heights are above (``"EGM96 height"`` unless its file
-    named another: :attr:`DEM.geoid_crs`); None when they are not geoid heights."""
+    named another: :attr:`DEM.geoid_crs`); None when they are not geoid heights. ``dem``: a
+    :class:`DEM` or anything with a ``vertical`` (altimetry points: EGM96 when geoid)."""
     if dem.vertical != GEOID:
         return None
-    return dem.geoid_crs.name if dem.geoid_crs is not None else "EGM96 height"
+    geoid = getattr(dem, "geoid_crs", None)
+    return geoid.name if geoid is not None else "EGM96 height"
+
+
+def to_vertical_of(heights, target, *, name: str = "DEM"):
+    """``heights`` (a :class:`DEM` or altimetry points) in ``target``'s vertical reference, and
+    a note saying what was done (``name``: what the note calls ``heights``). The one rule of
+    every comparison of two sets of heights (``assess``, ``change``, ``stack``,
+    ``coregister``, which brings its reference to the DEM's).
+
+    Raises :class:`VerticalReferenceError` when one reference is known and the other is not.
+    When both are unknown they are assumed identical (and the note says so). EGM96 is the
+    geoid of the conversions: heights above another geoid (EGM2008, NAVD88:
+    :attr:`DEM.geoid_crs`) on either side are off by its separation from EGM96, which is
+    said, whichever side is converted (:meth:`DEM.to_reference` says it of the side it
+    converts; here of geoid heights compared with another geoid's). ``post.assess.
+    reconcile_vertical`` is this rule with the DEM converted to the reference's.
+    """
+    a, b = heights.vertical, target.vertical
+    if a is not None and b is not None and a != b:
+        converted = heights.to_reference(b)
+        note = f"{name} converted from {a} to {b} (EGM96)"
+    elif a == b:
+        converted = heights
+        note = f"both {a}" if a else "both unknown; assumed identical"
+    else:
+        unknown = heights if a is None else target
+        raise VerticalReferenceError(
+            f"{unknown.path or 'DEM'}: vertical reference unknown while the other is {a or b}; "
+            "say which with --dem-vertical/--ref-vertical {geoid,ellipsoid}"
+        )
+    ga, gb = geoid_name(converted), geoid_name(target)
+    if ga != gb:  # EGM2008 against EGM96 heights: no conversion here between the two
+        log.warning(
+            "%s: heights above %s%s compared with %s's above %s as if one geoid: off by "
+            "their separation (EGM2008 - EGM96: within about 1 m over most land, a few "
+            "metres in high mountains)",
+            heights.path or name,
+            ga,
+            "" if a == b else f" (converted from the {a} with EGM96)",
+            target.path or "the reference",
+            gb,
+        )
+        if a == b:
+            return converted, f"both geoid, but {ga} and {gb}: compared unconverted"
+        note += f"; compared with {gb} as if one geoid"
+    return converted, note
 
 
 def height_unit_m(ds, band: int = 1, crs: CRS | None = None) -> float:

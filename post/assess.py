@@ -31,7 +31,7 @@ import rasterio.warp
 from affine import Affine
 
 from stereodem.core import geodesy, interrupt
-from stereodem.core.dem import DEM, as_dem, geoid_name
+from stereodem.core.dem import DEM, as_dem, to_vertical_of
 from stereodem.core.errors import (
     CRSError,
     DEMError,
@@ -62,33 +62,9 @@ BLOCK_ROWS = 512
 
 
 def reconcile_vertical(dem: DEM, reference: DEM) -> tuple[DEM, str]:
-    """Return ``dem`` in the vertical reference of ``reference`` and a note saying what was done.
-
-    Raises :class:`VerticalReferenceError` when one reference is known and the other is not.
-    When both are unknown they are assumed identical (and the note says so).
-    """
-    a, b = dem.vertical, reference.vertical
-    if a == b:
-        ga, gb = geoid_name(dem), geoid_name(reference)
-        if ga != gb:  # EGM2008 against EGM96 heights: no conversion here between the two
-            log.warning(
-                "%s: heights above %s compared with %s's above %s as if one geoid: off by "
-                "their separation (EGM2008 - EGM96: within about 1 m over most land, a few "
-                "metres in high mountains)",
-                dem.path or "DEM",
-                ga,
-                reference.path or "the reference",
-                gb,
-            )
-            return dem, f"both geoid, but {ga} and {gb}: compared unconverted"
-        return dem, (f"both {a}" if a else "both unknown; assumed identical")
-    if a is None or b is None:
-        unknown = dem if a is None else reference
-        raise VerticalReferenceError(
-            f"{unknown.path or 'DEM'}: vertical reference unknown while the other is {a or b}; "
-            "say which with --dem-vertical/--ref-vertical {geoid,ellipsoid}"
-        )
-    return dem.to_reference(b), f"DEM converted from {a} to {b} (EGM96)"
+    """Return ``dem`` in the vertical reference of ``reference`` and a note saying what was done
+    (:func:`stereodem.core.dem.to_vertical_of`)."""
+    return to_vertical_of(dem, reference, name="DEM")
 
 
 # ----------------------------------------------------------------------------- results

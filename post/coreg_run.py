@@ -24,7 +24,7 @@ from pyproj.exceptions import ProjError
 from scipy import ndimage
 
 from stereodem.core import geodesy, jsonutil
-from stereodem.core.dem import DEM
+from stereodem.core.dem import DEM, to_vertical_of
 from stereodem.core.errors import InputError, StereodemError, VerticalReferenceError
 from stereodem.core.raster import write_text_atomic
 
@@ -140,20 +140,10 @@ def track_heading_of(path) -> float | None:
 def reconcile(dem: DEM, ref):
     """Bring ``ref`` (DEM or points) to ``dem``'s vertical reference; a note says what was
     done. One-line :class:`VerticalReferenceError` when one side is unknown."""
-    a, b = dem.vertical, ref.vertical
-    if a == b:
-        if a is None:
-            if isinstance(ref, AltimetryPoints):
-                raise VerticalReferenceError(f"{ref.path or 'points'}: vertical reference unknown")
-            return ref, "both unknown; assumed identical"
-        return ref, f"both {a}"
-    if a is None or b is None:
-        who = dem.path if a is None else ref.path
-        raise VerticalReferenceError(
-            f"{who or 'input'}: vertical reference unknown while the other is {a or b}; say which "
-            "with --dem-vertical/--ref-vertical {geoid,ellipsoid}"
-        )
-    return ref.to_reference(a), f"reference converted from {b} to {a} (EGM96)"
+    if dem.vertical is None and ref.vertical is None and isinstance(ref, AltimetryPoints):
+        raise VerticalReferenceError(f"{ref.path or 'points'}: vertical reference unknown")
+    # the one rule of assess, change and stack: the geoid other than EGM96 is said here too
+    return to_vertical_of(ref, dem, name="reference")
 
 
 def load_inputs(job: CoregJob):

@@ -19,6 +19,7 @@ from stereodem.core.errors import (
 )
 from stereodem.core.raster import image_dtype, read_image
 from stereodem.post.assess import reconcile_vertical
+from stereodem.post.coreg_run import CoregJob, load_inputs
 from stereodem.post.mosaic_coreg import check_reference
 from stereodem.post.mosaic_sources import open_source
 from stereodem.post.stack_build import header_bounds_lonlat
@@ -373,6 +374,46 @@ def test_a_geoid_other_than_egm96_is_kept_and_its_conversion_warns(
     assert f"{name} and EGM96 height" in note and "as if one geoid" in caplog.text
     caplog.clear()
     assert reconcile_vertical(back, back)[1] == "both geoid" and not caplog.text
+
+
+@pytest.mark.parametrize(
+    "crs, name", [("EPSG:32637+3855", "EGM2008 height"), ("EPSG:32637+5703", "NAVD88 height")]
+)
+def test_coregister_warns_of_a_geoid_other_than_egm96_as_assess_does(tmp_path, caplog, crs, name):
+    """``coregister DEM --ref REF`` with DEM above EGM2008 (or NAVD88) and REF ellipsoidal
+    converts REF to EGM96 geoid heights and fitted them to the DEM's without a word, while
+    ``assess`` said the result is off by the separation of the two geoids: one rule
+    (``core.dem.to_vertical_of``) for both, whichever side is converted."""
+    a = np.full((6, 6), 1000.0, np.float32)
+    with rasterio.open(_dem_file(tmp_path / "g.tif", a), "r+") as ds:
+        ds.crs = rasterio.crs.CRS.from_user_input(crs)
+    g = DEM.from_file(tmp_path / "g.tif")
+    e = DEM(a, g.transform, g.crs, "ellipsoid", None)
+    e.write(tmp_path / "e.tif")
+    # coregister: the reference is brought to the DEM's vertical reference
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        _, ref, note, _ = load_inputs(CoregJob(str(tmp_path / "g.tif"), str(tmp_path / "e.tif")))
+    assert ref.vertical == "geoid"
+    assert note == (
+        f"reference converted from ellipsoid to geoid (EGM96); compared with {name} as if one geoid"
+    )
+    said = (
+        "e.tif: heights above EGM96 height (converted from the ellipsoid with EGM96) compared "
+        f"with {tmp_path / 'g.tif'}'s above {name} as if one geoid"
+    )
+    assert said in caplog.text
+    # assess: the DEM brought to the reference's, either way round: said too
+    for dem, ref in (
+        (g, DEM.from_file(tmp_path / "e.tif")),
+        (DEM.from_file(tmp_path / "e.tif"), g),
+    ):
+        caplog.clear()
+        with caplog.at_level("WARNING"):
+            reconcile_vertical(dem, ref)
+        assert name in caplog.text and "EGM96" in caplog.text and "separation" in caplog.text
+    caplog.clear()
+    assert reconcile_vertical(e, e)[1] == "both ellipsoid" and not caplog.text
 
 
 def test_a_lon_lat_dem_is_sampled_across_the_antimeridian():
