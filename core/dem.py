@@ -756,9 +756,51 @@ class DEM:
         z = self.convert_heights(lon, lat, self.heights.astype(np.float64), to)
         return dataclasses.replace(self, heights=z.astype(np.float32), vertical=to, geoid_crs=None)
 
-    def height_range(self, reference: str | None = ELLIPSOID):
-        """(min, max) of the valid heights, in the requested reference (metres)."""
-        d = self if reference is None else self.to_reference(reference)
+    def window_around(self, lon, lat, *, margin: int = 2) -> DEM | None:
+        """The part of the DEM (heights only) that covers the points ``lon, lat`` (degrees):
+        their bounding window of cells widened by ``margin`` cells; None when it holds no
+        valid height (the points lie off the DEM or on its voids)."""
+        c, r = self._lonlat_to_pixel(np.ravel(lon), np.ravel(lat))
+        ok = np.isfinite(c) & np.isfinite(r)
+        if not ok.any():
+            return None
+        rows, cols = self.shape
+        c0 = max(int(np.floor(c[ok].min())) - margin, 0)
+        r0 = max(int(np.floor(r[ok].min())) - margin, 0)
+        c1 = min(int(np.ceil(c[ok].max())) + margin + 1, cols)
+        r1 = min(int(np.ceil(r[ok].max())) + margin + 1, rows)
+        if c1 <= c0 or r1 <= r0:
+            return None
+        h = self.heights[r0:r1, c0:c1]
+        if not np.isfinite(h).any():
+            return None
+        return dataclasses.replace(
+            self,
+            heights=h,
+            transform=self.transform @ Affine.translation(c0, r0),
+            **{name: None for name in LAYERS},
+        )
+
+    def height_range(self, reference: str | None = ELLIPSOID, *, around=None):
+        """(min, max) of the valid heights, in the requested reference (metres).
+
+        ``around=(lon, lat)``: only the heights of the window covering those points
+        (:meth:`window_around`; a scene's footprint in a DEM much larger than the scene);
+        :class:`DEMCoverageError` when that window holds no valid height."""
+        d = self
+        if around is not None:
+            d = self.window_around(*around)
+            if d is None:
+                west, south, east, north = self.bounds_lonlat()
+                lon, lat = (np.asarray(a, float) for a in around)
+                raise DEMCoverageError(
+                    f"{self.path or 'DEM'}: does not cover the scene (no valid height under "
+                    f"it; scene lon {np.nanmin(lon):.4f}..{np.nanmax(lon):.4f}, lat "
+                    f"{np.nanmin(lat):.4f}.."
+                    f"{np.nanmax(lat):.4f} deg; DEM lon {west:.4f}..{east:.4f}, lat "
+                    f"{south:.4f}..{north:.4f} deg)"
+                )
+        d = d if reference is None else d.to_reference(reference)
         return float(np.nanmin(d.heights)), float(np.nanmax(d.heights))
 
     def write(

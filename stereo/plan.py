@@ -19,6 +19,8 @@ from .tiling import Tile, renumber, tile_grid
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "scene_lonlat",
+    "seed_height_range",
     "pair_height_range",
     "overlap_window",
     "plan_tiles",
@@ -26,6 +28,35 @@ __all__ = [
     "tile_height_range",
     "base_to_height",
 ]
+
+
+def scene_lonlat(left, right, *, samples: int = 9):
+    """Ground points (lon, lat in degrees) of the left image's footprint: a ``samples`` x
+    ``samples`` grid of its pixels localised at both ends of the pair's validity range
+    (:func:`~stereodem.sensor.models.base.pair_height_bounds`, within -500..9000 m)."""
+    lo, hi = pair_height_bounds(left, right)
+    lo, hi = max(min(lo, hi), -500.0), min(max(lo, hi), 9000.0)
+    c, r = (
+        a.ravel()
+        for a in np.meshgrid(
+            np.linspace(0, left.width - 1, samples), np.linspace(0, left.height - 1, samples)
+        )
+    )
+    lons, lats = [], []
+    for h in (lo, hi):
+        with np.errstate(invalid="ignore"):
+            lon, lat = left.localize(c, r, np.full(c.size, h))
+        lons.append(np.asarray(lon, float))
+        lats.append(np.asarray(lat, float))
+    return np.concatenate(lons), np.concatenate(lats)
+
+
+def seed_height_range(seed_dem, left, right) -> tuple[float, float]:
+    """(min, max) ellipsoidal heights (m) of the seed DEM under the scene (:func:`scene_lonlat`),
+    not of the whole file: a seed DEM may span far more than the scene (a 1 degree SRTM tile
+    around a Pleiades scene), and its heights elsewhere say nothing of this terrain.
+    :class:`~stereodem.core.errors.DEMCoverageError` when no valid height lies under it."""
+    return as_dem(seed_dem).height_range(around=scene_lonlat(left, right))
 
 
 def pair_height_range(left, right, settings: RectificationSettings, seed_dem=None):
@@ -48,7 +79,7 @@ def pair_height_range(left, right, settings: RectificationSettings, seed_dem=Non
             )
         hmin, hmax = hmin - settings.height_margin, hmax + settings.height_margin
     elif seed_dem is not None:
-        hmin, hmax = as_dem(seed_dem).height_range()
+        hmin, hmax = seed_height_range(seed_dem, left, right)
         hmin, hmax = hmin - settings.height_margin, hmax + settings.height_margin
     else:
         hmin, hmax = lo, hi

@@ -32,7 +32,7 @@ import numpy as np
 from stereodem.core.errors import DEMCoverageError, DEMError, InputError, StereodemError
 from stereodem.sensor.models.base import pair_height_bounds
 
-from .plan import base_to_height
+from .plan import base_to_height, seed_height_range
 
 log = logging.getLogger(__name__)
 
@@ -125,9 +125,17 @@ def check_base(left, right, height_range) -> float:
 def check_seed_dem(seed, left, right, *, name: str = "seed DEM", samples: int = 7):
     """:class:`DEMError` if the seed DEM's heights lie outside the models' common validity
     range, :class:`DEMCoverageError` if it covers less than :data:`MIN_SEED_COVERAGE` of the
-    left image's footprint (checked on a ``samples`` x ``samples`` grid of pixels)."""
+    left image's footprint (checked on a ``samples`` x ``samples`` grid of pixels). Only the
+    seed's heights under the scene count (:func:`~stereodem.stereo.plan.seed_height_range`): a
+    DEM far larger than the scene may hold heights the models were never meant for elsewhere;
+    a DEM with no height under the scene is a :class:`DEMCoverageError`."""
     lo, hi = pair_height_bounds(left, right)
-    hmin, hmax = seed.height_range()
+    try:
+        hmin, hmax = seed_height_range(seed, left, right)
+    except DEMCoverageError as exc:
+        raise DEMCoverageError(
+            f"{name} {str(exc).rstrip('.')}: is it the DEM of this scene?"
+        ) from None
     if hmin < lo or hmax > hi:
         raise DEMError(
             f"{name} {seed.path or ''}: heights {hmin:.0f}..{hmax:.0f} m (ellipsoidal) "
@@ -256,7 +264,7 @@ def check_pair(
         check_seed_dem(seed_dem, left_model, right_model)
     hr = height_range
     if hr is None and seed_dem is not None:
-        hr = seed_dem.height_range()
+        hr = seed_height_range(seed_dem, left_model, right_model)
     if hr is None:
         hr = pair_height_bounds(left_model, right_model)
     bh = check_base(left_model, right_model, hr)
