@@ -24,8 +24,16 @@ the hat diagonal ``h_i = b_i S^-1 b_i^T + g_i N_gg^-1 g_i^T`` with ``b_i = a_i -
 work at 20 000 ties.
 
 Datum: without GCPs the pair fixes only its relative orientation; free parameters of only one
-model (default when no GCP is given: the right one), or priors, avoid the datum defect, which
-is otherwise reported as a near-singular normal matrix naming the parameters.
+model (default when no GCP is given: the right one) and priors avoid the datum defect, which
+is otherwise reported as a near-singular normal matrix naming the parameters. Holding the left
+model is not enough: a shift of the right image *along* the epipolar lines moves every tie's
+height and nothing else, so two images cannot observe it (as ``stereodem dem``'s pointing
+correction says). Without GCPs the right image's image-space correction therefore gets
+datum priors about its initial values (:data:`DATUM_PRIOR_SIGMA_PX` px over the image)
+where none is given: the component across the epipolar lines is observed to ~0.01 px and
+unaffected, the one along them stays at its initial value. (Without them, the real Pleiades
+pair over La Reunion gave the right image a 318 +- 432 px row shift, shift correlation -1,
+exit 0, and the DEM from the adjusted models lay 607 m below s2p's.)
 """
 
 from __future__ import annotations
@@ -63,6 +71,29 @@ from stereodem.sensor.models.parameters import project_jacobian
 __all__ = ["bundle_adjust", "BundleResult", "tie_parallax"]
 
 SOLVERS = ("schur", "least_squares", "dense")
+
+#: Without GCPs: a-priori sigma (px across the image) of the right image's image-space
+#: correction about its initial values, where no prior is given (see the module docstring).
+DATUM_PRIOR_SIGMA_PX = 1.0
+#: Image-space correction parameters (shifts in px, drifts in px per px) given datum priors.
+_SHIFTS = ("col_shift", "row_shift")
+_DRIFTS = ("col_drift_col", "col_drift_row", "row_drift_col", "row_drift_row")
+
+
+def _datum_priors(model, names, priors) -> dict:
+    """``priors`` plus the datum priors of a pair without GCPs (:data:`DATUM_PRIOR_SIGMA_PX`
+    px for a shift, the same across the image for a drift) for the free image-space
+    correction parameters that have none."""
+    out = dict(priors)
+    span = float(max(getattr(model, "width", 0) or 0, getattr(model, "height", 0) or 0, 1))
+    for n in names:
+        if n in out:
+            continue
+        if n in _SHIFTS:
+            out[n] = DATUM_PRIOR_SIGMA_PX
+        elif n in _DRIFTS:
+            out[n] = DATUM_PRIOR_SIGMA_PX / span
+    return out
 
 
 def _resolve(model, names, priors, side):
@@ -590,6 +621,8 @@ def bundle_adjust(
         names[0] = None
     ml, nl, pl, setl = _resolve(left, names[0], priors[0], "left")
     mr, nr, pr, setr = _resolve(right, names[1], priors[1], "right")
+    if not has_gcp:  # the right image's shift along the epipolar lines is a height offset
+        pr = _datum_priors(mr, nr, pr)
     gcp_sets, chk_sets, sig_sets, known_all = [], [], [], []
     if len(gcps) != 2:
         raise InputError("bundle: gcps must be a pair (left, right); use None for an image without")
