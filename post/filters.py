@@ -613,7 +613,8 @@ def default_chain(*, thesis: bool = False) -> FilterChain:
 def border_rim(heights, cells: int) -> np.ndarray:
     """Valid cells within ``cells`` cells (a square neighbourhood) of a void or of the grid's
     edge: the rim along the border of the overlap, where matches used partial windows
-    (removed as :attr:`EditCode.BORDER_RIM`)."""
+    (removed as :attr:`EditCode.BORDER_RIM`). ``heights``: the stereo DEM as matched (the
+    pipeline takes the rim of the matched area, not of the holes its blunder filters make)."""
     valid = np.isfinite(heights).astype(np.uint8)
     k = 2 * int(cells) + 1
     return (valid == 1) & (cv2.erode(valid, np.ones((k, k), np.uint8), borderValue=0) == 0)

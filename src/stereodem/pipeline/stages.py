@@ -150,7 +150,10 @@ def post_stage(cfg: Config, layers: DEM, seed_dem: DEM | None = None, *, path=No
         z, mask = res.heights, res.removed.copy()
         report["filters"] = res.report
     if cfg.filters.enabled and cfg.filters.erode > 0:
-        rim = border_rim(z, cfg.filters.erode)
+        # the rim of the matched area (partial correlation windows): of the stereo DEM's own
+        # voids and edges, not of the holes the blunder filters just made (eroding those too
+        # took 20 % of the real Pleiades pair's cells, 96 -> 76.5 % valid)
+        rim = border_rim(layers.heights, cfg.filters.erode) & np.isfinite(z)
         z = np.where(rim, np.nan, z)
         mask[rim] = EditCode.BORDER_RIM
         report["erode"] = {"cells": int(cfg.filters.erode), "removed": int(rim.sum())}
