@@ -30,6 +30,8 @@ import os
 import sys
 import threading
 
+from . import worker_logging  # no third-party import: loads nothing before the pin
+
 _ENV_VARS = (
     "OMP_NUM_THREADS",
     "OPENBLAS_NUM_THREADS",
@@ -176,12 +178,22 @@ def current_limits() -> dict:
     return out
 
 
-def pool_initializer(n: int, then=None, *args):
-    """``ProcessPoolExecutor(initializer=pool_initializer, initargs=(n, then, *args))``: pin
-    the worker to ``n`` threads, then run ``then(*args)`` (the pool's own initializer)."""
+def pool_initializer(n: int, log=None, then=None, *args):
+    """``ProcessPoolExecutor(initializer=pool_initializer, initargs=pool_initargs(n, then,
+    *args))``: pin the worker to ``n`` threads, set up its logging as the main process's
+    (``log``: :func:`stereodem.core.worker_logging.spec`), then run ``then(*args)`` (the
+    pool's own initializer)."""
     pin_threads(n)
+    worker_logging.apply(log)
     if then is not None:
         then(*args)
+
+
+def pool_initargs(n: int, then=None, *args) -> tuple:
+    """The ``initargs`` of :func:`pool_initializer`: ``n`` threads, this process's worker
+    logging (:mod:`stereodem.core.worker_logging`), the pool's own initializer and its
+    arguments."""
+    return (n, worker_logging.spec(), then, *args)
 
 
 def register_dask_plugin(client, threads: int | None = None):

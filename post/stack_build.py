@@ -36,7 +36,7 @@ from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import read_image, unreadable
 from stereodem.core.stats import nmad
-from stereodem.core.threads import pool_initializer, worker_threads
+from stereodem.core.threads import pool_initargs, pool_initializer, worker_threads
 
 from . import warp
 from .assess import reconcile_vertical
@@ -307,7 +307,7 @@ def build_stack(
             # each process pinned to its share of the cores (BLAS, OpenCV, GDAL), as the tile
             # pool's are (spawned, each inherited the whole budget of the parent)
             initializer=pool_initializer,
-            initargs=(
+            initargs=pool_initargs(
                 worker_threads(min(workers, len(dems))),
                 _init_worker,
                 reference,

@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from stereodem.core import interrupt
+from stereodem.core import interrupt, worker_logging
 from stereodem.core.errors import InputError
 from stereodem.core.memory import keep_freed_memory
 from stereodem.core.pool import stop_pool
@@ -159,10 +159,11 @@ class TileTimeout(Exception):
 _CONTEXT = None
 
 
-def _init_worker(context, threads=1):
-    """Pool initializer: the shared context, the parent watch, and the worker's thread budget
+def _init_worker(context, threads=1, log=None):
+    """Pool initializer: the shared context, the parent watch, the worker's thread budget
     (BLAS/OpenMP, OpenCV, GDAL pinned to ``threads``: :func:`stereodem.core.threads.pin_threads`;
-    N workers x ``cores // N`` threads = the cores, none stacked on top)."""
+    N workers x ``cores // N`` threads = the cores, none stacked on top), and its logging as
+    the main process's (``log``: :func:`stereodem.core.worker_logging.spec`)."""
     global _CONTEXT
     _CONTEXT = context
     _die_with_parent()
@@ -171,6 +172,7 @@ def _init_worker(context, threads=1):
     from stereodem.core.threads import pin_threads
 
     pin_threads(threads)
+    worker_logging.apply(log)
     keep_freed_memory()  # a tile reuses the pages the previous one freed
 
 
@@ -508,7 +510,7 @@ def iter_tiles(
             max_workers=n,
             mp_context=ctx,
             initializer=_init_worker,
-            initargs=(context, worker_threads(n)),
+            initargs=(context, worker_threads(n), worker_logging.spec()),
         )
         # a pool's workers store their tiles themselves when the caller reads them back from
         # the cache (the main process then neither unpickles nor checksums nor writes them)

@@ -39,6 +39,7 @@ from stereodem.core.pool import stop_pool
 from stereodem.core.raster import check_creatable, write_text_atomic
 from stereodem.core.threads import (
     cores,
+    pool_initargs,
     pool_initializer,
     pool_size,
     register_dask_plugin,
@@ -49,7 +50,6 @@ from stereodem.stereo.execution import OtherJobTilesError
 
 from .config import config_from_dict, load_config
 from .pipeline.job import run
-from .progress import setup_worker_logging, worker_logging
 
 log = logging.getLogger(__name__)
 
@@ -406,13 +406,13 @@ def run_batch(
 
 def scene_pool(n: int, threads: int) -> ProcessPoolExecutor:
     """The scenes' process pool: ``n`` spawned workers pinned to ``threads`` threads, logging
-    as the main process does (:func:`stereodem.progress.worker_logging`: "WARNING logger:
+    as the main process does (:mod:`stereodem.core.worker_logging`: "WARNING logger:
     message" as in a serial run, not the message alone)."""
     return ProcessPoolExecutor(
         max_workers=n,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=pool_initializer,
-        initargs=(threads, setup_worker_logging, worker_logging()),
+        initargs=pool_initargs(threads),
     )
 
 

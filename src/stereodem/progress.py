@@ -22,6 +22,8 @@ import warnings
 
 from tqdm import tqdm
 
+from stereodem.core import worker_logging
+
 log = logging.getLogger("stereodem.progress")
 
 #: stage -> (description shown before the bar, unit of work counted by the stage's callback)
@@ -169,28 +171,6 @@ class UTCFormatter(logging.Formatter):
     default_msec_format = "%s.%03dZ"
 
 
-#: the arguments of the process's :func:`setup_logging`, for its pool workers
-#: (:func:`worker_logging`); None until it is called
-_SETUP: tuple | None = None
-
-
-def worker_logging() -> tuple | None:
-    """What a process pool's worker gives :func:`setup_worker_logging` (picklable): this
-    process's :func:`setup_logging` arguments, so the worker's log lines read as the main
-    process's ("WARNING logger: message", timestamps with ``-v``, the same level); None when
-    it was not called (an embedding application's own logging)."""
-    return _SETUP
-
-
-def setup_worker_logging(setup: tuple | None) -> None:
-    """A pool worker's initialiser: :func:`setup_logging` as the main process called it
-    (:func:`worker_logging`). A spawned worker's root logger has no handler: its warnings went
-    to Python's last-resort handler, which prints the message alone, and its info lines were
-    lost at ``-v``."""
-    if setup is not None:
-        setup_logging(*setup)
-
-
 def setup_logging(verbose: int = 0, quiet: bool = False):
     """Configure the root logger for the command line.
 
@@ -201,8 +181,8 @@ def setup_logging(verbose: int = 0, quiet: bool = False):
     :func:`logging.basicConfig`, this does nothing when the root logger already has handlers
     (an embedding application's, pytest's).
     """
-    global _SETUP
-    _SETUP = (verbose, quiet)
+    # the pool workers log as this process does (stereodem.core.worker_logging)
+    worker_logging.register(setup_logging, verbose, quiet)
     level = (
         logging.ERROR
         if quiet

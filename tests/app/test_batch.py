@@ -14,6 +14,7 @@ import rasterio
 from stereodem import cli, progress
 from stereodem.batch import expand_inputs, run_batch, scene_config, scene_pool
 from stereodem.config import load_config
+from stereodem.core import worker_logging
 from stereodem.core.errors import InputError
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 from stereodem.stereo.execution import _check_tile_cache
@@ -202,7 +203,7 @@ def test_the_scene_pools_workers_log_as_the_main_process(verbose, monkeypatch, c
     """A warning logged in a batch worker reads "WARNING logger: message" as in a serial run
     (it printed the message alone: a spawned worker had no handler but Python's last resort),
     and -v's info lines of a worker are not lost."""
-    monkeypatch.setattr(progress, "_SETUP", None)
+    monkeypatch.setattr(worker_logging, "_SPEC", None)
     progress.setup_logging(verbose=verbose)  # as the command line does (pytest's handlers stay)
     pool = scene_pool(1, 1)
     try:

@@ -345,3 +345,34 @@ def test_tile_runner_yields_each_tile_in_tile_order_as_soon_as_its_turn_comes(mo
     next(first)
     first.close()  # the caller stops early (an error while adding): the pool is closed
     assert state["closed"] and state["yielded"] < len(finishing)
+
+
+def _log_setup(fmt):
+    """A worker's logging set-up (what the command line registers: progress.setup_logging)."""
+    import logging
+
+    logging.basicConfig(level=logging.INFO, format=fmt)
+
+
+def _warning_tile(tile, ctx):
+    import logging
+
+    logging.getLogger("stereodem.stereo.match").warning("tile %d: few matches", tile.index)
+    return {"value": np.zeros(1, np.float32)}
+
+
+def test_tile_workers_log_as_the_main_process(monkeypatch, capfd):
+    """A tile worker (fork server or spawned) started with no log handler: its warnings went
+    to Python's last-resort handler, the message alone ("tile 3: few matches"), and its info
+    lines were lost at -v. It now sets up logging as the main process registered
+    (stereodem.core.worker_logging)."""
+    from stereodem.core import worker_logging
+
+    monkeypatch.setattr(worker_logging, "_SPEC", None)
+    worker_logging.register(_log_setup, "[worker] %(levelname)s %(name)s: %(message)s")
+    tiles = tile_grid(130, 100, 50)
+    res, fails, _ = run_tiles(_warning_tile, tiles, _ctx(), workers=2)
+    assert not fails and len(res) == len(tiles)
+    err = capfd.readouterr().err
+    for t in tiles:
+        assert f"[worker] WARNING stereodem.stereo.match: tile {t.index}: few matches" in err
