@@ -31,13 +31,14 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core import geodesy, jsonutil
-from stereodem.core.errors import InputError, StereodemError
+from stereodem.core.errors import DEMCoverageError, InputError, StereodemError
 from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import job_threads
 from stereodem.stereo.execution import ProgressPasses
 from stereodem.stereo.fusion import FusedDEM, choose_pairs, fuse_dems, pair_sigma
 from stereodem.stereo.grid import GridSpec
 from stereodem.stereo.pipeline import DEMProducts, default_posting
+from stereodem.stereo.plan import seed_height_range
 from stereodem.stereo.sanity import SuspectResultError
 from stereodem.stereo.ties import agree_models
 
@@ -78,14 +79,18 @@ class MultiviewProducts:
 
 def reference_height(cfg: Config, models, seed_dem=None) -> float:
     """Height (m, ellipsoid) at which footprints, bases and the lattice are planned: the middle
-    of the configured height range, else of the seed DEM, else of the models' validity ranges
+    of the configured height range, else of the seed DEM's heights under the scene, else of
+    the models' validity ranges
     (RPC height offsets: the terrain's middle for vendor RPCs)."""
     hr = cfg.stereo.rectification.height_range
     if hr is not None:
         return 0.5 * (float(hr[0]) + float(hr[1]))
     if seed_dem is not None:
-        lo, hi = seed_dem.height_range()
-        return 0.5 * (lo + hi)
+        try:  # the seed's heights under the scene, not the whole file's (a 1 degree tile)
+            lo, hi = seed_height_range(seed_dem, models[0], models[1 % len(models)])
+            return 0.5 * (lo + hi)
+        except DEMCoverageError:  # the seed's own check names it; plan on the models here
+            pass
     mids = [0.5 * sum(m.height_bounds()) for m in models]
     return float(np.median(mids))
 

@@ -12,8 +12,10 @@ import pytest
 from affine import Affine
 from pyproj import CRS
 
+from stereodem.config import Config, InputSettings
 from stereodem.core.dem import DEM
 from stereodem.core.errors import DEMCoverageError, DEMError
+from stereodem.multiview import reference_height
 from stereodem.sensor.models.rpc import RPCModel
 from stereodem.stereo.plan import seed_height_range
 from stereodem.stereo.sanity import check_seed_dem
@@ -58,3 +60,12 @@ def test_a_seed_dem_in_feet_under_the_scene_is_still_refused(pair):
     seed = _seed(55.25, -20.83, base=2320.0 * 3.28084)
     with pytest.raises(DEMError, match=r"implausible for the sensor models.*feet"):
         check_seed_dem(seed, left, right)
+
+
+def test_an_n_view_job_plans_at_the_seeds_height_under_the_scene(pair):
+    """The N-view route planned footprints, bases and the lattice at the middle of the whole
+    seed file's heights (2695 m with the summit 20 km away; 2320 m under the scene)."""
+    cfg = Config(inputs=InputSettings(left="a.tif", right="b.tif"), output_dir="out")
+    assert reference_height(cfg, pair, _seed(55.25, -20.83)) == 2320.0
+    # a seed elsewhere: planned on the models (its own check names it)
+    assert reference_height(cfg, pair, _seed(40.0, 40.0)) == reference_height(cfg, pair)
