@@ -152,6 +152,10 @@ class StereoInfo:
         Relative pointing correction and sparse stage summaries (``sparse`` None when skipped).
     height_source : str
         ``"sparse matches"``, ``"seed DEM"``, ``"height range"`` or ``"model validity range"``.
+    height_margin_m : float
+        The margin (m) the range of the sparse matches, the seed DEM or the settings was
+        widened by each side (``RectificationSettings.height_margin``; 0 for the models'
+        validity range), before the range was kept within the models' validity range.
     height_pileup : dict
         :func:`stereodem.stereo.sparse_stage.height_pileup`; ``suspect`` its verdict.
     jitter : dict, optional
@@ -175,6 +179,7 @@ class StereoInfo:
     height_source: str
     height_pileup: dict
     suspect: bool
+    height_margin_m: float = 0.0
     jitter: dict | None = None
     base_to_height: float | None = None
     warnings: list = field(default_factory=list)
@@ -619,6 +624,11 @@ def dem_of_checked_pair(
         ),
         height_pileup=pileup,
         suspect=pileup["suspect"],
+        # a range from the sparse matches, a seed DEM or the settings is widened by it
+        # (stereo.plan.pair_height_range); the models' validity range is not
+        height_margin_m=(
+            float(rect.height_margin) if seed is not None or rect.height_range is not None else 0.0
+        ),
     )
     log.info(
         "stereo DEM: %d points gridded to %dx%d cells in %.1f s",

@@ -357,6 +357,8 @@ def sparse_line(info: dict) -> str:
     """One line on the heights searched and the relative pointing correction."""
     lo, hi = info["height_range"]
     text = f"  heights {lo:.0f}..{hi:.0f} m ({info.get('height_source', '?')}"
+    if info.get("height_margin_m"):  # the range asked for (or the seed's) and its margin
+        text += f" +/- {info['height_margin_m']:g} m, within the models' validity"
     terrain = (info.get("sparse") or {}).get("terrain")
     if terrain:
         text += f", {terrain['n_points']} points"

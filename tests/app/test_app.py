@@ -23,6 +23,7 @@ from stereodem.config import config_from_dict, load_config
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError, OutputExistsError
 from stereodem.core.threads import job_threads
+from stereodem.dem_cli import sparse_line
 from stereodem.pipeline.job import run
 from stereodem.run_cli import summarize
 from stereodem.sensor.simulation.aster_granule import granule_right_size, write_granule_scene
@@ -708,3 +709,15 @@ def test_no_option_help_states_its_default_twice():
         for action in sub.choices[name]._actions:
             text = action.help or ""
             assert len(re.findall(r"\(default", text)) <= 1, (name, action.dest, text)
+
+
+def test_the_sparse_line_says_the_margin_of_the_heights_searched():
+    """``stereodem dem --height-range 2100 2600`` printed "heights 2050..2610 m (height
+    range)": a range that is not the one given, without saying why (the 50 m margin each
+    side, then the models' validity range, 2610 m on the real Pleiades pair)."""
+    info = {"height_range": [2050.0, 2610.0], "height_source": "height range"}
+    assert sparse_line({**info, "height_margin_m": 50.0}).startswith(
+        "  heights 2050..2610 m (height range +/- 50 m, within the models' validity)"
+    )
+    no_margin = {"height_range": [-20.0, 2610.0], "height_source": "model validity range"}
+    assert sparse_line(no_margin).startswith("  heights -20..2610 m (model validity range)")

@@ -136,6 +136,8 @@ def test_wrong_height_range_is_reported_suspect(aster600):
         StereoSettings(RectificationSettings(height_range=(0, 500))),
     )
     assert prod.info.suspect and prod.info.height_source == "height range"
+    # the range searched: the one asked for, widened by the margin, within the models' range
+    assert prod.info.height_margin_m == 50.0 and prod.info.height_range[1] == 550.0
     p = prod.info.height_pileup
     assert max(p["low_share"], p["high_share"]) > 0.05
 
