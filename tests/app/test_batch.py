@@ -149,11 +149,7 @@ def test_a_done_scene_whose_configuration_changed_is_not_skipped(tmp_path, monke
     cfg = tmp_path / "cfg" / "a.toml"
     cfg.write_text(CONFIG.format(d="../data"))
     out = tmp_path / "out"
-    (out / "a").mkdir(parents=True)
-    # what the job records of a scene (stereodem.pipeline.job.run), without running it
-    done = load_config(cfg.absolute())
-    (out / "a" / "run.json").write_text(json.dumps({"status": "ok", "config": done.to_dict()}))
-    monkeypatch.setattr("stereodem.batch.run", lambda c: pytest.fail("ran a done scene"))
+    done = _done_scene(out, cfg, monkeypatch)
     for where, scene in ((tmp_path, "cfg/a.toml"), (tmp_path / "cfg", "a.toml")):
         monkeypatch.chdir(where)
         row = run_batch(expand_inputs([scene]), out.absolute(), workers=1)["scenes"][0]
@@ -174,20 +170,26 @@ def test_a_done_scene_whose_configuration_changed_is_not_skipped(tmp_path, monke
     assert "--overwrite" in row["reason"]
 
 
+def _done_scene(out, cfg, monkeypatch):
+    """``out/<scene>/run.json`` as the job records a finished scene of ``cfg``
+    (stereodem.pipeline.job.run), without running it; running a scene fails the test.
+    Returns the scene's configuration."""
+    (out / cfg.stem).mkdir(parents=True)
+    done = load_config(cfg.absolute())
+    (out / cfg.stem / "run.json").write_text(json.dumps({"status": "ok", "config": done.to_dict()}))
+    monkeypatch.setattr("stereodem.batch.run", lambda c: pytest.fail("ran a done scene"))
+    return done
+
+
 def test_a_skipped_scene_reads_with_one_level_of_brackets(tmp_path, monkeypatch, capsys):
     """The progress line and the status table say "skipped: already done (run.json status
     ok)" (it read "skipped (already done (run.json status ok))"); batch.json keeps its
     status and reason fields as they were."""
-    from stereodem.config import load_config
-
     monkeypatch.chdir(tmp_path)
     cfg = tmp_path / "a.toml"
     cfg.write_text(CONFIG.format(d="data"))
     out = tmp_path / "out"
-    (out / "a").mkdir(parents=True)
-    done = load_config(cfg.absolute())
-    (out / "a" / "run.json").write_text(json.dumps({"status": "ok", "config": done.to_dict()}))
-    monkeypatch.setattr("stereodem.batch.run", lambda c: pytest.fail("ran a done scene"))
+    _done_scene(out, cfg, monkeypatch)
     capsys.readouterr()
     assert cli.main(["batch", str(cfg), "-o", str(out), "--workers", "1"]) == 0
     printed = capsys.readouterr().out
