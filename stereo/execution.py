@@ -22,8 +22,10 @@ from stereodem.core.errors import InputError
 from stereodem.core.jsonutil import json_default, stamped
 from stereodem.core.raster import write_text_atomic
 from stereodem.stereo.pipeline import TileResult
+from stereodem.stereo.pointcloud import points_file
 from stereodem.stereo.runner import (
     SharedArray,
+    cache_file,
     clean_cache,
     iter_tiles,
     load_cached,
@@ -96,6 +98,7 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
                 if shared is not None:
                     inputs = shared()
             ctx = dict(inputs=inputs, settings=settings, fn=process_tile)
+            reusable = _points_left(inputs, tiles, run_settings.resume, cache_dir)
             finished = iter_tiles(
                 _tile_job,
                 tiles,
@@ -108,6 +111,7 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
                 progress=progress,
                 cache_key=key,
                 hold_results=cache_dir is None,
+                reusable=reusable,
             )
             # tiles that end before their turn wait here: their arrays when held, else only
             # their index (a cached run's arrays are read back from the cache at their turn)
@@ -129,6 +133,28 @@ def tile_runner(run_settings, progress=None, cache_dir=None):
 
     runner.failures = failures
     return runner
+
+
+def _points_left(inputs, tiles, resume, cache_dir):
+    """With ``resume`` and tiles that write their points (a point cloud), the test that a
+    cached tile's point file is still there: the merge into ``dem.las``/``dem.laz`` removes
+    them, so a tile cached without its points is recomputed (reused, it left the cloud empty).
+    None when nothing needs checking."""
+    folder = getattr(inputs, "points_dir", None)
+    if not resume or folder is None or cache_dir is None:
+        return None
+    missing = [
+        t.index
+        for t in tiles
+        if cache_file(cache_dir, t).exists() and not points_file(folder, t.index).exists()
+    ]
+    if missing:
+        log.info(
+            "resume: %d cached tile(s) recomputed for the point cloud (their point files "
+            "are gone: a finished job's merge removes them)",
+            len(missing),
+        )
+    return lambda t: points_file(folder, t.index).exists()
 
 
 def _share_images(inputs, directory):

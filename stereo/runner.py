@@ -290,7 +290,8 @@ def _run_and_store(fn, tile, timeout, cache_dir, cache_key):
 _META = ("__tile__", "__job__", "__sha256__")
 
 
-def _cache_file(cache_dir, tile):
+def cache_file(cache_dir, tile) -> Path:
+    """The cache file of ``tile`` in ``cache_dir``."""
     return Path(cache_dir) / f"tile_{tile.index:05d}.npz"
 
 
@@ -315,14 +316,14 @@ def _save(cache_dir, tile, result, key=None):
         "__job__": np.array(key or ""),
         "__sha256__": np.array(_digest(result)),
     }
-    with atomic_path(_cache_file(cache_dir, tile)) as tmp, open(tmp, "wb") as f:
+    with atomic_path(cache_file(cache_dir, tile)) as tmp, open(tmp, "wb") as f:
         np.savez(f, **result, **meta)
 
 
 def _load(cache_dir, tile, key=None):
     """A cached tile's result, or None (with the reason logged) when it is not this tile's
     intact result of this job."""
-    path = _cache_file(cache_dir, tile)
+    path = cache_file(cache_dir, tile)
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
@@ -347,7 +348,7 @@ def _load(cache_dir, tile, key=None):
 def load_cached(cache_dir, tile) -> dict:
     """The result arrays of a tile this run has just stored in ``cache_dir`` (no identity or
     checksum test: see :func:`_load` for files of earlier runs)."""
-    with np.load(_cache_file(cache_dir, tile), allow_pickle=False) as z:
+    with np.load(cache_file(cache_dir, tile), allow_pickle=False) as z:
         return {k: z[k] for k in z.files if k not in _META}
 
 
@@ -415,6 +416,7 @@ def iter_tiles(
     dask_address: str | None = None,
     cache_key: str | None = None,
     hold_results: bool = True,
+    reusable=None,
 ):
     """Run ``fn(tile, context)`` over ``tiles``, yielding a :class:`TileDone` for each tile as
     it finishes: the cached ones first (``resume``), then the others in the order they end;
@@ -440,6 +442,9 @@ def iter_tiles(
         With ``cache_dir``, False keeps no result in memory: a finished tile's ``result`` is
         then None and its arrays are read back from its cache file (:func:`load_cached`), so
         the caller can take them one at a time.
+    reusable : callable(tile) -> bool, optional
+        With ``resume``, a cached tile is reused only when this also holds (e.g. the tile's
+        point file is still there); the others are recomputed.
     progress : callable(done, total), optional
     dask_address : str, optional
         A ``dask.distributed`` scheduler address (``tcp://host:port``) or a ``Client``; tiles
@@ -451,7 +456,12 @@ def iter_tiles(
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
     for t in tiles:
         got = None
-        if resume and cache_dir is not None and _cache_file(cache_dir, t).exists():
+        if (
+            resume
+            and cache_dir is not None
+            and cache_file(cache_dir, t).exists()
+            and (reusable is None or reusable(t))
+        ):
             got = _load(cache_dir, t, cache_key)
         if got is not None:
             cached.append(TileDone(t.index, got if hold_results else None, None, None))

@@ -3,8 +3,10 @@
 ``dem.laz`` (:mod:`stereodem.stereo.pointcloud`).
 
 The tiles write ``OUT/tiles/points/points_<index>.npz``; the merge reads them one tile at a
-time (memory: one tile's points) and removes them once the LAS/LAZ is in place. A run resumed
-with ``--resume`` keeps the point files of its finished tiles.
+time (memory: one tile's points) and removes them once the LAS/LAZ is in place, unless the
+job keeps its tile cache for a later ``--resume`` (``stereodem run``, ``[run] keep_tiles``):
+the points then stay beside the cached tiles, and a resumed run merges them again. A cached
+tile whose point file is gone is recomputed (:func:`stereodem.stereo.execution.tile_runner`).
 
 An N-view job (:mod:`stereodem.multiview`) gives each chosen pair an id (its rank in the pair
 plan, ``pair_id`` in ``dem_report.json``) and a folder ``OUT/tiles/points/pair_<id>/``;
@@ -47,10 +49,13 @@ def prepare(out, *, resume: bool = False) -> Path:
     return d
 
 
-def point_cloud_stage(cfg, out, products, edit_codes=None, *, grid=None, pairs=None) -> dict:
+def point_cloud_stage(
+    cfg, out, products, edit_codes=None, *, grid=None, pairs=None, keep=False
+) -> dict:
     """Merge the tiles' points into ``OUT/dem.<las|laz>``; returns its summary (for the
     reports). ``edit_codes``: the DEM's edit mask on ``grid`` (default the raw DEM's grid)
-    for the points' classification; ``pairs``: ``{0: (left, right)}`` for the cloud's pair VLR."""
+    for the points' classification; ``pairs``: ``{0: (left, right)}`` for the cloud's pair VLR;
+    ``keep``: leave the tiles' point files for a later ``--resume``."""
     fmt = cfg.dem.point_cloud
     d = points_dir(out)
     indices = sorted(int(p.stem.split("_")[1]) for p in d.glob("points_*.npz"))
@@ -75,7 +80,8 @@ def point_cloud_stage(cfg, out, products, edit_codes=None, *, grid=None, pairs=N
             expected,
             summary["path"],
         )
-    _clean(d)
+    if not keep:
+        _clean(d)
     return summary
 
 
@@ -86,7 +92,7 @@ def _clean(d: Path) -> None:
 
 
 def multiview_point_cloud_stage(
-    cfg, out, grid, vertical, pairs, rejected=None, edit_codes=None
+    cfg, out, grid, vertical, pairs, rejected=None, edit_codes=None, *, keep=False
 ) -> dict:
     """Merge the N-view pairs' points into ``OUT/dem.<las|laz>``; returns its summary.
 
@@ -105,6 +111,8 @@ def multiview_point_cloud_stage(
         ``FUSION_REJECTED`` and LAS class 7 (noise).
     edit_codes : ndarray (rows, cols), optional
         The filtered DEM's edit mask (``stereodem run``): the other points take their cell's code.
+    keep : bool
+        Leave the pairs' point files for a later ``--resume``.
     """
     fmt = cfg.dem.point_cloud
     d = points_dir(out)
@@ -136,5 +144,6 @@ def multiview_point_cloud_stage(
     )
     summary.pop("missing_files")
     summary["tiles_with_points"] = per_pair
-    _clean(d)
+    if not keep:
+        _clean(d)
     return summary

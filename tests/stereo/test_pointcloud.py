@@ -220,7 +220,8 @@ def test_run_classifies_the_points_of_filtered_cells(scene_dir, tmp_path):
     pc = rj["stages"]["point_cloud"]
     las = laspy.read(out / "dem.las")
     assert pc["n_points"] == len(las.points) and (out / "tiles").exists()
-    assert not (out / "tiles" / "points").exists()
+    # the points stay with the tile cache, for a later --resume
+    assert len(list((out / "tiles" / "points").glob("points_*.npz"))) == pc["tiles_with_points"]
     mask = _cell_values(out / "dem_edit_mask.tif", las.x, las.y)
     ok = np.isfinite(mask)
     assert ok.mean() > 0.99
@@ -230,3 +231,44 @@ def test_run_classifies_the_points_of_filtered_cells(scene_dir, tmp_path):
     assert np.all(las.classification[removed] == 7) and np.all(
         las.classification[~removed & ok] == 1
     )
+
+
+def _resume_cfg(scene_dir, out, **run_settings):
+    return config_from_dict(
+        {
+            "inputs": {"left": str(scene_dir / "left.tif"), "right": str(scene_dir / "right.tif")},
+            "output": {"dir": str(out)},
+            "rectification": {"tile_size": 200, "height_range": [1000, 3500]},
+            "ortho": {"enabled": False},
+            "filters": {"erode": 2},
+            "run": {"workers": 1, **run_settings},
+            "dem": {"point_cloud": "las"},
+        }
+    )
+
+
+def test_resumed_run_keeps_every_point_in_the_cloud(scene_dir, tmp_path):
+    """``run --resume`` on a finished point-cloud job (e.g. with another filter setting) wrote
+    an EMPTY dem.las: the merge had removed the tiles' point files and the cached tiles were
+    reused without them (real Pleiades pair: 973 908 points -> 0, one warning). The point
+    files now stay with the tile cache; a cached tile whose point file is gone (a cache from
+    before) is recomputed."""
+    out = tmp_path / "run"
+    run(_resume_cfg(scene_dir, out))
+    n = len(laspy.read(out / "dem.las").points)
+    assert n > 1000
+    again = _resume_cfg(scene_dir, out, resume=True, overwrite=True)
+    again.filters.erode = 1  # a post setting: the tiles are reused
+    run(again)
+    assert len(laspy.read(out / "dem.las").points) == n
+    # a cache without the point files (as the merge left it before): those tiles are redone
+    for f in (out / "tiles" / "points").glob("points_*.npz"):
+        f.unlink()
+    run(_resume_cfg(scene_dir, out, resume=True, overwrite=True))
+    assert len(laspy.read(out / "dem.las").points) == n
+    rj = json.loads((out / "run.json").read_text())
+    assert rj["stages"]["point_cloud"]["tiles_with_points"] == rj["stages"]["stereo"]["tiles"]
+    # --clean-tiles removes the points with the cache
+    run(_resume_cfg(scene_dir, out, resume=True, overwrite=True, keep_tiles=False))
+    assert len(laspy.read(out / "dem.las").points) == n
+    assert not (out / "tiles").exists()

@@ -294,12 +294,24 @@ def _run_stages(job: Job) -> dict:
             t0 = stages.start()
             if cloud_args is not None:
                 pc = point_cloud.multiview_point_cloud_stage(
-                    cfg, out, clean.grid, clean.vertical, *cloud_args, edit_codes=clean.edit_mask
+                    cfg,
+                    out,
+                    clean.grid,
+                    clean.vertical,
+                    *cloud_args,
+                    edit_codes=clean.edit_mask,
+                    keep=cfg.run.keep_tiles,
                 )
                 cloud_args = None
             else:
                 pc = point_cloud.point_cloud_stage(
-                    cfg, out, products, clean.edit_mask, grid=clean.grid, pairs=_pair_names(cfg)
+                    cfg,
+                    out,
+                    products,
+                    clean.edit_mask,
+                    grid=clean.grid,
+                    pairs=_pair_names(cfg),
+                    keep=cfg.run.keep_tiles,
                 )
             written.append(Path(pc["path"]).name)
             stages.record("point_cloud", t0, **pc)
