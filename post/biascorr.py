@@ -37,6 +37,18 @@ from .coreg import (
 
 log = logging.getLogger(__name__)
 
+#: Sign of the shifts of ``nuth_kaab`` (dx, dy, dz) and ``vshift`` (dz), as the reports state it.
+DISPLACEMENT = (
+    "displacement of the DEM relative to the reference (x grid east, y grid north, z up); "
+    "the correction applied is its opposite"
+)
+#: Sign of ``icp``'s translation (tx, ty, tz), as the reports state it: the opposite of
+#: :data:`DISPLACEMENT` for the same offset.
+MOTION = (
+    "motion applied to the DEM to bring it onto the reference (x grid east, y grid north, "
+    "z up): the opposite of nuth_kaab's dx, dy, dz for the same offset"
+)
+
 
 def _warp_shift(dem, east_m, north_m, resampling="bilinear"):
     """Heights of ``dem`` moved by ``east_m, north_m`` metres (grid metres on a projected grid:
@@ -84,7 +96,10 @@ class VerticalShift(Coreg):
         if d.size < 3:
             raise InputError("vshift: fewer than 3 stable samples")
         self.dz = float(np.median(d))
-        self.params = {"dz": param(self.dz, 1.2533 * nmad(d) / np.sqrt(d.size), "m")}
+        self.params = {
+            "dz": param(self.dz, 1.2533 * nmad(d) / np.sqrt(d.size), "m"),
+            "sign": DISPLACEMENT,
+        }
 
     def _apply(self, dem):
         return dem.heights - self.dz
@@ -189,6 +204,7 @@ class NuthKaab(Coreg):
             "dz": param(self.dz, 1.2533 * nmad(d) / np.sqrt(d.size), "m"),
             "iterations": len(history),
             "converged": converged,
+            "sign": DISPLACEMENT,
         }
         self.params.update(
             shift_units.ground_shift(
@@ -803,6 +819,7 @@ class ICP(Coreg):
         units = ["m", "m", "m", "rad", "rad", "rad"]
         vals = np.concatenate([self.t, self.w])
         self.params = {k: param(v, s, u) for k, v, s, u in zip(names, vals, sd, units)}
+        self.params["sign"] = MOTION
         self.params.update(
             shift_units.ground_shift(
                 dem.transform,

@@ -323,3 +323,26 @@ def test_maximum_curvature_in_bands_is_the_whole_grids_on_any_number_of_threads(
         for threads in (1, 2, 3):
             got = maximum_curvature(part, t, crs, threads=threads)
             assert got.dtype == ref.dtype and got.tobytes() == ref.tobytes()
+
+
+def test_the_reports_and_result_lines_give_each_shifts_sign(truth):
+    """``nuth_kaab`` gives the DEM's displacement from the reference, ``icp`` the motion that
+    brings the DEM onto it: for one offset their signs are opposite (Pleiades DSM shifted by
+    +1.3 m E, -0.7 m N, +2 m up: nuth_kaab dx +1.30 dy -0.70 dz +2.00, icp tx -1.30 ty +0.70
+    tz -2.00), and ``coregister`` said neither in its report nor on its result lines (which
+    gave no shift at all). Each shift step's parameters now carry ``sign``, and the result
+    line states the shift with its meaning."""
+    from stereodem.coregister_cli import shift_line
+
+    px = abs(truth.transform.a) * 111320 * math.cos(math.radians(truth.transform.f))
+    dem, _ = inject_errors(truth, InjectedErrors(dx=px, dz=2.0, seed=4))
+    nk, icp, vs = NuthKaab().fit(truth, dem), ICP().fit(truth, dem), VerticalShift().fit(truth, dem)
+    assert nk.params["dx"]["value"] == pytest.approx(px, abs=1.0)
+    assert icp.params["tx"]["value"] == pytest.approx(-px, abs=1.0)
+    assert nk.params["sign"] == vs.params["sign"] == biascorr.DISPLACEMENT
+    assert icp.params["sign"] == biascorr.MOTION
+    line = shift_line(nk.params)
+    assert line.startswith("DEM displaced from the reference by dx +")
+    assert "m (grid east)" in line and "dz +2.0" in line
+    assert shift_line(icp.params).startswith("DEM moved onto the reference by tx -")
+    assert shift_line(Deramp(1).fit(truth, dem).params) is None
