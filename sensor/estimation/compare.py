@@ -33,6 +33,16 @@ from stereodem.sensor.models.pushbroom import PushbroomModel
 log = logging.getLogger(__name__)
 
 
+def short_reason(text, width: int = 80) -> str:
+    """A refusal's reason for a table cell: whole words up to ``width`` characters, then an
+    ellipsis (a cut in the middle of a word turned "got 10" into "got 1"); ``|`` escaped."""
+    text = " ".join(str(text or "").split())
+    if len(text) > width:
+        cut = text[: width - 1]
+        text = (cut.rsplit(" ", 1)[0] if " " in cut else cut) + " …"
+    return text.replace("|", "\\|")
+
+
 def expand_models(names, base) -> list[str]:
     """The model list: ``all`` expanded for the image model ``base``; unknown names refused."""
     out = []
@@ -301,7 +311,7 @@ def split_markdown(summary, reference: str) -> str:
         if s["refused"] == s["splits"]:
             lines.append(
                 f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | refused: "
-                f"{(s['error'] or '')[:60]} | | | | {s['refused']} |"
+                f"{short_reason(s['error'])} | | | | {s['refused']} |"
             )
             continue
         lines.append(
@@ -322,7 +332,7 @@ def markdown(records) -> str:
         if r.get("error"):
             lines.append(
                 f"| {r['model']} | {r.get('n_params', '')} | {r['n_gcp']} / {r['n_icp']} | "
-                f"refused: {r['error'][:60]} | | | |"
+                f"refused: {short_reason(r['error'])} | | | |"
             )
             continue
         lines.append(

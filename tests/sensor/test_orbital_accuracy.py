@@ -121,3 +121,20 @@ def test_weighted_parameters_of_the_sets():
     assert model_set("orun").priors == priors["orun"]
     assert model_set("toutin-full").priors == ToutinModel.PRIORS["toutin-full"]
     assert set(model_set("toutin").priors) == {"tau", "theta"}
+
+
+def test_the_comparison_tables_never_cut_a_refusal_in_a_number():
+    """compare.md cut each refusal at 60 characters: "needs at least 20 GCPs (40
+    unknowns), got 10" read "got 1" (real Pleiades GCPs, --models all). The reason is now cut
+    at a word, with an ellipsis, and a '|' in it cannot break the table."""
+    from stereodem.sensor.estimation.compare import markdown, short_reason, split_markdown
+
+    reason = "model 'poly3d-3' needs at least 20 GCPs (40 unknowns), got 10"
+    rec = dict(model="poly3d-3", n_params=40, n_gcp=10, n_icp=10, error=reason)
+    assert reason in markdown([rec])
+    summary = dict(model="poly3d-3", n_params=40, n_gcp=10, splits=3, refused=3, error=reason)
+    assert reason in split_markdown([summary], "attitude-bias-drift")
+    long = "a b " * 30 + "got 12345"
+    cell = short_reason(long, width=40)
+    assert cell.endswith(" …") and len(cell) <= 41 and "1234" not in cell
+    assert short_reason("x | y") == "x \\| y"
