@@ -63,8 +63,10 @@ def orthorectify_all(
                     done[name] = rows
                     progress(sum(done.values()), total)
 
+        # the warnings name the image where there are several (the left and right images)
+        label = str(name) if len(images) > 1 else None
         return name, orthorectify(
-            image, model, dem, grid=grid, threads=blocks, progress=step, **options
+            image, model, dem, grid=grid, threads=blocks, progress=step, image_name=label, **options
         )
 
     if running == 1:

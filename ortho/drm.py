@@ -736,13 +736,15 @@ def dem_gaps(model, dem, grid: MapGrid, *, fill_dem=None, tolerance: float = 0.0
     )
 
 
-def no_height_message(dem_name, missing: dict, consequence: str) -> str:
+def no_height_message(dem_name, missing: dict, consequence: str, image: str | None = None) -> str:
     """The warning for ``missing`` (:func:`dem_gaps` or ``Ortho.dem_missing``) that every
     command gives: ``"<dem>: no DEM height under 5.1% of the image footprint (N map cell(s):
-    holes or outside the DEM): <consequence>"``."""
+    holes or outside the DEM): <consequence>"``; ``image``: which image, where a job has
+    several (``"of the left image's footprint"``)."""
+    whose = f"the {image} image's" if image else "the image"
     return (
         f"{dem_name or 'DEM'}: no DEM height under {100 * missing['footprint_share']:.1f}% of "
-        f"the image footprint ({missing['n_no_height']} map cell(s): holes or outside the DEM): "
+        f"{whose} footprint ({missing['n_no_height']} map cell(s): holes or outside the DEM): "
         f"{consequence}"
     )
 
@@ -765,6 +767,7 @@ def orthorectify(
     progress=None,
     threads: int = 1,
     fill_dem=None,
+    image_name: str | None = None,
 ) -> Ortho:
     """Orthorectify an image by backward DRM projection onto a north-up map grid.
 
@@ -795,6 +798,8 @@ def orthorectify(
         Keep the per-cell image coordinates (``Ortho.col``, ``Ortho.row``).
     strict_dem : bool
         Raise :class:`DEMCoverageError` when part of the image footprint is outside the DEM.
+    image_name : str, optional
+        What the warnings call the image where a job orthorectifies several (``"left"``).
     progress : callable, optional
         Called as ``progress(rows_done, rows_total)`` after each block (from the calling
         thread, in row order).
@@ -897,7 +902,9 @@ def orthorectify(
     )
     if n_no_height and not (strict_dem and n_missing):
         hint = "" if fill is not None else "; a second DEM can fill them (fill_dem / --fill-dem)"
-        log.warning("%s", no_height_message(dem.path, missing, "nodata there" + hint))
+        log.warning(
+            "%s", no_height_message(dem.path, missing, "nodata there" + hint, image=image_name)
+        )
     if n_missing:
         msg = (
             f"{dem.path or 'DEM'}: the DEM does not cover the image footprint: {n_missing} cell(s) "

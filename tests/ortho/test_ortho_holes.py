@@ -15,6 +15,7 @@ from stereodem.core import geodesy as g
 from stereodem.core.dem import DEM
 from stereodem.core.errors import RPCError
 from stereodem.core.raster import write_geotiff
+from stereodem.ortho.concurrent import orthorectify_all
 from stereodem.ortho.drm import orthorectify
 from stereodem.ortho.grid import grid_for_model
 from stereodem.ortho_cli import add_parser
@@ -55,6 +56,25 @@ def test_holes_give_nodata_and_a_warning_with_the_share(scene, caplog):
     msg = [r.getMessage() for r in caplog.records if "no DEM height" in r.getMessage()]
     assert len(msg) == 1 and "holed.tif" in msg[0] and f"{100 * share:.1f}%" in msg[0]
     assert o.report()["dem_no_height_share"] == share
+
+
+def test_several_images_warnings_say_which_image(scene, caplog):
+    """``stereodem run`` orthorectifies the left and right images: their two "no DEM height"
+    warnings both read "of the image footprint", naming the DEM only. Each now says which
+    image; one image alone keeps the plain wording."""
+    cam, dem, grid, img = scene
+    holed = _holed(dem, cam, "holed.tif")
+    with caplog.at_level(logging.WARNING, logger="stereodem.ortho.drm"):
+        orthorectify_all([("left", img, cam), ("right", img, cam)], holed, grid=grid)
+    msgs = [r.getMessage() for r in caplog.records if "no DEM height" in r.getMessage()]
+    assert sorted(m.split(" footprint")[0].split("% of ")[1] for m in msgs) == [
+        "the left image's",
+        "the right image's",
+    ]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="stereodem.ortho.drm"):
+        orthorectify_all([("image", img, cam)], holed, grid=grid)
+    assert "% of the image footprint" in caplog.text
 
 
 def test_fill_dem_fills_holes_and_missing_coverage(scene):
