@@ -17,7 +17,15 @@ from pyproj import CRS
 from stereodem.core import geodesy
 from stereodem.core.errors import CRSError, InputError
 
-__all__ = ["MapGrid", "OnGrid", "grid_from_bounds", "as_crs", "map_crs"]
+__all__ = [
+    "MapGrid",
+    "OnGrid",
+    "grid_from_bounds",
+    "as_crs",
+    "map_crs",
+    "crs_unit",
+    "posting_text",
+]
 
 
 def as_crs(crs) -> CRS:
@@ -120,13 +128,14 @@ class MapGrid:
 
     @property
     def unit(self) -> str:
-        """The map unit (the CRS's first horizontal axis): ``"metre"``, ``"degree"``, or
-        another name as pyproj gives it (``"US survey foot"``); ``""`` when the CRS does not
-        say. :attr:`res` and :attr:`posting` are in it, metres only when it is ``"metre"``."""
-        crs = self.crs
-        axes = crs.axis_info or (crs.sub_crs_list[0].axis_info if crs.sub_crs_list else [])
-        unit = axes[0].unit_name.strip() if axes else ""
-        return "metre" if unit.lower() in ("metre", "meter") else unit
+        """The map unit (:func:`crs_unit`); :attr:`res` and :attr:`posting` are in it, metres
+        only when it is ``"metre"``."""
+        return crs_unit(self.crs)
+
+    @property
+    def posting_text(self) -> str:
+        """The posting with its unit (:func:`posting_text`): ``"30 m"``, ``"0.000833°"``."""
+        return posting_text(self.posting, self.unit)
 
     def res_report(self) -> dict:
         """The posting for a report: ``res`` (map units), ``res_unit`` (:attr:`unit`), and
@@ -141,6 +150,26 @@ class MapGrid:
         """Map coordinates ``(x, y)`` of all cell centres, arrays of :attr:`shape`."""
         jj, ii = np.meshgrid(np.arange(self.width), np.arange(self.height))
         return self.xy(jj, ii)
+
+
+def crs_unit(crs) -> str:
+    """The map unit of ``crs`` (its first horizontal axis): ``"metre"``, ``"degree"``, or
+    another name as pyproj gives it (``"US survey foot"``); ``""`` when the CRS does not say."""
+    crs = as_crs(crs)
+    axes = crs.axis_info or (crs.sub_crs_list[0].axis_info if crs.sub_crs_list else [])
+    unit = axes[0].unit_name.strip() if axes else ""
+    return "metre" if unit.lower() in ("metre", "meter") else unit
+
+
+def posting_text(value: float, unit: str) -> str:
+    """A cell size with its map unit for people: ``"30 m"``, ``"0.000833°"``, ``"100 US
+    survey foot"`` (a bare number did not say whether it was metres or degrees)."""
+    text = f"{value:g}"
+    if unit == "metre":
+        return f"{text} m"
+    if unit.lower() == "degree":
+        return f"{text}°"
+    return f"{text} {unit}" if unit else text
 
 
 def grid_from_bounds(bounds, res, crs) -> MapGrid:

@@ -37,7 +37,7 @@ from pyproj import CRS
 from stereodem.core import geodesy, localfit
 from stereodem.core.dem import DEM, as_dem
 from stereodem.core.errors import InputError
-from stereodem.core.grid import map_crs
+from stereodem.core.grid import crs_unit, map_crs, posting_text
 from stereodem.core.jsonutil import json_default
 from stereodem.core.memory import check_allocation
 from stereodem.sensor.geo.intersect import intersect_matches
@@ -529,13 +529,13 @@ def dem_of_checked_pair(
     # 2. overlap, tiles and the output lattice
     tiles = plan_tiles(left_model, right_model, rect, height_range)
     log.info(
-        "stereo DEM: %d tile(s) of ~%d px, heights %.0f..%.0f m, matcher %s, posting %.3g",
+        "stereo DEM: %d tile(s) of ~%d px, heights %.0f..%.0f m, matcher %s, posting %s",
         len(tiles),
         rect.tile_size,
         height_range[0],
         height_range[1],
         settings.matching.matcher,
-        posting,
+        posting_text(float(f"{posting:.3g}"), crs_unit(crs)),
     )
     bounds = gs.bounds
     if bounds is None:

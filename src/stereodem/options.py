@@ -140,15 +140,9 @@ def say(message: str):
 
 
 def posting(grid) -> str:
-    """A result line's cell size with its CRS's unit: ``"30 m"``, ``"0.000833°"``,
-    ``"100 US survey foot"`` (a bare number did not say whether it was metres or degrees)."""
-    text = f"{grid.posting:g}"
-    unit = grid.unit  # core.grid.MapGrid.unit: the CRS's horizontal axis unit
-    if unit == "metre":
-        return f"{text} m"
-    if unit.lower() == "degree":
-        return f"{text}°"
-    return f"{text} {unit}" if unit else text
+    """A result line's cell size with its CRS's unit (:attr:`stereodem.core.grid.MapGrid.
+    posting_text`): ``"30 m"``, ``"0.000833°"``."""
+    return grid.posting_text
 
 
 def rmse_px(value, none: str = "n/a") -> str:

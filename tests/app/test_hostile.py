@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -775,9 +777,12 @@ def test_seed_dem_in_feet_is_not_used_quietly(sim, hostile, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_geographic_crs_gets_a_posting_in_degrees(sim, tmp_path, capsys):
-    code, _, err = run_cli(capsys, _dem(sim, tmp_path / "g", "--crs", "EPSG:4326", *HR))
+def test_geographic_crs_gets_a_posting_in_degrees(sim, tmp_path, capsys, caplog):
+    with caplog.at_level(logging.INFO, logger="stereodem.stereo.pipeline"):
+        code, _, err = run_cli(capsys, _dem(sim, tmp_path / "g", "--crs", "EPSG:4326", *HR))
     assert code == 0, err
+    # -v's plan line says the unit (it read "posting 0.000273": metres or degrees?)
+    assert re.search(r"stereo DEM: .* posting 0\.000\d+°", caplog.text), caplog.text
     z, t = _read(tmp_path / "g" / "dem.tif")
     # 2 x 15 m GSD ~ 2.7e-4 degrees; the scene (~4.5 km) spans ~0.05 degrees
     assert 1e-4 < t.a < 1e-3 and z.shape[0] > 100 and z.shape[1] > 100
