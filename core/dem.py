@@ -272,6 +272,13 @@ def to_vertical_of(heights, target, *, name: str = "DEM"):
     elif a == b:
         converted = heights
         note = f"both {a}" if a else "both unknown; assumed identical"
+        if a is None:  # said, not only written in the report
+            log.info(
+                "%s and %s: neither says its vertical reference (geoid or ellipsoid): compared "
+                "as if the same (--dem-vertical / --ref-vertical say it)",
+                heights.path or name,
+                target.path or "the reference",
+            )
     else:
         unknown = heights if a is None else target
         raise VerticalReferenceError(

@@ -315,9 +315,9 @@ def split_markdown(summary, reference: str) -> str:
             )
             continue
         lines.append(
-            f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | {s['median_ratio']:.2f} | "
-            f"{s['max_ratio']:.2f} | {s['median_icp_px']:.3f} | "
-            f"{s['median_condition']:.3g} | {s['refused']} |"
+            f"| {s['model']} | {s['n_params']} | {s['n_gcp']} | {_num(s['median_ratio'], '.2f')} | "
+            f"{_num(s['max_ratio'], '.2f')} | {_num(s['median_icp_px'], '.3f')} | "
+            f"{_num(s['median_condition'], '.3g')} | {s['refused']} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -337,10 +337,15 @@ def markdown(records) -> str:
             continue
         lines.append(
             f"| {r['model']} | {r['n_params']} | {r['n_gcp']} / {r['n_icp']} | "
-            f"{r['gcp_rmse_px']:.3f} | {r['icp_rmse_px']:.3f} | {r['sigma0']:.3g} | "
-            f"{r['condition']:.3g} |"
+            f"{_num(r['gcp_rmse_px'], '.3f')} | {_num(r['icp_rmse_px'], '.3f')} | "
+            f"{_num(r['sigma0'], '.3g')} | {_num(r['condition'], '.3g')} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _num(v, fmt: str) -> str:
+    """A table figure; ``None`` (a NaN as ``compare.json`` stores it: strict JSON) as NaN."""
+    return format(float("nan") if v is None else v, fmt)
 
 
 def figure(records, path, *, overwrite: bool = False):

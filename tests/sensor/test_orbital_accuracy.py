@@ -6,11 +6,20 @@ issue's criterion: ICP RMSE within 20 % of the rigorous model's with 10 GCPs (me
 splits) — and what happens with fewer GCPs (``benchmarks/bench_orbital_splits.py`` gives the full
 table)."""
 
+import json
+
 import numpy as np
 import pytest
 
+from stereodem.core import jsonutil
 from stereodem.sensor.estimation.adjust import model_set
-from stereodem.sensor.estimation.compare import compare_splits, split_summary
+from stereodem.sensor.estimation.compare import (
+    compare_splits,
+    markdown,
+    short_reason,
+    split_markdown,
+    split_summary,
+)
 from stereodem.sensor.models.orbital import OrunNatarajanModel, ToutinModel
 from stereodem.sensor.models.orbital._common import virtual_points
 from stereodem.sensor.models.orbital.toutin import scan_plane_tilt
@@ -127,8 +136,6 @@ def test_the_comparison_tables_never_cut_a_refusal_in_a_number():
     """compare.md cut each refusal at 60 characters: "needs at least 20 GCPs (40
     unknowns), got 10" read "got 1" (real Pleiades GCPs, --models all). The reason is now cut
     at a word, with an ellipsis, and a '|' in it cannot break the table."""
-    from stereodem.sensor.estimation.compare import markdown, short_reason, split_markdown
-
     reason = "model 'poly3d-3' needs at least 20 GCPs (40 unknowns), got 10"
     rec = dict(model="poly3d-3", n_params=40, n_gcp=10, n_icp=10, error=reason)
     assert reason in markdown([rec])
@@ -138,3 +145,21 @@ def test_the_comparison_tables_never_cut_a_refusal_in_a_number():
     cell = short_reason(long, width=40)
     assert cell.endswith(" …") and len(cell) <= 41 and "1234" not in cell
     assert short_reason("x | y") == "x \\| y"
+
+
+def test_the_comparison_table_of_records_read_back_from_compare_json():
+    """compare.json is strict JSON: a NaN figure (sigma0 without redundancy) is null there;
+    the table of records read back from it failed on None ('unsupported format string')."""
+    rec = dict(
+        model="rpc-shift",
+        n_params=2,
+        n_gcp=2,
+        n_icp=8,
+        gcp_rmse_px=0.0,
+        icp_rmse_px=0.412,
+        sigma0=float("nan"),
+        condition=1.0,
+    )
+    back = json.loads(jsonutil.dumps([rec]))
+    assert back[0]["sigma0"] is None
+    assert markdown(back) == markdown([rec])
