@@ -292,7 +292,7 @@ def run(args) -> int:
         summary = (
             f"{args.model}: sigma0 {res.sigma0:.3f}, GCP RMSE {options.rmse_px(res.gcp_rmse_px)}, "
             f"check RMSE {options.rmse_px(res.check_rmse_px, 'n/a (no check point)')}, outliers: "
-            f"{', '.join(o['id'] for o in res.outliers) or 'none'}"
+            f"{', '.join(o['id'] for o in res.outliers) or 'none'}; {res.parameters_text()}"
         )
     with report_folder(args, n_images) as rep:
         for model, path in saves:

@@ -1,6 +1,7 @@
 """``stereodem adjust`` end to end on the real Pleiades RPC, and model sidecar round trips."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -85,7 +86,11 @@ def test_adjust_cli_rpc_shift(image, tmp_path, capsys):
         str(rep),
     ]
     assert main(argv) == 0
-    assert "outliers: P004" in capsys.readouterr().out
+    line = capsys.readouterr().out
+    assert "outliers: P004" in line
+    # the fitted shifts in the result line too (they were in the report only), with units
+    shifts = re.search(r"col_shift ([+-][\d.]+) ± \S+ px, row_shift ([+-][\d.]+) ± \S+ px", line)
+    assert shifts, line
     model = load_model(out)
     assert isinstance(model, ImageCorrectedModel) and (model.width, model.height) == (
         rpc.width,
@@ -96,6 +101,8 @@ def test_adjust_cli_rpc_shift(image, tmp_path, capsys):
         abs(p["col_shift"] - BIAS["col_shift"]) < 0.3
         and abs(p["row_shift"] - BIAS["row_shift"]) < 0.3
     )
+    assert abs(float(shifts[1]) - p["col_shift"]) < 1e-4
+    assert abs(float(shifts[2]) - p["row_shift"]) < 1e-4
     report = json.loads((rep / "adjust_report.json").read_text())
     assert report["outliers"] == ["P004"]
     assert report["check_rmse_px"] < 2 * 0.25 * np.sqrt(2)

@@ -93,6 +93,17 @@ class ParameterEstimate:
     converged: bool = field(kw_only=True)
     tolerance: float = field(kw_only=True)
 
+    def parameters_text(self, most: int = 6) -> str:
+        """The estimated parameters for a result line: ``"col_shift +2.49982 ± 0.00016 px,
+        row_shift -1.50005 ± 0.00016 px"``; more than ``most`` of them: only how many (the
+        report lists them)."""
+        if len(self.names) > most:
+            return f"{len(self.names)} parameters (in the report)"
+        return ", ".join(
+            f"{n} {float(v):+.6g} ± {float(sd):.2g}" + (f" {u}" if u else "")
+            for n, v, sd, u in zip(self.names, self.values, self.std, self.units)
+        )
+
     @property
     def correlation(self) -> np.ndarray:
         s = np.sqrt(np.diag(self.covariance))
