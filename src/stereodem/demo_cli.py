@@ -23,7 +23,9 @@ EXAMPLES = """examples:
   stereodem demo -o demo_out --size 800 800 --workers 2 --overwrite
 """
 
-CONFIG = """# written by 'stereodem demo'; run again with: stereodem run {cfg}
+CONFIG = """# written by 'stereodem demo'; run again with: stereodem run {cfg} --resume
+# (--resume reuses the demo's tiles and replaces its products; after editing the stereo
+# settings: --overwrite, or another [output] dir)
 [inputs]
 left = "scene/{granule}"           # an ASTER L1A granule: its 3N/3B bands are the pair
 seed_dem = "{seed}"

@@ -95,3 +95,24 @@ def test_readme_demo_figures(demo):
         f"the demo's NMAD is {got:.2f} m, the README quotes "
         f"{quoted:.2f} m (spread {tol:.2f} m): update the README"
     )
+
+
+def test_the_demo_configuration_runs_as_its_first_line_says(demo):
+    """``demo.toml``'s first line is the command that runs it again; as ``stereodem run
+    demo.toml`` it was refused (the demo's products are in the output folder). Last in the
+    module: it rewrites the products (under the same umask)."""
+    first = (demo / "demo.toml").read_text(encoding="utf-8").splitlines()[0]
+    command = first.split("run again with: ", 1)[1].split()
+    assert command[:2] == ["stereodem", "run"], first
+    old = os.umask(0o022)
+    try:
+        r = subprocess.run(
+            [sys.executable, "-m", "stereodem.cli", *command[1:], "--workers", "1"],
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
+    finally:
+        os.umask(old)
+    assert r.returncode == 0, r.stderr
+    assert json.loads((demo / "result" / "run.json").read_text())["status"] == "ok"
