@@ -100,7 +100,7 @@ LAYERS = {
         "_edit_mask.tif",
         np.uint8,
         255,
-        "edit code: 0 kept, 1-8 filter reason, 99 border rim, 100/101 filled",
+        "edit code: 0 kept, 1-9 filter reason (9 cloud), 99 border rim, 100/101 filled",
         "1",
     ),
 }

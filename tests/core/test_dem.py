@@ -473,3 +473,14 @@ def test_a_directory_given_for_a_dem_or_an_image_says_so(tmp_path):
         assert str(e.value) == f"{folder}: is a directory, not an image file"
     with pytest.raises(DEMError, match="cannot read the DEM .*No such file"):
         DEM.from_file(tmp_path / "missing.tif")
+
+
+def test_edit_mask_description_names_every_code_written():
+    """The edit mask's band description is its legend: it said '1-8 filter reason' after the
+    cloud mask added reason 9 (``filter --cloud-max-dev``, ``stack``)."""
+    from stereodem.post.filters import EditCode, Reason
+
+    text = dem_module.LAYERS["edit_mask"].description
+    assert f"1-{max(Reason)} filter reason" in text
+    for code in EditCode:
+        assert str(int(code)) in text, code
