@@ -207,6 +207,8 @@ def _summary(report) -> dict:
         out["border_rim"] = report["erode"]["removed"]
     if "fill" in report:
         out["filled"] = report["fill"].get("filled_idw")
+        if report["fill"].get("filled_fallback"):  # --fill-from-seed
+            out["filled_from_seed"] = report["fill"]["filled_fallback"]
     if "cloud" in report:
         out["cloud"] = report["cloud"]["removed"]
     return out

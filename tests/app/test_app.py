@@ -721,3 +721,13 @@ def test_the_sparse_line_says_the_margin_of_the_heights_searched():
     )
     no_margin = {"height_range": [-20.0, 2610.0], "height_source": "model validity range"}
     assert sparse_line(no_margin).startswith("  heights -20..2610 m (model validity range)")
+
+
+def test_filter_summary_counts_the_cells_filled_from_the_seed():
+    """``filter --fill-from-seed``'s result line counted the IDW fills alone ("filled": 2 on a
+    simulated DEM brought to 100 % valid by 10 119 cells from the seed DEM)."""
+    from stereodem.filter_cli import _summary
+
+    report = {"fill": {"filled_idw": 2, "filled_fallback": 10119}}
+    assert _summary(report) == {"filled": 2, "filled_from_seed": 10119}
+    assert _summary({"fill": {"filled_idw": 2, "filled_fallback": 0}}) == {"filled": 2}
