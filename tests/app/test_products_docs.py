@@ -125,3 +125,96 @@ def test_readmes_carry_the_figures_the_results_give():
     assert mod.figures_markdown() + mod.LIST_END in readme
     bench = (ROOT / "benchmarks" / "README.md").read_text()
     assert mod.TABLE_START + "\n" + mod.benchmarks_table() + mod.TABLE_END in bench
+
+
+#: signatures docs/api.md writes out (as ``NAME(...)`` in backticks) -> what they describe
+def _api_signatures():
+    from stereodem import (
+        DEM,
+        DEMProducts,
+        Ortho,
+        assess_dem,
+        make_dem,
+        orthorectify,
+        write_geotiff,
+        write_report,
+    )
+    from stereodem.ortho.drm import dem_gaps
+
+    return {
+        "make_dem": make_dem,
+        "orthorectify": orthorectify,
+        "dem_gaps": dem_gaps,
+        "DEM": DEM,
+        "DEM.from_file": DEM.from_file,
+        "sample": DEM.sample,
+        "write_geotiff": write_geotiff,
+        "assess.assess_dem": assess_dem,
+        "report.write_report": write_report,
+        "write": (Ortho.write, DEM.write, DEMProducts.write),
+    }
+
+
+def _documented_signatures(text):
+    """``(name, parameter list)`` of every ``NAME(params)`` in backticks whose name is a key of
+    :func:`_api_signatures` (line breaks inside the backticks allowed)."""
+    names = "|".join(re.escape(n) for n in sorted(_api_signatures(), key=len, reverse=True))
+    for m in re.finditer(rf"`({names})\(([^`]*?)\)(?: -> [^`]*)?`", text, re.S):
+        yield m.group(1), " ".join(m.group(2).split())
+
+
+def _check_signature(doc_params: str, func) -> str | None:
+    """Why a call written as the docs write ``doc_params`` does not fit ``func`` (None: fits).
+    ``...`` stands for parameters left out; a parameter the docs show positional must be
+    positional, one they show keyword-only may be either; literal defaults must agree."""
+    import ast
+    import inspect
+
+    params = [p.strip() for p in doc_params.split(",") if p.strip()]
+    call = bool(params) and params[0] == "..."  # ``f(..., key=value)``: a call's keywords
+    if call:
+        params[0] = "*"
+    params = [p for p in params if p != "..."]
+    tree = ast.parse(f"def f({', '.join(params)}): pass").body[0].args
+    actual = inspect.signature(func).parameters
+    positional = [
+        n
+        for n, p in actual.items()
+        if p.kind is p.POSITIONAL_OR_KEYWORD and n not in ("self", "cls")
+    ]
+    doc_pos = [a.arg for a in tree.args]
+    if doc_pos != positional[: len(doc_pos)]:
+        return f"positional {doc_pos}, the code's {positional}"
+    defaults = dict(zip(doc_pos[len(doc_pos) - len(tree.defaults) :], tree.defaults))
+    for a, d in zip(tree.kwonlyargs, tree.kw_defaults):
+        if a.arg not in actual:
+            return f"no parameter {a.arg!r}"
+        defaults[a.arg] = d
+    for name, node in defaults.items():
+        if node is None or call:
+            continue
+        try:
+            value = ast.literal_eval(node)
+        except ValueError:
+            continue  # nan, names
+        if actual[name].default != value:
+            return f"{name}={value!r}, the code's {actual[name].default!r}"
+    return None
+
+
+def test_api_md_signatures_are_the_codes():
+    """Every signature docs/api.md writes out takes the call it shows: the same positional
+    parameters in order, keyword parameters the function has, the same defaults (it showed
+    ``DEM.sample``'s ``reference`` and ``Ortho.write``'s ``dtype`` as positional, which are
+    keyword-only, and left out ``DEM.write``'s ``overwrite``)."""
+    text = (ROOT / "docs" / "api.md").read_text(encoding="utf-8")
+    found = list(_documented_signatures(text))
+    funcs = _api_signatures()
+    assert {n for n, _ in found} == set(funcs), "a listed signature is no longer in api.md"
+    problems = []
+    for name, params in found:
+        candidates = funcs[name] if isinstance(funcs[name], tuple) else (funcs[name],)
+        why = [_check_signature(params, f) for f in candidates]
+        if all(why):
+            problems.append(f"{name}({params}): {why}")
+    assert not problems, problems
