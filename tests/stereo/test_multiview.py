@@ -265,7 +265,9 @@ def test_run_with_images_list(triplet, tmp_path):
     pc = info["stages"]["point_cloud"]
     assert sorted(read_pairs(las)) == [r["pair_id"] for r in mv["pair_runs"]] == [0, 1]
     assert pc["n_points"] == len(las.points) == sum(r["n_points"] for r in mv["pair_runs"])
-    assert not (out / "tiles" / "points").exists()
+    # the points stay with the tile cache, for a later --resume (one folder per pair)
+    kept = list((out / "tiles" / "points").rglob("points_*.npz"))
+    assert sorted({p.parent.name for p in kept}) == ["pair_0", "pair_1"], kept
     with rasterio.open(out / "dem_edit_mask.tif") as ds:
         mask = ds.read(1)
         col, row = ~ds.transform @ (np.asarray(las.x), np.asarray(las.y))
