@@ -200,6 +200,7 @@ def test_a_skipped_scene_reads_with_one_level_of_brackets(tmp_path, monkeypatch,
     assert (row["status"], row["reason"]) == ("skipped", "already done (run.json status ok)")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("verbose", [0, 1])
 def test_the_scene_pools_workers_log_as_the_main_process(verbose, monkeypatch, capfd):
     """A warning logged in a batch worker reads "WARNING logger: message" as in a serial run

@@ -237,6 +237,7 @@ def test_checkpoints_role_column_keeps_check_points_only(ref, tmp_path):
         assess.read_checkpoints(csv)
 
 
+@pytest.mark.slow
 def test_assess_logs_the_check_points_line_once(ref, simulated, tmp_path, caplog):
     """``assess --checkpoints`` reads the file to check it before any work and again to use
     it: the line saying how many GCPs are left out is logged once (``check_checkpoints`` is

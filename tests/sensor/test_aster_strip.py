@@ -173,6 +173,7 @@ def test_join_of_granules_whose_lattices_are_out_of_phase(strip3, tmp_path):
         assert np.max(np.hypot(cs - c, rs - r)) < 0.01
 
 
+@pytest.mark.slow
 def test_granule_point_clouds_name_their_pair(strip3, tmp_path, capsys):
     """``dem G.hdf --point-cloud``: the report and the cloud's pair list name the granule's
     bands (they said the granule and "None"); ``dem G1 G2 --point-cloud`` (a strip) names its

@@ -247,6 +247,7 @@ def _resume_cfg(scene_dir, out, **run_settings):
     )
 
 
+@pytest.mark.slow
 def test_resumed_run_keeps_every_point_in_the_cloud(scene_dir, tmp_path):
     """``run --resume`` on a finished point-cloud job (e.g. with another filter setting) wrote
     an EMPTY dem.las: the merge had removed the tiles' point files and the cached tiles were

@@ -361,6 +361,7 @@ def _warning_tile(tile, ctx):
     return {"value": np.zeros(1, np.float32)}
 
 
+@pytest.mark.slow
 def test_tile_workers_log_as_the_main_process(monkeypatch, capfd):
     """A tile worker (fork server or spawned) started with no log handler: its warnings went
     to Python's last-resort handler, the message alone ("tile 3: few matches"), and its info
