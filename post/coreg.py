@@ -36,7 +36,7 @@ from scipy import ndimage
 
 from stereodem.core import geodesy
 from stereodem.core.blocks import default_threads
-from stereodem.core.dem import DEM
+from stereodem.core.dem import DEM, as_dem
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.stats import nmad
 
@@ -348,7 +348,10 @@ class Coreg(abc.ABC):
         from north) for ``along_track``/``cross_track``; ``track_frame``
         (:class:`~stereodem.post.track.TrackFrame`, in the DEM's CRS): the sensor model's
         along/cross-track coordinates, used by those steps instead of the heading's straight
-        track. Returns ``self``."""
+        track. ``ref`` and ``dem`` may also be DEM file paths. Returns ``self``."""
+        dem = as_dem(dem)
+        if not isinstance(ref, AltimetryPoints):
+            ref = as_dem(ref)
         chain = self._as_chain()
         sampler = make_sampler(ref, dem, stable, max_samples=max_samples, seed=seed)
         context = {
@@ -370,11 +373,19 @@ class Coreg(abc.ABC):
         return self
 
     def apply(self, dem: DEM) -> DEM:
-        """``dem`` with this step's fitted error removed, on the same grid."""
+        """``dem`` (a :class:`DEM` or a DEM file path) with this step's fitted error removed,
+        on the same grid, in the same vertical reference (its geoid too: ``geoid_crs``); the
+        companion layers are not carried over."""
         if not self.fitted:
             raise DEMError(f"{type(self).__name__}.apply called before fit")
+        dem = as_dem(dem)
         return DEM(
-            np.asarray(self._apply(dem), np.float32), dem.transform, dem.crs, dem.vertical, dem.path
+            np.asarray(self._apply(dem), np.float32),
+            dem.transform,
+            dem.crs,
+            dem.vertical,
+            dem.path,
+            geoid_crs=dem.geoid_crs,
         )
 
     @abc.abstractmethod
@@ -445,6 +456,7 @@ class CoregChain(Coreg):
     def apply(self, dem: DEM) -> DEM:
         if not self.fitted:
             raise DEMError("CoregChain.apply called before fit")
+        dem = as_dem(dem)
         for step in self.steps:
             dem = step.apply(dem)
         return dem

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import shapely
 from affine import Affine
+from pyproj import CRS
 from rasterio.transform import from_origin
 
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
-from stereodem.core.errors import InputError, NoOverlapError, VerticalReferenceError
+from stereodem.core.errors import DEMError, InputError, NoOverlapError, VerticalReferenceError
 from stereodem.core.stats import nmad
 from stereodem.post import biascorr, terrain
 from stereodem.post.altimetry import AltimetryPoints, read_points
@@ -346,3 +347,23 @@ def test_the_reports_and_result_lines_give_each_shifts_sign(truth):
     assert "m (grid east)" in line and "dz +2.0" in line
     assert shift_line(icp.params).startswith("DEM moved onto the reference by tx -")
     assert shift_line(Deramp(1).fit(truth, dem).params) is None
+
+
+def test_apply_keeps_the_dems_geoid_and_takes_a_path(truth, tmp_path):
+    """A DEM above EGM2008 corrected by a step kept its vertical reference ``"geoid"`` but
+    lost ``geoid_crs``: written back, its heights were labelled EGM96 (the separation of the
+    two geoids, metres, unsaid); and ``fit``/``apply`` given a file path raised an
+    AttributeError from inside."""
+    egm08 = CRS("EPSG:3855")
+    dem = DEM(truth.heights + 3.0, truth.transform, truth.crs, "geoid", geoid_crs=egm08)
+    step = VerticalShift().fit(truth, dem)
+    out = step.apply(dem)
+    assert out.geoid_crs == egm08
+    chained = (VerticalShift() + Deramp(1)).fit(truth, dem).apply(dem)
+    assert chained.geoid_crs == egm08
+    path = truth.write(tmp_path / "ref.tif")
+    by_path = VerticalShift().fit(path, dem).apply(path)
+    assert by_path.path == str(path)
+    assert step.parameters()["dz"]["value"] == pytest.approx(3.0, abs=0.01)
+    with pytest.raises(DEMError, match="expected a DEM or a path, got ndarray"):
+        step.apply(dem.heights)
