@@ -190,7 +190,9 @@ def file_vertical(path, crs: CRS | None, tag: str | None, given: str | None) -> 
     A ``given`` that contradicts the file is not applied (a default or a template would
     otherwise relabel a correct file: an ellipsoidal stereodem DEM read as EGM96 heights is
     off by the geoid undulation, tens of metres); a warning names the file. A mislabelled
-    file is mended at its source (``gdal_edit.py -a_srs``)."""
+    file is mended at its source (``gdal_edit.py -a_srs``). A ``given`` that is no vertical
+    reference is a :class:`DEMError` whatever the file says."""
+    _check_vertical(given)
     own = _vertical_from_crs(crs) or (tag.lower() if tag else None)
     if own in VERTICALS and given in VERTICALS and given != own:
         log.warning(

@@ -484,3 +484,17 @@ def test_edit_mask_description_names_every_code_written():
     assert f"1-{max(Reason)} filter reason" in text
     for code in EditCode:
         assert str(int(code)) in text, code
+
+
+@pytest.mark.parametrize("given", ["EGM96", "wgs84", "geoïd"])
+def test_from_file_refuses_a_vertical_that_is_none_whatever_the_file_says(tmp_path, given):
+    """``DEM.from_file(path, vertical="EGM96")`` raised a DEMError for a file that says
+    nothing, but for a file that says its reference the bad value was dropped without a word
+    (and so was ``assess_dem(..., dem_vertical="egm96")``): one rule, one error."""
+    said = DEM(
+        np.full((4, 4), 100.0), Affine(30, 0, 500000, 0, -30, 4e6), "EPSG:32637", "ellipsoid"
+    )
+    path = said.write(tmp_path / "said.tif")
+    with pytest.raises(DEMError, match="vertical reference must be 'geoid' or 'ellipsoid'"):
+        DEM.from_file(path, vertical=given)
+    assert DEM.from_file(path, vertical="geoid").vertical == "ellipsoid"  # the file's wins
