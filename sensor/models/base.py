@@ -18,12 +18,14 @@ exact ECEF rays; the generic version builds rays from two localisations.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from stereodem.core import geodesy
-from stereodem.core.errors import SensorModelError
+from stereodem.core.dem import as_dem
+from stereodem.core.errors import DEMError, SensorModelError
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +90,7 @@ class SensorModel:
         ray high above the terrain and ``direction`` a unit vector pointing down the ray. The
         generic version localises each pixel at the two :meth:`height_bounds`.
         """
-        col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
+        col, row = broadcast_coordinates(self, col, row, what="image coordinates")
         hlo, hhi = self.height_bounds()
         lo = np.stack(
             geodesy.geodetic_to_ecef(*self.localize(col, row, hlo), np.full(col.shape, hlo)), -1
@@ -115,14 +117,23 @@ class SensorModel:
 
         Parameters
         ----------
-        dem : stereodem.core.dem.DEM
-            DEM giving ellipsoidal heights (geoid DEMs are converted by the DEM).
+        dem : stereodem.core.dem.DEM, path, or any object with ``sample(lon, lat)``
+            DEM giving ellipsoidal heights (geoid DEMs are converted by the DEM); a path is
+            read with :meth:`~stereodem.core.dem.DEM.from_file`.
         threshold : float
             Convergence threshold on the height change, metres (thesis: 0.1 m).
         max_iterations : int
             Iteration cap (thesis: 30).
         """
-        col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
+        if isinstance(dem, (str, os.PathLike)):
+            dem = as_dem(dem)
+        elif not callable(getattr(dem, "sample", None)):
+            raise DEMError(
+                f"{type(self).__name__}.localize_dem: dem must be a DEM, a DEM file path or "
+                f"anything with sample(lon, lat) -> ellipsoidal heights, got "
+                f"{type(dem).__name__}"
+            )
+        col, row = broadcast_coordinates(self, col, row, what="image coordinates")
         shape = col.shape
         c, r = col.ravel(), row.ravel()
         h = np.full(c.shape, float(h0))
@@ -189,10 +200,10 @@ class SensorModel:
         return float(0.5 * (np.linalg.norm(p[1] - p[0]) + np.linalg.norm(p[2] - p[0])))
 
     def check_inputs(self, *arrays, what="coordinates"):
-        """Raise :class:`SensorModelError` when inputs contain NaN/inf (clear error, no NaN
-        soup)."""
-        for a in arrays:
-            a = np.asarray(a, dtype=float)
+        """Raise :class:`SensorModelError` when inputs are not numbers of shapes that
+        broadcast together (:func:`broadcast_coordinates`) or contain NaN/inf (clear error,
+        no NaN soup)."""
+        for a in broadcast_coordinates(self, *arrays, what=what):
             if not np.all(np.isfinite(a)):
                 raise SensorModelError(
                     f"{type(self).__name__}: non-finite {what} given "
@@ -200,12 +211,32 @@ class SensorModel:
                 )
 
 
+def broadcast_coordinates(model, *arrays, what="coordinates"):
+    """``arrays`` as float64 arrays broadcast to one shape (``np.broadcast_arrays``); a
+    :class:`SensorModelError` naming the model and ``what`` when they are not numbers, or
+    the shapes when they do not broadcast (numpy's ValueError, which named neither)."""
+    try:
+        values = [np.asarray(a, dtype=np.float64) for a in arrays]
+    except (TypeError, ValueError) as exc:
+        raise SensorModelError(
+            f"{type(model).__name__}: {what} must be numbers ({' '.join(str(exc).split())})"
+        ) from None
+    try:
+        return np.broadcast_arrays(*values)
+    except ValueError:
+        shapes = ", ".join(str(v.shape) for v in values)
+        raise SensorModelError(
+            f"{type(model).__name__}: {what} must be of shapes that broadcast together, "
+            f"got {shapes}"
+        ) from None
+
+
 def localize_on_rays(model, col, row, h):
     """``model.localize`` for a model with exact :meth:`SensorModel.rays`: each pixel's line of
     sight intersected with ellipsoidal height ``h`` (m); ``(lon, lat)`` in degrees, NaN where
     the ray misses, in the broadcast shape of the inputs."""
     model.check_inputs(col, row, h, what="image coordinates or heights")
-    col, row, h = np.broadcast_arrays(*(np.asarray(a, float) for a in (col, row, h)))
+    col, row, h = broadcast_coordinates(model, col, row, h)
     o, d = model.rays(col, row)
     lon, lat = ray_to_lonlat(o, d, h)
     return np.asarray(lon, float).reshape(col.shape), np.asarray(lat, float).reshape(col.shape)

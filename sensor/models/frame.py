@@ -32,7 +32,7 @@ import numpy as np
 from stereodem.core import geodesy
 from stereodem.core.errors import SensorModelError
 from stereodem.sensor.geo.rotations import body_to_orbital, orbital_frame
-from stereodem.sensor.models.base import SensorModel, ray_to_lonlat
+from stereodem.sensor.models.base import SensorModel, broadcast_coordinates, ray_to_lonlat
 
 
 @dataclass
@@ -194,7 +194,7 @@ class FrameCamera(SensorModel):
     # ------------------------------------------------------------------ contract
     def rays(self, col, row):
         """Exact ECEF rays ``(origin, unit direction)`` of pixels."""
-        col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
+        col, row = broadcast_coordinates(self, col, row, what="image coordinates")
         x, y = self._distort(*self._pixel_to_photo(col, row))
         d_c = np.stack([x, y, np.full(x.shape, -self.focal_mm)], -1)
         d = d_c @ self._R.T
@@ -203,11 +203,13 @@ class FrameCamera(SensorModel):
 
     def localize(self, col, row, h):
         """Image to ground at ellipsoidal height ``h`` (m): ``(lon, lat)`` in degrees."""
+        col, row, h = broadcast_coordinates(self, col, row, h, what="image coordinates or heights")
         o, d = self.rays(col, row)
         return ray_to_lonlat(o, d, h)
 
     def project(self, lon, lat, h):
         """Ground (deg, deg, m) to image ``(col, row)``; NaN for points behind the camera."""
+        lon, lat, h = broadcast_coordinates(self, lon, lat, h, what="ground coordinates")
         x, y, z = geodesy.geodetic_to_ecef(lon, lat, h)
         d = np.stack([x, y, z], -1) - self.position
         d_c = d @ self._R  # = R^T d, camera frame

@@ -66,7 +66,7 @@ from stereodem.core import geodesy
 from stereodem.core.errors import CRSError, InputError
 from stereodem.sensor.choices import GENERIC_MODEL_NAMES
 from stereodem.sensor.estimation import regularize
-from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.models.base import SensorModel, broadcast_coordinates
 
 log = logging.getLogger(__name__)
 
@@ -454,9 +454,7 @@ class GenericModel(SensorModel):
 
         Non-finite inputs give NaN.
         """
-        lon, lat, h = np.broadcast_arrays(
-            np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float)
-        )
+        lon, lat, h = broadcast_coordinates(self, lon, lat, h, what="ground coordinates")
         ok = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h)
         col = np.full(lon.shape, np.nan)
         row = np.full(lon.shape, np.nan)
@@ -474,9 +472,7 @@ class GenericModel(SensorModel):
         Jacobian, until the image residual is below ``tolerance`` pixels. Points that do not
         converge (outside the model's domain) are NaN.
         """
-        col, row, h = np.broadcast_arrays(
-            np.asarray(col, float), np.asarray(row, float), np.asarray(h, float)
-        )
+        col, row, h = broadcast_coordinates(self, col, row, h, what="image coordinates or heights")
         shape = col.shape
         c, r, hh = col.ravel(), row.ravel(), h.ravel()
         xn = (c - self.norm.image_offset[0]) / self.norm.image_scale[0]

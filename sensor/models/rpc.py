@@ -46,7 +46,7 @@ import numpy as np
 from rasterio.rpc import RPC
 
 from stereodem.core.errors import RPCError, where
-from stereodem.sensor.models.base import SensorModel
+from stereodem.sensor.models.base import SensorModel, broadcast_coordinates
 
 #: RPC00B term order (L = normalised longitude, P = latitude, H = height).
 RPC00B_TERMS = (
@@ -410,9 +410,7 @@ class RPCModel(SensorModel):
         metres above the ellipsoid) and the flattened normalised longitude, latitude and height
         (float64; about [-1, 1] inside the validity range).
         """
-        lon, lat, h = np.broadcast_arrays(
-            np.asarray(lon, np.float64), np.asarray(lat, np.float64), np.asarray(h, np.float64)
-        )
+        lon, lat, h = broadcast_coordinates(self, lon, lat, h, what="ground coordinates")
         return (
             lon.shape,
             (lon.ravel() - self.lon_off) / self.lon_scale,
@@ -426,9 +424,7 @@ class RPCModel(SensorModel):
         Returns ``(shape, c, r, H)``: the broadcast shape and the flattened normalised column
         (sample), row (line) and height (float64).
         """
-        col, row, h = np.broadcast_arrays(
-            np.asarray(col, np.float64), np.asarray(row, np.float64), np.asarray(h, np.float64)
-        )
+        col, row, h = broadcast_coordinates(self, col, row, h, what="image coordinates or heights")
         return (
             col.shape,
             (col.ravel() - self.samp_off) / self.samp_scale,
