@@ -24,6 +24,7 @@ no height there, or when it falls outside the image footprint.
 from __future__ import annotations
 
 import logging
+import os
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -507,6 +508,11 @@ def build_backward_map(
 
 
 def _as_image(image, image_nodata):
+    if isinstance(image, (str, os.PathLike)):
+        raise InputError(
+            f"orthorectify: image must be an array; {image} is a path: read it first "
+            "(stereodem.read_image)"
+        )
     a = np.asarray(image)
     if a.ndim != 2:
         raise InputError(f"orthorectify: expected a 2-D image, got shape {a.shape}")
@@ -830,12 +836,10 @@ def orthorectify(
     dem = as_dem(dem)
     _check_rpc_heights(model, dem)
     img, valid = _as_image(image, image_nodata)
-    if (img.shape[1], img.shape[0]) != (model.width, model.height):
-        log.warning(
-            "image size %s differs from the model's %dx%d",
-            img.shape[::-1],
-            model.width,
-            model.height,
+    if img.shape != (model.height, model.width):
+        raise InputError(
+            f"orthorectify: image shape {img.shape} differs from its model's "
+            f"{(model.height, model.width)} (rows, cols)"
         )
     if grid is None:
         grid = grid_for_model(model, dem, res=res, crs=crs)

@@ -25,6 +25,7 @@ result makes the command exit with status 1 unless ``--force``; the findings are
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -253,6 +254,11 @@ def check_pair(
     default to the arrays' dtypes). Raises :class:`InputError` subclasses with one-line
     messages; returns a :class:`CheckedPair`."""
     for name, img, mdl in (("left", left_image, left_model), ("right", right_image, right_model)):
+        if isinstance(img, (str, os.PathLike)):
+            raise InputError(
+                f"{name} image: expected a 2-D array; {img} is a path: read it first "
+                "(stereodem.read_image)"
+            )
         if np.ndim(img) != 2:
             raise InputError(f"{name} image: expected a 2-D array, got shape {np.shape(img)}")
         if img.shape != (mdl.height, mdl.width):

@@ -855,3 +855,16 @@ def test_result_line_and_tags_give_the_posting_in_the_crs_unit(tmp_path, capsys)
     assert main(["uncertainty", img, "--dem", dem, "--sigma", "dem_height=4", "-o", str(u)]) == 0
     grid = json.loads((u / "sensitivity.json").read_text())["grid"]
     assert grid["res_unit"] == "metre" and grid["res"] == grid["res_m"]
+
+
+def test_an_image_that_is_not_its_models_is_refused(tmp_path):
+    """``orthorectify(image[:50], model, dem)`` (an image of another size than its model
+    describes) only logged a warning and returned an orthoimage of the wrong pixels (NaN
+    where the crop ends; a decimated image's pixels taken for the model's); ``make_dem``
+    refuses the same. A path given as the image was "expected a 2-D
+    image, got shape ()"."""
+    sc = sim.simulate_scene("aster", size=(80, 80), seed=0, n_points=1)
+    with pytest.raises(InputError, match=r"image shape \(50, 80\) differs from its model's"):
+        orthorectify(sc.left[:50], sc.left_model, sc.truth_dem, res=30.0)
+    with pytest.raises(InputError, match=r"left.tif is a path: read it first"):
+        orthorectify(str(tmp_path / "left.tif"), sc.left_model, sc.truth_dem, res=30.0)

@@ -118,3 +118,14 @@ def test_a_model_that_sees_no_ground_is_named_not_its_coordinates(sim, tmp_path,
     )
     assert code == 1 and len(err.splitlines()) == 1
     assert "the left image's sensor model localises none of its pixels on the Earth" in err
+
+
+def test_a_path_given_as_an_image_says_to_read_it(sim):
+    """``make_dem("left.tif", ...)`` said "expected a 2-D array, got shape ()"."""
+    with pytest.raises(StereodemError, match=r"left image: .*left.tif is a path: read it first"):
+        make_dem(
+            str(sim / "left.tif"),
+            read_image(sim / "right.tif"),
+            load_image_model(sim / "left.tif"),
+            load_image_model(sim / "right.tif"),
+        )
