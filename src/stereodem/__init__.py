@@ -21,8 +21,8 @@ except PackageNotFoundError:  # running from a source tree without installation
 #: public name -> defining module
 _API = {
     # core: errors, rasters, grids, the DEM type
-    # (every class of stereodem.core.errors: what the public functions raise can be caught
-    # by its own name from here)
+    # (every StereodemError subclass: what the public functions raise can be caught by its
+    # own name from here)
     "StereodemError": "stereodem.core.errors",
     "InputError": "stereodem.core.errors",
     "RPCError": "stereodem.core.errors",
@@ -35,6 +35,11 @@ _API = {
     "OutputExistsError": "stereodem.core.errors",
     "OutputWriteError": "stereodem.core.errors",
     "ConvergenceError": "stereodem.core.errors",
+    # ... and those defined beside what raises them (make_dem, run)
+    "SparseMatchError": "stereodem.stereo.sparse",
+    "SuspectResultError": "stereodem.stereo.sanity",
+    "OtherJobTilesError": "stereodem.stereo.execution",
+    "OutputLockedError": "stereodem.outlock",
     "DEM": "stereodem.core.dem",
     "MapGrid": "stereodem.core.grid",
     "read_image": "stereodem.core.raster",

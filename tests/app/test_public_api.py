@@ -77,6 +77,30 @@ def test_every_error_class_is_public():
     assert all(getattr(stereodem, n) is getattr(errors, n) for n in classes)
 
 
+def _subclasses(cls):
+    for sub in cls.__subclasses__():
+        yield sub
+        yield from _subclasses(sub)
+
+
+def test_every_error_the_public_functions_raise_is_public():
+    """Every :class:`StereodemError` subclass of the library, wherever it is defined, is a
+    public name. ``make_dem`` raised ``SparseMatchError`` (too few sparse matches) and
+    ``stereodem.run`` ``SuspectResultError`` and ``OutputLockedError``, which
+    ``from stereodem import ...`` could not import (only ``stereodem.core.errors``' classes
+    were public)."""
+    for name in stereodem.__all__:  # every module the public names live in, and its imports
+        getattr(stereodem, name)
+    found = {
+        c.__name__: c
+        for c in _subclasses(errors.StereodemError)
+        if c.__module__.startswith("stereodem.")
+    }
+    assert {"SparseMatchError", "SuspectResultError", "OutputLockedError"} <= set(found)
+    assert set(found) <= set(stereodem.__all__)
+    assert all(getattr(stereodem, n) is c for n, c in found.items())
+
+
 @pytest.mark.parametrize("cfg", ["job.toml", None])
 def test_run_given_no_config_says_what_it_takes(cfg):
     """``stereodem.run("job.toml")`` (or None) failed with an AttributeError from inside the
