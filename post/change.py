@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from stereodem.core.blocks import default_threads
-from stereodem.core.dem import DEM
+from stereodem.core.dem import DEM, as_dem
 from stereodem.core.errors import InputError
 
 from . import terrain, warp
@@ -39,7 +39,8 @@ def dem_change(
 
     ``threads``: threads of the warp onto A's grid, the curvature and the σ map (default: the
     process's budget, :func:`stereodem.core.blocks.default_threads`); the numbers do not
-    depend on it."""
+    depend on it. ``dem_a``/``dem_b`` may be DEM file paths."""
+    dem_a, dem_b = as_dem(dem_a), as_dem(dem_b)
     threads = default_threads() if threads is None else int(threads)
     dem_b, vnote = reconcile_vertical(dem_b, dem_a)
     warp.check_overlap(

@@ -306,13 +306,18 @@ def area_mean_sigma(
         a = np.asarray(area, bool)
 
         e, n = local_metric_coords(transform, crs, a.shape)
-        sig = np.broadcast_to(np.asarray(sigma, float), a.shape)
+        sig = _sigma_on(sigma, a.shape, "area")
         keep = a & np.isfinite(sig)
         xy = np.column_stack([e[keep], n[keep]])
         s = sig[keep]
     else:
         xy = np.asarray(area, float)
-        s = np.broadcast_to(np.asarray(sigma, float), (xy.shape[0],)).copy()
+        if xy.ndim != 2 or xy.shape[1] != 2:
+            raise InputError(
+                f"area mean: area must be a bool grid (with its transform) or (n, 2) "
+                f"coordinates in metres, got shape {xy.shape}"
+            )
+        s = _sigma_on(sigma, (xy.shape[0],), "area's points").copy()
     n_cells = xy.shape[0]
     if n_cells == 0:
         raise InputError("area mean: the area holds no cell")
@@ -338,6 +343,18 @@ def area_mean_sigma(
         "n_effective": float(mean_var / var) if var > 0 else float("inf"),
         "sigma_naive": float(np.sqrt(mean_var / n_cells)),
     }
+
+
+def _sigma_on(sigma, shape, what):
+    """``sigma`` (scalar or per cell) broadcast to ``shape``; an :class:`InputError` naming
+    both shapes when it does not fit (numpy's broadcast ValueError before)."""
+    sig = np.asarray(sigma, float)
+    try:
+        return np.broadcast_to(sig, shape)
+    except ValueError:
+        raise InputError(
+            f"area mean: sigma of shape {sig.shape} does not fit the {what} {tuple(shape)}"
+        ) from None
 
 
 def _pair_products(s):

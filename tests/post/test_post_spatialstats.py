@@ -11,6 +11,7 @@ import pytest
 from affine import Affine
 
 import stereodem.post.spatialstats as ss
+from stereodem.core.errors import InputError
 from stereodem.post.spatialstats import (
     EmpiricalVariogram,
     VariogramModel,
@@ -120,3 +121,19 @@ def test_heteroscedasticity_is_the_same_on_any_number_of_threads(monkeypatch, wi
     monkeypatch.setattr(ss, "CHUNK", 1000)  # 11 pieces of the cells, 10 of the stable ones
     for threads in (1, 2, 3):
         assert _same(heteroscedasticity(dh, slope, curv, threads=threads, **kw), whole)
+
+
+def test_area_mean_sigma_of_a_sigma_that_does_not_fit_the_area_is_one_line():
+    """A per-cell σ of another grid's shape, or (n,) coordinates instead of (n, 2), raised
+    numpy's "operands could not be broadcast" ValueError / an IndexError from inside."""
+    model = VariogramModel(np.array([100.0]), np.array([1.0]))
+    area = np.zeros((40, 40), bool)
+    area[10:20, 10:20] = True
+    with pytest.raises(InputError, match=r"sigma of shape \(10, 10\) does not fit the area"):
+        area_mean_sigma(model, area, T, CRS, sigma=np.ones((10, 10)))
+    with pytest.raises(InputError, match=r"\(n, 2\) coordinates in metres, got shape \(5,\)"):
+        area_mean_sigma(model, np.arange(5.0))
+    xy = np.column_stack([np.arange(5.0) * 30, np.zeros(5)])
+    with pytest.raises(InputError, match=r"sigma of shape \(4,\) does not fit"):
+        area_mean_sigma(model, xy, sigma=np.ones(4))
+    assert area_mean_sigma(model, xy, sigma=np.ones(5))["n_cells"] == 5

@@ -25,6 +25,7 @@ from stereodem.core.raster import write_geotiff
 from stereodem.core.stats import nmad
 from stereodem.core.threads import pool_initializer, worker_threads
 from stereodem.post import stack as st
+from stereodem.post.change import dem_change
 from stereodem.post.clouds import CloudSettings, cloud_mask
 from stereodem.post.dates import date_from_metadata, dem_dates
 from stereodem.post.gp import GPSettings, gp_rates
@@ -598,3 +599,17 @@ def test_change_no_overlap_names_dem_a_not_a_reference(tmp_path, capsys):
     assert rc == 1 and len(se.strip().splitlines()) == 1, se
     assert f"does not overlap DEM_A {a}" in se and "reference" not in se
     assert not out.exists()
+
+
+def test_dem_change_takes_dem_paths(tmp_path):
+    """``dem_change("a.tif", "b.tif")`` raised AttributeError ('str' object has no attribute
+    'vertical'); every other public DEM function takes a path too."""
+    full = DEM.bundled()
+    a = DEM(full.heights[:80, :80].copy(), full.transform, full.crs, "geoid")
+    noise = np.random.default_rng(0).normal(0, 0.3, a.shape).astype(np.float32)
+    b = DEM(a.heights + 2.0 + noise, a.transform, a.crs, "geoid")
+    pa, pb = a.write(tmp_path / "a.tif"), b.write(tmp_path / "b.tif")
+    out = dem_change(pa, pb, chain="vshift")
+    assert abs(float(np.nanmedian(out["dh"]))) < 0.05
+    with pytest.raises(DEMError, match="expected a DEM or a path, got ndarray"):
+        dem_change(a.heights, b)
