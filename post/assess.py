@@ -21,7 +21,7 @@ from __future__ import annotations
 import csv
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -31,7 +31,7 @@ import rasterio.warp
 from affine import Affine
 
 from stereodem.core import geodesy, interrupt
-from stereodem.core.dem import DEM, as_dem, to_vertical_of
+from stereodem.core.dem import DEM, as_dem, file_vertical, to_vertical_of
 from stereodem.core.errors import (
     CRSError,
     DEMError,
@@ -648,11 +648,16 @@ def blockwise_comparison(
 
 
 def _with_vertical(d, vertical: str | None) -> DEM:
-    """``d`` (a :class:`DEM` or a path) as a DEM whose vertical reference is ``vertical`` when
-    given; anything else is a :class:`DEMError` naming its type (:func:`as_dem`)."""
+    """``d`` (a :class:`DEM` or a path) as a DEM, ``vertical`` its vertical reference where
+    it says none, by the rule of the files (:func:`~stereodem.core.dem.file_vertical`): a
+    ``vertical`` that contradicts a DEM's own is not applied, with a warning naming it (a
+    DEM object was relabelled: an ellipsoidal DEM given ``dem_vertical="geoid"`` came out
+    tens of metres off, where its file was read as ellipsoidal). Anything else is a
+    :class:`DEMError` naming its type (:func:`as_dem`)."""
     if not isinstance(d, DEM):
         return as_dem(d, vertical=vertical)
-    return d if vertical is None else DEM(d.heights, d.transform, d.crs, vertical, d.path)
+    vert = file_vertical(d.path or "DEM", None, d.vertical, vertical)
+    return d if vert == d.vertical else replace(d, vertical=vert)
 
 
 def assess_dem(
@@ -692,7 +697,9 @@ def assess_dem(
     checkpoints : path or (x, y, z) arrays, optional
         See :func:`assess_checkpoints`.
     dem_vertical, ref_vertical : {"geoid", "ellipsoid"}, optional
-        Override the vertical references read from the files.
+        The vertical references of a DEM that says none (a file without one in its CRS or
+        tags, a :class:`DEM` whose ``vertical`` is None); one that contradicts what the DEM
+        says is not applied, with a warning (:func:`~stereodem.core.dem.file_vertical`).
     threads : int
         Threads for the blocks of :func:`blockwise_comparison` (the result does not depend
         on it).

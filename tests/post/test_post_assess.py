@@ -90,6 +90,23 @@ def test_vertical_references_reconciled(ref):
     assert abs(ok.report["stats"]["mean"]) < 0.01
 
 
+def test_a_vertical_given_for_a_dem_that_says_its_own_is_not_applied(ref, tmp_path, caplog):
+    """``assess_dem(ell, ref, dem_vertical="geoid")`` relabelled an ellipsoidal DEM object as
+    geoid heights (a +29 m mean difference here) while the same DEM given as its file was read
+    as ellipsoidal, with a warning: one rule for files and DEM objects. A DEM above EGM2008
+    kept its geoid too (it was rebuilt without ``geoid_crs``)."""
+    ell = DEM(ref.to_reference("ellipsoid").heights, ref.transform, ref.crs, "ellipsoid", "e.tif")
+    path = ell.write(tmp_path / "e.tif")
+    for dem in (ell, path):
+        caplog.clear()
+        res = assess.assess_dem(dem, ref, dem_vertical="geoid")
+        assert res.report["vertical"]["dem"] == "ellipsoid"
+        assert abs(res.report["stats"]["mean"]) < 0.01
+        assert "e.tif: the file says ellipsoid heights" in caplog.text
+    egm08 = DEM(ref.heights, ref.transform, ref.crs, "geoid", geoid_crs=CRS("EPSG:3855"))
+    assert assess._with_vertical(egm08, "geoid") is egm08
+
+
 def test_bad_inputs_are_clear_errors(ref):
     far = DEM(ref.heights, Affine.translation(20, 0) @ ref.transform, ref.crs, "geoid", "far.tif")
     with pytest.raises(NoOverlapError, match="far.tif"):
