@@ -36,7 +36,7 @@ from scipy import ndimage
 
 from stereodem.core import geodesy
 from stereodem.core.blocks import default_threads
-from stereodem.core.dem import DEM, as_dem
+from stereodem.core.dem import DEM, as_dem, to_vertical_of
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.stats import nmad
 
@@ -348,10 +348,17 @@ class Coreg(abc.ABC):
         from north) for ``along_track``/``cross_track``; ``track_frame``
         (:class:`~stereodem.post.track.TrackFrame`, in the DEM's CRS): the sensor model's
         along/cross-track coordinates, used by those steps instead of the heading's straight
-        track. ``ref`` and ``dem`` may also be DEM file paths. Returns ``self``."""
+        track. ``ref`` and ``dem`` may also be DEM file paths. A reference in another
+        vertical reference than the DEM's is converted to the DEM's
+        (:func:`~stereodem.core.dem.to_vertical_of`: a geoid reference for an ellipsoidal
+        DEM was compared as it was, the geoid undulation fitted as a shift); one known and
+        the other not is a :class:`VerticalReferenceError`. Returns ``self``."""
         dem = as_dem(dem)
         if not isinstance(ref, AltimetryPoints):
             ref = as_dem(ref)
+        if ref.vertical != dem.vertical:
+            ref, note = to_vertical_of(ref, dem, name="reference")
+            log.info("co-registration: %s", note)
         chain = self._as_chain()
         sampler = make_sampler(ref, dem, stable, max_samples=max_samples, seed=seed)
         context = {

@@ -367,3 +367,22 @@ def test_apply_keeps_the_dems_geoid_and_takes_a_path(truth, tmp_path):
     assert step.parameters()["dz"]["value"] == pytest.approx(3.0, abs=0.01)
     with pytest.raises(DEMError, match="expected a DEM or a path, got ndarray"):
         step.apply(dem.heights)
+
+
+def test_fit_brings_the_reference_to_the_dems_vertical_reference(truth):
+    """``NuthKaab().fit(geoid_ref, ellipsoidal_dem)`` compared the two as they were: the
+    geoid undulation (~30 m here) came out as ``dz`` and ``apply`` moved the ellipsoidal
+    heights onto the geoid's, still labelled ellipsoidal. ``coregister`` converted the
+    reference first; ``fit`` now does. One side unknown is refused."""
+    dem = truth.to_reference("ellipsoid")
+    dem = DEM(dem.heights + 2.0, dem.transform, dem.crs, "ellipsoid")
+    step = VerticalShift().fit(truth, dem)
+    assert step.parameters()["dz"]["value"] == pytest.approx(2.0, abs=0.01)
+    out = step.apply(dem)
+    assert out.vertical == "ellipsoid"
+    assert np.nanmedian(out.heights - truth.to_reference("ellipsoid").heights) == pytest.approx(
+        0.0, abs=0.01
+    )
+    unknown = DEM(truth.heights, truth.transform, truth.crs, None)
+    with pytest.raises(VerticalReferenceError, match="vertical reference unknown"):
+        VerticalShift().fit(truth, unknown)
