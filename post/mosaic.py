@@ -39,6 +39,7 @@ the mosaic's size or the number of DEMs.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from typing import NamedTuple
@@ -220,6 +221,7 @@ def plan_mosaic(
         One line naming the file: unreadable, no CRS, not north-up, vertical reference
         unknown among known ones, or no DEM overlapping the extent.
     """
+    paths = [paths] if isinstance(paths, str | os.PathLike) else list(paths)  # one file
     if method not in METHODS:
         raise InputError(f"--method {method!r}: expected one of {', '.join(METHODS)}")
     if int(block) < 16:

@@ -14,6 +14,7 @@ beside it on the same grid (as ``stereodem uncertainty`` writes).
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -169,6 +170,11 @@ def open_sources(paths, *, vertical: str | None = None) -> list[Source]:
         raise InputError("no DEM given")
     seen = {}
     for p in paths:
+        if not isinstance(p, str | os.PathLike):  # a DEM object, an array: read block by block
+            raise InputError(
+                f"a mosaic reads its DEMs from files, block by block: got a "
+                f"{type(p).__name__} among the paths (write it first: DEM.write)"
+            )
         key = str(Path(p).resolve())
         if key in seen:
             raise InputError(f"{p}: given twice (also as {seen[key]})")

@@ -26,7 +26,7 @@ import stereodem.post.mosaic as pm
 from stereodem.cli import main
 from stereodem.core import geodesy, threads
 from stereodem.core.dem import DEM as _DEM
-from stereodem.core.errors import VerticalReferenceError
+from stereodem.core.errors import InputError, VerticalReferenceError
 from stereodem.core.grid import MapGrid
 from stereodem.core.raster import write_geotiff
 from stereodem.options import posting
@@ -846,3 +846,12 @@ def test_result_line_gives_the_posting_with_its_unit(tmp_path, capsys):
     g = MapGrid(Affine(0.000833, 0, 40, 0, -0.000833, 39), 4, 4, PCRS("EPSG:4326"))
     assert posting(g) == "0.000833°"
     assert posting(MapGrid(t, 4, 4, PCRS("EPSG:2227"))) == "30 US survey foot"
+
+
+def test_plan_mosaic_of_dem_objects_or_one_path_is_clear(tmp_path):
+    """``plan_mosaic([dem_a, dem_b])`` with DEM objects raised pathlib's TypeError from
+    inside; one path (not in a list) was taken character by character."""
+    a = write_dem(tmp_path / "a.tif", 0, 0, 40, 40)
+    with pytest.raises(InputError, match=r"reads its DEMs from files.*got a DEM"):
+        plan_mosaic([a, _DEM.from_file(a)])
+    assert plan_mosaic(a).grid.shape == plan_mosaic([a]).grid.shape
