@@ -634,6 +634,29 @@ class DEM:
         except InputError as exc:
             raise DEMError(f"{self.path or 'DEM'}: {exc}") from None
 
+    def __repr__(self) -> str:
+        """One line, as xdem's and rasterio's objects print: ``DEM('dem.tif', 600 x 600
+        cells of 30 m, EPSG:32637, vertical ellipsoid, heights 1104..3272 m, 97.2 % valid,
+        layers count, score)`` (the dataclass's own repr printed the arrays and the CRS's
+        whole description, about 30 lines)."""
+        rows, cols = self.shape
+        z = self.heights
+        valid = np.isfinite(z)
+        n = int(np.count_nonzero(valid))
+        heights = f"heights {np.nanmin(z):.6g}..{np.nanmax(z):.6g} m" if n else "no height"
+        epsg = self.crs.to_epsg()
+        crs = f"EPSG:{epsg}" if epsg else repr(self.crs.name)
+        vertical = self.vertical or "unknown"
+        if self.vertical == GEOID and self.geoid_crs is not None:
+            vertical = f"geoid ({self.geoid_crs.name})"
+        layers = [name for name in LAYERS if getattr(self, name, None) is not None]
+        return (
+            f"DEM({self.path!r}, {rows} x {cols} cells of {self.grid.posting_text}, {crs}, "
+            f"vertical {vertical}, {heights}, {100 * n / max(z.size, 1):.1f} % valid"
+            + (f", layers {', '.join(layers)}" if layers else "")
+            + ")"
+        )
+
     @property
     def shape(self):
         return self.heights.shape

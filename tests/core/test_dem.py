@@ -498,3 +498,14 @@ def test_from_file_refuses_a_vertical_that_is_none_whatever_the_file_says(tmp_pa
     with pytest.raises(DEMError, match="vertical reference must be 'geoid' or 'ellipsoid'"):
         DEM.from_file(path, vertical=given)
     assert DEM.from_file(path, vertical="geoid").vertical == "ellipsoid"  # the file's wins
+
+
+def test_repr_is_one_line_with_the_grid_reference_and_heights():
+    """The dataclass repr printed the arrays and the CRS's whole description (about 30
+    lines); one line says what a DEM is, as xdem's and rasterio's objects do."""
+    d = DEM.bundled()
+    text = repr(d)
+    assert "\n" not in text and len(text) < 200
+    assert text.startswith("DEM(") and "srtm_ref.tif" in text
+    assert "1000 x 1000 cells of 0.000833333°, EPSG:4326, vertical geoid" in text
+    assert "heights 1111..3270 m, 100.0 % valid" in text
