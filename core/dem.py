@@ -566,8 +566,15 @@ class DEM:
                 if not 1 <= band <= ds.count:
                     raise DEMError(f"{path}: no band {band} (the file has {ds.count})")
                 if ds.count > 1:  # an image given as a DEM, or a DEM with other layers
-                    log.warning(
-                        "%s: %d bands; the heights are read from band %d", path, ds.count, band
+                    # a band described as heights (stereodem's mosaic: height, sigma, count)
+                    # is what was asked for; any other multi-band file may be an image
+                    said = (ds.descriptions[band - 1] or "").lower().startswith("height")
+                    log.log(
+                        logging.INFO if said else logging.WARNING,
+                        "%s: %d bands; the heights are read from band %d",
+                        path,
+                        ds.count,
+                        band,
                     )
                 flags = ds.mask_flag_enums[band - 1]
                 if all(f in (MaskFlags.nodata, MaskFlags.all_valid) for f in flags):

@@ -316,6 +316,13 @@ def test_a_multi_band_file_read_as_a_dem_says_which_band(tmp_path, caplog):
     assert "two.tif: 2 bands; the heights are read from band 1" in caplog.text
     with pytest.raises(DEMError, match="two.tif: no band 3"):
         DEM.from_file(path, band=3)
+    # a band described as heights (stereodem's mosaic: height, sigma): said at info level
+    with rasterio.open(path, "r+") as ds:
+        ds.descriptions = ("height above the WGS84 ellipsoid", "sigma (1-sigma, propagated)")
+    caplog.clear()
+    with caplog.at_level("INFO", logger="stereodem.core.dem"):
+        DEM.from_file(path)
+    assert [r.levelname for r in caplog.records if "2 bands" in r.getMessage()] == ["INFO"]
 
 
 def test_heights_in_feet_are_read_in_metres(tmp_path):
