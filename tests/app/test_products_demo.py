@@ -31,18 +31,24 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo") / "out"
+    r = _stereodem("demo", "-o", str(out), "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def _stereodem(*args):
+    """``python -m stereodem.cli ARGS`` under the usual umask (022): the products' permissions
+    are checked."""
     old = os.umask(0o022)
     try:
-        r = subprocess.run(
-            [sys.executable, "-m", "stereodem.cli", "demo", "-o", str(out), "--workers", "1"],
+        return subprocess.run(
+            [sys.executable, "-m", "stereodem.cli", *args],
             capture_output=True,
             text=True,
             timeout=900,
         )
     finally:
         os.umask(old)
-    assert r.returncode == 0, r.stderr
-    return out
 
 
 def test_every_demo_raster_is_a_valid_cog(demo):
@@ -104,15 +110,6 @@ def test_the_demo_configuration_runs_as_its_first_line_says(demo):
     first = (demo / "demo.toml").read_text(encoding="utf-8").splitlines()[0]
     command = first.split("run again with: ", 1)[1].split()
     assert command[:2] == ["stereodem", "run"], first
-    old = os.umask(0o022)
-    try:
-        r = subprocess.run(
-            [sys.executable, "-m", "stereodem.cli", *command[1:], "--workers", "1"],
-            capture_output=True,
-            text=True,
-            timeout=900,
-        )
-    finally:
-        os.umask(old)
+    r = _stereodem(*command[1:], "--workers", "1")
     assert r.returncode == 0, r.stderr
     assert json.loads((demo / "result" / "run.json").read_text())["status"] == "ok"
