@@ -22,7 +22,12 @@ data snooping rejects whole points whose largest standardised residual exceeds B
 
 Datum: tie points fix only the relative orientation of the images. GCPs fix the datum; without
 them one image is held fixed (``fixed``, default the first), or priors on every parameter
-hold it; otherwise the near-singular normal matrix is reported, naming the parameters.
+hold it; otherwise the near-singular normal matrix is reported, naming the parameters. Holding
+one image is not a full datum: a common height offset of the ties moves each other image along
+its epipolar lines and nothing else, so without GCPs the free images' image-space corrections
+get the pair's datum priors about their start values
+(:data:`stereodem.sensor.estimation.adjust.bundle.DATUM_PRIOR_SIGMA_PX`), as
+:func:`~stereodem.sensor.estimation.adjust.bundle.bundle_adjust` does.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
 from stereodem.sensor.estimation.adjust import schur
 from stereodem.sensor.estimation.adjust.bundle import (
+    _datum_priors,
     _resolve,
     gcp_block,
     initial_ground,
@@ -478,6 +484,9 @@ def bundle_adjust_images(
     ms = [r[0] for r in resolved]
     nms = [r[1] for r in resolved]
     prs = [r[2] for r in resolved]
+    if not has_gcp:  # a common height offset of the ties moves every free image along its
+        # epipolar lines: datum priors about the start values, as in the pair's bundle
+        prs = [_datum_priors(m, nm, pr) for m, nm, pr in zip(ms, nms, prs)]
     sets = [r[3] for r in resolved]
     gcp_sets, chk_sets, sig_sets, known_all = [], [], [], []
     for k, g in enumerate(gcps):
