@@ -40,7 +40,7 @@ from stereodem.core.errors import (
     VerticalReferenceError,
 )
 from stereodem.core.raster import check_map_raster
-from stereodem.sensor.io.gcps import ROLES
+from stereodem.sensor.io.gcps import parse_roles
 
 from . import stats as st
 from . import terrain, warp
@@ -851,13 +851,7 @@ def _check_roles(path, roles, *, quiet: bool = False) -> np.ndarray:
     (an empty role is ``gcp``, as :func:`stereodem.sensor.io.gcps.read_gcps` reads it);
     an unknown role, or no check point at all, is an :class:`InputError` naming the file.
     The GCPs left out are logged unless ``quiet``."""
-    role = np.array([(r or "").strip().lower() or "gcp" for r in roles], dtype=str)
-    unknown = sorted(set(role) - set(ROLES))
-    if unknown:
-        raise InputError(
-            f"{path}: unknown role(s) {', '.join(unknown)} in the check points "
-            "(expected gcp or check)"
-        )
+    role = parse_roles(roles, f"{path}: ")
     keep = role == "check"
     if not keep.any():
         raise InputError(

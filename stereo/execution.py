@@ -143,18 +143,18 @@ def _points_left(inputs, tiles, resume, cache_dir):
     folder = getattr(inputs, "points_dir", None)
     if not resume or folder is None or cache_dir is None:
         return None
-    missing = [
+    missing = {
         t.index
         for t in tiles
         if cache_file(cache_dir, t).exists() and not points_file(folder, t.index).exists()
-    ]
+    }
     if missing:
         log.info(
             "resume: %d cached tile(s) recomputed for the point cloud (their point files "
             "are gone: a finished job's merge removes them)",
             len(missing),
         )
-    return lambda t: points_file(folder, t.index).exists()
+    return lambda t: t.index not in missing  # each file looked at once, here
 
 
 def _share_images(inputs, directory):

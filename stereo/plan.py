@@ -30,25 +30,16 @@ __all__ = [
 ]
 
 
-def scene_lonlat(left, right, *, samples: int = 9):
-    """Ground points (lon, lat in degrees) of the left image's footprint: a ``samples`` x
-    ``samples`` grid of its pixels localised at both ends of the pair's validity range
-    (:func:`~stereodem.sensor.models.base.pair_height_bounds`, within -500..9000 m)."""
+def scene_lonlat(left, right):
+    """Ground points (lon, lat in degrees) of the left image's footprint: its border
+    (:meth:`~stereodem.sensor.models.base.SensorModel.footprint`) at both ends of the pair's
+    validity range (:func:`~stereodem.sensor.models.base.pair_height_bounds`, within
+    -500..9000 m)."""
     lo, hi = pair_height_bounds(left, right)
     lo, hi = max(min(lo, hi), -500.0), min(max(lo, hi), 9000.0)
-    c, r = (
-        a.ravel()
-        for a in np.meshgrid(
-            np.linspace(0, left.width - 1, samples), np.linspace(0, left.height - 1, samples)
-        )
-    )
-    lons, lats = [], []
-    for h in (lo, hi):
-        with np.errstate(invalid="ignore"):
-            lon, lat = left.localize(c, r, np.full(c.size, h))
-        lons.append(np.asarray(lon, float))
-        lats.append(np.asarray(lat, float))
-    return np.concatenate(lons), np.concatenate(lats)
+    with np.errstate(invalid="ignore"):
+        outlines = [left.footprint(h) for h in (lo, hi)]
+    return tuple(np.concatenate([np.asarray(o[k], float) for o in outlines]) for k in (0, 1))
 
 
 def seed_height_range(seed_dem, left, right) -> tuple[float, float]:

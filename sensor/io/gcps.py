@@ -31,6 +31,7 @@ __all__ = [
     "ControlPoints",
     "csv_rows",
     "read_gcps",
+    "parse_roles",
     "write_gcps",
     "GCP_COLUMNS",
     "OPTIONAL_COLUMNS",
@@ -41,6 +42,17 @@ GCP_COLUMNS = ("id", "lon", "lat", "h", "col", "row")
 #: optional columns
 OPTIONAL_COLUMNS = ("sigma_px", "sigma_ground_m", "role")
 ROLES = ("gcp", "check")
+
+
+def parse_roles(values, where: str = "") -> np.ndarray:
+    """A ``role`` column's values as :data:`ROLES` (case and spaces ignored; empty is
+    ``gcp``); an unknown role is an :class:`InputError` (``where``: its prefix, e.g.
+    ``"pts.csv: "``). The one rule of every reader of point CSVs with roles."""
+    role = np.array([(v or "").strip().lower() or "gcp" for v in values], dtype=str)
+    unknown = sorted(set(role) - set(ROLES))
+    if unknown:
+        raise InputError(f"{where}unknown role(s) {', '.join(unknown)} (expected gcp or check)")
+    return role
 
 
 @dataclass
@@ -221,12 +233,7 @@ def read_gcps(path, *, vertical: str = "ellipsoid") -> ControlPoints:
             + (" ..." if dup.size > 5 else "")
         )
     if "role" in col_of:
-        role = np.array([s.strip().lower() or "gcp" for s in col_of["role"]], dtype=str)
-        unknown = sorted(set(role) - set(ROLES))
-        if unknown:
-            raise InputError(
-                f"{where(path)}unknown role(s) {', '.join(unknown)} (expected gcp or check)"
-            )
+        role = parse_roles(col_of["role"], where(path))
     else:
         role = np.full(ids.shape, "gcp")
     h = values["h"]

@@ -264,20 +264,13 @@ def remove_products_in_background(folder, *, keep_tiles: bool, products: Product
     Deleting a previous job's half gigabyte of tiles and rasters took 0.2-0.4 s, mostly in
     the kernel, before any work could start. A job killed meanwhile leaves the hidden folder,
     which the next ``--overwrite`` removes as one of the products (:data:`PRODUCTS`)."""
-    folder = Path(folder)
-    removed, paths = _products_to_remove(folder, keep_tiles, products)
-    if not paths:
-        return removed, None
-    trash = folder / f"{REMOVING_PREFIX}{os.getpid()}-{time.monotonic_ns()}"
-    try:
-        trash.mkdir()
-        for p in paths:
-            p.rename(trash / p.name)
-    except OSError:  # one could not be moved: all are deleted here and now
-        for p in (*paths, trash):
-            if p.exists() or p.is_symlink():
-                _delete(p)
-        return removed, None
+    try:  # out of the job's way at once: the rename of set_aside_products
+        trash = set_aside_products(folder, products=products, keep_tiles=keep_tiles, verb="removed")
+    except OutputExistsError:  # one could not be moved (the others are back): deleted here
+        return remove_products(folder, keep_tiles=keep_tiles, products=products), None
+    if trash is None:
+        return [], None
+    removed = sorted(p.name for p in trash.iterdir())
     thread = threading.Thread(
         target=shutil.rmtree, args=(trash,), kwargs={"ignore_errors": True}, name="stereodem-rm"
     )
@@ -285,15 +278,18 @@ def remove_products_in_background(folder, *, keep_tiles: bool, products: Product
     return removed, thread
 
 
-def set_aside_products(folder, *, products: Products = JOB) -> Path | None:
-    """Move the previous job's ``products`` except its tile cache into a hidden folder of
-    ``folder`` (a rename each), for a job that continues it (``--resume``): the job may still
-    refuse the tiles or fail before writing anything, and the previous products are then put
-    back (:func:`restore_products`); the job that succeeds deletes them. Returns the hidden
-    folder (None: nothing to set aside). A job killed meanwhile leaves the hidden folder, which
-    the next ``--overwrite`` removes as one of the products (:data:`PRODUCTS`)."""
+def set_aside_products(
+    folder, *, products: Products = JOB, keep_tiles: bool = True, verb: str = "set aside"
+) -> Path | None:
+    """Move the previous job's ``products`` (but its tile cache with ``keep_tiles``) into a
+    hidden folder of ``folder`` (a rename each), for a job that continues it (``--resume``):
+    the job may still refuse the tiles or fail before writing anything, and the previous
+    products are then put back (:func:`restore_products`); the job that succeeds deletes them.
+    Returns the hidden folder (None: nothing to set aside); ``verb`` words the log line. A job
+    killed meanwhile leaves the hidden folder, which the next ``--overwrite`` removes as one of
+    the products (:data:`PRODUCTS`)."""
     folder = Path(folder)
-    _, paths = _products_to_remove(folder, True, products, verb="set aside")
+    _, paths = _products_to_remove(folder, keep_tiles, products, verb=verb)
     if not paths:
         return None
     aside = folder / f"{REMOVING_PREFIX}{os.getpid()}-{time.monotonic_ns()}"
