@@ -185,23 +185,45 @@ def file_vertical(path, crs: CRS | None, tag: str | None, given: str | None) -> 
     """The vertical reference of a DEM file's heights: what the file says (its CRS, else
     stereodem's ``STEREODEM_VERTICAL`` tag ``tag``), else ``given`` (``--dem-vertical``,
     ``--ref-vertical``, a configuration's ``*_vertical``: the reference of files that do not
-    say), else ``None`` (unknown). The one rule of every command and reader.
+    say), else ``None`` (unknown): :func:`said_vertical` with what a DEM file says."""
+    own = _vertical_from_crs(crs) or (tag.lower() if tag else None)
+    return said_vertical(path, own, given)
+
+
+#: how a DEM file that says the wrong vertical reference is mended (:func:`said_vertical`)
+MEND_DEM_FILE = "a mislabelled file is mended with gdal_edit.py -a_srs"
+
+
+def said_vertical(
+    path, own: str | None, given: str | None, *, said_by: str = "", mend: str = MEND_DEM_FILE
+) -> str | None:
+    """The vertical reference of a file's heights: ``own`` (what the file says: a DEM's CRS
+    or tag, :func:`file_vertical`; a point file's height column, ``h_ellipsoid``/``h_geoid``,
+    :func:`stereodem.post.altimetry.read_points`), else ``given`` (``--dem-vertical``,
+    ``--ref-vertical``, a configuration's ``*_vertical``: the reference of files that do not
+    say), else ``None`` (unknown). The one rule of every command and reader of heights, DEMs
+    and points alike.
 
     A ``given`` that contradicts the file is not applied (a default or a template would
-    otherwise relabel a correct file: an ellipsoidal stereodem DEM read as EGM96 heights is
-    off by the geoid undulation, tens of metres); a warning names the file. A mislabelled
-    file is mended at its source (``gdal_edit.py -a_srs``). A ``given`` that is no vertical
-    reference is a :class:`DEMError` whatever the file says."""
-    _check_vertical(given)
-    own = _vertical_from_crs(crs) or (tag.lower() if tag else None)
+    otherwise relabel a correct file: ellipsoidal heights read as EGM96 heights are off by
+    the geoid undulation, tens of metres); a warning names the file (``said_by``: where in
+    it, e.g. `` (column 'h_ellipsoid')``) and how such a file is mended (``mend``). A
+    ``given`` that is no vertical reference is a :class:`DEMError` naming the file, whatever
+    the file says."""
+    try:
+        _check_vertical(given)
+    except DEMError as exc:
+        raise DEMError(f"{path}: {exc}") from None
     if own in VERTICALS and given in VERTICALS and given != own:
         log.warning(
-            "%s: the file says %s heights: read as %s (the %s given applies to files that do "
-            "not say; a mislabelled file is mended with gdal_edit.py -a_srs)",
+            "%s: the file says %s heights%s: read as %s (the %s given applies to files that "
+            "do not say; %s)",
             path,
             own,
+            said_by,
             own,
             given,
+            mend,
         )
     return own or given
 

@@ -4,7 +4,9 @@ Read from CSV (columns ``lon``/``longitude``, ``lat``/``latitude``, ``h``/``h_li
 ``elevation``, optional ``time``) or GeoParquet (the same columns, or a point geometry for
 lon/lat; needs ``pyarrow``). Heights are metres above the ``vertical`` reference, which must
 be said (``ellipsoid`` for ICESat-2) unless the file's column is named ``h_ellipsoid`` or
-``h_geoid``: points in an unsaid datum are refused rather than guessed.
+``h_geoid``: points in an unsaid datum are refused rather than guessed. What the column says
+wins over a ``vertical`` given, with a warning naming the file, by the rule of DEM files
+(:func:`stereodem.core.dem.said_vertical`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 import shapely
 
 from stereodem.core import geodesy
+from stereodem.core.dem import said_vertical
 from stereodem.core.errors import InputError, VerticalReferenceError
 from stereodem.core.vertical import ELLIPSOID, GEOID
 
@@ -24,6 +27,8 @@ _LON = ("lon", "longitude", "x_lon")
 _LAT = ("lat", "latitude", "y_lat")
 _H = ("h", "h_li", "height", "elevation", "h_ellipsoid", "h_geoid", "z")
 _T = ("time", "t", "delta_time", "date")
+#: how a point file whose height column says the wrong reference is mended
+_MEND = "a mislabelled file is mended by renaming its height column (h, h_ellipsoid, h_geoid)"
 
 
 @dataclass
@@ -166,7 +171,13 @@ def _numbers(col, path, name, lines=None):
 
 
 def read_points(path, *, vertical: str | None = None) -> AltimetryPoints:
-    """Read altimetry points from CSV or GeoParquet (see the module docstring)."""
+    """Read altimetry points from CSV or GeoParquet (see the module docstring).
+
+    ``vertical`` (``"geoid"``: EGM96, ``"ellipsoid"``: WGS84) is the reference of heights
+    whose column does not say it; a column that says it (``h_ellipsoid``, ``h_geoid``) wins,
+    a contradicting ``vertical`` being logged as a warning naming the file
+    (:func:`stereodem.core.dem.said_vertical`, the rule of DEM files); neither is a
+    :class:`VerticalReferenceError` (points are not compared in an unknown datum)."""
     path = str(path)
     suffix = Path(path).suffix.lower()
     if not Path(path).is_file():
@@ -198,9 +209,7 @@ def read_points(path, *, vertical: str | None = None) -> AltimetryPoints:
         )
     tc = _pick(names, _T, path, "time", required=False)
     said = {"h_ellipsoid": ELLIPSOID, "h_geoid": GEOID}.get(hc.lower())
-    vert = vertical or said
-    if vertical and said and vertical != said:
-        raise VerticalReferenceError(f"{path}: column {hc!r} says {said} but {vertical} was given")
+    vert = said_vertical(path, said, vertical, said_by=f" (column {hc!r})", mend=_MEND)
     if vert is None:
         raise VerticalReferenceError(
             f"{path}: vertical reference of the point heights not said; "

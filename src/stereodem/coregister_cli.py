@@ -104,7 +104,9 @@ def add_parser(sub):
     p.add_argument(
         "--ref-vertical",
         choices=VERTICALS,
-        help="vertical reference of REF (required for points unless the column says)",
+        help="vertical reference of REF when the file does not say (a DEM's CRS or tag, a "
+        "points file's h_ellipsoid/h_geoid column; a file that says wins, with a warning); "
+        "required for points whose column does not say",
     )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("-o", "--output", required=True, help="output folder")

@@ -448,7 +448,7 @@ def test_coregister_to_altimetry_points_csv_and_geoparquet(points_case, tmp_path
     np.testing.assert_allclose(_residuals(rep_pq)["dh_after"], r["dh_after"], atol=1e-6)
 
 
-def test_altimetry_points_in_another_datum_are_converted(points_case, tmp_path):
+def test_altimetry_points_in_another_datum_are_converted(points_case, tmp_path, caplog):
     """The same points as WGS84 ellipsoidal heights (column ``h_ellipsoid``, datum said by the
     column): converted to the DEM's geoid through EGM96, the same offset is found."""
     d = points_case["dir"]
@@ -463,6 +463,19 @@ def test_altimetry_points_in_another_datum_are_converted(points_case, tmp_path):
     rep = _coregister_points(d / "dem.tif", tmp_path / "ell.csv", tmp_path / "o", "--no-figures")
     assert "converted from ellipsoid to geoid" in rep["vertical"]
     assert rep["steps"][0]["parameters"]["dz"]["value"] == pytest.approx(3.0, abs=0.1)
+    # --ref-vertical contradicting the column: the column wins, with a warning (the rule of
+    # DEM files), where the command stopped on an error
+    with caplog.at_level("WARNING", logger="stereodem.core.dem"):
+        said = _coregister_points(
+            d / "dem.tif",
+            tmp_path / "ell.csv",
+            tmp_path / "g",
+            "--ref-vertical",
+            "geoid",
+            "--no-figures",
+        )
+    assert "ell.csv: the file says ellipsoid heights (column 'h_ellipsoid')" in caplog.text
+    assert said["steps"][0]["parameters"]["dz"] == rep["steps"][0]["parameters"]["dz"]
 
 
 def _box_geojson(path, dem: DEM, boxes):

@@ -234,6 +234,45 @@ def test_points_with_nan_or_unsaid_datum(tmp_path):
     assert read_points(p, vertical="ellipsoid").vertical == "ellipsoid"
 
 
+def test_a_points_file_that_says_its_datum_wins_over_the_option(tmp_path, caplog):
+    """A height column that says its reference (``h_ellipsoid``) contradicted by the option
+    given (``--ref-vertical geoid``): the file wins, with a warning naming the file, as a DEM
+    file's CRS wins (``core.dem.said_vertical``, one rule). It was an error for points
+    ("column 'h_ellipsoid' says ellipsoid but geoid was given") and a warning for DEMs."""
+    p = tmp_path / "pts.csv"
+    p.write_text("lon,lat,h_ellipsoid\n40.1,39.9,1000\n40.2,39.8,1001\n")
+    with caplog.at_level("WARNING", logger="stereodem.core.dem"):
+        pts = read_points(p, vertical="geoid")
+    assert pts.vertical == "ellipsoid" and pts.h.tolist() == [1000.0, 1001.0]
+    assert (
+        "pts.csv: the file says ellipsoid heights (column 'h_ellipsoid'): read as ellipsoid"
+        in caplog.text
+    )
+    assert "renaming its height column" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stereodem.core.dem"):
+        assert read_points(p, vertical="ellipsoid").vertical == "ellipsoid"  # agrees: quiet
+        assert read_points(p).vertical == "ellipsoid"
+    assert not caplog.text
+
+
+def test_the_option_gives_the_datum_of_a_points_file_that_does_not_say(tmp_path, caplog):
+    """The other side of the rule: a column that says nothing (``h``) takes the option given,
+    without a warning; a value that is no vertical reference is refused naming the file,
+    whatever the file says (as ``DEM.from_file``)."""
+    p = tmp_path / "pts.csv"
+    p.write_text("lon,lat,h\n40.1,39.9,1000\n40.2,39.8,1001\n")
+    with caplog.at_level("WARNING", logger="stereodem.core.dem"):
+        assert read_points(p, vertical="geoid").vertical == "geoid"
+        assert read_points(p, vertical="ellipsoid").vertical == "ellipsoid"
+    assert not caplog.text
+    q = tmp_path / "said.csv"
+    q.write_text("lon,lat,h_geoid\n40.1,39.9,1000\n")
+    for path in (p, q):
+        with pytest.raises(DEMError, match=rf"{path.name}: vertical reference must be 'geoid'"):
+            read_points(path, vertical="EGM96")
+
+
 def test_reference_that_does_not_overlap(truth):
     far = DEM(
         truth.heights, truth.transform @ Affine.translation(5000, 0), truth.crs, "geoid", "far.tif"
