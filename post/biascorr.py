@@ -23,6 +23,7 @@ from scipy import optimize
 from stereodem.core import geodesy
 from stereodem.core.blocks import default_threads, each_fixed_band
 from stereodem.core.errors import ConvergenceError, InputError
+from stereodem.core.grid import crs_unit
 from stereodem.core.stats import nmad
 
 from . import shift_units, terrain, warp
@@ -261,9 +262,52 @@ def _poly_names(order, a="e", b="n"):
     return [f"c_{a}{k - j}{b}{j}" for k in range(order + 1) for j in range(k + 1)]
 
 
+def _poly_degrees(order):
+    """The total degree of each column of :func:`_poly_terms` (constant first)."""
+    return [k for k in range(order + 1) for _ in range(k + 1)]
+
+
+def per_power(degree: int, of: str = "m") -> str:
+    """The unit of a polynomial coefficient of ``dh`` (metres) for a term of ``degree`` in a
+    coordinate measured in ``of``: ``"m"``, ``"m/m"``, ``"m/m^2"``, ``"m/(1/100 m)"``."""
+    if degree == 0:
+        return "m"
+    of = of if len(of.split()) == 1 else f"({of})"
+    return f"m/{of}" + (f"^{degree}" if degree > 1 else "")
+
+
+def _poly_params(names, degrees, coef, sd, scale: float, of: str = "m") -> dict:
+    """Reported polynomial coefficients: those fitted on coordinates divided by ``scale``
+    (10 km: a well-conditioned fit) given per ``of`` (metre) of the coordinate itself,
+    value and σ divided by ``scale ** degree``, with :func:`per_power`'s unit (a plane's
+    slope in m/m, as xdem's coefficients on a metre grid; it was labelled "m")."""
+    return {
+        k: param(v / scale**g, s / scale**g, per_power(g, of))
+        for k, g, v, s in zip(names, degrees, coef, sd)
+    }
+
+
+def _coordinates_note(crs) -> str:
+    """What the east/north metres of :func:`~stereodem.post.coreg.local_metric_coords` are
+    on a grid in ``crs`` (the reports' ``coordinates``)."""
+    if terrain._is_geographic(crs):
+        return "east/north: ground metres from the grid centre"
+    unit = crs_unit(crs)
+    given = "" if unit == "metre" else f", its {unit or 'unit'} converted to metres"
+    return (
+        "east/north: grid metres along the grid's x/y from the grid centre (the CRS's "
+        f"units{given}; ground metres = grid metres / the projection's scale factor)"
+    )
+
+
 class Deramp(Coreg):
-    """A 2-D polynomial of ``dh`` in east/north (order 1–3; coordinates in units of 10 km
-    from the grid centre; includes the constant)."""
+    """A 2-D polynomial of ``dh`` in east/north (order 1–3, includes the constant; east/north
+    metres from the grid centre, :func:`~stereodem.post.coreg.local_metric_coords`).
+
+    Parameters ``c_e{i}n{j}``: the coefficient of ``east^i north^j`` in m/m^(i+j) (``c_e0n0``
+    in m, the plane's slopes ``c_e1n0``, ``c_e0n1`` in m per m; on a projected grid per grid
+    metre, as xdem's per CRS unit on a metre grid), with ``coordinates`` saying which metres.
+    ``coef`` holds the fitted ones, on coordinates in units of 10 km (:attr:`SCALE`)."""
 
     name = "deramp"
     SCALE = 1.0e4
@@ -287,10 +331,10 @@ class Deramp(Coreg):
         a = _poly_terms(sampler.east / self.SCALE, sampler.north / self.SCALE, self.order)
         self.coef, cov, _ = robust_lstsq(a, d)
         sd = np.sqrt(np.diag(cov))
-        self.params = {
-            k: param(v, s, "m") for k, v, s in zip(_poly_names(self.order), self.coef, sd)
-        }
-        self.params["coordinate_unit_m"] = self.SCALE
+        self.params = _poly_params(
+            _poly_names(self.order), _poly_degrees(self.order), self.coef, sd, self.SCALE
+        )
+        self.params["coordinates"] = _coordinates_note(dem.crs)
 
     def _apply(self, dem):
         e, n = local_metric_coords(dem.transform, dem.crs, dem.shape)
@@ -371,8 +415,9 @@ def _grid_track(step, dem, rows: slice):
 
 
 class CrossTrack(Coreg):
-    """A polynomial of ``dh`` in the cross-track coordinate (order 1–3, units of 10 km,
-    constant included), MMASTER's cross-track bias."""
+    """A polynomial of ``dh`` in the cross-track coordinate (order 1–3, constant included),
+    MMASTER's cross-track bias. Parameters ``c{k}`` in m/m^k of cross-track metres (``c0``
+    in m); ``coef`` holds the fitted ones, on coordinates in units of 10 km (:attr:`SCALE`)."""
 
     name = "cross_track"
     SCALE = 1.0e4
@@ -394,9 +439,10 @@ class CrossTrack(Coreg):
         a = np.vander(c / self.SCALE, self.order + 1, increasing=True)
         self.coef, cov, _ = robust_lstsq(a, d)
         sd = np.sqrt(np.diag(cov))
-        self.params = {f"c{k}": param(v, s, "m") for k, (v, s) in enumerate(zip(self.coef, sd))}
+        k = range(self.order + 1)
+        self.params = _poly_params([f"c{i}" for i in k], k, self.coef, sd, self.SCALE)
         self.params.update(_track_report(self))
-        self.params["coordinate_unit_m"] = self.SCALE
+        self.params["coordinates"] = "cross-track metres (right of the track)"
         self.curves = _binned_curve(
             c,
             d,
@@ -749,7 +795,8 @@ class Curvature(Coreg):
         a = np.vander(cc, self.order + 1, increasing=True)
         self.coef, cov, _ = robust_lstsq(a, d)
         sd = np.sqrt(np.diag(cov))
-        self.params = {f"c{k}": param(v, s, "m") for k, (v, s) in enumerate(zip(self.coef, sd))}
+        k = range(self.order + 1)
+        self.params = _poly_params([f"c{i}" for i in k], k, self.coef, sd, 1.0, "1/100 m")
         self.params["curvature_unit"] = "1/(100 m)"
         self.params["curvature_range"] = list(self.range)
         self.curves = _binned_curve(

@@ -80,6 +80,47 @@ def test_vshift_and_deramp_recover_offset_and_ramp(truth):
     assert nmad(out.heights - truth.heights) < 0.6
 
 
+def test_deramp_reports_its_slopes_in_metres_per_metre(truth):
+    """A plane's coefficients are m per m, not "m" (its slopes were labelled "m" while
+    their values were metres per 10 km): values per metre of east/north with the unit
+    m/m (m/m^2 for the second order), the constant in m, and which metres the coordinates
+    are; the same in a chain's report (coregistration.json)."""
+    dem, _ = inject_errors(truth, InjectedErrors(dz=-2.5, ramp_e=1.5, ramp_n=-0.8, seed=2))
+    p = Deramp(1).fit(truth, dem).parameters()
+    assert {k: v["unit"] for k, v in p.items() if isinstance(v, dict)} == {
+        "c_e0n0": "m",
+        "c_e1n0": "m/m",
+        "c_e0n1": "m/m",
+    }
+    assert p["c_e1n0"]["value"] == pytest.approx(1.5e-4, abs=1e-5)  # 1.5 m per 10 km
+    assert p["c_e0n1"]["value"] == pytest.approx(-0.8e-4, abs=1e-5)
+    assert p["c_e0n0"]["value"] == pytest.approx(-2.5, abs=0.15)
+    assert 0 < p["c_e1n0"]["sigma"] < 1e-5
+    assert p["coordinates"].startswith("east/north: ground metres")  # a lon/lat grid
+    assert "coordinate_unit_m" not in p
+    chain = parse_chain("deramp:2").fit(truth, dem)
+    units = {k: v["unit"] for k, v in chain.report()[0]["parameters"].items() if "unit" in v}
+    assert units["c_e2n0"] == units["c_e1n1"] == units["c_e0n2"] == "m/m^2"
+    assert units["c_e1n0"] == "m/m" and units["c_e0n0"] == "m"
+    utm = DEM(dem.heights, Affine(30, 0, 5e5, 0, -30, 4.4e6), "EPSG:32637", "geoid")
+    ref = DEM(truth.heights, utm.transform, utm.crs, "geoid")
+    assert Deramp(1).fit(ref, utm).parameters()["coordinates"].startswith("east/north: grid")
+
+
+def test_cross_track_and_curvature_coefficients_carry_their_units(truth):
+    """The same for the other polynomials: cross-track ``c1`` in m per m of cross-track
+    distance (its value was per 10 km, labelled "m"), curvature ``c1`` per unit of
+    curvature (1/100 m)."""
+    e, n = local_metric_coords(truth.transform, truth.crs, truth.shape)
+    _, c = track_coords(e, n, 10.0)
+    dem = DEM(truth.heights + (0.5 + 1.0 * c / 1e4).astype(np.float32), truth.transform, truth.crs)
+    p = CrossTrack(1).fit(DEM(truth.heights, truth.transform, truth.crs), dem, track_angle_deg=10.0)
+    p = p.parameters()
+    assert (p["c0"]["unit"], p["c1"]["unit"]) == ("m", "m/m")
+    assert p["c1"]["value"] == pytest.approx(1e-4, abs=2e-6)
+    assert Curvature(2).fit(truth, truth).parameters()["c2"]["unit"] == "m/(1/100 m)^2"
+
+
 def test_along_track_recovers_a_sine(truth):
     dem, _ = inject_errors(
         truth,
