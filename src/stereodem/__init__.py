@@ -4,6 +4,7 @@ accuracy assessment and DRM orthoimages.
 The public API is here, in one place (issue #23)::
 
     from stereodem import DEM, make_dem, orthorectify, assess_dem, simulate_scene
+    from stereodem import NuthKaab, Deramp  # (NuthKaab() + Deramp(1)).fit(ref, dem)
 
 Names are resolved on first use (PEP 562 ``__getattr__``), so ``import stereodem`` and
 ``stereodem --help`` do not load numpy, OpenCV or rasterio. Where each name lives:
@@ -64,6 +65,20 @@ _API = {
     # post-processing and assessment
     "assess_dem": "stereodem.post.assess",
     "write_report": "stereodem.post.report",
+    # co-registration and bias correction (xdem's pattern: fit/apply steps composed with +)
+    "Coreg": "stereodem.post.coreg",
+    "CoregChain": "stereodem.post.coreg",
+    "parse_chain": "stereodem.post.coreg",
+    "NuthKaab": "stereodem.post.biascorr",
+    "VerticalShift": "stereodem.post.biascorr",
+    "Deramp": "stereodem.post.biascorr",
+    "AlongTrack": "stereodem.post.biascorr",
+    "CrossTrack": "stereodem.post.biascorr",
+    "Curvature": "stereodem.post.biascorr",
+    "ICP": "stereodem.post.biascorr",
+    "StableMask": "stereodem.post.masks",
+    "AltimetryPoints": "stereodem.post.altimetry",
+    "read_points": "stereodem.post.altimetry",
     # orthoimages
     "orthorectify": "stereodem.ortho.drm",
     "Ortho": "stereodem.ortho.drm",

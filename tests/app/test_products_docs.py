@@ -131,17 +131,38 @@ def test_readmes_carry_the_figures_the_results_give():
 def _api_signatures():
     from stereodem import (
         DEM,
+        ICP,
+        AlongTrack,
+        Coreg,
+        CrossTrack,
+        Curvature,
         DEMProducts,
+        Deramp,
+        NuthKaab,
         Ortho,
+        VerticalShift,
         assess_dem,
         make_dem,
         orthorectify,
+        parse_chain,
+        read_points,
         write_geotiff,
         write_report,
     )
     from stereodem.ortho.drm import dem_gaps
 
     return {
+        "Coreg.fit": Coreg.fit,
+        "Coreg.apply": Coreg.apply,
+        "NuthKaab": NuthKaab,
+        "VerticalShift": VerticalShift,
+        "Deramp": Deramp,
+        "AlongTrack": AlongTrack,
+        "CrossTrack": CrossTrack,
+        "Curvature": Curvature,
+        "ICP": ICP,
+        "parse_chain": parse_chain,
+        "read_points": read_points,
         "make_dem": make_dem,
         "orthorectify": orthorectify,
         "dem_gaps": dem_gaps,

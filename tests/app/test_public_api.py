@@ -2,14 +2,17 @@
 the object of its defining module, and ``import stereodem`` stays light (lazy, PEP 562)."""
 
 import importlib
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 import stereodem
 from stereodem.core import errors
 from stereodem.core.errors import InputError
+from stereodem.post import coreg
 from stereodem.sensor.simulation.simulate import simulate_scene
 
 
@@ -123,3 +126,16 @@ def test_simulate_scene_given_a_bad_size_says_so(size):
     subscriptable)."""
     with pytest.raises(InputError, match="size must be \\(width, height\\) in pixels"):
         simulate_scene("frame", size=size)
+
+
+def test_the_coregistration_steps_are_public():
+    """Every step ``parse_chain`` knows, the chain type and the points reference are public
+    names, documented in docs/api.md (``stereodem.NuthKaab`` was an AttributeError: the
+    steps lived only in ``stereodem.post.biascorr``)."""
+    names = {cls.__name__ for cls in coreg._registry().values()}
+    names |= {"Coreg", "CoregChain", "parse_chain", "AltimetryPoints", "read_points"}
+    assert names <= set(stereodem.__all__)
+    api = (Path(__file__).resolve().parents[2] / "docs" / "api.md").read_text(encoding="utf-8")
+    assert not [n for n in names if not re.search(rf"\b{n}\b", api)]
+    chain = stereodem.NuthKaab() + stereodem.Deramp(1)
+    assert isinstance(chain, stereodem.CoregChain) and repr(chain) == "NuthKaab() + Deramp(1)"
