@@ -22,10 +22,12 @@ from pathlib import Path
 
 import numpy as np
 import rasterio
+import rasterio.transform
 from affine import Affine
 from pyproj import CRS
 from pyproj.crs import VerticalCRS
 from rasterio.enums import MaskFlags
+from rasterio.warp import calculate_default_transform, transform_bounds
 
 from stereodem.core import geodesy
 from stereodem.core.errors import (
@@ -33,9 +35,11 @@ from stereodem.core.errors import (
     DEMCoverageError,
     DEMError,
     InputError,
+    NoOverlapError,
     VerticalReferenceError,
 )
-from stereodem.core.grid import MapGrid, map_crs
+from stereodem.core.grid import MapGrid, crs_unit, map_crs
+from stereodem.core.memory import check_allocation
 from stereodem.core.raster import (
     VERTICAL_TAG,
     crs_with_vertical,
@@ -46,6 +50,7 @@ from stereodem.core.raster import (
     write_geotiff,
 )
 from stereodem.core.vertical import ELLIPSOID, GEOID, VERTICALS
+from stereodem.core.warp import RESAMPLING_METHODS, check_overlap, rio_crs, to_grid
 
 #: status codes returned by :meth:`DEM.sample`
 OK, OUTSIDE, VOID = 0, 1, 2
@@ -363,6 +368,18 @@ def horizontal_crs(crs: CRS) -> CRS:
     if len(crs.axis_info) == 3:
         return crs.to_2d()
     return crs
+
+
+def _grid_bounds_lonlat(transform, shape, crs):
+    """(west, south, east, north) in degrees of the grid ``transform, shape`` in ``crs``
+    (its border densified: 21 points a side)."""
+    rows, cols = shape
+    t = np.linspace(0, 1, 21)
+    xs = np.concatenate([t * cols, np.full_like(t, cols), t[::-1] * cols, np.zeros_like(t)])
+    ys = np.concatenate([np.zeros_like(t), t * rows, np.full_like(t, rows), t[::-1] * rows])
+    x, y = transform @ (xs, ys)
+    lon, lat = geodesy.crs_to_lonlat(x, y, crs)
+    return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
 
 
 def _no_crs_message(path, ds) -> str:
@@ -697,13 +714,159 @@ class DEM:
 
     def bounds_lonlat(self):
         """(west, south, east, north) in degrees of the DEM's valid extent (corners densified)."""
+        return _grid_bounds_lonlat(self.transform, self.shape, self.crs)
+
+    def reproject(
+        self,
+        ref=None,
+        crs=None,
+        res=None,
+        bounds=None,
+        resampling: str = "bilinear",
+        *,
+        threads: int | None = None,
+    ) -> DEM:
+        """A new DEM: these heights warped onto another grid (xdem's ``DEM.reproject``).
+
+        The grid is ``ref``'s exactly (a :class:`DEM` or a :class:`~stereodem.core.grid.
+        MapGrid`: its transform, size and CRS), or one laid from ``crs`` (default this DEM's;
+        a horizontal map CRS, anything pyproj takes), ``res`` (posting in ``crs``'s units,
+        one number or ``(x, y)``; default this DEM's posting when ``crs`` has the same unit,
+        e.g. metres to metres, else GDAL's choice for ``crs``, about as many cells) and
+        ``bounds`` (west, south, east, north in ``crs``'s units; default this DEM's extent in
+        ``crs``): top-left corner at (west, north), as many cells as cover east and south.
+
+        Heights are resampled by GDAL's warper (``resampling``: ``"nearest"``,
+        ``"bilinear"``, ``"cubic"``, ``"cubic_spline"``; :func:`stereodem.core.warp.to_grid`,
+        on ``threads`` threads, default the process's budget), voids (NaN) kept as voids and
+        cells off this DEM NaN. They stay metres above the same vertical reference
+        (``vertical``, ``geoid_crs``): a warp moves heights across the map, it does not
+        convert them (:meth:`to_reference` does), so a ``crs`` whose vertical part says the
+        other reference is refused. Companion layers are warped too: float ones (``score``,
+        ``ray_gap``, ``sigma``) with ``resampling``, integer ones (``count``, ``edit_mask``)
+        by nearest neighbour.
+
+        Raises :class:`InputError` for ``ref`` given with ``crs``/``res``/``bounds``, an
+        unknown ``resampling``, a posting or bounds that are no grid, or a grid beyond the
+        memory; :class:`NoOverlapError` when the grid holds none of this DEM's heights."""
+        grid = self._target_grid(ref, crs, res, bounds)
+        what = self.path or "DEM"
+        if resampling not in RESAMPLING_METHODS:
+            raise InputError(
+                f"{what}: resampling must be one of {', '.join(RESAMPLING_METHODS)}, "
+                f"got {resampling!r}"
+            )
+        present = [name for name in LAYERS if getattr(self, name) is not None]
+        check_allocation(
+            4.0 * grid.width * grid.height * (1 + len(present)),
+            f"{what}: reprojecting onto {grid.width} x {grid.height} cells",
+        )
+        check_overlap(
+            self.bounds_lonlat(),
+            _grid_bounds_lonlat(grid.transform, grid.shape, grid.crs),
+            what,
+            "the target grid",
+        )
+        if threads is None:  # a conditional default: core.blocks loads OpenCV, which
+            from stereodem.core.blocks import default_threads  # a DEM's import must not
+
+            threads = default_threads()
+
+        def warped(data, method, **kw):
+            return to_grid(
+                data,
+                self.transform,
+                self.crs,
+                grid.transform,
+                grid.crs,
+                grid.shape,
+                resampling=method,
+                threads=threads,
+                **kw,
+            )
+
+        heights = warped(self.heights, resampling)
+        if np.isfinite(self.heights).any() and not np.isfinite(heights).any():
+            raise NoOverlapError(f"{what}: none of its heights falls on the target grid")
+        layers = {}
+        for name in present:
+            spec = LAYERS[name]
+            if np.issubdtype(np.dtype(spec.dtype), np.floating):
+                layers[name] = warped(getattr(self, name), resampling)
+            else:
+                layers[name] = warped(
+                    getattr(self, name), "nearest", src_nodata=spec.nodata, dst_dtype=spec.dtype
+                )
+        return DEM(
+            heights,
+            grid.transform,
+            grid.crs,
+            self.vertical,
+            self.path,
+            geoid_crs=self.geoid_crs,
+            **layers,
+        )
+
+    def _target_grid(self, ref, crs, res, bounds) -> MapGrid:
+        """The grid :meth:`reproject` warps onto (see there)."""
+        what = self.path or "DEM"
+        if ref is not None:
+            if crs is not None or res is not None or bounds is not None:
+                raise InputError(
+                    f"{what}: reproject onto ref's grid or onto crs/res/bounds, not both"
+                )
+            if isinstance(ref, DEM):
+                return ref.grid
+            if isinstance(ref, MapGrid):
+                return ref
+            raise InputError(f"{what}: ref must be a DEM or a MapGrid, got {type(ref).__name__}")
+        dst = self.crs if crs is None else map_crs(crs, f"{what}: reproject crs")
+        said = _vertical_from_crs(dst)
+        if said is not None and self.vertical is not None and said != self.vertical:
+            raise InputError(
+                f"{what}: reproject crs {dst.name!r} says {said} heights, the DEM's are "
+                f"{self.vertical}; a warp does not convert heights (DEM.to_reference does)"
+            )
+        dst = horizontal_crs(dst)
+        same = dst == horizontal_crs(self.crs)
         rows, cols = self.shape
-        t = np.linspace(0, 1, 21)
-        xs = np.concatenate([t * cols, np.full_like(t, cols), t[::-1] * cols, np.zeros_like(t)])
-        ys = np.concatenate([np.zeros_like(t), t * rows, np.full_like(t, rows), t[::-1] * rows])
-        x, y = self.transform @ (xs, ys)
-        lon, lat = geodesy.crs_to_lonlat(x, y, self.crs)
-        return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
+        own = rasterio.transform.array_bounds(rows, cols, self.transform)  # (w, s, e, n)
+        if bounds is None:
+            if same:
+                bounds = own
+            else:
+                try:
+                    bounds = transform_bounds(rio_crs(self.crs), rio_crs(dst), *own, densify_pts=21)
+                except Exception as exc:  # noqa: BLE001 - PROJ's refusal: one line
+                    raise InputError(
+                        f"{what}: its extent cannot be expressed in {dst.name!r} ({exc})"
+                    ) from None
+        try:
+            w, s, e, n = (float(v) for v in bounds)
+        except (TypeError, ValueError):
+            raise InputError(
+                f"{what}: bounds must be (west, south, east, north), got {bounds!r}"
+            ) from None
+        if not all(np.isfinite([w, s, e, n])) or e <= w or n <= s:
+            raise InputError(f"{what}: empty or invalid bounds {(w, s, e, n)} in {dst.name!r}")
+        if res is None:
+            if same or crs_unit(dst) == crs_unit(self.crs):
+                res = (abs(self.transform.a), abs(self.transform.e))
+            else:
+                t, _, _ = calculate_default_transform(
+                    rio_crs(self.crs), rio_crs(dst), cols, rows, *own
+                )
+                res = (abs(t.a), abs(t.e))
+        xres, yres = (res, res) if np.ndim(res) == 0 else res
+        try:
+            xres, yres = float(xres), float(yres)
+        except (TypeError, ValueError):
+            raise InputError(f"{what}: res must be a posting or (x, y), got {res!r}") from None
+        if not (np.isfinite(xres) and np.isfinite(yres) and xres > 0 and yres > 0):
+            raise InputError(f"{what}: res must be positive, got {res!r}")
+        width = max(1, int(np.ceil((e - w) / xres - 1e-6)))
+        height = max(1, int(np.ceil((n - s) / yres - 1e-6)))
+        return MapGrid(Affine(xres, 0.0, w, 0.0, -yres, n), width, height, dst)
 
     def _lonlat_to_pixel(self, lon, lat):
         lon = np.asarray(lon, dtype=np.float64)

@@ -386,7 +386,7 @@ def _misses(dem: DEM, transform, crs, shape) -> bool:
         np.concatenate([t, one, t, zero]) * cols,
         np.concatenate([zero, t, one, t]) * rows,
     )
-    x, y = rasterio.warp.transform(warp._rio_crs(crs), warp._rio_crs(dem.crs), x, y)
+    x, y = rasterio.warp.transform(warp.rio_crs(crs), warp.rio_crs(dem.crs), x, y)
     dem_t = warp.beside(dem.transform, dem.crs, dem.shape, transform, crs, shape)
     c, r = ~dem_t @ (np.asarray(x), np.asarray(y))
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(r))):

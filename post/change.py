@@ -53,15 +53,7 @@ def dem_change(
     settings = BuildSettings(chain=chain, exclude=list(exclude), track_angle_deg=track_angle_deg)
     corrected, report, _ = fit_chain(dem_a, dem_b, stable_b, settings, track_angle_deg)
     g = dem_a.grid
-    hb = warp.to_grid(
-        corrected.heights,
-        corrected.transform,
-        corrected.crs,
-        g.transform,
-        g.crs,
-        g.shape,
-        threads=threads,
-    )
+    hb = corrected.reproject(dem_a, threads=threads).heights  # B's heights on A's grid
     dh = (hb - dem_a.heights).astype(np.float32)
     if not np.isfinite(dh).any():
         raise InputError(f"{dem_b.path}: no overlap with {dem_a.path} after co-registration")

@@ -168,6 +168,7 @@ def _api_signatures():
         "dem_gaps": dem_gaps,
         "DEM": DEM,
         "DEM.from_file": DEM.from_file,
+        "DEM.reproject": DEM.reproject,
         "sample": DEM.sample,
         "write_geotiff": write_geotiff,
         "assess.assess_dem": assess_dem,

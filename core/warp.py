@@ -1,0 +1,202 @@
+"""Putting one raster on another's grid: every warp of arrays (``rasterio.warp.reproject``,
+GDAL's warper) goes through :func:`to_grid`, which keeps NaN as no data, wraps global lon/lat
+grids across 180 E, and silences rasterio's in-memory "no geotransform" warning in a
+thread-safe way. In ``core`` so that the DEM type itself can warp (:meth:`stereodem.core.dem.
+DEM.reproject`); :mod:`stereodem.post.warp` re-exports it beside the shifts in metres."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import rasterio.transform
+from affine import Affine
+from rasterio.crs import CRS as RioCRS
+from rasterio.errors import NotGeoreferencedWarning
+from rasterio.warp import Resampling, reproject, transform_bounds
+
+from stereodem.core import geodesy
+from stereodem.core.errors import NoOverlapError
+from stereodem.core.grid import as_crs
+
+#: the resampling methods of :func:`to_grid`, by name
+RESAMPLING_METHODS = ("nearest", "bilinear", "cubic", "cubic_spline")
+
+
+def _is_geographic(crs) -> bool:
+    return bool(as_crs(crs).is_geographic)
+
+
+_IN_MEMORY_WARP = r"rasterio\.warp$"
+
+
+def _ignore_in_memory_warp_warning() -> None:
+    """rasterio's ``reproject`` of arrays warns "Dataset has no geotransform, gcps, or rpcs"
+    from its in-memory datasets although it is given their transforms; it suppresses that
+    with ``warnings.catch_warnings``, which is not thread-safe before Python 3.14 (one thread
+    leaving the block restores the filters another thread had set), so blocks warped on
+    threads printed the warning at random (about 1 in 2000 calls on 4 threads; the same in
+    geoutils #851, odc-geo #131). One process-wide filter, for that warning from
+    ``rasterio.warp`` only (every call here passes both transforms; reading a file without
+    georeferencing still warns, and a DEM without one is an error: :mod:`stereodem.core.dem`),
+    set when this module is imported and again by a warp that finds it gone (a
+    ``catch_warnings`` block around the import, as pytest's, restores the filters of before)."""
+    for action, _, category, module, _ in warnings.filters:
+        if category is NotGeoreferencedWarning and module is not None:
+            if action == "ignore" and module.pattern == _IN_MEMORY_WARP:
+                return
+    warnings.filterwarnings("ignore", category=NotGeoreferencedWarning, module=_IN_MEMORY_WARP)
+
+
+_ignore_in_memory_warp_warning()
+
+_RESAMPLING = {name: getattr(Resampling, name) for name in RESAMPLING_METHODS}
+
+
+def to_grid(
+    data,
+    src_transform,
+    src_crs,
+    dst_transform,
+    dst_crs,
+    dst_shape,
+    *,
+    resampling: str = "bilinear",
+    src_nodata=np.nan,
+    dst_dtype=np.float32,
+    threads: int | None = None,
+):
+    """Warp a 2-D array onto a destination grid; cells without data are NaN (or ``src_nodata``
+    for integer rasters). GDAL's warper runs on ``threads`` threads (default 1: callers
+    that warp blocks on a thread pool already use the cores; a caller that warps a whole grid
+    passes the process's budget, :func:`stereodem.core.blocks.default_threads`); the result
+    does not depend on it."""
+    _ignore_in_memory_warp_warning()
+    src = np.asarray(data)
+    src_transform = beside(src_transform, src_crs, src.shape, dst_transform, dst_crs, dst_shape)
+    if is_global(src_transform, src_crs, src.shape) and _near_seam(
+        src_transform, src_crs, src.shape, dst_transform, dst_crs, dst_shape
+    ):  # interpolated across its seam at 180
+        src, src_transform = wrapped(src, src_transform, WRAP_CELLS)
+    if np.issubdtype(np.dtype(dst_dtype), np.floating):
+        src = src.astype(np.float32, copy=False)
+        fill = np.nan
+    else:
+        fill = src_nodata if src_nodata is not None else 0
+    dst = np.full(dst_shape, fill, dtype=dst_dtype)
+    kw = dict(
+        src_crs=rio_crs(src_crs),
+        src_nodata=src_nodata,
+        dst_transform=dst_transform,
+        dst_crs=rio_crs(dst_crs),
+        dst_nodata=fill,
+        resampling=_RESAMPLING[resampling],
+        num_threads=max(1, int(threads or 1)),
+    )
+    reproject(src, dst, src_transform=src_transform, **kw)
+    for turn in _overflow_turns(
+        src_transform, src_crs, src.shape, dst_transform, dst_crs, dst_shape
+    ):
+        # the part of ``src`` beyond 180 (or -180) of a global grid: on its other edge
+        more = np.full(dst_shape, fill, dtype=dst_dtype)
+        reproject(src, more, src_transform=Affine.translation(turn, 0.0) @ src_transform, **kw)
+        empty = np.isnan(dst) if np.isnan(fill) else dst == fill
+        dst[empty] = more[empty]
+    return dst
+
+
+#: columns a global lon/lat grid is extended by on either side, from its other edge, before
+#: a warp: the support of the cubic kernels (2), so cells within a cell of 180 E interpolate
+#: across it instead of taking the edge column's value
+WRAP_CELLS = 3
+
+
+def is_global(transform, crs, shape) -> bool:
+    """Whether a north-up grid in a geographic CRS spans the whole turn of longitude (within
+    half a cell): its east edge is its west edge again."""
+    if transform.b or transform.d or not _is_geographic(crs):
+        return False
+    return abs(abs(transform.a) * shape[-1] - 360.0) <= abs(transform.a) / 2
+
+
+def wrapped(data, transform, cells: int):
+    """A global lon/lat grid (:func:`is_global`) extended by ``cells`` columns on either side,
+    from its other edge (west of -180 the columns at 180 and so on); returns
+    ``(data, transform)``."""
+    data = np.asarray(data)
+    cells = min(int(cells), data.shape[-1])
+    data = np.concatenate([data[..., -cells:], data, data[..., :cells]], axis=-1)
+    return data, transform @ Affine.translation(-cells, 0)
+
+
+def _near_seam(src_transform, src_crs, src_shape, dst_transform, dst_crs, dst_shape) -> bool:
+    """Whether the grid ``dst`` comes within :data:`WRAP_CELLS` cells of the edges of the
+    global lon/lat grid ``src`` (or crosses the antimeridian): only then is ``src`` extended
+    (a copy of it)."""
+    bounds = rasterio.transform.array_bounds(*dst_shape[-2:], dst_transform)
+    try:
+        w, _, e, _ = transform_bounds(rio_crs(dst_crs), rio_crs(src_crs), *bounds, densify_pts=21)
+    except Exception:  # noqa: BLE001 - bounds PROJ cannot take: extend, to be safe
+        return True
+    margin = WRAP_CELLS * abs(src_transform.a)
+    sw, se = sorted((src_transform.c, src_transform.c + src_transform.a * src_shape[-1]))
+    return w > e or w < sw + margin or e > se - margin
+
+
+def _overflow_turns(src_transform, src_crs, src_shape, dst_transform, dst_crs, dst_shape):
+    """The turns (±360) that put the part of a lon/lat grid ``src`` lying beyond the edge of a
+    global lon/lat grid ``dst`` (:func:`is_global`: a DEM at 179.9..180.1 E against a
+    -180..180 reference) onto ``dst``'s other edge; GDAL does not wrap between grids of one
+    geographic CRS."""
+    if not (_is_geographic(src_crs) and is_global(dst_transform, dst_crs, dst_shape)):
+        return []
+    sw, se = sorted((src_transform.c, src_transform.c + src_transform.a * src_shape[-1]))
+    dw, de = sorted((dst_transform.c, dst_transform.c + dst_transform.a * dst_shape[-1]))
+    return [t for t, beyond in ((-360.0, se > de), (360.0, sw < dw)) if beyond]
+
+
+def _turn(a_west, a_east, b_west, b_east) -> float:
+    """Whole turns (degrees, a multiple of 360) that put longitudes ``b_west..b_east`` nearest
+    ``a_west..a_east``: 0 unless they lie on either side of the antimeridian."""
+    return 360.0 * round(((a_west + a_east) - (b_west + b_east)) / 720.0)
+
+
+def beside(src_transform, src_crs, src_shape, dst_transform, dst_crs, dst_shape) -> Affine:
+    """``src_transform`` moved by whole turns of longitude beside the grid ``dst_transform``
+    when both CRSs are geographic (a DEM at 179.97..180.03 E and a reference tile at
+    -180..-179.9 E overlap; GDAL does not wrap between grids in one geographic CRS, so
+    warping one onto the other gave no cell); unchanged otherwise."""
+    if not (_is_geographic(src_crs) and _is_geographic(dst_crs)):
+        return src_transform
+    turn = _turn(
+        dst_transform.c,
+        dst_transform.c + dst_transform.a * dst_shape[-1],
+        src_transform.c,
+        src_transform.c + src_transform.a * src_shape[-1],
+    )
+    return Affine.translation(turn, 0.0) @ src_transform if turn else src_transform
+
+
+def rio_crs(crs):
+    """``crs`` (anything pyproj takes) as a rasterio CRS, through its WKT; :class:`CRSError`
+    for an unusable one."""
+    return RioCRS.from_wkt(geodesy._crs_key(crs))
+
+
+def check_overlap(a_bounds, b_bounds, a_name="DEM", b_name="reference"):
+    """Raise :class:`NoOverlapError` if two (west, south, east, north) boxes do not overlap
+    (longitudes compared modulo 360 degrees: 179.97..180.03 overlaps -180..-179.9; a box whose
+    west exceeds its east, as GDAL gives a footprint across the antimeridian, ends east of
+    180)."""
+    aw, ae = a_bounds[0], a_bounds[2] + (360.0 if a_bounds[0] > a_bounds[2] else 0.0)
+    bw, be = b_bounds[0], b_bounds[2] + (360.0 if b_bounds[0] > b_bounds[2] else 0.0)
+    turn = _turn(aw, ae, bw, be)
+    w = max(aw, bw + turn)
+    e = min(ae, be + turn)
+    s = max(a_bounds[1], b_bounds[1])
+    n = min(a_bounds[3], b_bounds[3])
+    if w >= e or s >= n:
+        raise NoOverlapError(
+            f"{a_name} (lon/lat {tuple(round(v, 4) for v in a_bounds)}) does not "
+            f"overlap {b_name} (lon/lat {tuple(round(v, 4) for v in b_bounds)})"
+        )
