@@ -736,6 +736,9 @@ def assess_dem(
     }
     report.update(block)
     result = Assessment(report, cmp, histogram=hist)
+    if isinstance(checkpoints, (str, Path)):  # read once: its log line once, not per stage
+        checkpoints = read_checkpoints(checkpoints, crs=checkpoint_crs)
+        checkpoint_crs = None  # read_checkpoints gives longitude/latitude
     if checkpoints is not None:
         report["checkpoints"] = assess_checkpoints(
             dem, checkpoints, crs=checkpoint_crs, vertical=checkpoint_vertical
@@ -935,7 +938,8 @@ def assess_checkpoints(dem, checkpoints, *, crs=None, vertical: str | None = Non
 
     Parameters
     ----------
-    checkpoints : path or (lon, lat, z) arrays (degrees, metres)
+    checkpoints : path or (lon, lat, z) arrays (degrees, metres), or (lon, lat, z, ids) as
+        :func:`read_checkpoints` returns them
     vertical : {"geoid", "ellipsoid"}, optional
         Vertical reference of the check-point heights; the DEM is converted to it. ``None``
         assumes the DEM's own reference (stated in the result).
@@ -944,10 +948,10 @@ def assess_checkpoints(dem, checkpoints, *, crs=None, vertical: str | None = Non
     if isinstance(checkpoints, (str, Path)):
         lon, lat, z, ids = read_checkpoints(checkpoints, crs=crs)
     else:
-        lon, lat, z = (np.asarray(a, dtype=np.float64) for a in checkpoints)
+        lon, lat, z = (np.asarray(a, dtype=np.float64) for a in checkpoints[:3])
         if crs is not None:
             lon, lat = geodesy.crs_to_lonlat(lon, lat, crs)
-        ids = [str(i) for i in range(lon.size)]
+        ids = [str(i) for i in (checkpoints[3] if len(checkpoints) > 3 else range(lon.size))]
     if vertical is not None and dem.vertical is None:
         raise VerticalReferenceError(
             f"{dem.path or 'DEM'}: vertical reference unknown; check "

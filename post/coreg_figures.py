@@ -18,7 +18,7 @@ from matplotlib.ticker import MaxNLocator
 
 from stereodem.core.stats import nmad
 
-from .figures import _map_axes, _save
+from .figures import _map_axes, _save, diverging_cmap
 
 
 def _dh_on_grid(ref, dem):
@@ -28,24 +28,44 @@ def _dh_on_grid(ref, dem):
     return reference_on_grid(ref, dem)
 
 
-def dh_before_after_png(z_ref, dem, out, mask, path, *, overwrite=False):
+def dh_before_after_png(z_ref, dem, out, mask, path, *, overwrite=False, ref_name="reference"):
     """Two maps of DEM − reference (before, after) in map coordinates (km axes, a scale bar),
-    stable NMAD in the titles; colour range ± twice the 98th percentile of |dh| after on
-    stable terrain."""
+    stable NMAD in the titles; one diverging colour scale centred on 0, clipped at ± twice the
+    98th percentile of |dh| after on stable terrain, the share of cells beyond it said in each
+    map's title; the DEM's and the reference's names in the figure's title."""
     b = dem.heights - z_ref
     a = out.heights - z_ref
     k = max(1, int(np.ceil(max(b.shape) / 900)))
     lim = float(np.nanpercentile(np.abs(a[mask]), 98)) * 2 if np.isfinite(a[mask]).any() else 5.0
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4.6))
+    lim = lim if lim > 0 else 1.0
+    fig, ax = plt.subplots(1, 2, figsize=(11, 5.0))
     transform = dem.transform @ Affine.scale(k)
     for axis, d, title in zip(ax, (b, a), ("before", "after")):
+        fin = d[np.isfinite(d)]
+        beyond = 100 * float(np.mean(np.abs(fin) > lim)) if fin.size else 0.0
         stable_nmad, d = nmad(d[mask]), d[::k, ::k]
         extent = _map_axes(axis, transform, dem.crs, d.shape)  # km axes and a scale bar
         axis.yaxis.set_major_locator(MaxNLocator(5))  # rotated labels: fewer, apart
         im = axis.imshow(
-            d, cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest", extent=extent
+            np.ma.masked_invalid(d),
+            cmap=diverging_cmap(),
+            vmin=-lim,
+            vmax=lim,
+            interpolation="nearest",
+            extent=extent,
         )
-        axis.set_title(f"DEM − reference, {title} (stable NMAD {stable_nmad:.2f} m)", fontsize=9)
+        axis.set_title(
+            f"{title}: stable NMAD {stable_nmad:.2f} m\n"
+            f"{beyond:.1f} % of cells beyond ±{lim:.2f} m",
+            fontsize=9,
+        )
+    name = Path(dem.path).name if getattr(dem, "path", None) else "DEM"
+    fig.suptitle(
+        f"{name} − {ref_name} before and after co-registration; hatched: no data\n"
+        f"colour scale clipped at ±{lim:.2f} m (twice the 98th percentile of |dh| after, "
+        "stable terrain)",
+        fontsize=10,
+    )
     fig.colorbar(im, ax=ax, shrink=0.8, extend="both", label="DEM − reference (m)")
     return _save(fig, path, overwrite)
 
@@ -71,7 +91,13 @@ def chain_figures(chain, ref, dem, out, mask, out_dir, *, overwrite=False) -> di
     if z is not None:
         files["dh_png"] = str(
             dh_before_after_png(
-                z, dem, out, mask & np.isfinite(z), out_dir / "coreg_dh.png", overwrite=overwrite
+                z,
+                dem,
+                out,
+                mask & np.isfinite(z),
+                out_dir / "coreg_dh.png",
+                overwrite=overwrite,
+                ref_name=Path(ref.path).name if getattr(ref, "path", None) else "reference",
             )
         )
     for i, step in enumerate(chain.steps):

@@ -38,6 +38,25 @@ MIN_CLASS_CELLS = 100
 DPI = 110
 
 
+def height_cmap():
+    """Colour map of heights: matplotlib's hypsometric ``terrain`` without its sea part (its
+    lowest quarter, blue): green lowlands to brown and white summits. ``gist_earth``, used
+    before, starts at black then dark blue: the lowest cells of a mountain DEM looked like
+    voids or water."""
+    from matplotlib.colors import LinearSegmentedColormap
+
+    base = plt.get_cmap("terrain")
+    return LinearSegmentedColormap.from_list(
+        "terrain_land", base(np.linspace(0.25, 1.0, 256)), N=256
+    )
+
+
+def diverging_cmap():
+    """Colour map of height differences: ``RdBu_r`` (blue below, red above, white at 0),
+    drawn with limits symmetric about 0; no data transparent."""
+    return plt.get_cmap("RdBu_r").with_extremes(bad=(0, 0, 0, 0))
+
+
 def _save(fig, path, overwrite):
     """Write ``fig`` to ``path`` cropped as ``bbox_inches="tight"`` (:func:`_tight_bbox`)."""
     return save_png(fig, path, dpi=DPI, overwrite=overwrite, bbox_inches=_tight_bbox(fig))
@@ -193,7 +212,7 @@ def hillshade_png(
     fin = np.isfinite(z) & np.isfinite(hs)
     lo, hi = np.percentile(z[fin], [1, 99]) if fin.any() else (0.0, 1.0)
     hi = hi if hi > lo else lo + 1.0
-    cmap = plt.get_cmap("gist_earth")
+    cmap = height_cmap()
     norm = Normalize(lo, hi)
     rgba = cmap(norm(np.where(fin, z, lo)))
     rgba[..., :3] *= (0.25 + 0.75 * np.where(fin, hs, 1.0))[..., None]
@@ -225,7 +244,7 @@ def difference_map_png(
     lim = lim if lim > 0 else 1.0
     clipped = int((np.abs(fin) > lim).sum())
     fig, ax = plt.subplots(figsize=(6.5, 6))
-    cmap = plt.get_cmap("RdBu_r").with_extremes(bad=(0, 0, 0, 0))
+    cmap = diverging_cmap()
     kw = {}
     if t is not None:
         kw["extent"] = _map_axes(ax, t, crs, a.shape)
@@ -237,7 +256,7 @@ def difference_map_png(
     )
     fig.colorbar(im, ax=ax, shrink=0.8, extend="both", label="DEM − reference (m)")
     ax.set_title(
-        f"{title} (m); hatched: no data\ncolour scale clipped at ±{lim:.2f} m (98th "
+        f"{title}; hatched: no data\ncolour scale clipped at ±{lim:.2f} m (98th "
         f"percentile of |dh|): {100 * clipped / max(fin.size, 1):.1f} % of cells beyond",
         fontsize=10,
     )

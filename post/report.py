@@ -305,6 +305,10 @@ def write_report(
         "geoid": "height above the EGM96 geoid (m)",
         "ellipsoid": "height above the WGS84 ellipsoid (m)",
     }.get(vref, "height (m)")
+    dem_name = Path(rep["dem"]).name if rep.get("dem") else "DEM"
+    ref_name = Path(rep["reference"]).name if rep.get("reference") else "reference"
+    # the figures show the DEM as given: with --coregister, say that they are before it
+    stage = " (before co-registration)" if rep.get("coregistration") else ""
     files["hillshade"] = figures.hillshade_png(
         dem_heights,
         dem_transform,
@@ -312,6 +316,7 @@ def write_report(
         out / FIGURES["hillshade"],
         overwrite=overwrite,
         height_label=label,
+        title=f"Shaded relief of {dem_name}",
     )
     files["difference"] = figures.difference_map_png(
         cmp.dh,
@@ -319,10 +324,14 @@ def write_report(
         overwrite=overwrite,
         transform=cmp.transform,
         crs=cmp.crs,
+        title=f"{dem_name} − {ref_name}{stage}",
     )
     hist = getattr(assessment, "histogram", None)
     files["histogram"] = figures.histogram_png(
-        cmp.dh if hist is None else hist, out / FIGURES["histogram"], overwrite=overwrite
+        cmp.dh if hist is None else hist,
+        out / FIGURES["histogram"],
+        overwrite=overwrite,
+        title=f"Histogram of {dem_name} − {ref_name}{stage}",
     )
     files["error_vs_slope"] = figures.error_vs_slope_png(
         cmp.dh,

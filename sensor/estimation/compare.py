@@ -348,9 +348,12 @@ def _num(v, fmt: str) -> str:
     return format(float("nan") if v is None else v, fmt)
 
 
-def figure(records, path, *, overwrite: bool = False):
+def figure(records, path, *, overwrite: bool = False, image: str | None = None):
     """ICP RMSE against GCP count, one line per model (log axes), written to ``path`` (PNG;
-    ``overwrite``: replace an existing file)."""
+    ``overwrite``: replace an existing file); ``image``: the image's name, in the title.
+
+    Each model has its own colour and marker pair (tab20's colours, a marker that changes when
+    the colours come round again); the legend sits beside the axes, off the lines."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -375,7 +378,7 @@ def figure(records, path, *, overwrite: bool = False):
             [r["icp_rmse_px"] for r in rs],
             styles[rs[0]["family"]],
             color=colours[k % len(colours)],
-            marker=markers[k % len(markers)],
+            marker=markers[(k + k // len(colours)) % len(markers)],
             ms=4,
             label=f"{name} ({rs[0]['n_params']})",
         )
@@ -386,13 +389,17 @@ def figure(records, path, *, overwrite: bool = False):
     ax.minorticks_off()
     ax.set_xlabel("number of GCPs")
     ax.set_ylabel("ICP RMSE (pixels)")
-    ax.set_title("Check-point error against GCP count (same ICPs for every model)")
+    of = f" of {image}" if image else ""
+    ax.set_title(f"Check-point error against GCP count{of} (same ICPs for every model)")
     ax.grid(True, which="major", alpha=0.3)
+    n_lines = len(ax.get_lines())
     ax.legend(
         fontsize=7,
-        ncol=2,
-        title="model (parameters); dotted generic, dashed physical, solid orbital",
+        ncol=1 if n_lines <= 30 else 2,
+        title="model (parameters)\ndotted generic, dashed physical,\nsolid orbital",
         title_fontsize=7,
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),  # beside the axes: inside, it hid lines
+        borderaxespad=0.0,
     )
-    fig.tight_layout()
-    return save_png(fig, path, dpi=120, overwrite=overwrite)
+    return save_png(fig, path, dpi=120, overwrite=overwrite, bbox_inches="tight")

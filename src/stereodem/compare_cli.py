@@ -4,6 +4,7 @@ the same independent check points (:mod:`stereodem.sensor.estimation.compare`)."
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 from . import options
 from .commands import help_line
@@ -117,7 +118,7 @@ def run(args) -> int:
             "records": recs,
         }
     with output_folder(args.output, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
-        _write(out, records, splits)
+        _write(out, records, splits, image=Path(args.image).name)
     ok = [r for r in records if not r.get("error")]
     options.say(
         f"{len(models)} model(s), {len(records)} fit(s), {len(records) - len(ok)} refused -> {out}"
@@ -125,7 +126,7 @@ def run(args) -> int:
     return 0
 
 
-def _write(out, records, splits):
+def _write(out, records, splits, *, image=None):
     """The products, into the locked output folder ``out`` (a previous run's removed)."""
     from stereodem.core import jsonutil
     from stereodem.core.raster import write_text_atomic
@@ -135,7 +136,7 @@ def _write(out, records, splits):
         out / "compare.json", jsonutil.dumps([jsonutil.stamped(r) for r in records]), overwrite=True
     )
     write_text_atomic(out / "compare.md", markdown(records), overwrite=True)
-    figure(records, out / "compare.png", overwrite=True)
+    figure(records, out / "compare.png", overwrite=True, image=image)
     if splits is not None:
         write_text_atomic(out / "splits.json", jsonutil.dumps(splits), overwrite=True)
         write_text_atomic(
