@@ -182,6 +182,9 @@ def _resume_hint(args) -> str:
             "the scenes done are kept (batch.json lists them); run the same command again to "
             "continue: done scenes are skipped, the others reuse their finished tiles"
         )
+    if args.command == "stack":
+        # stack.json says interrupted, with the inputs: the same command replaces its files
+        return "run the same command again: it replaces what the interrupted job left"
     return "no product was written; run the command again (--overwrite if the folder is not empty)"
 
 

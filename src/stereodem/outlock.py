@@ -11,7 +11,12 @@ The policy (:func:`check_output_folder`, applied before any work and again under
   of its markers, e.g. ``run.json``, with stereodem's stamp in it: :func:`is_marker`; a file of
   the user's of that name is not one) are replaced; in a folder of the user's the products go
   beside the user's files as long as none of them has a product's name (else refused, naming
-  it); a file of another name is never touched.
+  it); a file of another name is never touched;
+* a folder holding what a run of the same job left when it did not finish (its marker, written
+  by stereodem, says ``failed``, ``interrupted`` or ``running`` and records the same input
+  files: :func:`is_unfinished_run`) is a rerun's without ``--overwrite``: those products are
+  set aside and replaced as ``--resume`` sets them aside (put back if the rerun stops before
+  writing its own); another job's products, or a finished run's, still need ``--overwrite``.
 
 :class:`OutputLock` holds ``OUT/.stereodem.lock`` with ``fcntl.flock`` (exclusive,
 non-blocking) for the life of a job. The kernel drops the lock when the process dies, however
@@ -60,6 +65,8 @@ __all__ = [
     "restore_products",
     "set_aside_products",
     "is_stereodem_output",
+    "is_unfinished_run",
+    "job_inputs",
     "check_not_an_input",
     "check_output_folder",
     "Products",
@@ -106,6 +113,9 @@ MARKERS = (
     "stack.json",
     "change.json",
 )
+#: what a marker's ``status`` says of a job that did not finish (``running``: one killed
+#: outright, whose lock the kernel dropped; read under the lock, no job is running there)
+UNFINISHED = ("failed", "interrupted", "running")
 
 
 @dataclass(frozen=True)
@@ -238,6 +248,38 @@ def is_stereodem_output(folder, markers=MARKERS) -> bool:
     what a job killed while it deleted them left (:func:`remove_products_in_background`)."""
     folder = Path(folder)
     return any(is_marker(folder / m) for m in markers) or any(folder.glob(REMOVING_PREFIX + "*"))
+
+
+def job_inputs(inputs) -> list[str]:
+    """A job's input files as its marker records them (``"inputs"``): resolved, sorted, once
+    each; :func:`is_unfinished_run` compares a rerun's with them."""
+    return sorted({str(Path(p).resolve()) for p in inputs if p})
+
+
+def is_unfinished_run(folder, products: Products, inputs) -> bool:
+    """Whether ``folder`` holds what a run of the same job left when it did not finish: one of
+    ``products.markers``, written by stereodem (:func:`is_marker`), whose ``status`` is one of
+    :data:`UNFINISHED` and whose ``inputs`` are this job's (:func:`job_inputs`). A rerun then
+    replaces them without ``--overwrite``; a finished run's products, another job's and a
+    file of the user's are not such leftovers."""
+    ins = job_inputs(inputs)
+    if not ins:
+        return False
+    for name in products.markers:
+        path = Path(folder) / name
+        if not is_marker(path):
+            continue
+        try:
+            record = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, ValueError):
+            continue
+        if (
+            isinstance(record, dict)
+            and record.get("status") in UNFINISHED
+            and record.get("inputs") == ins
+        ):
+            return True
+    return False
 
 
 def _product_paths(folder: Path, keep_tiles: bool, names=PRODUCTS):
@@ -399,7 +441,7 @@ def _names(paths, n=5) -> str:
     return ", ".join(names[:n]) + (f" and {len(names) - n} more" if len(names) > n else "")
 
 
-def _check_contents(path: Path, products: Products, *, overwrite: bool, resume: bool):
+def _check_contents(path: Path, products: Products, *, overwrite: bool, resume: bool, inputs=()):
     """The policy on what ``path`` (an existing folder) holds; raises
     :class:`OutputExistsError` naming the files in the way."""
     # another job starting here at the same moment may have its lock or its probe in the
@@ -410,6 +452,17 @@ def _check_contents(path: Path, products: Products, *, overwrite: bool, resume: 
     if not others:
         return
     present = set(_product_paths(path, keep_tiles=False, names=products.names))
+    if not (overwrite or resume) and present and is_unfinished_run(path, products, inputs):
+        # what a run of this job left when it did not finish: replaced by the rerun; anything
+        # else in the folder is the user's, under the rule below
+        others = [p for p in others if p not in present]
+        if not others:
+            return
+        raise OutputExistsError.needs_overwrite(
+            f"{path}: folder is not empty (it holds {_names(others, 3)}, beside an unfinished "
+            "run's products)",
+            "to write the products beside its files",
+        )
     if not (overwrite or resume):
         if present:
             first, *rest = sorted(present)
@@ -452,7 +505,7 @@ def check_output_folder(
     check_not_an_input([path], inputs, products)
     check_creatable(path / "x" if path.is_dir() else path)
     if path.is_dir():
-        _check_contents(path, products, overwrite=overwrite, resume=resume)
+        _check_contents(path, products, overwrite=overwrite, resume=resume, inputs=inputs)
     return path
 
 
@@ -481,8 +534,11 @@ def output_folder(
         Continue a previous job: keep its tile cache; its other products are set aside
         (:func:`set_aside_products`) and replaced when the job succeeds, put back when it
         stops before writing any of its own (e.g. it refused the tiles as another job's).
+        Without ``overwrite`` or ``resume``, what a run of the same job left when it did not
+        finish (:func:`is_unfinished_run`) is set aside and replaced the same way.
     inputs : iterable of paths
-        The job's input files; none may be among the outputs.
+        The job's input files; none may be among the outputs. A job whose marker records
+        them (:func:`job_inputs`) is recognised by them when it is run again.
     background : bool
         Delete the previous job's products on a thread while the job runs (they are moved
         out of its way first: :func:`remove_products_in_background`); the deletion ends
@@ -525,8 +581,13 @@ def output_folder(
     ok = False
     deleting = aside = None
     try:
-        _check_contents(path, products, overwrite=overwrite, resume=resume)
-        if (overwrite or resume) and is_stereodem_output(path, products.markers):
+        _check_contents(path, products, overwrite=overwrite, resume=resume, inputs=inputs)
+        previous = is_stereodem_output(path, products.markers)
+        if not (overwrite or resume) and is_unfinished_run(path, products, inputs):
+            # a rerun of a job that did not finish: its leftovers set aside as --resume sets
+            # a previous job's products aside (put back if the rerun stops before writing)
+            aside = set_aside_products(path, products=products, keep_tiles=False)
+        elif (overwrite or resume) and previous:
             if resume:  # kept until the job has written its own (it may refuse the tiles)
                 aside = set_aside_products(path, products=products)
             elif background:

@@ -22,6 +22,9 @@ EXAMPLES = """examples:
   stereodem stack a.tif b.tif c.tif --dates 2002-07-01,2010-08-12,2018-07-30 --ref ref.tif \\
       --exclude glaciers.gpkg --outlines glaciers.gpkg -o out
   stereodem stack run*/dem.tif --dates dates.csv --ref ref.tif --chain nuth_kaab,deramp:1 -o out
+
+A stack that failed or was interrupted says so in OUT/stack.json, with its input files: the
+same command run again replaces what it left, without --overwrite.
 """
 
 #: reference grids of at least this many cells are built with --workers processes
@@ -174,22 +177,29 @@ def _check(args):
 
 
 @contextlib.contextmanager
-def _status_if_stopped(path):
-    """``stack.json`` says ``failed`` (with the one-line reason) or ``interrupted`` when the
-    job stops after its output folder was opened (a DEM refused while the stack is built):
-    not ``running`` for ever beside a partial store."""
+def _status_if_stopped(path, record):
+    """``stack.json`` says ``running`` while the job runs, then ``failed`` (with the one-line
+    reason) or ``interrupted`` when it stops (a DEM refused while the stack is built): not
+    ``running`` for ever beside a partial store. ``record`` (the job's ``inputs``,
+    :func:`stereodem.outlock.job_inputs`) goes into each: a rerun of the same inputs then
+    replaces what the job left without ``--overwrite`` (:func:`stereodem.outlock.output_folder`),
+    a run of other inputs is still refused without it."""
     from stereodem.core import jsonutil
     from stereodem.core.raster import write_text_atomic
 
+    def status(**what):
+        write_text_atomic(
+            path, jsonutil.dumps(jsonutil.stamped({**what, **record})), overwrite=True
+        )
+
+    status(status="running")
     try:
         yield
     except BaseException as exc:
-        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
         reason = " ".join(str(exc).split()) or type(exc).__name__
-        write_text_atomic(
-            path,
-            jsonutil.dumps(jsonutil.stamped({"status": status, "error": reason})),
-            overwrite=True,
+        status(
+            status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
+            error=reason,
         )
         raise
 
@@ -205,7 +215,7 @@ def run(args) -> int:
     from stereodem.post.stack import open_stack, stack_grid, stack_rates
     from stereodem.post.stack_build import BuildSettings, build_stack, check_inputs
 
-    from .outlock import check_output_folder, output_folder
+    from .outlock import check_output_folder, job_inputs, output_folder
 
     t0 = time.perf_counter()
     _check(args)
@@ -244,13 +254,8 @@ def run(args) -> int:
     workers = pool_size(args.workers)  # processes of the build (the cores, by default)
     with (
         output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out,
-        _status_if_stopped(out / "stack.json"),
+        _status_if_stopped(out / "stack.json", {"inputs": job_inputs(inputs)}),
     ):
-        write_text_atomic(
-            out / "stack.json",
-            jsonutil.dumps(jsonutil.stamped({"status": "running"})),
-            overwrite=True,
-        )
         # processes pay off on scene-sized DEMs only (each starts a Python: ~1-2 s)
         build_workers = workers if ref.heights.size >= PARALLEL_BUILD_CELLS else 1
         with options.progress_bar("stack") as bar:

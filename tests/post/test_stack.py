@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -613,3 +614,96 @@ def test_dem_change_takes_dem_paths(tmp_path):
     assert abs(float(np.nanmedian(out["dh"]))) < 0.05
     with pytest.raises(DEMError, match="expected a DEM or a path, got ndarray"):
         dem_change(a.heights, b)
+
+
+def _stack_argv(paths, ref, out):
+    return ["stack", *map(str, paths), "--ref", str(ref), "--chain", "vshift", "-o", str(out)]
+
+
+def test_a_failed_stack_is_run_again_without_overwrite(series, tmp_path, capsys):
+    """A stack that failed on an unreadable DEM left stack.json and stack.zarr, and the same
+    command, once the DEM was mended, was refused without --overwrite. Its stack.json says
+    failed and records the inputs: the same inputs replace its files; other inputs, and a
+    finished stack, still need --overwrite."""
+    dems = tmp_path / "dems"
+    shutil.copytree(series["dir"] / "dems", dems)
+    paths = sorted(dems.glob("*.tif"))[:3]
+    good = paths[2].read_bytes()
+    paths[2].write_bytes(good[:3000])  # the header, then nothing: refused while building
+    out = tmp_path / "out"
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], out), capsys)
+    assert rc == 1 and f"{paths[2]}: cannot read the DEM" in se, se
+    failed = json.loads((out / "stack.json").read_text())
+    assert failed["status"] == "failed"
+    assert failed["inputs"] == sorted(str(Path(p).resolve()) for p in [*paths, series["ref"]])
+    assert (out / "stack.zarr").exists()
+    # other inputs: the failed job is not theirs
+    rc, _so, se = _run(_stack_argv(paths[:2], series["ref"], out), capsys)
+    assert rc == 1 and "stack.json: exists" in se and "--overwrite" in se, se
+    assert json.loads((out / "stack.json").read_text()) == failed
+    paths[2].write_bytes(good)
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], out), capsys)
+    assert rc == 0, se
+    assert json.loads((out / "stack.json").read_text())["status"] == "ok"
+    assert not list(out.glob(".stereodem-*"))  # the failed job's files gone
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], out), capsys)  # a finished stack
+    assert rc == 1 and "--overwrite" in se, se
+
+
+@pytest.mark.parametrize("how", ["interrupted", "killed"])
+def test_an_interrupted_or_killed_stack_is_run_again_without_overwrite(
+    series, tmp_path, capsys, monkeypatch, how
+):
+    """Ctrl-C while the rates are fitted (stack.json: interrupted), or a job killed outright
+    (stack.json still says running, its lock gone): the same command runs again without
+    --overwrite and its hint says so."""
+    paths, out = series["paths"][:2], tmp_path / "out"
+    argv = _stack_argv(paths, series["ref"], out)
+    if how == "interrupted":
+
+        def stopped(*args, **kwargs):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(st, "stack_rates", stopped)
+        rc, _so, se = _run(argv, capsys)
+        assert rc == 130 and "run the same command again" in se, se
+        assert json.loads((out / "stack.json").read_text())["status"] == "interrupted"
+        monkeypatch.undo()
+    else:
+        from stereodem.core import jsonutil
+        from stereodem.outlock import job_inputs
+
+        out.mkdir()
+        (out / "stack.zarr").mkdir()
+        record = {"status": "running", "inputs": job_inputs([*paths, series["ref"]])}
+        (out / "stack.json").write_text(jsonutil.dumps(jsonutil.stamped(record)))
+    assert (out / "stack.zarr").exists()
+    rc, _so, se = _run(argv, capsys)
+    assert rc == 0, se
+    assert json.loads((out / "stack.json").read_text())["status"] == "ok"
+
+
+def test_a_failed_stack_beside_the_users_files_still_needs_overwrite(series, tmp_path, capsys):
+    """Only the unfinished job's own files are replaced without --overwrite: a stack.json of
+    the user's (not written by stereodem) saying failed with the same inputs, or a file of
+    the user's beside a failed job's products, keep the folder refused without it."""
+    from stereodem.core import jsonutil
+    from stereodem.outlock import job_inputs
+
+    paths = series["paths"][:2]
+    record = {"status": "failed", "inputs": job_inputs([*paths, series["ref"]])}
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "stack.json").write_text(json.dumps(record))  # no stereodem stamp
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], mine), capsys)
+    assert rc == 1 and "stack.json: exists" in se and "--overwrite" in se, se
+    assert json.loads((mine / "stack.json").read_text()) == record
+    beside = tmp_path / "beside"
+    beside.mkdir()
+    (beside / "stack.json").write_text(jsonutil.dumps(jsonutil.stamped(record)))
+    (beside / "notes.txt").write_text("mine")
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], beside), capsys)
+    assert rc == 1 and "notes.txt" in se and "--overwrite" in se, se
+    rc, _so, se = _run([*_stack_argv(paths, series["ref"], beside), "--overwrite"], capsys)
+    assert rc == 0, se
+    assert (beside / "notes.txt").read_text() == "mine"
