@@ -54,7 +54,7 @@ def main(argv=None):
     cluster.close()
     for line in summary_lines(result):
         print(line)
-    return 1 if result["summary"]["failed"] else 0
+    return 1 if result["this_run"]["failed"] else 0
 
 
 if __name__ == "__main__":

@@ -16,8 +16,17 @@ but ``[inputs] left/right`` and ``[output] dir``) or the defaults. Each scene wr
   one that failed or was interrupted runs again with its finished tiles reused (``--resume``
   semantics); ``overwrite`` recomputes every scene.
 * **Status table**: ``OUTDIR/batch.json`` (rewritten atomically as scenes finish), one row per
-  scene: ``done`` / ``failed`` with its one-line reason / ``skipped``, seconds, CPU seconds,
-  output folder; and a summary. A failing scene never stops the others.
+  scene in OUTDIR: ``done`` / ``failed`` with its one-line reason / ``skipped`` / ``pending``,
+  seconds, CPU seconds, output folder and the start of the batch that wrote the row
+  (``batch_started``); a batch run again in OUTDIR merges its rows into the table by scene
+  name (its own row wins for a scene it runs again; the other scenes' rows stay). ``summary``
+  counts every row, ``this_run`` this batch's. A failing scene never stops the others.
+* **OUTDIR** is under the one overwrite policy (:mod:`stereodem.outlock`, :data:`PRODUCTS`):
+  new or empty, it is the batch's; holding a previous batch's ``batch.json`` it is continued
+  (no ``--overwrite`` needed, nothing removed: ``--overwrite`` recomputes the scenes given);
+  holding anything else it is refused without ``--overwrite``, and with it the batch writes
+  beside those files unless one is named ``batch.json``. It is locked for the batch; each
+  scene's folder is ``stereodem run``'s, under ``run``'s policy.
 """
 
 from __future__ import annotations
@@ -29,14 +38,15 @@ import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 
 import tomllib
 
 from stereodem.core import jsonutil
-from stereodem.core.errors import InputError, OutputExistsError, StereodemError, one_line
+from stereodem.core.errors import InputError, StereodemError, one_line
 from stereodem.core.pool import stop_pool
-from stereodem.core.raster import check_creatable, write_text_atomic
+from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import (
     cores,
     pool_initargs,
@@ -49,12 +59,18 @@ from stereodem.core.threads import (
 from stereodem.stereo.execution import OtherJobTilesError
 
 from .config import config_from_dict, load_config
+from .outlock import Products, check_output_folder, is_marker, output_folder
 from .pipeline.job import run
 
 log = logging.getLogger(__name__)
 
 LIST_SUFFIXES = (".txt", ".lst", ".list")
 STATUS_FILE = "batch.json"
+#: what a batch writes into OUTDIR itself (each scene's folder is ``stereodem run``'s): its
+#: status table, which marks the folder as a batch's, continued by the next batch run there
+PRODUCTS = Products((STATUS_FILE,), markers=(STATUS_FILE,), continues=True)
+#: the counts of a status table, per status
+STATUSES = ("done", "failed", "skipped", "pending")
 
 
 @dataclass
@@ -81,6 +97,7 @@ class SceneStatus:
     seconds: float = 0.0
     cpu_s: float = 0.0
     extra: dict = field(default_factory=dict)
+    batch_started: str = ""  # when the batch that wrote the row started (UTC)
 
 
 # ----------------------------------------------------------------------------- scenes
@@ -356,7 +373,12 @@ def run_batch(
     progress=None,
 ) -> dict:
     """Run ``scenes`` (:func:`expand_inputs`) into ``out_root``; returns the status table
-    (also written to ``out_root/batch.json``).
+    (also written to ``out_root/batch.json``): the rows of a previous batch in ``out_root``
+    with this batch's merged in by scene name (``this_run``: this batch's counts).
+
+    ``out_root`` is under the one overwrite policy (:data:`PRODUCTS`): new, empty or a
+    previous batch's (continued); a folder holding other files is refused without
+    ``overwrite`` (:class:`~stereodem.core.errors.OutputExistsError`).
 
     ``workers``: scenes at once on the process pool (default: all cores), or the
     ``LocalCluster``'s worker processes with ``dask="local"``; ``dask``: a scheduler address
@@ -364,44 +386,73 @@ def run_batch(
     its tile cache once done (None: its configuration's ``[run] keep_tiles``).
     ``progress(row)`` is called per finished scene.
     """
-    out_root = Path(out_root)
-    if out_root.exists() and not out_root.is_dir():
-        raise InputError(f"{out_root}: not a folder")
-    # under a file, in a read-only place (/proc): one line, nothing made (an existing folder is
-    # kept: a second run resumes in it)
-    check_creatable(out_root / "batch.json" if out_root.is_dir() else out_root)
-    try:
-        out_root.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputExistsError(f"{out_root}: cannot create the folder ({exc.strerror})") from None
+    inputs = [s.path for s in scenes] + [s.template for s in scenes if s.template]
+    # before any work: under a file, in a read-only place (/proc), a folder of the user's
+    check_output_folder(out_root, PRODUCTS, overwrite=overwrite, inputs=inputs)
+    with output_folder(out_root, PRODUCTS, overwrite=overwrite, inputs=inputs) as out_root:
+        return _run_batch_in(
+            scenes, out_root, workers, dask, (overwrite, keep_tiles), progress=progress
+        )
+
+
+def _run_batch_in(scenes, out_root, workers, dask, scene_options, progress=None) -> dict:
+    """:func:`run_batch` in its locked folder; ``scene_options``: :func:`run_scene`'s
+    ``(overwrite, keep_tiles)``."""
     order = sorted(scenes, key=lambda s: -s.size)  # largest first
     n = min(pool_size(workers), len(order))
     rows: dict[str, SceneStatus] = {}
     t0 = time.perf_counter()
     backend = "dask" if dask is not None else "pool" if n > 1 else "serial"
-    table = {"backend": backend, "workers": n, "cores": cores()}
+    started = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+    table = {"started": started, "backend": backend, "workers": n, "cores": cores()}
+    earlier = earlier_rows(out_root)
+
+    def write():
+        return _write_table(out_root, scenes, rows, table, time.perf_counter() - t0, earlier)
 
     def collect(row: SceneStatus):
+        row.batch_started = started
         rows[row.name] = row
-        _write_table(out_root, scenes, rows, table, time.perf_counter() - t0)
+        write()
         if progress:
             progress(row)
 
+    # the table first: the folder is a batch's (and the scenes pending) even if the batch is
+    # killed before its first scene finishes
+    write()
     try:
         if dask is not None:
-            _run_dask(order, out_root, dask, n, (overwrite, keep_tiles), collect)
+            _run_dask(order, out_root, dask, n, scene_options, collect)
         elif n <= 1:
             with thread_budget(1):
                 for s in order:
-                    collect(run_scene(s, out_root, 1, overwrite, keep_tiles))
+                    collect(run_scene(s, out_root, 1, *scene_options))
         else:
-            _run_pool(order, out_root, n, worker_threads(n), (overwrite, keep_tiles), collect)
+            _run_pool(order, out_root, n, worker_threads(n), scene_options, collect)
     except BaseException:
         # interrupted (Ctrl-C, SIGTERM): the table still says which scenes are done and which
         # are pending (a run interrupted before its first scene finished left none at all)
-        _write_table(out_root, scenes, rows, table, time.perf_counter() - t0)
+        write()
         raise
-    return _write_table(out_root, scenes, rows, table, time.perf_counter() - t0)
+    return write()
+
+
+def earlier_rows(out_root) -> dict[str, dict]:
+    """The rows of the status table a previous batch left in ``out_root`` (by scene name;
+    empty when there is none). A table that is not stereodem's is not read (the overwrite
+    policy refuses such a folder before); one without rows is taken as empty, with a
+    warning."""
+    path = Path(out_root) / STATUS_FILE
+    if not is_marker(path):
+        return {}
+    try:
+        scenes = json.loads(path.read_text(encoding="utf-8")).get("scenes")
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        scenes = None
+    if not isinstance(scenes, list):
+        log.warning("%s: no scene rows in it; the table starts afresh", path)
+        return {}
+    return {r["name"]: r for r in scenes if isinstance(r, dict) and isinstance(r.get("name"), str)}
 
 
 def scene_pool(n: int, threads: int) -> ProcessPoolExecutor:
@@ -500,26 +551,42 @@ def _run_dask(order, out_root, address, n, scene_options, collect):
             cluster.close()
 
 
-def _write_table(out_root, scenes, rows, table, seconds) -> dict:
-    listed = [
-        asdict(rows[s.name])
-        if s.name in rows
-        else asdict(SceneStatus(s.name, s.path, "pending", output=str(Path(out_root) / s.name)))
+def _write_table(out_root, scenes, rows, table, seconds, earlier) -> dict:
+    """``batch.json``: the ``earlier`` rows with this batch's (``rows``, else ``pending``)
+    merged in by scene name, this batch's own at their place, new scenes after them; the
+    times are this batch's, ``summary`` counts every row, ``this_run`` this batch's."""
+    now = {
+        s.name: asdict(
+            rows[s.name]
+            if s.name in rows
+            else SceneStatus(
+                s.name,
+                s.path,
+                "pending",
+                output=str(Path(out_root) / s.name),
+                batch_started=table["started"],
+            )
+        )
         for s in scenes
-    ]
-    counts = {
-        k: sum(r["status"] == k for r in listed) for k in ("done", "failed", "skipped", "pending")
     }
+    mine = list(now.values())
+    listed = [now.pop(name, row) for name, row in earlier.items()] + list(now.values())
     result = {
         **table,
         "seconds": round(seconds, 3),
-        "sum_scene_seconds": round(sum(r["seconds"] for r in listed), 3),
-        "cpu_s": round(sum(r["cpu_s"] for r in listed), 2),
-        "summary": counts,
+        "sum_scene_seconds": round(sum(r["seconds"] for r in mine), 3),
+        "cpu_s": round(sum(r["cpu_s"] for r in mine), 2),
+        "summary": _counts(listed),
+        "this_run": {"scenes": len(mine), **_counts(mine)},
         "scenes": listed,
     }
+    result = jsonutil.stamped(result)
     write_text_atomic(Path(out_root) / STATUS_FILE, jsonutil.dumps(result), overwrite=True)
     return result
+
+
+def _counts(rows) -> dict:
+    return {k: sum(r.get("status") == k for r in rows) for k in STATUSES}
 
 
 def status_text(status: str, reason: str = "", seconds: float = 0.0) -> str:
@@ -536,15 +603,21 @@ def status_text(status: str, reason: str = "", seconds: float = 0.0) -> str:
 
 
 def summary_lines(result: dict) -> list[str]:
-    """The status table for people: one line per scene, then the totals."""
+    """The status table for people: one line per scene of this batch, then its totals and
+    how many of the table's rows it wrote (the others are earlier batches' in the folder)."""
     lines = []
-    for r in result["scenes"]:
+    mine = [r for r in result["scenes"] if r.get("batch_started") == result.get("started")]
+    for r in mine:
         what = status_text(r["status"], r["reason"], r["seconds"])
         lines.append(f"  {r['name']:24s} {what}")
-    c = result["summary"]
+    c = result.get("this_run", result["summary"])
+    total, earlier = len(result["scenes"]), len(result["scenes"]) - len(mine)
+    rows = f"{total} row(s), {len(mine)} from this run" + (
+        f", {earlier} from earlier runs" if earlier else ""
+    )
     lines.append(
-        f"{len(result['scenes'])} scene(s): {c['done']} done, {c['failed']} failed, "
+        f"{len(mine)} scene(s): {c['done']} done, {c['failed']} failed, "
         f"{c['skipped']} skipped, in {result['seconds']:.1f} s on {result['backend']} "
-        f"with {result['workers']} worker(s); status table in {STATUS_FILE}"
+        f"with {result['workers']} worker(s); status table in {STATUS_FILE}: {rows}"
     )
     return lines

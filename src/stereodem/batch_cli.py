@@ -16,11 +16,15 @@ EXAMPLES = """examples:
   stereodem batch scenes.txt -o out                               # again: done scenes are skipped
 
 Each scene writes OUTDIR/<name>/ (its file's stem) as 'stereodem run' does; OUTDIR/batch.json
-lists every scene as done, failed (with its one-line reason) or skipped. A scene already done
-is skipped (one whose configuration changed since fails until --overwrite); a failed or
-interrupted one runs again, reusing its finished tiles (--overwrite: recompute all). A
-Slurm/PBS cluster through dask-jobqueue: docs/batch.md.
-Exit status 1 when a scene failed (the others are done).
+lists every scene in OUTDIR as done, failed (with its one-line reason) or skipped: a batch run
+again in OUTDIR adds its scenes' rows to those of the batches before (a scene run again gets
+its new row). A scene already done is skipped (one whose configuration changed since fails
+until --overwrite); a failed or interrupted one runs again, reusing its finished tiles
+(--overwrite: recompute the scenes given). OUTDIR must be new, empty or a batch's (its
+batch.json); a folder holding other files needs --overwrite, and the batch then writes
+beside them (never over a batch.json of the user's). A Slurm/PBS cluster through
+dask-jobqueue: docs/batch.md.
+Exit status 1 when a scene of this run failed (the others are done).
 """
 
 
@@ -84,4 +88,4 @@ def run(args) -> int:
     )
     for line in summary_lines(result):
         options.say(line)
-    return 1 if result["summary"]["failed"] else 0
+    return 1 if result["this_run"]["failed"] else 0

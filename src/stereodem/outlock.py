@@ -16,7 +16,11 @@ The policy (:func:`check_output_folder`, applied before any work and again under
   by stereodem, says ``failed``, ``interrupted`` or ``running`` and records the same input
   files: :func:`is_unfinished_run`) is a rerun's without ``--overwrite``: those products are
   set aside and replaced as ``--resume`` sets them aside (put back if the rerun stops before
-  writing its own); another job's products, or a finished run's, still need ``--overwrite``.
+  writing its own); another job's products, or a finished run's, still need ``--overwrite``;
+* a command whose runs continue the previous one in its folder (``Products.continues``:
+  ``batch``) takes a folder holding its marker as it is, without ``--overwrite`` and without
+  removing anything (it replaces what it recomputes); any other non-empty folder is under the
+  rules above.
 
 :class:`OutputLock` holds ``OUT/.stereodem.lock`` with ``fcntl.flock`` (exclusive,
 non-blocking) for the life of a job. The kernel drops the lock when the process dies, however
@@ -123,10 +127,15 @@ class Products:
     """What a command writes into its output folder: ``names`` (file or folder names, glob
     patterns) and ``markers``, the names of which one in the folder, when stereodem wrote it
     (:func:`is_marker`: its record carries stereodem's version), marks the folder as written by
-    a previous run of the command (whose products ``--overwrite`` then replaces)."""
+    a previous run of the command (whose products ``--overwrite`` then replaces).
+
+    ``continues``: a run continues the previous one in its folder (``batch``: done scenes
+    skipped, the status table merged), so a folder holding one of the markers is taken as it
+    is, without ``--overwrite``, and nothing in it is removed or set aside."""
 
     names: tuple
     markers: tuple
+    continues: bool = False
 
     def __post_init__(self):
         # a GeoTIFF's GDAL side-car is part of it (core.raster.atomic_path moves it with the
@@ -451,6 +460,8 @@ def _check_contents(path: Path, products: Products, *, overwrite: bool, resume: 
     ]
     if not others:
         return
+    if products.continues and is_stereodem_output(path, products.markers):
+        return  # a previous run of the command, continued in place
     present = set(_product_paths(path, keep_tiles=False, names=products.names))
     if not (overwrite or resume) and present and is_unfinished_run(path, products, inputs):
         # what a run of this job left when it did not finish: replaced by the rerun; anything
@@ -583,7 +594,9 @@ def output_folder(
     try:
         _check_contents(path, products, overwrite=overwrite, resume=resume, inputs=inputs)
         previous = is_stereodem_output(path, products.markers)
-        if not (overwrite or resume) and is_unfinished_run(path, products, inputs):
+        if previous and products.continues:
+            pass  # continued in place: the job replaces what it recomputes
+        elif not (overwrite or resume) and is_unfinished_run(path, products, inputs):
             # a rerun of a job that did not finish: its leftovers set aside as --resume sets
             # a previous job's products aside (put back if the rerun stops before writing)
             aside = set_aside_products(path, products=products, keep_tiles=False)

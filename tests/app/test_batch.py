@@ -14,7 +14,7 @@ import rasterio
 from stereodem import cli, progress
 from stereodem.batch import expand_inputs, run_batch, scene_config, scene_pool
 from stereodem.config import load_config
-from stereodem.core import worker_logging
+from stereodem.core import jsonutil, worker_logging
 from stereodem.core.errors import InputError
 from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 from stereodem.stereo.execution import _check_tile_cache
@@ -170,10 +170,19 @@ def test_a_done_scene_whose_configuration_changed_is_not_skipped(tmp_path, monke
     assert "--overwrite" in row["reason"]
 
 
+def _batch_folder(out, rows=()):
+    """``out`` as an earlier batch left it: its ``batch.json`` (stamped, with ``rows``), which
+    makes the folder a batch's (the overwrite policy refuses a folder of the user's)."""
+    out.mkdir(parents=True, exist_ok=True)
+    table = {"started": "2026-01-01T00:00:00.000000Z", "scenes": list(rows)}
+    (out / "batch.json").write_text(jsonutil.dumps(jsonutil.stamped(table)))
+
+
 def _done_scene(out, cfg, monkeypatch):
     """``out/<scene>/run.json`` as the job records a finished scene of ``cfg``
-    (stereodem.pipeline.job.run), without running it; running a scene fails the test.
-    Returns the scene's configuration."""
+    (stereodem.pipeline.job.run), in a batch's folder, without running it; running a scene
+    fails the test. Returns the scene's configuration."""
+    _batch_folder(out)
     (out / cfg.stem).mkdir(parents=True)
     done = load_config(cfg.absolute())
     (out / cfg.stem / "run.json").write_text(json.dumps({"status": "ok", "config": done.to_dict()}))
@@ -230,6 +239,7 @@ def test_a_failed_scene_whose_configuration_changed_says_what_batch_takes(tmp_pa
     cfg = tmp_path / "a.toml"
     cfg.write_text(CONFIG.format(d=tmp_path / "data"))
     out = tmp_path / "out"
+    _batch_folder(out)
     tiles = out / "a" / "tiles"
     tiles.mkdir(parents=True)
     (tiles / "job.json").write_text(json.dumps({"key": "the failed run's settings"}))
@@ -315,3 +325,93 @@ def test_an_interrupted_batch_says_how_to_resume(tmp_path, monkeypatch, capsys):
     assert "--overwrite" not in err and "no product was written" not in err
     table = json.loads((out / "batch.json").read_text())
     assert table["summary"] == {"done": 1, "failed": 0, "skipped": 0, "pending": 1}
+
+
+def _fake_scenes(monkeypatch, outcome):
+    """Scenes that run at once: ``outcome[name]`` is the status ``run_scene`` returns; the
+    names run are returned in a list."""
+    from stereodem import batch
+    from stereodem.batch import SceneStatus
+
+    ran = []
+
+    def fake(scene, out_root, *args, **kwargs):
+        ran.append(scene.name)
+        status = outcome[scene.name]
+        return SceneStatus(
+            scene.name, scene.path, status, reason="bad" if status == "failed" else ""
+        )
+
+    monkeypatch.setattr(batch, "run_scene", fake)
+    return ran
+
+
+def test_batch_json_keeps_the_scenes_of_earlier_batches(tmp_path, monkeypatch, capsys):
+    """`batch a b -o OUT` then `batch c a -o OUT`: batch.json listed c and a only, though b's
+    products were in OUT. It lists every scene of OUT, merged by name (a's new row replaces
+    its old one), says how many rows this run wrote, and the exit status is this run's."""
+    for n in "abc":
+        (tmp_path / f"{n}.toml").write_text("")
+    out = tmp_path / "out"
+
+    def batch(*names):
+        argv = ["batch", *(str(tmp_path / f"{n}.toml") for n in names), "-o", str(out)]
+        rc = cli.main([*argv, "--workers", "1"])
+        return rc, json.loads((out / "batch.json").read_text()), capsys.readouterr().out
+
+    outcome = {"a": "done", "b": "done", "c": "done"}
+    ran = _fake_scenes(monkeypatch, outcome)
+    rc, first, _ = batch("a", "b")
+    assert rc == 0 and [r["name"] for r in first["scenes"]] == ["a", "b"]
+    outcome["a"] = "failed"
+    rc, table, printed = batch("c", "a")
+    assert rc == 1 and ran == ["a", "b", "c", "a"]
+    rows = {r["name"]: r for r in table["scenes"]}
+    assert [r["name"] for r in table["scenes"]] == ["a", "b", "c"]
+    assert rows["a"]["status"] == "failed" and rows["a"]["batch_started"] == table["started"]
+    assert rows["b"] == next(r for r in first["scenes"] if r["name"] == "b")  # kept as it was
+    assert rows["c"]["batch_started"] == table["started"] != first["started"]
+    assert table["summary"] == {"done": 2, "failed": 1, "skipped": 0, "pending": 0}
+    assert table["this_run"] == {"scenes": 2, "done": 1, "failed": 1, "skipped": 0, "pending": 0}
+    assert "2 scene(s): 1 done, 1 failed" in printed
+    assert "3 row(s), 2 from this run, 1 from earlier runs" in printed
+    assert f"  {'b':24s}" not in printed  # the scene lines are this run's
+    rc, table, _ = batch("b")  # a's failure is an earlier run's: not this run's exit status
+    assert rc == 0 and table["summary"]["failed"] == 1 and len(table["scenes"]) == 3
+
+
+def test_the_batch_folder_is_under_the_overwrite_policy(tmp_path, monkeypatch, capsys):
+    """OUTDIR was outside the overwrite policy: a folder of the user's was written into
+    without --overwrite, and a batch.json of the user's replaced even so. Now: a folder
+    holding files that are not a batch's is refused without --overwrite (nothing run or
+    written); with it the batch writes beside them; a batch.json of the user's is refused
+    even with it; a batch running in the folder holds its lock."""
+    from stereodem.outlock import LOCK_NAME, OutputLock
+
+    (tmp_path / "a.toml").write_text("")
+    ran = _fake_scenes(monkeypatch, {"a": "done"})
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    argv = ["batch", str(tmp_path / "a.toml"), "--workers", "1", "-o", str(mine)]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert "mine: folder exists and is not empty (it holds notes.txt)" in err
+    assert "pass --overwrite" in err and "Traceback" not in err
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"] and not ran
+    assert cli.main([*argv, "--overwrite"]) == 0 and ran == ["a"]
+    assert sorted(p.name for p in mine.iterdir()) == ["batch.json", "notes.txt"]
+    assert (mine / "notes.txt").read_text() == "mine"
+    assert cli.main(argv) == 0  # a batch's folder now: continued without --overwrite
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "batch.json").write_text('{"mine": 1}')
+    for flags in ([], ["--overwrite"]):
+        argv = ["batch", str(tmp_path / "a.toml"), "--workers", "1", "-o", str(theirs), *flags]
+        assert cli.main(argv) == 1
+        assert "batch.json" in capsys.readouterr().err
+        assert (theirs / "batch.json").read_text() == '{"mine": 1}'
+    with OutputLock(mine):
+        assert cli.main(["batch", str(tmp_path / "a.toml"), "--workers", "1", "-o", str(mine)]) == 1
+        assert "another stereodem job is writing this folder" in capsys.readouterr().err
+    assert not (mine / LOCK_NAME).exists() and ran == ["a", "a"]
