@@ -552,9 +552,10 @@ def _run_dask(order, out_root, address, n, scene_options, collect):
 
 
 def _write_table(out_root, scenes, rows, table, seconds, earlier) -> dict:
-    """``batch.json``: the ``earlier`` rows with this batch's (``rows``, else ``pending``)
-    merged in by scene name, this batch's own at their place, new scenes after them; the
-    times are this batch's, ``summary`` counts every row, ``this_run`` this batch's."""
+    """``batch.json``: the ``earlier`` rows with this batch's (``rows``, else ``pending``, or
+    the earlier row while this batch has not reached the scene) merged in by scene name, this
+    batch's own at their place, new scenes after them; the times are this batch's,
+    ``summary`` counts every row, ``this_run`` this batch's."""
     now = {
         s.name: asdict(
             rows[s.name]
@@ -570,7 +571,13 @@ def _write_table(out_root, scenes, rows, table, seconds, earlier) -> dict:
         for s in scenes
     }
     mine = list(now.values())
-    listed = [now.pop(name, row) for name, row in earlier.items()] + list(now.values())
+    # a scene this batch has not reached keeps its earlier row (its products are there: a
+    # batch interrupted before it must not turn a done scene into a pending one)
+    listed = []
+    for name, row in earlier.items():
+        this = now.pop(name, None)
+        listed.append(this if name in rows else row)
+    listed += list(now.values())
     result = {
         **table,
         "seconds": round(seconds, 3),

@@ -380,6 +380,39 @@ def test_batch_json_keeps_the_scenes_of_earlier_batches(tmp_path, monkeypatch, c
     assert rc == 0 and table["summary"]["failed"] == 1 and len(table["scenes"]) == 3
 
 
+def test_an_interrupted_batch_keeps_the_earlier_rows_of_scenes_it_did_not_reach(
+    tmp_path, monkeypatch, capsys
+):
+    """`batch a b -o OUT`, then `batch c a b -o OUT` stopped while c runs: the table said a
+    and b were pending, though their products were there, done. A scene this batch has not
+    reached keeps its earlier row; this run's counts still say pending."""
+    from stereodem import batch as batch_module
+
+    for n in "abc":
+        (tmp_path / f"{n}.toml").write_text("")
+    out = tmp_path / "out"
+
+    def argv(*names):
+        return ["batch", *(str(tmp_path / f"{n}.toml") for n in names), "-o", str(out)]
+
+    _fake_scenes(monkeypatch, {"a": "done", "b": "done"})
+    assert cli.main([*argv("a", "b"), "--workers", "1"]) == 0
+    first = {r["name"]: r for r in json.loads((out / "batch.json").read_text())["scenes"]}
+
+    def stopped(scene, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(batch_module, "run_scene", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(expand_inputs([tmp_path / f"{n}.toml" for n in "cab"]), out, workers=1)
+    table = json.loads((out / "batch.json").read_text())
+    rows = {r["name"]: r for r in table["scenes"]}
+    assert rows["a"] == first["a"] and rows["b"] == first["b"]
+    assert rows["c"]["status"] == "pending"
+    assert table["summary"] == {"done": 2, "failed": 0, "skipped": 0, "pending": 1}
+    assert table["this_run"]["pending"] == 3
+
+
 def test_the_batch_folder_is_under_the_overwrite_policy(tmp_path, monkeypatch, capsys):
     """OUTDIR was outside the overwrite policy: a folder of the user's was written into
     without --overwrite, and a batch.json of the user's replaced even so. Now: a folder
