@@ -721,6 +721,17 @@ def read_image(path, band: int = 1) -> np.ndarray:
     return img
 
 
+def image_shape(path, band: int = 1) -> tuple[int, int]:
+    """``(width, height)`` of one band of an image, from its header (pixels not read)."""
+    try:
+        with rasterio.open(path) as ds:
+            if not 1 <= int(band) <= ds.count:
+                raise InputError(f"{path}: no band {band}")
+            return int(ds.width), int(ds.height)
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(unreadable(path, "image", exc)) from None
+
+
 def image_dtype(path, band: int = 1) -> np.dtype:
     """The stored data type of one band of an image (products keep it, e.g. orthoimages)."""
     try:

@@ -28,6 +28,7 @@ import numpy as np
 from stereodem.core.errors import InputError
 from stereodem.ortho.uncertainty.propagation import adjustable_model, check_names, check_psd
 from stereodem.sensor.io.sidecar import model_from_dict
+from stereodem.sensor.models.corrected import ImageCorrectedModel
 
 
 def parse_sigma_pairs(pairs) -> dict:
@@ -69,7 +70,7 @@ class AdjustReport:
         if not self.sides:
             return self
         diffs = {
-            k: _same_geometry(adjustable_model(model), adjustable_model(r.model))
+            k: _same_geometry(adjustable_model(model, r.names), adjustable_model(r.model))
             for k, r in self.sides.items()
         }
         best = min(diffs, key=diffs.get)
@@ -158,18 +159,30 @@ def assemble(
 
     With a report, the report's (adjusted) model is used after checking that it is the image's
     model (same type, same geometry within 10⁻³ px when its parameters are set to the image
-    model's); σ pairs add independent inputs. Returns ``(model, names, D)``.
+    model's); σ pairs add independent inputs. The image-space correction's parameters
+    (``col_shift`` ...) are inputs of every model (:func:`adjustable_model`): an
+    ``adjust --model rpc-shift`` report of a physical model, or ``--sigma col_shift`` for one,
+    wraps it. Returns ``(model, names, D)``.
     """
-    model = adjustable_model(model)
     sigmas = dict(sigmas or {})
-    names, blocks = [], []
     if report is not None:
         report = report.side_for(model)
+    # the image-space correction (col_shift ...) wraps any model when named, as adjust's
+    # rpc-* sets do: an rpc-shift report of a physical model is that model's
+    model = adjustable_model(model, [*(report.names if report is not None else []), *sigmas])
+    names, blocks = [], []
+    if report is not None:
         rmodel = adjustable_model(report.model)
-        if type(rmodel) is not type(model):
+        inner = lambda m: type(getattr(m, "model", m)).__name__
+        if type(rmodel) is not type(model) or inner(rmodel) != inner(model):
+            what = lambda m: (
+                f"{type(m).__name__}({inner(m)})"
+                if isinstance(m, ImageCorrectedModel)
+                else type(m).__name__
+            )
             raise InputError(
                 f"{report.path}: covariance file for another model "
-                f"({type(rmodel).__name__}, the image {image or ''} has {type(model).__name__})"
+                f"({what(rmodel)}; the image {image or ''} has {what(model)})"
             )
         diff = _same_geometry(model, rmodel)
         if not diff <= 1e-3:

@@ -304,7 +304,7 @@ def ortho_uncertainty_maps(
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose {', '.join(METHODS)}")
-    model = adjustable_model(model)
+    model = adjustable_model(model, names)
     names = check_names(model, names)
     D = check_psd(np.asarray(covariance, float))
     if D.shape != (len(names), len(names)):
@@ -550,7 +550,7 @@ def dem_vertical_sigma(
     """
     if dem.crs.is_geographic:
         raise InputError("dem_vertical_sigma needs a DEM in a projected CRS (metres)")
-    left, right = adjustable_model(left), adjustable_model(right)
+    left, right = adjustable_model(left, left_names), adjustable_model(right, right_names)
     left_names, right_names = list(left_names), list(right_names)
     for m, nm in ((left, left_names), (right, right_names)):
         check_names(m, nm)

@@ -68,12 +68,29 @@ UNIT_STEPS = {
 # ----------------------------------------------------------------------------- models
 
 
-def adjustable_model(model):
-    """``model`` itself if it has adjustable parameters, else wrapped in an image-space
-    correction (RPC and fitted models: ``col_shift``, ``row_shift`` ... in pixels)."""
-    if is_adjustable(model):
+def adjustable_model(model, names=()):
+    """The model to propagate through: ``model`` itself if it has adjustable parameters, else
+    wrapped in an image-space correction (RPC and fitted models: ``col_shift``,
+    ``row_shift`` ... in pixels). The correction applies to any model, as ``stereodem
+    adjust``'s ``rpc-*`` parameter sets make it: when ``names`` (the inputs to propagate)
+    include its parameters, a model with parameters of its own is wrapped too; names of
+    both kinds are refused (:class:`InputError`): the wrapper does not carry the wrapped
+    model's parameters."""
+    names = list(names)
+    corrections = [n for n in names if n in ImageCorrectedModel.PARAMETERS]
+    if isinstance(model, ImageCorrectedModel):
         return model
-
+    if is_adjustable(model):
+        if not corrections:
+            return model
+        own = [n for n in names if n in model.parameters()]
+        if own:
+            raise InputError(
+                f"{', '.join(corrections)} (image-space correction, px) and {', '.join(own)} "
+                f"({type(model).__name__} parameters) cannot be propagated together: the "
+                "correction wraps the model, whose own parameters it does not carry; give "
+                "one kind"
+            )
     return ImageCorrectedModel(model)
 
 

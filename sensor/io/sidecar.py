@@ -162,6 +162,8 @@ def load_image_model(image, *, prefer: str = "physical", rpc_direct: bool = Fals
     try:
         return RPCModel.from_file(image, direct=rpc_direct)
     except RPCError as exc:
+        if prefer == "rpc":  # the sidecar was not asked for: do not blame its absence
+            raise SensorModelError(f"{image}: no usable RPC model ({exc})") from None
         raise SensorModelError(
             f"{image}: no usable sensor model (no {side.name} sidecar; {exc})"
         ) from None

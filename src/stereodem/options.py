@@ -35,12 +35,35 @@ def band(text: str):
     raise argparse.ArgumentTypeError(f"expected a band number or 3N/3B, got {text!r}")
 
 
-def add_band(p, default_text="1; 3N/3B in an ASTER granule"):
+def add_band(p, default_text="1; 3N/3B in an ASTER granule", *, radiometric: bool = True):
+    """``--band`` (and ``--no-radiometric`` for the commands that read the pixels)."""
     p.add_argument("--band", type=band, default=1, help=f"image band (default {default_text})")
+    if radiometric:
+        p.add_argument(
+            "--no-radiometric",
+            action="store_true",
+            help="ASTER granules: keep the DNs instead of radiance from the radiometric table",
+        )
+
+
+def add_image_model(p, generic_names):
+    """``--model``, ``--gcps`` and ``--rpc-direct``: an image's sensor model, one meaning in
+    every command that takes it (``ortho``, ``uncertainty``; the rule itself is
+    :func:`stereodem.pipeline.inputs.chosen_model`). ``generic_names``: the fitted models'
+    names (:data:`stereodem.sensor.choices.GENERIC_MODEL_NAMES`)."""
     p.add_argument(
-        "--no-radiometric",
+        "--model",
+        default="auto",
+        metavar="MODEL",
+        help="sensor model: auto (the image's physical sidecar, else its RPCs), rpc, "
+        "physical, a model file (e.g. OUT.model.json from 'stereodem adjust'), or "
+        f"a generic model fitted to --gcps: {', '.join(generic_names)} (default auto)",
+    )
+    p.add_argument("--gcps", help="GCP CSV (id,lon,lat,h,col,row[,role]) for the generic models")
+    p.add_argument(
+        "--rpc-direct",
         action="store_true",
-        help="ASTER granules: keep the DNs instead of radiance from the radiometric table",
+        help="localise RPCs with the file's direct model instead of the exact inverse",
     )
 
 

@@ -58,22 +58,9 @@ def add_parser(sub):
         choices=VERTICALS,
         help="vertical reference of the DEM heights when the file does not say",
     )
-    p.add_argument(
-        "--model",
-        default="auto",
-        metavar="MODEL",
-        help="sensor model: auto (the image's physical sidecar, else its RPCs), rpc, "
-        "physical, a model file (e.g. OUT.model.json from 'stereodem adjust'), or "
-        f"a generic model fitted to --gcps: {', '.join(GENERIC)} (default auto)",
-    )
-    p.add_argument("--gcps", help="GCP CSV (id,lon,lat,h,col,row[,role]) for the generic models")
+    options.add_image_model(p, GENERIC)
     p.add_argument("--layers", default="", help="comma-separated extra layers: incidence,occlusion")
     options.add_band(p, "1; 3N in an ASTER granule")
-    p.add_argument(
-        "--rpc-direct",
-        action="store_true",
-        help="localise RPCs with the file's direct model instead of the exact inverse",
-    )
     p.add_argument(
         "--fill-dem",
         metavar="OTHER.tif",
@@ -97,58 +84,21 @@ def add_parser(sub):
 
 
 def _open(args):
-    """The image and its model: the image's own (sidecar, RPCs, granule band), a model file, or
-    a generic model fitted to ``--gcps``; returns an
-    :class:`stereodem.pipeline.inputs.InputImage`."""
-    from stereodem.core.errors import InputError, SensorModelError
-    from stereodem.core.raster import image_dtype, read_image
-    from stereodem.sensor.models.rpc import RPCModel
+    """The image and its model as ``--model`` chooses it
+    (:func:`stereodem.pipeline.inputs.chosen_model`, the rule ``uncertainty`` shares); returns
+    an :class:`stereodem.pipeline.inputs.InputImage`."""
+    from .pipeline.inputs import chosen_model, open_image
 
-    from .pipeline.inputs import InputImage, open_image
-
-    if args.model in GENERIC:
-        if not args.gcps:
-            raise InputError(f"--model {args.model} needs --gcps CSV")
-        from stereodem.sensor.io.gcps import read_gcps
-        from stereodem.sensor.models.generic import fit_model
-
-        pts = read_gcps(args.gcps)
-        gcp, chk = pts.select("gcp"), pts.select("check")
-        if not len(gcp):
-            # fitting the check points instead made them GCPs and check points at once (the
-            # "check RMSE" was the GCP RMSE): as adjust, refuse
-            raise InputError(
-                f"{args.gcps}: no GCP to fit --model {args.model}: all {len(pts)} point(s) "
-                "have role 'check'"
-            )
-        image = read_image(args.image, args.band)
-        model, report = fit_model(
-            args.model,
-            *gcp.arrays(),
-            check=chk.arrays() if len(chk) else None,
-            # the image's size (without it the model took the GCPs' extent, and the image's
-            # rows and columns beyond the outermost GCPs were left out of the orthoimage)
-            image_size=(image.shape[1], image.shape[0]),
-        )
-        options.say(
-            f"{args.model}: {report.n_gcp} GCPs, {report.n_check} check points; GCP RMSE "
-            f"{options.rmse_px(report.gcp_rmse)}, check RMSE "
-            f"{options.rmse_px(report.check_rmse, 'n/a (no check point)')}"
-        )
-        return InputImage(image, model, image_dtype(args.image, args.band))
-    if args.gcps:
-        raise InputError("--gcps is only used with a generic --model (poly2d-1 ... rational-3)")
-    kw = dict(band=args.band, rpc_direct=args.rpc_direct, radiometric=not args.no_radiometric)
-    if args.model in ("auto", "physical", "rpc"):
-        img = open_image(args.image, prefer="rpc" if args.model == "rpc" else "physical", **kw)
-        if args.model == "physical" and isinstance(img.model, RPCModel):
-            raise SensorModelError(f"{args.image}: no physical model sidecar (<stem>.model.json)")
-        return img
-    if Path(args.model).is_file():
-        return open_image(args.image, model_file=args.model, **kw)
-    raise InputError(
-        f"--model {args.model!r}: not auto, rpc, physical, a generic model name or "
-        "an existing model file"
+    chosen = chosen_model(
+        args.image, args.model, band=args.band, rpc_direct=args.rpc_direct, gcps=args.gcps
+    )
+    if chosen.note:
+        options.say(chosen.note)
+    return open_image(
+        args.image,
+        band=args.band,
+        model=chosen.model,
+        radiometric=not args.no_radiometric,
     )
 
 

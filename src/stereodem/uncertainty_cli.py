@@ -8,6 +8,7 @@ from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 from stereodem.ortho.choices import UNCERTAINTY_METHODS
+from stereodem.sensor.choices import GENERIC_MODEL_NAMES
 
 from . import options
 from .commands import help_line
@@ -38,11 +39,14 @@ EXAMPLES = """examples:
       --sigma dem_height=3 -o unc
   stereodem uncertainty left.tif --dem dem.tif --sigma roll_bias=2e-5 --method monte-carlo \\
       --samples 500 -o unc
+  stereodem uncertainty left.tif --dem dem.tif --model rpc --sigma col_shift=0.5 -o unc
 
 inputs (--sigma NAME=VALUE, 1-sigma in the input's unit):
-  RPC and fitted models: col_shift, row_shift (px), col_drift_col ... (px/px), dem_height (m)
-  physical models: their parameter names (see the error message for the list), dem_height (m),
-  imaging_time (s) for frame cameras (pushbroom models: time_offset)
+  every model: col_shift, row_shift (px), col_drift_col ... (px/px): the image-space
+    correction adjust's rpc-* sets estimate (a physical model is wrapped in it), dem_height (m)
+  physical models: their own parameter names (see the error message for the list),
+    imaging_time (s) for frame cameras (pushbroom models: time_offset); not together with
+    the image-space ones
 """
 
 
@@ -57,7 +61,13 @@ def add_parser(sub):
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("image", help="image GeoTIFF (with RPCs or a <stem>.model.json sidecar)")
+    p.add_argument(
+        "image",
+        help="image GeoTIFF (with RPCs or a <stem>.model.json sidecar), or an ASTER L1A "
+        "granule (choose the band with --band 3N|3B)",
+    )
+    options.add_image_model(p, GENERIC_MODEL_NAMES)
+    options.add_band(p, "1; 3N in an ASTER granule", radiometric=False)
     p.add_argument("--dem", required=True, help="DEM GeoTIFF")
     p.add_argument(
         "--dem-vertical",
@@ -109,9 +119,10 @@ def run(args) -> int:
         read_adjust_report,
     )
     from stereodem.ortho.uncertainty.maps import ortho_uncertainty_maps
-    from stereodem.sensor.io.sidecar import load_image_model
+    from stereodem.sensor.io.sidecar import sidecar_path
 
     from . import options
+    from .pipeline.inputs import chosen_model
 
     options.check_common(args)
     if args.samples < 3:
@@ -119,12 +130,24 @@ def run(args) -> int:
     from .outlock import check_output_folder, output_folder
 
     # an input named like a map in the output folder was replaced with --overwrite
-    inputs = [args.image, args.dem, args.covariance]
+    model_file = args.model if Path(args.model).is_file() else None
+    inputs = [
+        args.image,
+        args.dem,
+        args.covariance,
+        args.gcps,
+        model_file,
+        sidecar_path(args.image),
+    ]
     check_output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
     sigmas = parse_sigma_pairs(args.sigma)
     report = read_adjust_report(args.covariance) if args.covariance else None
-    model = load_image_model(args.image)
-    model, names, D = assemble(model, sigmas=sigmas, report=report, image=args.image)
+    chosen = chosen_model(
+        args.image, args.model, band=args.band, rpc_direct=args.rpc_direct, gcps=args.gcps
+    )
+    if chosen.note:
+        options.say(chosen.note)
+    model, names, D = assemble(chosen.model, sigmas=sigmas, report=report, image=args.image)
     dem = DEM.from_file(args.dem, vertical=args.dem_vertical)
     h_range = footprint_height_range(model, dem)
     grid = grid_for_model(model, dem, res=args.res, crs=args.crs, h_range=h_range)

@@ -16,10 +16,10 @@ from stereodem.ortho.drm import dem_gaps
 from stereodem.ortho.grid import grid_for_model
 from stereodem.ortho.uncertainty.covariance import assemble, read_adjust_report
 from stereodem.ortho.uncertainty.propagation import covariance_matrix
-from stereodem.sensor.io.sidecar import model_to_dict, save_model
+from stereodem.sensor.io.sidecar import load_model, model_to_dict, save_model
 from stereodem.sensor.models.corrected import ImageCorrectedModel
 from stereodem.sensor.models.rpc import RPCModel
-from stereodem.sensor.simulation.simulate import simulate_scene
+from stereodem.sensor.simulation.simulate import simulate_scene, write_scene
 
 IMG = "pleiades/img_01_rpc.tif"
 
@@ -333,3 +333,75 @@ def test_ortho_and_uncertainty_report_the_same_dem_gap(tmp_path, caplog):
         figures[cmd] = (float(m.group(1)), int(n.group(1)) if n else None)
     assert figures["ortho"] == figures["uncertainty"], figures
     assert 10 < figures["ortho"][0] < 90, figures
+
+
+@pytest.fixture(scope="module")
+def physical_scene(tmp_path_factory):
+    """A small simulated scene written as the simulator writes it: ``left.tif`` with RPCs and
+    its physical model sidecar ``left.model.json``, the true DEM."""
+    d = tmp_path_factory.mktemp("phys")
+    write_scene(simulate_scene("aster", size=(100, 100), seed=0, n_points=4), d, overwrite=True)
+    return d
+
+
+def _unc(d, out, *extra):
+    argv = ["uncertainty", d / "left.tif", "--dem", d / "truth_dem.tif", "-o", out, *extra]
+    return main([str(a) for a in argv])
+
+
+def _median_sigma(out):
+    return json.loads((out / "sensitivity.json").read_text())["sigma_horizontal_m"]["median"]
+
+
+@pytest.mark.slow  # five runs of the command
+def test_rpc_parameters_with_a_physical_sidecar(physical_scene, tmp_path, capsys):
+    """An image with a physical sidecar: the image-space parameters (col_shift ..., what
+    adjust's rpc-* sets estimate for any model) were refused ("unknown parameter(s) col_shift,
+    row_shift for AsterModel"), as was the adjust report of such a set, and there was no
+    --model to take the image's RPCs or an adjusted model file as ortho does."""
+    d = physical_scene
+    sig = ("--sigma", "col_shift=0.5", "--sigma", "row_shift=0.5")
+    assert _unc(d, tmp_path / "phys", *sig) == 0, capsys.readouterr().err
+    doc = json.loads((tmp_path / "phys" / "sensitivity.json").read_text())
+    assert set(doc["shares"]) == {"col_shift", "row_shift"}
+    phys = _median_sigma(tmp_path / "phys")
+    assert 5 < phys < 20  # 0.5 px per axis of a 15 m image: ~10.6 m
+    # the RPCs (fitted to the same geometry) give the same σ
+    assert _unc(d, tmp_path / "rpc", "--model", "rpc", *sig) == 0, capsys.readouterr().err
+    assert _median_sigma(tmp_path / "rpc") == pytest.approx(phys, rel=0.01)
+    # an rpc-shift adjustment report of the physical model, and its adjusted model as --model
+    physical = load_model(d / "left.model.json")
+    adjusted = ImageCorrectedModel(physical, col_shift=0.2)
+    rep = _report(
+        tmp_path / "adjust_report.json",
+        adjusted,
+        ["col_shift", "row_shift"],
+        [[0.25, 0], [0, 0.25]],
+    )
+    assert _unc(d, tmp_path / "cov", "--covariance", rep) == 0, capsys.readouterr().err
+    assert _median_sigma(tmp_path / "cov") == pytest.approx(phys, rel=0.01)
+    save_model(adjusted, tmp_path / "adj.model.json")
+    argv = ("--model", tmp_path / "adj.model.json", "--sigma", "col_shift=0.5")
+    assert _unc(d, tmp_path / "file", *argv) == 0, capsys.readouterr().err
+    # a physical parameter with an image-space one: one line saying why
+    capsys.readouterr()
+    code = _unc(d, tmp_path / "mix", "--sigma", "col_shift=0.5", "--sigma", "roll_bias=1e-5")
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and len(err.splitlines()) == 1, err
+    assert "col_shift" in err and "roll_bias" in err and "cannot be propagated together" in err
+
+
+def test_model_option_errors_are_one_line(data_dir, dem_path, tmp_path, capsys):
+    """--model physical without a sidecar, a missing model file, --gcps without a generic model,
+    a generic model without --gcps: one line each, before any work."""
+    cases = [
+        (["--model", "physical"], "no physical model sidecar"),
+        (["--model", str(tmp_path / "nope.model.json")], "not auto, rpc, physical"),
+        (["--gcps", str(tmp_path / "p.csv")], "only used with a generic --model"),
+        (["--model", "rational-1"], "needs --gcps"),
+    ]
+    for extra, message in cases:
+        code = _run(data_dir, dem_path, tmp_path / "x", *extra, "--sigma", "col_shift=1")
+        err = capsys.readouterr().err.strip()
+        assert code == 1 and message in err and len(err.splitlines()) == 1, (extra, err)
+        assert not (tmp_path / "x").exists()

@@ -13,13 +13,14 @@ import numpy as np
 
 from stereodem.core.dem import DEM, ELLIPSOID
 from stereodem.core.errors import InputError
-from stereodem.core.raster import image_dtype, read_image
+from stereodem.core.raster import image_dtype, image_shape, read_image
 from stereodem.post.assess import check_checkpoints
 from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
-from stereodem.sensor.io.sidecar import load_image_model, load_model
+from stereodem.sensor.io.sidecar import load_image_model, load_model, sidecar_path
 from stereodem.stereo import sanity
 
 from ..config import Config
+from ..options import rmse_px
 
 log = logging.getLogger(__name__)
 
@@ -61,11 +62,13 @@ def open_image(
     rpc_direct: bool = False,
     radiometric: bool = True,
     granules: dict | None = None,
+    model=None,
 ) -> InputImage:
     """The one input layer: a GeoTIFF (with RPCs or a model sidecar) or an ASTER L1A granule
     (V004 ``.hdf``, V003 ``.zip`` or folder; ``band`` ``"3N"``/``"3B"``, radiance by the
     granule's radiometric table unless ``radiometric`` is false), with its model (or the
-    ``model_file``), checked against each other. ``granules`` caches opened granules by path."""
+    ``model_file``, or ``model`` itself, e.g. :func:`chosen_model`'s), checked against each
+    other. ``granules`` caches opened granules by path."""
     if is_aster_granule(path):
         key = str(Path(path).resolve())
         g = (granules or {}).get(key) or open_aster_granule(path)
@@ -73,7 +76,8 @@ def open_image(
             granules[key] = g
         name = band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
         img = g.read_image(name, radiometric=radiometric)
-        model = load_model(model_file) if model_file else g.model(name)
+        if model is None:
+            model = load_model(model_file) if model_file else g.model(name)
         dtype = np.dtype("float32") if radiometric else g.band(name).dn.dtype
         tags = {
             **g.tags(),
@@ -86,19 +90,122 @@ def open_image(
                 f"{path}: band {band!r} names an ASTER band, but this is not an ASTER "
                 "granule (give a band number)"
             )
-        model = (
-            load_model(model_file, rpc_direct=rpc_direct)
-            if model_file
-            else load_image_model(path, prefer=prefer, rpc_direct=rpc_direct)
-        )
+        if model is None:
+            model = (
+                load_model(model_file, rpc_direct=rpc_direct)
+                if model_file
+                else load_image_model(path, prefer=prefer, rpc_direct=rpc_direct)
+            )
         img, dtype, tags = read_image(path, band), image_dtype(path, band), {}
-    if img.shape != (model.height, model.width):
-        raise InputError(
-            f"{path}: image is {img.shape[1]}x{img.shape[0]} but its model "
-            f"describes {model.width}x{model.height}"
-        )
+    check_model_size(path, (img.shape[1], img.shape[0]), model)
     sanity.check_texture(img, f"{path}" + (f" band {band}" if isinstance(band, str) else ""))
     return InputImage(img, model, dtype, tags)
+
+
+def check_model_size(path, size, model):
+    """An image of ``size`` (width, height) and its model must describe the same pixels."""
+    if tuple(size) != (model.width, model.height):
+        raise InputError(
+            f"{path}: image is {size[0]}x{size[1]} but its model "
+            f"describes {model.width}x{model.height}"
+        )
+
+
+@dataclass
+class ChosenModel:
+    """An image's sensor model as a command's ``--model`` chose it (:func:`chosen_model`):
+    the model, the model file it was read from (None: the image's own), and a result line
+    for the user (a fitted model's residuals; None otherwise)."""
+
+    model: object
+    model_file: str | None = None
+    note: str | None = None
+
+
+def chosen_model(
+    path, choice: str = "auto", *, band=1, rpc_direct: bool = False, gcps=None
+) -> ChosenModel:
+    """The one rule of the commands that take an image's model by ``--model`` (``ortho``,
+    ``uncertainty``): ``auto`` (the image's ``<stem>.model.json`` sidecar, else its RPCs; an
+    ASTER granule's band model), ``rpc`` (the RPCs, even beside a sidecar), ``physical`` (the
+    sidecar, refused without one), a model file (e.g. ``stereodem adjust``'s ``-o``), or a
+    generic model (:data:`stereodem.sensor.choices.GENERIC_MODEL_NAMES`) fitted to the GCPs
+    of ``gcps``; ``rpc_direct`` localises RPCs with their file's direct model. Errors are
+    one-line :class:`InputError`/:class:`SensorModelError` naming the file or the option."""
+    from stereodem.core.errors import SensorModelError
+    from stereodem.sensor.choices import GENERIC_MODEL_NAMES
+    from stereodem.sensor.models.rpc import RPCModel
+
+    choice = str(choice)
+    if choice in GENERIC_MODEL_NAMES:
+        return _fitted_model(path, choice, band=band, gcps=gcps)
+    if gcps:
+        raise InputError(
+            f"--gcps is only used with a generic --model ({GENERIC_MODEL_NAMES[0]} ... "
+            f"{GENERIC_MODEL_NAMES[-1]})"
+        )
+    if choice in ("auto", "physical", "rpc"):
+        if is_aster_granule(path):
+            if choice == "rpc":
+                raise InputError(f"{path}: an ASTER granule has no RPCs (--model auto)")
+            return ChosenModel(image_model(path, band=band))
+        if not Path(path).exists():
+            raise SensorModelError(f"{path}: image not found")
+        if choice == "physical" and not sidecar_path(path).exists():
+            raise SensorModelError(f"{path}: no physical model sidecar ({sidecar_path(path).name})")
+        model = load_image_model(
+            path, prefer="rpc" if choice == "rpc" else "physical", rpc_direct=rpc_direct
+        )
+        if choice == "physical" and isinstance(model, RPCModel):
+            raise SensorModelError(f"{path}: no physical model sidecar (<stem>.model.json)")
+        return ChosenModel(model)
+    if Path(choice).is_file():
+        return ChosenModel(load_model(choice, rpc_direct=rpc_direct), model_file=choice)
+    raise InputError(
+        f"--model {choice!r}: not auto, rpc, physical, a generic model name or an existing "
+        "model file"
+    )
+
+
+def _fitted_model(path, name, *, band, gcps) -> ChosenModel:
+    """A generic model fitted to the GCPs of ``gcps`` over the image's size."""
+    from stereodem.sensor.io.gcps import read_gcps
+    from stereodem.sensor.models.generic import fit_model
+
+    if not gcps:
+        raise InputError(f"--model {name} needs --gcps CSV")
+    pts = read_gcps(gcps)
+    gcp, chk = pts.select("gcp"), pts.select("check")
+    if not len(gcp):
+        # fitting the check points instead made them GCPs and check points at once (the
+        # "check RMSE" was the GCP RMSE): as adjust, refuse
+        raise InputError(
+            f"{gcps}: no GCP to fit --model {name}: all {len(pts)} point(s) have role 'check'"
+        )
+    model, report = fit_model(
+        name,
+        *gcp.arrays(),
+        check=chk.arrays() if len(chk) else None,
+        # the image's size (without it the model took the GCPs' extent, and the image's
+        # rows and columns beyond the outermost GCPs were left out of the products)
+        image_size=image_size(path, band),
+    )
+    note = (
+        f"{name}: {report.n_gcp} GCPs, {report.n_check} check points; GCP RMSE "
+        f"{rmse_px(report.gcp_rmse)}, check RMSE "
+        f"{rmse_px(report.check_rmse, 'n/a (no check point)')}"
+    )
+    return ChosenModel(model, note=note)
+
+
+def image_size(path, band=1) -> tuple[int, int]:
+    """``(width, height)`` of an input image (a GeoTIFF's header, or an ASTER granule's
+    band), without reading the pixels."""
+    if is_aster_granule(path):
+        name = band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
+        m = open_aster_granule(path).model(name)
+        return int(m.width), int(m.height)
+    return image_shape(path)
 
 
 def image_model(path, *, band=1, prefer: str = "physical"):
