@@ -143,32 +143,57 @@ def _check_rpc_heights(model, dem: DEM):
         check_validity(inner, lon[ok], lat[ok], h[ok])
 
 
+#: positions within this fraction of a post of a post line are taken on it (a float32 map's
+#: round-off is ~1e-5 post for grids of a few thousand posts): :func:`bilinear_nan`
+POST_SNAP = 1e-3
+
+
+def _snapped(f, n):
+    """Fractional offsets within :data:`POST_SNAP` of 0 or 1 set to 0 or 1 (clipped to them
+    at the array's edges, which the inside test extends by the same amount)."""
+    f = np.where(np.abs(f) < POST_SNAP, 0, f)
+    f = np.where(np.abs(f - 1) < POST_SNAP, 1, f)
+    return np.clip(f, 0, 1).astype(f.dtype, copy=False) if n > 1 else np.zeros_like(f)
+
+
 def bilinear_nan(array, c, r, *, dtype=np.float64):
     """Bilinear interpolation of ``array`` at fractional (col, row), centres at integers.
 
     Result in ``dtype`` (float64 by default; float32 for the ortho's per-cell maps); NaN
-    outside ``[0, n-1]`` or when any of the four neighbours is NaN (voids are never filled).
+    outside ``[0, n-1]`` or when a neighbour with a weight is NaN (voids are never filled).
+    The one rule of where a DEM has a height: a position within :data:`POST_SNAP` of a post
+    line is on it, and a neighbour of no weight does not count, so a map cell on a valid
+    post beside a void has its height (the float32 lattice put it 1e-5 post off, and the
+    void's weight of 1e-5 made it NaN: a ring of nodata around every hole).
     """
     rows, cols = array.shape
     c, r = np.asarray(c), np.asarray(r)
-    inside = (c >= 0) & (r >= 0) & (c <= cols - 1) & (r <= rows - 1)
+    inside = (c >= -POST_SNAP) & (r >= -POST_SNAP)
+    inside &= (c <= cols - 1 + POST_SNAP) & (r <= rows - 1 + POST_SNAP)
     itype = np.int32 if rows * cols < 2**31 - cols - 2 else np.intp  # int32: faster gathers
-    c0 = np.minimum(np.where(inside, c, 0).astype(itype), max(cols - 2, 0))
-    r0 = np.minimum(np.where(inside, r, 0).astype(itype), max(rows - 2, 0))
-    fc = np.subtract(c, c0, dtype=dtype)
-    fr = np.subtract(r, r0, dtype=dtype)
+    c0 = np.clip(np.where(inside, c, 0).astype(itype), 0, max(cols - 2, 0))
+    r0 = np.clip(np.where(inside, r, 0).astype(itype), 0, max(rows - 2, 0))
+    fc = _snapped(np.subtract(c, c0, dtype=dtype), cols)
+    fr = _snapped(np.subtract(r, r0, dtype=dtype), rows)
     idx = r0 * itype(cols) + c0
     flat = np.asarray(array).ravel()
     z00, z01, z10, z11 = (
         flat.take(i, mode="clip").astype(dtype, copy=False)
         for i in (idx, idx + 1, idx + cols, idx + cols + 1)
     )
+    # a neighbour of no weight takes its partner's value (a NaN there must not count)
+    for a, b, w in ((z01, z00, fc), (z11, z10, fc)):
+        np.copyto(a, b, where=w == 0)
+    for a, b, w in ((z00, z01, fc), (z10, z11, fc)):
+        np.copyto(a, b, where=w == 1)
     z01 -= z00
     z01 *= fc
     z01 += z00  # top edge
     z11 -= z10
     z11 *= fc
     z11 += z10  # bottom edge
+    np.copyto(z11, z01, where=fr == 0)
+    np.copyto(z01, z11, where=fr == 1)
     z11 -= z01
     z11 *= fr
     z11 += z01

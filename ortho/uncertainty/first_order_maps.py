@@ -215,8 +215,20 @@ class _Blocks:
         gc, gr = garr
         self.voids = bool(np.isnan(gc).any() or np.isnan(gr).any())
         self.use_remap = max(z.shape) <= _REMAP_MAX
+        # voids as 0 with a validity channel: cv2.remap multiplies a NaN neighbour of no
+        # weight into NaN, so cells beside a void are taken by the exact rule (bilinear_nan)
         self.dem3 = (
-            np.ascontiguousarray(np.stack([z, gc.astype(np.float32), gr.astype(np.float32)], -1))
+            np.ascontiguousarray(
+                np.stack(
+                    [
+                        np.nan_to_num(z),
+                        np.nan_to_num(gc).astype(np.float32),
+                        np.nan_to_num(gr).astype(np.float32),
+                        np.isfinite(z).astype(np.float32),
+                    ],
+                    -1,
+                )
+            )
             if self.use_remap
             else None
         )
@@ -281,9 +293,16 @@ class _Blocks:
                 rd,
                 cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_CONSTANT,
-                borderValue=(np.nan, np.nan, np.nan),
+                borderValue=(0, 0, 0, 0),
             )
-            h, gc, gr = s[..., 0], s[..., 1], s[..., 2]
+            h, gc, gr, valid = s[..., 0], s[..., 1], s[..., 2], s[..., 3]
+            h[valid <= 0] = np.nan
+            edge = (valid > 0) & (valid < 1 - 1e-6)  # beside a void or the DEM's border
+            if edge.any():
+                ce, re_ = cd[edge], rd[edge]
+                h[edge] = bilinear_nan(self.dem_e.heights, ce, re_, dtype=f32)
+                gc[edge] = bilinear_nan(self.garr[0], ce, re_, dtype=f32)
+                gr[edge] = bilinear_nan(self.garr[1], ce, re_, dtype=f32)
         else:
             h = bilinear_nan(self.dem_e.heights, cd, rd, dtype=f32)
             gc = bilinear_nan(self.garr[0], cd, rd, dtype=f32)
@@ -434,7 +453,7 @@ def first_order_maps(
             & (row >= -0.5)
             & (row <= model.height - 0.5)
         )
-        # check cells off void edges: there the exact slope rule (none next to a void) is
+        # check cells off void edges: there the slope rule (one-sided beside a void) is
         # discontinuous in position, and a cell may fall on either side of it
         lon_a, lat_a = grid.lonlat(cu, cv)
         dc, dr, _ = dem_pixel_jacobian(dem_e, lon_a, lat_a, grid.crs)
@@ -516,7 +535,8 @@ def first_order_maps(
         "interpolation_error_maps": map_err,
         "dem_position_error_px": err_dem,
         "n_check_cells": int(good.sum()),
-        "terrain": "each cell's own DEM height and slope (central-difference gradient)",
+        "terrain": "each cell's own DEM height and slope (central-difference gradient, "
+        "one-sided beside voids)",
     }
     kept = {s_: out["share_" + s_] for s_ in srcs} if source_maps else {}
     return UncertaintyMaps(

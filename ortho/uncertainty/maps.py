@@ -28,10 +28,12 @@ from stereodem.core.dem import ELLIPSOID, write_layer
 from stereodem.core.errors import InputError
 from stereodem.core.raster import write_geotiff, write_text_atomic
 from stereodem.ortho.choices import UNCERTAINTY_METHODS
+from stereodem.ortho.drm import build_backward_map, crop_dem
 from stereodem.ortho.uncertainty.first_order_maps import _node_lattice, _weights, first_order_maps
 from stereodem.ortho.uncertainty.indices import fast_indices
 from stereodem.ortho.uncertainty.propagation import (
     adjustable_model,
+    axis_gradient,
     ce90,
     check_names,
     check_psd,
@@ -333,12 +335,18 @@ def ortho_uncertainty_maps(
     big = max(grid.width, grid.height)
     st = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
     fixed = step is not None
+    # the cells with a DEM height (the orthoimage's rule, ortho.drm.bilinear_nan); a lattice
+    # node without one takes its nearest node's fields (_fill_nodes), so that a node in a hole
+    # does not blank every cell around it (a NaN node made the cells of its four lattice
+    # squares nodata: a ring of up to a lattice step around each void)
+    has_height = _height_mask(model, dem, grid)
     while True:
         uu, vv = _node_lattice(grid, st)
         U, V = np.meshgrid(uu, vv)
         F, srcs = _node_fields(
             model, dem, grid, U, V, D, names, groups, "first-order", samples, seed
         )
+        F = _fill_nodes(F)
         # measured interpolation error: exact first-order σ_h at mid-cells and random cells
         ny, nx = U.shape
         m = min(n_check // 2, (ny - 1) * (nx - 1))
@@ -380,6 +388,7 @@ def ortho_uncertainty_maps(
             U, V = np.meshgrid(uu, vv)
             details["sampling_lattice_note"] = "sampling methods use at most 16 x 16 nodes"
         F, srcs = _node_fields(model, dem, grid, U, V, D, names, groups, method, samples, seed)
+        F = _fill_nodes(F)
         details.update(n_lattice_nodes=int(U.size), samples=int(samples))
     Wx, Wy = _weights(grid.width, uu), _weights(grid.height, vv)
     sE, sN = _interp(F[..., 0], Wy, Wx), _interp(F[..., 1], Wy, Wx)
@@ -387,6 +396,7 @@ def ortho_uncertainty_maps(
     outside = ~(
         (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5)
     )
+    outside |= ~has_height
     sE[outside] = sN[outside] = np.nan
     c90 = np.full(sE.shape, np.nan, np.float32)
     good = np.isfinite(sE)
@@ -420,6 +430,28 @@ def ortho_uncertainty_maps(
     )
 
 
+def _height_mask(model, dem, grid) -> np.ndarray:
+    """Cells of ``grid`` with a height in ``dem``: the orthoimage's map and rule
+    (:func:`stereodem.ortho.drm.build_backward_map`, :func:`stereodem.ortho.drm.bilinear_nan`)."""
+    bm = build_backward_map(model, grid, crop_dem(dem, grid))
+    H, W = grid.shape
+    rows = max(16, min(H, 262_144 // max(W, 1)))
+    out = np.zeros((H, W), bool)
+    for r0 in range(0, H, rows):
+        out[r0 : r0 + rows] = np.isfinite(bm.block(r0, min(H, r0 + rows))[2])
+    return out
+
+
+def _fill_nodes(F):
+    """Lattice fields ``(ny, nx, k)`` with each node that has none (no DEM height there)
+    given its nearest valid node's (the cells' own voids are masked separately)."""
+    bad = ~np.isfinite(F[..., 0])
+    if not bad.any() or bad.all():
+        return F
+    idx = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
+    return F[idx[0], idx[1]]
+
+
 # ----------------------------------------------------------------------------- DEM vertical σ
 
 
@@ -447,17 +479,24 @@ def hirvonen_slope_kernels(size: int, res, c: float = 12.2):
 
 
 def hirvonen_slopes(heights, res, *, c: float = 12.2, size: int = 11):
-    """Slopes ``(∂h/∂E, ∂h/∂N)`` (m/m) of every DEM cell from the Hirvonen-weighted quadratic
-    surface over its ``size × size`` neighbourhood (NaN where the window has a void)."""
+    """Slopes ``(∂h/∂E, ∂h/∂N)`` (m/m) of every DEM cell (a north-up grid of posting ``res``,
+    metres) from the Hirvonen-weighted quadratic surface over its ``size × size``
+    neighbourhood; where that window reaches a void or the grid's edge, the DEM's own
+    differences (:func:`stereodem.ortho.uncertainty.propagation.axis_gradient`: central,
+    one-sided beside the void or the edge, as numpy.gradient), so that every cell with a
+    height has a slope (a window reaching a void gave NaN: a ring of nodata ``size // 2``
+    posts wide around every hole; one padded at the edge halved a plane's slope); NaN on the
+    voids."""
     z = np.asarray(heights, float)
     bad = ~np.isfinite(z)
     zf = np.where(bad, 0.0, z)
     kE, kN = hirvonen_slope_kernels(size, res, c)
     gE = ndimage.correlate(zf, kE, mode="nearest")
     gN = ndimage.correlate(zf, kN, mode="nearest")
-    if bad.any():
-        void = ndimage.maximum_filter(bad, size=size, mode="nearest")
-        gE[void] = gN[void] = np.nan
+    rx, ry = (res, res) if np.isscalar(res) else res
+    part = ndimage.maximum_filter(bad, size=size, mode="constant", cval=True)
+    gE[part] = axis_gradient(z, 1)[part] / rx
+    gN[part] = -axis_gradient(z, 0)[part] / ry  # rows run south
     return gE, gN
 
 

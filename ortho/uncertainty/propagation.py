@@ -245,10 +245,28 @@ def dem_pixel_jacobian(dem, lon, lat, crs, *, d: float = 1.0):
 
 
 def dem_gradient_arrays(dem):
-    """``(∂h/∂col, ∂h/∂row)`` of the DEM grid (m per DEM pixel), central differences."""
+    """``(∂h/∂col, ∂h/∂row)`` of the DEM grid (m per DEM pixel): central differences, one-sided
+    where one neighbour along the axis is a void or off the grid (as :func:`numpy.gradient`
+    at the grid's border, and GDAL's slope), 0 along an axis with no valid neighbour (an
+    isolated post), NaN on the voids. Every post with a height has a gradient: a void no
+    longer takes the slope of the posts around it (NaN there, read as flat)."""
     z = np.asarray(dem.heights, dtype=np.float64)
-    gr, gc = np.gradient(z)
-    return gc, gr
+    return axis_gradient(z, 1), axis_gradient(z, 0)
+
+
+def axis_gradient(z, axis: int):
+    """Gradient of ``z`` along ``axis`` per post (see :func:`dem_gradient_arrays`)."""
+    z = np.moveaxis(np.asarray(z, np.float64), axis, 0)
+    n = z.shape[0]
+    fwd = np.full(z.shape, np.nan)  # z[i+1] - z[i]
+    bwd = np.full(z.shape, np.nan)  # z[i] - z[i-1]
+    if n > 1:
+        d = z[1:] - z[:-1]
+        fwd[:-1], bwd[1:] = d, d
+    f_ok, b_ok = np.isfinite(fwd), np.isfinite(bwd)
+    g = np.where(f_ok & b_ok, 0.5 * (fwd + bwd), np.where(f_ok, fwd, np.where(b_ok, bwd, 0.0)))
+    g[~np.isfinite(z)] = np.nan
+    return np.moveaxis(g, 0, axis)
 
 
 def dem_gradient(dem, lon, lat, crs, *, arrays=None):

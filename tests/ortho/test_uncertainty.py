@@ -470,3 +470,20 @@ def test_sampling_methods_on_the_map(rpc, flat):
     assert np.nanmax(np.abs(mc.sigma_horizontal[ok] / fo.sigma_horizontal[ok] - 1)) < 0.02
     for k in names:
         assert mc.shares[k] == pytest.approx(fo.shares[k], abs=0.02)
+
+
+def test_hirvonen_slopes_beside_a_void_are_the_dems_own():
+    """A window reaching a void gave NaN, and the DEM's vertical σ (run's
+    dem_sigma_vertical.tif) a ring of nodata 5 posts wide around every hole; one reaching the
+    grid's edge half a plane's slope. There the slope is now the DEM's own difference
+    (one-sided beside the void or the edge): exact on a plane."""
+    res = 30.0
+    r, c = np.mgrid[0:40, 0:50]
+    z = 100 + 0.12 * c * res + 0.05 * r * res  # rows run south: dh/dN = -0.05
+    z[18:22, 20:25] = np.nan
+    gE, gN = hirvonen_slopes(z, res)
+    assert np.array_equal(np.isfinite(gE), np.isfinite(z)) and np.array_equal(
+        np.isfinite(gN), np.isfinite(z)
+    )
+    ok = np.isfinite(z)
+    assert np.allclose(gE[ok], 0.12) and np.allclose(gN[ok], -0.05)

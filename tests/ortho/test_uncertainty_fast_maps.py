@@ -225,3 +225,70 @@ def test_fast_maps_default_to_the_process_thread_budget(rpc_case, monkeypatch):
     finally:
         cv2.setNumThreads(before)
     assert np.array_equal(maps[1].sigma_east, maps[3].sigma_east, equal_nan=True)
+
+
+@pytest.fixture(scope="module")
+def holed_case(data_dir):
+    """The Pleiades RPC image over a smooth tilted surface, as a DEM whose posts are the output
+    grid's cells (10 posts of margin), with and without two holes."""
+    rpc = RPCModel.from_file(data_dir / "pleiades" / "img_01_rpc.tif")
+    lon, lat = rpc.footprint(2300.0)
+    flat = DEM(
+        np.full((3, 3), 2300.0, np.float32),
+        Affine(0.01, 0, lon.min() - 0.01, 0, -0.01, lat.max() + 0.01),
+        "EPSG:4326",
+        "ellipsoid",
+    )
+    grid = grid_for_model(rpc, flat, res=4.0)
+    m = 10
+    t = grid.transform @ Affine.translation(-m, -m)
+    r, c = np.mgrid[0 : grid.height + 2 * m, 0 : grid.width + 2 * m]
+    z = 2300.0 + 1.2 * c + 0.8 * r + 0.004 * (c - 60.0) ** 2  # slopes ~0.2..0.5
+    whole = DEM(z.astype(np.float32), t, grid.crs, "ellipsoid")
+    holed = z.copy()
+    holed[m + 30 : m + 42, m + 20 : m + 35] = np.nan
+    holed[m + 70 : m + 73, m + 60 : m + 62] = np.nan
+    holes = DEM(holed.astype(np.float32), t, grid.crs, "ellipsoid")
+    names = ["col_shift", "row_shift", "dem_height"]
+    return rpc, grid, whole, holes, names, np.diag([0.5**2, 0.5**2, 20.0**2]), m
+
+
+@pytest.mark.parametrize("method", ["first-order", "monte-carlo"])
+def test_dem_holes_leave_no_ring_of_nodata(holed_case, method):
+    """Every cell with a DEM height gets an uncertainty, the holes' cells stay nodata (a ring
+    of nodata was left around each hole: the first-order maps sampled the DEM with cv2.remap,
+    whose neighbour of no weight made a NaN; the sampling methods blanked every lattice square
+    touching a node in a hole), and at a hole's rim the value is close to the one without the
+    hole (the slope there is one-sided, as numpy.gradient at a border; it was taken as flat)."""
+    rpc, grid, whole, holes, names, D, m = holed_case
+    kw = dict(samples=40, step=8) if method != "first-order" else {}  # one lattice for both
+    ref = ortho_uncertainty_maps(rpc, whole, grid, D, names, method, **kw).sigma_horizontal
+    got = ortho_uncertainty_maps(rpc, holes, grid, D, names, method, **kw).sigma_horizontal
+    in_image = np.isfinite(ref)
+    dem_valid = np.isfinite(holes.heights[m:-m, m:-m])
+    assert in_image.mean() > 0.5 and (~dem_valid & in_image).sum() == 12 * 15 + 3 * 2
+    np.testing.assert_array_equal(np.isfinite(got), dem_valid & in_image)
+    rim = ndimage.binary_dilation(~dem_valid, iterations=2) & dem_valid & in_image
+    assert rim.sum() > 50
+    rel = np.abs(got[rim] / ref[rim] - 1)
+    assert rel.max() < 0.02, rel.max()
+    # and the dem_height term matters at the rim: a flat rim was off by more than that
+    assert (
+        ortho_uncertainty_maps(rpc, whole, grid, D[2:, 2:], names[2:]).sigma_horizontal[rim].std()
+        > 0
+    )
+
+
+def test_dem_gradient_is_one_sided_beside_voids():
+    """numpy.gradient's rule at a border, at a void's edge too; NaN only on the voids."""
+    z = np.add.outer(0.5 * np.arange(6.0), 2.0 * np.arange(7.0) ** 2)
+    z[2, 3] = np.nan
+    dem = DEM(z.astype(np.float32), Affine(1, 0, 0, 0, -1, 0), "EPSG:32740")
+    gc, gr = P.dem_gradient_arrays(dem)
+    assert np.isnan(gc[2, 3]) and np.isnan(gr[2, 3])
+    assert np.isfinite(gc).sum() == z.size - 1 and np.isfinite(gr).sum() == z.size - 1
+    assert gc[2, 2] == pytest.approx(z[2, 2] - z[2, 1])  # one-sided, backward
+    assert gc[2, 4] == pytest.approx(z[2, 5] - z[2, 4])  # one-sided, forward
+    assert gr[1, 3] == pytest.approx(z[1, 3] - z[0, 3]) and gr[3, 3] == pytest.approx(0.5)
+    full = np.gradient(np.where(np.isnan(z), 0.0, z))
+    assert gc[0, 0] == pytest.approx(full[1][0, 0]) and gr[5, 6] == pytest.approx(full[0][5, 6])
