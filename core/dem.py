@@ -44,6 +44,7 @@ from stereodem.core.raster import (
     VERTICAL_TAG,
     crs_with_vertical,
     parse_creation_options,
+    probe_blocks,
     read_image,
     reading_env,
     unreadable,
@@ -481,7 +482,10 @@ def check_georeferenced(path, ds) -> None:
     """A DEM file ``path`` (open as ``ds``) has a CRS and a geotransform: without one rasterio
     gives the identity (cell corners at whole CRS units from 0, rows going north), which
     would put the heights at a wrong place without an error (ground control points alone are
-    not used)."""
+    not used). Its first and last blocks are read first (:func:`probe_blocks`): a DEM cut
+    short lost its georeferencing with its pixels (it said "the DEM has no CRS"), and a
+    partial one fails here, before any work, not when it is read whole."""
+    probe_blocks(ds)
     if ds.crs is None:
         raise CRSError(_no_crs_message(path, ds))
     if ds.transform.is_identity:
@@ -647,7 +651,7 @@ class DEM:
     @staticmethod
     def check_file(path, vertical: str | None = None, band: int = 1) -> None:
         """The checks of :meth:`from_file` that need no full read: the file opens as a raster
-        with the band, has a CRS, its first block decodes, and ``vertical`` (if given) is a
+        with the band, has a CRS, its first and last blocks decode, and ``vertical`` (if given) is a
         vertical reference; raises what :meth:`from_file` raises. For input checks before
         long work, without holding the heights meanwhile (a void-only DEM passes here and
         fails when it is read)."""
@@ -658,8 +662,7 @@ class DEM:
                 check_georeferenced(path, ds)
                 if not 1 <= band <= ds.count:
                     raise DEMError(f"{path}: no band {band} (the file has {ds.count})")
-                h, w = ds.block_shapes[band - 1]
-                ds.read(band, window=((0, min(h, ds.height)), (0, min(w, ds.width))))
+                probe_blocks(ds, band)
         except rasterio.errors.RasterioIOError as exc:
             raise DEMError(unreadable(path, "DEM", exc)) from None
 

@@ -50,10 +50,21 @@ def check_writable(path, overwrite: bool = False) -> Path:
 
 def check_creatable(path) -> Path:
     """Check, leaving nothing behind, that ``path`` (a file or a folder) can be created: its
-    nearest existing ancestor is a folder in which a file can be made. A probe file is created
-    and removed, because ``os.access`` answers yes to root even in read-only pseudo-file
-    systems (``/proc``). Raises :class:`OutputExistsError` naming ``path``."""
+    nearest existing ancestor is a folder in which a file can be made; an existing folder
+    ``path`` (an output folder given again) must take new files itself. A probe file is
+    created and removed, because ``os.access`` answers yes to root even in read-only
+    pseudo-file systems (``/proc``). Raises :class:`OutputExistsError` naming ``path`` (an
+    existing output folder was probed as ``path/x``, and the message named that file, which
+    the user never gave)."""
     path = Path(path)
+    if path.is_dir():
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".stereodem-probe-", dir=path)
+        except OSError as exc:
+            raise OutputExistsError(f"{path}: folder is not writable ({exc.strerror})") from None
+        os.close(fd)
+        os.unlink(probe)
+        return path
     anc = next((p for p in path.absolute().parents if p.exists()), None)
     if anc is None or not anc.is_dir():
         raise OutputExistsError(f"{path}: cannot be created ({anc} is not a folder)")
@@ -132,7 +143,7 @@ def check_output_dir(path, *, overwrite: bool = False) -> Path:
         raise OutputExistsError.needs_overwrite(
             f"{path}: folder exists and is not empty", "to reuse it"
         )
-    check_creatable(path / "x" if path.is_dir() else path)
+    check_creatable(path)
     return path
 
 
@@ -658,12 +669,31 @@ def reading_env():
     return rasterio.Env(GDAL_NUM_THREADS=os.environ.get("GDAL_NUM_THREADS") or "ALL_CPUS")
 
 
+def probe_blocks(ds, band: int = 1) -> None:
+    """The first and the last block of ``band`` of the open raster ``ds`` decode; GDAL's
+    ``RasterioIOError`` otherwise, which the callers word with :func:`unreadable`. A GeoTIFF
+    cut short (a partial download or copy) still opens: its header is at the front, so its
+    size and type are known, while its pixels, and often its georeferencing (the GeoTIFF keys
+    stored after the first bytes: the file then seemed to have "no CRS"), are lost. Its last
+    block lies beyond the end, and one read of it tells before any work, not when the whole
+    raster is read after the stereo stage. Two blocks, whatever the raster's size."""
+    if not 1 <= band <= ds.count:
+        return  # the callers say that the band is missing
+    bh, bw = ds.block_shapes[band - 1]
+    rows, cols = -(-ds.height // bh), -(-ds.width // bw)
+    for r, c in dict.fromkeys([(0, 0), (rows - 1, cols - 1)]):  # first, then last
+        r0, c0 = r * bh, c * bw
+        ds.read(band, window=((r0, min(r0 + bh, ds.height)), (c0, min(c0 + bw, ds.width))))
+
+
 def check_map_raster(path, ds, what: str) -> None:
     """A raster ``path`` (open as ``ds``) that is read onto a map grid (a land-cover, mask or
     σ raster) has a CRS and a geotransform: without a geotransform rasterio gives the identity
     (cells at whole CRS units from 0) with a warning only, which placed it where it covers
     nothing (empty per-class statistics, no error). :class:`CRSError` / :class:`InputError`
-    naming ``what``."""
+    naming ``what``. Its first and last blocks are read first (:func:`probe_blocks`): a file
+    cut short lost its georeferencing with its pixels, and says so."""
+    probe_blocks(ds)
     if ds.crs is None:
         raise CRSError(f"{path}: {what} has no CRS")
     if ds.transform.is_identity and not ds.gcps[0]:
@@ -691,6 +721,15 @@ def unreadable(path, what: str, exc) -> str:
     if isinstance(path, str | os.PathLike) and Path(path).is_dir():
         article = "an" if what[:1].lower() in "aeiou" else "a"
         return f"{path}: is a directory, not {article} {what} file"
+    cause = exc.__cause__ or exc.__context__
+    if isinstance(cause, CPLE_BaseError) and "previous exception" in str(exc):
+        # the header opened, a block did not decode: rasterio's own message ("Read failed.
+        # See previous exception for details.") said nothing; GDAL's is the cause
+        said = str(cause).splitlines()[0].split(": ", 1)[-1]  # without "NAME, band N: "
+        return (
+            f"{path}: cannot read the {what}: its pixels do not decode (the file is cut "
+            f"short or damaged; GDAL: {said[:120]})"
+        )
     return f"{path}: cannot read the {what} ({str(exc).splitlines()[0][:120]})"
 
 

@@ -39,7 +39,7 @@ from stereodem.core.errors import (
     NoOverlapError,
     VerticalReferenceError,
 )
-from stereodem.core.raster import check_map_raster
+from stereodem.core.raster import check_map_raster, unreadable
 from stereodem.sensor.io.gcps import parse_roles
 
 from . import stats as st
@@ -149,7 +149,7 @@ def _landcover_source(landcover):
                     arr[arr == nod] = np.nan
                 t, crs = ds.transform, ds.crs.to_wkt()
         except rasterio.errors.RasterioIOError as exc:
-            raise InputError(f"{landcover}: cannot read the land-cover raster ({exc})") from None
+            raise InputError(unreadable(landcover, "land-cover raster", exc)) from None
     else:
         arr, t, crs = np.asarray(landcover[0], dtype=np.float64), landcover[1], landcover[2]
     return arr, t, crs

@@ -19,7 +19,7 @@ from rasterio.features import rasterize as rio_rasterize
 
 from stereodem.core.dem import DEM
 from stereodem.core.errors import CRSError, InputError, NoOverlapError
-from stereodem.core.raster import check_map_raster, reading_env
+from stereodem.core.raster import check_map_raster, reading_env, unreadable
 from stereodem.core.stats import nmad
 
 from . import warp
@@ -177,7 +177,7 @@ class StableMask:
                         dst_dtype=np.uint8,
                     )
             except rasterio.errors.RasterioIOError as exc:
-                raise InputError(f"{self.raster}: cannot read the mask ({exc})") from None
+                raise InputError(unreadable(self.raster, "mask", exc)) from None
             if not z.any():
                 raise NoOverlapError(
                     f"{self.raster}: the stable mask has no stable cell on the DEM"

@@ -53,7 +53,12 @@ from stereodem.core.dem import DEM, ELLIPSOID, as_dem
 from stereodem.core.errors import InputError
 from stereodem.core.grid import MapGrid
 from stereodem.core.memory import check_allocation
-from stereodem.core.raster import prepare_output_dir, write_geotiff, write_text_atomic
+from stereodem.core.raster import (
+    prepare_output_dir,
+    unreadable,
+    write_geotiff,
+    write_text_atomic,
+)
 from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
 from stereodem.sensor.estimation.rpcfit import fit_rpc
 from stereodem.sensor.io.aster_xml import bundled_xml, read_asp_aster_xml
@@ -91,6 +96,16 @@ def psf_sigma(mtf_nyquist: float = MTF_NYQUIST) -> float:
     if not 0.0 < mtf_nyquist < 1.0:
         raise InputError(f"mtf_nyquist must be in (0, 1), got {mtf_nyquist}")
     return float(np.sqrt(-np.log(mtf_nyquist) / (0.5 * np.pi**2)))
+
+
+def check_noise(noise) -> float:
+    """The sensor noise ``noise`` (DN) as a finite number >= 0, else :class:`InputError`:
+    a negative or NaN noise rendered noiseless images (``noise > 0`` false) while
+    ``scene.json`` recorded the value asked for."""
+    v = float(noise)
+    if not (np.isfinite(v) and v >= 0):
+        raise InputError(f"noise must be a finite standard deviation >= 0 DN, got {noise}")
+    return v
 
 
 @dataclass
@@ -526,7 +541,7 @@ def _albedo(texture, shape, rng, detail=0.35):
         with rasterio.open(texture) as ds:
             t = ds.read().astype(np.float32)
     except rasterio.errors.RasterioIOError as exc:
-        raise InputError(f"{texture}: cannot read the texture image ({exc})") from None
+        raise InputError(unreadable(texture, "texture image", exc)) from None
     r0, r1, c0, c1 = _valid_box(t.sum(axis=0) > 0)
     t = t[:, r0:r1, c0:c1]
     t = t.mean(axis=0) if t.shape[0] > 1 else t[0]
@@ -771,6 +786,7 @@ def simulate_scene(
     if bits not in (8, 16):
         raise InputError(f"bits must be 8 or 16, got {bits}")
     sigma_psf = psf_sigma(mtf_nyquist)  # GSD; validates mtf_nyquist
+    noise = check_noise(noise)
     w, h = _size_pair(size, "size")
     rsize = (w, h) if right_size is None else _size_pair(right_size, "right_size")
     if min(w, h, *rsize) < 32:
@@ -932,6 +948,7 @@ def simulate_views(
     if len(angles) < 2:
         raise InputError(f"simulate_views needs at least two view angles, got {angles}")
     sigma_psf = psf_sigma(mtf_nyquist)
+    noise = check_noise(noise)
     w, h = int(size[0]), int(size[1])
     if min(w, h) < 32:
         raise InputError(f"image size {w}x{h} is too small (at least 32x32)")

@@ -514,7 +514,7 @@ def check_output_folder(
     path = Path(path)
     _check_folder(path)
     check_not_an_input([path], inputs, products)
-    check_creatable(path / "x" if path.is_dir() else path)
+    check_creatable(path)
     if path.is_dir():
         _check_contents(path, products, overwrite=overwrite, resume=resume, inputs=inputs)
     return path

@@ -29,6 +29,8 @@ import numpy as np
 # (importing scipy.stats costs ~0.2 s, paid by every command that imports the adjustment)
 from scipy.special import chdtr, gammaincinv, ndtri, stdtrit
 
+from stereodem.core.errors import InputError
+
 __all__ = [
     "hat_diagonal",
     "redundancy_numbers",
@@ -68,8 +70,20 @@ def standardized_residuals(e, r, sigma0: float = 1.0, *, r_min: float = R_MIN) -
         return np.where(r > r_min, e / (sigma0 * np.sqrt(r)), np.nan)
 
 
+def check_probability(name: str, value) -> float:
+    """``value`` as a probability strictly between 0 and 1 (the tests' significance level
+    ``alpha``, the power), else :class:`InputError` naming it: ``alpha = 2`` made every
+    threshold NaN, against which no residual was ever an outlier ("outliers: none", data
+    snooping silently off)."""
+    v = float(value)
+    if not 0.0 < v < 1.0:
+        raise InputError(f"{name} must be a probability between 0 and 1 (exclusive), got {value}")
+    return v
+
+
 def baarda_threshold(alpha: float) -> float:
     """Critical value of data snooping, two-sided normal: ``z(1 - alpha/2)`` (3.29 for 0.001)."""
+    alpha = check_probability("alpha (significance level of data snooping)", alpha)
     return float(ndtri(1.0 - alpha / 2.0))
 
 
@@ -78,6 +92,7 @@ def pope_threshold(alpha: float, dof: int) -> float:
 
     ``tau = sqrt(f) t / sqrt(f - 1 + t^2)`` with ``t = t_{f-1}(1 - alpha/2)``; NaN for f < 2.
     """
+    alpha = check_probability("alpha (significance level of data snooping)", alpha)
     f = int(dof)
     if f < 2:
         return float("nan")
@@ -87,6 +102,8 @@ def pope_threshold(alpha: float, dof: int) -> float:
 
 def noncentrality(alpha: float = 0.001, power: float = 0.80) -> float:
     """Baarda's ``delta_0 = z(1 - alpha/2) + z(power)``; 4.13 for alpha 0.001, power 0.80."""
+    alpha = check_probability("alpha (significance level of data snooping)", alpha)
+    power = check_probability("power (of the outlier tests)", power)
     return float(ndtri(1.0 - alpha / 2.0) + ndtri(power))
 
 
