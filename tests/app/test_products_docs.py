@@ -113,7 +113,8 @@ def test_benchmark_results_are_strict_json():
 
 
 def test_readmes_carry_the_figures_the_results_give():
-    """README.md's list of measured figures and benchmarks/README.md's table are exactly what
+    """README.md's list of measured figures and table of issue 28's targets, and
+    benchmarks/README.md's table, are exactly what
     ``benchmarks/readme_figures.py --write`` makes from the committed result files (a rerun
     that is not regenerated, or a figure edited by hand, fails here)."""
     spec = importlib.util.spec_from_file_location(
@@ -123,6 +124,7 @@ def test_readmes_carry_the_figures_the_results_give():
     spec.loader.exec_module(mod)
     readme = (ROOT / "README.md").read_text()
     assert mod.figures_markdown() + mod.LIST_END in readme
+    assert mod.TARGETS_START + "\n" + mod.scaling_targets() + mod.TARGETS_END in readme
     bench = (ROOT / "benchmarks" / "README.md").read_text()
     assert mod.TABLE_START + "\n" + mod.benchmarks_table() + mod.TABLE_END in bench
 
