@@ -101,7 +101,8 @@ def main(argv=None):
                 mean_busy_cores=round(cpu / dur, 2) if dur else None,
             )
         )
-    print(f"{'stage':10s} {'wall s':>7s} {'< %.1f cores s' % args.busy:>14s} {'busy cores':>10s}")
+    serial_head = f"< {args.busy:.1f} cores s"
+    print(f"{'stage':10s} {'wall s':>7s} {serial_head:>14s} {'busy cores':>10s}")
     for r in table:
         print(
             f"{r['stage']:10s} {r['wall_s']:7.2f} {r['serial_s']:14.2f} "

@@ -27,8 +27,14 @@ import threading
 
 from stereodem.core import threads
 
-#: what the server imports before it forks workers (the tile code and what it imports)
-_PRELOAD = ["stereodem.stereo.pipeline", "stereodem.stereo.execution"]
+#: what the server imports before it forks workers: first a module that makes it ignore
+#: SIGINT (:mod:`stereodem.core.ignore_interrupt`: a Ctrl-C during the next imports printed
+#: their traceback), then the tile code and what it imports
+_PRELOAD = [
+    "stereodem.core.ignore_interrupt",
+    "stereodem.stereo.pipeline",
+    "stereodem.stereo.execution",
+]
 
 _OPEN_POOLS = 0  # tile pools of this process now running (threads may each run one)
 _OWN_SERVER = None  # PID of the fork server this module started, while it runs

@@ -108,3 +108,52 @@ def test_one_worker_starts_no_server(tmp_path):
     )
     assert p.returncode == 0, p.stderr
     assert p.stdout.split() == ["1", "[]", "None"]
+
+
+def test_the_servers_first_preload_makes_it_ignore_ctrl_c():
+    """A Ctrl-C in a job's first second reached the fork server while it imported the tile
+    code (CPython ignores SIGINT there only after its preload imports): its 30-line
+    KeyboardInterrupt traceback came out above the command's one-line message. The server's
+    first preload module now makes it ignore SIGINT, before the heavy imports."""
+    from stereodem.stereo import fork_server
+
+    assert fork_server._PRELOAD[0] == "stereodem.core.ignore_interrupt"
+    script = (
+        "import signal, sys; import stereodem.core.ignore_interrupt; "
+        "print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN, "
+        "'numpy' in sys.modules, 'cv2' in sys.modules)"
+    )
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert r.stdout.split() == ["True", "False", "False"], r.stderr  # ignored, nothing heavy
+
+
+@needs_fork_server
+def test_a_ctrl_c_to_the_starting_server_prints_no_traceback():
+    """The fork server, once it ignores SIGINT (its status says so), takes a Ctrl-C while its
+    imports go on without a traceback and keeps running."""
+    script = textwrap.dedent(
+        """
+        import os, signal, time
+        from multiprocessing import forkserver
+        from stereodem.stereo import fork_server
+        assert fork_server.warm_fork_server(2)
+        pid = forkserver._forkserver._forkserver_pid
+        mask = 0
+        for _ in range(1000):  # until the server ignores SIGINT (bit 2 of SigIgn)
+            with open(f"/proc/{pid}/status") as f:
+                line = next(x for x in f if x.startswith("SigIgn:"))
+            mask = int(line.split()[1], 16)
+            if mask & (1 << (signal.SIGINT - 1)):
+                break
+            time.sleep(0.005)
+        os.kill(pid, signal.SIGINT)
+        time.sleep(1.0)
+        done, status = os.waitpid(pid, os.WNOHANG)
+        print("alive" if done == 0 else f"ended {status}")
+        fork_server.stop_idle_fork_server()
+        """
+    )
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "alive"
+    assert "Traceback" not in r.stderr and "KeyboardInterrupt" not in r.stderr
