@@ -880,7 +880,7 @@ class DEM:
             x, y = geodesy.lonlat_to_crs(lon, lat, self.crs)
         if self.crs.is_geographic:  # longitudes beside the grid's: -179.99 E is 180.01 E
             centre = self.transform.c + self.transform.a * self.shape[1] / 2.0
-            x = x + 360.0 * np.round((centre - x) / 360.0)
+            x = geodesy.lon_beside(x, centre)
         col, row = ~self.transform @ (x, y)
         return np.asarray(col) - 0.5, np.asarray(row) - 0.5  # pixel-centre convention
 

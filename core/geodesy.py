@@ -121,12 +121,25 @@ def _mean_without_nan(a) -> float:
     return float(a.mean()) if a.size else float("nan")
 
 
+def lon_beside(lon, centre):
+    """Longitudes ``lon`` (degrees) moved by whole turns to within 180 degrees of ``centre``:
+    -179.99 is 180.01 beside a grid centred at 179.9. The one rule by which a longitude is
+    put beside a lon/lat grid (a DEM's pixels, the simulator's footprint on its DEM)."""
+    lon = np.asarray(lon, dtype=np.float64)
+    return lon + 360.0 * np.round((centre - lon) / 360.0)
+
+
 def utm_epsg(lon, lat) -> int:
     """EPSG code of the WGS84 UTM zone containing ``(lon, lat)`` (degrees).
 
     Uses the standard 6-degree zones with the Norway/Svalbard exceptions; for arrays, the
-    zone of the mean position is returned (one zone per product).
+    zone of the mean position is returned (one zone per product), the longitudes averaged
+    beside the first one (:func:`lon_beside`): points at 179.9 E and 179.9 W are near 180,
+    not at 0 E.
     """
+    lon = np.asarray(lon, dtype=np.float64)
+    if lon.ndim and np.isfinite(lon).any():
+        lon = lon_beside(lon, lon[np.isfinite(lon)].flat[0])
     lon, lat = _mean_without_nan(lon), _mean_without_nan(lat)
     if not (np.isfinite(lon) and np.isfinite(lat)) or abs(lat) > 90:
         raise CRSError(f"cannot choose a UTM zone for lon={lon}, lat={lat}")

@@ -262,6 +262,7 @@ def _check_footprints_on_dem(models, dem: DEM, h_range, size, right_size):
             "from the simulated orbit; choose a smaller --size"
         )
     west, south, east, north = dem.bounds_lonlat()
+    lon = geodesy.lon_beside(lon, 0.5 * (west + east))  # a footprint across 180 stays whole
     ow = max(0.0, min(east, lon.max()) - max(west, lon.min()))
     oh = max(0.0, min(north, lat.max()) - max(south, lat.min()))
     span = max(lon.max() - lon.min(), 1e-12) * max(lat.max() - lat.min(), 1e-12)
@@ -434,6 +435,8 @@ def _source_pixel_grid(dem: DEM, transform, shape, crs, step: int):
     def exact(c, r):
         x, y = transform @ (c + 0.5, r + 0.5)
         sx, sy = tr.transform(x, y)
+        if dem.crs.is_geographic:  # a lon/lat DEM past 180 E: the grid's longitudes beside it
+            sx = geodesy.lon_beside(sx, dem.transform.c + dem.transform.a * dem.shape[1] / 2.0)
         scol, srow = inv @ (np.asarray(sx), np.asarray(sy))
         return np.asarray(scol) - 0.5, np.asarray(srow) - 0.5
 

@@ -58,6 +58,17 @@ def test_utm_zone(lon, lat, epsg):
     assert g.utm_epsg(lon, lat) == epsg
 
 
+def test_utm_zone_of_points_across_the_antimeridian():
+    """Points on both sides of 180 (a Kamchatka or Alaska scene's points, longitudes in
+    -180..180) are near 180, not at their arithmetic mean 0 E: zones 60 or 1, not 31 (the
+    grid of ``stereo.grid.grid_points`` was laid in zone 31 and zone 40)."""
+    assert g.utm_epsg([179.95, -179.99, 179.9], [65.0, 65.0, 65.0]) == 32660
+    assert g.utm_epsg([-179.95, 179.99, -179.9], [65.0, 65.0, 65.0]) == 32601
+    assert g.utm_epsg([np.nan, 179.9, -179.95], [65.0, 65.0, 65.0]) == 32660
+    assert g.utm_epsg(np.array([40.3, 40.5]), np.array([39.5, 39.7])) == 32637
+    assert np.allclose(g.lon_beside([-179.99, 179.0, 540.0], 179.9), [180.01, 179.0, 180.0])
+
+
 def test_utm_zone_bad_input():
     """A clear error, and no NumPy warning before it (all-NaN coordinates)."""
     with pytest.raises(CRSError):

@@ -3,8 +3,10 @@ import json
 import numpy as np
 import pytest
 import rasterio
+from affine import Affine
 
 from stereodem.core import geodesy
+from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError, OutputExistsError
 from stereodem.sensor.estimation.rpcfit import fit_rpc
 from stereodem.sensor.io.sidecar import load_image_model
@@ -125,6 +127,33 @@ def test_bad_input():
         simulate_scene("spot")
     with pytest.raises(InputError, match="too small"):
         simulate_scene("frame", size=(8, 8))
+
+
+def test_dem_across_the_antimeridian():
+    """``simulate --dem`` with a lon/lat DEM across 180 (179.68..180.28 E at 65 N, Kamchatka or
+    Alaska): the footprint check compared the footprint's longitudes (-180..180, so
+    -179.99..179.99: the whole world) with the DEM's and refused ("the DEM does not cover the
+    simulated scene"), and the DEM's cells east of 180 were outside for the truth's warp.
+    The truth DEM is in zone 60 and holds the DEM's heights where they are."""
+
+    def height(lon, lat):  # smooth relief, longitudes beside 180
+        lon = geodesy.lon_beside(lon, 180.0)
+        return 800.0 + 150.0 * np.sin((lon - 180.0) * 60.0) * np.cos((lat - 65.0) * 40.0)
+
+    res_lon, res_lat = 0.0012, 0.0005
+    cols, rows = 500, 400
+    t = Affine(res_lon, 0.0, 179.68, 0.0, -res_lat, 65.1)
+    lon, lat = t @ np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+    dem = DEM(height(lon, lat).astype(np.float32), t, "EPSG:4326", "ellipsoid")
+    sc = simulate_scene("aster", size=(100, 100), seed=0, n_points=4, dem=dem)
+    truth = sc.truth_dem
+    assert truth.crs.to_epsg() == 32660
+    tlon, tlat = truth.grid.lonlat(
+        *np.meshgrid(np.arange(truth.shape[1]), np.arange(truth.shape[0]))
+    )
+    assert tlon.min() < -179.9 and tlon.max() > 179.9  # the scene crosses 180
+    assert np.isfinite(truth.heights).all()
+    assert np.abs(truth.heights - height(tlon, tlat)).max() < 0.5
 
 
 def test_dem_that_just_covers_the_scene(tmp_path):
