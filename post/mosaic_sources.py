@@ -240,16 +240,13 @@ def mosaic_geoid(sources, target: str | None) -> str | None:
     return geoids[0].geoid_wkt
 
 
-def _anchor(first: Source, crs: CRS, res: float):
+def _anchor(first: Source, crs: CRS, res: tuple[float, float]):
     """Origin of the output lattice: the first DEM's when it is in the output CRS at ``res``
     (so its cells are copied, not resampled), else multiples of ``res``."""
     t = first.transform
-    if (
-        first.crs.equals(crs)
-        and np.isclose(t.a, res, rtol=1e-9)
-        and np.isclose(-t.e, res, rtol=1e-9)
-    ):
-        return t.c % res, t.f % res
+    rx, ry = res
+    if first.crs.equals(crs) and np.isclose(t.a, rx, rtol=1e-9) and np.isclose(-t.e, ry, rtol=1e-9):
+        return t.c % rx, t.f % ry
     return 0.0, 0.0
 
 
@@ -258,7 +255,9 @@ def output_grid(sources, *, crs=None, res: float | None = None, bounds=None):
 
     ``crs`` defaults to the first DEM's, ``res`` to its posting (reprojected to ``crs`` when
     that differs), ``bounds`` (west, south, east, north in ``crs``) to the union of the
-    footprints. The lattice is aligned with the first DEM's when possible.
+    footprints. The lattice is aligned with the first DEM's when possible. The first DEM's
+    posting is its x and y posting, which a lon/lat DEM at high latitude has unequal (the
+    Copernicus DEM above 60 N: 2" of longitude by 1" of latitude); ``res`` given is square.
     """
     first = sources[0]
     crs = as_crs(crs) if crs is not None else first.crs
@@ -279,14 +278,15 @@ def output_grid(sources, *, crs=None, res: float | None = None, bounds=None):
         placed = _beside_each_other(placed, bounds)
     if res is None:
         if first.crs.equals(crs):
-            res = float(first.transform.a)
+            rx, ry = float(first.transform.a), float(-first.transform.e)
         else:
             t, _, _ = calculate_default_transform(
                 first.crs_wkt, crs.to_wkt(), first.width, first.height, *first.native_bounds
             )
-            res = float(f"{t.a:.3g}")
-    res = float(res)
-    if not np.isfinite(res) or res <= 0:
+            rx = ry = float(f"{t.a:.3g}")
+    else:
+        rx = ry = float(res)
+    if not (np.isfinite(rx) and np.isfinite(ry) and rx > 0 and ry > 0):
         raise InputError(f"--res must be positive, got {res:g}")
     if bounds is None:
         b = np.array([p.bounds for p in placed])
@@ -294,13 +294,13 @@ def output_grid(sources, *, crs=None, res: float | None = None, bounds=None):
     w, s_, e, n = (float(v) for v in bounds)
     if not (e > w and n > s_):
         raise InputError(f"empty mosaic bounds {bounds}")
-    ox, oy = _anchor(first, crs, res)
-    x0 = ox + np.floor((w - ox) / res + 1e-9) * res
-    x1 = ox + np.ceil((e - ox) / res - 1e-9) * res
-    y0 = oy + np.floor((s_ - oy) / res + 1e-9) * res
-    y1 = oy + np.ceil((n - oy) / res - 1e-9) * res
-    width, height = int(round((x1 - x0) / res)), int(round((y1 - y0) / res))
-    grid = MapGrid(Affine(res, 0.0, x0, 0.0, -res, y1), max(width, 1), max(height, 1), crs)
+    ox, oy = _anchor(first, crs, (rx, ry))
+    x0 = ox + np.floor((w - ox) / rx + 1e-9) * rx
+    x1 = ox + np.ceil((e - ox) / rx - 1e-9) * rx
+    y0 = oy + np.floor((s_ - oy) / ry + 1e-9) * ry
+    y1 = oy + np.ceil((n - oy) / ry - 1e-9) * ry
+    width, height = int(round((x1 - x0) / rx)), int(round((y1 - y0) / ry))
+    grid = MapGrid(Affine(rx, 0.0, x0, 0.0, -ry, y1), max(width, 1), max(height, 1), crs)
     return grid, placed
 
 

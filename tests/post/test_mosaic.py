@@ -822,6 +822,33 @@ def test_dems_either_side_of_the_antimeridian_are_mosaicked_side_by_side(tmp_pat
         assert np.all(np.abs(zm - height(lon, lat)) < 0.5)
 
 
+def test_lon_lat_dems_keep_their_unequal_postings(tmp_path):
+    """Lon/lat DEMs at high latitude have more degrees of longitude than of latitude per cell
+    (the Copernicus DEM above 70 N: 3" by 1"; here 0.003 by 0.001 degrees at 78 N): the mosaic
+    took the x posting for both axes, so two such tiles (78 N, either side of 180) made a
+    mosaic of a third of the rows, every cell resampled; it is the first DEM's lattice, the
+    tiles' cells copied."""
+
+    def height(lon, lat):
+        return 500 + 30 * np.sin(np.radians((lon - 180.0) % 360.0) * 80) + 200 * (lat - 78)
+
+    def tile(name, west, cols):
+        t = Affine(0.003, 0, west, 0, -0.001, 78.03)
+        lon, lat = t @ np.meshgrid(np.arange(cols) + 0.5, np.arange(30) + 0.5)
+        z = height(lon, lat).astype(np.float32)
+        return write_geotiff(tmp_path / name, z, t, "EPSG:4326", np.nan, vertical="geoid")
+
+    east, west = tile("e.tif", 179.94, 22), tile("w.tif", -180.0, 20)  # 2 columns of overlap
+    out = tmp_path / "m.tif"
+    assert main(["-q", "mosaic", str(east), str(west), "-o", str(out)]) == 0
+    with rasterio.open(out) as ds:
+        zm, tm = ds.read(1), ds.transform
+    assert (tm.a, -tm.e) == pytest.approx((0.003, 0.001))
+    assert zm.shape == (30, 40) and (tm.c, tm.f) == pytest.approx((179.94, 78.03))
+    lon, lat = tm @ np.meshgrid(np.arange(40) + 0.5, np.arange(30) + 0.5)
+    assert np.abs(zm - height(lon, lat)).max() < 1e-3
+
+
 def test_a_reference_across_the_antimeridian_is_cropped_for_coregister(tmp_path):
     """mosaic --coregister of a UTM zone 1 DEM across 180 E against a lon/lat reference at
     179.98..180.02 E ended in a traceback (rasterio's WindowError): the DEM's footprint in
