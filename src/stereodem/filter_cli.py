@@ -161,6 +161,7 @@ def run(args) -> int:
     from .pipeline.stages import post_stage
 
     options.check_common(args)
+    options.geotiff_output(args.out, "clean DEM")
     if args.fill_from_seed and not args.seed_dem:
         raise InputError("--fill-from-seed needs --seed-dem")
     cfg = config_from_args(args)

@@ -145,9 +145,7 @@ def run(args) -> int:
         raise InputError("--coregister needs --ref REF")
     if args.ref and not args.coregister:
         raise InputError("--ref is used with --coregister")
-    out = Path(args.out)
-    if out.suffix.lower() not in (".tif", ".tiff"):
-        raise InputError(f"{out}: the mosaic is a GeoTIFF; name it .tif")
+    out = options.geotiff_output(args.out, "mosaic")
     rep = report_path(out)
     check_not_an_input([out, rep], [*args.dems, args.ref])
     check_writable(out, args.overwrite)

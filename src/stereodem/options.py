@@ -131,6 +131,19 @@ def add_cloud_grow(p):
     )
 
 
+def geotiff_output(path, what: str):
+    """``path`` as the GeoTIFF file a command writes (``-o`` of ``filter``, ``ortho``,
+    ``mosaic``): named ``.tif``/``.tiff``, else an :class:`InputError` (a file named ``o3413``
+    was written as a GeoTIFF nothing recognises by its name; the side-cars, e.g. the edit
+    mask ``NAME_edit_mask.tif``, are named from it)."""
+    from pathlib import Path
+
+    out = Path(path)
+    if out.suffix.lower() not in (".tif", ".tiff"):
+        raise InputError(f"{out}: the {what} is a GeoTIFF; name it .tif")
+    return out
+
+
 def check_common(args):
     """Range checks of the shared options, before any work starts."""
     res = getattr(args, "res", None)

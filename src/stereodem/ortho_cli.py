@@ -135,8 +135,8 @@ def run(args) -> int:
     bad = set(layers) - {"incidence", "occlusion"}
     if bad:
         raise InputError(f"unknown layer(s) {', '.join(sorted(bad))}; choose incidence, occlusion")
+    out = options.geotiff_output(args.out, "orthoimage")
     cfg = config_from_args(args)
-    out = Path(args.out)
     from stereodem.ortho.layers import LAYERS, layer_path, remove_stale_layers
 
     layer_paths = {name: layer_path(out, name) for name in layers}

@@ -219,3 +219,21 @@ def test_simulate_noise_not_a_standard_deviation_is_refused(noise, tmp_path, cap
     code, _, err = run_cli(capsys, argv)
     assert_clear_error(code, err, "simulate", r"noise must be a finite standard deviation")
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "command, what",
+    [("filter", "clean DEM"), ("mosaic", "mosaic"), ("ortho", "orthoimage")],
+)
+def test_a_geotiff_output_without_tif_is_refused(command, what, sim, srtm, tmp_path, capsys):
+    """``ortho -o o3413`` wrote a GeoTIFF named ``o3413`` (``filter`` too); ``mosaic`` refused
+    such a name. One rule for the three commands that write a GeoTIFF file: named .tif."""
+    out = tmp_path / "out" / "product"
+    argv = {
+        "filter": ["filter", srtm / "ref.tif", "-o", out],
+        "mosaic": ["mosaic", srtm / "ref.tif", srtm / "ref.tif", "-o", out],
+        "ortho": ["ortho", sim / "left.tif", "--dem", sim / "truth_dem.tif", "-o", out],
+    }[command]
+    code, _, err = run_cli(capsys, [*argv, "--workers", "1"])
+    assert_clear_error(code, err, command, rf"product: the {what} is a GeoTIFF; name it \.tif")
+    assert not (tmp_path / "out").exists()
