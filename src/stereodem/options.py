@@ -139,7 +139,8 @@ def geotiff_output(path, what: str):
     from pathlib import Path
 
     out = Path(path)
-    if out.suffix.lower() not in (".tif", ".tiff"):
+    # an existing folder is left to the overwrite policy's check, which says what it is
+    if out.suffix.lower() not in (".tif", ".tiff") and not out.is_dir():
         raise InputError(f"{out}: the {what} is a GeoTIFF; name it .tif")
     return out
 

@@ -949,7 +949,7 @@ def test_overwrite_replaces_the_commands_products_and_nothing_else(
     [
         ["assess", "{dir}", "--ref", "{dem}", "-o", "{out}"],
         ["assess", "{dem}", "--ref", "{dir}", "-o", "{out}"],
-        ["filter", "{dir}", "-o", "{out}"],
+        ["filter", "{dir}", "-o", "{out}/clean.tif"],
         ["change", "{dem}", "{dir}", "-o", "{out}"],
         ["coregister", "{dir}", "--ref", "{dem}", "-o", "{out}"],
     ],

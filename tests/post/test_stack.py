@@ -616,37 +616,51 @@ def test_dem_change_takes_dem_paths(tmp_path):
         dem_change(a.heights, b)
 
 
-def _stack_argv(paths, ref, out):
-    return ["stack", *map(str, paths), "--ref", str(ref), "--chain", "vshift", "-o", str(out)]
+def _stack_argv(paths, ref, out, *more):
+    return [
+        *("stack", *map(str, paths), "--ref", str(ref), "--chain", "vshift", "-o", str(out)),
+        *more,
+    ]
 
 
-def test_a_failed_stack_is_run_again_without_overwrite(series, tmp_path, capsys):
+def test_a_failed_stack_is_run_again_without_overwrite(series, tmp_path, capsys, monkeypatch):
     """A stack that failed on an unreadable DEM left stack.json and stack.zarr, and the same
     command, once the DEM was mended, was refused without --overwrite. Its stack.json says
     failed and records the inputs: the same inputs replace its files; other inputs, and a
-    finished stack, still need --overwrite."""
+    finished stack, still need --overwrite. (A DEM damaged where its header and first and
+    last blocks are read is refused before any work; one damaged elsewhere fails while the
+    stack is built: that is made here by a DEM whose reading fails in the build.)"""
     dems = tmp_path / "dems"
     shutil.copytree(series["dir"] / "dems", dems)
     paths = sorted(dems.glob("*.tif"))[:3]
-    good = paths[2].read_bytes()
-    paths[2].write_bytes(good[:3000])  # the header, then nothing: refused while building
+    damaged = {str(paths[2])}
+    add_dem = sb.add_dem
+
+    def failing(reference, path, *args):
+        if str(path) in damaged:
+            raise DEMError(f"{path}: cannot read the DEM (its pixels do not decode)")
+        return add_dem(reference, path, *args)
+
+    monkeypatch.setattr(sb, "add_dem", failing)
+    one_worker = ("--workers", "1")  # in this process: the build's failure is made here
+
     out = tmp_path / "out"
-    rc, _so, se = _run(_stack_argv(paths, series["ref"], out), capsys)
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], out, *one_worker), capsys)
     assert rc == 1 and f"{paths[2]}: cannot read the DEM" in se, se
     failed = json.loads((out / "stack.json").read_text())
     assert failed["status"] == "failed"
     assert failed["inputs"] == sorted(str(Path(p).resolve()) for p in [*paths, series["ref"]])
     assert (out / "stack.zarr").exists()
     # other inputs: the failed job is not theirs
-    rc, _so, se = _run(_stack_argv(paths[:2], series["ref"], out), capsys)
+    rc, _so, se = _run(_stack_argv(paths[:2], series["ref"], out, *one_worker), capsys)
     assert rc == 1 and "stack.json: exists" in se and "--overwrite" in se, se
     assert json.loads((out / "stack.json").read_text()) == failed
-    paths[2].write_bytes(good)
-    rc, _so, se = _run(_stack_argv(paths, series["ref"], out), capsys)
+    damaged.clear()  # mended
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], out, *one_worker), capsys)
     assert rc == 0, se
     assert json.loads((out / "stack.json").read_text())["status"] == "ok"
     assert not list(out.glob(".stereodem-*"))  # the failed job's files gone
-    rc, _so, se = _run(_stack_argv(paths, series["ref"], out), capsys)  # a finished stack
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], out, *one_worker), capsys)  # a finished stack
     assert rc == 1 and "--overwrite" in se, se
 
 
