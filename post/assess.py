@@ -684,7 +684,10 @@ def assess_dem(
     ----------
     coregister : bool
         Also co-register (``coregistration``: a :class:`~stereodem.post.coreg.CoregChain`, a
-        step or a chain string; default ``"nuth_kaab"``) and assess again; the report then has
+        step or a chain string; default ``"nuth_kaab"``; a :class:`CoregChain` already fitted,
+        on this DEM in the reference's vertical reference, is applied as it is: e.g. fitted on
+        a stable mask and a track, as ``stereodem assess --chain`` does) and assess again after
+        the whole chain; the report then has
         ``coregistration`` (:func:`coregistration_summary`: ``dx``, ``dy``, ``dz`` metres
         along x (grid east), y (grid north), up, the DEM's displacement relative to the
         reference, with σ, and every step; ``dx``/``dy`` in the DEM grid's metres, the CRS's
@@ -755,7 +758,8 @@ def assess_dem(
             if isinstance(chain, CoregChain)
             else CoregChain([chain])
         )
-        chain.fit(reference, dem_v)  # on the DEM's grid (reference warped to it)
+        if not (isinstance(chain, CoregChain) and chain.fitted and chain.records):
+            chain.fit(reference, dem_v)  # on the DEM's grid (reference warped to it)
         report["coregistration"] = coregistration_summary(chain, reference)
         shifted = chain.apply(dem_v)
         report["after_coregistration"], cmp2, _ = blockwise_comparison(shifted, reference, **kw)

@@ -306,6 +306,44 @@ def param(value, sigma, unit: str = "") -> dict:
     return {"value": float(value), "sigma": float(sigma), "unit": unit}
 
 
+def _num(v, digits: int) -> str:
+    return f"{v:.{digits}g}" if isinstance(v, (int, float)) and np.isfinite(v) else "–"
+
+
+def parameter_text(params: dict) -> str:
+    """A step's parameters (:meth:`Coreg.parameters`) on one line, for reports and result lines:
+    ``name = value ± σ unit`` for every :func:`param`, ``name = value`` for a count, a flag or a
+    number (``…_deg`` in degrees); the notes (``sign``, ``coordinates``, ``track``: text) and
+    lists are left to :func:`parameter_notes`."""
+    out = []
+    for k, v in params.items():
+        if isinstance(v, dict) and "value" in v:
+            sigma = v.get("sigma")
+            finite = isinstance(sigma, (int, float)) and np.isfinite(sigma)
+            pm = f" ± {_num(sigma, 2)}" if finite else ""
+            unit = f" {v['unit']}" if v.get("unit") else ""
+            out.append(f"{k} = {_num(v['value'], 4)}{pm}{unit}")
+        elif isinstance(v, bool):
+            out.append(f"{k} = {'yes' if v else 'no'}")
+        elif isinstance(v, (int, float)):
+            out.append(f"{k} = {_num(v, 4)}" + (" deg" if k.endswith("_deg") else ""))
+    return ", ".join(out)
+
+
+def parameter_notes(params: dict) -> list[str]:
+    """The text notes of a step's parameters (``coordinates``, ``track``; a track frame's
+    ``source``), as ``name: text``; the sign conventions (``sign``) are left out: the reports
+    say them with the shift."""
+    out = []
+    for k in ("coordinates", "track", "curvature_unit"):
+        v = params.get(k)
+        if isinstance(v, dict):
+            v = v.get("source")
+        if isinstance(v, str) and v:
+            out.append(f"{k}: {v}")
+    return out
+
+
 # ----------------------------------------------------------------------------- base classes
 
 

@@ -24,7 +24,7 @@ from stereodem.core.stats import nmad
 from . import spatialstats as ss
 from . import warp
 from .biascorr import maximum_curvature
-from .coreg import parse_chain, reference_on_grid
+from .coreg import CoregChain, parse_chain, reference_on_grid
 from .coreg_run import track_of
 from .masks import StableMask, rasterize, read_outlines
 from .terrain import slope_deg
@@ -42,20 +42,41 @@ class ErrorAnalysisJob:
     n_pairs: int = 1_000_000
 
 
-def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
+def fit_chain(dem: DEM, ref: DEM, chain: str, job: ErrorAnalysisJob, stable=None) -> CoregChain:
+    """The co-registration ``chain`` (text) fitted on ``dem`` against ``ref`` (the same
+    vertical reference) on the job's stable terrain (outside ``exclude``), with the job's
+    track (``--track-angle``, else the DEM's tags), as the error analysis applies it: one
+    fit for the report's co-registration section and for the analysis
+    (:func:`stereodem.pipeline.assessment.assess_stage`)."""
+    ch = parse_chain(chain)
+    if stable is None:
+        stable = StableMask(exclude=list(job.exclude)).array(dem)
+    heading = frame = None
+    if any(s.name in ("along_track", "cross_track") for s in ch.steps):
+        heading, frame = track_of(dem.path, dem.crs, job.track_angle)
+        if heading is None and frame is None:
+            raise InputError(
+                f"{dem.path or 'DEM'}: along_track/cross_track need the ground-track heading; "
+                "the DEM carries none: give --track-angle DEG (clockwise from north)"
+            )
+    return ch.fit(ref, dem, stable=stable, track_angle_deg=heading, track_frame=frame)
+
+
+def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob, *, chain: CoregChain | None = None):
     """Run the analysis; returns ``(section, plots)``: a JSON-ready dict and what
-    :func:`write_figures` draws. ``dem`` and ``ref`` in the same vertical reference."""
+    :func:`write_figures` draws. ``dem`` and ``ref`` in the same vertical reference.
+    ``chain``: a chain already fitted on ``dem`` (:func:`fit_chain`), applied first instead
+    of fitting ``job.chain``."""
     stable = StableMask(exclude=list(job.exclude)).array(dem)
     # outlines read and checked before any work: one outside the DEM is one line at once
     outlines = [(path, read_outlines(path, dem.crs)) for path in job.outlines]
     for path, polys in outlines:
         rasterize([o.geom for o in polys], dem, path=str(path))
     chain_rep = chain_plot = None
-    if job.chain:
-        heading, frame = track_of(dem.path, dem.crs, job.track_angle)
-        ch = parse_chain(job.chain).fit(
-            ref, dem, stable=stable, track_angle_deg=heading, track_frame=frame
-        )
+    if chain is None and job.chain:
+        chain = fit_chain(dem, ref, job.chain, job, stable)
+    if chain is not None:
+        ch = chain
         corrected = ch.apply(dem)
         chain_plot = (ch, ref, dem, corrected, stable)  # the chain's figures (write_figures)
         dem = corrected
@@ -92,8 +113,12 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob):
             ),
         },
     }
-    if chain_rep is not None:
-        section["coregistration"] = {"chain": job.chain, "steps": chain_rep}
+    if chain_rep is not None:  # the same fitted chain as the report's co-registration
+        text = job.chain or ",".join(s.name for s in chain.steps)
+        section["coregistration"] = {"chain": text, "steps": chain_rep}
+        section["of"] = f"the DEM after the co-registration chain {text}"
+    else:
+        section["of"] = "the DEM as given (not co-registered)"
     areas = []
     for path, polys in outlines:
         for o in polys:
@@ -207,6 +232,7 @@ def markdown_lines(section: dict) -> list[str]:
         "",
         "## Error analysis (stable terrain)",
         "",
+        *([f"* analysed: {section['of']}"] if section.get("of") else []),
         f"* stable cells {section['stable_cells']}, NMAD {section['nmad_stable']:.2f} m",
         "* variogram of standardised dh: "
         + ", ".join(f"range {r:.0f} m sill {s:.2f}" for r, s in zip(m["ranges_m"], m["sills"])),

@@ -16,6 +16,7 @@ from stereodem.core import jsonutil
 from stereodem.core.raster import prepare_output_dir, write_text_atomic
 
 from . import figures, shift_units
+from .coreg import parameter_notes, parameter_text
 
 log = logging.getLogger(__name__)
 
@@ -102,15 +103,22 @@ def markdown(report: dict, figure_files: dict) -> str:
     co = report.get("coregistration")
     if co:
         a = report["after_coregistration"]["stats"]
+        lines += [f"## {coregistration_title(co)}", "", coregistration_intro(co), ""]
         lines += [
-            "## Co-registration (Nuth & Kääb)",
+            "| " + " | ".join(STEP_COLUMNS) + " |",
+            "|" + "---|" * len(STEP_COLUMNS),
+            *("| " + " | ".join(r) + " |" for r in step_rows(co)),
             "",
-            "Shift of the DEM relative to the reference: "
-            f"{shift_units.shift_phrase(co['dx'], co['dy'])}, dz = {co['dz']:.2f} m up "
-            f"({co['dx_px']:.2f}, {co['dy_px']:.2f} px; {co['iterations']} iterations, "
-            f"{'converged' if co['converged'] else 'NOT converged'}).{shift_units.shift_units(co)}",
-            "",
-            _table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
+        ]
+        lines += [f"* {n}" for n in step_notes(co)] + ([""] if step_notes(co) else [])
+        shift = shift_sentence(co)
+        if shift:
+            lines += [shift, ""]
+        lines += [
+            _table(
+                [dict(s, **{"class": "before"}), dict(a, **{"class": AFTER_LABEL})],
+                "stage",
+            ),
             "",
         ]
     if report.get("error_analysis"):
@@ -124,6 +132,72 @@ def markdown(report: dict, figure_files: dict) -> str:
             ["## Provenance", ""] + [f"* {k}: `{v}`" for k, v in prov.items() if k != "argv"] + [""]
         )
     return "\n".join(lines)
+
+
+#: the row of the before/after table of the DEM after the whole co-registration chain
+AFTER_LABEL = "after (whole chain)"
+
+STEP_COLUMNS = ("step", "parameters", "stable NMAD before (m)", "stable NMAD after (m)", "n")
+
+
+def coregistration_title(co: dict) -> str:
+    """The co-registration section's title: the chain that was applied, step by step."""
+    steps = [r["step"] for r in co.get("steps") or []] or [co.get("method", "nuth_kaab")]
+    if steps == ["nuth_kaab"]:
+        return "Co-registration (Nuth & Kääb)"
+    return f"Co-registration chain ({' → '.join(steps)})"
+
+
+def coregistration_intro(co: dict) -> str:
+    """What the section's tables are: each step fitted on stable terrain after the ones
+    before it; the before/after table of the DEM after the whole chain."""
+    n = len(co.get("steps") or [])
+    fit = "fitted on the DEM's grid (the reference warped onto it) on stable terrain"
+    steps = (
+        f"One step, {fit}"
+        if n == 1
+        else f"{n} steps applied in order, each {fit} after the steps before it"
+    )
+    return (
+        f"{steps} (stable NMAD: of the fit's samples). The table below compares the DEM "
+        "before and after the whole chain with the reference, on the reference grid as above."
+    )
+
+
+def step_rows(co: dict) -> list[tuple[str, ...]]:
+    """One row per step of the chain: name, parameters with σ and units
+    (:func:`~stereodem.post.coreg.parameter_text`), stable NMAD before and after, samples."""
+    return [
+        (
+            r["step"],
+            parameter_text(r.get("parameters") or {}),
+            _fmt(r["before"]["nmad"]),
+            _fmt(r["after"]["nmad"]),
+            str(r["after"]["n"]),
+        )
+        for r in co.get("steps") or []
+    ]
+
+
+def step_notes(co: dict) -> list[str]:
+    """The steps' notes (their coordinates, their track), ``step: note``."""
+    return [
+        f"{r['step']}: {n}"
+        for r in co.get("steps") or []
+        for n in parameter_notes(r.get("parameters") or {})
+    ]
+
+
+def shift_sentence(co: dict) -> str | None:
+    """The Nuth & Kääb shift of the chain in words (None without a ``nuth_kaab`` step)."""
+    if not any(r["step"] == "nuth_kaab" for r in co.get("steps") or []):
+        return None
+    return (
+        "Shift of the DEM relative to the reference (the chain's shift steps): "
+        f"{shift_units.shift_phrase(co['dx'], co['dy'])}, dz = {co['dz']:.2f} m up "
+        f"({co['dx_px']:.2f}, {co['dy_px']:.2f} px; {co['iterations']} iterations, "
+        f"{'converged' if co['converged'] else 'NOT converged'}).{shift_units.shift_units(co)}"
+    )
 
 
 VALID_NOTE = (
@@ -242,14 +316,24 @@ def html_report(report: dict, figure_paths: dict) -> str:
     co = report.get("coregistration")
     if co:
         a = report["after_coregistration"]["stats"]
+        head = "".join(f"<th>{esc(c)}</th>" for c in STEP_COLUMNS)
+        rows = "".join(
+            "<tr>" + "".join(f"<td>{esc(c)}</td>" for c in r) + "</tr>" for r in step_rows(co)
+        )
+        shift = shift_sentence(co)
         parts += [
-            "<h2>Co-registration (Nuth &amp; Kääb)</h2>",
-            "<p>Shift of the DEM relative to the reference: "
-            f"{esc(shift_units.shift_phrase(co['dx'], co['dy']))}, dz = {co['dz']:.2f} m up "
-            f"({co['iterations']} iterations, "
-            f"{'converged' if co['converged'] else 'NOT converged'})."
-            f"{esc(shift_units.shift_units(co))}</p>",
-            _html_table([dict(s, **{"class": "before"}), dict(a, **{"class": "after"})], "stage"),
+            f"<h2>{esc(coregistration_title(co))}</h2>",
+            f"<p>{esc(coregistration_intro(co))}</p>",
+            f"<table><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>",
+            *(
+                ["<ul>" + "".join(f"<li>{esc(n)}</li>" for n in step_notes(co)) + "</ul>"]
+                if step_notes(co)
+                else []
+            ),
+            *([f"<p>{esc(shift)}</p>"] if shift else []),
+            _html_table(
+                [dict(s, **{"class": "before"}), dict(a, **{"class": AFTER_LABEL})], "stage"
+            ),
         ]
     if report.get("error_analysis"):
         from .error_analysis import markdown_lines

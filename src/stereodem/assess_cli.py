@@ -93,7 +93,8 @@ def add_parser(subparsers):
     p.add_argument(
         "--coregister",
         action="store_true",
-        help="Nuth & Kaab co-registration; report before and after",
+        help="co-register the DEM (Nuth & Kaab, or the --chain) and report each step and "
+        "the statistics before and after the whole chain",
     )
     p.add_argument(
         "--dem-vertical",
@@ -133,8 +134,10 @@ def add_parser(subparsers):
     )
     ea.add_argument(
         "--chain",
-        help="co-registration chain applied before the analysis, "
-        "e.g. nuth_kaab,deramp:1 (see stereodem coregister)",
+        help="co-registration chain, e.g. nuth_kaab,deramp:1 (see stereodem coregister); "
+        "implies --coregister: fitted once on the stable terrain, reported step by step "
+        "(parameters with units), the before/after tables and the analysis of the DEM after "
+        "the whole chain",
     )
     ea.add_argument(
         "--track-angle",
@@ -222,10 +225,31 @@ def run(args) -> int:
     )
     co = result.report.get("coregistration")
     if co:
-        from stereodem.post.shift_units import shift_phrase, shift_units
-
-        options.say(
-            f"co-registration: {shift_phrase(co['dx'], co['dy'], '.3f')}, "
-            f"dz = {co['dz']:.3f} m." + shift_units(co)
-        )
+        for line in coregistration_lines(co, result.report["after_coregistration"]["stats"]):
+            options.say(line)
     return 0
+
+
+def coregistration_lines(co: dict, after: dict) -> list[str]:
+    """The result lines of the co-registration: the chain with the NMAD before/after the
+    whole chain (stable samples; all compared cells), then each step's parameters with
+    units, the shift in words under ``nuth_kaab``."""
+    from stereodem.post.coreg import parameter_text
+    from stereodem.post.shift_units import shift_phrase, shift_units
+
+    steps = co.get("steps") or []
+    lines = [
+        f"co-registration {' + '.join(r['step'] for r in steps)}: stable NMAD "
+        f"{co['nmad_before']:.3f} -> {co['nmad_after']:.3f} m; all cells after the chain: "
+        f"NMAD {after['nmad']:.3f} m, median {after['median']:+.3f} m, n={after['n']}"
+    ]
+    for r in steps:
+        if r["step"] == "nuth_kaab":
+            p = r["parameters"]
+            lines.append(
+                f"  nuth_kaab: {shift_phrase(p['dx']['value'], p['dy']['value'], '.3f')}, "
+                f"dz = {p['dz']['value']:.3f} m." + shift_units(co)
+            )
+        else:
+            lines.append(f"  {r['step']}: {parameter_text(r.get('parameters') or {})}")
+    return lines

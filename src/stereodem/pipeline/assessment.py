@@ -20,7 +20,10 @@ def assess_stage(
     check points of the configuration, written into ``out_dir``; returns (assessment, files).
 
     ``error_analysis`` (:class:`stereodem.post.error_analysis.ErrorAnalysisJob`) adds the
-    stable-terrain error analysis section and its figures to the report."""
+    stable-terrain error analysis section and its figures to the report. Its ``chain`` (else
+    ``nuth_kaab`` when ``[assess] coregister``) is fitted once and is the report's
+    co-registration: the before/after tables are of the DEM after the whole chain, and the
+    analysis is of that DEM."""
     from stereodem.post.report import write_report
 
     i, a = cfg.inputs, cfg.assess
@@ -29,10 +32,21 @@ def assess_stage(
     dem = dem if isinstance(dem, DEM) else DEM.from_file(dem, vertical=i.dem_vertical)
     ref = DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
     kw = {} if a.slope_bins is None else dict(slope_bins=a.slope_bins)
+    chain = None
+    if error_analysis is not None:
+        from stereodem.post import error_analysis as ea  # its variograms: only when asked
+
+        dem_v = reconcile_vertical(dem, ref)[0]
+        # one chain for the report's co-registration section and the analysis: --chain, else
+        # Nuth & Kääb with --coregister; fitted once, on the analysis's stable terrain and track
+        text = error_analysis.chain or ("nuth_kaab" if a.coregister else None)
+        if text:
+            chain = ea.fit_chain(dem_v, ref, text, error_analysis)
     result = assess_dem(
         dem,
         ref,
-        coregister=a.coregister,
+        coregister=a.coregister or chain is not None,
+        coregistration=chain,
         checkpoints=i.checkpoints,
         checkpoint_crs=i.checkpoints_crs,
         checkpoint_vertical=i.checkpoints_vertical,
@@ -44,9 +58,7 @@ def assess_stage(
     )
     extra = None
     if error_analysis is not None:
-        from stereodem.post import error_analysis as ea  # its variograms: only when asked
-
-        section, plots = ea.analyse(reconcile_vertical(dem, ref)[0], ref, error_analysis)
+        section, plots = ea.analyse(dem_v, ref, error_analysis, chain=chain)
 
         def extra(out, ow):
             return "error_analysis", section, ea.write_figures(plots, out, overwrite=ow)
