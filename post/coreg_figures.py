@@ -8,7 +8,7 @@ from pathlib import Path
 import matplotlib
 
 from .altimetry import AltimetryPoints
-from .coreg import reference_on_grid
+from .coreg import parameter_text, reference_on_grid
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -70,16 +70,46 @@ def dh_before_after_png(z_ref, dem, out, mask, path, *, overwrite=False, ref_nam
     return _save(fig, path, overwrite)
 
 
-def curve_png(step, path, *, overwrite=False):
-    """Binned median dh against the step's variable and the fitted curve."""
+def _lines(items, width: int) -> str:
+    """``items`` joined by ", " on lines of about ``width`` characters, never split."""
+    lines = [""]
+    for it in items:
+        if lines[-1] and len(lines[-1]) + 2 + len(it) > width:
+            lines[-1] += ","
+            lines.append(it)
+        else:
+            lines[-1] = f"{lines[-1]}, {it}" if lines[-1] else it
+    return "\n".join(lines)
+
+
+def curve_png(
+    step,
+    path,
+    *,
+    overwrite=False,
+    dem_name: str = "DEM",
+    ref_name: str = "reference",
+    index: int | None = None,
+    n_steps: int | None = None,
+):
+    """Binned median dh against the step's variable and the fitted curve; the title names the
+    DEM, the reference and the step's place in the chain, the legend gives the fitted values
+    with σ and units (:func:`~stereodem.post.coreg.parameter_text`)."""
     c = step.curves
-    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    fig, ax = plt.subplots(figsize=(6.5, 3.9))
     ax.plot(c["bin_centre"], c["bin_median"], ".", ms=4, label="binned median dh (stable)")
-    ax.plot(c["model_x"], c["model_y"], "-", lw=1.5, label="fit")
+    fitted = parameter_text(step.parameters())
+    label = "fit" + (": " + _lines(fitted.split(", "), 60) if fitted else "")
+    ax.plot(c["model_x"], c["model_y"], "-", lw=1.5, label=label)
     ax.set_xlabel(c["x_label"])
     ax.set_ylabel(c.get("y_label", "dh (m)"))
-    ax.set_title(f"{step.name}: bias and fit", fontsize=9)
-    ax.legend(fontsize=7)
+    place = f"step {index + 1} of {n_steps}: " if index is not None and n_steps else ""
+    ax.set_title(
+        f"{dem_name} − {ref_name}, co-registration {place}{step.name}\n"
+        "binned dh on stable terrain (before this step) and the fitted correction",
+        fontsize=9,
+    )
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.16))  # off the data
     return _save(fig, path, overwrite)
 
 
@@ -100,8 +130,20 @@ def chain_figures(chain, ref, dem, out, mask, out_dir, *, overwrite=False) -> di
                 ref_name=Path(ref.path).name if getattr(ref, "path", None) else "reference",
             )
         )
+    dem_name = Path(dem.path).name if getattr(dem, "path", None) else "DEM"
+    ref_name = Path(ref.path).name if getattr(ref, "path", None) else "reference"
     for i, step in enumerate(chain.steps):
         if step.curves and "bin_centre" in step.curves:
             name = f"coreg_{i}_{step.name.replace(':', '')}.png"
-            files[f"{step.name}_png"] = str(curve_png(step, out_dir / name, overwrite=overwrite))
+            files[f"{step.name}_png"] = str(
+                curve_png(
+                    step,
+                    out_dir / name,
+                    overwrite=overwrite,
+                    dem_name=dem_name,
+                    ref_name=ref_name,
+                    index=i,
+                    n_steps=len(chain.steps),
+                )
+            )
     return files

@@ -16,9 +16,11 @@ from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 from stereodem.core import geodesy
 from stereodem.core.dem import DEM
 from stereodem.post import assess, coreg_figures, error_analysis, figures
+from stereodem.post.coreg import parse_chain
 from stereodem.post.report import write_report
 from stereodem.post.spatialstats import EmpiricalVariogram, VariogramModel
 from stereodem.sensor.estimation import compare
+from stereodem.sensor.estimation.adjust import report as adjust_report
 
 T = Affine(30.0, 0.0, 600000.0, 0.0, -30.0, 4390000.0)
 
@@ -200,3 +202,56 @@ def test_check_points_are_read_and_logged_once_with_coregistration(small_pair, t
 def _lonlat(dem, cells):
     xs, ys = zip(*[dem.transform @ (c + 0.5, r + 0.5) for r, c in cells])
     return geodesy.crs_to_lonlat(np.array(xs), np.array(ys), dem.crs)
+
+
+def test_coreg_step_figure_names_the_files_the_step_and_the_fitted_values(
+    small_pair, tmp_path, captured
+):
+    """``coreg_<k>_<step>.png`` said "nuth_kaab: bias and fit" and a legend "fit": the files,
+    the step's place in the chain and its fitted values (σ, units) are said now."""
+    dem, ref = small_pair
+    shifted = DEM(dem.heights, T @ Affine.translation(0.4, 0.0), dem.crs, "geoid", dem.path)
+    chain = parse_chain("nuth_kaab,vshift").fit(ref, shifted)
+    out = chain.apply(shifted)
+    files = coreg_figures.chain_figures(
+        chain, ref, shifted, out, np.ones(dem.shape, bool), tmp_path
+    )
+    assert set(files) == {"dh_png", "nuth_kaab_png"}  # vshift has no curve
+    ax = captured[1].axes[0]
+    title = ax.get_title()
+    assert "aster_2004.tif − srtm.tif" in title and "step 1 of 2: nuth_kaab" in title
+    labels = [ln.get_label() for ln in ax.get_lines()]
+    fit = next(t for t in labels if t.startswith("fit"))
+    p = chain.steps[0].parameters()
+    for name in ("dx", "dy", "dz"):
+        value = re.search(rf"{name} = (-?[0-9.e-]+) ± [0-9.e-]+ m", fit)
+        assert value and float(value.group(1)) == pytest.approx(p[name]["value"], rel=1e-3)
+    assert "(m)" in ax.get_ylabel()
+
+
+def test_bundle_residual_figures_give_the_image_rmse_and_the_arrow_scale(tmp_path, monkeypatch):
+    """The bundle's ``adjust_residuals_left/right.png`` were titled "left: residuals (model −
+    measured)": no RMSE and no arrow scale, which the one-image figure gives."""
+    figs = []
+    save = adjust_report.save_png
+    monkeypatch.setattr(
+        adjust_report, "save_png", lambda fig, *a, **k: (figs.append(fig), save(fig, *a, **k))[1]
+    )
+    pts = [
+        {"id": "g1", "role": "gcp", "col": 10.0, "row": 10.0, "residual_px": [0.3, 0.4]},
+        {"id": "g2", "role": "gcp", "col": 50.0, "row": 20.0, "residual_px": [0.0, 0.5]},
+        {"id": "c1", "role": "check", "col": 30.0, "row": 60.0, "residual_px": [1.2, 0.0]},
+        {"id": "t1", "role": "tie", "col": 70.0, "row": 70.0, "residual_px": [0.1, 0.0]},
+        {"id": "x", "role": "gcp", "col": 80.0, "row": 5.0, "residual_px": [9.0, 9.0]},
+    ]
+    for p in pts:
+        p["outlier"] = p["id"] == "x"
+    rep = {"points": pts, "gcp_rmse_px": 2.0, "check_rmse_px": 3.0}
+    adjust_report.residual_figure(rep, tmp_path / "l.png", width=100, height=80, image="left")
+    title = figs[0].axes[0].get_title()
+    assert title.startswith("left: residuals (model − measured), arrows ×")
+    assert "(scale arrow: 1 px)" in title
+    # this image's RMSE, the outlier left out (the report's 2.0 / 3.0 are the bundle's)
+    assert "GCP 0.5 px (n=2), check 1.2 px (n=1), tie 0.1 px (n=1)" in title
+    adjust_report.residual_figure(rep, tmp_path / "one.png", width=100, height=80)
+    assert "GCP RMSE 2 px, check 3 px" in figs[1].axes[0].get_title()

@@ -101,11 +101,26 @@ def markdown(report: dict, figure: str | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _rmse(mag) -> str:
+    mag = np.asarray(mag, float)
+    mag = mag[np.isfinite(mag)]
+    return _f(float(np.sqrt(np.mean(mag**2))), ".3g") if mag.size else "–"
+
+
 def residual_figure(
-    report: dict, path, *, width: int, height: int, overwrite=False, title: str | None = None
+    report: dict,
+    path,
+    *,
+    width: int,
+    height: int,
+    overwrite=False,
+    title: str | None = None,
+    image: str | None = None,
 ):
     """Residual vectors (model − measured) drawn over the image frame, scaled, with a scale
-    arrow; axes in image pixels (row down)."""
+    arrow; axes in image pixels (row down). The title gives the arrows' scale and the RMSE:
+    the report's, or, for ``image`` (one image of a bundle: ``left``, ``image2``), the RMSE
+    of that image's GCP, check and drawn tie residuals (outliers left out)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -170,10 +185,21 @@ def residual_figure(
     ax.set_aspect("equal")
     ax.set_xlabel("column (px)")
     ax.set_ylabel("row (px)")
+    if image is None:  # one image: the report's RMSEs are this image's
+        rmse = (
+            f"GCP RMSE {_f(report['gcp_rmse_px'], '.3g')} px, check "
+            f"{_f(report['check_rmse_px'], '.3g')} px"
+        )
+    else:  # one image of several: the report's RMSEs are the whole adjustment's
+        rmse = "RMSE on this image: " + ", ".join(
+            f"{label} {_rmse(mag[kind == k])} px (n={int(np.sum(kind == k))})"
+            for k, label in (("gcp", "GCP"), ("check", "check"), ("tie", "tie"))
+            if np.any(kind == k)
+        )
     ax.set_title(
         title
-        or f"Residuals (model − measured), arrows ×{scale:.3g}; GCP RMSE "
-        f"{_f(report['gcp_rmse_px'], '.3g')} px, check {_f(report['check_rmse_px'], '.3g')} px",
+        or f"{image + ': ' if image else ''}residuals (model − measured), arrows "
+        f"×{scale:.3g} (scale arrow: {nice:g} px)\n{rmse}",
         fontsize=9,
     )
     ax.legend(loc="upper right", fontsize=8)
@@ -208,7 +234,7 @@ def write_report(result, out_dir, *, overwrite: bool = False, prefix: str = "adj
             width=w,
             height=h,
             overwrite=overwrite,
-            title=f"{tag}: residuals (model − measured)" if tag else None,
+            image=tag or None,
         )
         fig_names.append(name)
     write_text_atomic(paths["json"], jsonutil.dumps(jsonutil.stamped(rep)), overwrite=overwrite)
