@@ -233,11 +233,22 @@ def hillshade_png(
 
 
 def difference_map_png(
-    dh, path, *, title="DEM − reference", overwrite=False, transform=None, crs=None
+    dh,
+    path,
+    *,
+    title="DEM − reference",
+    overwrite=False,
+    transform=None,
+    crs=None,
+    label="DEM − reference (m)",
+    unit="m",
+    what="dh",
 ):
     """Map of differences (m) with a diverging colour scale symmetric about 0, clipped at
     ± the 98th percentile of |dh| (said on the figure), in map coordinates with a scale bar
-    when ``transform`` and ``crs`` are given; cells without a difference are hatched."""
+    when ``transform`` and ``crs`` are given; cells without a difference are hatched.
+    ``label``: the colour bar's (with its unit), ``unit`` and ``what`` name the values in
+    the clipping note (e.g. ``"m/yr"``, ``"rate"`` for a rate map)."""
     a, t = _prepare(dh, transform)
     fin = a[np.isfinite(a)]
     lim = float(np.percentile(np.abs(fin), 98)) if fin.size else 1.0
@@ -254,10 +265,10 @@ def difference_map_png(
     im = ax.imshow(
         np.ma.masked_invalid(a), cmap=cmap, vmin=-lim, vmax=lim, interpolation="nearest", **kw
     )
-    fig.colorbar(im, ax=ax, shrink=0.8, extend="both", label="DEM − reference (m)")
+    fig.colorbar(im, ax=ax, shrink=0.8, extend="both", label=label)
     ax.set_title(
-        f"{title}; hatched: no data\ncolour scale clipped at ±{lim:.2f} m (98th "
-        f"percentile of |dh|): {100 * clipped / max(fin.size, 1):.1f} % of cells beyond",
+        f"{title}; hatched: no data\ncolour scale clipped at ±{lim:.2f} {unit} (98th "
+        f"percentile of |{what}|): {100 * clipped / max(fin.size, 1):.1f} % of cells beyond",
         fontsize=10,
     )
     return _save(fig, path, overwrite)

@@ -1,11 +1,13 @@
 """``stereodem change DEM_A DEM_B``: elevation change ``B − A`` on A's grid after
-co-registering B to A (``dh.tif``), its σ map (``dh_sigma.tif``) and, when both dates are known,
-the rate and its σ (``change.json``)."""
+co-registering B to A (``dh.tif``), its σ map (``dh_sigma.tif``), their quick looks
+(``dh_map.png``, ``dh_sigma_map.png``) and, when both dates are known, the rate and its σ
+(``change.json``)."""
 
 from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 
@@ -14,7 +16,10 @@ from .commands import help_line
 from .outlock import Products
 
 #: what ``stereodem change`` writes into its output folder
-PRODUCTS = Products(("dh.tif", "dh_sigma.tif", "change.json"), markers=("change.json",))
+PRODUCTS = Products(
+    ("dh.tif", "dh_sigma.tif", "change.json", "dh_map.png", "dh_sigma_map.png"),
+    markers=("change.json",),
+)
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +36,8 @@ def add_parser(sub):
         description="Co-register DEM_B to DEM_A on stable terrain (outside --exclude), write "
         "dh = B - A on A's grid (dh.tif) and its per-cell sigma from the dispersion "
         "of dh on stable terrain against slope and curvature (dh_sigma.tif), with "
-        "change.json (co-registration, statistics, the rate when the dates are known).",
+        "change.json (co-registration, statistics, the rate when the dates are known) and "
+        "quick looks of both maps (dh_map.png, dh_sigma_map.png).",
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -162,12 +168,25 @@ def run(args) -> int:
             units="metre",
             creation_options=co,
         )
+        from stereodem.post.product_figures import change_figures  # matplotlib: when used
+
+        figs = change_figures(
+            res["dh"],
+            res["sigma"],
+            a.transform,
+            a.crs,
+            out,
+            names=(Path(args.dem_a).name, Path(args.dem_b).name),
+            overwrite=True,
+        )
+        info["figures"] = {k: Path(v).name for k, v in figs.items()}
         write_text_atomic(
             out / "change.json", jsonutil.dumps(jsonutil.stamped(info)), overwrite=True
         )
     s = res["stats_stable"]
     options.say(
-        f"stereodem change: {out}/dh.tif, dh_sigma.tif; stable terrain median "
+        f"stereodem change: {out}/dh.tif, dh_sigma.tif, dh_map.png, dh_sigma_map.png; "
+        "stable terrain median "
         f"{s['median']:.3f} m, NMAD {s['nmad']:.3f} m over {int(st.sum())} cells"
     )
     return 0

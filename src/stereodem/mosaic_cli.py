@@ -9,8 +9,10 @@ first, last, min, max, mean, median, count, stddev, nmad. With ``--ref REF --cor
 DEM is first co-registered to REF (Nuth & Kääb; ``--coreg-chain`` names the chain).
 
 Writes ``OUT`` (a Cloud-Optimised GeoTIFF: heights, count, σ or stddev; the statistic alone
-for count/stddev/nmad) and ``OUT`` with ``.json`` (DEMs used and skipped, conversions,
-co-registration shifts, memory bound and peak). Memory is bounded by the block size and the
+for count/stddev/nmad), ``OUT`` with ``.json`` (DEMs used and skipped, conversions,
+co-registration shifts, memory bound and peak) and quick looks beside it: ``OUT_hillshade.png``
+(shaded relief) and ``OUT_count.png`` (DEMs contributing per cell), or ``OUT_<method>.png``
+for count/stddev/nmad. Memory is bounded by the block size and the
 number of DEMs overlapping one block, not by the mosaic's size (``--block``).
 """
 
@@ -134,6 +136,7 @@ def run(args) -> int:
     from stereodem.core.errors import InputError
     from stereodem.core.raster import check_writable, write_text_atomic
     from stereodem.post.mosaic import plan_mosaic, run_mosaic
+    from stereodem.post.product_figures import mosaic_figure_paths, mosaic_figures
     from stereodem.stereo.runner import process_peak_rss_mb, reset_peak_rss
 
     from .outlock import check_not_an_input
@@ -147,9 +150,10 @@ def run(args) -> int:
         raise InputError("--ref is used with --coregister")
     out = options.geotiff_output(args.out, "mosaic")
     rep = report_path(out)
-    check_not_an_input([out, rep], [*args.dems, args.ref])
-    check_writable(out, args.overwrite)
-    check_writable(rep, args.overwrite)
+    pngs = list(mosaic_figure_paths(out, args.method).values())
+    check_not_an_input([out, rep, *pngs], [*args.dems, args.ref])
+    for path in (out, rep, *pngs):
+        check_writable(path, args.overwrite)
     reset_peak_rss()
     plan = plan_mosaic(
         args.dems,
@@ -177,7 +181,9 @@ def run(args) -> int:
         progress=bar,
     )
     bar.close()
+    figs = mosaic_figures(out, args.method, n_dems=report["n_used"], overwrite=args.overwrite)
     report.update(
+        figures={k: Path(v).name for k, v in figs.items()},
         peak_rss_mb=process_peak_rss_mb(),
         provenance=provenance(started=started),
         inputs=[str(p) for p in args.dems],

@@ -1,6 +1,7 @@
 """``stereodem stack``: many DEMs of the same terrain in time -> a co-registered, cloud-masked
 stack (``OUT/stack.zarr``), elevation-change rates with σ (``rate.tif``, ``rate_sigma.tif``,
-``n_obs.tif``) and, with ``--outlines``, volume change rates per polygon (``volumes.json``)."""
+``n_obs.tif``; quick looks ``rate_map.png``, ``rate_sigma_map.png``, ``n_obs_map.png``) and,
+with ``--outlines``, volume change rates per polygon (``volumes.json``)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import argparse
 import contextlib
 import logging
 import time
+from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
 
@@ -37,8 +39,12 @@ RATE_FILES = {
     "n_rejected": "n_rejected.tif",
 }
 #: what ``stereodem stack`` writes into its output folder
+#: its quick-look figures (:data:`stereodem.post.product_figures.STACK_FIGURES`)
+FIGURE_FILES = ("rate_map.png", "rate_sigma_map.png", "n_obs_map.png")
+
 PRODUCTS = Products(
-    ("stack.json", "stack.zarr", *RATE_FILES.values(), "volumes.json"), markers=("stack.json",)
+    ("stack.json", "stack.zarr", *RATE_FILES.values(), *FIGURE_FILES, "volumes.json"),
+    markers=("stack.json",),
 )
 
 
@@ -86,7 +92,8 @@ def add_parser(sub):
         description="Co-register every DEM to the reference with the correction chain, mask "
         "clouds, put all on the reference grid as OUT/stack.zarr (xarray/Zarr), fit "
         "per-cell elevation-change rates by weighted least squares with outlier "
-        "rejection in time (rate.tif, rate_sigma.tif, n_obs.tif) and, with "
+        "rejection in time (rate.tif, rate_sigma.tif, n_obs.tif; quick looks rate_map.png, "
+        "rate_sigma_map.png, n_obs_map.png) and, with "
         "--outlines, volume change rates per polygon (volumes.json).",
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -287,8 +294,20 @@ def run(args) -> int:
                 descriptions=key,
                 units=None if integer else "metre per year",
             )
+        from stereodem.post.product_figures import stack_figures  # matplotlib: when used
+
+        days = ds["time"].values.astype("datetime64[D]")
+        figs = stack_figures(
+            res,
+            g.transform,
+            g.crs,
+            out,
+            what=f"{len(records)} DEMs, {days[0]} to {days[-1]}",
+            overwrite=True,
+        )
         summary = dict(
             status="ok",
+            figures={k: Path(v).name for k, v in figs.items()},
             dems=records,
             chain=sorted({r["chain"] for r in records}),
             rate_settings=rate_settings.__dict__,

@@ -304,6 +304,10 @@ def test_stack_command_recovers_the_rate_and_masks_the_cloud(series, tmp_path, c
     assert abs(vol["volume_rate_m3_per_yr"] - truth_vol) < 2 * vol["volume_rate_sigma"]
     summary = json.loads((out / "stack.json").read_text())
     assert summary["status"] == "ok" and len(summary["dems"]) == 4
+    assert summary["figures"] == {
+        k: f"{k}.png" for k in ("rate_map", "rate_sigma_map", "n_obs_map")
+    }
+    assert all((out / f).is_file() for f in summary["figures"].values())
     # the same folder again: refused without --overwrite, replaced with it
     rc, _, se = _run(
         ["stack", *series["paths"], "--ref", series["ref"], "--chain", "vshift", "-o", str(out)],
@@ -342,6 +346,9 @@ def test_change_command_gives_dh_and_sigma(series, tmp_path, capsys):
     assert 0.5 < nmad(dh[st]) / np.nanmedian(sig[st]) < 1.5  # σ map says the dispersion
     info = json.loads((out / "change.json").read_text())
     assert info["years"] == pytest.approx(15.05, abs=0.01)
+    # the quick looks, listed in change.json and a product of the folder
+    assert info["figures"] == {"dh_map": "dh_map.png", "dh_sigma_map": "dh_sigma_map.png"}
+    assert all((out / f).read_bytes()[:4] == b"\x89PNG" for f in info["figures"].values())
 
 
 def _without_seconds(x):
