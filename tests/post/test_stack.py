@@ -667,7 +667,8 @@ def test_a_failed_stack_is_run_again_without_overwrite(series, tmp_path, capsys,
     assert rc == 0, se
     assert json.loads((out / "stack.json").read_text())["status"] == "ok"
     assert not list(out.glob(".stereodem-*"))  # the failed job's files gone
-    rc, _so, se = _run(_stack_argv(paths, series["ref"], out, *one_worker), capsys)  # a finished stack
+    # a finished stack
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], out, *one_worker), capsys)
     assert rc == 1 and "--overwrite" in se, se
 
 
