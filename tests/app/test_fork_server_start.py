@@ -127,6 +127,7 @@ def test_the_servers_first_preload_makes_it_ignore_ctrl_c():
     assert r.stdout.split() == ["True", "False", "False"], r.stderr  # ignored, nothing heavy
 
 
+@pytest.mark.slow
 @needs_fork_server
 def test_a_ctrl_c_to_the_starting_server_prints_no_traceback():
     """The fork server, once it ignores SIGINT (its status says so), takes a Ctrl-C while its
