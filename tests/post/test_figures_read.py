@@ -25,24 +25,6 @@ from stereodem.sensor.estimation.adjust import report as adjust_report
 T = Affine(30.0, 0.0, 600000.0, 0.0, -30.0, 4390000.0)
 
 
-@pytest.fixture
-def captured(monkeypatch):
-    """Figures as drawn, just before they are saved (every module's saving path)."""
-    figs = []
-
-    def keep(save):
-        def wrapped(fig, *a, **k):
-            figs.append(fig)
-            return save(fig, *a, **k)
-
-        return wrapped
-
-    monkeypatch.setattr(figures, "_save", keep(figures._save))
-    monkeypatch.setattr(coreg_figures, "_save", keep(coreg_figures._save))
-    monkeypatch.setattr(compare, "save_png", keep(compare.save_png))
-    return figs
-
-
 @pytest.fixture(scope="module")
 def small_pair():
     b = DEM.bundled()

@@ -22,23 +22,6 @@ T = Affine(30.0, 0.0, 600000.0, 0.0, -30.0, 4390000.0)
 CRS = "EPSG:32637"
 
 
-@pytest.fixture
-def captured(monkeypatch):
-    """Figures as drawn, just before they are saved."""
-    figs = []
-
-    def keep(save):
-        def wrapped(fig, *a, **k):
-            figs.append(fig)
-            return save(fig, *a, **k)
-
-        return wrapped
-
-    monkeypatch.setattr(figures, "_save", keep(figures._save))
-    monkeypatch.setattr(product_figures, "_save", keep(product_figures._save))
-    return figs
-
-
 def _map(fig):
     """The map axes of a figure (the one with an image) and its colour bar's axes."""
     ax = next(a for a in fig.axes if a.get_images())
