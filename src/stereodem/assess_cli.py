@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import logging
 
+from stereodem.core.errors import InputError
 from stereodem.core.vertical import VERTICALS
 
 from . import options
@@ -125,7 +126,8 @@ def add_parser(subparsers):
         action="append",
         default=[],
         metavar="VECTOR",
-        help="polygons left out of the stable terrain (repeatable)",
+        help="polygons left out of the stable terrain, where the co-registration is fitted "
+        "and the error analysis measured (repeatable; e.g. glaciers)",
     )
     ea.add_argument(
         "--sigma-map",
@@ -202,7 +204,13 @@ def run(args) -> int:
 
         check_checkpoints(args.checkpoints, crs=args.checkpoints_crs)
     job = None
-    if args.error_analysis or args.outlines or args.sigma_map or args.chain:
+    analysis = bool(args.error_analysis or args.outlines or args.sigma_map or args.chain)
+    if args.exclude and not (analysis or args.coregister):
+        raise InputError(
+            "--exclude leaves polygons out of the stable terrain, which only the "
+            "co-registration (--coregister, --chain) and the error analysis use; add one"
+        )
+    if analysis or args.exclude:
         from stereodem.post.error_analysis import ErrorAnalysisJob
 
         if args.chain:  # a bad chain fails before any work
@@ -217,7 +225,9 @@ def run(args) -> int:
             sigma_map=args.sigma_map,
         )
     with output_folder(args.output, products, overwrite=args.overwrite, inputs=inputs) as out:
-        result, files = assess_stage(cfg, args.dem, out, overwrite=True, error_analysis=job)
+        result, files = assess_stage(
+            cfg, args.dem, out, overwrite=True, error_analysis=job, analysis=analysis
+        )
     s = result.report["stats"]
     options.say(
         f"n={s['n']} mean={s['mean']:.3f} rmse={s['rmse']:.3f} nmad={s['nmad']:.3f} "

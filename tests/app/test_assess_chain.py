@@ -129,3 +129,52 @@ def test_assess_chain_reports_every_step_and_one_after(files, capsys):
     for s in steps:
         assert any(ln.startswith(f"  {s}: ") for ln in lines), s
     assert any(ln.startswith("  deramp:1: ") and "m/m" in ln for ln in lines)
+
+
+def test_assess_coregister_fits_on_the_stable_terrain_outside_exclude(tmp_path, capsys):
+    """``assess --coregister --exclude glacier.geojson``: the polygons were left out of the
+    stable terrain only with an error-analysis option; alone, --exclude was ignored and Nuth &
+    Kääb fitted the glacier's thinning too. Now the fit leaves them out (no analysis section
+    is added), and --exclude with nothing that uses the stable terrain is refused."""
+    full = DEM.bundled()
+    ref = DEM(full.heights[:120, :120].copy(), full.transform, full.crs, "geoid")
+    dem, _ = inject_errors(ref, InjectedErrors(dz=3.0, seed=2))
+    h = dem.heights.copy()
+    h[:60, :60] -= 40.0  # a glacier thinned by 40 m over a quarter of the area
+    DEM(h, ref.transform, ref.crs, "geoid").write(tmp_path / "dem.tif")
+    ref.write(tmp_path / "ref.tif")
+    west, north = ref.transform @ (0, 0)
+    east, south = ref.transform @ (60, 60)
+    ring = [[west, north], [east, north], [east, south], [west, south], [west, north]]
+    glacier = tmp_path / "glacier.geojson"
+    glacier.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {"name": "glacier"},
+                        "geometry": {"type": "Polygon", "coordinates": [ring]},
+                    }
+                ],
+            }
+        )
+    )
+    base = ["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif")]
+    base += ["--workers", "1"]
+
+    def dz(out, *more):
+        assert main([*base, "--coregister", *more, "-o", str(out)]) == 0
+        rep = json.loads((out / "report.json").read_text())
+        assert "error_analysis" not in rep
+        return rep["coregistration"]["steps"][0]["parameters"]["dz"]["value"]
+
+    kept = dz(tmp_path / "all")
+    left_out = dz(tmp_path / "stable", "--exclude", str(glacier))
+    assert abs(left_out - 3.0) < 0.2 < abs(kept - 3.0)
+    capsys.readouterr()
+    assert main([*base, "--exclude", str(glacier), "-o", str(tmp_path / "no")]) == 1
+    err = capsys.readouterr().err
+    assert "--exclude leaves polygons out of the stable terrain" in err
+    assert not (tmp_path / "no").exists()

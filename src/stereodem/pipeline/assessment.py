@@ -14,16 +14,25 @@ from ..config import Config
 
 
 def assess_stage(
-    cfg: Config, dem, out_dir, *, overwrite=True, provenance=None, error_analysis=None
+    cfg: Config,
+    dem,
+    out_dir,
+    *,
+    overwrite=True,
+    provenance=None,
+    error_analysis=None,
+    analysis: bool = True,
 ):
     """Accuracy report of ``dem`` (a :class:`DEM` or a path) against the reference DEM and
     check points of the configuration, written into ``out_dir``; returns (assessment, files).
 
     ``error_analysis`` (:class:`stereodem.post.error_analysis.ErrorAnalysisJob`) adds the
-    stable-terrain error analysis section and its figures to the report. Its ``chain`` (else
-    ``nuth_kaab`` when ``[assess] coregister``) is fitted once and is the report's
-    co-registration: the before/after tables are of the DEM after the whole chain, and the
-    analysis is of that DEM."""
+    stable-terrain error analysis section and its figures to the report (``analysis=False``:
+    the job only says the stable terrain, ``exclude``, and the track of the co-registration,
+    e.g. ``assess --coregister --exclude glaciers.gpkg``: no section). Its ``chain`` (else
+    ``nuth_kaab`` when ``[assess] coregister``) is fitted once, on the job's stable terrain,
+    and is the report's co-registration: the before/after tables are of the DEM after the
+    whole chain, and the analysis is of that DEM."""
     from stereodem.post.report import write_report
 
     i, a = cfg.inputs, cfg.assess
@@ -57,7 +66,7 @@ def assess_stage(
         **kw,
     )
     extra = None
-    if error_analysis is not None:
+    if error_analysis is not None and analysis:
         section, plots = ea.analyse(dem_v, ref, error_analysis, chain=chain)
 
         def extra(out, ow):
