@@ -43,6 +43,10 @@ class NoOverlapError(InputError):
     """Two images, or an image and a DEM, do not overlap."""
 
 
+class AccuracyError(StereodemError):
+    """A result would miss its stated accuracy (measured, not assumed), so it is not made."""
+
+
 #: what lets a write replace an existing output, in each caller's words: the library's keyword
 #: argument and the command line's flag (:meth:`OutputExistsError.needs_overwrite`)
 OVERWRITE_WORDS = {"library": "overwrite=True", "command line": "--overwrite"}

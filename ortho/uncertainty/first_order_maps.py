@@ -24,7 +24,15 @@ The interpolation error is measured, never assumed: the lattice is refined until
 error of σ_E, σ_N and σ_horizontal at check cells (lattice mid-cells and random cells) against the
 exact per-cell propagation (:func:`stereodem.ortho.uncertainty.propagation.first_order`) is below
 the tolerance, and the finished float32 maps are compared with the same exact values
-(``UncertaintyMaps.interpolation_error``).
+(``UncertaintyMaps.interpolation_error``). Maps whose measured error still exceeds the tolerance
+on the finest lattice (4 cells) are not returned: :class:`stereodem.core.errors.AccuracyError`.
+
+The lattice carries the symmetric square root ``R`` of ``Σ₀`` (:func:`sqrt_psd`), and a cell's
+covariance is ``(M R)(M R)ᵀ``: with one dominant input a ground component nearly vanishes
+(σ_N of a roll bias on a north-south track), and ``M Σ₀ Mᵀ`` in float32 gave it as the square
+root of rounding noise, off by up to ~√ε σ_horizontal (σ_N of 0.8 mm for 0.3 mm, ``sim_pb``'s
+right image over the frame simulation's DEM: "interpolation error 0.0016 exceeds 0.001" and
+exit 0; a yaw σ over rough terrain: 0.03 measured on every cell, a warning and exit 0).
 """
 
 from __future__ import annotations
@@ -38,6 +46,7 @@ import numpy as np
 from scipy import ndimage
 
 from stereodem.core.blocks import default_threads
+from stereodem.core.errors import AccuracyError
 from stereodem.ortho.drm import _lattice, bilinear_nan, crop_dem
 from stereodem.ortho.uncertainty.propagation import (
     _ce90_table,
@@ -52,7 +61,7 @@ from stereodem.ortho.uncertainty.propagation import (
 log = logging.getLogger(__name__)
 
 #: image-position and covariance fields interpolated in (x, y, h), in this order
-H_FIELDS = ("col", "row", "s00", "s01", "s11", "w0", "w1")
+H_FIELDS = ("col", "row", "r00", "r01", "r11", "w0", "w1")
 #: DEM-pixel position and Jacobian ``∂(c, r)/∂(E, N)`` (x, y only)
 XY_FIELDS = ("dem_col", "dem_row", "p00", "p01", "p10", "p11")
 #: largest DEM side :func:`cv2.remap` samples (OpenCV's limit); larger DEMs use numpy
@@ -68,7 +77,8 @@ def lattice_fields(model, dem, grid, u, v, D, names, groups, heights):
     Returns
     -------
     hf : ndarray (2, n, 7 + 3 k)
-        Per height: image col, row; ``Σ₀`` (s00, s01, s11, m²); ``w`` (m per m of height);
+        Per height: image col, row; ``R = Σ₀^½`` (r00, r01, r11, m: the symmetric square
+        root, :func:`sqrt_psd`); ``w`` (m per m of height);
         then each source's ``Σ₀,k`` (3 entries, m²).
     xy : ndarray (n, 6)
         DEM pixel col, row (centres at integers) and ``∂(c, r)/∂(E, N)`` (p00, p01, p10, p11).
@@ -84,7 +94,7 @@ def lattice_fields(model, dem, grid, u, v, D, names, groups, heights):
     s0 = ground_covariance(f["A"], f["ph"], zero, f["S"])
     with np.errstate(all="ignore"):
         w = np.linalg.solve(f["A"], f["ph"][..., None])[..., 0]
-    cols = [f["col"], f["row"], *s0, w[:, 0], w[:, 1]]
+    cols = [f["col"], f["row"], *sqrt_psd(*s0), w[:, 0], w[:, 1]]
     for s in srcs:
         cols.extend(ground_covariance(f["A"], f["ph"], zero, f["C"][s]))
     per_h = np.stack(cols, -1).reshape(2, n, -1)
@@ -102,13 +112,33 @@ def terrain_factor(w0, w1, gE, gN):
     return 1.0 - v0 * gE, -v0 * gN, -v1 * gE, 1.0 - v1 * gN
 
 
-def congruence(m00, m01, m10, m11, s00, s01, s11):
-    """``M S Mᵀ`` of symmetric 2 × 2 ``S`` -> (g00, g01, g11)."""
-    t00 = m00 * s00 + m01 * s01
-    t01 = m00 * s01 + m01 * s11
-    t10 = m10 * s00 + m11 * s01
-    t11 = m10 * s01 + m11 * s11
-    return t00 * m00 + t01 * m01, t00 * m10 + t01 * m11, t10 * m10 + t11 * m11
+def sqrt_psd(s00, s01, s11):
+    """Symmetric square root ``R`` (r00, r01, r11) of the positive semi-definite 2 × 2
+    ``S``: ``R = (S + √det I) / √(tr S + 2 √det)``, ``R R = S`` (0 where ``S`` is 0).
+
+    The lattice carries ``R``, not ``S``: per cell the covariance is ``(M R)(M R)ᵀ``, whose
+    diagonal is a sum of squares, so a component that nearly vanishes (a single input
+    moving the ground along one direction: σ_N ≈ 0 under a roll bias) is not the difference
+    of large float32 terms (``M S Mᵀ`` gave it as the square root of rounding noise,
+    ~√ε σ_horizontal); and interpolating ``R`` keeps a near-singular covariance near
+    singular (an interpolated ``S`` of a turning direction gains a minor axis of the order
+    of the turn, ``R``'s only of its square)."""
+    det = np.maximum(s00 * s11 - s01 * s01, 0.0)
+    sd = np.sqrt(det)
+    t = np.sqrt(np.maximum(s00 + s11 + 2.0 * sd, 0.0))
+    with np.errstate(all="ignore"):
+        inv = np.where(t > 0, 1.0 / t, 0.0)
+    return (s00 + sd) * inv, s01 * inv, (s11 + sd) * inv
+
+
+def root_congruence(m00, m01, m10, m11, r00, r01, r11):
+    """``(M R)(M R)ᵀ`` of symmetric 2 × 2 ``R`` -> (g00, g01, g11): ``M S Mᵀ`` for
+    ``S = R R`` with the diagonal a sum of squares (no cancellation)."""
+    t00 = m00 * r00 + m01 * r01
+    t01 = m00 * r01 + m01 * r11
+    t10 = m10 * r00 + m11 * r01
+    t11 = m10 * r01 + m11 * r11
+    return t00 * t00 + t01 * t01, t00 * t10 + t01 * t11, t10 * t10 + t11 * t11
 
 
 def metric(m00, m01, m10, m11):
@@ -181,7 +211,7 @@ def _terrain_sigma_points(lat_, dem_e, garr, u, v):
     gE = gc * xy[:, 2] + gr * xy[:, 4]
     gN = gc * xy[:, 3] + gr * xy[:, 5]
     M = terrain_factor(hf[:, 5], hf[:, 6], gE, gN)
-    g = congruence(*M, hf[:, 2], hf[:, 3], hf[:, 4])
+    g = root_congruence(*M, hf[:, 2], hf[:, 3], hf[:, 4])
     return g, hf[:, 0], hf[:, 1], h
 
 
@@ -333,13 +363,13 @@ class _Blocks:
                 x1[:, pr],
             )
         O = np.matmul(B, R)
-        col, row, s00, s01, s11, w0, w1, gE, gN = (O[:, j] for j in range(nf + 2))
+        col, row, r00, r01, r11, w0, w1, gE, gN = (O[:, j] for j in range(nf + 2))
         m = self.model
         ok = (col >= -0.5) & (col <= m.width - 0.5) & (row >= -0.5) & (row <= m.height - 0.5)
         ok &= np.isfinite(h)
         with np.errstate(all="ignore"):
             M = terrain_factor(w0, w1, gE, gN)
-            g00, g01, g11 = congruence(*M, s00, s01, s11)
+            g00, g01, g11 = root_congruence(*M, r00, r01, r11)
             sE, sN = np.sqrt(g00), np.sqrt(g11)
         ok &= np.isfinite(sE) & np.isfinite(sN)
         nan = f32(np.nan)
@@ -402,7 +432,14 @@ def first_order_maps(
     Parameters as :func:`stereodem.ortho.uncertainty.maps.ortho_uncertainty_maps` (``model``
     adjustable, ``dem`` ellipsoidal, ``D`` checked). ``step`` fixes the lattice spacing (cells);
     by default it starts at 256 cells and is halved until the measured relative error of
-    σ_E, σ_N and σ_horizontal at the check cells is below ``tolerance``.
+    σ_E, σ_N and σ_horizontal at the check cells is below ``tolerance`` (a component is
+    counted relative to ``max(σ_component, 0.01 σ_horizontal)``, :func:`relative_error`).
+
+    Raises
+    ------
+    AccuracyError
+        The measured error (lattice or finished maps) exceeds ``tolerance`` at the finest
+        lattice (4 cells); with ``step`` given, a warning instead (the caller's lattice).
 
     Returns
     -------
@@ -519,9 +556,19 @@ def first_order_maps(
     map_err = relative_error(got[fin], exact[good][fin])
     err = max(lattice_err, map_err)
     if err > tolerance:
-        log.warning(
-            "uncertainty maps: relative interpolation error %.3g exceeds %.3g", err, tolerance
+        what = (
+            f"uncertainty maps: the measured relative interpolation error {err:.3g} "
+            f"(lattice {lattice_err:.3g}, finished maps {map_err:.3g}) exceeds the tolerance "
+            f"{tolerance:.3g} on a lattice of {st} cells"
         )
+        if step is not None:  # the caller fixed the lattice: its choice, said
+            log.warning("%s (step fixed by the caller)", what)
+        else:  # never maps known to be off by more than the tolerance
+            raise AccuracyError(
+                f"{what}, the finest the maps refine to: the σ vary faster than the lattice "
+                "resolves there (or the float32 cells differ from the exact propagation); "
+                "no maps written"
+            )
     details = {
         "n_lattice_nodes": int(lat_.n_nodes),
         "lattice_heights_m": list(heights),

@@ -36,6 +36,7 @@ _API = {
     "OutputExistsError": "stereodem.core.errors",
     "OutputWriteError": "stereodem.core.errors",
     "ConvergenceError": "stereodem.core.errors",
+    "AccuracyError": "stereodem.core.errors",
     # ... and those defined beside what raises them (make_dem, run)
     "SparseMatchError": "stereodem.stereo.sparse",
     "SuspectResultError": "stereodem.stereo.sanity",

@@ -109,7 +109,7 @@ def add_parser(sub):
 
 def run(args) -> int:
     from stereodem.core.dem import DEM
-    from stereodem.core.errors import InputError
+    from stereodem.core.errors import AccuracyError, InputError
     from stereodem.core.threads import job_threads
     from stereodem.ortho.drm import dem_gaps, no_height_message
     from stereodem.ortho.grid import footprint_height_range, grid_for_model
@@ -158,18 +158,21 @@ def run(args) -> int:
             "%s", no_height_message(args.dem, missing, "the uncertainty maps are nodata there")
         )
     threads = job_threads(args.workers)
-    maps = ortho_uncertainty_maps(
-        model,
-        dem,
-        grid,
-        D,
-        names,
-        args.method,
-        samples=args.samples,
-        seed=args.seed,
-        source_maps=args.source_maps,
-        threads=threads,
-    )
+    try:
+        maps = ortho_uncertainty_maps(
+            model,
+            dem,
+            grid,
+            D,
+            names,
+            args.method,
+            samples=args.samples,
+            seed=args.seed,
+            source_maps=args.source_maps,
+            threads=threads,
+        )
+    except AccuracyError as exc:  # no maps known to be wrong: the files it concerns named
+        raise AccuracyError(f"{args.image} over the DEM {args.dem}: {exc}") from exc
     with output_folder(args.out, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
         _write_and_plot(maps, out, args, threads)
     s = maps.summary()

@@ -405,3 +405,20 @@ def test_model_option_errors_are_one_line(data_dir, dem_path, tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert code == 1 and message in err and len(err.splitlines()) == 1, (extra, err)
         assert not (tmp_path / "x").exists()
+
+
+def test_maps_known_to_be_wrong_are_an_error_naming_the_files(
+    data_dir, dem_path, tmp_path, capsys, monkeypatch
+):
+    """Maps whose measured interpolation error exceeds the tolerance were written with a
+    warning and exit 0 ("interpolation error 0.76"); now exit 1, one line naming the image
+    and the DEM, and no maps."""
+    from stereodem.ortho.uncertainty import first_order_maps
+
+    monkeypatch.setattr(first_order_maps, "relative_error", lambda got, exact: 0.76)
+    out = tmp_path / "u"
+    assert _run(data_dir, dem_path, out, "--res", "12", "--sigma", "col_shift=0.5") == 1
+    err = capsys.readouterr().err
+    assert "error:" in err and str(dem_path) in err and "img_01_rpc.tif" in err, err
+    assert "0.76" in err and "no maps written" in err, err
+    assert not (out / "sigma_horizontal.tif").exists()

@@ -21,6 +21,7 @@ from affine import Affine
 from scipy import ndimage
 
 from stereodem.core.dem import DEM
+from stereodem.core.errors import AccuracyError
 from stereodem.ortho.grid import grid_for_model
 from stereodem.ortho.uncertainty import first_order_maps as F
 from stereodem.ortho.uncertainty import propagation as P
@@ -292,3 +293,40 @@ def test_dem_gradient_is_one_sided_beside_voids():
     assert gr[1, 3] == pytest.approx(z[1, 3] - z[0, 3]) and gr[3, 3] == pytest.approx(0.5)
     full = np.gradient(np.where(np.isnan(z), 0.0, z))
     assert gc[0, 0] == pytest.approx(full[1][0, 0]) and gr[5, 6] == pytest.approx(full[0][5, 6])
+
+
+def test_single_input_with_a_vanishing_component_is_right_on_every_cell():
+    """One input moving the ground along one map axis (a frame camera's yaw over rough
+    terrain): the other component nearly vanishes (~1e-5 of σ_horizontal). The maps formed
+    ``M Σ₀ Mᵀ`` from float32 covariance entries and interpolated ``Σ₀`` itself, so that
+    component was rounding noise and a turning direction's spurious minor axis: off by 0.03
+    of σ_horizontal on the cells (the documented measure, a component relative to
+    max(σ_component, 0.01 σ_horizontal)), with a warning, "0.0063 exceeds 0.001", and the maps
+    returned. Now the lattice carries Σ₀'s square root: the check cells within the tolerance,
+    every cell within twice it (the check cells are a sample of 400)."""
+    cam, _ = frame_pair(32.8, 39.9, 1000.0, (256, 256))
+    dem = _rough_dem(cam, 1000.0, step=2e-4, void=False)
+    names, D = ["yaw"], np.diag([1e-10])
+    grid = grid_for_model(cam, dem)
+    maps = ortho_uncertainty_maps(cam, dem, grid, D, names, threads=1)
+    r, c, inside, pu = _exact(cam, dem, grid, names, D, every=2)
+    exact = np.stack([pu.sigma_east, pu.sigma_north], -1)
+    assert np.min(exact.min(1) / pu.sigma_horizontal) < 1e-4  # the vanishing component
+    got = np.stack([maps.sigma_east[r, c], maps.sigma_north[r, c]], -1)[inside].astype(float)
+    ok = np.all(np.isfinite(got), -1)
+    assert ok.mean() > 0.99
+    assert F.relative_error(got[ok], exact[ok]) < 2 * TOL
+    assert maps.interpolation_error < TOL
+
+
+def test_maps_beyond_the_tolerance_are_refused_not_returned(rpc_case, monkeypatch, caplog):
+    """A measured error above the tolerance on the finest lattice was a warning and the maps
+    were returned (the command wrote them and exited 0): now an AccuracyError; with the
+    caller's own ``step`` it stays a warning."""
+    model, dem, names, D, _ = rpc_case
+    grid = grid_for_model(model, dem, res=12.0)
+    with pytest.raises(AccuracyError, match=r"exceeds the tolerance 1e-09 on a lattice of 4"):
+        ortho_uncertainty_maps(model, dem, grid, D, names, tolerance=1e-9)
+    with caplog.at_level("WARNING"):
+        maps = ortho_uncertainty_maps(model, dem, grid, D, names, tolerance=1e-9, step=64)
+    assert maps.step == 64 and "fixed by the caller" in caplog.text
