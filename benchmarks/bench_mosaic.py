@@ -361,8 +361,8 @@ def figure(first, blend, truth, t, layout, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from stereodem.core.mapaxes import map_axes
     from stereodem.post import terrain
-    from stereodem.post.figures import _map_axes
 
     L = layout[7]
     r0, c0 = max(L["row0"] - 150, 0), max(L["col0"] - 150, 0)
@@ -374,11 +374,11 @@ def figure(first, blend, truth, t, layout, path):
     ):
         ax = axes[0, col]
         hs = terrain.hillshade(z.astype(np.float64), tw, UTM, z_factor=3.0)
-        extent = _map_axes(ax, tw, UTM, z.shape)
+        extent = map_axes(ax, tw, UTM, z.shape)
         ax.imshow(hs, extent=extent, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
         ax.set_title(f"stereodem mosaic {name}: hillshade (z × 3)", fontsize=10)
         ax = axes[1, col]
-        extent = _map_axes(ax, tw, UTM, z.shape)
+        extent = map_axes(ax, tw, UTM, z.shape)
         im = ax.imshow(
             z - truth[win], extent=extent, cmap="RdBu_r", vmin=-3, vmax=3, interpolation="nearest"
         )

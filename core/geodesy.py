@@ -299,3 +299,17 @@ def intersect_height(origin, direction, h, iterations: int = 6):
     p = o + s[..., None] * d
     p[~np.isfinite(s)] = np.nan
     return p
+
+
+def metres_per_degree(lat):
+    """Length in metres of one degree of longitude and of latitude at ``lat`` (degrees, WGS84).
+
+    Returns
+    -------
+    (m_per_deg_lon, m_per_deg_lat) : ndarray float64
+    """
+    phi = np.radians(np.asarray(lat, dtype=np.float64))
+    w = np.sqrt(1.0 - E2 * np.sin(phi) ** 2)
+    n = A / w  # prime vertical radius
+    m = A * (1.0 - E2) / w**3  # meridian radius
+    return n * np.cos(phi) * np.pi / 180.0, m * np.pi / 180.0

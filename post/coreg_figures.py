@@ -16,9 +16,10 @@ import numpy as np
 from affine import Affine
 from matplotlib.ticker import MaxNLocator
 
+from stereodem.core.mapaxes import map_axes
 from stereodem.core.stats import nmad
 
-from .figures import _map_axes, _save, diverging_cmap
+from .figures import _save, diverging_cmap
 
 
 def _dh_on_grid(ref, dem):
@@ -44,7 +45,7 @@ def dh_before_after_png(z_ref, dem, out, mask, path, *, overwrite=False, ref_nam
         fin = d[np.isfinite(d)]
         beyond = 100 * float(np.mean(np.abs(fin) > lim)) if fin.size else 0.0
         stable_nmad, d = nmad(d[mask]), d[::k, ::k]
-        extent = _map_axes(axis, transform, dem.crs, d.shape)  # km axes and a scale bar
+        extent = map_axes(axis, transform, dem.crs, d.shape)  # km axes and a scale bar
         axis.yaxis.set_major_locator(MaxNLocator(5))  # rotated labels: fewer, apart
         im = axis.imshow(
             np.ma.masked_invalid(d),

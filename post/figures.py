@@ -18,11 +18,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from affine import Affine  # noqa: E402
 from matplotlib.colors import Normalize  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
-from matplotlib.ticker import FuncFormatter  # noqa: E402
-from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar  # noqa: E402
-from pyproj import CRS  # noqa: E402
 
+from stereodem.core.mapaxes import map_axes  # noqa: E402
 from stereodem.core.png import save_png  # noqa: E402
 
 from . import terrain  # noqa: E402
@@ -114,74 +111,6 @@ def _prepare(a, transform):
     return _crop_to_data(a, transform)
 
 
-def _nice_length(x):
-    """The largest 1, 2 or 5 × 10^k not above ``x``."""
-    if x <= 0:
-        return 0.0
-    p = 10 ** np.floor(np.log10(x))
-    return float(max(s for s in (1, 2, 5, 10) if s * p <= x) * p)
-
-
-def _map_axes(ax, transform, crs, shape):
-    """Extent for imshow in map units, axis labels and tick format, and a scale bar.
-
-    Returns the ``extent`` to pass to ``imshow`` (left, right, bottom, top).
-    """
-    rows, cols = shape
-    x0, y0 = transform @ (0, 0)
-    x1, y1 = transform @ (cols, rows)
-    extent = (x0, x1, y1, y0)
-    geographic = crs is not None and CRS.from_user_input(crs).is_geographic
-    if geographic:
-        ax.set_xlabel("longitude (°E)")
-        ax.set_ylabel("latitude (°N)")
-        lat = 0.5 * (y0 + y1)
-        m_per_unit = float(terrain.metres_per_degree(lat)[0])  # along the parallel
-        ax.set_aspect(1.0 / np.cos(np.radians(lat)))
-    else:
-        ax.set_xlabel("easting (km)")
-        ax.set_ylabel("northing (km)")
-        km = FuncFormatter(lambda v, _: f"{v / 1000:g}")
-        ax.xaxis.set_major_formatter(km)
-        ax.yaxis.set_major_formatter(km)
-        m_per_unit = 1.0
-        ax.set_aspect("equal")
-    ax.tick_params(labelsize=8)
-    ax.yaxis.set_tick_params(rotation=90)
-    width_m = abs(x1 - x0) * m_per_unit
-    length_m = _nice_length(width_m / 4)
-    if length_m > 0:
-        label = f"{length_m / 1000:g} km" if length_m >= 1000 else f"{length_m:g} m"
-        bar = AnchoredSizeBar(
-            ax.transData,
-            length_m / m_per_unit,
-            label,
-            "lower left",
-            pad=0.4,
-            sep=3,
-            borderpad=0.6,
-            frameon=True,
-            size_vertical=0,
-            fontproperties={"size": 8},
-        )
-        bar.patch.set_alpha(0.8)
-        ax.add_artist(bar)
-    ax.set_facecolor("white")
-    ax.add_patch(
-        Rectangle(
-            (min(x0, x1), min(y0, y1)),
-            abs(x1 - x0),
-            abs(y1 - y0),
-            fill=False,
-            hatch="////",
-            edgecolor="0.82",
-            linewidth=0,
-            zorder=0,
-        )
-    )  # no data
-    return extent
-
-
 # ----------------------------------------------------------------------------- figures
 
 
@@ -218,7 +147,7 @@ def hillshade_png(
     rgba[..., :3] *= (0.25 + 0.75 * np.where(fin, hs, 1.0))[..., None]
     rgba[..., 3] = fin  # no data: transparent
     fig, ax = plt.subplots(figsize=(6.5, 6))
-    extent = _map_axes(ax, transform, crs, z.shape)
+    extent = map_axes(ax, transform, crs, z.shape)
     # as bytes: what matplotlib turns float colours into after its nearest-cell resampling
     ax.imshow((rgba * 255).astype(np.uint8), extent=extent, interpolation="nearest")
     sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
@@ -258,7 +187,7 @@ def difference_map_png(
     cmap = diverging_cmap()
     kw = {}
     if t is not None:
-        kw["extent"] = _map_axes(ax, t, crs, a.shape)
+        kw["extent"] = map_axes(ax, t, crs, a.shape)
     else:
         ax.set_xlabel("column")
         ax.set_ylabel("row")

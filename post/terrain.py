@@ -16,20 +16,7 @@ from pyproj import CRS
 
 from stereodem.core import geodesy
 from stereodem.core.errors import CRSError
-
-
-def metres_per_degree(lat):
-    """Length in metres of one degree of longitude and of latitude at ``lat`` (degrees, WGS84).
-
-    Returns
-    -------
-    (m_per_deg_lon, m_per_deg_lat) : ndarray float64
-    """
-    phi = np.radians(np.asarray(lat, dtype=np.float64))
-    w = np.sqrt(1.0 - geodesy.E2 * np.sin(phi) ** 2)
-    n = geodesy.A / w  # prime vertical radius
-    m = geodesy.A * (1.0 - geodesy.E2) / w**3  # meridian radius
-    return n * np.cos(phi) * np.pi / 180.0, m * np.pi / 180.0
+from stereodem.core.geodesy import metres_per_degree
 
 
 def _is_geographic(crs) -> bool:
