@@ -24,8 +24,10 @@ import rasterio  # noqa: E402
 from affine import Affine  # noqa: E402
 from matplotlib.colors import BoundaryNorm, ListedColormap  # noqa: E402
 
+from stereodem.core.mapaxes import map_axes  # noqa: E402
+
 from . import figures  # noqa: E402
-from .figures import _map_axes, _prepare, _save  # noqa: E402
+from .figures import _prepare, _save  # noqa: E402
 
 #: the change command's figures
 CHANGE_FIGURES = {"dh_map": "dh_map.png", "dh_sigma_map": "dh_sigma_map.png"}
@@ -46,7 +48,7 @@ def magnitude_map_png(a, path, *, transform, crs, title, label, unit="m", overwr
     hi = hi if hi > 0 else 1.0
     beyond = 100 * float(np.mean(fin > hi)) if fin.size else 0.0
     fig, ax = plt.subplots(figsize=(6.5, 6))
-    extent = _map_axes(ax, t, crs, z.shape)
+    extent = map_axes(ax, t, crs, z.shape)
     cmap = plt.get_cmap("viridis").with_extremes(bad=(0, 0, 0, 0))
     im = ax.imshow(
         np.ma.masked_invalid(z),
@@ -77,7 +79,7 @@ def count_map_png(count, path, *, transform, crs, title, label, none="none", ove
     cmap = cmap.with_extremes(bad=(0, 0, 0, 0))
     norm = BoundaryNorm(np.arange(0.5, top + 1.5), cmap.N)
     fig, ax = plt.subplots(figsize=(6.5, 6))
-    extent = _map_axes(ax, t, crs, z.shape)
+    extent = map_axes(ax, t, crs, z.shape)
     im = ax.imshow(
         np.ma.masked_invalid(z), cmap=cmap, norm=norm, interpolation="nearest", extent=extent
     )
