@@ -13,6 +13,8 @@ import rasterio.transform
 from affine import Affine
 from rasterio.crs import CRS as RioCRS
 from rasterio.errors import NotGeoreferencedWarning
+from rasterio.io import MemoryFile
+from rasterio.vrt import WarpedVRT
 from rasterio.warp import Resampling, reproject, transform_bounds
 
 from stereodem.core import geodesy
@@ -21,6 +23,16 @@ from stereodem.core.grid import as_crs
 
 #: the resampling methods of :func:`to_grid`, by name
 RESAMPLING_METHODS = ("nearest", "bilinear", "cubic", "cubic_spline")
+
+#: largest error (source pixels) of GDAL's approximate transformer in a warp between two CRSs
+#: (:func:`to_grid`, the mosaic's reads). ``rasterio.warp.reproject`` always interpolates the
+#: coordinate transformation linearly along each destination row with GDAL's default of
+#: 0.125 px, and that error has one sign along a row (a parabola between the exactly
+#: transformed points): the warped grid is displaced by a few hundredths of a pixel on average,
+#: which co-registration measures as a shift (2.4 m of 60 m cells between UTM 33N and EPSG:3413
+#: at 78 N, 1.6 m from lon/lat to UTM). 0.001 px costs about the same time (a few more exact
+#: points per row); ``tolerance=0`` is refused by rasterio's WarpedVRT.
+TRANSFORM_TOLERANCE_PX = 1e-3
 
 
 def _is_geographic(crs) -> bool:
@@ -93,16 +105,78 @@ def to_grid(
         resampling=_RESAMPLING[resampling],
         num_threads=max(1, int(threads or 1)),
     )
-    reproject(src, dst, src_transform=src_transform, **kw)
+    _reproject(src, dst, src_transform, **kw)
     for turn in _overflow_turns(
         src_transform, src_crs, src.shape, dst_transform, dst_crs, dst_shape
     ):
         # the part of ``src`` beyond 180 (or -180) of a global grid: on its other edge
         more = np.full(dst_shape, fill, dtype=dst_dtype)
-        reproject(src, more, src_transform=Affine.translation(turn, 0.0) @ src_transform, **kw)
+        _reproject(src, more, Affine.translation(turn, 0.0) @ src_transform, **kw)
         empty = np.isnan(dst) if np.isnan(fill) else dst == fill
         dst[empty] = more[empty]
     return dst
+
+
+def same_horizontal_crs(a, b) -> bool:
+    """Whether two CRSs have the same horizontal part (a vertical part aside): a warp between
+    grids of the two is an affine map of pixel coordinates."""
+    a, b = as_crs(a), as_crs(b)
+    a = a.sub_crs_list[0] if a.is_compound else a
+    b = b.sub_crs_list[0] if b.is_compound else b
+    return a == b
+
+
+def _reproject(src, dst, src_transform, *, src_crs, dst_crs, src_nodata, dst_nodata, **kw):
+    """``rasterio.warp.reproject`` of the array ``src`` into ``dst`` (filled in place), with
+    the coordinate transformation within :data:`TRANSFORM_TOLERANCE_PX` of exact.
+
+    Between grids of one CRS the map from destination to source pixels is affine, which GDAL's
+    approximate transformer (linear along rows, 0.125 px allowed; ``reproject`` has no way to
+    ask for less) reproduces exactly: ``reproject`` itself. Between two CRSs the source goes
+    into an in-memory GeoTIFF read through a ``WarpedVRT`` of that tolerance (the same warper,
+    kernels, no-data handling and threads)."""
+    if same_horizontal_crs(src_crs, dst_crs):
+        reproject(
+            src,
+            dst,
+            src_transform=src_transform,
+            src_crs=src_crs,
+            dst_crs=dst_crs,
+            src_nodata=src_nodata,
+            dst_nodata=dst_nodata,
+            **kw,
+        )
+        return
+    bands = src[None] if src.ndim == 2 else src
+    with MemoryFile() as mem:
+        with mem.open(
+            driver="GTiff",
+            width=bands.shape[2],
+            height=bands.shape[1],
+            count=bands.shape[0],
+            dtype=bands.dtype,
+            crs=src_crs,
+            transform=src_transform,
+            nodata=src_nodata,
+        ) as ds:
+            ds.write(bands)
+        with (
+            mem.open() as ds,
+            WarpedVRT(
+                ds,
+                crs=dst_crs,
+                transform=kw["dst_transform"],
+                width=dst.shape[-1],
+                height=dst.shape[-2],
+                nodata=dst_nodata,
+                dtype=dst.dtype.name,
+                resampling=kw["resampling"],
+                tolerance=TRANSFORM_TOLERANCE_PX,
+                warp_extras={"NUM_THREADS": kw["num_threads"]},
+            ) as vrt,
+        ):
+            out = vrt.read()
+    dst[...] = out[0] if dst.ndim == 2 else out
 
 
 #: columns a global lon/lat grid is extended by on either side, from its other edge, before

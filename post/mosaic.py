@@ -79,7 +79,7 @@ from .mosaic_sources import (
     select_sources,
 )
 from .shift_units import shift_phrase, shift_units
-from .warp import translated
+from .warp import TRANSFORM_TOLERANCE_PX, translated
 
 log = logging.getLogger(__name__)
 
@@ -464,6 +464,7 @@ def read_on_grid(
                         nodata=np.nan,
                         dtype="float32",
                         resampling=resampling,
+                        tolerance=TRANSFORM_TOLERANCE_PX,  # GDAL's 0.125 px: a shift
                     ) as vrt:
                         return vrt.read(band, window=Window(c0, r0, cols, rows), masked=True)
 

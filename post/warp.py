@@ -12,6 +12,7 @@ from pyproj import CRS, Proj
 
 from stereodem.core.warp import (  # noqa: F401 - re-exported: post's one place to warp
     RESAMPLING_METHODS,
+    TRANSFORM_TOLERANCE_PX,
     WRAP_CELLS,
     _turn,
     beside,
