@@ -322,10 +322,13 @@ def test_ortho_and_uncertainty_report_the_same_dem_gap(tmp_path, caplog):
     DEM(h, dem.transform, dem.crs, "ellipsoid").write(tmp_path / "gappy.tif")
     img, gappy = str(tmp_path / "img.tif"), str(tmp_path / "gappy.tif")
     figures = {}
-    for cmd, extra in (("ortho", []), ("uncertainty", ["--sigma", "dem_height=4"])):
+    for cmd, extra, out in (
+        ("ortho", [], "ortho.tif"),
+        ("uncertainty", ["--sigma", "dem_height=4"], "uncertainty"),
+    ):
         caplog.clear()
         with caplog.at_level("WARNING"):
-            assert main([cmd, img, "--dem", gappy, *extra, "-o", str(tmp_path / cmd)]) == 0
+            assert main([cmd, img, "--dem", gappy, *extra, "-o", str(tmp_path / out)]) == 0
         (msg,) = [r.getMessage() for r in caplog.records if "no DEM height" in r.getMessage()]
         m = re.search(r"no DEM height under ([\d.]+)% of the image", msg)
         assert m and "gappy.tif" in msg, msg
