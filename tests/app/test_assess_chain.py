@@ -131,6 +131,7 @@ def test_assess_chain_reports_every_step_and_one_after(files, capsys):
     assert any(ln.startswith("  deramp:1: ") and "m/m" in ln for ln in lines)
 
 
+@pytest.mark.slow
 def test_assess_coregister_fits_on_the_stable_terrain_outside_exclude(tmp_path, capsys):
     """``assess --coregister --exclude glacier.geojson``: the polygons were left out of the
     stable terrain only with an error-analysis option; alone, --exclude was ignored and Nuth &

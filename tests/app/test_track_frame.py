@@ -59,6 +59,7 @@ def _model_rows_cols(sim, dem: DEM, heights):
     return x, y, np.asarray(row), np.asarray(col)
 
 
+@pytest.mark.slow
 def test_dem_writes_the_sensor_model_track_frame(sim, dem_dir):
     with rasterio.open(dem_dir / "dem.tif") as ds:
         tags = ds.tags()

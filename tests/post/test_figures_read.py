@@ -101,6 +101,7 @@ def _plots(ranges=(40.0, 20000.0)):
     return {"hs": hs, "emp": emp, "model": model, "chain": None, "name": "aster_2004.tif"}
 
 
+@pytest.mark.slow
 def test_error_analysis_axes_start_at_zero_and_say_extrapolated_ranges(tmp_path, captured):
     error_analysis.write_figures(_plots(), tmp_path)
     terrain_fig, vario_fig = captured
@@ -145,6 +146,7 @@ def test_compare_legend_beside_the_axes_and_one_style_per_model(tmp_path, captur
     assert len(styles) == 27
 
 
+@pytest.mark.slow
 def test_report_figures_name_the_files_and_say_before_coregistration(
     small_pair, tmp_path, captured
 ):

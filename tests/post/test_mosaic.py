@@ -278,6 +278,7 @@ def test_dems_in_another_crs_are_reprojected(tmp_path):
     assert np.isfinite(z[5:-5, 120:150]).mean() > 0.95
 
 
+@pytest.mark.slow
 def test_vertical_references_reconciled_or_refused(tmp_path, capsys):
     a = write_dem(tmp_path / "geoid.tif", 0, 0, 60, 80, vertical="geoid")
     # the same heights above the ellipsoid: H + N
@@ -347,6 +348,7 @@ def test_vertical_references_reconciled_or_refused(tmp_path, capsys):
         plan_mosaic([tmp_path / "unknown.tif"], vertical="ellipsoid")
 
 
+@pytest.mark.slow
 def test_dems_outside_the_extent_are_named_and_skipped(tmp_path, capsys):
     a = write_dem(tmp_path / "a.tif", 0, 0, 50, 50)
     b = write_dem(tmp_path / "b.tif", 0, 40, 50, 50)
@@ -500,6 +502,7 @@ def test_bad_inputs_are_one_line_errors_and_write_nothing(tmp_path, capsys):
     assert not list(tmp_path.glob(".*part")) and not list(tmp_path.glob(".*blocks.tif"))
 
 
+@pytest.mark.slow
 def test_coregistration_to_a_reference_first(tmp_path):
     ref = write_dem(tmp_path / "ref.tif", 0, 0, 160, 160)
     # a DEM displaced 45 m east and 30 m north, 4 m high: its features sit east/north of the truth's
@@ -530,6 +533,7 @@ def test_coregistration_to_a_reference_first(tmp_path):
     assert main(args[1:] + ["--coreg-chain", "bias+tilt", "--overwrite"]) == 1
 
 
+@pytest.mark.slow
 def test_coregistration_log_line_says_grid_metres(tmp_path, caplog):
     """The INFO line of a co-registered DEM words the shift as the reports do (one rule,
     post.shift_units.shift_phrase/shift_units): along the grid's x/y axes, grid metres on a
@@ -554,6 +558,7 @@ def test_coregistration_log_line_says_grid_metres(tmp_path, caplog):
     assert "dx, dy are grid metres" in lines[0] and f"scale factor k = {k:.6g}" in lines[0]
 
 
+@pytest.mark.slow
 def test_coregistration_chain_of_the_coreg_module(tmp_path, capsys):
     """--coreg-chain goes through stereodem.post.coreg.parse_chain: shift + offset steps are
     applied (nuth_kaab then vshift, summed), a surface step is refused in one line."""
@@ -715,6 +720,7 @@ def test_a_failure_half_way_leaves_nothing(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d0.tif", "d1.tif", "d2.tif"]
 
 
+@pytest.mark.slow
 def test_scaled_and_feet_dems_are_mosaicked_in_metres(tmp_path):
     """The mosaic read each DEM's stored values as they were: an int16 DEM stored as
     decimetres (GDAL scale 0.1) came out ten times too high (11 473 m for 1147 m of terrain)
@@ -788,6 +794,7 @@ def test_undeclared_nodata_and_implausible_heights_are_no_data_once_warned(tmp_p
     assert "a.tif: 17 cell(s)" in caplog.text
 
 
+@pytest.mark.slow
 def test_dems_either_side_of_the_antimeridian_are_mosaicked_side_by_side(tmp_path):
     """Geographic tiles at 179.9..180 E and -180..-179.9 E made a mosaic 360 degrees wide
     (36 000 x 10 cells, 0.1 % valid), and a projected DEM crossing 180 (its footprint from
@@ -861,6 +868,7 @@ def test_a_reference_across_the_antimeridian_is_cropped_for_coregister(tmp_path)
     assert ref.transform.c == pytest.approx(179.99, abs=0.002) and ref.shape[1] < 30
 
 
+@pytest.mark.slow
 def test_result_line_gives_the_posting_with_its_unit(tmp_path, capsys):
     """`stereodem mosaic` (and dem, uncertainty) say "cells at 30 m", not "cells at 30":
     a bare number did not say metres or degrees (a lon/lat grid's 0.000833)."""

@@ -71,6 +71,7 @@ def test_change_maps_dh_diverging_at_zero_and_sigma_from_zero(tmp_path, captured
     assert "98th percentile" in ax.get_title() and "(m)" in cbar.get_ylabel()
 
 
+@pytest.mark.slow
 def test_stack_maps_rate_in_m_per_year_and_the_dates_per_cell(tmp_path, captured):
     n_obs = np.full((60, 70), 4, np.int16)
     n_obs[:, :7] = 3  # 10 %
@@ -113,6 +114,7 @@ def _dems(tmp_path):
     return [str(tmp_path / "a.tif"), str(tmp_path / "b.tif")]
 
 
+@pytest.mark.slow
 def test_mosaic_writes_its_hillshade_and_count_beside_it(tmp_path, captured):
     out, dems = tmp_path / "m.tif", _dems(tmp_path)
     assert main(["-q", "mosaic", *dems, "-o", str(out), "--workers", "1"]) == 0

@@ -332,6 +332,7 @@ def test_stack_command_recovers_the_rate_and_masks_the_cloud(series, tmp_path, c
     assert xr.open_zarr(out / "stack.zarr").sizes["time"] == 2
 
 
+@pytest.mark.slow
 def test_change_command_gives_dh_and_sigma(series, tmp_path, capsys):
     out = tmp_path / "chg"
     a, b = series["paths"][0], series["paths"][3]
@@ -360,6 +361,7 @@ def _without_seconds(x):
     return x
 
 
+@pytest.mark.slow
 def test_change_command_is_the_same_on_any_number_of_workers(series, tmp_path, capsys, monkeypatch):
     """--workers 1 and 2 write the same dh, σ map and report, to the bit: the warp, the
     curvature's row bands and the σ map's bins and cells on threads (issue 28). Small pieces
@@ -630,6 +632,7 @@ def _stack_argv(paths, ref, out, *more):
     ]
 
 
+@pytest.mark.slow
 def test_a_failed_stack_is_run_again_without_overwrite(series, tmp_path, capsys, monkeypatch):
     """A stack that failed on an unreadable DEM left stack.json and stack.zarr, and the same
     command, once the DEM was mended, was refused without --overwrite. Its stack.json says
@@ -672,6 +675,7 @@ def test_a_failed_stack_is_run_again_without_overwrite(series, tmp_path, capsys,
     assert rc == 1 and "--overwrite" in se, se
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", ["interrupted", "killed"])
 def test_an_interrupted_or_killed_stack_is_run_again_without_overwrite(
     series, tmp_path, capsys, monkeypatch, how
@@ -705,6 +709,7 @@ def test_an_interrupted_or_killed_stack_is_run_again_without_overwrite(
     assert json.loads((out / "stack.json").read_text())["status"] == "ok"
 
 
+@pytest.mark.slow
 def test_a_failed_stack_beside_the_users_files_still_needs_overwrite(series, tmp_path, capsys):
     """Only the unfinished job's own files are replaced without --overwrite: a stack.json of
     the user's (not written by stereodem) saying failed with the same inputs, or a file of
