@@ -9,10 +9,10 @@ the job's work; they still slow it, so run it on a quiet machine. The stage wind
 the background writer's work overlaps the later stages and counts in them).
 
     python benchmarks/cpu_timeline.py /tmp/bench_scaling/w2.toml [--every 0.1] [--busy 1.5]
-        [--json out.json]
+        [--json benchmarks/results/cpu_timeline.json]
 
-(the configuration ``bench_scaling.py`` writes for 2 workers). A diagnostic: it prints a table
-and, with ``--json``, writes the samples.
+(the configuration ``bench_scaling.py`` writes for 2 workers). Prints a table and writes it
+with the samples (``--json``; its line under the README's *Measured figures*).
 """
 
 from __future__ import annotations
@@ -61,7 +61,11 @@ def main(argv=None):
     ap.add_argument("config", help="a stereodem run configuration (TOML)")
     ap.add_argument("--every", type=float, default=0.1, help="sampling period (s)")
     ap.add_argument("--busy", type=float, default=1.5, help="cores below which a sample is serial")
-    ap.add_argument("--json", help="write the samples and the table here")
+    ap.add_argument(
+        "--json",
+        default=str(Path(__file__).resolve().parent / "results" / "cpu_timeline.json"),
+        help="write the samples and the table here (default results/cpu_timeline.json)",
+    )
     args = ap.parse_args(argv)
     import psutil
 
@@ -115,6 +119,7 @@ def main(argv=None):
             json.dumps(
                 dict(
                     config=args.config,
+                    cpus=os.cpu_count(),
                     wall_s=end,
                     every_s=args.every,
                     busy_threshold=args.busy,

@@ -725,6 +725,22 @@ def tile(d):
     )
 
 
+def cpu_timeline(d):
+    parts = "; ".join(
+        f"{r['stage']} {r['wall_s']:.1f} s ({r['mean_busy_cores']} cores busy, "
+        f"{r['serial_s']:.1f} s below {d['busy_threshold']})"
+        for r in d["stages"]
+        if r["mean_busy_cores"] is not None
+    )
+    serial = sum(r["serial_s"] for r in d["stages"])
+    return (
+        f"Where `stereodem run` leaves cores idle (`benchmarks/cpu_timeline.py`, the full "
+        f"granule at 2 workers, {d['cpus']} cores, the job's own processes sampled every "
+        f"{d['every_s']} s, load {d['load_average'][0]:.1f}): {d['wall_s']:.1f} s in all, "
+        f"{serial:.1f} s of it with fewer than {d['busy_threshold']} cores busy; {parts}."
+    )
+
+
 SUMMARISERS = {
     "bench_demo": demo,
     "bench_rpc": rpc,
@@ -744,6 +760,7 @@ SUMMARISERS = {
     "bench_scaling_full": scaling,
     "bench_scaling_full_forkserver": scaling,
     "bench_scaling_16_on_2": scaling_16_on_2,
+    "cpu_timeline": cpu_timeline,
     "bench_scaling_16_on_2_uncapped": lambda d: (
         "Before the main process's threads were "
         "capped at the cores (the code of c05bdea): " + scaling(d)
@@ -877,6 +894,11 @@ BENCHMARKS = {
         "python benchmarks/bench_scaling.py --workers 2 16 --repeat 2 --results "
         "benchmarks/results/bench_scaling_16_on_2.json",
         "the same job with 2 workers, same run",
+    ),
+    "cpu_timeline": (
+        "busy cores over a 2-worker run, per stage (issue 28: the serial parts)",
+        "python benchmarks/cpu_timeline.py /tmp/bench_scaling/w2.toml",
+        "— (a diagnostic)",
     ),
     "bench_scaling_16_on_2_uncapped": (
         "16 workers on 2 cores before the main-process thread cap (issue 28)",
