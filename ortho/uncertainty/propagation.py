@@ -255,17 +255,32 @@ def dem_gradient_arrays(dem):
 
 
 def axis_gradient(z, axis: int):
-    """Gradient of ``z`` along ``axis`` per post (see :func:`dem_gradient_arrays`)."""
+    """Gradient of ``z`` along ``axis`` per post (see :func:`dem_gradient_arrays`): central
+    differences ``(d[i] + d[i - 1]) / 2`` of the steps ``d[i] = z[i + 1] - z[i]``, one-sided at
+    the grid's ends, and at the posts beside a void (whose central difference is NaN: a few
+    rims, mended by index) the finite step, else 0; NaN on the voids. A few full-size passes,
+    float64."""
     z = np.moveaxis(np.asarray(z, np.float64), axis, 0)
     n = z.shape[0]
-    fwd = np.full(z.shape, np.nan)  # z[i+1] - z[i]
-    bwd = np.full(z.shape, np.nan)  # z[i] - z[i-1]
+    g = np.zeros(z.shape)
     if n > 1:
-        d = z[1:] - z[:-1]
-        fwd[:-1], bwd[1:] = d, d
-    f_ok, b_ok = np.isfinite(fwd), np.isfinite(bwd)
-    g = np.where(f_ok & b_ok, 0.5 * (fwd + bwd), np.where(f_ok, fwd, np.where(b_ok, bwd, 0.0)))
-    g[~np.isfinite(z)] = np.nan
+        d = z[1:] - z[:-1]  # d[i] = z[i+1] - z[i]
+        np.add(d[1:], d[:-1], out=g[1:-1])
+        g[1:-1] *= 0.5
+        g[0], g[-1] = d[0], d[-1]
+        finite = np.isfinite(z)
+        rim = np.flatnonzero(np.isnan(g) & finite)  # a neighbour is a void (or off the grid)
+        if rim.size:
+            i, rest = np.divmod(rim, int(np.prod(z.shape[1:], dtype=np.int64)))
+            flat = d.reshape(n - 1, -1)
+            fwd = np.where(i < n - 1, flat[np.minimum(i, n - 2), rest], np.nan)
+            bwd = np.where(i > 0, flat[np.maximum(i - 1, 0), rest], np.nan)
+            g.reshape(n, -1)[i, rest] = np.where(
+                np.isfinite(fwd), fwd, np.where(np.isfinite(bwd), bwd, 0.0)
+            )
+        g[~finite] = np.nan
+    elif n == 1:
+        g[~np.isfinite(z)] = np.nan
     return np.moveaxis(g, 0, axis)
 
 
