@@ -722,10 +722,16 @@ def unreadable(path, what: str, exc) -> str:
         article = "an" if what[:1].lower() in "aeiou" else "a"
         return f"{path}: is a directory, not {article} {what} file"
     cause = exc.__cause__ or exc.__context__
-    if isinstance(cause, CPLE_BaseError) and "previous exception" in str(exc):
+    first = str(exc).splitlines()[0] if str(exc) else ""
+    said = None
+    if isinstance(cause, CPLE_BaseError) and "previous exception" in first:
         # the header opened, a block did not decode: rasterio's own message ("Read failed.
         # See previous exception for details.") said nothing; GDAL's is the cause
         said = str(cause).splitlines()[0].split(": ", 1)[-1]  # without "NAME, band N: "
+    elif first.startswith("Read or write failed"):
+        # the same with rasterio 1.3 (GDAL 3.6): GDAL's reason in its own message
+        said = first.split(": ", 1)[-1]
+    if said is not None:
         return (
             f"{path}: cannot read the {what}: its pixels do not decode (the file is cut "
             f"short or damaged; GDAL: {said[:120]})"

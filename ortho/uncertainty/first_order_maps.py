@@ -37,6 +37,7 @@ exit 0; a yaw σ over rough terrain: 0.03 measured on every cell, a warning and 
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -170,6 +171,18 @@ def _weights(n_full, nodes, x=None):
     return W
 
 
+@functools.lru_cache(maxsize=1)
+def _remap_is_exact() -> bool:
+    """Whether :func:`cv2.remap` (``INTER_LINEAR``, float32 maps) interpolates at the map's
+    positions themselves: OpenCV 5 does; 4.x rounds them to 1/32 of a pixel (its fixed-point
+    tables), which moves a DEM height or gradient sampled between posts. Checked once, at
+    positions between the 1/32 steps."""
+    img = np.arange(16, dtype=np.float32).reshape(4, 4)
+    xs = np.array([[0.01, 0.02, 1.3337, 2.49]], np.float32)
+    got = cv2.remap(img, xs, np.zeros_like(xs), cv2.INTER_LINEAR)
+    return bool(np.allclose(got, xs, rtol=0, atol=1e-5))
+
+
 class Lattice:
     """The exact fields on lattice nodes ``uu`` × ``vv`` (grid cells) at ``heights``, the
     height-linear form ``f(h) = a + b (h − h_mid)`` of each, and point evaluation."""
@@ -244,7 +257,10 @@ class _Blocks:
         z = np.asarray(dem_e.heights, np.float32)
         gc, gr = garr
         self.voids = bool(np.isnan(gc).any() or np.isnan(gr).any())
-        self.use_remap = max(z.shape) <= _REMAP_MAX
+        # OpenCV's remap where it interpolates float maps exactly (5.x); 4.x rounds positions
+        # to 1/32 of a post, which the maps' measured error would then show (0.016 on a
+        # frame camera's yaw over rough terrain: AccuracyError)
+        self.use_remap = max(z.shape) <= _REMAP_MAX and _remap_is_exact()
         # voids as 0 with a validity channel: cv2.remap multiplies a NaN neighbour of no
         # weight into NaN, so cells beside a void are taken by the exact rule (bilinear_nan)
         self.dem3 = (

@@ -89,10 +89,11 @@ def test_nuth_kaab_against_a_reference_on_a_turned_grid_finds_the_true_shift(shi
     """The same surface on UTM 33N and on EPSG:3413 (grids turned by 60 degrees at 78 N): the
     reference's warp onto the DEM grid interpolated the transformation between the CRSs along
     rows (rasterio's 0.125 px), a displacement of one sign fitted as a 2.4 m shift (xdem, which
-    warps with the same call, finds as much); now within 5 cm."""
+    warps with the same call, finds as much); now within 5 cm with GDAL 3.10 (0.053 m left
+    with the GDAL 3.6 of the lowest rasterio this package supports: within 0.1 m)."""
     nk = NuthKaab().fit(_hills_on(3413), _hills_on(32633, shift))
-    assert nk.dx == pytest.approx(shift[0], abs=0.05)  # was +0.0 / +30.0
-    assert nk.dy == pytest.approx(shift[1], abs=0.05)  # was +2.4 / -17.7
+    assert nk.dx == pytest.approx(shift[0], abs=0.1)  # was +0.0 / +30.0
+    assert nk.dy == pytest.approx(shift[1], abs=0.1)  # was +2.4 / -17.7
 
 
 def test_vshift_and_deramp_recover_offset_and_ramp(truth):
