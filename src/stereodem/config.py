@@ -270,6 +270,10 @@ class AssessSettings:
         Elevation band edges, metres (default: five bands over the DEM's range).
     landcover_names : dict, optional
         Names of the land-cover classes, e.g. {"1" = "forest"}.
+    exclude : list of str, optional
+        Vector files (any format pyogrio reads, any CRS) whose polygons are left out of the
+        stable terrain the co-registration is fitted on (glaciers, landslides, lakes); as
+        ``stereodem assess --exclude``.
     """
 
     enabled: bool = True
@@ -277,6 +281,7 @@ class AssessSettings:
     slope_bins: tuple | None = None
     elevation_bins: tuple | None = None
     landcover_names: dict | None = None
+    exclude: list | None = None
 
 
 @dataclass
@@ -417,7 +422,11 @@ SECTIONS = {
     "fusion": FusionSettings,
 }
 _STEREO = ("rectification", "matching", "refinement", "gridding")
-_SECTION_PATHS = {"uncertainty": ("covariance",), "ortho": ("fill_dem",)}
+_SECTION_PATHS = {
+    "uncertainty": ("covariance",),
+    "ortho": ("fill_dem",),
+    "assess": ("exclude",),
+}
 _PATH_KEYS = (
     "left",
     "right",
@@ -483,6 +492,10 @@ def _check_value(value, annotation: str, where: str):
         if not all(abs(v) < float("inf") for v in value):  # nan, inf: a traceback later
             raise InputError(f"{where}: expected a list of finite numbers, got {value!r}")
         return tuple(float(v) if isinstance(v, float) else v for v in value)
+    if base == "list":  # of paths
+        if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+            raise InputError(f"{where}: expected a list of paths, got {value!r}")
+        return list(value)
     if base == "dict":
         if not isinstance(value, dict):
             raise InputError(f"{where}: expected a table, got {value!r}")
@@ -642,6 +655,8 @@ def config_from_dict(
             v = tables[name].get(key)
             if isinstance(v, str) and v:
                 tables[name][key] = _path(v, base)
+            elif isinstance(v, list):  # a list of paths ([assess] exclude)
+                tables[name][key] = [_path(x, base) if isinstance(x, str) and x else x for x in v]
     parts = {
         name: build_settings(cls, tables[name], name, source) for name, cls in SECTIONS.items()
     }
@@ -770,6 +785,11 @@ def validate(cfg: Config, source="configuration"):
         v = getattr(cfg.assess, key)
         if v is not None and (len(v) < 2 or any(b >= c for b, c in zip(v, v[1:]))):
             bad(f"[assess] {key} must be at least two increasing edges, got {list(v)}")
+    if cfg.assess.exclude and not cfg.assess.coregister:
+        bad(
+            "[assess] exclude leaves polygons out of the stable terrain the co-registration is "
+            "fitted on: it needs coregister = true"
+        )
     if cfg.ortho.fill_dem_vertical is not None:
         choice("ortho", "fill_dem_vertical", cfg.ortho.fill_dem_vertical, VERTICALS)
     if cfg.ortho.res is not None and not cfg.ortho.res > 0:

@@ -13,6 +13,7 @@ import pytest
 
 from stereodem.cli import main
 from stereodem.core.dem import DEM
+from stereodem.core.errors import InputError
 from stereodem.post.assess import assess_dem
 from stereodem.post.coreg import parameter_notes, parameter_text, parse_chain
 from stereodem.post.synthetic import InjectedErrors, inject_errors
@@ -131,12 +132,9 @@ def test_assess_chain_reports_every_step_and_one_after(files, capsys):
     assert any(ln.startswith("  deramp:1: ") and "m/m" in ln for ln in lines)
 
 
-@pytest.mark.slow
-def test_assess_coregister_fits_on_the_stable_terrain_outside_exclude(tmp_path, capsys):
-    """``assess --coregister --exclude glacier.geojson``: the polygons were left out of the
-    stable terrain only with an error-analysis option; alone, --exclude was ignored and Nuth &
-    Kääb fitted the glacier's thinning too. Now the fit leaves them out (no analysis section
-    is added), and --exclude with nothing that uses the stable terrain is refused."""
+def _glacier_scene(tmp_path):
+    """``dem.tif`` (the reference raised 3 m, a quarter of it thinned by 40 m), ``ref.tif`` and
+    ``glacier.geojson`` outlining the thinned quarter."""
     full = DEM.bundled()
     ref = DEM(full.heights[:120, :120].copy(), full.transform, full.crs, "geoid")
     dem, _ = inject_errors(ref, InjectedErrors(dz=3.0, seed=2))
@@ -148,22 +146,23 @@ def test_assess_coregister_fits_on_the_stable_terrain_outside_exclude(tmp_path, 
     east, south = ref.transform @ (60, 60)
     ring = [[west, north], [east, north], [east, south], [west, south], [west, north]]
     glacier = tmp_path / "glacier.geojson"
-    glacier.write_text(
-        json.dumps(
-            {
-                "type": "FeatureCollection",
-                "features": [
-                    {
-                        "type": "Feature",
-                        "properties": {"name": "glacier"},
-                        "geometry": {"type": "Polygon", "coordinates": [ring]},
-                    }
-                ],
-            }
-        )
-    )
-    base = ["assess", str(tmp_path / "dem.tif"), "--ref", str(tmp_path / "ref.tif")]
-    base += ["--workers", "1"]
+    feature = {
+        "type": "Feature",
+        "properties": {"name": "glacier"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+    glacier.write_text(json.dumps({"type": "FeatureCollection", "features": [feature]}))
+    return tmp_path / "dem.tif", tmp_path / "ref.tif", glacier
+
+
+@pytest.mark.slow
+def test_assess_coregister_fits_on_the_stable_terrain_outside_exclude(tmp_path, capsys):
+    """``assess --coregister --exclude glacier.geojson``: the polygons were left out of the
+    stable terrain only with an error-analysis option; alone, --exclude was ignored and Nuth &
+    Kääb fitted the glacier's thinning too. Now the fit leaves them out (no analysis section
+    is added), and --exclude with nothing that uses the stable terrain is refused."""
+    dem, ref, glacier = _glacier_scene(tmp_path)
+    base = ["assess", str(dem), "--ref", str(ref), "--workers", "1"]
 
     def dz(out, *more):
         assert main([*base, "--coregister", *more, "-o", str(out)]) == 0
@@ -179,3 +178,35 @@ def test_assess_coregister_fits_on_the_stable_terrain_outside_exclude(tmp_path, 
     err = capsys.readouterr().err
     assert "--exclude leaves polygons out of the stable terrain" in err
     assert not (tmp_path / "no").exists()
+
+
+@pytest.mark.slow
+def test_run_configuration_excludes_polygons_from_the_assessments_coregistration(tmp_path):
+    """``[assess] exclude`` (a job's configuration): the assessment's Nuth & Kääb is fitted
+    outside the polygons, as ``assess --exclude``; paths relative to the configuration; without
+    ``coregister`` it is refused, and a missing file fails the job's input checks."""
+    from stereodem.config import config_from_dict
+    from stereodem.pipeline.assessment import assess_stage
+    from stereodem.pipeline.inputs import check_inputs
+
+    dem, ref, glacier = _glacier_scene(tmp_path)
+
+    def cfg(**assess):
+        raw = {
+            "inputs": {"left": "l.tif", "right": "r.tif", "reference_dem": "ref.tif"},
+            "output": {"dir": "out"},
+            "assess": assess,
+            "run": {"workers": 1},
+        }
+        return config_from_dict(raw, base=tmp_path, source="job.toml")
+
+    c = cfg(exclude=["glacier.geojson"])
+    assert c.assess.exclude == [str(glacier)]
+    result, _ = assess_stage(c, str(dem), tmp_path / "rep")
+    step = result.report["coregistration"]["steps"][0]
+    assert abs(step["parameters"]["dz"]["value"] - 3.0) < 0.2
+    assert "error_analysis" not in result.report
+    with pytest.raises(InputError, match=r"\[assess\] exclude .* needs coregister = true"):
+        cfg(exclude=["glacier.geojson"], coregister=False)
+    with pytest.raises(InputError, match=r"missing.geojson: \[assess\] exclude: no such file"):
+        check_inputs(cfg(exclude=["missing.geojson"]))

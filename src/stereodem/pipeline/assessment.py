@@ -29,7 +29,8 @@ def assess_stage(
     ``error_analysis`` (:class:`stereodem.post.error_analysis.ErrorAnalysisJob`) adds the
     stable-terrain error analysis section and its figures to the report (``analysis=False``:
     the job only says the stable terrain, ``exclude``, and the track of the co-registration,
-    e.g. ``assess --coregister --exclude glaciers.gpkg``: no section). Its ``chain`` (else
+    e.g. ``assess --coregister --exclude glaciers.gpkg``, or ``[assess] exclude`` when no job
+    is given: no section). Its ``chain`` (else
     ``nuth_kaab`` when ``[assess] coregister``) is fitted once, on the job's stable terrain,
     and is the report's co-registration: the before/after tables are of the DEM after the
     whole chain, and the analysis is of that DEM."""
@@ -41,6 +42,10 @@ def assess_stage(
     dem = dem if isinstance(dem, DEM) else DEM.from_file(dem, vertical=i.dem_vertical)
     ref = DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
     kw = {} if a.slope_bins is None else dict(slope_bins=a.slope_bins)
+    if error_analysis is None and a.exclude:  # [assess] exclude: the stable terrain only
+        from stereodem.post.error_analysis import ErrorAnalysisJob
+
+        error_analysis, analysis = ErrorAnalysisJob(exclude=list(a.exclude)), False
     chain = None
     if error_analysis is not None:
         from stereodem.post import error_analysis as ea  # its variograms: only when asked

@@ -293,6 +293,9 @@ def check_inputs(cfg: Config):
         DEM.check_file(i.reference_dem, vertical=i.reference_vertical)
         if i.checkpoints:
             check_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
+        for path in cfg.assess.exclude or ():  # read when the co-registration is fitted
+            if not Path(path).is_file():
+                raise InputError(f"{path}: [assess] exclude: no such file")
 
 
 def input_paths(cfg: Config) -> list:
@@ -311,6 +314,7 @@ def input_paths(cfg: Config) -> list:
             i.checkpoints,
             i.landcover,
             i.dem,
+            *(cfg.assess.exclude or ()),
         )
         if p
     ]
