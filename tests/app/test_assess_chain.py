@@ -210,3 +210,6 @@ def test_run_configuration_excludes_polygons_from_the_assessments_coregistration
         cfg(exclude=["glacier.geojson"], coregister=False)
     with pytest.raises(InputError, match=r"missing.geojson: \[assess\] exclude: no such file"):
         check_inputs(cfg(exclude=["missing.geojson"]))
+    for bad in ("glacier.geojson", ["glacier.geojson", 5], [""], [float("nan")]):
+        with pytest.raises(InputError, match=r"job.toml: \[assess\] exclude: expected a list"):
+            cfg(exclude=bad)
