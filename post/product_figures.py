@@ -27,16 +27,8 @@ from matplotlib.colors import BoundaryNorm, ListedColormap  # noqa: E402
 from stereodem.core.mapaxes import map_axes  # noqa: E402
 
 from . import figures  # noqa: E402
+from .choices import CHANGE_FIGURES, STACK_FIGURES  # noqa: E402, F401 (the figures' names)
 from .figures import _prepare, _save  # noqa: E402
-
-#: the change command's figures
-CHANGE_FIGURES = {"dh_map": "dh_map.png", "dh_sigma_map": "dh_sigma_map.png"}
-#: the stack command's figures
-STACK_FIGURES = {
-    "rate_map": "rate_map.png",
-    "rate_sigma_map": "rate_sigma_map.png",
-    "n_obs_map": "n_obs_map.png",
-}
 
 
 def magnitude_map_png(a, path, *, transform, crs, title, label, unit="m", overwrite=False):

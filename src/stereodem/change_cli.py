@@ -10,6 +10,7 @@ import logging
 from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
+from stereodem.post.choices import CHANGE_FIGURES
 
 from . import options
 from .commands import help_line
@@ -17,7 +18,7 @@ from .outlock import Products
 
 #: what ``stereodem change`` writes into its output folder
 PRODUCTS = Products(
-    ("dh.tif", "dh_sigma.tif", "change.json", "dh_map.png", "dh_sigma_map.png"),
+    ("dh.tif", "dh_sigma.tif", "change.json", *CHANGE_FIGURES.values()),
     markers=("change.json",),
 )
 

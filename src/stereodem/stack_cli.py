@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from stereodem.core.vertical import VERTICALS
+from stereodem.post.choices import STACK_FIGURES
 
 from . import options
 from .commands import help_line
@@ -39,11 +40,8 @@ RATE_FILES = {
     "n_rejected": "n_rejected.tif",
 }
 #: what ``stereodem stack`` writes into its output folder
-#: its quick-look figures (:data:`stereodem.post.product_figures.STACK_FIGURES`)
-FIGURE_FILES = ("rate_map.png", "rate_sigma_map.png", "n_obs_map.png")
-
 PRODUCTS = Products(
-    ("stack.json", "stack.zarr", *RATE_FILES.values(), *FIGURE_FILES, "volumes.json"),
+    ("stack.json", "stack.zarr", *RATE_FILES.values(), *STACK_FIGURES.values(), "volumes.json"),
     markers=("stack.json",),
 )
 
