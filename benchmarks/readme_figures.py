@@ -611,8 +611,9 @@ def mosaic(d):
         f"Mosaic of {d['inputs']['n_dems']} simulated overlapping DEMs cut from the bundled "
         f"SRTM tile ({d['inputs']['res_m']:g} m, {b['cells'] / 1e6:.1f} M cells, biases, tilts, "
         f"noise, voids; `benchmarks/bench_mosaic.py`): `stereodem mosaic` (blend) peaks at "
-        f"**+{m['peak_above_baseline_mb']:.0f} MB** above the interpreter and libraries, under its "
-        "stated bound "
+        f"**+{m['peak_above_baseline_mb']:.0f} MB** above the interpreter and libraries, "
+        + ("under" if m["peak_above_baseline_mb"] <= m["bound_mb"] else "**over**")
+        + " its stated bound "
         f"of {m['bound_mb']:.0f} MB (half the area: +{m['half_area_peak_above_baseline_mb']:.0f} "
         f"MB); `rasterio.merge` +{m['rasterio_merge_peak_above_baseline_mb']:.0f} MB and a naive "
         f"full-array blend +{m['naive_blend_peak_above_baseline_mb']:.0f} MB (both hold "

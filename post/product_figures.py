@@ -163,11 +163,18 @@ def mosaic_figure_paths(out, method: str) -> dict:
     return {n: out.with_name(f"{out.stem}_{n}.png") for n in names}
 
 
+#: longest side (cells) of the mosaic's quick looks: about the figure's own pixels, so that
+#: drawing them (a float64 RGBA copy of the image inside matplotlib, the shaded relief's
+#: gradients) stays within the mosaic's memory bound (at DISPLAY_CELLS, 1400, the quick looks
+#: of bench_mosaic's 17 M-cell mosaic peaked at 208 MB above the libraries, its blend at 71)
+QUICKLOOK_CELLS = 700
+
+
 def _read_decimated(ds, band: int):
-    """Band ``band`` of an open raster at about :data:`~stereodem.post.figures.DISPLAY_CELLS`
-    on its longer side (the COG's overviews: the mosaic is never read whole), NaN for no
-    data, and the transform of what was read."""
-    k = figures._decimation((ds.height, ds.width))
+    """Band ``band`` of an open raster at about :data:`QUICKLOOK_CELLS` on its longer side
+    (the COG's overviews: the mosaic is never read whole), NaN for no data, and the transform
+    of what was read."""
+    k = max(1, int(np.ceil(max(ds.height, ds.width) / QUICKLOOK_CELLS)))
     shape = (max(1, ds.height // k), max(1, ds.width // k))
     a = ds.read(band, out_shape=shape, masked=True).astype(np.float64).filled(np.nan)
     t = ds.transform @ Affine.scale(ds.width / shape[1], ds.height / shape[0])
