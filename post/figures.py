@@ -55,26 +55,9 @@ def diverging_cmap():
 
 
 def _save(fig, path, overwrite):
-    """Write ``fig`` to ``path`` cropped as ``bbox_inches="tight"`` (:func:`_tight_bbox`)."""
-    return save_png(fig, path, dpi=DPI, overwrite=overwrite, bbox_inches=_tight_bbox(fig))
-
-
-def _tight_bbox(fig):
-    """The box (inches) that ``savefig(bbox_inches="tight")`` crops to, found without the
-    images: ``"tight"`` draws the whole figure once to measure it, resampling every image
-    for nothing (an image lies inside its axes, so it never widens the box). The PNG is
-    the same, pixel for pixel."""
-    images = [im for ax in fig.axes for im in ax.get_images() if im.get_visible()]
-    for im in images:
-        im.set_visible(False)
-    try:
-        fig.set_dpi(DPI)  # as savefig measures: text extents depend on the dpi
-        fig.draw_without_rendering()
-        box = fig.get_tightbbox(fig.canvas.get_renderer())
-    finally:
-        for im in images:
-            im.set_visible(True)
-    return box.padded(plt.rcParams["savefig.pad_inches"])
+    """Write ``fig`` to ``path`` cropped as ``bbox_inches="tight"``, in one draw
+    (:func:`stereodem.core.png.save_png`)."""
+    return save_png(fig, path, dpi=DPI, overwrite=overwrite, bbox_inches="tight")
 
 
 def _decimation(shape) -> int:
