@@ -324,8 +324,8 @@ def _load(cache_dir, tile, key=None):
     """A cached tile's result, or None (with the reason logged) when it is not this tile's
     intact result of this job."""
     path = cache_file(cache_dir, tile)
-    try:
-        with np.load(path, allow_pickle=False) as z:
+    try:  # the file opened here: np.load leaves its own open when the file is no zip
+        with open(path, "rb") as f, np.load(f, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except Exception as exc:  # BadZipFile, truncated, not an npz, ...
         log.warning("%s: unreadable cached tile (%s); recomputing it", path, type(exc).__name__)

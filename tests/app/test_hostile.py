@@ -514,6 +514,7 @@ def test_lock_is_exclusive_between_processes_and_released(tmp_path):
     finally:
         holder.kill()
         holder.wait()
+        holder.stdout.close()
     # the holder died without cleaning up (kill -9): the stale lock is recovered
     with OutputLock(folder) as lock:
         assert lock.path.exists()

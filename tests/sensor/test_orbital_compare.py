@@ -81,7 +81,8 @@ def test_compare_models_table_json_figure(image, tmp_path, capsys):
 
 
 def test_compare_models_refuses_icps_outside_image(image, tmp_path, capsys):
-    rows = list(csv.DictReader(open(image / "points.csv")))
+    with open(image / "points.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
     for r in rows:
         if r["role"] == "check":
             r["col"] = "99999"
