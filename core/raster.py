@@ -777,6 +777,23 @@ def image_shape(path, band: int = 1) -> tuple[int, int]:
         raise InputError(unreadable(path, "image", exc)) from None
 
 
+def check_image(path, band: int = 1) -> tuple[int, int]:
+    """The checks of :func:`read_image` that need no full read, for the commands that use an
+    image's sensor model without its pixels: the file opens as a raster with the band and its
+    first and last blocks decode (:func:`probe_blocks`). A zero-byte file, a text file named
+    ``.tif`` or a GeoTIFF cut short is the :class:`InputError` :func:`read_image` gives
+    (worded by :func:`unreadable`). Returns ``(width, height)``."""
+    as_path(path, "image")
+    try:
+        with reading_env(), rasterio.open(path) as ds:
+            if not 1 <= int(band) <= ds.count:
+                raise InputError(f"{path}: no band {band} (the image has {ds.count})")
+            probe_blocks(ds, int(band))
+            return int(ds.width), int(ds.height)
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(unreadable(path, "image", exc)) from None
+
+
 def image_dtype(path, band: int = 1) -> np.dtype:
     """The stored data type of one band of an image (products keep it, e.g. orthoimages)."""
     try:

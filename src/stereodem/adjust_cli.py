@@ -186,7 +186,7 @@ def run(args) -> int:
     from stereodem.sensor.io.sidecar import save_model
     from stereodem.sensor.models.generic import MODEL_NAMES
 
-    from .pipeline.inputs import image_model
+    from .pipeline.inputs import check_image, image_model
 
     options.check_common(args)
     n_images = args.model == "bundle" and args.more
@@ -271,7 +271,9 @@ def run(args) -> int:
             raise InputError(f"--model {args.model} needs --gcps CSV")
         pts = read_gcps(args.gcps, vertical=args.vertical)
         if args.model in MODEL_NAMES:
-            model = image_model(args.image, band=args.band) if _has_model(args.image) else None
+            model = _model_if_any(args.image, args.band)
+            if model is None:  # no model to fit over: the image must still be one
+                check_image(args.image, band=args.band)
             size = (model.width, model.height) if model is not None else None
             res = adjust_generic(
                 args.model,
@@ -391,13 +393,14 @@ def _pair_inputs(args):
     return [(args.image, "3N"), (args.image, "3B")]
 
 
-def _has_model(image) -> bool:
+def _model_if_any(image, band):
+    """IMAGE's own sensor model (:func:`stereodem.pipeline.inputs.image_model`: the image
+    checked readable), or None when it has none (a generic model needs none)."""
     from stereodem.core.errors import SensorModelError
 
     from .pipeline.inputs import image_model
 
     try:
-        image_model(image)
-        return True
+        return image_model(image, band=band)
     except SensorModelError:
-        return False
+        return None

@@ -81,6 +81,7 @@ def run(args) -> int:
     from stereodem.sensor.io.sidecar import load_image_model, sidecar_path
 
     from .outlock import check_output_folder, output_folder
+    from .pipeline.inputs import check_image
 
     try:
         counts = [int(v) for v in args.counts.split(",") if v.strip()]
@@ -93,6 +94,7 @@ def run(args) -> int:
     inputs = [args.image, sidecar_path(args.image), args.gcps]
     check_output_folder(args.output, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
     base = load_image_model(args.image)
+    check_image(args.image)  # the image itself, not only its model sidecar
     points = read_gcps(args.gcps)
     models = expand_models([m.strip() for m in args.models.split(",") if m.strip()], base)
     records = compare(

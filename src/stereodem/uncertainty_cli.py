@@ -122,7 +122,7 @@ def run(args) -> int:
     from stereodem.sensor.io.sidecar import sidecar_path
 
     from . import options
-    from .pipeline.inputs import chosen_model
+    from .pipeline.inputs import check_image, chosen_model
 
     options.check_common(args)
     if args.samples < 3:
@@ -145,6 +145,8 @@ def run(args) -> int:
     chosen = chosen_model(
         args.image, args.model, band=args.band, rpc_direct=args.rpc_direct, gcps=args.gcps
     )
+    # the image itself, not only its model (a sidecar beside a zero-byte image passed)
+    check_image(args.image, band=args.band)
     if chosen.note:
         options.say(chosen.note)
     model, names, D = assemble(chosen.model, sigmas=sigmas, report=report, image=args.image)

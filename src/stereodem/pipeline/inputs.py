@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stereodem.core import raster
 from stereodem.core.dem import DEM, ELLIPSOID
 from stereodem.core.errors import InputError
 from stereodem.core.raster import image_dtype, image_shape, read_image
@@ -85,11 +86,7 @@ def open_image(
             "ASTER_RADIOMETRIC": str(bool(radiometric)),
         }
     else:
-        if isinstance(band, str):
-            raise InputError(
-                f"{path}: band {band!r} names an ASTER band, but this is not an ASTER "
-                "granule (give a band number)"
-            )
+        _check_band_number(path, band)
         if model is None:
             model = (
                 load_model(model_file, rpc_direct=rpc_direct)
@@ -100,6 +97,31 @@ def open_image(
     check_model_size(path, (img.shape[1], img.shape[0]), model)
     sanity.check_texture(img, f"{path}" + (f" band {band}" if isinstance(band, str) else ""))
     return InputImage(img, model, dtype, tags)
+
+
+def _check_band_number(path, band):
+    """A GeoTIFF's band is a number: an ASTER band name is refused (the image is no granule)."""
+    if isinstance(band, str):
+        raise InputError(
+            f"{path}: band {band!r} names an ASTER band, but this is not an ASTER "
+            "granule (give a band number)"
+        )
+
+
+def check_image(path, *, band=1) -> tuple[int, int] | None:
+    """Before any work, the input checks of :func:`open_image` that need no pixel read, for
+    the commands that use an image's sensor model only (``adjust``, ``compare-models``,
+    ``uncertainty``): the GeoTIFF opens with its band and its first and last blocks decode
+    (:func:`stereodem.core.raster.check_image`, worded as every image and DEM reader words a
+    file it cannot read: "PATH: cannot read the image (...)"). Without it a zero-byte or
+    text file beside a model sidecar passed: those commands read the sidecar alone. Its size
+    is not checked against the model (an image stand-in carrying only RPCs may be smaller).
+    An ASTER granule is checked by its reader when its band's model is read from it (not
+    opened a second time here): None. Returns the GeoTIFF's ``(width, height)``."""
+    if is_aster_granule(path):
+        return None
+    _check_band_number(path, band)
+    return raster.check_image(path, band)
 
 
 def check_model_size(path, size, model):
@@ -210,12 +232,15 @@ def image_size(path, band=1) -> tuple[int, int]:
 
 def image_model(path, *, band=1, prefer: str = "physical"):
     """The sensor model of an input (the image's sidecar or RPCs, or band ``band`` of an ASTER
-    granule), without reading the pixels."""
+    granule), without reading the pixels; a GeoTIFF is checked by :func:`check_image` (the
+    image must be readable, not only its model)."""
     if is_aster_granule(path):
         return open_aster_granule(path).model(
             band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
         )
-    return load_image_model(path, prefer=prefer)
+    model = load_image_model(path, prefer=prefer)
+    check_image(path, band=band)
+    return model
 
 
 def load_seed_dem(cfg: Config) -> DEM | None:

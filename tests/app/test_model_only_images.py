@@ -1,0 +1,91 @@
+"""The commands that use an image's sensor model without its pixels (``adjust``,
+``compare-models``, ``uncertainty``) check the image itself before any work, by the rule of
+every image reader (``stereodem.pipeline.inputs.check_image``).
+
+Before: a zero-byte file, a text file named ``.tif`` or an image cut short, with a model
+sidecar beside it, was accepted (they read the sidecar alone): exit 0 and products written,
+where ``ortho`` and ``dem`` said "PATH: cannot read the image (...)".
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+
+import pytest
+from helpers.cli_scene import assert_clear_error, run_cli, write_sim_scene
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    return write_sim_scene(tmp_path_factory.mktemp("sim"))
+
+
+def _broken(kind, sim, d):
+    """``d/bad.tif`` of ``kind``, with the left image's model sidecar beside it."""
+    bad = d / "bad.tif"
+    if kind == "zero_bytes":
+        bad.write_bytes(b"")
+    elif kind == "text_named_tif":
+        bad.write_text("id,lon,lat,h,col,row\nthis is a text file renamed .tif\n")
+    else:  # cut short: header intact, pixels lost (a partial copy)
+        b = (sim / "left.tif").read_bytes()
+        bad.write_bytes(b[: len(b) * 6 // 10])
+    shutil.copy(sim / "left.model.json", d / "bad.model.json")
+    return bad
+
+
+def _argv(command, sim, img, out):
+    """``command`` given ``img`` as its image, writing under ``out``."""
+    pts, dem = sim / "points.csv", sim / "truth_dem.tif"
+    return {
+        "adjust": ["adjust", img, "--gcps", pts, "--model", "rpc-shift", "-o", out / "m.json"],
+        # a generic model fitted to GCPs: the image's own model is not needed, the image is
+        "adjust_generic": ["adjust", img, "--gcps", pts, "--model", "rational-1"]
+        + ["-o", out / "m.json"],
+        "adjust_bundle": ["adjust", sim / "left.tif", img, "--model", "bundle"]
+        + ["-o", out / "l.json", "--out2", out / "r.json"],
+        "adjust_bundle_3": ["adjust", sim / "left.tif", sim / "right.tif", img]
+        + ["--model", "bundle", "-o", out],
+        "compare-models": ["compare-models", img, "--gcps", pts, "--models", "rpc-shift"]
+        + ["-o", out],
+        "uncertainty": ["uncertainty", img, "--dem", dem, "--sigma", "col_shift=0.5"] + ["-o", out],
+        "uncertainty_model_file": ["uncertainty", img, "--model", sim / "left.model.json"]
+        + ["--dem", dem, "--sigma", "col_shift=0.5", "-o", out],
+        "ortho": ["ortho", img, "--dem", dem, "-o", out / "o.tif"],
+    }[command]
+
+
+COMMANDS = [
+    "adjust",
+    "adjust_generic",
+    "adjust_bundle",
+    "adjust_bundle_3",
+    "compare-models",
+    "uncertainty",
+    "uncertainty_model_file",
+]
+
+
+def _error_text(err) -> str:
+    """The message of the one ``stereodem CMD: error: MESSAGE`` line."""
+    (line,) = [ln for ln in err.splitlines() if "error:" in ln]
+    return line.split(": error: ", 1)[1]
+
+
+@pytest.mark.parametrize("kind", ["zero_bytes", "text_named_tif", "cut_short"])
+@pytest.mark.parametrize("case", COMMANDS)
+def test_an_unreadable_image_beside_its_sidecar_is_refused(case, kind, sim, tmp_path, capsys):
+    bad = _broken(kind, sim, tmp_path)
+    out = tmp_path / "out"
+    command = case.split("_")[0]
+    code, stdout, err = run_cli(capsys, [*_argv(case, sim, bad, out), "--workers", "1"])
+    assert_clear_error(code, err, command, rf"{re.escape(str(bad))}: cannot read the image")
+    if kind == "cut_short":
+        assert "cut short or damaged" in err
+    assert not out.exists()  # refused before any work: nothing written
+    assert stdout == ""  # no result line
+    # the wording of every image reader: ortho says the same of the same file
+    code, _, ortho_err = run_cli(capsys, [*_argv("ortho", sim, bad, out), "--workers", "1"])
+    assert code == 1
+    assert _error_text(err) == _error_text(ortho_err)
