@@ -272,9 +272,13 @@ def run(args) -> int:
         pts = read_gcps(args.gcps, vertical=args.vertical)
         if args.model in MODEL_NAMES:
             model = _model_if_any(args.image, args.band)
-            if model is None:  # no model to fit over: the image must still be one
-                check_image(args.image, band=args.band)
-            size = (model.width, model.height) if model is not None else None
+            # the fitted model describes the image's pixels: without a model, its header's
+            # size (not the GCPs' extent, which ortho then refused as the image's model)
+            size = (
+                (model.width, model.height)
+                if model is not None
+                else check_image(args.image, band=args.band)
+            )
             res = adjust_generic(
                 args.model,
                 pts,

@@ -11,9 +11,14 @@ from __future__ import annotations
 
 import re
 import shutil
+import warnings
 
 import pytest
+import rasterio
 from helpers.cli_scene import assert_clear_error, run_cli, write_sim_scene
+from rasterio.errors import NotGeoreferencedWarning
+
+from stereodem.sensor.io.sidecar import load_model
 
 
 @pytest.fixture(scope="module")
@@ -89,3 +94,24 @@ def test_an_unreadable_image_beside_its_sidecar_is_refused(case, kind, sim, tmp_
     code, _, ortho_err = run_cli(capsys, [*_argv("ortho", sim, bad, out), "--workers", "1"])
     assert code == 1
     assert _error_text(err) == _error_text(ortho_err)
+
+
+def test_a_generic_model_of_an_image_without_a_model_describes_the_image(sim, tmp_path, capsys):
+    """``adjust --model rational-1`` on an image without RPCs or a sidecar sized the fitted
+    model by the GCPs' extent (268 x 285 here), and ``ortho`` refused the image with it
+    ("image is 300x300 but its model describes 268x285"); the image's own size now."""
+    with rasterio.open(sim / "left.tif") as ds:
+        prof, data = ds.profile, ds.read(1)
+    img = tmp_path / "bare.tif"
+    with warnings.catch_warnings():  # sensor geometry: no geotransform by nature
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(img, "w", **prof) as out:  # no RPCs, no sidecar
+            out.write(data[None])
+    fitted = tmp_path / "fitted.model.json"
+    argv = ["adjust", img, "--gcps", sim / "points.csv", "--model", "rational-1", "-o", fitted]
+    code, _, err = run_cli(capsys, argv)
+    assert code == 0, err
+    assert (load_model(fitted).width, load_model(fitted).height) == (300, 300)
+    argv = ["ortho", img, "--dem", sim / "truth_dem.tif", "--model", fitted]
+    code, _, err = run_cli(capsys, [*argv, "-o", tmp_path / "o.tif", "--workers", "1"])
+    assert code == 0, err
