@@ -40,7 +40,7 @@ from stereodem.core.dem import DEM, as_dem, to_vertical_of
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.stats import nmad
 
-from . import terrain, warp
+from . import shift_units, terrain, warp
 from .altimetry import AltimetryPoints
 
 log = logging.getLogger(__name__)
@@ -342,6 +342,77 @@ def parameter_notes(params: dict) -> list[str]:
         if isinstance(v, str) and v:
             out.append(f"{k}: {v}")
     return out
+
+
+#: a shift step's components (:func:`shift_text`): ``nuth_kaab``'s and ``vshift``'s
+#: displacement of the DEM, ``icp``'s motion of the DEM (opposite signs for one offset; the
+#: parameters' ``sign`` says the same)
+SHIFTS = (
+    (("dx", "dy", "dz"), "DEM displaced from the reference by"),
+    (("tx", "ty", "tz"), "DEM moved onto the reference by"),
+)
+
+
+def shift_text(params: dict) -> tuple[str, tuple[str, ...]] | None:
+    """A step's fitted shift with its sign spelled out, ``"DEM displaced from the reference
+    by dx = +1.300 ± 0.012 m along x (grid east), dy = ..., dz = +2.000 ± 0.004 m (up)"`` (the
+    horizontal axes in :func:`~stereodem.post.shift_units.shift_phrase`'s wording), and the
+    names it states; None for a step without a shift (no ``dz``/``tz``)."""
+    for names, what in SHIFTS:
+        if not isinstance(params.get(names[2]), dict):
+            continue
+        said = [n for n in names if isinstance(params.get(n), dict)]
+        value = {n: params[n]["value"] for n in said}
+        sigma = {n: params[n].get("sigma") for n in said}
+        parts = []
+        if names[0] in said and names[1] in said:
+            parts.append(
+                shift_units.shift_phrase(
+                    value[names[0]],
+                    value[names[1]],
+                    "+.3f",
+                    sigmas=(sigma[names[0]], sigma[names[1]]),
+                    names=names[:2],
+                )
+            )
+        z, sz = value[names[2]], sigma[names[2]]
+        pm = f" ± {sz:.3f}" if isinstance(sz, int | float) and np.isfinite(sz) else ""
+        parts.append(f"{names[2]} = {z:+.3f}{pm} m (up)")
+        return f"{what} {', '.join(parts)}", tuple(said)
+    return None
+
+
+def step_line(record: dict) -> str:
+    """The result line of one fitted step, as every command prints it (``coregister``,
+    ``assess --coregister/--chain``): a record of :meth:`CoregChain.report` (``step``,
+    ``parameters``, the stable samples' ``before``/``after`` statistics) on one line, the
+    stable NMAD before -> after the step (the median and the samples after it), then its
+    parameters: a shift with its sign (:func:`shift_text`), the others by
+    :func:`parameter_text`, and the grid-metres note of a horizontal shift on a projected
+    grid (:func:`~stereodem.post.shift_units.shift_units`)."""
+    params = record.get("parameters") or {}
+    before, after = record.get("before") or {}, record.get("after") or {}
+    parts = [
+        f"{record['step']}: stable NMAD {_fixed(before.get('nmad'))} -> "
+        f"{_fixed(after.get('nmad'))} m (median {_fixed(after.get('median'), '+.3f')} m, "
+        f"n={after.get('n', 0)})"
+    ]
+    shift = shift_text(params)
+    said = ()
+    if shift is not None:
+        text, said = shift
+        parts.append(text)
+    stated = {*said, *(f"{n}_ground" for n in said)}  # the ground metres: in the note
+    rest = parameter_text({k: v for k, v in params.items() if k not in stated})
+    if rest:
+        parts.append(rest)
+    note = shift_units.shift_units(params, said[:2]) if len(said) == 3 else ""
+    return "; ".join(parts) + (f".{note}" if note else "")
+
+
+def _fixed(v, spec: str = ".3f") -> str:
+    """``v`` formatted, or "n/a" for a statistic without a value (no sample)."""
+    return f"{v:{spec}}" if isinstance(v, int | float) and np.isfinite(v) else "n/a"
 
 
 # ----------------------------------------------------------------------------- base classes

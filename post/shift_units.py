@@ -95,32 +95,47 @@ def _first_warning(crs) -> bool:
 SHIFT_AXES = ("x (grid east)", "y (grid north)")
 
 
-def shift_phrase(dx: float, dy: float, spec: str = ".2f") -> str:
+def shift_phrase(
+    dx: float, dy: float, spec: str = ".2f", *, sigmas=None, names=("dx", "dy")
+) -> str:
     """``"dx = 1.20 m along x (grid east), dy = -0.40 m along y (grid north)"``: a horizontal
-    shift in the wording of :data:`SHIFT_AXES` (``spec`` formats the numbers)."""
-    return f"dx = {dx:{spec}} m along {SHIFT_AXES[0]}, dy = {dy:{spec}} m along {SHIFT_AXES[1]}"
+    shift in the wording of :data:`SHIFT_AXES` (``spec`` formats the numbers, and the
+    standard deviations ``sigmas`` when given: ``"dx = 1.20 ± 0.03 m along ..."``; ``names``
+    the components', e.g. ``("tx", "ty")``)."""
+    parts = []
+    for name, v, s, axis in zip(names, (dx, dy), sigmas or (None, None), SHIFT_AXES):
+        pm = f" ± {s:{spec.lstrip('+')}}" if _finite(s) else ""
+        parts.append(f"{name} = {v:{spec}}{pm} m along {axis}")
+    return ", ".join(parts)
 
 
-def shift_units(co: dict) -> str:
+def _finite(v) -> bool:
+    return isinstance(v, int | float) and bool(np.isfinite(v))
+
+
+def shift_units(co: dict, names=("dx", "dy")) -> str:
     """A sentence (with a leading space) on the metres of a co-registration summary's ``dx``,
     ``dy`` (:func:`~stereodem.post.assess.coregistration_summary`, a mosaic's correction
-    record, or a step's parameters with :func:`ground_shift`'s keys): on a projected grid they
-    are grid metres (the CRS's units), with the projection's scale factor at the grid centre
-    and, where that differs from 1 by over 0.1 %, the shift in ground metres. Empty on a
-    geographic grid (ground metres) and for a summary without ``scale_factor``."""
+    record, or a step's parameters with :func:`ground_shift`'s keys; ``names`` the
+    components', e.g. ``icp``'s ``("tx", "ty")``): on a projected grid they are grid metres
+    (the CRS's units), with the projection's scale factor at the grid centre and, where that
+    differs from 1 by over 0.1 %, the shift in ground metres. Empty on a geographic grid
+    (ground metres) and for a summary without ``scale_factor``."""
     scale = co.get("scale_factor")
     if not scale or not str(co.get("horizontal_unit") or "").startswith("grid"):
         return ""
     k = format_scale(scale)
-    gx, gy = (_value(co.get(f"{n}_ground")) for n in ("dx", "dy"))
+    nx, ny = names
+    gx, gy = (_value(co.get(f"{n}_ground")) for n in names)
     if gx is None or gy is None:
         return (
-            f" dx, dy are grid metres (the CRS's units; scale factor k = {k} at the grid centre)."
+            f" {nx}, {ny} are grid metres (the CRS's units; scale factor k = {k} at the grid "
+            "centre)."
         )
     return (
-        f" dx, dy are grid metres (the CRS's units); the projection's scale factor at the grid "
-        f"centre is k = {k}: in ground metres (grid metres / k) dx = {gx:.2f} m, "
-        f"dy = {gy:.2f} m."
+        f" {nx}, {ny} are grid metres (the CRS's units); the projection's scale factor at the "
+        f"grid centre is k = {k}: in ground metres (grid metres / k) {nx} = {gx:.2f} m, "
+        f"{ny} = {gy:.2f} m."
     )
 
 

@@ -242,10 +242,9 @@ def run(args) -> int:
 
 def coregistration_lines(co: dict, after: dict) -> list[str]:
     """The result lines of the co-registration: the chain with the NMAD before/after the
-    whole chain (stable samples; all compared cells), then each step's parameters with
-    units, the shift in words under ``nuth_kaab``."""
-    from stereodem.post.coreg import parameter_text
-    from stereodem.post.shift_units import shift_phrase, shift_units
+    whole chain (stable samples; all compared cells), then each step's line
+    (:func:`stereodem.post.coreg.step_line`, as ``coregister`` prints it)."""
+    from stereodem.post.coreg import step_line
 
     steps = co.get("steps") or []
     lines = [
@@ -253,13 +252,4 @@ def coregistration_lines(co: dict, after: dict) -> list[str]:
         f"{co['nmad_before']:.3f} -> {co['nmad_after']:.3f} m; all cells after the chain: "
         f"NMAD {after['nmad']:.3f} m, median {after['median']:+.3f} m, n={after['n']}"
     ]
-    for r in steps:
-        if r["step"] == "nuth_kaab":
-            p = r["parameters"]
-            lines.append(
-                f"  nuth_kaab: {shift_phrase(p['dx']['value'], p['dy']['value'], '.3f')}, "
-                f"dz = {p['dz']['value']:.3f} m." + shift_units(co)
-            )
-        else:
-            lines.append(f"  {r['step']}: {parameter_text(r.get('parameters') or {})}")
-    return lines
+    return lines + [f"  {step_line(r)}" for r in steps]

@@ -23,25 +23,6 @@ steps (--chain, comma separated, applied in order; ':N' = order or number of sin
 """
 
 
-def shift_line(params: dict) -> str | None:
-    """The result line of a step's fitted shift, with its sign spelled out: ``nuth_kaab``'s and
-    ``vshift``'s displacement of the DEM, ``icp``'s motion of the DEM (opposite signs for one
-    offset; the report's ``sign`` says the same), or None for a step without one."""
-    if "tx" in params:
-        names, what = ("tx", "ty", "tz"), "DEM moved onto the reference by"
-    elif "dz" in params:
-        names, what = ("dx", "dy", "dz"), "DEM displaced from the reference by"
-    else:
-        return None
-    axes = {"x": "grid east", "y": "grid north", "z": "up"}
-    parts = [
-        f"{n} {params[n]['value']:+.3f} ± {params[n]['sigma']:.3f} m ({axes[n[1]]})"
-        for n in names
-        if isinstance(params.get(n), dict)
-    ]
-    return f"{what} {', '.join(parts)}"
-
-
 def add_parser(sub):
     p = sub.add_parser(
         "coregister",
@@ -126,6 +107,7 @@ PRODUCTS = Products(
 
 
 def run(args) -> int:
+    from stereodem.post.coreg import step_line
     from stereodem.post.coreg_run import CoregJob
     from stereodem.post.coreg_run import run as run_job
 
@@ -160,12 +142,6 @@ def run(args) -> int:
             creation_options=creation_options(args),
         )
     for r in rep["steps"]:
-        say(
-            f"{r['step']}: stable NMAD {r['before']['nmad']:.3f} -> {r['after']['nmad']:.3f} m "
-            f"(median {r['after']['median']:+.3f} m, n={r['after']['n']})"
-        )
-        shift = shift_line(r.get("parameters") or {})
-        if shift:
-            say(f"  {shift}")
+        say(step_line(r))
     say(f"-> {rep['files']['dem']}")
     return 0

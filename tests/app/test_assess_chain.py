@@ -15,7 +15,7 @@ from stereodem.cli import main
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.post.assess import assess_dem
-from stereodem.post.coreg import parameter_notes, parameter_text, parse_chain
+from stereodem.post.coreg import parameter_notes, parameter_text, parse_chain, step_line
 from stereodem.post.synthetic import InjectedErrors, inject_errors
 
 CHAIN = "nuth_kaab,deramp:1,along_track"
@@ -130,6 +130,42 @@ def test_assess_chain_reports_every_step_and_one_after(files, capsys):
     for s in steps:
         assert any(ln.startswith(f"  {s}: ") for ln in lines), s
     assert any(ln.startswith("  deramp:1: ") and "m/m" in ln for ln in lines)
+
+
+@pytest.mark.slow  # ~3 s: two fits, and assess's error analysis (its variogram)
+@pytest.mark.parametrize("chain", ["nuth_kaab,deramp", CHAIN, "icp,vshift"])
+def test_coregister_and_assess_print_the_same_line_for_a_step(chain, files, tmp_path, capsys):
+    """One format for a fitted step's result line (``post.coreg.step_line``): ``coregister``
+    printed "nuth_kaab: stable NMAD a -> b m (median, n)" and its shift with σ on a second line
+    (no parameters for the other steps), ``assess --chain`` "nuth_kaab: dx = ... m along x
+    (grid east), ..., dz = ... m." without σ, NMAD or sign, and the other steps' parameters."""
+    dem, ref = str(files / "dem.tif"), str(files / "ref.tif")
+    common = ["--chain", chain, "--track-angle", "190", "--workers", "1"]
+    argv = ["coregister", dem, "--ref", ref, *common, "--no-figures", "-o", str(tmp_path / "c")]
+    capsys.readouterr()
+    assert main(argv) == 0
+    coregister = capsys.readouterr().out.splitlines()
+    argv = ["assess", dem, "--ref", ref, "--coregister", *common, "-o", str(tmp_path / "a")]
+    assert main(argv) == 0
+    assess = capsys.readouterr().out.splitlines()
+    steps = json.loads((tmp_path / "c" / "coregistration.json").read_text())["steps"]
+    lines = [step_line(r) for r in steps]
+    assert len(lines) == len(chain.split(","))
+    # coregister: one line per step, then the corrected DEM; assess: under its chain line
+    assert coregister == [*lines, f"-> {tmp_path / 'c' / 'dem_coregistered.tif'}"]
+    head = next(i for i, ln in enumerate(assess) if ln.startswith("co-registration "))
+    assert assess[head + 1 :] == [f"  {ln}" for ln in lines]
+    # each step's line: the stable NMAD around it, then its parameters
+    for ln, r in zip(lines, steps):
+        assert ln.startswith(
+            f"{r['step']}: stable NMAD {r['before']['nmad']:.3f} -> {r['after']['nmad']:.3f} m "
+        )
+    shifts = {"nuth_kaab": "displaced from the reference by dx = ", "icp": "moved onto the ref"}
+    for ln, r in zip(lines, steps):
+        if r["step"] in shifts:
+            assert shifts[r["step"]] in ln and " m along x (grid east)" in ln
+        elif r["step"].startswith("deramp"):
+            assert ln.count("m/m") == 2
 
 
 def _glacier_scene(tmp_path):

@@ -15,6 +15,7 @@ from stereodem.core.dem import DEM
 from stereodem.post import shift_units, warp
 from stereodem.post.assess import assess_dem
 from stereodem.post.biascorr import NuthKaab
+from stereodem.post.coreg import step_line
 from stereodem.post.report import html_report, markdown
 from stereodem.post.synthetic import InjectedErrors, inject_errors
 
@@ -129,3 +130,21 @@ def test_geographic_scale_factor_is_one(heights, caplog):
     assert nk.params["scale_factor"] == [1.0, 1.0] and not warned
     assert nk.params["horizontal_unit"].startswith("ground metres")
     assert "dx_ground" not in nk.params
+
+
+def test_a_steps_result_line_says_its_metres_on_a_projected_grid(heights, caplog):
+    """``step_line`` (the line ``coregister`` and ``assess`` print for a step) gives the shift
+    along the grid's axes with σ, then the grid-metres note with the ground metres, which are
+    not listed a second time among the parameters."""
+    truth = _on("EPSG:3413", 0.0, 80.0, heights[1])
+    nk, _ = _fit(truth, caplog)
+    stats = {"nmad": 1.0, "median": 0.5, "n": 10}
+    line = step_line(
+        {"step": "nuth_kaab", "parameters": nk.params, "before": stats, "after": stats}
+    )
+    p = nk.params
+    assert line.startswith("nuth_kaab: stable NMAD 1.000 -> 1.000 m (median +0.500 m, n=10); ")
+    assert f"dx = {p['dx']['value']:+.3f} ± {p['dx']['sigma']:.3f} m along x (grid east)" in line
+    assert line.endswith(shift_units.shift_units(p))
+    assert f"dx = {p['dx_ground']['value']:.2f} m" in line  # in the note
+    assert "dx_ground" not in line and "scale_factor" not in line

@@ -33,6 +33,7 @@ from stereodem.post.coreg import (
     bilinear,
     local_metric_coords,
     parse_chain,
+    shift_text,
     track_coords,
 )
 from stereodem.post.spatialstats import VariogramModel
@@ -442,9 +443,8 @@ def test_the_reports_and_result_lines_give_each_shifts_sign(truth):
     +1.3 m E, -0.7 m N, +2 m up: nuth_kaab dx +1.30 dy -0.70 dz +2.00, icp tx -1.30 ty +0.70
     tz -2.00), and ``coregister`` said neither in its report nor on its result lines (which
     gave no shift at all). Each shift step's parameters now carry ``sign``, and the result
-    line states the shift with its meaning."""
-    from stereodem.coregister_cli import shift_line
-
+    line (``shift_text``, in every command's ``step_line``) states the shift with its
+    meaning."""
     px = abs(truth.transform.a) * 111320 * math.cos(math.radians(truth.transform.f))
     dem, _ = inject_errors(truth, InjectedErrors(dx=px, dz=2.0, seed=4))
     nk, icp, vs = NuthKaab().fit(truth, dem), ICP().fit(truth, dem), VerticalShift().fit(truth, dem)
@@ -452,11 +452,18 @@ def test_the_reports_and_result_lines_give_each_shifts_sign(truth):
     assert icp.params["tx"]["value"] == pytest.approx(-px, abs=1.0)
     assert nk.params["sign"] == vs.params["sign"] == biascorr.DISPLACEMENT
     assert icp.params["sign"] == biascorr.MOTION
-    line = shift_line(nk.params)
-    assert line.startswith("DEM displaced from the reference by dx +")
-    assert "m (grid east)" in line and "dz +2.0" in line
-    assert shift_line(icp.params).startswith("DEM moved onto the reference by tx -")
-    assert shift_line(Deramp(1).fit(truth, dem).params) is None
+    line, said = shift_text(nk.params)
+    assert line.startswith("DEM displaced from the reference by dx = +")
+    assert "m along x (grid east)" in line and "dz = +2.0" in line
+    assert said == ("dx", "dy", "dz")
+    line, said = shift_text(icp.params)
+    assert line.startswith("DEM moved onto the reference by tx = -") and said[0] == "tx"
+    assert shift_text(vs.params) == (
+        f"DEM displaced from the reference by dz = {vs.params['dz']['value']:+.3f} ± "
+        f"{vs.params['dz']['sigma']:.3f} m (up)",
+        ("dz",),
+    )
+    assert shift_text(Deramp(1).fit(truth, dem).params) is None
 
 
 def test_apply_keeps_the_dems_geoid_and_takes_a_path(truth, tmp_path):
