@@ -677,6 +677,7 @@ def assess_dem(
     resampling: str = "bilinear",
     coregistration=None,
     threads: int = 1,
+    reconciled: tuple[DEM, str] | None = None,
 ) -> Assessment:
     """Assess ``dem`` against ``reference`` (DEM objects or paths).
 
@@ -706,13 +707,27 @@ def assess_dem(
     threads : int
         Threads for the blocks of :func:`blockwise_comparison` (the result does not depend
         on it).
+    reconciled : (DEM, str), optional
+        What :func:`reconcile_vertical` gives for ``dem`` and ``reference`` (DEM objects, no
+        ``dem_vertical``/``ref_vertical``), when the caller already has it: the DEM is not
+        converted a second time (a full-grid geoid lookup), e.g. ``assess_stage``'s, which
+        fits its chain on it first. Its vertical reference must be the reference's.
     """
     dem = _with_vertical(dem, dem_vertical)
     reference = _with_vertical(reference, ref_vertical)
     # slopes on the reference's grid, the hillshade on the DEM's: neither may be rotated
     terrain.check_not_rotated(reference.transform, reference.path or "reference")
     terrain.check_not_rotated(dem.transform, dem.path)
-    dem_v, vnote = reconcile_vertical(dem, reference)
+    if reconciled is None:
+        dem_v, vnote = reconcile_vertical(dem, reference)
+    else:
+        dem_v, vnote = reconciled
+        if dem_v.vertical != reference.vertical or dem_v.shape != dem.shape:
+            raise InputError(
+                f"{dem.path or 'DEM'}: reconciled= is not this DEM in the reference's vertical "
+                f"reference ({dem_v.vertical}, {dem_v.shape} cells; the reference's "
+                f"{reference.vertical}, the DEM's {dem.shape})"
+            )
     kw = dict(
         resampling=resampling,
         slope_bins=slope_bins,

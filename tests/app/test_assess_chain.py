@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from stereodem.cli import main
+from stereodem.core import jsonutil
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
 from stereodem.post.assess import assess_dem
@@ -249,3 +250,55 @@ def test_run_configuration_excludes_polygons_from_the_assessments_coregistration
     for bad in ("glacier.geojson", ["glacier.geojson", 5], [""], [float("nan")]):
         with pytest.raises(InputError, match=r"job.toml: \[assess\] exclude: expected a list"):
             cfg(exclude=bad)
+
+
+def test_assess_stage_converts_the_dems_vertical_reference_once(files, tmp_path, monkeypatch):
+    """With a co-registration chain (an error-analysis job) ``assess_stage`` brings the DEM to
+    the reference's vertical reference to fit the chain, and ``assess_dem`` did it again: two
+    full-grid geoid lookups of the DEM (and any conversion warning said twice). It is given
+    the converted DEM now: one conversion, the same report."""
+    from stereodem.config import config_from_dict
+    from stereodem.pipeline import assessment
+    from stereodem.post.error_analysis import ErrorAnalysisJob
+
+    ref = DEM.from_file(files / "ref.tif").to_reference("ellipsoid")  # the DEM is geoid
+    ref.write(tmp_path / "ref_ellipsoid.tif")
+    raw = {
+        "inputs": {"left": "l.tif", "right": "r.tif", "reference_dem": "ref_ellipsoid.tif"},
+        "output": {"dir": "out"},
+        "assess": {"coregister": True},
+        "run": {"workers": 1},
+    }
+    cfg = config_from_dict(raw, base=tmp_path, source="job.toml")
+    conversions = []
+    to_reference = DEM.to_reference
+
+    def counted(self, to):
+        if self.vertical != to:
+            conversions.append((self.path, self.vertical, to))
+        return to_reference(self, to)
+
+    monkeypatch.setattr(DEM, "to_reference", counted)
+
+    def report(name):
+        job = ErrorAnalysisJob(chain="nuth_kaab,deramp")
+        result, _ = assessment.assess_stage(
+            cfg, str(files / "dem.tif"), tmp_path / name, error_analysis=job, analysis=False
+        )
+        for step in result.report["coregistration"]["steps"]:
+            step.pop("seconds")
+        return jsonutil.dumps(result.report)  # NaN (a class without cells) as null
+
+    once = report("once")
+    assert conversions == [(str(files / "dem.tif"), "geoid", "ellipsoid")]
+    assert json.loads(once)["vertical"]["note"] == "DEM converted from geoid to ellipsoid (EGM96)"
+    # the same report as assess_dem converting the DEM itself (as before: twice)
+    assess_dem_itself = assessment.assess_dem
+
+    def without_reconciled(*args, reconciled=None, **kw):
+        return assess_dem_itself(*args, **kw)
+
+    monkeypatch.setattr(assessment, "assess_dem", without_reconciled)
+    conversions.clear()
+    assert report("twice") == once
+    assert len(conversions) == 2

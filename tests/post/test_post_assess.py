@@ -16,7 +16,7 @@ from scipy import ndimage as ndi
 
 from stereodem import assess_cli
 from stereodem.cli import main
-from stereodem.core import geodesy
+from stereodem.core import geodesy, jsonutil
 from stereodem.core.dem import DEM
 from stereodem.core.errors import (
     DEMError,
@@ -88,6 +88,23 @@ def test_vertical_references_reconciled(ref):
         assess.assess_dem(unknown, ref)
     ok = assess.assess_dem(unknown, ref, dem_vertical="ellipsoid")
     assert abs(ok.report["stats"]["mean"]) < 0.01
+
+
+def test_a_dem_already_reconciled_is_not_converted_again(ref, monkeypatch):
+    """``reconciled=`` (what ``assess_stage`` has already converted): the same report, no
+    second conversion; something else than the DEM in the reference's vertical reference is
+    refused, not compared."""
+    ell = ref.to_reference("ellipsoid")
+    reconciled = assess.reconcile_vertical(ell, ref)
+    converted = []
+    monkeypatch.setattr(DEM, "to_reference", lambda self, to: converted.append(to) or self)
+    got = assess.assess_dem(ell, ref, reconciled=reconciled)
+    assert converted == []
+    monkeypatch.undo()
+    same = assess.assess_dem(ell, ref).report
+    assert jsonutil.dumps(got.report) == jsonutil.dumps(same)  # NaN (empty classes) as null
+    with pytest.raises(InputError, match=r"reconciled= is not this DEM"):
+        assess.assess_dem(ell, ref, reconciled=(ell, "not converted"))
 
 
 def test_a_vertical_given_for_a_dem_that_says_its_own_is_not_applied(ref, tmp_path, caplog):

@@ -46,11 +46,13 @@ def assess_stage(
         from stereodem.post.error_analysis import ErrorAnalysisJob
 
         error_analysis, analysis = ErrorAnalysisJob(exclude=list(a.exclude)), False
-    chain = None
+    chain = reconciled = None
     if error_analysis is not None:
         from stereodem.post import error_analysis as ea  # its variograms: only when asked
 
-        dem_v = reconcile_vertical(dem, ref)[0]
+        # converted once (a full-grid geoid lookup): assess_dem is given it, not again
+        reconciled = reconcile_vertical(dem, ref)
+        dem_v = reconciled[0]
         # one chain for the report's co-registration section and the analysis: --chain, else
         # Nuth & Kääb with --coregister; fitted once, on the analysis's stable terrain and track
         text = error_analysis.chain or ("nuth_kaab" if a.coregister else None)
@@ -68,6 +70,7 @@ def assess_stage(
         landcover_names={int(k): v for k, v in (a.landcover_names or {}).items()},
         elevation_bins=a.elevation_bins,
         threads=job_threads(cfg.run.workers),
+        reconciled=reconciled,
         **kw,
     )
     extra = None
