@@ -31,6 +31,7 @@ from stereodem.core.raster import write_text_atomic
 from . import terrain
 from .altimetry import AltimetryPoints, is_points_file, read_points
 from .coreg import MIN_STABLE_FRACTION, CoregChain, bilinear, parse_chain, reference_on_grid
+from .dates import DATE_TAGS, date_from_metadata
 from .masks import StableMask, check_stable
 from .track import TRACK_FRAME_TAG, TrackFrame, track_frame_of
 
@@ -122,6 +123,33 @@ def track_tags(model, shape, crs=None, heights=None) -> dict:
         except (ValueError, ArithmeticError, NotImplementedError, StereodemError, ProjError) as exc:
             log.info("no track frame for the DEM tags: %s", exc)
     return tags
+
+
+#: the tags of a stereodem DEM that stay true of a DEM made from it on its own grid (``stereodem
+#: filter``'s clean DEM, ``stereodem coregister``'s corrected one): the track that
+#: ``along_track``/``cross_track`` read and the acquisition date ``stereodem stack`` reads
+CARRIED_TAGS = (TRACK_HEADING_TAG, TRACK_FRAME_TAG, *DATE_TAGS)
+
+
+def carried_tags(path) -> dict:
+    """The :data:`CARRIED_TAGS` of the DEM file ``path`` (none of an unreadable file), plus its
+    acquisition date as ``ACQUISITION_DATE`` when only the ``run.json``/``dem_report.json``
+    beside it gives one (:func:`stereodem.post.dates.date_from_metadata`): a DEM written into
+    another folder keeps its date."""
+    try:
+        with rasterio.open(path) as ds:
+            tags = ds.tags()
+    except rasterio.errors.RasterioIOError:
+        return {}
+    out = {k: tags[k] for k in CARRIED_TAGS if tags.get(k)}
+    if not any(k in out for k in DATE_TAGS):
+        try:
+            when = date_from_metadata(path)
+        except InputError:  # an unreadable date beside it: the DEM is read without one
+            when = None
+        if when is not None:
+            out["ACQUISITION_DATE"] = str(when)
+    return out
 
 
 def track_heading_of(path) -> float | None:
@@ -228,7 +256,10 @@ def run(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)  # only now: bad inputs leave nothing behind
     out.write(
-        out_dir / "dem_coregistered.tif", overwrite=overwrite, creation_options=creation_options
+        out_dir / "dem_coregistered.tif",
+        overwrite=overwrite,
+        creation_options=creation_options,
+        tags=carried_tags(job.dem),  # its track and date, for a later chain or stack
     )
     report = {
         "dem": job.dem,

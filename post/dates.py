@@ -119,8 +119,9 @@ def dem_dates(dems, dates=None, *, now=None) -> list:
             d = date_from_metadata(p)
             if d is None:
                 raise InputError(
-                    f"{p}: no acquisition date (no ACQUISITION_DATE tag, no run.json "
-                    "beside it); give --dates D1,D2,... or a CSV path,date"
+                    f"{p}: no acquisition date (no ACQUISITION_DATE tag, no run.json or "
+                    "dem_report.json with a granule's acquisition time beside it); give "
+                    "--dates D1,D2,... or a CSV path,date"
                 )
             found.append(d)
     now = np.datetime64(now, "s") if now is not None else np.datetime64("now", "s")

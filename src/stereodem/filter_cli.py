@@ -156,6 +156,7 @@ def run(args) -> int:
     from stereodem.core.errors import InputError
     from stereodem.core.raster import check_writable
     from stereodem.core.threads import job_threads
+    from stereodem.post.coreg_run import carried_tags
 
     from .pipeline.inputs import load_seed_dem, read_stereo_dem
     from .pipeline.stages import post_stage
@@ -190,6 +191,7 @@ def run(args) -> int:
         args.out,
         overwrite=args.overwrite,
         creation_options=options.creation_options(args),
+        tags=carried_tags(args.dem),  # the track and date that coregister and stack read
         threads=job_threads(cfg.run.workers),
     )
     valid = float((clean.heights == clean.heights).mean())
