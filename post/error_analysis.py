@@ -96,6 +96,7 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob, *, chain: CoregChain | No
             f"has no dispersion to analyse (NMAD {nmad(d_st):.3g} m over "
             f"{int(np.isfinite(d_st).sum())} cells)"
         )
+    zstd, n_out = ss.drop_outliers(zstd)  # blunders would set the variogram's sill and range
     emp = ss.variogram(zstd, transform=dem.transform, crs=dem.crs, n_pairs=job.n_pairs)
     model = ss.fit_variogram(emp, n_models=2)
     section = {
@@ -111,6 +112,7 @@ def analyse(dem: DEM, ref: DEM, job: ErrorAnalysisJob, *, chain: CoregChain | No
                 if sig_model is not None
                 else "binned NMAD (slope, curvature)"
             ),
+            "outliers_left_out": {"cells": n_out, "beyond_nmad": ss.OUTLIER_NMAD},
         },
     }
     if chain_rep is not None:  # the same fitted chain as the report's co-registration

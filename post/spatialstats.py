@@ -553,6 +553,28 @@ def _strict(x):
     return x
 
 
+#: standardised values further than this many NMADs from their median are blunders, left out
+#: of the variogram (xdem's ``infer_spatial_correlation_from_stable``, Hugonnet et al. 2022)
+OUTLIER_NMAD = 4.0
+
+
+def drop_outliers(z, k: float = OUTLIER_NMAD):
+    """``z`` (a copy) with the values further than ``k`` NMADs from its median set to NaN, and
+    their number. A few blunders (0.3 % of a filtered stereo DEM's cells, at up to 400 σ) make
+    a Matheron variogram's sill and range what they like (a sill of 336 for standardised
+    values, a 200 km range, and a σ of an area mean of 58 m on a DEM of NMAD 2.3 m)."""
+    z = np.array(z, float)
+    ok = np.isfinite(z)
+    if not ok.any():
+        return z, 0
+    spread = nmad(z[ok])
+    if not spread > 0:  # a constant field (or a handful of values): nothing to call a blunder
+        return z, 0
+    out = ok & (np.abs(z - np.median(z[ok])) > k * spread)
+    z[out] = np.nan
+    return z, int(out.sum())
+
+
 def standardise(dh, sigma):
     """``dh`` minus its median, divided by the per-cell σ (NaN where σ is not positive)."""
     dh = np.asarray(dh, float)

@@ -13,7 +13,9 @@ Per polygon (glacier, landslide, ...):
    ``A`` the polygon's area on the grid (cell areas in metres, also on lon/lat grids).
 3. **σ of the mean**: the rate errors are spatially correlated; the variogram of the rate
    standardised by its per-cell σ (``rate / rate_sigma``) on stable terrain (where the true
-   rate is 0) is fitted with a sum of two spherical models, and
+   rate is 0; values beyond 4 NMAD left out as blunders,
+   :func:`~stereodem.post.spatialstats.drop_outliers`) is fitted with a sum of two spherical
+   models, and
    σ_ḃ² = (1/N²) Σ_i Σ_j σ_i σ_j ρ(d_ij) (:func:`~stereodem.post.spatialstats.area_mean_sigma`),
    with σ_i the per-cell rate σ (filled cells: the NMAD of the observed rates of their band,
    the spread the fill leaves unexplained, at least the polygon's largest observed σ_i).
@@ -33,7 +35,7 @@ from stereodem.core.stats import nmad
 
 from . import terrain
 from .masks import Outline
-from .spatialstats import area_mean_sigma, fit_variogram, variogram
+from .spatialstats import area_mean_sigma, drop_outliers, fit_variogram, variogram
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +135,8 @@ def rate_error_model(
             "a rate (need 100)"
         )
     z = z - np.nanmedian(z)
-    emp = variogram(z, transform=grid.transform, crs=grid.crs, n_pairs=n_pairs, seed=seed)
+    zfit, _ = drop_outliers(z)  # blunders would set the variogram's sill and range
+    emp = variogram(zfit, transform=grid.transform, crs=grid.crs, n_pairs=n_pairs, seed=seed)
     model = fit_variogram(emp, n_models=n_models)
     return model, emp, nmad(z)
 
