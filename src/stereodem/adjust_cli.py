@@ -130,7 +130,12 @@ def add_parser(sub):
     )
     p.add_argument("--alpha", type=float, default=0.001, help="significance level of data snooping")
     p.add_argument("--no-snooping", action="store_true", help="no outlier rejection")
-    p.add_argument("--max-iterations", type=int, default=20)
+    p.add_argument(
+        "--max-iterations",
+        type=int,
+        default=20,
+        help="iterations of the least-squares adjustment at most (default 20)",
+    )
     p.add_argument(
         "--regularization", help="lcurve, gcv or a weight: Tikhonov for rank-deficient sets"
     )

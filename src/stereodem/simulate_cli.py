@@ -63,7 +63,14 @@ def add_parser(sub):
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--preset", choices=["aster", "frame", "pushbroom"], default="aster")
+    p.add_argument(
+        "--preset",
+        choices=["aster", "frame", "pushbroom"],
+        default="aster",
+        help="scene geometry: aster (the bundled granule's orbit and 3N/3B pointing, 15 m), "
+        "frame (a BILSAT-like frame camera, two converging exposures) or pushbroom (a "
+        "generic along-track pair, tilts from --angles) (default aster)",
+    )
     p.add_argument(
         "--format",
         choices=FORMATS,
@@ -81,7 +88,14 @@ def add_parser(sub):
     p.add_argument(
         "--texture", help="texture image (default: the bundled Landsat image plus detail)"
     )
-    p.add_argument("--size", nargs=2, type=int, default=[600, 600], metavar=("W", "H"))
+    p.add_argument(
+        "--size",
+        nargs=2,
+        type=int,
+        default=[600, 600],
+        metavar=("W", "H"),
+        help="image size in pixels (the left image's with --right-size) (default 600 600)",
+    )
     p.add_argument(
         "--right-size",
         nargs=2,
@@ -91,8 +105,12 @@ def add_parser(sub):
         "4100 4200; granule formats default to that ratio)",
     )
     p.add_argument("--noise", type=float, default=1.0, help="sensor noise sigma in DN (default 1)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--bits", type=int, choices=[8, 16], default=8)
+    p.add_argument(
+        "--seed", type=int, default=0, help="random seed of texture detail and noise (default 0)"
+    )
+    p.add_argument(
+        "--bits", type=int, choices=[8, 16], default=8, help="image quantisation (default 8)"
+    )
     p.add_argument(
         "--angles",
         nargs=2,

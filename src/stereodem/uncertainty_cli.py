@@ -85,14 +85,23 @@ def add_parser(sub):
     p.add_argument(
         "--covariance", metavar="REPORT", help="adjust_report.json with a full covariance"
     )
-    p.add_argument("--method", choices=UNCERTAINTY_METHODS, default="first-order")
+    p.add_argument(
+        "--method",
+        choices=UNCERTAINTY_METHODS,
+        default="first-order",
+        help="propagation: first-order (Jacobians of the ground position, full covariance), "
+        "monte-carlo (--samples Latin hypercube draws) or fast (FAST and Sobol sensitivity "
+        "indices, SALib) (default first-order)",
+    )
     p.add_argument(
         "--samples",
         type=int,
         default=1000,
         help="Monte Carlo samples or FAST points per curve (default 1000)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed", type=int, default=0, help="random seed of the sampled methods (default 0)"
+    )
     p.add_argument(
         "--source-maps", action="store_true", help="also write share_<source>.tif per source"
     )

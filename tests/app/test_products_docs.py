@@ -27,6 +27,54 @@ def test_committed_configuration_md_is_the_generators_output():
     assert main(["--check", str(ROOT / "docs" / "configuration.md")]) == 0
 
 
+def test_committed_cli_md_is_the_generators_output():
+    from stereodem import clidoc
+
+    committed = (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")
+    assert committed == clidoc.cli_markdown(), (
+        "docs/cli.md is stale: python -m stereodem.clidoc > docs/cli.md"
+    )
+    assert clidoc.main(["--check", str(ROOT / "docs" / "cli.md")]) == 0
+
+
+def test_every_command_and_option_is_in_the_cli_reference(tmp_path):
+    """Each sub-command's section lists every option and argument its parser has (help
+    aside), with its required mark and the default its help text does not state."""
+    import argparse
+
+    from stereodem import clidoc
+    from stereodem.commands import COMMANDS
+
+    text = clidoc.cli_markdown()
+    subs = clidoc._subparsers()
+    assert list(subs) == list(COMMANDS)
+    for name, p in subs.items():
+        section = text.split(f"## `stereodem {name}`\n", 1)[1].split("\n## ", 1)[0]
+        for a in p._actions:
+            if isinstance(a, argparse._HelpAction) or a.help == argparse.SUPPRESS:
+                continue
+            rows = [r for r in section.splitlines() if r.startswith("| `")]
+            if a.option_strings:  # the row whose first cell names the option
+                row = next(
+                    (r for r in rows if f"`{a.option_strings[0]}`" in r.split(" | ")[0]), None
+                )
+            else:  # a positional: its row has no option and says its help
+                row = next((r for r in rows if " ".join(a.help.split())[:30] in r), None)
+            assert row is not None, (name, a.dest)
+            assert a.help, f"stereodem {name} {a.option_strings or a.dest}: no help text"
+            for s in a.option_strings:
+                assert f"`{s}`" in row, (name, s)
+            if a.required and a.option_strings:
+                assert "*required*" in row, (name, a.dest)
+    # a default the help does not state is added: ortho --resampling says none of its own
+    ortho = text.split("## `stereodem ortho`", 1)[1].split("\n## ", 1)[0]
+    assert "(default: bilinear)" in ortho
+    # a stale file is reported
+    stale = tmp_path / "cli.md"
+    stale.write_text(text.replace("stereodem ortho", "stereodem orto", 1), encoding="utf-8")
+    assert clidoc.main(["--check", str(stale)]) == 1
+
+
 def test_every_config_section_and_key_is_documented():
     text = configuration_markdown()
     for name, cls in SECTIONS.items():
