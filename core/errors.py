@@ -23,6 +23,16 @@ class SensorModelError(InputError):
     """A sensor model cannot be built or evaluated (missing metadata, no convergence)."""
 
 
+class NoSensorModelError(RPCError, SensorModelError):
+    """A file carries no sensor model of the kind looked for: no RPCs in any format stereodem
+    reads (:func:`~stereodem.sensor.io.rpc_formats.read_rpc`), or an image neither a
+    ``<stem>.model.json`` sidecar nor RPCs
+    (:func:`~stereodem.sensor.io.sidecar.load_image_model`). A model that is there but garbled
+    (invalid JSON, bad RPC tags) is another :class:`SensorModelError` or :class:`RPCError`:
+    only this one may be passed over by what can do without the image's model (a generic
+    model fitted to GCPs)."""
+
+
 class CRSError(InputError):
     """A raster or point set has no CRS, or one that cannot be used."""
 

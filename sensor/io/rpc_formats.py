@@ -43,7 +43,7 @@ from xml.etree import ElementTree
 import numpy as np
 import rasterio
 
-from stereodem.core.errors import RPCError
+from stereodem.core.errors import NoSensorModelError, RPCError
 from stereodem.core.raster import write_geotiff, write_text_atomic
 from stereodem.sensor.models.rpc import (
     _RPB_KEYS,
@@ -93,7 +93,9 @@ def read_rpc(path, *, direct: bool = False) -> RPCModel:
         model = _sniff(path)
     if model is None:
         why = f"; {gdal_note}" if gdal_note else ""
-        raise RPCError(f"{path}: no RPC model found (tried: {', '.join(FORMATS_TRIED)}){why}")
+        raise NoSensorModelError(
+            f"{path}: no RPC model found (tried: {', '.join(FORMATS_TRIED)}){why}"
+        )
     if direct:
         return DirectRPCModel.from_rpc(model)
     return model

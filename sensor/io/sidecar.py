@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core import jsonutil
-from stereodem.core.errors import RPCError, SensorModelError
+from stereodem.core.errors import NoSensorModelError, RPCError, SensorModelError
 from stereodem.core.raster import as_path, write_text_atomic
 from stereodem.sensor.io.rpc_formats import read_rpc
 from stereodem.sensor.models import frame
@@ -151,7 +151,8 @@ def load_image_model(image, *, prefer: str = "physical", rpc_direct: bool = Fals
     ``prefer="physical"`` uses the ``<stem>.model.json`` sidecar when present, else the RPC;
     ``prefer="rpc"`` uses the RPC only; ``rpc_direct`` localises an RPC with its file's
     direct model. Raises :class:`SensorModelError` naming the file when the image carries no
-    usable model.
+    usable model: :class:`NoSensorModelError` when it carries none at all (no sidecar, no
+    RPCs), any other when the one it carries cannot be read (a garbled sidecar or RPCs).
     """
     image = Path(image)
     if not image.exists():
@@ -164,6 +165,7 @@ def load_image_model(image, *, prefer: str = "physical", rpc_direct: bool = Fals
     except RPCError as exc:
         if prefer == "rpc":  # the sidecar was not asked for: do not blame its absence
             raise SensorModelError(f"{image}: no usable RPC model ({exc})") from None
-        raise SensorModelError(
+        none = isinstance(exc, NoSensorModelError)
+        raise (NoSensorModelError if none else SensorModelError)(
             f"{image}: no usable sensor model (no {side.name} sidecar; {exc})"
         ) from None

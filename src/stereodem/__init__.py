@@ -28,6 +28,7 @@ _API = {
     "InputError": "stereodem.core.errors",
     "RPCError": "stereodem.core.errors",
     "SensorModelError": "stereodem.core.errors",
+    "NoSensorModelError": "stereodem.core.errors",
     "CRSError": "stereodem.core.errors",
     "DEMError": "stereodem.core.errors",
     "DEMCoverageError": "stereodem.core.errors",

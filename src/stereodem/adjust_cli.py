@@ -404,12 +404,16 @@ def _pair_inputs(args):
 
 def _model_if_any(image, band):
     """IMAGE's own sensor model (:func:`stereodem.pipeline.inputs.image_model`: the image
-    checked readable), or None when it has none (a generic model needs none)."""
-    from stereodem.core.errors import SensorModelError
+    checked readable), or None when it has none at all (a generic model needs none). A model
+    it has but that cannot be read (a garbled ``<stem>.model.json``, bad RPC tags) and a
+    missing image are the errors every other command gives: only
+    :class:`~stereodem.core.errors.NoSensorModelError` is passed over (before, every
+    :class:`SensorModelError` was: a garbled sidecar was ignored without a word)."""
+    from stereodem.core.errors import NoSensorModelError
 
     from .pipeline.inputs import image_model
 
     try:
         return image_model(image, band=band)
-    except SensorModelError:
+    except NoSensorModelError:
         return None

@@ -115,3 +115,51 @@ def test_a_generic_model_of_an_image_without_a_model_describes_the_image(sim, tm
     argv = ["ortho", img, "--dem", sim / "truth_dem.tif", "--model", fitted]
     code, _, err = run_cli(capsys, [*argv, "-o", tmp_path / "o.tif", "--workers", "1"])
     assert code == 0, err
+
+
+GARBLED_SIDECARS = {
+    # what a broken copy or an edit leaves: not JSON, or JSON that is no whole model
+    "invalid_json": ('{"type": "pushbroom", "width": 300,', r"not valid JSON"),
+    "missing_key": ('{"type": "pushbroom", "version": 1}', r"garbled pushbroom model"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(GARBLED_SIDECARS))
+@pytest.mark.parametrize("case", ["adjust_generic", "adjust", "compare-models", "uncertainty"])
+def test_a_garbled_model_sidecar_is_refused_by_every_command(case, kind, sim, tmp_path, capsys):
+    """A garbled ``<stem>.model.json`` beside the image is the error ``ortho`` gives, naming
+    the sidecar, in every command that reads the image's model. Before, ``adjust --model
+    rational-1`` (a generic model, which needs no model of the image) passed over it without a
+    word and fitted its model (exit 0), where ``adjust --model rpc-shift`` and ``ortho``
+    refused it."""
+    text, problem = GARBLED_SIDECARS[kind]
+    img = tmp_path / "img.tif"
+    shutil.copy(sim / "left.tif", img)
+    (tmp_path / "img.model.json").write_text(text)
+    out = tmp_path / "out"
+    code, stdout, err = run_cli(capsys, [*_argv(case, sim, img, out), "--workers", "1"])
+    assert_clear_error(code, err, case.split("_")[0], rf"img\.model\.json.*{problem}")
+    assert not out.exists() and stdout == ""
+    code, _, ortho_err = run_cli(capsys, [*_argv("ortho", sim, img, out), "--workers", "1"])
+    assert code == 1
+    assert _error_text(err) == _error_text(ortho_err)
+
+
+def test_a_generic_model_of_an_image_with_garbled_rpcs_is_refused(sim, tmp_path, capsys):
+    """Only an image without any model may be given a generic model without a word
+    (:class:`~stereodem.core.errors.NoSensorModelError`): RPCs that are there but garbled
+    (an ``_RPC.TXT`` beside the image, cut short) are the error ``ortho`` gives."""
+    with rasterio.open(sim / "left.tif") as ds:
+        prof, data = ds.profile, ds.read(1)
+    img = tmp_path / "badrpc.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(img, "w", **prof) as out:
+            out.write(data[None])
+    (tmp_path / "badrpc_RPC.TXT").write_text("LINE_OFF: 150 pixels\nSAMP_OFF: 150 pixels\n")
+    out = tmp_path / "out"
+    code, _, err = run_cli(capsys, [*_argv("adjust_generic", sim, img, out), "--workers", "1"])
+    assert_clear_error(code, err, "adjust", r"badrpc_RPC\.TXT: RPC key \w+ missing")
+    code, _, ortho_err = run_cli(capsys, [*_argv("ortho", sim, img, out), "--workers", "1"])
+    assert code == 1
+    assert _error_text(err) == _error_text(ortho_err)
