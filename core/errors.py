@@ -122,3 +122,18 @@ class ConvergenceError(StereodemError, RuntimeError):
 def where(path) -> str:
     """Prefix for messages about ``path`` (empty when there is no file)."""
     return f"{path}: " if path else ""
+
+
+#: the reason :func:`not_found` gives (the system's own words, as ``OSError.strerror`` says it)
+NOT_FOUND = "No such file or directory"
+
+
+def not_found(path, what: str) -> str:
+    """The one wording of a missing input file, in every reader of every command: ``"PATH:
+    cannot read the WHAT (No such file or directory)"`` (``what``: "image", "DEM", "GCP
+    file", ...), the wording of every reader that cannot read its file ("PATH: cannot read
+    the WHAT (REASON)": :func:`stereodem.core.raster.unreadable`, the CSV readers). Before,
+    a missing file read "PATH: image not found", "PATH: match file not found", "PATH: no
+    such file", "PATH: no such file or folder" or "PATH: cannot read the DEM (PATH: No such
+    file or directory)" depending on the reader."""
+    return f"{path}: cannot read the {what} ({NOT_FOUND})"

@@ -31,7 +31,14 @@ from pyproj.crs import CompoundCRS
 from rasterio._err import CPLE_BaseError
 from rasterio.io import MemoryFile
 
-from stereodem.core.errors import CRSError, InputError, OutputExistsError, OutputWriteError
+from stereodem.core.errors import (
+    NOT_FOUND,
+    CRSError,
+    InputError,
+    OutputExistsError,
+    OutputWriteError,
+    not_found,
+)
 
 from .memory import check_allocation
 
@@ -716,13 +723,18 @@ def unreadable(path, what: str, exc) -> str:
     """The one-line message for a raster ``path`` that GDAL could not open or read as ``what``
     ("DEM", "image", "reference DEM"): a folder given for the file says so ("PATH: is a
     directory, not a DEM file"; GDAL's "not recognized as being in a supported file format"
-    said nothing of it), anything else "PATH: cannot read the WHAT (GDAL's first line)". Every
-    reader of DEM files and images words its failure with it."""
+    said nothing of it), a missing file :func:`~stereodem.core.errors.not_found` (GDAL's
+    "PATH: No such file or directory" named the file twice), anything else "PATH: cannot read
+    the WHAT (GDAL's first line)". Every reader of DEM files and images words its failure
+    with it."""
     if isinstance(path, str | os.PathLike) and Path(path).is_dir():
         article = "an" if what[:1].lower() in "aeiou" else "a"
         return f"{path}: is a directory, not {article} {what} file"
     cause = exc.__cause__ or exc.__context__
     first = str(exc).splitlines()[0] if str(exc) else ""
+    if first.endswith(NOT_FOUND) and isinstance(path, str | os.PathLike):
+        if not os.path.lexists(path):  # not a GDAL virtual path ("/vsizip/...") GDAL misses
+            return not_found(path, what)
     said = None
     if isinstance(cause, CPLE_BaseError) and "previous exception" in first:
         # the header opened, a block did not decode: rasterio's own message ("Read failed.

@@ -20,7 +20,7 @@ import shapely
 
 from stereodem.core import geodesy
 from stereodem.core.dem import said_vertical
-from stereodem.core.errors import InputError, VerticalReferenceError
+from stereodem.core.errors import InputError, VerticalReferenceError, not_found
 from stereodem.core.vertical import ELLIPSOID, GEOID
 
 _LON = ("lon", "longitude", "x_lon")
@@ -181,7 +181,7 @@ def read_points(path, *, vertical: str | None = None) -> AltimetryPoints:
     path = str(path)
     suffix = Path(path).suffix.lower()
     if not Path(path).is_file():
-        raise InputError(f"{path}: no such file")
+        raise InputError(not_found(path, "points"))
     try:
         if suffix in (".parquet", ".geoparquet", ".pq"):
             cols, lines = _read_parquet(path), None

@@ -38,6 +38,7 @@ from stereodem.core.errors import (
     InputError,
     NoOverlapError,
     VerticalReferenceError,
+    not_found,
 )
 from stereodem.core.raster import check_map_raster, unreadable
 from stereodem.sensor.io.gcps import parse_roles
@@ -910,6 +911,8 @@ def read_checkpoints(path, *, crs=None, quiet: bool = False):
     try:
         with open(path, newline="") as f:
             rows = list(csv.DictReader(f))
+    except FileNotFoundError:
+        raise InputError(not_found(path, "check points")) from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read the check points ({exc.strerror})") from None
     except (UnicodeDecodeError, csv.Error):

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import rasterio
 
-from stereodem.core.errors import InputError
+from stereodem.core.errors import InputError, not_found
 
 DATE_TAGS = ("ACQUISITION_DATE", "ASTER_ACQUISITION_TIME", "TIFFTAG_DATETIME")
 SIDECARS = ("run.json", "dem_report.json")
@@ -71,6 +71,8 @@ def read_dates_csv(path) -> dict:
     out = {}
     try:
         rows = list(csv.reader(Path(path).read_text().splitlines()))
+    except FileNotFoundError:
+        raise InputError(not_found(path, "dates CSV")) from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read the dates CSV ({exc.strerror})") from None
     for i, row in enumerate(rows, start=1):

@@ -9,6 +9,7 @@ from the stable terrain; ``include`` outlines, when given, are the only stable t
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,7 +19,7 @@ from pyproj import CRS, Transformer
 from rasterio.features import rasterize as rio_rasterize
 
 from stereodem.core.dem import DEM
-from stereodem.core.errors import CRSError, InputError, NoOverlapError
+from stereodem.core.errors import CRSError, InputError, NoOverlapError, not_found
 from stereodem.core.raster import check_map_raster, reading_env, unreadable
 from stereodem.core.stats import nmad
 
@@ -58,6 +59,8 @@ def read_outlines(path, crs) -> list[Outline]:
     import pyogrio  # here: importing it imports pandas (0.2 s), which a run does not need
 
     path = str(path)
+    if not os.path.lexists(path) and "://" not in path and not path.startswith("/vsi"):
+        raise InputError(not_found(path, "vector file"))
     try:
         meta, _, geom_wkb, fields = pyogrio.raw.read(path)
         geoms = shapely.from_wkb(geom_wkb)

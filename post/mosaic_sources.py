@@ -37,6 +37,7 @@ from stereodem.core.errors import (
     DEMError,
     InputError,
     VerticalReferenceError,
+    not_found,
 )
 from stereodem.core.grid import MapGrid, as_crs
 from stereodem.core.raster import VERTICAL_TAG, unreadable
@@ -134,7 +135,7 @@ def open_source(path, order: int = 0, *, vertical: str | None = None) -> Source:
     when it cannot be used."""
     path = Path(path)
     if not path.exists():
-        raise DEMError(f"{path}: no such file")
+        raise DEMError(not_found(path, "DEM"))
     try:
         with rasterio.open(path) as ds:
             check_georeferenced(path, ds)  # a CRS and a geotransform

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stereodem.core.errors import InputError
+from stereodem.core.errors import InputError, not_found
 from stereodem.core.raster import atomic_path, check_writable
 
 __all__ = [
@@ -170,7 +170,7 @@ def read_match(path) -> MatchFile:
     try:
         buf = path.read_bytes()
     except FileNotFoundError:
-        raise InputError(f"{path}: match file not found") from None
+        raise InputError(not_found(path, "match file")) from None
     except IsADirectoryError:
         raise InputError(f"{path}: is a folder, not an ASP match file") from None
     if len(buf) < 16:

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core import geodesy
-from stereodem.core.errors import InputError, SensorModelError
+from stereodem.core.errors import InputError, SensorModelError, not_found
 from stereodem.sensor.io.aster_metadata import (
     first_key,
     granule_metadata,
@@ -244,7 +244,7 @@ def open_aster_granule(path, *, bands=VNIR_BANDS) -> AsterGranule:
     """
     p = Path(path)
     if not p.exists():
-        raise InputError(f"{p}: no such file or folder")
+        raise InputError(not_found(p, "ASTER granule"))
     if p.is_dir() or p.suffix.lower() == ".zip":
         from stereodem.sensor.io.aster_v003 import read_v003
 

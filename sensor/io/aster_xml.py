@@ -13,7 +13,7 @@ from importlib import resources
 
 import numpy as np
 
-from stereodem.core.errors import RPCError, SensorModelError
+from stereodem.core.errors import RPCError, SensorModelError, not_found
 from stereodem.sensor.io.tables import TableError, numeric_blocks
 from stereodem.sensor.models.aster import _RPB_COEFS, AsterGeometry
 
@@ -110,7 +110,7 @@ def read_asp_aster_xml(path) -> AsterGeometry:
     try:
         root = ET.parse(path).getroot()
     except FileNotFoundError:
-        raise SensorModelError(f"{path}: no such file") from None
+        raise SensorModelError(not_found(path, "ASTER XML file")) from None
     except ET.ParseError as exc:
         raise SensorModelError(f"{path}: not valid XML ({exc})") from None
     lattice = _blocks(root, "LATTICE_POINT", path)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from stereodem.core import geodesy
-from stereodem.core.errors import InputError, where
+from stereodem.core.errors import InputError, not_found, where
 from stereodem.core.raster import write_text_atomic
 
 __all__ = [
@@ -158,8 +158,10 @@ def csv_rows(path, what: str) -> list:
         with open(path, newline="", encoding="utf-8-sig") as f:
             text = f.read()
         rows = list(csv.reader(io.StringIO(text)))
+    except FileNotFoundError:
+        raise InputError(not_found(path, what)) from None
     except OSError as exc:
-        raise InputError(f"{where(path)}cannot read {what} ({exc.strerror})") from None
+        raise InputError(f"{where(path)}cannot read the {what} ({exc.strerror})") from None
     except (UnicodeDecodeError, csv.Error):
         raise InputError(
             f"{where(path)}not a UTF-8 text CSV (binary or another encoding); expected a {what}"

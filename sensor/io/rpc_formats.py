@@ -43,7 +43,7 @@ from xml.etree import ElementTree
 import numpy as np
 import rasterio
 
-from stereodem.core.errors import NoSensorModelError, RPCError
+from stereodem.core.errors import NoSensorModelError, RPCError, not_found
 from stereodem.core.raster import write_geotiff, write_text_atomic
 from stereodem.sensor.models.rpc import (
     _RPB_KEYS,
@@ -87,7 +87,7 @@ def read_rpc(path, *, direct: bool = False) -> RPCModel:
     """
     path = Path(path)
     if not path.is_file():
-        raise RPCError(f"{path}: no such file")
+        raise RPCError(not_found(path, "RPC file"))
     model, gdal_note = _read_gdal(path)
     if model is None:
         model = _sniff(path)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from stereodem.core import jsonutil
-from stereodem.core.errors import NoSensorModelError, RPCError, SensorModelError
+from stereodem.core.errors import NoSensorModelError, RPCError, SensorModelError, not_found
 from stereodem.core.raster import as_path, write_text_atomic
 from stereodem.sensor.io.rpc_formats import read_rpc
 from stereodem.sensor.models import frame
@@ -124,7 +124,7 @@ def load_model(path, *, rpc_direct: bool = False):
     try:
         text = path.read_text(errors="replace")
     except FileNotFoundError:
-        raise SensorModelError(f"{path}: model file not found") from None
+        raise SensorModelError(not_found(path, "model file")) from None
     except (IsADirectoryError, PermissionError) as exc:
         raise SensorModelError(f"{path}: cannot read the model file ({exc.strerror})") from None
     try:
@@ -156,7 +156,7 @@ def load_image_model(image, *, prefer: str = "physical", rpc_direct: bool = Fals
     """
     image = Path(image)
     if not image.exists():
-        raise SensorModelError(f"{image}: image not found")
+        raise SensorModelError(not_found(image, "image"))
     side = sidecar_path(image)
     if prefer == "physical" and side.exists():
         return load_model(side)

@@ -44,7 +44,7 @@ from pathlib import Path
 import tomllib
 
 from stereodem.core import jsonutil
-from stereodem.core.errors import InputError, StereodemError, one_line
+from stereodem.core.errors import InputError, StereodemError, not_found, one_line
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import write_text_atomic
 from stereodem.core.threads import (
@@ -107,9 +107,10 @@ def expand_inputs(paths, template=None) -> list[Scene]:
     """The scenes named by ``paths``: configurations (``*.toml``), granules, and list files
     (``*.txt``/``*.lst``: one path per line, ``#`` comments, relative to the list). Names are
     the file stems, made unique with ``_2``, ``_3``, ...; a path that does not exist becomes a
-    scene that fails with "not found" (the others still run). A list file that cannot be read,
-    a scene given twice (it would be run twice) and a ``template`` that cannot be read as TOML
-    are an :class:`InputError` (before any scene runs)."""
+    scene that fails as missing (:func:`~stereodem.core.errors.not_found`; the others still
+    run). A list file that cannot be read, a scene given twice (it would be run twice) and a
+    ``template`` that cannot be read as TOML are an :class:`InputError` (before any scene
+    runs)."""
     if template is not None:
         _read_template(template)
     scenes, seen, given = [], {}, {}
@@ -142,6 +143,8 @@ def _read_template(template) -> dict:
     t = Path(template)
     try:
         return tomllib.loads(t.read_text())
+    except FileNotFoundError:
+        raise InputError(not_found(t, "template configuration")) from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise InputError(f"{t}: cannot read the template configuration ({exc})") from None
 
@@ -152,6 +155,8 @@ def _flatten(paths):
         if path.suffix.lower() in LIST_SUFFIXES:
             try:
                 lines = path.read_text().splitlines()
+            except FileNotFoundError:
+                raise InputError(not_found(path, "scene list")) from None
             except (OSError, UnicodeDecodeError) as exc:
                 raise InputError(f"{path}: cannot read the scene list ({exc})") from None
             for line in lines:
@@ -194,7 +199,7 @@ def scene_config(
     """The :class:`stereodem.config.Config` of one scene, writing into ``out_dir``;
     ``keep_tiles`` (None: the configuration's ``[run] keep_tiles``) overrides it."""
     if scene.kind == "missing":
-        raise InputError(f"{scene.path}: not found")
+        raise InputError(not_found(scene.path, "scene"))
     resume = not overwrite
     # absolute: the paths run.json records then name the same files from any folder
     # (:func:`done_with_other_settings` compares them)

@@ -52,7 +52,7 @@ from pathlib import Path
 
 import tomllib
 
-from stereodem.core.errors import InputError
+from stereodem.core.errors import InputError, not_found
 from stereodem.core.grid import map_crs
 from stereodem.core.raster import as_path, check_creation_options
 from stereodem.core.vertical import VERTICALS, Vertical
@@ -590,7 +590,7 @@ def load_config(path, **overrides) -> Config:
     try:
         raw = tomllib.loads(path.read_text())
     except FileNotFoundError:
-        raise InputError(f"{path}: configuration file not found") from None
+        raise InputError(not_found(path, "configuration file")) from None
     except IsADirectoryError:
         raise InputError(f"{path}: is a folder, not a configuration file") from None
     except UnicodeDecodeError:

@@ -271,7 +271,7 @@ def test_cli_exit_codes_and_help(tmp_path, capsys):
         cli.main(["run"])  # missing argument: bad usage
     assert e.value.code == 2
     assert cli.main(["run", str(tmp_path / "missing.toml")]) == 1
-    assert "configuration file not found" in capsys.readouterr().err
+    assert "cannot read the configuration file (No such file" in capsys.readouterr().err
 
 
 @pytest.mark.slow

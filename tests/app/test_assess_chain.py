@@ -245,7 +245,9 @@ def test_run_configuration_excludes_polygons_from_the_assessments_coregistration
     assert "error_analysis" not in result.report
     with pytest.raises(InputError, match=r"\[assess\] exclude .* needs coregister = true"):
         cfg(exclude=["glacier.geojson"], coregister=False)
-    with pytest.raises(InputError, match=r"missing.geojson: \[assess\] exclude: no such file"):
+    with pytest.raises(
+        InputError, match=r"missing.geojson: cannot read the \[assess\] exclude outlines \(No such"
+    ):
         check_inputs(cfg(exclude=["missing.geojson"]))
     for bad in ("glacier.geojson", ["glacier.geojson", 5], [""], [float("nan")]):
         with pytest.raises(InputError, match=r"job.toml: \[assess\] exclude: expected a list"):

@@ -123,7 +123,9 @@ def test_list_files_names_and_missing_scenes(tmp_path):
     ]
     result = run_batch([sc[2]], tmp_path / "out", workers=1)
     row = result["scenes"][0]
-    assert row["status"] == "failed" and row["reason"].endswith("none.hdf: not found")
+    assert row["status"] == "failed" and row["reason"].endswith(
+        "none.hdf: cannot read the scene (No such file or directory)"
+    )
 
 
 def test_a_scene_given_twice_and_an_unreadable_template_are_refused(tmp_path):

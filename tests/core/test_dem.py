@@ -478,7 +478,9 @@ def test_a_directory_given_for_a_dem_or_an_image_says_so(tmp_path):
         with pytest.raises(InputError) as e:
             read(folder)
         assert str(e.value) == f"{folder}: is a directory, not an image file"
-    with pytest.raises(DEMError, match="cannot read the DEM .*No such file"):
+    with pytest.raises(
+        DEMError, match=r"missing.tif: cannot read the DEM \(No such file or directory\)$"
+    ):
         DEM.from_file(tmp_path / "missing.tif")
 
 

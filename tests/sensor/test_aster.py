@@ -249,7 +249,9 @@ def test_bad_xml(tmp_path, xml_path):
     not_xml.write_text("<isd><LATTICE_POINT>")
     with pytest.raises(SensorModelError, match="not valid XML"):
         read_asp_aster_xml(not_xml)
-    with pytest.raises(SensorModelError, match="no such file"):
+    with pytest.raises(
+        SensorModelError, match=r"missing.xml: cannot read the ASTER XML file \(No such file"
+    ):
         read_asp_aster_xml(tmp_path / "missing.xml")
 
 

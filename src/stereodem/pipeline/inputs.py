@@ -13,7 +13,7 @@ import numpy as np
 
 from stereodem.core import raster
 from stereodem.core.dem import DEM, ELLIPSOID
-from stereodem.core.errors import InputError
+from stereodem.core.errors import InputError, not_found
 from stereodem.core.raster import image_dtype, image_shape, read_image
 from stereodem.post.assess import check_checkpoints
 from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
@@ -172,7 +172,7 @@ def chosen_model(
                 raise InputError(f"{path}: an ASTER granule has no RPCs (--model auto)")
             return ChosenModel(image_model(path, band=band))
         if not Path(path).exists():
-            raise SensorModelError(f"{path}: image not found")
+            raise SensorModelError(not_found(path, "image"))
         if choice == "physical" and not sidecar_path(path).exists():
             raise SensorModelError(f"{path}: no physical model sidecar ({sidecar_path(path).name})")
         model = load_image_model(
@@ -320,7 +320,7 @@ def check_inputs(cfg: Config):
             check_checkpoints(i.checkpoints, crs=i.checkpoints_crs)
         for path in cfg.assess.exclude or ():  # read when the co-registration is fitted
             if not Path(path).is_file():
-                raise InputError(f"{path}: [assess] exclude: no such file")
+                raise InputError(not_found(path, "[assess] exclude outlines"))
 
 
 def input_paths(cfg: Config) -> list:
