@@ -3,6 +3,7 @@ the same independent check points (:mod:`stereodem.sensor.estimation.compare`)."
 
 from __future__ import annotations
 
+import argparse
 import logging
 from pathlib import Path
 
@@ -18,6 +19,11 @@ PRODUCTS = Products(
 
 log = logging.getLogger(__name__)
 
+EXAMPLES = """examples:
+  stereodem compare-models left.tif --gcps points.csv --models all -o cmp
+  stereodem compare-models AST_L1A_....hdf --band 3B --gcps points_3b.csv -o cmp_3b
+"""
+
 
 def add_parser(subparsers):
     p = subparsers.add_parser(
@@ -25,9 +31,15 @@ def add_parser(subparsers):
         help=help_line("compare-models"),
         description="Fit every model with the same GCP/ICP split and GCP counts from small to "
         "large; write compare.json, compare.md and compare.png to DIR.",
-        epilog="example: stereodem compare-models left.tif --gcps points.csv --models all -o cmp",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("image", help="image with a <stem>.model.json sidecar or RPC metadata")
+    p.add_argument(
+        "image",
+        help="image GeoTIFF (with RPCs or a <stem>.model.json sidecar), or an ASTER L1A "
+        "granule (choose the band with --band 3N|3B; the GCPs' col,row in that band)",
+    )
+    options.add_band(p, "1; 3N in an ASTER granule", radiometric=False)
     p.add_argument("--gcps", required=True, help="CSV id,lon,lat,h,col,row[,role,...]")
     p.add_argument(
         "--models",
@@ -78,10 +90,10 @@ def run(args) -> int:
         split_summary,
     )
     from stereodem.sensor.io.gcps import read_gcps
-    from stereodem.sensor.io.sidecar import load_image_model, sidecar_path
+    from stereodem.sensor.io.sidecar import sidecar_path
 
     from .outlock import check_output_folder, output_folder
-    from .pipeline.inputs import check_image
+    from .pipeline.inputs import image_model, image_name
 
     try:
         counts = [int(v) for v in args.counts.split(",") if v.strip()]
@@ -93,8 +105,9 @@ def run(args) -> int:
         raise InputError(f"--splits: expected a count >= 0, got {args.splits}")
     inputs = [args.image, sidecar_path(args.image), args.gcps]
     check_output_folder(args.output, PRODUCTS, overwrite=args.overwrite, inputs=inputs)
-    base = load_image_model(args.image)
-    check_image(args.image)  # the image itself, not only its model sidecar
+    # the image's model (a GeoTIFF's sidecar or RPCs, the image itself checked readable; an
+    # ASTER granule's --band), as adjust and uncertainty take it
+    base = image_model(args.image, band=args.band)
     points = read_gcps(args.gcps)
     models = expand_models([m.strip() for m in args.models.split(",") if m.strip()], base)
     records = compare(
@@ -120,7 +133,8 @@ def run(args) -> int:
             "records": recs,
         }
     with output_folder(args.output, PRODUCTS, overwrite=args.overwrite, inputs=inputs) as out:
-        _write(out, records, splits, image=Path(args.image).name)
+        name = image_name(args.image, args.band, name=Path(args.image).name)
+        _write(out, records, splits, image=name)
     ok = [r for r in records if not r.get("error")]
     options.say(
         f"{len(models)} model(s), {len(records)} fit(s), {len(records) - len(ok)} refused -> {out}"

@@ -111,7 +111,7 @@ PATCHED = {
     "adjust": ("stereodem.sensor.io.gcps", "read_gcps"),
     "mosaic": ("stereodem.post.mosaic", "plan_mosaic"),
     "simulate": ("stereodem.sensor.simulation.simulate", "simulate_scene"),
-    "compare-models": ("stereodem.sensor.io.sidecar", "load_image_model"),
+    "compare-models": ("stereodem.pipeline.inputs", "image_model"),
 }
 
 

@@ -168,3 +168,56 @@ def test_compare_models_refuses_negative_splits(image, tmp_path, capsys):
     )
     assert rc == 1
     assert "--splits: expected a count >= 0, got -1" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def granule(tmp_path_factory):
+    """A small simulated ASTER L1A V004 granule (3N 200 x 200, 3B in the real size ratio) with
+    its check points (``col,row`` in 3N, ``col_right,row_right`` in 3B) and those points
+    measured in 3B (``points_3b.csv``)."""
+    from stereodem.sensor.simulation.aster_granule import (
+        granule_right_size,
+        write_granule_scene,
+    )
+    from stereodem.sensor.simulation.simulate import simulate_scene
+
+    d = tmp_path_factory.mktemp("granule")
+    sc = simulate_scene(
+        "aster", size=(200, 200), right_size=granule_right_size((200, 200)), seed=3, n_points=20
+    )
+    path = write_granule_scene(sc, d, version=4, seed=3)
+    with open(d / "points.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    with open(d / "points_3b.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["id", "lon", "lat", "h", "col", "row", "role"])
+        for r in rows:
+            w.writerow([r[k] for k in ("id", "lon", "lat", "h", "col_right", "row_right", "role")])
+    return path
+
+
+def _compare_granule(path, csv_name, out, *band):
+    argv = ["compare-models", path, *band, "--gcps", path.parent / csv_name]
+    argv += ["--models", "rpc-shift,attitude-bias", "--counts", "6", "-o", out]
+    return main([str(a) for a in argv])
+
+
+def test_compare_models_takes_an_aster_granule(granule, image, tmp_path, capsys):
+    """``compare-models`` on an ASTER L1A granule takes its band's model as ``adjust`` and
+    ``uncertainty`` do: 3N by default, ``--band 3B`` for the backward band. Before: "no usable
+    sensor model (no AST_L1A_....model.json sidecar; ...: no RPC model found ...)"."""
+    for band, points in (((), "points.csv"), (("--band", "3B"), "points_3b.csv")):
+        out = tmp_path / f"cmp{len(band)}"
+        assert _compare_granule(granule, points, out, *band) == 0, capsys.readouterr().err
+        rec = strict_loads((out / "compare.json").read_text())
+        # the points are the band model's exact projections: both fits are exact at the ICPs
+        assert {r["model"] for r in rec} == {"rpc-shift", "attitude-bias"}
+        assert all(not r.get("error") and r["icp_rmse_px"] < 0.01 for r in rec), rec
+    # the band is the one asked for: the 3B points do not fit 3N (the default)
+    assert _compare_granule(granule, "points_3b.csv", tmp_path / "wrong") == 1
+    assert "check points lie outside the 200 x 200 image" in capsys.readouterr().err
+    # a band name on a GeoTIFF is refused as in the other commands
+    assert _compare_granule(image / "left.tif", "points.csv", tmp_path / "x", "--band", "3B") == 1
+    assert "band '3B' names an ASTER band, but this is not an ASTER granule" in (
+        capsys.readouterr().err
+    )

@@ -54,6 +54,19 @@ class InputImage:
 ASTER_STEREO_BANDS = ("3N", "3B")
 
 
+def aster_band(band) -> str:
+    """The band of an ASTER granule that ``band`` (a ``--band``) names: ``"3N"``/``"3B"``, or
+    for a band number (the GeoTIFF default, 1) the granule's first stereo band, 3N."""
+    return band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
+
+
+def image_name(path, band=1, *, name=None) -> str:
+    """An input image as named to the user (reports, figures): ``name`` (default: the path)
+    and, for an ASTER granule, the band read from it (:func:`aster_band`): ``"G.hdf (3N)"``."""
+    label = str(path) if name is None else str(name)
+    return f"{label} ({aster_band(band)})" if is_aster_granule(path) else label
+
+
 def open_image(
     path,
     *,
@@ -75,7 +88,7 @@ def open_image(
         g = (granules or {}).get(key) or open_aster_granule(path)
         if granules is not None:
             granules[key] = g
-        name = band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
+        name = aster_band(band)
         img = g.read_image(name, radiometric=radiometric)
         if model is None:
             model = load_model(model_file) if model_file else g.model(name)
@@ -224,8 +237,7 @@ def image_size(path, band=1) -> tuple[int, int]:
     """``(width, height)`` of an input image (a GeoTIFF's header, or an ASTER granule's
     band), without reading the pixels."""
     if is_aster_granule(path):
-        name = band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
-        m = open_aster_granule(path).model(name)
+        m = open_aster_granule(path).model(aster_band(band))
         return int(m.width), int(m.height)
     return image_shape(path)
 
@@ -235,9 +247,7 @@ def image_model(path, *, band=1, prefer: str = "physical"):
     granule), without reading the pixels; a GeoTIFF is checked by :func:`check_image` (the
     image must be readable, not only its model)."""
     if is_aster_granule(path):
-        return open_aster_granule(path).model(
-            band if isinstance(band, str) else ASTER_STEREO_BANDS[0]
-        )
+        return open_aster_granule(path).model(aster_band(band))
     model = load_image_model(path, prefer=prefer)
     check_image(path, band=band)
     return model
@@ -289,7 +299,7 @@ def pair_names(left, right) -> tuple[str, str]:
         and is_aster_granule(left)
         and (not right or Path(right).resolve() == Path(left).resolve())
     ):
-        return tuple(f"{left} ({b})" for b in ASTER_STEREO_BANDS)
+        return tuple(image_name(left, b) for b in ASTER_STEREO_BANDS)
     return str(left), str(right)
 
 
