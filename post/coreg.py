@@ -560,13 +560,8 @@ class CoregChain(Coreg):
                     "seconds": time.perf_counter() - t0,
                 }
             )
-            log.info(
-                "%s: NMAD %.3f -> %.3f m (n=%d)",
-                step.name,
-                before["nmad"],
-                after["nmad"],
-                after["n"],
-            )
+            # the step's result line as the commands print it (one format: step_line)
+            log.info("%s", step_line(self.records[-1]))
         self.corrected = current
 
     def apply(self, dem: DEM) -> DEM:
