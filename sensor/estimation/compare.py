@@ -153,14 +153,15 @@ def compare(
     seed: int = 0,
     sigma_px=None,
     prepared: dict | None = None,
+    names: tuple[str, str] = ("", ""),
 ) -> list[dict]:
     """Fit every model with every GCP count on the same split; list of records (one per model
     and count) with ``model, family, n_gcp, n_icp, n_params, gcp_rmse_px, icp_rmse_px,
     sigma0, condition`` and ``error`` (the one-line reason when the fit was refused).
     ``prepared`` (a dict, filled here) keeps the models built from ``base`` for another call
-    with the same ``base``."""
+    with the same ``base``. ``names``: the points' file and the image, for the messages."""
     pool, icp = split_points(points, n_check, seed)
-    require_inside(base, icp.col, icp.row)
+    require_inside(base, icp.col, icp.row, source=names[0], image=names[1])
     counts = sorted({int(c) for c in counts if 0 < int(c) <= len(pool)})
     if not counts:
         raise InputError(f"no GCP count fits the {len(pool)} GCP(s) available")

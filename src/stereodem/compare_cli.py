@@ -111,7 +111,14 @@ def run(args) -> int:
     points = read_gcps(args.gcps)
     models = expand_models([m.strip() for m in args.models.split(",") if m.strip()], base)
     records = compare(
-        base, points, models, counts, n_check=args.n_check, seed=args.seed, sigma_px=args.sigma_px
+        base,
+        points,
+        models,
+        counts,
+        n_check=args.n_check,
+        seed=args.seed,
+        sigma_px=args.sigma_px,
+        names=(str(args.gcps), image_name(args.image, args.band)),
     )
     splits = None
     if args.splits:

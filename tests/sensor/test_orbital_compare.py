@@ -105,7 +105,10 @@ def test_compare_models_refuses_icps_outside_image(image, tmp_path, capsys):
         ]
     )
     assert rc == 1
-    assert "1 of 20 check points lie outside the 4100 x 4200 image" in capsys.readouterr().err
+    assert (
+        f"{bad}: 1 of 20 check points lie outside the 4100 x 4200 image {image / 'left.tif'}"
+        in capsys.readouterr().err
+    )
 
 
 @pytest.mark.slow

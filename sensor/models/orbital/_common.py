@@ -282,15 +282,19 @@ def require_gcps(n_gcp: int, names, what: str, *, n_prior: int = 0) -> None:
         )
 
 
-def require_inside(model, col, row, *, what: str = "check points") -> None:
+def require_inside(
+    model, col, row, *, what: str = "check points", source: str = "", image: str = ""
+) -> None:
     """Raise :class:`~stereodem.core.errors.InputError` when image points fall outside the
-    image (pixel centres from -0.5 to width - 0.5)."""
+    image (pixel centres from -0.5 to width - 0.5); ``source`` names the points' file and
+    ``image`` the image, for the message."""
     col, row = np.asarray(col, float), np.asarray(row, float)
     out = ~(
         (col >= -0.5) & (col <= model.width - 0.5) & (row >= -0.5) & (row <= model.height - 0.5)
     )
     if np.any(out):
+        where = f"{source}: " if source else ""
         raise InputError(
-            f"{int(out.sum())} of {col.size} {what} lie outside the "
-            f"{model.width} x {model.height} image"
+            f"{where}{int(out.sum())} of {col.size} {what} lie outside the "
+            f"{model.width} x {model.height} image{f' {image}' if image else ''}"
         )
