@@ -707,6 +707,35 @@ def nuth_kaab(d):
     )
 
 
+def warp_blocks(d):
+    n, rows = d["size"], d["block_rows"]
+    parts = []
+    for r in d["summary"]:
+        b, a = r["before"], r["now"]
+        parts.append(
+            f"{r['threads']} thread{'s' if r['threads'] > 1 else ''}: {a['wall_s']:.1f} s vs "
+            f"{b['wall_s']:.1f} s wall, {a['cpu_s']:.1f} vs {b['cpu_s']:.1f} CPU s, peak "
+            f"+{a['peak_above_baseline_mb']:.0f} vs +{b['peak_above_baseline_mb']:.0f} MB"
+        )
+    blocks = ", ".join(
+        f"{round(c['source_cells'] ** 0.5)}² ({c['source_mb']:.0f} MB): "
+        f"{c['now_s'] * 1000:.0f} vs {c['before_s'] * 1000:.0f} ms, peak "
+        f"+{c['now_peak_mb']:.0f} vs +{c['before_peak_mb']:.0f} MB"
+        for c in d["block_costs"]
+    )
+    same = d["statistics_identical"] and all(c["identical"] for c in d["block_costs"])
+    return (
+        f"Blockwise assessment of a {n} × {n} DEM (UTM 33N, 30 m, 78° N) against a {n} × {n} "
+        f"reference on EPSG:3413 (turned by 58°) in blocks of {rows} rows "
+        "(`benchmarks/bench_warp_blocks.py`, same run, alternating, medians of "
+        f"{d['repeat']}): the source read in place vs written whole into an in-memory GeoTIFF "
+        f"for every block (before): {'; '.join(parts)}; one block's warp ({rows} × {rows} cells "
+        f"inside the DEM) against the DEM's size, now vs before: {blocks}; "
+        f"{'results identical' if same else 'RESULTS DIFFER'} "
+        f"(load {d['machine']['load_average'][0]:.1f} on {d['machine']['cpus']} cores)."
+    )
+
+
 def tile(d):
     rows = d["tiles"]
     cpu = ", ".join(f"{r['cpu_ms']:.0f}" for r in rows)
@@ -777,6 +806,7 @@ SUMMARISERS = {
     "bench_stack": stack,
     "bench_ortho_pair": ortho_pair,
     "bench_tile": tile,
+    "bench_warp_blocks": warp_blocks,
 }
 
 
@@ -868,6 +898,11 @@ BENCHMARKS = {
         "Nuth & Kääb iterations on a 3000² DEM (issue 28)",
         "python benchmarks/bench_nuth_kaab.py",
         "the same fit with GDAL's warp at each iteration (before), same run",
+    ),
+    "bench_warp_blocks": (
+        "blockwise warps between two CRSs",
+        "python benchmarks/bench_warp_blocks.py",
+        "the former reading (the whole source into an in-memory GeoTIFF per block), same run",
     ),
     "bench_scaling": (
         "scaling with `--workers`, half-size granule",

@@ -7,13 +7,14 @@ DEM.reproject`); :mod:`stereodem.post.warp` re-exports it beside the shifts in m
 from __future__ import annotations
 
 import warnings
+from contextlib import contextmanager
 
 import numpy as np
+import rasterio
 import rasterio.transform
 from affine import Affine
 from rasterio.crs import CRS as RioCRS
 from rasterio.errors import NotGeoreferencedWarning
-from rasterio.io import MemoryFile
 from rasterio.vrt import WarpedVRT
 from rasterio.warp import Resampling, reproject, transform_bounds
 
@@ -132,9 +133,12 @@ def _reproject(src, dst, src_transform, *, src_crs, dst_crs, src_nodata, dst_nod
 
     Between grids of one CRS the map from destination to source pixels is affine, which GDAL's
     approximate transformer (linear along rows, 0.125 px allowed; ``reproject`` has no way to
-    ask for less) reproduces exactly: ``reproject`` itself. Between two CRSs the source goes
-    into an in-memory GeoTIFF read through a ``WarpedVRT`` of that tolerance (the same warper,
-    kernels, no-data handling and threads)."""
+    ask for less) reproduces exactly: ``reproject`` itself. Between two CRSs ``src`` is read
+    through a ``WarpedVRT`` of that tolerance (the same warper, kernels, no-data handling and
+    threads) over a GDAL dataset on the array's own memory (:func:`_array_dataset`): the
+    warper reads the source window of each of its chunks, so a block of a large grid costs
+    the block, not the whole source (it was written whole into an in-memory GeoTIFF per
+    call: every block of an assessment copied the DEM; the same values, bit for bit)."""
     if same_horizontal_crs(src_crs, dst_crs):
         reproject(
             src,
@@ -148,35 +152,74 @@ def _reproject(src, dst, src_transform, *, src_crs, dst_crs, src_nodata, dst_nod
         )
         return
     bands = src[None] if src.ndim == 2 else src
-    with MemoryFile() as mem:
-        with mem.open(
-            driver="GTiff",
-            width=bands.shape[2],
-            height=bands.shape[1],
-            count=bands.shape[0],
-            dtype=bands.dtype,
-            crs=src_crs,
-            transform=src_transform,
-            nodata=src_nodata,
-        ) as ds:
-            ds.write(bands)
-        with (
-            mem.open() as ds,
-            WarpedVRT(
-                ds,
-                crs=dst_crs,
-                transform=kw["dst_transform"],
-                width=dst.shape[-1],
-                height=dst.shape[-2],
-                nodata=dst_nodata,
-                dtype=dst.dtype.name,
-                resampling=kw["resampling"],
-                tolerance=TRANSFORM_TOLERANCE_PX,
-                warp_extras={"NUM_THREADS": kw["num_threads"]},
-            ) as vrt,
-        ):
-            out = vrt.read()
+    with (
+        _array_dataset(bands, src_transform) as ds,
+        WarpedVRT(
+            ds,
+            src_crs=src_crs,
+            src_transform=src_transform,
+            src_nodata=src_nodata,
+            crs=dst_crs,
+            transform=kw["dst_transform"],
+            width=dst.shape[-1],
+            height=dst.shape[-2],
+            nodata=dst_nodata,
+            dtype=dst.dtype.name,
+            resampling=kw["resampling"],
+            tolerance=TRANSFORM_TOLERANCE_PX,
+            warp_extras={"NUM_THREADS": kw["num_threads"]},
+        ) as vrt,
+    ):
+        out = vrt.read()
     dst[...] = out[0] if dst.ndim == 2 else out
+
+
+#: GDAL's names of the array types :func:`_array_dataset` hands over as they are
+_GDAL_TYPES = {
+    "uint8": "Byte",
+    "uint16": "UInt16",
+    "int16": "Int16",
+    "uint32": "UInt32",
+    "int32": "Int32",
+    "uint64": "UInt64",
+    "int64": "Int64",
+    "float32": "Float32",
+    "float64": "Float64",
+}
+
+
+@contextmanager
+def _array_dataset(bands, transform):
+    """A read-only GDAL dataset (MEM driver) on the memory of ``bands`` (bands, rows,
+    cols), no copy, open for the ``with`` block (which holds the array meanwhile). Its
+    geotransform is ``transform`` (rasterio warns of a dataset without one); it has no CRS
+    and no no-data value: the ``WarpedVRT`` over it is given them. A new dataset per call:
+    blocks warped on threads share no GDAL dataset, only the array they read. Types the MEM
+    driver may lack (int8 before GDAL 3.7, bool, float16) are widened exactly, a copy, as is
+    a strided view (the dataset's rows are the array's, contiguous).
+
+    GDAL >= 3.10 opens a ``MEM:::`` name only with ``GDAL_MEM_ENABLE_OPEN`` (against such
+    names in untrusted files); it is set for this open alone, as rasterio's own
+    ``MemoryDataset`` does (which opens in update mode, of which ``WarpedVRT`` warns)."""
+    if bands.dtype.name not in _GDAL_TYPES:
+        if bands.dtype.kind not in "biuf":
+            raise TypeError(f"cannot warp an array of {bands.dtype}")
+        bands = bands.astype(np.float64 if bands.dtype.kind == "f" else np.int16)
+    bands = np.require(bands, requirements=("C", "A"))  # a copy only of a strided view
+    count, rows, cols = bands.shape
+    options = {
+        "DATAPOINTER": bands.__array_interface__["data"][0],
+        "PIXELS": cols,
+        "LINES": rows,
+        "BANDS": count,
+        "DATATYPE": _GDAL_TYPES[bands.dtype.name],
+        "GEOTRANSFORM": "/".join(repr(float(v)) for v in transform.to_gdal()),
+    }
+    name = "MEM:::" + ",".join(f"{k}={v}" for k, v in options.items())
+    with rasterio.Env(GDAL_MEM_ENABLE_OPEN="YES"):
+        ds = rasterio.open(name)
+    with ds:
+        yield ds
 
 
 #: columns a global lon/lat grid is extended by on either side, from its other edge, before
