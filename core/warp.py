@@ -167,7 +167,7 @@ def _reproject(src, dst, src_transform, *, src_crs, dst_crs, src_nodata, dst_nod
             dtype=dst.dtype.name,
             resampling=kw["resampling"],
             tolerance=TRANSFORM_TOLERANCE_PX,
-            warp_extras={"NUM_THREADS": kw["num_threads"]},
+            NUM_THREADS=kw["num_threads"],  # a keyword: WarpedVRT's **kwargs are warp options
         ) as vrt,
     ):
         out = vrt.read()

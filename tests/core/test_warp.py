@@ -108,6 +108,20 @@ def test_a_global_grid_is_warped_across_the_antimeridian_as_before():
             assert _same(now, _before(*args, resampling="cubic"))
 
 
+def test_threads_do_not_change_a_warp_between_two_crss():
+    """GDAL's warper now gets the thread count (``NUM_THREADS``: it was nested in a dict that
+    rasterio passed on as one unknown option); each thread warps whole rows of the same
+    chunk, so the values are those of one thread."""
+    z = _surface(400, 420)
+    st = Affine(60, 0, 500000, 0, -60, 8700000)
+    dt = _polar_grid(st, z.shape, 60, (380, 400))
+    args = (z, st, "EPSG:32633", dt, "EPSG:3413", (380, 400))
+    one = _now(*args, threads=1)
+    assert _same(one, _before(*args))
+    for n in (2, 4):
+        assert _same(_now(*args, threads=n), one)
+
+
 def test_the_source_is_read_in_place():
     """The warp's GDAL dataset is the array's memory, not a copy: what the array holds when
     it is read is what GDAL reads (a block of a large grid costs the block)."""
