@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from .commands import COMMANDS
 
@@ -123,16 +122,9 @@ def cli_markdown() -> str:
 
 
 def main(argv=None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    text = cli_markdown()
-    if argv[:1] == ["--check"]:
-        path = Path(argv[1])
-        if not path.exists() or path.read_text(encoding="utf-8") != text:
-            print(f"{path} is out of date: python -m stereodem.clidoc > {path}", file=sys.stderr)
-            return 1
-        return 0
-    sys.stdout.write(text)
-    return 0
+    from .docgen import write_or_check
+
+    return write_or_check(cli_markdown(), argv, "stereodem.clidoc")
 
 
 if __name__ == "__main__":  # pragma: no cover

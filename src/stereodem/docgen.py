@@ -220,17 +220,22 @@ def _resolve(owner, f):
     return t if isinstance(t, type) and dataclasses.is_dataclass(t) else None
 
 
-def main(argv=None) -> int:
+def write_or_check(text: str, argv, module: str) -> int:
+    """The ``main`` of a generated document: print ``text``, or with ``--check PATH`` exit 1
+    (saying how to regenerate it with ``python -m module``) when ``PATH`` differs from it."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    text = configuration_markdown()
     if argv[:1] == ["--check"]:
         path = Path(argv[1])
         if not path.exists() or path.read_text(encoding="utf-8") != text:
-            print(f"{path} is out of date: python -m stereodem.docgen > {path}", file=sys.stderr)
+            print(f"{path} is out of date: python -m {module} > {path}", file=sys.stderr)
             return 1
         return 0
     sys.stdout.write(text)
     return 0
+
+
+def main(argv=None) -> int:
+    return write_or_check(configuration_markdown(), argv, "stereodem.docgen")
 
 
 if __name__ == "__main__":  # pragma: no cover
