@@ -78,12 +78,16 @@ def to_grid(
     src_nodata=np.nan,
     dst_dtype=np.float32,
     threads: int | None = None,
+    kernel_scale: tuple[float, float] | None = None,
 ):
     """Warp a 2-D array onto a destination grid; cells without data are NaN (or ``src_nodata``
     for integer rasters). GDAL's warper runs on ``threads`` threads (default 1: callers
     that warp blocks on a thread pool already use the cores; a caller that warps a whole grid
     passes the process's budget, :func:`stereodem.core.blocks.default_threads`); the result
-    does not depend on it."""
+    does not depend on it. ``kernel_scale``: GDAL's ``XSCALE``, ``YSCALE`` for a warp between
+    two CRSs (:func:`kernel_scales`), which a caller warping a grid block by block computes
+    once for the whole grid, so that every block is warped as the whole grid would be
+    (None: GDAL's own, per chunk of the warp)."""
     _ignore_in_memory_warp_warning()
     src = np.asarray(data)
     src_transform = beside(src_transform, src_crs, src.shape, dst_transform, dst_crs, dst_shape)
@@ -105,6 +109,7 @@ def to_grid(
         dst_nodata=fill,
         resampling=_RESAMPLING[resampling],
         num_threads=max(1, int(threads or 1)),
+        kernel_scale=kernel_scale,
     )
     _reproject(src, dst, src_transform, **kw)
     for turn in _overflow_turns(
@@ -127,7 +132,36 @@ def same_horizontal_crs(a, b) -> bool:
     return a == b
 
 
-def _reproject(src, dst, src_transform, *, src_crs, dst_crs, src_nodata, dst_nodata, **kw):
+def kernel_scales(src_transform, src_crs, dst_transform, dst_crs, dst_shape) -> tuple[float, float]:
+    """GDAL's ``XSCALE`` and ``YSCALE`` of a warp from a source grid onto a destination grid:
+    destination cells per source cell along the source's x and y axes (1: the same cells,
+    below 1: the destination is coarser, and the resampling kernel is widened by the inverse
+    to average the source cells it covers), from the map of destination to source pixels at
+    the destination grid's centre (its Jacobian: ``1 / |d(source x)/d(destination col, row)|``
+    and the same for y), as terra's ``warp_scale``.
+
+    GDAL computes them itself for every chunk it warps, as the chunk's size over the bounding
+    box of its source window: on a grid turned against the source (a polar stereographic
+    reference and a UTM DEM), a chunk of few rows has a tall source window, and its kernel
+    is widened by far more than the cells' sizes ask for (a 512-row block of a 2000² grid
+    between EPSG:3413 and UTM 33N: 0.89 m median error against an exact bilinear, 0.000 m for
+    the whole grid). Given once for a whole grid, every block is warped alike."""
+    rows, cols = dst_shape
+    c, r = cols / 2.0, rows / 2.0
+    x, y = dst_transform @ (np.array([c, c + 1.0, c]), np.array([r, r, r + 1.0]))
+    if not same_horizontal_crs(src_crs, dst_crs):
+        x, y = rasterio.warp.transform(rio_crs(dst_crs), rio_crs(src_crs), x, y)
+    sc, sr = ~src_transform @ (np.asarray(x, float), np.asarray(y, float))
+    along_x = float(np.hypot(sc[1] - sc[0], sc[2] - sc[0]))
+    along_y = float(np.hypot(sr[1] - sr[0], sr[2] - sr[0]))
+    if not (np.isfinite(along_x) and np.isfinite(along_y) and along_x > 0 and along_y > 0):
+        raise ValueError("the destination grid's centre has no position in the source grid")
+    return 1.0 / along_x, 1.0 / along_y
+
+
+def _reproject(
+    src, dst, src_transform, *, src_crs, dst_crs, src_nodata, dst_nodata, kernel_scale=None, **kw
+):
     """``rasterio.warp.reproject`` of the array ``src`` into ``dst`` (filled in place), with
     the coordinate transformation within :data:`TRANSFORM_TOLERANCE_PX` of exact.
 
@@ -152,6 +186,9 @@ def _reproject(src, dst, src_transform, *, src_crs, dst_crs, src_nodata, dst_nod
         )
         return
     bands = src[None] if src.ndim == 2 else src
+    scale = {}
+    if kernel_scale is not None:  # GDAL's per-chunk kernel scale replaced by the caller's
+        scale = {"XSCALE": repr(float(kernel_scale[0])), "YSCALE": repr(float(kernel_scale[1]))}
     with (
         _array_dataset(bands, src_transform) as ds,
         WarpedVRT(
@@ -168,6 +205,7 @@ def _reproject(src, dst, src_transform, *, src_crs, dst_crs, src_nodata, dst_nod
             resampling=kw["resampling"],
             tolerance=TRANSFORM_TOLERANCE_PX,
             NUM_THREADS=kw["num_threads"],  # a keyword: WarpedVRT's **kwargs are warp options
+            **scale,
         ) as vrt,
     ):
         out = vrt.read()

@@ -109,6 +109,18 @@ def _check_overlap(dem: DEM, reference: DEM) -> None:
     )
 
 
+def _kernel_scale(dem: DEM, reference: DEM):
+    """The kernel scale of ``dem``'s warp onto ``reference``'s grid between two CRSs, one for
+    the whole grid (:func:`warp.kernel_scales`), so that its blocks are warped as the whole
+    grid is (GDAL's own is per chunk: the blocks of a turned grid were smoothed more than the
+    whole grid, by up to metres); None between grids of one CRS (GDAL's own: exact there)."""
+    if warp.same_horizontal_crs(dem.crs, reference.crs):
+        return None
+    return warp.kernel_scales(
+        dem.transform, dem.crs, reference.transform, reference.crs, reference.shape
+    )
+
+
 def compare_on_reference_grid(
     dem: DEM, reference: DEM, *, resampling: str = "bilinear"
 ) -> Comparison:
@@ -125,6 +137,7 @@ def compare_on_reference_grid(
         reference.crs,
         reference.shape,
         resampling=resampling,
+        kernel_scale=_kernel_scale(dem, reference),
     )
     ref = reference.heights
     dh = z.astype(np.float64) - ref.astype(np.float64)
@@ -396,8 +409,11 @@ def _misses(dem: DEM, transform, crs, shape) -> bool:
     return bool(c.max() < -m or c.min() > n_c + m or r.max() < -m or r.min() > n_r + m)
 
 
-def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, elev_edges, lc, k):
-    """Warp, difference, slope and class statistics of reference rows ``r0:r1``.
+def _compare_block(
+    r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, elev_edges, lc, k, scale=None
+):
+    """Warp, difference, slope and class statistics of reference rows ``r0:r1`` (``scale``:
+    the whole grid's kernel scale of a warp between two CRSs, :func:`warp.kernel_scales`).
 
     The statistics take the cells where both heights are finite (``dh`` finite), as
     compressed 1-D arrays in the block's order: ``dh`` (float64, m), the slope (degrees)
@@ -417,6 +433,7 @@ def _compare_block(r0, r1, dem: DEM, reference: DEM, resampling, slope_edges, el
             reference.crs,
             (r1 - r0, cols),
             resampling=resampling,
+            kernel_scale=scale,
         )
     h0, h1 = max(r0 - 1, 0), min(r1 + 1, rows)
     slope = terrain.slope_deg(
@@ -528,7 +545,17 @@ def blockwise_comparison(
         else max(1, int(np.ceil(max(rows, cols) / display_cells)))
     )
     blocks = list(_row_blocks(rows, block_rows))
-    args = (dem, reference, resampling, slope_edges, elev_edges, lc, k)
+    # between two CRSs, one kernel scale for every block (_kernel_scale)
+    args = (
+        dem,
+        reference,
+        resampling,
+        slope_edges,
+        elev_edges,
+        lc,
+        k,
+        _kernel_scale(dem, reference),
+    )
     ends, fin_bits, disp = [], [], {"dem": [], "ref": [], "dh": [], "slope": []}
     classes = []
     total = None

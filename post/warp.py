@@ -18,7 +18,9 @@ from stereodem.core.warp import (  # noqa: F401 - re-exported: post's one place 
     beside,
     check_overlap,
     is_global,
+    kernel_scales,
     rio_crs,
+    same_horizontal_crs,
     to_grid,
     wrapped,
 )

@@ -131,3 +131,44 @@ def test_the_source_is_read_in_place():
         z[0, 3, 4] = -1.0
         assert ds.read(1)[3, 4] == -1.0
         assert np.array_equal(ds.read(), z)
+
+
+def test_kernel_scales_are_the_cells_size_ratio():
+    """Destination cells per source cell along the source's axes: 1 for the same cells, 1/3
+    for cells 3 times as large; a turn of the grid alone leaves them at about 1 (UTM 33N's and
+    EPSG:3413's scale factors at 78 N differ by ~2 %)."""
+    st = Affine(30, 0, 500000, 0, -30, 8700000)
+    assert warp.kernel_scales(st, "EPSG:32633", st, "EPSG:32633", (100, 100)) == (1.0, 1.0)
+    coarse = Affine(90, 0, 500000, 0, -90, 8700000)
+    xs, ys = warp.kernel_scales(st, "EPSG:32633", coarse, "EPSG:32633", (100, 100))
+    assert xs == pytest.approx(1 / 3) and ys == pytest.approx(1 / 3)
+    dt = _polar_grid(st, (600, 600), 30, (150, 160))
+    xs, ys = warp.kernel_scales(st, "EPSG:32633", dt, "EPSG:3413", (150, 160))
+    assert 0.95 < xs < 1.0 and 0.95 < ys < 1.0 and xs == pytest.approx(ys, rel=1e-4)
+
+
+@pytest.mark.parametrize("resampling", ["bilinear", "cubic"])
+def test_blocks_with_the_grids_kernel_scale_are_the_whole_grids_warp(resampling):
+    """GDAL's own kernel scale is per chunk (the bounding box of its source window): row
+    blocks of a turned grid were warped differently from the whole grid and from each other.
+    With the whole grid's scale (kernel_scales) every block size gives the whole grid."""
+    src_shape = (260, 280)
+    z = _surface(*src_shape)
+    st = Affine(60, 0, 500000, 0, -60, 8700000)
+    shape = (150, 160)
+    dt = _polar_grid(st, src_shape, 60, shape)
+    scale = warp.kernel_scales(st, "EPSG:32633", dt, "EPSG:3413", shape)
+    kw = dict(resampling=resampling, kernel_scale=scale)
+    whole = _now(z, st, "EPSG:32633", dt, "EPSG:3413", shape, **kw)
+    assert np.isfinite(whole).mean() > 0.5
+    differs = False
+    for rows in (64, 13, 1):
+        parts, own = [], []
+        for r0 in range(0, shape[0], rows):
+            args = (z, st, "EPSG:32633", dt @ Affine.translation(0, r0), "EPSG:3413")
+            n = min(rows, shape[0] - r0)
+            parts.append(_now(*args, (n, shape[1]), **kw))
+            own.append(_now(*args, (n, shape[1]), resampling=resampling))
+        assert _same(np.vstack(parts), whole), rows
+        differs |= not _same(np.vstack(own), whole)
+    assert differs  # without it, blocks are not the whole grid (what the scale is for)
