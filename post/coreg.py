@@ -560,8 +560,9 @@ class CoregChain(Coreg):
                     "seconds": time.perf_counter() - t0,
                 }
             )
-            # the step's result line as the commands print it (one format: step_line)
-            log.info("%s", step_line(self.records[-1]))
+            # the step's result line as the commands print it (one format: step_line); at
+            # debug level, since coregister and assess print it themselves (-v said it twice)
+            log.debug("%s", step_line(self.records[-1]))
         self.corrected = current
 
     def apply(self, dem: DEM) -> DEM:

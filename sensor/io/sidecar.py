@@ -137,7 +137,10 @@ def load_model(path, *, rpc_direct: bool = False):
     try:
         return read_rpc(path, direct=rpc_direct)
     except RPCError as exc:
-        raise SensorModelError(f"not a stereodem model file, and {exc}") from None
+        why = str(exc).removeprefix(f"{path}: ")
+        raise SensorModelError(
+            f"{path}: neither a stereodem model file (JSON with a 'type') nor an RPC file ({why})"
+        ) from None
 
 
 def sidecar_path(image) -> Path:

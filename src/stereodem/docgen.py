@@ -225,6 +225,9 @@ def write_or_check(text: str, argv, module: str) -> int:
     (saying how to regenerate it with ``python -m module``) when ``PATH`` differs from it."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["--check"]:
+        if len(argv) != 2:
+            print(f"usage: python -m {module} [--check PATH]", file=sys.stderr)
+            return 2
         path = Path(argv[1])
         if not path.exists() or path.read_text(encoding="utf-8") != text:
             print(f"{path} is out of date: python -m {module} > {path}", file=sys.stderr)

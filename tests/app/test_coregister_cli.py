@@ -56,10 +56,12 @@ def files(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_coregister_writes_dem_json_and_figures(files, capsys):
+def test_coregister_writes_dem_json_and_figures(files, capsys, caplog):
     out = files / "out"
+    caplog.set_level("INFO")  # what -v shows (under pytest the CLI adds no handler of its own)
     rc = main(
         [
+            "-v",
             "coregister",
             str(files / "dem.tif"),
             "--ref",
@@ -73,6 +75,11 @@ def test_coregister_writes_dem_json_and_figures(files, capsys):
         ]
     )
     assert rc == 0
+    # each step's result line once, also with -v (the chain's log said it a second time)
+    said = capsys.readouterr()
+    for step in ("vshift", "along_track"):
+        shown = said.out + said.err + caplog.text
+        assert shown.count(f"{step}: stable NMAD ") == 1, shown
     rep = json.loads((out / "coregistration.json").read_text())
     assert [s["step"] for s in rep["steps"]] == ["vshift", "along_track"]
     assert rep["steps"][0]["parameters"]["dz"]["value"] == pytest.approx(2.0, abs=0.2)

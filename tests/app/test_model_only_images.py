@@ -121,6 +121,11 @@ GARBLED_SIDECARS = {
     # what a broken copy or an edit leaves: not JSON, or JSON that is no whole model
     "invalid_json": ('{"type": "pushbroom", "width": 300,', r"not valid JSON"),
     "missing_key": ('{"type": "pushbroom", "version": 1}', r"garbled pushbroom model"),
+    # the file named first, then what it is not (the RPC readers' path was mid-line before)
+    "text": (
+        "notes, not a model\n",
+        r": neither a stereodem model file .* nor an RPC file \(no RPC",
+    ),
 }
 
 

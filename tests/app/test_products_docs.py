@@ -73,6 +73,8 @@ def test_every_command_and_option_is_in_the_cli_reference(tmp_path):
     stale = tmp_path / "cli.md"
     stale.write_text(text.replace("stereodem ortho", "stereodem orto", 1), encoding="utf-8")
     assert clidoc.main(["--check", str(stale)]) == 1
+    # --check without its path is a usage error, not a traceback
+    assert clidoc.main(["--check"]) == 2
 
 
 def test_every_config_section_and_key_is_documented():

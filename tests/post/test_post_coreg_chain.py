@@ -468,12 +468,13 @@ def test_the_reports_and_result_lines_give_each_shifts_sign(truth):
 
 
 def test_the_chains_log_line_of_a_step_is_its_result_line(truth, caplog):
-    """A fitted step is logged (``-v``) in the one format of its result line,
+    """A fitted step is logged (``-vv``: ``coregister`` and ``assess`` print it at any
+    verbosity, and ``-v`` showed it twice) in the one format of its result line,
     :func:`~stereodem.post.coreg.step_line`, as ``coregister`` and ``assess`` print it; the
     chain logged a third format, "nuth_kaab: NMAD a -> b m (n=N)" (no median, no shift)."""
     px = abs(truth.transform.a) * 111320 * math.cos(math.radians(truth.transform.f))
     dem, _ = inject_errors(truth, InjectedErrors(dx=px, dz=2.0, ramp_e=1.0, seed=5))
-    with caplog.at_level("INFO", logger="stereodem.post.coreg"):
+    with caplog.at_level("DEBUG", logger="stereodem.post.coreg"):
         chain = parse_chain("nuth_kaab,deramp").fit(truth, dem)
     logged = [r.getMessage() for r in caplog.records if r.name == "stereodem.post.coreg"]
     lines = [step_line(r) for r in chain.report()]

@@ -185,7 +185,7 @@ def fit_to_points(model, names, lon, lat, h, col, row, *, what: str):
         return np.where(np.isfinite(r), r, 1e6)
 
     u = np.zeros(len(names))
-    cost = np.inf
+    cost, best = np.inf, None
     # scaled by the Jacobian's columns and restarted from its own solution while that lowers
     # the cost: on these badly conditioned fits (15 values and a tilt) MINPACK's LM with unit
     # scales stopped short of the minimum, where depended on SciPy's version (the Toutin
@@ -202,7 +202,7 @@ def fit_to_points(model, names, lon, lat, h, col, row, *, what: str):
             max_nfev=200 * (len(names) + 1),
         )
         better = sol.cost < cost * (1.0 - 1e-6)
-        if sol.cost <= cost:
+        if best is None or sol.cost <= cost:
             u, cost, best = sol.x, sol.cost, sol
         if not better:
             break
