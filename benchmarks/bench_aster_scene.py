@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import shutil
 import subprocess
 import sys
@@ -351,6 +352,9 @@ def main(argv=None):
     t_sim, t_granule = simulate(out / "scene", args.size, args.right_size, args.resimulate)
     if args.run_workers:
         return rerun(out, args.run_workers)
+    from machine_speed import WHAT, speed_index
+
+    speed_before = speed_index()
     if t_sim is not None:
         print(
             f"simulated {args.size} + {args.right_size} in {t_sim:.1f} s, granule written in "
@@ -398,6 +402,14 @@ def main(argv=None):
             speedup_total=round(runs[0]["wall_s"] / runs[1]["wall_s"], 2),
         )
     result["bit_identical"] = same
+    result["machine"] = dict(
+        cpus=os.cpu_count(),
+        python=platform.python_version(),
+        node=platform.node(),
+        speed_index_ms=[speed_before, speed_index()],
+        speed_index=WHAT,
+    )
+    result["measured"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     result["note"] = (
         "wall seconds depend on the machine's load (load_average_*: 2 cores shared "
         "with other jobs); CPU seconds per stage are the figures to compare"

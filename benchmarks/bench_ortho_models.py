@@ -132,6 +132,7 @@ def main():
             if r["model"] in OK_TWELVE + ("attitude-bias-drift", "eop-poly2", "kratky")
         ],
         out / "bench_ortho_models.png",
+        overwrite=True,  # this benchmark's own figure, regenerated
     )
 
 

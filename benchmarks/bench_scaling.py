@@ -36,6 +36,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_aster_scene import CONFIG, RUN_LAYERS, granule, identical, simulate
+from machine_speed import WHAT as SPEED_INDEX_WHAT
+from machine_speed import speed_index
 
 from stereodem.core.jsonutil import dumps as strict_json
 
@@ -287,29 +289,6 @@ def parallel_ceiling(counts, calls=6, rounds=3, kind="sgbm") -> dict:
     }
 
 
-def speed_index(repeats=9):
-    """The machine's speed at the time: milliseconds of one bare ``cv2.StereoSGBM`` call
-    (MODE_SGBM, 1 thread, 64 disparities) on ``bench_match.py``'s 1024 x 1024 pair, median of
-    ``repeats``; measured before and after the runs, so that figures from different sessions
-    (shared machines that drift) can be compared."""
-    import cv2
-    from bench_match import _raw_sgbm, _to_uint8, make_pair
-
-    left, right, _ = make_pair()
-    l8, r8 = _to_uint8(left, right)
-    saved = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        ts = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            _raw_sgbm(l8, r8, "sgbm")
-            ts.append(time.perf_counter() - t)
-    finally:
-        cv2.setNumThreads(saved)
-    return round(1e3 * float(np.median(ts)), 1)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -387,9 +366,7 @@ def main(argv=None):
             python=platform.python_version(),
             node=platform.node(),
             speed_index_ms=[speed_before, speed_index()],
-            speed_index="ms of one bare cv2.StereoSGBM call (MODE_SGBM, 1 thread, 64 "
-            "disparities) on bench_match.py's 1024 x 1024 pair, median of 9, before and after "
-            "the runs",
+            speed_index=SPEED_INDEX_WHAT,
             parallel_ceiling=[ceiling_before, parallel_ceiling(counts)],
             parallel_ceiling_what=parallel_ceiling.__doc__.split("\n\n")[0]
             + " Measured before and after the runs.",
