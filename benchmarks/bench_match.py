@@ -26,13 +26,9 @@ import numpy as np
 import rasterio
 
 from stereodem.core.jsonutil import dumps as strict_json
-from stereodem.stereo.match import (
-    _sgbm,
-    _to_uint8,
-    _zncc_left,
-    _zncc_warped,
-    match_rectified,
-)
+from stereodem.stereo.match import match_rectified
+from stereodem.stereo.score import _zncc_left, _zncc_warped
+from stereodem.stereo.sgm import _sgbm, _to_uint8
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "bench_match.json"

@@ -1,5 +1,6 @@
-"""Dense matching (stereo.match): Middlebury cones, synthetic sub-pixel shifts, vertical
-search, no-data, per-pixel ranges, OpenCV SGBM conventions."""
+"""Dense matching (stereo.match and its modules ncc, sgm, score, seed, window_stats, images):
+Middlebury cones, synthetic sub-pixel shifts, vertical search, no-data, per-pixel ranges,
+OpenCV SGBM conventions."""
 
 import warnings
 
@@ -11,22 +12,13 @@ from numpy.lib.stride_tricks import sliding_window_view as windows
 
 from stereodem.core.errors import InputError
 from stereodem.sensor.simulation.simulate import texture_path
-from stereodem.stereo import match
-from stereodem.stereo.match import (
-    MatchResult,
-    _fill_seed,
-    _image_and_finite,
-    _median_offset,
-    _percentiles,
-    _rounded_filled,
-    _sgbm_padding,
-    _to_uint8,
-    _zncc_left,
-    _zncc_warped,
-    match_rectified,
-    zncc_at,
-)
+from stereodem.stereo import score, window_stats
+from stereodem.stereo.images import _image_and_finite, _percentiles
+from stereodem.stereo.match import MatchResult, match_rectified, zncc_at
 from stereodem.stereo.refine import _smooth_fill, refine_disparity
+from stereodem.stereo.score import _zncc_left, _zncc_warped
+from stereodem.stereo.seed import _fill_seed, _median_offset, _rounded_filled
+from stereodem.stereo.sgm import _sgbm_padding, _to_uint8
 
 # ----------------------------------------------------------------------------- data
 
@@ -667,10 +659,10 @@ def test_zncc_shortcuts_give_the_general_score_and_the_textbook_zncc(
     layer by row bands of 4 rows and their halos (band edges everywhere, NaN patches across
     them), on 1 and 3 threads, bit for bit."""
     if band_bytes:
-        bands = match._row_bands
-        monkeypatch.setattr(match, "_row_bands", lambda shape: bands(shape, band_bytes))
+        bands = window_stats._row_bands
+        monkeypatch.setattr(window_stats, "_row_bands", lambda shape: bands(shape, band_bytes))
     if score_rows:
-        monkeypatch.setattr(match, "SCORE_BAND_ROWS", score_rows)
+        monkeypatch.setattr(score, "SCORE_BAND_ROWS", score_rows)
 
     rng = np.random.default_rng(5)
     cases = (
