@@ -290,39 +290,68 @@ def sgm_parts(left, right, l8, r8, repeats=REPEATS):
     }
 
 
+def load_matcher(rev):
+    """The dense matcher of git revision ``rev``: its ``stereo/match.py`` and the modules
+    that imports relatively (``.ncc``, ``.sgm``, ``.score``, ... where the matcher is split
+    into them; only ``.pyramid`` where ``match.py`` held it all), all of them the
+    revision's: its ``stereo/*.py`` are written to a temporary folder, the ``__path__`` of a
+    package of their own (``stereodem.stereo._at_<commit>``), and ``match`` is imported
+    from there. Absolute imports (``stereodem.core...``, ``stereodem.stereo.settings``)
+    are today's, except the 8-bit stretch: a loaded module's ``linear_to_uint8`` is that of
+    the revision's ``core/stretch.py`` (where it has one). Returns the ``match`` module."""
+    import atexit
+    import importlib
+    import importlib.util
+    import io
+    import re
+    import shutil
+    import subprocess
+    import sys
+    import tarfile
+    import tempfile
+    import types
+
+    def git(*args):
+        return subprocess.run(
+            ["git", "-C", str(ROOT), *args], capture_output=True, check=True
+        ).stdout
+
+    commit = git("rev-parse", "--verify", f"{rev}^{{commit}}").decode().strip()
+    tmp = Path(tempfile.mkdtemp(prefix="bench_match_"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # functions may import late
+    # the revision's stereo/ and core/ (core/stretch.py where it has one)
+    with tarfile.open(fileobj=io.BytesIO(git("archive", commit, "stereo", "core"))) as tar:
+        for m in tar.getmembers():
+            if m.isfile() and re.fullmatch(r"(stereo/\w+|core/stretch)\.py", m.name):
+                dst = tmp / m.name
+                dst.parent.mkdir(exist_ok=True)
+                dst.write_bytes(tar.extractfile(m).read())
+    package = f"stereodem.stereo._at_{commit[:12]}"
+    if package not in sys.modules:
+        pkg = types.ModuleType(package)
+        pkg.__path__ = [str(tmp / "stereo")]
+        sys.modules[package] = pkg
+    match = importlib.import_module(f"{package}.match")
+    stretch_py = tmp / "core" / "stretch.py"
+    if stretch_py.exists():  # the stretch moved to core/stretch.py at some revision
+        spec = importlib.util.spec_from_file_location(f"{package}_stretch", stretch_py)
+        stretch = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(stretch)
+        for name, module in list(sys.modules.items()):
+            if name.startswith(f"{package}.") and hasattr(module, "linear_to_uint8"):
+                module.linear_to_uint8 = stretch.linear_to_uint8
+    return match
+
+
 def sgm_before_after(left, right, l8, r8, rev, repeats=REPEATS, threads=(1, 2)):
-    """The SGM wrapper of git revision ``rev`` (its ``stereo/match.py`` and the 8-bit stretch
-    of its ``core/stretch.py``, loaded as modules) against today's and the bare call,
+    """The SGM wrapper of git revision ``rev`` (its matcher and 8-bit stretch, loaded by
+    :func:`load_matcher`) against today's and the bare call,
     alternating (the order of the three rotates from one repeat to the next, so none always
     follows another), at each of ``threads`` (``cv2.setNumThreads``), wall and CPU seconds
     (medians, and the medians of each repeat's ratios to its bare call; the first thread
     count's CPU figures also at the top level); also whether the two wrappers' disparities
     and scores are bit-identical, and the largest score change."""
-    import importlib.util
-    import subprocess
-    import tempfile
-
-    def load(relpath, name):
-        src = subprocess.run(
-            ["git", "-C", str(ROOT), "show", f"{rev}:{relpath}"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout
-        with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / f"{name.rsplit('.', 1)[-1]}.py"
-            path.write_text(src)
-            spec = importlib.util.spec_from_file_location(name, path)
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
-        return module
-
-    before = load("stereo/match.py", "stereodem.stereo.match_before")
-    # the 8-bit stretch the wrapper calls lives in core/stretch.py: the revision's as well
-    if hasattr(before, "linear_to_uint8"):
-        before.linear_to_uint8 = load(
-            "core/stretch.py", "stereodem.core.stretch_before"
-        ).linear_to_uint8
+    before = load_matcher(rev)
     saved = cv2.getNumThreads()
     fns = {
         "before": lambda: before.match_rectified(left, right, (DMIN, DMAX), matcher="sgm"),
