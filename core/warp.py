@@ -159,6 +159,27 @@ def kernel_scales(src_transform, src_crs, dst_transform, dst_crs, dst_shape) -> 
     return 1.0 / along_x, 1.0 / along_y
 
 
+def kernel_scale_options(kernel_scale) -> dict:
+    """GDAL warp options (a ``WarpedVRT``'s keyword arguments) that set the kernel scale
+    ``(XSCALE, YSCALE)`` (:func:`kernel_scales`) of every chunk of a warp; none for None
+    (GDAL's own, per chunk)."""
+    if kernel_scale is None:
+        return {}
+    return {"XSCALE": repr(float(kernel_scale[0])), "YSCALE": repr(float(kernel_scale[1]))}
+
+
+def grid_kernel_scale(src_transform, src_crs, dst_transform, dst_crs, dst_shape):
+    """The kernel scale to give GDAL for every piece (block, window) of a warp of a source
+    grid onto a destination grid, so that the pieces are warped as the whole grid is:
+    :func:`kernel_scales` between two CRSs; None between grids of one horizontal CRS (an
+    affine map of pixel coordinates: GDAL's own per-chunk scale is then the cells' size ratio
+    in every chunk, exact, and stays). The destination grid (``dst_transform``, ``dst_shape``
+    in cells) is where the scale is taken: the scale is that at its centre."""
+    if same_horizontal_crs(src_crs, dst_crs):
+        return None
+    return kernel_scales(src_transform, src_crs, dst_transform, dst_crs, dst_shape)
+
+
 def _reproject(
     src, dst, src_transform, *, src_crs, dst_crs, src_nodata, dst_nodata, kernel_scale=None, **kw
 ):
@@ -186,9 +207,7 @@ def _reproject(
         )
         return
     bands = src[None] if src.ndim == 2 else src
-    scale = {}
-    if kernel_scale is not None:  # GDAL's per-chunk kernel scale replaced by the caller's
-        scale = {"XSCALE": repr(float(kernel_scale[0])), "YSCALE": repr(float(kernel_scale[1]))}
+    scale = kernel_scale_options(kernel_scale)  # GDAL's per-chunk scale replaced by the caller's
     with (
         _array_dataset(bands, src_transform) as ds,
         WarpedVRT(

@@ -111,12 +111,10 @@ def _check_overlap(dem: DEM, reference: DEM) -> None:
 
 def _kernel_scale(dem: DEM, reference: DEM):
     """The kernel scale of ``dem``'s warp onto ``reference``'s grid between two CRSs, one for
-    the whole grid (:func:`warp.kernel_scales`), so that its blocks are warped as the whole
-    grid is (GDAL's own is per chunk: the blocks of a turned grid were smoothed more than the
-    whole grid, by up to metres); None between grids of one CRS (GDAL's own: exact there)."""
-    if warp.same_horizontal_crs(dem.crs, reference.crs):
-        return None
-    return warp.kernel_scales(
+    the whole grid (:func:`warp.grid_kernel_scale`), so that its blocks are warped as the
+    whole grid is (GDAL's own is per chunk: the blocks of a turned grid were smoothed more than
+    the whole grid, by up to metres); None between grids of one CRS (GDAL's own: exact there)."""
+    return warp.grid_kernel_scale(
         dem.transform, dem.crs, reference.transform, reference.crs, reference.shape
     )
 

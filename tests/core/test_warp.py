@@ -172,3 +172,18 @@ def test_blocks_with_the_grids_kernel_scale_are_the_whole_grids_warp(resampling)
         assert _same(np.vstack(parts), whole), rows
         differs |= not _same(np.vstack(own), whole)
     assert differs  # without it, blocks are not the whole grid (what the scale is for)
+
+
+def test_grid_kernel_scale_is_none_within_one_crs():
+    """The scale given to every piece of a warp: kernel_scales between two CRSs, None (GDAL's
+    own, exact for an affine map) between grids of one horizontal CRS, a vertical part aside;
+    as GDAL warp options, none for None."""
+    st = Affine(30, 0, 500000, 0, -30, 8700000)
+    coarse = Affine(90, 0, 500010, 0, -90, 8700000)
+    assert warp.grid_kernel_scale(st, "EPSG:32633", coarse, "EPSG:32633+5773", (9, 9)) is None
+    dt = _polar_grid(st, (600, 600), 30, (150, 160))
+    scale = warp.grid_kernel_scale(st, "EPSG:32633", dt, "EPSG:3413", (150, 160))
+    assert scale == warp.kernel_scales(st, "EPSG:32633", dt, "EPSG:3413", (150, 160))
+    assert warp.kernel_scale_options(None) == {}
+    opts = warp.kernel_scale_options(scale)
+    assert opts.keys() == {"XSCALE", "YSCALE"} and float(opts["XSCALE"]) == scale[0]
