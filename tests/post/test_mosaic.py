@@ -24,7 +24,7 @@ from rasterio.warp import Resampling, calculate_default_transform, reproject
 
 import stereodem.post.mosaic as pm
 from stereodem.cli import main
-from stereodem.core import geodesy, threads
+from stereodem.core import geodesy, threads, warp
 from stereodem.core.dem import DEM as _DEM
 from stereodem.core.errors import InputError, VerticalReferenceError
 from stereodem.core.grid import MapGrid
@@ -890,3 +890,89 @@ def test_plan_mosaic_of_dem_objects_or_one_path_is_clear(tmp_path):
     with pytest.raises(InputError, match=r"reads its DEMs from files.*got a DEM"):
         plan_mosaic([a, _DEM.from_file(a)])
     assert plan_mosaic(a).grid.shape == plan_mosaic([a]).grid.shape
+
+
+#: tolerance (m) of a warp's values where GDAL's chunks differ: its approximate transformer
+#: puts a cell within TRANSFORM_TOLERANCE_PX (1e-3 source pixel) of exact, and _polar_dem's
+#: heights step by at most 19 m between neighbouring cells
+CHUNKS_ATOL_M = 0.02
+
+
+def _polar_dem(tmp_path, rows=330, cols=340):
+    """A textured DEM (relief, ripples of ~300 m and 2 m noise: smoothing shows) on a 10 m UTM
+    33N lattice at 78 N, whose 30 m EPSG:3413 mosaic grid (151 x 150 cells, more than the
+    warped VRT's 128-row blocks) is turned ~58 degrees against it."""
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:rows, 0:cols] / max(rows, cols)
+    z = 1000 + 300 * np.sin(6 * x) * np.cos(4 * y) + 50 * np.sin(40 * x + 3 * y)
+    z = (z + rng.normal(0, 2, z.shape)).astype(np.float32)
+    z[150:162, 60:70] = np.nan  # a void
+    t = Affine(10.0, 0, 500000.0, 0, -10.0, 8700000.0)
+    path = write_geotiff(tmp_path / "utm.tif", z, t, "EPSG:32633", np.nan, vertical="geoid")
+    return path, z, t
+
+
+def _tiled_read(src, g, size):
+    """``read_on_grid`` of the whole grid in windows of ``size`` cells."""
+    out = np.full(g.shape, np.nan, np.float32)
+    for r0 in range(0, g.height, size):
+        for c0 in range(0, g.width, size):
+            rows, cols = min(size, g.height - r0), min(size, g.width - c0)
+            out[r0 : r0 + rows, c0 : c0 + cols] = read_on_grid(src, g, r0, c0, rows, cols)
+    return out
+
+
+def _whole_grid_warp(z, st, g):
+    """The DEM's bilinear warp of the whole grid in one piece with one kernel scale."""
+    scale = warp.kernel_scales(st, "EPSG:32633", g.transform, g.crs, g.shape)
+    assert 0.3 < scale[0] < 0.35 and 0.3 < scale[1] < 0.35  # 3 times coarser, a little more
+    return warp.to_grid(z, st, "EPSG:32633", g.transform, g.crs, g.shape, kernel_scale=scale)
+
+
+def test_a_dem_in_another_crs_is_read_alike_in_any_window(tmp_path):
+    """GDAL's warper widens the bilinear kernel by a scale it computes per chunk (the chunk's
+    size over its source window's bounding box): a window read from a grid turned against
+    the DEM (UTM 33N onto EPSG:3413) is warped in the VRT's 128-row blocks, whose tall
+    source windows widen it more than a read of the whole grid in one piece (here 7.5 m at
+    most, half the cells off by over 1 cm, 10 m cells onto 30 m). With one kernel scale for
+    the grid (:func:`stereodem.core.warp.kernel_scales`) windows of any size give the whole
+    grid's read, and that is ``core.warp.to_grid``'s warp of the whole grid with that scale
+    (bit for bit here; the tolerance is :data:`CHUNKS_ATOL_M`)."""
+    path, z, st = _polar_dem(tmp_path)
+    plan = plan_mosaic([path], crs="EPSG:3413", res=30)
+    g, src = plan.grid, plan.sources[0]
+    assert plan.report["reprojected"] == [str(path)] and g.height > 128
+    whole = read_on_grid(src, g, 0, 0, g.height, g.width)
+    assert np.isfinite(whole).mean() > 0.4
+    for size in (40, 80):
+        tiled = _tiled_read(src, g, size)
+        np.testing.assert_allclose(
+            tiled, whole, rtol=0, atol=CHUNKS_ATOL_M, equal_nan=True, err_msg=size
+        )
+    exact = _whole_grid_warp(z, st, g)
+    np.testing.assert_allclose(whole, exact, rtol=0, atol=CHUNKS_ATOL_M, equal_nan=True)
+
+
+@pytest.mark.slow
+def test_a_mosaic_in_another_crs_does_not_depend_on_the_block_size(tmp_path):
+    """The blend of a DEM warped onto a turned grid in blocks of 16 cells (halo included) is
+    that of one 512-cell block, and both are the DEM's warp of the whole grid with one kernel
+    scale. On a mosaic extent 1000 km wider (south and east) the DEM is read with the same
+    values: its kernel scale is taken at its footprint (that at the grid's centre, 72 N
+    against 78 N, differs by 1.4 %: 0.21 m at most, 0.02 m median)."""
+    path, z, st = _polar_dem(tmp_path)
+    outs = []
+    for block in (16, 512):
+        plan = plan_mosaic([path], crs="EPSG:3413", res=30, block=block, blend_length=8)
+        run_mosaic(plan, tmp_path / f"m{block}.tif")
+        outs.append(read(tmp_path / f"m{block}.tif")[0])
+    np.testing.assert_allclose(outs[0], outs[1], rtol=0, atol=CHUNKS_ATOL_M, equal_nan=True)
+    g = plan.grid
+    exact = _whole_grid_warp(z, st, g)
+    np.testing.assert_allclose(outs[1], exact, rtol=0, atol=CHUNKS_ATOL_M, equal_nan=True)
+    w, s, e, n = g.bounds
+    wide = plan_mosaic([path], crs="EPSG:3413", res=30, bounds=(w, s - 1e6, e + 1e6, n))
+    gw = wide.grid
+    assert gw.transform.c == g.transform.c and gw.transform.f == g.transform.f  # same corner
+    there = read_on_grid(wide.sources[0], gw, 0, 0, g.height, g.width)
+    np.testing.assert_allclose(there, exact, rtol=0, atol=CHUNKS_ATOL_M, equal_nan=True)
