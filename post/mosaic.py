@@ -38,6 +38,7 @@ the mosaic's size or the number of DEMs.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import time
@@ -406,6 +407,7 @@ def _on_lattice(s: Source, grid: MapGrid) -> bool:
     return abs(dc - round(dc)) < 1e-6 and abs(dr - round(dr)) < 1e-6 and s.crs.equals(grid.crs)
 
 
+@functools.lru_cache(maxsize=256)  # one per DEM and grid: 2.5-4.5 ms, for each block's read
 def _kernel_scale(s: Source, grid: MapGrid):
     """The kernel scale of the DEM's bilinear warp onto the output grid (GDAL's ``XSCALE``,
     ``YSCALE``: output cells per DEM cell along the DEM's axes,
