@@ -254,6 +254,7 @@ def test_run_configuration_excludes_polygons_from_the_assessments_coregistration
             cfg(exclude=bad)
 
 
+@pytest.mark.slow  # ~2 s: two assessments with a co-registration chain and its variogram
 def test_assess_stage_converts_the_dems_vertical_reference_once(files, tmp_path, monkeypatch):
     """With a co-registration chain (an error-analysis job) ``assess_stage`` brings the DEM to
     the reference's vertical reference to fit the chain, and ``assess_dem`` did it again: two

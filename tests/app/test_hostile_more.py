@@ -902,7 +902,7 @@ QUICK += ["stack", "change"]
 
 
 #: the ones that take a second or more (a whole assessment, maps, a stack): the full suite's
-_SLOWER = {"assess", "uncertainty", "stack", "simulate"}
+_SLOWER = {"assess", "uncertainty", "stack", "simulate", "change"}
 
 
 @pytest.mark.parametrize(

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import re
+import shutil
 from pathlib import Path
 
 from stereodem import cli
@@ -14,8 +15,19 @@ HR = ["--height-range", "1000", "3500"]  # the simulated terrain lies at ~1790..
 
 def write_sim_scene(d: Path) -> Path:
     """The 300 x 300 simulated ASTER-like pair (seed 0, 20 check points) written to ``d``
-    (``left.tif``, ``right.tif``, their model sidecars, ``truth_dem.tif``, ...)."""
-    write_scene(simulate_scene("aster", size=(300, 300), seed=0, n_points=20), d, overwrite=True)
+    (``left.tif``, ``right.tif``, their model sidecars, ``truth_dem.tif``, ...).
+
+    Simulated and written once per test session (into ``sim_master`` beside ``d``, in pytest's
+    base temporary folder), then copied: the files hold no path, so every module gets the same
+    bytes in a folder of its own that its tests may change."""
+    master = d.parent / "sim_master"
+    if not master.is_dir():  # renamed into place once complete
+        tmp = d.parent / "sim_master.partial"
+        shutil.rmtree(tmp, ignore_errors=True)
+        scene = simulate_scene("aster", size=(300, 300), seed=0, n_points=20)
+        write_scene(scene, tmp, overwrite=True)
+        tmp.rename(master)
+    shutil.copytree(master, d, dirs_exist_ok=True)
     return d
 
 

@@ -205,6 +205,7 @@ def _compare_granule(path, csv_name, out, *band):
     return main([str(a) for a in argv])
 
 
+@pytest.mark.slow  # ~2 s: two compare-models runs end to end on a granule
 def test_compare_models_takes_an_aster_granule(granule, image, tmp_path, capsys):
     """``compare-models`` on an ASTER L1A granule takes its band's model as ``adjust`` and
     ``uncertainty`` do: 3N by default, ``--band 3B`` for the backward band. Before: "no usable
