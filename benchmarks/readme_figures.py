@@ -203,11 +203,15 @@ def scaling(d):
 
 
 def _speed_tag(d) -> str:
-    """`` (speed index N ms)`` of a result file whose machine's speed was measured (the
-    slower of before and after its runs), else nothing: figures of the targets' table come
-    from different sessions' machines."""
+    """`` (machine speed index N–M ms)`` of a result file whose machine's speed was measured
+    (before and after its runs: a shared machine drifts), else nothing: figures of the
+    targets' table come from different sessions' machines."""
     sp = d.get("machine", {}).get("speed_index_ms")
-    return f" (machine speed index {max(sp):.0f} ms)" if sp else ""
+    if not sp:
+        return ""
+    lo, hi = min(sp), max(sp)
+    said = f"{lo:.0f}" if round(lo) == round(hi) else f"{lo:.0f}–{hi:.0f}"
+    return f" (machine speed index {said} ms)"
 
 
 def _speed(d):
