@@ -72,9 +72,21 @@ def worker_threads(workers: int | None, n_cores: int | None = None) -> int:
     return max(1, n_cores // pool_size(workers))
 
 
-def pin_threads(n: int) -> dict:
+def _controller():
+    """A threadpoolctl controller of the BLAS and OpenMP runtimes loaded now: one scan of the
+    process's loaded libraries (``/proc/self/maps`` on Linux, 2-8 ms in a process with many
+    mappings), which its ``limit`` and ``info`` then reuse; ``threadpool_limits`` and
+    ``threadpool_info`` scan again at every call (four scans per :func:`thread_budget`, 15 s of
+    the fast test subset's profile, before)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
+
+
+def pin_threads(n: int, *, controller=None) -> dict:
     """Pin this process's BLAS/OpenMP, OpenCV and GDAL threads to ``n`` (>= 1); returns
-    :func:`current_limits`. Calling it again re-pins (the last call wins)."""
+    :func:`current_limits`. Calling it again re-pins (the last call wins). ``controller``: a
+    :func:`_controller` taken just before (else a new one: the runtimes loaded now)."""
     global _LIMITS, _PINNED
     n = max(1, int(n))
     for var in _ENV_VARS:
@@ -83,14 +95,13 @@ def pin_threads(n: int) -> dict:
     from rasterio.env import set_gdal_config
 
     set_gdal_config("GDAL_NUM_THREADS", str(n))
-    from threadpoolctl import threadpool_limits
-
-    _LIMITS = threadpool_limits(limits=n)  # every loaded BLAS and OpenMP runtime
+    controller = controller or _controller()
+    _LIMITS = controller.limit(limits=n)  # every loaded BLAS and OpenMP runtime
     import cv2
 
     cv2.setNumThreads(n)
     _PINNED = n
-    return current_limits()
+    return current_limits(controller=controller)
 
 
 @contextlib.contextmanager
@@ -99,17 +110,16 @@ def thread_budget(n: int | None):
     threads for the block, then restore the previous BLAS/OpenMP, OpenCV and GDAL limits."""
     global _LIMITS, _PINNED
     import cv2
-    from threadpoolctl import threadpool_limits
 
     saved_env = {v: os.environ.get(v) for v in (*_ENV_VARS, "GDAL_NUM_THREADS")}
     saved = (_LIMITS, _PINNED, cv2.getNumThreads())
     from rasterio.env import get_gdal_config, set_gdal_config
 
     saved_gdal = get_gdal_config("GDAL_NUM_THREADS")
-    outer = threadpool_limits(limits=None)  # a record of the limits before the block
+    controller = _controller()  # one scan of the loaded runtimes for the record and the pin
+    outer = controller.limit(limits=None)  # a record of the limits before the block
     try:
-        pin_threads(job_threads(n))
-        yield current_limits()
+        yield pin_threads(job_threads(n), controller=controller)
     finally:
         outer.restore_original_limits()
         cv2.setNumThreads(saved[2])
@@ -158,15 +168,15 @@ def pinned() -> int | None:
     return _PINNED
 
 
-def current_limits() -> dict:
+def current_limits(*, controller=None) -> dict:
     """The thread limits in force in this process: ``opencv`` (``cv2.getNumThreads``),
     ``blas`` and ``openmp`` (largest pool per API, threadpoolctl; None when none is loaded),
-    ``gdal`` (``GDAL_NUM_THREADS`` as GDAL sees it) and the ``pinned`` budget."""
+    ``gdal`` (``GDAL_NUM_THREADS`` as GDAL sees it) and the ``pinned`` budget. ``controller``:
+    a :func:`_controller` of the runtimes loaded now (else a new one)."""
     import cv2
-    from threadpoolctl import threadpool_info
 
     out = {"opencv": cv2.getNumThreads(), "blas": None, "openmp": None}
-    for pool in threadpool_info():
+    for pool in (controller or _controller()).info():
         api = pool.get("user_api")
         if api in ("blas", "openmp"):
             out[api] = max(out[api] or 0, int(pool["num_threads"]))
