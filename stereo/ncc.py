@@ -286,6 +286,20 @@ def _match_ncc(
     margin,
     vertical_search,
 ):
+    """The ``"ncc"`` matcher of :func:`stereodem.stereo.match.match_rectified` (checked
+    arguments): ZNCC block matching of the rectified pair (float32 images, rows = epipolar
+    lines), disparity ``x_left - x_right`` in pixels within ``lo..hi`` or, with
+    ``range_maps`` (per-pixel min and max, pixels), around their midpoints (one level);
+    otherwise coarse to fine over ``levels`` pyramid levels (None: :func:`_auto_levels`), each
+    finer level searching ``±margin`` pixels around the coarser level's left-right checked
+    seeds. Both directions are matched (the right map by flipping the pair) for the left-right
+    check (``lr_tolerance`` pixels, None: none); cells below ``min_score``, failing the check
+    or outside the range are NaN.
+
+    Returns ``(disparity, score, vertical, info)``: float32 maps of the left image's grid
+    (``vertical``: the row offsets found by ``vertical_search``, else None) and
+    ``{"levels": levels}``.
+    """
     h, w = left.shape
     flip = np.s_[:, ::-1]
 
