@@ -188,7 +188,7 @@ def fit_to_points(model, names, lon, lat, h, col, row, *, what: str):
     cost, best = np.inf, None
     # scaled by the Jacobian's columns and restarted from its own solution while that lowers
     # the cost: on these badly conditioned fits (15 values and a tilt) MINPACK's LM with unit
-    # scales stopped short of the minimum, where depended on SciPy's version (the Toutin
+    # scales stopped short of the minimum, at a point that depended on SciPy's version (the Toutin
     # model's fit to the simulated ASTER scene: 0.045 px with SciPy 1.10, 0.035 px with 1.16;
     # 0.0349 px with both now)
     for _ in range(LM_RESTARTS):
