@@ -325,6 +325,8 @@ def test_a_pool_run_clears_an_interrupted_runs_leftovers_but_not_its_own_image_m
     are what the workers read, and none is left after the run, refused or not."""
     out = tmp_path / "r"
     first = run(_cfg(scene_dir, out, workers=2))
+    # with a second core the reference DEM was read ahead (pipeline.prefetch)
+    assert first["stages"]["assess"]["reference_wait_s"] >= 0.0
     tiles = out / "tiles"
     (tiles / "shared-interrupted").mkdir()
     (tiles / "shared-interrupted" / "left.npy").write_bytes(b"old map")

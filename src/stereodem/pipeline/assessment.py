@@ -22,6 +22,7 @@ def assess_stage(
     provenance=None,
     error_analysis=None,
     analysis: bool = True,
+    reference: DEM | None = None,
 ):
     """Accuracy report of ``dem`` (a :class:`DEM` or a path) against the reference DEM and
     check points of the configuration, written into ``out_dir``; returns (assessment, files).
@@ -40,7 +41,11 @@ def assess_stage(
     if not i.reference_dem:
         raise InputError("the assessment needs a reference DEM ([inputs] reference_dem, --ref)")
     dem = dem if isinstance(dem, DEM) else DEM.from_file(dem, vertical=i.dem_vertical)
-    ref = DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
+    ref = (
+        reference
+        if reference is not None
+        else DEM.from_file(i.reference_dem, vertical=i.reference_vertical)
+    )
     kw = {} if a.slope_bins is None else dict(slope_bins=a.slope_bins)
     if error_analysis is None and a.exclude:  # [assess] exclude: the stable terrain only
         from stereodem.post.error_analysis import ErrorAnalysisJob

@@ -45,6 +45,7 @@ from ..multiview import run_stage, source_pairs
 from ..outlock import output_folder, remove_tile_cache
 from ..provenance import provenance, utc_now
 from .inputs import check_inputs, input_paths, load_pair, pair_names
+from .prefetch import AssessmentPrefetch
 from .record import StageLog, headline, versions
 from .stages import (
     assess_stage,
@@ -206,8 +207,8 @@ class BackgroundWriter:
 @dataclass
 class Job:
     """One run in progress: its configuration and output folder, the per-stage progress
-    factory, the background writer, the start (UTC text and ``perf_counter``), the stage log
-    and the outputs written so far."""
+    factory, the background writer, the start (UTC text and ``perf_counter``), the stage log,
+    the outputs written so far and the assessment's inputs read ahead (:mod:`.prefetch`)."""
 
     cfg: Config
     out: Path
@@ -217,20 +218,18 @@ class Job:
     t_start: float = field(default_factory=time.perf_counter)
     stages: StageLog = field(default_factory=StageLog)
     written: list = field(default_factory=list)
+    prefetch: AssessmentPrefetch | None = None
 
 
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
     started = utc_now()
     with BackgroundWriter(job_threads(cfg.run.workers)) as writer:
-        return _run_stages(
-            Job(
-                cfg,
-                out,
-                progress_factory or (lambda label: None),
-                writer,
-                started,
-            )
-        )
+        job = Job(cfg, out, progress_factory or (lambda label: None), writer, started)
+        try:
+            return _run_stages(job)
+        finally:
+            if job.prefetch is not None:  # a failed job does not wait for the read ahead
+                job.prefetch.close()
 
 
 def _run_stages(job: Job) -> dict:
@@ -241,6 +240,8 @@ def _run_stages(job: Job) -> dict:
     assessed = cfg.assess.enabled and bool(cfg.inputs.reference_dem)
     t0 = stages.start()
     check_inputs(cfg)
+    if assessed:  # the reference DEM read ahead, in a background thread
+        job.prefetch = AssessmentPrefetch(cfg, job_threads(cfg.run.workers))
     pair = None if cfg.inputs.images else load_pair(cfg)
     stages.record("load", t0)
 
@@ -366,10 +367,15 @@ def _run_stages(job: Job) -> dict:
         if assessed:
             t0 = stages.start()
             report = assess_stage(
-                cfg, clean, out / "assess", overwrite=True, provenance=provenance(started=started)
+                cfg,
+                clean,
+                out / "assess",
+                overwrite=True,
+                provenance=provenance(started=started),
+                reference=job.prefetch.reference(),
             )[0].report
             written.append("assess")
-            stages.record("assess", t0)
+            stages.record("assess", t0, reference_wait_s=round(job.prefetch.waited_s, 3))
 
     t0 = stages.start()
     writer.wait()
