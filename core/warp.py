@@ -6,6 +6,7 @@ DEM.reproject`); :mod:`stereodem.post.warp` re-exports it beside the shifts in m
 
 from __future__ import annotations
 
+import logging
 import warnings
 from contextlib import contextmanager
 
@@ -13,6 +14,7 @@ import numpy as np
 import rasterio
 import rasterio.transform
 from affine import Affine
+from rasterio._err import CPLE_BaseError
 from rasterio.crs import CRS as RioCRS
 from rasterio.errors import NotGeoreferencedWarning
 from rasterio.vrt import WarpedVRT
@@ -21,6 +23,8 @@ from rasterio.warp import Resampling, reproject, transform_bounds
 from stereodem.core import geodesy
 from stereodem.core.errors import NoOverlapError
 from stereodem.core.grid import as_crs
+
+log = logging.getLogger(__name__)
 
 #: the resampling methods of :func:`to_grid`, by name
 RESAMPLING_METHODS = ("nearest", "bilinear", "cubic", "cubic_spline")
@@ -132,6 +136,10 @@ def same_horizontal_crs(a, b) -> bool:
     return a == b
 
 
+#: what PROJ's refusal of a point raises through :func:`rasterio.warp.transform`
+_TRANSFORM_ERRORS = (rasterio.errors.RasterioError, CPLE_BaseError)
+
+
 def kernel_scales(src_transform, src_crs, dst_transform, dst_crs, dst_shape) -> tuple[float, float]:
     """GDAL's ``XSCALE`` and ``YSCALE`` of a warp from a source grid onto a destination grid:
     destination cells per source cell along the source's x and y axes (1: the same cells,
@@ -150,7 +158,12 @@ def kernel_scales(src_transform, src_crs, dst_transform, dst_crs, dst_shape) -> 
     c, r = cols / 2.0, rows / 2.0
     x, y = dst_transform @ (np.array([c, c + 1.0, c]), np.array([r, r, r + 1.0]))
     if not same_horizontal_crs(src_crs, dst_crs):
-        x, y = rasterio.warp.transform(rio_crs(dst_crs), rio_crs(src_crs), x, y)
+        try:
+            x, y = rasterio.warp.transform(rio_crs(dst_crs), rio_crs(src_crs), x, y)
+        except _TRANSFORM_ERRORS as exc:  # e.g. "Point outside of projection domain"
+            raise ValueError(
+                f"the destination grid's centre has no position in the source CRS ({exc})"
+            ) from None
     sc, sr = ~src_transform @ (np.asarray(x, float), np.asarray(y, float))
     along_x = float(np.hypot(sc[1] - sc[0], sc[2] - sc[0]))
     along_y = float(np.hypot(sr[1] - sr[0], sr[2] - sr[0]))
@@ -168,16 +181,61 @@ def kernel_scale_options(kernel_scale) -> dict:
     return {"XSCALE": repr(float(kernel_scale[0])), "YSCALE": repr(float(kernel_scale[1]))}
 
 
-def grid_kernel_scale(src_transform, src_crs, dst_transform, dst_crs, dst_shape):
+def grid_kernel_scale(
+    src_transform, src_crs, dst_transform, dst_crs, dst_shape, *, src_shape=None, footprint=None
+):
     """The kernel scale to give GDAL for every piece (block, window) of a warp of a source
     grid onto a destination grid, so that the pieces are warped as the whole grid is:
     :func:`kernel_scales` between two CRSs; None between grids of one horizontal CRS (an
     affine map of pixel coordinates: GDAL's own per-chunk scale is then the cells' size ratio
-    in every chunk, exact, and stays). The destination grid (``dst_transform``, ``dst_shape``
-    in cells) is where the scale is taken: the scale is that at its centre."""
+    in every chunk, exact, and stays).
+
+    Taken at the centre of the part of the destination grid (``dst_transform``, ``dst_shape``
+    in cells) that the source covers: its ``footprint`` (west, south, east, north in
+    ``dst_crs``), else that of the source grid of ``src_shape`` (cells), else the whole
+    destination grid. Where the source is small on a large grid the scale differs across it:
+    a 30 m UTM 33N DEM at 60 N on a 0.01 degree lon/lat grid of lon 0..40 E, lat 0..75 N has
+    an x scale of 0.054 at the DEM and 0.034 at the grid's centre (its kernel 1.6 times too
+    wide). None as well where that centre has no position in the source CRS (logged; GDAL's
+    own scale, per chunk, then)."""
     if same_horizontal_crs(src_crs, dst_crs):
         return None
-    return kernel_scales(src_transform, src_crs, dst_transform, dst_crs, dst_shape)
+    rows, cols = (int(n) for n in dst_shape[-2:])
+    if footprint is None and src_shape is not None:
+        bounds = rasterio.transform.array_bounds(*src_shape[-2:], src_transform)
+        try:
+            footprint = transform_bounds(
+                rio_crs(src_crs), rio_crs(dst_crs), *bounds, densify_pts=21
+            )
+        except Exception:  # noqa: BLE001 - bounds PROJ cannot take: the whole grid's centre
+            footprint = None
+    r0, r1, c0, c1 = _covered_window(dst_transform, rows, cols, footprint)
+    try:
+        return kernel_scales(
+            src_transform,
+            src_crs,
+            dst_transform @ Affine.translation(c0, r0),
+            dst_crs,
+            (r1 - r0, c1 - c0),
+        )
+    except ValueError as exc:
+        log.debug("kernel scale: %s; GDAL's own, per chunk", exc)
+        return None
+
+
+def _covered_window(transform, rows: int, cols: int, footprint) -> tuple[int, int, int, int]:
+    """Rows ``r0:r1`` and columns ``c0:c1`` of a north-up grid that the box ``footprint``
+    (west, south, east, north in the grid's CRS; None: all of it) covers; the whole grid where
+    the box misses it (or is not finite)."""
+    if footprint is not None and len(footprint) == 4 and np.all(np.isfinite(footprint)):
+        w, south, e, n = (float(v) for v in footprint)
+        cw, ce = sorted(((w - transform.c) / transform.a, (e - transform.c) / transform.a))
+        rn, rs = sorted(((n - transform.f) / transform.e, (south - transform.f) / transform.e))
+        c0, c1 = int(np.clip(np.floor(cw), 0, cols)), int(np.clip(np.ceil(ce), 0, cols))
+        r0, r1 = int(np.clip(np.floor(rn), 0, rows)), int(np.clip(np.ceil(rs), 0, rows))
+        if c1 > c0 and r1 > r0:
+            return r0, r1, c0, c1
+    return 0, rows, 0, cols
 
 
 def _reproject(

@@ -113,9 +113,16 @@ def _kernel_scale(dem: DEM, reference: DEM):
     """The kernel scale of ``dem``'s warp onto ``reference``'s grid between two CRSs, one for
     the whole grid (:func:`warp.grid_kernel_scale`), so that its blocks are warped as the
     whole grid is (GDAL's own is per chunk: the blocks of a turned grid were smoothed more than
-    the whole grid, by up to metres); None between grids of one CRS (GDAL's own: exact there)."""
+    the whole grid, by up to metres), taken where the DEM lies on that grid (a reference far
+    larger than the DEM: the scale at the reference's centre may be far off); None between
+    grids of one CRS (GDAL's own: exact there)."""
     return warp.grid_kernel_scale(
-        dem.transform, dem.crs, reference.transform, reference.crs, reference.shape
+        dem.transform,
+        dem.crs,
+        reference.transform,
+        reference.crs,
+        reference.shape,
+        src_shape=dem.shape,
     )
 
 

@@ -48,7 +48,6 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 import rasterio
-from affine import Affine
 from pyproj import CRS
 from rasterio.enums import Resampling
 from rasterio.vrt import WarpedVRT
@@ -423,23 +422,14 @@ def _kernel_scale(s: Source, grid: MapGrid):
     CRS) covers, not at the grid's centre: the mosaic's grid may be far larger than the DEM
     (1000 km more of an EPSG:3413 grid: a scale 1.4 % off, 0.2 m). None between grids of one
     CRS, and where that centre has no place in the DEM's CRS (GDAL's own, per chunk)."""
-    t = grid.transform
-    rows, cols = grid.height, grid.width
-    r0, r1, c0, c1 = 0, rows, 0, cols
-    if len(s.bounds) == 4:
-        w, south, e, n = s.bounds
-        cw, ce = sorted(((w - t.c) / t.a, (e - t.c) / t.a))
-        rn, rs = sorted(((n - t.f) / t.e, (south - t.f) / t.e))
-        fc0, fc1 = int(np.clip(np.floor(cw), 0, cols)), int(np.clip(np.ceil(ce), 0, cols))
-        fr0, fr1 = int(np.clip(np.floor(rn), 0, rows)), int(np.clip(np.ceil(rs), 0, rows))
-        if fc1 > fc0 and fr1 > fr0:
-            r0, r1, c0, c1 = fr0, fr1, fc0, fc1
-    try:
-        return grid_kernel_scale(
-            s.transform, s.crs_wkt, t @ Affine.translation(c0, r0), grid.crs, (r1 - r0, c1 - c0)
-        )
-    except ValueError:
-        return None
+    return grid_kernel_scale(
+        s.transform,
+        s.crs_wkt,
+        grid.transform,
+        grid.crs,
+        (grid.height, grid.width),
+        footprint=s.bounds if len(s.bounds) == 4 else None,
+    )
 
 
 def read_on_grid(

@@ -187,3 +187,39 @@ def test_grid_kernel_scale_is_none_within_one_crs():
     assert warp.kernel_scale_options(None) == {}
     opts = warp.kernel_scale_options(scale)
     assert opts.keys() == {"XSCALE", "YSCALE"} and float(opts["XSCALE"]) == scale[0]
+
+
+def test_grid_kernel_scale_is_taken_where_the_source_lies_on_a_large_grid():
+    """A 30 m UTM 33N DEM at 60 N on a 0.01 degree lon/lat grid of lon 0..40 E, lat 0..75 N:
+    the cells are 0.55 km wide at the DEM, 0.91 km at the grid's centre (37.5 N); the scale
+    given for the whole grid is the one at the DEM (its footprint's window of the grid), as
+    a grid cut around the DEM gives, not the centre's (a kernel 1.6 times too wide)."""
+    st, shape = Affine(30, 0, 500000, 0, -30, 6680000), (1000, 1000)
+    big, big_shape = Affine(0.01, 0, 0, 0, -0.01, 75), (7500, 4000)
+    at_centre = warp.kernel_scales(st, "EPSG:32633", big, "EPSG:4326", big_shape)
+    scale = warp.grid_kernel_scale(st, "EPSG:32633", big, "EPSG:4326", big_shape, src_shape=shape)
+    # the grid cut to the DEM's footprint (15.00..15.55 E, 59.98..60.26 N) plus a cell
+    cut = big @ Affine.translation(1499, 1473)
+    around = warp.kernel_scales(st, "EPSG:32633", cut, "EPSG:4326", (30, 57))
+    assert scale == pytest.approx(around, rel=2e-3)
+    assert scale[0] == pytest.approx(0.054, abs=1e-3) and at_centre[0] == pytest.approx(
+        0.034, abs=1e-3
+    )
+    # the footprint given directly (the mosaic's, in the grid's CRS) is the same window
+    fp = (15.0, 59.986, 15.542, 60.257)
+    assert warp.grid_kernel_scale(
+        st, "EPSG:32633", big, "EPSG:4326", big_shape, footprint=fp
+    ) == pytest.approx(scale, rel=1e-4)
+
+
+def test_a_grid_whose_centre_the_source_crs_cannot_take_gets_gdals_own_scale(caplog):
+    """A lon/lat grid at 80 W..70 W for a UTM 33N source (15 E): PROJ refuses the point
+    ("outside of projection domain", or an infinite position, depending on GDAL's state);
+    the kernel scale is then GDAL's own (None, logged at debug), not an exception out of the
+    warp (the mosaic caught a ValueError only, the assessment nothing)."""
+    src, dst = Affine(30, 0, 500000, 0, -30, 6680000), Affine(1, 0, -80, 0, -1, 5)
+    with pytest.raises(ValueError, match="no position in the source"):
+        warp.kernel_scales(src, "EPSG:32633", dst, "EPSG:4326", (10, 10))
+    with caplog.at_level("DEBUG", logger="stereodem.core.warp"):
+        assert warp.grid_kernel_scale(src, "EPSG:32633", dst, "EPSG:4326", (10, 10)) is None
+    assert "GDAL's own" in caplog.text
