@@ -187,3 +187,32 @@ def test_numeric_jacobian_of_pushbroom_parameters():
     # a pitch bias moves the image along track (rows), a roll bias across track (columns)
     assert np.all(np.abs(J[:, 1, 0]) > 10 * np.abs(J[:, 0, 0]))
     assert np.all(np.abs(J[:, 0, 1]) > 10 * np.abs(J[:, 1, 1]))
+
+
+@pytest.mark.parametrize("order", [1, 3])
+def test_affine_warp_is_the_general_warp(order):
+    """An affine map (pushbroom tiles) is warped by ``ndimage.affine_transform``, the general
+    (projective) one by ``map_coordinates`` on coordinate arrays: for the same map, written as
+    a homography whose last row is (0, 0, 2) (the same map, not detected as affine), the two
+    give the same pixels, NaN alike (outside the image, at its cropped edges, around no-data),
+    the values within float32 rounding."""
+    from stereodem.stereo.epipolar import _warp
+
+    rng = np.random.default_rng(7)
+    img = rng.normal(100, 20, (900, 1000)).astype(np.float32)
+    img[400:404, 200:700] = np.nan
+    for _ in range(6):
+        th, s = rng.uniform(-0.3, 0.3), rng.uniform(0.8, 1.2)
+        H = np.array(
+            [
+                [s * np.cos(th), -s * np.sin(th) + rng.uniform(-0.1, 0.1), rng.uniform(-300, 50)],
+                [s * np.sin(th), s * np.cos(th), rng.uniform(-300, 50)],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        shape = (int(rng.integers(200, 600)), int(rng.integers(200, 700)))
+        fast, general = _warp(img, H, shape, order), _warp(img, 2.0 * H, shape, order)
+        assert np.array_equal(np.isfinite(fast), np.isfinite(general))
+        ok = np.isfinite(fast)
+        assert ok.mean() > 0.2 and (~ok).any()
+        np.testing.assert_allclose(fast[ok], general[ok], rtol=2e-7, atol=1e-4)
