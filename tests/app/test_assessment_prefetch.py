@@ -31,7 +31,7 @@ def _cfg(ref, tmp_path):
 def ref(tmp_path):
     path = tmp_path / "ref.tif"
     d = DEM.bundled()
-    DEM(d.heights[:200, :300].copy(), d.transform, d.crs, d.vertical).write(path)
+    DEM(d.heights[:300, :600].copy(), d.transform, d.crs, d.vertical).write(path)
     return path
 
 
@@ -78,3 +78,59 @@ def test_a_reference_that_cannot_be_read_gives_the_assessments_own_error(tmp_pat
     with pytest.raises(DEMError) as ahead:
         p.reference()
     assert str(ahead.value) == str(own.value) and str(bad) in str(ahead.value)
+
+
+def _damage_a_middle_block(src, dst):
+    """``dst``: ``src`` (a tiled GeoTIFF of 2 x 2 blocks or more) with the bytes of its second
+    block overwritten: its first and last blocks read (what the input checks probe), the
+    whole raster does not."""
+    import shutil
+
+    import rasterio
+
+    shutil.copy(src, dst)
+    with rasterio.open(dst) as ds:
+        assert len(list(ds.block_windows(1))) >= 3
+        offset = int(ds.get_tag_item("BLOCK_OFFSET_1_0", "TIFF", bidx=1))
+        size = int(ds.get_tag_item("BLOCK_SIZE_1_0", "TIFF", bidx=1))
+    with open(dst, "r+b") as f:
+        f.seek(offset)
+        f.write(bytes(range(256)) * (size // 256) + b"\xff" * (size % 256))
+    DEM.check_file(dst)  # passes: the checks probe the first and last blocks
+    with pytest.raises(DEMError):
+        DEM.from_file(dst)
+
+
+def test_a_failed_read_ahead_is_raised_at_the_next_check(ref, tmp_path):
+    bad = tmp_path / "bad.tif"
+    _damage_a_middle_block(ref, bad)
+    p = pf.AssessmentPrefetch(_cfg(bad, tmp_path), threads=2)
+    p._future.exception(timeout=60)  # the read has failed (waited for here only)
+    with pytest.raises(DEMError, match="bad.tif"):
+        p.raise_if_failed()
+    good = pf.AssessmentPrefetch(_cfg(ref, tmp_path), threads=2)
+    good._future.result(timeout=60)
+    good.raise_if_failed()  # a read that succeeded raises nothing
+    assert good.reference().shape == (300, 600)
+
+
+@pytest.mark.slow
+def test_run_stops_before_the_orthoimages_when_the_reference_cannot_be_read(tmp_path, capsys):
+    """A reference DEM damaged in a middle block passes the input checks; read ahead, its
+    error stops ``stereodem run`` after the stereo stage, before the filters and orthoimages
+    (before: at the assessment, after all of them), as one error line naming it."""
+    from helpers.cli_scene import assert_clear_error, job_toml, run_cli, write_sim_scene
+
+    from stereodem.core.threads import job_threads
+
+    if job_threads(2) < 2:
+        pytest.skip("one core: the assessment reads its reference itself, at its start")
+    sim = write_sim_scene(tmp_path / "sim")
+    bad = tmp_path / "ref_damaged.tif"
+    _damage_a_middle_block(sim / "truth_dem.tif", bad)
+    out = tmp_path / "out"
+    toml = job_toml(tmp_path / "job.toml", sim, out, inputs=f'reference_dem = "{bad}"')
+    code, _, err = run_cli(capsys, ["run", toml, "--workers", "2"])
+    assert_clear_error(code, err, "run", r"ref_damaged.tif: cannot read the DEM")
+    assert (out / "raw" / "dem.tif").exists() or not out.exists()
+    assert not list(tmp_path.rglob("ortho_*.tif")) and not (out / "dem.tif").exists()

@@ -279,6 +279,8 @@ def _run_stages(job: Job) -> dict:
 
     report = post_report = None
     if not suspect:
+        if job.prefetch is not None:  # the reference DEM could not be read: stop here
+            job.prefetch.raise_if_failed()
         t0 = stages.start()
         clean, post_report = post_stage(cfg, products.dem, pair.seed_dem, path=out / "dem.tif")
 
@@ -318,6 +320,8 @@ def _run_stages(job: Job) -> dict:
             stages.record("point_cloud", t0, **pc)
 
         if cfg.ortho.enabled:
+            if job.prefetch is not None:
+                job.prefetch.raise_if_failed()
             t0 = stages.start()
             bar = prog("ortho")
             images = [("left", pair.left_image, pair.left_model)]

@@ -73,6 +73,17 @@ class AssessmentPrefetch:
             log.debug("assessment inputs read ahead: waited %.2f s for them", self.waited_s)
             self.close()
 
+    def raise_if_failed(self):
+        """Re-raise, at once, what the read ahead raised if it has failed already (a reference
+        whose first and last blocks read, which the input checks probe, but not a block in
+        between): the job stops at the next stage instead of at the assessment, after the
+        stereo stage and the orthoimages. Does not wait for a read under way."""
+        f = self._future
+        if f is not None and f.done() and not f.cancelled() and f.exception() is not None:
+            self._future = None
+            self.close()
+            raise f.exception()
+
     def close(self):
         """Stop: a read not started is dropped, one under way ends in its thread (a failed
         job does not wait for it)."""
