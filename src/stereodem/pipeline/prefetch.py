@@ -8,11 +8,14 @@ alone at the start of the assessment with every other core idle (on the full sim
 granule, 2 workers: the reference's read 0.45-0.6 s and the imports 0.43 s of an assessment
 of 2.5-3.6 s); read ahead, they fill the cores the job's start, its loading and the stereo
 stage's sparse part leave idle, and yield the cores to the workers otherwise
-(:func:`stereodem.core.threads.lower_thread_priority`). The reference is held in memory from
-the job's start (4 bytes a cell of the reference grid; the 15 m reference of the full granule:
-181 MB, beside the stereo stage's main-process peak of 0.9 GB, below the assessment's own
-of 1.8 GB). A job of one worker keeps to one core: there the assessment reads its inputs
-itself, as before.
+(:func:`stereodem.core.threads.lower_thread_priority`). On 2 cores at 2 workers the job is
+as fast as without (its cores are seldom idle); a machine with more cores than the job's
+serial parts use gains the assessment's start. The reference is held in memory from the
+job's start (4 bytes a cell of the reference grid; the 15 m reference of the full granule:
+181 MB; the peak over all processes at 2 workers 1.91-2.02 GB instead of 1.79-1.88 GB). A
+read that fails stops the job at the next stage boundary (:meth:`AssessmentPrefetch.
+raise_if_failed`), not after the orthoimages. A job of one worker keeps to one core: there
+the assessment reads its inputs itself, as before.
 """
 
 from __future__ import annotations
