@@ -672,8 +672,14 @@ def reading_env():
     """A rasterio environment that decodes compressed blocks on several threads
     (``GDAL_NUM_THREADS``: the process's thread budget when one is set in the environment,
     e.g. by ``stereodem.core.threads.pin_threads``, else all CPUs): reading a DEFLATE-compressed
-    scene-sized GeoTIFF takes about half the time on two cores. The values read are the same."""
-    return rasterio.Env(GDAL_NUM_THREADS=os.environ.get("GDAL_NUM_THREADS") or "ALL_CPUS")
+    scene-sized GeoTIFF takes about half the time on two cores. The values read are the same.
+    One thread with a GDAL older than 3.8, whose threaded decoding turns a damaged block into
+    zeros without an error (:func:`stereodem.core.threads.gdal_threads`)."""
+    from stereodem.core.threads import gdal_threads
+
+    return rasterio.Env(
+        GDAL_NUM_THREADS=gdal_threads(os.environ.get("GDAL_NUM_THREADS") or "ALL_CPUS")
+    )
 
 
 def probe_blocks(ds, band: int = 1) -> None:

@@ -16,7 +16,8 @@ A job has one setting, ``--workers`` / ``[run] workers`` (N, default all cores).
   ``MKL_NUM_THREADS`` for libraries loaded later and for child processes;
 * OpenCV's ``cv2.setNumThreads``;
 * GDAL's ``GDAL_NUM_THREADS`` (environment and rasterio's GDAL configuration), which
-  :func:`stereodem.core.raster.reading_env` and GDAL's multi-threaded codecs read.
+  :func:`stereodem.core.raster.reading_env` and GDAL's multi-threaded codecs read (1 with a
+  GDAL older than 3.8, whose threaded decoding hides damaged blocks: :func:`gdal_threads`).
 
 :func:`current_limits` reads all of them back (what a test or ``run.json`` reports).
 :func:`pool_initializer` is the process-pool ``initializer`` and :func:`register_dask_plugin`
@@ -83,6 +84,25 @@ def _controller():
     return ThreadpoolController()
 
 
+#: the first GDAL whose multi-threaded GeoTIFF decoding reports a block it cannot decode
+#: (3.8.4, 3.9.2 and 3.10.3 raise on a DEFLATE block damaged in the middle of a file; 3.6.4,
+#: in rasterio 1.3.8's wheels, decodes it into zeros on 2 threads without a word: heights of
+#: 0 m read as data, and a single thread raises there too)
+GDAL_REPORTS_THREADED_DECODE_ERRORS = (3, 8)
+
+
+def gdal_threads(n) -> str:
+    """What ``GDAL_NUM_THREADS`` is set to for a budget of ``n`` threads (an int, or GDAL's
+    ``"ALL_CPUS"``): ``n``, but ``"1"`` with a GDAL older than
+    :data:`GDAL_REPORTS_THREADED_DECODE_ERRORS`, whose threaded decoding of GeoTIFF blocks
+    hides damaged blocks (one rule for the pin and :func:`stereodem.core.raster.reading_env`;
+    the products' compression threads are set per write, ``NUM_THREADS``, and unaffected)."""
+    import rasterio
+
+    version = tuple(int(v) for v in rasterio.__gdal_version__.split(".")[:2])
+    return str(n) if version >= GDAL_REPORTS_THREADED_DECODE_ERRORS else "1"
+
+
 def pin_threads(n: int, *, controller=None) -> dict:
     """Pin this process's BLAS/OpenMP, OpenCV and GDAL threads to ``n`` (>= 1); returns
     :func:`current_limits`. Calling it again re-pins (the last call wins). ``controller``: a
@@ -91,10 +111,10 @@ def pin_threads(n: int, *, controller=None) -> dict:
     n = max(1, int(n))
     for var in _ENV_VARS:
         os.environ[var] = str(n)
-    os.environ["GDAL_NUM_THREADS"] = str(n)
+    os.environ["GDAL_NUM_THREADS"] = gdal_threads(n)
     from rasterio.env import set_gdal_config
 
-    set_gdal_config("GDAL_NUM_THREADS", str(n))
+    set_gdal_config("GDAL_NUM_THREADS", gdal_threads(n))
     controller = controller or _controller()
     _LIMITS = controller.limit(limits=n)  # every loaded BLAS and OpenMP runtime
     import cv2

@@ -47,13 +47,13 @@ def test_main_process_threads_are_capped_at_the_cores(monkeypatch):
     monkeypatch.setattr(threads, "cores", lambda: 2)
     assert threads.job_threads(16) == 2 and threads.pool_size(16) == 16
     with threads.thread_budget(16) as lim:
-        assert lim["opencv"] == 2 and lim["gdal"] == "2" and lim["pinned"] == 2
+        assert lim["opencv"] == 2 and lim["gdal"] == threads.gdal_threads(2) and lim["pinned"] == 2
 
 
 def test_pin_threads_sets_blas_opencv_gdal_and_thread_budget_restores():
     before = threads.current_limits()
     with threads.thread_budget(1) as lim:
-        assert lim["opencv"] == 1 and lim["gdal"] == "1" and lim["pinned"] == 1
+        assert lim["opencv"] == 1 and lim["gdal"] == threads.gdal_threads(1) and lim["pinned"] == 1
         assert lim["blas"] in (None, 1)
         assert cv2.getNumThreads() == 1 and os.environ["OPENBLAS_NUM_THREADS"] == "1"
     after = threads.current_limits()
@@ -71,7 +71,7 @@ def test_pool_initializer_pins_a_worker_to_the_budget_given():
             1, mp_context=ctx, initializer=threads.pool_initializer, initargs=(n,)
         ) as ex:
             lim = ex.submit(threads.worker_limits).result()
-        assert lim["opencv"] == n and lim["gdal"] == str(n) and lim["pinned"] == n
+        assert lim["opencv"] == n and lim["gdal"] == threads.gdal_threads(n) and lim["pinned"] == n
         assert lim["blas"] == n  # numpy's OpenBLAS is loaded in every worker
 
 
@@ -84,7 +84,8 @@ def test_tile_pool_workers_run_with_their_share_of_the_cores():
     pids = {int(r["pid"]) for r in res.values()}
     assert os.getpid() not in pids
     for r in res.values():
-        assert int(r["opencv"]) == want and int(r["gdal"]) == want and int(r["env_omp"]) == want
+        assert int(r["opencv"]) == want and int(r["env_omp"]) == want
+        assert str(int(r["gdal"])) == threads.gdal_threads(want)
         assert int(r["blas"]) == want
 
 
@@ -102,7 +103,7 @@ def test_dask_workers_are_pinned():
     assert not fails
     want = threads.cores()  # one task slot on this node: all its cores
     for r in res.values():
-        assert int(r["opencv"]) == want and int(r["gdal"]) == want
+        assert int(r["opencv"]) == want and str(int(r["gdal"])) == threads.gdal_threads(want)
 
 
 @pytest.mark.slow
@@ -121,7 +122,8 @@ def test_dask_workers_on_one_node_share_its_cores():
     assert len(limits) == 2
     want = max(1, threads.cores() // 2)
     for lim in limits.values():
-        assert lim["opencv"] == want and lim["gdal"] == str(want) and lim["pinned"] == want
+        assert lim["opencv"] == want and lim["pinned"] == want
+        assert lim["gdal"] == threads.gdal_threads(want)
 
 
 def test_threads_plugin_counts_the_slots_of_its_host(monkeypatch):
@@ -182,7 +184,7 @@ def test_a_job_pins_its_main_process_to_workers(tmp_path, monkeypatch):
             }
         )
         job.run(cfg)
-        assert seen["opencv"] == want and seen["gdal"] == str(want)
+        assert seen["opencv"] == want and seen["gdal"] == threads.gdal_threads(want)
         assert seen["pinned"] == want and seen["blas"] in (None, want)
     assert threads.current_limits() == before
 
