@@ -96,6 +96,20 @@ def _rebuild_output_exists(cls, problem, advice):
     return cls(problem, advice=advice)
 
 
+def portable(exc: BaseException) -> BaseException:
+    """``exc`` without the chain of errors it was raised from (``__cause__``, ``__context__``),
+    returned: what an error raised on a Dask worker must be to reach the client as itself.
+    Dask ships a task's error with its chain (tblib), and a GDAL error in the chain
+    (rasterio's ``CPLE_*``, whose ``args`` cannot be set) does not unpickle: the client got a
+    bare ``Exception`` holding the error's repr, and the command printed a traceback instead
+    of its one-line error (``mosaic --dask`` with a damaged DEM). The messages already say
+    what the chain said (GDAL's words: :func:`unreadable`)."""
+    exc.__cause__ = None
+    exc.__context__ = None
+    exc.__suppress_context__ = True
+    return exc
+
+
 def one_line(exc: BaseException, words: str = "library") -> str:
     """:func:`error_message` on one line (messages relayed from GDAL or Dask may carry
     newlines), or the exception's type name when it has no message."""

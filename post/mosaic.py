@@ -64,7 +64,7 @@ from stereodem.core.dem import (
     height_scaling,
     void_nodata,
 )
-from stereodem.core.errors import DEMError, InputError, NoOverlapError
+from stereodem.core.errors import DEMError, InputError, NoOverlapError, StereodemError, portable
 from stereodem.core.grid import MapGrid
 from stereodem.core.raster import unreadable
 from stereodem.core.stats import nanmedian, nmad
@@ -580,6 +580,18 @@ def mosaic_block(plan: MosaicPlan, r0: int, c0: int, rows: int, cols: int) -> Mo
         return _mosaic_block(plan, r0, c0, rows, cols)
 
 
+def _mosaic_block_task(plan: MosaicPlan, r0: int, c0: int, rows: int, cols: int):
+    """:func:`mosaic_block` as a Dask task: a stereodem error (a DEM that does not read) is
+    returned, not raised, and :func:`_dask_blocks` raises it in the client, so that the
+    command ends with its one-line error (raised, it reached the client as a bare
+    ``Exception`` when GDAL's error was in its chain: :func:`~stereodem.core.errors.portable`,
+    and each worker logged it with its traceback)."""
+    try:
+        return mosaic_block(plan, r0, c0, rows, cols)
+    except StereodemError as exc:
+        return portable(exc)
+
+
 def _mosaic_block(plan, r0, c0, rows, cols):
     g, m, h = plan.grid, plan.method, plan.halo
     wr0, wc0 = max(r0 - h, 0), max(c0 - h, 0)
@@ -724,12 +736,15 @@ def _dask_blocks(plan, todo, address, workers):
         queue = list(todo)
         pending = as_completed()
         for _ in range(min(2 * nthreads, len(queue))):
-            pending.add(client.submit(mosaic_block, p, *queue.pop(0), pure=False))
+            pending.add(client.submit(_mosaic_block_task, p, *queue.pop(0), pure=False))
         for fut in pending:
-            yield fut.result()
+            block = fut.result()
+            if isinstance(block, BaseException):  # a DEM that does not read (_mosaic_block_task)
+                raise block
+            yield block
             fut.release()
             if queue:
-                pending.add(client.submit(mosaic_block, p, *queue.pop(0), pure=False))
+                pending.add(client.submit(_mosaic_block_task, p, *queue.pop(0), pure=False))
     finally:
         client.close()
         if cluster is not None:

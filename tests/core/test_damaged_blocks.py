@@ -43,3 +43,31 @@ def test_gdal_threads_is_the_budget_from_gdal_3_8(monkeypatch):
     assert threads.gdal_threads(4) == "1" and threads.gdal_threads("ALL_CPUS") == "1"
     monkeypatch.setattr(rasterio, "__gdal_version__", "3.8.4")
     assert threads.gdal_threads(4) == "4" and threads.gdal_threads("ALL_CPUS") == "ALL_CPUS"
+
+
+def test_an_error_raised_from_gdals_crosses_to_the_dask_client_as_itself(damaged):
+    """Dask ships a task's error with its chain: GDAL's error (rasterio's ``CPLE_*``) in it does
+    not unpickle, and the client got a bare ``Exception``; :func:`portable` drops the chain."""
+    core = pytest.importorskip("distributed.core")
+    from stereodem.core.errors import portable
+
+    ok, bad = damaged
+    damage_a_middle_block(ok, bad)
+
+    def read_error():
+        try:
+            DEM.from_file(bad)
+        except DEMError as exc:
+            return exc
+
+    def through_dask(exc):  # what a worker sends for a task's error, as the client loads it
+        from distributed.protocol.pickle import loads
+
+        sent = core.error_message(exc)["exception"]
+        return loads(getattr(sent, "data", sent))
+
+    chained = read_error()
+    assert chained.__context__ is not None  # GDAL's error, the message says what it said
+    assert type(through_dask(chained)) is Exception  # what the client got
+    got = through_dask(portable(read_error()))
+    assert type(got) is DEMError and str(got) == str(chained)

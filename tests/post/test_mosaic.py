@@ -625,6 +625,30 @@ def test_dask_gives_the_serial_mosaic(tmp_path):
         )
 
 
+@pytest.mark.slow
+def test_dask_a_dem_that_does_not_read_is_the_one_line_error(tmp_path, capsys):
+    """A DEM damaged in a block the checks do not probe fails on a Dask worker; its error
+    reaches the command as itself: one line naming it, exit status 1, nothing written (it came
+    back as a bare ``Exception`` holding its repr, GDAL's error in its chain not unpickling,
+    and the command printed a traceback)."""
+    pytest.importorskip("dask.distributed")
+    from helpers.damage import damage_a_middle_block
+
+    d = _DEM.bundled()
+    _DEM(d.heights[:300, :600].copy(), d.transform, d.crs, d.vertical).write(tmp_path / "ok.tif")
+    assert damage_a_middle_block(tmp_path / "ok.tif", tmp_path / "bad.tif")
+    capsys.readouterr()
+    out = tmp_path / "m.tif"
+    args = ["mosaic", str(tmp_path / "ok.tif"), str(tmp_path / "bad.tif"), "-o", str(out)]
+    rc = main([*args, "--dask", "threads", "--workers", "2"])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "error" in ln.lower()]
+    assert rc == 1 and len(err) == 1, err
+    assert (
+        err[0].startswith("stereodem mosaic: error: ") and "bad.tif: cannot read the DEM" in err[0]
+    )
+    assert not out.exists() and not out.with_suffix(".json").exists()
+
+
 def test_dask_local_cluster_is_workers_processes_sharing_the_cores(tmp_path, monkeypatch):
     """``--dask local``: ``--workers`` processes (default all cores, as its help says; it
     was 1), each pinned to its share of the cores (a Dask worker plugin), not to all of them."""
