@@ -14,6 +14,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 
 from stereodem.core import interrupt
 from stereodem.core.errors import StereodemError, one_line
@@ -207,7 +208,12 @@ def exit_now(code: int) -> None:
     me = threading.current_thread()
     if any(t is not me and not t.daemon and t.is_alive() for t in threading.enumerate()):
         sys.exit(code)
-    atexit._run_exitfuncs()
+    with warnings.catch_warnings():
+        # a handler's DeprecationWarning (a library's internals: numcodecs 0.11's blosc at
+        # exit) would be attributed to this module, shown under ``python -m stereodem.cli``;
+        # the normal exit, with no Python frame calling the handlers, does not show it
+        warnings.simplefilter("ignore", DeprecationWarning)
+        atexit._run_exitfuncs()
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         try:

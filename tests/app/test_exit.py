@@ -87,3 +87,21 @@ def test_the_programs_output_and_exit_code_survive_the_quick_exit(tmp_path):
     )
     assert bad.returncode == 1
     assert "missing.hdf" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_a_deprecation_warning_of_an_exit_handler_is_not_shown(tmp_path):
+    """An exit handler's DeprecationWarning (numcodecs 0.11's blosc ``_destroy`` at exit, on the
+    declared minimum versions) is about a library's internals: the normal exit does not show
+    it (no Python frame calls the handlers); run from ``exit_now``, it was attributed to
+    ``stereodem.cli`` and printed as a WARNING under ``python -m stereodem.cli``."""
+    p = _python(
+        """
+        import atexit, warnings
+        from stereodem.cli import exit_now
+        warnings.simplefilter("default")  # what __main__ gets under python -m stereodem.cli
+        atexit.register(lambda: warnings.warn("old internals", DeprecationWarning, stacklevel=2))
+        exit_now(0)
+        """,
+        tmp_path,
+    )
+    assert p.returncode == 0 and "old internals" not in p.stderr, p.stderr
