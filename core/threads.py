@@ -111,10 +111,11 @@ def pin_threads(n: int, *, controller=None) -> dict:
     n = max(1, int(n))
     for var in _ENV_VARS:
         os.environ[var] = str(n)
-    os.environ["GDAL_NUM_THREADS"] = gdal_threads(n)
+    gdal = gdal_threads(n)
+    os.environ["GDAL_NUM_THREADS"] = gdal
     from rasterio.env import set_gdal_config
 
-    set_gdal_config("GDAL_NUM_THREADS", gdal_threads(n))
+    set_gdal_config("GDAL_NUM_THREADS", gdal)
     controller = controller or _controller()
     _LIMITS = controller.limit(limits=n)  # every loaded BLAS and OpenMP runtime
     import cv2

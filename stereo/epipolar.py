@@ -271,7 +271,7 @@ def _warp(image, H, shape, interpolation):
         src = np.where(nodata, np.nanmean(src) if (~nodata).any() else 0.0, src)
     order = int(interpolation)
     if np.array_equal(H[2], [0.0, 0.0, 1.0]):  # affine (pushbroom tiles: similarities)
-        res, c, r = _affine_warp(src, H, (rows, cols), c0, r0, order)
+        res, c, r = _affine_warp(src, Hinv, (rows, cols), c0, r0, order)
     else:
         v, u = np.mgrid[0:rows, 0:cols].astype(np.float64)
         c, r = apply_map(Hinv, u, v)
@@ -295,8 +295,9 @@ def _warp(image, H, shape, interpolation):
     return out
 
 
-def _affine_warp(src, H, shape, c0, r0, order):
-    """The spline interpolation of :func:`_warp` for an affine ``H`` (last row 0, 0, 1):
+def _affine_warp(src, Hinv, shape, c0, r0, order):
+    """The spline interpolation of :func:`_warp` for an affine map (``Hinv``: its inverse,
+    frame -> image, last row 0, 0, 1):
     ``scipy.ndimage.affine_transform``, which computes each output pixel's source position
     itself (no coordinate arrays for it to read: about a fifth less time on a tile, less
     memory traffic), into float32 (the values rounded once, as before). Returns the warped
@@ -304,8 +305,7 @@ def _affine_warp(src, H, shape, c0, r0, order):
     row and one column: ``c = a u + b v + e``, the formula of :func:`apply_map` with its
     division by 1), relative to the crop at ``(c0, r0)``, for the validity tests."""
     rows, cols = shape
-    Hinv = np.linalg.inv(H)  # source (col, row) = a @ (u, v) + t, as apply_map has it
-    a, t = Hinv[:2, :2], Hinv[:2, 2]
+    a, t = Hinv[:2, :2], Hinv[:2, 2]  # source (col, row) = a @ (u, v) + t, as apply_map has it
     m = np.array([[a[1, 1], a[1, 0]], [a[0, 1], a[0, 0]]])  # (row, col) from (v, u)
     res = ndimage.affine_transform(
         src,
