@@ -33,7 +33,8 @@ import threading
 
 from . import worker_logging  # no third-party import: loads nothing before the pin
 
-_ENV_VARS = (
+#: the environment variables that size BLAS / OpenMP / numexpr thread pools when a runtime is loaded
+ENV_VARS = (
     "OMP_NUM_THREADS",
     "OPENBLAS_NUM_THREADS",
     "MKL_NUM_THREADS",
@@ -109,7 +110,7 @@ def pin_threads(n: int, *, controller=None) -> dict:
     :func:`_controller` taken just before (else a new one: the runtimes loaded now)."""
     global _LIMITS, _PINNED
     n = max(1, int(n))
-    for var in _ENV_VARS:
+    for var in ENV_VARS:
         os.environ[var] = str(n)
     gdal = gdal_threads(n)
     os.environ["GDAL_NUM_THREADS"] = gdal
@@ -132,7 +133,7 @@ def thread_budget(n: int | None):
     global _LIMITS, _PINNED
     import cv2
 
-    saved_env = {v: os.environ.get(v) for v in (*_ENV_VARS, "GDAL_NUM_THREADS")}
+    saved_env = {v: os.environ.get(v) for v in (*ENV_VARS, "GDAL_NUM_THREADS")}
     saved = (_LIMITS, _PINNED, cv2.getNumThreads())
     from rasterio.env import get_gdal_config, set_gdal_config
 

@@ -29,9 +29,12 @@ from stereodem.core import threads
 
 #: what the server imports before it forks workers: first a module that makes it ignore
 #: SIGINT (:mod:`stereodem.core.ignore_interrupt`: a Ctrl-C during the next imports printed
-#: their traceback), then the tile code and what it imports
+#: their traceback), then one that starts the BLAS / OpenMP runtimes with one thread
+#: (:mod:`stereodem.core.one_thread_runtimes`: the workers pin their own budget), then the
+#: tile code and what it imports
 _PRELOAD = [
     "stereodem.core.ignore_interrupt",
+    "stereodem.core.one_thread_runtimes",
     "stereodem.stereo.pipeline",
     "stereodem.stereo.execution",
 ]

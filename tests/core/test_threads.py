@@ -3,6 +3,8 @@ OpenCV and GDAL threads to what the job's one setting gives them."""
 
 import multiprocessing
 import os
+import subprocess
+import sys
 from concurrent.futures import ProcessPoolExecutor
 
 import cv2
@@ -73,6 +75,34 @@ def test_pool_initializer_pins_a_worker_to_the_budget_given():
             lim = ex.submit(threads.worker_limits).result()
         assert lim["opencv"] == n and lim["gdal"] == threads.gdal_threads(n) and lim["pinned"] == n
         assert lim["blas"] == n  # numpy's OpenBLAS is loaded in every worker
+
+
+def test_the_fork_server_loads_blas_with_one_thread_and_workers_still_get_their_budget():
+    """The fork server imports the tile code with its BLAS / OpenMP runtimes at one thread
+    (each OpenBLAS starts a thread per core that spins at load: 0.85 instead of 0.48 CPU s of
+    imports on 2 cores); a worker forked from it that is given 3 threads has 3 in each of
+    those runtimes (the pin raises them; an OpenBLAS loaded later with OpenCV keeps its own
+    cap at the cores), and the module imports nothing heavy itself."""
+    from stereodem.stereo import fork_server
+
+    pre = fork_server._PRELOAD
+    first_heavy = min(i for i, m in enumerate(pre) if m.startswith("stereodem.stereo"))
+    assert pre.index("stereodem.core.one_thread_runtimes") < first_heavy
+    script = (
+        "import sys; import stereodem.core.one_thread_runtimes; "
+        "light = not ({'numpy', 'cv2', 'rasterio'} & set(sys.modules)); "
+        "import numpy, scipy.linalg; from threadpoolctl import threadpool_info; "
+        "at_load = {p['filepath']: p['num_threads'] for p in threadpool_info()}; "
+        "from stereodem.core.threads import pin_threads; pin_threads(3); "
+        "pinned = {p['filepath']: p['num_threads'] for p in threadpool_info()}; "
+        "print(light, sorted(set(at_load.values())), sorted({pinned[f] for f in at_load}))"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in threads.ENV_VARS}
+    r = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["True", "[1]", "[3]"], r.stdout + r.stderr
 
 
 @pytest.mark.slow
