@@ -495,6 +495,54 @@ def check_georeferenced(path, ds) -> None:
         )
 
 
+#: colour interpretations of a band of a colour image: its values are no heights
+_COLOUR_CHANNELS = frozenset(
+    {"red", "green", "blue", "alpha", "hue", "saturation", "lightness"}
+    | {"cyan", "magenta", "yellow", "black", "Y", "Cb", "Cr"}
+)
+#: band units that are no length (lower case): stereodem's score, count and edit layers ("1"),
+#: slope and aspect maps, shares
+_NOT_LENGTH_UNITS = frozenset(
+    {"1", "unitless", "dimensionless", "degree", "degrees", "deg", "radian", "radians", "rad"}
+    | {"%", "percent"}
+)
+
+
+def _not_heights_descriptions() -> tuple[str, ...]:
+    """Band descriptions (lower case) of stereodem's rasters that hold no heights: its
+    orthoimages (``orthoimage (... resampling)``, :meth:`stereodem.ortho.drm.Ortho.write`)
+    and a DEM's companion layers (:data:`LAYERS`)."""
+    return ("orthoimage", *(x.description.lower() for x in LAYERS.values() if x.description))
+
+
+def check_heights_band(path, ds, band: int = 1) -> None:
+    """Band ``band`` of the open raster ``ds`` (file ``path``) may hold heights: not a channel
+    of a colour image (an RGB photograph or quick look: band 1 its red), not one of
+    stereodem's own rasters that hold none (an orthoimage, a score, count or edit layer:
+    their band descriptions), not in a unit that is no length (``1``, degrees, %). Such a
+    file given as a DEM was read as heights without a word (an orthoimage's radiances as
+    metres; a 3-band photograph with a warning only); now a one-line :class:`DEMError`
+    naming it. A band that says nothing (GDAL's gray or undefined, no description, no unit or
+    a length) passes: most DEMs say nothing."""
+    i = band - 1
+    channel = ds.colorinterp[i].name
+    if channel in _COLOUR_CHANNELS:
+        raise DEMError(
+            f"{path}: band {band} is the {channel} channel of a colour image ({ds.count} "
+            f"band(s) of {ds.dtypes[i]}), not heights; give a DEM"
+        )
+    desc = " ".join((ds.descriptions[i] or "").split())
+    if desc.lower().startswith(_not_heights_descriptions()):
+        raise DEMError(
+            f"{path}: band {band} is stereodem's {desc!r}, not heights; give the DEM itself"
+        )
+    unit = (ds.units[i] or "").strip()
+    if unit.lower() in _NOT_LENGTH_UNITS:
+        raise DEMError(
+            f"{path}: band {band} is in unit {unit!r}, not a length: not heights; give a DEM"
+        )
+
+
 def _check_vertical(vertical: str | None) -> None:
     """A DEM's vertical reference is None (unknown) or one of :data:`VERTICALS`."""
     if vertical is not None and vertical not in VERTICALS:
@@ -608,6 +656,7 @@ class DEM:
                 check_georeferenced(path, ds)
                 if not 1 <= band <= ds.count:
                     raise DEMError(f"{path}: no band {band} (the file has {ds.count})")
+                check_heights_band(path, ds, band)
                 if ds.count > 1:  # an image given as a DEM, or a DEM with other layers
                     # a band described as heights (stereodem's mosaic: height, sigma, count)
                     # is what was asked for; any other multi-band file may be an image
@@ -651,7 +700,8 @@ class DEM:
     @staticmethod
     def check_file(path, vertical: str | None = None, band: int = 1) -> None:
         """The checks of :meth:`from_file` that need no full read: the file opens as a raster
-        with the band, has a CRS, its first and last blocks decode, and ``vertical`` (if given) is a
+        with the band, has a CRS, the band may hold heights (:func:`check_heights_band`), its
+        first and last blocks decode, and ``vertical`` (if given) is a
         vertical reference; raises what :meth:`from_file` raises. For input checks before
         long work, without holding the heights meanwhile (a void-only DEM passes here and
         fails when it is read)."""
@@ -662,6 +712,7 @@ class DEM:
                 check_georeferenced(path, ds)
                 if not 1 <= band <= ds.count:
                     raise DEMError(f"{path}: no band {band} (the file has {ds.count})")
+                check_heights_band(path, ds, band)
                 probe_blocks(ds, band)
         except rasterio.errors.RasterioIOError as exc:
             raise DEMError(unreadable(path, "DEM", exc)) from None

@@ -28,6 +28,7 @@ from stereodem.core.dem import (
     ELLIPSOID,
     GEOID,
     check_georeferenced,
+    check_heights_band,
     file_vertical,
     horizontal_crs,
     other_geoid,
@@ -139,6 +140,7 @@ def open_source(path, order: int = 0, *, vertical: str | None = None) -> Source:
     try:
         with rasterio.open(path) as ds:
             check_georeferenced(path, ds)  # a CRS and a geotransform
+            check_heights_band(path, ds)  # not an image's band, not an orthoimage
             t = ds.transform
             if abs(t.b) > 0 or abs(t.d) > 0 or t.a <= 0 or t.e >= 0:
                 raise DEMError(

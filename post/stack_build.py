@@ -31,7 +31,7 @@ import rasterio
 from rasterio.warp import transform_bounds
 from scipy import ndimage
 
-from stereodem.core.dem import DEM, check_georeferenced
+from stereodem.core.dem import DEM, check_georeferenced, check_heights_band
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
 from stereodem.core.pool import stop_pool
 from stereodem.core.raster import read_image, unreadable
@@ -87,6 +87,7 @@ def header_bounds_lonlat(path):
     try:
         with rasterio.open(path) as ds:
             check_georeferenced(path, ds)
+            check_heights_band(path, ds)
             # the corners through the transform: ``ds.bounds`` of a south-up grid has its
             # bottom above its top (and ignores rotation), which made it miss everything
             x, y = ds.transform @ (

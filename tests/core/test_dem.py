@@ -325,6 +325,51 @@ def test_a_multi_band_file_read_as_a_dem_says_which_band(tmp_path, caplog):
     assert [r.levelname for r in caplog.records if "2 bands" in r.getMessage()] == ["INFO"]
 
 
+def test_rasters_that_hold_no_heights_are_refused_as_dems(tmp_path):
+    """A colour photograph (3 bands of uint8, band 1 its red), stereodem's own score, count,
+    ray-gap and edit layers, and a band in a unit that is no length were read as heights:
+    ``mosaic good.tif photo.tif`` wrote a mosaic with the photo's red values as metres (a
+    warning only), ``coregister photo.tif`` said "only 0 stable samples". Each is now one
+    DEMError naming the file and what it holds, from the full read, the header checks
+    before long work, the mosaic's and the stack's headers alike."""
+    photo = tmp_path / "photo.tif"
+    _dem_file(photo, np.zeros((3, 8, 8), np.uint8), photometric="RGB")
+    sums = np.full((8, 8), 3.0, np.float32)
+    dem = DEM(
+        np.full((8, 8), 1500.0, np.float32),
+        Affine(30, 0, 500000, 0, -30, 4400000),
+        "EPSG:32637",
+        "ellipsoid",
+        count=np.ones((8, 8), np.int32),
+        score=sums,
+        ray_gap=sums,
+        edit_mask=np.zeros((8, 8), np.uint8),
+    )
+    dem.write(tmp_path / "dem.tif", layers=True)
+    slope = tmp_path / "slope.tif"
+    with rasterio.open(_dem_file(slope, np.full((8, 8), 12.0, np.float32)), "r+") as ds:
+        ds.units = ("degree",)
+    cases = {
+        photo: "band 1 is the red channel of a colour image (3 band(s) of uint8), not heights",
+        slope: "band 1 is in unit 'degree', not a length: not heights",
+    }
+    for name in ("count", "score", "ray_gap", "edit_mask"):
+        spec = dem_module.LAYERS[name]
+        path = dem_module.layer_path(tmp_path / "dem.tif", name)
+        assert path.is_file(), name
+        cases[path] = f"band 1 is stereodem's {spec.description!r}, not heights"
+    for path, said in cases.items():
+        for read in (DEM.from_file, DEM.check_file, open_source, header_bounds_lonlat):
+            with pytest.raises(DEMError) as err:
+                read(path)
+            assert str(err.value) == f"{path}: {said}; give " + (
+                "the DEM itself" if "stereodem's" in said else "a DEM"
+            ), read
+    # the DEM beside them, and a DEM whose band says nothing, read as before
+    assert np.all(DEM.from_file(tmp_path / "dem.tif").heights == 1500.0)
+    assert DEM.from_file(_dem_file(tmp_path / "plain.tif", np.ones((8, 8), np.int16))).shape
+
+
 def test_heights_in_feet_are_read_in_metres(tmp_path):
     """A DEM whose vertical CRS is in US survey feet (NAVD88 height (ftUS), EPSG:6360) or
     whose band unit says feet was read as metres: an assessment against a metre reference

@@ -19,7 +19,13 @@ from stereodem.cli import main
 from stereodem.core import geodesy as g
 from stereodem.core.dem import DEM
 from stereodem.core.errors import CRSError as StereodemCRSError
-from stereodem.core.errors import DEMCoverageError, InputError, OutputExistsError, SensorModelError
+from stereodem.core.errors import (
+    DEMCoverageError,
+    DEMError,
+    InputError,
+    OutputExistsError,
+    SensorModelError,
+)
 from stereodem.core.grid import MapGrid, grid_from_bounds
 from stereodem.core.raster import write_geotiff, write_text_atomic
 from stereodem.ortho.concurrent import orthorectify_all
@@ -165,6 +171,21 @@ def test_ortho_matches_rendered_truth(rendered):
     assert err.max() <= 0.01 + 1e-3  # + float32 storage of the maps
     # the heights used are the DEM's (ellipsoidal)
     assert np.allclose(o.heights[iv[k], iu[k]], dem.sample(lon, lat), atol=0.05)
+
+
+def test_an_orthoimage_given_as_a_dem_is_refused(rendered, tmp_path):
+    """An orthoimage written by stereodem, given where a DEM is wanted (``stereodem assess
+    ortho_left.tif --ref ...``), had its radiances read as heights in metres without a word;
+    its band description says what it is, and the DEM reader refuses it in one line."""
+    cam, dem, grid, img, _ = rendered
+    o = orthorectify(img, cam, dem, grid=grid, resampling="bilinear")
+    path = o.write(tmp_path / "ortho.tif")
+    with pytest.raises(DEMError) as err:
+        DEM.from_file(path)
+    assert str(err.value) == (
+        f"{path}: band 1 is stereodem's 'orthoimage (bilinear resampling)', not heights; "
+        "give the DEM itself"
+    )
 
 
 def test_threads_give_the_same_ortho(rendered):
