@@ -105,6 +105,27 @@ def test_the_fork_server_loads_blas_with_one_thread_and_workers_still_get_their_
     assert r.stdout.split() == ["True", "[1]", "[3]"], r.stdout + r.stderr
 
 
+def test_runtimes_loaded_under_a_budget_start_with_its_threads():
+    """A command's process loads NumPy's and OpenCV's BLAS in its thread budget's block: each
+    OpenBLAS started a thread per core there, spinning, which a budget of 1 never used; now
+    none beyond the budget (on a machine of 2 cores or more the process held 3 threads in
+    ``thread_budget(1)``, now 1), and the environment is as it was after the block."""
+    script = (
+        "import os, sys; from stereodem.core.threads import thread_budget\n"
+        "assert 'numpy' not in sys.modules\n"
+        "with thread_budget(1):\n"
+        "    import numpy, cv2\n"
+        "    inside = len(os.listdir('/proc/self/task'))\n"
+        "print(inside, os.environ.get('OPENBLAS_NUM_THREADS'))"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in threads.ENV_VARS}
+    r = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["1", "None"], r.stdout + r.stderr
+
+
 @pytest.mark.slow
 def test_tile_pool_workers_run_with_their_share_of_the_cores():
     tiles = tile_grid(64, 64, 16)
