@@ -29,6 +29,7 @@ from rasterio.windows import from_bounds
 from stereodem.core.dem import (
     DEM,
     Voided,
+    check_heights_band,
     file_vertical,
     height_scaling,
     horizontal_crs,
@@ -122,12 +123,14 @@ def fitter(chain: str = "nuth_kaab") -> Callable:
 
 def check_reference(path) -> None:
     """:class:`DEMError` (one line naming ``path``) when the reference cannot be read as a
-    raster or has no CRS: a fault of the reference, not of each DEM, so refused at once."""
+    raster, has no CRS or holds no heights (:func:`~stereodem.core.dem.check_heights_band`):
+    a fault of the reference, not of each DEM, so refused at once."""
     path = str(path)
     try:
         with reading_env(), rasterio.open(path) as ds:
             if ds.crs is None:
                 raise DEMError(f"{path}: the reference DEM has no CRS")
+            check_heights_band(path, ds)
     except rasterio.errors.RasterioIOError as exc:
         raise DEMError(unreadable(path, "reference DEM", exc)) from None
 

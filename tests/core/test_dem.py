@@ -331,7 +331,7 @@ def test_rasters_that_hold_no_heights_are_refused_as_dems(tmp_path):
     ``mosaic good.tif photo.tif`` wrote a mosaic with the photo's red values as metres (a
     warning only), ``coregister photo.tif`` said "only 0 stable samples". Each is now one
     DEMError naming the file and what it holds, from the full read, the header checks
-    before long work, the mosaic's and the stack's headers alike."""
+    before long work, the mosaic's and the stack's headers and the mosaic's reference alike."""
     photo = tmp_path / "photo.tif"
     _dem_file(photo, np.zeros((3, 8, 8), np.uint8), photometric="RGB")
     sums = np.full((8, 8), 3.0, np.float32)
@@ -359,7 +359,13 @@ def test_rasters_that_hold_no_heights_are_refused_as_dems(tmp_path):
         assert path.is_file(), name
         cases[path] = f"band 1 is stereodem's {spec.description!r}, not heights"
     for path, said in cases.items():
-        for read in (DEM.from_file, DEM.check_file, open_source, header_bounds_lonlat):
+        for read in (
+            DEM.from_file,
+            DEM.check_file,
+            open_source,
+            header_bounds_lonlat,
+            check_reference,
+        ):
             with pytest.raises(DEMError) as err:
                 read(path)
             assert str(err.value) == f"{path}: {said}; give " + (
