@@ -77,6 +77,17 @@ def test_pool_initializer_pins_a_worker_to_the_budget_given():
         assert lim["blas"] == n  # numpy's OpenBLAS is loaded in every worker
 
 
+def _fresh_python(script: str) -> list[str]:
+    """The words ``script`` prints in a fresh interpreter whose environment sets no BLAS /
+    OpenMP thread count (the runtimes then start one thread per core unless told otherwise)."""
+    env = {k: v for k, v in os.environ.items() if k not in threads.ENV_VARS}
+    r = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env
+    )
+    assert r.returncode == 0, r.stderr
+    return r.stdout.split()
+
+
 def test_the_fork_server_loads_blas_with_one_thread_and_workers_still_get_their_budget():
     """The fork server imports the tile code with its BLAS / OpenMP runtimes at one thread
     (each OpenBLAS starts a thread per core that spins at load: 0.85 instead of 0.48 CPU s of
@@ -97,12 +108,7 @@ def test_the_fork_server_loads_blas_with_one_thread_and_workers_still_get_their_
         "pinned = {p['filepath']: p['num_threads'] for p in threadpool_info()}; "
         "print(light, sorted(set(at_load.values())), sorted({pinned[f] for f in at_load}))"
     )
-    env = {k: v for k, v in os.environ.items() if k not in threads.ENV_VARS}
-    r = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env
-    )
-    assert r.returncode == 0, r.stderr
-    assert r.stdout.split() == ["True", "[1]", "[3]"], r.stdout + r.stderr
+    assert _fresh_python(script) == ["True", "[1]", "[3]"]
 
 
 def test_runtimes_loaded_under_a_budget_start_with_its_threads():
@@ -118,12 +124,7 @@ def test_runtimes_loaded_under_a_budget_start_with_its_threads():
         "    inside = len(os.listdir('/proc/self/task'))\n"
         "print(inside, os.environ.get('OPENBLAS_NUM_THREADS'))"
     )
-    env = {k: v for k, v in os.environ.items() if k not in threads.ENV_VARS}
-    r = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env
-    )
-    assert r.returncode == 0, r.stderr
-    assert r.stdout.split() == ["1", "None"], r.stdout + r.stderr
+    assert _fresh_python(script) == ["1", "None"]
 
 
 @pytest.mark.slow
