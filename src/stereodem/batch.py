@@ -215,6 +215,7 @@ def scene_config(
             keep_tiles=keep_tiles,
         )
     else:
+        _check_granule(scene.path)
         raw, base = {}, "."
         if scene.template:
             raw = _read_template(scene.template)
@@ -235,6 +236,23 @@ def scene_config(
         )
     cfg.output_dir = str(out_dir)
     return cfg
+
+
+def _check_granule(path) -> None:
+    """A scene that is no configuration must be an ASTER L1A granule: else an
+    :class:`InputError` with the granule reader's reason and what a scene may be (a GeoTIFF
+    or a folder given as a scene failed with "batch defaults: [inputs] needs 'right'")."""
+    from stereodem.sensor.io.aster_l1a import is_aster_granule, open_aster_granule
+
+    if is_aster_granule(path):
+        return
+    try:
+        open_aster_granule(path)
+    except InputError as exc:
+        reason = str(exc)
+    else:  # pragma: no cover - the reader opens what is_aster_granule refused
+        return
+    raise InputError(f"{reason}; a batch scene is an ASTER L1A granule or a configuration (.toml)")
 
 
 def is_done(out_dir) -> bool:

@@ -128,6 +128,25 @@ def test_list_files_names_and_missing_scenes(tmp_path):
     )
 
 
+def test_a_scene_that_is_neither_a_granule_nor_a_configuration_says_so(tmp_path):
+    """A GeoTIFF or a folder given as a scene failed with "batch defaults: [inputs] needs
+    'right' (only an ASTER granule is a pair alone)": true, but not what was wrong. The
+    granule reader's reason and what a scene may be, in the scene's row; the others run."""
+    tif = tmp_path / "dem.tif"
+    tif.write_bytes(b"II*\x00")
+    folder = tmp_path / "scenes"
+    folder.mkdir()
+    result = run_batch(expand_inputs([tif, folder]), tmp_path / "out", workers=1)
+    tail = "; a batch scene is an ASTER L1A granule or a configuration (.toml)"
+    reasons = [r["reason"] for r in result["scenes"]]
+    assert reasons == [
+        f"{tif}: not an ASTER L1A granule (neither an HDF4 file, as V004 granules are, nor a "
+        "V003 zip or folder)" + tail,
+        f"{folder}: not an ASTER L1A V003 granule (no AST_L1A_*.VNIR_Band3N.ImageData.tif / "
+        "VNIR_Band3B images)" + tail,
+    ]
+
+
 def test_a_scene_given_twice_and_an_unreadable_template_are_refused(tmp_path):
     # the same configuration twice (a list and the command line) ran twice, into x and x_2;
     # a --template that does not exist was ignored when no granule needed it
