@@ -38,6 +38,7 @@ the mosaic's size or the number of DEMs.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
@@ -700,7 +701,7 @@ def _dask_blocks(plan, todo, address, workers):
     cores: :func:`stereodem.core.threads.worker_threads`), yielded as they finish, with at
     most two per worker in flight (so finished blocks never pile up in the client)."""
     try:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import Client, LocalCluster, as_completed, wait
     except ImportError:  # pragma: no cover - optional extra
         raise InputError("--dask needs dask.distributed (pip install 'stereodem[dask]')") from None
     from stereodem.core.dask_threads import quiet_distributed_logging
@@ -730,22 +731,35 @@ def _dask_blocks(plan, todo, address, workers):
 
         client = connect(address)
         register_dask_plugin(client)  # each node's cores shared out over its workers' slots
+    inflight = set()  # submitted, not yet handed on
+
+    def submit(p, block):
+        fut = client.submit(_mosaic_block_task, p, *block, pure=False)
+        inflight.add(fut)
+        return fut
+
     try:
         nthreads = max(sum(client.nthreads().values()), 1)
         [p] = client.scatter([plan], broadcast=True)
         queue = list(todo)
         pending = as_completed()
         for _ in range(min(2 * nthreads, len(queue))):
-            pending.add(client.submit(_mosaic_block_task, p, *queue.pop(0), pure=False))
+            pending.add(submit(p, queue.pop(0)))
         for fut in pending:
+            inflight.discard(fut)
             block = fut.result()
             if isinstance(block, BaseException):  # a DEM that does not read (_mosaic_block_task)
                 raise block
             yield block
             fut.release()
             if queue:
-                pending.add(client.submit(_mosaic_block_task, p, *queue.pop(0), pure=False))
+                pending.add(submit(p, queue.pop(0)))
     finally:
+        if inflight:  # stopped early: the blocks under way end first (at most two a worker),
+            # else every worker closed under one logged that it "ended with CancelledError"
+            # above the command's own one-line error
+            with contextlib.suppress(Exception):
+                wait(list(inflight), timeout=60)
         client.close()
         if cluster is not None:
             cluster.close()

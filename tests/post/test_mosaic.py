@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import logging
 import re
+import subprocess
+import sys
 import tracemalloc
 import warnings
 
@@ -647,6 +649,33 @@ def test_dask_a_dem_that_does_not_read_is_the_one_line_error(tmp_path, capsys):
         err[0].startswith("stereodem mosaic: error: ") and "bad.tif: cannot read the DEM" in err[0]
     )
     assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+@pytest.mark.slow  # a subprocess with a Dask cluster (~4 s)
+@pytest.mark.parametrize("cluster", ["threads", "local"])
+def test_dask_a_failed_block_prints_nothing_but_the_error(tmp_path, cluster):
+    """The command's whole stderr is its one error line: the cluster was closed under the
+    blocks still running, and every worker logged "WARNING distributed.worker.state_machine:
+    Async instruction for <Task cancelled ...> ended with CancelledError" above it (`--dask
+    local` from its worker processes, `--dask threads` in the command's). The blocks under
+    way now end before the cluster closes."""
+    pytest.importorskip("dask.distributed")
+    from helpers.damage import damage_a_middle_block
+
+    d = _DEM.bundled()
+    _DEM(d.heights[:300, :600].copy(), d.transform, d.crs, d.vertical).write(tmp_path / "ok.tif")
+    assert damage_a_middle_block(tmp_path / "ok.tif", tmp_path / "bad.tif")
+    args = ["mosaic", str(tmp_path / "ok.tif"), str(tmp_path / "bad.tif"), "-o"]
+    r = subprocess.run(
+        [sys.executable, "-m", "stereodem.cli", *args, str(tmp_path / "m.tif")]
+        + ["--dask", cluster, "--workers", "2", "--block", "64"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 1
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "bad.tif: cannot read the DEM" in lines[0], r.stderr
 
 
 def test_dask_local_cluster_is_workers_processes_sharing_the_cores(tmp_path, monkeypatch):
