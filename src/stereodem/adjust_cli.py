@@ -134,7 +134,8 @@ def add_parser(sub):
         "--max-iterations",
         type=int,
         default=20,
-        help="iterations of the least-squares adjustment at most (default 20)",
+        help="iterations of the least-squares adjustment at most (default 20; 0: the "
+        "initial model's residuals and statistics, nothing estimated)",
     )
     p.add_argument(
         "--regularization", help="lcurve, gcv or a weight: Tikhonov for rank-deficient sets"

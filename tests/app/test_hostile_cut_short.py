@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import shutil
 
+import numpy as np
 import pytest
 import rasterio
 from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_sim_scene
@@ -27,7 +28,9 @@ from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_s
 from stereodem.core import raster
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
-from stereodem.sensor.estimation.adjust import reliability
+from stereodem.sensor.estimation.adjust import gauss_markov, reliability
+from stereodem.sensor.estimation.adjust.bundle import bundle_adjust
+from stereodem.sensor.estimation.adjust.bundle_multi import bundle_adjust_images
 
 CUT = r"cut short or damaged"
 
@@ -209,6 +212,25 @@ def test_adjust_cli_alpha_2_writes_nothing(sim, tmp_path, capsys):
     code, _, err = run_cli(capsys, [*argv, "-o", tmp_path / "m.json", "--alpha", "2"])
     assert_clear_error(code, err, "adjust", r"alpha .* between 0 and 1")
     assert not (tmp_path / "m.json").exists()
+
+
+@pytest.mark.parametrize("n", [-1, -2, 1.5])
+def test_adjust_max_iterations_below_0_or_fractional_is_refused(n):
+    # before: `adjust --max-iterations -1` exited 0 with an adjusted model and its report (one
+    # unchecked Gauss-Newton step); 0 stays the initial model's statistics, nothing estimated
+    A = np.eye(2)
+
+    def evaluate(x):
+        return A @ x - 1.0, A
+
+    with pytest.raises(InputError, match=r"max_iterations must be a whole number, 0 or more"):
+        gauss_markov.solve(evaluate, np.zeros(2), ["a", "b"], max_iterations=n)
+    with pytest.raises(InputError, match=r"max_iterations must be a whole number"):
+        bundle_adjust(None, None, np.zeros((0, 4)), max_iterations=n)  # a pair
+    with pytest.raises(InputError, match=r"max_iterations must be a whole number"):
+        bundle_adjust_images([None, None], None, max_iterations=n)  # N images
+    sol = gauss_markov.solve(evaluate, np.zeros(2), ["a", "b"], max_iterations=0)
+    assert np.all(sol.x == 0) and sol.iterations == 0  # evaluated at x0, nothing estimated
 
 
 @pytest.mark.parametrize("noise", ["nan", "-5", "inf"])

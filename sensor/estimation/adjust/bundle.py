@@ -613,6 +613,7 @@ def bundle_adjust(
     """
     if solver not in SOLVERS:
         raise InputError(f"bundle: unknown solver {solver!r} (known: {', '.join(SOLVERS)})")
+    max_iterations = gm.check_max_iterations(max_iterations)
     t = _as_ties(ties)
     gcps = tuple(gcps)
     has_gcp = any(g is not None and np.any(g.role == "gcp") for g in gcps)

@@ -457,6 +457,7 @@ def bundle_adjust_images(
     n_img = len(models)
     if n_img < 2:
         raise InputError(f"bundle: needs at least two images, got {n_img}")
+    max_iterations = gm.check_max_iterations(max_iterations)
     gcps = list(gcps) if gcps is not None else [None] * n_img
     priors = list(priors) if priors is not None else [None] * n_img
     if len(gcps) != n_img or len(priors) != n_img:

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from stereodem.core.errors import ConvergenceError, SensorModelError
+from stereodem.core.errors import ConvergenceError, InputError, SensorModelError
 from stereodem.sensor.estimation import regularize
 
 __all__ = ["GaussMarkovSolution", "solve", "inseparable", "equilibrated_svd", "MAX_CONDITION"]
@@ -89,6 +89,23 @@ def _condition(s):
     return float((s[0] / s[-1]) ** 2) if s[-1] > 0 else float("inf")
 
 
+def check_max_iterations(value) -> int:
+    """``value`` as a number of iterations: a whole number, 0 or more (0: the statistics of
+    the initial parameters, nothing estimated), else :class:`InputError` naming it
+    (``--max-iterations -1`` was taken: one unchecked Gauss-Newton step, reported as an
+    adjustment)."""
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        n = -1
+    if n < 0 or n != value:
+        raise InputError(
+            f"max_iterations must be a whole number, 0 or more (0: the initial model's "
+            f"statistics, nothing estimated), got {value}"
+        )
+    return n
+
+
 def solve(
     evaluate,
     x0,
@@ -129,6 +146,7 @@ def solve(
     ConvergenceError
         No convergence within ``max_iterations``.
     """
+    max_iterations = check_max_iterations(max_iterations)
     try:
         return _solve(
             evaluate,
