@@ -353,7 +353,16 @@ def _heading(step, context):
             f"{step.name}: the ground-track heading is unknown; give it "
             "(--track-angle DEG, track_angle_deg=...) or use a DEM made by stereodem"
         )
-    return float(h)
+    try:
+        h = float(h)
+    except (TypeError, ValueError):
+        h = float("nan")
+    if not np.isfinite(h):  # NaN made the track profile's bin count negative: a traceback
+        raise InputError(
+            f"{step.name}: the ground-track heading must be a finite angle in degrees, got "
+            f"{step.heading if step.heading is not None else context.get('track_angle_deg')}"
+        )
+    return h
 
 
 def _set_track(step, context):

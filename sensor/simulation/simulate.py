@@ -108,6 +108,16 @@ def check_noise(noise) -> float:
     return v
 
 
+def scene_rng(seed) -> np.random.Generator:
+    """The random generator of a simulated scene for ``seed`` (a whole number >= 0, NumPy's
+    seeds), else :class:`InputError`: ``simulate --seed -1`` ended in NumPy's traceback
+    ("expected non-negative integer")."""
+    try:
+        return np.random.default_rng(seed)
+    except (TypeError, ValueError):
+        raise InputError(f"seed must be a whole number >= 0, got {seed}") from None
+
+
 @dataclass
 class Scene:
     """A simulated stereo scene (all arrays in memory)."""
@@ -801,7 +811,7 @@ def simulate_scene(
             "the frame preset takes one size for both images (right_size is for "
             "the pushbroom presets)"
         )
-    rng = np.random.default_rng(seed)
+    rng = scene_rng(seed)
     dem, (lon0, lat0, h0), (h_lo, h_hi) = _scene_centre(dem)
 
     if preset == "frame":
@@ -955,7 +965,7 @@ def simulate_views(
     w, h = int(size[0]), int(size[1])
     if min(w, h) < 32:
         raise InputError(f"image size {w}x{h} is too small (at least 32x32)")
-    rng = np.random.default_rng(seed)
+    rng = scene_rng(seed)
     dem, (lon0, lat0, h0), (h_lo, h_hi) = _scene_centre(dem)
     altitude = 705e3
     if preset == "pushbroom":

@@ -233,6 +233,29 @@ def test_adjust_max_iterations_below_0_or_fractional_is_refused(n):
     assert np.all(sol.x == 0) and sol.iterations == 0  # evaluated at x0, nothing estimated
 
 
+def test_simulate_negative_seed_is_refused(tmp_path, capsys):
+    # before: NumPy's traceback ("ValueError: expected non-negative integer")
+    out = tmp_path / "s"
+    code, _, err = run_cli(capsys, ["simulate", "--size", "64", "64", "--seed=-1", "-o", out])
+    assert_clear_error(code, err, "simulate", r"seed must be a whole number >= 0, got -1")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("angle", ["nan", "inf"])
+def test_a_track_angle_that_is_no_angle_is_refused(angle, srtm, tmp_path, capsys):
+    # before: a traceback from the along-track step ("negative dimensions are not allowed":
+    # the profile's bin count from a NaN heading); the unused heading of a chain without
+    # along/cross-track steps does not matter
+    ref = DEM.from_file(srtm / "ref.tif")
+    DEM(ref.heights + 2.0, ref.transform, ref.crs, ref.vertical).write(tmp_path / "b.tif")
+    argv = ["coregister", tmp_path / "b.tif", "--ref", srtm / "ref.tif"]
+    argv += ["--chain", "nuth_kaab,along_track"]
+    code, _, err = run_cli(capsys, [*argv, f"--track-angle={angle}", "-o", tmp_path / "c"])
+    assert_clear_error(
+        code, err, "coregister", rf"heading must be a finite angle in degrees, got {angle}"
+    )
+
+
 @pytest.mark.parametrize("noise", ["nan", "-5", "inf"])
 def test_simulate_noise_not_a_standard_deviation_is_refused(noise, tmp_path, capsys):
     # before: exit 0, noiseless images, scene.json saying noise NaN / -5
