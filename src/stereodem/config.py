@@ -89,6 +89,11 @@ __all__ = [
 ]
 
 
+#: the longest per-tile timeout (s, ~31 years; infinity ended in a traceback from the
+#: worker's alarm timer: "timestamp out of range for platform time_t")
+MAX_TILE_TIMEOUT_S = 1e9
+
+
 @dataclass
 class InputSettings:
     """Input files.
@@ -816,8 +821,11 @@ def validate(cfg: Config, source="configuration"):
     run = cfg.run
     if run.workers is not None and run.workers < 1:
         bad(f"[run] workers must be at least 1, got {run.workers}")
-    if run.tile_timeout is not None and not run.tile_timeout > 0:
-        bad(f"[run] tile_timeout must be positive, got {run.tile_timeout}")
+    if run.tile_timeout is not None and not 0 < run.tile_timeout < MAX_TILE_TIMEOUT_S:
+        bad(
+            f"[run] tile_timeout must be a positive number of seconds below "
+            f"{MAX_TILE_TIMEOUT_S:.0e}, got {run.tile_timeout}"
+        )
     if run.creation_options:
         # the [run] table's, or --co on the command line over them
         run.creation_options = check_creation_options(

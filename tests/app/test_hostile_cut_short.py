@@ -233,6 +233,15 @@ def test_adjust_max_iterations_below_0_or_fractional_is_refused(n):
     assert np.all(sol.x == 0) and sol.iterations == 0  # evaluated at x0, nothing estimated
 
 
+@pytest.mark.parametrize("seconds", ["inf", "1e12", "nan", "0"])
+def test_a_tile_timeout_that_is_no_number_of_seconds_is_refused(seconds, tmp_path, capsys):
+    # before: --tile-timeout inf ended in a traceback from the tile's alarm timer ("timestamp
+    # out of range for platform time_t")
+    argv = ["dem", tmp_path / "l.tif", tmp_path / "r.tif", "-o", tmp_path / "d.tif"]
+    code, _, err = run_cli(capsys, [*argv, f"--tile-timeout={seconds}"])
+    assert_clear_error(code, err, "dem", r"tile_timeout must be a positive number of seconds")
+
+
 def test_simulate_negative_seed_is_refused(tmp_path, capsys):
     # before: NumPy's traceback ("ValueError: expected non-negative integer")
     out = tmp_path / "s"
