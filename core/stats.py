@@ -40,3 +40,16 @@ def nmad(x, axis=None):
     if x.size == 0:
         return float("nan")
     return float(NMAD_FACTOR * np.median(np.abs(x - np.median(x))))
+
+
+def generator(seed) -> np.random.Generator:
+    """NumPy's random generator for ``seed`` (a whole number >= 0, or a generator), else
+    :class:`~stereodem.core.errors.InputError` naming it: a negative seed ended
+    ``simulate --seed -1`` and ``uncertainty --seed -1`` in NumPy's traceback ("expected
+    non-negative integer"). The one rule for the commands' seeds."""
+    from stereodem.core.errors import InputError
+
+    try:
+        return np.random.default_rng(seed)
+    except (TypeError, ValueError):
+        raise InputError(f"seed must be a whole number >= 0, got {seed}") from None

@@ -53,6 +53,9 @@ class CloudSettings:
             raise InputError(f"cloud max_deviation must be positive, got {self.max_deviation}")
         if self.min_score is not None and not 0 <= self.min_score <= 1:
             raise InputError(f"cloud min_score must be in [0, 1], got {self.min_score}")
+        if self.max_radiance is not None and not self.max_radiance > 0:
+            # NaN compared false with every radiance: the sign was off without a word
+            raise InputError(f"cloud max_radiance must be positive, got {self.max_radiance}")
         if self.grow < 0:
             raise InputError(f"cloud grow must be >= 0 cells, got {self.grow}")
 

@@ -48,6 +48,7 @@ from scipy import ndimage
 
 from stereodem.core.blocks import default_threads
 from stereodem.core.errors import AccuracyError
+from stereodem.core.stats import generator
 from stereodem.ortho.drm import _lattice, bilinear_nan, crop_dem
 from stereodem.ortho.uncertainty.propagation import (
     _ce90_table,
@@ -466,7 +467,7 @@ def first_order_maps(
     from stereodem.ortho.uncertainty.maps import UncertaintyMaps
 
     t0 = time.perf_counter()
-    rng = np.random.default_rng(seed)
+    rng = generator(seed)
     dem_e = crop_dem(dem, grid)
     z = dem_e.heights
     lo, hi = float(np.nanmin(z)), float(np.nanmax(z))

@@ -27,6 +27,7 @@ from stereodem.core import geodesy, jsonutil
 from stereodem.core.dem import ELLIPSOID, write_layer
 from stereodem.core.errors import InputError
 from stereodem.core.raster import write_geotiff, write_text_atomic
+from stereodem.core.stats import generator
 from stereodem.ortho.choices import UNCERTAINTY_METHODS
 from stereodem.ortho.drm import build_backward_map, crop_dem
 from stereodem.ortho.uncertainty.first_order_maps import _node_lattice, _weights, first_order_maps
@@ -331,7 +332,7 @@ def ortho_uncertainty_maps(
             source_maps=source_maps,
             threads=threads,
         )
-    rng = np.random.default_rng(seed)
+    rng = generator(seed)
     big = max(grid.width, grid.height)
     st = int(step or min(64, max(1, 2 ** int(np.ceil(np.log2(max(big, 2) / 2))))))
     fixed = step is not None

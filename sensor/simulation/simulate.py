@@ -59,6 +59,7 @@ from stereodem.core.raster import (
     write_geotiff,
     write_text_atomic,
 )
+from stereodem.core.stats import generator
 from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
 from stereodem.sensor.estimation.rpcfit import fit_rpc
 from stereodem.sensor.io.aster_xml import bundled_xml, read_asp_aster_xml
@@ -106,16 +107,6 @@ def check_noise(noise) -> float:
     if not (np.isfinite(v) and v >= 0):
         raise InputError(f"noise must be a finite standard deviation >= 0 DN, got {noise}")
     return v
-
-
-def scene_rng(seed) -> np.random.Generator:
-    """The random generator of a simulated scene for ``seed`` (a whole number >= 0, NumPy's
-    seeds), else :class:`InputError`: ``simulate --seed -1`` ended in NumPy's traceback
-    ("expected non-negative integer")."""
-    try:
-        return np.random.default_rng(seed)
-    except (TypeError, ValueError):
-        raise InputError(f"seed must be a whole number >= 0, got {seed}") from None
 
 
 @dataclass
@@ -811,7 +802,7 @@ def simulate_scene(
             "the frame preset takes one size for both images (right_size is for "
             "the pushbroom presets)"
         )
-    rng = scene_rng(seed)
+    rng = generator(seed)
     dem, (lon0, lat0, h0), (h_lo, h_hi) = _scene_centre(dem)
 
     if preset == "frame":
@@ -965,7 +956,7 @@ def simulate_views(
     w, h = int(size[0]), int(size[1])
     if min(w, h) < 32:
         raise InputError(f"image size {w}x{h} is too small (at least 32x32)")
-    rng = scene_rng(seed)
+    rng = generator(seed)
     dem, (lon0, lat0, h0), (h_lo, h_hi) = _scene_centre(dem)
     altitude = 705e3
     if preset == "pushbroom":

@@ -28,6 +28,7 @@ from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_s
 from stereodem.core import raster
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
+from stereodem.post.clouds import CloudSettings
 from stereodem.sensor.estimation.adjust import gauss_markov, reliability
 from stereodem.sensor.estimation.adjust.bundle import bundle_adjust
 from stereodem.sensor.estimation.adjust.bundle_multi import bundle_adjust_images
@@ -242,12 +243,24 @@ def test_a_tile_timeout_that_is_no_number_of_seconds_is_refused(seconds, tmp_pat
     assert_clear_error(code, err, "dem", r"tile_timeout must be a positive number of seconds")
 
 
-def test_simulate_negative_seed_is_refused(tmp_path, capsys):
-    # before: NumPy's traceback ("ValueError: expected non-negative integer")
+def test_a_negative_seed_is_refused(sim, tmp_path, capsys):
+    # before: NumPy's traceback ("ValueError: expected non-negative integer"), in `simulate`
+    # and in `uncertainty`'s Monte Carlo; one rule now (core.stats.generator)
     out = tmp_path / "s"
     code, _, err = run_cli(capsys, ["simulate", "--size", "64", "64", "--seed=-1", "-o", out])
     assert_clear_error(code, err, "simulate", r"seed must be a whole number >= 0, got -1")
     assert not out.exists()
+    argv = ["uncertainty", sim / "left.tif", "--dem", sim / "truth_dem.tif"]
+    argv += ["--sigma", "roll_bias=1e-5", "--seed=-1", "-o", tmp_path / "u"]
+    code, _, err = run_cli(capsys, argv)
+    assert_clear_error(code, err, "uncertainty", r"seed must be a whole number >= 0, got -1")
+
+
+@pytest.mark.parametrize("radiance", [float("nan"), -1.0, 0.0])
+def test_a_cloud_radiance_threshold_that_is_no_radiance_is_refused(radiance):
+    # before: NaN compared false with every radiance (the sign off without a word)
+    with pytest.raises(InputError, match=r"cloud max_radiance must be positive"):
+        CloudSettings(max_radiance=radiance)
 
 
 @pytest.mark.parametrize("angle", ["nan", "inf"])
