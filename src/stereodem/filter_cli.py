@@ -93,10 +93,14 @@ def _cloud_mask(args, layers, seed):
     """The cloud mask of the DEM (None when no --cloud-* option is given); refused without the
     seed DEM for --cloud-max-dev."""
     from stereodem.core.errors import InputError
+    from stereodem.post.clouds import CloudSettings, cloud_mask
 
+    # checked whether or not a mask is made (--cloud-grow -1 alone was taken without a word)
+    settings = CloudSettings(
+        max_deviation=args.cloud_max_dev, min_score=args.cloud_min_score, grow=args.cloud_grow
+    )
     if args.cloud_max_dev is None and args.cloud_min_score is None:
         return None
-    from stereodem.post.clouds import CloudSettings, cloud_mask
 
     ref = None
     if args.cloud_max_dev is not None:
@@ -114,9 +118,7 @@ def _cloud_mask(args, layers, seed):
         layers.heights,
         reference=ref,
         score=layers.score,
-        settings=CloudSettings(
-            max_deviation=args.cloud_max_dev, min_score=args.cloud_min_score, grow=args.cloud_grow
-        ),
+        settings=settings,
     )
     return m
 

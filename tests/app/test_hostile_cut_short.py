@@ -256,6 +256,14 @@ def test_a_negative_seed_is_refused(sim, tmp_path, capsys):
     assert_clear_error(code, err, "uncertainty", r"seed must be a whole number >= 0, got -1")
 
 
+def test_filter_cloud_grow_below_0_is_refused_without_a_cloud_sign(srtm, tmp_path, capsys):
+    # before: taken without a word when no --cloud-* sign made a mask (stack refused it)
+    argv = ["filter", srtm / "ref.tif", "-o", tmp_path / "f.tif", "--cloud-grow=-1"]
+    code, _, err = run_cli(capsys, argv)
+    assert_clear_error(code, err, "filter", r"cloud grow must be >= 0 cells, got -1")
+    assert not (tmp_path / "f.tif").exists()
+
+
 @pytest.mark.parametrize("radiance", [float("nan"), -1.0, 0.0])
 def test_a_cloud_radiance_threshold_that_is_no_radiance_is_refused(radiance):
     # before: NaN compared false with every radiance (the sign off without a word)
