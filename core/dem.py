@@ -508,11 +508,13 @@ _NOT_LENGTH_UNITS = frozenset(
 )
 
 
-def _not_heights_descriptions() -> tuple[str, ...]:
-    """Band descriptions (lower case) of stereodem's rasters that hold no heights: its
-    orthoimages (``orthoimage (... resampling)``, :meth:`stereodem.ortho.drm.Ortho.write`)
-    and a DEM's companion layers (:data:`LAYERS`)."""
-    return ("orthoimage", *(x.description.lower() for x in LAYERS.values() if x.description))
+#: band descriptions (lower case, prefixes) of stereodem's rasters that hold no heights: its
+#: orthoimages (``orthoimage (... resampling)``, :meth:`stereodem.ortho.drm.Ortho.write`) and a
+#: DEM's companion layers (:data:`LAYERS`)
+_NOT_HEIGHTS_DESCRIPTIONS = (
+    "orthoimage",
+    *(x.description.lower() for x in LAYERS.values() if x.description),
+)
 
 
 def check_heights_band(path, ds, band: int = 1) -> None:
@@ -532,7 +534,7 @@ def check_heights_band(path, ds, band: int = 1) -> None:
             f"band(s) of {ds.dtypes[i]}), not heights; give a DEM"
         )
     desc = " ".join((ds.descriptions[i] or "").split())
-    if desc.lower().startswith(_not_heights_descriptions()):
+    if desc.lower().startswith(_NOT_HEIGHTS_DESCRIPTIONS):
         raise DEMError(
             f"{path}: band {band} is stereodem's {desc!r}, not heights; give the DEM itself"
         )

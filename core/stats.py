@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from stereodem.core.errors import InputError
+
 #: NMAD scale: 1 / Φ⁻¹(3/4), so that the NMAD of normal errors estimates their σ
 NMAD_FACTOR = 1.4826
 
@@ -47,8 +49,6 @@ def generator(seed) -> np.random.Generator:
     :class:`~stereodem.core.errors.InputError` naming it: a negative seed ended
     ``simulate --seed -1`` and ``uncertainty --seed -1`` in NumPy's traceback ("expected
     non-negative integer"). The one rule for the commands' seeds."""
-    from stereodem.core.errors import InputError
-
     try:
         return np.random.default_rng(seed)
     except (TypeError, ValueError):

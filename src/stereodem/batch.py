@@ -247,12 +247,11 @@ def _check_granule(path) -> None:
     if is_aster_granule(path):
         return
     try:
-        open_aster_granule(path)
+        open_aster_granule(path)  # not a granule: the reader says why
     except InputError as exc:
-        reason = str(exc)
-    else:  # pragma: no cover - the reader opens what is_aster_granule refused
-        return
-    raise InputError(f"{reason}; a batch scene is an ASTER L1A granule or a configuration (.toml)")
+        raise InputError(
+            f"{exc}; a batch scene is an ASTER L1A granule or a configuration (.toml)"
+        ) from None
 
 
 def is_done(out_dir) -> bool:
