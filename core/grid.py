@@ -8,6 +8,7 @@ in rasterio's datasets.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -181,9 +182,23 @@ def grid_from_bounds(bounds, res, crs) -> MapGrid:
     w, s, e, n = (float(v) for v in bounds)
     if not all(np.isfinite([w, s, e, n])) or e <= w or n <= s:
         raise InputError(f"empty or invalid grid bounds {bounds}")
-    x0, y1 = np.floor(w / res) * res, np.ceil(n / res) * res
-    x1, y0 = np.ceil(e / res) * res, np.floor(s / res) * res
-    width, height = int(round((x1 - x0) / res)), int(round((y1 - y0) / res))
+    if not all(math.isfinite(v / res) for v in (w, s, e, n)):
+        raise InputError(f"grid posting {res:g} is too fine for the bounds {bounds}")
+    # the snapped edges in whole postings (Python integers: exact, no overflow)
+    i0, i1 = math.floor(w / res), math.ceil(e / res)
+    j0, j1 = math.floor(s / res), math.ceil(n / res)
+    x0, y1 = i0 * res, j1 * res
+    width, height = i1 - i0, j1 - j0
+    # every corner, as the grid's bounds compute them (origin + cells x posting)
+    try:
+        corners = (x0, y1, x0 + width * res, y1 - height * res)
+    except OverflowError:  # a cell count beyond any float
+        corners = (math.inf,)
+    if not all(math.isfinite(v) for v in corners):
+        raise InputError(
+            f"grid posting {res:g} does not fit the bounds {bounds} (its snapped corners "
+            "overflow); give a posting of the order of the area's size or less"
+        )
     return MapGrid(Affine(res, 0.0, x0, 0.0, -res, y1), max(width, 1), max(height, 1), crs)
 
 

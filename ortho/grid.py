@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from stereodem.core import geodesy
-from stereodem.core.errors import CRSError, DEMCoverageError, SensorModelError
+from stereodem.core.errors import CRSError, DEMCoverageError, InputError, SensorModelError
 from stereodem.core.grid import MapGrid, grid_from_bounds, map_crs
 from stereodem.core.memory import check_allocation
 
@@ -93,7 +93,15 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise CRSError(f"the image footprint cannot be expressed in {crs.to_string()}")
 
-    cells = (x.max() - x.min()) / res * ((y.max() - y.min()) / res)
+    dx, dy = x.max() - x.min(), y.max() - y.min()
+    # a posting beyond the whole footprint of an image (not of a pixel or a line of pixels,
+    # whose footprint is a GSD or less across: one cell is their orthoimage)
+    if 2.0 * model.gsd(0.5 * (h_lo + h_hi)) < max(dx, dy) < res:
+        raise InputError(
+            f"orthoimage posting {res:g} m exceeds the image footprint ({dx:.0f} x {dy:.0f} m): "
+            "the orthoimage would be a single cell; choose a finer --res"
+        )
+    cells = dx / res * (dy / res)
     # the orthoimage (float32) and its per-cell image coordinates (2 x float64)
     check_allocation(
         20.0 * cells,

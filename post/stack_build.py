@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 import rasterio
 from rasterio.warp import transform_bounds
-from scipy import ndimage
 
 from stereodem.core.dem import DEM, check_georeferenced, check_heights_band
 from stereodem.core.errors import DEMError, InputError, NoOverlapError
@@ -40,7 +39,7 @@ from stereodem.core.threads import pool_initargs, pool_initializer, worker_threa
 
 from . import warp
 from .assess import reconcile_vertical
-from .clouds import CloudSettings, cloud_mask, deviation_mask
+from .clouds import CloudSettings, cloud_mask, deviation_mask, grow_mask
 from .coreg import parse_chain
 from .coreg_run import track_heading_of
 from .masks import StableMask
@@ -176,7 +175,7 @@ def add_dem(reference: DEM, path, settings: BuildSettings, stable_grid):
     stable = exclude_mask(settings.exclude, dem)
     if settings.cloud.max_deviation is not None:
         gross = deviation_mask(dem.heights, ref_on_dem, settings.cloud.max_deviation, stable=stable)
-        stable &= ~ndimage.binary_dilation(gross, iterations=max(settings.cloud.grow, 1))
+        stable &= ~grow_mask(gross, max(settings.cloud.grow, 1))
     corrected, report, chain = fit_chain(reference, dem, stable, settings, heading)
     g = reference.grid
     h = warp.to_grid(

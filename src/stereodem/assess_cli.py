@@ -141,11 +141,9 @@ def add_parser(subparsers):
         "(parameters with units), the before/after tables and the analysis of the DEM after "
         "the whole chain",
     )
-    ea.add_argument(
-        "--track-angle",
-        type=float,
-        metavar="DEG",
-        help="ground-track heading for --chain (default: the DEM's own track tags)",
+    options.add_track_angle(
+        ea,
+        "ground-track heading for --chain (default: the DEM's own track tags)",
     )
     p.add_argument("-o", "--output", required=True, help="output folder")
     options.add_workers(p, "threads of the comparison's row blocks and of GDAL's reads")

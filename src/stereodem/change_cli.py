@@ -69,11 +69,9 @@ def add_parser(sub):
         metavar="VECTOR",
         help="unstable terrain, any vector format and CRS; repeatable",
     )
-    p.add_argument(
-        "--track-angle",
-        type=float,
-        metavar="DEG",
-        help="ground-track heading for along/cross-track steps",
+    options.add_track_angle(
+        p,
+        "ground-track heading for along/cross-track steps",
     )
     options.add_workers(
         p,

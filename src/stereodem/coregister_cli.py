@@ -7,6 +7,7 @@ import argparse
 
 from stereodem.core.vertical import VERTICALS
 
+from . import options
 from .commands import help_line
 from .outlock import Products
 
@@ -45,11 +46,9 @@ def add_parser(sub):
     p.add_argument(
         "--chain", default="nuth_kaab", help="steps, comma separated (default nuth_kaab)"
     )
-    p.add_argument(
-        "--track-angle",
-        type=float,
-        metavar="DEG",
-        help="ground-track heading, degrees clockwise from north, for a straight "
+    options.add_track_angle(
+        p,
+        "ground-track heading, degrees clockwise from north, for a straight "
         "track (default: the DEM's own track: its STEREODEM_TRACK_FRAME tag from "
         "the sensor model, else its STEREODEM_TRACK_HEADING tag)",
     )
@@ -91,11 +90,9 @@ def add_parser(sub):
     )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("-o", "--output", required=True, help="output folder")
-    from .options import add_creation_options, add_overwrite, add_workers
-
-    add_workers(p, "threads of the warps, the slopes and the GeoTIFF compression")
-    add_creation_options(p)
-    add_overwrite(p)
+    options.add_workers(p, "threads of the warps, the slopes and the GeoTIFF compression")
+    options.add_creation_options(p)
+    options.add_overwrite(p)
     p.set_defaults(run=run)
     return p
 

@@ -103,7 +103,6 @@ def add_parser(sub):
     )
     p.add_argument(
         "--coreg-chain",
-        default="nuth_kaab",
         help="co-registration chain, steps comma separated: nuth_kaab, vshift "
         "(default nuth_kaab; see stereodem coregister)",
     )
@@ -148,6 +147,8 @@ def run(args) -> int:
         raise InputError("--coregister needs --ref REF")
     if args.ref and not args.coregister:
         raise InputError("--ref is used with --coregister")
+    if args.coreg_chain is not None and not args.coregister:  # it would be ignored
+        raise InputError("--coreg-chain is used with --coregister")
     out = options.geotiff_output(args.out, "mosaic")
     rep = report_path(out)
     pngs = list(mosaic_figure_paths(out, args.method).values())
@@ -168,7 +169,7 @@ def run(args) -> int:
         weights_exponent=args.weights_exponent,
         use_sigma=not args.no_sigma,
         reference=args.ref if args.coregister else None,
-        coreg_chain=args.coreg_chain,
+        coreg_chain="nuth_kaab" if args.coreg_chain is None else args.coreg_chain,
     )
     bar = options.progress_bar("mosaic")
     report = run_mosaic(

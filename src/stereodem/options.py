@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 
 from stereodem.core.errors import InputError
 
@@ -33,6 +34,25 @@ def band(text: str):
     if t.upper() in ("3N", "3B"):
         return t.upper()
     raise argparse.ArgumentTypeError(f"expected a band number or 3N/3B, got {text!r}")
+
+
+def heading(text: str) -> float:
+    """``--track-angle``: a ground-track heading, degrees clockwise from north (any finite
+    number; NaN or infinity would turn the along/cross-track frame into NaN)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a heading in degrees, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(
+            f"a heading must be a finite number of degrees, got {text}"
+        )
+    return value
+
+
+def add_track_angle(p, help_text: str):
+    """``--track-angle DEG`` (:func:`heading`) of the commands with along/cross-track steps."""
+    p.add_argument("--track-angle", type=heading, metavar="DEG", help=help_text)
 
 
 def add_band(p, default_text="1; 3N/3B in an ASTER granule", *, radiometric: bool = True):

@@ -122,11 +122,9 @@ def add_parser(sub):
         metavar="VECTOR",
         help="unstable terrain (glaciers, water...), any vector format and CRS; repeatable",
     )
-    p.add_argument(
-        "--track-angle",
-        type=float,
-        metavar="DEG",
-        help="ground-track heading (deg clockwise from north) for along/cross-track steps",
+    options.add_track_angle(
+        p,
+        "ground-track heading (deg clockwise from north) for along/cross-track steps",
     )
     add_cloud_options(p)
     p.add_argument(

@@ -28,6 +28,7 @@ from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_s
 from stereodem.core import raster
 from stereodem.core.dem import DEM
 from stereodem.core.errors import InputError
+from stereodem.post.biascorr import AlongTrack
 from stereodem.post.clouds import CloudSettings
 from stereodem.sensor.estimation.adjust import gauss_markov, reliability
 from stereodem.sensor.estimation.adjust.bundle import bundle_adjust
@@ -272,18 +273,38 @@ def test_a_cloud_radiance_threshold_that_is_no_radiance_is_refused(radiance):
 
 
 @pytest.mark.parametrize("angle", ["nan", "inf"])
-def test_a_track_angle_that_is_no_angle_is_refused(angle, srtm, tmp_path, capsys):
+def test_a_track_angle_that_is_no_angle_is_refused_by_the_library(angle, srtm):
     # before: a traceback from the along-track step ("negative dimensions are not allowed":
-    # the profile's bin count from a NaN heading); the unused heading of a chain without
-    # along/cross-track steps does not matter
+    # the profile's bin count from a NaN heading)
     ref = DEM.from_file(srtm / "ref.tif")
-    DEM(ref.heights + 2.0, ref.transform, ref.crs, ref.vertical).write(tmp_path / "b.tif")
-    argv = ["coregister", tmp_path / "b.tif", "--ref", srtm / "ref.tif"]
-    argv += ["--chain", "nuth_kaab,along_track"]
-    code, _, err = run_cli(capsys, [*argv, f"--track-angle={angle}", "-o", tmp_path / "c"])
-    assert_clear_error(
-        code, err, "coregister", rf"heading must be a finite angle in degrees, got {angle}"
-    )
+    dem = DEM(ref.heights + 2.0, ref.transform, ref.crs, ref.vertical)
+    with pytest.raises(
+        InputError, match=rf"heading must be a finite angle in degrees, got {angle}"
+    ):
+        AlongTrack().fit(ref, dem, track_angle_deg=float(angle))
+
+
+@pytest.mark.parametrize("command", ["assess", "coregister", "change", "stack"])
+@pytest.mark.parametrize("angle", ["nan", "inf", "-inf", "north"])
+def test_a_track_angle_that_is_no_angle_is_refused_before_any_work(
+    command, angle, srtm, tmp_path, capsys
+):
+    # before: NaN or infinity taken without a word where the chain had no along/cross-track
+    # step (assess, coregister, stack with their default chains), a traceback where it had
+    argv = {
+        "assess": ["assess", srtm / "ref.tif", "--ref", srtm / "ref.tif"],
+        "coregister": ["coregister", srtm / "ref.tif", "--ref", srtm / "ref.tif"],
+        "change": ["change", srtm / "ref.tif", srtm / "ref.tif"],
+        "stack": ["stack", srtm / "ref.tif", srtm / "ref.tif", "--ref", srtm / "ref.tif"],
+    }[command]
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as e:  # a usage error, as argparse reports every one
+        run_cli(capsys, [*argv, f"--track-angle={angle}", "-o", out])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "Traceback" not in err
+    assert f"stereodem {command}: error: argument --track-angle: " in err
+    assert ("finite number of degrees" if angle != "north" else "heading in degrees") in err
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("noise", ["nan", "-5", "inf"])

@@ -144,6 +144,24 @@ def test_grid_of_a_one_pixel_wide_image_has_a_cell(width, height):
     assert e - w <= x.max() - x.min() + 3 * 30.0 and n - s <= y.max() - y.min() + 3 * 30.0
 
 
+@pytest.mark.parametrize("res", [1e5, 1e300, 1e308])
+def test_a_posting_beyond_the_footprint_is_refused(res):
+    """``ortho --res 1e308`` was a traceback (OverflowError: the grid's snapped corners at
+    ±1e308, their difference infinite), ``--res 1e300`` "the DEM does not cover lon
+    -136..inf", a posting beyond the footprint (45 km here) a one-cell orthoimage."""
+    cam, dem = oblique_camera(), DEM.bundled()
+    with pytest.raises(InputError, match=r"posting .* exceeds the image footprint \(\d+ x \d+ m\)"):
+        grid_for_model(cam, dem, res=res)
+    assert grid_for_model(cam, dem, res=2e4).width >= 2  # a coarse posting within it
+
+
+def test_grid_corners_that_overflow_are_an_input_error():
+    with pytest.raises(InputError, match="snapped corners overflow"):
+        grid_from_bounds((-5e307, -5e307, 5e307, 5e307), 1e308, "EPSG:32637")
+    g1 = grid_from_bounds((100.0, 200.0, 350.0, 420.0), 100.0, "EPSG:32637")
+    assert (g1.width, g1.height, g1.bounds) == (3, 3, (100.0, 200.0, 400.0, 500.0))
+
+
 # --------------------------------------------------------------------------- accuracy
 
 

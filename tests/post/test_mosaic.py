@@ -485,6 +485,9 @@ def test_bad_inputs_are_one_line_errors_and_write_nothing(tmp_path, capsys):
         ([str(a), str(tmp_path / "missing.tif")], "missing.tif"),
         ([str(a), str(a)], "given twice"),
         ([str(a), "--coregister"], "--ref"),
+        # before: taken and ignored without --coregister, whatever it said
+        ([str(a), "--coreg-chain", "abc"], "--coreg-chain is used with --coregister"),
+        ([str(a), "--coreg-chain", "nuth_kaab"], "--coreg-chain is used with --coregister"),
         ([str(a), "--method", "blend", "--block", "4"], "--block"),
     ]
     for args, words in cases:

@@ -13,6 +13,7 @@ import pytest
 import rasterio
 from affine import Affine
 from pyproj import CRS
+from scipy import ndimage
 
 import stereodem.post.biascorr as biascorr
 import stereodem.post.spatialstats as ss
@@ -27,7 +28,7 @@ from stereodem.core.stats import nmad
 from stereodem.core.threads import pool_initializer, worker_threads
 from stereodem.post import stack as st
 from stereodem.post.change import dem_change
-from stereodem.post.clouds import CloudSettings, cloud_mask
+from stereodem.post.clouds import GROW_BY_DISTANCE, CloudSettings, cloud_mask, grow_mask
 from stereodem.post.dates import date_from_metadata, dem_dates
 from stereodem.post.gp import GPSettings, gp_rates
 from stereodem.post.rates import RateSettings, fit_rates, noise_limit
@@ -134,6 +135,19 @@ def test_cloud_mask_signs_and_growth():
     assert info["dh_nmad"] == pytest.approx(2.0, rel=0.15)
     off, info0 = cloud_mask(h, settings=CloudSettings(max_deviation=None), reference=ref)
     assert not off.any() and info0["cloud_pct"] == 0
+
+
+@pytest.mark.parametrize("cells", [1, GROW_BY_DISTANCE, GROW_BY_DISTANCE + 1, 40, 10**11])
+def test_a_grow_of_any_size_is_the_iterated_cross_dilation(cells):
+    # before: --cloud-grow 99999999999 was an OverflowError from scipy's iteration count (a
+    # traceback), and a grow of thousands of cells thousands of passes over the mask
+    rng = np.random.default_rng(2)
+    mask = np.zeros((70, 90), bool)
+    mask[rng.integers(0, 70, 12), rng.integers(0, 90, 12)] = True
+    mask[30:33, 0:4] = True  # touching the border
+    expected = ndimage.binary_dilation(mask, iterations=min(cells, 160))  # 160: rows + cols
+    np.testing.assert_array_equal(grow_mask(mask, cells), expected)
+    assert not grow_mask(np.zeros((5, 5), bool), cells).any()
 
 
 def test_hypsometric_fill_uses_the_local_elevation_bands():
