@@ -53,3 +53,23 @@ def generator(seed) -> np.random.Generator:
         return np.random.default_rng(seed)
     except (TypeError, ValueError):
         raise InputError(f"seed must be a whole number >= 0, got {seed}") from None
+
+
+def check_sigma(value, what: str) -> float:
+    """``value`` as a standard deviation: a finite number > 0, else
+    :class:`~stereodem.core.errors.InputError` naming ``what``. NaN passed the ``<= 0`` checks
+    and weighted every observation by NaN (``adjust --sigma-px nan``), and ``compare-models``
+    took 0 as "not given" (1 px). The one rule for the a-priori sigmas."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be a standard deviation > 0, got {value!r}") from None
+    with np.errstate(over="ignore"):
+        weight = 1.0 / (v * v) if v > 0 else 0.0
+    if not (np.isfinite(v) and np.isfinite(weight) and weight > 0):
+        # its weight 1/sigma^2 must exist in float64 too (1e308 made every weight 0)
+        raise InputError(
+            f"{what} must be a finite standard deviation > 0 whose weight 1/sigma^2 is a "
+            f"finite number > 0, got {value}"
+        )
+    return v

@@ -23,6 +23,7 @@ import numpy as np
 
 from stereodem.core.errors import InputError, StereodemError
 from stereodem.core.png import save_png
+from stereodem.core.stats import check_sigma, generator
 from stereodem.sensor.estimation.adjust import MODEL_SETS, adjust_model, model_set
 from stereodem.sensor.io.gcps import ControlPoints
 from stereodem.sensor.models.generic import MODEL_NAMES, fit_model, n_parameters
@@ -66,15 +67,31 @@ def expand_models(names, base) -> list[str]:
     return list(dict.fromkeys(out))
 
 
+def _check_count(n_check, n_points: int | None = None):
+    """:class:`InputError` unless ``n_check`` is a whole number >= 1 and, drawn from
+    ``n_points`` points, leaves GCPs (``-1`` drew all points but one as check points)."""
+    try:
+        whole = float(n_check) == int(n_check)
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if not whole or n_check < 1:
+        raise InputError(f"the number of check points must be a whole number >= 1, got {n_check}")
+    if n_points is not None and n_check >= n_points:
+        raise InputError(
+            f"{n_points} point(s) cannot give {n_check} check points and GCPs (the number "
+            f"of check points must be from 1 to {n_points - 1})"
+        )
+
+
 def split_points(points: ControlPoints, n_check: int, seed: int = 0):
     """``(gcp pool in a fixed random order, check points)``: the points' own ``check`` roles
     when there are any, else ``n_check`` random points."""
-    rng = np.random.default_rng(seed)
+    rng = generator(seed)
+    _check_count(n_check)
     if np.any(points.role == "check"):
         pool, icp = points.select("gcp"), points.select("check")
     else:
-        if n_check >= len(points):
-            raise InputError(f"{len(points)} point(s) cannot give {n_check} check points and GCPs")
+        _check_count(n_check, len(points))
         order = rng.permutation(len(points))
         roles = np.array(["gcp"] * len(points), dtype=object)
         roles[order[:n_check]] = "check"
@@ -160,6 +177,8 @@ def compare(
     sigma0, condition`` and ``error`` (the one-line reason when the fit was refused).
     ``prepared`` (a dict, filled here) keeps the models built from ``base`` for another call
     with the same ``base``. ``names``: the points' file and the image, for the messages."""
+    if sigma_px is not None:
+        sigma_px = check_sigma(sigma_px, "sigma_px")
     pool, icp = split_points(points, n_check, seed)
     require_inside(base, icp.col, icp.row, source=names[0], image=names[1])
     counts = sorted({int(c) for c in counts if 0 < int(c) <= len(pool)})
@@ -182,12 +201,12 @@ def compare(
                 else:
                     if name not in prepared:
                         prepared[name] = model_set(name).prepare(base)
-                    adjustable, names, priors = prepared[name]
-                    require_gcps(n, names, name, n_prior=len(priors or {}))
+                    adjustable, params, priors = prepared[name]
+                    require_gcps(n, params, name, n_prior=len(priors or {}))
                     res = adjust_model(
                         adjustable,
                         _concat(gcp, icp),
-                        names,
+                        params,
                         sigma_px=sigma_px,
                         priors=priors or None,
                         snooping=False,
@@ -195,7 +214,7 @@ def compare(
                         what=name,
                     )
                     rec.update(
-                        n_params=len(names),
+                        n_params=len(params),
                         gcp_rmse_px=res.gcp_rmse_px,
                         icp_rmse_px=res.check_rmse_px,
                         sigma0=res.sigma0,
@@ -242,9 +261,11 @@ def compare_splits(
     refused); the reference's own records are included (ratio 1).
     """
     names = list(dict.fromkeys([reference, *models]))
+    generator(seed)  # the seed's rule, before it is combined with the split's number
+    _check_count(n_check, len(points))
     out, prepared = [], {}
     for split in range(int(n_splits)):
-        rng = np.random.default_rng([seed, split])
+        rng = generator([seed, split])
         roles = np.array(["gcp"] * len(points), dtype=object)
         roles[rng.permutation(len(points))[:n_check]] = "check"
         recs = compare(

@@ -99,14 +99,32 @@ def psf_sigma(mtf_nyquist: float = MTF_NYQUIST) -> float:
     return float(np.sqrt(-np.log(mtf_nyquist) / (0.5 * np.pi**2)))
 
 
-def check_noise(noise) -> float:
-    """The sensor noise ``noise`` (DN) as a finite number >= 0, else :class:`InputError`:
-    a negative or NaN noise rendered noiseless images (``noise > 0`` false) while
-    ``scene.json`` recorded the value asked for."""
+def check_noise(noise, bits: int = 16) -> float:
+    """The sensor noise ``noise`` (DN) as a number from 0 to the full scale of ``bits``-bit
+    images (``2**bits - 1`` DN), else :class:`InputError`: a negative or NaN noise rendered
+    noiseless images (``noise > 0`` false) while ``scene.json`` recorded the value asked for,
+    and a noise beyond the full scale (``1e308``: infinite in the float32 rendering) made
+    images of nothing but clipped noise."""
     v = float(noise)
-    if not (np.isfinite(v) and v >= 0):
-        raise InputError(f"noise must be a finite standard deviation >= 0 DN, got {noise}")
+    full = 2**bits - 1
+    if not (np.isfinite(v) and 0 <= v <= full):
+        raise InputError(
+            f"noise must be a standard deviation from 0 to the {bits}-bit full scale "
+            f"({full} DN), got {noise}"
+        )
     return v
+
+
+#: the largest attitude oscillation :func:`simulate_scene` renders, radians (ASTER's jitter is
+#: a few microradians; 10 mrad moves the image by about 470 ASTER pixels)
+MAX_JITTER_RAD = 0.01
+
+
+def _check_image_memory(sizes, what: str):
+    """:class:`InputError` before any model is built when the images of ``sizes`` ((w, h)
+    pixels each) cannot be held while rendered (float64 plus the ray grids): a 1e11-pixel
+    side reached the orbit's per-line ephemeris first and ended in the OOM killer."""
+    check_allocation(16.0 * sum(float(w) * float(h) for w, h in sizes), what)
 
 
 @dataclass
@@ -729,6 +747,28 @@ def _scene_centre(dem):
     return dem, (lon0, lat0, h0), (h_lo, h_hi)
 
 
+def _check_jitter(axis: str, spec) -> tuple[float, float]:
+    """``(amplitude_urad, frequency_hz)`` of a ``jitter`` / ``roll_jitter`` request, else
+    :class:`InputError`: the amplitude finite and at most :data:`MAX_JITTER_RAD`, the
+    frequency positive (its upper bound, half the line rate, is
+    :func:`~stereodem.sensor.estimation.jitter.with_attitude_sines`' rule)."""
+    try:
+        amp_urad, freq = (float(x) for x in spec)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"{axis} jitter must be (amplitude_urad, frequency_hz), got {spec!r}"
+        ) from None
+    if not (np.isfinite(amp_urad) and abs(amp_urad) <= MAX_JITTER_RAD * 1e6):
+        raise InputError(
+            f"{axis} jitter amplitude must be a finite number of microradians up to "
+            f"{MAX_JITTER_RAD * 1e6:g} (an attitude oscillation, not a new pointing), "
+            f"got {spec[0]}"
+        )
+    if not (np.isfinite(freq) and freq > 0):
+        raise InputError(f"{axis} jitter frequency must be a positive number of Hz, got {spec[1]}")
+    return amp_urad, freq
+
+
 def _size_pair(size, what: str) -> tuple[int, int]:
     """``(width, height)`` pixels from ``size``; :class:`InputError` naming ``what`` for
     anything but two whole numbers (``size=50`` was a TypeError from inside)."""
@@ -790,13 +830,17 @@ def simulate_scene(
     if bits not in (8, 16):
         raise InputError(f"bits must be 8 or 16, got {bits}")
     sigma_psf = psf_sigma(mtf_nyquist)  # GSD; validates mtf_nyquist
-    noise = check_noise(noise)
+    noise = check_noise(noise, bits)
     w, h = _size_pair(size, "size")
     rsize = (w, h) if right_size is None else _size_pair(right_size, "right_size")
     if min(w, h, *rsize) < 32:
         raise InputError(
             f"image size {w}x{h} / {rsize[0]}x{rsize[1]} is too small (at least 32x32)"
         )
+    _check_image_memory([(w, h), rsize], f"a simulated pair of {w}x{h} / {rsize[0]}x{rsize[1]} px")
+    for axis, spec in (("pitch", jitter), ("roll", roll_jitter)):
+        if spec is not None:
+            _check_jitter(axis, spec)
     if preset == "frame" and rsize != (w, h):
         raise InputError(
             "the frame preset takes one size for both images (right_size is for "
@@ -850,11 +894,7 @@ def simulate_scene(
         if spec is None:
             continue
 
-        amp_urad, freq = (float(x) for x in spec)
-        if not (np.isfinite(amp_urad) and freq > 0):
-            raise InputError(
-                f"{axis} jitter needs a finite amplitude and a positive frequency, got {spec}"
-            )
+        amp_urad, freq = _check_jitter(axis, spec)
         phase = float(rng.uniform(0, 2 * np.pi))
         right_true = with_attitude_sines(
             right_true,
@@ -952,10 +992,11 @@ def simulate_views(
     if len(angles) < 2:
         raise InputError(f"simulate_views needs at least two view angles, got {angles}")
     sigma_psf = psf_sigma(mtf_nyquist)
-    noise = check_noise(noise)
-    w, h = int(size[0]), int(size[1])
+    noise = check_noise(noise, bits)
+    w, h = _size_pair(size, "size")
     if min(w, h) < 32:
         raise InputError(f"image size {w}x{h} is too small (at least 32x32)")
+    _check_image_memory([(w, h)] * len(angles), f"{len(angles)} simulated views of {w}x{h} px")
     rng = generator(seed)
     dem, (lon0, lat0, h0), (h_lo, h_hi) = _scene_centre(dem)
     altitude = 705e3

@@ -36,6 +36,51 @@ the top-left pixel at 0,0). Tie CSV: col1,row1,col2,row2 (header required).
 """
 
 
+#: the bundle-only options' defaults (None in the parser, so that a single-image adjustment
+#: can tell them given and refuse them instead of ignoring them)
+BUNDLE_DEFAULTS = {"param_set": "rpc-shift", "sigma_tie_px": 0.5}
+
+#: options that only a bundle adjustment reads (dest: spelling); the ones only an N-image
+#: bundle reads; the one only a pair reads
+BUNDLE_ONLY = {
+    "image2": "IMAGE2",
+    "gcps2": "--gcps2",
+    "ties": "--ties",
+    "match": "--match",
+    "image_gcps": "--image-gcps",
+    "fix": "--fix",
+    "out2": "--out2",
+    "param_set": "--set",
+    "sigma_tie_px": "--sigma-tie-px",
+}
+IMAGES_ONLY = {"image_gcps": "--image-gcps", "fix": "--fix"}
+PAIR_ONLY = {"out2": "--out2"}
+
+
+def _applicable(args, n_images) -> None:
+    """Refuse an option the chosen adjustment would not read (``--ties`` with a single-image
+    model was ignored without a word), then fill the bundle's defaults."""
+    from stereodem.core.errors import InputError
+
+    if args.model != "bundle":
+        given = [flag for dest, flag in BUNDLE_ONLY.items() if getattr(args, dest) is not None]
+        if given:
+            raise InputError(
+                f"{', '.join(given)}: only --model bundle reads "
+                f"{'it' if len(given) == 1 else 'them'} (--model {args.model} adjusts one "
+                "image from its --gcps)"
+            )
+        return
+    unread = PAIR_ONLY if n_images else IMAGES_ONLY
+    given = [flag for dest, flag in unread.items() if getattr(args, dest) is not None]
+    if given:
+        kind = "a pair (IMAGE IMAGE2)" if n_images else "three or more images"
+        raise InputError(f"{', '.join(given)}: only a bundle of {kind} reads it")
+    for dest, value in BUNDLE_DEFAULTS.items():
+        if getattr(args, dest) is None:
+            setattr(args, dest, value)
+
+
 def add_parser(sub):
     p = sub.add_parser(
         "adjust",
@@ -107,7 +152,6 @@ def add_parser(sub):
     p.add_argument(
         "--set",
         dest="param_set",
-        default="rpc-shift",
         help="parameter set of each image in a bundle adjustment (default rpc-shift)",
     )
     p.add_argument("-o", "--out", required=True, help="adjusted model (JSON sidecar) of IMAGE")
@@ -121,12 +165,15 @@ def add_parser(sub):
     )
     p.add_argument(
         "--sigma-px",
-        type=float,
+        type=options.positive,
         help="a-priori sigma of GCP image coordinates (px) "
         "where the CSV has none; without either sigma is estimated (Pope's tau test)",
     )
     p.add_argument(
-        "--sigma-tie-px", type=float, default=0.5, help="a-priori sigma of tie points (px)"
+        "--sigma-tie-px",
+        type=options.positive,
+        help="a-priori sigma of tie points (px; bundle; default "
+        f"{BUNDLE_DEFAULTS['sigma_tie_px']})",
     )
     p.add_argument("--alpha", type=float, default=0.001, help="significance level of data snooping")
     p.add_argument("--no-snooping", action="store_true", help="no outlier rejection")
@@ -196,6 +243,11 @@ def run(args) -> int:
 
     options.check_common(args)
     n_images = args.model == "bundle" and args.more
+    if args.more and args.model != "bundle":
+        raise InputError(
+            f"--model {args.model} adjusts one image; several images need --model bundle"
+        )
+    _applicable(args, n_images)
     _check_outputs(args, n_images)
     if not n_images:  # N images: -o is a folder, each model checked by run_bundle_images
         check_writable(args.out, args.overwrite)
@@ -227,10 +279,6 @@ def run(args) -> int:
 
         options.say(run_bundle_images(args))
         return 0
-    if args.more:
-        raise InputError(
-            f"--model {args.model} adjusts one image; several images need --model bundle"
-        )
     if args.model == "bundle":
         from stereodem.sensor.io.aster_l1a import is_aster_granule
 

@@ -57,7 +57,9 @@ def add_parser(subparsers):
         default=20,
         help="check points drawn when the CSV has no 'check' roles (default 20)",
     )
-    p.add_argument("--sigma-px", type=float, default=None, help="a-priori image sigma, px")
+    p.add_argument(
+        "--sigma-px", type=options.positive, default=None, help="a-priori image sigma, px"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the split")
     p.add_argument(
         "--splits",
@@ -110,6 +112,7 @@ def run(args) -> int:
     base = image_model(args.image, band=args.band)
     points = read_gcps(args.gcps)
     models = expand_models([m.strip() for m in args.models.split(",") if m.strip()], base)
+    expand_models([args.reference], base)  # an unknown --reference refused, splits or not
     records = compare(
         base,
         points,

@@ -50,6 +50,18 @@ def heading(text: str) -> float:
     return value
 
 
+def positive(text: str) -> float:
+    """A standard deviation, a scale: a finite number > 0 (``--sigma-px``, ``--sigma-tie-px``;
+    NaN passed a ``<= 0`` check and weighted every observation by NaN)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+    return value
+
+
 def add_track_angle(p, help_text: str):
     """``--track-angle DEG`` (:func:`heading`) of the commands with along/cross-track steps."""
     p.add_argument("--track-angle", type=heading, metavar="DEG", help=help_text)

@@ -47,6 +47,7 @@ from scipy.optimize import least_squares
 
 from stereodem.core import geodesy
 from stereodem.core.errors import ConvergenceError, InputError
+from stereodem.core.stats import check_sigma
 from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
@@ -611,6 +612,9 @@ def bundle_adjust(
     -------
     BundleResult
     """
+    sigma_tie_px = check_sigma(sigma_tie_px, "sigma_tie_px")
+    if sigma_px is not None:
+        sigma_px = check_sigma(sigma_px, "sigma_px")
     if solver not in SOLVERS:
         raise InputError(f"bundle: unknown solver {solver!r} (known: {', '.join(SOLVERS)})")
     max_iterations = gm.check_max_iterations(max_iterations)

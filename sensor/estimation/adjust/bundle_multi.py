@@ -41,6 +41,7 @@ from scipy.sparse.csgraph import connected_components
 
 from stereodem.core import geodesy
 from stereodem.core.errors import ConvergenceError, InputError
+from stereodem.core.stats import check_sigma
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
 from stereodem.sensor.estimation.adjust import schur
@@ -454,6 +455,9 @@ def bundle_adjust_images(
         Measure the per-pair ray gaps before and after (a diagnostic; 2000 ties per pair) and
         every ray's distance from its adjusted point (``tie_ray_gap_m``; NaN without).
     """
+    sigma_tie_px = check_sigma(sigma_tie_px, "sigma_tie_px")
+    if sigma_px is not None:
+        sigma_px = check_sigma(sigma_px, "sigma_px")
     n_img = len(models)
     if n_img < 2:
         raise InputError(f"bundle: needs at least two images, got {n_img}")

@@ -89,19 +89,24 @@ def _condition(s):
     return float((s[0] / s[-1]) ** 2) if s[-1] > 0 else float("inf")
 
 
+#: the most iterations an adjustment may be given (they converge in a few to a few tens;
+#: 99999999999 overflowed MINPACK's C int in SciPy's least_squares)
+MAX_ITERATIONS = 10_000
+
+
 def check_max_iterations(value) -> int:
-    """``value`` as a number of iterations: a whole number, 0 or more (0: the statistics of
-    the initial parameters, nothing estimated), else :class:`InputError` naming it
-    (``--max-iterations -1`` was taken: one unchecked Gauss-Newton step, reported as an
-    adjustment)."""
+    """``value`` as a number of iterations: a whole number from 0 to :data:`MAX_ITERATIONS`
+    (0: the statistics of the initial parameters, nothing estimated), else
+    :class:`InputError` naming it (``--max-iterations -1`` was taken: one unchecked
+    Gauss-Newton step, reported as an adjustment)."""
     try:
         n = int(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         n = -1
-    if n < 0 or n != value:
+    if not 0 <= n <= MAX_ITERATIONS or n != value:
         raise InputError(
-            f"max_iterations must be a whole number, 0 or more (0: the initial model's "
-            f"statistics, nothing estimated), got {value}"
+            f"max_iterations must be a whole number from 0 to {MAX_ITERATIONS} (0: the "
+            f"initial model's statistics, nothing estimated), got {value}"
         )
     return n
 

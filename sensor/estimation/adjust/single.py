@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from stereodem.core.errors import InputError
+from stereodem.core.stats import check_sigma
 from stereodem.sensor.estimation.adjust import gauss_helmert as gh
 from stereodem.sensor.estimation.adjust import gauss_markov as gm
 from stereodem.sensor.estimation.adjust import reliability as rel
@@ -103,7 +104,7 @@ def check_points_against_model(
 def _sigmas(points, sigma_px):
     s = points.sigma_px.copy()
     given = np.isfinite(s)
-    s[~given] = 1.0 if sigma_px is None else float(sigma_px)
+    s[~given] = 1.0 if sigma_px is None else check_sigma(sigma_px, "adjustment: sigma_px")
     if np.any(s <= 0):
         raise InputError("adjustment: sigma_px must be positive")
     known = bool(sigma_px is not None or (len(s) and np.all(given)))
