@@ -171,12 +171,14 @@ def compare(
     sigma_px=None,
     prepared: dict | None = None,
     names: tuple[str, str] = ("", ""),
+    progress=None,
 ) -> list[dict]:
     """Fit every model with every GCP count on the same split; list of records (one per model
     and count) with ``model, family, n_gcp, n_icp, n_params, gcp_rmse_px, icp_rmse_px,
     sigma0, condition`` and ``error`` (the one-line reason when the fit was refused).
     ``prepared`` (a dict, filled here) keeps the models built from ``base`` for another call
-    with the same ``base``. ``names``: the points' file and the image, for the messages."""
+    with the same ``base``. ``names``: the points' file and the image, for the messages.
+    ``progress(done, total)`` is called after each fit."""
     if sigma_px is not None:
         sigma_px = check_sigma(sigma_px, "sigma_px")
     pool, icp = split_points(points, n_check, seed)
@@ -228,6 +230,8 @@ def compare(
                 rec["n_params"] = (
                     n_parameters(name) if name in MODEL_NAMES else len(MODEL_SETS[name].names)
                 )
+            if progress is not None:
+                progress(len(records) + 1, len(models) * len(counts))
             records.append(
                 {
                     k: (float(v) if isinstance(v, (np.floating, float)) else v)
@@ -251,6 +255,7 @@ def compare_splits(
     n_splits: int = 9,
     seed: int = 0,
     sigma_px=None,
+    progress=None,
 ) -> list[dict]:
     """:func:`compare` repeated over ``n_splits`` random GCP/ICP splits of ``points`` (their
     roles are ignored), each model scored against ``reference`` (a model name, e.g. the
@@ -258,7 +263,8 @@ def compare_splits(
 
     Returns the records of :func:`compare` with ``split`` (0 ...) and ``ratio`` (the model's
     ICP RMSE over the reference's at the same split and GCP count; NaN when either was
-    refused); the reference's own records are included (ratio 1).
+    refused); the reference's own records are included (ratio 1). ``progress(done,
+    total)`` is called after each split.
     """
     names = list(dict.fromkeys([reference, *models]))
     generator(seed)  # the seed's rule, before it is combined with the split's number
@@ -291,6 +297,8 @@ def compare_splits(
                 else float("nan")
             )
         out += recs
+        if progress is not None:
+            progress(split + 1, int(n_splits))
     return out
 
 

@@ -113,29 +113,33 @@ def run(args) -> int:
     points = read_gcps(args.gcps)
     models = expand_models([m.strip() for m in args.models.split(",") if m.strip()], base)
     expand_models([args.reference], base)  # an unknown --reference refused, splits or not
-    records = compare(
-        base,
-        points,
-        models,
-        counts,
-        n_check=args.n_check,
-        seed=args.seed,
-        sigma_px=args.sigma_px,
-        names=(str(args.gcps), image_name(args.image, args.band)),
-    )
-    splits = None
-    if args.splits:
-        recs = compare_splits(
+    with options.progress_bar("compare") as bar:
+        records = compare(
             base,
             points,
             models,
             counts,
-            reference=args.reference,
             n_check=args.n_check,
-            n_splits=args.splits,
             seed=args.seed,
             sigma_px=args.sigma_px,
+            names=(str(args.gcps), image_name(args.image, args.band)),
+            progress=bar,
         )
+    splits = None
+    if args.splits:
+        with options.progress_bar("splits") as bar:
+            recs = compare_splits(
+                base,
+                points,
+                models,
+                counts,
+                reference=args.reference,
+                n_check=args.n_check,
+                n_splits=args.splits,
+                seed=args.seed,
+                sigma_px=args.sigma_px,
+                progress=bar,
+            )
         splits = {
             "reference": args.reference,
             "splits": args.splits,

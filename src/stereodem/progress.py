@@ -32,6 +32,8 @@ STAGES = {
     "ortho": ("orthoimages", "row"),
     "mosaic": ("mosaic", "block"),
     "stack": ("stack", "DEM"),
+    "compare": ("models", "adjustment"),
+    "splits": ("GCP/ICP splits", "draw"),
 }
 
 

@@ -224,3 +224,26 @@ def test_simulate_refuses_a_noise_beyond_the_full_scale(noise, bits, tmp_path, c
     assert not out.exists()
     with pytest.raises(InputError, match=r"full scale"):
         simulate_scene("frame", size=(64, 64), noise=float(noise), bits=bits)
+
+
+def test_compare_models_reports_its_progress(sim):
+    # --splits 99999999999 ran for ever without a sign of life; each fit and each split is
+    # counted now (the command line's bars, stages "compare" and "splits")
+    model, points = load_model(sim / "left.model.json"), read_gcps(sim / "points.csv")
+    calls = []
+    recs = compare(
+        model, points, ["poly2d-1", "poly3d-1"], [6, 8], progress=lambda *a: calls.append(a)
+    )
+    assert len(recs) == 4 and calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    calls.clear()
+    compare_splits(
+        model,
+        points,
+        ["poly2d-1"],
+        [6],
+        reference="poly2d-1",
+        n_check=5,
+        n_splits=3,
+        progress=lambda *a: calls.append(a),
+    )
+    assert calls == [(1, 3), (2, 3), (3, 3)]
