@@ -113,18 +113,11 @@ def run(args) -> int:
     points = read_gcps(args.gcps)
     models = expand_models([m.strip() for m in args.models.split(",") if m.strip()], base)
     expand_models([args.reference], base)  # an unknown --reference refused, splits or not
+    # the same fits, the same check points' rule and weights in both comparisons
+    common = dict(n_check=args.n_check, seed=args.seed, sigma_px=args.sigma_px)
     with options.progress_bar("compare") as bar:
-        records = compare(
-            base,
-            points,
-            models,
-            counts,
-            n_check=args.n_check,
-            seed=args.seed,
-            sigma_px=args.sigma_px,
-            names=(str(args.gcps), image_name(args.image, args.band)),
-            progress=bar,
-        )
+        names = (str(args.gcps), image_name(args.image, args.band))
+        records = compare(base, points, models, counts, names=names, progress=bar, **common)
     splits = None
     if args.splits:
         with options.progress_bar("splits") as bar:
@@ -134,11 +127,9 @@ def run(args) -> int:
                 models,
                 counts,
                 reference=args.reference,
-                n_check=args.n_check,
                 n_splits=args.splits,
-                seed=args.seed,
-                sigma_px=args.sigma_px,
                 progress=bar,
+                **common,
             )
         splits = {
             "reference": args.reference,
