@@ -69,6 +69,10 @@ def _density_sigma(i, j, rows, cols, posting):
     return max(0.5 * posting, posting / np.sqrt(per_cell))
 
 
+#: the widest Gaussian of the cell estimator, in postings
+MAX_SIGMA_POSTINGS = 10
+
+
 @dataclass(frozen=True)
 class GridSpec(OnGrid):
     """The output lattice and the cell estimator, fixed before any point is gridded.
@@ -103,6 +107,15 @@ class GridSpec(OnGrid):
         if method not in GRIDDING_METHODS:
             raise InputError(
                 f"unknown gridding method {method!r} ({' or '.join(GRIDDING_METHODS)})"
+            )
+        sigma = options.get("sigma")
+        if sigma is not None and not 0 < sigma <= MAX_SIGMA_POSTINGS * posting:
+            # the support is 2 sigma each side: 1e6 m at a 30 m posting was a window of
+            # 133333^2 cells per tile, every tile failed
+            raise InputError(
+                f"the gridding's gaussian_sigma must be positive and at most "
+                f"{MAX_SIGMA_POSTINGS} postings ({MAX_SIGMA_POSTINGS * posting:g} CRS units at "
+                f"{posting:g}), got {sigma}"
             )
         xmin, ymin, xmax, ymax = (float(b) for b in bounds)
         cols = max(1, int(round((xmax - xmin) / posting)))

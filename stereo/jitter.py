@@ -34,6 +34,7 @@ from stereodem.core.errors import InputError
 from stereodem.core.stats import nmad
 from stereodem.sensor.estimation.jitter import (
     add_series,
+    check_line_nyquist,
     cross_track_sensitivity,
     estimate_pitch_jitter,
     estimate_roll_jitter,
@@ -389,6 +390,13 @@ def dem_with_jitter_correction(
         raise InputError(f"jitter axes must be among {', '.join(AXES)}, got {axes}")
     if "pitch" in axes and reference is None:
         raise InputError("pitch jitter needs a reference DEM")
+    # before the first DEM: the band searched must be one the right image's lines can sample
+    if hasattr(right_model, "line_time"):  # a pushbroom camera
+        check_line_nyquist(
+            right_model,
+            f_range[1],
+            "the upper frequency of the jitter band ([jitter] max_frequency)",
+        )
     settings = settings or StereoSettings()
     ref = as_dem(reference) if reference is not None else None
     seed = seed_dem if seed_dem is not None or settings.rectification.height_range else ref

@@ -252,6 +252,24 @@ def process_tile(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Ti
     return TileResult(cells, pts.summary)
 
 
+def no_point_matched(tiles, settings: StereoSettings, failures=()) -> InputError:
+    """The error of a pair whose tiles gave no point: the tiles' own error when every tile
+    failed (it was hidden behind "no point was matched"), else the likely causes, with the
+    ``[matching] options`` given (a threshold or window that rejects every match)."""
+    failures = list(failures)
+    if failures and len(failures) >= len(tiles):
+        return InputError(
+            f"every tile failed ({len(failures)}); the first (tile {failures[0].tile.index}): "
+            f"{failures[0].reason}"
+        )
+    causes = "no texture, or a wrong height range"
+    options = settings.matching.options
+    if options:
+        given = ", ".join(f"{k} = {v!r}" for k, v in options.items())
+        causes += f", or [matching] options that reject every match ({given})"
+    return InputError(f"no point was matched in any tile ({causes}?)")
+
+
 def rectify_pair_tile(tile: Tile, inputs: PairInputs, rect):
     """The epipolar rectification (:func:`stereodem.stereo.epipolar.rectify_tile`) of ``tile`` of
     the left image with the ``[rectification]`` settings ``rect`` (halo in pixels, method,
@@ -559,6 +577,7 @@ def dem_of_checked_pair(
     )
     # 3. tiles: here, one after the other, or through the caller's runner (pool, Dask), in
     # tile_order (largest first): the order their sums are added in, whatever runs them
+    n_failed = len(getattr(runner, "failures", ()))  # the failures of the runner's earlier calls
     if runner is None:
 
         def serial():
@@ -593,7 +612,7 @@ def dem_of_checked_pair(
     position = {tuple(t.bounds): k for k, t in enumerate(tiles)}
     summaries.sort(key=lambda s: position.get(tuple(s["tile"]), len(tiles)))
     if n_points == 0 and gs.bounds is None:
-        raise InputError("no point was matched in any tile (no texture, or a wrong height range?)")
+        raise no_point_matched(tiles, settings, getattr(runner, "failures", ())[n_failed:])
     dem = finish(spec, total, crop=gs.bounds is None)
     del total
     seconds = time.perf_counter() - t_start

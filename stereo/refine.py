@@ -27,7 +27,9 @@ def _smooth_fill(d, sigma):
     z = np.where(ok, d, 0).astype(np.float32)
     m = ok.astype(np.float32)
     out = np.full(d.shape, np.nan, np.float32)
-    s = float(sigma)
+    # a Gaussian wider than the map is its weighted mean (and its kernel, 8 sigma wide, took
+    # 10 GB at 1e6 px)
+    s = min(float(sigma), float(max(d.shape)))
     window = (slice(None), slice(None))
     while True:
         # the wider passes only fill what is left: they are computed on the bounding box of

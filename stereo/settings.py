@@ -52,13 +52,15 @@ class RectificationSettings:
         Ellipsoidal heights (m) of the terrain; widened by ``height_margin``. Without it (and
         without a seed DEM) the heights come from sparse matches (``auto_heights``).
     height_margin : float
-        Metres added below and above the height range (and a seed DEM's range under a tile).
+        Metres added below and above the height range (and a seed DEM's range under a tile),
+        0..10000.
     method : {"auto", "affine", "projective"}
         Rectifying maps: affine (pushbroom/RPC, s2p) or projective (frame cameras); auto picks.
     halo : (int, int)
-        Columns/rows rectified and matched around each tile (only the tile's points are kept).
+        Columns/rows rectified and matched around each tile (only the tile's points are kept),
+        at most ``tile_size`` each.
     disparity_margin : float
-        Pixels added to both ends of each tile's disparity range.
+        Pixels added to both ends of each tile's disparity range, at most ``tile_size``.
     pointing_correction : bool
         Estimate and remove the relative pointing error of the right image (a translation,
         or an affine correction when the matches support it) from sparse matches searched
@@ -118,9 +120,10 @@ class RefinementSettings:
     enabled : bool
         Run the refinement (removes most of the window-distortion error of steep terrain).
     sigma : float
-        Smoothing width of the warp, pixels (3 px: Pleiades vs s2p NMAD 0.402 -> 0.387 m).
+        Smoothing width of the warp, pixels, at most 100 (3 px: Pleiades vs s2p NMAD 0.402 ->
+        0.387 m).
     window : int
-        ZNCC window of the refinement, odd pixels.
+        ZNCC window of the refinement, odd pixels, 3..255.
     min_score : float, optional
         Minimum ZNCC of a refined match (the refinement's own threshold is 0.5).
     detail_gain : float, optional
@@ -154,7 +157,8 @@ class GriddingSettings:
     geoid : bool
         Write EGM96 geoid heights instead of ellipsoidal heights.
     method : {"gaussian", "mean"}
-        Cell estimator; ``gaussian_sigma`` its width in CRS units (default: from the point density).
+        Cell estimator; ``gaussian_sigma`` its width in CRS units, at most 10 postings
+        (default: from the point density).
     gaussian_sigma : float, optional
     max_ray_gap : float, optional
         Drop points whose rays miss by more than this (m); default 2 x the left GSD.

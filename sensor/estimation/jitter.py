@@ -78,6 +78,23 @@ class SineSeries:
         }
 
 
+def check_line_nyquist(model, frequencies, what="an attitude oscillation") -> None:
+    """:class:`InputError` unless every frequency (Hz) of ``frequencies`` is finite and at most
+    half the line rate of the pushbroom ``model``: its image lines sample the attitude once
+    each, so a faster oscillation aliases (and a spline of it had no bound: 1e308 Hz was an
+    OverflowError, and a fit over such a band a LinAlgError)."""
+    f = np.atleast_1d(np.asarray(frequencies, dtype=float))
+    if not f.size:
+        return
+    nyquist = 0.5 / abs(float(model.line_time(1)) - float(model.line_time(0)))
+    f_max = float(np.max(f))
+    if not (np.all(np.isfinite(f)) and f_max <= nyquist):
+        raise InputError(
+            f"{model.name}: {what} of {f_max:g} Hz is faster than half the line rate "
+            f"({nyquist:.4g} Hz); the image lines cannot sample it"
+        )
+
+
 def with_attitude_sines(
     model,
     series: SineSeries,
@@ -97,14 +114,7 @@ def with_attitude_sines(
     f_max = float(np.max(series.frequencies)) if len(series.frequencies) else 1.0
     t0 = float(model.line_time(-0.05 * model.height - 50))
     t1 = float(model.line_time(1.05 * model.height + 50))
-    nyquist = 0.5 / abs(float(model.line_time(1)) - float(model.line_time(0)))
-    if not (np.all(np.isfinite(series.frequencies)) and f_max <= nyquist):
-        # the image lines sample the attitude once each: a faster oscillation aliases, and
-        # its spline (samples_per_period per period) had no bound (1e308 Hz: OverflowError)
-        raise InputError(
-            f"{model.name}: an attitude oscillation of {f_max:g} Hz is faster than half the "
-            f"line rate ({nyquist:.4g} Hz); the image lines cannot sample it"
-        )
+    check_line_nyquist(model, series.frequencies)
     n = max(16, int(np.ceil((t1 - t0) * f_max * samples_per_period)) + 1)
     t = np.linspace(t0, t1, n)
     angles = np.zeros((n, 3))

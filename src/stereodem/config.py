@@ -93,6 +93,18 @@ __all__ = [
 #: worker's alarm timer: "timestamp out of range for platform time_t")
 MAX_TILE_TIMEOUT_S = 1e9
 
+#: OpenCV's int: the whole-number options handed to it (SIFT's feature count, SGBM's
+#: parameters) beyond it were "integer won't fit into a C int" in every tile
+C_INT_MAX = 2**31 - 1
+#: the widest correlation window, pixels (OpenCV's block matcher's bound; wider ones were
+#: accepted and matched nothing: "no point was matched in any tile")
+MAX_WINDOW = 255
+#: the widest smoothing (refinement warp, px; hole-filled DEM, cells): 1e6 px took 10 GB and
+#: minutes in one Gaussian kernel, 1e308 was a ValueError
+MAX_SMOOTHING = 100.0
+#: the largest height margin, m (more than the Earth's relief)
+MAX_HEIGHT_MARGIN_M = 10_000.0
+
 
 @dataclass
 class InputSettings:
@@ -222,7 +234,7 @@ class FillSettings:
     fallback : bool
         Fill larger holes from the seed DEM (blended seam).
     smooth_sigma : float
-        Gaussian smoothing of the filled DEM, cells (0: none).
+        Gaussian smoothing of the filled DEM, cells (0: none; at most 100).
     """
 
     enabled: bool = True
@@ -724,16 +736,28 @@ def validate(cfg: Config, source="configuration"):
         hr = rect.height_range
         if len(hr) != 2 or not hr[0] <= hr[1]:
             bad(f"[rectification] height_range must be [MIN, MAX] with MIN <= MAX, got {list(hr)}")
-    if rect.height_margin < 0:
-        bad(f"[rectification] height_margin must be >= 0, got {rect.height_margin}")
+    if not 0 <= rect.height_margin <= MAX_HEIGHT_MARGIN_M:
+        bad(
+            f"[rectification] height_margin must be 0..{MAX_HEIGHT_MARGIN_M:g} m (more than "
+            f"the Earth's relief), got {rect.height_margin}"
+        )
     # the next ones failed in every tile ("no point was matched") or with a traceback
     halo = rect.halo
-    if len(halo) != 2 or not all(isinstance(v, int) and v >= 0 for v in halo):
-        bad(f"[rectification] halo must be [COLUMNS, ROWS], whole numbers >= 0, got {list(halo)}")
-    if rect.disparity_margin < 0:
-        bad(f"[rectification] disparity_margin must be >= 0, got {rect.disparity_margin}")
-    if not ref.sigma > 0:
-        bad(f"[refinement] sigma must be positive, got {ref.sigma}")
+    # at most a tile: a wider halo rectified and matched void around every tile (1000 px on
+    # the 300 px test scene: minutes), a wider disparity margin searched where no pixel of the
+    # tile can be (1e6 px: minutes, then nothing matched)
+    if len(halo) != 2 or not all(isinstance(v, int) and 0 <= v <= rect.tile_size for v in halo):
+        bad(
+            f"[rectification] halo must be [COLUMNS, ROWS], whole numbers 0..tile_size "
+            f"({rect.tile_size}), got {list(halo)}"
+        )
+    if not 0 <= rect.disparity_margin <= rect.tile_size:
+        bad(
+            f"[rectification] disparity_margin must be 0..tile_size ({rect.tile_size}) px, "
+            f"got {rect.disparity_margin}"
+        )
+    if not 0 < ref.sigma <= MAX_SMOOTHING:
+        bad(f"[refinement] sigma must be in (0, {MAX_SMOOTHING:g}] px, got {ref.sigma}")
     for key in ("gaussian_sigma", "max_ray_gap"):
         v = getattr(gs, key)
         if v is not None and not v > 0:
@@ -744,8 +768,8 @@ def validate(cfg: Config, source="configuration"):
     choice("rectification", "method", rect.method, RECTIFICATION_METHODS)
     choice("matching", "matcher", match.matcher, MATCHERS)
     _check_stereo_options(rect, match, source, bad, choice)
-    if ref.window < 3 or ref.window % 2 == 0:
-        bad(f"[refinement] window must be an odd number >= 3, got {ref.window}")
+    if not 3 <= ref.window <= MAX_WINDOW or ref.window % 2 == 0:
+        bad(f"[refinement] window must be an odd number 3..{MAX_WINDOW}, got {ref.window}")
     # accepted before: a score threshold no ZNCC reaches (every refined match dropped) or a
     # gain outside the share of the first pass's detail kept (0..1), a distorted DEM
     if ref.min_score is not None and not -1 <= ref.min_score <= 1:
@@ -784,8 +808,8 @@ def validate(cfg: Config, source="configuration"):
         bad(f"[filters] erode must be >= 0, got {cfg.filters.erode}")
     if cfg.fill.max_hole_size < 0:
         bad(f"[fill] max_hole_size must be >= 0, got {cfg.fill.max_hole_size}")
-    if cfg.fill.smooth_sigma < 0:
-        bad(f"[fill] smooth_sigma must be >= 0, got {cfg.fill.smooth_sigma}")
+    if not 0 <= cfg.fill.smooth_sigma <= MAX_SMOOTHING:
+        bad(f"[fill] smooth_sigma must be 0..{MAX_SMOOTHING:g} cells, got {cfg.fill.smooth_sigma}")
     for key in ("slope_bins", "elevation_bins"):
         v = getattr(cfg.assess, key)
         if v is not None and (len(v) < 2 or any(b >= c for b, c in zip(v, v[1:]))):
@@ -846,19 +870,27 @@ def _check_stereo_options(rect, match, source, bad, choice):
     where = f"{source}: [matching] options"
     o = match.options = check_options(match.options, match_rectified, where)
 
-    def at_least(section, key, value, low):
-        if value is not None and not value >= low:
-            bad(f"{section} {key} must be >= {low}, got {value}")
+    def in_range(section, key, value, low, high=C_INT_MAX):
+        if value is not None and not low <= value <= high:
+            say = f"OpenCV's int ({high})" if high == C_INT_MAX else f"{high}"
+            bad(f"{section} {key} must be {low}..{say}, got {value}")
 
     w = o.get("window")
-    if w is not None and (w < 3 or w % 2 == 0):
-        bad(f"[matching] options window must be an odd number >= 3, got {w}")
+    if w is not None and (not 3 <= w <= MAX_WINDOW or w % 2 == 0):
+        bad(f"[matching] options window must be an odd number 3..{MAX_WINDOW}, got {w}")
     if o.get("min_score") is not None and not -1 <= o["min_score"] <= 1:
         bad(f"[matching] options min_score is a ZNCC, -1..1, got {o['min_score']}")
-    for key in ("min_std", "lr_tolerance", "levels", "margin", "vertical_search"):
-        at_least("[matching] options", key, o.get(key), 0)
-    for key in ("sgm_p1", "sgm_p2", "sgm_uniqueness", "sgm_speckle_window", "sgm_speckle_range"):
-        at_least("[matching] options", key, o.get(key), 0)
+    in_range("[matching] options", "min_std", o.get("min_std"), 0, float("inf"))
+    # whole pixels to OpenCV (SGBM's disp12MaxDiff, the pyramid's sizes)
+    for key in ("lr_tolerance", "levels", "margin", "vertical_search"):
+        in_range("[matching] options", key, o.get(key), 0)
+    for key in ("sgm_p1", "sgm_p2", "sgm_speckle_window"):
+        in_range("[matching] options", key, o.get(key), 0)
+    # a percentage; OpenCV scales the speckle range by 16 (its disparities' fixed point)
+    in_range("[matching] options", "sgm_uniqueness", o.get("sgm_uniqueness"), 0, 100)
+    in_range(
+        "[matching] options", "sgm_speckle_range", o.get("sgm_speckle_range"), 0, C_INT_MAX // 16
+    )
     if "subpixel" in o:
         choice("matching", "options subpixel", o["subpixel"], SUBPIXELS)
     if "sgm_mode" in o:
@@ -875,9 +907,10 @@ def _check_stereo_options(rect, match, source, bad, choice):
         )
     if "tolerance" in o and not o["tolerance"] > 0:
         bad(f"[rectification] sparse_options tolerance must be positive, got {o['tolerance']}")
-    for key, low in (("max_offset", 0), ("max_size", 1), ("n_features", 0), ("n_heights", 2)):
-        at_least("[rectification] sparse_options", key, o.get(key), low)
-    at_least("[rectification] sparse_options", "threads", o.get("threads"), 1)
+    for key, low in (("max_offset", 0), ("max_size", 1), ("n_features", 0), ("threads", 1)):
+        in_range("[rectification] sparse_options", key, o.get(key), low)
+    # the heights of the model check's grid: 99999999999 was "out of memory"
+    in_range("[rectification] sparse_options", "n_heights", o.get("n_heights"), 2, 1000)
     lw = o.get("left_window")
     if lw is not None and (len(lw) != 4 or not (lw[0] < lw[2] and lw[1] < lw[3])):
         bad(

@@ -1,0 +1,164 @@
+"""Hostile inputs, tenth round (session 33): the job TOML's numeric keys and the ``[matching]
+options`` / ``[rectification] sparse_options`` tables swept with NaN, infinity, -1, 0, 1e308,
+99999999999 and text on the 300 x 300 simulated scene.
+
+* ``sparse_options = {n_features = 99999999999}`` was OpenCV's traceback (SIFT's C int); SGBM's
+  ``sgm_speckle_range``, ``sgm_uniqueness`` and an ``lr_tolerance`` of 1e30 failed every tile
+  with "integer won't fit into a C int", reported as "no point was matched in any tile (no
+  texture, or a wrong height range?)". Whole numbers handed to OpenCV are now bounded by its
+  int, the uniqueness margin is a percentage, and a run whose every tile failed says the
+  tiles' error.
+* ``[refinement] sigma = 1e6`` took 10 GB and minutes in one Gaussian kernel, ``[fill]
+  smooth_sigma = 1e308`` and ``[filters] erode = 99999999999`` were ValueError tracebacks,
+  ``[rectification] halo = [1000, 1000]`` and ``disparity_margin = 1e6`` ran for minutes,
+  ``[gridding] gaussian_sigma = 1e6`` failed every tile, a ``window`` wider than OpenCV's 255
+  matched nothing, ``sparse_options n_heights`` 99999999999 was "out of memory", and
+  ``[jitter] max_frequency = 1e308`` a LinAlgError after the first DEM.
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+from helpers.cli_scene import assert_clear_error, job_toml, run_cli, write_sim_scene
+
+from stereodem.core.errors import InputError
+from stereodem.post.filters import border_rim
+from stereodem.stereo.grid import MAX_SIGMA_POSTINGS, GridSpec
+from stereodem.stereo.pipeline import no_point_matched
+from stereodem.stereo.refine import _smooth_fill
+from stereodem.stereo.runner import TileFailure
+from stereodem.stereo.settings import StereoSettings
+from stereodem.stereo.tiling import Tile
+
+BIG = 99999999999
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    return write_sim_scene(tmp_path_factory.mktemp("sim"))
+
+
+#: refused before any work, naming the file, the table and the key
+REFUSED = {
+    "n_features": ("[rectification]\nsparse_options = {n_features = 99999999999}", "n_features"),
+    "n_heights": ("[rectification]\nsparse_options = {n_heights = 99999999999}", "n_heights"),
+    "speckle_range": ("[matching]\noptions = {sgm_speckle_range = 99999999999}", "speckle_range"),
+    "speckle_window": (
+        "[matching]\noptions = {sgm_speckle_window = 99999999999}",
+        "speckle_window",
+    ),
+    "uniqueness": ("[matching]\noptions = {sgm_uniqueness = 101}", "sgm_uniqueness"),
+    "p1": ("[matching]\noptions = {sgm_p1 = 99999999999}", "sgm_p1"),
+    "lr_tolerance": ("[matching]\noptions = {lr_tolerance = 1e30}", "lr_tolerance"),
+    "levels": ("[matching]\noptions = {levels = 99999999999}", "levels"),
+    "window": ("[matching]\noptions = {window = 301}", "window"),
+    "refinement_window": ("[refinement]\nwindow = 99999999999", r"\[refinement\] window"),
+    "refinement_sigma": ("[refinement]\nsigma = 1e6", r"\[refinement\] sigma"),
+    "smooth_sigma": ("[fill]\nsmooth_sigma = 1e308", "smooth_sigma"),
+    "height_margin": ("[rectification]\nheight_margin = 1e308", "height_margin"),
+    "halo": ("[rectification]\nhalo = [1000, 1000]", "halo"),
+    "disparity_margin": ("[rectification]\ndisparity_margin = 1e6", "disparity_margin"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(REFUSED))
+def test_a_value_beyond_its_bound_is_refused_before_any_work(case, sim, tmp_path, capsys):
+    body, pattern = REFUSED[case]
+    # the table the case sets replaces job_toml's [rectification] (a key given twice is
+    # invalid TOML)
+    rect = "tile_size = 300\nheight_range = [1000, 3500]"
+    if body.startswith("[rectification]"):
+        rect += "\n" + body.split("\n", 1)[1]
+        body = ""
+    cfg = job_toml(tmp_path / "job.toml", sim, tmp_path / "out", extra=body, rect=rect)
+    code, _, err = run_cli(capsys, ["run", cfg])
+    assert_clear_error(code, err, "run", pattern)
+    assert "job.toml" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_bounds_keep_what_a_user_would_set(sim, tmp_path, capsys):
+    """The largest values still allowed run (not refused at the edge of the rule)."""
+    cfg = job_toml(
+        tmp_path / "job.toml",
+        sim,
+        tmp_path / "out",
+        rect="tile_size = 300\nheight_range = [1000, 3500]\nhalo = [300, 40]\n"
+        "disparity_margin = 20\nheight_margin = 10000",
+        extra="[matching]\nmatcher = 'sgm'\noptions = {sgm_uniqueness = 15, "
+        "sgm_speckle_range = 1000000}\n[refinement]\nsigma = 100\n[fill]\nsmooth_sigma = 2\n"
+        "[ortho]\nenabled = false\n[assess]\nenabled = false",
+    )
+    code, _, err = run_cli(capsys, ["run", cfg])
+    assert code == 0, err
+    assert (tmp_path / "out" / "dem.tif").exists()
+
+
+def test_a_jitter_band_beyond_the_line_rate_is_refused_before_the_first_dem(sim, tmp_path, capsys):
+    cfg = job_toml(
+        tmp_path / "job.toml",
+        sim,
+        tmp_path / "out",
+        extra="[jitter]\nenabled = true\naxes = 'roll'\nmax_frequency = 1e308",
+    )
+    code, _, err = run_cli(capsys, ["run", cfg])
+    assert_clear_error(code, err, "run", r"max_frequency\) of 1e\+308 Hz.*half the line rate")
+    assert not list((tmp_path / "out").glob("*.tif"))
+
+
+def test_an_erosion_wider_than_the_dem_removes_it_all_with_a_clear_error(sim, tmp_path, capsys):
+    cfg = job_toml(tmp_path / "job.toml", sim, tmp_path / "out", extra=f"[filters]\nerode = {BIG}")
+    code, _, err = run_cli(capsys, ["run", cfg])
+    assert_clear_error(code, err, "run", r"border rim .* removed all .* smaller --erode")
+
+
+@pytest.mark.parametrize("cells", [0, 1, 2, 5, 64, 65, 100, BIG])
+def test_the_border_rim_is_the_erosion_by_a_square_at_any_width(cells):
+    """Up to 64 cells OpenCV's erosion, wider the chessboard distance: the same cells (and
+    no kernel of 2 x 99999999999 + 1 cells)."""
+    rng = np.random.default_rng(cells % 1000)
+    z = rng.normal(size=(150, 260))
+    z[rng.random(z.shape) < 0.002] = np.nan
+    z[40:60, 100:190] = np.nan
+    valid = np.isfinite(z).astype(np.uint8)
+    k = 2 * min(cells, 300) + 1  # wider than the grid: the same as the grid's width
+    expected = (valid == 1) & (cv2.erode(valid, np.ones((k, k), np.uint8), borderValue=0) == 0)
+    got = border_rim(z, cells)
+    assert np.array_equal(got, expected)
+    assert (cells == 0) != got.any() and (cells < 75 or got.sum() == valid.sum())
+
+
+def test_the_refinement_warp_wider_than_the_map_is_its_widest_smoothing():
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(64, 80)).astype(np.float32)
+    d[10:20, 10:30] = np.nan
+    t0 = time.process_time()
+    wide = _smooth_fill(d, 1e6)
+    assert time.process_time() - t0 < 60  # (was 10 GB and minutes: no kernel 8e6 px wide)
+    assert np.array_equal(wide, _smooth_fill(d, max(d.shape)))
+    assert np.isfinite(wide).all()
+
+
+def test_the_gridding_gaussian_is_bounded_in_postings():
+    spec = GridSpec.from_bounds((0, 0, 300, 300), 30.0, 32633, sigma=MAX_SIGMA_POSTINGS * 30.0)
+    assert spec.sigma == 300.0
+    for sigma in (MAX_SIGMA_POSTINGS * 30.0 + 1, 1e6, 0.0, -1.0, float("nan")):
+        with pytest.raises(InputError, match="gaussian_sigma"):
+            GridSpec.from_bounds((0, 0, 300, 300), 30.0, 32633, sigma=sigma)
+
+
+def test_a_pair_whose_every_tile_failed_says_the_tiles_error():
+    tiles = [Tile(0, 0, 100, 100, index=0), Tile(100, 0, 100, 100, index=1)]
+    failures = [TileFailure(t, "ValueError: integer won't fit into a C int") for t in tiles]
+    err = no_point_matched(tiles, StereoSettings(), failures)
+    assert "every tile failed (2)" in str(err) and "C int" in str(err)
+    # some tiles ran: the likely causes, with the matching options given
+    settings = StereoSettings()
+    settings.matching.options = {"min_std": 1e30}
+    err = no_point_matched(tiles, settings, failures[:1])
+    assert "no point was matched" in str(err) and "min_std = 1e+30" in str(err)
+    assert "[matching] options" not in str(no_point_matched(tiles, StereoSettings()))
