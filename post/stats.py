@@ -96,7 +96,8 @@ def _bin_label(lo, hi, unit, last):
 def bin_edges(bins, name: str = "bin") -> np.ndarray:
     """Class edges as a float64 array; :class:`InputError` unless at least two increasing."""
     edges = np.asarray(bins, dtype=np.float64)
-    if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
+    # edges compared, not subtracted (-1e308 .. 1e308 overflowed, a RuntimeWarning)
+    if edges.ndim != 1 or edges.size < 2 or np.any(edges[1:] <= edges[:-1]):
         raise InputError(f"{name} bins must be at least two increasing edges, got {list(bins)}")
     return edges
 

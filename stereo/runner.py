@@ -251,10 +251,13 @@ def _run_one(fn, tile, timeout, context=None):
         and hasattr(signal, "SIGALRM")
         and threading.current_thread() is threading.main_thread()
     )
-    if use_alarm:
-        old = signal.signal(signal.SIGALRM, _alarm)
-        signal.setitimer(signal.ITIMER_REAL, float(timeout))
+    old, armed = None, False
     try:
+        # armed inside the try: a timer that fires at once (1e-300 s) is this tile's timeout,
+        # not a traceback
+        if use_alarm:
+            old, armed = signal.signal(signal.SIGALRM, _alarm), True
+            signal.setitimer(signal.ITIMER_REAL, float(timeout))
         out = fn(tile, ctx)
         return tile.index, out, None, time.perf_counter() - t0
     except TileTimeout:
@@ -263,9 +266,20 @@ def _run_one(fn, tile, timeout, context=None):
         tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
         return tile.index, None, tb, time.perf_counter() - t0
     finally:
-        if use_alarm:
+        if armed:
+            _disarm(old)
+
+
+def _disarm(old_handler):
+    """Stop the tile's timer and restore ``old_handler``; a timeout that fires as the tile
+    ends is dropped (the tile is done)."""
+    while True:
+        try:
             signal.setitimer(signal.ITIMER_REAL, 0)
-            signal.signal(signal.SIGALRM, old)
+            signal.signal(signal.SIGALRM, signal.SIG_DFL if old_handler is None else old_handler)
+            return
+        except TileTimeout:
+            continue
 
 
 #: what a pool worker returns for a tile it stored in the cache itself (:func:`_run_and_store`)

@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import inspect
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from stereodem.core.errors import InputError
+from stereodem.ortho.choices import check_input_sigma
 from stereodem.ortho.uncertainty.propagation import adjustable_model, check_names, check_psd
 from stereodem.sensor.io.sidecar import model_from_dict
 from stereodem.sensor.models.corrected import ImageCorrectedModel
@@ -44,10 +44,7 @@ def parse_sigma_pairs(pairs) -> dict:
             v = float(val)
         except ValueError:
             raise InputError(f"--sigma {name}: {val!r} is not a number") from None
-        if not math.isfinite(v) or v < 0:
-            raise InputError(
-                f"--sigma {name}: sigma must be finite and non-negative, got {val.strip()}"
-            )
+        check_input_sigma(v, f"--sigma {name}")
         if name in out:
             raise InputError(f"--sigma {name} given twice")
         out[name] = v

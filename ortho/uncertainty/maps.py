@@ -28,7 +28,7 @@ from stereodem.core.dem import ELLIPSOID, write_layer
 from stereodem.core.errors import InputError
 from stereodem.core.raster import write_geotiff, write_text_atomic
 from stereodem.core.stats import generator
-from stereodem.ortho.choices import UNCERTAINTY_METHODS
+from stereodem.ortho.choices import UNCERTAINTY_METHODS, check_samples
 from stereodem.ortho.drm import build_backward_map, crop_dem
 from stereodem.ortho.uncertainty.first_order_maps import _node_lattice, _weights, first_order_maps
 from stereodem.ortho.uncertainty.indices import fast_indices
@@ -307,6 +307,8 @@ def ortho_uncertainty_maps(
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose {', '.join(METHODS)}")
+    if method != "first-order":
+        check_samples(samples, "samples")
     model = adjustable_model(model, names)
     names = check_names(model, names)
     D = check_psd(np.asarray(covariance, float))

@@ -318,7 +318,7 @@ class UncertaintySettings:
         An ``adjust_report.json`` whose parameter covariance is propagated.
     method : {"first-order", "monte-carlo", "fast"}
     samples : int
-        Monte Carlo samples (or FAST points per curve).
+        Monte Carlo samples (or FAST points per curve), 10..100000.
     """
 
     enabled: bool = False
@@ -833,11 +833,19 @@ def validate(cfg: Config, source="configuration"):
             "[uncertainty] enabled needs sigma = {name = value, ...} or covariance = "
             "adjust_report.json"
         )
+    from stereodem.ortho.choices import check_input_sigma
+
     for name, v in (u.sigma or {}).items():
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf"):
-            bad(f"[uncertainty] sigma {name} must be a number >= 0, got {v!r}")
-    if u.samples < 10:
-        bad(f"[uncertainty] samples must be at least 10, got {u.samples}")
+        try:
+            check_input_sigma(v, f"[uncertainty] sigma {name}")
+        except InputError as err:
+            bad(str(err))
+    from stereodem.ortho.choices import check_samples
+
+    try:
+        check_samples(u.samples, "[uncertainty] samples")
+    except InputError as err:
+        bad(str(err))
     if cfg.dem.point_cloud not in (None, "las", "laz"):
         bad(f"[dem] point_cloud must be 'las' or 'laz', got {cfg.dem.point_cloud!r}")
     for msg in cfg.fusion.problems():

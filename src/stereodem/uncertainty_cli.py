@@ -97,7 +97,7 @@ def add_parser(sub):
         "--samples",
         type=int,
         default=1000,
-        help="Monte Carlo samples or FAST points per curve (default 1000)",
+        help="Monte Carlo samples or FAST points per curve, 10..100000 (default 1000)",
     )
     p.add_argument(
         "--seed", type=int, default=0, help="random seed of the sampled methods (default 0)"
@@ -118,8 +118,9 @@ def add_parser(sub):
 
 def run(args) -> int:
     from stereodem.core.dem import DEM
-    from stereodem.core.errors import AccuracyError, InputError
+    from stereodem.core.errors import AccuracyError
     from stereodem.core.threads import job_threads
+    from stereodem.ortho.choices import check_samples
     from stereodem.ortho.drm import dem_gaps, no_height_message
     from stereodem.ortho.grid import footprint_height_range, grid_for_model
     from stereodem.ortho.uncertainty.covariance import (
@@ -134,8 +135,7 @@ def run(args) -> int:
     from .pipeline.inputs import check_image, chosen_model
 
     options.check_common(args)
-    if args.samples < 3:
-        raise InputError(f"--samples must be at least 3, got {args.samples}")
+    check_samples(args.samples, "--samples")
     from .outlock import check_output_folder, output_folder
 
     # an input named like a map in the output folder was replaced with --overwrite

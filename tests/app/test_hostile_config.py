@@ -14,6 +14,10 @@ options`` / ``[rectification] sparse_options`` tables swept with NaN, infinity, 
   ``[gridding] gaussian_sigma = 1e6`` failed every tile, a ``window`` wider than OpenCV's 255
   matched nothing, ``sparse_options n_heights`` 99999999999 was "out of memory", and
   ``[jitter] max_frequency = 1e308`` a LinAlgError after the first DEM.
+* ``[run] tile_timeout = 1e-300`` fired before the tile's ``try`` (a TileTimeout traceback);
+  ``[uncertainty] sigma = {roll_bias = 1e308}`` overflowed squaring it (a traceback), and
+  ``samples = 99999999999`` ended "out of memory" (the command line took 3 samples, the
+  TOML 10: one rule now, 10..100000).
 """
 
 from __future__ import annotations
@@ -62,6 +66,15 @@ REFUSED = {
     "height_margin": ("[rectification]\nheight_margin = 1e308", "height_margin"),
     "halo": ("[rectification]\nhalo = [1000, 1000]", "halo"),
     "disparity_margin": ("[rectification]\ndisparity_margin = 1e6", "disparity_margin"),
+    "uncertainty_samples": (
+        "[uncertainty]\nenabled = true\nsigma = {roll_bias = 1e-5}\nmethod = 'monte-carlo'\n"
+        "samples = 99999999999",
+        r"\[uncertainty\] samples must be 10\.\.100000",
+    ),
+    "uncertainty_sigma": (
+        "[uncertainty]\nenabled = true\nsigma = {roll_bias = 1e308}",
+        r"\[uncertainty\] sigma roll_bias.*variance",
+    ),
 }
 
 
@@ -162,3 +175,13 @@ def test_a_pair_whose_every_tile_failed_says_the_tiles_error():
     err = no_point_matched(tiles, settings, failures[:1])
     assert "no point was matched" in str(err) and "min_std = 1e+30" in str(err)
     assert "[matching] options" not in str(no_point_matched(tiles, StereoSettings()))
+
+
+def test_a_tile_timeout_that_fires_at_once_is_each_tiles_timeout(sim, tmp_path, capsys):
+    """1e-300 s: the timer fired before the tile's try block (a TileTimeout traceback); now
+    every tile times out and the run says so."""
+    cfg = job_toml(
+        tmp_path / "job.toml", sim, tmp_path / "out", extra="[run]\ntile_timeout = 1e-300"
+    )
+    code, _, err = run_cli(capsys, ["run", cfg])
+    assert_clear_error(code, err, "run", r"every tile failed .*timed out after 1e-300 s")

@@ -181,7 +181,11 @@ def test_covariance_from_an_adjustment_report(data_dir, dem_path, tmp_path):
         (["--sigma", "col_shift=nan"], "non-negative"),
         (["--sigma", "col_shift"], "NAME=VALUE"),
         ([], "no input uncertainty"),
-        (["--sigma", "col_shift=1", "--method", "monte-carlo", "--samples", "2"], "at least 3"),
+        (["--sigma", "col_shift=1", "--method", "monte-carlo", "--samples", "2"], "10..100000"),
+        # tenth hostile round: "out of memory" after the first-order lattice, and an
+        # OverflowError traceback squaring the sigma
+        (["--sigma", "col_shift=1", "--method", "fast", "--samples", "99999999999"], "10..100000"),
+        (["--sigma", "col_shift=1e308"], "square (the variance) is finite"),
     ],
 )
 def test_hostile_arguments_are_one_line_errors(data_dir, dem_path, tmp_path, capsys, args, message):
