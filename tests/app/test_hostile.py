@@ -452,6 +452,34 @@ TOML_CASES = {
         "[refinement]\ndetail_gain = -1",
         r"\[refinement\] detail_gain",
     ),
+    # tenth round (tests/app/test_hostile_config.py): values beyond their bounds
+    "n_features": ("[rectification]\nsparse_options = {n_features = 99999999999}", "n_features"),
+    "n_heights": ("[rectification]\nsparse_options = {n_heights = 99999999999}", "n_heights"),
+    "speckle_range": ("[matching]\noptions = {sgm_speckle_range = 99999999999}", "speckle_range"),
+    "speckle_window": (
+        "[matching]\noptions = {sgm_speckle_window = 99999999999}",
+        "speckle_window",
+    ),
+    "uniqueness": ("[matching]\noptions = {sgm_uniqueness = 101}", "sgm_uniqueness"),
+    "p1": ("[matching]\noptions = {sgm_p1 = 99999999999}", "sgm_p1"),
+    "lr_tolerance": ("[matching]\noptions = {lr_tolerance = 1e30}", "lr_tolerance"),
+    "levels": ("[matching]\noptions = {levels = 99999999999}", "levels"),
+    "window": ("[matching]\noptions = {window = 301}", "window"),
+    "refinement_window": ("[refinement]\nwindow = 99999999999", r"\[refinement\] window"),
+    "refinement_sigma": ("[refinement]\nsigma = 1e6", r"\[refinement\] sigma"),
+    "smooth_sigma": ("[fill]\nsmooth_sigma = 1e308", "smooth_sigma"),
+    "height_margin": ("[rectification]\nheight_margin = 1e308", "height_margin"),
+    "halo": ("[rectification]\nhalo = [1000, 1000]", "halo"),
+    "disparity_margin": ("[rectification]\ndisparity_margin = 1e6", "disparity_margin"),
+    "uncertainty_samples": (
+        "[uncertainty]\nenabled = true\nsigma = {roll_bias = 1e-5}\nmethod = 'monte-carlo'\n"
+        "samples = 99999999999",
+        r"\[uncertainty\] samples must be 10\.\.100000",
+    ),
+    "uncertainty_sigma": (
+        "[uncertainty]\nenabled = true\nsigma = {roll_bias = 1e308}",
+        r"\[uncertainty\] sigma roll_bias.*variance",
+    ),
 }
 
 

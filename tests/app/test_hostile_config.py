@@ -46,54 +46,6 @@ def sim(tmp_path_factory):
     return write_sim_scene(tmp_path_factory.mktemp("sim"))
 
 
-#: refused before any work, naming the file, the table and the key
-REFUSED = {
-    "n_features": ("[rectification]\nsparse_options = {n_features = 99999999999}", "n_features"),
-    "n_heights": ("[rectification]\nsparse_options = {n_heights = 99999999999}", "n_heights"),
-    "speckle_range": ("[matching]\noptions = {sgm_speckle_range = 99999999999}", "speckle_range"),
-    "speckle_window": (
-        "[matching]\noptions = {sgm_speckle_window = 99999999999}",
-        "speckle_window",
-    ),
-    "uniqueness": ("[matching]\noptions = {sgm_uniqueness = 101}", "sgm_uniqueness"),
-    "p1": ("[matching]\noptions = {sgm_p1 = 99999999999}", "sgm_p1"),
-    "lr_tolerance": ("[matching]\noptions = {lr_tolerance = 1e30}", "lr_tolerance"),
-    "levels": ("[matching]\noptions = {levels = 99999999999}", "levels"),
-    "window": ("[matching]\noptions = {window = 301}", "window"),
-    "refinement_window": ("[refinement]\nwindow = 99999999999", r"\[refinement\] window"),
-    "refinement_sigma": ("[refinement]\nsigma = 1e6", r"\[refinement\] sigma"),
-    "smooth_sigma": ("[fill]\nsmooth_sigma = 1e308", "smooth_sigma"),
-    "height_margin": ("[rectification]\nheight_margin = 1e308", "height_margin"),
-    "halo": ("[rectification]\nhalo = [1000, 1000]", "halo"),
-    "disparity_margin": ("[rectification]\ndisparity_margin = 1e6", "disparity_margin"),
-    "uncertainty_samples": (
-        "[uncertainty]\nenabled = true\nsigma = {roll_bias = 1e-5}\nmethod = 'monte-carlo'\n"
-        "samples = 99999999999",
-        r"\[uncertainty\] samples must be 10\.\.100000",
-    ),
-    "uncertainty_sigma": (
-        "[uncertainty]\nenabled = true\nsigma = {roll_bias = 1e308}",
-        r"\[uncertainty\] sigma roll_bias.*variance",
-    ),
-}
-
-
-@pytest.mark.parametrize("case", sorted(REFUSED))
-def test_a_value_beyond_its_bound_is_refused_before_any_work(case, sim, tmp_path, capsys):
-    body, pattern = REFUSED[case]
-    # the table the case sets replaces job_toml's [rectification] (a key given twice is
-    # invalid TOML)
-    rect = "tile_size = 300\nheight_range = [1000, 3500]"
-    if body.startswith("[rectification]"):
-        rect += "\n" + body.split("\n", 1)[1]
-        body = ""
-    cfg = job_toml(tmp_path / "job.toml", sim, tmp_path / "out", extra=body, rect=rect)
-    code, _, err = run_cli(capsys, ["run", cfg])
-    assert_clear_error(code, err, "run", pattern)
-    assert "job.toml" in err
-    assert not (tmp_path / "out").exists()
-
-
 def test_the_bounds_keep_what_a_user_would_set(sim, tmp_path, capsys):
     """The largest values still allowed run (not refused at the edge of the rule)."""
     cfg = job_toml(
