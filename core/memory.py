@@ -79,7 +79,7 @@ def check_allocation(
     """Raise :class:`InputError` if ``nbytes`` exceed ``fraction`` of the available memory
     (or ``limit`` bytes when given); ``what`` names the request in the message."""
     cap = limit if limit is not None else fraction * available_bytes()
-    if nbytes > cap:
+    if not nbytes <= cap:  # NaN too: a size from an extent of inf / inf cells
         raise InputError(
             f"{what} needs {human_bytes(nbytes)} of memory, more than the "
             f"{human_bytes(cap)} available"

@@ -64,8 +64,9 @@ def check_sigma(value, what: str) -> float:
         v = float(value)
     except (TypeError, ValueError):
         raise InputError(f"{what} must be a standard deviation > 0, got {value!r}") from None
-    with np.errstate(over="ignore"):
-        weight = 1.0 / (v * v) if v > 0 else 0.0
+    with np.errstate(over="ignore", divide="ignore"):
+        # in NumPy: 1e-300 squared is 0, and Python's 1 / 0.0 was a ZeroDivisionError
+        weight = np.float64(1.0) / np.float64(v * v) if v > 0 else 0.0
     if not (np.isfinite(v) and np.isfinite(weight) and weight > 0):
         # its weight 1/sigma^2 must exist in float64 too (1e308 made every weight 0)
         raise InputError(

@@ -101,7 +101,8 @@ def grid_for_model(model, dem, *, res: float | None = None, crs=None, h_range=No
             f"orthoimage posting {res:g} m exceeds the image footprint ({dx:.0f} x {dy:.0f} m): "
             "the orthoimage would be a single cell; choose a finer --res"
         )
-    cells = dx / res * (dy / res)
+    with np.errstate(over="ignore"):  # a posting of 1e-300: inf cells, refused below
+        cells = dx / res * (dy / res)
     # the orthoimage (float32) and its per-cell image coordinates (2 x float64)
     check_allocation(
         20.0 * cells,

@@ -369,9 +369,10 @@ def default_posting(gsd: float, crs) -> float:
 def check_lattice(bounds, posting: float):
     """:class:`InputError` when the DEM lattice of ``bounds`` at ``posting`` cannot be held:
     its cell sums (``len(SUM_LAYERS)`` float64 layers) exceed the available memory."""
-    cols = (bounds[2] - bounds[0]) / posting
-    rows = (bounds[3] - bounds[1]) / posting
-    nbytes = 8.0 * len(SUM_LAYERS) * max(cols, 0) * max(rows, 0)
+    with np.errstate(over="ignore", invalid="ignore"):  # 5e-324: inf or NaN, refused below
+        cols = np.float64(bounds[2] - bounds[0]) / posting
+        rows = np.float64(bounds[3] - bounds[1]) / posting
+        nbytes = 8.0 * len(SUM_LAYERS) * max(cols, 0) * max(rows, 0)
     check_allocation(
         nbytes,
         f"a DEM lattice of {cols:.3g} x {rows:.3g} cells at posting {posting:g} "

@@ -165,13 +165,13 @@ def add_parser(sub):
     )
     p.add_argument(
         "--sigma-px",
-        type=options.positive,
+        type=options.standard_deviation,
         help="a-priori sigma of GCP image coordinates (px) "
         "where the CSV has none; without either sigma is estimated (Pope's tau test)",
     )
     p.add_argument(
         "--sigma-tie-px",
-        type=options.positive,
+        type=options.standard_deviation,
         help="a-priori sigma of tie points (px; bundle; default "
         f"{BUNDLE_DEFAULTS['sigma_tie_px']})",
     )

@@ -58,7 +58,7 @@ def add_parser(subparsers):
         help="check points drawn when the CSV has no 'check' roles (default 20)",
     )
     p.add_argument(
-        "--sigma-px", type=options.positive, default=None, help="a-priori image sigma, px"
+        "--sigma-px", type=options.standard_deviation, default=None, help="a-priori image sigma, px"
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the split")
     p.add_argument(

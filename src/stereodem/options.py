@@ -50,16 +50,21 @@ def heading(text: str) -> float:
     return value
 
 
-def positive(text: str) -> float:
-    """A standard deviation, a scale: a finite number > 0 (``--sigma-px``, ``--sigma-tie-px``;
-    NaN passed a ``<= 0`` check and weighted every observation by NaN)."""
+def standard_deviation(text: str) -> float:
+    """An a-priori standard deviation (``--sigma-px``, ``--sigma-tie-px``): the one rule of
+    :func:`stereodem.core.stats.check_sigma` (a finite number > 0 whose weight 1/σ² is finite:
+    NaN passed a ``<= 0`` check and weighted every observation by NaN, 1e-300 got past this
+    type and failed in the adjustment), as a usage error."""
+    from stereodem.core.stats import check_sigma
+
     try:
-        value = float(text)
+        float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
-    return value
+    try:
+        return check_sigma(text, "it")
+    except InputError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def add_track_angle(p, help_text: str):

@@ -27,7 +27,7 @@ import time
 import cv2
 import numpy as np
 import pytest
-from helpers.cli_scene import assert_clear_error, job_toml, run_cli, write_sim_scene
+from helpers.cli_scene import HR, assert_clear_error, job_toml, run_cli, write_sim_scene
 
 from stereodem.core.errors import InputError
 from stereodem.post.filters import border_rim
@@ -137,3 +137,19 @@ def test_a_tile_timeout_that_fires_at_once_is_each_tiles_timeout(sim, tmp_path, 
     )
     code, _, err = run_cli(capsys, ["run", cfg])
     assert_clear_error(code, err, "run", r"every tile failed .*timed out after 1e-300 s")
+
+
+@pytest.mark.parametrize("res", ["1e-300", "5e-324"])
+def test_a_posting_too_fine_for_any_number_is_refused(res, sim, tmp_path, capsys):
+    """5e-324 made the lattice's bounds NaN, which passed the memory check (a ValueError
+    traceback converting its size); 1e-300 warned of an overflow before its refusal."""
+    left, right = sim / "left.tif", sim / "right.tif"
+    code, _, err = run_cli(capsys, ["dem", left, right, "-o", tmp_path / "d", "--res", res, *HR])
+    assert_clear_error(code, err, "dem", r"DEM lattice .*choose a coarser --res")
+    assert "Warning" not in err
+    code, _, err = run_cli(
+        capsys,
+        ["ortho", left, "--dem", sim / "truth_dem.tif", "-o", tmp_path / "o.tif", "--res", res],
+    )
+    assert_clear_error(code, err, "ortho", r"orthoimage grid .*choose a coarser --res")
+    assert "Warning" not in err
