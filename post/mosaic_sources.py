@@ -243,6 +243,10 @@ def mosaic_geoid(sources, target: str | None) -> str | None:
     return geoids[0].geoid_wkt
 
 
+#: GDAL's largest raster side (its C int)
+MAX_RASTER_SIDE = 2**31 - 1
+
+
 def _anchor(first: Source, crs: CRS, res: tuple[float, float]):
     """Origin of the output lattice: the first DEM's when it is in the output CRS at ``res``
     (so its cells are copied, not resampled), else multiples of ``res``."""
@@ -298,11 +302,19 @@ def output_grid(sources, *, crs=None, res: float | None = None, bounds=None):
     if not (e > w and n > s_):
         raise InputError(f"empty mosaic bounds {bounds}")
     ox, oy = _anchor(first, crs, (rx, ry))
-    x0 = ox + np.floor((w - ox) / rx + 1e-9) * rx
-    x1 = ox + np.ceil((e - ox) / rx - 1e-9) * rx
-    y0 = oy + np.floor((s_ - oy) / ry + 1e-9) * ry
-    y1 = oy + np.ceil((n - oy) / ry - 1e-9) * ry
-    width, height = int(round((x1 - x0) / rx)), int(round((y1 - y0) / ry))
+    with np.errstate(over="ignore", invalid="ignore"):  # a posting of 1e-300: refused below
+        x0 = ox + np.floor((w - ox) / rx + 1e-9) * rx
+        x1 = ox + np.ceil((e - ox) / rx - 1e-9) * rx
+        y0 = oy + np.floor((s_ - oy) / ry + 1e-9) * ry
+        y1 = oy + np.ceil((n - oy) / ry - 1e-9) * ry
+        cols, rows = (x1 - x0) / rx, (y1 - y0) / ry
+    if not (cols <= MAX_RASTER_SIDE and rows <= MAX_RASTER_SIDE):
+        # 1e-30 streamed its blocks for ever, 5e-324 (NaN bounds) was a ValueError
+        raise InputError(
+            f"a mosaic grid of {cols:.3g} x {rows:.3g} cells at posting {rx:g} is beyond "
+            f"GDAL's largest raster ({MAX_RASTER_SIDE} cells a side): choose a coarser --res"
+        )
+    width, height = int(round(cols)), int(round(rows))
     grid = MapGrid(Affine(rx, 0.0, x0, 0.0, -ry, y1), max(width, 1), max(height, 1), crs)
     return grid, placed
 

@@ -153,3 +153,13 @@ def test_a_posting_too_fine_for_any_number_is_refused(res, sim, tmp_path, capsys
     )
     assert_clear_error(code, err, "ortho", r"orthoimage grid .*choose a coarser --res")
     assert "Warning" not in err
+
+
+@pytest.mark.parametrize("res", ["1e-30", "5e-324"])
+def test_a_mosaic_posting_beyond_gdals_largest_raster_is_refused(res, sim, tmp_path, capsys):
+    """1e-30 streamed its blocks for ever, 5e-324 was a ValueError."""
+    dem = sim / "truth_dem.tif"
+    argv = ["mosaic", dem, "-o", tmp_path / "m.tif", "--res", res]
+    code, _, err = run_cli(capsys, argv)
+    assert_clear_error(code, err, "mosaic", r"beyond GDAL's largest raster.*coarser --res")
+    assert not (tmp_path / "m.tif").exists()
