@@ -69,8 +69,8 @@ def _density_sigma(i, j, rows, cols, posting):
     return max(0.5 * posting, posting / np.sqrt(per_cell))
 
 
-#: the widest Gaussian of the cell estimator, in postings
-MAX_SIGMA_POSTINGS = 10
+#: the narrowest and the widest Gaussian of the cell estimator, in postings
+MIN_SIGMA_POSTINGS, MAX_SIGMA_POSTINGS = 0.1, 10
 
 
 @dataclass(frozen=True)
@@ -109,12 +109,14 @@ class GridSpec(OnGrid):
                 f"unknown gridding method {method!r} ({' or '.join(GRIDDING_METHODS)})"
             )
         sigma = options.get("sigma")
-        if sigma is not None and not 0 < sigma <= MAX_SIGMA_POSTINGS * posting:
+        lo, hi = MIN_SIGMA_POSTINGS * posting, MAX_SIGMA_POSTINGS * posting
+        if sigma is not None and not lo <= sigma <= hi:
             # the support is 2 sigma each side: 1e6 m at a 30 m posting was a window of
-            # 133333^2 cells per tile, every tile failed
+            # 133333^2 cells per tile, every tile failed; 1e-300 m a ZeroDivisionError in each
+            # tile (and below a tenth of a cell the weights underflow to 0)
             raise InputError(
-                f"the gridding's gaussian_sigma must be positive and at most "
-                f"{MAX_SIGMA_POSTINGS} postings ({MAX_SIGMA_POSTINGS * posting:g} CRS units at "
+                f"the gridding's gaussian_sigma must be {MIN_SIGMA_POSTINGS:g} to "
+                f"{MAX_SIGMA_POSTINGS:g} postings ({lo:g} to {hi:g} CRS units at a posting of "
                 f"{posting:g}), got {sigma}"
             )
         xmin, ymin, xmax, ymax = (float(b) for b in bounds)

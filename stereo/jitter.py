@@ -332,7 +332,7 @@ def correct_roll_jitter(
             )
             fit = fit_at_frequencies(t, roll, total.frequencies, t_ref=total.t_ref)
             total = add_series(total, fit)
-        model = with_attitude_sines(right_model, total, axis="roll")
+        model = _with_fitted_sines(right_model, total, "roll", f_range)
         rounds_info.append(
             dict(
                 n_matches=int(vp["cross_px"].size),
@@ -348,6 +348,18 @@ def correct_roll_jitter(
         "sensitivity_px_per_rad": float(np.median(vp["sensitivity_px_per_rad"])),
     }
     return corrected, total, info
+
+
+def _with_fitted_sines(model, series, axis, f_range):
+    """:func:`with_attitude_sines` of a fitted ``series``, its refusal (an amplitude beyond an
+    oscillation's) naming the band it was fitted over."""
+    try:
+        return with_attitude_sines(model, series, axis=axis)
+    except InputError as err:
+        raise InputError(
+            f"the jitter fit over {f_range[0]:g}..{f_range[1]:g} Hz ([jitter] min_frequency, "
+            f"max_frequency) found no oscillation the image can carry: {err}"
+        ) from None
 
 
 def dem_with_jitter_correction(
@@ -453,8 +465,8 @@ def dem_with_jitter_correction(
         fit, diag = estimate_pitch_jitter(
             d0, ref, left_model, right_model, n_sines=n_sines, f_range=f_range
         )
-        corrected = with_attitude_sines(corrected, fit, axis="pitch")
-        model_for_dem = with_attitude_sines(right_model, fit, axis="pitch")
+        corrected = _with_fitted_sines(corrected, fit, "pitch", f_range)
+        model_for_dem = _with_fitted_sines(right_model, fit, "pitch", f_range)
         fits["pitch"] = fit
         info["pitch"] = {**fit.to_dict(), "sensitivity_m_per_rad": diag["sensitivity_m_per_rad"]}
     final = dem_of_checked_pair(

@@ -252,15 +252,27 @@ def process_tile(tile: Tile, inputs: PairInputs, settings: StereoSettings) -> Ti
     return TileResult(cells, pts.summary)
 
 
-def no_point_matched(tiles, settings: StereoSettings, failures=()) -> InputError:
+def no_point_matched(
+    tiles, settings: StereoSettings, failures=(), summaries=(), max_ray_gap=None
+) -> InputError:
     """The error of a pair whose tiles gave no point: the tiles' own error when every tile
-    failed (it was hidden behind "no point was matched"), else the likely causes, with the
-    ``[matching] options`` given (a threshold or window that rejects every match)."""
+    failed (it was hidden behind "no point was matched"), the space intersection's limits
+    when the tiles matched points but kept none (``summaries``: the tiles' QA summaries;
+    ``max_ray_gap``: the ray-gap limit, m), else the likely causes, with the ``[matching]
+    options`` given (a threshold or window that rejects every match)."""
     failures = list(failures)
     if failures and len(failures) >= len(tiles):
         return InputError(
             f"every tile failed ({len(failures)}); the first (tile {failures[0].tile.index}): "
             f"{failures[0].reason}"
+        )
+    n_matched = sum(int(s.get("n_matched", 0)) for s in summaries)
+    if n_matched:
+        gap = f"the {max_ray_gap:g} m" if max_ray_gap is not None else "the"
+        return InputError(
+            f"the tiles matched {n_matched} point(s) but kept none: every one's rays miss by "
+            f"more than {gap} limit ([gridding] max_ray_gap) or its height lies outside "
+            "the search range"
         )
     causes = "no texture, or a wrong height range"
     options = settings.matching.options
@@ -613,7 +625,8 @@ def dem_of_checked_pair(
     position = {tuple(t.bounds): k for k, t in enumerate(tiles)}
     summaries.sort(key=lambda s: position.get(tuple(s["tile"]), len(tiles)))
     if n_points == 0 and gs.bounds is None:
-        raise no_point_matched(tiles, settings, getattr(runner, "failures", ())[n_failed:])
+        failed = getattr(runner, "failures", ())[n_failed:]
+        raise no_point_matched(tiles, settings, failed, summaries, max_gap)
     dem = finish(spec, total, crop=gs.bounds is None)
     del total
     seconds = time.perf_counter() - t_start

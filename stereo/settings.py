@@ -157,7 +157,7 @@ class GriddingSettings:
     geoid : bool
         Write EGM96 geoid heights instead of ellipsoidal heights.
     method : {"gaussian", "mean"}
-        Cell estimator; ``gaussian_sigma`` its width in CRS units, at most 10 postings
+        Cell estimator; ``gaussian_sigma`` its width in CRS units, 0.1 to 10 postings
         (default: from the point density).
     gaussian_sigma : float, optional
     max_ray_gap : float, optional

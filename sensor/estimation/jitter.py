@@ -78,6 +78,12 @@ class SineSeries:
         }
 
 
+#: the largest attitude oscillation a model takes, radians (ASTER's jitter is a few
+#: microradians; 10 mrad moves the image by about 470 ASTER pixels: a new pointing, not an
+#: oscillation)
+MAX_OSCILLATION_RAD = 0.01
+
+
 def check_line_nyquist(model, frequencies, what="an attitude oscillation") -> None:
     """:class:`InputError` unless every frequency (Hz) of ``frequencies`` is finite and at most
     half the line rate of the pushbroom ``model``: its image lines sample the attitude once
@@ -115,6 +121,14 @@ def with_attitude_sines(
     t0 = float(model.line_time(-0.05 * model.height - 50))
     t1 = float(model.line_time(1.05 * model.height + 50))
     check_line_nyquist(model, series.frequencies)
+    amplitudes = np.abs(np.asarray(series.amplitudes, float))
+    if amplitudes.size and not np.all(amplitudes <= MAX_OSCILLATION_RAD):
+        # e.g. a fit over a band of 1e-300 Hz, whose sines are flat over the image: their
+        # amplitudes grew without bound and the corrected model pointed anywhere
+        raise InputError(
+            f"{model.name}: an attitude oscillation of {float(np.max(amplitudes)):.3g} rad "
+            f"({axis}) is beyond {MAX_OSCILLATION_RAD:g} rad: a new pointing, not an oscillation"
+        )
     n = max(16, int(np.ceil((t1 - t0) * f_max * samples_per_period)) + 1)
     t = np.linspace(t0, t1, n)
     angles = np.zeros((n, 3))

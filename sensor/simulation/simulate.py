@@ -60,7 +60,11 @@ from stereodem.core.raster import (
     write_text_atomic,
 )
 from stereodem.core.stats import generator
-from stereodem.sensor.estimation.jitter import SineSeries, with_attitude_sines
+from stereodem.sensor.estimation.jitter import (
+    MAX_OSCILLATION_RAD,
+    SineSeries,
+    with_attitude_sines,
+)
 from stereodem.sensor.estimation.rpcfit import fit_rpc
 from stereodem.sensor.io.aster_xml import bundled_xml, read_asp_aster_xml
 from stereodem.sensor.io.sidecar import save_model
@@ -115,9 +119,10 @@ def check_noise(noise, bits: int = 16) -> float:
     return v
 
 
-#: the largest attitude oscillation :func:`simulate_scene` renders, radians (ASTER's jitter is
-#: a few microradians; 10 mrad moves the image by about 470 ASTER pixels)
-MAX_JITTER_RAD = 0.01
+#: the largest attitude oscillation :func:`simulate_scene` renders, radians
+#: (:data:`stereodem.sensor.estimation.jitter.MAX_OSCILLATION_RAD`, the rule of every model
+#: with attitude sines)
+MAX_JITTER_RAD = MAX_OSCILLATION_RAD
 
 
 def _check_image_memory(sizes, what: str):

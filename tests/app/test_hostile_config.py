@@ -111,7 +111,8 @@ def test_the_refinement_warp_wider_than_the_map_is_its_widest_smoothing():
 def test_the_gridding_gaussian_is_bounded_in_postings():
     spec = GridSpec.from_bounds((0, 0, 300, 300), 30.0, 32633, sigma=MAX_SIGMA_POSTINGS * 30.0)
     assert spec.sigma == 300.0
-    for sigma in (MAX_SIGMA_POSTINGS * 30.0 + 1, 1e6, 0.0, -1.0, float("nan")):
+    assert GridSpec.from_bounds((0, 0, 300, 300), 30.0, 32633, sigma=3.0).sigma == 3.0
+    for sigma in (MAX_SIGMA_POSTINGS * 30.0 + 1, 1e6, 0.0, 1e-300, 2.9, -1.0, float("nan")):
         with pytest.raises(InputError, match="gaussian_sigma"):
             GridSpec.from_bounds((0, 0, 300, 300), 30.0, 32633, sigma=sigma)
 
@@ -163,3 +164,25 @@ def test_a_mosaic_posting_beyond_gdals_largest_raster_is_refused(res, sim, tmp_p
     code, _, err = run_cli(capsys, argv)
     assert_clear_error(code, err, "mosaic", r"beyond GDAL's largest raster.*coarser --res")
     assert not (tmp_path / "m.tif").exists()
+
+
+@pytest.mark.parametrize(
+    "body, pattern",
+    [
+        # a ZeroDivisionError in every tile
+        ("[gridding]\ngaussian_sigma = 1e-300", r"gaussian_sigma must be 0\.1 to 10 postings"),
+        # every point dropped by the ray-gap limit: it read "no point was matched"
+        ("[gridding]\nmax_ray_gap = 1e-300", r"matched \d+ point\(s\) but kept none.*max_ray_gap"),
+        # sines flat over the image, fitted with amplitudes of radians: the corrected model
+        # pointed elsewhere and the run ended "the two images do not overlap"
+        (
+            "[jitter]\nenabled = true\naxes = 'roll'\nmin_frequency = 5e-324\n"
+            "max_frequency = 1e-300",
+            r"jitter fit over .*Hz.*beyond 0\.01 rad",
+        ),
+    ],
+)
+def test_tiny_values_are_refused_for_what_they_are(body, pattern, sim, tmp_path, capsys):
+    cfg = job_toml(tmp_path / "job.toml", sim, tmp_path / "out", extra=body)
+    code, _, err = run_cli(capsys, ["run", cfg])
+    assert_clear_error(code, err, "run", pattern)
