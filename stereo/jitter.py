@@ -35,6 +35,7 @@ from stereodem.core.stats import nmad
 from stereodem.sensor.estimation.jitter import (
     add_series,
     check_line_nyquist,
+    check_slowest_frequency,
     cross_track_sensitivity,
     estimate_pitch_jitter,
     estimate_roll_jitter,
@@ -408,6 +409,14 @@ def dem_with_jitter_correction(
             right_model,
             f_range[1],
             "the upper frequency of the jitter band ([jitter] max_frequency)",
+        )
+        span = abs(
+            float(right_model.line_time(right_model.height - 1)) - float(right_model.line_time(0))
+        )
+        check_slowest_frequency(
+            f_range[0],
+            span,
+            f"{right_model.name}: the jitter band's lower frequency ([jitter] min_frequency)",
         )
     settings = settings or StereoSettings()
     ref = as_dem(reference) if reference is not None else None

@@ -84,6 +84,24 @@ class SineSeries:
 MAX_OSCILLATION_RAD = 0.01
 
 
+#: the slowest sine a fit takes: one thousandth of a cycle over the samples' time span (a
+#: slower one is the polynomial trend fitted beside the sines; a band of 1e-300 Hz fitted
+#: radians of roll, and SciPy 1.10's Lomb-Scargle aborted the process on 5e-324 Hz)
+MIN_CYCLES_PER_SPAN = 1e-3
+
+
+def check_slowest_frequency(f_min, span_s: float, what="the lowest frequency") -> None:
+    """:class:`InputError` unless ``f_min`` (Hz) is finite and at least
+    :data:`MIN_CYCLES_PER_SPAN` cycles over ``span_s`` seconds."""
+    floor = MIN_CYCLES_PER_SPAN / max(float(span_s), 1e-300)
+    if not (np.isfinite(f_min) and f_min >= floor):
+        raise InputError(
+            f"{what} of {f_min:g} Hz is slower than {floor:.3g} Hz, {MIN_CYCLES_PER_SPAN:g} "
+            f"cycle over the {span_s:.3g} s the samples span: the trend fitted beside the "
+            "sines, not an oscillation"
+        )
+
+
 def check_line_nyquist(model, frequencies, what="an attitude oscillation") -> None:
     """:class:`InputError` unless every frequency (Hz) of ``frequencies`` is finite and at most
     half the line rate of the pushbroom ``model``: its image lines sample the attitude once
@@ -183,6 +201,9 @@ def fit_sum_of_sines(
     t, y = t[ok], y[ok]
     if t.size < 4 * n_sines + trend_degree + 2:
         raise InputError(f"jitter fit: only {t.size} valid samples")
+    check_slowest_frequency(
+        f_range[0], float(t.max() - t.min()), "jitter fit: the lowest frequency"
+    )
     t_ref = float(np.mean(t))
     x = t - t_ref
     # initial search on the samples that are not outliers (median +- 5 robust sigmas)
