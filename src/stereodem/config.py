@@ -833,16 +833,11 @@ def validate(cfg: Config, source="configuration"):
             "[uncertainty] enabled needs sigma = {name = value, ...} or covariance = "
             "adjust_report.json"
         )
-    from stereodem.ortho.choices import check_input_sigma
-
-    for name, v in (u.sigma or {}).items():
-        try:
-            check_input_sigma(v, f"[uncertainty] sigma {name}")
-        except InputError as err:
-            bad(str(err))
-    from stereodem.ortho.choices import check_samples
+    from stereodem.ortho.choices import check_input_sigma, check_samples  # the CLI's rules
 
     try:
+        for name, v in (u.sigma or {}).items():
+            check_input_sigma(v, f"[uncertainty] sigma {name}")
         check_samples(u.samples, "[uncertainty] samples")
     except InputError as err:
         bad(str(err))
