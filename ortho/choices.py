@@ -18,7 +18,8 @@ UNCERTAINTY_METHODS: tuple[str, ...] = get_args(UncertaintyMethod)
 
 #: the samples of the sampling methods: at least 10, at most 10^5 (the Monte Carlo σ's own
 #: sampling error, 1/sqrt(2N), is then 0.2 %; on the 300 x 300 test scene 1000 draws took
-#: 27 s and 20000 took 285 s here, and 99999999999 ended "out of memory")
+#: 27 s and 20000 took 285 s on a 2-core machine also running the test suite, and 99999999999
+#: ended "out of memory")
 MIN_SAMPLES, MAX_SAMPLES = 10, 100_000
 
 
