@@ -254,7 +254,6 @@ def run(args) -> int:
             cfg.output_dir,
             overwrite=args.overwrite,
             inputs=input_paths(cfg),
-            background=job_threads(cfg.run.workers) > 1,  # as `run` does
         ) as out,
         thread_budget(cfg.run.workers),
     ):

@@ -147,8 +147,9 @@ def creation_options(args):
 #: for output folders, :func:`stereodem.core.raster.check_writable` for output files)
 OVERWRITE_HELP = (
     "replace the outputs of a previous run (in an output folder only the command's own "
-    "products: the folder's other files and the inputs are never touched; default: refuse "
-    "an existing output and a non-empty output folder)"
+    "products: the folder's other files and the inputs are never touched; the previous "
+    "outputs are kept until this run has written its own, and put back if it fails before; "
+    "default: refuse an existing output and a non-empty output folder)"
 )
 
 

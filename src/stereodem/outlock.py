@@ -9,7 +9,8 @@ The policy (:func:`check_output_folder`, applied before any work and again under
 * without ``--overwrite`` a non-empty folder is refused, naming its products (or its files);
 * with ``--overwrite`` the command's products of a previous stereodem run (a folder holding one
   of its markers, e.g. ``run.json``, with stereodem's stamp in it: :func:`is_marker`; a file of
-  the user's of that name is not one) are replaced; in a folder of the user's the products go
+  the user's of that name is not one) are replaced when the job succeeds: set aside until then,
+  and put back if it stops before writing its own; in a folder of the user's the products go
   beside the user's files as long as none of them has a product's name (else refused, naming
   it); a file of another name is never touched;
 * a folder holding what a run of the same job left when it did not finish (its marker, written
@@ -29,11 +30,12 @@ the holder's PID and host for the message a second job gets. The lock file is re
 release.
 
 :func:`output_folder` is what the commands use: it checks the folder, takes the lock, then,
-with ``overwrite``, removes the products of the previous job (only in a folder that a
-stereodem job wrote, recognised by its ``run.json``, ``dem_report.json`` or tile cache
-manifest, read: each carries the version of stereodem that wrote it);
-on ``resume`` it keeps the tile cache and sets the other products aside until the job has
-written its own (put back if it stops before: a refused ``--resume`` loses nothing). In a
+with ``overwrite``, sets the products of the previous job aside until the job has written its
+own (only in a folder that a stereodem job wrote, recognised by its ``run.json``,
+``dem_report.json`` or tile cache manifest, read: each carries the version of stereodem that
+wrote it): deleted when the job succeeds, put back if it stops before writing any of its own
+(a failed rerun loses nothing); on ``resume`` it does the same but keeps the tile cache in
+place. In a
 folder of the user's (e.g. the one holding the inputs) it writes the products beside the
 user's files only when none of them has a product's name: nothing of the user's is replaced
 or removed. If the job fails before writing anything, a
@@ -50,7 +52,6 @@ import logging
 import os
 import shutil
 import socket
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,7 +66,6 @@ __all__ = [
     "OutputLockedError",
     "output_folder",
     "remove_products",
-    "remove_products_in_background",
     "restore_products",
     "set_aside_products",
     "is_stereodem_output",
@@ -254,7 +254,7 @@ def is_marker(path) -> bool:
 def is_stereodem_output(folder, markers=MARKERS) -> bool:
     """Whether ``folder`` holds the products of a stereodem job (one of ``markers`` that
     stereodem wrote, :func:`is_marker`: a file of the user's of that name does not count), or
-    what a job killed while it deleted them left (:func:`remove_products_in_background`)."""
+    what a job killed while they were set aside left (:func:`set_aside_products`)."""
     folder = Path(folder)
     return any(is_marker(folder / m) for m in markers) or any(folder.glob(REMOVING_PREFIX + "*"))
 
@@ -307,35 +307,14 @@ def remove_products(folder, *, keep_tiles: bool, products: Products = JOB) -> li
     return removed
 
 
-def remove_products_in_background(folder, *, keep_tiles: bool, products: Products = JOB):
-    """:func:`remove_products`, the deletion on a thread: the products are moved into a hidden
-    folder of ``folder`` (a rename each: out of the job's way at once) and deleted there while
-    the job runs. Returns (the names removed, the deleting thread or None).
-
-    Deleting a previous job's half gigabyte of tiles and rasters took 0.2-0.4 s, mostly in
-    the kernel, before any work could start. A job killed meanwhile leaves the hidden folder,
-    which the next ``--overwrite`` removes as one of the products (:data:`PRODUCTS`)."""
-    try:  # out of the job's way at once: the rename of set_aside_products
-        trash = set_aside_products(folder, products=products, keep_tiles=keep_tiles, verb="removed")
-    except OutputExistsError:  # one could not be moved (the others are back): deleted here
-        return remove_products(folder, keep_tiles=keep_tiles, products=products), None
-    if trash is None:
-        return [], None
-    removed = sorted(p.name for p in trash.iterdir())
-    thread = threading.Thread(
-        target=shutil.rmtree, args=(trash,), kwargs={"ignore_errors": True}, name="stereodem-rm"
-    )
-    thread.start()
-    return removed, thread
-
-
 def set_aside_products(
     folder, *, products: Products = JOB, keep_tiles: bool = True, verb: str = "set aside"
 ) -> Path | None:
     """Move the previous job's ``products`` (but its tile cache with ``keep_tiles``) into a
-    hidden folder of ``folder`` (a rename each), for a job that continues it (``--resume``):
-    the job may still refuse the tiles or fail before writing anything, and the previous
-    products are then put back (:func:`restore_products`); the job that succeeds deletes them.
+    hidden folder of ``folder`` (a rename each: out of the job's way at once), for a job that
+    replaces them (``--overwrite``) or continues it (``--resume``): the job may still refuse
+    the tiles or fail before writing anything, and the previous products are then put back
+    (:func:`restore_products`); the job that succeeds deletes them.
     Returns the hidden folder (None: nothing to set aside); ``verb`` words the log line. A job
     killed meanwhile leaves the hidden folder, which the next ``--overwrite`` removes as one of
     the products (:data:`PRODUCTS`)."""
@@ -528,7 +507,6 @@ def output_folder(
     overwrite: bool = False,
     resume: bool = False,
     inputs=(),
-    background: bool = False,
 ):
     """The output folder of a job, created if needed, locked for the job's duration; the
     policy of :func:`check_output_folder` is checked under the lock.
@@ -538,22 +516,19 @@ def output_folder(
     products : Products
         What the job writes into the folder (default: a stereodem job's, :data:`JOB`).
     overwrite : bool
-        Replace the products of a previous run (they are removed first); in a non-empty
-        folder that is not a stereodem output, write beside its files only when none has a
-        product's name.
+        Replace the products of a previous run: they are set aside
+        (:func:`set_aside_products`), deleted when the job succeeds and put back when it
+        stops before writing any of its own (a failed rerun leaves the previous products as
+        they were); in a non-empty folder that is not a stereodem output, write beside its
+        files only when none has a product's name.
     resume : bool
-        Continue a previous job: keep its tile cache; its other products are set aside
-        (:func:`set_aside_products`) and replaced when the job succeeds, put back when it
-        stops before writing any of its own (e.g. it refused the tiles as another job's).
+        Continue a previous job: keep its tile cache; its other products are set aside and
+        replaced the same way (e.g. a resume refused as another job's loses nothing).
         Without ``overwrite`` or ``resume``, what a run of the same job left when it did not
         finish (:func:`is_unfinished_run`) is set aside and replaced the same way.
     inputs : iterable of paths
         The job's input files; none may be among the outputs. A job whose marker records
         them (:func:`job_inputs`) is recognised by them when it is run again.
-    background : bool
-        Delete the previous job's products on a thread while the job runs (they are moved
-        out of its way first: :func:`remove_products_in_background`); the deletion ends
-        before the lock is released. For jobs with a core to spare.
 
     Raises
     ------
@@ -590,7 +565,7 @@ def output_folder(
                 path.rmdir()
         raise
     ok = False
-    deleting = aside = None
+    aside = None
     try:
         _check_contents(path, products, overwrite=overwrite, resume=resume, inputs=inputs)
         previous = is_stereodem_output(path, products.markers)
@@ -601,19 +576,13 @@ def output_folder(
             # a previous job's products aside (put back if the rerun stops before writing)
             aside = set_aside_products(path, products=products, keep_tiles=False)
         elif (overwrite or resume) and previous:
-            if resume:  # kept until the job has written its own (it may refuse the tiles)
-                aside = set_aside_products(path, products=products)
-            elif background:
-                deleting = remove_products_in_background(
-                    path, keep_tiles=resume, products=products
-                )[1]
-            else:
-                remove_products(path, keep_tiles=resume, products=products)
+            # kept until the job has written its own: replaced when it succeeds, put back
+            # when it stops before (a failed --overwrite rerun, a resume that refuses the
+            # tiles); --resume keeps the tile cache in place
+            aside = set_aside_products(path, products=products, keep_tiles=resume)
         yield path
         ok = True
     finally:
-        if deleting is not None:
-            deleting.join()
         if aside is not None:
             if ok:
                 shutil.rmtree(aside, ignore_errors=True)

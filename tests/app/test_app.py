@@ -342,7 +342,7 @@ def test_a_pool_run_clears_an_interrupted_runs_leftovers_but_not_its_own_image_m
 
 
 @pytest.mark.slow
-def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
+def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path, monkeypatch):
     out = tmp_path / "r"
     run(_cfg(scene_dir, out))
     before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
@@ -351,7 +351,19 @@ def test_resume_refuses_tiles_of_another_job(scene_dir, tmp_path):
     cfg.stereo.matching.matcher = "ncc"  # other settings: the cache is not this job's
     with pytest.raises(InputError, match="other inputs or settings"):
         run(cfg)
-    # the refused resume took nothing of the previous job (its products were deleted first)
+    # the refused resume took nothing of the previous job (set aside, then put back)
+    after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    assert after == before
+    assert not list(out.glob(".stereodem-removing-*"))
+    # nor does a rerun with --overwrite that fails before writing its own products
+
+    def failing_stereo(*args, **kwargs):
+        raise InputError("no tile could be matched")
+
+    with monkeypatch.context() as m:
+        m.setattr(job, "stereo_stage", failing_stereo)
+        with pytest.raises(InputError, match="no tile could be matched"):
+            run(_cfg(scene_dir, out, overwrite=True))
     after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
     assert after == before
     assert not list(out.glob(".stereodem-removing-*"))

@@ -18,7 +18,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -605,7 +604,7 @@ def test_resume_sets_the_products_aside_until_the_job_writes_its_own(tmp_path):
     (out / "run.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
     files = sorted(p.name for p in out.iterdir())
     with pytest.raises(InputError, match="refused"):
-        with output_folder(out, resume=True, background=True) as o:
+        with output_folder(out, resume=True) as o:
             assert sorted(p.name for p in o.iterdir() if not p.name.startswith(".")) == [
                 "notes.txt",
                 "tiles",
@@ -627,42 +626,49 @@ def test_resume_sets_the_products_aside_until_the_job_writes_its_own(tmp_path):
     assert (out / "tiles" / "tile_00001.npz").read_text() == "old"
 
 
-def test_products_deleted_in_the_background_are_out_of_the_way_at_once(tmp_path, monkeypatch):
-    """A job with a core to spare moves the previous job's products into a hidden folder and
-    deletes them while it runs: none of their names is left when the job starts, the user's
-    files stay, and nothing is left when the job ends. A hidden folder a killed job left is
-    removed by the next --overwrite, which still knows the folder for a stereodem output."""
+def test_overwrite_sets_the_products_aside_until_the_job_writes_its_own(tmp_path):
+    """--overwrite deleted the previous job's products before the job started: a rerun that
+    failed left nothing. They are moved out of its way (a hidden folder) and put back when
+    the job stops before writing any of its own; a job that wrote some leaves only those (no
+    mix of two jobs' products); one that succeeds leaves its own and nothing hidden. The
+    user's files stay throughout, and a hidden folder a killed job left is removed by the
+    next --overwrite, which still knows the folder for a stereodem output."""
     out = tmp_path / "out"
     (out / "tiles").mkdir(parents=True)
-    for name in ("run.json", "dem.tif", "tiles/tile_00001.npz", "notes.txt"):
-        (out / name).write_text("x")
+    for name in ("dem.tif", "tiles/tile_00001.npz", "notes.txt"):
+        (out / name).write_text("old")
     (out / "run.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
-    release, rmtree = threading.Event(), shutil.rmtree
-
-    def slow_rmtree(path, *a, **kw):  # the deletion still runs when the job starts
-        release.wait(5)
-        return rmtree(path, *a, **kw)
-
-    monkeypatch.setattr(shutil, "rmtree", slow_rmtree)
-    with output_folder(out, overwrite=True, background=True):
-        names = sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME)
-        assert len(names) == 2 and names[1] == "notes.txt"
-        assert names[0].startswith(REMOVING_PREFIX)
-        assert sorted(p.name for p in (out / names[0]).iterdir()) == [
-            "dem.tif",
-            "run.json",
-            "tiles",
-        ]
-        (out / "dem.tif").write_text("this job's")
-        release.set()
+    files = sorted(p.name for p in out.iterdir())
+    with pytest.raises(RuntimeError, match="stereo failed"):
+        with output_folder(out, overwrite=True) as o:
+            names = sorted(p.name for p in o.iterdir() if p.name != LOCK_NAME)
+            assert len(names) == 2 and names[1] == "notes.txt"  # out of the job's way
+            assert names[0].startswith(REMOVING_PREFIX)
+            assert sorted(p.name for p in (o / names[0]).iterdir()) == [
+                "dem.tif",
+                "run.json",
+                "tiles",
+            ]
+            raise RuntimeError("stereo failed")
+    assert sorted(p.name for p in out.iterdir()) == files  # all back, the tile cache too
+    assert (out / "dem.tif").read_text() == "old"
+    assert (out / "tiles" / "tile_00001.npz").read_text() == "old"
+    with pytest.raises(RuntimeError):  # wrote its own before failing: only those
+        with output_folder(out, overwrite=True) as o:
+            (o / "dem.tif").write_text("new")
+            raise RuntimeError("ortho failed")
     assert sorted(p.name for p in out.iterdir()) == ["dem.tif", "notes.txt"]
-    assert (out / "dem.tif").read_text() == "this job's"
-    monkeypatch.setattr(shutil, "rmtree", rmtree)
-    # what a job killed during the deletion leaves: only the hidden folder
+    assert (out / "dem.tif").read_text() == "new"
+    (out / "run.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
+    with output_folder(out, overwrite=True) as o:  # success: its own, nothing hidden left
+        (o / "dem.tif").write_text("newer")
+    assert sorted(p.name for p in out.iterdir()) == ["dem.tif", "notes.txt"]
+    assert (out / "dem.tif").read_text() == "newer"
+    # what a job killed while the products were set aside leaves: only the hidden folder
     (out / "dem.tif").unlink()
     (out / f"{REMOVING_PREFIX}123-4").mkdir()
     (out / f"{REMOVING_PREFIX}123-4" / "run.json").write_text("x")
-    with output_folder(out, overwrite=True, background=True):
+    with output_folder(out, overwrite=True):
         pass
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 

@@ -83,7 +83,6 @@ def run(cfg: Config, *, progress_factory=None) -> dict:
             overwrite=cfg.run.overwrite,
             resume=cfg.run.resume,
             inputs=input_paths(cfg),
-            background=job_threads(cfg.run.workers) > 1,
         ) as out,
         thread_budget(cfg.run.workers),
     ):
