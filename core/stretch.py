@@ -22,7 +22,7 @@ import numpy as np
 __all__ = ["linear_to_uint8"]
 
 _BUFFER_BYTES = 1 << 20  # float64 rows per band: 1 MiB
-_F32_ROWS_BYTES = 1 << 22  # float32 rows per band of the certified path (few calls)
+_F32_ROWS_BYTES = 1 << 20  # float32 rows per band of the certified path (in L2 cache)
 _U32 = 2.0**-24  # float32 unit roundoff
 _MAX_E = 1.0 / 64  # beyond this error bound (|lo * scale| above ~4e4): the float64 road
 

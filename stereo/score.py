@@ -195,7 +195,7 @@ def _zncc_warped(a: _LeftWindows, right, disparity, right_finite=None, threads=1
         # along rows only): the right image may sit at another level than the left (gains and
         # offsets of two sensors, 12- or 16-bit data), where the left's level loses digits
         level_r = _level(right[i0:i1:4], level, finite=right_finite)
-        np.subtract(warped, level_r, out=warped, dtype=F32)
+        cv2.subtract(warped, float(level_r), dst=warped)  # float32 - float32, as NumPy
         keep = slice(r0 - i0, r1 - i0)
         # the band's left statistics (its own rows and halo: those of the whole image), next
         # to the warped ones while the band is in cache
@@ -244,25 +244,25 @@ def _zncc_band_finite(z, warped, window, keep, out):
     rows only. What :func:`_window_stats` sets NaN (image border, windows reaching outside
     the right image) is left to the caller."""
     mean_r = _box_mean(warped, window)
-    buf = np.multiply(warped, warped)
+    buf = cv2.multiply(warped, warped)
     var_r = _box_mean(buf, window)
     mean_l = _box_mean(z, window)
-    np.multiply(z, z, out=buf)
+    cv2.multiply(z, z, dst=buf)
     var_l = _box_mean(buf, window)
-    np.multiply(z, warped, out=buf)
+    cv2.multiply(z, warped, dst=buf)
     cov = _box_mean(buf, window)
     t, mr, ml = buf[keep], mean_r[keep], mean_l[keep]
     vr, vl, c = var_r[keep], var_l[keep], cov[keep]
     with np.errstate(invalid="ignore", divide="ignore"):
-        np.multiply(mr, mr, out=t)
-        np.subtract(vr, t, out=vr)  # E[r^2] - E[r]^2
+        cv2.multiply(mr, mr, dst=t)
+        cv2.subtract(vr, t, dst=vr)  # E[r^2] - E[r]^2
         cv2.sqrt(vr, dst=vr)  # NaN where negative (rounding), as np.sqrt
-        np.multiply(ml, ml, out=t)
-        np.subtract(vl, t, out=vl)
+        cv2.multiply(ml, ml, dst=t)
+        cv2.subtract(vl, t, dst=vl)
         cv2.sqrt(vl, dst=vl)
-        np.multiply(ml, mr, out=t)
-        np.subtract(c, t, out=c)  # E[lr] - E[l] E[r]
-        np.multiply(vr, vl, out=vr)
+        cv2.multiply(ml, mr, dst=t)
+        cv2.subtract(c, t, dst=c)  # E[lr] - E[l] E[r]
+        cv2.multiply(vr, vl, dst=vr)
         np.maximum(vr, _floor_row(_TINY, vr.shape[1]), out=vr)
         np.divide(c, vr, out=c)
         np.clip(c, -1, 1, out=out)
