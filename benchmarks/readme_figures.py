@@ -26,7 +26,8 @@ RESULTS = Path(__file__).resolve().parent / "results"
 #: the 2-core ratios are shown for every machine
 OTHER_MACHINE = "bench_scaling_full_forkserver_fast_machine"
 SESSION_33 = "bench_scaling_full_forkserver_session33"
-OTHER_MACHINES = (OTHER_MACHINE, SESSION_33)
+SESSION_34 = "bench_scaling_full_forkserver_session34"
+OTHER_MACHINES = (OTHER_MACHINE, SESSION_33, SESSION_34)
 
 
 def _x(v, nd=1):
@@ -817,6 +818,10 @@ SUMMARISERS = {
         "The same command on session 33's machine (the scaling path unchanged; its "
         "perfectly parallel ceiling fell from 1.87x to 1.51x during the run): " + scaling(d)
     ),
+    SESSION_34: lambda d: (
+        "The same command on session 34's machine (its ceilings, at the end of the line, "
+        "held during the run: a quiet machine): " + scaling(d)
+    ),
     "bench_scaling_16_on_2": scaling_16_on_2,
     "cpu_timeline": cpu_timeline,
     "bench_scaling_16_on_2_uncapped": lambda d: (
@@ -958,6 +963,12 @@ BENCHMARKS = {
         "the same, on session 33's machine",
         "python benchmarks/bench_scaling.py --workers 1 2 --repeat 3 --results "
         "benchmarks/results/bench_scaling_full_forkserver_session33.json",
+        "the same job with 1 worker, same run",
+    ),
+    SESSION_34: (
+        "the same, on session 34's machine",
+        "python benchmarks/bench_scaling.py --workers 1 2 --repeat 3 --results "
+        "benchmarks/results/bench_scaling_full_forkserver_session34.json",
         "the same job with 1 worker, same run",
     ),
     "bench_tile": (
