@@ -275,20 +275,25 @@ def is_unfinished_run(folder, products: Products, inputs) -> bool:
     if not ins:
         return False
     for name in products.markers:
-        path = Path(folder) / name
-        if not is_marker(path):
-            continue
-        try:
-            record = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, ValueError):
-            continue
-        if (
-            isinstance(record, dict)
-            and record.get("status") in UNFINISHED
-            and record.get("inputs") == ins
-        ):
+        record = _unfinished_record(Path(folder) / name)
+        if record is not None and record.get("inputs") == ins:
             return True
     return False
+
+
+def _unfinished_record(path: Path) -> dict | None:
+    """The record in ``path`` when it is a marker stereodem wrote (:func:`is_marker`) whose
+    ``status`` is one of :data:`UNFINISHED` (a job that failed, was interrupted or is still
+    running), else None."""
+    if not is_marker(path):
+        return None
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    if isinstance(record, dict) and record.get("status") in UNFINISHED:
+        return record
+    return None
 
 
 def _product_paths(folder: Path, keep_tiles: bool, names=PRODUCTS):
@@ -341,16 +346,21 @@ def set_aside_products(
     return aside
 
 
-def restore_products(folder, aside: Path) -> bool:
+def restore_products(folder, aside: Path, products: Products = JOB) -> bool:
     """Put the products :func:`set_aside_products` moved into ``aside`` back into ``folder``
     when the job wrote none of them (it failed or was refused before writing anything), else
     delete them (the job's own are there: mixing the two would make a folder no job wrote).
-    Returns whether they were put back."""
+    A marker of ``products`` that only records the job's failure (``stack.json`` saying
+    ``failed``: :data:`UNFINISHED`) is not a product of it: it gives way to the previous
+    products, which come back whole. Returns whether they were put back."""
     folder, aside = Path(folder), Path(aside)
     names = [p.name for p in aside.iterdir()]
-    if any((folder / n).exists() or (folder / n).is_symlink() for n in names):
+    clash = [n for n in names if (folder / n).exists() or (folder / n).is_symlink()]
+    if any(n not in products.markers or _unfinished_record(folder / n) is None for n in clash):
         shutil.rmtree(aside, ignore_errors=True)
         return False
+    for n in clash:  # the failed job's own record of its failure
+        (folder / n).unlink()
     for n in names:
         (aside / n).rename(folder / n)
     aside.rmdir()
@@ -587,7 +597,7 @@ def output_folder(
             if ok:
                 shutil.rmtree(aside, ignore_errors=True)
             else:
-                restore_products(path, aside)
+                restore_products(path, aside, products)
         lock.release()
         if not ok and created:
             with contextlib.suppress(OSError):

@@ -35,6 +35,7 @@ from stereodem.outlock import (
     REMOVING_PREFIX,
     OutputLock,
     OutputLockedError,
+    Products,
     output_folder,
     remove_products,
 )
@@ -671,6 +672,32 @@ def test_overwrite_sets_the_products_aside_until_the_job_writes_its_own(tmp_path
     with output_folder(out, overwrite=True):
         pass
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_a_failed_reruns_record_of_its_failure_gives_way_to_the_previous_products(tmp_path):
+    """A command that records its own failure in its marker (``stack``: ``stack.json`` says
+    ``failed``) wrote that file and nothing else when it failed early: with --overwrite the
+    previous products still come back whole (the failure is on the terminal), while a
+    partial product beside the record is the failed job's own, and stays."""
+    products = Products(("stack.json", "stack.zarr", "rate.tif"), markers=("stack.json",))
+    out = tmp_path / "out"
+    (out / "stack.zarr").mkdir(parents=True)
+    (out / "rate.tif").write_text("old")
+    (out / "stack.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
+    before = {p.name: p.is_dir() or p.read_text() for p in out.iterdir()}
+    failed = jsonutil.dumps(jsonutil.stamped({"status": "failed", "error": "unreadable DEM"}))
+    with pytest.raises(InputError):
+        with output_folder(out, products, overwrite=True) as o:
+            (o / "stack.json").write_text(failed)
+            raise InputError("unreadable DEM")
+    assert {p.name: p.is_dir() or p.read_text() for p in out.iterdir()} == before
+    with pytest.raises(InputError):  # the record and a partial store: the failed job's
+        with output_folder(out, products, overwrite=True) as o:
+            (o / "stack.json").write_text(failed)
+            (o / "stack.zarr").mkdir()
+            raise InputError("unreadable DEM")
+    assert sorted(p.name for p in out.iterdir()) == ["stack.json", "stack.zarr"]
+    assert json.loads((out / "stack.json").read_text())["status"] == "failed"
 
 
 # ----------------------------------------------------------------------------- the tile cache
