@@ -593,17 +593,23 @@ def test_overwrite_removes_only_stereodem_products(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
+def _previous_job(out):
+    """A previous job's products in ``out`` (a finished ``run.json``, ``dem.tif``, a tile
+    cache) beside a file of the user's; returns the folder's names."""
+    (out / "tiles").mkdir(parents=True)
+    for name in ("dem.tif", "tiles/tile_00001.npz", "notes.txt"):
+        (out / name).write_text("old")
+    (out / "run.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
+    return sorted(p.name for p in out.iterdir())
+
+
 def test_resume_sets_the_products_aside_until_the_job_writes_its_own(tmp_path):
     """--resume removed the previous job's products before the job checked its tile cache:
     a resume refused as another job's (changed settings) left only tiles/. They are set aside
     now: put back when the job stops before writing any of its own, replaced when it
     succeeds, and the tile cache is kept either way."""
     out = tmp_path / "out"
-    (out / "tiles").mkdir(parents=True)
-    for name in ("dem.tif", "tiles/tile_00001.npz", "notes.txt"):
-        (out / name).write_text("old")
-    (out / "run.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
-    files = sorted(p.name for p in out.iterdir())
+    files = _previous_job(out)
     with pytest.raises(InputError, match="refused"):
         with output_folder(out, resume=True) as o:
             assert sorted(p.name for p in o.iterdir() if not p.name.startswith(".")) == [
@@ -635,11 +641,7 @@ def test_overwrite_sets_the_products_aside_until_the_job_writes_its_own(tmp_path
     user's files stay throughout, and a hidden folder a killed job left is removed by the
     next --overwrite, which still knows the folder for a stereodem output."""
     out = tmp_path / "out"
-    (out / "tiles").mkdir(parents=True)
-    for name in ("dem.tif", "tiles/tile_00001.npz", "notes.txt"):
-        (out / name).write_text("old")
-    (out / "run.json").write_text(jsonutil.dumps(jsonutil.stamped({"status": "ok"})))
-    files = sorted(p.name for p in out.iterdir())
+    files = _previous_job(out)
     with pytest.raises(RuntimeError, match="stereo failed"):
         with output_folder(out, overwrite=True) as o:
             names = sorted(p.name for p in o.iterdir() if p.name != LOCK_NAME)
