@@ -234,9 +234,9 @@ def run(args) -> int:
     from .outlock import output_folder
     from .pipeline.inputs import input_paths, load_pair, pair_names
     from .pipeline.stages import check_dem_result, stereo_stage, write_dem_report
-    from .provenance import utc_now
+    from .provenance import begin
 
-    started = utc_now()
+    started = begin()
     options.check_common(args)
     from .strip import strip_granules
 

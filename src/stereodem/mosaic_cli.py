@@ -139,9 +139,9 @@ def run(args) -> int:
     from stereodem.stereo.runner import process_peak_rss_mb, reset_peak_rss
 
     from .outlock import check_not_an_input
-    from .provenance import provenance, utc_now
+    from .provenance import begin, provenance
 
-    started = utc_now()
+    started = begin()
     options.check_common(args)
     if args.coregister and not args.ref:
         raise InputError("--coregister needs --ref REF")

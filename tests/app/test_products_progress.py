@@ -135,6 +135,32 @@ def test_provenance_fields():
         assert p["git_commit"] == head and isinstance(p["git_dirty"], bool)
 
 
+def test_the_commit_is_looked_up_once_when_the_run_begins(monkeypatch):
+    """The commit was looked up (``git``) for every provenance record, the last ones at the
+    end of a run, from a process of gigabytes: the kernel counted that child as one of that
+    size (run.json's ``peak_worker_rss_mb`` of the assessment 1.5 GB on a full granule, the
+    tile workers' 0.37 GB). It is looked up once per process, when the run begins."""
+    import stereodem.provenance as prov
+
+    calls = []
+
+    def commit():
+        calls.append(1)
+        return {"commit": "abc", "dirty": False}
+
+    monkeypatch.setattr(prov, "git_commit", commit)
+    prov.package_commit.cache_clear()
+    try:
+        t0 = prov.begin()
+        assert calls == [1]
+        records = [prov.provenance(started=t0) for _ in range(2)]
+        assert calls == [1]
+        assert [r["git_commit"] for r in records] == ["abc", "abc"]
+        assert records[0]["started_utc"] == t0
+    finally:
+        prov.package_commit.cache_clear()
+
+
 def test_no_commit_outside_a_work_tree(tmp_path):
     assert git_commit(tmp_path) is None
 

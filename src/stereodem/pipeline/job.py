@@ -43,7 +43,7 @@ from .. import point_cloud
 from ..config import Config
 from ..multiview import run_stage, source_pairs
 from ..outlock import output_folder, remove_tile_cache
-from ..provenance import provenance, utc_now
+from ..provenance import begin, provenance
 from .inputs import check_inputs, input_paths, load_pair, pair_names
 from .prefetch import AssessmentPrefetch
 from .record import StageLog, headline, versions
@@ -221,7 +221,7 @@ class Job:
 
 
 def _run_in(cfg: Config, out: Path, progress_factory) -> dict:
-    started = utc_now()
+    started = begin()
     with BackgroundWriter(job_threads(cfg.run.workers)) as writer:
         job = Job(cfg, out, progress_factory or (lambda label: None), writer, started)
         try:
