@@ -68,6 +68,7 @@ __all__ = [
     "remove_products",
     "restore_products",
     "set_aside_products",
+    "staged",
     "is_stereodem_output",
     "is_unfinished_run",
     "job_inputs",
@@ -81,7 +82,9 @@ __all__ = [
 LOCK_NAME = ".stereodem.lock"
 #: the writability probe a job starting in the folder leaves there for an instant
 PROBE_PREFIX = ".stereodem-probe-"
-#: the folder a job moves the previous job's products into, to delete them while it runs
+#: the hidden folders of a job in its output folder: the previous job's products set aside
+#: (:func:`set_aside_products`) and a product folder being built (:func:`staged`); what a
+#: killed job left of them is one of every command's products (:class:`Products`)
 REMOVING_PREFIX = ".stereodem-removing-"
 
 #: what a stereodem job (``dem``, ``run``, ``demo``) writes into its output folder (files and
@@ -310,6 +313,33 @@ def remove_products(folder, *, keep_tiles: bool, products: Products = JOB) -> li
     for p in paths:
         _delete(p)
     return removed
+
+
+@contextlib.contextmanager
+def staged(path):
+    """Build a product folder (a Zarr store) under a hidden name beside ``path`` and move it
+    into place when the block succeeds; yields the hidden path.
+
+    A job that fails or is stopped while building it leaves no half-built store under the
+    product's name (it is removed), so the previous job's products it set aside come back
+    whole (:func:`restore_products`); what a killed job left under the hidden name goes with
+    the next ``--overwrite`` or rerun, as one of the products (:data:`REMOVING_PREFIX`)."""
+    path = Path(path)
+    tmp = path.parent / f"{REMOVING_PREFIX}{path.name}-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        yield tmp
+        tmp.rename(path)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if exc.filename is not None and Path(exc.filename) == tmp:  # the rename itself
+            raise OutputExistsError(
+                f"{path}: cannot be moved into place ({exc.strerror})"
+            ) from None
+        raise
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def set_aside_products(

@@ -183,7 +183,8 @@ def _check(args):
 def _status_if_stopped(path, record):
     """``stack.json`` says ``running`` while the job runs, then ``failed`` (with the one-line
     reason) or ``interrupted`` when it stops (a DEM refused while the stack is built): not
-    ``running`` for ever beside a partial store. ``record`` (the job's ``inputs``,
+    ``running`` for ever (the store is built under a hidden name and removed when the build
+    stops: :func:`stereodem.outlock.staged`). ``record`` (the job's ``inputs``,
     :func:`stereodem.outlock.job_inputs`) goes into each: a rerun of the same inputs then
     replaces what the job left without ``--overwrite`` (:func:`stereodem.outlock.output_folder`),
     a run of other inputs is still refused without it."""
@@ -218,7 +219,7 @@ def run(args) -> int:
     from stereodem.post.stack import open_stack, stack_grid, stack_rates
     from stereodem.post.stack_build import BuildSettings, build_stack, check_inputs
 
-    from .outlock import check_output_folder, job_inputs, output_folder
+    from .outlock import check_output_folder, job_inputs, output_folder, staged
 
     t0 = time.perf_counter()
     _check(args)
@@ -261,12 +262,14 @@ def run(args) -> int:
     ):
         # processes pay off on scene-sized DEMs only (each starts a Python: ~1-2 s)
         build_workers = workers if ref.heights.size >= PARALLEL_BUILD_CELLS else 1
-        with options.progress_bar("stack") as bar:
+        # built under a hidden name, moved into place once complete: a build that fails
+        # leaves no half-built store, and the previous stack (--overwrite) comes back whole
+        with options.progress_bar("stack") as bar, staged(out / "stack.zarr") as store:
             records = build_stack(
                 args.dems,
                 dates,
                 ref,
-                out / "stack.zarr",
+                store,
                 settings,
                 progress=bar,
                 workers=build_workers,

@@ -674,7 +674,8 @@ def test_a_failed_stack_is_run_again_without_overwrite(series, tmp_path, capsys,
     failed = json.loads((out / "stack.json").read_text())
     assert failed["status"] == "failed"
     assert failed["inputs"] == sorted(str(Path(p).resolve()) for p in [*paths, series["ref"]])
-    assert (out / "stack.zarr").exists()
+    # the store is built under a hidden name and moved into place once complete: none is left
+    assert sorted(p.name for p in out.iterdir()) == ["stack.json"]
     # other inputs: the failed job is not theirs
     rc, _so, se = _run(_stack_argv(paths[:2], series["ref"], out, *one_worker), capsys)
     assert rc == 1 and "stack.json: exists" in se and "--overwrite" in se, se
@@ -687,6 +688,15 @@ def test_a_failed_stack_is_run_again_without_overwrite(series, tmp_path, capsys,
     # a finished stack
     rc, _so, se = _run(_stack_argv(paths, series["ref"], out, *one_worker), capsys)
     assert rc == 1 and "--overwrite" in se, se
+    # replaced with --overwrite by a rerun that fails while building: it comes back whole
+    # (it was deleted before the rerun started)
+    finished = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    record = (out / "stack.json").read_text()
+    damaged.add(str(paths[2]))
+    rc, _so, se = _run(_stack_argv(paths, series["ref"], out, *one_worker, "--overwrite"), capsys)
+    assert rc == 1 and f"{paths[2]}: cannot read the DEM" in se, se
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == finished
+    assert (out / "stack.json").read_text() == record
 
 
 @pytest.mark.slow
