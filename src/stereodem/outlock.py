@@ -329,17 +329,14 @@ def staged(path):
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         yield tmp
-        tmp.rename(path)
-    except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if exc.filename is not None and Path(exc.filename) == tmp:  # the rename itself
-            raise OutputExistsError(
-                f"{path}: cannot be moved into place ({exc.strerror})"
-            ) from None
-        raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    try:
+        tmp.rename(path)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise OutputExistsError(f"{path}: cannot be moved into place ({exc.strerror})") from None
 
 
 def set_aside_products(
