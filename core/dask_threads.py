@@ -1,7 +1,20 @@
-"""The Dask worker plugin of :mod:`stereodem.core.threads` (imported only when Dask is used)."""
+"""The Dask side of :mod:`stereodem.core.threads` (imported only when Dask is used): the worker
+plugin that pins each worker's threads, the ``LocalCluster`` every command starts
+(:func:`local_cluster`), and the connection to a given scheduler (:func:`connect`).
+
+Dask's statistical profiler is off in the workers this package starts and in the workers of a
+given cluster that run a Python with CPython's ``sys._current_frames`` deadlock
+(:data:`PROFILER_DEADLOCKS`): every 10 ms the profiler thread takes every thread's frame under
+the interpreter's runtime lock, and on Python 3.11 a garbage collection started there waits
+for the GIL while a task thread that holds the GIL waits for that lock (CPython issues 106883
+and 116969, dask/distributed issue 8616). A ``mosaic --dask`` test hung there for good (both
+block threads and the worker's event loop idle, the client waiting on a block).
+"""
 
 from __future__ import annotations
 
+import logging
+import sys
 from collections import Counter
 
 from distributed.comm import get_address_host
@@ -9,6 +22,49 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from .errors import InputError, one_line
 from .threads import cores, pin_threads
+
+log = logging.getLogger(__name__)
+
+#: whether this Python can deadlock in ``sys._current_frames`` (Dask's profiler) when a
+#: garbage collection starts there: 3.11, where a collection can start at any allocation
+#: (3.12 collects only between bytecodes; a later 3.11 backport is not relied on)
+PROFILER_DEADLOCKS = sys.version_info[:2] == (3, 11)
+
+#: the Dask configuration of the clusters :func:`local_cluster` starts: no statistical
+#: profiler (nothing here reads its samples; it is what deadlocks, see the module's text)
+LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False}
+
+
+def local_cluster(n_workers: int, threads_per_worker: int = 1, processes: bool = True):
+    """A ``LocalCluster`` as every command starts one (``batch``, ``mosaic``, tiles on Dask):
+    ``n_workers`` workers of ``threads_per_worker`` task slots, in processes or in this
+    one, without the profiler (:data:`LOCAL_CLUSTER_CONFIG`), and its HTTP server on a free
+    port (``dashboard_address=None`` turns the dashboard off but the scheduler's HTTP server
+    still took port 8787, or warned "Port 8787 is already in use" and took another when a
+    second cluster ran on the machine)."""
+    import dask
+    from dask.distributed import LocalCluster
+
+    with dask.config.set(LOCAL_CLUSTER_CONFIG):  # read by each worker (nanny) as it starts
+        return LocalCluster(
+            n_workers=n_workers,
+            threads_per_worker=threads_per_worker,
+            processes=processes,
+            dashboard_address=None,
+            scheduler_kwargs={"dashboard_address": ":0"},
+        )
+
+
+def stop_profiler(worker) -> bool:
+    """Stop the statistical profiler of a Dask ``worker`` (its periodic callbacks
+    ``profile`` and ``profile-cycle``); returns whether it was running."""
+    stopped = False
+    for name in ("profile", "profile-cycle"):
+        pc = getattr(worker, "periodic_callbacks", {}).pop(name, None)
+        if pc is not None:
+            pc.stop()
+            stopped = True
+    return stopped
 
 
 def slots_by_host(client) -> dict[str, int]:
@@ -46,6 +102,13 @@ class ThreadsPlugin(WorkerPlugin):
 
     def setup(self, worker):
         pin_threads(self.threads or max(1, cores() // self.slots(worker)))
+        if PROFILER_DEADLOCKS and stop_profiler(worker):
+            log.info(
+                "Dask worker %s: statistical profiler stopped (Python %s can deadlock in "
+                "sys._current_frames, CPython issue 116969)",
+                getattr(worker, "address", "?"),
+                ".".join(map(str, sys.version_info[:3])),
+            )
 
 
 def connect(address, timeout: str = "20s"):

@@ -2,7 +2,8 @@
 (an image declaring 200 000 x 200 000 pixels, a posting of a millimetre).
 
 The limit is the memory the system can give now (``MemAvailable`` of ``/proc/meminfo``, else
-the physical memory), so a request that cannot succeed fails at once with a message naming
+the physical memory), within what the process's control groups still allow (a container's or a
+batch job's memory limit), so a request that cannot succeed fails at once with a message naming
 what was asked for, instead of a ``MemoryError`` or the OOM killer after minutes of work.
 """
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import os
 
+from stereodem.core import cgroup
 from stereodem.core.errors import InputError
 
 __all__ = ["available_bytes", "check_allocation", "human_bytes", "keep_freed_memory"]
@@ -49,8 +51,17 @@ def keep_freed_memory() -> bool:
 
 
 def available_bytes() -> int:
-    """Bytes of memory available to a new allocation (Linux ``MemAvailable``; elsewhere the
-    physical memory; 2**63 when unknown)."""
+    """Bytes of memory available to a new allocation: the system's (Linux ``MemAvailable``;
+    elsewhere the physical memory; 2**63 when unknown), and no more than what this process's
+    control groups still allow (:func:`stereodem.core.cgroup.memory_available`: a
+    container's ``--memory``, a pod's or a batch job's memory limit, which ``/proc/meminfo``
+    does not show)."""
+    group = cgroup.memory_available()
+    system = _system_available_bytes()
+    return system if group is None else min(system, group)
+
+
+def _system_available_bytes() -> int:
     try:
         with open("/proc/meminfo") as f:
             for line in f:

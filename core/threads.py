@@ -27,11 +27,12 @@ installs the Dask worker plugin that do the same in every worker.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import sys
 import threading
 
-from . import worker_logging  # no third-party import: loads nothing before the pin
+from . import cgroup, worker_logging  # no third-party import: loads nothing before the pin
 
 #: the environment variables that size BLAS / OpenMP / numexpr thread pools when a runtime is loaded
 ENV_VARS = (
@@ -46,11 +47,15 @@ _PINNED: int | None = None
 
 
 def cores() -> int:
-    """CPU cores this process may use (its affinity mask where the OS has one)."""
+    """CPU cores this process may use: its affinity mask where the OS has one, and no more
+    than its control groups' CPU quota rounded up (:func:`stereodem.core.cgroup.cpu_quota`:
+    a container's ``--cpus``, a pod's CPU limit), which no affinity mask shows."""
     try:
-        return len(os.sched_getaffinity(0)) or 1
+        n = len(os.sched_getaffinity(0)) or 1
     except (AttributeError, OSError):
-        return os.cpu_count() or 1
+        n = os.cpu_count() or 1
+    quota = cgroup.cpu_quota()
+    return n if quota is None else max(1, min(n, math.ceil(quota)))
 
 
 def pool_size(workers: int | None) -> int:

@@ -701,30 +701,20 @@ def _dask_blocks(plan, todo, address, workers):
     cores: :func:`stereodem.core.threads.worker_threads`), yielded as they finish, with at
     most two per worker in flight (so finished blocks never pile up in the client)."""
     try:
-        from dask.distributed import Client, LocalCluster, as_completed, wait
+        from dask.distributed import Client, as_completed, wait
     except ImportError:  # pragma: no cover - optional extra
         raise InputError("--dask needs dask.distributed (pip install 'stereodem[dask]')") from None
-    from stereodem.core.dask_threads import quiet_distributed_logging
+    from stereodem.core.dask_threads import local_cluster, quiet_distributed_logging
     from stereodem.core.threads import pool_size, register_dask_plugin, worker_threads
 
     quiet_distributed_logging()
     cluster = None
     if address in (None, "local"):
-        cluster = LocalCluster(
-            n_workers=pool_size(workers),
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-        )
+        cluster = local_cluster(pool_size(workers))
         client = Client(cluster)
         register_dask_plugin(client, worker_threads(workers))  # N workers: the cores shared
     elif address == "threads":  # in-process cluster (tests)
-        cluster = LocalCluster(
-            n_workers=1,
-            threads_per_worker=max(int(workers or 1), 1),
-            processes=False,
-            dashboard_address=None,
-        )
+        cluster = local_cluster(1, max(int(workers or 1), 1), processes=False)
         client = Client(cluster)
     else:
         from stereodem.core.dask_threads import connect

@@ -518,18 +518,16 @@ def _run_pool(order, out_root, n, threads, scene_options, collect):
 def _run_dask(order, out_root, address, n, scene_options, collect):
     """The scenes as tasks of a Dask cluster; ``scene_options`` as :func:`_run_pool`'s."""
     try:
-        from dask.distributed import Client, LocalCluster
+        from dask.distributed import Client
         from dask.distributed import as_completed as dask_completed
     except ImportError:
         raise InputError("--dask needs dask.distributed: pip install 'stereodem[dask]'") from None
-    from stereodem.core.dask_threads import quiet_distributed_logging
+    from stereodem.core.dask_threads import local_cluster, quiet_distributed_logging
 
     quiet_distributed_logging()
     cluster = None
     if address == "local":
-        cluster = LocalCluster(
-            n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None
-        )
+        cluster = local_cluster(n)
         client = Client(cluster)
     elif hasattr(address, "submit"):
         client = address

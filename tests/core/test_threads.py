@@ -144,13 +144,10 @@ def test_tile_pool_workers_run_with_their_share_of_the_cores():
 @pytest.mark.slow
 def test_dask_workers_are_pinned():
     distributed = pytest.importorskip("dask.distributed")
+    from stereodem.core.dask_threads import local_cluster
+
     tiles = tile_grid(32, 32, 16)
-    with (
-        distributed.LocalCluster(
-            n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
-        ) as cluster,
-        distributed.Client(cluster) as client,
-    ):
+    with local_cluster(1) as cluster, distributed.Client(cluster) as client:
         res, fails, _ = run_tiles(_limits_tile, tiles, {"job": 1}, dask_address=client)
     assert not fails
     want = threads.cores()  # one task slot on this node: all its cores
@@ -163,15 +160,15 @@ def test_dask_workers_on_one_node_share_its_cores():
     """Two single-slot worker processes on this node (a ``LocalCluster``, as ``batch --dask
     local`` starts): each gets half the cores, not all of them (2 x the cores in all)."""
     distributed = pytest.importorskip("dask.distributed")
-    with (
-        distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
-        ) as cluster,
-        distributed.Client(cluster) as client,
-    ):
+    from stereodem.core.dask_threads import local_cluster
+
+    with local_cluster(2) as cluster, distributed.Client(cluster) as client:
         threads.register_dask_plugin(client)
         limits = client.run(threads.worker_limits)
-    assert len(limits) == 2
+        # no statistical profiler in the workers (it deadlocks on Python 3.11: dask_threads)
+        profiling = client.run(lambda dask_worker: "profile" in dask_worker.periodic_callbacks)
+        http = cluster.scheduler.http_server.port  # a free port, not Dask's default 8787
+    assert len(limits) == 2 and not any(profiling.values()) and http != 8787
     want = max(1, threads.cores() // 2)
     for lim in limits.values():
         assert lim["opencv"] == want and lim["pinned"] == want
@@ -207,6 +204,37 @@ def test_threads_plugin_counts_the_slots_of_its_host(monkeypatch):
     plugin.setup(Worker("inproc://x", 1))  # an address without a host it counts: its own
     dask_threads.ThreadsPlugin(3, slots).setup(Worker("tcp://10.0.0.1:4001", 1))  # given
     assert pinned == [4, 8, 16, 3]
+
+
+@pytest.mark.parametrize("deadlocks", [True, False])
+def test_threads_plugin_stops_the_profiler_where_it_deadlocks(monkeypatch, deadlocks):
+    """On a given cluster (``--dask tcp://...``), the workers' statistical profiler is stopped
+    where their Python can deadlock in it (3.11: ``dask_threads.PROFILER_DEADLOCKS``) and left
+    running elsewhere."""
+    dask_threads = pytest.importorskip("stereodem.core.dask_threads")
+    monkeypatch.setattr(dask_threads, "pin_threads", lambda n: None)
+    monkeypatch.setattr(dask_threads, "PROFILER_DEADLOCKS", deadlocks)
+
+    class Callback:
+        running = True
+
+        def stop(self):
+            self.running = False
+
+    class Worker:
+        address, nthreads = "tcp://10.0.0.1:4001", 1
+
+        def __init__(self):
+            self.periodic_callbacks = {"profile": Callback(), "profile-cycle": Callback()}
+            self.periodic_callbacks["heartbeat"] = Callback()
+            self.callbacks = dict(self.periodic_callbacks)
+
+    w = Worker()
+    dask_threads.ThreadsPlugin(1).setup(w)
+    assert w.callbacks["profile"].running is not deadlocks
+    assert w.callbacks["profile-cycle"].running is not deadlocks
+    assert w.callbacks["heartbeat"].running and "heartbeat" in w.periodic_callbacks
+    assert ("profile" in w.periodic_callbacks) is not deadlocks
 
 
 @pytest.mark.slow

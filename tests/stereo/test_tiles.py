@@ -94,12 +94,9 @@ def test_dask_local_cluster_same_results():
     distributed = pytest.importorskip("dask.distributed")
     tiles = tile_grid(130, 100, 50)
     ser, _, _ = run_tiles(_tile_fn, tiles, _ctx(), workers=1)
-    with (
-        distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
-        ) as cluster,
-        distributed.Client(cluster) as client,
-    ):
+    from stereodem.core.dask_threads import local_cluster
+
+    with local_cluster(2) as cluster, distributed.Client(cluster) as client:
         res, failures, _ = run_tiles(_tile_fn, tiles, _ctx(), dask_address=client)
     assert not failures
     for k in ser:
