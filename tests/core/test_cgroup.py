@@ -3,6 +3,10 @@ limit caps the memory checks, from cgroup v2 and v1 trees laid out as the kernel
 host's view, with the process's group below the mount, and a container's, at its root)."""
 
 import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -151,3 +155,69 @@ def test_this_machine_reads_without_error():
     assert m is None or m > 0
     assert a is None or 0 <= a <= m
     assert 1 <= threads.cores() <= (os.cpu_count() or 1)
+
+
+def _real_group(tmp_name):
+    """A real control group limiting CPU to half a core and memory to 1 GiB, as
+    ``(procs files, folders)``: cgroup v1 (``cpu`` and ``memory`` mounts) or v2 (a child of
+    the root with both controllers), where this process may create one (root); else skip."""
+    fs = Path("/sys/fs/cgroup")
+    made = []
+    try:
+        if (fs / "cpu" / "cpu.cfs_quota_us").is_file() and (fs / "memory").is_dir():
+            cpu, mem = fs / "cpu" / tmp_name, fs / "memory" / tmp_name
+            for d in (cpu, mem):
+                d.mkdir()
+                made.append(d)
+            (cpu / "cpu.cfs_quota_us").write_text("50000")
+            (cpu / "cpu.cfs_period_us").write_text("100000")
+            (mem / "memory.limit_in_bytes").write_text(str(GB))
+            return [cpu / "cgroup.procs", mem / "cgroup.procs"], made
+        if {"cpu", "memory"} <= set((fs / "cgroup.subtree_control").read_text().split()):
+            g = fs / tmp_name
+            g.mkdir()
+            made.append(g)
+            (g / "cpu.max").write_text("50000 100000")
+            (g / "memory.max").write_text(str(GB))
+            return [g / "cgroup.procs"], made
+    except OSError as exc:
+        for d in reversed(made):
+            d.rmdir()
+        pytest.skip(f"no control group can be made here ({exc})")
+    pytest.skip("no cgroup v1 cpu/memory mounts nor a v2 root with both controllers")
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="control groups are Linux's")
+def test_a_real_control_group_caps_the_cores_and_the_memory_checks():
+    """In a real group of half a core and 1 GiB (made where this runs as root, as in a
+    container or a batch job), a process counts 1 core and refuses a 2 GiB allocation at once;
+    the same checks outside it see the machine."""
+    procs, made = _real_group(f"stereodem_test_{os.getpid()}")
+    code = (
+        "import sys\n"
+        "from stereodem.core import memory, threads\n"
+        "from stereodem.core.errors import InputError\n"
+        "try:\n"
+        "    memory.check_allocation(2 * 2**30, 'a 2 GiB grid')\n"
+        "    refused = ''\n"
+        "except InputError as e:\n"
+        "    refused = str(e)\n"
+        "print(threads.cores(), memory.available_bytes() <= 2**30, refused, sep='|')\n"
+    )
+    enter = "; ".join(f"echo $$ > {p}" for p in procs)
+    try:
+        r = subprocess.run(
+            ["sh", "-c", f'{enter}; exec "$0" -c "$1"', sys.executable, code],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        for d in reversed(made):
+            d.rmdir()
+    assert r.returncode == 0, r.stderr
+    cores, within, refused = r.stdout.strip().split("|")
+    assert cores == "1" and within == "True", r.stdout
+    assert re.search(
+        r"a 2 GiB grid needs 2\.15 GB of memory, more than the \d+ MB available", refused
+    )
