@@ -20,6 +20,7 @@ from collections import Counter
 from distributed.comm import get_address_host
 from distributed.diagnostics.plugin import WorkerPlugin
 
+from . import worker_logging
 from .errors import InputError, one_line
 from .threads import cores, pin_threads
 
@@ -82,13 +83,21 @@ class ThreadsPlugin(WorkerPlugin):
     ``threads`` per task slot, default the node's cores shared out over every task slot of
     the workers on that node (``host_slots``: :func:`slots_by_host` when the plugin was
     registered; a worker on a host not in it counts its own slots), at least 1, so a node's
-    workers together use its cores and no more."""
+    workers together use its cores and no more. ``logging_setup``: how the workers set up
+    their logging (:func:`stereodem.core.worker_logging.spec` of the process that started the
+    cluster; None: left alone). Stops the statistical profiler where it deadlocks."""
 
     name = "stereodem-threads"
 
-    def __init__(self, threads: int | None = None, host_slots: dict[str, int] | None = None):
+    def __init__(
+        self,
+        threads: int | None = None,
+        host_slots: dict[str, int] | None = None,
+        logging_setup: tuple | None = None,
+    ):
         self.threads = threads
         self.host_slots = dict(host_slots or {})
+        self.logging_setup = logging_setup  # stereodem.core.worker_logging.spec(), or None
 
     def slots(self, worker) -> int:
         """Task slots sharing ``worker``'s node: the registered count for its host, at least
@@ -102,6 +111,9 @@ class ThreadsPlugin(WorkerPlugin):
 
     def setup(self, worker):
         pin_threads(self.threads or max(1, cores() // self.slots(worker)))
+        # the workers of a cluster this process started log as it does (-q, -v, the format);
+        # a given cluster's workers keep their own logging
+        worker_logging.apply(self.logging_setup)
         if PROFILER_DEADLOCKS and stop_profiler(worker):
             log.info(
                 "Dask worker %s: statistical profiler stopped (Python %s can deadlock in "

@@ -251,14 +251,21 @@ def pool_initargs(n: int, then=None, *args) -> tuple:
     return (n, worker_logging.spec(), then, *args)
 
 
-def register_dask_plugin(client, threads: int | None = None):
+def register_dask_plugin(client, threads: int | None = None, *, own_workers: bool = False):
     """Pin every present and future worker of ``client``'s cluster to ``threads`` per task
     slot (default: each node's cores shared out over the task slots of all the workers on that
     node, counted now: :func:`stereodem.core.dask_threads.slots_by_host`):
-    :class:`stereodem.core.dask_threads.ThreadsPlugin`."""
+    :class:`stereodem.core.dask_threads.ThreadsPlugin`. ``own_workers``: the cluster is one
+    this process started (``--dask local``), whose workers then log as this process does
+    (:mod:`stereodem.core.worker_logging`: ``-q`` silenced the pool's workers' warnings, not
+    the Dask workers'); a given cluster's workers keep their logging."""
     from .dask_threads import ThreadsPlugin, slots_by_host
 
-    plugin = ThreadsPlugin(threads, None if threads else slots_by_host(client))
+    plugin = ThreadsPlugin(
+        threads,
+        None if threads else slots_by_host(client),
+        worker_logging.spec() if own_workers else None,
+    )
     if hasattr(client, "register_plugin"):
         client.register_plugin(plugin, name=ThreadsPlugin.name)
     else:  # pragma: no cover - dask < 2023.9

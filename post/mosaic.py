@@ -712,7 +712,8 @@ def _dask_blocks(plan, todo, address, workers):
     if address in (None, "local"):
         cluster = local_cluster(pool_size(workers))
         client = Client(cluster)
-        register_dask_plugin(client, worker_threads(workers))  # N workers: the cores shared
+        # N workers: the cores shared; they log as this process does
+        register_dask_plugin(client, worker_threads(workers), own_workers=True)
     elif address == "threads":  # in-process cluster (tests)
         cluster = local_cluster(1, max(int(workers or 1), 1), processes=False)
         client = Client(cluster)

@@ -536,7 +536,7 @@ def _run_dask(order, out_root, address, n, scene_options, collect):
 
         client = connect(address)
     try:
-        register_dask_plugin(client)
+        register_dask_plugin(client, own_workers=cluster is not None)
         # scenes run their tiles inside the task (Dask workers are daemon processes: no pool)
         futs = {
             client.submit(

@@ -1,6 +1,7 @@
 """Thread budgets (stereodem.core.threads): the pool, Dask and the main process pin BLAS/OpenMP,
 OpenCV and GDAL threads to what the job's one setting gives them."""
 
+import logging
 import multiprocessing
 import os
 import subprocess
@@ -156,19 +157,26 @@ def test_dask_workers_are_pinned():
 
 
 @pytest.mark.slow
-def test_dask_workers_on_one_node_share_its_cores():
+def test_dask_workers_on_one_node_share_its_cores(monkeypatch):
     """Two single-slot worker processes on this node (a ``LocalCluster``, as ``batch --dask
-    local`` starts): each gets half the cores, not all of them (2 x the cores in all)."""
+    local`` starts): each gets half the cores, not all of them (2 x the cores in all), and,
+    a cluster of this process's own, they log as it does (here ``-q``: errors only; before,
+    ``batch -q --dask local`` printed the scenes' warnings)."""
     distributed = pytest.importorskip("dask.distributed")
+    from stereodem.core import worker_logging
     from stereodem.core.dask_threads import local_cluster
+    from stereodem.progress import setup_logging
 
+    monkeypatch.setattr(worker_logging, "_SPEC", (setup_logging, (0, True)))
     with local_cluster(2) as cluster, distributed.Client(cluster) as client:
-        threads.register_dask_plugin(client)
+        threads.register_dask_plugin(client, own_workers=True)
         limits = client.run(threads.worker_limits)
+        levels = client.run(lambda: __import__("logging").getLogger().getEffectiveLevel())
         # no statistical profiler in the workers (it deadlocks on Python 3.11: dask_threads)
         profiling = client.run(lambda dask_worker: "profile" in dask_worker.periodic_callbacks)
         http = cluster.scheduler.http_server.port  # a free port, not Dask's default 8787
     assert len(limits) == 2 and not any(profiling.values()) and http != 8787
+    assert set(levels.values()) == {logging.ERROR}
     want = max(1, threads.cores() // 2)
     for lim in limits.values():
         assert lim["opencv"] == want and lim["pinned"] == want
@@ -229,8 +237,11 @@ def test_threads_plugin_stops_the_profiler_where_it_deadlocks(monkeypatch, deadl
             self.periodic_callbacks["heartbeat"] = Callback()
             self.callbacks = dict(self.periodic_callbacks)
 
+    applied = []
+    monkeypatch.setattr(dask_threads.worker_logging, "apply", applied.append)
     w = Worker()
     dask_threads.ThreadsPlugin(1).setup(w)
+    assert applied == [None]  # a given cluster's workers keep their own logging
     assert w.callbacks["profile"].running is not deadlocks
     assert w.callbacks["profile-cycle"].running is not deadlocks
     assert w.callbacks["heartbeat"].running and "heartbeat" in w.periodic_callbacks
