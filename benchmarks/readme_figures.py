@@ -27,7 +27,8 @@ RESULTS = Path(__file__).resolve().parent / "results"
 OTHER_MACHINE = "bench_scaling_full_forkserver_fast_machine"
 SESSION_33 = "bench_scaling_full_forkserver_session33"
 SESSION_34 = "bench_scaling_full_forkserver_session34"
-OTHER_MACHINES = (OTHER_MACHINE, SESSION_33, SESSION_34)
+SESSION_35 = "bench_scaling_full_forkserver_session35"
+OTHER_MACHINES = (OTHER_MACHINE, SESSION_33, SESSION_34, SESSION_35)
 
 
 def _x(v, nd=1):
@@ -822,6 +823,10 @@ SUMMARISERS = {
         "The same command on session 34's machine (its ceilings, at the end of the line, "
         "held during the run: a quiet machine): " + scaling(d)
     ),
+    SESSION_35: lambda d: (
+        "The same command on session 35's machine (the same kind as session 34's; the code "
+        "with the control-group-aware core count): " + scaling(d)
+    ),
     "bench_scaling_16_on_2": scaling_16_on_2,
     "cpu_timeline": cpu_timeline,
     "bench_scaling_16_on_2_uncapped": lambda d: (
@@ -969,6 +974,12 @@ BENCHMARKS = {
         "the same, on session 34's machine",
         "python benchmarks/bench_scaling.py --workers 1 2 --repeat 3 --results "
         "benchmarks/results/bench_scaling_full_forkserver_session34.json",
+        "the same job with 1 worker, same run",
+    ),
+    SESSION_35: (
+        "the same, on session 35's machine",
+        "python benchmarks/bench_scaling.py --workers 1 2 --repeat 3 --results "
+        "benchmarks/results/bench_scaling_full_forkserver_session35.json",
         "the same job with 1 worker, same run",
     ),
     "bench_tile": (
