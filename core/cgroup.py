@@ -60,9 +60,9 @@ def _chain(mount: Path, path: str) -> list[Path]:
     return [mount]
 
 
-def _v2_chain() -> list[Path]:
-    """The v2 group folders of this process (a pure v2 mount, or a hybrid's ``unified``)."""
-    groups = _own_groups()
+def _v2_chain(groups: dict[str, str]) -> list[Path]:
+    """The v2 group folders of this process (a pure v2 mount, or a hybrid's ``unified``);
+    ``groups``: :func:`_own_groups`."""
     if "" not in groups:
         return []
     for mount in (CGROUP_FS, CGROUP_FS / "unified"):
@@ -71,9 +71,9 @@ def _v2_chain() -> list[Path]:
     return []
 
 
-def _v1_chain(controller: str) -> list[Path]:
-    """The v1 group folders of ``controller`` (``"cpu"``, ``"memory"``) for this process."""
-    groups = _own_groups()
+def _v1_chain(groups: dict[str, str], controller: str) -> list[Path]:
+    """The v1 group folders of ``controller`` (``"cpu"``, ``"memory"``) for this process;
+    ``groups``: :func:`_own_groups`."""
     if controller not in groups:
         return []
     names = [k for k in groups if controller in k.split(",") and "," in k] + [controller]
@@ -110,14 +110,14 @@ def _stat(path: Path, key: str) -> int:
 def cpu_quota() -> float | None:
     """The CPU time this process's control groups allow, in cores (``quota / period``: 1.5
     for Docker's ``--cpus 1.5``), the tightest along its groups; None without a quota."""
-    quotas = []
-    for folder in _v2_chain():
+    groups, quotas = _own_groups(), []
+    for folder in _v2_chain(groups):
         fields = (_read(folder / "cpu.max") or "").split()
         if len(fields) == 2 and fields[0] != "max":
             q, p = _int(fields[0]), _int(fields[1])
             if q and p and q > 0 and p > 0:
                 quotas.append(q / p)
-    for folder in _v1_chain("cpu"):
+    for folder in _v1_chain(groups, "cpu"):
         q = _int(_read(folder / "cpu.cfs_quota_us"))
         p = _int(_read(folder / "cpu.cfs_period_us"))
         if q and p and q > 0 and p > 0:
@@ -129,13 +129,13 @@ def _memory_groups() -> list[tuple[int, int]]:
     """(limit, working set) in bytes of each group along this process's that has a memory
     limit; the working set is the group's usage less its inactive file cache (what the
     kernel reclaims before the OOM killer acts, as ``docker stats`` and Kubernetes count)."""
-    out = []
-    for folder in _v2_chain():
+    groups, out = _own_groups(), []
+    for folder in _v2_chain(groups):
         limit = _int(_read(folder / "memory.max"))  # "max": no limit (None)
         if limit is not None and limit > 0:
             used = _int(_read(folder / "memory.current")) or 0
             out.append((limit, max(used - _stat(folder / "memory.stat", "inactive_file"), 0)))
-    for folder in _v1_chain("memory"):
+    for folder in _v1_chain(groups, "memory"):
         limit = _int(_read(folder / "memory.limit_in_bytes"))
         if limit is not None and 0 < limit < _V1_NO_LIMIT:
             used = _int(_read(folder / "memory.usage_in_bytes")) or 0

@@ -37,7 +37,8 @@ LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False}
 
 
 def local_cluster(n_workers: int, threads_per_worker: int = 1, processes: bool = True):
-    """A ``LocalCluster`` as every command starts one (``batch``, ``mosaic``, tiles on Dask):
+    """A ``LocalCluster`` as every command starts one (``batch --dask local``, ``mosaic``; the
+    tests' clusters too):
     ``n_workers`` workers of ``threads_per_worker`` task slots, in processes or in this
     one, without the profiler (:data:`LOCAL_CLUSTER_CONFIG`), and its HTTP server on a free
     port (``dashboard_address=None`` turns the dashboard off but the scheduler's HTTP server
